@@ -1,0 +1,43 @@
+// A scene's triangles resident on the GPU, uploaded lazily by the first query
+// that needs them. Positions are stored as float32 relative to an anchor (the
+// scene's bounds center): algorithms build their transforms in double
+// relative to the same anchor, so a world far from the origin loses nothing
+// beyond float32 precision over the scene's own extent.
+#pragma once
+
+#include <memory>
+
+#include <glm/glm.hpp>
+
+#include "common/status.h"
+#include "scene/scene.h"
+#include "visq/gpu/gpu_worker.h"
+
+namespace visq::gpu {
+
+class GpuScene {
+ public:
+  // Runs the upload on the GL thread and waits for it.
+  [[nodiscard]] static StatusOr<std::shared_ptr<GpuScene>> Upload(GpuWorker& worker, const Scene& scene);
+  ~GpuScene();  // releases the GL objects on the GL thread
+  GpuScene(const GpuScene&) = delete;
+  GpuScene& operator=(const GpuScene&) = delete;
+
+  const glm::dvec3& anchor() const { return anchor_; }
+  uint32_t triangle_count() const { return triangle_count_; }
+  uint64_t gpu_bytes() const { return gpu_bytes_; }
+
+  // GL objects, for algorithm code inside gpu/ (defined in src/gpu_scene_resources.h).
+  struct Resources;
+  const Resources& resources() const { return *resources_; }
+
+ private:
+  GpuScene() = default;
+  GpuWorker* worker_ = nullptr;
+  std::shared_ptr<Resources> resources_;
+  glm::dvec3 anchor_{0.0};
+  uint32_t triangle_count_ = 0;
+  uint64_t gpu_bytes_ = 0;
+};
+
+}  // namespace visq::gpu

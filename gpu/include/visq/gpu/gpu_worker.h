@@ -1,0 +1,85 @@
+// The GPU's public face: one worker thread that owns the EGL context and runs
+// every GL command. Nothing outside gpu/ sees a GL type; callers hand the
+// worker jobs (the algorithm entry points in gpu/ do this) and wait for them.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <functional>
+#include <memory>
+#include <string>
+
+#include "common/status.h"
+
+namespace visq::gpu {
+
+struct GpuOptions {
+  // "auto": an EGL device that is not a software renderer (an NVIDIA GPU),
+  // else Mesa surfaceless (llvmpipe). "surfaceless": Mesa only. "device:N":
+  // the N-th EGL device. Also settable with VISQ_EGL_DEVICE.
+  std::string device = "auto";
+  // Route KHR_debug messages to the log and check glGetError after steps.
+  bool debug = false;
+};
+
+struct DeviceInfo {
+  std::string egl_platform;  // "device" or "surfaceless"
+  std::string egl_device;    // DRM node or extension summary
+  std::string gl_vendor;
+  std::string gl_renderer;
+  std::string gl_version;
+  bool software = false;     // llvmpipe or another CPU rasterizer
+};
+
+using SteadyTime = std::chrono::steady_clock::time_point;
+
+struct JobOptions {
+  // Lower runs first; equal priorities run in arrival order. Small queries
+  // use kInteractive so that long bakes (kBatch, split into steps) do not
+  // starve them.
+  int priority = 0;
+  SteadyTime deadline = SteadyTime::max();
+  // Checked before the job starts, and by long jobs between steps.
+  const std::atomic<bool>* cancelled = nullptr;
+};
+inline constexpr int kInteractive = 0;
+inline constexpr int kBatch = 10;
+
+struct JobTiming {
+  double queue_ms = 0;  // from submission to start on the GL thread
+  double run_ms = 0;    // on the GL thread, GPU work finished (glFinish)
+};
+
+class GpuWorker {
+ public:
+  // Starts the GL thread and waits until it has a context (or failed to get
+  // one: the error names the EGL call and error).
+  [[nodiscard]] static StatusOr<std::unique_ptr<GpuWorker>> Start(const GpuOptions& options);
+  ~GpuWorker();  // finishes queued jobs, then destroys the context on its thread
+  GpuWorker(const GpuWorker&) = delete;
+  GpuWorker& operator=(const GpuWorker&) = delete;
+
+  const DeviceInfo& device() const;
+  size_t queue_depth() const;
+
+  // Runs `body` on the GL thread and waits for it. A job whose deadline has
+  // passed or that was cancelled before it starts does not run
+  // (DEADLINE_EXCEEDED / CANCELLED). A GL error raised by the job fails it
+  // with INTERNAL; the next job starts from a clean error state.
+  [[nodiscard]] Status Run(const JobOptions& options, std::function<Status()> body,
+                           JobTiming* timing = nullptr);
+  // Queues `body` without waiting (GL object deletion from other threads).
+  void Post(std::function<void()> body);
+
+  class Impl;
+
+ private:
+  explicit GpuWorker(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// Draws a known picture and reads it back: proves at start-up that the chosen
+// device really rasterizes, not just that a context exists.
+[[nodiscard]] Status RunSelfTest(GpuWorker& worker);
+
+}  // namespace visq::gpu

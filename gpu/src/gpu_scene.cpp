@@ -1,0 +1,48 @@
+#include "visq/gpu/gpu_scene.h"
+
+#include <vector>
+
+#include "gl_check.h"
+#include "gpu_scene_resources.h"
+
+namespace visq::gpu {
+
+StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Scene& scene) {
+  std::shared_ptr<GpuScene> out(new GpuScene());
+  out->worker_ = &worker;
+  out->anchor_ = scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center();
+  out->triangle_count_ = static_cast<uint32_t>(scene.TriangleCount());
+
+  // Corner positions relative to the anchor, converted on this thread so the
+  // GL thread only copies.
+  std::vector<glm::vec3> corners;
+  corners.reserve(scene.TriangleCount() * 3);
+  for (size_t t = 0; t < scene.TriangleCount(); ++t)
+    for (int c = 0; c < 3; ++c) corners.emplace_back(scene.Vertex(t, c) - out->anchor_);
+
+  Status status = worker.Run({}, [&]() -> Status {
+    auto resources = std::make_shared<Resources>();
+    glNamedBufferStorage(resources->positions.id(), corners.size() * sizeof(glm::vec3), corners.data(), 0);
+    glNamedBufferStorage(resources->triangle_materials.id(), scene.triangle_material.size() * sizeof(uint32_t),
+                         scene.triangle_material.data(), 0);
+    const GLuint vao = resources->vertex_array.id();
+    glVertexArrayVertexBuffer(vao, 0, resources->positions.id(), 0, sizeof(glm::vec3));
+    glEnableVertexArrayAttrib(vao, 0);
+    glVertexArrayAttribFormat(vao, 0, 3, GL_FLOAT, GL_FALSE, 0);
+    glVertexArrayAttribBinding(vao, 0, 0);
+    resources->vertex_count = static_cast<GLsizei>(corners.size());
+    VISQ_RETURN_IF_ERROR(CollectGlErrors("scene upload"));
+    out->resources_ = std::move(resources);
+    return absl::OkStatus();
+  });
+  VISQ_RETURN_IF_ERROR(status);
+  out->gpu_bytes_ = corners.size() * sizeof(glm::vec3) + scene.triangle_material.size() * sizeof(uint32_t);
+  return out;
+}
+
+GpuScene::~GpuScene() {
+  // GL objects die on the GL thread: the posted job holds the last reference.
+  if (resources_ && worker_) worker_->Post([resources = std::move(resources_)]() mutable { resources.reset(); });
+}
+
+}  // namespace visq::gpu

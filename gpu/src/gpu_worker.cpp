@@ -1,0 +1,191 @@
+#include "visq/gpu/gpu_worker.h"
+
+#include <condition_variable>
+#include <future>
+#include <mutex>
+#include <queue>
+#include <thread>
+
+#include <epoxy/gl.h>
+#include <spdlog/spdlog.h>
+
+#include "egl_context.h"
+#include "gl_check.h"
+
+namespace visq::gpu {
+namespace {
+
+double MillisecondsBetween(SteadyTime a, SteadyTime b) {
+  return std::chrono::duration<double, std::milli>(b - a).count();
+}
+
+void GLAPIENTRY LogDebugMessage(GLenum, GLenum type, GLuint id, GLenum severity, GLsizei length,
+                                const GLchar* message, const void*) {
+  const std::string_view text(message, length > 0 ? static_cast<size_t>(length) : std::strlen(message));
+  if (severity == GL_DEBUG_SEVERITY_HIGH || type == GL_DEBUG_TYPE_ERROR)
+    spdlog::error("GL [{}]: {}", id, text);
+  else if (severity == GL_DEBUG_SEVERITY_MEDIUM)
+    spdlog::warn("GL [{}]: {}", id, text);
+  else
+    spdlog::debug("GL [{}]: {}", id, text);
+}
+
+struct Job {
+  int priority = 0;
+  uint64_t sequence = 0;
+  JobOptions options;
+  SteadyTime submitted;
+  std::function<Status()> body;
+  std::promise<Status> done;  // unset for fire-and-forget jobs
+  bool wants_result = false;
+  JobTiming* timing = nullptr;
+};
+
+struct JobOrder {
+  bool operator()(const std::unique_ptr<Job>& a, const std::unique_ptr<Job>& b) const {
+    if (a->priority != b->priority) return a->priority > b->priority;
+    return a->sequence > b->sequence;
+  }
+};
+
+}  // namespace
+
+class GpuWorker::Impl {
+ public:
+  explicit Impl(GpuOptions options) : options_(std::move(options)) {}
+
+  Status Start() {
+    std::promise<Status> ready;
+    auto ready_future = ready.get_future();
+    thread_ = std::thread([this, &ready] { Loop(ready); });
+    Status status = ready_future.get();
+    if (!status.ok()) thread_.join();
+    return status;
+  }
+
+  ~Impl() {
+    if (!thread_.joinable()) return;
+    {
+      std::lock_guard lock(mutex_);
+      stopping_ = true;
+    }
+    wake_.notify_all();
+    thread_.join();
+  }
+
+  Status Run(const JobOptions& options, std::function<Status()> body, JobTiming* timing) {
+    auto job = std::make_unique<Job>();
+    job->options = options;
+    job->priority = options.priority;
+    job->body = std::move(body);
+    job->wants_result = true;
+    job->timing = timing;
+    auto result = job->done.get_future();
+    Enqueue(std::move(job));
+    return result.get();
+  }
+
+  void Post(std::function<void()> body) {
+    auto job = std::make_unique<Job>();
+    job->priority = -1;  // cleanup first: frees memory for what follows
+    job->body = [body = std::move(body)] { body(); return absl::OkStatus(); };
+    Enqueue(std::move(job));
+  }
+
+  size_t depth() const {
+    std::lock_guard lock(mutex_);
+    return queue_.size();
+  }
+
+  DeviceInfo info;
+
+ private:
+  void Enqueue(std::unique_ptr<Job> job) {
+    {
+      std::lock_guard lock(mutex_);
+      job->sequence = next_sequence_++;
+      job->submitted = std::chrono::steady_clock::now();
+      queue_.push(std::move(job));
+    }
+    wake_.notify_one();
+  }
+
+  void Loop(std::promise<Status>& ready) {
+    // The context is created on this thread and never leaves it.
+    StatusOr<EglContext> context = EglContext::CreateCurrent(options_);
+    if (!context.ok()) {
+      ready.set_value(context.status());
+      return;
+    }
+    info = context->info();
+    SetGlChecksEnabled(options_.debug);
+    if (options_.debug && epoxy_has_gl_extension("GL_KHR_debug")) {
+      glEnable(GL_DEBUG_OUTPUT);
+      glEnable(GL_DEBUG_OUTPUT_SYNCHRONOUS);
+      glDebugMessageCallback(LogDebugMessage, nullptr);
+    }
+    ready.set_value(absl::OkStatus());
+
+    for (;;) {
+      std::unique_ptr<Job> job;
+      {
+        std::unique_lock lock(mutex_);
+        wake_.wait(lock, [&] { return stopping_ || !queue_.empty(); });
+        if (queue_.empty()) break;  // stopping, and everything queued has run
+        job = std::move(const_cast<std::unique_ptr<Job>&>(queue_.top()));
+        queue_.pop();
+      }
+      Execute(*job);
+    }
+    // Jobs are done; GL objects they owned were released by Post()ed jobs.
+  }
+
+  void Execute(Job& job) {
+    const SteadyTime start = std::chrono::steady_clock::now();
+    Status status;
+    if (job.options.cancelled && job.options.cancelled->load()) {
+      status = absl::CancelledError("cancelled while queued for the GPU");
+    } else if (start > job.options.deadline) {
+      status = absl::DeadlineExceededError("deadline passed while queued for the GPU");
+    } else {
+      status = job.body();
+      // Errors the job did not check are still its errors, not the next job's.
+      Status gl_status = CollectGlErrors("GPU job");
+      if (status.ok() && !gl_status.ok()) status = gl_status;
+    }
+    if (job.timing) {
+      job.timing->queue_ms = MillisecondsBetween(job.submitted, start);
+      job.timing->run_ms = MillisecondsBetween(start, std::chrono::steady_clock::now());
+    }
+    if (job.wants_result) job.done.set_value(std::move(status));
+    else if (!status.ok()) spdlog::warn("GPU background job failed: {}", status.message());
+  }
+
+  GpuOptions options_;
+  std::thread thread_;
+  mutable std::mutex mutex_;
+  std::condition_variable wake_;
+  std::priority_queue<std::unique_ptr<Job>, std::vector<std::unique_ptr<Job>>, JobOrder> queue_;
+  uint64_t next_sequence_ = 0;
+  bool stopping_ = false;
+};
+
+GpuWorker::GpuWorker(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+GpuWorker::~GpuWorker() = default;
+
+StatusOr<std::unique_ptr<GpuWorker>> GpuWorker::Start(const GpuOptions& options) {
+  auto impl = std::make_unique<Impl>(options);
+  VISQ_RETURN_IF_ERROR(impl->Start());
+  return std::unique_ptr<GpuWorker>(new GpuWorker(std::move(impl)));
+}
+
+const DeviceInfo& GpuWorker::device() const { return impl_->info; }
+size_t GpuWorker::queue_depth() const { return impl_->depth(); }
+
+Status GpuWorker::Run(const JobOptions& options, std::function<Status()> body, JobTiming* timing) {
+  return impl_->Run(options, std::move(body), timing);
+}
+
+void GpuWorker::Post(std::function<void()> body) { impl_->Post(std::move(body)); }
+
+}  // namespace visq::gpu

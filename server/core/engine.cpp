@@ -1,0 +1,229 @@
+#include "core/engine.h"
+
+#include <chrono>
+#include <mutex>
+
+#include <absl/strings/str_join.h>
+#include <spdlog/spdlog.h>
+#include <xxhash.h>
+
+#include "scene/gltf_loader.h"
+
+namespace visq {
+namespace {
+
+std::mutex& CommitMutex() {
+  // Serializes the check-then-commit of uploads and loads of one engine at a
+  // time; parsing happens outside it.
+  static std::mutex mutex;
+  return mutex;
+}
+
+double MillisecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+}  // namespace
+
+std::string SceneContentHash(const Scene& scene) {
+  XXH3_state_t* state = XXH3_createState();
+  XXH3_128bits_reset(state);
+  XXH3_128bits_update(state, scene.positions.data(), scene.positions.size() * sizeof(glm::dvec3));
+  XXH3_128bits_update(state, scene.triangles.data(), scene.triangles.size() * sizeof(glm::uvec3));
+  XXH3_128bits_update(state, scene.triangle_material.data(), scene.triangle_material.size() * sizeof(uint32_t));
+  for (const auto& m : scene.materials) {
+    XXH3_128bits_update(state, &m.reflectivity, sizeof(m.reflectivity));
+    XXH3_128bits_update(state, &m.emission, sizeof(m.emission));
+  }
+  const XXH128_hash_t hash = XXH3_128bits_digest(state);
+  XXH3_freeState(state);
+  return absl::StrCat(absl::Hex(hash.high64, absl::kZeroPad16), absl::Hex(hash.low64, absl::kZeroPad16));
+}
+
+StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
+  std::unique_ptr<Engine> engine(new Engine());
+  engine->options_ = options;
+  VISQ_ASSIGN_OR_RETURN(engine->repository_, SceneRepository::Open(options.scene_repo));
+  VISQ_ASSIGN_OR_RETURN(engine->gpu_, gpu::GpuWorker::Start(options.gpu));
+  const auto& device = engine->gpu_->device();
+  spdlog::info("GPU: {} / {} / OpenGL {} via EGL {} ({}){}", device.gl_vendor, device.gl_renderer,
+               device.gl_version, device.egl_platform, device.egl_device, device.software ? ", software" : "");
+  VISQ_RETURN_IF_ERROR(gpu::RunSelfTest(*engine->gpu_));
+  return engine;
+}
+
+Engine::~Engine() = default;
+
+void Engine::LoadRepositoryScenes() {
+  for (const std::string& name : repository_->List()) {
+    StatusOr<SceneSummary> loaded = LoadFromRepository(name, /*replace=*/true);
+    if (!loaded.ok()) spdlog::error("scene '{}' from the repository not loaded: {}", name, loaded.status().message());
+  }
+}
+
+StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
+                                            bool persisted) {
+  const auto start = std::chrono::steady_clock::now();
+  GltfLoadReport report;
+  VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(main_file, &report));
+  auto resident = std::make_shared<ResidentScene>();
+  resident->name = std::move(name);
+  resident->content_hash = SceneContentHash(scene);
+  resident->scene = std::make_shared<const Scene>(std::move(scene));
+  resident->dropped = std::move(report.dropped);
+  resident->persisted = persisted;
+  resident->load_ms = MillisecondsSince(start);
+  {
+    std::unique_lock lock(scenes_mutex_);
+    if (!replace && scenes_.count(resident->name))
+      return absl::AlreadyExistsError(absl::StrCat("scene '", resident->name, "' is already resident (set replace)"));
+    resident->version = ++last_version_[resident->name];
+    scenes_[resident->name] = resident;
+  }
+  if (!resident->dropped.empty())
+    spdlog::info("scene '{}': dropped {}", resident->name, absl::StrJoin(resident->dropped, ", "));
+  spdlog::info("scene '{}' v{} resident: {} triangles, {:.1f} ms", resident->name, resident->version,
+               resident->scene->TriangleCount(), resident->load_ms);
+  return Summarize(*resident, false);
+}
+
+StatusOr<SceneSummary> Engine::LoadFromRepository(absl::string_view name, bool replace) {
+  VISQ_ASSIGN_OR_RETURN(std::filesystem::path main_file, repository_->MainFile(name));
+  return MakeResident(std::string(name), main_file, replace, /*persisted=*/true);
+}
+
+StatusOr<std::unique_ptr<SceneUpload>> Engine::BeginUpload(absl::string_view name, absl::string_view main_file,
+                                                           bool replace, uint64_t expected_bytes) {
+  VISQ_RETURN_IF_ERROR(SceneRepository::ValidateName(name));
+  if (expected_bytes > options_.max_upload_bytes)
+    return absl::ResourceExhaustedError(absl::StrCat("upload of ", expected_bytes,
+                                                     " bytes exceeds the server's upload limit of ",
+                                                     options_.max_upload_bytes, " bytes (--max-upload-bytes)"));
+  if (!replace) {
+    std::shared_lock lock(scenes_mutex_);
+    if (scenes_.count(name))
+      return absl::AlreadyExistsError(absl::StrCat("scene '", name, "' is already resident (set replace)"));
+  }
+  auto upload = std::make_unique<SceneUpload>();
+  VISQ_ASSIGN_OR_RETURN(upload->staging_, repository_->BeginUpload(name, main_file, options_.max_upload_bytes));
+  upload->replace_ = replace;
+  return upload;
+}
+
+StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload) {
+  const auto start = std::chrono::steady_clock::now();
+  UploadStaging& staging = *upload->staging_;
+  // Parse from the staging folder first: a malformed upload never reaches
+  // the repository, and the staging folder goes with `upload`.
+  GltfLoadReport report;
+  VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report));
+
+  std::lock_guard commit_lock(CommitMutex());
+  {
+    std::shared_lock lock(scenes_mutex_);
+    if (!upload->replace_ && (scenes_.count(staging.name()) || repository_->Contains(staging.name())))
+      return absl::AlreadyExistsError(absl::StrCat("scene '", staging.name(), "' already exists (set replace)"));
+  }
+  VISQ_RETURN_IF_ERROR(repository_->Commit(staging).status());
+
+  auto resident = std::make_shared<ResidentScene>();
+  resident->name = staging.name();
+  resident->content_hash = SceneContentHash(scene);
+  resident->scene = std::make_shared<const Scene>(std::move(scene));
+  resident->dropped = std::move(report.dropped);
+  resident->persisted = true;
+  resident->load_ms = MillisecondsSince(start);
+  {
+    std::unique_lock lock(scenes_mutex_);
+    resident->version = ++last_version_[resident->name];
+    scenes_[resident->name] = resident;
+  }
+  spdlog::info("scene '{}' v{} uploaded ({} bytes): {} triangles, {:.1f} ms", resident->name, resident->version,
+               staging.bytes(), resident->scene->TriangleCount(), resident->load_ms);
+  if (!resident->dropped.empty())
+    spdlog::info("scene '{}': dropped {}", resident->name, absl::StrJoin(resident->dropped, ", "));
+  return Summarize(*resident, false);
+}
+
+std::vector<SceneSummary> Engine::ListScenes() const {
+  std::vector<SceneSummary> out;
+  std::shared_lock lock(scenes_mutex_);
+  for (const auto& [name, resident] : scenes_) out.push_back(Summarize(*resident, false));
+  return out;
+}
+
+StatusOr<SceneSummary> Engine::GetScene(absl::string_view name, bool with_nodes) const {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident, FindScene(name, 0));
+  return Summarize(*resident, with_nodes);
+}
+
+StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repository) {
+  VISQ_RETURN_IF_ERROR(SceneRepository::ValidateName(name));
+  std::lock_guard commit_lock(CommitMutex());
+  bool was_resident = false;
+  {
+    std::unique_lock lock(scenes_mutex_);
+    auto it = scenes_.find(name);
+    if (it != scenes_.end()) {
+      scenes_.erase(it);
+      was_resident = true;
+    }
+  }
+  if (delete_from_repository) {
+    Status removed = repository_->Remove(name);
+    if (removed.ok()) return true;
+    if (!absl::IsNotFound(removed) || !was_resident) return removed;
+    return false;
+  }
+  if (!was_resident) return absl::NotFoundError(absl::StrCat("scene '", name, "' is not resident"));
+  return false;
+}
+
+StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_view name, uint64_t version) const {
+  std::shared_lock lock(scenes_mutex_);
+  auto it = scenes_.find(name);
+  if (it == scenes_.end()) return absl::NotFoundError(absl::StrCat("scene '", name, "' is not resident"));
+  if (version != 0 && it->second->version != version)
+    return absl::FailedPreconditionError(absl::StrCat("scene '", name, "' is at version ", it->second->version,
+                                                      ", the request names version ", version));
+  return it->second;
+}
+
+StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneOf(const ResidentScene& resident) {
+  std::lock_guard lock(resident.lazy_mutex);
+  if (!resident.gpu_scene) {
+    const auto start = std::chrono::steady_clock::now();
+    VISQ_ASSIGN_OR_RETURN(resident.gpu_scene, gpu::GpuScene::Upload(*gpu_, *resident.scene));
+    spdlog::info("scene '{}' v{}: GPU upload of {} bytes in {:.1f} ms", resident.name, resident.version,
+                 resident.gpu_scene->gpu_bytes(), MillisecondsSince(start));
+  }
+  return resident.gpu_scene;
+}
+
+SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) const {
+  const Scene& scene = *resident.scene;
+  SceneSummary s;
+  s.name = resident.name;
+  s.version = resident.version;
+  s.triangles = scene.TriangleCount();
+  s.vertices = scene.positions.size();
+  s.bounds = scene.bounds;
+  s.content_hash = resident.content_hash;
+  s.cpu_bytes = scene.CpuBytes();
+  {
+    // Nothing is uploaded until a GPU query needs it.
+    std::lock_guard lock(resident.lazy_mutex);
+    s.gpu_bytes = resident.gpu_scene ? resident.gpu_scene->gpu_bytes() : 0;
+  }
+  s.materials = static_cast<uint32_t>(scene.materials.size());
+  for (uint32_t m : scene.triangle_material)
+    if (glm::dot(scene.materials[m].emission, glm::dvec3(1.0)) > 0.0) ++s.emissive_triangles;
+  s.has_lightmap_uvs = !scene.lightmap_uvs.empty();
+  s.dropped = resident.dropped;
+  s.load_ms = resident.load_ms;
+  s.persisted = resident.persisted;
+  if (with_nodes) s.nodes = scene.nodes;
+  return s;
+}
+
+}  // namespace visq

@@ -1,0 +1,130 @@
+// The core API of visq: resident scenes and the queries on them. The gRPC
+// service is a thin layer over this class; nothing here knows protobuf.
+#pragma once
+
+#include <atomic>
+#include <filesystem>
+#include <map>
+#include <mutex>
+#include <memory>
+#include <shared_mutex>
+#include <string>
+#include <vector>
+
+#include "common/status.h"
+#include "core/scene_repository.h"
+#include "scene/scene.h"
+#include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/gpu_worker.h"
+
+namespace visq {
+
+struct EngineOptions {
+  std::filesystem::path scene_repo = "scenes";
+  gpu::GpuOptions gpu;
+  uint64_t max_upload_bytes = 4ull << 30;
+  // Load every scene of the repository at start (resident from the first
+  // request on).
+  bool load_repository_at_start = true;
+};
+
+// A scene as the server holds it: immutable geometry plus the lazily built
+// structures queries add. A new version is a new ResidentScene.
+struct ResidentScene {
+  std::string name;
+  uint64_t version = 0;
+  std::shared_ptr<const Scene> scene;
+  std::string content_hash;
+  std::vector<std::string> dropped;
+  double load_ms = 0;
+  bool persisted = false;
+
+  // Structures built on first use by the queries that need them, and only
+  // then: a scene that is never queried on the GPU never costs GPU memory.
+  mutable std::mutex lazy_mutex;
+  mutable std::shared_ptr<gpu::GpuScene> gpu_scene;
+};
+
+struct SceneSummary {
+  std::string name;
+  uint64_t version = 0;
+  uint64_t triangles = 0;
+  uint64_t vertices = 0;
+  Bounds bounds;
+  std::string content_hash;
+  uint64_t cpu_bytes = 0;
+  uint64_t gpu_bytes = 0;
+  uint32_t materials = 0;
+  uint32_t emissive_triangles = 0;
+  bool has_lightmap_uvs = false;
+  std::vector<std::string> dropped;
+  double load_ms = 0;
+  bool persisted = false;
+  std::vector<SceneNode> nodes;  // filled on request
+};
+
+// An upload in progress: chunks are written to the repository's staging
+// area; Finish() parses, stores atomically and makes the scene resident.
+class SceneUpload {
+ public:
+  [[nodiscard]] Status Append(absl::string_view file, absl::string_view data) { return staging_->Append(file, data); }
+  uint64_t bytes() const { return staging_->bytes(); }
+
+ private:
+  friend class Engine;
+  std::unique_ptr<UploadStaging> staging_;
+  bool replace_ = false;
+};
+
+class Engine {
+ public:
+  // Opens the repository and starts the GL thread; does not load scenes yet
+  // (LoadRepositoryScenes), so the server can report NOT_SERVING meanwhile.
+  [[nodiscard]] static StatusOr<std::unique_ptr<Engine>> Create(const EngineOptions& options);
+  ~Engine();
+
+  // Loads every scene in the repository; a scene that fails to load is
+  // logged and skipped, never fatal.
+  void LoadRepositoryScenes();
+
+  [[nodiscard]] StatusOr<SceneSummary> LoadFromRepository(absl::string_view name, bool replace);
+  [[nodiscard]] StatusOr<std::unique_ptr<SceneUpload>> BeginUpload(absl::string_view name,
+                                                                   absl::string_view main_file, bool replace,
+                                                                   uint64_t expected_bytes);
+  [[nodiscard]] StatusOr<SceneSummary> FinishUpload(std::unique_ptr<SceneUpload> upload);
+
+  std::vector<SceneSummary> ListScenes() const;
+  [[nodiscard]] StatusOr<SceneSummary> GetScene(absl::string_view name, bool with_nodes) const;
+  // Returns whether the scene was also deleted from the repository.
+  [[nodiscard]] StatusOr<bool> UnloadScene(absl::string_view name, bool delete_from_repository);
+
+  // The resident scene for a query: NOT_FOUND if unknown, FAILED_PRECONDITION
+  // if `version` is non-zero and not the resident one.
+  [[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> FindScene(absl::string_view name,
+                                                                         uint64_t version) const;
+
+  // The scene's GPU buffers, uploaded by the first caller.
+  [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneOf(const ResidentScene& resident);
+
+  const gpu::DeviceInfo& device() const { return gpu_->device(); }
+  gpu::GpuWorker& gpu() { return *gpu_; }
+  const SceneRepository& repository() const { return *repository_; }
+
+ private:
+  Engine() = default;
+  StatusOr<SceneSummary> MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
+                                      bool persisted);
+  SceneSummary Summarize(const ResidentScene& resident, bool with_nodes) const;
+
+  EngineOptions options_;
+  std::unique_ptr<SceneRepository> repository_;
+  std::unique_ptr<gpu::GpuWorker> gpu_;
+  mutable std::shared_mutex scenes_mutex_;
+  std::map<std::string, std::shared_ptr<const ResidentScene>, std::less<>> scenes_;
+  std::map<std::string, uint64_t, std::less<>> last_version_;  // versions survive unload/reload
+};
+
+// XXH3-128 of the flattened geometry and materials, as 32 hex digits.
+std::string SceneContentHash(const Scene& scene);
+
+}  // namespace visq

@@ -1,0 +1,283 @@
+#include "core/scene_repository.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstdio>
+#include <cstring>
+#include <random>
+#include <set>
+
+#include <spdlog/spdlog.h>
+
+namespace visq {
+namespace fs = std::filesystem;
+namespace {
+
+constexpr size_t kMaxNameLength = 128;
+constexpr std::string_view kStagingPrefix = ".staging-";
+constexpr std::string_view kMainFileMarker = ".visq-main";
+
+Status ErrnoError(absl::string_view what, const fs::path& path) {
+  return absl::InternalError(absl::StrCat(what, " ", path.string(), ": ", std::strerror(errno)));
+}
+
+bool IsSceneFile(const fs::path& path) {
+  const std::string ext = path.extension().string();
+  return ext == ".gltf" || ext == ".glb";
+}
+
+Status FsyncPath(const fs::path& path, bool directory) {
+  const int fd = ::open(path.c_str(), (directory ? O_DIRECTORY : 0) | O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return ErrnoError("open for fsync", path);
+  const int rc = ::fsync(fd);
+  ::close(fd);
+  if (rc != 0) return ErrnoError("fsync", path);
+  return absl::OkStatus();
+}
+
+// A relative file name inside an upload: no absolute paths, no "..", no
+// hidden components (which are the repository's own).
+Status ValidateUploadFile(absl::string_view file) {
+  if (file.empty() || file.size() > 512) return absl::InvalidArgumentError("chunk.file: empty or too long");
+  const fs::path path{std::string(file)};
+  if (path.is_absolute()) return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': absolute path"));
+  for (const auto& part : path) {
+    const std::string s = part.string();
+    if (s == ".." || s == "." || s.empty() || s[0] == '.')
+      return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': '", s, "' is not allowed"));
+    for (char c : s)
+      if (c == '\\' || c == '\0' || static_cast<unsigned char>(c) < 0x20)
+        return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': control or backslash character"));
+  }
+  return absl::OkStatus();
+}
+
+std::string RandomSuffix() {
+  static thread_local std::mt19937_64 rng{std::random_device{}()};
+  return absl::StrCat(absl::Hex(rng(), absl::kZeroPad16));
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------
+// UploadStaging
+
+UploadStaging::UploadStaging(fs::path dir, std::string name, std::string main_file, uint64_t max_bytes)
+    : dir_(std::move(dir)), name_(std::move(name)), main_file_(std::move(main_file)), max_bytes_(max_bytes) {}
+
+UploadStaging::~UploadStaging() {
+  if (open_fd_ >= 0) ::close(open_fd_);
+  if (!committed_) {
+    std::error_code ec;
+    fs::remove_all(dir_, ec);
+  }
+}
+
+Status UploadStaging::Append(absl::string_view file, absl::string_view data) {
+  VISQ_RETURN_IF_ERROR(ValidateUploadFile(file));
+  if (bytes_ + data.size() > max_bytes_)
+    return absl::ResourceExhaustedError(
+        absl::StrCat("upload exceeds the server's upload limit of ", max_bytes_, " bytes (--max-upload-bytes)"));
+  if (file != open_file_) {
+    // Chunks of one file arrive together; a file seen before must not reopen.
+    if (std::find(files_.begin(), files_.end(), std::string(file)) != files_.end())
+      return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': chunks of a file must be contiguous"));
+    if (open_fd_ >= 0) {
+      if (::fsync(open_fd_) != 0) return ErrnoError("fsync", dir_ / open_file_);
+      ::close(open_fd_);
+      open_fd_ = -1;
+    }
+    const fs::path path = dir_ / fs::path(std::string(file));
+    std::error_code ec;
+    fs::create_directories(path.parent_path(), ec);
+    if (ec) return absl::InternalError(absl::StrCat("create ", path.parent_path().string(), ": ", ec.message()));
+    open_fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | O_NOFOLLOW, 0644);
+    if (open_fd_ < 0) return ErrnoError("create", path);
+    open_file_ = std::string(file);
+    files_.push_back(open_file_);
+  }
+  size_t written = 0;
+  while (written < data.size()) {
+    const ssize_t n = ::write(open_fd_, data.data() + written, data.size() - written);
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      return ErrnoError("write", dir_ / open_file_);
+    }
+    written += static_cast<size_t>(n);
+  }
+  bytes_ += data.size();
+  return absl::OkStatus();
+}
+
+Status UploadStaging::CloseAll() {
+  if (open_fd_ >= 0) {
+    if (::fsync(open_fd_) != 0) return ErrnoError("fsync", dir_ / open_file_);
+    ::close(open_fd_);
+    open_fd_ = -1;
+  }
+  open_file_.clear();
+  return absl::OkStatus();
+}
+
+// ---------------------------------------------------------------------------
+// SceneRepository
+
+Status SceneRepository::ValidateName(absl::string_view name) {
+  if (name.empty()) return absl::InvalidArgumentError("scene name is empty");
+  if (name.size() > kMaxNameLength)
+    return absl::InvalidArgumentError(absl::StrCat("scene name longer than ", kMaxNameLength, " characters"));
+  if (name[0] == '.') return absl::InvalidArgumentError(absl::StrCat("scene name '", name, "' starts with '.'"));
+  for (char c : name) {
+    const bool ok = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '.' ||
+                    c == '_' || c == '-';
+    if (!ok)
+      return absl::InvalidArgumentError(
+          absl::StrCat("scene name '", name, "': only letters, digits, '.', '_' and '-' are allowed"));
+  }
+  return absl::OkStatus();
+}
+
+StatusOr<std::unique_ptr<SceneRepository>> SceneRepository::Open(const fs::path& root) {
+  std::error_code ec;
+  fs::create_directories(root, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat("scene repository ", root.string(), ": ", ec.message()));
+  const fs::path canonical = fs::canonical(root, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat("scene repository ", root.string(), ": ", ec.message()));
+  // Staging folders left by a crash never became scenes: remove them.
+  for (const auto& entry : fs::directory_iterator(canonical, ec)) {
+    const std::string file = entry.path().filename().string();
+    if (file.rfind(kStagingPrefix, 0) == 0) {
+      spdlog::warn("removing staging folder left by an interrupted upload: {}", file);
+      fs::remove_all(entry.path(), ec);
+    }
+  }
+  return std::unique_ptr<SceneRepository>(new SceneRepository(canonical));
+}
+
+std::vector<std::string> SceneRepository::List() const {
+  std::set<std::string> names;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(root_, ec)) {
+    const fs::path& path = entry.path();
+    std::string name = entry.is_directory() ? path.filename().string() : path.stem().string();
+    if (!ValidateName(name).ok()) continue;
+    if (entry.is_directory() || IsSceneFile(path))
+      if (MainFile(name).ok()) names.insert(name);
+  }
+  return {names.begin(), names.end()};
+}
+
+StatusOr<fs::path> SceneRepository::MainFile(absl::string_view name) const {
+  VISQ_RETURN_IF_ERROR(ValidateName(name));
+  std::error_code ec;
+  const fs::path folder = root_ / std::string(name);
+  fs::path candidate;
+  if (fs::is_directory(folder, ec)) {
+    // An uploaded folder names its main file; a hand-made one has exactly one.
+    std::FILE* marker = std::fopen((folder / std::string(kMainFileMarker)).c_str(), "r");
+    if (marker != nullptr) {
+      char buffer[600] = {};
+      const size_t n = std::fread(buffer, 1, sizeof(buffer) - 1, marker);
+      std::fclose(marker);
+      std::string main(buffer, n);
+      while (!main.empty() && (main.back() == '\n' || main.back() == ' ')) main.pop_back();
+      VISQ_RETURN_IF_ERROR(ValidateUploadFile(main));
+      candidate = folder / main;
+    } else {
+      std::vector<fs::path> found;
+      for (const auto& entry : fs::directory_iterator(folder, ec))
+        if (entry.is_regular_file() && IsSceneFile(entry.path())) found.push_back(entry.path());
+      if (found.size() != 1)
+        return absl::NotFoundError(absl::StrCat("scene '", name, "': folder holds ", found.size(),
+                                                " .gltf/.glb files, expected exactly one"));
+      candidate = found[0];
+    }
+  } else if (fs::is_regular_file(root_ / absl::StrCat(name, ".glb"), ec)) {
+    candidate = root_ / absl::StrCat(name, ".glb");
+  } else if (fs::is_regular_file(root_ / absl::StrCat(name, ".gltf"), ec)) {
+    candidate = root_ / absl::StrCat(name, ".gltf");
+  } else {
+    return absl::NotFoundError(absl::StrCat("scene '", name, "' is not in the repository"));
+  }
+  // Symlinks may point anywhere on disk: only what stays inside the
+  // repository is served.
+  const fs::path resolved = fs::weakly_canonical(candidate, ec);
+  const std::string root_prefix = root_.string() + "/";
+  if (ec || resolved.string().rfind(root_prefix, 0) != 0)
+    return absl::PermissionDeniedError(absl::StrCat("scene '", name, "' resolves outside the repository"));
+  if (!fs::is_regular_file(resolved, ec))
+    return absl::NotFoundError(absl::StrCat("scene '", name, "': main file missing"));
+  return resolved;
+}
+
+StatusOr<std::unique_ptr<UploadStaging>> SceneRepository::BeginUpload(absl::string_view name,
+                                                                      absl::string_view main_file,
+                                                                      uint64_t max_bytes) const {
+  VISQ_RETURN_IF_ERROR(ValidateName(name));
+  VISQ_RETURN_IF_ERROR(ValidateUploadFile(main_file));
+  if (!IsSceneFile(fs::path(std::string(main_file))))
+    return absl::InvalidArgumentError(absl::StrCat("upload_main_file '", main_file, "': not a .gltf or .glb"));
+  const fs::path dir = root_ / absl::StrCat(AbslView(kStagingPrefix), name, "-", RandomSuffix());
+  std::error_code ec;
+  if (!fs::create_directory(dir, ec) || ec)
+    return absl::InternalError(absl::StrCat("create staging folder ", dir.string(), ": ", ec.message()));
+  return std::unique_ptr<UploadStaging>(
+      new UploadStaging(dir, std::string(name), std::string(main_file), max_bytes));
+}
+
+StatusOr<fs::path> SceneRepository::Commit(UploadStaging& staging) {
+  VISQ_RETURN_IF_ERROR(staging.CloseAll());
+  // The marker, then everything, reaches the disk before the rename does.
+  {
+    const fs::path marker = staging.dir_ / std::string(kMainFileMarker);
+    std::FILE* f = std::fopen(marker.c_str(), "w");
+    if (f == nullptr) return ErrnoError("create", marker);
+    std::fputs(staging.main_file_.c_str(), f);
+    std::fflush(f);
+    const int rc = ::fsync(fileno(f));
+    std::fclose(f);
+    if (rc != 0) return ErrnoError("fsync", marker);
+  }
+  VISQ_RETURN_IF_ERROR(FsyncPath(staging.dir_, true));
+
+  const fs::path target = root_ / staging.name_;
+  std::error_code ec;
+  const bool replacing = fs::exists(fs::symlink_status(target, ec));
+  // A plain-file scene of the same name would shadow nothing but confuse
+  // MainFile; uploads always become folders.
+  for (const char* ext : {".glb", ".gltf"}) fs::remove(root_ / absl::StrCat(staging.name_, ext), ec);
+  if (replacing) {
+    // Swap atomically: the old folder ends up at the staging path and is
+    // removed after; readers see the old scene or the new one.
+    if (::renameat2(AT_FDCWD, staging.dir_.c_str(), AT_FDCWD, target.c_str(), RENAME_EXCHANGE) != 0)
+      return ErrnoError("exchange into", target);
+    fs::remove_all(staging.dir_, ec);
+  } else if (::rename(staging.dir_.c_str(), target.c_str()) != 0) {
+    return ErrnoError("rename into", target);
+  }
+  staging.committed_ = true;
+  VISQ_RETURN_IF_ERROR(FsyncPath(root_, true));
+  return target / staging.main_file_;
+}
+
+Status SceneRepository::Remove(absl::string_view name) {
+  VISQ_RETURN_IF_ERROR(ValidateName(name));
+  std::error_code ec;
+  bool removed = false;
+  const fs::path folder = root_ / std::string(name);
+  if (fs::exists(fs::symlink_status(folder, ec))) {
+    // Move aside first so a crash mid-delete never leaves a half scene.
+    const fs::path doomed = root_ / absl::StrCat(AbslView(kStagingPrefix), "deleted-", name, "-", RandomSuffix());
+    if (::rename(folder.c_str(), doomed.c_str()) != 0) return ErrnoError("rename", folder);
+    fs::remove_all(doomed, ec);
+    removed = true;
+  }
+  for (const char* ext : {".glb", ".gltf"}) removed |= fs::remove(root_ / absl::StrCat(name, ext), ec);
+  if (!removed) return absl::NotFoundError(absl::StrCat("scene '", name, "' is not in the repository"));
+  return FsyncPath(root_, true);
+}
+
+}  // namespace visq

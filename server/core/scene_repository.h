@@ -1,0 +1,79 @@
+// The scene repository: a directory of glTF scenes that the server loads at
+// start and that uploads are stored into. Writes are atomic: an upload is
+// staged in a hidden folder, fsynced, and renamed into place, so a crash
+// leaves either the old scene or the new one, never half of one.
+#pragma once
+
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "common/status.h"
+
+namespace visq {
+
+class SceneRepository;
+
+// Files of one upload, written into a staging folder as chunks arrive.
+// Destroying an uncommitted staging removes it.
+class UploadStaging {
+ public:
+  ~UploadStaging();
+  UploadStaging(const UploadStaging&) = delete;
+  UploadStaging& operator=(const UploadStaging&) = delete;
+
+  // Appends to `file` (a plain name, or a relative path without "..").
+  [[nodiscard]] Status Append(absl::string_view file, absl::string_view data);
+  const std::string& name() const { return name_; }
+  std::filesystem::path main_file() const { return dir_ / main_file_; }
+  uint64_t bytes() const { return bytes_; }
+
+ private:
+  friend class SceneRepository;
+  UploadStaging(std::filesystem::path dir, std::string name, std::string main_file, uint64_t max_bytes);
+  Status CloseAll();
+
+  std::filesystem::path dir_;
+  std::string name_;
+  std::string main_file_;
+  uint64_t max_bytes_;
+  uint64_t bytes_ = 0;
+  bool committed_ = false;
+  std::string open_file_;
+  int open_fd_ = -1;
+  std::vector<std::string> files_;
+};
+
+class SceneRepository {
+ public:
+  // Creates the directory if needed and removes stale staging folders left
+  // by a crash.
+  [[nodiscard]] static StatusOr<std::unique_ptr<SceneRepository>> Open(const std::filesystem::path& root);
+
+  // Names are letters, digits, '.', '_' and '-', at most 128 characters, not
+  // starting with '.'; anything else is INVALID_ARGUMENT.
+  [[nodiscard]] static Status ValidateName(absl::string_view name);
+
+  const std::filesystem::path& root() const { return root_; }
+  // Names of the scenes stored, sorted.
+  std::vector<std::string> List() const;
+  // The .gltf/.glb of a stored scene: <root>/<name>.glb, <root>/<name>.gltf,
+  // or the main file of the folder <root>/<name>/.
+  [[nodiscard]] StatusOr<std::filesystem::path> MainFile(absl::string_view name) const;
+  bool Contains(absl::string_view name) const { return MainFile(name).ok(); }
+
+  [[nodiscard]] StatusOr<std::unique_ptr<UploadStaging>> BeginUpload(absl::string_view name,
+                                                                     absl::string_view main_file,
+                                                                     uint64_t max_bytes) const;
+  // Makes the staged files the stored scene `name`, replacing an existing
+  // one atomically (renameat2 RENAME_EXCHANGE). Returns the stored main file.
+  [[nodiscard]] StatusOr<std::filesystem::path> Commit(UploadStaging& staging);
+  [[nodiscard]] Status Remove(absl::string_view name);
+
+ private:
+  explicit SceneRepository(std::filesystem::path root) : root_(std::move(root)) {}
+  std::filesystem::path root_;
+};
+
+}  // namespace visq

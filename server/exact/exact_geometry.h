@@ -1,0 +1,205 @@
+// Exact geometric predicates for the Plücker-space visibility BSP (private to
+// server/exact/).
+//
+// Why this design. Every decision the algorithm makes is the sign of a
+// polynomial in input coordinates: the side of a line against an occluder
+// edge line (an orientation determinant of four points), and the side of a
+// light-fragment vertex against a plane through the query point and an edge.
+// Fragment vertices are created by splitting, so they are not input doubles.
+// Storing them as rounded doubles would make later signs inconsistent (the
+// classic source of cracks, lost area and infinite loops), and storing them
+// as explicit rationals makes bit sizes grow with every split. Instead every
+// derived point keeps its *definition* in terms of fixed input geometry:
+//
+//   - an input point (light vertex, occluder vertex, query point);
+//   - LinePlane(p, q, plane): the line through two points cut by a plane;
+//   - ThreePlanes(a, b, c): the meeting point of three planes;
+//
+// and every plane is one of ThroughPoints(p, q, r), ParallelThrough(plane,
+// point) or PointNormal(point, input normal). A light fragment is a convex
+// polygon inside one light triangle whose edges lie on light edges or on
+// split planes through the query point and an occluder edge; a new vertex is
+// always LinePlane(light edge, split plane) or ThreePlanes(light triangle
+// plane, split plane, split plane), and both split planes are built from
+// input points (or from slab-clipped occluder vertices, one level deeper).
+// So the degree of every predicate is bounded, however often a fragment is
+// split, and signs stay consistent because each sign is a property of the
+// definitions, not of a rounded value.
+//
+// Points and planes use homogeneous coordinates (x, y, z, w) so that no
+// predicate divides. Each carries an interval enclosure of its coordinates
+// (outward-rounded double arithmetic, see Iv) and, lazily, the exact value in
+// GMP rationals. A sign is read from the interval when the interval excludes
+// zero (the filter); otherwise it is recomputed exactly. Input-only
+// orientation tests use Shewchuk's static error bound for orient3d instead of
+// intervals, again with an exact fallback.
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <memory>
+
+#include <gmpxx.h>
+#include <glm/glm.hpp>
+
+namespace visq::exact::detail {
+
+// Counts of exact (GMP) fallbacks, for statistics and tests.
+inline std::atomic<uint64_t> g_exact_fallbacks{0};
+
+// ---------------------------------------------------------------------------
+// Interval arithmetic with outward rounding. Each operation rounds to nearest
+// and then widens by |r| * 2^-52 + 2^-1074, which is at least one ulp of r
+// (and covers underflow), so the true value of every operation stays inside.
+struct Iv {
+  double lo = 0.0, hi = 0.0;
+  Iv() = default;
+  explicit Iv(double x) : lo(x), hi(x) {}
+  Iv(double l, double h) : lo(l), hi(h) {}
+};
+inline double RoundDown(double r) { return r - (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
+inline double RoundUp(double r) { return r + (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
+inline Iv operator+(const Iv& a, const Iv& b) { return {RoundDown(a.lo + b.lo), RoundUp(a.hi + b.hi)}; }
+inline Iv operator-(const Iv& a, const Iv& b) { return {RoundDown(a.lo - b.hi), RoundUp(a.hi - b.lo)}; }
+inline Iv operator-(const Iv& a) { return {-a.hi, -a.lo}; }
+inline Iv operator*(const Iv& a, const Iv& b) {
+  if (a.lo == a.hi && b.lo == b.hi) {
+    const double p = a.lo * b.lo;
+    return {RoundDown(p), RoundUp(p)};
+  }
+  const double p1 = a.lo * b.lo, p2 = a.lo * b.hi, p3 = a.hi * b.lo, p4 = a.hi * b.hi;
+  return {RoundDown(std::min(std::min(p1, p2), std::min(p3, p4))),
+          RoundUp(std::max(std::max(p1, p2), std::max(p3, p4)))};
+}
+
+inline constexpr int kUncertain = 2;
+// Sign of an interval, or kUncertain when it contains zero (or is NaN).
+inline int SignOf(const Iv& a) {
+  if (a.lo > 0.0) return 1;
+  if (a.hi < 0.0) return -1;
+  if (a.lo == 0.0 && a.hi == 0.0) return 0;
+  return kUncertain;
+}
+inline int SignOf(const mpq_class& a) { return sgn(a); }
+
+// ---------------------------------------------------------------------------
+// Homogeneous 4-vectors and the two operations everything is built from.
+template <typename T>
+struct V4 {
+  std::array<T, 4> v;
+  const T& operator[](int i) const { return v[i]; }
+  T& operator[](int i) { return v[i]; }
+};
+using IV4 = V4<Iv>;
+using QV4 = V4<mpq_class>;
+
+template <typename T>
+T Dot4(const V4<T>& a, const V4<T>& b) {
+  T r = a[0] * b[0];
+  r = r + a[1] * b[1];
+  r = r + a[2] * b[2];
+  r = r + a[3] * b[3];
+  return r;
+}
+
+template <typename T>
+T Det3(const T& a0, const T& a1, const T& a2, const T& b0, const T& b1, const T& b2, const T& c0,
+       const T& c1, const T& c2) {
+  T m0 = b1 * c2 - b2 * c1;
+  T m1 = b0 * c2 - b2 * c0;
+  T m2 = b0 * c1 - b1 * c0;
+  T r = a0 * m0 - a1 * m1;
+  r = r + a2 * m2;
+  return r;
+}
+
+// Returns r with Dot4(r, x) == det4(rows a, b, c, x). Used both for the plane
+// through three points and for the point common to three planes.
+template <typename T>
+V4<T> Cross4(const V4<T>& a, const V4<T>& b, const V4<T>& c) {
+  V4<T> r;
+  r[0] = -Det3(a[1], a[2], a[3], b[1], b[2], b[3], c[1], c[2], c[3]);
+  r[1] = Det3(a[0], a[2], a[3], b[0], b[2], b[3], c[0], c[2], c[3]);
+  r[2] = -Det3(a[0], a[1], a[3], b[0], b[1], b[3], c[0], c[1], c[3]);
+  r[3] = Det3(a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2]);
+  return r;
+}
+
+// X = (plane . q) p - (plane . p) q lies on the plane and on line(p, q).
+template <typename T>
+V4<T> LinePlanePoint(const V4<T>& p, const V4<T>& q, const V4<T>& plane) {
+  const T pq = Dot4(plane, q), pp = Dot4(plane, p);
+  V4<T> r;
+  for (int i = 0; i < 4; ++i) r[i] = pq * p[i] - pp * q[i];
+  return r;
+}
+
+// ---------------------------------------------------------------------------
+// Points and planes defined from input geometry.
+struct XPlane;
+
+struct XPoint {
+  enum class Kind : uint8_t { kInput, kLinePlane, kThreePlanes };
+  Kind kind = Kind::kInput;
+  int8_t w_sign = 1;                    // exact sign of w (never 0)
+  IV4 approx;                           // interval enclosure
+  glm::dvec3 input{0.0};                // kInput only
+  const XPoint* p = nullptr;            // kLinePlane: the line
+  const XPoint* q = nullptr;
+  const XPlane* planes[3] = {nullptr, nullptr, nullptr};  // kLinePlane uses [0]
+  mutable std::unique_ptr<QV4> exact;   // lazily, for derived points
+  mutable bool has_euclid = false;
+  mutable glm::dvec3 euclid{0.0};
+
+  static XPoint Input(const glm::dvec3& x);
+  static XPoint LinePlane(const XPoint& p, const XPoint& q, const XPlane& plane);
+  static XPoint ThreePlanes(const XPlane& a, const XPlane& b, const XPlane& c);
+
+  // Exact homogeneous coordinates. Derived points cache them: a derived
+  // point must be owned by one thread (query-local) unless PrecomputeExact()
+  // was called before sharing it.
+  const QV4& Exact() const;
+  void PrecomputeExact() const { (void)Exact(); }
+  // Euclidean coordinates in double (from the interval when it is tight,
+  // else from the exact value). Cached, same ownership rule as Exact().
+  glm::dvec3 Euclid() const;
+};
+
+struct XPlane {
+  enum class Kind : uint8_t { kThroughPoints, kParallelThrough, kPointNormal };
+  Kind kind = Kind::kThroughPoints;
+  // EuclidSide(x) = sign(Dot4(coeffs, x)) * w_sign(x) * o_sign: the sign of
+  // the plane's natural Euclidean function (orient3d(p, q, r, x) for
+  // ThroughPoints, n . (x - point) for the others).
+  int8_t o_sign = 1;
+  IV4 approx;
+  const XPoint* points[3] = {nullptr, nullptr, nullptr};
+  const XPlane* base = nullptr;
+  glm::dvec3 normal{0.0};
+  mutable std::unique_ptr<QV4> exact;
+
+  static XPlane ThroughPoints(const XPoint& p, const XPoint& q, const XPoint& r);
+  static XPlane ParallelThrough(const XPlane& base, const XPoint& point);
+  static XPlane PointNormal(const XPoint& point, const glm::dvec3& normal);
+
+  const QV4& Exact() const;
+  void PrecomputeExact() const { (void)Exact(); }
+  // Whether the coefficients are exactly zero (three collinear points).
+  bool Degenerate() const;
+};
+
+// Sign of the plane's Euclidean function at x (see XPlane::o_sign).
+int EuclidSide(const XPoint& x, const XPlane& plane);
+
+// orient3d(a, b, c, d) = det[b - a, c - a, d - a] for input doubles: positive
+// when d lies on the side of plane(a, b, c) that (b - a) x (c - a) points to.
+// Shewchuk's static filter, exact GMP fallback.
+int Orient3d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, const glm::dvec3& d);
+
+// 2D orientation of (a, b, c) in the coordinate plane (i, j); exact.
+int Orient2d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, int i, int j);
+
+}  // namespace visq::exact::detail

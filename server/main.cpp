@@ -1,0 +1,70 @@
+// visq-server: flags (each also an environment variable, for containers),
+// signals, and the server lifecycle.
+#include <csignal>
+#include <cstdlib>
+#include <iostream>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/spdlog.h>
+
+#include "scene/sample_scenes.h"
+#include "service/server.h"
+
+int main(int argc, char** argv) {
+  visq::service::ServerOptions options;
+  std::string log_level = "info";
+  uint64_t max_upload_bytes = options.engine.max_upload_bytes;
+  bool seed_samples = false;
+  std::string scene_repo = options.engine.scene_repo.string();
+
+  CLI::App app{"visq-server: visibility queries on GPU-resident scenes"};
+  app.add_option("--address", options.address, "HOST:PORT to listen on")->envname("VISQ_ADDRESS")->capture_default_str();
+  app.add_option("--scene-repo", scene_repo, "Scene repository directory")->envname("VISQ_SCENE_REPO")->capture_default_str();
+  app.add_option("--max-receive-bytes", options.max_receive_message_bytes, "Largest gRPC message accepted")
+      ->envname("VISQ_MAX_RECEIVE_BYTES")->check(CLI::Range(1 << 16, 1 << 30))->capture_default_str();
+  app.add_option("--max-upload-bytes", max_upload_bytes, "Largest scene upload accepted")
+      ->envname("VISQ_MAX_UPLOAD_BYTES")->capture_default_str();
+  app.add_option("--worker-threads", options.worker_threads, "Threads for blocking request work")
+      ->envname("VISQ_WORKER_THREADS")->check(CLI::Range(1, 256))->capture_default_str();
+  app.add_option("--log-level", log_level, "trace, debug, info, warn, error")->envname("VISQ_LOG_LEVEL")->capture_default_str();
+  app.add_option("--gpu-device", options.engine.gpu.device, "auto, surfaceless, or device:N")
+      ->envname("VISQ_EGL_DEVICE")->capture_default_str();
+  app.add_flag("--gpu-debug", options.engine.gpu.debug, "KHR_debug to the log, GL error checks")->envname("VISQ_GPU_DEBUG");
+  app.add_flag("--seed-samples", seed_samples, "Write the generated sample scenes into the repository if absent")
+      ->envname("VISQ_SEED_SAMPLES");
+  CLI11_PARSE(app, argc, argv);
+
+  spdlog::set_level(spdlog::level::from_str(log_level));
+  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+  options.engine.scene_repo = scene_repo;
+  options.engine.max_upload_bytes = max_upload_bytes;
+
+  // Signals are taken synchronously by this thread (sigwait), so no handler
+  // runs in an arbitrary thread.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  if (seed_samples) {
+    std::error_code ec;
+    std::filesystem::create_directories(options.engine.scene_repo, ec);
+    if (auto status = visq::WriteSampleScenes(options.engine.scene_repo); !status.ok()) {
+      spdlog::critical("writing sample scenes: {}", status.message());
+      return EXIT_FAILURE;
+    }
+  }
+  auto server = visq::service::Server::Create(options);
+  if (!server.ok()) {
+    spdlog::critical("start-up failed: {}", server.status().message());
+    return EXIT_FAILURE;
+  }
+  (*server)->Ready();
+
+  int signal_number = 0;
+  sigwait(&signals, &signal_number);
+  spdlog::info("received {}", signal_number == SIGINT ? "SIGINT" : "SIGTERM");
+  (*server)->GracefulStop(std::chrono::seconds(10));
+  return EXIT_SUCCESS;
+}

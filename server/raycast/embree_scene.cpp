@@ -1,0 +1,282 @@
+#include "raycast/embree_scene.h"
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+#include <thread>
+
+#include <embree3/rtcore.h>
+
+namespace visq::raycast {
+namespace {
+
+// Embree reports error text only through a callback; it runs on the thread
+// that made the failing call, so a thread_local carries it back to that call.
+thread_local std::string t_last_embree_error;
+
+void OnEmbreeError(void* /*user*/, RTCError code, const char* message) {
+  t_last_embree_error = absl::StrCat("embree error ", static_cast<int>(code), ": ",
+                                     message != nullptr ? message : "(no message)");
+}
+
+Status EmbreeStatus(RTCDevice device, const char* what) {
+  const RTCError code = rtcGetDeviceError(device);
+  if (code == RTC_ERROR_NONE && t_last_embree_error.empty()) return absl::OkStatus();
+  std::string message = t_last_embree_error.empty()
+                            ? absl::StrCat("embree error ", static_cast<int>(code))
+                            : t_last_embree_error;
+  t_last_embree_error.clear();
+  return absl::InternalError(absl::StrCat(what, ": ", message));
+}
+
+// The per-call context: Embree hands it back to the filter, which rejects
+// hits on ignored triangles (global sorted list, or the ray's own one).
+struct FilterContext {
+  RTCIntersectContext rtc;
+  const uint32_t* sorted_ignore = nullptr;
+  size_t sorted_ignore_count = 0;
+  const uint32_t* per_ray_ignore = nullptr;  // indexed by ray id within the stream
+};
+
+void IgnoreFilter(const RTCFilterFunctionNArguments* args) {
+  const auto* context = reinterpret_cast<const FilterContext*>(args->context);
+  for (unsigned i = 0; i < args->N; ++i) {
+    if (args->valid[i] == 0) continue;
+    const uint32_t prim = RTCHitN_primID(args->hit, args->N, i);
+    const uint32_t id = RTCRayN_id(args->ray, args->N, i);
+    bool ignore = context->per_ray_ignore != nullptr && context->per_ray_ignore[id] == prim;
+    if (!ignore && context->sorted_ignore_count > 0) {
+      ignore = std::binary_search(context->sorted_ignore,
+                                  context->sorted_ignore + context->sorted_ignore_count, prim);
+    }
+    if (ignore) args->valid[i] = 0;
+  }
+}
+
+// Runs body(begin, end) over [0, count) in contiguous chunks on `threads`
+// workers (the calling thread takes the first chunk).
+template <typename Body>
+void ParallelChunks(size_t count, int threads, const Body& body) {
+  size_t workers = threads > 0 ? static_cast<size_t>(threads)
+                               : std::max(1u, std::thread::hardware_concurrency());
+  workers = std::max<size_t>(1, std::min(workers, (count + 255) / 256));
+  const size_t chunk = (count + workers - 1) / std::max<size_t>(workers, 1);
+  std::vector<std::thread> pool;
+  for (size_t w = 1; w < workers; ++w) {
+    const size_t begin = w * chunk, end = std::min(count, begin + chunk);
+    if (begin < end) pool.emplace_back([&body, begin, end] { body(begin, end); });
+  }
+  body(0, std::min(count, chunk));
+  for (auto& t : pool) t.join();
+}
+
+constexpr size_t kStream = 256;  // rays per rtc*1M call
+
+}  // namespace
+
+StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneOptions& options) {
+  // Validate indices before Embree sees them: it would read out of bounds.
+  for (size_t i = 0; i < scene.triangles.size(); ++i) {
+    for (int c = 0; c < 3; ++c) {
+      if (scene.triangles[i][c] >= scene.positions.size()) {
+        return absl::InvalidArgumentError(absl::StrCat("scene.triangles[", i, "][", c, "]: index ",
+                                                       scene.triangles[i][c], " >= ",
+                                                       scene.positions.size(), " positions"));
+      }
+    }
+  }
+  EmbreeScene out;
+  Bounds bounds;
+  for (const auto& p : scene.positions) bounds.Extend(p);
+  out.origin_ = options.origin.value_or(bounds.Empty() ? glm::dvec3(0.0) : bounds.Center());
+  const glm::dvec3 ext = bounds.Empty() ? glm::dvec3(0.0) : bounds.Extent();
+  out.extent_ = std::max({ext.x, ext.y, ext.z});
+  out.triangle_count_ = scene.triangles.size();
+
+  t_last_embree_error.clear();
+  out.device_ = rtcNewDevice(nullptr);
+  if (out.device_ == nullptr) {
+    return absl::InternalError(absl::StrCat("rtcNewDevice failed: ", t_last_embree_error));
+  }
+  rtcSetDeviceErrorFunction(out.device_, OnEmbreeError, nullptr);
+
+  // Upload the triangles in float32 relative to the origin.
+  out.scene_ = rtcNewScene(out.device_);
+  rtcSetSceneFlags(out.scene_, RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION);
+  rtcSetSceneBuildQuality(out.scene_, RTC_BUILD_QUALITY_HIGH);
+  if (!scene.triangles.empty()) {
+    RTCGeometry geom = rtcNewGeometry(out.device_, RTC_GEOMETRY_TYPE_TRIANGLE);
+    auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(
+        geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float),
+        scene.positions.size()));
+    auto* indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(
+        geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(uint32_t),
+        scene.triangles.size()));
+    if (vertices == nullptr || indices == nullptr) {
+      rtcReleaseGeometry(geom);
+      return EmbreeStatus(out.device_, "rtcSetNewGeometryBuffer");
+    }
+    for (size_t i = 0; i < scene.positions.size(); ++i) {
+      const glm::dvec3 local = scene.positions[i] - out.origin_;
+      vertices[3 * i + 0] = static_cast<float>(local.x);
+      vertices[3 * i + 1] = static_cast<float>(local.y);
+      vertices[3 * i + 2] = static_cast<float>(local.z);
+    }
+    for (size_t i = 0; i < scene.triangles.size(); ++i) {
+      for (int c = 0; c < 3; ++c) indices[3 * i + c] = scene.triangles[i][c];
+    }
+    rtcCommitGeometry(geom);
+    rtcAttachGeometryByID(out.scene_, geom, 0);
+    rtcReleaseGeometry(geom);
+  }
+  rtcCommitScene(out.scene_);
+  VISQ_RETURN_IF_ERROR(EmbreeStatus(out.device_, "building the Embree scene"));
+  return out;
+}
+
+EmbreeScene::EmbreeScene(EmbreeScene&& other) noexcept { *this = std::move(other); }
+
+EmbreeScene& EmbreeScene::operator=(EmbreeScene&& other) noexcept {
+  if (this != &other) {
+    Reset();
+    device_ = std::exchange(other.device_, nullptr);
+    scene_ = std::exchange(other.scene_, nullptr);
+    origin_ = other.origin_;
+    extent_ = other.extent_;
+    triangle_count_ = std::exchange(other.triangle_count_, 0);
+  }
+  return *this;
+}
+
+EmbreeScene::~EmbreeScene() { Reset(); }
+
+void EmbreeScene::Reset() {
+  if (scene_ != nullptr) rtcReleaseScene(scene_);
+  if (device_ != nullptr) rtcReleaseDevice(device_);
+  scene_ = nullptr;
+  device_ = nullptr;
+}
+
+namespace {
+
+// Fills an RTCRay for origin o (local frame, double) along d, t in [t0, t1].
+// The offset rule is documented at EmbreeScene::Occluded.
+void FillRay(RTCRay& ray, const glm::dvec3& o, const glm::dvec3& d, double t1_in, double extent,
+             unsigned id) {
+  const double len = glm::length(d);
+  const double magnitude =
+      std::max({std::abs(o.x), std::abs(o.y), std::abs(o.z), extent * 0x1p-3});
+  double t0 = len > 0.0 ? 0x1p-17 * magnitude / len : 0.0;
+  ray.org_x = static_cast<float>(o.x);
+  ray.org_y = static_cast<float>(o.y);
+  ray.org_z = static_cast<float>(o.z);
+  ray.dir_x = static_cast<float>(d.x);
+  ray.dir_y = static_cast<float>(d.y);
+  ray.dir_z = static_cast<float>(d.z);
+  ray.tnear = static_cast<float>(t0);
+  ray.tfar = static_cast<float>(t1_in);
+  ray.time = 0.0f;
+  ray.mask = 0xFFFFFFFFu;
+  ray.id = id;
+  ray.flags = 0;
+  if (!(len > 0.0) || !(t1_in > t0)) {  // empty interval: nothing can be hit
+    ray.tnear = 1.0f;
+    ray.tfar = 0.0f;
+  }
+}
+
+}  // namespace
+
+StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(std::span<const Segment> segments,
+                                                     const TraceOptions& options) const {
+  std::vector<uint8_t> result(segments.size(), 0);
+  std::vector<uint32_t> ignore(options.ignore_triangles.begin(), options.ignore_triangles.end());
+  std::sort(ignore.begin(), ignore.end());
+  ParallelChunks(segments.size(), options.threads, [&](size_t begin, size_t end) {
+    RTCRay rays[kStream];
+    uint32_t per_ray_ignore[kStream];
+    for (size_t base = begin; base < end; base += kStream) {
+      const size_t n = std::min(kStream, end - base);
+      bool any_ignore = !ignore.empty();
+      for (size_t i = 0; i < n; ++i) {
+        const Segment& s = segments[base + i];
+        const glm::dvec3 p = s.p - origin_;
+        const glm::dvec3 d = s.q - s.p;
+        // For a segment the upper end needs the same offset as the lower one.
+        const double len = glm::length(d);
+        const glm::dvec3 q = s.q - origin_;
+        const double magnitude = std::max({std::abs(q.x), std::abs(q.y), std::abs(q.z),
+                                           std::abs(p.x), std::abs(p.y), std::abs(p.z),
+                                           extent_ * 0x1p-3});
+        const double t_off = len > 0.0 ? 0x1p-17 * magnitude / len : 1.0;
+        FillRay(rays[i], p, d, 1.0 - t_off, extent_, static_cast<unsigned>(i));
+        if (len > 0.0) rays[i].tnear = static_cast<float>(t_off);
+        if (!(rays[i].tfar > rays[i].tnear)) { rays[i].tnear = 1.0f; rays[i].tfar = 0.0f; }
+        per_ray_ignore[i] = s.ignore_triangle;
+        any_ignore |= s.ignore_triangle != kNoTriangle;
+      }
+      FilterContext context;
+      rtcInitIntersectContext(&context.rtc);
+      if (any_ignore) {
+        context.rtc.filter = IgnoreFilter;
+        context.sorted_ignore = ignore.data();
+        context.sorted_ignore_count = ignore.size();
+        context.per_ray_ignore = per_ray_ignore;
+      }
+      rtcOccluded1M(scene_, &context.rtc, rays, static_cast<unsigned>(n), sizeof(RTCRay));
+      // Embree marks an occluded ray by setting tfar to -inf.
+      for (size_t i = 0; i < n; ++i) result[base + i] = rays[i].tfar < 0.0f ? 1 : 0;
+    }
+  });
+  VISQ_RETURN_IF_ERROR(EmbreeStatus(device_, "rtcOccluded1M"));
+  return result;
+}
+
+StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
+                                                  const TraceOptions& options) const {
+  std::vector<Hit> result(rays_in.size());
+  std::vector<uint32_t> ignore(options.ignore_triangles.begin(), options.ignore_triangles.end());
+  std::sort(ignore.begin(), ignore.end());
+  ParallelChunks(rays_in.size(), options.threads, [&](size_t begin, size_t end) {
+    std::vector<RTCRayHit> rays(kStream);
+    uint32_t per_ray_ignore[kStream];
+    for (size_t base = begin; base < end; base += kStream) {
+      const size_t n = std::min(kStream, end - base);
+      bool any_ignore = !ignore.empty();
+      for (size_t i = 0; i < n; ++i) {
+        const Ray& r = rays_in[base + i];
+        const double tmax = std::isfinite(r.tmax) ? r.tmax : std::numeric_limits<double>::max();
+        FillRay(rays[i].ray, r.origin - origin_, r.direction,
+                std::min(tmax, static_cast<double>(std::numeric_limits<float>::max())), extent_,
+                static_cast<unsigned>(i));
+        rays[i].hit.geomID = RTC_INVALID_GEOMETRY_ID;
+        rays[i].hit.primID = RTC_INVALID_GEOMETRY_ID;
+        rays[i].hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+        per_ray_ignore[i] = r.ignore_triangle;
+        any_ignore |= r.ignore_triangle != kNoTriangle;
+      }
+      FilterContext context;
+      rtcInitIntersectContext(&context.rtc);
+      if (any_ignore) {
+        context.rtc.filter = IgnoreFilter;
+        context.sorted_ignore = ignore.data();
+        context.sorted_ignore_count = ignore.size();
+        context.per_ray_ignore = per_ray_ignore;
+      }
+      rtcIntersect1M(scene_, &context.rtc, rays.data(), static_cast<unsigned>(n), sizeof(RTCRayHit));
+      for (size_t i = 0; i < n; ++i) {
+        Hit& h = result[base + i];
+        if (rays[i].hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
+        h.hit = true;
+        h.t = rays[i].ray.tfar;
+        h.triangle = rays[i].hit.primID;
+        h.u = rays[i].hit.u;
+        h.v = rays[i].hit.v;
+      }
+    }
+  });
+  VISQ_RETURN_IF_ERROR(EmbreeStatus(device_, "rtcIntersect1M"));
+  return result;
+}
+
+}  // namespace visq::raycast

@@ -1,0 +1,118 @@
+// Embree 3 CPU ray casting over a visq::Scene: the reference for every sampled
+// visibility method (shadow rays, obscurance bakes).
+//
+// Precision. Embree works in float32, and scene coordinates are world-space
+// doubles that may sit 1e6 units from the origin, where a float's spacing is
+// 0.06. The scene is therefore uploaded relative to an origin (the bounds
+// center by default, or one the caller gives, e.g. the center of the region
+// being queried), and every query is moved into that frame in double before
+// it is rounded to float. Answers then keep float precision relative to the
+// scene extent, not to the absolute coordinates.
+//
+// Threads. Batches are split into contiguous chunks, one per std::thread
+// worker; each chunk is traced in streams of rays with rtcOccluded1M /
+// rtcIntersect1M. Embree scenes are safe for concurrent traversal once
+// committed, so workers share one RTCScene.
+#pragma once
+
+#include <cstdint>
+#include <limits>
+#include <optional>
+#include <span>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "common/status.h"
+#include "scene/scene.h"
+
+// Embree's handle types, declared here so that embree headers stay private.
+struct RTCDeviceTy;
+struct RTCSceneTy;
+
+namespace visq::raycast {
+
+inline constexpr uint32_t kNoTriangle = std::numeric_limits<uint32_t>::max();
+
+// An open segment (p, q) in world coordinates. `ignore_triangle` names one
+// triangle that never blocks this segment (the receiver's own surface), or
+// kNoTriangle.
+struct Segment {
+  glm::dvec3 p{0.0};
+  glm::dvec3 q{0.0};
+  uint32_t ignore_triangle = kNoTriangle;
+};
+
+// A ray origin + t * direction, t in (0, tmax]; `direction` need not be unit
+// length, distances come back in units of t.
+struct Ray {
+  glm::dvec3 origin{0.0};
+  glm::dvec3 direction{0.0, 0.0, 1.0};
+  double tmax = std::numeric_limits<double>::infinity();
+  uint32_t ignore_triangle = kNoTriangle;
+};
+
+struct Hit {
+  bool hit = false;
+  double t = 0.0;                  // along Ray::direction
+  uint32_t triangle = kNoTriangle;  // index into Scene::triangles
+  double u = 0.0, v = 0.0;         // barycentrics of corners 1 and 2
+};
+
+struct TraceOptions {
+  int threads = 0;  // 0: std::thread::hardware_concurrency()
+  // Triangles that block no ray of the batch (sorted or not; any size).
+  std::span<const uint32_t> ignore_triangles;
+};
+
+struct EmbreeSceneOptions {
+  // The frame origin for the float32 upload; default: scene bounds center.
+  std::optional<glm::dvec3> origin;
+};
+
+class EmbreeScene {
+ public:
+  [[nodiscard]] static StatusOr<EmbreeScene> Create(const Scene& scene,
+                                                    const EmbreeSceneOptions& options = {});
+  EmbreeScene(EmbreeScene&& other) noexcept;
+  EmbreeScene& operator=(EmbreeScene&& other) noexcept;
+  EmbreeScene(const EmbreeScene&) = delete;
+  EmbreeScene& operator=(const EmbreeScene&) = delete;
+  ~EmbreeScene();
+
+  // For each segment, whether some triangle blocks the open segment (p, q).
+  //
+  // Semantics: the segment is traced for t in [t0, t1] of p + t (q - p) with
+  // t0 = delta / |q - p| and t1 = 1 - t0, where delta = 2^-17 * M and M is
+  // the largest absolute coordinate of p or q in the upload frame, but at
+  // least 1/8 of the scene extent. A triangle that only touches an endpoint (the receiver
+  // surface at p, the light at q) therefore does not block. Why this delta:
+  // the float32 upload rounds vertices by up to 2^-24 of that magnitude and
+  // Embree's watertight test adds a few ulps more; 2^-17 is 128 such ulps, so
+  // a triangle through an endpoint is skipped robustly, while occluders
+  // closer than delta to an endpoint (1e-5 of the scene size) are missed.
+  // Degenerate segments (p == q) are never blocked.
+  [[nodiscard]] StatusOr<std::vector<uint8_t>> Occluded(std::span<const Segment> segments,
+                                                        const TraceOptions& options = {}) const;
+
+  // Closest hit for each ray, t in [t0, tmax] with the same offset rule as
+  // Occluded at the origin (t0 = delta / |direction|). Hit::t is Embree's
+  // float32 distance: relative precision about 1e-7 of M.
+  [[nodiscard]] StatusOr<std::vector<Hit>> Intersect(std::span<const Ray> rays,
+                                                     const TraceOptions& options = {}) const;
+
+  const glm::dvec3& origin() const { return origin_; }
+  size_t triangle_count() const { return triangle_count_; }
+
+ private:
+  EmbreeScene() = default;
+  void Reset();
+
+  RTCDeviceTy* device_ = nullptr;
+  RTCSceneTy* scene_ = nullptr;
+  glm::dvec3 origin_{0.0};
+  double extent_ = 0.0;
+  size_t triangle_count_ = 0;
+};
+
+}  // namespace visq::raycast

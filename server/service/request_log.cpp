@@ -1,0 +1,36 @@
+#include "service/request_log.h"
+
+namespace visq::service {
+namespace {
+std::atomic<uint64_t> next_request_id{1};
+constexpr size_t kMaxClientIdLength = 64;
+}  // namespace
+
+RequestLog::RequestLog(grpc::CallbackServerContext* context, const char* method)
+    : method_(method), start_(std::chrono::steady_clock::now()) {
+  const auto& metadata = context->client_metadata();
+  auto it = metadata.find("x-request-id");
+  if (it != metadata.end() && !it->second.empty() && it->second.size() <= kMaxClientIdLength) {
+    id_.assign(it->second.data(), it->second.size());
+    for (char& c : id_)
+      if (c < 0x21 || c > 0x7e) c = '?';  // keep log lines one line
+  } else {
+    id_ = fmt::format("r{}", next_request_id.fetch_add(1));
+  }
+}
+
+double RequestLog::ElapsedMs() const {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start_).count();
+}
+
+double RequestLog::Done(const Status& status) const {
+  const double ms = ElapsedMs();
+  if (status.ok())
+    spdlog::info("[{} {}] OK in {:.2f} ms", id_, method_, ms);
+  else
+    spdlog::warn("[{} {}] {} in {:.2f} ms: {}", id_, method_, absl::StatusCodeToString(status.code()), ms,
+                 status.message());
+  return ms;
+}
+
+}  // namespace visq::service

@@ -1,0 +1,36 @@
+// Every log line of a request carries its id and method; the closing line
+// carries its status and time.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <string>
+
+#include <grpcpp/server_context.h>
+#include <spdlog/spdlog.h>
+
+#include "common/status.h"
+
+namespace visq::service {
+
+class RequestLog {
+ public:
+  // Uses the client's x-request-id metadata when it sends one.
+  RequestLog(grpc::CallbackServerContext* context, const char* method);
+
+  template <typename... Args>
+  void Info(fmt::format_string<Args...> format, Args&&... args) const {
+    spdlog::info("[{} {}] {}", id_, method_, fmt::format(format, std::forward<Args>(args)...));
+  }
+  // Logs the outcome with the total time; returns the time in milliseconds.
+  double Done(const Status& status) const;
+  double ElapsedMs() const;
+  const std::string& id() const { return id_; }
+
+ private:
+  std::string id_;
+  const char* method_;
+  std::chrono::steady_clock::time_point start_;
+};
+
+}  // namespace visq::service

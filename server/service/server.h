@@ -1,0 +1,50 @@
+// The visq server's lifecycle: Create() starts the engine (GL thread, scene
+// repository) and the gRPC listener with health NOT_SERVING; Ready() loads
+// the repository's scenes and turns health to SERVING; GracefulStop() turns
+// it back to NOT_SERVING, drains requests, and shuts down in order.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include <grpcpp/server.h>
+
+#include "core/engine.h"
+#include "service/executor.h"
+#include "service/visibility_service.h"
+
+namespace visq::service {
+
+struct ServerOptions {
+  std::string address = "127.0.0.1:50051";
+  int max_receive_message_bytes = 16 << 20;  // chunked uploads keep messages small
+  int worker_threads = 4;
+  EngineOptions engine;
+};
+
+class Server {
+ public:
+  [[nodiscard]] static StatusOr<std::unique_ptr<Server>> Create(const ServerOptions& options);
+  ~Server();
+
+  // Loads the repository's scenes, then reports SERVING.
+  void Ready();
+  // The port actually bound (useful with port 0).
+  int port() const { return port_; }
+  void GracefulStop(std::chrono::milliseconds drain);
+  Engine& engine() { return *engine_; }
+
+ private:
+  Server() = default;
+  void SetServing(bool serving);
+
+  ServerOptions options_;
+  std::unique_ptr<Engine> engine_;
+  std::unique_ptr<Executor> executor_;
+  std::unique_ptr<VisibilityServiceImpl> service_;
+  std::unique_ptr<grpc::Server> grpc_server_;
+  int port_ = 0;
+  bool stopped_ = false;
+};
+
+}  // namespace visq::service

@@ -1,0 +1,183 @@
+#include "service/visibility_service.h"
+
+#include <memory>
+
+#include "service/request_log.h"
+#include "service/status_conversion.h"
+
+namespace visq::service {
+namespace {
+
+void ToProtoVec(const glm::dvec3& v, v1::Vec3* out) {
+  out->set_x(v.x);
+  out->set_y(v.y);
+  out->set_z(v.z);
+}
+
+// Runs `work` on the executor and finishes the unary call with its status.
+template <typename Work>
+grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, Executor& executor, const char* method,
+                                   Work work) {
+  auto* reactor = context->DefaultReactor();
+  auto log = std::make_shared<RequestLog>(context, method);
+  executor.Post([reactor, log, work = std::move(work)]() mutable {
+    const Status status = work(*log);
+    log->Done(status);
+    reactor->Finish(ToGrpcStatus(status));
+  });
+  return reactor;
+}
+
+// Client-streamed scene load: a header, then (for uploads) file chunks.
+class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneRequest> {
+ public:
+  LoadSceneReactor(grpc::CallbackServerContext* context, Engine& engine, Executor& executor,
+                   v1::SceneInfo* response)
+      : log_(context, "LoadScene"), engine_(engine), executor_(executor), response_(response) {
+    StartRead(&request_);
+  }
+
+  void OnReadDone(bool ok) override {
+    if (!ok) {  // the client finished sending
+      EndOfStream();
+      return;
+    }
+    Status status = Consume();
+    if (!status.ok()) {
+      Fail(status);
+      return;
+    }
+    StartRead(&request_);
+  }
+
+  void OnDone() override { delete this; }
+
+ private:
+  Status Consume() {
+    if (!header_seen_) {
+      if (!request_.has_header()) return absl::InvalidArgumentError("the first LoadScene message must be a header");
+      header_seen_ = true;
+      const v1::LoadSceneHeader& header = request_.header();
+      name_ = header.name();
+      replace_ = header.replace();
+      switch (header.source_case()) {
+        case v1::LoadSceneHeader::kFromRepository:
+          from_repository_ = true;
+          log_.Info("'{}' from the repository", name_);
+          return absl::OkStatus();
+        case v1::LoadSceneHeader::kUploadMainFile: {
+          log_.Info("'{}' upload of {} ({} bytes announced)", name_, header.upload_main_file(),
+                    header.expected_bytes());
+          VISQ_ASSIGN_OR_RETURN(upload_, engine_.BeginUpload(name_, header.upload_main_file(), header.replace(),
+                                                             header.expected_bytes()));
+          return absl::OkStatus();
+        }
+        default:
+          return absl::InvalidArgumentError("header: set from_repository or upload_main_file");
+      }
+    }
+    if (!request_.has_chunk()) return absl::InvalidArgumentError("only the first LoadScene message may be a header");
+    if (from_repository_) return absl::InvalidArgumentError("a load from the repository takes no file chunks");
+    return upload_->Append(request_.chunk().file(), request_.chunk().data());
+  }
+
+  void EndOfStream() {
+    if (!header_seen_) {
+      Fail(absl::InvalidArgumentError("LoadScene stream ended without a header"));
+      return;
+    }
+    // Parsing and storing block: off the callback thread.
+    executor_.Post([this] {
+      StatusOr<SceneSummary> summary = from_repository_ ? engine_.LoadFromRepository(name_, replace_)
+                                                        : engine_.FinishUpload(std::move(upload_));
+      if (summary.ok()) ToProto(*summary, response_);
+      if (!summary.ok()) Fail(summary.status());
+      else {
+        log_.Done(absl::OkStatus());
+        Finish(grpc::Status::OK);
+      }
+    });
+  }
+
+  void Fail(const Status& status) {
+    upload_.reset();  // removes the staged files
+    log_.Done(status);
+    Finish(ToGrpcStatus(status));
+  }
+
+  RequestLog log_;
+  Engine& engine_;
+  Executor& executor_;
+  v1::SceneInfo* response_;
+  v1::LoadSceneRequest request_;
+  bool header_seen_ = false;
+  bool from_repository_ = false;
+  bool replace_ = false;
+  std::string name_;
+  std::unique_ptr<SceneUpload> upload_;
+};
+
+}  // namespace
+
+void ToProto(const SceneSummary& s, v1::SceneInfo* out) {
+  out->set_name(s.name);
+  out->set_version(s.version);
+  out->set_triangle_count(s.triangles);
+  out->set_vertex_count(s.vertices);
+  ToProtoVec(s.bounds.min, out->mutable_bounds_min());
+  ToProtoVec(s.bounds.max, out->mutable_bounds_max());
+  out->set_content_hash(s.content_hash);
+  out->mutable_memory()->set_cpu_bytes(s.cpu_bytes);
+  out->mutable_memory()->set_gpu_bytes(s.gpu_bytes);
+  out->set_material_count(s.materials);
+  out->set_emissive_triangle_count(s.emissive_triangles);
+  out->set_has_lightmap_uvs(s.has_lightmap_uvs);
+  for (const auto& d : s.dropped) out->add_dropped(d);
+  out->set_load_ms(s.load_ms);
+  out->set_persisted(s.persisted);
+  for (const auto& n : s.nodes) {
+    auto* node = out->add_nodes();
+    node->set_name(n.name);
+    node->set_gltf_index(n.gltf_index);
+    node->set_parent(n.parent);
+    node->set_triangle_count(n.triangle_count);
+  }
+}
+
+grpc::ServerReadReactor<v1::LoadSceneRequest>* VisibilityServiceImpl::LoadScene(grpc::CallbackServerContext* context,
+                                                                                v1::SceneInfo* response) {
+  return new LoadSceneReactor(context, engine_, executor_, response);
+}
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::ListScenes(grpc::CallbackServerContext* context,
+                                                            const v1::ListScenesRequest*,
+                                                            v1::ListScenesResponse* response) {
+  return RunUnary(context, executor_, "ListScenes", [this, response](RequestLog&) {
+    for (const auto& summary : engine_.ListScenes()) ToProto(summary, response->add_scenes());
+    return absl::OkStatus();
+  });
+}
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerContext* context,
+                                                          const v1::GetSceneRequest* request,
+                                                          v1::SceneInfo* response) {
+  return RunUnary(context, executor_, "GetScene", [this, request, response](RequestLog& log) -> Status {
+    log.Info("'{}'", request->name());
+    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, engine_.GetScene(request->name(), request->include_nodes()));
+    ToProto(summary, response);
+    return absl::OkStatus();
+  });
+}
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::UnloadScene(grpc::CallbackServerContext* context,
+                                                             const v1::UnloadSceneRequest* request,
+                                                             v1::UnloadSceneResponse* response) {
+  return RunUnary(context, executor_, "UnloadScene", [this, request, response](RequestLog& log) -> Status {
+    log.Info("'{}'{}", request->name(), request->delete_from_repository() ? " (and delete)" : "");
+    VISQ_ASSIGN_OR_RETURN(bool deleted, engine_.UnloadScene(request->name(), request->delete_from_repository()));
+    response->set_deleted_from_repository(deleted);
+    return absl::OkStatus();
+  });
+}
+
+}  // namespace visq::service
