@@ -1,6 +1,7 @@
 // visq-server: flags (each also an environment variable, for containers),
 // signals, and the server lifecycle.
 #include <csignal>
+#include <cstdio>
 #include <cstdlib>
 #include <iostream>
 
@@ -15,6 +16,7 @@ int main(int argc, char** argv) {
   std::string log_level = "info";
   uint64_t max_upload_bytes = options.engine.max_upload_bytes;
   bool seed_samples = false;
+  std::string port_file;
   std::string scene_repo = options.engine.scene_repo.string();
 
   CLI::App app{"visq-server: visibility queries on GPU-resident scenes"};
@@ -32,6 +34,8 @@ int main(int argc, char** argv) {
   app.add_flag("--gpu-debug", options.engine.gpu.debug, "KHR_debug to the log, GL error checks")->envname("VISQ_GPU_DEBUG");
   app.add_flag("--seed-samples", seed_samples, "Write the generated sample scenes into the repository if absent")
       ->envname("VISQ_SEED_SAMPLES");
+  app.add_option("--port-file", port_file, "Write the bound port here once listening (for --address HOST:0)")
+      ->envname("VISQ_PORT_FILE");
   CLI11_PARSE(app, argc, argv);
 
   spdlog::set_level(spdlog::level::from_str(log_level));
@@ -59,6 +63,16 @@ int main(int argc, char** argv) {
   if (!server.ok()) {
     spdlog::critical("start-up failed: {}", server.status().message());
     return EXIT_FAILURE;
+  }
+  if (!port_file.empty()) {
+    // Written to a temporary name and renamed: a reader never sees half.
+    const std::string temporary = port_file + ".tmp";
+    std::FILE* f = std::fopen(temporary.c_str(), "w");
+    if (f == nullptr || std::fprintf(f, "%d\n", (*server)->port()) < 0 || std::fclose(f) != 0 ||
+        std::rename(temporary.c_str(), port_file.c_str()) != 0) {
+      spdlog::critical("cannot write --port-file {}", port_file);
+      return EXIT_FAILURE;
+    }
   }
   (*server)->Ready();
 

@@ -1,0 +1,184 @@
+#include "visq_client.h"
+
+#include <fstream>
+#include <thread>
+
+#include <grpcpp/client_context.h>
+#include <grpcpp/create_channel.h>
+#include <grpcpp/security/credentials.h>
+#include <nlohmann/json.hpp>
+
+namespace visq::client {
+namespace {
+
+// glTF URIs are RFC 3986 references: undo percent-encoding.
+std::string DecodeUri(const std::string& uri) {
+  std::string out;
+  for (size_t i = 0; i < uri.size(); ++i) {
+    if (uri[i] == '%' && i + 2 < uri.size()) {
+      int value = 0;
+      if (std::sscanf(uri.substr(i + 1, 2).c_str(), "%2x", &value) == 1) {
+        out.push_back(static_cast<char>(value));
+        i += 2;
+        continue;
+      }
+    }
+    out.push_back(uri[i]);
+  }
+  return out;
+}
+
+}  // namespace
+
+Status FromGrpcStatus(const grpc::Status& status) {
+  if (status.ok()) return absl::OkStatus();
+  return Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
+}
+
+Client::Client(ClientOptions options) : options_(std::move(options)) {
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(-1);  // responses can be large bitmask streams
+  channel_ = grpc::CreateCustomChannel(options_.address, grpc::InsecureChannelCredentials(), args);
+  stub_ = v1::VisibilityService::NewStub(channel_);
+  health_ = grpc::health::v1::Health::NewStub(channel_);
+}
+
+std::unique_ptr<grpc::ClientContext> Client::NewContext() const {
+  auto context = std::make_unique<grpc::ClientContext>();
+  context->set_deadline(std::chrono::system_clock::now() + options_.deadline);
+  if (!options_.request_id.empty()) context->AddMetadata("x-request-id", options_.request_id);
+  return context;
+}
+
+StatusOr<grpc::health::v1::HealthCheckResponse::ServingStatus> Client::Health(const std::string& service) {
+  auto context = NewContext();
+  grpc::health::v1::HealthCheckRequest request;
+  request.set_service(service);
+  grpc::health::v1::HealthCheckResponse response;
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(health_->Check(context.get(), request, &response)));
+  return response.status();
+}
+
+Status Client::WaitUntilServing(std::chrono::milliseconds timeout) {
+  const auto end = std::chrono::steady_clock::now() + timeout;
+  Status last = absl::UnavailableError("not tried");
+  while (std::chrono::steady_clock::now() < end) {
+    auto context = std::make_unique<grpc::ClientContext>();
+    context->set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(2));
+    grpc::health::v1::HealthCheckRequest request;
+    grpc::health::v1::HealthCheckResponse response;
+    last = FromGrpcStatus(health_->Check(context.get(), request, &response));
+    if (last.ok() && response.status() == grpc::health::v1::HealthCheckResponse::SERVING) return absl::OkStatus();
+    if (last.ok()) last = absl::UnavailableError("server is NOT_SERVING");
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  return absl::DeadlineExceededError(absl::StrCat("server at ", options_.address,
+                                                  " not SERVING in time: ", last.message()));
+}
+
+StatusOr<std::vector<std::string>> ReferencedFiles(const std::filesystem::path& gltf) {
+  if (gltf.extension() != ".gltf") return std::vector<std::string>{};
+  std::ifstream in(gltf);
+  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", gltf.string()));
+  nlohmann::json doc = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
+  if (doc.is_discarded()) return absl::InvalidArgumentError(absl::StrCat(gltf.string(), ": malformed JSON"));
+  std::vector<std::string> files;
+  for (const char* key : {"buffers", "images"}) {
+    if (!doc.contains(key) || !doc[key].is_array()) continue;
+    for (const auto& entry : doc[key]) {
+      if (!entry.is_object() || !entry.contains("uri") || !entry["uri"].is_string()) continue;
+      const std::string uri = entry["uri"];
+      if (uri.rfind("data:", 0) == 0) continue;
+      files.push_back(DecodeUri(uri));
+    }
+  }
+  return files;
+}
+
+StatusOr<v1::SceneInfo> Client::UploadScene(const std::filesystem::path& file, std::string name, bool replace) {
+  if (name.empty()) name = file.stem().string();
+  VISQ_ASSIGN_OR_RETURN(std::vector<std::string> referenced, ReferencedFiles(file));
+  // Images are dropped by the server: send only what it will read, skipping
+  // referenced files that are absent (textures stripped from a scene).
+  std::vector<std::pair<std::string, std::filesystem::path>> to_send = {{file.filename().string(), file}};
+  uint64_t total = std::filesystem::file_size(file);
+  for (const auto& relative : referenced) {
+    const auto path = file.parent_path() / relative;
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(path, ec)) continue;
+    to_send.emplace_back(relative, path);
+    total += std::filesystem::file_size(path, ec);
+  }
+
+  auto context = NewContext();
+  v1::SceneInfo info;
+  auto writer = stub_->LoadScene(context.get(), &info);
+  v1::LoadSceneRequest request;
+  auto* header = request.mutable_header();
+  header->set_name(name);
+  header->set_upload_main_file(file.filename().string());
+  header->set_replace(replace);
+  header->set_expected_bytes(total);
+  bool stream_open = writer->Write(request);
+  std::vector<char> buffer(options_.upload_chunk_bytes);
+  for (const auto& [relative, path] : to_send) {
+    if (!stream_open) break;
+    std::ifstream in(path, std::ios::binary);
+    if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path.string()));
+    do {
+      in.read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
+      const std::streamsize n = in.gcount();
+      if (n <= 0) break;
+      v1::LoadSceneRequest chunk;
+      chunk.mutable_chunk()->set_file(relative);
+      chunk.mutable_chunk()->set_data(buffer.data(), static_cast<size_t>(n));
+      stream_open = writer->Write(chunk);
+    } while (stream_open && in);
+  }
+  writer->WritesDone();
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(writer->Finish()));
+  return info;
+}
+
+StatusOr<v1::SceneInfo> Client::LoadFromRepository(const std::string& name, bool replace) {
+  auto context = NewContext();
+  v1::SceneInfo info;
+  auto writer = stub_->LoadScene(context.get(), &info);
+  v1::LoadSceneRequest request;
+  request.mutable_header()->set_name(name);
+  request.mutable_header()->set_from_repository(true);
+  request.mutable_header()->set_replace(replace);
+  writer->Write(request);
+  writer->WritesDone();
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(writer->Finish()));
+  return info;
+}
+
+StatusOr<v1::ListScenesResponse> Client::ListScenes() {
+  auto context = NewContext();
+  v1::ListScenesResponse response;
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->ListScenes(context.get(), v1::ListScenesRequest(), &response)));
+  return response;
+}
+
+StatusOr<v1::SceneInfo> Client::GetScene(const std::string& name, bool include_nodes) {
+  auto context = NewContext();
+  v1::GetSceneRequest request;
+  request.set_name(name);
+  request.set_include_nodes(include_nodes);
+  v1::SceneInfo response;
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->GetScene(context.get(), request, &response)));
+  return response;
+}
+
+StatusOr<v1::UnloadSceneResponse> Client::UnloadScene(const std::string& name, bool delete_from_repository) {
+  auto context = NewContext();
+  v1::UnloadSceneRequest request;
+  request.set_name(name);
+  request.set_delete_from_repository(delete_from_repository);
+  v1::UnloadSceneResponse response;
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->UnloadScene(context.get(), request, &response)));
+  return response;
+}
+
+}  // namespace visq::client

@@ -1,0 +1,64 @@
+// The C++ client of visq: a class owning the gRPC stub, with a deadline on
+// every call and chunked scene upload. The `visq` CLI is a thin main over it.
+#pragma once
+
+#include <chrono>
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include <grpcpp/channel.h>
+
+#include "common/status.h"
+#include "grpc/health/v1/health.grpc.pb.h"
+#include "visq/v1/visq.grpc.pb.h"
+
+namespace visq::client {
+
+struct ClientOptions {
+  std::string address = "127.0.0.1:50051";
+  std::chrono::milliseconds deadline{60'000};
+  size_t upload_chunk_bytes = 1 << 20;  // well under any message limit
+  std::string request_id;               // sent as x-request-id when set
+};
+
+class Client {
+ public:
+  explicit Client(ClientOptions options);
+
+  // SERVING / NOT_SERVING / ... of `service` ("" = the whole server).
+  [[nodiscard]] StatusOr<grpc::health::v1::HealthCheckResponse::ServingStatus> Health(
+      const std::string& service = "");
+  // Polls health until SERVING or `timeout` passes.
+  [[nodiscard]] Status WaitUntilServing(std::chrono::milliseconds timeout);
+
+  // Uploads a .glb, or a .gltf and every file its buffers and images
+  // reference, in chunks. `name` defaults to the file's stem.
+  [[nodiscard]] StatusOr<v1::SceneInfo> UploadScene(const std::filesystem::path& file, std::string name = "",
+                                                    bool replace = false);
+  [[nodiscard]] StatusOr<v1::SceneInfo> LoadFromRepository(const std::string& name, bool replace = false);
+  [[nodiscard]] StatusOr<v1::ListScenesResponse> ListScenes();
+  [[nodiscard]] StatusOr<v1::SceneInfo> GetScene(const std::string& name, bool include_nodes = false);
+  [[nodiscard]] StatusOr<v1::UnloadSceneResponse> UnloadScene(const std::string& name,
+                                                              bool delete_from_repository = false);
+
+  // For RPCs this class does not wrap yet, and for tests.
+  v1::VisibilityService::Stub& stub() { return *stub_; }
+  // A context with the deadline and request id applied.
+  std::unique_ptr<grpc::ClientContext> NewContext() const;
+
+ private:
+  ClientOptions options_;
+  std::shared_ptr<grpc::Channel> channel_;
+  std::unique_ptr<v1::VisibilityService::Stub> stub_;
+  std::unique_ptr<grpc::health::v1::Health::Stub> health_;
+};
+
+// gRPC status -> visq Status (the client's one conversion).
+Status FromGrpcStatus(const grpc::Status& status);
+
+// The files a .gltf references (buffers and images that are not data: URIs),
+// relative to its folder; empty for a .glb.
+[[nodiscard]] StatusOr<std::vector<std::string>> ReferencedFiles(const std::filesystem::path& gltf);
+
+}  // namespace visq::client

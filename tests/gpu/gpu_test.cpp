@@ -1,0 +1,208 @@
+// The GPU layer on a real EGL context (Mesa llvmpipe here): context, RAII
+// owners, shader builds and their errors, the GL thread's queue semantics,
+// and scene upload.
+#include <atomic>
+#include <future>
+#include <thread>
+#include <type_traits>
+
+#include <gtest/gtest.h>
+
+#include "gl_check.h"
+#include "gl_object.h"
+#include "shader_program.h"
+#include "scene/sample_scenes.h"
+#include "test_support.h"
+#include "visq/gpu/gpu_scene.h"
+
+namespace visq::gpu {
+namespace {
+
+using testing::SharedGpuWorker;
+
+// --- RAII owners: type traits need no context ------------------------------
+
+static_assert(!std::is_copy_constructible_v<GlBuffer>);
+static_assert(!std::is_copy_assignable_v<GlBuffer>);
+static_assert(std::is_nothrow_move_constructible_v<GlBuffer>);
+static_assert(std::is_nothrow_move_assignable_v<GlBuffer>);
+static_assert(std::is_nothrow_move_constructible_v<GlTexture2D>);
+static_assert(!std::is_copy_constructible_v<GlProgramObject>);
+
+TEST(GlObject, NoCreateIsEmptyAndNeedsNoContext) {
+  GlBuffer empty(NoCreate);
+  EXPECT_FALSE(empty);
+  EXPECT_EQ(empty.id(), 0u);
+  GlBuffer moved(std::move(empty));
+  EXPECT_FALSE(moved);
+  EXPECT_EQ(moved.Release(), 0u);
+}
+
+TEST(GlObject, CreatesMovesAndDeletesOnTheGlThread) {
+  Status status = SharedGpuWorker().Run({}, []() -> Status {
+    GlBuffer a;
+    EXPECT_NE(a.id(), 0u);
+    const GLuint id = a.id();
+    GlBuffer b(std::move(a));
+    EXPECT_EQ(b.id(), id);
+    EXPECT_FALSE(a);  // NOLINT: moved-from state is defined: empty
+    EXPECT_TRUE(glIsBuffer(id));
+    {
+      GlBuffer c(std::move(b));
+    }
+    EXPECT_FALSE(glIsBuffer(id));  // deleted with its owner
+    return absl::OkStatus();
+  });
+  EXPECT_TRUE(status.ok()) << status;
+}
+
+// --- Context and self-test -------------------------------------------------
+
+TEST(GpuContext, IsOpenGl45Core) {
+  const DeviceInfo& device = SharedGpuWorker().device();
+  EXPECT_NE(device.gl_version.find("4.5"), std::string::npos) << device.gl_version;
+  EXPECT_FALSE(device.gl_renderer.empty());
+  EXPECT_FALSE(device.egl_platform.empty());
+}
+
+TEST(GpuContext, SelfTestDrawsAndReadsBackWithLogicOpOr) {
+  const Status status = RunSelfTest(SharedGpuWorker());
+  EXPECT_TRUE(status.ok()) << status;
+}
+
+TEST(GpuContext, UnknownDeviceChoiceIsAClearError) {
+  GpuOptions options;
+  options.device = "device:999";
+  auto worker = GpuWorker::Start(options);
+  ASSERT_FALSE(worker.ok());
+  EXPECT_EQ(worker.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(worker.status().message()).find("device:999"), std::string::npos) << worker.status();
+}
+
+// --- Shaders ----------------------------------------------------------------
+
+TEST(Shaders, EmbeddedFilesBuild) {
+  Status status = SharedGpuWorker().Run({}, []() -> Status {
+    return BuildProgram({{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}).status();
+  });
+  EXPECT_TRUE(status.ok()) << status;
+}
+
+TEST(Shaders, CompileErrorNamesTheFileAndCarriesTheDriverLog) {
+  Status status = SharedGpuWorker().Run({}, []() -> Status {
+    // A define that breaks the fragment shader's syntax.
+    return BuildProgram({{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}},
+                        {{"out_bits", "= ="}})
+        .status();
+  });
+  ASSERT_FALSE(status.ok());
+  EXPECT_EQ(status.code(), absl::StatusCode::kInternal);
+  const std::string message(status.message());
+  EXPECT_NE(message.find("self_test.frag"), std::string::npos) << message;
+  EXPECT_NE(message.find("compiling fragment shader"), std::string::npos) << message;
+  EXPECT_GT(message.size(), std::string("compiling fragment shader self_test.frag: ").size()) << "no driver log";
+}
+
+TEST(Shaders, MissingFileIsNotFound) {
+  Status status = SharedGpuWorker().Run({}, []() -> Status {
+    return BuildProgram({{GL_VERTEX_SHADER, "no_such_shader.vert"}}).status();
+  });
+  EXPECT_EQ(status.code(), absl::StatusCode::kNotFound) << status;
+}
+
+// --- The GL thread's queue -------------------------------------------------
+
+TEST(GpuWorkerQueue, JobsRunOnOneThreadThatIsNotTheCaller) {
+  std::thread::id first, second;
+  ASSERT_TRUE(SharedGpuWorker().Run({}, [&] { first = std::this_thread::get_id(); return absl::OkStatus(); }).ok());
+  ASSERT_TRUE(SharedGpuWorker().Run({}, [&] { second = std::this_thread::get_id(); return absl::OkStatus(); }).ok());
+  EXPECT_EQ(first, second);
+  EXPECT_NE(first, std::this_thread::get_id());
+}
+
+TEST(GpuWorkerQueue, ExpiredDeadlineIsNotRun) {
+  bool ran = false;
+  JobOptions options;
+  options.deadline = std::chrono::steady_clock::now() - std::chrono::milliseconds(1);
+  Status status = SharedGpuWorker().Run(options, [&] { ran = true; return absl::OkStatus(); });
+  EXPECT_EQ(status.code(), absl::StatusCode::kDeadlineExceeded) << status;
+  EXPECT_FALSE(ran);
+}
+
+TEST(GpuWorkerQueue, CancelledJobIsNotRun) {
+  std::atomic<bool> cancelled{true};
+  bool ran = false;
+  JobOptions options;
+  options.cancelled = &cancelled;
+  Status status = SharedGpuWorker().Run(options, [&] { ran = true; return absl::OkStatus(); });
+  EXPECT_EQ(status.code(), absl::StatusCode::kCancelled) << status;
+  EXPECT_FALSE(ran);
+}
+
+TEST(GpuWorkerQueue, GlErrorFailsThatJobOnlyAndTheNextJobWorks) {
+  Status failing = SharedGpuWorker().Run({}, [] {
+    glBindBuffer(GL_ARRAY_BUFFER, 0xFFFFFFu);  // not a buffer name: GL_INVALID_OPERATION
+    return absl::OkStatus();
+  });
+  EXPECT_EQ(failing.code(), absl::StatusCode::kInternal) << failing;
+  EXPECT_NE(std::string(failing.message()).find("GL_INVALID_OPERATION"), std::string::npos) << failing;
+  Status next = SharedGpuWorker().Run({}, [] { return CollectGlErrors("after a failed job"); });
+  EXPECT_TRUE(next.ok()) << next;
+}
+
+TEST(GpuWorkerQueue, InteractiveJobsOvertakeQueuedBatchJobs) {
+  GpuWorker& worker = SharedGpuWorker();
+  std::promise<void> release;
+  std::shared_future<void> released = release.get_future().share();
+  std::atomic<bool> blocker_started{false};
+  // Occupy the GL thread so the next two jobs queue up behind it.
+  auto blocker = std::async(std::launch::async, [&] {
+    return worker.Run({}, [&] { blocker_started = true; released.wait(); return absl::OkStatus(); });
+  });
+  while (!blocker_started) std::this_thread::yield();
+  std::vector<int> order;
+  std::mutex order_mutex;
+  auto run = [&](int priority, int tag) {
+    JobOptions options;
+    options.priority = priority;
+    return worker.Run(options, [&, tag] { std::lock_guard l(order_mutex); order.push_back(tag); return absl::OkStatus(); });
+  };
+  auto batch = std::async(std::launch::async, run, kBatch, 1);
+  while (worker.queue_depth() < 1) std::this_thread::yield();
+  auto interactive = std::async(std::launch::async, run, kInteractive, 2);
+  while (worker.queue_depth() < 2) std::this_thread::yield();
+  release.set_value();
+  EXPECT_TRUE(blocker.get().ok());
+  EXPECT_TRUE(batch.get().ok());
+  EXPECT_TRUE(interactive.get().ok());
+  EXPECT_EQ(order, (std::vector<int>{2, 1}));
+}
+
+TEST(GpuWorkerQueue, TimingReportsQueueAndRunTime) {
+  JobTiming timing;
+  Status status = SharedGpuWorker().Run({}, [] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    return absl::OkStatus();
+  }, &timing);
+  ASSERT_TRUE(status.ok());
+  EXPECT_GE(timing.run_ms, 19.0);
+  EXPECT_GE(timing.queue_ms, 0.0);
+}
+
+// --- Scene upload ----------------------------------------------------------
+
+TEST(GpuSceneUpload, UploadsRelativeToTheBoundsCenter) {
+  Scene scene = MakeCornellBox();
+  // Far from the origin: the anchor absorbs the offset.
+  for (auto& p : scene.positions) p += glm::dvec3(1e6, -2e6, 3e6);
+  UpdateBounds(scene);
+  auto gpu_scene = GpuScene::Upload(SharedGpuWorker(), scene);
+  ASSERT_TRUE(gpu_scene.ok()) << gpu_scene.status();
+  EXPECT_EQ((*gpu_scene)->triangle_count(), scene.TriangleCount());
+  EXPECT_EQ((*gpu_scene)->gpu_bytes(), scene.TriangleCount() * (3 * sizeof(glm::vec3) + sizeof(uint32_t)));
+  EXPECT_NEAR((*gpu_scene)->anchor().x, 1e6, 1.0);
+  EXPECT_NEAR((*gpu_scene)->anchor().y, -2e6 + 1.0, 1.0);
+}
+
+}  // namespace
+}  // namespace visq::gpu

@@ -1,0 +1,309 @@
+// The glTF loader on the conformance assets and real scenes of
+// ../shared/scenes (triangle counts from its SOURCES.md), on scenes written
+// by the project's own writer, and on malformed input.
+#include <fstream>
+
+#include <gtest/gtest.h>
+
+#include "scene/gltf_loader.h"
+#include "scene/gltf_writer.h"
+#include "scene/sample_scenes.h"
+#include "test_support.h"
+
+namespace visq {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::ScratchDir;
+
+struct CountCase {
+  const char* path;
+  size_t triangles;
+};
+
+class SharedSceneCounts : public ::testing::TestWithParam<CountCase> {};
+
+TEST_P(SharedSceneCounts, TriangleCountMatchesSources) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  GltfLoadReport report;
+  StatusOr<Scene> scene = LoadGltfFile(scenes / GetParam().path, &report);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->TriangleCount(), GetParam().triangles);
+  EXPECT_EQ(scene->triangle_material.size(), scene->TriangleCount());
+  EXPECT_EQ(scene->triangle_node.size(), scene->TriangleCount());
+  EXPECT_FALSE(scene->bounds.Empty());
+  for (const auto& t : scene->triangles)
+    for (int c = 0; c < 3; ++c) ASSERT_LT(t[c], scene->positions.size());
+}
+
+constexpr const char* kKhronos = "gltf_conformance/khronos_sample_assets/";
+INSTANTIATE_TEST_SUITE_P(
+    Conformance, SharedSceneCounts,
+    ::testing::Values(
+        CountCase{"gltf_conformance/khronos_sample_assets/Box/glTF/Box.gltf", 12},
+        CountCase{"gltf_conformance/khronos_sample_assets/Box/glTF-Binary/Box.glb", 12},
+        CountCase{"gltf_conformance/khronos_sample_assets/Box/glTF-Embedded/Box.gltf", 12},
+        CountCase{"gltf_conformance/khronos_sample_assets/BoxInterleaved/glTF/BoxInterleaved.gltf", 12},
+        CountCase{"gltf_conformance/khronos_sample_assets/BoxVertexColors/glTF/BoxVertexColors.gltf", 12},
+        CountCase{"gltf_conformance/khronos_sample_assets/SimpleSparseAccessor/glTF/SimpleSparseAccessor.gltf", 12},
+        CountCase{"gltf_conformance/khronos_sample_assets/SimpleSparseAccessor/glTF-Embedded/SimpleSparseAccessor.gltf", 12},
+        CountCase{"gltf_conformance/khronos_sample_assets/SimpleMeshes/glTF/SimpleMeshes.gltf", 2},
+        CountCase{"gltf_conformance/khronos_sample_assets/MultipleScenes/glTF/MultipleScenes.gltf", 2},
+        CountCase{"gltf_conformance/khronos_sample_assets/Triangle/glTF/Triangle.gltf", 1},
+        CountCase{"gltf_conformance/khronos_sample_assets/TriangleWithoutIndices/glTF/TriangleWithoutIndices.gltf", 1},
+        CountCase{"gltf_conformance/khronos_sample_assets/MeshPrimitiveModes/glTF/MeshPrimitiveModes.gltf", 16},
+        CountCase{"gltf_conformance/khronos_sample_assets/OrientationTest/glTF-Binary/OrientationTest.glb", 524},
+        CountCase{"gltf_conformance/khronos_sample_assets/NegativeScaleTest/glTF/NegativeScaleTest.gltf", 7724},
+        CountCase{"gltf_conformance/khronos_sample_assets/SimpleInstancing/glTF/SimpleInstancing.gltf", 12},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_04.gltf", 2},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_05.gltf", 2},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_06.gltf", 2},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_11.gltf", 2},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_12.gltf", 2},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_13.gltf", 2},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_14.gltf", 2},
+        CountCase{"gltf_conformance/asset_generator_Mesh_PrimitiveMode/Mesh_PrimitiveMode_15.gltf", 2}));
+
+INSTANTIATE_TEST_SUITE_P(
+    RealScenes, SharedSceneCounts,
+    ::testing::Values(CountCase{"cornell_box/cornell_box.gltf", 36}, CountCase{"bunny/bunny.gltf", 69451},
+                      CountCase{"sponza_dabrovic/sponza.gltf", 66454},
+                      CountCase{"tree_kenney/tree_palmDetailedTall.glb", 336},
+                      CountCase{"tree_kenney/tree_detailed.glb", 402},
+                      CountCase{"foliage_glass_vase_flowers/GlassVaseFlowers.gltf", 14036},
+                      CountCase{"interior_veach_ajar/veach_ajar.gltf", 382690},
+                      CountCase{"characters/DamagedHelmet/DamagedHelmet.gltf", 15452},
+                      CountCase{"characters/Fox/Fox.gltf", 576},
+                      CountCase{"characters/CesiumMan/CesiumMan.gltf", 4672}));
+
+TEST(GltfLoader, PrimitiveModeFilesWithoutTrianglesAreRejected) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  // Points, lines, line loops and line strips (_00.._03, _07.._10) hold no triangle.
+  for (int i : {0, 1, 2, 3, 7, 8, 9, 10}) {
+    const auto path = scenes / "gltf_conformance/asset_generator_Mesh_PrimitiveMode" /
+                      fmt::format("Mesh_PrimitiveMode_{:02d}.gltf", i);
+    StatusOr<Scene> scene = LoadGltfFile(path);
+    ASSERT_FALSE(scene.ok()) << path;
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_NE(scene.status().message().find("no triangles"), absl::string_view::npos) << scene.status();
+  }
+}
+
+TEST(GltfLoader, SparseAccessorOverridesPositions) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  StatusOr<Scene> scene =
+      LoadGltfFile(scenes / kKhronos / "SimpleSparseAccessor/glTF/SimpleSparseAccessor.gltf");
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  // The base grid has y in {0, 1}; the sparse values lift vertices to y = 2, 3, 4.
+  EXPECT_DOUBLE_EQ(scene->bounds.max.y, 4.0);
+}
+
+TEST(GltfLoader, MultipleScenesUsesTheDefaultSceneAndSaysWhatWasDropped) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  GltfLoadReport report;
+  StatusOr<Scene> scene = LoadGltfFile(scenes / kKhronos / "MultipleScenes/glTF/MultipleScenes.gltf", &report);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->TriangleCount(), 2u);
+  ASSERT_FALSE(report.dropped.empty());
+  EXPECT_NE(report.dropped[0].find("non-default scene"), std::string::npos);
+}
+
+TEST(GltfLoader, NegativeScaleFlipsWindingSoInstancesAgree) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  StatusOr<Scene> scene = LoadGltfFile(scenes / kKhronos / "NegativeScaleTest/glTF/NegativeScaleTest.gltf");
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  // The signed volume of a node's triangles about their centroid (sum of
+  // v0 . (v1 x v2) / 6) changes sign with the winding. A mesh instanced once
+  // plainly and once through a mirroring transform must keep its sign.
+  auto signed_volume = [&](const std::string& name) {
+    for (const auto& node : scene->nodes) {
+      if (node.name != name) continue;
+      glm::dvec3 centroid(0.0);
+      for (uint32_t t = node.first_triangle; t < node.first_triangle + node.triangle_count; ++t)
+        for (int c = 0; c < 3; ++c) centroid += scene->Vertex(t, c);
+      centroid /= 3.0 * node.triangle_count;
+      double volume = 0;
+      for (uint32_t t = node.first_triangle; t < node.first_triangle + node.triangle_count; ++t)
+        volume += glm::dot(scene->Vertex(t, 0) - centroid,
+                           glm::cross(scene->Vertex(t, 1) - centroid, scene->Vertex(t, 2) - centroid)) / 6.0;
+      return volume;
+    }
+    ADD_FAILURE() << "no node " << name;
+    return 0.0;
+  };
+  for (const auto& [plain, mirrored] : {std::pair{"NotShiny1", "NotShinyMinus1"}, std::pair{"Shiny1", "ShinyMinus1"},
+                                        std::pair{"Dark1", "DarkMinus1"}}) {
+    const double a = signed_volume(plain), b = signed_volume(mirrored);
+    EXPECT_GT(std::abs(a), 1e-6) << plain;
+    EXPECT_NEAR(a, b, 1e-6 * std::abs(a)) << plain << " vs " << mirrored;
+  }
+}
+
+TEST(GltfLoader, SkinnedCharacterKeepsBindPoseAndReportsDroppedContent) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  GltfLoadReport report;
+  StatusOr<Scene> scene = LoadGltfFile(scenes / "characters/Fox/Fox.gltf", &report);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  std::string all;
+  for (const auto& d : report.dropped) all += d + ";";
+  EXPECT_NE(all.find("animation"), std::string::npos) << all;
+  EXPECT_NE(all.find("skin"), std::string::npos) << all;
+}
+
+TEST(GltfLoader, CornellBoxMaterialsCarryReflectivityAndEmission) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  StatusOr<Scene> scene = LoadGltfFile(scenes / "cornell_box/cornell_box.gltf");
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  double max_emission = 0;
+  bool red_wall = false;
+  for (const auto& m : scene->materials) {
+    max_emission = std::max(max_emission, m.emission.r);
+    red_wall |= std::abs(m.reflectivity.r - 0.63) < 1e-6 && std::abs(m.reflectivity.g - 0.065) < 1e-6;
+  }
+  EXPECT_NEAR(max_emission, 17.0, 1e-6);  // emissiveFactor x KHR_materials_emissive_strength
+  EXPECT_TRUE(red_wall);
+}
+
+// --- Scenes written by the project's writer --------------------------------
+
+TEST(GltfWriter, GeneratedCornellBoxRoundTrips) {
+  ScratchDir dir;
+  const Scene original = MakeCornellBox();
+  for (const char* file : {"box.gltf", "box.glb"}) {
+    ASSERT_TRUE(WriteGltfFile(original, dir.path() / file).ok());
+    StatusOr<Scene> loaded = LoadGltfFile(dir.path() / file);
+    ASSERT_TRUE(loaded.ok()) << loaded.status();
+    EXPECT_EQ(loaded->TriangleCount(), original.TriangleCount());
+    EXPECT_EQ(loaded->materials.size(), original.materials.size());
+    ASSERT_EQ(loaded->nodes.size(), original.nodes.size());
+    EXPECT_EQ(loaded->nodes[5].name, "light");
+    const Material& light = loaded->materials[loaded->triangle_material[loaded->nodes[5].first_triangle]];
+    EXPECT_NEAR(light.emission.r, 17.0, 1e-4);
+    EXPECT_NEAR(light.emission.b, 4.0, 1e-4);
+    for (int a = 0; a < 3; ++a) {
+      EXPECT_NEAR(loaded->bounds.min[a], original.bounds.min[a], 1e-6);
+      EXPECT_NEAR(loaded->bounds.max[a], original.bounds.max[a], 1e-6);
+    }
+  }
+}
+
+// --- Malformed input ---------------------------------------------------------
+
+// Writes a .gltf whose single buffer is `bin` (as a .bin beside it).
+fs::path WriteGltf(const ScratchDir& dir, const std::string& name, const std::string& json,
+                   const std::vector<unsigned char>& bin = {}) {
+  if (!bin.empty()) {
+    std::ofstream b(dir.path() / (name + ".bin"), std::ios::binary);
+    b.write(reinterpret_cast<const char*>(bin.data()), static_cast<std::streamsize>(bin.size()));
+  }
+  const fs::path path = dir.path() / (name + ".gltf");
+  std::ofstream(path) << json;
+  return path;
+}
+
+std::vector<unsigned char> TriangleBuffer(float x0, uint16_t i2) {
+  std::vector<unsigned char> bin;
+  const float positions[9] = {x0, 0, 0, 1, 0, 0, 0, 1, 0};
+  const uint16_t indices[4] = {0, 1, i2, 0};
+  bin.resize(sizeof(positions) + sizeof(indices));
+  std::memcpy(bin.data(), positions, sizeof(positions));
+  std::memcpy(bin.data() + sizeof(positions), indices, sizeof(indices));
+  return bin;
+}
+
+std::string TriangleJson(const std::string& name, const std::string& extra = "") {
+  return R"({"asset":{"version":"2.0"},)" + extra +
+         R"("scenes":[{"nodes":[0]}],"scene":0,"nodes":[{"mesh":0}],
+     "meshes":[{"primitives":[{"attributes":{"POSITION":0},"indices":1}]}],
+     "buffers":[{"uri":")" + name + R"(.bin","byteLength":44}],
+     "bufferViews":[{"buffer":0,"byteOffset":0,"byteLength":36},{"buffer":0,"byteOffset":36,"byteLength":6}],
+     "accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]},
+                  {"bufferView":1,"componentType":5123,"count":3,"type":"SCALAR"}]})";
+}
+
+void ExpectInvalid(const fs::path& path, const std::string& needle) {
+  StatusOr<Scene> scene = LoadGltfFile(path);
+  ASSERT_FALSE(scene.ok()) << path;
+  EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << scene.status();
+  EXPECT_NE(std::string(scene.status().message()).find(needle), std::string::npos)
+      << "message '" << scene.status().message() << "' lacks '" << needle << "'";
+}
+
+TEST(GltfLoaderBadInput, ValidTriangleLoads) {
+  ScratchDir dir;
+  StatusOr<Scene> scene = LoadGltfFile(WriteGltf(dir, "ok", TriangleJson("ok"), TriangleBuffer(0, 2)));
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->TriangleCount(), 1u);
+}
+
+TEST(GltfLoaderBadInput, MalformedJson) {
+  ScratchDir dir;
+  ExpectInvalid(WriteGltf(dir, "bad", "{\"asset\": {\"version\": \"2.0\"}, \"nodes\": [ {"), "malformed glTF");
+}
+
+TEST(GltfLoaderBadInput, IndexOutOfRange) {
+  ScratchDir dir;
+  ExpectInvalid(WriteGltf(dir, "idx", TriangleJson("idx"), TriangleBuffer(0, 7)), "out of range");
+}
+
+TEST(GltfLoaderBadInput, NanPosition) {
+  ScratchDir dir;
+  ExpectInvalid(WriteGltf(dir, "nan", TriangleJson("nan"), TriangleBuffer(std::nanf(""), 2)), "NaN");
+}
+
+TEST(GltfLoaderBadInput, InfinitePosition) {
+  ScratchDir dir;
+  ExpectInvalid(WriteGltf(dir, "inf", TriangleJson("inf"), TriangleBuffer(INFINITY, 2)), "Inf");
+}
+
+TEST(GltfLoaderBadInput, UnsupportedRequiredExtension) {
+  ScratchDir dir;
+  ExpectInvalid(WriteGltf(dir, "ext",
+                          TriangleJson("ext", R"("extensionsUsed":["KHR_draco_mesh_compression"],
+                                                 "extensionsRequired":["KHR_draco_mesh_compression"],)"),
+                          TriangleBuffer(0, 2)),
+                "unsupported required extension KHR_draco_mesh_compression");
+}
+
+TEST(GltfLoaderBadInput, NoTriangles) {
+  ScratchDir dir;
+  ExpectInvalid(WriteGltf(dir, "empty", R"({"asset":{"version":"2.0"},"scenes":[{"nodes":[0]}],"nodes":[{}]})"),
+                "no triangles");
+}
+
+TEST(GltfLoaderBadInput, AccessorPastEndOfBuffer) {
+  ScratchDir dir;
+  std::string json = TriangleJson("short");
+  json.replace(json.find("\"count\":3,\"type\":\"VEC3\""), 24, "\"count\":30,\"type\":\"VEC3\"");
+  const fs::path path = WriteGltf(dir, "short", json, TriangleBuffer(0, 2));
+  StatusOr<Scene> scene = LoadGltfFile(path);
+  ASSERT_FALSE(scene.ok());
+  EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << scene.status();
+}
+
+TEST(GltfLoaderBadInput, NodeCycle) {
+  ScratchDir dir;
+  std::string json = TriangleJson("cycle");
+  json.replace(json.find("\"nodes\":[{\"mesh\":0}]"), 20, "\"nodes\":[{\"mesh\":0,\"children\":[1]},{\"children\":[0]}]");
+  ExpectInvalid(WriteGltf(dir, "cycle", json, TriangleBuffer(0, 2)), "");
+}
+
+TEST(GltfLoaderBadInput, MissingBufferFile) {
+  ScratchDir dir;
+  ExpectInvalid(WriteGltf(dir, "nobin", TriangleJson("nobin")), "");
+}
+
+TEST(GltfLoaderBadInput, NotAGltfFile) {
+  ScratchDir dir;
+  std::ofstream(dir.path() / "scene.obj") << "v 0 0 0\n";
+  ExpectInvalid(dir.path() / "scene.obj", "not a .gltf or .glb");
+}
+
+TEST(GltfLoaderBadInput, TruncatedGlb) {
+  ScratchDir dir;
+  std::ofstream(dir.path() / "t.glb", std::ios::binary) << "glTF\x02\x00\x00\x00";
+  ExpectInvalid(dir.path() / "t.glb", "malformed glTF");
+}
+
+}  // namespace
+}  // namespace visq
