@@ -1,0 +1,260 @@
+// The scene RPCs end to end: a real visq-server process on loopback, the
+// real client library and CLI, real files.
+#include <cstdio>
+#include <fstream>
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include "scene/gltf_writer.h"
+#include "scene/sample_scenes.h"
+#include "test_support.h"
+#include "visq_client.h"
+
+namespace visq {
+namespace {
+
+namespace fs = std::filesystem;
+using client::Client;
+using testing::ScratchDir;
+using testing::ServerProcess;
+
+class SceneRpcTest : public ::testing::Test {
+ protected:
+  void SetUp() override { StartServer(); }
+
+  void StartServer(std::vector<std::string> extra = {"--seed-samples"}) {
+    server_ = ServerProcess::Start({repo_.path(), extra});
+    ASSERT_NE(server_, nullptr);
+    client_ = std::make_unique<Client>(client::ClientOptions{.address = server_->address()});
+  }
+  void RestartServer() {
+    client_.reset();
+    EXPECT_EQ(server_->Stop(), 0) << "server did not exit cleanly:\n" << server_->Log();
+    StartServer({});
+  }
+
+  // A small generated scene written outside the repository, as a user's file.
+  fs::path WriteUserScene(const std::string& file_name, int boxes = 3) {
+    Scene scene;
+    scene.materials = {{"grey", glm::dvec3(0.5), glm::dvec3(0.0)}};
+    for (int i = 0; i < boxes; ++i)
+      AddBox(scene, "box" + std::to_string(i), glm::dvec3(i * 2.0, 0, 0), glm::dvec3(i * 2.0 + 1, 1, 1), 0);
+    UpdateBounds(scene);
+    const fs::path path = user_files_.path() / file_name;
+    EXPECT_TRUE(WriteGltfFile(scene, path).ok());
+    return path;
+  }
+
+  std::vector<std::string> RepositoryEntries() const {
+    std::vector<std::string> names;
+    for (const auto& entry : fs::directory_iterator(repo_.path())) names.push_back(entry.path().filename().string());
+    std::sort(names.begin(), names.end());
+    return names;
+  }
+
+  ScratchDir repo_;
+  ScratchDir user_files_;
+  std::unique_ptr<ServerProcess> server_;
+  std::unique_ptr<Client> client_;
+};
+
+TEST_F(SceneRpcTest, HealthIsServingAndSampleSceneIsResident) {
+  auto health = client_->Health();
+  ASSERT_TRUE(health.ok()) << health.status();
+  EXPECT_EQ(*health, grpc::health::v1::HealthCheckResponse::SERVING);
+  auto service_health = client_->Health("visq.v1.VisibilityService");
+  ASSERT_TRUE(service_health.ok()) << service_health.status();
+  EXPECT_EQ(*service_health, grpc::health::v1::HealthCheckResponse::SERVING);
+
+  auto list = client_->ListScenes();
+  ASSERT_TRUE(list.ok()) << list.status();
+  ASSERT_EQ(list->scenes_size(), 1);
+  EXPECT_EQ(list->scenes(0).name(), "cornell_box_visq");
+  EXPECT_EQ(list->scenes(0).triangle_count(), 36u);
+  EXPECT_EQ(list->scenes(0).emissive_triangle_count(), 2u);
+}
+
+TEST_F(SceneRpcTest, UploadInfoReplaceUnload) {
+  const fs::path file = WriteUserScene("boxes.gltf");
+  auto info = client_->UploadScene(file, "boxes");
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->triangle_count(), 36u);
+  EXPECT_EQ(info->version(), 1u);
+  EXPECT_TRUE(info->persisted());
+  EXPECT_EQ(info->content_hash().size(), 32u);
+  EXPECT_EQ(info->memory().gpu_bytes(), 0u) << "nothing should be on the GPU before a GPU query";
+
+  auto with_nodes = client_->GetScene("boxes", true);
+  ASSERT_TRUE(with_nodes.ok()) << with_nodes.status();
+  ASSERT_EQ(with_nodes->nodes_size(), 3);
+  EXPECT_EQ(with_nodes->nodes(1).name(), "box1");
+  EXPECT_EQ(with_nodes->nodes(1).triangle_count(), 12u);
+  EXPECT_DOUBLE_EQ(with_nodes->bounds_max().x(), 5.0);
+
+  auto again = client_->UploadScene(file, "boxes");
+  EXPECT_EQ(again.status().code(), absl::StatusCode::kAlreadyExists) << again.status();
+
+  auto replaced = client_->UploadScene(WriteUserScene("more.glb", 5), "boxes", /*replace=*/true);
+  ASSERT_TRUE(replaced.ok()) << replaced.status();
+  EXPECT_EQ(replaced->version(), 2u);
+  EXPECT_EQ(replaced->triangle_count(), 60u);
+
+  auto unloaded = client_->UnloadScene("boxes");
+  ASSERT_TRUE(unloaded.ok()) << unloaded.status();
+  EXPECT_FALSE(unloaded->deleted_from_repository());
+  EXPECT_EQ(client_->GetScene("boxes").status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(client_->UnloadScene("boxes").status().code(), absl::StatusCode::kNotFound);
+
+  // Still stored: it can be loaded back by name.
+  auto reloaded = client_->LoadFromRepository("boxes");
+  ASSERT_TRUE(reloaded.ok()) << reloaded.status();
+  EXPECT_EQ(reloaded->triangle_count(), 60u);
+  EXPECT_EQ(reloaded->version(), 3u) << "versions never repeat for a name";
+}
+
+TEST_F(SceneRpcTest, LoadByNameFromRepository) {
+  // A scene placed in the repository by hand, as a single .glb.
+  const fs::path glb = WriteUserScene("hand.glb", 2);
+  fs::copy_file(glb, repo_.path() / "hand_placed.glb");
+  auto info = client_->LoadFromRepository("hand_placed");
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->triangle_count(), 24u);
+  EXPECT_EQ(client_->LoadFromRepository("no_such_scene").status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(SceneRpcTest, RestartKeepsUploadedScenesAndDeleteForgetsThem) {
+  auto kept = client_->UploadScene(WriteUserScene("kept.gltf"), "kept");
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  auto doomed = client_->UploadScene(WriteUserScene("doomed.gltf", 1), "doomed");
+  ASSERT_TRUE(doomed.ok()) << doomed.status();
+  auto deleted = client_->UnloadScene("doomed", /*delete_from_repository=*/true);
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  EXPECT_TRUE(deleted->deleted_from_repository());
+
+  RestartServer();
+  auto list = client_->ListScenes();
+  ASSERT_TRUE(list.ok()) << list.status();
+  std::vector<std::string> names;
+  for (const auto& s : list->scenes()) names.push_back(s.name());
+  EXPECT_EQ(names, (std::vector<std::string>{"cornell_box_visq", "kept"}));
+  auto info = client_->GetScene("kept");
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->content_hash(), kept->content_hash());
+}
+
+TEST_F(SceneRpcTest, BadNamesAreRejectedAndLeaveNothingBehind) {
+  const fs::path file = WriteUserScene("x.gltf");
+  for (const std::string& name : std::vector<std::string>{"../escape", "a/b", "..", ".hidden", "", "white space", std::string(200, 'a')}) {
+    auto info = client_->UploadScene(file, name.empty() ? " " : name);
+    EXPECT_EQ(info.status().code(), absl::StatusCode::kInvalidArgument) << "name '" << name << "': " << info.status();
+    EXPECT_EQ(client_->LoadFromRepository(name).status().code(), absl::StatusCode::kInvalidArgument) << name;
+  }
+  EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq"}));
+}
+
+TEST_F(SceneRpcTest, MalformedUploadIsInvalidAndLeavesServerAndOtherScenesUntouched) {
+  const auto before = client_->GetScene("cornell_box_visq");
+  ASSERT_TRUE(before.ok());
+  const fs::path bad = user_files_.path() / "broken.gltf";
+  std::ofstream(bad) << R"({"asset": {"version": "2.0"}, "meshes": [ {)";
+  auto info = client_->UploadScene(bad, "broken");
+  EXPECT_EQ(info.status().code(), absl::StatusCode::kInvalidArgument) << info.status();
+  EXPECT_NE(std::string(info.status().message()).find("malformed"), std::string::npos) << info.status();
+
+  // A NaN vertex in an otherwise valid file.
+  Scene nan_scene = MakeCornellBox();
+  nan_scene.positions[3].y = std::numeric_limits<double>::quiet_NaN();
+  ASSERT_TRUE(WriteGltfFile(nan_scene, user_files_.path() / "nan.gltf").ok());
+  auto nan_info = client_->UploadScene(user_files_.path() / "nan.gltf", "nan");
+  EXPECT_EQ(nan_info.status().code(), absl::StatusCode::kInvalidArgument) << nan_info.status();
+  EXPECT_NE(std::string(nan_info.status().message()).find("NaN"), std::string::npos) << nan_info.status();
+
+  EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq"})) << "no partial scene stored";
+  const auto after = client_->GetScene("cornell_box_visq");
+  ASSERT_TRUE(after.ok());
+  EXPECT_EQ(after->content_hash(), before->content_hash());
+  EXPECT_EQ(after->version(), before->version());
+  EXPECT_EQ(client_->Health().value(), grpc::health::v1::HealthCheckResponse::SERVING);
+}
+
+TEST_F(SceneRpcTest, ProtocolMisuseIsInvalidArgument) {
+  // A chunk before any header.
+  {
+    auto context = client_->NewContext();
+    v1::SceneInfo info;
+    auto writer = client_->stub().LoadScene(context.get(), &info);
+    v1::LoadSceneRequest chunk;
+    chunk.mutable_chunk()->set_file("x.gltf");
+    chunk.mutable_chunk()->set_data("{}");
+    writer->Write(chunk);
+    writer->WritesDone();
+    EXPECT_EQ(writer->Finish().error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  }
+  // A chunk whose file name climbs out of the upload.
+  {
+    auto context = client_->NewContext();
+    v1::SceneInfo info;
+    auto writer = client_->stub().LoadScene(context.get(), &info);
+    v1::LoadSceneRequest header;
+    header.mutable_header()->set_name("climber");
+    header.mutable_header()->set_upload_main_file("scene.gltf");
+    writer->Write(header);
+    v1::LoadSceneRequest chunk;
+    chunk.mutable_chunk()->set_file("../../etc/passwd");
+    chunk.mutable_chunk()->set_data("x");
+    writer->Write(chunk);
+    writer->WritesDone();
+    const grpc::Status status = writer->Finish();
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+  }
+  // An empty stream.
+  {
+    auto context = client_->NewContext();
+    v1::SceneInfo info;
+    auto writer = client_->stub().LoadScene(context.get(), &info);
+    writer->WritesDone();
+    EXPECT_EQ(writer->Finish().error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  }
+  EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq"}));
+}
+
+TEST_F(SceneRpcTest, UploadLimitIsResourceExhausted) {
+  RestartServer();
+  client_.reset();
+  server_->Stop();
+  StartServer({"--max-upload-bytes", "1000"});
+  auto info = client_->UploadScene(WriteUserScene("big.gltf", 10), "big");
+  EXPECT_EQ(info.status().code(), absl::StatusCode::kResourceExhausted) << info.status();
+  EXPECT_NE(std::string(info.status().message()).find("--max-upload-bytes"), std::string::npos);
+}
+
+TEST_F(SceneRpcTest, CliListsScenesAsJson) {
+  const std::string command = std::string(VISQ_CLI_BINARY) + " list --json --server " + server_->address();
+  std::FILE* pipe = ::popen(command.c_str(), "r");
+  ASSERT_NE(pipe, nullptr);
+  std::string output;
+  char buffer[4096];
+  while (size_t n = std::fread(buffer, 1, sizeof(buffer), pipe)) output.append(buffer, n);
+  ASSERT_EQ(::pclose(pipe), 0) << output;
+  const auto json = nlohmann::json::parse(output);
+  ASSERT_EQ(json["scenes"].size(), 1u) << output;
+  EXPECT_EQ(json["scenes"][0]["name"], "cornell_box_visq");
+  EXPECT_EQ(json["scenes"][0]["triangle_count"], "36") << "uint64 fields are strings in proto3 JSON";
+}
+
+TEST_F(SceneRpcTest, SponzaUploadsInChunksAndSurvivesRestart) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  auto info = client_->UploadScene(scenes / "sponza_dabrovic/sponza.gltf");
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->name(), "sponza");
+  EXPECT_EQ(info->triangle_count(), 66454u);
+  RestartServer();
+  auto after = client_->GetScene("sponza");
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_EQ(after->triangle_count(), 66454u);
+  EXPECT_EQ(after->content_hash(), info->content_hash());
+}
+
+}  // namespace
+}  // namespace visq
