@@ -20,7 +20,7 @@
 namespace visq {
 
 struct EngineOptions {
-  std::filesystem::path scene_repo = "scenes";
+  std::filesystem::path scene_repo = "/var/lib/visq/scenes";
   gpu::GpuOptions gpu;
   uint64_t max_upload_bytes = 4ull << 30;
   // Load every scene of the repository at start (resident from the first
