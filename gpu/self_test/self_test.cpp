@@ -16,7 +16,7 @@ Status RunSelfTest(GpuWorker& worker) {
   return worker.Run({}, []() -> Status {
     constexpr int kSize = 8;
     VISQ_ASSIGN_OR_RETURN(GlProgramObject program,
-                          BuildProgram({{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}));
+                          BuildProgram(CoreShaderFiles, {{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}));
     GlTexture2D target;
     glTextureStorage2D(target.id(), 1, GL_RGBA32UI, kSize, kSize);
     GlFramebuffer framebuffer;

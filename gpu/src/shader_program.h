@@ -1,5 +1,7 @@
 // GLSL programs built from shader files embedded at build time (see
-// gpu/CMakeLists.txt). `#define`s are prepended at run time for variants.
+// visq_gpu_algorithm in cmake/EmbedFiles.cmake): each algorithm library
+// passes its own file lookup, e.g. visq::gpu::slicemap_shaders::Find.
+// `#define`s are prepended at run time for variants.
 #pragma once
 
 #include <string>
@@ -20,13 +22,20 @@ struct ShaderSource {
 
 using ShaderDefines = std::vector<std::pair<std::string, std::string>>;
 
+// An embedded-file lookup: the text of a file by name, empty if absent.
+using ShaderFiles = std::string_view (*)(std::string_view);
+
 // The text of an embedded shader file, with `#include "name"` lines replaced
-// by the named embedded file; NOT_FOUND if it is not embedded.
-[[nodiscard]] StatusOr<std::string> EmbeddedShaderText(const std::string& file_name);
+// by the named file (looked up in `files`, then in gpu/src's shared files);
+// NOT_FOUND if a file is not embedded.
+[[nodiscard]] StatusOr<std::string> EmbeddedShaderText(ShaderFiles files, const std::string& file_name);
 
 // Compiles and links; a failure is INTERNAL naming the file and carrying the
 // trimmed driver log.
-[[nodiscard]] StatusOr<GlProgramObject> BuildProgram(const std::vector<ShaderSource>& sources,
+[[nodiscard]] StatusOr<GlProgramObject> BuildProgram(ShaderFiles files, const std::vector<ShaderSource>& sources,
                                                      const ShaderDefines& defines = {});
+
+// gpu/src's and gpu/self_test's own files.
+std::string_view CoreShaderFiles(std::string_view name);
 
 }  // namespace visq::gpu

@@ -83,7 +83,7 @@ TEST(GpuContext, UnknownDeviceChoiceIsAClearError) {
 
 TEST(Shaders, EmbeddedFilesBuild) {
   Status status = SharedGpuWorker().Run({}, []() -> Status {
-    return BuildProgram({{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}).status();
+    return BuildProgram(CoreShaderFiles, {{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}).status();
   });
   EXPECT_TRUE(status.ok()) << status;
 }
@@ -91,7 +91,7 @@ TEST(Shaders, EmbeddedFilesBuild) {
 TEST(Shaders, CompileErrorNamesTheFileAndCarriesTheDriverLog) {
   Status status = SharedGpuWorker().Run({}, []() -> Status {
     // A define that breaks the fragment shader's syntax.
-    return BuildProgram({{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}},
+    return BuildProgram(CoreShaderFiles, {{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}},
                         {{"out_bits", "= ="}})
         .status();
   });
@@ -105,7 +105,7 @@ TEST(Shaders, CompileErrorNamesTheFileAndCarriesTheDriverLog) {
 
 TEST(Shaders, MissingFileIsNotFound) {
   Status status = SharedGpuWorker().Run({}, []() -> Status {
-    return BuildProgram({{GL_VERTEX_SHADER, "no_such_shader.vert"}}).status();
+    return BuildProgram(CoreShaderFiles, {{GL_VERTEX_SHADER, "no_such_shader.vert"}}).status();
   });
   EXPECT_EQ(status.code(), absl::StatusCode::kNotFound) << status;
 }
