@@ -1,6 +1,7 @@
 #include "visq_client.h"
 
 #include <fstream>
+#include <sstream>
 #include <thread>
 
 #include <grpcpp/client_context.h>
@@ -35,22 +36,54 @@ Status FromGrpcStatus(const grpc::Status& status) {
   return Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
 }
 
+namespace {
+StatusOr<std::string> ReadPem(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) return absl::InvalidArgumentError(absl::StrCat("cannot read ", path));
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+}  // namespace
+
 Client::Client(ClientOptions options) : options_(std::move(options)) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(-1);  // responses can be large bitmask streams
-  channel_ = grpc::CreateCustomChannel(options_.address, grpc::InsecureChannelCredentials(), args);
+  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+  if (!options_.tls_ca_file.empty()) {
+    grpc::SslCredentialsOptions ssl;
+    auto roots = ReadPem(options_.tls_ca_file);
+    if (roots.ok()) ssl.pem_root_certs = *roots;
+    else init_status_ = roots.status();
+    if (!options_.client_cert_file.empty()) {
+      auto cert = ReadPem(options_.client_cert_file);
+      auto key = ReadPem(options_.client_key_file);
+      if (cert.ok() && key.ok()) {
+        ssl.pem_cert_chain = *cert;
+        ssl.pem_private_key = *key;
+      } else {
+        init_status_ = cert.ok() ? key.status() : cert.status();
+      }
+    }
+    if (!options_.tls_server_name.empty()) args.SetSslTargetNameOverride(options_.tls_server_name);
+    credentials = grpc::SslCredentials(ssl);
+  }
+  channel_ = grpc::CreateCustomChannel(options_.address, credentials, args);
   stub_ = v1::VisibilityService::NewStub(channel_);
   health_ = grpc::health::v1::Health::NewStub(channel_);
 }
 
-std::unique_ptr<grpc::ClientContext> Client::NewContext() const {
+std::unique_ptr<grpc::ClientContext> Client::NewContext(const std::string& scene) const {
   auto context = std::make_unique<grpc::ClientContext>();
   context->set_deadline(std::chrono::system_clock::now() + options_.deadline);
   if (!options_.request_id.empty()) context->AddMetadata("x-request-id", options_.request_id);
+  if (!options_.auth_token.empty()) context->AddMetadata("authorization", "Bearer " + options_.auth_token);
+  if (options_.route_by_scene && !scene.empty()) context->AddMetadata("x-visq-scene", scene);
   return context;
 }
 
 StatusOr<grpc::health::v1::HealthCheckResponse::ServingStatus> Client::Health(const std::string& service) {
+  VISQ_RETURN_IF_ERROR(init_status_);
   auto context = NewContext();
   grpc::health::v1::HealthCheckRequest request;
   request.set_service(service);
@@ -110,7 +143,8 @@ StatusOr<v1::SceneInfo> Client::UploadScene(const std::filesystem::path& file, s
     total += std::filesystem::file_size(path, ec);
   }
 
-  auto context = NewContext();
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(name);
   v1::SceneInfo info;
   auto writer = stub_->LoadScene(context.get(), &info);
   v1::LoadSceneRequest request;
@@ -141,7 +175,8 @@ StatusOr<v1::SceneInfo> Client::UploadScene(const std::filesystem::path& file, s
 }
 
 StatusOr<v1::SceneInfo> Client::LoadFromRepository(const std::string& name, bool replace) {
-  auto context = NewContext();
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(name);
   v1::SceneInfo info;
   auto writer = stub_->LoadScene(context.get(), &info);
   v1::LoadSceneRequest request;
@@ -155,6 +190,7 @@ StatusOr<v1::SceneInfo> Client::LoadFromRepository(const std::string& name, bool
 }
 
 StatusOr<v1::ListScenesResponse> Client::ListScenes() {
+  VISQ_RETURN_IF_ERROR(init_status_);
   auto context = NewContext();
   v1::ListScenesResponse response;
   VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->ListScenes(context.get(), v1::ListScenesRequest(), &response)));
@@ -162,7 +198,8 @@ StatusOr<v1::ListScenesResponse> Client::ListScenes() {
 }
 
 StatusOr<v1::SceneInfo> Client::GetScene(const std::string& name, bool include_nodes) {
-  auto context = NewContext();
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(name);
   v1::GetSceneRequest request;
   request.set_name(name);
   request.set_include_nodes(include_nodes);
@@ -172,12 +209,25 @@ StatusOr<v1::SceneInfo> Client::GetScene(const std::string& name, bool include_n
 }
 
 StatusOr<v1::UnloadSceneResponse> Client::UnloadScene(const std::string& name, bool delete_from_repository) {
-  auto context = NewContext();
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(name);
   v1::UnloadSceneRequest request;
   request.set_name(name);
   request.set_delete_from_repository(delete_from_repository);
   v1::UnloadSceneResponse response;
   VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->UnloadScene(context.get(), request, &response)));
+  return response;
+}
+
+}  // namespace visq::client
+
+namespace visq::client {
+
+StatusOr<v1::ServerStats> Client::GetStats() {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext();
+  v1::ServerStats response;
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->GetStats(context.get(), v1::GetStatsRequest(), &response)));
   return response;
 }
 

@@ -20,6 +20,16 @@ struct ClientOptions {
   std::chrono::milliseconds deadline{60'000};
   size_t upload_chunk_bytes = 1 << 20;  // well under any message limit
   std::string request_id;               // sent as x-request-id when set
+  std::string auth_token;               // sent as "authorization: Bearer ..." when set
+  // TLS: on when tls_ca_file is set (PEM roots that sign the server's
+  // certificate); client_cert_file/client_key_file for mutual TLS.
+  std::string tls_ca_file;
+  std::string client_cert_file;
+  std::string client_key_file;
+  std::string tls_server_name;          // override the name checked in the certificate
+  // Sent as x-visq-scene on calls that name a scene, so a proxy can route
+  // each scene to the replicas that hold it (see deploy/nginx).
+  bool route_by_scene = true;
 };
 
 class Client {
@@ -42,13 +52,19 @@ class Client {
   [[nodiscard]] StatusOr<v1::UnloadSceneResponse> UnloadScene(const std::string& name,
                                                               bool delete_from_repository = false);
 
+  [[nodiscard]] StatusOr<v1::ServerStats> GetStats();
+
   // For RPCs this class does not wrap yet, and for tests.
   v1::VisibilityService::Stub& stub() { return *stub_; }
-  // A context with the deadline and request id applied.
-  std::unique_ptr<grpc::ClientContext> NewContext() const;
+  // A context with the deadline, request id, token and (when `scene` is
+  // given) the routing metadata applied.
+  std::unique_ptr<grpc::ClientContext> NewContext(const std::string& scene = "") const;
+  // Whether construction succeeded (TLS files readable).
+  const Status& init_status() const { return init_status_; }
 
  private:
   ClientOptions options_;
+  Status init_status_;
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::VisibilityService::Stub> stub_;
   std::unique_ptr<grpc::health::v1::Health::Stub> health_;

@@ -11,6 +11,7 @@ build_packages=(
   libglm-dev libtinygltf-dev nlohmann-json3-dev libstb-dev
   libspdlog-dev libfmt-dev libcli11-dev libabsl-dev
   libembree-dev libgmp-dev libxxhash-dev
+  openssl nginx-light
   libgtest-dev libgmock-dev libbenchmark-dev
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.

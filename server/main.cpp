@@ -3,6 +3,7 @@
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
+#include <fstream>
 #include <iostream>
 
 #include <CLI/CLI.hpp>
@@ -34,6 +35,19 @@ int main(int argc, char** argv) {
   app.add_flag("--gpu-debug", options.engine.gpu.debug, "KHR_debug to the log, GL error checks")->envname("VISQ_GPU_DEBUG");
   app.add_flag("--seed-samples", seed_samples, "Write the generated sample scenes into the repository if absent")
       ->envname("VISQ_SEED_SAMPLES");
+  std::string auth_token_file;
+  app.add_option("--server-id", options.server_id, "Name reported by GetStats (default host:port)")->envname("VISQ_SERVER_ID");
+  app.add_option("--auth-token-file", auth_token_file, "File holding the bearer token every call must carry")
+      ->envname("VISQ_AUTH_TOKEN_FILE");
+  app.add_option("--tls-cert", options.tls.cert_file, "PEM certificate chain: serve TLS")->envname("VISQ_TLS_CERT");
+  app.add_option("--tls-key", options.tls.key_file, "PEM private key for --tls-cert")->envname("VISQ_TLS_KEY");
+  app.add_option("--tls-client-ca", options.tls.client_ca_file, "PEM CA that client certificates must chain to (mutual TLS)")
+      ->envname("VISQ_TLS_CLIENT_CA");
+  app.add_flag("--allow-insecure-remote", options.allow_insecure_remote,
+               "Listen beyond loopback without TLS or a token")->envname("VISQ_ALLOW_INSECURE_REMOTE");
+  bool no_preload = false;
+  app.add_flag("--no-preload", no_preload, "Load repository scenes on first use instead of at start (replicas)")
+      ->envname("VISQ_NO_PRELOAD");
   app.add_option("--port-file", port_file, "Write the bound port here once listening (for --address HOST:0)")
       ->envname("VISQ_PORT_FILE");
   CLI11_PARSE(app, argc, argv);
@@ -42,6 +56,14 @@ int main(int argc, char** argv) {
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   options.engine.scene_repo = scene_repo;
   options.engine.max_upload_bytes = max_upload_bytes;
+  options.engine.load_repository_at_start = !no_preload;
+  if (!auth_token_file.empty()) {
+    std::ifstream in(auth_token_file);
+    if (!in || !std::getline(in, options.auth_token) || options.auth_token.empty()) {
+      spdlog::critical("--auth-token-file {}: cannot read a token from its first line", auth_token_file);
+      return EXIT_FAILURE;
+    }
+  }
 
   // Signals are taken synchronously by this thread (sigwait), so no handler
   // runs in an arbitrary thread.

@@ -1,6 +1,7 @@
 // visq: the command-line client. Each subcommand is a thin wrapper over
 // visq::client::Client; --json prints the response message as JSON.
 #include <cstdlib>
+#include <fstream>
 #include <iostream>
 
 #include <CLI/CLI.hpp>
@@ -17,6 +18,8 @@ struct CommonFlags {
   std::string server = "127.0.0.1:50051";
   bool json = false;
   double timeout_s = 60;
+  std::string token_file;
+  std::string tls_ca, tls_cert, tls_key;
 };
 
 void AddCommonFlags(CLI::App* command, CommonFlags& flags) {
@@ -24,12 +27,24 @@ void AddCommonFlags(CLI::App* command, CommonFlags& flags) {
       ->capture_default_str();
   command->add_flag("--json", flags.json, "Print the response as JSON");
   command->add_option("--timeout", flags.timeout_s, "Deadline in seconds")->capture_default_str();
+  command->add_option("--token-file", flags.token_file, "File whose first line is the bearer token")
+      ->envname("VISQ_AUTH_TOKEN_FILE");
+  command->add_option("--tls-ca", flags.tls_ca, "PEM roots for a TLS server")->envname("VISQ_TLS_CA");
+  command->add_option("--tls-cert", flags.tls_cert, "PEM client certificate (mutual TLS)")->envname("VISQ_TLS_CLIENT_CERT");
+  command->add_option("--tls-key", flags.tls_key, "PEM client key (mutual TLS)")->envname("VISQ_TLS_CLIENT_KEY");
 }
 
 Client MakeClient(const CommonFlags& flags) {
   visq::client::ClientOptions options;
   options.address = flags.server;
   options.deadline = std::chrono::milliseconds(static_cast<int64_t>(flags.timeout_s * 1000));
+  options.tls_ca_file = flags.tls_ca;
+  options.client_cert_file = flags.tls_cert;
+  options.client_key_file = flags.tls_key;
+  if (!flags.token_file.empty()) {
+    std::ifstream in(flags.token_file);
+    std::getline(in, options.auth_token);
+  }
   return Client(options);
 }
 
@@ -155,6 +170,30 @@ int main(int argc, char** argv) {
     if (!response.ok()) { exit_code = Fail(response.status()); return; }
     if (flags.json) fmt::print("{}", ToJson(*response));
     else fmt::print("unloaded {}{}\n", unload_name, response->deleted_from_repository() ? " (deleted from the repository)" : "");
+  });
+
+  auto* stats = app.add_subcommand("stats", "Server statistics: per-RPC latencies, queues, memory, GPU");
+  AddCommonFlags(stats, flags);
+  stats->callback([&] {
+    auto client = MakeClient(flags);
+    auto response = client.GetStats();
+    if (!response.ok()) { exit_code = Fail(response.status()); return; }
+    if (flags.json) { fmt::print("{}", ToJson(*response)); return; }
+    const auto& s = *response;
+    fmt::print("server {} up {:.0f} s\n", s.server_id(), s.uptime_s());
+    fmt::print("GPU    {} / {} / {} ({}{})\n", s.gpu_vendor(), s.gpu_renderer(), s.gl_version(), s.egl_device(),
+               s.gpu_software() ? ", software" : "");
+    fmt::print("queues GPU {}, workers {}\n", s.gpu_queue_depth(), s.worker_queue_depth());
+    fmt::print("scenes {} resident, CPU {}, GPU {}\n", s.scenes_resident(), Bytes(s.scene_memory().cpu_bytes()),
+               Bytes(s.scene_memory().gpu_bytes()));
+    fmt::print("{:<24} {:>8} {:>7} {:>10} {:>10} {:>10} {:>10}\n", "RPC", "CALLS", "ERRORS", "MEAN ms", "P50 ms",
+               "P99 ms", "MAX ms");
+    for (const auto& m : s.methods())
+      fmt::print("{:<24} {:>8} {:>7} {:>10.2f} {:>10.2f} {:>10.2f} {:>10.2f}\n", m.method(), m.calls(), m.errors(),
+                 m.mean_ms(), m.p50_ms(), m.p99_ms(), m.max_ms());
+    for (const auto& c : s.caches())
+      fmt::print("cache {}: {} entries, {} of {}, {} hits, {} misses, {} evictions\n", c.name(), c.entries(),
+                 Bytes(c.bytes()), Bytes(c.capacity_bytes()), c.hits(), c.misses(), c.evictions());
   });
 
   CLI11_PARSE(app, argc, argv);

@@ -12,13 +12,6 @@
 namespace visq {
 namespace {
 
-std::mutex& CommitMutex() {
-  // Serializes the check-then-commit of uploads and loads of one engine at a
-  // time; parsing happens outside it.
-  static std::mutex mutex;
-  return mutex;
-}
-
 double MillisecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 }
@@ -55,6 +48,10 @@ StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
 Engine::~Engine() = default;
 
 void Engine::LoadRepositoryScenes() {
+  if (!options_.load_repository_at_start) {
+    spdlog::info("{} scene(s) in the repository load on first use", repository_->List().size());
+    return;
+  }
   for (const std::string& name : repository_->List()) {
     StatusOr<SceneSummary> loaded = LoadFromRepository(name, /*replace=*/true);
     if (!loaded.ok()) spdlog::error("scene '{}' from the repository not loaded: {}", name, loaded.status().message());
@@ -118,7 +115,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload)
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report));
 
-  std::lock_guard commit_lock(CommitMutex());
+  std::lock_guard commit_lock(commit_mutex_);
   {
     std::shared_lock lock(scenes_mutex_);
     if (!upload->replace_ && (scenes_.count(staging.name()) || repository_->Contains(staging.name())))
@@ -152,14 +149,14 @@ std::vector<SceneSummary> Engine::ListScenes() const {
   return out;
 }
 
-StatusOr<SceneSummary> Engine::GetScene(absl::string_view name, bool with_nodes) const {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident, FindScene(name, 0));
+StatusOr<SceneSummary> Engine::GetScene(absl::string_view name, bool with_nodes) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident, FindScene(name, 0, /*load_if_stored=*/false));
   return Summarize(*resident, with_nodes);
 }
 
 StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repository) {
   VISQ_RETURN_IF_ERROR(SceneRepository::ValidateName(name));
-  std::lock_guard commit_lock(CommitMutex());
+  std::lock_guard commit_lock(commit_mutex_);
   bool was_resident = false;
   {
     std::unique_lock lock(scenes_mutex_);
@@ -179,7 +176,24 @@ StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repo
   return false;
 }
 
-StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_view name, uint64_t version) const {
+StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_view name, uint64_t version,
+                                                                 bool load_if_stored) {
+  VISQ_RETURN_IF_ERROR(SceneRepository::ValidateName(name));
+  bool resident = false;
+  {
+    std::shared_lock lock(scenes_mutex_);
+    resident = scenes_.count(name) > 0;
+  }
+  if (!resident && load_if_stored && repository_->Contains(name)) {
+    std::lock_guard commit_lock(commit_mutex_);  // one loader per name at a time
+    std::shared_lock lock(scenes_mutex_);
+    resident = scenes_.count(name) > 0;
+    lock.unlock();
+    if (!resident) {
+      spdlog::info("scene '{}' is stored but not resident: loading it for this request", name);
+      VISQ_RETURN_IF_ERROR(LoadFromRepository(name, /*replace=*/false).status());
+    }
+  }
   std::shared_lock lock(scenes_mutex_);
   auto it = scenes_.find(name);
   if (it == scenes_.end()) return absl::NotFoundError(absl::StrCat("scene '", name, "' is not resident"));

@@ -24,7 +24,8 @@ struct EngineOptions {
   gpu::GpuOptions gpu;
   uint64_t max_upload_bytes = 4ull << 30;
   // Load every scene of the repository at start (resident from the first
-  // request on).
+  // request on). Either way, a request naming a scene that is stored but not
+  // resident loads it first (replicas sharing one repository rely on this).
   bool load_repository_at_start = true;
 };
 
@@ -94,14 +95,15 @@ class Engine {
   [[nodiscard]] StatusOr<SceneSummary> FinishUpload(std::unique_ptr<SceneUpload> upload);
 
   std::vector<SceneSummary> ListScenes() const;
-  [[nodiscard]] StatusOr<SceneSummary> GetScene(absl::string_view name, bool with_nodes) const;
+  [[nodiscard]] StatusOr<SceneSummary> GetScene(absl::string_view name, bool with_nodes);
   // Returns whether the scene was also deleted from the repository.
   [[nodiscard]] StatusOr<bool> UnloadScene(absl::string_view name, bool delete_from_repository);
 
   // The resident scene for a query: NOT_FOUND if unknown, FAILED_PRECONDITION
-  // if `version` is non-zero and not the resident one.
-  [[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> FindScene(absl::string_view name,
-                                                                         uint64_t version) const;
+  // if `version` is non-zero and not the resident one. Queries pass
+  // load_if_stored so that a scene stored but not resident is loaded first.
+  [[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> FindScene(absl::string_view name, uint64_t version,
+                                                                         bool load_if_stored = true);
 
   // The scene's GPU buffers, uploaded by the first caller.
   [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneOf(const ResidentScene& resident);
@@ -122,6 +124,9 @@ class Engine {
   mutable std::shared_mutex scenes_mutex_;
   std::map<std::string, std::shared_ptr<const ResidentScene>, std::less<>> scenes_;
   std::map<std::string, uint64_t, std::less<>> last_version_;  // versions survive unload/reload
+  // Serializes check-then-commit of uploads, unloads and first-use loads;
+  // parsing happens outside it.
+  std::mutex commit_mutex_;
 };
 
 // XXH3-128 of the flattened geometry and materials, as 32 hex digits.

@@ -6,8 +6,8 @@ std::atomic<uint64_t> next_request_id{1};
 constexpr size_t kMaxClientIdLength = 64;
 }  // namespace
 
-RequestLog::RequestLog(grpc::CallbackServerContext* context, const char* method)
-    : method_(method), start_(std::chrono::steady_clock::now()) {
+RequestLog::RequestLog(grpc::CallbackServerContext* context, const char* method, Metrics* metrics)
+    : method_(method), metrics_(metrics), start_(std::chrono::steady_clock::now()) {
   const auto& metadata = context->client_metadata();
   auto it = metadata.find("x-request-id");
   if (it != metadata.end() && !it->second.empty() && it->second.size() <= kMaxClientIdLength) {
@@ -25,6 +25,7 @@ double RequestLog::ElapsedMs() const {
 
 double RequestLog::Done(const Status& status) const {
   const double ms = ElapsedMs();
+  if (metrics_ != nullptr) metrics_->Record(method_, ms, status.ok());
   if (status.ok())
     spdlog::info("[{} {}] OK in {:.2f} ms", id_, method_, ms);
   else

@@ -10,19 +10,21 @@
 #include <spdlog/spdlog.h>
 
 #include "common/status.h"
+#include "service/metrics.h"
 
 namespace visq::service {
 
 class RequestLog {
  public:
   // Uses the client's x-request-id metadata when it sends one.
-  RequestLog(grpc::CallbackServerContext* context, const char* method);
+  RequestLog(grpc::CallbackServerContext* context, const char* method, Metrics* metrics);
 
   template <typename... Args>
   void Info(fmt::format_string<Args...> format, Args&&... args) const {
     spdlog::info("[{} {}] {}", id_, method_, fmt::format(format, std::forward<Args>(args)...));
   }
-  // Logs the outcome with the total time; returns the time in milliseconds.
+  // Logs the outcome with the total time and records it in the metrics;
+  // returns the time in milliseconds.
   double Done(const Status& status) const;
   double ElapsedMs() const;
   const std::string& id() const { return id_; }
@@ -30,6 +32,7 @@ class RequestLog {
  private:
   std::string id_;
   const char* method_;
+  Metrics* metrics_;
   std::chrono::steady_clock::time_point start_;
 };
 

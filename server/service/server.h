@@ -15,10 +15,20 @@
 
 namespace visq::service {
 
+struct TlsOptions {
+  std::string cert_file;       // PEM server certificate chain; TLS on when set
+  std::string key_file;        // PEM private key
+  std::string client_ca_file;  // PEM CA: when set, clients must present a certificate it signed (mutual TLS)
+};
+
 struct ServerOptions {
   std::string address = "127.0.0.1:50051";
   int max_receive_message_bytes = 16 << 20;  // chunked uploads keep messages small
   int worker_threads = 4;
+  std::string server_id;         // reported by GetStats; default host:port
+  std::string auth_token;        // bearer token required on every visq.v1 call when set
+  TlsOptions tls;
+  bool allow_insecure_remote = false;  // listen beyond loopback without TLS and token
   EngineOptions engine;
 };
 
@@ -41,6 +51,8 @@ class Server {
   ServerOptions options_;
   std::unique_ptr<Engine> engine_;
   std::unique_ptr<Executor> executor_;
+  std::unique_ptr<Metrics> metrics_;
+  std::unique_ptr<Authorizer> authorizer_;
   std::unique_ptr<VisibilityServiceImpl> service_;
   std::unique_ptr<grpc::Server> grpc_server_;
   int port_ = 0;

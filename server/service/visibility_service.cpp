@@ -14,26 +14,16 @@ void ToProtoVec(const glm::dvec3& v, v1::Vec3* out) {
   out->set_z(v.z);
 }
 
-// Runs `work` on the executor and finishes the unary call with its status.
-template <typename Work>
-grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, Executor& executor, const char* method,
-                                   Work work) {
-  auto* reactor = context->DefaultReactor();
-  auto log = std::make_shared<RequestLog>(context, method);
-  executor.Post([reactor, log, work = std::move(work)]() mutable {
-    const Status status = work(*log);
-    log->Done(status);
-    reactor->Finish(ToGrpcStatus(status));
-  });
-  return reactor;
-}
-
 // Client-streamed scene load: a header, then (for uploads) file chunks.
 class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneRequest> {
  public:
-  LoadSceneReactor(grpc::CallbackServerContext* context, Engine& engine, Executor& executor,
-                   v1::SceneInfo* response)
-      : log_(context, "LoadScene"), engine_(engine), executor_(executor), response_(response) {
+  LoadSceneReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, v1::SceneInfo* response)
+      : log_(context, "LoadScene", &ctx.metrics), engine_(ctx.engine), executor_(ctx.executor), response_(response) {
+    // Refuse before a single chunk is stored.
+    if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
+      Fail(authorized);
+      return;
+    }
     StartRead(&request_);
   }
 
@@ -119,6 +109,24 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
 
 }  // namespace
 
+template <typename Work>
+grpc::ServerUnaryReactor* VisibilityServiceImpl::RunUnary(grpc::CallbackServerContext* context, const char* method,
+                                                          Work work) {
+  auto* reactor = context->DefaultReactor();
+  auto log = std::make_shared<RequestLog>(context, method, &ctx_.metrics);
+  if (Status authorized = ctx_.authorizer.Check(*context); !authorized.ok()) {
+    log->Done(authorized);
+    reactor->Finish(ToGrpcStatus(authorized));
+    return reactor;
+  }
+  ctx_.executor.Post([reactor, log, work = std::move(work)]() mutable {
+    const Status status = work(*log);
+    log->Done(status);
+    reactor->Finish(ToGrpcStatus(status));
+  });
+  return reactor;
+}
+
 void ToProto(const SceneSummary& s, v1::SceneInfo* out) {
   out->set_name(s.name);
   out->set_version(s.version);
@@ -146,14 +154,14 @@ void ToProto(const SceneSummary& s, v1::SceneInfo* out) {
 
 grpc::ServerReadReactor<v1::LoadSceneRequest>* VisibilityServiceImpl::LoadScene(grpc::CallbackServerContext* context,
                                                                                 v1::SceneInfo* response) {
-  return new LoadSceneReactor(context, engine_, executor_, response);
+  return new LoadSceneReactor(context, ctx_, response);
 }
 
 grpc::ServerUnaryReactor* VisibilityServiceImpl::ListScenes(grpc::CallbackServerContext* context,
                                                             const v1::ListScenesRequest*,
                                                             v1::ListScenesResponse* response) {
-  return RunUnary(context, executor_, "ListScenes", [this, response](RequestLog&) {
-    for (const auto& summary : engine_.ListScenes()) ToProto(summary, response->add_scenes());
+  return RunUnary(context, "ListScenes", [this, response](RequestLog&) {
+    for (const auto& summary : ctx_.engine.ListScenes()) ToProto(summary, response->add_scenes());
     return absl::OkStatus();
   });
 }
@@ -161,9 +169,9 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::ListScenes(grpc::CallbackServer
 grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerContext* context,
                                                           const v1::GetSceneRequest* request,
                                                           v1::SceneInfo* response) {
-  return RunUnary(context, executor_, "GetScene", [this, request, response](RequestLog& log) -> Status {
+  return RunUnary(context, "GetScene", [this, request, response](RequestLog& log) -> Status {
     log.Info("'{}'", request->name());
-    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, engine_.GetScene(request->name(), request->include_nodes()));
+    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ctx_.engine.GetScene(request->name(), request->include_nodes()));
     ToProto(summary, response);
     return absl::OkStatus();
   });
@@ -172,10 +180,51 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerCo
 grpc::ServerUnaryReactor* VisibilityServiceImpl::UnloadScene(grpc::CallbackServerContext* context,
                                                              const v1::UnloadSceneRequest* request,
                                                              v1::UnloadSceneResponse* response) {
-  return RunUnary(context, executor_, "UnloadScene", [this, request, response](RequestLog& log) -> Status {
+  return RunUnary(context, "UnloadScene", [this, request, response](RequestLog& log) -> Status {
     log.Info("'{}'{}", request->name(), request->delete_from_repository() ? " (and delete)" : "");
-    VISQ_ASSIGN_OR_RETURN(bool deleted, engine_.UnloadScene(request->name(), request->delete_from_repository()));
+    VISQ_ASSIGN_OR_RETURN(bool deleted, ctx_.engine.UnloadScene(request->name(), request->delete_from_repository()));
     response->set_deleted_from_repository(deleted);
+    return absl::OkStatus();
+  });
+}
+
+}  // namespace visq::service
+
+namespace visq::service {
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerContext* context,
+                                                          const v1::GetStatsRequest*, v1::ServerStats* response) {
+  return RunUnary(context, "GetStats", [this, response](RequestLog&) {
+    response->set_server_id(ctx_.server_id);
+    response->set_uptime_s(
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - ctx_.started).count());
+    const gpu::DeviceInfo& device = ctx_.engine.device();
+    response->set_gpu_vendor(device.gl_vendor);
+    response->set_gpu_renderer(device.gl_renderer);
+    response->set_gl_version(device.gl_version);
+    response->set_egl_device(device.egl_device);
+    response->set_gpu_software(device.software);
+    response->set_gpu_queue_depth(static_cast<uint32_t>(ctx_.engine.gpu().queue_depth()));
+    response->set_worker_queue_depth(static_cast<uint32_t>(ctx_.executor.queued()));
+    uint64_t cpu = 0, gpu_bytes = 0;
+    const auto scenes = ctx_.engine.ListScenes();
+    for (const auto& scene : scenes) {
+      cpu += scene.cpu_bytes;
+      gpu_bytes += scene.gpu_bytes;
+    }
+    response->set_scenes_resident(static_cast<uint32_t>(scenes.size()));
+    response->mutable_scene_memory()->set_cpu_bytes(cpu);
+    response->mutable_scene_memory()->set_gpu_bytes(gpu_bytes);
+    for (const auto& m : ctx_.metrics.Summaries()) {
+      auto* out = response->add_methods();
+      out->set_method(m.method);
+      out->set_calls(m.calls);
+      out->set_errors(m.errors);
+      out->set_mean_ms(m.mean_ms);
+      out->set_p50_ms(m.p50_ms);
+      out->set_p99_ms(m.p99_ms);
+      out->set_max_ms(m.max_ms);
+    }
     return absl::OkStatus();
   });
 }

@@ -3,15 +3,31 @@
 // gRPC's callback threads never wait on the disk or the GPU.
 #pragma once
 
+#include <chrono>
+
 #include "core/engine.h"
+#include "service/auth.h"
 #include "service/executor.h"
+#include "service/metrics.h"
 #include "visq/v1/visq.grpc.pb.h"
 
 namespace visq::service {
 
+// What every handler needs; owned by the Server.
+struct ServiceContext {
+  Engine& engine;
+  Executor& executor;
+  Metrics& metrics;
+  const Authorizer& authorizer;
+  std::string server_id;
+  std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
+};
+
 class VisibilityServiceImpl final : public v1::VisibilityService::CallbackService {
  public:
-  VisibilityServiceImpl(Engine& engine, Executor& executor) : engine_(engine), executor_(executor) {}
+  explicit VisibilityServiceImpl(ServiceContext context) : ctx_(std::move(context)) {}
+  // Before the server starts serving only.
+  void set_server_id(std::string id) { ctx_.server_id = std::move(id); }
 
   grpc::ServerReadReactor<v1::LoadSceneRequest>* LoadScene(grpc::CallbackServerContext* context,
                                                            v1::SceneInfo* response) override;
@@ -22,10 +38,15 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
   grpc::ServerUnaryReactor* UnloadScene(grpc::CallbackServerContext* context,
                                         const v1::UnloadSceneRequest* request,
                                         v1::UnloadSceneResponse* response) override;
+  grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
+                                     v1::ServerStats* response) override;
 
  private:
-  Engine& engine_;
-  Executor& executor_;
+  // Authorizes, then runs `work` on the executor and finishes with its status.
+  template <typename Work>
+  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method, Work work);
+
+  ServiceContext ctx_;
 };
 
 // Core summary -> wire message (shared by the scene RPCs).
