@@ -170,7 +170,9 @@ StatusOr<v1::SceneInfo> Client::UploadScene(const std::filesystem::path& file, s
     } while (stream_open && in);
   }
   writer->WritesDone();
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(writer->Finish()));
+  const grpc::Status status = writer->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
   return info;
 }
 
@@ -197,14 +199,17 @@ StatusOr<v1::ListScenesResponse> Client::ListScenes() {
   return response;
 }
 
-StatusOr<v1::SceneInfo> Client::GetScene(const std::string& name, bool include_nodes) {
+StatusOr<v1::SceneInfo> Client::GetScene(const std::string& name, bool include_nodes, bool load_if_stored) {
   VISQ_RETURN_IF_ERROR(init_status_);
   auto context = NewContext(name);
   v1::GetSceneRequest request;
   request.set_name(name);
   request.set_include_nodes(include_nodes);
+  request.set_load_if_stored(load_if_stored);
   v1::SceneInfo response;
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->GetScene(context.get(), request, &response)));
+  const grpc::Status status = stub_->GetScene(context.get(), request, &response);
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
   return response;
 }
 
@@ -229,6 +234,22 @@ StatusOr<v1::ServerStats> Client::GetStats() {
   v1::ServerStats response;
   VISQ_RETURN_IF_ERROR(FromGrpcStatus(stub_->GetStats(context.get(), v1::GetStatsRequest(), &response)));
   return response;
+}
+
+}  // namespace visq::client
+
+namespace visq::client {
+
+void Client::NoteServer(const grpc::ClientContext& context) {
+  const auto& metadata = context.GetServerInitialMetadata();
+  auto it = metadata.find("x-visq-server-id");
+  std::lock_guard lock(last_server_mutex_);
+  last_server_id_ = it == metadata.end() ? "" : std::string(it->second.data(), it->second.size());
+}
+
+std::string Client::last_server_id() const {
+  std::lock_guard lock(last_server_mutex_);
+  return last_server_id_;
 }
 
 }  // namespace visq::client

@@ -5,6 +5,7 @@
 #include <chrono>
 #include <filesystem>
 #include <memory>
+#include <mutex>
 #include <string>
 
 #include <grpcpp/channel.h>
@@ -48,11 +49,15 @@ class Client {
                                                     bool replace = false);
   [[nodiscard]] StatusOr<v1::SceneInfo> LoadFromRepository(const std::string& name, bool replace = false);
   [[nodiscard]] StatusOr<v1::ListScenesResponse> ListScenes();
-  [[nodiscard]] StatusOr<v1::SceneInfo> GetScene(const std::string& name, bool include_nodes = false);
+  [[nodiscard]] StatusOr<v1::SceneInfo> GetScene(const std::string& name, bool include_nodes = false,
+                                                 bool load_if_stored = false);
   [[nodiscard]] StatusOr<v1::UnloadSceneResponse> UnloadScene(const std::string& name,
                                                               bool delete_from_repository = false);
 
   [[nodiscard]] StatusOr<v1::ServerStats> GetStats();
+
+  // The x-visq-server-id of the last response (which replica answered).
+  std::string last_server_id() const;
 
   // For RPCs this class does not wrap yet, and for tests.
   v1::VisibilityService::Stub& stub() { return *stub_; }
@@ -68,6 +73,12 @@ class Client {
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::VisibilityService::Stub> stub_;
   std::unique_ptr<grpc::health::v1::Health::Stub> health_;
+  mutable std::mutex last_server_mutex_;
+  std::string last_server_id_;
+
+ public:
+  // Records x-visq-server-id from a finished call's context.
+  void NoteServer(const grpc::ClientContext& context);
 };
 
 // gRPC status -> visq Status (the client's one conversion).

@@ -11,7 +11,7 @@ build_packages=(
   libglm-dev libtinygltf-dev nlohmann-json3-dev libstb-dev
   libspdlog-dev libfmt-dev libcli11-dev libabsl-dev
   libembree-dev libgmp-dev libxxhash-dev
-  openssl nginx-light
+  openssl nginx-light libyaml-cpp-dev
   libgtest-dev libgmock-dev libbenchmark-dev
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
@@ -19,8 +19,10 @@ runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
 
 wanted=("${build_packages[@]}" "${runtime_packages[@]}")
 if [[ "${1:-}" == "--runtime-only" ]]; then
-  wanted=("${runtime_packages[@]}"
-    libgrpc++1.51 libprotobuf32 libspdlog1.10 libfmt9 libembree3-3 libepoxy0 libgmp10 libstdc++6)
+  # What the built binaries link (ldd), for the slim container stage.
+  wanted=("${runtime_packages[@]}" ca-certificates
+    libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
+    libspdlog1.10 libssl3 libstb0 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl)
 fi
 
 missing=()

@@ -149,8 +149,8 @@ std::vector<SceneSummary> Engine::ListScenes() const {
   return out;
 }
 
-StatusOr<SceneSummary> Engine::GetScene(absl::string_view name, bool with_nodes) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident, FindScene(name, 0, /*load_if_stored=*/false));
+StatusOr<SceneSummary> Engine::GetScene(absl::string_view name, bool with_nodes, bool load_if_stored) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident, FindScene(name, 0, load_if_stored));
   return Summarize(*resident, with_nodes);
 }
 

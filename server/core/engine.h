@@ -95,7 +95,7 @@ class Engine {
   [[nodiscard]] StatusOr<SceneSummary> FinishUpload(std::unique_ptr<SceneUpload> upload);
 
   std::vector<SceneSummary> ListScenes() const;
-  [[nodiscard]] StatusOr<SceneSummary> GetScene(absl::string_view name, bool with_nodes);
+  [[nodiscard]] StatusOr<SceneSummary> GetScene(absl::string_view name, bool with_nodes, bool load_if_stored = false);
   // Returns whether the scene was also deleted from the repository.
   [[nodiscard]] StatusOr<bool> UnloadScene(absl::string_view name, bool delete_from_repository);
 

@@ -19,6 +19,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
  public:
   LoadSceneReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, v1::SceneInfo* response)
       : log_(context, "LoadScene", &ctx.metrics), engine_(ctx.engine), executor_(ctx.executor), response_(response) {
+    context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     // Refuse before a single chunk is stored.
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
       Fail(authorized);
@@ -112,6 +113,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
 template <typename Work>
 grpc::ServerUnaryReactor* VisibilityServiceImpl::RunUnary(grpc::CallbackServerContext* context, const char* method,
                                                           Work work) {
+  context->AddInitialMetadata("x-visq-server-id", ctx_.server_id);
   auto* reactor = context->DefaultReactor();
   auto log = std::make_shared<RequestLog>(context, method, &ctx_.metrics);
   if (Status authorized = ctx_.authorizer.Check(*context); !authorized.ok()) {
@@ -171,7 +173,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerCo
                                                           v1::SceneInfo* response) {
   return RunUnary(context, "GetScene", [this, request, response](RequestLog& log) -> Status {
     log.Info("'{}'", request->name());
-    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ctx_.engine.GetScene(request->name(), request->include_nodes()));
+    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ctx_.engine.GetScene(request->name(), request->include_nodes(), request->load_if_stored()));
     ToProto(summary, response);
     return absl::OkStatus();
   });
