@@ -253,3 +253,91 @@ std::string Client::last_server_id() const {
 }
 
 }  // namespace visq::client
+
+namespace visq::client {
+
+StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  auto reader = stub_->HiddenSampleMap(context.get(), request);
+  HiddenSampleMap out;
+  v1::HiddenSampleMapResponse message;
+  bool first = true;
+  while (reader->Read(&message)) {
+    // Chunks arrive in order; `offset` checks that none went missing.
+    auto check = [&](size_t have, const char* what) -> Status {
+      if (message.offset() != have)
+        return absl::DataLossError(absl::StrCat(what, " chunk at ", message.offset(), ", expected ", have));
+      return absl::OkStatus();
+    };
+    if (message.visible_fraction_size() > 0) {
+      VISQ_RETURN_IF_ERROR(check(out.visible_fraction.size(), "visible_fraction"));
+      out.visible_fraction.insert(out.visible_fraction.end(), message.visible_fraction().begin(),
+                                  message.visible_fraction().end());
+    }
+    if (message.visible_rgb_size() > 0) {
+      VISQ_RETURN_IF_ERROR(check(out.visible_rgb.size() / 3, "visible_rgb"));
+      out.visible_rgb.insert(out.visible_rgb.end(), message.visible_rgb().begin(), message.visible_rgb().end());
+    }
+    if (message.blocked_bits_size() > 0) {
+      VISQ_RETURN_IF_ERROR(check(out.blocked_bits.size(), "blocked_bits"));
+      out.blocked_bits.insert(out.blocked_bits.end(), message.blocked_bits().begin(), message.blocked_bits().end());
+    }
+    if (first) {
+      message.clear_visible_fraction();
+      message.clear_visible_rgb();
+      message.clear_blocked_bits();
+      out.figures = std::move(message);
+      first = false;
+    }
+  }
+  const grpc::Status status = reader->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return out;
+}
+
+StatusOr<v1::PatchVisibilityResponse> Client::PatchVisibility(const v1::PatchVisibilityRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  v1::PatchVisibilityResponse response;
+  const grpc::Status status = stub_->PatchVisibility(context.get(), request, &response);
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return response;
+}
+
+StatusOr<v1::LightVisibilityResponse> Client::LightVisibility(const v1::LightVisibilityRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  v1::LightVisibilityResponse response;
+  const grpc::Status status = stub_->LightVisibility(context.get(), request, &response);
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return response;
+}
+
+StatusOr<std::vector<v1::LightVisibilityResponse>> Client::LightVisibilityStream(
+    const std::vector<v1::LightVisibilityRequest>& batches) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(batches.empty() ? "" : batches[0].scene().name());
+  auto stream = stub_->LightVisibilityStream(context.get());
+  std::vector<v1::LightVisibilityResponse> answers;
+  // One batch in flight at a time: the server answers in order, and this
+  // keeps memory bounded on both sides.
+  for (const auto& batch : batches) {
+    if (!stream->Write(batch)) break;
+    v1::LightVisibilityResponse answer;
+    if (!stream->Read(&answer)) break;
+    answers.push_back(std::move(answer));
+  }
+  stream->WritesDone();
+  const grpc::Status status = stream->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  if (answers.size() != batches.size())
+    return absl::DataLossError(absl::StrCat(answers.size(), " answers for ", batches.size(), " batches"));
+  return answers;
+}
+
+}  // namespace visq::client

@@ -33,6 +33,17 @@ struct ClientOptions {
   bool route_by_scene = true;
 };
 
+// A hidden-sample map reassembled from its streamed chunks.
+struct HiddenSampleMap {
+  v1::HiddenSampleMapResponse figures;  // sizes, accuracy, timing, lookup error, samples
+  std::vector<float> visible_fraction;  // width * height, row-major
+  std::vector<float> visible_rgb;       // 3 per texel for colored lights
+  std::vector<uint32_t> blocked_bits;   // words_per_texel per texel (when asked for)
+  bool Blocked(size_t texel, uint32_t sample) const {
+    return (blocked_bits[texel * figures.words_per_texel() + sample / 32] >> (sample % 32)) & 1u;
+  }
+};
+
 class Client {
  public:
   explicit Client(ClientOptions options);
@@ -55,6 +66,13 @@ class Client {
                                                               bool delete_from_repository = false);
 
   [[nodiscard]] StatusOr<v1::ServerStats> GetStats();
+
+  [[nodiscard]] StatusOr<HiddenSampleMap> ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request);
+  [[nodiscard]] StatusOr<v1::PatchVisibilityResponse> PatchVisibility(const v1::PatchVisibilityRequest& request);
+  [[nodiscard]] StatusOr<v1::LightVisibilityResponse> LightVisibility(const v1::LightVisibilityRequest& request);
+  // Sends the batches over one stream; answers come back in order.
+  [[nodiscard]] StatusOr<std::vector<v1::LightVisibilityResponse>> LightVisibilityStream(
+      const std::vector<v1::LightVisibilityRequest>& batches);
 
   // The x-visq-server-id of the last response (which replica answered).
   std::string last_server_id() const;

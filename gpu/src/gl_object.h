@@ -63,6 +63,11 @@ struct Renderbuffer {
   static GLuint Create() { GLuint id = 0; glCreateRenderbuffers(1, &id); return id; }
   static void Delete(GLuint id) { glDeleteRenderbuffers(1, &id); }
 };
+template <GLenum kTarget>
+struct Query {
+  static GLuint Create() { GLuint id = 0; glCreateQueries(kTarget, 1, &id); return id; }
+  static void Delete(GLuint id) { glDeleteQueries(1, &id); }
+};
 }  // namespace traits
 
 using GlBuffer = GlObject<traits::Buffer>;
@@ -73,5 +78,6 @@ using GlFramebuffer = GlObject<traits::Framebuffer>;
 using GlVertexArray = GlObject<traits::VertexArray>;
 using GlProgramObject = GlObject<traits::Program>;
 using GlRenderbuffer = GlObject<traits::Renderbuffer>;
+using GlQueryAnySamplesPassed = GlObject<traits::Query<GL_ANY_SAMPLES_PASSED>>;
 
 }  // namespace visq::gpu

@@ -1,5 +1,6 @@
 #include "visq/gpu/gpu_scene.h"
 
+#include <algorithm>
 #include <vector>
 
 #include "gl_check.h"
@@ -22,9 +23,14 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
 
   Status status = worker.Run({}, [&]() -> Status {
     auto resources = std::make_shared<Resources>();
-    glNamedBufferStorage(resources->positions.id(), corners.size() * sizeof(glm::vec3), corners.data(), 0);
-    glNamedBufferStorage(resources->triangle_materials.id(), scene.triangle_material.size() * sizeof(uint32_t),
-                         scene.triangle_material.data(), 0);
+    // GL refuses zero-sized storage: an empty scene gets one unused element.
+    const glm::vec3 no_corner(0.0f);
+    const uint32_t no_material = 0;
+    glNamedBufferStorage(resources->positions.id(), std::max<size_t>(corners.size(), 1) * sizeof(glm::vec3),
+                         corners.empty() ? &no_corner : corners.data(), 0);
+    glNamedBufferStorage(resources->triangle_materials.id(),
+                         std::max<size_t>(scene.triangle_material.size(), 1) * sizeof(uint32_t),
+                         scene.triangle_material.empty() ? &no_material : scene.triangle_material.data(), 0);
     const GLuint vao = resources->vertex_array.id();
     glVertexArrayVertexBuffer(vao, 0, resources->positions.id(), 0, sizeof(glm::vec3));
     glEnableVertexArrayAttrib(vao, 0);

@@ -38,6 +38,7 @@ StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
   engine->options_ = options;
   VISQ_ASSIGN_OR_RETURN(engine->repository_, SceneRepository::Open(options.scene_repo));
   VISQ_ASSIGN_OR_RETURN(engine->gpu_, gpu::GpuWorker::Start(options.gpu));
+  engine->light_cache_ = std::make_unique<exact::LightVisibilityCache>(options.light_cache_bytes);
   const auto& device = engine->gpu_->device();
   spdlog::info("GPU: {} / {} / OpenGL {} via EGL {} ({}){}", device.gl_vendor, device.gl_renderer,
                device.gl_version, device.egl_platform, device.egl_device, device.software ? ", software" : "");
@@ -77,6 +78,7 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
     resident->version = ++last_version_[resident->name];
     scenes_[resident->name] = resident;
   }
+  light_cache_->InvalidateScene(resident->name);
   if (!resident->dropped.empty())
     spdlog::info("scene '{}': dropped {}", resident->name, absl::StrJoin(resident->dropped, ", "));
   spdlog::info("scene '{}' v{} resident: {} triangles, {:.1f} ms", resident->name, resident->version,
@@ -135,6 +137,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload)
     resident->version = ++last_version_[resident->name];
     scenes_[resident->name] = resident;
   }
+  light_cache_->InvalidateScene(resident->name);
   spdlog::info("scene '{}' v{} uploaded ({} bytes): {} triangles, {:.1f} ms", resident->name, resident->version,
                staging.bytes(), resident->scene->TriangleCount(), resident->load_ms);
   if (!resident->dropped.empty())
@@ -166,6 +169,7 @@ StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repo
       was_resident = true;
     }
   }
+  light_cache_->InvalidateScene(std::string(name));
   if (delete_from_repository) {
     Status removed = repository_->Remove(name);
     if (removed.ok()) return true;
@@ -214,6 +218,26 @@ StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneOf(const ResidentScene&
   return resident.gpu_scene;
 }
 
+StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const ResidentScene& resident) {
+  std::lock_guard lock(resident.lazy_mutex);
+  if (!resident.embree_scene) {
+    const auto start = std::chrono::steady_clock::now();
+    VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(*resident.scene));
+    resident.embree_scene = std::make_shared<raycast::EmbreeScene>(std::move(embree));
+    spdlog::info("scene '{}' v{}: Embree BVH ({} bytes) in {:.1f} ms", resident.name, resident.version,
+                 resident.embree_scene->memory_bytes(), MillisecondsSince(start));
+  }
+  return resident.embree_scene;
+}
+
+StatusOr<gpu::HiddenSampleMapper*> Engine::hidden_sample_mapper() {
+  std::lock_guard lock(mapper_mutex_);
+  if (!hidden_sample_mapper_) {
+    VISQ_ASSIGN_OR_RETURN(hidden_sample_mapper_, gpu::HiddenSampleMapper::Create(*gpu_));
+  }
+  return hidden_sample_mapper_.get();
+}
+
 SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) const {
   const Scene& scene = *resident.scene;
   SceneSummary s;
@@ -228,6 +252,7 @@ SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) c
     // Nothing is uploaded until a GPU query needs it.
     std::lock_guard lock(resident.lazy_mutex);
     s.gpu_bytes = resident.gpu_scene ? resident.gpu_scene->gpu_bytes() : 0;
+    if (resident.embree_scene) s.cpu_bytes += resident.embree_scene->memory_bytes();
   }
   s.materials = static_cast<uint32_t>(scene.materials.size());
   for (uint32_t m : scene.triangle_material)

@@ -13,8 +13,11 @@
 
 #include "common/status.h"
 #include "core/scene_repository.h"
+#include "exact/light_visibility.h"
+#include "raycast/embree_scene.h"
 #include "scene/scene.h"
 #include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/hidden_sample_map.h"
 #include "visq/gpu/gpu_worker.h"
 
 namespace visq {
@@ -23,6 +26,8 @@ struct EngineOptions {
   std::filesystem::path scene_repo = "/var/lib/visq/scenes";
   gpu::GpuOptions gpu;
   uint64_t max_upload_bytes = 4ull << 30;
+  // Bound on the exact light-visibility trees kept (LRU beyond it).
+  size_t light_cache_bytes = 256ull << 20;
   // Load every scene of the repository at start (resident from the first
   // request on). Either way, a request naming a scene that is stored but not
   // resident loads it first (replicas sharing one repository rely on this).
@@ -44,6 +49,7 @@ struct ResidentScene {
   // then: a scene that is never queried on the GPU never costs GPU memory.
   mutable std::mutex lazy_mutex;
   mutable std::shared_ptr<gpu::GpuScene> gpu_scene;
+  mutable std::shared_ptr<raycast::EmbreeScene> embree_scene;
 };
 
 struct SceneSummary {
@@ -107,6 +113,16 @@ class Engine {
 
   // The scene's GPU buffers, uploaded by the first caller.
   [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneOf(const ResidentScene& resident);
+  // The scene's Embree BVH, built by the first caller.
+  [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneOf(const ResidentScene& resident);
+  // The hidden-sample map's programs, compiled on first use.
+  [[nodiscard]] StatusOr<gpu::HiddenSampleMapper*> hidden_sample_mapper();
+
+  exact::LightVisibilityCache& light_cache() { return *light_cache_; }
+  // Requests that found their light's tree cached, and those that built one.
+  std::atomic<uint64_t> light_tree_hits{0};
+  std::atomic<uint64_t> light_tree_misses{0};
+  size_t light_cache_capacity() const { return options_.light_cache_bytes; }
 
   const gpu::DeviceInfo& device() const { return gpu_->device(); }
   gpu::GpuWorker& gpu() { return *gpu_; }
@@ -121,6 +137,9 @@ class Engine {
   EngineOptions options_;
   std::unique_ptr<SceneRepository> repository_;
   std::unique_ptr<gpu::GpuWorker> gpu_;
+  std::unique_ptr<exact::LightVisibilityCache> light_cache_;
+  std::mutex mapper_mutex_;
+  std::unique_ptr<gpu::HiddenSampleMapper> hidden_sample_mapper_;
   mutable std::shared_mutex scenes_mutex_;
   std::map<std::string, std::shared_ptr<const ResidentScene>, std::less<>> scenes_;
   std::map<std::string, uint64_t, std::less<>> last_version_;  // versions survive unload/reload

@@ -38,6 +38,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <bit>
 #include <cmath>
 #include <cstdint>
 #include <memory>
@@ -54,21 +55,52 @@ inline std::atomic<uint64_t> g_exact_fallbacks{0};
 // Interval arithmetic with outward rounding. Each operation rounds to nearest
 // and then widens by |r| * 2^-52 + 2^-1074, which is at least one ulp of r
 // (and covers underflow), so the true value of every operation stays inside.
+//
+// Point intervals stay points while the arithmetic is exact (error-free
+// TwoSum for sums, a significant-bit count for products). Why: degenerate
+// configurations with "nice" coordinates (axis-aligned boxes, a receiver on
+// the floor, a light at z = 2) produce exact zeros, and an exact zero is then
+// certified as [0, 0] here instead of falling back to GMP on every query.
 struct Iv {
   double lo = 0.0, hi = 0.0;
   Iv() = default;
   explicit Iv(double x) : lo(x), hi(x) {}
   Iv(double l, double h) : lo(l), hi(h) {}
 };
-inline double RoundDown(double r) { return r - (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
-inline double RoundUp(double r) { return r + (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
-inline Iv operator+(const Iv& a, const Iv& b) { return {RoundDown(a.lo + b.lo), RoundUp(a.hi + b.hi)}; }
-inline Iv operator-(const Iv& a, const Iv& b) { return {RoundDown(a.lo - b.hi), RoundUp(a.hi - b.lo)}; }
-inline Iv operator-(const Iv& a) { return {-a.hi, -a.lo}; }
-inline Iv operator*(const Iv& a, const Iv& b) {
+#define VISQ_EXACT_INLINE [[gnu::always_inline]] inline
+VISQ_EXACT_INLINE double RoundDown(double r) { return r - (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
+VISQ_EXACT_INLINE double RoundUp(double r) { return r + (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
+
+// Bits between the leading and the last set bit of a normal double's
+// significand (1..53); 64 for zero, subnormals, inf and NaN.
+VISQ_EXACT_INLINE int SignificantBits(double x) {
+  const uint64_t u = std::bit_cast<uint64_t>(x);
+  const uint64_t exponent = (u >> 52) & 0x7FF;
+  if (exponent == 0 || exponent == 0x7FF) return 64;
+  const uint64_t m = (u & ((uint64_t{1} << 52) - 1)) | (uint64_t{1} << 52);
+  return 53 - std::countr_zero(m);
+}
+
+VISQ_EXACT_INLINE Iv ExactOrWiden(double r, bool exact) {
+  return exact ? Iv(r) : Iv(RoundDown(r), RoundUp(r));
+}
+
+VISQ_EXACT_INLINE Iv operator+(const Iv& a, const Iv& b) {
   if (a.lo == a.hi && b.lo == b.hi) {
+    const double s = a.lo + b.lo;
+    const double bb = s - a.lo;  // TwoSum: err is the exact rounding error
+    const double err = (a.lo - (s - bb)) + (b.lo - bb);
+    return ExactOrWiden(s, err == 0.0 && std::isfinite(s));
+  }
+  return {RoundDown(a.lo + b.lo), RoundUp(a.hi + b.hi)};
+}
+VISQ_EXACT_INLINE Iv operator-(const Iv& a) { return {-a.hi, -a.lo}; }
+VISQ_EXACT_INLINE Iv operator-(const Iv& a, const Iv& b) { return a + (-b); }
+VISQ_EXACT_INLINE Iv operator*(const Iv& a, const Iv& b) {
+  if (a.lo == a.hi && b.lo == b.hi) {
+    if (a.lo == 0.0 || b.lo == 0.0) return Iv(0.0);
     const double p = a.lo * b.lo;
-    return {RoundDown(p), RoundUp(p)};
+    return ExactOrWiden(p, SignificantBits(a.lo) + SignificantBits(b.lo) <= 53 && std::isnormal(p));
   }
   const double p1 = a.lo * b.lo, p2 = a.lo * b.hi, p3 = a.hi * b.lo, p4 = a.hi * b.hi;
   return {RoundDown(std::min(std::min(p1, p2), std::min(p3, p4))),
@@ -97,7 +129,7 @@ using IV4 = V4<Iv>;
 using QV4 = V4<mpq_class>;
 
 template <typename T>
-T Dot4(const V4<T>& a, const V4<T>& b) {
+VISQ_EXACT_INLINE T Dot4(const V4<T>& a, const V4<T>& b) {
   T r = a[0] * b[0];
   r = r + a[1] * b[1];
   r = r + a[2] * b[2];
@@ -106,7 +138,7 @@ T Dot4(const V4<T>& a, const V4<T>& b) {
 }
 
 template <typename T>
-T Det3(const T& a0, const T& a1, const T& a2, const T& b0, const T& b1, const T& b2, const T& c0,
+VISQ_EXACT_INLINE T Det3(const T& a0, const T& a1, const T& a2, const T& b0, const T& b1, const T& b2, const T& c0,
        const T& c1, const T& c2) {
   T m0 = b1 * c2 - b2 * c1;
   T m1 = b0 * c2 - b2 * c0;
@@ -137,6 +169,66 @@ V4<T> LinePlanePoint(const V4<T>& p, const V4<T>& q, const V4<T>& plane) {
   return r;
 }
 
+// A lazily computed exact value that shared (tree-owned) objects may fill
+// from several query threads: the first finished computation wins a
+// compare-and-swap, losers free theirs. Exact values are needed only when a
+// filter fails, so most objects never pay for one.
+class ExactCache {
+ public:
+  ExactCache() = default;
+  ExactCache(ExactCache&& other) noexcept : value_(other.value_.exchange(nullptr)) {}
+  ExactCache& operator=(ExactCache&& other) noexcept {
+    delete value_.exchange(other.value_.exchange(nullptr));
+    return *this;
+  }
+  ~ExactCache() { delete value_.load(); }
+  template <typename Make>
+  const QV4& Get(const Make& make) const {
+    if (const QV4* v = value_.load(std::memory_order_acquire)) return *v;
+    auto* fresh = new QV4(make());
+    QV4* expected = nullptr;
+    if (value_.compare_exchange_strong(expected, fresh, std::memory_order_acq_rel)) return *fresh;
+    delete fresh;
+    return *expected;
+  }
+
+ private:
+  mutable std::atomic<QV4*> value_{nullptr};
+};
+
+// Midpoint-radius form of an interval vector, for the fast sign filter of
+// Dot4: |sum a_i x_i - fl(sum am_i xm_i)| <= sum(|am_i| xr_i + ar_i |xm_i|
+// + ar_i xr_i) + gamma_4 sum |am_i xm_i| (Higham's dot-product bound).
+struct MidRad {
+  std::array<double, 4> mid{}, rad{};
+  static MidRad From(const IV4& v) {
+    MidRad m;
+    for (int i = 0; i < 4; ++i) {
+      m.mid[i] = 0.5 * (v[i].lo + v[i].hi);
+      // Covers the rounding of mid as well (one ulp of it).
+      m.rad[i] = RoundUp(0.5 * (v[i].hi - v[i].lo)) + std::fabs(m.mid[i]) * 0x1p-52;
+    }
+    return m;
+  }
+};
+
+// Sign of the dot product of two enclosed vectors, or kUncertain.
+VISQ_EXACT_INLINE int FastSignOfDot(const MidRad& a, const MidRad& x) {
+  double s = 0.0, bound = 0.0, magnitude = 0.0;
+  for (int i = 0; i < 4; ++i) {
+    const double p = a.mid[i] * x.mid[i];
+    s += p;
+    magnitude += std::fabs(p);
+    bound += std::fabs(a.mid[i]) * x.rad[i] + a.rad[i] * std::fabs(x.mid[i]) + a.rad[i] * x.rad[i];
+  }
+  // gamma_4 = 4u / (1 - 4u) for the dot product; the bound's own rounding
+  // (about 16 operations) is covered by the factor and the absolute floor.
+  bound = (bound + 4.5e-16 * magnitude) * (1.0 + 4e-15) + 1e-300;
+  if (s > bound) return 1;
+  if (s < -bound) return -1;
+  return kUncertain;
+}
+
 // ---------------------------------------------------------------------------
 // Points and planes defined from input geometry.
 struct XPlane;
@@ -146,11 +238,12 @@ struct XPoint {
   Kind kind = Kind::kInput;
   int8_t w_sign = 1;                    // exact sign of w (never 0)
   IV4 approx;                           // interval enclosure
+  MidRad fast;                          // the same, midpoint-radius
   glm::dvec3 input{0.0};                // kInput only
   const XPoint* p = nullptr;            // kLinePlane: the line
   const XPoint* q = nullptr;
   const XPlane* planes[3] = {nullptr, nullptr, nullptr};  // kLinePlane uses [0]
-  mutable std::unique_ptr<QV4> exact;   // lazily, for derived points
+  ExactCache exact;                     // lazily, thread-safe
   mutable bool has_euclid = false;
   mutable glm::dvec3 euclid{0.0};
 
@@ -158,13 +251,12 @@ struct XPoint {
   static XPoint LinePlane(const XPoint& p, const XPoint& q, const XPlane& plane);
   static XPoint ThreePlanes(const XPlane& a, const XPlane& b, const XPlane& c);
 
-  // Exact homogeneous coordinates. Derived points cache them: a derived
-  // point must be owned by one thread (query-local) unless PrecomputeExact()
-  // was called before sharing it.
+  // Exact homogeneous coordinates, computed on first use (thread-safe).
   const QV4& Exact() const;
   void PrecomputeExact() const { (void)Exact(); }
   // Euclidean coordinates in double (from the interval when it is tight,
-  // else from the exact value). Cached, same ownership rule as Exact().
+  // else from the exact value). Cached without synchronization: call it only
+  // on input points (set at creation) or on query-local points.
   glm::dvec3 Euclid() const;
 };
 
@@ -176,10 +268,11 @@ struct XPlane {
   // ThroughPoints, n . (x - point) for the others).
   int8_t o_sign = 1;
   IV4 approx;
+  MidRad fast;
   const XPoint* points[3] = {nullptr, nullptr, nullptr};
   const XPlane* base = nullptr;
   glm::dvec3 normal{0.0};
-  mutable std::unique_ptr<QV4> exact;
+  ExactCache exact;
 
   static XPlane ThroughPoints(const XPoint& p, const XPoint& q, const XPoint& r);
   static XPlane ParallelThrough(const XPlane& base, const XPoint& point);

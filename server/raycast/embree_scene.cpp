@@ -29,6 +29,11 @@ Status EmbreeStatus(RTCDevice device, const char* what) {
   return absl::InternalError(absl::StrCat(what, ": ", message));
 }
 
+bool OnEmbreeMemory(void* user, ssize_t bytes, bool /*post*/) {
+  static_cast<std::atomic<int64_t>*>(user)->fetch_add(bytes, std::memory_order_relaxed);
+  return true;
+}
+
 // The per-call context: Embree hands it back to the filter, which rejects
 // hits on ignored triangles (global sorted list, or the ray's own one).
 struct FilterContext {
@@ -99,6 +104,8 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
     return absl::InternalError(absl::StrCat("rtcNewDevice failed: ", t_last_embree_error));
   }
   rtcSetDeviceErrorFunction(out.device_, OnEmbreeError, nullptr);
+  out.memory_ = std::make_unique<std::atomic<int64_t>>(0);
+  rtcSetDeviceMemoryMonitorFunction(out.device_, OnEmbreeMemory, out.memory_.get());
 
   // Upload the triangles in float32 relative to the origin.
   out.scene_ = rtcNewScene(out.device_);
@@ -141,6 +148,7 @@ EmbreeScene& EmbreeScene::operator=(EmbreeScene&& other) noexcept {
     Reset();
     device_ = std::exchange(other.device_, nullptr);
     scene_ = std::exchange(other.scene_, nullptr);
+    memory_ = std::move(other.memory_);
     origin_ = other.origin_;
     extent_ = other.extent_;
     triangle_count_ = std::exchange(other.triangle_count_, 0);

@@ -9,13 +9,22 @@
 // it is rounded to float. Answers then keep float precision relative to the
 // scene extent, not to the absolute coordinates.
 //
+// Ignored triangles (a receiver's own surface). The scene is built with
+// RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION and a call that ignores something
+// installs a filter in its RTCIntersectContext that rejects those hits (by
+// the ray's own id, or a sorted batch-wide list). Calls that ignore nothing
+// pass no filter and pay nothing; per-query scenes would cost a BVH build
+// per receiver.
+//
 // Threads. Batches are split into contiguous chunks, one per std::thread
 // worker; each chunk is traced in streams of rays with rtcOccluded1M /
 // rtcIntersect1M. Embree scenes are safe for concurrent traversal once
 // committed, so workers share one RTCScene.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
+#include <memory>
 #include <limits>
 #include <optional>
 #include <span>
@@ -102,6 +111,8 @@ class EmbreeScene {
                                                      const TraceOptions& options = {}) const;
 
   const glm::dvec3& origin() const { return origin_; }
+  // Bytes Embree holds for this scene (its memory monitor callback).
+  size_t memory_bytes() const { return memory_ ? static_cast<size_t>(memory_->load()) : 0; }
   size_t triangle_count() const { return triangle_count_; }
 
  private:
@@ -110,6 +121,7 @@ class EmbreeScene {
 
   RTCDeviceTy* device_ = nullptr;
   RTCSceneTy* scene_ = nullptr;
+  std::unique_ptr<std::atomic<int64_t>> memory_;  // stable address for the callback
   glm::dvec3 origin_{0.0};
   double extent_ = 0.0;
   size_t triangle_count_ = 0;

@@ -1,7 +1,10 @@
 #include "service/visibility_service.h"
 
 #include <memory>
+#include <optional>
 
+#include "core/light_visibility_query.h"
+#include "service/convert.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
 
@@ -217,6 +220,14 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerCo
     response->set_scenes_resident(static_cast<uint32_t>(scenes.size()));
     response->mutable_scene_memory()->set_cpu_bytes(cpu);
     response->mutable_scene_memory()->set_gpu_bytes(gpu_bytes);
+    auto* light_cache = response->add_caches();
+    light_cache->set_name("light_visibility");
+    light_cache->set_entries(ctx_.engine.light_cache().size());
+    light_cache->set_bytes(ctx_.engine.light_cache().bytes());
+    light_cache->set_capacity_bytes(ctx_.engine.light_cache_capacity());
+    light_cache->set_hits(ctx_.engine.light_tree_hits.load());
+    light_cache->set_misses(ctx_.engine.light_tree_misses.load());
+    light_cache->set_evictions(ctx_.engine.light_cache().evictions());
     for (const auto& m : ctx_.metrics.Summaries()) {
       auto* out = response->add_methods();
       out->set_method(m.method);
@@ -227,6 +238,234 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerCo
       out->set_p99_ms(m.p99_ms);
       out->set_max_ms(m.max_ms);
     }
+    return absl::OkStatus();
+  });
+}
+
+}  // namespace visq::service
+
+namespace visq::service {
+namespace {
+
+// One light-visibility batch: convert, run, convert back, with the timing
+// breakdown measured from the request's arrival.
+Status AnswerLightVisibility(Engine& engine, const LightVisibilityQuery& query, const RequestLog& log,
+                             double queue_ms, v1::LightVisibilityResponse* response) {
+  VISQ_ASSIGN_OR_RETURN(LightVisibilityAnswer answer, RunLightVisibility(engine, query));
+  const double before_transfer = log.ElapsedMs();
+  ToProto(answer, response);
+  auto* cache = response->mutable_cache();
+  cache->set_name("light_visibility");
+  cache->set_entries(engine.light_cache().size());
+  cache->set_bytes(engine.light_cache().bytes());
+  cache->set_capacity_bytes(engine.light_cache_capacity());
+  cache->set_hits(engine.light_tree_hits.load());
+  cache->set_misses(engine.light_tree_misses.load());
+  cache->set_evictions(engine.light_cache().evictions());
+  auto* timing = response->mutable_timing();
+  timing->set_queue_ms(queue_ms);
+  timing->set_compute_ms(answer.compute_ms);
+  timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+  timing->set_total_ms(log.ElapsedMs());
+  log.Info("{} point(s), tree {} ({} nodes, {} refinements), {:.2f} ms", query.points.size(),
+           answer.tree_reused ? "reused" : "built", answer.tree.nodes, answer.tree.refinements, answer.compute_ms);
+  return absl::OkStatus();
+}
+
+// Batches in, answers out, one at a time and in order.
+class LightVisibilityStreamReactor final
+    : public grpc::ServerBidiReactor<v1::LightVisibilityRequest, v1::LightVisibilityResponse> {
+ public:
+  LightVisibilityStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx)
+      : log_(context, "LightVisibilityStream", &ctx.metrics), ctx_(ctx) {
+    context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
+    if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
+      Done(authorized);
+      return;
+    }
+    StartRead(&request_);
+  }
+
+  void OnReadDone(bool ok) override {
+    if (!ok) {
+      Done(absl::OkStatus());
+      return;
+    }
+    const double arrived_ms = log_.ElapsedMs();
+    ctx_.executor.Post([this, arrived_ms] {
+      StatusOr<LightVisibilityQuery> query = FromProto(request_, previous_ ? &*previous_ : nullptr);
+      Status status = query.status();
+      response_.Clear();
+      if (status.ok()) status = AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms,
+                                                      &response_);
+      if (!status.ok()) {
+        Done(status);
+        return;
+      }
+      query->points.clear();
+      previous_ = std::move(*query);
+      StartWrite(&response_);
+    });
+  }
+
+  void OnWriteDone(bool ok) override {
+    if (!ok) {
+      Done(absl::CancelledError("client went away"));
+      return;
+    }
+    StartRead(&request_);
+  }
+
+  void OnDone() override { delete this; }
+
+ private:
+  void Done(const Status& status) {
+    log_.Done(status);
+    Finish(ToGrpcStatus(status));
+  }
+
+  RequestLog log_;
+  const ServiceContext& ctx_;
+  v1::LightVisibilityRequest request_;
+  v1::LightVisibilityResponse response_;
+  std::optional<LightVisibilityQuery> previous_;
+};
+
+}  // namespace
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::LightVisibility(grpc::CallbackServerContext* context,
+                                                                 const v1::LightVisibilityRequest* request,
+                                                                 v1::LightVisibilityResponse* response) {
+  return RunUnary(context, "LightVisibility", [this, request, response](RequestLog& log) -> Status {
+    const double queue_ms = log.ElapsedMs();
+    VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery query, FromProto(*request));
+    return AnswerLightVisibility(ctx_.engine, query, log, queue_ms, response);
+  });
+}
+
+grpc::ServerBidiReactor<v1::LightVisibilityRequest, v1::LightVisibilityResponse>*
+VisibilityServiceImpl::LightVisibilityStream(grpc::CallbackServerContext* context) {
+  return new LightVisibilityStreamReactor(context, ctx_);
+}
+
+}  // namespace visq::service
+
+namespace visq::service {
+namespace {
+
+// Messages per chunk element: 1M floats or words is 4 MiB, well under the
+// default 16 MiB message limit on both sides.
+constexpr size_t kChunkElements = 1 << 20;
+
+// A GPU job's deadline and cancellation from the call's context, so a
+// request whose client gave up never reaches the GPU.
+gpu::JobOptions JobOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
+  gpu::JobOptions job;
+  job.priority = gpu::kInteractive;
+  const auto deadline = context->deadline();
+  if (deadline != std::chrono::system_clock::time_point::max()) {
+    const auto left = deadline - std::chrono::system_clock::now();
+    job.deadline = std::chrono::steady_clock::now() +
+                   std::chrono::duration_cast<std::chrono::steady_clock::duration>(left);
+  }
+  job.cancelled = cancelled;
+  return job;
+}
+
+// Computes on the executor, then writes the prepared messages in order.
+class HiddenSampleMapReactor final : public grpc::ServerWriteReactor<v1::HiddenSampleMapResponse> {
+ public:
+  HiddenSampleMapReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx,
+                         const v1::HiddenSampleMapRequest* request)
+      : log_(context, "HiddenSampleMap", &ctx.metrics) {
+    context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
+    if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
+      Done(authorized);
+      return;
+    }
+    ctx.executor.Post([this, &ctx, context, request] {
+      const double queue_ms = log_.ElapsedMs();
+      Status status = Compute(ctx, context, *request, queue_ms);
+      if (!status.ok()) {
+        Done(status);
+        return;
+      }
+      WriteNext();
+    });
+  }
+
+  void OnWriteDone(bool ok) override {
+    if (!ok) {
+      Done(absl::CancelledError("client went away"));
+      return;
+    }
+    WriteNext();
+  }
+  void OnCancel() override { cancelled_ = true; }
+  void OnDone() override { delete this; }
+
+ private:
+  Status Compute(const ServiceContext& ctx, grpc::CallbackServerContext* context,
+                 const v1::HiddenSampleMapRequest& request, double queue_ms) {
+    VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(request));
+    query.job = JobOptionsFor(context, &cancelled_);
+    log_.Info("{} {}x{} texels, {} samples", query.method == VisibilityMethod::kRaster ? "RASTER" : "RAYCAST",
+              query.request.receiver.width, query.request.receiver.height, query.request.source.sample_count);
+    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RunHiddenSampleMap(ctx.engine, query));
+    const double before_transfer = log_.ElapsedMs();
+    messages_ = ToProtoChunks(result, query.method, kChunkElements);
+    auto* timing = messages_[0].mutable_timing();
+    timing->set_queue_ms(queue_ms + result.timing.queue_ms);
+    timing->set_compute_ms(result.timing.run_ms + result.table_ms);
+    timing->set_transfer_ms(log_.ElapsedMs() - before_transfer);
+    timing->set_total_ms(log_.ElapsedMs());
+    return absl::OkStatus();
+  }
+
+  void WriteNext() {
+    if (next_ >= messages_.size()) {
+      Done(absl::OkStatus());
+      return;
+    }
+    StartWrite(&messages_[next_++]);
+  }
+
+  void Done(const Status& status) {
+    log_.Done(status);
+    Finish(ToGrpcStatus(status));
+  }
+
+  RequestLog log_;
+  std::atomic<bool> cancelled_{false};
+  std::vector<v1::HiddenSampleMapResponse> messages_;
+  size_t next_ = 0;
+};
+
+}  // namespace
+
+grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::HiddenSampleMap(
+    grpc::CallbackServerContext* context, const v1::HiddenSampleMapRequest* request) {
+  return new HiddenSampleMapReactor(context, ctx_, request);
+}
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackServerContext* context,
+                                                                 const v1::PatchVisibilityRequest* request,
+                                                                 v1::PatchVisibilityResponse* response) {
+  return RunUnary(context, "PatchVisibility", [this, context, request, response](RequestLog& log) -> Status {
+    const double queue_ms = log.ElapsedMs();
+    VISQ_ASSIGN_OR_RETURN(PatchVisibilityQuery query, FromProto(*request));
+    query.job = JobOptionsFor(context, nullptr);
+    VISQ_ASSIGN_OR_RETURN(gpu::PatchVisibilityResult result, RunPatchVisibility(ctx_.engine, query));
+    const double before_transfer = log.ElapsedMs();
+    ToProto(result, query.method, response);
+    auto* timing = response->mutable_timing();
+    timing->set_queue_ms(queue_ms + result.timing.queue_ms);
+    timing->set_compute_ms(result.timing.run_ms);
+    timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+    timing->set_total_ms(log.ElapsedMs());
+    log.Info("{}x{} by {}x{} samples: mutual visible fraction {:.4f}", query.request.source_columns,
+             query.request.source_rows, query.request.receiver_columns, query.request.receiver_rows,
+             result.mutual_visible_fraction);
     return absl::OkStatus();
   });
 }

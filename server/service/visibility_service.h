@@ -38,6 +38,16 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
   grpc::ServerUnaryReactor* UnloadScene(grpc::CallbackServerContext* context,
                                         const v1::UnloadSceneRequest* request,
                                         v1::UnloadSceneResponse* response) override;
+  grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* HiddenSampleMap(
+      grpc::CallbackServerContext* context, const v1::HiddenSampleMapRequest* request) override;
+  grpc::ServerUnaryReactor* PatchVisibility(grpc::CallbackServerContext* context,
+                                            const v1::PatchVisibilityRequest* request,
+                                            v1::PatchVisibilityResponse* response) override;
+  grpc::ServerUnaryReactor* LightVisibility(grpc::CallbackServerContext* context,
+                                            const v1::LightVisibilityRequest* request,
+                                            v1::LightVisibilityResponse* response) override;
+  grpc::ServerBidiReactor<v1::LightVisibilityRequest, v1::LightVisibilityResponse>* LightVisibilityStream(
+      grpc::CallbackServerContext* context) override;
   grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
                                      v1::ServerStats* response) override;
 

@@ -1,0 +1,217 @@
+// CPU side of the hidden-sample map: validation, the source samples, the
+// receiver samples and the decorrelation offsets. Everything here is shared
+// by the GPU path and the CPU references, so both test the same segments.
+#include <algorithm>
+#include <bit>
+#include <cmath>
+#include <string>
+
+#include "visq/gpu/hidden_sample_map.h"
+
+namespace visq::gpu {
+namespace {
+
+std::string Vec(const glm::dvec3& v) { return absl::StrCat("(", v.x, ", ", v.y, ", ", v.z, ")"); }
+bool Finite(const glm::dvec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+
+Status ValidatePatch(const Patch& p, const std::string& field) {
+  if (!Finite(p.origin)) return absl::InvalidArgumentError(absl::StrCat(field, ".origin: non-finite ", Vec(p.origin)));
+  if (!Finite(p.edge_u)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_u: non-finite ", Vec(p.edge_u)));
+  if (!Finite(p.edge_v)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_v: non-finite ", Vec(p.edge_v)));
+  const double area = glm::length(glm::cross(p.edge_u, p.edge_v));
+  if (!(area > 1e-12 * glm::length(p.edge_u) * glm::length(p.edge_v)) || area == 0.0)
+    return absl::InvalidArgumentError(absl::StrCat(field, ": degenerate patch, edge_u ", Vec(p.edge_u), " edge_v ",
+                                                   Vec(p.edge_v)));
+  return absl::OkStatus();
+}
+
+// splitmix64: a portable, seeded generator (std distributions differ between
+// standard libraries, and patterns must be reproducible everywhere).
+struct SplitMix {
+  uint64_t state;
+  uint64_t Next() {
+    uint64_t z = (state += 0x9E3779B97F4A7C15ull);
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return z ^ (z >> 31);
+  }
+  double Uniform() { return double(Next() >> 11) * 0x1.0p-53; }
+};
+
+bool InsidePolygon(const std::vector<glm::dvec2>& poly, const glm::dvec2& p) {
+  bool inside = false;
+  for (size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
+    if ((poly[i].y > p.y) != (poly[j].y > p.y) &&
+        p.x < (poly[j].x - poly[i].x) * (p.y - poly[i].y) / (poly[j].y - poly[i].y) + poly[i].x)
+      inside = !inside;
+  }
+  return inside;
+}
+
+uint32_t Hash(uint32_t h) {
+  h ^= h >> 16; h *= 0x7feb352du; h ^= h >> 15; h *= 0x846ca68bu; h ^= h >> 16;
+  return h;
+}
+
+}  // namespace
+
+Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
+  const SourceSpec& s = request.source;
+  const ReceiverSpec& r = request.receiver;
+  const HiddenSampleMapOptions& o = request.options;
+  VISQ_RETURN_IF_ERROR(ValidatePatch(s.patch, "source.patch"));
+  VISQ_RETURN_IF_ERROR(ValidatePatch(r.patch, "receiver.patch"));
+  if (s.sample_count < 1 || s.sample_count > 4096)
+    return absl::InvalidArgumentError(absl::StrCat("source.sample_count: ", s.sample_count, " not in [1, 4096]"));
+  if (s.pattern == SamplePattern::kCustom) {
+    if (static_cast<int>(s.custom_uv.size()) != s.sample_count)
+      return absl::InvalidArgumentError(absl::StrCat("source.custom_uv: ", s.custom_uv.size(),
+                                                     " positions for sample_count ", s.sample_count));
+    for (size_t i = 0; i < s.custom_uv.size(); ++i) {
+      const glm::dvec2 uv = s.custom_uv[i];
+      if (!(uv.x >= 0.0 && uv.x <= 1.0 && uv.y >= 0.0 && uv.y <= 1.0))
+        return absl::InvalidArgumentError(
+            absl::StrCat("source.custom_uv[", i, "]: (", uv.x, ", ", uv.y, ") not in [0, 1]^2"));
+    }
+  } else if (s.pattern != SamplePattern::kRegular && s.pattern != SamplePattern::kJittered) {
+    return absl::InvalidArgumentError(absl::StrCat("source.pattern: unknown value ", static_cast<int>(s.pattern)));
+  }
+  if (!s.polygon_uv.empty()) {
+    if (s.polygon_uv.size() < 3)
+      return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv: ", s.polygon_uv.size(), " vertices, need 3"));
+    for (size_t i = 0; i < s.polygon_uv.size(); ++i)
+      if (!std::isfinite(s.polygon_uv[i].x) || !std::isfinite(s.polygon_uv[i].y))
+        return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv[", i, "]: non-finite (",
+                                                       s.polygon_uv[i].x, ", ", s.polygon_uv[i].y, ")"));
+  }
+  if (!s.color_texture.empty() || s.color_texture_width != 0 || s.color_texture_height != 0) {
+    if (s.color_texture_width < 1 || s.color_texture_height < 1 ||
+        s.color_texture.size() != size_t(s.color_texture_width) * s.color_texture_height)
+      return absl::InvalidArgumentError(absl::StrCat("source.color_texture: ", s.color_texture.size(), " texels for ",
+                                                     s.color_texture_width, " x ", s.color_texture_height));
+    if (!s.sample_colors.empty())
+      return absl::InvalidArgumentError("source.sample_colors: give either sample_colors or color_texture");
+  }
+  if (r.width < 1 || r.width > 4096)
+    return absl::InvalidArgumentError(absl::StrCat("receiver.width: ", r.width, " not in [1, 4096]"));
+  if (r.height < 1 || r.height > 4096)
+    return absl::InvalidArgumentError(absl::StrCat("receiver.height: ", r.height, " not in [1, 4096]"));
+  if (!r.heightfield.empty() && r.heightfield.size() != size_t(r.width) * r.height)
+    return absl::InvalidArgumentError(absl::StrCat("receiver.heightfield: ", r.heightfield.size(),
+                                                   " heights for ", r.width, " x ", r.height, " texels"));
+  float h_min = 0.0f, h_max = 0.0f;
+  for (size_t i = 0; i < r.heightfield.size(); ++i) {
+    if (!std::isfinite(r.heightfield[i]))
+      return absl::InvalidArgumentError(absl::StrCat("receiver.heightfield[", i, "]: ", r.heightfield[i]));
+    h_min = std::min(h_min, r.heightfield[i]);
+    h_max = std::max(h_max, r.heightfield[i]);
+  }
+  if (o.lookup != LookupMode::kExact && o.lookup != LookupMode::kHough)
+    return absl::InvalidArgumentError(absl::StrCat("options.lookup: unknown value ", static_cast<int>(o.lookup)));
+  if (o.hough_theta_resolution < 16 || o.hough_theta_resolution > 2048)
+    return absl::InvalidArgumentError(
+        absl::StrCat("options.hough_theta_resolution: ", o.hough_theta_resolution, " not in [16, 2048]"));
+  if (o.hough_r_resolution < 16 || o.hough_r_resolution > 2048)
+    return absl::InvalidArgumentError(
+        absl::StrCat("options.hough_r_resolution: ", o.hough_r_resolution, " not in [16, 2048]"));
+  const double table_bytes =
+      2.0 * o.hough_theta_resolution * o.hough_r_resolution * ((s.sample_count + 127) / 128) * 16.0;
+  if (table_bytes > 1024.0 * 1024 * 1024)
+    return absl::InvalidArgumentError(absl::StrCat("options.hough_*_resolution: table of ", table_bytes / 1048576,
+                                                   " MiB for ", s.sample_count, " samples exceeds 1024 MiB"));
+  if (!(o.confidence > 0.0 && o.confidence < 1.0))
+    return absl::InvalidArgumentError(absl::StrCat("options.confidence: ", o.confidence, " not in (0, 1)"));
+
+  // Geometry: every receiver point strictly on one side of the source plane,
+  // every source corner strictly in front of the (bumpy) receiver.
+  const glm::dvec3 ns = glm::normalize(glm::cross(s.patch.edge_u, s.patch.edge_v));
+  const glm::dvec3 nr = glm::normalize(glm::cross(r.patch.edge_u, r.patch.edge_v));
+  int side = 0;
+  for (double a : {0.0, 1.0})
+    for (double b : {0.0, 1.0})
+      for (double h : {double(h_min), double(h_max)}) {
+        const double d = glm::dot(ns, r.patch.At(a, b) + h * nr - s.patch.origin);
+        const int sd = d > 0 ? 1 : (d < 0 ? -1 : 0);
+        if (sd == 0 || (side != 0 && sd != side))
+          return absl::InvalidArgumentError(absl::StrCat("receiver.patch: corner ", Vec(r.patch.At(a, b)),
+                                                         " is on or across the source plane"));
+        side = sd;
+      }
+  int rside = 0;
+  for (double a : {0.0, 1.0})
+    for (double b : {0.0, 1.0}) {
+      const double e = glm::dot(nr, s.patch.At(a, b) - r.patch.origin);
+      const int se = e > 0 ? 1 : (e < 0 ? -1 : 0);
+      const double bump = se > 0 ? h_max : -h_min;
+      if (se == 0 || (rside != 0 && se != rside) || std::abs(e) <= bump)
+        return absl::InvalidArgumentError(absl::StrCat("source.patch: corner ", Vec(s.patch.At(a, b)),
+                                                       " is not strictly in front of the receiver"));
+      rside = se;
+    }
+  return absl::OkStatus();
+}
+
+StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source) {
+  SourceSamples out;
+  const int n = source.sample_count;
+  if (n < 1 || n > 4096)
+    return absl::InvalidArgumentError(absl::StrCat("source.sample_count: ", n, " not in [1, 4096]"));
+  out.requested = n;
+  std::vector<glm::dvec2> uv;
+  if (source.pattern == SamplePattern::kCustom) {
+    uv = source.custom_uv;
+  } else {
+    const int columns = static_cast<int>(std::ceil(std::sqrt(double(n)) - 1e-9));
+    const int rows = (n + columns - 1) / columns;
+    SplitMix rng{source.seed};
+    for (int k = 0; k < n; ++k) {
+      const int c = k % columns, r = k / columns;
+      double ju = 0.5, jv = 0.5;
+      if (source.pattern == SamplePattern::kJittered) { ju = rng.Uniform(); jv = rng.Uniform(); }
+      uv.emplace_back((c + ju) / columns, (r + jv) / rows);
+    }
+  }
+  for (const glm::dvec2& p : uv)
+    if (source.polygon_uv.empty() || InsidePolygon(source.polygon_uv, p)) out.uv.push_back(p);
+  if (out.uv.empty())
+    return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv: none of the ", n, " samples is inside"));
+  for (const glm::dvec2& p : out.uv) out.world.push_back(source.patch.At(p.x, p.y));
+  if (!source.sample_colors.empty()) {
+    if (source.sample_colors.size() != out.uv.size())
+      return absl::InvalidArgumentError(absl::StrCat("source.sample_colors: ", source.sample_colors.size(),
+                                                     " colours for ", out.uv.size(), " samples"));
+    out.color = source.sample_colors;
+  } else if (!source.color_texture.empty()) {
+    for (const glm::dvec2& p : out.uv) {
+      const int x = std::clamp(int(p.x * source.color_texture_width), 0, source.color_texture_width - 1);
+      const int y = std::clamp(int(p.y * source.color_texture_height), 0, source.color_texture_height - 1);
+      out.color.push_back(source.color_texture[size_t(y) * source.color_texture_width + x]);
+    }
+  }
+  return out;
+}
+
+glm::dvec3 ReceiverSamplePosition(const ReceiverSpec& receiver, int x, int y) {
+  glm::dvec3 p = receiver.patch.At((x + 0.5) / receiver.width, (y + 0.5) / receiver.height);
+  if (!receiver.heightfield.empty())
+    p += double(receiver.heightfield[size_t(y) * receiver.width + x]) *
+         glm::normalize(glm::cross(receiver.patch.edge_u, receiver.patch.edge_v));
+  return p;
+}
+
+glm::vec2 DecorrelationOffset(uint32_t seed, int x, int y, int sample_count) {
+  const float amplitude = 1.0f / std::ceil(std::sqrt(float(sample_count)));
+  const uint32_t h = Hash(uint32_t(x) * 0x9E3779B1u ^ Hash(uint32_t(y) * 0x85EBCA77u ^ seed));
+  const uint32_t g = Hash(h ^ 0x68bc21ebu);
+  constexpr float kScale = 1.0f / 16777216.0f;
+  return {(float(h >> 8) * kScale - 0.5f) * amplitude, (float(g >> 8) * kScale - 0.5f) * amplitude};
+}
+
+glm::dvec3 SourceSampleSeenFrom(const HiddenSampleMapRequest& request, const SourceSamples& samples, int i, int x,
+                                int y) {
+  if (!request.options.decorrelate) return samples.world[i];
+  const glm::vec2 o = DecorrelationOffset(request.options.decorrelation_seed, x, y, request.source.sample_count);
+  return request.source.patch.At(samples.uv[i].x + double(o.x), samples.uv[i].y + double(o.y));
+}
+
+}  // namespace visq::gpu

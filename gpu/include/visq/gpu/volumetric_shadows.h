@@ -1,0 +1,188 @@
+// Volumetric shadows: single scattering in a homogeneous medium with epipolar
+// rectification and 1D min-max mipmaps (Chen, Baran, Durand, Jarosz 2011,
+// "Real-Time Volumetric Shadows using 1D Min-Max Mipmaps"; slides in
+// ../shared/papers/volumetric-shadows-minmax-mipmaps.txt). GL-free and
+// protobuf-free: the algorithm and its shaders live in gpu/volumetric_shadows/.
+//
+// What one call computes, per camera pixel (ray from the eye through the
+// pixel center, up to the first surface the camera rasterizes):
+//
+//   L_in = integral over the lit parts of the ray, inside the medium, of
+//          sigma_s * phase(cos) * E_light(x) * exp(-sigma_t * l(x))
+//                  * exp(-sigma_t * (s - s_in)) ds
+//
+// where s is the distance from the eye, s_in where the ray enters the medium,
+// l(x) the light's path length inside the medium to x, and "lit" is decided by
+// the shadow map. The medium fills the light's shadow-map volume:
+//   directional light: the box around the scene bounds in the light's frame
+//     (axes and extent in VolumetricResult::medium_box); light enters at the
+//     box face the light comes from, so l(x) = depth of x below that face and
+//     E_light = intensity (irradiance) * light texture;
+//   spot light: the square frustum of the cone (near = 1e-3 of the scene
+//     diagonal, far = beyond the farthest scene corner); l(x) = |x - position|
+//     and E_light = intensity (radiant intensity) * cone * texture / l^2.
+// Outside the medium there is vacuum (no scattering, no attenuation).
+//
+// The shadow map (the light's depth) is resampled into an epipolar
+// rectified map: row = one epipolar slice (a direction from the epipole, the
+// eye's projection in the shadow map), column = distance from the epipole.
+// Every view ray lies in one slice (the nearest row is used), and its shadow
+// test becomes a height-field test along that row: the ray's shadow-map
+// depth is affine in the column. Rectified map: shadow_map_size rows x
+// shadow_map_size columns (columns span [r_min, r_max], the distances from
+// the epipole to the map square; over a full circle when the epipole lies
+// inside the map).
+//
+// Two methods share the code path and the per-texel integral:
+//   kMinMaxTraversal: a binary min-max tree over each row; nodes fully below
+//     the ray are skipped (shadowed), nodes fully above are integrated over
+//     their whole span at once, mixed nodes are refined.
+//   kRayMarching: every texel of the row between the ray's ends is tested and
+//     integrated in turn.
+// They give the same image up to float summation order.
+//
+// Integrand per lit span (VolumetricResult::integrand says which was used):
+//   kAnalytic: directional light without texture: closed form exp(-a s).
+//   kPrefixSum: no attenuation (zero extinction or medium.optically_thin)
+//     and either a directional light (any phase) or
+//     an isotropic phase: the ray-dependent factor is constant along the row's
+//     parameter (directional: ds per column; spot: the angle subtended at the
+//     light, since ds / l^2 = dphi / h), so a lit span is a difference of
+//     per-row prefix sums of the light weight (texture x cone, times the
+//     texel's angle for spots), as in the slides.
+//   kPerTexel: everything else (spot light or textured light with
+//     extinction, or a spot with a Henyey-Greenstein phase). The slides'
+//     SVD approximation of the ray-dependent factor is NOT implemented: lit
+//     spans are summed texel by texel (shadowed spans are still skipped by the
+//     tree), each texel exact in its ds / l^2 factor (atan) with the
+//     attenuation and phase at the texel's midpoint.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "common/status.h"
+#include "scene/scene.h"
+#include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/gpu_worker.h"
+
+namespace visq::gpu {
+
+inline constexpr uint32_t kMaxVolumetricShadowMapSize = 4096;  // RESOURCE_EXHAUSTED beyond
+inline constexpr uint32_t kMinVolumetricShadowMapSize = 16;
+inline constexpr uint32_t kMaxVolumetricImageSize = 4096;      // width and height each
+inline constexpr uint32_t kMaxVolumetricLightTextureSize = 1024;
+
+struct VolumetricCamera {
+  glm::dvec3 position{0.0};
+  glm::dvec3 forward{0.0, 0.0, -1.0};  // viewing direction (normalized by the call)
+  glm::dvec3 up{0.0, 1.0, 0.0};        // need not be orthogonal to forward; not parallel
+  double vertical_fov_deg = 60.0;      // in (0, 180)
+  uint32_t width = 160;
+  uint32_t height = 120;
+};
+
+enum class VolumetricLightKind { kDirectional, kSpot };
+
+struct VolumetricLight {
+  VolumetricLightKind kind = VolumetricLightKind::kDirectional;
+  // Directional: the way light travels. Spot: the cone's axis.
+  glm::dvec3 direction{0.0, -1.0, 0.0};
+  glm::dvec3 position{0.0};      // spot only
+  double cone_angle_deg = 30.0;  // spot: half-angle of the cone, in (0, 80]
+  // Spot: the intensity falls smoothly to 0 over the last `cone_falloff_deg`
+  // before the cone's edge (0: hard edge).
+  double cone_falloff_deg = 0.0;
+  glm::dvec3 color{1.0};  // multiplies every output channel
+  // Directional: irradiance (W/m^2) on a plane facing the light. Spot:
+  // radiant intensity (W/sr) along the axis.
+  double intensity = 1.0;
+  // Optional light texture: multipliers over the shadow map's square (for a
+  // spot, the cone's square image), texture[y * texture_width + x], x along
+  // the light's right axis, y along its up axis, (0, 0) at the (-right, -up)
+  // corner; nearest sampling. Empty: 1 everywhere.
+  uint32_t texture_width = 0, texture_height = 0;
+  std::vector<float> texture;
+  // The light's up axis (the shadow map's v); projected orthogonal to
+  // `direction`. Zero: world +y, or +z when the direction is nearly vertical.
+  glm::dvec3 up{0.0};
+};
+
+struct VolumetricMedium {
+  double scattering = 0.05;  // sigma_s, per world unit, >= 0
+  double extinction = 0.05;  // sigma_t, per world unit, >= sigma_s
+  double hg_g = 0.0;         // Henyey-Greenstein asymmetry in (-1, 1); 0 = isotropic
+  // The optically thin limit: no attenuation on either leg (sigma_t taken
+  // as 0 in the integral, sigma_s kept). The slides' prefix sums are exact
+  // only then (the integrand no longer depends on the ray beyond a factor).
+  bool optically_thin = false;
+};
+
+enum class VolumetricMethod { kMinMaxTraversal, kRayMarching };
+enum class VolumetricIntegrand { kAnalytic, kPrefixSum, kPerTexel };
+
+struct VolumetricParams {
+  VolumetricCamera camera;
+  VolumetricLight light;
+  VolumetricMedium medium;
+  uint32_t shadow_map_size = 1024;  // power of two in [16, 4096]
+  VolumetricMethod method = VolumetricMethod::kMinMaxTraversal;
+  // Also return `combined`: Lambert direct light on surfaces (material
+  // reflectivity, shadow-mapped, attenuated both ways) plus in-scattering.
+  bool combined_image = false;
+  // The medium's box (directional) or far plane (spot) covers the scene's
+  // bounds and these (empty: the scene's only).
+  Bounds extra_medium_bounds;
+  JobOptions job;
+};
+
+// Wall-clock per stage on the GL thread, each closed by glFinish and read
+// with a steady clock (llvmpipe's GL_TIME_ELAPSED under-reports).
+struct VolumetricTimings {
+  double queue_ms = 0;
+  double setup_ms = 0;           // programs (cached after the first call), buffers
+  double shadow_map_ms = 0;      // the light's depth rasterization
+  double camera_ms = 0;          // the camera's depth / normal rasterization
+  double rectification_ms = 0;   // shadow map -> epipolar rows (+ light weights)
+  double mipmap_ms = 0;          // min-max trees (+ prefix sums)
+  double traversal_ms = 0;       // per-pixel integration (either method)
+  double readback_ms = 0;
+  double total_ms = 0;           // everything, queue included
+};
+
+// An oriented box: center + sum of axis[i] * [-half_extent[i], half_extent[i]].
+struct VolumetricBox {
+  glm::dvec3 center{0.0};
+  glm::dvec3 axis[3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}};  // right, up, light direction
+  glm::dvec3 half_extent{0.0};
+};
+
+struct VolumetricResult {
+  uint32_t width = 0, height = 0;
+  // Float RGB per pixel, index (y * width + x) * 3, y = 0 the TOP row:
+  // in-scattered radiance (light color included).
+  std::vector<float> inscattering;
+  std::vector<float> combined;  // same layout; empty unless asked for
+  VolumetricMethod method = VolumetricMethod::kMinMaxTraversal;
+  VolumetricIntegrand integrand = VolumetricIntegrand::kAnalytic;
+  uint32_t rectified_rows = 0, rectified_columns = 0;
+  bool epipole_inside_map = false;
+  VolumetricBox medium_box;  // directional light only (the medium's box)
+  VolumetricTimings timings;
+};
+
+// Renders `params` over `gpu_scene` (the GPU copy of `scene`; `scene` gives
+// the bounds and material colors).
+[[nodiscard]] StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuScene& gpu_scene,
+                                                                 const Scene& scene, const VolumetricParams& params);
+
+// Checks params without touching the GPU: INVALID_ARGUMENT naming the field
+// and value, RESOURCE_EXHAUSTED naming the cap.
+[[nodiscard]] Status ValidateVolumetricParams(const VolumetricParams& params);
+
+std::string_view VolumetricIntegrandName(VolumetricIntegrand integrand);
+
+}  // namespace visq::gpu

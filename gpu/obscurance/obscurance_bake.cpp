@@ -1,0 +1,288 @@
+#include "visq/gpu/obscurance.h"
+
+#include <chrono>
+#include <memory>
+#include <vector>
+
+#include <epoxy/gl.h>
+
+#include "gl_check.h"
+#include "gl_object.h"
+#include "gpu_scene_resources.h"
+#include "shader_program.h"
+#include "visq_gpu_obscurance_embedded.h"
+
+namespace visq::gpu {
+namespace {
+
+using obscurance::ObscuranceAtlas;
+using obscurance::ObscuranceParams;
+using obscurance::ObscurancePartial;
+
+// GL state of one bake, created and destroyed on the GL thread.
+struct BakeState {
+  GlProgramObject peel{NoCreate};
+  GlProgramObject transfer{NoCreate};
+  GlBuffer corner_uv{NoCreate};
+  GlBuffer triangle_material{NoCreate};
+  GlBuffer reflectivity{NoCreate};
+  GlBuffer sums{NoCreate};
+  GlTexture2D layer[2] = {GlTexture2D(NoCreate), GlTexture2D(NoCreate)};
+  GlTexture2D depth[2] = {GlTexture2D(NoCreate), GlTexture2D(NoCreate)};
+  GlFramebuffer framebuffer[2] = {GlFramebuffer(NoCreate), GlFramebuffer(NoCreate)};
+  GlQueryAnySamplesPassed any_samples{NoCreate};
+};
+
+void NearestNoMips(GLuint texture) {
+  glTextureParameteri(texture, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+  glTextureParameteri(texture, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+  glTextureParameteri(texture, GL_TEXTURE_WRAP_S, GL_CLAMP_TO_EDGE);
+  glTextureParameteri(texture, GL_TEXTURE_WRAP_T, GL_CLAMP_TO_EDGE);
+}
+
+Status CreateState(BakeState& s, const Scene& scene, const ObscuranceAtlas& atlas, uint32_t channels,
+                   uint32_t bundle) {
+  const std::string channel_text = std::to_string(channels);
+  VISQ_ASSIGN_OR_RETURN(s.peel, BuildProgram(obscurance_shaders::Find, {{GL_VERTEX_SHADER, "obscurance_peel.vert"},
+                                                                        {GL_FRAGMENT_SHADER, "obscurance_peel.frag"}}));
+  VISQ_ASSIGN_OR_RETURN(
+      s.transfer, BuildProgram(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_transfer.comp"}},
+                               {{"CHANNELS", channel_text + "u"},
+                                {"FIXED_POINT_SCALE", std::to_string(obscurance::kObscuranceFixedPointScale)}}));
+  // Per-corner atlas coordinates, per-triangle material, per-material color.
+  s.corner_uv = GlBuffer();
+  glNamedBufferStorage(s.corner_uv.id(), atlas.corner_uv.size() * sizeof(glm::vec2), atlas.corner_uv.data(), 0);
+  s.triangle_material = GlBuffer();
+  glNamedBufferStorage(s.triangle_material.id(), scene.triangle_material.size() * sizeof(uint32_t),
+                       scene.triangle_material.data(), 0);
+  std::vector<glm::vec4> colors;
+  for (const Material& m : scene.materials) colors.emplace_back(glm::vec3(m.reflectivity), 1.0f);
+  if (colors.empty()) colors.emplace_back(1.0f);
+  s.reflectivity = GlBuffer();
+  glNamedBufferStorage(s.reflectivity.id(), colors.size() * sizeof(glm::vec4), colors.data(), 0);
+  // Sums: per texel `channels` (lo, hi) pairs, then the count's pair.
+  const size_t words = static_cast<size_t>(atlas.texel_count()) * 2 * (channels + 1);
+  s.sums = GlBuffer();
+  glNamedBufferStorage(s.sums.id(), words * sizeof(uint32_t), nullptr, GL_DYNAMIC_STORAGE_BIT);
+  const GLuint zero = 0;
+  glClearNamedBufferData(s.sums.id(), GL_R32UI, GL_RED_INTEGER, GL_UNSIGNED_INT, &zero);
+  // Two layers in flight: (patch + 1, triangle * 2 + front) and depth.
+  for (int i = 0; i < 2; ++i) {
+    s.layer[i] = GlTexture2D();
+    glTextureStorage2D(s.layer[i].id(), 1, GL_RG32UI, bundle, bundle);
+    NearestNoMips(s.layer[i].id());
+    s.depth[i] = GlTexture2D();
+    glTextureStorage2D(s.depth[i].id(), 1, GL_DEPTH_COMPONENT32F, bundle, bundle);
+    NearestNoMips(s.depth[i].id());
+    glTextureParameteri(s.depth[i].id(), GL_TEXTURE_COMPARE_MODE, GL_NONE);
+    s.framebuffer[i] = GlFramebuffer();
+    glNamedFramebufferTexture(s.framebuffer[i].id(), GL_COLOR_ATTACHMENT0, s.layer[i].id(), 0);
+    glNamedFramebufferTexture(s.framebuffer[i].id(), GL_DEPTH_ATTACHMENT, s.depth[i].id(), 0);
+    if (glCheckNamedFramebufferStatus(s.framebuffer[i].id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+      return absl::InternalError("obscurance bake: layer framebuffer incomplete");
+  }
+  s.any_samples = GlQueryAnySamplesPassed();
+  return CollectGlErrors("obscurance bake setup");
+}
+
+struct DirectionFrame {
+  glm::mat4 clip_from_scene{1.0f};
+  float depth_to_distance = 0;
+};
+
+// The orthographic view of one bundle: the scene's bounding sphere (center c
+// relative to the anchor, radius r) fills the image, shifted by the
+// direction's sub-pixel offset; clip z runs along the view over [-r, r].
+DirectionFrame FrameOf(const obscurance::BundleDirection& d, const glm::dvec3& c, double r, uint32_t bundle) {
+  // One pixel of margin so that the shift never pushes geometry out.
+  const double R = r * (1.0 + 2.0 / bundle) + 1e-12;
+  glm::dmat4 m(0.0);
+  for (int i = 0; i < 3; ++i) {
+    m[i][0] = d.right[i] / R;
+    m[i][1] = d.up[i] / R;
+    m[i][2] = d.view[i] / R;
+  }
+  m[3][0] = -glm::dot(c, d.right) / R + 2.0 * d.pixel_offset.x / bundle;
+  m[3][1] = -glm::dot(c, d.up) / R + 2.0 * d.pixel_offset.y / bundle;
+  m[3][2] = -glm::dot(c, d.view) / R;
+  m[3][3] = 1.0;
+  return DirectionFrame{glm::mat4(m), static_cast<float>(2.0 * R)};
+}
+
+// One direction: peel until a layer is empty, transferring between each
+// pair of consecutive layers as soon as the second is drawn.
+Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFrame& frame, uint32_t bundle,
+                     const ObscuranceAtlas& atlas, const ObscuranceParams& params, const glm::vec3& unoccluded,
+                     uint32_t max_layers, uint32_t* layers) {
+  const GpuScene::Resources& res = gpu_scene.resources();
+  glViewport(0, 0, static_cast<GLsizei>(bundle), static_cast<GLsizei>(bundle));
+  glDisable(GL_CULL_FACE);
+  glDisable(GL_BLEND);
+  glEnable(GL_DEPTH_TEST);
+  glDepthFunc(GL_LESS);
+  glDepthMask(GL_TRUE);
+  glFrontFace(GL_CCW);
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, s.corner_uv.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, s.triangle_material.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, s.reflectivity.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 3, s.sums.id());
+
+  const GLuint peel = s.peel.id(), transfer = s.transfer.id();
+  glProgramUniformMatrix4fv(peel, glGetUniformLocation(peel, "u_clip_from_scene"), 1, GL_FALSE,
+                            &frame.clip_from_scene[0][0]);
+  glProgramUniform2ui(peel, glGetUniformLocation(peel, "u_atlas_size"), atlas.width, atlas.height);
+  const GLint first_loc = glGetUniformLocation(peel, "u_first");
+  glProgramUniform1ui(transfer, glGetUniformLocation(transfer, "u_size"), bundle);
+  glProgramUniform1f(transfer, glGetUniformLocation(transfer, "u_depth_to_distance"), frame.depth_to_distance);
+  glProgramUniform1f(transfer, glGetUniformLocation(transfer, "u_d_max"), static_cast<float>(params.d_max));
+  glProgramUniform3f(transfer, glGetUniformLocation(transfer, "u_unoccluded"), unoccluded.x, unoccluded.y,
+                     unoccluded.z);
+  const GLint has_a_loc = glGetUniformLocation(transfer, "u_has_a");
+  const GLint has_b_loc = glGetUniformLocation(transfer, "u_has_b");
+  const GLuint groups = (bundle + 7) / 8;
+
+  const GLuint clear_layer[4] = {0, 0, 0, 0};
+  const GLfloat clear_depth = 1.0f;
+  uint32_t k = 0;
+  for (;; ++k) {
+    const int cur = static_cast<int>(k % 2), prev = 1 - cur;
+    // Layer k: fragments strictly behind layer k - 1.
+    glBindFramebuffer(GL_FRAMEBUFFER, s.framebuffer[cur].id());
+    glClearNamedFramebufferuiv(s.framebuffer[cur].id(), GL_COLOR, 0, clear_layer);
+    glClearNamedFramebufferfv(s.framebuffer[cur].id(), GL_DEPTH, 0, &clear_depth);
+    glUseProgram(peel);
+    glProgramUniform1i(peel, first_loc, k == 0 ? 1 : 0);
+    glBindTextureUnit(0, s.depth[prev].id());
+    glBindVertexArray(res.vertex_array.id());
+    glBeginQuery(GL_ANY_SAMPLES_PASSED, s.any_samples.id());
+    glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+    glEndQuery(GL_ANY_SAMPLES_PASSED);
+    GLuint any = 0;
+    glGetQueryObjectuiv(s.any_samples.id(), GL_QUERY_RESULT, &any);
+    const bool last_guard = k + 1 >= max_layers;
+    // Transfer between layer k - 1 (A) and layer k (B, none if empty).
+    glMemoryBarrier(GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
+    glBindFramebuffer(GL_FRAMEBUFFER, 0);
+    glUseProgram(transfer);
+    glProgramUniform1i(transfer, has_a_loc, k > 0 ? 1 : 0);
+    glProgramUniform1i(transfer, has_b_loc, any ? 1 : 0);
+    glBindTextureUnit(0, s.layer[prev].id());
+    glBindTextureUnit(1, s.depth[prev].id());
+    glBindTextureUnit(2, s.layer[cur].id());
+    glBindTextureUnit(3, s.depth[cur].id());
+    if (k > 0 || any) glDispatchCompute(groups, groups, 1);
+    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT | GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
+    if (!any) break;
+    if (last_guard) {
+      // The back faces of the last kept layer see nothing: transfer to "none".
+      glProgramUniform1i(transfer, has_a_loc, 1);
+      glProgramUniform1i(transfer, has_b_loc, 0);
+      glBindTextureUnit(0, s.layer[cur].id());
+      glBindTextureUnit(1, s.depth[cur].id());
+      glDispatchCompute(groups, groups, 1);
+      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+      ++k;
+      break;
+    }
+  }
+  for (int unit = 0; unit < 4; ++unit) glBindTextureUnit(unit, 0);
+  glBindVertexArray(0);
+  glUseProgram(0);
+  *layers = k;
+  VISQ_GL_CHECK("obscurance bake direction");
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuScene& gpu_scene, const Scene& scene,
+                                                  const ObscuranceAtlas& atlas, const ObscuranceParams& params,
+                                                  const ObscuranceBakeOptions& options, ObscuranceBakeStats* stats) {
+  const auto start = std::chrono::steady_clock::now();
+  VISQ_RETURN_IF_ERROR(obscurance::ValidateParams(params));
+  if (gpu_scene.triangle_count() != scene.TriangleCount())
+    return absl::InvalidArgumentError(absl::StrCat("gpu_scene: ", gpu_scene.triangle_count(),
+                                                   " triangles, scene has ", scene.TriangleCount()));
+  if (atlas.corner_uv.size() != scene.TriangleCount() * 3)
+    return absl::InvalidArgumentError("atlas: built for another scene (corner count differs)");
+  const uint32_t bundle = obscurance::EffectiveBundleResolution(params, atlas);
+  const uint32_t channels = params.color_bleeding ? 3 : 1;
+  const obscurance::AmbientModel ambient = obscurance::ComputeAmbient(scene, params.color_bleeding);
+  const glm::vec3 unoccluded(obscurance::UnoccludedValue(ambient, params.color_bleeding));
+  const glm::dvec3 center = scene.bounds.Center() - gpu_scene.anchor();
+  const double radius = 0.5 * glm::length(scene.bounds.Extent());
+
+  auto state = std::make_shared<BakeState>();
+  // GL objects die on the GL thread whatever happens below.
+  struct Release {
+    GpuWorker& worker;
+    std::shared_ptr<BakeState>& state;
+    ~Release() { worker.Post([s = std::move(state)]() mutable { s.reset(); }); }
+  } release{worker, state};
+
+  JobOptions job{options.priority, options.deadline, options.cancelled};
+  VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() { return CreateState(*state, scene, atlas, channels, bundle); }));
+
+  ObscuranceBakeStats local;
+  local.bundle_resolution = bundle;
+  const double kStart = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  for (uint32_t i = 0; i < params.direction_count; ++i) {
+    if (options.cancelled != nullptr && options.cancelled->load())
+      return absl::CancelledError(absl::StrCat("obscurance bake cancelled after ", i, " of ", params.direction_count,
+                                               " directions"));
+    const uint32_t index = params.first_direction + i;
+    const DirectionFrame frame = FrameOf(obscurance::DirectionOfSequence(params.seed, index), center, radius, bundle);
+    uint32_t layers = 0;
+    VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() {
+      return BakeDirection(*state, gpu_scene, frame, bundle, atlas, params, unoccluded, options.max_layers, &layers);
+    }));
+    local.layers += layers;
+    local.max_layers = std::max(local.max_layers, layers);
+    if (layers >= options.max_layers) ++local.truncated_directions;
+    if (options.progress) {
+      const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      const double per = (elapsed - kStart) / (i + 1);
+      options.progress(ObscuranceProgress{i + 1, params.direction_count, elapsed,
+                                          per * (params.direction_count - i - 1), layers});
+    }
+  }
+
+  // Read back the sums: (lo, hi) pairs to 64-bit.
+  ObscurancePartial partial;
+  partial.fingerprint = obscurance::BakeFingerprint(scene, atlas, params);
+  partial.width = atlas.width;
+  partial.height = atlas.height;
+  partial.channels = channels;
+  partial.ranges = {obscurance::DirectionRange{params.first_direction, params.direction_count}};
+  const size_t texels = atlas.texel_count();
+  std::vector<uint32_t> words(texels * 2 * (channels + 1));
+  VISQ_RETURN_IF_ERROR(worker.Run({options.priority, SteadyTime::max(), nullptr}, [&]() -> Status {
+    glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
+    glGetNamedBufferSubData(state->sums.id(), 0, static_cast<GLsizeiptr>(words.size() * sizeof(uint32_t)),
+                            words.data());
+    return CollectGlErrors("obscurance bake readback");
+  }));
+  partial.sums.resize(texels * channels);
+  partial.counts.resize(texels);
+  for (size_t t = 0; t < texels; ++t) {
+    const uint32_t* w = &words[t * 2 * (channels + 1)];
+    for (uint32_t c = 0; c < channels; ++c)
+      partial.sums[t * channels + c] = (static_cast<uint64_t>(w[2 * c + 1]) << 32) | w[2 * c];
+    partial.counts[t] = (static_cast<uint64_t>(w[2 * channels + 1]) << 32) | w[2 * channels];
+  }
+  local.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (stats != nullptr) *stats = local;
+  return partial;
+}
+
+StatusOr<obscurance::ObscuranceResult> BakeObscurances(GpuWorker& worker, const GpuScene& gpu_scene,
+                                                       const Scene& scene, const ObscuranceAtlas& atlas,
+                                                       const ObscuranceParams& params,
+                                                       const ObscuranceBakeOptions& options,
+                                                       ObscuranceBakeStats* stats) {
+  VISQ_ASSIGN_OR_RETURN(ObscurancePartial partial,
+                        BakeObscurancePartial(worker, gpu_scene, scene, atlas, params, options, stats));
+  return obscurance::FinalizeObscurances(scene, atlas, params, partial);
+}
+
+}  // namespace visq::gpu

@@ -1,0 +1,930 @@
+// Slicemap voxelization and transmittance shadow maps (Eisemann & Décoret
+// 2006). See visq/gpu/slicemap.h for the API and the packed layout; the
+// shaders are slicemap.vert, slicemap_conservative.geom and slicemap.frag.
+//
+// Pipeline of one voxelization:
+//   1. (local precision) one rasterization writes each column's depth range:
+//      RG32F (near, -far) with MIN blending, so one pass gives both ends.
+//   2. per pass of up to 1024 slices (512 for solids), the scene is drawn
+//      once into up to 8 RGBA32UI targets with the OR logic op; each fragment
+//      writes the bit (or, conservative, the bit range) of its depth.
+//   3. the targets are read back into the column-major packed layout.
+//   4. (solid) each column's in/out state is resolved from its front and back
+//      bits on the CPU (ResolveSolidColumn below), on all cores.
+#include "visq/gpu/slicemap.h"
+
+#include <algorithm>
+#include <bit>
+#include <chrono>
+#include <cmath>
+#include <map>
+#include <mutex>
+#include <thread>
+
+#include <epoxy/gl.h>
+#include <fmt/format.h>
+
+#include "gl_check.h"
+#include "gl_object.h"
+#include "gpu_scene_resources.h"
+#include "shader_program.h"
+#include "visq_gpu_slicemap_embedded.h"
+
+namespace visq::gpu {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double MsSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+// Same constant as kMinLocalRange in slicemap.frag.
+constexpr float kMinLocalRange = 1.0f / 1048576.0f;
+
+// How the GL passes map anchor-relative positions to the image and depth.
+struct ViewSetup {
+  glm::mat4 clip_from_anchor{1.0f};
+  glm::vec4 depth_plane{0.0f};  // orthographic depth fraction
+  bool perspective = false;
+  glm::vec3 light{0.0f};   // perspective: anchor-relative light
+  glm::vec2 radial{0.0f};  // perspective: (r0, 1 / (r1 - r0))
+};
+
+struct PassConfig {
+  uint32_t width = 0, height = 0, slices = 0;
+  VoxelizeMode mode = VoxelizeMode::kSurface;
+  SlicePrecision precision = SlicePrecision::kUniform;
+  Rasterization rasterization = Rasterization::kStandard;
+  std::vector<TriangleRange> triangles;
+  uint64_t max_bytes = kDefaultMaxSlicemapBytes;
+  JobOptions job;
+};
+
+// What the GL thread hands back; solids are resolved afterwards.
+struct RawSlicemap {
+  SlicemapGrid surface;       // every voxel a surface touches
+  SlicemapGrid front, back;   // solid: entering / leaving faces (standard sampling)
+  std::vector<float> near_far;  // local: (near, -far) per column, as rendered
+  uint32_t passes = 0;
+  SlicemapTimings timings;
+};
+
+SlicemapGrid EmptyGrid(uint32_t width, uint32_t height, uint32_t slices) {
+  SlicemapGrid grid;
+  grid.width = width;
+  grid.height = height;
+  grid.slices = slices;
+  grid.words_per_column = (slices + 31) / 32;
+  grid.bits.assign(size_t{width} * height * grid.words_per_column, 0u);
+  return grid;
+}
+
+bool Finite(const glm::dvec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+
+std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }
+
+// ---------------------------------------------------------------------------
+// Programs, built once per worker and variant (GL thread only). The ids are
+// never deleted: they live as long as the worker's context.
+StatusOr<GLuint> Program(GpuWorker& worker, bool conservative, const ShaderDefines& defines) {
+  static std::mutex mutex;
+  static std::map<std::pair<const GpuWorker*, std::string>, GLuint> cache;
+  std::string key = conservative ? "C" : "S";
+  for (const auto& [name, value] : defines) key += ";" + name + "=" + value;
+  std::lock_guard lock(mutex);
+  auto it = cache.find({&worker, key});
+  if (it != cache.end() && glIsProgram(it->second)) return it->second;
+  std::vector<ShaderSource> sources = {{GL_VERTEX_SHADER, "slicemap.vert"}, {GL_FRAGMENT_SHADER, "slicemap.frag"}};
+  if (conservative) sources.push_back({GL_GEOMETRY_SHADER, "slicemap_conservative.geom"});
+  VISQ_ASSIGN_OR_RETURN(GlProgramObject program, BuildProgram(slicemap_shaders::Find, sources, defines));
+  const GLuint id = program.Release();
+  cache[{&worker, key}] = id;
+  return id;
+}
+
+void SetViewUniforms(GLuint program, const ViewSetup& view, const PassConfig& config) {
+  glProgramUniformMatrix4fv(program, glGetUniformLocation(program, "u_clip_from_anchor"), 1, GL_FALSE,
+                            &view.clip_from_anchor[0][0]);
+  glProgramUniform4fv(program, glGetUniformLocation(program, "u_depth_plane"), 1, &view.depth_plane[0]);
+  glProgramUniform3fv(program, glGetUniformLocation(program, "u_light"), 1, &view.light[0]);
+  glProgramUniform2fv(program, glGetUniformLocation(program, "u_radial"), 1, &view.radial[0]);
+  glProgramUniform2f(program, glGetUniformLocation(program, "u_image_size"), static_cast<float>(config.width),
+                     static_cast<float>(config.height));
+  glProgramUniform1f(program, glGetUniformLocation(program, "u_slices"), static_cast<float>(config.slices));
+  glProgramUniform1i(program, glGetUniformLocation(program, "u_near_far"), 0);
+}
+
+ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool conservative) {
+  ShaderDefines defines;
+  if (conservative) defines.emplace_back("CONSERVATIVE", "1");
+  if (view.perspective) defines.emplace_back("PERSPECTIVE", "1");
+  if (config.precision == SlicePrecision::kLocal) defines.emplace_back("LOCAL", "1");
+  return defines;
+}
+
+// Draws the selected triangles (all when the list is empty).
+void DrawTriangles(const GpuScene& scene, const std::vector<GLint>& firsts, const std::vector<GLsizei>& counts) {
+  glBindVertexArray(scene.resources().vertex_array.id());
+  if (firsts.empty())
+    glDrawArrays(GL_TRIANGLES, 0, scene.resources().vertex_count);
+  else
+    glMultiDrawArrays(GL_TRIANGLES, firsts.data(), counts.data(), static_cast<GLsizei>(firsts.size()));
+}
+
+// Copies one RGBA32UI target (128 slices of the pass) into the packed grid.
+void ScatterTarget(const std::vector<GLuint>& texels, SlicemapGrid& grid, uint32_t first_word) {
+  const uint32_t wpc = grid.words_per_column;
+  const size_t columns = size_t{grid.width} * grid.height;
+  const uint32_t words = std::min<uint32_t>(4, wpc - first_word);
+  for (size_t c = 0; c < columns; ++c) {
+    uint32_t* column = &grid.bits[c * wpc + first_word];
+    const GLuint* texel = &texels[c * 4];
+    for (uint32_t i = 0; i < words; ++i) column[i] |= texel[i];
+  }
+}
+
+// The GL part: depth-range pass, slicemap passes, readback.
+Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
+                 RawSlicemap& raw) {
+  const auto setup_start = Clock::now();
+  const bool solid = config.mode == VoxelizeMode::kSolid;
+  const bool conservative = config.rasterization == Rasterization::kConservative;
+  const bool local = config.precision == SlicePrecision::kLocal;
+
+  // The device's limits: the image must fit a texture and a viewport, and a
+  // pass needs 8 color attachments.
+  GLint max_texture = 0, max_draw_buffers = 0, max_attachments = 0;
+  GLint max_viewport[2] = {0, 0};
+  glGetIntegerv(GL_MAX_TEXTURE_SIZE, &max_texture);
+  glGetIntegerv(GL_MAX_VIEWPORT_DIMS, max_viewport);
+  glGetIntegerv(GL_MAX_DRAW_BUFFERS, &max_draw_buffers);
+  glGetIntegerv(GL_MAX_COLOR_ATTACHMENTS, &max_attachments);
+  const GLint max_image = std::min({max_texture, max_viewport[0], max_viewport[1]});
+  if (config.width > static_cast<uint32_t>(max_image) || config.height > static_cast<uint32_t>(max_image))
+    return absl::ResourceExhaustedError(fmt::format("image {} x {} exceeds this device's limit {} (GL_MAX_TEXTURE_SIZE / "
+                                                    "GL_MAX_VIEWPORT_DIMS)",
+                                                    config.width, config.height, max_image));
+  if (max_draw_buffers < 8 || max_attachments < 8)
+    return absl::FailedPreconditionError(fmt::format("the device offers {} draw buffers and {} color attachments; the "
+                                                     "slicemap needs 8",
+                                                     max_draw_buffers, max_attachments));
+
+  // Triangle selection as draw ranges (3 vertices per triangle).
+  std::vector<GLint> firsts;
+  std::vector<GLsizei> counts;
+  for (const TriangleRange& range : config.triangles) {
+    if (range.count == 0) continue;
+    firsts.push_back(static_cast<GLint>(range.first * 3));
+    counts.push_back(static_cast<GLsizei>(range.count * 3));
+  }
+  const bool draw_nothing = !config.triangles.empty() && firsts.empty();
+
+  const uint32_t per_pass = solid ? kSolidSlicesPerPass : kSlicesPerPass;
+  const uint32_t maps = solid ? 2 : 1;
+  const uint32_t max_targets_per_map = (std::min(config.slices, per_pass) + 127) / 128;
+  const size_t columns = size_t{config.width} * config.height;
+
+  // Fixed state for every pass; restored at the end.
+  glViewport(0, 0, static_cast<GLsizei>(config.width), static_cast<GLsizei>(config.height));
+  glDisable(GL_DEPTH_TEST);
+  glDisable(GL_CULL_FACE);
+  glDisable(GL_BLEND);
+  glDisable(GL_SCISSOR_TEST);
+  glDisable(GL_MULTISAMPLE);
+  // The view looks along +w with x = u, y = v: a face whose normal points
+  // back at the viewer winds clockwise in window coordinates.
+  glFrontFace(GL_CW);
+
+  GlTexture2D near_far(NoCreate);
+  raw.timings.setup_ms += MsSince(setup_start);
+
+  // 1. Local precision: each column's depth range in one pass.
+  if (local) {
+    const auto start = Clock::now();
+    ShaderDefines defines = BaseDefines(view, config, conservative);
+    defines.emplace_back("DEPTH_RANGE_PASS", "1");
+    VISQ_ASSIGN_OR_RETURN(GLuint program, Program(worker, conservative, defines));
+    SetViewUniforms(program, view, config);
+    near_far = GlTexture2D();
+    glTextureStorage2D(near_far.id(), 1, GL_RG32F, static_cast<GLsizei>(config.width),
+                       static_cast<GLsizei>(config.height));
+    glTextureParameteri(near_far.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+    glTextureParameteri(near_far.id(), GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+    GlFramebuffer framebuffer;
+    glNamedFramebufferTexture(framebuffer.id(), GL_COLOR_ATTACHMENT0, near_far.id(), 0);
+    if (glCheckNamedFramebufferStatus(framebuffer.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+      return absl::InternalError("slicemap: RG32F depth-range framebuffer incomplete");
+    glBindFramebuffer(GL_FRAMEBUFFER, framebuffer.id());
+    const GLfloat empty[4] = {2.0f, 2.0f, 0.0f, 0.0f};  // near 2 > far -2: no geometry
+    glClearNamedFramebufferfv(framebuffer.id(), GL_COLOR, 0, empty);
+    glEnable(GL_BLEND);
+    glBlendEquation(GL_MIN);
+    glUseProgram(program);
+    if (!draw_nothing) DrawTriangles(scene, firsts, counts);
+    glDisable(GL_BLEND);
+    glBlendEquation(GL_FUNC_ADD);
+    glFinish();
+    VISQ_GL_CHECK("slicemap depth-range pass");
+    raw.near_far.resize(columns * 2);
+    glGetTextureImage(near_far.id(), 0, GL_RG, GL_FLOAT, static_cast<GLsizei>(raw.near_far.size() * sizeof(float)),
+                      raw.near_far.data());
+    glBindTextureUnit(0, near_far.id());
+    raw.passes += 1;
+    raw.timings.depth_ms += MsSince(start);
+  }
+
+  // 2. The slicemap targets, reused by every pass.
+  const auto targets_start = Clock::now();
+  std::vector<GlTexture2D> targets;
+  for (uint32_t t = 0; t < maps * max_targets_per_map; ++t) {
+    targets.emplace_back();
+    glTextureStorage2D(targets.back().id(), 1, GL_RGBA32UI, static_cast<GLsizei>(config.width),
+                       static_cast<GLsizei>(config.height));
+  }
+  GlFramebuffer framebuffer;
+  for (uint32_t t = 0; t < targets.size(); ++t)
+    glNamedFramebufferTexture(framebuffer.id(), GL_COLOR_ATTACHMENT0 + t, targets[t].id(), 0);
+  raw.surface = EmptyGrid(config.width, config.height, config.slices);
+  if (solid) {
+    raw.front = EmptyGrid(config.width, config.height, config.slices);
+    raw.back = EmptyGrid(config.width, config.height, config.slices);
+  }
+  std::vector<GLuint> texels(columns * 4);
+  glBindFramebuffer(GL_FRAMEBUFFER, framebuffer.id());
+  raw.timings.setup_ms += MsSince(targets_start);
+
+  // One slicemap pass: `pass_solid` splits front and back faces, else every
+  // fragment goes to the surface map.
+  auto run_pass = [&](bool pass_solid, bool pass_conservative, uint32_t first_slice, uint32_t pass_slices) -> Status {
+    const uint32_t targets_per_map = (pass_slices + 127) / 128;
+    const uint32_t pass_maps = pass_solid ? 2 : 1;
+    auto start = Clock::now();
+    ShaderDefines defines = BaseDefines(view, config, pass_conservative);
+    defines.emplace_back("TARGETS", std::to_string(targets_per_map));
+    if (pass_solid) defines.emplace_back("SOLID", "1");
+    VISQ_ASSIGN_OR_RETURN(GLuint program, Program(worker, pass_conservative, defines));
+    SetViewUniforms(program, view, config);
+    glProgramUniform1i(program, glGetUniformLocation(program, "u_pass_first_slice"), static_cast<GLint>(first_slice));
+    glProgramUniform1i(program, glGetUniformLocation(program, "u_pass_slices"), static_cast<GLint>(pass_slices));
+    // Attachment i of the pass: map i / targets_per_map, target i % targets_per_map.
+    std::vector<GLenum> buffers;
+    for (uint32_t m = 0; m < pass_maps; ++m)
+      for (uint32_t t = 0; t < targets_per_map; ++t) buffers.push_back(GL_COLOR_ATTACHMENT0 + m * max_targets_per_map + t);
+    glNamedFramebufferDrawBuffers(framebuffer.id(), static_cast<GLsizei>(buffers.size()), buffers.data());
+    if (glCheckNamedFramebufferStatus(framebuffer.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+      return absl::InternalError("slicemap: RGBA32UI framebuffer incomplete");
+    const GLuint zero[4] = {0, 0, 0, 0};
+    for (GLint i = 0; i < static_cast<GLint>(buffers.size()); ++i)
+      glClearNamedFramebufferuiv(framebuffer.id(), GL_COLOR, i, zero);
+    raw.timings.setup_ms += MsSince(start);
+
+    start = Clock::now();
+    glUseProgram(program);
+    glEnable(GL_COLOR_LOGIC_OP);
+    glLogicOp(GL_OR);
+    if (!draw_nothing) DrawTriangles(scene, firsts, counts);
+    glDisable(GL_COLOR_LOGIC_OP);
+    glFinish();
+    VISQ_GL_CHECK("slicemap pass");
+    raw.passes += 1;
+    raw.timings.voxelize_ms += MsSince(start);
+
+    start = Clock::now();
+    for (uint32_t m = 0; m < pass_maps; ++m) {
+      SlicemapGrid& grid = !pass_solid ? raw.surface : (m == 0 ? raw.front : raw.back);
+      for (uint32_t t = 0; t < targets_per_map; ++t) {
+        glGetTextureImage(targets[m * max_targets_per_map + t].id(), 0, GL_RGBA_INTEGER, GL_UNSIGNED_INT,
+                          static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
+        ScatterTarget(texels, grid, first_slice / 32 + t * 4);
+      }
+    }
+    VISQ_GL_CHECK("slicemap readback");
+    raw.timings.readback_ms += MsSince(start);
+    return absl::OkStatus();
+  };
+
+  // 3. Solid: front/back maps sampled at texel centers (the in/out events);
+  // their union is the surface unless a conservative surface pass follows.
+  Status status = absl::OkStatus();
+  for (uint32_t first = 0; first < config.slices && status.ok(); first += per_pass) {
+    const uint32_t n = std::min(per_pass, config.slices - first);
+    if (solid) {
+      status = run_pass(true, false, first, n);
+      if (status.ok() && conservative) status = run_pass(false, true, first, n);
+    } else {
+      status = run_pass(false, conservative, first, n);
+    }
+  }
+  if (solid && status.ok()) {
+    const auto start = Clock::now();
+    for (size_t i = 0; i < raw.surface.bits.size(); ++i) raw.surface.bits[i] |= raw.front.bits[i] | raw.back.bits[i];
+    raw.timings.readback_ms += MsSince(start);
+  }
+
+  glFrontFace(GL_CCW);
+  glBindFramebuffer(GL_FRAMEBUFFER, 0);
+  glBindTextureUnit(0, 0);
+  glUseProgram(0);
+  glBindVertexArray(0);
+  return status;
+}
+
+// Sets (or flips) bits [a, b) of one column.
+void SetRange(uint32_t* column, uint32_t a, uint32_t b) {
+  for (uint32_t k = a; k < b;) {
+    const uint32_t word = k / 32, lo = k % 32;
+    const uint32_t hi = std::min<uint32_t>(32, lo + (b - k));
+    const uint32_t mask = (hi == 32 ? ~0u : ((1u << hi) - 1u)) & (~0u << lo);
+    column[word] |= mask;
+    k += hi - lo;
+  }
+}
+void FlipRange(uint32_t* column, uint32_t a, uint32_t b) {
+  for (uint32_t k = a; k < b;) {
+    const uint32_t word = k / 32, lo = k % 32;
+    const uint32_t hi = std::min<uint32_t>(32, lo + (b - k));
+    const uint32_t mask = (hi == 32 ? ~0u : ((1u << hi) - 1u)) & (~0u << lo);
+    column[word] ^= mask;
+    k += hi - lo;
+  }
+}
+
+enum class ColumnState { kConsistent, kResolved, kAmbiguous };
+
+// In/out along one column from its front (entering) and back (leaving) bits;
+// `out` holds the column's surface bits on entry and gets the interior added.
+//
+// The column starts and ends outside. A voxel with only front bits is where
+// the column enters (it must have been outside before), one with only back
+// bits where it leaves. A voxel with both is the slides' ambiguity: the OR
+// lost how many faces it holds. It is first taken as an even number (a thin
+// feature entered and left inside the voxel: the state does not change), and
+// when the next single-facing voxel (or the column's end) contradicts that,
+// exactly one both-facing voxel since the last single-facing one held an odd
+// number, and the gap after it takes the other state ("resolved"). With more
+// than one candidate, or none (an open mesh, nested or overlapping shells),
+// the column is ambiguous and keeps only its surface voxels.
+ColumnState ResolveSolidColumn(const uint32_t* front, const uint32_t* back, uint32_t* out, uint32_t words) {
+  bool inside = false;
+  bool resolved = false;
+  uint32_t gap_start = 0;
+  int both_since_single = 0;
+  uint32_t last_both = 0;
+  for (uint32_t w = 0; w < words; ++w) {
+    uint32_t events = front[w] | back[w];
+    while (events != 0) {
+      const uint32_t bit = static_cast<uint32_t>(std::countr_zero(events));
+      events &= events - 1;
+      const uint32_t k = w * 32 + bit;
+      if (inside) SetRange(out, gap_start, k);
+      const bool f = (front[w] >> bit) & 1u, b = (back[w] >> bit) & 1u;
+      if (f && b) {
+        ++both_since_single;
+        last_both = k;
+      } else {
+        const bool must_be_inside = b;  // leaving needs inside, entering outside
+        if (inside != must_be_inside) {
+          if (both_since_single != 1) return ColumnState::kAmbiguous;
+          FlipRange(out, last_both + 1, k);
+          resolved = true;
+        }
+        inside = f;
+        both_since_single = 0;
+      }
+      gap_start = k + 1;
+    }
+  }
+  if (inside) {
+    // The column must end outside: the last both-facing voxel held an odd
+    // number of faces and the tail after it (never filled) is outside.
+    if (both_since_single != 1) return ColumnState::kAmbiguous;
+    resolved = true;
+  }
+  return resolved ? ColumnState::kResolved : ColumnState::kConsistent;
+}
+
+struct SolidSummary {
+  uint64_t resolved = 0;
+  std::vector<uint32_t> ambiguous;
+};
+
+// Resolves every column on all cores; returns the solid grid in `surface`'s
+// place (ambiguous columns keep their surface bits).
+SolidSummary ResolveSolid(const SlicemapGrid& front, const SlicemapGrid& back, SlicemapGrid& grid) {
+  const size_t columns = size_t{grid.width} * grid.height;
+  const uint32_t wpc = grid.words_per_column;
+  const unsigned threads = std::max(1u, std::min<unsigned>(std::thread::hardware_concurrency(),
+                                                           static_cast<unsigned>(columns / 4096 + 1)));
+  std::vector<SolidSummary> partial(threads);
+  auto work = [&](unsigned t) {
+    const size_t begin = columns * t / threads, end = columns * (t + 1) / threads;
+    std::vector<uint32_t> saved(wpc);
+    for (size_t c = begin; c < end; ++c) {
+      uint32_t* out = &grid.bits[c * wpc];
+      std::copy(out, out + wpc, saved.begin());
+      switch (ResolveSolidColumn(&front.bits[c * wpc], &back.bits[c * wpc], out, wpc)) {
+        case ColumnState::kConsistent: break;
+        case ColumnState::kResolved: ++partial[t].resolved; break;
+        case ColumnState::kAmbiguous:
+          std::copy(saved.begin(), saved.end(), out);
+          partial[t].ambiguous.push_back(static_cast<uint32_t>(c));
+          break;
+      }
+    }
+  };
+  std::vector<std::thread> pool;
+  for (unsigned t = 1; t < threads; ++t) pool.emplace_back(work, t);
+  work(0);
+  for (auto& thread : pool) thread.join();
+  SolidSummary summary;
+  for (auto& p : partial) {
+    summary.resolved += p.resolved;
+    summary.ambiguous.insert(summary.ambiguous.end(), p.ambiguous.begin(), p.ambiguous.end());
+  }
+  return summary;
+}
+
+// Validation shared by both entry points.
+Status ValidateGridSize(std::string_view prefix, uint32_t width, uint32_t height, uint32_t slices, bool solid,
+                        uint64_t max_bytes) {
+  auto field = [&](std::string_view name) { return fmt::format("{}{}", prefix, name); };
+  if (width == 0) return absl::InvalidArgumentError(fmt::format("{}: 0 (must be at least 1)", field("width")));
+  if (height == 0) return absl::InvalidArgumentError(fmt::format("{}: 0 (must be at least 1)", field("height")));
+  if (slices == 0) return absl::InvalidArgumentError(fmt::format("{}: 0 (must be at least 1)", field("slices")));
+  if (width > kMaxSlicemapImageSize)
+    return absl::ResourceExhaustedError(
+        fmt::format("{}: {} exceeds the image cap {}", field("width"), width, kMaxSlicemapImageSize));
+  if (height > kMaxSlicemapImageSize)
+    return absl::ResourceExhaustedError(
+        fmt::format("{}: {} exceeds the image cap {}", field("height"), height, kMaxSlicemapImageSize));
+  if (slices > kMaxSlicemapSlices)
+    return absl::ResourceExhaustedError(
+        fmt::format("{}: {} exceeds the slice cap {}", field("slices"), slices, kMaxSlicemapSlices));
+  // The packed result (three grids for a solid: front, back, result) and one
+  // pass's targets must fit the byte cap.
+  const uint64_t columns = uint64_t{width} * height;
+  const uint64_t result_bytes = columns * ((slices + 31) / 32) * 4 * (solid ? 3 : 1);
+  const uint64_t per_pass = solid ? kSolidSlicesPerPass : kSlicesPerPass;
+  const uint64_t target_bytes = columns * 16 * ((std::min<uint64_t>(slices, per_pass) + 127) / 128) * (solid ? 2 : 1);
+  if (result_bytes > max_bytes || target_bytes > max_bytes)
+    return absl::ResourceExhaustedError(
+        fmt::format("{}width x height x slices = {} x {} x {} needs {} bytes (GPU targets {} bytes), over the cap of {} "
+                    "bytes",
+                    prefix, width, height, slices, result_bytes, target_bytes, max_bytes));
+  return absl::OkStatus();
+}
+
+// The orthographic view of a box, relative to the scene's anchor, in double
+// and then float.
+ViewSetup OrthographicView(const SlicemapBox& box, const glm::dvec3& anchor) {
+  // ndc = (p - center) . axis / half, p = p_rel + anchor.
+  const glm::dvec3 offset = anchor - box.center;
+  glm::dmat4 m(0.0);
+  const glm::dvec3 axes[3] = {box.axis_u, box.axis_v, box.axis_w};
+  for (int row = 0; row < 3; ++row) {
+    const double half = box.half_extent[row];
+    for (int col = 0; col < 3; ++col) m[col][row] = axes[row][col] / half;
+    m[3][row] = glm::dot(offset, axes[row]) / half;
+  }
+  m[3][3] = 1.0;
+  ViewSetup view;
+  view.clip_from_anchor = glm::mat4(m);
+  const double depth = 2.0 * box.half_extent.z;
+  view.depth_plane = glm::vec4(glm::vec3(box.axis_w / depth), static_cast<float>(glm::dot(offset, box.axis_w) / depth + 0.5));
+  return view;
+}
+
+}  // namespace
+
+uint64_t SlicemapGrid::CountOccupied() const {
+  uint64_t n = 0;
+  for (uint32_t word : bits) n += static_cast<uint64_t>(std::popcount(word));
+  return n;
+}
+
+SlicemapBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double margin) {
+  SlicemapBox box;
+  const int w = std::clamp(depth_axis, 0, 2), u = (w + 1) % 3, v = (w + 2) % 3;
+  box.axis_u = glm::dvec3(0.0);
+  box.axis_v = glm::dvec3(0.0);
+  box.axis_w = glm::dvec3(0.0);
+  box.axis_u[u] = 1.0;
+  box.axis_v[v] = 1.0;
+  box.axis_w[w] = 1.0;
+  box.center = bounds.Center();
+  const glm::dvec3 half = 0.5 * bounds.Extent() + glm::dvec3(margin);
+  box.half_extent = glm::dvec3(half[u], half[v], half[w]);
+  return box;
+}
+
+Status ValidateVoxelizeParams(const VoxelizeParams& params, uint32_t triangle_count) {
+  const SlicemapBox& box = params.box;
+  if (!Finite(box.center))
+    return absl::InvalidArgumentError(fmt::format("params.box.center: non-finite {}", Vec(box.center)));
+  const std::pair<const char*, const glm::dvec3*> axes[3] = {
+      {"axis_u", &box.axis_u}, {"axis_v", &box.axis_v}, {"axis_w", &box.axis_w}};
+  for (const auto& [name, axis] : axes) {
+    if (!Finite(*axis)) return absl::InvalidArgumentError(fmt::format("params.box.{}: non-finite {}", name, Vec(*axis)));
+    if (std::abs(glm::length(*axis) - 1.0) > 1e-6)
+      return absl::InvalidArgumentError(
+          fmt::format("params.box.{}: {} is not unit length (|a| = {})", name, Vec(*axis), glm::length(*axis)));
+  }
+  if (std::abs(glm::dot(box.axis_u, box.axis_v)) > 1e-6 || std::abs(glm::dot(box.axis_u, box.axis_w)) > 1e-6 ||
+      std::abs(glm::dot(box.axis_v, box.axis_w)) > 1e-6)
+    return absl::InvalidArgumentError(fmt::format("params.box axes {} {} {} are not orthogonal", Vec(box.axis_u),
+                                                  Vec(box.axis_v), Vec(box.axis_w)));
+  for (int i = 0; i < 3; ++i) {
+    const double h = box.half_extent[i];
+    if (!std::isfinite(h) || !(h > 0.0))
+      return absl::InvalidArgumentError(
+          fmt::format("params.box.half_extent[{}]: {} (must be finite and > 0)", i, h));
+    if (h < 1e-9 * std::max(1.0, glm::length(box.center)))
+      return absl::InvalidArgumentError(fmt::format(
+          "params.box.half_extent[{}]: {} is too small to resolve at center {}", i, h, Vec(box.center)));
+  }
+  if (params.mode != VoxelizeMode::kSurface && params.mode != VoxelizeMode::kSolid)
+    return absl::InvalidArgumentError(fmt::format("params.mode: unknown value {}", static_cast<int>(params.mode)));
+  if (params.precision != SlicePrecision::kUniform && params.precision != SlicePrecision::kLocal)
+    return absl::InvalidArgumentError(
+        fmt::format("params.precision: unknown value {}", static_cast<int>(params.precision)));
+  if (params.rasterization != Rasterization::kStandard && params.rasterization != Rasterization::kConservative)
+    return absl::InvalidArgumentError(
+        fmt::format("params.rasterization: unknown value {}", static_cast<int>(params.rasterization)));
+  for (size_t i = 0; i < params.triangles.size(); ++i) {
+    const TriangleRange& r = params.triangles[i];
+    if (uint64_t{r.first} + r.count > triangle_count)
+      return absl::InvalidArgumentError(fmt::format("params.triangles[{}]: [{}, {}) beyond the scene's {} triangles", i,
+                                                    r.first, uint64_t{r.first} + r.count, triangle_count));
+  }
+  return ValidateGridSize("params.", params.width, params.height, params.slices,
+                          params.mode == VoxelizeMode::kSolid, params.max_bytes);
+}
+
+namespace {
+
+// Runs the passes on the GL thread and resolves a solid: the shared core of
+// Voxelize and Transmittance.
+StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view,
+                                      const PassConfig& config, SlicemapGrid* surface_out) {
+  const auto start = Clock::now();
+  RawSlicemap raw;
+  JobTiming job_timing;
+  VISQ_RETURN_IF_ERROR(
+      worker.Run(config.job, [&]() -> Status { return RunPasses(worker, scene, view, config, raw); }, &job_timing));
+
+  VoxelizeResult result;
+  result.mode = config.mode;
+  result.precision = config.precision;
+  result.rasterization = config.rasterization;
+  result.passes = raw.passes;
+  result.timings = raw.timings;
+  result.timings.queue_ms = job_timing.queue_ms;
+
+  // Local precision: report the range the shader really used.
+  if (config.precision == SlicePrecision::kLocal) {
+    const size_t columns = size_t{config.width} * config.height;
+    result.column_near.resize(columns);
+    result.column_far.resize(columns);
+    for (size_t c = 0; c < columns; ++c) {
+      const float near = raw.near_far[2 * c], far = -raw.near_far[2 * c + 1];
+      if (near > far) {
+        result.column_near[c] = 1.0f;
+        result.column_far[c] = 0.0f;
+      } else {
+        result.column_near[c] = near;
+        result.column_far[c] = std::max(far, near + kMinLocalRange);
+      }
+    }
+  }
+
+  if (config.mode == VoxelizeMode::kSolid) {
+    const auto resolve_start = Clock::now();
+    if (surface_out != nullptr) *surface_out = raw.surface;
+    result.grid = std::move(raw.surface);
+    SolidSummary summary = ResolveSolid(raw.front, raw.back, result.grid);
+    result.resolved_columns = summary.resolved;
+    result.ambiguous_columns = summary.ambiguous.size();
+    result.ambiguous_column_list = std::move(summary.ambiguous);
+    std::sort(result.ambiguous_column_list.begin(), result.ambiguous_column_list.end());
+    result.timings.resolve_ms = MsSince(resolve_start);
+  } else {
+    if (surface_out != nullptr) *surface_out = raw.surface;
+    result.grid = std::move(raw.surface);
+  }
+  result.occupied_voxels = result.grid.CountOccupied();
+  result.timings.total_ms = MsSince(start);
+  return result;
+}
+
+}  // namespace
+
+StatusOr<VoxelizeResult> Voxelize(GpuWorker& worker, const GpuScene& gpu_scene, const VoxelizeParams& params) {
+  VISQ_RETURN_IF_ERROR(ValidateVoxelizeParams(params, gpu_scene.triangle_count()));
+  PassConfig config;
+  config.width = params.width;
+  config.height = params.height;
+  config.slices = params.slices;
+  config.mode = params.mode;
+  config.precision = params.precision;
+  config.rasterization = params.rasterization;
+  config.triangles = params.triangles;
+  config.max_bytes = params.max_bytes;
+  config.job = params.job;
+  return VoxelizeView(worker, gpu_scene, OrthographicView(params.box, gpu_scene.anchor()), config, nullptr);
+}
+
+// ---------------------------------------------------------------------------
+// Transmittance shadow maps.
+namespace {
+
+// The light's view of the absorbers: an orthographic box along a directional
+// light, or a frustum around the absorbers' bounding sphere for a point
+// light, with slices in distance from the light.
+struct LightFrame {
+  bool perspective = false;
+  SlicemapBox box;  // directional
+  // point light
+  glm::dvec3 light{0.0}, u{0.0}, v{0.0}, w{0.0};
+  double focal = 1.0;      // ndc = focal * (x, y) / z in the light's frame
+  double r0 = 0.0, r1 = 1.0;  // distance range the slices split
+};
+
+void Orthonormal(const glm::dvec3& w, glm::dvec3& u, glm::dvec3& v) {
+  const glm::dvec3 pick = std::abs(w.x) < 0.9 ? glm::dvec3(1, 0, 0) : glm::dvec3(0, 1, 0);
+  u = glm::normalize(glm::cross(pick, w));
+  v = glm::cross(w, u);
+}
+
+ViewSetup PerspectiveView(const LightFrame& frame, const glm::dvec3& anchor) {
+  // clip = (f x_e, f y_e, A z_e + B, z_e) with e = ((p - L).u, (p - L).v, (p - L).w).
+  const glm::dvec3 light_rel = frame.light - anchor;
+  const double n = 0.5 * frame.r0 + 1e-9 * frame.r1, f = 1.01 * frame.r1;
+  const double a = (f + n) / (f - n), b = -2.0 * f * n / (f - n);
+  glm::dmat4 m(0.0);
+  const glm::dvec3 rows[3] = {frame.focal * frame.u, frame.focal * frame.v, a * frame.w};
+  for (int row = 0; row < 3; ++row) {
+    for (int col = 0; col < 3; ++col) m[col][row] = rows[row][col];
+    m[3][row] = -glm::dot(rows[row], light_rel);
+  }
+  m[3][2] += b;
+  for (int col = 0; col < 3; ++col) m[col][3] = frame.w[col];
+  m[3][3] = -glm::dot(frame.w, light_rel);
+  ViewSetup view;
+  view.clip_from_anchor = glm::mat4(m);
+  view.perspective = true;
+  view.light = glm::vec3(light_rel);
+  view.radial = glm::vec2(static_cast<float>(frame.r0), static_cast<float>(1.0 / (frame.r1 - frame.r0)));
+  return view;
+}
+
+// Where a point falls in the light's view.
+struct ColumnHit {
+  bool inside_image = false;
+  uint32_t x = 0, y = 0;
+  double depth = 0;           // fraction of the view depth (distance range for point lights)
+  double lateral_offset = 0;  // to the texel-center ray, world units
+};
+
+ColumnHit Locate(const LightFrame& frame, uint32_t size, const glm::dvec3& p) {
+  ColumnHit hit;
+  double ndc_x, ndc_y;
+  if (!frame.perspective) {
+    const glm::dvec3 d = p - frame.box.center;
+    ndc_x = glm::dot(d, frame.box.axis_u) / frame.box.half_extent.x;
+    ndc_y = glm::dot(d, frame.box.axis_v) / frame.box.half_extent.y;
+    hit.depth = glm::dot(d, frame.box.axis_w) / (2.0 * frame.box.half_extent.z) + 0.5;
+  } else {
+    const glm::dvec3 d = p - frame.light;
+    const double z = glm::dot(d, frame.w);
+    if (z <= 0.0) return hit;  // behind the light: no absorber in between
+    ndc_x = frame.focal * glm::dot(d, frame.u) / z;
+    ndc_y = frame.focal * glm::dot(d, frame.v) / z;
+    hit.depth = (glm::length(d) - frame.r0) / (frame.r1 - frame.r0);
+  }
+  const double tx = (ndc_x * 0.5 + 0.5) * size, ty = (ndc_y * 0.5 + 0.5) * size;
+  if (!(tx >= 0.0 && tx < size && ty >= 0.0 && ty < size)) return hit;
+  hit.inside_image = true;
+  hit.x = static_cast<uint32_t>(tx);
+  hit.y = static_cast<uint32_t>(ty);
+  const double cx = hit.x + 0.5, cy = hit.y + 0.5;
+  if (!frame.perspective) {
+    hit.lateral_offset = std::hypot((tx - cx) * 2.0 * frame.box.half_extent.x / size,
+                                    (ty - cy) * 2.0 * frame.box.half_extent.y / size);
+  } else {
+    const double nx = (cx / size) * 2.0 - 1.0, ny = (cy / size) * 2.0 - 1.0;
+    const glm::dvec3 dir = glm::normalize(nx / frame.focal * frame.u + ny / frame.focal * frame.v + frame.w);
+    const glm::dvec3 d = p - frame.light;
+    hit.lateral_offset = glm::length(d - glm::dot(d, dir) * dir);
+  }
+  return hit;
+}
+
+}  // namespace
+
+StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scene, const GpuScene& gpu_scene,
+                                            const TransmittanceParams& params) {
+  const auto start = Clock::now();
+  // Validation.
+  const TransmittanceLight& light = params.light;
+  if (light.kind != LightKind::kPoint && light.kind != LightKind::kDirectional)
+    return absl::InvalidArgumentError(fmt::format("params.light.kind: unknown value {}", static_cast<int>(light.kind)));
+  if (light.kind == LightKind::kPoint && !Finite(light.position))
+    return absl::InvalidArgumentError(fmt::format("params.light.position: non-finite {}", Vec(light.position)));
+  if (light.kind == LightKind::kDirectional && (!Finite(light.direction) || glm::length(light.direction) < 1e-12))
+    return absl::InvalidArgumentError(
+        fmt::format("params.light.direction: {} must be finite and non-zero", Vec(light.direction)));
+  if (params.nodes.empty()) return absl::InvalidArgumentError("params.nodes: empty (name at least one absorbing node)");
+  {
+    const Status size = ValidateGridSize("params.", params.resolution, params.resolution, params.slices, true,
+                                         kDefaultMaxSlicemapBytes);
+    if (!size.ok())  // name the field the caller set: resolution, not width/height
+      return Status(size.code(), fmt::format("{} (params.resolution = {})", size.message(), params.resolution));
+  }
+  for (size_t i = 0; i < params.points.size(); ++i)
+    if (!Finite(params.points[i]))
+      return absl::InvalidArgumentError(fmt::format("params.points[{}]: non-finite {}", i, Vec(params.points[i])));
+  const ReceiverPatch& patch = params.patch;
+  if ((patch.nu == 0) != (patch.nv == 0))
+    return absl::InvalidArgumentError(
+        fmt::format("params.patch: nu = {}, nv = {} (both zero for no patch, or both positive)", patch.nu, patch.nv));
+  if (patch.nu > 0 && (!Finite(patch.origin) || !Finite(patch.u) || !Finite(patch.v)))
+    return absl::InvalidArgumentError("params.patch: non-finite origin, u or v");
+  const uint64_t point_count = params.points.size() + uint64_t{patch.nu} * patch.nv;
+  if (point_count > kMaxTransmittancePoints)
+    return absl::ResourceExhaustedError(
+        fmt::format("params: {} query points exceed the cap of {}", point_count, kMaxTransmittancePoints));
+
+  // Absorbers grouped by coefficient: one solid slicemap per group.
+  std::map<double, std::vector<uint32_t>> groups;  // sigma -> node ids
+  for (size_t i = 0; i < params.nodes.size(); ++i) {
+    const AbsorbingNode& n = params.nodes[i];
+    if (n.node >= scene.nodes.size())
+      return absl::InvalidArgumentError(
+          fmt::format("params.nodes[{}].node: {} (the scene has {} nodes)", i, n.node, scene.nodes.size()));
+    if (!std::isfinite(n.absorption) || n.absorption < 0.0)
+      return absl::InvalidArgumentError(
+          fmt::format("params.nodes[{}].absorption: {} (must be finite and >= 0)", i, n.absorption));
+    groups[n.absorption].push_back(n.node);
+  }
+  if (groups.size() > kMaxTransmittanceGroups)
+    return absl::ResourceExhaustedError(fmt::format("params.nodes: {} distinct absorption values exceed the cap of {}",
+                                                    groups.size(), kMaxTransmittanceGroups));
+
+  // Each group's triangles as contiguous ranges, and the bounds of them all.
+  Bounds bounds;
+  std::vector<std::pair<double, std::vector<TriangleRange>>> group_ranges;
+  for (const auto& [sigma, node_ids] : groups) {
+    std::vector<bool> wanted(scene.nodes.size(), false);
+    for (uint32_t id : node_ids) wanted[id] = true;
+    std::vector<TriangleRange> ranges;
+    for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+      if (!wanted[scene.triangle_node[t]]) continue;
+      for (int c = 0; c < 3; ++c) bounds.Extend(scene.Vertex(t, c));
+      if (!ranges.empty() && ranges.back().first + ranges.back().count == t)
+        ++ranges.back().count;
+      else
+        ranges.push_back({t, 1});
+    }
+    group_ranges.emplace_back(sigma, std::move(ranges));
+  }
+
+  // Query points: explicit ones, then the patch.
+  std::vector<glm::dvec3> points = params.points;
+  for (uint32_t j = 0; j < patch.nv; ++j)
+    for (uint32_t i = 0; i < patch.nu; ++i)
+      points.push_back(patch.origin + (i + 0.5) / patch.nu * patch.u + (j + 0.5) / patch.nv * patch.v);
+
+  TransmittanceResult result;
+  result.transmittance.assign(points.size(), 1.0f);
+  result.optical_depth.assign(points.size(), 0.0f);
+  result.optical_depth_error.assign(points.size(), 0.0f);
+  result.lateral_offset.assign(points.size(), 0.0f);
+  if (bounds.Empty()) {
+    result.error_statement = "the absorbing nodes have no triangles: nothing absorbs";
+    result.timings.total_ms = MsSince(start);
+    return result;
+  }
+
+  // The light's frame around the absorbers.
+  LightFrame frame;
+  const uint32_t size = params.resolution;
+  if (light.kind == LightKind::kDirectional) {
+    glm::dvec3 u, v;
+    const glm::dvec3 w = glm::normalize(light.direction);
+    Orthonormal(w, u, v);
+    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+    for (int corner = 0; corner < 8; ++corner) {
+      const glm::dvec3 p((corner & 1) ? bounds.max.x : bounds.min.x, (corner & 2) ? bounds.max.y : bounds.min.y,
+                         (corner & 4) ? bounds.max.z : bounds.min.z);
+      const glm::dvec3 q(glm::dot(p, u), glm::dot(p, v), glm::dot(p, w));
+      lo = glm::min(lo, q);
+      hi = glm::max(hi, q);
+    }
+    const double pad = 1e-3 * glm::length(hi - lo) + 1e-9;
+    const glm::dvec3 mid = 0.5 * (lo + hi);
+    frame.box.center = mid.x * u + mid.y * v + mid.z * w;
+    frame.box.axis_u = u;
+    frame.box.axis_v = v;
+    frame.box.axis_w = w;
+    frame.box.half_extent = 0.5 * (hi - lo) + glm::dvec3(pad);
+  } else {
+    frame.perspective = true;
+    frame.light = light.position;
+    const glm::dvec3 center = bounds.Center();
+    const double radius = 0.5 * glm::length(bounds.Extent()) * (1.0 + 1e-3) + 1e-9;
+    const double distance = glm::length(center - light.position);
+    if (distance <= radius * 1.0001)
+      return absl::FailedPreconditionError(fmt::format(
+          "params.light.position {}: the point light is inside the absorbers' bounding sphere (center {}, radius {}); "
+          "one light view cannot see them all",
+          Vec(light.position), Vec(center), radius));
+    frame.w = (center - light.position) / distance;
+    Orthonormal(frame.w, frame.u, frame.v);
+    const double sin_half = radius / distance;
+    frame.focal = std::sqrt(1.0 - sin_half * sin_half) / sin_half;  // 1 / tan(half angle)
+    frame.r0 = distance - radius;
+    frame.r1 = distance + radius;
+  }
+  const ViewSetup view =
+      frame.perspective ? PerspectiveView(frame, gpu_scene.anchor()) : OrthographicView(frame.box, gpu_scene.anchor());
+  const double depth_range =
+      frame.perspective ? frame.r1 - frame.r0 : 2.0 * frame.box.half_extent.z;
+  result.max_texel_size = frame.perspective ? 2.0 * frame.r1 / frame.focal / size
+                                            : 2.0 * std::max(frame.box.half_extent.x, frame.box.half_extent.y) / size;
+
+  // One solid, local-precision slicemap per group; count along each column.
+  for (const auto& [sigma, ranges] : group_ranges) {
+    PassConfig config;
+    config.width = size;
+    config.height = size;
+    config.slices = params.slices;
+    config.mode = VoxelizeMode::kSolid;
+    config.precision = SlicePrecision::kLocal;
+    config.triangles = ranges;
+    config.job = params.job;
+    SlicemapGrid surface;
+    VISQ_ASSIGN_OR_RETURN(VoxelizeResult voxels, VoxelizeView(worker, gpu_scene, view, config, &surface));
+    result.ambiguous_columns += voxels.ambiguous_columns;
+    SlicemapTimings& t = result.timings;
+    t.queue_ms += voxels.timings.queue_ms;
+    t.setup_ms += voxels.timings.setup_ms;
+    t.depth_ms += voxels.timings.depth_ms;
+    t.voxelize_ms += voxels.timings.voxelize_ms;
+    t.readback_ms += voxels.timings.readback_ms;
+    t.resolve_ms += voxels.timings.resolve_ms;
+
+    // Bit counting: full slices before the point's slice, plus the covered
+    // fraction of its own slice (the slides' "value truncation by position").
+    const auto count_start = Clock::now();
+    const SlicemapGrid& grid = voxels.grid;
+    const uint32_t wpc = grid.words_per_column;
+    for (size_t i = 0; i < points.size(); ++i) {
+      const ColumnHit hit = Locate(frame, size, points[i]);
+      if (!hit.inside_image) continue;
+      const size_t column = size_t{hit.y} * size + hit.x;
+      result.lateral_offset[i] = static_cast<float>(std::max<double>(result.lateral_offset[i], hit.lateral_offset));
+      const double near = voxels.column_near[column], far = voxels.column_far[column];
+      if (near > far) continue;  // no absorber in this column
+      const double slice_length = (far - near) * depth_range / grid.slices;
+      result.max_voxel_length = std::max(result.max_voxel_length, slice_length);
+      const double position = (hit.depth - near) / (far - near) * grid.slices;
+      if (position <= 0.0) continue;
+      const uint32_t whole = static_cast<uint32_t>(std::min<double>(std::floor(position), grid.slices));
+      const double fraction = whole < grid.slices ? position - whole : 0.0;
+      const uint32_t* solid_column = &grid.bits[column * wpc];
+      const uint32_t* surface_column = &surface.bits[column * wpc];
+      double occupied = 0.0, shell = 0.0;
+      for (uint32_t w = 0; w < whole / 32; ++w) {
+        occupied += std::popcount(solid_column[w]);
+        shell += std::popcount(surface_column[w]);
+      }
+      if (whole % 32 != 0) {
+        const uint32_t mask = (1u << (whole % 32)) - 1u;
+        occupied += std::popcount(solid_column[whole / 32] & mask);
+        shell += std::popcount(surface_column[whole / 32] & mask);
+      }
+      if (whole < grid.slices) {
+        if ((solid_column[whole / 32] >> (whole % 32)) & 1u) occupied += fraction;
+        if ((surface_column[whole / 32] >> (whole % 32)) & 1u) shell += fraction;
+      }
+      result.optical_depth[i] += static_cast<float>(sigma * occupied * slice_length);
+      result.optical_depth_error[i] += static_cast<float>(sigma * shell * slice_length);
+    }
+    result.timings.resolve_ms += MsSince(count_start);
+  }
+  for (size_t i = 0; i < points.size(); ++i) result.transmittance[i] = std::exp(-result.optical_depth[i]);
+
+  result.error_statement = fmt::format(
+      "optical depth = sigma x occupied length along the texel's column, in voxels up to {:.4g} long (texels up to "
+      "{:.4g} wide at the absorbers). Surface voxels count whole, so each surface crossing can add up to one voxel "
+      "length: the exact value lies in [optical_depth - optical_depth_error, optical_depth]. The column follows its "
+      "texel's center ray, lateral_offset away from the point's own ray, so absorber thickness varying within a texel "
+      "adds to the error. {} columns were ambiguous (open or overlapping absorbers) and count only their surface "
+      "voxels.",
+      result.max_voxel_length, result.max_texel_size, result.ambiguous_columns);
+  result.timings.total_ms = MsSince(start);
+  return result;
+}
+
+}  // namespace visq::gpu

@@ -1,0 +1,640 @@
+// Volumetric shadows with epipolar rectification and 1D min-max mipmaps
+// (Chen, Baran, Durand, Jarosz 2011). See visq/gpu/volumetric_shadows.h for
+// the model and the API. Shaders: vol_shadow.vert/.frag (shadow map),
+// vol_shadow.vert + vol_camera.frag (camera distances and normals),
+// vol_rectify.comp, vol_minmax.comp, vol_prefix.comp, vol_integrate.comp.
+//
+// Pipeline of one call, each stage closed by glFinish and timed:
+//   1. shadow map: the scene's depth from the light (DEPTH32F, N x N);
+//   2. camera: distance to the first surface, face normal, material color;
+//   3. rectification: N rows (epipolar slices) x N columns (distance from the
+//      epipole) resampled from the shadow map (nearest), plus the light's
+//      per-texel weights when the integrand needs them;
+//   4. mipmap: per row, log2(N) min-max levels (and prefix sums);
+//   5. traversal: one invocation per pixel, min-max traversal or ray
+//      marching (the same shader, RAY_MARCH defined or not).
+// All geometry is set up here in double relative to the scene's anchor and
+// handed to GL as float, so a scene translated far from the origin renders
+// the same image.
+#include "visq/gpu/volumetric_shadows.h"
+
+#include <algorithm>
+#include <array>
+#include <bit>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <mutex>
+#include <numbers>
+
+#include <epoxy/gl.h>
+#include <fmt/format.h>
+#include <glm/gtc/matrix_transform.hpp>
+#include <glm/gtc/type_ptr.hpp>
+
+#include "gl_check.h"
+#include "gl_object.h"
+#include "gpu_scene_resources.h"
+#include "shader_program.h"
+#include "visq_gpu_volumetric_shadows_embedded.h"
+
+namespace visq::gpu {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double MsSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+// Bias of the medium's shadow test, in shadow-map texels of depth: a ray
+// grazing a lit receiver runs within a texel's depth variation of it for a
+// long way, and the nearest-resampled depth of the neighbouring texel would
+// shadow that stretch. Two texels cover receivers up to ~63 degrees from
+// facing the light. Spot lights: the same at the geometric middle of the
+// frustum's depth range (window depth is not linear there).
+constexpr double kMediumBiasTexels = 2.0;
+// Farthest epipole accepted, in shadow-map widths from the map's center:
+// beyond it float column coordinates lose sub-texel precision.
+constexpr double kMaxEpipoleDistance = 256.0;
+
+bool Finite(double v) { return std::isfinite(v); }
+bool Finite(const glm::dvec3& v) { return Finite(v.x) && Finite(v.y) && Finite(v.z); }
+std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }
+
+Status Invalid(std::string message) { return absl::InvalidArgumentError(message); }
+
+// Everything the GL passes need, computed in double on the calling thread.
+struct Setup {
+  uint32_t map_size = 0, rows = 0, cols = 0, levels = 0;
+  uint32_t width = 0, height = 0;
+  bool spot = false;
+  VolumetricIntegrand integrand = VolumetricIntegrand::kAnalytic;
+  bool weighted = false;
+  glm::dmat4 light_clip{1.0};    // light clip space from anchor-relative positions
+  glm::dmat4 camera_clip{1.0};   // camera clip space from anchor-relative positions
+  glm::dvec3 eye{0.0};           // anchor-relative
+  glm::dvec3 cam_forward{0.0}, cam_right{0.0}, cam_up{0.0};
+  glm::dvec4 c0{0.0};            // light clip of the eye
+  glm::dvec2 epipole{0.0};       // shadow-map texels
+  bool epipole_inside = false;
+  double theta_ref = 0, theta_min_rel = 0, dtheta = 0, r0 = 0, dr = 0;
+  double half_depth = 0;         // directional: the box's half depth
+  double tan_half = 0, cos_outer = 0, cos_inner = 0;
+  double normal_offset = 0;
+  double bias = 0;               // window depth
+  glm::dvec3 light_dir{0.0}, light_pos{0.0};
+  VolumetricBox box;
+  std::vector<glm::vec4> albedo;
+};
+
+// Rows of a clip matrix: clip_r = dot(row_r.xyz, p) + row_r.w.
+glm::dmat4 FromRows(const std::array<glm::dvec4, 4>& rows) {
+  glm::dmat4 m(0.0);
+  for (int r = 0; r < 4; ++r)
+    for (int c = 0; c < 4; ++c) m[c][r] = rows[r][c];
+  return m;
+}
+
+StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const VolumetricParams& params) {
+  Setup setup;
+  const glm::dvec3 anchor = gpu_scene.anchor();
+  const VolumetricCamera& camera = params.camera;
+  const VolumetricLight& light = params.light;
+  setup.map_size = params.shadow_map_size;
+  setup.rows = setup.cols = params.shadow_map_size;
+  setup.levels = static_cast<uint32_t>(std::countr_zero(setup.cols));
+  setup.width = camera.width;
+  setup.height = camera.height;
+  setup.spot = light.kind == VolumetricLightKind::kSpot;
+
+  // What the medium and the shadow map cover: the scene and the extra bounds.
+  Bounds bounds = scene.bounds;
+  if (!params.extra_medium_bounds.Empty()) {
+    bounds.Extend(params.extra_medium_bounds.min);
+    bounds.Extend(params.extra_medium_bounds.max);
+  }
+  if (bounds.Empty()) return absl::FailedPreconditionError("volumetric shadows: the scene has no geometry and no medium bounds");
+  const double diagonal = std::max(glm::length(bounds.Extent()), 1e-9);
+  std::array<glm::dvec3, 8> corners;
+  for (int i = 0; i < 8; ++i)
+    corners[i] = glm::dvec3(i & 1 ? bounds.max.x : bounds.min.x, i & 2 ? bounds.max.y : bounds.min.y,
+                            i & 4 ? bounds.max.z : bounds.min.z) - anchor;
+
+  // The light's frame: w along the light, v its up, u = w x v its right.
+  const glm::dvec3 w = glm::normalize(light.direction);
+  glm::dvec3 up = light.up;
+  if (glm::length(up) == 0.0) up = std::abs(w.y) > 0.99 ? glm::dvec3(0, 0, 1) : glm::dvec3(0, 1, 0);
+  glm::dvec3 v = up - glm::dot(up, w) * w;
+  if (glm::length(v) < 1e-9) return Invalid(fmt::format("light.up: {} is parallel to light.direction", Vec(light.up)));
+  v = glm::normalize(v);
+  const glm::dvec3 u = glm::cross(w, v);
+  setup.light_dir = w;
+
+  if (!setup.spot) {
+    // The medium's box in the light's frame around every corner.
+    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+    for (const auto& p : corners) {
+      const glm::dvec3 q(glm::dot(p, u), glm::dot(p, v), glm::dot(p, w));
+      lo = glm::min(lo, q);
+      hi = glm::max(hi, q);
+    }
+    const glm::dvec3 center = 0.5 * (lo + hi);
+    const glm::dvec3 half = glm::max(0.5 * (hi - lo) * 1.01, glm::dvec3(1e-3 * diagonal));
+    setup.light_clip = FromRows({glm::dvec4(u / half.x, -center.x / half.x), glm::dvec4(v / half.y, -center.y / half.y),
+                                 glm::dvec4(w / half.z, -center.z / half.z), glm::dvec4(0, 0, 0, 1)});
+    setup.half_depth = half.z;
+    setup.box.center = anchor + center.x * u + center.y * v + center.z * w;
+    setup.box.axis[0] = u;
+    setup.box.axis[1] = v;
+    setup.box.axis[2] = w;
+    setup.box.half_extent = half;
+    setup.normal_offset = 1.5 * 2.0 * std::max(half.x, half.y) / setup.map_size;
+    // World depth -> window depth is 1 / (2 half.z).
+    setup.bias = kMediumBiasTexels * 2.0 * std::max(half.x, half.y) / setup.map_size / (2.0 * half.z);
+  } else {
+    // The cone's square frustum from a near plane close to the light to
+    // beyond the farthest corner.
+    const glm::dvec3 l = light.position - anchor;
+    double far_depth = 0;
+    for (const auto& p : corners) far_depth = std::max(far_depth, glm::dot(p - l, w));
+    const double near_depth = 5e-3 * diagonal;
+    far_depth *= 1.01;
+    if (far_depth <= near_depth)
+      return absl::FailedPreconditionError(
+          fmt::format("light.direction: the scene lies behind the spot light at {}", Vec(light.position)));
+    const double tan_half = std::tan(light.cone_angle_deg * std::numbers::pi / 180.0);
+    const double a = (far_depth + near_depth) / (far_depth - near_depth);
+    const double b = -2.0 * far_depth * near_depth / (far_depth - near_depth);
+    setup.light_clip = FromRows({glm::dvec4(u / tan_half, -glm::dot(u, l) / tan_half),
+                                 glm::dvec4(v / tan_half, -glm::dot(v, l) / tan_half),
+                                 glm::dvec4(a * w, -a * glm::dot(w, l) + b), glm::dvec4(w, -glm::dot(w, l))});
+    setup.light_pos = l;
+    setup.tan_half = tan_half;
+    setup.cos_outer = std::cos(light.cone_angle_deg * std::numbers::pi / 180.0);
+    setup.cos_inner =
+        std::cos(std::max(0.0, light.cone_angle_deg - light.cone_falloff_deg) * std::numbers::pi / 180.0);
+    setup.normal_offset = 1.5 * 2.0 * tan_half / setup.map_size;
+    // Window depth = (a + b / z) / 2 + 1/2: d/dz = -b / (2 z^2).
+    const double z_mid = std::sqrt(near_depth * far_depth);
+    setup.bias = kMediumBiasTexels * (2.0 * tan_half * z_mid / setup.map_size) * std::abs(b) / (2.0 * z_mid * z_mid);
+  }
+
+  // The camera: rays through pixel centers, and the matching raster transform.
+  setup.eye = camera.position - anchor;
+  const glm::dvec3 f = glm::normalize(camera.forward);
+  const glm::dvec3 r = glm::normalize(glm::cross(f, camera.up));
+  const glm::dvec3 cu = glm::cross(r, f);
+  const double aspect = double(camera.width) / camera.height;
+  const double tan_y = std::tan(0.5 * camera.vertical_fov_deg * std::numbers::pi / 180.0);
+  setup.cam_forward = f;
+  setup.cam_right = r * tan_y * aspect;
+  setup.cam_up = cu * tan_y;
+  double far_distance = 0;
+  for (const auto& p : corners) far_distance = std::max(far_distance, glm::length(p - setup.eye));
+  far_distance = far_distance * 1.01 + 1e-6 * diagonal;
+  const double near_distance = std::max(far_distance * 1e-5, 1e-9);
+  setup.camera_clip = glm::perspective(camera.vertical_fov_deg * std::numbers::pi / 180.0, aspect, near_distance,
+                                       far_distance) *
+                      glm::lookAt(setup.eye, setup.eye + f, cu);
+
+  // The epipole: the eye in the shadow map.
+  setup.c0 = setup.light_clip * glm::dvec4(setup.eye, 1.0);
+  const double n = setup.map_size;
+  if (std::abs(setup.c0.w) < 1e-12 * diagonal)
+    return absl::FailedPreconditionError(fmt::format(
+        "camera.position: {} lies in the spot light's plane (the epipole is at infinity); move it off that plane",
+        Vec(camera.position)));
+  setup.epipole = (glm::dvec2(setup.c0) / setup.c0.w * 0.5 + 0.5) * n;
+  if (glm::length(setup.epipole - glm::dvec2(0.5 * n)) > kMaxEpipoleDistance * n)
+    return absl::FailedPreconditionError(fmt::format(
+        "camera.position: {} projects {} shadow-map widths from the map (more than {}): too close to the spot "
+        "light's plane for float rectification",
+        Vec(camera.position), glm::length(setup.epipole - glm::dvec2(0.5 * n)) / n, kMaxEpipoleDistance));
+
+  // Rectification: slices over the full circle when the epipole lies inside
+  // the map, else over the angles the map subtends from it.
+  const std::array<glm::dvec2, 4> square = {glm::dvec2(0, 0), glm::dvec2(n, 0), glm::dvec2(0, n), glm::dvec2(n, n)};
+  double r_max = 0;
+  for (const auto& c : square) r_max = std::max(r_max, glm::length(c - setup.epipole));
+  setup.epipole_inside = setup.epipole.x > 0 && setup.epipole.x < n && setup.epipole.y > 0 && setup.epipole.y < n;
+  if (setup.epipole_inside) {
+    setup.theta_ref = 0;
+    setup.theta_min_rel = -std::numbers::pi;
+    setup.dtheta = 2 * std::numbers::pi / setup.rows;
+    setup.r0 = 0;
+  } else {
+    const glm::dvec2 to_center = glm::dvec2(0.5 * n) - setup.epipole;
+    setup.theta_ref = std::atan2(to_center.y, to_center.x);
+    double lo = std::numbers::pi, hi = -std::numbers::pi;
+    for (const auto& c : square) {
+      double rel = std::atan2(c.y - setup.epipole.y, c.x - setup.epipole.x) - setup.theta_ref;
+      rel -= 2 * std::numbers::pi * std::floor((rel + std::numbers::pi) / (2 * std::numbers::pi));
+      lo = std::min(lo, rel);
+      hi = std::max(hi, rel);
+    }
+    setup.theta_min_rel = lo;
+    setup.dtheta = (hi - lo) / setup.rows;
+    const glm::dvec2 nearest = glm::clamp(setup.epipole, glm::dvec2(0.0), glm::dvec2(n));
+    setup.r0 = glm::length(nearest - setup.epipole);
+  }
+  setup.dr = (r_max - setup.r0) / setup.cols;
+
+  // The integrand (see the header).
+  const bool textured = !light.texture.empty();
+  const bool zero_extinction = params.medium.extinction == 0.0 || params.medium.optically_thin;
+  if (!setup.spot && !textured) {
+    setup.integrand = VolumetricIntegrand::kAnalytic;
+  } else if (zero_extinction && (!setup.spot || params.medium.hg_g == 0.0)) {
+    setup.integrand = VolumetricIntegrand::kPrefixSum;
+  } else {
+    setup.integrand = VolumetricIntegrand::kPerTexel;
+  }
+  setup.weighted = setup.integrand != VolumetricIntegrand::kAnalytic;
+
+  for (const auto& m : scene.materials) setup.albedo.emplace_back(glm::vec3(m.reflectivity), 1.0f);
+  if (setup.albedo.empty()) setup.albedo.emplace_back(1.0f);
+  return setup;
+}
+
+// Programs, built once per worker and variant (GL thread only); never
+// deleted: they live as long as the worker's context.
+StatusOr<GLuint> Program(GpuWorker& worker, const std::vector<ShaderSource>& sources, const ShaderDefines& defines) {
+  static std::mutex mutex;
+  static std::map<std::pair<const GpuWorker*, std::string>, GLuint> cache;
+  std::string key;
+  for (const auto& s : sources) key += s.file_name + "+";
+  for (const auto& [name, value] : defines) key += ";" + name + "=" + value;
+  std::lock_guard lock(mutex);
+  auto it = cache.find({&worker, key});
+  if (it != cache.end() && glIsProgram(it->second)) return it->second;
+  VISQ_ASSIGN_OR_RETURN(GlProgramObject program, BuildProgram(volumetric_shadows_shaders::Find, sources, defines));
+  const GLuint id = program.Release();
+  cache[{&worker, key}] = id;
+  return id;
+}
+
+GLint Loc(GLuint program, const char* name) { return glGetUniformLocation(program, name); }
+
+GlBuffer MakeBuffer(size_t bytes, const void* data = nullptr) {
+  GlBuffer buffer;
+  glNamedBufferStorage(buffer.id(), static_cast<GLsizeiptr>(std::max<size_t>(bytes, 16)), data, 0);
+  return buffer;
+}
+
+GLuint Groups(uint32_t n, uint32_t size) { return (n + size - 1) / size; }
+
+// The light-weight uniforms of vol_light.glsl.
+void SetLightUniforms(GLuint program, const Setup& setup, const VolumetricLight& light) {
+  const bool textured = !light.texture.empty();
+  glProgramUniform2i(program, Loc(program, "u_texture_size"), textured ? GLint(light.texture_width) : 0,
+                     textured ? GLint(light.texture_height) : 0);
+  glProgramUniform1f(program, Loc(program, "u_tan_half"), float(setup.tan_half));
+  glProgramUniform1f(program, Loc(program, "u_cos_outer"), float(setup.cos_outer));
+  glProgramUniform1f(program, Loc(program, "u_cos_inner"), float(setup.cos_inner));
+}
+
+void SetRectUniforms(GLuint program, const Setup& setup) {
+  glProgramUniform2f(program, Loc(program, "u_epipole"), float(setup.epipole.x), float(setup.epipole.y));
+  glProgramUniform1f(program, Loc(program, "u_theta_ref"), float(setup.theta_ref));
+  glProgramUniform1f(program, Loc(program, "u_theta_min_rel"), float(setup.theta_min_rel));
+  glProgramUniform1f(program, Loc(program, "u_dtheta"), float(setup.dtheta));
+  glProgramUniform1f(program, Loc(program, "u_r0"), float(setup.r0));
+  glProgramUniform1f(program, Loc(program, "u_dr"), float(setup.dr));
+  glProgramUniform1i(program, Loc(program, "u_rows"), GLint(setup.rows));
+  glProgramUniform1i(program, Loc(program, "u_cols"), GLint(setup.cols));
+}
+
+Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setup, const VolumetricParams& params,
+                 std::vector<glm::vec4>& pixels, VolumetricTimings& timings) {
+  const auto setup_start = Clock::now();
+  const VolumetricLight& light = params.light;
+  ShaderDefines common;
+  if (setup.spot) common.emplace_back("SPOT", "1");
+  if (setup.weighted) common.emplace_back("WEIGHTED", "1");
+  ShaderDefines rect_defines = common;
+  if (setup.weighted) rect_defines.emplace_back("WEIGHTS", "1");
+  ShaderDefines integrate_defines = common;
+  integrate_defines.emplace_back(setup.integrand == VolumetricIntegrand::kAnalytic    ? "INTEGRAND_ANALYTIC"
+                                 : setup.integrand == VolumetricIntegrand::kPrefixSum ? "INTEGRAND_PREFIX"
+                                                                                     : "INTEGRAND_PER_TEXEL",
+                                 "1");
+  if (params.method == VolumetricMethod::kRayMarching) integrate_defines.emplace_back("RAY_MARCH", "1");
+
+  VISQ_ASSIGN_OR_RETURN(GLuint shadow_program,
+                        Program(worker, {{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(GLuint camera_program,
+                        Program(worker, {{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(GLuint rect_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
+  VISQ_ASSIGN_OR_RETURN(GLuint minmax_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(GLuint prefix_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(GLuint integrate_program,
+                        Program(worker, {{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
+
+  // Targets and buffers.
+  const uint32_t n = setup.map_size;
+  const size_t cells = size_t{setup.rows} * setup.cols;
+  GlTexture2D shadow_map;
+  glTextureStorage2D(shadow_map.id(), 1, GL_DEPTH_COMPONENT32F, GLsizei(n), GLsizei(n));
+  glTextureParameteri(shadow_map.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+  glTextureParameteri(shadow_map.id(), GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+  GlFramebuffer shadow_fb;
+  glNamedFramebufferTexture(shadow_fb.id(), GL_DEPTH_ATTACHMENT, shadow_map.id(), 0);
+  glNamedFramebufferDrawBuffer(shadow_fb.id(), GL_NONE);
+  if (glCheckNamedFramebufferStatus(shadow_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+    return absl::InternalError("volumetric shadows: shadow-map framebuffer incomplete");
+
+  GlTexture2D geometry, albedo;
+  glTextureStorage2D(geometry.id(), 1, GL_RGBA32F, GLsizei(setup.width), GLsizei(setup.height));
+  glTextureStorage2D(albedo.id(), 1, GL_RGBA8, GLsizei(setup.width), GLsizei(setup.height));
+  GlRenderbuffer camera_depth;
+  glNamedRenderbufferStorage(camera_depth.id(), GL_DEPTH_COMPONENT32F, GLsizei(setup.width), GLsizei(setup.height));
+  GlFramebuffer camera_fb;
+  glNamedFramebufferTexture(camera_fb.id(), GL_COLOR_ATTACHMENT0, geometry.id(), 0);
+  glNamedFramebufferTexture(camera_fb.id(), GL_COLOR_ATTACHMENT1, albedo.id(), 0);
+  glNamedFramebufferRenderbuffer(camera_fb.id(), GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, camera_depth.id());
+  const GLenum draw_buffers[2] = {GL_COLOR_ATTACHMENT0, GL_COLOR_ATTACHMENT1};
+  glNamedFramebufferDrawBuffers(camera_fb.id(), 2, draw_buffers);
+  if (glCheckNamedFramebufferStatus(camera_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+    return absl::InternalError("volumetric shadows: camera framebuffer incomplete");
+
+  GlBuffer rect_depth = MakeBuffer(cells * sizeof(float));
+  GlBuffer tree_min = MakeBuffer(cells * sizeof(float));
+  GlBuffer tree_max = MakeBuffer(cells * sizeof(float));
+  const bool prefix = setup.integrand == VolumetricIntegrand::kPrefixSum;
+  GlBuffer rect_weight = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
+  GlBuffer rect_unit = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
+  GlBuffer prefix_sums = MakeBuffer(prefix ? size_t{setup.rows} * (setup.cols + 1) * sizeof(float) : 0);
+  GlBuffer light_texture = MakeBuffer(light.texture.size() * sizeof(float), light.texture.empty() ? nullptr : light.texture.data());
+  GlBuffer albedo_buffer = MakeBuffer(setup.albedo.size() * sizeof(glm::vec4), setup.albedo.data());
+  const size_t pixel_count = size_t{setup.width} * setup.height;
+  GlBuffer output = MakeBuffer(pixel_count * sizeof(glm::vec4));
+  GlVertexArray empty_vao;
+  VISQ_GL_CHECK("volumetric shadows: setup");
+  glFinish();
+  timings.setup_ms = MsSince(setup_start);
+
+  const GpuScene::Resources& res = gpu_scene.resources();
+  // 1. Shadow map.
+  auto stage = Clock::now();
+  {
+    const glm::mat4 clip(setup.light_clip);
+    glBindFramebuffer(GL_FRAMEBUFFER, shadow_fb.id());
+    glViewport(0, 0, GLsizei(n), GLsizei(n));
+    glEnable(GL_DEPTH_TEST);
+    glDepthFunc(GL_LESS);
+    glDepthMask(GL_TRUE);
+    glDisable(GL_CULL_FACE);
+    const float one = 1.0f;
+    glClearBufferfv(GL_DEPTH, 0, &one);
+    glUseProgram(shadow_program);
+    glProgramUniformMatrix4fv(shadow_program, Loc(shadow_program, "u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
+    glBindVertexArray(res.vertex_array.id());
+    glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+    VISQ_GL_CHECK("volumetric shadows: shadow map");
+    glFinish();
+  }
+  timings.shadow_map_ms = MsSince(stage);
+
+  // 2. Camera distances, normals, colors.
+  stage = Clock::now();
+  {
+    const glm::mat4 clip(setup.camera_clip);
+    glBindFramebuffer(GL_FRAMEBUFFER, camera_fb.id());
+    glViewport(0, 0, GLsizei(setup.width), GLsizei(setup.height));
+    const float no_surface[4] = {0, 0, 0, -1};
+    const float black[4] = {0, 0, 0, 0};
+    const float one = 1.0f;
+    glClearBufferfv(GL_COLOR, 0, no_surface);
+    glClearBufferfv(GL_COLOR, 1, black);
+    glClearBufferfv(GL_DEPTH, 0, &one);
+    glUseProgram(camera_program);
+    glProgramUniformMatrix4fv(camera_program, Loc(camera_program, "u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
+    glProgramUniform3f(camera_program, Loc(camera_program, "u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
+    glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, res.positions.id());
+    glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, res.triangle_materials.id());
+    glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, albedo_buffer.id());
+    glBindVertexArray(res.vertex_array.id());
+    glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+    glDisable(GL_DEPTH_TEST);
+    glBindFramebuffer(GL_FRAMEBUFFER, 0);
+    VISQ_GL_CHECK("volumetric shadows: camera pass");
+    glFinish();
+  }
+  timings.camera_ms = MsSince(stage);
+
+  // 3. Rectification.
+  stage = Clock::now();
+  glBindVertexArray(empty_vao.id());
+  glBindTextureUnit(0, shadow_map.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, rect_depth.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, tree_min.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, tree_max.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 3, rect_weight.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 4, rect_unit.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 5, prefix_sums.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 6, light_texture.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 7, output.id());
+  {
+    glUseProgram(rect_program);
+    SetRectUniforms(rect_program, setup);
+    SetLightUniforms(rect_program, setup, light);
+    glProgramUniform1i(rect_program, Loc(rect_program, "u_map_size"), GLint(n));
+    glDispatchCompute(Groups(setup.cols, 8), Groups(setup.rows, 8), 1);
+    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+    VISQ_GL_CHECK("volumetric shadows: rectification");
+    glFinish();
+  }
+  timings.rectification_ms = MsSince(stage);
+
+  // 4. Min-max levels, then prefix sums.
+  stage = Clock::now();
+  {
+    glUseProgram(minmax_program);
+    glProgramUniform1i(minmax_program, Loc(minmax_program, "u_cols"), GLint(setup.cols));
+    glProgramUniform1i(minmax_program, Loc(minmax_program, "u_rows"), GLint(setup.rows));
+    for (uint32_t level = 1; level <= setup.levels; ++level) {
+      glProgramUniform1i(minmax_program, Loc(minmax_program, "u_level"), GLint(level));
+      glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
+      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+    }
+    if (prefix) {
+      glUseProgram(prefix_program);
+      glProgramUniform1i(prefix_program, Loc(prefix_program, "u_cols"), GLint(setup.cols));
+      glProgramUniform1i(prefix_program, Loc(prefix_program, "u_rows"), GLint(setup.rows));
+      glDispatchCompute(Groups(setup.rows, 64), 1, 1);
+      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+    }
+    VISQ_GL_CHECK("volumetric shadows: mipmap");
+    glFinish();
+  }
+  timings.mipmap_ms = MsSince(stage);
+
+  // 5. Per-pixel integration.
+  stage = Clock::now();
+  {
+    const GLuint p = integrate_program;
+    glUseProgram(p);
+    SetRectUniforms(p, setup);
+    SetLightUniforms(p, setup, light);
+    const glm::mat4 light_clip(setup.light_clip);
+    glProgramUniformMatrix4fv(p, Loc(p, "u_light_clip"), 1, GL_FALSE, glm::value_ptr(light_clip));
+    glProgramUniform4f(p, Loc(p, "u_c0"), float(setup.c0.x), float(setup.c0.y), float(setup.c0.z), float(setup.c0.w));
+    glProgramUniform2i(p, Loc(p, "u_image_size"), GLint(setup.width), GLint(setup.height));
+    glProgramUniform3f(p, Loc(p, "u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
+    auto set3 = [&](const char* name, const glm::dvec3& x) {
+      glProgramUniform3f(p, Loc(p, name), float(x.x), float(x.y), float(x.z));
+    };
+    set3("u_cam_forward", setup.cam_forward);
+    set3("u_cam_right", setup.cam_right);
+    set3("u_cam_up", setup.cam_up);
+    set3("u_light_dir", setup.light_dir);
+    set3("u_light_pos", setup.light_pos);
+    glProgramUniform1f(p, Loc(p, "u_map_size"), float(n));
+    glProgramUniform1i(p, Loc(p, "u_levels"), GLint(setup.levels));
+    glProgramUniform1f(p, Loc(p, "u_bias"), float(setup.bias));
+    glProgramUniform1f(p, Loc(p, "u_sigma_s"), float(params.medium.scattering));
+    glProgramUniform1f(p, Loc(p, "u_sigma_t"), params.medium.optically_thin ? 0.0f : float(params.medium.extinction));
+    glProgramUniform1f(p, Loc(p, "u_g"), float(params.medium.hg_g));
+    glProgramUniform1f(p, Loc(p, "u_intensity"), float(light.intensity));
+    glProgramUniform1f(p, Loc(p, "u_half_depth"), float(setup.half_depth));
+    glProgramUniform1i(p, Loc(p, "u_direct"), params.combined_image ? 1 : 0);
+    glProgramUniform1f(p, Loc(p, "u_normal_offset"), float(setup.normal_offset));
+    glBindTextureUnit(1, geometry.id());
+    glBindTextureUnit(2, albedo.id());
+    glDispatchCompute(Groups(setup.width, 8), Groups(setup.height, 8), 1);
+    glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
+    VISQ_GL_CHECK("volumetric shadows: traversal");
+    glFinish();
+  }
+  timings.traversal_ms = MsSince(stage);
+
+  stage = Clock::now();
+  pixels.resize(pixel_count);
+  glGetNamedBufferSubData(output.id(), 0, GLsizeiptr(pixel_count * sizeof(glm::vec4)), pixels.data());
+  for (GLuint unit = 0; unit < 3; ++unit) glBindTextureUnit(unit, 0);
+  for (GLuint binding = 0; binding < 8; ++binding) glBindBufferBase(GL_SHADER_STORAGE_BUFFER, binding, 0);
+  glBindVertexArray(0);
+  glUseProgram(0);
+  VISQ_RETURN_IF_ERROR(CollectGlErrors("volumetric shadows: readback"));
+  timings.readback_ms = MsSince(stage);
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+std::string_view VolumetricIntegrandName(VolumetricIntegrand integrand) {
+  switch (integrand) {
+    case VolumetricIntegrand::kAnalytic: return "analytic";
+    case VolumetricIntegrand::kPrefixSum: return "prefix_sum";
+    case VolumetricIntegrand::kPerTexel: return "per_texel";
+  }
+  return "unknown";
+}
+
+Status ValidateVolumetricParams(const VolumetricParams& params) {
+  const VolumetricCamera& camera = params.camera;
+  const VolumetricLight& light = params.light;
+  const VolumetricMedium& medium = params.medium;
+  // Camera.
+  if (!Finite(camera.position)) return Invalid(fmt::format("camera.position: non-finite {}", Vec(camera.position)));
+  if (!Finite(camera.forward) || glm::length(camera.forward) == 0.0)
+    return Invalid(fmt::format("camera.forward: {} is not a direction", Vec(camera.forward)));
+  if (!Finite(camera.up) || glm::length(glm::cross(glm::normalize(camera.forward), camera.up)) < 1e-9 * glm::length(camera.up) ||
+      glm::length(camera.up) == 0.0)
+    return Invalid(fmt::format("camera.up: {} is zero, non-finite or parallel to camera.forward", Vec(camera.up)));
+  if (!(camera.vertical_fov_deg > 0.0 && camera.vertical_fov_deg < 180.0))
+    return Invalid(fmt::format("camera.vertical_fov_deg: {} is not in (0, 180)", camera.vertical_fov_deg));
+  if (camera.width == 0 || camera.height == 0)
+    return Invalid(fmt::format("camera resolution: {} x {} has a zero side", camera.width, camera.height));
+  if (camera.width > kMaxVolumetricImageSize || camera.height > kMaxVolumetricImageSize)
+    return absl::ResourceExhaustedError(fmt::format("camera resolution: {} x {} exceeds the cap of {} per side",
+                                                    camera.width, camera.height, kMaxVolumetricImageSize));
+  // Light.
+  if (!Finite(light.direction) || glm::length(light.direction) == 0.0)
+    return Invalid(fmt::format("light.direction: {} is not a direction", Vec(light.direction)));
+  if (!Finite(light.up)) return Invalid(fmt::format("light.up: non-finite {}", Vec(light.up)));
+  if (!Finite(light.color) || light.color.x < 0 || light.color.y < 0 || light.color.z < 0)
+    return Invalid(fmt::format("light.color: {} must be finite and non-negative", Vec(light.color)));
+  if (!Finite(light.intensity) || light.intensity < 0)
+    return Invalid(fmt::format("light.intensity: {} must be finite and non-negative", light.intensity));
+  if (light.kind == VolumetricLightKind::kSpot) {
+    if (!Finite(light.position)) return Invalid(fmt::format("light.position: non-finite {}", Vec(light.position)));
+    if (!(light.cone_angle_deg > 0.0 && light.cone_angle_deg <= 80.0))
+      return Invalid(fmt::format("light.cone_angle_deg: {} is not in (0, 80]", light.cone_angle_deg));
+    if (!(light.cone_falloff_deg >= 0.0 && light.cone_falloff_deg <= light.cone_angle_deg))
+      return Invalid(fmt::format("light.cone_falloff_deg: {} is not in [0, cone_angle_deg = {}]",
+                                 light.cone_falloff_deg, light.cone_angle_deg));
+  }
+  if (!light.texture.empty() || light.texture_width != 0 || light.texture_height != 0) {
+    if (light.texture_width == 0 || light.texture_height == 0)
+      return Invalid(fmt::format("light.texture: {} x {} has a zero side", light.texture_width, light.texture_height));
+    if (light.texture_width > kMaxVolumetricLightTextureSize || light.texture_height > kMaxVolumetricLightTextureSize)
+      return absl::ResourceExhaustedError(fmt::format("light.texture: {} x {} exceeds the cap of {} per side",
+                                                      light.texture_width, light.texture_height,
+                                                      kMaxVolumetricLightTextureSize));
+    if (light.texture.size() != size_t{light.texture_width} * light.texture_height)
+      return Invalid(fmt::format("light.texture: {} values for {} x {}", light.texture.size(), light.texture_width,
+                                 light.texture_height));
+    for (size_t i = 0; i < light.texture.size(); ++i)
+      if (!std::isfinite(light.texture[i]) || light.texture[i] < 0)
+        return Invalid(fmt::format("light.texture[{}]: {} must be finite and non-negative", i, light.texture[i]));
+  }
+  // Medium.
+  if (!Finite(medium.scattering) || medium.scattering < 0)
+    return Invalid(fmt::format("medium.scattering: {} must be finite and non-negative", medium.scattering));
+  if (!Finite(medium.extinction) || medium.extinction < 0)
+    return Invalid(fmt::format("medium.extinction: {} must be finite and non-negative", medium.extinction));
+  if (medium.extinction < medium.scattering)
+    return Invalid(fmt::format("medium.extinction: {} is below medium.scattering = {}", medium.extinction,
+                               medium.scattering));
+  if (!(medium.hg_g > -1.0 && medium.hg_g < 1.0))
+    return Invalid(fmt::format("medium.hg_g: {} is not in (-1, 1)", medium.hg_g));
+  // Shadow map.
+  if (params.shadow_map_size > kMaxVolumetricShadowMapSize)
+    return absl::ResourceExhaustedError(fmt::format("shadow_map_size: {} exceeds the cap of {}",
+                                                    params.shadow_map_size, kMaxVolumetricShadowMapSize));
+  if (params.shadow_map_size < kMinVolumetricShadowMapSize || !std::has_single_bit(params.shadow_map_size))
+    return Invalid(fmt::format("shadow_map_size: {} is not a power of two in [{}, {}]", params.shadow_map_size,
+                               kMinVolumetricShadowMapSize, kMaxVolumetricShadowMapSize));
+  return absl::OkStatus();
+}
+
+StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuScene& gpu_scene, const Scene& scene,
+                                                   const VolumetricParams& params) {
+  const auto start = Clock::now();
+  VISQ_RETURN_IF_ERROR(ValidateVolumetricParams(params));
+  VISQ_ASSIGN_OR_RETURN(Setup setup, BuildSetup(gpu_scene, scene, params));
+
+  VolumetricResult result;
+  std::vector<glm::vec4> pixels;
+  JobTiming job_timing;
+  VISQ_RETURN_IF_ERROR(worker.Run(
+      params.job, [&]() -> Status { return RunPasses(worker, gpu_scene, setup, params, pixels, result.timings); },
+      &job_timing));
+  result.timings.queue_ms = job_timing.queue_ms;
+
+  // Light color applied here: the shader works in one channel for the medium.
+  result.width = setup.width;
+  result.height = setup.height;
+  result.method = params.method;
+  result.integrand = setup.integrand;
+  result.rectified_rows = setup.rows;
+  result.rectified_columns = setup.cols;
+  result.epipole_inside_map = setup.epipole_inside;
+  if (!setup.spot) result.medium_box = setup.box;
+  const glm::vec3 color(params.light.color);
+  result.inscattering.resize(pixels.size() * 3);
+  if (params.combined_image) result.combined.resize(pixels.size() * 3);
+  for (size_t i = 0; i < pixels.size(); ++i) {
+    for (int k = 0; k < 3; ++k) {
+      result.inscattering[i * 3 + k] = color[k] * pixels[i].x;
+      if (params.combined_image) result.combined[i * 3 + k] = color[k] * (pixels[i].x + pixels[i][k + 1]);
+    }
+  }
+  result.timings.total_ms = MsSince(start);
+  return result;
+}
+
+}  // namespace visq::gpu

@@ -1,0 +1,44 @@
+// Exact light visibility as a core query: validation, the per-light tree
+// cache keyed by (scene, version, light, receiver region), and the batch.
+#pragma once
+
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "common/status.h"
+#include "exact/light_visibility.h"
+
+namespace visq {
+
+class Engine;
+
+struct LightVisibilityQuery {
+  std::string scene;
+  uint64_t scene_version = 0;
+  exact::AreaLight light;
+  std::vector<exact::QueryPoint> points;
+  bool want_polygons = false;
+  std::optional<Bounds> receiver_region;
+  std::vector<std::string> exclude_nodes;
+};
+
+struct LightVisibilityAnswer {
+  std::vector<exact::PointVisibility> points;
+  exact::TreeStats tree;
+  bool tree_reused = false;
+  Bounds receiver_region;
+  double compute_ms = 0;
+};
+
+inline constexpr size_t kMaxLightVisibilityPoints = 1'000'000;  // per request message
+inline constexpr size_t kMaxLightVertices = 1024;
+
+[[nodiscard]] StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query);
+
+// The region a batch's tree is built for when the client gives none: the
+// points' bounds snapped outward to a grid of 1/16 of the scene's extent,
+// so that nearby batches share one tree.
+Bounds SnappedReceiverRegion(const std::vector<exact::QueryPoint>& points, const Bounds& scene_bounds);
+
+}  // namespace visq

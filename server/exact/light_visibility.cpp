@@ -1,0 +1,1217 @@
+#include "exact/light_visibility.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstring>
+#include <deque>
+#include <numbers>
+#include <thread>
+
+#include <absl/container/inlined_vector.h>
+
+#include "common/check.h"
+#include "exact/exact_geometry.h"
+
+namespace visq::exact {
+
+using detail::EuclidSide;
+using detail::Orient2d;
+using detail::Orient3d;
+using detail::XPlane;
+using detail::XPoint;
+
+namespace {
+
+// Sides used by the BSP: child 0 takes lines with side > 0, child 1 lines with
+// side <= 0 (a line touching an edge line is never "inside" that edge).
+enum NodeKind : uint8_t { kInner, kVisible, kInvisible, kUndefined };
+
+// 20 bytes. Visible and invisible leaves without occluders are two shared
+// sentinel nodes (kSharedVisible, kSharedInvisible), so an occluder BSP costs
+// only its 3 or 5 inner nodes until occluders are filtered into a leaf.
+struct Node {
+  uint32_t a = 0, b = 0;        // inner: edge line a -> b (point indices);
+                                // undefined leaf: b = index into lists
+  int32_t child[2] = {-1, -1};  // inner only
+  uint8_t kind = kUndefined;
+};
+constexpr int32_t kSharedVisible = 1, kSharedInvisible = 2;
+
+// A far occluder: a scene triangle oriented so that the light lies on its
+// non-negative side; lines from the light through its interior then have all
+// three edge sides > 0. When the light straddles its plane, lines may cross
+// it either way and the BSP also needs the all-negative class (5 nodes).
+struct FarOccluder {
+  uint32_t v[3];
+  bool two_sided = false;
+};
+
+// A near occluder, clipped per query; vertices as point indices and their
+// exact sides against the light plane.
+struct NearOccluder {
+  uint32_t v[3];
+  int8_t light_side[3];
+  uint32_t scene_triangle;
+};
+
+// One edge of a light fragment lies on a light-triangle edge or on a plane.
+struct FVert {
+  const XPoint* point;
+  int32_t light_edge;   // >= 0: edge (light_edge, light_edge + 1) of the triangle
+  const XPlane* plane;  // otherwise: the plane holding the edge to the next vertex
+};
+
+struct Fragment {
+  uint32_t triangle = 0;  // light triangle
+  absl::InlinedVector<FVert, 8> v;  // most fragments have few vertices: no allocation
+};
+
+struct LightTriangle {
+  uint32_t v[3];  // indices into light points
+  const XPlane* plane;
+};
+
+struct PairHash {
+  size_t operator()(const std::pair<const void*, const void*>& p) const {
+    const auto a = reinterpret_cast<uintptr_t>(p.first), b = reinterpret_cast<uintptr_t>(p.second);
+    return std::hash<uintptr_t>()(a * 0x9E3779B97F4A7C15ull ^ (b + 0x632BE59BD9B4E019ull));
+  }
+};
+
+double Area3(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
+  return 0.5 * glm::length(glm::cross(b - a, c - a));
+}
+
+// Solid angle of triangle (a, b, c) seen from the origin (Van Oosterom and
+// Strackee 1983).
+double SolidAngle(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
+  const double la = glm::length(a), lb = glm::length(b), lc = glm::length(c);
+  const double num = std::fabs(glm::dot(a, glm::cross(b, c)));
+  const double den = la * lb * lc + glm::dot(a, b) * lc + glm::dot(a, c) * lb + glm::dot(b, c) * la;
+  return 2.0 * std::atan2(num, den);
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------
+struct LightVisibilityTree::Impl {
+  // The frame: everything is stored relative to the light centroid, rounded
+  // once; all exact predicates are exact for these local coordinates.
+  glm::dvec3 origin{0.0};
+  double radiance = 1.0;
+  double light_area = 0.0;
+
+  std::deque<XPoint> light_points;      // light vertices (local)
+  std::vector<glm::dvec3> light_local;  // same, as doubles
+  std::deque<XPlane> light_planes;      // one per light triangle
+  std::vector<LightTriangle> light_triangles;
+  const XPlane* light_plane = nullptr;  // the largest triangle's: front side positive
+
+  std::deque<XPoint> points;  // occluder vertices (local, inputs)
+  std::vector<FarOccluder> far;
+  std::vector<NearOccluder> near;
+  std::unordered_map<uint32_t, uint32_t> near_by_triangle;  // scene triangle -> index in near
+  std::optional<std::pair<glm::dvec3, glm::dvec3>> receiver_box;  // local frame
+
+  mutable std::shared_mutex mutex;
+  std::vector<Node> nodes;
+  std::vector<std::vector<uint32_t>> lists;  // occluder lists of undefined leaves
+  std::vector<uint32_t> free_lists;
+  size_t list_bytes = 0;
+
+  std::atomic<uint64_t> queries{0}, hits{0}, refinements{0};
+
+  size_t MemoryBytesLocked() const {
+    return sizeof(Impl) + nodes.capacity() * sizeof(Node) + list_bytes +
+           lists.capacity() * sizeof(std::vector<uint32_t>) + free_lists.capacity() * 4 +
+           points.size() * sizeof(XPoint) + far.capacity() * sizeof(FarOccluder) +
+           near.capacity() * sizeof(NearOccluder) + near_by_triangle.size() * 24 +
+           light_points.size() * sizeof(XPoint) +
+           light_planes.size() * sizeof(XPlane);
+  }
+
+  // --- Tree growth (under the exclusive lock). -----------------------------
+
+  // Which sides of edge line (a, b) the lines from the light to occluder o
+  // reach: it suffices to test the vertex-to-light-vertex lines, because the
+  // side of line(y, x) is bilinear in (y, x).
+  void OccluderSides(const uint32_t v[3], uint32_t a, uint32_t b, bool* pos, bool* nonpos) const {
+    *pos = *nonpos = false;
+    const glm::dvec3& pa = points[a].input;
+    const glm::dvec3& pb = points[b].input;
+    for (int i = 0; i < 3 && !(*pos && *nonpos); ++i) {
+      const glm::dvec3& x = points[v[i]].input;
+      for (const glm::dvec3& y : light_local) {
+        if (Orient3d(y, x, pa, pb) > 0) *pos = true; else *nonpos = true;
+        if (*pos && *nonpos) break;
+      }
+    }
+  }
+
+  int32_t NewNode(uint8_t kind, uint32_t a = 0, uint32_t b = 0) {
+    Node n;
+    n.kind = kind;
+    n.a = a;
+    n.b = b;
+    nodes.push_back(n);
+    return static_cast<int32_t>(nodes.size() - 1);
+  }
+
+  uint32_t NewList() {
+    if (!free_lists.empty()) {
+      const uint32_t i = free_lists.back();
+      free_lists.pop_back();
+      return i;
+    }
+    lists.emplace_back();
+    return static_cast<uint32_t>(lists.size() - 1);
+  }
+
+  // Which occluder of a leaf to insert. The paper takes a random one; we
+  // take one that the query's line from P to a point y of the fragment that
+  // reached the leaf actually crosses (a double-precision guess: it only
+  // steers the choice, never the answer). Its invisible class then swallows
+  // the occluders behind it at once, instead of growing nodes for occluders
+  // this region of line space never meets.
+  size_t ChooseOccluder(const std::vector<uint32_t>& list, const glm::dvec3& p,
+                        const glm::dvec3& y) const {
+    const glm::dvec3 d = p - y;
+    size_t best = 0;
+    double best_t = std::numeric_limits<double>::infinity();
+    for (size_t k = 0; k < list.size(); ++k) {
+      const FarOccluder& o = far[list[k]];
+      const glm::dvec3 a = points[o.v[0]].input, b = points[o.v[1]].input, c = points[o.v[2]].input;
+      // Möller-Trumbore: the crossing nearest the light wins.
+      const glm::dvec3 e1 = b - a, e2 = c - a, h = glm::cross(d, e2);
+      const double det = glm::dot(e1, h);
+      if (det == 0.0) continue;
+      const glm::dvec3 s = y - a;
+      const double u = glm::dot(s, h) / det;
+      if (u < 0.0 || u > 1.0) continue;
+      const glm::dvec3 qv = glm::cross(s, e1);
+      const double v = glm::dot(d, qv) / det;
+      if (v < 0.0 || u + v > 1.0) continue;
+      const double t = glm::dot(e2, qv) / det;
+      if (t > 0.0 && t < best_t) {
+        best_t = t;
+        best = k;
+      }
+    }
+    return best;
+  }
+
+  void Refine(int32_t id, const glm::dvec3& p, const glm::dvec3& y) {
+    if (nodes[id].kind != kUndefined) return;  // another query did it
+    std::vector<uint32_t> list = std::move(lists[nodes[id].b]);
+    lists[nodes[id].b] = {};
+    free_lists.push_back(nodes[id].b);
+    list_bytes -= list.capacity() * sizeof(uint32_t);
+    refinements.fetch_add(1, std::memory_order_relaxed);
+    std::swap(list[0], list[ChooseOccluder(list, p, y)]);
+
+    // Replace the leaf by the BSP of the chosen occluder: inside its three
+    // edge lines (all > 0, or all <= 0 for two-sided ones) is invisible.
+    const FarOccluder o = far[list[0]];
+    const uint32_t e[3][2] = {{o.v[0], o.v[1]}, {o.v[1], o.v[2]}, {o.v[2], o.v[0]}};
+    const int32_t n2 = NewNode(kInner, e[1][0], e[1][1]);
+    const int32_t n3 = NewNode(kInner, e[2][0], e[2][1]);
+    nodes[n2].child[0] = n3;
+    nodes[n2].child[1] = kSharedVisible;
+    nodes[n3].child[0] = kSharedInvisible;
+    nodes[n3].child[1] = kSharedVisible;
+    int32_t negative = kSharedVisible;
+    if (o.two_sided) {
+      const int32_t n4 = NewNode(kInner, e[1][0], e[1][1]);
+      const int32_t n5 = NewNode(kInner, e[2][0], e[2][1]);
+      nodes[n4].child[0] = kSharedVisible;
+      nodes[n4].child[1] = n5;
+      nodes[n5].child[0] = kSharedVisible;
+      nodes[n5].child[1] = kSharedInvisible;
+      negative = n4;
+    }
+    Node& root = nodes[id];
+    root.kind = kInner;
+    root.a = e[0][0];
+    root.b = e[0][1];
+    root.child[0] = n2;
+    root.child[1] = negative;
+
+    // Filter the other occluders into the new leaves: invisible leaves drop
+    // them, visible leaves that receive some become undefined.
+    struct Step { int32_t node, parent; int slot; };
+    std::vector<Step> stack;
+    for (size_t k = 1; k < list.size(); ++k) {
+      const FarOccluder& other = far[list[k]];
+      stack.assign(1, {id, -1, 0});
+      while (!stack.empty()) {
+        const Step step = stack.back();
+        stack.pop_back();
+        const uint8_t kind = nodes[step.node].kind;
+        if (kind == kInner) {
+          bool pos, nonpos;
+          const Node& node = nodes[step.node];
+          OccluderSides(other.v, node.a, node.b, &pos, &nonpos);
+          if (pos) stack.push_back({node.child[0], step.node, 0});
+          if (nonpos) stack.push_back({node.child[1], step.node, 1});
+        } else if (kind == kVisible) {
+          // A visible class that receives an occluder becomes undefined.
+          VISQ_DCHECK(step.node == kSharedVisible);
+          const int32_t leaf = NewNode(kUndefined, 0, NewList());
+          nodes[step.parent].child[step.slot] = leaf;
+          stack.push_back({leaf, step.parent, step.slot});
+        } else if (kind == kUndefined) {
+          auto& l = lists[nodes[step.node].b];
+          const size_t before = l.capacity();
+          l.push_back(list[k]);
+          list_bytes += (l.capacity() - before) * sizeof(uint32_t);
+        }
+        // kInvisible: the occluder is hidden there; dropped.
+      }
+    }
+  }
+
+  // --- Queries. --------------------------------------------------------------
+  struct Scratch {
+    std::deque<XPoint> points;
+    std::deque<XPlane> planes;
+    std::unordered_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
+    std::vector<int> signs;
+    const XPoint* p = nullptr;
+
+    const XPoint* Add(XPoint x) { points.push_back(std::move(x)); return &points.back(); }
+    const XPlane* Add(XPlane x) { planes.push_back(std::move(x)); return &planes.back(); }
+  };
+
+  // The plane through P and edge line (a, b), shared by both orientations
+  // of the line (so that a vertex created on it is recognised as lying on it
+  // later); `sign` orients it as the edge a -> b. Null when P is on the line.
+  struct EdgePlaneRef {
+    const XPlane* plane;
+    int sign;
+  };
+  EdgePlaneRef EdgePlane(Scratch& s, const XPoint& a, const XPoint& b) const {
+    const XPoint* lo = std::less<const XPoint*>()(&a, &b) ? &a : &b;
+    const XPoint* hi = lo == &a ? &b : &a;
+    auto [it, inserted] = s.edge_planes.try_emplace({lo, hi}, nullptr);
+    if (inserted) {
+      const XPlane* plane = s.Add(XPlane::ThroughPoints(*s.p, *lo, *hi));
+      it->second = plane->Degenerate() ? nullptr : plane;
+    }
+    return {it->second, lo == &a ? 1 : -1};
+  }
+
+  // Whether x is on the plane by construction (then its sign is 0 without
+  // any arithmetic; this is also what keeps repeated planes off the exact
+  // fallback). Besides "x was made on this plane", one case matters a lot:
+  // the shadow of an occluder vertex v is Π_t ∩ plane(P, v, a) ∩ plane(P, v, b),
+  // a point of line(P, v), and so lies on every edge plane through P and v.
+  static bool OnPlaneByDefinition(const XPoint& x, const XPlane* plane) {
+    if (x.kind == XPoint::Kind::kLinePlane) return x.planes[0] == plane;
+    if (x.kind != XPoint::Kind::kThreePlanes) return false;
+    if (x.planes[0] == plane || x.planes[1] == plane || x.planes[2] == plane) return true;
+    const XPlane* p1 = x.planes[1];
+    const XPlane* p2 = x.planes[2];
+    using K = XPlane::Kind;
+    if (plane->kind != K::kThroughPoints || p1->kind != K::kThroughPoints ||
+        p2->kind != K::kThroughPoints || p1->points[0] != plane->points[0] ||
+        p2->points[0] != plane->points[0]) {
+      return false;
+    }
+    for (int i = 1; i < 3; ++i) {
+      const XPoint* v = p1->points[i];
+      if ((v == p2->points[1] || v == p2->points[2]) &&
+          (v == plane->points[1] || v == plane->points[2])) {
+        return true;
+      }
+    }
+    return false;
+  }
+
+  // Side of each fragment vertex x against the edge line, as the side of the
+  // line x -> P: orient3d(x, P, a, b) = -orient3d(P, a, b, x). Returns false
+  // when every sign is zero (degenerate plane or zero-area fragment).
+  static bool EdgeSides(const Fragment& f, const EdgePlaneRef& ref, std::vector<int>* signs) {
+    signs->assign(f.v.size(), 0);
+    if (ref.plane == nullptr) return false;
+    bool any = false;
+    for (size_t i = 0; i < f.v.size(); ++i) {
+      const XPoint& x = *f.v[i].point;
+      if (OnPlaneByDefinition(x, ref.plane)) continue;
+      (*signs)[i] = -ref.sign * EuclidSide(x, *ref.plane);
+      any |= (*signs)[i] != 0;
+    }
+    return any;
+  }
+
+  // The point where a fragment edge support meets a plane.
+  const XPoint* Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const {
+    const LightTriangle& t = light_triangles[f.triangle];
+    if (from.light_edge >= 0) {
+      return s.Add(XPoint::LinePlane(light_points[t.v[from.light_edge]],
+                                     light_points[t.v[(from.light_edge + 1) % 3]], plane));
+    }
+    return s.Add(XPoint::ThreePlanes(*t.plane, *from.plane, plane));
+  }
+
+  // Splits f by `plane` given the vertex signs: *pos gets the part with
+  // sign >= 0 (if some vertex is > 0), *neg the part <= 0 (if some is < 0).
+  // New vertices are shared by both parts.
+  void Split(Scratch& s, const Fragment& f, const std::vector<int>& sg, const XPlane& plane,
+             Fragment* pos, Fragment* neg) const {
+    pos->v.clear();
+    neg->v.clear();
+    pos->triangle = neg->triangle = f.triangle;
+    const size_t n = f.v.size();
+    const bool has_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+    const bool has_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+    for (size_t i = 0; i < n; ++i) {
+      const FVert& cur = f.v[i];
+      const int sc = sg[i], sn = sg[(i + 1) % n];
+      const FVert on_plane{cur.point, -1, &plane};
+      if (sc > 0) pos->v.push_back(cur);
+      if (sc < 0) neg->v.push_back(cur);
+      if (sc == 0) {
+        pos->v.push_back(sn < 0 ? on_plane : cur);
+        neg->v.push_back(sn > 0 ? on_plane : cur);
+      }
+      if ((sc > 0 && sn < 0) || (sc < 0 && sn > 0)) {
+        const XPoint* x = Meet(s, f, cur, plane);
+        const FVert along{x, cur.light_edge, cur.plane};
+        const FVert across{x, -1, &plane};
+        if (sc > 0) {
+          pos->v.push_back(across);
+          neg->v.push_back(along);
+        } else {
+          neg->v.push_back(across);
+          pos->v.push_back(along);
+        }
+      }
+    }
+    if (!has_pos) pos->v.clear();
+    if (!has_neg) neg->v.clear();
+  }
+
+  // Keeps the part of f with plane side >= 0 (side sign flipped by `flip`).
+  // Returns false when nothing of positive area remains.
+  bool Clip(Scratch& s, Fragment* f, const XPlane& plane, int flip) const {
+    s.signs.resize(f->v.size());
+    bool any_neg = false, any_pos = false;
+    for (size_t i = 0; i < f->v.size(); ++i) {
+      s.signs[i] = OnPlaneByDefinition(*f->v[i].point, &plane)
+                       ? 0
+                       : flip * EuclidSide(*f->v[i].point, plane);
+      any_neg |= s.signs[i] < 0;
+      any_pos |= s.signs[i] > 0;
+    }
+    if (!any_pos) return false;
+    if (!any_neg) return true;
+    Fragment pos, neg;
+    Split(s, *f, s.signs, plane, &pos, &neg);
+    *f = std::move(pos);
+    return true;
+  }
+
+  // Removes from `fragments` the lines from the light to P that cross the
+  // convex polygon with the given edge lines (each pair a -> b).
+  void Subtract(Scratch& s, std::vector<Fragment>* fragments,
+                const std::vector<std::pair<const XPoint*, const XPoint*>>& edges) const {
+    std::vector<Fragment> out;
+    struct Item { Fragment f; size_t k; int chain; };
+    std::vector<Item> stack;
+    for (auto& f : *fragments) stack.push_back({std::move(f), 0, 0});
+    std::vector<int> sg;
+    while (!stack.empty()) {
+      Item item = std::move(stack.back());
+      stack.pop_back();
+      const EdgePlaneRef plane = EdgePlane(s, *edges[item.k].first, *edges[item.k].second);
+      if (!EdgeSides(item.f, plane, &sg)) {  // touches the edge line only: not inside
+        out.push_back(std::move(item.f));
+        continue;
+      }
+      Fragment pos, neg;
+      Split(s, item.f, sg, *plane.plane, &pos, &neg);
+      const bool last = item.k + 1 == edges.size();
+      // Continue the chain with the part that keeps the chain's sign; the
+      // rest is outside the occluder's shadow.
+      Fragment* keep[2] = {&pos, &neg};
+      for (int side = 0; side < 2; ++side) {
+        Fragment& part = *keep[side];
+        if (part.v.empty()) continue;
+        const int sign = side == 0 ? 1 : -1;
+        if (item.chain != 0 && sign != item.chain) {
+          out.push_back(std::move(part));
+        } else if (!last) {
+          stack.push_back({std::move(part), item.k + 1, sign});
+        }
+        // else: inside all edges, shadowed.
+      }
+    }
+    *fragments = std::move(out);
+  }
+
+  StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons) {
+    // Validate and move the point into the local frame.
+    for (int i = 0; i < 3; ++i) {
+      if (!std::isfinite(q.position[i])) {
+        return absl::InvalidArgumentError(absl::StrCat("point.position[", i, "]: not finite"));
+      }
+    }
+    std::optional<glm::dvec3> normal = q.normal;
+    if (normal) {
+      for (int i = 0; i < 3; ++i) {
+        if (!std::isfinite((*normal)[i])) {
+          return absl::InvalidArgumentError(absl::StrCat("point.normal[", i, "]: not finite"));
+        }
+      }
+      if (*normal == glm::dvec3(0.0)) return absl::InvalidArgumentError("point.normal: zero");
+    }
+    const glm::dvec3 p_local = q.position - origin;
+    if (receiver_box) {
+      const auto& [lo, hi] = *receiver_box;
+      for (int i = 0; i < 3; ++i) {
+        if (p_local[i] < lo[i] || p_local[i] > hi[i]) {
+          return absl::OutOfRangeError("point.position: outside the tree's receiver_bounds");
+        }
+      }
+    }
+    queries.fetch_add(1, std::memory_order_relaxed);
+    PointVisibility result;
+
+    Scratch s;
+    s.p = s.Add(XPoint::Input(p_local));
+    // A light seen from behind (or edge-on) gives nothing.
+    if (EuclidSide(*s.p, *light_plane) <= 0) {
+      hits.fetch_add(1, std::memory_order_relaxed);
+      return result;
+    }
+    const uint32_t receiver = q.receiver_triangle.value_or(UINT32_MAX);
+    if (!normal && q.receiver_triangle) {
+      // A triangle containing P is always near (never culled, never
+      // separated from the receivers), so its vertices are at hand.
+      if (auto it = near_by_triangle.find(receiver); it != near_by_triangle.end()) {
+        const NearOccluder& n = near[it->second];
+        const glm::dvec3 a = points[n.v[0]].input, b = points[n.v[1]].input, c = points[n.v[2]].input;
+        const glm::dvec3 g = glm::cross(b - a, c - a);
+        if (g != glm::dvec3(0.0)) normal = g;
+      }
+    }
+
+    // Start from the light triangles, clipped to the receiver's hemisphere.
+    std::vector<Fragment> pending;
+    const XPlane* horizon = normal ? s.Add(XPlane::PointNormal(*s.p, *normal)) : nullptr;
+    for (uint32_t t = 0; t < light_triangles.size(); ++t) {
+      Fragment f;
+      f.triangle = t;
+      for (int i = 0; i < 3; ++i) f.v.push_back({&light_points[light_triangles[t].v[i]], i, nullptr});
+      if (horizon != nullptr && !Clip(s, &f, *horizon, 1)) continue;
+      pending.push_back(std::move(f));
+    }
+
+    // Push the fragments down the shared tree.
+    std::vector<Fragment> visible;
+    bool refined = false;
+    {
+      std::vector<std::pair<int32_t, Fragment>> stack;
+      for (auto& f : pending) stack.emplace_back(0, std::move(f));
+      std::vector<int> sg;
+      std::shared_lock lock(mutex);
+      while (!stack.empty()) {
+        auto [id, f] = std::move(stack.back());
+        stack.pop_back();
+        const Node& node = nodes[id];
+        if (node.kind == kVisible) {
+          visible.push_back(std::move(f));
+        } else if (node.kind == kUndefined) {
+          // Refine this leaf under the exclusive lock, then resume here.
+          lock.unlock();
+          {
+            std::unique_lock exclusive(mutex);
+            glm::dvec3 y(0.0);  // the fragment's vertex average, inside it
+            for (const FVert& fv : f.v) y += fv.point->Euclid();
+            Refine(id, p_local, y / static_cast<double>(f.v.size()));
+          }
+          lock.lock();
+          refined = true;
+          stack.emplace_back(id, std::move(f));
+        } else if (node.kind == kInner) {
+          const EdgePlaneRef plane = EdgePlane(s, points[node.a], points[node.b]);
+          const int32_t c0 = node.child[0], c1 = node.child[1];
+          if (!EdgeSides(f, plane, &sg)) {
+            stack.emplace_back(c1, std::move(f));
+            continue;
+          }
+          const bool any_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+          const bool any_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+          if (!any_neg) {
+            stack.emplace_back(c0, std::move(f));
+          } else if (!any_pos) {
+            stack.emplace_back(c1, std::move(f));
+          } else {
+            Fragment pos, neg;
+            Split(s, f, sg, *plane.plane, &pos, &neg);
+            stack.emplace_back(c0, std::move(pos));
+            stack.emplace_back(c1, std::move(neg));
+          }
+        }
+        // kInvisible: dropped.
+      }
+    }
+    if (!refined) hits.fetch_add(1, std::memory_order_relaxed);
+
+    // Subtract the near occluders, clipped to the slab between the light
+    // plane and the plane through P parallel to it.
+    if (!near.empty() && !visible.empty()) {
+      const XPlane* slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+      struct CV { const XPoint* point; int orig_edge; };  // orig_edge -1: on a cut
+      std::vector<CV> poly, clipped;
+      std::vector<int> sides;
+      std::vector<std::pair<const XPoint*, const XPoint*>> edges;
+      for (const NearOccluder& n : near) {
+        if (n.scene_triangle == receiver) continue;
+        const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
+        int top[3];
+        bool any_below_top = false;
+        for (int i = 0; i < 3; ++i) {
+          top[i] = -EuclidSide(*v[i], *slab_top);
+          any_below_top |= top[i] > 0;
+        }
+        if (!any_below_top) continue;  // nothing strictly between
+        poly = {{v[0], 0}, {v[1], 1}, {v[2], 2}};
+        // Clip to the light's front (keep >= 0), then below P (keep >= 0).
+        for (int pass = 0; pass < 2 && !poly.empty(); ++pass) {
+          const XPlane& plane = pass == 0 ? *light_plane : *slab_top;
+          sides.resize(poly.size());
+          bool any_neg = false, any_pos = false;
+          for (size_t i = 0; i < poly.size(); ++i) {
+            if (pass == 0) {
+              sides[i] = n.light_side[poly[i].orig_edge];  // poly is still the triangle
+            } else {
+              sides[i] = -EuclidSide(*poly[i].point, plane);
+            }
+            any_neg |= sides[i] < 0;
+            any_pos |= sides[i] > 0;
+          }
+          if (!any_pos) { poly.clear(); break; }
+          if (!any_neg) continue;
+          clipped.clear();
+          for (size_t i = 0; i < poly.size(); ++i) {
+            const size_t j = (i + 1) % poly.size();
+            const int sc = sides[i], sn = sides[j];
+            if (sc > 0) clipped.push_back(poly[i]);
+            if (sc == 0) clipped.push_back({poly[i].point, sn < 0 ? -1 : poly[i].orig_edge});
+            if ((sc > 0 && sn < 0) || (sc < 0 && sn > 0)) {
+              // Crossing edges of the second pass are parts of triangle
+              // edges too: the first cut lies in the light plane, strictly
+              // on the kept side of the second.
+              const int e = poly[i].orig_edge;
+              VISQ_CHECK(e >= 0);
+              const XPoint* x = s.Add(XPoint::LinePlane(*v[e], *v[(e + 1) % 3], plane));
+              clipped.push_back({x, sc > 0 ? -1 : e});
+            }
+          }
+          poly.swap(clipped);
+        }
+        if (poly.size() < 3) continue;
+        edges.clear();
+        for (size_t i = 0; i < poly.size(); ++i) {
+          const int e = poly[i].orig_edge;
+          if (e >= 0) {
+            edges.emplace_back(v[e], v[(e + 1) % 3]);
+          } else {
+            edges.emplace_back(poly[i].point, poly[(i + 1) % poly.size()].point);
+          }
+        }
+        // Skip occluders whose shadow misses the whole light: some edge has
+        // every light vertex on its <= 0 side (no all-positive line) and some
+        // edge has every light vertex > 0 (no all-non-positive line). Sides
+        // are linear over each light triangle, so vertices decide.
+        bool miss_pos = false, miss_neg = false;
+        for (const auto& [a, b] : edges) {
+          const EdgePlaneRef ref = EdgePlane(s, *a, *b);
+          if (ref.plane == nullptr) {  // P on the edge line: nothing strictly inside
+            miss_pos = miss_neg = true;
+            break;
+          }
+          bool all_nonpos = true, all_pos = true;
+          for (const XPoint& y : light_points) {
+            const int side = -ref.sign * EuclidSide(y, *ref.plane);
+            all_nonpos &= side <= 0;
+            all_pos &= side > 0;
+          }
+          miss_pos |= all_nonpos;
+          miss_neg |= all_pos;
+        }
+        if (miss_pos && miss_neg) continue;
+        Subtract(s, &visible, edges);
+        if (visible.empty()) break;
+      }
+    }
+
+    // Integrate over the visible polygons.
+    double area = 0.0, solid_angle = 0.0, irradiance = 0.0;
+    for (const Fragment& f : visible) {
+      std::vector<glm::dvec3> v(f.v.size());
+      for (size_t i = 0; i < v.size(); ++i) v[i] = f.v[i].point->Euclid();
+      glm::dvec3 phi(0.0);  // vector irradiance of the polygon (Lambert)
+      for (size_t i = 0; i < v.size(); ++i) {
+        if (i >= 1 && i + 1 < v.size()) {
+          area += Area3(v[0], v[i], v[i + 1]);
+          solid_angle += SolidAngle(v[0] - p_local, v[i] - p_local, v[i + 1] - p_local);
+        }
+        const glm::dvec3 r0 = v[i] - p_local, r1 = v[(i + 1) % v.size()] - p_local;
+        const glm::dvec3 c = glm::cross(r0, r1);
+        const double lc = glm::length(c);
+        if (lc > 0.0) phi += std::atan2(lc, glm::dot(r0, r1)) * (c / lc);
+      }
+      if (normal) irradiance += 0.5 * glm::dot(glm::normalize(*normal), phi);
+      if (want_polygons) {
+        std::vector<glm::dvec3> world(v.size());
+        for (size_t i = 0; i < v.size(); ++i) world[i] = v[i] + origin;
+        result.visible_polygons.push_back(std::move(world));
+      }
+    }
+    double total_solid_angle = 0.0;
+    for (const LightTriangle& t : light_triangles) {
+      total_solid_angle += SolidAngle(light_local[t.v[0]] - p_local, light_local[t.v[1]] - p_local,
+                                      light_local[t.v[2]] - p_local);
+    }
+    result.visible_area_fraction = std::min(1.0, area / light_area);
+    result.visible_solid_angle_fraction =
+        total_solid_angle > 0.0 ? std::min(1.0, solid_angle / total_solid_angle) : 0.0;
+    // All visible fragments wind the same way as seen from P.
+    result.irradiance = radiance * std::fabs(irradiance);
+    return result;
+  }
+};
+
+// ---------------------------------------------------------------------------
+namespace {
+
+// Ear clipping in the projection that drops the dominant normal axis; exact
+// 2D orientation tests. Returns triangles as vertex index triples in the
+// polygon's winding, or an error for non-simple polygons.
+StatusOr<std::vector<std::array<uint32_t, 3>>> Triangulate(const std::vector<glm::dvec3>& v,
+                                                           const glm::dvec3& newell) {
+  int k = 0;
+  for (int i = 1; i < 3; ++i) {
+    if (std::fabs(newell[i]) > std::fabs(newell[k])) k = i;
+  }
+  int i2 = (k + 1) % 3, j2 = (k + 2) % 3;
+  if (newell[k] < 0) std::swap(i2, j2);  // make the polygon counter-clockwise
+  // Simple: no two non-adjacent edges meet (exact segment tests).
+  const size_t n = v.size();
+  auto meet = [&](const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, const glm::dvec3& d) {
+    const int o1 = Orient2d(a, b, c, i2, j2), o2 = Orient2d(a, b, d, i2, j2);
+    const int o3 = Orient2d(c, d, a, i2, j2), o4 = Orient2d(c, d, b, i2, j2);
+    if (o1 * o2 < 0 && o3 * o4 < 0) return true;
+    auto on = [&](const glm::dvec3& p, const glm::dvec3& q, const glm::dvec3& x, int o) {
+      return o == 0 && std::min(p[i2], q[i2]) <= x[i2] && x[i2] <= std::max(p[i2], q[i2]) &&
+             std::min(p[j2], q[j2]) <= x[j2] && x[j2] <= std::max(p[j2], q[j2]);
+    };
+    return on(a, b, c, o1) || on(a, b, d, o2) || on(c, d, a, o3) || on(c, d, b, o4);
+  };
+  for (size_t e = 0; e < n; ++e) {
+    for (size_t f = e + 2; f < n; ++f) {
+      if (e == 0 && f == n - 1) continue;  // adjacent through vertex 0
+      if (meet(v[e], v[(e + 1) % n], v[f], v[(f + 1) % n])) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "light: not a simple polygon (edges ", e, " and ", f, " meet)"));
+      }
+    }
+  }
+  std::vector<uint32_t> ring(v.size());
+  for (uint32_t i = 0; i < ring.size(); ++i) ring[i] = i;
+  std::vector<std::array<uint32_t, 3>> out;
+  // Drop exactly collinear (straight) vertices first; they would give
+  // zero-area ears.
+  auto drop_straight = [&]() {
+    bool changed = true;
+    while (changed && ring.size() > 3) {
+      changed = false;
+      for (size_t i = 0; i < ring.size(); ++i) {
+        const size_t a = (i + ring.size() - 1) % ring.size(), c = (i + 1) % ring.size();
+        if (Orient2d(v[ring[a]], v[ring[i]], v[ring[c]], i2, j2) == 0) {
+          ring.erase(ring.begin() + static_cast<long>(i));
+          changed = true;
+          break;
+        }
+      }
+    }
+  };
+  drop_straight();
+  while (ring.size() > 3) {
+    bool found = false;
+    for (size_t i = 0; i < ring.size() && !found; ++i) {
+      const size_t a = (i + ring.size() - 1) % ring.size(), c = (i + 1) % ring.size();
+      const glm::dvec3 &pa = v[ring[a]], &pb = v[ring[i]], &pc = v[ring[c]];
+      if (Orient2d(pa, pb, pc, i2, j2) <= 0) continue;  // reflex
+      bool empty = true;
+      for (size_t m = 0; m < ring.size() && empty; ++m) {
+        if (m == a || m == i || m == c) continue;
+        const glm::dvec3& x = v[ring[m]];
+        if (Orient2d(pa, pb, x, i2, j2) >= 0 && Orient2d(pb, pc, x, i2, j2) >= 0 &&
+            Orient2d(pc, pa, x, i2, j2) >= 0) {
+          empty = false;
+        }
+      }
+      if (!empty) continue;
+      out.push_back({ring[a], ring[i], ring[c]});
+      ring.erase(ring.begin() + static_cast<long>(i));
+      drop_straight();
+      found = true;
+    }
+    if (!found) return absl::InvalidArgumentError("light: not a simple polygon");
+  }
+  if (ring.size() == 3) {
+    if (Orient2d(v[ring[0]], v[ring[1]], v[ring[2]], i2, j2) <= 0) {
+      return absl::InvalidArgumentError("light: not a simple polygon");
+    }
+    out.push_back({ring[0], ring[1], ring[2]});
+  }
+  return out;
+}
+
+}  // namespace
+
+StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
+    const AreaLight& light, const Scene& scene, const TreeOptions& options) {
+  auto impl = std::make_unique<Impl>();
+
+  // Validate the light.
+  const auto& lv = light.vertices;
+  if (lv.size() < 3) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("light.vertices: need at least 3, got ", lv.size()));
+  }
+  for (size_t i = 0; i < lv.size(); ++i) {
+    for (int c = 0; c < 3; ++c) {
+      if (std::isnan(lv[i][c])) {
+        return absl::InvalidArgumentError(absl::StrCat("light.vertices[", i, "]: NaN coordinate"));
+      }
+      if (!std::isfinite(lv[i][c])) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("light.vertices[", i, "]: infinite coordinate"));
+      }
+    }
+    if (lv[i] == lv[(i + 1) % lv.size()]) {
+      return absl::InvalidArgumentError(absl::StrCat("light.vertices[", (i + 1) % lv.size(),
+                                                     "]: repeats light.vertices[", i, "]"));
+    }
+  }
+  if (!std::isfinite(light.radiance) || light.radiance < 0.0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("light.radiance: must be finite and >= 0, got ", light.radiance));
+  }
+  glm::dvec3 centroid(0.0);
+  for (const auto& p : lv) centroid += p;
+  centroid /= static_cast<double>(lv.size());
+  impl->origin = centroid;
+  impl->radiance = light.radiance;
+  for (const auto& p : lv) impl->light_local.push_back(p - centroid);
+  const auto& ll = impl->light_local;
+  glm::dvec3 newell(0.0);
+  double diameter = 0.0;
+  for (size_t i = 0; i < ll.size(); ++i) {
+    newell += glm::cross(ll[i], ll[(i + 1) % ll.size()]);
+    for (size_t j = 0; j < i; ++j) diameter = std::max(diameter, glm::length(ll[i] - ll[j]));
+  }
+  const double newell_len = glm::length(newell);
+  if (!(newell_len > 1e-12 * diameter * diameter)) {
+    return absl::InvalidArgumentError("light: zero area");
+  }
+  const glm::dvec3 unit_normal = newell / newell_len;
+  for (size_t i = 0; i < ll.size(); ++i) {
+    const double off = std::fabs(glm::dot(unit_normal, ll[i]));
+    if (off > 1e-6 * diameter) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "light: not planar (light.vertices[", i, "] is ", off, " off the plane)"));
+    }
+  }
+  VISQ_ASSIGN_OR_RETURN(auto triangles, Triangulate(ll, newell));
+
+  // The light's exact geometry: input points, triangle planes, and the light
+  // plane through the largest triangle (oriented: front side positive).
+  for (const auto& p : ll) impl->light_points.push_back(XPoint::Input(p));
+  double best = -1.0;
+  for (const auto& t : triangles) {
+    const double a = Area3(ll[t[0]], ll[t[1]], ll[t[2]]);
+    impl->light_area += a;
+    impl->light_planes.push_back(XPlane::ThroughPoints(
+        impl->light_points[t[0]], impl->light_points[t[1]], impl->light_points[t[2]]));
+    impl->light_planes.back().PrecomputeExact();
+    impl->light_triangles.push_back({{t[0], t[1], t[2]}, &impl->light_planes.back()});
+    if (a > best) {
+      best = a;
+      impl->light_plane = &impl->light_planes.back();
+    }
+  }
+  const LightTriangle* main_tri = nullptr;
+  for (const auto& t : impl->light_triangles) {
+    if (t.plane == impl->light_plane) main_tri = &t;
+  }
+  const glm::dvec3 L0 = ll[main_tri->v[0]], L1 = ll[main_tri->v[1]], L2 = ll[main_tri->v[2]];
+
+  // The receiver box in the local frame. No outward rounding is needed:
+  // rounding is monotone, so a world point inside the world box lands inside
+  // the converted box (and widening would make flat boxes thick by an ulp,
+  // which costs near-degenerate hull faces).
+  if (options.receiver_bounds && !options.receiver_bounds->Empty()) {
+    const glm::dvec3 lo = options.receiver_bounds->min - centroid;
+    const glm::dvec3 hi = options.receiver_bounds->max - centroid;
+    impl->receiver_box = std::make_pair(lo, hi);
+  }
+
+  // Select the occluders: drop what lies behind the light plane or outside
+  // the shaft's box; keep far ones (strictly separated from the receivers)
+  // in the tree, the rest near.
+  std::vector<uint8_t> excluded;
+  if (!options.exclude_triangles.empty()) {
+    excluded.assign(scene.triangles.size(), 0);
+    for (uint32_t t : options.exclude_triangles) {
+      if (t < excluded.size()) excluded[t] = 1;
+    }
+  }
+  glm::dvec3 shaft_lo(std::numeric_limits<double>::infinity()), shaft_hi(-shaft_lo);
+  for (const auto& p : ll) {
+    shaft_lo = glm::min(shaft_lo, p);
+    shaft_hi = glm::max(shaft_hi, p);
+  }
+  glm::dvec3 corners[8];
+  struct ShaftPlane { glm::dvec3 a, b, c; int outside; };
+  std::vector<ShaftPlane> shaft_planes;
+  bool light_below_receivers = false;
+  std::deque<XPoint> corner_points;
+  std::deque<XPlane> corner_planes;
+  if (impl->receiver_box) {
+    const auto& [lo, hi] = *impl->receiver_box;
+    shaft_lo = glm::min(shaft_lo, lo);
+    shaft_hi = glm::max(shaft_hi, hi);
+    for (int c = 0; c < 8; ++c) {
+      corners[c] = glm::dvec3((c & 1) ? hi.x : lo.x, (c & 2) ? hi.y : lo.y, (c & 4) ? hi.z : lo.z);
+      corner_points.push_back(XPoint::Input(corners[c]));
+      corner_planes.push_back(XPlane::ParallelThrough(*impl->light_plane, corner_points.back()));
+    }
+    // The shaft: supporting planes of the convex hull of the light and the
+    // box (brute force over point triples; a dozen points). Every segment
+    // from the light to a receiver lies inside it.
+    std::vector<glm::dvec3> hull_points(ll.begin(), ll.end());
+    for (const auto& c : corners) {
+      if (std::find(hull_points.begin(), hull_points.end(), c) == hull_points.end()) {
+        hull_points.push_back(c);
+      }
+    }
+    const size_t m = hull_points.size();
+    for (size_t i = 0; i < m; ++i) {
+      for (size_t j = i + 1; j < m; ++j) {
+        for (size_t k = j + 1; k < m; ++k) {
+          bool pos = false, neg = false;
+          for (size_t x = 0; x < m && !(pos && neg); ++x) {
+            const int o = Orient3d(hull_points[i], hull_points[j], hull_points[k], hull_points[x]);
+            pos |= o > 0;
+            neg |= o < 0;
+          }
+          if (pos == neg) continue;  // not supporting (or all coplanar)
+          shaft_planes.push_back({hull_points[i], hull_points[j], hull_points[k], pos ? -1 : 1});
+        }
+      }
+    }
+    // Separation along the light normal needs the light strictly below the box.
+    light_below_receivers = true;
+    for (const auto& plane : corner_planes) {
+      for (const auto& y : impl->light_points) light_below_receivers &= EuclidSide(y, plane) < 0;
+    }
+  }
+
+  // Occluder vertices are merged by position, not by index: meshes often
+  // repeat positions (flat shading, per-face vertices), and one point object
+  // per position lets a split vertex be recognised as lying on an edge plane
+  // by construction instead of by an exact evaluation (see EdgePlane).
+  std::vector<int32_t> remap(scene.positions.size(), -1);
+  struct PositionHash {
+    size_t operator()(const glm::dvec3& p) const {
+      size_t h = 0;
+      for (int i = 0; i < 3; ++i) {
+        h = h * 0x9E3779B97F4A7C15ull + std::hash<double>()(p[i] + 0.0);  // -0 == +0
+      }
+      return h;
+    }
+  };
+  std::unordered_map<glm::dvec3, uint32_t, PositionHash> by_position;
+  std::vector<glm::dvec3> occ_local;
+  struct Pending { uint32_t v[3]; int8_t side[3]; uint32_t tri; bool far; bool two_sided; };
+  std::vector<Pending> pending;
+  for (size_t ti = 0; ti < scene.triangles.size(); ++ti) {
+    const glm::uvec3 tri = scene.triangles[ti];
+    for (int c = 0; c < 3; ++c) {
+      if (tri[c] >= scene.positions.size()) {
+        return absl::InvalidArgumentError(absl::StrCat("scene.triangles[", ti, "][", c, "]: index ",
+                                                       tri[c], " >= ", scene.positions.size(),
+                                                       " positions"));
+      }
+    }
+    if (!excluded.empty() && excluded[ti]) continue;
+    glm::dvec3 v[3];
+    for (int c = 0; c < 3; ++c) v[c] = scene.positions[tri[c]] - centroid;
+    // Degenerate (zero-area) triangles block nothing.
+    {
+      // Test the projection along the dominant normal axis first: it is the
+      // one whose sign the filter settles.
+      const glm::dvec3 g = glm::abs(glm::cross(v[1] - v[0], v[2] - v[0]));
+      const int k = g.x >= g.y && g.x >= g.z ? 0 : (g.y >= g.z ? 1 : 2);
+      if (Orient2d(v[0], v[1], v[2], (k + 1) % 3, (k + 2) % 3) == 0 &&
+          Orient2d(v[0], v[1], v[2], k, (k + 1) % 3) == 0 &&
+          Orient2d(v[0], v[1], v[2], (k + 2) % 3, k) == 0) {
+        continue;
+      }
+    }
+    // Shaft box (only with receiver bounds: otherwise receivers are anywhere).
+    bool outside = false;
+    for (int i = 0; i < 3 && !outside && impl->receiver_box; ++i) {
+      outside = (v[0][i] < shaft_lo[i] && v[1][i] < shaft_lo[i] && v[2][i] < shaft_lo[i]) ||
+                (v[0][i] > shaft_hi[i] && v[1][i] > shaft_hi[i] && v[2][i] > shaft_hi[i]);
+    }
+    for (size_t k = 0; k < shaft_planes.size() && !outside; ++k) {
+      const ShaftPlane& sp = shaft_planes[k];
+      outside = true;
+      for (int c = 0; c < 3 && outside; ++c) outside = Orient3d(sp.a, sp.b, sp.c, v[c]) == sp.outside;
+    }
+    if (outside) continue;
+    // Behind or in the light plane: blocks no segment from the light.
+    Pending p{};
+    bool any_front = false, any_back = false;
+    for (int c = 0; c < 3; ++c) {
+      p.side[c] = static_cast<int8_t>(Orient3d(L0, L1, L2, v[c]));
+      any_front |= p.side[c] > 0;
+      any_back |= p.side[c] < 0;
+    }
+    if (!any_front) continue;
+    // Far: in the light's closed front and strictly separated from the
+    // receiver box by an axis plane or a plane parallel to the light, with
+    // the light on the occluder's side.
+    if (impl->receiver_box && !any_back) {
+      const auto& [lo, hi] = *impl->receiver_box;
+      for (int axis = 0; axis < 3 && !p.far; ++axis) {
+        bool above = true, below = true;
+        for (int c = 0; c < 3; ++c) {
+          above &= v[c][axis] > hi[axis];
+          below &= v[c][axis] < lo[axis];
+        }
+        for (const auto& y : ll) {
+          above &= y[axis] > hi[axis];
+          below &= y[axis] < lo[axis];
+        }
+        p.far = above || below;
+      }
+      if (!p.far && light_below_receivers) {
+        bool separated = true;
+        for (int c = 0; c < 3 && separated; ++c) {
+          const XPoint x = XPoint::Input(v[c]);
+          for (const auto& plane : corner_planes) separated &= EuclidSide(x, plane) < 0;
+        }
+        p.far = separated;
+      }
+    }
+    for (int c = 0; c < 3; ++c) {
+      if (remap[tri[c]] < 0) {
+        auto [it, inserted] =
+            by_position.try_emplace(v[c], static_cast<uint32_t>(occ_local.size()));
+        if (inserted) occ_local.push_back(v[c]);
+        remap[tri[c]] = static_cast<int32_t>(it->second);
+      }
+      p.v[c] = static_cast<uint32_t>(remap[tri[c]]);
+    }
+    p.tri = static_cast<uint32_t>(ti);
+    if (p.far) {
+      // Orient so that the light is on the non-negative side.
+      bool pos = false, neg = false;
+      for (const auto& y : ll) {
+        const int s = Orient3d(y, v[0], v[1], v[2]);
+        pos |= s > 0;
+        neg |= s < 0;
+      }
+      if (neg && !pos) std::swap(p.v[1], p.v[2]);
+      p.two_sided = pos && neg;
+    }
+    pending.push_back(p);
+  }
+  for (const auto& x : occ_local) impl->points.push_back(XPoint::Input(x));
+  for (const auto& p : pending) {
+    if (p.far) {
+      impl->far.push_back({{p.v[0], p.v[1], p.v[2]}, p.two_sided});
+    } else {
+      impl->near_by_triangle[p.tri] = static_cast<uint32_t>(impl->near.size());
+      impl->near.push_back({{p.v[0], p.v[1], p.v[2]}, {p.side[0], p.side[1], p.side[2]}, p.tri});
+    }
+  }
+  impl->far.shrink_to_fit();
+  impl->near.shrink_to_fit();
+
+  // The tree: one undefined leaf holding every far occluder.
+  // Node 0 is the root; 1 and 2 are the shared visible / invisible leaves.
+  if (impl->far.empty()) {
+    impl->NewNode(kVisible);
+  } else {
+    const uint32_t list = impl->NewList();
+    for (uint32_t i = 0; i < impl->far.size(); ++i) impl->lists[list].push_back(i);
+    impl->list_bytes = impl->lists[list].capacity() * sizeof(uint32_t);
+    impl->NewNode(kUndefined, 0, list);
+  }
+  impl->NewNode(kVisible);
+  impl->NewNode(kInvisible);
+  return std::unique_ptr<LightVisibilityTree>(new LightVisibilityTree(std::move(impl)));
+}
+
+LightVisibilityTree::LightVisibilityTree(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+LightVisibilityTree::~LightVisibilityTree() = default;
+
+StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bool want_polygons) {
+  return impl_->Query(point, want_polygons);
+}
+
+StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
+    std::span<const QueryPoint> points, int threads, bool want_polygons) {
+  std::vector<PointVisibility> out(points.size());
+  size_t workers = threads > 0 ? static_cast<size_t>(threads)
+                               : std::max(1u, std::thread::hardware_concurrency());
+  workers = std::max<size_t>(1, std::min(workers, points.size()));
+  std::atomic<size_t> next{0};
+  std::mutex error_mutex;
+  Status error;
+  // Dynamic scheduling: query costs vary a lot (refinement, penumbrae).
+  auto work = [&]() {
+    for (size_t i = next.fetch_add(1); i < points.size(); i = next.fetch_add(1)) {
+      auto r = impl_->Query(points[i], want_polygons);
+      if (!r.ok()) {
+        std::lock_guard lock(error_mutex);
+        if (error.ok()) {
+          error = Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message()));
+        }
+        continue;
+      }
+      out[i] = std::move(*r);
+    }
+  };
+  std::vector<std::thread> pool;
+  for (size_t w = 1; w < workers; ++w) pool.emplace_back(work);
+  work();
+  for (auto& t : pool) t.join();
+  if (!error.ok()) return error;
+  return out;
+}
+
+TreeStats LightVisibilityTree::Stats() const {
+  TreeStats s;
+  std::shared_lock lock(impl_->mutex);
+  s.nodes = impl_->nodes.size();
+  s.memory_bytes = impl_->MemoryBytesLocked();
+  s.queries = impl_->queries.load();
+  s.hits = impl_->hits.load();
+  s.refinements = impl_->refinements.load();
+  s.far_occluders = impl_->far.size();
+  s.near_occluders = impl_->near.size();
+  return s;
+}
+
+size_t LightVisibilityTree::MemoryBytes() const {
+  std::shared_lock lock(impl_->mutex);
+  return impl_->MemoryBytesLocked();
+}
+
+double LightVisibilityTree::light_area() const { return impl_->light_area; }
+
+// ---------------------------------------------------------------------------
+uint64_t HashLight(const AreaLight& light, const TreeOptions& options) {
+  uint64_t h = 1469598103934665603ull;  // FNV-1a over the bit patterns
+  auto mix = [&](const void* data, size_t n) {
+    const auto* b = static_cast<const unsigned char*>(data);
+    for (size_t i = 0; i < n; ++i) h = (h ^ b[i]) * 1099511628211ull;
+  };
+  for (const auto& v : light.vertices) mix(&v, sizeof(v));
+  mix(&light.radiance, sizeof(light.radiance));
+  if (options.receiver_bounds) {
+    mix(&options.receiver_bounds->min, sizeof(glm::dvec3));
+    mix(&options.receiver_bounds->max, sizeof(glm::dvec3));
+  }
+  for (uint32_t t : options.exclude_triangles) mix(&t, sizeof(t));
+  return h;
+}
+
+size_t LightVisibilityCache::KeyHash::operator()(const CacheKey& k) const {
+  return std::hash<std::string>()(k.scene_id) ^ (k.scene_version * 0x9E3779B97F4A7C15ull) ^
+         (k.light_hash * 0xC2B2AE3D27D4EB4Full);
+}
+
+LightVisibilityCache::LightVisibilityCache(size_t max_bytes) : max_bytes_(max_bytes) {}
+
+std::shared_ptr<LightVisibilityTree> LightVisibilityCache::Find(const CacheKey& key) {
+  std::lock_guard lock(mutex_);
+  auto it = index_.find(key);
+  if (it == index_.end()) return nullptr;
+  lru_.splice(lru_.begin(), lru_, it->second);
+  EvictLocked(&key);
+  return it->second->second;
+}
+
+StatusOr<std::shared_ptr<LightVisibilityTree>> LightVisibilityCache::GetOrCreate(
+    const CacheKey& key, const Factory& make) {
+  if (auto hit = Find(key)) return hit;
+  // Build outside the lock: creation scans the whole scene.
+  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<LightVisibilityTree> made, make());
+  std::shared_ptr<LightVisibilityTree> tree(std::move(made));
+  std::lock_guard lock(mutex_);
+  auto it = index_.find(key);
+  if (it != index_.end()) {  // somebody else built it meanwhile; keep theirs
+    lru_.splice(lru_.begin(), lru_, it->second);
+    return it->second->second;
+  }
+  lru_.emplace_front(key, tree);
+  index_[key] = lru_.begin();
+  EvictLocked(&key);
+  return tree;
+}
+
+void LightVisibilityCache::EvictLocked(const CacheKey* keep) {
+  // Trees grow after insertion, so the total is measured afresh.
+  size_t total = 0;
+  for (const auto& [k, tree] : lru_) total += tree->MemoryBytes();
+  while (total > max_bytes_ && !lru_.empty()) {
+    auto victim = std::prev(lru_.end());
+    if (keep != nullptr && victim->first == *keep) break;  // never the one being returned
+    total -= victim->second->MemoryBytes();
+    index_.erase(victim->first);
+    lru_.erase(victim);
+    ++evictions_;
+  }
+}
+
+void LightVisibilityCache::InvalidateScene(const std::string& scene_id) {
+  std::lock_guard lock(mutex_);
+  for (auto it = lru_.begin(); it != lru_.end();) {
+    if (it->first.scene_id == scene_id) {
+      index_.erase(it->first);
+      it = lru_.erase(it);
+    } else {
+      ++it;
+    }
+  }
+}
+
+size_t LightVisibilityCache::bytes() const {
+  std::lock_guard lock(mutex_);
+  size_t total = 0;
+  for (const auto& [k, tree] : lru_) total += tree->MemoryBytes();
+  return total;
+}
+
+size_t LightVisibilityCache::size() const {
+  std::lock_guard lock(mutex_);
+  return lru_.size();
+}
+
+uint64_t LightVisibilityCache::evictions() const {
+  std::lock_guard lock(mutex_);
+  return evictions_;
+}
+
+}  // namespace visq::exact

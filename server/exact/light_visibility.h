@@ -1,0 +1,188 @@
+// Exact point-to-area-light visibility (Mora, Aveneau, Apostu, Ghazanfarpour,
+// "Lazy Visibility Evaluation for Exact Soft Shadows", Eurographics 2013;
+// slides in shared/papers/lazy-visibility-exact-soft-shadows.txt).
+//
+// The idea. A line through p and q has Plücker coordinates (q - p, p x q);
+// the side of one line against another (their permuted inner product) equals
+// the orientation determinant of the four points spanning them, and a line
+// stabs a triangle exactly when its sides against the three edge lines share
+// one sign. A BSP tree over line space, whose inner nodes are occluder edge
+// lines, partitions the lines through the light into classes that hit the
+// same occluders; leaves are visible, invisible or undefined. The tree starts
+// as one undefined leaf holding every occluder and grows lazily: only when a
+// query reaches an undefined leaf is one of its occluders replaced by its 3
+// (or 5) node BSP, the other occluders being filtered down by the sides of
+// their vertex-to-light-vertex lines. A query from a point P pushes the light
+// polygon (the beam of lines from P to the light) down the tree, splitting
+// it by the plane through P and a node's edge line where the node separates
+// it; fragments reaching visible leaves are the visible parts of the light.
+// From those polygons we integrate irradiance analytically.
+//
+// What is exact. Every sign the algorithm takes is computed by an exact,
+// filtered predicate (see exact_geometry.h for the representation of split
+// points), so the partition of the light is topologically consistent: no
+// cracks, no lost area, no loops, whatever the scale or translation. Only the
+// final areas, solid angles and irradiance are floating point.
+//
+// Segments, not lines. Occluders must lie between the light and the point.
+// The tree is built for a receiver region R (a box): occluders strictly
+// separated from R, on the light's side, by an axis plane or by a plane
+// parallel to the light are "far" and live in the shared tree, where a line
+// hit is a segment hit for every P in R. All other occluders (near the
+// receivers, crossing the light plane, the receiver's own surface) are
+// "near": each query clips them exactly to the slab between the light plane
+// and the plane through P parallel to it, and subtracts their shadow from the
+// tree's visible fragments with the same split machinery. So a point lying on
+// a surface works: its own triangle (and its neighbours) become boundary
+// touchers, which never block. Without receiver bounds every occluder is
+// near: correct, but nothing is cached; group receivers (per triangle, per
+// node, or per query batch) and pass their bounds, as the paper does.
+//
+// Threads. Queries on one tree may run concurrently. A std::shared_mutex
+// guards the tree: queries descend under a shared lock; a query that reaches
+// an undefined leaf drops it, takes the exclusive lock, refines that one leaf
+// (if nobody did meanwhile) and resumes under a shared lock. Refinement is
+// rare once the tree is warm (it is bounded by the tree size, queries are
+// not), so readers almost never wait; per-node locks would cost more in the
+// common, read-only case. All per-query geometry is query-local.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <list>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <shared_mutex>
+#include <span>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "common/status.h"
+#include "scene/scene.h"
+
+namespace visq::exact {
+
+// A planar polygon (convex or not, simple), emitting on its front side: the
+// side its counter-clockwise winding faces. Uniform Lambertian radiance.
+// "Planar" allows vertices 1e-6 of the light's diameter off the best plane
+// (float-authored quads); the polygon is triangulated (exact ear clipping)
+// and each triangle is exactly planar, so the tolerance never reaches a
+// predicate. Points on or behind the plane of its largest triangle see
+// nothing.
+struct AreaLight {
+  std::vector<glm::dvec3> vertices;  // world space
+  double radiance = 1.0;             // W / (m^2 sr)
+};
+
+struct TreeOptions {
+  // Where query points lie; enables the far (cached) occluder set and the
+  // shaft culling. Queries outside it fail with OUT_OF_RANGE.
+  std::optional<Bounds> receiver_bounds;
+  // Scene triangles that are never occluders (e.g. the emitter's own mesh).
+  std::vector<uint32_t> exclude_triangles;
+};
+
+struct QueryPoint {
+  glm::dvec3 position{0.0};
+  // Receiver normal: light below the tangent plane is invisible and the
+  // irradiance uses this cosine. Optional.
+  std::optional<glm::dvec3> normal;
+  // The receiver's own triangle: never an occluder for this point; its
+  // geometric normal is used when `normal` is absent.
+  std::optional<uint32_t> receiver_triangle;
+};
+
+struct PointVisibility {
+  double visible_area_fraction = 0.0;         // of the light's area
+  double visible_solid_angle_fraction = 0.0;  // of the light's solid angle from P
+  double irradiance = 0.0;  // W/m^2 at P for its normal; 0 without a normal
+  // The visible parts of the light, world space, when asked for.
+  std::vector<std::vector<glm::dvec3>> visible_polygons;
+};
+
+struct TreeStats {
+  size_t nodes = 0;
+  size_t memory_bytes = 0;
+  uint64_t queries = 0;
+  uint64_t hits = 0;         // queries that refined nothing
+  uint64_t refinements = 0;  // leaves turned into occluder BSPs
+  size_t far_occluders = 0;  // in the shared tree
+  size_t near_occluders = 0;  // clipped per query
+};
+
+class LightVisibilityTree {
+ public:
+  // Validates the light ("light.vertices[2]: NaN coordinate", "light: zero
+  // area", "light: not planar", ...) and selects the occluders.
+  [[nodiscard]] static StatusOr<std::unique_ptr<LightVisibilityTree>> Create(
+      const AreaLight& light, const Scene& scene, const TreeOptions& options = {});
+  ~LightVisibilityTree();
+  LightVisibilityTree(const LightVisibilityTree&) = delete;
+  LightVisibilityTree& operator=(const LightVisibilityTree&) = delete;
+
+  // Thread-safe; grows the tree as needed.
+  [[nodiscard]] StatusOr<PointVisibility> Query(const QueryPoint& point,
+                                                bool want_polygons = false);
+  // Queries in parallel on `threads` workers (0: hardware concurrency).
+  [[nodiscard]] StatusOr<std::vector<PointVisibility>> QueryBatch(
+      std::span<const QueryPoint> points, int threads = 0, bool want_polygons = false);
+
+  TreeStats Stats() const;
+  size_t MemoryBytes() const;
+  double light_area() const;
+
+ private:
+  struct Impl;
+  explicit LightVisibilityTree(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// A 64-bit hash of the light (and of the tree options, which change the
+// tree), for cache keys.
+uint64_t HashLight(const AreaLight& light, const TreeOptions& options = {});
+
+struct CacheKey {
+  std::string scene_id;
+  uint64_t scene_version = 0;
+  uint64_t light_hash = 0;
+  bool operator==(const CacheKey&) const = default;
+};
+
+// Trees by (scene id, scene version, light), bounded in bytes (trees grow
+// after insertion, so the bound is enforced on every access), least recently
+// used first out. Evicted trees live on while callers hold them.
+class LightVisibilityCache {
+ public:
+  using Factory = std::function<StatusOr<std::unique_ptr<LightVisibilityTree>>()>;
+  explicit LightVisibilityCache(size_t max_bytes);
+
+  // The cached tree, or a new one from `make` (not called on a hit).
+  [[nodiscard]] StatusOr<std::shared_ptr<LightVisibilityTree>> GetOrCreate(const CacheKey& key,
+                                                                           const Factory& make);
+  std::shared_ptr<LightVisibilityTree> Find(const CacheKey& key);
+  // Drops every tree of the scene (all versions).
+  void InvalidateScene(const std::string& scene_id);
+
+  size_t bytes() const;
+  size_t size() const;
+  uint64_t evictions() const;
+
+ private:
+  struct KeyHash {
+    size_t operator()(const CacheKey& k) const;
+  };
+  using Entry = std::pair<CacheKey, std::shared_ptr<LightVisibilityTree>>;
+  void EvictLocked(const CacheKey* keep);
+
+  mutable std::mutex mutex_;
+  size_t max_bytes_;
+  uint64_t evictions_ = 0;
+  std::list<Entry> lru_;  // front: most recent
+  std::unordered_map<CacheKey, std::list<Entry>::iterator, KeyHash> index_;
+};
+
+}  // namespace visq::exact

@@ -1,0 +1,257 @@
+#include "obscurance/obscurance_atlas.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <unordered_map>
+
+namespace visq::obscurance {
+namespace {
+
+double Cross2(const glm::dvec2& a, const glm::dvec2& b) { return a.x * b.y - a.y * b.x; }
+
+// Sutherland-Hodgman against one half plane keep(p) >= 0, keep linear.
+template <typename Keep>
+void ClipAgainst(ClippedPolygon& poly, Keep keep) {
+  ClippedPolygon out;
+  for (int i = 0; i < poly.n; ++i) {
+    const glm::dvec2& a = poly.p[i];
+    const glm::dvec2& b = poly.p[(i + 1) % poly.n];
+    const double ka = keep(a), kb = keep(b);
+    if (ka >= 0) out.p[out.n++] = a;
+    if ((ka >= 0) != (kb >= 0)) out.p[out.n++] = a + (b - a) * (ka / (ka - kb));
+  }
+  poly = out;
+}
+
+struct Chart {
+  std::vector<uint32_t> triangles;
+  glm::dvec3 axis_u{0.0}, axis_v{0.0};
+  glm::dvec2 lo{0.0}, hi{0.0};  // projected bounds, world units
+  glm::dvec2 offset{0.0};       // placed corner, texels
+};
+
+// Welded vertex ids, so that charts grow across vertices the file split.
+std::vector<uint32_t> WeldPositions(const Scene& scene) {
+  const double extent = std::max(1e-30, glm::length(scene.bounds.Extent()));
+  const double cell = extent * 1e-7;
+  std::unordered_map<uint64_t, uint32_t> ids;
+  std::vector<uint32_t> weld(scene.positions.size());
+  for (size_t i = 0; i < scene.positions.size(); ++i) {
+    const glm::dvec3 q = glm::floor((scene.positions[i] - scene.bounds.min) / cell + 0.5);
+    const uint64_t key = (static_cast<uint64_t>(q.x) * 73856093ull) ^ (static_cast<uint64_t>(q.y) * 19349663ull * 1000003ull) ^
+                         (static_cast<uint64_t>(q.z) * 83492791ull * 998244353ull);
+    // Hash collisions only merge charts' adjacency, never geometry: harmless.
+    weld[i] = ids.emplace(key, static_cast<uint32_t>(i)).first->second;
+  }
+  return weld;
+}
+
+// Shelf packing, tallest first. False if the charts do not fit.
+bool Pack(std::vector<Chart>& charts, const std::vector<uint32_t>& order, double scale, uint32_t gutter,
+          uint32_t width, uint32_t height) {
+  double x = 0, y = 0, shelf = 0;
+  for (uint32_t c : order) {
+    Chart& chart = charts[c];
+    const double w = std::ceil((chart.hi.x - chart.lo.x) * scale + 1e-3) + 2.0 * gutter;
+    const double h = std::ceil((chart.hi.y - chart.lo.y) * scale + 1e-3) + 2.0 * gutter;
+    if (w > width) return false;
+    if (x + w > width) { x = 0; y += shelf; shelf = 0; }
+    if (y + h > height) return false;
+    chart.offset = glm::dvec2(x + gutter, y + gutter);
+    x += w;
+    shelf = std::max(shelf, h);
+  }
+  return true;
+}
+
+StatusOr<std::vector<glm::vec2>> BuildCharts(const Scene& scene, uint32_t resolution, const AtlasOptions& options,
+                                             uint32_t* chart_count, double* texels_per_unit) {
+  const size_t nt = scene.TriangleCount();
+  std::vector<glm::dvec3> normal(nt);
+  std::vector<double> area(nt);
+  for (size_t t = 0; t < nt; ++t) {
+    const glm::dvec3 n = glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0), scene.Vertex(t, 2) - scene.Vertex(t, 0));
+    area[t] = 0.5 * glm::length(n);
+    normal[t] = area[t] > 0 ? n / (2.0 * area[t]) : glm::dvec3(0.0, 0.0, 1.0);
+  }
+  // Edge adjacency over welded vertices.
+  const std::vector<uint32_t> weld = WeldPositions(scene);
+  std::unordered_map<uint64_t, std::vector<uint32_t>> edges;
+  edges.reserve(nt * 3);
+  auto edge_key = [&](uint32_t a, uint32_t b) {
+    a = weld[a]; b = weld[b];
+    if (a > b) std::swap(a, b);
+    return (static_cast<uint64_t>(a) << 32) | b;
+  };
+  for (size_t t = 0; t < nt; ++t)
+    for (int c = 0; c < 3; ++c)
+      edges[edge_key(scene.triangles[t][c], scene.triangles[t][(c + 1) % 3])].push_back(static_cast<uint32_t>(t));
+
+  // Grow charts breadth-first from the largest unassigned triangle, within
+  // one node and a normal cone around the seed.
+  std::vector<uint32_t> by_area(nt);
+  std::iota(by_area.begin(), by_area.end(), 0u);
+  std::stable_sort(by_area.begin(), by_area.end(), [&](uint32_t a, uint32_t b) { return area[a] > area[b]; });
+  std::vector<int32_t> chart_of(nt, -1);
+  std::vector<Chart> charts;
+  std::vector<uint32_t> queue;
+  for (uint32_t seed : by_area) {
+    if (chart_of[seed] >= 0) continue;
+    const int32_t id = static_cast<int32_t>(charts.size());
+    Chart chart;
+    const glm::dvec3 n0 = normal[seed];
+    queue.assign(1, seed);
+    chart_of[seed] = id;
+    for (size_t q = 0; q < queue.size(); ++q) {
+      const uint32_t t = queue[q];
+      chart.triangles.push_back(t);
+      if (area[t] <= 0) continue;  // a degenerate triangle never joins others
+      for (int c = 0; c < 3; ++c) {
+        for (uint32_t other : edges[edge_key(scene.triangles[t][c], scene.triangles[t][(c + 1) % 3])]) {
+          if (chart_of[other] >= 0 || area[other] <= 0) continue;
+          if (scene.triangle_node[other] != scene.triangle_node[seed]) continue;
+          if (glm::dot(normal[other], n0) < options.chart_normal_cos) continue;
+          chart_of[other] = id;
+          queue.push_back(other);
+        }
+      }
+    }
+    // Project onto the plane of the seed normal.
+    const glm::dvec3 helper = std::abs(n0.x) < 0.9 ? glm::dvec3(1, 0, 0) : glm::dvec3(0, 1, 0);
+    chart.axis_u = glm::normalize(glm::cross(helper, n0));
+    chart.axis_v = glm::cross(n0, chart.axis_u);
+    chart.lo = glm::dvec2(std::numeric_limits<double>::infinity());
+    chart.hi = -chart.lo;
+    for (uint32_t t : chart.triangles)
+      for (int c = 0; c < 3; ++c) {
+        const glm::dvec3 p = scene.Vertex(t, c);
+        const glm::dvec2 q(glm::dot(p, chart.axis_u), glm::dot(p, chart.axis_v));
+        chart.lo = glm::min(chart.lo, q);
+        chart.hi = glm::max(chart.hi, q);
+      }
+    charts.push_back(std::move(chart));
+  }
+
+  // Pack at the largest uniform scale that fits: start from the scale at
+  // which the charts' areas alone would fill the atlas and shrink.
+  std::vector<uint32_t> order(charts.size());
+  std::iota(order.begin(), order.end(), 0u);
+  std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) {
+    return charts[a].hi.y - charts[a].lo.y > charts[b].hi.y - charts[b].lo.y;
+  });
+  double box_area = 0;
+  for (const Chart& c : charts) box_area += std::max(1e-30, (c.hi.x - c.lo.x) * (c.hi.y - c.lo.y));
+  double scale = std::sqrt(static_cast<double>(resolution) * resolution / box_area);
+  bool packed = false;
+  for (int attempt = 0; attempt < 200 && !packed; ++attempt) {
+    packed = Pack(charts, order, scale, options.gutter, resolution, resolution);
+    if (!packed) scale *= 0.95;
+  }
+  if (!packed)
+    return absl::InvalidArgumentError(absl::StrCat("resolution: ", resolution, " is too small for the scene's ",
+                                                   charts.size(), " atlas charts"));
+  // Grow back in small steps while it still fits (the shrink overshoots).
+  for (int attempt = 0; attempt < 20; ++attempt) {
+    if (!Pack(charts, order, scale * 1.01, options.gutter, resolution, resolution)) break;
+    scale *= 1.01;
+  }
+  Pack(charts, order, scale, options.gutter, resolution, resolution);
+
+  std::vector<glm::vec2> corner_uv(nt * 3);
+  for (const Chart& chart : charts)
+    for (uint32_t t : chart.triangles)
+      for (int c = 0; c < 3; ++c) {
+        const glm::dvec3 p = scene.Vertex(t, c);
+        const glm::dvec2 q(glm::dot(p, chart.axis_u), glm::dot(p, chart.axis_v));
+        corner_uv[3 * t + c] = glm::vec2(chart.offset + (q - chart.lo) * scale);
+      }
+  *chart_count = static_cast<uint32_t>(charts.size());
+  *texels_per_unit = scale;
+  return corner_uv;
+}
+
+}  // namespace
+
+double ClippedPolygon::Area() const {
+  double a = 0;
+  for (int i = 0; i < n; ++i) a += Cross2(p[i], p[(i + 1) % n]);
+  return 0.5 * std::abs(a);
+}
+
+ClippedPolygon ClipTriangleToTexel(const glm::dvec2& a, const glm::dvec2& b, const glm::dvec2& c, uint32_t x,
+                                   uint32_t y) {
+  ClippedPolygon poly;
+  poly.p[0] = a; poly.p[1] = b; poly.p[2] = c;
+  poly.n = 3;
+  const double x0 = x, x1 = x + 1.0, y0 = y, y1 = y + 1.0;
+  ClipAgainst(poly, [&](const glm::dvec2& p) { return p.x - x0; });
+  if (poly.n) ClipAgainst(poly, [&](const glm::dvec2& p) { return x1 - p.x; });
+  if (poly.n) ClipAgainst(poly, [&](const glm::dvec2& p) { return p.y - y0; });
+  if (poly.n) ClipAgainst(poly, [&](const glm::dvec2& p) { return y1 - p.y; });
+  return poly;
+}
+
+StatusOr<ObscuranceAtlas> BuildObscuranceAtlas(const Scene& scene, uint32_t resolution, const AtlasOptions& options) {
+  if (resolution == 0 || resolution > kMaxAtlasResolution)
+    return absl::InvalidArgumentError(
+        absl::StrCat("resolution: ", resolution, " must be in [1, ", kMaxAtlasResolution, "]"));
+  if (scene.TriangleCount() == 0) return absl::InvalidArgumentError("scene: no triangles to bake");
+  ObscuranceAtlas atlas;
+  atlas.width = atlas.height = resolution;
+  const size_t nt = scene.TriangleCount();
+
+  // Atlas coordinates per corner: the file's lightmap UVs or our charts.
+  if (!scene.lightmap_uvs.empty() && !options.force_build) {
+    atlas.from_lightmap_uvs = true;
+    atlas.corner_uv.resize(nt * 3);
+    for (size_t t = 0; t < nt; ++t)
+      for (int c = 0; c < 3; ++c)
+        atlas.corner_uv[3 * t + c] = scene.lightmap_uvs[scene.triangles[t][c]] * static_cast<float>(resolution);
+  } else {
+    VISQ_ASSIGN_OR_RETURN(atlas.corner_uv,
+                          BuildCharts(scene, resolution, options, &atlas.chart_count, &atlas.texels_per_unit));
+  }
+
+  // Fragments: each triangle clipped against the texels its box touches;
+  // the world area of a piece is its atlas area times the triangle's
+  // world-to-atlas area ratio (the map is affine on a triangle).
+  std::vector<PatchFragment> fragments;
+  for (size_t t = 0; t < nt; ++t) {
+    const glm::dvec2 a = atlas.corner_uv[3 * t], b = atlas.corner_uv[3 * t + 1], c = atlas.corner_uv[3 * t + 2];
+    const double world = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0),
+                                                      scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+    const double uv_area = 0.5 * std::abs(Cross2(b - a, c - a));
+    if (world <= 0) continue;
+    const glm::dvec2 lo = glm::clamp(glm::floor(glm::min(a, glm::min(b, c))), 0.0, resolution - 1.0);
+    const glm::dvec2 hi = glm::clamp(glm::floor(glm::max(a, glm::max(b, c))), 0.0, resolution - 1.0);
+    if (uv_area <= 1e-12) {
+      // Degenerate in the atlas (lightmap UVs can be): the whole triangle
+      // belongs to the texel of its centroid.
+      const glm::dvec2 m = glm::clamp(glm::floor((a + b + c) / 3.0), 0.0, resolution - 1.0);
+      fragments.push_back({static_cast<uint32_t>(m.y) * resolution + static_cast<uint32_t>(m.x),
+                           static_cast<uint32_t>(t), world});
+      continue;
+    }
+    for (uint32_t y = static_cast<uint32_t>(lo.y); y <= static_cast<uint32_t>(hi.y); ++y)
+      for (uint32_t x = static_cast<uint32_t>(lo.x); x <= static_cast<uint32_t>(hi.x); ++x) {
+        const double piece = ClipTriangleToTexel(a, b, c, x, y).Area();
+        if (piece > uv_area * 1e-9) fragments.push_back({y * resolution + x, static_cast<uint32_t>(t), piece / uv_area * world});
+      }
+  }
+  std::stable_sort(fragments.begin(), fragments.end(),
+                   [](const PatchFragment& p, const PatchFragment& q) { return p.texel < q.texel; });
+  atlas.texel_begin.assign(static_cast<size_t>(resolution) * resolution + 1, 0);
+  for (const PatchFragment& f : fragments) ++atlas.texel_begin[f.texel + 1];
+  std::partial_sum(atlas.texel_begin.begin(), atlas.texel_begin.end(), atlas.texel_begin.begin());
+  atlas.triangle_begin.assign(nt + 1, 0);
+  for (const PatchFragment& f : fragments) ++atlas.triangle_begin[f.triangle + 1];
+  std::partial_sum(atlas.triangle_begin.begin(), atlas.triangle_begin.end(), atlas.triangle_begin.begin());
+  atlas.triangle_fragments.resize(fragments.size());
+  std::vector<uint32_t> cursor(atlas.triangle_begin.begin(), atlas.triangle_begin.end() - 1);
+  for (uint32_t i = 0; i < fragments.size(); ++i) atlas.triangle_fragments[cursor[fragments[i].triangle]++] = i;
+  atlas.fragments = std::move(fragments);
+  return atlas;
+}
+
+}  // namespace visq::obscurance

@@ -1,0 +1,277 @@
+#include "obscurance/obscurance_model.h"
+
+#include <cmath>
+#include <cstring>
+#include <numbers>
+
+namespace visq::obscurance {
+namespace {
+
+uint64_t SplitMix64(uint64_t x) {
+  x += 0x9E3779B97F4A7C15ull;
+  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
+  x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
+  return x ^ (x >> 31);
+}
+double UnitFromBits(uint64_t bits) { return static_cast<double>(bits >> 11) * 0x1.0p-53; }
+
+double RadicalInverse(uint32_t base, uint64_t i) {
+  double inv = 1.0 / base, f = inv, r = 0;
+  while (i > 0) { r += f * static_cast<double>(i % base); i /= base; f *= inv; }
+  return r;
+}
+
+struct Fnv {
+  uint64_t h = 1469598103934665603ull;
+  void Bytes(const void* data, size_t n) {
+    const auto* p = static_cast<const unsigned char*>(data);
+    for (size_t i = 0; i < n; ++i) h = (h ^ p[i]) * 1099511628211ull;
+  }
+  template <typename T>
+  void Value(const T& v) { Bytes(&v, sizeof(v)); }
+};
+
+}  // namespace
+
+Status ValidateParams(const ObscuranceParams& params) {
+  if (!(params.d_max > 0) || !std::isfinite(params.d_max))
+    return absl::InvalidArgumentError(absl::StrCat("d_max: ", params.d_max, " must be a finite number > 0"));
+  if (params.direction_count == 0 || params.direction_count > kMaxDirections)
+    return absl::InvalidArgumentError(
+        absl::StrCat("direction_count: ", params.direction_count, " must be in [1, ", kMaxDirections, "]"));
+  if (static_cast<uint64_t>(params.first_direction) + params.direction_count > kMaxDirections)
+    return absl::InvalidArgumentError(absl::StrCat("first_direction: ", params.first_direction, " + direction_count ",
+                                                   params.direction_count, " exceeds ", kMaxDirections));
+  if (params.bundle_resolution > kMaxBundleResolution)
+    return absl::InvalidArgumentError(absl::StrCat("bundle_resolution: ", params.bundle_resolution,
+                                                   " must be at most ", kMaxBundleResolution));
+  return absl::OkStatus();
+}
+
+uint32_t EffectiveBundleResolution(const ObscuranceParams& params, const ObscuranceAtlas& atlas) {
+  if (params.bundle_resolution != 0) return params.bundle_resolution;
+  return std::min(kMaxBundleResolution, 2 * std::max(atlas.width, atlas.height));
+}
+
+AmbientModel ComputeAmbient(const Scene& scene, bool color_bleeding) {
+  AmbientModel out;
+  double total = 0;
+  glm::dvec3 ar(0.0), ae(0.0);
+  for (size_t t = 0; t < scene.TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0),
+                                                  scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+    const Material& m = scene.materials[scene.triangle_material[t]];
+    total += a;
+    ar += a * m.reflectivity;
+    ae += a * m.emission;
+  }
+  if (total <= 0) return out;
+  out.r_ave = ar / total;
+  out.mean_emission = ae / total;
+  glm::dvec3 r = out.r_ave;
+  for (int c = 0; c < 3; ++c)
+    if (r[c] > kMaxAmbientReflectivity) { r[c] = kMaxAmbientReflectivity; out.clamped = true; }
+  // Eq. 3: I_A = R_ave / (1 - R_ave) * sum(A E) / A_total; eq. 5 drops the
+  // leading R_ave because the bleeding W already carries one reflection.
+  out.ambient_intensity = (color_bleeding ? glm::dvec3(1.0) : r) / (1.0 - r) * out.mean_emission;
+  return out;
+}
+
+glm::dvec3 UnoccludedValue(const AmbientModel& ambient, bool color_bleeding) {
+  return color_bleeding ? ambient.r_ave : glm::dvec3(1.0);
+}
+
+BundleDirection DirectionOfSequence(uint64_t seed, uint32_t index) {
+  // Halton (2, 3) under a per-seed Cranley-Patterson rotation.
+  const double s1 = UnitFromBits(SplitMix64(seed * 2 + 1)), s2 = UnitFromBits(SplitMix64(seed * 2 + 2));
+  double u1 = RadicalInverse(2, index + 1ull) + s1, u2 = RadicalInverse(3, index + 1ull) + s2;
+  u1 -= std::floor(u1);
+  u2 -= std::floor(u2);
+  // Uniform over the hemisphere z > 0: z uniform in (0, 1] (Archimedes).
+  const double z = 1.0 - u1, r = std::sqrt(std::max(0.0, 1.0 - z * z)), phi = 2.0 * std::numbers::pi * u2;
+  BundleDirection d;
+  d.view = glm::dvec3(r * std::cos(phi), r * std::sin(phi), z);
+  // A roll of the image plane and a sub-pixel offset, hashed per direction.
+  const uint64_t h = SplitMix64(SplitMix64(seed ^ 0x6F6273637572ull) + index);
+  const double roll = 2.0 * std::numbers::pi * UnitFromBits(SplitMix64(h + 1));
+  d.pixel_offset = glm::dvec2(UnitFromBits(SplitMix64(h + 2)), UnitFromBits(SplitMix64(h + 3)));
+  const glm::dvec3 helper = std::abs(d.view.z) < 0.9 ? glm::dvec3(0, 0, 1) : glm::dvec3(1, 0, 0);
+  const glm::dvec3 a = glm::normalize(glm::cross(helper, d.view));
+  const glm::dvec3 b = glm::cross(d.view, a);
+  // right x up = -view, like a camera looking down -z.
+  d.right = std::cos(roll) * a + std::sin(roll) * b;
+  d.up = glm::cross(d.right, d.view);
+  return d;
+}
+
+void FinalizeFromPartial(const ObscurancePartial& partial, std::vector<glm::vec3>& w, std::vector<uint8_t>& estimated,
+                         double* mean_samples) {
+  const size_t n = partial.counts.size();
+  w.assign(n, glm::vec3(0.0f));
+  estimated.assign(n, 0);
+  double samples = 0;
+  size_t with = 0;
+  for (size_t i = 0; i < n; ++i) {
+    const uint64_t count = partial.counts[i];
+    if (count == 0) continue;
+    estimated[i] = 1;
+    samples += static_cast<double>(count);
+    ++with;
+    const double denom = static_cast<double>(count) * kObscuranceFixedPointScale;
+    if (partial.channels == 1) {
+      w[i] = glm::vec3(static_cast<float>(static_cast<double>(partial.sums[i]) / denom));
+    } else {
+      for (int c = 0; c < 3; ++c) w[i][c] = static_cast<float>(static_cast<double>(partial.sums[3 * i + c]) / denom);
+    }
+  }
+  if (mean_samples != nullptr) *mean_samples = with ? samples / with : 0.0;
+}
+
+glm::dvec3 TexelReflectivity(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel) {
+  glm::dvec3 r(0.0);
+  double area = 0;
+  for (uint32_t i = atlas.texel_begin[texel]; i < atlas.texel_begin[texel + 1]; ++i) {
+    const PatchFragment& f = atlas.fragments[i];
+    r += f.world_area * scene.materials[scene.triangle_material[f.triangle]].reflectivity;
+    area += f.world_area;
+  }
+  return area > 0 ? r / area : glm::dvec3(0.0);
+}
+
+glm::vec3 FilledValue(const ObscuranceResult& result, uint32_t texel, const glm::dvec3& fallback) {
+  const int x = static_cast<int>(texel % result.width), y = static_cast<int>(texel / result.width);
+  glm::dvec3 sum(0.0);
+  int n = 0;
+  for (int dy = -1; dy <= 1; ++dy)
+    for (int dx = -1; dx <= 1; ++dx) {
+      const int nx = x + dx, ny = y + dy;
+      if (nx < 0 || ny < 0 || nx >= static_cast<int>(result.width) || ny >= static_cast<int>(result.height)) continue;
+      const uint32_t j = static_cast<uint32_t>(ny) * result.width + static_cast<uint32_t>(nx);
+      if (!result.estimated[j]) continue;
+      sum += glm::dvec3(result.w[j]);
+      ++n;
+    }
+  return glm::vec3(n ? sum / static_cast<double>(n) : fallback);
+}
+
+glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& result, uint32_t triangle) {
+  glm::dvec3 sum(0.0);
+  double area = 0;
+  for (uint32_t k = atlas.triangle_begin[triangle]; k < atlas.triangle_begin[triangle + 1]; ++k) {
+    const PatchFragment& f = atlas.fragments[atlas.triangle_fragments[k]];
+    sum += f.world_area * glm::dvec3(result.w[f.texel]);
+    area += f.world_area;
+  }
+  return area > 0 ? glm::vec3(sum / area) : glm::vec3(0.0f);
+}
+
+ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, bool color_bleeding,
+                             std::vector<glm::vec3> w, std::vector<uint8_t> estimated) {
+  ObscuranceResult out;
+  out.width = atlas.width;
+  out.height = atlas.height;
+  out.color_bleeding = color_bleeding;
+  out.ambient = ComputeAmbient(scene, color_bleeding);
+  out.w = std::move(w);
+  out.estimated = std::move(estimated);
+  const glm::dvec3 unoccluded = UnoccludedValue(out.ambient, color_bleeding);
+  // Texels without an estimate take their estimated neighbours' mean (the
+  // gutter), or the unoccluded value when none is near.
+  const uint32_t n = atlas.texel_count();
+  for (uint32_t i = 0; i < n; ++i)
+    if (!out.estimated[i]) out.w[i] = FilledValue(out, i, unoccluded);
+  // I(P) = R(P) I_A W(P), eq. 1.
+  out.intensity.assign(n, glm::vec3(0.0f));
+  for (uint32_t i = 0; i < n; ++i)
+    if (atlas.Covered(i))
+      out.intensity[i] = glm::vec3(TexelReflectivity(scene, atlas, i) * out.ambient.ambient_intensity *
+                                   glm::dvec3(out.w[i]));
+  // Per-triangle and per-vertex averages.
+  out.triangle_w.resize(scene.TriangleCount());
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) out.triangle_w[t] = TriangleAverage(atlas, out, t);
+  std::vector<glm::dvec3> vsum(scene.positions.size(), glm::dvec3(0.0));
+  std::vector<double> varea(scene.positions.size(), 0.0);
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0),
+                                                  scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+    for (int c = 0; c < 3; ++c) {
+      vsum[scene.triangles[t][c]] += a * glm::dvec3(out.triangle_w[t]);
+      varea[scene.triangles[t][c]] += a;
+    }
+  }
+  out.vertex_w.resize(scene.positions.size());
+  for (size_t v = 0; v < vsum.size(); ++v) out.vertex_w[v] = varea[v] > 0 ? glm::vec3(vsum[v] / varea[v]) : glm::vec3(0.0f);
+  return out;
+}
+
+StatusOr<ObscuranceResult> FinalizeObscurances(const Scene& scene, const ObscuranceAtlas& atlas,
+                                               const ObscuranceParams& params, const ObscurancePartial& partial) {
+  if (partial.width != atlas.width || partial.height != atlas.height)
+    return absl::InvalidArgumentError(absl::StrCat("partial: atlas ", partial.width, "x", partial.height,
+                                                   " does not match ", atlas.width, "x", atlas.height));
+  if (partial.channels != (params.color_bleeding ? 3u : 1u))
+    return absl::InvalidArgumentError(absl::StrCat("partial: ", partial.channels, " channels, color_bleeding ",
+                                                   params.color_bleeding ? "on" : "off"));
+  std::vector<glm::vec3> w;
+  std::vector<uint8_t> estimated;
+  double mean = 0;
+  FinalizeFromPartial(partial, w, estimated, &mean);
+  ObscuranceResult out = BuildResult(scene, atlas, params.color_bleeding, std::move(w), std::move(estimated));
+  out.directions = partial.DirectionCount();
+  out.mean_samples_per_patch = mean;
+  return out;
+}
+
+uint64_t BakeFingerprint(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params) {
+  Fnv f;
+  f.Bytes(scene.positions.data(), scene.positions.size() * sizeof(glm::dvec3));
+  f.Bytes(scene.triangles.data(), scene.triangles.size() * sizeof(glm::uvec3));
+  f.Bytes(scene.triangle_material.data(), scene.triangle_material.size() * sizeof(uint32_t));
+  for (const Material& m : scene.materials) { f.Value(m.reflectivity); f.Value(m.emission); }
+  f.Value(atlas.width);
+  f.Value(atlas.height);
+  f.Bytes(atlas.corner_uv.data(), atlas.corner_uv.size() * sizeof(glm::vec2));
+  f.Value(params.d_max);
+  f.Value(params.color_bleeding);
+  f.Value(params.seed);
+  f.Value(EffectiveBundleResolution(params, atlas));
+  return f.h;
+}
+
+std::vector<uint32_t> SubtreeNodes(const Scene& scene, uint32_t node) {
+  std::vector<uint32_t> out;
+  for (uint32_t i = 0; i < scene.nodes.size(); ++i) {
+    for (int p = static_cast<int>(i); p >= 0; p = scene.nodes[p].parent)
+      if (static_cast<uint32_t>(p) == node) { out.push_back(i); break; }
+  }
+  return out;
+}
+
+Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world) {
+  if (node >= scene.nodes.size())
+    return absl::InvalidArgumentError(absl::StrCat("node: ", node, " is not a node of the scene (", scene.nodes.size(),
+                                                   " nodes)"));
+  const glm::dmat4 delta = new_world * glm::inverse(scene.nodes[node].world);
+  const std::vector<uint32_t> subtree = SubtreeNodes(scene, node);
+  std::vector<uint8_t> in_subtree(scene.nodes.size(), 0);
+  for (uint32_t n : subtree) in_subtree[n] = 1;
+  // Positions referenced by the subtree, and none outside it.
+  std::vector<uint8_t> moved(scene.positions.size(), 0);
+  for (uint32_t n : subtree)
+    for (uint32_t t = scene.nodes[n].first_triangle; t < scene.nodes[n].first_triangle + scene.nodes[n].triangle_count; ++t)
+      for (int c = 0; c < 3; ++c) moved[scene.triangles[t][c]] = 1;
+  for (size_t t = 0; t < scene.TriangleCount(); ++t)
+    if (!in_subtree[scene.triangle_node[t]])
+      for (int c = 0; c < 3; ++c)
+        if (moved[scene.triangles[t][c]])
+          return absl::InvalidArgumentError(absl::StrCat("node: ", node, " shares position ", scene.triangles[t][c],
+                                                         " with triangle ", t, " outside its subtree"));
+  for (size_t i = 0; i < scene.positions.size(); ++i)
+    if (moved[i]) scene.positions[i] = glm::dvec3(delta * glm::dvec4(scene.positions[i], 1.0));
+  for (uint32_t n : subtree) scene.nodes[n].world = delta * scene.nodes[n].world;
+  scene.bounds = Bounds{};
+  for (const auto& p : scene.positions) scene.bounds.Extend(p);
+  return absl::OkStatus();
+}
+
+}  // namespace visq::obscurance

@@ -1,0 +1,125 @@
+// The obscurance illumination model of Méndez-Feliu, Sbert et al. ("Real-time
+// Obscurances with Color Bleeding"), the part that needs neither a GPU nor a
+// ray tracer: parameters and their validation, rho(d), the unoccluded value,
+// the ambient intensity I_A (eq. 3 and 5), the bake's direction sequence, and
+// turning summed transfers into W(P) and I(P) = R(P) I_A W(P) (eq. 1) per
+// patch, per triangle and per vertex.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "common/status.h"
+#include "obscurance/obscurance_atlas.h"
+#include "obscurance/obscurance_partial.h"
+#include "scene/scene.h"
+
+namespace visq::obscurance {
+
+inline constexpr uint32_t kMaxDirections = 1u << 20;
+inline constexpr uint32_t kMaxBundleResolution = 8192;
+
+struct ObscuranceParams {
+  // Occlusions farther than d_max (scene units) do not count: rho(d) = 1.
+  double d_max = 1.0;
+  // Eq. 4 (RGB: multiply by the reflectivity seen, R_ave when nothing is seen
+  // within d_max) instead of eq. 2.
+  bool color_bleeding = false;
+  // The bake: directions of the sequence [first_direction, first + count).
+  uint32_t first_direction = 0;
+  uint32_t direction_count = 256;
+  uint64_t seed = 1;
+  // Pixels across the bundle of parallel rays (the scene's bounding sphere
+  // diameter); 0 picks 2 x the atlas width, at most kMaxBundleResolution.
+  uint32_t bundle_resolution = 0;
+};
+
+// INVALID_ARGUMENT naming the field and its value ("d_max: nan must be > 0").
+[[nodiscard]] Status ValidateParams(const ObscuranceParams& params);
+uint32_t EffectiveBundleResolution(const ObscuranceParams& params, const ObscuranceAtlas& atlas);
+
+// rho(d) = sqrt(d / d_max) below d_max, 1 beyond (eq. 2).
+inline double Rho(double d, double d_max) { return d >= d_max ? 1.0 : std::sqrt(std::max(d, 0.0) / d_max); }
+
+// Area-weighted scene averages behind eq. 3 and 5.
+struct AmbientModel {
+  glm::dvec3 r_ave{0.0};             // sum A_i R_i / A_total
+  glm::dvec3 mean_emission{0.0};     // sum A_i E_i / A_total
+  glm::dvec3 ambient_intensity{0.0}; // I_A, eq. 3 (no bleeding) or eq. 5
+  // R_ave >= 1 in some channel makes I_A infinite (a closed scene that never
+  // loses light); such channels use R_ave = kMaxAmbientReflectivity instead.
+  bool clamped = false;
+};
+inline constexpr double kMaxAmbientReflectivity = 0.99;
+AmbientModel ComputeAmbient(const Scene& scene, bool color_bleeding);
+
+// The value a direction contributes: rho(d) (times R(Q) with color bleeding)
+// for a surface seen at distance d < d_max, else the unoccluded value (1, or
+// R_ave with color bleeding).
+glm::dvec3 UnoccludedValue(const AmbientModel& ambient, bool color_bleeding);
+
+// One direction of the bake's sequence: a direction over the hemisphere z >
+// 0 (a line set covers both senses), from a Halton (2, 3) sequence under a
+// Cranley-Patterson rotation drawn from the seed; and, per direction, a roll
+// of the image plane and a sub-pixel offset (hashed from seed and index) so
+// that the pixel grids of successive bundles do not align with the atlas.
+struct BundleDirection {
+  glm::dvec3 view{0.0, 0.0, 1.0};  // unit; rays travel along +view
+  glm::dvec3 right{1.0, 0.0, 0.0}; // image x; right x up = -view
+  glm::dvec3 up{0.0, 1.0, 0.0};
+  glm::dvec2 pixel_offset{0.0};    // in pixels, [0, 1)
+};
+BundleDirection DirectionOfSequence(uint64_t seed, uint32_t index);
+
+// W, I and the averages the clients use.
+struct ObscuranceResult {
+  uint32_t width = 0, height = 0;
+  bool color_bleeding = false;
+  // Per texel (y * width + x): W (gray in all three channels without color
+  // bleeding) and I = R(P) I_A W(P). Texels that no sample reached (gutter,
+  // slivers) hold their neighbours' average so that filtering does not bleed.
+  std::vector<glm::vec3> w;
+  std::vector<glm::vec3> intensity;
+  // Per texel: 1 when the value is an estimate of that patch, 0 when it was
+  // filled from neighbours (gutter or never sampled).
+  std::vector<uint8_t> estimated;
+  std::vector<glm::vec3> triangle_w;  // area-weighted over each triangle's texels
+  std::vector<glm::vec3> vertex_w;    // per Scene::positions, area-weighted over triangles
+  AmbientModel ambient;
+  uint64_t directions = 0;
+  double mean_samples_per_patch = 0;  // over estimated texels
+};
+
+// W per texel from fixed-point sums (count 0: not estimated).
+void FinalizeFromPartial(const ObscurancePartial& partial, std::vector<glm::vec3>& w, std::vector<uint8_t>& estimated,
+                         double* mean_samples);
+// Fills texels that are not estimated, then I, per-triangle and per-vertex
+// values. `w` and `estimated` come from FinalizeFromPartial or a ray estimate.
+ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, bool color_bleeding,
+                             std::vector<glm::vec3> w, std::vector<uint8_t> estimated);
+// FinalizeFromPartial + BuildResult.
+[[nodiscard]] StatusOr<ObscuranceResult> FinalizeObscurances(const Scene& scene, const ObscuranceAtlas& atlas,
+                                                             const ObscuranceParams& params,
+                                                             const ObscurancePartial& partial);
+
+// Helpers shared with the update: reflectivity of a texel (area-weighted over
+// its fragments), gutter filling around given texels, triangle and vertex
+// averages of given triangles.
+glm::dvec3 TexelReflectivity(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel);
+glm::vec3 FilledValue(const ObscuranceResult& result, uint32_t texel, const glm::dvec3& fallback);
+glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& result, uint32_t triangle);
+
+// A stable 64-bit hash of what a bake depends on, for ObscurancePartial.
+uint64_t BakeFingerprint(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params);
+
+// Moves node `node` and its subtree rigidly so that the node's world matrix
+// becomes `new_world` (positions of the subtree's triangles and the nodes'
+// world matrices). INVALID_ARGUMENT for an unknown node or a position shared
+// with triangles outside the subtree.
+[[nodiscard]] Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world);
+// The node and all its descendants.
+std::vector<uint32_t> SubtreeNodes(const Scene& scene, uint32_t node);
+
+}  // namespace visq::obscurance

@@ -1,0 +1,58 @@
+// The ray-cast estimator of eq. 6: N rays per patch, from points uniform in
+// the patch's area, cosine-distributed around the surface normal; each ray
+// gathers rho(d) (times R(Q) with color bleeding) of the first surface within
+// d_max, or the unoccluded value. It is the paper's estimator for the update
+// (section 5) and, traced with raycast::EmbreeScene, the independent
+// reference the GPU bake is tested against.
+//
+// How it relates to the bake: a bundle of parallel lines with a uniform
+// random direction hits a patch in proportion to its projected area, so the
+// directions a patch receives are cosine-distributed and the points uniform
+// over its area: the bake's sum/count estimates the same patch average as
+// this estimator (Sbert 1997). Both are unbiased Monte Carlo estimates of one
+// number, so they agree within their noise, not bit for bit.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "common/status.h"
+#include "obscurance/obscurance_atlas.h"
+#include "obscurance/obscurance_model.h"
+#include "scene/scene.h"
+
+namespace visq::obscurance {
+
+struct PatchRay {
+  glm::dvec3 origin{0.0};     // on the triangle
+  glm::dvec3 direction{0.0};  // unit, in the front hemisphere
+  uint32_t triangle = 0;      // the triangle the ray leaves
+};
+
+// N rays of texel `texel` (nothing if the texel holds no surface). The same
+// (seed, texel, n) give the same rays: a Halton sequence (bases 2, 3, 5, 7,
+// 11) under a Cranley-Patterson rotation hashed from seed and texel.
+void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel, uint64_t seed, uint32_t n,
+                       std::vector<PatchRay>& out);
+
+// What one ray contributes, given its closest hit within d_max (hit false:
+// none). RGB; gray without color bleeding.
+glm::dvec3 RayValue(const Scene& scene, const AmbientModel& ambient, bool color_bleeding, double d_max, bool hit,
+                    double distance, uint32_t hit_triangle);
+
+struct RayEstimateOptions {
+  uint32_t rays_per_patch = 64;
+  uint64_t seed = 1;
+  int threads = 0;  // 0: all cores
+};
+
+// The reference: every covered texel estimated with rays_per_patch rays,
+// traced with raycast::EmbreeScene (helper-independent of the GPU bake and
+// of the update's instanced scene).
+[[nodiscard]] StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const ObscuranceAtlas& atlas,
+                                                                   const ObscuranceParams& params,
+                                                                   const RayEstimateOptions& options);
+
+}  // namespace visq::obscurance

@@ -1,0 +1,356 @@
+#include "obscurance/obscurance_update.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <thread>
+
+#include "obscurance/obscurance_rays.h"
+
+namespace visq::obscurance {
+namespace {
+
+template <typename Body>
+void ParallelFor(size_t count, int threads, const Body& body) {
+  const size_t workers = std::min<size_t>(
+      std::max<size_t>(1, count), threads > 0 ? static_cast<size_t>(threads) : std::max(1u, std::thread::hardware_concurrency()));
+  if (workers <= 1 || count < 64) {
+    for (size_t i = 0; i < count; ++i) body(i);
+    return;
+  }
+  // Interleaved chunks balance patches of uneven cost.
+  std::atomic<size_t> next{0};
+  auto run = [&]() {
+    constexpr size_t kChunk = 32;
+    for (size_t begin; (begin = next.fetch_add(kChunk)) < count;)
+      for (size_t i = begin; i < std::min(count, begin + kChunk); ++i) body(i);
+  };
+  std::vector<std::thread> pool;
+  for (size_t w = 1; w < workers; ++w) pool.emplace_back(run);
+  run();
+  for (auto& t : pool) t.join();
+}
+
+std::vector<uint32_t> SortedUnion(const std::vector<uint32_t>& a, const std::vector<uint32_t>& b) {
+  std::vector<uint32_t> out;
+  std::set_union(a.begin(), a.end(), b.begin(), b.end(), std::back_inserter(out));
+  return out;
+}
+
+}  // namespace
+
+ObscuranceUpdater::~ObscuranceUpdater() = default;
+
+StatusOr<std::unique_ptr<ObscuranceUpdater>> ObscuranceUpdater::Create(Scene scene, ObscuranceAtlas atlas,
+                                                                       const ObscuranceParams& params,
+                                                                       ObscuranceResult baked,
+                                                                       std::vector<uint32_t> dynamic_nodes,
+                                                                       const UpdaterOptions& options) {
+  VISQ_RETURN_IF_ERROR(ValidateParams(params));
+  if (options.rays_per_patch == 0) return absl::InvalidArgumentError("rays_per_patch: 0 must be at least 1");
+  if (baked.w.size() != atlas.texel_count())
+    return absl::InvalidArgumentError(absl::StrCat("baked: ", baked.w.size(), " texels, atlas has ", atlas.texel_count()));
+  std::unique_ptr<ObscuranceUpdater> u(new ObscuranceUpdater());
+  u->scene_ = std::move(scene);
+  u->atlas_ = std::move(atlas);
+  u->params_ = params;
+  u->options_ = options;
+  u->ambient_ = ComputeAmbient(u->scene_, params.color_bleeding);
+  u->result_ = std::move(baked);
+  for (uint32_t node : dynamic_nodes) {
+    if (node >= u->scene_.nodes.size())
+      return absl::InvalidArgumentError(absl::StrCat("dynamic_nodes: node ", node, " is not a node of the scene (",
+                                                     u->scene_.nodes.size(), " nodes)"));
+    u->objects_.push_back(Object{node});
+  }
+  // Triangles per position, for the per-vertex averages.
+  const Scene& s = u->scene_;
+  u->vertex_begin_.assign(s.positions.size() + 1, 0);
+  for (const auto& t : s.triangles)
+    for (int c = 0; c < 3; ++c) ++u->vertex_begin_[t[c] + 1];
+  for (size_t i = 1; i < u->vertex_begin_.size(); ++i) u->vertex_begin_[i] += u->vertex_begin_[i - 1];
+  u->vertex_triangles_.resize(s.triangles.size() * 3);
+  std::vector<uint32_t> cursor(u->vertex_begin_.begin(), u->vertex_begin_.end() - 1);
+  for (uint32_t t = 0; t < s.triangles.size(); ++t)
+    for (int c = 0; c < 3; ++c) u->vertex_triangles_[cursor[s.triangles[t][c]]++] = t;
+  std::vector<uint32_t> all(u->atlas_.texel_count());
+  for (uint32_t i = 0; i < all.size(); ++i) all[i] = i;
+  u->patch_center_.assign(all.size(), glm::dvec3(0.0));
+  u->patch_radius_.assign(all.size(), -1.0);
+  u->ComputePatchBounds(all);
+  VISQ_RETURN_IF_ERROR(u->Rebuild());
+  return u;
+}
+
+Status ObscuranceUpdater::AddDynamicNode(uint32_t node) {
+  if (node >= scene_.nodes.size())
+    return absl::InvalidArgumentError(absl::StrCat("node: ", node, " is not a node of the scene (", scene_.nodes.size(),
+                                                   " nodes)"));
+  for (const Object& o : objects_)
+    if (o.node == node) return absl::OkStatus();
+  objects_.push_back(Object{node});
+  return Rebuild();
+}
+
+void ObscuranceUpdater::ComputePatchBounds(const std::vector<uint32_t>& texels) {
+  // A patch's world footprint: its fragments' clipped polygons mapped back
+  // through each triangle's atlas-to-world map.
+  for (uint32_t texel : texels) {
+    const uint32_t x = texel % atlas_.width, y = texel / atlas_.width;
+    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+    for (uint32_t i = atlas_.texel_begin[texel]; i < atlas_.texel_begin[texel + 1]; ++i) {
+      const uint32_t t = atlas_.fragments[i].triangle;
+      const glm::dvec2 a = atlas_.corner_uv[3 * t], b = atlas_.corner_uv[3 * t + 1], c = atlas_.corner_uv[3 * t + 2];
+      const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
+      const double det = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
+      if (std::abs(det) <= 1e-12) {
+        for (const glm::dvec3& p : {pa, pb, pc}) { lo = glm::min(lo, p); hi = glm::max(hi, p); }
+        continue;
+      }
+      const ClippedPolygon poly = ClipTriangleToTexel(a, b, c, x, y);
+      for (int k = 0; k < poly.n; ++k) {
+        const glm::dvec2 q = poly.p[k];
+        const double l1 = ((q.x - a.x) * (c.y - a.y) - (q.y - a.y) * (c.x - a.x)) / det;
+        const double l2 = ((b.x - a.x) * (q.y - a.y) - (b.y - a.y) * (q.x - a.x)) / det;
+        const glm::dvec3 p = pa + (pb - pa) * l1 + (pc - pa) * l2;
+        lo = glm::min(lo, p);
+        hi = glm::max(hi, p);
+      }
+    }
+    if (lo.x > hi.x) continue;
+    patch_center_[texel] = 0.5 * (lo + hi);
+    patch_radius_[texel] = 0.5 * glm::length(hi - lo);
+  }
+}
+
+Status ObscuranceUpdater::Rebuild() {
+  // Objects: each dynamic node's subtree triangles.
+  object_of_triangle_.assign(scene_.TriangleCount(), -1);
+  std::vector<std::vector<uint32_t>> triangle_lists;
+  for (size_t k = 0; k < objects_.size(); ++k) {
+    Object& o = objects_[k];
+    o.triangles.clear();
+    for (uint32_t n : SubtreeNodes(scene_, o.node))
+      for (uint32_t t = scene_.nodes[n].first_triangle; t < scene_.nodes[n].first_triangle + scene_.nodes[n].triangle_count; ++t) {
+        if (object_of_triangle_[t] >= 0)
+          return absl::InvalidArgumentError(absl::StrCat("dynamic_nodes: node ", o.node, " overlaps the subtree of node ",
+                                                         objects_[object_of_triangle_[t]].node));
+        object_of_triangle_[t] = static_cast<int32_t>(k);
+        o.triangles.push_back(t);
+      }
+    o.own.clear();
+    for (uint32_t t : o.triangles)
+      for (uint32_t f = atlas_.triangle_begin[t]; f < atlas_.triangle_begin[t + 1]; ++f)
+        o.own.push_back(atlas_.fragments[atlas_.triangle_fragments[f]].texel);
+    std::sort(o.own.begin(), o.own.end());
+    o.own.erase(std::unique(o.own.begin(), o.own.end()), o.own.end());
+    o.pose_at_build = scene_.nodes[o.node].world;
+    triangle_lists.push_back(o.triangles);
+  }
+  VISQ_ASSIGN_OR_RETURN(rays_, InstancedRayScene::Create(scene_, triangle_lists));
+
+  // Influenced lists: patches near each object whose rays meet it first.
+  for (size_t k = 0; k < objects_.size(); ++k) {
+    Object& o = objects_[k];
+    const std::vector<uint32_t> candidates = Candidates(o);
+    std::vector<glm::vec3> value;
+    std::vector<std::vector<int32_t>> met;
+    TracePatches(candidates, value, met);
+    o.influenced.clear();
+    for (size_t i = 0; i < candidates.size(); ++i)
+      if (std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(k)) != met[i].end())
+        o.influenced.push_back(candidates[i]);
+  }
+  return absl::OkStatus();
+}
+
+std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const {
+  // The object's bounding sphere now.
+  Bounds b;
+  for (uint32_t t : object.triangles)
+    for (int c = 0; c < 3; ++c) b.Extend(scene_.Vertex(t, c));
+  std::vector<uint32_t> out;
+  if (b.Empty()) return out;
+  const glm::dvec3 center = b.Center();
+  const double radius = 0.5 * glm::length(b.Extent());
+  const size_t k = static_cast<size_t>(&object - objects_.data());
+  // Patches within d_max of the sphere, minus its own.
+  std::vector<uint32_t> near;
+  for (uint32_t texel = 0; texel < atlas_.texel_count(); ++texel) {
+    if (patch_radius_[texel] < 0) continue;
+    if (glm::length(patch_center_[texel] - center) > radius + params_.d_max + patch_radius_[texel]) continue;
+    if (std::binary_search(object.own.begin(), object.own.end(), texel)) continue;
+    near.push_back(texel);
+  }
+  // Keep those with a ray that meets the object alone within d_max (a
+  // ray-sphere test first).
+  std::vector<uint8_t> keep(near.size(), 0);
+  ParallelFor(near.size(), options_.threads, [&](size_t i) {
+    thread_local std::vector<PatchRay> patch_rays;
+    GeneratePatchRays(scene_, atlas_, near[i], options_.seed, options_.rays_per_patch, patch_rays);
+    for (const PatchRay& r : patch_rays) {
+      const glm::dvec3 oc = center - r.origin;
+      const double along = glm::dot(oc, r.direction);
+      const double miss2 = glm::dot(oc, oc) - along * along;
+      if (miss2 > radius * radius) continue;
+      if (along + radius < 0 || along - radius > params_.d_max) continue;
+      if (rays_->HitsObject(k, r.origin, r.direction, params_.d_max)) { keep[i] = 1; break; }
+    }
+  });
+  for (size_t i = 0; i < near.size(); ++i)
+    if (keep[i]) out.push_back(near[i]);
+  return out;
+}
+
+void ObscuranceUpdater::TracePatches(const std::vector<uint32_t>& texels, std::vector<glm::vec3>& value,
+                                     std::vector<std::vector<int32_t>>& met) const {
+  value.assign(texels.size(), glm::vec3(0.0f));
+  met.assign(texels.size(), {});
+  ParallelFor(texels.size(), options_.threads, [&](size_t i) {
+    thread_local std::vector<PatchRay> patch_rays;
+    GeneratePatchRays(scene_, atlas_, texels[i], options_.seed, options_.rays_per_patch, patch_rays);
+    glm::dvec3 sum(0.0);
+    for (const PatchRay& r : patch_rays) {
+      const InstancedRayScene::Hit hit = rays_->Closest(r.origin, r.direction, params_.d_max);
+      sum += RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle);
+      if (hit.hit && hit.object >= 0 && std::find(met[i].begin(), met[i].end(), hit.object) == met[i].end())
+        met[i].push_back(hit.object);
+    }
+    if (!patch_rays.empty()) value[i] = glm::vec3(sum / static_cast<double>(patch_rays.size()));
+  });
+}
+
+StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm::dmat4& new_world) {
+  const auto start = std::chrono::steady_clock::now();
+  if (node >= scene_.nodes.size())
+    return absl::InvalidArgumentError(absl::StrCat("node: ", node, " is not a node of the scene (", scene_.nodes.size(),
+                                                   " nodes)"));
+  for (int c = 0; c < 4; ++c)
+    for (int r = 0; r < 4; ++r)
+      if (!std::isfinite(new_world[c][r]))
+        return absl::InvalidArgumentError(absl::StrCat("matrix: element [", c, "][", r, "] is not finite"));
+  size_t k = objects_.size();
+  for (size_t i = 0; i < objects_.size(); ++i)
+    if (objects_[i].node == node) k = i;
+  if (k == objects_.size()) {
+    VISQ_RETURN_IF_ERROR(AddDynamicNode(node));
+    k = objects_.size() - 1;
+  }
+  Object& object = objects_[k];
+  ObscuranceUpdate update;
+  update.influenced_before = static_cast<uint32_t>(object.influenced.size());
+
+  // Move the geometry: scene positions (for ray origins on the object) and
+  // the instance transform (for the rays).
+  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, node, new_world));
+  rays_->SetTransform(k, new_world * glm::inverse(object.pose_at_build));
+  rays_->Commit();
+  ComputePatchBounds(object.own);
+
+  // Recompute: old list, own patches, and patches whose rays meet the object now.
+  const std::vector<uint32_t> fresh = Candidates(object);
+  update.candidates = static_cast<uint32_t>(fresh.size());
+  update.own_patches = static_cast<uint32_t>(object.own.size());
+  const std::vector<uint32_t> must = SortedUnion(object.influenced, object.own);
+  const std::vector<uint32_t> recompute = SortedUnion(must, fresh);
+  std::vector<glm::vec3> value;
+  std::vector<std::vector<int32_t>> met;
+  TracePatches(recompute, value, met);
+  update.recomputed = static_cast<uint32_t>(recompute.size());
+  update.rays = static_cast<uint64_t>(recompute.size()) * options_.rays_per_patch;
+
+  // A fresh candidate whose full-scene rays all met something else first did
+  // not change: it keeps its bits. The lists of every dynamic object follow
+  // what the recomputed patches now meet.
+  std::vector<uint32_t> changed;
+  std::vector<std::vector<uint32_t>> add(objects_.size()), drop(objects_.size());
+  for (size_t i = 0; i < recompute.size(); ++i) {
+    const uint32_t texel = recompute[i];
+    const bool meets = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(k)) != met[i].end();
+    if (!meets && !std::binary_search(must.begin(), must.end(), texel)) continue;
+    changed.push_back(texel);
+    result_.w[texel] = value[i];
+    result_.estimated[texel] = atlas_.Covered(texel) ? 1 : 0;
+    for (size_t j = 0; j < objects_.size(); ++j) {
+      if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;
+      const bool now = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(j)) != met[i].end();
+      (now ? add[j] : drop[j]).push_back(texel);
+    }
+  }
+  for (size_t j = 0; j < objects_.size(); ++j) {
+    std::vector<uint32_t> kept;
+    std::set_difference(objects_[j].influenced.begin(), objects_[j].influenced.end(), drop[j].begin(), drop[j].end(),
+                        std::back_inserter(kept));
+    objects_[j].influenced = SortedUnion(kept, add[j]);
+  }
+  update.influenced_after = static_cast<uint32_t>(object.influenced.size());
+
+  // Gutter texels next to changed patches take the new neighbour values.
+  std::vector<uint32_t> texels = changed;
+  const glm::dvec3 unoccluded = UnoccludedValue(ambient_, params_.color_bleeding);
+  for (uint32_t texel : changed) {
+    const int x = static_cast<int>(texel % atlas_.width), y = static_cast<int>(texel / atlas_.width);
+    for (int dy = -1; dy <= 1; ++dy)
+      for (int dx = -1; dx <= 1; ++dx) {
+        const int nx = x + dx, ny = y + dy;
+        if (nx < 0 || ny < 0 || nx >= static_cast<int>(atlas_.width) || ny >= static_cast<int>(atlas_.height)) continue;
+        const uint32_t j = static_cast<uint32_t>(ny) * atlas_.width + static_cast<uint32_t>(nx);
+        if (!result_.estimated[j]) texels.push_back(j);
+      }
+  }
+  std::sort(texels.begin(), texels.end());
+  texels.erase(std::unique(texels.begin(), texels.end()), texels.end());
+  for (uint32_t texel : texels)
+    if (!result_.estimated[texel]) result_.w[texel] = FilledValue(result_, texel, unoccluded);
+  for (uint32_t texel : texels) {
+    result_.intensity[texel] =
+        atlas_.Covered(texel) ? glm::vec3(TexelReflectivity(scene_, atlas_, texel) * result_.ambient.ambient_intensity *
+                                          glm::dvec3(result_.w[texel]))
+                              : glm::vec3(0.0f);
+    update.texels.push_back(texel);
+    update.w.push_back(result_.w[texel]);
+    update.intensity.push_back(result_.intensity[texel]);
+  }
+  // Triangle and vertex averages over the changed texels.
+  for (uint32_t texel : texels)
+    for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f)
+      update.triangles.push_back(atlas_.fragments[f].triangle);
+  std::sort(update.triangles.begin(), update.triangles.end());
+  update.triangles.erase(std::unique(update.triangles.begin(), update.triangles.end()), update.triangles.end());
+  for (uint32_t t : update.triangles) {
+    result_.triangle_w[t] = TriangleAverage(atlas_, result_, t);
+    update.triangle_w.push_back(result_.triangle_w[t]);
+    for (int c = 0; c < 3; ++c) update.vertices.push_back(scene_.triangles[t][c]);
+  }
+  std::sort(update.vertices.begin(), update.vertices.end());
+  update.vertices.erase(std::unique(update.vertices.begin(), update.vertices.end()), update.vertices.end());
+  for (uint32_t v : update.vertices) {
+    glm::dvec3 sum(0.0);
+    double area = 0;
+    for (uint32_t i = vertex_begin_[v]; i < vertex_begin_[v + 1]; ++i) {
+      const uint32_t t = vertex_triangles_[i];
+      const double a = 0.5 * glm::length(glm::cross(scene_.Vertex(t, 1) - scene_.Vertex(t, 0),
+                                                    scene_.Vertex(t, 2) - scene_.Vertex(t, 0)));
+      sum += a * glm::dvec3(result_.triangle_w[t]);
+      area += a;
+    }
+    result_.vertex_w[v] = area > 0 ? glm::vec3(sum / area) : glm::vec3(0.0f);
+    update.vertex_w.push_back(result_.vertex_w[v]);
+  }
+  update.milliseconds = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  return update;
+}
+
+std::vector<uint32_t> ObscuranceUpdater::InfluencedPatches(uint32_t node) const {
+  for (const Object& o : objects_)
+    if (o.node == node) return o.influenced;
+  return {};
+}
+
+std::vector<uint32_t> ObscuranceUpdater::OwnPatches(uint32_t node) const {
+  for (const Object& o : objects_)
+    if (o.node == node) return o.own;
+  return {};
+}
+
+}  // namespace visq::obscurance

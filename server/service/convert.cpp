@@ -1,0 +1,264 @@
+#include "service/convert.h"
+
+namespace visq::service {
+
+glm::dvec3 FromProto(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
+
+void ToProto(const glm::dvec3& v, v1::Vec3* out) {
+  out->set_x(v.x);
+  out->set_y(v.y);
+  out->set_z(v.z);
+}
+
+Bounds FromProto(const v1::Box& box) {
+  Bounds b;
+  b.min = FromProto(box.min());
+  b.max = FromProto(box.max());
+  return b;
+}
+
+void ToProto(const Bounds& box, v1::Box* out) {
+  ToProto(box.min, out->mutable_min());
+  ToProto(box.max, out->mutable_max());
+}
+
+void ToProto(const std::vector<glm::dvec3>& polygon, v1::Polygon* out) {
+  for (const auto& v : polygon) ToProto(v, out->add_vertices());
+}
+
+StatusOr<LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest& request,
+                                         const LightVisibilityQuery* previous) {
+  LightVisibilityQuery query;
+  if (request.scene().name().empty()) {
+    if (previous == nullptr) return absl::InvalidArgumentError("scene.name: empty");
+    query.scene = previous->scene;
+    query.scene_version = previous->scene_version;
+  } else {
+    query.scene = request.scene().name();
+    query.scene_version = request.scene().version();
+  }
+  if (request.light().vertices().empty()) {
+    if (previous == nullptr) return absl::InvalidArgumentError("light.vertices: empty");
+    query.light = previous->light;
+  } else {
+    for (const auto& v : request.light().vertices()) query.light.vertices.push_back(FromProto(v));
+    query.light.radiance = request.radiance() == 0.0 ? 1.0 : request.radiance();
+  }
+  query.points.reserve(request.points_size());
+  for (const auto& p : request.points()) {
+    exact::QueryPoint point;
+    point.position = FromProto(p.position());
+    if (p.has_normal()) point.normal = FromProto(p.normal());
+    if (p.has_triangle()) point.receiver_triangle = p.triangle();
+    query.points.push_back(point);
+  }
+  query.want_polygons = request.want_polygons();
+  if (request.has_receiver_region()) query.receiver_region = FromProto(request.receiver_region());
+  else if (previous != nullptr && request.light().vertices().empty()) query.receiver_region = previous->receiver_region;
+  query.exclude_nodes.assign(request.exclude_nodes().begin(), request.exclude_nodes().end());
+  if (query.exclude_nodes.empty() && previous != nullptr && request.light().vertices().empty())
+    query.exclude_nodes = previous->exclude_nodes;
+  return query;
+}
+
+void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out) {
+  out->mutable_points()->Reserve(static_cast<int>(answer.points.size()));
+  for (const auto& p : answer.points) {
+    auto* point = out->add_points();
+    point->set_visible_fraction(p.visible_area_fraction);
+    point->set_visible_solid_angle_fraction(p.visible_solid_angle_fraction);
+    point->set_irradiance(p.irradiance);
+    for (const auto& polygon : p.visible_polygons) ToProto(polygon, point->add_visible_polygons());
+  }
+  auto* tree = out->mutable_tree();
+  tree->set_reused(answer.tree_reused);
+  tree->set_nodes(answer.tree.nodes);
+  tree->set_memory_bytes(answer.tree.memory_bytes);
+  tree->set_queries(answer.tree.queries);
+  tree->set_hits(answer.tree.hits);
+  tree->set_refinements(answer.tree.refinements);
+  tree->set_far_occluders(answer.tree.far_occluders);
+  tree->set_near_occluders(answer.tree.near_occluders);
+  ToProto(answer.receiver_region, tree->mutable_receiver_region());
+  auto* accuracy = out->mutable_accuracy();
+  accuracy->set_method("plucker-exact");
+  accuracy->set_error_bound(0.0);
+  accuracy->set_confidence(1.0);
+  accuracy->set_note(
+      "exact visibility: every side decision is an exact predicate; only the final areas and integrals are "
+      "double-precision sums (relative error about 1e-12)");
+}
+
+namespace {
+
+gpu::Patch PatchFromProto(const v1::Patch& p) {
+  return gpu::Patch{FromProto(p.origin()), FromProto(p.edge_u()), FromProto(p.edge_v())};
+}
+
+StatusOr<VisibilityMethod> MethodFromProto(v1::VisibilityMethod method) {
+  switch (method) {
+    case v1::METHOD_UNSPECIFIED:
+    case v1::RASTER: return VisibilityMethod::kRaster;
+    case v1::RAYCAST: return VisibilityMethod::kRaycast;
+    default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", static_cast<int>(method)));
+  }
+}
+
+StatusOr<gpu::LookupMode> LookupFromProto(v1::LookupMode lookup) {
+  switch (lookup) {
+    case v1::LOOKUP_UNSPECIFIED:
+    case v1::EXACT: return gpu::LookupMode::kExact;
+    case v1::FAST: return gpu::LookupMode::kHough;
+    default: return absl::InvalidArgumentError(absl::StrCat("lookup: unknown value ", static_cast<int>(lookup)));
+  }
+}
+
+// Sizes arrive as uint32; the algorithm takes int. Values past int's range
+// would wrap, so they are refused here with the field named.
+StatusOr<int> SizeFromProto(uint32_t value, const char* field) {
+  if (value > (1u << 24)) return absl::InvalidArgumentError(absl::StrCat(field, ": ", value, " is out of range"));
+  return static_cast<int>(value);
+}
+
+v1::Accuracy AccuracyToProto(const gpu::ErrorBound& error, VisibilityMethod method, gpu::LookupMode lookup) {
+  v1::Accuracy out;
+  out.set_method(method == VisibilityMethod::kRaycast ? "raycast"
+                 : lookup == gpu::LookupMode::kExact  ? "raster-exact-lookup"
+                                                      : "raster-hough-lookup");
+  out.set_error_bound(error.total());
+  out.set_confidence(error.confidence);
+  out.set_note(absl::StrCat(
+      "visible fraction within +-", error.sampling, " of the true (continuous) fraction at confidence ",
+      error.confidence, " (Hoeffding over the samples)",
+      error.lookup_max > 0 ? absl::StrCat(", plus at most ", error.lookup_max,
+                                          " from the Hough lookup (per texel in lookup_error)")
+                           : std::string(", no lookup error (same bits as casting the same segments)")));
+  return out;
+}
+
+}  // namespace
+
+StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request) {
+  HiddenSampleMapQuery query;
+  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
+  gpu::HiddenSampleMapRequest& r = query.request;
+  r.source.patch = PatchFromProto(request.source());
+  VISQ_ASSIGN_OR_RETURN(r.source.sample_count, SizeFromProto(request.samples().count(), "samples.count"));
+  switch (request.samples().pattern()) {
+    case v1::SamplingSpec::PATTERN_UNSPECIFIED:
+    case v1::SamplingSpec::JITTERED: r.source.pattern = gpu::SamplePattern::kJittered; break;
+    case v1::SamplingSpec::REGULAR: r.source.pattern = gpu::SamplePattern::kRegular; break;
+    case v1::SamplingSpec::CUSTOM: r.source.pattern = gpu::SamplePattern::kCustom; break;
+    default: return absl::InvalidArgumentError("samples.pattern: unknown value");
+  }
+  r.source.seed = request.samples().seed();
+  for (const auto& uv : request.samples().custom_uv()) r.source.custom_uv.emplace_back(uv.x(), uv.y());
+  for (const auto& uv : request.samples().polygon_uv()) r.source.polygon_uv.emplace_back(uv.x(), uv.y());
+  for (const auto& c : request.samples().sample_colors()) r.source.sample_colors.emplace_back(c.x(), c.y(), c.z());
+  if (request.samples().color_texture_width() > 0 || request.samples().color_texture_rgb_size() > 0) {
+    VISQ_ASSIGN_OR_RETURN(r.source.color_texture_width,
+                          SizeFromProto(request.samples().color_texture_width(), "samples.color_texture_width"));
+    VISQ_ASSIGN_OR_RETURN(r.source.color_texture_height,
+                          SizeFromProto(request.samples().color_texture_height(), "samples.color_texture_height"));
+    const auto& rgb = request.samples().color_texture_rgb();
+    if (rgb.size() % 3 != 0)
+      return absl::InvalidArgumentError(absl::StrCat("samples.color_texture_rgb: ", rgb.size(), " floats, not RGB triples"));
+    for (int i = 0; i + 2 < rgb.size(); i += 3) r.source.color_texture.emplace_back(rgb[i], rgb[i + 1], rgb[i + 2]);
+  }
+  r.receiver.patch = PatchFromProto(request.receiver());
+  VISQ_ASSIGN_OR_RETURN(r.receiver.width, SizeFromProto(request.width(), "width"));
+  VISQ_ASSIGN_OR_RETURN(r.receiver.height, SizeFromProto(request.height(), "height"));
+  r.receiver.heightfield.assign(request.heightfield().begin(), request.heightfield().end());
+  r.options.decorrelate = request.decorrelate();
+  r.options.decorrelation_seed = request.decorrelation_seed();
+  r.options.watertight = request.watertight();
+  VISQ_ASSIGN_OR_RETURN(r.options.lookup, LookupFromProto(request.lookup()));
+  if (request.hough_resolution() != 0) {
+    VISQ_ASSIGN_OR_RETURN(r.options.hough_theta_resolution, SizeFromProto(request.hough_resolution(), "hough_resolution"));
+    r.options.hough_r_resolution = r.options.hough_theta_resolution;
+  }
+  r.options.want_bitmasks = request.want_bitmasks();
+  if (request.confidence() != 0.0) r.options.confidence = request.confidence();
+  return query;
+}
+
+std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const gpu::HiddenSampleMapResult& result,
+                                                       VisibilityMethod method, size_t chunk_elements) {
+  std::vector<v1::HiddenSampleMapResponse> out(1);
+  v1::HiddenSampleMapResponse& first = out[0];
+  first.set_width(result.width);
+  first.set_height(result.height);
+  first.set_sample_count(result.sample_count);
+  first.set_words_per_texel(result.words_per_texel);
+  const gpu::LookupMode lookup = result.error.lookup_max > 0 || !result.error.lookup_per_texel.empty()
+                                     ? gpu::LookupMode::kHough
+                                     : gpu::LookupMode::kExact;
+  *first.mutable_accuracy() = AccuracyToProto(result.error, method, lookup);
+  first.mutable_lookup_error()->Add(result.error.lookup_per_texel.begin(), result.error.lookup_per_texel.end());
+  for (const auto& p : result.samples.world) ToProto(p, first.add_source_samples());
+
+  // Chunks: fractions, then colors, then bitmask words, each in order.
+  auto append = [&](size_t total, auto fill) {
+    for (size_t offset = 0; offset < total; offset += chunk_elements) {
+      // One kind of chunk per message: the first fraction chunk rides with the figures.
+      if (out.back().visible_fraction_size() + out.back().visible_rgb_size() + out.back().blocked_bits_size() > 0)
+        out.emplace_back();
+      v1::HiddenSampleMapResponse& message = out.back();
+      message.set_offset(offset);
+      fill(message, offset, std::min(total, offset + chunk_elements));
+    }
+  };
+  append(result.visible_fraction.size(), [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    m.mutable_visible_fraction()->Add(result.visible_fraction.begin() + a, result.visible_fraction.begin() + b);
+  });
+  append(result.visible_rgb.size(), [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    for (size_t i = a; i < b; ++i) {
+      m.add_visible_rgb(result.visible_rgb[i].r);
+      m.add_visible_rgb(result.visible_rgb[i].g);
+      m.add_visible_rgb(result.visible_rgb[i].b);
+    }
+  });
+  append(result.blocked_bits.size(), [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    m.mutable_blocked_bits()->Add(result.blocked_bits.begin() + a, result.blocked_bits.begin() + b);
+  });
+  return out;
+}
+
+StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request) {
+  PatchVisibilityQuery query;
+  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
+  gpu::PatchVisibilityRequest& r = query.request;
+  r.source = PatchFromProto(request.source());
+  r.receiver = PatchFromProto(request.receiver());
+  auto or_default = [](uint32_t v) { return v == 0 ? 32u : v; };
+  VISQ_ASSIGN_OR_RETURN(r.source_columns, SizeFromProto(or_default(request.source_columns()), "source_columns"));
+  VISQ_ASSIGN_OR_RETURN(r.source_rows, SizeFromProto(or_default(request.source_rows()), "source_rows"));
+  VISQ_ASSIGN_OR_RETURN(r.receiver_columns, SizeFromProto(or_default(request.receiver_columns()), "receiver_columns"));
+  VISQ_ASSIGN_OR_RETURN(r.receiver_rows, SizeFromProto(or_default(request.receiver_rows()), "receiver_rows"));
+  VISQ_ASSIGN_OR_RETURN(r.lookup, LookupFromProto(request.lookup()));
+  r.watertight = request.watertight();
+  r.unblocked_limit = request.unblocked_limit();
+  return query;
+}
+
+void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, v1::PatchVisibilityResponse* out) {
+  out->set_mutual_visible_fraction(result.mutual_visible_fraction);
+  out->mutable_source_visible()->Add(result.source_visible.begin(), result.source_visible.end());
+  out->mutable_receiver_visible()->Add(result.receiver_visible.begin(), result.receiver_visible.end());
+  for (const auto& pair : result.unblocked) {
+    auto* p = out->add_unblocked();
+    p->set_source_sample(pair.source_sample);
+    p->set_receiver_sample(pair.receiver_sample);
+  }
+  out->set_unblocked_total(result.unblocked_total);
+  const gpu::LookupMode lookup = result.error.lookup_max > 0 ? gpu::LookupMode::kHough : gpu::LookupMode::kExact;
+  *out->mutable_accuracy() = AccuracyToProto(result.error, method, lookup);
+}
+
+}  // namespace visq::service

@@ -1,0 +1,33 @@
+// Wire messages <-> core types, for the algorithm RPCs. Field-level checks
+// that need the message (presence, sizes) live here; everything else is the
+// core's to validate.
+#pragma once
+
+#include "common/status.h"
+#include "core/light_visibility_query.h"
+#include "core/visibility_sampling_query.h"
+#include "visq/v1/visq.pb.h"
+
+namespace visq::service {
+
+glm::dvec3 FromProto(const v1::Vec3& v);
+void ToProto(const glm::dvec3& v, v1::Vec3* out);
+Bounds FromProto(const v1::Box& box);
+void ToProto(const Bounds& box, v1::Box* out);
+void ToProto(const std::vector<glm::dvec3>& polygon, v1::Polygon* out);
+
+// `previous` supplies scene and light for stream messages that omit them.
+[[nodiscard]] StatusOr<LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest& request,
+                                                       const LightVisibilityQuery* previous = nullptr);
+void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out);
+
+[[nodiscard]] StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
+// The response as a sequence of messages: figures first, then chunks of at
+// most `chunk_elements` values (fractions, colors, bitmask words).
+std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const gpu::HiddenSampleMapResult& result,
+                                                       VisibilityMethod method, size_t chunk_elements);
+
+[[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
+void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, v1::PatchVisibilityResponse* out);
+
+}  // namespace visq::service

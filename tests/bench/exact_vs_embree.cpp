@@ -1,0 +1,329 @@
+// Exact soft-shadow visibility (visq_exact, Mora et al. 2013) against Embree
+// shadow rays (32 per point, stratified) on the same points: time, memory,
+// and the sampled method's error against the exact answer.
+//
+//   visq_bench_exact [--occluders=N] [--size=S] [--boxes=N] [--grid=N]
+//                    [--threads=N] [--rays=N] [--tiles=N] [--seed=N]
+//
+// Exact trees are built per receiver tile (tiles x tiles over the receiver
+// bounds), the way the paper groups receivers per triangle: each tree then
+// holds only the occluders in its tile's shaft.
+//
+// The scene is a BenchCase (scene, light, receiver points); MakeProcedural()
+// builds one, and a loaded scene (e.g. Sponza through the glTF loader) only
+// needs another function filling the same struct.
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <random>
+#include <string>
+#include <thread>
+#include <memory>
+
+#include "exact/light_visibility.h"
+#include "raycast/embree_scene.h"
+
+namespace {
+
+using visq::Bounds;
+using visq::Scene;
+using visq::exact::AreaLight;
+using visq::exact::QueryPoint;
+
+struct BenchCase {
+  std::string name;
+  Scene scene;
+  AreaLight light;
+  std::vector<QueryPoint> points;  // with normals and receiver triangles
+  Bounds receivers;
+};
+
+struct Params {
+  int occluders = 300;
+  double size = 0.08;  // occluder half-size
+  int boxes = 6;
+  int grid = 64;
+  int threads = 0;
+  int rays = 32;
+  int tiles = 8;  // receiver tiles per side, one tree each (as the paper groups receivers)
+  uint32_t seed = 1;
+};
+
+void AddTriangle(Scene& s, const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
+  const uint32_t base = static_cast<uint32_t>(s.positions.size());
+  for (const auto& p : {a, b, c}) {
+    s.positions.push_back(p);
+    s.bounds.Extend(p);
+  }
+  s.triangles.push_back(glm::uvec3(base, base + 1, base + 2));
+  s.triangle_material.push_back(0);
+  s.triangle_node.push_back(0);
+}
+
+// An axis-aligned box as 12 outward-facing triangles.
+void AddBox(Scene& s, const glm::dvec3& lo, const glm::dvec3& hi) {
+  auto c = [&](int i) {
+    return glm::dvec3(i & 1 ? hi.x : lo.x, i & 2 ? hi.y : lo.y, i & 4 ? hi.z : lo.z);
+  };
+  const int faces[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4},
+                           {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
+  for (const auto& f : faces) {
+    AddTriangle(s, c(f[0]), c(f[1]), c(f[2]));
+    AddTriangle(s, c(f[0]), c(f[2]), c(f[3]));
+  }
+}
+
+// A 4 x 4 floor at z = 0 (the receiver), a 1 x 1 ceiling light at z = 2,
+// a cloud of small random triangles in between and boxes standing on the
+// floor (which touch the receiver: the per-query "near" path).
+BenchCase MakeProcedural(const Params& p) {
+  BenchCase bc;
+  bc.name = "procedural";
+  Scene& s = bc.scene;
+  AddTriangle(s, {-2, -2, 0}, {2, -2, 0}, {2, 2, 0});
+  AddTriangle(s, {-2, -2, 0}, {2, 2, 0}, {-2, 2, 0});
+  std::mt19937 rng(p.seed);
+  std::uniform_real_distribution<double> u(-1, 1), h(0.4, 1.8);
+  for (int i = 0; i < p.occluders; ++i) {
+    const glm::dvec3 c(1.8 * u(rng), 1.8 * u(rng), h(rng));
+    AddTriangle(s, c + p.size * glm::dvec3(u(rng), u(rng), u(rng)),
+                c + p.size * glm::dvec3(u(rng), u(rng), u(rng)),
+                c + p.size * glm::dvec3(u(rng), u(rng), u(rng)));
+  }
+  for (int i = 0; i < p.boxes; ++i) {
+    const glm::dvec3 c(1.5 * u(rng), 1.5 * u(rng), 0.0);
+    AddBox(s, c - glm::dvec3(0.15, 0.15, 0.0), c + glm::dvec3(0.15, 0.15, 0.2 + 0.3 * (u(rng) + 1)));
+  }
+  bc.light.vertices = {{-0.5, -0.5, 2}, {-0.5, 0.5, 2}, {0.5, 0.5, 2}, {0.5, -0.5, 2}};
+  bc.light.radiance = 10.0;
+  for (int i = 0; i < p.grid; ++i) {
+    for (int j = 0; j < p.grid; ++j) {
+      const glm::dvec3 x(-1.95 + 3.9 * (i + 0.5) / p.grid, -1.95 + 3.9 * (j + 0.5) / p.grid, 0.0);
+      bc.points.push_back({x, glm::dvec3(0, 0, 1), x.x - x.y > 0 ? 0u : 1u});
+    }
+  }
+  bc.receivers.Extend({-2, -2, 0});
+  bc.receivers.Extend({2, 2, 0});
+  return bc;
+}
+
+double Seconds(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+int Run(const BenchCase& bc, const Params& p) {
+  const int threads = p.threads > 0 ? p.threads : static_cast<int>(std::thread::hardware_concurrency());
+  std::printf("scene %s: %zu triangles, %zu points, %d threads, %d rays/point, %d x %d receiver "
+              "tiles\n",
+              bc.name.c_str(), bc.scene.TriangleCount(), bc.points.size(), threads, p.rays,
+              p.tiles, p.tiles);
+
+  // Exact: per tile, build a tree and query its points (first pass, which
+  // grows it), then query again (second pass, reusing it). Tiles run in
+  // parallel, each single-threaded.
+  const int tiles = std::max(1, p.tiles);
+  std::vector<std::vector<size_t>> tile_points(tiles * tiles);
+  const glm::dvec3 ext = bc.receivers.Extent();
+  for (size_t i = 0; i < bc.points.size(); ++i) {
+    const glm::dvec3 r = (bc.points[i].position - bc.receivers.min) / glm::max(ext, glm::dvec3(1e-300));
+    const int tx = std::clamp(static_cast<int>(r.x * tiles), 0, tiles - 1);
+    const int ty = std::clamp(static_cast<int>(r.y * tiles), 0, tiles - 1);
+    tile_points[ty * tiles + tx].push_back(i);
+  }
+  std::vector<std::unique_ptr<visq::exact::LightVisibilityTree>> trees(tile_points.size());
+  std::vector<visq::exact::PointVisibility> exact(bc.points.size()), warm(bc.points.size());
+  std::atomic<bool> failed{false};
+  auto for_tiles = [&](const auto& body) {
+    std::atomic<size_t> next{0};
+    auto work = [&]() {
+      for (size_t t = next.fetch_add(1); t < tile_points.size(); t = next.fetch_add(1)) body(t);
+    };
+    std::vector<std::thread> pool;
+    for (int w = 1; w < threads; ++w) pool.emplace_back(work);
+    work();
+    for (auto& th : pool) th.join();
+  };
+  auto t0 = std::chrono::steady_clock::now();
+  std::atomic<int64_t> create_ns{0};
+  for_tiles([&](size_t t) {
+    if (tile_points[t].empty()) return;
+    const auto c0 = std::chrono::steady_clock::now();
+    Bounds tb;
+    for (size_t i : tile_points[t]) tb.Extend(bc.points[i].position);
+    visq::exact::TreeOptions options;
+    options.receiver_bounds = tb;
+    auto tree = visq::exact::LightVisibilityTree::Create(bc.light, bc.scene, options);
+    create_ns += std::chrono::duration_cast<std::chrono::nanoseconds>(
+                     std::chrono::steady_clock::now() - c0).count();
+    if (!tree.ok()) {
+      std::fprintf(stderr, "tree: %s\n", tree.status().ToString().c_str());
+      failed = true;
+      return;
+    }
+    trees[t] = std::move(*tree);
+    for (size_t i : tile_points[t]) {
+      auto r = trees[t]->Query(bc.points[i]);
+      if (!r.ok()) {
+        std::fprintf(stderr, "query: %s\n", r.status().ToString().c_str());
+        failed = true;
+        return;
+      }
+      exact[i] = std::move(*r);
+    }
+  });
+  const double t_cold_total = Seconds(t0);
+  if (failed) return 1;
+  const double t_create = 1e-9 * static_cast<double>(create_ns.load()) / threads;  // wall share
+  const double t_cold = t_cold_total - t_create;
+  visq::exact::TreeStats stats, stats_cold;
+  for (const auto& tree : trees) {
+    if (!tree) continue;
+    const auto st = tree->Stats();
+    stats_cold.hits += st.hits;
+    stats_cold.queries += st.queries;
+  }
+  t0 = std::chrono::steady_clock::now();
+  for_tiles([&](size_t t) {
+    for (size_t i : tile_points[t]) warm[i] = *trees[t]->Query(bc.points[i]);
+  });
+  const double t_warm = Seconds(t0);
+  size_t max_tree_bytes = 0;
+  for (const auto& tree : trees) {
+    if (!tree) continue;
+    const auto st = tree->Stats();
+    stats.nodes += st.nodes;
+    stats.memory_bytes += st.memory_bytes;
+    max_tree_bytes = std::max(max_tree_bytes, st.memory_bytes);
+    stats.queries += st.queries;
+    stats.hits += st.hits;
+    stats.refinements += st.refinements;
+    stats.far_occluders += st.far_occluders;
+    stats.near_occluders += st.near_occluders;
+  }
+
+  // Embree: build, then p.rays stratified (jittered) shadow rays per point.
+  t0 = std::chrono::steady_clock::now();
+  auto embree = visq::raycast::EmbreeScene::Create(bc.scene);
+  if (!embree.ok()) {
+    std::fprintf(stderr, "embree: %s\n", embree.status().ToString().c_str());
+    return 1;
+  }
+  const double t_embree_build = Seconds(t0);
+  const auto& lv = bc.light.vertices;  // a parallelogram light: lv[0] + s e1 + t e2
+  const glm::dvec3 e1 = lv[1] - lv[0], e2 = lv[3] - lv[0];
+  const glm::dvec3 light_normal = glm::normalize(glm::cross(e1, e2));  // emitting side
+  const double light_area = glm::length(glm::cross(e1, e2));
+  int sx = 1;
+  while ((sx + 1) * (sx + 1) <= p.rays) ++sx;
+  const int sy = (p.rays + sx - 1) / sx;
+  std::mt19937 rng(p.seed + 99);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  t0 = std::chrono::steady_clock::now();
+  std::vector<visq::raycast::Segment> segments;
+  segments.reserve(bc.points.size() * p.rays);
+  for (const auto& q : bc.points) {
+    for (int k = 0; k < p.rays; ++k) {
+      const double s = ((k % sx) + u(rng)) / sx, t = ((k / sx) % sy + u(rng)) / sy;
+      segments.push_back({q.position, lv[0] + s * e1 + t * e2,
+                          q.receiver_triangle.value_or(visq::raycast::kNoTriangle)});
+    }
+  }
+  const double t_sample = Seconds(t0);
+  t0 = std::chrono::steady_clock::now();
+  visq::raycast::TraceOptions trace;
+  trace.threads = threads;
+  auto occluded = embree->Occluded(segments, trace);
+  const double t_trace = Seconds(t0);
+  if (!occluded.ok()) {
+    std::fprintf(stderr, "occluded: %s\n", occluded.status().ToString().c_str());
+    return 1;
+  }
+
+  // Errors of the sampled estimates against the exact answers.
+  double sq_frac = 0.0, max_frac = 0.0, sq_irr = 0.0, sum_irr = 0.0;
+  size_t penumbra = 0;
+  for (size_t i = 0; i < bc.points.size(); ++i) {
+    const auto& q = bc.points[i];
+    int visible = 0;
+    double irr = 0.0;
+    for (int k = 0; k < p.rays; ++k) {
+      const auto& seg = segments[i * p.rays + k];
+      if ((*occluded)[i * p.rays + k]) continue;
+      ++visible;
+      const glm::dvec3 d = seg.q - seg.p;
+      const double r2 = glm::dot(d, d);
+      const glm::dvec3 w = d / std::sqrt(r2);
+      irr += std::max(0.0, glm::dot(*q.normal, w)) * std::max(0.0, -glm::dot(light_normal, w)) / r2;
+    }
+    irr *= bc.light.radiance * light_area / p.rays;
+    const double f_exact = exact[i].visible_area_fraction;
+    const double e = static_cast<double>(visible) / p.rays - f_exact;
+    sq_frac += e * e;
+    max_frac = std::max(max_frac, std::abs(e));
+    sq_irr += (irr - exact[i].irradiance) * (irr - exact[i].irradiance);
+    sum_irr += exact[i].irradiance;
+    penumbra += f_exact > 0.0 && f_exact < 1.0;
+  }
+  const double n = static_cast<double>(bc.points.size());
+  bool same = true;
+  for (size_t i = 0; same && i < bc.points.size(); ++i) {
+    same = warm[i].visible_area_fraction == exact[i].visible_area_fraction;
+  }
+
+  const double t_exact = t_create + t_cold, t_rt = t_embree_build + t_sample + t_trace;
+  std::printf("\n%-34s %12s %12s\n", "", "exact visq", "embree");
+  std::printf("%-34s %12.4f %12.4f\n", "build (s)", t_create, t_embree_build);
+  std::printf("%-34s %12.4f %12.4f\n", "first pass: queries / rays (s)", t_cold, t_sample + t_trace);
+  std::printf("%-34s %12.4f %12s\n", "second pass, warm tree (s)", t_warm, "-");
+  std::printf("%-34s %12.2f %12.2f\n", "us per point (first pass)", 1e6 * t_cold / n,
+              1e6 * (t_sample + t_trace) / n);
+  std::printf("%-34s %12.2f %12s\n", "us per point (warm)", 1e6 * t_warm / n, "-");
+  std::printf("%-34s %12.1f %12.1f\n", "memory, all trees (KiB)", stats.memory_bytes / 1024.0,
+              embree->memory_bytes() / 1024.0);
+  std::printf("%-34s %12.1f %12s\n", "memory, largest tree (KiB)", max_tree_bytes / 1024.0, "-");
+  std::printf("%-34s %12.3f %12s\n", "time ratio exact / embree (total)", t_exact / t_rt, "");
+  std::printf("%-34s %12.3f %12s\n", "time ratio warm exact / rays", t_warm / (t_sample + t_trace), "");
+  std::printf("\nexact trees: %zu nodes, %zu far + %zu near occluders, %llu refinements, "
+              "hits %llu / %llu queries (first pass %llu / %llu); second pass identical: %s\n",
+              stats.nodes, stats.far_occluders, stats.near_occluders,
+              static_cast<unsigned long long>(stats.refinements),
+              static_cast<unsigned long long>(stats.hits), static_cast<unsigned long long>(stats.queries),
+              static_cast<unsigned long long>(stats_cold.hits),
+              static_cast<unsigned long long>(stats_cold.queries), same ? "yes" : "NO");
+  std::printf("penumbra points (0 < exact < 1): %zu of %zu\n", penumbra, bc.points.size());
+  std::printf("%d-ray error vs exact: visible fraction RMS %.4f, max %.4f; irradiance RMS %.4f "
+              "(%.2f%% of mean %.4f)\n",
+              p.rays, std::sqrt(sq_frac / n), max_frac, std::sqrt(sq_irr / n),
+              100.0 * std::sqrt(sq_irr / n) / (sum_irr / n), sum_irr / n);
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Params p;
+  for (int i = 1; i < argc; ++i) {
+    const char* a = argv[i];
+    auto value = [&](const char* flag) -> const char* {
+      const size_t n = std::strlen(flag);
+      return std::strncmp(a, flag, n) == 0 && a[n] == '=' ? a + n + 1 : nullptr;
+    };
+    if (const char* v = value("--occluders")) p.occluders = std::atoi(v);
+    else if (const char* v = value("--boxes")) p.boxes = std::atoi(v);
+    else if (const char* v = value("--grid")) p.grid = std::atoi(v);
+    else if (const char* v = value("--threads")) p.threads = std::atoi(v);
+    else if (const char* v = value("--rays")) p.rays = std::atoi(v);
+    else if (const char* v = value("--tiles")) p.tiles = std::atoi(v);
+    else if (const char* v = value("--size")) p.size = std::atof(v);
+    else if (const char* v = value("--seed")) p.seed = static_cast<uint32_t>(std::atoi(v));
+    else {
+      std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
+                   "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n", argv[0]);
+      return 2;
+    }
+  }
+  return Run(MakeProcedural(p), p);
+}

@@ -1,0 +1,149 @@
+// Obscurance bake: GPU depth peeling vs Embree casting cosine-distributed
+// rays from every patch with the same number of samples per patch, time and
+// RMS error against a converged Embree reference; and the update latency
+// for moving a ~1K-triangle object in Sponza. Prints a table; not a test.
+//
+//   visq_bench_obscurance [--quick] [--scenes DIR]
+// --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <glm/gtc/matrix_transform.hpp>
+
+#include "obscurance/obscurance_atlas.h"
+#include "obscurance/obscurance_model.h"
+#include "obscurance/obscurance_rays.h"
+#include "obscurance/obscurance_update.h"
+#include "scene/gltf_loader.h"
+#include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/gpu_worker.h"
+#include "visq/gpu/obscurance.h"
+
+using namespace visq;
+using namespace visq::obscurance;
+
+namespace {
+
+double Seconds(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+}
+
+double Rms(const ObscuranceAtlas& atlas, const ObscuranceResult& x, const ObscuranceResult& y) {
+  double s = 0;
+  size_t n = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (!atlas.Covered(t) || !x.estimated[t] || !y.estimated[t]) continue;
+    for (int c = 0; c < 3; ++c) {
+      const double d = static_cast<double>(x.w[t][c]) - y.w[t][c];
+      s += d * d;
+      ++n;
+    }
+  }
+  return n ? std::sqrt(s / n) : 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  bool quick = false;
+  std::filesystem::path dir = "../shared/scenes";
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--quick")) quick = true;
+    else if (!std::strcmp(argv[i], "--scenes") && i + 1 < argc) dir = argv[++i];
+  }
+  auto worker = gpu::GpuWorker::Start({});
+  if (!worker.ok()) { std::fprintf(stderr, "%s\n", std::string(worker.status().message()).c_str()); return 1; }
+  std::printf("device: %s\n", (*worker)->device().gl_renderer.c_str());
+  struct SceneCase { std::string name; std::filesystem::path path; };
+  std::vector<SceneCase> scenes = {{"sponza", dir / "sponza_dabrovic/sponza.gltf"}};
+  if (!quick) scenes.push_back({"veach_ajar", dir / "interior_veach_ajar/veach_ajar.gltf"});
+  const std::vector<uint32_t> resolutions = quick ? std::vector<uint32_t>{512} : std::vector<uint32_t>{512, 1024};
+  const std::vector<uint32_t> directions = quick ? std::vector<uint32_t>{16, 64} : std::vector<uint32_t>{64, 256, 1024};
+  const uint32_t reference_rays = quick ? 256 : 2048;
+
+  std::printf("%-10s %5s %5s | %9s %8s %8s | %9s %8s %8s | %s\n", "scene", "atlas", "dirs", "gpu s", "rms", "smp/pt",
+              "embree s", "rms", "rays/pt", "reference");
+  for (const SceneCase& sc : scenes) {
+    auto scene = LoadGltfFile(sc.path);
+    if (!scene.ok()) { std::printf("%s: %s\n", sc.name.c_str(), std::string(scene.status().message()).c_str()); continue; }
+    auto gpu_scene = gpu::GpuScene::Upload(**worker, *scene);
+    if (!gpu_scene.ok()) return 1;
+    ObscuranceParams params;
+    params.d_max = 0.1 * glm::length(scene->bounds.Extent());
+    params.color_bleeding = true;
+    for (uint32_t res : resolutions) {
+      auto t0 = std::chrono::steady_clock::now();
+      auto atlas = BuildObscuranceAtlas(*scene, res);
+      if (!atlas.ok()) { std::printf("%s %u: %s\n", sc.name.c_str(), res, std::string(atlas.status().message()).c_str()); continue; }
+      const double atlas_s = Seconds(t0);
+      RayEstimateOptions ref_options;
+      ref_options.rays_per_patch = reference_rays;
+      ref_options.seed = 999;
+      t0 = std::chrono::steady_clock::now();
+      auto reference = EstimateObscurancesByRays(*scene, *atlas, params, ref_options);
+      if (!reference.ok()) return 1;
+      const double ref_s = Seconds(t0);
+      for (uint32_t d : directions) {
+        params.direction_count = d;
+        gpu::ObscuranceBakeStats stats;
+        t0 = std::chrono::steady_clock::now();
+        auto baked = gpu::BakeObscurances(**worker, **gpu_scene, *scene, *atlas, params, {}, &stats);
+        if (!baked.ok()) { std::printf("bake: %s\n", std::string(baked.status().message()).c_str()); return 1; }
+        const double gpu_s = Seconds(t0);
+        RayEstimateOptions ro;
+        ro.rays_per_patch = std::max<uint32_t>(1, static_cast<uint32_t>(std::lround(baked->mean_samples_per_patch)));
+        t0 = std::chrono::steady_clock::now();
+        auto rays = EstimateObscurancesByRays(*scene, *atlas, params, ro);
+        if (!rays.ok()) return 1;
+        const double ray_s = Seconds(t0);
+        std::printf("%-10s %5u %5u | %9.2f %8.4f %8.0f | %9.2f %8.4f %8u | %u rays/pt %.0f s, atlas %.1f s, %u charts, max layers %u\n",
+                    sc.name.c_str(), res, d, gpu_s, Rms(*atlas, *baked, *reference), baked->mean_samples_per_patch,
+                    ray_s, Rms(*atlas, *rays, *reference), ro.rays_per_patch, reference_rays, ref_s, atlas_s,
+                    atlas->chart_count, stats.max_layers);
+        std::fflush(stdout);
+      }
+    }
+    // Update latency: the node nearest 1K triangles.
+    if (sc.name != "sponza") continue;
+    uint32_t node = 0;
+    for (uint32_t n = 0; n < scene->nodes.size(); ++n)
+      if (std::abs(static_cast<int>(scene->nodes[n].triangle_count) - 1000) <
+          std::abs(static_cast<int>(scene->nodes[node].triangle_count) - 1000))
+        node = n;
+    auto atlas = BuildObscuranceAtlas(*scene, 512);
+    if (!atlas.ok()) return 1;
+    params.direction_count = 16;
+    auto baked = gpu::BakeObscurances(**worker, **gpu_scene, *scene, *atlas, params);
+    if (!baked.ok()) return 1;
+    for (uint32_t rays : {16u, 64u}) {
+      UpdaterOptions uo;
+      uo.rays_per_patch = rays;
+      auto t0 = std::chrono::steady_clock::now();
+      auto updater = ObscuranceUpdater::Create(*scene, *atlas, params, *baked, {node}, uo);
+      if (!updater.ok()) { std::printf("updater: %s\n", std::string(updater.status().message()).c_str()); return 1; }
+      const double create_s = Seconds(t0);
+      std::vector<double> ms;
+      ObscuranceUpdate last;
+      for (int step = 1; step <= 5; ++step) {
+        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.02 * step * params.d_max * 10, 0, 0)) *
+                                 scene->nodes[node].world;
+        auto up = (*updater)->MoveNode(node, world);
+        if (!up.ok()) { std::printf("update: %s\n", std::string(up.status().message()).c_str()); return 1; }
+        ms.push_back(up->milliseconds);
+        last = *up;
+      }
+      std::sort(ms.begin(), ms.end());
+      std::printf("update sponza node '%s' (%u triangles), %u rays/patch, d_max %.2f: median %.1f ms (min %.1f, max %.1f); "
+                  "last move: %zu texels changed, %u recomputed, %llu rays; create %.2f s\n",
+                  scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, rays, params.d_max, ms[2], ms[0],
+                  ms[4], last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), create_s);
+    }
+  }
+  return 0;
+}

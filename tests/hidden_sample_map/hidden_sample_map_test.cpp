@@ -1,0 +1,545 @@
+// Hidden-sample maps against independent references: Embree casting the very
+// same segments (the sample positions the API reports), and closed forms.
+//
+// Tolerance for EXACT mode: kTieFraction of the bits may differ from Embree.
+// Both sides decide in float32 (Embree's watertight test in its frame, the
+// shader's edge test on the back-projection), so samples within ~1e-6 of a
+// triangle edge's shadow can fall either way; nothing else may differ.
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include <gtest/gtest.h>
+
+#include "raycast/embree_scene.h"
+#include "scene/gltf_loader.h"
+#include "scene/sample_scenes.h"
+#include "test_support.h"
+#include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/hidden_sample_map.h"
+
+namespace visq::gpu {
+namespace {
+
+constexpr double kTieFraction = 1e-4;
+
+HiddenSampleMapper& Mapper() {
+  static std::unique_ptr<HiddenSampleMapper> mapper = [] {
+    auto created = HiddenSampleMapper::Create(testing::SharedGpuWorker());
+    if (!created.ok()) { ADD_FAILURE() << created.status(); std::abort(); }
+    return std::move(*created);
+  }();
+  return *mapper;
+}
+
+std::shared_ptr<GpuScene> Upload(const Scene& scene) {
+  auto uploaded = GpuScene::Upload(testing::SharedGpuWorker(), scene);
+  EXPECT_TRUE(uploaded.ok()) << uploaded.status();
+  return uploaded.ok() ? *uploaded : nullptr;
+}
+
+void AddTriangle(Scene& scene, const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
+  const uint32_t base = static_cast<uint32_t>(scene.positions.size());
+  scene.positions.insert(scene.positions.end(), {a, b, c});
+  scene.triangles.emplace_back(base, base + 1, base + 2);
+  scene.triangle_material.push_back(0);
+  scene.triangle_node.push_back(0);
+}
+
+Scene EmptyFrame() {
+  Scene scene;
+  scene.materials.push_back({"white"});
+  scene.nodes.push_back({"root"});
+  return scene;
+}
+
+Scene RandomCloud(int triangles, uint32_t seed, const glm::dvec3& lo, const glm::dvec3& hi, double size) {
+  Scene scene = EmptyFrame();
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u01(0.0, 1.0), side(-size, size);
+  for (int k = 0; k < triangles; ++k) {
+    const glm::dvec3 c = lo + glm::dvec3(u01(rng), u01(rng), u01(rng)) * (hi - lo);
+    AddTriangle(scene, c + glm::dvec3(side(rng), side(rng), side(rng)), c + glm::dvec3(side(rng), side(rng), side(rng)),
+                c + glm::dvec3(side(rng), side(rng), side(rng)));
+  }
+  UpdateBounds(scene);
+  return scene;
+}
+
+// The unit-square light at y = 1 facing down and the unit-square receiver at y = 0.
+HiddenSampleMapRequest UnitRequest(int n, int size) {
+  HiddenSampleMapRequest r;
+  r.source.patch = {{0, 1, 0}, {1, 0, 0}, {0, 0, 1}};
+  r.source.sample_count = n;
+  r.receiver.patch = {{0, 0, 0}, {1, 0, 0}, {0, 0, 1}};
+  r.receiver.width = r.receiver.height = size;
+  r.options.want_bitmasks = true;
+  return r;
+}
+
+struct Agreement {
+  uint64_t bits = 0, differ = 0, blocked = 0;
+  double differ_fraction() const { return bits ? double(differ) / bits : 0.0; }
+  double blocked_fraction() const { return bits ? double(blocked) / bits : 0.0; }
+};
+
+// Embree on exactly the segments the map tested: receiver sample -> source sample.
+std::vector<uint8_t> EmbreeBits(const Scene& scene, const HiddenSampleMapRequest& request,
+                                const HiddenSampleMapResult& result) {
+  auto embree = raycast::EmbreeScene::Create(scene);
+  EXPECT_TRUE(embree.ok()) << embree.status();
+  if (!embree.ok()) return {};
+  std::vector<raycast::Segment> segments;
+  segments.reserve(size_t(result.width) * result.height * result.sample_count);
+  for (int y = 0; y < result.height; ++y)
+    for (int x = 0; x < result.width; ++x) {
+      const glm::dvec3 p = ReceiverSamplePosition(request.receiver, x, y);
+      for (int i = 0; i < result.sample_count; ++i)
+        segments.push_back({p, SourceSampleSeenFrom(request, result.samples, i, x, y)});
+    }
+  auto occluded = embree->Occluded(segments);
+  EXPECT_TRUE(occluded.ok()) << occluded.status();
+  return occluded.ok() ? *occluded : std::vector<uint8_t>{};
+}
+
+bool Bit(const HiddenSampleMapResult& r, size_t texel, int i) {
+  return (r.blocked_bits[texel * r.words_per_texel + i / 32] >> (i % 32)) & 1u;
+}
+
+Agreement Compare(const HiddenSampleMapResult& result, const std::vector<uint8_t>& reference) {
+  Agreement a;
+  const size_t texels = size_t(result.width) * result.height;
+  if (reference.size() != texels * result.sample_count) { ADD_FAILURE() << "reference size"; return a; }
+  for (size_t j = 0; j < texels; ++j)
+    for (int i = 0; i < result.sample_count; ++i) {
+      const bool ref = reference[j * result.sample_count + i] != 0;
+      a.bits++;
+      a.blocked += ref;
+      if (ref != Bit(result, j, i) && a.differ < 12 && std::getenv("HSM_DEBUG"))
+        std::printf("mismatch texel %zu (%zu,%zu) sample %d embree %d\n", j, j % result.width, j / result.width, i, ref);
+      a.differ += ref != Bit(result, j, i);
+    }
+  return a;
+}
+
+// Runs EXACT against Embree and asserts agreement; returns the agreement.
+Agreement ExpectMatchesEmbree(const Scene& scene, const HiddenSampleMapRequest& request) {
+  auto gpu_scene = Upload(scene);
+  if (!gpu_scene) return {};
+  auto result = Mapper().Compute(*gpu_scene, request);
+  EXPECT_TRUE(result.ok()) << result.status();
+  if (!result.ok()) return {};
+  const Agreement a = Compare(*result, EmbreeBits(scene, request, *result));
+  EXPECT_LE(a.differ_fraction(), kTieFraction) << a.differ << " of " << a.bits << " bits differ from Embree";
+  // Consistency of the fractions with the bits.
+  for (size_t j = 0; j < result->visible_fraction.size(); ++j) {
+    int blocked = 0;
+    for (int i = 0; i < result->sample_count; ++i) blocked += Bit(*result, j, i);
+    EXPECT_FLOAT_EQ(result->visible_fraction[j], float(result->sample_count - blocked) / result->sample_count);
+  }
+  EXPECT_EQ(result->error.lookup_max, 0.0);
+  return a;
+}
+
+// ---------------------------------------------------------------- validation
+
+TEST(HiddenSampleMapValidation, RejectsBadParametersNamingTheField) {
+  struct Case { const char* field; std::function<void(HiddenSampleMapRequest&)> edit; };
+  const std::vector<Case> cases = {
+      {"source.patch.origin", [](auto& r) { r.source.patch.origin.x = std::nan(""); }},
+      {"source.patch", [](auto& r) { r.source.patch.edge_v = r.source.patch.edge_u * 2.0; }},
+      {"receiver.patch", [](auto& r) { r.receiver.patch.edge_u = glm::dvec3(0.0); }},
+      {"source.sample_count", [](auto& r) { r.source.sample_count = 0; }},
+      {"source.sample_count", [](auto& r) { r.source.sample_count = 4097; }},
+      {"receiver.width", [](auto& r) { r.receiver.width = 0; }},
+      {"receiver.height", [](auto& r) { r.receiver.height = 5000; }},
+      {"receiver.heightfield", [](auto& r) { r.receiver.heightfield.assign(7, 0.0f); }},
+      {"receiver.heightfield[3]", [](auto& r) {
+         r.receiver.heightfield.assign(size_t(r.receiver.width) * r.receiver.height, 0.0f);
+         r.receiver.heightfield[3] = INFINITY;
+       }},
+      {"source.custom_uv", [](auto& r) { r.source.pattern = SamplePattern::kCustom; }},
+      {"options.hough_theta_resolution", [](auto& r) { r.options.hough_theta_resolution = 8; }},
+      {"options.confidence", [](auto& r) { r.options.confidence = 1.0; }},
+      {"receiver.patch", [](auto& r) { r.receiver.patch.edge_v = {0, 2, 1}; }},  // across the source plane
+      {"source.polygon_uv", [](auto& r) { r.source.polygon_uv = {{2, 2}, {3, 2}, {3, 3}}; }},
+  };
+  auto scene = Upload(RandomCloud(4, 1, {0, 0.2, 0}, {1, 0.8, 1}, 0.1));
+  ASSERT_TRUE(scene);
+  for (const Case& c : cases) {
+    HiddenSampleMapRequest request = UnitRequest(32, 8);
+    c.edit(request);
+    auto result = Mapper().Compute(*scene, request);
+    ASSERT_FALSE(result.ok()) << c.field << " was accepted";
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument) << result.status();
+    EXPECT_NE(std::string(result.status().message()).find(c.field), std::string::npos) << result.status();
+  }
+}
+
+// -------------------------------------------------------------- closed forms
+
+TEST(HiddenSampleMapClosedForm, EmptySceneSeesEverything) {
+  Scene scene = EmptyFrame();
+  UpdateBounds(scene);
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  auto result = Mapper().Compute(*gpu_scene, UnitRequest(64, 16));
+  ASSERT_TRUE(result.ok()) << result.status();
+  for (float v : result->visible_fraction) ASSERT_EQ(v, 1.0f);
+}
+
+// A horizontal half-plane at y = 0.5 covering x < 0.5: from receiver x = rx
+// the segment to source sample sx crosses y = 0.5 at (rx + sx) / 2, so the
+// hidden samples are exactly those with sx < 1 - rx.
+Scene HalfPlaneAt(double y, double x_edge) {
+  Scene scene = EmptyFrame();
+  AddTriangle(scene, {x_edge, y, -50}, {x_edge, y, 50}, {-50, y, 0});
+  UpdateBounds(scene);
+  return scene;
+}
+
+TEST(HiddenSampleMapClosedForm, TriangleHidingExactlyHalfTheSource) {
+  auto gpu_scene = Upload(HalfPlaneAt(0.5, 0.5));
+  ASSERT_TRUE(gpu_scene);
+  for (LookupMode mode : {LookupMode::kExact, LookupMode::kHough}) {
+    // One receiver sample under the centre: exactly half of an 8 x 8 grid.
+    HiddenSampleMapRequest centre = UnitRequest(64, 1);
+    centre.options.lookup = mode;
+    auto one = Mapper().Compute(*gpu_scene, centre);
+    ASSERT_TRUE(one.ok()) << one.status();
+    if (mode == LookupMode::kExact) {
+      EXPECT_EQ(one->visible_fraction[0], 0.5f);
+    }
+    EXPECT_LE(std::abs(one->visible_fraction[0] - 0.5), one->error.lookup_max + 1e-6);
+
+    // A 16 x 16 receiver under the middle half: the closed form per texel.
+    HiddenSampleMapRequest strip = UnitRequest(64, 16);
+    strip.receiver.patch = {{0.25, 0, 0}, {0.5, 0, 0}, {0, 0, 1}};
+    strip.options.lookup = mode;
+    auto result = Mapper().Compute(*gpu_scene, strip);
+    ASSERT_TRUE(result.ok()) << result.status();
+    for (int x = 0; x < 16; ++x) {
+      const double rx = 0.25 + 0.5 * (x + 0.5) / 16;
+      int hidden = 0;
+      for (const glm::dvec2& uv : result->samples.uv) hidden += uv.x < 1.0 - rx;
+      for (int y = 0; y < 16; ++y) {
+        const size_t j = size_t(y) * 16 + x;
+        const double expected = 1.0 - double(hidden) / 64;
+        if (mode == LookupMode::kExact) {
+          EXPECT_FLOAT_EQ(result->visible_fraction[j], expected) << "texel " << x << "," << y;
+        } else {
+          // HOUGH errs towards blocked, within its reported bound.
+          EXPECT_LE(result->visible_fraction[j], expected + 1e-6);
+          EXPECT_GE(result->visible_fraction[j] + result->error.lookup_per_texel[j], expected - 1e-6);
+        }
+      }
+    }
+  }
+}
+
+TEST(HiddenSampleMapClosedForm, OccludersBehindReceiverOrBeyondSourceBlockNothing) {
+  for (double y : {-0.5, -0.01, 1.01, 1.5}) {
+    auto gpu_scene = Upload(HalfPlaneAt(y, 0.5));
+    ASSERT_TRUE(gpu_scene);
+    auto result = Mapper().Compute(*gpu_scene, UnitRequest(64, 16));
+    ASSERT_TRUE(result.ok()) << result.status();
+    for (float v : result->visible_fraction) ASSERT_EQ(v, 1.0f) << "occluder at y = " << y;
+  }
+}
+
+// A wall in the plane x = 0.5 spanning y in [y0, y1] (crossing one of the
+// planes): segment (rx, 0) -> (sx, 1) meets x = 0.5 at height
+// t = (0.5 - rx) / (sx - rx), blocked iff the sides differ and t is in the
+// part of the wall strictly between the planes.
+void ExpectWall(double y0, double y1) {
+  Scene scene = EmptyFrame();
+  AddQuad(scene, "wall", {0.5, y0, -50}, {0, y1 - y0, 0}, {0, 0, 100}, 0);
+  UpdateBounds(scene);
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  auto result = Mapper().Compute(*gpu_scene, UnitRequest(64, 16));
+  ASSERT_TRUE(result.ok()) << result.status();
+  int blocked_total = 0;
+  for (int y = 0; y < 16; ++y)
+    for (int x = 0; x < 16; ++x) {
+      const double rx = (x + 0.5) / 16;
+      for (int i = 0; i < 64; ++i) {
+        const double sx = result->samples.uv[i].x;
+        const bool crosses = (rx - 0.5) * (sx - 0.5) < 0;
+        const double t = crosses ? (0.5 - rx) / (sx - rx) : -1;
+        const bool expected = crosses && t > std::max(y0, 0.0) && t < std::min(y1, 1.0);
+        blocked_total += expected;
+        ASSERT_EQ(Bit(*result, size_t(y) * 16 + x, i), expected) << "texel " << x << "," << y << " sample " << i;
+      }
+    }
+  EXPECT_GT(blocked_total, 0);
+}
+
+TEST(HiddenSampleMapClosedForm, OccluderCrossingTheReceiverPlane) { ExpectWall(-0.7, 0.43); }
+TEST(HiddenSampleMapClosedForm, OccluderCrossingTheSourcePlane) { ExpectWall(0.57, 1.9); }
+
+// ------------------------------------------------------------ against Embree
+
+TEST(HiddenSampleMapEmbree, RandomCloudN32) {
+  Scene scene = RandomCloud(300, 7, {-0.2, 0.05, -0.2}, {1.2, 0.95, 1.2}, 0.08);
+  HiddenSampleMapRequest r = UnitRequest(32, 64);
+  r.source.pattern = SamplePattern::kJittered;
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.05);
+  EXPECT_LT(a.blocked_fraction(), 0.95);
+}
+
+TEST(HiddenSampleMapEmbree, RandomCloudN1024) {
+  Scene scene = RandomCloud(1000, 11, {-0.2, 0.05, -0.2}, {1.2, 0.95, 1.2}, 0.05);
+  HiddenSampleMapRequest r = UnitRequest(1024, 32);
+  r.source.pattern = SamplePattern::kJittered;
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.05);
+  EXPECT_LT(a.blocked_fraction(), 0.95);
+}
+
+TEST(HiddenSampleMapEmbree, RandomCloudN4096SeveralPasses) {
+  Scene scene = RandomCloud(200, 13, {-0.2, 0.05, -0.2}, {1.2, 0.95, 1.2}, 0.1);
+  HiddenSampleMapRequest r = UnitRequest(4096, 24);
+  r.source.pattern = SamplePattern::kJittered;
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.05);
+}
+
+TEST(HiddenSampleMapEmbree, DecorrelatedSamples) {
+  Scene scene = RandomCloud(300, 17, {-0.2, 0.05, -0.2}, {1.2, 0.95, 1.2}, 0.08);
+  HiddenSampleMapRequest r = UnitRequest(128, 48);
+  r.options.decorrelate = true;
+  r.options.decorrelation_seed = 5;
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.05);
+}
+
+TEST(HiddenSampleMapEmbree, TiltedPatchesAndBumpyReceiver) {
+  Scene scene = RandomCloud(300, 19, {-0.2, 0.2, -0.2}, {1.2, 0.95, 1.2}, 0.08);
+  HiddenSampleMapRequest r = UnitRequest(256, 40);
+  r.source.patch = {{0.1, 1.0, 0.0}, {0.8, 0.15, 0.0}, {0.0, -0.1, 0.9}};  // not parallel to the receiver
+  r.receiver.heightfield.resize(40 * 40);
+  for (int y = 0; y < 40; ++y)
+    for (int x = 0; x < 40; ++x) r.receiver.heightfield[y * 40 + x] = 0.15f * std::sin(x * 0.4f) * std::cos(y * 0.3f);
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.05);
+}
+
+TEST(HiddenSampleMapEmbree, WatertightCullingKeepsTheBits) {
+  Scene scene = EmptyFrame();
+  AddBox(scene, "a", {0.1, 0.3, 0.2}, {0.4, 0.5, 0.6}, 0);
+  AddBox(scene, "b", {0.5, 0.6, 0.1}, {0.9, 0.7, 0.4}, 0);
+  UpdateBounds(scene);
+  HiddenSampleMapRequest r = UnitRequest(256, 48);
+  r.source.patch = {{0.25, 1.0, 0.25}, {0.5, 0, 0}, {0, 0, 0.5}};
+  // Jittered: a regular grid over axis-aligned boxes at round coordinates
+  // puts segments exactly through box edges, ties either side may call.
+  r.source.pattern = SamplePattern::kJittered;
+  r.options.watertight = true;
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.02);
+}
+
+TEST(HiddenSampleMapEmbree, CornellBoxLightOntoFloor) {
+  const Scene scene = MakeCornellBox();
+  HiddenSampleMapRequest r;
+  // The emissive quad itself (coplanar geometry must not block) onto the floor.
+  r.source.patch = {{-0.25, 2.0 - 0.005, -0.25}, {0.5, 0, 0}, {0, 0, 0.5}};
+  r.source.sample_count = 256;
+  r.source.pattern = SamplePattern::kJittered;
+  r.receiver.patch = {{-1, 0, -1}, {2, 0, 0}, {0, 0, 2}};
+  r.receiver.width = r.receiver.height = 64;
+  r.options.want_bitmasks = true;
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.05);
+  EXPECT_LT(a.blocked_fraction(), 0.9);
+
+  // The back wall as a receiver: not parallel to the light.
+  r.receiver.patch = {{-1, 0, -1}, {2, 0, 0}, {0, 1.9, 0}};
+  ExpectMatchesEmbree(scene, r);
+}
+
+TEST(HiddenSampleMapEmbree, HoughModeStaysWithinItsBound) {
+  Scene scene = RandomCloud(1000, 23, {-0.2, 0.05, -0.2}, {1.2, 0.95, 1.2}, 0.05);
+  HiddenSampleMapRequest r = UnitRequest(256, 48);
+  r.options.lookup = LookupMode::kHough;
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  auto result = Mapper().Compute(*gpu_scene, r);
+  ASSERT_TRUE(result.ok()) << result.status();
+  const std::vector<uint8_t> reference = EmbreeBits(scene, r, *result);
+  const Agreement a = Compare(*result, reference);
+  uint64_t missed = 0;
+  double worst_excess = 0;
+  for (size_t j = 0; j < size_t(48 * 48); ++j) {
+    int ref_blocked = 0;
+    for (int i = 0; i < 256; ++i) {
+      ref_blocked += reference[j * 256 + i];
+      missed += reference[j * 256 + i] && !Bit(*result, j, i);
+    }
+    const double err = std::abs(result->visible_fraction[j] - (1.0 - ref_blocked / 256.0));
+    worst_excess = std::max(worst_excess, err - result->error.lookup_per_texel[j]);
+  }
+  EXPECT_LE(worst_excess, 1e-6);
+  EXPECT_LE(double(missed) / a.bits, kTieFraction) << "HOUGH must only err towards blocked";
+  EXPECT_GT(result->error.lookup_max, 0.0);
+  std::printf("HOUGH 256x256: %.4f%% of bits differ from Embree, lookup_max %.4f\n", 100.0 * a.differ_fraction(),
+              result->error.lookup_max);
+}
+
+TEST(HiddenSampleMap, TranslatedSceneGivesTheSameAnswer) {
+  Scene scene = MakeCornellBox();
+  HiddenSampleMapRequest r;
+  r.source.patch = {{-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5}};
+  r.source.sample_count = 128;
+  r.receiver.patch = {{-1, 0, -1}, {2, 0, 0}, {0, 0, 2}};
+  r.receiver.width = r.receiver.height = 48;
+  r.options.want_bitmasks = true;
+  auto near = Upload(scene);
+  ASSERT_TRUE(near);
+  auto a = Mapper().Compute(*near, r);
+  ASSERT_TRUE(a.ok()) << a.status();
+
+  const glm::dvec3 shift(1e6, -1e6, 1e6);
+  for (auto& p : scene.positions) p += shift;
+  UpdateBounds(scene);
+  r.source.patch.origin += shift;
+  r.receiver.patch.origin += shift;
+  auto far = Upload(scene);
+  ASSERT_TRUE(far);
+  auto b = Mapper().Compute(*far, r);
+  ASSERT_TRUE(b.ok()) << b.status();
+  size_t differ = 0;
+  for (size_t k = 0; k < a->blocked_bits.size(); ++k) differ += std::popcount(a->blocked_bits[k] ^ b->blocked_bits[k]);
+  EXPECT_LE(double(differ) / (48.0 * 48 * 128), kTieFraction);
+  EXPECT_NE(std::count(a->visible_fraction.begin(), a->visible_fraction.end(), 1.0f), 48 * 48);
+}
+
+TEST(HiddenSampleMap, ColoredPolygonLight) {
+  Scene scene = HalfPlaneAt(0.5, 0.5);
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  HiddenSampleMapRequest r = UnitRequest(256, 16);
+  // A triangle-shaped light, red on the left half (s < 0.5) and blue on the right.
+  r.source.polygon_uv = {{0.0, 0.0}, {1.0, 0.0}, {0.5, 1.0}};
+  r.source.color_texture_width = 2;
+  r.source.color_texture_height = 1;
+  r.source.color_texture = {{1, 0, 0}, {0, 0, 1}};
+  auto result = Mapper().Compute(*gpu_scene, r);
+  ASSERT_TRUE(result.ok()) << result.status();
+  ASSERT_GT(result->sample_count, 64);
+  ASSERT_LT(result->sample_count, 256);
+  for (const glm::dvec2& uv : result->samples.uv) {
+    ASSERT_LE(uv.y, 2.0 * std::min(uv.x, 1.0 - uv.x) + 1e-12);
+  }
+  for (size_t j = 0; j < result->visible_rgb.size(); ++j) {
+    glm::dvec3 expected(0.0);
+    for (int i = 0; i < result->sample_count; ++i)
+      if (!Bit(*result, j, i)) expected += glm::dvec3(result->samples.color[i]);
+    expected /= result->sample_count;
+    EXPECT_NEAR(result->visible_rgb[j].r, expected.r, 1e-5);
+    EXPECT_NEAR(result->visible_rgb[j].b, expected.b, 1e-5);
+  }
+  // Texels on the left (rx < 0.5) see the red half hidden (sx < 1 - rx).
+  EXPECT_LT(result->visible_rgb[8].r, result->visible_rgb[8].b);
+}
+
+TEST(PatchVisibility, MatchesEmbreeOnTheCornellBox) {
+  const Scene scene = MakeCornellBox();
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  PatchVisibilityRequest r;
+  r.source = {{-0.95, 0.1, -0.9}, {0, 0, 1.8}, {0, 1.6, 0}};  // the left wall, just inside
+  r.receiver = {{0.95, 0.1, -0.9}, {0, 0, 1.8}, {0, 1.6, 0}};  // the right wall
+  // Off the round grid: unshifted, whole rows of segments pass exactly through
+  // the short box's top edge (e.g. (0.95, 0.475, z) -> (-0.95, 1.425, z') meets
+  // x = 0.7 at y = 0.6), ties that either side may call.
+  r.receiver.origin += glm::dvec3(0, 0.00123, 0.00321);
+  r.unblocked_limit = 100;
+  auto result = Mapper().PatchVisibility(*gpu_scene, r);
+  ASSERT_TRUE(result.ok()) << result.status();
+
+  auto embree = raycast::EmbreeScene::Create(scene);
+  ASSERT_TRUE(embree.ok());
+  std::vector<raycast::Segment> segments;
+  for (int rj = 0; rj < 32 * 32; ++rj)
+    for (int si = 0; si < 32 * 32; ++si) {
+      const glm::dvec3 p = r.receiver.At((rj % 32 + 0.5) / 32, (rj / 32 + 0.5) / 32);
+      const glm::dvec3 q = r.source.At((si % 32 + 0.5) / 32, (si / 32 + 0.5) / 32);
+      segments.push_back({p, q});
+    }
+  auto occluded = embree->Occluded(segments);
+  ASSERT_TRUE(occluded.ok());
+  uint64_t unblocked = 0;
+  for (uint8_t o : *occluded) unblocked += !o;
+  const double expected = double(unblocked) / segments.size();
+  EXPECT_NEAR(result->mutual_visible_fraction, expected, kTieFraction);
+  EXPECT_GT(expected, 0.05);
+  EXPECT_LT(expected, 0.95);
+  EXPECT_EQ(result->unblocked.size(), std::min<uint64_t>(100, result->unblocked_total));
+  for (const UnblockedPair& pair : result->unblocked)
+    EXPECT_FALSE((*occluded)[size_t(pair.receiver_sample) * 1024 + pair.source_sample]);
+  double mean_source = 0;
+  for (float f : result->source_visible) mean_source += f;
+  EXPECT_NEAR(mean_source / 1024, result->mutual_visible_fraction, 1e-5);
+}
+
+// --------------------------------------------------------------- real scenes
+
+Scene LoadOrFail(const std::filesystem::path& path) {
+  auto scene = LoadGltfFile(path);
+  EXPECT_TRUE(scene.ok()) << scene.status();
+  return scene.ok() ? std::move(*scene) : Scene{};
+}
+
+// A light patch high in the scene's bounds, the receiver just above its floor.
+HiddenSampleMapRequest SceneRequest(const Scene& scene, double light_height, double light_size, int n, int size) {
+  const glm::dvec3 lo = scene.bounds.min, ext = scene.bounds.Extent(), c = scene.bounds.Center();
+  HiddenSampleMapRequest r;
+  const double ls = light_size * std::max(ext.x, ext.z);
+  r.source.patch = {{c.x - ls / 2, lo.y + light_height * ext.y, c.z - ls / 2}, {ls, 0, 0}, {0, 0, ls}};
+  r.source.sample_count = n;
+  r.source.pattern = SamplePattern::kJittered;
+  r.receiver.patch = {{lo.x + 0.2 * ext.x, lo.y + 0.02 * ext.y, lo.z + 0.2 * ext.z}, {0.6 * ext.x, 0, 0},
+                      {0, 0, 0.6 * ext.z}};
+  r.receiver.width = r.receiver.height = size;
+  r.options.want_bitmasks = true;
+  return r;
+}
+
+TEST(HiddenSampleMapRealScenes, Sponza) {
+  VISQ_REQUIRE_SHARED_SCENES(dir);
+  const Scene scene = LoadOrFail(dir / "sponza_dabrovic/sponza.gltf");
+  ASSERT_GT(scene.TriangleCount(), 0u);
+  const Agreement a = ExpectMatchesEmbree(scene, SceneRequest(scene, 0.7, 0.1, 128, 48));
+  EXPECT_GT(a.blocked_fraction(), 0.02);
+}
+
+TEST(HiddenSampleMapRealScenes, Tree) {
+  VISQ_REQUIRE_SHARED_SCENES(dir);
+  const Scene scene = LoadOrFail(dir / "tree_kenney/tree_detailed.glb");
+  ASSERT_GT(scene.TriangleCount(), 0u);
+  HiddenSampleMapRequest r = SceneRequest(scene, 1.2, 0.5, 128, 48);
+  // The ground under the whole crown.
+  const glm::dvec3 lo = scene.bounds.min, ext = scene.bounds.Extent();
+  r.receiver.patch = {{lo.x - 0.2 * ext.x, lo.y - 0.01 * ext.y, lo.z - 0.2 * ext.z}, {1.4 * ext.x, 0, 0},
+                      {0, 0, 1.4 * ext.z}};
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.02);
+}
+
+TEST(HiddenSampleMapRealScenes, FlowerVase) {
+  VISQ_REQUIRE_SHARED_SCENES(dir);
+  const Scene scene = LoadOrFail(dir / "foliage_glass_vase_flowers/GlassVaseFlowers.gltf");
+  ASSERT_GT(scene.TriangleCount(), 0u);
+  HiddenSampleMapRequest r = SceneRequest(scene, 1.3, 0.4, 128, 40);
+  const glm::dvec3 lo = scene.bounds.min, ext = scene.bounds.Extent();
+  r.receiver.patch = {{lo.x - 0.3 * ext.x, lo.y - 0.01 * ext.y, lo.z - 0.3 * ext.z}, {1.6 * ext.x, 0, 0},
+                      {0, 0, 1.6 * ext.z}};
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.01);
+}
+
+}  // namespace
+}  // namespace visq::gpu

@@ -1,0 +1,229 @@
+// The algorithm RPCs end to end through the real server and client, on the
+// generated Cornell box: the GPU answer against the ray-cast reference of
+// the same segments, the exact light visibility's cache, and bad input.
+#include <bit>
+#include <cmath>
+
+#include <glm/glm.hpp>
+#include <gtest/gtest.h>
+
+#include "test_support.h"
+#include "visq_client.h"
+
+namespace visq {
+namespace {
+
+using client::Client;
+using testing::ScratchDir;
+using testing::ServerProcess;
+
+void Set(v1::Vec3* v, double x, double y, double z) {
+  v->set_x(x);
+  v->set_y(y);
+  v->set_z(z);
+}
+
+void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
+  Set(p->mutable_origin(), o.x, o.y, o.z);
+  Set(p->mutable_edge_u(), u.x, u.y, u.z);
+  Set(p->mutable_edge_v(), v.x, v.y, v.z);
+}
+
+class AlgorithmRpcTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    repo_ = new ScratchDir();
+    server_ = ServerProcess::Start({repo_->path(), {"--seed-samples"}}).release();
+  }
+  static void TearDownTestSuite() {
+    delete server_;
+    delete repo_;
+  }
+  void SetUp() override {
+    ASSERT_NE(server_, nullptr);
+    client_ = std::make_unique<Client>(client::ClientOptions{.address = server_->address()});
+  }
+
+  // The ceiling light (just under it) onto the floor (just above it).
+  v1::HiddenSampleMapRequest LightOntoFloor(uint32_t samples, uint32_t size) {
+    v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name("cornell_box_visq");
+    SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    request.mutable_samples()->set_count(samples);
+    request.mutable_samples()->set_seed(7);
+    SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    request.set_width(size);
+    request.set_height(size);
+    request.set_want_bitmasks(true);
+    return request;
+  }
+
+  static ScratchDir* repo_;
+  static ServerProcess* server_;
+  std::unique_ptr<Client> client_;
+};
+ScratchDir* AlgorithmRpcTest::repo_ = nullptr;
+ServerProcess* AlgorithmRpcTest::server_ = nullptr;
+
+TEST_F(AlgorithmRpcTest, HiddenSampleMapRasterMatchesRaycastBitForBit) {
+  v1::HiddenSampleMapRequest request = LightOntoFloor(64, 32);
+  auto raster = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(raster.ok()) << raster.status();
+  request.set_method(v1::RAYCAST);
+  auto raycast = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(raycast.ok()) << raycast.status();
+
+  ASSERT_EQ(raster->figures.width(), 32u);
+  ASSERT_EQ(raster->visible_fraction.size(), 32u * 32u);
+  ASSERT_EQ(raster->blocked_bits.size(), raycast->blocked_bits.size());
+  size_t differing = 0, blocked = 0;
+  for (size_t w = 0; w < raster->blocked_bits.size(); ++w) {
+    differing += std::popcount(raster->blocked_bits[w] ^ raycast->blocked_bits[w]);
+    blocked += std::popcount(raycast->blocked_bits[w]);
+  }
+  const size_t total = 32 * 32 * 64;
+  EXPECT_GT(blocked, total / 20) << "the boxes should hide part of the light from the floor";
+  EXPECT_LT(blocked, total) << "and not all of it";
+  EXPECT_LE(differing, total / 10000) << "EXACT lookup must give the ray-cast bits (float ties aside)";
+  EXPECT_EQ(raster->figures.accuracy().method(), "raster-exact-lookup");
+  EXPECT_EQ(raycast->figures.accuracy().method(), "raycast");
+  EXPECT_GT(raster->figures.accuracy().error_bound(), 0.0) << "64 samples have a sampling error";
+  EXPECT_GT(raster->figures.timing().total_ms(), 0.0);
+  EXPECT_EQ(raster->figures.source_samples_size(), 64);
+}
+
+TEST_F(AlgorithmRpcTest, PatchVisibilityRasterMatchesRaycast) {
+  v1::PatchVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.997}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.set_source_columns(8);
+  request.set_source_rows(8);
+  request.set_receiver_columns(16);
+  request.set_receiver_rows(16);
+  request.set_unblocked_limit(10);
+  auto raster = client_->PatchVisibility(request);
+  ASSERT_TRUE(raster.ok()) << raster.status();
+  request.set_method(v1::RAYCAST);
+  auto raycast = client_->PatchVisibility(request);
+  ASSERT_TRUE(raycast.ok()) << raycast.status();
+  EXPECT_GT(raycast->mutual_visible_fraction(), 0.3);
+  EXPECT_LT(raycast->mutual_visible_fraction(), 1.0);
+  EXPECT_NEAR(raster->mutual_visible_fraction(), raycast->mutual_visible_fraction(), 1e-3);
+  EXPECT_EQ(raster->source_visible_size(), 64);
+  EXPECT_EQ(raster->receiver_visible_size(), 256);
+  EXPECT_EQ(raster->unblocked_size(), 10);
+  EXPECT_GT(raster->unblocked_total(), 10u);
+}
+
+TEST_F(AlgorithmRpcTest, HiddenSampleMapBadInput) {
+  v1::HiddenSampleMapRequest nan = LightOntoFloor(32, 8);
+  nan.mutable_source()->mutable_edge_u()->set_x(std::nan(""));
+  EXPECT_EQ(client_->ComputeHiddenSampleMap(nan).status().code(), absl::StatusCode::kInvalidArgument);
+  v1::HiddenSampleMapRequest zero = LightOntoFloor(0, 8);
+  auto status = client_->ComputeHiddenSampleMap(zero).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(status.message()).find("sample_count"), std::string::npos) << status;
+  v1::HiddenSampleMapRequest huge = LightOntoFloor(4096, 4096);
+  EXPECT_EQ(client_->ComputeHiddenSampleMap(huge).status().code(), absl::StatusCode::kResourceExhausted);
+  v1::HiddenSampleMapRequest unknown = LightOntoFloor(32, 8);
+  unknown.mutable_scene()->set_name("nope");
+  EXPECT_EQ(client_->ComputeHiddenSampleMap(unknown).status().code(), absl::StatusCode::kNotFound);
+  v1::HiddenSampleMapRequest stale = LightOntoFloor(32, 8);
+  stale.mutable_scene()->set_version(999);
+  EXPECT_EQ(client_->ComputeHiddenSampleMap(stale).status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+v1::LightVisibilityRequest CeilingLight() {
+  v1::LightVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  // The light's quad, counter-clockwise seen from below (facing down).
+  for (const auto& v : {glm::dvec3(-0.25, 1.99, -0.25), glm::dvec3(0.25, 1.99, -0.25), glm::dvec3(0.25, 1.99, 0.25),
+                        glm::dvec3(-0.25, 1.99, 0.25)})
+    Set(request.mutable_light()->add_vertices(), v.x, v.y, v.z);
+  request.set_radiance(10.0);
+  return request;
+}
+
+void AddPoint(v1::LightVisibilityRequest& request, double x, double y, double z) {
+  auto* p = request.add_points();
+  Set(p->mutable_position(), x, y, z);
+  Set(p->mutable_normal(), 0, 1, 0);
+}
+
+TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
+  v1::LightVisibilityRequest request = CeilingLight();
+  AddPoint(request, 0.0, 1.5, 0.0);    // in the open, under the light: all visible
+  AddPoint(request, 0.4, 0.61, 0.35);  // on top of the short box
+  AddPoint(request, 0.4, 0.001, 0.35); // under the short box: nothing visible
+  AddPoint(request, -0.9, 0.001, 0.9); // on the floor, in the open
+  request.set_want_polygons(true);
+  auto first = client_->LightVisibility(request);
+  ASSERT_TRUE(first.ok()) << first.status();
+  ASSERT_EQ(first->points_size(), 4);
+  EXPECT_NEAR(first->points(0).visible_fraction(), 1.0, 1e-9);
+  EXPECT_NEAR(first->points(2).visible_fraction(), 0.0, 1e-9);
+  EXPECT_GT(first->points(3).visible_fraction(), 0.0);
+  EXPECT_GT(first->points(0).irradiance(), first->points(3).irradiance());
+  EXPECT_EQ(first->points(0).visible_polygons_size() > 0, true);
+  EXPECT_EQ(first->accuracy().method(), "plucker-exact");
+
+  auto second = client_->LightVisibility(request);
+  ASSERT_TRUE(second.ok()) << second.status();
+  EXPECT_TRUE(second->tree().reused());
+  EXPECT_EQ(second->tree().refinements(), first->tree().refinements()) << "a second pass refines nothing";
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_EQ(second->points(i).visible_fraction(), first->points(i).visible_fraction());
+    EXPECT_EQ(second->points(i).irradiance(), first->points(i).irradiance());
+  }
+  EXPECT_GE(second->cache().hits(), 1u);
+  EXPECT_GT(second->cache().bytes(), 0u);
+}
+
+TEST_F(AlgorithmRpcTest, LightVisibilityStreamMatchesUnary) {
+  std::vector<v1::LightVisibilityRequest> batches;
+  v1::LightVisibilityRequest unary = CeilingLight();
+  for (int b = 0; b < 3; ++b) {
+    v1::LightVisibilityRequest batch = b == 0 ? CeilingLight() : v1::LightVisibilityRequest();
+    for (int i = 0; i < 5; ++i) {
+      const double x = -0.9 + 0.12 * (b * 5 + i);
+      AddPoint(batch, x, 0.001, 0.8);
+      AddPoint(unary, x, 0.001, 0.8);
+    }
+    batches.push_back(batch);
+  }
+  auto streamed = client_->LightVisibilityStream(batches);
+  ASSERT_TRUE(streamed.ok()) << streamed.status();
+  auto whole = client_->LightVisibility(unary);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  int k = 0;
+  for (const auto& answer : *streamed)
+    for (const auto& p : answer.points()) EXPECT_NEAR(p.visible_fraction(), whole->points(k++).visible_fraction(), 1e-12);
+  EXPECT_EQ(k, 15);
+  EXPECT_GT(whole->points(0).visible_fraction(), 0.0) << "the comparison must not be between zeros";
+}
+
+TEST_F(AlgorithmRpcTest, LightVisibilityBadInput) {
+  v1::LightVisibilityRequest nan = CeilingLight();
+  AddPoint(nan, std::nan(""), 0, 0);
+  auto status = client_->LightVisibility(nan).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(status.message()).find("points[0]"), std::string::npos) << status;
+
+  v1::LightVisibilityRequest degenerate = CeilingLight();
+  degenerate.mutable_light()->clear_vertices();
+  for (int i = 0; i < 3; ++i) Set(degenerate.mutable_light()->add_vertices(), i, i, i);  // collinear: zero area
+  AddPoint(degenerate, 0, 0.5, 0);
+  EXPECT_EQ(client_->LightVisibility(degenerate).status().code(), absl::StatusCode::kInvalidArgument);
+
+  v1::LightVisibilityRequest no_points = CeilingLight();
+  EXPECT_EQ(client_->LightVisibility(no_points).status().code(), absl::StatusCode::kInvalidArgument);
+
+  v1::LightVisibilityRequest bad_node = CeilingLight();
+  AddPoint(bad_node, 0, 0.5, 0);
+  bad_node.add_exclude_nodes("no such node");
+  EXPECT_EQ(client_->LightVisibility(bad_node).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace visq

@@ -1,0 +1,510 @@
+// Obscurances (Méndez-Feliu, Sbert et al.): closed forms, the GPU bake
+// against an Embree Monte Carlo estimate of the same integral, determinism,
+// shard merges and the real-time update. Atlases are small (32..64) and
+// direction counts low: llvmpipe on two cores.
+#include <cmath>
+#include <cstring>
+#include <numbers>
+
+#include <glm/gtc/matrix_transform.hpp>
+#include <gmock/gmock.h>
+
+#include <gtest/gtest.h>
+
+#include "obscurance/obscurance_atlas.h"
+#include "obscurance/obscurance_model.h"
+#include "obscurance/obscurance_partial.h"
+#include "obscurance/obscurance_rays.h"
+#include "obscurance/obscurance_update.h"
+#include "scene/gltf_loader.h"
+#include "scene/sample_scenes.h"
+#include "test_support.h"
+#include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/obscurance.h"
+
+namespace visq::obscurance {
+namespace {
+
+using ::testing::HasSubstr;
+
+Scene LonePlane() {
+  Scene s;
+  s.materials = {{"grey", glm::dvec3(0.5, 0.25, 0.125), glm::dvec3(0.0)}};
+  AddQuad(s, "plane", {-1, 0, -1}, {0, 0, 2}, {2, 0, 0}, 0);  // faces +y
+  UpdateBounds(s);
+  return s;
+}
+
+// Two L x L planes facing each other at distance h: floor up, ceiling down.
+Scene ParallelPlanes(double L, double h) {
+  Scene s;
+  s.materials = {{"white", glm::dvec3(0.8), glm::dvec3(0.0)}};
+  AddQuad(s, "floor", {-L / 2, 0, -L / 2}, {0, 0, L}, {L, 0, 0}, 0);
+  AddQuad(s, "ceiling", {-L / 2, h, -L / 2}, {L, 0, 0}, {0, 0, L}, 0);
+  UpdateBounds(s);
+  return s;
+}
+
+// A closed cube of side a, faces turned inward.
+Scene ClosedBox(double a) {
+  Scene s;
+  s.materials = {{"white", glm::dvec3(0.6), glm::dvec3(0.0)}};
+  AddBox(s, "box", glm::dvec3(0.0), glm::dvec3(a), 0);
+  for (auto& t : s.triangles) std::swap(t[1], t[2]);
+  UpdateBounds(s);
+  return s;
+}
+
+// MakeCornellBox with both boxes lifted 0.02 off the floor. The generated
+// box bottoms lie exactly on the floor: eq. 2 is ill-defined on such a
+// contact (distance 0 to a coplanar face), depth peeling keeps one of two
+// equal-depth fragments while a ray tracer skips the coplanar face, so the
+// two estimators disagree there by construction (see the report).
+Scene LiftedCornellBox() {
+  Scene s = MakeCornellBox();
+  for (uint32_t n : {6u, 7u}) {
+    const glm::dmat4 up = glm::translate(glm::dmat4(1.0), glm::dvec3(0.0, 0.02, 0.0)) * s.nodes[n].world;
+    EXPECT_TRUE(MoveNodeSubtree(s, n, up).ok());
+  }
+  return s;
+}
+
+struct Baked {
+  ObscurancePartial partial;
+  ObscuranceResult result;
+};
+
+Baked Bake(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params) {
+  gpu::GpuWorker& worker = testing::SharedGpuWorker();
+  auto gpu_scene = gpu::GpuScene::Upload(worker, scene);
+  EXPECT_TRUE(gpu_scene.ok()) << gpu_scene.status();
+  auto partial = gpu::BakeObscurancePartial(worker, **gpu_scene, scene, atlas, params);
+  EXPECT_TRUE(partial.ok()) << partial.status();
+  auto result = FinalizeObscurances(scene, atlas, params, *partial);
+  EXPECT_TRUE(result.ok()) << result.status();
+  return Baked{*partial, *result};
+}
+
+ObscuranceAtlas Atlas(const Scene& scene, uint32_t resolution) {
+  auto atlas = BuildObscuranceAtlas(scene, resolution);
+  EXPECT_TRUE(atlas.ok()) << atlas.status();
+  return *atlas;
+}
+
+// Area-weighted mean W (channel 0) over texels whose whole footprint passes `inside`.
+template <typename Inside>
+double RegionMean(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceResult& r, Inside inside,
+                  int* texels = nullptr) {
+  double sum = 0, area = 0;
+  int n = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (!atlas.Covered(t) || !r.estimated[t]) continue;
+    bool all = true;
+    double a = 0;
+    for (uint32_t f = atlas.texel_begin[t]; f < atlas.texel_begin[t + 1]; ++f) {
+      const PatchFragment& fr = atlas.fragments[f];
+      for (int c = 0; c < 3; ++c) all = all && inside(fr.triangle, scene.Vertex(fr.triangle, c));
+      a += fr.world_area;
+    }
+    // Triangles here are large: test the patch by its atlas position instead.
+    if (!all) continue;
+    sum += a * r.w[t].x;
+    area += a;
+    ++n;
+  }
+  if (texels) *texels = n;
+  return area > 0 ? sum / area : std::nan("");
+}
+
+TEST(ObscuranceModel, RejectsBadParameters) {
+  ObscuranceParams p;
+  p.d_max = 0;
+  EXPECT_THAT(std::string(ValidateParams(p).message()), HasSubstr("d_max: 0"));
+  p.d_max = std::nan("");
+  EXPECT_EQ(ValidateParams(p).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(ValidateParams(p).message()), HasSubstr("d_max: nan"));
+  p = {};
+  p.direction_count = 0;
+  EXPECT_THAT(std::string(ValidateParams(p).message()), HasSubstr("direction_count: 0"));
+  p.direction_count = kMaxDirections + 1;
+  EXPECT_THAT(std::string(ValidateParams(p).message()), HasSubstr("direction_count: 1048577"));
+  const Scene plane = LonePlane();
+  auto atlas = BuildObscuranceAtlas(plane, 0);
+  EXPECT_EQ(atlas.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(atlas.status().message()), HasSubstr("resolution: 0"));
+  EXPECT_THAT(std::string(BuildObscuranceAtlas(plane, kMaxAtlasResolution + 1).status().message()),
+              HasSubstr("resolution: 8193"));
+  Scene moved = plane;
+  EXPECT_THAT(std::string(MoveNodeSubtree(moved, 7, glm::dmat4(1.0)).message()), HasSubstr("node: 7"));
+}
+
+TEST(ObscuranceModel, AmbientIntensityFollowsEquations3And5) {
+  const Scene box = MakeCornellBox();
+  const AmbientModel plain = ComputeAmbient(box, false), bleeding = ComputeAmbient(box, true);
+  // Recompute eq. 3 / eq. 5 by hand from areas, emissions and reflectivities.
+  glm::dvec3 ar(0.0), ae(0.0);
+  double total = 0;
+  for (size_t t = 0; t < box.TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(box.Vertex(t, 1) - box.Vertex(t, 0), box.Vertex(t, 2) - box.Vertex(t, 0)));
+    total += a;
+    ar += a * box.materials[box.triangle_material[t]].reflectivity;
+    ae += a * box.materials[box.triangle_material[t]].emission;
+  }
+  for (int c = 0; c < 3; ++c) {
+    const double r = ar[c] / total, e = ae[c] / total;
+    EXPECT_NEAR(plain.ambient_intensity[c], r / (1 - r) * e, 1e-12);
+    EXPECT_NEAR(bleeding.ambient_intensity[c], 1 / (1 - r) * e, 1e-12);
+  }
+  EXPECT_GT(plain.ambient_intensity.x, 0.0);
+}
+
+TEST(ObscuranceAtlas, ChartsDoNotOverlapAndCoverEveryTriangle) {
+  const Scene box = MakeCornellBox();
+  const ObscuranceAtlas atlas = Atlas(box, 64);
+  EXPECT_FALSE(atlas.from_lightmap_uvs);
+  // Fragment areas add up to each triangle's area: nothing clipped away.
+  for (uint32_t t = 0; t < box.TriangleCount(); ++t) {
+    double a = 0;
+    for (uint32_t k = atlas.triangle_begin[t]; k < atlas.triangle_begin[t + 1]; ++k)
+      a += atlas.fragments[atlas.triangle_fragments[k]].world_area;
+    const double want = 0.5 * glm::length(glm::cross(box.Vertex(t, 1) - box.Vertex(t, 0), box.Vertex(t, 2) - box.Vertex(t, 0)));
+    EXPECT_NEAR(a, want, 1e-9 * std::max(1.0, want)) << "triangle " << t;
+  }
+  // No texel holds two nodes' surfaces, and a covered texel's 8 neighbours
+  // never hold another chart's node (the gutter).
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    for (uint32_t f = atlas.texel_begin[t]; f + 1 < atlas.texel_begin[t + 1]; ++f)
+      EXPECT_EQ(box.triangle_node[atlas.fragments[f].triangle], box.triangle_node[atlas.fragments[f + 1].triangle]);
+  }
+  // Total fragment area in a texel never exceeds the texel (no overlap).
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    double uv = 0;
+    for (uint32_t f = atlas.texel_begin[t]; f < atlas.texel_begin[t + 1]; ++f) {
+      const uint32_t tri = atlas.fragments[f].triangle;
+      uv += ClipTriangleToTexel(atlas.corner_uv[3 * tri], atlas.corner_uv[3 * tri + 1], atlas.corner_uv[3 * tri + 2],
+                                t % 64, t / 64).Area();
+    }
+    EXPECT_LE(uv, 1.0 + 1e-6) << "texel " << t;
+  }
+}
+
+TEST(ObscuranceBake, LonePlaneIsOpen) {
+  const Scene plane = LonePlane();
+  const ObscuranceAtlas atlas = Atlas(plane, 32);
+  ObscuranceParams params;
+  params.d_max = 0.5;
+  params.direction_count = 16;
+  const Baked plain = Bake(plane, atlas, params);
+  int estimated = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (!plain.result.estimated[t]) continue;
+    ++estimated;
+    EXPECT_EQ(plain.result.w[t].x, 1.0f) << "texel " << t;  // every transfer is unoccluded: exact
+  }
+  EXPECT_GT(estimated, 400);
+  params.color_bleeding = true;
+  const Baked bleeding = Bake(plane, atlas, params);
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t)
+    if (bleeding.result.estimated[t])
+      for (int c = 0; c < 3; ++c) EXPECT_NEAR(bleeding.result.w[t][c], bleeding.result.ambient.r_ave[c], 1e-6);
+}
+
+// W at the center of one of two infinite parallel planes at distance h:
+// a ray at angle theta meets the other plane at h / cos(theta), so
+// W = int_0^{pi/2} rho(h / cos theta) 2 cos theta sin theta dtheta.
+double ParallelPlanesClosedForm(double h, double d_max) {
+  const int n = 200000;
+  double sum = 0;
+  for (int i = 0; i < n; ++i) {
+    const double theta = (i + 0.5) / n * std::numbers::pi / 2;
+    sum += Rho(h / std::cos(theta), d_max) * 2 * std::cos(theta) * std::sin(theta);
+  }
+  return sum * (std::numbers::pi / 2) / n;
+}
+
+TEST(ObscuranceBake, ParallelPlanesMatchTheClosedForm) {
+  const double L = 8, h = 0.5, d_max = 1.0;
+  const Scene planes = ParallelPlanes(L, h);
+  const ObscuranceAtlas atlas = Atlas(planes, 64);
+  ObscuranceParams params;
+  params.d_max = d_max;
+  params.direction_count = 64;
+  const Baked baked = Bake(planes, atlas, params);
+  // Patches farther than d_max from the edges see an infinite plane.
+  const double margin = L / 2 - d_max - 0.2;
+  int texels = 0;
+  // Per-texel test on the atlas: map texel centers through the chart. The
+  // quads' triangles span the plane, so select texels by their world center.
+  double sum = 0, area = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (!baked.result.estimated[t]) continue;
+    const uint32_t tri = atlas.fragments[atlas.texel_begin[t]].triangle;
+    if (planes.triangle_node[tri] != 0) continue;
+    const glm::dvec2 a = atlas.corner_uv[3 * tri], b = atlas.corner_uv[3 * tri + 1], c = atlas.corner_uv[3 * tri + 2];
+    const glm::dvec2 q(t % 64 + 0.5, t / 64 + 0.5);
+    const double det = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
+    const double l1 = ((q.x - a.x) * (c.y - a.y) - (q.y - a.y) * (c.x - a.x)) / det;
+    const double l2 = ((b.x - a.x) * (q.y - a.y) - (b.y - a.y) * (q.x - a.x)) / det;
+    const glm::dvec3 p = planes.Vertex(tri, 0) + (planes.Vertex(tri, 1) - planes.Vertex(tri, 0)) * l1 +
+                         (planes.Vertex(tri, 2) - planes.Vertex(tri, 0)) * l2;
+    if (std::abs(p.x) > margin || std::abs(p.z) > margin) continue;
+    sum += baked.result.w[t].x;
+    area += 1;
+    ++texels;
+  }
+  ASSERT_GT(texels, 100);
+  const double want = ParallelPlanesClosedForm(h, d_max);
+  EXPECT_NEAR(sum / area, want, 0.01) << "closed form " << want;
+}
+
+// W at a point of the floor of a closed cube [0, a]^3 by quadrature in
+// (theta, phi) with the exact ray-box distance.
+double CubeFloorW(const glm::dvec2& xz, double a, double d_max) {
+  const int nt = 400, np = 400;
+  double sum = 0;
+  const glm::dvec3 p(xz.x, 0.0, xz.y);
+  for (int i = 0; i < nt; ++i) {
+    const double theta = (i + 0.5) / nt * std::numbers::pi / 2;
+    for (int j = 0; j < np; ++j) {
+      const double phi = (j + 0.5) / np * 2 * std::numbers::pi;
+      const glm::dvec3 d(std::sin(theta) * std::cos(phi), std::cos(theta), std::sin(theta) * std::sin(phi));
+      double t = std::numeric_limits<double>::infinity();
+      for (int k = 0; k < 3; ++k) {
+        if (d[k] > 1e-15) t = std::min(t, (a - p[k]) / d[k]);
+        if (d[k] < -1e-15) t = std::min(t, -p[k] / d[k]);
+      }
+      sum += Rho(t, d_max) * std::cos(theta) * std::sin(theta);
+    }
+  }
+  return sum * (std::numbers::pi / 2 / nt) * (2 * std::numbers::pi / np) / std::numbers::pi;
+}
+
+TEST(ObscuranceBake, ClosedBoxMatchesQuadrature) {
+  const double a = 1.0, d_max = 3.0;  // d_max beyond the diagonal: every ray is occluded
+  const Scene box = ClosedBox(a);
+  const ObscuranceAtlas atlas = Atlas(box, 64);
+  ObscuranceParams params;
+  params.d_max = d_max;
+  params.direction_count = 96;
+  const Baked baked = Bake(box, atlas, params);
+  // Every face alike: the area-weighted mean over all patches equals the
+  // mean of W over the floor, by quadrature on a grid of floor points.
+  double want = 0;
+  const int g = 8;
+  for (int i = 0; i < g; ++i)
+    for (int j = 0; j < g; ++j) want += CubeFloorW({(i + 0.5) / g * a, (j + 0.5) / g * a}, a, d_max);
+  want /= g * g;
+  double sum = 0, area = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (!baked.result.estimated[t]) continue;
+    double w = 0;
+    for (uint32_t f = atlas.texel_begin[t]; f < atlas.texel_begin[t + 1]; ++f) w += atlas.fragments[f].world_area;
+    sum += w * baked.result.w[t].x;
+    area += w;
+  }
+  EXPECT_NEAR(area, 6 * a * a, 0.05);  // nearly every patch estimated
+  EXPECT_NEAR(sum / area, want, 0.01) << "quadrature " << want;
+  // And the center of the floor (face-center texels) against its point value.
+  const double center = CubeFloorW({0.5, 0.5}, a, d_max);
+  EXPECT_LT(center, 1.0);
+  EXPECT_GT(center, 0.0);
+}
+
+TEST(ObscuranceBake, SameSeedSameBitsAndShardsMergeExactly) {
+  const Scene box = MakeCornellBox();
+  const ObscuranceAtlas atlas = Atlas(box, 32);
+  ObscuranceParams params;
+  params.d_max = 0.8;
+  params.color_bleeding = true;
+  params.direction_count = 12;
+  params.seed = 42;
+  const Baked full = Bake(box, atlas, params);
+  const Baked again = Bake(box, atlas, params);
+  EXPECT_EQ(full.partial.sums, again.partial.sums);
+  EXPECT_EQ(full.partial.counts, again.partial.counts);
+  // Shards [0, 5), [5, 12), merged out of order.
+  ObscuranceParams a = params, b = params;
+  a.direction_count = 5;
+  b.first_direction = 5;
+  b.direction_count = 7;
+  const Baked shard_a = Bake(box, atlas, a), shard_b = Bake(box, atlas, b);
+  ObscurancePartial merged;
+  std::string error;
+  ASSERT_TRUE(MergeObscurancePartial(merged, shard_b.partial, &error)) << error;
+  ASSERT_TRUE(MergeObscurancePartial(merged, shard_a.partial, &error)) << error;
+  EXPECT_EQ(merged.sums, full.partial.sums);
+  EXPECT_EQ(merged.counts, full.partial.counts);
+  ASSERT_EQ(merged.ranges.size(), 1u);
+  EXPECT_EQ(merged.ranges[0].first, 0u);
+  EXPECT_EQ(merged.ranges[0].count, 12u);
+  EXPECT_EQ(merged.fingerprint, full.partial.fingerprint);
+  // Overlapping shards and foreign partials are refused.
+  EXPECT_FALSE(MergeObscurancePartial(merged, shard_a.partial, &error));
+  EXPECT_THAT(error, HasSubstr("overlap"));
+  ObscuranceParams other = a;
+  other.d_max = 0.5;
+  other.first_direction = 100;
+  const Baked foreign = Bake(box, atlas, other);
+  EXPECT_FALSE(MergeObscurancePartial(merged, foreign.partial, &error));
+  // A different seed gives different sums.
+  ObscuranceParams seed2 = params;
+  seed2.seed = 43;
+  EXPECT_NE(Bake(box, atlas, seed2).partial.sums, full.partial.sums);
+}
+
+// Root mean square difference of W over texels estimated in both.
+double Rms(const ObscuranceAtlas& atlas, const ObscuranceResult& x, const ObscuranceResult& y, double* mean_diff = nullptr,
+           const std::vector<uint32_t>* only = nullptr) {
+  double s2 = 0, s1 = 0;
+  int n = 0;
+  auto add = [&](uint32_t t) {
+    if (!atlas.Covered(t) || !x.estimated[t] || !y.estimated[t]) return;
+    for (int c = 0; c < 3; ++c) {
+      const double d = static_cast<double>(x.w[t][c]) - y.w[t][c];
+      s2 += d * d;
+      s1 += d;
+      ++n;
+    }
+  };
+  if (only) for (uint32_t t : *only) add(t);
+  else for (uint32_t t = 0; t < atlas.texel_count(); ++t) add(t);
+  if (mean_diff) *mean_diff = n ? s1 / n : 0;
+  return n ? std::sqrt(s2 / n) : 0;
+}
+
+void ExpectConvergesToRayReference(const Scene& scene, uint32_t resolution, double d_max) {
+  const ObscuranceAtlas atlas = Atlas(scene, resolution);
+  ObscuranceParams params;
+  params.d_max = d_max;
+  params.color_bleeding = true;
+  RayEstimateOptions ref_options;
+  ref_options.rays_per_patch = 2048;
+  auto reference = EstimateObscurancesByRays(scene, atlas, params, ref_options);
+  ASSERT_TRUE(reference.ok()) << reference.status();
+  params.direction_count = 16;
+  const Baked coarse = Bake(scene, atlas, params);
+  params.direction_count = 128;
+  const Baked fine = Bake(scene, atlas, params);
+  double bias = 0;
+  const double e_coarse = Rms(atlas, coarse.result, *reference);
+  const double e_fine = Rms(atlas, fine.result, *reference, &bias);
+  // The noise of a 1/sqrt(count) estimator falls with 8x the directions, and
+  // what remains is small and unbiased.
+  EXPECT_LT(e_fine, 0.6 * e_coarse) << "coarse " << e_coarse << " fine " << e_fine;
+  EXPECT_LT(e_fine, 0.05);
+  EXPECT_LT(std::abs(bias), 0.01);
+  std::printf("convergence: rms 16 dirs %.4f, 128 dirs %.4f, mean diff %.5f, samples/patch %.0f\n", e_coarse, e_fine,
+              bias, fine.result.mean_samples_per_patch);
+}
+
+TEST(ObscuranceBake, ConvergesToEmbreeReferenceOnGeneratedCornellBox) {
+  ExpectConvergesToRayReference(LiftedCornellBox(), 32, 0.8);
+}
+
+TEST(ObscuranceBake, ConvergesToEmbreeReferenceOnSharedCornellBox) {
+  VISQ_REQUIRE_SHARED_SCENES(dir);
+  auto scene = LoadGltfFile(dir / "cornell_box" / "cornell_box.gltf");
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  ExpectConvergesToRayReference(*scene, 32, 0.3 * glm::length(scene->bounds.Extent()));
+}
+
+TEST(ObscuranceUpdate, AgreesWithRebakeAndLeavesOthersBitIdentical) {
+  Scene scene = LiftedCornellBox();
+  const uint32_t short_box = 6;
+  ASSERT_EQ(scene.nodes[short_box].name, "short_box");
+  const ObscuranceAtlas atlas = Atlas(scene, 48);
+  ObscuranceParams params;
+  params.d_max = 0.6;
+  params.color_bleeding = true;
+  params.direction_count = 96;
+  const Baked before = Bake(scene, atlas, params);
+  UpdaterOptions options;
+  options.rays_per_patch = 256;
+  auto updater = ObscuranceUpdater::Create(scene, atlas, params, before.result, {short_box}, options);
+  ASSERT_TRUE(updater.ok()) << updater.status();
+  const std::vector<uint32_t> influenced = (*updater)->InfluencedPatches(short_box);
+  EXPECT_GT(influenced.size(), 20u);
+
+  // Slide the short box 0.35 towards the left wall and turn it a little.
+  const glm::dmat4 new_world = glm::translate(glm::dmat4(1.0), glm::dvec3(-0.35, 0.02, 0.2)) *
+                               glm::translate(glm::dmat4(1.0), glm::dvec3(0.4, 0, 0.35)) *
+                               glm::rotate(glm::dmat4(1.0), 0.3, glm::dvec3(0, 1, 0)) *
+                               glm::translate(glm::dmat4(1.0), glm::dvec3(-0.4, 0, -0.35));
+  auto update = (*updater)->MoveNode(short_box, new_world);
+  ASSERT_TRUE(update.ok()) << update.status();
+  std::printf("update: %zu texels changed, influenced %u -> %u, own %u, %llu rays, %.1f ms\n", update->texels.size(),
+              update->influenced_before, update->influenced_after, update->own_patches,
+              static_cast<unsigned long long>(update->rays), update->milliseconds);
+  // Old influenced patches and own patches are all in the change.
+  for (uint32_t t : influenced) EXPECT_TRUE(std::binary_search(update->texels.begin(), update->texels.end(), t));
+  for (uint32_t t : (*updater)->OwnPatches(short_box))
+    EXPECT_TRUE(std::binary_search(update->texels.begin(), update->texels.end(), t));
+  // Everything else is the old bake, bit for bit.
+  const ObscuranceResult& after = (*updater)->result();
+  int unchanged = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (std::binary_search(update->texels.begin(), update->texels.end(), t)) continue;
+    ++unchanged;
+    ASSERT_EQ(std::memcmp(&after.w[t], &before.result.w[t], sizeof(glm::vec3)), 0) << "texel " << t;
+    ASSERT_EQ(std::memcmp(&after.intensity[t], &before.result.intensity[t], sizeof(glm::vec3)), 0);
+  }
+  EXPECT_GT(unchanged, 100);
+
+  // A full rebake at the new position (two seeds, for its noise level).
+  Scene moved = scene;
+  ASSERT_TRUE(MoveNodeSubtree(moved, short_box, new_world).ok());
+  const Baked rebake = Bake(moved, atlas, params);
+  ObscuranceParams params2 = params;
+  params2.seed = 99;
+  const Baked rebake2 = Bake(moved, atlas, params2);
+  // The update's own noise: the same move with other rays.
+  UpdaterOptions options2 = options;
+  options2.seed = 12345;
+  auto updater2 = ObscuranceUpdater::Create(scene, atlas, params, before.result, {short_box}, options2);
+  ASSERT_TRUE(updater2.ok());
+  ASSERT_TRUE((*updater2)->MoveNode(short_box, new_world).ok());
+
+  std::vector<uint32_t> changed_patches;
+  for (uint32_t t : update->texels)
+    if (atlas.Covered(t)) changed_patches.push_back(t);
+  double bias = 0;
+  const double sigma_bake = Rms(atlas, rebake.result, rebake2.result, nullptr, &changed_patches) / std::sqrt(2.0);
+  const double sigma_update = Rms(atlas, after, (*updater2)->result(), nullptr, &changed_patches) / std::sqrt(2.0);
+  const double error = Rms(atlas, after, rebake.result, &bias, &changed_patches);
+  const double expected = std::hypot(sigma_bake, sigma_update);
+  std::printf("update vs rebake on %zu patches: rms %.4f, noise %.4f (bake %.4f, rays %.4f), mean diff %.5f\n",
+              changed_patches.size(), error, expected, sigma_bake, sigma_update, bias);
+  EXPECT_LT(error, 1.25 * expected + 0.002);
+  EXPECT_LT(std::abs(bias), 3 * expected / std::sqrt(static_cast<double>(changed_patches.size())) + 0.003);
+
+  // Patches the update left alone also match the rebake within its noise
+  // (no missed influence): compare their mean difference.
+  std::vector<uint32_t> untouched;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t)
+    if (atlas.Covered(t) && !std::binary_search(update->texels.begin(), update->texels.end(), t)) untouched.push_back(t);
+  double untouched_bias = 0;
+  const double untouched_rms = Rms(atlas, after, rebake.result, &untouched_bias, &untouched);
+  const double untouched_noise = Rms(atlas, rebake.result, rebake2.result, nullptr, &untouched);
+  std::printf("untouched %zu patches vs rebake: rms %.4f (two rebakes differ by %.4f), mean diff %.5f\n",
+              untouched.size(), untouched_rms, untouched_noise, untouched_bias);
+  EXPECT_LT(untouched_rms, 1.25 * untouched_noise / std::sqrt(2.0) + 0.002);
+}
+
+TEST(ObscuranceUpdate, RejectsUnknownNode) {
+  const Scene scene = MakeCornellBox();
+  const ObscuranceAtlas atlas = Atlas(scene, 32);
+  ObscuranceParams params;
+  params.d_max = 0.5;
+  RayEstimateOptions ro;
+  ro.rays_per_patch = 4;
+  auto baked = EstimateObscurancesByRays(scene, atlas, params, ro);
+  ASSERT_TRUE(baked.ok());
+  auto updater = ObscuranceUpdater::Create(scene, atlas, params, *baked, {6});
+  ASSERT_TRUE(updater.ok()) << updater.status();
+  auto bad = (*updater)->MoveNode(99, glm::dmat4(1.0));
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(bad.status().message()), HasSubstr("node: 99"));
+}
+
+}  // namespace
+}  // namespace visq::obscurance
