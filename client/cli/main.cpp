@@ -1,5 +1,7 @@
 // visq: the command-line client. Each subcommand is a thin wrapper over
 // visq::client::Client; --json prints the response message as JSON.
+#include <algorithm>
+#include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <iostream>
@@ -7,6 +9,9 @@
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 #include <google/protobuf/util/json_util.h>
+#include <stb_image_write.h>
+
+#include <glm/glm.hpp>
 
 #include "visq_client.h"
 
@@ -83,6 +88,38 @@ void PrintScene(const visq::v1::SceneInfo& s, bool nodes) {
                  n.gltf_index(), n.parent(), n.triangle_count());
     }
   }
+}
+
+// "x,y,z" -> Vec3; false if malformed.
+bool ParseVec3(const std::string& text, visq::v1::Vec3* out) {
+  double x, y, z;
+  char tail;
+  if (std::sscanf(text.c_str(), "%lf,%lf,%lf%c", &x, &y, &z, &tail) != 3) return false;
+  out->set_x(x);
+  out->set_y(y);
+  out->set_z(z);
+  return true;
+}
+
+// "ox,oy,oz;ux,uy,uz;vx,vy,vz" -> Patch.
+bool ParsePatch(const std::string& text, visq::v1::Patch* out) {
+  const size_t a = text.find(';'), b = text.find(';', a + 1);
+  if (a == std::string::npos || b == std::string::npos) return false;
+  return ParseVec3(text.substr(0, a), out->mutable_origin()) &&
+         ParseVec3(text.substr(a + 1, b - a - 1), out->mutable_edge_u()) &&
+         ParseVec3(text.substr(b + 1), out->mutable_edge_v());
+}
+
+// Writes a width x height image of values in [0, 1] (1 or 3 channels),
+// row 0 at the top (the receiver's v = 1 edge), as an 8-bit PNG.
+bool WritePng(const std::string& path, int width, int height, int channels, const std::vector<float>& values) {
+  std::vector<unsigned char> pixels(size_t(width) * height * channels);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width * channels; ++x) {
+      const float v = values[size_t(height - 1 - y) * width * channels + x];
+      pixels[size_t(y) * width * channels + x] = static_cast<unsigned char>(std::clamp(v, 0.0f, 1.0f) * 255.0f + 0.5f);
+    }
+  return stbi_write_png(path.c_str(), width, height, channels, pixels.data(), width * channels) != 0;
 }
 
 int Fail(const visq::Status& status) {
@@ -170,6 +207,211 @@ int main(int argc, char** argv) {
     if (!response.ok()) { exit_code = Fail(response.status()); return; }
     if (flags.json) fmt::print("{}", ToJson(*response));
     else fmt::print("unloaded {}{}\n", unload_name, response->deleted_from_repository() ? " (deleted from the repository)" : "");
+  });
+
+  // --- hidden-map --------------------------------------------------------
+  std::string hm_scene, hm_source, hm_receiver, hm_method = "raster", hm_lookup = "exact", hm_png;
+  uint32_t hm_samples = 256, hm_width = 128, hm_height = 128;
+  uint64_t hm_seed = 1;
+  bool hm_decorrelate = false, hm_watertight = false, hm_bits = false;
+  auto* hidden_map = app.add_subcommand("hidden-map", "Hidden-sample map: per receiver texel, the source samples hidden");
+  hidden_map->add_option("--scene", hm_scene, "Scene name")->required();
+  hidden_map->add_option("--source", hm_source, "Source patch 'ox,oy,oz;ux,uy,uz;vx,vy,vz'")->required();
+  hidden_map->add_option("--receiver", hm_receiver, "Receiver patch 'ox,oy,oz;ux,uy,uz;vx,vy,vz'")->required();
+  hidden_map->add_option("--samples", hm_samples, "Source samples (1..4096)")->capture_default_str();
+  hidden_map->add_option("--seed", hm_seed, "Jitter seed")->capture_default_str();
+  hidden_map->add_option("--width", hm_width, "Receiver texels across")->capture_default_str();
+  hidden_map->add_option("--height", hm_height, "Receiver texels down")->capture_default_str();
+  hidden_map->add_option("--method", hm_method, "raster or raycast")->capture_default_str();
+  hidden_map->add_option("--lookup", hm_lookup, "exact or fast")->capture_default_str();
+  hidden_map->add_flag("--decorrelate", hm_decorrelate, "Per-texel sample offsets (noise instead of aliasing)");
+  hidden_map->add_flag("--watertight", hm_watertight, "Front-face culling for closed casters");
+  hidden_map->add_flag("--bitmasks", hm_bits, "Also fetch the raw bitmasks (counted in --json)");
+  hidden_map->add_option("--png", hm_png, "Write the visible fraction as a PNG");
+  AddCommonFlags(hidden_map, flags);
+  hidden_map->callback([&] {
+    visq::v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name(hm_scene);
+    if (!ParsePatch(hm_source, request.mutable_source()) || !ParsePatch(hm_receiver, request.mutable_receiver())) {
+      exit_code = Fail(absl::InvalidArgumentError("--source/--receiver: expected 'ox,oy,oz;ux,uy,uz;vx,vy,vz'"));
+      return;
+    }
+    request.mutable_samples()->set_count(hm_samples);
+    request.mutable_samples()->set_seed(hm_seed);
+    request.set_width(hm_width);
+    request.set_height(hm_height);
+    request.set_method(hm_method == "raycast" ? visq::v1::RAYCAST : visq::v1::RASTER);
+    request.set_lookup(hm_lookup == "fast" ? visq::v1::FAST : visq::v1::EXACT);
+    request.set_decorrelate(hm_decorrelate);
+    request.set_watertight(hm_watertight);
+    request.set_want_bitmasks(hm_bits);
+    auto client = MakeClient(flags);
+    auto map = client.ComputeHiddenSampleMap(request);
+    if (!map.ok()) { exit_code = Fail(map.status()); return; }
+    double mean = 0;
+    for (float v : map->visible_fraction) mean += v;
+    mean /= std::max<size_t>(1, map->visible_fraction.size());
+    if (!hm_png.empty()) {
+      const bool rgb = !map->visible_rgb.empty();
+      if (!WritePng(hm_png, map->figures.width(), map->figures.height(), rgb ? 3 : 1,
+                    rgb ? map->visible_rgb : map->visible_fraction)) {
+        exit_code = Fail(absl::InternalError("cannot write " + hm_png));
+        return;
+      }
+    }
+    if (flags.json) {
+      visq::v1::HiddenSampleMapResponse figures = map->figures;
+      figures.clear_source_samples();
+      fmt::print("{{\"mean_visible_fraction\": {}, \"texels\": {}, \"bitmask_words\": {}, \"figures\": {}}}\n",
+                 mean, map->visible_fraction.size(), map->blocked_bits.size(), ToJson(figures));
+      return;
+    }
+    const auto& f = map->figures;
+    fmt::print("{}x{} texels, {} samples, {}: mean visible fraction {:.4f}\n", f.width(), f.height(),
+               f.sample_count(), f.accuracy().method(), mean);
+    fmt::print("error bound +-{:.4f} at confidence {} ({})\n", f.accuracy().error_bound(), f.accuracy().confidence(),
+               f.accuracy().note());
+    fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
+               f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
+    if (!hm_png.empty()) fmt::print("wrote {}\n", hm_png);
+  });
+
+  // --- patch-visibility ----------------------------------------------------
+  std::string pv_scene, pv_source, pv_receiver, pv_method = "raster", pv_lookup = "exact";
+  uint32_t pv_source_grid = 32, pv_receiver_grid = 32, pv_limit = 0;
+  auto* patch_visibility = app.add_subcommand("patch-visibility", "Mutual visibility of two patches, both sampled");
+  patch_visibility->add_option("--scene", pv_scene, "Scene name")->required();
+  patch_visibility->add_option("--source", pv_source, "Source patch 'ox,oy,oz;ux,uy,uz;vx,vy,vz'")->required();
+  patch_visibility->add_option("--receiver", pv_receiver, "Receiver patch")->required();
+  patch_visibility->add_option("--source-grid", pv_source_grid, "Samples per side on the source")->capture_default_str();
+  patch_visibility->add_option("--receiver-grid", pv_receiver_grid, "Samples per side on the receiver")
+      ->capture_default_str();
+  patch_visibility->add_option("--method", pv_method, "raster or raycast")->capture_default_str();
+  patch_visibility->add_option("--lookup", pv_lookup, "exact or fast")->capture_default_str();
+  patch_visibility->add_option("--unblocked-limit", pv_limit, "Return up to this many unblocked rays");
+  AddCommonFlags(patch_visibility, flags);
+  patch_visibility->callback([&] {
+    visq::v1::PatchVisibilityRequest request;
+    request.mutable_scene()->set_name(pv_scene);
+    if (!ParsePatch(pv_source, request.mutable_source()) || !ParsePatch(pv_receiver, request.mutable_receiver())) {
+      exit_code = Fail(absl::InvalidArgumentError("--source/--receiver: expected 'ox,oy,oz;ux,uy,uz;vx,vy,vz'"));
+      return;
+    }
+    request.set_source_columns(pv_source_grid);
+    request.set_source_rows(pv_source_grid);
+    request.set_receiver_columns(pv_receiver_grid);
+    request.set_receiver_rows(pv_receiver_grid);
+    request.set_method(pv_method == "raycast" ? visq::v1::RAYCAST : visq::v1::RASTER);
+    request.set_lookup(pv_lookup == "fast" ? visq::v1::FAST : visq::v1::EXACT);
+    request.set_unblocked_limit(pv_limit);
+    auto client = MakeClient(flags);
+    auto response = client.PatchVisibility(request);
+    if (!response.ok()) { exit_code = Fail(response.status()); return; }
+    if (flags.json) { fmt::print("{}", ToJson(*response)); return; }
+    fmt::print("mutual visible fraction {:.5f} ({} of {} rays unblocked), +-{:.4f} ({})\n",
+               response->mutual_visible_fraction(), response->unblocked_total(),
+               uint64_t(pv_source_grid) * pv_source_grid * pv_receiver_grid * pv_receiver_grid,
+               response->accuracy().error_bound(), response->accuracy().method());
+    fmt::print("time: total {:.1f} ms (compute {:.1f} ms)\n", response->timing().total_ms(),
+               response->timing().compute_ms());
+  });
+
+  // --- light-visibility ------------------------------------------------------
+  std::string lv_scene, lv_light, lv_points_file, lv_receiver, lv_png;
+  double lv_radiance = 1.0;
+  uint32_t lv_width = 64, lv_height = 64;
+  bool lv_polygons = false;
+  auto* light_visibility = app.add_subcommand("light-visibility",
+                                              "Exact visibility of an area light from points (or a receiver patch)");
+  light_visibility->add_option("--scene", lv_scene, "Scene name")->required();
+  light_visibility->add_option("--light", lv_light, "Light polygon 'x,y,z;x,y,z;...' (front: counter-clockwise)")
+      ->required();
+  light_visibility->add_option("--radiance", lv_radiance, "Emitted radiance")->capture_default_str();
+  light_visibility->add_option("--points", lv_points_file, "File of points, one 'x y z [nx ny nz]' per line");
+  light_visibility->add_option("--receiver", lv_receiver, "Or: a receiver patch sampled at texel centers");
+  light_visibility->add_option("--width", lv_width, "Receiver texels across")->capture_default_str();
+  light_visibility->add_option("--height", lv_height, "Receiver texels down")->capture_default_str();
+  light_visibility->add_option("--png", lv_png, "Write the receiver's exact soft shadow (visible fraction) as a PNG");
+  light_visibility->add_flag("--polygons", lv_polygons, "Return the visible parts of the light (with --json)");
+  AddCommonFlags(light_visibility, flags);
+  light_visibility->callback([&] {
+    visq::v1::LightVisibilityRequest request;
+    request.mutable_scene()->set_name(lv_scene);
+    request.set_radiance(lv_radiance);
+    request.set_want_polygons(lv_polygons);
+    for (size_t start = 0; start < lv_light.size();) {
+      size_t end = lv_light.find(';', start);
+      if (end == std::string::npos) end = lv_light.size();
+      if (!ParseVec3(lv_light.substr(start, end - start), request.mutable_light()->add_vertices())) {
+        exit_code = Fail(absl::InvalidArgumentError("--light: expected 'x,y,z;x,y,z;...'"));
+        return;
+      }
+      start = end + 1;
+    }
+    if (!lv_receiver.empty()) {
+      visq::v1::Patch patch;
+      if (!ParsePatch(lv_receiver, &patch)) {
+        exit_code = Fail(absl::InvalidArgumentError("--receiver: expected 'ox,oy,oz;ux,uy,uz;vx,vy,vz'"));
+        return;
+      }
+      const glm::dvec3 o(patch.origin().x(), patch.origin().y(), patch.origin().z());
+      const glm::dvec3 u(patch.edge_u().x(), patch.edge_u().y(), patch.edge_u().z());
+      const glm::dvec3 v(patch.edge_v().x(), patch.edge_v().y(), patch.edge_v().z());
+      const glm::dvec3 n = glm::normalize(glm::cross(u, v));
+      for (uint32_t y = 0; y < lv_height; ++y)
+        for (uint32_t x = 0; x < lv_width; ++x) {
+          const glm::dvec3 p = o + u * ((x + 0.5) / lv_width) + v * ((y + 0.5) / lv_height);
+          auto* point = request.add_points();
+          point->mutable_position()->set_x(p.x);
+          point->mutable_position()->set_y(p.y);
+          point->mutable_position()->set_z(p.z);
+          point->mutable_normal()->set_x(n.x);
+          point->mutable_normal()->set_y(n.y);
+          point->mutable_normal()->set_z(n.z);
+        }
+    } else if (!lv_points_file.empty()) {
+      std::ifstream in(lv_points_file);
+      if (!in) { exit_code = Fail(absl::NotFoundError("cannot read " + lv_points_file)); return; }
+      std::string line;
+      while (std::getline(in, line)) {
+        double values[6];
+        const int n = std::sscanf(line.c_str(), "%lf %lf %lf %lf %lf %lf", &values[0], &values[1], &values[2],
+                                  &values[3], &values[4], &values[5]);
+        if (n < 3) continue;
+        auto* point = request.add_points();
+        point->mutable_position()->set_x(values[0]);
+        point->mutable_position()->set_y(values[1]);
+        point->mutable_position()->set_z(values[2]);
+        if (n == 6) {
+          point->mutable_normal()->set_x(values[3]);
+          point->mutable_normal()->set_y(values[4]);
+          point->mutable_normal()->set_z(values[5]);
+        }
+      }
+    } else {
+      exit_code = Fail(absl::InvalidArgumentError("give --points FILE or --receiver PATCH"));
+      return;
+    }
+    auto client = MakeClient(flags);
+    auto response = client.LightVisibility(request);
+    if (!response.ok()) { exit_code = Fail(response.status()); return; }
+    if (!lv_png.empty() && !lv_receiver.empty()) {
+      std::vector<float> image;
+      for (const auto& p : response->points()) image.push_back(static_cast<float>(p.visible_fraction()));
+      if (!WritePng(lv_png, lv_width, lv_height, 1, image)) {
+        exit_code = Fail(absl::InternalError("cannot write " + lv_png));
+        return;
+      }
+    }
+    if (flags.json) { fmt::print("{}", ToJson(*response)); return; }
+    if (lv_receiver.empty())
+      for (const auto& p : response->points())
+        fmt::print("{:.9f} {:.9g}\n", p.visible_fraction(), p.irradiance());
+    const auto& t = response->tree();
+    fmt::print("{} points, exact; tree {} ({} nodes, {} refinements, {} bytes); {:.1f} ms\n", response->points_size(),
+               t.reused() ? "reused" : "built", t.nodes(), t.refinements(), t.memory_bytes(),
+               response->timing().total_ms());
+    if (!lv_png.empty()) fmt::print("wrote {}\n", lv_png);
   });
 
   auto* stats = app.add_subcommand("stats", "Server statistics: per-RPC latencies, queues, memory, GPU");

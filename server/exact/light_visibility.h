@@ -34,9 +34,18 @@
 // and the plane through P parallel to it, and subtracts their shadow from the
 // tree's visible fragments with the same split machinery. So a point lying on
 // a surface works: its own triangle (and its neighbours) become boundary
-// touchers, which never block. Without receiver bounds every occluder is
-// near: correct, but nothing is cached; group receivers (per triangle, per
-// node, or per query batch) and pass their bounds, as the paper does.
+// touchers, which never block. Near occluders cost O(count) per query (each
+// is clipped, and tested against the light before any fragment work), so
+// the tree only pays off for receivers grouped tightly: without receiver
+// bounds every occluder is near (correct, but nothing is cached). Group
+// receivers per triangle, node or tile and pass their bounds, as the paper
+// does; the shaft (convex hull of light and receiver box, exact) then also
+// culls everything that cannot matter.
+//
+// Cost. The tree is exact for every line through the light, so its size
+// grows with the arrangement of the occluders' shadow edges on the light:
+// near-linear for a few large occluders, close to quadratic for clouds of
+// small ones (see tests/bench/exact_vs_embree.cpp).
 //
 // Threads. Queries on one tree may run concurrently. A std::shared_mutex
 // guards the tree: queries descend under a shared lock; a query that reaches

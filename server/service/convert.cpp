@@ -261,4 +261,144 @@ void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, 
   *out->mutable_accuracy() = AccuracyToProto(result.error, method, lookup);
 }
 
+
+StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
+  VoxelizeQuery query;
+  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  if (request.has_box()) {
+    const v1::VoxelBox& b = request.box();
+    query.box = gpu::SlicemapBox{FromProto(b.center()), FromProto(b.axis_u()), FromProto(b.axis_v()),
+                                 FromProto(b.axis_w()), FromProto(b.half_extent())};
+  }
+  if (request.depth_axis() > 2)
+    return absl::InvalidArgumentError(absl::StrCat("depth_axis: ", request.depth_axis(), " not in {0, 1, 2}"));
+  query.depth_axis = static_cast<int>(request.depth_axis());
+  query.params.width = request.width() == 0 ? 128 : request.width();
+  query.params.height = request.height() == 0 ? 128 : request.height();
+  query.params.slices = request.slices() == 0 ? 128 : request.slices();
+  switch (request.mode()) {
+    case v1::VoxelizeRequest::SURFACE: query.params.mode = gpu::VoxelizeMode::kSurface; break;
+    case v1::VoxelizeRequest::SOLID: query.params.mode = gpu::VoxelizeMode::kSolid; break;
+    default: return absl::InvalidArgumentError("mode: unknown value");
+  }
+  query.params.precision = request.local_precision() ? gpu::SlicePrecision::kLocal : gpu::SlicePrecision::kUniform;
+  query.params.rasterization = request.conservative() ? gpu::Rasterization::kConservative
+                                                      : gpu::Rasterization::kStandard;
+  query.nodes.assign(request.nodes().begin(), request.nodes().end());
+  return query;
+}
+
+std::vector<v1::VoxelizeResponse> ToProtoChunks(const gpu::VoxelizeResult& result, const gpu::SlicemapBox& box,
+                                                size_t chunk_elements) {
+  constexpr size_t kMaxAmbiguousListed = 10000;
+  std::vector<v1::VoxelizeResponse> out(1);
+  v1::VoxelizeResponse& first = out[0];
+  const gpu::SlicemapGrid& grid = result.grid;
+  first.set_width(grid.width);
+  first.set_height(grid.height);
+  first.set_slices(grid.slices);
+  first.set_words_per_column(grid.words_per_column);
+  first.set_occupied_voxels(result.occupied_voxels);
+  first.set_rasterization(result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard");
+  first.set_precision(result.precision == gpu::SlicePrecision::kLocal ? "local" : "uniform");
+  first.set_passes(result.passes);
+  first.set_ambiguous_columns(result.ambiguous_columns);
+  first.set_resolved_columns(result.resolved_columns);
+  for (size_t i = 0; i < result.ambiguous_column_list.size() && i < kMaxAmbiguousListed; ++i)
+    first.add_ambiguous_column_list(result.ambiguous_column_list[i]);
+  auto* b = first.mutable_box();
+  ToProto(box.center, b->mutable_center());
+  ToProto(box.axis_u, b->mutable_axis_u());
+  ToProto(box.axis_v, b->mutable_axis_v());
+  ToProto(box.axis_w, b->mutable_axis_w());
+  ToProto(box.half_extent, b->mutable_half_extent());
+  const glm::dvec3 voxel(2.0 * box.half_extent.x / grid.width, 2.0 * box.half_extent.y / grid.height,
+                         2.0 * box.half_extent.z / grid.slices);
+  auto* accuracy = first.mutable_accuracy();
+  accuracy->set_method(absl::StrCat("slicemap-", first.rasterization(), "-", first.precision()));
+  accuracy->set_error_bound(glm::length(voxel));
+  accuracy->set_confidence(1.0);
+  accuracy->set_note(absl::StrCat(
+      "occupancy is exact to one voxel (", voxel.x, " x ", voxel.y, " x ", voxel.z, "; error_bound is its diagonal)",
+      result.rasterization == gpu::Rasterization::kConservative
+          ? "; conservative: every voxel a triangle touches is set, and some neighbours may be"
+          : "; standard rasterization samples texel centers and misses triangles seen edge-on",
+      result.precision == gpu::SlicePrecision::kLocal ? "; local precision: slices span each column's near..far" : ""));
+  const auto& stages = result.timings;
+  auto& stage_ms = *first.mutable_stage_ms();
+  stage_ms["setup"] = stages.setup_ms;
+  stage_ms["depth"] = stages.depth_ms;
+  stage_ms["voxelize"] = stages.voxelize_ms;
+  stage_ms["readback"] = stages.readback_ms;
+  stage_ms["resolve"] = stages.resolve_ms;
+
+  auto append = [&](size_t total, auto fill) {
+    for (size_t offset = 0; offset < total; offset += chunk_elements) {
+      const v1::VoxelizeResponse& last = out.back();
+      if (last.bits_size() + last.column_near_size() + last.column_far_size() > 0) out.emplace_back();
+      out.back().set_offset(offset);
+      fill(out.back(), offset, std::min(total, offset + chunk_elements));
+    }
+  };
+  append(grid.bits.size(), [&](v1::VoxelizeResponse& m, size_t a, size_t e) {
+    m.mutable_bits()->Add(grid.bits.begin() + a, grid.bits.begin() + e);
+  });
+  append(result.column_near.size(), [&](v1::VoxelizeResponse& m, size_t a, size_t e) {
+    m.mutable_column_near()->Add(result.column_near.begin() + a, result.column_near.begin() + e);
+  });
+  append(result.column_far.size(), [&](v1::VoxelizeResponse& m, size_t a, size_t e) {
+    m.mutable_column_far()->Add(result.column_far.begin() + a, result.column_far.begin() + e);
+  });
+  return out;
+}
+
+StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {
+  TransmittanceQuery query;
+  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  gpu::TransmittanceParams& p = query.params;
+  switch (request.light_kind()) {
+    case v1::TransmittanceRequest::POINT: p.light.kind = gpu::LightKind::kPoint; break;
+    case v1::TransmittanceRequest::DIRECTIONAL: p.light.kind = gpu::LightKind::kDirectional; break;
+    default: return absl::InvalidArgumentError("light_kind: unknown value");
+  }
+  p.light.position = FromProto(request.light_position());
+  p.light.direction = FromProto(request.light_direction());
+  for (const auto& a : request.absorbers()) query.absorbers.emplace_back(a.node(), a.absorption());
+  if (query.absorbers.empty()) return absl::InvalidArgumentError("absorbers: empty");
+  for (const auto& point : request.points()) p.points.push_back(FromProto(point));
+  if (request.has_receiver()) {
+    p.patch.origin = FromProto(request.receiver().origin());
+    p.patch.u = FromProto(request.receiver().edge_u());
+    p.patch.v = FromProto(request.receiver().edge_v());
+    p.patch.nu = request.receiver_width();
+    p.patch.nv = request.receiver_height();
+    if (p.patch.nu == 0 || p.patch.nv == 0)
+      return absl::InvalidArgumentError("receiver_width/receiver_height: must be set with receiver");
+  }
+  if (request.resolution() != 0) p.resolution = request.resolution();
+  if (request.slices() != 0) p.slices = request.slices();
+  return query;
+}
+
+void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* out) {
+  out->mutable_transmittance()->Add(result.transmittance.begin(), result.transmittance.end());
+  out->mutable_optical_depth()->Add(result.optical_depth.begin(), result.optical_depth.end());
+  out->mutable_optical_depth_error()->Add(result.optical_depth_error.begin(), result.optical_depth_error.end());
+  out->mutable_lateral_offset()->Add(result.lateral_offset.begin(), result.lateral_offset.end());
+  out->set_max_voxel_length(result.max_voxel_length);
+  out->set_max_texel_size(result.max_texel_size);
+  out->set_ambiguous_columns(result.ambiguous_columns);
+  auto* accuracy = out->mutable_accuracy();
+  accuracy->set_method("transmittance-slicemap");
+  float worst = 0;
+  for (float e : result.optical_depth_error) worst = std::max(worst, e);
+  accuracy->set_error_bound(worst);
+  accuracy->set_confidence(1.0);
+  accuracy->set_note(result.error_statement);
+}
+
 }  // namespace visq::service

@@ -1,9 +1,11 @@
 #include "service/visibility_service.h"
 
 #include <memory>
+#include <functional>
 #include <optional>
 
 #include "core/light_visibility_query.h"
+#include "core/voxel_query.h"
 #include "service/convert.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
@@ -372,20 +374,24 @@ gpu::JobOptions JobOptionsFor(grpc::CallbackServerContext* context, const std::a
   return job;
 }
 
-// Computes on the executor, then writes the prepared messages in order.
-class HiddenSampleMapReactor final : public grpc::ServerWriteReactor<v1::HiddenSampleMapResponse> {
+// Server-streaming answers: computes all messages on the executor, then
+// writes them in order. `compute` fills the messages; its first message
+// carries the timing.
+template <typename Response>
+class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
  public:
-  HiddenSampleMapReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx,
-                         const v1::HiddenSampleMapRequest* request)
-      : log_(context, "HiddenSampleMap", &ctx.metrics) {
+  using Compute = std::function<Status(const std::atomic<bool>& cancelled, const RequestLog& log,
+                                       std::vector<Response>& messages)>;
+  PreparedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
+                        Compute compute)
+      : log_(context, method, &ctx.metrics) {
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
       Done(authorized);
       return;
     }
-    ctx.executor.Post([this, &ctx, context, request] {
-      const double queue_ms = log_.ElapsedMs();
-      Status status = Compute(ctx, context, *request, queue_ms);
+    ctx.executor.Post([this, compute = std::move(compute)] {
+      Status status = compute(cancelled_, log_, messages_);
       if (!status.ok()) {
         Done(status);
         return;
@@ -405,39 +411,22 @@ class HiddenSampleMapReactor final : public grpc::ServerWriteReactor<v1::HiddenS
   void OnDone() override { delete this; }
 
  private:
-  Status Compute(const ServiceContext& ctx, grpc::CallbackServerContext* context,
-                 const v1::HiddenSampleMapRequest& request, double queue_ms) {
-    VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(request));
-    query.job = JobOptionsFor(context, &cancelled_);
-    log_.Info("{} {}x{} texels, {} samples", query.method == VisibilityMethod::kRaster ? "RASTER" : "RAYCAST",
-              query.request.receiver.width, query.request.receiver.height, query.request.source.sample_count);
-    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RunHiddenSampleMap(ctx.engine, query));
-    const double before_transfer = log_.ElapsedMs();
-    messages_ = ToProtoChunks(result, query.method, kChunkElements);
-    auto* timing = messages_[0].mutable_timing();
-    timing->set_queue_ms(queue_ms + result.timing.queue_ms);
-    timing->set_compute_ms(result.timing.run_ms + result.table_ms);
-    timing->set_transfer_ms(log_.ElapsedMs() - before_transfer);
-    timing->set_total_ms(log_.ElapsedMs());
-    return absl::OkStatus();
-  }
-
   void WriteNext() {
     if (next_ >= messages_.size()) {
       Done(absl::OkStatus());
       return;
     }
-    StartWrite(&messages_[next_++]);
+    this->StartWrite(&messages_[next_++]);
   }
 
   void Done(const Status& status) {
     log_.Done(status);
-    Finish(ToGrpcStatus(status));
+    this->Finish(ToGrpcStatus(status));
   }
 
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
-  std::vector<v1::HiddenSampleMapResponse> messages_;
+  std::vector<Response> messages_;
   size_t next_ = 0;
 };
 
@@ -445,7 +434,68 @@ class HiddenSampleMapReactor final : public grpc::ServerWriteReactor<v1::HiddenS
 
 grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::HiddenSampleMap(
     grpc::CallbackServerContext* context, const v1::HiddenSampleMapRequest* request) {
-  return new HiddenSampleMapReactor(context, ctx_, request);
+  return new PreparedStreamReactor<v1::HiddenSampleMapResponse>(
+      context, ctx_, "HiddenSampleMap",
+      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
+                               std::vector<v1::HiddenSampleMapResponse>& messages) -> Status {
+        const double queue_ms = log.ElapsedMs();
+        VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
+        query.job = JobOptionsFor(context, &cancelled);
+        log.Info("{} {}x{} texels, {} samples", query.method == VisibilityMethod::kRaster ? "RASTER" : "RAYCAST",
+                 query.request.receiver.width, query.request.receiver.height, query.request.source.sample_count);
+        VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RunHiddenSampleMap(ctx_.engine, query));
+        const double before_transfer = log.ElapsedMs();
+        messages = ToProtoChunks(result, query.method, kChunkElements);
+        auto* timing = messages[0].mutable_timing();
+        timing->set_queue_ms(queue_ms + result.timing.queue_ms);
+        timing->set_compute_ms(result.timing.run_ms + result.table_ms);
+        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+        timing->set_total_ms(log.ElapsedMs());
+        return absl::OkStatus();
+      });
+}
+
+grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
+    grpc::CallbackServerContext* context, const v1::VoxelizeRequest* request) {
+  return new PreparedStreamReactor<v1::VoxelizeResponse>(
+      context, ctx_, "Voxelize",
+      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
+                               std::vector<v1::VoxelizeResponse>& messages) -> Status {
+        const double queue_ms = log.ElapsedMs();
+        VISQ_ASSIGN_OR_RETURN(VoxelizeQuery query, FromProto(*request));
+        query.params.job = JobOptionsFor(context, &cancelled);
+        gpu::SlicemapBox box;
+        VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, RunVoxelize(ctx_.engine, query, &box));
+        const double before_transfer = log.ElapsedMs();
+        messages = ToProtoChunks(result, box, kChunkElements);
+        auto* timing = messages[0].mutable_timing();
+        timing->set_queue_ms(queue_ms + result.timings.queue_ms);
+        timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms);
+        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+        timing->set_total_ms(log.ElapsedMs());
+        log.Info("{}x{}x{} {}: {} occupied voxels", result.grid.width, result.grid.height, result.grid.slices,
+                 messages[0].rasterization(), result.occupied_voxels);
+        return absl::OkStatus();
+      });
+}
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackServerContext* context,
+                                                               const v1::TransmittanceRequest* request,
+                                                               v1::TransmittanceResponse* response) {
+  return RunUnary(context, "Transmittance", [this, context, request, response](RequestLog& log) -> Status {
+    const double queue_ms = log.ElapsedMs();
+    VISQ_ASSIGN_OR_RETURN(TransmittanceQuery query, FromProto(*request));
+    query.params.job = JobOptionsFor(context, nullptr);
+    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, RunTransmittance(ctx_.engine, std::move(query)));
+    const double before_transfer = log.ElapsedMs();
+    ToProto(result, response);
+    auto* timing = response->mutable_timing();
+    timing->set_queue_ms(queue_ms + result.timings.queue_ms);
+    timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms);
+    timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+    timing->set_total_ms(log.ElapsedMs());
+    return absl::OkStatus();
+  });
 }
 
 grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackServerContext* context,

@@ -43,6 +43,11 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
   grpc::ServerUnaryReactor* PatchVisibility(grpc::CallbackServerContext* context,
                                             const v1::PatchVisibilityRequest* request,
                                             v1::PatchVisibilityResponse* response) override;
+  grpc::ServerWriteReactor<v1::VoxelizeResponse>* Voxelize(grpc::CallbackServerContext* context,
+                                                           const v1::VoxelizeRequest* request) override;
+  grpc::ServerUnaryReactor* Transmittance(grpc::CallbackServerContext* context,
+                                          const v1::TransmittanceRequest* request,
+                                          v1::TransmittanceResponse* response) override;
   grpc::ServerUnaryReactor* LightVisibility(grpc::CallbackServerContext* context,
                                             const v1::LightVisibilityRequest* request,
                                             v1::LightVisibilityResponse* response) override;

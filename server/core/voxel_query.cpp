@@ -1,0 +1,58 @@
+#include "core/voxel_query.h"
+
+#include "core/engine.h"
+
+namespace visq {
+namespace {
+
+// Every node named, by name; INVALID_ARGUMENT for a name not in the scene.
+StatusOr<std::vector<uint32_t>> NodeIndices(const Scene& scene, const std::string& name, const char* field) {
+  std::vector<uint32_t> found;
+  for (uint32_t i = 0; i < scene.nodes.size(); ++i)
+    if (scene.nodes[i].name == name) found.push_back(i);
+  if (found.empty()) return absl::InvalidArgumentError(absl::StrCat(field, ": no node named '", name, "'"));
+  return found;
+}
+
+}  // namespace
+
+StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, VoxelizeQuery query, gpu::SlicemapBox* box_used) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  const Scene& scene = *resident->scene;
+  if (query.box) {
+    query.params.box = *query.box;
+  } else {
+    if (query.depth_axis < 0 || query.depth_axis > 2)
+      return absl::InvalidArgumentError(absl::StrCat("depth_axis: ", query.depth_axis, " not in {0, 1, 2}"));
+    query.params.box = gpu::AxisAlignedSlicemapBox(scene.bounds, query.depth_axis, 0.0);
+  }
+  for (const std::string& name : query.nodes) {
+    VISQ_ASSIGN_OR_RETURN(std::vector<uint32_t> nodes, NodeIndices(scene, name, "nodes"));
+    for (uint32_t n : nodes)
+      if (scene.nodes[n].triangle_count > 0)
+        query.params.triangles.push_back({scene.nodes[n].first_triangle, scene.nodes[n].triangle_count});
+  }
+  if (!query.nodes.empty() && query.params.triangles.empty())
+    return absl::InvalidArgumentError("nodes: the named nodes hold no triangles");
+  VISQ_RETURN_IF_ERROR(gpu::ValidateVoxelizeParams(query.params, static_cast<uint32_t>(scene.TriangleCount())));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  if (box_used != nullptr) *box_used = query.params.box;
+  return gpu::Voxelize(engine.gpu(), *gpu_scene, query.params);
+}
+
+StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, TransmittanceQuery query) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  const Scene& scene = *resident->scene;
+  for (size_t i = 0; i < query.absorbers.size(); ++i) {
+    const auto& [name, absorption] = query.absorbers[i];
+    VISQ_ASSIGN_OR_RETURN(std::vector<uint32_t> nodes,
+                          NodeIndices(scene, name, absl::StrCat("absorbers[", i, "].node").c_str()));
+    for (uint32_t n : nodes) query.params.nodes.push_back({n, absorption});
+  }
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  return gpu::Transmittance(engine.gpu(), scene, *gpu_scene, query.params);
+}
+
+}  // namespace visq

@@ -1,0 +1,127 @@
+// Volumetric shadows (Chen et al. 2011): 1D min-max mipmap traversal against
+// brute-force ray marching on the same rectified shadow map, Sponza with the
+// sun through the columns. Prints one row per (shadow map, image) with both
+// traversal times (glFinish + steady clock), their ratio and the largest
+// absolute difference between the two images.
+//
+//   visq_bench_volumetric [--quick] [--scene PATH] [--repeats N]
+// --quick: 1K and 4K maps at 320x240 and 640x480 (minutes on llvmpipe); the
+// full run is the 640x480 and 1280x960.
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "scene/gltf_loader.h"
+#include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/gpu_worker.h"
+#include "visq/gpu/volumetric_shadows.h"
+
+using namespace visq;
+using namespace visq::gpu;
+
+namespace {
+
+glm::dvec3 Lerp(const Bounds& b, double fx, double fy, double fz) { return b.min + glm::dvec3(fx, fy, fz) * b.Extent(); }
+
+// The light-shafts view of the tests: low in the nave, the sun slanting
+// through the gallery columns.
+VolumetricParams SponzaParams(const Scene& sponza, uint32_t width, uint32_t height, uint32_t map) {
+  VolumetricParams params;
+  const Bounds& b = sponza.bounds;
+  params.camera.position = Lerp(b, 0.12, 0.25, 0.5);
+  params.camera.forward = Lerp(b, 0.9, 0.35, 0.45) - params.camera.position;
+  params.camera.vertical_fov_deg = 60;
+  params.camera.width = width;
+  params.camera.height = height;
+  params.light.direction = glm::dvec3(0.25, -1.0, 0.45);
+  params.light.intensity = 4.0;
+  const double extent = glm::length(b.Extent());
+  params.medium = {2.0 / extent, 3.0 / extent, 0.2};
+  params.shadow_map_size = map;
+  return params;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  bool quick = false;
+  int repeats = 1;
+  std::filesystem::path scene_path = std::filesystem::path(VISQ_SHARED_SCENES_DIR) / "sponza_dabrovic" / "sponza.gltf";
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--quick")) quick = true;
+    else if (!std::strcmp(argv[i], "--scene") && i + 1 < argc) scene_path = argv[++i];
+    else if (!std::strcmp(argv[i], "--repeats") && i + 1 < argc) repeats = std::max(1, std::atoi(argv[++i]));
+    else {
+      std::fprintf(stderr, "usage: %s [--quick] [--scene PATH] [--repeats N]\n", argv[0]);
+      return 2;
+    }
+  }
+  auto scene = LoadGltfFile(scene_path);
+  if (!scene.ok()) {
+    std::fprintf(stderr, "loading %s: %s\n", scene_path.c_str(), std::string(scene.status().message()).c_str());
+    return 1;
+  }
+  auto worker = GpuWorker::Start({});
+  if (!worker.ok()) {
+    std::fprintf(stderr, "GPU: %s\n", std::string(worker.status().message()).c_str());
+    return 1;
+  }
+  auto gpu_scene = GpuScene::Upload(**worker, *scene);
+  if (!gpu_scene.ok()) {
+    std::fprintf(stderr, "upload: %s\n", std::string(gpu_scene.status().message()).c_str());
+    return 1;
+  }
+  std::printf("device: %s | scene %s, %zu triangles | repeats %d (best of)\n", (*worker)->device().gl_renderer.c_str(),
+              scene_path.filename().c_str(), scene->TriangleCount(), repeats);
+
+  struct Size { uint32_t w, h; };
+  const std::vector<Size> images = quick ? std::vector<Size>{{320, 240}, {640, 480}} : std::vector<Size>{{640, 480}, {1280, 960}};
+  const std::vector<uint32_t> maps = {1024, 4096};
+
+  // Warm-up: llvmpipe compiles each shader variant at its first dispatch.
+  for (auto method : {VolumetricMethod::kMinMaxTraversal, VolumetricMethod::kRayMarching}) {
+    VolumetricParams warm = SponzaParams(*scene, 64, 48, 256);
+    warm.method = method;
+    auto r = RenderVolumetricShadows(**worker, **gpu_scene, *scene, warm);
+    if (!r.ok()) {
+      std::fprintf(stderr, "warm-up: %s\n", std::string(r.status().message()).c_str());
+      return 1;
+    }
+  }
+
+  std::printf("\n%-6s %-10s | %12s %12s %8s | %12s | %9s %9s %9s | %s\n", "map", "image", "minmax ms", "march ms",
+              "ratio", "max |diff|", "shadow ms", "rect ms", "mipmap ms", "peak");
+  for (uint32_t map : maps) {
+    for (const Size& size : images) {
+      VolumetricParams params = SponzaParams(*scene, size.w, size.h, map);
+      double best[2] = {1e300, 1e300};
+      VolumetricResult results[2];
+      for (int m = 0; m < 2; ++m) {
+        params.method = m == 0 ? VolumetricMethod::kMinMaxTraversal : VolumetricMethod::kRayMarching;
+        for (int r = 0; r < repeats; ++r) {
+          auto result = RenderVolumetricShadows(**worker, **gpu_scene, *scene, params);
+          if (!result.ok()) {
+            std::fprintf(stderr, "render: %s\n", std::string(result.status().message()).c_str());
+            return 1;
+          }
+          best[m] = std::min(best[m], result->timings.traversal_ms);
+          results[m] = std::move(*result);
+        }
+      }
+      double diff = 0, peak = 0;
+      for (size_t i = 0; i < results[0].inscattering.size(); ++i) {
+        diff = std::max(diff, double(std::abs(results[0].inscattering[i] - results[1].inscattering[i])));
+        peak = std::max(peak, double(results[1].inscattering[i]));
+      }
+      const VolumetricTimings& t = results[0].timings;
+      std::printf("%-6u %4ux%-5u | %12.1f %12.1f %7.2fx | %12.3g | %9.1f %9.1f %9.1f | %.3g\n", map, size.w, size.h,
+                  best[0], best[1], best[1] / best[0], diff, t.shadow_map_ms, t.rectification_ms, t.mipmap_ms, peak);
+      std::fflush(stdout);
+    }
+  }
+  return 0;
+}
