@@ -1,6 +1,8 @@
 #include "visq_client.h"
 
+#include <cmath>
 #include <fstream>
+#include <optional>
 #include <sstream>
 #include <thread>
 
@@ -338,6 +340,238 @@ StatusOr<std::vector<v1::LightVisibilityResponse>> Client::LightVisibilityStream
   if (answers.size() != batches.size())
     return absl::DataLossError(absl::StrCat(answers.size(), " answers for ", batches.size(), " batches"));
   return answers;
+}
+
+}  // namespace visq::client
+
+namespace visq::client {
+namespace {
+
+// Appends a streamed chunk, checking that chunks arrive in order.
+template <typename Field, typename T>
+Status AppendChunk(const Field& field, uint64_t offset, std::vector<T>& into, const char* what) {
+  if (field.empty()) return absl::OkStatus();
+  if (offset != into.size())
+    return absl::DataLossError(absl::StrCat(what, " chunk at ", offset, ", have ", into.size()));
+  into.insert(into.end(), field.begin(), field.end());
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  auto reader = stub_->Voxelize(context.get(), request);
+  VoxelGrid out;
+  v1::VoxelizeResponse message;
+  bool first = true;
+  while (reader->Read(&message)) {
+    VISQ_RETURN_IF_ERROR(AppendChunk(message.bits(), message.offset(), out.bits, "bits"));
+    VISQ_RETURN_IF_ERROR(AppendChunk(message.column_near(), message.offset(), out.column_near, "column_near"));
+    VISQ_RETURN_IF_ERROR(AppendChunk(message.column_far(), message.offset(), out.column_far, "column_far"));
+    if (first) {
+      message.clear_bits();
+      message.clear_column_near();
+      message.clear_column_far();
+      out.figures = std::move(message);
+      first = false;
+    }
+  }
+  const grpc::Status status = reader->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return out;
+}
+
+StatusOr<v1::TransmittanceResponse> Client::Transmittance(const v1::TransmittanceRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  v1::TransmittanceResponse response;
+  const grpc::Status status = stub_->Transmittance(context.get(), request, &response);
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return response;
+}
+
+StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  auto reader = stub_->VolumetricShadow(context.get(), request);
+  VolumetricImage out;
+  v1::VolumetricShadowResponse message;
+  bool first = true;
+  while (reader->Read(&message)) {
+    VISQ_RETURN_IF_ERROR(AppendChunk(message.inscattering(), message.offset(), out.inscattering, "inscattering"));
+    VISQ_RETURN_IF_ERROR(AppendChunk(message.combined(), message.offset(), out.combined, "combined"));
+    if (first) {
+      message.clear_inscattering();
+      message.clear_combined();
+      out.figures = std::move(message);
+      first = false;
+    }
+  }
+  const grpc::Status status = reader->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return out;
+}
+
+}  // namespace visq::client
+
+namespace visq::client {
+namespace {
+
+// Appends one streamed chunk of an obscurance array, checking the order.
+template <typename Field, typename T>
+Status AppendObscuranceChunk(const Field& field, uint64_t offset, std::vector<T>& into, const char* what) {
+  if (field.empty()) return absl::OkStatus();
+  if (offset != into.size())
+    return absl::DataLossError(absl::StrCat(what, " chunk at ", offset, ", have ", into.size()));
+  into.insert(into.end(), field.begin(), field.end());
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+StatusOr<ObscuranceBake> Client::ComputeObscurances(const v1::ComputeObscurancesRequest& request,
+                                                    const ObscuranceProgressCallback& progress) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  auto reader = stub_->ComputeObscurances(context.get(), request);
+  ObscuranceBake out;
+  v1::ComputeObscurancesResponse message;
+  Status chunks = absl::OkStatus();
+  while (reader->Read(&message)) {
+    if (message.has_progress()) {
+      ++out.progress_messages;
+      if (progress) progress(message.progress());
+      continue;
+    }
+    if (message.has_figures()) out.figures = std::move(*message.mutable_figures());
+    const uint64_t at = message.offset();
+    Status s = AppendObscuranceChunk(message.w(), at, out.w, "w");
+    if (s.ok()) s = AppendObscuranceChunk(message.intensity(), at, out.intensity, "intensity");
+    if (s.ok()) s = AppendObscuranceChunk(message.estimated(), at, out.estimated, "estimated");
+    if (s.ok()) s = AppendObscuranceChunk(message.triangle_w(), at, out.triangle_w, "triangle_w");
+    if (s.ok()) s = AppendObscuranceChunk(message.vertex_w(), at, out.vertex_w, "vertex_w");
+    if (s.ok()) s = AppendObscuranceChunk(message.partial_sums(), at, out.partial.sums, "partial_sums");
+    if (s.ok()) s = AppendObscuranceChunk(message.partial_counts(), at, out.partial.counts, "partial_counts");
+    if (!s.ok() && chunks.ok()) {
+      chunks = s;
+      context->TryCancel();
+    }
+  }
+  const grpc::Status status = reader->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(chunks);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  const auto& f = out.figures;
+  out.partial.fingerprint = f.fingerprint();
+  out.partial.width = f.atlas().width();
+  out.partial.height = f.atlas().height();
+  out.partial.channels = f.channels();
+  for (const auto& r : f.ranges()) out.partial.ranges.push_back({r.first(), r.count()});
+  const size_t texels = static_cast<size_t>(f.atlas().width()) * f.atlas().height();
+  if (f.partial_only() ? (out.partial.counts.size() != texels || out.partial.sums.size() != texels * f.channels())
+                       : (out.w.size() != texels * 3 || out.estimated.size() != texels))
+    return absl::DataLossError(absl::StrCat("obscurance stream ended early: ", texels, " texels expected"));
+  return out;
+}
+
+StatusOr<v1::SceneInfo> Client::SetNodeTransform(const v1::SetNodeTransformRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  v1::SceneInfo response;
+  const grpc::Status status = stub_->SetNodeTransform(context.get(), request, &response);
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return response;
+}
+
+StatusOr<v1::UpdateObscurancesResponse> Client::UpdateObscurances(const v1::UpdateObscurancesRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  v1::UpdateObscurancesResponse response;
+  const grpc::Status status = stub_->UpdateObscurances(context.get(), request, &response);
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  return response;
+}
+
+Status MergeObscurancePartials(obscurance::ObscurancePartial& into, const obscurance::ObscurancePartial& from) {
+  std::string error;
+  if (!obscurance::MergeObscurancePartial(into, from, &error)) return absl::InvalidArgumentError(error);
+  return absl::OkStatus();
+}
+
+StatusOr<ObscuranceBake> ShardedBake(const std::vector<Client*>& clients, v1::ComputeObscurancesRequest request,
+                                     uint32_t shards) {
+  if (clients.empty()) return absl::InvalidArgumentError("clients: none given");
+  if (shards == 0) return absl::InvalidArgumentError("shards: 0 must be at least 1");
+  const uint32_t first = request.first_direction();
+  const uint32_t count = request.direction_count() != 0 ? request.direction_count() : 256;
+  if (request.total_directions() == 0) request.set_total_directions(first + count);
+  request.set_partial_only(true);
+  // Consecutive ranges, as even as integers allow; empty ones are dropped.
+  std::vector<v1::ComputeObscurancesRequest> parts;
+  for (uint32_t i = 0; i < shards; ++i) {
+    const uint32_t begin = first + static_cast<uint32_t>(uint64_t{count} * i / shards);
+    const uint32_t end = first + static_cast<uint32_t>(uint64_t{count} * (i + 1) / shards);
+    if (end == begin) continue;
+    v1::ComputeObscurancesRequest part = request;
+    part.set_first_direction(begin);
+    part.set_direction_count(end - begin);
+    parts.push_back(std::move(part));
+  }
+  std::vector<std::optional<StatusOr<ObscuranceBake>>> results(parts.size());
+  {
+    std::vector<std::thread> threads;
+    for (size_t i = 0; i < parts.size(); ++i)
+      threads.emplace_back([&, i] { results[i] = clients[i % clients.size()]->ComputeObscurances(parts[i]); });
+    for (auto& t : threads) t.join();
+  }
+  ObscuranceBake merged;
+  for (size_t i = 0; i < results.size(); ++i) {
+    StatusOr<ObscuranceBake>& r = *results[i];
+    if (!r.ok())
+      return Status(r.status().code(), absl::StrCat("shard [", parts[i].first_direction(), ", ",
+                                                    parts[i].first_direction() + parts[i].direction_count(),
+                                                    "): ", r.status().message()));
+    VISQ_RETURN_IF_ERROR(MergeObscurancePartials(merged.partial, r->partial));
+    if (i == 0) merged.figures = r->figures;
+    merged.progress_messages += r->progress_messages;
+  }
+  merged.figures.clear_ranges();
+  for (const auto& range : merged.partial.ranges) {
+    auto* out = merged.figures.add_ranges();
+    out->set_first(range.first);
+    out->set_count(range.count);
+  }
+  // The shard's error statement, restated for all the merged directions
+  // (the server's formula: a Hoeffding half-width at 95 %, an estimate).
+  const double directions = static_cast<double>(std::max<uint64_t>(merged.partial.DirectionCount(), 1));
+  auto* accuracy = merged.figures.mutable_accuracy();
+  accuracy->set_error_bound(std::sqrt(std::log(2.0 / (1.0 - accuracy->confidence())) / (2.0 * directions)));
+  accuracy->set_note(absl::StrCat("merged from ", parts.size(), " shards, ", merged.partial.DirectionCount(),
+                                  " directions; estimate, not a bound: Hoeffding half-width at 95 % for independent "
+                                  "directions with per-direction values in [0, 1]"));
+  merged.figures.clear_timing();
+  return merged;
+}
+
+StatusOr<ObscuranceBake> ShardedBake(const std::vector<std::string>& addresses, const ClientOptions& options,
+                                     v1::ComputeObscurancesRequest request, uint32_t shards) {
+  std::vector<std::unique_ptr<Client>> owned;
+  std::vector<Client*> clients;
+  for (const std::string& address : addresses) {
+    ClientOptions o = options;
+    o.address = address;
+    owned.push_back(std::make_unique<Client>(o));
+    VISQ_RETURN_IF_ERROR(owned.back()->init_status());
+    clients.push_back(owned.back().get());
+  }
+  return ShardedBake(clients, std::move(request), shards);
 }
 
 }  // namespace visq::client

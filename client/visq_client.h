@@ -3,6 +3,7 @@
 #pragma once
 
 #include <chrono>
+#include <functional>
 #include <filesystem>
 #include <memory>
 #include <mutex>
@@ -11,6 +12,7 @@
 #include <grpcpp/channel.h>
 
 #include "common/status.h"
+#include "obscurance/obscurance_partial.h"  // header-only: the merge the server uses
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "visq/v1/visq.grpc.pb.h"
 
@@ -44,6 +46,35 @@ struct HiddenSampleMap {
   }
 };
 
+// A voxel grid reassembled from its streamed chunks.
+struct VoxelGrid {
+  v1::VoxelizeResponse figures;  // sizes, counts, box, accuracy, timing
+  std::vector<uint32_t> bits;    // word (y * width + x) * words_per_column + k / 32, bit k % 32
+  std::vector<float> column_near, column_far;
+  bool Occupied(uint32_t x, uint32_t y, uint32_t k) const {
+    const size_t word = (size_t(y) * figures.width() + x) * figures.words_per_column() + k / 32;
+    return (bits[word] >> (k % 32)) & 1u;
+  }
+};
+
+// A volumetric-shadow image reassembled from its streamed chunks.
+struct VolumetricImage {
+  v1::VolumetricShadowResponse figures;
+  std::vector<float> inscattering;  // RGB per pixel, row 0 at the top
+  std::vector<float> combined;
+};
+
+// A ComputeObscurances result reassembled from its stream.
+struct ObscuranceBake {
+  v1::ObscuranceFigures figures;         // atlas, fingerprint, ranges, accuracy, timing
+  std::vector<float> w, intensity;       // 3 per texel, index (y * width + x) * 3
+  std::vector<uint8_t> estimated;        // per texel: 1 estimated, 0 filled from neighbours
+  std::vector<float> triangle_w, vertex_w;  // 3 each (want_averages)
+  obscurance::ObscurancePartial partial;  // partial_only (and ShardedBake)
+  uint32_t progress_messages = 0;
+};
+using ObscuranceProgressCallback = std::function<void(const v1::ObscuranceProgress&)>;
+
 class Client {
  public:
   explicit Client(ClientOptions options);
@@ -70,9 +101,20 @@ class Client {
   [[nodiscard]] StatusOr<HiddenSampleMap> ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request);
   [[nodiscard]] StatusOr<v1::PatchVisibilityResponse> PatchVisibility(const v1::PatchVisibilityRequest& request);
   [[nodiscard]] StatusOr<v1::LightVisibilityResponse> LightVisibility(const v1::LightVisibilityRequest& request);
+  [[nodiscard]] StatusOr<VoxelGrid> Voxelize(const v1::VoxelizeRequest& request);
+  [[nodiscard]] StatusOr<v1::TransmittanceResponse> Transmittance(const v1::TransmittanceRequest& request);
+  [[nodiscard]] StatusOr<VolumetricImage> VolumetricShadow(const v1::VolumetricShadowRequest& request);
   // Sends the batches over one stream; answers come back in order.
   [[nodiscard]] StatusOr<std::vector<v1::LightVisibilityResponse>> LightVisibilityStream(
       const std::vector<v1::LightVisibilityRequest>& batches);
+
+  // Obscurances. `progress` is called for each progress message (on this
+  // thread) while the server bakes.
+  [[nodiscard]] StatusOr<ObscuranceBake> ComputeObscurances(const v1::ComputeObscurancesRequest& request,
+                                                            const ObscuranceProgressCallback& progress = {});
+  // Moves a node (in the server's memory only; see the proto).
+  [[nodiscard]] StatusOr<v1::SceneInfo> SetNodeTransform(const v1::SetNodeTransformRequest& request);
+  [[nodiscard]] StatusOr<v1::UpdateObscurancesResponse> UpdateObscurances(const v1::UpdateObscurancesRequest& request);
 
   // The x-visq-server-id of the last response (which replica answered).
   std::string last_server_id() const;
@@ -101,6 +143,26 @@ class Client {
 
 // gRPC status -> visq Status (the client's one conversion).
 Status FromGrpcStatus(const grpc::Status& status);
+
+// Adds the partial sums of one shard into `into` (empty: takes `from`):
+// exactly the server's arithmetic, so the merge of shards over a split of
+// [0, n) equals the bake of [0, n) bit for bit. INVALID_ARGUMENT when the
+// partials differ in scene, atlas or parameters, or overlap.
+[[nodiscard]] Status MergeObscurancePartials(obscurance::ObscurancePartial& into,
+                                             const obscurance::ObscurancePartial& from);
+
+// A bake split across servers: the request's direction range (default
+// [0, 256)) cut into `shards` consecutive ranges, assigned round-robin to
+// `clients` and baked in parallel with partial_only, then merged. The
+// result holds the merged partial (W stays with the servers' atlas: W of an
+// estimated texel is sums / (count * kObscuranceFixedPointScale)) and the
+// first shard's figures with the merged ranges.
+[[nodiscard]] StatusOr<ObscuranceBake> ShardedBake(const std::vector<Client*>& clients,
+                                                   v1::ComputeObscurancesRequest request, uint32_t shards);
+// The same, over one new client per address (`options` with its address replaced).
+[[nodiscard]] StatusOr<ObscuranceBake> ShardedBake(const std::vector<std::string>& addresses,
+                                                   const ClientOptions& options,
+                                                   v1::ComputeObscurancesRequest request, uint32_t shards);
 
 // The files a .gltf references (buffers and images that are not data: URIs),
 // relative to its folder; empty for a .glb.

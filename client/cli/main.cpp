@@ -1,6 +1,7 @@
 // visq: the command-line client. Each subcommand is a thin wrapper over
 // visq::client::Client; --json prints the response message as JSON.
 #include <algorithm>
+#include <bit>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
@@ -412,6 +413,315 @@ int main(int argc, char** argv) {
                t.reused() ? "reused" : "built", t.nodes(), t.refinements(), t.memory_bytes(),
                response->timing().total_ms());
     if (!lv_png.empty()) fmt::print("wrote {}\n", lv_png);
+  });
+
+  // --- voxelize ----------------------------------------------------------------
+  std::string vx_scene, vx_png;
+  uint32_t vx_width = 128, vx_height = 128, vx_slices = 128, vx_axis = 1;
+  bool vx_solid = false, vx_local = false, vx_conservative = false;
+  auto* voxelize = app.add_subcommand("voxelize", "Slicemap voxelization of a scene (bits per voxel)");
+  voxelize->add_option("--scene", vx_scene, "Scene name")->required();
+  voxelize->add_option("--width", vx_width, "Texels along the first axis")->capture_default_str();
+  voxelize->add_option("--height", vx_height, "Texels along the second axis")->capture_default_str();
+  voxelize->add_option("--slices", vx_slices, "Slices along the depth axis")->capture_default_str();
+  voxelize->add_option("--axis", vx_axis, "Depth axis: 0 = x, 1 = y, 2 = z")->capture_default_str();
+  voxelize->add_flag("--solid", vx_solid, "Solid voxelization (inside of closed meshes)");
+  voxelize->add_flag("--local", vx_local, "Local precision: slices between each column's near and far geometry");
+  voxelize->add_flag("--conservative", vx_conservative, "Never miss a triangle, even edge-on");
+  voxelize->add_option("--png", vx_png, "Write the occupancy projected along the depth axis (fraction of slices)");
+  AddCommonFlags(voxelize, flags);
+  voxelize->callback([&] {
+    visq::v1::VoxelizeRequest request;
+    request.mutable_scene()->set_name(vx_scene);
+    request.set_width(vx_width);
+    request.set_height(vx_height);
+    request.set_slices(vx_slices);
+    request.set_depth_axis(vx_axis);
+    request.set_mode(vx_solid ? visq::v1::VoxelizeRequest::SOLID : visq::v1::VoxelizeRequest::SURFACE);
+    request.set_local_precision(vx_local);
+    request.set_conservative(vx_conservative);
+    auto client = MakeClient(flags);
+    auto grid = client.Voxelize(request);
+    if (!grid.ok()) { exit_code = Fail(grid.status()); return; }
+    const auto& f = grid->figures;
+    if (!vx_png.empty()) {
+      std::vector<float> image(size_t(f.width()) * f.height());
+      for (uint32_t y = 0; y < f.height(); ++y)
+        for (uint32_t x = 0; x < f.width(); ++x) {
+          uint32_t count = 0;
+          for (uint32_t w = 0; w < f.words_per_column(); ++w)
+            count += std::popcount(grid->bits[(size_t(y) * f.width() + x) * f.words_per_column() + w]);
+          image[size_t(y) * f.width() + x] = std::min(1.0f, 8.0f * count / float(f.slices()));
+        }
+      if (!WritePng(vx_png, f.width(), f.height(), 1, image)) {
+        exit_code = Fail(absl::InternalError("cannot write " + vx_png));
+        return;
+      }
+    }
+    if (flags.json) { fmt::print("{}", ToJson(f)); return; }
+    fmt::print("{}x{}x{} ({}, {}): {} occupied voxels, {} ambiguous columns, {} pass(es)\n", f.width(), f.height(),
+               f.slices(), f.rasterization(), f.precision(), f.occupied_voxels(), f.ambiguous_columns(), f.passes());
+    fmt::print("accuracy: {}\ntime: total {:.1f} ms (compute {:.1f} ms)\n", f.accuracy().note(),
+               f.timing().total_ms(), f.timing().compute_ms());
+    if (!vx_png.empty()) fmt::print("wrote {}\n", vx_png);
+  });
+
+  // --- transmittance -------------------------------------------------------------
+  std::string tr_scene, tr_light, tr_kind = "directional", tr_receiver, tr_png;
+  std::vector<std::string> tr_absorbers;
+  uint32_t tr_width = 64, tr_height = 64, tr_resolution = 256, tr_slices = 256;
+  auto* transmittance = app.add_subcommand("transmittance", "Light reaching a receiver through absorbing nodes");
+  transmittance->add_option("--scene", tr_scene, "Scene name")->required();
+  transmittance->add_option("--light", tr_light, "Light direction (directional) or position (point) 'x,y,z'")->required();
+  transmittance->add_option("--light-kind", tr_kind, "directional or point")->capture_default_str();
+  transmittance->add_option("--absorber", tr_absorbers, "NODE=SIGMA (repeatable)")->required();
+  transmittance->add_option("--receiver", tr_receiver, "Receiver patch 'ox,oy,oz;ux,uy,uz;vx,vy,vz'")->required();
+  transmittance->add_option("--width", tr_width, "Receiver texels across")->capture_default_str();
+  transmittance->add_option("--height", tr_height, "Receiver texels down")->capture_default_str();
+  transmittance->add_option("--resolution", tr_resolution, "Light-view resolution")->capture_default_str();
+  transmittance->add_option("--slices", tr_slices, "Slices")->capture_default_str();
+  transmittance->add_option("--png", tr_png, "Write the transmittance as a PNG");
+  AddCommonFlags(transmittance, flags);
+  transmittance->callback([&] {
+    visq::v1::TransmittanceRequest request;
+    request.mutable_scene()->set_name(tr_scene);
+    const bool point = tr_kind == "point";
+    request.set_light_kind(point ? visq::v1::TransmittanceRequest::POINT : visq::v1::TransmittanceRequest::DIRECTIONAL);
+    if (!ParseVec3(tr_light, point ? request.mutable_light_position() : request.mutable_light_direction()) ||
+        !ParsePatch(tr_receiver, request.mutable_receiver())) {
+      exit_code = Fail(absl::InvalidArgumentError("--light 'x,y,z' and --receiver 'o;u;v' expected"));
+      return;
+    }
+    for (const auto& a : tr_absorbers) {
+      const size_t eq = a.rfind('=');
+      auto* absorber = request.add_absorbers();
+      absorber->set_node(a.substr(0, eq));
+      absorber->set_absorption(eq == std::string::npos ? 1.0 : std::atof(a.c_str() + eq + 1));
+    }
+    request.set_receiver_width(tr_width);
+    request.set_receiver_height(tr_height);
+    request.set_resolution(tr_resolution);
+    request.set_slices(tr_slices);
+    auto client = MakeClient(flags);
+    auto response = client.Transmittance(request);
+    if (!response.ok()) { exit_code = Fail(response.status()); return; }
+    if (!tr_png.empty()) {
+      std::vector<float> image(response->transmittance().begin(), response->transmittance().end());
+      if (!WritePng(tr_png, tr_width, tr_height, 1, image)) {
+        exit_code = Fail(absl::InternalError("cannot write " + tr_png));
+        return;
+      }
+    }
+    if (flags.json) { fmt::print("{}", ToJson(*response)); return; }
+    double mean = 0;
+    for (float t : response->transmittance()) mean += t;
+    mean /= std::max(1, response->transmittance_size());
+    fmt::print("{} texels: mean transmittance {:.4f}; {}\n", response->transmittance_size(), mean,
+               response->accuracy().note());
+    fmt::print("time: total {:.1f} ms\n", response->timing().total_ms());
+  });
+
+  // --- volumetric ------------------------------------------------------------------
+  std::string vo_scene, vo_camera, vo_forward, vo_light = "0.3,-1,0.2", vo_png, vo_method = "min-max";
+  uint32_t vo_width = 320, vo_height = 240, vo_map = 1024;
+  double vo_fov = 60, vo_scattering = 0.05, vo_extinction = 0.05, vo_intensity = 1.0;
+  bool vo_combined = false;
+  auto* volumetric = app.add_subcommand("volumetric", "Volumetric shadows (light shafts) from a camera");
+  volumetric->add_option("--scene", vo_scene, "Scene name")->required();
+  volumetric->add_option("--camera", vo_camera, "Camera position 'x,y,z'")->required();
+  volumetric->add_option("--forward", vo_forward, "Viewing direction 'x,y,z'")->required();
+  volumetric->add_option("--sun", vo_light, "Direction the sunlight travels 'x,y,z'")->capture_default_str();
+  volumetric->add_option("--width", vo_width, "Image width")->capture_default_str();
+  volumetric->add_option("--height", vo_height, "Image height")->capture_default_str();
+  volumetric->add_option("--fov", vo_fov, "Vertical field of view, degrees")->capture_default_str();
+  volumetric->add_option("--shadow-map", vo_map, "Shadow map size (power of two)")->capture_default_str();
+  volumetric->add_option("--scattering", vo_scattering, "sigma_s per world unit")->capture_default_str();
+  volumetric->add_option("--extinction", vo_extinction, "sigma_t per world unit")->capture_default_str();
+  volumetric->add_option("--intensity", vo_intensity, "Light intensity")->capture_default_str();
+  volumetric->add_option("--method", vo_method, "min-max or ray-marching")->capture_default_str();
+  volumetric->add_flag("--combined", vo_combined, "Add the directly lit surfaces");
+  volumetric->add_option("--png", vo_png, "Write the image (tone-mapped to its peak)");
+  AddCommonFlags(volumetric, flags);
+  volumetric->callback([&] {
+    visq::v1::VolumetricShadowRequest request;
+    request.mutable_scene()->set_name(vo_scene);
+    if (!ParseVec3(vo_camera, request.mutable_camera_position()) ||
+        !ParseVec3(vo_forward, request.mutable_camera_forward()) ||
+        !ParseVec3(vo_light, request.mutable_light_direction())) {
+      exit_code = Fail(absl::InvalidArgumentError("--camera, --forward, --sun: expected 'x,y,z'"));
+      return;
+    }
+    request.set_width(vo_width);
+    request.set_height(vo_height);
+    request.set_vertical_fov_deg(vo_fov);
+    request.set_shadow_map_size(vo_map);
+    request.set_scattering(vo_scattering);
+    request.set_extinction(vo_extinction);
+    request.set_light_intensity(vo_intensity);
+    request.set_method(vo_method == "ray-marching" ? visq::v1::VolumetricShadowRequest::RAY_MARCHING
+                                                   : visq::v1::VolumetricShadowRequest::MIN_MAX);
+    request.set_combined_image(vo_combined);
+    auto client = MakeClient(flags);
+    auto image = client.VolumetricShadow(request);
+    if (!image.ok()) { exit_code = Fail(image.status()); return; }
+    const auto& f = image->figures;
+    if (!vo_png.empty()) {
+      std::vector<float> rgb = vo_combined ? image->combined : image->inscattering;
+      float peak = 1e-20f;
+      for (float v : rgb) peak = std::max(peak, v);
+      // Rows arrive top first; WritePng puts the last row on top.
+      std::vector<float> flipped(rgb.size());
+      const size_t row = size_t(f.width()) * 3;
+      for (uint32_t y = 0; y < f.height(); ++y)
+        for (size_t i = 0; i < row; ++i) flipped[(f.height() - 1 - y) * row + i] = rgb[y * row + i] / peak;
+      if (!WritePng(vo_png, f.width(), f.height(), 3, flipped)) {
+        exit_code = Fail(absl::InternalError("cannot write " + vo_png));
+        return;
+      }
+    }
+    if (flags.json) { fmt::print("{}", ToJson(f)); return; }
+    fmt::print("{}x{} {} ({} integrand, {}x{} rectified)\n", f.width(), f.height(), f.method(), f.integrand(),
+               f.rectified_rows(), f.rectified_columns());
+    for (const auto& [stage, ms] : f.stage_ms()) fmt::print("  {:<14} {:8.1f} ms\n", stage, ms);
+    fmt::print("total {:.1f} ms\n", f.timing().total_ms());
+    if (!vo_png.empty()) fmt::print("wrote {}\n", vo_png);
+  });
+
+  // --- obscurance, move, obscurance-update -----------------------------------
+  std::string ob_scene, ob_png;
+  uint32_t ob_resolution = 256, ob_directions = 256;
+  uint64_t ob_seed = 1;
+  double ob_d_max = 0;
+  bool ob_bleeding = false, ob_built_atlas = false;
+  auto* obscurance = app.add_subcommand("obscurance", "Bake obscurances (W and I per atlas texel) on the GPU");
+  obscurance->add_option("--scene", ob_scene, "Scene name")->required();
+  obscurance->add_option("--d-max", ob_d_max, "Occlusion distance in scene units (> 0)")->required();
+  obscurance->add_option("--resolution", ob_resolution, "Atlas texels across and down")->capture_default_str();
+  obscurance->add_option("--directions", ob_directions, "Global directions of the bake")->capture_default_str();
+  obscurance->add_option("--seed", ob_seed, "Direction sequence seed")->capture_default_str();
+  obscurance->add_flag("--color-bleeding", ob_bleeding, "RGB obscurances weighted by the reflectivity seen");
+  obscurance->add_flag("--built-atlas", ob_built_atlas, "Build an atlas even when the scene has TEXCOORD_1");
+  obscurance->add_option("--png", ob_png, "Write the W atlas as a PNG");
+  AddCommonFlags(obscurance, flags);
+  obscurance->callback([&] {
+    visq::v1::ComputeObscurancesRequest request;
+    request.mutable_scene()->set_name(ob_scene);
+    request.set_d_max(ob_d_max);
+    request.set_resolution(ob_resolution);
+    request.set_direction_count(ob_directions);
+    request.set_seed(ob_seed);
+    request.set_color_bleeding(ob_bleeding);
+    request.set_force_built_atlas(ob_built_atlas);
+    auto client = MakeClient(flags);
+    // A progress bar on stderr, rewritten in place.
+    bool progress_shown = false;
+    auto progress = [&progress_shown](const visq::v1::ObscuranceProgress& p) {
+      progress_shown = true;
+      const int width = 30;
+      const int done = p.directions_total() ? static_cast<int>(int64_t{width} * p.directions_done() / p.directions_total()) : 0;
+      fmt::print(stderr, "\r[{}{}] {}/{} directions, {:.1f} s, ~{:.1f} s left ", std::string(done, '='),
+                 std::string(width - done, ' '), p.directions_done(), p.directions_total(), p.elapsed_s(),
+                 p.estimated_s_left());
+      std::fflush(stderr);
+    };
+    auto bake = client.ComputeObscurances(request, progress);
+    if (progress_shown) fmt::print(stderr, "\n");
+    if (!bake.ok()) { exit_code = Fail(bake.status()); return; }
+    const auto& f = bake->figures;
+    double mean = 0;
+    size_t estimated = 0;
+    for (size_t t = 0; t < bake->estimated.size(); ++t)
+      if (bake->estimated[t]) {
+        mean += (bake->w[3 * t] + bake->w[3 * t + 1] + bake->w[3 * t + 2]) / 3.0;
+        ++estimated;
+      }
+    mean /= std::max<size_t>(1, estimated);
+    if (!ob_png.empty() &&
+        !WritePng(ob_png, static_cast<int>(f.atlas().width()), static_cast<int>(f.atlas().height()), 3, bake->w)) {
+      exit_code = Fail(absl::InternalError("cannot write " + ob_png));
+      return;
+    }
+    if (flags.json) {
+      fmt::print("{{\"mean_w\": {}, \"estimated_texels\": {}, \"figures\": {}}}\n", mean, estimated, ToJson(f));
+      return;
+    }
+    fmt::print("{}x{} atlas ({}), {} directions, {} layers: mean W {:.4f} over {} estimated texels\n",
+               f.atlas().width(), f.atlas().height(), f.atlas().from_lightmap_uvs() ? "TEXCOORD_1" : "built",
+               bake->partial.DirectionCount() ? bake->partial.DirectionCount() : ob_directions, f.layers(), mean,
+               estimated);
+    fmt::print("I_A ({:.4g}, {:.4g}, {:.4g}){}; {:.1f} samples per patch\n", f.ambient_intensity().x(),
+               f.ambient_intensity().y(), f.ambient_intensity().z(), f.ambient_clamped() ? " (R_ave clamped)" : "",
+               f.mean_samples_per_patch());
+    fmt::print("error +-{:.4f} at confidence {} ({})\n", f.accuracy().error_bound(), f.accuracy().confidence(),
+               f.accuracy().note());
+    fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
+               f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
+    if (!ob_png.empty()) fmt::print("wrote {}\n", ob_png);
+  });
+
+  std::string mv_node, mv_scene, mv_matrix;
+  bool mv_index = false;
+  auto* move = app.add_subcommand("move", "Move a node and its subtree (in the server's memory; not stored)");
+  move->add_option("NODE", mv_node, "Node name (or index with --index)")->required();
+  move->add_option("--scene", mv_scene, "Scene name")->required();
+  move->add_option("--matrix", mv_matrix, "New node-to-world matrix: 16 numbers m0,...,m15, column-major like glTF")
+      ->required();
+  move->add_flag("--index", mv_index, "NODE is an index into the scene's nodes");
+  AddCommonFlags(move, flags);
+  move->callback([&] {
+    visq::v1::SetNodeTransformRequest request;
+    request.mutable_scene()->set_name(mv_scene);
+    if (mv_index) {
+      char* end = nullptr;
+      const unsigned long index = std::strtoul(mv_node.c_str(), &end, 10);
+      if (end == mv_node.c_str() || *end != '\0') {
+        exit_code = Fail(absl::InvalidArgumentError("NODE: '" + mv_node + "' is not an index"));
+        return;
+      }
+      request.set_node_index(static_cast<uint32_t>(index));
+    } else {
+      request.set_node_name(mv_node);
+    }
+    for (size_t start = 0; start <= mv_matrix.size();) {
+      size_t end = mv_matrix.find(',', start);
+      if (end == std::string::npos) end = mv_matrix.size();
+      const std::string item = mv_matrix.substr(start, end - start);
+      char* tail = nullptr;
+      const double v = std::strtod(item.c_str(), &tail);
+      if (item.empty() || *tail != '\0') {
+        exit_code = Fail(absl::InvalidArgumentError("--matrix: '" + item + "' is not a number"));
+        return;
+      }
+      request.add_world_matrix(v);
+      start = end + 1;
+    }
+    auto client = MakeClient(flags);
+    auto info = client.SetNodeTransform(request);
+    if (!info.ok()) { exit_code = Fail(info.status()); return; }
+    if (flags.json) { fmt::print("{}", ToJson(*info)); return; }
+    fmt::print("moved {}: ", mv_node);
+    PrintScene(*info, false);
+  });
+
+  std::string ou_scene;
+  auto* obscurance_update = app.add_subcommand("obscurance-update",
+                                               "Update the last obscurance bake after node moves (changed patches only)");
+  obscurance_update->add_option("--scene", ou_scene, "Scene name")->required();
+  AddCommonFlags(obscurance_update, flags);
+  obscurance_update->callback([&] {
+    visq::v1::UpdateObscurancesRequest request;
+    request.mutable_scene()->set_name(ou_scene);
+    auto client = MakeClient(flags);
+    auto response = client.UpdateObscurances(request);
+    if (!response.ok()) { exit_code = Fail(response.status()); return; }
+    if (flags.json) { fmt::print("{}", ToJson(*response)); return; }
+    const auto& r = *response;
+    fmt::print("version {} -> {}: {} move(s), {} texels, {} triangles, {} vertices changed\n", r.from_version(),
+               r.scene_version(), r.moves_applied(), r.texels_size(), r.triangles_size(), r.vertices_size());
+    fmt::print("influenced patches {} -> {}, own {}, candidates {}, recomputed {}, {} rays ({} per patch)\n",
+               r.influenced_before(), r.influenced_after(), r.own_patches(), r.candidates(), r.recomputed(), r.rays(),
+               r.rays_per_patch());
+    fmt::print("time: compute {:.1f} ms, total {:.1f} ms\n", r.timing().compute_ms(), r.timing().total_ms());
   });
 
   auto* stats = app.add_subcommand("stats", "Server statistics: per-RPC latencies, queues, memory, GPU");

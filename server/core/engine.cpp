@@ -7,6 +7,7 @@
 #include <spdlog/spdlog.h>
 #include <xxhash.h>
 
+#include "core/obscurance_query.h"
 #include "scene/gltf_loader.h"
 
 namespace visq {
@@ -170,6 +171,10 @@ StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repo
     }
   }
   light_cache_->InvalidateScene(std::string(name));
+  {
+    std::lock_guard obscurance_lock(obscurance_mutex_);
+    obscurance_states_.erase(std::string(name));
+  }
   if (delete_from_repository) {
     Status removed = repository_->Remove(name);
     if (removed.ok()) return true;
@@ -204,6 +209,35 @@ StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_vi
   if (version != 0 && it->second->version != version)
     return absl::FailedPreconditionError(absl::StrCat("scene '", name, "' is at version ", it->second->version,
                                                       ", the request names version ", version));
+  return it->second;
+}
+
+StatusOr<SceneSummary> Engine::ReplaceWithEdited(const ResidentScene& current, Scene scene) {
+  auto resident = std::make_shared<ResidentScene>();
+  resident->name = current.name;
+  resident->content_hash = SceneContentHash(scene);
+  resident->scene = std::make_shared<const Scene>(std::move(scene));
+  resident->dropped = current.dropped;
+  resident->load_ms = current.load_ms;
+  resident->persisted = false;  // the repository still holds the stored scene
+  {
+    std::unique_lock lock(scenes_mutex_);
+    auto it = scenes_.find(current.name);
+    if (it == scenes_.end() || it->second.get() != &current)
+      return absl::FailedPreconditionError(
+          absl::StrCat("scene '", current.name, "' changed (reloaded, unloaded or edited) during the edit"));
+    resident->version = ++last_version_[resident->name];
+    it->second = resident;
+  }
+  light_cache_->InvalidateScene(resident->name);
+  return Summarize(*resident, false);
+}
+
+std::shared_ptr<ObscuranceState> Engine::ObscuranceStateOf(absl::string_view scene) {
+  std::lock_guard lock(obscurance_mutex_);
+  auto it = obscurance_states_.find(scene);
+  if (it == obscurance_states_.end())
+    it = obscurance_states_.emplace(std::string(scene), std::make_shared<ObscuranceState>()).first;
   return it->second;
 }
 

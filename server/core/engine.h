@@ -22,6 +22,8 @@
 
 namespace visq {
 
+struct ObscuranceState;  // core/obscurance_query.h
+
 struct EngineOptions {
   std::filesystem::path scene_repo = "/var/lib/visq/scenes";
   gpu::GpuOptions gpu;
@@ -110,6 +112,12 @@ class Engine {
   // load_if_stored so that a scene stored but not resident is loaded first.
   [[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> FindScene(absl::string_view name, uint64_t version,
                                                                          bool load_if_stored = true);
+  // Makes `scene`, an edited copy of `current`'s (a node moved), resident
+  // as the next version: in memory only, not written to the repository.
+  // FAILED_PRECONDITION if `current` is no longer the resident version.
+  [[nodiscard]] StatusOr<SceneSummary> ReplaceWithEdited(const ResidentScene& current, Scene scene);
+  // Per-scene obscurance state (core/obscurance_query.h), created on first use.
+  std::shared_ptr<ObscuranceState> ObscuranceStateOf(absl::string_view scene);
 
   // The scene's GPU buffers, uploaded by the first caller.
   [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneOf(const ResidentScene& resident);
@@ -146,6 +154,8 @@ class Engine {
   // Serializes check-then-commit of uploads, unloads and first-use loads;
   // parsing happens outside it.
   std::mutex commit_mutex_;
+  std::mutex obscurance_mutex_;
+  std::map<std::string, std::shared_ptr<ObscuranceState>, std::less<>> obscurance_states_;
 };
 
 // XXH3-128 of the flattened geometry and materials, as 32 hex digits.

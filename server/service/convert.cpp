@@ -262,6 +262,88 @@ void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, 
 }
 
 
+StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) {
+  VolumetricQuery query;
+  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  gpu::VolumetricParams& p = query.params;
+  p.camera.position = FromProto(request.camera_position());
+  p.camera.forward = FromProto(request.camera_forward());
+  if (request.has_camera_up()) p.camera.up = FromProto(request.camera_up());
+  p.camera.vertical_fov_deg = request.vertical_fov_deg() == 0.0 ? 60.0 : request.vertical_fov_deg();
+  p.camera.width = request.width();
+  p.camera.height = request.height();
+  switch (request.light_kind()) {
+    case v1::VolumetricShadowRequest::DIRECTIONAL: p.light.kind = gpu::VolumetricLightKind::kDirectional; break;
+    case v1::VolumetricShadowRequest::SPOT: p.light.kind = gpu::VolumetricLightKind::kSpot; break;
+    default: return absl::InvalidArgumentError("light_kind: unknown value");
+  }
+  p.light.direction = FromProto(request.light_direction());
+  p.light.position = FromProto(request.light_position());
+  if (request.cone_angle_deg() != 0.0) p.light.cone_angle_deg = request.cone_angle_deg();
+  p.light.cone_falloff_deg = request.cone_falloff_deg();
+  if (request.has_light_color()) p.light.color = FromProto(request.light_color());
+  p.light.intensity = request.light_intensity() == 0.0 ? 1.0 : request.light_intensity();
+  p.light.texture_width = request.light_texture_width();
+  p.light.texture_height = request.light_texture_height();
+  p.light.texture.assign(request.light_texture().begin(), request.light_texture().end());
+  p.medium.scattering = request.scattering();
+  p.medium.extinction = request.extinction();
+  p.medium.hg_g = request.hg_g();
+  p.medium.optically_thin = request.optically_thin();
+  if (request.shadow_map_size() != 0) p.shadow_map_size = request.shadow_map_size();
+  switch (request.method()) {
+    case v1::VolumetricShadowRequest::MIN_MAX: p.method = gpu::VolumetricMethod::kMinMaxTraversal; break;
+    case v1::VolumetricShadowRequest::RAY_MARCHING: p.method = gpu::VolumetricMethod::kRayMarching; break;
+    default: return absl::InvalidArgumentError("method: unknown value");
+  }
+  p.combined_image = request.combined_image();
+  return query;
+}
+
+std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricResult& result, size_t chunk_elements) {
+  std::vector<v1::VolumetricShadowResponse> out(1);
+  v1::VolumetricShadowResponse& first = out[0];
+  first.set_width(result.width);
+  first.set_height(result.height);
+  const bool min_max = result.method == gpu::VolumetricMethod::kMinMaxTraversal;
+  first.set_method(min_max ? "min-max-mipmap" : "ray-marching");
+  first.set_integrand(std::string(gpu::VolumetricIntegrandName(result.integrand)));
+  first.set_rectified_rows(result.rectified_rows);
+  first.set_rectified_columns(result.rectified_columns);
+  first.set_epipole_inside_map(result.epipole_inside_map);
+  auto* accuracy = first.mutable_accuracy();
+  accuracy->set_method(first.method());
+  accuracy->set_error_bound(0.0);
+  accuracy->set_confidence(1.0);
+  accuracy->set_note(absl::StrCat(
+      "deterministic: the min-max traversal and ray marching integrate the same rectified shadow map and give the "
+      "same image up to float summation order; the shadow boundary is resolved to the rectified map (",
+      result.rectified_rows, " rows x ", result.rectified_columns, " columns), the ", first.integrand(),
+      " integrand is exact per texel span (per-texel midpoint rule for attenuation with spot or textured lights)"));
+  auto& stage_ms = *first.mutable_stage_ms();
+  stage_ms["setup"] = result.timings.setup_ms;
+  stage_ms["shadow_map"] = result.timings.shadow_map_ms;
+  stage_ms["camera"] = result.timings.camera_ms;
+  stage_ms["rectification"] = result.timings.rectification_ms;
+  stage_ms["mipmap"] = result.timings.mipmap_ms;
+  stage_ms["traversal"] = result.timings.traversal_ms;
+  stage_ms["readback"] = result.timings.readback_ms;
+  auto append = [&](const std::vector<float>& values, bool combined) {
+    for (size_t offset = 0; offset < values.size(); offset += chunk_elements) {
+      const auto& last = out.back();
+      if (last.inscattering_size() + last.combined_size() > 0) out.emplace_back();
+      out.back().set_offset(offset);
+      auto* field = combined ? out.back().mutable_combined() : out.back().mutable_inscattering();
+      field->Add(values.begin() + offset, values.begin() + std::min(values.size(), offset + chunk_elements));
+    }
+  };
+  append(result.inscattering, false);
+  append(result.combined, true);
+  return out;
+}
+
 StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   VoxelizeQuery query;
   if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");

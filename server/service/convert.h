@@ -6,6 +6,7 @@
 #include "common/status.h"
 #include "core/light_visibility_query.h"
 #include "core/visibility_sampling_query.h"
+#include "core/volumetric_query.h"
 #include "core/voxel_query.h"
 #include "visq/v1/visq.pb.h"
 
@@ -30,6 +31,9 @@ std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const gpu::HiddenSampleMa
 
 [[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
 void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, v1::PatchVisibilityResponse* out);
+
+[[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
+std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricResult& result, size_t chunk_elements);
 
 [[nodiscard]] StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
 std::vector<v1::VoxelizeResponse> ToProtoChunks(const gpu::VoxelizeResult& result, const gpu::SlicemapBox& box,

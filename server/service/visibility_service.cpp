@@ -5,6 +5,7 @@
 #include <optional>
 
 #include "core/light_visibility_query.h"
+#include "core/volumetric_query.h"
 #include "core/voxel_query.h"
 #include "service/convert.h"
 #include "service/request_log.h"
@@ -451,6 +452,29 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         timing->set_compute_ms(result.timing.run_ms + result.table_ms);
         timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
         timing->set_total_ms(log.ElapsedMs());
+        return absl::OkStatus();
+      });
+}
+
+grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::VolumetricShadow(
+    grpc::CallbackServerContext* context, const v1::VolumetricShadowRequest* request) {
+  return new PreparedStreamReactor<v1::VolumetricShadowResponse>(
+      context, ctx_, "VolumetricShadow",
+      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
+                               std::vector<v1::VolumetricShadowResponse>& messages) -> Status {
+        const double queue_ms = log.ElapsedMs();
+        VISQ_ASSIGN_OR_RETURN(VolumetricQuery query, FromProto(*request));
+        query.params.job = JobOptionsFor(context, &cancelled);
+        VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult result, RunVolumetricShadow(ctx_.engine, query));
+        const double before_transfer = log.ElapsedMs();
+        messages = ToProtoChunks(result, kChunkElements);
+        auto* timing = messages[0].mutable_timing();
+        timing->set_queue_ms(queue_ms + result.timings.queue_ms);
+        timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms);
+        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+        timing->set_total_ms(log.ElapsedMs());
+        log.Info("{}x{} {} ({}), traversal {:.1f} ms", result.width, result.height, messages[0].method(),
+                 messages[0].integrand(), result.timings.traversal_ms);
         return absl::OkStatus();
       });
 }

@@ -48,11 +48,22 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
   grpc::ServerUnaryReactor* Transmittance(grpc::CallbackServerContext* context,
                                           const v1::TransmittanceRequest* request,
                                           v1::TransmittanceResponse* response) override;
+  grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VolumetricShadow(
+      grpc::CallbackServerContext* context, const v1::VolumetricShadowRequest* request) override;
   grpc::ServerUnaryReactor* LightVisibility(grpc::CallbackServerContext* context,
                                             const v1::LightVisibilityRequest* request,
                                             v1::LightVisibilityResponse* response) override;
   grpc::ServerBidiReactor<v1::LightVisibilityRequest, v1::LightVisibilityResponse>* LightVisibilityStream(
       grpc::CallbackServerContext* context) override;
+  // Obscurances: server/service/obscurance_service.cpp.
+  grpc::ServerWriteReactor<v1::ComputeObscurancesResponse>* ComputeObscurances(
+      grpc::CallbackServerContext* context, const v1::ComputeObscurancesRequest* request) override;
+  grpc::ServerUnaryReactor* SetNodeTransform(grpc::CallbackServerContext* context,
+                                             const v1::SetNodeTransformRequest* request,
+                                             v1::SceneInfo* response) override;
+  grpc::ServerUnaryReactor* UpdateObscurances(grpc::CallbackServerContext* context,
+                                              const v1::UpdateObscurancesRequest* request,
+                                              v1::UpdateObscurancesResponse* response) override;
   grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
                                      v1::ServerStats* response) override;
 

@@ -227,3 +227,92 @@ TEST_F(AlgorithmRpcTest, LightVisibilityBadInput) {
 
 }  // namespace
 }  // namespace visq
+
+namespace visq {
+namespace {
+
+TEST_F(AlgorithmRpcTest, VoxelizeFloorFillsTheFirstSliceAndConservativeContainsStandard) {
+  v1::VoxelizeRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  request.set_width(32);
+  request.set_height(32);
+  request.set_slices(32);
+  request.set_depth_axis(1);  // slices along y: the floor (y = 0) is slice 0
+  auto standard = client_->Voxelize(request);
+  ASSERT_TRUE(standard.ok()) << standard.status();
+  const auto& f = standard->figures;
+  ASSERT_EQ(standard->bits.size(), size_t(32) * 32 * f.words_per_column());
+  for (uint32_t y = 0; y < 32; ++y)
+    for (uint32_t x = 0; x < 32; ++x) ASSERT_TRUE(standard->Occupied(x, y, 0)) << x << "," << y;
+  EXPECT_EQ(f.rasterization(), "standard");
+  EXPECT_GT(f.accuracy().error_bound(), 0.0);
+
+  request.set_conservative(true);
+  auto conservative = client_->Voxelize(request);
+  ASSERT_TRUE(conservative.ok()) << conservative.status();
+  EXPECT_EQ(conservative->figures.rasterization(), "conservative");
+  size_t missing = 0;
+  for (size_t w = 0; w < standard->bits.size(); ++w) missing += std::popcount(standard->bits[w] & ~conservative->bits[w]);
+  EXPECT_EQ(missing, 0u) << "the conservative grid must contain the standard one";
+  EXPECT_GE(conservative->figures.occupied_voxels(), f.occupied_voxels());
+
+  v1::VoxelizeRequest bad = request;
+  bad.set_slices(5000);
+  EXPECT_FALSE(client_->Voxelize(bad).ok());
+  bad = request;
+  bad.add_nodes("no such node");
+  EXPECT_EQ(client_->Voxelize(bad).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(AlgorithmRpcTest, TransmittanceThroughTheShortBox) {
+  v1::TransmittanceRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  request.set_light_kind(v1::TransmittanceRequest::DIRECTIONAL);
+  Set(request.mutable_light_direction(), 0, -1, 0);
+  auto* absorber = request.add_absorbers();
+  absorber->set_node("short_box");
+  absorber->set_absorption(2.0);
+  Set(request.add_points(), 0.4, 0.001, 0.35);   // under the short box: 0.6 units of it above
+  Set(request.add_points(), -0.9, 0.001, 0.9);  // in the open
+  auto response = client_->Transmittance(request);
+  ASSERT_TRUE(response.ok()) << response.status();
+  ASSERT_EQ(response->transmittance_size(), 2);
+  // exp(-2 * 0.6), within the stated error.
+  EXPECT_NEAR(response->optical_depth(0), 1.2, response->optical_depth_error(0) + 0.05);
+  EXPECT_FLOAT_EQ(response->transmittance(1), 1.0f);
+  absorber->set_node("nope");
+  EXPECT_EQ(client_->Transmittance(request).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(AlgorithmRpcTest, VolumetricMinMaxEqualsRayMarching) {
+  v1::VolumetricShadowRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  Set(request.mutable_camera_position(), 0, 1, 3.5);
+  Set(request.mutable_camera_forward(), 0, 0, -1);
+  Set(request.mutable_light_direction(), 0.3, -0.6, -1.0);  // through the open front
+  request.set_width(64);
+  request.set_height(48);
+  request.set_shadow_map_size(256);
+  request.set_scattering(0.2);
+  request.set_extinction(0.2);
+  auto min_max = client_->VolumetricShadow(request);
+  ASSERT_TRUE(min_max.ok()) << min_max.status();
+  request.set_method(v1::VolumetricShadowRequest::RAY_MARCHING);
+  auto marching = client_->VolumetricShadow(request);
+  ASSERT_TRUE(marching.ok()) << marching.status();
+  ASSERT_EQ(min_max->inscattering.size(), size_t(64) * 48 * 3);
+  ASSERT_EQ(marching->inscattering.size(), min_max->inscattering.size());
+  float peak = 0, worst = 0;
+  for (size_t i = 0; i < marching->inscattering.size(); ++i) {
+    peak = std::max(peak, marching->inscattering[i]);
+    worst = std::max(worst, std::abs(marching->inscattering[i] - min_max->inscattering[i]));
+  }
+  EXPECT_GT(peak, 0.0f) << "the image must not be black";
+  EXPECT_LE(worst, 1e-4f * peak + 1e-7f);
+  EXPECT_EQ(min_max->figures.method(), "min-max-mipmap");
+  request.set_vertical_fov_deg(200);
+  EXPECT_EQ(client_->VolumetricShadow(request).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace visq

@@ -366,3 +366,46 @@ TEST_F(SceneRpcTest, GetStatsCountsCallsAndNamesTheDevice) {
 
 }  // namespace
 }  // namespace visq
+
+namespace visq {
+namespace {
+
+TEST_F(SceneRpcTest, KillDuringUploadLeavesNoPartialSceneAndKeepsAcknowledgedOnes) {
+  auto acknowledged = client_->UploadScene(WriteUserScene("kept.glb"), "kept");
+  ASSERT_TRUE(acknowledged.ok()) << acknowledged.status();
+  // An upload that never finishes: header and some chunks, then the server dies.
+  {
+    auto context = client_->NewContext();
+    v1::SceneInfo info;
+    auto writer = client_->stub().LoadScene(context.get(), &info);
+    v1::LoadSceneRequest header;
+    header.mutable_header()->set_name("interrupted");
+    header.mutable_header()->set_upload_main_file("big.glb");
+    ASSERT_TRUE(writer->Write(header));
+    v1::LoadSceneRequest chunk;
+    chunk.mutable_chunk()->set_file("big.glb");
+    chunk.mutable_chunk()->set_data(std::string(1 << 20, 'x'));
+    for (int i = 0; i < 4; ++i) ASSERT_TRUE(writer->Write(chunk));
+    // Give the server time to write the chunks into its staging folder.
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    bool staged = false;
+    for (const auto& entry : fs::directory_iterator(repo_.path()))
+      staged |= entry.path().filename().string().rfind(".staging-", 0) == 0;
+    EXPECT_TRUE(staged) << "the upload should be in a staging folder while it runs";
+    server_->Kill();
+    context->TryCancel();
+  }
+  client_.reset();
+  StartServer({});
+  auto list = client_->ListScenes();
+  ASSERT_TRUE(list.ok()) << list.status();
+  std::vector<std::string> names;
+  for (const auto& s : list->scenes()) names.push_back(s.name());
+  EXPECT_EQ(names, (std::vector<std::string>{"cornell_box_visq", "kept"}));
+  EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq", "kept"}))
+      << "the interrupted upload's staging folder must be gone after restart";
+  EXPECT_EQ(client_->GetScene("kept")->content_hash(), acknowledged->content_hash());
+}
+
+}  // namespace
+}  // namespace visq

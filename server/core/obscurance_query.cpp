@@ -1,0 +1,249 @@
+#include "core/obscurance_query.h"
+
+#include <chrono>
+#include <cmath>
+#include <map>
+
+#include <spdlog/spdlog.h>
+
+namespace visq {
+namespace {
+
+double MillisecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+// The one node `query` names; INVALID_ARGUMENT naming the field otherwise.
+StatusOr<uint32_t> NamedNode(const Scene& scene, const NodeTransformQuery& query) {
+  if (query.node_index) {
+    if (*query.node_index >= scene.nodes.size())
+      return absl::InvalidArgumentError(absl::StrCat("node_index: ", *query.node_index, " is not a node of the scene (",
+                                                     scene.nodes.size(), " nodes)"));
+    return *query.node_index;
+  }
+  if (!query.node_name) return absl::InvalidArgumentError("node: set node_name or node_index");
+  std::vector<uint32_t> found;
+  for (uint32_t i = 0; i < scene.nodes.size(); ++i)
+    if (scene.nodes[i].name == *query.node_name) found.push_back(i);
+  if (found.empty()) return absl::InvalidArgumentError(absl::StrCat("node_name: no node named '", *query.node_name, "'"));
+  if (found.size() > 1)
+    return absl::InvalidArgumentError(absl::StrCat("node_name: '", *query.node_name, "' names ", found.size(),
+                                                   " nodes; give node_index"));
+  return found[0];
+}
+
+// 16 column-major numbers -> an affine, invertible matrix.
+StatusOr<glm::dmat4> WorldMatrix(const std::vector<double>& m) {
+  if (m.size() != 16)
+    return absl::InvalidArgumentError(absl::StrCat("world_matrix: ", m.size(), " numbers, expected 16 (column-major)"));
+  glm::dmat4 world;
+  double scale = 0;
+  for (int c = 0; c < 4; ++c)
+    for (int r = 0; r < 4; ++r) {
+      const double v = m[static_cast<size_t>(c * 4 + r)];
+      if (!std::isfinite(v))
+        return absl::InvalidArgumentError(absl::StrCat("world_matrix[", c * 4 + r, "]: ", v, " is not finite"));
+      world[c][r] = v;
+      if (c < 3 && r < 3) scale = std::max(scale, std::abs(v));
+    }
+  if (world[0][3] != 0 || world[1][3] != 0 || world[2][3] != 0 || world[3][3] != 1)
+    return absl::InvalidArgumentError(
+        absl::StrCat("world_matrix: last row (", world[0][3], ", ", world[1][3], ", ", world[2][3], ", ", world[3][3],
+                     ") must be (0, 0, 0, 1): an affine transform"));
+  // Relative to the matrix's own scale, so tiny but well-conditioned scenes pass.
+  const double det = glm::determinant(glm::dmat3(world));
+  if (!(std::abs(det) > 1e-12 * scale * scale * scale))
+    return absl::InvalidArgumentError(absl::StrCat("world_matrix: not invertible (determinant ", det, ")"));
+  return world;
+}
+
+// Adds `from` into `into` keyed by index: later values win.
+template <typename Index>
+void MergeKeyed(std::map<Index, glm::vec3>& into, const std::vector<Index>& keys, const std::vector<glm::vec3>& values) {
+  for (size_t i = 0; i < keys.size() && i < values.size(); ++i) into[keys[i]] = values[i];
+}
+
+}  // namespace
+
+Status ValidateObscuranceQuery(const ObscuranceQuery& query) {
+  if (query.resolution == 0 || query.resolution > obscurance::kMaxAtlasResolution)
+    return absl::InvalidArgumentError(absl::StrCat("resolution: ", query.resolution, " must be in [1, ",
+                                                   obscurance::kMaxAtlasResolution, "]"));
+  VISQ_RETURN_IF_ERROR(obscurance::ValidateParams(query.params));
+  const uint64_t end = static_cast<uint64_t>(query.params.first_direction) + query.params.direction_count;
+  if (query.total_directions != 0 && end > query.total_directions)
+    return absl::InvalidArgumentError(absl::StrCat("total_directions: ", query.total_directions,
+                                                   " is less than first_direction + direction_count = ", end));
+  if (query.update_rays_per_patch == 0 || query.update_rays_per_patch > 65536)
+    return absl::InvalidArgumentError(
+        absl::StrCat("update_rays_per_patch: ", query.update_rays_per_patch, " must be in [1, 65536]"));
+  return absl::OkStatus();
+}
+
+StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery query) {
+  VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  const Scene& scene = *resident->scene;
+  ObscuranceAnswer answer;
+  answer.scene_version = resident->version;
+  answer.total_directions = query.total_directions != 0 ? query.total_directions
+                                                        : query.params.first_direction + query.params.direction_count;
+
+  // The patches: TEXCOORD_1 or a built atlas.
+  auto start = std::chrono::steady_clock::now();
+  obscurance::AtlasOptions atlas_options;
+  atlas_options.force_build = query.force_built_atlas;
+  VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
+                        obscurance::BuildObscuranceAtlas(scene, query.resolution, atlas_options));
+  answer.width = atlas.width;
+  answer.height = atlas.height;
+  answer.from_lightmap_uvs = atlas.from_lightmap_uvs;
+  answer.chart_count = atlas.chart_count;
+  answer.texels_per_unit = atlas.texels_per_unit;
+  answer.atlas_ms = MillisecondsSince(start);
+
+  // The bake: one GPU job per direction at the caller's (batch) priority.
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  start = std::chrono::steady_clock::now();
+  VISQ_ASSIGN_OR_RETURN(answer.partial, gpu::BakeObscurancePartial(engine.gpu(), *gpu_scene, scene, atlas,
+                                                                   query.params, query.bake, &answer.stats));
+  answer.bake_ms = MillisecondsSince(start);
+  answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);
+  if (query.partial_only) return answer;
+
+  start = std::chrono::steady_clock::now();
+  VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceResult result,
+                        obscurance::FinalizeObscurances(scene, atlas, query.params, answer.partial));
+  answer.finalize_ms = MillisecondsSince(start);
+
+  // A whole bake becomes the scene's solution for UpdateObscurances.
+  const bool whole = query.params.first_direction == 0 && query.params.direction_count == answer.total_directions;
+  if (whole) {
+    start = std::chrono::steady_clock::now();
+    obscurance::UpdaterOptions options;
+    options.rays_per_patch = query.update_rays_per_patch;
+    options.seed = query.params.seed;
+    VISQ_ASSIGN_OR_RETURN(std::unique_ptr<obscurance::ObscuranceUpdater> updater,
+                          obscurance::ObscuranceUpdater::Create(scene, atlas, query.params, result, {}, options));
+    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::lock_guard lock(state->mutex);
+    // A newer bake installed meanwhile stays.
+    if (!state->updater || state->solution_version <= resident->version) {
+      state->updater = std::move(updater);
+      state->solution_version = resident->version;
+      state->rays_per_patch = query.update_rays_per_patch;
+      std::erase_if(state->moves, [&](const ObscuranceState::Move& m) { return m.version <= resident->version; });
+      answer.update_ready = true;
+    }
+    answer.updater_ms = MillisecondsSince(start);
+  }
+  answer.result = std::move(result);
+  return answer;
+}
+
+StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQuery& query) {
+  VISQ_ASSIGN_OR_RETURN(glm::dmat4 world, WorldMatrix(query.world_matrix));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  // One move of a scene at a time: the recorded move and the version it
+  // makes must match.
+  std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+  std::lock_guard lock(state->mutex);
+  VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
+  VISQ_ASSIGN_OR_RETURN(uint32_t node, NamedNode(*resident->scene, query));
+  // The resident Scene is shared and immutable: edit a copy.
+  Scene moved = *resident->scene;
+  VISQ_RETURN_IF_ERROR(obscurance::MoveNodeSubtree(moved, node, world));
+  VISQ_ASSIGN_OR_RETURN(SceneSummary summary, engine.ReplaceWithEdited(*resident, std::move(moved)));
+  state->moves.push_back(ObscuranceState::Move{summary.version, node, world});
+  spdlog::info("scene '{}' v{}: node {} ('{}') moved", summary.name, summary.version, node,
+               resident->scene->nodes[node].name);
+  return summary;
+}
+
+StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const ObscuranceUpdateQuery& query) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+  std::lock_guard lock(state->mutex);
+  // Re-read under the lock: a move may have landed in between.
+  VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
+  if (!state->updater)
+    return absl::FailedPreconditionError(absl::StrCat("scene '", resident->name,
+                                                      "' has no full ComputeObscurances bake to update"));
+  // The moves since the solution must lead, one version at a time, to the
+  // resident version; a reload or replace breaks the chain.
+  std::vector<ObscuranceState::Move> todo;
+  uint64_t version = state->solution_version;
+  for (const ObscuranceState::Move& m : state->moves) {
+    if (m.version <= state->solution_version) continue;
+    if (m.version != version + 1) break;
+    todo.push_back(m);
+    version = m.version;
+  }
+  if (version != resident->version)
+    return absl::FailedPreconditionError(absl::StrCat(
+        "scene '", resident->name, "' is at version ", resident->version, "; the bake matches version ",
+        state->solution_version, " and the recorded node moves reach only version ", version,
+        " (the scene was reloaded or replaced): bake again"));
+
+  if (query.want_full_w && state->updater->result().w.size() * 3 > kMaxFullUpdateFloats)
+    return absl::ResourceExhaustedError(absl::StrCat("want_full_w: ", state->updater->result().w.size() * 3,
+                                                     " floats exceed the cap of ", kMaxFullUpdateFloats,
+                                                     "; use the changed texels"));
+
+  ObscuranceUpdateAnswer answer;
+  answer.from_version = state->solution_version;
+  answer.rays_per_patch = state->rays_per_patch;
+  const auto start = std::chrono::steady_clock::now();
+  std::map<uint32_t, glm::vec3> w, intensity, triangle_w, vertex_w;
+  for (const ObscuranceState::Move& m : todo) {
+    StatusOr<obscurance::ObscuranceUpdate> update = state->updater->MoveNode(m.node, m.world);
+    if (!update.ok()) {
+      // The updater may be half-moved: it can no longer be trusted.
+      state->updater.reset();
+      return absl::InternalError(absl::StrCat("update for the move of node ", m.node, " (version ", m.version,
+                                              ") failed: ", update.status().message(), "; bake again"));
+    }
+    MergeKeyed(w, update->texels, update->w);
+    MergeKeyed(intensity, update->texels, update->intensity);
+    MergeKeyed(triangle_w, update->triangles, update->triangle_w);
+    MergeKeyed(vertex_w, update->vertices, update->vertex_w);
+    obscurance::ObscuranceUpdate& sum = answer.update;
+    sum.influenced_before += update->influenced_before;
+    sum.influenced_after += update->influenced_after;
+    sum.own_patches += update->own_patches;
+    sum.candidates += update->candidates;
+    sum.recomputed += update->recomputed;
+    sum.rays += update->rays;
+    state->solution_version = m.version;
+    ++answer.moves_applied;
+  }
+  for (const auto& [texel, value] : w) {
+    answer.update.texels.push_back(texel);
+    answer.update.w.push_back(value);
+    answer.update.intensity.push_back(intensity[texel]);
+  }
+  for (const auto& [triangle, value] : triangle_w) {
+    answer.update.triangles.push_back(triangle);
+    answer.update.triangle_w.push_back(value);
+  }
+  for (const auto& [vertex, value] : vertex_w) {
+    answer.update.vertices.push_back(vertex);
+    answer.update.vertex_w.push_back(value);
+  }
+  std::erase_if(state->moves, [&](const ObscuranceState::Move& m) { return m.version <= state->solution_version; });
+  answer.compute_ms = MillisecondsSince(start);
+  answer.update.milliseconds = answer.compute_ms;
+  answer.scene_version = state->solution_version;
+  const obscurance::ObscuranceResult& result = state->updater->result();
+  answer.width = result.width;
+  answer.height = result.height;
+  answer.mean_samples_per_patch = result.mean_samples_per_patch;
+  answer.directions = result.directions;
+  if (query.want_full_w) answer.full_w = result.w;
+  return answer;
+}
+
+}  // namespace visq

@@ -1,0 +1,122 @@
+// Obscurances as core queries (Méndez-Feliu, Sbert et al.): the GPU bake
+// over a resident scene, node moves that make a new scene version, and the
+// real-time update of the last full bake by the moves since. The algorithms
+// are in server/obscurance/ and gpu/obscurance/; this file holds the
+// per-scene state that joins them to resident scenes and versions.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "common/status.h"
+#include "core/engine.h"
+#include "obscurance/obscurance_atlas.h"
+#include "obscurance/obscurance_model.h"
+#include "obscurance/obscurance_partial.h"
+#include "obscurance/obscurance_update.h"
+#include "visq/gpu/obscurance.h"
+
+namespace visq {
+
+// Per scene name (Engine::ObscuranceStateOf): the updater of the last full
+// bake and the node moves made since, so UpdateObscurances can replay them.
+struct ObscuranceState {
+  // Serializes moves and updates of one scene, so a recorded move and the
+  // scene version it made are one step.
+  std::mutex mutex;
+  std::unique_ptr<obscurance::ObscuranceUpdater> updater;  // after a full bake
+  uint64_t solution_version = 0;  // the scene version the updater's solution matches
+  uint32_t rays_per_patch = 0;
+  struct Move {
+    uint64_t version = 0;  // the scene version this move made
+    uint32_t node = 0;
+    glm::dmat4 world{1.0};
+  };
+  std::vector<Move> moves;  // in version order; those after solution_version matter
+};
+
+struct ObscuranceQuery {
+  std::string scene;
+  uint64_t scene_version = 0;
+  uint32_t resolution = 256;
+  bool force_built_atlas = false;
+  obscurance::ObscuranceParams params;
+  uint32_t total_directions = 0;  // 0: first + count
+  bool partial_only = false;
+  bool want_averages = false;
+  uint32_t update_rays_per_patch = 64;
+  // Priority kBatch (interactive queries overtake the bake), cancellation,
+  // deadline and progress come from the caller.
+  gpu::ObscuranceBakeOptions bake;
+};
+
+struct ObscuranceAnswer {
+  uint64_t scene_version = 0;
+  uint32_t total_directions = 0;
+  // The atlas's description (its fragments stay on the server).
+  uint32_t width = 0, height = 0;
+  bool from_lightmap_uvs = false;
+  uint32_t chart_count = 0;
+  double texels_per_unit = 0;
+  obscurance::ObscurancePartial partial;             // always
+  std::optional<obscurance::ObscuranceResult> result;  // unless partial_only
+  obscurance::AmbientModel ambient;
+  gpu::ObscuranceBakeStats stats;
+  bool update_ready = false;
+  double atlas_ms = 0, bake_ms = 0, finalize_ms = 0, updater_ms = 0;
+};
+
+// INVALID_ARGUMENT (naming the field) for bad parameters before any work.
+[[nodiscard]] Status ValidateObscuranceQuery(const ObscuranceQuery& query);
+// Builds the atlas, bakes on the GPU and (unless partial_only) finalizes W
+// and I. A full bake ([0, total), not partial_only) becomes the scene's
+// solution for UpdateObscurances.
+[[nodiscard]] StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery query);
+
+struct NodeTransformQuery {
+  std::string scene;
+  uint64_t scene_version = 0;
+  std::optional<std::string> node_name;
+  std::optional<uint32_t> node_index;
+  std::vector<double> world_matrix;  // 16, column-major
+};
+
+// Moves the node (and subtree) in a copy of the resident scene and makes the
+// copy resident as the next version (in memory only). INVALID_ARGUMENT for
+// an unknown or ambiguous node, a matrix that is not 16 finite numbers, not
+// affine or not invertible.
+[[nodiscard]] StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQuery& query);
+
+struct ObscuranceUpdateQuery {
+  std::string scene;
+  uint64_t scene_version = 0;
+  bool want_full_w = false;
+};
+
+struct ObscuranceUpdateAnswer {
+  uint64_t from_version = 0, scene_version = 0;
+  uint32_t moves_applied = 0;
+  // Merged over the moves applied: later moves' values win.
+  obscurance::ObscuranceUpdate update;
+  uint32_t rays_per_patch = 0;
+  uint32_t width = 0, height = 0;
+  std::vector<glm::vec3> full_w;  // want_full_w
+  double mean_samples_per_patch = 0;  // of the bake
+  uint64_t directions = 0;            // of the bake
+  double compute_ms = 0;
+};
+inline constexpr size_t kMaxFullUpdateFloats = size_t{1} << 22;
+
+// FAILED_PRECONDITION when the scene has no full bake, or when the moves
+// recorded since do not lead from the bake's version to the resident one
+// (the scene was reloaded or replaced).
+[[nodiscard]] StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine,
+                                                                   const ObscuranceUpdateQuery& query);
+
+}  // namespace visq

@@ -1,0 +1,401 @@
+// The obscurance RPCs (Méndez-Feliu, Sbert et al.): ComputeObscurances
+// streams progress while the GPU bakes, then the result in chunks;
+// SetNodeTransform and UpdateObscurances are unary. The work is in
+// core/obscurance_query.h; this file converts messages and runs the calls.
+#include <algorithm>
+#include <cmath>
+#include <deque>
+#include <mutex>
+#include <optional>
+
+#include <absl/strings/str_format.h>
+
+#include "core/obscurance_query.h"
+#include "service/request_log.h"
+#include "service/status_conversion.h"
+#include "service/visibility_service.h"
+
+namespace visq::service {
+namespace {
+
+// Elements per chunk message: 1M floats is 4 MiB (8 MiB for the uint64
+// partial sums), under the default 16 MiB message limit on both sides.
+constexpr size_t kChunkElements = 1 << 20;
+
+void SetVec3(const glm::dvec3& v, v1::Vec3* out) {
+  out->set_x(v.x);
+  out->set_y(v.y);
+  out->set_z(v.z);
+}
+
+// A unary call: authorize, run `work` on the executor, finish with its
+// status (the same conventions as VisibilityServiceImpl::RunUnary).
+template <typename Work>
+grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::CallbackServerContext* context,
+                                       const char* method, Work work) {
+  context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
+  auto* reactor = context->DefaultReactor();
+  auto log = std::make_shared<RequestLog>(context, method, &ctx.metrics);
+  if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
+    log->Done(authorized);
+    reactor->Finish(ToGrpcStatus(authorized));
+    return reactor;
+  }
+  ctx.executor.Post([reactor, log, work = std::move(work)]() mutable {
+    const Status status = work(*log);
+    log->Done(status);
+    reactor->Finish(ToGrpcStatus(status));
+  });
+  return reactor;
+}
+
+// The call's deadline as the bake's.
+gpu::SteadyTime DeadlineOf(grpc::CallbackServerContext* context) {
+  const auto deadline = context->deadline();
+  if (deadline == std::chrono::system_clock::time_point::max()) return gpu::SteadyTime::max();
+  const auto left = deadline - std::chrono::system_clock::now();
+  return std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(left);
+}
+
+// The error of W: Monte Carlo over D directions. Per direction, a patch's
+// value is a mean of values in [0, 1] (per channel), so Hoeffding's
+// inequality for D independent directions gives the half-width below at
+// 95 %. The directions are a rotated Halton sequence and each patch weighs
+// them by its projected area, so this is an estimate, not a guarantee.
+void SetAccuracy(uint64_t directions, double mean_samples, v1::Accuracy* out) {
+  constexpr double kConfidence = 0.95;
+  out->set_method("obscurance-depth-peeling");
+  out->set_confidence(kConfidence);
+  const double d = static_cast<double>(std::max<uint64_t>(directions, 1));
+  out->set_error_bound(std::sqrt(std::log(2.0 / (1.0 - kConfidence)) / (2.0 * d)));
+  out->set_note(absl::StrCat(
+      "estimate, not a bound: Hoeffding half-width at 95 % for ", directions,
+      " independent directions with per-direction values in [0, 1]; the directions are a rotated Halton sequence "
+      "(usually better than independent) and are cosine-weighted per patch (mean ",
+      absl::StrFormat("%.1f", mean_samples), " samples per patch); rasterization of the bundles is not counted"));
+}
+
+// Appends `values` (elements of one array) as chunk messages.
+template <typename T, typename Add>
+void AppendChunks(const std::vector<T>& values, std::vector<v1::ComputeObscurancesResponse>& messages, Add add) {
+  for (size_t begin = 0; begin < values.size(); begin += kChunkElements) {
+    const size_t end = std::min(values.size(), begin + kChunkElements);
+    v1::ComputeObscurancesResponse& m = messages.emplace_back();
+    m.set_offset(begin);
+    add(m, values.data() + begin, values.data() + end);
+  }
+}
+
+void AddVec3(const glm::vec3& v, google::protobuf::RepeatedField<float>* out) {
+  out->Add(v.x);
+  out->Add(v.y);
+  out->Add(v.z);
+}
+
+std::vector<float> Flatten(const std::vector<glm::vec3>& values) {
+  std::vector<float> out;
+  out.reserve(values.size() * 3);
+  for (const glm::vec3& v : values) out.insert(out.end(), {v.x, v.y, v.z});
+  return out;
+}
+
+StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request) {
+  ObscuranceQuery query;
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  query.resolution = request.resolution() != 0 ? request.resolution() : 256;
+  query.force_built_atlas = request.force_built_atlas();
+  query.params.d_max = request.d_max();
+  query.params.color_bleeding = request.color_bleeding();
+  query.params.seed = request.seed() != 0 ? request.seed() : 1;
+  query.params.first_direction = request.first_direction();
+  query.params.direction_count = request.direction_count() != 0 ? request.direction_count() : 256;
+  query.params.bundle_resolution = request.bundle_resolution();
+  query.total_directions = request.total_directions();
+  query.partial_only = request.partial_only();
+  query.want_averages = request.want_averages();
+  query.update_rays_per_patch = request.update_rays_per_patch() != 0 ? request.update_rays_per_patch() : 64;
+  VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
+  return query;
+}
+
+// Figures, then the arrays in the order the proto gives.
+std::vector<v1::ComputeObscurancesResponse> ToProtoChunks(const ObscuranceAnswer& a, bool want_averages) {
+  std::vector<v1::ComputeObscurancesResponse> messages(1);
+  v1::ObscuranceFigures* f = messages[0].mutable_figures();
+  f->set_scene_version(a.scene_version);
+  f->mutable_atlas()->set_width(a.width);
+  f->mutable_atlas()->set_height(a.height);
+  f->mutable_atlas()->set_from_lightmap_uvs(a.from_lightmap_uvs);
+  f->mutable_atlas()->set_chart_count(a.chart_count);
+  f->mutable_atlas()->set_texels_per_unit(a.texels_per_unit);
+  f->set_channels(a.partial.channels);
+  f->set_fingerprint(a.partial.fingerprint);
+  for (const obscurance::DirectionRange& r : a.partial.ranges) {
+    auto* range = f->add_ranges();
+    range->set_first(r.first);
+    range->set_count(r.count);
+  }
+  f->set_total_directions(a.total_directions);
+  f->set_partial_only(!a.result.has_value());
+  SetVec3(a.ambient.ambient_intensity, f->mutable_ambient_intensity());
+  SetVec3(a.ambient.r_ave, f->mutable_r_ave());
+  f->set_ambient_clamped(a.ambient.clamped);
+  f->set_layers(a.stats.layers);
+  f->set_max_layers(a.stats.max_layers);
+  f->set_truncated_directions(a.stats.truncated_directions);
+  f->set_bundle_resolution(a.stats.bundle_resolution);
+  f->set_update_ready(a.update_ready);
+  // Samples per patch from the partial's counts, so partial bakes have them too.
+  uint64_t estimated = 0, samples = 0;
+  for (uint64_t c : a.partial.counts)
+    if (c > 0) {
+      ++estimated;
+      samples += c;
+    }
+  const double mean_samples = estimated > 0 ? static_cast<double>(samples) / static_cast<double>(estimated) : 0.0;
+  f->set_estimated_texels(estimated);
+  f->set_mean_samples_per_patch(mean_samples);
+  SetAccuracy(a.partial.DirectionCount(), mean_samples, f->mutable_accuracy());
+
+  if (!a.result) {
+    AppendChunks(a.partial.sums, messages, [](v1::ComputeObscurancesResponse& m, const uint64_t* b, const uint64_t* e) {
+      m.mutable_partial_sums()->Add(b, e);
+    });
+    AppendChunks(a.partial.counts, messages,
+                 [](v1::ComputeObscurancesResponse& m, const uint64_t* b, const uint64_t* e) {
+                   m.mutable_partial_counts()->Add(b, e);
+                 });
+    return messages;
+  }
+  const obscurance::ObscuranceResult& r = *a.result;
+  auto add_w = [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) { m.mutable_w()->Add(b, e); };
+  auto add_i = [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) {
+    m.mutable_intensity()->Add(b, e);
+  };
+  AppendChunks(Flatten(r.w), messages, add_w);
+  AppendChunks(Flatten(r.intensity), messages, add_i);
+  AppendChunks(r.estimated, messages, [](v1::ComputeObscurancesResponse& m, const uint8_t* b, const uint8_t* e) {
+    m.set_estimated(std::string(reinterpret_cast<const char*>(b), static_cast<size_t>(e - b)));
+  });
+  if (want_averages) {
+    AppendChunks(Flatten(r.triangle_w), messages,
+                 [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) {
+                   m.mutable_triangle_w()->Add(b, e);
+                 });
+    AppendChunks(Flatten(r.vertex_w), messages, [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) {
+      m.mutable_vertex_w()->Add(b, e);
+    });
+  }
+  return messages;
+}
+
+// Writes progress while the bake runs on the executor, then the result.
+// The executor pushes messages into a small queue; one write is in flight
+// at a time (OnWriteDone starts the next); a progress message replaces one
+// still waiting. Finish comes only after the bake returned, so the executor
+// never touches a reactor that gRPC has deleted.
+class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::ComputeObscurancesResponse> {
+ public:
+  ComputeObscurancesReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx,
+                            const v1::ComputeObscurancesRequest* request)
+      : log_(context, "ComputeObscurances", &ctx.metrics) {
+    context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
+    if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
+      log_.Done(authorized);
+      Finish(ToGrpcStatus(authorized));
+      return;
+    }
+    const gpu::SteadyTime deadline = DeadlineOf(context);
+    ctx.executor.Post([this, &ctx, request, deadline] {
+      const double queue_ms = log_.ElapsedMs();
+      std::vector<v1::ComputeObscurancesResponse> messages;
+      Status status = Compute(ctx.engine, *request, deadline, queue_ms, messages);
+      Complete(std::move(messages), std::move(status));
+    });
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::unique_lock lock(mutex_);
+    writing_ = false;
+    if (!ok) {
+      broken_ = true;  // the client went away: stop the bake, finish once it has
+      cancelled_ = true;
+    }
+    Next(lock);
+  }
+  void OnCancel() override { cancelled_ = true; }
+  void OnDone() override { delete this; }
+
+ private:
+  Status Compute(Engine& engine, const v1::ComputeObscurancesRequest& request, gpu::SteadyTime deadline,
+                 double queue_ms, std::vector<v1::ComputeObscurancesResponse>& messages) {
+    VISQ_ASSIGN_OR_RETURN(ObscuranceQuery query, FromProto(request));
+    query.bake.priority = gpu::kBatch;
+    query.bake.deadline = deadline;
+    query.bake.cancelled = &cancelled_;
+    query.bake.progress = [this](const gpu::ObscuranceProgress& p) {
+      v1::ComputeObscurancesResponse m;
+      auto* progress = m.mutable_progress();
+      progress->set_directions_done(p.directions_done);
+      progress->set_directions_total(p.directions_total);
+      progress->set_elapsed_s(p.elapsed_seconds);
+      progress->set_estimated_s_left(p.estimated_seconds_left);
+      Progress(std::move(m));
+    };
+    log_.Info("'{}' {}^2 atlas, directions [{}, {}) of {}, d_max {}{}{}", query.scene, query.resolution,
+              query.params.first_direction, query.params.first_direction + query.params.direction_count,
+              query.total_directions, query.params.d_max, query.params.color_bleeding ? ", color bleeding" : "",
+              query.partial_only ? ", partial" : "");
+    const bool want_averages = query.want_averages;
+    VISQ_ASSIGN_OR_RETURN(ObscuranceAnswer answer, RunComputeObscurances(engine, std::move(query)));
+    const double before_transfer = log_.ElapsedMs();
+    messages = ToProtoChunks(answer, want_averages);
+    auto* timing = messages[0].mutable_figures()->mutable_timing();
+    timing->set_queue_ms(queue_ms);
+    timing->set_compute_ms(answer.atlas_ms + answer.bake_ms + answer.finalize_ms + answer.updater_ms);
+    timing->set_transfer_ms(log_.ElapsedMs() - before_transfer);
+    timing->set_total_ms(log_.ElapsedMs());
+    log_.Info("{}x{} texels, {} layers, bake {:.1f} ms, {} messages", answer.width, answer.height, answer.stats.layers,
+              answer.bake_ms, messages.size());
+    return absl::OkStatus();
+  }
+
+  void Progress(v1::ComputeObscurancesResponse message) {
+    std::unique_lock lock(mutex_);
+    progress_ = std::move(message);
+    Next(lock);
+  }
+
+  void Complete(std::vector<v1::ComputeObscurancesResponse> messages, Status status) {
+    std::unique_lock lock(mutex_);
+    for (auto& m : messages) results_.push_back(std::move(m));
+    final_ = std::move(status);
+    progress_.reset();  // stale once the result is here
+    Next(lock);
+  }
+
+  // Starts the next write, or finishes; called with the lock held, and
+  // releases it before Finish (after which OnDone may delete this).
+  void Next(std::unique_lock<std::mutex>& lock) {
+    if (writing_ || finished_) return;
+    if (!broken_ && (!final_ || final_->ok())) {
+      if (progress_) {
+        current_ = std::move(*progress_);
+        progress_.reset();
+        writing_ = true;
+        StartWrite(&current_);
+        return;
+      }
+      if (final_ && !results_.empty()) {
+        current_ = std::move(results_.front());
+        results_.pop_front();
+        writing_ = true;
+        StartWrite(&current_);
+        return;
+      }
+    }
+    if (!final_) return;
+    finished_ = true;
+    const Status status = broken_ && final_->ok() ? absl::CancelledError("client went away") : *final_;
+    lock.unlock();
+    log_.Done(status);
+    Finish(ToGrpcStatus(status));
+  }
+
+  RequestLog log_;
+  std::atomic<bool> cancelled_{false};
+  std::mutex mutex_;
+  bool writing_ = false;
+  bool broken_ = false;
+  bool finished_ = false;
+  std::optional<v1::ComputeObscurancesResponse> progress_;
+  std::deque<v1::ComputeObscurancesResponse> results_;
+  std::optional<Status> final_;
+  v1::ComputeObscurancesResponse current_;
+};
+
+void ToProto(const ObscuranceUpdateAnswer& a, v1::UpdateObscurancesResponse* out) {
+  const obscurance::ObscuranceUpdate& u = a.update;
+  out->set_from_version(a.from_version);
+  out->set_scene_version(a.scene_version);
+  out->set_moves_applied(a.moves_applied);
+  out->mutable_texels()->Add(u.texels.begin(), u.texels.end());
+  for (const glm::vec3& v : u.w) AddVec3(v, out->mutable_w());
+  for (const glm::vec3& v : u.intensity) AddVec3(v, out->mutable_intensity());
+  out->mutable_triangles()->Add(u.triangles.begin(), u.triangles.end());
+  for (const glm::vec3& v : u.triangle_w) AddVec3(v, out->mutable_triangle_w());
+  out->mutable_vertices()->Add(u.vertices.begin(), u.vertices.end());
+  for (const glm::vec3& v : u.vertex_w) AddVec3(v, out->mutable_vertex_w());
+  out->set_influenced_before(u.influenced_before);
+  out->set_influenced_after(u.influenced_after);
+  out->set_own_patches(u.own_patches);
+  out->set_candidates(u.candidates);
+  out->set_recomputed(u.recomputed);
+  out->set_rays(u.rays);
+  out->set_rays_per_patch(a.rays_per_patch);
+  out->set_width(a.width);
+  out->set_height(a.height);
+  for (const glm::vec3& v : a.full_w) AddVec3(v, out->mutable_full_w());
+  // Recomputed patches: R rays each, values in [0, 1]: Hoeffding at 95 %.
+  auto* accuracy = out->mutable_accuracy();
+  accuracy->set_method("obscurance-raycast-update");
+  accuracy->set_confidence(0.95);
+  const double r = static_cast<double>(std::max<uint32_t>(a.rays_per_patch, 1));
+  accuracy->set_error_bound(std::sqrt(std::log(2.0 / 0.05) / (2.0 * r)));
+  accuracy->set_note(absl::StrCat("recomputed patches: Hoeffding half-width at 95 % for ", a.rays_per_patch,
+                                  " independent cosine-distributed rays per patch (values in [0, 1]); the other "
+                                  "patches keep the bake's values (",
+                                  a.directions, " directions) bit for bit"));
+}
+
+}  // namespace
+
+grpc::ServerWriteReactor<v1::ComputeObscurancesResponse>* VisibilityServiceImpl::ComputeObscurances(
+    grpc::CallbackServerContext* context, const v1::ComputeObscurancesRequest* request) {
+  return new ComputeObscurancesReactor(context, ctx_, request);
+}
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::CallbackServerContext* context,
+                                                                  const v1::SetNodeTransformRequest* request,
+                                                                  v1::SceneInfo* response) {
+  return RunUnaryCall(ctx_, context, "SetNodeTransform", [this, request, response](RequestLog& log) -> Status {
+    NodeTransformQuery query;
+    query.scene = request->scene().name();
+    query.scene_version = request->scene().version();
+    if (request->node_case() == v1::SetNodeTransformRequest::kNodeName) query.node_name = request->node_name();
+    if (request->node_case() == v1::SetNodeTransformRequest::kNodeIndex) query.node_index = request->node_index();
+    query.world_matrix.assign(request->world_matrix().begin(), request->world_matrix().end());
+    log.Info("'{}' node {}", query.scene,
+             query.node_name ? "'" + *query.node_name + "'" : query.node_index ? std::to_string(*query.node_index) : "?");
+    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, RunSetNodeTransform(ctx_.engine, query));
+    ToProto(summary, response);
+    return absl::OkStatus();
+  });
+}
+
+grpc::ServerUnaryReactor* VisibilityServiceImpl::UpdateObscurances(grpc::CallbackServerContext* context,
+                                                                   const v1::UpdateObscurancesRequest* request,
+                                                                   v1::UpdateObscurancesResponse* response) {
+  return RunUnaryCall(ctx_, context, "UpdateObscurances", [this, request, response](RequestLog& log) -> Status {
+    const double queue_ms = log.ElapsedMs();
+    ObscuranceUpdateQuery query;
+    query.scene = request->scene().name();
+    query.scene_version = request->scene().version();
+    query.want_full_w = request->want_full_w();
+    VISQ_ASSIGN_OR_RETURN(ObscuranceUpdateAnswer answer, RunUpdateObscurances(ctx_.engine, query));
+    const double before_transfer = log.ElapsedMs();
+    ToProto(answer, response);
+    auto* timing = response->mutable_timing();
+    timing->set_queue_ms(queue_ms);
+    timing->set_compute_ms(answer.compute_ms);
+    timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+    timing->set_total_ms(log.ElapsedMs());
+    log.Info("v{} -> v{}: {} move(s), {} texels changed, {} rays, {:.1f} ms", answer.from_version,
+             answer.scene_version, answer.moves_applied, answer.update.texels.size(), answer.update.rays,
+             answer.compute_ms);
+    return absl::OkStatus();
+  });
+}
+
+}  // namespace visq::service
