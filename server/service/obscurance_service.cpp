@@ -234,7 +234,13 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     query.bake.priority = gpu::kBatch;
     query.bake.deadline = deadline;
     query.bake.cancelled = &cancelled_;
-    query.bake.progress = [this](const gpu::ObscuranceProgress& p) {
+    // At most ~10 progress messages a second (and the first and last).
+    auto last_sent = std::make_shared<double>(-1e9);
+    query.bake.progress = [this, last_sent](const gpu::ObscuranceProgress& p) {
+      if (p.directions_done != 1 && p.directions_done != p.directions_total &&
+          p.elapsed_seconds - *last_sent < 0.1)
+        return;
+      *last_sent = p.elapsed_seconds;
       v1::ComputeObscurancesResponse m;
       auto* progress = m.mutable_progress();
       progress->set_directions_done(p.directions_done);

@@ -135,3 +135,39 @@ TEST(ScaleOut, ScenesStayOnOneReplicaSpreadOverBothAndFailOver) {
 
 }  // namespace
 }  // namespace visq
+
+namespace visq {
+namespace {
+
+TEST(ScaleOut, ShardedBakeOverTwoReplicasEqualsTheSingleServerBakeBitForBit) {
+  ScratchDir repo;
+  auto replica_a = ServerProcess::Start({repo.path(), {"--seed-samples", "--server-id", "replica-a"}});
+  auto replica_b = ServerProcess::Start({repo.path(), {"--server-id", "replica-b"}});
+  ASSERT_NE(replica_a, nullptr);
+  ASSERT_NE(replica_b, nullptr);
+  v1::ComputeObscurancesRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  request.set_resolution(32);
+  request.set_d_max(1.0);
+  request.set_seed(11);
+  request.set_first_direction(0);
+  request.set_direction_count(8);
+  request.set_total_directions(8);
+  request.set_partial_only(true);
+
+  client::Client single({.address = replica_a->address()});
+  auto whole = single.ComputeObscurances(request, nullptr);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  auto sharded = client::ShardedBake({replica_a->address(), replica_b->address()}, client::ClientOptions{}, request,
+                                     /*shards=*/4);
+  ASSERT_TRUE(sharded.ok()) << sharded.status();
+  EXPECT_EQ(sharded->partial.sums, whole->partial.sums);
+  EXPECT_EQ(sharded->partial.counts, whole->partial.counts);
+  EXPECT_EQ(sharded->partial.DirectionCount(), 8u);
+  uint64_t total = 0;
+  for (uint64_t c : whole->partial.counts) total += c;
+  EXPECT_GT(total, 0u) << "the comparison must not be between empty bakes";
+}
+
+}  // namespace
+}  // namespace visq

@@ -204,9 +204,10 @@ TEST(ObscuranceBake, LonePlaneIsOpen) {
   EXPECT_GT(estimated, 400);
   params.color_bleeding = true;
   const Baked bleeding = Bake(plane, atlas, params);
-  for (uint32_t t = 0; t < atlas.texel_count(); ++t)
-    if (bleeding.result.estimated[t])
-      for (int c = 0; c < 3; ++c) EXPECT_NEAR(bleeding.result.w[t][c], bleeding.result.ambient.r_ave[c], 1e-6);
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (!bleeding.result.estimated[t]) continue;
+    for (int c = 0; c < 3; ++c) EXPECT_NEAR(bleeding.result.w[t][c], bleeding.result.ambient.r_ave[c], 1e-6);
+  }
 }
 
 // W at the center of one of two infinite parallel planes at distance h:
