@@ -300,23 +300,11 @@ StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleM
 }
 
 StatusOr<v1::PatchVisibilityResponse> Client::PatchVisibility(const v1::PatchVisibilityRequest& request) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
-  v1::PatchVisibilityResponse response;
-  const grpc::Status status = stub_->PatchVisibility(context.get(), request, &response);
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
-  return response;
+  return CallUnary(&v1::VisibilityService::Stub::PatchVisibility, request.scene().name(), request);
 }
 
 StatusOr<v1::LightVisibilityResponse> Client::LightVisibility(const v1::LightVisibilityRequest& request) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
-  v1::LightVisibilityResponse response;
-  const grpc::Status status = stub_->LightVisibility(context.get(), request, &response);
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
-  return response;
+  return CallUnary(&v1::VisibilityService::Stub::LightVisibility, request.scene().name(), request);
 }
 
 StatusOr<std::vector<v1::LightVisibilityResponse>> Client::LightVisibilityStream(
@@ -385,13 +373,7 @@ StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request) {
 }
 
 StatusOr<v1::TransmittanceResponse> Client::Transmittance(const v1::TransmittanceRequest& request) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
-  v1::TransmittanceResponse response;
-  const grpc::Status status = stub_->Transmittance(context.get(), request, &response);
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
-  return response;
+  return CallUnary(&v1::VisibilityService::Stub::Transmittance, request.scene().name(), request);
 }
 
 StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowRequest& request) {
@@ -480,23 +462,11 @@ StatusOr<ObscuranceBake> Client::ComputeObscurances(const v1::ComputeObscurances
 }
 
 StatusOr<v1::SceneInfo> Client::SetNodeTransform(const v1::SetNodeTransformRequest& request) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
-  v1::SceneInfo response;
-  const grpc::Status status = stub_->SetNodeTransform(context.get(), request, &response);
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
-  return response;
+  return CallUnary(&v1::VisibilityService::Stub::SetNodeTransform, request.scene().name(), request);
 }
 
 StatusOr<v1::UpdateObscurancesResponse> Client::UpdateObscurances(const v1::UpdateObscurancesRequest& request) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
-  v1::UpdateObscurancesResponse response;
-  const grpc::Status status = stub_->UpdateObscurances(context.get(), request, &response);
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
-  return response;
+  return CallUnary(&v1::VisibilityService::Stub::UpdateObscurances, request.scene().name(), request);
 }
 
 Status MergeObscurancePartials(obscurance::ObscurancePartial& into, const obscurance::ObscurancePartial& from) {

@@ -35,6 +35,9 @@ struct ClientOptions {
   bool route_by_scene = true;
 };
 
+// gRPC status -> visq Status (the client's one conversion).
+Status FromGrpcStatus(const grpc::Status& status);
+
 // A hidden-sample map reassembled from its streamed chunks.
 struct HiddenSampleMap {
   v1::HiddenSampleMapResponse figures;  // sizes, accuracy, timing, lookup error, samples
@@ -133,6 +136,21 @@ class Client {
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::VisibilityService::Stub> stub_;
   std::unique_ptr<grpc::health::v1::Health::Stub> health_;
+  // One unary call: deadline, metadata (scene routing), the replica that
+  // answered, and the status conversion.
+  template <typename Request, typename Response>
+  StatusOr<Response> CallUnary(grpc::Status (v1::VisibilityService::Stub::*rpc)(grpc::ClientContext*, const Request&,
+                                                                                 Response*),
+                               const std::string& scene, const Request& request) {
+    VISQ_RETURN_IF_ERROR(init_status_);
+    auto context = NewContext(scene);
+    Response response;
+    const grpc::Status status = (stub_.get()->*rpc)(context.get(), request, &response);
+    NoteServer(*context);
+    VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+    return response;
+  }
+
   mutable std::mutex last_server_mutex_;
   std::string last_server_id_;
 
@@ -141,8 +159,6 @@ class Client {
   void NoteServer(const grpc::ClientContext& context);
 };
 
-// gRPC status -> visq Status (the client's one conversion).
-Status FromGrpcStatus(const grpc::Status& status);
 
 // Adds the partial sums of one shard into `into` (empty: takes `from`):
 // exactly the server's arithmetic, so the merge of shards over a split of

@@ -12,6 +12,7 @@ build_packages=(
   libspdlog-dev libfmt-dev libcli11-dev libabsl-dev
   libembree-dev libgmp-dev libxxhash-dev
   openssl nginx-light libyaml-cpp-dev
+  clang libclang-rt-14-dev
   libgtest-dev libgmock-dev libbenchmark-dev
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
@@ -35,5 +36,13 @@ if (( ${#missing[@]} == 0 )); then
 fi
 echo "install-deps: installing ${missing[*]}"
 export DEBIAN_FRONTEND=noninteractive
+# Packages install, services do not start: the tests run nginx themselves on
+# loopback, and a build machine needs no web server listening.
+policy=/usr/sbin/policy-rc.d
+if [[ ! -e "$policy" ]]; then
+  printf '#!/bin/sh\nexit 101\n' > "$policy"
+  chmod +x "$policy"
+  trap 'rm -f "$policy"' EXIT
+fi
 apt-get update -qq
 apt-get install -y -qq --no-install-recommends "${missing[@]}"
