@@ -54,6 +54,7 @@ class ServerProcess {
 
   std::string address() const { return "127.0.0.1:" + std::to_string(port_); }
   int port() const { return port_; }
+  int pid() const { return pid_; }
   // Sends SIGTERM and waits; returns the exit status.
   int Stop();
   // SIGKILL, for crash tests.

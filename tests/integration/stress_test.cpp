@@ -1,0 +1,217 @@
+// Load: 16 concurrent clients mixing every kind of query on two scenes for
+// a bounded time, while a long obscurance bake runs. No request may fail,
+// every answer must equal the single-client answer to the same request,
+// the server's memory must stay bounded, and small queries must keep
+// completing while the bake holds the GPU queue (they have priority).
+#include <atomic>
+#include <fstream>
+#include <thread>
+
+#include <gtest/gtest.h>
+
+#include "scene/gltf_writer.h"
+#include "scene/sample_scenes.h"
+#include "test_support.h"
+#include "visq_client.h"
+
+namespace visq {
+namespace {
+
+using client::Client;
+using testing::ScratchDir;
+using testing::ServerProcess;
+
+constexpr int kClients = 16;
+constexpr auto kDuration = std::chrono::seconds(12);
+
+void Set(v1::Vec3* v, double x, double y, double z) {
+  v->set_x(x);
+  v->set_y(y);
+  v->set_z(z);
+}
+
+void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
+  Set(p->mutable_origin(), o.x, o.y, o.z);
+  Set(p->mutable_edge_u(), u.x, u.y, u.z);
+  Set(p->mutable_edge_v(), v.x, v.y, v.z);
+}
+
+// The server's peak resident memory, from /proc.
+long PeakRssKiB(int pid) {
+  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
+  std::string line;
+  while (std::getline(status, line))
+    if (line.rfind("VmHWM:", 0) == 0) return std::stol(line.substr(6));
+  return -1;
+}
+
+// The queries every client repeats, on one scene: their answers are
+// deterministic, so each must equal the first answer.
+struct Queries {
+  v1::HiddenSampleMapRequest map;
+  v1::LightVisibilityRequest light;
+  v1::VoxelizeRequest voxels;
+  v1::PatchVisibilityRequest patches;
+
+  explicit Queries(const std::string& scene) {
+    map.mutable_scene()->set_name(scene);
+    SetPatch(map.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    map.mutable_samples()->set_count(32);
+    SetPatch(map.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    map.set_width(16);
+    map.set_height(16);
+    map.set_want_bitmasks(true);
+
+    light.mutable_scene()->set_name(scene);
+    for (const auto& v : {glm::dvec3(-0.25, 1.99, -0.25), glm::dvec3(0.25, 1.99, -0.25), glm::dvec3(0.25, 1.99, 0.25),
+                          glm::dvec3(-0.25, 1.99, 0.25)})
+      Set(light.mutable_light()->add_vertices(), v.x, v.y, v.z);
+    for (double x : {-0.9, -0.3, 0.3, 0.9}) {
+      auto* p = light.add_points();
+      Set(p->mutable_position(), x, 0.001, 0.7);
+      Set(p->mutable_normal(), 0, 1, 0);
+    }
+
+    voxels.mutable_scene()->set_name(scene);
+    voxels.set_width(32);
+    voxels.set_height(32);
+    voxels.set_slices(32);
+
+    patches.mutable_scene()->set_name(scene);
+    SetPatch(patches.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    SetPatch(patches.mutable_receiver(), {-0.999, 0.001, -0.997}, {1.998, 0, 0}, {0, 0, 1.998});
+    for (auto* n : {&patches}) {
+      n->set_source_columns(8);
+      n->set_source_rows(8);
+      n->set_receiver_columns(8);
+      n->set_receiver_rows(8);
+    }
+  }
+};
+
+struct Answers {
+  std::vector<uint32_t> map_bits;
+  std::vector<double> light_fractions;
+  std::vector<uint32_t> voxel_bits;
+  double mutual = 0;
+};
+
+StatusOr<Answers> Ask(Client& client, const Queries& q, int which) {
+  Answers a;
+  switch (which % 4) {
+    case 0: {
+      VISQ_ASSIGN_OR_RETURN(client::HiddenSampleMap map, client.ComputeHiddenSampleMap(q.map));
+      a.map_bits = std::move(map.blocked_bits);
+      break;
+    }
+    case 1: {
+      VISQ_ASSIGN_OR_RETURN(v1::LightVisibilityResponse light, client.LightVisibility(q.light));
+      for (const auto& p : light.points()) a.light_fractions.push_back(p.visible_fraction());
+      break;
+    }
+    case 2: {
+      VISQ_ASSIGN_OR_RETURN(client::VoxelGrid grid, client.Voxelize(q.voxels));
+      a.voxel_bits = std::move(grid.bits);
+      break;
+    }
+    case 3: {
+      VISQ_ASSIGN_OR_RETURN(v1::PatchVisibilityResponse pv, client.PatchVisibility(q.patches));
+      a.mutual = pv.mutual_visible_fraction();
+      break;
+    }
+  }
+  return a;
+}
+
+bool Same(const Answers& a, const Answers& b) {
+  return a.map_bits == b.map_bits && a.light_fractions == b.light_fractions && a.voxel_bits == b.voxel_bits &&
+         a.mutual == b.mutual;
+}
+
+TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
+  ScratchDir repo, files;
+  auto server = ServerProcess::Start({repo.path(), {"--seed-samples", "--worker-threads", "8"}});
+  ASSERT_NE(server, nullptr);
+  Client setup({.address = server->address()});
+  // The second scene: the same box, shifted far from the origin.
+  Scene shifted = MakeCornellBox();
+  for (auto& p : shifted.positions) p += glm::dvec3(1e5, 0, 0);
+  UpdateBounds(shifted);
+  ASSERT_TRUE(WriteGltfFile(shifted, files.path() / "far.glb").ok());
+  ASSERT_TRUE(setup.UploadScene(files.path() / "far.glb", "far_box").ok());
+
+  const Queries near_queries("cornell_box_visq");
+  Queries far_queries("far_box");
+  // Shift the far scene's queries with it.
+  auto shift = [](v1::Vec3* v) { v->set_x(v->x() + 1e5); };
+  for (auto* patch : {far_queries.map.mutable_source(), far_queries.map.mutable_receiver(),
+                      far_queries.patches.mutable_source(), far_queries.patches.mutable_receiver()})
+    shift(patch->mutable_origin());
+  for (auto& v : *far_queries.light.mutable_light()->mutable_vertices()) shift(&v);
+  for (auto& p : *far_queries.light.mutable_points()) shift(p.mutable_position());
+
+  // Reference answers, one client, one at a time.
+  std::vector<Answers> reference[2];
+  for (int s = 0; s < 2; ++s)
+    for (int k = 0; k < 4; ++k) {
+      auto answer = Ask(setup, s == 0 ? near_queries : far_queries, k);
+      ASSERT_TRUE(answer.ok()) << "scene " << s << " query " << k << ": " << answer.status();
+      reference[s].push_back(std::move(*answer));
+    }
+
+  // A long bake at batch priority, running through the whole test.
+  std::atomic<bool> bake_done{false};
+  std::atomic<int> small_done_during_bake{0};
+  std::thread baker([&] {
+    Client client({.address = server->address(), .deadline = kDuration + std::chrono::seconds(3)});
+    v1::ComputeObscurancesRequest bake;
+    bake.mutable_scene()->set_name("cornell_box_visq");
+    bake.set_resolution(64);
+    bake.set_d_max(1.0);
+    bake.set_direction_count(4000);
+    bake.set_total_directions(4000);
+    // Ends by its deadline or by finishing; either way it held the queue.
+    (void)client.ComputeObscurances(bake, nullptr);
+    bake_done = true;
+  });
+
+  std::atomic<int> requests{0}, failures{0}, mismatches{0};
+  std::vector<std::thread> clients;
+  const auto end = std::chrono::steady_clock::now() + kDuration;
+  for (int c = 0; c < kClients; ++c) {
+    clients.emplace_back([&, c] {
+      Client client({.address = server->address(), .deadline = std::chrono::seconds(30)});
+      for (int i = 0; std::chrono::steady_clock::now() < end; ++i) {
+        const int scene = (c + i) % 2, which = (c * 7 + i) % 4;
+        auto answer = Ask(client, scene == 0 ? near_queries : far_queries, which);
+        ++requests;
+        if (!answer.ok()) {
+          ++failures;
+          ADD_FAILURE() << "client " << c << ": " << answer.status();
+          continue;
+        }
+        if (!Same(*answer, reference[scene][which])) ++mismatches;
+        if (!bake_done) ++small_done_during_bake;
+      }
+    });
+  }
+  for (auto& t : clients) t.join();
+  const long peak_kib = PeakRssKiB(server->pid());
+  baker.join();
+
+  std::printf("stress: %d requests from %d clients in %lld s, %d failures, %d mismatches, "
+              "%d completed while the bake ran, server peak RSS %ld MiB\n",
+              requests.load(), kClients, static_cast<long long>(kDuration.count()), failures.load(),
+              mismatches.load(), small_done_during_bake.load(), peak_kib / 1024);
+  ::testing::Test::RecordProperty("requests", requests.load());
+  ::testing::Test::RecordProperty("peak_rss_kib", static_cast<int>(peak_kib));
+  EXPECT_EQ(failures.load(), 0);
+  EXPECT_EQ(mismatches.load(), 0) << "concurrent answers must equal the single-client answers";
+  EXPECT_GT(requests.load(), kClients * 2);
+  EXPECT_GT(small_done_during_bake.load(), kClients) << "small queries must not wait for the bake";
+  EXPECT_GT(peak_kib, 0);
+  EXPECT_LT(peak_kib, 4L << 20) << "server memory must stay bounded (4 GiB)";
+}
+
+}  // namespace
+}  // namespace visq
