@@ -27,6 +27,12 @@ int main(int argc, char** argv) {
       ->envname("VISQ_MAX_RECEIVE_BYTES")->check(CLI::Range(1 << 16, 1 << 30))->capture_default_str();
   app.add_option("--max-upload-bytes", max_upload_bytes, "Largest scene upload accepted")
       ->envname("VISQ_MAX_UPLOAD_BYTES")->capture_default_str();
+  uint64_t max_scene_bytes = options.engine.max_scene_bytes;
+  uint64_t light_cache_bytes = options.engine.light_cache_bytes;
+  app.add_option("--max-scene-bytes", max_scene_bytes, "Largest resident scene (geometry) accepted")
+      ->envname("VISQ_MAX_SCENE_BYTES")->capture_default_str();
+  app.add_option("--light-cache-bytes", light_cache_bytes, "Bound on the exact light-visibility trees kept (LRU)")
+      ->envname("VISQ_LIGHT_CACHE_BYTES")->capture_default_str();
   app.add_option("--worker-threads", options.worker_threads, "Threads for blocking request work")
       ->envname("VISQ_WORKER_THREADS")->check(CLI::Range(1, 256))->capture_default_str();
   app.add_option("--log-level", log_level, "trace, debug, info, warn, error")->envname("VISQ_LOG_LEVEL")->capture_default_str();
@@ -56,6 +62,8 @@ int main(int argc, char** argv) {
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   options.engine.scene_repo = scene_repo;
   options.engine.max_upload_bytes = max_upload_bytes;
+  options.engine.max_scene_bytes = max_scene_bytes;
+  options.engine.light_cache_bytes = static_cast<size_t>(light_cache_bytes);
   options.engine.load_repository_at_start = !no_preload;
   if (!auth_token_file.empty()) {
     std::ifstream in(auth_token_file);

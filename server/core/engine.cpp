@@ -60,11 +60,20 @@ void Engine::LoadRepositoryScenes() {
   }
 }
 
+Status Engine::CheckSceneSize(const Scene& scene) const {
+  const uint64_t bytes = scene.CpuBytes();
+  if (bytes > options_.max_scene_bytes)
+    return absl::ResourceExhaustedError(absl::StrCat("scene needs ", bytes, " bytes resident, above the cap of ",
+                                                     options_.max_scene_bytes, " (--max-scene-bytes)"));
+  return absl::OkStatus();
+}
+
 StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
                                             bool persisted) {
   const auto start = std::chrono::steady_clock::now();
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(main_file, &report));
+  VISQ_RETURN_IF_ERROR(CheckSceneSize(scene));
   auto resident = std::make_shared<ResidentScene>();
   resident->name = std::move(name);
   resident->content_hash = SceneContentHash(scene);
@@ -117,6 +126,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload)
   // the repository, and the staging folder goes with `upload`.
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report));
+  VISQ_RETURN_IF_ERROR(CheckSceneSize(scene));
 
   std::lock_guard commit_lock(commit_mutex_);
   {

@@ -28,6 +28,9 @@ struct EngineOptions {
   std::filesystem::path scene_repo = "/var/lib/visq/scenes";
   gpu::GpuOptions gpu;
   uint64_t max_upload_bytes = 4ull << 30;
+  // A scene whose resident geometry would exceed this is refused
+  // (RESOURCE_EXHAUSTED), before it displaces anything.
+  uint64_t max_scene_bytes = 8ull << 30;
   // Bound on the exact light-visibility trees kept (LRU beyond it).
   size_t light_cache_bytes = 256ull << 20;
   // Load every scene of the repository at start (resident from the first
@@ -141,6 +144,7 @@ class Engine {
   StatusOr<SceneSummary> MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
                                       bool persisted);
   SceneSummary Summarize(const ResidentScene& resident, bool with_nodes) const;
+  Status CheckSceneSize(const Scene& scene) const;
 
   EngineOptions options_;
   std::unique_ptr<SceneRepository> repository_;

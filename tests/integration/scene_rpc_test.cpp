@@ -409,3 +409,19 @@ TEST_F(SceneRpcTest, KillDuringUploadLeavesNoPartialSceneAndKeepsAcknowledgedOne
 
 }  // namespace
 }  // namespace visq
+
+namespace visq {
+namespace {
+
+TEST_F(SceneRpcTest, SceneAboveTheMemoryCapIsResourceExhausted) {
+  client_.reset();
+  server_->Stop();
+  StartServer({"--max-scene-bytes", "10000"});
+  auto info = client_->UploadScene(WriteUserScene("many.glb", 40), "many");
+  EXPECT_EQ(info.status().code(), absl::StatusCode::kResourceExhausted) << info.status();
+  EXPECT_NE(std::string(info.status().message()).find("--max-scene-bytes"), std::string::npos);
+  EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq"})) << "nothing stored";
+}
+
+}  // namespace
+}  // namespace visq
