@@ -315,10 +315,11 @@ std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricRes
   first.set_epipole_inside_map(result.epipole_inside_map);
   auto* accuracy = first.mutable_accuracy();
   accuracy->set_method(first.method());
-  accuracy->set_error_bound(0.0);
-  accuracy->set_confidence(1.0);
+  // No numeric bound against the continuous integral is derived yet.
+  accuracy->set_error_bound(-1.0);
+  accuracy->set_confidence(0.0);
   accuracy->set_note(absl::StrCat(
-      "deterministic: the min-max traversal and ray marching integrate the same rectified shadow map and give the "
+      "no numeric bound against the continuous integral is stated; deterministic: the min-max traversal and ray marching integrate the same rectified shadow map and give the "
       "same image up to float summation order; the shadow boundary is resolved to the rectified map (",
       result.rectified_rows, " rows x ", result.rectified_columns, " columns), the ", first.integrand(),
       " integrand is exact per texel span (per-texel midpoint rule for attenuation with spot or textured lights)"));
