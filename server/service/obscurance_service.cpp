@@ -11,6 +11,7 @@
 #include <absl/strings/str_format.h>
 
 #include "core/obscurance_query.h"
+#include "service/reactors.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
 #include "service/visibility_service.h"
@@ -26,35 +27,6 @@ void SetVec3(const glm::dvec3& v, v1::Vec3* out) {
   out->set_x(v.x);
   out->set_y(v.y);
   out->set_z(v.z);
-}
-
-// A unary call: authorize, run `work` on the executor, finish with its
-// status (the same conventions as VisibilityServiceImpl::RunUnary).
-template <typename Work>
-grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::CallbackServerContext* context,
-                                       const char* method, Work work) {
-  context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
-  auto* reactor = context->DefaultReactor();
-  auto log = std::make_shared<RequestLog>(context, method, &ctx.metrics);
-  if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
-    log->Done(authorized);
-    reactor->Finish(ToGrpcStatus(authorized));
-    return reactor;
-  }
-  ctx.executor.Post([reactor, log, work = std::move(work)]() mutable {
-    const Status status = work(*log);
-    log->Done(status);
-    reactor->Finish(ToGrpcStatus(status));
-  });
-  return reactor;
-}
-
-// The call's deadline as the bake's.
-gpu::SteadyTime DeadlineOf(grpc::CallbackServerContext* context) {
-  const auto deadline = context->deadline();
-  if (deadline == std::chrono::system_clock::time_point::max()) return gpu::SteadyTime::max();
-  const auto left = deadline - std::chrono::system_clock::now();
-  return std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(left);
 }
 
 // The error of W: Monte Carlo over D directions. Per direction, a patch's
@@ -206,7 +178,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
       Finish(ToGrpcStatus(authorized));
       return;
     }
-    const gpu::SteadyTime deadline = DeadlineOf(context);
+    const gpu::SteadyTime deadline = SteadyDeadline(context);
     ctx.executor.Post([this, &ctx, request, deadline] {
       const double queue_ms = log_.ElapsedMs();
       std::vector<v1::ComputeObscurancesResponse> messages;

@@ -8,6 +8,7 @@
 #include "core/volumetric_query.h"
 #include "core/voxel_query.h"
 #include "service/convert.h"
+#include "service/reactors.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
 
@@ -116,25 +117,6 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
 
 }  // namespace
 
-template <typename Work>
-grpc::ServerUnaryReactor* VisibilityServiceImpl::RunUnary(grpc::CallbackServerContext* context, const char* method,
-                                                          Work work) {
-  context->AddInitialMetadata("x-visq-server-id", ctx_.server_id);
-  auto* reactor = context->DefaultReactor();
-  auto log = std::make_shared<RequestLog>(context, method, &ctx_.metrics);
-  if (Status authorized = ctx_.authorizer.Check(*context); !authorized.ok()) {
-    log->Done(authorized);
-    reactor->Finish(ToGrpcStatus(authorized));
-    return reactor;
-  }
-  ctx_.executor.Post([reactor, log, work = std::move(work)]() mutable {
-    const Status status = work(*log);
-    log->Done(status);
-    reactor->Finish(ToGrpcStatus(status));
-  });
-  return reactor;
-}
-
 void ToProto(const SceneSummary& s, v1::SceneInfo* out) {
   out->set_name(s.name);
   out->set_version(s.version);
@@ -168,7 +150,7 @@ grpc::ServerReadReactor<v1::LoadSceneRequest>* VisibilityServiceImpl::LoadScene(
 grpc::ServerUnaryReactor* VisibilityServiceImpl::ListScenes(grpc::CallbackServerContext* context,
                                                             const v1::ListScenesRequest*,
                                                             v1::ListScenesResponse* response) {
-  return RunUnary(context, "ListScenes", [this, response](RequestLog&) {
+  return RunUnaryCall(ctx_, context, "ListScenes", [this, response](RequestLog&) {
     for (const auto& summary : ctx_.engine.ListScenes()) ToProto(summary, response->add_scenes());
     return absl::OkStatus();
   });
@@ -177,7 +159,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::ListScenes(grpc::CallbackServer
 grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerContext* context,
                                                           const v1::GetSceneRequest* request,
                                                           v1::SceneInfo* response) {
-  return RunUnary(context, "GetScene", [this, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "GetScene", [this, request, response](RequestLog& log) -> Status {
     log.Info("'{}'", request->name());
     VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ctx_.engine.GetScene(request->name(), request->include_nodes(), request->load_if_stored()));
     ToProto(summary, response);
@@ -188,7 +170,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerCo
 grpc::ServerUnaryReactor* VisibilityServiceImpl::UnloadScene(grpc::CallbackServerContext* context,
                                                              const v1::UnloadSceneRequest* request,
                                                              v1::UnloadSceneResponse* response) {
-  return RunUnary(context, "UnloadScene", [this, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "UnloadScene", [this, request, response](RequestLog& log) -> Status {
     log.Info("'{}'{}", request->name(), request->delete_from_repository() ? " (and delete)" : "");
     VISQ_ASSIGN_OR_RETURN(bool deleted, ctx_.engine.UnloadScene(request->name(), request->delete_from_repository()));
     response->set_deleted_from_repository(deleted);
@@ -202,7 +184,7 @@ namespace visq::service {
 
 grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerContext* context,
                                                           const v1::GetStatsRequest*, v1::ServerStats* response) {
-  return RunUnary(context, "GetStats", [this, response](RequestLog&) {
+  return RunUnaryCall(ctx_, context, "GetStats", [this, response](RequestLog&) {
     response->set_server_id(ctx_.server_id);
     response->set_uptime_s(
         std::chrono::duration<double>(std::chrono::steady_clock::now() - ctx_.started).count());
@@ -339,7 +321,7 @@ class LightVisibilityStreamReactor final
 grpc::ServerUnaryReactor* VisibilityServiceImpl::LightVisibility(grpc::CallbackServerContext* context,
                                                                  const v1::LightVisibilityRequest* request,
                                                                  v1::LightVisibilityResponse* response) {
-  return RunUnary(context, "LightVisibility", [this, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "LightVisibility", [this, request, response](RequestLog& log) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery query, FromProto(*request));
     return AnswerLightVisibility(ctx_.engine, query, log, queue_ms, response);
@@ -365,12 +347,7 @@ constexpr size_t kChunkElements = 1 << 20;
 gpu::JobOptions JobOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
   gpu::JobOptions job;
   job.priority = gpu::kInteractive;
-  const auto deadline = context->deadline();
-  if (deadline != std::chrono::system_clock::time_point::max()) {
-    const auto left = deadline - std::chrono::system_clock::now();
-    job.deadline = std::chrono::steady_clock::now() +
-                   std::chrono::duration_cast<std::chrono::steady_clock::duration>(left);
-  }
+  job.deadline = SteadyDeadline(context);
   job.cancelled = cancelled;
   return job;
 }
@@ -506,7 +483,7 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
 grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackServerContext* context,
                                                                const v1::TransmittanceRequest* request,
                                                                v1::TransmittanceResponse* response) {
-  return RunUnary(context, "Transmittance", [this, context, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "Transmittance", [this, context, request, response](RequestLog& log) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(TransmittanceQuery query, FromProto(*request));
     query.params.job = JobOptionsFor(context, nullptr);
@@ -525,7 +502,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
 grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackServerContext* context,
                                                                  const v1::PatchVisibilityRequest* request,
                                                                  v1::PatchVisibilityResponse* response) {
-  return RunUnary(context, "PatchVisibility", [this, context, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "PatchVisibility", [this, context, request, response](RequestLog& log) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityQuery query, FromProto(*request));
     query.job = JobOptionsFor(context, nullptr);

@@ -68,10 +68,6 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
                                      v1::ServerStats* response) override;
 
  private:
-  // Authorizes, then runs `work` on the executor and finishes with its status.
-  template <typename Work>
-  grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context, const char* method, Work work);
-
   ServiceContext ctx_;
 };
 
