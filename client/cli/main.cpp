@@ -123,6 +123,38 @@ bool WritePng(const std::string& path, int width, int height, int channels, cons
   return stbi_write_png(path.c_str(), width, height, channels, pixels.data(), width * channels) != 0;
 }
 
+// Ask by error instead of by count (--max-error, --time-budget-ms).
+struct TargetFlags {
+  double max_error = 0.0;
+  double confidence = 0.0;
+  double time_budget_ms = 0.0;
+  bool set() const { return max_error > 0.0 || time_budget_ms > 0.0; }
+  void Fill(visq::v1::AccuracyTarget* out) const {
+    out->set_max_error(max_error);
+    out->set_confidence(confidence);
+    out->set_time_budget_ms(time_budget_ms);
+  }
+};
+
+void AddTargetFlags(CLI::App* command, TargetFlags& target) {
+  command->add_option("--max-error", target.max_error,
+                      "Instead of a count: the error the answer may have; the server picks method and count");
+  command->add_option("--confidence", target.confidence, "Confidence of --max-error (default 0.95; 1: worst case)");
+  command->add_option("--time-budget-ms", target.time_budget_ms,
+                      "Instead of a count: as accurate as possible within this many milliseconds");
+}
+
+// "chosen: raycast {samples: 2048}, predicted 12.3 ms (of 17 plans)" for a
+// target's answer; nothing otherwise.
+void PrintChosenPlan(const visq::v1::Accuracy& accuracy) {
+  if (accuracy.plans_size() == 0) return;
+  std::string parameters;
+  for (const auto& [name, value] : accuracy.parameters())
+    parameters += fmt::format("{}{}: {}", parameters.empty() ? "" : ", ", name, value);
+  fmt::print("chosen: {} {{{}}}, predicted {:.1f} ms (of {} plans weighed)\n", accuracy.method(), parameters,
+             accuracy.predicted_ms(), accuracy.plans_size());
+}
+
 int Fail(const visq::Status& status) {
   std::cerr << "visq: " << absl::StatusCodeToString(status.code()) << ": " << status.message() << "\n";
   return status.code() == absl::StatusCode::kInvalidArgument ? 2 : 1;
@@ -223,12 +255,14 @@ int main(int argc, char** argv) {
   hidden_map->add_option("--seed", hm_seed, "Jitter seed")->capture_default_str();
   hidden_map->add_option("--width", hm_width, "Receiver texels across")->capture_default_str();
   hidden_map->add_option("--height", hm_height, "Receiver texels down")->capture_default_str();
-  hidden_map->add_option("--method", hm_method, "raster or raycast")->capture_default_str();
+  hidden_map->add_option("--method", hm_method, "raster, raycast or exact (the Plücker method)")->capture_default_str();
   hidden_map->add_option("--lookup", hm_lookup, "exact or fast")->capture_default_str();
   hidden_map->add_flag("--decorrelate", hm_decorrelate, "Per-texel sample offsets (noise instead of aliasing)");
   hidden_map->add_flag("--watertight", hm_watertight, "Front-face culling for closed casters");
   hidden_map->add_flag("--bitmasks", hm_bits, "Also fetch the raw bitmasks (counted in --json)");
   hidden_map->add_option("--png", hm_png, "Write the visible fraction as a PNG");
+  TargetFlags hm_target;
+  AddTargetFlags(hidden_map, hm_target);
   AddCommonFlags(hidden_map, flags);
   hidden_map->callback([&] {
     visq::v1::HiddenSampleMapRequest request;
@@ -237,11 +271,17 @@ int main(int argc, char** argv) {
       exit_code = Fail(absl::InvalidArgumentError("--source/--receiver: expected 'ox,oy,oz;ux,uy,uz;vx,vy,vz'"));
       return;
     }
-    request.mutable_samples()->set_count(hm_samples);
     request.mutable_samples()->set_seed(hm_seed);
     request.set_width(hm_width);
     request.set_height(hm_height);
-    request.set_method(hm_method == "raycast" ? visq::v1::RAYCAST : visq::v1::RASTER);
+    if (hm_target.set()) {
+      hm_target.Fill(request.mutable_target());
+    } else {
+      request.mutable_samples()->set_count(hm_samples);
+      request.set_method(hm_method == "raycast" ? visq::v1::RAYCAST
+                         : hm_method == "exact" ? visq::v1::PLUCKER_EXACT
+                                                : visq::v1::RASTER);
+    }
     request.set_lookup(hm_lookup == "fast" ? visq::v1::FAST : visq::v1::EXACT);
     request.set_decorrelate(hm_decorrelate);
     request.set_watertight(hm_watertight);
@@ -272,6 +312,7 @@ int main(int argc, char** argv) {
                f.sample_count(), f.accuracy().method(), mean);
     fmt::print("error bound +-{:.4f} at confidence {} ({})\n", f.accuracy().error_bound(), f.accuracy().confidence(),
                f.accuracy().note());
+    PrintChosenPlan(f.accuracy());
     fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
                f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
     if (!hm_png.empty()) fmt::print("wrote {}\n", hm_png);
@@ -287,9 +328,12 @@ int main(int argc, char** argv) {
   patch_visibility->add_option("--source-grid", pv_source_grid, "Samples per side on the source")->capture_default_str();
   patch_visibility->add_option("--receiver-grid", pv_receiver_grid, "Samples per side on the receiver")
       ->capture_default_str();
-  patch_visibility->add_option("--method", pv_method, "raster or raycast")->capture_default_str();
+  patch_visibility->add_option("--method", pv_method, "raster, raycast or exact (the Plücker method)")
+      ->capture_default_str();
   patch_visibility->add_option("--lookup", pv_lookup, "exact or fast")->capture_default_str();
   patch_visibility->add_option("--unblocked-limit", pv_limit, "Return up to this many unblocked rays");
+  TargetFlags pv_target;
+  AddTargetFlags(patch_visibility, pv_target);
   AddCommonFlags(patch_visibility, flags);
   patch_visibility->callback([&] {
     visq::v1::PatchVisibilityRequest request;
@@ -298,21 +342,27 @@ int main(int argc, char** argv) {
       exit_code = Fail(absl::InvalidArgumentError("--source/--receiver: expected 'ox,oy,oz;ux,uy,uz;vx,vy,vz'"));
       return;
     }
-    request.set_source_columns(pv_source_grid);
-    request.set_source_rows(pv_source_grid);
     request.set_receiver_columns(pv_receiver_grid);
     request.set_receiver_rows(pv_receiver_grid);
-    request.set_method(pv_method == "raycast" ? visq::v1::RAYCAST : visq::v1::RASTER);
+    if (pv_target.set()) {
+      pv_target.Fill(request.mutable_target());
+    } else {
+      request.set_source_columns(pv_source_grid);
+      request.set_source_rows(pv_source_grid);
+      request.set_method(pv_method == "raycast" ? visq::v1::RAYCAST
+                         : pv_method == "exact" ? visq::v1::PLUCKER_EXACT
+                                                : visq::v1::RASTER);
+    }
     request.set_lookup(pv_lookup == "fast" ? visq::v1::FAST : visq::v1::EXACT);
     request.set_unblocked_limit(pv_limit);
     auto client = MakeClient(flags);
     auto response = client.PatchVisibility(request);
     if (!response.ok()) { exit_code = Fail(response.status()); return; }
     if (flags.json) { fmt::print("{}", ToJson(*response)); return; }
-    fmt::print("mutual visible fraction {:.5f} ({} of {} rays unblocked), +-{:.4f} ({})\n",
-               response->mutual_visible_fraction(), response->unblocked_total(),
-               uint64_t(pv_source_grid) * pv_source_grid * pv_receiver_grid * pv_receiver_grid,
-               response->accuracy().error_bound(), response->accuracy().method());
+    fmt::print("mutual visible fraction {:.5f} ({} unblocked rays), +-{:.4f} ({})\n",
+               response->mutual_visible_fraction(), response->unblocked_total(), response->accuracy().error_bound(),
+               response->accuracy().method());
+    PrintChosenPlan(response->accuracy());
     fmt::print("time: total {:.1f} ms (compute {:.1f} ms)\n", response->timing().total_ms(),
                response->timing().compute_ms());
   });
@@ -602,13 +652,18 @@ int main(int argc, char** argv) {
   obscurance->add_flag("--color-bleeding", ob_bleeding, "RGB obscurances weighted by the reflectivity seen");
   obscurance->add_flag("--built-atlas", ob_built_atlas, "Build an atlas even when the scene has TEXCOORD_1");
   obscurance->add_option("--png", ob_png, "Write the W atlas as a PNG");
+  TargetFlags ob_target;
+  AddTargetFlags(obscurance, ob_target);
   AddCommonFlags(obscurance, flags);
   obscurance->callback([&] {
     visq::v1::ComputeObscurancesRequest request;
     request.mutable_scene()->set_name(ob_scene);
     request.set_d_max(ob_d_max);
     request.set_resolution(ob_resolution);
-    request.set_direction_count(ob_directions);
+    if (ob_target.set())
+      ob_target.Fill(request.mutable_target());
+    else
+      request.set_direction_count(ob_directions);
     request.set_seed(ob_seed);
     request.set_color_bleeding(ob_bleeding);
     request.set_force_built_atlas(ob_built_atlas);
@@ -654,6 +709,7 @@ int main(int argc, char** argv) {
                f.mean_samples_per_patch());
     fmt::print("error +-{:.4f} at confidence {} ({})\n", f.accuracy().error_bound(), f.accuracy().confidence(),
                f.accuracy().note());
+    PrintChosenPlan(f.accuracy());
     fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
                f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
     if (!ob_png.empty()) fmt::print("wrote {}\n", ob_png);

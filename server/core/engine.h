@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "common/status.h"
+#include "core/accuracy_planner.h"
 #include "core/scene_repository.h"
 #include "exact/light_visibility.h"
 #include "raycast/embree_scene.h"
@@ -138,6 +139,8 @@ class Engine {
   const gpu::DeviceInfo& device() const { return gpu_->device(); }
   gpu::GpuWorker& gpu() { return *gpu_; }
   const SceneRepository& repository() const { return *repository_; }
+  // Measured costs of the query methods, for AccuracyTarget requests.
+  CostModel& cost_model() { return cost_model_; }
 
  private:
   Engine() = default;
@@ -160,6 +163,7 @@ class Engine {
   std::mutex commit_mutex_;
   std::mutex obscurance_mutex_;
   std::map<std::string, std::shared_ptr<ObscuranceState>, std::less<>> obscurance_states_;
+  CostModel cost_model_;
 };
 
 // XXH3-128 of the flattened geometry and materials, as 32 hex digits.

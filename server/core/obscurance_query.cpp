@@ -3,6 +3,7 @@
 #include <chrono>
 #include <cmath>
 #include <map>
+#include <set>
 
 #include <spdlog/spdlog.h>
 
@@ -80,12 +81,77 @@ Status ValidateObscuranceQuery(const ObscuranceQuery& query) {
   return absl::OkStatus();
 }
 
+double ObscuranceErrorEstimate(uint64_t directions, double confidence) {
+  if (confidence >= 1.0) return 1.0;  // no worst-case figure below the trivial one
+  const double d = static_cast<double>(std::max<uint64_t>(directions, 1));
+  return std::min(1.0, std::sqrt(std::log(2.0 / (1.0 - confidence)) / (2.0 * d)));
+}
+
+namespace {
+
+// Plans for an obscurance target: direction counts (powers of two and the
+// least count meeting the error), each predicted from the measured cost per
+// direction of bakes of this scene at this resolution; a scene never baked at
+// it is probed with two short partial bakes (4 and 16 directions).
+StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& resident, const ObscuranceQuery& query) {
+  const AccuracyTarget& target = *query.target;
+  const std::string series =
+      absl::StrCat(resident.name, "@", resident.content_hash.substr(0, 8), "/obscurance/", query.resolution, "/",
+                   query.params.bundle_resolution, query.params.color_bleeding ? "/rgb" : "/w");
+  PlanReport report;
+  CostModel& model = engine.cost_model();
+  if (!model.Predict(series, 1.0)) {
+    for (uint32_t directions : {4u, 16u}) {
+      ObscuranceQuery probe = query;
+      probe.target.reset();
+      probe.params.first_direction = 0;
+      probe.params.direction_count = directions;
+      probe.total_directions = directions;
+      probe.partial_only = true;  // neither finalized nor installed for updates
+      probe.bake.progress = nullptr;
+      VISQ_ASSIGN_OR_RETURN(ObscuranceAnswer answer, RunComputeObscurances(engine, probe));
+      model.Record(series, directions, answer.atlas_ms + answer.bake_ms);
+      report.probe_ms += answer.atlas_ms + answer.bake_ms;
+    }
+  }
+  std::set<uint32_t> counts;
+  for (uint32_t d = 8; d <= obscurance::kMaxDirections; d *= 2) counts.insert(d);
+  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence);
+  if (needed <= obscurance::kMaxDirections) counts.insert(std::max(1u, static_cast<uint32_t>(needed)));
+  for (uint32_t d : counts) {
+    Plan plan;
+    plan.method = "obscurance-depth-peeling";
+    plan.parameters["directions"] = d;
+    plan.error_bound = ObscuranceErrorEstimate(d, target.confidence);
+    plan.work = d;
+    plan.cost_key = series;
+    plan.predicted_ms = model.Predict(series, plan.work).value_or(0.0);
+    report.plans.push_back(std::move(plan));
+  }
+  VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
+  return report;
+}
+
+}  // namespace
+
 StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery query) {
+  std::optional<PlanReport> plan;
+  if (query.target) {
+    VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));
+    if (query.params.first_direction != 0 || query.total_directions != 0 || query.partial_only)
+      return absl::InvalidArgumentError("target: only for a whole bake (no direction range, not partial_only)");
+    query.params.direction_count = 1;  // validated now, chosen below
+  }
   VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
+  if (query.target) {
+    VISQ_ASSIGN_OR_RETURN(plan, PlanObscurances(engine, *resident, query));
+    query.params.direction_count = static_cast<uint32_t>(plan->chosen_plan().parameters.at("directions"));
+  }
   const Scene& scene = *resident->scene;
   ObscuranceAnswer answer;
+  if (query.target) answer.confidence = query.target->confidence;
   answer.scene_version = resident->version;
   answer.total_directions = query.total_directions != 0 ? query.total_directions
                                                         : query.params.first_direction + query.params.direction_count;
@@ -139,6 +205,11 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     answer.updater_ms = MillisecondsSince(start);
   }
   answer.result = std::move(result);
+  if (plan) {
+    const Plan& chosen = plan->chosen_plan();
+    engine.cost_model().Record(chosen.cost_key, chosen.work, answer.atlas_ms + answer.bake_ms);
+    answer.plan = std::move(plan);
+  }
   return answer;
 }
 

@@ -51,6 +51,9 @@ struct ObscuranceQuery {
   bool partial_only = false;
   bool want_averages = false;
   uint32_t update_rays_per_patch = 64;
+  // Instead of params.direction_count, for a whole bake: the planner picks
+  // the number of directions (core/accuracy_planner.h).
+  std::optional<AccuracyTarget> target;
   // Priority kBatch (interactive queries overtake the bake), cancellation,
   // deadline and progress come from the caller.
   gpu::ObscuranceBakeOptions bake;
@@ -70,7 +73,14 @@ struct ObscuranceAnswer {
   gpu::ObscuranceBakeStats stats;
   bool update_ready = false;
   double atlas_ms = 0, bake_ms = 0, finalize_ms = 0, updater_ms = 0;
+  double confidence = 0.95;       // of the error figure (a target's, else 0.95)
+  std::optional<PlanReport> plan;  // with a target
 };
+
+// The obscurance error figure: Hoeffding's half-width for D independent
+// directions with per-direction values in [0, 1] (an estimate: the
+// directions are a rotated Halton sequence).
+double ObscuranceErrorEstimate(uint64_t directions, double confidence);
 
 // INVALID_ARGUMENT (naming the field) for bad parameters before any work.
 [[nodiscard]] Status ValidateObscuranceQuery(const ObscuranceQuery& query);

@@ -1,9 +1,14 @@
 #include "core/visibility_sampling_query.h"
 
+#include <algorithm>
 #include <bit>
 #include <chrono>
+#include <cmath>
+#include <functional>
+#include <set>
 
 #include "core/engine.h"
+#include "core/light_visibility_query.h"
 
 namespace visq {
 namespace {
@@ -85,32 +90,380 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
   return result;
 }
 
-}  // namespace
+// The exact visible fraction of the source (its polygon, or its rectangle)
+// from every receiver texel centre: the Plücker method of
+// core/light_visibility_query.h with the source as a light facing the
+// receiver. No samples, so no bitmasks and no sample colours.
+StatusOr<gpu::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const std::string& scene,
+                                                          uint64_t scene_version,
+                                                          const gpu::HiddenSampleMapRequest& request) {
+  if (request.options.want_bitmasks)
+    return absl::InvalidArgumentError(
+        "want_bitmasks: the exact method has no samples, hence no bitmasks; use RASTER or RAYCAST");
+  if (!request.source.sample_colors.empty() || !request.source.color_texture.empty())
+    return absl::InvalidArgumentError("samples: colored lights need a sampled method (RASTER or RAYCAST)");
+  const gpu::Patch& source = request.source.patch;
 
-StatusOr<gpu::HiddenSampleMapResult> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
-  VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(query.request));
-  VISQ_RETURN_IF_ERROR(CheckSize(query.request));
-  if (query.method == VisibilityMethod::kRaycast) return RaycastHiddenSampleMap(engine, *resident, query.request);
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
-  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
-  return mapper->Compute(*gpu_scene, query.request, query.job);
+  // The light polygon, wound to emit towards the receiver (validation put
+  // every receiver point strictly on one side of the source plane).
+  LightVisibilityQuery light_query;
+  light_query.scene = scene;
+  light_query.scene_version = scene_version;
+  std::vector<glm::dvec3>& light = light_query.light.vertices;
+  double winding = 1.0;
+  if (request.source.polygon_uv.empty()) {
+    light = {source.At(0, 0), source.At(1, 0), source.At(1, 1), source.At(0, 1)};
+  } else {
+    const auto& uv = request.source.polygon_uv;
+    double twice_area = 0.0;
+    for (size_t i = 0; i < uv.size(); ++i) {
+      light.push_back(source.At(uv[i].x, uv[i].y));
+      const glm::dvec2& next = uv[(i + 1) % uv.size()];
+      twice_area += uv[i].x * next.y - next.x * uv[i].y;
+    }
+    winding = twice_area;
+  }
+  const glm::dvec3 normal = glm::cross(source.edge_u, source.edge_v);
+  const bool receiver_in_front = glm::dot(request.receiver.patch.At(0.5, 0.5) - source.origin, normal) > 0.0;
+  if (receiver_in_front != (winding > 0.0)) std::reverse(light.begin(), light.end());
+
+  // The receiver points: the texel centres the sampled methods use.
+  const int width = request.receiver.width, height = request.receiver.height;
+  light_query.points.reserve(size_t(width) * height);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x)
+      light_query.points.push_back({gpu::ReceiverSamplePosition(request.receiver, x, y), std::nullopt, std::nullopt});
+  VISQ_ASSIGN_OR_RETURN(LightVisibilityAnswer answer, RunLightVisibility(engine, light_query));
+
+  gpu::HiddenSampleMapResult result;
+  result.width = width;
+  result.height = height;
+  result.visible_fraction.reserve(answer.points.size());
+  for (const auto& point : answer.points) result.visible_fraction.push_back(float(point.visible_area_fraction));
+  result.error.sampling = 0.0;
+  result.error.confidence = 1.0;
+  result.timing.run_ms = answer.compute_ms;
+  return result;
 }
 
-StatusOr<gpu::PatchVisibilityResult> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
-  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapRequest map, gpu::PatchVisibilityAsHiddenSampleMap(query.request));
+StatusOr<gpu::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,
+                                                       VisibilityMethod method, const gpu::HiddenSampleMapRequest& request,
+                                                       const gpu::JobOptions& job) {
+  switch (method) {
+    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request);
+    case VisibilityMethod::kPluckerExact:
+      return ExactHiddenSampleMap(engine, resident.name, resident.version, request);
+    case VisibilityMethod::kRaster: break;
+  }
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(resident));
+  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
+  return mapper->Compute(*gpu_scene, request, job);
+}
+
+// Patch visibility from a map of the receiver grid: the sampled methods'
+// bits give every figure; the exact method gives the receiver samples'
+// fractions and their mean (no source samples, no pairs).
+StatusOr<gpu::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, const ResidentScene& resident,
+                                                       VisibilityMethod method,
+                                                       const gpu::PatchVisibilityRequest& request,
+                                                       const gpu::JobOptions& job) {
+  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapRequest map, gpu::PatchVisibilityAsHiddenSampleMap(request));
   VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(map));
   VISQ_RETURN_IF_ERROR(CheckSize(map));
-  if (query.method == VisibilityMethod::kRaycast) {
-    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, *resident, map));
-    return gpu::SummarizePatchVisibility(query.request, result);
+  if (method == VisibilityMethod::kRaster) {
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(resident));
+    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
+    return mapper->PatchVisibility(*gpu_scene, request, job);
   }
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
-  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
-  return mapper->PatchVisibility(*gpu_scene, query.request, query.job);
+  if (method == VisibilityMethod::kRaycast) {
+    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map));
+    return gpu::SummarizePatchVisibility(request, result);
+  }
+  if (request.unblocked_limit > 0)
+    return absl::InvalidArgumentError("unblocked_limit: the exact method has no sample pairs; use RASTER or RAYCAST");
+  map.options.want_bitmasks = false;  // the sampled paths count pairs from them
+  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult exact,
+                        ExactHiddenSampleMap(engine, resident.name, resident.version, map));
+  gpu::PatchVisibilityResult out;
+  out.receiver_visible = std::move(exact.visible_fraction);
+  double sum = 0.0;
+  for (float f : out.receiver_visible) sum += f;
+  out.mutual_visible_fraction = sum / double(out.receiver_visible.size());
+  out.error = exact.error;
+  out.timing = exact.timing;
+  return out;
+}
+
+// ---------------------------------------------------------------------------
+// Accuracy targets.
+
+// A run's cost as the cost model sees it: compute time (the GL job or the
+// CPU work; not the queue, which other requests cause) and the work done.
+struct RunCost {
+  double ms = 0.0;
+  double work = 0.0;
+};
+
+double ComputeMs(const gpu::JobTiming& timing, double table_ms = 0.0) { return timing.run_ms + table_ms; }
+
+Status CheckNotCancelled(const gpu::JobOptions& job) {
+  if (job.cancelled && job.cancelled->load()) return absl::CancelledError("cancelled while choosing a method");
+  if (std::chrono::steady_clock::now() > job.deadline)
+    return absl::DeadlineExceededError("deadline passed while choosing a method");
+  return absl::OkStatus();
+}
+
+// A plan predicted to outlast the call's deadline fails now rather than
+// after the work.
+Status CheckPredictionFitsDeadline(const Plan& plan, const gpu::JobOptions& job) {
+  if (job.deadline == gpu::SteadyTime::max()) return absl::OkStatus();
+  const double left_ms =
+      std::chrono::duration<double, std::milli>(job.deadline - std::chrono::steady_clock::now()).count();
+  if (plan.predicted_ms <= left_ms) return absl::OkStatus();
+  return absl::DeadlineExceededError(absl::StrCat("the cheapest plan for the target, ", DescribePlan(plan),
+                                                  ", is predicted to take ", plan.predicted_ms,
+                                                  " ms; the call's deadline leaves ", left_ms, " ms"));
+}
+
+// Work units: receiver points x samples for the sampled methods, receiver
+// points for the exact one.
+double PlanWork(VisibilityMethod method, double points, int samples) {
+  return method == VisibilityMethod::kPluckerExact ? points : points * samples;
+}
+
+// Runs `method` with `samples` per receiver point over a receiver reduced to
+// at most `max_side` points a side (0: the request's own receiver).
+using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method, int samples, int max_side)>;
+
+// The share of the source rectangle inside the light's polygon: jittered
+// samples outside it are dropped, so a plan must ask for more.
+double PolygonShare(const gpu::SourceSpec& source) {
+  if (source.polygon_uv.empty()) return 1.0;
+  double twice_area = 0.0;
+  const auto& uv = source.polygon_uv;
+  for (size_t i = 0; i < uv.size(); ++i) {
+    const glm::dvec2& next = uv[(i + 1) % uv.size()];
+    twice_area += uv[i].x * next.y - next.x * uv[i].y;
+  }
+  return std::clamp(std::abs(twice_area) / 2.0, 1e-6, 1.0);
+}
+
+// The candidate plans for a visible-fraction answer over `points` receiver
+// points, each predicted by the cost model after probing the methods this
+// scene has not run yet, and the choice among them.
+StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_base, const AccuracyTarget& target,
+                                    double points, double polygon_share, bool exact_possible,
+                                    const gpu::JobOptions& job, const VisibilityRunner& run) {
+  std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast};
+  if (exact_possible) methods.push_back(VisibilityMethod::kPluckerExact);
+
+  // Sample counts: powers of two, and the least count meeting the error.
+  std::set<int> counts;
+  for (int n = 32; n <= gpu::kMaxHiddenSampleMapSamples; n *= 2) counts.insert(n);
+  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / polygon_share;
+  if (needed <= gpu::kMaxHiddenSampleMapSamples) counts.insert(std::max(32, int(std::ceil(needed / 32.0)) * 32));
+
+  PlanReport report;
+  CostModel& model = engine.cost_model();
+  for (VisibilityMethod method : methods) {
+    const std::string name = VisibilityMethodName(method, gpu::LookupMode::kExact);
+    const std::string series = absl::StrCat(series_base, "/", name);
+    // A method never run on this scene: small runs of this very request give
+    // the model a fixed cost and a rate. The second, larger run only when the
+    // first was cheap: the exact method's tree can cost seconds per point on
+    // a large light over a busy scene, and one point already says so.
+    if (!model.Predict(series, 1.0)) {
+      const bool exact = method == VisibilityMethod::kPluckerExact;
+      const std::pair<int, int> probes[] = {exact ? std::pair{1, 0} : std::pair{4, 32},
+                                            exact ? std::pair{2, 0} : std::pair{16, 256}};
+      const double second_probe_below_ms = exact ? 50.0 : 200.0;
+      for (const auto& [side, samples] : probes) {
+        VISQ_RETURN_IF_ERROR(CheckNotCancelled(job));
+        VISQ_ASSIGN_OR_RETURN(RunCost cost, run(method, samples, side));
+        model.Record(series, cost.work, cost.ms);
+        report.probe_ms += cost.ms;
+        if (cost.ms >= second_probe_below_ms) break;
+      }
+    }
+    auto add_plan = [&](int samples) {
+      Plan plan;
+      plan.method = name;
+      plan.cost_key = series;
+      if (method == VisibilityMethod::kPluckerExact) {
+        plan.error_bound = 0.0;
+      } else {
+        plan.parameters["samples"] = samples;
+        const double inside = std::max(1.0, std::floor(samples * polygon_share));
+        plan.error_bound = std::min(1.0, gpu::SamplingErrorBound(int(inside), target.confidence));
+      }
+      plan.work = PlanWork(method, points, samples);
+      plan.predicted_ms = model.Predict(series, plan.work).value_or(0.0);
+      report.plans.push_back(std::move(plan));
+    };
+    if (method == VisibilityMethod::kPluckerExact) {
+      add_plan(0);
+    } else {
+      for (int n : counts) add_plan(n);
+    }
+  }
+  VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
+  VISQ_RETURN_IF_ERROR(CheckPredictionFitsDeadline(report.chosen_plan(), job));
+  return report;
+}
+
+VisibilityMethod MethodOfPlan(const Plan& plan) {
+  if (plan.method == "raycast") return VisibilityMethod::kRaycast;
+  if (plan.method == "plucker-exact") return VisibilityMethod::kPluckerExact;
+  return VisibilityMethod::kRaster;
+}
+
+// The cost model's series for a scene's query kind: per scene content, so a
+// replaced scene starts afresh.
+std::string SeriesBase(const ResidentScene& resident, const char* kind) {
+  return absl::StrCat(resident.name, "@", resident.content_hash.substr(0, 8), "/", kind);
+}
+
+// The request reduced for a probe: at most max_side texels a side.
+gpu::ReceiverSpec ReducedReceiver(const gpu::ReceiverSpec& receiver, int max_side) {
+  if (max_side <= 0) return receiver;
+  gpu::ReceiverSpec reduced = receiver;
+  reduced.width = std::min(receiver.width, max_side);
+  reduced.height = std::min(receiver.height, max_side);
+  reduced.heightfield.clear();  // its length follows the texel count; the cost does not depend on it
+  return reduced;
+}
+
+StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const ResidentScene& resident,
+                                                         const HiddenSampleMapQuery& query) {
+  const AccuracyTarget& target = *query.target;
+  const gpu::HiddenSampleMapRequest& request = query.request;
+  if (request.source.pattern == gpu::SamplePattern::kCustom)
+    return absl::InvalidArgumentError("target: a CUSTOM pattern fixes the samples; give samples.count instead");
+  const bool colored = !request.source.sample_colors.empty() || !request.source.color_texture.empty();
+  if (!request.source.sample_colors.empty())
+    return absl::InvalidArgumentError("target: per-sample colours fix the samples; give samples.count instead");
+  const bool exact_possible = !request.options.want_bitmasks && !colored;
+
+  auto with_samples = [&](int samples, int max_side) {
+    gpu::HiddenSampleMapRequest sized = request;
+    sized.source.sample_count = samples;
+    sized.receiver = ReducedReceiver(request.receiver, max_side);
+    sized.options.confidence = target.confidence < 1.0 ? target.confidence : sized.options.confidence;
+    return sized;
+  };
+  auto run = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<gpu::HiddenSampleMapResult> {
+    gpu::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
+    VISQ_RETURN_IF_ERROR(CheckSize(sized));
+    return HiddenSampleMapBy(engine, resident, method, sized, query.job);
+  };
+  auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
+    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, run(method, samples, max_side));
+    return RunCost{ComputeMs(result.timing, result.table_ms),
+                   PlanWork(method, double(result.width) * result.height, samples)};
+  };
+
+  const double texels = double(request.receiver.width) * request.receiver.height;
+  VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
+                                                          texels, PolygonShare(request.source), exact_possible,
+                                                          query.job, cost_of));
+  const Plan& plan = report.chosen_plan();
+  HiddenSampleMapAnswer answer;
+  answer.method = MethodOfPlan(plan);
+  const int samples = plan.parameters.contains("samples") ? int(plan.parameters.at("samples")) : 0;
+  VISQ_ASSIGN_OR_RETURN(answer.result, run(answer.method, samples, 0));
+  engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing, answer.result.table_ms));
+  answer.plan = std::move(report);
+  return answer;
+}
+
+StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const ResidentScene& resident,
+                                                         const PatchVisibilityQuery& query) {
+  const AccuracyTarget& target = *query.target;
+  const gpu::PatchVisibilityRequest& request = query.request;
+  const bool exact_possible = request.unblocked_limit == 0;
+
+  // A plan's sample count becomes the most nearly square source grid with
+  // at least that many cells.
+  auto sized = [&](int samples, int max_side) {
+    gpu::PatchVisibilityRequest out = request;
+    out.source_columns = std::max(1, int(std::ceil(std::sqrt(double(std::max(samples, 1))))));
+    out.source_rows = std::max(1, (std::max(samples, 1) + out.source_columns - 1) / out.source_columns);
+    if (max_side > 0) {
+      out.receiver_columns = std::min(request.receiver_columns, max_side);
+      out.receiver_rows = std::min(request.receiver_rows, max_side);
+    }
+    return out;
+  };
+  auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
+    const gpu::PatchVisibilityRequest probe = sized(samples, max_side);
+    VISQ_ASSIGN_OR_RETURN(gpu::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.job));
+    return RunCost{ComputeMs(result.timing),
+                   PlanWork(method, double(probe.receiver_columns) * probe.receiver_rows,
+                            probe.source_columns * probe.source_rows)};
+  };
+
+  const double points = double(request.receiver_columns) * request.receiver_rows;
+  VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
+                                                          points, 1.0, exact_possible, query.job, cost_of));
+  Plan& plan = report.plans[report.chosen];
+  PatchVisibilityAnswer answer;
+  answer.method = MethodOfPlan(plan);
+  gpu::PatchVisibilityRequest chosen = request;
+  if (answer.method != VisibilityMethod::kPluckerExact) {
+    chosen = sized(int(plan.parameters.at("samples")), 0);
+    plan.parameters["source_columns"] = chosen.source_columns;
+    plan.parameters["source_rows"] = chosen.source_rows;
+  }
+  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, resident, answer.method, chosen, query.job));
+  engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing));
+  answer.plan = std::move(report);
+  return answer;
+}
+
+}  // namespace
+
+std::string VisibilityMethodName(VisibilityMethod method, gpu::LookupMode lookup) {
+  switch (method) {
+    case VisibilityMethod::kRaycast: return "raycast";
+    case VisibilityMethod::kPluckerExact: return "plucker-exact";
+    case VisibilityMethod::kRaster: break;
+  }
+  return lookup == gpu::LookupMode::kExact ? "raster-exact-lookup" : "raster-hough-lookup";
+}
+
+StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  // Without samples (a target, or the exact method) the count is the
+  // planner's to choose: validate everything else.
+  const bool count_chosen_here = query.target || query.method == VisibilityMethod::kPluckerExact;
+  if (query.target) {
+    VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));
+    if (query.request.source.sample_count != 0)
+      return absl::InvalidArgumentError("samples.count: give either a count or a target, not both");
+  }
+  gpu::HiddenSampleMapRequest checked = query.request;
+  if (count_chosen_here && checked.source.sample_count == 0) checked.source.sample_count = 1;
+  VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(checked));
+  if (query.target) return HiddenSampleMapForTarget(engine, *resident, query);
+  VISQ_RETURN_IF_ERROR(CheckSize(checked));
+  HiddenSampleMapAnswer answer;
+  answer.method = query.method;
+  VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.job));
+  return answer;
+}
+
+StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  if (query.target) {
+    VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));
+    return PatchVisibilityForTarget(engine, *resident, query);
+  }
+  PatchVisibilityAnswer answer;
+  answer.method = query.method;
+  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.job));
+  return answer;
 }
 
 }  // namespace visq

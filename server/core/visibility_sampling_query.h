@@ -1,18 +1,26 @@
 // Hidden-sample maps and patch-to-patch visibility as core queries, by the
-// GPU algorithm (RASTER, gpu/hidden_sample_map) or by Embree casting exactly
-// the same segments (RAYCAST, the reference).
+// GPU algorithm (RASTER, gpu/hidden_sample_map), by Embree casting exactly
+// the same segments (RAYCAST, the reference for the bits), or by the exact
+// Plücker method (PLUCKER_EXACT: the visible fractions themselves, no
+// samples). With an AccuracyTarget the query picks among the three
+// (core/accuracy_planner.h).
 #pragma once
 
+#include <optional>
 #include <string>
 
 #include "common/status.h"
+#include "core/accuracy_planner.h"
 #include "visq/gpu/hidden_sample_map.h"
 
 namespace visq {
 
 class Engine;
 
-enum class VisibilityMethod { kRaster, kRaycast };
+enum class VisibilityMethod { kRaster, kRaycast, kPluckerExact };
+
+// "raster-exact-lookup", "raster-hough-lookup", "raycast", "plucker-exact".
+std::string VisibilityMethodName(VisibilityMethod method, gpu::LookupMode lookup);
 
 // Beyond this many bits (texels x samples) a request is RESOURCE_EXHAUSTED:
 // 4 Gbit, e.g. 2048 x 2048 texels x 1024 samples.
@@ -23,7 +31,16 @@ struct HiddenSampleMapQuery {
   uint64_t scene_version = 0;
   gpu::HiddenSampleMapRequest request;
   VisibilityMethod method = VisibilityMethod::kRaster;
+  // Instead of request.source.sample_count and method: the planner chooses
+  // the method and the count (jittered samples, or the exact method).
+  std::optional<AccuracyTarget> target;
   gpu::JobOptions job;
+};
+
+struct HiddenSampleMapAnswer {
+  gpu::HiddenSampleMapResult result;
+  VisibilityMethod method = VisibilityMethod::kRaster;  // what produced it
+  std::optional<PlanReport> plan;                       // with a target
 };
 
 struct PatchVisibilityQuery {
@@ -31,10 +48,18 @@ struct PatchVisibilityQuery {
   uint64_t scene_version = 0;
   gpu::PatchVisibilityRequest request;
   VisibilityMethod method = VisibilityMethod::kRaster;
+  // Instead of the source grid and method (the receiver grid stays).
+  std::optional<AccuracyTarget> target;
   gpu::JobOptions job;
 };
 
-[[nodiscard]] StatusOr<gpu::HiddenSampleMapResult> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query);
-[[nodiscard]] StatusOr<gpu::PatchVisibilityResult> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query);
+struct PatchVisibilityAnswer {
+  gpu::PatchVisibilityResult result;
+  VisibilityMethod method = VisibilityMethod::kRaster;
+  std::optional<PlanReport> plan;
+};
+
+[[nodiscard]] StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query);
+[[nodiscard]] StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query);
 
 }  // namespace visq

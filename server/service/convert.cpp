@@ -1,5 +1,7 @@
 #include "service/convert.h"
 
+#include <absl/strings/str_format.h>
+
 namespace visq::service {
 
 glm::dvec3 FromProto(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
@@ -100,6 +102,7 @@ StatusOr<VisibilityMethod> MethodFromProto(v1::VisibilityMethod method) {
     case v1::METHOD_UNSPECIFIED:
     case v1::RASTER: return VisibilityMethod::kRaster;
     case v1::RAYCAST: return VisibilityMethod::kRaycast;
+    case v1::PLUCKER_EXACT: return VisibilityMethod::kPluckerExact;
     default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", static_cast<int>(method)));
   }
 }
@@ -120,11 +123,19 @@ StatusOr<int> SizeFromProto(uint32_t value, const char* field) {
   return static_cast<int>(value);
 }
 
-v1::Accuracy AccuracyToProto(const gpu::ErrorBound& error, VisibilityMethod method, gpu::LookupMode lookup) {
+v1::Accuracy AccuracyToProto(const gpu::ErrorBound& error, VisibilityMethod method, gpu::LookupMode lookup,
+                             int samples) {
   v1::Accuracy out;
-  out.set_method(method == VisibilityMethod::kRaycast ? "raycast"
-                 : lookup == gpu::LookupMode::kExact  ? "raster-exact-lookup"
-                                                      : "raster-hough-lookup");
+  out.set_method(VisibilityMethodName(method, lookup));
+  if (method == VisibilityMethod::kPluckerExact) {
+    out.set_error_bound(0.0);
+    out.set_confidence(1.0);
+    out.set_note(
+        "exact visible fractions (Plücker method): every side decision is an exact predicate; only the areas are "
+        "double-precision sums");
+    return out;
+  }
+  (*out.mutable_parameters())["samples"] = samples;
   out.set_error_bound(error.total());
   out.set_confidence(error.confidence);
   out.set_note(absl::StrCat(
@@ -136,7 +147,43 @@ v1::Accuracy AccuracyToProto(const gpu::ErrorBound& error, VisibilityMethod meth
   return out;
 }
 
+// A request with a target leaves the count and the method to the server.
+StatusOr<std::optional<AccuracyTarget>> TargetFromRequest(bool has_target, const v1::AccuracyTarget& target,
+                                                          v1::VisibilityMethod method) {
+  if (!has_target) return std::optional<AccuracyTarget>();
+  if (method != v1::METHOD_UNSPECIFIED)
+    return absl::InvalidArgumentError("method: give either a method or a target, not both");
+  return std::optional<AccuracyTarget>(FromProto(target));
+}
+
 }  // namespace
+
+AccuracyTarget FromProto(const v1::AccuracyTarget& target) {
+  AccuracyTarget out;
+  out.max_error = target.max_error();
+  if (target.confidence() != 0.0) out.confidence = target.confidence();
+  out.time_budget_ms = target.time_budget_ms();
+  return out;
+}
+
+void ToProto(const PlanReport& plan, v1::Accuracy* out) {
+  for (const Plan& p : plan.plans) {
+    v1::PlanEstimate* estimate = out->add_plans();
+    estimate->set_method(p.method);
+    for (const auto& [name, value] : p.parameters) (*estimate->mutable_parameters())[name] = value;
+    estimate->set_error_bound(p.error_bound);
+    estimate->set_predicted_ms(p.predicted_ms);
+    estimate->set_meets_target(p.meets_target);
+  }
+  const Plan& chosen = plan.chosen_plan();
+  for (const auto& [name, value] : chosen.parameters) (*out->mutable_parameters())[name] = value;
+  out->set_predicted_ms(chosen.predicted_ms);
+  out->set_note(absl::StrCat(out->note(), "; chosen for the target among ", plan.plans.size(),
+                             " plans by the cost model (", plan.probe_ms > 0
+                                 ? absl::StrFormat("%.1f ms spent probing methods new to this scene", plan.probe_ms)
+                                 : std::string("no probing needed"),
+                             ")"));
+}
 
 StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request) {
   HiddenSampleMapQuery query;
@@ -144,6 +191,7 @@ StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& reque
   query.scene = request.scene().name();
   query.scene_version = request.scene().version();
   VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
+  VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
   gpu::HiddenSampleMapRequest& r = query.request;
   r.source.patch = PatchFromProto(request.source());
   VISQ_ASSIGN_OR_RETURN(r.source.sample_count, SizeFromProto(request.samples().count(), "samples.count"));
@@ -185,8 +233,8 @@ StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& reque
   return query;
 }
 
-std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const gpu::HiddenSampleMapResult& result,
-                                                       VisibilityMethod method, size_t chunk_elements) {
+std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const HiddenSampleMapAnswer& answer, size_t chunk_elements) {
+  const gpu::HiddenSampleMapResult& result = answer.result;
   std::vector<v1::HiddenSampleMapResponse> out(1);
   v1::HiddenSampleMapResponse& first = out[0];
   first.set_width(result.width);
@@ -196,7 +244,8 @@ std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const gpu::HiddenSampleMa
   const gpu::LookupMode lookup = result.error.lookup_max > 0 || !result.error.lookup_per_texel.empty()
                                      ? gpu::LookupMode::kHough
                                      : gpu::LookupMode::kExact;
-  *first.mutable_accuracy() = AccuracyToProto(result.error, method, lookup);
+  *first.mutable_accuracy() = AccuracyToProto(result.error, answer.method, lookup, result.sample_count);
+  if (answer.plan) ToProto(*answer.plan, first.mutable_accuracy());
   first.mutable_lookup_error()->Add(result.error.lookup_per_texel.begin(), result.error.lookup_per_texel.end());
   for (const auto& p : result.samples.world) ToProto(p, first.add_source_samples());
 
@@ -233,6 +282,9 @@ StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& reque
   query.scene = request.scene().name();
   query.scene_version = request.scene().version();
   VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
+  VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
+  if (query.target && (request.source_columns() != 0 || request.source_rows() != 0))
+    return absl::InvalidArgumentError("source_columns, source_rows: give either a source grid or a target, not both");
   gpu::PatchVisibilityRequest& r = query.request;
   r.source = PatchFromProto(request.source());
   r.receiver = PatchFromProto(request.receiver());
@@ -247,7 +299,8 @@ StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& reque
   return query;
 }
 
-void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, v1::PatchVisibilityResponse* out) {
+void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out) {
+  const gpu::PatchVisibilityResult& result = answer.result;
   out->set_mutual_visible_fraction(result.mutual_visible_fraction);
   out->mutable_source_visible()->Add(result.source_visible.begin(), result.source_visible.end());
   out->mutable_receiver_visible()->Add(result.receiver_visible.begin(), result.receiver_visible.end());
@@ -258,7 +311,9 @@ void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, 
   }
   out->set_unblocked_total(result.unblocked_total);
   const gpu::LookupMode lookup = result.error.lookup_max > 0 ? gpu::LookupMode::kHough : gpu::LookupMode::kExact;
-  *out->mutable_accuracy() = AccuracyToProto(result.error, method, lookup);
+  *out->mutable_accuracy() =
+      AccuracyToProto(result.error, answer.method, lookup, static_cast<int>(result.source_visible.size()));
+  if (answer.plan) ToProto(*answer.plan, out->mutable_accuracy());
 }
 
 

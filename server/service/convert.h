@@ -23,14 +23,19 @@ void ToProto(const std::vector<glm::dvec3>& polygon, v1::Polygon* out);
                                                        const LightVisibilityQuery* previous = nullptr);
 void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out);
 
+// A target as the core takes it (confidence 0 on the wire means 0.95).
+AccuracyTarget FromProto(const v1::AccuracyTarget& target);
+// What the planner weighed and chose, into an Accuracy already carrying the
+// chosen method's bound.
+void ToProto(const PlanReport& plan, v1::Accuracy* out);
+
 [[nodiscard]] StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
 // The response as a sequence of messages: figures first, then chunks of at
 // most `chunk_elements` values (fractions, colors, bitmask words).
-std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const gpu::HiddenSampleMapResult& result,
-                                                       VisibilityMethod method, size_t chunk_elements);
+std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const HiddenSampleMapAnswer& answer, size_t chunk_elements);
 
 [[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
-void ToProto(const gpu::PatchVisibilityResult& result, VisibilityMethod method, v1::PatchVisibilityResponse* out);
+void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);
 
 [[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
 std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricResult& result, size_t chunk_elements);

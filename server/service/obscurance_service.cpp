@@ -11,6 +11,7 @@
 #include <absl/strings/str_format.h>
 
 #include "core/obscurance_query.h"
+#include "service/convert.h"
 #include "service/reactors.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
@@ -34,14 +35,13 @@ void SetVec3(const glm::dvec3& v, v1::Vec3* out) {
 // inequality for D independent directions gives the half-width below at
 // 95 %. The directions are a rotated Halton sequence and each patch weighs
 // them by its projected area, so this is an estimate, not a guarantee.
-void SetAccuracy(uint64_t directions, double mean_samples, v1::Accuracy* out) {
-  constexpr double kConfidence = 0.95;
+void SetAccuracy(uint64_t directions, double mean_samples, double confidence, v1::Accuracy* out) {
   out->set_method("obscurance-depth-peeling");
-  out->set_confidence(kConfidence);
-  const double d = static_cast<double>(std::max<uint64_t>(directions, 1));
-  out->set_error_bound(std::sqrt(std::log(2.0 / (1.0 - kConfidence)) / (2.0 * d)));
+  out->set_confidence(confidence);
+  out->set_error_bound(ObscuranceErrorEstimate(directions, confidence));
+  (*out->mutable_parameters())["directions"] = static_cast<double>(directions);
   out->set_note(absl::StrCat(
-      "estimate, not a bound: Hoeffding half-width at 95 % for ", directions,
+      "estimate, not a bound: Hoeffding half-width at ", confidence, " for ", directions,
       " independent directions with per-direction values in [0, 1]; the directions are a rotated Halton sequence "
       "(usually better than independent) and are cosine-weighted per patch (mean ",
       absl::StrFormat("%.1f", mean_samples), " samples per patch); rasterization of the bundles is not counted"));
@@ -87,6 +87,12 @@ StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request
   query.partial_only = request.partial_only();
   query.want_averages = request.want_averages();
   query.update_rays_per_patch = request.update_rays_per_patch() != 0 ? request.update_rays_per_patch() : 64;
+  if (request.has_target()) {
+    if (request.direction_count() != 0)
+      return absl::InvalidArgumentError("direction_count: give either a direction count or a target, not both");
+    query.target = service::FromProto(request.target());
+    return query;  // the core validates once the count is chosen
+  }
   VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
   return query;
 }
@@ -128,7 +134,8 @@ std::vector<v1::ComputeObscurancesResponse> ToProtoChunks(const ObscuranceAnswer
   const double mean_samples = estimated > 0 ? static_cast<double>(samples) / static_cast<double>(estimated) : 0.0;
   f->set_estimated_texels(estimated);
   f->set_mean_samples_per_patch(mean_samples);
-  SetAccuracy(a.partial.DirectionCount(), mean_samples, f->mutable_accuracy());
+  SetAccuracy(a.partial.DirectionCount(), mean_samples, a.confidence, f->mutable_accuracy());
+  if (a.plan) ToProto(*a.plan, f->mutable_accuracy());
 
   if (!a.result) {
     AppendChunks(a.partial.sums, messages, [](v1::ComputeObscurancesResponse& m, const uint64_t* b, const uint64_t* e) {

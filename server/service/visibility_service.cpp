@@ -1,8 +1,10 @@
 #include "service/visibility_service.h"
 
-#include <memory>
 #include <functional>
+#include <memory>
 #include <optional>
+
+#include <absl/strings/str_format.h>
 
 #include "core/light_visibility_query.h"
 #include "core/volumetric_query.h"
@@ -419,11 +421,15 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
         query.job = JobOptionsFor(context, &cancelled);
-        log.Info("{} {}x{} texels, {} samples", query.method == VisibilityMethod::kRaster ? "RASTER" : "RAYCAST",
-                 query.request.receiver.width, query.request.receiver.height, query.request.source.sample_count);
-        VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RunHiddenSampleMap(ctx_.engine, query));
+        VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, RunHiddenSampleMap(ctx_.engine, query));
+        const gpu::HiddenSampleMapResult& result = answer.result;
+        log.Info("{} {}x{} texels, {} samples{}", VisibilityMethodName(answer.method, query.request.options.lookup),
+                 result.width, result.height, result.sample_count,
+                 answer.plan ? absl::StrCat(" (chosen for the target, predicted ",
+                                            absl::StrFormat("%.1f", answer.plan->chosen_plan().predicted_ms), " ms)")
+                             : std::string());
         const double before_transfer = log.ElapsedMs();
-        messages = ToProtoChunks(result, query.method, kChunkElements);
+        messages = ToProtoChunks(answer, kChunkElements);
         auto* timing = messages[0].mutable_timing();
         timing->set_queue_ms(queue_ms + result.timing.queue_ms);
         timing->set_compute_ms(result.timing.run_ms + result.table_ms);
@@ -506,17 +512,18 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityQuery query, FromProto(*request));
     query.job = JobOptionsFor(context, nullptr);
-    VISQ_ASSIGN_OR_RETURN(gpu::PatchVisibilityResult result, RunPatchVisibility(ctx_.engine, query));
+    VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, RunPatchVisibility(ctx_.engine, query));
+    const gpu::PatchVisibilityResult& result = answer.result;
     const double before_transfer = log.ElapsedMs();
-    ToProto(result, query.method, response);
+    ToProto(answer, response);
     auto* timing = response->mutable_timing();
     timing->set_queue_ms(queue_ms + result.timing.queue_ms);
     timing->set_compute_ms(result.timing.run_ms);
     timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
     timing->set_total_ms(log.ElapsedMs());
-    log.Info("{}x{} by {}x{} samples: mutual visible fraction {:.4f}", query.request.source_columns,
-             query.request.source_rows, query.request.receiver_columns, query.request.receiver_rows,
-             result.mutual_visible_fraction);
+    log.Info("{} {} source samples by {}x{} receiver samples: mutual visible fraction {:.4f}",
+             VisibilityMethodName(answer.method, query.request.lookup), result.source_visible.size(),
+             query.request.receiver_columns, query.request.receiver_rows, result.mutual_visible_fraction);
     return absl::OkStatus();
   });
 }

@@ -57,6 +57,9 @@ enum class LookupMode {
   kHough,
 };
 
+// Source samples per request: 1024 per pass (8 RGBA32UI targets), 4 passes.
+inline constexpr int kMaxHiddenSampleMapSamples = 4096;
+
 struct SourceSpec {
   Patch patch;
   int sample_count = 64;  // [1, 4096]: samples over the whole rectangle

@@ -1,0 +1,119 @@
+#include "core/accuracy_planner.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+namespace visq {
+
+Status ValidateAccuracyTarget(const AccuracyTarget& target) {
+  if (!std::isfinite(target.max_error) || target.max_error < 0.0 || target.max_error >= 1.0)
+    return absl::InvalidArgumentError(absl::StrCat("target.max_error: ", target.max_error, " is not in [0, 1)"));
+  if (!std::isfinite(target.confidence) || target.confidence <= 0.0 || target.confidence > 1.0)
+    return absl::InvalidArgumentError(absl::StrCat("target.confidence: ", target.confidence, " is not in (0, 1]"));
+  if (!std::isfinite(target.time_budget_ms) || target.time_budget_ms < 0.0)
+    return absl::InvalidArgumentError(
+        absl::StrCat("target.time_budget_ms: ", target.time_budget_ms, " is not a finite value >= 0"));
+  if (target.max_error == 0.0 && target.time_budget_ms == 0.0)
+    return absl::InvalidArgumentError("target: neither max_error nor time_budget_ms is set");
+  return absl::OkStatus();
+}
+
+std::string CostSeries(const std::string& scene, const std::string& kind, const std::string& method) {
+  return absl::StrCat(scene, "/", kind, "/", method);
+}
+
+void CostModel::Record(const std::string& series, double work, double ms) {
+  if (!std::isfinite(work) || !std::isfinite(ms) || work <= 0.0 || ms < 0.0) return;
+  std::lock_guard lock(mutex_);
+  auto& observations = series_[series];
+  observations.push_back({work, ms});
+  if (observations.size() > kObservationsKept) observations.pop_front();
+}
+
+std::optional<double> CostModel::Predict(const std::string& series, double work) const {
+  std::lock_guard lock(mutex_);
+  auto it = series_.find(series);
+  if (it == series_.end() || it->second.empty()) return std::nullopt;
+  const auto& observations = it->second;
+
+  // Least squares of ms on work. With one distinct amount of work there is
+  // no slope to fit: the cost is taken as proportional, which over-predicts
+  // larger requests by the fixed part (the safe side for a budget).
+  double n = 0, sw = 0, sm = 0, sww = 0, swm = 0;
+  for (const auto& o : observations) {
+    n += 1;
+    sw += o.work;
+    sm += o.ms;
+    sww += o.work * o.work;
+    swm += o.work * o.ms;
+  }
+  const double variance = sww - sw * sw / n;
+  double rate = sm / sw, fixed = 0.0;
+  if (variance > 1e-9 * sww) {
+    const double fitted_rate = (swm - sw * sm / n) / variance;
+    const double fitted_fixed = (sm - fitted_rate * sw) / n;
+    // A negative slope or intercept is noise (or a cache warming up): keep
+    // the proportional model then.
+    if (fitted_rate > 0.0 && fitted_fixed >= 0.0) {
+      rate = fitted_rate;
+      fixed = fitted_fixed;
+    }
+  }
+  return fixed + rate * work;
+}
+
+double HoeffdingSamplesNeeded(double max_error, double confidence) {
+  if (confidence >= 1.0 || max_error <= 0.0) return std::numeric_limits<double>::infinity();
+  return std::ceil(std::log(2.0 / (1.0 - confidence)) / (2.0 * max_error * max_error));
+}
+
+std::string DescribePlan(const Plan& plan) {
+  std::string parameters;
+  for (const auto& [name, value] : plan.parameters)
+    absl::StrAppend(&parameters, parameters.empty() ? "" : ", ", name, ": ", value);
+  return parameters.empty() ? plan.method : absl::StrCat(plan.method, " {", parameters, "}");
+}
+
+StatusOr<size_t> ChoosePlan(std::vector<Plan>& plans, const AccuracyTarget& target) {
+  if (plans.empty()) return absl::FailedPreconditionError("no method can answer this request with a target");
+  const bool has_budget = target.time_budget_ms > 0.0;
+  auto within_budget = [&](const Plan& p) { return !has_budget || p.predicted_ms <= target.time_budget_ms; };
+  auto cheaper = [](const Plan& a, const Plan& b) { return a.predicted_ms < b.predicted_ms; };
+  auto more_accurate = [](const Plan& a, const Plan& b) {
+    return a.error_bound < b.error_bound || (a.error_bound == b.error_bound && a.predicted_ms < b.predicted_ms);
+  };
+  const auto index_of = [&](std::vector<Plan>::iterator it) { return static_cast<size_t>(it - plans.begin()); };
+
+  // An error target: the cheapest plan meeting it.
+  if (target.max_error > 0.0) {
+    for (Plan& p : plans) p.meets_target = p.error_bound <= target.max_error && within_budget(p);
+    auto best = plans.end();
+    for (auto it = plans.begin(); it != plans.end(); ++it)
+      if (it->meets_target && (best == plans.end() || cheaper(*it, *best))) best = it;
+    if (best != plans.end()) return index_of(best);
+    auto cheapest_accurate = plans.end();
+    for (auto it = plans.begin(); it != plans.end(); ++it)
+      if (it->error_bound <= target.max_error && (cheapest_accurate == plans.end() || cheaper(*it, *cheapest_accurate)))
+        cheapest_accurate = it;
+    if (cheapest_accurate != plans.end())
+      return absl::OutOfRangeError(absl::StrCat("target: +-", target.max_error, " needs at least ",
+                                                DescribePlan(*cheapest_accurate), ", predicted ",
+                                                cheapest_accurate->predicted_ms, " ms, over the budget of ",
+                                                target.time_budget_ms, " ms"));
+    const auto most_accurate = std::min_element(plans.begin(), plans.end(), more_accurate);
+    return absl::OutOfRangeError(absl::StrCat("target: no method reaches +-", target.max_error, " at confidence ",
+                                              target.confidence, " for this request; the best is ",
+                                              DescribePlan(*most_accurate), " with +-", most_accurate->error_bound));
+  }
+
+  // A budget alone: the most accurate plan predicted to fit.
+  for (Plan& p : plans) p.meets_target = within_budget(p);
+  auto best = plans.end();
+  for (auto it = plans.begin(); it != plans.end(); ++it)
+    if (it->meets_target && (best == plans.end() || more_accurate(*it, *best))) best = it;
+  if (best != plans.end()) return index_of(best);
+  return index_of(std::min_element(plans.begin(), plans.end(), cheaper));
+}
+
+}  // namespace visq

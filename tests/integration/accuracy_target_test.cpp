@@ -1,0 +1,247 @@
+// Ask by error (issue 8) end to end: requests that give an AccuracyTarget
+// instead of a count, through the real server and client, on the generated
+// Cornell box. The answers are checked against the exact Plücker method run
+// by the same server (PLUCKER_EXACT), never against the method chosen.
+#include <algorithm>
+#include <cmath>
+
+#include <glm/glm.hpp>
+#include <gtest/gtest.h>
+
+#include "test_support.h"
+#include "visq_client.h"
+
+namespace visq {
+namespace {
+
+using client::Client;
+using testing::ScratchDir;
+using testing::ServerProcess;
+
+void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
+  auto set = [](v1::Vec3* out, glm::dvec3 value) {
+    out->set_x(value.x);
+    out->set_y(value.y);
+    out->set_z(value.z);
+  };
+  set(p->mutable_origin(), o);
+  set(p->mutable_edge_u(), u);
+  set(p->mutable_edge_v(), v);
+}
+
+class AccuracyTargetTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    repo_ = new ScratchDir();
+    server_ = ServerProcess::Start({repo_->path(), {"--seed-samples"}}).release();
+  }
+  static void TearDownTestSuite() {
+    delete server_;
+    delete repo_;
+  }
+  void SetUp() override {
+    ASSERT_NE(server_, nullptr);
+    client_ = std::make_unique<Client>(client::ClientOptions{.address = server_->address()});
+  }
+
+  // A light patch over the tall box onto the floor beside it: partly shadowed.
+  static v1::HiddenSampleMapRequest ShadowedFloor(uint32_t size) {
+    v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name("cornell_box_visq");
+    SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    request.set_width(size);
+    request.set_height(size);
+    return request;
+  }
+
+  std::vector<float> ExactFractions(v1::HiddenSampleMapRequest request) {
+    request.clear_target();
+    request.mutable_samples()->set_count(0);
+    request.set_method(v1::PLUCKER_EXACT);
+    auto exact = client_->ComputeHiddenSampleMap(request);
+    EXPECT_TRUE(exact.ok()) << exact.status();
+    if (!exact.ok()) return {};
+    EXPECT_EQ(exact->figures.accuracy().method(), "plucker-exact");
+    EXPECT_EQ(exact->figures.accuracy().error_bound(), 0.0);
+    return exact->visible_fraction;
+  }
+
+  static ScratchDir* repo_;
+  static ServerProcess* server_;
+  std::unique_ptr<Client> client_;
+};
+ScratchDir* AccuracyTargetTest::repo_ = nullptr;
+ServerProcess* AccuracyTargetTest::server_ = nullptr;
+
+// The fraction of texels whose answer is outside the stated bound around the
+// exact value: at most 1 - confidence in expectation.
+double ShareOutsideBound(const std::vector<float>& answer, const std::vector<float>& exact, double bound) {
+  size_t outside = 0;
+  for (size_t j = 0; j < answer.size(); ++j)
+    if (std::abs(double(answer[j]) - exact[j]) > bound + 1e-6) ++outside;
+  return double(outside) / double(answer.size());
+}
+
+TEST_F(AccuracyTargetTest, HiddenSampleMapMeetsAnErrorTargetAndSaysWhatItChose) {
+  v1::HiddenSampleMapRequest request = ShadowedFloor(24);
+  request.mutable_target()->set_max_error(0.05);
+  auto answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  const v1::Accuracy& accuracy = answer->figures.accuracy();
+  EXPECT_LE(accuracy.error_bound(), 0.05);
+  EXPECT_DOUBLE_EQ(accuracy.confidence(), accuracy.method() == "plucker-exact" ? 1.0 : 0.95);
+  ASSERT_GT(accuracy.plans_size(), 3) << "raster, raycast and exact plans weighed";
+  EXPECT_GT(accuracy.predicted_ms(), 0.0);
+  // The chosen plan is among those weighed, meets the target and is the
+  // cheapest of those that do.
+  double cheapest_meeting = 1e300;
+  bool chosen_listed = false;
+  for (const v1::PlanEstimate& plan : accuracy.plans()) {
+    if (plan.meets_target()) cheapest_meeting = std::min(cheapest_meeting, plan.predicted_ms());
+    if (plan.method() == accuracy.method() && plan.parameters().size() == accuracy.parameters().size()) {
+      bool same = true;
+      for (const auto& [name, value] : plan.parameters())
+        same = same && accuracy.parameters().contains(name) && accuracy.parameters().at(name) == value;
+      if (same) {
+        chosen_listed = true;
+        EXPECT_TRUE(plan.meets_target());
+        EXPECT_LE(plan.error_bound(), 0.05);
+      }
+    }
+  }
+  EXPECT_TRUE(chosen_listed) << accuracy.DebugString();
+  EXPECT_DOUBLE_EQ(accuracy.predicted_ms(), cheapest_meeting);
+  if (accuracy.method() != "plucker-exact") {
+    // Hoeffding at 0.05 and 95 %: at least 738 samples.
+    EXPECT_GE(answer->figures.sample_count(), 738u);
+  }
+
+  const std::vector<float> exact = ExactFractions(request);
+  ASSERT_EQ(exact.size(), answer->visible_fraction.size());
+  EXPECT_LE(ShareOutsideBound(answer->visible_fraction, exact, accuracy.error_bound()), 0.05 + 0.03);
+}
+
+TEST_F(AccuracyTargetTest, ATimeBudgetAloneGetsTheMostAccuratePlanPredictedToFit) {
+  v1::HiddenSampleMapRequest request = ShadowedFloor(16);
+  request.mutable_target()->set_time_budget_ms(5000);
+  auto generous = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(generous.ok()) << generous.status();
+  request.mutable_target()->set_time_budget_ms(0.001);
+  auto tiny = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(tiny.ok()) << tiny.status();
+
+  // Nothing fits a microsecond: the cheapest plan answers, and says it does
+  // not meet the budget; a generous budget buys an answer at least as good.
+  bool tiny_chosen_meets = true;
+  for (const v1::PlanEstimate& plan : tiny->figures.accuracy().plans()) tiny_chosen_meets &= !plan.meets_target();
+  EXPECT_TRUE(tiny_chosen_meets) << "no plan fits 1 us";
+  EXPECT_LE(generous->figures.accuracy().error_bound(), tiny->figures.accuracy().error_bound());
+  for (const v1::PlanEstimate& plan : generous->figures.accuracy().plans()) {
+    if (plan.meets_target()) {
+      EXPECT_GE(plan.error_bound(), generous->figures.accuracy().error_bound());
+    }
+  }
+}
+
+TEST_F(AccuracyTargetTest, UnreachableTargetsAreOutOfRangeAndNamed) {
+  // Bitmasks rule out the exact method; 4096 samples reach only about 0.021.
+  v1::HiddenSampleMapRequest request = ShadowedFloor(8);
+  request.set_want_bitmasks(true);
+  request.mutable_target()->set_max_error(0.001);
+  auto answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kOutOfRange) << answer.status();
+  EXPECT_NE(answer.status().message().find("no method reaches"), std::string::npos) << answer.status();
+
+  // Reachable, but not within a microsecond.
+  request.set_want_bitmasks(false);
+  request.mutable_target()->set_max_error(0.05);
+  request.mutable_target()->set_time_budget_ms(0.001);
+  answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kOutOfRange) << answer.status();
+  EXPECT_NE(answer.status().message().find("over the budget"), std::string::npos) << answer.status();
+}
+
+TEST_F(AccuracyTargetTest, BadTargetsAreInvalidArgumentsNamingTheField) {
+  v1::HiddenSampleMapRequest request = ShadowedFloor(8);
+  request.mutable_target()->set_max_error(2.0);
+  auto answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(answer.status().message().find("target.max_error"), std::string::npos) << answer.status();
+
+  request.mutable_target()->set_max_error(0.0);
+  answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(answer.status().message().find("target"), std::string::npos) << answer.status();
+
+  request.mutable_target()->set_max_error(0.05);
+  request.mutable_samples()->set_count(64);
+  answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(answer.status().message().find("samples.count"), std::string::npos) << answer.status();
+
+  request.mutable_samples()->set_count(0);
+  request.set_method(v1::RAYCAST);
+  answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(answer.status().message().find("method"), std::string::npos) << answer.status();
+
+  // The exact method has no samples, hence no bitmasks.
+  request.clear_target();
+  request.set_method(v1::PLUCKER_EXACT);
+  request.set_want_bitmasks(true);
+  answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(answer.status().message().find("want_bitmasks"), std::string::npos) << answer.status();
+}
+
+TEST_F(AccuracyTargetTest, PatchVisibilityTargetAgainstTheExactMeanOfTheReceiverSamples) {
+  v1::PatchVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.set_receiver_columns(12);
+  request.set_receiver_rows(12);
+  v1::PatchVisibilityRequest exact_request = request;
+  exact_request.set_method(v1::PLUCKER_EXACT);
+  auto exact = client_->PatchVisibility(exact_request);
+  ASSERT_TRUE(exact.ok()) << exact.status();
+  EXPECT_TRUE(exact->source_visible().empty()) << "the exact method has no source samples";
+  ASSERT_EQ(exact->receiver_visible_size(), 144);
+
+  // With pairs asked for, only sampled methods qualify.
+  request.mutable_target()->set_max_error(0.06);
+  request.set_unblocked_limit(4);
+  auto sampled = client_->PatchVisibility(request);
+  ASSERT_TRUE(sampled.ok()) << sampled.status();
+  EXPECT_NE(sampled->accuracy().method(), "plucker-exact");
+  EXPECT_LE(sampled->accuracy().error_bound(), 0.06);
+  EXPECT_GE(sampled->accuracy().parameters().at("source_columns") * sampled->accuracy().parameters().at("source_rows"),
+            sampled->accuracy().parameters().at("samples"));
+  EXPECT_NEAR(sampled->mutual_visible_fraction(), exact->mutual_visible_fraction(), sampled->accuracy().error_bound());
+}
+
+TEST_F(AccuracyTargetTest, ObscuranceTargetsChooseTheDirectionCount) {
+  v1::ComputeObscurancesRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  request.set_resolution(32);
+  request.set_d_max(0.5);
+  request.mutable_target()->set_max_error(0.1);
+  auto bake = client_->ComputeObscurances(request, nullptr);
+  ASSERT_TRUE(bake.ok()) << bake.status();
+  const v1::Accuracy& accuracy = bake->figures.accuracy();
+  EXPECT_LE(accuracy.error_bound(), 0.1);
+  // Hoeffding at 0.1 and 95 %: 185 directions, the least count that meets it.
+  EXPECT_EQ(accuracy.parameters().at("directions"), 185.0);
+  EXPECT_EQ(bake->partial.DirectionCount(), 185u);
+  EXPECT_TRUE(bake->figures.update_ready());
+
+  // A shard range cannot take a target.
+  request.set_first_direction(8);
+  request.set_total_directions(64);
+  auto shard = client_->ComputeObscurances(request, nullptr);
+  ASSERT_EQ(shard.status().code(), absl::StatusCode::kInvalidArgument) << shard.status();
+}
+
+}  // namespace
+}  // namespace visq
