@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# The two things a person does with a fresh checkout, as root on Debian 12:
+# What a person does with a fresh checkout, as root on Debian 12:
 #   ./visq.sh serve [visq-server flags...]   install, build, start the server
 #   ./visq.sh test                           install, build, run every test
+#   ./visq.sh accuracy [bench flags...]      install, build, regenerate docs/accuracy.md and
+#                                            its plots (the published accuracy/time trade)
 #
 # `test` runs three stages, each failing the command if it fails:
 #   1. Release build, every test (ctest): unit, GPU on this machine's EGL
@@ -69,8 +71,20 @@ case "${1:-}" in
     fi
     echo "visq: every stage passed in $((SECONDS - start)) s"
     ;;
+  accuracy)
+    # The published trade (issue 8): sweeps every query kind's accuracy
+    # parameters on the shared real scenes and rewrites docs/accuracy.md and
+    # docs/accuracy/*.png (about 20 minutes on 2 cores with llvmpipe).
+    shift
+    bash deploy/install-deps.sh
+    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
+    cmake --build "$build_dir" -j"$jobs" --target visq_bench_accuracy_trade
+    scenes=${VISQ_SHARED_SCENES:-../shared/scenes}
+    exec "$build_dir/tests/bench/visq_bench_accuracy_trade" --scenes "$scenes" --out docs \
+      --command "./visq.sh accuracy $*" "$@"
+    ;;
   *)
-    echo "usage: $0 serve [visq-server flags...] | test [ctest flags...]" >&2
+    echo "usage: $0 serve [visq-server flags...] | test [ctest flags...] | accuracy [bench flags...]" >&2
     exit 2
     ;;
 esac

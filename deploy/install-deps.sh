@@ -14,6 +14,7 @@ build_packages=(
   openssl nginx-light libyaml-cpp-dev
   clang libclang-rt-14-dev
   libgtest-dev libgmock-dev libbenchmark-dev
+  gnuplot-nox
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
 runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)

@@ -187,19 +187,8 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   const glm::dvec3 d_gradient(s_sign * glm::dot(sn, rp.edge_u), s_sign * glm::dot(sn, rp.edge_v),
                               s_sign * r_sign * glm::dot(sn, rn));
 
-  // Endpoint tolerance, as in EmbreeScene::Occluded: 2^-17 of the magnitude
-  // of the coordinates involved, at least 1/8 of the configuration's extent.
-  glm::dvec3 corners[8];
-  for (int k = 0; k < 4; ++k) {
-    corners[k] = sp.At(k & 1, k >> 1) - anchor;
-    corners[4 + k] = rp.At(k & 1, k >> 1) - anchor;
-  }
-  double magnitude = 0.0, extent = 0.0;
-  for (int a = 0; a < 8; ++a) {
-    magnitude = std::max({magnitude, std::abs(corners[a].x), std::abs(corners[a].y), std::abs(corners[a].z)});
-    for (int b = a + 1; b < 8; ++b) extent = std::max(extent, glm::length(corners[a] - corners[b]));
-  }
-  const double delta = std::ldexp(std::max(magnitude, extent / 8.0), -17);
+  // Endpoint tolerance, as in EmbreeScene::Occluded.
+  VISQ_ASSIGN_OR_RETURN(const double delta, ResolvableEndpointTolerance(sp, rp, anchor));
   double e_min = 0.0;
   for (float h : receiver.heightfield) e_min = std::min(e_min, r_sign * h);
   const bool bumpy = !receiver.heightfield.empty();
@@ -278,7 +267,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
       SetMat4(p, "u_world_to_receiver", world_to_receiver);
       SetMat4(p, "u_receiver_to_source", receiver_to_source);
       glm::vec3 source_corners[4];
-      for (int k = 0; k < 4; ++k) source_corners[k] = glm::vec3(corners[k]);
+      for (int k = 0; k < 4; ++k) source_corners[k] = glm::vec3(sp.At(k & 1, k >> 1) - anchor);
       glProgramUniform3fv(p, loc("u_source_corners"), 4, &source_corners[0].x);
       glProgramUniform3f(p, loc("u_d_gradient"), float(d_gradient.x), float(d_gradient.y), float(d_gradient.z));
       glProgramUniform1f(p, loc("u_e_per_height"), float(r_sign));
@@ -414,6 +403,35 @@ PatchVisibilityResult SummarizePatchVisibility(const PatchVisibilityRequest& req
   out.error.sampling = SamplingErrorBound(ns, hsm.error.confidence);
   out.timing = hsm.timing;
   return out;
+}
+
+StatusOr<double> ResolvableEndpointTolerance(const Patch& source, const Patch& receiver, const glm::dvec3& anchor) {
+  // 2^-17 of the magnitude of the coordinates involved (relative to the
+  // anchor the float32 positions are stored against), at least 1/8 of the
+  // configuration's extent.
+  glm::dvec3 corners[8];
+  for (int k = 0; k < 4; ++k) {
+    corners[k] = source.At(k & 1, k >> 1) - anchor;
+    corners[4 + k] = receiver.At(k & 1, k >> 1) - anchor;
+  }
+  double magnitude = 0.0, extent = 0.0;
+  for (int a = 0; a < 8; ++a) {
+    magnitude = std::max({magnitude, std::abs(corners[a].x), std::abs(corners[a].y), std::abs(corners[a].z)});
+    for (int b = a + 1; b < 8; ++b) extent = std::max(extent, glm::length(corners[a] - corners[b]));
+  }
+  const double delta = std::ldexp(std::max(magnitude, extent / 8.0), -17);
+  // So delta grows with the query's distance from the anchor. A small query
+  // far from it (a world spanning the origin to 1e6, queried at 1e6: delta
+  // ~ 4 units) would ignore every occluder near its patches and answer
+  // "visible" with a sampling bound that says nothing of it. Refuse rather
+  // than answer silently wrong.
+  if (delta > extent / 16.0)
+    return absl::FailedPreconditionError(absl::StrCat(
+        "source, receiver: the query (extent ", extent, ") lies ", magnitude,
+        " from the scene's float32 anchor, where geometry within ", delta,
+        " of the patches cannot be resolved (more than 1/16 of the query's extent); the exact method "
+        "(PLUCKER_EXACT) works in double precision there"));
+  return delta;
 }
 
 double SamplingErrorBound(int sample_count, double confidence) {

@@ -32,6 +32,9 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
                                                             const gpu::HiddenSampleMapRequest& request) {
   VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(request));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneOf(resident));
+  // Embree holds float32 positions relative to its origin, like the GPU.
+  VISQ_RETURN_IF_ERROR(
+      gpu::ResolvableEndpointTolerance(request.source.patch, request.receiver.patch, embree->origin()).status());
   const auto start = std::chrono::steady_clock::now();
   VISQ_ASSIGN_OR_RETURN(gpu::SourceSamples samples, gpu::ComputeSourceSamples(request.source));
   gpu::HiddenSampleMapResult result;
@@ -277,13 +280,22 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       const std::pair<int, int> probes[] = {exact ? std::pair{1, 0} : std::pair{4, 32},
                                             exact ? std::pair{2, 0} : std::pair{16, 256}};
       const double second_probe_below_ms = exact ? 50.0 : 200.0;
+      bool usable = true;
       for (const auto& [side, samples] : probes) {
         VISQ_RETURN_IF_ERROR(CheckNotCancelled(job));
-        VISQ_ASSIGN_OR_RETURN(RunCost cost, run(method, samples, side));
-        model.Record(series, cost.work, cost.ms);
-        report.probe_ms += cost.ms;
-        if (cost.ms >= second_probe_below_ms) break;
+        StatusOr<RunCost> cost = run(method, samples, side);
+        // A method that cannot answer this request honestly (a sampled one
+        // far from the scene's float32 anchor) is left out of the plans.
+        if (cost.status().code() == absl::StatusCode::kFailedPrecondition) {
+          usable = false;
+          break;
+        }
+        if (!cost.ok()) return cost.status();
+        model.Record(series, cost->work, cost->ms);
+        report.probe_ms += cost->ms;
+        if (cost->ms >= second_probe_below_ms) break;
       }
+      if (!usable) continue;
     }
     auto add_plan = [&](int samples) {
       Plan plan;

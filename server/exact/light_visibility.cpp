@@ -902,9 +902,23 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
       }
     }
     const size_t m = hull_points.size();
+    // Any subset of the supporting planes bounds a superset of the hull, so
+    // culling with fewer planes stays correct, only looser. Brute force costs
+    // O(m^4) and keeps every triple of (coplanar) light vertices as a plane:
+    // a 1024-vertex light never finished. For lights of more than a dozen
+    // vertices only the triples that can bound the sides of the shaft are
+    // tried: at least one box corner, and light vertices only as one vertex
+    // or an edge of the polygon (its hull edges when it is convex). The light
+    // plane itself culls nothing more than the "behind the light" test below.
+    const size_t light_count = ll.size();
+    const bool all_triples = m <= 16;
+    auto is_light = [&](size_t index) { return index < light_count; };
+    auto light_edge = [&](size_t a, size_t b) { return b == a + 1 || (a == 0 && b == light_count - 1); };
     for (size_t i = 0; i < m; ++i) {
       for (size_t j = i + 1; j < m; ++j) {
+        if (!all_triples && is_light(i) && is_light(j) && !light_edge(i, j)) continue;
         for (size_t k = j + 1; k < m; ++k) {
+          if (!all_triples && is_light(k)) continue;  // i < j < k: three light vertices
           bool pos = false, neg = false;
           for (size_t x = 0; x < m && !(pos && neg); ++x) {
             const int o = Orient3d(hull_points[i], hull_points[j], hull_points[k], hull_points[x]);

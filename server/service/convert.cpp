@@ -456,14 +456,26 @@ std::vector<v1::VoxelizeResponse> ToProtoChunks(const gpu::VoxelizeResult& resul
                          2.0 * box.half_extent.z / grid.slices);
   auto* accuracy = first.mutable_accuracy();
   accuracy->set_method(absl::StrCat("slicemap-", first.rasterization(), "-", first.precision()));
-  accuracy->set_error_bound(glm::length(voxel));
-  accuracy->set_confidence(1.0);
-  accuracy->set_note(absl::StrCat(
-      "occupancy is exact to one voxel (", voxel.x, " x ", voxel.y, " x ", voxel.z, "; error_bound is its diagonal)",
-      result.rasterization == gpu::Rasterization::kConservative
-          ? "; conservative: every voxel a triangle touches is set, and some neighbours may be"
-          : "; standard rasterization samples texel centers and misses triangles seen edge-on",
-      result.precision == gpu::SlicePrecision::kLocal ? "; local precision: slices span each column's near..far" : ""));
+  const std::string voxel_size = absl::StrCat(voxel.x, " x ", voxel.y, " x ", voxel.z);
+  const char* precision_note =
+      result.precision == gpu::SlicePrecision::kLocal ? "; local precision: slices span each column's near..far" : "";
+  if (result.rasterization == gpu::Rasterization::kConservative) {
+    accuracy->set_error_bound(glm::length(voxel));
+    accuracy->set_confidence(1.0);
+    accuracy->set_note(absl::StrCat("every voxel a triangle touches is set, and some neighbours may be: each surface "
+                                    "point is within one voxel (",
+                                    voxel_size, "; error_bound is its diagonal) of a set voxel", precision_note));
+  } else {
+    // Standard rasterization samples texel centres: a triangle thinner than
+    // a texel, or seen edge-on, may set no voxel at all, so no distance
+    // bounds what is missed.
+    accuracy->set_error_bound(-1.0);
+    accuracy->set_confidence(0.0);
+    accuracy->set_note(absl::StrCat("no numeric bound: standard rasterization samples texel centres and misses "
+                                    "triangles thinner than a texel or seen edge-on; set voxels are within one voxel (",
+                                    voxel_size, ") of the surface. Ask for conservative for a bound",
+                                    precision_note));
+  }
   const auto& stages = result.timings;
   auto& stage_ms = *first.mutable_stage_ms();
   stage_ms["setup"] = stages.setup_ms;

@@ -199,6 +199,14 @@ struct PatchVisibilityResult {
   JobTiming timing;
 };
 
+// The distance from the segment endpoints within which geometry is ignored
+// (as in raycast::EmbreeScene::Occluded), for scene positions stored as
+// float32 relative to `anchor`; FAILED_PRECONDITION when it exceeds 1/16 of
+// the query's extent (a small query far from the anchor of a huge world),
+// where the answer would silently miss nearby occluders.
+[[nodiscard]] StatusOr<double> ResolvableEndpointTolerance(const Patch& source, const Patch& receiver,
+                                                           const glm::dvec3& anchor);
+
 // Hoeffding half-width of N samples' mean at `confidence`: the sampling
 // part of every bound this module reports.
 double SamplingErrorBound(int sample_count, double confidence);

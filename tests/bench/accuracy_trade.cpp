@@ -1,0 +1,1138 @@
+// The published trade (issue 8): for each query kind, sweep the accuracy
+// parameters and measure time and error against an exact (or converged)
+// reference on the same inputs, on real scenes. Writes a Markdown report
+// (tables, a summary of the cheapest setting reaching 1 % error on Sponza,
+// the machine) and one log-log plot of error against time per query kind
+// (gnuplot, png terminal). Not a test; --quick is (ctest accuracy_trade_quick).
+//
+//   visq_bench_accuracy_trade [--quick] [--scenes DIR] [--out DIR]
+//                             [--md NAME] [--repeats N] [--command TEXT]
+//                             [--only SCENE] [--kinds KEY,...]
+//
+// --out DIR: the report goes to DIR/NAME (default accuracy.md), the plots,
+// their data and gnuplot script to DIR/accuracy/. --quick: the Cornell box
+// only, tiny sizes (under a minute); it also reads its outputs back and fails
+// when a file is missing or a number is not finite. --only: one scene
+// (sponza, veach-ajar, tree, cornell), --kinds: some query kinds (file
+// keys: hidden_sample_map, ...), for trying a change. Exit 77 (skipped) when
+// the shared scenes are absent.
+//
+// References, per kind:
+//   hidden-sample map, patch visibility: the exact visible fraction of the
+//     source patch (as an area light facing the receiver) at the receiver
+//     texel centres, by the Plücker-space BSP (server/exact); plus Embree on
+//     the very same segments (bit mismatch);
+//   obscurances: a GPU bake with many more directions and another seed;
+//   voxelization: the CPU reference voxelizer (exact triangle-box tests) at
+//     the same grid;
+//   volumetric shadows: ray marching on a 4096^2 shadow map.
+// Timing: wall clock of the in-process call, after one warm-up call with the
+// same parameters (programs compiled, Hough tables and BVHs built and cached,
+// scene resident on the GPU); the median of up to --repeats runs, fewer when
+// the runs already took more than about a second and a half.
+#include <algorithm>
+#include <bit>
+#include <cctype>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <ctime>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <limits>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "exact/light_visibility.h"
+#include "obscurance/obscurance_atlas.h"
+#include "obscurance/obscurance_model.h"
+#include "obscurance/obscurance_rays.h"
+#include "raycast/embree_scene.h"
+#include "scene/gltf_loader.h"
+#include "visq/gpu/gpu_scene.h"
+#include "visq/gpu/gpu_worker.h"
+#include "visq/gpu/hidden_sample_map.h"
+#include "visq/gpu/obscurance.h"
+#include "visq/gpu/slicemap.h"
+#include "visq/gpu/volumetric_shadows.h"
+#include "voxel_reference/voxel_reference.h"
+
+namespace {
+
+using namespace visq;
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+constexpr int kSkipped = 77;
+constexpr double kTarget = 0.01;  // the summary's 1 % error
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+double MsSince(Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); }
+
+std::string Fmt(const char* format, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, format, v);
+  return buf;
+}
+
+// ---------------------------------------------------------------------------
+// Results: one row per (scene, method, setting); four error figures per row,
+// the first being the kind's headline error (plotted, and used by the
+// summary).
+
+struct Row {
+  std::string scene;
+  std::string method;   // one plot series per method
+  std::string setting;  // the swept parameter(s)
+  double ms = kNaN;
+  int runs = 0;
+  double err[4] = {kNaN, kNaN, kNaN, kNaN};
+  std::string note;
+};
+
+struct Kind {
+  std::string key;    // file names
+  std::string title;
+  std::string error_labels[4];
+  std::string definition;  // what the error is, against what
+  std::vector<std::string> notes;  // per scene: the reference, its cost, the inputs
+  std::vector<Row> rows;
+};
+
+// Keeps the row and prints it (progress, and the figures if the run is cut
+// short).
+void Record(Kind& kind, Row row) {
+  std::printf("  %-18s %-11s %-18s %-14s %9.1f ms  err %.3g\n", kind.key.c_str(), row.scene.c_str(),
+              row.method.c_str(), row.setting.c_str(), row.ms, row.err[0]);
+  std::fflush(stdout);
+  kind.rows.push_back(std::move(row));
+}
+
+struct Summary {
+  double median = 0;
+  int runs = 0;
+};
+
+// Median wall time of `body` over up to `repeats` runs (after the caller's
+// warm-up); stops early once the runs took 1.5 s. `body` returns false on
+// failure.
+template <typename F>
+bool Time(int repeats, F&& body, Summary& out) {
+  std::vector<double> ms;
+  double total = 0;
+  for (int r = 0; r < repeats; ++r) {
+    const auto t = Clock::now();
+    if (!body()) return false;
+    ms.push_back(MsSince(t));
+    total += ms.back();
+    if (total > 1500.0) break;
+  }
+  std::sort(ms.begin(), ms.end());
+  out.median = ms[ms.size() / 2];
+  out.runs = static_cast<int>(ms.size());
+  return true;
+}
+
+struct Stats {
+  double mean = 0, p95 = 0, max = 0;
+};
+
+Stats AbsErrorStats(std::vector<double> e) {
+  Stats s;
+  if (e.empty()) return {kNaN, kNaN, kNaN};
+  for (double& x : e) x = std::abs(x);
+  for (double x : e) s.mean += x;
+  s.mean /= static_cast<double>(e.size());
+  std::sort(e.begin(), e.end());
+  s.p95 = e[std::min(e.size() - 1, static_cast<size_t>(std::ceil(0.95 * static_cast<double>(e.size()))) - 1)];
+  s.max = e.back();
+  return s;
+}
+
+void Fail(const std::string& what, const Status& status) {
+  std::fprintf(stderr, "accuracy_trade: %s: %s\n", what.c_str(), std::string(status.message()).c_str());
+  std::exit(1);
+}
+
+template <typename T>
+T Must(StatusOr<T> value, const std::string& what) {
+  if (!value.ok()) Fail(what, value.status());
+  return std::move(*value);
+}
+
+// ---------------------------------------------------------------------------
+// Scenes and their query inputs.
+
+struct SceneCase {
+  std::string name;
+  fs::path path;
+  Scene scene;
+  gpu::Patch source, receiver;  // hidden-sample map, patch visibility
+  gpu::VolumetricParams volumetric;
+};
+
+glm::dvec3 Lerp(const Bounds& b, double fx, double fy, double fz) { return b.min + glm::dvec3(fx, fy, fz) * b.Extent(); }
+
+// Height of the first surface straight below `from` (or `fallback`).
+double FloorBelow(const raycast::EmbreeScene& embree, const glm::dvec3& from, double fallback) {
+  raycast::Ray ray{from, {0.0, -1.0, 0.0}};
+  auto hits = embree.Intersect(std::span<const raycast::Ray>(&ray, 1));
+  if (!hits.ok() || !(*hits)[0].hit) return fallback;
+  return from.y - (*hits)[0].t;
+}
+
+// A horizontal source patch of side `side` centred at `center` and a
+// horizontal receiver (extent ru x rv, centred at receiver_center) lifted a
+// little above the floor under it.
+void PlacePatches(SceneCase& c, const raycast::EmbreeScene& embree, const glm::dvec3& center, double side,
+                  glm::dvec3 receiver_center, double ru, double rv, bool find_floor) {
+  const double diag = glm::length(c.scene.bounds.Extent());
+  c.source = {center - glm::dvec3(side / 2, 0, side / 2), {side, 0, 0}, {0, 0, side}};
+  const double floor = find_floor ? FloorBelow(embree, center, c.scene.bounds.min.y) : c.scene.bounds.min.y;
+  receiver_center.y = floor + 1e-3 * diag;
+  c.receiver = {receiver_center - glm::dvec3(ru / 2, 0, rv / 2), {ru, 0, 0}, {0, 0, rv}};
+}
+
+gpu::VolumetricParams BaseVolumetric(const Scene& s, const glm::dvec3& eye, const glm::dvec3& at) {
+  gpu::VolumetricParams p;
+  p.camera.position = eye;
+  p.camera.forward = at - eye;
+  p.camera.vertical_fov_deg = 60;
+  const double extent = glm::length(s.bounds.Extent());
+  p.medium = {2.0 / extent, 3.0 / extent, 0.2, false};
+  return p;
+}
+
+// Loads the scene and places the queries. Positions are fractions of the
+// bounds (the floor found by a ray), so they follow the assets.
+bool Prepare(SceneCase& c) {
+  auto scene = LoadGltfFile(c.path);
+  if (!scene.ok()) {
+    std::printf("skip %s: %s\n", c.name.c_str(), std::string(scene.status().message()).c_str());
+    return false;
+  }
+  c.scene = std::move(*scene);
+  const Bounds& b = c.scene.bounds;
+  const glm::dvec3 e = b.Extent(), m = b.Center();
+  auto embree = Must(raycast::EmbreeScene::Create(c.scene), c.name + ": embree");
+  if (c.name == "sponza") {
+    // A light high in the open atrium; the atrium floor and the galleries'
+    // floor strips under the arcades as receiver.
+    const glm::dvec3 light = {m.x, b.min.y + 0.75 * e.y, m.z};
+    PlacePatches(c, embree, light, 0.08 * e.x, m, 0.7 * e.x, 0.5 * e.z, true);
+    c.volumetric = BaseVolumetric(c.scene, Lerp(b, 0.12, 0.25, 0.5), Lerp(b, 0.9, 0.35, 0.45));
+    c.volumetric.light.direction = {0.25, -1.0, 0.45};
+    c.volumetric.light.intensity = 4.0;
+  } else if (c.name == "veach-ajar") {
+    // A light under the ceiling over the table; the room's floor.
+    const glm::dvec3 light = {m.x, b.min.y + 0.85 * e.y, m.z};
+    PlacePatches(c, embree, light, 0.08 * std::min(e.x, e.z), m, 0.8 * e.x, 0.8 * e.z, true);
+    // A spot in place of that light (the room is closed to a sun), the
+    // camera across the room.
+    c.volumetric = BaseVolumetric(c.scene, Lerp(b, 0.15, 0.5, 0.5), Lerp(b, 0.85, 0.3, 0.5));
+    c.volumetric.light.kind = gpu::VolumetricLightKind::kSpot;
+    c.volumetric.light.position = light;
+    c.volumetric.light.direction = {0.15, -1.0, 0.1};
+    c.volumetric.light.cone_angle_deg = 60;
+    c.volumetric.light.intensity = 4.0 * e.y * e.y;
+    c.volumetric.medium.hg_g = 0.0;
+    c.volumetric.medium.optically_thin = true;
+  } else if (c.name == "tree") {
+    // A sun-sized patch above and to the side; the ground around the trunk.
+    const glm::dvec3 light = {m.x + 0.3 * e.x, b.max.y + 0.5 * e.y, m.z};
+    PlacePatches(c, embree, light, 0.3 * e.x, m - glm::dvec3(0.3 * e.x, 0, 0), 2.0 * e.x, 2.0 * e.z, false);
+    c.volumetric = BaseVolumetric(c.scene, m + glm::dvec3(0.2 * e.x, -0.1 * e.y, -2.0 * std::max(e.x, e.z)), m);
+    c.volumetric.light.direction = {-0.3, -1.0, 0.2};
+    c.volumetric.light.intensity = 4.0;
+    c.volumetric.extra_medium_bounds.Extend(b.min - e);
+    c.volumetric.extra_medium_bounds.Extend(b.max + glm::dvec3(e.x, 0, e.z));
+  } else {  // cornell
+    // A patch just under the ceiling (below its emitter quad); the floor.
+    const glm::dvec3 light = {m.x, b.max.y - 0.04 * e.y, m.z};
+    PlacePatches(c, embree, light, 0.25 * e.x, m, 0.98 * e.x, 0.98 * e.z, true);
+    c.volumetric = BaseVolumetric(c.scene, m + glm::dvec3(0, 0, 1.8 * e.z), m);
+    c.volumetric.camera.vertical_fov_deg = 45;
+    c.volumetric.light.kind = gpu::VolumetricLightKind::kSpot;
+    c.volumetric.light.position = light;
+    c.volumetric.light.direction = {0.0, -1.0, 0.0};
+    c.volumetric.light.cone_angle_deg = 50;
+    c.volumetric.light.intensity = 4.0 * e.y * e.y;
+    c.volumetric.medium.hg_g = 0.0;
+    c.volumetric.medium.optically_thin = true;
+  }
+  return true;
+}
+
+std::string PatchText(const gpu::Patch& p) {
+  char buf[256];
+  std::snprintf(buf, sizeof buf, "(%.3g, %.3g, %.3g); (%.3g, %.3g, %.3g); (%.3g, %.3g, %.3g)", p.origin.x, p.origin.y,
+                p.origin.z, p.edge_u.x, p.edge_u.y, p.edge_u.z, p.edge_v.x, p.edge_v.y, p.edge_v.z);
+  return buf;
+}
+
+// ---------------------------------------------------------------------------
+// The run's sizes.
+
+struct Plan {
+  bool quick = false;
+  int repeats = 3;
+  int receiver = 64;  // receiver texels per side (both visibility kinds)
+  std::vector<int> counts = {32, 64, 128, 256, 512, 1024, 2048, 4096};
+  std::vector<int> hough = {64, 256, 1024};
+  std::vector<int> source_grids = {4, 8, 16, 32, 64};
+  uint32_t atlas = 256;
+  std::vector<uint32_t> directions = {4, 8, 16, 32, 64, 128, 256};
+  uint32_t reference_rays = 4096;
+  std::vector<uint32_t> rays_per_patch = {4, 16, 64, 256};
+  std::vector<uint32_t> voxel_sizes = {32, 64, 128, 256, 512};
+  uint32_t image_w = 320, image_h = 240;
+  std::vector<uint32_t> shadow_maps = {64, 128, 256, 512, 1024, 2048};
+  uint32_t reference_map = 4096;
+};
+
+// Scenes other than Sponza get a lighter sweep where the GPU path is slow
+// (every rasterization pass costs seconds on llvmpipe for veach-ajar).
+bool Full(const Plan& plan, const SceneCase& c) { return plan.quick || c.name == "sponza"; }
+
+// ---------------------------------------------------------------------------
+// Exact reference: the visible fraction of the source patch, as a light
+// facing the receiver, at every receiver texel centre. Receivers are grouped
+// in tiles, one tree each, as the paper groups receivers.
+
+struct ExactReference {
+  std::vector<double> fraction;  // per texel, row-major
+  double ms = 0;
+  size_t penumbra = 0;  // texels with 0 < fraction < 1
+  double mean = 0;
+};
+
+ExactReference ExactFractions(const SceneCase& c, int width, int height) {
+  exact::AreaLight light;
+  const gpu::Patch& s = c.source;
+  light.vertices = {s.origin, s.origin + s.edge_u, s.origin + s.edge_u + s.edge_v, s.origin + s.edge_v};
+  const glm::dvec3 normal = glm::cross(s.edge_u, s.edge_v);
+  const glm::dvec3 toward = c.receiver.At(0.5, 0.5) - s.At(0.5, 0.5);
+  if (glm::dot(normal, toward) < 0) std::reverse(light.vertices.begin(), light.vertices.end());
+  gpu::ReceiverSpec receiver;
+  receiver.patch = c.receiver;
+  receiver.width = width;
+  receiver.height = height;
+  ExactReference ref;
+  ref.fraction.resize(size_t(width) * height);
+  const int tiles = std::max(1, std::min(4, width / 8));
+  const auto t0 = Clock::now();
+  for (int ty = 0; ty < tiles; ++ty)
+    for (int tx = 0; tx < tiles; ++tx) {
+      std::vector<exact::QueryPoint> points;
+      std::vector<size_t> index;
+      Bounds tb;
+      for (int y = ty * height / tiles; y < (ty + 1) * height / tiles; ++y)
+        for (int x = tx * width / tiles; x < (tx + 1) * width / tiles; ++x) {
+          exact::QueryPoint q;
+          q.position = gpu::ReceiverSamplePosition(receiver, x, y);
+          tb.Extend(q.position);
+          points.push_back(q);
+          index.push_back(size_t(y) * width + x);
+        }
+      const double pad = 1e-4 * glm::length(c.scene.bounds.Extent());
+      tb.min -= glm::dvec3(pad);
+      tb.max += glm::dvec3(pad);
+      exact::TreeOptions options;
+      options.receiver_bounds = tb;
+      auto tree = Must(exact::LightVisibilityTree::Create(light, c.scene, options), c.name + ": exact tree");
+      auto answers = Must(tree->QueryBatch(points), c.name + ": exact queries");
+      for (size_t i = 0; i < points.size(); ++i) ref.fraction[index[i]] = answers[i].visible_area_fraction;
+    }
+  ref.ms = MsSince(t0);
+  for (double f : ref.fraction) {
+    ref.penumbra += f > 1e-9 && f < 1 - 1e-9;
+    ref.mean += f;
+  }
+  ref.mean /= static_cast<double>(ref.fraction.size());
+  return ref;
+}
+
+// ---------------------------------------------------------------------------
+// RAYCAST: Embree on exactly the segments the GPU path tests (the same
+// source samples and receiver texel centres), as server/core does.
+
+struct RaycastMap {
+  std::vector<float> visible_fraction;
+  std::vector<uint32_t> bits;
+  int words = 0;
+};
+
+bool Raycast(const raycast::EmbreeScene& embree, const gpu::HiddenSampleMapRequest& request,
+             const gpu::SourceSamples& samples, RaycastMap& out) {
+  const int width = request.receiver.width, height = request.receiver.height;
+  const int n = static_cast<int>(samples.world.size());
+  out.words = (n + 31) / 32;
+  out.bits.assign(size_t(width) * height * out.words, 0u);
+  out.visible_fraction.assign(size_t(width) * height, 0.0f);
+  std::vector<raycast::Segment> segments;
+  segments.reserve(size_t(width) * height * n);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x) {
+      const glm::dvec3 p = gpu::ReceiverSamplePosition(request.receiver, x, y);
+      for (int i = 0; i < n; ++i) segments.push_back({p, gpu::SourceSampleSeenFrom(request, samples, i, x, y)});
+    }
+  auto blocked = embree.Occluded(segments);
+  if (!blocked.ok()) return false;
+  size_t k = 0;
+  for (size_t j = 0; j < out.visible_fraction.size(); ++j) {
+    int hidden = 0;
+    for (int i = 0; i < n; ++i, ++k)
+      if ((*blocked)[k]) {
+        out.bits[j * out.words + i / 32] |= 1u << (i % 32);
+        ++hidden;
+      }
+    out.visible_fraction[j] = float(n - hidden) / float(n);
+  }
+  return true;
+}
+
+double BitMismatch(const std::vector<uint32_t>& a, const std::vector<uint32_t>& b, size_t texels, int n) {
+  if (a.size() != b.size() || texels == 0) return kNaN;
+  uint64_t diff = 0;
+  for (size_t i = 0; i < a.size(); ++i) diff += std::popcount(a[i] ^ b[i]);
+  return static_cast<double>(diff) / (static_cast<double>(texels) * n);
+}
+
+std::vector<double> Diff(const std::vector<float>& answer, const std::vector<double>& exact) {
+  std::vector<double> d(answer.size());
+  for (size_t i = 0; i < answer.size(); ++i) d[i] = double(answer[i]) - exact[i];
+  return d;
+}
+
+// ---------------------------------------------------------------------------
+// Hidden-sample map.
+
+void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMapper& mapper,
+                          const gpu::GpuScene& gpu_scene, const raycast::EmbreeScene& embree,
+                          const ExactReference& ref, Kind& kind) {
+  const bool full = Full(plan, c);
+  std::vector<int> counts = plan.counts;
+  std::vector<int> hough = plan.hough;
+  if (!full) {
+    counts = {32, 256, 1024};  // one rasterization pass each
+    hough = {256};
+  }
+  const size_t texels = size_t(plan.receiver) * plan.receiver;
+  for (int n : counts) {
+    gpu::HiddenSampleMapRequest r;
+    r.source.patch = c.source;
+    r.source.sample_count = n;
+    r.source.pattern = gpu::SamplePattern::kJittered;
+    r.source.seed = 1;
+    r.receiver.patch = c.receiver;
+    r.receiver.width = r.receiver.height = plan.receiver;
+    const std::string setting = "N=" + std::to_string(n);
+
+    // RAYCAST first: its bits are what the raster paths are compared with.
+    const gpu::SourceSamples samples = Must(gpu::ComputeSourceSamples(r.source), "source samples");
+    RaycastMap rays;
+    if (!Raycast(embree, r, samples, rays)) Fail("raycast", absl::InternalError("Occluded failed"));
+    Summary t;
+    RaycastMap scratch;
+    if (!Time(plan.repeats, [&] { return Raycast(embree, r, samples, scratch); }, t)) continue;
+    {
+      const Stats s = AbsErrorStats(Diff(rays.visible_fraction, ref.fraction));
+      Record(kind, {c.name, "RAYCAST (Embree)", setting, t.median, t.runs, {s.mean, s.p95, s.max, 0.0}, ""});
+    }
+
+    struct Variant {
+      std::string method;
+      gpu::LookupMode lookup;
+      int hough;
+    };
+    std::vector<Variant> variants = {{"RASTER EXACT", gpu::LookupMode::kExact, 256}};
+    for (int h : hough) variants.push_back({"RASTER FAST h" + std::to_string(h), gpu::LookupMode::kHough, h});
+    for (const Variant& v : variants) {
+      r.options.lookup = v.lookup;
+      r.options.hough_theta_resolution = r.options.hough_r_resolution = v.hough;
+      // Warm-up with bitmasks: builds and caches the Hough table, and gives
+      // the bits to compare with Embree's.
+      r.options.want_bitmasks = true;
+      auto warm = mapper.Compute(gpu_scene, r);
+      if (!warm.ok()) Fail(c.name + " " + v.method + " " + setting, warm.status());
+      const double mismatch = BitMismatch(warm->blocked_bits, rays.bits, texels, n);
+      r.options.want_bitmasks = false;
+      gpu::HiddenSampleMapResult last;
+      if (!Time(plan.repeats,
+                [&] {
+                  auto result = mapper.Compute(gpu_scene, r);
+                  if (!result.ok()) return false;
+                  last = std::move(*result);
+                  return true;
+                },
+                t))
+        Fail(c.name + " " + v.method, absl::InternalError("compute failed"));
+      const Stats s = AbsErrorStats(Diff(last.visible_fraction, ref.fraction));
+      std::string note;
+      if (v.lookup == gpu::LookupMode::kHough) note = "stated bound " + Fmt("%.3g", last.error.lookup_max);
+      Record(kind, {c.name, v.method, setting, t.median, t.runs, {s.mean, s.p95, s.max, mismatch}, note});
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------
+// Patch visibility: the mutual fraction against the mean of the exact
+// per-receiver-sample fractions (the receiver grid is the texel grid of the
+// hidden-sample map, so the exact reference is shared).
+
+void SweepPatchVisibility(const Plan& plan, SceneCase& c, gpu::HiddenSampleMapper& mapper,
+                          const gpu::GpuScene& gpu_scene, const raycast::EmbreeScene& embree,
+                          const ExactReference& ref, Kind& kind) {
+  std::vector<int> grids = plan.source_grids;
+  if (!Full(plan, c)) grids = {4, 16, 32};  // up to 1024 samples: one pass
+  double exact_mutual = 0;
+  for (double f : ref.fraction) exact_mutual += f;
+  exact_mutual /= static_cast<double>(ref.fraction.size());
+  for (int g : grids) {
+    gpu::PatchVisibilityRequest r;
+    r.source = c.source;
+    r.source_columns = r.source_rows = g;
+    r.receiver = c.receiver;
+    r.receiver_columns = r.receiver_rows = plan.receiver;
+    const std::string setting = std::to_string(g) + "x" + std::to_string(g);
+    auto record = [&](const std::string& method, const Summary& t, const gpu::PatchVisibilityResult& result) {
+      const Stats s = AbsErrorStats(Diff(result.receiver_visible, ref.fraction));
+      Record(kind, {c.name, method, setting, t.median, t.runs,
+                           {std::abs(result.mutual_visible_fraction - exact_mutual), s.mean, s.p95, s.max}, ""});
+    };
+    // RAYCAST: the same map the GPU path computes, by Embree.
+    const gpu::HiddenSampleMapRequest map = Must(gpu::PatchVisibilityAsHiddenSampleMap(r), "patch as map");
+    const gpu::SourceSamples samples = Must(gpu::ComputeSourceSamples(map.source), "patch samples");
+    gpu::PatchVisibilityResult last;
+    auto raycast = [&] {
+      RaycastMap rays;
+      if (!Raycast(embree, map, samples, rays)) return false;
+      gpu::HiddenSampleMapResult as_map;
+      as_map.width = map.receiver.width;
+      as_map.height = map.receiver.height;
+      as_map.sample_count = static_cast<int>(samples.world.size());
+      as_map.words_per_texel = rays.words;
+      as_map.visible_fraction = std::move(rays.visible_fraction);
+      as_map.blocked_bits = std::move(rays.bits);
+      last = gpu::SummarizePatchVisibility(r, as_map);
+      return true;
+    };
+    Summary t;
+    if (!raycast() || !Time(plan.repeats, raycast, t)) Fail("patch raycast", absl::InternalError("failed"));
+    record("RAYCAST (Embree)", t, last);
+    for (auto lookup : {gpu::LookupMode::kExact, gpu::LookupMode::kHough}) {
+      r.lookup = lookup;
+      auto body = [&] {
+        auto result = mapper.PatchVisibility(gpu_scene, r);
+        if (!result.ok()) return false;
+        last = std::move(*result);
+        return true;
+      };
+      if (!body() || !Time(plan.repeats, body, t)) Fail("patch visibility", absl::InternalError("failed"));
+      record(lookup == gpu::LookupMode::kExact ? "RASTER EXACT" : "RASTER FAST h256", t, last);
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------
+// Obscurances: W per atlas texel against a GPU bake with many more
+// directions (another seed, so the sweep's sequences are not its prefixes).
+
+void SweepObscurances(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
+                      Kind& kind) {
+  using namespace visq::obscurance;
+  const bool full = Full(plan, c);
+  const auto t_atlas = Clock::now();
+  const ObscuranceAtlas atlas = Must(BuildObscuranceAtlas(c.scene, plan.atlas), c.name + ": atlas");
+  const double atlas_ms = MsSince(t_atlas);
+  ObscuranceParams params;
+  params.d_max = 0.1 * glm::length(c.scene.bounds.Extent());
+  params.color_bleeding = false;
+  auto bake = [&](uint32_t directions, uint64_t seed) {
+    params.direction_count = directions;
+    params.seed = seed;
+    return Must(gpu::BakeObscurances(worker, gpu_scene, c.scene, atlas, params), c.name + ": obscurance bake");
+  };
+  (void)bake(1, 1);  // warm-up: programs and the scene's GPU buffers
+  auto rays = [&](uint32_t n, uint64_t seed) {
+    RayEstimateOptions options;
+    options.rays_per_patch = n;
+    options.seed = seed;
+    return Must(EstimateObscurancesByRays(c.scene, atlas, params, options), c.name + ": obscurance rays");
+  };
+
+  // The sweep first, fewest directions first, stopping before a bake that
+  // would take more than `max_bake_ms` at the cost per direction seen so far.
+  struct Point {
+    std::string method, setting;
+    Summary t;
+    ObscuranceResult result;
+  };
+  std::vector<Point> points;
+  const double max_bake_ms = plan.quick ? 5e3 : (full ? 40e3 : 15e3);
+  double ms_per_direction = 0;
+  for (uint32_t d : full ? plan.directions : std::vector<uint32_t>{4, 16, 64, 256}) {
+    if (ms_per_direction * d > max_bake_ms) break;
+    Point p{"GPU depth peeling", std::to_string(d) + " dirs", {}, {}};
+    Time(plan.repeats, [&] { p.result = bake(d, 1); return true; }, p.t);
+    ms_per_direction = p.t.median / d;
+    points.push_back(std::move(p));
+  }
+  for (uint32_t n : full ? plan.rays_per_patch : std::vector<uint32_t>{4, 16, 64}) {
+    Point p{"Embree rays (CPU)", std::to_string(n) + " rays/patch", {}, {}};
+    Time(plan.repeats, [&] { p.result = rays(n, 1); return true; }, p.t);
+    points.push_back(std::move(p));
+  }
+
+  // The reference. A GPU bake costs about half a second per direction on
+  // llvmpipe (Sponza, 256^2 atlas), so a converged bake does not fit in the
+  // run; the Embree estimator of the same patch averages (unbiased, see
+  // obscurance_rays.h) with many rays per patch and another seed does.
+  const auto t_ref = Clock::now();
+  const ObscuranceResult reference = rays(plan.reference_rays, 7);
+  const double ref_ms = MsSince(t_ref);
+  std::printf("  obscurance reference %s: %u rays/patch, %.1f s\n", c.name.c_str(), plan.reference_rays,
+              ref_ms / 1000);
+  kind.notes.push_back(c.name + ": atlas " + std::to_string(atlas.width) + "x" + std::to_string(atlas.height) +
+                       " (" + Fmt("%.0f", atlas_ms) + " ms to build), d_max = 0.1 x scene diagonal, no colour "
+                       "bleeding. Reference: the Embree estimator with " + std::to_string(plan.reference_rays) +
+                       " rays per patch and another seed (" + Fmt("%.1f", ref_ms / 1000) + " s). A GPU bake here "
+                       "costs " + Fmt("%.0f", ms_per_direction) + " ms per direction, so a converged GPU bake "
+                       "(thousands of directions) does not fit in the run. GPU bakes stop before one would take "
+                       "more than " + Fmt("%.0f", max_bake_ms / 1000) + " s. The Embree times include building "
+                       "its BVH, which every call does.");
+  for (const Point& p : points) {
+    std::vector<double> d;
+    for (uint32_t texel = 0; texel < atlas.texel_count(); ++texel)
+      if (atlas.Covered(texel) && p.result.estimated[texel] && reference.estimated[texel])
+        d.push_back(double(p.result.w[texel].x) - reference.w[texel].x);
+    double sq = 0;
+    for (double x : d) sq += x * x;
+    const Stats s = AbsErrorStats(d);
+    Record(kind, {c.name, p.method, p.setting, p.t.median, p.t.runs,
+                  {s.mean, s.p95, s.max, d.empty() ? kNaN : std::sqrt(sq / double(d.size()))},
+                  Fmt("%.0f samples/patch", p.result.mean_samples_per_patch)});
+  }
+}
+
+// ---------------------------------------------------------------------------
+// Voxelization: the GPU slicemap against the CPU reference voxelizer on the
+// same grid (surface, uniform slices, depth along y).
+
+void SweepVoxelization(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
+                       Kind& kind) {
+  std::vector<uint32_t> sizes = plan.voxel_sizes;
+  if (!Full(plan, c)) sizes = {64, 128, 256};
+  for (uint32_t n : sizes) {
+    gpu::VoxelizeParams params;
+    params.box = gpu::AxisAlignedSlicemapBox(c.scene.bounds, 1, 1e-3 * glm::length(c.scene.bounds.Extent()));
+    params.width = params.height = params.slices = n;
+    params.max_bytes = uint64_t{4} << 30;
+    const voxel_reference::GridBox box{params.box.center, params.box.axis_u, params.box.axis_v, params.box.axis_w,
+                                       params.box.half_extent, n, n, n};
+    voxel_reference::SurfaceStats stats;
+    const auto reference = Must(voxel_reference::VoxelizeSurface(c.scene, box, {}, &stats), "voxel reference");
+    const double occupied = static_cast<double>(reference.CountOccupied());
+    // What a one-sample-per-texel rasterizer can see: the standard mode's own
+    // definition, so its error against it is the implementation's alone.
+    const auto centres = Must(voxel_reference::SampleColumnCenters(c.scene, box), "column-centre reference");
+    const std::string setting = std::to_string(n) + "^3";
+    for (auto raster : {gpu::Rasterization::kStandard, gpu::Rasterization::kConservative}) {
+      params.rasterization = raster;
+      gpu::VoxelizeResult last;
+      auto body = [&] {
+        auto r = gpu::Voxelize(worker, gpu_scene, params);
+        if (!r.ok()) return false;
+        last = std::move(*r);
+        return true;
+      };
+      Summary t;
+      if (!body() || !Time(plan.repeats, body, t)) Fail("voxelize", absl::InternalError("failed"));
+      uint64_t missing = 0, extra = 0, off_centres = 0;
+      for (size_t i = 0; i < last.grid.bits.size() && i < reference.bits.size(); ++i) {
+        missing += std::popcount(reference.bits[i] & ~last.grid.bits[i]);
+        extra += std::popcount(last.grid.bits[i] & ~reference.bits[i]);
+        if (i < centres.bits.size()) off_centres += std::popcount(last.grid.bits[i] ^ centres.bits[i]);
+      }
+      const double o = std::max(occupied, 1.0);
+      const bool standard = raster == gpu::Rasterization::kStandard;
+      Record(kind, {c.name, standard ? "standard" : "conservative", setting, t.median, t.runs,
+                           {double(missing + extra) / o, double(missing) / o, double(extra) / o,
+                            standard ? double(off_centres) / std::max<double>(1.0, centres.CountOccupied()) : kNaN},
+                           Fmt("%.0f", occupied) + " occupied; CPU reference " + Fmt("%.0f", stats.milliseconds) +
+                               " ms"});
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------
+// Volumetric shadows: in-scattered radiance against ray marching on a large
+// shadow map, same camera, light and medium.
+
+void SweepVolumetric(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
+                     Kind& kind) {
+  gpu::VolumetricParams params = c.volumetric;
+  params.camera.width = plan.image_w;
+  params.camera.height = plan.image_h;
+  params.method = gpu::VolumetricMethod::kRayMarching;
+  params.shadow_map_size = plan.reference_map;
+  const auto t_ref = Clock::now();
+  const gpu::VolumetricResult reference =
+      Must(gpu::RenderVolumetricShadows(worker, gpu_scene, c.scene, params), c.name + ": volumetric reference");
+  const double ref_ms = MsSince(t_ref);
+  double mean_ref = 0, max_ref = 0;
+  for (float v : reference.inscattering) {
+    mean_ref += v;
+    max_ref = std::max(max_ref, double(v));
+  }
+  mean_ref /= std::max<size_t>(1, reference.inscattering.size());
+  kind.notes.push_back(c.name + ": " + std::to_string(plan.image_w) + "x" + std::to_string(plan.image_h) + ", " +
+                       (c.volumetric.light.kind == gpu::VolumetricLightKind::kSpot ? "spot" : "directional") +
+                       " light, integrand " + std::string(gpu::VolumetricIntegrandName(reference.integrand)) +
+                       "; reference: ray marching on a " + std::to_string(plan.reference_map) + "^2 map (" +
+                       Fmt("%.0f", ref_ms) + " ms, first call), mean in-scattering " + Fmt("%.3g", mean_ref) +
+                       ", peak " + Fmt("%.3g", max_ref) + ".");
+  std::vector<uint32_t> maps = plan.shadow_maps;
+  if (!Full(plan, c)) maps = {64, 256, 1024};
+  for (uint32_t map : maps)
+    for (auto method : {gpu::VolumetricMethod::kMinMaxTraversal, gpu::VolumetricMethod::kRayMarching}) {
+      params.shadow_map_size = map;
+      params.method = method;
+      gpu::VolumetricResult last;
+      auto body = [&] {
+        auto r = gpu::RenderVolumetricShadows(worker, gpu_scene, c.scene, params);
+        if (!r.ok()) return false;
+        last = std::move(*r);
+        return true;
+      };
+      Summary t;
+      if (!body() || !Time(plan.repeats, body, t)) Fail("volumetric", absl::InternalError("failed"));
+      std::vector<double> d(last.inscattering.size());
+      double sq = 0;
+      for (size_t i = 0; i < d.size(); ++i) {
+        d[i] = double(last.inscattering[i]) - reference.inscattering[i];
+        sq += d[i] * d[i];
+      }
+      const Stats s = AbsErrorStats(d);
+      const double mean = mean_ref > 0 ? mean_ref : 1.0, peak = max_ref > 0 ? max_ref : 1.0;
+      Record(kind, {c.name, method == gpu::VolumetricMethod::kMinMaxTraversal ? "MIN_MAX" : "RAY_MARCHING",
+                           "map " + std::to_string(map), t.median, t.runs,
+                           {std::sqrt(sq / std::max<size_t>(1, d.size())) / mean, s.mean / mean, s.p95 / mean,
+                            s.max / peak},
+                           Fmt("traversal %.1f ms", last.timings.traversal_ms)});
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Output: Markdown tables, gnuplot data and script, the plots.
+
+std::string Num(double v, bool percent = false) {
+  if (!std::isfinite(v)) return "–";
+  if (percent) return Fmt(v == 0 ? "%.0f %%" : (v < 0.001 ? "%.2e %%" : "%.3g %%"), 100 * v);
+  return Fmt(v == 0 ? "%.0f" : "%.3g", v);
+}
+
+std::string Escape(const std::string& s) {
+  std::string out;
+  for (char ch : s) {
+    if (ch == '"' || ch == '\\') out += '\\';
+    out += ch;
+  }
+  return out;
+}
+
+// A Markdown table cell: '|' would end the cell.
+std::string Cell(const std::string& s) {
+  std::string out;
+  for (char ch : s) out += ch == '|' ? std::string("\\|") : std::string(1, ch);
+  return out;
+}
+
+std::vector<std::string> Unique(const std::vector<Row>& rows, std::string Row::*field, const std::string& scene = "") {
+  std::vector<std::string> out;
+  for (const Row& r : rows)
+    if ((scene.empty() || r.scene == scene) && std::find(out.begin(), out.end(), r.*field) == out.end())
+      out.push_back(r.*field);
+  return out;
+}
+
+// One PNG per kind: a panel per scene, a series per method, error against
+// time on log-log axes. Returns false when gnuplot failed or is missing.
+bool Plot(const Kind& kind, const fs::path& dir, bool have_gnuplot) {
+  const fs::path dat = dir / (kind.key + ".dat"), gp = dir / (kind.key + ".gp"), png = dir / (kind.key + ".png");
+  const std::vector<std::string> scenes = Unique(kind.rows, &Row::scene);
+  std::ofstream d(dat);
+  d << "# " << kind.title << ": time_ms headline_error (" << kind.error_labels[0]
+    << "; zero drawn at 1e-6); one block per (scene, method)\n";
+  std::ofstream g(gp);
+  g << "# Generated by visq_bench_accuracy_trade; run `gnuplot " << gp.filename().string() << "` in this folder.\n"
+    << "set terminal png size 1400," << (scenes.size() > 2 ? 1000 : 520) << " font \",10\"\n"
+    << "set output '" << png.filename().string() << "'\n"
+    << "set logscale xy\nset grid\nset key top right font \",9\"\n"
+    << "set xlabel 'time per query (ms)'\nset ylabel '" << kind.error_labels[0] << "'\n"
+    << "set multiplot layout " << (scenes.size() > 2 ? 2 : 1) << "," << std::min<size_t>(2, scenes.size())
+    << " title \"" << Escape(kind.title) << ": error against time\"\n";
+  int block = 0;
+  for (const std::string& scene : scenes) {
+    g << "set title '" << scene << "'\nplot";
+    const std::vector<std::string> methods = Unique(kind.rows, &Row::method, scene);
+    for (size_t m = 0; m < methods.size(); ++m) {
+      d << "# " << scene << " / " << methods[m] << "\n";
+      for (const Row& r : kind.rows)
+        if (r.scene == scene && r.method == methods[m])
+          d << r.ms << " " << std::max(r.err[0], 1e-6) << " \"" << r.setting << "\"\n";
+      d << "\n\n";
+      g << (m ? ", \\\n    " : " ") << "'" << dat.filename().string() << "' index " << block++
+        << " using 1:2 with linespoints pt " << (m + 5) << " title \"" << Escape(methods[m]) << "\"";
+    }
+    g << "\n";
+  }
+  g << "unset multiplot\n";
+  d.close();
+  g.close();
+  if (!have_gnuplot) return false;
+  const std::string command = "cd '" + dir.string() + "' && gnuplot '" + gp.filename().string() + "'";
+  return std::system(command.c_str()) == 0 && fs::exists(png);
+}
+
+std::string CpuModel() {
+  std::ifstream in("/proc/cpuinfo");
+  std::string line;
+  while (std::getline(in, line))
+    if (line.rfind("model name", 0) == 0) return line.substr(line.find(':') + 2);
+  return "unknown";
+}
+
+struct Machine {
+  std::string cpu, gl_renderer, gl_version, date, command;
+  unsigned threads = 0;
+};
+
+void WriteReport(const fs::path& md, const std::string& plot_dir_name, const std::vector<Kind>& kinds,
+                 const Machine& machine, const Plan& plan, bool plotted, double total_s) {
+  std::ofstream o(md);
+  o << "# The published trade: accuracy against time\n\n"
+    << "Every number and plot on this page was measured by one run of `visq_bench_accuracy_trade` "
+       "(tests/bench/accuracy_trade.cpp); nothing here is typed by hand. To regenerate this page and its plots, "
+       "run `./visq.sh accuracy` from the checkout (as root on Debian 12). It installs what is missing (gnuplot "
+       "included), builds the benchmark in Release and runs it. It writes `docs/accuracy.md` and "
+       "`docs/accuracy/*.png`, and beside the plots their data (`.dat`) and gnuplot scripts (`.gp`). "
+       "On a 2-core machine the full run takes about "
+    << Fmt("%.0f", total_s / 60) << " minutes. `visq_bench_accuracy_trade --quick --out DIR` is the ctest "
+       "smoke test (`accuracy_trade_quick`).\n\n"
+    << "For each query kind, the accuracy parameters are swept and each setting's answer is compared with an exact "
+       "or converged reference on the same inputs, in the same run:\n\n"
+    << "- **hidden-sample map**: the exact visible fraction of the source patch at every receiver texel centre, "
+       "from the Plücker-space BSP (`server/exact`, the `LightVisibility` algorithm) with the patch as an area light "
+       "facing the receiver. Also Embree on the very same segments (bits that differ).\n"
+    << "- **patch visibility**: the same exact fractions, averaged (the exact mutual visible fraction).\n"
+    << "- **obscurances**: the Embree estimator with many rays per patch, with another seed. On this machine a "
+       "converged GPU bake does not fit in the run.\n"
+    << "- **voxelization**: the CPU reference voxelizer (`server/voxel_reference`, exact triangle-box tests) on the "
+       "same grid.\n"
+    << "- **volumetric shadows**: ray marching on a " << plan.reference_map << "² shadow map.\n\n";
+
+  // Machine.
+  o << "## Machine\n\n"
+    << "| | |\n|---|---|\n"
+    << "| CPU | " << machine.cpu << ", " << machine.threads << " hardware threads |\n"
+    << "| GL renderer | " << machine.gl_renderer << " |\n"
+    << "| GL version | " << machine.gl_version << " |\n"
+    << "| date (UTC) | " << machine.date << " |\n"
+    << "| command | `" << machine.command << "` |\n"
+    << "| run time | " << Fmt("%.0f", total_s) << " s |\n\n"
+    << "These figures come from a machine without a GPU: OpenGL is Mesa llvmpipe, a rasterizer that runs on the "
+       "CPU. There, the GPU methods (RASTER, depth peeling, slicemap, volumetric) share the same cores as Embree, "
+       "so the comparison favours the CPU methods far more than it would on a GPU. The errors do not depend on "
+       "the machine, but the times do.\n\n"
+    << "Time is the wall clock of the in-process call (the library entry that the server's RPC calls, without "
+       "gRPC), after one warm-up call with the same parameters. The warm-up compiles the shader programs, builds "
+       "and caches the Hough tables, and makes the scene resident on the GPU. The Embree BVH is built before any "
+       "run. Each time is the median of up to "
+    << plan.repeats << " runs, with fewer runs once they have taken 1.5 s (see the `runs` column). Sponza gets "
+       "the full sweep. The other scenes get fewer settings, which keeps the run near 20 minutes; on llvmpipe a "
+       "single rasterization pass over veach-ajar's 383K triangles takes seconds.\n\n";
+
+  // Summary.
+  o << "## Summary: the cheapest setting within 1 % on Sponza\n\n"
+    << "Per query kind, the fastest measured setting on Sponza whose headline error (first error column of the "
+       "kind's table) is at most "
+    << Num(kTarget, true) << ".\n\n"
+    << "| query kind | headline error | cheapest setting reaching 1 % | time (ms) | its error |\n"
+    << "|---|---|---|---:|---:|\n";
+  for (const Kind& kind : kinds) {
+    const Row* best = nullptr;
+    const Row* most_accurate = nullptr;
+    for (const Row& r : kind.rows) {
+      if (r.scene != "sponza") continue;
+      if (std::isfinite(r.err[0]) && (!most_accurate || r.err[0] < most_accurate->err[0])) most_accurate = &r;
+      if (r.err[0] <= kTarget && (!best || r.ms < best->ms)) best = &r;
+    }
+    o << "| " << kind.title << " | " << Cell(kind.error_labels[0]) << " | ";
+    if (best)
+      o << best->method << ", " << best->setting << " | " << Num(best->ms) << " | " << Num(best->err[0], true) << " |\n";
+    else if (most_accurate)
+      o << "none reached 1 % (best: " << most_accurate->method << ", " << most_accurate->setting << ") | "
+        << Num(most_accurate->ms) << " | " << Num(most_accurate->err[0], true) << " |\n";
+    else
+      o << "Sponza not in this run | – | – |\n";
+  }
+  o << "\n";
+  if (!plotted)
+    o << "**No plots in this run**: gnuplot was not found (or failed), so only the tables were written. Install "
+         "`gnuplot-nox` (`deploy/install-deps.sh` lists it) and run the command again.\n\n";
+
+  // Per kind.
+  for (const Kind& kind : kinds) {
+    o << "## " << kind.title << "\n\n" << kind.definition << "\n\n";
+    for (const std::string& note : kind.notes) o << "- " << note << "\n";
+    if (!kind.notes.empty()) o << "\n";
+    if (plotted) o << "![" << kind.title << ": error against time](" << plot_dir_name << "/" << kind.key << ".png)\n\n";
+    for (const std::string& scene : Unique(kind.rows, &Row::scene)) {
+      o << "### " << scene << "\n\n| method | setting | time (ms) | runs";
+      for (const std::string& label : kind.error_labels) o << " | " << Cell(label);
+      o << " | note |\n|---|---|---:|---:|---:|---:|---:|---:|---|\n";
+      for (const Row& r : kind.rows) {
+        if (r.scene != scene) continue;
+        o << "| " << r.method << " | " << r.setting << " | " << Num(r.ms) << " | " << r.runs;
+        for (int i = 0; i < 4; ++i) {
+          o << " | " << Num(r.err[i], true);
+        }
+        o << " | " << r.note << " |\n";
+      }
+      o << "\n";
+    }
+  }
+}
+
+// --quick's check: every output exists and is not empty, every figure of
+// every row is finite where it should be.
+bool CheckOutputs(const fs::path& md, const fs::path& plots, const std::vector<Kind>& kinds, bool plotted) {
+  bool ok = true;
+  auto need = [&](const fs::path& p) {
+    if (!fs::exists(p) || fs::file_size(p) == 0) {
+      std::fprintf(stderr, "check: %s missing or empty\n", p.c_str());
+      ok = false;
+    }
+  };
+  need(md);
+  for (const Kind& kind : kinds) {
+    need(plots / (kind.key + ".dat"));
+    need(plots / (kind.key + ".gp"));
+    if (plotted) need(plots / (kind.key + ".png"));
+    if (kind.rows.empty()) {
+      std::fprintf(stderr, "check: %s has no rows\n", kind.key.c_str());
+      ok = false;
+    }
+    for (const Row& r : kind.rows)
+      if (!std::isfinite(r.ms) || r.ms < 0 || !std::isfinite(r.err[0]) || !std::isfinite(r.err[1])) {
+        std::fprintf(stderr, "check: %s %s %s %s: non-finite figure\n", kind.key.c_str(), r.scene.c_str(),
+                     r.method.c_str(), r.setting.c_str());
+        ok = false;
+      }
+  }
+  std::ifstream in(md);
+  std::stringstream text;
+  text << in.rdbuf();
+  // A printed non-finite number is the word "nan" or "inf" standing alone.
+  const std::string& t = text.str();
+  bool non_finite = false;
+  for (const char* word : {"nan", "inf"})
+    for (size_t at = t.find(word); at != std::string::npos && !non_finite; at = t.find(word, at + 1))
+      non_finite = (at == 0 || !std::isalpha(static_cast<unsigned char>(t[at - 1]))) &&
+                   (at + 3 >= t.size() || !std::isalpha(static_cast<unsigned char>(t[at + 3])));
+  if (non_finite) {
+    std::fprintf(stderr, "check: %s contains a non-finite number\n", md.c_str());
+    ok = false;
+  }
+  return ok;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Plan plan;
+  fs::path scenes_dir = "../shared/scenes", out_dir = "docs";
+  std::string md_name = "accuracy.md", command, only, kinds_filter;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--quick") plan.quick = true;
+    else if (a == "--scenes" && i + 1 < argc) scenes_dir = argv[++i];
+    else if (a == "--out" && i + 1 < argc) out_dir = argv[++i];
+    else if (a == "--md" && i + 1 < argc) md_name = argv[++i];
+    else if (a == "--repeats" && i + 1 < argc) plan.repeats = std::max(1, std::atoi(argv[++i]));
+    else if (a == "--command" && i + 1 < argc) command = argv[++i];
+    else if (a == "--only" && i + 1 < argc) only = argv[++i];
+    else if (a == "--kinds" && i + 1 < argc) kinds_filter = argv[++i];
+    else {
+      std::fprintf(stderr,
+                   "usage: %s [--quick] [--scenes DIR] [--out DIR] [--md NAME] [--repeats N] [--command TEXT] "
+                   "[--only SCENE] [--kinds KEY,...]\n",
+                   argv[0]);
+      return 2;
+    }
+  }
+  if (command.empty()) {
+    for (int i = 0; i < argc; ++i) command += (i ? " " : "") + std::string(argv[i]);
+  }
+  if (plan.quick) {
+    plan.receiver = 16;
+    plan.counts = {32, 256};
+    plan.hough = {64};
+    plan.source_grids = {4, 16};
+    plan.atlas = 32;
+    plan.directions = {4, 16};
+    plan.reference_rays = 256;
+    plan.rays_per_patch = {4, 16};
+    plan.voxel_sizes = {16, 32};
+    plan.image_w = 64;
+    plan.image_h = 48;
+    plan.shadow_maps = {64, 256};
+    plan.reference_map = 1024;
+    plan.repeats = std::min(plan.repeats, 2);
+  }
+
+  // The scenes; --quick: the Cornell box only.
+  std::vector<SceneCase> cases;
+  if (!plan.quick) {
+    cases.push_back({"sponza", scenes_dir / "sponza_dabrovic/sponza.gltf", {}, {}, {}, {}});
+    cases.push_back({"veach-ajar", scenes_dir / "interior_veach_ajar/veach_ajar.gltf", {}, {}, {}, {}});
+    cases.push_back({"tree", scenes_dir / "tree_kenney/tree_detailed.glb", {}, {}, {}, {}});
+  }
+  cases.push_back({"cornell", scenes_dir / "cornell_box/cornell_box.gltf", {}, {}, {}, {}});
+  if (!fs::is_directory(scenes_dir) || !fs::exists(cases.front().path)) {
+    std::printf("SKIP: the shared scenes are absent (%s); nothing to measure\n", scenes_dir.c_str());
+    return kSkipped;
+  }
+
+  const auto start = Clock::now();
+  auto worker_or = gpu::GpuWorker::Start({});
+  if (!worker_or.ok()) Fail("GL context", worker_or.status());
+  gpu::GpuWorker& worker = **worker_or;
+  auto mapper = Must(gpu::HiddenSampleMapper::Create(worker), "hidden-sample mapper");
+  Machine machine;
+  machine.cpu = CpuModel();
+  machine.threads = std::max(1u, std::thread::hardware_concurrency());
+  machine.gl_renderer = worker.device().gl_renderer;
+  machine.gl_version = worker.device().gl_version;
+  machine.command = command;
+  {
+    const std::time_t now = std::time(nullptr);
+    char buf[64];
+    std::strftime(buf, sizeof buf, "%Y-%m-%d %H:%M", std::gmtime(&now));
+    machine.date = buf;
+  }
+  std::printf("device: %s | %s; CPU %s\n", machine.gl_renderer.c_str(), machine.gl_version.c_str(),
+              machine.cpu.c_str());
+
+  std::vector<Kind> kinds(5);
+  Kind& hsm = kinds[0];
+  Kind& patch = kinds[1];
+  Kind& obsc = kinds[2];
+  Kind& voxel = kinds[3];
+  Kind& vol = kinds[4];
+  hsm = {"hidden_sample_map",
+         "Hidden-sample map",
+         {"mean abs. error", "p95", "max", "bits ≠ Embree"},
+         "Error: |visible fraction − exact| over the " + std::to_string(plan.receiver) + "² receiver texels "
+         "(mean, 95th percentile, max), in units of the whole light. `bits ≠ Embree` is the fraction of "
+         "(texel, sample) bits that differ from Embree casting the same segments. RASTER EXACT should be 0 up to "
+         "float ties, and FAST is conservative. Jittered source samples, seed 1. N is the number of source samples. "
+         "For FAST, hN is the Hough table's θ and r resolution.",
+         {}, {}};
+  patch = {"patch_visibility",
+           "Patch visibility",
+           {"mutual fraction abs. error", "per-sample mean", "per-sample p95", "per-sample max"},
+           "Error: |mutual visible fraction − exact mutual fraction|, where the exact mutual fraction is the mean of "
+           "the exact per-receiver-sample fractions. The receiver grid is the hidden-sample map's " +
+               std::to_string(plan.receiver) + "² texels. The per-sample columns compare each receiver sample's "
+               "fraction with its exact value. The source grid (regular, cell centres) is swept. FAST uses the "
+               "default 256² Hough table.",
+           {}, {}};
+  obsc = {"obscurances",
+          "Obscurances",
+          {"mean |W − W_ref|", "p95", "max", "RMS"},
+          "Error: |W − W_ref| over the atlas texels that both estimate (W in [0, 1], gray, no colour bleeding). "
+          "The reference is itself a Monte Carlo estimate (see below), so the error of the largest settings includes some "
+          "of the reference's own noise. The GPU bake (depth peeling, one orthographic bundle per direction) "
+          "sweeps the number of directions. The Embree path (`obscurance/obscurance_rays`, the estimator that "
+          "UpdateObscurances uses) sweeps the number of rays per patch.",
+          {}, {}};
+  voxel = {"voxelization",
+           "Voxelization",
+           {"differing voxels / reference", "missing / reference", "extra / reference", "standard: ≠ column-centre ref."},
+           "Error: the number of voxels that differ from the CPU reference (exact triangle-box overlap) on the "
+           "same grid, divided by the reference's occupied voxels. Surface mode, uniform slices, depth along y, "
+           "over the scene's bounds. The grid is n × n × n. There is no finer-reference column: at a given grid, "
+           "the CPU reference is the exact answer for that grid's voxels. A finer reference would measure the "
+           "grid's own resolution, not the slicemap's error. A standard rasterization takes one sample per texel "
+           "centre. It therefore misses every voxel that a triangle touches away from the column centres, and "
+           "triangles seen edge-on. Its last column compares it with the CPU's column-centre sampling "
+           "(`SampleColumnCenters`), which is the standard mode's own definition.",
+           {}, {}};
+  vol = {"volumetric_shadows",
+         "Volumetric shadows",
+         {"rel. RMS error", "rel. mean error", "rel. p95 error", "max error / peak"},
+         "Error: in-scattered radiance against the reference image, pixel by pixel (RGB). The relative RMS, mean "
+         "and p95 errors are divided by the reference's mean radiance; the max error is divided by its peak. The "
+         "shadow-map size is swept for both methods. MIN_MAX is the 1D min-max mipmap traversal; RAY_MARCHING "
+         "runs on the same rectified map.",
+         {}, {}};
+
+  for (SceneCase& c : cases) {
+    const auto t_scene = Clock::now();
+    if (!only.empty() && c.name != only) continue;
+    if (!Prepare(c)) continue;
+    std::printf("%s: %zu triangles\n", c.name.c_str(), c.scene.TriangleCount());
+    std::fflush(stdout);
+    auto gpu_scene = Must(gpu::GpuScene::Upload(worker, c.scene), c.name + ": upload");
+    auto embree = Must(raycast::EmbreeScene::Create(c.scene), c.name + ": embree");
+
+    // Visibility sampling, with the exact reference shared by both kinds.
+    const ExactReference ref = ExactFractions(c, plan.receiver, plan.receiver);
+    const std::string inputs = c.name + ": source " + PatchText(c.source) + ", receiver " + PatchText(c.receiver) +
+                               " (origin; edge u; edge v). Exact reference: " + Fmt("%.0f", ref.ms) +
+                               " ms for the " + std::to_string(ref.fraction.size()) +
+                               " texels (Plücker BSP, " + std::to_string(std::min(4, plan.receiver / 8)) +
+                               "² receiver tiles, tree building included). Mean exact visible fraction " +
+                               Fmt("%.3f", ref.mean) + ", " + std::to_string(ref.penumbra) +
+                               " texels in penumbra (0 < fraction < 1).";
+    std::printf("  exact reference: %.0f ms, mean %.3f, penumbra %zu / %zu\n", ref.ms, ref.mean, ref.penumbra,
+                ref.fraction.size());
+    std::fflush(stdout);
+    hsm.notes.push_back(inputs);
+    patch.notes.push_back(inputs);
+    auto wanted = [&](const Kind& kind) {
+      return kinds_filter.empty() || kinds_filter.find(kind.key) != std::string::npos;
+    };
+    if (wanted(hsm)) SweepHiddenSampleMap(plan, c, *mapper, *gpu_scene, embree, ref, hsm);
+    if (wanted(patch)) SweepPatchVisibility(plan, c, *mapper, *gpu_scene, embree, ref, patch);
+    if (wanted(obsc)) SweepObscurances(plan, c, worker, *gpu_scene, obsc);
+    if (wanted(voxel)) SweepVoxelization(plan, c, worker, *gpu_scene, voxel);
+    if (wanted(vol)) SweepVolumetric(plan, c, worker, *gpu_scene, vol);
+    std::printf("%s: %.0f s\n", c.name.c_str(), MsSince(t_scene) / 1000);
+    std::fflush(stdout);
+  }
+
+  // Outputs.
+  const fs::path plot_dir = out_dir / "accuracy";
+  fs::create_directories(plot_dir);
+  const bool have_gnuplot = std::system("command -v gnuplot > /dev/null 2>&1") == 0;
+  if (!have_gnuplot)
+    std::printf("WARNING: gnuplot not found: writing the tables and the plot scripts, but no PNG. Install "
+                "gnuplot-nox (deploy/install-deps.sh) and rerun for the plots.\n");
+  bool plotted = have_gnuplot;
+  for (const Kind& kind : kinds) plotted = Plot(kind, plot_dir, have_gnuplot) && plotted;
+  if (have_gnuplot && !plotted) std::printf("WARNING: gnuplot failed on some plot; see the messages above\n");
+  const double total_s = MsSince(start) / 1000;
+  const fs::path md = out_dir / md_name;
+  WriteReport(md, "accuracy", kinds, machine, plan, plotted, total_s);
+  std::printf("wrote %s and %s/*.png in %.0f s\n", md.c_str(), plot_dir.c_str(), total_s);
+  if (plan.quick && !CheckOutputs(md, plot_dir, kinds, plotted)) return 1;
+  return 0;
+}

@@ -1,0 +1,121 @@
+// The accuracy planner's cost model and choice rules (issue 8), on numbers
+// whose right answer is known by hand.
+#include "core/accuracy_planner.h"
+
+#include <cmath>
+
+#include <gtest/gtest.h>
+
+namespace visq {
+namespace {
+
+TEST(CostModel, PredictsNothingBeforeAnObservation) {
+  CostModel model;
+  EXPECT_FALSE(model.Predict("scene/kind/method", 100.0).has_value());
+}
+
+TEST(CostModel, OneObservationIsTakenAsProportional) {
+  CostModel model;
+  model.Record("s/k/m", 100.0, 50.0);
+  ASSERT_TRUE(model.Predict("s/k/m", 400.0).has_value());
+  EXPECT_DOUBLE_EQ(*model.Predict("s/k/m", 400.0), 200.0);
+  EXPECT_FALSE(model.Predict("s/k/other", 400.0).has_value()) << "series are separate";
+}
+
+TEST(CostModel, FitsAFixedCostAndARate) {
+  CostModel model;
+  // ms = 10 + 0.5 * work, exactly.
+  for (double work : {10.0, 100.0, 1000.0}) model.Record("s", work, 10.0 + 0.5 * work);
+  EXPECT_NEAR(*model.Predict("s", 4000.0), 2010.0, 1e-6);
+}
+
+TEST(CostModel, ANegativeFittedSlopeFallsBackToProportional) {
+  CostModel model;
+  // A cache warming up: the larger run was faster.
+  model.Record("s", 10.0, 100.0);
+  model.Record("s", 100.0, 20.0);
+  const double predicted = *model.Predict("s", 110.0);
+  EXPECT_NEAR(predicted, 120.0 / 110.0 * 110.0, 1e-9);
+}
+
+TEST(CostModel, KeepsOnlyRecentObservations) {
+  CostModel model;
+  for (int i = 0; i < 100; ++i) model.Record("s", 10.0, 1000.0);  // a slow past
+  for (int i = 0; i < 16; ++i) model.Record("s", 10.0, 1.0);      // the machine now
+  EXPECT_DOUBLE_EQ(*model.Predict("s", 10.0), 1.0);
+}
+
+TEST(HoeffdingSamplesNeeded, MatchesTheBoundItInverts) {
+  const double n = HoeffdingSamplesNeeded(0.05, 0.95);
+  EXPECT_EQ(n, 738.0);  // ceil(ln(40) / (2 * 0.0025))
+  EXPECT_LE(std::sqrt(std::log(2.0 / 0.05) / (2.0 * n)), 0.05);
+  EXPECT_GT(std::sqrt(std::log(2.0 / 0.05) / (2.0 * (n - 1))), 0.05);
+  EXPECT_TRUE(std::isinf(HoeffdingSamplesNeeded(0.05, 1.0))) << "no sample count gives a worst-case bound";
+}
+
+std::vector<Plan> ThreePlans() {
+  std::vector<Plan> plans(3);
+  plans[0].method = "coarse";
+  plans[0].error_bound = 0.1;
+  plans[0].predicted_ms = 1.0;
+  plans[1].method = "fine";
+  plans[1].error_bound = 0.01;
+  plans[1].predicted_ms = 100.0;
+  plans[2].method = "exact";
+  plans[2].error_bound = 0.0;
+  plans[2].predicted_ms = 1000.0;
+  return plans;
+}
+
+TEST(ChoosePlan, AnErrorTargetTakesTheCheapestPlanMeetingIt) {
+  std::vector<Plan> plans = ThreePlans();
+  auto chosen = ChoosePlan(plans, {.max_error = 0.05});
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  EXPECT_EQ(plans[*chosen].method, "fine");
+  EXPECT_FALSE(plans[0].meets_target);
+  EXPECT_TRUE(plans[1].meets_target);
+  EXPECT_TRUE(plans[2].meets_target);
+}
+
+TEST(ChoosePlan, AnErrorTargetOverTheBudgetIsOutOfRange) {
+  std::vector<Plan> plans = ThreePlans();
+  auto chosen = ChoosePlan(plans, {.max_error = 0.05, .time_budget_ms = 50.0});
+  ASSERT_EQ(chosen.status().code(), absl::StatusCode::kOutOfRange);
+  EXPECT_NE(chosen.status().message().find("fine"), std::string::npos) << chosen.status();
+}
+
+TEST(ChoosePlan, AnUnreachableErrorNamesTheBestPlan) {
+  std::vector<Plan> plans = ThreePlans();
+  plans.pop_back();  // no exact method for this request
+  auto chosen = ChoosePlan(plans, {.max_error = 0.001});
+  ASSERT_EQ(chosen.status().code(), absl::StatusCode::kOutOfRange);
+  EXPECT_NE(chosen.status().message().find("fine"), std::string::npos) << chosen.status();
+}
+
+TEST(ChoosePlan, ABudgetAloneBuysTheMostAccuratePlanThatFits) {
+  std::vector<Plan> plans = ThreePlans();
+  auto chosen = ChoosePlan(plans, {.time_budget_ms = 500.0});
+  ASSERT_TRUE(chosen.ok());
+  EXPECT_EQ(plans[*chosen].method, "fine");
+  chosen = ChoosePlan(plans, {.time_budget_ms = 5000.0});
+  ASSERT_TRUE(chosen.ok());
+  EXPECT_EQ(plans[*chosen].method, "exact");
+  // Nothing fits: the cheapest answers, and no plan claims to meet the budget.
+  chosen = ChoosePlan(plans, {.time_budget_ms = 0.5});
+  ASSERT_TRUE(chosen.ok());
+  EXPECT_EQ(plans[*chosen].method, "coarse");
+  for (const Plan& p : plans) EXPECT_FALSE(p.meets_target);
+}
+
+TEST(ValidateAccuracyTarget, NamesTheBadField) {
+  EXPECT_TRUE(ValidateAccuracyTarget({.max_error = 0.01}).ok());
+  auto message = [](AccuracyTarget t) { return std::string(ValidateAccuracyTarget(t).message()); };
+  EXPECT_NE(message({.max_error = -1}).find("target.max_error"), std::string::npos);
+  EXPECT_NE(message({.max_error = NAN}).find("target.max_error"), std::string::npos);
+  EXPECT_NE(message({.max_error = 0.1, .confidence = 1.5}).find("target.confidence"), std::string::npos);
+  EXPECT_NE(message({.time_budget_ms = -3}).find("target.time_budget_ms"), std::string::npos);
+  EXPECT_NE(message({}).find("neither"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace visq
