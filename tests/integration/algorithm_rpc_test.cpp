@@ -245,12 +245,13 @@ TEST_F(AlgorithmRpcTest, VoxelizeFloorFillsTheFirstSliceAndConservativeContainsS
   for (uint32_t y = 0; y < 32; ++y)
     for (uint32_t x = 0; x < 32; ++x) ASSERT_TRUE(standard->Occupied(x, y, 0)) << x << "," << y;
   EXPECT_EQ(f.rasterization(), "standard");
-  EXPECT_GT(f.accuracy().error_bound(), 0.0);
+  EXPECT_LT(f.accuracy().error_bound(), 0.0) << "standard rasterization can miss thin triangles: no numeric bound";
 
   request.set_conservative(true);
   auto conservative = client_->Voxelize(request);
   ASSERT_TRUE(conservative.ok()) << conservative.status();
   EXPECT_EQ(conservative->figures.rasterization(), "conservative");
+  EXPECT_GT(conservative->figures.accuracy().error_bound(), 0.0);
   size_t missing = 0;
   for (size_t w = 0; w < standard->bits.size(); ++w) missing += std::popcount(standard->bits[w] & ~conservative->bits[w]);
   EXPECT_EQ(missing, 0u) << "the conservative grid must contain the standard one";
