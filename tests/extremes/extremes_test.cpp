@@ -1070,6 +1070,25 @@ TEST_F(ExtremesTest, ObscuranceOfAnOpenPlaneIsOne) {
 // sampled methods must either give the canonical scene's answer or refuse
 // with FAILED_PRECONDITION, never a silently wrong map.
 
+// The exact method in the world spanning the origin to 1e6: double
+// precision throughout, so the half-plane's closed form holds at 1e6.
+void ExpectWorldLightVisibilityMatchesClosedForm(Client& client) {
+  const Frame& far = Frames()[3];
+  v1::LightVisibilityRequest request;
+  request.mutable_scene()->set_name("world");
+  SetLightPolygon(request.mutable_light(), far);
+  const std::vector<double> xs = {-0.1875, -0.0625, 0.0625, 0.1875};
+  for (double x : xs) {
+    auto* point = request.add_points();
+    Set(point->mutable_position(), far.Point({x, 0, 0}));
+    Set(point->mutable_normal(), {0, 1, 0});
+  }
+  auto answer = client.LightVisibility(request);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  for (size_t i = 0; i < xs.size(); ++i)
+    EXPECT_NEAR(answer->points(i).visible_fraction(), HalfPlaneVisible(xs[i]), 1e-9) << "px " << xs[i];
+}
+
 TEST_F(ExtremesTest, WorldSpanningTheOriginTo1e6ExactAndRasterAreHonest) {
   const Frame& far = Frames()[3];
   ASSERT_TRUE(UploadWorldOnce(*client_).ok());
@@ -1088,19 +1107,7 @@ TEST_F(ExtremesTest, WorldSpanningTheOriginTo1e6ExactAndRasterAreHonest) {
     }
   }
 
-  v1::LightVisibilityRequest request;
-  request.mutable_scene()->set_name("world");
-  SetLightPolygon(request.mutable_light(), far);
-  const std::vector<double> xs = {-0.1875, -0.0625, 0.0625, 0.1875};
-  for (double x : xs) {
-    auto* point = request.add_points();
-    Set(point->mutable_position(), far.Point({x, 0, 0}));
-    Set(point->mutable_normal(), {0, 1, 0});
-  }
-  auto answer = client_->LightVisibility(request);
-  ASSERT_TRUE(answer.ok()) << answer.status();
-  for (size_t i = 0; i < xs.size(); ++i)
-    EXPECT_NEAR(answer->points(i).visible_fraction(), HalfPlaneVisible(xs[i]), 1e-9) << "px " << xs[i];
+  ExpectWorldLightVisibilityMatchesClosedForm(*client_);
 
   // Asked by error, the planner leaves out the methods that refuse here and
   // answers by the exact one.
@@ -1146,19 +1153,7 @@ TEST_F(ExtremesTest, WorldSpanningTheOriginTo1e6SampledMethodsWorkRelativeToTheQ
       }
     }
 
-  v1::LightVisibilityRequest request;
-  request.mutable_scene()->set_name("world");
-  SetLightPolygon(request.mutable_light(), far);
-  const std::vector<double> xs = {-0.1875, -0.0625, 0.0625, 0.1875};
-  for (double x : xs) {
-    auto* point = request.add_points();
-    Set(point->mutable_position(), far.Point({x, 0, 0}));
-    Set(point->mutable_normal(), {0, 1, 0});
-  }
-  auto answer = client_->LightVisibility(request);
-  ASSERT_TRUE(answer.ok()) << answer.status();
-  for (size_t i = 0; i < xs.size(); ++i)
-    EXPECT_NEAR(answer->points(i).visible_fraction(), HalfPlaneVisible(xs[i]), 1e-9) << "px " << xs[i];
+  ExpectWorldLightVisibilityMatchesClosedForm(*client_);
 }
 
 // ---------------------------------------------------------------------------

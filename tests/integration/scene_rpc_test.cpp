@@ -2,6 +2,7 @@
 // real client library and CLI, real files.
 #include <signal.h>
 
+#include <atomic>
 #include <cstdio>
 #include <map>
 #include <sstream>
@@ -421,6 +422,62 @@ TEST_F(SceneRpcTest, SceneAboveTheMemoryCapIsResourceExhausted) {
   EXPECT_EQ(info.status().code(), absl::StatusCode::kResourceExhausted) << info.status();
   EXPECT_NE(std::string(info.status().message()).find("--max-scene-bytes"), std::string::npos);
   EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq"})) << "nothing stored";
+}
+
+}  // namespace
+}  // namespace visq
+
+namespace visq {
+namespace {
+
+// Kill -9 while the GPU bakes: the bake is lost (it was never acknowledged),
+// every acknowledged scene is intact after restart, nothing half-written is
+// left in the repository, and the restarted server bakes again.
+TEST_F(SceneRpcTest, KillDuringBakeKeepsAcknowledgedScenesAndRestartsCleanly) {
+  auto acknowledged = client_->UploadScene(WriteUserScene("kept.glb"), "kept");
+  ASSERT_TRUE(acknowledged.ok()) << acknowledged.status();
+  const std::vector<std::string> stored_before = RepositoryEntries();
+
+  // A bake far longer than the test: 100000 directions of the Cornell box.
+  std::atomic<uint32_t> directions_done{0};
+  Client baker({.address = server_->address(), .deadline = std::chrono::seconds(120)});
+  std::thread bake_thread([&] {
+    v1::ComputeObscurancesRequest request;
+    request.mutable_scene()->set_name("cornell_box_visq");
+    request.set_resolution(64);
+    request.set_d_max(0.5);
+    request.set_direction_count(100000);
+    auto bake = baker.ComputeObscurances(
+        request, [&](const v1::ObscuranceProgress& p) { directions_done = p.directions_done(); });
+    EXPECT_FALSE(bake.ok()) << "the server died mid-bake";
+  });
+  for (int i = 0; i < 600 && directions_done < 2; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  EXPECT_GE(directions_done.load(), 2u) << "the bake should be running when the server is killed";
+  server_->Kill();
+  bake_thread.join();
+
+  client_.reset();
+  StartServer({});
+  auto list = client_->ListScenes();
+  ASSERT_TRUE(list.ok()) << list.status();
+  std::vector<std::string> names;
+  for (const auto& s : list->scenes()) names.push_back(s.name());
+  EXPECT_EQ(names, (std::vector<std::string>{"cornell_box_visq", "kept"}));
+  EXPECT_EQ(RepositoryEntries(), stored_before) << "a bake writes nothing to the repository";
+  EXPECT_EQ(client_->GetScene("kept")->content_hash(), acknowledged->content_hash());
+
+  // The new process has no bake to update, says so, and bakes again.
+  v1::UpdateObscurancesRequest update;
+  update.mutable_scene()->set_name("cornell_box_visq");
+  EXPECT_EQ(client_->UpdateObscurances(update).status().code(), absl::StatusCode::kFailedPrecondition);
+  v1::ComputeObscurancesRequest small;
+  small.mutable_scene()->set_name("cornell_box_visq");
+  small.set_resolution(16);
+  small.set_d_max(0.5);
+  small.set_direction_count(4);
+  auto rebake = client_->ComputeObscurances(small, nullptr);
+  ASSERT_TRUE(rebake.ok()) << rebake.status();
+  EXPECT_EQ(rebake->partial.DirectionCount(), 4u);
 }
 
 }  // namespace
