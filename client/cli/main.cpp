@@ -654,16 +654,23 @@ int main(int argc, char** argv) {
   obscurance->add_option("--png", ob_png, "Write the W atlas as a PNG");
   TargetFlags ob_target;
   AddTargetFlags(obscurance, ob_target);
+  uint32_t ob_rays = 0;
+  obscurance->add_option("--rays-per-patch", ob_rays,
+                         "Instead of the GPU bake: the ray-cast estimator (Embree) with this many rays per patch");
   AddCommonFlags(obscurance, flags);
   obscurance->callback([&] {
     visq::v1::ComputeObscurancesRequest request;
     request.mutable_scene()->set_name(ob_scene);
     request.set_d_max(ob_d_max);
     request.set_resolution(ob_resolution);
-    if (ob_target.set())
+    if (ob_target.set()) {
       ob_target.Fill(request.mutable_target());
-    else
+    } else if (ob_rays > 0) {
+      request.set_method(visq::v1::ComputeObscurancesRequest::RAYCAST);
+      request.set_rays_per_patch(ob_rays);
+    } else {
       request.set_direction_count(ob_directions);
+    }
     request.set_seed(ob_seed);
     request.set_color_bleeding(ob_bleeding);
     request.set_force_built_atlas(ob_built_atlas);
@@ -700,10 +707,11 @@ int main(int argc, char** argv) {
       fmt::print("{{\"mean_w\": {}, \"estimated_texels\": {}, \"figures\": {}}}\n", mean, estimated, ToJson(f));
       return;
     }
-    fmt::print("{}x{} atlas ({}), {} directions, {} layers: mean W {:.4f} over {} estimated texels\n",
-               f.atlas().width(), f.atlas().height(), f.atlas().from_lightmap_uvs() ? "TEXCOORD_1" : "built",
-               bake->partial.DirectionCount() ? bake->partial.DirectionCount() : ob_directions, f.layers(), mean,
-               estimated);
+    const std::string how = f.accuracy().method() == "obscurance-raycast"
+                                ? fmt::format("{} rays per patch (Embree)", f.accuracy().parameters().at("rays_per_patch"))
+                                : fmt::format("{} directions, {} layers", bake->partial.DirectionCount(), f.layers());
+    fmt::print("{}x{} atlas ({}), {}: mean W {:.4f} over {} estimated texels\n", f.atlas().width(),
+               f.atlas().height(), f.atlas().from_lightmap_uvs() ? "TEXCOORD_1" : "built", how, mean, estimated);
     fmt::print("I_A ({:.4g}, {:.4g}, {:.4g}){}; {:.1f} samples per patch\n", f.ambient_intensity().x(),
                f.ambient_intensity().y(), f.ambient_intensity().z(), f.ambient_clamped() ? " (R_ave clamped)" : "",
                f.mean_samples_per_patch());

@@ -7,6 +7,8 @@
 
 #include <spdlog/spdlog.h>
 
+#include "obscurance/obscurance_rays.h"
+
 namespace visq {
 namespace {
 
@@ -78,6 +80,13 @@ Status ValidateObscuranceQuery(const ObscuranceQuery& query) {
   if (query.update_rays_per_patch == 0 || query.update_rays_per_patch > 65536)
     return absl::InvalidArgumentError(
         absl::StrCat("update_rays_per_patch: ", query.update_rays_per_patch, " must be in [1, 65536]"));
+  if (query.method == ObscuranceMethod::kRaycast) {
+    if (query.rays_per_patch == 0 || query.rays_per_patch > 65536)
+      return absl::InvalidArgumentError(
+          absl::StrCat("rays_per_patch: ", query.rays_per_patch, " must be in [1, 65536]"));
+    if (query.params.first_direction != 0 || query.total_directions != 0 || query.partial_only)
+      return absl::InvalidArgumentError("method: RAYCAST estimates a whole bake (no direction range, not partial_only)");
+  }
   return absl::OkStatus();
 }
 
@@ -114,20 +123,47 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
       report.probe_ms += answer.atlas_ms + answer.bake_ms;
     }
   }
-  std::set<uint32_t> counts;
-  for (uint32_t d = 8; d <= obscurance::kMaxDirections; d *= 2) counts.insert(d);
-  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence);
-  if (needed <= obscurance::kMaxDirections) counts.insert(std::max(1u, static_cast<uint32_t>(needed)));
-  for (uint32_t d : counts) {
-    Plan plan;
-    plan.method = "obscurance-depth-peeling";
-    plan.parameters["directions"] = d;
-    plan.error_bound = ObscuranceErrorEstimate(d, target.confidence);
-    plan.work = d;
-    plan.cost_key = series;
-    plan.predicted_ms = model.Predict(series, plan.work).value_or(0.0);
-    report.plans.push_back(std::move(plan));
+  // The ray-cast estimator: probed with 4 and 16 rays per patch.
+  const std::string ray_series = absl::StrCat(series, "/raycast");
+  if (!model.Predict(ray_series, 1.0)) {
+    const auto atlas_start = std::chrono::steady_clock::now();
+    obscurance::AtlasOptions atlas_options;
+    atlas_options.force_build = query.force_built_atlas;
+    VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
+                          obscurance::BuildObscuranceAtlas(*resident.scene, query.resolution, atlas_options));
+    const double atlas_ms = MillisecondsSince(atlas_start);
+    for (uint32_t rays : {4u, 16u}) {
+      const auto start = std::chrono::steady_clock::now();
+      obscurance::RayEstimateOptions options;
+      options.rays_per_patch = rays;
+      options.seed = query.params.seed;
+      VISQ_RETURN_IF_ERROR(obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params, options).status());
+      const double ms = atlas_ms + MillisecondsSince(start);
+      model.Record(ray_series, rays, ms);
+      report.probe_ms += ms;
+    }
   }
+
+  // Counts: powers of two and the least count meeting the error, as
+  // directions of the bake or rays per patch.
+  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence);
+  auto add_plans = [&](const char* method, const char* parameter, const std::string& plan_series, uint32_t most) {
+    std::set<uint32_t> counts;
+    for (uint32_t n = 8; n <= most; n *= 2) counts.insert(n);
+    if (needed <= most) counts.insert(std::max(1u, static_cast<uint32_t>(needed)));
+    for (uint32_t n : counts) {
+      Plan plan;
+      plan.method = method;
+      plan.parameters[parameter] = n;
+      plan.error_bound = ObscuranceErrorEstimate(n, target.confidence);
+      plan.work = n;
+      plan.cost_key = plan_series;
+      plan.predicted_ms = model.Predict(plan_series, plan.work).value_or(0.0);
+      report.plans.push_back(std::move(plan));
+    }
+  };
+  add_plans("obscurance-depth-peeling", "directions", series, obscurance::kMaxDirections);
+  add_plans("obscurance-raycast", "rays_per_patch", ray_series, 65536);
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
   return report;
 }
@@ -147,7 +183,13 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
                         engine.FindScene(query.scene, query.scene_version));
   if (query.target) {
     VISQ_ASSIGN_OR_RETURN(plan, PlanObscurances(engine, *resident, query));
-    query.params.direction_count = static_cast<uint32_t>(plan->chosen_plan().parameters.at("directions"));
+    const Plan& chosen = plan->chosen_plan();
+    if (chosen.parameters.contains("rays_per_patch")) {
+      query.method = ObscuranceMethod::kRaycast;
+      query.rays_per_patch = static_cast<uint32_t>(chosen.parameters.at("rays_per_patch"));
+    } else {
+      query.params.direction_count = static_cast<uint32_t>(chosen.parameters.at("directions"));
+    }
   }
   const Scene& scene = *resident->scene;
   ObscuranceAnswer answer;
@@ -169,22 +211,41 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   answer.texels_per_unit = atlas.texels_per_unit;
   answer.atlas_ms = MillisecondsSince(start);
 
-  // The bake: one GPU job per direction at the caller's (batch) priority.
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
-  start = std::chrono::steady_clock::now();
-  VISQ_ASSIGN_OR_RETURN(answer.partial, gpu::BakeObscurancePartial(engine.gpu(), *gpu_scene, scene, atlas,
-                                                                   query.params, query.bake, &answer.stats));
-  answer.bake_ms = MillisecondsSince(start);
+  answer.method = query.method;
   answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);
-  if (query.partial_only) return answer;
+  obscurance::ObscuranceResult result;
+  if (query.method == ObscuranceMethod::kRaycast) {
+    // The estimator of eq. 6 per patch with Embree: the same quantity as the
+    // bake, with independent per-patch rays instead of shared bundles.
+    start = std::chrono::steady_clock::now();
+    obscurance::RayEstimateOptions options;
+    options.rays_per_patch = query.rays_per_patch;
+    options.seed = query.params.seed;
+    VISQ_ASSIGN_OR_RETURN(result, obscurance::EstimateObscurancesByRays(scene, atlas, query.params, options));
+    answer.bake_ms = MillisecondsSince(start);
+    answer.rays_per_patch = query.rays_per_patch;
+    answer.total_directions = 0;
+    answer.partial.fingerprint = obscurance::BakeFingerprint(scene, atlas, query.params);
+    answer.partial.width = atlas.width;
+    answer.partial.height = atlas.height;
+    answer.partial.channels = query.params.color_bleeding ? 3 : 1;
+  } else {
+    // The bake: one GPU job per direction at the caller's (batch) priority.
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+    start = std::chrono::steady_clock::now();
+    VISQ_ASSIGN_OR_RETURN(answer.partial, gpu::BakeObscurancePartial(engine.gpu(), *gpu_scene, scene, atlas,
+                                                                     query.params, query.bake, &answer.stats));
+    answer.bake_ms = MillisecondsSince(start);
+    if (query.partial_only) return answer;
 
-  start = std::chrono::steady_clock::now();
-  VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceResult result,
-                        obscurance::FinalizeObscurances(scene, atlas, query.params, answer.partial));
-  answer.finalize_ms = MillisecondsSince(start);
+    start = std::chrono::steady_clock::now();
+    VISQ_ASSIGN_OR_RETURN(result, obscurance::FinalizeObscurances(scene, atlas, query.params, answer.partial));
+    answer.finalize_ms = MillisecondsSince(start);
+  }
 
   // A whole bake becomes the scene's solution for UpdateObscurances.
-  const bool whole = query.params.first_direction == 0 && query.params.direction_count == answer.total_directions;
+  const bool whole = query.method == ObscuranceMethod::kRaycast ||
+                     (query.params.first_direction == 0 && query.params.direction_count == answer.total_directions);
   if (whole) {
     start = std::chrono::steady_clock::now();
     obscurance::UpdaterOptions options;

@@ -41,6 +41,11 @@ struct ObscuranceState {
   std::vector<Move> moves;  // in version order; those after solution_version matter
 };
 
+// The paper's GPU bake by depth peeling along bundles of parallel rays, or
+// the same estimator traced per patch with Embree (server/obscurance/
+// obscurance_rays.h), which on a machine without a GPU is the cheaper one.
+enum class ObscuranceMethod { kDepthPeeling, kRaycast };
+
 struct ObscuranceQuery {
   std::string scene;
   uint64_t scene_version = 0;
@@ -51,6 +56,8 @@ struct ObscuranceQuery {
   bool partial_only = false;
   bool want_averages = false;
   uint32_t update_rays_per_patch = 64;
+  ObscuranceMethod method = ObscuranceMethod::kDepthPeeling;
+  uint32_t rays_per_patch = 256;  // kRaycast
   // Instead of params.direction_count, for a whole bake: the planner picks
   // the number of directions (core/accuracy_planner.h).
   std::optional<AccuracyTarget> target;
@@ -74,6 +81,8 @@ struct ObscuranceAnswer {
   bool update_ready = false;
   double atlas_ms = 0, bake_ms = 0, finalize_ms = 0, updater_ms = 0;
   double confidence = 0.95;       // of the error figure (a target's, else 0.95)
+  ObscuranceMethod method = ObscuranceMethod::kDepthPeeling;
+  uint32_t rays_per_patch = 0;    // kRaycast
   std::optional<PlanReport> plan;  // with a target
 };
 

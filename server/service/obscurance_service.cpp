@@ -47,6 +47,19 @@ void SetAccuracy(uint64_t directions, double mean_samples, double confidence, v1
       absl::StrFormat("%.1f", mean_samples), " samples per patch); rasterization of the bundles is not counted"));
 }
 
+// The ray-cast estimator: N rays per patch, each a value in [0, 1] per
+// channel; Hoeffding's half-width for N independent rays (an estimate: the
+// rays are a rotated Halton sequence).
+void SetRaycastAccuracy(uint32_t rays_per_patch, double confidence, v1::Accuracy* out) {
+  out->set_method("obscurance-raycast");
+  out->set_confidence(confidence);
+  out->set_error_bound(ObscuranceErrorEstimate(rays_per_patch, confidence));
+  (*out->mutable_parameters())["rays_per_patch"] = static_cast<double>(rays_per_patch);
+  out->set_note(absl::StrCat("estimate, not a bound: Hoeffding half-width at ", confidence, " for ", rays_per_patch,
+                             " rays per patch with values in [0, 1]; the rays are a rotated Halton sequence "
+                             "(usually better than independent), cosine-distributed from points uniform on the patch"));
+}
+
 // Appends `values` (elements of one array) as chunk messages.
 template <typename T, typename Add>
 void AppendChunks(const std::vector<T>& values, std::vector<v1::ComputeObscurancesResponse>& messages, Add add) {
@@ -87,9 +100,18 @@ StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request
   query.partial_only = request.partial_only();
   query.want_averages = request.want_averages();
   query.update_rays_per_patch = request.update_rays_per_patch() != 0 ? request.update_rays_per_patch() : 64;
+  switch (request.method()) {
+    case v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED:
+    case v1::ComputeObscurancesRequest::DEPTH_PEELING: query.method = ObscuranceMethod::kDepthPeeling; break;
+    case v1::ComputeObscurancesRequest::RAYCAST: query.method = ObscuranceMethod::kRaycast; break;
+    default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));
+  }
+  if (request.rays_per_patch() != 0) query.rays_per_patch = request.rays_per_patch();
   if (request.has_target()) {
     if (request.direction_count() != 0)
       return absl::InvalidArgumentError("direction_count: give either a direction count or a target, not both");
+    if (request.method() != v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED || request.rays_per_patch() != 0)
+      return absl::InvalidArgumentError("method, rays_per_patch: give either a method or a target, not both");
     query.target = service::FromProto(request.target());
     return query;  // the core validates once the count is chosen
   }
@@ -124,17 +146,26 @@ std::vector<v1::ComputeObscurancesResponse> ToProtoChunks(const ObscuranceAnswer
   f->set_truncated_directions(a.stats.truncated_directions);
   f->set_bundle_resolution(a.stats.bundle_resolution);
   f->set_update_ready(a.update_ready);
-  // Samples per patch from the partial's counts, so partial bakes have them too.
-  uint64_t estimated = 0, samples = 0;
-  for (uint64_t c : a.partial.counts)
-    if (c > 0) {
-      ++estimated;
-      samples += c;
-    }
-  const double mean_samples = estimated > 0 ? static_cast<double>(samples) / static_cast<double>(estimated) : 0.0;
-  f->set_estimated_texels(estimated);
-  f->set_mean_samples_per_patch(mean_samples);
-  SetAccuracy(a.partial.DirectionCount(), mean_samples, a.confidence, f->mutable_accuracy());
+  if (a.method == ObscuranceMethod::kRaycast) {
+    // Every estimated patch got exactly rays_per_patch rays.
+    uint64_t estimated = 0;
+    for (uint8_t e : a.result->estimated) estimated += e;
+    f->set_estimated_texels(estimated);
+    f->set_mean_samples_per_patch(a.result->mean_samples_per_patch);
+    SetRaycastAccuracy(a.rays_per_patch, a.confidence, f->mutable_accuracy());
+  } else {
+    // Samples per patch from the partial's counts, so partial bakes have them too.
+    uint64_t estimated = 0, samples = 0;
+    for (uint64_t c : a.partial.counts)
+      if (c > 0) {
+        ++estimated;
+        samples += c;
+      }
+    const double mean_samples = estimated > 0 ? static_cast<double>(samples) / static_cast<double>(estimated) : 0.0;
+    f->set_estimated_texels(estimated);
+    f->set_mean_samples_per_patch(mean_samples);
+    SetAccuracy(a.partial.DirectionCount(), mean_samples, a.confidence, f->mutable_accuracy());
+  }
   if (a.plan) ToProto(*a.plan, f->mutable_accuracy());
 
   if (!a.result) {

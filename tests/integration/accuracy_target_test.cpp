@@ -231,9 +231,22 @@ TEST_F(AccuracyTargetTest, ObscuranceTargetsChooseTheDirectionCount) {
   ASSERT_TRUE(bake.ok()) << bake.status();
   const v1::Accuracy& accuracy = bake->figures.accuracy();
   EXPECT_LE(accuracy.error_bound(), 0.1);
-  // Hoeffding at 0.1 and 95 %: 185 directions, the least count that meets it.
-  EXPECT_EQ(accuracy.parameters().at("directions"), 185.0);
-  EXPECT_EQ(bake->partial.DirectionCount(), 185u);
+  // Both methods weighed: the GPU bake by directions, Embree by rays per patch.
+  bool weighed_bake = false, weighed_rays = false;
+  for (const v1::PlanEstimate& plan : accuracy.plans()) {
+    weighed_bake |= plan.method() == "obscurance-depth-peeling";
+    weighed_rays |= plan.method() == "obscurance-raycast";
+  }
+  EXPECT_TRUE(weighed_bake && weighed_rays) << accuracy.DebugString();
+  // Hoeffding at 0.1 and 95 %: 185 samples per patch, the least count that
+  // meets it, as directions or as rays.
+  if (accuracy.method() == "obscurance-raycast") {
+    EXPECT_EQ(accuracy.parameters().at("rays_per_patch"), 185.0);
+    EXPECT_NEAR(bake->figures.mean_samples_per_patch(), 185.0, 1e-9);
+  } else {
+    EXPECT_EQ(accuracy.parameters().at("directions"), 185.0);
+    EXPECT_EQ(bake->partial.DirectionCount(), 185u);
+  }
   EXPECT_TRUE(bake->figures.update_ready());
 
   // A shard range cannot take a target.
@@ -241,6 +254,43 @@ TEST_F(AccuracyTargetTest, ObscuranceTargetsChooseTheDirectionCount) {
   request.set_total_directions(64);
   auto shard = client_->ComputeObscurances(request, nullptr);
   ASSERT_EQ(shard.status().code(), absl::StatusCode::kInvalidArgument) << shard.status();
+}
+
+TEST_F(AccuracyTargetTest, RaycastObscurancesAgreeWithTheGpuBakeWithinTheirErrors) {
+  v1::ComputeObscurancesRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  request.set_resolution(64);
+  request.set_d_max(0.5);
+  request.set_direction_count(256);
+  auto bake = client_->ComputeObscurances(request, nullptr);
+  ASSERT_TRUE(bake.ok()) << bake.status();
+  request.set_direction_count(0);
+  request.set_method(v1::ComputeObscurancesRequest::RAYCAST);
+  request.set_rays_per_patch(256);
+  auto rays = client_->ComputeObscurances(request, nullptr);
+  ASSERT_TRUE(rays.ok()) << rays.status();
+  EXPECT_EQ(rays->figures.accuracy().method(), "obscurance-raycast");
+  EXPECT_TRUE(rays->figures.update_ready()) << "a ray-cast estimate is a whole solution for updates";
+  ASSERT_EQ(rays->w.size(), bake->w.size());
+  // Two estimates of the same patch values. Their mean difference over the
+  // estimated texels measures 0.022 here: the boxes stand on the floor, and
+  // at the contact the bundles' pixels and the per-patch rays see different
+  // slivers (tests/obscurance lifts the box for its 0.01 comparison). Still
+  // far below either per-texel figure (about 0.085 at 256 samples).
+  double sum = 0.0;
+  size_t n = 0;
+  for (size_t t = 0; t < rays->estimated.size(); ++t)
+    if (rays->estimated[t] && bake->estimated[t]) {
+      sum += double(rays->w[3 * t]) - bake->w[3 * t];
+      ++n;
+    }
+  ASSERT_GT(n, 50u);
+  EXPECT_LT(std::abs(sum / double(n)), 0.035);
+
+  // A range or partial sums belong to the bake.
+  request.set_partial_only(true);
+  auto partial = client_->ComputeObscurances(request, nullptr);
+  ASSERT_EQ(partial.status().code(), absl::StatusCode::kInvalidArgument) << partial.status();
 }
 
 }  // namespace
