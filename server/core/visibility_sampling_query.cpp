@@ -93,6 +93,16 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
   return result;
 }
 
+// Shoelace: positive when the polygon winds counter-clockwise in (s, t).
+double TwiceSignedArea(const std::vector<glm::dvec2>& polygon) {
+  double twice_area = 0.0;
+  for (size_t i = 0; i < polygon.size(); ++i) {
+    const glm::dvec2& next = polygon[(i + 1) % polygon.size()];
+    twice_area += polygon[i].x * next.y - next.x * polygon[i].y;
+  }
+  return twice_area;
+}
+
 // The exact visible fraction of the source (its polygon, or its rectangle)
 // from every receiver texel centre: the Plücker method of
 // core/light_visibility_query.h with the source as a light facing the
@@ -117,14 +127,8 @@ StatusOr<gpu::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const 
   if (request.source.polygon_uv.empty()) {
     light = {source.At(0, 0), source.At(1, 0), source.At(1, 1), source.At(0, 1)};
   } else {
-    const auto& uv = request.source.polygon_uv;
-    double twice_area = 0.0;
-    for (size_t i = 0; i < uv.size(); ++i) {
-      light.push_back(source.At(uv[i].x, uv[i].y));
-      const glm::dvec2& next = uv[(i + 1) % uv.size()];
-      twice_area += uv[i].x * next.y - next.x * uv[i].y;
-    }
-    winding = twice_area;
+    for (const glm::dvec2& uv : request.source.polygon_uv) light.push_back(source.At(uv.x, uv.y));
+    winding = TwiceSignedArea(request.source.polygon_uv);
   }
   const glm::dvec3 normal = glm::cross(source.edge_u, source.edge_v);
   const bool receiver_in_front = glm::dot(request.receiver.patch.At(0.5, 0.5) - source.origin, normal) > 0.0;
@@ -242,13 +246,7 @@ using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method
 // samples outside it are dropped, so a plan must ask for more.
 double PolygonShare(const gpu::SourceSpec& source) {
   if (source.polygon_uv.empty()) return 1.0;
-  double twice_area = 0.0;
-  const auto& uv = source.polygon_uv;
-  for (size_t i = 0; i < uv.size(); ++i) {
-    const glm::dvec2& next = uv[(i + 1) % uv.size()];
-    twice_area += uv[i].x * next.y - next.x * uv[i].y;
-  }
-  return std::clamp(std::abs(twice_area) / 2.0, 1e-6, 1.0);
+  return std::clamp(std::abs(TwiceSignedArea(source.polygon_uv)) / 2.0, 1e-6, 1.0);
 }
 
 // The candidate plans for a visible-fraction answer over `points` receiver
