@@ -8,6 +8,7 @@
 #include <glm/glm.hpp>
 #include <gtest/gtest.h>
 
+#include "shared_server_suite.h"
 #include "test_support.h"
 #include "visq_client.h"
 
@@ -15,8 +16,6 @@ namespace visq {
 namespace {
 
 using client::Client;
-using testing::ScratchDir;
-using testing::ServerProcess;
 
 void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
   auto set = [](v1::Vec3* out, glm::dvec3 value) {
@@ -29,20 +28,8 @@ void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
   set(p->mutable_edge_v(), v);
 }
 
-class AccuracyTargetTest : public ::testing::Test {
+class AccuracyTargetTest : public testing::SharedServerSuite<AccuracyTargetTest> {
  protected:
-  static void SetUpTestSuite() {
-    repo_ = new ScratchDir();
-    server_ = ServerProcess::Start({repo_->path(), {"--seed-samples"}}).release();
-  }
-  static void TearDownTestSuite() {
-    delete server_;
-    delete repo_;
-  }
-  void SetUp() override {
-    ASSERT_NE(server_, nullptr);
-    client_ = std::make_unique<Client>(client::ClientOptions{.address = server_->address()});
-  }
 
   // A light patch over the tall box onto the floor beside it: partly shadowed.
   static v1::HiddenSampleMapRequest ShadowedFloor(uint32_t size) {
@@ -66,13 +53,7 @@ class AccuracyTargetTest : public ::testing::Test {
     EXPECT_EQ(exact->figures.accuracy().error_bound(), 0.0);
     return exact->visible_fraction;
   }
-
-  static ScratchDir* repo_;
-  static ServerProcess* server_;
-  std::unique_ptr<Client> client_;
 };
-ScratchDir* AccuracyTargetTest::repo_ = nullptr;
-ServerProcess* AccuracyTargetTest::server_ = nullptr;
 
 // The fraction of texels whose answer is outside the stated bound around the
 // exact value: at most 1 - confidence in expectation.

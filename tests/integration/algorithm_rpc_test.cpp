@@ -7,6 +7,7 @@
 #include <glm/glm.hpp>
 #include <gtest/gtest.h>
 
+#include "shared_server_suite.h"
 #include "test_support.h"
 #include "visq_client.h"
 
@@ -14,8 +15,6 @@ namespace visq {
 namespace {
 
 using client::Client;
-using testing::ScratchDir;
-using testing::ServerProcess;
 
 void Set(v1::Vec3* v, double x, double y, double z) {
   v->set_x(x);
@@ -29,20 +28,8 @@ void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
   Set(p->mutable_edge_v(), v.x, v.y, v.z);
 }
 
-class AlgorithmRpcTest : public ::testing::Test {
+class AlgorithmRpcTest : public testing::SharedServerSuite<AlgorithmRpcTest> {
  protected:
-  static void SetUpTestSuite() {
-    repo_ = new ScratchDir();
-    server_ = ServerProcess::Start({repo_->path(), {"--seed-samples"}}).release();
-  }
-  static void TearDownTestSuite() {
-    delete server_;
-    delete repo_;
-  }
-  void SetUp() override {
-    ASSERT_NE(server_, nullptr);
-    client_ = std::make_unique<Client>(client::ClientOptions{.address = server_->address()});
-  }
 
   // The ceiling light (just under it) onto the floor (just above it).
   v1::HiddenSampleMapRequest LightOntoFloor(uint32_t samples, uint32_t size) {
@@ -57,13 +44,7 @@ class AlgorithmRpcTest : public ::testing::Test {
     request.set_want_bitmasks(true);
     return request;
   }
-
-  static ScratchDir* repo_;
-  static ServerProcess* server_;
-  std::unique_ptr<Client> client_;
 };
-ScratchDir* AlgorithmRpcTest::repo_ = nullptr;
-ServerProcess* AlgorithmRpcTest::server_ = nullptr;
 
 TEST_F(AlgorithmRpcTest, HiddenSampleMapRasterMatchesRaycastBitForBit) {
   v1::HiddenSampleMapRequest request = LightOntoFloor(64, 32);

@@ -11,6 +11,7 @@
 
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
+#include "shared_server_suite.h"
 #include "test_support.h"
 #include "visq_client.h"
 
@@ -18,8 +19,6 @@ namespace visq {
 namespace {
 
 using client::Client;
-using testing::ScratchDir;
-using testing::ServerProcess;
 
 // Copies of the Cornell box under other names, so the tests that move
 // nodes do not disturb each other or the sample.
@@ -30,25 +29,17 @@ std::vector<double> Translation(double x, double y, double z) {
   return {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, x, y, z, 1};  // column-major
 }
 
-class ObscuranceRpcTest : public ::testing::Test {
- protected:
-  static void SetUpTestSuite() {
-    repo_ = new ScratchDir();
+class ObscuranceRpcTest : public testing::SharedServerSuite<ObscuranceRpcTest> {
+ public:
+  // Two stored copies of the Cornell box: one to move, one to measure bounds.
+  static void PrepareRepository(const std::filesystem::path& repo) {
     for (const char* name : {kBoundsScene, kUpdateScene}) {
-      std::filesystem::create_directories(repo_->path() / name);
-      ASSERT_TRUE(WriteGltfFile(MakeCornellBox(), repo_->path() / name / (std::string(name) + ".gltf")).ok());
+      std::filesystem::create_directories(repo / name);
+      ASSERT_TRUE(WriteGltfFile(MakeCornellBox(), repo / name / (std::string(name) + ".gltf")).ok());
     }
-    server_ = ServerProcess::Start({repo_->path(), {"--seed-samples"}}).release();
-  }
-  static void TearDownTestSuite() {
-    delete server_;
-    delete repo_;
-  }
-  void SetUp() override {
-    ASSERT_NE(server_, nullptr);
-    client_ = std::make_unique<Client>(client::ClientOptions{.address = server_->address()});
   }
 
+ protected:
   static v1::ComputeObscurancesRequest SmallBake(const std::string& scene) {
     v1::ComputeObscurancesRequest request;
     request.mutable_scene()->set_name(scene);
@@ -58,13 +49,7 @@ class ObscuranceRpcTest : public ::testing::Test {
     request.set_seed(5);
     return request;
   }
-
-  static ScratchDir* repo_;
-  static ServerProcess* server_;
-  std::unique_ptr<Client> client_;
 };
-ScratchDir* ObscuranceRpcTest::repo_ = nullptr;
-ServerProcess* ObscuranceRpcTest::server_ = nullptr;
 
 TEST_F(ObscuranceRpcTest, BakeGivesWInRangeWithProgress) {
   uint32_t progress_seen = 0, last_done = 0;
