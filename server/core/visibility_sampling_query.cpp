@@ -426,6 +426,13 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   }
   VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, resident, answer.method, chosen, query.job));
   engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing));
+  // The grid's bound restated at the target's confidence, as the plan was
+  // weighed (the map itself is built at the default one).
+  if (answer.method != VisibilityMethod::kPluckerExact && target.confidence < 1.0) {
+    answer.result.error.confidence = target.confidence;
+    answer.result.error.sampling =
+        gpu::SamplingErrorBound(chosen.source_columns * chosen.source_rows, target.confidence);
+  }
   answer.plan = std::move(report);
   return answer;
 }

@@ -192,11 +192,13 @@ TEST_F(AccuracyTargetTest, PatchVisibilityTargetAgainstTheExactMeanOfTheReceiver
 
   // With pairs asked for, only sampled methods qualify.
   request.mutable_target()->set_max_error(0.06);
+  request.mutable_target()->set_confidence(0.99);
   request.set_unblocked_limit(4);
   auto sampled = client_->PatchVisibility(request);
   ASSERT_TRUE(sampled.ok()) << sampled.status();
   EXPECT_NE(sampled->accuracy().method(), "plucker-exact");
   EXPECT_LE(sampled->accuracy().error_bound(), 0.06);
+  EXPECT_DOUBLE_EQ(sampled->accuracy().confidence(), 0.99) << "the bound is stated at the confidence asked for";
   EXPECT_GE(sampled->accuracy().parameters().at("source_columns") * sampled->accuracy().parameters().at("source_rows"),
             sampled->accuracy().parameters().at("samples"));
   EXPECT_NEAR(sampled->mutual_visible_fraction(), exact->mutual_visible_fraction(), sampled->accuracy().error_bound());
