@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "shared_server_suite.h"
+#include "proto_builders.h"
 #include "test_support.h"
 #include "visq_client.h"
 
@@ -17,16 +18,7 @@ namespace {
 
 using client::Client;
 
-void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
-  auto set = [](v1::Vec3* out, glm::dvec3 value) {
-    out->set_x(value.x);
-    out->set_y(value.y);
-    out->set_z(value.z);
-  };
-  set(p->mutable_origin(), o);
-  set(p->mutable_edge_u(), u);
-  set(p->mutable_edge_v(), v);
-}
+using testing::SetPatch;
 
 class AccuracyTargetTest : public testing::SharedServerSuite<AccuracyTargetTest> {
  protected:

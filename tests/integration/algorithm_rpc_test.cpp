@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include "shared_server_suite.h"
+#include "proto_builders.h"
 #include "test_support.h"
 #include "visq_client.h"
 
@@ -16,17 +17,8 @@ namespace {
 
 using client::Client;
 
-void Set(v1::Vec3* v, double x, double y, double z) {
-  v->set_x(x);
-  v->set_y(y);
-  v->set_z(z);
-}
-
-void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
-  Set(p->mutable_origin(), o.x, o.y, o.z);
-  Set(p->mutable_edge_u(), u.x, u.y, u.z);
-  Set(p->mutable_edge_v(), v.x, v.y, v.z);
-}
+using testing::Set;
+using testing::SetPatch;
 
 class AlgorithmRpcTest : public testing::SharedServerSuite<AlgorithmRpcTest> {
  protected:

@@ -52,6 +52,16 @@ class SceneRpcTest : public ::testing::Test {
     return path;
   }
 
+  // The resident scenes' names, as ListScenes orders them (empty on error).
+  std::vector<std::string> ResidentNames() const {
+    auto list = client_->ListScenes();
+    EXPECT_TRUE(list.ok()) << list.status();
+    std::vector<std::string> names;
+    if (list.ok())
+      for (const auto& s : list->scenes()) names.push_back(s.name());
+    return names;
+  }
+
   std::vector<std::string> RepositoryEntries() const {
     std::vector<std::string> names;
     for (const auto& entry : fs::directory_iterator(repo_.path())) names.push_back(entry.path().filename().string());
@@ -139,11 +149,7 @@ TEST_F(SceneRpcTest, RestartKeepsUploadedScenesAndDeleteForgetsThem) {
   EXPECT_TRUE(deleted->deleted_from_repository());
 
   RestartServer();
-  auto list = client_->ListScenes();
-  ASSERT_TRUE(list.ok()) << list.status();
-  std::vector<std::string> names;
-  for (const auto& s : list->scenes()) names.push_back(s.name());
-  EXPECT_EQ(names, (std::vector<std::string>{"cornell_box_visq", "kept"}));
+  EXPECT_EQ(ResidentNames(), (std::vector<std::string>{"cornell_box_visq", "kept"}));
   auto info = client_->GetScene("kept");
   ASSERT_TRUE(info.ok());
   EXPECT_EQ(info->content_hash(), kept->content_hash());
@@ -398,11 +404,7 @@ TEST_F(SceneRpcTest, KillDuringUploadLeavesNoPartialSceneAndKeepsAcknowledgedOne
   }
   client_.reset();
   StartServer({});
-  auto list = client_->ListScenes();
-  ASSERT_TRUE(list.ok()) << list.status();
-  std::vector<std::string> names;
-  for (const auto& s : list->scenes()) names.push_back(s.name());
-  EXPECT_EQ(names, (std::vector<std::string>{"cornell_box_visq", "kept"}));
+  EXPECT_EQ(ResidentNames(), (std::vector<std::string>{"cornell_box_visq", "kept"}));
   EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq", "kept"}))
       << "the interrupted upload's staging folder must be gone after restart";
   EXPECT_EQ(client_->GetScene("kept")->content_hash(), acknowledged->content_hash());
@@ -458,11 +460,7 @@ TEST_F(SceneRpcTest, KillDuringBakeKeepsAcknowledgedScenesAndRestartsCleanly) {
 
   client_.reset();
   StartServer({});
-  auto list = client_->ListScenes();
-  ASSERT_TRUE(list.ok()) << list.status();
-  std::vector<std::string> names;
-  for (const auto& s : list->scenes()) names.push_back(s.name());
-  EXPECT_EQ(names, (std::vector<std::string>{"cornell_box_visq", "kept"}));
+  EXPECT_EQ(ResidentNames(), (std::vector<std::string>{"cornell_box_visq", "kept"}));
   EXPECT_EQ(RepositoryEntries(), stored_before) << "a bake writes nothing to the repository";
   EXPECT_EQ(client_->GetScene("kept")->content_hash(), acknowledged->content_hash());
 

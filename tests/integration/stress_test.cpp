@@ -11,6 +11,7 @@
 
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
+#include "proto_builders.h"
 #include "test_support.h"
 #include "visq_client.h"
 
@@ -24,17 +25,8 @@ using testing::ServerProcess;
 constexpr int kClients = 16;
 constexpr auto kDuration = std::chrono::seconds(12);
 
-void Set(v1::Vec3* v, double x, double y, double z) {
-  v->set_x(x);
-  v->set_y(y);
-  v->set_z(z);
-}
-
-void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
-  Set(p->mutable_origin(), o.x, o.y, o.z);
-  Set(p->mutable_edge_u(), u.x, u.y, u.z);
-  Set(p->mutable_edge_v(), v.x, v.y, v.z);
-}
+using testing::Set;
+using testing::SetPatch;
 
 // The server's peak resident memory, from /proc.
 long PeakRssKiB(int pid) {
