@@ -8,11 +8,11 @@
 # `test` runs three stages, each failing the command if it fails:
 #   1. Release build, every test (ctest): unit, GPU on this machine's EGL
 #      device (llvmpipe without a GPU), integration, deploy.
-#   2. The unit and integration tests again under AddressSanitizer and
-#      UndefinedBehaviorSanitizer (VISQ_TEST_SANITIZERS=0 skips).
-#   3. The libFuzzer targets (clang, ASan, UBSan), each for
-#      VISQ_FUZZ_SECONDS (default 60) from the corpus in tests/fuzz/corpus
-#      (VISQ_FUZZ_SECONDS=0 skips).
+#   2. One clang build with AddressSanitizer, UndefinedBehaviorSanitizer and
+#      libFuzzer coverage: the unit and integration tests again under the
+#      sanitizers (VISQ_TEST_SANITIZERS=0 skips them), then the libFuzzer
+#      targets, each for VISQ_FUZZ_SECONDS (default 60) from the corpus in
+#      tests/fuzz/corpus (VISQ_FUZZ_SECONDS=0 skips them).
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -36,38 +36,36 @@ case "${1:-}" in
     start=$SECONDS
     bash deploy/install-deps.sh
 
-    stage "1/3 Release build and every test"
+    stage "1/2 Release build and every test"
     cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
     cmake --build "$build_dir" -j"$jobs"
     ctest --test-dir "$build_dir" --output-on-failure -j"$jobs" --timeout 900 "$@"
 
-    if [[ "${VISQ_TEST_SANITIZERS:-1}" != 0 ]]; then
-      stage "2/3 unit and integration tests under ASan + UBSan"
+    sanitized_tests=${VISQ_TEST_SANITIZERS:-1}
+    fuzz_seconds=${VISQ_FUZZ_SECONDS:-60}
+    if [[ "$sanitized_tests" != 0 || "$fuzz_seconds" != 0 ]]; then
+      stage "2/2 clang build with ASan + UBSan: the tests under the sanitizers, then fuzzing ${fuzz_seconds} s per target"
       asan_dir="${build_dir}-asan"
       # -O1 without debug info: the sanitizers need no more, and the build is
       # the longest part of this command on a 2-core machine.
-      cmake -S . -B "$asan_dir" -DCMAKE_BUILD_TYPE=None -DCMAKE_CXX_FLAGS=-O1 -DVISQ_SANITIZE=ON
+      CC=clang CXX=clang++ cmake -S . -B "$asan_dir" -DCMAKE_BUILD_TYPE=None -DCMAKE_CXX_FLAGS=-O1 \
+        -DVISQ_SANITIZE=ON -DVISQ_FUZZ=ON -DVISQ_FUZZ_SECONDS="$fuzz_seconds"
       cmake --build "$asan_dir" -j"$jobs" --target visq-server visq visq_scene_tests visq_gpu_tests \
-        visq_integration_tests visq_raycast_test visq_exact_test
-      # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
-      # allocations; leaks in visq's code show up under valgrind-free ASan
-      # use-after-free and overflow checks all the same.
-      for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_test exact/visq_exact_test \
-                  integration/visq_integration_tests; do
-        echo "--- $test (ASan + UBSan)"
-        ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-          "$asan_dir/tests/$test" --gtest_brief=1
-      done
-    fi
-
-    fuzz_seconds=${VISQ_FUZZ_SECONDS:-60}
-    if [[ "$fuzz_seconds" != 0 ]]; then
-      stage "3/3 fuzzing the glTF loader and request validation for ${fuzz_seconds} s each"
-      fuzz_dir="${build_dir}-fuzz"
-      CC=clang CXX=clang++ cmake -S . -B "$fuzz_dir" -DCMAKE_BUILD_TYPE=None -DCMAKE_CXX_FLAGS=-O1 -DVISQ_SANITIZE=ON \
-        -DVISQ_FUZZ=ON -DVISQ_FUZZ_SECONDS="$fuzz_seconds"
-      cmake --build "$fuzz_dir" -j"$jobs" --target gltf_loader_fuzz request_validation_fuzz
-      ASAN_OPTIONS=detect_leaks=0 ctest --test-dir "$fuzz_dir" --output-on-failure -R fuzz
+        visq_integration_tests visq_raycast_test visq_exact_test \
+        gltf_loader_fuzz request_validation_fuzz algorithm_request_fuzz
+      if [[ "$sanitized_tests" != 0 ]]; then
+        # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
+        # allocations; ASan's use-after-free and overflow checks still apply.
+        for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_test exact/visq_exact_test \
+                    integration/visq_integration_tests; do
+          echo "--- $test (ASan + UBSan)"
+          ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
+            "$asan_dir/tests/$test" --gtest_brief=1
+        done
+      fi
+      if [[ "$fuzz_seconds" != 0 ]]; then
+        ASAN_OPTIONS=detect_leaks=0 ctest --test-dir "$asan_dir" --output-on-failure -R fuzz
+      fi
     fi
     echo "visq: every stage passed in $((SECONDS - start)) s"
     ;;

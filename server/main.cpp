@@ -39,6 +39,9 @@ int main(int argc, char** argv) {
   app.add_option("--gpu-device", options.engine.gpu.device, "auto, surfaceless, or device:N")
       ->envname("VISQ_EGL_DEVICE")->capture_default_str();
   app.add_flag("--gpu-debug", options.engine.gpu.debug, "KHR_debug to the log, GL error checks")->envname("VISQ_GPU_DEBUG");
+  app.add_option("--fault-lose-gpu-context-at-job", options.engine.gpu.lose_context_at_job,
+                 "Testing the recovery path: treat the N-th GPU job as if the GPU had reset during it")
+      ->envname("VISQ_FAULT_LOSE_GPU_CONTEXT_AT_JOB")->group("Fault injection");
   app.add_flag("--seed-samples", seed_samples, "Write the generated sample scenes into the repository if absent")
       ->envname("VISQ_SEED_SAMPLES");
   std::string auth_token_file;

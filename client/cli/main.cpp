@@ -797,8 +797,8 @@ int main(int argc, char** argv) {
     if (flags.json) { fmt::print("{}", ToJson(*response)); return; }
     const auto& s = *response;
     fmt::print("server {} up {:.0f} s\n", s.server_id(), s.uptime_s());
-    fmt::print("GPU    {} / {} / {} ({}{})\n", s.gpu_vendor(), s.gpu_renderer(), s.gl_version(), s.egl_device(),
-               s.gpu_software() ? ", software" : "");
+    fmt::print("GPU    {} / {} / {} ({}{}), contexts lost {}\n", s.gpu_vendor(), s.gpu_renderer(), s.gl_version(),
+               s.egl_device(), s.gpu_software() ? ", software" : "", s.gpu_contexts_lost());
     fmt::print("queues GPU {}, workers {}\n", s.gpu_queue_depth(), s.worker_queue_depth());
     fmt::print("scenes {} resident, CPU {}, GPU {}\n", s.scenes_resident(), Bytes(s.scene_memory().cpu_bytes()),
                Bytes(s.scene_memory().gpu_bytes()));

@@ -29,6 +29,7 @@ struct HiddenSampleMapper::State {
     std::vector<glm::vec2> centred;  // sample positions the shader tests
     GlTexture2DArray texture{NoCreate};
     GlBuffer samples{NoCreate};
+    uint64_t generation = 0;  // the context generation `texture` lives in
     uint64_t last_use = 0;
   };
   std::mutex mutex;  // guards `tables` (the map, not the GL objects)
@@ -36,6 +37,7 @@ struct HiddenSampleMapper::State {
   uint64_t clock = 0;
   // GL thread only:
   std::map<std::pair<int, bool>, GlProgramObject> programs;
+  uint64_t programs_generation = 0;
   GLint max_draw_buffers = 0;
 };
 
@@ -205,11 +207,22 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
 
   std::vector<uint32_t> readback(size_t(target_layers) * width * height * 4);
   State* state = state_.get();
-  const GpuScene::Resources& resources = scene.resources();
-  const GLsizei vertex_count = resources.vertex_count;
+  const GLsizei vertex_count = static_cast<GLsizei>(scene.triangle_count()) * 3;
 
   Status run = worker_->Run(job, [&]() -> Status {
-    if (!table->texture) {
+    // After a context loss the table's texture and the programs are gone:
+    // rebuild them here (the table from its sample positions) rather than
+    // fail every request that follows.
+    const uint64_t generation = CurrentContextGeneration();
+    if (state->programs_generation != generation) {
+      state->programs.clear();
+      state->programs_generation = generation;
+    }
+    if (table->texture && table->generation != generation) {
+      hsm::HoughTableLayout same_layout = table->layout;  // other threads read table->layout
+      table->cpu = hsm::BuildHoughTable(table->centred, same_layout);
+    }
+    if (!table->texture || table->generation != generation) {
       GlTexture2DArray texture;
       glTextureStorage3D(texture.id(), 1, GL_RGBA32UI, layout.r_res, layout.theta_res, 2 * groups);
       glTextureSubImage3D(texture.id(), 0, 0, 0, 0, layout.r_res, layout.theta_res, 2 * groups, GL_RGBA_INTEGER,
@@ -221,6 +234,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
       VISQ_GL_CHECK("hidden-sample map table upload");
       table->texture = std::move(texture);
       table->samples = std::move(samples);
+      table->generation = generation;
       std::vector<uint32_t>().swap(table->cpu);
     }
 
@@ -242,7 +256,8 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     glDisable(GL_BLEND);
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
-    glBindVertexArray(resources.vertex_array.id());
+    VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, scene.CurrentResources());
+    glBindVertexArray(resources->vertex_array.id());
     glBindTextureUnit(0, table->texture.id());
     glBindTextureUnit(1, bumpy ? heights.id() : 0);
     glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, table->samples.id());

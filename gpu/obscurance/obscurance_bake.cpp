@@ -114,7 +114,8 @@ DirectionFrame FrameOf(const obscurance::BundleDirection& d, const glm::dvec3& c
 Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFrame& frame, uint32_t bundle,
                      const ObscuranceAtlas& atlas, const ObscuranceParams& params, const glm::vec3& unoccluded,
                      uint32_t max_layers, uint32_t* layers) {
-  const GpuScene::Resources& res = gpu_scene.resources();
+  VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* scene_resources, gpu_scene.CurrentResources());
+  const GpuScene::Resources& res = *scene_resources;
   glViewport(0, 0, static_cast<GLsizei>(bundle), static_cast<GLsizei>(bundle));
   glDisable(GL_CULL_FACE);
   glDisable(GL_BLEND);

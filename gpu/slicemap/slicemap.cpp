@@ -18,6 +18,7 @@
 #include <chrono>
 #include <cmath>
 #include <map>
+#include <set>
 #include <mutex>
 #include <thread>
 
@@ -86,12 +87,15 @@ std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v
 
 // ---------------------------------------------------------------------------
 // Programs, built once per worker and variant (GL thread only). The ids are
-// never deleted: they live as long as the worker's context.
+// never deleted: they live as long as the worker's context (a new
+// context after a loss builds its own).
 StatusOr<GLuint> Program(GpuWorker& worker, bool conservative, const ShaderDefines& defines) {
   static std::mutex mutex;
   static std::map<std::pair<const GpuWorker*, std::string>, GLuint> cache;
   std::string key = conservative ? "C" : "S";
   for (const auto& [name, value] : defines) key += ";" + name + "=" + value;
+  // A context lost and made anew has none of the old programs.
+  key += ";generation=" + std::to_string(CurrentContextGeneration());
   std::lock_guard lock(mutex);
   auto it = cache.find({&worker, key});
   if (it != cache.end() && glIsProgram(it->second)) return it->second;
@@ -124,12 +128,14 @@ ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool 
 }
 
 // Draws the selected triangles (all when the list is empty).
-void DrawTriangles(const GpuScene& scene, const std::vector<GLint>& firsts, const std::vector<GLsizei>& counts) {
-  glBindVertexArray(scene.resources().vertex_array.id());
+Status DrawTriangles(const GpuScene& scene, const std::vector<GLint>& firsts, const std::vector<GLsizei>& counts) {
+  VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, scene.CurrentResources());
+  glBindVertexArray(resources->vertex_array.id());
   if (firsts.empty())
-    glDrawArrays(GL_TRIANGLES, 0, scene.resources().vertex_count);
+    glDrawArrays(GL_TRIANGLES, 0, resources->vertex_count);
   else
     glMultiDrawArrays(GL_TRIANGLES, firsts.data(), counts.data(), static_cast<GLsizei>(firsts.size()));
+  return absl::OkStatus();
 }
 
 // Copies one RGBA32UI target (128 slices of the pass) into the packed grid.
@@ -221,7 +227,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     glEnable(GL_BLEND);
     glBlendEquation(GL_MIN);
     glUseProgram(program);
-    if (!draw_nothing) DrawTriangles(scene, firsts, counts);
+    if (!draw_nothing) VISQ_RETURN_IF_ERROR(DrawTriangles(scene, firsts, counts));
     glDisable(GL_BLEND);
     glBlendEquation(GL_FUNC_ADD);
     glFinish();
@@ -283,7 +289,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     glUseProgram(program);
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
-    if (!draw_nothing) DrawTriangles(scene, firsts, counts);
+    if (!draw_nothing) VISQ_RETURN_IF_ERROR(DrawTriangles(scene, firsts, counts));
     glDisable(GL_COLOR_LOGIC_OP);
     glFinish();
     VISQ_GL_CHECK("slicemap pass");
@@ -722,10 +728,7 @@ ColumnHit Locate(const LightFrame& frame, uint32_t size, const glm::dvec3& p) {
 
 }  // namespace
 
-StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scene, const GpuScene& gpu_scene,
-                                            const TransmittanceParams& params) {
-  const auto start = Clock::now();
-  // Validation.
+Status ValidateTransmittanceParams(const TransmittanceParams& params, const Scene& scene) {
   const TransmittanceLight& light = params.light;
   if (light.kind != LightKind::kPoint && light.kind != LightKind::kDirectional)
     return absl::InvalidArgumentError(fmt::format("params.light.kind: unknown value {}", static_cast<int>(light.kind)));
@@ -755,8 +758,7 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
     return absl::ResourceExhaustedError(
         fmt::format("params: {} query points exceed the cap of {}", point_count, kMaxTransmittancePoints));
 
-  // Absorbers grouped by coefficient: one solid slicemap per group.
-  std::map<double, std::vector<uint32_t>> groups;  // sigma -> node ids
+  std::set<double> coefficients;
   for (size_t i = 0; i < params.nodes.size(); ++i) {
     const AbsorbingNode& n = params.nodes[i];
     if (n.node >= scene.nodes.size())
@@ -765,11 +767,25 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
     if (!std::isfinite(n.absorption) || n.absorption < 0.0)
       return absl::InvalidArgumentError(
           fmt::format("params.nodes[{}].absorption: {} (must be finite and >= 0)", i, n.absorption));
-    groups[n.absorption].push_back(n.node);
+    coefficients.insert(n.absorption);
   }
-  if (groups.size() > kMaxTransmittanceGroups)
+  if (coefficients.size() > kMaxTransmittanceGroups)
     return absl::ResourceExhaustedError(fmt::format("params.nodes: {} distinct absorption values exceed the cap of {}",
-                                                    groups.size(), kMaxTransmittanceGroups));
+                                                    coefficients.size(), kMaxTransmittanceGroups));
+  return absl::OkStatus();
+}
+
+StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scene, const GpuScene& gpu_scene,
+                                            const TransmittanceParams& params) {
+  const auto start = Clock::now();
+  VISQ_RETURN_IF_ERROR(ValidateTransmittanceParams(params, scene));
+  const TransmittanceLight& light = params.light;
+  const ReceiverPatch& patch = params.patch;
+  const uint64_t point_count = params.points.size() + uint64_t{patch.nu} * patch.nv;
+
+  // Absorbers grouped by coefficient: one solid slicemap per group.
+  std::map<double, std::vector<uint32_t>> groups;  // sigma -> node ids
+  for (const AbsorbingNode& n : params.nodes) groups[n.absorption].push_back(n.node);
 
   // Each group's triangles as contiguous ranges, and the bounds of them all.
   Bounds bounds;

@@ -85,12 +85,25 @@ StatusOr<EGLContext> CreateCoreContext(EGLDisplay display, bool debug) {
   EGLint configs = 0;
   // Surfaceless contexts may have no config at all (EGL_KHR_no_config_context).
   if (!eglChooseConfig(display, config_attribs, &config, 1, &configs) || configs == 0) config = EGL_NO_CONFIG_KHR;
-  const EGLint context_attribs[] = {EGL_CONTEXT_MAJOR_VERSION, 4,
-                                    EGL_CONTEXT_MINOR_VERSION, 5,
-                                    EGL_CONTEXT_OPENGL_PROFILE_MASK, EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT,
-                                    EGL_CONTEXT_OPENGL_DEBUG, debug ? EGL_TRUE : EGL_FALSE,
-                                    EGL_NONE};
-  EGLContext context = eglCreateContext(display, config, EGL_NO_CONTEXT, context_attribs);
+  // Ask for reset notification first, so that a GPU reset is reported by
+  // glGetGraphicsResetStatus (the worker then makes a new context) instead
+  // of leaving a context that silently does nothing; drivers that cannot
+  // give it get a plain context.
+  const EGLint robust_attribs[] = {EGL_CONTEXT_MAJOR_VERSION, 4,
+                                   EGL_CONTEXT_MINOR_VERSION, 5,
+                                   EGL_CONTEXT_OPENGL_PROFILE_MASK, EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT,
+                                   EGL_CONTEXT_OPENGL_DEBUG, debug ? EGL_TRUE : EGL_FALSE,
+                                   EGL_CONTEXT_OPENGL_RESET_NOTIFICATION_STRATEGY, EGL_LOSE_CONTEXT_ON_RESET,
+                                   EGL_NONE};
+  const EGLint plain_attribs[] = {EGL_CONTEXT_MAJOR_VERSION, 4,
+                                  EGL_CONTEXT_MINOR_VERSION, 5,
+                                  EGL_CONTEXT_OPENGL_PROFILE_MASK, EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT,
+                                  EGL_CONTEXT_OPENGL_DEBUG, debug ? EGL_TRUE : EGL_FALSE,
+                                  EGL_NONE};
+  EGLContext context = EGL_NO_CONTEXT;
+  if (major > 1 || (major == 1 && minor >= 5))
+    context = eglCreateContext(display, config, EGL_NO_CONTEXT, robust_attribs);
+  if (context == EGL_NO_CONTEXT) context = eglCreateContext(display, config, EGL_NO_CONTEXT, plain_attribs);
   if (context == EGL_NO_CONTEXT) return EglFailure("eglCreateContext(OpenGL 4.5 core)");
   if (!eglMakeCurrent(display, EGL_NO_SURFACE, EGL_NO_SURFACE, context)) {
     Status status = EglFailure("eglMakeCurrent(surfaceless)");

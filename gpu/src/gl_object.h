@@ -1,13 +1,23 @@
 // One RAII owner per GL object kind (magnum's GL::Buffer pattern): move-only,
 // deleted in the destructor on the GL thread that created it, with an
 // explicit empty state. Only the GL thread may create or destroy them.
+//
+// Each owner remembers the context generation it was created in: after a
+// context loss the worker makes a new context, in which the old names mean
+// nothing or, worse, name new objects. An owner from an earlier generation
+// therefore deletes nothing.
 #pragma once
 
+#include <cstdint>
 #include <utility>
 
 #include <epoxy/gl.h>
 
 namespace visq::gpu {
+
+// The generation of the context current on this thread (0 off the GL
+// thread); defined by the worker, which bumps it on every new context.
+uint64_t CurrentContextGeneration();
 
 struct NoCreateT { explicit constexpr NoCreateT() = default; };
 inline constexpr NoCreateT NoCreate{};
@@ -16,17 +26,28 @@ template <typename Traits>
 class GlObject {
  public:
   // Creates a new object (needs a current context).
-  GlObject() : id_(Traits::Create()) {}
+  GlObject() : id_(Traits::Create()), generation_(CurrentContextGeneration()) {}
   // The empty state: owns nothing, needs no context.
   explicit GlObject(NoCreateT) noexcept {}
   // Takes ownership of an existing name.
-  static GlObject Wrap(GLuint id) noexcept { GlObject o(NoCreate); o.id_ = id; return o; }
+  static GlObject Wrap(GLuint id) noexcept {
+    GlObject o(NoCreate);
+    o.id_ = id;
+    o.generation_ = CurrentContextGeneration();
+    return o;
+  }
 
   GlObject(const GlObject&) = delete;
   GlObject& operator=(const GlObject&) = delete;
-  GlObject(GlObject&& other) noexcept : id_(std::exchange(other.id_, 0)) {}
-  GlObject& operator=(GlObject&& other) noexcept { std::swap(id_, other.id_); return *this; }
-  ~GlObject() { if (id_ != 0) Traits::Delete(id_); }
+  GlObject(GlObject&& other) noexcept : id_(std::exchange(other.id_, 0)), generation_(other.generation_) {}
+  GlObject& operator=(GlObject&& other) noexcept {
+    std::swap(id_, other.id_);
+    std::swap(generation_, other.generation_);
+    return *this;
+  }
+  ~GlObject() {
+    if (id_ != 0 && generation_ == CurrentContextGeneration()) Traits::Delete(id_);
+  }
 
   GLuint id() const noexcept { return id_; }
   explicit operator bool() const noexcept { return id_ != 0; }
@@ -35,6 +56,7 @@ class GlObject {
 
  private:
   GLuint id_ = 0;
+  uint64_t generation_ = 0;
 };
 
 namespace traits {

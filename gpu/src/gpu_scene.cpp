@@ -39,11 +39,18 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
     resources->vertex_count = static_cast<GLsizei>(corners.size());
     VISQ_RETURN_IF_ERROR(CollectGlErrors("scene upload"));
     out->resources_ = std::move(resources);
+    out->generation_ = CurrentContextGeneration();
     return absl::OkStatus();
   });
   VISQ_RETURN_IF_ERROR(status);
   out->gpu_bytes_ = corners.size() * sizeof(glm::vec3) + scene.triangle_material.size() * sizeof(uint32_t);
   return out;
+}
+
+StatusOr<const GpuScene::Resources*> GpuScene::CurrentResources() const {
+  if (generation_ != CurrentContextGeneration())
+    return absl::InternalError("the GPU context holding this scene's buffers was lost; the next request re-uploads it");
+  return resources_.get();
 }
 
 GpuScene::~GpuScene() {

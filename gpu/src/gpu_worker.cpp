@@ -11,8 +11,17 @@
 
 #include "egl_context.h"
 #include "gl_check.h"
+#include "gl_object.h"
 
 namespace visq::gpu {
+
+namespace {
+// Set by the worker on its thread; GlObject reads it (gl_object.h).
+thread_local uint64_t current_generation = 0;
+}  // namespace
+
+uint64_t CurrentContextGeneration() { return current_generation; }
+
 namespace {
 
 double MillisecondsBetween(SteadyTime a, SteadyTime b) {
@@ -110,20 +119,30 @@ class GpuWorker::Impl {
     wake_.notify_one();
   }
 
-  void Loop(std::promise<Status>& ready) {
-    // The context is created on this thread and never leaves it.
+  // Makes a context current on this thread (the first, or a replacement
+  // after a loss) and starts a new generation.
+  Status MakeContext() {
+    context_ = EglContext();  // the old one, if any, is destroyed first
     StatusOr<EglContext> context = EglContext::CreateCurrent(options_);
-    if (!context.ok()) {
-      ready.set_value(context.status());
-      return;
-    }
-    info = context->info();
+    if (!context.ok()) return context.status();
+    context_ = *std::move(context);
+    current_generation = generation_.fetch_add(1) + 1;
     SetGlChecksEnabled(options_.debug);
     if (options_.debug && epoxy_has_gl_extension("GL_KHR_debug")) {
       glEnable(GL_DEBUG_OUTPUT);
       glEnable(GL_DEBUG_OUTPUT_SYNCHRONOUS);
       glDebugMessageCallback(LogDebugMessage, nullptr);
     }
+    return absl::OkStatus();
+  }
+
+  void Loop(std::promise<Status>& ready) {
+    // The context is created on this thread and never leaves it.
+    if (Status made = MakeContext(); !made.ok()) {
+      ready.set_value(made);
+      return;
+    }
+    info = context_.info();
     ready.set_value(absl::OkStatus());
 
     for (;;) {
@@ -138,6 +157,7 @@ class GpuWorker::Impl {
       Execute(*job);
     }
     // Jobs are done; GL objects they owned were released by Post()ed jobs.
+    context_ = EglContext();
   }
 
   void Execute(Job& job) {
@@ -147,11 +167,19 @@ class GpuWorker::Impl {
       status = absl::CancelledError("cancelled while queued for the GPU");
     } else if (start > job.options.deadline) {
       status = absl::DeadlineExceededError("deadline passed while queued for the GPU");
+    } else if (!context_usable_) {
+      status = absl::InternalError(absl::StrCat("no GPU context: ", lost_reason_));
     } else {
       status = job.body();
-      // Errors the job did not check are still its errors, not the next job's.
-      Status gl_status = CollectGlErrors("GPU job");
-      if (status.ok() && !gl_status.ok()) status = gl_status;
+      if (const std::string reset = ContextLossDuringJob(); !reset.empty()) {
+        status = absl::InternalError(absl::StrCat("GPU context lost during this job (", reset,
+                                                  "); a new context serves the next request"));
+        Recover(reset);
+      } else {
+        // Errors the job did not check are still its errors, not the next job's.
+        Status gl_status = CollectGlErrors("GPU job");
+        if (status.ok() && !gl_status.ok()) status = gl_status;
+      }
     }
     if (job.timing) {
       job.timing->queue_ms = MillisecondsBetween(job.submitted, start);
@@ -161,7 +189,45 @@ class GpuWorker::Impl {
     else if (!status.ok()) spdlog::warn("GPU background job failed: {}", status.message());
   }
 
+  // Why the context is gone, or "" if it is fine. GL 4.5 core reports
+  // resets through glGetGraphicsResetStatus (for contexts created with a
+  // reset notification strategy; others report GL_NO_ERROR).
+  std::string ContextLossDuringJob() {
+    ++jobs_run_;
+    if (options_.lose_context_at_job != 0 && jobs_run_ == options_.lose_context_at_job)
+      return "simulated reset (lose_context_at_job)";
+    switch (glGetGraphicsResetStatus()) {
+      case GL_NO_ERROR: return "";
+      case GL_GUILTY_CONTEXT_RESET: return "GL_GUILTY_CONTEXT_RESET";
+      case GL_INNOCENT_CONTEXT_RESET: return "GL_INNOCENT_CONTEXT_RESET";
+      default: return "GL_UNKNOWN_CONTEXT_RESET";
+    }
+  }
+
+  void Recover(const std::string& reason) {
+    lost_.fetch_add(1);
+    spdlog::error("GPU context lost ({}); making a new one", reason);
+    if (Status made = MakeContext(); !made.ok()) {
+      context_usable_ = false;
+      lost_reason_ = absl::StrCat("lost (", reason, ") and not recreated: ", made.message());
+      spdlog::error("GPU: {}", lost_reason_);
+      return;
+    }
+    spdlog::info("GPU context generation {} ready", current_generation);
+  }
+
+ public:
+  uint64_t generation() const { return generation_.load(); }
+  uint64_t lost() const { return lost_.load(); }
+
+ private:
   GpuOptions options_;
+  EglContext context_;
+  std::atomic<uint64_t> generation_{0};
+  std::atomic<uint64_t> lost_{0};
+  uint64_t jobs_run_ = 0;
+  bool context_usable_ = true;
+  std::string lost_reason_;
   std::thread thread_;
   mutable std::mutex mutex_;
   std::condition_variable wake_;
@@ -181,6 +247,8 @@ StatusOr<std::unique_ptr<GpuWorker>> GpuWorker::Start(const GpuOptions& options)
 
 const DeviceInfo& GpuWorker::device() const { return impl_->info; }
 size_t GpuWorker::queue_depth() const { return impl_->depth(); }
+uint64_t GpuWorker::context_generation() const { return impl_->generation(); }
+uint64_t GpuWorker::contexts_lost() const { return impl_->lost(); }
 
 Status GpuWorker::Run(const JobOptions& options, std::function<Status()> body, JobTiming* timing) {
   return impl_->Run(options, std::move(body), timing);

@@ -266,6 +266,8 @@ StatusOr<GLuint> Program(GpuWorker& worker, const std::vector<ShaderSource>& sou
   std::string key;
   for (const auto& s : sources) key += s.file_name + "+";
   for (const auto& [name, value] : defines) key += ";" + name + "=" + value;
+  // A context lost and made anew has none of the old programs.
+  key += ";generation=" + std::to_string(CurrentContextGeneration());
   std::lock_guard lock(mutex);
   auto it = cache.find({&worker, key});
   if (it != cache.end() && glIsProgram(it->second)) return it->second;
@@ -375,7 +377,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setu
   glFinish();
   timings.setup_ms = MsSince(setup_start);
 
-  const GpuScene::Resources& res = gpu_scene.resources();
+  VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* scene_resources, gpu_scene.CurrentResources());
+  const GpuScene::Resources& res = *scene_resources;
   // 1. Shadow map.
   auto stage = Clock::now();
   {

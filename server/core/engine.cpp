@@ -253,7 +253,8 @@ std::shared_ptr<ObscuranceState> Engine::ObscuranceStateOf(absl::string_view sce
 
 StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneOf(const ResidentScene& resident) {
   std::lock_guard lock(resident.lazy_mutex);
-  if (!resident.gpu_scene) {
+  // A scene uploaded into a context that was lost since is uploaded again.
+  if (!resident.gpu_scene || !resident.gpu_scene->IsCurrent()) {
     const auto start = std::chrono::steady_clock::now();
     VISQ_ASSIGN_OR_RETURN(resident.gpu_scene, gpu::GpuScene::Upload(*gpu_, *resident.scene));
     spdlog::info("scene '{}' v{}: GPU upload of {} bytes in {:.1f} ms", resident.name, resident.version,

@@ -10,7 +10,9 @@ namespace {
 
 bool Finite(const glm::dvec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
 
-Status ValidatePoints(const LightVisibilityQuery& query, const Scene& scene) {
+}  // namespace
+
+Status CheckLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene) {
   if (query.points.empty()) return absl::InvalidArgumentError("points: empty");
   if (query.points.size() > kMaxLightVisibilityPoints)
     return absl::ResourceExhaustedError(absl::StrCat("points: ", query.points.size(), " exceeds the cap of ",
@@ -19,6 +21,7 @@ Status ValidatePoints(const LightVisibilityQuery& query, const Scene& scene) {
   if (query.light.vertices.size() > kMaxLightVertices)
     return absl::ResourceExhaustedError(absl::StrCat("light.vertices: ", query.light.vertices.size(),
                                                      " exceeds the cap of ", kMaxLightVertices));
+  VISQ_RETURN_IF_ERROR(exact::ValidateAreaLight(query.light));  // after the vertex cap: it is quadratic
   if (!std::isfinite(query.light.radiance) || query.light.radiance < 0)
     return absl::InvalidArgumentError(absl::StrCat("radiance: ", query.light.radiance, " is not a finite value >= 0"));
   for (size_t i = 0; i < query.points.size(); ++i) {
@@ -43,8 +46,6 @@ Status ValidatePoints(const LightVisibilityQuery& query, const Scene& scene) {
   return absl::OkStatus();
 }
 
-}  // namespace
-
 Bounds SnappedReceiverRegion(const std::vector<exact::QueryPoint>& points, const Bounds& scene_bounds) {
   Bounds batch;
   for (const auto& p : points) batch.Extend(p.position);
@@ -63,7 +64,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   const Scene& scene = *resident->scene;
-  VISQ_RETURN_IF_ERROR(ValidatePoints(query, scene));
+  VISQ_RETURN_IF_ERROR(CheckLightVisibilityQuery(query, scene));
   const auto start = std::chrono::steady_clock::now();
 
   // The tree's options: the receiver region and the excluded nodes' triangles.

@@ -34,6 +34,10 @@ struct LightVisibilityAnswer {
 inline constexpr size_t kMaxLightVisibilityPoints = 1'000'000;  // per request message
 inline constexpr size_t kMaxLightVertices = 1024;
 
+// Every check of the query against its scene that needs no tree: what is
+// refused before any work starts.
+[[nodiscard]] Status CheckLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene);
+
 [[nodiscard]] StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query);
 
 // The region a batch's tree is built for when the client gives none: the

@@ -448,22 +448,44 @@ std::string VisibilityMethodName(VisibilityMethod method, gpu::LookupMode lookup
   return lookup == gpu::LookupMode::kExact ? "raster-exact-lookup" : "raster-hough-lookup";
 }
 
-StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
-  // Without samples (a target, or the exact method) the count is the
-  // planner's to choose: validate everything else.
+namespace {
+
+// The request as it will run: without samples (a target, or the exact
+// method) the count is the planner's to choose, so one stands in for it.
+gpu::HiddenSampleMapRequest WithStandInCount(const HiddenSampleMapQuery& query) {
+  gpu::HiddenSampleMapRequest request = query.request;
   const bool count_chosen_here = query.target || query.method == VisibilityMethod::kPluckerExact;
+  if (count_chosen_here && request.source.sample_count == 0) request.source.sample_count = 1;
+  return request;
+}
+
+}  // namespace
+
+Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query) {
   if (query.target) {
     VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));
     if (query.request.source.sample_count != 0)
       return absl::InvalidArgumentError("samples.count: give either a count or a target, not both");
   }
-  gpu::HiddenSampleMapRequest checked = query.request;
-  if (count_chosen_here && checked.source.sample_count == 0) checked.source.sample_count = 1;
+  const gpu::HiddenSampleMapRequest checked = WithStandInCount(query);
   VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(checked));
+  if (!query.target) VISQ_RETURN_IF_ERROR(CheckSize(checked));
+  return absl::OkStatus();
+}
+
+Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query) {
+  if (query.target) return ValidateAccuracyTarget(*query.target);
+  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapRequest map, gpu::PatchVisibilityAsHiddenSampleMap(query.request));
+  VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(map));
+  return CheckSize(map);
+}
+
+StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query) {
+  VISQ_RETURN_IF_ERROR(CheckHiddenSampleMapQuery(query));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
   if (query.target) return HiddenSampleMapForTarget(engine, *resident, query);
-  VISQ_RETURN_IF_ERROR(CheckSize(checked));
+  const gpu::HiddenSampleMapRequest checked = WithStandInCount(query);
   HiddenSampleMapAnswer answer;
   answer.method = query.method;
   VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.job));
@@ -471,12 +493,10 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
 }
 
 StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query) {
+  VISQ_RETURN_IF_ERROR(CheckPatchVisibilityQuery(query));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
-  if (query.target) {
-    VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));
-    return PatchVisibilityForTarget(engine, *resident, query);
-  }
+  if (query.target) return PatchVisibilityForTarget(engine, *resident, query);
   PatchVisibilityAnswer answer;
   answer.method = query.method;
   VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.job));

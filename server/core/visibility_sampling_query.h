@@ -59,6 +59,12 @@ struct PatchVisibilityAnswer {
   std::optional<PlanReport> plan;
 };
 
+// Every check of a query that needs neither the scene nor the GPU: what is
+// refused before any work is queued. The Run functions start with these (the
+// request-validation fuzz target calls them alone).
+[[nodiscard]] Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query);
+[[nodiscard]] Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query);
+
 [[nodiscard]] StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query);
 [[nodiscard]] StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query);
 

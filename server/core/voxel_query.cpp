@@ -16,10 +16,7 @@ StatusOr<std::vector<uint32_t>> NodeIndices(const Scene& scene, const std::strin
 
 }  // namespace
 
-StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, VoxelizeQuery query, gpu::SlicemapBox* box_used) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
-  const Scene& scene = *resident->scene;
+StatusOr<gpu::VoxelizeParams> ResolveVoxelizeQuery(VoxelizeQuery query, const Scene& scene) {
   if (query.box) {
     query.params.box = *query.box;
   } else {
@@ -36,23 +33,36 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, VoxelizeQuery query, g
   if (!query.nodes.empty() && query.params.triangles.empty())
     return absl::InvalidArgumentError("nodes: the named nodes hold no triangles");
   VISQ_RETURN_IF_ERROR(gpu::ValidateVoxelizeParams(query.params, static_cast<uint32_t>(scene.TriangleCount())));
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
-  if (box_used != nullptr) *box_used = query.params.box;
-  return gpu::Voxelize(engine.gpu(), *gpu_scene, query.params);
+  return std::move(query.params);
 }
 
-StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, TransmittanceQuery query) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
-  const Scene& scene = *resident->scene;
+StatusOr<gpu::TransmittanceParams> ResolveTransmittanceQuery(TransmittanceQuery query, const Scene& scene) {
   for (size_t i = 0; i < query.absorbers.size(); ++i) {
     const auto& [name, absorption] = query.absorbers[i];
     VISQ_ASSIGN_OR_RETURN(std::vector<uint32_t> nodes,
                           NodeIndices(scene, name, absl::StrCat("absorbers[", i, "].node").c_str()));
     for (uint32_t n : nodes) query.params.nodes.push_back({n, absorption});
   }
+  VISQ_RETURN_IF_ERROR(gpu::ValidateTransmittanceParams(query.params, scene));
+  return std::move(query.params);
+}
+
+StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query, gpu::SlicemapBox* box_used) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeParams params, ResolveVoxelizeQuery(query, *resident->scene));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
-  return gpu::Transmittance(engine.gpu(), scene, *gpu_scene, query.params);
+  if (box_used != nullptr) *box_used = params.box;
+  return gpu::Voxelize(engine.gpu(), *gpu_scene, params);
+}
+
+StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  // Resolved and validated before the GPU upload: a bad request costs nothing.
+  VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceParams params, ResolveTransmittanceQuery(query, *resident->scene));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  return gpu::Transmittance(engine.gpu(), *resident->scene, *gpu_scene, params);
 }
 
 }  // namespace visq

@@ -29,8 +29,15 @@ struct TransmittanceQuery {
   std::vector<std::pair<std::string, double>> absorbers;  // node name, absorption
 };
 
-[[nodiscard]] StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, VoxelizeQuery query,
+// The query's parameters with names resolved against the scene and every
+// check made: what is refused before any GPU work (the request-validation
+// fuzz target calls these alone).
+[[nodiscard]] StatusOr<gpu::VoxelizeParams> ResolveVoxelizeQuery(VoxelizeQuery query, const Scene& scene);
+[[nodiscard]] StatusOr<gpu::TransmittanceParams> ResolveTransmittanceQuery(TransmittanceQuery query,
+                                                                           const Scene& scene);
+
+[[nodiscard]] StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query,
                                                         gpu::SlicemapBox* box_used);
-[[nodiscard]] StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, TransmittanceQuery query);
+[[nodiscard]] StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query);
 
 }  // namespace visq

@@ -774,11 +774,16 @@ StatusOr<std::vector<std::array<uint32_t, 3>>> Triangulate(const std::vector<glm
 
 }  // namespace
 
-StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
-    const AreaLight& light, const Scene& scene, const TreeOptions& options) {
-  auto impl = std::make_unique<Impl>();
+namespace {
 
-  // Validate the light.
+// The light moved to its centroid and triangulated, after every check.
+struct PreparedLight {
+  glm::dvec3 origin{0.0};
+  std::vector<glm::dvec3> local;
+  std::vector<std::array<uint32_t, 3>> triangles;
+};
+
+StatusOr<PreparedLight> PrepareLight(const AreaLight& light) {
   const auto& lv = light.vertices;
   if (lv.size() < 3) {
     return absl::InvalidArgumentError(
@@ -806,10 +811,10 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   glm::dvec3 centroid(0.0);
   for (const auto& p : lv) centroid += p;
   centroid /= static_cast<double>(lv.size());
-  impl->origin = centroid;
-  impl->radiance = light.radiance;
-  for (const auto& p : lv) impl->light_local.push_back(p - centroid);
-  const auto& ll = impl->light_local;
+  PreparedLight out;
+  out.origin = centroid;
+  for (const auto& p : lv) out.local.push_back(p - centroid);
+  const auto& ll = out.local;
   glm::dvec3 newell(0.0);
   double diameter = 0.0;
   for (size_t i = 0; i < ll.size(); ++i) {
@@ -828,7 +833,24 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
           "light: not planar (light.vertices[", i, "] is ", off, " off the plane)"));
     }
   }
-  VISQ_ASSIGN_OR_RETURN(auto triangles, Triangulate(ll, newell));
+  VISQ_ASSIGN_OR_RETURN(out.triangles, Triangulate(ll, newell));
+  return out;
+}
+
+}  // namespace
+
+Status ValidateAreaLight(const AreaLight& light) { return PrepareLight(light).status(); }
+
+StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
+    const AreaLight& light, const Scene& scene, const TreeOptions& options) {
+  auto impl = std::make_unique<Impl>();
+
+  VISQ_ASSIGN_OR_RETURN(PreparedLight prepared, PrepareLight(light));
+  impl->origin = prepared.origin;
+  impl->radiance = light.radiance;
+  impl->light_local = std::move(prepared.local);
+  const auto& ll = impl->light_local;
+  const auto& triangles = prepared.triangles;
 
   // The light's exact geometry: input points, triangle planes, and the light
   // plane through the largest triangle (oriented: front side positive).
@@ -857,8 +879,8 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   // the converted box (and widening would make flat boxes thick by an ulp,
   // which costs near-degenerate hull faces).
   if (options.receiver_bounds && !options.receiver_bounds->Empty()) {
-    const glm::dvec3 lo = options.receiver_bounds->min - centroid;
-    const glm::dvec3 hi = options.receiver_bounds->max - centroid;
+    const glm::dvec3 lo = options.receiver_bounds->min - impl->origin;
+    const glm::dvec3 hi = options.receiver_bounds->max - impl->origin;
     impl->receiver_box = std::make_pair(lo, hi);
   }
 
@@ -966,7 +988,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
     }
     if (!excluded.empty() && excluded[ti]) continue;
     glm::dvec3 v[3];
-    for (int c = 0; c < 3; ++c) v[c] = scene.positions[tri[c]] - centroid;
+    for (int c = 0; c < 3; ++c) v[c] = scene.positions[tri[c]] - impl->origin;
     // Degenerate (zero-area) triangles block nothing.
     {
       // Test the projection along the dominant normal axis first: it is the

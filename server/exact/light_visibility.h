@@ -123,6 +123,10 @@ struct TreeStats {
   size_t near_occluders = 0;  // clipped per query
 };
 
+// The checks LightVisibilityTree::Create makes of a light, alone: INVALID_ARGUMENT
+// naming the vertex or property at fault.
+[[nodiscard]] Status ValidateAreaLight(const AreaLight& light);
+
 class LightVisibilityTree {
  public:
   // Validates the light ("light.vertices[2]: NaN coordinate", "light: zero

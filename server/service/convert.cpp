@@ -551,4 +551,39 @@ void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* 
   accuracy->set_note(result.error_statement);
 }
 
+StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request) {
+  ObscuranceQuery query;
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  query.resolution = request.resolution() != 0 ? request.resolution() : 256;
+  query.force_built_atlas = request.force_built_atlas();
+  query.params.d_max = request.d_max();
+  query.params.color_bleeding = request.color_bleeding();
+  query.params.seed = request.seed() != 0 ? request.seed() : 1;
+  query.params.first_direction = request.first_direction();
+  query.params.direction_count = request.direction_count() != 0 ? request.direction_count() : 256;
+  query.params.bundle_resolution = request.bundle_resolution();
+  query.total_directions = request.total_directions();
+  query.partial_only = request.partial_only();
+  query.want_averages = request.want_averages();
+  query.update_rays_per_patch = request.update_rays_per_patch() != 0 ? request.update_rays_per_patch() : 64;
+  switch (request.method()) {
+    case v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED:
+    case v1::ComputeObscurancesRequest::DEPTH_PEELING: query.method = ObscuranceMethod::kDepthPeeling; break;
+    case v1::ComputeObscurancesRequest::RAYCAST: query.method = ObscuranceMethod::kRaycast; break;
+    default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));
+  }
+  if (request.rays_per_patch() != 0) query.rays_per_patch = request.rays_per_patch();
+  if (request.has_target()) {
+    if (request.direction_count() != 0)
+      return absl::InvalidArgumentError("direction_count: give either a direction count or a target, not both");
+    if (request.method() != v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED || request.rays_per_patch() != 0)
+      return absl::InvalidArgumentError("method, rays_per_patch: give either a method or a target, not both");
+    query.target = service::FromProto(request.target());
+    return query;  // the core validates once the count is chosen
+  }
+  VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
+  return query;
+}
+
 }  // namespace visq::service

@@ -5,6 +5,7 @@
 
 #include "common/status.h"
 #include "core/light_visibility_query.h"
+#include "core/obscurance_query.h"
 #include "core/visibility_sampling_query.h"
 #include "core/volumetric_query.h"
 #include "core/voxel_query.h"
@@ -36,6 +37,10 @@ std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const HiddenSampleMapAnsw
 
 [[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
 void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);
+
+// A whole-bake request with a target is returned unvalidated beyond the
+// target's exclusions: the core validates once the planner chose the count.
+[[nodiscard]] StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request);
 
 [[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
 std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricResult& result, size_t chunk_elements);

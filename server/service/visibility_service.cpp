@@ -197,6 +197,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerCo
     response->set_egl_device(device.egl_device);
     response->set_gpu_software(device.software);
     response->set_gpu_queue_depth(static_cast<uint32_t>(ctx_.engine.gpu().queue_depth()));
+    response->set_gpu_contexts_lost(ctx_.engine.gpu().contexts_lost());
     response->set_worker_queue_depth(static_cast<uint32_t>(ctx_.executor.queued()));
     uint64_t cpu = 0, gpu_bytes = 0;
     const auto scenes = ctx_.engine.ListScenes();

@@ -150,6 +150,64 @@ TEST(GpuWorkerQueue, GlErrorFailsThatJobOnlyAndTheNextJobWorks) {
   EXPECT_TRUE(next.ok()) << next;
 }
 
+// A GPU reset, injected at the worker's third job (the recovery path is the
+// real one: the context is destroyed and a new one made).
+TEST(GpuWorkerQueue, LostContextFailsThatJobAndTheNextJobGetsANewContext) {
+  GpuOptions options;
+  options.lose_context_at_job = 3;
+  auto worker = GpuWorker::Start(options);
+  ASSERT_TRUE(worker.ok()) << worker.status();
+  EXPECT_EQ((*worker)->context_generation(), 1u);
+  ASSERT_TRUE(RunSelfTest(**worker).ok());  // job 1
+
+  // Job 2 makes a buffer that outlives the context it was made in.
+  GlBuffer survivor(NoCreate);
+  GLuint survivor_id = 0;
+  ASSERT_TRUE((*worker)->Run({}, [&] {
+    survivor = GlBuffer();
+    survivor_id = survivor.id();
+    glNamedBufferStorage(survivor.id(), 16, nullptr, 0);
+    return absl::OkStatus();
+  }).ok());
+
+  Status lost = (*worker)->Run({}, [] { return absl::OkStatus(); });  // job 3
+  EXPECT_EQ(lost.code(), absl::StatusCode::kInternal) << lost;
+  EXPECT_NE(std::string(lost.message()).find("context lost"), std::string::npos) << lost;
+  EXPECT_EQ((*worker)->context_generation(), 2u);
+  EXPECT_EQ((*worker)->contexts_lost(), 1u);
+
+  // The new context draws, and the old buffer's name means nothing in it.
+  EXPECT_TRUE(RunSelfTest(**worker).ok());
+  Status fresh = (*worker)->Run({}, [&] {
+    EXPECT_FALSE(glIsBuffer(survivor_id));
+    GlBuffer reused;  // very likely the same name as the survivor's
+    glNamedBufferStorage(reused.id(), 16, nullptr, 0);
+    const GLuint reused_id = reused.id();
+    survivor = GlBuffer(NoCreate);  // the stale owner must not delete `reused`
+    EXPECT_TRUE(glIsBuffer(reused_id));
+    return absl::OkStatus();
+  });
+  EXPECT_TRUE(fresh.ok()) << fresh;
+}
+
+TEST(GpuSceneUpload, SceneFromALostContextIsNotCurrentAndSaysSo) {
+  GpuOptions options;
+  options.lose_context_at_job = 2;
+  auto worker = GpuWorker::Start(options);
+  ASSERT_TRUE(worker.ok()) << worker.status();
+  const Scene scene = MakeCornellBox();
+  auto uploaded = GpuScene::Upload(**worker, scene);  // job 1
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  EXPECT_TRUE((*uploaded)->IsCurrent());
+  EXPECT_EQ((*worker)->Run({}, [] { return absl::OkStatus(); }).code(), absl::StatusCode::kInternal);  // job 2
+  EXPECT_FALSE((*uploaded)->IsCurrent());
+  Status stale = (*worker)->Run({}, [&]() -> Status { return (*uploaded)->CurrentResources().status(); });
+  EXPECT_EQ(stale.code(), absl::StatusCode::kInternal) << stale;
+  auto again = GpuScene::Upload(**worker, scene);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_TRUE((*again)->IsCurrent());
+}
+
 TEST(GpuWorkerQueue, InteractiveJobsOvertakeQueuedBatchJobs) {
   GpuWorker& worker = SharedGpuWorker();
   std::promise<void> release;

@@ -44,6 +44,9 @@ struct Queries {
   v1::LightVisibilityRequest light;
   v1::VoxelizeRequest voxels;
   v1::PatchVisibilityRequest patches;
+  v1::TransmittanceRequest transmittance;
+  v1::VolumetricShadowRequest volumetric;
+  v1::HiddenSampleMapRequest bad_map;  // NaN receiver: INVALID_ARGUMENT, always
 
   explicit Queries(const std::string& scene) {
     map.mutable_scene()->set_name(scene);
@@ -78,19 +81,51 @@ struct Queries {
       n->set_receiver_columns(8);
       n->set_receiver_rows(8);
     }
+
+    transmittance.mutable_scene()->set_name(scene);
+    transmittance.set_light_kind(v1::TransmittanceRequest::DIRECTIONAL);
+    Set(transmittance.mutable_light_direction(), 0, -1, 0);
+    auto* absorber = transmittance.add_absorbers();
+    absorber->set_node("short_box");
+    absorber->set_absorption(2.0);
+    Set(transmittance.add_points(), 0.4, 0.001, 0.35);
+    Set(transmittance.add_points(), -0.9, 0.001, 0.9);
+    transmittance.set_resolution(64);
+    transmittance.set_slices(64);
+
+    volumetric.mutable_scene()->set_name(scene);
+    Set(volumetric.mutable_camera_position(), 0, 1, 3.5);
+    Set(volumetric.mutable_camera_forward(), 0, 0, -1);
+    Set(volumetric.mutable_light_direction(), 0.3, -0.6, -1.0);
+    volumetric.set_width(32);
+    volumetric.set_height(24);
+    volumetric.set_shadow_map_size(128);
+    volumetric.set_scattering(0.2);
+    volumetric.set_extinction(0.2);
+
+    bad_map = map;
+    bad_map.mutable_receiver()->mutable_origin()->set_y(std::nan(""));
   }
 };
+
+// Every RPC but the scene-changing ones (upload, unload, SetNodeTransform,
+// UpdateObscurances: they would change the other clients' answers; their
+// races are tested in scene_rpc_test and obscurance_rpc_test).
+constexpr int kQueryKinds = 9;
 
 struct Answers {
   std::vector<uint32_t> map_bits;
   std::vector<double> light_fractions;
   std::vector<uint32_t> voxel_bits;
   double mutual = 0;
+  std::vector<float> values;  // transmittance, in-scattering
+  uint64_t triangles = 0;     // catalog reads
+  absl::StatusCode expected_error = absl::StatusCode::kOk;
 };
 
 StatusOr<Answers> Ask(Client& client, const Queries& q, int which) {
   Answers a;
-  switch (which % 4) {
+  switch (which % kQueryKinds) {
     case 0: {
       VISQ_ASSIGN_OR_RETURN(client::HiddenSampleMap map, client.ComputeHiddenSampleMap(q.map));
       a.map_bits = std::move(map.blocked_bits);
@@ -111,13 +146,49 @@ StatusOr<Answers> Ask(Client& client, const Queries& q, int which) {
       a.mutual = pv.mutual_visible_fraction();
       break;
     }
+    case 4: {
+      VISQ_ASSIGN_OR_RETURN(v1::TransmittanceResponse t, client.Transmittance(q.transmittance));
+      a.values.assign(t.transmittance().begin(), t.transmittance().end());
+      break;
+    }
+    case 5: {
+      VISQ_ASSIGN_OR_RETURN(client::VolumetricImage image, client.VolumetricShadow(q.volumetric));
+      a.values = std::move(image.inscattering);
+      break;
+    }
+    case 6: {
+      VISQ_ASSIGN_OR_RETURN(std::vector<v1::LightVisibilityResponse> stream,
+                            client.LightVisibilityStream({q.light, q.light}));
+      for (const auto& response : stream)
+        for (const auto& p : response.points()) a.light_fractions.push_back(p.visible_fraction());
+      break;
+    }
+    case 7: {
+      VISQ_ASSIGN_OR_RETURN(v1::ListScenesResponse list, client.ListScenes());
+      VISQ_ASSIGN_OR_RETURN(v1::SceneInfo info, client.GetScene(q.map.scene().name()));
+      VISQ_ASSIGN_OR_RETURN(v1::ServerStats stats, client.GetStats());
+      if (list.scenes_size() < 2 || stats.scenes_resident() < 2)
+        return absl::InternalError("the catalog lost a scene");
+      a.triangles = info.triangle_count();
+      break;
+    }
+    case 8: {
+      // A bad request under load: refused with its field named, never
+      // queued, never anything else.
+      auto refused = client.ComputeHiddenSampleMap(q.bad_map);
+      if (refused.ok() || refused.status().code() != absl::StatusCode::kInvalidArgument)
+        return absl::InternalError(absl::StrCat("bad request answered ", refused.status().ToString()));
+      a.expected_error = refused.status().code();
+      break;
+    }
   }
   return a;
 }
 
 bool Same(const Answers& a, const Answers& b) {
   return a.map_bits == b.map_bits && a.light_fractions == b.light_fractions && a.voxel_bits == b.voxel_bits &&
-         a.mutual == b.mutual;
+         a.mutual == b.mutual && a.values == b.values && a.triangles == b.triangles &&
+         a.expected_error == b.expected_error;
 }
 
 TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
@@ -141,11 +212,13 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
     shift(patch->mutable_origin());
   for (auto& v : *far_queries.light.mutable_light()->mutable_vertices()) shift(&v);
   for (auto& p : *far_queries.light.mutable_points()) shift(p.mutable_position());
+  for (auto& p : *far_queries.transmittance.mutable_points()) shift(&p);
+  shift(far_queries.volumetric.mutable_camera_position());
 
   // Reference answers, one client, one at a time.
   std::vector<Answers> reference[2];
   for (int s = 0; s < 2; ++s)
-    for (int k = 0; k < 4; ++k) {
+    for (int k = 0; k < kQueryKinds; ++k) {
       auto answer = Ask(setup, s == 0 ? near_queries : far_queries, k);
       ASSERT_TRUE(answer.ok()) << "scene " << s << " query " << k << ": " << answer.status();
       reference[s].push_back(std::move(*answer));
@@ -174,7 +247,7 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
     clients.emplace_back([&, c] {
       Client client({.address = server->address(), .deadline = std::chrono::seconds(30)});
       for (int i = 0; std::chrono::steady_clock::now() < end; ++i) {
-        const int scene = (c + i) % 2, which = (c * 7 + i) % 4;
+        const int scene = (c + i) % 2, which = (c * 7 + i) % kQueryKinds;
         auto answer = Ask(client, scene == 0 ? near_queries : far_queries, which);
         ++requests;
         if (!answer.ok()) {

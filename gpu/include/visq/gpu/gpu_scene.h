@@ -27,9 +27,16 @@ class GpuScene {
   uint32_t triangle_count() const { return triangle_count_; }
   uint64_t gpu_bytes() const { return gpu_bytes_; }
 
+  // The worker's context generation the buffers were made in: a cache
+  // holding this scene re-uploads when the worker's generation moved on.
+  uint64_t context_generation() const { return generation_; }
+  bool IsCurrent() const { return worker_ != nullptr && worker_->context_generation() == generation_; }
+
   // GL objects, for algorithm code inside gpu/ (defined in src/gpu_scene_resources.h).
+  // Call on the GL thread; INTERNAL if the context they lived in was lost
+  // (the caller's next request re-uploads).
   struct Resources;
-  const Resources& resources() const { return *resources_; }
+  [[nodiscard]] StatusOr<const Resources*> CurrentResources() const;
 
  private:
   GpuScene() = default;
@@ -38,6 +45,7 @@ class GpuScene {
   glm::dvec3 anchor_{0.0};
   uint32_t triangle_count_ = 0;
   uint64_t gpu_bytes_ = 0;
+  uint64_t generation_ = 0;
 };
 
 }  // namespace visq::gpu

@@ -20,6 +20,10 @@ struct GpuOptions {
   std::string device = "auto";
   // Route KHR_debug messages to the log and check glGetError after steps.
   bool debug = false;
+  // Fault injection, for tests of the recovery path: the N-th job (1-based,
+  // counting every job including the start-up self-test) is treated as if
+  // the GPU had reset during it. 0: never.
+  uint64_t lose_context_at_job = 0;
 };
 
 struct DeviceInfo {
@@ -61,11 +65,19 @@ class GpuWorker {
 
   const DeviceInfo& device() const;
   size_t queue_depth() const;
+  // Starts at 1; +1 for every context made after a loss.
+  uint64_t context_generation() const;
+  // Contexts lost since start.
+  uint64_t contexts_lost() const;
 
   // Runs `body` on the GL thread and waits for it. A job whose deadline has
   // passed or that was cancelled before it starts does not run
   // (DEADLINE_EXCEEDED / CANCELLED). A GL error raised by the job fails it
-  // with INTERNAL; the next job starts from a clean error state.
+  // with INTERNAL; the next job starts from a clean error state. If the
+  // context is lost during the job (a GPU reset), the job fails with
+  // INTERNAL, the worker makes a new context and bumps context_generation():
+  // GPU-resident data from earlier generations is gone and is rebuilt by
+  // whoever cached it (they compare generations before use).
   [[nodiscard]] Status Run(const JobOptions& options, std::function<Status()> body,
                            JobTiming* timing = nullptr);
   // Queues `body` without waiting (GL object deletion from other threads).

@@ -205,6 +205,9 @@ struct TransmittanceResult {
   SlicemapTimings timings;  // summed over groups
 };
 
+// Checks params against the scene without touching the GPU.
+[[nodiscard]] Status ValidateTransmittanceParams(const TransmittanceParams& params, const Scene& scene);
+
 [[nodiscard]] StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scene,
                                                           const GpuScene& gpu_scene,
                                                           const TransmittanceParams& params);
