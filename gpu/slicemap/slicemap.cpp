@@ -781,7 +781,6 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
   VISQ_RETURN_IF_ERROR(ValidateTransmittanceParams(params, scene));
   const TransmittanceLight& light = params.light;
   const ReceiverPatch& patch = params.patch;
-  const uint64_t point_count = params.points.size() + uint64_t{patch.nu} * patch.nv;
 
   // Absorbers grouped by coefficient: one solid slicemap per group.
   std::map<double, std::vector<uint32_t>> groups;  // sigma -> node ids

@@ -1,9 +1,11 @@
 #include "scene/gltf_loader.h"
 
+#include <stdexcept>
 #include <cmath>
 #include <cstring>
 #include <functional>
 #include <set>
+#include <stdexcept>
 
 #include <absl/strings/str_join.h>
 #include <glm/gtc/matrix_transform.hpp>
@@ -358,13 +360,19 @@ StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* 
   tinygltf::Model model;
   std::string error, warning;
   const std::string ext = path.extension().string();
-  bool ok = false;
-  if (ext == ".glb" || ext == ".GLB") {
-    ok = loader.LoadBinaryFromFile(&model, &error, &warning, path.string());
-  } else if (ext == ".gltf" || ext == ".GLTF") {
-    ok = loader.LoadASCIIFromFile(&model, &error, &warning, path.string());
-  } else {
+  const bool binary = ext == ".glb" || ext == ".GLB";
+  if (!binary && ext != ".gltf" && ext != ".GLTF")
     return Invalid(absl::StrCat(path.filename().string(), ": not a .gltf or .glb file"));
+  bool ok = false;
+  // tinygltf reports most errors through `error`, but some malformed files
+  // make it throw (a GLB buffer without a uri and without a BIN chunk:
+  // std::out_of_range from vector::at, found by the glTF fuzz target). An
+  // exception escaping here would end the server.
+  try {
+    ok = binary ? loader.LoadBinaryFromFile(&model, &error, &warning, path.string())
+                : loader.LoadASCIIFromFile(&model, &error, &warning, path.string());
+  } catch (const std::exception& e) {
+    return Invalid(absl::StrCat(path.filename().string(), ": malformed glTF (the parser gave up: ", e.what(), ")"));
   }
   if (!ok) {
     if (error.empty()) error = warning;

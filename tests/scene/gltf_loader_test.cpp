@@ -2,6 +2,7 @@
 // ../shared/scenes (triangle counts from its SOURCES.md), on scenes written
 // by the project's own writer, and on malformed input.
 #include <fstream>
+#include <iterator>
 
 #include <gtest/gtest.h>
 
@@ -244,6 +245,20 @@ TEST(GltfLoaderBadInput, MalformedJson) {
 TEST(GltfLoaderBadInput, IndexOutOfRange) {
   ScratchDir dir;
   ExpectInvalid(WriteGltf(dir, "idx", TriangleJson("idx"), TriangleBuffer(0, 7)), "out of range");
+}
+
+// Found by the glTF fuzz target (the input is kept in its corpus; its first
+// byte chose .glb): tinygltf threw std::out_of_range from vector::at on this
+// GLB instead of reporting an error, which would have ended the server.
+TEST(GltfLoaderBadInput, GlbThatMadeTheParserThrow) {
+  std::ifstream in(VISQ_FUZZ_CORPUS_DIR "/gltf/regression-glb-parser-throws-out-of-range", std::ios::binary);
+  ASSERT_TRUE(in) << "corpus file missing";
+  std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  ASSERT_GT(bytes.size(), 1u);
+  ScratchDir dir;
+  const fs::path path = dir.path() / "thrower.glb";
+  std::ofstream(path, std::ios::binary) << bytes.substr(1);
+  ExpectInvalid(path, "the parser gave up");
 }
 
 TEST(GltfLoaderBadInput, NanPosition) {
