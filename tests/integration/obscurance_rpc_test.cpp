@@ -11,6 +11,7 @@
 
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
+#include "proto_builders.h"
 #include "shared_server_suite.h"
 #include "test_support.h"
 #include "visq_client.h"
@@ -25,9 +26,7 @@ using client::Client;
 constexpr const char* kBoundsScene = "cornell_bounds";
 constexpr const char* kUpdateScene = "cornell_update";
 
-std::vector<double> Translation(double x, double y, double z) {
-  return {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, x, y, z, 1};  // column-major
-}
+using testing::Translation;
 
 class ObscuranceRpcTest : public testing::SharedServerSuite<ObscuranceRpcTest> {
  public:

@@ -1,6 +1,8 @@
 // Filling request messages in the integration tests.
 #pragma once
 
+#include <vector>
+
 #include <glm/glm.hpp>
 
 #include "visq/v1/visq.pb.h"
@@ -18,6 +20,12 @@ inline void SetPatch(v1::Patch* p, glm::dvec3 o, glm::dvec3 u, glm::dvec3 v) {
   Set(p->mutable_origin(), o.x, o.y, o.z);
   Set(p->mutable_edge_u(), u.x, u.y, u.z);
   Set(p->mutable_edge_v(), v.x, v.y, v.z);
+}
+
+// A translation as SetNodeTransformRequest.world_matrix wants it: 16
+// numbers, column-major like glTF.
+inline std::vector<double> Translation(double x, double y, double z) {
+  return {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, x, y, z, 1};
 }
 
 }  // namespace visq::testing

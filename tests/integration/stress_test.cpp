@@ -1,5 +1,7 @@
 // Load: 16 concurrent clients mixing every kind of query on two scenes for
-// a bounded time, while a long obscurance bake runs. No request may fail,
+// a bounded time, while a long obscurance bake runs and an editor changes a
+// third scene (moves and obscurance updates) and uploads and unloads a
+// fourth. No request may fail,
 // every answer must equal the single-client answer to the same request,
 // the server's memory must stay bounded, and small queries must keep
 // completing while the bake holds the GPU queue (they have priority).
@@ -108,9 +110,9 @@ struct Queries {
   }
 };
 
-// Every RPC but the scene-changing ones (upload, unload, SetNodeTransform,
-// UpdateObscurances: they would change the other clients' answers; their
-// races are tested in scene_rpc_test and obscurance_rpc_test).
+// What the 16 clients mix: every RPC but the scene-changing ones (upload,
+// unload, SetNodeTransform, UpdateObscurances), which would change the other
+// clients' answers; the editor thread runs those on scenes of its own.
 constexpr int kQueryKinds = 9;
 
 struct Answers {
@@ -240,6 +242,48 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
     bake_done = true;
   });
 
+  // The editor: the RPCs that change scenes, on scenes nobody else reads.
+  ASSERT_TRUE(WriteGltfFile(MakeCornellBox(), files.path() / "moving.glb").ok());
+  ASSERT_TRUE(setup.UploadScene(files.path() / "moving.glb", "moving_box").ok());
+  // Its bake runs before the load: under load, batch work only gets the GPU
+  // between interactive jobs.
+  v1::ComputeObscurancesRequest editor_bake;
+  editor_bake.mutable_scene()->set_name("moving_box");
+  editor_bake.set_resolution(32);
+  editor_bake.set_d_max(0.5);
+  editor_bake.set_direction_count(8);
+  ASSERT_TRUE(setup.ComputeObscurances(editor_bake, nullptr).ok());
+  std::atomic<int> edits{0}, edit_failures{0};
+  const auto edits_end = std::chrono::steady_clock::now() + kDuration;
+  std::thread editor([&] {
+    Client client({.address = server->address(), .deadline = std::chrono::seconds(60)});
+    auto fail = [&](const std::string& what, const Status& status) {
+      ++edit_failures;
+      ADD_FAILURE() << "editor, " << what << ": " << status;
+    };
+    for (int i = 0; std::chrono::steady_clock::now() < edits_end; ++i) {
+      v1::SetNodeTransformRequest move;
+      move.mutable_scene()->set_name("moving_box");
+      move.set_node_name("short_box");
+      for (double v : testing::Translation(i % 2 == 0 ? -0.05 : 0.05, 0, 0)) move.add_world_matrix(v);
+      auto moved = client.SetNodeTransform(move);
+      if (!moved.ok()) return fail("move", moved.status());
+      v1::UpdateObscurancesRequest update;
+      update.mutable_scene()->set_name("moving_box");
+      auto updated = client.UpdateObscurances(update);
+      if (!updated.ok()) return fail("update", updated.status());
+      if (updated->scene_version() != moved->version()) {
+        ++edit_failures;
+        ADD_FAILURE() << "update answered for version " << updated->scene_version() << ", not " << moved->version();
+      }
+      auto uploaded = client.UploadScene(files.path() / "moving.glb", "churn_box");
+      if (!uploaded.ok()) return fail("upload", uploaded.status());
+      auto unloaded = client.UnloadScene("churn_box", /*delete_from_repository=*/true);
+      if (!unloaded.ok()) return fail("unload", unloaded.status());
+      edits += 4;
+    }
+  });
+
   std::atomic<int> requests{0}, failures{0}, mismatches{0};
   std::vector<std::thread> clients;
   const auto end = std::chrono::steady_clock::now() + kDuration;
@@ -261,16 +305,19 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
     });
   }
   for (auto& t : clients) t.join();
+  editor.join();
   const long peak_kib = PeakRssKiB(server->pid());
   baker.join();
 
   std::printf("stress: %d requests from %d clients in %lld s, %d failures, %d mismatches, "
-              "%d completed while the bake ran, server peak RSS %ld MiB\n",
+              "%d completed while the bake ran; editor: %d scene changes, %d failures; server peak RSS %ld MiB\n",
               requests.load(), kClients, static_cast<long long>(kDuration.count()), failures.load(),
-              mismatches.load(), small_done_during_bake.load(), peak_kib / 1024);
+              mismatches.load(), small_done_during_bake.load(), edits.load(), edit_failures.load(), peak_kib / 1024);
   ::testing::Test::RecordProperty("requests", requests.load());
   ::testing::Test::RecordProperty("peak_rss_kib", static_cast<int>(peak_kib));
   EXPECT_EQ(failures.load(), 0);
+  EXPECT_EQ(edit_failures.load(), 0);
+  EXPECT_GT(edits.load(), 0) << "the editor must have changed scenes during the load";
   EXPECT_EQ(mismatches.load(), 0) << "concurrent answers must equal the single-client answers";
   EXPECT_GT(requests.load(), kClients * 2);
   EXPECT_GT(small_done_during_bake.load(), kClients) << "small queries must not wait for the bake";
