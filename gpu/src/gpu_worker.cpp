@@ -1,9 +1,10 @@
 #include "visq/gpu/gpu_worker.h"
 
 #include <condition_variable>
+#include <deque>
 #include <future>
+#include <map>
 #include <mutex>
-#include <queue>
 #include <thread>
 
 #include <epoxy/gl.h>
@@ -50,12 +51,11 @@ struct Job {
   JobTiming* timing = nullptr;
 };
 
-struct JobOrder {
-  bool operator()(const std::unique_ptr<Job>& a, const std::unique_ptr<Job>& b) const {
-    if (a->priority != b->priority) return a->priority > b->priority;
-    return a->sequence > b->sequence;
-  }
-};
+// Lower priorities run first, but not forever: after this many jobs have
+// overtaken a waiting job of a later priority, the longest-waiting job runs
+// (a bake keeps progressing, one step at a time, under a flood of small
+// queries, which still get 8 of every 9 turns).
+constexpr int kOvertakesBeforeTheOldestRuns = 8;
 
 }  // namespace
 
@@ -103,7 +103,9 @@ class GpuWorker::Impl {
 
   size_t depth() const {
     std::lock_guard lock(mutex_);
-    return queue_.size();
+    size_t total = 0;
+    for (const auto& [priority, jobs] : queues_) total += jobs.size();
+    return total;
   }
 
   DeviceInfo info;
@@ -114,7 +116,7 @@ class GpuWorker::Impl {
       std::lock_guard lock(mutex_);
       job->sequence = next_sequence_++;
       job->submitted = std::chrono::steady_clock::now();
-      queue_.push(std::move(job));
+      queues_[job->priority].push_back(std::move(job));
     }
     wake_.notify_one();
   }
@@ -149,10 +151,9 @@ class GpuWorker::Impl {
       std::unique_ptr<Job> job;
       {
         std::unique_lock lock(mutex_);
-        wake_.wait(lock, [&] { return stopping_ || !queue_.empty(); });
-        if (queue_.empty()) break;  // stopping, and everything queued has run
-        job = std::move(const_cast<std::unique_ptr<Job>&>(queue_.top()));
-        queue_.pop();
+        wake_.wait(lock, [&] { return stopping_ || !queues_.empty(); });
+        if (queues_.empty()) break;  // stopping, and everything queued has run
+        job = PopNext();
       }
       Execute(*job);
     }
@@ -187,6 +188,27 @@ class GpuWorker::Impl {
     }
     if (job.wants_result) job.done.set_value(std::move(status));
     else if (!status.ok()) spdlog::warn("GPU background job failed: {}", status.message());
+  }
+
+  // The front of the lowest priority, unless it has overtaken waiting work
+  // of later priorities too often (then the oldest front). Queue lock held.
+  std::unique_ptr<Job> PopNext() {
+    auto chosen = queues_.begin();
+    if (queues_.size() > 1) {
+      if (overtakes_ >= kOvertakesBeforeTheOldestRuns) {
+        for (auto level = queues_.begin(); level != queues_.end(); ++level)
+          if (level->second.front()->sequence < chosen->second.front()->sequence) chosen = level;
+        overtakes_ = 0;
+      } else {
+        ++overtakes_;
+      }
+    } else {
+      overtakes_ = 0;
+    }
+    std::unique_ptr<Job> job = std::move(chosen->second.front());
+    chosen->second.pop_front();
+    if (chosen->second.empty()) queues_.erase(chosen);
+    return job;
   }
 
   // Why the context is gone, or "" if it is fine. GL 4.5 core reports
@@ -231,7 +253,8 @@ class GpuWorker::Impl {
   std::thread thread_;
   mutable std::mutex mutex_;
   std::condition_variable wake_;
-  std::priority_queue<std::unique_ptr<Job>, std::vector<std::unique_ptr<Job>>, JobOrder> queue_;
+  std::map<int, std::deque<std::unique_ptr<Job>>> queues_;  // by priority, each FIFO
+  int overtakes_ = 0;
   uint64_t next_sequence_ = 0;
   bool stopping_ = false;
 };

@@ -236,6 +236,37 @@ TEST(GpuWorkerQueue, InteractiveJobsOvertakeQueuedBatchJobs) {
   EXPECT_EQ(order, (std::vector<int>{2, 1}));
 }
 
+TEST(GpuWorkerQueue, AWaitingBatchJobRunsAfterEightOvertakes) {
+  GpuWorker& worker = SharedGpuWorker();
+  std::promise<void> release;
+  std::shared_future<void> released = release.get_future().share();
+  std::atomic<bool> blocker_started{false};
+  auto blocker = std::async(std::launch::async, [&] {
+    return worker.Run({}, [&] { blocker_started = true; released.wait(); return absl::OkStatus(); });
+  });
+  while (!blocker_started) std::this_thread::yield();
+  std::vector<int> order;
+  std::mutex order_mutex;
+  auto run = [&](int priority, int tag) {
+    JobOptions options;
+    options.priority = priority;
+    return worker.Run(options, [&, tag] { std::lock_guard l(order_mutex); order.push_back(tag); return absl::OkStatus(); });
+  };
+  // One batch step (tag 0), then 12 interactive jobs (tags 1..12), all queued.
+  std::vector<std::future<Status>> jobs;
+  jobs.push_back(std::async(std::launch::async, run, kBatch, 0));
+  while (worker.queue_depth() < 1) std::this_thread::yield();
+  for (int tag = 1; tag <= 12; ++tag) {
+    jobs.push_back(std::async(std::launch::async, run, kInteractive, tag));
+    while (worker.queue_depth() < size_t(tag) + 1) std::this_thread::yield();
+  }
+  release.set_value();
+  EXPECT_TRUE(blocker.get().ok());
+  for (auto& job : jobs) EXPECT_TRUE(job.get().ok());
+  // Eight small jobs overtake the batch step, then it runs, then the rest.
+  EXPECT_EQ(order, (std::vector<int>{1, 2, 3, 4, 5, 6, 7, 8, 0, 9, 10, 11, 12}));
+}
+
 TEST(GpuWorkerQueue, TimingReportsQueueAndRunTime) {
   JobTiming timing;
   Status status = SharedGpuWorker().Run({}, [] {

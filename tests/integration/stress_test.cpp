@@ -228,6 +228,7 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
 
   // A long bake at batch priority, running through the whole test.
   std::atomic<bool> bake_done{false};
+  std::atomic<uint32_t> bake_directions{0};
   std::atomic<int> small_done_during_bake{0};
   std::thread baker([&] {
     Client client({.address = server->address(), .deadline = kDuration + std::chrono::seconds(3)});
@@ -238,7 +239,8 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
     bake.set_direction_count(4000);
     bake.set_total_directions(4000);
     // Ends by its deadline or by finishing; either way it held the queue.
-    (void)client.ComputeObscurances(bake, nullptr);
+    (void)client.ComputeObscurances(
+        bake, [&](const v1::ObscuranceProgress& progress) { bake_directions = progress.directions_done(); });
     bake_done = true;
   });
 
@@ -310,9 +312,11 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
   baker.join();
 
   std::printf("stress: %d requests from %d clients in %lld s, %d failures, %d mismatches, "
-              "%d completed while the bake ran; editor: %d scene changes, %d failures; server peak RSS %ld MiB\n",
+              "%d completed while the bake ran, which did %u directions; editor: %d scene changes, %d failures; "
+              "server peak RSS %ld MiB\n",
               requests.load(), kClients, static_cast<long long>(kDuration.count()), failures.load(),
-              mismatches.load(), small_done_during_bake.load(), edits.load(), edit_failures.load(), peak_kib / 1024);
+              mismatches.load(), small_done_during_bake.load(), bake_directions.load(), edits.load(),
+              edit_failures.load(), peak_kib / 1024);
   ::testing::Test::RecordProperty("requests", requests.load());
   ::testing::Test::RecordProperty("peak_rss_kib", static_cast<int>(peak_kib));
   EXPECT_EQ(failures.load(), 0);
@@ -321,6 +325,7 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
   EXPECT_EQ(mismatches.load(), 0) << "concurrent answers must equal the single-client answers";
   EXPECT_GT(requests.load(), kClients * 2);
   EXPECT_GT(small_done_during_bake.load(), kClients) << "small queries must not wait for the bake";
+  EXPECT_GT(bake_directions.load(), 0u) << "nor may they starve it";
   EXPECT_GT(peak_kib, 0);
   EXPECT_LT(peak_kib, 4L << 20) << "server memory must stay bounded (4 GiB)";
 }

@@ -40,7 +40,8 @@ using SteadyTime = std::chrono::steady_clock::time_point;
 struct JobOptions {
   // Lower runs first; equal priorities run in arrival order. Small queries
   // use kInteractive so that long bakes (kBatch, split into steps) do not
-  // starve them.
+  // starve them; nor do they starve a bake: after 8 jobs have overtaken
+  // waiting work, the oldest waiting job runs.
   int priority = 0;
   SteadyTime deadline = SteadyTime::max();
   // Checked before the job starts, and by long jobs between steps.
