@@ -10,7 +10,7 @@
 // where Z(c) <= depth(j) + bias.
 //
 // Defines: SPOT (else directional), INTEGRAND_ANALYTIC | INTEGRAND_PREFIX |
-// INTEGRAND_PER_TEXEL | INTEGRAND_SVD (with SVD_RANK, SVD_GRID; spot only),
+// INTEGRAND_PER_TEXEL | INTEGRAND_SVD (with SVD_RANK, SVD_GRID),
 // WEIGHTED (per-texel light weights exist), RAY_MARCH (test every texel
 // instead of descending the min-max tree).
 #include "vol_light.glsl"
@@ -29,7 +29,7 @@ layout(std430, binding = 9) readonly buffer SvdTable { float svd_table[]; };
 layout(std430, binding = 10) readonly buffer SvdTerms { float svd_terms[]; };  // [(row cols + j) K + k]
 #include "vol_svd.glsl"
 uniform float u_svd_alpha0, u_svd_alpha_step;  // the table's alpha nodes
-uniform float u_eye_light_distance;            // d, computed in double
+uniform float u_eye_light_distance;            // spot: d, computed in double
 #else
 layout(std430, binding = 5) readonly buffer Prefix { float prefix[]; };
 #endif
@@ -260,6 +260,19 @@ float Inscatter(float s_end) {
   g_l1 = u_half_depth * g_c1.z;
   g_a = u_sigma_t * (1.0 + g_l1);
   g_K = u_sigma_s * u_intensity * Phase(dot(u_light_dir, -g_d));
+#ifdef INTEGRAND_SVD
+  // alpha: the angle between the ray and the light's travel direction. Rays
+  // within the margin of it or of its opposite, or whose medium entry has
+  // f below e^-2 (the table's absolute error amplified), stay exact.
+  float cos_a = clamp(dot(g_d, u_light_dir), -1.0, 1.0);
+  float alpha = acos(cos_a);
+  float alpha_end = u_svd_alpha0 + float(SVD_GRID - 1) * u_svd_alpha_step;
+  g_svd = alpha >= u_svd_alpha0 && alpha <= alpha_end && u_sigma_t * g_sin * (1.0 + cos_a) <= 2.0;
+  if (g_svd) {
+    g_svd_factor = g_K * exp(-u_sigma_t * (g_l0 - g_sin)) / sqrt(max(1.0 - cos_a * cos_a, 1e-12));
+    SvdViewFactors(alpha, u_svd_alpha0, u_svd_alpha_step, g_svd_u);
+  }
+#endif
 #endif
   // The row: the direction from the epipole to the segment's middle.
   float wm, zmid;

@@ -2,11 +2,11 @@
 // svd_table = U_k(alpha_i) S_k for i < SVD_GRID, then V_k(phi_i), each
 // [i * SVD_RANK + k]; factors are linear between nodes. The includer
 // declares svd_table.
-const float kSvdPi = 3.14159265358979;
+uniform float u_svd_x_step;  // light-ray nodes at i u_svd_x_step (spot: phi; directional: p)
 
-// V_k(phi), phi in [0, pi] at nodes i pi / (SVD_GRID - 1).
-void SvdLightFactors(float phi, out float v[SVD_RANK]) {
-  float x = clamp(phi / kSvdPi, 0.0, 1.0) * float(SVD_GRID - 1);
+// V_k(x), clamped to the table.
+void SvdLightFactors(float x_value, out float v[SVD_RANK]) {
+  float x = clamp(x_value / u_svd_x_step, 0.0, float(SVD_GRID - 1));
   int i = min(int(x), SVD_GRID - 2);
   float t = x - float(i);
   int base = SVD_GRID * SVD_RANK + i * SVD_RANK;

@@ -94,6 +94,7 @@ struct Setup {
   glm::dvec3 eye_in_light{0.0};  // spot: direction light -> eye in the light's (u, v, w) frame
   SvdIntegrandTable svd;         // kSvd only
   double svd_ms = 0;
+  glm::dvec2 texel_world{0.0};   // directional: a shadow-map texel's world size
   double eye_light_distance = 0;
   VolumetricBox box;
   std::vector<glm::vec4> albedo;
@@ -101,7 +102,8 @@ struct Setup {
 
 // The SVD tables of the last few calls: a still camera and light reuse theirs.
 struct SvdKey {
-  double sigma_t_d, g, max_depth, tolerance;
+  bool spot;
+  double sigma_t_d, g, max_depth, tolerance;  // directional: sigma_t, 0, p_max, tolerance
   bool operator==(const SvdKey&) const = default;
 };
 
@@ -118,8 +120,11 @@ SvdIntegrandTable CachedSvdTable(const SvdKey& key) {
       }
     }
   }
-  SvdIntegrandTable table = BuildSpotSvdTable(key.sigma_t_d, key.g, key.max_depth, kSvdAlphaMargin,
-                                              std::numbers::pi - kSvdAlphaMargin, key.tolerance);
+  SvdIntegrandTable table =
+      key.spot ? BuildSpotSvdTable(key.sigma_t_d, key.g, key.max_depth, kSvdAlphaMargin,
+                                   std::numbers::pi - kSvdAlphaMargin, key.tolerance)
+               : BuildDirectionalSvdTable(key.sigma_t_d, key.max_depth, kSvdAlphaMargin,
+                                          std::numbers::pi - kSvdAlphaMargin, key.tolerance);
   std::lock_guard lock(mutex);
   if (recent.size() == kKept) recent.erase(recent.begin());
   recent.emplace_back(key, table);
@@ -292,15 +297,25 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
   const glm::dvec3 to_eye = setup.eye - setup.light_pos;
   setup.eye_light_distance = glm::length(to_eye);
   if (setup.spot && setup.integrand == VolumetricIntegrand::kPerTexel &&
-      !params.exact_integrand && setup.eye_light_distance > 1e-6 * diagonal) {
+      params.integrand_choice != VolumetricIntegrandChoice::kExact && setup.eye_light_distance > 1e-6 * diagonal) {
     // The SVD of f(alpha, phi) for this sigma_t d and phase (svd_integrand.h).
     const double sigma_t = zero_extinction ? 0.0 : params.medium.extinction;
     const auto svd_start = Clock::now();
-    setup.svd = CachedSvdTable({sigma_t * setup.eye_light_distance, params.medium.hg_g,
+    setup.svd = CachedSvdTable({true, sigma_t * setup.eye_light_distance, params.medium.hg_g,
                                 2.0 * sigma_t * setup.light_reach, params.svd_tolerance});
     setup.svd_ms = MsSince(svd_start);
     setup.integrand = VolumetricIntegrand::kSvd;
     setup.eye_in_light = glm::normalize(glm::dvec3(glm::dot(to_eye, u), glm::dot(to_eye, v), glm::dot(to_eye, w)));
+  } else if (!setup.spot && setup.integrand == VolumetricIntegrand::kPerTexel &&
+             params.integrand_choice == VolumetricIntegrandChoice::kSvd) {
+    // The SVD of f(alpha, p) over the offsets p the map holds from the eye's light ray.
+    setup.texel_world = 2.0 * glm::dvec2(setup.box.half_extent) / n;
+    double p_max = 0;
+    for (const auto& c : square) p_max = std::max(p_max, glm::length((c - setup.epipole) * setup.texel_world));
+    const auto svd_start = Clock::now();
+    setup.svd = CachedSvdTable({false, params.medium.extinction, 0.0, p_max, params.svd_tolerance});
+    setup.svd_ms = MsSince(svd_start);
+    setup.integrand = VolumetricIntegrand::kSvd;
   }
   setup.weighted = setup.integrand != VolumetricIntegrand::kAnalytic;
 
@@ -525,6 +540,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
     glProgramUniform1i(rect_program, Loc(rect_program, "u_map_size"), GLint(n));
     glProgramUniform3f(rect_program, Loc(rect_program, "u_eye_in_light"), float(setup.eye_in_light.x),
                        float(setup.eye_in_light.y), float(setup.eye_in_light.z));
+    glProgramUniform2f(rect_program, Loc(rect_program, "u_texel_world"), float(setup.texel_world.x),
+                       float(setup.texel_world.y));
     glDispatchCompute(Groups(setup.cols, 8), Groups(setup.rows, 8), 1);
     glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     VISQ_GL_CHECK("volumetric shadows: rectification");
@@ -547,6 +564,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
       glUseProgram(prefix_program);
       glProgramUniform1i(prefix_program, Loc(prefix_program, "u_cols"), GLint(setup.cols));
       glProgramUniform1i(prefix_program, Loc(prefix_program, "u_rows"), GLint(setup.rows));
+      glProgramUniform1f(prefix_program, Loc(prefix_program, "u_svd_x_step"), float(setup.svd.x_step));
       glDispatchCompute(Groups(setup.rows, 64), 1, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     }

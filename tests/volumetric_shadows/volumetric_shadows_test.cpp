@@ -350,24 +350,25 @@ VolumetricParams SponzaParams(const Scene& sponza) {
   return params;
 }
 
+void CompareSvdWithPerTexel(const Scene& scene, VolumetricParams params, const char* what);
+
 TEST(VolumetricShadowsTest, SponzaTraversalMatchesRayMarching) {
   VISQ_REQUIRE_SHARED_SCENES(dir);
   auto sponza = LoadGltfFile(dir / "sponza_dabrovic" / "sponza.gltf");
   ASSERT_TRUE(sponza.ok()) << sponza.status();
   CompareMethods(*sponza, SponzaParams(*sponza), "sponza sun, analytic");
 
-  // A textured sun (a checkerboard gobo): per-texel sums with extinction,
-  // prefix sums in the optically thin limit.
+  // A textured sun (a checkerboard gobo): per-texel sums or the SVD with
+  // extinction, prefix sums in the optically thin limit.
   VolumetricParams textured = SponzaParams(*sponza);
   textured.light.texture_width = 8;
   textured.light.texture_height = 8;
   for (int i = 0; i < 64; ++i) textured.light.texture.push_back(((i / 8 + i % 8) % 2) ? 1.0f : 0.25f);
   CompareMethods(*sponza, textured, "sponza textured sun, per texel");
+  CompareSvdWithPerTexel(*sponza, textured, "sponza textured sun, svd");
   textured.medium.optically_thin = true;
   CompareMethods(*sponza, textured, "sponza textured sun, optically thin, prefix sums");
 }
-
-void CompareSvdWithPerTexel(const Scene& scene, VolumetricParams params, const char* what);
 
 TEST(VolumetricShadowsTest, VeachAjarTraversalMatchesRayMarching) {
   VISQ_REQUIRE_SHARED_SCENES(dir);
@@ -396,19 +397,19 @@ TEST(VolumetricShadowsTest, VeachAjarTraversalMatchesRayMarching) {
   spot.light.cone_angle_deg = 40;
   spot.light.cone_falloff_deg = 10;
   spot.light.intensity = 20.0;
-  spot.exact_integrand = true;
+  spot.integrand_choice = VolumetricIntegrandChoice::kExact;
   CompareMethods(*veach, spot, "veach-ajar spot, per texel");
   CompareSvdWithPerTexel(*veach, spot, "veach-ajar spot, svd");
 
   // The same spot, optically thin and isotropic: the prefix-sum path.
-  spot.exact_integrand = false;
+  spot.integrand_choice = VolumetricIntegrandChoice::kAuto;
   spot.medium.optically_thin = true;
   spot.medium.hg_g = 0.0;
   CompareMethods(*veach, spot, "veach-ajar spot, optically thin, prefix sums");
 }
 
 // ---------------------------------------------------------------------------
-// The SVD integrand (kSvd) against the per-texel reference (exact_integrand) on the
+// The SVD integrand (kSvd) against the per-texel reference (kExact) on the
 // same rectified map: they differ by the rank-K table's error
 // (integrand_error, relative to the table's largest value) and by where each
 // takes the integrand inside a texel (the per-texel path at the ray's
@@ -420,9 +421,9 @@ void CompareSvdWithPerTexel(const Scene& scene, VolumetricParams params, const c
   auto gpu_scene = Upload(scene);
   ASSERT_TRUE(gpu_scene);
   params.method = VolumetricMethod::kMinMaxTraversal;
-  params.exact_integrand = true;
+  params.integrand_choice = VolumetricIntegrandChoice::kExact;
   const VolumetricResult exact = Render(*gpu_scene, scene, params);
-  params.exact_integrand = false;
+  params.integrand_choice = VolumetricIntegrandChoice::kSvd;
   const VolumetricResult svd = Render(*gpu_scene, scene, params);
   params.method = VolumetricMethod::kRayMarching;
   const VolumetricResult svd_marching = Render(*gpu_scene, scene, params);
@@ -496,13 +497,24 @@ TEST(VolumetricShadowsTest, SvdIntegrandChoice) {
   // The optically thin isotropic spot keeps the exact prefix sums.
   params.medium.optically_thin = true;
   EXPECT_EQ(Render(*gpu_scene, scene, params).integrand, VolumetricIntegrand::kPrefixSum);
-  // A textured sun with extinction: no SVD for directional lights yet.
+  // A textured sun with extinction: per texel unless the SVD is asked for.
   VolumetricParams sun = params;
   sun.light.kind = VolumetricLightKind::kDirectional;
   sun.medium.optically_thin = false;
   sun.light.texture_width = sun.light.texture_height = 2;
   sun.light.texture = {1.0f, 0.5f, 0.5f, 1.0f};
+  sun.svd_tolerance = 1e-3;
   EXPECT_EQ(Render(*gpu_scene, scene, sun).integrand, VolumetricIntegrand::kPerTexel);
+  sun.integrand_choice = VolumetricIntegrandChoice::kSvd;
+  EXPECT_EQ(Render(*gpu_scene, scene, sun).integrand, VolumetricIntegrand::kSvd);
+  sun.integrand_choice = VolumetricIntegrandChoice::kExact;
+  EXPECT_EQ(Render(*gpu_scene, scene, sun).integrand, VolumetricIntegrand::kPerTexel);
+  // The spot takes the SVD by default, the reference when told.
+  params.medium.optically_thin = false;
+  params.integrand_choice = VolumetricIntegrandChoice::kExact;
+  EXPECT_EQ(Render(*gpu_scene, scene, params).integrand, VolumetricIntegrand::kPerTexel);
+  params.integrand_choice = VolumetricIntegrandChoice::kAuto;
+  EXPECT_EQ(Render(*gpu_scene, scene, params).integrand, VolumetricIntegrand::kSvd);
   params.svd_tolerance = 0.0;
   const Status status = ValidateVolumetricParams(params);
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);

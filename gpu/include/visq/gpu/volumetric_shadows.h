@@ -50,33 +50,34 @@
 //     light, since ds / l^2 = dphi / h), so a lit span is a difference of
 //     per-row prefix sums of the light weight (texture x cone, times the
 //     texel's angle for spots), as in the slides.
-//   kSvd: a spot light with extinction or a Henyey-Greenstein phase (the
-//     slides' "SVD approximation", after Baran et al. 2010). In the epipolar
-//     plane, a view ray at angle alpha from the eye's direction to the light
-//     and a light ray at angle phi from the light's direction to the eye
-//     meet where the integrand is sigma_s I w(phi) exp(sigma_t (s_in - d)) / h
-//     * f(alpha, phi) dphi (d = |eye - light|, h = d sin alpha), f = phase x
-//     attenuation beyond d (gpu/volumetric_shadows/svd_integrand.h). f is
-//     tabulated in double and truncated to the smallest rank K <= 8 whose
-//     largest residual is below svd_tolerance x max f (else K = 8), and
-//     each row keeps K prefix sums (in double) of w V_k(phi) dphi: a lit
-//     span costs O(K). Texels cut by the ray's ends or by a shadow edge keep
-//     the exact per-texel integral, and so do rays within kSvdAlphaMargin of
-//     pointing at or away from the light (where f's domain pinches) or
-//     entering the medium far beyond the light (sigma_t (s_in - d) > 2, where
-//     the table's absolute error would be amplified). VolumetricResult
-//     reports K and the table's relative error (integrand_error): the
-//     largest residual anywhere in the table, a conservative figure (it sits
-//     where f's domain pinches, at alpha near the margins; images differ from
-//     kPerTexel's by far less, see the tests). VolumetricParams::
-//     exact_integrand forces kPerTexel instead, and kPerTexel also serves
-//     when the prefix sums (rows x (columns + 1) x K doubles) exceed the
-//     driver's largest storage block (large maps; `integrand` says which).
-//   kPerTexel: everything else (a textured directional light with
-//     extinction: its SVD is not implemented), and what exact_integrand
-//     forces where kSvd would apply: lit spans are summed texel by texel (shadowed spans
-//     are still skipped by the tree), each texel exact in its ds / l^2 factor
-//     (atan) with the attenuation and phase at the texel's midpoint.
+//   kSvd: the slides' "SVD approximation" (after Baran et al. 2010) for a
+//     spot light with extinction or a Henyey-Greenstein phase, and, when
+//     asked for, a textured directional light with extinction
+//     (gpu/volumetric_shadows/svd_integrand.h has the derivations). The
+//     ray-dependent factor f (spot: f(alpha, phi) = phase x attenuation
+//     beyond d = |eye - light|, alpha the view ray's angle from the eye's
+//     direction to the light, phi the light ray's angle from the light's
+//     direction to the eye; directional: f(alpha, p) = exp(-sigma_t p
+//     cot(alpha / 2)), p the light ray's offset from the eye's) is tabulated
+//     in double and truncated to the smallest rank K <= 8 whose largest
+//     residual is below svd_tolerance x max f (else K = 8), and each row
+//     keeps K prefix sums (in double) of w V_k dphi (or dp): a lit span
+//     costs O(K). Texels cut by the ray's ends or by a shadow edge keep the
+//     exact per-texel integral, and so do rays within kSvdAlphaMargin of the
+//     table's alpha ends (where f's domain pinches) or entering the medium
+//     where f < e^-2 (the table's absolute error would be amplified).
+//     VolumetricResult reports K and the table's relative error
+//     (integrand_error): the largest residual anywhere in the table, a
+//     conservative figure (for a spot it sits where the domain pinches;
+//     images differ from kPerTexel's by far less, see the tests). kPerTexel
+//     also serves when the prefix sums (rows x (columns + 1) x K doubles)
+//     exceed the driver's largest storage block (`integrand` says which).
+//   kPerTexel: the reference, and the default for a textured directional
+//     light with extinction (on llvmpipe its per-texel exp beats the SVD's
+//     K double reads per span; integrand_choice kSvd takes the SVD there):
+//     lit spans are summed texel by texel (shadowed spans are still skipped
+//     by the tree), each texel exact in its ds / l^2 factor (atan) with the
+//     attenuation and phase at the texel's midpoint.
 #pragma once
 
 #include <cstdint>
@@ -144,8 +145,13 @@ struct VolumetricMedium {
 
 enum class VolumetricMethod { kMinMaxTraversal, kRayMarching };
 enum class VolumetricIntegrand { kAnalytic, kPrefixSum, kPerTexel, kSvd };
-// kSvd: rays within this angle (radians) of pointing at or away from the
-// light are integrated per texel.
+// Where kSvd or kPerTexel could serve: kAuto takes kSvd for spot lights and
+// kPerTexel for textured directional lights (the faster on llvmpipe), kExact
+// kPerTexel (the reference), kSvd kSvd.
+enum class VolumetricIntegrandChoice { kAuto, kExact, kSvd };
+// kSvd: rays within this angle (radians) of the table's alpha ends (spot:
+// pointing at or away from the light; directional: along or against it)
+// are integrated per texel.
 inline constexpr double kSvdAlphaMargin = 0.2;
 
 struct VolumetricParams {
@@ -160,8 +166,7 @@ struct VolumetricParams {
   // The medium's box (directional) or far plane (spot) covers the scene's
   // bounds and these (empty: the scene's only).
   Bounds extra_medium_bounds;
-  // Where kSvd would serve, use the per-texel reference (kPerTexel) instead.
-  bool exact_integrand = false;
+  VolumetricIntegrandChoice integrand_choice = VolumetricIntegrandChoice::kAuto;
   // kSvd: the largest residual of the rank-K table allowed, relative to its
   // largest value (the rank stops growing at 8).
   double svd_tolerance = 1e-3;
