@@ -63,15 +63,16 @@
 //     residual is below svd_tolerance x max f (else K = 8), and each row
 //     keeps K prefix sums (in double) of w V_k dphi (or dp): a lit span
 //     costs O(K). Texels cut by the ray's ends or by a shadow edge keep the
-//     exact per-texel integral, and so do rays within kSvdAlphaMargin of the
-//     table's alpha ends (where f's domain pinches) or entering the medium
-//     where f < e^-2 (the table's absolute error would be amplified).
+//     exact per-texel integral, and so do rays with alpha within
+//     kSvdAlphaMargin of 0 or pi (where f's domain pinches) or entering the
+//     medium where f < e^-2 (the table's absolute error would be amplified).
 //     VolumetricResult reports K and the table's relative error
 //     (integrand_error): the largest residual anywhere in the table, a
 //     conservative figure (for a spot it sits where the domain pinches;
 //     images differ from kPerTexel's by far less, see the tests). kPerTexel
 //     also serves when the prefix sums (rows x (columns + 1) x K doubles)
-//     exceed the driver's largest storage block (`integrand` says which).
+//     exceed the driver's largest storage block (`integrand` says which):
+//     on llvmpipe (128 MiB blocks) that is every map above 1024.
 //   kPerTexel: the reference, and the default for a textured directional
 //     light with extinction (on llvmpipe its per-texel exp beats the SVD's
 //     K double reads per span; integrand_choice kSvd takes the SVD there):
