@@ -8,7 +8,7 @@ build_packages=(
   build-essential cmake pkg-config ca-certificates
   protobuf-compiler protobuf-compiler-grpc libprotobuf-dev libgrpc++-dev libgrpc-dev
   libegl-dev libgl-dev libepoxy-dev
-  libglm-dev libtinygltf-dev nlohmann-json3-dev libstb-dev
+  libglm-dev libeigen3-dev libtinygltf-dev nlohmann-json3-dev libstb-dev
   libspdlog-dev libfmt-dev libcli11-dev libabsl-dev
   libembree-dev libgmp-dev libxxhash-dev
   openssl nginx-light libyaml-cpp-dev

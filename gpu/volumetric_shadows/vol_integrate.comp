@@ -10,8 +10,9 @@
 // where Z(c) <= depth(j) + bias.
 //
 // Defines: SPOT (else directional), INTEGRAND_ANALYTIC | INTEGRAND_PREFIX |
-// INTEGRAND_PER_TEXEL, WEIGHTED (per-texel light weights exist), RAY_MARCH
-// (test every texel instead of descending the min-max tree).
+// INTEGRAND_PER_TEXEL | INTEGRAND_SVD (with SVD_RANK, SVD_GRID),
+// WEIGHTED (per-texel light weights exist), RAY_MARCH (test every texel
+// instead of descending the min-max tree).
 #include "vol_light.glsl"
 layout(local_size_x = 8, local_size_y = 8) in;
 layout(binding = 0) uniform sampler2D u_shadow_map;
@@ -22,7 +23,16 @@ layout(std430, binding = 1) readonly buffer TreeMin { float tree_min[]; };
 layout(std430, binding = 2) readonly buffer TreeMax { float tree_max[]; };
 layout(std430, binding = 3) readonly buffer RectWeight { float rect_weight[]; };
 layout(std430, binding = 4) readonly buffer RectUnit { float rect_unit[]; };
+#ifdef INTEGRAND_SVD
+layout(std430, binding = 5) readonly buffer Prefix { double prefix[]; };  // [(row (cols + 1) + j) K + k]
+layout(std430, binding = 9) readonly buffer SvdTable { float svd_table[]; };
+layout(std430, binding = 10) readonly buffer SvdTerms { float svd_terms[]; };  // [(row cols + j) K + k]
+#include "vol_svd.glsl"
+uniform float u_svd_alpha0, u_svd_alpha_step;  // the table's alpha nodes
+uniform float u_eye_light_distance;            // spot: d, computed in double
+#else
 layout(std430, binding = 5) readonly buffer Prefix { float prefix[]; };
+#endif
 layout(std430, binding = 7) writeonly buffer Output { vec4 out_pixels[]; };  // inscatter, direct rgb
 
 uniform ivec2 u_image_size;
@@ -56,6 +66,12 @@ int g_rbase = 0, g_pbase = 0;
 float g_K = 0.0, g_a = 0.0, g_l0 = 0.0, g_l1 = 0.0;  // directional
 float g_s0 = 0.0, g_h = 1.0;                        // spot: closest approach to the light
 float g_prefix_factor = 0.0;
+#ifdef INTEGRAND_SVD
+// This ray's SVD factor and U_k(alpha) S_k; g_svd false: exact per texel.
+bool g_svd = false;
+float g_svd_factor = 0.0;
+float g_svd_u[SVD_RANK];
+#endif
 
 float Phase(float cos_theta) {
   float g = u_g;
@@ -99,8 +115,16 @@ float PieceC(int j, float ca, float cb) {
 
 // Texel j with all of [j, j + 1] on the segment and lit.
 float FullTexel(int j) {
-#ifdef INTEGRAND_PREFIX
+#if defined(INTEGRAND_PREFIX)
   return g_prefix_factor * rect_unit[g_rbase + j];
+#elif defined(INTEGRAND_SVD)
+  // The rank-K integrand at the texel's phi, times its weight x angle: the
+  // terms the prefix sums add up.
+  if (!g_svd) return PieceC(j, float(j), float(j + 1));
+  int base = (g_rbase + j) * SVD_RANK;
+  float f = 0.0;
+  for (int k = 0; k < SVD_RANK; ++k) f += g_svd_u[k] * svd_terms[base + k];
+  return g_svd_factor * f;
 #else
   return PieceC(j, float(j), float(j + 1));
 #endif
@@ -112,6 +136,16 @@ float Span(int ja, int jb) {
   return PieceC(ja, float(ja), float(jb));
 #elif defined(INTEGRAND_PREFIX)
   return g_prefix_factor * (prefix[g_pbase + jb] - prefix[g_pbase + ja]);
+#elif defined(INTEGRAND_SVD)
+  if (g_svd) {
+    float f = 0.0;
+    int a = (g_pbase + ja) * SVD_RANK, b = (g_pbase + jb) * SVD_RANK;
+    for (int k = 0; k < SVD_RANK; ++k) f += g_svd_u[k] * float(prefix[b + k] - prefix[a + k]);
+    return g_svd_factor * f;
+  }
+  float sum = 0.0;
+  for (int j = ja; j < jb; ++j) sum += FullTexel(j);
+  return sum;
 #else
   float sum = 0.0;
   for (int j = ja; j < jb; ++j) sum += FullTexel(j);
@@ -207,11 +241,38 @@ float Inscatter(float s_end) {
   vec3 to_light = u_light_pos - u_eye;
   g_s0 = dot(to_light, g_d);
   g_h = max(length(to_light - g_s0 * g_d), 1e-6);
+#ifdef INTEGRAND_SVD
+  // alpha: the angle between the ray and the direction to the light. Rays
+  // outside the table's alpha range (pointing nearly at or away from the
+  // light) or entering the medium far beyond the light (the factor would
+  // amplify the table's error by more than e^2) stay exact.
+  float d_el = u_eye_light_distance;
+  float alpha = acos(clamp(g_s0 / d_el, -1.0, 1.0));
+  float alpha_end = u_svd_alpha0 + float(SVD_GRID - 1) * u_svd_alpha_step;
+  g_svd = alpha >= u_svd_alpha0 && alpha <= alpha_end && u_sigma_t * (g_sin - d_el) <= 2.0;
+  if (g_svd) {
+    g_svd_factor = u_sigma_s * u_intensity * exp(u_sigma_t * (g_sin - d_el)) / g_h;
+    SvdViewFactors(alpha, u_svd_alpha0, u_svd_alpha_step, g_svd_u);
+  }
+#endif
 #else
   g_l0 = u_half_depth * (g_c0.z + 1.0);
   g_l1 = u_half_depth * g_c1.z;
   g_a = u_sigma_t * (1.0 + g_l1);
   g_K = u_sigma_s * u_intensity * Phase(dot(u_light_dir, -g_d));
+#ifdef INTEGRAND_SVD
+  // alpha: the angle between the ray and the light's travel direction. Rays
+  // within the margin of it or of its opposite, or whose medium entry has
+  // f below e^-2 (the table's absolute error amplified), stay exact.
+  float cos_a = clamp(dot(g_d, u_light_dir), -1.0, 1.0);
+  float alpha = acos(cos_a);
+  float alpha_end = u_svd_alpha0 + float(SVD_GRID - 1) * u_svd_alpha_step;
+  g_svd = alpha >= u_svd_alpha0 && alpha <= alpha_end && u_sigma_t * g_sin * (1.0 + cos_a) <= 2.0;
+  if (g_svd) {
+    g_svd_factor = g_K * exp(-u_sigma_t * (g_l0 - g_sin)) / sqrt(max(1.0 - cos_a * cos_a, 1e-12));
+    SvdViewFactors(alpha, u_svd_alpha0, u_svd_alpha_step, g_svd_u);
+  }
+#endif
 #endif
   // The row: the direction from the epipole to the segment's middle.
   float wm, zmid;

@@ -9,8 +9,12 @@
 //   2. camera: distance to the first surface, face normal, material color;
 //   3. rectification: N rows (epipolar slices) x N columns (distance from the
 //      epipole) resampled from the shadow map (nearest), plus the light's
-//      per-texel weights when the integrand needs them;
-//   4. mipmap: per row, log2(N) min-max levels (and prefix sums);
+//      per-texel weights when the integrand needs them (and, for the SVD
+//      integrand, each texel's angle at the light from the light-to-eye
+//      direction);
+//   4. mipmap: per row, log2(N) min-max levels (and prefix sums: one per row
+//      for kPrefixSum, K interleaved in double for kSvd, with each texel's K
+//      terms in float);
 //   5. traversal: one invocation per pixel, min-max traversal or ray
 //      marching (the same shader, RAY_MARCH defined or not).
 // All geometry is set up here in double relative to the scene's anchor and
@@ -37,6 +41,7 @@
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
 #include "shader_program.h"
+#include "svd_integrand.h"
 #include "visq_gpu_volumetric_shadows_embedded.h"
 
 namespace visq::gpu {
@@ -85,9 +90,46 @@ struct Setup {
   double normal_offset = 0;
   double bias = 0;               // window depth
   glm::dvec3 light_dir{0.0}, light_pos{0.0};
+  double light_reach = 0;        // spot: the farthest point of the frustum from the light
+  glm::dvec3 eye_in_light{0.0};  // spot: direction light -> eye in the light's (u, v, w) frame
+  SvdIntegrandTable svd;         // kSvd only
+  double svd_ms = 0;
+  glm::dvec2 texel_world{0.0};   // directional: a shadow-map texel's world size
+  double eye_light_distance = 0;
   VolumetricBox box;
   std::vector<glm::vec4> albedo;
 };
+
+// The SVD tables of the last few calls: a still camera and light reuse theirs.
+struct SvdKey {
+  bool spot;
+  double sigma_t_d, g, max_depth, tolerance;  // directional: sigma_t, 0, p_max, tolerance
+  bool operator==(const SvdKey&) const = default;
+};
+
+SvdIntegrandTable CachedSvdTable(const SvdKey& key) {
+  static std::mutex mutex;
+  static std::vector<std::pair<SvdKey, SvdIntegrandTable>> recent;  // most recent last
+  constexpr size_t kKept = 4;
+  {
+    std::lock_guard lock(mutex);
+    for (size_t i = 0; i < recent.size(); ++i) {
+      if (recent[i].first == key) {
+        std::rotate(recent.begin() + i, recent.begin() + i + 1, recent.end());
+        return recent.back().second;
+      }
+    }
+  }
+  SvdIntegrandTable table =
+      key.spot ? BuildSpotSvdTable(key.sigma_t_d, key.g, key.max_depth, kSvdAlphaMargin,
+                                   std::numbers::pi - kSvdAlphaMargin, key.tolerance)
+               : BuildDirectionalSvdTable(key.sigma_t_d, key.max_depth, kSvdAlphaMargin,
+                                          std::numbers::pi - kSvdAlphaMargin, key.tolerance);
+  std::lock_guard lock(mutex);
+  if (recent.size() == kKept) recent.erase(recent.begin());
+  recent.emplace_back(key, table);
+  return table;
+}
 
 // Rows of a clip matrix: clip_r = dot(row_r.xyz, p) + row_r.w.
 glm::dmat4 FromRows(const std::array<glm::dvec4, 4>& rows) {
@@ -172,6 +214,7 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
                                  glm::dvec4(a * w, -a * glm::dot(w, l) + b), glm::dvec4(w, -glm::dot(w, l))});
     setup.light_pos = l;
     setup.tan_half = tan_half;
+    setup.light_reach = far_depth * std::sqrt(1.0 + 2.0 * tan_half * tan_half);
     setup.cos_outer = std::cos(light.cone_angle_deg * std::numbers::pi / 180.0);
     setup.cos_inner =
         std::cos(std::max(0.0, light.cone_angle_deg - light.cone_falloff_deg) * std::numbers::pi / 180.0);
@@ -251,6 +294,29 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
   } else {
     setup.integrand = VolumetricIntegrand::kPerTexel;
   }
+  const glm::dvec3 to_eye = setup.eye - setup.light_pos;
+  setup.eye_light_distance = glm::length(to_eye);
+  if (setup.spot && setup.integrand == VolumetricIntegrand::kPerTexel &&
+      params.integrand_choice != VolumetricIntegrandChoice::kExact && setup.eye_light_distance > 1e-6 * diagonal) {
+    // The SVD of f(alpha, phi) for this sigma_t d and phase (svd_integrand.h).
+    const double sigma_t = zero_extinction ? 0.0 : params.medium.extinction;
+    const auto svd_start = Clock::now();
+    setup.svd = CachedSvdTable({true, sigma_t * setup.eye_light_distance, params.medium.hg_g,
+                                2.0 * sigma_t * setup.light_reach, params.svd_tolerance});
+    setup.svd_ms = MsSince(svd_start);
+    setup.integrand = VolumetricIntegrand::kSvd;
+    setup.eye_in_light = glm::normalize(glm::dvec3(glm::dot(to_eye, u), glm::dot(to_eye, v), glm::dot(to_eye, w)));
+  } else if (!setup.spot && setup.integrand == VolumetricIntegrand::kPerTexel &&
+             params.integrand_choice == VolumetricIntegrandChoice::kSvd) {
+    // The SVD of f(alpha, p) over the offsets p the map holds from the eye's light ray.
+    setup.texel_world = 2.0 * glm::dvec2(setup.box.half_extent) / n;
+    double p_max = 0;
+    for (const auto& c : square) p_max = std::max(p_max, glm::length((c - setup.epipole) * setup.texel_world));
+    const auto svd_start = Clock::now();
+    setup.svd = CachedSvdTable({false, params.medium.extinction, 0.0, p_max, params.svd_tolerance});
+    setup.svd_ms = MsSince(svd_start);
+    setup.integrand = VolumetricIntegrand::kSvd;
+  }
   setup.weighted = setup.integrand != VolumetricIntegrand::kAnalytic;
 
   for (const auto& m : scene.materials) setup.albedo.emplace_back(glm::vec3(m.reflectivity), 1.0f);
@@ -308,20 +374,39 @@ void SetRectUniforms(GLuint program, const Setup& setup) {
   glProgramUniform1i(program, Loc(program, "u_cols"), GLint(setup.cols));
 }
 
-Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setup, const VolumetricParams& params,
+Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, const VolumetricParams& params,
                  std::vector<glm::vec4>& pixels, VolumetricTimings& timings) {
   const auto setup_start = Clock::now();
   const VolumetricLight& light = params.light;
+  // kSvd's prefix sums (K doubles per row and column) must fit one storage
+  // block; beyond it the per-texel sum serves.
+  if (setup.integrand == VolumetricIntegrand::kSvd) {
+    GLint64 max_block = 0;
+    glGetInteger64v(GL_MAX_SHADER_STORAGE_BLOCK_SIZE, &max_block);
+    const double bytes = double(setup.rows) * (setup.cols + 1) * setup.svd.rank * sizeof(double);  // > the terms'
+    if (bytes > double(max_block)) setup.integrand = VolumetricIntegrand::kPerTexel;
+  }
+  const bool svd = setup.integrand == VolumetricIntegrand::kSvd;
   ShaderDefines common;
   if (setup.spot) common.emplace_back("SPOT", "1");
   if (setup.weighted) common.emplace_back("WEIGHTED", "1");
   ShaderDefines rect_defines = common;
   if (setup.weighted) rect_defines.emplace_back("WEIGHTS", "1");
+  ShaderDefines svd_defines;
+  if (svd) {
+    svd_defines = {{"INTEGRAND_SVD", "1"}, {"SVD_RANK", std::to_string(setup.svd.rank)},
+                   {"SVD_GRID", std::to_string(kSvdGrid)}};
+    rect_defines.emplace_back("INTEGRAND_SVD", "1");
+  }
   ShaderDefines integrate_defines = common;
-  integrate_defines.emplace_back(setup.integrand == VolumetricIntegrand::kAnalytic    ? "INTEGRAND_ANALYTIC"
-                                 : setup.integrand == VolumetricIntegrand::kPrefixSum ? "INTEGRAND_PREFIX"
-                                                                                     : "INTEGRAND_PER_TEXEL",
-                                 "1");
+  if (svd) {
+    integrate_defines.insert(integrate_defines.end(), svd_defines.begin(), svd_defines.end());
+  } else {
+    integrate_defines.emplace_back(setup.integrand == VolumetricIntegrand::kAnalytic    ? "INTEGRAND_ANALYTIC"
+                                   : setup.integrand == VolumetricIntegrand::kPrefixSum ? "INTEGRAND_PREFIX"
+                                                                                       : "INTEGRAND_PER_TEXEL",
+                                   "1");
+  }
   if (params.method == VolumetricMethod::kRayMarching) integrate_defines.emplace_back("RAY_MARCH", "1");
 
   VISQ_ASSIGN_OR_RETURN(GLuint shadow_program,
@@ -330,7 +415,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setu
                         Program(worker, {{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}}, {}));
   VISQ_ASSIGN_OR_RETURN(GLuint rect_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
   VISQ_ASSIGN_OR_RETURN(GLuint minmax_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(GLuint prefix_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(GLuint prefix_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
   VISQ_ASSIGN_OR_RETURN(GLuint integrate_program,
                         Program(worker, {{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
 
@@ -367,7 +452,13 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setu
   const bool prefix = setup.integrand == VolumetricIntegrand::kPrefixSum;
   GlBuffer rect_weight = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
   GlBuffer rect_unit = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
-  GlBuffer prefix_sums = MakeBuffer(prefix ? size_t{setup.rows} * (setup.cols + 1) * sizeof(float) : 0);
+  const size_t prefix_bytes = prefix ? sizeof(float) : svd ? setup.svd.rank * sizeof(double) : 0;
+  GlBuffer prefix_sums = MakeBuffer(size_t{setup.rows} * (setup.cols + 1) * prefix_bytes);
+  GlBuffer rect_phi = MakeBuffer(svd ? cells * sizeof(float) : 0);
+  GlBuffer svd_terms = MakeBuffer(svd ? cells * setup.svd.rank * sizeof(float) : 0);
+  std::vector<float> svd_table = setup.svd.u;
+  svd_table.insert(svd_table.end(), setup.svd.v.begin(), setup.svd.v.end());
+  GlBuffer svd_table_buffer = MakeBuffer(svd ? svd_table.size() * sizeof(float) : 0, svd ? svd_table.data() : nullptr);
   GlBuffer light_texture = MakeBuffer(light.texture.size() * sizeof(float), light.texture.empty() ? nullptr : light.texture.data());
   GlBuffer albedo_buffer = MakeBuffer(setup.albedo.size() * sizeof(glm::vec4), setup.albedo.data());
   const size_t pixel_count = size_t{setup.width} * setup.height;
@@ -439,11 +530,18 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setu
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 5, prefix_sums.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 6, light_texture.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 7, output.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 8, rect_phi.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 9, svd_table_buffer.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 10, svd_terms.id());
   {
     glUseProgram(rect_program);
     SetRectUniforms(rect_program, setup);
     SetLightUniforms(rect_program, setup, light);
     glProgramUniform1i(rect_program, Loc(rect_program, "u_map_size"), GLint(n));
+    glProgramUniform3f(rect_program, Loc(rect_program, "u_eye_in_light"), float(setup.eye_in_light.x),
+                       float(setup.eye_in_light.y), float(setup.eye_in_light.z));
+    glProgramUniform2f(rect_program, Loc(rect_program, "u_texel_world"), float(setup.texel_world.x),
+                       float(setup.texel_world.y));
     glDispatchCompute(Groups(setup.cols, 8), Groups(setup.rows, 8), 1);
     glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     VISQ_GL_CHECK("volumetric shadows: rectification");
@@ -462,10 +560,11 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setu
       glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     }
-    if (prefix) {
+    if (prefix || svd) {
       glUseProgram(prefix_program);
       glProgramUniform1i(prefix_program, Loc(prefix_program, "u_cols"), GLint(setup.cols));
       glProgramUniform1i(prefix_program, Loc(prefix_program, "u_rows"), GLint(setup.rows));
+      glProgramUniform1f(prefix_program, Loc(prefix_program, "u_svd_x_step"), float(setup.svd.x_step));
       glDispatchCompute(Groups(setup.rows, 64), 1, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     }
@@ -504,6 +603,9 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setu
     glProgramUniform1f(p, Loc(p, "u_half_depth"), float(setup.half_depth));
     glProgramUniform1i(p, Loc(p, "u_direct"), params.combined_image ? 1 : 0);
     glProgramUniform1f(p, Loc(p, "u_normal_offset"), float(setup.normal_offset));
+    glProgramUniform1f(p, Loc(p, "u_svd_alpha0"), float(setup.svd.alpha0));
+    glProgramUniform1f(p, Loc(p, "u_svd_alpha_step"), float(setup.svd.alpha_step));
+    glProgramUniform1f(p, Loc(p, "u_eye_light_distance"), float(setup.eye_light_distance));
     glBindTextureUnit(1, geometry.id());
     glBindTextureUnit(2, albedo.id());
     glDispatchCompute(Groups(setup.width, 8), Groups(setup.height, 8), 1);
@@ -517,7 +619,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, const Setup& setu
   pixels.resize(pixel_count);
   glGetNamedBufferSubData(output.id(), 0, GLsizeiptr(pixel_count * sizeof(glm::vec4)), pixels.data());
   for (GLuint unit = 0; unit < 3; ++unit) glBindTextureUnit(unit, 0);
-  for (GLuint binding = 0; binding < 8; ++binding) glBindBufferBase(GL_SHADER_STORAGE_BUFFER, binding, 0);
+  for (GLuint binding = 0; binding < 11; ++binding) glBindBufferBase(GL_SHADER_STORAGE_BUFFER, binding, 0);
   glBindVertexArray(0);
   glUseProgram(0);
   VISQ_RETURN_IF_ERROR(CollectGlErrors("volumetric shadows: readback"));
@@ -532,6 +634,7 @@ std::string_view VolumetricIntegrandName(VolumetricIntegrand integrand) {
     case VolumetricIntegrand::kAnalytic: return "analytic";
     case VolumetricIntegrand::kPrefixSum: return "prefix_sum";
     case VolumetricIntegrand::kPerTexel: return "per_texel";
+    case VolumetricIntegrand::kSvd: return "svd";
   }
   return "unknown";
 }
@@ -594,6 +697,8 @@ Status ValidateVolumetricParams(const VolumetricParams& params) {
                                medium.scattering));
   if (!(medium.hg_g > -1.0 && medium.hg_g < 1.0))
     return Invalid(fmt::format("medium.hg_g: {} is not in (-1, 1)", medium.hg_g));
+  if (!(params.svd_tolerance > 0.0 && params.svd_tolerance < 1.0))
+    return Invalid(fmt::format("svd_tolerance: {} is not in (0, 1)", params.svd_tolerance));
   // Shadow map.
   if (params.shadow_map_size > kMaxVolumetricShadowMapSize)
     return absl::ResourceExhaustedError(fmt::format("shadow_map_size: {} exceeds the cap of {}",
@@ -617,12 +722,17 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
       params.job, [&]() -> Status { return RunPasses(worker, gpu_scene, setup, params, pixels, result.timings); },
       &job_timing));
   result.timings.queue_ms = job_timing.queue_ms;
+  result.timings.integrand_table_ms = setup.svd_ms;
 
   // Light color applied here: the shader works in one channel for the medium.
   result.width = setup.width;
   result.height = setup.height;
   result.method = params.method;
   result.integrand = setup.integrand;
+  if (setup.integrand == VolumetricIntegrand::kSvd) {
+    result.svd_rank = static_cast<uint32_t>(setup.svd.rank);
+    result.integrand_error = setup.svd.relative_error;
+  }
   result.rectified_rows = setup.rows;
   result.rectified_columns = setup.cols;
   result.epipole_inside_map = setup.epipole_inside;

@@ -377,9 +377,20 @@ std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricRes
       "no numeric bound against the continuous integral is stated; deterministic: the min-max traversal and ray marching integrate the same rectified shadow map and give the "
       "same image up to float summation order; the shadow boundary is resolved to the rectified map (",
       result.rectified_rows, " rows x ", result.rectified_columns, " columns), the ", first.integrand(),
-      " integrand is exact per texel span (per-texel midpoint rule for attenuation with spot or textured lights)"));
+      result.integrand == gpu::VolumetricIntegrand::kSvd
+          ? absl::StrCat(" integrand approximates the spot light's phase x attenuation by a rank-", result.svd_rank,
+                         " SVD whose largest residual is ", result.integrand_error,
+                         " of its largest value (parameters svd_rank, integrand_error); texels cut by shadow edges or "
+                         "the ray's ends, and rays nearly towards or away from the light, are exact per texel")
+          : std::string(" integrand is exact per texel span (per-texel midpoint rule for attenuation with spot or "
+                        "textured lights)")));
+  if (result.integrand == gpu::VolumetricIntegrand::kSvd) {
+    (*accuracy->mutable_parameters())["svd_rank"] = result.svd_rank;
+    (*accuracy->mutable_parameters())["integrand_error"] = result.integrand_error;
+  }
   auto& stage_ms = *first.mutable_stage_ms();
   stage_ms["setup"] = result.timings.setup_ms;
+  if (result.integrand == gpu::VolumetricIntegrand::kSvd) stage_ms["integrand_table"] = result.timings.integrand_table_ms;
   stage_ms["shadow_map"] = result.timings.shadow_map_ms;
   stage_ms["camera"] = result.timings.camera_ms;
   stage_ms["rectification"] = result.timings.rectification_ms;

@@ -284,6 +284,23 @@ TEST_F(AlgorithmRpcTest, VolumetricMinMaxEqualsRayMarching) {
   EXPECT_GT(peak, 0.0f) << "the image must not be black";
   EXPECT_LE(worst, 1e-4f * peak + 1e-7f);
   EXPECT_EQ(min_max->figures.method(), "min-max-mipmap");
+
+  // A spot light with extinction takes the SVD integrand and states its rank
+  // and table error among the accuracy parameters.
+  request.set_method(v1::VolumetricShadowRequest::MIN_MAX);
+  request.set_light_kind(v1::VolumetricShadowRequest::SPOT);
+  Set(request.mutable_light_position(), 0, 1.9, 0);
+  Set(request.mutable_light_direction(), 0.1, -1, 0.1);
+  request.set_cone_angle_deg(40);
+  auto spot = client_->VolumetricShadow(request);
+  ASSERT_TRUE(spot.ok()) << spot.status();
+  EXPECT_EQ(spot->figures.integrand(), "svd");
+  const auto& parameters = spot->figures.accuracy().parameters();
+  ASSERT_TRUE(parameters.contains("svd_rank") && parameters.contains("integrand_error"));
+  EXPECT_GE(parameters.at("svd_rank"), 1.0);
+  EXPECT_LE(parameters.at("svd_rank"), 8.0);
+  EXPECT_GE(parameters.at("integrand_error"), 0.0);
+  EXPECT_NE(spot->figures.accuracy().note().find("SVD"), std::string::npos) << spot->figures.accuracy().note();
   request.set_vertical_fov_deg(200);
   EXPECT_EQ(client_->VolumetricShadow(request).status().code(), absl::StatusCode::kInvalidArgument);
 }

@@ -350,19 +350,22 @@ VolumetricParams SponzaParams(const Scene& sponza) {
   return params;
 }
 
+void CompareSvdWithPerTexel(const Scene& scene, VolumetricParams params, const char* what);
+
 TEST(VolumetricShadowsTest, SponzaTraversalMatchesRayMarching) {
   VISQ_REQUIRE_SHARED_SCENES(dir);
   auto sponza = LoadGltfFile(dir / "sponza_dabrovic" / "sponza.gltf");
   ASSERT_TRUE(sponza.ok()) << sponza.status();
   CompareMethods(*sponza, SponzaParams(*sponza), "sponza sun, analytic");
 
-  // A textured sun (a checkerboard gobo): per-texel sums with extinction,
-  // prefix sums in the optically thin limit.
+  // A textured sun (a checkerboard gobo): per-texel sums or the SVD with
+  // extinction, prefix sums in the optically thin limit.
   VolumetricParams textured = SponzaParams(*sponza);
   textured.light.texture_width = 8;
   textured.light.texture_height = 8;
   for (int i = 0; i < 64; ++i) textured.light.texture.push_back(((i / 8 + i % 8) % 2) ? 1.0f : 0.25f);
   CompareMethods(*sponza, textured, "sponza textured sun, per texel");
+  CompareSvdWithPerTexel(*sponza, textured, "sponza textured sun, svd");
   textured.medium.optically_thin = true;
   CompareMethods(*sponza, textured, "sponza textured sun, optically thin, prefix sums");
 }
@@ -394,12 +397,128 @@ TEST(VolumetricShadowsTest, VeachAjarTraversalMatchesRayMarching) {
   spot.light.cone_angle_deg = 40;
   spot.light.cone_falloff_deg = 10;
   spot.light.intensity = 20.0;
+  spot.integrand_choice = VolumetricIntegrandChoice::kExact;
   CompareMethods(*veach, spot, "veach-ajar spot, per texel");
+  CompareSvdWithPerTexel(*veach, spot, "veach-ajar spot, svd");
 
   // The same spot, optically thin and isotropic: the prefix-sum path.
+  spot.integrand_choice = VolumetricIntegrandChoice::kAuto;
   spot.medium.optically_thin = true;
   spot.medium.hg_g = 0.0;
   CompareMethods(*veach, spot, "veach-ajar spot, optically thin, prefix sums");
+}
+
+// ---------------------------------------------------------------------------
+// The SVD integrand (kSvd) against the per-texel reference (kExact) on the
+// same rectified map: they differ by the rank-K table's error
+// (integrand_error, relative to the table's largest value) and by where each
+// takes the integrand inside a texel (the per-texel path at the ray's
+// midpoint of the texel, the SVD at the light ray through the texel's
+// center in the row's middle), a fraction of a texel: `slack`, relative to
+// the image's peak. Min-max and ray marching with kSvd agree to float
+// summation order like the others.
+void CompareSvdWithPerTexel(const Scene& scene, VolumetricParams params, const char* what) {
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  params.method = VolumetricMethod::kMinMaxTraversal;
+  params.integrand_choice = VolumetricIntegrandChoice::kExact;
+  const VolumetricResult exact = Render(*gpu_scene, scene, params);
+  params.integrand_choice = VolumetricIntegrandChoice::kSvd;
+  const VolumetricResult svd = Render(*gpu_scene, scene, params);
+  params.method = VolumetricMethod::kRayMarching;
+  const VolumetricResult svd_marching = Render(*gpu_scene, scene, params);
+  ASSERT_EQ(exact.integrand, VolumetricIntegrand::kPerTexel);
+  ASSERT_EQ(svd.integrand, VolumetricIntegrand::kSvd);
+  EXPECT_EQ(exact.svd_rank, 0u);
+  EXPECT_EQ(exact.integrand_error, 0.0);
+  EXPECT_GE(svd.svd_rank, 1u);
+  EXPECT_LE(svd.svd_rank, 8u);
+  EXPECT_GE(svd.integrand_error, 0.0);
+  EXPECT_TRUE(svd.svd_rank == 8 || svd.integrand_error <= params.svd_tolerance) << svd.integrand_error;
+  ExpectSameImage(svd, svd_marching, what);
+
+  const double peak = MaxOf(exact.inscattering);
+  ASSERT_GT(peak, 0.0);
+  const double diff = MaxAbsDiff(svd.inscattering, exact.inscattering);
+  constexpr double kSlack = 2e-3;
+  EXPECT_LE(diff, (svd.integrand_error + kSlack) * peak) << what;
+  std::printf("%s: K %u, table error %.3g; max |svd - per texel| = %.3g of the peak %.3g; traversal %.1f ms svd, "
+              "%.1f ms per texel, %.1f ms svd marching\n",
+              what, svd.svd_rank, svd.integrand_error, diff / peak, peak, svd.timings.traversal_ms,
+              exact.timings.traversal_ms, svd_marching.timings.traversal_ms);
+}
+
+// A spot in the Cornell box, aimed down past the tall block.
+VolumetricParams CornellSpotParams() {
+  VolumetricParams params;
+  params.camera.position = {1.0, 1.0, 3.5};
+  params.camera.forward = {0.0, -0.1, -1.0};
+  params.camera.vertical_fov_deg = 45;
+  params.camera.width = 96;
+  params.camera.height = 72;
+  params.light.kind = VolumetricLightKind::kSpot;
+  params.light.position = {1.0, 1.9, 1.0};
+  params.light.direction = {0.2, -1.0, 0.1};
+  params.light.cone_angle_deg = 45;
+  params.light.cone_falloff_deg = 5;
+  params.light.intensity = 2.0;
+  params.medium = {0.3, 0.5, 0.0};
+  params.shadow_map_size = 512;
+  return params;
+}
+
+TEST(VolumetricShadowsTest, SvdIntegrandMatchesPerTexel) {
+  const Scene scene = MakeCornellBox();
+  VolumetricParams params = CornellSpotParams();
+  CompareSvdWithPerTexel(scene, params, "cornell spot, extinction, isotropic");
+  params.medium.hg_g = 0.5;
+  CompareSvdWithPerTexel(scene, params, "cornell spot, extinction, hg 0.5");
+  params.medium.optically_thin = true;
+  CompareSvdWithPerTexel(scene, params, "cornell spot, optically thin, hg 0.5");
+}
+
+TEST(VolumetricShadowsTest, SvdIntegrandChoice) {
+  const Scene scene = MakeCornellBox();
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  VolumetricParams params = CornellSpotParams();
+  params.camera.width = 32;
+  params.camera.height = 24;
+  params.shadow_map_size = 64;
+  // A looser tolerance takes a rank no higher than a tighter one.
+  params.svd_tolerance = 0.05;
+  const VolumetricResult loose = Render(*gpu_scene, scene, params);
+  params.svd_tolerance = 1e-4;
+  const VolumetricResult tight = Render(*gpu_scene, scene, params);
+  ASSERT_EQ(loose.integrand, VolumetricIntegrand::kSvd);
+  EXPECT_LE(loose.svd_rank, tight.svd_rank);
+  EXPECT_TRUE(loose.svd_rank == 8 || loose.integrand_error <= 0.05) << loose.integrand_error;
+  EXPECT_GE(loose.integrand_error, tight.integrand_error);
+  // The optically thin isotropic spot keeps the exact prefix sums.
+  params.medium.optically_thin = true;
+  EXPECT_EQ(Render(*gpu_scene, scene, params).integrand, VolumetricIntegrand::kPrefixSum);
+  // A textured sun with extinction: per texel unless the SVD is asked for.
+  VolumetricParams sun = params;
+  sun.light.kind = VolumetricLightKind::kDirectional;
+  sun.medium.optically_thin = false;
+  sun.light.texture_width = sun.light.texture_height = 2;
+  sun.light.texture = {1.0f, 0.5f, 0.5f, 1.0f};
+  sun.svd_tolerance = 1e-3;
+  EXPECT_EQ(Render(*gpu_scene, scene, sun).integrand, VolumetricIntegrand::kPerTexel);
+  sun.integrand_choice = VolumetricIntegrandChoice::kSvd;
+  EXPECT_EQ(Render(*gpu_scene, scene, sun).integrand, VolumetricIntegrand::kSvd);
+  sun.integrand_choice = VolumetricIntegrandChoice::kExact;
+  EXPECT_EQ(Render(*gpu_scene, scene, sun).integrand, VolumetricIntegrand::kPerTexel);
+  // The spot takes the SVD by default, the reference when told.
+  params.medium.optically_thin = false;
+  params.integrand_choice = VolumetricIntegrandChoice::kExact;
+  EXPECT_EQ(Render(*gpu_scene, scene, params).integrand, VolumetricIntegrand::kPerTexel);
+  params.integrand_choice = VolumetricIntegrandChoice::kAuto;
+  EXPECT_EQ(Render(*gpu_scene, scene, params).integrand, VolumetricIntegrand::kSvd);
+  params.svd_tolerance = 0.0;
+  const Status status = ValidateVolumetricParams(params);
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(status.message()), HasSubstr("svd_tolerance"));
 }
 
 // ---------------------------------------------------------------------------

@@ -50,11 +50,34 @@
 //     light, since ds / l^2 = dphi / h), so a lit span is a difference of
 //     per-row prefix sums of the light weight (texture x cone, times the
 //     texel's angle for spots), as in the slides.
-//   kPerTexel: everything else (spot light or textured light with
-//     extinction, or a spot with a Henyey-Greenstein phase). The slides'
-//     SVD approximation of the ray-dependent factor is NOT implemented: lit
-//     spans are summed texel by texel (shadowed spans are still skipped by the
-//     tree), each texel exact in its ds / l^2 factor (atan) with the
+//   kSvd: the slides' "SVD approximation" (after Baran et al. 2010) for a
+//     spot light with extinction or a Henyey-Greenstein phase, and, when
+//     asked for, a textured directional light with extinction
+//     (gpu/volumetric_shadows/svd_integrand.h has the derivations). The
+//     ray-dependent factor f (spot: f(alpha, phi) = phase x attenuation
+//     beyond d = |eye - light|, alpha the view ray's angle from the eye's
+//     direction to the light, phi the light ray's angle from the light's
+//     direction to the eye; directional: f(alpha, p) = exp(-sigma_t p
+//     cot(alpha / 2)), p the light ray's offset from the eye's) is tabulated
+//     in double and truncated to the smallest rank K <= 8 whose largest
+//     residual is below svd_tolerance x max f (else K = 8), and each row
+//     keeps K prefix sums (in double) of w V_k dphi (or dp): a lit span
+//     costs O(K). Texels cut by the ray's ends or by a shadow edge keep the
+//     exact per-texel integral, and so do rays with alpha within
+//     kSvdAlphaMargin of 0 or pi (where f's domain pinches) or entering the
+//     medium where f < e^-2 (the table's absolute error would be amplified).
+//     VolumetricResult reports K and the table's relative error
+//     (integrand_error): the largest residual anywhere in the table, a
+//     conservative figure (for a spot it sits where the domain pinches;
+//     images differ from kPerTexel's by far less, see the tests). kPerTexel
+//     also serves when the prefix sums (rows x (columns + 1) x K doubles)
+//     exceed the driver's largest storage block (`integrand` says which):
+//     on llvmpipe (128 MiB blocks) that is every map above 1024.
+//   kPerTexel: the reference, and the default for a textured directional
+//     light with extinction (on llvmpipe its per-texel exp beats the SVD's
+//     K double reads per span; integrand_choice kSvd takes the SVD there):
+//     lit spans are summed texel by texel (shadowed spans are still skipped
+//     by the tree), each texel exact in its ds / l^2 factor (atan) with the
 //     attenuation and phase at the texel's midpoint.
 #pragma once
 
@@ -122,7 +145,15 @@ struct VolumetricMedium {
 };
 
 enum class VolumetricMethod { kMinMaxTraversal, kRayMarching };
-enum class VolumetricIntegrand { kAnalytic, kPrefixSum, kPerTexel };
+enum class VolumetricIntegrand { kAnalytic, kPrefixSum, kPerTexel, kSvd };
+// Where kSvd or kPerTexel could serve: kAuto takes kSvd for spot lights and
+// kPerTexel for textured directional lights (the faster on llvmpipe), kExact
+// kPerTexel (the reference), kSvd kSvd.
+enum class VolumetricIntegrandChoice { kAuto, kExact, kSvd };
+// kSvd: rays within this angle (radians) of the table's alpha ends (spot:
+// pointing at or away from the light; directional: along or against it)
+// are integrated per texel.
+inline constexpr double kSvdAlphaMargin = 0.2;
 
 struct VolumetricParams {
   VolumetricCamera camera;
@@ -136,6 +167,10 @@ struct VolumetricParams {
   // The medium's box (directional) or far plane (spot) covers the scene's
   // bounds and these (empty: the scene's only).
   Bounds extra_medium_bounds;
+  VolumetricIntegrandChoice integrand_choice = VolumetricIntegrandChoice::kAuto;
+  // kSvd: the largest residual of the rank-K table allowed, relative to its
+  // largest value (the rank stops growing at 8).
+  double svd_tolerance = 1e-3;
   JobOptions job;
 };
 
@@ -143,6 +178,7 @@ struct VolumetricParams {
 // with a steady clock (llvmpipe's GL_TIME_ELAPSED under-reports).
 struct VolumetricTimings {
   double queue_ms = 0;
+  double integrand_table_ms = 0; // kSvd: the SVD on the CPU (cached for the last few media and distances)
   double setup_ms = 0;           // programs (cached after the first call), buffers
   double shadow_map_ms = 0;      // the light's depth rasterization
   double camera_ms = 0;          // the camera's depth / normal rasterization
@@ -168,6 +204,10 @@ struct VolumetricResult {
   std::vector<float> combined;  // same layout; empty unless asked for
   VolumetricMethod method = VolumetricMethod::kMinMaxTraversal;
   VolumetricIntegrand integrand = VolumetricIntegrand::kAnalytic;
+  // kSvd: the rank K and the table's largest residual over the (alpha, phi)
+  // that occur, relative to the table's largest value (0 for the others).
+  uint32_t svd_rank = 0;
+  double integrand_error = 0;
   uint32_t rectified_rows = 0, rectified_columns = 0;
   bool epipole_inside_map = false;
   VolumetricBox medium_box;  // directional light only (the medium's box)
