@@ -208,63 +208,68 @@ TEST(GpuSceneUpload, SceneFromALostContextIsNotCurrentAndSaysSo) {
   EXPECT_TRUE((*again)->IsCurrent());
 }
 
+// Holds the GL thread busy so that jobs queue up behind it, then records the
+// order in which they run.
+class QueueRecorder {
+ public:
+  explicit QueueRecorder(GpuWorker& worker) : worker_(worker) {
+    blocker_ = std::async(std::launch::async, [this] {
+      return worker_.Run({}, [this] {
+        started_ = true;
+        released_.wait();
+        return absl::OkStatus();
+      });
+    });
+    while (!started_) std::this_thread::yield();
+  }
+
+  // Queues a job tagged `tag` and returns once it is in the queue.
+  void Queue(int priority, int tag) {
+    const size_t depth = worker_.queue_depth();
+    jobs_.push_back(std::async(std::launch::async, [this, priority, tag] {
+      JobOptions options;
+      options.priority = priority;
+      return worker_.Run(options, [this, tag] {
+        std::lock_guard lock(mutex_);
+        order_.push_back(tag);
+        return absl::OkStatus();
+      });
+    }));
+    while (worker_.queue_depth() < depth + 1) std::this_thread::yield();
+  }
+
+  // Lets the GL thread go; the tags in the order their jobs ran.
+  std::vector<int> Release() {
+    release_.set_value();
+    EXPECT_TRUE(blocker_.get().ok());
+    for (auto& job : jobs_) EXPECT_TRUE(job.get().ok());
+    return order_;
+  }
+
+ private:
+  GpuWorker& worker_;
+  std::promise<void> release_;
+  std::shared_future<void> released_ = release_.get_future().share();
+  std::atomic<bool> started_{false};
+  std::future<Status> blocker_;
+  std::vector<std::future<Status>> jobs_;
+  std::mutex mutex_;
+  std::vector<int> order_;
+};
+
 TEST(GpuWorkerQueue, InteractiveJobsOvertakeQueuedBatchJobs) {
-  GpuWorker& worker = SharedGpuWorker();
-  std::promise<void> release;
-  std::shared_future<void> released = release.get_future().share();
-  std::atomic<bool> blocker_started{false};
-  // Occupy the GL thread so the next two jobs queue up behind it.
-  auto blocker = std::async(std::launch::async, [&] {
-    return worker.Run({}, [&] { blocker_started = true; released.wait(); return absl::OkStatus(); });
-  });
-  while (!blocker_started) std::this_thread::yield();
-  std::vector<int> order;
-  std::mutex order_mutex;
-  auto run = [&](int priority, int tag) {
-    JobOptions options;
-    options.priority = priority;
-    return worker.Run(options, [&, tag] { std::lock_guard l(order_mutex); order.push_back(tag); return absl::OkStatus(); });
-  };
-  auto batch = std::async(std::launch::async, run, kBatch, 1);
-  while (worker.queue_depth() < 1) std::this_thread::yield();
-  auto interactive = std::async(std::launch::async, run, kInteractive, 2);
-  while (worker.queue_depth() < 2) std::this_thread::yield();
-  release.set_value();
-  EXPECT_TRUE(blocker.get().ok());
-  EXPECT_TRUE(batch.get().ok());
-  EXPECT_TRUE(interactive.get().ok());
-  EXPECT_EQ(order, (std::vector<int>{2, 1}));
+  QueueRecorder queue(SharedGpuWorker());
+  queue.Queue(kBatch, 1);
+  queue.Queue(kInteractive, 2);
+  EXPECT_EQ(queue.Release(), (std::vector<int>{2, 1}));
 }
 
 TEST(GpuWorkerQueue, AWaitingBatchJobRunsAfterEightOvertakes) {
-  GpuWorker& worker = SharedGpuWorker();
-  std::promise<void> release;
-  std::shared_future<void> released = release.get_future().share();
-  std::atomic<bool> blocker_started{false};
-  auto blocker = std::async(std::launch::async, [&] {
-    return worker.Run({}, [&] { blocker_started = true; released.wait(); return absl::OkStatus(); });
-  });
-  while (!blocker_started) std::this_thread::yield();
-  std::vector<int> order;
-  std::mutex order_mutex;
-  auto run = [&](int priority, int tag) {
-    JobOptions options;
-    options.priority = priority;
-    return worker.Run(options, [&, tag] { std::lock_guard l(order_mutex); order.push_back(tag); return absl::OkStatus(); });
-  };
-  // One batch step (tag 0), then 12 interactive jobs (tags 1..12), all queued.
-  std::vector<std::future<Status>> jobs;
-  jobs.push_back(std::async(std::launch::async, run, kBatch, 0));
-  while (worker.queue_depth() < 1) std::this_thread::yield();
-  for (int tag = 1; tag <= 12; ++tag) {
-    jobs.push_back(std::async(std::launch::async, run, kInteractive, tag));
-    while (worker.queue_depth() < size_t(tag) + 1) std::this_thread::yield();
-  }
-  release.set_value();
-  EXPECT_TRUE(blocker.get().ok());
-  for (auto& job : jobs) EXPECT_TRUE(job.get().ok());
+  QueueRecorder queue(SharedGpuWorker());
+  queue.Queue(kBatch, 0);  // one step of a bake
+  for (int tag = 1; tag <= 12; ++tag) queue.Queue(kInteractive, tag);
   // Eight small jobs overtake the batch step, then it runs, then the rest.
-  EXPECT_EQ(order, (std::vector<int>{1, 2, 3, 4, 5, 6, 7, 8, 0, 9, 10, 11, 12}));
+  EXPECT_EQ(queue.Release(), (std::vector<int>{1, 2, 3, 4, 5, 6, 7, 8, 0, 9, 10, 11, 12}));
 }
 
 TEST(GpuWorkerQueue, TimingReportsQueueAndRunTime) {
