@@ -469,6 +469,34 @@ StatusOr<v1::UpdateObscurancesResponse> Client::UpdateObscurances(const v1::Upda
   return CallUnary(&v1::VisibilityService::Stub::UpdateObscurances, request.scene().name(), request);
 }
 
+StatusOr<ObscurancePreview> Client::RenderObscurancePreview(const v1::ObscurancePreviewRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name());
+  auto reader = stub_->RenderObscurancePreview(context.get(), request);
+  ObscurancePreview out;
+  v1::ObscurancePreviewResponse message;
+  bool first = true;
+  while (reader->Read(&message)) {
+    VISQ_RETURN_IF_ERROR(AppendObscuranceChunk(message.rgb(), message.offset(), out.rgb, "rgb"));
+    VISQ_RETURN_IF_ERROR(AppendObscuranceChunk(message.covered(), message.covered_offset(), out.covered, "covered"));
+    if (first) {
+      message.clear_rgb();
+      message.clear_covered();
+      out.figures = std::move(message);
+      first = false;
+    }
+  }
+  const grpc::Status status = reader->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  const size_t pixels = size_t{out.figures.width()} * out.figures.height();
+  if (out.rgb.size() != pixels * 3 || out.covered.size() != pixels)
+    return absl::DataLossError(absl::StrCat("obscurance preview: ", out.rgb.size(), " rgb floats and ",
+                                            out.covered.size(), " coverage bytes for ", out.figures.width(), " x ",
+                                            out.figures.height(), " pixels"));
+  return out;
+}
+
 Status MergeObscurancePartials(obscurance::ObscurancePartial& into, const obscurance::ObscurancePartial& from) {
   std::string error;
   if (!obscurance::MergeObscurancePartial(into, from, &error)) return absl::InvalidArgumentError(error);

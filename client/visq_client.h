@@ -78,6 +78,13 @@ struct ObscuranceBake {
 };
 using ObscuranceProgressCallback = std::function<void(const v1::ObscuranceProgress&)>;
 
+// A RenderObscurancePreview picture reassembled from its stream.
+struct ObscurancePreview {
+  v1::ObscurancePreviewResponse figures;  // width, height, solution_version, quantity, timing
+  std::vector<float> rgb;                 // linear RGB per pixel, index (y * width + x) * 3, row 0 at the top
+  std::vector<uint8_t> covered;           // per pixel: 1 a surface, 0 background (rgb 0)
+};
+
 class Client {
  public:
   explicit Client(ClientOptions options);
@@ -118,6 +125,8 @@ class Client {
   // Moves a node (in the server's memory only; see the proto).
   [[nodiscard]] StatusOr<v1::SceneInfo> SetNodeTransform(const v1::SetNodeTransformRequest& request);
   [[nodiscard]] StatusOr<v1::UpdateObscurancesResponse> UpdateObscurances(const v1::UpdateObscurancesRequest& request);
+  // The scene from a camera with the current solution's W (or I) applied.
+  [[nodiscard]] StatusOr<ObscurancePreview> RenderObscurancePreview(const v1::ObscurancePreviewRequest& request);
 
   // The x-visq-server-id of the last response (which replica answered).
   std::string last_server_id() const;

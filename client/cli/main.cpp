@@ -123,6 +123,48 @@ bool WritePng(const std::string& path, int width, int height, int channels, cons
   return stbi_write_png(path.c_str(), width, height, channels, pixels.data(), width * channels) != 0;
 }
 
+// Writes RGB rows that arrive top first (image RPCs) as a PNG, each value
+// times `scale` (WritePng expects the last row first).
+bool WriteTopFirstPng(const std::string& path, uint32_t width, uint32_t height, const std::vector<float>& rgb,
+                      float scale) {
+  std::vector<float> flipped(rgb.size());
+  const size_t row = size_t(width) * 3;
+  for (uint32_t y = 0; y < height; ++y)
+    for (size_t i = 0; i < row; ++i) flipped[(height - 1 - y) * row + i] = rgb[y * row + i] * scale;
+  return WritePng(path, static_cast<int>(width), static_cast<int>(height), 3, flipped);
+}
+
+// The pinhole camera flags of the image subcommands (volumetric,
+// obscurance-preview), filled into any request with the camera_* fields.
+// The short names (--camera, --forward, --up) are the originals of
+// `visq volumetric`.
+struct CameraFlags {
+  std::string position, forward, up;
+  double fov = 60;
+  uint32_t width = 320, height = 240;
+};
+
+void AddCameraFlags(CLI::App* command, CameraFlags& camera) {
+  command->add_option("--camera-position,--camera", camera.position, "Camera position 'x,y,z'")->required();
+  command->add_option("--camera-forward,--forward", camera.forward, "Viewing direction 'x,y,z'")->required();
+  command->add_option("--camera-up,--up", camera.up, "Camera up 'x,y,z' (default 0,1,0)");
+  command->add_option("--width", camera.width, "Image width")->capture_default_str();
+  command->add_option("--height", camera.height, "Image height")->capture_default_str();
+  command->add_option("--fov", camera.fov, "Vertical field of view, degrees")->capture_default_str();
+}
+
+template <typename Request>
+visq::Status FillCamera(const CameraFlags& camera, Request* request) {
+  if (!ParseVec3(camera.position, request->mutable_camera_position()) ||
+      !ParseVec3(camera.forward, request->mutable_camera_forward()) ||
+      (!camera.up.empty() && !ParseVec3(camera.up, request->mutable_camera_up())))
+    return absl::InvalidArgumentError("--camera-position, --camera-forward, --camera-up: expected 'x,y,z'");
+  request->set_width(camera.width);
+  request->set_height(camera.height);
+  request->set_vertical_fov_deg(camera.fov);
+  return absl::OkStatus();
+}
+
 // Ask by error instead of by count (--max-error, --time-budget-ms).
 struct TargetFlags {
   double max_error = 0.0;
@@ -572,18 +614,15 @@ int main(int argc, char** argv) {
   });
 
   // --- volumetric ------------------------------------------------------------------
-  std::string vo_scene, vo_camera, vo_forward, vo_light = "0.3,-1,0.2", vo_png, vo_method = "min-max";
-  uint32_t vo_width = 320, vo_height = 240, vo_map = 1024;
-  double vo_fov = 60, vo_scattering = 0.05, vo_extinction = 0.05, vo_intensity = 1.0;
+  std::string vo_scene, vo_light = "0.3,-1,0.2", vo_png, vo_method = "min-max";
+  CameraFlags vo_camera;
+  uint32_t vo_map = 1024;
+  double vo_scattering = 0.05, vo_extinction = 0.05, vo_intensity = 1.0;
   bool vo_combined = false;
   auto* volumetric = app.add_subcommand("volumetric", "Volumetric shadows (light shafts) from a camera");
   volumetric->add_option("--scene", vo_scene, "Scene name")->required();
-  volumetric->add_option("--camera", vo_camera, "Camera position 'x,y,z'")->required();
-  volumetric->add_option("--forward", vo_forward, "Viewing direction 'x,y,z'")->required();
+  AddCameraFlags(volumetric, vo_camera);
   volumetric->add_option("--sun", vo_light, "Direction the sunlight travels 'x,y,z'")->capture_default_str();
-  volumetric->add_option("--width", vo_width, "Image width")->capture_default_str();
-  volumetric->add_option("--height", vo_height, "Image height")->capture_default_str();
-  volumetric->add_option("--fov", vo_fov, "Vertical field of view, degrees")->capture_default_str();
   volumetric->add_option("--shadow-map", vo_map, "Shadow map size (power of two)")->capture_default_str();
   volumetric->add_option("--scattering", vo_scattering, "sigma_s per world unit")->capture_default_str();
   volumetric->add_option("--extinction", vo_extinction, "sigma_t per world unit")->capture_default_str();
@@ -595,15 +634,14 @@ int main(int argc, char** argv) {
   volumetric->callback([&] {
     visq::v1::VolumetricShadowRequest request;
     request.mutable_scene()->set_name(vo_scene);
-    if (!ParseVec3(vo_camera, request.mutable_camera_position()) ||
-        !ParseVec3(vo_forward, request.mutable_camera_forward()) ||
-        !ParseVec3(vo_light, request.mutable_light_direction())) {
-      exit_code = Fail(absl::InvalidArgumentError("--camera, --forward, --sun: expected 'x,y,z'"));
+    if (visq::Status camera = FillCamera(vo_camera, &request); !camera.ok()) {
+      exit_code = Fail(camera);
       return;
     }
-    request.set_width(vo_width);
-    request.set_height(vo_height);
-    request.set_vertical_fov_deg(vo_fov);
+    if (!ParseVec3(vo_light, request.mutable_light_direction())) {
+      exit_code = Fail(absl::InvalidArgumentError("--sun: expected 'x,y,z'"));
+      return;
+    }
     request.set_shadow_map_size(vo_map);
     request.set_scattering(vo_scattering);
     request.set_extinction(vo_extinction);
@@ -619,12 +657,7 @@ int main(int argc, char** argv) {
       std::vector<float> rgb = vo_combined ? image->combined : image->inscattering;
       float peak = 1e-20f;
       for (float v : rgb) peak = std::max(peak, v);
-      // Rows arrive top first; WritePng puts the last row on top.
-      std::vector<float> flipped(rgb.size());
-      const size_t row = size_t(f.width()) * 3;
-      for (uint32_t y = 0; y < f.height(); ++y)
-        for (size_t i = 0; i < row; ++i) flipped[(f.height() - 1 - y) * row + i] = rgb[y * row + i] / peak;
-      if (!WritePng(vo_png, f.width(), f.height(), 3, flipped)) {
+      if (!WriteTopFirstPng(vo_png, f.width(), f.height(), rgb, 1.0f / peak)) {
         exit_code = Fail(absl::InternalError("cannot write " + vo_png));
         return;
       }
@@ -786,6 +819,53 @@ int main(int argc, char** argv) {
                r.influenced_before(), r.influenced_after(), r.own_patches(), r.candidates(), r.recomputed(), r.rays(),
                r.rays_per_patch());
     fmt::print("time: compute {:.1f} ms, total {:.1f} ms\n", r.timing().compute_ms(), r.timing().total_ms());
+  });
+
+  std::string op_scene, op_png, op_quantity = "w";
+  CameraFlags op_camera;
+  auto* obscurance_preview = app.add_subcommand(
+      "obscurance-preview", "Render the scene from a camera with the current obscurance solution (W or I) applied");
+  obscurance_preview->add_option("SCENE,--scene", op_scene, "Scene name")->required();
+  AddCameraFlags(obscurance_preview, op_camera);
+  obscurance_preview->add_option("--quantity", op_quantity, "w (obscurance W) or i (intensity I)")
+      ->check(CLI::IsMember({"w", "i", "W", "I", "intensity"}))
+      ->capture_default_str();
+  obscurance_preview->add_option("--png", op_png,
+                                 "Write the image: W as is, I tone-mapped to its peak; linear values, background black")
+      ->required();
+  AddCommonFlags(obscurance_preview, flags);
+  obscurance_preview->callback([&] {
+    visq::v1::ObscurancePreviewRequest request;
+    request.mutable_scene()->set_name(op_scene);
+    if (visq::Status camera = FillCamera(op_camera, &request); !camera.ok()) {
+      exit_code = Fail(camera);
+      return;
+    }
+    const bool intensity = op_quantity != "w" && op_quantity != "W";
+    request.set_quantity(intensity ? visq::v1::ObscurancePreviewRequest::INTENSITY
+                                   : visq::v1::ObscurancePreviewRequest::W);
+    auto client = MakeClient(flags);
+    auto preview = client.RenderObscurancePreview(request);
+    if (!preview.ok()) { exit_code = Fail(preview.status()); return; }
+    const auto& f = preview->figures;
+    float peak = 1e-20f;
+    for (float v : preview->rgb) peak = std::max(peak, v);
+    if (!WriteTopFirstPng(op_png, f.width(), f.height(), preview->rgb, intensity ? 1.0f / peak : 1.0f)) {
+      exit_code = Fail(absl::InternalError("cannot write " + op_png));
+      return;
+    }
+    size_t covered = 0;
+    for (uint8_t c : preview->covered) covered += c;
+    if (flags.json) {
+      fmt::print("{{\"png\": \"{}\", \"covered_pixels\": {}, \"peak\": {}, \"figures\": {}}}\n", op_png, covered,
+                 peak, ToJson(f));
+      return;
+    }
+    fmt::print("{}x{} {} of solution version {}: {} of {} pixels covered, peak {:.4g}\n", f.width(), f.height(),
+               intensity ? "I" : "W", f.solution_version(), covered, preview->covered.size(), peak);
+    fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
+               f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
+    fmt::print("wrote {}\n", op_png);
   });
 
   auto* stats = app.add_subcommand("stats", "Server statistics: per-RPC latencies, queues, memory, GPU");

@@ -234,13 +234,9 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
   setup.cam_forward = f;
   setup.cam_right = r * tan_y * aspect;
   setup.cam_up = cu * tan_y;
-  double far_distance = 0;
-  for (const auto& p : corners) far_distance = std::max(far_distance, glm::length(p - setup.eye));
-  far_distance = far_distance * 1.01 + 1e-6 * diagonal;
-  const double near_distance = std::max(far_distance * 1e-5, 1e-9);
-  setup.camera_clip = glm::perspective(camera.vertical_fov_deg * std::numbers::pi / 180.0, aspect, near_distance,
-                                       far_distance) *
-                      glm::lookAt(setup.eye, setup.eye + f, cu);
+  // The raster transform every pinhole image shares (camera.h), over the
+  // medium's bounds as well as the scene's.
+  setup.camera_clip = PinholeClipFromAnchor(camera, anchor, bounds);
 
   // The epipole: the eye in the shadow map.
   setup.c0 = setup.light_clip * glm::dvec4(setup.eye, 1.0);
@@ -643,20 +639,7 @@ Status ValidateVolumetricParams(const VolumetricParams& params) {
   const VolumetricCamera& camera = params.camera;
   const VolumetricLight& light = params.light;
   const VolumetricMedium& medium = params.medium;
-  // Camera.
-  if (!Finite(camera.position)) return Invalid(fmt::format("camera.position: non-finite {}", Vec(camera.position)));
-  if (!Finite(camera.forward) || glm::length(camera.forward) == 0.0)
-    return Invalid(fmt::format("camera.forward: {} is not a direction", Vec(camera.forward)));
-  if (!Finite(camera.up) || glm::length(glm::cross(glm::normalize(camera.forward), camera.up)) < 1e-9 * glm::length(camera.up) ||
-      glm::length(camera.up) == 0.0)
-    return Invalid(fmt::format("camera.up: {} is zero, non-finite or parallel to camera.forward", Vec(camera.up)));
-  if (!(camera.vertical_fov_deg > 0.0 && camera.vertical_fov_deg < 180.0))
-    return Invalid(fmt::format("camera.vertical_fov_deg: {} is not in (0, 180)", camera.vertical_fov_deg));
-  if (camera.width == 0 || camera.height == 0)
-    return Invalid(fmt::format("camera resolution: {} x {} has a zero side", camera.width, camera.height));
-  if (camera.width > kMaxVolumetricImageSize || camera.height > kMaxVolumetricImageSize)
-    return absl::ResourceExhaustedError(fmt::format("camera resolution: {} x {} exceeds the cap of {} per side",
-                                                    camera.width, camera.height, kMaxVolumetricImageSize));
+  VISQ_RETURN_IF_ERROR(ValidatePinholeCamera(camera, kMaxVolumetricImageSize));
   // Light.
   if (!Finite(light.direction) || glm::length(light.direction) == 0.0)
     return Invalid(fmt::format("light.direction: {} is not a direction", Vec(light.direction)));

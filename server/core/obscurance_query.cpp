@@ -378,4 +378,56 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
   return answer;
 }
 
+StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, const ObscurancePreviewQuery& query) {
+  VISQ_RETURN_IF_ERROR(gpu::ValidatePinholeCamera(query.camera, gpu::kMaxObscurancePreviewSize));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  ObscurancePreviewAnswer answer;
+  answer.quantity = query.quantity;
+
+  // The solution, copied under the state's lock so that moves and updates
+  // may go on while the GPU draws.
+  const auto start = std::chrono::steady_clock::now();
+  std::vector<glm::vec2> corner_uv;
+  std::vector<glm::vec3> values;
+  uint32_t width = 0, height = 0;
+  {
+    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::lock_guard lock(state->mutex);
+    // Re-read under the lock: a move may have landed in between.
+    VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
+    if (!state->updater)
+      return absl::FailedPreconditionError(absl::StrCat("scene '", resident->name,
+                                                        "' has no whole-bake obscurance solution to preview: run "
+                                                        "ComputeObscurances first (a whole bake, not partial_only)"));
+    if (state->solution_version != resident->version)
+      return absl::FailedPreconditionError(absl::StrCat(
+          "scene '", resident->name, "' is at version ", resident->version,
+          " but its obscurance solution matches version ", state->solution_version,
+          ": run UpdateObscurances to apply the node moves since (or bake again)"));
+    const obscurance::ObscuranceResult& result = state->updater->result();
+    const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
+    corner_uv = atlas.corner_uv;
+    values = query.quantity == ObscurancePreviewQuery::Quantity::kW ? result.w : result.intensity;
+    width = result.width;
+    height = result.height;
+    answer.solution_version = state->solution_version;
+  }
+  answer.copy_ms = MillisecondsSince(start);
+  answer.scene_version = resident->version;
+
+  // The picture: one interactive GPU job.
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  gpu::ObscurancePreviewRequest request;
+  request.camera = query.camera;
+  request.scene_bounds = resident->scene->bounds;
+  request.atlas_width = width;
+  request.atlas_height = height;
+  request.corner_uv = corner_uv;
+  request.texel_values = values;
+  request.job = query.job;
+  VISQ_ASSIGN_OR_RETURN(answer.image, gpu::RenderObscurancePreview(engine.gpu(), *gpu_scene, request));
+  return answer;
+}
+
 }  // namespace visq

@@ -138,4 +138,30 @@ inline constexpr size_t kMaxFullUpdateFloats = size_t{1} << 22;
 [[nodiscard]] StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine,
                                                                    const ObscuranceUpdateQuery& query);
 
+// A preview of the scene's current solution: the scene from a pinhole camera
+// with W or the intensity I applied per texel (gpu::RenderObscurancePreview).
+struct ObscurancePreviewQuery {
+  enum class Quantity { kW, kIntensity };
+  std::string scene;
+  uint64_t scene_version = 0;
+  gpu::PinholeCamera camera;
+  Quantity quantity = Quantity::kW;
+  gpu::JobOptions job{gpu::kInteractive};
+};
+
+struct ObscurancePreviewAnswer {
+  uint64_t scene_version = 0;
+  uint64_t solution_version = 0;  // the solution drawn (equals scene_version)
+  ObscurancePreviewQuery::Quantity quantity = ObscurancePreviewQuery::Quantity::kW;
+  gpu::ObscurancePreviewImage image;
+  double copy_ms = 0;  // copying the solution out of the updater
+};
+
+// INVALID_ARGUMENT / RESOURCE_EXHAUSTED for a bad camera before any GPU
+// work; FAILED_PRECONDITION when the scene has no whole-bake solution, or
+// the solution matches another version of the scene (moves since it not yet
+// applied by UpdateObscurances).
+[[nodiscard]] StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine,
+                                                                         const ObscurancePreviewQuery& query);
+
 }  // namespace visq

@@ -317,18 +317,32 @@ void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* o
 }
 
 
+namespace {
+
+// The pinhole camera fields every image request spells the same way
+// (camera_position, camera_forward, camera_up, vertical_fov_deg, width,
+// height): unset up is +y, unset (0) field of view 60 degrees.
+template <typename Request>
+gpu::PinholeCamera CameraFromProto(const Request& request) {
+  gpu::PinholeCamera camera;
+  camera.position = FromProto(request.camera_position());
+  camera.forward = FromProto(request.camera_forward());
+  if (request.has_camera_up()) camera.up = FromProto(request.camera_up());
+  camera.vertical_fov_deg = request.vertical_fov_deg() == 0.0 ? 60.0 : request.vertical_fov_deg();
+  camera.width = request.width();
+  camera.height = request.height();
+  return camera;
+}
+
+}  // namespace
+
 StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) {
   VolumetricQuery query;
   if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
   query.scene = request.scene().name();
   query.scene_version = request.scene().version();
   gpu::VolumetricParams& p = query.params;
-  p.camera.position = FromProto(request.camera_position());
-  p.camera.forward = FromProto(request.camera_forward());
-  if (request.has_camera_up()) p.camera.up = FromProto(request.camera_up());
-  p.camera.vertical_fov_deg = request.vertical_fov_deg() == 0.0 ? 60.0 : request.vertical_fov_deg();
-  p.camera.width = request.width();
-  p.camera.height = request.height();
+  p.camera = CameraFromProto(request);
   switch (request.light_kind()) {
     case v1::VolumetricShadowRequest::DIRECTIONAL: p.light.kind = gpu::VolumetricLightKind::kDirectional; break;
     case v1::VolumetricShadowRequest::SPOT: p.light.kind = gpu::VolumetricLightKind::kSpot; break;
@@ -408,6 +422,47 @@ std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricRes
   };
   append(result.inscattering, false);
   append(result.combined, true);
+  return out;
+}
+
+StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request) {
+  ObscurancePreviewQuery query;
+  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
+  query.scene = request.scene().name();
+  query.scene_version = request.scene().version();
+  query.camera = CameraFromProto(request);
+  switch (request.quantity()) {
+    case v1::ObscurancePreviewRequest::W: query.quantity = ObscurancePreviewQuery::Quantity::kW; break;
+    case v1::ObscurancePreviewRequest::INTENSITY: query.quantity = ObscurancePreviewQuery::Quantity::kIntensity; break;
+    default: return absl::InvalidArgumentError(absl::StrCat("quantity: unknown value ", request.quantity()));
+  }
+  return query;
+}
+
+std::vector<v1::ObscurancePreviewResponse> ToProtoChunks(const ObscurancePreviewAnswer& answer,
+                                                         size_t chunk_elements) {
+  const gpu::ObscurancePreviewImage& image = answer.image;
+  std::vector<v1::ObscurancePreviewResponse> out(1);
+  v1::ObscurancePreviewResponse& first = out[0];
+  first.set_width(image.width);
+  first.set_height(image.height);
+  first.set_solution_version(answer.solution_version);
+  first.set_quantity(answer.quantity == ObscurancePreviewQuery::Quantity::kW ? v1::ObscurancePreviewRequest::W
+                                                                             : v1::ObscurancePreviewRequest::INTENSITY);
+  // The rgb floats, then the coverage bytes, each in chunks of at most
+  // `chunk_elements` (the first message carries the first chunk).
+  for (size_t offset = 0; offset < image.rgb.size(); offset += chunk_elements) {
+    if (out.back().rgb_size() > 0) out.emplace_back();
+    out.back().set_offset(offset);
+    out.back().mutable_rgb()->Add(image.rgb.begin() + offset,
+                                  image.rgb.begin() + std::min(image.rgb.size(), offset + chunk_elements));
+  }
+  for (size_t offset = 0; offset < image.covered.size(); offset += chunk_elements) {
+    if (out.back().rgb_size() > 0 || !out.back().covered().empty()) out.emplace_back();
+    out.back().set_covered_offset(offset);
+    const size_t end = std::min(image.covered.size(), offset + chunk_elements);
+    out.back().set_covered(reinterpret_cast<const char*>(image.covered.data() + offset), end - offset);
+  }
   return out;
 }
 

@@ -42,6 +42,12 @@ void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* o
 // target's exclusions: the core validates once the planner chose the count.
 [[nodiscard]] StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request);
 
+[[nodiscard]] StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request);
+// Figures first, then chunks of at most `chunk_elements`: rgb floats, then
+// coverage bytes.
+std::vector<v1::ObscurancePreviewResponse> ToProtoChunks(const ObscurancePreviewAnswer& answer,
+                                                         size_t chunk_elements);
+
 [[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
 std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricResult& result, size_t chunk_elements);
 

@@ -1,6 +1,7 @@
 // The obscurance RPCs (Méndez-Feliu, Sbert et al.): ComputeObscurances
 // streams progress while the GPU bakes, then the result in chunks;
-// SetNodeTransform and UpdateObscurances are unary. The work is in
+// SetNodeTransform and UpdateObscurances are unary; RenderObscurancePreview
+// streams the picture like VolumetricShadow. The work is in
 // core/obscurance_query.h; this file converts messages and runs the calls.
 #include <algorithm>
 #include <cmath>
@@ -377,6 +378,30 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::UpdateObscurances(grpc::Callbac
              answer.compute_ms);
     return absl::OkStatus();
   });
+}
+
+grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::RenderObscurancePreview(
+    grpc::CallbackServerContext* context, const v1::ObscurancePreviewRequest* request) {
+  return new PreparedStreamReactor<v1::ObscurancePreviewResponse>(
+      context, ctx_, "RenderObscurancePreview",
+      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
+                               std::vector<v1::ObscurancePreviewResponse>& messages) -> Status {
+        const double queue_ms = log.ElapsedMs();
+        VISQ_ASSIGN_OR_RETURN(ObscurancePreviewQuery query, FromProto(*request));
+        query.job = JobOptionsFor(context, &cancelled);
+        VISQ_ASSIGN_OR_RETURN(ObscurancePreviewAnswer answer, RunRenderObscurancePreview(ctx_.engine, query));
+        const double before_transfer = log.ElapsedMs();
+        messages = ToProtoChunks(answer, kChunkElements);
+        auto* timing = messages[0].mutable_timing();
+        timing->set_queue_ms(queue_ms + answer.image.queue_ms);
+        timing->set_compute_ms(answer.copy_ms + answer.image.total_ms - answer.image.queue_ms);
+        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
+        timing->set_total_ms(log.ElapsedMs());
+        log.Info("v{} {}x{} {}, render {:.1f} ms", answer.solution_version, answer.image.width, answer.image.height,
+                 request->quantity() == v1::ObscurancePreviewRequest::INTENSITY ? "intensity" : "W",
+                 answer.image.render_ms);
+        return absl::OkStatus();
+      });
 }
 
 }  // namespace visq::service

@@ -1,9 +1,13 @@
 // What every handler shares: the unary-call pattern (authorize, run on the
-// executor, log and finish) and the call's deadline for GPU jobs.
+// executor, log and finish), the prepared server-streaming pattern, and the
+// call's deadline for GPU jobs.
 #pragma once
 
+#include <atomic>
 #include <chrono>
+#include <functional>
 #include <memory>
+#include <vector>
 
 #include <grpcpp/server_context.h>
 
@@ -43,5 +47,71 @@ inline gpu::SteadyTime SteadyDeadline(const grpc::CallbackServerContext* context
   const auto left = deadline - std::chrono::system_clock::now();
   return std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(left);
 }
+
+// A GPU job's deadline and cancellation from the call's context, so a
+// request whose client gave up never reaches the GPU.
+inline gpu::JobOptions JobOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
+  gpu::JobOptions job;
+  job.priority = gpu::kInteractive;
+  job.deadline = SteadyDeadline(context);
+  job.cancelled = cancelled;
+  return job;
+}
+
+// Server-streaming answers: computes all messages on the executor, then
+// writes them in order. `compute` fills the messages; its first message
+// carries the timing.
+template <typename Response>
+class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
+ public:
+  using Compute = std::function<Status(const std::atomic<bool>& cancelled, const RequestLog& log,
+                                       std::vector<Response>& messages)>;
+  PreparedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
+                        Compute compute)
+      : log_(context, method, &ctx.metrics) {
+    context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
+    if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
+      Done(authorized);
+      return;
+    }
+    ctx.executor.Post([this, compute = std::move(compute)] {
+      Status status = compute(cancelled_, log_, messages_);
+      if (!status.ok()) {
+        Done(status);
+        return;
+      }
+      WriteNext();
+    });
+  }
+
+  void OnWriteDone(bool ok) override {
+    if (!ok) {
+      Done(absl::CancelledError("client went away"));
+      return;
+    }
+    WriteNext();
+  }
+  void OnCancel() override { cancelled_ = true; }
+  void OnDone() override { delete this; }
+
+ private:
+  void WriteNext() {
+    if (next_ >= messages_.size()) {
+      Done(absl::OkStatus());
+      return;
+    }
+    this->StartWrite(&messages_[next_++]);
+  }
+
+  void Done(const Status& status) {
+    log_.Done(status);
+    this->Finish(ToGrpcStatus(status));
+  }
+
+  RequestLog log_;
+  std::atomic<bool> cancelled_{false};
+  std::vector<Response> messages_;
+  size_t next_ = 0;
+};
 
 }  // namespace visq::service

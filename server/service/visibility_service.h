@@ -64,6 +64,8 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
   grpc::ServerUnaryReactor* UpdateObscurances(grpc::CallbackServerContext* context,
                                               const v1::UpdateObscurancesRequest* request,
                                               v1::UpdateObscurancesResponse* response) override;
+  grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* RenderObscurancePreview(
+      grpc::CallbackServerContext* context, const v1::ObscurancePreviewRequest* request) override;
   grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
                                      v1::ServerStats* response) override;
 

@@ -2,6 +2,7 @@
 // owners, shader builds and their errors, the GL thread's queue semantics,
 // and scene upload.
 #include <atomic>
+#include <cmath>
 #include <future>
 #include <thread>
 #include <type_traits>
@@ -13,10 +14,66 @@
 #include "shader_program.h"
 #include "scene/sample_scenes.h"
 #include "test_support.h"
+#include "visq/gpu/camera.h"
 #include "visq/gpu/gpu_scene.h"
 
 namespace visq::gpu {
 namespace {
+
+// The shared pinhole camera, without a context: each bad field is named,
+// and the clip transform puts what the camera looks at in the image center.
+TEST(PinholeCamera, ValidationNamesTheField) {
+  PinholeCamera camera;
+  EXPECT_TRUE(ValidatePinholeCamera(camera, 4096).ok());
+  auto message_of = [](const PinholeCamera& c, uint32_t cap = 4096) {
+    return std::string(ValidatePinholeCamera(c, cap).message());
+  };
+  PinholeCamera bad = camera;
+  bad.position.y = std::nan("");
+  EXPECT_EQ(ValidatePinholeCamera(bad, 4096).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(message_of(bad).find("camera.position"), std::string::npos) << message_of(bad);
+  bad = camera;
+  bad.vertical_fov_deg = 0;
+  EXPECT_EQ(ValidatePinholeCamera(bad, 4096).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(message_of(bad).find("camera.vertical_fov_deg"), std::string::npos) << message_of(bad);
+  bad = camera;
+  bad.up = bad.forward * 2.0;
+  EXPECT_NE(message_of(bad).find("camera.up"), std::string::npos) << message_of(bad);
+  bad = camera;
+  bad.forward = glm::dvec3(0.0);
+  EXPECT_NE(message_of(bad).find("camera.forward"), std::string::npos) << message_of(bad);
+  bad = camera;
+  bad.height = 0;
+  EXPECT_EQ(ValidatePinholeCamera(bad, 4096).code(), absl::StatusCode::kInvalidArgument);
+  bad = camera;
+  bad.width = 5000;
+  EXPECT_EQ(ValidatePinholeCamera(bad, 4096).code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(message_of(bad).find("4096"), std::string::npos) << message_of(bad);
+}
+
+TEST(PinholeCamera, ClipLooksAlongForwardFromTheAnchor) {
+  PinholeCamera camera;
+  camera.position = {100.0, 5.0, 10.0};
+  camera.forward = {0.0, 0.0, -1.0};
+  Bounds bounds;
+  bounds.Extend({99.0, 4.0, -1.0});
+  bounds.Extend({101.0, 6.0, 1.0});
+  const glm::dvec3 anchor(100.0, 5.0, 0.0);
+  const glm::dmat4 clip = PinholeClipFromAnchor(camera, anchor, bounds);
+  // The box's center lies straight ahead: clip x, y = 0, depth inside (-1, 1).
+  const glm::dvec4 c = clip * glm::dvec4(glm::dvec3(100.0, 5.0, 0.0) - anchor, 1.0);
+  EXPECT_NEAR(c.x / c.w, 0.0, 1e-12);
+  EXPECT_NEAR(c.y / c.w, 0.0, 1e-12);
+  EXPECT_GT(c.z / c.w, -1.0);
+  EXPECT_LT(c.z / c.w, 1.0);
+  // A point up and to the right lands up (+y) and right (+x).
+  const glm::dvec4 q = clip * glm::dvec4(glm::dvec3(100.5, 5.5, 0.0) - anchor, 1.0);
+  EXPECT_GT(q.x / q.w, 0.0);
+  EXPECT_GT(q.y / q.w, 0.0);
+  // The farthest corner stays in front of the far plane.
+  const glm::dvec4 far = clip * glm::dvec4(glm::dvec3(99.0, 4.0, -1.0) - anchor, 1.0);
+  EXPECT_LT(far.z / far.w, 1.0);
+}
 
 using testing::SharedGpuWorker;
 

@@ -1,10 +1,13 @@
 // The obscurance RPCs end to end through the real server and client, on the
 // generated Cornell box: the bake's range, progress and determinism, the
 // client's shard merge against the whole bake, node moves and the update,
-// and bad input.
+// the preview render (and its CLI), and bad input.
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
+#include <filesystem>
+#include <numbers>
 #include <set>
 
 #include <gtest/gtest.h>
@@ -25,14 +28,16 @@ using client::Client;
 // nodes do not disturb each other or the sample.
 constexpr const char* kBoundsScene = "cornell_bounds";
 constexpr const char* kUpdateScene = "cornell_update";
+constexpr const char* kPreviewScene = "cornell_preview";
 
 using testing::Translation;
 
 class ObscuranceRpcTest : public testing::SharedServerSuite<ObscuranceRpcTest> {
  public:
-  // Two stored copies of the Cornell box: one to move, one to measure bounds.
+  // Stored copies of the Cornell box: one to move, one to measure bounds,
+  // one to preview (unbaked until its test bakes it).
   static void PrepareRepository(const std::filesystem::path& repo) {
-    for (const char* name : {kBoundsScene, kUpdateScene}) {
+    for (const char* name : {kBoundsScene, kUpdateScene, kPreviewScene}) {
       std::filesystem::create_directories(repo / name);
       ASSERT_TRUE(WriteGltfFile(MakeCornellBox(), repo / name / (std::string(name) + ".gltf")).ok());
     }
@@ -221,6 +226,173 @@ TEST_F(ObscuranceRpcTest, CancelledBakeStopsAndTheServerGoesOn) {
   auto next = client_->ComputeObscurances(SmallBake("cornell_box_visq"));
   ASSERT_TRUE(next.ok()) << next.status();
   EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(20));
+}
+
+// The preview's camera: above the open front (z = +1) of the box, looking
+// down at the back of the floor between the two boxes; the top rows look
+// over the ceiling's front edge into empty space.
+constexpr double kEye[3] = {0.0, 1.9, 3.0};
+constexpr double kForward[3] = {0.0, -1.7, -4.0};
+constexpr uint32_t kPreviewWidth = 160, kPreviewHeight = 120;
+constexpr double kPreviewFov = 60.0;
+
+v1::ObscurancePreviewRequest PreviewRequest(const std::string& scene) {
+  v1::ObscurancePreviewRequest request;
+  request.mutable_scene()->set_name(scene);
+  auto set = [](const double (&v)[3], v1::Vec3* out) {
+    out->set_x(v[0]);
+    out->set_y(v[1]);
+    out->set_z(v[2]);
+  };
+  set(kEye, request.mutable_camera_position());
+  set(kForward, request.mutable_camera_forward());
+  request.set_vertical_fov_deg(kPreviewFov);
+  request.set_width(kPreviewWidth);
+  request.set_height(kPreviewHeight);
+  return request;
+}
+
+// The pixel (x, y from the top) that sees world point `p` under the
+// preview's camera (up +y): an independent pinhole projection.
+std::pair<uint32_t, uint32_t> PixelOf(const glm::dvec3& p) {
+  const glm::dvec3 eye(kEye[0], kEye[1], kEye[2]);
+  const glm::dvec3 f = glm::normalize(glm::dvec3(kForward[0], kForward[1], kForward[2]));
+  const glm::dvec3 r = glm::normalize(glm::cross(f, glm::dvec3(0, 1, 0)));
+  const glm::dvec3 u = glm::cross(r, f);
+  const glm::dvec3 d = p - eye;
+  const double tan_y = std::tan(kPreviewFov * std::numbers::pi / 360.0);
+  const double aspect = double(kPreviewWidth) / kPreviewHeight;
+  const double ndc_x = glm::dot(d, r) / (glm::dot(d, f) * tan_y * aspect);
+  const double ndc_y = glm::dot(d, u) / (glm::dot(d, f) * tan_y);
+  return {static_cast<uint32_t>((ndc_x + 1) / 2 * kPreviewWidth),
+          static_cast<uint32_t>((1 - ndc_y) / 2 * kPreviewHeight)};
+}
+
+// Mean of the first channel over the 3 x 3 pixels around `p` (all covered).
+double MeanAround(const client::ObscurancePreview& image, const glm::dvec3& p) {
+  const auto [px, py] = PixelOf(p);
+  double sum = 0;
+  for (uint32_t y = py - 1; y <= py + 1; ++y)
+    for (uint32_t x = px - 1; x <= px + 1; ++x) {
+      const size_t i = size_t{y} * kPreviewWidth + x;
+      EXPECT_EQ(image.covered[i], 1) << "pixel " << x << ", " << y;
+      sum += image.rgb[3 * i];
+    }
+  return sum / 9;
+}
+
+TEST_F(ObscuranceRpcTest, PreviewShowsWAndNeedsACurrentBake) {
+  // No bake yet: nothing to show.
+  Status status = client_->RenderObscurancePreview(PreviewRequest(kPreviewScene)).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition) << status;
+  EXPECT_NE(std::string(status.message()).find("ComputeObscurances"), std::string::npos) << status;
+
+  v1::ComputeObscurancesRequest bake_request = SmallBake(kPreviewScene);
+  bake_request.set_resolution(64);
+  bake_request.set_direction_count(32);
+  auto bake = client_->ComputeObscurances(bake_request);
+  ASSERT_TRUE(bake.ok()) << bake.status();
+  ASSERT_TRUE(bake->figures.update_ready());
+
+  auto preview = client_->RenderObscurancePreview(PreviewRequest(kPreviewScene));
+  ASSERT_TRUE(preview.ok()) << preview.status();
+  const auto& f = preview->figures;
+  ASSERT_EQ(f.width(), kPreviewWidth);
+  ASSERT_EQ(f.height(), kPreviewHeight);
+  EXPECT_EQ(f.solution_version(), bake->figures.scene_version());
+  EXPECT_EQ(f.quantity(), v1::ObscurancePreviewRequest::W);
+  ASSERT_EQ(preview->rgb.size(), size_t{kPreviewWidth} * kPreviewHeight * 3);
+  ASSERT_EQ(preview->covered.size(), size_t{kPreviewWidth} * kPreviewHeight);
+  size_t covered = 0;
+  for (size_t i = 0; i < preview->covered.size(); ++i) {
+    if (preview->covered[i]) {
+      ++covered;
+      for (int c = 0; c < 3; ++c) {
+        EXPECT_GE(preview->rgb[3 * i + c], 0.0f) << "pixel " << i;
+        EXPECT_LE(preview->rgb[3 * i + c], 1.0f) << "pixel " << i;
+      }
+    } else {
+      for (int c = 0; c < 3; ++c) EXPECT_EQ(preview->rgb[3 * i + c], 0.0f) << "background pixel " << i;
+    }
+  }
+  EXPECT_GT(covered, preview->covered.size() / 3) << "the box fills much of the view";
+  // The top row looks 7 degrees up from 0.1 under the ceiling's height,
+  // crossing that height 2.2 in front of the box: empty space.
+  for (uint32_t x = 0; x < kPreviewWidth; ++x) EXPECT_EQ(preview->covered[x], 0) << "top row, column " << x;
+
+  // Open floor in front of the tall box against the floor / back-wall
+  // corner between the boxes (seen through the gap between them): the
+  // corner is obscured.
+  const double open_floor = MeanAround(*preview, {-0.5, 0.0, 0.6});
+  const double corner = MeanAround(*preview, {0.0, 0.0, -1.0});
+  EXPECT_GT(open_floor, corner + 0.05) << "open floor W " << open_floor << ", corner W " << corner;
+
+  // The intensity: I = R I_A W, non-negative, same coverage.
+  v1::ObscurancePreviewRequest intensity_request = PreviewRequest(kPreviewScene);
+  intensity_request.set_quantity(v1::ObscurancePreviewRequest::INTENSITY);
+  auto intensity = client_->RenderObscurancePreview(intensity_request);
+  ASSERT_TRUE(intensity.ok()) << intensity.status();
+  EXPECT_EQ(intensity->figures.quantity(), v1::ObscurancePreviewRequest::INTENSITY);
+  EXPECT_EQ(intensity->covered, preview->covered);
+  for (float v : intensity->rgb) ASSERT_GE(v, 0.0f);
+
+  // A move makes a version the solution does not match until the update.
+  v1::SetNodeTransformRequest move;
+  move.mutable_scene()->set_name(kPreviewScene);
+  move.set_node_name("short_box");
+  for (double v : Translation(-0.05, 0, 0.2)) move.add_world_matrix(v);
+  auto moved = client_->SetNodeTransform(move);
+  ASSERT_TRUE(moved.ok()) << moved.status();
+  status = client_->RenderObscurancePreview(PreviewRequest(kPreviewScene)).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition) << status;
+  EXPECT_NE(std::string(status.message()).find("UpdateObscurances"), std::string::npos) << status;
+  v1::UpdateObscurancesRequest update;
+  update.mutable_scene()->set_name(kPreviewScene);
+  ASSERT_TRUE(client_->UpdateObscurances(update).ok());
+  auto after = client_->RenderObscurancePreview(PreviewRequest(kPreviewScene));
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_EQ(after->figures.solution_version(), moved->version());
+
+  // The CLI writes the picture.
+  testing::ScratchDir out;
+  const std::filesystem::path png = out.path() / "preview.png";
+  const std::string command = std::string(VISQ_CLI_BINARY) + " obscurance-preview " + kPreviewScene +
+                              " --camera-position 0,1.9,3 --camera-forward 0,-1.7,-4 --width 160 --height 120" +
+                              " --quantity w --json --png " + png.string() + " --server " + server_->address();
+  std::FILE* pipe = ::popen(command.c_str(), "r");
+  ASSERT_NE(pipe, nullptr);
+  std::string output;
+  char buffer[4096];
+  while (size_t n = std::fread(buffer, 1, sizeof(buffer), pipe)) output.append(buffer, n);
+  ASSERT_EQ(::pclose(pipe), 0) << output;
+  EXPECT_NE(output.find("covered_pixels"), std::string::npos) << output;
+  ASSERT_TRUE(std::filesystem::exists(png)) << output;
+  EXPECT_GT(std::filesystem::file_size(png), 100u);
+}
+
+TEST_F(ObscuranceRpcTest, PreviewRejectsABadCamera) {
+  v1::ObscurancePreviewRequest nan = PreviewRequest("cornell_box_visq");
+  nan.mutable_camera_position()->set_y(std::nan(""));
+  Status status = client_->RenderObscurancePreview(nan).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << status;
+  EXPECT_NE(std::string(status.message()).find("camera.position"), std::string::npos) << status;
+
+  v1::ObscurancePreviewRequest fov = PreviewRequest("cornell_box_visq");
+  fov.set_vertical_fov_deg(180);
+  status = client_->RenderObscurancePreview(fov).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << status;
+  EXPECT_NE(std::string(status.message()).find("vertical_fov_deg"), std::string::npos) << status;
+
+  v1::ObscurancePreviewRequest huge = PreviewRequest("cornell_box_visq");
+  huge.set_width(100000);
+  EXPECT_EQ(client_->RenderObscurancePreview(huge).status().code(), absl::StatusCode::kResourceExhausted);
+
+  v1::ObscurancePreviewRequest parallel = PreviewRequest("cornell_box_visq");
+  parallel.mutable_camera_up()->set_y(-1.7);
+  parallel.mutable_camera_up()->set_z(-4.0);
+  status = client_->RenderObscurancePreview(parallel).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << status;
+  EXPECT_NE(std::string(status.message()).find("camera.up"), std::string::npos) << status;
 }
 
 TEST_F(ObscuranceRpcTest, BadInput) {

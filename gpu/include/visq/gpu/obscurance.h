@@ -14,12 +14,15 @@
 #include <atomic>
 #include <cstdint>
 #include <functional>
+#include <span>
+#include <vector>
 
 #include "common/status.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
 #include "obscurance/obscurance_partial.h"
 #include "scene/scene.h"
+#include "visq/gpu/camera.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/gpu_worker.h"
 
@@ -64,5 +67,40 @@ struct ObscuranceBakeStats {
     GpuWorker& worker, const GpuScene& gpu_scene, const Scene& scene, const obscurance::ObscuranceAtlas& atlas,
     const obscurance::ObscuranceParams& params, const ObscuranceBakeOptions& options = {},
     ObscuranceBakeStats* stats = nullptr);
+
+// Preview: the scene seen from a pinhole camera with per-texel values (W or
+// intensity of a bake) applied, for people to look at before they read
+// numbers. Rasterized with a depth test; each fragment samples the values
+// bilinearly at its interpolated atlas coordinates.
+inline constexpr uint32_t kMaxObscurancePreviewSize = 4096;  // per side; RESOURCE_EXHAUSTED beyond
+
+struct ObscurancePreviewRequest {
+  PinholeCamera camera;
+  Bounds scene_bounds;  // of the scene `gpu_scene` holds: the near and far planes
+  uint32_t atlas_width = 0, atlas_height = 0;
+  // The atlas's corner coordinates in texels, 3 per triangle of gpu_scene
+  // (ObscuranceAtlas::corner_uv), and RGB values per texel (y * width + x).
+  // Both must outlive the call.
+  std::span<const glm::vec2> corner_uv;
+  std::span<const glm::vec3> texel_values;
+  JobOptions job{kInteractive};
+};
+
+struct ObscurancePreviewImage {
+  uint32_t width = 0, height = 0;
+  // Linear RGB per pixel, index (y * width + x) * 3, y = 0 the TOP row;
+  // background pixels are 0.
+  std::vector<float> rgb;
+  std::vector<uint8_t> covered;  // per pixel: 1 where a surface was drawn
+  double queue_ms = 0;   // waiting for the GL thread
+  double render_ms = 0;  // on the GL thread (upload, draw, readback)
+  double total_ms = 0;
+};
+
+// One GL job: INVALID_ARGUMENT / RESOURCE_EXHAUSTED for a bad camera
+// (ValidatePinholeCamera) or values that do not fit the scene and atlas,
+// before any GPU work.
+[[nodiscard]] StatusOr<ObscurancePreviewImage> RenderObscurancePreview(GpuWorker& worker, const GpuScene& gpu_scene,
+                                                                       const ObscurancePreviewRequest& request);
 
 }  // namespace visq::gpu

@@ -89,6 +89,7 @@
 
 #include "common/status.h"
 #include "scene/scene.h"
+#include "visq/gpu/camera.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/gpu_worker.h"
 
@@ -99,14 +100,9 @@ inline constexpr uint32_t kMinVolumetricShadowMapSize = 16;
 inline constexpr uint32_t kMaxVolumetricImageSize = 4096;      // width and height each
 inline constexpr uint32_t kMaxVolumetricLightTextureSize = 1024;
 
-struct VolumetricCamera {
-  glm::dvec3 position{0.0};
-  glm::dvec3 forward{0.0, 0.0, -1.0};  // viewing direction (normalized by the call)
-  glm::dvec3 up{0.0, 1.0, 0.0};        // need not be orthogonal to forward; not parallel
-  double vertical_fov_deg = 60.0;      // in (0, 180)
-  uint32_t width = 160;
-  uint32_t height = 120;
-};
+// The camera (position, forward, up, vertical_fov_deg, width, height) is the
+// pinhole camera every viewpoint image shares (visq/gpu/camera.h).
+using VolumetricCamera = PinholeCamera;
 
 enum class VolumetricLightKind { kDirectional, kSpot };
 
