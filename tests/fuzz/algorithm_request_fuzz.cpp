@@ -5,7 +5,9 @@
 // node names the corpus uses). No GPU and no Embree: what this covers is
 // everything a hostile request meets before it may cost GPU time.
 //
-// Input: one byte choosing the request kind, then the serialized message.
+// Input: one byte choosing the request kind (HiddenSampleMap, PatchVisibility,
+// LightVisibility, Voxelize, Transmittance, VolumetricShadow,
+// ComputeObscurances, RenderObscurancePreview), then the serialized message.
 // Besides the sanitizers, two oracles: validation never crashes or traps,
 // and what it accepts respects the caps the server documents (a request
 // that passed must be one the GPU may be given).
@@ -21,6 +23,8 @@
 #include "core/voxel_query.h"
 #include "scene/sample_scenes.h"
 #include "service/convert.h"
+#include "visq/gpu/camera.h"
+#include "visq/gpu/obscurance.h"
 
 namespace {
 
@@ -124,6 +128,15 @@ void Obscurances(const uint8_t* data, size_t size) {
   Require(std::isfinite(query->params.d_max));
 }
 
+void ObscurancePreview(const uint8_t* data, size_t size) {
+  v1::ObscurancePreviewRequest request;
+  if (!Parse(data, size, &request)) return;
+  auto query = service::FromProto(request);
+  if (!query.ok() || !gpu::ValidatePinholeCamera(query->camera, gpu::kMaxObscurancePreviewSize).ok()) return;
+  Require(Finite(query->camera.position) && Finite(query->camera.forward));
+  Require(query->camera.width <= gpu::kMaxObscurancePreviewSize && query->camera.height <= gpu::kMaxObscurancePreviewSize);
+}
+
 }  // namespace
 
 // Protobuf logs every string field with invalid UTF-8 it parses; the
@@ -137,7 +150,7 @@ extern "C" int LLVMFuzzerInitialize(int*, char***) {
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size == 0) return 0;
-  const uint8_t kind = data[0] % 7;
+  const uint8_t kind = data[0] % 8;
   ++data;
   --size;
   switch (kind) {
@@ -148,6 +161,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     case 4: Transmittance(data, size); break;
     case 5: Volumetric(data, size); break;
     case 6: Obscurances(data, size); break;
+    case 7: ObscurancePreview(data, size); break;
   }
   return 0;
 }

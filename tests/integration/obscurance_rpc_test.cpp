@@ -359,12 +359,9 @@ TEST_F(ObscuranceRpcTest, PreviewShowsWAndNeedsACurrentBake) {
   const std::string command = std::string(VISQ_CLI_BINARY) + " obscurance-preview " + kPreviewScene +
                               " --camera-position 0,1.9,3 --camera-forward 0,-1.7,-4 --width 160 --height 120" +
                               " --quantity w --json --png " + png.string() + " --server " + server_->address();
-  std::FILE* pipe = ::popen(command.c_str(), "r");
-  ASSERT_NE(pipe, nullptr);
-  std::string output;
-  char buffer[4096];
-  while (size_t n = std::fread(buffer, 1, sizeof(buffer), pipe)) output.append(buffer, n);
-  ASSERT_EQ(::pclose(pipe), 0) << output;
+  int exit_status = 0;
+  const std::string output = testing::RunCommand(command, &exit_status);
+  ASSERT_EQ(exit_status, 0) << output;
   EXPECT_NE(output.find("covered_pixels"), std::string::npos) << output;
   ASSERT_TRUE(std::filesystem::exists(png)) << output;
   EXPECT_GT(std::filesystem::file_size(png), 100u);

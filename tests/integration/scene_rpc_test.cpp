@@ -243,12 +243,9 @@ TEST_F(SceneRpcTest, UploadLimitIsResourceExhausted) {
 
 TEST_F(SceneRpcTest, CliListsScenesAsJson) {
   const std::string command = std::string(VISQ_CLI_BINARY) + " list --json --server " + server_->address();
-  std::FILE* pipe = ::popen(command.c_str(), "r");
-  ASSERT_NE(pipe, nullptr);
-  std::string output;
-  char buffer[4096];
-  while (size_t n = std::fread(buffer, 1, sizeof(buffer), pipe)) output.append(buffer, n);
-  ASSERT_EQ(::pclose(pipe), 0) << output;
+  int exit_status = 0;
+  const std::string output = testing::RunCommand(command, &exit_status);
+  ASSERT_EQ(exit_status, 0) << output;
   const auto json = nlohmann::json::parse(output);
   ASSERT_EQ(json["scenes"].size(), 1u) << output;
   EXPECT_EQ(json["scenes"][0]["name"], "cornell_box_visq");

@@ -1,10 +1,12 @@
 #include "test_support.h"
 
+#include <cstdio>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <random>
@@ -139,6 +141,19 @@ std::string ServerProcess::Log() const {
   std::stringstream out;
   out << in.rdbuf();
   return out.str();
+}
+
+std::string RunCommand(const std::string& command, int* exit_status) {
+  std::string output;
+  std::FILE* pipe = ::popen(command.c_str(), "r");
+  if (pipe == nullptr) {
+    *exit_status = -1;
+    return output;
+  }
+  char buffer[4096];
+  while (size_t n = std::fread(buffer, 1, sizeof(buffer), pipe)) output.append(buffer, n);
+  *exit_status = ::pclose(pipe);
+  return output;
 }
 
 }  // namespace visq::testing

@@ -38,6 +38,10 @@ class ScratchDir {
 // GL error checks on. Fails the test if no context can be made.
 gpu::GpuWorker& SharedGpuWorker();
 
+// Runs a shell command (the visq CLI, say) and returns its standard output;
+// `exit_status` receives pclose's status (0: success).
+std::string RunCommand(const std::string& command, int* exit_status);
+
 // A visq-server child process on a free loopback port, stopped (SIGTERM,
 // then SIGKILL) with the object.
 class ServerProcess {
