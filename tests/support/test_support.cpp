@@ -1,6 +1,5 @@
 #include "test_support.h"
 
-#include <cstdio>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
