@@ -532,17 +532,12 @@ Scene OccluderScene(const glm::dvec3& offset) {
 }
 
 TEST(VolumetricShadowsTest, TranslatedWorldGivesSameImage) {
-  VolumetricParams params;
-  params.camera.position = {1.0, 1.0, 3.5};
-  params.camera.forward = {0.0, -0.1, -1.0};
-  params.camera.vertical_fov_deg = 45;
+  // The Cornell spot, smaller, with a hard cone edge, an HG phase and the
+  // direct light too.
+  VolumetricParams params = CornellSpotParams();
   params.camera.width = 80;
   params.camera.height = 60;
-  params.light.kind = VolumetricLightKind::kSpot;
-  params.light.position = {1.0, 1.9, 1.0};
-  params.light.direction = {0.2, -1.0, 0.1};
-  params.light.cone_angle_deg = 45;
-  params.light.intensity = 2.0;
+  params.light.cone_falloff_deg = 0;
   params.medium = {0.3, 0.5, 0.2};
   params.shadow_map_size = 256;
   params.combined_image = true;
