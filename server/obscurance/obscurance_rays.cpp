@@ -1,5 +1,6 @@
 #include "obscurance/obscurance_rays.h"
 
+#include <array>
 #include <cmath>
 #include <numbers>
 
@@ -24,8 +25,69 @@ double Frac(double x) { return x - std::floor(x); }
 
 }  // namespace
 
+namespace {
+
+// What every ray leaving one fragment shares: its triangle's corners, the
+// fragment's clipped atlas polygon split into a fan, and the tangent frame.
+// Computed once per fragment, not once per ray.
+struct FragmentSampler {
+  uint32_t triangle = 0;
+  glm::dvec2 a{0.0}, b{0.0}, c{0.0};
+  glm::dvec3 pa{0.0}, pb{0.0}, pc{0.0};
+  double det = 0;
+  ClippedPolygon poly;
+  double fan[8] = {};
+  double fan_total = 0;
+  glm::dvec3 normal{0.0}, tu{0.0}, tv{0.0};
+};
+
+// The frame is all a direction needs; the clipped polygon is prepared only
+// when a ray from the fragment is kept.
+void PrepareFrame(const Scene& scene, const ObscuranceAtlas& atlas, const PatchFragment& f, FragmentSampler& out) {
+  const uint32_t t = f.triangle;
+  out.triangle = t;
+  out.a = atlas.corner_uv[3 * t];
+  out.b = atlas.corner_uv[3 * t + 1];
+  out.c = atlas.corner_uv[3 * t + 2];
+  out.pa = scene.Vertex(t, 0);
+  out.pb = scene.Vertex(t, 1);
+  out.pc = scene.Vertex(t, 2);
+  out.normal = glm::normalize(glm::cross(out.pb - out.pa, out.pc - out.pa));
+  const glm::dvec3 helper = std::abs(out.normal.x) < 0.9 ? glm::dvec3(1, 0, 0) : glm::dvec3(0, 1, 0);
+  out.tu = glm::normalize(glm::cross(helper, out.normal));
+  out.tv = glm::cross(out.normal, out.tu);
+}
+
+void PreparePolygon(uint32_t x, uint32_t y, FragmentSampler& out) {
+  const glm::dvec2 a = out.a, b = out.b, c = out.c;
+  out.det = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
+  out.fan_total = 0;
+  if (std::abs(out.det) > 1e-12) {
+    out.poly = ClipTriangleToTexel(a, b, c, x, y);
+    for (int k = 1; k + 1 < out.poly.n; ++k) {
+      const glm::dvec2 e1 = out.poly.p[k] - out.poly.p[0], e2 = out.poly.p[k + 1] - out.poly.p[0];
+      out.fan[k] = 0.5 * std::abs(e1.x * e2.y - e1.y * e2.x);
+      out.fan_total += out.fan[k];
+    }
+  }
+}
+
+// The Halton points are the same for every patch (each patch rotates them by
+// its own shift), so they are computed once per thread.
+const std::array<double, 5>& HaltonPoint(uint32_t j) {
+  thread_local std::vector<std::array<double, 5>> table;
+  while (table.size() <= j) {
+    const uint64_t i = table.size() + 1ull;
+    table.push_back({RadicalInverse(2, i), RadicalInverse(3, i), RadicalInverse(5, i), RadicalInverse(7, i),
+                     RadicalInverse(11, i)});
+  }
+  return table[j];
+}
+
+}  // namespace
+
 void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel, uint64_t seed, uint32_t n,
-                       std::vector<PatchRay>& out) {
+                       std::vector<PatchRay>& out, const DirectionFilter* only_towards) {
   out.clear();
   const uint32_t begin = atlas.texel_begin[texel], end = atlas.texel_begin[texel + 1];
   if (begin == end) return;
@@ -35,55 +97,72 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   double shift[5];
   for (int k = 0; k < 5; ++k) shift[k] = Unit(Mix(h + k));
   const uint32_t x = texel % atlas.width, y = texel / atlas.width;
+  thread_local std::vector<FragmentSampler> samplers;
+  thread_local std::vector<uint8_t> prepared;  // bit 0: frame, bit 1: polygon
+  samplers.resize(end - begin);
+  prepared.assign(end - begin, 0);
   out.reserve(n);
   for (uint32_t j = 0; j < n; ++j) {
-    const double u0 = Frac(RadicalInverse(2, j + 1ull) + shift[0]);
-    const double u1 = Frac(RadicalInverse(3, j + 1ull) + shift[1]);
-    const double u2 = Frac(RadicalInverse(5, j + 1ull) + shift[2]);
-    const double u3 = Frac(RadicalInverse(7, j + 1ull) + shift[3]);
-    const double u4 = Frac(RadicalInverse(11, j + 1ull) + shift[4]);
+    const std::array<double, 5>& halton = HaltonPoint(j);
+    const double u0 = Frac(halton[0] + shift[0]);
+    const double u1 = Frac(halton[1] + shift[1]);
+    const double u2 = Frac(halton[2] + shift[2]);
+    const double u3 = Frac(halton[3] + shift[3]);
+    const double u4 = Frac(halton[4] + shift[4]);
     // A fragment in proportion to its world area, then a fan triangle of
     // its clipped polygon in proportion to atlas area (affine per triangle).
     double pick = u0 * total;
     uint32_t fi = begin;
     for (; fi + 1 < end && pick >= atlas.fragments[fi].world_area; ++fi) pick -= atlas.fragments[fi].world_area;
-    const PatchFragment& f = atlas.fragments[fi];
-    const uint32_t t = f.triangle;
-    const glm::dvec2 a = atlas.corner_uv[3 * t], b = atlas.corner_uv[3 * t + 1], c = atlas.corner_uv[3 * t + 2];
-    const glm::dvec3 pa = scene.Vertex(t, 0), pb = scene.Vertex(t, 1), pc = scene.Vertex(t, 2);
-    glm::dvec3 point;
-    const double det = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
-    if (std::abs(det) <= 1e-12) {
-      // Degenerate in the atlas: the whole triangle is this patch.
-      const double s = std::sqrt(u1);
-      point = pa * (1 - s) + pb * (s * (1 - u2)) + pc * (s * u2);
-    } else {
-      const ClippedPolygon poly = ClipTriangleToTexel(a, b, c, x, y);
-      double fan_total = 0, fan[8];
-      for (int k = 1; k + 1 < poly.n; ++k) {
-        const glm::dvec2 e1 = poly.p[k] - poly.p[0], e2 = poly.p[k + 1] - poly.p[0];
-        fan[k] = 0.5 * std::abs(e1.x * e2.y - e1.y * e2.x);
-        fan_total += fan[k];
-      }
-      double fp = Frac(u0 * 7919.0) * fan_total;  // decorrelated from the fragment pick
-      int k = 1;
-      for (; k + 2 < poly.n && fp >= fan[k]; ++k) fp -= fan[k];
-      const double s = std::sqrt(u1);
-      const glm::dvec2 q = poly.n >= 3 ? poly.p[0] * (1 - s) + poly.p[k] * (s * (1 - u2)) + poly.p[k + 1] * (s * u2)
-                                       : (a + b + c) / 3.0;
-      // Barycentrics of q in the atlas triangle map it to the world.
-      const double l1 = ((q.x - a.x) * (c.y - a.y) - (q.y - a.y) * (c.x - a.x)) / det;
-      const double l2 = ((b.x - a.x) * (q.y - a.y) - (b.y - a.y) * (q.x - a.x)) / det;
-      point = pa + (pb - pa) * l1 + (pc - pa) * l2;
+    FragmentSampler& f = samplers[fi - begin];
+    uint8_t& ready = prepared[fi - begin];
+    if (!(ready & 1)) {
+      PrepareFrame(scene, atlas, atlas.fragments[fi], f);
+      ready |= 1;
     }
     // Cosine-distributed direction around the geometric normal.
-    const glm::dvec3 nrm = glm::normalize(glm::cross(pb - pa, pc - pa));
-    const glm::dvec3 helper = std::abs(nrm.x) < 0.9 ? glm::dvec3(1, 0, 0) : glm::dvec3(0, 1, 0);
-    const glm::dvec3 tu = glm::normalize(glm::cross(helper, nrm)), tv = glm::cross(nrm, tu);
     const double r = std::sqrt(u3), phi = 2.0 * std::numbers::pi * u4;
-    const glm::dvec3 dir = tu * (r * std::cos(phi)) + tv * (r * std::sin(phi)) + nrm * std::sqrt(std::max(0.0, 1.0 - u3));
-    out.push_back(PatchRay{point, dir, t});
+    const glm::dvec3 dir =
+        f.tu * (r * std::cos(phi)) + f.tv * (r * std::sin(phi)) + f.normal * std::sqrt(std::max(0.0, 1.0 - u3));
+    if (only_towards != nullptr && !only_towards->MayMeet(dir)) continue;
+    if (!(ready & 2)) {
+      PreparePolygon(x, y, f);
+      ready |= 2;
+    }
+    glm::dvec3 point;
+    if (std::abs(f.det) <= 1e-12) {
+      // Degenerate in the atlas: the whole triangle is this patch.
+      const double s = std::sqrt(u1);
+      point = f.pa * (1 - s) + f.pb * (s * (1 - u2)) + f.pc * (s * u2);
+    } else {
+      const ClippedPolygon& poly = f.poly;
+      double fp = Frac(u0 * 7919.0) * f.fan_total;  // decorrelated from the fragment pick
+      int k = 1;
+      for (; k + 2 < poly.n && fp >= f.fan[k]; ++k) fp -= f.fan[k];
+      const double s = std::sqrt(u1);
+      const glm::dvec2 q = poly.n >= 3 ? poly.p[0] * (1 - s) + poly.p[k] * (s * (1 - u2)) + poly.p[k + 1] * (s * u2)
+                                       : (f.a + f.b + f.c) / 3.0;
+      // Barycentrics of q in the atlas triangle map it to the world.
+      const glm::dvec2 a = f.a, b = f.b, c = f.c;
+      const double l1 = ((q.x - a.x) * (c.y - a.y) - (q.y - a.y) * (c.x - a.x)) / f.det;
+      const double l2 = ((b.x - a.x) * (q.y - a.y) - (b.y - a.y) * (q.x - a.x)) / f.det;
+      point = f.pa + (f.pb - f.pa) * l1 + (f.pc - f.pa) * l2;
+    }
+    out.push_back(PatchRay{point, dir, f.triangle});
   }
+}
+
+bool DirectionFilter::MayMeet(const glm::dvec3& direction) const {
+  // Shifted to start at patch_center, a ray that passes within r of a ball's
+  // center passes within r + patch_radius of it.
+  for (const Ball& ball : targets) {
+    const double reach = ball.radius + patch_radius;
+    const glm::dvec3 to_target = ball.center - patch_center;
+    const double along = glm::dot(to_target, direction);
+    if (along < -reach) continue;
+    if (glm::dot(to_target, to_target) - along * along <= reach * reach) return true;
+  }
+  return false;
 }
 
 glm::dvec3 RayValue(const Scene& scene, const AmbientModel& ambient, bool color_bleeding, double d_max, bool hit,

@@ -14,6 +14,7 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -31,11 +32,29 @@ struct PatchRay {
   uint32_t triangle = 0;      // the triangle the ray leaves
 };
 
+struct Ball {
+  glm::dvec3 center{0.0};
+  double radius = 0;
+};
+
+// Directions that may reach one of a few balls from a patch: a ray leaving
+// any point within patch_radius of patch_center along such a direction can
+// pass within a ball's radius of its center.
+struct DirectionFilter {
+  glm::dvec3 patch_center{0.0};
+  double patch_radius = 0;
+  std::span<const Ball> targets;
+  bool MayMeet(const glm::dvec3& direction) const;
+};
+
 // N rays of texel `texel` (nothing if the texel holds no surface). The same
 // (seed, texel, n) give the same rays: a Halton sequence (bases 2, 3, 5, 7,
 // 11) under a Cranley-Patterson rotation hashed from seed and texel.
+// With `only_towards`, the rays whose direction fails it are left out (and
+// their origins never computed: the update's candidate search skips most
+// rays this way); the others are the same rays, bit for bit.
 void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel, uint64_t seed, uint32_t n,
-                       std::vector<PatchRay>& out);
+                       std::vector<PatchRay>& out, const DirectionFilter* only_towards = nullptr);
 
 // What one ray contributes, given its closest hit within d_max (hit false:
 // none). RGB; gray without color bleeding.

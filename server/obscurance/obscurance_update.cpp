@@ -164,37 +164,102 @@ Status ObscuranceUpdater::Rebuild() {
   return absl::OkStatus();
 }
 
-std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const {
-  // The object's bounding sphere now.
-  Bounds b;
+std::vector<Ball> ObscuranceUpdater::ClusterBalls(const Object& object) const {
+  // One bounding sphere is useless for an object spread over the scene (a
+  // set of columns, say); the triangles grouped by a coarse grid over its box
+  // give balls that reject most patches and rays.
+  Bounds box;
   for (uint32_t t : object.triangles)
-    for (int c = 0; c < 3; ++c) b.Extend(scene_.Vertex(t, c));
+    for (int c = 0; c < 3; ++c) box.Extend(scene_.Vertex(t, c));
+  if (box.Empty()) return {};
+  constexpr int kCellsAlongLongestAxis = 8;
+  const glm::dvec3 extent = box.Extent();
+  const double cell = std::max({extent.x, extent.y, extent.z}) / kCellsAlongLongestAxis;
+  glm::ivec3 cells(1);
+  if (cell > 0)
+    for (int a = 0; a < 3; ++a) cells[a] = std::clamp(static_cast<int>(std::ceil(extent[a] / cell)), 1, kCellsAlongLongestAxis);
+  std::vector<Bounds> grouped(static_cast<size_t>(cells.x) * cells.y * cells.z);
+  for (uint32_t t : object.triangles) {
+    const glm::dvec3 centroid = (scene_.Vertex(t, 0) + scene_.Vertex(t, 1) + scene_.Vertex(t, 2)) / 3.0;
+    glm::ivec3 at(0);
+    for (int a = 0; a < 3; ++a)
+      if (cell > 0) at[a] = std::clamp(static_cast<int>((centroid[a] - box.min[a]) / cell), 0, cells[a] - 1);
+    Bounds& group = grouped[(static_cast<size_t>(at.z) * cells.y + at.y) * cells.x + at.x];
+    for (int c = 0; c < 3; ++c) group.Extend(scene_.Vertex(t, c));
+  }
+  std::vector<Ball> balls;
+  for (const Bounds& group : grouped)
+    if (!group.Empty()) balls.push_back(Ball{group.Center(), 0.5 * glm::length(group.Extent())});
+  return balls;
+}
+
+std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const {
+  const std::vector<Ball> balls = ClusterBalls(object);
   std::vector<uint32_t> out;
-  if (b.Empty()) return out;
-  const glm::dvec3 center = b.Center();
-  const double radius = 0.5 * glm::length(b.Extent());
+  if (balls.empty()) return out;
+  Ball all{glm::dvec3(0.0), 0.0};
+  {
+    Bounds b;
+    for (const Ball& ball : balls) {
+      b.Extend(ball.center - glm::dvec3(ball.radius));
+      b.Extend(ball.center + glm::dvec3(ball.radius));
+    }
+    all = Ball{b.Center(), 0.5 * glm::length(b.Extent())};
+  }
   const size_t k = static_cast<size_t>(&object - objects_.data());
-  // Patches within d_max of the sphere, minus its own.
+  // Patches within d_max of the object's balls, minus its own.
   std::vector<uint32_t> near;
   for (uint32_t texel = 0; texel < atlas_.texel_count(); ++texel) {
     if (patch_radius_[texel] < 0) continue;
-    if (glm::length(patch_center_[texel] - center) > radius + params_.d_max + patch_radius_[texel]) continue;
+    if (glm::length(patch_center_[texel] - all.center) > all.radius + params_.d_max + patch_radius_[texel]) continue;
     if (std::binary_search(object.own.begin(), object.own.end(), texel)) continue;
     near.push_back(texel);
   }
-  // Keep those with a ray that meets the object alone within d_max (a
-  // ray-sphere test first).
+  // Keep those with a ray that meets the object alone within d_max. Tests,
+  // cheapest first: balls in reach of the patch and in front of some of its
+  // triangles; ray directions towards one of them (origins are computed only
+  // for those); the ray against the balls; the ray against the object.
   std::vector<uint8_t> keep(near.size(), 0);
   ParallelFor(near.size(), options_.threads, [&](size_t i) {
+    const uint32_t texel = near[i];
+    thread_local std::vector<Ball> in_reach;
+    thread_local std::vector<glm::dvec4> planes;
+    planes.clear();
+    for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f) {
+      const uint32_t t = atlas_.fragments[f].triangle;
+      const glm::dvec3 pa = scene_.Vertex(t, 0);
+      const glm::dvec3 n = glm::cross(scene_.Vertex(t, 1) - pa, scene_.Vertex(t, 2) - pa);
+      const double length = glm::length(n);
+      // A degenerate triangle sends rays anywhere: a plane no ball is behind.
+      planes.push_back(length > 0 ? glm::dvec4(n / length, -glm::dot(n / length, pa)) : glm::dvec4(0, 0, 0, 1e300));
+    }
+    in_reach.clear();
+    for (const Ball& ball : balls) {
+      if (glm::length(patch_center_[texel] - ball.center) > ball.radius + params_.d_max + patch_radius_[texel]) continue;
+      // Rays leave each triangle into its front half-space.
+      bool in_front_of_one = false;
+      for (const glm::dvec4& plane : planes)
+        in_front_of_one |= glm::dot(glm::dvec3(plane), ball.center) + plane.w >= -ball.radius;
+      if (in_front_of_one) in_reach.push_back(ball);
+    }
+    if (in_reach.empty()) return;
     thread_local std::vector<PatchRay> patch_rays;
-    GeneratePatchRays(scene_, atlas_, near[i], options_.seed, options_.rays_per_patch, patch_rays);
+    const DirectionFilter towards_object{patch_center_[texel], patch_radius_[texel], in_reach};
+    GeneratePatchRays(scene_, atlas_, texel, options_.seed, options_.rays_per_patch, patch_rays, &towards_object);
     for (const PatchRay& r : patch_rays) {
-      const glm::dvec3 oc = center - r.origin;
-      const double along = glm::dot(oc, r.direction);
-      const double miss2 = glm::dot(oc, oc) - along * along;
-      if (miss2 > radius * radius) continue;
-      if (along + radius < 0 || along - radius > params_.d_max) continue;
-      if (rays_->HitsObject(k, r.origin, r.direction, params_.d_max)) { keep[i] = 1; break; }
+      bool may_meet = false;
+      for (const Ball& ball : in_reach) {
+        const glm::dvec3 oc = ball.center - r.origin;
+        const double along = glm::dot(oc, r.direction);
+        if (glm::dot(oc, oc) - along * along > ball.radius * ball.radius) continue;
+        if (along + ball.radius < 0 || along - ball.radius > params_.d_max) continue;
+        may_meet = true;
+        break;
+      }
+      if (may_meet && rays_->HitsObject(k, r.origin, r.direction, params_.d_max)) {
+        keep[i] = 1;
+        break;
+      }
     }
   });
   for (size_t i = 0; i < near.size(); ++i)
@@ -246,6 +311,8 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   rays_->SetTransform(k, new_world * glm::inverse(object.pose_at_build));
   rays_->Commit();
   ComputePatchBounds(object.own);
+  const auto moved = std::chrono::steady_clock::now();
+  update.move_ms = std::chrono::duration<double, std::milli>(moved - start).count();
 
   // Recompute: old list, own patches, and patches whose rays meet the object now.
   const std::vector<uint32_t> fresh = Candidates(object);
@@ -253,9 +320,12 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   update.own_patches = static_cast<uint32_t>(object.own.size());
   const std::vector<uint32_t> must = SortedUnion(object.influenced, object.own);
   const std::vector<uint32_t> recompute = SortedUnion(must, fresh);
+  const auto found = std::chrono::steady_clock::now();
+  update.candidates_ms = std::chrono::duration<double, std::milli>(found - moved).count();
   std::vector<glm::vec3> value;
   std::vector<std::vector<int32_t>> met;
   TracePatches(recompute, value, met);
+  update.trace_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - found).count();
   update.recomputed = static_cast<uint32_t>(recompute.size());
   update.rays = static_cast<uint64_t>(recompute.size()) * options_.rays_per_patch;
 

@@ -25,6 +25,7 @@
 #include "obscurance/instanced_ray_scene.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
+#include "obscurance/obscurance_rays.h"
 #include "scene/scene.h"
 
 namespace visq::obscurance {
@@ -49,6 +50,10 @@ struct ObscuranceUpdate {
   uint32_t influenced_before = 0, influenced_after = 0, own_patches = 0, candidates = 0, recomputed = 0;
   uint64_t rays = 0;
   double milliseconds = 0;
+  // Where the time went: moving the geometry and re-committing the instance,
+  // finding the patches that meet the object now, tracing every recomputed
+  // patch, and the rest (lists, gutters, averages).
+  double move_ms = 0, candidates_ms = 0, trace_ms = 0;
 };
 
 class ObscuranceUpdater {
@@ -96,6 +101,8 @@ class ObscuranceUpdater {
   void TracePatches(const std::vector<uint32_t>& texels, std::vector<glm::vec3>& value,
                     std::vector<std::vector<int32_t>>& met) const;
   std::vector<uint32_t> Candidates(const Object& object) const;
+  // Bounding balls of groups of the object's triangles.
+  std::vector<Ball> ClusterBalls(const Object& object) const;
 
   Scene scene_;
   ObscuranceAtlas atlas_;

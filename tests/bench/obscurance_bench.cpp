@@ -3,8 +3,9 @@
 // RMS error against a converged Embree reference; and the update latency
 // for moving a ~1K-triangle object in Sponza. Prints a table; not a test.
 //
-//   visq_bench_obscurance [--quick] [--scenes DIR]
+//   visq_bench_obscurance [--quick] [--update-only] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
+// --update-only: only the Sponza update latency.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -51,10 +52,11 @@ double Rms(const ObscuranceAtlas& atlas, const ObscuranceResult& x, const Obscur
 }  // namespace
 
 int main(int argc, char** argv) {
-  bool quick = false;
+  bool quick = false, update_only = false;
   std::filesystem::path dir = "../shared/scenes";
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--quick")) quick = true;
+    else if (!std::strcmp(argv[i], "--update-only")) update_only = true;
     else if (!std::strcmp(argv[i], "--scenes") && i + 1 < argc) dir = argv[++i];
   }
   auto worker = gpu::GpuWorker::Start({});
@@ -77,7 +79,7 @@ int main(int argc, char** argv) {
     ObscuranceParams params;
     params.d_max = 0.1 * glm::length(scene->bounds.Extent());
     params.color_bleeding = true;
-    for (uint32_t res : resolutions) {
+    for (uint32_t res : update_only ? std::vector<uint32_t>{} : resolutions) {
       auto t0 = std::chrono::steady_clock::now();
       auto atlas = BuildObscuranceAtlas(*scene, res);
       if (!atlas.ok()) { std::printf("%s %u: %s\n", sc.name.c_str(), res, std::string(atlas.status().message()).c_str()); continue; }
@@ -140,9 +142,11 @@ int main(int argc, char** argv) {
       }
       std::sort(ms.begin(), ms.end());
       std::printf("update sponza node '%s' (%u triangles), %u rays/patch, d_max %.2f: median %.1f ms (min %.1f, max %.1f); "
-                  "last move: %zu texels changed, %u recomputed, %llu rays; create %.2f s\n",
+                  "last move: %zu texels changed, %u recomputed, %llu rays (move %.1f, candidates %.1f, trace %.1f ms); "
+                  "create %.2f s\n",
                   scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, rays, params.d_max, ms[2], ms[0],
-                  ms[4], last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), create_s);
+                  ms[4], last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), last.move_ms, last.candidates_ms,
+                  last.trace_ms, create_s);
     }
   }
   return 0;

@@ -16,6 +16,7 @@
 #include "obscurance/obscurance_partial.h"
 #include "obscurance/obscurance_rays.h"
 #include "obscurance/obscurance_update.h"
+#include "raycast/embree_scene.h"
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
 #include "test_support.h"
@@ -489,6 +490,109 @@ TEST(ObscuranceUpdate, AgreesWithRebakeAndLeavesOthersBitIdentical) {
   std::printf("untouched %zu patches vs rebake: rms %.4f (two rebakes differ by %.4f), mean diff %.5f\n",
               untouched.size(), untouched_rms, untouched_noise, untouched_bias);
   EXPECT_LT(untouched_rms, 1.25 * untouched_noise / std::sqrt(2.0) + 0.002);
+}
+
+TEST(ObscuranceRays, DirectionFilterLeavesOutOnlyRaysThatCannotReachItsBalls) {
+  const Scene scene = MakeCornellBox();
+  const ObscuranceAtlas atlas = Atlas(scene, 32);
+  const std::vector<Ball> balls = {{glm::dvec3(0.3, 0.2, 0.3), 0.15}, {glm::dvec3(-0.5, 0.6, -0.2), 0.05}};
+  int patches = 0;
+  size_t kept_total = 0, all_total = 0;
+  std::vector<PatchRay> all, kept;
+  for (uint32_t texel = 0; texel < atlas.texel_count(); ++texel) {
+    GeneratePatchRays(scene, atlas, texel, 5, 32, all);
+    if (all.empty()) continue;
+    ++patches;
+    Bounds box;
+    for (const PatchRay& r : all) box.Extend(r.origin);
+    const DirectionFilter filter{box.Center(), 0.5 * glm::length(box.Extent()), balls};
+    GeneratePatchRays(scene, atlas, texel, 5, 32, kept, &filter);
+    // The kept rays are the unfiltered ones that pass, bit for bit, in order.
+    size_t next = 0;
+    for (const PatchRay& r : all) {
+      if (!filter.MayMeet(r.direction)) continue;
+      ASSERT_LT(next, kept.size()) << "texel " << texel;
+      ASSERT_EQ(std::memcmp(&kept[next].origin, &r.origin, sizeof(r.origin)), 0) << "texel " << texel;
+      ASSERT_EQ(std::memcmp(&kept[next].direction, &r.direction, sizeof(r.direction)), 0) << "texel " << texel;
+      ++next;
+    }
+    ASSERT_EQ(next, kept.size()) << "texel " << texel;
+    // Conservative: a ray left out passes no ball.
+    for (const PatchRay& r : all) {
+      if (filter.MayMeet(r.direction)) continue;
+      for (const Ball& ball : balls) {
+        const glm::dvec3 oc = ball.center - r.origin;
+        const double along = std::max(0.0, glm::dot(oc, r.direction));
+        EXPECT_GT(glm::length(oc - along * r.direction), ball.radius) << "texel " << texel;
+      }
+    }
+    kept_total += kept.size();
+    all_total += all.size();
+  }
+  std::printf("%d patches: the filter kept %zu of %zu rays\n", patches, kept_total, all_total);
+  EXPECT_GT(patches, 100);
+  EXPECT_LT(kept_total, all_total / 2);  // the filter does reject
+  EXPECT_GT(kept_total, 0u);
+}
+
+// The update must recompute every patch whose rays now meet the moved object
+// first within d_max. An object of two boxes at opposite corners of a floor
+// (one bounding ball of both would cover the whole floor) checks that the
+// candidate search, which groups the object's triangles into small balls,
+// misses none: each patch's rays are traced against the moved scene by the
+// reference tracer.
+TEST(ObscuranceUpdate, RecomputesEveryPatchWhoseRaysMeetASpreadObject) {
+  Scene scene;
+  scene.materials = {{"grey", glm::dvec3(0.5), glm::dvec3(0.0)}};
+  AddQuad(scene, "floor", {-2, 0, -2}, {0, 0, 4}, {4, 0, 0}, 0);
+  AddBox(scene, "pair", {-1.8, 0.05, -1.8}, {-1.5, 0.35, -1.5}, 0);
+  AddBox(scene, "pair_far", {1.5, 0.05, 1.5}, {1.8, 0.35, 1.8}, 0);
+  const uint32_t pair = 1;
+  scene.nodes[2].parent = static_cast<int>(pair);
+  UpdateBounds(scene);
+  const ObscuranceAtlas atlas = Atlas(scene, 64);
+  ObscuranceParams params;
+  params.d_max = 0.5;
+  RayEstimateOptions ro;
+  ro.rays_per_patch = 8;
+  auto baked = EstimateObscurancesByRays(scene, atlas, params, ro);
+  ASSERT_TRUE(baked.ok()) << baked.status();
+  UpdaterOptions options;
+  options.rays_per_patch = 32;
+  auto updater = ObscuranceUpdater::Create(scene, atlas, params, *baked, {pair}, options);
+  ASSERT_TRUE(updater.ok()) << updater.status();
+  const glm::dmat4 new_world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.3, 0.0, 0.1)) * scene.nodes[pair].world;
+  auto update = (*updater)->MoveNode(pair, new_world);
+  ASSERT_TRUE(update.ok()) << update.status();
+
+  Scene moved = scene;
+  ASSERT_TRUE(MoveNodeSubtree(moved, pair, new_world).ok());
+  auto reference = raycast::EmbreeScene::Create(moved);
+  ASSERT_TRUE(reference.ok()) << reference.status();
+  const std::vector<uint32_t> own = (*updater)->OwnPatches(pair);
+  std::vector<PatchRay> patch_rays;
+  int meeting = 0, missed = 0;
+  for (uint32_t texel = 0; texel < atlas.texel_count(); ++texel) {
+    if (std::binary_search(own.begin(), own.end(), texel)) continue;
+    GeneratePatchRays(moved, atlas, texel, options.seed, options.rays_per_patch, patch_rays);
+    std::vector<raycast::Ray> rays;
+    for (const PatchRay& r : patch_rays) rays.push_back(raycast::Ray{r.origin, r.direction, params.d_max, r.triangle});
+    if (rays.empty()) continue;
+    auto hits = reference->Intersect(rays, {});
+    ASSERT_TRUE(hits.ok()) << hits.status();
+    bool meets = false;
+    for (const raycast::Hit& hit : *hits) meets |= hit.hit && moved.triangle_node[hit.triangle] != 0;
+    if (!meets) continue;
+    ++meeting;
+    if (!std::binary_search(update->texels.begin(), update->texels.end(), texel)) ++missed;
+  }
+  std::printf("%d patches meet the moved pair; the update recomputed %zu texels and missed %d\n", meeting,
+              update->texels.size(), missed);
+  EXPECT_GT(meeting, 50);
+  // Both boxes' neighbourhoods are found; a grazing ray may round
+  // differently through Embree's instance transform than through moved
+  // vertices, hence the small allowance.
+  EXPECT_LE(missed, std::max(1, meeting / 100));
 }
 
 TEST(ObscuranceUpdate, RejectsUnknownNode) {
