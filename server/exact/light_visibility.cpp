@@ -94,6 +94,75 @@ double SolidAngle(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c)
 
 }  // namespace
 
+// A floating-point cull of the near occluders that cannot touch the pyramid
+// from P to the light: before any exact predicate, an occluder whose box
+// misses the pyramid's box, or that lies wholly outside one side plane of
+// the pyramid over every light triangle, blocks no segment from P to the
+// light. It only ever skips an occluder when the double-precision test
+// clears a margin far above its rounding error, so it never changes an
+// answer; anything closer is left to the exact code.
+class PyramidCull {
+ public:
+  PyramidCull(const glm::dvec3& p, const std::vector<glm::dvec3>& light, const std::vector<LightTriangle>& triangles)
+      : p_(p), lo_(p), hi_(p) {
+    for (const glm::dvec3& v : light) {
+      lo_ = glm::min(lo_, v);
+      hi_ = glm::max(hi_, v);
+    }
+    for (const LightTriangle& t : triangles) {
+      Sides sides;
+      for (int e = 0; e < 3; ++e) {
+        const glm::dvec3 a = light[t.v[e]] - p, b = light[t.v[(e + 1) % 3]] - p, c = light[t.v[(e + 2) % 3]] - p;
+        glm::dvec3 normal = glm::cross(a, b);
+        const double scale = glm::length(a) * glm::length(b);
+        // Orient inwards by the opposite vertex; too close to call: no cull.
+        const double inside = glm::dot(normal, c);
+        if (!(std::fabs(inside) > kRelativeMargin * scale * glm::length(c))) {
+          sides.usable = false;
+          break;
+        }
+        if (inside < 0) normal = -normal;
+        sides.normal[e] = normal;
+        sides.scale[e] = scale;
+      }
+      triangle_sides_.push_back(sides);
+    }
+  }
+
+  bool Misses(const glm::dvec3 (&v)[3]) const {
+    for (int axis = 0; axis < 3; ++axis) {
+      if (v[0][axis] < lo_[axis] && v[1][axis] < lo_[axis] && v[2][axis] < lo_[axis]) return true;
+      if (v[0][axis] > hi_[axis] && v[1][axis] > hi_[axis] && v[2][axis] > hi_[axis]) return true;
+    }
+    for (const Sides& sides : triangle_sides_) {
+      if (!sides.usable) return false;
+      bool outside = false;
+      for (int e = 0; e < 3 && !outside; ++e) {
+        outside = true;
+        for (int i = 0; i < 3 && outside; ++i) {
+          const glm::dvec3 x = v[i] - p_;
+          outside = glm::dot(sides.normal[e], x) < -kRelativeMargin * sides.scale[e] * glm::length(x);
+        }
+      }
+      if (!outside) return false;
+    }
+    return !triangle_sides_.empty();
+  }
+
+ private:
+  // The side value is a 3x3 determinant of differences of doubles; its
+  // rounding error is a few ulps of the product of the vectors' lengths.
+  // This margin is about 450 ulps of that product.
+  static constexpr double kRelativeMargin = 1e-13;
+  struct Sides {
+    bool usable = true;
+    glm::dvec3 normal[3];
+    double scale[3] = {};
+  };
+  glm::dvec3 p_, lo_, hi_;
+  std::vector<Sides> triangle_sides_;
+};
+
 // ---------------------------------------------------------------------------
 struct LightVisibilityTree::Impl {
   // The frame: everything is stored relative to the light centroid, rounded
@@ -414,17 +483,42 @@ struct LightVisibilityTree::Impl {
 
   // Removes from `fragments` the lines from the light to P that cross the
   // convex polygon with the given edge lines (each pair a -> b).
+  //
+  // The lines inside the polygon's shadow have one sign against every edge
+  // line. A fragment is first judged whole: if for each sign some edge has
+  // none of its vertices on that sign's side, it is outside and kept as it
+  // is. Only the others are cut, edge by edge, following the one sign that
+  // can still hold. Cutting a fragment that lies outside anyway would leave
+  // it in pieces, and every piece costs each later occluder again.
   void Subtract(Scratch& s, std::vector<Fragment>* fragments,
                 const std::vector<std::pair<const XPoint*, const XPoint*>>& edges) const {
+    std::vector<EdgePlaneRef> planes;
+    planes.reserve(edges.size());
+    for (const auto& [a, b] : edges) planes.push_back(EdgePlane(s, *a, *b));
     std::vector<Fragment> out;
     struct Item { Fragment f; size_t k; int chain; };
     std::vector<Item> stack;
-    for (auto& f : *fragments) stack.push_back({std::move(f), 0, 0});
     std::vector<int> sg;
+    for (auto& f : *fragments) {
+      bool outside_positive = false, outside_negative = false, touches_only = false;
+      for (const EdgePlaneRef& plane : planes) {
+        if (!EdgeSides(f, plane, &sg)) {  // touches the edge line only: not inside
+          touches_only = true;
+          break;
+        }
+        outside_positive |= std::none_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+        outside_negative |= std::none_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+      }
+      if (touches_only || (outside_positive && outside_negative)) {
+        out.push_back(std::move(f));
+        continue;
+      }
+      stack.push_back({std::move(f), 0, outside_positive ? -1 : outside_negative ? 1 : 0});
+    }
     while (!stack.empty()) {
       Item item = std::move(stack.back());
       stack.pop_back();
-      const EdgePlaneRef plane = EdgePlane(s, *edges[item.k].first, *edges[item.k].second);
+      const EdgePlaneRef& plane = planes[item.k];
       if (!EdgeSides(item.f, plane, &sg)) {  // touches the edge line only: not inside
         out.push_back(std::move(item.f));
         continue;
@@ -567,9 +661,11 @@ struct LightVisibilityTree::Impl {
       std::vector<CV> poly, clipped;
       std::vector<int> sides;
       std::vector<std::pair<const XPoint*, const XPoint*>> edges;
+      const PyramidCull cull(p_local, light_local, light_triangles);
       for (const NearOccluder& n : near) {
         if (n.scene_triangle == receiver) continue;
         const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
+        if (cull.Misses({v[0]->input, v[1]->input, v[2]->input})) continue;
         int top[3];
         bool any_below_top = false;
         for (int i = 0; i < 3; ++i) {
