@@ -51,18 +51,30 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
   if (colored) result.visible_rgb.resize(size_t(width) * height);
   std::vector<uint32_t> bits(size_t(width) * height * words, 0u);
 
-  // Rows of texels at a time, so memory stays bounded for large maps.
-  const int rows_per_batch = std::max(1, (1 << 20) / std::max(1, width * n));
-  std::vector<raycast::Segment> segments;
+  // Segments are made by the tracing threads from the receiver positions and
+  // the source samples, never stored; rows of texels at a time bound the
+  // per-segment results.
+  std::vector<glm::dvec3> receiver_points(size_t(width) * height);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x) receiver_points[size_t(y) * width + x] = gpu::ReceiverSamplePosition(request.receiver, x, y);
+  const int rows_per_batch = std::max(1, (1 << 22) / std::max(1, width * n));
   for (int y0 = 0; y0 < height; y0 += rows_per_batch) {
     const int y1 = std::min(height, y0 + rows_per_batch);
-    segments.clear();
-    for (int y = y0; y < y1; ++y)
-      for (int x = 0; x < width; ++x) {
-        const glm::dvec3 p = gpu::ReceiverSamplePosition(request.receiver, x, y);
-        for (int i = 0; i < n; ++i) segments.push_back({p, gpu::SourceSampleSeenFrom(request, samples, i, x, y)});
-      }
-    VISQ_ASSIGN_OR_RETURN(std::vector<uint8_t> blocked, embree->Occluded(segments));
+    const size_t first_texel = size_t(y0) * width;
+    // Each texel's N segments share their receiver end: coherent.
+    raycast::TraceOptions trace;
+    trace.coherent = true;
+    VISQ_ASSIGN_OR_RETURN(
+        std::vector<uint8_t> blocked,
+        embree->Occluded(
+            size_t(y1 - y0) * width * n,
+            [&](size_t k) {
+              const size_t texel = first_texel + k / n;
+              const int i = static_cast<int>(k % n);
+              const int x = static_cast<int>(texel % width), y = static_cast<int>(texel / width);
+              return raycast::Segment{receiver_points[texel], gpu::SourceSampleSeenFrom(request, samples, i, x, y)};
+            },
+            trace));
     size_t k = 0;
     for (int y = y0; y < y1; ++y)
       for (int x = 0; x < width; ++x) {

@@ -197,17 +197,22 @@ void FillRay(RTCRay& ray, const glm::dvec3& o, const glm::dvec3& d, double t1_in
 
 StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(std::span<const Segment> segments,
                                                      const TraceOptions& options) const {
-  std::vector<uint8_t> result(segments.size(), 0);
+  return Occluded(segments.size(), [&](size_t i) { return segments[i]; }, options);
+}
+
+StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::function<Segment(size_t)>& segment_at,
+                                                     const TraceOptions& options) const {
+  std::vector<uint8_t> result(count, 0);
   std::vector<uint32_t> ignore(options.ignore_triangles.begin(), options.ignore_triangles.end());
   std::sort(ignore.begin(), ignore.end());
-  ParallelChunks(segments.size(), options.threads, [&](size_t begin, size_t end) {
+  ParallelChunks(count, options.threads, [&](size_t begin, size_t end) {
     RTCRay rays[kStream];
     uint32_t per_ray_ignore[kStream];
     for (size_t base = begin; base < end; base += kStream) {
       const size_t n = std::min(kStream, end - base);
       bool any_ignore = !ignore.empty();
       for (size_t i = 0; i < n; ++i) {
-        const Segment& s = segments[base + i];
+        const Segment s = segment_at(base + i);
         const glm::dvec3 p = s.p - origin_;
         const glm::dvec3 d = s.q - s.p;
         // For a segment the upper end needs the same offset as the lower one.
@@ -225,6 +230,7 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(std::span<const Segment> se
       }
       FilterContext context;
       rtcInitIntersectContext(&context.rtc);
+      if (options.coherent) context.rtc.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
       if (any_ignore) {
         context.rtc.filter = IgnoreFilter;
         context.sorted_ignore = ignore.data();
@@ -265,6 +271,7 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
       }
       FilterContext context;
       rtcInitIntersectContext(&context.rtc);
+      if (options.coherent) context.rtc.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
       if (any_ignore) {
         context.rtc.filter = IgnoreFilter;
         context.sorted_ignore = ignore.data();

@@ -24,6 +24,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <limits>
 #include <optional>
@@ -72,6 +73,9 @@ struct TraceOptions {
   int threads = 0;  // 0: std::thread::hardware_concurrency()
   // Triangles that block no ray of the batch (sorted or not; any size).
   std::span<const uint32_t> ignore_triangles;
+  // Consecutive rays are coherent (a shared origin, nearby directions):
+  // Embree then traces each stream of them as packets.
+  bool coherent = false;
 };
 
 struct EmbreeSceneOptions {
@@ -102,6 +106,12 @@ class EmbreeScene {
   // closer than delta to an endpoint (1e-5 of the scene size) are missed.
   // Degenerate segments (p == q) are never blocked.
   [[nodiscard]] StatusOr<std::vector<uint8_t>> Occluded(std::span<const Segment> segments,
+                                                        const TraceOptions& options = {}) const;
+  // The same for `count` segments made on the fly by segment_at(i), called
+  // from the tracing threads: a million segments need not be stored first
+  // (56 MB, whose page faults alone cost more than tracing them).
+  [[nodiscard]] StatusOr<std::vector<uint8_t>> Occluded(size_t count,
+                                                        const std::function<Segment(size_t)>& segment_at,
                                                         const TraceOptions& options = {}) const;
 
   // Closest hit for each ray, t in [t0, tmax] with the same offset rule as
