@@ -9,9 +9,13 @@
 // bounds), the way the paper groups receivers per triangle: each tree then
 // holds only the occluders in its tile's shaft.
 //
-// The scene is a BenchCase (scene, light, receiver points); MakeProcedural()
-// builds one, and a loaded scene (e.g. Sponza through the glTF loader) only
-// needs another function filling the same struct.
+// The scene is a BenchCase (scene, light, receiver points): MakeProcedural()
+// builds one; MakeFromGltf() takes the points a pinhole camera sees in a
+// glTF scene (one per pixel) and groups them by image tile, one tree each:
+//
+//   visq_bench_exact --gltf=../shared/scenes/sponza_dabrovic/sponza.gltf
+//     --light='-1,10,-0.5;1,10,-0.5;1,10,0.5;-1,10,0.5' --eye=-10,2,0
+//     --look-at=10,3,0 [--width=1280 --height=720 --tile-pixels=32]
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -22,8 +26,11 @@
 #include <string>
 #include <thread>
 #include <memory>
+#include <filesystem>
+#include <optional>
 
 #include "exact/light_visibility.h"
+#include "scene/gltf_loader.h"
 #include "raycast/embree_scene.h"
 
 namespace {
@@ -39,6 +46,10 @@ struct BenchCase {
   AreaLight light;
   std::vector<QueryPoint> points;  // with normals and receiver triangles
   Bounds receivers;
+  // Which tree each point belongs to (image tiles for a camera view); empty:
+  // tiles x tiles over the receivers' x-y extent.
+  std::vector<uint32_t> tile_of_point;
+  uint32_t tile_count = 0;
 };
 
 struct Params {
@@ -50,6 +61,12 @@ struct Params {
   int rays = 32;
   int tiles = 8;  // receiver tiles per side, one tree each (as the paper groups receivers)
   uint32_t seed = 1;
+  // A glTF scene seen from a camera instead of the procedural case.
+  std::string gltf;
+  std::string light;          // "x,y,z;x,y,z;x,y,z;x,y,z", a parallelogram, front counter-clockwise
+  glm::dvec3 eye{0.0}, look_at{1.0, 0.0, 0.0};
+  int width = 1280, height = 720;
+  int tile_pixels = 32;       // image tiles of this many pixels a side, one tree each
 };
 
 void AddTriangle(Scene& s, const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
@@ -110,24 +127,91 @@ BenchCase MakeProcedural(const Params& p) {
   return bc;
 }
 
+// Points on the visible surfaces of a glTF scene, one per pixel of a
+// pinhole camera (60 degree vertical field), found by Embree primary rays;
+// each pixel's tree is its image tile's, as the paper groups receivers.
+std::optional<BenchCase> MakeFromGltf(const Params& p) {
+  auto scene = visq::LoadGltfFile(p.gltf);
+  if (!scene.ok()) {
+    std::fprintf(stderr, "%s: %s\n", p.gltf.c_str(), scene.status().ToString().c_str());
+    return std::nullopt;
+  }
+  BenchCase bc;
+  bc.name = std::filesystem::path(p.gltf).stem().string();
+  bc.scene = std::move(*scene);
+  for (size_t start = 0; start <= p.light.size();) {
+    const size_t end = std::min(p.light.find(';', start), p.light.size());
+    glm::dvec3 v;
+    if (std::sscanf(p.light.substr(start, end - start).c_str(), "%lf,%lf,%lf", &v.x, &v.y, &v.z) != 3) {
+      std::fprintf(stderr, "--light: '%s' is not x,y,z;x,y,z;...\n", p.light.c_str());
+      return std::nullopt;
+    }
+    bc.light.vertices.push_back(v);
+    start = end + 1;
+  }
+  if (bc.light.vertices.size() != 4) {
+    std::fprintf(stderr, "--light: a parallelogram needs 4 vertices\n");
+    return std::nullopt;
+  }
+  bc.light.radiance = 10.0;
+  auto embree = visq::raycast::EmbreeScene::Create(bc.scene);
+  if (!embree.ok()) return std::nullopt;
+  const glm::dvec3 forward = glm::normalize(p.look_at - p.eye);
+  const glm::dvec3 right = glm::normalize(glm::cross(forward, glm::dvec3(0, 1, 0)));
+  const glm::dvec3 up = glm::cross(right, forward);
+  const double half_height = std::tan(M_PI / 6.0), half_width = half_height * p.width / p.height;
+  std::vector<visq::raycast::Ray> rays;
+  for (int y = 0; y < p.height; ++y)
+    for (int x = 0; x < p.width; ++x) {
+      const double sx = (2.0 * (x + 0.5) / p.width - 1.0) * half_width;
+      const double sy = (1.0 - 2.0 * (y + 0.5) / p.height) * half_height;
+      rays.push_back({p.eye, glm::normalize(forward + sx * right + sy * up)});
+    }
+  auto hits = embree->Intersect(rays, {});
+  if (!hits.ok()) return std::nullopt;
+  const int tiles_x = (p.width + p.tile_pixels - 1) / p.tile_pixels;
+  const int tiles_y = (p.height + p.tile_pixels - 1) / p.tile_pixels;
+  bc.tile_count = static_cast<uint32_t>(tiles_x * tiles_y);
+  for (size_t i = 0; i < rays.size(); ++i) {
+    const visq::raycast::Hit& hit = (*hits)[i];
+    if (!hit.hit) continue;
+    const uint32_t t = hit.triangle;
+    const glm::dvec3 a = bc.scene.Vertex(t, 0), b = bc.scene.Vertex(t, 1), c = bc.scene.Vertex(t, 2);
+    glm::dvec3 normal = glm::cross(b - a, c - a);
+    if (glm::length(normal) == 0.0) continue;
+    normal = glm::normalize(normal);
+    if (glm::dot(normal, rays[i].direction) > 0) normal = -normal;  // the side the camera sees
+    // The hit point from the barycentrics, on the triangle in double.
+    const glm::dvec3 x = a + hit.u * (b - a) + hit.v * (c - a);
+    bc.points.push_back({x, normal, t});
+    bc.receivers.Extend(x);
+    const int px = static_cast<int>(i % p.width), py = static_cast<int>(i / p.width);
+    bc.tile_of_point.push_back(static_cast<uint32_t>((py / p.tile_pixels) * tiles_x + px / p.tile_pixels));
+  }
+  return bc;
+}
+
 double Seconds(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
 int Run(const BenchCase& bc, const Params& p) {
   const int threads = p.threads > 0 ? p.threads : static_cast<int>(std::thread::hardware_concurrency());
-  std::printf("scene %s: %zu triangles, %zu points, %d threads, %d rays/point, %d x %d receiver "
-              "tiles\n",
+  std::printf("scene %s: %zu triangles, %zu points, %d threads, %d rays/point, %u receiver tiles\n",
               bc.name.c_str(), bc.scene.TriangleCount(), bc.points.size(), threads, p.rays,
-              p.tiles, p.tiles);
+              bc.tile_of_point.empty() ? static_cast<unsigned>(p.tiles * p.tiles) : bc.tile_count);
 
   // Exact: per tile, build a tree and query its points (first pass, which
   // grows it), then query again (second pass, reusing it). Tiles run in
   // parallel, each single-threaded.
   const int tiles = std::max(1, p.tiles);
-  std::vector<std::vector<size_t>> tile_points(tiles * tiles);
+  std::vector<std::vector<size_t>> tile_points(bc.tile_of_point.empty() ? tiles * tiles : bc.tile_count);
   const glm::dvec3 ext = bc.receivers.Extent();
   for (size_t i = 0; i < bc.points.size(); ++i) {
+    if (!bc.tile_of_point.empty()) {
+      tile_points[bc.tile_of_point[i]].push_back(i);
+      continue;
+    }
     const glm::dvec3 r = (bc.points[i].position - bc.receivers.min) / glm::max(ext, glm::dvec3(1e-300));
     const int tx = std::clamp(static_cast<int>(r.x * tiles), 0, tiles - 1);
     const int ty = std::clamp(static_cast<int>(r.y * tiles), 0, tiles - 1);
@@ -252,10 +336,13 @@ int Run(const BenchCase& bc, const Params& p) {
     for (int k = 0; k < p.rays; ++k) {
       const auto& seg = segments[i * p.rays + k];
       if ((*occluded)[i * p.rays + k]) continue;
-      ++visible;
       const glm::dvec3 d = seg.q - seg.p;
       const double r2 = glm::dot(d, d);
       const glm::dvec3 w = d / std::sqrt(r2);
+      // Like the exact method: light below the receiver's horizon, or seen
+      // from behind its emitting side, is not visible.
+      if ((q.normal && glm::dot(*q.normal, w) <= 0.0) || glm::dot(light_normal, w) >= 0.0) continue;
+      ++visible;
       irr += std::max(0.0, glm::dot(*q.normal, w)) * std::max(0.0, -glm::dot(light_normal, w)) / r2;
     }
     irr *= bc.light.radiance * light_area / p.rays;
@@ -319,11 +406,24 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--tiles")) p.tiles = std::atoi(v);
     else if (const char* v = value("--size")) p.size = std::atof(v);
     else if (const char* v = value("--seed")) p.seed = static_cast<uint32_t>(std::atoi(v));
+    else if (const char* v = value("--gltf")) p.gltf = v;
+    else if (const char* v = value("--light")) p.light = v;
+    else if (const char* v = value("--eye")) std::sscanf(v, "%lf,%lf,%lf", &p.eye.x, &p.eye.y, &p.eye.z);
+    else if (const char* v = value("--look-at")) std::sscanf(v, "%lf,%lf,%lf", &p.look_at.x, &p.look_at.y, &p.look_at.z);
+    else if (const char* v = value("--width")) p.width = std::atoi(v);
+    else if (const char* v = value("--height")) p.height = std::atoi(v);
+    else if (const char* v = value("--tile-pixels")) p.tile_pixels = std::max(1, std::atoi(v));
     else {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
-                   "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n", argv[0]);
+                   "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
+                   "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
+                   "[--height=720] [--tile-pixels=32] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
       return 2;
     }
+  }
+  if (!p.gltf.empty()) {
+    const std::optional<BenchCase> bc = MakeFromGltf(p);
+    return bc ? Run(*bc, p) : 1;
   }
   return Run(MakeProcedural(p), p);
 }

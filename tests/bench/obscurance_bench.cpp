@@ -1,7 +1,10 @@
 // Obscurance bake: GPU depth peeling vs Embree casting cosine-distributed
-// rays from every patch with the same number of samples per patch, time and
-// RMS error against a converged Embree reference; and the update latency
-// for moving a ~1K-triangle object in Sponza. Prints a table; not a test.
+// rays from every patch, with the same number of samples per patch and
+// again with the ray count that gives the bake's error (a bundle's samples
+// of one patch share one direction, so they are worth far fewer than as
+// many rays), time and RMS error against a converged Embree reference; and
+// the update latency for moving a ~1K-triangle object in Sponza. Prints a
+// table; not a test.
 //
 //   visq_bench_obscurance [--quick] [--update-only] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
@@ -69,8 +72,8 @@ int main(int argc, char** argv) {
   const std::vector<uint32_t> directions = quick ? std::vector<uint32_t>{16, 64} : std::vector<uint32_t>{64, 256, 1024};
   const uint32_t reference_rays = quick ? 256 : 2048;
 
-  std::printf("%-10s %5s %5s | %9s %8s %8s | %9s %8s %8s | %s\n", "scene", "atlas", "dirs", "gpu s", "rms", "smp/pt",
-              "embree s", "rms", "rays/pt", "reference");
+  std::printf("%-10s %5s %5s | %9s %8s %8s | %9s %8s %8s | %9s %8s %8s | %s\n", "scene", "atlas", "dirs", "gpu s", "rms",
+              "smp/pt", "embree s", "rms", "rays/pt", "eq-err s", "rms", "rays/pt", "reference");
   for (const SceneCase& sc : scenes) {
     auto scene = LoadGltfFile(sc.path);
     if (!scene.ok()) { std::printf("%s: %s\n", sc.name.c_str(), std::string(scene.status().message()).c_str()); continue; }
@@ -104,10 +107,22 @@ int main(int argc, char** argv) {
         auto rays = EstimateObscurancesByRays(*scene, *atlas, params, ro);
         if (!rays.ok()) return 1;
         const double ray_s = Seconds(t0);
-        std::printf("%-10s %5u %5u | %9.2f %8.4f %8.0f | %9.2f %8.4f %8u | %u rays/pt %.0f s, atlas %.1f s, %u charts, max layers %u\n",
-                    sc.name.c_str(), res, d, gpu_s, Rms(*atlas, *baked, *reference), baked->mean_samples_per_patch,
-                    ray_s, Rms(*atlas, *rays, *reference), ro.rays_per_patch, reference_rays, ref_s, atlas_s,
-                    atlas->chart_count, stats.max_layers);
+        const double gpu_rms = Rms(*atlas, *baked, *reference), ray_rms = Rms(*atlas, *rays, *reference);
+        // Equal error: the error of N rays per patch falls like 1/sqrt(N),
+        // so the ray count that matches the bake's error is estimated from
+        // this run, then measured.
+        RayEstimateOptions eq = ro;
+        eq.rays_per_patch = std::max<uint32_t>(
+            1, static_cast<uint32_t>(std::lround(ro.rays_per_patch * std::pow(ray_rms / std::max(gpu_rms, 1e-12), 2.0))));
+        t0 = std::chrono::steady_clock::now();
+        auto rays_eq = EstimateObscurancesByRays(*scene, *atlas, params, eq);
+        if (!rays_eq.ok()) return 1;
+        const double eq_s = Seconds(t0);
+        std::printf("%-10s %5u %5u | %9.2f %8.4f %8.0f | %9.2f %8.4f %8u | %9.2f %8.4f %8u | %u rays/pt %.0f s, atlas %.1f s, "
+                    "%u charts, max layers %u\n",
+                    sc.name.c_str(), res, d, gpu_s, gpu_rms, baked->mean_samples_per_patch, ray_s, ray_rms,
+                    ro.rays_per_patch, eq_s, Rms(*atlas, *rays_eq, *reference), eq.rays_per_patch, reference_rays, ref_s,
+                    atlas_s, atlas->chart_count, stats.max_layers);
         std::fflush(stdout);
       }
     }

@@ -167,6 +167,24 @@ TEST(LightVisibilityTest, TriangleCoveringHalfTheLight) {
   }
 }
 
+// Near occluders are culled in double precision when they miss the pyramid
+// from the point to the light; the cull keeps a margin, so an occluder that
+// enters the pyramid by a sliver still counts and one just outside changes
+// nothing. Light [-1, 1]^2 at z = 2, point at the origin: at z = 1 the
+// pyramid spans [-0.5, 0.5]^2, and an occluder over x >= 0.5 - d hides the
+// strip x >= 1 - 2d of the light, a fraction d of it.
+TEST(LightVisibilityTest, NearOccluderGrazingThePyramidCountsOnlyWhereItEnters) {
+  for (const double d : {1e-9, 1e-12, 0.0, -1e-12, -1e-9}) {
+    const double x0 = 0.5 - d;
+    const Tri occluder{glm::dvec3(x0, -50, 1.0), glm::dvec3(x0 + 100, 0, 1.0), glm::dvec3(x0, 50, 1.0)};
+    auto tree = MakeTree(SquareLight(2.0), MakeScene({occluder}), Box({-0.1, -0.1, 0}, {0.1, 0.1, 1.5}));
+    ASSERT_NE(tree, nullptr);
+    EXPECT_EQ(tree->Stats().near_occluders, 1u);
+    const PointVisibility r = Q(*tree, {0, 0, 0});
+    EXPECT_NEAR(r.visible_area_fraction, d > 0 ? 1.0 - d : 1.0, 1e-15) << "d = " << d;
+  }
+}
+
 TEST(LightVisibilityTest, LightFullyCovered) {
   auto tree = MakeTree(SquareLight(2.0), MakeScene({HalfPlaneOccluder(60.0, 1.0)}),
                        Box({-0.1, -0.1, 0}, {0.1, 0.1, 0}));
