@@ -46,6 +46,8 @@ namespace {
 constexpr size_t kMaxCachedTables = 6;
 
 using Clock = std::chrono::steady_clock;
+constexpr size_t kMaxShaftPlanes = 16;  // hsm_draw.geom's u_shaft_planes
+
 double MsSince(Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); }
 
 // Affine map as a mat4 whose rows are (a_k . X + b_k), k < 3.
@@ -75,6 +77,45 @@ std::string TableKey(const std::vector<glm::vec2>& centred, int theta_res, int r
 void SetMat4(GLuint program, const char* name, const glm::dmat4& m) {
   const glm::mat4 f(m);
   glProgramUniformMatrix4fv(program, glGetUniformLocation(program, name), 1, GL_FALSE, &f[0][0]);
+}
+
+// The planes of the convex hull of `points`, as (n, w) with n . x + w >= 0
+// inside, each loosened by `slack`. Every segment between a source sample
+// and a receiver point lies in that hull (the shaft), so a triangle wholly
+// outside one plane blocks nothing: the geometry shader drops it before its
+// influence region (which can cover the whole receiver when the source and
+// receiver planes are not parallel) costs a fragment. Brute force over point
+// triples: a dozen points. Coplanar points give the plane both ways round,
+// which is right: every segment then lies in it.
+std::vector<glm::vec4> ShaftPlanes(const std::vector<glm::dvec3>& points, double slack) {
+  double diameter = 0;
+  for (const glm::dvec3& a : points)
+    for (const glm::dvec3& b : points) diameter = std::max(diameter, glm::length(a - b));
+  const double flat = 1e-9 * diameter;
+  std::vector<glm::dvec4> planes;
+  for (size_t i = 0; i < points.size(); ++i)
+    for (size_t j = i + 1; j < points.size(); ++j)
+      for (size_t k = j + 1; k < points.size(); ++k) {
+        glm::dvec3 n = glm::cross(points[j] - points[i], points[k] - points[i]);
+        const double length = glm::length(n);
+        if (!(length > flat * diameter)) continue;
+        n /= length;
+        for (const double orientation : {1.0, -1.0}) {
+          const glm::dvec3 inward = orientation * n;
+          const double w = -glm::dot(inward, points[i]);
+          bool supporting = true;
+          for (const glm::dvec3& q : points) supporting = supporting && glm::dot(inward, q) + w >= -flat;
+          if (!supporting) continue;
+          bool known = false;
+          for (const glm::dvec4& plane : planes)
+            known = known || (glm::length(glm::dvec3(plane) - inward) < 1e-9 && std::abs(plane.w - w) <= flat);
+          if (!known) planes.emplace_back(inward, w);
+        }
+      }
+  std::vector<glm::vec4> out;
+  for (const glm::dvec4& plane : planes)
+    if (out.size() < kMaxShaftPlanes) out.emplace_back(glm::vec3(plane), static_cast<float>(plane.w + slack));
+  return out;
 }
 
 }  // namespace
@@ -197,6 +238,29 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   const float clip_e = static_cast<float>(bumpy ? e_min : delta);
   const float decorrelation_amplitude = 1.0f / std::ceil(std::sqrt(float(source.sample_count)));
 
+  // The shaft: source samples (moved by up to half the decorrelation
+  // amplitude) and receiver points (raised by the heightfield), anchor
+  // relative. The slack covers the float rounding of anchor-relative
+  // positions and the endpoint tolerance.
+  std::vector<glm::vec4> shaft_planes;
+  {
+    const double spread = options.decorrelate ? 0.5 * decorrelation_amplitude : 0.0;
+    double height_lo = 0.0, height_hi = 0.0;
+    for (float h : receiver.heightfield) {
+      height_lo = std::min(height_lo, double(h));
+      height_hi = std::max(height_hi, double(h));
+    }
+    std::vector<glm::dvec3> hull;
+    double magnitude = 0;
+    for (int k = 0; k < 4; ++k) {
+      const double u = (k & 1) ? 1.0 + spread : -spread, v = (k & 2) ? 1.0 + spread : -spread;
+      hull.push_back(sp.At(u, v) - anchor);
+      for (const double h : {height_lo, height_hi}) hull.push_back(rp.At(k & 1, k >> 1) + h * rn - anchor);
+    }
+    for (const glm::dvec3& q : hull) magnitude = std::max({magnitude, std::abs(q.x), std::abs(q.y), std::abs(q.z)});
+    shaft_planes = ShaftPlanes(hull, 1e-5 * magnitude + 4.0 * delta);
+  }
+
   // Passes: EXACT writes `groups` uvec4 targets, HOUGH twice as many (maybe
   // and surely blocked), at most max_draw_buffers per pass.
   const int targets_per_pass = state_->max_draw_buffers;
@@ -291,6 +355,9 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
       glProgramUniform1f(p, loc("u_far_e"), static_cast<float>(e_min));
       glProgramUniform1i(p, loc("u_heightfield"), bumpy ? 1 : 0);
       glProgramUniform1i(p, loc("u_watertight"), options.watertight ? 1 : 0);
+      glProgramUniform1i(p, loc("u_shaft_plane_count"), static_cast<GLint>(shaft_planes.size()));
+      if (!shaft_planes.empty())
+        glProgramUniform4fv(p, loc("u_shaft_planes"), static_cast<GLsizei>(shaft_planes.size()), &shaft_planes[0].x);
       glProgramUniform1i(p, loc("u_table"), 0);
       glProgramUniform1i(p, loc("u_heights"), 1);
       glProgramUniform1i(p, loc("u_theta_res"), layout.theta_res);

@@ -1,6 +1,8 @@
 // Hidden-sample map, per triangle (paper sections 3, 4 and 7):
-// 1. optional watertight culling: drop triangles front-facing from all four
-//    source corners;
+// 1. shaft culling: drop triangles wholly outside one plane of the convex
+//    hull of source and receiver (every segment lies inside it); optional
+//    watertight culling: drop triangles front-facing from all four source
+//    corners;
 // 2. segment semantics: clip the triangle to the slab in front of the source
 //    plane (d >= delta) and in front of the receiver (e >= u_clip_e), since
 //    only the part strictly between the two endpoints can block a segment;
@@ -24,6 +26,8 @@ uniform float u_clip_e;            // keep e >= this (receiver side clip)
 uniform float u_far_e;             // plane the influence region is projected on
 uniform bool u_heightfield;
 uniform bool u_watertight;
+uniform vec4 u_shaft_planes[16];  // inside: dot(xyz, p) + w >= 0 (loosened)
+uniform int u_shaft_plane_count;
 
 flat out vec3 g_poly[5];
 flat out vec3 g_poly_receiver[5];  // the same vertices in (a, b, e)
@@ -56,6 +60,12 @@ void ClipPolygon(inout vec3 src[5], inout vec3 rcv[5], inout int n, bool use_d, 
 
 void main() {
   vec3 w0 = v_position[0], w1 = v_position[1], w2 = v_position[2];
+  for (int k = 0; k < u_shaft_plane_count; ++k) {
+    vec4 plane = u_shaft_planes[k];
+    if (dot(plane.xyz, w0) + plane.w < 0.0 && dot(plane.xyz, w1) + plane.w < 0.0 &&
+        dot(plane.xyz, w2) + plane.w < 0.0)
+      return;
+  }
   vec3 normal = cross(w1 - w0, w2 - w0);
   if (u_watertight) {
     bool all_front = true;

@@ -326,6 +326,21 @@ TEST(HiddenSampleMapEmbree, TiltedPatchesAndBumpyReceiver) {
   EXPECT_GT(a.blocked_fraction(), 0.05);
 }
 
+// A source standing upright beside a floor receiver: triangles around the
+// shaft (above the source, behind the receiver, off to the sides) are dropped
+// by the shaft planes before their influence regions, which for planes this
+// far from parallel would cover the whole receiver; those inside still
+// block exactly Embree's bits.
+TEST(HiddenSampleMapEmbree, UprightSourceWithGeometryAllAroundTheShaft) {
+  Scene scene = RandomCloud(800, 23, {-1.0, -0.5, -1.5}, {2.0, 2.0, 2.0}, 0.08);
+  HiddenSampleMapRequest r = UnitRequest(256, 32);
+  r.source.patch = {{0.0, 0.3, -0.2}, {1.0, 0.0, 0.0}, {0.0, 0.5, 0.0}};
+  r.source.pattern = SamplePattern::kJittered;
+  const Agreement a = ExpectMatchesEmbree(scene, r);
+  EXPECT_GT(a.blocked_fraction(), 0.01);
+  EXPECT_LT(a.blocked_fraction(), 0.95);
+}
+
 TEST(HiddenSampleMapEmbree, WatertightCullingKeepsTheBits) {
   Scene scene = EmptyFrame();
   AddBox(scene, "a", {0.1, 0.3, 0.2}, {0.4, 0.5, 0.6}, 0);
