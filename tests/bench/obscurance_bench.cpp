@@ -6,9 +6,10 @@
 // the update latency for moving a ~1K-triangle object in Sponza. Prints a
 // table; not a test.
 //
-//   visq_bench_obscurance [--quick] [--update-only] [--scenes DIR]
+//   visq_bench_obscurance [--quick] [--update-only] [--bundle N] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
 // --update-only: only the Sponza update latency.
+// --bundle N: pixels across each direction's bundle (default: 2 x atlas).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -56,10 +57,12 @@ double Rms(const ObscuranceAtlas& atlas, const ObscuranceResult& x, const Obscur
 
 int main(int argc, char** argv) {
   bool quick = false, update_only = false;
+  uint32_t bundle = 0;
   std::filesystem::path dir = "../shared/scenes";
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--quick")) quick = true;
     else if (!std::strcmp(argv[i], "--update-only")) update_only = true;
+    else if (!std::strcmp(argv[i], "--bundle") && i + 1 < argc) bundle = static_cast<uint32_t>(std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--scenes") && i + 1 < argc) dir = argv[++i];
   }
   auto worker = gpu::GpuWorker::Start({});
@@ -82,6 +85,7 @@ int main(int argc, char** argv) {
     ObscuranceParams params;
     params.d_max = 0.1 * glm::length(scene->bounds.Extent());
     params.color_bleeding = true;
+    params.bundle_resolution = bundle;
     for (uint32_t res : update_only ? std::vector<uint32_t>{} : resolutions) {
       auto t0 = std::chrono::steady_clock::now();
       auto atlas = BuildObscuranceAtlas(*scene, res);
