@@ -1,6 +1,7 @@
 #include "exact/light_visibility.h"
 
 #include <algorithm>
+#include <limits>
 #include <atomic>
 #include <cmath>
 #include <cstring>
@@ -129,6 +130,31 @@ class PyramidCull {
     }
   }
 
+  // Whether every point of the box [lo, hi] passes the test Misses applies to
+  // vertices (so no triangle inside the box can touch the pyramid). Per
+  // plane, the corner furthest inside decides; the margin is taken at the
+  // box's farthest corner from P, which is at least each point's own.
+  bool MissesBox(const glm::dvec3& lo, const glm::dvec3& hi) const {
+    for (int axis = 0; axis < 3; ++axis)
+      if (hi[axis] < lo_[axis] || lo[axis] > hi_[axis]) return true;
+    double reach = 0;
+    for (int corner = 0; corner < 8; ++corner) {
+      const glm::dvec3 x((corner & 1) ? hi.x : lo.x, (corner & 2) ? hi.y : lo.y, (corner & 4) ? hi.z : lo.z);
+      reach = std::max(reach, glm::length(x - p_));
+    }
+    for (const Sides& sides : triangle_sides_) {
+      if (!sides.usable) return false;
+      bool outside = false;
+      for (int e = 0; e < 3 && !outside; ++e) {
+        const glm::dvec3& n = sides.normal[e];
+        const glm::dvec3 furthest_inside(n.x > 0 ? hi.x : lo.x, n.y > 0 ? hi.y : lo.y, n.z > 0 ? hi.z : lo.z);
+        outside = glm::dot(n, furthest_inside - p_) < -kRelativeMargin * sides.scale[e] * reach;
+      }
+      if (!outside) return false;
+    }
+    return !triangle_sides_.empty();
+  }
+
   bool Misses(const glm::dvec3 (&v)[3]) const {
     for (int axis = 0; axis < 3; ++axis) {
       if (v[0][axis] < lo_[axis] && v[1][axis] < lo_[axis] && v[2][axis] < lo_[axis]) return true;
@@ -163,6 +189,87 @@ class PyramidCull {
   std::vector<Sides> triangle_sides_;
 };
 
+// A bounding-volume hierarchy over the near occluders' boxes, so that a
+// query visits the occluders near its pyramid instead of all of them (a
+// Sponza tile has about a thousand near occluders; a point's pyramid meets a
+// few dozen). Built once per tree; read-only afterwards.
+class NearOccluderIndex {
+ public:
+  void Build(std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes) {
+    boxes_ = std::move(boxes);
+    order_.resize(boxes_.size());
+    for (uint32_t i = 0; i < order_.size(); ++i) order_[i] = i;
+    nodes_.clear();
+    if (boxes_.empty()) return;
+    nodes_.emplace_back();
+    BuildNode(0, 0, static_cast<uint32_t>(order_.size()));
+  }
+
+  // Appends the occluders whose boxes `box_misses` does not rule out.
+  template <typename BoxMisses>
+  void Collect(const BoxMisses& box_misses, std::vector<uint32_t>* out) const {
+    if (nodes_.empty()) return;
+    uint32_t stack[64];
+    int top = 0;
+    stack[top++] = 0;
+    while (top > 0) {
+      const Node& node = nodes_[stack[--top]];
+      if (box_misses(node.lo, node.hi)) continue;
+      if (node.left == kLeaf) {
+        for (uint32_t i = node.begin; i < node.end; ++i) out->push_back(order_[i]);
+      } else {
+        stack[top++] = node.left;
+        stack[top++] = node.left + 1;
+      }
+    }
+  }
+
+  size_t MemoryBytes() const {
+    return boxes_.capacity() * sizeof(boxes_[0]) + order_.capacity() * 4 + nodes_.capacity() * sizeof(Node);
+  }
+
+ private:
+  static constexpr uint32_t kLeaf = UINT32_MAX;
+  static constexpr uint32_t kLeafSize = 8;
+  struct Node {
+    glm::dvec3 lo, hi;
+    uint32_t begin, end;
+    uint32_t left;  // children at left and left + 1, or kLeaf
+  };
+
+  // Fills node `id` with the occluders order_[begin, end); its children go
+  // to two new consecutive slots. Depth stays under 64: each split halves.
+  void BuildNode(uint32_t id, uint32_t begin, uint32_t end) {
+    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+    glm::dvec3 centre_lo = lo, centre_hi = hi;
+    for (uint32_t i = begin; i < end; ++i) {
+      const auto& [box_lo, box_hi] = boxes_[order_[i]];
+      lo = glm::min(lo, box_lo);
+      hi = glm::max(hi, box_hi);
+      centre_lo = glm::min(centre_lo, box_lo + box_hi);
+      centre_hi = glm::max(centre_hi, box_lo + box_hi);
+    }
+    nodes_[id] = Node{lo, hi, begin, end, kLeaf};
+    if (end - begin <= kLeafSize) return;
+    const glm::dvec3 spread = centre_hi - centre_lo;
+    const int axis = spread.x >= spread.y && spread.x >= spread.z ? 0 : spread.y >= spread.z ? 1 : 2;
+    const uint32_t middle = begin + (end - begin) / 2;
+    std::nth_element(order_.begin() + begin, order_.begin() + middle, order_.begin() + end, [&](uint32_t x, uint32_t y) {
+      return boxes_[x].first[axis] + boxes_[x].second[axis] < boxes_[y].first[axis] + boxes_[y].second[axis];
+    });
+    const uint32_t left = static_cast<uint32_t>(nodes_.size());
+    nodes_.emplace_back();
+    nodes_.emplace_back();
+    nodes_[id].left = left;
+    BuildNode(left, begin, middle);
+    BuildNode(left + 1, middle, end);
+  }
+
+  std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes_;
+  std::vector<uint32_t> order_;
+  std::vector<Node> nodes_;
+};
+
 // ---------------------------------------------------------------------------
 struct LightVisibilityTree::Impl {
   // The frame: everything is stored relative to the light centroid, rounded
@@ -180,6 +287,7 @@ struct LightVisibilityTree::Impl {
   std::deque<XPoint> points;  // occluder vertices (local, inputs)
   std::vector<FarOccluder> far;
   std::vector<NearOccluder> near;
+  NearOccluderIndex near_index;
   std::unordered_map<uint32_t, uint32_t> near_by_triangle;  // scene triangle -> index in near
   std::optional<std::pair<glm::dvec3, glm::dvec3>> receiver_box;  // local frame
 
@@ -195,7 +303,7 @@ struct LightVisibilityTree::Impl {
     return sizeof(Impl) + nodes.capacity() * sizeof(Node) + list_bytes +
            lists.capacity() * sizeof(std::vector<uint32_t>) + free_lists.capacity() * 4 +
            points.size() * sizeof(XPoint) + far.capacity() * sizeof(FarOccluder) +
-           near.capacity() * sizeof(NearOccluder) + near_by_triangle.size() * 24 +
+           near.capacity() * sizeof(NearOccluder) + near_index.MemoryBytes() + near_by_triangle.size() * 24 +
            light_points.size() * sizeof(XPoint) +
            light_planes.size() * sizeof(XPlane);
   }
@@ -662,7 +770,14 @@ struct LightVisibilityTree::Impl {
       std::vector<int> sides;
       std::vector<std::pair<const XPoint*, const XPoint*>> edges;
       const PyramidCull cull(p_local, light_local, light_triangles);
-      for (const NearOccluder& n : near) {
+      // Occluders in index order, whatever the traversal found first, so the
+      // fragments (and the float sums over them) do not depend on the index.
+      std::vector<uint32_t> candidates;
+      near_index.Collect([&](const glm::dvec3& lo, const glm::dvec3& hi) { return cull.MissesBox(lo, hi); },
+                         &candidates);
+      std::sort(candidates.begin(), candidates.end());
+      for (const uint32_t candidate : candidates) {
+        const NearOccluder& n = near[candidate];
         if (n.scene_triangle == receiver) continue;
         const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
         if (cull.Misses({v[0]->input, v[1]->input, v[2]->input})) continue;
@@ -1178,6 +1293,15 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   }
   impl->far.shrink_to_fit();
   impl->near.shrink_to_fit();
+  {
+    std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
+    boxes.reserve(impl->near.size());
+    for (const NearOccluder& n : impl->near) {
+      const glm::dvec3 a = impl->points[n.v[0]].input, b = impl->points[n.v[1]].input, c = impl->points[n.v[2]].input;
+      boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
+    }
+    impl->near_index.Build(std::move(boxes));
+  }
 
   // The tree: one undefined leaf holding every far occluder.
   // Node 0 is the root; 1 and 2 are the shared visible / invisible leaves.
