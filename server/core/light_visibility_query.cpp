@@ -69,6 +69,8 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
 
   // The tree's options: the receiver region and the excluded nodes' triangles.
   exact::TreeOptions options;
+  // One tree may use the whole cache, no more: past that it stops growing.
+  options.max_bytes = engine.light_cache_capacity();
   options.receiver_bounds = query.receiver_region ? *query.receiver_region
                                                   : SnappedReceiverRegion(query.points, scene.bounds);
   for (const std::string& node_name : query.exclude_nodes) {

@@ -297,7 +297,8 @@ struct LightVisibilityTree::Impl {
   std::vector<uint32_t> free_lists;
   size_t list_bytes = 0;
 
-  std::atomic<uint64_t> queries{0}, hits{0}, refinements{0};
+  std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0};
+  size_t max_bytes = 0;
 
   size_t MemoryBytesLocked() const {
     return sizeof(Impl) + nodes.capacity() * sizeof(Node) + list_bytes +
@@ -724,6 +725,19 @@ struct LightVisibilityTree::Impl {
         const Node& node = nodes[id];
         if (node.kind == kVisible) {
           visible.push_back(std::move(f));
+        } else if (node.kind == kUndefined && MemoryBytesLocked() >= max_bytes) {
+          // The tree is at its budget: resolve this fragment against the
+          // leaf's occluders here, without growing the tree.
+          unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
+          std::vector<Fragment> pieces;
+          pieces.push_back(std::move(f));
+          for (const uint32_t index : lists[node.b]) {
+            const FarOccluder& o = far[index];
+            const XPoint* v[3] = {&points[o.v[0]], &points[o.v[1]], &points[o.v[2]]};
+            Subtract(s, &pieces, {{v[0], v[1]}, {v[1], v[2]}, {v[2], v[0]}});
+            if (pieces.empty()) break;
+          }
+          for (Fragment& piece : pieces) visible.push_back(std::move(piece));
         } else if (node.kind == kUndefined) {
           // Refine this leaf under the exclusive lock, then resume here.
           lock.unlock();
@@ -1059,6 +1073,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   VISQ_ASSIGN_OR_RETURN(PreparedLight prepared, PrepareLight(light));
   impl->origin = prepared.origin;
   impl->radiance = light.radiance;
+  impl->max_bytes = options.max_bytes;
   impl->light_local = std::move(prepared.local);
   const auto& ll = impl->light_local;
   const auto& triangles = prepared.triangles;
@@ -1364,6 +1379,7 @@ TreeStats LightVisibilityTree::Stats() const {
   s.queries = impl_->queries.load();
   s.hits = impl_->hits.load();
   s.refinements = impl_->refinements.load();
+  s.unrefined_leaf_visits = impl_->unrefined_leaf_visits.load();
   s.far_occluders = impl_->far.size();
   s.near_occluders = impl_->near.size();
   return s;

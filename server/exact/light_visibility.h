@@ -93,6 +93,12 @@ struct TreeOptions {
   std::optional<Bounds> receiver_bounds;
   // Scene triangles that are never occluders (e.g. the emitter's own mesh).
   std::vector<uint32_t> exclude_triangles;
+  // The tree stops growing at this size. A query that then reaches an
+  // undefined leaf subtracts the leaf's occluders from its fragment itself,
+  // as it does the near ones: the answer stays exact, only slower, and the
+  // memory stays bounded (the tree of a dense scene otherwise grows close to
+  // quadratically with its occluders: gigabytes for a 382K-triangle room).
+  size_t max_bytes = size_t{512} << 20;
 };
 
 struct QueryPoint {
@@ -119,6 +125,7 @@ struct TreeStats {
   uint64_t queries = 0;
   uint64_t hits = 0;         // queries that refined nothing
   uint64_t refinements = 0;  // leaves turned into occluder BSPs
+  uint64_t unrefined_leaf_visits = 0;  // undefined leaves resolved per query (tree at max_bytes)
   size_t far_occluders = 0;  // in the shared tree
   size_t near_occluders = 0;  // clipped per query
 };

@@ -79,6 +79,7 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
   tree->set_queries(answer.tree.queries);
   tree->set_hits(answer.tree.hits);
   tree->set_refinements(answer.tree.refinements);
+  tree->set_unrefined_leaf_visits(answer.tree.unrefined_leaf_visits);
   tree->set_far_occluders(answer.tree.far_occluders);
   tree->set_near_occluders(answer.tree.near_occluders);
   ToProto(answer.receiver_region, tree->mutable_receiver_region());

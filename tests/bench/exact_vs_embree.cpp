@@ -67,6 +67,7 @@ struct Params {
   glm::dvec3 eye{0.0}, look_at{1.0, 0.0, 0.0};
   int width = 1280, height = 720;
   int tile_pixels = 32;       // image tiles of this many pixels a side, one tree each
+  double tree_max_mb = 64;    // each tree's memory budget (TreeOptions::max_bytes)
 };
 
 void AddTriangle(Scene& s, const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
@@ -239,6 +240,7 @@ int Run(const BenchCase& bc, const Params& p) {
     for (size_t i : tile_points[t]) tb.Extend(bc.points[i].position);
     visq::exact::TreeOptions options;
     options.receiver_bounds = tb;
+    options.max_bytes = static_cast<size_t>(p.tree_max_mb * (1 << 20));
     auto tree = visq::exact::LightVisibilityTree::Create(bc.light, bc.scene, options);
     create_ns += std::chrono::duration_cast<std::chrono::nanoseconds>(
                      std::chrono::steady_clock::now() - c0).count();
@@ -284,6 +286,7 @@ int Run(const BenchCase& bc, const Params& p) {
     stats.queries += st.queries;
     stats.hits += st.hits;
     stats.refinements += st.refinements;
+    stats.unrefined_leaf_visits += st.unrefined_leaf_visits;
     stats.far_occluders += st.far_occluders;
     stats.near_occluders += st.near_occluders;
   }
@@ -373,10 +376,12 @@ int Run(const BenchCase& bc, const Params& p) {
   std::printf("%-34s %12.1f %12s\n", "memory, largest tree (KiB)", max_tree_bytes / 1024.0, "-");
   std::printf("%-34s %12.3f %12s\n", "time ratio exact / embree (total)", t_exact / t_rt, "");
   std::printf("%-34s %12.3f %12s\n", "time ratio warm exact / rays", t_warm / (t_sample + t_trace), "");
-  std::printf("\nexact trees: %zu nodes, %zu far + %zu near occluders, %llu refinements, "
-              "hits %llu / %llu queries (first pass %llu / %llu); second pass identical: %s\n",
+  std::printf("\nexact trees: %zu nodes, %zu far + %zu near occluders, %llu refinements, %llu leaves resolved "
+              "per query at the %.0f MB budget, hits %llu / %llu queries (first pass %llu / %llu); second pass "
+              "identical: %s\n",
               stats.nodes, stats.far_occluders, stats.near_occluders,
               static_cast<unsigned long long>(stats.refinements),
+              static_cast<unsigned long long>(stats.unrefined_leaf_visits), p.tree_max_mb,
               static_cast<unsigned long long>(stats.hits), static_cast<unsigned long long>(stats.queries),
               static_cast<unsigned long long>(stats_cold.hits),
               static_cast<unsigned long long>(stats_cold.queries), same ? "yes" : "NO");
@@ -413,11 +418,12 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--width")) p.width = std::atoi(v);
     else if (const char* v = value("--height")) p.height = std::atoi(v);
     else if (const char* v = value("--tile-pixels")) p.tile_pixels = std::max(1, std::atoi(v));
+    else if (const char* v = value("--tree-max-mb")) p.tree_max_mb = std::atof(v);
     else {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
-                   "[--height=720] [--tile-pixels=32] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
+                   "[--height=720] [--tile-pixels=32] [--tree-max-mb=64] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
       return 2;
     }
   }

@@ -488,6 +488,35 @@ TEST(LightVisibilityTest, ShadowBoundaryAndCollinearEdges) {
   }
 }
 
+// A tree at its memory budget stops growing; queries that reach an
+// undefined leaf then subtract its occluders themselves. The answers stay
+// those of an unbounded tree (up to the float sums over other fragments).
+TEST(LightVisibilityTest, TreeAtItsMemoryBudgetStopsGrowingAndStaysExact) {
+  const Scene scene = MakeScene(Cloud(150, 31, 0.25));
+  const AreaLight light = SquareLight(2.0);
+  TreeOptions unbounded_options, bounded_options;
+  unbounded_options.receiver_bounds = bounded_options.receiver_bounds = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});
+  bounded_options.max_bytes = 1;  // below the empty tree: it never refines
+  auto unbounded = LightVisibilityTree::Create(light, scene, unbounded_options);
+  auto bounded = LightVisibilityTree::Create(light, scene, bounded_options);
+  ASSERT_TRUE(unbounded.ok() && bounded.ok());
+  const size_t empty_bytes = (*bounded)->MemoryBytes();
+  int penumbra = 0;
+  for (const glm::dvec3& p : FloorPoints(150, 5)) {
+    const PointVisibility a = Q(**unbounded, p), b = Q(**bounded, p);
+    EXPECT_NEAR(a.visible_area_fraction, b.visible_area_fraction, 1e-12) << p.x << "," << p.y;
+    EXPECT_NEAR(a.irradiance, b.irradiance, 1e-12 * std::max(1.0, a.irradiance));
+    penumbra += a.visible_area_fraction > 0 && a.visible_area_fraction < 1;
+  }
+  EXPECT_GT(penumbra, 20);
+  const TreeStats grown = (*unbounded)->Stats(), capped = (*bounded)->Stats();
+  EXPECT_GT(grown.refinements, 0u);
+  EXPECT_EQ(capped.refinements, 0u);
+  EXPECT_GT(capped.unrefined_leaf_visits, 0u);
+  EXPECT_EQ((*bounded)->MemoryBytes(), empty_bytes);
+  EXPECT_GT(grown.memory_bytes, empty_bytes);
+}
+
 TEST(LightVisibilityTest, SecondPassRefinesNothingAndRepeats) {
   const Scene scene = MakeScene(Cloud(120, 31));
   auto tree = MakeTree(SquareLight(2.0, 0.7), scene, Box({-1.5, -1.5, 0}, {1.5, 1.5, 0}));
