@@ -93,7 +93,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
                         }));
   (created ? engine.light_tree_misses : engine.light_tree_hits).fetch_add(1);
   VISQ_ASSIGN_OR_RETURN(std::vector<exact::PointVisibility> points,
-                        tree->QueryBatch(query.points, /*threads=*/0, query.want_polygons));
+                        tree->QueryBatch(query.points, /*threads=*/0, query.want_polygons, query.deadline));
 
   LightVisibilityAnswer answer;
   answer.points = std::move(points);

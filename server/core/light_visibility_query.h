@@ -2,6 +2,7 @@
 // cache keyed by (scene, version, light, receiver region), and the batch.
 #pragma once
 
+#include <chrono>
 #include <optional>
 #include <string>
 #include <vector>
@@ -21,6 +22,8 @@ struct LightVisibilityQuery {
   bool want_polygons = false;
   std::optional<Bounds> receiver_region;
   std::vector<std::string> exclude_nodes;
+  // The caller's deadline: past it the batch stops with DEADLINE_EXCEEDED.
+  std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
 };
 
 struct LightVisibilityAnswer {

@@ -1341,7 +1341,8 @@ StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bo
 }
 
 StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
-    std::span<const QueryPoint> points, int threads, bool want_polygons) {
+    std::span<const QueryPoint> points, int threads, bool want_polygons,
+    std::chrono::steady_clock::time_point deadline) {
   std::vector<PointVisibility> out(points.size());
   size_t workers = threads > 0 ? static_cast<size_t>(threads)
                                : std::max(1u, std::thread::hardware_concurrency());
@@ -1352,6 +1353,14 @@ StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
   // Dynamic scheduling: query costs vary a lot (refinement, penumbrae).
   auto work = [&]() {
     for (size_t i = next.fetch_add(1); i < points.size(); i = next.fetch_add(1)) {
+      if (std::chrono::steady_clock::now() > deadline) {
+        std::lock_guard lock(error_mutex);
+        if (error.ok())
+          error = absl::DeadlineExceededError(
+              absl::StrCat("deadline passed with ", points.size() - i, " of ", points.size(), " points left"));
+        next.store(points.size());
+        break;
+      }
       auto r = impl_->Query(points[i], want_polygons);
       if (!r.ok()) {
         std::lock_guard lock(error_mutex);

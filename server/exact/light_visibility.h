@@ -56,6 +56,7 @@
 // common, read-only case. All per-query geometry is query-local.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <list>
@@ -148,8 +149,11 @@ class LightVisibilityTree {
   [[nodiscard]] StatusOr<PointVisibility> Query(const QueryPoint& point,
                                                 bool want_polygons = false);
   // Queries in parallel on `threads` workers (0: hardware concurrency).
+  // DEADLINE_EXCEEDED once `deadline` passes (checked between points), so a
+  // batch whose caller gave up stops.
   [[nodiscard]] StatusOr<std::vector<PointVisibility>> QueryBatch(
-      std::span<const QueryPoint> points, int threads = 0, bool want_polygons = false);
+      std::span<const QueryPoint> points, int threads = 0, bool want_polygons = false,
+      std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max());
 
   TreeStats Stats() const;
   size_t MemoryBytes() const;

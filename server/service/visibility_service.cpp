@@ -265,7 +265,7 @@ class LightVisibilityStreamReactor final
     : public grpc::ServerBidiReactor<v1::LightVisibilityRequest, v1::LightVisibilityResponse> {
  public:
   LightVisibilityStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx)
-      : log_(context, "LightVisibilityStream", &ctx.metrics), ctx_(ctx) {
+      : log_(context, "LightVisibilityStream", &ctx.metrics), ctx_(ctx), deadline_(SteadyDeadline(context)) {
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
       Done(authorized);
@@ -284,6 +284,7 @@ class LightVisibilityStreamReactor final
       StatusOr<LightVisibilityQuery> query = FromProto(request_, previous_ ? &*previous_ : nullptr);
       Status status = query.status();
       response_.Clear();
+      if (status.ok()) query->deadline = deadline_;
       if (status.ok()) status = AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms,
                                                       &response_);
       if (!status.ok()) {
@@ -317,6 +318,7 @@ class LightVisibilityStreamReactor final
   v1::LightVisibilityRequest request_;
   v1::LightVisibilityResponse response_;
   std::optional<LightVisibilityQuery> previous_;
+  std::chrono::steady_clock::time_point deadline_;  // the whole stream's
 };
 
 }  // namespace
@@ -324,9 +326,10 @@ class LightVisibilityStreamReactor final
 grpc::ServerUnaryReactor* VisibilityServiceImpl::LightVisibility(grpc::CallbackServerContext* context,
                                                                  const v1::LightVisibilityRequest* request,
                                                                  v1::LightVisibilityResponse* response) {
-  return RunUnaryCall(ctx_, context, "LightVisibility", [this, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "LightVisibility", [this, context, request, response](RequestLog& log) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery query, FromProto(*request));
+    query.deadline = SteadyDeadline(context);
     return AnswerLightVisibility(ctx_.engine, query, log, queue_ms, response);
   });
 }

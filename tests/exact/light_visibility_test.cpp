@@ -517,6 +517,19 @@ TEST(LightVisibilityTest, TreeAtItsMemoryBudgetStopsGrowingAndStaysExact) {
   EXPECT_GT(grown.memory_bytes, empty_bytes);
 }
 
+TEST(LightVisibilityTest, BatchStopsAtItsDeadline) {
+  auto tree = MakeTree(SquareLight(2.0), MakeScene(Cloud(50, 3)), Box({-1.5, -1.5, 0}, {1.5, 1.5, 0}));
+  std::vector<QueryPoint> points;
+  for (const glm::dvec3& p : FloorPoints(100, 9)) points.push_back({p, glm::dvec3(0, 0, 1), std::nullopt});
+  auto late = tree->QueryBatch(points, 2, false, std::chrono::steady_clock::now() - std::chrono::seconds(1));
+  EXPECT_EQ(late.status().code(), absl::StatusCode::kDeadlineExceeded);
+  EXPECT_NE(std::string(late.status().message()).find("of 100 points left"), std::string::npos) << late.status();
+  EXPECT_EQ(tree->Stats().queries, 0u);
+  auto in_time = tree->QueryBatch(points, 2, false, std::chrono::steady_clock::now() + std::chrono::hours(1));
+  ASSERT_TRUE(in_time.ok()) << in_time.status();
+  EXPECT_EQ(in_time->size(), 100u);
+}
+
 TEST(LightVisibilityTest, SecondPassRefinesNothingAndRepeats) {
   const Scene scene = MakeScene(Cloud(120, 31));
   auto tree = MakeTree(SquareLight(2.0, 0.7), scene, Box({-1.5, -1.5, 0}, {1.5, 1.5, 0}));
