@@ -1,11 +1,11 @@
 #include "exact/light_visibility.h"
 
 #include <algorithm>
-#include <limits>
 #include <atomic>
 #include <cmath>
 #include <cstring>
 #include <deque>
+#include <limits>
 #include <numbers>
 #include <thread>
 
@@ -712,6 +712,7 @@ struct LightVisibilityTree::Impl {
     }
 
     // Push the fragments down the shared tree.
+    std::optional<PyramidCull> cull;  // made on first need
     std::vector<Fragment> visible;
     bool refined = false;
     {
@@ -729,11 +730,13 @@ struct LightVisibilityTree::Impl {
           // The tree is at its budget: resolve this fragment against the
           // leaf's occluders here, without growing the tree.
           unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
+          if (!cull) cull.emplace(p_local, light_local, light_triangles);
           std::vector<Fragment> pieces;
           pieces.push_back(std::move(f));
           for (const uint32_t index : lists[node.b]) {
             const FarOccluder& o = far[index];
             const XPoint* v[3] = {&points[o.v[0]], &points[o.v[1]], &points[o.v[2]]};
+            if (cull->Misses({v[0]->input, v[1]->input, v[2]->input})) continue;
             Subtract(s, &pieces, {{v[0], v[1]}, {v[1], v[2]}, {v[2], v[0]}});
             if (pieces.empty()) break;
           }
@@ -783,18 +786,18 @@ struct LightVisibilityTree::Impl {
       std::vector<CV> poly, clipped;
       std::vector<int> sides;
       std::vector<std::pair<const XPoint*, const XPoint*>> edges;
-      const PyramidCull cull(p_local, light_local, light_triangles);
+      if (!cull) cull.emplace(p_local, light_local, light_triangles);
       // Occluders in index order, whatever the traversal found first, so the
       // fragments (and the float sums over them) do not depend on the index.
       std::vector<uint32_t> candidates;
-      near_index.Collect([&](const glm::dvec3& lo, const glm::dvec3& hi) { return cull.MissesBox(lo, hi); },
+      near_index.Collect([&](const glm::dvec3& lo, const glm::dvec3& hi) { return cull->MissesBox(lo, hi); },
                          &candidates);
       std::sort(candidates.begin(), candidates.end());
       for (const uint32_t candidate : candidates) {
         const NearOccluder& n = near[candidate];
         if (n.scene_triangle == receiver) continue;
         const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
-        if (cull.Misses({v[0]->input, v[1]->input, v[2]->input})) continue;
+        if (cull->Misses({v[0]->input, v[1]->input, v[2]->input})) continue;
         int top[3];
         bool any_below_top = false;
         for (int i = 0; i < 3; ++i) {

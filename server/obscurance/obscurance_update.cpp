@@ -187,9 +187,13 @@ std::vector<Ball> ObscuranceUpdater::ClusterBalls(const Object& object) const {
     Bounds& group = grouped[(static_cast<size_t>(at.z) * cells.y + at.y) * cells.x + at.x];
     for (int c = 0; c < 3; ++c) group.Extend(scene_.Vertex(t, c));
   }
+  // The rays meet the object through Embree's float instance transform, so
+  // each ball is a little wider than its triangles: a grazing ray that the
+  // float geometry catches is never ruled out by the double-precision ball.
+  const double slack = 1e-5 * glm::length(extent);
   std::vector<Ball> balls;
   for (const Bounds& group : grouped)
-    if (!group.Empty()) balls.push_back(Ball{group.Center(), 0.5 * glm::length(group.Extent())});
+    if (!group.Empty()) balls.push_back(Ball{group.Center(), 0.5 * glm::length(group.Extent()) + slack});
   return balls;
 }
 
