@@ -344,6 +344,10 @@ ExactReference ExactFractions(const SceneCase& c, int width, int height) {
       tb.max += glm::dvec3(pad);
       exact::TreeOptions options;
       options.receiver_bounds = tb;
+      // The reference needs speed more than a memory bound: at the default
+      // budget, veach's trees stop growing and its queries slow to a crawl
+      // (see TreeOptions::max_bytes). Its 16 trees fit this machine unbounded.
+      options.max_bytes = std::numeric_limits<size_t>::max();
       auto tree = Must(exact::LightVisibilityTree::Create(light, c.scene, options), c.name + ": exact tree");
       auto answers = Must(tree->QueryBatch(points), c.name + ": exact queries");
       for (size_t i = 0; i < points.size(); ++i) ref.fraction[index[i]] = answers[i].visible_area_fraction;
