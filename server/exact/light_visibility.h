@@ -100,6 +100,10 @@ struct TreeOptions {
   // memory stays bounded (the tree of a dense scene otherwise grows close to
   // quadratically with its occluders: gigabytes for a 382K-triangle room).
   size_t max_bytes = size_t{512} << 20;
+  // Decide wholly visible and wholly hidden points before the tree, with
+  // exact tests of the occluders near each point's pyramid (see Query). The
+  // answers are the same either way; off only to compare the two routes.
+  bool classify_points = true;
 };
 
 struct QueryPoint {
@@ -127,6 +131,8 @@ struct TreeStats {
   uint64_t hits = 0;         // queries that refined nothing
   uint64_t refinements = 0;  // leaves turned into occluder BSPs
   uint64_t unrefined_leaf_visits = 0;  // undefined leaves resolved per query (tree at max_bytes)
+  uint64_t wholly_visible = 0;  // queries answered before the tree: no occluder can block
+  uint64_t wholly_hidden = 0;   // ... one occluder blocks the whole light
   size_t far_occluders = 0;  // in the shared tree
   size_t near_occluders = 0;  // clipped per query
 };

@@ -80,6 +80,8 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
   tree->set_hits(answer.tree.hits);
   tree->set_refinements(answer.tree.refinements);
   tree->set_unrefined_leaf_visits(answer.tree.unrefined_leaf_visits);
+  tree->set_wholly_visible(answer.tree.wholly_visible);
+  tree->set_wholly_hidden(answer.tree.wholly_hidden);
   tree->set_far_occluders(answer.tree.far_occluders);
   tree->set_near_occluders(answer.tree.near_occluders);
   ToProto(answer.receiver_region, tree->mutable_receiver_region());

@@ -91,6 +91,35 @@ TEST(ExactPredicatesTest, HomogeneousPlanesAgreeWithOrient3d) {
   EXPECT_EQ(detail::EuclidSide(x, plane), 0);
 }
 
+TEST(ExactPredicatesTest, Orient3dFanAgreesWithOrient3d) {
+  // Random, nearly coplanar, exactly coplanar, repeated points, and the same
+  // at tiny and huge scales and far from the origin: the fan's filter must
+  // never decide a sign Orient3d would not.
+  std::mt19937 rng(2);
+  std::uniform_real_distribution<double> u(-1, 1);
+  int zeros = 0;
+  for (const double scale : {1e-4, 1.0, 1e5}) {
+    for (const double offset : {0.0, 1e6}) {
+      for (int i = 0; i < 400; ++i) {
+        auto point = [&]() { return offset + scale * glm::dvec3(u(rng), u(rng), u(rng)); };
+        const glm::dvec3 p = point(), a = point(), b = point();
+        const detail::Orient3dFan fan(p, a, b);
+        for (int k = 0; k < 6; ++k) {
+          glm::dvec3 x = point();
+          if (k == 1) x = p + 0.5 * (a - p) + 0.25 * (b - p);  // on the plane, up to rounding
+          if (k == 2) x = a;                                   // a repeated point: exactly 0
+          if (k == 3) x = glm::dvec3(p.x, p.y, a.z);           // shares coordinates
+          if (k == 4) x = p + (a - p) * 3.0;                   // on the line (p, a), up to rounding
+          const int expected = detail::Orient3d(p, a, b, x);
+          EXPECT_EQ(fan.Side(x), expected) << scale << " " << offset << " " << i << " " << k;
+          zeros += expected == 0;
+        }
+      }
+    }
+  }
+  EXPECT_GT(zeros, 2400);  // the repeated points at least
+}
+
 TEST(LightVisibilityTest, ValidationNamesTheField) {
   Scene empty;
   AreaLight light = SquareLight(1.0);
@@ -566,6 +595,69 @@ TEST(LightVisibilityTest, ConcurrentQueriesMatchSingleThreaded) {
   for (size_t i = 0; i < pts.size(); ++i) {
     EXPECT_NEAR((*a)[i].visible_area_fraction, (*b)[i].visible_area_fraction, 1e-12) << i;
     EXPECT_NEAR((*a)[i].irradiance, (*b)[i].irradiance, 1e-12) << i;
+  }
+}
+
+TEST(LightVisibilityTest, PointsDecidedBeforeTheTreeAgreeWithTheTree) {
+  // A large slab (two triangles sharing a diagonal) over part of the floor,
+  // a box, a cloud and the floor itself: points in the open are wholly lit,
+  // points under one of the slab's triangles wholly hidden by it, points
+  // under its diagonal hidden by the two together (the tree decides those),
+  // and the rest in penumbrae. Every point is answered with the
+  // classification on and off, through the tree with receiver bounds and
+  // without it (all occluders near).
+  std::vector<Tri> tris = {{glm::dvec3(-2, -2, 0), glm::dvec3(2, -2, 0), glm::dvec3(2, 2, 0)},
+                           {glm::dvec3(-2, -2, 0), glm::dvec3(2, 2, 0), glm::dvec3(-2, 2, 0)},
+                           {glm::dvec3(-3, -3, 1.0), glm::dvec3(0.5, -3, 1.0), glm::dvec3(0.5, 0.5, 1.0)},
+                           {glm::dvec3(-3, -3, 1.0), glm::dvec3(0.5, 0.5, 1.0), glm::dvec3(-3, 0.5, 1.0)}};
+  AddBox(tris, {0.8, 0.8, 0}, {1.1, 1.2, 0.7});
+  for (const Tri& t : Cloud(30, 71, 0.1)) {
+    Tri moved = t;
+    for (auto& p : moved) p.x = std::abs(p.x) + 0.6, p.y = std::abs(p.y) * 0.5 - 1.5;
+    tris.push_back(moved);
+  }
+  const Scene scene = MakeScene(tris);
+  const AreaLight light = SquareLight(2.0, 0.4);
+  const Bounds receivers = Box({-2, -2, 0}, {2, 2, 0});
+  std::vector<QueryPoint> queries;
+  for (int i = 0; i <= 20; ++i) {
+    for (int j = 0; j <= 20; ++j) {
+      const glm::dvec3 p(-1.9 + 0.19 * i, -1.9 + 0.19 * j, 0.0);
+      queries.push_back({p, std::nullopt, p.x - p.y > 0 ? 0u : 1u});
+    }
+  }
+  for (const std::optional<Bounds>& bounds : {std::optional<Bounds>(receivers), std::optional<Bounds>()}) {
+    TreeOptions on, off;
+    on.receiver_bounds = off.receiver_bounds = bounds;
+    off.classify_points = false;
+    auto classified = LightVisibilityTree::Create(light, scene, on);
+    auto tree_only = LightVisibilityTree::Create(light, scene, off);
+    ASSERT_TRUE(classified.ok() && tree_only.ok());
+    auto a = (*classified)->QueryBatch(queries, 1);
+    auto b = (*tree_only)->QueryBatch(queries, 1);
+    ASSERT_TRUE(a.ok() && b.ok());
+    int lit = 0, hidden = 0, partial = 0;
+    for (size_t i = 0; i < queries.size(); ++i) {
+      const glm::dvec3& p = queries[i].position;
+      EXPECT_NEAR((*a)[i].visible_area_fraction, (*b)[i].visible_area_fraction, 1e-12) << p.x << " " << p.y;
+      EXPECT_NEAR((*a)[i].visible_solid_angle_fraction, (*b)[i].visible_solid_angle_fraction, 1e-12);
+      EXPECT_NEAR((*a)[i].irradiance, (*b)[i].irradiance, 1e-12);
+      const double f = (*a)[i].visible_area_fraction;
+      lit += f == 1.0;
+      hidden += f == 0.0;
+      partial += f > 0.0 && f < 1.0;
+    }
+    const TreeStats on_stats = (*classified)->Stats(), off_stats = (*tree_only)->Stats();
+    EXPECT_EQ(off_stats.wholly_visible + off_stats.wholly_hidden, 0u);
+    // Every wholly visible answer is exactly 1; hidden ones exactly 0 (some
+    // of those, under the diagonal, came from the tree).
+    EXPECT_GT(on_stats.wholly_visible, 20u);
+    EXPECT_GT(on_stats.wholly_hidden, 20u);
+    EXPECT_LE(on_stats.wholly_visible, static_cast<uint64_t>(lit));
+    EXPECT_LE(on_stats.wholly_hidden, static_cast<uint64_t>(hidden));
+    EXPECT_GT(partial, 20);
+    // Decided points refine nothing: the classified tree grows less.
+    EXPECT_LE(on_stats.refinements, off_stats.refinements);
   }
 }
 
