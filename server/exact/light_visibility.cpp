@@ -1,6 +1,7 @@
 #include "exact/light_visibility.h"
 
 #include <algorithm>
+#include <bit>
 #include <atomic>
 #include <cmath>
 #include <cstring>
@@ -587,31 +588,150 @@ struct LightVisibilityTree::Impl {
     return miss_pos && miss_neg;
   }
 
-  // Whether the triangle blocks every segment from P to the light: each
-  // segment from P to a light vertex crosses the triangle's interior, P and
-  // the vertex strictly on opposite sides of its plane. The plane then
+  // Which segments from P to the light's vertices cross the triangle's
+  // interior, P and the vertex strictly on opposite sides of its plane (bit
+  // i: vertex i, for the first 64), and whether all of them do. When all do,
+  // the triangle blocks every segment from P to the light: its plane
   // separates P from the light's convex hull, whose central projection from
-  // P onto the plane is the convex hull of the vertices' crossings: inside
+  // P onto the plane is the convex hull of the vertices' crossings, inside
   // the triangle.
-  bool CoversLight(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const {
+  struct Cover {
+    uint64_t mask = 0;
+    bool all = false;
+  };
+  Cover CoveredLightVertices(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const {
+    Cover cover;
     const Orient3dFan plane(v[0], v[1], v[2]);
     const int p_side = plane.Side(p);
-    if (p_side == 0) return false;
-    for (const glm::dvec3& y : light_local) {
-      if (plane.Side(y) != -p_side) return false;
+    if (p_side == 0) return cover;
+    // A segment crosses the interior when its line has one strict side
+    // against the three edge lines.
+    const Orient3dFan edges[3] = {{p, v[0], v[1]}, {p, v[1], v[2]}, {p, v[2], v[0]}};
+    cover.all = true;
+    for (size_t i = 0; i < light_local.size(); ++i) {
+      const glm::dvec3& y = light_local[i];
+      bool crosses = plane.Side(y) == -p_side;
+      if (crosses) {
+        const int s0 = edges[0].Side(y);
+        crosses = s0 != 0 && edges[1].Side(y) == s0 && edges[2].Side(y) == s0;
+      }
+      cover.all &= crosses;
+      if (crosses && i < 64) cover.mask |= uint64_t{1} << i;
+      if (!cover.all && i >= 64) break;
     }
-    // Each segment crosses the interior: its line has one strict side
-    // against the three edge lines, orient3d(y, p, a, b) = -orient3d(p, a, b, y).
-    int sign = 0;
-    for (int e = 0; e < 3; ++e) {
-      const Orient3dFan fan(p, v[e], v[(e + 1) % 3]);
-      for (const glm::dvec3& y : light_local) {
-        const int side = fan.Side(y);
-        if (side == 0 || (sign != 0 && side != sign)) return false;
-        sign = side;
+    return cover;
+  }
+
+  // The edges of a near occluder clipped to the slab between the light
+  // plane and the plane through P parallel to it (`slab_top`): the part of
+  // it that lies between. False when no part of it can block (nothing
+  // strictly between, or its clipped shadow misses the light).
+  using Edges = std::vector<std::pair<const XPoint*, const XPoint*>>;
+  bool NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges) const {
+    const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
+    bool any_below_top = false;
+    for (int i = 0; i < 3; ++i) any_below_top |= EuclidSide(*v[i], slab_top) < 0;
+    if (!any_below_top) return false;  // nothing strictly between
+    struct CV { const XPoint* point; int orig_edge; };  // orig_edge -1: on a cut
+    absl::InlinedVector<CV, 6> poly = {{v[0], 0}, {v[1], 1}, {v[2], 2}}, clipped;
+    absl::InlinedVector<int, 6> sides;
+    bool cut = false;
+    // Clip to the light's front (keep >= 0), then below P (keep >= 0).
+    for (int pass = 0; pass < 2 && !poly.empty(); ++pass) {
+      const XPlane& plane = pass == 0 ? *light_plane : slab_top;
+      sides.resize(poly.size());
+      bool any_neg = false, any_pos = false;
+      for (size_t i = 0; i < poly.size(); ++i) {
+        if (pass == 0) {
+          sides[i] = n.light_side[poly[i].orig_edge];  // poly is still the triangle
+        } else {
+          sides[i] = -EuclidSide(*poly[i].point, plane);
+        }
+        any_neg |= sides[i] < 0;
+        any_pos |= sides[i] > 0;
+      }
+      if (!any_pos) return false;
+      if (!any_neg) continue;
+      cut = true;
+      clipped.clear();
+      for (size_t i = 0; i < poly.size(); ++i) {
+        const size_t j = (i + 1) % poly.size();
+        const int sc = sides[i], sn = sides[j];
+        if (sc > 0) clipped.push_back(poly[i]);
+        if (sc == 0) clipped.push_back({poly[i].point, sn < 0 ? -1 : poly[i].orig_edge});
+        if ((sc > 0 && sn < 0) || (sc < 0 && sn > 0)) {
+          // Crossing edges of the second pass are parts of triangle
+          // edges too: the first cut lies in the light plane, strictly
+          // on the kept side of the second.
+          const int e = poly[i].orig_edge;
+          VISQ_CHECK(e >= 0);
+          const XPoint* x = s.Add(XPoint::LinePlane(*v[e], *v[(e + 1) % 3], plane));
+          clipped.push_back({x, sc > 0 ? -1 : e});
+        }
+      }
+      poly.swap(clipped);
+    }
+    if (poly.size() < 3) return false;
+    edges->clear();
+    for (size_t i = 0; i < poly.size(); ++i) {
+      const int e = poly[i].orig_edge;
+      if (e >= 0) {
+        edges->emplace_back(v[e], v[(e + 1) % 3]);
+      } else {
+        edges->emplace_back(poly[i].point, poly[(i + 1) % poly.size()].point);
       }
     }
-    return true;
+    if (!cut) return true;  // the whole triangle: ShadowMissesLight has passed it
+    // Skip clipped occluders whose shadow misses the whole light: some edge
+    // has every light vertex on its <= 0 side (no all-positive line) and
+    // some edge has every light vertex > 0 (no all-non-positive line). Sides
+    // are linear over each light triangle, so vertices decide.
+    bool miss_pos = false, miss_neg = false;
+    for (const auto& [a, b] : *edges) {
+      EdgeLine line{a, b};
+      bool all_nonpos = true, all_pos = true, all_zero = true;
+      for (const XPoint& y : light_points) {
+        const int side = LineSide(s, line, y);
+        all_nonpos &= side <= 0;
+        all_pos &= side > 0;
+        all_zero &= side == 0;
+      }
+      // Every light vertex on one plane with P and the line: P is on the
+      // line (P is strictly in front of the light), nothing strictly inside.
+      if (all_zero) return false;
+      miss_pos |= all_nonpos;
+      miss_neg |= all_pos;
+    }
+    return !(miss_pos && miss_neg);
+  }
+
+  // Whether subtracting the blockers that block the most light vertices (at
+  // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
+  // of the light.
+  static constexpr size_t kFewBlockers = 16;
+  template <typename Blocker>
+  bool HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light, std::vector<Blocker>* blockers) const {
+    std::stable_sort(blockers->begin(), blockers->end(),
+                     [](const Blocker& x, const Blocker& y) { return x.vertices > y.vertices; });
+    const uint32_t far_count = static_cast<uint32_t>(far.size());
+    const XPlane* slab_top = nullptr;
+    std::vector<Fragment> left = light;
+    Edges edges;
+    size_t used = 0;
+    for (const Blocker& blocker : *blockers) {
+      if (used == kFewBlockers) break;
+      if (blocker.id < far_count) {
+        const uint32_t* t = far[blocker.id].v;
+        edges = {{&points[t[0]], &points[t[1]]}, {&points[t[1]], &points[t[2]]}, {&points[t[2]], &points[t[0]]}};
+      } else {
+        if (slab_top == nullptr) slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+        if (!NearOccluderEdges(s, near[blocker.id - far_count], *slab_top, &edges)) continue;
+      }
+      Subtract(s, &left, edges);
+      ++used;
+      if (left.empty()) return true;
+    }
+    return false;
   }
 
   // The point where a fragment edge support meets a plane.
@@ -818,13 +938,26 @@ struct LightVisibilityTree::Impl {
     // answers are those the tree would give: the tree never splits what it
     // does not have to, but splitting a wholly visible light into pieces
     // whose areas are summed gives 1 - 1e-16 where this gives 1.
+    //
+    // Umbrae cast by a few triangles together (the two halves of a quad, a
+    // mesh's neighbouring faces) are common too. When every light vertex's
+    // segment is blocked by some candidate, the few candidates that block
+    // the most vertices are subtracted from the light directly; if nothing
+    // is left, the point is hidden, exactly. Otherwise that work is dropped
+    // and the tree decides.
     const PyramidCull cull(p_local, light_local, light_triangles);
     std::vector<uint32_t> near_candidates;
     bool any_far = false;
+    struct Blocker {
+      uint32_t id;
+      int vertices;
+    };
+    std::vector<Blocker> blockers;
+    uint64_t blocked_vertices = 0;
+    const uint32_t far_count = static_cast<uint32_t>(far.size());
     {
       std::vector<uint32_t> ids;
       index.Collect([&](const glm::dvec3& lo, const glm::dvec3& hi) { return cull.MissesBox(lo, hi); }, &ids);
-      const uint32_t far_count = static_cast<uint32_t>(far.size());
       for (const uint32_t id : ids) {
         const bool is_far = id < far_count;
         if (is_far && !classify_points) continue;  // the tree decides
@@ -832,10 +965,17 @@ struct LightVisibilityTree::Impl {
         const uint32_t* t = is_far ? far[id].v : near[id - far_count].v;
         const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
         if (cull.Misses(v) || ShadowMissesLight(p_local, v)) continue;
-        if (classify_points && CoversLight(p_local, v)) {
-          hits.fetch_add(1, std::memory_order_relaxed);
-          wholly_hidden.fetch_add(1, std::memory_order_relaxed);
-          return result;
+        if (classify_points) {
+          const Cover cover = CoveredLightVertices(p_local, v);
+          if (cover.all) {
+            hits.fetch_add(1, std::memory_order_relaxed);
+            wholly_hidden.fetch_add(1, std::memory_order_relaxed);
+            return result;
+          }
+          if (cover.mask != 0) {
+            blockers.push_back({id, std::popcount(cover.mask)});
+            blocked_vertices |= cover.mask;
+          }
         }
         if (is_far) {
           any_far = true;
@@ -848,6 +988,12 @@ struct LightVisibilityTree::Impl {
       any_far = !far.empty();
     } else if (!any_far && near_candidates.empty()) {
       wholly_visible.fetch_add(1, std::memory_order_relaxed);
+    } else if (light_local.size() <= 64 && blocked_vertices == (~uint64_t{0} >> (64 - light_local.size()))) {
+      if (HiddenByFewBlockers(s, pending, &blockers)) {
+        hits.fetch_add(1, std::memory_order_relaxed);
+        wholly_hidden.fetch_add(1, std::memory_order_relaxed);
+        return result;
+      }
     }
 
     // Push the fragments down the shared tree.
@@ -921,92 +1067,12 @@ struct LightVisibilityTree::Impl {
     // plane and the plane through P parallel to it.
     if (!near_candidates.empty() && !visible.empty()) {
       const XPlane* slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
-      struct CV { const XPoint* point; int orig_edge; };  // orig_edge -1: on a cut
-      std::vector<CV> poly, clipped;
-      std::vector<int> sides;
-      std::vector<std::pair<const XPoint*, const XPoint*>> edges;
+      Edges edges;
       // Occluders in index order, whatever the traversal found first, so the
       // fragments (and the float sums over them) do not depend on the index.
       std::sort(near_candidates.begin(), near_candidates.end());
       for (const uint32_t candidate : near_candidates) {
-        const NearOccluder& n = near[candidate];
-        const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
-        int top[3];
-        bool any_below_top = false;
-        for (int i = 0; i < 3; ++i) {
-          top[i] = -EuclidSide(*v[i], *slab_top);
-          any_below_top |= top[i] > 0;
-        }
-        if (!any_below_top) continue;  // nothing strictly between
-        poly = {{v[0], 0}, {v[1], 1}, {v[2], 2}};
-        // Clip to the light's front (keep >= 0), then below P (keep >= 0).
-        for (int pass = 0; pass < 2 && !poly.empty(); ++pass) {
-          const XPlane& plane = pass == 0 ? *light_plane : *slab_top;
-          sides.resize(poly.size());
-          bool any_neg = false, any_pos = false;
-          for (size_t i = 0; i < poly.size(); ++i) {
-            if (pass == 0) {
-              sides[i] = n.light_side[poly[i].orig_edge];  // poly is still the triangle
-            } else {
-              sides[i] = -EuclidSide(*poly[i].point, plane);
-            }
-            any_neg |= sides[i] < 0;
-            any_pos |= sides[i] > 0;
-          }
-          if (!any_pos) { poly.clear(); break; }
-          if (!any_neg) continue;
-          clipped.clear();
-          for (size_t i = 0; i < poly.size(); ++i) {
-            const size_t j = (i + 1) % poly.size();
-            const int sc = sides[i], sn = sides[j];
-            if (sc > 0) clipped.push_back(poly[i]);
-            if (sc == 0) clipped.push_back({poly[i].point, sn < 0 ? -1 : poly[i].orig_edge});
-            if ((sc > 0 && sn < 0) || (sc < 0 && sn > 0)) {
-              // Crossing edges of the second pass are parts of triangle
-              // edges too: the first cut lies in the light plane, strictly
-              // on the kept side of the second.
-              const int e = poly[i].orig_edge;
-              VISQ_CHECK(e >= 0);
-              const XPoint* x = s.Add(XPoint::LinePlane(*v[e], *v[(e + 1) % 3], plane));
-              clipped.push_back({x, sc > 0 ? -1 : e});
-            }
-          }
-          poly.swap(clipped);
-        }
-        if (poly.size() < 3) continue;
-        edges.clear();
-        for (size_t i = 0; i < poly.size(); ++i) {
-          const int e = poly[i].orig_edge;
-          if (e >= 0) {
-            edges.emplace_back(v[e], v[(e + 1) % 3]);
-          } else {
-            edges.emplace_back(poly[i].point, poly[(i + 1) % poly.size()].point);
-          }
-        }
-        // Skip occluders whose shadow misses the whole light: some edge has
-        // every light vertex on its <= 0 side (no all-positive line) and some
-        // edge has every light vertex > 0 (no all-non-positive line). Sides
-        // are linear over each light triangle, so vertices decide.
-        bool miss_pos = false, miss_neg = false;
-        for (const auto& [a, b] : edges) {
-          EdgeLine line{a, b};
-          bool all_nonpos = true, all_pos = true, all_zero = true;
-          for (const XPoint& y : light_points) {
-            const int side = LineSide(s, line, y);
-            all_nonpos &= side <= 0;
-            all_pos &= side > 0;
-            all_zero &= side == 0;
-          }
-          // Every light vertex on one plane with P and the line: P is on the
-          // line (P is strictly in front of the light), nothing strictly inside.
-          if (all_zero) {
-            miss_pos = miss_neg = true;
-            break;
-          }
-          miss_pos |= all_nonpos;
-          miss_neg |= all_pos;
-        }
-        if (miss_pos && miss_neg) continue;
+        if (!NearOccluderEdges(s, near[candidate], *slab_top, &edges)) continue;
         Subtract(s, &visible, edges);
         if (visible.empty()) break;
       }
