@@ -286,7 +286,7 @@ struct LightVisibilityTree::Impl {
   std::vector<LightTriangle> light_triangles;
   const XPlane* light_plane = nullptr;  // the largest triangle's: front side positive
 
-  std::deque<XPoint> points;  // occluder vertices (local, inputs)
+  std::vector<XPoint> points;  // occluder vertices (local, inputs); never grows after Create
   std::vector<FarOccluder> far;
   std::vector<NearOccluder> near;
   OccluderIndex index;  // ids: far occluders first, then near ones
@@ -1304,7 +1304,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   for (const auto& t : impl->light_triangles) {
     if (t.plane == impl->light_plane) main_tri = &t;
   }
-  const glm::dvec3 L0 = ll[main_tri->v[0]], L1 = ll[main_tri->v[1]], L2 = ll[main_tri->v[2]];
+  const Orient3dFan light_fan(ll[main_tri->v[0]], ll[main_tri->v[1]], ll[main_tri->v[2]]);
 
   // The receiver box in the local frame. No outward rounding is needed:
   // rounding is monotone, so a world point inside the world box lands inside
@@ -1332,7 +1332,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
     shaft_hi = glm::max(shaft_hi, p);
   }
   glm::dvec3 corners[8];
-  struct ShaftPlane { glm::dvec3 a, b, c; int outside; };
+  struct ShaftPlane { Orient3dFan fan; int outside; };
   std::vector<ShaftPlane> shaft_planes;
   bool light_below_receivers = false;
   std::deque<XPoint> corner_points;
@@ -1380,7 +1380,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
             neg |= o < 0;
           }
           if (pos == neg) continue;  // not supporting (or all coplanar)
-          shaft_planes.push_back({hull_points[i], hull_points[j], hull_points[k], pos ? -1 : 1});
+          shaft_planes.push_back({Orient3dFan(hull_points[i], hull_points[j], hull_points[k]), pos ? -1 : 1});
         }
       }
     }
@@ -1421,6 +1421,18 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
     if (!excluded.empty() && excluded[ti]) continue;
     glm::dvec3 v[3];
     for (int c = 0; c < 3; ++c) v[c] = scene.positions[tri[c]] - impl->origin;
+    // Shaft box (only with receiver bounds: otherwise receivers are anywhere).
+    bool outside = false;
+    for (int i = 0; i < 3 && !outside && impl->receiver_box; ++i) {
+      outside = (v[0][i] < shaft_lo[i] && v[1][i] < shaft_lo[i] && v[2][i] < shaft_lo[i]) ||
+                (v[0][i] > shaft_hi[i] && v[1][i] > shaft_hi[i] && v[2][i] > shaft_hi[i]);
+    }
+    for (size_t k = 0; k < shaft_planes.size() && !outside; ++k) {
+      const ShaftPlane& sp = shaft_planes[k];
+      outside = true;
+      for (int c = 0; c < 3 && outside; ++c) outside = sp.fan.Side(v[c]) == sp.outside;
+    }
+    if (outside) continue;
     // Degenerate (zero-area) triangles block nothing.
     {
       // Test the projection along the dominant normal axis first: it is the
@@ -1433,23 +1445,11 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
         continue;
       }
     }
-    // Shaft box (only with receiver bounds: otherwise receivers are anywhere).
-    bool outside = false;
-    for (int i = 0; i < 3 && !outside && impl->receiver_box; ++i) {
-      outside = (v[0][i] < shaft_lo[i] && v[1][i] < shaft_lo[i] && v[2][i] < shaft_lo[i]) ||
-                (v[0][i] > shaft_hi[i] && v[1][i] > shaft_hi[i] && v[2][i] > shaft_hi[i]);
-    }
-    for (size_t k = 0; k < shaft_planes.size() && !outside; ++k) {
-      const ShaftPlane& sp = shaft_planes[k];
-      outside = true;
-      for (int c = 0; c < 3 && outside; ++c) outside = Orient3d(sp.a, sp.b, sp.c, v[c]) == sp.outside;
-    }
-    if (outside) continue;
     // Behind or in the light plane: blocks no segment from the light.
     Pending p{};
     bool any_front = false, any_back = false;
     for (int c = 0; c < 3; ++c) {
-      p.side[c] = static_cast<int8_t>(Orient3d(L0, L1, L2, v[c]));
+      p.side[c] = static_cast<int8_t>(light_fan.Side(v[c]));
       any_front |= p.side[c] > 0;
       any_back |= p.side[c] < 0;
     }
@@ -1503,6 +1503,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
     }
     pending.push_back(p);
   }
+  impl->points.reserve(occ_local.size());  // filled once: the pointers into it stay valid
   for (const auto& x : occ_local) impl->points.push_back(XPoint::Input(x));
   for (const auto& p : pending) {
     if (p.far) {
