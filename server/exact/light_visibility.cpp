@@ -322,9 +322,10 @@ struct LightVisibilityTree::Impl {
     const glm::dvec3& pa = points[a].input;
     const glm::dvec3& pb = points[b].input;
     for (int i = 0; i < 3 && !(*pos && *nonpos); ++i) {
-      const glm::dvec3& x = points[v[i]].input;
+      // orient3d(y, x, a, b) = -orient3d(x, a, b, y): one fan per vertex.
+      const Orient3dFan fan(points[v[i]].input, pa, pb);
       for (const glm::dvec3& y : light_local) {
-        if (Orient3d(y, x, pa, pb) > 0) *pos = true; else *nonpos = true;
+        if (fan.Side(y) < 0) *pos = true; else *nonpos = true;
         if (*pos && *nonpos) break;
       }
     }
