@@ -139,11 +139,9 @@ class PyramidCull {
   bool MissesBox(const glm::dvec3& lo, const glm::dvec3& hi) const {
     for (int axis = 0; axis < 3; ++axis)
       if (hi[axis] < lo_[axis] || lo[axis] > hi_[axis]) return true;
-    double reach = 0;
-    for (int corner = 0; corner < 8; ++corner) {
-      const glm::dvec3 x((corner & 1) ? hi.x : lo.x, (corner & 2) ? hi.y : lo.y, (corner & 4) ? hi.z : lo.z);
-      reach = std::max(reach, glm::length(x - p_));
-    }
+    // The farthest corner from P takes, per axis, the farther face.
+    const glm::dvec3 far_offset = glm::max(glm::abs(lo - p_), glm::abs(hi - p_));
+    const double reach = glm::length(far_offset);
     for (const Sides& sides : triangle_sides_) {
       if (!sides.usable) return false;
       bool outside = false;
@@ -162,14 +160,15 @@ class PyramidCull {
       if (v[0][axis] < lo_[axis] && v[1][axis] < lo_[axis] && v[2][axis] < lo_[axis]) return true;
       if (v[0][axis] > hi_[axis] && v[1][axis] > hi_[axis] && v[2][axis] > hi_[axis]) return true;
     }
+    const glm::dvec3 x[3] = {v[0] - p_, v[1] - p_, v[2] - p_};
+    const double length[3] = {glm::length(x[0]), glm::length(x[1]), glm::length(x[2])};
     for (const Sides& sides : triangle_sides_) {
       if (!sides.usable) return false;
       bool outside = false;
       for (int e = 0; e < 3 && !outside; ++e) {
         outside = true;
         for (int i = 0; i < 3 && outside; ++i) {
-          const glm::dvec3 x = v[i] - p_;
-          outside = glm::dot(sides.normal[e], x) < -kRelativeMargin * sides.scale[e] * glm::length(x);
+          outside = glm::dot(sides.normal[e], x[i]) < -kRelativeMargin * sides.scale[e] * length[i];
         }
       }
       if (!outside) return false;
