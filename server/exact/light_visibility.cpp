@@ -7,9 +7,11 @@
 #include <cstring>
 #include <deque>
 #include <limits>
+#include <memory>
 #include <numbers>
 #include <thread>
 
+#include <absl/container/flat_hash_map.h>
 #include <absl/container/inlined_vector.h>
 
 #include "common/check.h"
@@ -80,6 +82,37 @@ struct PairHash {
     const auto a = reinterpret_cast<uintptr_t>(p.first), b = reinterpret_cast<uintptr_t>(p.second);
     return std::hash<uintptr_t>()(a * 0x9E3779B97F4A7C15ull ^ (b + 0x632BE59BD9B4E019ull));
   }
+};
+
+// Objects at stable addresses, constructed one at a time into blocks of
+// 64 that outlive Clear(): a reused arena allocates nothing.
+template <typename T>
+class Arena {
+ public:
+  Arena() = default;
+  Arena(const Arena&) = delete;
+  Arena& operator=(const Arena&) = delete;
+  ~Arena() { Clear(); }
+
+  const T* Add(T value) {
+    const size_t block = size_ / kBlock, slot = size_ % kBlock;
+    if (block == blocks_.size()) blocks_.push_back(std::make_unique<Storage[]>(kBlock));
+    T* object = std::construct_at(reinterpret_cast<T*>(&blocks_[block][slot]), std::move(value));
+    ++size_;
+    return object;
+  }
+  void Clear() {
+    for (size_t i = 0; i < size_; ++i) std::destroy_at(reinterpret_cast<T*>(&blocks_[i / kBlock][i % kBlock]));
+    size_ = 0;
+  }
+
+ private:
+  static constexpr size_t kBlock = 64;
+  struct Storage {
+    alignas(T) unsigned char bytes[sizeof(T)];
+  };
+  std::vector<std::unique_ptr<Storage[]>> blocks_;
+  size_t size_ = 0;
 };
 
 double Area3(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
@@ -457,15 +490,26 @@ struct LightVisibilityTree::Impl {
   }
 
   // --- Queries. --------------------------------------------------------------
+  // A query's own geometry: the points and planes it constructs, and the
+  // edge planes by edge. One per thread, reused from query to query: a
+  // query makes hundreds of objects, and allocating them one by one (a
+  // std::deque of these 200-byte objects allocates every second one) cost
+  // more than the warm queries' arithmetic.
   struct Scratch {
-    std::deque<XPoint> points;
-    std::deque<XPlane> planes;
-    std::unordered_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
+    Arena<XPoint> points;
+    Arena<XPlane> planes;
+    absl::flat_hash_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
     std::vector<int> signs;
     const XPoint* p = nullptr;
 
-    const XPoint* Add(XPoint x) { points.push_back(std::move(x)); return &points.back(); }
-    const XPlane* Add(XPlane x) { planes.push_back(std::move(x)); return &planes.back(); }
+    const XPoint* Add(XPoint x) { return points.Add(std::move(x)); }
+    const XPlane* Add(XPlane x) { return planes.Add(std::move(x)); }
+    void Reset() {
+      points.Clear();
+      planes.Clear();
+      edge_planes.clear();
+      p = nullptr;
+    }
   };
 
   // The plane through P and edge line (a, b), shared by both orientations
@@ -897,7 +941,9 @@ struct LightVisibilityTree::Impl {
     queries.fetch_add(1, std::memory_order_relaxed);
     PointVisibility result;
 
-    Scratch s;
+    thread_local Scratch scratch;
+    Scratch& s = scratch;
+    s.Reset();
     s.p = s.Add(XPoint::Input(p_local));
     // A light seen from behind (or edge-on) gives nothing.
     if (EuclidSide(*s.p, *light_plane) <= 0) {
