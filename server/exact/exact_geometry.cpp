@@ -216,9 +216,7 @@ bool XPlane::Degenerate() const {
   return true;
 }
 
-int EuclidSide(const XPoint& x, const XPlane& plane) {
-  const int fast = FastSignOfDot(plane.fast, x.fast);
-  if (fast != kUncertain) return fast * x.w_sign * plane.o_sign;
+int EuclidSideSlow(const XPoint& x, const XPlane& plane) {
   const int s = SignOfDot(
       plane.approx, x.approx, [&]() -> const QV4& { return plane.Exact(); },
       [&]() -> const QV4& { return x.Exact(); });
@@ -300,19 +298,6 @@ Orient3dFan::Orient3dFan(const glm::dvec3& p, const glm::dvec3& a, const glm::dv
   normal_ = glm::dvec3(u.y * v.z - u.z * v.y, u.z * v.x - u.x * v.z, u.x * v.y - u.y * v.x);
   magnitude_ = glm::dvec3(std::fabs(u.y * v.z) + std::fabs(u.z * v.y), std::fabs(u.z * v.x) + std::fabs(u.x * v.z),
                           std::fabs(u.x * v.y) + std::fabs(u.y * v.x));
-}
-
-int Orient3dFan::Side(const glm::dvec3& x) const {
-  const glm::dvec3 w = x - p_;
-  const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;
-  const double permanent =
-      magnitude_.x * std::fabs(w.x) + magnitude_.y * std::fabs(w.y) + magnitude_.z * std::fabs(w.z);
-  const double bound = 7.7715611723761027e-16 * permanent;  // (7 + 56 eps) eps, as in Orient3d
-  if (permanent > 1e-250) {
-    if (det > bound) return 1;
-    if (-det > bound) return -1;
-  }
-  return Orient3d(p_, a_, b_, x);
 }
 
 int Orient2d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, int i, int j) {

@@ -284,8 +284,14 @@ struct XPlane {
   bool Degenerate() const;
 };
 
-// Sign of the plane's Euclidean function at x (see XPlane::o_sign).
-int EuclidSide(const XPoint& x, const XPlane& plane);
+// Sign of the plane's Euclidean function at x (see XPlane::o_sign). The
+// fast filter inline (it settles nearly every call), the rest out of line.
+int EuclidSideSlow(const XPoint& x, const XPlane& plane);
+VISQ_EXACT_INLINE int EuclidSide(const XPoint& x, const XPlane& plane) {
+  const int fast = FastSignOfDot(plane.fast, x.fast);
+  if (fast != kUncertain) return fast * x.w_sign * plane.o_sign;
+  return EuclidSideSlow(x, plane);
+}
 
 // orient3d(a, b, c, d) = det[b - a, c - a, d - a] for input doubles: positive
 // when d lies on the side of plane(a, b, c) that (b - a) x (c - a) points to.
@@ -299,10 +305,22 @@ int Orient3d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, cons
 // bound holds. Signs the bound leaves open (and tiny magnitudes, where
 // underflow would void the bound) go to Orient3d. About 4x cheaper than
 // Orient3d per point: what the BSP descent pays at every node.
+
 class Orient3dFan {
  public:
   Orient3dFan(const glm::dvec3& p, const glm::dvec3& a, const glm::dvec3& b);
-  int Side(const glm::dvec3& x) const;
+  VISQ_EXACT_INLINE int Side(const glm::dvec3& x) const {
+    const glm::dvec3 w = x - p_;
+    const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;
+    const double permanent =
+        magnitude_.x * std::fabs(w.x) + magnitude_.y * std::fabs(w.y) + magnitude_.z * std::fabs(w.z);
+    const double bound = 7.7715611723761027e-16 * permanent;  // (7 + 56 eps) eps, as in Orient3d
+    if (permanent > 1e-250) {
+      if (det > bound) return 1;
+      if (-det > bound) return -1;
+    }
+    return Orient3d(p_, a_, b_, x);
+  }
 
  private:
   glm::dvec3 p_, a_, b_, normal_, magnitude_;
