@@ -1118,9 +1118,21 @@ struct LightVisibilityTree::Impl {
     if (!near_candidates.empty() && !visible.empty()) {
       const XPlane* slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
       Edges edges;
-      // Occluders in index order, whatever the traversal found first, so the
-      // fragments (and the float sums over them) do not depend on the index.
-      std::sort(near_candidates.begin(), near_candidates.end());
+      // Nearest to P first: seen from P they are the largest, so they leave
+      // the fewest fragments for the others to cut (in index order, a
+      // penumbra under a dense mesh was cut into thousands of pieces). Ties
+      // by index, so the order (and the float sums over the fragments) do
+      // not depend on the traversal.
+      std::vector<std::pair<double, uint32_t>> by_distance;
+      by_distance.reserve(near_candidates.size());
+      for (const uint32_t candidate : near_candidates) {
+        const NearOccluder& n = near[candidate];
+        const glm::dvec3 centroid = (points[n.v[0]].input + points[n.v[1]].input + points[n.v[2]].input) / 3.0;
+        const glm::dvec3 offset = centroid - p_local;
+        by_distance.emplace_back(glm::dot(offset, offset), candidate);
+      }
+      std::sort(by_distance.begin(), by_distance.end());
+      for (size_t i = 0; i < by_distance.size(); ++i) near_candidates[i] = by_distance[i].second;
       for (const uint32_t candidate : near_candidates) {
         if (!NearOccluderEdges(s, near[candidate], *slab_top, &edges)) continue;
         Subtract(s, &visible, edges);
