@@ -275,6 +275,17 @@ StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const Resi
   return resident.embree_scene;
 }
 
+StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> Engine::TriangleIndexOf(const ResidentScene& resident) {
+  std::lock_guard lock(resident.lazy_mutex);
+  if (!resident.triangle_index) {
+    const auto start = std::chrono::steady_clock::now();
+    VISQ_ASSIGN_OR_RETURN(resident.triangle_index, exact::SceneTriangleIndex::Build(*resident.scene));
+    spdlog::info("scene '{}' v{}: triangle index ({} bytes) in {:.1f} ms", resident.name, resident.version,
+                 resident.triangle_index->MemoryBytes(), MillisecondsSince(start));
+  }
+  return resident.triangle_index;
+}
+
 StatusOr<gpu::HiddenSampleMapper*> Engine::hidden_sample_mapper() {
   std::lock_guard lock(mapper_mutex_);
   if (!hidden_sample_mapper_) {
@@ -298,6 +309,7 @@ SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) c
     std::lock_guard lock(resident.lazy_mutex);
     s.gpu_bytes = resident.gpu_scene ? resident.gpu_scene->gpu_bytes() : 0;
     if (resident.embree_scene) s.cpu_bytes += resident.embree_scene->memory_bytes();
+    if (resident.triangle_index) s.cpu_bytes += resident.triangle_index->MemoryBytes();
   }
   s.materials = static_cast<uint32_t>(scene.materials.size());
   for (uint32_t m : scene.triangle_material)

@@ -56,6 +56,7 @@ struct ResidentScene {
   mutable std::mutex lazy_mutex;
   mutable std::shared_ptr<gpu::GpuScene> gpu_scene;
   mutable std::shared_ptr<raycast::EmbreeScene> embree_scene;
+  mutable std::shared_ptr<const exact::SceneTriangleIndex> triangle_index;  // for exact light trees
 };
 
 struct SceneSummary {
@@ -127,6 +128,8 @@ class Engine {
   [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneOf(const ResidentScene& resident);
   // The scene's Embree BVH, built by the first caller.
   [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneOf(const ResidentScene& resident);
+  [[nodiscard]] StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> TriangleIndexOf(
+      const ResidentScene& resident);
   // The hidden-sample map's programs, compiled on first use.
   [[nodiscard]] StatusOr<gpu::HiddenSampleMapper*> hidden_sample_mapper();
 

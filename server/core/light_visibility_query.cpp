@@ -87,9 +87,11 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   const exact::CacheKey key{resident->name, resident->version, exact::HashLight(query.light, options)};
   bool created = false;
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<exact::LightVisibilityTree> tree,
-                        engine.light_cache().GetOrCreate(key, [&]() {
+                        engine.light_cache().GetOrCreate(key, [&]() -> StatusOr<std::unique_ptr<exact::LightVisibilityTree>> {
                           created = true;
-                          return exact::LightVisibilityTree::Create(query.light, scene, options);
+                          VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
+                                                engine.TriangleIndexOf(*resident));
+                          return exact::LightVisibilityTree::Create(query.light, scene, options, index.get());
                         }));
   (created ? engine.light_tree_misses : engine.light_tree_hits).fetch_add(1);
   VISQ_ASSIGN_OR_RETURN(std::vector<exact::PointVisibility> points,

@@ -1333,8 +1333,54 @@ StatusOr<PreparedLight> PrepareLight(const AreaLight& light) {
 
 Status ValidateAreaLight(const AreaLight& light) { return PrepareLight(light).status(); }
 
+struct SceneTriangleIndex::Impl {
+  OccluderIndex boxes;
+  size_t triangle_count = 0;
+};
+
+StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Scene& scene) {
+  auto impl = std::make_unique<Impl>();
+  std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
+  boxes.reserve(scene.triangles.size());
+  for (size_t ti = 0; ti < scene.triangles.size(); ++ti) {
+    const glm::uvec3 tri = scene.triangles[ti];
+    for (int c = 0; c < 3; ++c) {
+      if (tri[c] >= scene.positions.size()) {
+        return absl::InvalidArgumentError(absl::StrCat("scene.triangles[", ti, "][", c, "]: index ", tri[c],
+                                                       " >= ", scene.positions.size(), " positions"));
+      }
+    }
+    const glm::dvec3 &a = scene.positions[tri[0]], &b = scene.positions[tri[1]], &c = scene.positions[tri[2]];
+    boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
+  }
+  impl->triangle_count = scene.triangles.size();
+  impl->boxes.Build(std::move(boxes));
+  return std::unique_ptr<SceneTriangleIndex>(new SceneTriangleIndex(std::move(impl)));
+}
+
+SceneTriangleIndex::SceneTriangleIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+SceneTriangleIndex::~SceneTriangleIndex() = default;
+
+std::vector<uint32_t> SceneTriangleIndex::InBox(const glm::dvec3& lo, const glm::dvec3& hi) const {
+  std::vector<uint32_t> out;
+  impl_->boxes.Collect(
+      [&](const glm::dvec3& box_lo, const glm::dvec3& box_hi) {
+        return glm::any(glm::lessThan(box_hi, lo)) || glm::any(glm::greaterThan(box_lo, hi));
+      },
+      &out);
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+size_t SceneTriangleIndex::triangle_count() const { return impl_->triangle_count; }
+size_t SceneTriangleIndex::MemoryBytes() const { return sizeof(Impl) + impl_->boxes.MemoryBytes(); }
+
 StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
-    const AreaLight& light, const Scene& scene, const TreeOptions& options) {
+    const AreaLight& light, const Scene& scene, const TreeOptions& options, const SceneTriangleIndex* index) {
+  if (index != nullptr && index->triangle_count() != scene.triangles.size()) {
+    return absl::InvalidArgumentError(absl::StrCat("the triangle index has ", index->triangle_count(),
+                                                   " triangles, the scene ", scene.triangles.size()));
+  }
   auto impl = std::make_unique<Impl>();
 
   VISQ_ASSIGN_OR_RETURN(PreparedLight prepared, PrepareLight(light));
@@ -1471,7 +1517,21 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   std::vector<glm::dvec3> occ_local;
   struct Pending { uint32_t v[3]; int8_t side[3]; uint32_t tri; bool far; bool two_sided; };
   std::vector<Pending> pending;
-  for (size_t ti = 0; ti < scene.triangles.size(); ++ti) {
+  // With an index, only the triangles whose boxes meet the shaft's box (in
+  // world coordinates, padded far beyond the rounding of the local frame:
+  // a superset; the exact tests below decide) and in increasing order, as
+  // without it, so the occluder lists are the same.
+  std::vector<uint32_t> near_shaft;
+  const bool indexed = index != nullptr && impl->receiver_box.has_value();
+  if (indexed) {
+    const auto largest = [](const glm::dvec3& x) { return std::max({std::fabs(x.x), std::fabs(x.y), std::fabs(x.z)}); };
+    const double magnitude = std::max(largest(shaft_lo), largest(shaft_hi)) + largest(impl->origin);
+    const glm::dvec3 pad(1e-9 * magnitude + 1e-300);
+    near_shaft = index->InBox(shaft_lo + impl->origin - pad, shaft_hi + impl->origin + pad);
+  }
+  const size_t visit_count = indexed ? near_shaft.size() : scene.triangles.size();
+  for (size_t visit = 0; visit < visit_count; ++visit) {
+    const size_t ti = indexed ? near_shaft[visit] : visit;
     const glm::uvec3 tri = scene.triangles[ti];
     for (int c = 0; c < 3; ++c) {
       if (tri[c] >= scene.positions.size()) {

@@ -137,6 +137,30 @@ struct TreeStats {
   size_t near_occluders = 0;  // clipped per query
 };
 
+// The scene's triangles in a bounding-volume hierarchy over their boxes, so
+// that creating a tree visits the triangles near its shaft instead of the
+// whole scene (a 382K-triangle room cost 70 ms per tree without it). It does
+// not depend on the light: build it once per scene, lazily, and pass it to
+// every Create on that scene.
+class SceneTriangleIndex {
+ public:
+  // Validates the triangles' vertex indices (INVALID_ARGUMENT).
+  [[nodiscard]] static StatusOr<std::unique_ptr<SceneTriangleIndex>> Build(const Scene& scene);
+  ~SceneTriangleIndex();
+  SceneTriangleIndex(const SceneTriangleIndex&) = delete;
+  SceneTriangleIndex& operator=(const SceneTriangleIndex&) = delete;
+
+  // The triangles whose boxes meet the box [lo, hi], in increasing order.
+  std::vector<uint32_t> InBox(const glm::dvec3& lo, const glm::dvec3& hi) const;
+  size_t triangle_count() const;
+  size_t MemoryBytes() const;
+
+ private:
+  struct Impl;
+  explicit SceneTriangleIndex(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
 // The checks LightVisibilityTree::Create makes of a light, alone: INVALID_ARGUMENT
 // naming the vertex or property at fault.
 [[nodiscard]] Status ValidateAreaLight(const AreaLight& light);
@@ -144,9 +168,12 @@ struct TreeStats {
 class LightVisibilityTree {
  public:
   // Validates the light ("light.vertices[2]: NaN coordinate", "light: zero
-  // area", "light: not planar", ...) and selects the occluders.
+  // area", "light: not planar", ...) and selects the occluders. With an
+  // index of the scene (built from this scene) and receiver bounds, only the
+  // triangles near the shaft are visited; the tree is the same either way.
   [[nodiscard]] static StatusOr<std::unique_ptr<LightVisibilityTree>> Create(
-      const AreaLight& light, const Scene& scene, const TreeOptions& options = {});
+      const AreaLight& light, const Scene& scene, const TreeOptions& options = {},
+      const SceneTriangleIndex* index = nullptr);
   ~LightVisibilityTree();
   LightVisibilityTree(const LightVisibilityTree&) = delete;
   LightVisibilityTree& operator=(const LightVisibilityTree&) = delete;

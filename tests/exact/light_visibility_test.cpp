@@ -661,6 +661,50 @@ TEST(LightVisibilityTest, PointsDecidedBeforeTheTreeAgreeWithTheTree) {
   }
 }
 
+TEST(LightVisibilityTest, SceneIndexSelectsTheSameOccluders) {
+  // Trees made with the scene's triangle index visit only the triangles near
+  // their shafts, and must hold exactly the occluders, in the same order, as
+  // trees made by scanning the scene: the same answers, bit for bit. The
+  // world is far from the origin, so the index's padding is tested where
+  // the local frame rounds.
+  std::vector<Tri> tris = Transform(Cloud(200, 81, 0.2), 1.0, glm::dvec3(1e6, -2e6, 3e5));
+  AddBox(tris, glm::dvec3(1e6 + 0.5, -2e6 + 0.5, 3e5), glm::dvec3(1e6 + 0.8, -2e6 + 0.9, 3e5 + 1.0));
+  const Scene scene = MakeScene(tris);
+  auto index = SceneTriangleIndex::Build(scene);
+  ASSERT_TRUE(index.ok()) << index.status();
+  EXPECT_EQ((*index)->triangle_count(), scene.triangles.size());
+  EXPECT_GT((*index)->MemoryBytes(), 0u);
+  const glm::dvec3 offset(1e6, -2e6, 3e5);
+  AreaLight light = SquareLight(2.0, 0.7);
+  for (auto& v : light.vertices) v += offset;
+  const auto pts = FloorPoints(60, 19);
+  for (const glm::dvec3& corner : {glm::dvec3(-1.5, -1.5, 0), glm::dvec3(0.2, -0.4, 0)}) {
+    TreeOptions options;
+    options.receiver_bounds = Box(offset + corner, offset + corner + glm::dvec3(1.2, 1.0, 0.0));
+    auto scanned = LightVisibilityTree::Create(light, scene, options);
+    auto indexed = LightVisibilityTree::Create(light, scene, options, index->get());
+    ASSERT_TRUE(scanned.ok() && indexed.ok());
+    EXPECT_EQ((*scanned)->Stats().far_occluders, (*indexed)->Stats().far_occluders);
+    EXPECT_EQ((*scanned)->Stats().near_occluders, (*indexed)->Stats().near_occluders);
+    EXPECT_GT((*indexed)->Stats().far_occluders + (*indexed)->Stats().near_occluders, 10u);
+    for (const glm::dvec3& p : pts) {
+      const glm::dvec3 x = offset + corner + glm::dvec3((p.x + 1.5) / 3.0 * 1.2, (p.y + 1.5) / 3.0 * 1.0, 0.0);
+      const PointVisibility a = Q(**scanned, x), b = Q(**indexed, x);
+      EXPECT_EQ(a.visible_area_fraction, b.visible_area_fraction) << x.x << " " << x.y;
+      EXPECT_EQ(a.irradiance, b.irradiance);
+    }
+  }
+  // An index of another scene is refused.
+  auto other = SceneTriangleIndex::Build(MakeScene(Cloud(3, 1)));
+  ASSERT_TRUE(other.ok());
+  auto wrong = LightVisibilityTree::Create(light, scene, {}, other->get());
+  EXPECT_EQ(wrong.status().code(), absl::StatusCode::kInvalidArgument);
+  // A scene with a bad vertex index is refused when indexed.
+  Scene broken = MakeScene(Cloud(2, 1));
+  broken.triangles[1][2] = 99;
+  EXPECT_EQ(SceneTriangleIndex::Build(broken).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST(LightVisibilityCacheTest, ReuseInvalidateAndEvict) {
   const Scene scene = MakeScene(Cloud(60, 51));
   const Bounds receivers = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});
