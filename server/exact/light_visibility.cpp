@@ -1118,21 +1118,25 @@ struct LightVisibilityTree::Impl {
     if (!near_candidates.empty() && !visible.empty()) {
       const XPlane* slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
       Edges edges;
-      // Nearest to P first: seen from P they are the largest, so they leave
-      // the fewest fragments for the others to cut (in index order, a
-      // penumbra under a dense mesh was cut into thousands of pieces). Ties
+      // Largest as seen from P first (area over squared distance, a proxy
+      // of the solid angle): they leave the fewest fragments for the others
+      // to cut. In index order a penumbra under a dense mesh was cut into
+      // thousands of pieces: on veach (32 x 18 points) its penumbra points
+      // took 435 ms each in index order, 182 ms nearest first, 19 ms this
+      // way; a Sponza penumbra point through gRPC 2.1, 2.3 and 1.5 ms. Ties
       // by index, so the order (and the float sums over the fragments) do
       // not depend on the traversal.
-      std::vector<std::pair<double, uint32_t>> by_distance;
-      by_distance.reserve(near_candidates.size());
+      std::vector<std::pair<double, uint32_t>> by_size;
+      by_size.reserve(near_candidates.size());
       for (const uint32_t candidate : near_candidates) {
         const NearOccluder& n = near[candidate];
-        const glm::dvec3 centroid = (points[n.v[0]].input + points[n.v[1]].input + points[n.v[2]].input) / 3.0;
-        const glm::dvec3 offset = centroid - p_local;
-        by_distance.emplace_back(glm::dot(offset, offset), candidate);
+        const glm::dvec3 &a = points[n.v[0]].input, &b = points[n.v[1]].input, &c = points[n.v[2]].input;
+        const glm::dvec3 offset = (a + b + c) / 3.0 - p_local;
+        const double area = glm::length(glm::cross(b - a, c - a));
+        by_size.emplace_back(-area / std::max(glm::dot(offset, offset), 1e-300), candidate);
       }
-      std::sort(by_distance.begin(), by_distance.end());
-      for (size_t i = 0; i < by_distance.size(); ++i) near_candidates[i] = by_distance[i].second;
+      std::sort(by_size.begin(), by_size.end());
+      for (size_t i = 0; i < by_size.size(); ++i) near_candidates[i] = by_size[i].second;
       for (const uint32_t candidate : near_candidates) {
         if (!NearOccluderEdges(s, near[candidate], *slab_top, &edges)) continue;
         Subtract(s, &visible, edges);
