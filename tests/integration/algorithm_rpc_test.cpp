@@ -145,6 +145,12 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_TRUE(second->tree().reused());
   EXPECT_EQ(second->tree().refinements(), first->tree().refinements()) << "a second pass refines nothing";
+  // The point in the open is answered before the tree, on each pass; the
+  // point under the box is hidden by the box's bottom faces (two triangles
+  // together, or one), before the tree too.
+  EXPECT_GE(second->tree().wholly_visible(), 2u);
+  EXPECT_GE(second->tree().wholly_hidden(), 2u);
+  EXPECT_LE(second->tree().wholly_visible() + second->tree().wholly_hidden(), second->tree().queries());
   for (int i = 0; i < 4; ++i) {
     EXPECT_EQ(second->points(i).visible_fraction(), first->points(i).visible_fraction());
     EXPECT_EQ(second->points(i).irradiance(), first->points(i).irradiance());
