@@ -45,7 +45,13 @@
 // Cost. The tree is exact for every line through the light, so its size
 // grows with the arrangement of the occluders' shadow edges on the light:
 // near-linear for a few large occluders, close to quadratic for clouds of
-// small ones (see tests/bench/exact_vs_embree.cpp).
+// small ones (see tests/bench/exact_vs_embree.cpp). Most points of a real
+// frame are wholly lit or wholly in umbra; a query first gathers the
+// occluders near its pyramid (one hierarchy over far and near ones) and
+// decides those points with exact tests on input points alone: none can
+// block (visible), one blocks every segment to the light (hidden), or a
+// few that block the light's vertices leave nothing when subtracted
+// (hidden). Only the rest pay for fragments and the tree.
 //
 // Threads. Queries on one tree may run concurrently. A std::shared_mutex
 // guards the tree: queries descend under a shared lock; a query that reaches
