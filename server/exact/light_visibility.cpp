@@ -617,18 +617,26 @@ struct LightVisibilityTree::Impl {
   // inside. A triangle whose shadow misses by this test blocks nothing, and
   // neither does any part of it (a clipped near occluder).
   bool ShadowMissesLight(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const {
+    const Orient3dFan fans[3] = {{p, v[0], v[1]}, {p, v[1], v[2]}, {p, v[2], v[0]}};
+    // orient3d(y, p, a, b) = -orient3d(p, a, b, y)
+    return ShadowMissesLightBySides(3, [&](size_t e, size_t i) { return -fans[e].Side(light_local[i]); });
+  }
+
+  // The same decision from the sides of the lines from P to the light's
+  // vertices against a convex polygon's edge lines: side_of(edge, vertex).
+  template <typename SideOf>
+  bool ShadowMissesLightBySides(size_t edge_count, const SideOf& side_of) const {
     bool miss_pos = false, miss_neg = false;
-    for (int e = 0; e < 3; ++e) {
-      const glm::dvec3& a = v[e];
-      const glm::dvec3& b = v[(e + 1) % 3];
+    for (size_t e = 0; e < edge_count; ++e) {
       bool all_nonpos = true, all_pos = true, all_zero = true;
-      const Orient3dFan fan(p, a, b);
-      for (const glm::dvec3& y : light_local) {
-        const int side = -fan.Side(y);  // orient3d(y, p, a, b)
+      for (size_t i = 0; i < light_local.size(); ++i) {
+        const int side = side_of(e, i);
         all_nonpos &= side <= 0;
         all_pos &= side > 0;
         all_zero &= side == 0;
       }
+      // Every light vertex on one plane with P and the line: P is on the
+      // line (P is strictly in front of the light), nothing strictly inside.
       if (all_zero) return true;
       miss_pos |= all_nonpos;
       miss_neg |= all_pos;
@@ -734,23 +742,11 @@ struct LightVisibilityTree::Impl {
     // has every light vertex on its <= 0 side (no all-positive line) and
     // some edge has every light vertex > 0 (no all-non-positive line). Sides
     // are linear over each light triangle, so vertices decide.
-    bool miss_pos = false, miss_neg = false;
-    for (const auto& [a, b] : *edges) {
-      EdgeLine line{a, b};
-      bool all_nonpos = true, all_pos = true, all_zero = true;
-      for (const XPoint& y : light_points) {
-        const int side = LineSide(s, line, y);
-        all_nonpos &= side <= 0;
-        all_pos &= side > 0;
-        all_zero &= side == 0;
-      }
-      // Every light vertex on one plane with P and the line: P is on the
-      // line (P is strictly in front of the light), nothing strictly inside.
-      if (all_zero) return false;
-      miss_pos |= all_nonpos;
-      miss_neg |= all_pos;
-    }
-    return !(miss_pos && miss_neg);
+    std::vector<EdgeLine> lines;
+    lines.reserve(edges->size());
+    for (const auto& [a, b] : *edges) lines.push_back({a, b});
+    return !ShadowMissesLightBySides(lines.size(),
+                                     [&](size_t e, size_t i) { return LineSide(s, lines[e], light_points[i]); });
   }
 
   // Whether subtracting the blockers that block the most light vertices (at
