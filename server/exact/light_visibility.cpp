@@ -753,7 +753,10 @@ struct LightVisibilityTree::Impl {
   // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
   // of the light.
   static constexpr size_t kFewBlockers = 16;
-  template <typename Blocker>
+  struct Blocker {
+    uint32_t id;   // occluder id: far ones first, then near ones
+    int vertices;  // light vertices whose segments it blocks
+  };
   bool HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light, std::vector<Blocker>* blockers) const {
     std::stable_sort(blockers->begin(), blockers->end(),
                      [](const Blocker& x, const Blocker& y) { return x.vertices > y.vertices; });
@@ -994,10 +997,6 @@ struct LightVisibilityTree::Impl {
     const PyramidCull cull(p_local, light_local, light_triangles);
     std::vector<uint32_t> near_candidates;
     bool any_far = false;
-    struct Blocker {
-      uint32_t id;
-      int vertices;
-    };
     std::vector<Blocker> blockers;
     uint64_t blocked_vertices = 0;
     const uint32_t far_count = static_cast<uint32_t>(far.size());
