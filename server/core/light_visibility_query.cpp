@@ -1,7 +1,11 @@
 #include "core/light_visibility_query.h"
 
+#include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
+#include <mutex>
+#include <thread>
 
 #include "core/engine.h"
 
@@ -46,20 +50,6 @@ Status CheckLightVisibilityQuery(const LightVisibilityQuery& query, const Scene&
   return absl::OkStatus();
 }
 
-Bounds SnappedReceiverRegion(const std::vector<exact::QueryPoint>& points, const Bounds& scene_bounds) {
-  Bounds batch;
-  for (const auto& p : points) batch.Extend(p.position);
-  const glm::dvec3 extent = scene_bounds.Empty() ? glm::dvec3(1.0) : scene_bounds.Extent();
-  const double cell = std::max({extent.x, extent.y, extent.z, 1e-300}) / 16.0;
-  const glm::dvec3 origin = scene_bounds.Empty() ? glm::dvec3(0.0) : scene_bounds.min;
-  Bounds snapped;
-  // Snap in cell units relative to the scene's corner; a point exactly on a
-  // grid plane gets the cell on both sides, so it is never on the boundary.
-  snapped.min = origin + glm::floor((batch.min - origin) / cell - 0.5) * cell;
-  snapped.max = origin + glm::ceil((batch.max - origin) / cell + 0.5) * cell;
-  return snapped;
-}
-
 StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
@@ -67,41 +57,127 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   VISQ_RETURN_IF_ERROR(CheckLightVisibilityQuery(query, scene));
   const auto start = std::chrono::steady_clock::now();
 
-  // The tree's options: the receiver region and the excluded nodes' triangles.
-  exact::TreeOptions options;
+  // The trees' options: the excluded nodes' triangles, the memory budget.
+  exact::TreeOptions base;
   // One tree may use the whole cache, no more: past that it stops growing.
-  options.max_bytes = engine.light_cache_capacity();
-  options.receiver_bounds = query.receiver_region ? *query.receiver_region
-                                                  : SnappedReceiverRegion(query.points, scene.bounds);
+  base.max_bytes = engine.light_cache_capacity();
   for (const std::string& node_name : query.exclude_nodes) {
     bool found = false;
     for (const SceneNode& node : scene.nodes) {
       if (node.name != node_name) continue;
       found = true;
       for (uint32_t t = node.first_triangle; t < node.first_triangle + node.triangle_count; ++t)
-        options.exclude_triangles.push_back(t);
+        base.exclude_triangles.push_back(t);
     }
     if (!found) return absl::InvalidArgumentError(absl::StrCat("exclude_nodes: no node named '", node_name, "'"));
   }
 
-  const exact::CacheKey key{resident->name, resident->version, exact::HashLight(query.light, options)};
-  bool created = false;
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<exact::LightVisibilityTree> tree,
-                        engine.light_cache().GetOrCreate(key, [&]() -> StatusOr<std::unique_ptr<exact::LightVisibilityTree>> {
-                          created = true;
-                          VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
-                                                engine.TriangleIndexOf(*resident));
-                          return exact::LightVisibilityTree::Create(query.light, scene, options, index.get());
-                        }));
-  (created ? engine.light_tree_misses : engine.light_tree_hits).fetch_add(1);
-  VISQ_ASSIGN_OR_RETURN(std::vector<exact::PointVisibility> points,
-                        tree->QueryBatch(query.points, /*threads=*/0, query.want_polygons, query.deadline));
+  // One tree for the client's region, or one per receiver cell.
+  std::vector<exact::ReceiverCell> groups;
+  if (query.receiver_region) {
+    exact::ReceiverCell all{*query.receiver_region, {}};
+    all.points.resize(query.points.size());
+    for (uint32_t i = 0; i < all.points.size(); ++i) all.points[i] = i;
+    groups.push_back(std::move(all));
+  } else {
+    groups = exact::GroupReceivers(query.points, scene.bounds, kReceiverCellsPerSide);
+  }
+
+  // Work in chunks of one group's points, in order, on every core: a single
+  // cell's batch runs in parallel as well as many cells. The first chunk of
+  // a group to run finds or builds its tree; the others wait for it.
+  struct GroupTree {
+    std::once_flag once;
+    Status status;
+    std::shared_ptr<exact::LightVisibilityTree> tree;
+    bool created = false;
+  };
+  std::vector<GroupTree> trees(groups.size());
+  struct Chunk {
+    uint32_t group, begin, end;
+  };
+  constexpr uint32_t kChunkPoints = 64;
+  std::vector<Chunk> chunks;
+  for (uint32_t g = 0; g < groups.size(); ++g) {
+    const auto n = static_cast<uint32_t>(groups[g].points.size());
+    for (uint32_t b = 0; b < n; b += kChunkPoints) chunks.push_back({g, b, std::min(n, b + kChunkPoints)});
+  }
+  auto get_tree = [&](uint32_t g) {
+    GroupTree& t = trees[g];
+    exact::TreeOptions options = base;
+    options.receiver_bounds = groups[g].box;
+    const exact::CacheKey key{resident->name, resident->version, exact::HashLight(query.light, options)};
+    StatusOr<std::shared_ptr<exact::LightVisibilityTree>> tree = engine.light_cache().GetOrCreate(
+        key, [&]() -> StatusOr<std::unique_ptr<exact::LightVisibilityTree>> {
+          t.created = true;
+          VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
+                                engine.TriangleIndexOf(*resident));
+          return exact::LightVisibilityTree::Create(query.light, scene, options, index.get());
+        });
+    if (tree.ok()) {
+      t.tree = std::move(*tree);
+    } else {
+      t.status = tree.status();
+    }
+  };
 
   LightVisibilityAnswer answer;
-  answer.points = std::move(points);
-  answer.tree = tree->Stats();
-  answer.tree_reused = !created;
-  answer.receiver_region = *options.receiver_bounds;
+  answer.points.resize(query.points.size());
+  std::atomic<size_t> next{0}, answered{0};
+  std::mutex error_mutex;
+  Status error;
+  auto fail = [&](Status status) {
+    std::lock_guard lock(error_mutex);
+    if (error.ok()) error = std::move(status);
+    next.store(chunks.size());
+  };
+  auto work = [&]() {
+    for (size_t c = next.fetch_add(1); c < chunks.size(); c = next.fetch_add(1)) {
+      const Chunk& chunk = chunks[c];
+      GroupTree& t = trees[chunk.group];
+      std::call_once(t.once, get_tree, chunk.group);
+      if (!t.status.ok()) return fail(t.status);
+      for (uint32_t k = chunk.begin; k < chunk.end; ++k) {
+        if (std::chrono::steady_clock::now() > query.deadline) {
+          return fail(absl::DeadlineExceededError(absl::StrCat("deadline passed with ",
+                                                               query.points.size() - answered.load(), " of ",
+                                                               query.points.size(), " points left")));
+        }
+        const uint32_t i = groups[chunk.group].points[k];
+        StatusOr<exact::PointVisibility> r = t.tree->Query(query.points[i], query.want_polygons);
+        if (!r.ok()) return fail(Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message())));
+        answer.points[i] = std::move(*r);
+        answered.fetch_add(1, std::memory_order_relaxed);
+      }
+    }
+  };
+  const size_t workers = std::clamp<size_t>(std::thread::hardware_concurrency(), 1, chunks.size());
+  std::vector<std::thread> pool;
+  for (size_t w = 1; w < workers; ++w) pool.emplace_back(work);
+  work();
+  for (auto& th : pool) th.join();
+  if (!error.ok()) return error;
+
+  answer.tree_reused = true;
+  for (size_t g = 0; g < groups.size(); ++g) {
+    const exact::TreeStats st = trees[g].tree->Stats();
+    answer.tree.nodes += st.nodes;
+    answer.tree.memory_bytes += st.memory_bytes;
+    answer.tree.queries += st.queries;
+    answer.tree.hits += st.hits;
+    answer.tree.refinements += st.refinements;
+    answer.tree.unrefined_leaf_visits += st.unrefined_leaf_visits;
+    answer.tree.wholly_visible += st.wholly_visible;
+    answer.tree.wholly_hidden += st.wholly_hidden;
+    answer.tree.far_occluders += st.far_occluders;
+    answer.tree.near_occluders += st.near_occluders;
+    answer.tree_reused &= !trees[g].created;
+    answer.trees_created += trees[g].created ? 1 : 0;
+    answer.receiver_region.Extend(groups[g].box.min);
+    answer.receiver_region.Extend(groups[g].box.max);
+  }
+  answer.trees = groups.size();
+  (answer.trees_created > 0 ? engine.light_tree_misses : engine.light_tree_hits).fetch_add(1);
   answer.compute_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   return answer;

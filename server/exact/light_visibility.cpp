@@ -1,6 +1,7 @@
 #include "exact/light_visibility.h"
 
 #include <algorithm>
+#include <array>
 #include <bit>
 #include <atomic>
 #include <cmath>
@@ -1734,6 +1735,39 @@ size_t LightVisibilityTree::MemoryBytes() const {
 double LightVisibilityTree::light_area() const { return impl_->light_area; }
 
 // ---------------------------------------------------------------------------
+std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, const Bounds& scene_bounds,
+                                         int cells_per_side) {
+  const glm::dvec3 extent = scene_bounds.Empty() ? glm::dvec3(1.0) : scene_bounds.Extent();
+  const glm::dvec3 origin = scene_bounds.Empty() ? glm::dvec3(0.0) : scene_bounds.min;
+  const double cell = std::max({extent.x, extent.y, extent.z, 1e-300}) / std::max(cells_per_side, 1);
+  // Cell coordinates are clamped so that points far outside the scene stay
+  // integers; such a cell's box is widened to its points below.
+  constexpr double kLimit = double(int64_t{1} << 40);
+  auto coordinate = [&](double x, int axis) {
+    return static_cast<int64_t>(std::clamp(std::floor((x - origin[axis]) / cell), -kLimit, kLimit));
+  };
+  absl::flat_hash_map<std::array<int64_t, 3>, uint32_t> by_key;
+  std::vector<ReceiverCell> cells;
+  for (uint32_t i = 0; i < points.size(); ++i) {
+    const glm::dvec3& x = points[i].position;
+    const std::array<int64_t, 3> key = {coordinate(x.x, 0), coordinate(x.y, 1), coordinate(x.z, 2)};
+    auto [it, inserted] = by_key.try_emplace(key, static_cast<uint32_t>(cells.size()));
+    if (inserted) {
+      ReceiverCell c;
+      for (int axis = 0; axis < 3; ++axis) {
+        c.box.min[axis] = origin[axis] + static_cast<double>(key[axis]) * cell;
+        c.box.max[axis] = origin[axis] + static_cast<double>(key[axis] + 1) * cell;
+      }
+      cells.push_back(std::move(c));
+    }
+    ReceiverCell& c = cells[it->second];
+    // Rounding may put a point on the far side of its cube's computed face.
+    c.box.Extend(x);
+    c.points.push_back(i);
+  }
+  return cells;
+}
+
 uint64_t HashLight(const AreaLight& light, const TreeOptions& options) {
   uint64_t h = 1469598103934665603ull;  // FNV-1a over the bit patterns
   auto mix = [&](const void* data, size_t n) {

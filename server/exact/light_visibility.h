@@ -204,6 +204,23 @@ class LightVisibilityTree {
   std::unique_ptr<Impl> impl_;
 };
 
+// Receivers grouped for their trees: the cubes of a grid over the scene
+// (the largest extent / cells_per_side a side, anchored at the scene's lower
+// corner) that a batch's points fall in. A tree's cost follows its receiver
+// box: occluders strictly separated from the box are cached in the tree,
+// the rest are clipped by every query. One box around a whole frame holds
+// every occluder in its shaft as "near", and one image tile of a deep room
+// spans the room's depth; small cubes keep most occluders far whatever the
+// view. A later batch over the same surfaces finds the same cells, so their
+// cached trees are reused.
+struct ReceiverCell {
+  Bounds box;                     // the grid cube (widened only to hold its points)
+  std::vector<uint32_t> points;   // indices into the batch, increasing
+};
+// Cells in order of their first point. Points must be finite.
+std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, const Bounds& scene_bounds,
+                                         int cells_per_side);
+
 // A 64-bit hash of the light (and of the tree options, which change the
 // tree), for cache keys.
 uint64_t HashLight(const AreaLight& light, const TreeOptions& options = {});

@@ -84,6 +84,8 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
   tree->set_wholly_hidden(answer.tree.wholly_hidden);
   tree->set_far_occluders(answer.tree.far_occluders);
   tree->set_near_occluders(answer.tree.near_occluders);
+  tree->set_trees(static_cast<uint32_t>(answer.trees));
+  tree->set_trees_created(static_cast<uint32_t>(answer.trees_created));
   ToProto(answer.receiver_region, tree->mutable_receiver_region());
   auto* accuracy = out->mutable_accuracy();
   accuracy->set_method("plucker-exact");

@@ -255,8 +255,8 @@ Status AnswerLightVisibility(Engine& engine, const LightVisibilityQuery& query, 
   timing->set_compute_ms(answer.compute_ms);
   timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
   timing->set_total_ms(log.ElapsedMs());
-  log.Info("{} point(s), tree {} ({} nodes, {} refinements), {:.2f} ms", query.points.size(),
-           answer.tree_reused ? "reused" : "built", answer.tree.nodes, answer.tree.refinements, answer.compute_ms);
+  log.Info("{} point(s), {} tree(s), {} built ({} nodes, {} refinements), {:.2f} ms", query.points.size(),
+           answer.trees, answer.trees_created, answer.tree.nodes, answer.tree.refinements, answer.compute_ms);
   return absl::OkStatus();
 }
 

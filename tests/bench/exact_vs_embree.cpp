@@ -11,11 +11,14 @@
 //
 // The scene is a BenchCase (scene, light, receiver points): MakeProcedural()
 // builds one; MakeFromGltf() takes the points a pinhole camera sees in a
-// glTF scene (one per pixel) and groups them by image tile, one tree each:
+// glTF scene (one per pixel) and groups them as the server groups a batch:
+// by cubes of 1/32 of the scene's size (exact::GroupReceivers), one tree
+// each; --cells-per-side=0 groups them by image tile instead:
 //
 //   visq_bench_exact --gltf=../shared/scenes/sponza_dabrovic/sponza.gltf
 //     --light='-1,10,-0.5;1,10,-0.5;1,10,0.5;-1,10,0.5' --eye=-10,2,0
-//     --look-at=10,3,0 [--width=1280 --height=720 --tile-pixels=32]
+//     --look-at=10,3,0 [--width=1280 --height=720]
+//     [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32]
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -50,6 +53,7 @@ struct BenchCase {
   // tiles x tiles over the receivers' x-y extent.
   std::vector<uint32_t> tile_of_point;
   uint32_t tile_count = 0;
+  std::vector<Bounds> tile_boxes;  // receiver cells' boxes; empty: each tile's points' box
 };
 
 struct Params {
@@ -67,6 +71,9 @@ struct Params {
   glm::dvec3 eye{0.0}, look_at{1.0, 0.0, 0.0};
   int width = 1280, height = 720;
   int tile_pixels = 32;       // image tiles of this many pixels a side, one tree each
+  // Receiver cells per side of the scene (exact::GroupReceivers), one tree
+  // each, as the server groups a batch; 0: image tiles instead.
+  int cells_per_side = 32;
   double tree_max_mb = 64;    // each tree's memory budget (TreeOptions::max_bytes)
 };
 
@@ -189,6 +196,14 @@ std::optional<BenchCase> MakeFromGltf(const Params& p) {
     const int px = static_cast<int>(i % p.width), py = static_cast<int>(i / p.width);
     bc.tile_of_point.push_back(static_cast<uint32_t>((py / p.tile_pixels) * tiles_x + px / p.tile_pixels));
   }
+  if (p.cells_per_side > 0) {
+    const auto cells = visq::exact::GroupReceivers(bc.points, bc.scene.bounds, p.cells_per_side);
+    for (uint32_t c = 0; c < cells.size(); ++c) {
+      for (uint32_t i : cells[c].points) bc.tile_of_point[i] = c;
+      bc.tile_boxes.push_back(cells[c].box);
+    }
+    bc.tile_count = static_cast<uint32_t>(cells.size());
+  }
   return bc;
 }
 
@@ -198,9 +213,15 @@ double Seconds(std::chrono::steady_clock::time_point t0) {
 
 int Run(const BenchCase& bc, const Params& p) {
   const int threads = p.threads > 0 ? p.threads : static_cast<int>(std::thread::hardware_concurrency());
-  std::printf("scene %s: %zu triangles, %zu points, %d threads, %d rays/point, %u receiver tiles\n",
+  std::printf("scene %s: %zu triangles, %zu points, %d threads, %d rays/point, %u receiver %s\n",
               bc.name.c_str(), bc.scene.TriangleCount(), bc.points.size(), threads, p.rays,
-              bc.tile_of_point.empty() ? static_cast<unsigned>(p.tiles * p.tiles) : bc.tile_count);
+              bc.tile_of_point.empty() ? static_cast<unsigned>(p.tiles * p.tiles) : bc.tile_count,
+              bc.tile_boxes.empty() ? "tiles" : "cells");
+  if (!bc.tile_boxes.empty()) {
+    const glm::dvec3 e = bc.scene.bounds.Extent();
+    std::printf("receiver cells: cubes of %.3g (the scene's largest extent / %d)\n",
+                std::max({e.x, e.y, e.z}) / p.cells_per_side, p.cells_per_side);
+  }
 
   // Exact: per tile, build a tree and query its points (first pass, which
   // grows it), then query again (second pass, reusing it). Tiles run in
@@ -246,6 +267,7 @@ int Run(const BenchCase& bc, const Params& p) {
     const auto c0 = std::chrono::steady_clock::now();
     Bounds tb;
     for (size_t i : tile_points[t]) tb.Extend(bc.points[i].position);
+    if (!bc.tile_boxes.empty()) tb = bc.tile_boxes[t];
     visq::exact::TreeOptions options;
     options.receiver_bounds = tb;
     options.max_bytes = static_cast<size_t>(p.tree_max_mb * (1 << 20));
@@ -451,11 +473,12 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--height")) p.height = std::atoi(v);
     else if (const char* v = value("--tile-pixels")) p.tile_pixels = std::max(1, std::atoi(v));
     else if (const char* v = value("--tree-max-mb")) p.tree_max_mb = std::atof(v);
+    else if (const char* v = value("--cells-per-side")) p.cells_per_side = std::atoi(v);
     else {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
-                   "[--height=720] [--tile-pixels=32] [--tree-max-mb=64] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
+                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=64] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
       return 2;
     }
   }

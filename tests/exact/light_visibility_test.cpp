@@ -705,6 +705,68 @@ TEST(LightVisibilityTest, SceneIndexSelectsTheSameOccluders) {
   EXPECT_EQ(SceneTriangleIndex::Build(broken).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(LightVisibilityTest, ReceiverCellsHoldTheirPointsAndGiveTheSameAnswers) {
+  // Far from the origin, so that the cubes' faces round: every cell's box
+  // must still hold its points (a tree refuses points outside its box).
+  const glm::dvec3 offset(1e6, -2e6, 3e5);
+  std::vector<Tri> tris = Transform(Cloud(120, 7, 0.2), 1.0, offset);
+  const Scene scene = MakeScene(tris);
+  std::vector<QueryPoint> points;
+  for (const glm::dvec3& p : FloorPoints(40, 23)) points.push_back({offset + p, glm::dvec3(0, 0, 1), std::nullopt});
+  // Points on the cubes' faces, and far outside the scene.
+  const double cell = std::max({scene.bounds.Extent().x, scene.bounds.Extent().y, scene.bounds.Extent().z}) / 8;
+  points.push_back({scene.bounds.min + glm::dvec3(cell, 2 * cell, 0.0), glm::dvec3(0, 0, 1), std::nullopt});
+  points.push_back({offset + glm::dvec3(1e5, -3e4, 0.0), glm::dvec3(0, 0, 1), std::nullopt});
+  const auto cells = GroupReceivers(points, scene.bounds, 8);
+  ASSERT_GT(cells.size(), 4u);
+  std::vector<int> seen(points.size(), 0);
+  for (const ReceiverCell& c : cells) {
+    ASSERT_FALSE(c.points.empty());
+    EXPECT_TRUE(std::is_sorted(c.points.begin(), c.points.end()));
+    for (uint32_t i : c.points) {
+      ++seen[i];
+      const glm::dvec3& x = points[i].position;
+      EXPECT_TRUE(glm::all(glm::greaterThanEqual(x, c.box.min)) && glm::all(glm::lessThanEqual(x, c.box.max)))
+          << "point " << i;
+    }
+    // A cube of the grid, unless it had to grow to hold a point.
+    const glm::dvec3 e = c.box.Extent();
+    EXPECT_GE(std::min({e.x, e.y, e.z}), cell * (1 - 1e-9));
+  }
+  for (size_t i = 0; i < points.size(); ++i) EXPECT_EQ(seen[i], 1) << "point " << i;
+  // The same grouping for the same points: cached trees are found again.
+  const auto again = GroupReceivers(points, scene.bounds, 8);
+  ASSERT_EQ(again.size(), cells.size());
+  for (size_t c = 0; c < cells.size(); ++c) {
+    EXPECT_EQ(again[c].box.min, cells[c].box.min);
+    EXPECT_EQ(again[c].box.max, cells[c].box.max);
+  }
+  // One tree per cell answers as one tree over all the points does.
+  AreaLight light = SquareLight(2.0, 0.7);
+  for (auto& v : light.vertices) v += offset;
+  TreeOptions whole;
+  whole.receiver_bounds = Bounds();
+  for (const QueryPoint& q : points) whole.receiver_bounds->Extend(q.position);
+  auto one = LightVisibilityTree::Create(light, scene, whole);
+  ASSERT_TRUE(one.ok()) << one.status();
+  int penumbra = 0;
+  for (const ReceiverCell& c : cells) {
+    TreeOptions options;
+    options.receiver_bounds = c.box;
+    auto tree = LightVisibilityTree::Create(light, scene, options);
+    ASSERT_TRUE(tree.ok()) << tree.status();
+    for (uint32_t i : c.points) {
+      auto a = (*tree)->Query(points[i]);
+      auto b = (*one)->Query(points[i]);
+      ASSERT_TRUE(a.ok() && b.ok()) << "point " << i;
+      EXPECT_NEAR(a->visible_area_fraction, b->visible_area_fraction, 1e-12) << "point " << i;
+      EXPECT_NEAR(a->irradiance, b->irradiance, 1e-12 * std::max(1.0, b->irradiance)) << "point " << i;
+      penumbra += b->visible_area_fraction > 0 && b->visible_area_fraction < 1;
+    }
+  }
+  EXPECT_GT(penumbra, 20) << "the comparison must include partly lit points";
+}
+
 TEST(LightVisibilityCacheTest, ReuseInvalidateAndEvict) {
   const Scene scene = MakeScene(Cloud(60, 51));
   const Bounds receivers = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});

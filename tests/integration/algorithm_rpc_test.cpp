@@ -141,9 +141,15 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
   EXPECT_EQ(first->points(0).visible_polygons_size() > 0, true);
   EXPECT_EQ(first->accuracy().method(), "plucker-exact");
 
+  // The points lie in four cubes of the receiver grid: one tree each.
+  EXPECT_EQ(first->tree().trees(), 4u);
+  EXPECT_EQ(first->tree().trees_created(), 4u);
+
   auto second = client_->LightVisibility(request);
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_TRUE(second->tree().reused());
+  EXPECT_EQ(second->tree().trees(), 4u);
+  EXPECT_EQ(second->tree().trees_created(), 0u);
   EXPECT_EQ(second->tree().refinements(), first->tree().refinements()) << "a second pass refines nothing";
   // The point in the open is answered before the tree, on each pass; the
   // point under the box is hidden by the box's bottom faces (two triangles
@@ -157,6 +163,33 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
   }
   EXPECT_GE(second->cache().hits(), 1u);
   EXPECT_GT(second->cache().bytes(), 0u);
+}
+
+TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
+  // A batch spread over the floor is split into receiver cells, one tree
+  // each; one tree for a region the client names must give the same answers.
+  v1::LightVisibilityRequest cells = CeilingLight();
+  for (int i = 0; i < 15; ++i)
+    for (int j = 0; j < 15; ++j) AddPoint(cells, -0.95 + 0.135 * i, 0.001, -0.95 + 0.135 * j);
+  v1::LightVisibilityRequest region = cells;
+  Set(region.mutable_receiver_region()->mutable_min(), -1, 0, -1);
+  Set(region.mutable_receiver_region()->mutable_max(), 1, 0.01, 1);
+  auto split = client_->LightVisibility(cells);
+  ASSERT_TRUE(split.ok()) << split.status();
+  auto whole = client_->LightVisibility(region);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  EXPECT_GT(split->tree().trees(), 50u);
+  EXPECT_EQ(whole->tree().trees(), 1u);
+  ASSERT_EQ(split->points_size(), whole->points_size());
+  int penumbra = 0;
+  for (int i = 0; i < split->points_size(); ++i) {
+    EXPECT_NEAR(split->points(i).visible_fraction(), whole->points(i).visible_fraction(), 1e-12) << i;
+    EXPECT_NEAR(split->points(i).irradiance(), whole->points(i).irradiance(), 1e-9) << i;
+    const double f = whole->points(i).visible_fraction();
+    penumbra += f > 0 && f < 1;
+  }
+  EXPECT_GT(penumbra, 5) << "the comparison must include partly lit points";
+  EXPECT_EQ(split->tree().queries(), 225u);
 }
 
 TEST_F(AlgorithmRpcTest, LightVisibilityStreamMatchesUnary) {
