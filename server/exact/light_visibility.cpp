@@ -782,6 +782,15 @@ struct LightVisibilityTree::Impl {
     return false;
   }
 
+  // A triangle's size as seen from p: its area over its squared distance,
+  // a proxy of its solid angle (it orders subtractions; any order gives the
+  // same answer).
+  static double ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]) {
+    const glm::dvec3 offset = (v[0] + v[1] + v[2]) / 3.0 - p;
+    const double area = glm::length(glm::cross(v[1] - v[0], v[2] - v[0]));
+    return area / std::max(glm::dot(offset, offset), 1e-300);
+  }
+
   // The point where a fragment edge support meets a plane.
   const XPoint* Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const {
     const LightTriangle& t = light_triangles[f.triangle];
@@ -1061,13 +1070,25 @@ struct LightVisibilityTree::Impl {
         } else if (node.kind == kUndefined && MemoryBytesLocked() >= max_bytes) {
           // The tree is at its budget: resolve this fragment against the
           // leaf's occluders here, without growing the tree.
+          // Only the occluders whose shadows can meet the light, largest
+          // first, as the near ones: a leaf of a dense room lists
+          // thousands, and in index order a penumbra point was cut into
+          // thousands of pieces (veach-ajar at 160 x 90 points: 70 s for
+          // the first pass in index order, 32 s this way).
           unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
           std::vector<Fragment> pieces;
           pieces.push_back(std::move(f));
+          std::vector<std::pair<double, uint32_t>> by_size;
           for (const uint32_t index : lists[node.b]) {
-            const FarOccluder& o = far[index];
-            const XPoint* v[3] = {&points[o.v[0]], &points[o.v[1]], &points[o.v[2]]};
-            if (cull.Misses({v[0]->input, v[1]->input, v[2]->input})) continue;
+            const uint32_t* t = far[index].v;
+            const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+            if (cull.Misses(v) || ShadowMissesLight(p_local, v)) continue;
+            by_size.emplace_back(-ApparentSize(p_local, v), index);
+          }
+          std::sort(by_size.begin(), by_size.end());
+          for (const auto& [size, index] : by_size) {
+            const uint32_t* t = far[index].v;
+            const XPoint* v[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
             Subtract(s, &pieces, {{v[0], v[1]}, {v[1], v[2]}, {v[2], v[0]}});
             if (pieces.empty()) break;
           }
@@ -1125,11 +1146,9 @@ struct LightVisibilityTree::Impl {
       std::vector<std::pair<double, uint32_t>> by_size;
       by_size.reserve(near_candidates.size());
       for (const uint32_t candidate : near_candidates) {
-        const NearOccluder& n = near[candidate];
-        const glm::dvec3 &a = points[n.v[0]].input, &b = points[n.v[1]].input, &c = points[n.v[2]].input;
-        const glm::dvec3 offset = (a + b + c) / 3.0 - p_local;
-        const double area = glm::length(glm::cross(b - a, c - a));
-        by_size.emplace_back(-area / std::max(glm::dot(offset, offset), 1e-300), candidate);
+        const uint32_t* t = near[candidate].v;
+        const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+        by_size.emplace_back(-ApparentSize(p_local, v), candidate);
       }
       std::sort(by_size.begin(), by_size.end());
       for (size_t i = 0; i < by_size.size(); ++i) near_candidates[i] = by_size[i].second;
