@@ -1522,7 +1522,10 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   // repeat positions (flat shading, per-face vertices), and one point object
   // per position lets a split vertex be recognised as lying on an edge plane
   // by construction instead of by an exact evaluation (see EdgePlane).
-  std::vector<int32_t> remap(scene.positions.size(), -1);
+  // By scene vertex index, for the triangles visited only: a vector over
+  // all the scene's positions cost a 4 MB fill per tree on a 382K-triangle
+  // room.
+  absl::flat_hash_map<uint32_t, uint32_t> remap;
   struct PositionHash {
     size_t operator()(const glm::dvec3& p) const {
       size_t h = 0;
@@ -1532,7 +1535,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
       return h;
     }
   };
-  std::unordered_map<glm::dvec3, uint32_t, PositionHash> by_position;
+  absl::flat_hash_map<glm::dvec3, uint32_t, PositionHash> by_position;
   std::vector<glm::dvec3> occ_local;
   struct Pending { uint32_t v[3]; int8_t side[3]; uint32_t tri; bool far; bool two_sided; };
   std::vector<Pending> pending;
@@ -1622,13 +1625,14 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
       }
     }
     for (int c = 0; c < 3; ++c) {
-      if (remap[tri[c]] < 0) {
+      auto [known, first] = remap.try_emplace(tri[c], 0u);
+      if (first) {
         auto [it, inserted] =
             by_position.try_emplace(v[c], static_cast<uint32_t>(occ_local.size()));
         if (inserted) occ_local.push_back(v[c]);
-        remap[tri[c]] = static_cast<int32_t>(it->second);
+        known->second = it->second;
       }
-      p.v[c] = static_cast<uint32_t>(remap[tri[c]]);
+      p.v[c] = known->second;
     }
     p.tri = static_cast<uint32_t>(ti);
     if (p.far) {
