@@ -37,10 +37,12 @@
 // touchers, which never block. Near occluders cost O(count) per query (each
 // is clipped, and tested against the light before any fragment work), so
 // the tree only pays off for receivers grouped tightly: without receiver
-// bounds every occluder is near (correct, but nothing is cached). Group
-// receivers per triangle, node or tile and pass their bounds, as the paper
-// does; the shaft (convex hull of light and receiver box, exact) then also
-// culls everything that cannot matter.
+// bounds every occluder is near (correct, but nothing is cached). The paper
+// groups receivers per triangle; GroupReceivers groups them by cubes of a
+// grid over the scene (the server's default, one tree per cube), which
+// stays tight whatever the view, where an image tile of a deep room spans
+// its depth. The shaft (convex hull of light and receiver box, exact) then
+// also culls everything that cannot matter.
 //
 // Cost. The tree is exact for every line through the light, so its size
 // grows with the arrangement of the occluders' shadow edges on the light:
