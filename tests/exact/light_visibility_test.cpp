@@ -705,6 +705,26 @@ TEST(LightVisibilityTest, SceneIndexSelectsTheSameOccluders) {
   EXPECT_EQ(SceneTriangleIndex::Build(broken).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(LightVisibilityTest, AnOccluderThatHidTheLastPointIsNotThisPointsOwnTriangle) {
+  // A query first tries the occluder that hid the whole light from the
+  // previous point. A point lying (a rounding below) on that very triangle,
+  // named as its receiver, must not be hidden by it.
+  const Scene scene = MakeScene({{glm::dvec3(-3, -3, 1), glm::dvec3(3, -3, 1), glm::dvec3(0, 4, 1)}});
+  TreeOptions options;
+  options.receiver_bounds = Box({-1, -1, 0}, {1, 1, 1});
+  auto tree = LightVisibilityTree::Create(SquareLight(2.0, 0.5), scene, options);
+  ASSERT_TRUE(tree.ok()) << tree.status();
+  for (int round = 0; round < 2; ++round) {
+    auto under = (*tree)->Query({glm::dvec3(0.2, 0.1, 0.0), glm::dvec3(0, 0, 1), std::nullopt});
+    ASSERT_TRUE(under.ok());
+    EXPECT_EQ(under->visible_area_fraction, 0.0);
+    auto on = (*tree)->Query({glm::dvec3(0.2, 0.1, 1.0 - 1e-12), glm::dvec3(0, 0, 1), 0u});
+    ASSERT_TRUE(on.ok());
+    EXPECT_EQ(on->visible_area_fraction, 1.0) << "round " << round;
+  }
+  EXPECT_EQ((*tree)->Stats().wholly_hidden, 2u);
+}
+
 TEST(LightVisibilityTest, ReceiverCellsHoldTheirPointsAndGiveTheSameAnswers) {
   // Far from the origin, so that the cubes' faces round: every cell's box
   // must still hold its points (a tree refuses points outside its box).
