@@ -192,6 +192,26 @@ TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
   EXPECT_EQ(split->tree().queries(), 225u);
 }
 
+TEST_F(AlgorithmRpcTest, LightVisibilityBatchOverManyCellsStopsAtTheDeadline) {
+  // 160,000 floor points over 1,024 receiver cells, each a tree to build
+  // (a light no other test uses): about a second here, far more than the
+  // deadline. The server stops between points and answers the next request.
+  v1::LightVisibilityRequest big = CeilingLight();
+  for (auto& v : *big.mutable_light()->mutable_vertices()) v.set_y(1.98);
+  for (int i = 0; i < 400; ++i)
+    for (int j = 0; j < 400; ++j) AddPoint(big, -0.99 + 0.00495 * i, 0.001, -0.99 + 0.00495 * j);
+  client::Client impatient(client::ClientOptions{.address = server_->address(), .deadline = std::chrono::milliseconds(150)});
+  const auto start = std::chrono::steady_clock::now();
+  const Status status = impatient.LightVisibility(big).status();
+  EXPECT_EQ(status.code(), absl::StatusCode::kDeadlineExceeded) << status;
+  v1::LightVisibilityRequest small = CeilingLight();
+  AddPoint(small, 0.0, 1.5, 0.0);
+  auto next = client_->LightVisibility(small);
+  ASSERT_TRUE(next.ok()) << next.status();
+  EXPECT_NEAR(next->points(0).visible_fraction(), 1.0, 1e-9);
+  EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(20));
+}
+
 TEST_F(AlgorithmRpcTest, LightVisibilityStreamMatchesUnary) {
   std::vector<v1::LightVisibilityRequest> batches;
   v1::LightVisibilityRequest unary = CeilingLight();
