@@ -1838,7 +1838,8 @@ std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, con
   // integers; such a cell's box is widened to its points below.
   constexpr double kLimit = double(int64_t{1} << 40);
   auto coordinate = [&](double x, int axis) {
-    return static_cast<int64_t>(std::clamp(std::floor((x - origin[axis]) / cell), -kLimit, kLimit));
+    const double q = std::floor((x - origin[axis]) / cell);  // NaN only past the doubles' range
+    return std::isnan(q) ? int64_t{0} : static_cast<int64_t>(std::clamp(q, -kLimit, kLimit));
   };
   absl::flat_hash_map<std::array<int64_t, 3>, uint32_t> by_key;
   std::vector<ReceiverCell> cells;
@@ -1852,6 +1853,10 @@ std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, con
         c.box.min[axis] = origin[axis] + static_cast<double>(key[axis]) * cell;
         c.box.max[axis] = origin[axis] + static_cast<double>(key[axis] + 1) * cell;
       }
+      // A cube beyond the doubles' range (a scene near 1e308 wide): the
+      // box of its points alone.
+      const auto finite = [](const glm::dvec3& x) { return std::isfinite(x.x + x.y + x.z); };
+      if (!finite(c.box.min) || !finite(c.box.max)) c.box = Bounds();
       cells.push_back(std::move(c));
     }
     ReceiverCell& c = cells[it->second];

@@ -761,6 +761,21 @@ TEST(LightVisibilityTest, ReceiverCellsHoldTheirPointsAndGiveTheSameAnswers) {
     EXPECT_EQ(again[c].box.min, cells[c].box.min);
     EXPECT_EQ(again[c].box.max, cells[c].box.max);
   }
+  // A scene near the doubles' range: every box stays finite.
+  Bounds vast;
+  vast.Extend(glm::dvec3(-1e308));
+  vast.Extend(glm::dvec3(1e308));
+  const std::vector<QueryPoint> extremes = {{glm::dvec3(1.7e308, 0, 0), std::nullopt, std::nullopt},
+                                            {glm::dvec3(-1e308, 1e308, 3), std::nullopt, std::nullopt}};
+  for (const ReceiverCell& c : GroupReceivers(extremes, vast, 32)) {
+    for (int axis = 0; axis < 3; ++axis) {
+      EXPECT_TRUE(std::isfinite(c.box.min[axis]) && std::isfinite(c.box.max[axis]));
+    }
+    for (uint32_t i : c.points) {
+      EXPECT_TRUE(glm::all(glm::greaterThanEqual(extremes[i].position, c.box.min)) &&
+                  glm::all(glm::lessThanEqual(extremes[i].position, c.box.max)));
+    }
+  }
   // One tree per cell answers as one tree over all the points does.
   AreaLight light = SquareLight(2.0, 0.7);
   for (auto& v : light.vertices) v += offset;
