@@ -33,6 +33,9 @@ int main(int argc, char** argv) {
       ->envname("VISQ_MAX_SCENE_BYTES")->capture_default_str();
   app.add_option("--light-cache-bytes", light_cache_bytes, "Bound on the exact light-visibility trees kept (LRU)")
       ->envname("VISQ_LIGHT_CACHE_BYTES")->capture_default_str();
+  app.add_option("--light-receiver-cells", options.engine.light_receiver_cells,
+                 "LightVisibility trees per side of the scene (receiver cubes of its extent / N)")
+      ->envname("VISQ_LIGHT_RECEIVER_CELLS")->check(CLI::Range(1, 4096))->capture_default_str();
   app.add_option("--worker-threads", options.worker_threads, "Threads for blocking request work")
       ->envname("VISQ_WORKER_THREADS")->check(CLI::Range(1, 256))->capture_default_str();
   app.add_option("--log-level", log_level, "trace, debug, info, warn, error")->envname("VISQ_LOG_LEVEL")->capture_default_str();

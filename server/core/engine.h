@@ -34,6 +34,10 @@ struct EngineOptions {
   uint64_t max_scene_bytes = 8ull << 30;
   // Bound on the exact light-visibility trees kept (LRU beyond it).
   size_t light_cache_bytes = 256ull << 20;
+  // LightVisibility batches without a receiver_region are grouped into cubes
+  // of the scene's largest extent / this, one tree each (exact::GroupReceivers).
+  // More for large open worlds, where 1/32 of the world is a wide shaft.
+  int light_receiver_cells = 32;
   // Load every scene of the repository at start (resident from the first
   // request on). Either way, a request naming a scene that is stored but not
   // resident loads it first (replicas sharing one repository rely on this).
@@ -138,6 +142,7 @@ class Engine {
   std::atomic<uint64_t> light_tree_hits{0};
   std::atomic<uint64_t> light_tree_misses{0};
   size_t light_cache_capacity() const { return options_.light_cache_bytes; }
+  int light_receiver_cells() const { return options_.light_receiver_cells; }
 
   const gpu::DeviceInfo& device() const { return gpu_->device(); }
   gpu::GpuWorker& gpu() { return *gpu_; }

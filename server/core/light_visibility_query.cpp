@@ -80,7 +80,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     for (uint32_t i = 0; i < all.points.size(); ++i) all.points[i] = i;
     groups.push_back(std::move(all));
   } else {
-    groups = exact::GroupReceivers(query.points, scene.bounds, kReceiverCellsPerSide);
+    groups = exact::GroupReceivers(query.points, scene.bounds, engine.light_receiver_cells());
   }
 
   // Work in chunks of one group's points, in order, on every core: a single

@@ -38,12 +38,6 @@ struct LightVisibilityAnswer {
 
 inline constexpr size_t kMaxLightVisibilityPoints = 1'000'000;  // per request message
 inline constexpr size_t kMaxLightVertices = 1024;
-// Without a receiver_region, the points are grouped into cubes of the
-// scene's largest extent / 32 a side, one cached tree each (see
-// exact::GroupReceivers). On Sponza 1/32 (about a metre) was as fast as
-// 32-pixel image tiles; on the veach-ajar room it let 160 x 90 points
-// finish, which image tiles did not in 300 s.
-inline constexpr int kReceiverCellsPerSide = 32;
 
 // Every check of the query against its scene that needs no tree: what is
 // refused before any work starts.
