@@ -12,6 +12,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "proto_builders.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
 #include "test_support.h"
@@ -24,6 +25,7 @@ namespace fs = std::filesystem;
 using client::Client;
 using testing::ScratchDir;
 using testing::ServerProcess;
+using testing::Set;
 
 class SceneRpcTest : public ::testing::Test {
  protected:
@@ -412,6 +414,27 @@ TEST_F(SceneRpcTest, KillDuringUploadLeavesNoPartialSceneAndKeepsAcknowledgedOne
 
 namespace visq {
 namespace {
+
+TEST_F(SceneRpcTest, LightReceiverCellsFlagSetsTheTreesOfABatch) {
+  // One receiver cube over the whole scene: a batch spread over the floor
+  // gets one tree (the default, 32 a side, gives it one per cube).
+  client_.reset();
+  server_->Stop();
+  StartServer({"--light-receiver-cells", "1"});
+  v1::LightVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  for (const auto& [x, z] : {std::pair{-0.25, -0.25}, {0.25, -0.25}, {0.25, 0.25}, {-0.25, 0.25}})
+    Set(request.mutable_light()->add_vertices(), x, 1.99, z);
+  for (const double x : {-0.9, -0.3, 0.3, 0.9}) {
+    auto* p = request.add_points();
+    Set(p->mutable_position(), x, 0.001, 0.5);
+    Set(p->mutable_normal(), 0, 1, 0);
+  }
+  auto answer = client_->LightVisibility(request);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  EXPECT_EQ(answer->tree().trees(), 1u);
+  EXPECT_EQ(answer->tree().queries(), 4u);
+}
 
 TEST_F(SceneRpcTest, SceneAboveTheMemoryCapIsResourceExhausted) {
   client_.reset();
