@@ -1082,7 +1082,7 @@ struct LightVisibilityTree::Impl {
         const bool is_far = id < far_count;
         if (is_far && !classify_points) continue;  // the tree decides
         if (is_receiver(id)) continue;
-        const uint32_t* t = is_far ? far[id].v : near[id - far_count].v;
+        const uint32_t* t = OccluderVertices(id);
         const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
         if (cull.Misses(v)) continue;
         if (!classify_points) {
