@@ -107,6 +107,13 @@ VISQ_EXACT_INLINE Iv operator*(const Iv& a, const Iv& b) {
           RoundUp(std::max(std::max(p1, p2), std::max(p3, p4)))};
 }
 
+// a / b for an interval b that excludes zero (the caller checks SignOf(b)):
+// the quotient is monotone in each operand there, so the corners bound it.
+VISQ_EXACT_INLINE Iv operator/(const Iv& a, const Iv& b) {
+  const double q1 = a.lo / b.lo, q2 = a.lo / b.hi, q3 = a.hi / b.lo, q4 = a.hi / b.hi;
+  return {RoundDown(std::min(std::min(q1, q2), std::min(q3, q4))),
+          RoundUp(std::max(std::max(q1, q2), std::max(q3, q4)))};
+}
 inline constexpr int kUncertain = 2;
 // Sign of an interval, or kUncertain when it contains zero (or is NaN).
 inline int SignOf(const Iv& a) {

@@ -20,6 +20,10 @@
 
 namespace visq::exact {
 
+using detail::Iv;
+using detail::IV4;
+using detail::kUncertain;
+using detail::SignOf;
 using detail::EuclidSide;
 using detail::Orient2d;
 using detail::Orient3d;
@@ -68,9 +72,27 @@ struct FVert {
   const XPlane* plane;  // otherwise: the plane holding the edge to the next vertex
 };
 
+// An enclosure of the lines through the query point P that pass through a
+// convex set, as a box in gnomonic coordinates: the direction d = x - P maps
+// to (d[u] / d[k], d[v] / d[k]), the same point for d and -d, so every line
+// through P is one point and the lines through a convex set whose directions
+// all have d[k] of one strict sign are the convex hull of its vertices'
+// images. Bounds are outward-rounded (interval arithmetic): two boxes that
+// are apart certify that no line through P meets both sets.
+struct LineBox {
+  double lo[2], hi[2];
+  bool Apart(const LineBox& o) const {
+    return hi[0] < o.lo[0] || o.hi[0] < lo[0] || hi[1] < o.lo[1] || o.hi[1] < lo[1];
+  }
+};
+
 struct Fragment {
   uint32_t triangle = 0;  // light triangle
   absl::InlinedVector<FVert, 8> v;  // most fragments have few vertices: no allocation
+  // The LineBox of the fragment, computed on first use: 0 not yet, 1 valid,
+  // -1 none (a direction with d[k] not certainly of the light's sign).
+  int8_t box_state = 0;
+  LineBox box;
 };
 
 struct LightTriangle {
@@ -318,6 +340,7 @@ struct LightVisibilityTree::Impl {
   std::deque<XPlane> light_planes;      // one per light triangle
   std::vector<LightTriangle> light_triangles;
   const XPlane* light_plane = nullptr;  // the largest triangle's: front side positive
+  int light_axis = 2;  // the axis nearest the light's normal: k of the LineBoxes
 
   std::vector<XPoint> points;  // occluder vertices (local, inputs); never grows after Create
   std::vector<FarOccluder> far;
@@ -349,16 +372,27 @@ struct LightVisibilityTree::Impl {
 
   // Which sides of edge line (a, b) the lines from the light to occluder o
   // reach: it suffices to test the vertex-to-light-vertex lines, because the
-  // side of line(y, x) is bilinear in (y, x).
-  void OccluderSides(const uint32_t v[3], uint32_t a, uint32_t b, bool* pos, bool* nonpos) const {
+  // side of line(y, x) is bilinear in (y, x). The fans are orient3d(y, a, b, .)
+  // for the light's vertices y, made once per edge line and shared by all
+  // the occluders a refinement filters (a leaf of a dense room holds
+  // thousands): orient3d(y, a, b, x) = -orient3d(x, a, b, y), the side of the
+  // line x -> y.
+  struct EdgeFans {
+    uint32_t a = 0, b = 0;
+    std::vector<Orient3dFan> fans;
+  };
+  EdgeFans MakeEdgeFans(uint32_t a, uint32_t b) const {
+    EdgeFans e{a, b, {}};
+    e.fans.reserve(light_local.size());
+    for (const glm::dvec3& y : light_local) e.fans.emplace_back(y, points[a].input, points[b].input);
+    return e;
+  }
+  void OccluderSides(const uint32_t v[3], const EdgeFans& edge, bool* pos, bool* nonpos) const {
     *pos = *nonpos = false;
-    const glm::dvec3& pa = points[a].input;
-    const glm::dvec3& pb = points[b].input;
     for (int i = 0; i < 3 && !(*pos && *nonpos); ++i) {
-      // orient3d(y, x, a, b) = -orient3d(x, a, b, y): one fan per vertex.
-      const Orient3dFan fan(points[v[i]].input, pa, pb);
-      for (const glm::dvec3& y : light_local) {
-        if (fan.Side(y) < 0) *pos = true; else *nonpos = true;
+      const glm::dvec3& x = points[v[i]].input;
+      for (const Orient3dFan& fan : edge.fans) {
+        if (fan.Side(x) > 0) *pos = true; else *nonpos = true;
         if (*pos && *nonpos) break;
       }
     }
@@ -458,6 +492,16 @@ struct LightVisibilityTree::Impl {
 
     // Filter the other occluders into the new leaves: invisible leaves drop
     // them, visible leaves that receive some become undefined.
+    // The new inner nodes use the occluder's three edge lines.
+    const EdgeFans edge_fans[3] = {MakeEdgeFans(e[0][0], e[0][1]), MakeEdgeFans(e[1][0], e[1][1]),
+                                   MakeEdgeFans(e[2][0], e[2][1])};
+    const auto fans_of = [&](const Node& node) -> const EdgeFans& {
+      for (const EdgeFans& f : edge_fans) {
+        if (f.a == node.a && f.b == node.b) return f;
+      }
+      VISQ_CHECK(false);
+      return edge_fans[0];
+    };
     struct Step { int32_t node, parent; int slot; };
     std::vector<Step> stack;
     for (size_t k = 1; k < list.size(); ++k) {
@@ -470,7 +514,7 @@ struct LightVisibilityTree::Impl {
         if (kind == kInner) {
           bool pos, nonpos;
           const Node& node = nodes[step.node];
-          OccluderSides(other.v, node.a, node.b, &pos, &nonpos);
+          OccluderSides(other.v, fans_of(node), &pos, &nonpos);
           if (pos) stack.push_back({node.child[0], step.node, 0});
           if (nonpos) stack.push_back({node.child[1], step.node, 1});
         } else if (kind == kVisible) {
@@ -502,6 +546,9 @@ struct LightVisibilityTree::Impl {
     absl::flat_hash_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
     std::vector<int> signs;
     const XPoint* p = nullptr;
+    // The sign of d[light_axis] for every direction from P to the light;
+    // 0 when it is not one strict sign (then no LineBoxes this query).
+    int line_box_sign = 0;
 
     const XPoint* Add(XPoint x) { return points.Add(std::move(x)); }
     const XPlane* Add(XPlane x) { return planes.Add(std::move(x)); }
@@ -510,6 +557,7 @@ struct LightVisibilityTree::Impl {
       planes.Clear();
       edge_planes.clear();
       p = nullptr;
+      line_box_sign = 0;
     }
   };
 
@@ -726,8 +774,11 @@ struct LightVisibilityTree::Impl {
   // plane and the plane through P parallel to it (`slab_top`): the part of
   // it that lies between. False when no part of it can block (nothing
   // strictly between, or its clipped shadow misses the light).
+  // `corners` gets the clipped polygon's vertices (for its LineBox).
   using Edges = std::vector<std::pair<const XPoint*, const XPoint*>>;
-  bool NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges) const {
+  using Corners = absl::InlinedVector<const XPoint*, 6>;
+  bool NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
+                         Corners* corners) const {
     const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
     bool any_below_top = false;
     for (int i = 0; i < 3; ++i) any_below_top |= EuclidSide(*v[i], slab_top) < 0;
@@ -773,7 +824,9 @@ struct LightVisibilityTree::Impl {
     }
     if (poly.size() < 3) return false;
     edges->clear();
+    corners->clear();
     for (size_t i = 0; i < poly.size(); ++i) {
+      corners->push_back(poly[i].point);
       const int e = poly[i].orig_edge;
       if (e >= 0) {
         edges->emplace_back(v[e], v[(e + 1) % 3]);
@@ -808,17 +861,20 @@ struct LightVisibilityTree::Impl {
     const XPlane* slab_top = nullptr;
     std::vector<Fragment> left = light;
     Edges edges;
+    Corners corners;
     size_t used = 0;
     for (const Blocker& blocker : *blockers) {
       if (used == kFewBlockers) break;
       if (blocker.id < far_count) {
         const uint32_t* t = far[blocker.id].v;
-        edges = {{&points[t[0]], &points[t[1]]}, {&points[t[1]], &points[t[2]]}, {&points[t[2]], &points[t[0]]}};
+        corners = {&points[t[0]], &points[t[1]], &points[t[2]]};
+        edges = {{corners[0], corners[1]}, {corners[1], corners[2]}, {corners[2], corners[0]}};
       } else {
         if (slab_top == nullptr) slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
-        if (!NearOccluderEdges(s, near[blocker.id - far_count], *slab_top, &edges)) continue;
+        if (!NearOccluderEdges(s, near[blocker.id - far_count], *slab_top, &edges, &corners)) continue;
       }
-      Subtract(s, &left, edges);
+      LineBox shadow;
+      Subtract(s, &left, edges, LineBoxOf(s, corners, &shadow) ? &shadow : nullptr);
       ++used;
       if (left.empty()) return true;
     }
@@ -851,6 +907,7 @@ struct LightVisibilityTree::Impl {
              Fragment* pos, Fragment* neg) const {
     pos->v.clear();
     neg->v.clear();
+    pos->box_state = neg->box_state = 0;
     pos->triangle = neg->triangle = f.triangle;
     const size_t n = f.v.size();
     const bool has_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
@@ -902,8 +959,46 @@ struct LightVisibilityTree::Impl {
     return true;
   }
 
+  // The LineBox of a convex set's vertices as seen from P; false when the
+  // box does not hold (some direction not certainly on the light's side of
+  // d[light_axis] = 0: its image would wrap through infinity).
+  template <typename Points>
+  bool LineBoxOf(const Scratch& s, const Points& xs, LineBox* box) const {
+    if (s.line_box_sign == 0) return false;
+    const int k = light_axis, u = (k + 1) % 3, v = (k + 2) % 3;
+    const glm::dvec3& p = s.p->input;
+    box->lo[0] = box->lo[1] = std::numeric_limits<double>::infinity();
+    box->hi[0] = box->hi[1] = -std::numeric_limits<double>::infinity();
+    for (const XPoint* x : xs) {
+      // d = X / W - P; the ratios d[u] / d[k] = (X[u] - P[u] W) / (X[k] - P[k] W).
+      const IV4& h = x->approx;
+      const Iv den = h[k] - Iv(p[k]) * h[3];
+      const int den_sign = SignOf(den);
+      if (den_sign == kUncertain || den_sign * x->w_sign != s.line_box_sign) return false;
+      const Iv g[2] = {(h[u] - Iv(p[u]) * h[3]) / den, (h[v] - Iv(p[v]) * h[3]) / den};
+      for (int i = 0; i < 2; ++i) {
+        box->lo[i] = std::min(box->lo[i], g[i].lo);
+        box->hi[i] = std::max(box->hi[i], g[i].hi);
+      }
+    }
+    return true;
+  }
+
+  // Whether no line from P through the fragment meets the set in `shadow`.
+  bool ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) const {
+    if (f.box_state == 0) {
+      absl::InlinedVector<const XPoint*, 8> xs;
+      for (const FVert& fv : f.v) xs.push_back(fv.point);
+      f.box_state = LineBoxOf(s, xs, &f.box) ? 1 : -1;
+    }
+    return f.box_state == 1 && f.box.Apart(shadow);
+  }
+
   // Removes from `fragments` the lines from the light to P that cross the
-  // convex polygon with the given edge lines (each pair a -> b).
+  // convex polygon with the given edge lines (each pair a -> b). With the
+  // polygon's LineBox, fragments whose boxes are apart from it are kept
+  // without a predicate: a dense mesh's many small occluders each meet few
+  // of the many pieces it leaves.
   //
   // The lines inside the polygon's shadow have one sign against every edge
   // line. A fragment is first judged whole: if for each sign some edge has
@@ -912,15 +1007,29 @@ struct LightVisibilityTree::Impl {
   // can still hold. Cutting a fragment that lies outside anyway would leave
   // it in pieces, and every piece costs each later occluder again.
   void Subtract(Scratch& s, std::vector<Fragment>* fragments,
-                const std::vector<std::pair<const XPoint*, const XPoint*>>& edges) const {
+                const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
+                const LineBox* shadow = nullptr) const {
     std::vector<EdgeLine> lines;
     lines.reserve(edges.size());
     for (const auto& [a, b] : edges) lines.push_back({a, b});
-    std::vector<Fragment> out;
+    // Fragments that stay whole stay in place (a fragment is a few hundred
+    // bytes, and a dense mesh's penumbra has hundreds for every occluder);
+    // the pieces of the cut ones are appended.
+    std::vector<Fragment>& out = *fragments;
+    size_t kept = 0;
     struct Item { Fragment f; size_t k; int chain; };
     std::vector<Item> stack;
     std::vector<int> sg;
-    for (auto& f : *fragments) {
+    const auto keep = [&](size_t i) {
+      if (kept != i) out[kept] = std::move(out[i]);
+      ++kept;
+    };
+    for (size_t i = 0; i < out.size(); ++i) {
+      Fragment& f = out[i];
+      if (shadow != nullptr && ApartFrom(s, f, *shadow)) {
+        keep(i);
+        continue;
+      }
       bool outside_positive = false, outside_negative = false, touches_only = false;
       for (EdgeLine& line : lines) {
         if (!EdgeSides(s, f, line, &sg)) {  // touches the edge line only: not inside
@@ -931,11 +1040,12 @@ struct LightVisibilityTree::Impl {
         outside_negative |= std::none_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
       }
       if (touches_only || (outside_positive && outside_negative)) {
-        out.push_back(std::move(f));
+        keep(i);
         continue;
       }
       stack.push_back({std::move(f), 0, outside_positive ? -1 : outside_negative ? 1 : 0});
     }
+    out.resize(kept);
     while (!stack.empty()) {
       Item item = std::move(stack.back());
       stack.pop_back();
@@ -962,7 +1072,6 @@ struct LightVisibilityTree::Impl {
         // else: inside all edges, shadowed.
       }
     }
-    *fragments = std::move(out);
   }
 
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons) {
@@ -1028,6 +1137,15 @@ struct LightVisibilityTree::Impl {
     if (pending.empty()) {
       hits.fetch_add(1, std::memory_order_relaxed);
       return result;
+    }
+    // LineBoxes hold when every direction from P to the light has d[k] of
+    // one strict sign; the light is convex per triangle, so its vertices
+    // decide (the sign of a difference of doubles is exact).
+    for (size_t i = 0; i < light_local.size(); ++i) {
+      const double d = light_local[i][light_axis] - p_local[light_axis];
+      const int sign = d > 0.0 ? 1 : d < 0.0 ? -1 : 0;
+      if (i == 0) s.line_box_sign = sign;
+      if (sign != s.line_box_sign) s.line_box_sign = 0;
     }
 
     // Classify first, with exact tests on input points only. The occluders
@@ -1160,7 +1278,9 @@ struct LightVisibilityTree::Impl {
           for (const auto& [size, index] : by_size) {
             const uint32_t* t = far[index].v;
             const XPoint* v[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
-            Subtract(s, &pieces, {{v[0], v[1]}, {v[1], v[2]}, {v[2], v[0]}});
+            LineBox shadow;
+            Subtract(s, &pieces, {{v[0], v[1]}, {v[1], v[2]}, {v[2], v[0]}},
+                     LineBoxOf(s, v, &shadow) ? &shadow : nullptr);
             if (pieces.empty()) break;
           }
           for (Fragment& piece : pieces) visible.push_back(std::move(piece));
@@ -1223,9 +1343,11 @@ struct LightVisibilityTree::Impl {
       }
       std::sort(by_size.begin(), by_size.end());
       for (size_t i = 0; i < by_size.size(); ++i) near_candidates[i] = by_size[i].second;
+      Corners corners;
       for (const uint32_t candidate : near_candidates) {
-        if (!NearOccluderEdges(s, near[candidate], *slab_top, &edges)) continue;
-        Subtract(s, &visible, edges);
+        if (!NearOccluderEdges(s, near[candidate], *slab_top, &edges, &corners)) continue;
+        LineBox shadow;
+        Subtract(s, &visible, edges, LineBoxOf(s, corners, &shadow) ? &shadow : nullptr);
         if (visible.empty()) break;
       }
     }
@@ -1501,6 +1623,11 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   const LightTriangle* main_tri = nullptr;
   for (const auto& t : impl->light_triangles) {
     if (t.plane == impl->light_plane) main_tri = &t;
+  }
+  {
+    const glm::dvec3 n = glm::abs(glm::cross(ll[main_tri->v[1]] - ll[main_tri->v[0]],
+                                             ll[main_tri->v[2]] - ll[main_tri->v[0]]));
+    impl->light_axis = n.x >= n.y && n.x >= n.z ? 0 : n.y >= n.z ? 1 : 2;
   }
   const Orient3dFan light_fan(ll[main_tri->v[0]], ll[main_tri->v[1]], ll[main_tri->v[2]]);
 

@@ -546,6 +546,59 @@ TEST(LightVisibilityTest, TreeAtItsMemoryBudgetStopsGrowingAndStaysExact) {
   EXPECT_GT(grown.memory_bytes, empty_bytes);
 }
 
+TEST(LightVisibilityTest, ADenseMeshAtTheBudgetMatchesTheGrownTree) {
+  // Foliage: hundreds of small triangles in a layer, so that a penumbra
+  // point sees the light in many pieces. At the budget each leaf's
+  // occluders are subtracted from every piece, and pieces whose line boxes
+  // are apart from an occluder's skip the exact tests. The answers must be
+  // those of the grown tree, in every frame, and under a tilted light whose
+  // directions from some points straddle the box axis (no boxes there).
+  std::vector<Tri> tris;
+  std::mt19937 rng(41);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int i = 0; i < 500; ++i) {
+    const glm::dvec3 c(1.2 * u(rng), 1.2 * u(rng), 1.0 + 0.1 * u(rng));
+    Tri t;
+    for (auto& p : t) p = c + 0.05 * glm::dvec3(u(rng), u(rng), u(rng));
+    tris.push_back(t);
+  }
+  const double c50 = std::cos(50.0 * std::numbers::pi / 180.0), s50 = std::sin(50.0 * std::numbers::pi / 180.0);
+  AreaLight tilted = SquareLight(0.0, 0.5);
+  for (auto& v : tilted.vertices) v = glm::dvec3(c50 * v.x, v.y, 2.0 + s50 * v.x);
+  const auto pts = FloorPoints(40, 9);
+  struct Frame { double scale; glm::dvec3 offset; };
+  for (const AreaLight& light : {SquareLight(2.0, 0.5), tilted}) {
+    std::vector<double> reference;
+    int penumbra = 0;
+    for (const Frame& f : {Frame{1.0, glm::dvec3(0.0)}, Frame{1e-4, glm::dvec3(0.0)},
+                           Frame{1e5, glm::dvec3(1e6, -1e6, 1e6)}}) {
+      const Scene scene = MakeScene(Transform(tris, f.scale, f.offset));
+      AreaLight l = light;
+      for (auto& v : l.vertices) v = f.offset + f.scale * v;
+      TreeOptions grown_options, capped_options;
+      grown_options.receiver_bounds = capped_options.receiver_bounds =
+          Box(f.offset + f.scale * glm::dvec3(-1.5, -1.5, 0), f.offset + f.scale * glm::dvec3(1.5, 1.5, 0));
+      capped_options.max_bytes = 1;
+      auto grown = LightVisibilityTree::Create(l, scene, grown_options);
+      auto capped = LightVisibilityTree::Create(l, scene, capped_options);
+      ASSERT_TRUE(grown.ok() && capped.ok());
+      for (size_t i = 0; i < pts.size(); ++i) {
+        const glm::dvec3 p = f.offset + f.scale * pts[i];
+        const PointVisibility a = Q(**grown, p), b = Q(**capped, p);
+        EXPECT_NEAR(a.visible_area_fraction, b.visible_area_fraction, 1e-12) << "scale " << f.scale << " point " << i;
+        if (reference.size() < pts.size()) {
+          reference.push_back(a.visible_area_fraction);
+          penumbra += a.visible_area_fraction > 0 && a.visible_area_fraction < 1;
+        } else {
+          EXPECT_NEAR(b.visible_area_fraction, reference[i], 1e-9) << "scale " << f.scale << " point " << i;
+        }
+      }
+      EXPECT_GT((*capped)->Stats().unrefined_leaf_visits, 0u);
+    }
+    EXPECT_GT(penumbra, 20);
+  }
+}
+
 TEST(LightVisibilityTest, BatchStopsAtItsDeadline) {
   auto tree = MakeTree(SquareLight(2.0), MakeScene(Cloud(50, 3)), Box({-1.5, -1.5, 0}, {1.5, 1.5, 0}));
   std::vector<QueryPoint> points;
