@@ -502,9 +502,10 @@ int main(int argc, char** argv) {
         fmt::print("{:.9f} {:.9g}\n", p.visible_fraction(), p.irradiance());
     const auto& t = response->tree();
     fmt::print("{} points, exact; {} tree(s), {} built ({} nodes, {} refinements, {} bytes; {} of their {} "
-               "queries answered before them: {} wholly visible, {} wholly hidden); {:.1f} ms\n",
+               "queries answered before them: {} wholly visible, {} wholly hidden, {} subtracted directly); {:.1f} ms\n",
                response->points_size(), t.trees(), t.trees_created(), t.nodes(), t.refinements(), t.memory_bytes(),
-               t.wholly_visible() + t.wholly_hidden(), t.queries(), t.wholly_visible(), t.wholly_hidden(),
+               t.wholly_visible() + t.wholly_hidden() + t.subtracted_directly(), t.queries(), t.wholly_visible(),
+               t.wholly_hidden(), t.subtracted_directly(),
                response->timing().total_ms());
     if (!lv_png.empty()) fmt::print("wrote {}\n", lv_png);
   });

@@ -169,6 +169,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     answer.tree.unrefined_leaf_visits += st.unrefined_leaf_visits;
     answer.tree.wholly_visible += st.wholly_visible;
     answer.tree.wholly_hidden += st.wholly_hidden;
+    answer.tree.subtracted_directly += st.subtracted_directly;
     answer.tree.far_occluders += st.far_occluders;
     answer.tree.near_occluders += st.near_occluders;
     answer.tree_reused &= !trees[g].created;

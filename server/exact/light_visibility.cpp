@@ -355,9 +355,11 @@ struct LightVisibilityTree::Impl {
   std::vector<uint32_t> free_lists;
   size_t list_bytes = 0;
 
-  std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0};
+  std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0},
+      subtracted_directly{0};
   size_t max_bytes = 0;
   bool classify_points = true;
+  size_t direct_candidates = 0;
 
   size_t MemoryBytesLocked() const {
     return sizeof(Impl) + nodes.capacity() * sizeof(Node) + list_bytes +
@@ -846,6 +848,21 @@ struct LightVisibilityTree::Impl {
                                      [&](size_t e, size_t i) { return LineSide(s, lines[e], light_points[i]); });
   }
 
+  // An occluder's edges and corners as a query subtracts it: a far one
+  // whole, a near one clipped to the slab under P (made on first use in
+  // `*slab_top`). False when no part of it can block.
+  bool OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, Edges* edges, Corners* corners) const {
+    const uint32_t far_count = static_cast<uint32_t>(far.size());
+    if (id < far_count) {
+      const uint32_t* t = far[id].v;
+      *corners = {&points[t[0]], &points[t[1]], &points[t[2]]};
+      *edges = {{(*corners)[0], (*corners)[1]}, {(*corners)[1], (*corners)[2]}, {(*corners)[2], (*corners)[0]}};
+      return true;
+    }
+    if (*slab_top == nullptr) *slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+    return NearOccluderEdges(s, near[id - far_count], **slab_top, edges, corners);
+  }
+
   // Whether subtracting the blockers that block the most light vertices (at
   // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
   // of the light.
@@ -857,7 +874,6 @@ struct LightVisibilityTree::Impl {
   bool HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light, std::vector<Blocker>* blockers) const {
     std::stable_sort(blockers->begin(), blockers->end(),
                      [](const Blocker& x, const Blocker& y) { return x.vertices > y.vertices; });
-    const uint32_t far_count = static_cast<uint32_t>(far.size());
     const XPlane* slab_top = nullptr;
     std::vector<Fragment> left = light;
     Edges edges;
@@ -865,14 +881,7 @@ struct LightVisibilityTree::Impl {
     size_t used = 0;
     for (const Blocker& blocker : *blockers) {
       if (used == kFewBlockers) break;
-      if (blocker.id < far_count) {
-        const uint32_t* t = far[blocker.id].v;
-        corners = {&points[t[0]], &points[t[1]], &points[t[2]]};
-        edges = {{corners[0], corners[1]}, {corners[1], corners[2]}, {corners[2], corners[0]}};
-      } else {
-        if (slab_top == nullptr) slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
-        if (!NearOccluderEdges(s, near[blocker.id - far_count], *slab_top, &edges, &corners)) continue;
-      }
+      if (!OccluderEdges(s, blocker.id, &slab_top, &edges, &corners)) continue;
       LineBox shadow;
       Subtract(s, &left, edges, LineBoxOf(s, corners, &shadow) ? &shadow : nullptr);
       ++used;
@@ -1165,6 +1174,12 @@ struct LightVisibilityTree::Impl {
     // the most vertices are subtracted from the light directly; if nothing
     // is left, the point is hidden, exactly. Otherwise that work is dropped
     // and the tree decides.
+    //
+    // A point with few candidates in all (direct_candidates) subtracts them
+    // all from the light itself: the candidates are every occluder whose
+    // shadow can meet the light, so what is left is the exact answer, and
+    // for a handful of triangles that costs no more than the descent while
+    // the tree does not grow for it.
     // Neighbouring points are mostly hidden by the same wall or floor: the
     // occluder that last hid a whole light from this thread, tried first,
     // spares the gathering. The test is exact for any occluder of the tree
@@ -1188,7 +1203,7 @@ struct LightVisibilityTree::Impl {
       }
     }
     const PyramidCull cull(p_local, light_local, light_triangles);
-    std::vector<uint32_t> near_candidates;
+    std::vector<uint32_t> near_candidates, far_candidates;
     bool any_far = false;
     std::vector<Blocker> blockers;
     uint64_t blocked_vertices = 0;
@@ -1223,15 +1238,20 @@ struct LightVisibilityTree::Impl {
         }
         if (is_far) {
           any_far = true;
+          far_candidates.push_back(id);
         } else {
           near_candidates.push_back(id - far_count);
         }
       }
     }
+    bool direct = false;
     if (!classify_points) {
       any_far = !far.empty();
     } else if (!any_far && near_candidates.empty()) {
       wholly_visible.fetch_add(1, std::memory_order_relaxed);
+    } else if (far_candidates.size() + near_candidates.size() <= direct_candidates) {
+      direct = true;
+      subtracted_directly.fetch_add(1, std::memory_order_relaxed);
     } else if (light_local.size() <= 64 && blocked_vertices == (~uint64_t{0} >> (64 - light_local.size()))) {
       if (HiddenByFewBlockers(s, pending, &blockers)) {
         hits.fetch_add(1, std::memory_order_relaxed);
@@ -1243,7 +1263,7 @@ struct LightVisibilityTree::Impl {
     // Push the fragments down the shared tree.
     std::vector<Fragment> visible;
     bool refined = false;
-    if (!any_far) {
+    if (!any_far || direct) {
       visible = std::move(pending);
     } else {
       std::vector<std::pair<int32_t, Fragment>> stack;
@@ -1322,9 +1342,13 @@ struct LightVisibilityTree::Impl {
     if (!refined) hits.fetch_add(1, std::memory_order_relaxed);
 
     // Subtract the near occluders, clipped to the slab between the light
-    // plane and the plane through P parallel to it.
-    if (!near_candidates.empty() && !visible.empty()) {
-      const XPlane* slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+    // plane and the plane through P parallel to it (and, on the direct
+    // route, the far candidates whole).
+    std::vector<uint32_t> subtract;  // occluder ids: far ones first, then near ones
+    if (direct) subtract = std::move(far_candidates);
+    for (const uint32_t candidate : near_candidates) subtract.push_back(far_count + candidate);
+    if (!subtract.empty() && !visible.empty()) {
+      const XPlane* slab_top = nullptr;
       Edges edges;
       // Largest as seen from P first (area over squared distance, a proxy
       // of the solid angle): they leave the fewest fragments for the others
@@ -1335,17 +1359,16 @@ struct LightVisibilityTree::Impl {
       // by index, so the order (and the float sums over the fragments) do
       // not depend on the traversal.
       std::vector<std::pair<double, uint32_t>> by_size;
-      by_size.reserve(near_candidates.size());
-      for (const uint32_t candidate : near_candidates) {
-        const uint32_t* t = near[candidate].v;
+      by_size.reserve(subtract.size());
+      for (const uint32_t id : subtract) {
+        const uint32_t* t = OccluderVertices(id);
         const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
-        by_size.emplace_back(-ApparentSize(p_local, v), candidate);
+        by_size.emplace_back(-ApparentSize(p_local, v), id);
       }
       std::sort(by_size.begin(), by_size.end());
-      for (size_t i = 0; i < by_size.size(); ++i) near_candidates[i] = by_size[i].second;
       Corners corners;
-      for (const uint32_t candidate : near_candidates) {
-        if (!NearOccluderEdges(s, near[candidate], *slab_top, &edges, &corners)) continue;
+      for (const auto& [size, id] : by_size) {
+        if (!OccluderEdges(s, id, &slab_top, &edges, &corners)) continue;
         LineBox shadow;
         Subtract(s, &visible, edges, LineBoxOf(s, corners, &shadow) ? &shadow : nullptr);
         if (visible.empty()) break;
@@ -1600,6 +1623,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   impl->radiance = light.radiance;
   impl->max_bytes = options.max_bytes;
   impl->classify_points = options.classify_points;
+  impl->direct_candidates = options.classify_points ? options.direct_candidates : 0;
   impl->light_local = std::move(prepared.local);
   const auto& ll = impl->light_local;
   const auto& triangles = prepared.triangles;
@@ -1943,6 +1967,7 @@ TreeStats LightVisibilityTree::Stats() const {
   s.unrefined_leaf_visits = impl_->unrefined_leaf_visits.load();
   s.wholly_visible = impl_->wholly_visible.load();
   s.wholly_hidden = impl_->wholly_hidden.load();
+  s.subtracted_directly = impl_->subtracted_directly.load();
   s.far_occluders = impl_->far.size();
   s.near_occluders = impl_->near.size();
   return s;

@@ -112,6 +112,13 @@ struct TreeOptions {
   // exact tests of the occluders near each point's pyramid (see Query). The
   // answers are the same either way; off only to compare the two routes.
   bool classify_points = true;
+  // With classify_points: a point whose candidate occluders (those whose
+  // shadows can meet the light, far and near) are at most this many
+  // subtracts them all from the light itself, without the tree. On Sponza
+  // (640 x 360 points) 32 made the first pass 13 % faster and the trees
+  // half the size; the answers are the same (to rounding in the area sums).
+  // 0: every point that is not decided before the tree descends it.
+  size_t direct_candidates = 32;
 };
 
 struct QueryPoint {
@@ -141,6 +148,7 @@ struct TreeStats {
   uint64_t unrefined_leaf_visits = 0;  // undefined leaves resolved per query (tree at max_bytes)
   uint64_t wholly_visible = 0;  // queries answered before the tree: no occluder can block
   uint64_t wholly_hidden = 0;   // ... one occluder blocks the whole light
+  uint64_t subtracted_directly = 0;  // ... few candidates, subtracted without the tree
   size_t far_occluders = 0;  // in the shared tree
   size_t near_occluders = 0;  // clipped per query
 };

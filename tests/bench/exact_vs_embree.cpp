@@ -329,6 +329,7 @@ int Run(const BenchCase& bc, const Params& p) {
     stats.unrefined_leaf_visits += st.unrefined_leaf_visits;
     stats.wholly_visible += st.wholly_visible;
     stats.wholly_hidden += st.wholly_hidden;
+    stats.subtracted_directly += st.subtracted_directly;
     stats.far_occluders += st.far_occluders;
     stats.near_occluders += st.near_occluders;
   }
@@ -431,9 +432,10 @@ int Run(const BenchCase& bc, const Params& p) {
               static_cast<unsigned long long>(stats_cold.hits),
               static_cast<unsigned long long>(stats_cold.queries), same ? "yes" : "NO");
   std::printf("penumbra points (0 < exact < 1): %zu of %zu\n", penumbra, bc.points.size());
-  std::printf("queries answered before the tree: %llu wholly visible, %llu wholly hidden\n",
+  std::printf("queries answered before the tree: %llu wholly visible, %llu wholly hidden, %llu subtracted directly\n",
               static_cast<unsigned long long>(stats.wholly_visible),
-              static_cast<unsigned long long>(stats.wholly_hidden));
+              static_cast<unsigned long long>(stats.wholly_hidden),
+              static_cast<unsigned long long>(stats.subtracted_directly));
   const char* class_names[3] = {"hidden (0)", "visible (1)", "penumbra"};
   for (int c = 0; c < 3; ++c) {
     std::printf("warm pass, %-12s %8lld points, %8.2f us per point (one thread's time)\n", class_names[c],

@@ -44,9 +44,11 @@ Bounds Box(const glm::dvec3& lo, const glm::dvec3& hi) {
 }
 
 std::unique_ptr<LightVisibilityTree> MakeTree(const AreaLight& light, const Scene& scene,
-                                              std::optional<Bounds> receivers) {
+                                              std::optional<Bounds> receivers,
+                                              size_t direct_candidates = TreeOptions{}.direct_candidates) {
   TreeOptions options;
   options.receiver_bounds = receivers;
+  options.direct_candidates = direct_candidates;
   auto tree = LightVisibilityTree::Create(light, scene, options);
   EXPECT_TRUE(tree.ok()) << tree.status();
   return tree.ok() ? std::move(*tree) : nullptr;
@@ -614,7 +616,12 @@ TEST(LightVisibilityTest, BatchStopsAtItsDeadline) {
 
 TEST(LightVisibilityTest, SecondPassRefinesNothingAndRepeats) {
   const Scene scene = MakeScene(Cloud(120, 31));
-  auto tree = MakeTree(SquareLight(2.0, 0.7), scene, Box({-1.5, -1.5, 0}, {1.5, 1.5, 0}));
+  TreeOptions options;
+  options.receiver_bounds = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});
+  options.direct_candidates = 0;  // every undecided point grows the tree
+  auto created = LightVisibilityTree::Create(SquareLight(2.0, 0.7), scene, options);
+  ASSERT_TRUE(created.ok()) << created.status();
+  auto& tree = *created;
   const auto pts = FloorPoints(100, 3);
   std::vector<PointVisibility> first;
   for (const auto& p : pts) first.push_back(Q(*tree, p));
@@ -640,11 +647,14 @@ TEST(LightVisibilityTest, ConcurrentQueriesMatchSingleThreaded) {
   const auto pts = FloorPoints(300, 13);
   std::vector<QueryPoint> queries;
   for (const auto& p : pts) queries.push_back({p, glm::dvec3(0, 0, 1), std::nullopt});
-  auto single = MakeTree(light, scene, receivers);
-  auto shared = MakeTree(light, scene, receivers);
+  // Every undecided point descends the tree, so that the threads grow it
+  // together.
+  auto single = MakeTree(light, scene, receivers, 0);
+  auto shared = MakeTree(light, scene, receivers, 0);
   auto a = single->QueryBatch(queries, 1);
   auto b = shared->QueryBatch(queries, 4);
   ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_GT(shared->Stats().refinements, 10u);
   for (size_t i = 0; i < pts.size(); ++i) {
     EXPECT_NEAR((*a)[i].visible_area_fraction, (*b)[i].visible_area_fraction, 1e-12) << i;
     EXPECT_NEAR((*a)[i].irradiance, (*b)[i].irradiance, 1e-12) << i;
@@ -679,9 +689,13 @@ TEST(LightVisibilityTest, PointsDecidedBeforeTheTreeAgreeWithTheTree) {
       queries.push_back({p, std::nullopt, p.x - p.y > 0 ? 0u : 1u});
     }
   }
+  // Classified points with few candidates subtract them directly
+  // (direct_candidates); without that route, they descend the tree.
+  for (const size_t direct : {size_t{32}, size_t{0}})
   for (const std::optional<Bounds>& bounds : {std::optional<Bounds>(receivers), std::optional<Bounds>()}) {
     TreeOptions on, off;
     on.receiver_bounds = off.receiver_bounds = bounds;
+    on.direct_candidates = direct;
     off.classify_points = false;
     auto classified = LightVisibilityTree::Create(light, scene, on);
     auto tree_only = LightVisibilityTree::Create(light, scene, off);
@@ -701,7 +715,12 @@ TEST(LightVisibilityTest, PointsDecidedBeforeTheTreeAgreeWithTheTree) {
       partial += f > 0.0 && f < 1.0;
     }
     const TreeStats on_stats = (*classified)->Stats(), off_stats = (*tree_only)->Stats();
-    EXPECT_EQ(off_stats.wholly_visible + off_stats.wholly_hidden, 0u);
+    EXPECT_EQ(off_stats.wholly_visible + off_stats.wholly_hidden + off_stats.subtracted_directly, 0u);
+    if (direct > 0) {
+      EXPECT_GT(on_stats.subtracted_directly, 20u);
+    } else {
+      EXPECT_EQ(on_stats.subtracted_directly, 0u);
+    }
     // Every wholly visible answer is exactly 1; hidden ones exactly 0 (some
     // of those, under the diagonal, came from the tree).
     EXPECT_GT(on_stats.wholly_visible, 20u);
