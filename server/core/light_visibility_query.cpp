@@ -59,8 +59,12 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
 
   // The trees' options: the excluded nodes' triangles, the memory budget.
   exact::TreeOptions base;
-  // One tree may use the whole cache, no more: past that it stops growing.
-  base.max_bytes = engine.light_cache_capacity();
+  // A batch uses one tree per receiver cell, so each may grow to 1/16 of
+  // the cache; past that its queries resolve the undefined leaves they meet
+  // themselves, exactly and, since line boxes skip the subtractions that
+  // cannot meet a piece, about as fast (veach-ajar, 640 x 360 points:
+  // 16 MB trees answered a first pass in 9.5 s, 64 MB ones in 16.4 s).
+  base.max_bytes = engine.light_cache_capacity() / 16;
   for (const std::string& node_name : query.exclude_nodes) {
     bool found = false;
     for (const SceneNode& node : scene.nodes) {

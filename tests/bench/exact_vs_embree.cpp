@@ -74,7 +74,7 @@ struct Params {
   // Receiver cells per side of the scene (exact::GroupReceivers), one tree
   // each, as the server groups a batch; 0: image tiles instead.
   int cells_per_side = 32;
-  double tree_max_mb = 64;    // each tree's memory budget (TreeOptions::max_bytes)
+  double tree_max_mb = 16;    // each tree's memory budget (TreeOptions::max_bytes), as the server's default
 };
 
 void AddTriangle(Scene& s, const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
@@ -480,7 +480,7 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
-                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=64] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
+                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
       return 2;
     }
   }
