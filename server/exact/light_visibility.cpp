@@ -876,18 +876,10 @@ struct LightVisibilityTree::Impl {
                      [](const Blocker& x, const Blocker& y) { return x.vertices > y.vertices; });
     const XPlane* slab_top = nullptr;
     std::vector<Fragment> left = light;
-    Edges edges;
-    Corners corners;
-    size_t used = 0;
-    for (const Blocker& blocker : *blockers) {
-      if (used == kFewBlockers) break;
-      if (!OccluderEdges(s, blocker.id, &slab_top, &edges, &corners)) continue;
-      LineBox shadow;
-      Subtract(s, &left, edges, LineBoxOf(s, corners, &shadow) ? &shadow : nullptr);
-      ++used;
-      if (left.empty()) return true;
-    }
-    return false;
+    std::vector<uint32_t> ids;
+    for (const Blocker& blocker : *blockers) ids.push_back(blocker.id);
+    SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers);
+    return left.empty();
   }
 
   // A triangle's size as seen from p: its area over its squared distance,
@@ -993,14 +985,19 @@ struct LightVisibilityTree::Impl {
     return true;
   }
 
-  // Whether no line from P through the fragment meets the set in `shadow`.
-  bool ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) const {
+  // Whether the fragment has a line box (computed on first use).
+  bool HasLineBox(const Scratch& s, Fragment& f) const {
     if (f.box_state == 0) {
       absl::InlinedVector<const XPoint*, 8> xs;
       for (const FVert& fv : f.v) xs.push_back(fv.point);
       f.box_state = LineBoxOf(s, xs, &f.box) ? 1 : -1;
     }
-    return f.box_state == 1 && f.box.Apart(shadow);
+    return f.box_state == 1;
+  }
+
+  // Whether no line from P through the fragment meets the set in `shadow`.
+  bool ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) const {
+    return HasLineBox(s, f) && f.box.Apart(shadow);
   }
 
   // Removes from `fragments` the lines from the light to P that cross the
@@ -1015,7 +1012,8 @@ struct LightVisibilityTree::Impl {
   // is. Only the others are cut, edge by edge, following the one sign that
   // can still hold. Cutting a fragment that lies outside anyway would leave
   // it in pieces, and every piece costs each later occluder again.
-  void Subtract(Scratch& s, std::vector<Fragment>* fragments,
+  // Returns whether it cut (or removed) any fragment.
+  bool Subtract(Scratch& s, std::vector<Fragment>* fragments,
                 const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
                 const LineBox* shadow = nullptr) const {
     std::vector<EdgeLine> lines;
@@ -1054,6 +1052,7 @@ struct LightVisibilityTree::Impl {
       }
       stack.push_back({std::move(f), 0, outside_positive ? -1 : outside_negative ? 1 : 0});
     }
+    const bool cut = kept < out.size();
     out.resize(kept);
     while (!stack.empty()) {
       Item item = std::move(stack.back());
@@ -1081,6 +1080,48 @@ struct LightVisibilityTree::Impl {
         // else: inside all edges, shadowed.
       }
     }
+    return cut;
+  }
+
+  // The box around the fragments' line boxes; false when one has none.
+  bool UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments, LineBox* box) const {
+    box->lo[0] = box->lo[1] = std::numeric_limits<double>::infinity();
+    box->hi[0] = box->hi[1] = -std::numeric_limits<double>::infinity();
+    for (Fragment& f : fragments) {
+      if (!HasLineBox(s, f)) return false;
+      for (int i = 0; i < 2; ++i) {
+        box->lo[i] = std::min(box->lo[i], f.box.lo[i]);
+        box->hi[i] = std::max(box->hi[i], f.box.hi[i]);
+      }
+    }
+    return true;
+  }
+
+  // Subtracts the occluders `ids` (occluder ids, in this order) from the
+  // fragments, until nothing is left or `max_subtracted` of them have been
+  // subtracted. An occluder whose line box is apart from the box around all
+  // the fragments is passed over without visiting them: a dense mesh's
+  // leaf lists thousands of triangles, most of which miss the few pieces
+  // that reach it. Returns the number subtracted.
+  size_t SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
+                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX) const {
+    Edges edges;
+    Corners corners;
+    LineBox all;
+    bool all_valid = UnionLineBox(s, *fragments, &all);
+    size_t subtracted = 0;
+    for (const uint32_t id : ids) {
+      if (fragments->empty() || subtracted == max_subtracted) break;
+      if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
+      LineBox shadow;
+      const bool has_shadow = LineBoxOf(s, corners, &shadow);
+      if (has_shadow && all_valid && all.Apart(shadow)) continue;
+      ++subtracted;
+      if (Subtract(s, fragments, edges, has_shadow ? &shadow : nullptr)) {
+        all_valid = UnionLineBox(s, *fragments, &all);
+      }
+    }
+    return subtracted;
   }
 
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons) {
@@ -1287,22 +1328,27 @@ struct LightVisibilityTree::Impl {
           unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
           std::vector<Fragment> pieces;
           pieces.push_back(std::move(f));
+          // The fragment is usually a small part of the light: occluders
+          // whose line boxes are apart from its box go first.
+          const bool fragment_box = HasLineBox(s, pieces[0]);
           std::vector<std::pair<double, uint32_t>> by_size;
           for (const uint32_t index : lists[node.b]) {
             const uint32_t* t = far[index].v;
             const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
-            if (cull.Misses(v) || ShadowMissesLight(p_local, v)) continue;
+            if (cull.Misses(v)) continue;
+            if (fragment_box) {
+              const XPoint* corners[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
+              LineBox box;
+              if (LineBoxOf(s, corners, &box) && pieces[0].box.Apart(box)) continue;
+            }
+            if (ShadowMissesLight(p_local, v)) continue;
             by_size.emplace_back(-ApparentSize(p_local, v), index);
           }
           std::sort(by_size.begin(), by_size.end());
-          for (const auto& [size, index] : by_size) {
-            const uint32_t* t = far[index].v;
-            const XPoint* v[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
-            LineBox shadow;
-            Subtract(s, &pieces, {{v[0], v[1]}, {v[1], v[2]}, {v[2], v[0]}},
-                     LineBoxOf(s, v, &shadow) ? &shadow : nullptr);
-            if (pieces.empty()) break;
-          }
+          std::vector<uint32_t> ids(by_size.size());
+          for (size_t i = 0; i < by_size.size(); ++i) ids[i] = by_size[i].second;
+          const XPlane* no_slab = nullptr;  // far occluders are whole
+          SubtractOccluders(s, &pieces, ids, &no_slab);
           for (Fragment& piece : pieces) visible.push_back(std::move(piece));
         } else if (node.kind == kUndefined) {
           // Refine this leaf under the exclusive lock, then resume here.
@@ -1349,7 +1395,6 @@ struct LightVisibilityTree::Impl {
     for (const uint32_t candidate : near_candidates) subtract.push_back(far_count + candidate);
     if (!subtract.empty() && !visible.empty()) {
       const XPlane* slab_top = nullptr;
-      Edges edges;
       // Largest as seen from P first (area over squared distance, a proxy
       // of the solid angle): they leave the fewest fragments for the others
       // to cut. In index order a penumbra under a dense mesh was cut into
@@ -1366,13 +1411,8 @@ struct LightVisibilityTree::Impl {
         by_size.emplace_back(-ApparentSize(p_local, v), id);
       }
       std::sort(by_size.begin(), by_size.end());
-      Corners corners;
-      for (const auto& [size, id] : by_size) {
-        if (!OccluderEdges(s, id, &slab_top, &edges, &corners)) continue;
-        LineBox shadow;
-        Subtract(s, &visible, edges, LineBoxOf(s, corners, &shadow) ? &shadow : nullptr);
-        if (visible.empty()) break;
-      }
+      for (size_t i = 0; i < by_size.size(); ++i) subtract[i] = by_size[i].second;
+      SubtractOccluders(s, &visible, subtract, &slab_top);
     }
 
     // Integrate over the visible polygons.
