@@ -115,8 +115,9 @@ struct TreeOptions {
   // With classify_points: a point whose candidate occluders (those whose
   // shadows can meet the light, far and near) are at most this many
   // subtracts them all from the light itself, without the tree. On Sponza
-  // (640 x 360 points) 32 made the first pass 13 % faster and the trees
-  // half the size; the answers are the same (to rounding in the area sums).
+  // (640 x 360 points, one core) 32 made the first pass 13 % faster; the
+  // trees shrink too (188K nodes without, 150K at 16, 102K at 64). The
+  // answers are the same, to rounding in the area sums.
   // 0: every point that is not decided before the tree descends it.
   size_t direct_candidates = 32;
 };

@@ -302,13 +302,15 @@ bool Full(const Plan& plan, const SceneCase& c) { return plan.quick || c.name ==
 // ---------------------------------------------------------------------------
 // Exact reference: the visible fraction of the source patch, as a light
 // facing the receiver, at every receiver texel centre. Receivers are grouped
-// in tiles, one tree each, as the paper groups receivers.
+// as the server groups a LightVisibility batch: cubes of 1/32 of the scene,
+// one tree each, each growing to 16 MiB (the server's defaults).
 
 struct ExactReference {
   std::vector<double> fraction;  // per texel, row-major
   double ms = 0;
   size_t penumbra = 0;  // texels with 0 < fraction < 1
   double mean = 0;
+  size_t cells = 0;     // receiver cells (trees)
 };
 
 ExactReference ExactFractions(const SceneCase& c, int width, int height) {
@@ -324,34 +326,23 @@ ExactReference ExactFractions(const SceneCase& c, int width, int height) {
   receiver.height = height;
   ExactReference ref;
   ref.fraction.resize(size_t(width) * height);
-  const int tiles = std::max(1, std::min(4, width / 8));
+  std::vector<exact::QueryPoint> points;
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x) points.push_back({gpu::ReceiverSamplePosition(receiver, x, y), {}, {}});
   const auto t0 = Clock::now();
-  for (int ty = 0; ty < tiles; ++ty)
-    for (int tx = 0; tx < tiles; ++tx) {
-      std::vector<exact::QueryPoint> points;
-      std::vector<size_t> index;
-      Bounds tb;
-      for (int y = ty * height / tiles; y < (ty + 1) * height / tiles; ++y)
-        for (int x = tx * width / tiles; x < (tx + 1) * width / tiles; ++x) {
-          exact::QueryPoint q;
-          q.position = gpu::ReceiverSamplePosition(receiver, x, y);
-          tb.Extend(q.position);
-          points.push_back(q);
-          index.push_back(size_t(y) * width + x);
-        }
-      const double pad = 1e-4 * glm::length(c.scene.bounds.Extent());
-      tb.min -= glm::dvec3(pad);
-      tb.max += glm::dvec3(pad);
-      exact::TreeOptions options;
-      options.receiver_bounds = tb;
-      // The reference needs speed more than a memory bound: at the default
-      // budget, veach's trees stop growing and its queries slow to a crawl
-      // (see TreeOptions::max_bytes). Its 16 trees fit this machine unbounded.
-      options.max_bytes = std::numeric_limits<size_t>::max();
-      auto tree = Must(exact::LightVisibilityTree::Create(light, c.scene, options), c.name + ": exact tree");
-      auto answers = Must(tree->QueryBatch(points), c.name + ": exact queries");
-      for (size_t i = 0; i < points.size(); ++i) ref.fraction[index[i]] = answers[i].visible_area_fraction;
-    }
+  auto index = Must(exact::SceneTriangleIndex::Build(c.scene), c.name + ": triangle index");
+  const auto cells = exact::GroupReceivers(points, c.scene.bounds, 32);
+  ref.cells = cells.size();
+  for (const exact::ReceiverCell& cell : cells) {
+    exact::TreeOptions options;
+    options.receiver_bounds = cell.box;
+    options.max_bytes = size_t{16} << 20;
+    auto tree = Must(exact::LightVisibilityTree::Create(light, c.scene, options, index.get()), c.name + ": exact tree");
+    std::vector<exact::QueryPoint> cell_points;
+    for (const uint32_t i : cell.points) cell_points.push_back(points[i]);
+    auto answers = Must(tree->QueryBatch(cell_points), c.name + ": exact queries");
+    for (size_t k = 0; k < cell.points.size(); ++k) ref.fraction[cell.points[k]] = answers[k].visible_area_fraction;
+  }
   ref.ms = MsSince(t0);
   for (double f : ref.fraction) {
     ref.penumbra += f > 1e-9 && f < 1 - 1e-9;
@@ -1106,8 +1097,9 @@ int main(int argc, char** argv) {
     const std::string inputs = c.name + ": source " + PatchText(c.source) + ", receiver " + PatchText(c.receiver) +
                                " (origin; edge u; edge v). Exact reference: " + Fmt("%.0f", ref.ms) +
                                " ms for the " + std::to_string(ref.fraction.size()) +
-                               " texels (Plücker BSP, " + std::to_string(std::min(4, plan.receiver / 8)) +
-                               "² receiver tiles, tree building included). Mean exact visible fraction " +
+                               " texels (Plücker BSP, " + std::to_string(ref.cells) +
+                               " receiver cells of 1/32 of the scene, 16 MiB trees, tree building included). "
+                               "Mean exact visible fraction " +
                                Fmt("%.3f", ref.mean) + ", " + std::to_string(ref.penumbra) +
                                " texels in penumbra (0 < fraction < 1).";
     std::printf("  exact reference: %.0f ms, mean %.3f, penumbra %zu / %zu\n", ref.ms, ref.mean, ref.penumbra,
