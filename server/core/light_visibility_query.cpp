@@ -164,18 +164,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
 
   answer.tree_reused = true;
   for (size_t g = 0; g < groups.size(); ++g) {
-    const exact::TreeStats st = trees[g].tree->Stats();
-    answer.tree.nodes += st.nodes;
-    answer.tree.memory_bytes += st.memory_bytes;
-    answer.tree.queries += st.queries;
-    answer.tree.hits += st.hits;
-    answer.tree.refinements += st.refinements;
-    answer.tree.unrefined_leaf_visits += st.unrefined_leaf_visits;
-    answer.tree.wholly_visible += st.wholly_visible;
-    answer.tree.wholly_hidden += st.wholly_hidden;
-    answer.tree.subtracted_directly += st.subtracted_directly;
-    answer.tree.far_occluders += st.far_occluders;
-    answer.tree.near_occluders += st.near_occluders;
+    answer.tree += trees[g].tree->Stats();
     answer.tree_reused &= !trees[g].created;
     answer.trees_created += trees[g].created ? 1 : 0;
     answer.receiver_region.Extend(groups[g].box.min);

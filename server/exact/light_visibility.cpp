@@ -891,6 +891,21 @@ struct LightVisibilityTree::Impl {
     return area / std::max(glm::dot(offset, offset), 1e-300);
   }
 
+  // Orders occluder ids largest as seen from p first (they leave the fewest
+  // fragments for the others to cut), ties by id, so the order (and the
+  // float sums over the fragments) do not depend on the traversal.
+  void SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids) const {
+    std::vector<std::pair<double, uint32_t>> by_size;
+    by_size.reserve(ids->size());
+    for (const uint32_t id : *ids) {
+      const uint32_t* t = OccluderVertices(id);
+      const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+      by_size.emplace_back(-ApparentSize(p, v), id);
+    }
+    std::sort(by_size.begin(), by_size.end());
+    for (size_t i = 0; i < by_size.size(); ++i) (*ids)[i] = by_size[i].second;
+  }
+
   // The point where a fragment edge support meets a plane.
   const XPoint* Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const {
     const LightTriangle& t = light_triangles[f.triangle];
@@ -1331,7 +1346,7 @@ struct LightVisibilityTree::Impl {
           // The fragment is usually a small part of the light: occluders
           // whose line boxes are apart from its box go first.
           const bool fragment_box = HasLineBox(s, pieces[0]);
-          std::vector<std::pair<double, uint32_t>> by_size;
+          std::vector<uint32_t> ids;
           for (const uint32_t index : lists[node.b]) {
             const uint32_t* t = far[index].v;
             const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
@@ -1342,11 +1357,9 @@ struct LightVisibilityTree::Impl {
               if (LineBoxOf(s, corners, &box) && pieces[0].box.Apart(box)) continue;
             }
             if (ShadowMissesLight(p_local, v)) continue;
-            by_size.emplace_back(-ApparentSize(p_local, v), index);
+            ids.push_back(index);
           }
-          std::sort(by_size.begin(), by_size.end());
-          std::vector<uint32_t> ids(by_size.size());
-          for (size_t i = 0; i < by_size.size(); ++i) ids[i] = by_size[i].second;
+          SortLargestFirst(p_local, &ids);
           const XPlane* no_slab = nullptr;  // far occluders are whole
           SubtractOccluders(s, &pieces, ids, &no_slab);
           for (Fragment& piece : pieces) visible.push_back(std::move(piece));
@@ -1395,23 +1408,11 @@ struct LightVisibilityTree::Impl {
     for (const uint32_t candidate : near_candidates) subtract.push_back(far_count + candidate);
     if (!subtract.empty() && !visible.empty()) {
       const XPlane* slab_top = nullptr;
-      // Largest as seen from P first (area over squared distance, a proxy
-      // of the solid angle): they leave the fewest fragments for the others
-      // to cut. In index order a penumbra under a dense mesh was cut into
-      // thousands of pieces: on veach (32 x 18 points) its penumbra points
-      // took 435 ms each in index order, 182 ms nearest first, 19 ms this
-      // way; a Sponza penumbra point through gRPC 2.1, 2.3 and 1.5 ms. Ties
-      // by index, so the order (and the float sums over the fragments) do
-      // not depend on the traversal.
-      std::vector<std::pair<double, uint32_t>> by_size;
-      by_size.reserve(subtract.size());
-      for (const uint32_t id : subtract) {
-        const uint32_t* t = OccluderVertices(id);
-        const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
-        by_size.emplace_back(-ApparentSize(p_local, v), id);
-      }
-      std::sort(by_size.begin(), by_size.end());
-      for (size_t i = 0; i < by_size.size(); ++i) subtract[i] = by_size[i].second;
+      // Largest first: in index order a penumbra under a dense mesh was cut
+      // into thousands of pieces: on veach (32 x 18 points) its penumbra
+      // points took 435 ms each in index order, 182 ms nearest first, 19 ms
+      // this way; a Sponza penumbra point through gRPC 2.1, 2.3 and 1.5 ms.
+      SortLargestFirst(p_local, &subtract);
       SubtractOccluders(s, &visible, subtract, &slab_top);
     }
 
@@ -2011,6 +2012,21 @@ TreeStats LightVisibilityTree::Stats() const {
   s.far_occluders = impl_->far.size();
   s.near_occluders = impl_->near.size();
   return s;
+}
+
+TreeStats& TreeStats::operator+=(const TreeStats& o) {
+  nodes += o.nodes;
+  memory_bytes += o.memory_bytes;
+  queries += o.queries;
+  hits += o.hits;
+  refinements += o.refinements;
+  unrefined_leaf_visits += o.unrefined_leaf_visits;
+  wholly_visible += o.wholly_visible;
+  wholly_hidden += o.wholly_hidden;
+  subtracted_directly += o.subtracted_directly;
+  far_occluders += o.far_occluders;
+  near_occluders += o.near_occluders;
+  return *this;
 }
 
 size_t LightVisibilityTree::MemoryBytes() const {

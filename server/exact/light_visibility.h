@@ -152,6 +152,9 @@ struct TreeStats {
   uint64_t subtracted_directly = 0;  // ... few candidates, subtracted without the tree
   size_t far_occluders = 0;  // in the shared tree
   size_t near_occluders = 0;  // clipped per query
+
+  // Sums every field (the statistics of several trees).
+  TreeStats& operator+=(const TreeStats& o);
 };
 
 // The scene's triangles in a bounding-volume hierarchy over their boxes, so

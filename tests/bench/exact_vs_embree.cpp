@@ -320,18 +320,8 @@ int Run(const BenchCase& bc, const Params& p) {
   for (const auto& tree : trees) {
     if (!tree) continue;
     const auto st = tree->Stats();
-    stats.nodes += st.nodes;
-    stats.memory_bytes += st.memory_bytes;
+    stats += st;
     max_tree_bytes = std::max(max_tree_bytes, st.memory_bytes);
-    stats.queries += st.queries;
-    stats.hits += st.hits;
-    stats.refinements += st.refinements;
-    stats.unrefined_leaf_visits += st.unrefined_leaf_visits;
-    stats.wholly_visible += st.wholly_visible;
-    stats.wholly_hidden += st.wholly_hidden;
-    stats.subtracted_directly += st.subtracted_directly;
-    stats.far_occluders += st.far_occluders;
-    stats.near_occluders += st.near_occluders;
   }
 
   // Embree: build, then p.rays stratified (jittered) shadow rays per point.
