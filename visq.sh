@@ -6,8 +6,9 @@
 #                                            its plots (the published accuracy/time trade)
 #
 # `test` runs three stages, each failing the command if it fails:
-#   1. Release build, every test (ctest): unit, GPU on this machine's EGL
-#      device (llvmpipe without a GPU), integration, deploy.
+#   1. Release build, the package-list check (deploy/check-package-list.sh),
+#      every test (ctest): unit, GPU on this machine's EGL device (llvmpipe
+#      without a GPU), integration, deploy.
 #   2. One clang build with AddressSanitizer, UndefinedBehaviorSanitizer and
 #      libFuzzer coverage: the unit and integration tests again under the
 #      sanitizers (VISQ_TEST_SANITIZERS=0 skips them), then the libFuzzer
@@ -39,6 +40,9 @@ case "${1:-}" in
     stage "1/2 Release build and every test"
     cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
     cmake --build "$build_dir" -j"$jobs"
+    # Every header, library and CMake file the build read is from a package
+    # deploy/install-deps.sh lists or one they depend on (a clean machine has it).
+    bash deploy/check-package-list.sh "$build_dir"
     ctest --test-dir "$build_dir" --output-on-failure -j"$jobs" --timeout 900 "$@"
 
     sanitized_tests=${VISQ_TEST_SANITIZERS:-1}

@@ -2,12 +2,24 @@
 # Installs every Debian 12 package visq needs to build, test and run.
 # This is the only place that lists apt packages; the README, .ci/run and the
 # Dockerfile all call it. Idempotent: packages already present are skipped.
+#   install-deps.sh [--runtime-only] [--print]
+# --print writes the wanted packages, one a line, and installs nothing
+# (deploy/check-package-list.sh reads the list this way).
 set -euo pipefail
+
+runtime_only=0 print_only=0
+for arg in "$@"; do
+  case "$arg" in
+    --runtime-only) runtime_only=1 ;;
+    --print) print_only=1 ;;
+    *) echo "usage: $0 [--runtime-only] [--print]" >&2; exit 2 ;;
+  esac
+done
 
 build_packages=(
   build-essential cmake pkg-config ca-certificates
   protobuf-compiler protobuf-compiler-grpc libprotobuf-dev libgrpc++-dev libgrpc-dev
-  libegl-dev libgl-dev libepoxy-dev
+  libegl-dev libgl-dev libopengl-dev libepoxy-dev
   libglm-dev libeigen3-dev libtinygltf-dev nlohmann-json3-dev libstb-dev
   libspdlog-dev libfmt-dev libcli11-dev libabsl-dev
   libembree-dev libgmp-dev libxxhash-dev
@@ -20,11 +32,16 @@ build_packages=(
 runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
 
 wanted=("${build_packages[@]}" "${runtime_packages[@]}")
-if [[ "${1:-}" == "--runtime-only" ]]; then
+if (( runtime_only )); then
   # What the built binaries link (ldd), for the slim container stage.
   wanted=("${runtime_packages[@]}" ca-certificates
     libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
     libspdlog1.10 libssl3 libstb0 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl)
+fi
+
+if (( print_only )); then
+  printf '%s\n' "${wanted[@]}"
+  exit 0
 fi
 
 missing=()
