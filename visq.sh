@@ -56,7 +56,7 @@ case "${1:-}" in
         -DVISQ_SANITIZE=ON -DVISQ_FUZZ=ON -DVISQ_FUZZ_SECONDS="$fuzz_seconds"
       cmake --build "$asan_dir" -j"$jobs" --target visq-server visq visq_scene_tests visq_gpu_tests \
         visq_integration_tests visq_raycast_test visq_exact_test \
-        gltf_loader_fuzz request_validation_fuzz algorithm_request_fuzz
+        gltf_loader_fuzz gltf_structure_fuzz request_validation_fuzz algorithm_request_fuzz
       if [[ "$sanitized_tests" != 0 ]]; then
         # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
         # allocations; ASan's use-after-free and overflow checks still apply.
