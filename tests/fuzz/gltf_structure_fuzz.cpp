@@ -42,8 +42,11 @@
 // document's first n bytes; VISQ_FUZZ_NO_DEEP_JSON=1 leaves out the deep
 // nesting (to fuzz the rest while it is broken).
 #include <fuzzer/FuzzedDataProvider.h>
+#include <signal.h>
 #include <sys/inotify.h>
 #include <unistd.h>
+
+#include <cerrno>
 
 #include <algorithm>
 #include <cmath>
@@ -257,8 +260,25 @@ void CleanUp() {
   if (g_env->cwd_planted) fs::remove(g_env->cwd_name, ec);
 }
 
+// A crash skips CleanUp: remove what processes that are gone left behind
+// (their folders in the temp folder, their sentinels in the working directory).
+void RemoveStale(const fs::path& dir) {
+  std::error_code ec;
+  const std::string prefix = "visq-structure-fuzz-";
+  for (const auto& entry : fs::directory_iterator(dir, ec)) {
+    std::string name = entry.path().filename().string();
+    if (name.rfind(prefix, 0) != 0) continue;
+    name = name.substr(prefix.size());
+    if (name.size() > 4 && name.compare(name.size() - 4, 4, ".bin") == 0) name.resize(name.size() - 4);
+    if (name.empty() || name.find_first_not_of("0123456789") != std::string::npos || name.size() > 9) continue;
+    if (::kill(static_cast<pid_t>(std::stol(name)), 0) != 0 && errno == ESRCH) fs::remove_all(entry.path(), ec);
+  }
+}
+
 Env& TheEnv() {
   if (g_env) return *g_env;
+  RemoveStale(fs::temp_directory_path());
+  RemoveStale(fs::current_path());
   g_env = new Env;
   Env& env = *g_env;
   const std::string pid = std::to_string(::getpid());
