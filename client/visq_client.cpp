@@ -1,5 +1,7 @@
 #include "visq_client.h"
 
+#include <algorithm>
+
 #include <cmath>
 #include <fstream>
 #include <optional>
@@ -80,7 +82,11 @@ std::unique_ptr<grpc::ClientContext> Client::NewContext(const std::string& scene
   context->set_deadline(std::chrono::system_clock::now() + options_.deadline);
   if (!options_.request_id.empty()) context->AddMetadata("x-request-id", options_.request_id);
   if (!options_.auth_token.empty()) context->AddMetadata("authorization", "Bearer " + options_.auth_token);
-  if (options_.route_by_scene && !scene.empty()) context->AddMetadata("x-visq-scene", scene);
+  // Metadata values must be printable ASCII (gRPC aborts the process on
+  // anything else); a name that is not goes unrouted and the server refuses
+  // it by name.
+  const bool routable = std::all_of(scene.begin(), scene.end(), [](char c) { return c >= 0x20 && c < 0x7f; });
+  if (options_.route_by_scene && !scene.empty() && routable) context->AddMetadata("x-visq-scene", scene);
   return context;
 }
 

@@ -5,11 +5,15 @@
 #include <cstdlib>
 #include <fstream>
 #include <iostream>
+#include <sstream>
+#include <vector>
 
 #include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
 
 #include "scene/sample_scenes.h"
+#include "service/auth.h"
+#include "service/log_format.h"
 #include "service/server.h"
 
 int main(int argc, char** argv) {
@@ -65,18 +69,26 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
 
   spdlog::set_level(spdlog::level::from_str(log_level));
-  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+  visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   options.engine.scene_repo = scene_repo;
   options.engine.max_upload_bytes = max_upload_bytes;
   options.engine.max_scene_bytes = max_scene_bytes;
   options.engine.light_cache_bytes = static_cast<size_t>(light_cache_bytes);
   options.engine.load_repository_at_start = !no_preload;
   if (!auth_token_file.empty()) {
-    std::ifstream in(auth_token_file);
-    if (!in || !std::getline(in, options.auth_token) || options.auth_token.empty()) {
-      spdlog::critical("--auth-token-file {}: cannot read a token from its first line", auth_token_file);
+    std::ifstream in(auth_token_file, std::ios::binary);
+    std::stringstream text;
+    text << in.rdbuf();
+    std::vector<std::string> warnings;
+    visq::StatusOr<std::string> token =
+        in ? visq::service::ParseAuthToken(text.str(), &warnings)
+           : visq::StatusOr<std::string>(absl::NotFoundError("cannot read the file"));
+    if (!token.ok()) {
+      spdlog::critical("--auth-token-file {}: {}", auth_token_file, token.status().message());
       return EXIT_FAILURE;
     }
+    for (const std::string& warning : warnings) spdlog::warn("--auth-token-file {}: {}", auth_token_file, warning);
+    options.auth_token = *std::move(token);
   }
 
   // Signals are taken synchronously by this thread (sigwait), so no handler

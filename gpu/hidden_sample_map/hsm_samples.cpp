@@ -7,17 +7,19 @@
 #include <string>
 
 #include "visq/gpu/hidden_sample_map.h"
+#include "common/coordinates.h"
 
 namespace visq::gpu {
 namespace {
 
 std::string Vec(const glm::dvec3& v) { return absl::StrCat("(", v.x, ", ", v.y, ", ", v.z, ")"); }
-bool Finite(const glm::dvec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+// Finite and within visq's coordinate range (common/coordinates.h).
+bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 
 Status ValidatePatch(const Patch& p, const std::string& field) {
-  if (!Finite(p.origin)) return absl::InvalidArgumentError(absl::StrCat(field, ".origin: non-finite ", Vec(p.origin)));
-  if (!Finite(p.edge_u)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_u: non-finite ", Vec(p.edge_u)));
-  if (!Finite(p.edge_v)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_v: non-finite ", Vec(p.edge_v)));
+  if (!Finite(p.origin)) return absl::InvalidArgumentError(absl::StrCat(field, ".origin: non-finite or beyond ±1e15 ", Vec(p.origin)));
+  if (!Finite(p.edge_u)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_u: non-finite or beyond ±1e15 ", Vec(p.edge_u)));
+  if (!Finite(p.edge_v)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_v: non-finite or beyond ±1e15 ", Vec(p.edge_v)));
   const double area = glm::length(glm::cross(p.edge_u, p.edge_v));
   if (!(area > 1e-12 * glm::length(p.edge_u) * glm::length(p.edge_v)) || area == 0.0)
     return absl::InvalidArgumentError(absl::StrCat(field, ": degenerate patch, edge_u ", Vec(p.edge_u), " edge_v ",
@@ -81,7 +83,7 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
       return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv: ", s.polygon_uv.size(), " vertices, need 3"));
     for (size_t i = 0; i < s.polygon_uv.size(); ++i)
       if (!std::isfinite(s.polygon_uv[i].x) || !std::isfinite(s.polygon_uv[i].y))
-        return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv[", i, "]: non-finite (",
+        return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv[", i, "]: non-finite or beyond ±1e15 (",
                                                        s.polygon_uv[i].x, ", ", s.polygon_uv[i].y, ")"));
   }
   if (!s.color_texture.empty() || s.color_texture_width != 0 || s.color_texture_height != 0) {
@@ -92,6 +94,21 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
     if (!s.sample_colors.empty())
       return absl::InvalidArgumentError("source.sample_colors: give either sample_colors or color_texture");
   }
+  // Colours are light: finite, non-negative, and small enough that a sum of
+  // 2^24 of them stays finite in float.
+  constexpr double kMaxColor = 1e30;
+  auto valid_color = [](const glm::dvec3& c) {
+    return Finite(c) && c.x >= 0 && c.y >= 0 && c.z >= 0 && c.x <= kMaxColor && c.y <= kMaxColor && c.z <= kMaxColor;
+  };
+  for (size_t i = 0; i < s.sample_colors.size(); ++i)
+    if (!valid_color(s.sample_colors[i]))
+      return absl::InvalidArgumentError(absl::StrCat("samples.sample_colors[", i, "]: ", Vec(s.sample_colors[i]),
+                                                     " is not finite, non-negative and at most 1e30"));
+  for (size_t i = 0; i < s.color_texture.size(); ++i)
+    if (!valid_color(s.color_texture[i]))
+      return absl::InvalidArgumentError(absl::StrCat("samples.color_texture_rgb[", 3 * i, "..", 3 * i + 2, "]: ",
+                                                     Vec(s.color_texture[i]),
+                                                     " is not finite, non-negative and at most 1e30"));
   if (r.width < 1 || r.width > 4096)
     return absl::InvalidArgumentError(absl::StrCat("receiver.width: ", r.width, " not in [1, 4096]"));
   if (r.height < 1 || r.height > 4096)

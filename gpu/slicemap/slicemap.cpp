@@ -12,6 +12,7 @@
 //   4. (solid) each column's in/out state is resolved from its front and back
 //      bits on the CPU (ResolveSolidColumn below), on all cores.
 #include "visq/gpu/slicemap.h"
+#include "common/coordinates.h"
 
 #include <algorithm>
 #include <bit>
@@ -81,7 +82,8 @@ SlicemapGrid EmptyGrid(uint32_t width, uint32_t height, uint32_t slices) {
   return grid;
 }
 
-bool Finite(const glm::dvec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+// Finite and within visq's coordinate range (common/coordinates.h).
+bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 
 std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }
 
@@ -527,11 +529,11 @@ SlicemapBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double 
 Status ValidateVoxelizeParams(const VoxelizeParams& params, uint32_t triangle_count) {
   const SlicemapBox& box = params.box;
   if (!Finite(box.center))
-    return absl::InvalidArgumentError(fmt::format("params.box.center: non-finite {}", Vec(box.center)));
+    return absl::InvalidArgumentError(fmt::format("params.box.center: non-finite or beyond ±1e15 {}", Vec(box.center)));
   const std::pair<const char*, const glm::dvec3*> axes[3] = {
       {"axis_u", &box.axis_u}, {"axis_v", &box.axis_v}, {"axis_w", &box.axis_w}};
   for (const auto& [name, axis] : axes) {
-    if (!Finite(*axis)) return absl::InvalidArgumentError(fmt::format("params.box.{}: non-finite {}", name, Vec(*axis)));
+    if (!Finite(*axis)) return absl::InvalidArgumentError(fmt::format("params.box.{}: non-finite or beyond ±1e15 {}", name, Vec(*axis)));
     if (std::abs(glm::length(*axis) - 1.0) > 1e-6)
       return absl::InvalidArgumentError(
           fmt::format("params.box.{}: {} is not unit length (|a| = {})", name, Vec(*axis), glm::length(*axis)));
@@ -733,7 +735,7 @@ Status ValidateTransmittanceParams(const TransmittanceParams& params, const Scen
   if (light.kind != LightKind::kPoint && light.kind != LightKind::kDirectional)
     return absl::InvalidArgumentError(fmt::format("params.light.kind: unknown value {}", static_cast<int>(light.kind)));
   if (light.kind == LightKind::kPoint && !Finite(light.position))
-    return absl::InvalidArgumentError(fmt::format("params.light.position: non-finite {}", Vec(light.position)));
+    return absl::InvalidArgumentError(fmt::format("params.light.position: non-finite or beyond ±1e15 {}", Vec(light.position)));
   if (light.kind == LightKind::kDirectional && (!Finite(light.direction) || glm::length(light.direction) < 1e-12))
     return absl::InvalidArgumentError(
         fmt::format("params.light.direction: {} must be finite and non-zero", Vec(light.direction)));
@@ -746,13 +748,13 @@ Status ValidateTransmittanceParams(const TransmittanceParams& params, const Scen
   }
   for (size_t i = 0; i < params.points.size(); ++i)
     if (!Finite(params.points[i]))
-      return absl::InvalidArgumentError(fmt::format("params.points[{}]: non-finite {}", i, Vec(params.points[i])));
+      return absl::InvalidArgumentError(fmt::format("params.points[{}]: non-finite or beyond ±1e15 {}", i, Vec(params.points[i])));
   const ReceiverPatch& patch = params.patch;
   if ((patch.nu == 0) != (patch.nv == 0))
     return absl::InvalidArgumentError(
         fmt::format("params.patch: nu = {}, nv = {} (both zero for no patch, or both positive)", patch.nu, patch.nv));
   if (patch.nu > 0 && (!Finite(patch.origin) || !Finite(patch.u) || !Finite(patch.v)))
-    return absl::InvalidArgumentError("params.patch: non-finite origin, u or v");
+    return absl::InvalidArgumentError("params.patch: non-finite or beyond ±1e15 origin, u or v");
   const uint64_t point_count = params.points.size() + uint64_t{patch.nu} * patch.nv;
   if (point_count > kMaxTransmittancePoints)
     return absl::ResourceExhaustedError(

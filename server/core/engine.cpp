@@ -68,11 +68,19 @@ Status Engine::CheckSceneSize(const Scene& scene) const {
   return absl::OkStatus();
 }
 
+GltfLoadLimits Engine::LoadLimits(const std::filesystem::path& file_root) const {
+  GltfLoadLimits limits;
+  limits.file_root = file_root;
+  limits.max_scene_bytes = options_.max_scene_bytes;
+  return limits;
+}
+
 StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
                                             bool persisted) {
   const auto start = std::chrono::steady_clock::now();
   GltfLoadReport report;
-  VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(main_file, &report));
+  VISQ_ASSIGN_OR_RETURN(Scene scene,
+                        LoadGltfFile(main_file, &report, LoadLimits(repository_->FileRoot(main_file))));
   VISQ_RETURN_IF_ERROR(CheckSceneSize(scene));
   auto resident = std::make_shared<ResidentScene>();
   resident->name = std::move(name);
@@ -81,11 +89,17 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
   resident->dropped = std::move(report.dropped);
   resident->persisted = persisted;
   resident->load_ms = MillisecondsSince(start);
+  // A stored upload keeps the version it was committed with; a scene placed
+  // by hand (its file may have changed) takes a new one.
+  uint64_t version = repository_->StoredVersion(resident->name);
+  if (version == 0) {
+    VISQ_ASSIGN_OR_RETURN(version, repository_->NextVersion());
+  }
   {
     std::unique_lock lock(scenes_mutex_);
     if (!replace && scenes_.count(resident->name))
       return absl::AlreadyExistsError(absl::StrCat("scene '", resident->name, "' is already resident (set replace)"));
-    resident->version = ++last_version_[resident->name];
+    resident->version = version;
     scenes_[resident->name] = resident;
   }
   light_cache_->InvalidateScene(resident->name);
@@ -116,16 +130,22 @@ StatusOr<std::unique_ptr<SceneUpload>> Engine::BeginUpload(absl::string_view nam
   auto upload = std::make_unique<SceneUpload>();
   VISQ_ASSIGN_OR_RETURN(upload->staging_, repository_->BeginUpload(name, main_file, options_.max_upload_bytes));
   upload->replace_ = replace;
+  upload->expected_bytes_ = expected_bytes;
   return upload;
 }
 
-StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload) {
+StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
+                                            const std::atomic<bool>* cancelled) {
   const auto start = std::chrono::steady_clock::now();
   UploadStaging& staging = *upload->staging_;
+  if (upload->expected_bytes_ != 0 && staging.bytes() != upload->expected_bytes_)
+    return absl::InvalidArgumentError(absl::StrCat("header.expected_bytes: ", upload->expected_bytes_,
+                                                   " bytes announced, ", staging.bytes(),
+                                                   " received; nothing stored"));
   // Parse from the staging folder first: a malformed upload never reaches
   // the repository, and the staging folder goes with `upload`.
   GltfLoadReport report;
-  VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report));
+  VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report, LoadLimits(staging.dir())));
   VISQ_RETURN_IF_ERROR(CheckSceneSize(scene));
 
   std::lock_guard commit_lock(commit_mutex_);
@@ -134,7 +154,9 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload)
     if (!upload->replace_ && (scenes_.count(staging.name()) || repository_->Contains(staging.name())))
       return absl::AlreadyExistsError(absl::StrCat("scene '", staging.name(), "' already exists (set replace)"));
   }
-  VISQ_RETURN_IF_ERROR(repository_->Commit(staging).status());
+  if (cancelled != nullptr && cancelled->load())
+    return absl::CancelledError("LoadScene was cancelled before it was stored: nothing stored");
+  VISQ_ASSIGN_OR_RETURN(const SceneRepository::Stored stored, repository_->Commit(staging));
 
   auto resident = std::make_shared<ResidentScene>();
   resident->name = staging.name();
@@ -143,9 +165,9 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload)
   resident->dropped = std::move(report.dropped);
   resident->persisted = true;
   resident->load_ms = MillisecondsSince(start);
+  resident->version = stored.version;
   {
     std::unique_lock lock(scenes_mutex_);
-    resident->version = ++last_version_[resident->name];
     scenes_[resident->name] = resident;
   }
   light_cache_->InvalidateScene(resident->name);
@@ -230,13 +252,14 @@ StatusOr<SceneSummary> Engine::ReplaceWithEdited(const ResidentScene& current, S
   resident->dropped = current.dropped;
   resident->load_ms = current.load_ms;
   resident->persisted = false;  // the repository still holds the stored scene
+  VISQ_ASSIGN_OR_RETURN(const uint64_t version, repository_->NextVersion());
   {
     std::unique_lock lock(scenes_mutex_);
     auto it = scenes_.find(current.name);
     if (it == scenes_.end() || it->second.get() != &current)
       return absl::FailedPreconditionError(
           absl::StrCat("scene '", current.name, "' changed (reloaded, unloaded or edited) during the edit"));
-    resident->version = ++last_version_[resident->name];
+    resident->version = version;
     it->second = resident;
   }
   light_cache_->InvalidateScene(resident->name);

@@ -16,6 +16,7 @@
 #include "core/scene_repository.h"
 #include "exact/light_visibility.h"
 #include "raycast/embree_scene.h"
+#include "scene/gltf_loader.h"
 #include "scene/scene.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/hidden_sample_map.h"
@@ -92,6 +93,7 @@ class SceneUpload {
   friend class Engine;
   std::unique_ptr<UploadStaging> staging_;
   bool replace_ = false;
+  uint64_t expected_bytes_ = 0;  // 0: not announced
 };
 
 class Engine {
@@ -109,7 +111,11 @@ class Engine {
   [[nodiscard]] StatusOr<std::unique_ptr<SceneUpload>> BeginUpload(absl::string_view name,
                                                                    absl::string_view main_file, bool replace,
                                                                    uint64_t expected_bytes);
-  [[nodiscard]] StatusOr<SceneSummary> FinishUpload(std::unique_ptr<SceneUpload> upload);
+  // Commits a complete upload: every announced byte arrived, and the call
+  // was not cancelled (checked again just before the commit). Anything else
+  // leaves the repository as it was.
+  [[nodiscard]] StatusOr<SceneSummary> FinishUpload(std::unique_ptr<SceneUpload> upload,
+                                                    const std::atomic<bool>* cancelled = nullptr);
 
   std::vector<SceneSummary> ListScenes() const;
   [[nodiscard]] StatusOr<SceneSummary> GetScene(absl::string_view name, bool with_nodes, bool load_if_stored = false);
@@ -156,6 +162,7 @@ class Engine {
                                       bool persisted);
   SceneSummary Summarize(const ResidentScene& resident, bool with_nodes) const;
   Status CheckSceneSize(const Scene& scene) const;
+  GltfLoadLimits LoadLimits(const std::filesystem::path& file_root) const;
 
   EngineOptions options_;
   std::unique_ptr<SceneRepository> repository_;
@@ -165,7 +172,6 @@ class Engine {
   std::unique_ptr<gpu::HiddenSampleMapper> hidden_sample_mapper_;
   mutable std::shared_mutex scenes_mutex_;
   std::map<std::string, std::shared_ptr<const ResidentScene>, std::less<>> scenes_;
-  std::map<std::string, uint64_t, std::less<>> last_version_;  // versions survive unload/reload
   // Serializes check-then-commit of uploads, unloads and first-use loads;
   // parsing happens outside it.
   std::mutex commit_mutex_;

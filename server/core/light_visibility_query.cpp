@@ -8,11 +8,13 @@
 #include <thread>
 
 #include "core/engine.h"
+#include "common/coordinates.h"
 
 namespace visq {
 namespace {
 
-bool Finite(const glm::dvec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+// Finite and within visq's coordinate range (common/coordinates.h).
+bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 
 }  // namespace
 
@@ -30,7 +32,7 @@ Status CheckLightVisibilityQuery(const LightVisibilityQuery& query, const Scene&
     return absl::InvalidArgumentError(absl::StrCat("radiance: ", query.light.radiance, " is not a finite value >= 0"));
   for (size_t i = 0; i < query.points.size(); ++i) {
     const auto& p = query.points[i];
-    if (!Finite(p.position)) return absl::InvalidArgumentError(absl::StrCat("points[", i, "].position: NaN or Inf"));
+    if (!Finite(p.position)) return absl::InvalidArgumentError(absl::StrCat("points[", i, "].position: NaN, Inf or beyond ±1e15"));
     if (p.normal && (!Finite(*p.normal) || glm::dot(*p.normal, *p.normal) == 0.0))
       return absl::InvalidArgumentError(absl::StrCat("points[", i, "].normal: zero, NaN or Inf"));
     if (p.receiver_triangle && *p.receiver_triangle >= scene.TriangleCount())

@@ -288,7 +288,7 @@ StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQu
   Scene moved = *resident->scene;
   VISQ_RETURN_IF_ERROR(obscurance::MoveNodeSubtree(moved, node, world));
   VISQ_ASSIGN_OR_RETURN(SceneSummary summary, engine.ReplaceWithEdited(*resident, std::move(moved)));
-  state->moves.push_back(ObscuranceState::Move{summary.version, node, world});
+  state->moves.push_back(ObscuranceState::Move{resident->version, summary.version, node, world});
   spdlog::info("scene '{}' v{}: node {} ('{}') moved", summary.name, summary.version, node,
                resident->scene->nodes[node].name);
   return summary;
@@ -304,13 +304,14 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
   if (!state->updater)
     return absl::FailedPreconditionError(absl::StrCat("scene '", resident->name,
                                                       "' has no full ComputeObscurances bake to update"));
-  // The moves since the solution must lead, one version at a time, to the
-  // resident version; a reload or replace breaks the chain.
+  // The moves since the solution must lead, each from the version the last
+  // one made (versions are not consecutive: they come from the repository's
+  // counter), to the resident version; a reload or replace breaks the chain.
   std::vector<ObscuranceState::Move> todo;
   uint64_t version = state->solution_version;
   for (const ObscuranceState::Move& m : state->moves) {
     if (m.version <= state->solution_version) continue;
-    if (m.version != version + 1) break;
+    if (m.from_version != version) break;
     todo.push_back(m);
     version = m.version;
   }

@@ -34,7 +34,8 @@ struct ObscuranceState {
   uint64_t solution_version = 0;  // the scene version the updater's solution matches
   uint32_t rays_per_patch = 0;
   struct Move {
-    uint64_t version = 0;  // the scene version this move made
+    uint64_t from_version = 0;  // the scene version the move was made on
+    uint64_t version = 0;       // the scene version this move made
     uint32_t node = 0;
     glm::dmat4 world{1.0};
   };

@@ -1,6 +1,7 @@
 #include "core/scene_repository.h"
 
 #include <fcntl.h>
+#include <sys/file.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -10,6 +11,9 @@
 #include <random>
 #include <set>
 
+#include <absl/strings/ascii.h>
+#include <absl/strings/match.h>
+#include <absl/strings/numbers.h>
 #include <spdlog/spdlog.h>
 
 namespace visq {
@@ -19,9 +23,22 @@ namespace {
 constexpr size_t kMaxNameLength = 128;
 constexpr std::string_view kStagingPrefix = ".staging-";
 constexpr std::string_view kMainFileMarker = ".visq-main";
+constexpr std::string_view kVersionMarker = ".visq-version";
+constexpr std::string_view kVersionCounter = ".visq-version-counter";
 
+// Names the file, not where the repository lives: messages reach clients.
+// A full disk or quota is the caller's to act on (RESOURCE_EXHAUSTED).
 Status ErrnoError(absl::string_view what, const fs::path& path) {
-  return absl::InternalError(absl::StrCat(what, " ", path.string(), ": ", std::strerror(errno)));
+  const int error = errno;
+  const std::string message = absl::StrCat(what, " ", path.filename().string(), ": ", std::strerror(error));
+  if (error == ENOSPC || error == EDQUOT) return absl::ResourceExhaustedError(message);
+  return absl::InternalError(message);
+}
+
+Status ErrorCodeError(absl::string_view what, const fs::path& path, const std::error_code& ec) {
+  const std::string message = absl::StrCat(what, " ", path.filename().string(), ": ", ec.message());
+  if (ec == std::errc::no_space_on_device) return absl::ResourceExhaustedError(message);
+  return absl::InternalError(message);
 }
 
 bool IsSceneFile(const fs::path& path) {
@@ -93,7 +110,7 @@ Status UploadStaging::Append(absl::string_view file, absl::string_view data) {
     const fs::path path = dir_ / fs::path(std::string(file));
     std::error_code ec;
     fs::create_directories(path.parent_path(), ec);
-    if (ec) return absl::InternalError(absl::StrCat("create ", path.parent_path().string(), ": ", ec.message()));
+    if (ec) return ErrorCodeError("create", path.parent_path(), ec);
     open_fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | O_NOFOLLOW, 0644);
     if (open_fd_ < 0) return ErrnoError("create", path);
     open_file_ = std::string(file);
@@ -130,6 +147,11 @@ Status SceneRepository::ValidateName(absl::string_view name) {
   if (name.size() > kMaxNameLength)
     return absl::InvalidArgumentError(absl::StrCat("scene name longer than ", kMaxNameLength, " characters"));
   if (name[0] == '.') return absl::InvalidArgumentError(absl::StrCat("scene name '", name, "' starts with '.'"));
+  // "x.glb" is where the scene "x" may be stored: the name would alias it.
+  const std::string lower = absl::AsciiStrToLower(name);
+  if (absl::EndsWith(lower, ".glb") || absl::EndsWith(lower, ".gltf"))
+    return absl::InvalidArgumentError(
+        absl::StrCat("scene name '", name, "' ends in .glb or .gltf (name the scene, not its file)"));
   for (char c : name) {
     const bool ok = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '.' ||
                     c == '_' || c == '-';
@@ -213,6 +235,50 @@ StatusOr<fs::path> SceneRepository::MainFile(absl::string_view name) const {
   return resolved;
 }
 
+fs::path SceneRepository::FileRoot(const fs::path& main_file) const {
+  const fs::path relative = main_file.lexically_relative(root_);
+  if (relative.empty() || std::distance(relative.begin(), relative.end()) < 2) return root_;
+  return root_ / *relative.begin();
+}
+
+StatusOr<uint64_t> SceneRepository::NextVersion() const {
+  const fs::path path = root_ / std::string(kVersionCounter);
+  const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC | O_NOFOLLOW, 0644);
+  if (fd < 0) return ErrnoError("open", path);
+  // The lock goes with the descriptor: a crashed holder releases it.
+  while (::flock(fd, LOCK_EX) != 0)
+    if (errno != EINTR) {
+      const Status error = ErrnoError("lock", path);
+      ::close(fd);
+      return error;
+    }
+  char text[32] = {};
+  const ssize_t n = ::pread(fd, text, sizeof(text) - 1, 0);
+  uint64_t last = 0;
+  if (n > 0 && !absl::SimpleAtoi(absl::StripAsciiWhitespace(absl::string_view(text, static_cast<size_t>(n))), &last))
+    last = 0;
+  const std::string next = absl::StrCat(last + 1, "\n");
+  Status status = absl::OkStatus();
+  if (::pwrite(fd, next.data(), next.size(), 0) != static_cast<ssize_t>(next.size()) ||
+      ::ftruncate(fd, static_cast<off_t>(next.size())) != 0 || ::fsync(fd) != 0)
+    status = ErrnoError("write", path);
+  ::close(fd);
+  if (!status.ok()) return status;
+  return last + 1;
+}
+
+uint64_t SceneRepository::StoredVersion(absl::string_view name) const {
+  if (!ValidateName(name).ok()) return 0;
+  std::FILE* f = std::fopen((root_ / std::string(name) / std::string(kVersionMarker)).c_str(), "r");
+  if (f == nullptr) return 0;
+  char text[32] = {};
+  const size_t n = std::fread(text, 1, sizeof(text) - 1, f);
+  std::fclose(f);
+  uint64_t version = 0;
+  if (!absl::SimpleAtoi(absl::StripAsciiWhitespace(absl::string_view(text, n)), &version)) return 0;
+  return version;
+}
+
 StatusOr<std::unique_ptr<UploadStaging>> SceneRepository::BeginUpload(absl::string_view name,
                                                                       absl::string_view main_file,
                                                                       uint64_t max_bytes) const {
@@ -222,30 +288,38 @@ StatusOr<std::unique_ptr<UploadStaging>> SceneRepository::BeginUpload(absl::stri
     return absl::InvalidArgumentError(absl::StrCat("upload_main_file '", main_file, "': not a .gltf or .glb"));
   const fs::path dir = root_ / absl::StrCat(AbslView(kStagingPrefix), name, "-", RandomSuffix());
   std::error_code ec;
-  if (!fs::create_directory(dir, ec) || ec)
-    return absl::InternalError(absl::StrCat("create staging folder ", dir.string(), ": ", ec.message()));
+  if (!fs::create_directory(dir, ec) || ec) return ErrorCodeError("create staging folder", dir, ec);
   return std::unique_ptr<UploadStaging>(
       new UploadStaging(dir, std::string(name), std::string(main_file), max_bytes));
 }
 
-StatusOr<fs::path> SceneRepository::Commit(UploadStaging& staging) {
+StatusOr<SceneRepository::Stored> SceneRepository::Commit(UploadStaging& staging) {
   VISQ_RETURN_IF_ERROR(staging.CloseAll());
-  // The marker, then everything, reaches the disk before the rename does.
-  {
-    const fs::path marker = staging.dir_ / std::string(kMainFileMarker);
+  VISQ_ASSIGN_OR_RETURN(const uint64_t version, NextVersion());
+  // The markers, then everything, reach the disk before the rename does.
+  auto write_marker = [&](std::string_view marker_name, const std::string& text) -> Status {
+    const fs::path marker = staging.dir_ / std::string(marker_name);
     std::FILE* f = std::fopen(marker.c_str(), "w");
     if (f == nullptr) return ErrnoError("create", marker);
-    std::fputs(staging.main_file_.c_str(), f);
-    std::fflush(f);
-    const int rc = ::fsync(fileno(f));
+    const bool written = std::fputs(text.c_str(), f) >= 0 && std::fflush(f) == 0;
+    const int rc = written ? ::fsync(fileno(f)) : -1;
     std::fclose(f);
-    if (rc != 0) return ErrnoError("fsync", marker);
-  }
+    if (rc != 0) return ErrnoError("write", marker);
+    return absl::OkStatus();
+  };
+  VISQ_RETURN_IF_ERROR(write_marker(kMainFileMarker, staging.main_file_));
+  VISQ_RETURN_IF_ERROR(write_marker(kVersionMarker, absl::StrCat(version, "\n")));
   VISQ_RETURN_IF_ERROR(FsyncPath(staging.dir_, true));
 
   const fs::path target = root_ / staging.name_;
   std::error_code ec;
-  const bool replacing = fs::exists(fs::symlink_status(target, ec));
+  const fs::file_status target_status = fs::symlink_status(target, ec);
+  const bool replacing = fs::exists(target_status);
+  // Only a stored scene's folder is ever exchanged: a file or link of that
+  // name is not ours to destroy.
+  if (replacing && !fs::is_directory(target_status))
+    return absl::AlreadyExistsError(
+        absl::StrCat("scene '", staging.name_, "': the repository holds a file of that name; nothing stored"));
   // A plain-file scene of the same name would shadow nothing but confuse
   // MainFile; uploads always become folders.
   for (const char* ext : {".glb", ".gltf"}) fs::remove(root_ / absl::StrCat(staging.name_, ext), ec);
@@ -260,7 +334,7 @@ StatusOr<fs::path> SceneRepository::Commit(UploadStaging& staging) {
   }
   staging.committed_ = true;
   VISQ_RETURN_IF_ERROR(FsyncPath(root_, true));
-  return target / staging.main_file_;
+  return Stored{target / staging.main_file_, version};
 }
 
 Status SceneRepository::Remove(absl::string_view name) {

@@ -27,6 +27,8 @@ class UploadStaging {
   [[nodiscard]] Status Append(absl::string_view file, absl::string_view data);
   const std::string& name() const { return name_; }
   std::filesystem::path main_file() const { return dir_ / main_file_; }
+  // The folder the upload's files are in: its glTF may read nothing else.
+  const std::filesystem::path& dir() const { return dir_; }
   uint64_t bytes() const { return bytes_; }
 
  private:
@@ -62,13 +64,29 @@ class SceneRepository {
   // or the main file of the folder <root>/<name>/.
   [[nodiscard]] StatusOr<std::filesystem::path> MainFile(absl::string_view name) const;
   bool Contains(absl::string_view name) const { return MainFile(name).ok(); }
+  // The folder whose files a stored scene's glTF may read: its own folder,
+  // or the repository itself for a plain .gltf/.glb placed there by hand.
+  std::filesystem::path FileRoot(const std::filesystem::path& main_file) const;
+
+  // Scene versions come from one counter kept in the repository (a file
+  // under flock), so they never repeat: not after a restart, and not between
+  // replicas that share the repository. A stored upload keeps the version it
+  // was committed with, so every replica that loads it reports the same one.
+  [[nodiscard]] StatusOr<uint64_t> NextVersion() const;
+  // The version a stored scene was committed with; 0 for a scene placed in
+  // the repository by hand (it takes NextVersion when loaded).
+  uint64_t StoredVersion(absl::string_view name) const;
 
   [[nodiscard]] StatusOr<std::unique_ptr<UploadStaging>> BeginUpload(absl::string_view name,
                                                                      absl::string_view main_file,
                                                                      uint64_t max_bytes) const;
   // Makes the staged files the stored scene `name`, replacing an existing
-  // one atomically (renameat2 RENAME_EXCHANGE). Returns the stored main file.
-  [[nodiscard]] StatusOr<std::filesystem::path> Commit(UploadStaging& staging);
+  // one atomically (renameat2 RENAME_EXCHANGE), under a new version.
+  struct Stored {
+    std::filesystem::path main_file;
+    uint64_t version = 0;
+  };
+  [[nodiscard]] StatusOr<Stored> Commit(UploadStaging& staging);
   [[nodiscard]] Status Remove(absl::string_view name);
 
  private:

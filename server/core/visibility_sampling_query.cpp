@@ -28,8 +28,17 @@ Status CheckSize(const gpu::HiddenSampleMapRequest& request) {
 
 // The reference: Embree casts, for every texel and sample, the segment the
 // GPU path tests (same endpoints, from the module's own functions).
+// Whether a job's call was cancelled or its deadline passed, for CPU work
+// that polls (ray batches, points).
+std::function<bool()> StopRequested(const gpu::JobOptions& job) {
+  return [cancelled = job.cancelled, deadline = job.deadline] {
+    return (cancelled != nullptr && cancelled->load()) || std::chrono::steady_clock::now() > deadline;
+  };
+}
+
 StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, const ResidentScene& resident,
-                                                            const gpu::HiddenSampleMapRequest& request) {
+                                                            const gpu::HiddenSampleMapRequest& request,
+                                                            const gpu::JobOptions& job) {
   VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(request));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneOf(resident));
   // Embree holds float32 positions relative to its origin, like the GPU.
@@ -64,6 +73,7 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
     // Each texel's N segments share their receiver end: coherent.
     raycast::TraceOptions trace;
     trace.coherent = true;
+    trace.stop = StopRequested(job);
     VISQ_ASSIGN_OR_RETURN(
         std::vector<uint8_t> blocked,
         embree->Occluded(
@@ -169,7 +179,7 @@ StatusOr<gpu::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const Res
                                                        VisibilityMethod method, const gpu::HiddenSampleMapRequest& request,
                                                        const gpu::JobOptions& job) {
   switch (method) {
-    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request);
+    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, job);
     case VisibilityMethod::kPluckerExact:
       return ExactHiddenSampleMap(engine, resident.name, resident.version, request);
     case VisibilityMethod::kRaster: break;
@@ -195,7 +205,7 @@ StatusOr<gpu::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, const Res
     return mapper->PatchVisibility(*gpu_scene, request, job);
   }
   if (method == VisibilityMethod::kRaycast) {
-    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map));
+    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map, job));
     return gpu::SummarizePatchVisibility(request, result);
   }
   if (request.unblocked_limit > 0)

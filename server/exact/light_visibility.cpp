@@ -1,5 +1,7 @@
 #include "exact/light_visibility.h"
 
+#include "common/coordinates.h"
+
 #include <algorithm>
 #include <array>
 #include <bit>
@@ -1142,8 +1144,8 @@ struct LightVisibilityTree::Impl {
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons) {
     // Validate and move the point into the local frame.
     for (int i = 0; i < 3; ++i) {
-      if (!std::isfinite(q.position[i])) {
-        return absl::InvalidArgumentError(absl::StrCat("point.position[", i, "]: not finite"));
+      if (!InCoordinateRange(q.position[i])) {
+        return absl::InvalidArgumentError(absl::StrCat("point.position[", i, "]: not finite or beyond ±", kMaxCoordinate));
       }
     }
     std::optional<glm::dvec3> normal = q.normal;
@@ -1562,9 +1564,9 @@ StatusOr<PreparedLight> PrepareLight(const AreaLight& light) {
       if (std::isnan(lv[i][c])) {
         return absl::InvalidArgumentError(absl::StrCat("light.vertices[", i, "]: NaN coordinate"));
       }
-      if (!std::isfinite(lv[i][c])) {
+      if (!InCoordinateRange(lv[i][c])) {
         return absl::InvalidArgumentError(
-            absl::StrCat("light.vertices[", i, "]: infinite coordinate"));
+            absl::StrCat("light.vertices[", i, "]: infinite coordinate or beyond ±", kMaxCoordinate));
       }
     }
     if (lv[i] == lv[(i + 1) % lv.size()]) {

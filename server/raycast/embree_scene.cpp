@@ -1,6 +1,7 @@
 #include "raycast/embree_scene.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <string>
 #include <thread>
@@ -76,6 +77,16 @@ void ParallelChunks(size_t count, int threads, const Body& body) {
 }
 
 constexpr size_t kStream = 256;  // rays per rtc*1M call
+
+// Every 16 streams (4,096 rays, well under a millisecond of tracing) a
+// thread asks whether to stop; once one has been told, all stop.
+bool ShouldStop(const TraceOptions& options, size_t done, std::atomic<bool>& stopped) {
+  if (stopped.load(std::memory_order_relaxed)) return true;
+  if (!options.stop || done % (16 * kStream) != 0) return false;
+  if (!options.stop()) return false;
+  stopped = true;
+  return true;
+}
 
 }  // namespace
 
@@ -205,10 +216,12 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
   std::vector<uint8_t> result(count, 0);
   std::vector<uint32_t> ignore(options.ignore_triangles.begin(), options.ignore_triangles.end());
   std::sort(ignore.begin(), ignore.end());
+  std::atomic<bool> stopped{false};
   ParallelChunks(count, options.threads, [&](size_t begin, size_t end) {
     RTCRay rays[kStream];
     uint32_t per_ray_ignore[kStream];
     for (size_t base = begin; base < end; base += kStream) {
+      if (ShouldStop(options, base - begin, stopped)) return;
       const size_t n = std::min(kStream, end - base);
       bool any_ignore = !ignore.empty();
       for (size_t i = 0; i < n; ++i) {
@@ -243,6 +256,7 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
     }
   });
   VISQ_RETURN_IF_ERROR(EmbreeStatus(device_, "rtcOccluded1M"));
+  if (stopped) return absl::CancelledError("ray tracing stopped: the call was cancelled or its deadline passed");
   return result;
 }
 
@@ -251,10 +265,12 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
   std::vector<Hit> result(rays_in.size());
   std::vector<uint32_t> ignore(options.ignore_triangles.begin(), options.ignore_triangles.end());
   std::sort(ignore.begin(), ignore.end());
+  std::atomic<bool> stopped{false};
   ParallelChunks(rays_in.size(), options.threads, [&](size_t begin, size_t end) {
     std::vector<RTCRayHit> rays(kStream);
     uint32_t per_ray_ignore[kStream];
     for (size_t base = begin; base < end; base += kStream) {
+      if (ShouldStop(options, base - begin, stopped)) return;
       const size_t n = std::min(kStream, end - base);
       bool any_ignore = !ignore.empty();
       for (size_t i = 0; i < n; ++i) {
@@ -291,6 +307,7 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
     }
   });
   VISQ_RETURN_IF_ERROR(EmbreeStatus(device_, "rtcIntersect1M"));
+  if (stopped) return absl::CancelledError("ray tracing stopped: the call was cancelled or its deadline passed");
   return result;
 }
 

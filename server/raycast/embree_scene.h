@@ -76,6 +76,9 @@ struct TraceOptions {
   // Consecutive rays are coherent (a shared origin, nearby directions):
   // Embree then traces each stream of them as packets.
   bool coherent = false;
+  // Polled between streams of rays: when it returns true the trace stops
+  // and the call returns CANCELLED (a call cancelled or past its deadline).
+  std::function<bool()> stop;
 };
 
 struct EmbreeSceneOptions {

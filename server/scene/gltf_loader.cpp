@@ -1,17 +1,24 @@
 #include "scene/gltf_loader.h"
 
-#include <stdexcept>
 #include <cmath>
 #include <cstring>
+#include <fstream>
 #include <functional>
+#include <iterator>
+#include <limits>
+#include <map>
 #include <set>
 #include <stdexcept>
 
+#include <absl/strings/escaping.h>
 #include <absl/strings/str_join.h>
+#include <absl/strings/str_replace.h>
 #include <glm/gtc/matrix_transform.hpp>
 #include <glm/gtc/quaternion.hpp>
 #include <glm/gtc/type_ptr.hpp>
 #include <tiny_gltf.h>
+
+#include "common/coordinates.h"
 
 namespace visq {
 namespace {
@@ -57,10 +64,19 @@ class AccessorReader {
       const int stride = acc.ByteStride(view);
       if (stride <= 0) return Invalid(absl::StrCat(reader.label_, ": invalid byteStride"));
       reader.stride_ = stride;
-      const size_t begin = view.byteOffset + acc.byteOffset;
-      const size_t needed = acc.count == 0 ? 0 : (acc.count - 1) * size_t(stride) + element_bytes;
-      if (view.byteOffset + view.byteLength > buffer.size() || acc.byteOffset + needed > view.byteLength)
+      // Every sum and product is checked: counts, offsets and lengths are
+      // the file's own numbers, up to 2^64.
+      size_t view_end = 0, needed = 0, accessor_end = 0;
+      const bool view_fits = !__builtin_add_overflow(view.byteOffset, view.byteLength, &view_end) &&
+                             view_end <= buffer.size();
+      const bool accessor_fits =
+          acc.count == 0 ||
+          (!__builtin_mul_overflow(acc.count - 1, size_t(stride), &needed) &&
+           !__builtin_add_overflow(needed, element_bytes, &needed) &&
+           !__builtin_add_overflow(acc.byteOffset, needed, &accessor_end) && accessor_end <= view.byteLength);
+      if (!view_fits || !accessor_fits)
         return Invalid(absl::StrCat(reader.label_, ": accessor reads past the end of its buffer"));
+      const size_t begin = view.byteOffset + acc.byteOffset;  // both bounded above
       reader.data_ = buffer.data() + begin;
     }
     if (acc.sparse.isSparse) VISQ_RETURN_IF_ERROR(reader.LoadSparse(model));
@@ -102,22 +118,28 @@ class AccessorReader {
       if (view_index < 0 || view_index >= static_cast<int>(model.bufferViews.size()))
         return Invalid(absl::StrCat(label_, ": sparse ", part, " bufferView out of range"));
       const auto& view = model.bufferViews[view_index];
+      size_t view_end = 0, end = 0;
       if (view.buffer < 0 || view.buffer >= static_cast<int>(model.buffers.size()) ||
-          view.byteOffset + view.byteLength > model.buffers[view.buffer].data.size() ||
-          offset + bytes > view.byteLength)
+          __builtin_add_overflow(view.byteOffset, view.byteLength, &view_end) ||
+          view_end > model.buffers[view.buffer].data.size() || __builtin_add_overflow(offset, bytes, &end) ||
+          end > view.byteLength)
         return Invalid(absl::StrCat(label_, ": sparse ", part, " read past the end of its buffer"));
       return model.buffers[view.buffer].data.data() + view.byteOffset + offset;
     };
     if (sparse.count < 0 || size_t(sparse.count) > accessor_->count)
       return Invalid(absl::StrCat(label_, ": sparse count ", sparse.count, " out of range"));
     const int index_bytes = tinygltf::GetComponentSizeInBytes(sparse.indices.componentType);
-    if (index_bytes <= 0) return Invalid(absl::StrCat(label_, ": sparse index type invalid"));
+    if (index_bytes <= 0 || index_bytes > 4) return Invalid(absl::StrCat(label_, ": sparse index type invalid"));
+    size_t index_total = 0, value_total = 0;
+    if (__builtin_mul_overflow(size_t(sparse.count), size_t(index_bytes), &index_total) ||
+        __builtin_mul_overflow(size_t(sparse.count), element_bytes, &value_total))
+      return Invalid(absl::StrCat(label_, ": sparse count ", sparse.count, " out of range"));
     VISQ_ASSIGN_OR_RETURN(const unsigned char* indices,
-                          view_bytes(sparse.indices.bufferView, sparse.indices.byteOffset,
-                                     size_t(sparse.count) * index_bytes, "indices"));
+                          view_bytes(sparse.indices.bufferView, sparse.indices.byteOffset, index_total,
+                                     "indices"));
     VISQ_ASSIGN_OR_RETURN(const unsigned char* values,
-                          view_bytes(sparse.values.bufferView, sparse.values.byteOffset,
-                                     size_t(sparse.count) * element_bytes, "values"));
+                          view_bytes(sparse.values.bufferView, sparse.values.byteOffset, value_total,
+                                     "values"));
     for (int k = 0; k < sparse.count; ++k) {
       uint32_t index = 0;
       std::memcpy(&index, indices + size_t(k) * index_bytes, index_bytes);  // little endian
@@ -148,9 +170,49 @@ glm::dmat4 LocalMatrix(const tinygltf::Node& node) {
   return m;
 }
 
+// What a document flattens to, counted from its numbers alone. Nodes may
+// share children (a DAG), so a node's subtree is counted once and reused;
+// sums saturate instead of wrapping.
+struct FlattenedCounts {
+  uint64_t triangles = 0;
+  uint64_t vertices = 0;
+  uint64_t nodes = 0;
+  int depth = 0;
+};
+
+uint64_t SaturatingAdd(uint64_t a, uint64_t b) {
+  uint64_t sum = 0;
+  return __builtin_add_overflow(a, b, &sum) ? std::numeric_limits<uint64_t>::max() : sum;
+}
+
+uint64_t AccessorCount(const tinygltf::Model& model, int accessor) {
+  if (accessor < 0 || accessor >= static_cast<int>(model.accessors.size())) return 0;
+  return model.accessors[accessor].count;
+}
+
+FlattenedCounts MeshCounts(const tinygltf::Model& model, const tinygltf::Mesh& mesh) {
+  FlattenedCounts counts;
+  for (const auto& prim : mesh.primitives) {
+    const int mode = prim.mode < 0 ? TINYGLTF_MODE_TRIANGLES : prim.mode;
+    auto position = prim.attributes.find("POSITION");
+    if (position == prim.attributes.end()) continue;
+    const uint64_t vertices = AccessorCount(model, position->second);
+    const uint64_t corners = prim.indices >= 0 ? AccessorCount(model, prim.indices) : vertices;
+    uint64_t triangles = 0;
+    if (mode == TINYGLTF_MODE_TRIANGLES) triangles = corners / 3;
+    else if (mode == TINYGLTF_MODE_TRIANGLE_STRIP || mode == TINYGLTF_MODE_TRIANGLE_FAN)
+      triangles = corners >= 2 ? corners - 2 : 0;
+    else continue;  // points and lines are not kept
+    counts.vertices = SaturatingAdd(counts.vertices, vertices);
+    counts.triangles = SaturatingAdd(counts.triangles, triangles);
+  }
+  return counts;
+}
+
 class SceneBuilder {
  public:
-  SceneBuilder(const tinygltf::Model& model, GltfLoadReport& report) : model_(model), report_(report) {}
+  SceneBuilder(const tinygltf::Model& model, const GltfLoadLimits& limits, GltfLoadReport& report)
+      : model_(model), limits_(limits), report_(report) {}
 
   Status Build(Scene& scene) {
     scene_ = &scene;
@@ -171,8 +233,8 @@ class SceneBuilder {
       for (size_t i = 0; i < model_.nodes.size(); ++i)
         if (!has_parent[i]) roots.push_back(static_cast<int>(i));
     }
-    std::vector<bool> on_path(model_.nodes.size(), false);
-    for (int root : roots) VISQ_RETURN_IF_ERROR(VisitNode(root, -1, glm::dmat4(1.0), on_path));
+    VISQ_RETURN_IF_ERROR(CheckFlattenedSize(roots));
+    VISQ_RETURN_IF_ERROR(VisitNodes(roots));
     if (scene.triangles.empty()) return Invalid("scene has no triangles");
     if (!all_primitives_have_lightmap_uvs_) {
       if (!scene.lightmap_uvs.empty())
@@ -184,6 +246,86 @@ class SceneBuilder {
   }
 
  private:
+  // Refuses cycles, depth beyond the limit, and documents that would
+  // flatten beyond the triangle or byte limits, before anything is built.
+  // Iterative: a chain of nodes as deep as the file likes cannot exhaust the
+  // stack.
+  Status CheckFlattenedSize(const std::vector<int>& roots) {
+    const size_t n = model_.nodes.size();
+    std::vector<FlattenedCounts> subtree(n);
+    std::vector<uint8_t> state(n, 0);  // 0 unvisited, 1 on the path, 2 counted
+    std::vector<FlattenedCounts> mesh_counts(model_.meshes.size());
+    for (size_t m = 0; m < model_.meshes.size(); ++m) mesh_counts[m] = MeshCounts(model_, model_.meshes[m]);
+    struct Frame {
+      int node;
+      size_t next_child;
+    };
+    std::vector<Frame> path;
+    FlattenedCounts total;
+    for (int root : roots) {
+      if (root < 0 || root >= static_cast<int>(n)) return Invalid(absl::StrCat("node index ", root, " out of range"));
+      if (state[root] != 2) {
+        path.push_back({root, 0});
+        state[root] = 1;
+      }
+      while (!path.empty()) {
+        Frame& frame = path.back();
+        const auto& node = model_.nodes[frame.node];
+        if (frame.next_child < node.children.size()) {
+          const int child = node.children[frame.next_child++];
+          if (child < 0 || child >= static_cast<int>(n))
+            return Invalid(absl::StrCat("nodes[", frame.node, "].children: node index ", child, " out of range"));
+          if (state[child] == 1) return Invalid(absl::StrCat("nodes[", child, "]: cycle in the node hierarchy"));
+          if (state[child] == 0) {
+            if (static_cast<int>(path.size()) >= limits_.max_node_depth)
+              return Invalid(absl::StrCat("nodes[", child, "]: node hierarchy deeper than ", limits_.max_node_depth,
+                                          " levels"));
+            state[child] = 1;
+            path.push_back({child, 0});
+          }
+          continue;
+        }
+        FlattenedCounts counts;
+        if (node.mesh >= 0 && node.mesh < static_cast<int>(mesh_counts.size())) counts = mesh_counts[node.mesh];
+        counts.nodes = 1;
+        for (int child : node.children) {
+          const FlattenedCounts& c = subtree[child];
+          counts.triangles = SaturatingAdd(counts.triangles, c.triangles);
+          counts.vertices = SaturatingAdd(counts.vertices, c.vertices);
+          counts.nodes = SaturatingAdd(counts.nodes, c.nodes);
+          counts.depth = std::max(counts.depth, c.depth);
+        }
+        counts.depth += 1;
+        subtree[frame.node] = counts;
+        state[frame.node] = 2;
+        path.pop_back();
+      }
+      const FlattenedCounts& c = subtree[root];
+      total.triangles = SaturatingAdd(total.triangles, c.triangles);
+      total.vertices = SaturatingAdd(total.vertices, c.vertices);
+      total.nodes = SaturatingAdd(total.nodes, c.nodes);
+    }
+    if (total.triangles > limits_.max_triangles)
+      return absl::ResourceExhaustedError(absl::StrCat("the node hierarchy flattens to ", total.triangles,
+                                                       " triangles, above the limit of ", limits_.max_triangles));
+    if (total.vertices > std::numeric_limits<uint32_t>::max())
+      return absl::ResourceExhaustedError(
+          absl::StrCat("the node hierarchy flattens to ", total.vertices, " vertices, above 2^32 - 1"));
+    // The Scene's per-element sizes (Scene::CpuBytes), before any is made.
+    constexpr uint64_t kBytesPerVertex = sizeof(glm::dvec3) + sizeof(glm::vec2);
+    constexpr uint64_t kBytesPerTriangle = sizeof(glm::uvec3) + 2 * sizeof(uint32_t);
+    constexpr uint64_t kBytesPerNode = sizeof(SceneNode);
+    uint64_t bytes = 0, part = 0;
+    for (auto [count, size] : {std::pair{total.vertices, kBytesPerVertex}, std::pair{total.triangles, kBytesPerTriangle},
+                               std::pair{total.nodes, kBytesPerNode}})
+      bytes = SaturatingAdd(bytes, __builtin_mul_overflow(count, size, &part) ? ~uint64_t{0} : part);
+    if (bytes > limits_.max_scene_bytes)
+      return absl::ResourceExhaustedError(absl::StrCat("the node hierarchy flattens to about ", bytes,
+                                                       " bytes resident, above the cap of ", limits_.max_scene_bytes,
+                                                       " (--max-scene-bytes)"));
+    return absl::OkStatus();
+  }
+
   Status BuildMaterials() {
     for (size_t i = 0; i < model_.materials.size(); ++i) {
       const auto& m = model_.materials[i];
@@ -213,32 +355,43 @@ class SceneBuilder {
     return static_cast<uint32_t>(default_material_);
   }
 
-  Status VisitNode(int index, int parent, const glm::dmat4& parent_world, std::vector<bool>& on_path) {
-    if (index < 0 || index >= static_cast<int>(model_.nodes.size()))
-      return Invalid(absl::StrCat("node index ", index, " out of range"));
-    if (on_path[index]) return Invalid(absl::StrCat("nodes[", index, "]: cycle in the node hierarchy"));
-    on_path[index] = true;
-    const auto& node = model_.nodes[index];
-    const glm::dmat4 world = parent_world * LocalMatrix(node);
-    for (int c = 0; c < 4; ++c)
-      for (int r = 0; r < 4; ++r)
-        if (!std::isfinite(world[c][r])) return Invalid(absl::StrCat("nodes[", index, "]: non-finite transform"));
+  // Pre-order over the (checked, acyclic, bounded) hierarchy with an explicit
+  // stack; a node shared by several parents is flattened once per path.
+  Status VisitNodes(const std::vector<int>& roots) {
+    struct Pending {
+      int index;
+      int parent;  // into scene_->nodes
+      glm::dmat4 parent_world;
+    };
+    std::vector<Pending> stack;
+    for (auto it = roots.rbegin(); it != roots.rend(); ++it) stack.push_back({*it, -1, glm::dmat4(1.0)});
+    while (!stack.empty()) {
+      const Pending pending = stack.back();
+      stack.pop_back();
+      const int index = pending.index;
+      const auto& node = model_.nodes[index];
+      const glm::dmat4 world = pending.parent_world * LocalMatrix(node);
+      for (int c = 0; c < 4; ++c)
+        for (int r = 0; r < 4; ++r)
+          if (!std::isfinite(world[c][r]))
+            return Invalid(absl::StrCat("nodes[", index, "]: non-finite transform"));
 
-    const uint32_t node_id = static_cast<uint32_t>(scene_->nodes.size());
-    scene_->nodes.push_back(SceneNode{node.name, index, parent, world,
-                                      static_cast<uint32_t>(scene_->triangles.size()), 0});
-    if (node.mesh >= 0) {
-      if (node.mesh >= static_cast<int>(model_.meshes.size()))
-        return Invalid(absl::StrCat("nodes[", index, "].mesh ", node.mesh, " out of range"));
-      const auto& mesh = model_.meshes[node.mesh];
-      for (size_t p = 0; p < mesh.primitives.size(); ++p)
-        VISQ_RETURN_IF_ERROR(AddPrimitive(mesh.primitives[p], world, node_id,
-                                          absl::StrCat("meshes[", node.mesh, "].primitives[", p, "]")));
+      const uint32_t node_id = static_cast<uint32_t>(scene_->nodes.size());
+      scene_->nodes.push_back(SceneNode{node.name, index, pending.parent, world,
+                                        static_cast<uint32_t>(scene_->triangles.size()), 0});
+      if (node.mesh >= 0) {
+        if (node.mesh >= static_cast<int>(model_.meshes.size()))
+          return Invalid(absl::StrCat("nodes[", index, "].mesh ", node.mesh, " out of range"));
+        const auto& mesh = model_.meshes[node.mesh];
+        for (size_t p = 0; p < mesh.primitives.size(); ++p)
+          VISQ_RETURN_IF_ERROR(AddPrimitive(mesh.primitives[p], world, node_id,
+                                            absl::StrCat("meshes[", node.mesh, "].primitives[", p, "]")));
+      }
+      scene_->nodes[node_id].triangle_count =
+          static_cast<uint32_t>(scene_->triangles.size()) - scene_->nodes[node_id].first_triangle;
+      for (auto it = node.children.rbegin(); it != node.children.rend(); ++it)
+        stack.push_back({*it, static_cast<int>(node_id), world});
     }
-    scene_->nodes[node_id].triangle_count =
-        static_cast<uint32_t>(scene_->triangles.size()) - scene_->nodes[node_id].first_triangle;
-    for (int child : node.children) VISQ_RETURN_IF_ERROR(VisitNode(child, static_cast<int>(node_id), world, on_path));
-    on_path[index] = false;
     return absl::OkStatus();
   }
 
@@ -263,7 +416,10 @@ class SceneBuilder {
       const glm::dvec3 local(positions.Get(i, 0), positions.Get(i, 1), positions.Get(i, 2));
       if (!std::isfinite(local.x) || !std::isfinite(local.y) || !std::isfinite(local.z))
         return Invalid(absl::StrCat(label, ".POSITION[", i, "]: NaN or Inf coordinate"));
-      scene_->positions.push_back(glm::dvec3(world * glm::dvec4(local, 1.0)));
+      const glm::dvec3 placed(world * glm::dvec4(local, 1.0));
+      if (!InCoordinateRange(placed))
+        return Invalid(absl::StrCat(label, ".POSITION[", i, "]: beyond ±", kMaxCoordinate, " once placed by its nodes"));
+      scene_->positions.push_back(placed);
     }
     auto uv_it = prim.attributes.find("TEXCOORD_1");
     if (uv_it == prim.attributes.end()) {
@@ -331,6 +487,7 @@ class SceneBuilder {
   }
 
   const tinygltf::Model& model_;
+  const GltfLoadLimits& limits_;
   GltfLoadReport& report_;
   Scene* scene_ = nullptr;
   int default_material_ = -1;
@@ -349,44 +506,191 @@ void ReportDroppedContent(const tinygltf::Model& model, GltfLoadReport& report) 
   note(report.ignored_primitives, "point/line primitive(s)");
 }
 
+// tinygltf parses JSON (and turns extras into values) recursively: 20,000
+// nested brackets overflow its stack. Counted here first, outside strings.
+constexpr int kMaxJsonDepth = 256;
+
+bool JsonNestsTooDeep(std::string_view json) {
+  int depth = 0;
+  bool in_string = false, escaped = false;
+  for (char c : json) {
+    if (in_string) {
+      if (escaped) escaped = false;
+      else if (c == '\\') escaped = true;
+      else if (c == '"') in_string = false;
+      continue;
+    }
+    if (c == '"') in_string = true;
+    else if (c == '[' || c == '{') {
+      if (++depth > kMaxJsonDepth) return true;
+    } else if (c == ']' || c == '}') {
+      --depth;
+    }
+  }
+  return false;
+}
+
+// The JSON of a .gltf, or the first (JSON) chunk of a .glb as far as the
+// file holds it.
+std::string_view JsonPart(const std::string& bytes, bool binary) {
+  if (!binary) return bytes;
+  if (bytes.size() < 20) return {};
+  uint32_t chunk_length = 0;
+  std::memcpy(&chunk_length, bytes.data() + 12, 4);  // little endian
+  return std::string_view(bytes).substr(20, chunk_length);
+}
+
+// The file callbacks tinygltf reads external buffers and images through.
+// tinygltf joins the percent-decoded URI to the base folder, then tries the
+// working directory ("./" + URI): only the first form, resolving inside the
+// root, is ever opened.
+class UploadFiles {
+ public:
+  UploadFiles(const std::filesystem::path& base_dir, const std::filesystem::path& root)
+      : base_dir_(base_dir.lexically_normal()), root_(root.lexically_normal()) {
+    std::error_code ec;
+    canonical_root_ = std::filesystem::weakly_canonical(root_, ec);
+    if (ec) canonical_root_ = root_;
+    base_prefix_ = base_dir_.string();
+    if (base_prefix_.empty() || base_prefix_.back() != '/') base_prefix_ += '/';
+  }
+
+  tinygltf::FsCallbacks Callbacks() {
+    return tinygltf::FsCallbacks{&FileExists, &ExpandFilePath, &ReadWholeFile, &WriteWholeFile, this};
+  }
+  // The first URI refused, and why; empty when none was.
+  const std::string& refusal() const { return refusal_; }
+  const std::string& base_prefix() const { return base_prefix_; }
+
+ private:
+  static bool Inside(const std::filesystem::path& path, const std::filesystem::path& folder) {
+    const std::filesystem::path relative = path.lexically_relative(folder);
+    if (relative.empty() || relative == ".") return false;
+    for (const auto& part : relative) {
+      const std::string s = part.string();
+      if (s.empty() || s[0] == '.') return false;  // "..", and the repository's hidden files
+    }
+    return true;
+  }
+
+  // The file a joined path names, or empty (with the refusal recorded) when
+  // it is not one of the upload's own files.
+  std::filesystem::path Resolve(const std::string& joined) {
+    if (joined.rfind(base_prefix_, 0) != 0) return {};  // the working-directory fallback
+    const std::string uri = joined.substr(base_prefix_.size());
+    auto refuse = [&](const std::string& why) {
+      if (refusal_.empty()) refusal_ = absl::StrCat("URI '", absl::CHexEscape(uri), "' ", why);
+      return std::filesystem::path();
+    };
+    if (uri.empty()) return refuse("is empty");
+    if (uri[0] == '/' || uri.find('\\') != std::string::npos || uri.find('\0') != std::string::npos)
+      return refuse("is an absolute path or holds a backslash or NUL");
+    const std::filesystem::path lexical = (base_dir_ / uri).lexically_normal();
+    if (!Inside(lexical, root_)) return refuse("leaves the scene's own files");
+    std::error_code ec;
+    const std::filesystem::path resolved = std::filesystem::weakly_canonical(lexical, ec);
+    if (ec || !Inside(resolved, canonical_root_)) return refuse("resolves outside the scene's own files");
+    if (!std::filesystem::is_regular_file(resolved, ec)) return {};
+    return resolved;
+  }
+
+  static bool FileExists(const std::string& path, void* self) {
+    return !static_cast<UploadFiles*>(self)->Resolve(path).empty();
+  }
+  // The default expands `~` and environment variables (wordexp): a URI is
+  // only ever a name.
+  static std::string ExpandFilePath(const std::string& path, void*) { return path; }
+  static bool ReadWholeFile(std::vector<unsigned char>* out, std::string* err, const std::string& path,
+                            void* self) {
+    const std::filesystem::path resolved = static_cast<UploadFiles*>(self)->Resolve(path);
+    if (resolved.empty()) {
+      if (err) *err += "not one of the scene's files";
+      return false;
+    }
+    std::ifstream file(resolved, std::ios::binary);
+    if (!file) {
+      if (err) *err += "cannot open";
+      return false;
+    }
+    out->assign(std::istreambuf_iterator<char>(file), std::istreambuf_iterator<char>());
+    return true;
+  }
+  static bool WriteWholeFile(std::string* err, const std::string&, const std::vector<unsigned char>&, void*) {
+    if (err) *err += "the loader never writes";
+    return false;
+  }
+
+  std::filesystem::path base_dir_;
+  std::filesystem::path root_;
+  std::filesystem::path canonical_root_;
+  std::string base_prefix_;
+  std::string refusal_;
+};
+
 }  // namespace
 
-StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* report) {
+StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* report,
+                             const GltfLoadLimits& limits) {
   GltfLoadReport local_report;
   GltfLoadReport& out_report = report ? *report : local_report;
+  const std::string file_name = path.filename().string();
 
-  tinygltf::TinyGLTF loader;
-  loader.SetImageLoader(&SkipImage, nullptr);
-  tinygltf::Model model;
-  std::string error, warning;
   const std::string ext = path.extension().string();
   const bool binary = ext == ".glb" || ext == ".GLB";
   if (!binary && ext != ".gltf" && ext != ".GLTF")
-    return Invalid(absl::StrCat(path.filename().string(), ": not a .gltf or .glb file"));
+    return Invalid(absl::StrCat(file_name, ": not a .gltf or .glb file"));
+  std::error_code ec;
+  const std::filesystem::path main_file = std::filesystem::absolute(path, ec).lexically_normal();
+  if (ec) return Invalid(absl::StrCat(file_name, ": ", ec.message()));
+  std::string bytes;
+  {
+    std::ifstream file(main_file, std::ios::binary);
+    if (!file) return absl::NotFoundError(absl::StrCat(file_name, ": cannot open"));
+    bytes.assign(std::istreambuf_iterator<char>(file), std::istreambuf_iterator<char>());
+  }
+  if (bytes.size() > std::numeric_limits<unsigned>::max())
+    return absl::ResourceExhaustedError(absl::StrCat(file_name, ": larger than 4 GiB"));
+  if (JsonNestsTooDeep(JsonPart(bytes, binary)))
+    return Invalid(absl::StrCat(file_name, ": JSON nested deeper than ", kMaxJsonDepth, " levels"));
+  const std::filesystem::path base_dir = main_file.parent_path();
+  UploadFiles files(base_dir, limits.file_root.empty() ? base_dir : std::filesystem::absolute(limits.file_root, ec));
+
+  tinygltf::TinyGLTF loader;
+  loader.SetImageLoader(&SkipImage, nullptr);
+  loader.SetFsCallbacks(files.Callbacks());
+  tinygltf::Model model;
+  std::string error, warning;
   bool ok = false;
   // tinygltf reports most errors through `error`, but some malformed files
   // make it throw (a GLB buffer without a uri and without a BIN chunk:
   // std::out_of_range from vector::at, found by the glTF fuzz target). An
   // exception escaping here would end the server.
   try {
-    ok = binary ? loader.LoadBinaryFromFile(&model, &error, &warning, path.string())
-                : loader.LoadASCIIFromFile(&model, &error, &warning, path.string());
+    const auto* data = reinterpret_cast<const unsigned char*>(bytes.data());
+    ok = binary ? loader.LoadBinaryFromMemory(&model, &error, &warning, data, static_cast<unsigned>(bytes.size()),
+                                              base_dir.string())
+                : loader.LoadASCIIFromString(&model, &error, &warning, bytes.data(),
+                                             static_cast<unsigned>(bytes.size()), base_dir.string());
   } catch (const std::exception& e) {
-    return Invalid(absl::StrCat(path.filename().string(), ": malformed glTF (the parser gave up: ", e.what(), ")"));
+    return Invalid(absl::StrCat(file_name, ": malformed glTF (the parser gave up: ", e.what(), ")"));
   }
+  if (!files.refusal().empty()) return Invalid(absl::StrCat(file_name, ": ", files.refusal()));
   if (!ok) {
     if (error.empty()) error = warning;
     while (!error.empty() && (error.back() == '\n' || error.back() == ' ')) error.pop_back();
-    return Invalid(absl::StrCat(path.filename().string(), ": malformed glTF: ", error));
+    // tinygltf's messages name the paths it tried: keep the server's own
+    // folders out of what the client sees.
+    error = absl::StrReplaceAll(error, {{files.base_prefix(), ""}});
+    return Invalid(absl::StrCat(file_name, ": malformed glTF: ", error));
   }
   for (const auto& required : model.extensionsRequired)
     if (!IsIgnorableRequiredExtension(required))
-      return Invalid(absl::StrCat(path.filename().string(), ": unsupported required extension ", required));
+      return Invalid(absl::StrCat(file_name, ": unsupported required extension ", required));
 
   Scene scene;
-  SceneBuilder builder(model, out_report);
+  SceneBuilder builder(model, limits, out_report);
   Status status = builder.Build(scene);
-  if (!status.ok()) return Invalid(absl::StrCat(path.filename().string(), ": ", status.message()));
+  if (!status.ok()) return Status(status.code(), absl::StrCat(file_name, ": ", status.message()));
   ReportDroppedContent(model, out_report);
   return scene;
 }

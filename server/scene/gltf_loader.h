@@ -17,10 +17,28 @@ struct GltfLoadReport {
   size_t ignored_primitives = 0;  // points and lines
 };
 
+// What one glTF file may reach and produce. Every file is hostile: its URIs
+// may point anywhere, and a kilobyte of nodes that share children can
+// flatten to billions of triangles.
+struct GltfLoadLimits {
+  // External buffers and images resolve, after percent-decoding, to files
+  // inside this folder only (an upload's staging folder, a repository
+  // scene's own folder). Empty: the main file's folder. Absolute URIs, paths
+  // that leave the folder, hidden names and the working directory are
+  // refused.
+  std::filesystem::path file_root;
+  // Counted from the document before anything is flattened.
+  uint64_t max_triangles = uint64_t{1} << 27;
+  uint64_t max_scene_bytes = uint64_t{8} << 30;  // Scene::CpuBytes, estimated
+  int max_node_depth = 1024;                       // root = depth 1
+};
+
 // Loads the default scene (or the first) of a glTF file, flattening the node
-// hierarchy to world space. Malformed or unsupported content is
-// INVALID_ARGUMENT with a message naming the offending element.
-[[nodiscard]] StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path,
-                                           GltfLoadReport* report = nullptr);
+// hierarchy to world space. Malformed or unsupported content, and URIs that
+// leave `limits.file_root`, are INVALID_ARGUMENT with a message naming the
+// offending element; a document that would flatten beyond the limits is
+// RESOURCE_EXHAUSTED, refused before it is flattened.
+[[nodiscard]] StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* report = nullptr,
+                                           const GltfLoadLimits& limits = {});
 
 }  // namespace visq

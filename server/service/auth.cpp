@@ -1,5 +1,8 @@
 #include "service/auth.h"
 
+#include <absl/strings/ascii.h>
+#include <absl/strings/str_cat.h>
+
 namespace visq::service {
 namespace {
 
@@ -12,6 +15,24 @@ bool ConstantTimeEquals(std::string_view a, std::string_view b) {
 }
 
 }  // namespace
+
+StatusOr<std::string> ParseAuthToken(std::string_view file_text, std::vector<std::string>* warnings) {
+  const absl::string_view stripped = absl::StripAsciiWhitespace(AbslView(file_text));
+  const std::string_view token(stripped.data(), stripped.size());
+  if (token.empty()) return absl::InvalidArgumentError("the token file holds no token");
+  auto warn = [&](std::string line) {
+    if (warnings != nullptr) warnings->push_back(std::move(line));
+  };
+  if (token.find_first_of("\r\n") != std::string_view::npos)
+    warn("the token file holds more than one line: the whole text, inner line breaks included, is the token");
+  for (char c : token)
+    if (static_cast<unsigned char>(c) < 0x21 || static_cast<unsigned char>(c) > 0x7e) {
+      warn("the token holds spaces or non-ASCII bytes, which HTTP/2 metadata clients may not send");
+      break;
+    }
+  if (token.size() < 16) warn(absl::StrCat("the token is ", token.size(), " characters; use at least 32 random ones"));
+  return std::string(token);
+}
 
 Status Authorizer::Check(const grpc::CallbackServerContext& context) const {
   if (!enabled()) return absl::OkStatus();

@@ -3,12 +3,19 @@
 #pragma once
 
 #include <string>
+#include <string_view>
+#include <vector>
 
 #include <grpcpp/server_context.h>
 
 #include "common/status.h"
 
 namespace visq::service {
+
+// The token in a token file's text: surrounding whitespace (a Windows
+// line end, a trailing newline) stripped. `warnings` gets a line for each
+// thing that looks wrong with it. Empty text is INVALID_ARGUMENT.
+[[nodiscard]] StatusOr<std::string> ParseAuthToken(std::string_view file_text, std::vector<std::string>* warnings);
 
 class Authorizer {
  public:

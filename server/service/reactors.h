@@ -7,6 +7,7 @@
 #include <chrono>
 #include <functional>
 #include <memory>
+#include <type_traits>
 #include <vector>
 
 #include <grpcpp/server_context.h>
@@ -18,21 +19,45 @@
 
 namespace visq::service {
 
+// Which pool a unary call runs on: metadata calls (list, get, unload,
+// stats) have threads of their own, so they answer in milliseconds while
+// every compute thread is busy.
+enum class Lane { kCompute, kMetadata };
+
+// A unary reactor that remembers a cancellation (the client's, or the
+// server's at shutdown), so work in progress can stop.
+class CancellableUnaryReactor final : public grpc::ServerUnaryReactor {
+ public:
+  void OnCancel() override { cancelled_ = true; }
+  void OnDone() override { delete this; }
+  const std::atomic<bool>& cancelled() const { return cancelled_; }
+
+ private:
+  std::atomic<bool> cancelled_{false};
+};
+
 // A unary call: tags the response with the server id, authorizes, runs
-// `work(RequestLog&)` on the executor, and finishes with its status.
+// `work(RequestLog&)`, or `work(RequestLog&, const std::atomic<bool>&
+// cancelled)` for work that can stop part-way, on the lane's executor, and
+// finishes with its status.
 template <typename Work>
 grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::CallbackServerContext* context,
-                                       const char* method, Work work) {
+                                       const char* method, Work work, Lane lane = Lane::kCompute) {
   context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
-  auto* reactor = context->DefaultReactor();
+  auto* reactor = new CancellableUnaryReactor();
   auto log = std::make_shared<RequestLog>(context, method, &ctx.metrics);
   if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
     log->Done(authorized);
     reactor->Finish(ToGrpcStatus(authorized));
     return reactor;
   }
-  ctx.executor.Post([reactor, log, work = std::move(work)]() mutable {
-    const Status status = work(*log);
+  Executor& executor = lane == Lane::kMetadata ? ctx.metadata_executor : ctx.executor;
+  executor.Post([reactor, log, work = std::move(work)]() mutable {
+    Status status;
+    if constexpr (std::is_invocable_v<Work&, RequestLog&, const std::atomic<bool>&>)
+      status = work(*log, reactor->cancelled());
+    else
+      status = work(*log);
     log->Done(status);
     reactor->Finish(ToGrpcStatus(status));
   });

@@ -1,11 +1,20 @@
 #include "service/server.h"
 
+#include <arpa/inet.h>
+#include <netdb.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+
+#include <algorithm>
+#include <cstring>
 #include <fstream>
 #include <sstream>
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/security/server_credentials.h>
+#include <grpcpp/impl/server_builder_option.h>
+#include <grpcpp/impl/server_builder_plugin.h>
 #include <grpcpp/server_builder.h>
 #include <spdlog/spdlog.h>
 
@@ -13,9 +22,56 @@ namespace visq::service {
 
 namespace {
 
-bool IsLoopback(const std::string& address) {
-  return address.rfind("127.", 0) == 0 || address.rfind("localhost:", 0) == 0 || address.rfind("[::1]:", 0) == 0;
+// Removes the reflection plugin that grpc++_reflection registers for every
+// builder at static initialisation: with a token set, reflection would list
+// the API to callers that carry none.
+class WithoutReflection final : public grpc::ServerBuilderOption {
+ public:
+  void UpdateArguments(grpc::ChannelArguments*) override {}
+  void UpdatePlugins(std::vector<std::unique_ptr<grpc::ServerBuilderPlugin>>* plugins) override {
+    plugins->erase(std::remove_if(plugins->begin(), plugins->end(),
+                                  [](const auto& plugin) { return plugin->name() == "proto_server_reflection"; }),
+                   plugins->end());
+  }
+};
+
+}  // namespace
+
+bool IsLoopbackAddress(const std::string& address) {
+  if (address.rfind("unix:", 0) == 0 || address.rfind("unix-abstract:", 0) == 0) return true;  // no network
+  std::string host = address;
+  for (const char* scheme : {"ipv4:", "ipv6:", "dns:"})
+    if (host.rfind(scheme, 0) == 0) host = host.substr(std::strlen(scheme));
+  const size_t colon = host.rfind(':');
+  if (colon == std::string::npos) return false;
+  host = host.substr(0, colon);
+  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') host = host.substr(1, host.size() - 2);
+  if (host.empty()) return false;  // ":port" listens on every interface
+  // Decided on what the name resolves to, not on how it is spelt: every
+  // address it resolves to must be loopback.
+  addrinfo hints{};
+  hints.ai_family = AF_UNSPEC;
+  hints.ai_socktype = SOCK_STREAM;
+  hints.ai_flags = AI_PASSIVE;
+  addrinfo* found = nullptr;
+  if (::getaddrinfo(host.c_str(), nullptr, &hints, &found) != 0 || found == nullptr) return false;
+  bool all_loopback = true;
+  for (const addrinfo* a = found; a != nullptr; a = a->ai_next) {
+    if (a->ai_family == AF_INET) {
+      const auto* in = reinterpret_cast<const sockaddr_in*>(a->ai_addr);
+      all_loopback &= (ntohl(in->sin_addr.s_addr) >> 24) == 127;
+    } else if (a->ai_family == AF_INET6) {
+      const auto* in6 = reinterpret_cast<const sockaddr_in6*>(a->ai_addr);
+      all_loopback &= IN6_IS_ADDR_LOOPBACK(&in6->sin6_addr) != 0;
+    } else {
+      all_loopback = false;
+    }
+  }
+  ::freeaddrinfo(found);
+  return all_loopback;
 }
+
+namespace {
 
 StatusOr<std::string> ReadFile(const std::string& path, const char* what) {
   std::ifstream in(path);
@@ -48,7 +104,8 @@ StatusOr<std::shared_ptr<grpc::ServerCredentials>> Credentials(const TlsOptions&
 
 StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   const bool tls = !options.tls.cert_file.empty();
-  if (!IsLoopback(options.address) && !tls && options.auth_token.empty() && !options.allow_insecure_remote)
+  const bool loopback = IsLoopbackAddress(options.address);
+  if (!loopback && !tls && options.auth_token.empty() && !options.allow_insecure_remote)
     return absl::FailedPreconditionError(absl::StrCat(
         "refusing to listen on ", options.address,
         " without TLS or a bearer token; set --tls-cert/--tls-key, --auth-token-file, or --allow-insecure-remote"));
@@ -58,6 +115,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   server->options_ = options;
   VISQ_ASSIGN_OR_RETURN(server->engine_, Engine::Create(options.engine));
   server->executor_ = std::make_unique<Executor>(options.worker_threads);
+  server->metadata_executor_ = std::make_unique<Executor>(2);
   server->metrics_ = std::make_unique<Metrics>();
   server->authorizer_ = std::make_unique<Authorizer>(options.auth_token);
 
@@ -65,13 +123,18 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   // Reflection lists the API to anyone who asks: only without a token.
   if (options.auth_token.empty()) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
+  if (!options.auth_token.empty()) builder.SetOption(std::make_unique<WithoutReflection>());
   builder.AddListeningPort(options.address, credentials, &server->port_);
   builder.SetMaxReceiveMessageSize(options.max_receive_message_bytes);
+  // A port in use is an error, not a port silently shared with another
+  // server (gRPC sets SO_REUSEPORT by default).
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   // The service is registered before the port is known; its id is fixed up
   // below when it defaults to host:port.
   std::string server_id = options.server_id;
   auto service_context = [&] {
-    return ServiceContext{*server->engine_, *server->executor_, *server->metrics_, *server->authorizer_, server_id};
+    return ServiceContext{*server->engine_, *server->executor_, *server->metadata_executor_, *server->metrics_,
+                          *server->authorizer_, server_id};
   };
   server->service_ = std::make_unique<VisibilityServiceImpl>(service_context());
   builder.RegisterService(server->service_.get());
@@ -86,7 +149,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   spdlog::info("listening on {} (port {}, {}{}), health NOT_SERVING until scenes are loaded", options.address,
                server->port_, tls ? (options.tls.client_ca_file.empty() ? "TLS" : "mutual TLS") : "plaintext",
                options.auth_token.empty() ? "" : ", bearer token required");
-  if (IsLoopback(options.address)) spdlog::info("loopback only: other machines cannot reach this server");
+  if (loopback) spdlog::info("loopback only: other machines cannot reach this server");
   else if (!tls && options.auth_token.empty())
     spdlog::warn("listening beyond loopback without TLS or a token (--allow-insecure-remote)");
   return server;
@@ -95,6 +158,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
 Server::~Server() { GracefulStop(std::chrono::seconds(5)); }
 
 void Server::SetServing(bool serving) {
+  if (!grpc_server_) return;
   auto* health = grpc_server_->GetHealthCheckService();
   if (health == nullptr) return;
   health->SetServingStatus(serving);  // every service, including ""
@@ -110,6 +174,7 @@ void Server::Ready() {
 void Server::GracefulStop(std::chrono::milliseconds drain) {
   if (stopped_) return;
   stopped_ = true;
+  if (!grpc_server_) return;  // never listened: nothing to drain
   // Order: refuse new work (health), drain gRPC, drain the executor, then
   // the engine (and its GL thread) goes with this object.
   SetServing(false);
@@ -117,6 +182,7 @@ void Server::GracefulStop(std::chrono::milliseconds drain) {
   grpc_server_->Shutdown(std::chrono::system_clock::now() + drain);
   grpc_server_->Wait();
   executor_.reset();
+  metadata_executor_.reset();
   spdlog::info("shut down");
 }
 

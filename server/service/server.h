@@ -32,6 +32,10 @@ struct ServerOptions {
   EngineOptions engine;
 };
 
+// Whether HOST:PORT (or a unix: address) can only be reached from this
+// machine: every address the host resolves to is loopback.
+bool IsLoopbackAddress(const std::string& address);
+
 class Server {
  public:
   [[nodiscard]] static StatusOr<std::unique_ptr<Server>> Create(const ServerOptions& options);
@@ -51,6 +55,7 @@ class Server {
   ServerOptions options_;
   std::unique_ptr<Engine> engine_;
   std::unique_ptr<Executor> executor_;
+  std::unique_ptr<Executor> metadata_executor_;
   std::unique_ptr<Metrics> metrics_;
   std::unique_ptr<Authorizer> authorizer_;
   std::unique_ptr<VisibilityServiceImpl> service_;

@@ -27,7 +27,11 @@ void ToProtoVec(const glm::dvec3& v, v1::Vec3* out) {
 class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneRequest> {
  public:
   LoadSceneReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, v1::SceneInfo* response)
-      : log_(context, "LoadScene", &ctx.metrics), engine_(ctx.engine), executor_(ctx.executor), response_(response) {
+      : context_(context),
+        log_(context, "LoadScene", &ctx.metrics),
+        engine_(ctx.engine),
+        executor_(ctx.executor),
+        response_(response) {
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     // Refuse before a single chunk is stored.
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
@@ -38,7 +42,9 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
   }
 
   void OnReadDone(bool ok) override {
-    if (!ok) {  // the client finished sending
+    // A failed read is a half-close, a cancellation or a broken stream (an
+    // oversize message): only the first may commit.
+    if (!ok) {
       EndOfStream();
       return;
     }
@@ -51,8 +57,11 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
   }
 
   void OnDone() override { delete this; }
+  void OnCancel() override { cancelled_ = true; }
 
  private:
+  bool Cancelled() const { return cancelled_ || context_->IsCancelled(); }
+
   Status Consume() {
     if (!header_seen_) {
       if (!request_.has_header()) return absl::InvalidArgumentError("the first LoadScene message must be a header");
@@ -86,10 +95,14 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
       Fail(absl::InvalidArgumentError("LoadScene stream ended without a header"));
       return;
     }
+    if (Cancelled()) {
+      Fail(absl::CancelledError("LoadScene was cancelled or cut off before it completed: nothing stored"));
+      return;
+    }
     // Parsing and storing block: off the callback thread.
     executor_.Post([this] {
       StatusOr<SceneSummary> summary = from_repository_ ? engine_.LoadFromRepository(name_, replace_)
-                                                        : engine_.FinishUpload(std::move(upload_));
+                                                        : engine_.FinishUpload(std::move(upload_), &cancelled_);
       if (summary.ok()) ToProto(*summary, response_);
       if (!summary.ok()) Fail(summary.status());
       else {
@@ -105,11 +118,13 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
     Finish(ToGrpcStatus(status));
   }
 
+  grpc::CallbackServerContext* context_;
   RequestLog log_;
   Engine& engine_;
   Executor& executor_;
   v1::SceneInfo* response_;
   v1::LoadSceneRequest request_;
+  std::atomic<bool> cancelled_{false};
   bool header_seen_ = false;
   bool from_repository_ = false;
   bool replace_ = false;
@@ -155,7 +170,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::ListScenes(grpc::CallbackServer
   return RunUnaryCall(ctx_, context, "ListScenes", [this, response](RequestLog&) {
     for (const auto& summary : ctx_.engine.ListScenes()) ToProto(summary, response->add_scenes());
     return absl::OkStatus();
-  });
+  }, Lane::kMetadata);
 }
 
 grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerContext* context,
@@ -166,7 +181,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerCo
     VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ctx_.engine.GetScene(request->name(), request->include_nodes(), request->load_if_stored()));
     ToProto(summary, response);
     return absl::OkStatus();
-  });
+  }, Lane::kMetadata);
 }
 
 grpc::ServerUnaryReactor* VisibilityServiceImpl::UnloadScene(grpc::CallbackServerContext* context,
@@ -177,7 +192,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::UnloadScene(grpc::CallbackServe
     VISQ_ASSIGN_OR_RETURN(bool deleted, ctx_.engine.UnloadScene(request->name(), request->delete_from_repository()));
     response->set_deleted_from_repository(deleted);
     return absl::OkStatus();
-  });
+  }, Lane::kMetadata);
 }
 
 }  // namespace visq::service
@@ -227,7 +242,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerCo
       out->set_max_ms(m.max_ms);
     }
     return absl::OkStatus();
-  });
+  }, Lane::kMetadata);
 }
 
 }  // namespace visq::service
@@ -427,10 +442,11 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
 grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackServerContext* context,
                                                                const v1::TransmittanceRequest* request,
                                                                v1::TransmittanceResponse* response) {
-  return RunUnaryCall(ctx_, context, "Transmittance", [this, context, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "Transmittance", [this, context, request, response](
+                                                           RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(TransmittanceQuery query, FromProto(*request));
-    query.params.job = JobOptionsFor(context, nullptr);
+    query.params.job = JobOptionsFor(context, &cancelled);
     VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, RunTransmittance(ctx_.engine, std::move(query)));
     const double before_transfer = log.ElapsedMs();
     ToProto(result, response);
@@ -446,10 +462,11 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
 grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackServerContext* context,
                                                                  const v1::PatchVisibilityRequest* request,
                                                                  v1::PatchVisibilityResponse* response) {
-  return RunUnaryCall(ctx_, context, "PatchVisibility", [this, context, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "PatchVisibility", [this, context, request, response](
+                                                             RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityQuery query, FromProto(*request));
-    query.job = JobOptionsFor(context, nullptr);
+    query.job = JobOptionsFor(context, &cancelled);
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, RunPatchVisibility(ctx_.engine, query));
     const gpu::PatchVisibilityResult& result = answer.result;
     const double before_transfer = log.ElapsedMs();

@@ -16,7 +16,8 @@ namespace visq::service {
 // What every handler needs; owned by the Server.
 struct ServiceContext {
   Engine& engine;
-  Executor& executor;
+  Executor& executor;           // calls that compute
+  Executor& metadata_executor;  // calls that compute nothing: never queued behind those that do
   Metrics& metrics;
   const Authorizer& authorizer;
   std::string server_id;

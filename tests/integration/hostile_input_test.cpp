@@ -1,0 +1,415 @@
+// Hostile and unusual input (issue 19), end to end: the real visq-server on
+// loopback, driven through the real client and raw gRPC calls, with hostile
+// files generated here. Each test names the item of the issue it shows.
+#include <signal.h>
+#include <sys/wait.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include <grpcpp/generic/generic_stub.h>
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
+#include "proto_builders.h"
+#include "scene/gltf_writer.h"
+#include "scene/sample_scenes.h"
+#include "test_support.h"
+#include "visq_client.h"
+
+namespace visq {
+namespace {
+
+namespace fs = std::filesystem;
+using client::Client;
+using testing::ScratchDir;
+using testing::ServerProcess;
+using testing::SetPatch;
+
+// One triangle: positions (x0,0,0) (1,0,0) (0,1,0), indices 0 1 2, in a
+// 44-byte buffer.
+std::string TriangleBuffer(float x0) {
+  const float positions[9] = {x0, 0, 0, 1, 0, 0, 0, 1, 0};
+  const uint16_t indices[4] = {0, 1, 2, 0};
+  std::string bin(sizeof(positions) + sizeof(indices), '\0');
+  std::memcpy(bin.data(), positions, sizeof(positions));
+  std::memcpy(bin.data() + sizeof(positions), indices, sizeof(indices));
+  return bin;
+}
+
+std::string TriangleJson(const std::string& uri, const std::string& nodes = R"([{"mesh":0}])") {
+  return R"({"asset":{"version":"2.0"},"scenes":[{"nodes":[0]}],"scene":0,"nodes":)" + nodes +
+         R"(,"meshes":[{"primitives":[{"attributes":{"POSITION":0},"indices":1}]}],
+     "buffers":[{"uri":")" + uri + R"(","byteLength":44}],
+     "bufferViews":[{"buffer":0,"byteOffset":0,"byteLength":36},{"buffer":0,"byteOffset":36,"byteLength":6}],
+     "accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]},
+                  {"bufferView":1,"componentType":5123,"count":3,"type":"SCALAR"}]})";
+}
+
+std::string ReadText(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+// A LoadScene stream written by hand, as a hostile client would.
+struct RawUpload {
+  RawUpload(Client& client, const std::string& name, const std::string& main_file, uint64_t expected_bytes)
+      : context(client.NewContext()) {
+    writer = client.stub().LoadScene(context.get(), &response);
+    v1::LoadSceneRequest header;
+    header.mutable_header()->set_name(name);
+    header.mutable_header()->set_upload_main_file(main_file);
+    header.mutable_header()->set_expected_bytes(expected_bytes);
+    writer->Write(header);
+  }
+  bool Send(const std::string& file, const std::string& data) {
+    v1::LoadSceneRequest chunk;
+    chunk.mutable_chunk()->set_file(file);
+    chunk.mutable_chunk()->set_data(data);
+    return writer->Write(chunk);
+  }
+  grpc::Status Finish() {
+    writer->WritesDone();
+    return writer->Finish();
+  }
+  std::unique_ptr<grpc::ClientContext> context;
+  v1::SceneInfo response;
+  std::unique_ptr<grpc::ClientWriter<v1::LoadSceneRequest>> writer;
+};
+
+class HostileInputTest : public ::testing::Test {
+ protected:
+  void SetUp() override { Start({"--seed-samples"}); }
+  void Start(std::vector<std::string> args) {
+    server_ = ServerProcess::Start({repo_.path(), std::move(args)});
+    ASSERT_NE(server_, nullptr);
+    client_ = std::make_unique<Client>(client::ClientOptions{.address = server_->address()});
+  }
+  void Restart() {
+    client_.reset();
+    ASSERT_EQ(server_->Stop(), 0) << server_->Log();
+    Start({});
+  }
+  bool Alive() { return client_->ListScenes().ok(); }
+
+  ScratchDir repo_;
+  std::unique_ptr<ServerProcess> server_;
+  std::unique_ptr<Client> client_;
+};
+
+// Item 1: buffer URIs that leave the upload load nothing, and nothing is stored.
+TEST_F(HostileInputTest, BufferUrisOutsideTheUploadAreRefused) {
+  // Files the URIs aim at: beside the repository, in it, and in the server's
+  // working directory (tinygltf's default callbacks fall back to "./").
+  const std::string secret = TriangleBuffer(7777.0f);
+  std::ofstream(repo_.path().parent_path() / "visq-secret.bin", std::ios::binary) << secret;
+  std::ofstream(repo_.path() / "visq-secret.bin", std::ios::binary) << secret;
+  const std::string absolute = (repo_.path() / "visq-secret.bin").string();
+  for (const std::string& uri : std::vector<std::string>{"../visq-secret.bin", "../../visq-secret.bin", "%2e%2e/visq-secret.bin",
+                                "%2e%2e%2f%2e%2e%2fvisq-secret.bin", absolute, "visq-secret.bin"}) {
+    RawUpload upload(*client_, "escape", "main.gltf", 0);
+    const std::string json = TriangleJson(uri);
+    upload.Send("main.gltf", json);
+    const grpc::Status status = upload.Finish();
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << uri << ": " << status.error_message();
+    if (uri[0] != '/')  // the message may echo the URI, never more of the server's folders
+      EXPECT_EQ(status.error_message().find(repo_.path().string()), std::string::npos)
+        << "the message shows the server's repository path: " << status.error_message();
+    EXPECT_EQ(client_->GetScene("escape").status().code(), absl::StatusCode::kNotFound) << uri;
+  }
+  EXPECT_FALSE(fs::exists(repo_.path() / "escape"));
+  // The same upload with its buffer inside still works.
+  RawUpload good(*client_, "inside", "main.gltf", 0);
+  good.Send("main.gltf", TriangleJson("buffers/tri.bin"));
+  good.Send("buffers/tri.bin", TriangleBuffer(3.0f));
+  ASSERT_TRUE(good.Finish().ok());
+  auto info = client_->GetScene("inside");
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_DOUBLE_EQ(info->bounds_max().x(), 3.0);
+}
+
+// Item 3: a name with a newline cannot forge a log line.
+TEST_F(HostileInputTest, NamesCannotForgeLogLines) {
+  const std::string forged = "2026-01-01T00:00:00.000 info FORGED LINE";
+  EXPECT_FALSE(client_->LoadFromRepository("x\n" + forged).ok());
+  EXPECT_FALSE(client_->GetScene("y\r\n" + forged).ok());
+  const std::string log = server_->Log();
+  EXPECT_EQ(log.find("\n" + forged), std::string::npos) << log;
+  EXPECT_NE(log.find("x\\n" + forged), std::string::npos) << "the name is logged, escaped:\n" << log;
+}
+
+// Items 6 and 11: a deep chain and a DAG that expands are refused without a
+// crash; in the repository they are skipped and the server still starts.
+TEST_F(HostileInputTest, DeepAndExpandingNodeGraphsAreRefused) {
+  std::string chain = "[";
+  for (int i = 0; i < 5000; ++i) chain += (i ? "," : "") + (i + 1 < 5000 ? "{\"children\":[" + std::to_string(i + 1) + "]}" : std::string("{\"mesh\":0}"));
+  chain += "]";
+  std::string dag = "[";
+  for (int i = 0; i < 30; ++i) dag += "{\"children\":[" + std::to_string(i + 1) + "," + std::to_string(i + 1) + "]},";
+  dag += "{\"mesh\":0}]";
+  struct Case {
+    const char* name;
+    std::string nodes;
+    grpc::StatusCode code;
+  };
+  for (const Case& c : {Case{"chain", chain, grpc::StatusCode::INVALID_ARGUMENT},
+                        Case{"dag", dag, grpc::StatusCode::RESOURCE_EXHAUSTED}}) {
+    const auto start = std::chrono::steady_clock::now();
+    RawUpload upload(*client_, c.name, "main.gltf", 0);
+    upload.Send("main.gltf", TriangleJson("tri.bin", c.nodes));
+    upload.Send("tri.bin", TriangleBuffer(0.0f));
+    const grpc::Status status = upload.Finish();
+    EXPECT_EQ(status.error_code(), c.code) << c.name << ": " << status.error_message();
+    EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(10)) << "refused before flattening";
+    EXPECT_TRUE(Alive()) << server_->Log();
+    // Placed in the repository by hand, the file is skipped at start.
+    fs::create_directories(repo_.path() / c.name);
+    std::ofstream(repo_.path() / c.name / "main.gltf") << TriangleJson("tri.bin", c.nodes);
+    std::ofstream(repo_.path() / c.name / "tri.bin", std::ios::binary) << TriangleBuffer(0.0f);
+  }
+  Restart();
+  EXPECT_TRUE(Alive());
+  EXPECT_NE(server_->Log().find("scene 'chain' from the repository not loaded"), std::string::npos) << server_->Log();
+  EXPECT_TRUE(client_->GetScene("cornell_box_visq").ok()) << "the other scenes still load";
+}
+
+// Item 7: coordinates whose float conversion overflows are refused by name.
+TEST_F(HostileInputTest, FarCoordinatesAreRefusedNotAnAbort) {
+  for (double far : {1e39, 1e308}) {
+    for (v1::VisibilityMethod method : {v1::RAYCAST, v1::RASTER}) {
+      v1::HiddenSampleMapRequest request;
+      request.mutable_scene()->set_name("cornell_box_visq");
+      SetPatch(request.mutable_source(), {far, far, far}, {0.5, 0, 0}, {0, 0, 0.5});
+      request.mutable_samples()->set_count(32);
+      SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+      request.set_width(8);
+      request.set_height(8);
+      request.set_method(method);
+      auto map = client_->ComputeHiddenSampleMap(request);
+      EXPECT_EQ(map.status().code(), absl::StatusCode::kInvalidArgument) << far << ": " << map.status();
+      EXPECT_NE(std::string(map.status().message()).find("origin"), std::string::npos) << map.status();
+
+      v1::PatchVisibilityRequest patches;
+      patches.mutable_scene()->set_name("cornell_box_visq");
+      SetPatch(patches.mutable_source(), {far, far, far}, {0.5, 0, 0}, {0, 0, 0.5});
+      SetPatch(patches.mutable_receiver(), {-0.999, 0.001, -0.997}, {1.998, 0, 0}, {0, 0, 1.998});
+      patches.set_source_columns(4);
+      patches.set_source_rows(4);
+      patches.set_receiver_columns(4);
+      patches.set_receiver_rows(4);
+      patches.set_method(method);
+      EXPECT_EQ(client_->PatchVisibility(patches).status().code(), absl::StatusCode::kInvalidArgument) << far;
+    }
+  }
+  EXPECT_TRUE(Alive()) << server_->Log();
+}
+
+// Item 19: NaN and negative sample colours are refused by field.
+TEST_F(HostileInputTest, BadSampleColoursAreRefused) {
+  for (double bad : {std::nan(""), -1.0, double(INFINITY)}) {
+    v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name("cornell_box_visq");
+    SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    request.mutable_samples()->set_count(4);
+    for (int i = 0; i < 4; ++i) testing::Set(request.mutable_samples()->add_sample_colors(), 1, i == 2 ? bad : 1, 1);
+    SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    request.set_width(8);
+    request.set_height(8);
+    auto map = client_->ComputeHiddenSampleMap(request);
+    EXPECT_EQ(map.status().code(), absl::StatusCode::kInvalidArgument) << bad << ": " << map.status();
+    EXPECT_NE(std::string(map.status().message()).find("sample_colors[2]"), std::string::npos) << map.status();
+  }
+}
+
+// Item 13: an upload that is cancelled, or that ends short of what its header
+// announced, stores nothing.
+TEST_F(HostileInputTest, CancelledOrShortUploadsStoreNothing) {
+  const std::string json = TriangleJson("tri.bin");
+  const std::string bin = TriangleBuffer(0.0f);
+  {
+    RawUpload upload(*client_, "cancelled", "main.gltf", json.size() + bin.size());
+    upload.Send("main.gltf", json);
+    upload.Send("tri.bin", bin);
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    upload.context->TryCancel();
+    EXPECT_FALSE(upload.writer->Finish().ok());
+  }
+  {
+    RawUpload upload(*client_, "short", "main.gltf", json.size() + bin.size() + 100);
+    upload.Send("main.gltf", json);
+    upload.Send("tri.bin", bin);
+    const grpc::Status status = upload.Finish();
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+    EXPECT_NE(status.error_message().find("expected_bytes"), std::string::npos) << status.error_message();
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  for (const char* name : {"cancelled", "short"}) {
+    EXPECT_EQ(client_->GetScene(name).status().code(), absl::StatusCode::kNotFound) << name;
+    EXPECT_FALSE(fs::exists(repo_.path() / name)) << name;
+  }
+  Restart();
+  for (const char* name : {"cancelled", "short"})
+    EXPECT_EQ(client_->GetScene(name, false, /*load_if_stored=*/true).status().code(), absl::StatusCode::kNotFound);
+}
+
+// Item 14: an upload named like another scene's stored file destroys nothing.
+TEST_F(HostileInputTest, UploadNamedLikeAStoredFileDestroysNothing) {
+  ASSERT_TRUE(WriteGltfFile(MakeCornellBox(), repo_.path() / "x.glb").ok());
+  ASSERT_TRUE(client_->LoadFromRepository("x").ok());
+  RawUpload upload(*client_, "x.glb", "main.gltf", 0);
+  upload.Send("main.gltf", TriangleJson("tri.bin"));
+  upload.Send("tri.bin", TriangleBuffer(0.0f));
+  const grpc::Status status = upload.Finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+  EXPECT_TRUE(fs::is_regular_file(repo_.path() / "x.glb"));
+  Restart();
+  auto x = client_->GetScene("x", false, true);
+  ASSERT_TRUE(x.ok()) << x.status();
+  EXPECT_EQ(x->triangle_count(), MakeCornellBox().TriangleCount());
+}
+
+// Item 16: versions do not repeat after a restart, and a stored scene keeps
+// the version it was stored with.
+TEST_F(HostileInputTest, VersionsSurviveRestarts) {
+  RawUpload first(*client_, "probe", "main.gltf", 0);
+  first.Send("main.gltf", TriangleJson("tri.bin"));
+  first.Send("tri.bin", TriangleBuffer(0.0f));
+  ASSERT_TRUE(first.Finish().ok());
+  const uint64_t stored = first.response.version();
+  Restart();
+  auto after = client_->GetScene("probe");
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_EQ(after->version(), stored) << "the same stored scene, the same version";
+  ASSERT_TRUE(client_->UnloadScene("probe", /*delete_from_repository=*/true).ok());
+  Restart();
+  RawUpload second(*client_, "probe", "main.gltf", 0);
+  second.Send("main.gltf", TriangleJson("tri.bin"));
+  second.Send("tri.bin", TriangleBuffer(5.0f));
+  ASSERT_TRUE(second.Finish().ok());
+  EXPECT_GT(second.response.version(), stored) << "(probe, " << stored << ") named another scene before";
+}
+
+// Item 2: with a token set, reflection does not answer callers without it.
+// The call is raw (a generic stub): grpc.reflection.v1alpha.ServerReflection
+// with a list_services request (field 7, empty string).
+grpc::Status ListServicesByReflection(const std::string& address, std::string* answer) {
+  auto channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+  grpc::GenericStub stub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  grpc::CompletionQueue queue;
+  auto call = stub.PrepareCall(&context, "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo", &queue);
+  auto wait = [&queue](intptr_t expected) {
+    void* tag = nullptr;
+    bool ok = false;
+    queue.Next(&tag, &ok);
+    EXPECT_EQ(reinterpret_cast<intptr_t>(tag), expected);
+    return ok;
+  };
+  call->StartCall(reinterpret_cast<void*>(1));
+  wait(1);
+  const char request[] = {0x3a, 0x00};
+  grpc::Slice slice(request, sizeof(request));
+  grpc::ByteBuffer buffer(&slice, 1);
+  call->Write(buffer, reinterpret_cast<void*>(2));
+  wait(2);
+  call->WritesDone(reinterpret_cast<void*>(3));
+  wait(3);
+  grpc::ByteBuffer response;
+  call->Read(&response, reinterpret_cast<void*>(4));
+  if (wait(4)) {
+    std::vector<grpc::Slice> slices;
+    (void)response.Dump(&slices);
+    for (const auto& s : slices) answer->append(reinterpret_cast<const char*>(s.begin()), s.size());
+  }
+  grpc::Status status;
+  call->Finish(&status, reinterpret_cast<void*>(5));
+  wait(5);
+  queue.Shutdown();
+  void* tag;
+  bool ok;
+  while (queue.Next(&tag, &ok)) {
+  }
+  return status;
+}
+
+TEST(HostileServerSetup, ReflectionNeedsTheTokenWhenOneIsSet) {
+  ScratchDir repo, files;
+  {
+    auto open = ServerProcess::Start({repo.path(), {}});
+    ASSERT_NE(open, nullptr);
+    std::string answer;
+    EXPECT_TRUE(ListServicesByReflection(open->address(), &answer).ok());
+    EXPECT_NE(answer.find("visq.v1.VisibilityService"), std::string::npos) << "reflection works without a token";
+  }
+  std::ofstream(files.path() / "token") << "0123456789abcdef0123456789abcdef\n";
+  auto locked = ServerProcess::Start({repo.path(), {"--auth-token-file", (files.path() / "token").string()}});
+  ASSERT_NE(locked, nullptr);
+  std::string answer;
+  const grpc::Status status = ListServicesByReflection(locked->address(), &answer);
+  EXPECT_FALSE(status.ok());
+  EXPECT_EQ(answer.find("visq.v1.VisibilityService"), std::string::npos) << "reflection answered without the token";
+}
+
+// Item 5: a token file with Windows line endings still works.
+TEST(HostileServerSetup, TokenFileWithWindowsLineEndings) {
+  ScratchDir repo, files;
+  std::ofstream(files.path() / "token", std::ios::binary) << "  0123456789abcdef0123456789abcdef\r\n";
+  auto server = ServerProcess::Start({repo.path(), {"--seed-samples", "--auth-token-file",
+                                                    (files.path() / "token").string()}});
+  ASSERT_NE(server, nullptr);
+  Client right({.address = server->address(), .auth_token = "0123456789abcdef0123456789abcdef"});
+  auto list = right.ListScenes();
+  EXPECT_TRUE(list.ok()) << list.status() << "\n" << server->Log();
+  std::ofstream(files.path() / "short", std::ios::binary) << "abc\n";
+  auto weak = ServerProcess::Start({repo.path(), {"--auth-token-file", (files.path() / "short").string()}});
+  ASSERT_NE(weak, nullptr);
+  EXPECT_NE(weak->Log().find("use at least 32 random ones"), std::string::npos) << weak->Log();
+}
+
+// Runs visq-server with `args` to completion; returns its wait status and log.
+int RunServer(const std::vector<std::string>& args, const fs::path& log_path) {
+  std::string command = VISQ_SERVER_BINARY;
+  for (const auto& a : args) command += " '" + a + "'";
+  command += " > '" + log_path.string() + "' 2>&1";
+  return std::system(command.c_str());
+}
+
+// Item 4: the loopback decision is made on the resolved address.
+TEST(HostileServerSetup, LoopbackIsDecidedOnTheResolvedAddress) {
+  ScratchDir repo;
+  const int rc = RunServer({"--address", "127.0.0.1.invalid:0", "--scene-repo", repo.path().string()},
+                           repo.path() / "log");
+  EXPECT_TRUE(WIFEXITED(rc) && WEXITSTATUS(rc) != 0) << rc;
+  EXPECT_NE(ReadText(repo.path() / "log").find("refusing to listen on 127.0.0.1.invalid:0"), std::string::npos)
+      << ReadText(repo.path() / "log");
+}
+
+// Item 9: a port in use, or a host that does not resolve, is a message and
+// a non-zero exit, not SIGSEGV.
+TEST(HostileServerSetup, ListenFailureExitsWithAMessage) {
+  ScratchDir repo;
+  auto holder = ServerProcess::Start({repo.path(), {}});
+  ASSERT_NE(holder, nullptr);
+  for (const std::vector<std::string>& args :
+       {std::vector<std::string>{"--address", holder->address()},
+        std::vector<std::string>{"--address", "no-such-host.invalid:0", "--allow-insecure-remote"}}) {
+    ScratchDir other;
+    std::vector<std::string> full = args;
+    full.insert(full.end(), {"--scene-repo", other.path().string()});
+    const int rc = RunServer(full, other.path() / "log");
+    const std::string log = ReadText(other.path() / "log");
+    ASSERT_TRUE(WIFEXITED(rc)) << "killed by a signal: " << rc << "\n" << log;
+    EXPECT_NE(WEXITSTATUS(rc), 0);
+    EXPECT_NE(log.find("cannot listen on " + args[1]), std::string::npos) << log;
+  }
+}
+
+}  // namespace
+}  // namespace visq
