@@ -22,6 +22,9 @@
 
 namespace visq::gpu {
 
+// The model this file answers in.
+using namespace ::visq::sampling;
+
 struct HiddenSampleMapper::State {
   struct Table {
     hsm::HoughTableLayout layout;
@@ -436,89 +439,6 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   result.error.confidence = options.confidence;
   result.error.sampling = SamplingErrorBound(n, options.confidence);
   return result;
-}
-
-StatusOr<HiddenSampleMapRequest> PatchVisibilityAsHiddenSampleMap(const PatchVisibilityRequest& request) {
-  if (request.source_columns < 1 || request.source_rows < 1 ||
-      int64_t(request.source_columns) * request.source_rows > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("source_columns x source_rows: ", request.source_columns, " x ",
-                                                   request.source_rows, " not in [1, 4096] samples"));
-  HiddenSampleMapRequest map;
-  map.source.patch = request.source;
-  map.source.sample_count = request.source_columns * request.source_rows;
-  map.source.pattern = SamplePattern::kCustom;
-  for (int r = 0; r < request.source_rows; ++r)
-    for (int c = 0; c < request.source_columns; ++c)
-      map.source.custom_uv.emplace_back((c + 0.5) / request.source_columns, (r + 0.5) / request.source_rows);
-  map.receiver.patch = request.receiver;
-  map.receiver.width = request.receiver_columns;
-  map.receiver.height = request.receiver_rows;
-  map.options.lookup = request.lookup;
-  map.options.watertight = request.watertight;
-  map.options.want_bitmasks = true;
-  return map;
-}
-
-PatchVisibilityResult SummarizePatchVisibility(const PatchVisibilityRequest& request,
-                                               const HiddenSampleMapResult& hsm) {
-  PatchVisibilityResult out;
-  const int ns = hsm.sample_count, nr = hsm.width * hsm.height, wpt = hsm.words_per_texel;
-  out.source_visible.assign(ns, 0.0f);
-  out.receiver_visible.resize(nr);
-  std::vector<uint32_t> source_seen(ns, 0);
-  uint64_t unblocked = 0;
-  for (int j = 0; j < nr; ++j) {
-    out.receiver_visible[j] = hsm.visible_fraction[j];
-    for (int i = 0; i < ns; ++i) {
-      if ((hsm.blocked_bits[size_t(j) * wpt + i / 32] >> (i % 32)) & 1u) continue;
-      ++source_seen[i];
-      ++unblocked;
-      if (out.unblocked.size() < request.unblocked_limit)
-        out.unblocked.push_back({static_cast<uint32_t>(i), static_cast<uint32_t>(j)});
-    }
-  }
-  for (int i = 0; i < ns; ++i) out.source_visible[i] = float(source_seen[i]) / float(nr);
-  out.unblocked_total = unblocked;
-  out.mutual_visible_fraction = double(unblocked) / (double(ns) * nr);
-  out.error = hsm.error;
-  // Both sides are sampled: the mean over ns * nr pairs.
-  out.error.sampling = SamplingErrorBound(ns, hsm.error.confidence);
-  out.timing = hsm.timing;
-  return out;
-}
-
-StatusOr<double> ResolvableEndpointTolerance(const Patch& source, const Patch& receiver, const glm::dvec3& anchor) {
-  // 2^-17 of the magnitude of the coordinates involved (relative to the
-  // anchor the float32 positions are stored against), at least 1/8 of the
-  // configuration's extent.
-  glm::dvec3 corners[8];
-  for (int k = 0; k < 4; ++k) {
-    corners[k] = source.At(k & 1, k >> 1) - anchor;
-    corners[4 + k] = receiver.At(k & 1, k >> 1) - anchor;
-  }
-  double magnitude = 0.0, extent = 0.0;
-  for (int a = 0; a < 8; ++a) {
-    magnitude = std::max({magnitude, std::abs(corners[a].x), std::abs(corners[a].y), std::abs(corners[a].z)});
-    for (int b = a + 1; b < 8; ++b) extent = std::max(extent, glm::length(corners[a] - corners[b]));
-  }
-  const double delta = std::ldexp(std::max(magnitude, extent / 8.0), -17);
-  // So delta grows with the query's distance from the anchor. A small query
-  // far from it (a world spanning the origin to 1e6, queried at 1e6: delta
-  // ~ 4 units) would ignore every occluder near its patches and answer
-  // "visible" with a sampling bound that says nothing of it. Refuse rather
-  // than answer silently wrong.
-  if (delta > extent / 16.0)
-    return absl::FailedPreconditionError(absl::StrCat(
-        "source, receiver: the query (extent ", extent, ") lies ", magnitude,
-        " from the scene's float32 anchor, where geometry within ", delta,
-        " of the patches cannot be resolved (more than 1/16 of the query's extent); the exact method "
-        "(PLUCKER_EXACT) works in double precision there"));
-  return delta;
-}
-
-double SamplingErrorBound(int sample_count, double confidence) {
-  // Hoeffding: P(|mean - p| > e) <= 2 exp(-2 N e^2).
-  return std::sqrt(std::log(2.0 / (1.0 - confidence)) / (2.0 * double(sample_count)));
 }
 
 StatusOr<PatchVisibilityResult> HiddenSampleMapper::PatchVisibility(const GpuScene& scene,

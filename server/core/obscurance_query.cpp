@@ -8,6 +8,7 @@
 #include <spdlog/spdlog.h>
 
 #include "obscurance/obscurance_rays.h"
+#include "scene/scene_edit.h"
 
 namespace visq {
 namespace {
@@ -286,7 +287,7 @@ StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQu
   VISQ_ASSIGN_OR_RETURN(uint32_t node, NamedNode(*resident->scene, query));
   // The resident Scene is shared and immutable: edit a copy.
   Scene moved = *resident->scene;
-  VISQ_RETURN_IF_ERROR(obscurance::MoveNodeSubtree(moved, node, world));
+  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(moved, node, world));
   VISQ_ASSIGN_OR_RETURN(SceneSummary summary, engine.ReplaceWithEdited(*resident, std::move(moved)));
   state->moves.push_back(ObscuranceState::Move{resident->version, summary.version, node, world});
   spdlog::info("scene '{}' v{}: node {} ('{}') moved", summary.name, summary.version, node,

@@ -1,7 +1,7 @@
 // Obscurances as core queries (Méndez-Feliu, Sbert et al.): the GPU bake
 // over a resident scene, node moves that make a new scene version, and the
 // real-time update of the last full bake by the moves since. The algorithms
-// are in server/obscurance/ and gpu/obscurance/; this file holds the
+// are in lib/obscurance/ and gpu/obscurance/; this file holds the
 // per-scene state that joins them to resident scenes and versions.
 #pragma once
 
@@ -43,7 +43,7 @@ struct ObscuranceState {
 };
 
 // The paper's GPU bake by depth peeling along bundles of parallel rays, or
-// the same estimator traced per patch with Embree (server/obscurance/
+// the same estimator traced per patch with Embree (lib/obscurance/
 // obscurance_rays.h), which on a machine without a GPU is the cheaper one.
 enum class ObscuranceMethod { kDepthPeeling, kRaycast };
 

@@ -17,7 +17,7 @@ double MillisecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 }
 
-Status CheckSize(const gpu::HiddenSampleMapRequest& request) {
+Status CheckSize(const sampling::HiddenSampleMapRequest& request) {
   const uint64_t bits = uint64_t(std::max(request.receiver.width, 0)) * uint64_t(std::max(request.receiver.height, 0)) *
                         uint64_t(std::max(request.source.sample_count, 0));
   if (bits > kMaxHiddenSampleBits)
@@ -36,17 +36,17 @@ std::function<bool()> StopRequested(const gpu::JobOptions& job) {
   };
 }
 
-StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, const ResidentScene& resident,
-                                                            const gpu::HiddenSampleMapRequest& request,
+StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, const ResidentScene& resident,
+                                                            const sampling::HiddenSampleMapRequest& request,
                                                             const gpu::JobOptions& job) {
-  VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(request));
+  VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(request));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneOf(resident));
   // Embree holds float32 positions relative to its origin, like the GPU.
   VISQ_RETURN_IF_ERROR(
-      gpu::ResolvableEndpointTolerance(request.source.patch, request.receiver.patch, embree->origin()).status());
+      sampling::ResolvableEndpointTolerance(request.source.patch, request.receiver.patch, embree->origin()).status());
   const auto start = std::chrono::steady_clock::now();
-  VISQ_ASSIGN_OR_RETURN(gpu::SourceSamples samples, gpu::ComputeSourceSamples(request.source));
-  gpu::HiddenSampleMapResult result;
+  VISQ_ASSIGN_OR_RETURN(sampling::SourceSamples samples, sampling::ComputeSourceSamples(request.source));
+  sampling::HiddenSampleMapResult result;
   const int width = request.receiver.width, height = request.receiver.height;
   const int n = static_cast<int>(samples.world.size());
   if (n == 0) return absl::InvalidArgumentError("source: no sample lies inside the polygon");
@@ -65,7 +65,7 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
   // per-segment results.
   std::vector<glm::dvec3> receiver_points(size_t(width) * height);
   for (int y = 0; y < height; ++y)
-    for (int x = 0; x < width; ++x) receiver_points[size_t(y) * width + x] = gpu::ReceiverSamplePosition(request.receiver, x, y);
+    for (int x = 0; x < width; ++x) receiver_points[size_t(y) * width + x] = sampling::ReceiverSamplePosition(request.receiver, x, y);
   const int rows_per_batch = std::max(1, (1 << 22) / std::max(1, width * n));
   for (int y0 = 0; y0 < height; y0 += rows_per_batch) {
     const int y1 = std::min(height, y0 + rows_per_batch);
@@ -82,7 +82,7 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
               const size_t texel = first_texel + k / n;
               const int i = static_cast<int>(k % n);
               const int x = static_cast<int>(texel % width), y = static_cast<int>(texel / width);
-              return raycast::Segment{receiver_points[texel], gpu::SourceSampleSeenFrom(request, samples, i, x, y)};
+              return raycast::Segment{receiver_points[texel], sampling::SourceSampleSeenFrom(request, samples, i, x, y)};
             },
             trace));
     size_t k = 0;
@@ -107,7 +107,7 @@ StatusOr<gpu::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, cons
   }
   if (request.options.want_bitmasks) result.blocked_bits = std::move(bits);
   result.error.confidence = request.options.confidence;
-  result.error.sampling = gpu::SamplingErrorBound(n, request.options.confidence);
+  result.error.sampling = sampling::SamplingErrorBound(n, request.options.confidence);
   result.error.lookup_max = 0.0;
   result.timing.run_ms = MillisecondsSince(start);
   result.passes = 0;
@@ -129,15 +129,15 @@ double TwiceSignedArea(const std::vector<glm::dvec2>& polygon) {
 // from every receiver texel centre: the Plücker method of
 // core/light_visibility_query.h with the source as a light facing the
 // receiver. No samples, so no bitmasks and no sample colours.
-StatusOr<gpu::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const std::string& scene,
+StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const std::string& scene,
                                                           uint64_t scene_version,
-                                                          const gpu::HiddenSampleMapRequest& request) {
+                                                          const sampling::HiddenSampleMapRequest& request) {
   if (request.options.want_bitmasks)
     return absl::InvalidArgumentError(
         "want_bitmasks: the exact method has no samples, hence no bitmasks; use RASTER or RAYCAST");
   if (!request.source.sample_colors.empty() || !request.source.color_texture.empty())
     return absl::InvalidArgumentError("samples: colored lights need a sampled method (RASTER or RAYCAST)");
-  const gpu::Patch& source = request.source.patch;
+  const sampling::Patch& source = request.source.patch;
 
   // The light polygon, wound to emit towards the receiver (validation put
   // every receiver point strictly on one side of the source plane).
@@ -161,10 +161,10 @@ StatusOr<gpu::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const 
   light_query.points.reserve(size_t(width) * height);
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x)
-      light_query.points.push_back({gpu::ReceiverSamplePosition(request.receiver, x, y), std::nullopt, std::nullopt});
+      light_query.points.push_back({sampling::ReceiverSamplePosition(request.receiver, x, y), std::nullopt, std::nullopt});
   VISQ_ASSIGN_OR_RETURN(LightVisibilityAnswer answer, RunLightVisibility(engine, light_query));
 
-  gpu::HiddenSampleMapResult result;
+  sampling::HiddenSampleMapResult result;
   result.width = width;
   result.height = height;
   result.visible_fraction.reserve(answer.points.size());
@@ -175,8 +175,8 @@ StatusOr<gpu::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const 
   return result;
 }
 
-StatusOr<gpu::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,
-                                                       VisibilityMethod method, const gpu::HiddenSampleMapRequest& request,
+StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,
+                                                       VisibilityMethod method, const sampling::HiddenSampleMapRequest& request,
                                                        const gpu::JobOptions& job) {
   switch (method) {
     case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, job);
@@ -192,12 +192,12 @@ StatusOr<gpu::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const Res
 // Patch visibility from a map of the receiver grid: the sampled methods'
 // bits give every figure; the exact method gives the receiver samples'
 // fractions and their mean (no source samples, no pairs).
-StatusOr<gpu::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, const ResidentScene& resident,
+StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, const ResidentScene& resident,
                                                        VisibilityMethod method,
-                                                       const gpu::PatchVisibilityRequest& request,
+                                                       const sampling::PatchVisibilityRequest& request,
                                                        const gpu::JobOptions& job) {
-  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapRequest map, gpu::PatchVisibilityAsHiddenSampleMap(request));
-  VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(map));
+  VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
+  VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(map));
   VISQ_RETURN_IF_ERROR(CheckSize(map));
   if (method == VisibilityMethod::kRaster) {
     VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(resident));
@@ -205,15 +205,15 @@ StatusOr<gpu::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, const Res
     return mapper->PatchVisibility(*gpu_scene, request, job);
   }
   if (method == VisibilityMethod::kRaycast) {
-    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map, job));
-    return gpu::SummarizePatchVisibility(request, result);
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map, job));
+    return sampling::SummarizePatchVisibility(request, result);
   }
   if (request.unblocked_limit > 0)
     return absl::InvalidArgumentError("unblocked_limit: the exact method has no sample pairs; use RASTER or RAYCAST");
   map.options.want_bitmasks = false;  // the sampled paths count pairs from them
-  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult exact,
+  VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult exact,
                         ExactHiddenSampleMap(engine, resident.name, resident.version, map));
-  gpu::PatchVisibilityResult out;
+  sampling::PatchVisibilityResult out;
   out.receiver_visible = std::move(exact.visible_fraction);
   double sum = 0.0;
   for (float f : out.receiver_visible) sum += f;
@@ -266,7 +266,7 @@ using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method
 
 // The share of the source rectangle inside the light's polygon: jittered
 // samples outside it are dropped, so a plan must ask for more.
-double PolygonShare(const gpu::SourceSpec& source) {
+double PolygonShare(const sampling::SourceSpec& source) {
   if (source.polygon_uv.empty()) return 1.0;
   return std::clamp(std::abs(TwiceSignedArea(source.polygon_uv)) / 2.0, 1e-6, 1.0);
 }
@@ -282,14 +282,14 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
 
   // Sample counts: powers of two, and the least count meeting the error.
   std::set<int> counts;
-  for (int n = 32; n <= gpu::kMaxHiddenSampleMapSamples; n *= 2) counts.insert(n);
+  for (int n = 32; n <= sampling::kMaxHiddenSampleMapSamples; n *= 2) counts.insert(n);
   const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / polygon_share;
-  if (needed <= gpu::kMaxHiddenSampleMapSamples) counts.insert(std::max(32, int(std::ceil(needed / 32.0)) * 32));
+  if (needed <= sampling::kMaxHiddenSampleMapSamples) counts.insert(std::max(32, int(std::ceil(needed / 32.0)) * 32));
 
   PlanReport report;
   CostModel& model = engine.cost_model();
   for (VisibilityMethod method : methods) {
-    const std::string name = VisibilityMethodName(method, gpu::LookupMode::kExact);
+    const std::string name = VisibilityMethodName(method, sampling::LookupMode::kExact);
     const std::string series = absl::StrCat(series_base, "/", name);
     // A method never run on this scene: small runs of this very request give
     // the model a fixed cost and a rate. The second, larger run only when the
@@ -326,7 +326,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       } else {
         plan.parameters["samples"] = samples;
         const double inside = std::max(1.0, std::floor(samples * polygon_share));
-        plan.error_bound = std::min(1.0, gpu::SamplingErrorBound(int(inside), target.confidence));
+        plan.error_bound = std::min(1.0, sampling::SamplingErrorBound(int(inside), target.confidence));
       }
       plan.work = PlanWork(method, points, samples);
       plan.predicted_ms = model.Predict(series, plan.work).value_or(0.0);
@@ -356,9 +356,9 @@ std::string SeriesBase(const ResidentScene& resident, const char* kind) {
 }
 
 // The request reduced for a probe: at most max_side texels a side.
-gpu::ReceiverSpec ReducedReceiver(const gpu::ReceiverSpec& receiver, int max_side) {
+sampling::ReceiverSpec ReducedReceiver(const sampling::ReceiverSpec& receiver, int max_side) {
   if (max_side <= 0) return receiver;
-  gpu::ReceiverSpec reduced = receiver;
+  sampling::ReceiverSpec reduced = receiver;
   reduced.width = std::min(receiver.width, max_side);
   reduced.height = std::min(receiver.height, max_side);
   reduced.heightfield.clear();  // its length follows the texel count; the cost does not depend on it
@@ -368,8 +368,8 @@ gpu::ReceiverSpec ReducedReceiver(const gpu::ReceiverSpec& receiver, int max_sid
 StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const ResidentScene& resident,
                                                          const HiddenSampleMapQuery& query) {
   const AccuracyTarget& target = *query.target;
-  const gpu::HiddenSampleMapRequest& request = query.request;
-  if (request.source.pattern == gpu::SamplePattern::kCustom)
+  const sampling::HiddenSampleMapRequest& request = query.request;
+  if (request.source.pattern == sampling::SamplePattern::kCustom)
     return absl::InvalidArgumentError("target: a CUSTOM pattern fixes the samples; give samples.count instead");
   const bool colored = !request.source.sample_colors.empty() || !request.source.color_texture.empty();
   if (!request.source.sample_colors.empty())
@@ -377,19 +377,19 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   const bool exact_possible = !request.options.want_bitmasks && !colored;
 
   auto with_samples = [&](int samples, int max_side) {
-    gpu::HiddenSampleMapRequest sized = request;
+    sampling::HiddenSampleMapRequest sized = request;
     sized.source.sample_count = samples;
     sized.receiver = ReducedReceiver(request.receiver, max_side);
     sized.options.confidence = target.confidence < 1.0 ? target.confidence : sized.options.confidence;
     return sized;
   };
-  auto run = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<gpu::HiddenSampleMapResult> {
-    gpu::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
+  auto run = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<sampling::HiddenSampleMapResult> {
+    sampling::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
     VISQ_RETURN_IF_ERROR(CheckSize(sized));
     return HiddenSampleMapBy(engine, resident, method, sized, query.job);
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
-    VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapResult result, run(method, samples, max_side));
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
     return RunCost{ComputeMs(result.timing, result.table_ms),
                    PlanWork(method, double(result.width) * result.height, samples)};
   };
@@ -411,13 +411,13 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
 StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const ResidentScene& resident,
                                                          const PatchVisibilityQuery& query) {
   const AccuracyTarget& target = *query.target;
-  const gpu::PatchVisibilityRequest& request = query.request;
+  const sampling::PatchVisibilityRequest& request = query.request;
   const bool exact_possible = request.unblocked_limit == 0;
 
   // A plan's sample count becomes the most nearly square source grid with
   // at least that many cells.
   auto sized = [&](int samples, int max_side) {
-    gpu::PatchVisibilityRequest out = request;
+    sampling::PatchVisibilityRequest out = request;
     out.source_columns = std::max(1, int(std::ceil(std::sqrt(double(std::max(samples, 1))))));
     out.source_rows = std::max(1, (std::max(samples, 1) + out.source_columns - 1) / out.source_columns);
     if (max_side > 0) {
@@ -427,8 +427,8 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
     return out;
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
-    const gpu::PatchVisibilityRequest probe = sized(samples, max_side);
-    VISQ_ASSIGN_OR_RETURN(gpu::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.job));
+    const sampling::PatchVisibilityRequest probe = sized(samples, max_side);
+    VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.job));
     return RunCost{ComputeMs(result.timing),
                    PlanWork(method, double(probe.receiver_columns) * probe.receiver_rows,
                             probe.source_columns * probe.source_rows)};
@@ -440,7 +440,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   Plan& plan = report.plans[report.chosen];
   PatchVisibilityAnswer answer;
   answer.method = MethodOfPlan(plan);
-  gpu::PatchVisibilityRequest chosen = request;
+  sampling::PatchVisibilityRequest chosen = request;
   if (answer.method != VisibilityMethod::kPluckerExact) {
     chosen = sized(int(plan.parameters.at("samples")), 0);
     plan.parameters["source_columns"] = chosen.source_columns;
@@ -453,7 +453,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   if (answer.method != VisibilityMethod::kPluckerExact && target.confidence < 1.0) {
     answer.result.error.confidence = target.confidence;
     answer.result.error.sampling =
-        gpu::SamplingErrorBound(chosen.source_columns * chosen.source_rows, target.confidence);
+        sampling::SamplingErrorBound(chosen.source_columns * chosen.source_rows, target.confidence);
   }
   answer.plan = std::move(report);
   return answer;
@@ -461,21 +461,21 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
 }  // namespace
 
-std::string VisibilityMethodName(VisibilityMethod method, gpu::LookupMode lookup) {
+std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode lookup) {
   switch (method) {
     case VisibilityMethod::kRaycast: return "raycast";
     case VisibilityMethod::kPluckerExact: return "plucker-exact";
     case VisibilityMethod::kRaster: break;
   }
-  return lookup == gpu::LookupMode::kExact ? "raster-exact-lookup" : "raster-hough-lookup";
+  return lookup == sampling::LookupMode::kExact ? "raster-exact-lookup" : "raster-hough-lookup";
 }
 
 namespace {
 
 // The request as it will run: without samples (a target, or the exact
 // method) the count is the planner's to choose, so one stands in for it.
-gpu::HiddenSampleMapRequest WithStandInCount(const HiddenSampleMapQuery& query) {
-  gpu::HiddenSampleMapRequest request = query.request;
+sampling::HiddenSampleMapRequest WithStandInCount(const HiddenSampleMapQuery& query) {
+  sampling::HiddenSampleMapRequest request = query.request;
   const bool count_chosen_here = query.target || query.method == VisibilityMethod::kPluckerExact;
   if (count_chosen_here && request.source.sample_count == 0) request.source.sample_count = 1;
   return request;
@@ -489,16 +489,16 @@ Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query) {
     if (query.request.source.sample_count != 0)
       return absl::InvalidArgumentError("samples.count: give either a count or a target, not both");
   }
-  const gpu::HiddenSampleMapRequest checked = WithStandInCount(query);
-  VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(checked));
+  const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
+  VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(checked));
   if (!query.target) VISQ_RETURN_IF_ERROR(CheckSize(checked));
   return absl::OkStatus();
 }
 
 Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query) {
   if (query.target) return ValidateAccuracyTarget(*query.target);
-  VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapRequest map, gpu::PatchVisibilityAsHiddenSampleMap(query.request));
-  VISQ_RETURN_IF_ERROR(gpu::ValidateHiddenSampleMapRequest(map));
+  VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(query.request));
+  VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(map));
   return CheckSize(map);
 }
 
@@ -507,7 +507,7 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   if (query.target) return HiddenSampleMapForTarget(engine, *resident, query);
-  const gpu::HiddenSampleMapRequest checked = WithStandInCount(query);
+  const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
   HiddenSampleMapAnswer answer;
   answer.method = query.method;
   VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.job));

@@ -20,7 +20,7 @@ class Engine;
 enum class VisibilityMethod { kRaster, kRaycast, kPluckerExact };
 
 // "raster-exact-lookup", "raster-hough-lookup", "raycast", "plucker-exact".
-std::string VisibilityMethodName(VisibilityMethod method, gpu::LookupMode lookup);
+std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode lookup);
 
 // Beyond this many bits (texels x samples) a request is RESOURCE_EXHAUSTED:
 // 4 Gbit, e.g. 2048 x 2048 texels x 1024 samples.
@@ -29,7 +29,7 @@ inline constexpr uint64_t kMaxHiddenSampleBits = 1ull << 32;
 struct HiddenSampleMapQuery {
   std::string scene;
   uint64_t scene_version = 0;
-  gpu::HiddenSampleMapRequest request;
+  sampling::HiddenSampleMapRequest request;
   VisibilityMethod method = VisibilityMethod::kRaster;
   // Instead of request.source.sample_count and method: the planner chooses
   // the method and the count (jittered samples, or the exact method).
@@ -38,7 +38,7 @@ struct HiddenSampleMapQuery {
 };
 
 struct HiddenSampleMapAnswer {
-  gpu::HiddenSampleMapResult result;
+  sampling::HiddenSampleMapResult result;
   VisibilityMethod method = VisibilityMethod::kRaster;  // what produced it
   std::optional<PlanReport> plan;                       // with a target
 };
@@ -46,7 +46,7 @@ struct HiddenSampleMapAnswer {
 struct PatchVisibilityQuery {
   std::string scene;
   uint64_t scene_version = 0;
-  gpu::PatchVisibilityRequest request;
+  sampling::PatchVisibilityRequest request;
   VisibilityMethod method = VisibilityMethod::kRaster;
   // Instead of the source grid and method (the receiver grid stays).
   std::optional<AccuracyTarget> target;
@@ -54,7 +54,7 @@ struct PatchVisibilityQuery {
 };
 
 struct PatchVisibilityAnswer {
-  gpu::PatchVisibilityResult result;
+  sampling::PatchVisibilityResult result;
   VisibilityMethod method = VisibilityMethod::kRaster;
   std::optional<PlanReport> plan;
 };

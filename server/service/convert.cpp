@@ -99,8 +99,8 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
 
 namespace {
 
-gpu::Patch PatchFromProto(const v1::Patch& p) {
-  return gpu::Patch{FromProto(p.origin()), FromProto(p.edge_u()), FromProto(p.edge_v())};
+sampling::Patch PatchFromProto(const v1::Patch& p) {
+  return sampling::Patch{FromProto(p.origin()), FromProto(p.edge_u()), FromProto(p.edge_v())};
 }
 
 StatusOr<VisibilityMethod> MethodFromProto(v1::VisibilityMethod method) {
@@ -113,11 +113,11 @@ StatusOr<VisibilityMethod> MethodFromProto(v1::VisibilityMethod method) {
   }
 }
 
-StatusOr<gpu::LookupMode> LookupFromProto(v1::LookupMode lookup) {
+StatusOr<sampling::LookupMode> LookupFromProto(v1::LookupMode lookup) {
   switch (lookup) {
     case v1::LOOKUP_UNSPECIFIED:
-    case v1::EXACT: return gpu::LookupMode::kExact;
-    case v1::FAST: return gpu::LookupMode::kHough;
+    case v1::EXACT: return sampling::LookupMode::kExact;
+    case v1::FAST: return sampling::LookupMode::kHough;
     default: return absl::InvalidArgumentError(absl::StrCat("lookup: unknown value ", static_cast<int>(lookup)));
   }
 }
@@ -129,7 +129,7 @@ StatusOr<int> SizeFromProto(uint32_t value, const char* field) {
   return static_cast<int>(value);
 }
 
-v1::Accuracy AccuracyToProto(const gpu::ErrorBound& error, VisibilityMethod method, gpu::LookupMode lookup,
+v1::Accuracy AccuracyToProto(const sampling::ErrorBound& error, VisibilityMethod method, sampling::LookupMode lookup,
                              int samples) {
   v1::Accuracy out;
   out.set_method(VisibilityMethodName(method, lookup));
@@ -198,14 +198,14 @@ StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& reque
   query.scene_version = request.scene().version();
   VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
   VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
-  gpu::HiddenSampleMapRequest& r = query.request;
+  sampling::HiddenSampleMapRequest& r = query.request;
   r.source.patch = PatchFromProto(request.source());
   VISQ_ASSIGN_OR_RETURN(r.source.sample_count, SizeFromProto(request.samples().count(), "samples.count"));
   switch (request.samples().pattern()) {
     case v1::SamplingSpec::PATTERN_UNSPECIFIED:
-    case v1::SamplingSpec::JITTERED: r.source.pattern = gpu::SamplePattern::kJittered; break;
-    case v1::SamplingSpec::REGULAR: r.source.pattern = gpu::SamplePattern::kRegular; break;
-    case v1::SamplingSpec::CUSTOM: r.source.pattern = gpu::SamplePattern::kCustom; break;
+    case v1::SamplingSpec::JITTERED: r.source.pattern = sampling::SamplePattern::kJittered; break;
+    case v1::SamplingSpec::REGULAR: r.source.pattern = sampling::SamplePattern::kRegular; break;
+    case v1::SamplingSpec::CUSTOM: r.source.pattern = sampling::SamplePattern::kCustom; break;
     default: return absl::InvalidArgumentError("samples.pattern: unknown value");
   }
   r.source.seed = request.samples().seed();
@@ -240,16 +240,16 @@ StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& reque
 }
 
 std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const HiddenSampleMapAnswer& answer, size_t chunk_elements) {
-  const gpu::HiddenSampleMapResult& result = answer.result;
+  const sampling::HiddenSampleMapResult& result = answer.result;
   std::vector<v1::HiddenSampleMapResponse> out(1);
   v1::HiddenSampleMapResponse& first = out[0];
   first.set_width(result.width);
   first.set_height(result.height);
   first.set_sample_count(result.sample_count);
   first.set_words_per_texel(result.words_per_texel);
-  const gpu::LookupMode lookup = result.error.lookup_max > 0 || !result.error.lookup_per_texel.empty()
-                                     ? gpu::LookupMode::kHough
-                                     : gpu::LookupMode::kExact;
+  const sampling::LookupMode lookup = result.error.lookup_max > 0 || !result.error.lookup_per_texel.empty()
+                                     ? sampling::LookupMode::kHough
+                                     : sampling::LookupMode::kExact;
   *first.mutable_accuracy() = AccuracyToProto(result.error, answer.method, lookup, result.sample_count);
   if (answer.plan) ToProto(*answer.plan, first.mutable_accuracy());
   first.mutable_lookup_error()->Add(result.error.lookup_per_texel.begin(), result.error.lookup_per_texel.end());
@@ -291,7 +291,7 @@ StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& reque
   VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
   if (query.target && (request.source_columns() != 0 || request.source_rows() != 0))
     return absl::InvalidArgumentError("source_columns, source_rows: give either a source grid or a target, not both");
-  gpu::PatchVisibilityRequest& r = query.request;
+  sampling::PatchVisibilityRequest& r = query.request;
   r.source = PatchFromProto(request.source());
   r.receiver = PatchFromProto(request.receiver());
   auto or_default = [](uint32_t v) { return v == 0 ? 32u : v; };
@@ -306,7 +306,7 @@ StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& reque
 }
 
 void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out) {
-  const gpu::PatchVisibilityResult& result = answer.result;
+  const sampling::PatchVisibilityResult& result = answer.result;
   out->set_mutual_visible_fraction(result.mutual_visible_fraction);
   out->mutable_source_visible()->Add(result.source_visible.begin(), result.source_visible.end());
   out->mutable_receiver_visible()->Add(result.receiver_visible.begin(), result.receiver_visible.end());
@@ -316,7 +316,7 @@ void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* o
     p->set_receiver_sample(pair.receiver_sample);
   }
   out->set_unblocked_total(result.unblocked_total);
-  const gpu::LookupMode lookup = result.error.lookup_max > 0 ? gpu::LookupMode::kHough : gpu::LookupMode::kExact;
+  const sampling::LookupMode lookup = result.error.lookup_max > 0 ? sampling::LookupMode::kHough : sampling::LookupMode::kExact;
   *out->mutable_accuracy() =
       AccuracyToProto(result.error, answer.method, lookup, static_cast<int>(result.source_visible.size()));
   if (answer.plan) ToProto(*answer.plan, out->mutable_accuracy());

@@ -375,7 +375,7 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
         query.job = JobOptionsFor(context, &cancelled);
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, RunHiddenSampleMap(ctx_.engine, query));
-        const gpu::HiddenSampleMapResult& result = answer.result;
+        const sampling::HiddenSampleMapResult& result = answer.result;
         log.Info("{} {}x{} texels, {} samples{}", VisibilityMethodName(answer.method, query.request.options.lookup),
                  result.width, result.height, result.sample_count,
                  answer.plan ? absl::StrCat(" (chosen for the target, predicted ",
@@ -468,7 +468,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityQuery query, FromProto(*request));
     query.job = JobOptionsFor(context, &cancelled);
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, RunPatchVisibility(ctx_.engine, query));
-    const gpu::PatchVisibilityResult& result = answer.result;
+    const sampling::PatchVisibilityResult& result = answer.result;
     const double before_transfer = log.ElapsedMs();
     ToProto(answer, response);
     auto* timing = response->mutable_timing();

@@ -20,7 +20,7 @@
 // References, per kind:
 //   hidden-sample map, patch visibility: the exact visible fraction of the
 //     source patch (as an area light facing the receiver) at the receiver
-//     texel centres, by the Plücker-space BSP (server/exact); plus Embree on
+//     texel centres, by the Plücker-space BSP (lib/exact); plus Embree on
 //     the very same segments (bit mismatch);
 //   obscurances: a GPU bake with many more directions and another seed;
 //   voxelization: the CPU reference voxelizer (exact triangle-box tests) at
@@ -172,7 +172,7 @@ struct SceneCase {
   std::string name;
   fs::path path;
   Scene scene;
-  gpu::Patch source, receiver;  // hidden-sample map, patch visibility
+  sampling::Patch source, receiver;  // hidden-sample map, patch visibility
   gpu::VolumetricParams volumetric;
 };
 
@@ -268,7 +268,7 @@ bool Prepare(SceneCase& c) {
   return true;
 }
 
-std::string PatchText(const gpu::Patch& p) {
+std::string PatchText(const sampling::Patch& p) {
   char buf[256];
   std::snprintf(buf, sizeof buf, "(%.3g, %.3g, %.3g); (%.3g, %.3g, %.3g); (%.3g, %.3g, %.3g)", p.origin.x, p.origin.y,
                 p.origin.z, p.edge_u.x, p.edge_u.y, p.edge_u.z, p.edge_v.x, p.edge_v.y, p.edge_v.z);
@@ -315,12 +315,12 @@ struct ExactReference {
 
 ExactReference ExactFractions(const SceneCase& c, int width, int height) {
   exact::AreaLight light;
-  const gpu::Patch& s = c.source;
+  const sampling::Patch& s = c.source;
   light.vertices = {s.origin, s.origin + s.edge_u, s.origin + s.edge_u + s.edge_v, s.origin + s.edge_v};
   const glm::dvec3 normal = glm::cross(s.edge_u, s.edge_v);
   const glm::dvec3 toward = c.receiver.At(0.5, 0.5) - s.At(0.5, 0.5);
   if (glm::dot(normal, toward) < 0) std::reverse(light.vertices.begin(), light.vertices.end());
-  gpu::ReceiverSpec receiver;
+  sampling::ReceiverSpec receiver;
   receiver.patch = c.receiver;
   receiver.width = width;
   receiver.height = height;
@@ -328,7 +328,7 @@ ExactReference ExactFractions(const SceneCase& c, int width, int height) {
   ref.fraction.resize(size_t(width) * height);
   std::vector<exact::QueryPoint> points;
   for (int y = 0; y < height; ++y)
-    for (int x = 0; x < width; ++x) points.push_back({gpu::ReceiverSamplePosition(receiver, x, y), {}, {}});
+    for (int x = 0; x < width; ++x) points.push_back({sampling::ReceiverSamplePosition(receiver, x, y), {}, {}});
   const auto t0 = Clock::now();
   auto index = Must(exact::SceneTriangleIndex::Build(c.scene), c.name + ": triangle index");
   const auto cells = exact::GroupReceivers(points, c.scene.bounds, 32);
@@ -362,8 +362,8 @@ struct RaycastMap {
   int words = 0;
 };
 
-bool Raycast(const raycast::EmbreeScene& embree, const gpu::HiddenSampleMapRequest& request,
-             const gpu::SourceSamples& samples, RaycastMap& out) {
+bool Raycast(const raycast::EmbreeScene& embree, const sampling::HiddenSampleMapRequest& request,
+             const sampling::SourceSamples& samples, RaycastMap& out) {
   const int width = request.receiver.width, height = request.receiver.height;
   const int n = static_cast<int>(samples.world.size());
   out.words = (n + 31) / 32;
@@ -373,8 +373,8 @@ bool Raycast(const raycast::EmbreeScene& embree, const gpu::HiddenSampleMapReque
   segments.reserve(size_t(width) * height * n);
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x) {
-      const glm::dvec3 p = gpu::ReceiverSamplePosition(request.receiver, x, y);
-      for (int i = 0; i < n; ++i) segments.push_back({p, gpu::SourceSampleSeenFrom(request, samples, i, x, y)});
+      const glm::dvec3 p = sampling::ReceiverSamplePosition(request.receiver, x, y);
+      for (int i = 0; i < n; ++i) segments.push_back({p, sampling::SourceSampleSeenFrom(request, samples, i, x, y)});
     }
   auto blocked = embree.Occluded(segments);
   if (!blocked.ok()) return false;
@@ -419,17 +419,17 @@ void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
   }
   const size_t texels = size_t(plan.receiver) * plan.receiver;
   for (int n : counts) {
-    gpu::HiddenSampleMapRequest r;
+    sampling::HiddenSampleMapRequest r;
     r.source.patch = c.source;
     r.source.sample_count = n;
-    r.source.pattern = gpu::SamplePattern::kJittered;
+    r.source.pattern = sampling::SamplePattern::kJittered;
     r.source.seed = 1;
     r.receiver.patch = c.receiver;
     r.receiver.width = r.receiver.height = plan.receiver;
     const std::string setting = "N=" + std::to_string(n);
 
     // RAYCAST first: its bits are what the raster paths are compared with.
-    const gpu::SourceSamples samples = Must(gpu::ComputeSourceSamples(r.source), "source samples");
+    const sampling::SourceSamples samples = Must(sampling::ComputeSourceSamples(r.source), "source samples");
     RaycastMap rays;
     if (!Raycast(embree, r, samples, rays)) Fail("raycast", absl::InternalError("Occluded failed"));
     Summary t;
@@ -442,11 +442,11 @@ void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
 
     struct Variant {
       std::string method;
-      gpu::LookupMode lookup;
+      sampling::LookupMode lookup;
       int hough;
     };
-    std::vector<Variant> variants = {{"RASTER EXACT", gpu::LookupMode::kExact, 256}};
-    for (int h : hough) variants.push_back({"RASTER FAST h" + std::to_string(h), gpu::LookupMode::kHough, h});
+    std::vector<Variant> variants = {{"RASTER EXACT", sampling::LookupMode::kExact, 256}};
+    for (int h : hough) variants.push_back({"RASTER FAST h" + std::to_string(h), sampling::LookupMode::kHough, h});
     for (const Variant& v : variants) {
       r.options.lookup = v.lookup;
       r.options.hough_theta_resolution = r.options.hough_r_resolution = v.hough;
@@ -457,7 +457,7 @@ void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
       if (!warm.ok()) Fail(c.name + " " + v.method + " " + setting, warm.status());
       const double mismatch = BitMismatch(warm->blocked_bits, rays.bits, texels, n);
       r.options.want_bitmasks = false;
-      gpu::HiddenSampleMapResult last;
+      sampling::HiddenSampleMapResult last;
       if (!Time(plan.repeats,
                 [&] {
                   auto result = mapper.Compute(gpu_scene, r);
@@ -469,7 +469,7 @@ void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
         Fail(c.name + " " + v.method, absl::InternalError("compute failed"));
       const Stats s = AbsErrorStats(Diff(last.visible_fraction, ref.fraction));
       std::string note;
-      if (v.lookup == gpu::LookupMode::kHough) note = "stated bound " + Fmt("%.3g", last.error.lookup_max);
+      if (v.lookup == sampling::LookupMode::kHough) note = "stated bound " + Fmt("%.3g", last.error.lookup_max);
       Record(kind, {c.name, v.method, setting, t.median, t.runs, {s.mean, s.p95, s.max, mismatch}, note});
     }
   }
@@ -489,38 +489,38 @@ void SweepPatchVisibility(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
   for (double f : ref.fraction) exact_mutual += f;
   exact_mutual /= static_cast<double>(ref.fraction.size());
   for (int g : grids) {
-    gpu::PatchVisibilityRequest r;
+    sampling::PatchVisibilityRequest r;
     r.source = c.source;
     r.source_columns = r.source_rows = g;
     r.receiver = c.receiver;
     r.receiver_columns = r.receiver_rows = plan.receiver;
     const std::string setting = std::to_string(g) + "x" + std::to_string(g);
-    auto record = [&](const std::string& method, const Summary& t, const gpu::PatchVisibilityResult& result) {
+    auto record = [&](const std::string& method, const Summary& t, const sampling::PatchVisibilityResult& result) {
       const Stats s = AbsErrorStats(Diff(result.receiver_visible, ref.fraction));
       Record(kind, {c.name, method, setting, t.median, t.runs,
                            {std::abs(result.mutual_visible_fraction - exact_mutual), s.mean, s.p95, s.max}, ""});
     };
     // RAYCAST: the same map the GPU path computes, by Embree.
-    const gpu::HiddenSampleMapRequest map = Must(gpu::PatchVisibilityAsHiddenSampleMap(r), "patch as map");
-    const gpu::SourceSamples samples = Must(gpu::ComputeSourceSamples(map.source), "patch samples");
-    gpu::PatchVisibilityResult last;
+    const sampling::HiddenSampleMapRequest map = Must(sampling::PatchVisibilityAsHiddenSampleMap(r), "patch as map");
+    const sampling::SourceSamples samples = Must(sampling::ComputeSourceSamples(map.source), "patch samples");
+    sampling::PatchVisibilityResult last;
     auto raycast = [&] {
       RaycastMap rays;
       if (!Raycast(embree, map, samples, rays)) return false;
-      gpu::HiddenSampleMapResult as_map;
+      sampling::HiddenSampleMapResult as_map;
       as_map.width = map.receiver.width;
       as_map.height = map.receiver.height;
       as_map.sample_count = static_cast<int>(samples.world.size());
       as_map.words_per_texel = rays.words;
       as_map.visible_fraction = std::move(rays.visible_fraction);
       as_map.blocked_bits = std::move(rays.bits);
-      last = gpu::SummarizePatchVisibility(r, as_map);
+      last = sampling::SummarizePatchVisibility(r, as_map);
       return true;
     };
     Summary t;
     if (!raycast() || !Time(plan.repeats, raycast, t)) Fail("patch raycast", absl::InternalError("failed"));
     record("RAYCAST (Embree)", t, last);
-    for (auto lookup : {gpu::LookupMode::kExact, gpu::LookupMode::kHough}) {
+    for (auto lookup : {sampling::LookupMode::kExact, sampling::LookupMode::kHough}) {
       r.lookup = lookup;
       auto body = [&] {
         auto result = mapper.PatchVisibility(gpu_scene, r);
@@ -529,7 +529,7 @@ void SweepPatchVisibility(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
         return true;
       };
       if (!body() || !Time(plan.repeats, body, t)) Fail("patch visibility", absl::InternalError("failed"));
-      record(lookup == gpu::LookupMode::kExact ? "RASTER EXACT" : "RASTER FAST h256", t, last);
+      record(lookup == sampling::LookupMode::kExact ? "RASTER EXACT" : "RASTER FAST h256", t, last);
     }
   }
 }
@@ -827,12 +827,12 @@ void WriteReport(const fs::path& md, const std::string& plot_dir_name, const std
     << "For each query kind, the accuracy parameters are swept and each setting's answer is compared with an exact "
        "or converged reference on the same inputs, in the same run:\n\n"
     << "- **hidden-sample map**: the exact visible fraction of the source patch at every receiver texel centre, "
-       "from the Plücker-space BSP (`server/exact`, the `LightVisibility` algorithm) with the patch as an area light "
+       "from the Plücker-space BSP (`lib/exact`, the `LightVisibility` algorithm) with the patch as an area light "
        "facing the receiver. Also Embree on the very same segments (bits that differ).\n"
     << "- **patch visibility**: the same exact fractions, averaged (the exact mutual visible fraction).\n"
     << "- **obscurances**: the Embree estimator with many rays per patch, with another seed. On this machine a "
        "converged GPU bake does not fit in the run.\n"
-    << "- **voxelization**: the CPU reference voxelizer (`server/voxel_reference`, exact triangle-box tests) on the "
+    << "- **voxelization**: the CPU reference voxelizer (`lib/voxel_reference`, exact triangle-box tests) on the "
        "same grid.\n"
     << "- **volumetric shadows**: ray marching on a " << plan.reference_map << "² shadow map.\n\n";
 

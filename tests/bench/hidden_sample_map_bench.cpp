@@ -54,7 +54,7 @@ Scene Cloud(int triangles, uint32_t seed) {
 struct Case {
   std::string name;
   Scene scene;
-  gpu::Patch source, receiver;
+  sampling::Patch source, receiver;
 };
 
 }  // namespace
@@ -115,16 +115,16 @@ int main(int argc, char** argv) {
     if (!gpu_scene.ok() || !embree.ok()) { std::printf("skip %s: upload failed\n", c.name.c_str()); continue; }
     for (int size : sizes)
       for (int n : counts) {
-        gpu::HiddenSampleMapRequest r;
+        sampling::HiddenSampleMapRequest r;
         r.source.patch = c.source;
         r.source.sample_count = n;
-        r.source.pattern = gpu::SamplePattern::kJittered;
+        r.source.pattern = sampling::SamplePattern::kJittered;
         r.receiver.patch = c.receiver;
         r.receiver.width = r.receiver.height = size;
         double ms[2] = {0, 0}, table_ms = 0;
-        gpu::HiddenSampleMapResult exact_result;
+        sampling::HiddenSampleMapResult exact_result;
         for (int mode = 0; mode < 2; ++mode) {
-          r.options.lookup = mode == 0 ? gpu::LookupMode::kExact : gpu::LookupMode::kHough;
+          r.options.lookup = mode == 0 ? sampling::LookupMode::kExact : sampling::LookupMode::kHough;
           auto warm = (*mapper)->Compute(**gpu_scene, r);  // builds/caches the table, compiles
           if (!warm.ok()) { std::printf("%s: %s\n", c.name.c_str(), std::string(warm.status().message()).c_str()); return 1; }
           table_ms = std::max(table_ms, warm->table_ms);
@@ -138,7 +138,7 @@ int main(int argc, char** argv) {
         segments.reserve(size_t(size) * size * n);
         for (int y = 0; y < size; ++y)
           for (int x = 0; x < size; ++x) {
-            const glm::dvec3 p = gpu::ReceiverSamplePosition(r.receiver, x, y);
+            const glm::dvec3 p = sampling::ReceiverSamplePosition(r.receiver, x, y);
             for (const glm::dvec3& q : exact_result.samples.world) segments.push_back({p, q});
           }
         const auto t = Clock::now();

@@ -1,5 +1,5 @@
 // Slicemap voxelization (gpu/slicemap) vs the CPU reference voxelizer
-// (server/voxel_reference) on Sponza and the veach-ajar interior. Prints a
+// (lib/voxel_reference) on Sponza and the veach-ajar interior. Prints a
 // table; not a test. Usage:
 //   visq_bench_slicemap [shared-scenes-dir] [repeats] [number of grid sizes, 1..3]
 // GPU figures are the median of `repeats` runs after one warm-up (which

@@ -51,12 +51,12 @@ void HiddenSampleMap(const uint8_t* data, size_t size) {
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
   if (!query.ok() || !CheckHiddenSampleMapQuery(*query).ok()) return;
-  const gpu::HiddenSampleMapRequest& r = query->request;
+  const sampling::HiddenSampleMapRequest& r = query->request;
   Require(r.receiver.width > 0 && r.receiver.height > 0);
   if (!query->target && query->method != VisibilityMethod::kPluckerExact)
     Require(uint64_t(r.receiver.width) * uint64_t(r.receiver.height) * uint64_t(r.source.sample_count) <=
             kMaxHiddenSampleBits);
-  Require(r.source.sample_count >= 0 && r.source.sample_count <= gpu::kMaxHiddenSampleMapSamples);
+  Require(r.source.sample_count >= 0 && r.source.sample_count <= sampling::kMaxHiddenSampleMapSamples);
 }
 
 void PatchVisibility(const uint8_t* data, size_t size) {

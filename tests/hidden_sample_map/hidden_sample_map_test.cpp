@@ -19,6 +19,8 @@
 #include "visq/gpu/hidden_sample_map.h"
 
 namespace visq::gpu {
+
+using namespace ::visq::sampling;
 namespace {
 
 constexpr double kTieFraction = 1e-4;

@@ -19,6 +19,7 @@
 #include "raycast/embree_scene.h"
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
+#include "scene/scene_edit.h"
 #include "test_support.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/obscurance.h"

@@ -1,5 +1,5 @@
 // Slicemap voxelization (gpu/slicemap) against the CPU reference
-// (server/voxel_reference): exact triangle-box overlap for surfaces, Embree
+// (lib/voxel_reference): exact triangle-box overlap for surfaces, Embree
 // ray parity for solids, the analytic chord for transmittance.
 #include <cmath>
 #include <cstdio>

@@ -9,6 +9,7 @@
 #include <memory>
 #include <string>
 
+#include "common/job_timing.h"
 #include "common/status.h"
 
 namespace visq::gpu {
@@ -50,10 +51,7 @@ struct JobOptions {
 inline constexpr int kInteractive = 0;
 inline constexpr int kBatch = 10;
 
-struct JobTiming {
-  double queue_ms = 0;  // from submission to start on the GL thread
-  double run_ms = 0;    // on the GL thread, GPU work finished (glFinish)
-};
+using ::visq::JobTiming;
 
 class GpuWorker {
  public:

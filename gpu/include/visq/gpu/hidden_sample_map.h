@@ -1,223 +1,18 @@
-// Hidden-sample maps and patch-to-patch visibility (Eisemann & Décoret 2007,
-// "Visibility Sampling on GPU and Applications"). The algorithm lives in
-// gpu/hidden_sample_map/ with its shaders; this header is its public face and
-// holds no GL or protobuf type.
-//
-// A source patch S carries N explicit samples S_i; a receiver patch R is
-// sampled implicitly at the texel centres R_j of a W x H grid. For every R_j
-// the answer is the set B_j of source samples whose open segment (R_j, S_i) is
-// blocked by a scene triangle: the hidden-sample map.
-//
-// Segment semantics: only the part of a triangle strictly between the two
-// endpoints counts; triangles behind the receiver or beyond the source block
-// nothing, triangles crossing either plane block with their part between
-// them, and (as in visq::raycast::EmbreeScene::Occluded) geometry closer than
-// delta = 2^-17 * max(extent / 8, |patch corner|) to the source plane or to
-// the receiver point is ignored, so the light's own quad and the floor under
-// the receiver never block.
+// Hidden-sample maps and patch-to-patch visibility on the GPU (Eisemann &
+// Décoret 2007, "Visibility Sampling on GPU and Applications"). The
+// algorithm lives in gpu/hidden_sample_map/ with its shaders; this header is
+// its public face and holds no GL or protobuf type. The model it answers in
+// (patches, requests, results, bounds) is lib/sampling.
 #pragma once
 
-#include <cstdint>
 #include <memory>
-#include <vector>
-
-#include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "sampling/visibility_sampling.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/gpu_worker.h"
 
 namespace visq::gpu {
-
-// The parallelogram origin + s * edge_u + t * edge_v, (s, t) in [0, 1]^2, in
-// world coordinates.
-struct Patch {
-  glm::dvec3 origin{0.0};
-  glm::dvec3 edge_u{1.0, 0.0, 0.0};
-  glm::dvec3 edge_v{0.0, 1.0, 0.0};
-  glm::dvec3 At(double s, double t) const { return origin + s * edge_u + t * edge_v; }
-};
-
-enum class SamplePattern {
-  kRegular,   // ceil(sqrt N) columns, rows as needed, cell centres, first N
-  kJittered,  // one uniform sample per cell of the regular grid, seeded
-  kCustom,    // SourceSpec::custom_uv as given
-};
-
-// Bounds hidden-sample-map lookups (section 5).
-enum class LookupMode {
-  // The default: Hough-table lookups decide every sample that lies clearly on
-  // one side of every edge; the few samples the table cell cannot decide
-  // (its ambiguity mask) are tested exactly against the back-projected edge.
-  // The bits are those of the exact segment test (= Embree on the same
-  // segments, up to floating-point ties).
-  kExact,
-  // The paper's pure lookup, conservative towards "blocked"; each answer
-  // carries a per-texel bound on its lookup error.
-  kHough,
-};
-
-// Source samples per request: 1024 per pass (8 RGBA32UI targets), 4 passes.
-inline constexpr int kMaxHiddenSampleMapSamples = 4096;
-
-struct SourceSpec {
-  Patch patch;
-  int sample_count = 64;  // [1, 4096]: samples over the whole rectangle
-  SamplePattern pattern = SamplePattern::kRegular;
-  uint64_t seed = 1;                   // kJittered
-  std::vector<glm::dvec2> custom_uv;   // kCustom: (s, t) in [0, 1]^2, one per sample
-  // Optional light shape: a simple polygon in (s, t). Samples outside it are
-  // dropped (sample_count counts samples over the rectangle; at least one
-  // must remain).
-  std::vector<glm::dvec2> polygon_uv;
-  // Optional colours (section 8, colored / textured lights): either one
-  // colour per sample that remains after the polygon, or a texture over the
-  // patch (row-major, texel (0,0) at s = t = 0), looked up nearest per sample.
-  std::vector<glm::vec3> sample_colors;
-  int color_texture_width = 0, color_texture_height = 0;
-  std::vector<glm::vec3> color_texture;
-};
-
-struct ReceiverSpec {
-  Patch patch;
-  int width = 64, height = 64;  // [1, 4096] each
-  // Optional bumpy receiver (section 8): width * height heights, row-major,
-  // offsetting each texel centre along the unit normal normalize(edge_u x
-  // edge_v). Every displaced point must stay strictly on the receiver side of
-  // the source plane.
-  std::vector<float> heightfield;
-};
-
-struct HiddenSampleMapOptions {
-  LookupMode lookup = LookupMode::kExact;
-  // Hough bitmask table (theta x r texels); [16, 2048] each.
-  int hough_theta_resolution = 256;
-  int hough_r_resolution = 256;
-  // Section 6.2: each receiver texel sees the pattern moved by its own offset
-  // (DecorrelationOffset), trading aliasing for noise.
-  bool decorrelate = false;
-  uint32_t decorrelation_seed = 0;
-  // Section 7: skip triangles front-facing from all 4 source corners. Only
-  // valid for closed casters with both patches outside them.
-  bool watertight = false;
-  bool want_bitmasks = false;
-  // Confidence of the sampling-error bound (Hoeffding), in (0, 1).
-  double confidence = 0.95;
-};
-
-struct HiddenSampleMapRequest {
-  SourceSpec source;
-  ReceiverSpec receiver;
-  HiddenSampleMapOptions options;
-};
-
-// The source samples actually used: CPU-computed once, shared by the GPU path
-// and by any CPU reference (RAYCAST), so both test the same segments.
-struct SourceSamples {
-  std::vector<glm::dvec2> uv;       // (s, t) on the source patch
-  std::vector<glm::dvec3> world;    // source.patch.At(s, t)
-  std::vector<glm::vec3> color;     // empty unless colours were given
-  int requested = 0;                // sample_count before the polygon
-};
-
-struct ErrorBound {
-  // Hoeffding: with probability >= confidence, |visible fraction over N
-  // samples - true visible fraction over the source| <= sqrt(ln(2 /
-  // (1 - confidence)) / (2 N)) per texel. Rigorous for kJittered
-  // (independent strata of equal area); for kRegular and kCustom it is the
-  // usual figure, not a guarantee.
-  double sampling = 0.0;
-  double confidence = 0.95;
-  // Lookup error, as a fraction of N: 0 for kExact (up to floating-point
-  // ties); for kHough the largest per-texel bound (true blocked set B
-  // satisfies sure <= B <= answer, see lookup_per_texel).
-  double lookup_max = 0.0;
-  std::vector<float> lookup_per_texel;  // kHough only: (|answer| - |sure|) / N
-  double total() const { return sampling + lookup_max; }
-};
-
-struct HiddenSampleMapResult {
-  int width = 0, height = 0;
-  int sample_count = 0;    // N, after the polygon
-  int words_per_texel = 0;  // ceil(N / 32)
-  // Per texel, row-major (index y * width + x; x along edge_u, y along edge_v).
-  std::vector<float> visible_fraction;
-  std::vector<glm::vec3> visible_rgb;  // (1/N) sum of unblocked sample colours; if colours
-  // Raw hidden-sample map (want_bitmasks): texel j's words are
-  // [j * words_per_texel, (j + 1) * words_per_texel); source sample i is bit
-  // (i % 32) of word (i / 32); a set bit means BLOCKED. Bits >= N are 0.
-  std::vector<uint32_t> blocked_bits;
-  ErrorBound error;
-  JobTiming timing;       // the GL job (queue + run, readback included)
-  double table_ms = 0.0;  // building the Hough table on the CPU (0 if cached)
-  int passes = 0;
-  SourceSamples samples;
-};
-
-// Source sample positions for `source` (validated). Deterministic.
-[[nodiscard]] StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source);
-
-// Receiver sample j = (x, y): the texel centre, lifted by the heightfield.
-glm::dvec3 ReceiverSamplePosition(const ReceiverSpec& receiver, int x, int y);
-
-// Decorrelation offset of texel (x, y) in (s, t) units: the pattern seen from
-// that texel is uv_i + offset. Integer hash, bit-identical on CPU and GPU;
-// each component in [-0.5, 0.5) / ceil(sqrt(N)) (half a grid cell), so
-// samples may sit up to that far outside the patch.
-glm::vec2 DecorrelationOffset(uint32_t seed, int x, int y, int sample_count);
-
-// World position of source sample i as seen from receiver texel (x, y)
-// (with decorrelation applied when enabled).
-glm::dvec3 SourceSampleSeenFrom(const HiddenSampleMapRequest& request, const SourceSamples& samples, int i,
-                                int x, int y);
-
-// INVALID_ARGUMENT naming the field and value for every bad parameter.
-[[nodiscard]] Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request);
-
-struct PatchVisibilityRequest {
-  Patch source;
-  int source_columns = 32, source_rows = 32;  // regular grid, cell centres
-  Patch receiver;
-  int receiver_columns = 32, receiver_rows = 32;  // texel centres
-  LookupMode lookup = LookupMode::kExact;
-  bool watertight = false;
-  size_t unblocked_limit = 0;  // how many unblocked pairs to list (0: none)
-};
-
-struct UnblockedPair {
-  uint32_t source_sample;    // row * source_columns + column
-  uint32_t receiver_sample;  // row * receiver_columns + column
-};
-
-struct PatchVisibilityResult {
-  double mutual_visible_fraction = 0.0;     // unblocked pairs / all pairs
-  std::vector<float> source_visible;        // per source sample: fraction of receiver samples it sees
-  std::vector<float> receiver_visible;      // per receiver sample: fraction of source samples it sees
-  std::vector<UnblockedPair> unblocked;     // in (receiver, source) order, at most unblocked_limit
-  uint64_t unblocked_total = 0;
-  ErrorBound error;
-  JobTiming timing;
-};
-
-// The distance from the segment endpoints within which geometry is ignored
-// (as in raycast::EmbreeScene::Occluded), for scene positions stored as
-// float32 relative to `anchor`; FAILED_PRECONDITION when it exceeds 1/16 of
-// the query's extent (a small query far from the anchor of a huge world),
-// where the answer would silently miss nearby occluders.
-[[nodiscard]] StatusOr<double> ResolvableEndpointTolerance(const Patch& source, const Patch& receiver,
-                                                           const glm::dvec3& anchor);
-
-// Hoeffding half-width of N samples' mean at `confidence`: the sampling
-// part of every bound this module reports.
-double SamplingErrorBound(int sample_count, double confidence);
-
-// Patch visibility is a hidden-sample map whose source samples are the
-// source grid's cell centers and whose receiver texels are the receiver
-// grid's cells; these two functions are that mapping, shared by the GPU path
-// and any other method producing the same map (ray casting).
-[[nodiscard]] StatusOr<HiddenSampleMapRequest> PatchVisibilityAsHiddenSampleMap(const PatchVisibilityRequest& request);
-PatchVisibilityResult SummarizePatchVisibility(const PatchVisibilityRequest& request,
-                                               const HiddenSampleMapResult& map);
 
 // Owns the programs and a small cache of Hough tables (keyed by the sample
 // pattern and resolution) on the GL thread. Thread-safe: every GL step runs
@@ -229,10 +24,10 @@ class HiddenSampleMapper {
   HiddenSampleMapper(const HiddenSampleMapper&) = delete;
   HiddenSampleMapper& operator=(const HiddenSampleMapper&) = delete;
 
-  [[nodiscard]] StatusOr<HiddenSampleMapResult> Compute(const GpuScene& scene, const HiddenSampleMapRequest& request,
+  [[nodiscard]] StatusOr<sampling::HiddenSampleMapResult> Compute(const GpuScene& scene, const sampling::HiddenSampleMapRequest& request,
                                                         const JobOptions& job = {});
-  [[nodiscard]] StatusOr<PatchVisibilityResult> PatchVisibility(const GpuScene& scene,
-                                                                const PatchVisibilityRequest& request,
+  [[nodiscard]] StatusOr<sampling::PatchVisibilityResult> PatchVisibility(const GpuScene& scene,
+                                                                const sampling::PatchVisibilityRequest& request,
                                                                 const JobOptions& job = {});
 
   struct State;  // GL-thread state, defined in gpu/hidden_sample_map/

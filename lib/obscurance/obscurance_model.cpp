@@ -238,40 +238,4 @@ uint64_t BakeFingerprint(const Scene& scene, const ObscuranceAtlas& atlas, const
   return f.h;
 }
 
-std::vector<uint32_t> SubtreeNodes(const Scene& scene, uint32_t node) {
-  std::vector<uint32_t> out;
-  for (uint32_t i = 0; i < scene.nodes.size(); ++i) {
-    for (int p = static_cast<int>(i); p >= 0; p = scene.nodes[p].parent)
-      if (static_cast<uint32_t>(p) == node) { out.push_back(i); break; }
-  }
-  return out;
-}
-
-Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world) {
-  if (node >= scene.nodes.size())
-    return absl::InvalidArgumentError(absl::StrCat("node: ", node, " is not a node of the scene (", scene.nodes.size(),
-                                                   " nodes)"));
-  const glm::dmat4 delta = new_world * glm::inverse(scene.nodes[node].world);
-  const std::vector<uint32_t> subtree = SubtreeNodes(scene, node);
-  std::vector<uint8_t> in_subtree(scene.nodes.size(), 0);
-  for (uint32_t n : subtree) in_subtree[n] = 1;
-  // Positions referenced by the subtree, and none outside it.
-  std::vector<uint8_t> moved(scene.positions.size(), 0);
-  for (uint32_t n : subtree)
-    for (uint32_t t = scene.nodes[n].first_triangle; t < scene.nodes[n].first_triangle + scene.nodes[n].triangle_count; ++t)
-      for (int c = 0; c < 3; ++c) moved[scene.triangles[t][c]] = 1;
-  for (size_t t = 0; t < scene.TriangleCount(); ++t)
-    if (!in_subtree[scene.triangle_node[t]])
-      for (int c = 0; c < 3; ++c)
-        if (moved[scene.triangles[t][c]])
-          return absl::InvalidArgumentError(absl::StrCat("node: ", node, " shares position ", scene.triangles[t][c],
-                                                         " with triangle ", t, " outside its subtree"));
-  for (size_t i = 0; i < scene.positions.size(); ++i)
-    if (moved[i]) scene.positions[i] = glm::dvec3(delta * glm::dvec4(scene.positions[i], 1.0));
-  for (uint32_t n : subtree) scene.nodes[n].world = delta * scene.nodes[n].world;
-  scene.bounds = Bounds{};
-  for (const auto& p : scene.positions) scene.bounds.Extend(p);
-  return absl::OkStatus();
-}
-
 }  // namespace visq::obscurance

@@ -6,6 +6,7 @@
 #include <thread>
 
 #include "obscurance/obscurance_rays.h"
+#include "scene/scene_edit.h"
 
 namespace visq::obscurance {
 namespace {

@@ -114,12 +114,4 @@ glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& 
 // A stable 64-bit hash of what a bake depends on, for ObscurancePartial.
 uint64_t BakeFingerprint(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params);
 
-// Moves node `node` and its subtree rigidly so that the node's world matrix
-// becomes `new_world` (positions of the subtree's triangles and the nodes'
-// world matrices). INVALID_ARGUMENT for an unknown node or a position shared
-// with triangles outside the subtree.
-[[nodiscard]] Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world);
-// The node and all its descendants.
-std::vector<uint32_t> SubtreeNodes(const Scene& scene, uint32_t node);
-
 }  // namespace visq::obscurance

@@ -1,5 +1,5 @@
 // Exact geometric predicates for the Plücker-space visibility BSP (private to
-// server/exact/).
+// lib/exact/).
 //
 // Why this design. Every decision the algorithm makes is the sign of a
 // polynomial in input coordinates: the side of a line against an occluder
