@@ -35,6 +35,10 @@ int main(int argc, char** argv) {
   uint64_t light_cache_bytes = options.engine.light_cache_bytes;
   app.add_option("--max-scene-bytes", max_scene_bytes, "Largest resident scene (geometry) accepted")
       ->envname("VISQ_MAX_SCENE_BYTES")->capture_default_str();
+  app.add_option("--max-work-bytes", options.engine.max_work_bytes,
+                 "Memory that answers in progress may hold together; requests wait for it or are refused "
+                 "(0: half of physical memory)")
+      ->envname("VISQ_MAX_WORK_BYTES")->capture_default_str();
   app.add_option("--light-cache-bytes", light_cache_bytes, "Bound on the exact light-visibility trees kept (LRU)")
       ->envname("VISQ_LIGHT_CACHE_BYTES")->capture_default_str();
   app.add_option("--light-receiver-cells", options.engine.light_receiver_cells,

@@ -14,6 +14,7 @@
 #include "common/status.h"
 #include "core/accuracy_planner.h"
 #include "core/scene_repository.h"
+#include "core/work_budget.h"
 #include "exact/light_visibility.h"
 #include "raycast/embree_scene.h"
 #include "scene/gltf_loader.h"
@@ -43,6 +44,9 @@ struct EngineOptions {
   // request on). Either way, a request naming a scene that is stored but not
   // resident loads it first (replicas sharing one repository rely on this).
   bool load_repository_at_start = true;
+  // Memory that answers in progress may hold together (WorkMemoryBudget);
+  // 0: half of the machine's physical memory.
+  uint64_t max_work_bytes = 0;
 };
 
 // A scene as the server holds it: immutable geometry plus the lazily built
@@ -144,6 +148,7 @@ class Engine {
   [[nodiscard]] StatusOr<gpu::HiddenSampleMapper*> hidden_sample_mapper();
 
   exact::LightVisibilityCache& light_cache() { return *light_cache_; }
+  WorkMemoryBudget& work_budget() { return *work_budget_; }
   // Requests that found their light's tree cached, and those that built one.
   std::atomic<uint64_t> light_tree_hits{0};
   std::atomic<uint64_t> light_tree_misses{0};
@@ -167,6 +172,7 @@ class Engine {
   EngineOptions options_;
   std::unique_ptr<SceneRepository> repository_;
   std::unique_ptr<gpu::GpuWorker> gpu_;
+  std::unique_ptr<WorkMemoryBudget> work_budget_;
   std::unique_ptr<exact::LightVisibilityCache> light_cache_;
   std::mutex mapper_mutex_;
   std::unique_ptr<gpu::HiddenSampleMapper> hidden_sample_mapper_;

@@ -175,9 +175,22 @@ StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, c
   return result;
 }
 
+// What a map holds while it is made and sent: the bitmasks (read back or
+// traced, the result's copy, the message's copy), the per-texel fractions
+// and colours, and the ray caster's receiver points and batch.
+uint64_t HiddenSampleMapWorkBytes(const sampling::HiddenSampleMapRequest& request) {
+  const uint64_t texels = uint64_t(std::max(request.receiver.width, 0)) * uint64_t(std::max(request.receiver.height, 0));
+  const uint64_t words = (uint64_t(std::max(request.source.sample_count, 0)) + 31) / 32;
+  const bool colored = !request.source.sample_colors.empty() || !request.source.color_texture.empty();
+  return 3 * texels * words * 4 + texels * (3 * (4 + (colored ? 12 : 0)) + 24) + (uint64_t{4} << 20);
+}
+
 StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,
                                                        VisibilityMethod method, const sampling::HiddenSampleMapRequest& request,
                                                        const gpu::JobOptions& job) {
+  VISQ_ASSIGN_OR_RETURN(
+      WorkMemoryBudget::Reservation memory,
+      engine.work_budget().Reserve(HiddenSampleMapWorkBytes(request), "width x height x samples", job));
   switch (method) {
     case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, job);
     case VisibilityMethod::kPluckerExact:
@@ -199,6 +212,10 @@ StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, cons
   VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(map));
   VISQ_RETURN_IF_ERROR(CheckSize(map));
+  VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
+                        engine.work_budget().Reserve(HiddenSampleMapWorkBytes(map),
+                                                     "source_columns x source_rows x receiver_columns x receiver_rows",
+                                                     job));
   if (method == VisibilityMethod::kRaster) {
     VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(resident));
     VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());

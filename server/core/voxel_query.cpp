@@ -51,6 +51,10 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& q
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeParams params, ResolveVoxelizeQuery(query, *resident->scene));
+  // The grid read back, the result's copy and the messages' copies.
+  const uint64_t grid_bytes = uint64_t(params.width) * params.height * ((uint64_t(params.slices) + 31) / 32) * 4;
+  VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
+                        engine.work_budget().Reserve(3 * grid_bytes, "width x height x slices", params.job));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
   if (box_used != nullptr) *box_used = params.box;
   return gpu::Voxelize(engine.gpu(), *gpu_scene, params);

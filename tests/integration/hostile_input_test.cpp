@@ -227,6 +227,35 @@ TEST_F(HostileInputTest, BadSampleColoursAreRefused) {
   }
 }
 
+// Item 12: work in flight has a memory budget; a request that could never
+// fit is refused by name before it allocates, a small one still runs.
+TEST(HostileServerSetup, WorkBeyondTheMemoryBudgetIsRefused) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {"--seed-samples", "--max-work-bytes", "8000000"}});
+  ASSERT_NE(server, nullptr);
+  Client client({.address = server->address()});
+  auto request = [](uint32_t size, uint32_t samples) {
+    v1::HiddenSampleMapRequest r;
+    r.mutable_scene()->set_name("cornell_box_visq");
+    SetPatch(r.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    r.mutable_samples()->set_count(samples);
+    SetPatch(r.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    r.set_width(size);
+    r.set_height(size);
+    return r;
+  };
+  for (v1::VisibilityMethod method : {v1::RASTER, v1::RAYCAST}) {
+    v1::HiddenSampleMapRequest big = request(1024, 256);
+    big.set_method(method);
+    auto refused = client.ComputeHiddenSampleMap(big);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted) << refused.status();
+    EXPECT_NE(std::string(refused.status().message()).find("--max-work-bytes"), std::string::npos) << refused.status();
+    v1::HiddenSampleMapRequest small = request(16, 32);
+    small.set_method(method);
+    EXPECT_TRUE(client.ComputeHiddenSampleMap(small).ok());
+  }
+}
+
 // Item 13: an upload that is cancelled, or that ends short of what its header
 // announced, stores nothing.
 TEST_F(HostileInputTest, CancelledOrShortUploadsStoreNothing) {

@@ -1,0 +1,80 @@
+#include "core/work_budget.h"
+
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <utility>
+
+namespace visq {
+namespace {
+
+uint64_t HalfOfPhysicalMemory() {
+  const long pages = ::sysconf(_SC_PHYS_PAGES), page = ::sysconf(_SC_PAGE_SIZE);
+  if (pages <= 0 || page <= 0) return uint64_t{4} << 30;
+  return uint64_t(pages) * uint64_t(page) / 2;
+}
+
+}  // namespace
+
+WorkMemoryBudget::WorkMemoryBudget(uint64_t capacity_bytes)
+    : capacity_(capacity_bytes != 0 ? capacity_bytes : HalfOfPhysicalMemory()) {}
+
+WorkMemoryBudget::Reservation::Reservation(Reservation&& other) noexcept
+    : budget_(std::exchange(other.budget_, nullptr)), bytes_(std::exchange(other.bytes_, 0)) {}
+
+WorkMemoryBudget::Reservation& WorkMemoryBudget::Reservation::operator=(Reservation&& other) noexcept {
+  if (this != &other) {
+    if (budget_ != nullptr) budget_->Release(bytes_);
+    budget_ = std::exchange(other.budget_, nullptr);
+    bytes_ = std::exchange(other.bytes_, 0);
+  }
+  return *this;
+}
+
+WorkMemoryBudget::Reservation::~Reservation() {
+  if (budget_ != nullptr) budget_->Release(bytes_);
+}
+
+StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes, const std::string& what,
+                                                                  const gpu::JobOptions& job) {
+  if (bytes > capacity_)
+    return absl::ResourceExhaustedError(absl::StrCat(what, ": needs about ", bytes,
+                                                     " bytes while it runs, above the server's budget for work in "
+                                                     "flight of ",
+                                                     capacity_, " (--max-work-bytes)"));
+  std::unique_lock lock(mutex_);
+  // Polled in short waits: a cancellation sets a flag, it does not notify.
+  while (in_use_ + bytes > capacity_) {
+    if (job.cancelled != nullptr && job.cancelled->load())
+      return absl::CancelledError(absl::StrCat(what, ": cancelled while waiting for memory (--max-work-bytes)"));
+    const auto now = std::chrono::steady_clock::now();
+    if (now >= job.deadline)
+      return absl::DeadlineExceededError(absl::StrCat(what, ": the deadline passed while waiting for ", bytes,
+                                                      " bytes of the budget for work in flight (--max-work-bytes)"));
+    released_.wait_until(lock, std::min(job.deadline, now + std::chrono::milliseconds(50)));
+  }
+  in_use_ += bytes;
+  peak_ = std::max(peak_, in_use_);
+  return Reservation(this, bytes);
+}
+
+void WorkMemoryBudget::Release(uint64_t bytes) {
+  {
+    std::lock_guard lock(mutex_);
+    in_use_ -= bytes;
+  }
+  released_.notify_all();
+}
+
+uint64_t WorkMemoryBudget::in_use() const {
+  std::lock_guard lock(mutex_);
+  return in_use_;
+}
+
+uint64_t WorkMemoryBudget::peak() const {
+  std::lock_guard lock(mutex_);
+  return peak_;
+}
+
+}  // namespace visq

@@ -1,0 +1,60 @@
+// The server's budget for memory held by work in flight: the answers being
+// computed (bitmasks, grids, images) and their copies on the way out. A
+// request reserves its estimate before it starts; it waits while others hold
+// the budget (until its deadline or cancellation), and one that could never
+// fit is RESOURCE_EXHAUSTED at once. Scenes, GPU buffers and caches have
+// bounds of their own (--max-scene-bytes, --light-cache-bytes).
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <mutex>
+#include <string>
+
+#include "common/status.h"
+#include "visq/gpu/gpu_worker.h"
+
+namespace visq {
+
+class WorkMemoryBudget {
+ public:
+  // 0: half of this machine's physical memory.
+  explicit WorkMemoryBudget(uint64_t capacity_bytes);
+  WorkMemoryBudget(const WorkMemoryBudget&) = delete;
+  WorkMemoryBudget& operator=(const WorkMemoryBudget&) = delete;
+
+  // Held bytes, returned when it goes.
+  class Reservation {
+   public:
+    Reservation() = default;
+    Reservation(Reservation&& other) noexcept;
+    Reservation& operator=(Reservation&& other) noexcept;
+    ~Reservation();
+
+   private:
+    friend class WorkMemoryBudget;
+    Reservation(WorkMemoryBudget* budget, uint64_t bytes) : budget_(budget), bytes_(bytes) {}
+    WorkMemoryBudget* budget_ = nullptr;
+    uint64_t bytes_ = 0;
+  };
+
+  // `what` names the request's part that needs the memory ("width x height
+  // x samples"), for the error.
+  [[nodiscard]] StatusOr<Reservation> Reserve(uint64_t bytes, const std::string& what, const gpu::JobOptions& job);
+
+  uint64_t capacity() const { return capacity_; }
+  uint64_t in_use() const;
+  uint64_t peak() const;
+
+ private:
+  void Release(uint64_t bytes);
+
+  uint64_t capacity_;
+  mutable std::mutex mutex_;
+  std::condition_variable released_;
+  uint64_t in_use_ = 0;
+  uint64_t peak_ = 0;
+};
+
+}  // namespace visq
