@@ -2,6 +2,7 @@
 // loopback, driven through the real client and raw gRPC calls, with hostile
 // files generated here. Each test names the item of the issue it shows.
 #include <signal.h>
+#include <sys/mount.h>
 #include <sys/wait.h>
 
 #include <chrono>
@@ -254,6 +255,34 @@ TEST(HostileServerSetup, WorkBeyondTheMemoryBudgetIsRefused) {
     small.set_method(method);
     EXPECT_TRUE(client.ComputeHiddenSampleMap(small).ok());
   }
+}
+
+// Item 15: a full disk is RESOURCE_EXHAUSTED, and the message names no
+// folder of the server's. The repository is a 256 KiB tmpfs (needs root;
+// skipped, saying so, where mounting is not allowed).
+TEST(HostileServerSetup, FullDiskIsResourceExhausted) {
+  ScratchDir dir;
+  const fs::path repo = dir.path() / "small-disk";
+  fs::create_directories(repo);
+  if (::mount("visq-test", repo.c_str(), "tmpfs", 0, "size=256k") != 0)
+    GTEST_SKIP() << "cannot mount a small tmpfs here (" << std::strerror(errno) << "): needs root";
+  {
+    auto server = ServerProcess::Start({repo, {}});
+    ASSERT_NE(server, nullptr);
+    Client client({.address = server->address()});
+    RawUpload upload(client, "big", "main.gltf", 0);
+    upload.Send("main.gltf", TriangleJson("tri.bin"));
+    const std::string megabyte(1 << 20, 'x');
+    upload.Send("tri.bin", megabyte);
+    const grpc::Status status = upload.Finish();
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << status.error_message();
+    EXPECT_EQ(status.error_message().find(repo.string()), std::string::npos) << status.error_message();
+    EXPECT_EQ(client.GetScene("big").status().code(), absl::StatusCode::kNotFound);
+    for (const auto& entry : fs::directory_iterator(repo))
+      EXPECT_EQ(entry.path().filename().string().rfind(".staging-", 0), std::string::npos)
+          << "staging left behind: " << entry.path();
+  }
+  ::umount2(repo.c_str(), MNT_DETACH);
 }
 
 // Item 13: an upload that is cancelled, or that ends short of what its header
