@@ -330,6 +330,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, table->samples.id());
 
     for (int pass = 0; pass < passes; ++pass) {
+      VISQ_RETURN_IF_ERROR(StillWanted(job, "hidden-sample map: between passes"));
       const int first = pass * groups_per_pass;
       const int count = std::min(groups_per_pass, groups - first);
       // (Not operator[]: a default GlProgramObject creates a GL program.)

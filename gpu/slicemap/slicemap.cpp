@@ -316,6 +316,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   // their union is the surface unless a conservative surface pass follows.
   Status status = absl::OkStatus();
   for (uint32_t first = 0; first < config.slices && status.ok(); first += per_pass) {
+    status = StillWanted(config.job, "slicemap: between passes");
+    if (!status.ok()) break;
     const uint32_t n = std::min(per_pass, config.slices - first);
     if (solid) {
       status = run_pass(true, false, first, n);

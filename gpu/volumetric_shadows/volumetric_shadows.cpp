@@ -486,6 +486,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
     glFinish();
   }
   timings.shadow_map_ms = MsSince(stage);
+  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the shadow map"));
 
   // 2. Camera distances, normals, colors.
   stage = Clock::now();
@@ -513,6 +514,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
     glFinish();
   }
   timings.camera_ms = MsSince(stage);
+  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the camera pass"));
 
   // 3. Rectification.
   stage = Clock::now();
@@ -544,6 +546,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
     glFinish();
   }
   timings.rectification_ms = MsSince(stage);
+  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after rectification"));
 
   // 4. Min-max levels, then prefix sums.
   stage = Clock::now();
@@ -568,6 +571,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
     glFinish();
   }
   timings.mipmap_ms = MsSince(stage);
+  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the min-max levels"));
 
   // 5. Per-pixel integration.
   stage = Clock::now();

@@ -211,6 +211,36 @@ TEST_F(HostileInputTest, FarCoordinatesAreRefusedNotAnAbort) {
   EXPECT_TRUE(Alive()) << server_->Log();
 }
 
+// Item 17: work that has started stops when its deadline passes. The
+// issue's case: a RAYCAST PatchVisibility of 64^2 x 512^2 pairs (a billion
+// segments) with a 100 ms deadline computed on for 54 s after the client gave
+// up. Now the server's own closing line for it comes within seconds.
+TEST_F(HostileInputTest, StartedWorkStopsAtItsDeadline) {
+  v1::PatchVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.997}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.set_source_columns(64);
+  request.set_source_rows(64);
+  request.set_receiver_columns(512);
+  request.set_receiver_rows(512);
+  request.set_method(v1::RAYCAST);
+  Client impatient({.address = server_->address(), .deadline = std::chrono::milliseconds(300)});
+  const auto start = std::chrono::steady_clock::now();
+  EXPECT_EQ(impatient.PatchVisibility(request).status().code(), absl::StatusCode::kDeadlineExceeded);
+  bool closed = false;
+  while (!closed && std::chrono::steady_clock::now() - start < std::chrono::seconds(20)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    const std::string log = server_->Log();
+    closed = log.find("PatchVisibility] CANCELLED") != std::string::npos ||
+             log.find("PatchVisibility] DEADLINE_EXCEEDED") != std::string::npos;
+  }
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  EXPECT_TRUE(closed) << "the server still computes " << seconds << " s after the deadline:\n" << server_->Log();
+  RecordProperty("stopped_after_s", std::to_string(seconds));
+  EXPECT_TRUE(Alive());
+}
+
 // Item 19: NaN and negative sample colours are refused by field.
 TEST_F(HostileInputTest, BadSampleColoursAreRefused) {
   for (double bad : {std::nan(""), -1.0, double(INFINITY)}) {

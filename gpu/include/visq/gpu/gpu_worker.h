@@ -8,6 +8,7 @@
 #include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 
 #include "common/job_timing.h"
 #include "common/status.h"
@@ -48,6 +49,17 @@ struct JobOptions {
   // Checked before the job starts, and by long jobs between steps.
   const std::atomic<bool>* cancelled = nullptr;
 };
+// OK while the job's call still wants it; CANCELLED or DEADLINE_EXCEEDED
+// once it does not. Long jobs ask between passes, so a cancelled or expired
+// request gives up the GL thread within one pass.
+[[nodiscard]] inline Status StillWanted(const JobOptions& job, std::string_view where) {
+  if (job.cancelled != nullptr && job.cancelled->load())
+    return absl::CancelledError(absl::StrCat(AbslView(where), ": the call was cancelled"));
+  if (std::chrono::steady_clock::now() > job.deadline)
+    return absl::DeadlineExceededError(absl::StrCat(AbslView(where), ": the call's deadline passed"));
+  return absl::OkStatus();
+}
+
 inline constexpr int kInteractive = 0;
 inline constexpr int kBatch = 10;
 
