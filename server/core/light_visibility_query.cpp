@@ -144,6 +144,9 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
       std::call_once(t.once, get_tree, chunk.group);
       if (!t.status.ok()) return fail(t.status);
       for (uint32_t k = chunk.begin; k < chunk.end; ++k) {
+        if (query.cancelled != nullptr && query.cancelled->load())
+          return fail(absl::CancelledError(absl::StrCat("cancelled with ", query.points.size() - answered.load(),
+                                                        " of ", query.points.size(), " points left")));
         if (std::chrono::steady_clock::now() > query.deadline) {
           return fail(absl::DeadlineExceededError(absl::StrCat("deadline passed with ",
                                                                query.points.size() - answered.load(), " of ",

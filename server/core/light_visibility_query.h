@@ -2,6 +2,7 @@
 // cache keyed by (scene, version, light, receiver region), and the batch.
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <optional>
 #include <string>
@@ -24,6 +25,9 @@ struct LightVisibilityQuery {
   std::vector<std::string> exclude_nodes;
   // The caller's deadline: past it the batch stops with DEADLINE_EXCEEDED.
   std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
+  // Set when the call is cancelled (by its client, or by a shutdown's
+  // drain): checked between points, like the deadline.
+  const std::atomic<bool>* cancelled = nullptr;
 };
 
 struct LightVisibilityAnswer {

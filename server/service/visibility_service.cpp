@@ -299,7 +299,10 @@ class LightVisibilityStreamReactor final
       StatusOr<LightVisibilityQuery> query = FromProto(request_, previous_ ? &*previous_ : nullptr);
       Status status = query.status();
       response_.Clear();
-      if (status.ok()) query->deadline = deadline_;
+      if (status.ok()) {
+        query->deadline = deadline_;
+        query->cancelled = &cancelled_;
+      }
       if (status.ok()) status = AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms,
                                                       &response_);
       if (!status.ok()) {
@@ -321,6 +324,7 @@ class LightVisibilityStreamReactor final
   }
 
   void OnDone() override { delete this; }
+  void OnCancel() override { cancelled_ = true; }
 
  private:
   void Done(const Status& status) {
@@ -334,6 +338,7 @@ class LightVisibilityStreamReactor final
   v1::LightVisibilityResponse response_;
   std::optional<LightVisibilityQuery> previous_;
   std::chrono::steady_clock::time_point deadline_;  // the whole stream's
+  std::atomic<bool> cancelled_{false};
 };
 
 }  // namespace
@@ -341,10 +346,12 @@ class LightVisibilityStreamReactor final
 grpc::ServerUnaryReactor* VisibilityServiceImpl::LightVisibility(grpc::CallbackServerContext* context,
                                                                  const v1::LightVisibilityRequest* request,
                                                                  v1::LightVisibilityResponse* response) {
-  return RunUnaryCall(ctx_, context, "LightVisibility", [this, context, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "LightVisibility", [this, context, request, response](
+                                                             RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery query, FromProto(*request));
     query.deadline = SteadyDeadline(context);
+    query.cancelled = &cancelled;
     return AnswerLightVisibility(ctx_.engine, query, log, queue_ms, response);
   });
 }
