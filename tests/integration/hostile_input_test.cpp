@@ -5,6 +5,7 @@
 #include <sys/mount.h>
 #include <sys/wait.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstring>
@@ -239,6 +240,37 @@ TEST_F(HostileInputTest, StartedWorkStopsAtItsDeadline) {
   EXPECT_TRUE(closed) << "the server still computes " << seconds << " s after the deadline:\n" << server_->Log();
   RecordProperty("stopped_after_s", std::to_string(seconds));
   EXPECT_TRUE(Alive());
+}
+
+// Item 18: calls that compute nothing never queue behind calls that do.
+// With one compute thread busy on a long RAYCAST, ListScenes, GetScene and
+// GetStats still answer before that computation ends.
+TEST(HostileServerSetup, MetadataCallsDoNotWaitForComputations) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {"--seed-samples", "--worker-threads", "1"}});
+  ASSERT_NE(server, nullptr);
+  v1::PatchVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.997}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.set_source_columns(64);
+  request.set_source_rows(64);
+  request.set_receiver_columns(512);
+  request.set_receiver_rows(512);
+  request.set_method(v1::RAYCAST);
+  std::atomic<bool> computation_done{false};
+  std::thread computation([&] {
+    Client busy({.address = server->address(), .deadline = std::chrono::seconds(5)});
+    (void)busy.PatchVisibility(request);
+    computation_done = true;
+  });
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));  // the only compute thread is now taken
+  Client metadata({.address = server->address()});
+  EXPECT_TRUE(metadata.ListScenes().ok());
+  EXPECT_TRUE(metadata.GetScene("cornell_box_visq").ok());
+  EXPECT_TRUE(metadata.GetStats().ok());
+  EXPECT_FALSE(computation_done.load()) << "the metadata calls waited for the computation";
+  computation.join();
 }
 
 // Item 19: NaN and negative sample colours are refused by field.
