@@ -11,6 +11,7 @@
 #include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
 
+#include "common/version.h"
 #include "scene/sample_scenes.h"
 #include "service/auth.h"
 #include "service/log_format.h"
@@ -25,6 +26,7 @@ int main(int argc, char** argv) {
   std::string scene_repo = options.engine.scene_repo.string();
 
   CLI::App app{"visq-server: visibility queries on GPU-resident scenes"};
+  app.set_version_flag("--version", std::string("visq-server ") + visq::kVersion + " (" + visq::kBuildCommit + ")");
   app.add_option("--address", options.address, "HOST:PORT to listen on")->envname("VISQ_ADDRESS")->capture_default_str();
   app.add_option("--scene-repo", scene_repo, "Scene repository directory")->envname("VISQ_SCENE_REPO")->capture_default_str();
   app.add_option("--max-receive-bytes", options.max_receive_message_bytes, "Largest gRPC message accepted")

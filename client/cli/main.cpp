@@ -14,6 +14,7 @@
 
 #include <glm/glm.hpp>
 
+#include "common/version.h"
 #include "visq_client.h"
 
 namespace {
@@ -206,6 +207,7 @@ int Fail(const visq::Status& status) {
 
 int main(int argc, char** argv) {
   CLI::App app{"visq: visibility queries against a visq-server"};
+  app.set_version_flag("--version", std::string("visq ") + visq::kVersion + " (" + visq::kBuildCommit + ")");
   app.require_subcommand(1);
   CommonFlags flags;
   int exit_code = 0;

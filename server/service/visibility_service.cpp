@@ -6,6 +6,7 @@
 
 #include <absl/strings/str_format.h>
 
+#include "common/version.h"
 #include "core/light_visibility_query.h"
 #include "core/volumetric_query.h"
 #include "core/voxel_query.h"
@@ -203,6 +204,8 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerCo
                                                           const v1::GetStatsRequest*, v1::ServerStats* response) {
   return RunUnaryCall(ctx_, context, "GetStats", [this, response](RequestLog&) {
     response->set_server_id(ctx_.server_id);
+    response->set_server_version(kVersion);
+    response->set_build_commit(kBuildCommit);
     response->set_uptime_s(
         std::chrono::duration<double>(std::chrono::steady_clock::now() - ctx_.started).count());
     const gpu::DeviceInfo& device = ctx_.engine.device();

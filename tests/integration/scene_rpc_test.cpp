@@ -12,6 +12,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "common/version.h"
 #include "proto_builders.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
@@ -351,6 +352,16 @@ TEST(ServerSecurity, RefusesToListenBeyondLoopbackWithoutProtection) {
       << log.str();
 }
 
+TEST(Versions, BothBinariesPrintTheirVersion) {
+  for (const char* binary : {VISQ_SERVER_BINARY, VISQ_CLI_BINARY}) {
+    int exit_status = -1;
+    const std::string output = testing::RunCommand(std::string(binary) + " --version", &exit_status);
+    EXPECT_EQ(exit_status, 0) << binary;
+    EXPECT_NE(output.find(kVersion), std::string::npos) << binary << ": " << output;
+    EXPECT_NE(output.find(kBuildCommit), std::string::npos) << binary << ": " << output;
+  }
+}
+
 TEST_F(SceneRpcTest, GetStatsCountsCallsAndNamesTheDevice) {
   ASSERT_TRUE(client_->ListScenes().ok());
   ASSERT_TRUE(client_->ListScenes().ok());
@@ -358,6 +369,8 @@ TEST_F(SceneRpcTest, GetStatsCountsCallsAndNamesTheDevice) {
   auto stats = client_->GetStats();
   ASSERT_TRUE(stats.ok()) << stats.status();
   EXPECT_EQ(stats->server_id(), server_->address());
+  EXPECT_EQ(stats->server_version(), kVersion);
+  EXPECT_EQ(stats->build_commit(), kBuildCommit);
   EXPECT_FALSE(stats->gl_version().empty());
   EXPECT_EQ(stats->scenes_resident(), 1u);
   EXPECT_GT(stats->scene_memory().cpu_bytes(), 0u);
