@@ -328,6 +328,11 @@ TEST(HostileServerSetup, FullDiskIsResourceExhausted) {
   fs::create_directories(repo);
   if (::mount("visq-test", repo.c_str(), "tmpfs", 0, "size=256k") != 0)
     GTEST_SKIP() << "cannot mount a small tmpfs here (" << std::strerror(errno) << "): needs root";
+  // Unmounted however the test ends, before the scratch folder goes.
+  struct Unmount {
+    fs::path path;
+    ~Unmount() { ::umount2(path.c_str(), MNT_DETACH); }
+  } unmount{repo};
   {
     auto server = ServerProcess::Start({repo, {}});
     ASSERT_NE(server, nullptr);
@@ -344,7 +349,6 @@ TEST(HostileServerSetup, FullDiskIsResourceExhausted) {
       EXPECT_EQ(entry.path().filename().string().rfind(".staging-", 0), std::string::npos)
           << "staging left behind: " << entry.path();
   }
-  ::umount2(repo.c_str(), MNT_DETACH);
 }
 
 // Item 13: an upload that is cancelled, or that ends short of what its header
