@@ -69,11 +69,12 @@ class AccessorReader {
       size_t view_end = 0, needed = 0, accessor_end = 0;
       const bool view_fits = !__builtin_add_overflow(view.byteOffset, view.byteLength, &view_end) &&
                              view_end <= buffer.size();
+      // An empty accessor needs no bytes, but its offset must still lie in
+      // the view: the pointer it makes must not point outside the buffer.
       const bool accessor_fits =
-          acc.count == 0 ||
-          (!__builtin_mul_overflow(acc.count - 1, size_t(stride), &needed) &&
-           !__builtin_add_overflow(needed, element_bytes, &needed) &&
-           !__builtin_add_overflow(acc.byteOffset, needed, &accessor_end) && accessor_end <= view.byteLength);
+          (acc.count == 0 || (!__builtin_mul_overflow(acc.count - 1, size_t(stride), &needed) &&
+                              !__builtin_add_overflow(needed, element_bytes, &needed))) &&
+          !__builtin_add_overflow(acc.byteOffset, needed, &accessor_end) && accessor_end <= view.byteLength;
       if (!view_fits || !accessor_fits)
         return Invalid(absl::StrCat(reader.label_, ": accessor reads past the end of its buffer"));
       const size_t begin = view.byteOffset + acc.byteOffset;  // both bounded above

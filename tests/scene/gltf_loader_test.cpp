@@ -459,6 +459,9 @@ TEST(GltfLoaderHostile, AccessorArithmeticThatWouldWrapIsRefused) {
       {"\"byteOffset\":0,\"byteLength\":36", "\"byteOffset\":8,\"byteLength\":18446744073709551608"},
       // accessor byteOffset 2^64 - 10: byteOffset + needed wraps.
       {"\"bufferView\":0,\"componentType\":5126", "\"bufferView\":0,\"byteOffset\":18446744073709551606,\"componentType\":5126"},
+      // Found by gltf_structure_fuzz: an empty index accessor whose byteOffset
+      // lies past its view made a pointer outside the buffer.
+      {"{\"bufferView\":1,\"componentType\":5123,\"count\":3", "{\"bufferView\":1,\"byteOffset\":18446744073709551612,\"componentType\":5123,\"count\":0"},
   };
   for (const Case& c : cases) {
     std::string json = TriangleJson("wrap");
