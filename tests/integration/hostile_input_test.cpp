@@ -120,9 +120,10 @@ TEST_F(HostileInputTest, BufferUrisOutsideTheUploadAreRefused) {
     upload.Send("main.gltf", json);
     const grpc::Status status = upload.Finish();
     EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << uri << ": " << status.error_message();
-    if (uri[0] != '/')  // the message may echo the URI, never more of the server's folders
+    if (uri[0] != '/') {  // the message may echo the URI, never more of the server's folders
       EXPECT_EQ(status.error_message().find(repo_.path().string()), std::string::npos)
         << "the message shows the server's repository path: " << status.error_message();
+    }
     EXPECT_EQ(client_->GetScene("escape").status().code(), absl::StatusCode::kNotFound) << uri;
   }
   EXPECT_FALSE(fs::exists(repo_.path() / "escape"));

@@ -358,9 +358,10 @@ TEST(GltfLoaderHostile, BufferUrisNeverLeaveTheUpload) {
     EXPECT_FALSE(scene.ok()) << "URI " << uri << " loaded a file outside the upload";
     if (!scene.ok()) {
       EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << uri << ": " << scene.status();
-      if (uri[0] != '/')  // the message may echo the URI, never more of the server's folders
+      if (uri[0] != '/') {  // the message may echo the URI, never more of the server's folders
         EXPECT_EQ(std::string(scene.status().message()).find(dir.path().string()), std::string::npos)
           << "the message names the server's folders: " << scene.status();
+      }
     }
   }
   fs::current_path(cwd);
@@ -469,7 +470,6 @@ TEST(GltfLoaderHostile, AccessorArithmeticThatWouldWrapIsRefused) {
     json.replace(json.find(c.from), std::strlen(c.from), c.to);
     StatusOr<Scene> scene = LoadGltfFile(WriteGltf(dir, "wrap", json, TriangleBuffer(0, 2)));
     EXPECT_FALSE(scene.ok()) << c.to << " loaded";
-    if (!scene.ok()) EXPECT_NE(scene.status().code(), absl::StatusCode::kOk);
   }
 }
 
