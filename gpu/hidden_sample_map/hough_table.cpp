@@ -4,7 +4,8 @@
 #include <cmath>
 #include <limits>
 #include <numbers>
-#include <thread>
+
+#include "common/parallel.h"
 
 namespace visq::gpu::hsm {
 
@@ -66,10 +67,9 @@ std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, Hou
       }
     }
   };
-  const int threads = std::max(1u, std::min(8u, std::thread::hardware_concurrency()));
-  std::vector<std::thread> pool;
-  for (int k = 0; k < threads; ++k) pool.emplace_back(build_rows, tt * k / threads, tt * (k + 1) / threads);
-  for (auto& t : pool) t.join();
+  ParallelFor(static_cast<size_t>(tt), 8, [&](size_t begin, size_t end) {
+    build_rows(static_cast<int>(begin), static_cast<int>(end));
+  });
   return table;
 }
 

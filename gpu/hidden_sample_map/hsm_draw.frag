@@ -34,6 +34,7 @@ uniform mat4 u_receiver_to_source;  // (a, b, h, 1) -> (x, y, d, 1)
 uniform vec3 u_d_gradient;  // d(source distance) / d(a, b, e)
 uniform float u_e_per_height;  // e of a heightfield point per unit height (+-1)
 uniform vec2 u_receiver_size;
+uniform int u_first_row;  // of the band of receiver rows this job draws
 uniform float u_delta;
 uniform bool u_heightfield;
 uniform sampler2D u_heights;
@@ -44,9 +45,13 @@ uniform float u_decorrelation_amplitude;
 const float kPi = 3.14159265358979;
 
 void main() {
-  ivec2 texel = ivec2(gl_FragCoord.xy);
-  float h = u_heightfield ? texelFetch(u_heights, texel, 0).r : 0.0;
-  vec3 R = (u_receiver_to_source * vec4(gl_FragCoord.xy / u_receiver_size, h, 1.0)).xyz;
+  // The band's framebuffer holds rows [u_first_row, ...) of the receiver,
+  // and u_heights holds the same rows.
+  ivec2 band_texel = ivec2(gl_FragCoord.xy);
+  ivec2 texel = band_texel + ivec2(0, u_first_row);
+  vec2 receiver_point = (gl_FragCoord.xy + vec2(0.0, float(u_first_row))) / u_receiver_size;
+  float h = u_heightfield ? texelFetch(u_heights, band_texel, 0).r : 0.0;
+  vec3 R = (u_receiver_to_source * vec4(receiver_point, h, 1.0)).xyz;
 
   // Back-projection from R: X -> (d_R x_X - d_X x_R, d_R y_X - d_X y_R, d_R - d_X).
   // w = d_R - d_X > 0 exactly for the points strictly between the source
@@ -57,7 +62,7 @@ void main() {
   bool clip = false;
   // w = d_R - d_X from the receiver-frame difference: near the receiver
   // plane X and R are close and d_R - d_X would cancel catastrophically.
-  vec3 R_receiver = vec3(gl_FragCoord.xy / u_receiver_size, u_e_per_height * h);
+  vec3 R_receiver = vec3(receiver_point, u_e_per_height * h);
   for (int i = 0; i < 5; ++i) {
     if (i < n) {
       vec3 X = g_poly[i];

@@ -21,8 +21,8 @@ using obscurance::ObscurancePartial;
 
 // GL state of one bake, created and destroyed on the GL thread.
 struct BakeState {
-  GlProgramObject peel{NoCreate};
-  GlProgramObject transfer{NoCreate};
+  const GlProgram* peel = nullptr;      // the worker's program cache owns both
+  const GlProgram* transfer = nullptr;
   GlBuffer corner_uv{NoCreate};
   GlBuffer triangle_material{NoCreate};
   GlBuffer reflectivity{NoCreate};
@@ -43,10 +43,10 @@ void NearestNoMips(GLuint texture) {
 Status CreateState(BakeState& s, const Scene& scene, const ObscuranceAtlas& atlas, uint32_t channels,
                    uint32_t bundle) {
   const std::string channel_text = std::to_string(channels);
-  VISQ_ASSIGN_OR_RETURN(s.peel, BuildProgram(obscurance_shaders::Find, {{GL_VERTEX_SHADER, "obscurance_peel.vert"},
+  VISQ_ASSIGN_OR_RETURN(s.peel, CachedProgram(obscurance_shaders::Find, {{GL_VERTEX_SHADER, "obscurance_peel.vert"},
                                                                         {GL_FRAGMENT_SHADER, "obscurance_peel.frag"}}));
   VISQ_ASSIGN_OR_RETURN(
-      s.transfer, BuildProgram(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_transfer.comp"}},
+      s.transfer, CachedProgram(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_transfer.comp"}},
                                {{"CHANNELS", channel_text + "u"},
                                 {"FIXED_POINT_SCALE", std::to_string(obscurance::kObscuranceFixedPointScale)}}));
   // Per-corner atlas coordinates, per-triangle material, per-material color.
@@ -128,18 +128,18 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, s.reflectivity.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 3, s.sums.id());
 
-  const GLuint peel = s.peel.id(), transfer = s.transfer.id();
-  glProgramUniformMatrix4fv(peel, glGetUniformLocation(peel, "u_clip_from_scene"), 1, GL_FALSE,
+  const GLuint peel = s.peel->id(), transfer = s.transfer->id();
+  glProgramUniformMatrix4fv(peel, s.peel->Uniform("u_clip_from_scene"), 1, GL_FALSE,
                             &frame.clip_from_scene[0][0]);
-  glProgramUniform2ui(peel, glGetUniformLocation(peel, "u_atlas_size"), atlas.width, atlas.height);
-  const GLint first_loc = glGetUniformLocation(peel, "u_first");
-  glProgramUniform1ui(transfer, glGetUniformLocation(transfer, "u_size"), bundle);
-  glProgramUniform1f(transfer, glGetUniformLocation(transfer, "u_depth_to_distance"), frame.depth_to_distance);
-  glProgramUniform1f(transfer, glGetUniformLocation(transfer, "u_d_max"), static_cast<float>(params.d_max));
-  glProgramUniform3f(transfer, glGetUniformLocation(transfer, "u_unoccluded"), unoccluded.x, unoccluded.y,
+  glProgramUniform2ui(peel, s.peel->Uniform("u_atlas_size"), atlas.width, atlas.height);
+  const GLint first_loc = s.peel->Uniform("u_first");
+  glProgramUniform1ui(transfer, s.transfer->Uniform("u_size"), bundle);
+  glProgramUniform1f(transfer, s.transfer->Uniform("u_depth_to_distance"), frame.depth_to_distance);
+  glProgramUniform1f(transfer, s.transfer->Uniform("u_d_max"), static_cast<float>(params.d_max));
+  glProgramUniform3f(transfer, s.transfer->Uniform("u_unoccluded"), unoccluded.x, unoccluded.y,
                      unoccluded.z);
-  const GLint has_a_loc = glGetUniformLocation(transfer, "u_has_a");
-  const GLint has_b_loc = glGetUniformLocation(transfer, "u_has_b");
+  const GLint has_a_loc = s.transfer->Uniform("u_has_a");
+  const GLint has_b_loc = s.transfer->Uniform("u_has_b");
   const GLuint groups = (bundle + 7) / 8;
 
   const GLuint clear_layer[4] = {0, 0, 0, 0};

@@ -46,7 +46,7 @@ Status ValidatePreviewRequest(const GpuScene& gpu_scene, const ObscurancePreview
 
 // Everything GL of one call, created and destroyed inside the job.
 struct PreviewObjects {
-  GlProgramObject program{NoCreate};
+  const GlProgram* program = nullptr;  // the worker's program cache owns it
   GlBuffer corner_uv{NoCreate};
   GlTexture2D values{NoCreate};
   GlTexture2D color{NoCreate};
@@ -60,7 +60,7 @@ Status DrawPreview(const GpuScene& gpu_scene, const ObscurancePreviewRequest& re
   const GpuScene::Resources& res = *scene_resources;
   const uint32_t width = request.camera.width, height = request.camera.height;
   PreviewObjects o;
-  VISQ_ASSIGN_OR_RETURN(o.program, BuildProgram(obscurance_shaders::Find,
+  VISQ_ASSIGN_OR_RETURN(o.program, CachedProgram(obscurance_shaders::Find,
                                                 {{GL_VERTEX_SHADER, "obscurance_preview.vert"},
                                                  {GL_FRAGMENT_SHADER, "obscurance_preview.frag"}}));
 
@@ -91,7 +91,7 @@ Status DrawPreview(const GpuScene& gpu_scene, const ObscurancePreviewRequest& re
     return absl::InternalError("obscurance preview: framebuffer incomplete");
 
   // Draw: both faces, nearest surface wins.
-  const GLuint program = o.program.id();
+  const GLuint program = o.program->id();
   glBindFramebuffer(GL_FRAMEBUFFER, o.framebuffer.id());
   glViewport(0, 0, GLsizei(width), GLsizei(height));
   glDisable(GL_CULL_FACE);
@@ -104,9 +104,9 @@ Status DrawPreview(const GpuScene& gpu_scene, const ObscurancePreviewRequest& re
   glClearNamedFramebufferfv(o.framebuffer.id(), GL_COLOR, 0, background);
   glClearNamedFramebufferfv(o.framebuffer.id(), GL_DEPTH, 0, &far_depth);
   glUseProgram(program);
-  glProgramUniformMatrix4fv(program, glGetUniformLocation(program, "u_clip_from_anchor"), 1, GL_FALSE,
+  glProgramUniformMatrix4fv(program, o.program->Uniform("u_clip_from_anchor"), 1, GL_FALSE,
                             glm::value_ptr(clip));
-  glProgramUniform2f(program, glGetUniformLocation(program, "u_inv_atlas_size"), 1.0f / float(request.atlas_width),
+  glProgramUniform2f(program, o.program->Uniform("u_inv_atlas_size"), 1.0f / float(request.atlas_width),
                      1.0f / float(request.atlas_height));
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, o.corner_uv.id());
   glBindTextureUnit(0, o.values.id());

@@ -15,8 +15,8 @@ namespace visq::gpu {
 Status RunSelfTest(GpuWorker& worker) {
   return worker.Run({}, []() -> Status {
     constexpr int kSize = 8;
-    VISQ_ASSIGN_OR_RETURN(GlProgramObject program,
-                          BuildProgram(CoreShaderFiles, {{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}));
+    VISQ_ASSIGN_OR_RETURN(const GlProgram* program,
+                          CachedProgram(CoreShaderFiles, {{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}));
     GlTexture2D target;
     glTextureStorage2D(target.id(), 1, GL_RGBA32UI, kSize, kSize);
     GlFramebuffer framebuffer;
@@ -30,13 +30,12 @@ Status RunSelfTest(GpuWorker& worker) {
     glViewport(0, 0, kSize, kSize);
     const GLuint zero[4] = {0, 0, 0, 0};
     glClearBufferuiv(GL_COLOR, 0, zero);
-    glUseProgram(program.id());
+    glUseProgram(program->id());
     glBindVertexArray(vao.id());
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
-    const GLint pattern = glGetUniformLocation(program.id(), "u_pattern");
-    for (GLuint p : {0x5u, 0x8u}) {
-      glUniform1ui(pattern, p);
+    for (unsigned pattern : {0x5u, 0x8u}) {
+      program->Set("u_pattern", pattern);
       glDrawArrays(GL_TRIANGLE_STRIP, 0, 4);
     }
     glDisable(GL_COLOR_LOGIC_OP);

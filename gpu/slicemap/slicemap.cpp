@@ -13,6 +13,7 @@
 //      bits on the CPU (ResolveSolidColumn below), on all cores.
 #include "visq/gpu/slicemap.h"
 #include "common/coordinates.h"
+#include "common/parallel.h"
 
 #include <algorithm>
 #include <bit>
@@ -21,7 +22,7 @@
 #include <map>
 #include <set>
 #include <mutex>
-#include <thread>
+#include <vector>
 
 #include <epoxy/gl.h>
 #include <fmt/format.h>
@@ -88,37 +89,23 @@ bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }
 
 // ---------------------------------------------------------------------------
-// Programs, built once per worker and variant (GL thread only). The ids are
-// never deleted: they live as long as the worker's context (a new
-// context after a loss builds its own).
-StatusOr<GLuint> Program(GpuWorker& worker, bool conservative, const ShaderDefines& defines) {
-  static std::mutex mutex;
-  static std::map<std::pair<const GpuWorker*, std::string>, GLuint> cache;
-  std::string key = conservative ? "C" : "S";
-  for (const auto& [name, value] : defines) key += ";" + name + "=" + value;
-  // A context lost and made anew has none of the old programs.
-  key += ";generation=" + std::to_string(CurrentContextGeneration());
-  std::lock_guard lock(mutex);
-  auto it = cache.find({&worker, key});
-  if (it != cache.end() && glIsProgram(it->second)) return it->second;
+// The voxelization program and its variants (the worker's program cache).
+StatusOr<const GlProgram*> Program(bool conservative, const ShaderDefines& defines) {
   std::vector<ShaderSource> sources = {{GL_VERTEX_SHADER, "slicemap.vert"}, {GL_FRAGMENT_SHADER, "slicemap.frag"}};
   if (conservative) sources.push_back({GL_GEOMETRY_SHADER, "slicemap_conservative.geom"});
-  VISQ_ASSIGN_OR_RETURN(GlProgramObject program, BuildProgram(slicemap_shaders::Find, sources, defines));
-  const GLuint id = program.Release();
-  cache[{&worker, key}] = id;
-  return id;
+  return CachedProgram(slicemap_shaders::Find, sources, defines);
 }
 
-void SetViewUniforms(GLuint program, const ViewSetup& view, const PassConfig& config) {
-  glProgramUniformMatrix4fv(program, glGetUniformLocation(program, "u_clip_from_anchor"), 1, GL_FALSE,
-                            &view.clip_from_anchor[0][0]);
-  glProgramUniform4fv(program, glGetUniformLocation(program, "u_depth_plane"), 1, &view.depth_plane[0]);
-  glProgramUniform3fv(program, glGetUniformLocation(program, "u_light"), 1, &view.light[0]);
-  glProgramUniform2fv(program, glGetUniformLocation(program, "u_radial"), 1, &view.radial[0]);
-  glProgramUniform2f(program, glGetUniformLocation(program, "u_image_size"), static_cast<float>(config.width),
-                     static_cast<float>(config.height));
-  glProgramUniform1f(program, glGetUniformLocation(program, "u_slices"), static_cast<float>(config.slices));
-  glProgramUniform1i(program, glGetUniformLocation(program, "u_near_far"), 0);
+void SetViewUniforms(const GlProgram& program, bool conservative, const ViewSetup& view, const PassConfig& config) {
+  program.Set("u_clip_from_anchor", view.clip_from_anchor);
+  program.Set("u_depth_plane", view.depth_plane);
+  program.Set("u_light", view.light);
+  program.Set("u_radial", view.radial);
+  // The conservative geometry shader's: it grows triangles by half a texel.
+  if (conservative)
+    program.Set("u_image_size", glm::vec2(static_cast<float>(config.width), static_cast<float>(config.height)));
+  program.Set("u_slices", static_cast<float>(config.slices));
+  program.Set("u_near_far", 0);
 }
 
 ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool conservative) {
@@ -153,7 +140,7 @@ void ScatterTarget(const std::vector<GLuint>& texels, SlicemapGrid& grid, uint32
 }
 
 // The GL part: depth-range pass, slicemap passes, readback.
-Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
+Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
                  RawSlicemap& raw) {
   const auto setup_start = Clock::now();
   const bool solid = config.mode == VoxelizeMode::kSolid;
@@ -212,8 +199,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     const auto start = Clock::now();
     ShaderDefines defines = BaseDefines(view, config, conservative);
     defines.emplace_back("DEPTH_RANGE_PASS", "1");
-    VISQ_ASSIGN_OR_RETURN(GLuint program, Program(worker, conservative, defines));
-    SetViewUniforms(program, view, config);
+    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(conservative, defines));
+    SetViewUniforms(*program, conservative, view, config);
     near_far = GlTexture2D();
     glTextureStorage2D(near_far.id(), 1, GL_RG32F, static_cast<GLsizei>(config.width),
                        static_cast<GLsizei>(config.height));
@@ -228,7 +215,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     glClearNamedFramebufferfv(framebuffer.id(), GL_COLOR, 0, empty);
     glEnable(GL_BLEND);
     glBlendEquation(GL_MIN);
-    glUseProgram(program);
+    glUseProgram(program->id());
     if (!draw_nothing) VISQ_RETURN_IF_ERROR(DrawTriangles(scene, firsts, counts));
     glDisable(GL_BLEND);
     glBlendEquation(GL_FUNC_ADD);
@@ -271,10 +258,10 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     ShaderDefines defines = BaseDefines(view, config, pass_conservative);
     defines.emplace_back("TARGETS", std::to_string(targets_per_map));
     if (pass_solid) defines.emplace_back("SOLID", "1");
-    VISQ_ASSIGN_OR_RETURN(GLuint program, Program(worker, pass_conservative, defines));
-    SetViewUniforms(program, view, config);
-    glProgramUniform1i(program, glGetUniformLocation(program, "u_pass_first_slice"), static_cast<GLint>(first_slice));
-    glProgramUniform1i(program, glGetUniformLocation(program, "u_pass_slices"), static_cast<GLint>(pass_slices));
+    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(pass_conservative, defines));
+    SetViewUniforms(*program, pass_conservative, view, config);
+    program->Set("u_pass_first_slice", static_cast<int>(first_slice));
+    program->Set("u_pass_slices", static_cast<int>(pass_slices));
     // Attachment i of the pass: map i / targets_per_map, target i % targets_per_map.
     std::vector<GLenum> buffers;
     for (uint32_t m = 0; m < pass_maps; ++m)
@@ -288,7 +275,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     raw.timings.setup_ms += MsSince(start);
 
     start = Clock::now();
-    glUseProgram(program);
+    glUseProgram(program->id());
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
     if (!draw_nothing) VISQ_RETURN_IF_ERROR(DrawTriangles(scene, firsts, counts));
@@ -424,29 +411,25 @@ struct SolidSummary {
 SolidSummary ResolveSolid(const SlicemapGrid& front, const SlicemapGrid& back, SlicemapGrid& grid) {
   const size_t columns = size_t{grid.width} * grid.height;
   const uint32_t wpc = grid.words_per_column;
-  const unsigned threads = std::max(1u, std::min<unsigned>(std::thread::hardware_concurrency(),
-                                                           static_cast<unsigned>(columns / 4096 + 1)));
-  std::vector<SolidSummary> partial(threads);
-  auto work = [&](unsigned t) {
-    const size_t begin = columns * t / threads, end = columns * (t + 1) / threads;
+  // Chunks of columns, each with its own summary (merged below in order).
+  constexpr size_t kColumnsPerChunk = 4096;
+  std::vector<SolidSummary> partial((columns + kColumnsPerChunk - 1) / kColumnsPerChunk);
+  ParallelFor(columns, kColumnsPerChunk, [&](size_t begin, size_t end) {
+    SolidSummary& mine = partial[begin / kColumnsPerChunk];
     std::vector<uint32_t> saved(wpc);
     for (size_t c = begin; c < end; ++c) {
       uint32_t* out = &grid.bits[c * wpc];
       std::copy(out, out + wpc, saved.begin());
       switch (ResolveSolidColumn(&front.bits[c * wpc], &back.bits[c * wpc], out, wpc)) {
         case ColumnState::kConsistent: break;
-        case ColumnState::kResolved: ++partial[t].resolved; break;
+        case ColumnState::kResolved: ++mine.resolved; break;
         case ColumnState::kAmbiguous:
           std::copy(saved.begin(), saved.end(), out);
-          partial[t].ambiguous.push_back(static_cast<uint32_t>(c));
+          mine.ambiguous.push_back(static_cast<uint32_t>(c));
           break;
       }
     }
-  };
-  std::vector<std::thread> pool;
-  for (unsigned t = 1; t < threads; ++t) pool.emplace_back(work, t);
-  work(0);
-  for (auto& thread : pool) thread.join();
+  });
   SolidSummary summary;
   for (auto& p : partial) {
     summary.resolved += p.resolved;
@@ -581,7 +564,7 @@ StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, 
   RawSlicemap raw;
   JobTiming job_timing;
   VISQ_RETURN_IF_ERROR(
-      worker.Run(config.job, [&]() -> Status { return RunPasses(worker, scene, view, config, raw); }, &job_timing));
+      worker.Run(config.job, [&]() -> Status { return RunPasses(scene, view, config, raw); }, &job_timing));
 
   VoxelizeResult result;
   result.mode = config.mode;

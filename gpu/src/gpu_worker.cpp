@@ -13,6 +13,7 @@
 #include "egl_context.h"
 #include "gl_check.h"
 #include "gl_object.h"
+#include "shader_program.h"
 
 namespace visq::gpu {
 
@@ -124,11 +125,16 @@ class GpuWorker::Impl {
   // Makes a context current on this thread (the first, or a replacement
   // after a loss) and starts a new generation.
   Status MakeContext() {
+    // The old context's programs go with it (deleted while it is current).
+    SetCurrentProgramCache(nullptr);
+    programs_.reset();
     context_ = EglContext();  // the old one, if any, is destroyed first
     StatusOr<EglContext> context = EglContext::CreateCurrent(options_);
     if (!context.ok()) return context.status();
     context_ = *std::move(context);
     current_generation = generation_.fetch_add(1) + 1;
+    programs_ = std::make_unique<ProgramCache>();
+    SetCurrentProgramCache(programs_.get());
     SetGlChecksEnabled(options_.debug);
     if (options_.debug && epoxy_has_gl_extension("GL_KHR_debug")) {
       glEnable(GL_DEBUG_OUTPUT);
@@ -158,6 +164,8 @@ class GpuWorker::Impl {
       Execute(*job);
     }
     // Jobs are done; GL objects they owned were released by Post()ed jobs.
+    SetCurrentProgramCache(nullptr);
+    programs_.reset();
     context_ = EglContext();
   }
 
@@ -245,6 +253,7 @@ class GpuWorker::Impl {
  private:
   GpuOptions options_;
   EglContext context_;
+  std::unique_ptr<ProgramCache> programs_;  // the current context's
   std::atomic<uint64_t> generation_{0};
   std::atomic<uint64_t> lost_{0};
   uint64_t jobs_run_ = 0;

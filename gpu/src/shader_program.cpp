@@ -1,5 +1,10 @@
 #include "shader_program.h"
 
+#include <cctype>
+#include <cstdint>
+#include <cstring>
+
+#include "gl_check.h"
 #include "visq_gpu_core_embedded.h"
 
 #include <absl/strings/str_split.h>
@@ -51,6 +56,50 @@ StatusOr<std::string> Expand(ShaderFiles files, const std::string& file_name, in
   return out;
 }
 
+// Every uniform name the source declares (`uniform TYPE a, b[4];`), so that
+// a name the linker dropped as unused is told from a misspelt one.
+void DeclaredUniforms(std::string_view text, std::set<std::string, std::less<>>& names) {
+  auto is_name_char = [](char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_'; };
+  for (size_t at = text.find("uniform"); at != std::string_view::npos; at = text.find("uniform", at + 7)) {
+    if (at > 0 && is_name_char(text[at - 1])) continue;
+    if (at + 7 < text.size() && is_name_char(text[at + 7])) continue;
+    const size_t end = text.find_first_of(";{", at);
+    if (end == std::string_view::npos || text[end] == '{') continue;  // a uniform block
+    std::string_view declaration = text.substr(at + 7, end - at - 7);
+    bool first = true;
+    for (absl::string_view part : absl::StrSplit(AbslView(declaration), ',')) {
+      if (const size_t bracket = part.find('['); bracket != absl::string_view::npos) part = part.substr(0, bracket);
+      part = absl::StripAsciiWhitespace(part);
+      size_t begin = part.size();
+      while (begin > 0 && is_name_char(part[begin - 1])) --begin;
+      if (begin < part.size() && (!first || begin > 0)) names.emplace(part.substr(begin));
+      first = false;
+    }
+  }
+}
+
+// Active uniforms by name ("u_planes" for the array "u_planes[0]"), with
+// their locations; block members (location -1) are left out.
+std::map<std::string, GLint, std::less<>> ActiveUniforms(GLuint program) {
+  std::map<std::string, GLint, std::less<>> out;
+  GLint count = 0;
+  glGetProgramInterfaceiv(program, GL_UNIFORM, GL_ACTIVE_RESOURCES, &count);
+  for (GLint i = 0; i < count; ++i) {
+    const GLenum properties[2] = {GL_NAME_LENGTH, GL_LOCATION};
+    GLint values[2] = {0, -1};
+    glGetProgramResourceiv(program, GL_UNIFORM, static_cast<GLuint>(i), 2, properties, 2, nullptr, values);
+    if (values[1] < 0 || values[0] <= 0) continue;
+    std::string name(static_cast<size_t>(values[0]), '\0');
+    glGetProgramResourceName(program, GL_UNIFORM, static_cast<GLuint>(i), values[0], nullptr, name.data());
+    name.resize(std::strlen(name.c_str()));
+    if (name.ends_with("[0]")) name.resize(name.size() - 3);
+    out.emplace(std::move(name), values[1]);
+  }
+  return out;
+}
+
+thread_local ProgramCache* current_cache = nullptr;
+
 }  // namespace
 
 std::string_view CoreShaderFiles(std::string_view name) { return core_shaders::Find(name); }
@@ -59,16 +108,18 @@ StatusOr<std::string> EmbeddedShaderText(ShaderFiles files, const std::string& f
   return Expand(files, file_name, 0);
 }
 
-StatusOr<GlProgramObject> BuildProgram(ShaderFiles files, const std::vector<ShaderSource>& sources,
-                                       const ShaderDefines& defines) {
+StatusOr<std::unique_ptr<GlProgram>> BuildProgram(ShaderFiles files, const std::vector<ShaderSource>& sources,
+                                                  const ShaderDefines& defines) {
   GlProgramObject program;
   std::vector<GLuint> shaders;
   auto delete_shaders = [&] { for (GLuint s : shaders) glDeleteShader(s); };
   std::string names;
+  std::set<std::string, std::less<>> declared;
   for (const auto& source : sources) {
     absl::StrAppend(&names, names.empty() ? "" : "+", source.file_name);
     StatusOr<std::string> body = EmbeddedShaderText(files, source.file_name);
     if (!body.ok()) { delete_shaders(); return body.status(); }
+    DeclaredUniforms(*body, declared);
     // The #version line must come first; defines follow it.
     std::string text = "#version 450 core\n";
     for (const auto& [name, value] : defines) absl::StrAppend(&text, "#define ", name, " ", value, "\n");
@@ -103,7 +154,70 @@ StatusOr<GlProgramObject> BuildProgram(ShaderFiles files, const std::vector<Shad
     glGetProgramInfoLog(program.id(), length, nullptr, log.data());
     return absl::InternalError(absl::StrCat("linking ", names, ": ", TrimmedLog(log)));
   }
-  return program;
+  std::map<std::string, GLint, std::less<>> active = ActiveUniforms(program.id());
+  return std::make_unique<GlProgram>(std::move(program), std::move(names), std::move(active), std::move(declared));
+}
+
+GlProgram::GlProgram(GlProgramObject object, std::string name, std::map<std::string, GLint, std::less<>> active,
+                     std::set<std::string, std::less<>> declared)
+    : object_(std::move(object)), name_(std::move(name)), active_(std::move(active)), declared_(std::move(declared)) {}
+
+GLint GlProgram::Uniform(std::string_view name) const {
+  if (auto it = active_.find(name); it != active_.end()) return it->second;
+  if (!declared_.contains(name) && GlChecksEnabled())
+    RecordGlMisuse(absl::StrCat("uniform ", AbslView(name), " is declared by no shader of ", name_));
+  return -1;
+}
+
+void GlProgram::Set(std::string_view name, int value) const { glProgramUniform1i(id(), Uniform(name), value); }
+void GlProgram::Set(std::string_view name, unsigned value) const { glProgramUniform1ui(id(), Uniform(name), value); }
+void GlProgram::Set(std::string_view name, float value) const { glProgramUniform1f(id(), Uniform(name), value); }
+void GlProgram::Set(std::string_view name, const glm::vec2& v) const { glProgramUniform2f(id(), Uniform(name), v.x, v.y); }
+void GlProgram::Set(std::string_view name, const glm::vec3& v) const {
+  glProgramUniform3f(id(), Uniform(name), v.x, v.y, v.z);
+}
+void GlProgram::Set(std::string_view name, const glm::vec4& v) const {
+  glProgramUniform4f(id(), Uniform(name), v.x, v.y, v.z, v.w);
+}
+void GlProgram::Set(std::string_view name, const glm::ivec2& v) const {
+  glProgramUniform2i(id(), Uniform(name), v.x, v.y);
+}
+void GlProgram::Set(std::string_view name, const glm::ivec3& v) const {
+  glProgramUniform3i(id(), Uniform(name), v.x, v.y, v.z);
+}
+void GlProgram::Set(std::string_view name, const glm::mat4& m) const {
+  glProgramUniformMatrix4fv(id(), Uniform(name), 1, GL_FALSE, &m[0][0]);
+}
+void GlProgram::SetArray(std::string_view name, const glm::vec3* values, size_t count) const {
+  if (count > 0) glProgramUniform3fv(id(), Uniform(name), static_cast<GLsizei>(count), &values[0].x);
+}
+void GlProgram::SetArray(std::string_view name, const glm::vec4* values, size_t count) const {
+  if (count > 0) glProgramUniform4fv(id(), Uniform(name), static_cast<GLsizei>(count), &values[0].x);
+}
+void GlProgram::SetArray(std::string_view name, const float* values, size_t count) const {
+  if (count > 0) glProgramUniform1fv(id(), Uniform(name), static_cast<GLsizei>(count), values);
+}
+
+ProgramCache::~ProgramCache() = default;
+
+StatusOr<const GlProgram*> ProgramCache::Get(ShaderFiles files, const std::vector<ShaderSource>& sources,
+                                             const ShaderDefines& defines) {
+  // The lookup function tells the algorithm libraries apart: two may embed
+  // files of the same name.
+  std::string key = absl::StrCat(absl::Hex(reinterpret_cast<uintptr_t>(files)), "|");
+  for (const ShaderSource& s : sources) absl::StrAppend(&key, s.stage, ":", s.file_name, "+");
+  for (const auto& [name, value] : defines) absl::StrAppend(&key, ";", name, "=", value);
+  if (auto it = programs_.find(key); it != programs_.end()) return it->second.get();
+  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<GlProgram> built, BuildProgram(files, sources, defines));
+  return programs_.emplace(std::move(key), std::move(built)).first->second.get();
+}
+
+void SetCurrentProgramCache(ProgramCache* cache) { current_cache = cache; }
+
+StatusOr<const GlProgram*> CachedProgram(ShaderFiles files, const std::vector<ShaderSource>& sources,
+                                         const ShaderDefines& defines) {
+  if (current_cache == nullptr) return absl::InternalError("CachedProgram: not on the GL thread");
+  return current_cache->Get(files, sources, defines);
 }
 
 }  // namespace visq::gpu

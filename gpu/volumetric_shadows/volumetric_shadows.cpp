@@ -320,26 +320,10 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
   return setup;
 }
 
-// Programs, built once per worker and variant (GL thread only); never
-// deleted: they live as long as the worker's context.
-StatusOr<GLuint> Program(GpuWorker& worker, const std::vector<ShaderSource>& sources, const ShaderDefines& defines) {
-  static std::mutex mutex;
-  static std::map<std::pair<const GpuWorker*, std::string>, GLuint> cache;
-  std::string key;
-  for (const auto& s : sources) key += s.file_name + "+";
-  for (const auto& [name, value] : defines) key += ";" + name + "=" + value;
-  // A context lost and made anew has none of the old programs.
-  key += ";generation=" + std::to_string(CurrentContextGeneration());
-  std::lock_guard lock(mutex);
-  auto it = cache.find({&worker, key});
-  if (it != cache.end() && glIsProgram(it->second)) return it->second;
-  VISQ_ASSIGN_OR_RETURN(GlProgramObject program, BuildProgram(volumetric_shadows_shaders::Find, sources, defines));
-  const GLuint id = program.Release();
-  cache[{&worker, key}] = id;
-  return id;
+// The algorithm's programs and variants (the worker's program cache).
+StatusOr<const GlProgram*> Program(const std::vector<ShaderSource>& sources, const ShaderDefines& defines) {
+  return CachedProgram(volumetric_shadows_shaders::Find, sources, defines);
 }
-
-GLint Loc(GLuint program, const char* name) { return glGetUniformLocation(program, name); }
 
 GlBuffer MakeBuffer(size_t bytes, const void* data = nullptr) {
   GlBuffer buffer;
@@ -350,27 +334,27 @@ GlBuffer MakeBuffer(size_t bytes, const void* data = nullptr) {
 GLuint Groups(uint32_t n, uint32_t size) { return (n + size - 1) / size; }
 
 // The light-weight uniforms of vol_light.glsl.
-void SetLightUniforms(GLuint program, const Setup& setup, const VolumetricLight& light) {
+void SetLightUniforms(const GlProgram* program, const Setup& setup, const VolumetricLight& light) {
   const bool textured = !light.texture.empty();
-  glProgramUniform2i(program, Loc(program, "u_texture_size"), textured ? GLint(light.texture_width) : 0,
+  glProgramUniform2i(program->id(), program->Uniform("u_texture_size"), textured ? GLint(light.texture_width) : 0,
                      textured ? GLint(light.texture_height) : 0);
-  glProgramUniform1f(program, Loc(program, "u_tan_half"), float(setup.tan_half));
-  glProgramUniform1f(program, Loc(program, "u_cos_outer"), float(setup.cos_outer));
-  glProgramUniform1f(program, Loc(program, "u_cos_inner"), float(setup.cos_inner));
+  glProgramUniform1f(program->id(), program->Uniform("u_tan_half"), float(setup.tan_half));
+  glProgramUniform1f(program->id(), program->Uniform("u_cos_outer"), float(setup.cos_outer));
+  glProgramUniform1f(program->id(), program->Uniform("u_cos_inner"), float(setup.cos_inner));
 }
 
-void SetRectUniforms(GLuint program, const Setup& setup) {
-  glProgramUniform2f(program, Loc(program, "u_epipole"), float(setup.epipole.x), float(setup.epipole.y));
-  glProgramUniform1f(program, Loc(program, "u_theta_ref"), float(setup.theta_ref));
-  glProgramUniform1f(program, Loc(program, "u_theta_min_rel"), float(setup.theta_min_rel));
-  glProgramUniform1f(program, Loc(program, "u_dtheta"), float(setup.dtheta));
-  glProgramUniform1f(program, Loc(program, "u_r0"), float(setup.r0));
-  glProgramUniform1f(program, Loc(program, "u_dr"), float(setup.dr));
-  glProgramUniform1i(program, Loc(program, "u_rows"), GLint(setup.rows));
-  glProgramUniform1i(program, Loc(program, "u_cols"), GLint(setup.cols));
+void SetRectUniforms(const GlProgram* program, const Setup& setup) {
+  glProgramUniform2f(program->id(), program->Uniform("u_epipole"), float(setup.epipole.x), float(setup.epipole.y));
+  glProgramUniform1f(program->id(), program->Uniform("u_theta_ref"), float(setup.theta_ref));
+  glProgramUniform1f(program->id(), program->Uniform("u_theta_min_rel"), float(setup.theta_min_rel));
+  glProgramUniform1f(program->id(), program->Uniform("u_dtheta"), float(setup.dtheta));
+  glProgramUniform1f(program->id(), program->Uniform("u_r0"), float(setup.r0));
+  glProgramUniform1f(program->id(), program->Uniform("u_dr"), float(setup.dr));
+  glProgramUniform1i(program->id(), program->Uniform("u_rows"), GLint(setup.rows));
+  glProgramUniform1i(program->id(), program->Uniform("u_cols"), GLint(setup.cols));
 }
 
-Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, const VolumetricParams& params,
+Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams& params,
                  std::vector<glm::vec4>& pixels, VolumetricTimings& timings) {
   const auto setup_start = Clock::now();
   const VolumetricLight& light = params.light;
@@ -405,15 +389,15 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
   }
   if (params.method == VolumetricMethod::kRayMarching) integrate_defines.emplace_back("RAY_MARCH", "1");
 
-  VISQ_ASSIGN_OR_RETURN(GLuint shadow_program,
-                        Program(worker, {{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(GLuint camera_program,
-                        Program(worker, {{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(GLuint rect_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
-  VISQ_ASSIGN_OR_RETURN(GLuint minmax_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(GLuint prefix_program, Program(worker, {{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
-  VISQ_ASSIGN_OR_RETURN(GLuint integrate_program,
-                        Program(worker, {{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
+  VISQ_ASSIGN_OR_RETURN(const GlProgram* shadow_program,
+                        Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(const GlProgram* camera_program,
+                        Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(const GlProgram* rect_program, Program({{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
+  VISQ_ASSIGN_OR_RETURN(const GlProgram* minmax_program, Program({{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(const GlProgram* prefix_program, Program({{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
+  VISQ_ASSIGN_OR_RETURN(const GlProgram* integrate_program,
+                        Program({{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
 
   // Targets and buffers.
   const uint32_t n = setup.map_size;
@@ -478,8 +462,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
     glDisable(GL_CULL_FACE);
     const float one = 1.0f;
     glClearBufferfv(GL_DEPTH, 0, &one);
-    glUseProgram(shadow_program);
-    glProgramUniformMatrix4fv(shadow_program, Loc(shadow_program, "u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
+    glUseProgram(shadow_program->id());
+    glProgramUniformMatrix4fv(shadow_program->id(), shadow_program->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
     glBindVertexArray(res.vertex_array.id());
     glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
     VISQ_GL_CHECK("volumetric shadows: shadow map");
@@ -500,9 +484,9 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
     glClearBufferfv(GL_COLOR, 0, no_surface);
     glClearBufferfv(GL_COLOR, 1, black);
     glClearBufferfv(GL_DEPTH, 0, &one);
-    glUseProgram(camera_program);
-    glProgramUniformMatrix4fv(camera_program, Loc(camera_program, "u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
-    glProgramUniform3f(camera_program, Loc(camera_program, "u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
+    glUseProgram(camera_program->id());
+    glProgramUniformMatrix4fv(camera_program->id(), camera_program->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
+    glProgramUniform3f(camera_program->id(), camera_program->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
     glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, res.positions.id());
     glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, res.triangle_materials.id());
     glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, albedo_buffer.id());
@@ -532,13 +516,13 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 9, svd_table_buffer.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 10, svd_terms.id());
   {
-    glUseProgram(rect_program);
+    glUseProgram(rect_program->id());
     SetRectUniforms(rect_program, setup);
     SetLightUniforms(rect_program, setup, light);
-    glProgramUniform1i(rect_program, Loc(rect_program, "u_map_size"), GLint(n));
-    glProgramUniform3f(rect_program, Loc(rect_program, "u_eye_in_light"), float(setup.eye_in_light.x),
+    glProgramUniform1i(rect_program->id(), rect_program->Uniform("u_map_size"), GLint(n));
+    glProgramUniform3f(rect_program->id(), rect_program->Uniform("u_eye_in_light"), float(setup.eye_in_light.x),
                        float(setup.eye_in_light.y), float(setup.eye_in_light.z));
-    glProgramUniform2f(rect_program, Loc(rect_program, "u_texel_world"), float(setup.texel_world.x),
+    glProgramUniform2f(rect_program->id(), rect_program->Uniform("u_texel_world"), float(setup.texel_world.x),
                        float(setup.texel_world.y));
     glDispatchCompute(Groups(setup.cols, 8), Groups(setup.rows, 8), 1);
     glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
@@ -551,19 +535,19 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
   // 4. Min-max levels, then prefix sums.
   stage = Clock::now();
   {
-    glUseProgram(minmax_program);
-    glProgramUniform1i(minmax_program, Loc(minmax_program, "u_cols"), GLint(setup.cols));
-    glProgramUniform1i(minmax_program, Loc(minmax_program, "u_rows"), GLint(setup.rows));
+    glUseProgram(minmax_program->id());
+    glProgramUniform1i(minmax_program->id(), minmax_program->Uniform("u_cols"), GLint(setup.cols));
+    glProgramUniform1i(minmax_program->id(), minmax_program->Uniform("u_rows"), GLint(setup.rows));
     for (uint32_t level = 1; level <= setup.levels; ++level) {
-      glProgramUniform1i(minmax_program, Loc(minmax_program, "u_level"), GLint(level));
+      glProgramUniform1i(minmax_program->id(), minmax_program->Uniform("u_level"), GLint(level));
       glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     }
     if (prefix || svd) {
-      glUseProgram(prefix_program);
-      glProgramUniform1i(prefix_program, Loc(prefix_program, "u_cols"), GLint(setup.cols));
-      glProgramUniform1i(prefix_program, Loc(prefix_program, "u_rows"), GLint(setup.rows));
-      glProgramUniform1f(prefix_program, Loc(prefix_program, "u_svd_x_step"), float(setup.svd.x_step));
+      glUseProgram(prefix_program->id());
+      glProgramUniform1i(prefix_program->id(), prefix_program->Uniform("u_cols"), GLint(setup.cols));
+      glProgramUniform1i(prefix_program->id(), prefix_program->Uniform("u_rows"), GLint(setup.rows));
+      glProgramUniform1f(prefix_program->id(), prefix_program->Uniform("u_svd_x_step"), float(setup.svd.x_step));
       glDispatchCompute(Groups(setup.rows, 64), 1, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     }
@@ -576,36 +560,36 @@ Status RunPasses(GpuWorker& worker, const GpuScene& gpu_scene, Setup& setup, con
   // 5. Per-pixel integration.
   stage = Clock::now();
   {
-    const GLuint p = integrate_program;
-    glUseProgram(p);
+    const GlProgram* p = integrate_program;
+    glUseProgram(p->id());
     SetRectUniforms(p, setup);
     SetLightUniforms(p, setup, light);
     const glm::mat4 light_clip(setup.light_clip);
-    glProgramUniformMatrix4fv(p, Loc(p, "u_light_clip"), 1, GL_FALSE, glm::value_ptr(light_clip));
-    glProgramUniform4f(p, Loc(p, "u_c0"), float(setup.c0.x), float(setup.c0.y), float(setup.c0.z), float(setup.c0.w));
-    glProgramUniform2i(p, Loc(p, "u_image_size"), GLint(setup.width), GLint(setup.height));
-    glProgramUniform3f(p, Loc(p, "u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
+    glProgramUniformMatrix4fv(p->id(), p->Uniform("u_light_clip"), 1, GL_FALSE, glm::value_ptr(light_clip));
+    glProgramUniform4f(p->id(), p->Uniform("u_c0"), float(setup.c0.x), float(setup.c0.y), float(setup.c0.z), float(setup.c0.w));
+    glProgramUniform2i(p->id(), p->Uniform("u_image_size"), GLint(setup.width), GLint(setup.height));
+    glProgramUniform3f(p->id(), p->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
     auto set3 = [&](const char* name, const glm::dvec3& x) {
-      glProgramUniform3f(p, Loc(p, name), float(x.x), float(x.y), float(x.z));
+      glProgramUniform3f(p->id(), p->Uniform(name), float(x.x), float(x.y), float(x.z));
     };
     set3("u_cam_forward", setup.cam_forward);
     set3("u_cam_right", setup.cam_right);
     set3("u_cam_up", setup.cam_up);
     set3("u_light_dir", setup.light_dir);
     set3("u_light_pos", setup.light_pos);
-    glProgramUniform1f(p, Loc(p, "u_map_size"), float(n));
-    glProgramUniform1i(p, Loc(p, "u_levels"), GLint(setup.levels));
-    glProgramUniform1f(p, Loc(p, "u_bias"), float(setup.bias));
-    glProgramUniform1f(p, Loc(p, "u_sigma_s"), float(params.medium.scattering));
-    glProgramUniform1f(p, Loc(p, "u_sigma_t"), params.medium.optically_thin ? 0.0f : float(params.medium.extinction));
-    glProgramUniform1f(p, Loc(p, "u_g"), float(params.medium.hg_g));
-    glProgramUniform1f(p, Loc(p, "u_intensity"), float(light.intensity));
-    glProgramUniform1f(p, Loc(p, "u_half_depth"), float(setup.half_depth));
-    glProgramUniform1i(p, Loc(p, "u_direct"), params.combined_image ? 1 : 0);
-    glProgramUniform1f(p, Loc(p, "u_normal_offset"), float(setup.normal_offset));
-    glProgramUniform1f(p, Loc(p, "u_svd_alpha0"), float(setup.svd.alpha0));
-    glProgramUniform1f(p, Loc(p, "u_svd_alpha_step"), float(setup.svd.alpha_step));
-    glProgramUniform1f(p, Loc(p, "u_eye_light_distance"), float(setup.eye_light_distance));
+    glProgramUniform1f(p->id(), p->Uniform("u_map_size"), float(n));
+    glProgramUniform1i(p->id(), p->Uniform("u_levels"), GLint(setup.levels));
+    glProgramUniform1f(p->id(), p->Uniform("u_bias"), float(setup.bias));
+    glProgramUniform1f(p->id(), p->Uniform("u_sigma_s"), float(params.medium.scattering));
+    glProgramUniform1f(p->id(), p->Uniform("u_sigma_t"), params.medium.optically_thin ? 0.0f : float(params.medium.extinction));
+    glProgramUniform1f(p->id(), p->Uniform("u_g"), float(params.medium.hg_g));
+    glProgramUniform1f(p->id(), p->Uniform("u_intensity"), float(light.intensity));
+    glProgramUniform1f(p->id(), p->Uniform("u_half_depth"), float(setup.half_depth));
+    glProgramUniform1i(p->id(), p->Uniform("u_direct"), params.combined_image ? 1 : 0);
+    glProgramUniform1f(p->id(), p->Uniform("u_normal_offset"), float(setup.normal_offset));
+    glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha0"), float(setup.svd.alpha0));
+    glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha_step"), float(setup.svd.alpha_step));
+    glProgramUniform1f(p->id(), p->Uniform("u_eye_light_distance"), float(setup.eye_light_distance));
     glBindTextureUnit(1, geometry.id());
     glBindTextureUnit(2, albedo.id());
     glDispatchCompute(Groups(setup.width, 8), Groups(setup.height, 8), 1);
@@ -706,7 +690,7 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
   std::vector<glm::vec4> pixels;
   JobTiming job_timing;
   VISQ_RETURN_IF_ERROR(worker.Run(
-      params.job, [&]() -> Status { return RunPasses(worker, gpu_scene, setup, params, pixels, result.timings); },
+      params.job, [&]() -> Status { return RunPasses(gpu_scene, setup, params, pixels, result.timings); },
       &job_timing));
   result.timings.queue_ms = job_timing.queue_ms;
   result.timings.integrand_table_ms = setup.svd_ms;

@@ -12,12 +12,13 @@
 #include <limits>
 #include <memory>
 #include <numbers>
-#include <thread>
+#include <mutex>
 
 #include <absl/container/flat_hash_map.h>
 #include <absl/container/inlined_vector.h>
 
 #include "common/check.h"
+#include "common/parallel.h"
 #include "exact/exact_geometry.h"
 
 namespace visq::exact {
@@ -1818,6 +1819,14 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   }
   const size_t visit_count = indexed ? near_shaft.size() : scene.triangles.size();
   for (size_t visit = 0; visit < visit_count; ++visit) {
+    if (visit % 4096 == 0) {
+      if (options.cancelled != nullptr && options.cancelled->load())
+        return absl::CancelledError(absl::StrCat("light tree: cancelled after ", visit, " of ", visit_count,
+                                                 " triangles"));
+      if (std::chrono::steady_clock::now() > options.deadline)
+        return absl::DeadlineExceededError(absl::StrCat("light tree: the deadline passed after ", visit, " of ",
+                                                        visit_count, " triangles"));
+    }
     const size_t ti = indexed ? near_shaft[visit] : visit;
     const glm::uvec3 tri = scene.triangles[ti];
     for (int c = 0; c < 3; ++c) {
@@ -1963,38 +1972,31 @@ StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
     std::span<const QueryPoint> points, int threads, bool want_polygons,
     std::chrono::steady_clock::time_point deadline) {
   std::vector<PointVisibility> out(points.size());
-  size_t workers = threads > 0 ? static_cast<size_t>(threads)
-                               : std::max(1u, std::thread::hardware_concurrency());
-  workers = std::max<size_t>(1, std::min(workers, points.size()));
-  std::atomic<size_t> next{0};
+  std::atomic<bool> stop{false};
   std::mutex error_mutex;
   Status error;
-  // Dynamic scheduling: query costs vary a lot (refinement, penumbrae).
-  auto work = [&]() {
-    for (size_t i = next.fetch_add(1); i < points.size(); i = next.fetch_add(1)) {
-      if (std::chrono::steady_clock::now() > deadline) {
-        std::lock_guard lock(error_mutex);
-        if (error.ok())
-          error = absl::DeadlineExceededError(
-              absl::StrCat("deadline passed with ", points.size() - i, " of ", points.size(), " points left"));
-        next.store(points.size());
-        break;
-      }
-      auto r = impl_->Query(points[i], want_polygons);
-      if (!r.ok()) {
-        std::lock_guard lock(error_mutex);
-        if (error.ok()) {
-          error = Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message()));
+  // One point per chunk: query costs vary a lot (refinement, penumbrae).
+  ParallelFor(
+      points.size(), 1,
+      [&](size_t i, size_t) {
+        if (stop.load(std::memory_order_relaxed)) return;
+        if (std::chrono::steady_clock::now() > deadline) {
+          std::lock_guard lock(error_mutex);
+          if (error.ok())
+            error = absl::DeadlineExceededError(
+                absl::StrCat("deadline passed with ", points.size() - i, " of ", points.size(), " points left"));
+          stop = true;
+          return;
         }
-        continue;
-      }
-      out[i] = std::move(*r);
-    }
-  };
-  std::vector<std::thread> pool;
-  for (size_t w = 1; w < workers; ++w) pool.emplace_back(work);
-  work();
-  for (auto& t : pool) t.join();
+        auto r = impl_->Query(points[i], want_polygons);
+        if (!r.ok()) {
+          std::lock_guard lock(error_mutex);
+          if (error.ok()) error = Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message()));
+          return;
+        }
+        out[i] = std::move(*r);
+      },
+      threads > 0 ? static_cast<size_t>(threads) : 0);
   if (!error.ok()) return error;
   return out;
 }

@@ -64,6 +64,7 @@
 // common, read-only case. All per-query geometry is query-local.
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <functional>
@@ -120,6 +121,11 @@ struct TreeOptions {
   // answers are the same, to rounding in the area sums.
   // 0: every point that is not decided before the tree descends it.
   size_t direct_candidates = 32;
+  // Read by Create only, every few thousand triangles while it selects the
+  // occluders: a call that was cancelled or whose deadline passed stops
+  // there (CANCELLED / DEADLINE_EXCEEDED). Not part of the tree's identity.
+  const std::atomic<bool>* cancelled = nullptr;
+  std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
 };
 
 struct QueryPoint {

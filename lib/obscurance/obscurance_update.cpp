@@ -3,33 +3,26 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <thread>
+#include <cstddef>
 
+#include "common/parallel.h"
 #include "obscurance/obscurance_rays.h"
 #include "scene/scene_edit.h"
 
 namespace visq::obscurance {
 namespace {
 
+// body(i) for i in [0, count) on the process's pool (`threads` > 0: on at
+// most that many threads), in interleaved chunks that balance patches of
+// uneven cost.
 template <typename Body>
-void ParallelFor(size_t count, int threads, const Body& body) {
-  const size_t workers = std::min<size_t>(
-      std::max<size_t>(1, count), threads > 0 ? static_cast<size_t>(threads) : std::max(1u, std::thread::hardware_concurrency()));
-  if (workers <= 1 || count < 64) {
-    for (size_t i = 0; i < count; ++i) body(i);
-    return;
-  }
-  // Interleaved chunks balance patches of uneven cost.
-  std::atomic<size_t> next{0};
-  auto run = [&]() {
-    constexpr size_t kChunk = 32;
-    for (size_t begin; (begin = next.fetch_add(kChunk)) < count;)
-      for (size_t i = begin; i < std::min(count, begin + kChunk); ++i) body(i);
-  };
-  std::vector<std::thread> pool;
-  for (size_t w = 1; w < workers; ++w) pool.emplace_back(run);
-  run();
-  for (auto& t : pool) t.join();
+void ForEachIndex(size_t count, int threads, const Body& body) {
+  ParallelFor(
+      count, 32,
+      [&body](size_t begin, size_t end) {
+        for (size_t i = begin; i < end; ++i) body(i);
+      },
+      threads > 0 ? static_cast<size_t>(threads) : 0);
 }
 
 std::vector<uint32_t> SortedUnion(const std::vector<uint32_t>& a, const std::vector<uint32_t>& b) {
@@ -225,7 +218,7 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const 
   // triangles; ray directions towards one of them (origins are computed only
   // for those); the ray against the balls; the ray against the object.
   std::vector<uint8_t> keep(near.size(), 0);
-  ParallelFor(near.size(), options_.threads, [&](size_t i) {
+  ForEachIndex(near.size(), options_.threads, [&](size_t i) {
     const uint32_t texel = near[i];
     thread_local std::vector<Ball> in_reach;
     thread_local std::vector<glm::dvec4> planes;
@@ -276,7 +269,7 @@ void ObscuranceUpdater::TracePatches(const std::vector<uint32_t>& texels, std::v
                                      std::vector<std::vector<int32_t>>& met) const {
   value.assign(texels.size(), glm::vec3(0.0f));
   met.assign(texels.size(), {});
-  ParallelFor(texels.size(), options_.threads, [&](size_t i) {
+  ForEachIndex(texels.size(), options_.threads, [&](size_t i) {
     thread_local std::vector<PatchRay> patch_rays;
     GeneratePatchRays(scene_, atlas_, texels[i], options_.seed, options_.rays_per_patch, patch_rays);
     glm::dvec3 sum(0.0);

@@ -3,10 +3,12 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <functional>
 #include <string>
-#include <thread>
 
 #include <embree3/rtcore.h>
+
+#include "common/parallel.h"
 
 namespace visq::raycast {
 namespace {
@@ -59,30 +61,22 @@ void IgnoreFilter(const RTCFilterFunctionNArguments* args) {
   }
 }
 
-// Runs body(begin, end) over [0, count) in contiguous chunks on `threads`
-// workers (the calling thread takes the first chunk).
-template <typename Body>
-void ParallelChunks(size_t count, int threads, const Body& body) {
-  size_t workers = threads > 0 ? static_cast<size_t>(threads)
-                               : std::max(1u, std::thread::hardware_concurrency());
-  workers = std::max<size_t>(1, std::min(workers, (count + 255) / 256));
-  const size_t chunk = (count + workers - 1) / std::max<size_t>(workers, 1);
-  std::vector<std::thread> pool;
-  for (size_t w = 1; w < workers; ++w) {
-    const size_t begin = w * chunk, end = std::min(count, begin + chunk);
-    if (begin < end) pool.emplace_back([&body, begin, end] { body(begin, end); });
-  }
-  body(0, std::min(count, chunk));
-  for (auto& t : pool) t.join();
-}
-
 constexpr size_t kStream = 256;  // rays per rtc*1M call
 
-// Every 16 streams (4,096 rays, well under a millisecond of tracing) a
-// thread asks whether to stop; once one has been told, all stop.
+// Rays per parallel chunk: 16 streams, well under a millisecond of tracing.
+constexpr size_t kChunkRays = 16 * kStream;
+
+// Runs body(begin, end) over [0, count) in chunks of kChunkRays on the
+// process's pool (`threads` > 0: on at most that many threads).
+void ParallelChunks(size_t count, int threads, const std::function<void(size_t, size_t)>& body) {
+  ParallelFor(count, kChunkRays, body, threads > 0 ? static_cast<size_t>(threads) : 0);
+}
+
+// At the start of every chunk a thread asks whether to stop; once one has
+// been told, all stop.
 bool ShouldStop(const TraceOptions& options, size_t done, std::atomic<bool>& stopped) {
   if (stopped.load(std::memory_order_relaxed)) return true;
-  if (!options.stop || done % (16 * kStream) != 0) return false;
+  if (!options.stop || done % kChunkRays != 0) return false;
   if (!options.stop()) return false;
   stopped = true;
   return true;

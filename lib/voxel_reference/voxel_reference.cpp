@@ -4,10 +4,11 @@
 #include <bit>
 #include <chrono>
 #include <cmath>
-#include <thread>
+#include <cstddef>
 
 #include <fmt/format.h>
 
+#include "common/parallel.h"
 #include "raycast/embree_scene.h"
 
 namespace visq::voxel_reference {
@@ -80,7 +81,7 @@ bool ColumnDepthRange(const glm::dvec3 tri[3], double x0, double x1, double y0, 
 }
 
 int ThreadCount(int requested) {
-  return requested > 0 ? requested : std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
+  return requested > 0 ? requested : static_cast<int>(ParallelWorkers());
 }
 
 }  // namespace
@@ -141,7 +142,7 @@ StatusOr<ReferenceGrid> VoxelizeSurface(const Scene& scene, const GridBox& box, 
   const int threads = std::min<int>(ThreadCount(options.threads), static_cast<int>(box.height));
   std::vector<uint64_t> empty_touches(threads, 0);
 
-  // Each thread owns a band of rows, so no two threads write one word.
+  // Each band of rows is one chunk, so no two threads write one word.
   auto work = [&](int t) {
     const uint32_t row_begin = static_cast<uint32_t>(uint64_t{box.height} * t / threads);
     const uint32_t row_end = static_cast<uint32_t>(uint64_t{box.height} * (t + 1) / threads);
@@ -192,10 +193,8 @@ StatusOr<ReferenceGrid> VoxelizeSurface(const Scene& scene, const GridBox& box, 
       }
     }
   };
-  std::vector<std::thread> pool;
-  for (int t = 1; t < threads; ++t) pool.emplace_back(work, t);
-  work(0);
-  for (auto& th : pool) th.join();
+  ParallelFor(static_cast<size_t>(threads), 1, [&](size_t t, size_t) { work(static_cast<int>(t)); },
+              static_cast<size_t>(threads));
   if (stats != nullptr) {
     stats->touches_in_empty_columns = 0;
     for (uint64_t n : empty_touches) stats->touches_in_empty_columns += n;

@@ -5,10 +5,10 @@
 #include <chrono>
 #include <cmath>
 #include <mutex>
-#include <thread>
 
 #include "core/engine.h"
 #include "common/coordinates.h"
+#include "common/parallel.h"
 
 namespace visq {
 namespace {
@@ -67,6 +67,8 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   // cannot meet a piece, about as fast (veach-ajar, 640 x 360 points:
   // 16 MB trees answered a first pass in 9.5 s, 64 MB ones in 16.4 s).
   base.max_bytes = engine.light_cache_capacity() / 16;
+  base.cancelled = query.cancelled;
+  base.deadline = query.deadline;
   for (const std::string& node_name : query.exclude_nodes) {
     bool found = false;
     for (const SceneNode& node : scene.nodes) {
@@ -129,16 +131,19 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
 
   LightVisibilityAnswer answer;
   answer.points.resize(query.points.size());
-  std::atomic<size_t> next{0}, answered{0};
+  std::atomic<size_t> answered{0};
+  std::atomic<bool> stopped{false};
   std::mutex error_mutex;
   Status error;
   auto fail = [&](Status status) {
     std::lock_guard lock(error_mutex);
     if (error.ok()) error = std::move(status);
-    next.store(chunks.size());
+    stopped = true;
   };
-  auto work = [&]() {
-    for (size_t c = next.fetch_add(1); c < chunks.size(); c = next.fetch_add(1)) {
+  // One chunk of a cell's points per parallel step, on the process's pool.
+  ParallelFor(chunks.size(), 1, [&](size_t c, size_t) {
+    if (stopped.load(std::memory_order_relaxed)) return;
+    {
       const Chunk& chunk = chunks[c];
       GroupTree& t = trees[chunk.group];
       std::call_once(t.once, get_tree, chunk.group);
@@ -159,12 +164,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
         answered.fetch_add(1, std::memory_order_relaxed);
       }
     }
-  };
-  const size_t workers = std::clamp<size_t>(std::thread::hardware_concurrency(), 1, chunks.size());
-  std::vector<std::thread> pool;
-  for (size_t w = 1; w < workers; ++w) pool.emplace_back(work);
-  work();
-  for (auto& th : pool) th.join();
+  });
   if (!error.ok()) return error;
 
   answer.tree_reused = true;

@@ -166,6 +166,25 @@ TEST(LightVisibilityTest, NothingInBetweenMatchesClosedFormIrradiance) {
   EXPECT_EQ(Q(*tree2, {0, 0, 0}).visible_area_fraction, 0.0);
 }
 
+// Creating a tree selects occluders from every triangle near the shaft
+// (seconds on a large level): a call that was cancelled, or whose deadline
+// passed, stops there.
+TEST(LightVisibilityTest, CreationStopsForACancelledOrExpiredCall) {
+  const Scene scene = MakeScene({{glm::dvec3(-1, -1, 1), glm::dvec3(1, -1, 1), glm::dvec3(0, 1, 1)}});
+  std::atomic<bool> cancelled{true};
+  TreeOptions options;
+  options.cancelled = &cancelled;
+  auto tree = LightVisibilityTree::Create(SquareLight(2.0), scene, options);
+  EXPECT_EQ(tree.status().code(), absl::StatusCode::kCancelled) << tree.status();
+  options.cancelled = nullptr;
+  options.deadline = std::chrono::steady_clock::now() - std::chrono::seconds(1);
+  tree = LightVisibilityTree::Create(SquareLight(2.0), scene, options);
+  EXPECT_EQ(tree.status().code(), absl::StatusCode::kDeadlineExceeded) << tree.status();
+  options.deadline = std::chrono::steady_clock::time_point::max();
+  tree = LightVisibilityTree::Create(SquareLight(2.0), scene, options);
+  EXPECT_TRUE(tree.ok()) << tree.status();
+}
+
 TEST(LightVisibilityTest, NonConvexLightIsTriangulated) {
   Scene empty;
   // An L-shaped light (area 3), facing down.

@@ -167,6 +167,72 @@ TEST(Shaders, MissingFileIsNotFound) {
   EXPECT_EQ(status.code(), absl::StatusCode::kNotFound) << status;
 }
 
+// --- The program layer ------------------------------------------------------
+
+const std::vector<ShaderSource> kSelfTestSources = {{GL_VERTEX_SHADER, "self_test.vert"},
+                                                    {GL_FRAGMENT_SHADER, "self_test.frag"}};
+
+TEST(ProgramCache, BuildsEachVariantOncePerContext) {
+  const GlProgram* first = nullptr;
+  const GlProgram* again = nullptr;
+  const GlProgram* variant = nullptr;
+  Status status = SharedGpuWorker().Run({}, [&]() -> Status {
+    VISQ_ASSIGN_OR_RETURN(first, CachedProgram(CoreShaderFiles, kSelfTestSources));
+    VISQ_ASSIGN_OR_RETURN(again, CachedProgram(CoreShaderFiles, kSelfTestSources));
+    VISQ_ASSIGN_OR_RETURN(variant, CachedProgram(CoreShaderFiles, kSelfTestSources, {{"UNUSED_VARIANT", "1"}}));
+    return absl::OkStatus();
+  });
+  ASSERT_TRUE(status.ok()) << status;
+  EXPECT_EQ(first, again);
+  EXPECT_NE(first, variant);
+  EXPECT_EQ(first->name(), "self_test.vert+self_test.frag");
+  EXPECT_GE(first->Uniform("u_pattern"), 0);
+}
+
+TEST(ProgramCache, IsOnlyReachableOnTheGlThread) {
+  StatusOr<const GlProgram*> off_thread = CachedProgram(CoreShaderFiles, kSelfTestSources);
+  EXPECT_EQ(off_thread.status().code(), absl::StatusCode::kInternal);
+}
+
+// The shared worker runs with GPU debugging on (as the tests' servers do): a
+// uniform name that no shader declares fails the job that set it, naming it.
+TEST(ProgramCache, MisspeltUniformFailsTheJobWhenDebugging) {
+  Status status = SharedGpuWorker().Run({}, [&]() -> Status {
+    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, CachedProgram(CoreShaderFiles, kSelfTestSources));
+    program->Set("u_patern", 5u);
+    return absl::OkStatus();
+  });
+  EXPECT_EQ(status.code(), absl::StatusCode::kInternal) << status;
+  EXPECT_NE(std::string(status.message()).find("u_patern"), std::string::npos) << status;
+  EXPECT_NE(std::string(status.message()).find("self_test.frag"), std::string::npos) << status;
+  Status next = SharedGpuWorker().Run({}, [] { return CollectGlErrors("after the misspelling"); });
+  EXPECT_TRUE(next.ok()) << next;
+}
+
+// After a GPU reset the cache starts empty: the new context builds its own
+// programs (the old ids mean nothing there).
+TEST(ProgramCache, ANewContextBuildsItsOwnPrograms) {
+  GpuOptions options;
+  options.lose_context_at_job = 2;
+  auto worker = GpuWorker::Start(options);
+  ASSERT_TRUE(worker.ok()) << worker.status();
+  GLuint before = 0;
+  ASSERT_TRUE((*worker)->Run({}, [&]() -> Status {  // job 1
+    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, CachedProgram(CoreShaderFiles, kSelfTestSources));
+    before = program->id();
+    return absl::OkStatus();
+  }).ok());
+  EXPECT_FALSE((*worker)->Run({}, [] { return absl::OkStatus(); }).ok());  // job 2: the reset
+  Status after = (*worker)->Run({}, [&]() -> Status {
+    EXPECT_FALSE(glIsProgram(before));
+    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, CachedProgram(CoreShaderFiles, kSelfTestSources));
+    EXPECT_TRUE(glIsProgram(program->id()));
+    return absl::OkStatus();
+  });
+  EXPECT_TRUE(after.ok()) << after;
+  EXPECT_TRUE(RunSelfTest(**worker).ok());
+}
+
 // --- The GL thread's queue -------------------------------------------------
 
 TEST(GpuWorkerQueue, JobsRunOnOneThreadThatIsNotTheCaller) {

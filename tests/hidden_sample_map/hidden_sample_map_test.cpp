@@ -343,6 +343,43 @@ TEST(HiddenSampleMapEmbree, UprightSourceWithGeometryAllAroundTheShaft) {
   EXPECT_LT(a.blocked_fraction(), 0.95);
 }
 
+// A large map is drawn a band of receiver rows at a time (each band its own
+// GL job): the bits, fractions and lookup bounds must be those of one draw,
+// with a heightfield and decorrelated samples (both indexed by texel), for
+// the exact and the Hough lookups, and for bands of one row and of several.
+TEST(HiddenSampleMap, BandsOfRowsGiveTheBitsOfOneDraw) {
+  Scene scene = RandomCloud(300, 29, {-0.2, 0.2, -0.2}, {1.2, 0.95, 1.2}, 0.08);
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  HiddenSampleMapRequest r = UnitRequest(300, 24);
+  r.receiver.height = 17;
+  r.receiver.heightfield.resize(24 * 17);
+  for (int y = 0; y < 17; ++y)
+    for (int x = 0; x < 24; ++x) r.receiver.heightfield[y * 24 + x] = 0.1f * std::sin(x * 0.5f) * std::cos(y * 0.7f);
+  r.options.decorrelate = true;
+  for (const size_t band_bytes : {size_t{1}, size_t{40000}}) {
+    HiddenSampleMapperOptions options;
+    options.band_readback_bytes = band_bytes;
+    auto banded_mapper = HiddenSampleMapper::Create(testing::SharedGpuWorker(), options);
+    ASSERT_TRUE(banded_mapper.ok()) << banded_mapper.status();
+    for (const LookupMode lookup : {LookupMode::kExact, LookupMode::kHough}) {
+      r.options.lookup = lookup;
+      auto whole = Mapper().Compute(*gpu_scene, r);
+      auto banded = (*banded_mapper)->Compute(*gpu_scene, r);
+      ASSERT_TRUE(whole.ok()) << whole.status();
+      ASSERT_TRUE(banded.ok()) << banded.status();
+      EXPECT_EQ(banded->blocked_bits, whole->blocked_bits) << "band bytes " << band_bytes;
+      EXPECT_EQ(banded->visible_fraction, whole->visible_fraction);
+      EXPECT_EQ(banded->error.lookup_per_texel, whole->error.lookup_per_texel);
+      EXPECT_EQ(banded->error.lookup_max, whole->error.lookup_max);
+      // Not a trivial map: some samples blocked, not all.
+      const auto [lo, hi] = std::minmax_element(whole->visible_fraction.begin(), whole->visible_fraction.end());
+      EXPECT_LT(*lo, 1.0f);
+      EXPECT_GT(*hi, 0.0f);
+    }
+  }
+}
+
 TEST(HiddenSampleMapEmbree, WatertightCullingKeepsTheBits) {
   Scene scene = EmptyFrame();
   AddBox(scene, "a", {0.1, 0.3, 0.2}, {0.4, 0.5, 0.6}, 0);

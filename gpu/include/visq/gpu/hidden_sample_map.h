@@ -5,6 +5,7 @@
 // (patches, requests, results, bounds) is lib/sampling.
 #pragma once
 
+#include <cstddef>
 #include <memory>
 
 #include "common/status.h"
@@ -14,12 +15,21 @@
 
 namespace visq::gpu {
 
-// Owns the programs and a small cache of Hough tables (keyed by the sample
+struct HiddenSampleMapperOptions {
+  // A map is drawn, read back and counted a band of receiver rows at a time,
+  // each band a GL job whose read-back stays under this: a map at the
+  // bitmask cap never holds its GL targets' copy whole, and other queries
+  // get the GL thread between bands. The bits are those of one full draw.
+  size_t band_readback_bytes = size_t{64} << 20;
+};
+
+// Owns a small cache of Hough tables (keyed by the sample
 // pattern and resolution) on the GL thread. Thread-safe: every GL step runs
 // as a job on the worker.
 class HiddenSampleMapper {
  public:
-  [[nodiscard]] static StatusOr<std::unique_ptr<HiddenSampleMapper>> Create(GpuWorker& worker);
+  [[nodiscard]] static StatusOr<std::unique_ptr<HiddenSampleMapper>> Create(GpuWorker& worker,
+                                                                            HiddenSampleMapperOptions options = {});
   ~HiddenSampleMapper();  // releases GL objects on the GL thread
   HiddenSampleMapper(const HiddenSampleMapper&) = delete;
   HiddenSampleMapper& operator=(const HiddenSampleMapper&) = delete;
@@ -33,8 +43,9 @@ class HiddenSampleMapper {
   struct State;  // GL-thread state, defined in gpu/hidden_sample_map/
 
  private:
-  explicit HiddenSampleMapper(GpuWorker& worker);
+  HiddenSampleMapper(GpuWorker& worker, HiddenSampleMapperOptions options);
   GpuWorker* worker_;
+  HiddenSampleMapperOptions options_;
   std::shared_ptr<State> state_;
 };
 
