@@ -211,6 +211,14 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   answer.chart_count = atlas.chart_count;
   answer.texels_per_unit = atlas.texels_per_unit;
   answer.atlas_ms = MillisecondsSince(start);
+  // Per texel and channel (plus the count): the GPU's sums read back and the
+  // partial's (uint64), then W and the intensity, and the estimated flags.
+  const uint64_t channels = query.params.color_bleeding ? 3 : 1;
+  const uint64_t texels = uint64_t{atlas.width} * atlas.height;
+  VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
+                        engine.work_budget().Reserve(texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1), "resolution",
+                                                     gpu::JobOptions{query.bake.priority, query.bake.deadline,
+                                                                     query.bake.cancelled}));
 
   answer.method = query.method;
   answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);

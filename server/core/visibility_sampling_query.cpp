@@ -175,14 +175,19 @@ StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, c
   return result;
 }
 
-// What a map holds while it is made and sent: the bitmasks (read back or
-// traced, the result's copy, the message's copy), the per-texel fractions
-// and colours, and the ray caster's receiver points and batch.
+// What a map holds while it is made: the bitmasks (read back a band at a
+// time, or traced) and the result's copy, the per-texel fractions and
+// colours, and the ray caster's receiver points and batch. The answer is
+// sent one chunk message at a time.
 uint64_t HiddenSampleMapWorkBytes(const sampling::HiddenSampleMapRequest& request) {
   const uint64_t texels = uint64_t(std::max(request.receiver.width, 0)) * uint64_t(std::max(request.receiver.height, 0));
   const uint64_t words = (uint64_t(std::max(request.source.sample_count, 0)) + 31) / 32;
   const bool colored = !request.source.sample_colors.empty() || !request.source.color_texture.empty();
-  return 3 * texels * words * 4 + texels * (3 * (4 + (colored ? 12 : 0)) + 24) + (uint64_t{4} << 20);
+  // The answer's bitmasks, and the GPU's read-back of them (twice the words
+  // for the Hough lookup), which the RASTER path holds one band at a time.
+  const uint64_t bits = texels * words * 4;
+  const uint64_t band_readback = std::min<uint64_t>(2 * bits, uint64_t{64} << 20);
+  return bits + band_readback + texels * (3 * (4 + (colored ? 12 : 0)) + 24) + (uint64_t{4} << 20);
 }
 
 StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,

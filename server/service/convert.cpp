@@ -239,10 +239,10 @@ StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& reque
   return query;
 }
 
-std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const HiddenSampleMapAnswer& answer, size_t chunk_elements) {
-  const sampling::HiddenSampleMapResult& result = answer.result;
-  std::vector<v1::HiddenSampleMapResponse> out(1);
-  v1::HiddenSampleMapResponse& first = out[0];
+ChunkedResponses<v1::HiddenSampleMapResponse> ToProtoStream(HiddenSampleMapAnswer answer_in) {
+  auto answer = std::make_shared<const HiddenSampleMapAnswer>(std::move(answer_in));
+  const sampling::HiddenSampleMapResult& result = answer->result;
+  v1::HiddenSampleMapResponse first;
   first.set_width(result.width);
   first.set_height(result.height);
   first.set_sample_count(result.sample_count);
@@ -250,36 +250,32 @@ std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const HiddenSampleMapAnsw
   const sampling::LookupMode lookup = result.error.lookup_max > 0 || !result.error.lookup_per_texel.empty()
                                      ? sampling::LookupMode::kHough
                                      : sampling::LookupMode::kExact;
-  *first.mutable_accuracy() = AccuracyToProto(result.error, answer.method, lookup, result.sample_count);
-  if (answer.plan) ToProto(*answer.plan, first.mutable_accuracy());
+  *first.mutable_accuracy() = AccuracyToProto(result.error, answer->method, lookup, result.sample_count);
+  if (answer->plan) ToProto(*answer->plan, first.mutable_accuracy());
   first.mutable_lookup_error()->Add(result.error.lookup_per_texel.begin(), result.error.lookup_per_texel.end());
   for (const auto& p : result.samples.world) ToProto(p, first.add_source_samples());
 
-  // Chunks: fractions, then colors, then bitmask words, each in order.
-  auto append = [&](size_t total, auto fill) {
-    for (size_t offset = 0; offset < total; offset += chunk_elements) {
-      // One kind of chunk per message: the first fraction chunk rides with the figures.
-      if (out.back().visible_fraction_size() + out.back().visible_rgb_size() + out.back().blocked_bits_size() > 0)
-        out.emplace_back();
-      v1::HiddenSampleMapResponse& message = out.back();
-      message.set_offset(offset);
-      fill(message, offset, std::min(total, offset + chunk_elements));
-    }
-  };
-  append(result.visible_fraction.size(), [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-    m.mutable_visible_fraction()->Add(result.visible_fraction.begin() + a, result.visible_fraction.begin() + b);
+  // Fractions, then colors (offsets count texels), then bitmask words.
+  ChunkedResponses<v1::HiddenSampleMapResponse> stream(std::move(first));
+  stream.Keep(answer);
+  stream.Add(result.visible_fraction.size(), [&result](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    m.set_offset(a);
+    AddRange(result.visible_fraction, a, b, m.mutable_visible_fraction());
   });
-  append(result.visible_rgb.size(), [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+  stream.Add(result.visible_rgb.size(), [&result](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    m.set_offset(a);
+    m.mutable_visible_rgb()->Reserve(static_cast<int>(3 * (b - a)));
     for (size_t i = a; i < b; ++i) {
       m.add_visible_rgb(result.visible_rgb[i].r);
       m.add_visible_rgb(result.visible_rgb[i].g);
       m.add_visible_rgb(result.visible_rgb[i].b);
     }
   });
-  append(result.blocked_bits.size(), [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-    m.mutable_blocked_bits()->Add(result.blocked_bits.begin() + a, result.blocked_bits.begin() + b);
+  stream.Add(result.blocked_bits.size(), [&result](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    m.set_offset(a);
+    AddRange(result.blocked_bits, a, b, m.mutable_blocked_bits());
   });
-  return out;
+  return stream;
 }
 
 StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request) {
@@ -377,9 +373,10 @@ StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) 
   return query;
 }
 
-std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricResult& result, size_t chunk_elements) {
-  std::vector<v1::VolumetricShadowResponse> out(1);
-  v1::VolumetricShadowResponse& first = out[0];
+ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResult result_in) {
+  auto kept = std::make_shared<const gpu::VolumetricResult>(std::move(result_in));
+  const gpu::VolumetricResult& result = *kept;
+  v1::VolumetricShadowResponse first;
   first.set_width(result.width);
   first.set_height(result.height);
   const bool min_max = result.method == gpu::VolumetricMethod::kMinMaxTraversal;
@@ -417,18 +414,17 @@ std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricRes
   stage_ms["mipmap"] = result.timings.mipmap_ms;
   stage_ms["traversal"] = result.timings.traversal_ms;
   stage_ms["readback"] = result.timings.readback_ms;
-  auto append = [&](const std::vector<float>& values, bool combined) {
-    for (size_t offset = 0; offset < values.size(); offset += chunk_elements) {
-      const auto& last = out.back();
-      if (last.inscattering_size() + last.combined_size() > 0) out.emplace_back();
-      out.back().set_offset(offset);
-      auto* field = combined ? out.back().mutable_combined() : out.back().mutable_inscattering();
-      field->Add(values.begin() + offset, values.begin() + std::min(values.size(), offset + chunk_elements));
-    }
-  };
-  append(result.inscattering, false);
-  append(result.combined, true);
-  return out;
+  ChunkedResponses<v1::VolumetricShadowResponse> stream(std::move(first));
+  stream.Keep(kept);
+  stream.Add(result.inscattering.size(), [&result](v1::VolumetricShadowResponse& m, size_t a, size_t b) {
+    m.set_offset(a);
+    AddRange(result.inscattering, a, b, m.mutable_inscattering());
+  });
+  stream.Add(result.combined.size(), [&result](v1::VolumetricShadowResponse& m, size_t a, size_t b) {
+    m.set_offset(a);
+    AddRange(result.combined, a, b, m.mutable_combined());
+  });
+  return stream;
 }
 
 StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request) {
@@ -445,31 +441,28 @@ StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& r
   return query;
 }
 
-std::vector<v1::ObscurancePreviewResponse> ToProtoChunks(const ObscurancePreviewAnswer& answer,
-                                                         size_t chunk_elements) {
+ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewAnswer answer_in) {
+  auto kept = std::make_shared<const ObscurancePreviewAnswer>(std::move(answer_in));
+  const ObscurancePreviewAnswer& answer = *kept;
   const gpu::ObscurancePreviewImage& image = answer.image;
-  std::vector<v1::ObscurancePreviewResponse> out(1);
-  v1::ObscurancePreviewResponse& first = out[0];
+  v1::ObscurancePreviewResponse first;
   first.set_width(image.width);
   first.set_height(image.height);
   first.set_solution_version(answer.solution_version);
   first.set_quantity(answer.quantity == ObscurancePreviewQuery::Quantity::kW ? v1::ObscurancePreviewRequest::W
                                                                              : v1::ObscurancePreviewRequest::INTENSITY);
-  // The rgb floats, then the coverage bytes, each in chunks of at most
-  // `chunk_elements` (the first message carries the first chunk).
-  for (size_t offset = 0; offset < image.rgb.size(); offset += chunk_elements) {
-    if (out.back().rgb_size() > 0) out.emplace_back();
-    out.back().set_offset(offset);
-    out.back().mutable_rgb()->Add(image.rgb.begin() + offset,
-                                  image.rgb.begin() + std::min(image.rgb.size(), offset + chunk_elements));
-  }
-  for (size_t offset = 0; offset < image.covered.size(); offset += chunk_elements) {
-    if (out.back().rgb_size() > 0 || !out.back().covered().empty()) out.emplace_back();
-    out.back().set_covered_offset(offset);
-    const size_t end = std::min(image.covered.size(), offset + chunk_elements);
-    out.back().set_covered(reinterpret_cast<const char*>(image.covered.data() + offset), end - offset);
-  }
-  return out;
+  // The rgb floats, then the coverage bytes.
+  ChunkedResponses<v1::ObscurancePreviewResponse> stream(std::move(first));
+  stream.Keep(kept);
+  stream.Add(image.rgb.size(), [&image](v1::ObscurancePreviewResponse& m, size_t a, size_t b) {
+    m.set_offset(a);
+    AddRange(image.rgb, a, b, m.mutable_rgb());
+  });
+  stream.Add(image.covered.size(), [&image](v1::ObscurancePreviewResponse& m, size_t a, size_t b) {
+    m.set_covered_offset(a);
+    m.set_covered(reinterpret_cast<const char*>(image.covered.data() + a), b - a);
+  });
+  return stream;
 }
 
 StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
@@ -500,11 +493,11 @@ StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   return query;
 }
 
-std::vector<v1::VoxelizeResponse> ToProtoChunks(const gpu::VoxelizeResult& result, const gpu::SlicemapBox& box,
-                                                size_t chunk_elements) {
+ChunkedResponses<v1::VoxelizeResponse> ToProtoStream(gpu::VoxelizeResult result_in, const gpu::SlicemapBox& box) {
   constexpr size_t kMaxAmbiguousListed = 10000;
-  std::vector<v1::VoxelizeResponse> out(1);
-  v1::VoxelizeResponse& first = out[0];
+  auto kept = std::make_shared<const gpu::VoxelizeResult>(std::move(result_in));
+  const gpu::VoxelizeResult& result = *kept;
+  v1::VoxelizeResponse first;
   const gpu::SlicemapGrid& grid = result.grid;
   first.set_width(grid.width);
   first.set_height(grid.height);
@@ -556,24 +549,21 @@ std::vector<v1::VoxelizeResponse> ToProtoChunks(const gpu::VoxelizeResult& resul
   stage_ms["readback"] = stages.readback_ms;
   stage_ms["resolve"] = stages.resolve_ms;
 
-  auto append = [&](size_t total, auto fill) {
-    for (size_t offset = 0; offset < total; offset += chunk_elements) {
-      const v1::VoxelizeResponse& last = out.back();
-      if (last.bits_size() + last.column_near_size() + last.column_far_size() > 0) out.emplace_back();
-      out.back().set_offset(offset);
-      fill(out.back(), offset, std::min(total, offset + chunk_elements));
-    }
-  };
-  append(grid.bits.size(), [&](v1::VoxelizeResponse& m, size_t a, size_t e) {
-    m.mutable_bits()->Add(grid.bits.begin() + a, grid.bits.begin() + e);
+  ChunkedResponses<v1::VoxelizeResponse> stream(std::move(first));
+  stream.Keep(kept);
+  stream.Add(grid.bits.size(), [&grid](v1::VoxelizeResponse& m, size_t a, size_t e) {
+    m.set_offset(a);
+    AddRange(grid.bits, a, e, m.mutable_bits());
   });
-  append(result.column_near.size(), [&](v1::VoxelizeResponse& m, size_t a, size_t e) {
-    m.mutable_column_near()->Add(result.column_near.begin() + a, result.column_near.begin() + e);
+  stream.Add(result.column_near.size(), [&result](v1::VoxelizeResponse& m, size_t a, size_t e) {
+    m.set_offset(a);
+    AddRange(result.column_near, a, e, m.mutable_column_near());
   });
-  append(result.column_far.size(), [&](v1::VoxelizeResponse& m, size_t a, size_t e) {
-    m.mutable_column_far()->Add(result.column_far.begin() + a, result.column_far.begin() + e);
+  stream.Add(result.column_far.size(), [&result](v1::VoxelizeResponse& m, size_t a, size_t e) {
+    m.set_offset(a);
+    AddRange(result.column_far, a, e, m.mutable_column_far());
   });
-  return out;
+  return stream;
 }
 
 StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {

@@ -9,6 +9,7 @@
 #include "core/visibility_sampling_query.h"
 #include "core/volumetric_query.h"
 #include "core/voxel_query.h"
+#include "service/chunked_responses.h"
 #include "visq/v1/visq.pb.h"
 
 namespace visq::service {
@@ -31,9 +32,9 @@ AccuracyTarget FromProto(const v1::AccuracyTarget& target);
 void ToProto(const PlanReport& plan, v1::Accuracy* out);
 
 [[nodiscard]] StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
-// The response as a sequence of messages: figures first, then chunks of at
-// most `chunk_elements` values (fractions, colors, bitmask words).
-std::vector<v1::HiddenSampleMapResponse> ToProtoChunks(const HiddenSampleMapAnswer& answer, size_t chunk_elements);
+// The response as a stream of messages: figures first, then chunks of
+// fractions, colors and bitmask words. The stream keeps the answer.
+ChunkedResponses<v1::HiddenSampleMapResponse> ToProtoStream(HiddenSampleMapAnswer answer);
 
 [[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
 void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);
@@ -43,17 +44,14 @@ void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* o
 [[nodiscard]] StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request);
 
 [[nodiscard]] StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request);
-// Figures first, then chunks of at most `chunk_elements`: rgb floats, then
-// coverage bytes.
-std::vector<v1::ObscurancePreviewResponse> ToProtoChunks(const ObscurancePreviewAnswer& answer,
-                                                         size_t chunk_elements);
+// Figures first, then chunks of rgb floats, then of coverage bytes.
+ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewAnswer answer);
 
 [[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
-std::vector<v1::VolumetricShadowResponse> ToProtoChunks(const gpu::VolumetricResult& result, size_t chunk_elements);
+ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResult result);
 
 [[nodiscard]] StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
-std::vector<v1::VoxelizeResponse> ToProtoChunks(const gpu::VoxelizeResult& result, const gpu::SlicemapBox& box,
-                                                size_t chunk_elements);
+ChunkedResponses<v1::VoxelizeResponse> ToProtoStream(gpu::VoxelizeResult result, const gpu::SlicemapBox& box);
 [[nodiscard]] StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request);
 void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* out);
 

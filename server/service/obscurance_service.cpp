@@ -5,7 +5,6 @@
 // core/obscurance_query.h; this file converts messages and runs the calls.
 #include <algorithm>
 #include <cmath>
-#include <deque>
 #include <mutex>
 #include <optional>
 
@@ -20,10 +19,6 @@
 
 namespace visq::service {
 namespace {
-
-// Elements per chunk message: 1M floats is 4 MiB (8 MiB for the uint64
-// partial sums), under the default 16 MiB message limit on both sides.
-constexpr size_t kChunkElements = 1 << 20;
 
 void SetVec3(const glm::dvec3& v, v1::Vec3* out) {
   out->set_x(v.x);
@@ -61,34 +56,18 @@ void SetRaycastAccuracy(uint32_t rays_per_patch, double confidence, v1::Accuracy
                              "(usually better than independent), cosine-distributed from points uniform on the patch"));
 }
 
-// Appends `values` (elements of one array) as chunk messages.
-template <typename T, typename Add>
-void AppendChunks(const std::vector<T>& values, std::vector<v1::ComputeObscurancesResponse>& messages, Add add) {
-  for (size_t begin = 0; begin < values.size(); begin += kChunkElements) {
-    const size_t end = std::min(values.size(), begin + kChunkElements);
-    v1::ComputeObscurancesResponse& m = messages.emplace_back();
-    m.set_offset(begin);
-    add(m, values.data() + begin, values.data() + end);
-  }
-}
-
 void AddVec3(const glm::vec3& v, google::protobuf::RepeatedField<float>* out) {
   out->Add(v.x);
   out->Add(v.y);
   out->Add(v.z);
 }
 
-std::vector<float> Flatten(const std::vector<glm::vec3>& values) {
-  std::vector<float> out;
-  out.reserve(values.size() * 3);
-  for (const glm::vec3& v : values) out.insert(out.end(), {v.x, v.y, v.z});
-  return out;
-}
-
 // Figures, then the arrays in the order the proto gives.
-std::vector<v1::ComputeObscurancesResponse> ToProtoChunks(const ObscuranceAnswer& a, bool want_averages) {
-  std::vector<v1::ComputeObscurancesResponse> messages(1);
-  v1::ObscuranceFigures* f = messages[0].mutable_figures();
+ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(ObscuranceAnswer answer, bool want_averages) {
+  auto kept = std::make_shared<const ObscuranceAnswer>(std::move(answer));
+  const ObscuranceAnswer& a = *kept;
+  v1::ComputeObscurancesResponse figures;
+  v1::ObscuranceFigures* f = figures.mutable_figures();
   f->set_scene_version(a.scene_version);
   f->mutable_atlas()->set_width(a.width);
   f->mutable_atlas()->set_height(a.height);
@@ -134,36 +113,40 @@ std::vector<v1::ComputeObscurancesResponse> ToProtoChunks(const ObscuranceAnswer
   }
   if (a.plan) ToProto(*a.plan, f->mutable_accuracy());
 
+  // The figures alone, then each array's chunks.
+  ChunkedResponses<v1::ComputeObscurancesResponse> stream(std::move(figures), /*first_carries_chunk=*/false);
+  stream.Keep(kept);
+  using Message = v1::ComputeObscurancesResponse;
   if (!a.result) {
-    AppendChunks(a.partial.sums, messages, [](v1::ComputeObscurancesResponse& m, const uint64_t* b, const uint64_t* e) {
-      m.mutable_partial_sums()->Add(b, e);
+    stream.Add(a.partial.sums.size(), [&a](Message& m, size_t b, size_t e) {
+      m.set_offset(b);
+      AddRange(a.partial.sums, b, e, m.mutable_partial_sums());
     });
-    AppendChunks(a.partial.counts, messages,
-                 [](v1::ComputeObscurancesResponse& m, const uint64_t* b, const uint64_t* e) {
-                   m.mutable_partial_counts()->Add(b, e);
-                 });
-    return messages;
+    stream.Add(a.partial.counts.size(), [&a](Message& m, size_t b, size_t e) {
+      m.set_offset(b);
+      AddRange(a.partial.counts, b, e, m.mutable_partial_counts());
+    });
+    return stream;
   }
   const obscurance::ObscuranceResult& r = *a.result;
-  auto add_w = [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) { m.mutable_w()->Add(b, e); };
-  auto add_i = [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) {
-    m.mutable_intensity()->Add(b, e);
+  // Per-texel and per-triangle colors go as x, y, z floats (offsets count floats).
+  auto add_vec3s = [&stream](const std::vector<glm::vec3>& values, auto field) {
+    stream.Add(3 * values.size(), [&values, field](Message& m, size_t b, size_t e) {
+      m.set_offset(b);
+      AddFlattenedRange(values, b, e, (m.*field)());
+    });
   };
-  AppendChunks(Flatten(r.w), messages, add_w);
-  AppendChunks(Flatten(r.intensity), messages, add_i);
-  AppendChunks(r.estimated, messages, [](v1::ComputeObscurancesResponse& m, const uint8_t* b, const uint8_t* e) {
-    m.set_estimated(std::string(reinterpret_cast<const char*>(b), static_cast<size_t>(e - b)));
+  add_vec3s(r.w, &Message::mutable_w);
+  add_vec3s(r.intensity, &Message::mutable_intensity);
+  stream.Add(r.estimated.size(), [&r](Message& m, size_t b, size_t e) {
+    m.set_offset(b);
+    m.set_estimated(std::string(reinterpret_cast<const char*>(r.estimated.data() + b), e - b));
   });
   if (want_averages) {
-    AppendChunks(Flatten(r.triangle_w), messages,
-                 [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) {
-                   m.mutable_triangle_w()->Add(b, e);
-                 });
-    AppendChunks(Flatten(r.vertex_w), messages, [](v1::ComputeObscurancesResponse& m, const float* b, const float* e) {
-      m.mutable_vertex_w()->Add(b, e);
-    });
+    add_vec3s(r.triangle_w, &Message::mutable_triangle_w);
+    add_vec3s(r.vertex_w, &Message::mutable_vertex_w);
   }
-  return messages;
+  return stream;
 }
 
 // Writes progress while the bake runs on the executor, then the result.
@@ -185,9 +168,9 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     const gpu::SteadyTime deadline = SteadyDeadline(context);
     ctx.executor.Post([this, &ctx, request, deadline] {
       const double queue_ms = log_.ElapsedMs();
-      std::vector<v1::ComputeObscurancesResponse> messages;
-      Status status = Compute(ctx.engine, *request, deadline, queue_ms, messages);
-      Complete(std::move(messages), std::move(status));
+      StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> messages =
+          Compute(ctx.engine, *request, deadline, queue_ms);
+      Complete(std::move(messages));
     });
   }
 
@@ -204,8 +187,9 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
   void OnDone() override { delete this; }
 
  private:
-  Status Compute(Engine& engine, const v1::ComputeObscurancesRequest& request, gpu::SteadyTime deadline,
-                 double queue_ms, std::vector<v1::ComputeObscurancesResponse>& messages) {
+  StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> Compute(Engine& engine,
+                                                                     const v1::ComputeObscurancesRequest& request,
+                                                                     gpu::SteadyTime deadline, double queue_ms) {
     VISQ_ASSIGN_OR_RETURN(ObscuranceQuery query, FromProto(request));
     query.bake.priority = gpu::kBatch;
     query.bake.deadline = deadline;
@@ -232,15 +216,12 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     const bool want_averages = query.want_averages;
     VISQ_ASSIGN_OR_RETURN(ObscuranceAnswer answer, RunComputeObscurances(engine, std::move(query)));
     const double before_transfer = log_.ElapsedMs();
-    messages = ToProtoChunks(answer, want_averages);
-    auto* timing = messages[0].mutable_figures()->mutable_timing();
-    timing->set_queue_ms(queue_ms);
-    timing->set_compute_ms(answer.atlas_ms + answer.bake_ms + answer.finalize_ms + answer.updater_ms);
-    timing->set_transfer_ms(log_.ElapsedMs() - before_transfer);
-    timing->set_total_ms(log_.ElapsedMs());
-    log_.Info("{}x{} texels, {} layers, bake {:.1f} ms, {} messages", answer.width, answer.height, answer.stats.layers,
-              answer.bake_ms, messages.size());
-    return absl::OkStatus();
+    const double compute_ms = answer.atlas_ms + answer.bake_ms + answer.finalize_ms + answer.updater_ms;
+    log_.Info("{}x{} texels, {} layers, bake {:.1f} ms", answer.width, answer.height, answer.stats.layers,
+              answer.bake_ms);
+    ChunkedResponses<v1::ComputeObscurancesResponse> messages = ToProtoStream(std::move(answer), want_averages);
+    SetStreamTiming(queue_ms, compute_ms, before_transfer, log_, messages.first().mutable_figures()->mutable_timing());
+    return messages;
   }
 
   void Progress(v1::ComputeObscurancesResponse message) {
@@ -249,10 +230,10 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     Next(lock);
   }
 
-  void Complete(std::vector<v1::ComputeObscurancesResponse> messages, Status status) {
+  void Complete(StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> messages) {
     std::unique_lock lock(mutex_);
-    for (auto& m : messages) results_.push_back(std::move(m));
-    final_ = std::move(status);
+    final_ = messages.status();
+    if (messages.ok()) results_.emplace(*std::move(messages));
     progress_.reset();  // stale once the result is here
     Next(lock);
   }
@@ -269,9 +250,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
         StartWrite(&current_);
         return;
       }
-      if (final_ && !results_.empty()) {
-        current_ = std::move(results_.front());
-        results_.pop_front();
+      if (final_ && results_ && !cancelled_ && results_->Next(current_)) {
         writing_ = true;
         StartWrite(&current_);
         return;
@@ -279,6 +258,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     }
     if (!final_) return;
     finished_ = true;
+    results_.reset();  // the answer's memory goes before the call ends
     const Status status = broken_ && final_->ok() ? absl::CancelledError("client went away") : *final_;
     lock.unlock();
     log_.Done(status);
@@ -292,7 +272,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
   bool broken_ = false;
   bool finished_ = false;
   std::optional<v1::ComputeObscurancesResponse> progress_;
-  std::deque<v1::ComputeObscurancesResponse> results_;
+  std::optional<ChunkedResponses<v1::ComputeObscurancesResponse>> results_;
   std::optional<Status> final_;
   v1::ComputeObscurancesResponse current_;
 };
@@ -384,23 +364,21 @@ grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::
     grpc::CallbackServerContext* context, const v1::ObscurancePreviewRequest* request) {
   return new PreparedStreamReactor<v1::ObscurancePreviewResponse>(
       context, ctx_, "RenderObscurancePreview",
-      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
-                               std::vector<v1::ObscurancePreviewResponse>& messages) -> Status {
+      [this, context, request](const std::atomic<bool>& cancelled,
+                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::ObscurancePreviewResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(ObscurancePreviewQuery query, FromProto(*request));
         query.job = JobOptionsFor(context, &cancelled);
         VISQ_ASSIGN_OR_RETURN(ObscurancePreviewAnswer answer, RunRenderObscurancePreview(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
-        messages = ToProtoChunks(answer, kChunkElements);
-        auto* timing = messages[0].mutable_timing();
-        timing->set_queue_ms(queue_ms + answer.image.queue_ms);
-        timing->set_compute_ms(answer.copy_ms + answer.image.total_ms - answer.image.queue_ms);
-        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
-        timing->set_total_ms(log.ElapsedMs());
         log.Info("v{} {}x{} {}, render {:.1f} ms", answer.solution_version, answer.image.width, answer.image.height,
                  request->quantity() == v1::ObscurancePreviewRequest::INTENSITY ? "intensity" : "W",
                  answer.image.render_ms);
-        return absl::OkStatus();
+        const double image_queue_ms = answer.image.queue_ms;
+        const double compute_ms = answer.copy_ms + answer.image.total_ms - answer.image.queue_ms;
+        ChunkedResponses<v1::ObscurancePreviewResponse> messages = ToProtoStream(std::move(answer));
+        SetStreamTiming(queue_ms + image_queue_ms, compute_ms, before_transfer, log, messages.first().mutable_timing());
+        return messages;
       });
 }
 

@@ -7,11 +7,13 @@
 #include <chrono>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <type_traits>
 #include <vector>
 
 #include <grpcpp/server_context.h>
 
+#include "service/chunked_responses.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
 #include "service/visibility_service.h"
@@ -83,14 +85,24 @@ inline gpu::JobOptions JobOptionsFor(grpc::CallbackServerContext* context, const
   return job;
 }
 
-// Server-streaming answers: computes all messages on the executor, then
-// writes them in order. `compute` fills the messages; its first message
-// carries the timing.
+// The figures' timing for a streamed answer; transfer_ms and total_ms are as
+// of the first message (the chunks after it are built as they are written).
+inline void SetStreamTiming(double queue_ms, double compute_ms, double before_transfer_ms, const RequestLog& log,
+                            v1::Timing* timing) {
+  timing->set_queue_ms(queue_ms);
+  timing->set_compute_ms(compute_ms);
+  timing->set_transfer_ms(log.ElapsedMs() - before_transfer_ms);
+  timing->set_total_ms(log.ElapsedMs());
+}
+
+// Server-streaming answers: computes the answer on the executor, then
+// writes its messages in order, each built as the previous one is written
+// (chunked_responses.h). `compute`'s first message carries the timing.
 template <typename Response>
 class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
  public:
-  using Compute = std::function<Status(const std::atomic<bool>& cancelled, const RequestLog& log,
-                                       std::vector<Response>& messages)>;
+  using Compute =
+      std::function<StatusOr<ChunkedResponses<Response>>(const std::atomic<bool>& cancelled, const RequestLog& log)>;
   PreparedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
                         Compute compute)
       : log_(context, method, &ctx.metrics) {
@@ -100,11 +112,12 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
       return;
     }
     ctx.executor.Post([this, compute = std::move(compute)] {
-      Status status = compute(cancelled_, log_, messages_);
-      if (!status.ok()) {
-        Done(status);
+      StatusOr<ChunkedResponses<Response>> messages = compute(cancelled_, log_);
+      if (!messages.ok()) {
+        Done(messages.status());
         return;
       }
+      messages_.emplace(*std::move(messages));
       WriteNext();
     });
   }
@@ -121,11 +134,13 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
 
  private:
   void WriteNext() {
-    if (next_ >= messages_.size()) {
-      Done(absl::OkStatus());
+    if (cancelled_ || !messages_->Next(current_)) {
+      messages_.reset();  // the answer's memory goes before the call ends
+      Done(cancelled_ ? absl::CancelledError("the call was cancelled while its answer was written")
+                      : absl::OkStatus());
       return;
     }
-    this->StartWrite(&messages_[next_++]);
+    this->StartWrite(&current_);
   }
 
   void Done(const Status& status) {
@@ -135,8 +150,8 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
 
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
-  std::vector<Response> messages_;
-  size_t next_ = 0;
+  std::optional<ChunkedResponses<Response>> messages_;
+  Response current_;
 };
 
 }  // namespace visq::service

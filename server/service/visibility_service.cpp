@@ -367,20 +367,13 @@ VisibilityServiceImpl::LightVisibilityStream(grpc::CallbackServerContext* contex
 }  // namespace visq::service
 
 namespace visq::service {
-namespace {
-
-// Messages per chunk element: 1M floats or words is 4 MiB, well under the
-// default 16 MiB message limit on both sides.
-constexpr size_t kChunkElements = 1 << 20;
-
-}  // namespace
 
 grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::HiddenSampleMap(
     grpc::CallbackServerContext* context, const v1::HiddenSampleMapRequest* request) {
   return new PreparedStreamReactor<v1::HiddenSampleMapResponse>(
       context, ctx_, "HiddenSampleMap",
-      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
-                               std::vector<v1::HiddenSampleMapResponse>& messages) -> Status {
+      [this, context, request](const std::atomic<bool>& cancelled,
+                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::HiddenSampleMapResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
         query.job = JobOptionsFor(context, &cancelled);
@@ -392,13 +385,12 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
                                             absl::StrFormat("%.1f", answer.plan->chosen_plan().predicted_ms), " ms)")
                              : std::string());
         const double before_transfer = log.ElapsedMs();
-        messages = ToProtoChunks(answer, kChunkElements);
-        auto* timing = messages[0].mutable_timing();
-        timing->set_queue_ms(queue_ms + result.timing.queue_ms);
-        timing->set_compute_ms(result.timing.run_ms + result.table_ms);
-        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
-        timing->set_total_ms(log.ElapsedMs());
-        return absl::OkStatus();
+        const JobTiming job_timing = result.timing;
+        const double compute_ms = result.timing.run_ms + result.table_ms;
+        ChunkedResponses<v1::HiddenSampleMapResponse> messages = ToProtoStream(std::move(answer));
+        SetStreamTiming(queue_ms + job_timing.queue_ms, compute_ms, before_transfer, log,
+                        messages.first().mutable_timing());
+        return messages;
       });
 }
 
@@ -406,22 +398,21 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
     grpc::CallbackServerContext* context, const v1::VolumetricShadowRequest* request) {
   return new PreparedStreamReactor<v1::VolumetricShadowResponse>(
       context, ctx_, "VolumetricShadow",
-      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
-                               std::vector<v1::VolumetricShadowResponse>& messages) -> Status {
+      [this, context, request](const std::atomic<bool>& cancelled,
+                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::VolumetricShadowResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(VolumetricQuery query, FromProto(*request));
         query.params.job = JobOptionsFor(context, &cancelled);
         VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult result, RunVolumetricShadow(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
-        messages = ToProtoChunks(result, kChunkElements);
-        auto* timing = messages[0].mutable_timing();
-        timing->set_queue_ms(queue_ms + result.timings.queue_ms);
-        timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms);
-        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
-        timing->set_total_ms(log.ElapsedMs());
-        log.Info("{}x{} {} ({}), traversal {:.1f} ms", result.width, result.height, messages[0].method(),
-                 messages[0].integrand(), result.timings.traversal_ms);
-        return absl::OkStatus();
+        const gpu::VolumetricTimings timings = result.timings;
+        const uint32_t width = result.width, height = result.height;
+        ChunkedResponses<v1::VolumetricShadowResponse> messages = ToProtoStream(std::move(result));
+        SetStreamTiming(queue_ms + timings.queue_ms, timings.total_ms - timings.queue_ms, before_transfer, log,
+                        messages.first().mutable_timing());
+        log.Info("{}x{} {} ({}), traversal {:.1f} ms", width, height, messages.first().method(),
+                 messages.first().integrand(), timings.traversal_ms);
+        return messages;
       });
 }
 
@@ -429,23 +420,22 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
     grpc::CallbackServerContext* context, const v1::VoxelizeRequest* request) {
   return new PreparedStreamReactor<v1::VoxelizeResponse>(
       context, ctx_, "Voxelize",
-      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
-                               std::vector<v1::VoxelizeResponse>& messages) -> Status {
+      [this, context, request](const std::atomic<bool>& cancelled,
+                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::VoxelizeResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(VoxelizeQuery query, FromProto(*request));
         query.params.job = JobOptionsFor(context, &cancelled);
         gpu::SlicemapBox box;
         VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, RunVoxelize(ctx_.engine, query, &box));
         const double before_transfer = log.ElapsedMs();
-        messages = ToProtoChunks(result, box, kChunkElements);
-        auto* timing = messages[0].mutable_timing();
-        timing->set_queue_ms(queue_ms + result.timings.queue_ms);
-        timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms);
-        timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
-        timing->set_total_ms(log.ElapsedMs());
+        const auto timings = result.timings;
         log.Info("{}x{}x{} {}: {} occupied voxels", result.grid.width, result.grid.height, result.grid.slices,
-                 messages[0].rasterization(), result.occupied_voxels);
-        return absl::OkStatus();
+                 result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard",
+                 result.occupied_voxels);
+        ChunkedResponses<v1::VoxelizeResponse> messages = ToProtoStream(std::move(result), box);
+        SetStreamTiming(queue_ms + timings.queue_ms, timings.total_ms - timings.queue_ms, before_transfer, log,
+                        messages.first().mutable_timing());
+        return messages;
       });
 }
 
