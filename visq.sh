@@ -26,7 +26,7 @@ case "${1:-}" in
   serve)
     shift
     bash deploy/install-deps.sh
-    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
+    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=OFF
     cmake --build "$build_dir" -j"$jobs" --target visq-server visq
     repo=${VISQ_SCENE_REPO:-/var/lib/visq/scenes}
     echo "visq: starting visq-server on ${VISQ_ADDRESS:-127.0.0.1:50051}, scene repository $repo"
@@ -38,7 +38,8 @@ case "${1:-}" in
     bash deploy/install-deps.sh
 
     stage "1/2 Release build and every test"
-    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
+    # Optimized as users run it, with the debug checks kept (VISQ_DCHECKS).
+    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=ON
     cmake --build "$build_dir" -j"$jobs"
     # Every header, library and CMake file the build read is from a package
     # deploy/install-deps.sh lists or one they depend on (a clean machine has it).
@@ -55,13 +56,13 @@ case "${1:-}" in
       CC=clang CXX=clang++ cmake -S . -B "$asan_dir" -DCMAKE_BUILD_TYPE=None -DCMAKE_CXX_FLAGS=-O1 \
         -DVISQ_SANITIZE=ON -DVISQ_FUZZ=ON -DVISQ_FUZZ_SECONDS="$fuzz_seconds"
       cmake --build "$asan_dir" -j"$jobs" --target visq-server visq visq_scene_tests visq_gpu_tests \
-        visq_integration_tests visq_raycast_test visq_exact_test \
+        visq_integration_tests visq_raycast_test visq_exact_test visq_core_tests visq_service_tests \
         gltf_loader_fuzz gltf_structure_fuzz request_validation_fuzz algorithm_request_fuzz
       if [[ "$sanitized_tests" != 0 ]]; then
         # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
         # allocations; ASan's use-after-free and overflow checks still apply.
         for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_test exact/visq_exact_test \
-                    integration/visq_integration_tests; do
+                    core/visq_core_tests service/visq_service_tests integration/visq_integration_tests; do
           echo "--- $test (ASan + UBSan)"
           ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
             "$asan_dir/tests/$test" --gtest_brief=1

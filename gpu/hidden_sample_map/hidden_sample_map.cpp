@@ -12,6 +12,7 @@
 
 #include <epoxy/gl.h>
 
+#include "common/check.h"
 #include "gl_check.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
@@ -422,6 +423,9 @@ void CountBand(const std::vector<uint32_t>& readback, const PassPlan& plan, size
                const HiddenSampleMapOptions& options, const glm::dvec3& all_colors, HiddenSampleMapResult& result) {
   const int n = result.sample_count;
   const int wpt = result.words_per_texel;
+  VISQ_DCHECK_EQ(readback.size(), size_t(plan.target_layers) * band_texels * 4);
+  VISQ_DCHECK_LE((first_texel + band_texels) * size_t(wpt), result.blocked_bits.empty() ? SIZE_MAX : result.blocked_bits.size());
+  VISQ_DCHECK_LE(size_t(wpt), size_t(4 * plan.groups));
   const uint32_t last_mask = (n % 32 == 0) ? ~0u : ((1u << (n % 32)) - 1u);
   auto word_at = [&](int plane_layer_base, size_t texel, int w) {
     const int layer = plane_layer_base + w / 4;

@@ -34,8 +34,16 @@ std::string DescribeComparison(const char* text, const A& a, const B& b) {
 #define VISQ_CHECK_LT(a, b) VISQ_CHECK_OP(a, <, b)
 #define VISQ_CHECK_LE(a, b) VISQ_CHECK_OP(a, <=, b)
 
-#ifndef NDEBUG
+// Debug checks: on in debug builds and in the optimized builds the tests
+// run (VISQ_DCHECKS=ON, which `visq.sh test` sets), off in what users run.
+#if !defined(NDEBUG) || defined(VISQ_ENABLE_DCHECKS)
 #define VISQ_DCHECK(cond) VISQ_CHECK(cond)
+#define VISQ_DCHECK_EQ(a, b) VISQ_CHECK_EQ(a, b)
+#define VISQ_DCHECK_LT(a, b) VISQ_CHECK_LT(a, b)
+#define VISQ_DCHECK_LE(a, b) VISQ_CHECK_LE(a, b)
 #else
 #define VISQ_DCHECK(cond) do { (void)sizeof(cond); } while (false)
+#define VISQ_DCHECK_EQ(a, b) do { (void)sizeof(a); (void)sizeof(b); } while (false)
+#define VISQ_DCHECK_LT(a, b) do { (void)sizeof(a); (void)sizeof(b); } while (false)
+#define VISQ_DCHECK_LE(a, b) do { (void)sizeof(a); (void)sizeof(b); } while (false)
 #endif

@@ -460,8 +460,11 @@ struct LightVisibilityTree::Impl {
   }
 
   void Refine(int32_t id, const glm::dvec3& p, const glm::dvec3& y) {
+    VISQ_DCHECK_LT(size_t(id), nodes.size());
     if (nodes[id].kind != kUndefined) return;  // another query did it
+    VISQ_DCHECK_LT(size_t(nodes[id].b), lists.size());
     std::vector<uint32_t> list = std::move(lists[nodes[id].b]);
+    VISQ_DCHECK(!list.empty());
     lists[nodes[id].b] = {};
     free_lists.push_back(nodes[id].b);
     list_bytes -= list.capacity() * sizeof(uint32_t);
@@ -515,6 +518,7 @@ struct LightVisibilityTree::Impl {
       while (!stack.empty()) {
         const Step step = stack.back();
         stack.pop_back();
+        VISQ_DCHECK_LT(size_t(step.node), nodes.size());
         const uint8_t kind = nodes[step.node].kind;
         if (kind == kInner) {
           bool pos, nonpos;
@@ -1350,6 +1354,7 @@ struct LightVisibilityTree::Impl {
           // whose line boxes are apart from its box go first.
           const bool fragment_box = HasLineBox(s, pieces[0]);
           std::vector<uint32_t> ids;
+          VISQ_DCHECK_LT(size_t(node.b), lists.size());
           for (const uint32_t index : lists[node.b]) {
             const uint32_t* t = far[index].v;
             const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};

@@ -190,12 +190,15 @@ uint64_t HiddenSampleMapWorkBytes(const sampling::HiddenSampleMapRequest& reques
   return bits + band_readback + texels * (3 * (4 + (colored ? 12 : 0)) + 24) + (uint64_t{4} << 20);
 }
 
+// With `hold`, the reservation outlives the call: it goes with the answer.
 StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,
                                                        VisibilityMethod method, const sampling::HiddenSampleMapRequest& request,
-                                                       const gpu::JobOptions& job) {
+                                                       const gpu::JobOptions& job,
+                                                       std::shared_ptr<WorkMemoryBudget::Reservation>* hold = nullptr) {
   VISQ_ASSIGN_OR_RETURN(
       WorkMemoryBudget::Reservation memory,
       engine.work_budget().Reserve(HiddenSampleMapWorkBytes(request), "width x height x samples", job));
+  if (hold != nullptr) *hold = std::make_shared<WorkMemoryBudget::Reservation>(std::move(memory));
   switch (method) {
     case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, job);
     case VisibilityMethod::kPluckerExact:
@@ -532,7 +535,8 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
   HiddenSampleMapAnswer answer;
   answer.method = query.method;
-  VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.job));
+  VISQ_ASSIGN_OR_RETURN(answer.result,
+                        HiddenSampleMapBy(engine, *resident, query.method, checked, query.job, &answer.memory));
   return answer;
 }
 

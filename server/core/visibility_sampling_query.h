@@ -11,6 +11,7 @@
 
 #include "common/status.h"
 #include "core/accuracy_planner.h"
+#include "core/work_budget.h"
 #include "visq/gpu/hidden_sample_map.h"
 
 namespace visq {
@@ -41,6 +42,9 @@ struct HiddenSampleMapAnswer {
   sampling::HiddenSampleMapResult result;
   VisibilityMethod method = VisibilityMethod::kRaster;  // what produced it
   std::optional<PlanReport> plan;                       // with a target
+  // The answer's share of the budget for work in flight: it goes with the
+  // answer, once the answer has been sent.
+  std::shared_ptr<WorkMemoryBudget::Reservation> memory;
 };
 
 struct PatchVisibilityQuery {

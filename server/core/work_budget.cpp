@@ -1,5 +1,7 @@
 #include "core/work_budget.h"
 
+#include <malloc.h>
+
 #include <unistd.h>
 
 #include <algorithm>
@@ -65,6 +67,9 @@ void WorkMemoryBudget::Release(uint64_t bytes) {
     in_use_ -= bytes;
   }
   released_.notify_all();
+  // glibc keeps freed memory of a large answer in its arenas (1.4 GB after
+  // four maps at the cap): hand it back to the system once it goes.
+  if (bytes >= kTrimAfterBytes) malloc_trim(0);
 }
 
 uint64_t WorkMemoryBudget::in_use() const {

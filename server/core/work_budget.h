@@ -43,6 +43,10 @@ class WorkMemoryBudget {
   // x samples"), for the error.
   [[nodiscard]] StatusOr<Reservation> Reserve(uint64_t bytes, const std::string& what, const gpu::JobOptions& job);
 
+  // Releasing at least this much returns the process's free memory to the
+  // system (malloc_trim).
+  static constexpr uint64_t kTrimAfterBytes = uint64_t{64} << 20;
+
   uint64_t capacity() const { return capacity_; }
   uint64_t in_use() const;
   uint64_t peak() const;

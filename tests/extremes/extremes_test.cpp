@@ -34,6 +34,7 @@
 #include "scene/gltf_loader.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
+#include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
 

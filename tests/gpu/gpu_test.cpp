@@ -13,6 +13,7 @@
 #include "gl_object.h"
 #include "shader_program.h"
 #include "scene/sample_scenes.h"
+#include "gpu_test_support.h"
 #include "test_support.h"
 #include "visq/gpu/camera.h"
 #include "visq/gpu/gpu_scene.h"

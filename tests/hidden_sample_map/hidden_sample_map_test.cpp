@@ -14,6 +14,7 @@
 #include "raycast/embree_scene.h"
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
+#include "gpu_test_support.h"
 #include "test_support.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/hidden_sample_map.h"

@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 
 #include "proto_builders.h"
+#include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
 

@@ -8,6 +8,7 @@
 
 #include <gtest/gtest.h>
 
+#include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
 

@@ -14,6 +14,7 @@
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
 #include "proto_builders.h"
+#include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
 

@@ -20,6 +20,7 @@
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
 #include "scene/scene_edit.h"
+#include "gpu_test_support.h"
 #include "test_support.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/obscurance.h"

@@ -10,6 +10,7 @@
 
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
+#include "gpu_test_support.h"
 #include "test_support.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/slicemap.h"

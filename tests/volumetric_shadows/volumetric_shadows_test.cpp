@@ -15,6 +15,7 @@
 
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
+#include "gpu_test_support.h"
 #include "test_support.h"
 
 namespace visq::gpu {
