@@ -17,6 +17,19 @@
 #include "service/log_format.h"
 #include "service/server.h"
 
+namespace {
+
+// Written to a temporary name and renamed: a reader never sees half.
+bool WritePortFile(const std::string& path, int port) {
+  const std::string temporary = path + ".tmp";
+  std::FILE* f = std::fopen(temporary.c_str(), "w");
+  if (f == nullptr) return false;
+  const bool written = std::fprintf(f, "%d\n", port) >= 0;
+  return std::fclose(f) == 0 && written && std::rename(temporary.c_str(), path.c_str()) == 0;
+}
+
+}  // namespace
+
 int main(int argc, char** argv) {
   visq::service::ServerOptions options;
   std::string log_level = "info";
@@ -72,10 +85,31 @@ int main(int argc, char** argv) {
       ->envname("VISQ_NO_PRELOAD");
   app.add_option("--port-file", port_file, "Write the bound port here once listening (for --address HOST:0)")
       ->envname("VISQ_PORT_FILE");
+  app.add_option("--metrics-address", options.metrics_address,
+                 "HOST:PORT for Prometheus (GET /metrics, plain HTTP); empty: none")
+      ->envname("VISQ_METRICS_ADDRESS");
+  app.add_flag("--metrics-allow-remote", options.allow_remote_metrics,
+               "Let --metrics-address be beyond loopback")->envname("VISQ_METRICS_ALLOW_REMOTE");
+  std::string metrics_port_file;
+  app.add_option("--metrics-port-file", metrics_port_file,
+                 "Write the bound /metrics port here (for --metrics-address HOST:0)")
+      ->envname("VISQ_METRICS_PORT_FILE");
+  std::string log_format = "text";
+  app.add_option("--log-format", log_format, "text, or json (one object a line)")
+      ->envname("VISQ_LOG_FORMAT")->check(CLI::IsMember({"text", "json"}))->capture_default_str();
+  int drain_seconds = 10;
+  app.add_option("--drain-seconds", drain_seconds,
+                 "On SIGTERM, how long calls in progress may take to finish before they are cancelled")
+      ->envname("VISQ_DRAIN_SECONDS")->check(CLI::Range(0, 3600))->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  if (!metrics_port_file.empty() && options.metrics_address.empty()) {
+    std::cerr << "--metrics-port-file needs --metrics-address\n";
+    return EXIT_FAILURE;
+  }
 
   spdlog::set_level(spdlog::level::from_str(log_level));
-  visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+  if (log_format == "json") visq::service::UseJsonLogFormat();
+  else visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   options.engine.scene_repo = scene_repo;
   options.engine.max_upload_bytes = max_upload_bytes;
   options.engine.max_scene_bytes = max_scene_bytes;
@@ -118,21 +152,19 @@ int main(int argc, char** argv) {
     spdlog::critical("start-up failed: {}", server.status().message());
     return EXIT_FAILURE;
   }
-  if (!port_file.empty()) {
-    // Written to a temporary name and renamed: a reader never sees half.
-    const std::string temporary = port_file + ".tmp";
-    std::FILE* f = std::fopen(temporary.c_str(), "w");
-    if (f == nullptr || std::fprintf(f, "%d\n", (*server)->port()) < 0 || std::fclose(f) != 0 ||
-        std::rename(temporary.c_str(), port_file.c_str()) != 0) {
-      spdlog::critical("cannot write --port-file {}", port_file);
-      return EXIT_FAILURE;
-    }
+  if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {
+    spdlog::critical("cannot write --port-file {}", port_file);
+    return EXIT_FAILURE;
+  }
+  if (!metrics_port_file.empty() && !WritePortFile(metrics_port_file, (*server)->metrics_port())) {
+    spdlog::critical("cannot write --metrics-port-file {}", metrics_port_file);
+    return EXIT_FAILURE;
   }
   (*server)->Ready();
 
   int signal_number = 0;
   sigwait(&signals, &signal_number);
   spdlog::info("received {}", signal_number == SIGINT ? "SIGINT" : "SIGTERM");
-  (*server)->GracefulStop(std::chrono::seconds(10));
+  (*server)->GracefulStop(std::chrono::seconds(drain_seconds));
   return EXIT_SUCCESS;
 }
