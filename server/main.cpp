@@ -110,6 +110,7 @@ int main(int argc, char** argv) {
   spdlog::set_level(spdlog::level::from_str(log_level));
   if (log_format == "json") visq::service::UseJsonLogFormat();
   else visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+  visq::service::RouteLibraryLogsToSpdlog();
   options.engine.scene_repo = scene_repo;
   options.engine.max_upload_bytes = max_upload_bytes;
   options.engine.max_scene_bytes = max_scene_bytes;

@@ -5,6 +5,8 @@
 #include <memory>
 
 #include <absl/strings/str_format.h>
+#include <google/protobuf/stubs/logging.h>
+#include <grpc/support/log.h>
 #include <spdlog/pattern_formatter.h>
 #include <spdlog/spdlog.h>
 
@@ -114,6 +116,22 @@ std::string EscapeForJson(std::string_view text) {
     ++i;
   }
   return out;
+}
+
+void RouteLibraryLogsToSpdlog() {
+  google::protobuf::SetLogHandler([](google::protobuf::LogLevel level, const char* file, int line,
+                                     const std::string& message) {
+    const auto spd = level >= google::protobuf::LOGLEVEL_ERROR     ? spdlog::level::err
+                     : level == google::protobuf::LOGLEVEL_WARNING ? spdlog::level::warn
+                                                                   : spdlog::level::info;
+    spdlog::log(spd, "protobuf {}:{}: {}", file, line, message);
+  });
+  gpr_set_log_function([](gpr_log_func_args* args) {
+    const auto spd = args->severity == GPR_LOG_SEVERITY_ERROR  ? spdlog::level::err
+                     : args->severity == GPR_LOG_SEVERITY_INFO ? spdlog::level::info
+                                                                : spdlog::level::debug;
+    spdlog::log(spd, "grpc {}:{}: {}", args->file, args->line, args->message);
+  });
 }
 
 void UseJsonLogFormat() { spdlog::set_formatter(std::make_unique<JsonFormatter>()); }

@@ -26,4 +26,8 @@ std::string EscapeForJson(std::string_view text);
 // with the time in UTC (RFC 3339).
 void UseJsonLogFormat();
 
+// Sends what protobuf and gRPC log (to stderr, by default) through spdlog,
+// so that those lines take the chosen format and escaping too.
+void RouteLibraryLogsToSpdlog();
+
 }  // namespace visq::service

@@ -39,6 +39,8 @@ StatusOr<HostPort> ParseHostPort(const std::string& address) {
 
 }  // namespace
 
+Status CheckMetricsAddress(const std::string& address) { return ParseHostPort(address).status(); }
+
 StatusOr<std::unique_ptr<MetricsHttpServer>> MetricsHttpServer::Start(const std::string& address,
                                                                      std::function<ServerFigures()> collect) {
   VISQ_ASSIGN_OR_RETURN(HostPort where, ParseHostPort(address));

@@ -18,6 +18,9 @@ class Server;
 
 namespace visq::service {
 
+// Whether `address` is HOST:PORT or [V6]:PORT with a port in 0..65535.
+[[nodiscard]] Status CheckMetricsAddress(const std::string& address);
+
 class MetricsHttpServer {
  public:
   // Binds `address` (HOST:PORT, [V6]:PORT; port 0 picks a free one) and

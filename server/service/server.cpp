@@ -109,6 +109,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
     return absl::FailedPreconditionError(absl::StrCat(
         "refusing to listen on ", options.address,
         " without TLS or a bearer token; set --tls-cert/--tls-key, --auth-token-file, or --allow-insecure-remote"));
+  if (!options.metrics_address.empty()) VISQ_RETURN_IF_ERROR(CheckMetricsAddress(options.metrics_address));
   if (!options.metrics_address.empty() && !options.allow_remote_metrics && !IsLoopbackAddress(options.metrics_address))
     return absl::FailedPreconditionError(absl::StrCat(
         "refusing to serve /metrics on ", options.metrics_address,
@@ -124,7 +125,8 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   server->authorizer_ = std::make_unique<Authorizer>(options.auth_token);
 
   grpc::EnableDefaultHealthCheckService(true);
-  // Reflection lists the API to anyone who asks: only without a token.
+  // Reflection lists the API to anyone who asks: only without a token
+  // (v1alpha from gRPC's plugin, v1 from ReflectionV1Service below).
   if (options.auth_token.empty()) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   if (!options.auth_token.empty()) builder.SetOption(std::make_unique<WithoutReflection>());
@@ -142,6 +144,12 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   };
   server->service_ = std::make_unique<VisibilityServiceImpl>(service_context());
   builder.RegisterService(server->service_.get());
+  if (options.auth_token.empty()) {
+    server->reflection_v1_ = std::make_unique<ReflectionV1Service>(std::vector<std::string>{
+        v1::VisibilityService::service_full_name(), "grpc.health.v1.Health",
+        "grpc.reflection.v1alpha.ServerReflection", grpc::reflection::v1::ServerReflection::service_full_name()});
+    builder.RegisterService(server->reflection_v1_.get());
+  }
   server->grpc_server_ = builder.BuildAndStart();
   if (!server->grpc_server_ || server->port_ == 0)
     return absl::UnavailableError(absl::StrCat("cannot listen on ", options.address));

@@ -12,6 +12,7 @@
 #include "core/engine.h"
 #include "service/executor.h"
 #include "service/metrics_http.h"
+#include "service/reflection_v1.h"
 #include "service/visibility_service.h"
 
 namespace visq::service {
@@ -65,6 +66,7 @@ class Server {
   std::unique_ptr<Metrics> metrics_;
   std::unique_ptr<Authorizer> authorizer_;
   std::unique_ptr<VisibilityServiceImpl> service_;
+  std::unique_ptr<ReflectionV1Service> reflection_v1_;
   std::unique_ptr<grpc::Server> grpc_server_;
   std::unique_ptr<MetricsHttpServer> metrics_http_;
   int port_ = 0;
