@@ -1,6 +1,11 @@
 // visq-server: flags (each also an environment variable, for containers),
 // signals, and the server lifecycle.
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <cerrno>
 #include <csignal>
+#include <cstring>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
@@ -26,6 +31,28 @@ bool WritePortFile(const std::string& path, int port) {
   if (f == nullptr) return false;
   const bool written = std::fprintf(f, "%d\n", port) >= 0;
   return std::fclose(f) == 0 && written && std::rename(temporary.c_str(), path.c_str()) == 0;
+}
+
+// A file of 64 hex digits (256 random bits), readable by this user only.
+// Returns false when the file was there already (its token is kept).
+visq::StatusOr<bool> CreateTokenFileIfAbsent(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
+  if (fd < 0 && errno == EEXIST) return false;
+  if (fd < 0) return absl::FailedPreconditionError(absl::StrCat("cannot create it: ", std::strerror(errno)));
+  unsigned char random[32];
+  std::ifstream urandom("/dev/urandom", std::ios::binary);
+  urandom.read(reinterpret_cast<char*>(random), sizeof(random));
+  std::string hex;
+  for (unsigned char b : random) hex += fmt::format("{:02x}", b);
+  hex += '\n';
+  const bool written = urandom && ::write(fd, hex.data(), hex.size()) == static_cast<ssize_t>(hex.size()) &&
+                       ::fsync(fd) == 0;
+  ::close(fd);
+  if (!written) {
+    ::unlink(path.c_str());
+    return absl::DataLossError("cannot write a new token");
+  }
+  return true;
 }
 
 }  // namespace
@@ -74,6 +101,10 @@ int main(int argc, char** argv) {
   app.add_option("--server-id", options.server_id, "Name reported by GetStats (default host:port)")->envname("VISQ_SERVER_ID");
   app.add_option("--auth-token-file", auth_token_file, "File holding the bearer token every call must carry")
       ->envname("VISQ_AUTH_TOKEN_FILE");
+  bool create_auth_token = false;
+  app.add_flag("--auth-token-create", create_auth_token,
+               "If --auth-token-file does not exist, write a new random token there (mode 0600) first")
+      ->envname("VISQ_AUTH_TOKEN_CREATE");
   app.add_option("--tls-cert", options.tls.cert_file, "PEM certificate chain: serve TLS")->envname("VISQ_TLS_CERT");
   app.add_option("--tls-key", options.tls.key_file, "PEM private key for --tls-cert")->envname("VISQ_TLS_KEY");
   app.add_option("--tls-client-ca", options.tls.client_ca_file, "PEM CA that client certificates must chain to (mutual TLS)")
@@ -116,6 +147,19 @@ int main(int argc, char** argv) {
   options.engine.max_scene_bytes = max_scene_bytes;
   options.engine.light_cache_bytes = static_cast<size_t>(light_cache_bytes);
   options.engine.load_repository_at_start = !no_preload;
+  if (create_auth_token && auth_token_file.empty()) {
+    std::cerr << "--auth-token-create needs --auth-token-file\n";
+    return EXIT_FAILURE;
+  }
+  if (create_auth_token) {
+    visq::StatusOr<bool> created = CreateTokenFileIfAbsent(auth_token_file);
+    if (!created.ok()) {
+      spdlog::critical("--auth-token-create {}: {}", auth_token_file, created.status().message());
+      return EXIT_FAILURE;
+    }
+    // The path only: the token never goes to the log.
+    if (*created) spdlog::info("created a new bearer token in {}; clients read it from there", auth_token_file);
+  }
   if (!auth_token_file.empty()) {
     std::ifstream in(auth_token_file, std::ios::binary);
     std::stringstream text;

@@ -381,6 +381,36 @@ TEST(ReflectionV1, NeedsTheTokenWhenOneIsSet) {
   EXPECT_EQ(answer.find("visq.v1.VisibilityService"), std::string::npos) << "v1 reflection answered without the token";
 }
 
+// The container's first start: no token given, so the server makes one in
+// the data volume and logs where, never what.
+TEST(TokenAtFirstStart, CreatedOnceReadableByTheOwnerOnlyAndNeverLogged) {
+  ScratchDir repo, files;
+  const fs::path token_file = files.path() / "token";
+  const std::vector<std::string> args = {"--seed-samples", "--auth-token-file", token_file.string(),
+                                         "--auth-token-create"};
+  std::string token;
+  {
+    auto server = ServerProcess::Start({repo.path(), args});
+    ASSERT_NE(server, nullptr);
+    ASSERT_TRUE(fs::exists(token_file));
+    EXPECT_EQ(fs::status(token_file).permissions() & fs::perms::all, fs::perms::owner_read | fs::perms::owner_write);
+    std::ifstream(token_file) >> token;
+    EXPECT_TRUE(std::regex_match(token, std::regex("[0-9a-f]{64}"))) << token;
+    EXPECT_TRUE(Client({.address = server->address(), .auth_token = token}).ListScenes().ok());
+    EXPECT_EQ(Client({.address = server->address()}).ListScenes().status().code(),
+              absl::StatusCode::kUnauthenticated);
+    EXPECT_NE(server->Log().find(token_file.string()), std::string::npos) << server->Log();
+    EXPECT_EQ(server->Log().find(token), std::string::npos) << "the token was logged";
+  }
+  // A restart keeps the token that is there.
+  auto again = ServerProcess::Start({repo.path(), args});
+  ASSERT_NE(again, nullptr);
+  std::string kept;
+  std::ifstream(token_file) >> kept;
+  EXPECT_EQ(kept, token);
+  EXPECT_TRUE(Client({.address = again->address(), .auth_token = token}).ListScenes().ok());
+}
+
 TEST(Drain, DrainSecondsIsValidatedAndUsed) {
   ScratchDir repo;
   std::string output;
