@@ -23,7 +23,7 @@ build_packages=(
   libglm-dev libeigen3-dev libtinygltf-dev nlohmann-json3-dev libstb-dev
   libspdlog-dev libfmt-dev libcli11-dev libabsl-dev
   libembree-dev libgmp-dev libxxhash-dev
-  openssl nginx-light libyaml-cpp-dev
+  openssl nginx-light libyaml-cpp-dev libcpp-httplib-dev
   clang libclang-rt-14-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   gnuplot-nox
@@ -36,7 +36,7 @@ if (( runtime_only )); then
   # What the built binaries link (ldd), for the slim container stage.
   wanted=("${runtime_packages[@]}" ca-certificates
     libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
-    libspdlog1.10 libssl3 libstb0 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl)
+    libspdlog1.10 libssl3 libstb0 libcpp-httplib0.11 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl)
 fi
 
 if (( print_only )); then

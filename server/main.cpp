@@ -1,6 +1,11 @@
 // visq-server: flags (each also an environment variable, for containers),
 // signals, and the server lifecycle.
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <cerrno>
 #include <csignal>
+#include <cstring>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
@@ -16,6 +21,41 @@
 #include "service/auth.h"
 #include "service/log_format.h"
 #include "service/server.h"
+
+namespace {
+
+// Written to a temporary name and renamed: a reader never sees half.
+bool WritePortFile(const std::string& path, int port) {
+  const std::string temporary = path + ".tmp";
+  std::FILE* f = std::fopen(temporary.c_str(), "w");
+  if (f == nullptr) return false;
+  const bool written = std::fprintf(f, "%d\n", port) >= 0;
+  return std::fclose(f) == 0 && written && std::rename(temporary.c_str(), path.c_str()) == 0;
+}
+
+// A file of 64 hex digits (256 random bits), readable by this user only.
+// Returns false when the file was there already (its token is kept).
+visq::StatusOr<bool> CreateTokenFileIfAbsent(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
+  if (fd < 0 && errno == EEXIST) return false;
+  if (fd < 0) return absl::FailedPreconditionError(absl::StrCat("cannot create it: ", std::strerror(errno)));
+  unsigned char random[32];
+  std::ifstream urandom("/dev/urandom", std::ios::binary);
+  urandom.read(reinterpret_cast<char*>(random), sizeof(random));
+  std::string hex;
+  for (unsigned char b : random) hex += fmt::format("{:02x}", b);
+  hex += '\n';
+  const bool written = urandom && ::write(fd, hex.data(), hex.size()) == static_cast<ssize_t>(hex.size()) &&
+                       ::fsync(fd) == 0;
+  ::close(fd);
+  if (!written) {
+    ::unlink(path.c_str());
+    return absl::DataLossError("cannot write a new token");
+  }
+  return true;
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   visq::service::ServerOptions options;
@@ -61,6 +101,10 @@ int main(int argc, char** argv) {
   app.add_option("--server-id", options.server_id, "Name reported by GetStats (default host:port)")->envname("VISQ_SERVER_ID");
   app.add_option("--auth-token-file", auth_token_file, "File holding the bearer token every call must carry")
       ->envname("VISQ_AUTH_TOKEN_FILE");
+  bool create_auth_token = false;
+  app.add_flag("--auth-token-create", create_auth_token,
+               "If --auth-token-file does not exist, write a new random token there (mode 0600) first")
+      ->envname("VISQ_AUTH_TOKEN_CREATE");
   app.add_option("--tls-cert", options.tls.cert_file, "PEM certificate chain: serve TLS")->envname("VISQ_TLS_CERT");
   app.add_option("--tls-key", options.tls.key_file, "PEM private key for --tls-cert")->envname("VISQ_TLS_KEY");
   app.add_option("--tls-client-ca", options.tls.client_ca_file, "PEM CA that client certificates must chain to (mutual TLS)")
@@ -72,15 +116,50 @@ int main(int argc, char** argv) {
       ->envname("VISQ_NO_PRELOAD");
   app.add_option("--port-file", port_file, "Write the bound port here once listening (for --address HOST:0)")
       ->envname("VISQ_PORT_FILE");
+  app.add_option("--metrics-address", options.metrics_address,
+                 "HOST:PORT for Prometheus (GET /metrics, plain HTTP); empty: none")
+      ->envname("VISQ_METRICS_ADDRESS");
+  app.add_flag("--metrics-allow-remote", options.allow_remote_metrics,
+               "Let --metrics-address be beyond loopback")->envname("VISQ_METRICS_ALLOW_REMOTE");
+  std::string metrics_port_file;
+  app.add_option("--metrics-port-file", metrics_port_file,
+                 "Write the bound /metrics port here (for --metrics-address HOST:0)")
+      ->envname("VISQ_METRICS_PORT_FILE");
+  std::string log_format = "text";
+  app.add_option("--log-format", log_format, "text, or json (one object a line)")
+      ->envname("VISQ_LOG_FORMAT")->check(CLI::IsMember({"text", "json"}))->capture_default_str();
+  int drain_seconds = 10;
+  app.add_option("--drain-seconds", drain_seconds,
+                 "On SIGTERM, how long calls in progress may take to finish before they are cancelled")
+      ->envname("VISQ_DRAIN_SECONDS")->check(CLI::Range(0, 3600))->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  if (!metrics_port_file.empty() && options.metrics_address.empty()) {
+    std::cerr << "--metrics-port-file needs --metrics-address\n";
+    return EXIT_FAILURE;
+  }
 
   spdlog::set_level(spdlog::level::from_str(log_level));
-  visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+  if (log_format == "json") visq::service::UseJsonLogFormat();
+  else visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+  visq::service::RouteLibraryLogsToSpdlog();
   options.engine.scene_repo = scene_repo;
   options.engine.max_upload_bytes = max_upload_bytes;
   options.engine.max_scene_bytes = max_scene_bytes;
   options.engine.light_cache_bytes = static_cast<size_t>(light_cache_bytes);
   options.engine.load_repository_at_start = !no_preload;
+  if (create_auth_token && auth_token_file.empty()) {
+    std::cerr << "--auth-token-create needs --auth-token-file\n";
+    return EXIT_FAILURE;
+  }
+  if (create_auth_token) {
+    visq::StatusOr<bool> created = CreateTokenFileIfAbsent(auth_token_file);
+    if (!created.ok()) {
+      spdlog::critical("--auth-token-create {}: {}", auth_token_file, created.status().message());
+      return EXIT_FAILURE;
+    }
+    // The path only: the token never goes to the log.
+    if (*created) spdlog::info("created a new bearer token in {}; clients read it from there", auth_token_file);
+  }
   if (!auth_token_file.empty()) {
     std::ifstream in(auth_token_file, std::ios::binary);
     std::stringstream text;
@@ -118,21 +197,19 @@ int main(int argc, char** argv) {
     spdlog::critical("start-up failed: {}", server.status().message());
     return EXIT_FAILURE;
   }
-  if (!port_file.empty()) {
-    // Written to a temporary name and renamed: a reader never sees half.
-    const std::string temporary = port_file + ".tmp";
-    std::FILE* f = std::fopen(temporary.c_str(), "w");
-    if (f == nullptr || std::fprintf(f, "%d\n", (*server)->port()) < 0 || std::fclose(f) != 0 ||
-        std::rename(temporary.c_str(), port_file.c_str()) != 0) {
-      spdlog::critical("cannot write --port-file {}", port_file);
-      return EXIT_FAILURE;
-    }
+  if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {
+    spdlog::critical("cannot write --port-file {}", port_file);
+    return EXIT_FAILURE;
+  }
+  if (!metrics_port_file.empty() && !WritePortFile(metrics_port_file, (*server)->metrics_port())) {
+    spdlog::critical("cannot write --metrics-port-file {}", metrics_port_file);
+    return EXIT_FAILURE;
   }
   (*server)->Ready();
 
   int signal_number = 0;
   sigwait(&signals, &signal_number);
   spdlog::info("received {}", signal_number == SIGINT ? "SIGINT" : "SIGTERM");
-  (*server)->GracefulStop(std::chrono::seconds(10));
+  (*server)->GracefulStop(std::chrono::seconds(drain_seconds));
   return EXIT_SUCCESS;
 }

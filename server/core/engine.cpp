@@ -1,5 +1,6 @@
 #include "core/engine.h"
 
+#include <algorithm>
 #include <chrono>
 #include <mutex>
 
@@ -91,6 +92,7 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
   resident->dropped = std::move(report.dropped);
   resident->persisted = persisted;
   resident->load_ms = MillisecondsSince(start);
+  build_times_.Record("scene_load", resident->load_ms);
   // A stored upload keeps the version it was committed with; a scene placed
   // by hand (its file may have changed) takes a new one.
   uint64_t version = repository_->StoredVersion(resident->name);
@@ -167,6 +169,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
   resident->dropped = std::move(report.dropped);
   resident->persisted = true;
   resident->load_ms = MillisecondsSince(start);
+  build_times_.Record("scene_load", resident->load_ms);
   resident->version = stored.version;
   {
     std::unique_lock lock(scenes_mutex_);
@@ -282,6 +285,7 @@ StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneOf(const ResidentScene&
   if (!resident.gpu_scene || !resident.gpu_scene->IsCurrent()) {
     const auto start = std::chrono::steady_clock::now();
     VISQ_ASSIGN_OR_RETURN(resident.gpu_scene, gpu::GpuScene::Upload(*gpu_, *resident.scene));
+    build_times_.Record("gpu_upload", MillisecondsSince(start));
     spdlog::info("scene '{}' v{}: GPU upload of {} bytes in {:.1f} ms", resident.name, resident.version,
                  resident.gpu_scene->gpu_bytes(), MillisecondsSince(start));
   }
@@ -294,6 +298,7 @@ StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const Resi
     const auto start = std::chrono::steady_clock::now();
     VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(*resident.scene));
     resident.embree_scene = std::make_shared<raycast::EmbreeScene>(std::move(embree));
+    build_times_.Record("embree_bvh", MillisecondsSince(start));
     spdlog::info("scene '{}' v{}: Embree BVH ({} bytes) in {:.1f} ms", resident.name, resident.version,
                  resident.embree_scene->memory_bytes(), MillisecondsSince(start));
   }
@@ -305,10 +310,24 @@ StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> Engine::TriangleIndex
   if (!resident.triangle_index) {
     const auto start = std::chrono::steady_clock::now();
     VISQ_ASSIGN_OR_RETURN(resident.triangle_index, exact::SceneTriangleIndex::Build(*resident.scene));
+    build_times_.Record("triangle_index", MillisecondsSince(start));
     spdlog::info("scene '{}' v{}: triangle index ({} bytes) in {:.1f} ms", resident.name, resident.version,
                  resident.triangle_index->MemoryBytes(), MillisecondsSince(start));
   }
   return resident.triangle_index;
+}
+
+void BuildTimes::Record(const std::string& kind, double ms) {
+  std::lock_guard lock(mutex_);
+  Figures& f = kinds_[kind];
+  ++f.count;
+  f.total_ms += ms;
+  f.max_ms = std::max(f.max_ms, ms);
+}
+
+std::map<std::string, BuildTimes::Figures> BuildTimes::Snapshot() const {
+  std::lock_guard lock(mutex_);
+  return kinds_;
 }
 
 StatusOr<gpu::HiddenSampleMapper*> Engine::hidden_sample_mapper() {

@@ -100,6 +100,23 @@ class SceneUpload {
   uint64_t expected_bytes_ = 0;  // 0: not announced
 };
 
+// How long the structures built on first use took, per kind ("scene_load",
+// "gpu_upload", "embree_bvh", "triangle_index"): for GetStats and /metrics.
+class BuildTimes {
+ public:
+  struct Figures {
+    uint64_t count = 0;
+    double total_ms = 0;
+    double max_ms = 0;
+  };
+  void Record(const std::string& kind, double ms);
+  std::map<std::string, Figures> Snapshot() const;
+
+ private:
+  mutable std::mutex mutex_;
+  std::map<std::string, Figures> kinds_;
+};
+
 class Engine {
  public:
   // Opens the repository and starts the GL thread; does not load scenes yet
@@ -160,6 +177,7 @@ class Engine {
   const SceneRepository& repository() const { return *repository_; }
   // Measured costs of the query methods, for AccuracyTarget requests.
   CostModel& cost_model() { return cost_model_; }
+  const BuildTimes& build_times() const { return build_times_; }
 
  private:
   Engine() = default;
@@ -184,6 +202,7 @@ class Engine {
   std::mutex obscurance_mutex_;
   std::map<std::string, std::shared_ptr<ObscuranceState>, std::less<>> obscurance_states_;
   CostModel cost_model_;
+  BuildTimes build_times_;
 };
 
 // XXH3-128 of the flattened geometry and materials, as 32 hex digits.

@@ -1,8 +1,12 @@
 #include "service/log_format.h"
 
+#include <chrono>
+#include <ctime>
 #include <memory>
 
 #include <absl/strings/str_format.h>
+#include <google/protobuf/stubs/logging.h>
+#include <grpc/support/log.h>
 #include <spdlog/pattern_formatter.h>
 #include <spdlog/spdlog.h>
 
@@ -37,7 +41,100 @@ class EscapingFormatter final : public spdlog::formatter {
   std::unique_ptr<spdlog::pattern_formatter> inner_;
 };
 
+class JsonFormatter final : public spdlog::formatter {
+ public:
+  void format(const spdlog::details::log_msg& msg, spdlog::memory_buf_t& dest) override {
+    const auto since_epoch = msg.time.time_since_epoch();
+    const std::time_t seconds = std::chrono::duration_cast<std::chrono::seconds>(since_epoch).count();
+    const auto millis = std::chrono::duration_cast<std::chrono::milliseconds>(since_epoch).count() % 1000;
+    std::tm utc{};
+    ::gmtime_r(&seconds, &utc);
+    const spdlog::string_view_t level = spdlog::level::to_string_view(msg.level);
+    const std::string logger = msg.logger_name.size() ? std::string(msg.logger_name.data(), msg.logger_name.size())
+                                                      : std::string("visq");
+    const std::string line = absl::StrFormat(
+        "{\"time\":\"%04d-%02d-%02dT%02d:%02d:%02d.%03dZ\",\"level\":\"%s\",\"logger\":\"%s\",\"message\":\"%s\"}\n",
+        utc.tm_year + 1900, utc.tm_mon + 1, utc.tm_mday, utc.tm_hour, utc.tm_min, utc.tm_sec,
+        static_cast<int>(millis), std::string_view(level.data(), level.size()), EscapeForJson(logger),
+        EscapeForJson(std::string_view(msg.payload.data(), msg.payload.size())));
+    dest.append(line.data(), line.data() + line.size());
+  }
+  std::unique_ptr<spdlog::formatter> clone() const override { return std::make_unique<JsonFormatter>(); }
+};
+
+// The length of the valid UTF-8 sequence at text[i], or 0 (RFC 3629: no
+// overlong forms, no surrogates, nothing past U+10FFFF).
+size_t Utf8SequenceLength(std::string_view text, size_t i) {
+  const auto byte = [&](size_t k) { return static_cast<unsigned char>(text[k]); };
+  const unsigned char c = byte(i);
+  size_t n = 0;
+  unsigned char low = 0x80, high = 0xbf;  // the second byte's range
+  if (c >= 0xc2 && c <= 0xdf) n = 2;
+  else if (c >= 0xe0 && c <= 0xef) {
+    n = 3;
+    if (c == 0xe0) low = 0xa0;
+    if (c == 0xed) high = 0x9f;
+  } else if (c >= 0xf0 && c <= 0xf4) {
+    n = 4;
+    if (c == 0xf0) low = 0x90;
+    if (c == 0xf4) high = 0x8f;
+  } else {
+    return 0;
+  }
+  if (i + n > text.size()) return 0;
+  if (byte(i + 1) < low || byte(i + 1) > high) return 0;
+  for (size_t k = 2; k < n; ++k)
+    if (byte(i + k) < 0x80 || byte(i + k) > 0xbf) return 0;
+  return n;
+}
+
 }  // namespace
+
+std::string EscapeForJson(std::string_view text) {
+  std::string out;
+  out.reserve(text.size() + 8);
+  for (size_t i = 0; i < text.size();) {
+    const auto c = static_cast<unsigned char>(text[i]);
+    if (c >= 0x80) {
+      const size_t n = Utf8SequenceLength(text, i);
+      if (n == 0) {
+        out += "\\ufffd";
+        ++i;
+      } else {
+        out.append(text.substr(i, n));
+        i += n;
+      }
+      continue;
+    }
+    if (c == '"') out += "\\\"";
+    else if (c == '\\') out += "\\\\";
+    else if (c == '\n') out += "\\n";
+    else if (c == '\r') out += "\\r";
+    else if (c == '\t') out += "\\t";
+    else if (c < 0x20 || c == 0x7f) out += absl::StrFormat("\\u%04x", c);
+    else out += static_cast<char>(c);
+    ++i;
+  }
+  return out;
+}
+
+void RouteLibraryLogsToSpdlog() {
+  google::protobuf::SetLogHandler([](google::protobuf::LogLevel level, const char* file, int line,
+                                     const std::string& message) {
+    const auto spd = level >= google::protobuf::LOGLEVEL_ERROR     ? spdlog::level::err
+                     : level == google::protobuf::LOGLEVEL_WARNING ? spdlog::level::warn
+                                                                   : spdlog::level::info;
+    spdlog::log(spd, "protobuf {}:{}: {}", file, line, message);
+  });
+  gpr_set_log_function([](gpr_log_func_args* args) {
+    const auto spd = args->severity == GPR_LOG_SEVERITY_ERROR  ? spdlog::level::err
+                     : args->severity == GPR_LOG_SEVERITY_INFO ? spdlog::level::info
+                                                                : spdlog::level::debug;
+    spdlog::log(spd, "grpc {}:{}: {}", args->file, args->line, args->message);
+  });
+}
+
+void UseJsonLogFormat() { spdlog::set_formatter(std::make_unique<JsonFormatter>()); }
 
 std::string EscapeForLog(std::string_view text) {
   std::string out;

@@ -16,4 +16,18 @@ std::string EscapeForLog(std::string_view text);
 // message's text first.
 void UseEscapingLogFormat(const std::string& pattern);
 
+// `text` as the inside of a JSON string: quote, backslash and every control
+// character escaped, and each byte that is not part of valid UTF-8 replaced
+// by U+FFFD, so that any parser takes the line.
+std::string EscapeForJson(std::string_view text);
+
+// One JSON object a line, for log collectors:
+// {"time":"2026-01-02T03:04:05.678Z","level":"info","logger":"visq","message":"..."}
+// with the time in UTC (RFC 3339).
+void UseJsonLogFormat();
+
+// Sends what protobuf and gRPC log (to stderr, by default) through spdlog,
+// so that those lines take the chosen format and escaping too.
+void RouteLibraryLogsToSpdlog();
+
 }  // namespace visq::service

@@ -24,22 +24,48 @@ double Metrics::Percentile(const Histogram& h, double fraction) {
   return h.max_ms;
 }
 
-void Metrics::Record(const std::string& method, double ms, bool ok) {
+void Metrics::Begin(const std::string& method) {
+  std::lock_guard lock(mutex_);
+  ++methods_[method].in_flight;
+}
+
+void Metrics::Abandon(const std::string& method) {
   std::lock_guard lock(mutex_);
   Histogram& h = methods_[method];
+  if (h.in_flight > 0) --h.in_flight;
+}
+
+void Metrics::Record(const std::string& method, double ms, absl::StatusCode code) {
+  std::lock_guard lock(mutex_);
+  Histogram& h = methods_[method];
+  if (h.in_flight > 0) --h.in_flight;
   ++h.calls;
-  if (!ok) ++h.errors;
+  if (code != absl::StatusCode::kOk) ++h.errors;
+  ++h.codes[code];
   h.total_ms += ms;
   h.max_ms = std::max(h.max_ms, ms);
   ++h.buckets[Bucket(ms)];
+  const double seconds = ms / 1e3;
+  for (size_t i = 0; i < kPrometheusBucketsSeconds.size(); ++i) {
+    if (seconds <= kPrometheusBucketsSeconds[i]) {
+      ++h.prometheus_buckets[i];
+      break;
+    }
+  }
 }
 
 std::vector<MethodSummary> Metrics::Summaries() const {
   std::lock_guard lock(mutex_);
   std::vector<MethodSummary> out;
   for (const auto& [method, h] : methods_) {
-    out.push_back({method, h.calls, h.errors, h.calls ? h.total_ms / h.calls : 0.0, Percentile(h, 0.5),
-                   Percentile(h, 0.99), h.max_ms});
+    MethodSummary s{method, h.calls, h.errors, h.calls ? h.total_ms / h.calls : 0.0, Percentile(h, 0.5),
+                    Percentile(h, 0.99), h.max_ms};
+    s.in_flight = h.in_flight;
+    for (const auto& [code, count] : h.codes) s.codes[absl::StatusCodeToString(code)] = count;
+    s.total_seconds = h.total_ms / 1e3;
+    uint64_t cumulative = 0;
+    for (uint64_t count : h.prometheus_buckets) s.cumulative_buckets.push_back(cumulative += count);
+    out.push_back(std::move(s));
   }
   return out;
 }

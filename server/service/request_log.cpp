@@ -8,6 +8,7 @@ constexpr size_t kMaxClientIdLength = 64;
 
 RequestLog::RequestLog(grpc::CallbackServerContext* context, const char* method, Metrics* metrics)
     : method_(method), metrics_(metrics), start_(std::chrono::steady_clock::now()) {
+  if (metrics_ != nullptr) metrics_->Begin(method_);
   const auto& metadata = context->client_metadata();
   auto it = metadata.find("x-request-id");
   if (it != metadata.end() && !it->second.empty() && it->second.size() <= kMaxClientIdLength) {
@@ -19,13 +20,17 @@ RequestLog::RequestLog(grpc::CallbackServerContext* context, const char* method,
   }
 }
 
+RequestLog::~RequestLog() {
+  if (metrics_ != nullptr && !done_.exchange(true)) metrics_->Abandon(method_);
+}
+
 double RequestLog::ElapsedMs() const {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start_).count();
 }
 
 double RequestLog::Done(const Status& status) const {
   const double ms = ElapsedMs();
-  if (metrics_ != nullptr) metrics_->Record(method_, ms, status.ok());
+  if (metrics_ != nullptr && !done_.exchange(true)) metrics_->Record(method_, ms, status.code());
   if (status.ok())
     spdlog::info("[{} {}] OK in {:.2f} ms", id_, method_, ms);
   else

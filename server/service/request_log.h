@@ -18,13 +18,18 @@ class RequestLog {
  public:
   // Uses the client's x-request-id metadata when it sends one.
   RequestLog(grpc::CallbackServerContext* context, const char* method, Metrics* metrics);
+  // A call that never reached Done (its reactor went first) leaves the
+  // in-flight count.
+  ~RequestLog();
+  RequestLog(const RequestLog&) = delete;
+  RequestLog& operator=(const RequestLog&) = delete;
 
   template <typename... Args>
   void Info(fmt::format_string<Args...> format, Args&&... args) const {
     spdlog::info("[{} {}] {}", id_, method_, fmt::format(format, std::forward<Args>(args)...));
   }
-  // Logs the outcome with the total time and records it in the metrics;
-  // returns the time in milliseconds.
+  // Logs the outcome with the total time and records it in the metrics
+  // (the first call only); returns the time in milliseconds.
   double Done(const Status& status) const;
   double ElapsedMs() const;
   const std::string& id() const { return id_; }
@@ -34,6 +39,7 @@ class RequestLog {
   const char* method_;
   Metrics* metrics_;
   std::chrono::steady_clock::time_point start_;
+  mutable std::atomic<bool> done_{false};
 };
 
 }  // namespace visq::service

@@ -109,6 +109,11 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
     return absl::FailedPreconditionError(absl::StrCat(
         "refusing to listen on ", options.address,
         " without TLS or a bearer token; set --tls-cert/--tls-key, --auth-token-file, or --allow-insecure-remote"));
+  if (!options.metrics_address.empty()) VISQ_RETURN_IF_ERROR(CheckMetricsAddress(options.metrics_address));
+  if (!options.metrics_address.empty() && !options.allow_remote_metrics && !IsLoopbackAddress(options.metrics_address))
+    return absl::FailedPreconditionError(absl::StrCat(
+        "refusing to serve /metrics on ", options.metrics_address,
+        " (not loopback, and plain HTTP without authentication); set --metrics-allow-remote to mean it"));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<grpc::ServerCredentials> credentials, Credentials(options.tls));
 
   std::unique_ptr<Server> server(new Server());
@@ -120,7 +125,8 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   server->authorizer_ = std::make_unique<Authorizer>(options.auth_token);
 
   grpc::EnableDefaultHealthCheckService(true);
-  // Reflection lists the API to anyone who asks: only without a token.
+  // Reflection lists the API to anyone who asks: only without a token
+  // (v1alpha from gRPC's plugin, v1 from ReflectionV1Service below).
   if (options.auth_token.empty()) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   if (!options.auth_token.empty()) builder.SetOption(std::make_unique<WithoutReflection>());
@@ -138,6 +144,12 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   };
   server->service_ = std::make_unique<VisibilityServiceImpl>(service_context());
   builder.RegisterService(server->service_.get());
+  if (options.auth_token.empty()) {
+    server->reflection_v1_ = std::make_unique<ReflectionV1Service>(std::vector<std::string>{
+        v1::VisibilityService::service_full_name(), "grpc.health.v1.Health",
+        "grpc.reflection.v1alpha.ServerReflection", grpc::reflection::v1::ServerReflection::service_full_name()});
+    builder.RegisterService(server->reflection_v1_.get());
+  }
   server->grpc_server_ = builder.BuildAndStart();
   if (!server->grpc_server_ || server->port_ == 0)
     return absl::UnavailableError(absl::StrCat("cannot listen on ", options.address));
@@ -146,6 +158,12 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
     server->service_->set_server_id(server_id);
   }
   server->SetServing(false);
+  if (!options.metrics_address.empty()) {
+    VisibilityServiceImpl* service = server->service_.get();
+    auto metrics = MetricsHttpServer::Start(options.metrics_address, [service] { return service->Figures(); });
+    if (!metrics.ok()) return metrics.status();
+    server->metrics_http_ = *std::move(metrics);
+  }
   spdlog::info("listening on {} (port {}, {}{}), health NOT_SERVING until scenes are loaded", options.address,
                server->port_, tls ? (options.tls.client_ca_file.empty() ? "TLS" : "mutual TLS") : "plaintext",
                options.auth_token.empty() ? "" : ", bearer token required");
@@ -181,6 +199,8 @@ void Server::GracefulStop(std::chrono::milliseconds drain) {
   spdlog::info("shutting down: health NOT_SERVING, draining requests for up to {} ms", drain.count());
   grpc_server_->Shutdown(std::chrono::system_clock::now() + drain);
   grpc_server_->Wait();
+  // Scrapes read the executors and the engine: stopped before either goes.
+  if (metrics_http_) metrics_http_->Stop();
   executor_.reset();
   metadata_executor_.reset();
   spdlog::info("shut down");

@@ -11,6 +11,8 @@
 
 #include "core/engine.h"
 #include "service/executor.h"
+#include "service/metrics_http.h"
+#include "service/reflection_v1.h"
 #include "service/visibility_service.h"
 
 namespace visq::service {
@@ -29,6 +31,9 @@ struct ServerOptions {
   std::string auth_token;        // bearer token required on every visq.v1 call when set
   TlsOptions tls;
   bool allow_insecure_remote = false;  // listen beyond loopback without TLS and token
+  // HOST:PORT for Prometheus's GET /metrics (plain HTTP); empty: no endpoint.
+  std::string metrics_address;
+  bool allow_remote_metrics = false;  // metrics_address may be beyond loopback
   EngineOptions engine;
 };
 
@@ -45,6 +50,8 @@ class Server {
   void Ready();
   // The port actually bound (useful with port 0).
   int port() const { return port_; }
+  // The /metrics port bound, 0 without one.
+  int metrics_port() const { return metrics_http_ ? metrics_http_->port() : 0; }
   void GracefulStop(std::chrono::milliseconds drain);
   Engine& engine() { return *engine_; }
 
@@ -59,7 +66,9 @@ class Server {
   std::unique_ptr<Metrics> metrics_;
   std::unique_ptr<Authorizer> authorizer_;
   std::unique_ptr<VisibilityServiceImpl> service_;
+  std::unique_ptr<ReflectionV1Service> reflection_v1_;
   std::unique_ptr<grpc::Server> grpc_server_;
+  std::unique_ptr<MetricsHttpServer> metrics_http_;
   int port_ = 0;
   bool stopped_ = false;
 };

@@ -12,6 +12,7 @@
 #include "core/voxel_query.h"
 #include "service/convert.h"
 #include "service/reactors.h"
+#include "service/stats.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
 
@@ -203,38 +204,33 @@ namespace visq::service {
 grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerContext* context,
                                                           const v1::GetStatsRequest*, v1::ServerStats* response) {
   return RunUnaryCall(ctx_, context, "GetStats", [this, response](RequestLog&) {
-    response->set_server_id(ctx_.server_id);
-    response->set_server_version(kVersion);
-    response->set_build_commit(kBuildCommit);
-    response->set_uptime_s(
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - ctx_.started).count());
-    const gpu::DeviceInfo& device = ctx_.engine.device();
-    response->set_gpu_vendor(device.gl_vendor);
-    response->set_gpu_renderer(device.gl_renderer);
-    response->set_gl_version(device.gl_version);
-    response->set_egl_device(device.egl_device);
-    response->set_gpu_software(device.software);
-    response->set_gpu_queue_depth(static_cast<uint32_t>(ctx_.engine.gpu().queue_depth()));
-    response->set_gpu_contexts_lost(ctx_.engine.gpu().contexts_lost());
-    response->set_worker_queue_depth(static_cast<uint32_t>(ctx_.executor.queued()));
-    uint64_t cpu = 0, gpu_bytes = 0;
-    const auto scenes = ctx_.engine.ListScenes();
-    for (const auto& scene : scenes) {
-      cpu += scene.cpu_bytes;
-      gpu_bytes += scene.gpu_bytes;
+    const ServerFigures f = CollectServerFigures(ctx_);
+    response->set_server_id(f.server_id);
+    response->set_server_version(f.version);
+    response->set_build_commit(f.build_commit);
+    response->set_uptime_s(f.uptime_s);
+    response->set_gpu_vendor(f.device.gl_vendor);
+    response->set_gpu_renderer(f.device.gl_renderer);
+    response->set_gl_version(f.device.gl_version);
+    response->set_egl_device(f.device.egl_device);
+    response->set_gpu_software(f.device.software);
+    response->set_gpu_queue_depth(static_cast<uint32_t>(f.gpu_queue_depth));
+    response->set_gpu_contexts_lost(f.gpu_contexts_lost);
+    response->set_worker_queue_depth(static_cast<uint32_t>(f.worker_queue_depth));
+    response->set_scenes_resident(static_cast<uint32_t>(f.scenes_resident));
+    response->mutable_scene_memory()->set_cpu_bytes(f.scene_cpu_bytes);
+    response->mutable_scene_memory()->set_gpu_bytes(f.scene_gpu_bytes);
+    for (const CacheFigures& c : f.caches) {
+      auto* cache = response->add_caches();
+      cache->set_name(c.name);
+      cache->set_entries(c.entries);
+      cache->set_bytes(c.bytes);
+      cache->set_capacity_bytes(c.capacity_bytes);
+      cache->set_hits(c.hits);
+      cache->set_misses(c.misses);
+      cache->set_evictions(c.evictions);
     }
-    response->set_scenes_resident(static_cast<uint32_t>(scenes.size()));
-    response->mutable_scene_memory()->set_cpu_bytes(cpu);
-    response->mutable_scene_memory()->set_gpu_bytes(gpu_bytes);
-    auto* light_cache = response->add_caches();
-    light_cache->set_name("light_visibility");
-    light_cache->set_entries(ctx_.engine.light_cache().size());
-    light_cache->set_bytes(ctx_.engine.light_cache().bytes());
-    light_cache->set_capacity_bytes(ctx_.engine.light_cache_capacity());
-    light_cache->set_hits(ctx_.engine.light_tree_hits.load());
-    light_cache->set_misses(ctx_.engine.light_tree_misses.load());
-    light_cache->set_evictions(ctx_.engine.light_cache().evictions());
-    for (const auto& m : ctx_.metrics.Summaries()) {
+    for (const auto& m : f.methods) {
       auto* out = response->add_methods();
       out->set_method(m.method);
       out->set_calls(m.calls);

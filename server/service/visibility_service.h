@@ -9,6 +9,7 @@
 #include "service/auth.h"
 #include "service/executor.h"
 #include "service/metrics.h"
+#include "service/stats.h"
 #include "visq/v1/visq.grpc.pb.h"
 
 namespace visq::service {
@@ -29,6 +30,8 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
   explicit VisibilityServiceImpl(ServiceContext context) : ctx_(std::move(context)) {}
   // Before the server starts serving only.
   void set_server_id(std::string id) { ctx_.server_id = std::move(id); }
+  // What GetStats reports, for the other transports (/metrics).
+  ServerFigures Figures() const { return CollectServerFigures(ctx_); }
 
   grpc::ServerReadReactor<v1::LoadSceneRequest>* LoadScene(grpc::CallbackServerContext* context,
                                                            v1::SceneInfo* response) override;

@@ -2,11 +2,18 @@
 // so the Dockerfile and manifests are checked for what can break without
 // one — every path the Dockerfile copies exists, every script it runs is the
 // project's, and every manifest has the fields the issue requires.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <map>
 #include <regex>
+#include <set>
 #include <sstream>
+#include <thread>
 
 #include <gtest/gtest.h>
 #include <yaml-cpp/yaml.h>
@@ -149,6 +156,232 @@ TEST(Kubernetes, RouterHashesTheSceneHeader) {
     found = true;
   }
   EXPECT_TRUE(found);
+}
+
+// The pod specs of every workload in the manifests, with the object's name.
+std::vector<std::pair<std::string, YAML::Node>> PodSpecs() {
+  std::vector<std::pair<std::string, YAML::Node>> out;
+  for (const auto& [kind, doc] : Manifests()) {
+    if (kind == "Pod") out.emplace_back(doc["metadata"]["name"].as<std::string>(), doc["spec"]);
+    if (kind == "Deployment" || kind == "StatefulSet" || kind == "DaemonSet" || kind == "Job")
+      out.emplace_back(doc["metadata"]["name"].as<std::string>(), doc["spec"]["template"]["spec"]);
+  }
+  return out;
+}
+
+std::vector<YAML::Node> ContainersOf(const YAML::Node& pod) {
+  std::vector<YAML::Node> out;
+  for (const char* list : {"initContainers", "containers", "ephemeralContainers"})
+    if (pod[list])
+      for (const auto& c : pod[list]) out.push_back(c);
+  return out;
+}
+
+// A field set on the container, else on the pod (the container's wins).
+YAML::Node Effective(const YAML::Node& pod, const YAML::Node& container, const std::string& field) {
+  if (container["securityContext"] && container["securityContext"][field]) return container["securityContext"][field];
+  if (pod["securityContext"] && pod["securityContext"][field]) return pod["securityContext"][field];
+  return YAML::Node();
+}
+
+// The "restricted" Pod Security Standard's required fields, as the
+// admission controller checks them (baseline's included: no host
+// namespaces, no privileged containers, no hostPath), plus a read-only root
+// filesystem, which the issue asks for.
+TEST(Kubernetes, EveryPodMeetsTheRestrictedProfile) {
+  const auto pods = PodSpecs();
+  ASSERT_GE(pods.size(), 2u);
+  static const std::set<std::string> allowed_volumes = {"configMap", "csi", "downwardAPI", "emptyDir", "ephemeral",
+                                                        "persistentVolumeClaim", "projected", "secret"};
+  for (const auto& [name, pod] : pods) {
+    for (const char* host : {"hostNetwork", "hostPID", "hostIPC"})
+      EXPECT_FALSE(pod[host] && pod[host].as<bool>()) << name << ": " << host;
+    for (const auto& volume : pod["volumes"])
+      for (const auto& field : volume) {
+        if (field.first.as<std::string>() == "name") continue;
+        EXPECT_TRUE(allowed_volumes.count(field.first.as<std::string>()))
+            << name << ": volume type " << field.first.as<std::string>() << " is not allowed";
+      }
+    const auto containers = ContainersOf(pod);
+    ASSERT_FALSE(containers.empty()) << name;
+    for (const auto& c : containers) {
+      const std::string where = name + "/" + c["name"].as<std::string>();
+      const YAML::Node sc = c["securityContext"];
+      ASSERT_TRUE(sc.IsMap()) << where << ": no securityContext";
+      EXPECT_FALSE(sc["privileged"] && sc["privileged"].as<bool>()) << where;
+      ASSERT_TRUE(sc["allowPrivilegeEscalation"]) << where;
+      EXPECT_FALSE(sc["allowPrivilegeEscalation"].as<bool>()) << where;
+      bool drops_all = false;
+      for (const auto& cap : sc["capabilities"]["drop"]) drops_all |= cap.as<std::string>() == "ALL";
+      EXPECT_TRUE(drops_all) << where << ": capabilities.drop must hold ALL";
+      if (sc["capabilities"]["add"]) {
+        for (const auto& cap : sc["capabilities"]["add"]) EXPECT_EQ(cap.as<std::string>(), "NET_BIND_SERVICE") << where;
+      }
+      const YAML::Node non_root = Effective(pod, c, "runAsNonRoot");
+      EXPECT_TRUE(non_root && non_root.as<bool>()) << where << ": runAsNonRoot";
+      const YAML::Node user = Effective(pod, c, "runAsUser");
+      EXPECT_TRUE(user && user.as<int>() > 0) << where << ": runAsUser must be set and not 0";
+      const YAML::Node seccomp = Effective(pod, c, "seccompProfile");
+      ASSERT_TRUE(seccomp) << where << ": seccompProfile";
+      const std::string type = seccomp["type"].as<std::string>();
+      EXPECT_TRUE(type == "RuntimeDefault" || type == "Localhost") << where << ": seccompProfile " << type;
+      EXPECT_TRUE(sc["readOnlyRootFilesystem"] && sc["readOnlyRootFilesystem"].as<bool>()) << where;
+      // A read-only root needs somewhere to write temporary files.
+      bool tmp = false;
+      for (const auto& mount : c["volumeMounts"]) tmp |= mount["mountPath"].as<std::string>() == "/tmp";
+      EXPECT_TRUE(tmp) << where << ": /tmp must be a volume (emptyDir) under a read-only root";
+    }
+  }
+}
+
+TEST(Kubernetes, EveryObjectIsInTheRestrictedNamespace) {
+  const auto manifests = Manifests();
+  ASSERT_EQ(manifests.count("Namespace"), 1u);
+  const YAML::Node ns = manifests.find("Namespace")->second;
+  const std::string name = ns["metadata"]["name"].as<std::string>();
+  EXPECT_EQ(ns["metadata"]["labels"]["pod-security.kubernetes.io/enforce"].as<std::string>(), "restricted");
+  for (const auto& [kind, doc] : manifests) {
+    if (kind == "Namespace") continue;
+    ASSERT_TRUE(doc["metadata"]["namespace"]) << kind << " " << doc["metadata"]["name"];
+    EXPECT_EQ(doc["metadata"]["namespace"].as<std::string>(), name) << kind << " " << doc["metadata"]["name"];
+  }
+}
+
+TEST(Kubernetes, ImagesArePinned) {
+  int images = 0;
+  for (const auto& [name, pod] : PodSpecs())
+    for (const auto& c : ContainersOf(pod)) {
+      const std::string image = c["image"].as<std::string>();
+      ++images;
+      if (image.find("@sha256:") != std::string::npos) continue;
+      const size_t colon = image.rfind(':');
+      ASSERT_TRUE(colon != std::string::npos && image.find('/', colon) == std::string::npos)
+          << name << ": image " << image << " has no tag";
+      const std::string tag = image.substr(colon + 1);
+      EXPECT_EQ(tag.find("latest"), std::string::npos) << name << ": image " << image << " floats";
+      EXPECT_TRUE(std::regex_search(tag, std::regex(R"(\d+\.\d+\.\d+)"))) << name << ": " << image
+                                                                          << " is not a release";
+    }
+  EXPECT_GE(images, 2);
+  const std::string compose = Read(kSource / "deploy/compose.yaml");
+  EXPECT_EQ(compose.find(":latest"), std::string::npos) << "compose.yaml names a floating tag";
+}
+
+TEST(Kubernetes, EveryDeploymentHasAPodDisruptionBudget) {
+  const auto manifests = Manifests();
+  int deployments = 0;
+  for (const auto& [kind, doc] : manifests) {
+    if (kind != "Deployment") continue;
+    ++deployments;
+    const YAML::Node labels = doc["spec"]["template"]["metadata"]["labels"];
+    bool covered = false;
+    for (auto [it, end] = manifests.equal_range("PodDisruptionBudget"); it != end; ++it) {
+      const YAML::Node pdb = it->second;
+      EXPECT_EQ(pdb["apiVersion"].as<std::string>(), "policy/v1");
+      EXPECT_TRUE(pdb["spec"]["maxUnavailable"] || pdb["spec"]["minAvailable"]);
+      bool matches = pdb["spec"]["selector"]["matchLabels"].size() > 0;
+      for (const auto& label : pdb["spec"]["selector"]["matchLabels"])
+        matches &= labels[label.first.as<std::string>()] &&
+                   labels[label.first.as<std::string>()].as<std::string>() == label.second.as<std::string>();
+      covered |= matches;
+    }
+    EXPECT_TRUE(covered) << doc["metadata"]["name"] << " has no PodDisruptionBudget";
+  }
+  EXPECT_GE(deployments, 2);
+}
+
+// The seconds after --drain-seconds in `args`, or the server's default.
+int DrainSeconds(const YAML::Node& args) {
+  for (size_t i = 0; i + 1 < args.size(); ++i)
+    if (args[i].as<std::string>() == "--drain-seconds") return args[i + 1].as<int>();
+  return 10;
+}
+
+TEST(Kubernetes, TheDrainEndsWithinTheGracePeriod) {
+  bool found = false;
+  for (const auto& [name, pod] : PodSpecs()) {
+    if (name != "visq") continue;
+    found = true;
+    const int drain = DrainSeconds(pod["containers"][0]["args"]);
+    const int grace = pod["terminationGracePeriodSeconds"] ? pod["terminationGracePeriodSeconds"].as<int>() : 30;
+    EXPECT_GT(drain, 0);
+    // The GL thread and the process need a few seconds after the drain.
+    EXPECT_GE(grace, drain + 5) << "drain " << drain << " s, grace " << grace << " s";
+  }
+  EXPECT_TRUE(found);
+  YAML::Node compose = YAML::LoadFile((kSource / "deploy/compose.yaml").string())["services"]["visq"];
+  const int drain = compose["environment"]["VISQ_DRAIN_SECONDS"].as<int>();
+  std::string grace = compose["stop_grace_period"].as<std::string>();
+  ASSERT_EQ(grace.back(), 's');
+  EXPECT_GE(std::stoi(grace), drain + 5) << "compose: drain " << drain << " s, stop_grace_period " << grace;
+}
+
+TEST(Compose, TheTokenSecretIsMadeByAStepTheReadmeGivesAndNeverCommitted) {
+  YAML::Node compose = YAML::LoadFile((kSource / "deploy/compose.yaml").string());
+  const std::string file = compose["secrets"]["visq_token"]["file"].as<std::string>();
+  const std::string in_repo = "deploy/" + fs::path(file).filename().string();
+  EXPECT_NE(Read(kSource / "README.md").find(in_repo), std::string::npos) << "README must say how to make " << in_repo;
+  EXPECT_NE(Read(kSource / ".gitignore").find("/" + in_repo), std::string::npos) << in_repo << " must be ignored";
+}
+
+// The Dockerfile's ENV, as the image's defaults.
+std::map<std::string, std::string> DockerEnv() {
+  std::map<std::string, std::string> env;
+  for (const auto& instruction : DockerInstructions()) {
+    std::istringstream words(instruction);
+    std::string verb;
+    words >> verb;
+    if (verb != "ENV") continue;
+    for (std::string w; words >> w;)
+      if (const size_t eq = w.find('='); eq != std::string::npos) env[w.substr(0, eq)] = w.substr(eq + 1);
+  }
+  return env;
+}
+
+// The image's defaults start the real server: with the Dockerfile's ENV and
+// nothing else (the volume and port moved to a scratch folder and a free
+// port), it reaches SERVING and has made its token in the volume.
+TEST(Dockerfile, TheDefaultsStartAndMakeATokenInTheVolume) {
+  auto env = DockerEnv();
+  ASSERT_TRUE(env.count("VISQ_AUTH_TOKEN_FILE"));
+  const std::string volume = "/var/lib/visq/scenes";
+  ASSERT_EQ(env["VISQ_SCENE_REPO"], volume);
+  ASSERT_EQ(env["VISQ_AUTH_TOKEN_FILE"].rfind(volume + "/", 0), 0u) << "the token must live in the volume";
+  ASSERT_EQ(env["VISQ_ADDRESS"], "0.0.0.0:50051");
+  const fs::path scratch = fs::temp_directory_path() / ("visq-docker-env-" + std::to_string(::getpid()));
+  fs::create_directories(scratch / "scenes");
+  for (auto& [key, value] : env)
+    if (value.rfind(volume, 0) == 0) value = (scratch / "scenes").string() + value.substr(volume.size());
+  env["VISQ_ADDRESS"] = "0.0.0.0:0";
+  env["VISQ_PORT_FILE"] = (scratch / "port").string();
+  const pid_t pid = ::fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    for (const auto& [key, value] : env) ::setenv(key.c_str(), value.c_str(), 1);
+    const std::string log = (scratch / "log").string();
+    std::freopen(log.c_str(), "w", stdout);
+    std::freopen(log.c_str(), "a", stderr);
+    ::execl(VISQ_SERVER_BINARY, VISQ_SERVER_BINARY, static_cast<char*>(nullptr));
+    std::_Exit(127);
+  }
+  bool started = false;
+  for (int i = 0; i < 600 && !started; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    started = Read(scratch / "log").find("health SERVING") != std::string::npos;
+    int status = 0;
+    if (::waitpid(pid, &status, WNOHANG) == pid) break;
+  }
+  const std::string log = Read(scratch / "log");
+  EXPECT_TRUE(started) << log;
+  const fs::path token = env["VISQ_AUTH_TOKEN_FILE"];
+  EXPECT_TRUE(fs::exists(token)) << log;
+  EXPECT_NE(log.find(token.string()), std::string::npos) << "the log names where the token is\n" << log;
+  ::kill(pid, SIGTERM);
+  int status = 0;
+  ::waitpid(pid, &status, 0);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << log;
+  std::error_code ec;
+  fs::remove_all(scratch, ec);
 }
 
 }  // namespace

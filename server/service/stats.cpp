@@ -1,0 +1,39 @@
+#include "service/stats.h"
+
+#include <chrono>
+
+#include "common/version.h"
+#include "service/visibility_service.h"
+
+namespace visq::service {
+
+ServerFigures CollectServerFigures(const ServiceContext& ctx) {
+  ServerFigures f;
+  f.server_id = ctx.server_id;
+  f.version = kVersion;
+  f.build_commit = kBuildCommit;
+  f.uptime_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - ctx.started).count();
+  f.device = ctx.engine.device();
+  f.gpu_queue_depth = ctx.engine.gpu().queue_depth();
+  f.gpu_contexts_lost = ctx.engine.gpu().contexts_lost();
+  f.worker_queue_depth = ctx.executor.queued();
+  f.metadata_queue_depth = ctx.metadata_executor.queued();
+  const auto scenes = ctx.engine.ListScenes();
+  f.scenes_resident = scenes.size();
+  for (const auto& scene : scenes) {
+    f.scene_cpu_bytes += scene.cpu_bytes;
+    f.scene_gpu_bytes += scene.gpu_bytes;
+  }
+  WorkMemoryBudget& budget = ctx.engine.work_budget();
+  f.work_bytes_in_use = budget.in_use();
+  f.work_bytes_peak = budget.peak();
+  f.work_bytes_capacity = budget.capacity();
+  f.caches.push_back({"light_visibility", ctx.engine.light_cache().size(), ctx.engine.light_cache().bytes(),
+                      ctx.engine.light_cache_capacity(), ctx.engine.light_tree_hits.load(),
+                      ctx.engine.light_tree_misses.load(), ctx.engine.light_cache().evictions()});
+  f.methods = ctx.metrics.Summaries();
+  f.structure_builds = ctx.engine.build_times().Snapshot();
+  return f;
+}
+
+}  // namespace visq::service
