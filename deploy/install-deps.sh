@@ -27,6 +27,8 @@ build_packages=(
   clang libclang-rt-14-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   gnuplot-nox
+  # The Python client (client/python): its runtime, and the venv its test installs it into offline.
+  python3-grpcio python3-protobuf python3-numpy python3-venv python3-setuptools
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
 runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
