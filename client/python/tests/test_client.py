@@ -216,12 +216,15 @@ class ClientTest(unittest.TestCase):
         cli = os.environ.get("VISQ_CLI_BINARY")
         if not cli:
             self.skipTest("VISQ_CLI_BINARY unset: no C++ answer to compare with")
+        npy = os.path.join(self.scratch, "cli.npy")
         out = subprocess.run([cli, "hidden-map", "--server", SERVER.address, "--scene", SCENE, "--source",
                               patch_text(LIGHT_SOURCE), "--receiver", patch_text(FLOOR), "--width", "24",
-                              "--height", "16", "--samples", "64", "--json"], capture_output=True, text=True,
-                             check=True).stdout
+                              "--height", "16", "--samples", "64", "--json", "--npy", npy], capture_output=True,
+                             text=True, check=True).stdout
         self.assertAlmostEqual(json.loads(out)["mean_visible_fraction"], float(m.visible_fraction.mean()),
                                places=6)
+        # The CLI's .npy is numpy's, laid out as this package's arrays.
+        np.testing.assert_array_equal(np.load(npy), m.visible_fraction)
 
     def test_example_writes_the_visible_fractions(self):
         out = os.path.join(self.scratch, "map.npy")
