@@ -1,8 +1,13 @@
 // visq obscurance, move, obscurance-update, obscurance-preview: bake,
 // move nodes, bring the bake up to date, look at it.
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <limits>
 
 #include <fmt/format.h>
 
@@ -12,13 +17,147 @@ namespace visq::cli {
 namespace {
 
 struct BakeOptions {
-  std::string scene, png, npy;
-  uint32_t resolution = 256, directions = 256, rays = 0;
+  std::string scene, png, npy, partial_out;
+  uint32_t resolution = 256, directions = 256, rays = 0, first_direction = 0, total_directions = 0;
   uint64_t seed = 1;
   double d_max = 0;
   bool bleeding = false, built_atlas = false;
   TargetFlags target;
 };
+
+// A farm bake's shard on disk: the fixed-point partial sums of a direction
+// range (obscurance_partial.h), which merge into the whole bake bit for bit.
+// Little-endian: "VISQOBP1", fingerprint u64, width, height, channels,
+// total_directions, range count u32, the ranges (first, count) as u32 pairs,
+// then width * height * channels sums and width * height counts as u64.
+constexpr char kPartialMagic[8] = {'V', 'I', 'S', 'Q', 'O', 'B', 'P', '1'};
+
+struct PartialFile {
+  obscurance::ObscurancePartial partial;
+  uint32_t total_directions = 0;
+};
+
+Status WritePartialFile(const std::string& path, const PartialFile& file) {
+  const auto& p = file.partial;
+  // Written beside the target and renamed, so that a lost machine leaves no
+  // half-written shard that a merge could take for a whole one.
+  const std::string staging = path + ".partial-tmp";
+  {
+    std::ofstream out(staging, std::ios::binary | std::ios::trunc);
+    if (!out) return absl::PermissionDeniedError(fmt::format("--partial-out: cannot write {}", staging));
+    auto u32 = [&](uint32_t v) { out.write(reinterpret_cast<const char*>(&v), sizeof(v)); };
+    out.write(kPartialMagic, sizeof(kPartialMagic));
+    out.write(reinterpret_cast<const char*>(&p.fingerprint), sizeof(p.fingerprint));
+    u32(p.width);
+    u32(p.height);
+    u32(p.channels);
+    u32(file.total_directions);
+    u32(static_cast<uint32_t>(p.ranges.size()));
+    for (const auto& r : p.ranges) {
+      u32(r.first);
+      u32(r.count);
+    }
+    out.write(reinterpret_cast<const char*>(p.sums.data()), static_cast<std::streamsize>(p.sums.size() * 8));
+    out.write(reinterpret_cast<const char*>(p.counts.data()), static_cast<std::streamsize>(p.counts.size() * 8));
+    out.flush();
+    if (!out) return absl::PermissionDeniedError(fmt::format("--partial-out: cannot write {}", staging));
+  }
+  std::error_code ec;
+  std::filesystem::rename(staging, path, ec);
+  if (ec) return absl::PermissionDeniedError(fmt::format("--partial-out: cannot rename to {}: {}", path, ec.message()));
+  return absl::OkStatus();
+}
+
+// Every size is checked against the file's length before anything is
+// allocated: a shard file is input like any other.
+StatusOr<PartialFile> ReadPartialFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(fmt::format("{}: cannot read", path));
+  std::error_code ec;
+  const uint64_t size = std::filesystem::file_size(path, ec);
+  auto bad = [&](const std::string& why) {
+    return absl::InvalidArgumentError(fmt::format("{}: not a visq obscurance partial ({})", path, why));
+  };
+  char magic[8] = {};
+  in.read(magic, sizeof(magic));
+  if (!in || std::memcmp(magic, kPartialMagic, sizeof(magic)) != 0) return bad("no VISQOBP1 magic");
+  PartialFile file;
+  auto& p = file.partial;
+  uint32_t header[5] = {};
+  in.read(reinterpret_cast<char*>(&p.fingerprint), sizeof(p.fingerprint));
+  in.read(reinterpret_cast<char*>(header), sizeof(header));
+  if (!in) return bad("truncated header");
+  p.width = header[0];
+  p.height = header[1];
+  p.channels = header[2];
+  file.total_directions = header[3];
+  const uint64_t ranges = header[4];
+  if (p.channels != 1 && p.channels != 3) return bad(fmt::format("{} channels", p.channels));
+  const uint64_t texels = uint64_t{p.width} * p.height;
+  const uint64_t expected = 8 + 8 + 5 * 4 + ranges * 8 + texels * (p.channels + 1) * 8;
+  if (texels == 0 || ranges == 0 || expected != size)
+    return bad(fmt::format("{} bytes for a {} x {} atlas with {} range(s)", size, p.width, p.height, ranges));
+  p.ranges.resize(ranges);
+  for (auto& r : p.ranges) {
+    in.read(reinterpret_cast<char*>(&r.first), 4);
+    in.read(reinterpret_cast<char*>(&r.count), 4);
+    if (uint64_t{r.first} + r.count > file.total_directions)
+      return bad(fmt::format("range [{}, {}) beyond {} directions", r.first, uint64_t{r.first} + r.count,
+                             file.total_directions));
+  }
+  p.sums.resize(texels * p.channels);
+  p.counts.resize(texels);
+  in.read(reinterpret_cast<char*>(p.sums.data()), static_cast<std::streamsize>(p.sums.size() * 8));
+  in.read(reinterpret_cast<char*>(p.counts.data()), static_cast<std::streamsize>(p.counts.size() * 8));
+  if (!in) return bad("truncated sums");
+  return file;
+}
+
+// W per texel from the sums, as the server computes it (obscurance_model.cpp,
+// FinalizeFromPartial); NaN where no direction reached the texel (the server
+// fills those from their neighbours, which needs the scene).
+std::vector<float> PartialW(const obscurance::ObscurancePartial& p) {
+  std::vector<float> w(p.counts.size() * 3, std::numeric_limits<float>::quiet_NaN());
+  for (size_t i = 0; i < p.counts.size(); ++i) {
+    if (p.counts[i] == 0) continue;
+    const double denom = static_cast<double>(p.counts[i]) * obscurance::kObscuranceFixedPointScale;
+    for (uint32_t c = 0; c < 3; ++c)
+      w[3 * i + c] = static_cast<float>(static_cast<double>(p.sums[p.channels == 1 ? i : 3 * i + c]) / denom);
+  }
+  return w;
+}
+
+std::string Ranges(const obscurance::ObscurancePartial& p) {
+  std::string out;
+  for (const auto& r : p.ranges) out += fmt::format("{}[{}, {})", out.empty() ? "" : " ", r.first, r.first + r.count);
+  return out;
+}
+
+// A shard of a farm bake: --partial-out FILE with --first-direction,
+// --directions and --total-directions.
+Status RunShard(const BakeOptions& o, const v1::ComputeObscurancesRequest& base, Cli& cli) {
+  if (o.target.set() || o.rays > 0)
+    return absl::InvalidArgumentError("--partial-out: a shard is a GPU bake of a direction range; not with "
+                                      "--max-error, --time-budget-ms or --rays-per-patch");
+  if (!o.png.empty() || !o.npy.empty())
+    return absl::InvalidArgumentError("--partial-out: a shard has no W; merge the shards (obscurance-merge --npy)");
+  v1::ComputeObscurancesRequest request = base;
+  request.set_first_direction(o.first_direction);
+  request.set_direction_count(o.directions);
+  request.set_total_directions(o.total_directions);
+  request.set_partial_only(true);
+  auto client = MakeClient(cli.flags);
+  VISQ_ASSIGN_OR_RETURN(const client::ObscuranceBake bake, client.ComputeObscurances(request));
+  PartialFile file{bake.partial, bake.figures.total_directions()};
+  VISQ_RETURN_IF_ERROR(WritePartialFile(o.partial_out, file));
+  if (cli.flags.json) {
+    fmt::print("{{\"partial_out\": \"{}\", \"figures\": {}}}\n", o.partial_out, ToJson(bake.figures));
+    return absl::OkStatus();
+  }
+  fmt::print("directions {} of {} ({}x{} atlas, fingerprint {:016x}): wrote {}\n", Ranges(file.partial),
+             file.total_directions, file.partial.width, file.partial.height, file.partial.fingerprint, o.partial_out);
+  return absl::OkStatus();
+}
 
 Status RunBake(const BakeOptions& o, Cli& cli) {
   v1::ComputeObscurancesRequest request;
@@ -36,6 +175,10 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
   request.set_seed(o.seed);
   request.set_color_bleeding(o.bleeding);
   request.set_force_built_atlas(o.built_atlas);
+  if (!o.partial_out.empty()) return RunShard(o, request, cli);
+  if (o.first_direction != 0 || o.total_directions != 0)
+    return absl::InvalidArgumentError("--first-direction, --total-directions: a direction range is a shard; give "
+                                      "--partial-out FILE");
   auto client = MakeClient(cli.flags);
   // A progress bar on stderr, rewritten in place.
   bool progress_shown = false;
@@ -84,6 +227,41 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
   fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
              f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
   if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
+  if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
+  return absl::OkStatus();
+}
+
+struct MergeOptions {
+  std::vector<std::string> inputs;
+  std::string out, npy;
+};
+
+Status RunMerge(const MergeOptions& o, Cli& cli) {
+  if (o.out.empty() && o.npy.empty()) return absl::InvalidArgumentError("--out, --npy: give at least one");
+  PartialFile merged;
+  for (const std::string& input : o.inputs) {
+    VISQ_ASSIGN_OR_RETURN(const PartialFile file, ReadPartialFile(input));
+    if (!merged.partial.ranges.empty() && file.total_directions != merged.total_directions)
+      return absl::InvalidArgumentError(fmt::format("{}: a shard of {} directions, the others of {}", input,
+                                                    file.total_directions, merged.total_directions));
+    if (const Status s = client::MergeObscurancePartials(merged.partial, file.partial); !s.ok())
+      return absl::InvalidArgumentError(fmt::format("{}: {}", input, s.message()));
+    merged.total_directions = file.total_directions;
+  }
+  const auto& p = merged.partial;
+  const bool complete = p.ranges.size() == 1 && p.ranges[0].first == 0 && p.ranges[0].count == merged.total_directions;
+  if (!o.out.empty()) VISQ_RETURN_IF_ERROR(WritePartialFile(o.out, merged));
+  if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {p.height, p.width, 3}, PartialW(p)));
+  size_t estimated = 0;
+  for (uint64_t c : p.counts) estimated += c > 0;
+  if (cli.flags.json) {
+    fmt::print("{{\"directions\": {}, \"total_directions\": {}, \"complete\": {}, \"estimated_texels\": {}}}\n",
+               p.DirectionCount(), merged.total_directions, complete, estimated);
+    return absl::OkStatus();
+  }
+  fmt::print("{} shard(s): directions {} of {} ({}), {} estimated texels of {}\n", o.inputs.size(), Ranges(p),
+             merged.total_directions, complete ? "complete" : "incomplete", estimated, p.counts.size());
+  if (!o.out.empty()) fmt::print("wrote {}\n", o.out);
   if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
   return absl::OkStatus();
 }
@@ -201,7 +379,23 @@ void AddObscuranceCommands(Cli& cli) {
   AddTargetFlags(obscurance, ob->target);
   obscurance->add_option("--rays-per-patch", ob->rays,
                          "Instead of the GPU bake: the ray-cast estimator (Embree) with this many rays per patch");
+  obscurance->add_option("--partial-out", ob->partial_out,
+                         "Bake a shard of a farm bake: directions [--first-direction, + --directions) of "
+                         "--total-directions, written as partial sums to this file (obscurance-merge joins them)");
+  obscurance->add_option("--first-direction", ob->first_direction, "With --partial-out: the shard's first direction");
+  obscurance->add_option("--total-directions", ob->total_directions,
+                         "With --partial-out: the whole bake's directions (default: the shard's end)");
   OnRun(obscurance, cli, ob, RunBake);
+
+  auto merge = std::make_shared<MergeOptions>();
+  auto* merge_command = cli.app.add_subcommand(
+      "obscurance-merge", "Merge farm-bake shards (obscurance --partial-out): equal, bit for bit, to one bake");
+  merge_command->add_option("SHARD", merge->inputs, "Shard files")->required()->check(CLI::ExistingFile);
+  merge_command->add_option("--out", merge->out, "Write the merged partial sums (a shard of the merged ranges)");
+  merge_command->add_option("--npy", merge->npy,
+                            "Write W as a float32 .npy (atlas height, width, 3): the server's W on every texel a "
+                            "direction reached, NaN on the others (the server fills those from their neighbours)");
+  OnRun(merge_command, cli, merge, RunMerge);
 
   auto mv = std::make_shared<MoveOptions>();
   auto* move = cli.app.add_subcommand("move", "Move a node and its subtree (in the server's memory; not stored)");

@@ -3,6 +3,7 @@
 // library's answers.
 #include <sys/wait.h>
 
+#include <cmath>
 #include <cstring>
 #include <fstream>
 #include <sstream>
@@ -332,6 +333,53 @@ TEST_F(CliTest, VoxelizePngKeepsTheBoxAspectRatio) {
   EXPECT_EQ(occupied, json["occupied_voxels"].get<double>());
   const CliRun help = Visq("voxelize --help");
   EXPECT_TRUE(Contains(help.output, "over the fullest column's")) << help.output;
+}
+
+TEST_F(CliTest, FarmBakeShardsMergeToTheWholeBakeBitForBit) {
+  const fs::path d = scratch_.path();
+  const std::string bake = Server() + " obscurance --scene " + kScene + " --d-max 0.5 --resolution 32";
+  for (const std::string& arguments :
+       {bake + " --directions 8 --partial-out " + (d / "whole.vqp").string(),
+        bake + " --directions 3 --total-directions 8 --partial-out " + (d / "a.vqp").string(),
+        bake + " --first-direction 3 --directions 5 --total-directions 8 --partial-out " + (d / "b.vqp").string(),
+        bake + " --directions 8 --npy " + (d / "whole.npy").string()}) {
+    const CliRun run = Visq(arguments);
+    ASSERT_EQ(run.exit_code, 0) << arguments << "\n" << run.output;
+  }
+  const CliRun merge = Visq("obscurance-merge " + (d / "b.vqp").string() + " " + (d / "a.vqp").string() + " --out " +
+                            (d / "merged.vqp").string() + " --npy " + (d / "merged.npy").string());
+  ASSERT_EQ(merge.exit_code, 0) << merge.output;
+  EXPECT_TRUE(Contains(merge.output, "directions [0, 8) of 8 (complete)")) << merge.output;
+  auto bytes = [](const fs::path& path) {
+    std::ifstream in(path, std::ios::binary);
+    return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  };
+  EXPECT_EQ(bytes(d / "merged.vqp"), bytes(d / "whole.vqp")) << "the merged sums differ from one bake's";
+  // W from the merged sums is the whole bake's on every texel a direction
+  // reached; the others are NaN (the server fills them from neighbours).
+  const Npy merged = ReadNpy(d / "merged.npy"), whole = ReadNpy(d / "whole.npy");
+  ASSERT_EQ(merged.shape, (std::vector<size_t>{32, 32, 3}));
+  ASSERT_EQ(whole.shape, merged.shape);
+  size_t estimated = 0;
+  for (size_t i = 0; i < merged.values.size(); ++i)
+    if (!std::isnan(merged.values[i])) {
+      ++estimated;
+      EXPECT_EQ(merged.values[i], whole.values[i]) << "value " << i;
+    }
+  EXPECT_GT(estimated, 0u);
+  // Overlapping, truncated and foreign shards are refused by name.
+  const CliRun twice = Visq("obscurance-merge " + (d / "a.vqp").string() + " " + (d / "a.vqp").string() + " --out " +
+                            (d / "x.vqp").string());
+  EXPECT_EQ(twice.exit_code, 2);
+  EXPECT_TRUE(Contains(twice.output, "direction ranges overlap")) << twice.output;
+  EXPECT_FALSE(fs::exists(d / "x.vqp"));
+  std::ofstream(d / "short.vqp", std::ios::binary) << bytes(d / "a.vqp").substr(0, 100);
+  std::ofstream(d / "foreign.vqp", std::ios::binary) << "not a shard at all";
+  for (const char* name : {"short.vqp", "foreign.vqp"}) {
+    const CliRun bad = Visq("obscurance-merge " + (d / name).string() + " --npy " + (d / "bad.npy").string());
+    EXPECT_EQ(bad.exit_code, 2) << name;
+    EXPECT_TRUE(Contains(bad.output, "not a visq obscurance partial")) << bad.output;
+  }
 }
 
 TEST_F(CliTest, HiddenMapNpyHoldsTheClientsFractions) {

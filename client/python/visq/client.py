@@ -13,8 +13,8 @@ import os
 import struct
 import threading
 import urllib.parse
-from dataclasses import dataclass, field
-from typing import Any, Callable, List, NamedTuple, Optional, Sequence
+from dataclasses import dataclass
+from typing import Any, List, NamedTuple, Optional, Sequence
 
 import grpc
 import numpy as np
@@ -100,7 +100,8 @@ def normalize_address(address):
 
 
 # ---------------------------------------------------------------------------
-# Results.
+# Results. Arrays are numpy; `figures` / `response` is the visq.v1 protobuf
+# message (SceneInfo, ServerStats and the like are returned as such too).
 
 @dataclass
 class HiddenSampleMap:
@@ -436,7 +437,7 @@ class Client:
 
     # -- health and scenes ---------------------------------------------------
 
-    def health(self, service="", timeout=_UNSET):
+    def health(self, service="", timeout=_UNSET) -> str:
         """'SERVING', 'NOT_SERVING', ... of `service` ('' = the whole server)."""
         try:
             data = self._health(_health.encode_request(service), timeout=self._deadline(timeout, False),
@@ -445,7 +446,7 @@ class Client:
             raise from_rpc_error(error) from None
         return _health.decode_response(data)
 
-    def wait_until_serving(self, timeout=30.0):
+    def wait_until_serving(self, timeout=30.0) -> None:
         import time
         end = time.monotonic() + timeout
         last = "not tried"
@@ -460,24 +461,24 @@ class Client:
             time.sleep(0.05)
         raise VisqError(grpc.StatusCode.DEADLINE_EXCEEDED, f"server at {self.address} not SERVING in time: {last}")
 
-    def list_scenes(self, timeout=_UNSET):
+    def list_scenes(self, timeout=_UNSET) -> List[Any]:
         """SceneInfo messages (without nodes)."""
         return list(self._unary(self._stub.ListScenes, pb.ListScenesRequest(), timeout=timeout).scenes)
 
-    def get_scene(self, name, include_nodes=False, load_if_stored=False, timeout=_UNSET):
+    def get_scene(self, name, include_nodes=False, load_if_stored=False, timeout=_UNSET) -> Any:
         request = pb.GetSceneRequest(name=name, include_nodes=include_nodes, load_if_stored=load_if_stored)
         return self._unary(self._stub.GetScene, request, name, timeout)
 
-    def unload_scene(self, name, delete_from_repository=False, timeout=_UNSET):
+    def unload_scene(self, name, delete_from_repository=False, timeout=_UNSET) -> bool:
         """True when it was also deleted from the repository."""
         request = pb.UnloadSceneRequest(name=name, delete_from_repository=delete_from_repository)
         return self._unary(self._stub.UnloadScene, request, name, timeout).deleted_from_repository
 
-    def load_from_repository(self, name, replace=False, timeout=_UNSET):
+    def load_from_repository(self, name, replace=False, timeout=_UNSET) -> Any:
         header = pb.LoadSceneHeader(name=name, from_repository=True, replace=replace)
         return self._load(iter([pb.LoadSceneRequest(header=header)]), name, timeout)
 
-    def upload_gltf(self, path, name=None, replace=False, timeout=_UNSET):
+    def upload_gltf(self, path, name=None, replace=False, timeout=_UNSET) -> Any:
         """Uploads a .gltf with its buffer files, or a .glb (and any external
         buffer it names): only what the geometry needs, not images. `name`
         defaults to the file's stem. Returns the SceneInfo."""
@@ -511,7 +512,7 @@ class Client:
         except grpc.RpcError as error:
             raise from_rpc_error(error) from None
 
-    def stats(self, timeout=_UNSET):
+    def stats(self, timeout=_UNSET) -> Any:
         """The ServerStats message: per-RPC latencies, queues, memory, GPU."""
         return self._unary(self._stub.GetStats, pb.GetStatsRequest(), timeout=timeout)
 
@@ -519,7 +520,7 @@ class Client:
 
     def hidden_sample_map(self, scene, source, receiver, width=128, height=128, samples=256, method="raster",
                           lookup="exact", seed=1, decorrelate=False, watertight=False, bitmasks=False, target=None,
-                          confidence=0.0, version=0, timeout=_UNSET, cancel=None):
+                          confidence=0.0, version=0, timeout=_UNSET, cancel=None) -> HiddenSampleMap:
         """Per receiver texel, the fraction of the source's samples visible.
 
         target: {"max_error": e, "confidence": c, "time_budget_ms": t} instead
@@ -566,7 +567,7 @@ class Client:
 
     def patch_visibility(self, scene, source, receiver, source_grid=32, receiver_grid=32, method="raster",
                          lookup="exact", watertight=False, unblocked_limit=0, target=None, version=0,
-                         timeout=_UNSET):
+                         timeout=_UNSET) -> PatchVisibility:
         """Mutual visibility of two sampled patches. Grids are (columns, rows)
         or one number for both."""
         def grid(value, name):
@@ -604,7 +605,7 @@ class Client:
 
     def light_visibility(self, scene, light, points=None, normals=None, triangles=None, receiver=None, width=64,
                          height=64, radiance=1.0, polygons=False, exclude_nodes=(), receiver_region=None, version=0,
-                         batch_points=LIGHT_BATCH_POINTS, progress=None, timeout=_UNSET, cancel=None):
+                         batch_points=LIGHT_BATCH_POINTS, progress=None, timeout=_UNSET, cancel=None) -> LightVisibility:
         """Exact visibility of an area light (an (n, 3) polygon, front side
         counter-clockwise) from points ((n, 3), with optional normals and
         triangle indices), or from the texel centres of a receiver patch
@@ -708,7 +709,7 @@ class Client:
     # -- voxels, transmittance, volumetric shadows -----------------------------
 
     def voxelize(self, scene, width=128, height=128, slices=128, axis=1, box=None, solid=False,
-                 local_precision=False, conservative=False, nodes=(), version=0, timeout=_UNSET, cancel=None):
+                 local_precision=False, conservative=False, nodes=(), version=0, timeout=_UNSET, cancel=None) -> VoxelGrid:
         """Slicemap voxelization. box: None (the scene's bounds, sliced along
         `axis`) or a dict of center, axis_u, axis_v, axis_w, half_extent."""
         request = pb.VoxelizeRequest()
@@ -746,7 +747,7 @@ class Client:
                          column_far=chunks.get("column_far", np.float32, (h, w)), figures=f)
 
     def transmittance(self, scene, light, absorbers, light_kind="directional", points=None, receiver=None,
-                      width=64, height=64, resolution=256, slices=256, version=0, timeout=_UNSET):
+                      width=64, height=64, resolution=256, slices=256, version=0, timeout=_UNSET) -> Transmittance:
         """Light reaching points (and/or a receiver patch's texels) through
         absorbing nodes. light: the direction light travels (directional) or
         the light's position (point). absorbers: {node: absorption}."""
@@ -781,7 +782,7 @@ class Client:
                           height=240, sun=(0.3, -1.0, 0.2), light_kind="directional", light_position=None,
                           cone_angle_deg=30.0, light_color=(1, 1, 1), intensity=1.0, scattering=0.05,
                           extinction=0.05, hg_g=0.0, shadow_map_size=1024, method="min-max", combined=False,
-                          version=0, timeout=_UNSET, cancel=None):
+                          version=0, timeout=_UNSET, cancel=None) -> VolumetricImage:
         """Single-scattering light shafts from a pinhole camera; RGB images
         shaped (height, width, 3), row 0 at the top."""
         request = pb.VolumetricShadowRequest()
@@ -829,7 +830,7 @@ class Client:
     def compute_obscurances(self, scene, d_max, resolution=256, directions=256, seed=1, color_bleeding=False,
                             force_built_atlas=False, want_averages=False, first_direction=0, total_directions=0,
                             partial_only=False, method="depth-peeling", rays_per_patch=256, target=None,
-                            bundle_resolution=0, version=0, progress=None, timeout=_UNSET, cancel=None):
+                            bundle_resolution=0, version=0, progress=None, timeout=_UNSET, cancel=None) -> ObscuranceBake:
         """Bakes obscurances. progress(visq.Progress) is called for each
         progress message; cancel=visq.Cancellation() stops the bake.
         method 'raycast' is the Embree estimator (rays_per_patch); target
@@ -893,7 +894,7 @@ class Client:
             partial_counts=chunks.get("partial_counts", np.uint64, (h, w), required=f.partial_only),
             figures=f, progress_messages=progress_messages[0])
 
-    def set_node_transform(self, scene, node, matrix, version=0, timeout=_UNSET):
+    def set_node_transform(self, scene, node, matrix, version=0, timeout=_UNSET) -> Any:
         """Moves a node and its subtree (in the server's memory only). node: a
         name or an index into SceneInfo.nodes. matrix: a 4x4 node-to-world
         matrix as numpy writes it (M @ [x, y, z, 1]), or 16 numbers
@@ -912,7 +913,7 @@ class Client:
         request.world_matrix.extend(m.tolist())
         return self._unary(self._stub.SetNodeTransform, request, scene, timeout)
 
-    def update_obscurances(self, scene, want_full_w=False, version=0, timeout=_UNSET):
+    def update_obscurances(self, scene, want_full_w=False, version=0, timeout=_UNSET) -> ObscuranceUpdate:
         request = pb.UpdateObscurancesRequest(want_full_w=want_full_w)
         request.scene.name, request.scene.version = scene, version
         r = self._unary(self._stub.UpdateObscurances, request, scene, timeout)
@@ -922,7 +923,7 @@ class Client:
                                 response=r)
 
     def obscurance_preview(self, scene, camera_position, camera_forward, camera_up=(0, 1, 0), fov=60.0,
-                           width=320, height=240, quantity="w", version=0, timeout=_UNSET, cancel=None):
+                           width=320, height=240, quantity="w", version=0, timeout=_UNSET, cancel=None) -> ObscurancePreview:
         """The scene's current obscurance solution seen from a camera."""
         request = pb.ObscurancePreviewRequest()
         request.scene.name, request.scene.version = scene, version
