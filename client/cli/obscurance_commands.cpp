@@ -93,6 +93,9 @@ StatusOr<PartialFile> ReadPartialFile(const std::string& path) {
   file.total_directions = header[3];
   const uint64_t ranges = header[4];
   if (p.channels != 1 && p.channels != 3) return bad(fmt::format("{} channels", p.channels));
+  // The server's largest atlas; it also keeps the size arithmetic below
+  // far from overflow.
+  if (p.width > 8192 || p.height > 8192) return bad(fmt::format("a {} x {} atlas", p.width, p.height));
   const uint64_t texels = uint64_t{p.width} * p.height;
   const uint64_t expected = 8 + 8 + 5 * 4 + ranges * 8 + texels * (p.channels + 1) * 8;
   if (texels == 0 || ranges == 0 || expected != size)

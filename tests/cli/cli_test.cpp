@@ -375,7 +375,16 @@ TEST_F(CliTest, FarmBakeShardsMergeToTheWholeBakeBitForBit) {
   EXPECT_FALSE(fs::exists(d / "x.vqp"));
   std::ofstream(d / "short.vqp", std::ios::binary) << bytes(d / "a.vqp").substr(0, 100);
   std::ofstream(d / "foreign.vqp", std::ios::binary) << "not a shard at all";
-  for (const char* name : {"short.vqp", "foreign.vqp"}) {
+  {
+    // A header claiming an atlas whose size arithmetic would wrap around.
+    std::ofstream huge(d / "huge.vqp", std::ios::binary);
+    const uint64_t fingerprint = 1;
+    const uint32_t header[7] = {0x80000000u, 0x80000000u, 3, 8, 1, 0, 8};
+    huge.write("VISQOBP1", 8);
+    huge.write(reinterpret_cast<const char*>(&fingerprint), sizeof(fingerprint));
+    huge.write(reinterpret_cast<const char*>(header), sizeof(header));
+  }
+  for (const char* name : {"short.vqp", "foreign.vqp", "huge.vqp"}) {
     const CliRun bad = Visq("obscurance-merge " + (d / name).string() + " --npy " + (d / "bad.npy").string());
     EXPECT_EQ(bad.exit_code, 2) << name;
     EXPECT_TRUE(Contains(bad.output, "not a visq obscurance partial")) << bad.output;

@@ -617,7 +617,7 @@ class Client:
             if points is not None:
                 raise ValueError("points, receiver: give one, not both")
             patch = _patch(receiver, "receiver", pb.Patch())
-            width, height = _count(width, "width", 1, 1 << 15), _count(height, "height", 1, 1 << 15)
+            width, height = _count(width, "width", 1, 4096), _count(height, "height", 1, 4096)
             o = np.array([patch.origin.x, patch.origin.y, patch.origin.z])
             u = np.array([patch.edge_u.x, patch.edge_u.y, patch.edge_u.z])
             v = np.array([patch.edge_v.x, patch.edge_v.y, patch.edge_v.z])
