@@ -1,9 +1,15 @@
 #include "cli_common.h"
 
+#include <unistd.h>
+
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <cstdio>
 #include <fstream>
+#include <mutex>
+#include <thread>
 
 #include <fmt/format.h>
 #include <google/protobuf/descriptor.h>
@@ -30,6 +36,8 @@ void AddGlobalFlags(Cli& cli) {
       ->envname("VISQ_AUTH_TOKEN_FILE");
   app.add_option("--tls-ca", flags.tls_ca, "PEM roots for a TLS server")->envname("VISQ_TLS_CA");
   app.add_option("--tls-cert", flags.tls_cert, "PEM client certificate (mutual TLS)")->envname("VISQ_TLS_CLIENT_CERT");
+  app.add_flag("--progress", flags.progress,
+               "Report progress on stderr even when it is not a terminal (bakes, light batches, long calls)");
   app.add_option("--tls-key", flags.tls_key, "PEM client key (mutual TLS)")->envname("VISQ_TLS_CLIENT_KEY");
 }
 
@@ -45,6 +53,42 @@ Status CheckGlobalFlags(const GlobalFlags& flags) {
       return absl::InvalidArgumentError(fmt::format("--token-file: {} holds no token", flags.token_file));
   }
   return absl::OkStatus();
+}
+
+struct Waiting::State {
+  std::mutex mutex;
+  std::condition_variable done;
+  bool finished = false;
+  std::thread thread;
+};
+
+Waiting::Waiting(const GlobalFlags& flags, std::string what) {
+  const bool terminal = ::isatty(STDERR_FILENO) != 0;
+  if (!terminal && !flags.progress) return;
+  state_ = std::make_unique<State>();
+  state_->thread = std::thread([state = state_.get(), terminal, what = std::move(what)] {
+    const auto start = std::chrono::steady_clock::now();
+    std::unique_lock lock(state->mutex);
+    bool shown = false;
+    for (int seconds = 1;; ++seconds) {
+      if (state->done.wait_until(lock, start + std::chrono::seconds(seconds), [&] { return state->finished; })) break;
+      if (terminal) fmt::print(stderr, "\r{}: the server has worked {} s ", what, seconds);
+      else fmt::print(stderr, "{}: the server has worked {} s\n", what, seconds);
+      std::fflush(stderr);
+      shown = true;
+    }
+    if (shown && terminal) fmt::print(stderr, "\n");
+  });
+}
+
+Waiting::~Waiting() {
+  if (!state_) return;
+  {
+    std::lock_guard lock(state_->mutex);
+    state_->finished = true;
+  }
+  state_->done.notify_all();
+  state_->thread.join();
 }
 
 client::Client MakeClient(const GlobalFlags& flags) {

@@ -23,7 +23,29 @@ struct GlobalFlags {
   double timeout_s = 0;  // 0: 60 s for single calls, none for streams and bakes
   std::string token_file;
   std::string tls_ca, tls_cert, tls_key;
+  bool progress = false;  // report progress on stderr even when it is not a terminal
 };
+
+// Runs `call` (an RPC); while it lasts more than a second, says on stderr
+// how long the server has been working (rewritten in place on a terminal,
+// a line a second with --progress otherwise).
+class Waiting {
+ public:
+  Waiting(const GlobalFlags& flags, std::string what);
+  ~Waiting();
+  Waiting(const Waiting&) = delete;
+  Waiting& operator=(const Waiting&) = delete;
+
+ private:
+  struct State;
+  std::unique_ptr<State> state_;
+};
+
+template <typename Call>
+auto WhileWaiting(const GlobalFlags& flags, const std::string& what, Call&& call) {
+  Waiting waiting(flags, what);
+  return call();
+}
 
 // The default deadline of a call that is not a stream.
 inline constexpr double kDefaultTimeoutS = 60;

@@ -147,7 +147,8 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
   v1::LightVisibilityResponse merged;  // --json: every point, the last batch's tree and cache
   uint64_t sent = 0, answered = 0, batches = 0;
   v1::LightTreeStats tree_sums;
-  const bool show_progress = total > kBatchPoints && ::isatty(STDERR_FILENO);
+  // Several batches report each; one batch is a long call like any other.
+  const bool show_progress = total > kBatchPoints && (::isatty(STDERR_FILENO) || cli.flags.progress);
   auto next = [&](v1::LightVisibilityRequest* batch) {
     if (sent == total) return false;
     *batch->mutable_scene() = first.scene();
@@ -195,16 +196,20 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
       *merged.mutable_timing() = response.timing();
     }
     if (show_progress) {
-      fmt::print(stderr, "\r{}/{} points", answered, total);
+      if (::isatty(STDERR_FILENO)) fmt::print(stderr, "\r{}/{} points", answered, total);
+      else fmt::print(stderr, "{}/{} points\n", answered, total);
       std::fflush(stderr);
     }
     return absl::OkStatus();
   };
   auto client = MakeClient(cli.flags);
   const auto start = std::chrono::steady_clock::now();
-  const Status streamed = client.LightVisibilityStream(o.scene, next, answer);
+  const Status streamed =
+      total > kBatchPoints ? client.LightVisibilityStream(o.scene, next, answer)
+                           : WhileWaiting(cli.flags, "light-visibility",
+                                          [&] { return client.LightVisibilityStream(o.scene, next, answer); });
   const double total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-  if (show_progress) fmt::print(stderr, "\n");
+  if (show_progress && ::isatty(STDERR_FILENO)) fmt::print(stderr, "\n");
   VISQ_RETURN_IF_ERROR(streamed);
   if (answered != total)
     return absl::DataLossError(fmt::format("{} answers for {} points", answered, total));

@@ -315,7 +315,7 @@ Status RunUpdate(const UpdateOptions& o, Cli& cli) {
   v1::UpdateObscurancesRequest request;
   request.mutable_scene()->set_name(o.scene);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const v1::UpdateObscurancesResponse r, client.UpdateObscurances(request));
+  VISQ_ASSIGN_OR_RETURN(const v1::UpdateObscurancesResponse r, WhileWaiting(cli.flags, "obscurance-update", [&] { return client.UpdateObscurances(request); }));
   if (cli.flags.json) {
     fmt::print("{}", ToJson(r));
     return absl::OkStatus();
@@ -342,7 +342,7 @@ Status RunPreview(const PreviewOptions& o, Cli& cli) {
   const bool intensity = o.quantity != "w" && o.quantity != "W";
   request.set_quantity(intensity ? v1::ObscurancePreviewRequest::INTENSITY : v1::ObscurancePreviewRequest::W);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const client::ObscurancePreview preview, client.RenderObscurancePreview(request));
+  VISQ_ASSIGN_OR_RETURN(const client::ObscurancePreview preview, WhileWaiting(cli.flags, "obscurance-preview", [&] { return client.RenderObscurancePreview(request); }));
   const auto& f = preview.figures;
   float peak = 1e-20f;
   for (float v : preview.rgb) peak = std::max(peak, v);

@@ -42,7 +42,7 @@ Status RunHiddenMap(const HiddenMapOptions& o, Cli& cli) {
   request.set_watertight(o.watertight);
   request.set_want_bitmasks(o.bitmasks);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const client::HiddenSampleMap map, client.ComputeHiddenSampleMap(request));
+  VISQ_ASSIGN_OR_RETURN(const client::HiddenSampleMap map, WhileWaiting(cli.flags, "hidden-map", [&] { return client.ComputeHiddenSampleMap(request); }));
   const auto& f = map.figures;
   double mean = 0;
   for (float v : map.visible_fraction) mean += v;
@@ -98,7 +98,7 @@ Status RunPatchVisibility(const PatchVisibilityOptions& o, Cli& cli) {
   request.set_lookup(o.lookup == "fast" ? v1::FAST : v1::EXACT);
   request.set_unblocked_limit(o.limit);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const v1::PatchVisibilityResponse response, client.PatchVisibility(request));
+  VISQ_ASSIGN_OR_RETURN(const v1::PatchVisibilityResponse response, WhileWaiting(cli.flags, "patch-visibility", [&] { return client.PatchVisibility(request); }));
   if (cli.flags.json) {
     fmt::print("{}", ToJson(response));
     return absl::OkStatus();

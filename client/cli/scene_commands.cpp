@@ -42,8 +42,10 @@ Status RunLoad(const LoadOptions& o, Cli& cli) {
     return absl::NotFoundError(fmt::format("FILE_OR_NAME: the file '{}' does not exist", o.target));
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const v1::SceneInfo info,
-                        is_file ? client.UploadScene(path, o.name, o.replace)
-                                : client.LoadFromRepository(o.name.empty() ? o.target : o.name, o.replace));
+                        WhileWaiting(cli.flags, "load", [&] {
+                          return is_file ? client.UploadScene(path, o.name, o.replace)
+                                         : client.LoadFromRepository(o.name.empty() ? o.target : o.name, o.replace);
+                        }));
   if (cli.flags.json) {
     fmt::print("{}", ToJson(info));
   } else {

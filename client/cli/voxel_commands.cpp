@@ -69,7 +69,7 @@ Status RunVoxelize(const VoxelizeOptions& o, Cli& cli) {
   request.set_local_precision(o.local);
   request.set_conservative(o.conservative);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const client::VoxelGrid grid, client.Voxelize(request));
+  VISQ_ASSIGN_OR_RETURN(const client::VoxelGrid grid, WhileWaiting(cli.flags, "voxelize", [&] { return client.Voxelize(request); }));
   const auto& f = grid.figures;
   if (!o.png.empty() || !o.npy.empty()) {
     const std::vector<float> counts = ColumnCounts(grid);
@@ -122,7 +122,7 @@ Status RunTransmittance(const TransmittanceOptions& o, Cli& cli) {
   request.set_resolution(o.resolution);
   request.set_slices(o.slices);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const v1::TransmittanceResponse response, client.Transmittance(request));
+  VISQ_ASSIGN_OR_RETURN(const v1::TransmittanceResponse response, WhileWaiting(cli.flags, "transmittance", [&] { return client.Transmittance(request); }));
   const std::vector<float> image(response.transmittance().begin(), response.transmittance().end());
   if (!o.png.empty()) VISQ_RETURN_IF_ERROR(WritePng(o.png, o.width, o.height, 1, image));
   if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {o.height, o.width}, image));
@@ -160,7 +160,7 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
                                                 : v1::VolumetricShadowRequest::MIN_MAX);
   request.set_combined_image(o.combined);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const client::VolumetricImage image, client.VolumetricShadow(request));
+  VISQ_ASSIGN_OR_RETURN(const client::VolumetricImage image, WhileWaiting(cli.flags, "volumetric", [&] { return client.VolumetricShadow(request); }));
   const auto& f = image.figures;
   const std::vector<float>& rgb = o.combined ? image.combined : image.inscattering;
   if (!o.png.empty()) {

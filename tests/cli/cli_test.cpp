@@ -391,6 +391,21 @@ TEST_F(CliTest, FarmBakeShardsMergeToTheWholeBakeBitForBit) {
   }
 }
 
+TEST_F(CliTest, LongCallsSayHowLongTheServerHasWorked) {
+  // About 2.5 s of Embree rays on two cores.
+  const auto start = std::chrono::steady_clock::now();
+  const CliRun run = Visq(Server() + " --progress hidden-map --scene " + kScene + " --source '" + kCeilingSource +
+                          "' --receiver '" + kFloorUp + "' --width 256 --height 256 --samples 1024 --method raycast");
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  if (seconds < 1.3) GTEST_SKIP() << "the call took " << seconds << " s here: too short to report on";
+  EXPECT_TRUE(Contains(run.output, "hidden-map: the server has worked 1 s\n")) << run.output;
+  // Without --progress, and not on a terminal, nothing is said.
+  const CliRun quiet = Visq(Server() + " hidden-map --scene " + kScene + " --source '" + kCeilingSource +
+                            "' --receiver '" + kFloorUp + "' --width 256 --height 256 --samples 1024 --method raycast");
+  EXPECT_FALSE(Contains(quiet.output, "the server has worked")) << quiet.output;
+}
+
 TEST_F(CliTest, HiddenMapNpyHoldsTheClientsFractions) {
   const fs::path npy = scratch_.path() / "map.npy";
   const CliRun run = Visq(Server() + " hidden-map --scene " + kScene + " --source '" + kCeilingSource +
