@@ -299,6 +299,41 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(preview.rgb.shape, (16, 24, 3))
         self.assertTrue(preview.covered.any())
 
+    def test_a_node_move_and_the_incremental_update(self):
+        self.client.load_from_repository(SCENE, replace=True)
+        self.client.compute_obscurances(SCENE, 0.5, resolution=32, directions=8)
+        info = self.client.get_scene(SCENE, include_nodes=True)
+        node = [n.name for n in info.nodes].index("short_box")
+        moved = np.eye(4)
+        moved[:3, 3] = (0.0, 0.0, -0.3)  # numpy's row-major M @ p; sent column-major
+        after = self.client.set_node_transform(SCENE, "short_box", moved)
+        self.assertGreater(after.version, info.version)
+        update = self.client.update_obscurances(SCENE, want_full_w=True)
+        self.assertEqual(update.response.moves_applied, 1)
+        self.assertGreater(len(update.texels), 0)
+        self.assertEqual(update.w.shape, (len(update.texels), 3))
+        self.assertEqual(update.full_w.shape, (32, 32, 3))
+        with self.assertRaisesRegex(ValueError, "matrix: expected a finite 4x4 matrix"):
+            self.client.set_node_transform(SCENE, node, np.eye(3))
+        self.client.load_from_repository(SCENE, replace=True)  # the stored scene back for the other tests
+
+    def test_a_token_is_sent(self):
+        token_file = os.path.join(self.scratch, "token")
+        with open(token_file, "w") as f:
+            f.write("s3cret-token-for-python\r\n")
+        server = Server(["--auth-token-file", token_file])
+        try:
+            with visq.Client(server.address) as anonymous:
+                self.assertEqual(anonymous.health(), "SERVING", "health needs no token")
+                with self.assertRaises(visq.VisqError) as caught:
+                    anonymous.list_scenes()
+                self.assertEqual(caught.exception.code, grpc.StatusCode.UNAUTHENTICATED)
+            with visq.Client(server.address, token_file=token_file) as client:
+                self.assertIn(SCENE, [s.name for s in client.list_scenes()])
+        finally:
+            server.stop()
+            shutil.rmtree(server.dir, ignore_errors=True)
+
     def test_a_bake_is_cancelled(self):
         cancel = visq.Cancellation()
         started = time.monotonic()
