@@ -14,6 +14,10 @@
 #include <fmt/format.h>
 #include <google/protobuf/descriptor.h>
 #include <google/protobuf/util/json_util.h>
+#include <OpenEXR/ImfChannelList.h>
+#include <OpenEXR/ImfFrameBuffer.h>
+#include <OpenEXR/ImfHeader.h>
+#include <OpenEXR/ImfOutputFile.h>
 #include <nlohmann/json.hpp>
 #include <stb_image_write.h>
 
@@ -263,6 +267,33 @@ Status WriteTopFirstPng(const std::string& path, uint32_t width, uint32_t height
   std::vector<float> flipped = FlipRows(rgb, height, size_t(width) * 3);
   for (float& v : flipped) v *= scale;
   return WritePng(path, width, height, 3, flipped);
+}
+
+Status WriteExr(const std::string& path, uint32_t width, uint32_t height, int channels,
+                const std::vector<float>& values, bool top_first) {
+  const size_t row = size_t(width) * channels;
+  if ((channels != 1 && channels != 3) || values.size() != row * height)
+    return absl::InternalError(fmt::format("{}: {} values for a {} x {} x {} image", path, values.size(), width,
+                                           height, channels));
+  // EXR's first scan line is the top one.
+  const std::vector<float> top = top_first ? values : FlipRows(values, height, row);
+  const char* names[3] = {channels == 1 ? "Y" : "R", "G", "B"};
+  try {
+    Imf::Header header(static_cast<int>(width), static_cast<int>(height));
+    Imf::FrameBuffer frame;
+    for (int c = 0; c < channels; ++c) {
+      header.channels().insert(names[c], Imf::Channel(Imf::FLOAT));
+      frame.insert(names[c], Imf::Slice(Imf::FLOAT, const_cast<char*>(reinterpret_cast<const char*>(top.data() + c)),
+                                        sizeof(float) * channels, sizeof(float) * row));
+    }
+    Imf::OutputFile file(path.c_str(), header);
+    file.setFrameBuffer(frame);
+    file.writePixels(static_cast<int>(height));
+  } catch (const std::exception& e) {
+    // OpenEXR reports by exception; it stops here.
+    return absl::PermissionDeniedError(fmt::format("cannot write {}: {}", path, e.what()));
+  }
+  return absl::OkStatus();
 }
 
 Status WriteNpy(const std::string& path, const std::vector<uint64_t>& shape, const std::vector<float>& values) {

@@ -105,6 +105,11 @@ bool ParsePatch(const std::string& text, v1::Patch* out);
 // times `scale`.
 [[nodiscard]] Status WriteTopFirstPng(const std::string& path, uint32_t width, uint32_t height,
                                       const std::vector<float>& rgb, float scale);
+// A float OpenEXR image of 1 (Y) or 3 (R, G, B) channels, given with its
+// last row first like WritePng (`top_first`: with its first row on top, like
+// WriteTopFirstPng); linear values, as they are.
+[[nodiscard]] Status WriteExr(const std::string& path, uint32_t width, uint32_t height, int channels,
+                              const std::vector<float>& values, bool top_first = false);
 // A float32 .npy of the given shape (C order), for numpy.load.
 [[nodiscard]] Status WriteNpy(const std::string& path, const std::vector<uint64_t>& shape,
                               const std::vector<float>& values);

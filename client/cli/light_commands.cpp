@@ -25,7 +25,7 @@ constexpr size_t kBatchPoints = 65536;
 constexpr uint64_t kMaxPoints = uint64_t{4096} * 4096;
 
 struct LightOptions {
-  std::string scene, light, points_file, receiver, png, npy;
+  std::string scene, light, points_file, receiver, png, npy, exr;
   double radiance = 1.0;
   uint32_t width = 64, height = 64;
   bool polygons = false;
@@ -92,8 +92,8 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
   const bool grid = !o.receiver.empty();
   if (grid == !o.points_file.empty())
     return absl::InvalidArgumentError("--points, --receiver: give one of them");
-  if (!grid && (!o.png.empty() || !o.npy.empty()))
-    return absl::InvalidArgumentError("--png, --npy: need --receiver (points from a file have no image layout)");
+  if (!grid && (!o.png.empty() || !o.npy.empty() || !o.exr.empty()))
+    return absl::InvalidArgumentError("--png, --npy, --exr: need --receiver (points from a file have no image layout)");
 
   // The points: a file's, or the receiver's texel centres (row y along
   // edge_v), made one at a time.
@@ -216,6 +216,7 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
 
   if (!o.png.empty()) VISQ_RETURN_IF_ERROR(WritePng(o.png, o.width, o.height, 1, fraction));
   if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {o.height, o.width}, fraction));
+  if (!o.exr.empty()) VISQ_RETURN_IF_ERROR(WriteExr(o.exr, o.width, o.height, 1, fraction));
   if (cli.flags.json) {
     // Several batches: the whole stream's time as this client saw it.
     if (batches > 1) {
@@ -233,6 +234,7 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
              t.wholly_hidden(), t.subtracted_directly(), total_ms);
   if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
   if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
+  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
   return absl::OkStatus();
 }
 
@@ -253,6 +255,7 @@ void AddLightCommands(Cli& cli) {
   command->add_option("--height", lv->height, "Receiver texels down (1..4096)")->capture_default_str();
   command->add_option("--png", lv->png, "Write the receiver's exact soft shadow (visible fraction) as a PNG");
   command->add_option("--npy", lv->npy, "Write the receiver's visible fractions as a float32 .npy (height, width)");
+  command->add_option("--exr", lv->exr, "Write the receiver's visible fractions as a float OpenEXR image (as the PNG)");
   command->add_flag("--polygons", lv->polygons, "Return the visible parts of the light (with --json)");
   OnRun(command, cli, lv, RunLightVisibility);
 }

@@ -17,7 +17,7 @@ namespace visq::cli {
 namespace {
 
 struct BakeOptions {
-  std::string scene, png, npy, partial_out;
+  std::string scene, png, npy, exr, partial_out;
   uint32_t resolution = 256, directions = 256, rays = 0, first_direction = 0, total_directions = 0;
   uint64_t seed = 1;
   double d_max = 0;
@@ -142,7 +142,7 @@ Status RunShard(const BakeOptions& o, const v1::ComputeObscurancesRequest& base,
   if (o.target.set() || o.rays > 0)
     return absl::InvalidArgumentError("--partial-out: a shard is a GPU bake of a direction range; not with "
                                       "--max-error, --time-budget-ms or --rays-per-patch");
-  if (!o.png.empty() || !o.npy.empty())
+  if (!o.png.empty() || !o.npy.empty() || !o.exr.empty())
     return absl::InvalidArgumentError("--partial-out: a shard has no W; merge the shards (obscurance-merge --npy)");
   v1::ComputeObscurancesRequest request = base;
   request.set_first_direction(o.first_direction);
@@ -210,6 +210,7 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
   if (!o.png.empty()) VISQ_RETURN_IF_ERROR(WritePng(o.png, f.atlas().width(), f.atlas().height(), 3, bake->w));
   // Row y of the array is atlas row y, as in the Python client.
   if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {f.atlas().height(), f.atlas().width(), 3}, bake->w));
+  if (!o.exr.empty()) VISQ_RETURN_IF_ERROR(WriteExr(o.exr, f.atlas().width(), f.atlas().height(), 3, bake->w));
   if (cli.flags.json) {
     fmt::print("{{\"mean_w\": {}, \"estimated_texels\": {}, \"figures\": {}}}\n", mean, estimated, ToJson(f));
     return absl::OkStatus();
@@ -231,6 +232,7 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
              f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
   if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
   if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
+  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
   return absl::OkStatus();
 }
 
@@ -330,12 +332,13 @@ Status RunUpdate(const UpdateOptions& o, Cli& cli) {
 }
 
 struct PreviewOptions {
-  std::string scene, png, npy, quantity = "w";
+  std::string scene, png, npy, exr, quantity = "w";
   CameraFlags camera;
 };
 
 Status RunPreview(const PreviewOptions& o, Cli& cli) {
-  if (o.png.empty() && o.npy.empty()) return absl::InvalidArgumentError("--png, --npy: give at least one");
+  if (o.png.empty() && o.npy.empty() && o.exr.empty())
+    return absl::InvalidArgumentError("--png, --npy, --exr: give at least one");
   v1::ObscurancePreviewRequest request;
   request.mutable_scene()->set_name(o.scene);
   VISQ_RETURN_IF_ERROR(FillCamera(o.camera, &request));
@@ -349,6 +352,7 @@ Status RunPreview(const PreviewOptions& o, Cli& cli) {
   if (!o.png.empty())
     VISQ_RETURN_IF_ERROR(WriteTopFirstPng(o.png, f.width(), f.height(), preview.rgb, intensity ? 1.0f / peak : 1.0f));
   if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {f.height(), f.width(), 3}, preview.rgb));
+  if (!o.exr.empty()) VISQ_RETURN_IF_ERROR(WriteExr(o.exr, f.width(), f.height(), 3, preview.rgb, /*top_first=*/true));
   size_t covered = 0;
   for (uint8_t c : preview.covered) covered += c;
   if (cli.flags.json) {
@@ -362,6 +366,7 @@ Status RunPreview(const PreviewOptions& o, Cli& cli) {
              f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
   if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
   if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
+  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
   return absl::OkStatus();
 }
 
@@ -379,6 +384,7 @@ void AddObscuranceCommands(Cli& cli) {
   obscurance->add_flag("--built-atlas", ob->built_atlas, "Build an atlas even when the scene has TEXCOORD_1");
   obscurance->add_option("--png", ob->png, "Write the W atlas as a PNG");
   obscurance->add_option("--npy", ob->npy, "Write W as a float32 .npy (atlas height, width, 3)");
+  obscurance->add_option("--exr", ob->exr, "Write the W atlas as a float OpenEXR image (as the PNG)");
   AddTargetFlags(obscurance, ob->target);
   obscurance->add_option("--rays-per-patch", ob->rays,
                          "Instead of the GPU bake: the ray-cast estimator (Embree) with this many rays per patch");
@@ -423,6 +429,7 @@ void AddObscuranceCommands(Cli& cli) {
   AddChoice(preview, "--quantity", op->quantity, {"w", "i", "W", "I", "intensity"}, "w (obscurance W) or i (intensity I)");
   preview->add_option("--png", op->png,
                       "Write the image: W as is, I tone-mapped to its peak; linear values, background black");
+  preview->add_option("--exr", op->exr, "Write the linear RGB image as a float OpenEXR image");
   preview->add_option("--npy", op->npy, "Write the linear RGB image as a float32 .npy (height, width, 3), row 0 on top");
   OnRun(preview, cli, op, RunPreview);
 }

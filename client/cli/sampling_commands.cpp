@@ -16,7 +16,7 @@ v1::VisibilityMethod Method(const std::string& name) {
 }
 
 struct HiddenMapOptions {
-  std::string scene, source, receiver, method = "raster", lookup = "exact", png, npy;
+  std::string scene, source, receiver, method = "raster", lookup = "exact", png, npy, exr;
   uint32_t samples = 256, width = 128, height = 128;
   uint64_t seed = 1;
   bool decorrelate = false, watertight = false, bitmasks = false;
@@ -50,6 +50,8 @@ Status RunHiddenMap(const HiddenMapOptions& o, Cli& cli) {
   const bool rgb = !map.visible_rgb.empty();
   if (!o.png.empty())
     VISQ_RETURN_IF_ERROR(WritePng(o.png, f.width(), f.height(), rgb ? 3 : 1, rgb ? map.visible_rgb : map.visible_fraction));
+  if (!o.exr.empty())
+    VISQ_RETURN_IF_ERROR(WriteExr(o.exr, f.width(), f.height(), rgb ? 3 : 1, rgb ? map.visible_rgb : map.visible_fraction));
   // Row y of the array is texel row y (along the receiver's edge_v), as in
   // the Python client.
   if (!o.npy.empty()) {
@@ -72,6 +74,7 @@ Status RunHiddenMap(const HiddenMapOptions& o, Cli& cli) {
              f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
   if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
   if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
+  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
   return absl::OkStatus();
 }
 
@@ -133,6 +136,7 @@ void AddSamplingCommands(Cli& cli) {
   hidden_map->add_option("--npy", hm->npy,
                          "Write the visible fractions as a float32 .npy (height, width); RGB (height, width, 3) "
                          "for coloured lights; row y is texel row y");
+  hidden_map->add_option("--exr", hm->exr, "Write the visible fractions as a float OpenEXR image (laid out as the PNG)");
   AddTargetFlags(hidden_map, hm->target);
   OnRun(hidden_map, cli, hm, RunHiddenMap);
 

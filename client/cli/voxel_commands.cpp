@@ -12,7 +12,7 @@ namespace visq::cli {
 namespace {
 
 struct VoxelizeOptions {
-  std::string scene, png, npy;
+  std::string scene, png, npy, exr;
   uint32_t width = 128, height = 128, slices = 128, axis = 1;
   bool solid = false, local = false, conservative = false;
 };
@@ -71,10 +71,11 @@ Status RunVoxelize(const VoxelizeOptions& o, Cli& cli) {
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const client::VoxelGrid grid, WhileWaiting(cli.flags, "voxelize", [&] { return client.Voxelize(request); }));
   const auto& f = grid.figures;
-  if (!o.png.empty() || !o.npy.empty()) {
+  if (!o.png.empty() || !o.npy.empty() || !o.exr.empty()) {
     const std::vector<float> counts = ColumnCounts(grid);
     if (!o.png.empty()) VISQ_RETURN_IF_ERROR(WriteProjectionPng(o.png, grid, counts));
     if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {f.height(), f.width()}, counts));
+    if (!o.exr.empty()) VISQ_RETURN_IF_ERROR(WriteExr(o.exr, f.width(), f.height(), 1, counts));
   }
   if (cli.flags.json) {
     fmt::print("{}", ToJson(f));
@@ -86,11 +87,12 @@ Status RunVoxelize(const VoxelizeOptions& o, Cli& cli) {
              f.timing().compute_ms());
   if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
   if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
+  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
   return absl::OkStatus();
 }
 
 struct TransmittanceOptions {
-  std::string scene, light, kind = "directional", receiver, png, npy;
+  std::string scene, light, kind = "directional", receiver, png, npy, exr;
   std::vector<std::string> absorbers;
   uint32_t width = 64, height = 64, resolution = 256, slices = 256;
 };
@@ -126,6 +128,7 @@ Status RunTransmittance(const TransmittanceOptions& o, Cli& cli) {
   const std::vector<float> image(response.transmittance().begin(), response.transmittance().end());
   if (!o.png.empty()) VISQ_RETURN_IF_ERROR(WritePng(o.png, o.width, o.height, 1, image));
   if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {o.height, o.width}, image));
+  if (!o.exr.empty()) VISQ_RETURN_IF_ERROR(WriteExr(o.exr, o.width, o.height, 1, image));
   if (cli.flags.json) {
     fmt::print("{}", ToJson(response));
     return absl::OkStatus();
@@ -135,11 +138,12 @@ Status RunTransmittance(const TransmittanceOptions& o, Cli& cli) {
   mean /= std::max<size_t>(1, image.size());
   fmt::print("{} texels: mean transmittance {:.4f}; {}\n", image.size(), mean, response.accuracy().note());
   fmt::print("time: total {:.1f} ms\n", response.timing().total_ms());
+  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
   return absl::OkStatus();
 }
 
 struct VolumetricOptions {
-  std::string scene, light = "0.3,-1,0.2", png, npy, method = "min-max";
+  std::string scene, light = "0.3,-1,0.2", png, npy, exr, method = "min-max";
   CameraFlags camera;
   uint32_t shadow_map = 1024;
   double scattering = 0.05, extinction = 0.05, intensity = 1.0;
@@ -169,6 +173,7 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
     VISQ_RETURN_IF_ERROR(WriteTopFirstPng(o.png, f.width(), f.height(), rgb, 1.0f / peak));
   }
   if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {f.height(), f.width(), 3}, rgb));
+  if (!o.exr.empty()) VISQ_RETURN_IF_ERROR(WriteExr(o.exr, f.width(), f.height(), 3, rgb, /*top_first=*/true));
   if (cli.flags.json) {
     fmt::print("{}", ToJson(f));
     return absl::OkStatus();
@@ -179,6 +184,7 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
   fmt::print("total {:.1f} ms\n", f.timing().total_ms());
   if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
   if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
+  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
   return absl::OkStatus();
 }
 
@@ -201,6 +207,7 @@ void AddVoxelCommands(Cli& cli) {
                        "Write the projection along the depth axis: gray = occupied voxels in the column over the "
                        "fullest column's (white); square pixels, so the box's aspect ratio is kept");
   voxelize->add_option("--npy", vx->npy, "Write the occupied voxels per column as a float32 .npy (height, width)");
+  voxelize->add_option("--exr", vx->exr, "Write the occupied voxels per column as a float OpenEXR image, a pixel per column");
   OnRun(voxelize, cli, vx, RunVoxelize);
 
   auto tr = std::make_shared<TransmittanceOptions>();
@@ -217,6 +224,7 @@ void AddVoxelCommands(Cli& cli) {
   transmittance->add_option("--slices", tr->slices, "Slices")->capture_default_str();
   transmittance->add_option("--png", tr->png, "Write the transmittance as a PNG");
   transmittance->add_option("--npy", tr->npy, "Write the transmittance as a float32 .npy (height, width)");
+  transmittance->add_option("--exr", tr->exr, "Write the transmittance as a float OpenEXR image (as the PNG)");
   OnRun(transmittance, cli, tr, RunTransmittance);
 
   auto vo = std::make_shared<VolumetricOptions>();
@@ -231,6 +239,7 @@ void AddVoxelCommands(Cli& cli) {
   AddChoice(volumetric, "--method", vo->method, {"min-max", "ray-marching"}, "min-max or ray-marching");
   volumetric->add_flag("--combined", vo->combined, "Add the directly lit surfaces");
   volumetric->add_option("--png", vo->png, "Write the image (tone-mapped to its peak)");
+  volumetric->add_option("--exr", vo->exr, "Write the linear RGB image as a float OpenEXR image");
   volumetric->add_option("--npy", vo->npy, "Write the linear RGB image as a float32 .npy (height, width, 3), row 0 on top");
   OnRun(volumetric, cli, vo, RunVolumetric);
 }

@@ -8,6 +8,10 @@
 #include <fstream>
 #include <sstream>
 
+#include <OpenEXR/ImfChannelList.h>
+#include <OpenEXR/ImfFrameBuffer.h>
+#include <OpenEXR/ImfHeader.h>
+#include <OpenEXR/ImfInputFile.h>
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
@@ -64,6 +68,24 @@ Npy ReadNpy(const fs::path& path) {
   npy.values.resize(count);
   std::memcpy(npy.values.data(), data.data() + 10 + header_length, count * sizeof(float));
   return npy;
+}
+
+// A float EXR's channels, interleaved, first scan line (the top) first.
+Npy ReadExr(const fs::path& path, const std::vector<std::string>& channels) {
+  Imf::InputFile file(path.c_str());
+  const auto window = file.header().dataWindow();
+  const size_t width = window.max.x - window.min.x + 1, height = window.max.y - window.min.y + 1;
+  Npy out{{height, width, channels.size()}, std::vector<float>(width * height * channels.size())};
+  Imf::FrameBuffer frame;
+  for (size_t c = 0; c < channels.size(); ++c) {
+    EXPECT_NE(file.header().channels().findChannel(channels[c].c_str()), nullptr) << channels[c];
+    frame.insert(channels[c].c_str(), Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(out.values.data() + c),
+                                                 sizeof(float) * channels.size(),
+                                                 sizeof(float) * channels.size() * width));
+  }
+  file.setFrameBuffer(frame);
+  file.readPixels(window.min.y, window.max.y);
+  return out;
 }
 
 // Width and height from a PNG's IHDR chunk.
@@ -222,7 +244,7 @@ TEST_F(CliTest, LightVisibilityPngNeedsAReceiver) {
   const CliRun run = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + kLight + "' --points " +
                        points.string() + " --png " + png.string());
   EXPECT_EQ(run.exit_code, 2) << run.output;
-  EXPECT_TRUE(Contains(run.output, "--png, --npy: need --receiver")) << run.output;
+  EXPECT_TRUE(Contains(run.output, "--png, --npy, --exr: need --receiver")) << run.output;
   EXPECT_FALSE(fs::exists(png));
   EXPECT_FALSE(Contains(run.output, "wrote"));
   // Without --png the points are answered, one line each.
@@ -404,6 +426,26 @@ TEST_F(CliTest, LongCallsSayHowLongTheServerHasWorked) {
   const CliRun quiet = Visq(Server() + " hidden-map --scene " + kScene + " --source '" + kCeilingSource +
                             "' --receiver '" + kFloorUp + "' --width 256 --height 256 --samples 1024 --method raycast");
   EXPECT_FALSE(Contains(quiet.output, "the server has worked")) << quiet.output;
+}
+
+TEST_F(CliTest, FloatImagesAreWrittenAsOpenExr) {
+  const fs::path d = scratch_.path();
+  const CliRun map = Visq(Server() + " hidden-map --scene " + kScene + " --source '" + kCeilingSource +
+                          "' --receiver '" + kFloorUp + "' --width 12 --height 8 --samples 64 --npy " +
+                          (d / "map.npy").string() + " --exr " + (d / "map.exr").string());
+  ASSERT_EQ(map.exit_code, 0) << map.output;
+  const Npy npy = ReadNpy(d / "map.npy"), exr = ReadExr(d / "map.exr", {"Y"});
+  ASSERT_EQ(exr.shape, (std::vector<size_t>{8, 12, 1}));
+  // The EXR is laid out as the PNG: the receiver's v = 1 row on top.
+  for (size_t y = 0; y < 8; ++y)
+    for (size_t x = 0; x < 12; ++x) EXPECT_EQ(exr.values[(7 - y) * 12 + x], npy.values[y * 12 + x]) << x << ", " << y;
+  const CliRun image = Visq(Server() + " volumetric --scene " + kScene +
+                            " --camera 0,1,3.5 --forward 0,0,-1 --width 16 --height 12 --shadow-map 128 --npy " +
+                            (d / "shafts.npy").string() + " --exr " + (d / "shafts.exr").string());
+  ASSERT_EQ(image.exit_code, 0) << image.output;
+  const Npy rgb = ReadExr(d / "shafts.exr", {"R", "G", "B"}), rgb_npy = ReadNpy(d / "shafts.npy");
+  EXPECT_EQ(rgb.shape, rgb_npy.shape);
+  EXPECT_EQ(rgb.values, rgb_npy.values);
 }
 
 TEST_F(CliTest, HiddenMapNpyHoldsTheClientsFractions) {
