@@ -50,7 +50,30 @@ StatusOr<std::string> ReadPem(const std::string& path) {
 }
 }  // namespace
 
+StatusOr<std::string> WithDefaultPort(const std::string& address) {
+  if (address.empty()) return absl::InvalidArgumentError("address: empty");
+  for (const char* scheme : {"unix:", "dns:", "ipv4:", "ipv6:"})
+    if (address.rfind(scheme, 0) == 0) return address;
+  const std::string default_port = std::to_string(kDefaultServerPort);
+  if (address.front() == '[') {
+    if (address.find("]:") == std::string::npos) return address + ":" + default_port;
+  } else if (std::count(address.begin(), address.end(), ':') > 1) {
+    return "[" + address + "]:" + default_port;  // a bare IPv6 address
+  } else if (address.find(':') == std::string::npos) {
+    return address + ":" + default_port;
+  }
+  const std::string port = address.substr(address.rfind(':') + 1);
+  const bool digits = !port.empty() && port.size() <= 5 &&
+                      std::all_of(port.begin(), port.end(), [](char c) { return c >= '0' && c <= '9'; });
+  if (!digits || std::stoi(port) < 1 || std::stoi(port) > 65535)
+    return absl::InvalidArgumentError(
+        absl::StrCat("address: port '", port, "' of '", address, "' is not a number in 1..65535"));
+  return address;
+}
+
 Client::Client(ClientOptions options) : options_(std::move(options)) {
+  if (auto address = WithDefaultPort(options_.address); address.ok()) options_.address = *address;
+  else init_status_ = address.status();
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(-1);  // responses can be large bitmask streams
   std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
@@ -77,9 +100,11 @@ Client::Client(ClientOptions options) : options_(std::move(options)) {
   health_ = grpc::health::v1::Health::NewStub(channel_);
 }
 
-std::unique_ptr<grpc::ClientContext> Client::NewContext(const std::string& scene) const {
+std::unique_ptr<grpc::ClientContext> Client::NewContext(const std::string& scene, bool stream) const {
   auto context = std::make_unique<grpc::ClientContext>();
-  context->set_deadline(std::chrono::system_clock::now() + options_.deadline);
+  const std::chrono::milliseconds deadline =
+      stream && options_.stream_deadline.count() >= 0 ? options_.stream_deadline : options_.deadline;
+  if (deadline.count() > 0) context->set_deadline(std::chrono::system_clock::now() + deadline);
   if (!options_.request_id.empty()) context->AddMetadata("x-request-id", options_.request_id);
   if (!options_.auth_token.empty()) context->AddMetadata("authorization", "Bearer " + options_.auth_token);
   // Metadata values must be printable ASCII (gRPC aborts the process on
@@ -152,7 +177,7 @@ StatusOr<v1::SceneInfo> Client::UploadScene(const std::filesystem::path& file, s
   }
 
   VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(name);
+  auto context = NewContext(name, /*stream=*/true);
   v1::SceneInfo info;
   auto writer = stub_->LoadScene(context.get(), &info);
   v1::LoadSceneRequest request;
@@ -266,7 +291,7 @@ namespace visq::client {
 
 StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request) {
   VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
+  auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->HiddenSampleMap(context.get(), request);
   HiddenSampleMap out;
   v1::HiddenSampleMapResponse message;
@@ -315,25 +340,50 @@ StatusOr<v1::LightVisibilityResponse> Client::LightVisibility(const v1::LightVis
 
 StatusOr<std::vector<v1::LightVisibilityResponse>> Client::LightVisibilityStream(
     const std::vector<v1::LightVisibilityRequest>& batches) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(batches.empty() ? "" : batches[0].scene().name());
-  auto stream = stub_->LightVisibilityStream(context.get());
+  size_t next_batch = 0;
   std::vector<v1::LightVisibilityResponse> answers;
+  VISQ_RETURN_IF_ERROR(LightVisibilityStream(
+      batches.empty() ? "" : batches[0].scene().name(),
+      [&](v1::LightVisibilityRequest* batch) {
+        if (next_batch == batches.size()) return false;
+        *batch = batches[next_batch++];
+        return true;
+      },
+      [&](v1::LightVisibilityResponse& answer) {
+        answers.push_back(std::move(answer));
+        return absl::OkStatus();
+      }));
+  return answers;
+}
+
+Status Client::LightVisibilityStream(const std::string& scene, const LightBatchSource& next,
+                                     const LightAnswerSink& answer) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(scene, /*stream=*/true);
+  auto stream = stub_->LightVisibilityStream(context.get());
+  size_t sent = 0, answered = 0;
+  Status sink = absl::OkStatus();
   // One batch in flight at a time: the server answers in order, and this
   // keeps memory bounded on both sides.
-  for (const auto& batch : batches) {
+  v1::LightVisibilityRequest batch;
+  while (sink.ok()) {
+    batch.Clear();
+    if (!next(&batch)) break;
+    ++sent;
     if (!stream->Write(batch)) break;
-    v1::LightVisibilityResponse answer;
-    if (!stream->Read(&answer)) break;
-    answers.push_back(std::move(answer));
+    v1::LightVisibilityResponse response;
+    if (!stream->Read(&response)) break;
+    ++answered;
+    sink = answer(response);
+    if (!sink.ok()) context->TryCancel();
   }
   stream->WritesDone();
   const grpc::Status status = stream->Finish();
   NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(sink);
   VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
-  if (answers.size() != batches.size())
-    return absl::DataLossError(absl::StrCat(answers.size(), " answers for ", batches.size(), " batches"));
-  return answers;
+  if (answered != sent) return absl::DataLossError(absl::StrCat(answered, " answers for ", sent, " batches"));
+  return absl::OkStatus();
 }
 
 }  // namespace visq::client
@@ -355,7 +405,7 @@ Status AppendChunk(const Field& field, uint64_t offset, std::vector<T>& into, co
 
 StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request) {
   VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
+  auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->Voxelize(context.get(), request);
   VoxelGrid out;
   v1::VoxelizeResponse message;
@@ -384,7 +434,7 @@ StatusOr<v1::TransmittanceResponse> Client::Transmittance(const v1::Transmittanc
 
 StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowRequest& request) {
   VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
+  auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->VolumetricShadow(context.get(), request);
   VolumetricImage out;
   v1::VolumetricShadowResponse message;
@@ -425,7 +475,7 @@ Status AppendObscuranceChunk(const Field& field, uint64_t offset, std::vector<T>
 StatusOr<ObscuranceBake> Client::ComputeObscurances(const v1::ComputeObscurancesRequest& request,
                                                     const ObscuranceProgressCallback& progress) {
   VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
+  auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->ComputeObscurances(context.get(), request);
   ObscuranceBake out;
   v1::ComputeObscurancesResponse message;
@@ -477,7 +527,7 @@ StatusOr<v1::UpdateObscurancesResponse> Client::UpdateObscurances(const v1::Upda
 
 StatusOr<ObscurancePreview> Client::RenderObscurancePreview(const v1::ObscurancePreviewRequest& request) {
   VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name());
+  auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->RenderObscurancePreview(context.get(), request);
   ObscurancePreview out;
   v1::ObscurancePreviewResponse message;

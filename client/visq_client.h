@@ -18,9 +18,21 @@
 
 namespace visq::client {
 
+// visq-server's default --address port (server/service/server.h).
+inline constexpr int kDefaultServerPort = 50051;
+
+// HOST[:PORT] with kDefaultServerPort when no port is given (gRPC's own
+// default is 443), brackets added to a bare IPv6 address; unix:, dns:,
+// ipv4: and ipv6: targets unchanged. INVALID_ARGUMENT for a port that is
+// not a number in 1..65535.
+[[nodiscard]] StatusOr<std::string> WithDefaultPort(const std::string& address);
+
 struct ClientOptions {
-  std::string address = "127.0.0.1:50051";
+  std::string address = "127.0.0.1:50051";  // WithDefaultPort applies
   std::chrono::milliseconds deadline{60'000};
+  // Server streams, bakes and uploads: < 0 the same as `deadline`, 0 none
+  // (their length depends on the scene; the CLI passes 0 unless --timeout).
+  std::chrono::milliseconds stream_deadline{-1};
   size_t upload_chunk_bytes = 1 << 20;  // well under any message limit
   std::string request_id;               // sent as x-request-id when set
   std::string auth_token;               // sent as "authorization: Bearer ..." when set
@@ -117,6 +129,14 @@ class Client {
   // Sends the batches over one stream; answers come back in order.
   [[nodiscard]] StatusOr<std::vector<v1::LightVisibilityResponse>> LightVisibilityStream(
       const std::vector<v1::LightVisibilityRequest>& batches);
+  // The same with batches made on demand, so that neither the requests nor
+  // the answers of millions of points are held at once: `next` fills the
+  // next batch and returns false when there is none; `answer` receives each
+  // batch's answer in order (an error from it cancels the call).
+  using LightBatchSource = std::function<bool(v1::LightVisibilityRequest*)>;
+  using LightAnswerSink = std::function<Status(v1::LightVisibilityResponse&)>;
+  [[nodiscard]] Status LightVisibilityStream(const std::string& scene, const LightBatchSource& next,
+                                             const LightAnswerSink& answer);
 
   // Obscurances. `progress` is called for each progress message (on this
   // thread) while the server bakes.
@@ -133,9 +153,9 @@ class Client {
 
   // For RPCs this class does not wrap yet, and for tests.
   v1::VisibilityService::Stub& stub() { return *stub_; }
-  // A context with the deadline, request id, token and (when `scene` is
-  // given) the routing metadata applied.
-  std::unique_ptr<grpc::ClientContext> NewContext(const std::string& scene = "") const;
+  // A context with the deadline (a stream's when `stream`), request id,
+  // token and (when `scene` is given) the routing metadata applied.
+  std::unique_ptr<grpc::ClientContext> NewContext(const std::string& scene = "", bool stream = false) const;
   // Whether construction succeeded (TLS files readable).
   const Status& init_status() const { return init_status_; }
 

@@ -27,6 +27,10 @@ build_packages=(
   clang libclang-rt-14-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   gnuplot-nox
+  # The Python client (client/python): its runtime, and the venv its test installs it into offline.
+  python3-grpcio python3-protobuf python3-numpy python3-venv python3-setuptools
+  # The CLI's float images (--exr).
+  libopenexr-dev
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
 runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
@@ -36,7 +40,8 @@ if (( runtime_only )); then
   # What the built binaries link (ldd), for the slim container stage.
   wanted=("${runtime_packages[@]}" ca-certificates
     libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
-    libspdlog1.10 libssl3 libstb0 libcpp-httplib0.11 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl)
+    libspdlog1.10 libssl3 libstb0 libcpp-httplib0.11 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl
+    libopenexr-3-1-30 libimath-3-1-29)
 fi
 
 if (( print_only )); then

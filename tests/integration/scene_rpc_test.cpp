@@ -254,7 +254,7 @@ TEST_F(SceneRpcTest, CliListsScenesAsJson) {
   const auto json = nlohmann::json::parse(output);
   ASSERT_EQ(json["scenes"].size(), 1u) << output;
   EXPECT_EQ(json["scenes"][0]["name"], "cornell_box_visq");
-  EXPECT_EQ(json["scenes"][0]["triangle_count"], "36") << "uint64 fields are strings in proto3 JSON";
+  EXPECT_EQ(json["scenes"][0]["triangle_count"], 36) << "uint64 fields are numbers in the CLI's JSON";
 }
 
 TEST_F(SceneRpcTest, SponzaUploadsInChunksAndSurvivesRestart) {

@@ -1,0 +1,483 @@
+// The visq CLI as a user meets it: the real binary against a real
+// visq-server on loopback, its output and files checked against the client
+// library's answers.
+#include <sys/wait.h>
+
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+
+#include <OpenEXR/ImfChannelList.h>
+#include <OpenEXR/ImfFrameBuffer.h>
+#include <OpenEXR/ImfHeader.h>
+#include <OpenEXR/ImfInputFile.h>
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include "server_process.h"
+#include "test_support.h"
+#include "visq_client.h"
+
+namespace visq {
+namespace {
+
+namespace fs = std::filesystem;
+using client::Client;
+using testing::ScratchDir;
+using testing::ServerProcess;
+
+constexpr char kScene[] = "cornell_box_visq";
+constexpr char kLight[] = "-0.25,1.99,-0.25;0.25,1.99,-0.25;0.25,1.99,0.25;-0.25,1.99,0.25";
+constexpr char kFloorUp[] = "-0.999,0.001,-0.999;0,0,1.998;1.998,0,0";  // faces +y
+constexpr char kCeilingSource[] = "-0.25,1.99,-0.25;0.5,0,0;0,0,0.5";
+
+struct CliRun {
+  int exit_code;
+  std::string output;  // stdout and stderr
+};
+
+CliRun Visq(const std::string& arguments) {
+  int status = 0;
+  std::string output = testing::RunCommand(std::string(VISQ_CLI_BINARY) + " " + arguments + " 2>&1", &status);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
+}
+
+bool Contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+// A float32 .npy: its shape and values.
+struct Npy {
+  std::vector<size_t> shape;
+  std::vector<float> values;
+};
+
+Npy ReadNpy(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::string data((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  Npy npy;
+  if (data.size() < 10 || data.compare(0, 6, "\x93NUMPY") != 0) return npy;
+  const size_t header_length = static_cast<uint8_t>(data[8]) | (size_t(static_cast<uint8_t>(data[9])) << 8);
+  const std::string header = data.substr(10, header_length);
+  EXPECT_TRUE(Contains(header, "'descr': '<f4'")) << header;
+  EXPECT_EQ((10 + header_length) % 64, 0u) << "header not padded to 64 bytes";
+  std::istringstream shape(header.substr(header.find("'shape': (") + 10));
+  for (size_t d; shape >> d;) {
+    npy.shape.push_back(d);
+    if (shape.peek() == ',') shape.get();
+  }
+  const size_t count = (data.size() - 10 - header_length) / sizeof(float);
+  npy.values.resize(count);
+  std::memcpy(npy.values.data(), data.data() + 10 + header_length, count * sizeof(float));
+  return npy;
+}
+
+// A float EXR's channels, interleaved, first scan line (the top) first.
+Npy ReadExr(const fs::path& path, const std::vector<std::string>& channels) {
+  Imf::InputFile file(path.c_str());
+  const auto window = file.header().dataWindow();
+  const size_t width = window.max.x - window.min.x + 1, height = window.max.y - window.min.y + 1;
+  Npy out{{height, width, channels.size()}, std::vector<float>(width * height * channels.size())};
+  Imf::FrameBuffer frame;
+  for (size_t c = 0; c < channels.size(); ++c) {
+    EXPECT_NE(file.header().channels().findChannel(channels[c].c_str()), nullptr) << channels[c];
+    frame.insert(channels[c].c_str(), Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(out.values.data() + c),
+                                                 sizeof(float) * channels.size(),
+                                                 sizeof(float) * channels.size() * width));
+  }
+  file.setFrameBuffer(frame);
+  file.readPixels(window.min.y, window.max.y);
+  return out;
+}
+
+// Width and height from a PNG's IHDR chunk.
+std::pair<uint32_t, uint32_t> PngSize(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  unsigned char header[24] = {};
+  in.read(reinterpret_cast<char*>(header), sizeof(header));
+  auto be32 = [&](int at) {
+    return (uint32_t{header[at]} << 24) | (uint32_t{header[at + 1]} << 16) | (uint32_t{header[at + 2]} << 8) |
+           header[at + 3];
+  };
+  return {be32(16), be32(20)};
+}
+
+class CliTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    repo_ = new ScratchDir();
+    server_ = ServerProcess::Start({repo_->path(), {"--seed-samples"}}).release();
+  }
+  static void TearDownTestSuite() {
+    delete server_;
+    delete repo_;
+  }
+  void SetUp() override { ASSERT_NE(server_, nullptr); }
+  static std::string Server() { return "--server " + server_->address(); }
+
+  static ScratchDir* repo_;
+  static ServerProcess* server_;
+  ScratchDir scratch_;
+};
+ScratchDir* CliTest::repo_ = nullptr;
+ServerProcess* CliTest::server_ = nullptr;
+
+TEST_F(CliTest, GlobalFlagsGoBeforeOrAfterTheSubcommand) {
+  for (const std::string& arguments : {Server() + " --json list", "list --json " + Server(), "--json list " + Server()}) {
+    const CliRun run = Visq(arguments);
+    ASSERT_EQ(run.exit_code, 0) << arguments << "\n" << run.output;
+    EXPECT_EQ(nlohmann::json::parse(run.output)["scenes"][0]["name"], kScene) << arguments;
+  }
+}
+
+TEST_F(CliTest, JsonWritesIntegersAsNumbersAndKeepsZeroFields) {
+  const CliRun run = Visq(Server() + " info " + kScene + " --json");
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const auto json = nlohmann::json::parse(run.output);
+  EXPECT_TRUE(json["triangle_count"].is_number_unsigned()) << run.output;
+  EXPECT_EQ(json["triangle_count"], 36);
+  EXPECT_TRUE(json["version"].is_number()) << run.output;
+  // Fields at their zero value are printed, not left out.
+  ASSERT_TRUE(json.contains("has_lightmap_uvs")) << run.output;
+  EXPECT_EQ(json["has_lightmap_uvs"], false);
+  ASSERT_TRUE(json["memory"].contains("gpu_bytes")) << run.output;
+  EXPECT_TRUE(json["memory"]["gpu_bytes"].is_number());
+  // Repeated messages and maps are converted too.
+  const CliRun stats = Visq(Server() + " stats --json");
+  ASSERT_EQ(stats.exit_code, 0) << stats.output;
+  const auto s = nlohmann::json::parse(stats.output);
+  ASSERT_FALSE(s["methods"].empty()) << stats.output;
+  EXPECT_TRUE(s["methods"][0]["calls"].is_number()) << stats.output;
+  EXPECT_TRUE(s["gpu_contexts_lost"].is_number()) << stats.output;
+}
+
+TEST_F(CliTest, UnknownEnumValuesAreRefusedNamingTheAllowedOnes) {
+  const std::string patches = std::string(" --source '") + kCeilingSource + "' --receiver '" + kFloorUp + "'";
+  struct Case {
+    std::string arguments, message;
+  };
+  for (const Case& c : std::vector<Case>{
+           {"hidden-map --scene x" + patches + " --method raycats", "'raycats' is not one of raster, raycast, exact"},
+           {"hidden-map --scene x" + patches + " --lookup fsat", "'fsat' is not one of exact, fast"},
+           {"patch-visibility --scene x" + patches + " --method rastr", "'rastr' is not one of raster, raycast, exact"},
+           {std::string("transmittance --scene x --light 0,-1,0 --absorber a=1 --receiver '") + kFloorUp +
+                "' --light-kind spot",
+            "'spot' is not one of directional, point"},
+           {"volumetric --scene x --camera 0,1,3 --forward 0,0,-1 --method raymarch",
+            "'raymarch' is not one of min-max, ray-marching"},
+       }) {
+    const CliRun run = Visq(Server() + " " + c.arguments);
+    EXPECT_NE(run.exit_code, 0) << c.arguments;
+    EXPECT_TRUE(Contains(run.output, c.message)) << c.arguments << "\n" << run.output;
+  }
+}
+
+TEST_F(CliTest, AnUnknownSubcommandIsNamedWithTheNearestOne) {
+  const CliRun run = Visq(Server() + " lsit");
+  EXPECT_EQ(run.exit_code, 2);
+  EXPECT_TRUE(Contains(run.output, "unknown subcommand 'lsit' (did you mean 'list'?)")) << run.output;
+  const CliRun far = Visq("frobnicate --json");
+  EXPECT_EQ(far.exit_code, 2);
+  EXPECT_TRUE(Contains(far.output, "unknown subcommand 'frobnicate'")) << far.output;
+  EXPECT_FALSE(Contains(far.output, "did you mean")) << far.output;
+}
+
+TEST_F(CliTest, LoadingAMissingFileSaysTheFileDoesNotExist) {
+  const CliRun run = Visq(Server() + " load ./missing.gltf");
+  EXPECT_NE(run.exit_code, 0);
+  EXPECT_TRUE(Contains(run.output, "the file './missing.gltf' does not exist")) << run.output;
+  // A bare name is still a repository scene.
+  const CliRun name = Visq(Server() + " load " + kScene + " --replace");
+  EXPECT_EQ(name.exit_code, 0) << name.output;
+}
+
+TEST_F(CliTest, AServerWithoutAPortMeansTheServersDefaultPort) {
+  const CliRun run = Visq("--server localhost --timeout 2 list");
+  // Another server may be listening there; otherwise the error says where
+  // the CLI looked.
+  if (run.exit_code != 0) {
+    EXPECT_TRUE(Contains(run.output, "localhost:50051")) << run.output;
+  }
+  auto address = client::WithDefaultPort("localhost");
+  ASSERT_TRUE(address.ok());
+  EXPECT_EQ(*address, "localhost:50051");
+  EXPECT_EQ(*client::WithDefaultPort("::1"), "[::1]:50051");
+  EXPECT_EQ(*client::WithDefaultPort("[::1]:7"), "[::1]:7");
+  EXPECT_EQ(*client::WithDefaultPort("unix:/tmp/visq.sock"), "unix:/tmp/visq.sock");
+  EXPECT_FALSE(client::WithDefaultPort("host:99999").ok());
+  const CliRun bad = Visq("--server host:x list");
+  EXPECT_EQ(bad.exit_code, 2);
+  EXPECT_TRUE(Contains(bad.output, "--server")) << bad.output;
+}
+
+TEST_F(CliTest, ADeadlineExceededNamesTimeout) {
+  const CliRun run = Visq(Server() + " obscurance --scene " + kScene +
+                       " --d-max 0.5 --resolution 64 --directions 4096 --timeout 0.3");
+  EXPECT_EQ(run.exit_code, 1) << run.output;
+  EXPECT_TRUE(Contains(run.output, "DEADLINE_EXCEEDED")) << run.output;
+  EXPECT_TRUE(Contains(run.output, "--timeout")) << run.output;
+  const CliRun help = Visq("--help");
+  EXPECT_TRUE(Contains(help.output, "none for streams, bakes and uploads")) << help.output;
+}
+
+TEST_F(CliTest, StreamsHaveNoDeadlineOfTheirOwnUnlessGiven) {
+  // What the CLI relies on: stream_deadline 0 lifts the single-call deadline
+  // from streams (the CLI sets it unless --timeout is given).
+  v1::ComputeObscurancesRequest request;
+  request.mutable_scene()->set_name(kScene);
+  request.set_d_max(0.5);
+  request.set_resolution(64);
+  request.set_direction_count(512);
+  const auto deadline = std::chrono::milliseconds(200);
+  Client unbounded({.address = server_->address(), .deadline = deadline, .stream_deadline = std::chrono::milliseconds(0)});
+  const auto start = std::chrono::steady_clock::now();
+  auto bake = unbounded.ComputeObscurances(request);
+  const auto took = std::chrono::steady_clock::now() - start;
+  ASSERT_TRUE(bake.ok()) << bake.status();
+  if (took <= deadline) GTEST_SKIP() << "the bake took less than the deadline on this GPU: nothing to tell apart";
+  Client bounded({.address = server_->address(), .deadline = deadline});
+  EXPECT_EQ(bounded.ComputeObscurances(request).status().code(), absl::StatusCode::kDeadlineExceeded);
+}
+
+TEST_F(CliTest, LightVisibilityPngNeedsAReceiver) {
+  const fs::path points = scratch_.path() / "points.txt";
+  std::ofstream(points) << "# x y z nx ny nz\n0 0.01 0 0 1 0\n0.5 0.01 0.5\n";
+  const fs::path png = scratch_.path() / "out.png";
+  const CliRun run = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + kLight + "' --points " +
+                       points.string() + " --png " + png.string());
+  EXPECT_EQ(run.exit_code, 2) << run.output;
+  EXPECT_TRUE(Contains(run.output, "--png, --npy, --exr: need --receiver")) << run.output;
+  EXPECT_FALSE(fs::exists(png));
+  EXPECT_FALSE(Contains(run.output, "wrote"));
+  // Without --png the points are answered, one line each.
+  const CliRun answered = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + kLight +
+                            "' --points " + points.string());
+  ASSERT_EQ(answered.exit_code, 0) << answered.output;
+  EXPECT_TRUE(Contains(answered.output, "2 points in 1 batch(es)")) << answered.output;
+  // A line that is not a point is named.
+  std::ofstream(points) << "0 0.01 0\n0 zero 0\n";
+  const CliRun malformed = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + kLight +
+                             "' --points " + points.string());
+  EXPECT_EQ(malformed.exit_code, 2);
+  EXPECT_TRUE(Contains(malformed.output, "line 2")) << malformed.output;
+}
+
+TEST_F(CliTest, LightVisibilityStreamsLargeReceiversAndWritesThePng) {
+  const fs::path png = scratch_.path() / "shadow.png", npy = scratch_.path() / "shadow.npy";
+  const CliRun run = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + kLight + "' --receiver '" +
+                       kFloorUp + "' --width 300 --height 250 --png " + png.string() + " --npy " + npy.string());
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  EXPECT_TRUE(Contains(run.output, "75000 points in 2 batch(es)")) << run.output;
+  EXPECT_EQ(PngSize(png), (std::pair<uint32_t, uint32_t>{300, 250}));
+  const Npy fractions = ReadNpy(npy);
+  ASSERT_EQ(fractions.shape, (std::vector<size_t>{250, 300}));
+  // Row 0 of the array is the receiver's v = 0 row: the library's answer
+  // for the same texel centres.
+  v1::LightVisibilityRequest request;
+  request.mutable_scene()->set_name(kScene);
+  for (const auto& [x, z] : {std::pair{-0.25, -0.25}, {0.25, -0.25}, {0.25, 0.25}, {-0.25, 0.25}}) {
+    auto* v = request.mutable_light()->add_vertices();
+    v->set_x(x);
+    v->set_y(1.99);
+    v->set_z(z);
+  }
+  request.set_radiance(1);
+  for (int x = 0; x < 300; ++x) {
+    auto* point = request.add_points();
+    // edge_u is (0, 0, 1.998), edge_v (1.998, 0, 0).
+    point->mutable_position()->set_x(-0.999 + 1.998 * 0.5 / 250);
+    point->mutable_position()->set_y(0.001);
+    point->mutable_position()->set_z(-0.999 + 1.998 * (x + 0.5) / 300);
+    point->mutable_normal()->set_y(1);
+  }
+  Client client({.address = server_->address()});
+  auto answer = client.LightVisibility(request);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  double shadowed = 0;
+  for (int x = 0; x < 300; ++x) {
+    EXPECT_NEAR(fractions.values[x], answer->points(x).visible_fraction(), 1e-6) << "x " << x;
+    shadowed += 1.0 - fractions.values[x];
+  }
+  EXPECT_GT(shadowed, 1.0) << "the tall box shadows the floor's first row";
+}
+
+TEST_F(CliTest, LightVisibilityRefusesAbsurdSizes) {
+  const CliRun run = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + kLight + "' --receiver '" +
+                       kFloorUp + "' --width 100000 --height 100000");
+  EXPECT_EQ(run.exit_code, 2) << run.output;
+  EXPECT_TRUE(Contains(run.output, "--width, --height: 100000 x 100000; each must be in 1..4096")) << run.output;
+}
+
+TEST_F(CliTest, ALightFacingAwayFromEveryPointIsWarnedAbout) {
+  const std::string clockwise = "-0.25,1.99,-0.25;-0.25,1.99,0.25;0.25,1.99,0.25;0.25,1.99,-0.25";
+  const CliRun run = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + clockwise +
+                       "' --receiver '" + kFloorUp + "' --width 4 --height 4");
+  EXPECT_EQ(run.exit_code, 0) << run.output;
+  EXPECT_TRUE(Contains(run.output, "warning: the light's front")) << run.output;
+  EXPECT_TRUE(Contains(run.output, "faces away from every point")) << run.output;
+  const CliRun facing = Visq(Server() + " light-visibility --scene " + kScene + " --light '" + kLight +
+                          "' --receiver '" + kFloorUp + "' --width 4 --height 4");
+  EXPECT_EQ(facing.exit_code, 0) << facing.output;
+  EXPECT_FALSE(Contains(facing.output, "warning")) << facing.output;
+}
+
+TEST_F(CliTest, VoxelizePngKeepsTheBoxAspectRatio) {
+  // Two triangles spanning x in [0, 1], y in [0, 1], z in [0, 3].
+  const fs::path folder = scratch_.path() / "slab";
+  fs::create_directories(folder);
+  const float positions[] = {0, 0, 0, 1, 0, 0, 0, 0, 3, 1, 1, 3};
+  const uint16_t indices[] = {0, 1, 2, 1, 3, 2};
+  {
+    std::ofstream bin(folder / "slab.bin", std::ios::binary);
+    bin.write(reinterpret_cast<const char*>(positions), sizeof(positions));
+    bin.write(reinterpret_cast<const char*>(indices), sizeof(indices));
+  }
+  std::ofstream(folder / "slab.gltf") << R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+    "nodes": [{"mesh": 0}], "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+    "buffers": [{"uri": "slab.bin", "byteLength": 60}],
+    "bufferViews": [{"buffer": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 12}],
+    "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 3]},
+                  {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"}]})";
+  const CliRun load = Visq(Server() + " load " + (folder / "slab.gltf").string() + " --replace");
+  ASSERT_EQ(load.exit_code, 0) << load.output;
+  const fs::path png = scratch_.path() / "top.png", npy = scratch_.path() / "top.npy";
+  const CliRun run = Visq(Server() + " voxelize --scene slab --axis 1 --width 64 --height 64 --slices 32 --json --png " +
+                       png.string() + " --npy " + npy.string());
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const auto json = nlohmann::json::parse(run.output);
+  const double extent_u = json["box"]["half_extent"]["x"], extent_v = json["box"]["half_extent"]["y"];
+  const auto [width, height] = PngSize(png);
+  ASSERT_GT(height, 0u);
+  EXPECT_NEAR(double(width) / height, extent_u / extent_v, 0.05) << width << " x " << height;
+  EXPECT_EQ(std::max(width, height), 64u) << "the finer axis keeps the grid's count";
+  const Npy counts = ReadNpy(npy);
+  ASSERT_EQ(counts.shape, (std::vector<size_t>{64, 64}));
+  double occupied = 0;
+  for (float c : counts.values) occupied += c;
+  EXPECT_EQ(occupied, json["occupied_voxels"].get<double>());
+  const CliRun help = Visq("voxelize --help");
+  EXPECT_TRUE(Contains(help.output, "over the fullest column's")) << help.output;
+}
+
+TEST_F(CliTest, FarmBakeShardsMergeToTheWholeBakeBitForBit) {
+  const fs::path d = scratch_.path();
+  const std::string bake = Server() + " obscurance --scene " + kScene + " --d-max 0.5 --resolution 32";
+  for (const std::string& arguments :
+       {bake + " --directions 8 --partial-out " + (d / "whole.vqp").string(),
+        bake + " --directions 3 --total-directions 8 --partial-out " + (d / "a.vqp").string(),
+        bake + " --first-direction 3 --directions 5 --total-directions 8 --partial-out " + (d / "b.vqp").string(),
+        bake + " --directions 8 --npy " + (d / "whole.npy").string()}) {
+    const CliRun run = Visq(arguments);
+    ASSERT_EQ(run.exit_code, 0) << arguments << "\n" << run.output;
+  }
+  const CliRun merge = Visq("obscurance-merge " + (d / "b.vqp").string() + " " + (d / "a.vqp").string() + " --out " +
+                            (d / "merged.vqp").string() + " --npy " + (d / "merged.npy").string());
+  ASSERT_EQ(merge.exit_code, 0) << merge.output;
+  EXPECT_TRUE(Contains(merge.output, "directions [0, 8) of 8 (complete)")) << merge.output;
+  auto bytes = [](const fs::path& path) {
+    std::ifstream in(path, std::ios::binary);
+    return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  };
+  EXPECT_EQ(bytes(d / "merged.vqp"), bytes(d / "whole.vqp")) << "the merged sums differ from one bake's";
+  // W from the merged sums is the whole bake's on every texel a direction
+  // reached; the others are NaN (the server fills them from neighbours).
+  const Npy merged = ReadNpy(d / "merged.npy"), whole = ReadNpy(d / "whole.npy");
+  ASSERT_EQ(merged.shape, (std::vector<size_t>{32, 32, 3}));
+  ASSERT_EQ(whole.shape, merged.shape);
+  size_t estimated = 0;
+  for (size_t i = 0; i < merged.values.size(); ++i)
+    if (!std::isnan(merged.values[i])) {
+      ++estimated;
+      EXPECT_EQ(merged.values[i], whole.values[i]) << "value " << i;
+    }
+  EXPECT_GT(estimated, 0u);
+  // Overlapping, truncated and foreign shards are refused by name.
+  const CliRun twice = Visq("obscurance-merge " + (d / "a.vqp").string() + " " + (d / "a.vqp").string() + " --out " +
+                            (d / "x.vqp").string());
+  EXPECT_EQ(twice.exit_code, 2);
+  EXPECT_TRUE(Contains(twice.output, "direction ranges overlap")) << twice.output;
+  EXPECT_FALSE(fs::exists(d / "x.vqp"));
+  std::ofstream(d / "short.vqp", std::ios::binary) << bytes(d / "a.vqp").substr(0, 100);
+  std::ofstream(d / "foreign.vqp", std::ios::binary) << "not a shard at all";
+  {
+    // A header claiming an atlas whose size arithmetic would wrap around.
+    std::ofstream huge(d / "huge.vqp", std::ios::binary);
+    const uint64_t fingerprint = 1;
+    const uint32_t header[7] = {0x80000000u, 0x80000000u, 3, 8, 1, 0, 8};
+    huge.write("VISQOBP1", 8);
+    huge.write(reinterpret_cast<const char*>(&fingerprint), sizeof(fingerprint));
+    huge.write(reinterpret_cast<const char*>(header), sizeof(header));
+  }
+  for (const char* name : {"short.vqp", "foreign.vqp", "huge.vqp"}) {
+    const CliRun bad = Visq("obscurance-merge " + (d / name).string() + " --npy " + (d / "bad.npy").string());
+    EXPECT_EQ(bad.exit_code, 2) << name;
+    EXPECT_TRUE(Contains(bad.output, "not a visq obscurance partial")) << bad.output;
+  }
+}
+
+TEST_F(CliTest, LongCallsSayHowLongTheServerHasWorked) {
+  // About 2.5 s of Embree rays on two cores.
+  const auto start = std::chrono::steady_clock::now();
+  const CliRun run = Visq(Server() + " --progress hidden-map --scene " + kScene + " --source '" + kCeilingSource +
+                          "' --receiver '" + kFloorUp + "' --width 256 --height 256 --samples 1024 --method raycast");
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  if (seconds < 1.3) GTEST_SKIP() << "the call took " << seconds << " s here: too short to report on";
+  EXPECT_TRUE(Contains(run.output, "hidden-map: the server has worked 1 s\n")) << run.output;
+  // Without --progress, and not on a terminal, nothing is said.
+  const CliRun quiet = Visq(Server() + " hidden-map --scene " + kScene + " --source '" + kCeilingSource +
+                            "' --receiver '" + kFloorUp + "' --width 256 --height 256 --samples 1024 --method raycast");
+  EXPECT_FALSE(Contains(quiet.output, "the server has worked")) << quiet.output;
+}
+
+TEST_F(CliTest, FloatImagesAreWrittenAsOpenExr) {
+  const fs::path d = scratch_.path();
+  const CliRun map = Visq(Server() + " hidden-map --scene " + kScene + " --source '" + kCeilingSource +
+                          "' --receiver '" + kFloorUp + "' --width 12 --height 8 --samples 64 --npy " +
+                          (d / "map.npy").string() + " --exr " + (d / "map.exr").string());
+  ASSERT_EQ(map.exit_code, 0) << map.output;
+  const Npy npy = ReadNpy(d / "map.npy"), exr = ReadExr(d / "map.exr", {"Y"});
+  ASSERT_EQ(exr.shape, (std::vector<size_t>{8, 12, 1}));
+  // The EXR is laid out as the PNG: the receiver's v = 1 row on top.
+  for (size_t y = 0; y < 8; ++y)
+    for (size_t x = 0; x < 12; ++x) EXPECT_EQ(exr.values[(7 - y) * 12 + x], npy.values[y * 12 + x]) << x << ", " << y;
+  const CliRun image = Visq(Server() + " volumetric --scene " + kScene +
+                            " --camera 0,1,3.5 --forward 0,0,-1 --width 16 --height 12 --shadow-map 128 --npy " +
+                            (d / "shafts.npy").string() + " --exr " + (d / "shafts.exr").string());
+  ASSERT_EQ(image.exit_code, 0) << image.output;
+  const Npy rgb = ReadExr(d / "shafts.exr", {"R", "G", "B"}), rgb_npy = ReadNpy(d / "shafts.npy");
+  EXPECT_EQ(rgb.shape, rgb_npy.shape);
+  EXPECT_EQ(rgb.values, rgb_npy.values);
+}
+
+TEST_F(CliTest, HiddenMapNpyHoldsTheClientsFractions) {
+  const fs::path npy = scratch_.path() / "map.npy";
+  const CliRun run = Visq(Server() + " hidden-map --scene " + kScene + " --source '" + kCeilingSource +
+                       "' --receiver '" + kFloorUp + "' --width 24 --height 16 --samples 64 --npy " + npy.string());
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const Npy map = ReadNpy(npy);
+  ASSERT_EQ(map.shape, (std::vector<size_t>{16, 24}));
+  v1::HiddenSampleMapRequest request;
+  request.mutable_scene()->set_name(kScene);
+  auto set = [](v1::Vec3* v, double x, double y, double z) {
+    v->set_x(x);
+    v->set_y(y);
+    v->set_z(z);
+  };
+  set(request.mutable_source()->mutable_origin(), -0.25, 1.99, -0.25);
+  set(request.mutable_source()->mutable_edge_u(), 0.5, 0, 0);
+  set(request.mutable_source()->mutable_edge_v(), 0, 0, 0.5);
+  set(request.mutable_receiver()->mutable_origin(), -0.999, 0.001, -0.999);
+  set(request.mutable_receiver()->mutable_edge_u(), 0, 0, 1.998);
+  set(request.mutable_receiver()->mutable_edge_v(), 1.998, 0, 0);
+  request.mutable_samples()->set_count(64);
+  request.mutable_samples()->set_seed(1);
+  request.set_width(24);
+  request.set_height(16);
+  Client client({.address = server_->address()});
+  auto answer = client.ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  EXPECT_EQ(map.values, answer->visible_fraction);
+}
+
+}  // namespace
+}  // namespace visq
