@@ -251,8 +251,8 @@ class PyramidCull {
 
 // A bounding-volume hierarchy over the occluders' boxes (far and near), so
 // that a query visits the occluders near its pyramid instead of all of them
-// (a Sponza tile has hundreds; a point's pyramid meets a few dozen). Built
-// once per tree; read-only afterwards.
+// (a receiver tile's tree holds hundreds, a point's pyramid meets a few
+// dozen; docs/exact-method-notes.md). Built once per tree; read-only afterwards.
 class OccluderIndex {
  public:
   void Build(std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes) {
@@ -429,9 +429,8 @@ struct LightVisibilityTree::Impl {
   // the occluders behind it at once, instead of growing nodes for occluders
   // this region of line space never meets. Of the occluders the line
   // crosses, the one nearest P: seen from the receivers it is the largest,
-  // so its class holds the most lines. On Sponza (640 x 360 points, 16-pixel
-  // tiles) that made trees 26 % smaller and queries 25 % faster than taking
-  // the one nearest the light.
+  // so its class holds the most lines: smaller trees and faster queries than
+  // the one nearest the light (docs/exact-method-notes.md).
   size_t ChooseOccluder(const std::vector<uint32_t>& list, const glm::dvec3& p,
                         const glm::dvec3& y) const {
     const glm::dvec3 d = p - y;
@@ -1345,8 +1344,7 @@ struct LightVisibilityTree::Impl {
           // Only the occluders whose shadows can meet the light, largest
           // first, as the near ones: a leaf of a dense room lists
           // thousands, and in index order a penumbra point was cut into
-          // thousands of pieces (veach-ajar at 160 x 90 points: 70 s for
-          // the first pass in index order, 32 s this way).
+          // thousands of pieces (docs/exact-method-notes.md).
           unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
           std::vector<Fragment> pieces;
           pieces.push_back(std::move(f));
@@ -1417,9 +1415,8 @@ struct LightVisibilityTree::Impl {
     if (!subtract.empty() && !visible.empty()) {
       const XPlane* slab_top = nullptr;
       // Largest first: in index order a penumbra under a dense mesh was cut
-      // into thousands of pieces: on veach (32 x 18 points) its penumbra
-      // points took 435 ms each in index order, 182 ms nearest first, 19 ms
-      // this way; a Sponza penumbra point through gRPC 2.1, 2.3 and 1.5 ms.
+      // into thousands of pieces, and nearest first was little better
+      // (docs/exact-method-notes.md).
       SortLargestFirst(p_local, &subtract);
       SubtractOccluders(s, &visible, subtract, &slab_top);
     }
@@ -1794,8 +1791,8 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   // per position lets a split vertex be recognised as lying on an edge plane
   // by construction instead of by an exact evaluation (see EdgePlane).
   // By scene vertex index, for the triangles visited only: a vector over
-  // all the scene's positions cost a 4 MB fill per tree on a 382K-triangle
-  // room.
+  // all the scene's positions would be filled per tree, however few
+  // triangles the shaft meets.
   absl::flat_hash_map<uint32_t, uint32_t> remap;
   struct PositionHash {
     size_t operator()(const glm::dvec3& p) const {

@@ -107,7 +107,7 @@ struct TreeOptions {
   // undefined leaf subtracts the leaf's occluders from its fragment itself,
   // as it does the near ones: the answer stays exact, only slower, and the
   // memory stays bounded (the tree of a dense scene otherwise grows close to
-  // quadratically with its occluders: gigabytes for a 382K-triangle room).
+  // quadratically with its occluders; docs/exact-method-notes.md).
   size_t max_bytes = size_t{512} << 20;
   // Decide wholly visible and wholly hidden points before the tree, with
   // exact tests of the occluders near each point's pyramid (see Query). The
@@ -115,10 +115,9 @@ struct TreeOptions {
   bool classify_points = true;
   // With classify_points: a point whose candidate occluders (those whose
   // shadows can meet the light, far and near) are at most this many
-  // subtracts them all from the light itself, without the tree. On Sponza
-  // (640 x 360 points, one core) 32 made the first pass 13 % faster; the
-  // trees shrink too (188K nodes without, 150K at 16, 102K at 64). The
-  // answers are the same, to rounding in the area sums.
+  // subtracts them all from the light itself, without the tree: faster, and
+  // smaller trees (docs/exact-method-notes.md). The answers are the same, to
+  // rounding in the area sums.
   // 0: every point that is not decided before the tree descends it.
   size_t direct_candidates = 32;
   // Read by Create only, every few thousand triangles while it selects the
@@ -165,7 +164,7 @@ struct TreeStats {
 
 // The scene's triangles in a bounding-volume hierarchy over their boxes, so
 // that creating a tree visits the triangles near its shaft instead of the
-// whole scene (a 382K-triangle room cost 70 ms per tree without it). It does
+// whole scene (docs/exact-method-notes.md). It does
 // not depend on the light: build it once per scene, lazily, and pass it to
 // every Create on that scene.
 class SceneTriangleIndex {

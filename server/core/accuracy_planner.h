@@ -1,4 +1,4 @@
-// Ask by error (issue 8): a caller states the accuracy it needs, or the time
+// Ask by error: a caller states the accuracy it needs, or the time
 // it can spend, instead of a sample count, and visq picks the method and its
 // parameters. Each query kind lists its candidate plans with the error bound
 // each could state (from the method's own error model: Hoeffding for sampled

@@ -64,8 +64,8 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   // A batch uses one tree per receiver cell, so each may grow to 1/16 of
   // the cache; past that its queries resolve the undefined leaves they meet
   // themselves, exactly and, since line boxes skip the subtractions that
-  // cannot meet a piece, about as fast (veach-ajar, 640 x 360 points:
-  // 16 MB trees answered a first pass in 9.5 s, 64 MB ones in 16.4 s).
+  // cannot meet a piece, about as fast; smaller trees were faster still
+  // (docs/exact-method-notes.md).
   base.max_bytes = engine.light_cache_capacity() / 16;
   base.cancelled = query.cancelled;
   base.deadline = query.deadline;

@@ -6,6 +6,13 @@ namespace visq::service {
 
 glm::dvec3 FromProto(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 
+Status SceneRefFromProto(const v1::SceneRef& ref, std::string& name, uint64_t& version) {
+  if (ref.name().empty()) return absl::InvalidArgumentError("scene.name: empty");
+  name = ref.name();
+  version = ref.version();
+  return absl::OkStatus();
+}
+
 void ToProto(const glm::dvec3& v, v1::Vec3* out) {
   out->set_x(v.x);
   out->set_y(v.y);
@@ -193,9 +200,7 @@ void ToProto(const PlanReport& plan, v1::Accuracy* out) {
 
 StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request) {
   HiddenSampleMapQuery query;
-  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
-  query.scene = request.scene().name();
-  query.scene_version = request.scene().version();
+  VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
   VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
   sampling::HiddenSampleMapRequest& r = query.request;
@@ -280,9 +285,7 @@ ChunkedResponses<v1::HiddenSampleMapResponse> ToProtoStream(HiddenSampleMapAnswe
 
 StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request) {
   PatchVisibilityQuery query;
-  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
-  query.scene = request.scene().name();
-  query.scene_version = request.scene().version();
+  VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
   VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
   if (query.target && (request.source_columns() != 0 || request.source_rows() != 0))
@@ -340,9 +343,7 @@ gpu::PinholeCamera CameraFromProto(const Request& request) {
 
 StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) {
   VolumetricQuery query;
-  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
-  query.scene = request.scene().name();
-  query.scene_version = request.scene().version();
+  VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   gpu::VolumetricParams& p = query.params;
   p.camera = CameraFromProto(request);
   switch (request.light_kind()) {
@@ -429,9 +430,7 @@ ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResu
 
 StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request) {
   ObscurancePreviewQuery query;
-  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
-  query.scene = request.scene().name();
-  query.scene_version = request.scene().version();
+  VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   query.camera = CameraFromProto(request);
   switch (request.quantity()) {
     case v1::ObscurancePreviewRequest::W: query.quantity = ObscurancePreviewQuery::Quantity::kW; break;
@@ -467,9 +466,7 @@ ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewA
 
 StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   VoxelizeQuery query;
-  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
-  query.scene = request.scene().name();
-  query.scene_version = request.scene().version();
+  VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   if (request.has_box()) {
     const v1::VoxelBox& b = request.box();
     query.box = gpu::SlicemapBox{FromProto(b.center()), FromProto(b.axis_u()), FromProto(b.axis_v()),
@@ -568,9 +565,7 @@ ChunkedResponses<v1::VoxelizeResponse> ToProtoStream(gpu::VoxelizeResult result_
 
 StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {
   TransmittanceQuery query;
-  if (request.scene().name().empty()) return absl::InvalidArgumentError("scene.name: empty");
-  query.scene = request.scene().name();
-  query.scene_version = request.scene().version();
+  VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   gpu::TransmittanceParams& p = query.params;
   switch (request.light_kind()) {
     case v1::TransmittanceRequest::POINT: p.light.kind = gpu::LightKind::kPoint; break;

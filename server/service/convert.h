@@ -15,6 +15,8 @@
 namespace visq::service {
 
 glm::dvec3 FromProto(const v1::Vec3& v);
+// The scene a query names: INVALID_ARGUMENT "scene.name: empty" without one.
+[[nodiscard]] Status SceneRefFromProto(const v1::SceneRef& ref, std::string& name, uint64_t& version);
 void ToProto(const glm::dvec3& v, v1::Vec3* out);
 Bounds FromProto(const v1::Box& box);
 void ToProto(const Bounds& box, v1::Box* out);

@@ -20,12 +20,6 @@
 namespace visq::service {
 namespace {
 
-void SetVec3(const glm::dvec3& v, v1::Vec3* out) {
-  out->set_x(v.x);
-  out->set_y(v.y);
-  out->set_z(v.z);
-}
-
 // The error of W: Monte Carlo over D directions. Per direction, a patch's
 // value is a mean of values in [0, 1] (per channel), so Hoeffding's
 // inequality for D independent directions gives the half-width below at
@@ -83,8 +77,8 @@ ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(ObscuranceAnswer 
   }
   f->set_total_directions(a.total_directions);
   f->set_partial_only(!a.result.has_value());
-  SetVec3(a.ambient.ambient_intensity, f->mutable_ambient_intensity());
-  SetVec3(a.ambient.r_ave, f->mutable_r_ave());
+  ToProto(a.ambient.ambient_intensity, f->mutable_ambient_intensity());
+  ToProto(a.ambient.r_ave, f->mutable_r_ave());
   f->set_ambient_clamped(a.ambient.clamped);
   f->set_layers(a.stats.layers);
   f->set_max_layers(a.stats.max_layers);

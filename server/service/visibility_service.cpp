@@ -19,12 +19,6 @@
 namespace visq::service {
 namespace {
 
-void ToProtoVec(const glm::dvec3& v, v1::Vec3* out) {
-  out->set_x(v.x);
-  out->set_y(v.y);
-  out->set_z(v.z);
-}
-
 // Client-streamed scene load: a header, then (for uploads) file chunks.
 class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneRequest> {
  public:
@@ -141,8 +135,8 @@ void ToProto(const SceneSummary& s, v1::SceneInfo* out) {
   out->set_version(s.version);
   out->set_triangle_count(s.triangles);
   out->set_vertex_count(s.vertices);
-  ToProtoVec(s.bounds.min, out->mutable_bounds_min());
-  ToProtoVec(s.bounds.max, out->mutable_bounds_max());
+  ToProto(s.bounds.min, out->mutable_bounds_min());
+  ToProto(s.bounds.max, out->mutable_bounds_max());
   out->set_content_hash(s.content_hash);
   out->mutable_memory()->set_cpu_bytes(s.cpu_bytes);
   out->mutable_memory()->set_gpu_bytes(s.gpu_bytes);

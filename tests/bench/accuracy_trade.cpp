@@ -1,4 +1,4 @@
-// The published trade (issue 8): for each query kind, sweep the accuracy
+// The published trade: for each query kind, sweep the accuracy
 // parameters and measure time and error against an exact (or converged)
 // reference on the same inputs, on real scenes. Writes a Markdown report
 // (tables, a summary of the cheapest setting reaching 1 % error on Sponza,

@@ -136,6 +136,6 @@ int main(int argc, char** argv) {
       }
     }
   }
-  std::printf("\nGoal (issue 6): Sponza 512x512x128 (surface) under 50 ms on llvmpipe.\n");
+  std::printf("\nGoal: Sponza 512x512x128 (surface) under 50 ms on llvmpipe.\n");
   return 0;
 }

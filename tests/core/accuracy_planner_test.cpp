@@ -1,4 +1,4 @@
-// The accuracy planner's cost model and choice rules (issue 8), on numbers
+// The accuracy planner's cost model and choice rules, on numbers
 // whose right answer is known by hand.
 #include "core/accuracy_planner.h"
 

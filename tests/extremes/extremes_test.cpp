@@ -1,4 +1,4 @@
-// The extremes suite (issue 8): every algorithm RPC, through the real server
+// The extremes suite: every algorithm RPC, through the real server
 // and client, held to the error bound the RPC itself reports, where the
 // configuration is extreme: scenes scaled by 1e-4 and 1e5 and translated by
 // 1e6; sliver and zero-area triangles; occluders touching the source, the

@@ -1,4 +1,4 @@
-// libFuzzer target: structure-aware glTF documents (issue 19, item 10).
+// libFuzzer target: structure-aware glTF documents.
 //
 // The byte-level target (gltf_loader_fuzz.cpp) mutates JSON text, which
 // almost never turns into a 5,000-deep node chain, a DAG whose paths double

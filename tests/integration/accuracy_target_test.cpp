@@ -1,4 +1,4 @@
-// Ask by error (issue 8) end to end: requests that give an AccuracyTarget
+// Ask by error end to end: requests that give an AccuracyTarget
 // instead of a count, through the real server and client, on the generated
 // Cornell box. The answers are checked against the exact Plücker method run
 // by the same server (PLUCKER_EXACT), never against the method chosen.

@@ -1,4 +1,4 @@
-// Hostile and unusual input (issue 19), end to end: the real visq-server on
+// Hostile and unusual input, end to end: the real visq-server on
 // loopback, driven through the real client and raw gRPC calls, with hostile
 // files generated here. Each test names the item of the issue it shows.
 #include <signal.h>

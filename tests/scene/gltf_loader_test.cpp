@@ -320,7 +320,7 @@ TEST(GltfLoaderBadInput, TruncatedGlb) {
   ExpectInvalid(dir.path() / "t.glb", "malformed glTF");
 }
 
-// --- Hostile files (issue 19) ------------------------------------------------
+// --- Hostile files ------------------------------------------------
 // Each case is a file an attacker can upload; the loader must refuse it with
 // a status, never read outside the upload, crash or expand without bound.
 
