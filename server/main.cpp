@@ -86,6 +86,9 @@ int main(int argc, char** argv) {
   app.add_option("--light-receiver-cells", options.engine.light_receiver_cells,
                  "LightVisibility trees per side of the scene (receiver cubes of its extent / N)")
       ->envname("VISQ_LIGHT_RECEIVER_CELLS")->check(CLI::Range(1, 4096))->capture_default_str();
+  app.add_option("--light-receiver-min-points", options.engine.light_receiver_min_points,
+                 "A receiver cube with fewer points joins its parent cube's tree (1: every cube its own)")
+      ->envname("VISQ_LIGHT_RECEIVER_MIN_POINTS")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--worker-threads", options.worker_threads, "Threads for blocking request work")
       ->envname("VISQ_WORKER_THREADS")->check(CLI::Range(1, 256))->capture_default_str();
   app.add_option("--log-level", log_level, "trace, debug, info, warn, error")->envname("VISQ_LOG_LEVEL")->capture_default_str();

@@ -1,6 +1,8 @@
 #include "egl_context.h"
 
 #include <cstdlib>
+#include <map>
+#include <mutex>
 #include <string_view>
 #include <vector>
 
@@ -9,6 +11,27 @@
 
 namespace visq::gpu {
 namespace {
+
+// eglInitialize and eglTerminate act on a display for the whole process,
+// and every context of one device shares its display: several workers (the
+// tests' own, beside a shared one) use one display. Terminating it with one
+// worker's context left the other workers without a current context, so
+// the display is terminated with the last context made on it.
+std::mutex display_mutex;
+std::map<EGLDisplay, int> display_contexts;
+
+void CountDisplayUser(EGLDisplay display) {
+  std::lock_guard lock(display_mutex);
+  ++display_contexts[display];
+}
+
+void ReleaseDisplayUser(EGLDisplay display) {
+  std::lock_guard lock(display_mutex);
+  auto it = display_contexts.find(display);
+  if (it == display_contexts.end() || --it->second > 0) return;
+  display_contexts.erase(it);
+  eglTerminate(display);
+}
 
 std::string EglErrorName(EGLint error) {
   switch (error) {
@@ -127,7 +150,7 @@ EglContext::~EglContext() {
     eglMakeCurrent(display_, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT);
     eglDestroyContext(display_, context_);
   }
-  if (display_ != EGL_NO_DISPLAY) eglTerminate(display_);
+  if (display_ != EGL_NO_DISPLAY) ReleaseDisplayUser(display_);
 }
 
 StatusOr<EglContext> EglContext::CreateCurrent(const GpuOptions& options) {
@@ -167,6 +190,7 @@ StatusOr<EglContext> EglContext::CreateCurrent(const GpuOptions& options) {
     }
     EglContext out;
     out.display_ = candidate.display;
+    CountDisplayUser(candidate.display);
     out.context_ = *context;
     out.info_.egl_platform = candidate.platform;
     out.info_.egl_device = candidate.description;

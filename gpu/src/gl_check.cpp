@@ -1,17 +1,17 @@
 #include "gl_check.h"
 
-#include <atomic>
 #include <string>
 
 namespace visq::gpu {
 namespace {
-std::atomic<bool> checks_enabled{false};
+// Per GL thread: each worker runs with its own debug option.
+thread_local bool checks_enabled = false;
 constexpr int kMaxErrorsDrained = 16;  // glGetError can loop on a lost context
 thread_local std::string recorded_misuse;
 }  // namespace
 
-bool GlChecksEnabled() { return checks_enabled.load(std::memory_order_relaxed); }
-void SetGlChecksEnabled(bool enabled) { checks_enabled.store(enabled, std::memory_order_relaxed); }
+bool GlChecksEnabled() { return checks_enabled; }
+void SetGlChecksEnabled(bool enabled) { checks_enabled = enabled; }
 
 std::string GlErrorName(GLenum error) {
   switch (error) {

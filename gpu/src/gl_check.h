@@ -21,7 +21,8 @@ std::string GlErrorName(GLenum error);
 // shader declares), so the running job fails with it (GL thread).
 void RecordGlMisuse(std::string what);
 
-// Whether VISQ_GL_CHECK does anything (set from GpuOptions::debug).
+// Whether VISQ_GL_CHECK does anything on this GL thread (set by its worker
+// from GpuOptions::debug).
 bool GlChecksEnabled();
 void SetGlChecksEnabled(bool enabled);
 

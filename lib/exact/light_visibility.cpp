@@ -2044,10 +2044,11 @@ double LightVisibilityTree::light_area() const { return impl_->light_area; }
 
 // ---------------------------------------------------------------------------
 std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, const Bounds& scene_bounds,
-                                         int cells_per_side) {
+                                         int cells_per_side, size_t min_points) {
   const glm::dvec3 extent = scene_bounds.Empty() ? glm::dvec3(1.0) : scene_bounds.Extent();
   const glm::dvec3 origin = scene_bounds.Empty() ? glm::dvec3(0.0) : scene_bounds.min;
-  const double cell = std::max({extent.x, extent.y, extent.z, 1e-300}) / std::max(cells_per_side, 1);
+  const double largest = std::max({extent.x, extent.y, extent.z, 1e-300});
+  const double cell = largest / std::max(cells_per_side, 1);
   // Cell coordinates are clamped so that points far outside the scene stay
   // integers; such a cell's box is widened to its points below.
   constexpr double kLimit = double(int64_t{1} << 40);
@@ -2055,28 +2056,79 @@ std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, con
     const double q = std::floor((x - origin[axis]) / cell);  // NaN only past the doubles' range
     return std::isnan(q) ? int64_t{0} : static_cast<int64_t>(std::clamp(q, -kLimit, kLimit));
   };
-  absl::flat_hash_map<std::array<int64_t, 3>, uint32_t> by_key;
-  std::vector<ReceiverCell> cells;
-  for (uint32_t i = 0; i < points.size(); ++i) {
-    const glm::dvec3& x = points[i].position;
-    const std::array<int64_t, 3> key = {coordinate(x.x, 0), coordinate(x.y, 1), coordinate(x.z, 2)};
-    auto [it, inserted] = by_key.try_emplace(key, static_cast<uint32_t>(cells.size()));
-    if (inserted) {
-      ReceiverCell c;
-      for (int axis = 0; axis < 3; ++axis) {
-        c.box.min[axis] = origin[axis] + static_cast<double>(key[axis]) * cell;
-        c.box.max[axis] = origin[axis] + static_cast<double>(key[axis] + 1) * cell;
-      }
-      // A cube beyond the doubles' range (a scene near 1e308 wide): the
-      // box of its points alone.
-      const auto finite = [](const glm::dvec3& x) { return std::isfinite(x.x + x.y + x.z); };
-      if (!finite(c.box.min) || !finite(c.box.max)) c.box = Bounds();
-      cells.push_back(std::move(c));
+  using Key = std::array<int64_t, 3>;
+  struct Group {
+    Key key;
+    int level = 0;  // the cube's side is cell * 2^level
+    std::vector<uint32_t> points;
+  };
+  std::vector<Group> open;
+  {
+    absl::flat_hash_map<Key, uint32_t> by_key;
+    for (uint32_t i = 0; i < points.size(); ++i) {
+      const glm::dvec3& x = points[i].position;
+      const Key key = {coordinate(x.x, 0), coordinate(x.y, 1), coordinate(x.z, 2)};
+      auto [it, inserted] = by_key.try_emplace(key, static_cast<uint32_t>(open.size()));
+      if (inserted) open.push_back({key, 0, {}});
+      open[it->second].points.push_back(i);
     }
-    ReceiverCell& c = cells[it->second];
+  }
+  // Octree merging, bottom up: a cube with fewer than `min_points` points
+  // gives them to its parent cube, so that sparse receivers share a tree
+  // (a tree per point reuses nothing) while dense ones keep small cubes
+  // (whose occluders are mostly far, and cached). A parent may then overlap
+  // a dense child kept as it is: each point is in one group, and each group
+  // has a tree of its own. Merging stops at a cube as large as the scene.
+  std::vector<Group> done;
+  for (int level = 0; !open.empty(); ++level) {
+    const bool last = min_points <= 1 || std::ldexp(cell, level) >= largest || level >= 48;
+    if (last) {
+      for (Group& g : open) done.push_back(std::move(g));
+      break;
+    }
+    absl::flat_hash_map<Key, std::vector<uint32_t>> children;  // parent key -> indices into open
+    std::vector<Key> parents;  // in order of first appearance
+    for (uint32_t g = 0; g < open.size(); ++g) {
+      const Key parent = {open[g].key[0] >> 1, open[g].key[1] >> 1, open[g].key[2] >> 1};
+      auto [it, inserted] = children.try_emplace(parent);
+      if (inserted) parents.push_back(parent);
+      it->second.push_back(g);
+    }
+    std::vector<Group> next;
+    for (const Key& parent : parents) {
+      Group merged{parent, level + 1, {}};
+      for (uint32_t g : children[parent]) {
+        if (open[g].points.size() >= min_points) {
+          done.push_back(std::move(open[g]));
+        } else {
+          merged.points.insert(merged.points.end(), open[g].points.begin(), open[g].points.end());
+        }
+      }
+      if (merged.points.empty()) continue;
+      std::sort(merged.points.begin(), merged.points.end());
+      next.push_back(std::move(merged));
+    }
+    open = std::move(next);
+  }
+  std::sort(done.begin(), done.end(), [](const Group& a, const Group& b) { return a.points[0] < b.points[0]; });
+
+  std::vector<ReceiverCell> cells;
+  cells.reserve(done.size());
+  for (Group& g : done) {
+    ReceiverCell c;
+    const double side = std::ldexp(cell, g.level);
+    for (int axis = 0; axis < 3; ++axis) {
+      c.box.min[axis] = origin[axis] + static_cast<double>(g.key[axis]) * side;
+      c.box.max[axis] = origin[axis] + static_cast<double>(g.key[axis] + 1) * side;
+    }
+    // A cube beyond the doubles' range (a scene near 1e308 wide): the box of
+    // its points alone.
+    const auto finite = [](const glm::dvec3& x) { return std::isfinite(x.x + x.y + x.z); };
+    if (!finite(c.box.min) || !finite(c.box.max)) c.box = Bounds();
     // Rounding may put a point on the far side of its cube's computed face.
-    c.box.Extend(x);
-    c.points.push_back(i);
+    for (uint32_t i : g.points) c.box.Extend(points[i].position);
+    c.points = std::move(g.points);
+    cells.push_back(std::move(c));
   }
   return cells;
 }

@@ -237,8 +237,11 @@ struct ReceiverCell {
   std::vector<uint32_t> points;   // indices into the batch, increasing
 };
 // Cells in order of their first point. Points must be finite.
+// A cube with fewer than `min_points` points gives them to its octree parent
+// (up to a cube as large as the scene): a sparse batch shares a few trees, a
+// dense one keeps small cubes. 1: the grid's cubes as they are.
 std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, const Bounds& scene_bounds,
-                                         int cells_per_side);
+                                         int cells_per_side, size_t min_points = 1);
 
 // A 64-bit hash of the light (and of the tree options, which change the
 // tree), for cache keys.

@@ -40,6 +40,9 @@ struct EngineOptions {
   // of the scene's largest extent / this, one tree each (exact::GroupReceivers).
   // More for large open worlds, where 1/32 of the world is a wide shaft.
   int light_receiver_cells = 32;
+  // ... and a cube with fewer points than this gives them to its parent cube
+  // (exact::GroupReceivers): a sparse batch shares a few trees.
+  uint32_t light_receiver_min_points = 64;
   // Load every scene of the repository at start (resident from the first
   // request on). Either way, a request naming a scene that is stored but not
   // resident loads it first (replicas sharing one repository rely on this).
@@ -171,6 +174,7 @@ class Engine {
   std::atomic<uint64_t> light_tree_misses{0};
   size_t light_cache_capacity() const { return options_.light_cache_bytes; }
   int light_receiver_cells() const { return options_.light_receiver_cells; }
+  uint32_t light_receiver_min_points() const { return options_.light_receiver_min_points; }
 
   const gpu::DeviceInfo& device() const { return gpu_->device(); }
   gpu::GpuWorker& gpu() { return *gpu_; }

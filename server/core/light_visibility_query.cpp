@@ -1,5 +1,7 @@
 #include "core/light_visibility_query.h"
 
+#include <malloc.h>
+
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -88,7 +90,8 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     for (uint32_t i = 0; i < all.points.size(); ++i) all.points[i] = i;
     groups.push_back(std::move(all));
   } else {
-    groups = exact::GroupReceivers(query.points, scene.bounds, engine.light_receiver_cells());
+    groups = exact::GroupReceivers(query.points, scene.bounds, engine.light_receiver_cells(),
+                                   engine.light_receiver_min_points());
   }
 
   // Work in chunks of one group's points, in order, on every core: a single
@@ -100,6 +103,15 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     std::shared_ptr<exact::LightVisibilityTree> tree;
     bool created = false;
   };
+  // Trees this request built but the cache did not keep die with `trees`;
+  // then glibc is asked to hand their memory back (declared first, so it
+  // runs last).
+  struct TrimAfterTrees {
+    std::atomic<bool> built{false};
+    ~TrimAfterTrees() {
+      if (built.load()) malloc_trim(0);
+    }
+  } trim;
   std::vector<GroupTree> trees(groups.size());
   struct Chunk {
     uint32_t group, begin, end;
@@ -118,6 +130,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     StatusOr<std::shared_ptr<exact::LightVisibilityTree>> tree = engine.light_cache().GetOrCreate(
         key, [&]() -> StatusOr<std::unique_ptr<exact::LightVisibilityTree>> {
           t.created = true;
+          trim.built = true;
           VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
                                 engine.TriangleIndexOf(*resident));
           return exact::LightVisibilityTree::Create(query.light, scene, options, index.get());

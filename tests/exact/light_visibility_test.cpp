@@ -893,6 +893,51 @@ TEST(LightVisibilityTest, ReceiverCellsHoldTheirPointsAndGiveTheSameAnswers) {
   EXPECT_GT(penumbra, 20) << "the comparison must include partly lit points";
 }
 
+
+// Sparse receivers share trees: cubes with fewer than min_points points give
+// them to their parent cubes, while a dense cluster keeps its small cubes.
+// Every point lands in exactly one group whose box holds it, and the same
+// batch gives the same boxes (so its cached trees are found again).
+TEST(LightVisibilityTest, SparseReceiversMergeIntoParentCubesDenseOnesStay) {
+  std::vector<Tri> tris = Cloud(60, 3, 0.2);
+  const Scene scene = MakeScene(tris);
+  const glm::dvec3 lo = scene.bounds.min, e = scene.bounds.Extent();
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  std::vector<QueryPoint> points;
+  for (int i = 0; i < 100; ++i)  // scattered: about one per fine cube
+    points.push_back({lo + glm::dvec3(u(rng), u(rng), u(rng)) * e, std::nullopt, std::nullopt});
+  const glm::dvec3 corner = lo + 0.01 * e;
+  for (int i = 0; i < 400; ++i)  // dense: one fine cube
+    points.push_back({corner + glm::dvec3(u(rng), u(rng), u(rng)) * (0.02 * e), std::nullopt, std::nullopt});
+  const auto fine = GroupReceivers(points, scene.bounds, 32);
+  const auto merged = GroupReceivers(points, scene.bounds, 32, 64);
+  EXPECT_GT(fine.size(), 60u);
+  EXPECT_LT(merged.size(), 12u) << "sparse points share a few trees";
+  std::vector<int> seen(points.size(), 0);
+  bool dense_cube_kept = false;
+  for (const ReceiverCell& c : merged) {
+    ASSERT_FALSE(c.points.empty());
+    EXPECT_TRUE(std::is_sorted(c.points.begin(), c.points.end()));
+    for (uint32_t i : c.points) {
+      ++seen[i];
+      EXPECT_TRUE(glm::all(glm::greaterThanEqual(points[i].position, c.box.min)) &&
+                  glm::all(glm::lessThanEqual(points[i].position, c.box.max)));
+    }
+    const double side = std::max({e.x, e.y, e.z}) / 32;
+    if (c.points.size() >= 64 && c.box.Extent().x <= side * (1 + 1e-9)) dense_cube_kept = true;
+  }
+  for (size_t i = 0; i < points.size(); ++i) EXPECT_EQ(seen[i], 1) << "point " << i;
+  EXPECT_TRUE(dense_cube_kept) << "the dense cluster keeps its small cube";
+  for (size_t c = 1; c < merged.size(); ++c) EXPECT_LT(merged[c - 1].points[0], merged[c].points[0]);
+  const auto again = GroupReceivers(points, scene.bounds, 32, 64);
+  ASSERT_EQ(again.size(), merged.size());
+  for (size_t c = 0; c < merged.size(); ++c) {
+    EXPECT_EQ(again[c].box.min, merged[c].box.min);
+    EXPECT_EQ(again[c].box.max, merged[c].box.max);
+  }
+}
+
 TEST(LightVisibilityCacheTest, ReuseInvalidateAndEvict) {
   const Scene scene = MakeScene(Cloud(60, 51));
   const Bounds receivers = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});

@@ -7,6 +7,7 @@
 #include <thread>
 #include <type_traits>
 
+#include <epoxy/egl.h>
 #include <gtest/gtest.h>
 
 #include "gl_check.h"
@@ -126,6 +127,22 @@ TEST(GpuContext, IsOpenGl45Core) {
 TEST(GpuContext, SelfTestDrawsAndReadsBackWithLogicOpOr) {
   const Status status = RunSelfTest(SharedGpuWorker());
   EXPECT_TRUE(status.ok()) << status;
+}
+
+// Workers share their device's EGL display: one that stops must leave the
+// others their contexts (the display is terminated with its last context).
+TEST(GpuContext, AWorkerThatStopsLeavesTheOthersTheirContexts) {
+  auto first = GpuWorker::Start({});
+  auto second = GpuWorker::Start({});
+  ASSERT_TRUE(first.ok()) << first.status();
+  ASSERT_TRUE(second.ok()) << second.status();
+  first->reset();
+  Status current = (*second)->Run({}, [] {
+    return eglGetCurrentContext() == EGL_NO_CONTEXT ? absl::InternalError("no current EGL context")
+                                                     : absl::OkStatus();
+  });
+  EXPECT_TRUE(current.ok()) << current;
+  EXPECT_TRUE(RunSelfTest(**second).ok());
 }
 
 TEST(GpuContext, UnknownDeviceChoiceIsAClearError) {

@@ -141,14 +141,15 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
   EXPECT_EQ(first->points(0).visible_polygons_size() > 0, true);
   EXPECT_EQ(first->accuracy().method(), "plucker-exact");
 
-  // The points lie in four cubes of the receiver grid: one tree each.
-  EXPECT_EQ(first->tree().trees(), 4u);
-  EXPECT_EQ(first->tree().trees_created(), 4u);
+  // Four points in four cubes of the receiver grid, each far below
+  // --light-receiver-min-points: they share one tree (the cubes merge).
+  EXPECT_EQ(first->tree().trees(), 1u);
+  EXPECT_EQ(first->tree().trees_created(), 1u);
 
   auto second = client_->LightVisibility(request);
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_TRUE(second->tree().reused());
-  EXPECT_EQ(second->tree().trees(), 4u);
+  EXPECT_EQ(second->tree().trees(), 1u);
   EXPECT_EQ(second->tree().trees_created(), 0u);
   EXPECT_EQ(second->tree().refinements(), first->tree().refinements()) << "a second pass refines nothing";
   // The point in the open is answered before the tree, on each pass; the
@@ -168,8 +169,9 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
 }
 
 TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
-  // A batch spread over the floor is split into receiver cells, one tree
-  // each; one tree for a region the client names must give the same answers.
+  // A batch spread over the floor is split into receiver cells (merged
+  // where sparse), one tree each; one tree for a region the client names
+  // must give the same answers.
   v1::LightVisibilityRequest cells = CeilingLight();
   for (int i = 0; i < 15; ++i)
     for (int j = 0; j < 15; ++j) AddPoint(cells, -0.95 + 0.135 * i, 0.001, -0.95 + 0.135 * j);
@@ -180,7 +182,7 @@ TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
   ASSERT_TRUE(split.ok()) << split.status();
   auto whole = client_->LightVisibility(region);
   ASSERT_TRUE(whole.ok()) << whole.status();
-  EXPECT_GT(split->tree().trees(), 50u);
+  EXPECT_GE(split->tree().trees(), 2u);
   EXPECT_EQ(whole->tree().trees(), 1u);
   ASSERT_EQ(split->points_size(), whole->points_size());
   int penumbra = 0;
@@ -191,7 +193,9 @@ TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
     penumbra += f > 0 && f < 1;
   }
   EXPECT_GT(penumbra, 5) << "the comparison must include partly lit points";
-  EXPECT_EQ(split->tree().queries(), 225u);
+  // The cells' trees may be the earlier tests' (same light, same cubes):
+  // their counts include those queries.
+  EXPECT_GE(split->tree().queries(), 225u);
 }
 
 TEST_F(AlgorithmRpcTest, LightVisibilityBatchOverManyCellsStopsAtTheDeadline) {
