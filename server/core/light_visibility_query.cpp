@@ -69,8 +69,8 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   // cannot meet a piece, about as fast; smaller trees were faster still
   // (docs/exact-method-notes.md).
   base.max_bytes = engine.light_cache_capacity() / 16;
-  base.cancelled = query.cancelled;
-  base.deadline = query.deadline;
+  base.cancelled = query.call.cancelled;
+  base.deadline = query.call.deadline;
   for (const std::string& node_name : query.exclude_nodes) {
     bool found = false;
     for (const SceneNode& node : scene.nodes) {
@@ -162,10 +162,10 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
       std::call_once(t.once, get_tree, chunk.group);
       if (!t.status.ok()) return fail(t.status);
       for (uint32_t k = chunk.begin; k < chunk.end; ++k) {
-        if (query.cancelled != nullptr && query.cancelled->load())
+        if (query.call.cancelled != nullptr && query.call.cancelled->load())
           return fail(absl::CancelledError(absl::StrCat("cancelled with ", query.points.size() - answered.load(),
                                                         " of ", query.points.size(), " points left")));
-        if (std::chrono::steady_clock::now() > query.deadline) {
+        if (std::chrono::steady_clock::now() > query.call.deadline) {
           return fail(absl::DeadlineExceededError(absl::StrCat("deadline passed with ",
                                                                query.points.size() - answered.load(), " of ",
                                                                query.points.size(), " points left")));

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "core/call_options.h"
 #include "common/status.h"
 #include "exact/light_visibility.h"
 
@@ -23,11 +24,8 @@ struct LightVisibilityQuery {
   bool want_polygons = false;
   std::optional<Bounds> receiver_region;
   std::vector<std::string> exclude_nodes;
-  // The caller's deadline: past it the batch stops with DEADLINE_EXCEEDED.
-  std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
-  // Set when the call is cancelled (by its client, or by a shutdown's
-  // drain): checked between points, like the deadline.
-  const std::atomic<bool>* cancelled = nullptr;
+  // Checked between points and while a tree selects its occluders.
+  CallOptions call;
 };
 
 struct LightVisibilityAnswer {

@@ -99,6 +99,17 @@ double ObscuranceErrorEstimate(uint64_t directions, double confidence) {
 
 namespace {
 
+// A bake's GPU work runs at batch priority: interactive queries overtake it
+// between directions.
+gpu::ObscuranceBakeOptions BakeOptions(const ObscuranceQuery& query) {
+  gpu::ObscuranceBakeOptions bake;
+  bake.priority = gpu::kBatch;
+  bake.deadline = query.call.deadline;
+  bake.cancelled = query.call.cancelled;
+  bake.progress = query.progress;
+  return bake;
+}
+
 // Plans for an obscurance target: direction counts (powers of two and the
 // least count meeting the error), each predicted from the measured cost per
 // direction of bakes of this scene at this resolution; a scene never baked at
@@ -118,7 +129,7 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
       probe.params.direction_count = directions;
       probe.total_directions = directions;
       probe.partial_only = true;  // neither finalized nor installed for updates
-      probe.bake.progress = nullptr;
+      probe.progress = nullptr;
       VISQ_ASSIGN_OR_RETURN(ObscuranceAnswer answer, RunComputeObscurances(engine, probe));
       model.Record(series, directions, answer.atlas_ms + answer.bake_ms);
       report.probe_ms += answer.atlas_ms + answer.bake_ms;
@@ -217,8 +228,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   const uint64_t texels = uint64_t{atlas.width} * atlas.height;
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1), "resolution",
-                                                     gpu::JobOptions{query.bake.priority, query.bake.deadline,
-                                                                     query.bake.cancelled}));
+                                                     query.call.BatchJob()));
 
   answer.method = query.method;
   answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);
@@ -243,7 +253,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
     start = std::chrono::steady_clock::now();
     VISQ_ASSIGN_OR_RETURN(answer.partial, gpu::BakeObscurancePartial(engine.gpu(), *gpu_scene, scene, atlas,
-                                                                     query.params, query.bake, &answer.stats));
+                                                                     query.params, BakeOptions(query), &answer.stats));
     answer.bake_ms = MillisecondsSince(start);
     if (query.partial_only) return answer;
 
@@ -435,7 +445,7 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
   request.atlas_height = height;
   request.corner_uv = corner_uv;
   request.texel_values = values;
-  request.job = query.job;
+  request.job = query.call.Job();
   VISQ_ASSIGN_OR_RETURN(answer.image, gpu::RenderObscurancePreview(engine.gpu(), *gpu_scene, request));
   return answer;
 }

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -15,6 +16,7 @@
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "core/call_options.h"
 #include "core/engine.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
@@ -62,9 +64,9 @@ struct ObscuranceQuery {
   // Instead of params.direction_count, for a whole bake: the planner picks
   // the number of directions (core/accuracy_planner.h).
   std::optional<AccuracyTarget> target;
-  // Priority kBatch (interactive queries overtake the bake), cancellation,
-  // deadline and progress come from the caller.
-  gpu::ObscuranceBakeOptions bake;
+  CallOptions call;
+  // Called on the computing thread after every direction of a GPU bake.
+  std::function<void(const gpu::ObscuranceProgress&)> progress;
 };
 
 struct ObscuranceAnswer {
@@ -147,7 +149,7 @@ struct ObscurancePreviewQuery {
   uint64_t scene_version = 0;
   gpu::PinholeCamera camera;
   Quantity quantity = Quantity::kW;
-  gpu::JobOptions job{gpu::kInteractive};
+  CallOptions call;
 };
 
 struct ObscurancePreviewAnswer {

@@ -411,7 +411,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   auto run = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<sampling::HiddenSampleMapResult> {
     sampling::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
     VISQ_RETURN_IF_ERROR(CheckSize(sized));
-    return HiddenSampleMapBy(engine, resident, method, sized, query.job);
+    return HiddenSampleMapBy(engine, resident, method, sized, query.call.Job());
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
     VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
@@ -422,7 +422,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   const double texels = double(request.receiver.width) * request.receiver.height;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
                                                           texels, PolygonShare(request.source), exact_possible,
-                                                          query.job, cost_of));
+                                                          query.call.Job(), cost_of));
   const Plan& plan = report.chosen_plan();
   HiddenSampleMapAnswer answer;
   answer.method = MethodOfPlan(plan);
@@ -453,7 +453,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
     const sampling::PatchVisibilityRequest probe = sized(samples, max_side);
-    VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.job));
+    VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.call.Job()));
     return RunCost{ComputeMs(result.timing),
                    PlanWork(method, double(probe.receiver_columns) * probe.receiver_rows,
                             probe.source_columns * probe.source_rows)};
@@ -461,7 +461,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
   const double points = double(request.receiver_columns) * request.receiver_rows;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
-                                                          points, 1.0, exact_possible, query.job, cost_of));
+                                                          points, 1.0, exact_possible, query.call.Job(), cost_of));
   Plan& plan = report.plans[report.chosen];
   PatchVisibilityAnswer answer;
   answer.method = MethodOfPlan(plan);
@@ -471,7 +471,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
     plan.parameters["source_columns"] = chosen.source_columns;
     plan.parameters["source_rows"] = chosen.source_rows;
   }
-  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, resident, answer.method, chosen, query.job));
+  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, resident, answer.method, chosen, query.call.Job()));
   engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing));
   // The grid's bound restated at the target's confidence, as the plan was
   // weighed (the map itself is built at the default one).
@@ -536,7 +536,7 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   HiddenSampleMapAnswer answer;
   answer.method = query.method;
   VISQ_ASSIGN_OR_RETURN(answer.result,
-                        HiddenSampleMapBy(engine, *resident, query.method, checked, query.job, &answer.memory));
+                        HiddenSampleMapBy(engine, *resident, query.method, checked, query.call.Job(), &answer.memory));
   return answer;
 }
 
@@ -547,7 +547,7 @@ StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVi
   if (query.target) return PatchVisibilityForTarget(engine, *resident, query);
   PatchVisibilityAnswer answer;
   answer.method = query.method;
-  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.job));
+  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.call.Job()));
   return answer;
 }
 

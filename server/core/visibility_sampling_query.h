@@ -11,6 +11,7 @@
 
 #include "common/status.h"
 #include "core/accuracy_planner.h"
+#include "core/call_options.h"
 #include "core/work_budget.h"
 #include "visq/gpu/hidden_sample_map.h"
 
@@ -35,7 +36,7 @@ struct HiddenSampleMapQuery {
   // Instead of request.source.sample_count and method: the planner chooses
   // the method and the count (jittered samples, or the exact method).
   std::optional<AccuracyTarget> target;
-  gpu::JobOptions job;
+  CallOptions call;
 };
 
 struct HiddenSampleMapAnswer {
@@ -54,7 +55,7 @@ struct PatchVisibilityQuery {
   VisibilityMethod method = VisibilityMethod::kRaster;
   // Instead of the source grid and method (the receiver grid stays).
   std::optional<AccuracyTarget> target;
-  gpu::JobOptions job;
+  CallOptions call;
 };
 
 struct PatchVisibilityAnswer {

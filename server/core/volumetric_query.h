@@ -3,6 +3,7 @@
 
 #include <string>
 
+#include "core/call_options.h"
 #include "common/status.h"
 #include "visq/gpu/volumetric_shadows.h"
 
@@ -14,6 +15,7 @@ struct VolumetricQuery {
   std::string scene;
   uint64_t scene_version = 0;
   gpu::VolumetricParams params;
+  CallOptions call;  // the core sets params.job from it
 };
 
 [[nodiscard]] StatusOr<gpu::VolumetricResult> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query);

@@ -51,6 +51,7 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& q
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeParams params, ResolveVoxelizeQuery(query, *resident->scene));
+  params.job = query.call.Job();
   // The grid read back, the result's copy and the messages' copies.
   const uint64_t grid_bytes = uint64_t(params.width) * params.height * ((uint64_t(params.slices) + 31) / 32) * 4;
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
@@ -65,6 +66,7 @@ StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const Transm
                         engine.FindScene(query.scene, query.scene_version));
   // Resolved and validated before the GPU upload: a bad request costs nothing.
   VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceParams params, ResolveTransmittanceQuery(query, *resident->scene));
+  params.job = query.call.Job();
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
   return gpu::Transmittance(engine.gpu(), *resident->scene, *gpu_scene, params);
 }

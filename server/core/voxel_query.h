@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "core/call_options.h"
 #include "common/status.h"
 #include "visq/gpu/slicemap.h"
 
@@ -17,6 +18,7 @@ struct VoxelizeQuery {
   std::string scene;
   uint64_t scene_version = 0;
   gpu::VoxelizeParams params;        // box filled from the scene when `box` is unset
+  CallOptions call;  // the core sets params.job from it
   std::optional<gpu::SlicemapBox> box;
   int depth_axis = 1;
   std::vector<std::string> nodes;
@@ -26,6 +28,7 @@ struct TransmittanceQuery {
   std::string scene;
   uint64_t scene_version = 0;
   gpu::TransmittanceParams params;
+  CallOptions call;  // the core sets params.job from it
   std::vector<std::pair<std::string, double>> absorbers;  // node name, absorption
 };
 

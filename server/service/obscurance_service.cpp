@@ -185,12 +185,10 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
                                                                      const v1::ComputeObscurancesRequest& request,
                                                                      gpu::SteadyTime deadline, double queue_ms) {
     VISQ_ASSIGN_OR_RETURN(ObscuranceQuery query, FromProto(request));
-    query.bake.priority = gpu::kBatch;
-    query.bake.deadline = deadline;
-    query.bake.cancelled = &cancelled_;
+    query.call = {deadline, &cancelled_};
     // At most ~10 progress messages a second (and the first and last).
     auto last_sent = std::make_shared<double>(-1e9);
-    query.bake.progress = [this, last_sent](const gpu::ObscuranceProgress& p) {
+    query.progress = [this, last_sent](const gpu::ObscuranceProgress& p) {
       if (p.directions_done != 1 && p.directions_done != p.directions_total &&
           p.elapsed_seconds - *last_sent < 0.1)
         return;
@@ -362,7 +360,7 @@ grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::ObscurancePreviewResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(ObscurancePreviewQuery query, FromProto(*request));
-        query.job = JobOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled);
         VISQ_ASSIGN_OR_RETURN(ObscurancePreviewAnswer answer, RunRenderObscurancePreview(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
         log.Info("v{} {}x{} {}, render {:.1f} ms", answer.solution_version, answer.image.width, answer.image.height,

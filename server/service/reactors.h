@@ -13,6 +13,7 @@
 
 #include <grpcpp/server_context.h>
 
+#include "core/call_options.h"
 #include "service/chunked_responses.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
@@ -75,14 +76,10 @@ inline gpu::SteadyTime SteadyDeadline(const grpc::CallbackServerContext* context
   return std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(left);
 }
 
-// A GPU job's deadline and cancellation from the call's context, so a
-// request whose client gave up never reaches the GPU.
-inline gpu::JobOptions JobOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
-  gpu::JobOptions job;
-  job.priority = gpu::kInteractive;
-  job.deadline = SteadyDeadline(context);
-  job.cancelled = cancelled;
-  return job;
+// The call's deadline and cancellation for the core, so a request whose
+// client gave up stops (the core chooses the GPU priority).
+inline CallOptions CallOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
+  return {SteadyDeadline(context), cancelled};
 }
 
 // The figures' timing for a streamed answer; transfer_ms and total_ms are as

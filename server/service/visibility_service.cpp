@@ -293,8 +293,7 @@ class LightVisibilityStreamReactor final
       Status status = query.status();
       response_.Clear();
       if (status.ok()) {
-        query->deadline = deadline_;
-        query->cancelled = &cancelled_;
+        query->call = {deadline_, &cancelled_};
       }
       if (status.ok()) status = AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms,
                                                       &response_);
@@ -343,8 +342,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::LightVisibility(grpc::CallbackS
                                                              RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery query, FromProto(*request));
-    query.deadline = SteadyDeadline(context);
-    query.cancelled = &cancelled;
+    query.call = CallOptionsFor(context, &cancelled);
     return AnswerLightVisibility(ctx_.engine, query, log, queue_ms, response);
   });
 }
@@ -366,7 +364,7 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::HiddenSampleMapResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
-        query.job = JobOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled);
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, RunHiddenSampleMap(ctx_.engine, query));
         const sampling::HiddenSampleMapResult& result = answer.result;
         log.Info("{} {}x{} texels, {} samples{}", VisibilityMethodName(answer.method, query.request.options.lookup),
@@ -392,7 +390,7 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::VolumetricShadowResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(VolumetricQuery query, FromProto(*request));
-        query.params.job = JobOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled);
         VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult result, RunVolumetricShadow(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
         const gpu::VolumetricTimings timings = result.timings;
@@ -414,7 +412,7 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::VoxelizeResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(VoxelizeQuery query, FromProto(*request));
-        query.params.job = JobOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled);
         gpu::SlicemapBox box;
         VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, RunVoxelize(ctx_.engine, query, &box));
         const double before_transfer = log.ElapsedMs();
@@ -436,7 +434,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
                                                            RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(TransmittanceQuery query, FromProto(*request));
-    query.params.job = JobOptionsFor(context, &cancelled);
+    query.call = CallOptionsFor(context, &cancelled);
     VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, RunTransmittance(ctx_.engine, std::move(query)));
     const double before_transfer = log.ElapsedMs();
     ToProto(result, response);
@@ -456,7 +454,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
                                                              RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityQuery query, FromProto(*request));
-    query.job = JobOptionsFor(context, &cancelled);
+    query.call = CallOptionsFor(context, &cancelled);
     VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, RunPatchVisibility(ctx_.engine, query));
     const sampling::PatchVisibilityResult& result = answer.result;
     const double before_transfer = log.ElapsedMs();
