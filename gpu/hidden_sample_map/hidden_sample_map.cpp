@@ -19,6 +19,7 @@
 #include "hough_table.h"
 #include "shader_program.h"
 #include "visq/gpu/hidden_sample_map.h"
+#include "common/job_timing.h"
 #include "visq_gpu_hidden_sample_map_embedded.h"
 
 namespace visq::gpu {
@@ -48,8 +49,6 @@ constexpr size_t kMaxCachedTables = 6;
 
 using Clock = std::chrono::steady_clock;
 constexpr size_t kMaxShaftPlanes = 16;  // hsm_draw.geom's u_shaft_planes
-
-double MsSince(Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); }
 
 // Affine map as a mat4 whose rows are (a_k . X + b_k), k < 3.
 glm::dmat4 RowsToMatrix(const glm::dvec3 a[3], const double b[3]) {
@@ -164,7 +163,7 @@ std::shared_ptr<Table> CachedTable(HiddenSampleMapper::State& state, GpuWorker& 
   built->layout.r_res = options.hough_r_resolution;
   built->cpu = hsm::BuildHoughTable(centred, built->layout);
   built->centred = centred;
-  build_ms = MsSince(start);
+  build_ms = MillisecondsSince(start);
   std::lock_guard lock(state.mutex);
   auto [it, inserted] = state.tables.emplace(key, built);
   std::shared_ptr<Table> table = it->second;

@@ -11,6 +11,7 @@
 #include <fmt/format.h>
 #include <glm/gtc/type_ptr.hpp>
 
+#include "common/job_timing.h"
 #include "gl_check.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
@@ -22,10 +23,6 @@ namespace visq::gpu {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-double MsSince(Clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-}
 
 Status ValidatePreviewRequest(const GpuScene& gpu_scene, const ObscurancePreviewRequest& request) {
   VISQ_RETURN_IF_ERROR(ValidatePinholeCamera(request.camera, kMaxObscurancePreviewSize));
@@ -159,7 +156,7 @@ StatusOr<ObscurancePreviewImage> RenderObscurancePreview(GpuWorker& worker, cons
   }
   image.queue_ms = timing.queue_ms;
   image.render_ms = timing.run_ms;
-  image.total_ms = MsSince(start);
+  image.total_ms = MillisecondsSince(start);
   return image;
 }
 

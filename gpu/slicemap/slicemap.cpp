@@ -12,6 +12,7 @@
 //   4. (solid) each column's in/out state is resolved from its front and back
 //      bits on the CPU (ResolveSolidColumn below), on all cores.
 #include "visq/gpu/slicemap.h"
+#include "common/job_timing.h"
 #include "common/coordinates.h"
 #include "common/parallel.h"
 
@@ -37,10 +38,6 @@ namespace visq::gpu {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-double MsSince(Clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-}
 
 // Same constant as kMinLocalRange in slicemap.frag.
 constexpr float kMinLocalRange = 1.0f / 1048576.0f;
@@ -192,7 +189,7 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
   glFrontFace(GL_CW);
 
   GlTexture2D near_far(NoCreate);
-  raw.timings.setup_ms += MsSince(setup_start);
+  raw.timings.setup_ms += MillisecondsSince(setup_start);
 
   // 1. Local precision: each column's depth range in one pass.
   if (local) {
@@ -226,7 +223,7 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
                       raw.near_far.data());
     glBindTextureUnit(0, near_far.id());
     raw.passes += 1;
-    raw.timings.depth_ms += MsSince(start);
+    raw.timings.depth_ms += MillisecondsSince(start);
   }
 
   // 2. The slicemap targets, reused by every pass.
@@ -247,7 +244,7 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
   }
   std::vector<GLuint> texels(columns * 4);
   glBindFramebuffer(GL_FRAMEBUFFER, framebuffer.id());
-  raw.timings.setup_ms += MsSince(targets_start);
+  raw.timings.setup_ms += MillisecondsSince(targets_start);
 
   // One slicemap pass: `pass_solid` splits front and back faces, else every
   // fragment goes to the surface map.
@@ -272,7 +269,7 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
     const GLuint zero[4] = {0, 0, 0, 0};
     for (GLint i = 0; i < static_cast<GLint>(buffers.size()); ++i)
       glClearNamedFramebufferuiv(framebuffer.id(), GL_COLOR, i, zero);
-    raw.timings.setup_ms += MsSince(start);
+    raw.timings.setup_ms += MillisecondsSince(start);
 
     start = Clock::now();
     glUseProgram(program->id());
@@ -283,7 +280,7 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
     glFinish();
     VISQ_GL_CHECK("slicemap pass");
     raw.passes += 1;
-    raw.timings.voxelize_ms += MsSince(start);
+    raw.timings.voxelize_ms += MillisecondsSince(start);
 
     start = Clock::now();
     for (uint32_t m = 0; m < pass_maps; ++m) {
@@ -295,7 +292,7 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
       }
     }
     VISQ_GL_CHECK("slicemap readback");
-    raw.timings.readback_ms += MsSince(start);
+    raw.timings.readback_ms += MillisecondsSince(start);
     return absl::OkStatus();
   };
 
@@ -316,7 +313,7 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
   if (solid && status.ok()) {
     const auto start = Clock::now();
     for (size_t i = 0; i < raw.surface.bits.size(); ++i) raw.surface.bits[i] |= raw.front.bits[i] | raw.back.bits[i];
-    raw.timings.readback_ms += MsSince(start);
+    raw.timings.readback_ms += MillisecondsSince(start);
   }
 
   glFrontFace(GL_CCW);
@@ -600,13 +597,13 @@ StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, 
     result.ambiguous_columns = summary.ambiguous.size();
     result.ambiguous_column_list = std::move(summary.ambiguous);
     std::sort(result.ambiguous_column_list.begin(), result.ambiguous_column_list.end());
-    result.timings.resolve_ms = MsSince(resolve_start);
+    result.timings.resolve_ms = MillisecondsSince(resolve_start);
   } else {
     if (surface_out != nullptr) *surface_out = raw.surface;
     result.grid = std::move(raw.surface);
   }
   result.occupied_voxels = result.grid.CountOccupied();
-  result.timings.total_ms = MsSince(start);
+  result.timings.total_ms = MillisecondsSince(start);
   return result;
 }
 
@@ -804,7 +801,7 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
   result.lateral_offset.assign(points.size(), 0.0f);
   if (bounds.Empty()) {
     result.error_statement = "the absorbing nodes have no triangles: nothing absorbs";
-    result.timings.total_ms = MsSince(start);
+    result.timings.total_ms = MillisecondsSince(start);
     return result;
   }
 
@@ -913,7 +910,7 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
       result.optical_depth[i] += static_cast<float>(sigma * occupied * slice_length);
       result.optical_depth_error[i] += static_cast<float>(sigma * shell * slice_length);
     }
-    result.timings.resolve_ms += MsSince(count_start);
+    result.timings.resolve_ms += MillisecondsSince(count_start);
   }
   for (size_t i = 0; i < points.size(); ++i) result.transmittance[i] = std::exp(-result.optical_depth[i]);
 
@@ -925,7 +922,7 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
       "adds to the error. {} columns were ambiguous (open or overlapping absorbers) and count only their surface "
       "voxels.",
       result.max_voxel_length, result.max_texel_size, result.ambiguous_columns);
-  result.timings.total_ms = MsSince(start);
+  result.timings.total_ms = MillisecondsSince(start);
   return result;
 }
 

@@ -26,10 +26,6 @@ uint64_t CurrentContextGeneration() { return current_generation; }
 
 namespace {
 
-double MillisecondsBetween(SteadyTime a, SteadyTime b) {
-  return std::chrono::duration<double, std::milli>(b - a).count();
-}
-
 void GLAPIENTRY LogDebugMessage(GLenum, GLenum type, GLuint id, GLenum severity, GLsizei length,
                                 const GLchar* message, const void*) {
   const std::string_view text(message, length > 0 ? static_cast<size_t>(length) : std::strlen(message));

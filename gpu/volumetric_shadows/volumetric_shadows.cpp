@@ -37,6 +37,7 @@
 #include <glm/gtc/matrix_transform.hpp>
 #include <glm/gtc/type_ptr.hpp>
 
+#include "common/job_timing.h"
 #include "gl_check.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
@@ -48,10 +49,6 @@ namespace visq::gpu {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-double MsSince(Clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-}
 
 // Bias of the medium's shadow test, in shadow-map texels of depth: a ray
 // grazing a lit receiver runs within a texel's depth variation of it for a
@@ -299,7 +296,7 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
     const auto svd_start = Clock::now();
     setup.svd = CachedSvdTable({true, sigma_t * setup.eye_light_distance, params.medium.hg_g,
                                 2.0 * sigma_t * setup.light_reach, params.svd_tolerance});
-    setup.svd_ms = MsSince(svd_start);
+    setup.svd_ms = MillisecondsSince(svd_start);
     setup.integrand = VolumetricIntegrand::kSvd;
     setup.eye_in_light = glm::normalize(glm::dvec3(glm::dot(to_eye, u), glm::dot(to_eye, v), glm::dot(to_eye, w)));
   } else if (!setup.spot && setup.integrand == VolumetricIntegrand::kPerTexel &&
@@ -310,7 +307,7 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
     for (const auto& c : square) p_max = std::max(p_max, glm::length((c - setup.epipole) * setup.texel_world));
     const auto svd_start = Clock::now();
     setup.svd = CachedSvdTable({false, params.medium.extinction, 0.0, p_max, params.svd_tolerance});
-    setup.svd_ms = MsSince(svd_start);
+    setup.svd_ms = MillisecondsSince(svd_start);
     setup.integrand = VolumetricIntegrand::kSvd;
   }
   setup.weighted = setup.integrand != VolumetricIntegrand::kAnalytic;
@@ -446,7 +443,7 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
   GlVertexArray empty_vao;
   VISQ_GL_CHECK("volumetric shadows: setup");
   glFinish();
-  timings.setup_ms = MsSince(setup_start);
+  timings.setup_ms = MillisecondsSince(setup_start);
 
   VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* scene_resources, gpu_scene.CurrentResources());
   const GpuScene::Resources& res = *scene_resources;
@@ -469,7 +466,7 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
     VISQ_GL_CHECK("volumetric shadows: shadow map");
     glFinish();
   }
-  timings.shadow_map_ms = MsSince(stage);
+  timings.shadow_map_ms = MillisecondsSince(stage);
   VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the shadow map"));
 
   // 2. Camera distances, normals, colors.
@@ -497,7 +494,7 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
     VISQ_GL_CHECK("volumetric shadows: camera pass");
     glFinish();
   }
-  timings.camera_ms = MsSince(stage);
+  timings.camera_ms = MillisecondsSince(stage);
   VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the camera pass"));
 
   // 3. Rectification.
@@ -529,7 +526,7 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
     VISQ_GL_CHECK("volumetric shadows: rectification");
     glFinish();
   }
-  timings.rectification_ms = MsSince(stage);
+  timings.rectification_ms = MillisecondsSince(stage);
   VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after rectification"));
 
   // 4. Min-max levels, then prefix sums.
@@ -554,7 +551,7 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
     VISQ_GL_CHECK("volumetric shadows: mipmap");
     glFinish();
   }
-  timings.mipmap_ms = MsSince(stage);
+  timings.mipmap_ms = MillisecondsSince(stage);
   VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the min-max levels"));
 
   // 5. Per-pixel integration.
@@ -597,7 +594,7 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
     VISQ_GL_CHECK("volumetric shadows: traversal");
     glFinish();
   }
-  timings.traversal_ms = MsSince(stage);
+  timings.traversal_ms = MillisecondsSince(stage);
 
   stage = Clock::now();
   pixels.resize(pixel_count);
@@ -607,7 +604,7 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
   glBindVertexArray(0);
   glUseProgram(0);
   VISQ_RETURN_IF_ERROR(CollectGlErrors("volumetric shadows: readback"));
-  timings.readback_ms = MsSince(stage);
+  timings.readback_ms = MillisecondsSince(stage);
   return absl::OkStatus();
 }
 
@@ -717,7 +714,7 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
       if (params.combined_image) result.combined[i * 3 + k] = color[k] * (pixels[i].x + pixels[i][k + 1]);
     }
   }
-  result.timings.total_ms = MsSince(start);
+  result.timings.total_ms = MillisecondsSince(start);
   return result;
 }
 

@@ -4,22 +4,10 @@
 #include <cstring>
 #include <numbers>
 
+#include "common/random.h"
+
 namespace visq::obscurance {
 namespace {
-
-uint64_t SplitMix64(uint64_t x) {
-  x += 0x9E3779B97F4A7C15ull;
-  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
-  x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
-  return x ^ (x >> 31);
-}
-double UnitFromBits(uint64_t bits) { return static_cast<double>(bits >> 11) * 0x1.0p-53; }
-
-double RadicalInverse(uint32_t base, uint64_t i) {
-  double inv = 1.0 / base, f = inv, r = 0;
-  while (i > 0) { r += f * static_cast<double>(i % base); i /= base; f *= inv; }
-  return r;
-}
 
 struct Fnv {
   uint64_t h = 1469598103934665603ull;

@@ -4,23 +4,12 @@
 #include <cmath>
 #include <numbers>
 
+#include "common/random.h"
 #include "raycast/embree_scene.h"
 
 namespace visq::obscurance {
 namespace {
 
-uint64_t Mix(uint64_t x) {
-  x += 0x9E3779B97F4A7C15ull;
-  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
-  x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
-  return x ^ (x >> 31);
-}
-double Unit(uint64_t bits) { return static_cast<double>(bits >> 11) * 0x1.0p-53; }
-double RadicalInverse(uint32_t base, uint64_t i) {
-  double inv = 1.0 / base, f = inv, r = 0;
-  while (i > 0) { r += f * static_cast<double>(i % base); i /= base; f *= inv; }
-  return r;
-}
 double Frac(double x) { return x - std::floor(x); }
 
 }  // namespace
@@ -93,9 +82,9 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   if (begin == end) return;
   double total = 0;
   for (uint32_t i = begin; i < end; ++i) total += atlas.fragments[i].world_area;
-  const uint64_t h = Mix(Mix(seed) ^ (static_cast<uint64_t>(texel) * 0xD1B54A32D192ED03ull));
+  const uint64_t h = SplitMix64(SplitMix64(seed) ^ (static_cast<uint64_t>(texel) * 0xD1B54A32D192ED03ull));
   double shift[5];
-  for (int k = 0; k < 5; ++k) shift[k] = Unit(Mix(h + k));
+  for (int k = 0; k < 5; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
   const uint32_t x = texel % atlas.width, y = texel / atlas.width;
   thread_local std::vector<FragmentSampler> samplers;
   thread_local std::vector<uint8_t> prepared;  // bit 0: frame, bit 1: polygon

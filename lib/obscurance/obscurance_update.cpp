@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstddef>
 
+#include "common/job_timing.h"
 #include "common/parallel.h"
 #include "obscurance/obscurance_rays.h"
 #include "scene/scene_edit.h"
@@ -310,7 +311,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   rays_->Commit();
   ComputePatchBounds(object.own);
   const auto moved = std::chrono::steady_clock::now();
-  update.move_ms = std::chrono::duration<double, std::milli>(moved - start).count();
+  update.move_ms = MillisecondsBetween(start, moved);
 
   // Recompute: old list, own patches, and patches whose rays meet the object now.
   const std::vector<uint32_t> fresh = Candidates(object);
@@ -319,11 +320,11 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   const std::vector<uint32_t> must = SortedUnion(object.influenced, object.own);
   const std::vector<uint32_t> recompute = SortedUnion(must, fresh);
   const auto found = std::chrono::steady_clock::now();
-  update.candidates_ms = std::chrono::duration<double, std::milli>(found - moved).count();
+  update.candidates_ms = MillisecondsBetween(moved, found);
   std::vector<glm::vec3> value;
   std::vector<std::vector<int32_t>> met;
   TracePatches(recompute, value, met);
-  update.trace_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - found).count();
+  update.trace_ms = MillisecondsSince(found);
   update.recomputed = static_cast<uint32_t>(recompute.size());
   update.rays = static_cast<uint64_t>(recompute.size()) * options_.rays_per_patch;
 
@@ -405,7 +406,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     result_.vertex_w[v] = area > 0 ? glm::vec3(sum / area) : glm::vec3(0.0f);
     update.vertex_w.push_back(result_.vertex_w[v]);
   }
-  update.milliseconds = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  update.milliseconds = MillisecondsSince(start);
   return update;
 }
 

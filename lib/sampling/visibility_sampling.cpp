@@ -9,6 +9,7 @@
 #include <string>
 
 #include "sampling/visibility_sampling.h"
+#include "common/random.h"
 #include "common/coordinates.h"
 
 namespace visq::sampling {
@@ -28,19 +29,6 @@ Status ValidatePatch(const Patch& p, const std::string& field) {
                                                    Vec(p.edge_v)));
   return absl::OkStatus();
 }
-
-// splitmix64: a portable, seeded generator (std distributions differ between
-// standard libraries, and patterns must be reproducible everywhere).
-struct SplitMix {
-  uint64_t state;
-  uint64_t Next() {
-    uint64_t z = (state += 0x9E3779B97F4A7C15ull);
-    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-    return z ^ (z >> 31);
-  }
-  double Uniform() { return double(Next() >> 11) * 0x1.0p-53; }
-};
 
 bool InsidePolygon(const std::vector<glm::dvec2>& poly, const glm::dvec2& p) {
   bool inside = false;

@@ -8,6 +8,7 @@
 
 #include <fmt/format.h>
 
+#include "common/job_timing.h"
 #include "common/parallel.h"
 #include "raycast/embree_scene.h"
 
@@ -15,10 +16,6 @@ namespace visq::voxel_reference {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-double MsSince(Clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-}
 
 ReferenceGrid EmptyGrid(const GridBox& box) {
   ReferenceGrid grid;
@@ -198,7 +195,7 @@ StatusOr<ReferenceGrid> VoxelizeSurface(const Scene& scene, const GridBox& box, 
   if (stats != nullptr) {
     stats->touches_in_empty_columns = 0;
     for (uint64_t n : empty_touches) stats->touches_in_empty_columns += n;
-    stats->milliseconds = MsSince(start);
+    stats->milliseconds = MillisecondsSince(start);
   }
   return grid;
 }
@@ -328,7 +325,7 @@ StatusOr<SolidReference> VoxelizeSolid(const Scene& scene, const GridBox& box, i
       if (inside) out.solid.bits[c * wpc + k / 32] |= 1u << (k % 32);
     }
   }
-  out.milliseconds = MsSince(start);
+  out.milliseconds = MillisecondsSince(start);
   return out;
 }
 

@@ -8,15 +8,12 @@
 #include <spdlog/spdlog.h>
 #include <xxhash.h>
 
+#include "common/job_timing.h"
 #include "core/obscurance_query.h"
 #include "scene/gltf_loader.h"
 
 namespace visq {
 namespace {
-
-double MillisecondsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
 
 }  // namespace
 

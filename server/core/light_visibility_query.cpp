@@ -8,6 +8,7 @@
 #include <cmath>
 #include <mutex>
 
+#include "common/job_timing.h"
 #include "core/engine.h"
 #include "common/coordinates.h"
 #include "common/parallel.h"
@@ -191,7 +192,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   answer.trees = groups.size();
   (answer.trees_created > 0 ? engine.light_tree_misses : engine.light_tree_hits).fetch_add(1);
   answer.compute_ms =
-      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+      MillisecondsSince(start);
   return answer;
 }
 

@@ -7,15 +7,12 @@
 
 #include <spdlog/spdlog.h>
 
+#include "common/job_timing.h"
 #include "obscurance/obscurance_rays.h"
 #include "scene/scene_edit.h"
 
 namespace visq {
 namespace {
-
-double MillisecondsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
 
 // The one node `query` names; INVALID_ARGUMENT naming the field otherwise.
 StatusOr<uint32_t> NamedNode(const Scene& scene, const NodeTransformQuery& query) {

@@ -7,15 +7,12 @@
 #include <functional>
 #include <set>
 
+#include "common/job_timing.h"
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
 
 namespace visq {
 namespace {
-
-double MillisecondsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
 
 Status CheckSize(const sampling::HiddenSampleMapRequest& request) {
   const uint64_t bits = uint64_t(std::max(request.receiver.width, 0)) * uint64_t(std::max(request.receiver.height, 0)) *
@@ -272,7 +269,7 @@ Status CheckNotCancelled(const gpu::JobOptions& job) {
 Status CheckPredictionFitsDeadline(const Plan& plan, const gpu::JobOptions& job) {
   if (job.deadline == gpu::SteadyTime::max()) return absl::OkStatus();
   const double left_ms =
-      std::chrono::duration<double, std::milli>(job.deadline - std::chrono::steady_clock::now()).count();
+      MillisecondsBetween(std::chrono::steady_clock::now(), job.deadline);
   if (plan.predicted_ms <= left_ms) return absl::OkStatus();
   return absl::DeadlineExceededError(absl::StrCat("the cheapest plan for the target, ", DescribePlan(plan),
                                                   ", is predicted to take ", plan.predicted_ms,

@@ -1,5 +1,7 @@
 #include "service/request_log.h"
 
+#include "common/job_timing.h"
+
 namespace visq::service {
 namespace {
 std::atomic<uint64_t> next_request_id{1};
@@ -25,7 +27,7 @@ RequestLog::~RequestLog() {
 }
 
 double RequestLog::ElapsedMs() const {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start_).count();
+  return MillisecondsSince(start_);
 }
 
 double RequestLog::Done(const Status& status) const {
