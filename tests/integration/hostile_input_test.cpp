@@ -20,6 +20,7 @@
 #include "proto_builders.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
+#include "raw_grpc_call.h"
 #include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
@@ -29,6 +30,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using client::Client;
+using testing::RawBidiCall;
 using testing::ScratchDir;
 using testing::ServerProcess;
 using testing::SetPatch;
@@ -424,44 +426,9 @@ TEST_F(HostileInputTest, VersionsSurviveRestarts) {
 // The call is raw (a generic stub): grpc.reflection.v1alpha.ServerReflection
 // with a list_services request (field 7, empty string).
 grpc::Status ListServicesByReflection(const std::string& address, std::string* answer) {
-  auto channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
-  grpc::GenericStub stub(channel);
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
-  grpc::CompletionQueue queue;
-  auto call = stub.PrepareCall(&context, "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo", &queue);
-  auto wait = [&queue](intptr_t expected) {
-    void* tag = nullptr;
-    bool ok = false;
-    queue.Next(&tag, &ok);
-    EXPECT_EQ(reinterpret_cast<intptr_t>(tag), expected);
-    return ok;
-  };
-  call->StartCall(reinterpret_cast<void*>(1));
-  wait(1);
   const char request[] = {0x3a, 0x00};
-  grpc::Slice slice(request, sizeof(request));
-  grpc::ByteBuffer buffer(&slice, 1);
-  call->Write(buffer, reinterpret_cast<void*>(2));
-  wait(2);
-  call->WritesDone(reinterpret_cast<void*>(3));
-  wait(3);
-  grpc::ByteBuffer response;
-  call->Read(&response, reinterpret_cast<void*>(4));
-  if (wait(4)) {
-    std::vector<grpc::Slice> slices;
-    (void)response.Dump(&slices);
-    for (const auto& s : slices) answer->append(reinterpret_cast<const char*>(s.begin()), s.size());
-  }
-  grpc::Status status;
-  call->Finish(&status, reinterpret_cast<void*>(5));
-  wait(5);
-  queue.Shutdown();
-  void* tag;
-  bool ok;
-  while (queue.Next(&tag, &ok)) {
-  }
-  return status;
+  return RawBidiCall(address, "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+                     std::string(request, sizeof(request)), answer);
 }
 
 TEST(HostileServerSetup, ReflectionNeedsTheTokenWhenOneIsSet) {

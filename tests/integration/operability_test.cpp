@@ -23,6 +23,7 @@
 
 #include "grpc/reflection/v1/reflection.pb.h"
 #include "proto_builders.h"
+#include "raw_grpc_call.h"
 #include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
@@ -280,47 +281,6 @@ TEST(JsonLogs, EveryLineIsOneObjectWhateverTheClientSent) {
   EXPECT_TRUE(protobuf_logged) << "protobuf's own line goes through the JSON format\n" << log;
 }
 
-// One request on a raw bidi stream to `method`; the serialized answer.
-grpc::Status RawReflectionCall(const std::string& address, const std::string& method, const std::string& request,
-                               std::string* answer) {
-  auto channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
-  grpc::GenericStub stub(channel);
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
-  grpc::CompletionQueue queue;
-  auto call = stub.PrepareCall(&context, method, &queue);
-  auto wait = [&queue](intptr_t expected) {
-    void* tag = nullptr;
-    bool ok = false;
-    queue.Next(&tag, &ok);
-    EXPECT_EQ(reinterpret_cast<intptr_t>(tag), expected);
-    return ok;
-  };
-  call->StartCall(reinterpret_cast<void*>(1));
-  wait(1);
-  grpc::Slice slice(request.data(), request.size());
-  grpc::ByteBuffer buffer(&slice, 1);
-  call->Write(buffer, reinterpret_cast<void*>(2));
-  wait(2);
-  call->WritesDone(reinterpret_cast<void*>(3));
-  wait(3);
-  grpc::ByteBuffer response;
-  call->Read(&response, reinterpret_cast<void*>(4));
-  if (wait(4)) {
-    std::vector<grpc::Slice> slices;
-    (void)response.Dump(&slices);
-    for (const auto& s : slices) answer->append(reinterpret_cast<const char*>(s.begin()), s.size());
-  }
-  grpc::Status status;
-  call->Finish(&status, reinterpret_cast<void*>(5));
-  wait(5);
-  queue.Shutdown();
-  void* tag;
-  bool ok;
-  while (queue.Next(&tag, &ok)) {
-  }
-  return status;
-}
 
 constexpr char kV1[] = "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo";
 constexpr char kV1alpha[] = "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo";
@@ -334,7 +294,7 @@ TEST(ReflectionV1, ListsAndDescribesTheServiceAsV1alphaDoes) {
   refl::ServerReflectionRequest list;
   list.set_list_services("");
   std::string answer;
-  ASSERT_TRUE(RawReflectionCall(server->address(), kV1, list.SerializeAsString(), &answer).ok());
+  ASSERT_TRUE(RawBidiCall(server->address(), kV1, list.SerializeAsString(), &answer).ok());
   refl::ServerReflectionResponse listed;
   ASSERT_TRUE(listed.ParseFromString(answer));
   std::vector<std::string> names;
@@ -347,8 +307,8 @@ TEST(ReflectionV1, ListsAndDescribesTheServiceAsV1alphaDoes) {
   refl::ServerReflectionRequest symbol;
   symbol.set_file_containing_symbol("visq.v1.VisibilityService");
   std::string v1_answer, v1alpha_answer;
-  ASSERT_TRUE(RawReflectionCall(server->address(), kV1, symbol.SerializeAsString(), &v1_answer).ok());
-  ASSERT_TRUE(RawReflectionCall(server->address(), kV1alpha, symbol.SerializeAsString(), &v1alpha_answer).ok());
+  ASSERT_TRUE(RawBidiCall(server->address(), kV1, symbol.SerializeAsString(), &v1_answer).ok());
+  ASSERT_TRUE(RawBidiCall(server->address(), kV1alpha, symbol.SerializeAsString(), &v1alpha_answer).ok());
   refl::ServerReflectionResponse described;
   ASSERT_TRUE(described.ParseFromString(v1_answer));
   ASSERT_GE(described.file_descriptor_response().file_descriptor_proto_size(), 1) << described.DebugString();
@@ -363,7 +323,7 @@ TEST(ReflectionV1, ListsAndDescribesTheServiceAsV1alphaDoes) {
   // An unknown symbol is an error_response with NOT_FOUND, as in v1alpha.
   symbol.set_file_containing_symbol("visq.v1.NoSuchThing");
   answer.clear();
-  ASSERT_TRUE(RawReflectionCall(server->address(), kV1, symbol.SerializeAsString(), &answer).ok());
+  ASSERT_TRUE(RawBidiCall(server->address(), kV1, symbol.SerializeAsString(), &answer).ok());
   refl::ServerReflectionResponse missing;
   ASSERT_TRUE(missing.ParseFromString(answer));
   EXPECT_EQ(missing.error_response().error_code(), static_cast<int>(grpc::StatusCode::NOT_FOUND));
@@ -377,7 +337,7 @@ TEST(ReflectionV1, NeedsTheTokenWhenOneIsSet) {
   grpc::reflection::v1::ServerReflectionRequest list;
   list.set_list_services("");
   std::string answer;
-  const grpc::Status status = RawReflectionCall(locked->address(), kV1, list.SerializeAsString(), &answer);
+  const grpc::Status status = RawBidiCall(locked->address(), kV1, list.SerializeAsString(), &answer);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::UNIMPLEMENTED) << status.error_message();
   EXPECT_EQ(answer.find("visq.v1.VisibilityService"), std::string::npos) << "v1 reflection answered without the token";
 }
