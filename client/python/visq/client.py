@@ -415,6 +415,25 @@ class Client:
         call = rpc(request, timeout=self._deadline(timeout, True), metadata=self._meta(scene))
         return self._drain(call, cancel, on_message)
 
+    def _chunked_stream(self, rpc, name, request, scene, timeout, cancel, arrays):
+        """A streamed answer: each array reassembled from its chunks by offset,
+        and the first message (its figures) with the arrays cleared.
+        `arrays`: (field, offset field, dtype, elements per offset unit)."""
+        chunks, first = _Chunks(), []
+
+        def on_message(m):
+            for field, offset, dtype, unit in arrays:
+                chunks.add(field, getattr(m, field), getattr(m, offset), dtype, unit=unit)
+            if not first:
+                for field, _, _, _ in arrays:
+                    m.ClearField(field)
+                first.append(m)
+
+        self._server_stream(rpc, request, scene, timeout, cancel, on_message)
+        if not first:
+            raise VisqError(grpc.StatusCode.DATA_LOSS, f"{name}: empty stream")
+        return chunks, first[0]
+
     @staticmethod
     def _drain(call, cancel, on_message):
         if cancel is not None:
@@ -540,22 +559,10 @@ class Client:
         request.lookup = _choice(lookup, "lookup", _LOOKUPS)
         request.decorrelate, request.watertight, request.want_bitmasks = decorrelate, watertight, bitmasks
         request.confidence = float(confidence)
-        chunks, first = _Chunks(), []
-
-        def on_message(m):
-            chunks.add("visible_fraction", m.visible_fraction, m.offset, np.float32)
-            chunks.add("visible_rgb", m.visible_rgb, m.offset, np.float32, unit=3)
-            chunks.add("blocked_bits", m.blocked_bits, m.offset, np.uint32)
-            if not first:
-                m.ClearField("visible_fraction")
-                m.ClearField("visible_rgb")
-                m.ClearField("blocked_bits")
-                first.append(m)
-
-        self._server_stream(self._stub.HiddenSampleMap, request, scene, timeout, cancel, on_message)
-        if not first:
-            raise VisqError(grpc.StatusCode.DATA_LOSS, "HiddenSampleMap: empty stream")
-        f = first[0]
+        chunks, f = self._chunked_stream(self._stub.HiddenSampleMap, "HiddenSampleMap", request, scene, timeout, cancel,
+                                         [("visible_fraction", "offset", np.float32, 1),
+                                          ("visible_rgb", "offset", np.float32, 3),
+                                          ("blocked_bits", "offset", np.uint32, 1)])
         h, w = f.height, f.width
         lookup_error = _array(f.lookup_error, np.float32).reshape(h, w) if len(f.lookup_error) == h * w else None
         samples_xyz = np.array([(p.x, p.y, p.z) for p in f.source_samples], dtype=np.float64).reshape(-1, 3)
@@ -726,21 +733,9 @@ class Client:
         request.mode = pb.VoxelizeRequest.SOLID if solid else pb.VoxelizeRequest.SURFACE
         request.local_precision, request.conservative = local_precision, conservative
         request.nodes.extend(nodes)
-        chunks, first = _Chunks(), []
-
-        def on_message(m):
-            chunks.add("bits", m.bits, m.offset, np.uint32)
-            chunks.add("column_near", m.column_near, m.offset, np.float32)
-            chunks.add("column_far", m.column_far, m.offset, np.float32)
-            if not first:
-                for name in ("bits", "column_near", "column_far"):
-                    m.ClearField(name)
-                first.append(m)
-
-        self._server_stream(self._stub.Voxelize, request, scene, timeout, cancel, on_message)
-        if not first:
-            raise VisqError(grpc.StatusCode.DATA_LOSS, "Voxelize: empty stream")
-        f = first[0]
+        chunks, f = self._chunked_stream(self._stub.Voxelize, "Voxelize", request, scene, timeout, cancel,
+                                         [("bits", "offset", np.uint32, 1), ("column_near", "offset", np.float32, 1),
+                                          ("column_far", "offset", np.float32, 1)])
         h, w = f.height, f.width
         return VoxelGrid(bits=chunks.get("bits", np.uint32, (h, w, f.words_per_column), required=True),
                          column_near=chunks.get("column_near", np.float32, (h, w)),
@@ -807,20 +802,9 @@ class Client:
         request.method = _choice(method, "method", {"min-max": pb.VolumetricShadowRequest.MIN_MAX,
                                                     "ray-marching": pb.VolumetricShadowRequest.RAY_MARCHING})
         request.combined_image = combined
-        chunks, first = _Chunks(), []
-
-        def on_message(m):
-            chunks.add("inscattering", m.inscattering, m.offset, np.float32)
-            chunks.add("combined", m.combined, m.offset, np.float32)
-            if not first:
-                m.ClearField("inscattering")
-                m.ClearField("combined")
-                first.append(m)
-
-        self._server_stream(self._stub.VolumetricShadow, request, scene, timeout, cancel, on_message)
-        if not first:
-            raise VisqError(grpc.StatusCode.DATA_LOSS, "VolumetricShadow: empty stream")
-        f = first[0]
+        chunks, f = self._chunked_stream(self._stub.VolumetricShadow, "VolumetricShadow", request, scene, timeout,
+                                         cancel, [("inscattering", "offset", np.float32, 1),
+                                                  ("combined", "offset", np.float32, 1)])
         shape = (f.height, f.width, 3)
         return VolumetricImage(chunks.get("inscattering", np.float32, shape, required=True),
                                chunks.get("combined", np.float32, shape), f)
@@ -935,20 +919,9 @@ class Client:
         request.quantity = _choice(quantity, "quantity", {"w": pb.ObscurancePreviewRequest.W,
                                                           "intensity": pb.ObscurancePreviewRequest.INTENSITY,
                                                           "i": pb.ObscurancePreviewRequest.INTENSITY})
-        chunks, first = _Chunks(), []
-
-        def on_message(m):
-            chunks.add("rgb", m.rgb, m.offset, np.float32)
-            chunks.add("covered", m.covered, m.covered_offset, np.uint8)
-            if not first:
-                m.ClearField("rgb")
-                m.ClearField("covered")
-                first.append(m)
-
-        self._server_stream(self._stub.RenderObscurancePreview, request, scene, timeout, cancel, on_message)
-        if not first:
-            raise VisqError(grpc.StatusCode.DATA_LOSS, "RenderObscurancePreview: empty stream")
-        f = first[0]
+        chunks, f = self._chunked_stream(self._stub.RenderObscurancePreview, "RenderObscurancePreview", request, scene,
+                                         timeout, cancel, [("rgb", "offset", np.float32, 1),
+                                                           ("covered", "covered_offset", np.uint8, 1)])
         return ObscurancePreview(chunks.get("rgb", np.float32, (f.height, f.width, 3), required=True),
                                  chunks.get("covered", np.uint8, (f.height, f.width), required=True).astype(bool), f)
 
