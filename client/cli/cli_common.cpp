@@ -348,6 +348,16 @@ void AddTargetFlags(CLI::App* command, TargetFlags& target) {
                       "Instead of a count: as accurate as possible within this many milliseconds");
 }
 
+void PrintTiming(const v1::Timing& timing) {
+  fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", timing.queue_ms(),
+             timing.compute_ms(), timing.transfer_ms(), timing.total_ms());
+}
+
+void PrintWritten(const std::string& png, const std::string& npy, const std::string& exr) {
+  for (const std::string* file : {&png, &npy, &exr})
+    if (!file->empty()) fmt::print("wrote {}\n", *file);
+}
+
 void PrintChosenPlan(const v1::Accuracy& accuracy) {
   if (accuracy.plans_size() == 0) return;
   std::string parameters;

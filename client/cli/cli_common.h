@@ -149,6 +149,10 @@ void AddTargetFlags(CLI::App* command, TargetFlags& target);
 // "chosen: raycast {samples: 2048}, predicted 12.3 ms (of 17 plans)" for a
 // target's answer; nothing otherwise.
 void PrintChosenPlan(const v1::Accuracy& accuracy);
+// "time: queue ... ms, compute ..., transfer ..., total ..." from the answer's timing.
+void PrintTiming(const v1::Timing& timing);
+// "wrote FILE" for each image file asked for (empty paths: not asked).
+void PrintWritten(const std::string& png, const std::string& npy, const std::string& exr);
 
 // An option whose value must be one of `allowed`; a wrong one is refused
 // naming them.

@@ -232,9 +232,7 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
              answered, batches, t.trees(), t.trees_created(), t.nodes(), t.refinements(), t.memory_bytes(),
              t.wholly_visible() + t.wholly_hidden() + t.subtracted_directly(), t.queries(), t.wholly_visible(),
              t.wholly_hidden(), t.subtracted_directly(), total_ms);
-  if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
-  if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
-  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
+  PrintWritten(o.png, o.npy, o.exr);
   return absl::OkStatus();
 }
 

@@ -228,11 +228,8 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
   fmt::print("error +-{:.4f} at confidence {} ({})\n", f.accuracy().error_bound(), f.accuracy().confidence(),
              f.accuracy().note());
   PrintChosenPlan(f.accuracy());
-  fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
-             f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
-  if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
-  if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
-  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
+  PrintTiming(f.timing());
+  PrintWritten(o.png, o.npy, o.exr);
   return absl::OkStatus();
 }
 
@@ -362,11 +359,8 @@ Status RunPreview(const PreviewOptions& o, Cli& cli) {
   }
   fmt::print("{}x{} {} of solution version {}: {} of {} pixels covered, peak {:.4g}\n", f.width(), f.height(),
              intensity ? "I" : "W", f.solution_version(), covered, preview.covered.size(), peak);
-  fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
-             f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
-  if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
-  if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
-  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
+  PrintTiming(f.timing());
+  PrintWritten(o.png, o.npy, o.exr);
   return absl::OkStatus();
 }
 

@@ -70,11 +70,8 @@ Status RunHiddenMap(const HiddenMapOptions& o, Cli& cli) {
   fmt::print("error bound +-{:.4f} at confidence {} ({})\n", f.accuracy().error_bound(), f.accuracy().confidence(),
              f.accuracy().note());
   PrintChosenPlan(f.accuracy());
-  fmt::print("time: queue {:.1f} ms, compute {:.1f} ms, transfer {:.1f} ms, total {:.1f} ms\n", f.timing().queue_ms(),
-             f.timing().compute_ms(), f.timing().transfer_ms(), f.timing().total_ms());
-  if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
-  if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
-  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
+  PrintTiming(f.timing());
+  PrintWritten(o.png, o.npy, o.exr);
   return absl::OkStatus();
 }
 

@@ -85,9 +85,7 @@ Status RunVoxelize(const VoxelizeOptions& o, Cli& cli) {
              f.slices(), f.rasterization(), f.precision(), f.occupied_voxels(), f.ambiguous_columns(), f.passes());
   fmt::print("accuracy: {}\ntime: total {:.1f} ms (compute {:.1f} ms)\n", f.accuracy().note(), f.timing().total_ms(),
              f.timing().compute_ms());
-  if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
-  if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
-  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
+  PrintWritten(o.png, o.npy, o.exr);
   return absl::OkStatus();
 }
 
@@ -182,9 +180,7 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
              f.rectified_rows(), f.rectified_columns());
   for (const auto& [stage, ms] : f.stage_ms()) fmt::print("  {:<14} {:8.1f} ms\n", stage, ms);
   fmt::print("total {:.1f} ms\n", f.timing().total_ms());
-  if (!o.png.empty()) fmt::print("wrote {}\n", o.png);
-  if (!o.npy.empty()) fmt::print("wrote {}\n", o.npy);
-  if (!o.exr.empty()) fmt::print("wrote {}\n", o.exr);
+  PrintWritten(o.png, o.npy, o.exr);
   return absl::OkStatus();
 }
 
