@@ -222,7 +222,8 @@ struct MapFrames {
   std::vector<glm::vec4> shaft_planes;
 };
 
-StatusOr<MapFrames> PlanFrames(const HiddenSampleMapRequest& request, const glm::dvec3& anchor) {
+StatusOr<MapFrames> PlanFrames(const HiddenSampleMapRequest& request, const GpuScene& scene) {
+  const glm::dvec3& anchor = scene.anchor();
   const Patch& sp = request.source.patch;
   const Patch& rp = request.receiver.patch;
   MapFrames f;
@@ -256,7 +257,9 @@ StatusOr<MapFrames> PlanFrames(const HiddenSampleMapRequest& request, const glm:
                             s_sign * f.r_sign * glm::dot(sn, rn));
   for (int k = 0; k < 4; ++k) f.source_corners[k] = glm::vec3(sp.At(k & 1, k >> 1) - anchor);
 
-  VISQ_ASSIGN_OR_RETURN(f.delta, ResolvableEndpointTolerance(sp, rp, anchor));
+  VISQ_ASSIGN_OR_RETURN(const EndpointTolerances tolerances,
+                        ResolvableEndpointTolerances(request, FloatFrame{anchor, scene.bounds()}, SegmentTracer::kRaster));
+  f.delta = tolerances.source;  // RASTER's are the same at both ends
   for (float h : request.receiver.heightfield) f.e_min = std::min(f.e_min, f.r_sign * h);
   f.bumpy = !request.receiver.heightfield.empty();
   f.clip_e = static_cast<float>(f.bumpy ? f.e_min : f.delta);
@@ -473,7 +476,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   for (const glm::dvec2& uv : result.samples.uv)
     centred.emplace_back(static_cast<float>(uv.x - 0.5), static_cast<float>(uv.y - 0.5));
   std::shared_ptr<Table> table = CachedTable(*state_, *worker_, centred, options, result.table_ms);
-  VISQ_ASSIGN_OR_RETURN(const MapFrames frames, PlanFrames(request, scene.anchor()));
+  VISQ_ASSIGN_OR_RETURN(const MapFrames frames, PlanFrames(request, scene));
   const PassPlan plan = PlanPasses(table->layout.groups(), options.lookup == LookupMode::kExact,
                                    state_->max_draw_buffers, width, height, options_.band_readback_bytes);
   result.passes = plan.passes;

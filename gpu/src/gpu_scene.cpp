@@ -8,10 +8,12 @@
 
 namespace visq::gpu {
 
-StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Scene& scene) {
+StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Scene& scene,
+                                                     std::optional<glm::dvec3> anchor) {
   std::shared_ptr<GpuScene> out(new GpuScene());
   out->worker_ = &worker;
-  out->anchor_ = scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center();
+  out->anchor_ = anchor.value_or(scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center());
+  out->bounds_ = scene.bounds;
   out->triangle_count_ = static_cast<uint32_t>(scene.TriangleCount());
 
   // Corner positions relative to the anchor, converted on this thread so the

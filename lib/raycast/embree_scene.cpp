@@ -101,6 +101,7 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   out.origin_ = options.origin.value_or(bounds.Empty() ? glm::dvec3(0.0) : bounds.Center());
   const glm::dvec3 ext = bounds.Empty() ? glm::dvec3(0.0) : bounds.Extent();
   out.extent_ = std::max({ext.x, ext.y, ext.z});
+  out.bounds_ = bounds;
   out.triangle_count_ = scene.triangles.size();
 
   t_last_embree_error.clear();
@@ -156,6 +157,7 @@ EmbreeScene& EmbreeScene::operator=(EmbreeScene&& other) noexcept {
     memory_ = std::move(other.memory_);
     origin_ = other.origin_;
     extent_ = other.extent_;
+    bounds_ = other.bounds_;
     triangle_count_ = std::exchange(other.triangle_count_, 0);
   }
   return *this;
@@ -222,15 +224,16 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
         const Segment s = segment_at(base + i);
         const glm::dvec3 p = s.p - origin_;
         const glm::dvec3 d = s.q - s.p;
-        // For a segment the upper end needs the same offset as the lower one.
+        // The lower end (the ray's origin) keeps FillRay's offset, which
+        // depends on p alone; the upper end's covers the rounding of t along
+        // the whole segment as well.
         const double len = glm::length(d);
         const glm::dvec3 q = s.q - origin_;
-        const double magnitude = std::max({std::abs(q.x), std::abs(q.y), std::abs(q.z),
-                                           std::abs(p.x), std::abs(p.y), std::abs(p.z),
-                                           extent_ * 0x1p-3});
-        const double t_off = len > 0.0 ? 0x1p-17 * magnitude / len : 1.0;
-        FillRay(rays[i], p, d, 1.0 - t_off, extent_, static_cast<unsigned>(i));
-        if (len > 0.0) rays[i].tnear = static_cast<float>(t_off);
+        const double far_magnitude = std::max({std::abs(q.x), std::abs(q.y), std::abs(q.z),
+                                               std::abs(p.x), std::abs(p.y), std::abs(p.z),
+                                               extent_ * 0x1p-3});
+        const double t_far_off = len > 0.0 ? 0x1p-17 * far_magnitude / len : 1.0;
+        FillRay(rays[i], p, d, 1.0 - t_far_off, extent_, static_cast<unsigned>(i));
         if (!(rays[i].tfar > rays[i].tnear)) { rays[i].tnear = 1.0f; rays[i].tfar = 0.0f; }
         per_ray_ignore[i] = s.ignore_triangle;
         any_ignore |= s.ignore_triangle != kNoTriangle;

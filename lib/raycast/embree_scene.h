@@ -99,10 +99,13 @@ class EmbreeScene {
   // For each segment, whether some triangle blocks the open segment (p, q).
   //
   // Semantics: the segment is traced for t in [t0, t1] of p + t (q - p) with
-  // t0 = delta / |q - p| and t1 = 1 - t0, where delta = 2^-17 * M and M is
-  // the largest absolute coordinate of p or q in the upload frame, but at
-  // least 1/8 of the scene extent. A triangle that only touches an endpoint (the receiver
-  // surface at p, the light at q) therefore does not block. Why this delta:
+  // t0 = delta_p / |q - p| and t1 = 1 - delta_q / |q - p|, where delta_p =
+  // 2^-17 * max(largest absolute coordinate of p in the upload frame, 1/8 of
+  // the scene extent) and delta_q the same over p and q together (the ray
+  // starts at p: its far end carries the rounding of the whole segment). A
+  // triangle that only touches an endpoint (the receiver surface at p, the
+  // light at q) therefore does not block, and a light far out in empty space
+  // does not blunt the receiver's end. Why this delta:
   // the float32 upload rounds vertices by up to 2^-24 of that magnitude and
   // Embree's watertight test adds a few ulps more; 2^-17 is 128 such ulps, so
   // a triangle through an endpoint is skipped robustly, while occluders
@@ -124,6 +127,7 @@ class EmbreeScene {
                                                      const TraceOptions& options = {}) const;
 
   const glm::dvec3& origin() const { return origin_; }
+  const Bounds& bounds() const { return bounds_; }  // of the positions uploaded, world space
   // Bytes Embree holds for this scene (its memory monitor callback).
   size_t memory_bytes() const { return memory_ ? static_cast<size_t>(memory_->load()) : 0; }
   size_t triangle_count() const { return triangle_count_; }
@@ -137,6 +141,7 @@ class EmbreeScene {
   std::unique_ptr<std::atomic<int64_t>> memory_;  // stable address for the callback
   glm::dvec3 origin_{0.0};
   double extent_ = 0.0;
+  Bounds bounds_;
   size_t triangle_count_ = 0;
 };
 

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <bit>
 #include <cmath>
+#include <limits>
 #include <string>
 
 #include "sampling/visibility_sampling.h"
@@ -158,6 +159,27 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
   return absl::OkStatus();
 }
 
+std::vector<glm::dvec2> StratifiedSamplePattern(int n, SamplePattern pattern, uint64_t seed) {
+  std::vector<glm::dvec2> uv;
+  if (n < 1) return uv;
+  uv.reserve(size_t(n));
+  const int rows = std::max(1, static_cast<int>(std::lround(std::sqrt(double(n)))));
+  SplitMix rng{seed};
+  for (int row = 0; row < rows; ++row) {
+    // Rows of floor and ceil(n / rows) cells, spread evenly (row j ends at
+    // sample floor((j + 1) n / rows)); a row's height is its share of n.
+    const int64_t first = int64_t(row) * n / rows, end = int64_t(row + 1) * n / rows;
+    const int cells = static_cast<int>(end - first);
+    const double v0 = double(first) / n, height = double(cells) / n;
+    for (int c = 0; c < cells; ++c) {
+      double ju = 0.5, jv = 0.5;
+      if (pattern == SamplePattern::kJittered) { ju = rng.Uniform(); jv = rng.Uniform(); }
+      uv.emplace_back((c + ju) / cells, v0 + jv * height);
+    }
+  }
+  return uv;
+}
+
 StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source) {
   SourceSamples out;
   const int n = source.sample_count;
@@ -168,15 +190,7 @@ StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source) {
   if (source.pattern == SamplePattern::kCustom) {
     uv = source.custom_uv;
   } else {
-    const int columns = static_cast<int>(std::ceil(std::sqrt(double(n)) - 1e-9));
-    const int rows = (n + columns - 1) / columns;
-    SplitMix rng{source.seed};
-    for (int k = 0; k < n; ++k) {
-      const int c = k % columns, r = k / columns;
-      double ju = 0.5, jv = 0.5;
-      if (source.pattern == SamplePattern::kJittered) { ju = rng.Uniform(); jv = rng.Uniform(); }
-      uv.emplace_back((c + ju) / columns, (r + jv) / rows);
-    }
+    uv = StratifiedSamplePattern(n, source.pattern, source.seed);
   }
   for (const glm::dvec2& p : uv)
     if (source.polygon_uv.empty() || InsidePolygon(source.polygon_uv, p)) out.uv.push_back(p);
@@ -271,33 +285,92 @@ PatchVisibilityResult SummarizePatchVisibility(const PatchVisibilityRequest& req
   return out;
 }
 
-StatusOr<double> ResolvableEndpointTolerance(const Patch& source, const Patch& receiver, const glm::dvec3& anchor) {
-  // 2^-17 of the magnitude of the coordinates involved (relative to the
-  // anchor the float32 positions are stored against), at least 1/8 of the
-  // configuration's extent.
-  glm::dvec3 corners[8];
+Bounds QueryHull::Box() const {
+  Bounds box;
+  for (const glm::dvec3& p : source) box.Extend(p);
+  for (const glm::dvec3& p : receiver) box.Extend(p);
+  return box;
+}
+
+QueryHull HullOf(const HiddenSampleMapRequest& request) {
+  QueryHull hull;
+  const Patch& sp = request.source.patch;
+  const Patch& rp = request.receiver.patch;
+  const double spread =
+      request.options.decorrelate ? 0.5 / std::ceil(std::sqrt(double(std::max(request.source.sample_count, 1)))) : 0.0;
+  for (int k = 0; k < 4; ++k)
+    hull.source.push_back(sp.At((k & 1) ? 1.0 + spread : -spread, (k & 2) ? 1.0 + spread : -spread));
+  double lo = 0.0, hi = 0.0;
+  for (float h : request.receiver.heightfield) {
+    lo = std::min(lo, double(h));
+    hi = std::max(hi, double(h));
+  }
+  const glm::dvec3 normal = glm::normalize(glm::cross(rp.edge_u, rp.edge_v));
   for (int k = 0; k < 4; ++k) {
-    corners[k] = source.At(k & 1, k >> 1) - anchor;
-    corners[4 + k] = receiver.At(k & 1, k >> 1) - anchor;
+    hull.receiver.push_back(rp.At(k & 1, k >> 1) + lo * normal);
+    if (hi != lo) hull.receiver.push_back(rp.At(k & 1, k >> 1) + hi * normal);
   }
-  double magnitude = 0.0, extent = 0.0;
-  for (int a = 0; a < 8; ++a) {
-    magnitude = std::max({magnitude, std::abs(corners[a].x), std::abs(corners[a].y), std::abs(corners[a].z)});
-    for (int b = a + 1; b < 8; ++b) extent = std::max(extent, glm::length(corners[a] - corners[b]));
+  return hull;
+}
+
+namespace {
+
+double LargestCoordinate(const std::vector<glm::dvec3>& points, const glm::dvec3& origin) {
+  double m = 0.0;
+  for (const glm::dvec3& p : points) {
+    const glm::dvec3 q = p - origin;
+    m = std::max({m, std::abs(q.x), std::abs(q.y), std::abs(q.z)});
   }
-  const double delta = std::ldexp(std::max(magnitude, extent / 8.0), -17);
-  // So delta grows with the query's distance from the anchor. A small query
-  // far from it (a world spanning the origin to 1e6, queried at 1e6: delta
-  // ~ 4 units) would ignore every occluder near its patches and answer
-  // "visible" with a sampling bound that says nothing of it. Refuse rather
-  // than answer silently wrong.
-  if (delta > extent / 16.0)
-    return absl::FailedPreconditionError(absl::StrCat(
-        "source, receiver: the query (extent ", extent, ") lies ", magnitude,
-        " from the scene's float32 anchor, where geometry within ", delta,
-        " of the patches cannot be resolved (more than 1/16 of the query's extent); the exact method "
-        "(PLUCKER_EXACT) works in double precision there"));
-  return delta;
+  return m;
+}
+
+// Distance between two boxes (0 when they meet); infinite when one is empty.
+double BoxDistance(const Bounds& a, const Bounds& b) {
+  if (a.Empty() || b.Empty()) return std::numeric_limits<double>::infinity();
+  const glm::dvec3 gap = glm::max(glm::dvec3(0.0), glm::max(a.min - b.max, b.min - a.max));
+  return glm::length(gap);
+}
+
+// Refuses an end whose tolerance hides detail that could matter.
+Status CheckEnd(const char* field, double tolerance, double spacing, const std::vector<glm::dvec3>& corners,
+                const FloatFrame& frame, double magnitude) {
+  if (tolerance <= spacing / 4.0) return absl::OkStatus();
+  Bounds end;
+  for (const glm::dvec3& p : corners) end.Extend(p);
+  if (BoxDistance(end, frame.bounds) > 2.0 * tolerance) return absl::OkStatus();
+  return absl::FailedPreconditionError(absl::StrCat(
+      field, ": its samples lie ", magnitude, " from the float32 anchor of the geometry they are traced against, "
+      "where occluders within ", tolerance, " of them cannot be resolved (more than 1/4 of the sample spacing ",
+      spacing, "); the exact method (PLUCKER_EXACT) works in double precision there"));
+}
+
+}  // namespace
+
+StatusOr<EndpointTolerances> ResolvableEndpointTolerances(const HiddenSampleMapRequest& request,
+                                                          const FloatFrame& frame, SegmentTracer tracer) {
+  const QueryHull hull = HullOf(request);
+  const double source_magnitude = LargestCoordinate(hull.source, frame.origin);
+  const double receiver_magnitude = LargestCoordinate(hull.receiver, frame.origin);
+  const glm::dvec3 frame_extent = frame.bounds.Empty() ? glm::dvec3(0.0) : frame.bounds.Extent();
+  const double geometry = std::max({frame_extent.x, frame_extent.y, frame_extent.z}) / 8.0;
+  const glm::dvec3 query_extent = hull.Box().Extent();
+  const double query = glm::length(query_extent) / 8.0;
+  EndpointTolerances out;
+  if (tracer == SegmentTracer::kRaycast) {
+    out.receiver = std::ldexp(std::max(receiver_magnitude, geometry), -17);
+    out.source = std::ldexp(std::max({source_magnitude, receiver_magnitude, geometry}), -17);
+  } else {
+    out.source = out.receiver = std::ldexp(std::max({source_magnitude, receiver_magnitude, geometry, query}), -17);
+  }
+  const Patch& sp = request.source.patch;
+  const Patch& rp = request.receiver.patch;
+  const double source_spacing = std::sqrt(glm::length(glm::cross(sp.edge_u, sp.edge_v)) /
+                                          double(std::max(request.source.sample_count, 1)));
+  const double receiver_spacing = std::min(glm::length(rp.edge_u) / std::max(request.receiver.width, 1),
+                                           glm::length(rp.edge_v) / std::max(request.receiver.height, 1));
+  VISQ_RETURN_IF_ERROR(CheckEnd("receiver", out.receiver, receiver_spacing, hull.receiver, frame, receiver_magnitude));
+  VISQ_RETURN_IF_ERROR(CheckEnd("source", out.source, source_spacing, hull.source, frame, source_magnitude));
+  return out;
 }
 
 double SamplingErrorBound(int sample_count, double confidence) {

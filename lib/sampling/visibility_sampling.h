@@ -27,6 +27,7 @@
 
 #include "common/job_timing.h"
 #include "common/status.h"
+#include "scene/scene.h"
 
 namespace visq::sampling {
 
@@ -40,10 +41,20 @@ struct Patch {
 };
 
 enum class SamplePattern {
-  kRegular,   // ceil(sqrt N) columns, rows as needed, cell centres, first N
-  kJittered,  // one uniform sample per cell of the regular grid, seeded
+  kRegular,   // the centre of each of N equal-area cells (StratifiedSamplePattern)
+  kJittered,  // one uniform sample in each of the same cells, seeded
   kCustom,    // SourceSpec::custom_uv as given
 };
+
+// The (s, t) positions of a kRegular or kJittered pattern of n samples. The
+// patch is cut into n cells of equal area, so every sample stands for 1/n of
+// the source for every n: round(sqrt n) rows along edge_v, row j holding
+// floor((j + 1) n / rows) - floor(j n / rows) cells of equal width, each
+// row's height its count / n. Cells are near square (their sides differ by
+// less than one cell in a row). Row-major order, cells along edge_u. A grid
+// of ceil(sqrt n) columns filled row by row would leave the last row partly
+// empty, and its strip of the source under-weighted: a biased estimate.
+[[nodiscard]] std::vector<glm::dvec2> StratifiedSamplePattern(int n, SamplePattern pattern, uint64_t seed);
 
 // Bounds hidden-sample-map lookups (section 5).
 enum class LookupMode {
@@ -200,13 +211,54 @@ struct PatchVisibilityResult {
   JobTiming timing;
 };
 
-// The distance from the segment endpoints within which geometry is ignored
-// (as in raycast::EmbreeScene::Occluded), for scene positions stored as
-// float32 relative to `anchor`; FAILED_PRECONDITION when it exceeds 1/16 of
-// the query's extent (a small query far from the anchor of a huge world),
-// where the answer would silently miss nearby occluders.
-[[nodiscard]] StatusOr<double> ResolvableEndpointTolerance(const Patch& source, const Patch& receiver,
-                                                           const glm::dvec3& anchor);
+// Where every segment of a query lies: the source corners (moved out by the
+// decorrelation offsets' reach) and the receiver corners (raised and lowered
+// by the heightfield's extremes), world space.
+struct QueryHull {
+  std::vector<glm::dvec3> source;    // 4 corners
+  std::vector<glm::dvec3> receiver;  // 4 or 8 corners
+  Bounds Box() const;
+};
+QueryHull HullOf(const HiddenSampleMapRequest& request);
+
+// The float32 copy of the geometry a sampled query is traced against:
+// positions stored as float(p - origin), lying in `bounds` (world space).
+struct FloatFrame {
+  glm::dvec3 origin{0.0};
+  Bounds bounds;
+};
+
+// How the tracer resolves a segment in float32.
+enum class SegmentTracer {
+  // The hidden-sample map: each triangle back-projected in the source's
+  // frame, so both ends carry the rounding of the whole configuration.
+  kRaster,
+  // Embree, a ray from the receiver point towards the source sample: its
+  // origin end keeps the precision of the receiver's own coordinates, its
+  // far end that of the longer of the two (raycast::EmbreeScene::Occluded).
+  kRaycast,
+};
+
+// Geometry closer than these to a segment's ends is ignored, so that the
+// surfaces the ends lie on do not block their own segments. 2^-17 (128
+// float ulps) of the magnitudes involved: the ends' coordinates relative to
+// the frame origin, 1/8 of the stored geometry's extent (the rounding of
+// the triangles through an end), and for RASTER 1/8 of the query's extent.
+struct EndpointTolerances {
+  double source = 0.0;    // around each source sample
+  double receiver = 0.0;  // around each receiver point
+};
+
+// The tolerances of `request` in `frame`. FAILED_PRECONDITION, naming the
+// end ("source" or "receiver") and the anchor, when geometry lies within an
+// end's tolerance of its patch while the tolerance exceeds 1/4 of that end's
+// sample spacing (source: sqrt(area / N); receiver: the texel), so that the
+// ignored occluders would change the answer: a small query far from the
+// frame's origin. An end with no geometry near it (a light far out in empty
+// space) may have any tolerance.
+[[nodiscard]] StatusOr<EndpointTolerances> ResolvableEndpointTolerances(const HiddenSampleMapRequest& request,
+                                                                        const FloatFrame& frame,
+                                                                        SegmentTracer tracer);
 
 // Hoeffding half-width of N samples' mean at `confidence`: the sampling
 // part of every bound this module reports.

@@ -1,5 +1,7 @@
 #include "scene/gltf_writer.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <map>
 
@@ -60,11 +62,30 @@ Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
   }
   if (uses_emissive_strength) model.extensionsUsed.push_back("KHR_materials_emissive_strength");
 
+  // A node far from the origin stores its positions relative to its own
+  // centre (rounded to a whole unit, so the offsets add up exactly), moved
+  // there by its translation: float32 accessors 1e7 out would round every
+  // vertex to 1 unit, the node's translation is a JSON double.
+  std::vector<glm::dvec3> offsets(scene.nodes.size(), glm::dvec3(0.0));
+  for (size_t n = 0; n < scene.nodes.size(); ++n) {
+    const SceneNode& node = scene.nodes[n];
+    Bounds box;
+    for (uint32_t t = node.first_triangle; t < node.first_triangle + node.triangle_count; ++t)
+      for (int c = 0; c < 3; ++c) box.Extend(scene.Vertex(t, c));
+    if (box.Empty()) continue;
+    const glm::dvec3 centre = glm::round(box.Center());
+    if (std::max({std::abs(centre.x), std::abs(centre.y), std::abs(centre.z)}) >= 1024.0) offsets[n] = centre;
+  }
+
   tinygltf::Scene gltf_scene;
   for (size_t n = 0; n < scene.nodes.size(); ++n) {
     const SceneNode& node = scene.nodes[n];
     tinygltf::Node gltf_node;
     gltf_node.name = node.name;
+    const glm::dvec3 offset = offsets[n];
+    const glm::dvec3 parent_offset = node.parent >= 0 ? offsets[size_t(node.parent)] : glm::dvec3(0.0);
+    if (offset != parent_offset)
+      gltf_node.translation = {offset.x - parent_offset.x, offset.y - parent_offset.y, offset.z - parent_offset.z};
     if (node.triangle_count > 0) {
       // Primitives: the node's triangles grouped by material, each with its
       // own compact vertex set.
@@ -84,7 +105,7 @@ Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
             const uint32_t v = scene.triangles[t][c];
             auto [it, inserted] = remap.emplace(v, static_cast<uint32_t>(remap.size()));
             if (inserted) {
-              const glm::dvec3 p = scene.positions[v];
+              const glm::dvec3 p = scene.positions[v] - offset;
               const glm::vec3 pf(p);
               positions.insert(positions.end(), {pf.x, pf.y, pf.z});
               lo = glm::min(lo, glm::dvec3(pf));

@@ -9,8 +9,11 @@
 
 namespace visq {
 
-// One glTF node per SceneNode (world-space positions, identity transforms,
-// parents kept), one primitive per material of the node.
+// One glTF node per SceneNode (parents kept), one primitive per material of
+// the node. Positions are world space under identity transforms, except in
+// a node centred 1024 or more from the origin: there they are relative to
+// the node's centre, rounded to a whole unit, which its translation adds
+// back, so that far geometry keeps its detail through float32 accessors.
 [[nodiscard]] Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path);
 
 }  // namespace visq

@@ -302,6 +302,61 @@ StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const Resi
   return resident.embree_scene;
 }
 
+StatusOr<std::shared_ptr<LocalFrame>> Engine::LocalFrameFor(const ResidentScene& resident,
+                                                            const sampling::HiddenSampleMapRequest& request,
+                                                            sampling::SegmentTracer tracer) {
+  const Scene& scene = *resident.scene;
+  // The scene's own copies (GPU and Embree alike) are anchored at its centre.
+  const sampling::FloatFrame own{scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center(), scene.bounds};
+  if (sampling::ResolvableEndpointTolerances(request, own, tracer).ok()) return std::shared_ptr<LocalFrame>();
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index, TriangleIndexOf(resident));
+  const auto start = std::chrono::steady_clock::now();
+  const size_t frames_before = resident.local_frames.size();
+  std::shared_ptr<LocalFrame> frame = resident.local_frames.For(scene, *index, sampling::HullOf(request).Box());
+  VISQ_RETURN_IF_ERROR(sampling::ResolvableEndpointTolerances(request, frame->float_frame(), tracer).status());
+  if (resident.local_frames.size() != frames_before || frames_before == LocalFrames::kMaxFrames)
+    spdlog::debug("scene '{}' v{}: local frame of side {} at ({}, {}, {}), {} triangles, in {:.1f} ms",
+                  resident.name, resident.version, frame->side, frame->lo.x, frame->lo.y, frame->lo.z,
+                  frame->scene->TriangleCount(), MillisecondsSince(start));
+  return frame;
+}
+
+StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneFor(const ResidentScene& resident,
+                                                             const sampling::HiddenSampleMapRequest& request) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<LocalFrame> frame,
+                        LocalFrameFor(resident, request, sampling::SegmentTracer::kRaster));
+  if (!frame) return GpuSceneOf(resident);
+  std::lock_guard lock(frame->mutex);
+  if (!frame->gpu_scene || !frame->gpu_scene->IsCurrent()) {
+    const auto start = std::chrono::steady_clock::now();
+    VISQ_ASSIGN_OR_RETURN(frame->gpu_scene, gpu::GpuScene::Upload(*gpu_, *frame->scene, frame->origin()));
+    build_times_.Record("gpu_upload_local", MillisecondsSince(start));
+  }
+  return frame->gpu_scene;
+}
+
+StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneFor(
+    const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<LocalFrame> frame,
+                        LocalFrameFor(resident, request, sampling::SegmentTracer::kRaycast));
+  if (!frame) return EmbreeSceneOf(resident);
+  std::lock_guard lock(frame->mutex);
+  if (!frame->embree_scene) {
+    const auto start = std::chrono::steady_clock::now();
+    raycast::EmbreeSceneOptions options;
+    options.origin = frame->origin();
+    VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(*frame->scene, options));
+    frame->embree_scene = std::make_shared<raycast::EmbreeScene>(std::move(embree));
+    build_times_.Record("embree_bvh_local", MillisecondsSince(start));
+  }
+  return frame->embree_scene;
+}
+
+Status Engine::CheckSampledPrecision(const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request,
+                                     sampling::SegmentTracer tracer) {
+  return LocalFrameFor(resident, request, tracer).status();
+}
+
 StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> Engine::TriangleIndexOf(const ResidentScene& resident) {
   std::lock_guard lock(resident.lazy_mutex);
   if (!resident.triangle_index) {

@@ -13,6 +13,7 @@
 
 #include "common/status.h"
 #include "core/accuracy_planner.h"
+#include "core/local_frames.h"
 #include "core/scene_repository.h"
 #include "core/work_budget.h"
 #include "exact/light_visibility.h"
@@ -68,7 +69,8 @@ struct ResidentScene {
   mutable std::mutex lazy_mutex;
   mutable std::shared_ptr<gpu::GpuScene> gpu_scene;
   mutable std::shared_ptr<raycast::EmbreeScene> embree_scene;
-  mutable std::shared_ptr<const exact::SceneTriangleIndex> triangle_index;  // for exact light trees
+  mutable std::shared_ptr<const exact::SceneTriangleIndex> triangle_index;  // for exact light trees and local frames
+  mutable LocalFrames local_frames;  // for sampled queries far from the scene's centre
 };
 
 struct SceneSummary {
@@ -164,6 +166,18 @@ class Engine {
   [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneOf(const ResidentScene& resident);
   [[nodiscard]] StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> TriangleIndexOf(
       const ResidentScene& resident);
+  // The float32 copy of the scene that resolves `request` as RASTER
+  // (GpuSceneFor) or RAYCAST (EmbreeSceneFor) trace it: the scene's own when
+  // it does, else the local frame of the query's region (core/local_frames.h).
+  // FAILED_PRECONDITION, naming the end, when neither does.
+  [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneFor(const ResidentScene& resident,
+                                                                     const sampling::HiddenSampleMapRequest& request);
+  [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneFor(
+      const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request);
+  // The same decision without building either copy: for the planner.
+  [[nodiscard]] Status CheckSampledPrecision(const ResidentScene& resident,
+                                             const sampling::HiddenSampleMapRequest& request,
+                                             sampling::SegmentTracer tracer);
   // The hidden-sample map's programs, compiled on first use.
   [[nodiscard]] StatusOr<gpu::HiddenSampleMapper*> hidden_sample_mapper();
 
@@ -188,6 +202,10 @@ class Engine {
   StatusOr<SceneSummary> MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
                                       bool persisted);
   SceneSummary Summarize(const ResidentScene& resident, bool with_nodes) const;
+  // The local frame that resolves `request` (null: the scene's own frame does).
+  StatusOr<std::shared_ptr<LocalFrame>> LocalFrameFor(const ResidentScene& resident,
+                                                      const sampling::HiddenSampleMapRequest& request,
+                                                      sampling::SegmentTracer tracer);
   Status CheckSceneSize(const Scene& scene) const;
   GltfLoadLimits LoadLimits(const std::filesystem::path& file_root) const;
 

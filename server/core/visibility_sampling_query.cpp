@@ -37,10 +37,9 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
                                                             const sampling::HiddenSampleMapRequest& request,
                                                             const gpu::JobOptions& job) {
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(request));
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneOf(resident));
-  // Embree holds float32 positions relative to its origin, like the GPU.
-  VISQ_RETURN_IF_ERROR(
-      sampling::ResolvableEndpointTolerance(request.source.patch, request.receiver.patch, embree->origin()).status());
+  // Embree holds float32 positions relative to an origin, like the GPU: the
+  // scene's centre, or the query's own region when it lies far from it.
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneFor(resident, request));
   const auto start = std::chrono::steady_clock::now();
   VISQ_ASSIGN_OR_RETURN(sampling::SourceSamples samples, sampling::ComputeSourceSamples(request.source));
   sampling::HiddenSampleMapResult result;
@@ -202,7 +201,7 @@ StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, cons
       return ExactHiddenSampleMap(engine, resident.name, resident.version, request);
     case VisibilityMethod::kRaster: break;
   }
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(resident));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneFor(resident, request));
   VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
   return mapper->Compute(*gpu_scene, request, job);
 }
@@ -222,7 +221,7 @@ StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, cons
                                                      "source_columns x source_rows x receiver_columns x receiver_rows",
                                                      job));
   if (method == VisibilityMethod::kRaster) {
-    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(resident));
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneFor(resident, map));
     VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
     return mapper->PatchVisibility(*gpu_scene, request, job);
   }
@@ -285,6 +284,13 @@ double PlanWork(VisibilityMethod method, double points, int samples) {
 // Runs `method` with `samples` per receiver point over a receiver reduced to
 // at most `max_side` points a side (0: the request's own receiver).
 using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method, int samples, int max_side)>;
+// Whether a sampled method resolves the request with `samples` samples in
+// float32 (Engine::CheckSampledPrecision): FAILED_PRECONDITION when not.
+using PrecisionCheck = std::function<Status(VisibilityMethod method, int samples)>;
+
+sampling::SegmentTracer TracerOf(VisibilityMethod method) {
+  return method == VisibilityMethod::kRaycast ? sampling::SegmentTracer::kRaycast : sampling::SegmentTracer::kRaster;
+}
 
 // The share of the source rectangle inside the light's polygon: jittered
 // samples outside it are dropped, so a plan must ask for more.
@@ -298,7 +304,8 @@ double PolygonShare(const sampling::SourceSpec& source) {
 // scene has not run yet, and the choice among them.
 StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_base, const AccuracyTarget& target,
                                     double points, double polygon_share, bool exact_possible,
-                                    const gpu::JobOptions& job, const VisibilityRunner& run) {
+                                    const gpu::JobOptions& job, const VisibilityRunner& run,
+                                    const PrecisionCheck& resolves) {
   std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast};
   if (exact_possible) methods.push_back(VisibilityMethod::kPluckerExact);
 
@@ -313,6 +320,17 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
   for (VisibilityMethod method : methods) {
     const std::string name = VisibilityMethodName(method, sampling::LookupMode::kExact);
     const std::string series = absl::StrCat(series_base, "/", name);
+    // A sampled method that cannot resolve this request in float32 even
+    // with its fewest samples is left out, probed or not.
+    auto precise = [&](int samples) -> StatusOr<bool> {
+      if (method == VisibilityMethod::kPluckerExact) return true;
+      const Status status = resolves(method, samples);
+      if (status.code() == absl::StatusCode::kFailedPrecondition) return false;
+      VISQ_RETURN_IF_ERROR(status);
+      return true;
+    };
+    VISQ_ASSIGN_OR_RETURN(const bool usable_at_all, precise(*counts.begin()));
+    if (!usable_at_all) continue;
     // A method never run on this scene: small runs of this very request give
     // the model a fixed cost and a rate. The second, larger run only when the
     // first was cheap: the exact method's tree can cost seconds per point on
@@ -339,7 +357,9 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       }
       if (!usable) continue;
     }
-    auto add_plan = [&](int samples) {
+    auto add_plan = [&](int samples) -> Status {
+      VISQ_ASSIGN_OR_RETURN(const bool resolved, precise(samples));
+      if (!resolved) return absl::OkStatus();
       Plan plan;
       plan.method = name;
       plan.cost_key = series;
@@ -353,11 +373,12 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       plan.work = PlanWork(method, points, samples);
       plan.predicted_ms = model.Predict(series, plan.work).value_or(0.0);
       report.plans.push_back(std::move(plan));
+      return absl::OkStatus();
     };
     if (method == VisibilityMethod::kPluckerExact) {
-      add_plan(0);
+      VISQ_RETURN_IF_ERROR(add_plan(0));
     } else {
-      for (int n : counts) add_plan(n);
+      for (int n : counts) VISQ_RETURN_IF_ERROR(add_plan(n));
     }
   }
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
@@ -419,7 +440,10 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   const double texels = double(request.receiver.width) * request.receiver.height;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
                                                           texels, PolygonShare(request.source), exact_possible,
-                                                          query.call.Job(), cost_of));
+                                                          query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
+                                                            return engine.CheckSampledPrecision(
+                                                                resident, with_samples(samples, 0), TracerOf(method));
+                                                          }));
   const Plan& plan = report.chosen_plan();
   HiddenSampleMapAnswer answer;
   answer.method = MethodOfPlan(plan);
@@ -458,7 +482,14 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
   const double points = double(request.receiver_columns) * request.receiver_rows;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
-                                                          points, 1.0, exact_possible, query.call.Job(), cost_of));
+                                                          points, 1.0, exact_possible, query.call.Job(), cost_of,
+                                                          [&](VisibilityMethod method, int samples) -> Status {
+                                                            VISQ_ASSIGN_OR_RETURN(
+                                                                sampling::HiddenSampleMapRequest map,
+                                                                sampling::PatchVisibilityAsHiddenSampleMap(sized(samples, 0)));
+                                                            return engine.CheckSampledPrecision(resident, map,
+                                                                                                TracerOf(method));
+                                                          }));
   Plan& plan = report.plans[report.chosen];
   PatchVisibilityAnswer answer;
   answer.method = MethodOfPlan(plan);

@@ -35,6 +35,7 @@
 #include "exact/light_visibility.h"
 #include "scene/gltf_loader.h"
 #include "raycast/embree_scene.h"
+#include "sampling/visibility_sampling.h"
 
 namespace {
 
@@ -336,17 +337,17 @@ int Run(const BenchCase& bc, const Params& p) {
   const glm::dvec3 e1 = lv[1] - lv[0], e2 = lv[3] - lv[0];
   const glm::dvec3 light_normal = glm::normalize(glm::cross(e1, e2));  // emitting side
   const double light_area = glm::length(glm::cross(e1, e2));
-  int sx = 1;
-  while ((sx + 1) * (sx + 1) <= p.rays) ++sx;
-  const int sy = (p.rays + sx - 1) / sx;
-  std::mt19937 rng(p.seed + 99);
-  std::uniform_real_distribution<double> u(0.0, 1.0);
+  // One jittered sample in each of p.rays equal-area cells of the light (the
+  // pattern the sampled methods use), so the estimate is unbiased for every
+  // ray count.
+  const std::vector<glm::dvec2> pattern =
+      visq::sampling::StratifiedSamplePattern(p.rays, visq::sampling::SamplePattern::kJittered, p.seed + 99);
   t0 = std::chrono::steady_clock::now();
   std::vector<visq::raycast::Segment> segments;
   segments.reserve(bc.points.size() * p.rays);
   for (const auto& q : bc.points) {
     for (int k = 0; k < p.rays; ++k) {
-      const double s = ((k % sx) + u(rng)) / sx, t = ((k / sx) % sy + u(rng)) / sy;
+      const double s = pattern[k].x, t = pattern[k].y;
       segments.push_back({q.position, lv[0] + s * e1 + t * e2,
                           q.receiver_triangle.value_or(visq::raycast::kNoTriangle)});
     }

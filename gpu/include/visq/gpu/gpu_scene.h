@@ -6,6 +6,7 @@
 #pragma once
 
 #include <memory>
+#include <optional>
 
 #include <glm/glm.hpp>
 
@@ -17,13 +18,16 @@ namespace visq::gpu {
 
 class GpuScene {
  public:
-  // Runs the upload on the GL thread and waits for it.
-  [[nodiscard]] static StatusOr<std::shared_ptr<GpuScene>> Upload(GpuWorker& worker, const Scene& scene);
+  // Runs the upload on the GL thread and waits for it. Positions are stored
+  // as float32 relative to `anchor` (default: the scene's bounds centre).
+  [[nodiscard]] static StatusOr<std::shared_ptr<GpuScene>> Upload(GpuWorker& worker, const Scene& scene,
+                                                                  std::optional<glm::dvec3> anchor = std::nullopt);
   ~GpuScene();  // releases the GL objects on the GL thread
   GpuScene(const GpuScene&) = delete;
   GpuScene& operator=(const GpuScene&) = delete;
 
   const glm::dvec3& anchor() const { return anchor_; }
+  const Bounds& bounds() const { return bounds_; }  // of the positions uploaded, world space
   uint32_t triangle_count() const { return triangle_count_; }
   uint64_t gpu_bytes() const { return gpu_bytes_; }
 
@@ -43,6 +47,7 @@ class GpuScene {
   GpuWorker* worker_ = nullptr;
   std::shared_ptr<Resources> resources_;
   glm::dvec3 anchor_{0.0};
+  Bounds bounds_;
   uint32_t triangle_count_ = 0;
   uint64_t gpu_bytes_ = 0;
   uint64_t generation_ = 0;
