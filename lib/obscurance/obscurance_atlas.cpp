@@ -92,7 +92,17 @@ StatusOr<std::vector<glm::vec2>> BuildCharts(const Scene& scene, uint32_t resolu
   // one node and a normal cone around the seed.
   std::vector<uint32_t> by_area(nt);
   std::iota(by_area.begin(), by_area.end(), 0u);
-  std::stable_sort(by_area.begin(), by_area.end(), [&](uint32_t a, uint32_t b) { return area[a] > area[b]; });
+  // Areas are compared rounded to 2^-24 of the largest: triangles of equal
+  // area (the rings of a turned pot) then keep their index order wherever
+  // the object stands, so moving a node rigidly and building the atlas
+  // again gives the same charts (exact areas differ in the last bits after
+  // a move, and would pick other seeds).
+  double largest = 0;
+  for (double a : area) largest = std::max(largest, a);
+  std::vector<double> area_key(nt);
+  const double quantum = largest > 0 ? largest * 0x1p-24 : 1.0;
+  for (size_t t = 0; t < nt; ++t) area_key[t] = std::round(area[t] / quantum);
+  std::stable_sort(by_area.begin(), by_area.end(), [&](uint32_t a, uint32_t b) { return area_key[a] > area_key[b]; });
   std::vector<int32_t> chart_of(nt, -1);
   std::vector<Chart> charts;
   std::vector<uint32_t> queue;
