@@ -162,6 +162,14 @@ ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, b
   out.ambient = ComputeAmbient(scene, color_bleeding);
   out.w = std::move(w);
   out.estimated = std::move(estimated);
+  // A bake sample can land in a texel that holds no surface: the fragment
+  // shader takes floor(uv) of an interpolated uv, which rounds across a
+  // chart's edge now and then (one sample in a gutter texel). Such a texel is
+  // filled like the rest of the gutter: its one-sample value is noise, and
+  // the update, which never recomputes texels without surface, would keep
+  // it stale while a rebake moves it.
+  for (uint32_t i = 0; i < atlas.texel_count(); ++i)
+    if (out.estimated[i] && !atlas.Covered(i)) out.estimated[i] = 0;
   const glm::dvec3 unoccluded = UnoccludedValue(out.ambient, color_bleeding);
   // Texels without an estimate take their estimated neighbours' mean (the
   // gutter), or the unoccluded value when none is near.
