@@ -338,8 +338,12 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     const bool meets = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(k)) != met[i].end();
     if (!meets && !std::binary_search(must.begin(), must.end(), texel)) continue;
     changed.push_back(texel);
-    result_.w[texel] = value[i];
-    result_.estimated[texel] = atlas_.Covered(texel) ? 1 : 0;
+    // A patch the bake's samples never reached (a sliver of a triangle in a
+    // texel; depth peeling leaves such texels filled from their neighbours)
+    // stays filled: a rebake leaves it so too, and so do its gutter
+    // neighbours, which would otherwise take its value instead of the
+    // unoccluded one. After a ray-cast bake every patch is estimated.
+    if (result_.estimated[texel]) result_.w[texel] = value[i];
     for (size_t j = 0; j < objects_.size(); ++j) {
       if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;
       const bool now = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(j)) != met[i].end();
