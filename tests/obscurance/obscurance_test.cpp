@@ -671,8 +671,12 @@ double Hoeffding95(double n) { return std::sqrt(std::log(2.0 / 0.05) / (2.0 * st
 // moves the pot 0.1 (0.2 d_max) from under the leaves, updates, and
 // compares with a bake of the moved scene on an atlas built again for it,
 // as a client that bakes the moved scene gets.
-void ExpectUpdateOfMovedPotMatchesRebake(bool depth_peeling) {
-  const Scene scene = PotUnderLeaves();
+void ExpectUpdateOfMovedPotMatchesRebake(bool depth_peeling, double lift = 0.0) {
+  Scene scene = PotUnderLeaves();
+  if (lift != 0) {
+    ASSERT_TRUE(MoveNodeSubtree(scene, 1, glm::translate(glm::dmat4(1.0), glm::dvec3(0, lift, 0))).ok());
+    UpdateBounds(scene);
+  }
   const uint32_t pot = 1;
   ASSERT_EQ(scene.nodes[pot].name, "pot");
   const uint32_t kResolution = 96;
@@ -703,7 +707,7 @@ void ExpectUpdateOfMovedPotMatchesRebake(bool depth_peeling) {
   // No dynamic node declared: the server's way (the pot becomes one on its move).
   auto updater = ObscuranceUpdater::Create(scene, atlas, params, before, {}, options);
   ASSERT_TRUE(updater.ok()) << updater.status();
-  const glm::dmat4 new_world = glm::translate(glm::dmat4(1.0), glm::dvec3(-0.1, 0.0, 0.0));
+  const glm::dmat4 new_world = glm::translate(glm::dmat4(1.0), glm::dvec3(-0.1, lift, 0.0));
   auto update = (*updater)->MoveNode(pot, new_world);
   ASSERT_TRUE(update.ok()) << update.status();
   const ObscuranceResult& after = (*updater)->result();
@@ -764,10 +768,10 @@ void ExpectUpdateOfMovedPotMatchesRebake(bool depth_peeling) {
     max_diff = std::max(max_diff, d);
     if (d > bound + Hoeffding95(static_cast<double>(samples_rebake[t]))) ++beyond;
   }
-  std::printf("%s bake, pot moved 0.1: %zu texels changed; pot texels at W=1 where the rebake < 0.9: %d, pot "
+  std::printf("%s bake, pot %.2f above the floor moved 0.1: %zu texels changed; pot texels at W=1 where the rebake < 0.9: %d, pot "
               "triangles: %d, filled texels: %d; %d changed patches, max |update - rebake| %.3f, %d beyond both "
               "bounds; %d texels beyond %.3f not in the change (max %.3f)\n",
-              depth_peeling ? "depth-peeling" : "ray-cast", update->texels.size(), own_at_one, triangles_at_one,
+              depth_peeling ? "depth-peeling" : "ray-cast", lift, update->texels.size(), own_at_one, triangles_at_one,
               filled_at_one, compared, max_diff, beyond, missed, bound, max_missed);
   EXPECT_EQ(own_at_one, 0);
   EXPECT_EQ(triangles_at_one, 0);
@@ -778,6 +782,12 @@ void ExpectUpdateOfMovedPotMatchesRebake(bool depth_peeling) {
 
 TEST(ObscuranceUpdate, MovedPotUnderLeavesMatchesRebakeAfterDepthPeelingBake) {
   ExpectUpdateOfMovedPotMatchesRebake(true);
+}
+
+// The pot 0.01 above the floor: no contact, so what is left is the bake's
+// texels the bundles missed (slivers of the pot's triangles) and their gutter.
+TEST(ObscuranceUpdate, MovedFloatingPotMatchesRebakeAfterDepthPeelingBake) {
+  ExpectUpdateOfMovedPotMatchesRebake(true, 0.01);
 }
 
 TEST(ObscuranceUpdate, MovedPotUnderLeavesMatchesRebakeAfterRaycastBake) {
@@ -818,7 +828,8 @@ TEST(ObscuranceBake, BaseRestingOnTheFloorAgreesWithRays) {
 TEST(ObscuranceAtlas, RigidMoveKeepsTheAtlas) {
   const Scene scene = PotUnderLeaves();
   const ObscuranceAtlas a = Atlas(scene, 96);
-  for (const glm::dvec3& by : {glm::dvec3(-0.1, 0, 0), glm::dvec3(0.37, 0, -0.21)}) {
+  for (const glm::dvec3& by : {glm::dvec3(-0.1, 0, 0), glm::dvec3(0.37, 0, -0.21), glm::dvec3(0.3, 0, -0.2),
+                               glm::dvec3(-0.1, 0.01, 0)}) {
     Scene moved = scene;
     ASSERT_TRUE(MoveNodeSubtree(moved, 1, glm::translate(glm::dmat4(1.0), by)).ok());
     UpdateBounds(moved);
