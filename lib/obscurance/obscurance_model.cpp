@@ -191,7 +191,8 @@ ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, b
     if (out.estimated[i] && !atlas.Covered(i)) out.estimated[i] = 0;
   const glm::dvec3 unoccluded = UnoccludedValue(out.ambient, color_bleeding);
   // Texels without an estimate take their estimated neighbours' mean (the
-  // gutter), or the unoccluded value when none is near.
+  // gutter), a gutter texel with none its filled neighbours' with surface,
+  // or the unoccluded value when none is near.
   const uint32_t n = atlas.texel_count();
   std::vector<uint32_t> all(n);
   for (uint32_t i = 0; i < n; ++i) all[i] = i;

@@ -340,9 +340,8 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     changed.push_back(texel);
     // A patch the bake's samples never reached (a sliver of a triangle in a
     // texel; depth peeling leaves such texels filled from their neighbours)
-    // stays filled: a rebake leaves it so too, and so do its gutter
-    // neighbours, which would otherwise take its value instead of the
-    // unoccluded one. After a ray-cast bake every patch is estimated.
+    // stays filled, as a rebake leaves it; its gutter neighbours then agree
+    // with the rebake's too. After a ray-cast bake every patch is estimated.
     if (result_.estimated[texel]) result_.w[texel] = value[i];
     for (size_t j = 0; j < objects_.size(); ++j) {
       if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;
