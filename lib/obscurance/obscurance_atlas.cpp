@@ -92,7 +92,17 @@ StatusOr<std::vector<glm::vec2>> BuildCharts(const Scene& scene, uint32_t resolu
   // one node and a normal cone around the seed.
   std::vector<uint32_t> by_area(nt);
   std::iota(by_area.begin(), by_area.end(), 0u);
-  std::stable_sort(by_area.begin(), by_area.end(), [&](uint32_t a, uint32_t b) { return area[a] > area[b]; });
+  // Areas are compared rounded to 2^-24 of the largest: triangles of equal
+  // area (the rings of a turned pot) then keep their index order wherever
+  // the object stands, so moving a node rigidly and building the atlas
+  // again gives the same charts (exact areas differ in the last bits after
+  // a move, and would pick other seeds).
+  double largest = 0;
+  for (double a : area) largest = std::max(largest, a);
+  std::vector<double> area_key(nt);
+  const double quantum = largest > 0 ? largest * 0x1p-24 : 1.0;
+  for (size_t t = 0; t < nt; ++t) area_key[t] = std::round(area[t] / quantum);
+  std::stable_sort(by_area.begin(), by_area.end(), [&](uint32_t a, uint32_t b) { return area_key[a] > area_key[b]; });
   std::vector<int32_t> chart_of(nt, -1);
   std::vector<Chart> charts;
   std::vector<uint32_t> queue;
@@ -137,9 +147,15 @@ StatusOr<std::vector<glm::vec2>> BuildCharts(const Scene& scene, uint32_t resolu
   // which the charts' areas alone would fill the atlas and shrink.
   std::vector<uint32_t> order(charts.size());
   std::iota(order.begin(), order.end(), 0u);
-  std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) {
-    return charts[a].hi.y - charts[a].lo.y > charts[b].hi.y - charts[b].lo.y;
-  });
+  // Heights rounded like the areas above: charts of equal height (the sides
+  // of a turned pot) keep their order when the node moves.
+  double tallest = 0;
+  for (const Chart& c : charts) tallest = std::max(tallest, c.hi.y - c.lo.y);
+  const double height_quantum = tallest > 0 ? tallest * 0x1p-24 : 1.0;
+  std::vector<double> height_key(charts.size());
+  for (size_t c = 0; c < charts.size(); ++c)
+    height_key[c] = std::round((charts[c].hi.y - charts[c].lo.y) / height_quantum);
+  std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return height_key[a] > height_key[b]; });
   double box_area = 0;
   for (const Chart& c : charts) box_area += std::max(1e-30, (c.hi.x - c.lo.x) * (c.hi.y - c.lo.y));
   double scale = std::sqrt(static_cast<double>(resolution) * resolution / box_area);

@@ -126,20 +126,39 @@ glm::dvec3 TexelReflectivity(const Scene& scene, const ObscuranceAtlas& atlas, u
   return area > 0 ? r / area : glm::dvec3(0.0);
 }
 
-glm::vec3 FilledValue(const ObscuranceResult& result, uint32_t texel, const glm::dvec3& fallback) {
+glm::vec3 FilledValue(const ObscuranceAtlas& atlas, const ObscuranceResult& result, uint32_t texel,
+                      const glm::dvec3& fallback) {
   const int x = static_cast<int>(texel % result.width), y = static_cast<int>(texel / result.width);
-  glm::dvec3 sum(0.0);
-  int n = 0;
+  // The estimated neighbours' mean; for a gutter texel with none, the mean
+  // of its neighbours that hold surface (filled themselves: slivers the bake
+  // could not sample), so that it follows its chart, not the unoccluded value.
+  glm::dvec3 sum(0.0), covered_sum(0.0);
+  int n = 0, covered_n = 0;
+  const bool gutter = !atlas.Covered(texel);
   for (int dy = -1; dy <= 1; ++dy)
     for (int dx = -1; dx <= 1; ++dx) {
       const int nx = x + dx, ny = y + dy;
       if (nx < 0 || ny < 0 || nx >= static_cast<int>(result.width) || ny >= static_cast<int>(result.height)) continue;
       const uint32_t j = static_cast<uint32_t>(ny) * result.width + static_cast<uint32_t>(nx);
-      if (!result.estimated[j]) continue;
-      sum += glm::dvec3(result.w[j]);
-      ++n;
+      if (result.estimated[j]) {
+        sum += glm::dvec3(result.w[j]);
+        ++n;
+      } else if (gutter && atlas.Covered(j)) {
+        covered_sum += glm::dvec3(result.w[j]);
+        ++covered_n;
+      }
     }
-  return glm::vec3(n ? sum / static_cast<double>(n) : fallback);
+  if (n) return glm::vec3(sum / static_cast<double>(n));
+  return glm::vec3(covered_n ? covered_sum / static_cast<double>(covered_n) : fallback);
+}
+
+void RefillTexels(const ObscuranceAtlas& atlas, ObscuranceResult& result, const std::vector<uint32_t>& texels,
+                  const glm::dvec3& fallback) {
+  // Texels with surface first: the gutter may read them.
+  for (uint32_t t : texels)
+    if (!result.estimated[t] && atlas.Covered(t)) result.w[t] = FilledValue(atlas, result, t, fallback);
+  for (uint32_t t : texels)
+    if (!result.estimated[t] && !atlas.Covered(t)) result.w[t] = FilledValue(atlas, result, t, fallback);
 }
 
 glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& result, uint32_t triangle) {
@@ -162,12 +181,22 @@ ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, b
   out.ambient = ComputeAmbient(scene, color_bleeding);
   out.w = std::move(w);
   out.estimated = std::move(estimated);
+  // A bake sample can land in a texel that holds no surface: the fragment
+  // shader takes floor(uv) of an interpolated uv, which rounds across a
+  // chart's edge now and then (one sample in a gutter texel). Such a texel is
+  // filled like the rest of the gutter: its one-sample value is noise, and
+  // the update, which never recomputes texels without surface, would keep
+  // it stale while a rebake moves it.
+  for (uint32_t i = 0; i < atlas.texel_count(); ++i)
+    if (out.estimated[i] && !atlas.Covered(i)) out.estimated[i] = 0;
   const glm::dvec3 unoccluded = UnoccludedValue(out.ambient, color_bleeding);
   // Texels without an estimate take their estimated neighbours' mean (the
-  // gutter), or the unoccluded value when none is near.
+  // gutter), a gutter texel with none its filled neighbours' with surface,
+  // or the unoccluded value when none is near.
   const uint32_t n = atlas.texel_count();
-  for (uint32_t i = 0; i < n; ++i)
-    if (!out.estimated[i]) out.w[i] = FilledValue(out, i, unoccluded);
+  std::vector<uint32_t> all(n);
+  for (uint32_t i = 0; i < n; ++i) all[i] = i;
+  RefillTexels(atlas, out, all, unoccluded);
   // I(P) = R(P) I_A W(P), eq. 1.
   out.intensity.assign(n, glm::vec3(0.0f));
   for (uint32_t i = 0; i < n; ++i)

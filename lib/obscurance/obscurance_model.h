@@ -108,7 +108,12 @@ ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, b
 // its fragments), gutter filling around given texels, triangle and vertex
 // averages of given triangles.
 glm::dvec3 TexelReflectivity(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel);
-glm::vec3 FilledValue(const ObscuranceResult& result, uint32_t texel, const glm::dvec3& fallback);
+glm::vec3 FilledValue(const ObscuranceAtlas& atlas, const ObscuranceResult& result, uint32_t texel,
+                      const glm::dvec3& fallback);
+// FilledValue for the texels of `texels` that are not estimated: those with
+// surface first, then the gutter (which may read them).
+void RefillTexels(const ObscuranceAtlas& atlas, ObscuranceResult& result, const std::vector<uint32_t>& texels,
+                  const glm::dvec3& fallback);
 glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& result, uint32_t triangle);
 
 // A stable 64-bit hash of what a bake depends on, for ObscurancePartial.

@@ -338,8 +338,11 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     const bool meets = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(k)) != met[i].end();
     if (!meets && !std::binary_search(must.begin(), must.end(), texel)) continue;
     changed.push_back(texel);
-    result_.w[texel] = value[i];
-    result_.estimated[texel] = atlas_.Covered(texel) ? 1 : 0;
+    // A patch the bake's samples never reached (a sliver of a triangle in a
+    // texel; depth peeling leaves such texels filled from their neighbours)
+    // stays filled, as a rebake leaves it; its gutter neighbours then agree
+    // with the rebake's too. After a ray-cast bake every patch is estimated.
+    if (result_.estimated[texel]) result_.w[texel] = value[i];
     for (size_t j = 0; j < objects_.size(); ++j) {
       if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;
       const bool now = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(j)) != met[i].end();
@@ -354,10 +357,12 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   }
   update.influenced_after = static_cast<uint32_t>(object.influenced.size());
 
-  // Gutter texels next to changed patches take the new neighbour values.
+  // Filled texels next to changed patches take the new neighbour values;
+  // a gutter texel reads filled texels with surface too (FilledValue), so
+  // the neighbours of those are refilled after them.
   std::vector<uint32_t> texels = changed;
   const glm::dvec3 unoccluded = UnoccludedValue(ambient_, params_.color_bleeding);
-  for (uint32_t texel : changed) {
+  auto add_filled_neighbours = [&](uint32_t texel) {
     const int x = static_cast<int>(texel % atlas_.width), y = static_cast<int>(texel / atlas_.width);
     for (int dy = -1; dy <= 1; ++dy)
       for (int dx = -1; dx <= 1; ++dx) {
@@ -366,11 +371,14 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
         const uint32_t j = static_cast<uint32_t>(ny) * atlas_.width + static_cast<uint32_t>(nx);
         if (!result_.estimated[j]) texels.push_back(j);
       }
-  }
+  };
+  for (uint32_t texel : changed) add_filled_neighbours(texel);
+  const size_t first_ring = texels.size();
+  for (size_t i = 0; i < first_ring; ++i)
+    if (!result_.estimated[texels[i]] && atlas_.Covered(texels[i])) add_filled_neighbours(texels[i]);
   std::sort(texels.begin(), texels.end());
   texels.erase(std::unique(texels.begin(), texels.end()), texels.end());
-  for (uint32_t texel : texels)
-    if (!result_.estimated[texel]) result_.w[texel] = FilledValue(result_, texel, unoccluded);
+  RefillTexels(atlas_, result_, texels, unoccluded);
   for (uint32_t texel : texels) {
     result_.intensity[texel] =
         atlas_.Covered(texel) ? glm::vec3(TexelReflectivity(scene_, atlas_, texel) * result_.ambient.ambient_intensity *

@@ -613,5 +613,254 @@ TEST(ObscuranceUpdate, RejectsUnknownNode) {
   EXPECT_THAT(std::string(bad.status().message()), HasSubstr("node: 99"));
 }
 
+
+// A closed plant pot standing at `base`: a tapered cylinder, `segments`
+// around and `rings` up, with both caps, outward-facing. Its triangles are
+// smaller than the texels of the atlases below.
+void AddPot(Scene& s, const std::string& name, const glm::dvec3& base, double r_bottom, double r_top, double height,
+            int segments, int rings, uint32_t material) {
+  const uint32_t first = static_cast<uint32_t>(s.positions.size());
+  for (int k = 0; k <= rings; ++k) {
+    const double f = static_cast<double>(k) / rings, r = r_bottom + (r_top - r_bottom) * f;
+    for (int i = 0; i < segments; ++i) {
+      const double a = 2.0 * std::numbers::pi * i / segments;
+      s.positions.push_back(base + glm::dvec3(r * std::cos(a), height * f, r * std::sin(a)));
+    }
+  }
+  const uint32_t bottom = static_cast<uint32_t>(s.positions.size()), top = bottom + 1;
+  s.positions.push_back(base);
+  s.positions.push_back(base + glm::dvec3(0, height, 0));
+  const uint32_t node = static_cast<uint32_t>(s.nodes.size());
+  s.nodes.push_back(
+      SceneNode{name, static_cast<int>(node), -1, glm::dmat4(1.0), static_cast<uint32_t>(s.triangles.size()), 0});
+  auto at = [&](int k, int i) { return first + static_cast<uint32_t>(k * segments + i % segments); };
+  auto add = [&](uint32_t a, uint32_t b, uint32_t c) {
+    s.triangles.push_back({a, b, c});
+    s.triangle_material.push_back(material);
+    s.triangle_node.push_back(node);
+  };
+  for (int k = 0; k < rings; ++k)
+    for (int i = 0; i < segments; ++i) {
+      add(at(k, i), at(k + 1, i), at(k + 1, i + 1));
+      add(at(k, i), at(k + 1, i + 1), at(k, i + 1));
+    }
+  for (int i = 0; i < segments; ++i) {
+    add(bottom, at(0, i), at(0, i + 1));
+    add(top, at(rings, i + 1), at(rings, i));
+  }
+  s.nodes[node].triangle_count = static_cast<uint32_t>(s.triangles.size()) - s.nodes[node].first_triangle;
+}
+
+// A floor, a 0.3 closed pot standing on it (its base on the floor), and a
+// slab of leaves overhanging half of it 0.12 above its rim. Node 1 is the pot.
+Scene PotUnderLeaves() {
+  Scene s;
+  s.materials = {{"grey", glm::dvec3(0.5), glm::dvec3(0.0)}};
+  AddQuad(s, "floor", {-1, 0, -1}, {0, 0, 2}, {2, 0, 0}, 0);
+  AddPot(s, "pot", glm::dvec3(0.0), 0.10, 0.14, 0.3, 36, 8, 0);
+  AddBox(s, "leaves", {-0.5, 0.42, -0.35}, {0.1, 0.45, 0.35}, 0);
+  UpdateBounds(s);
+  return s;
+}
+
+// Hoeffding's half-width at 95 % for n values in [0, 1]: the bound
+// UpdateObscurances states for its recomputed patches.
+double Hoeffding95(double n) { return std::sqrt(std::log(2.0 / 0.05) / (2.0 * std::max(n, 1.0))); }
+
+// Bakes the pot scene (depth peeling, 64 directions, or rays, 64 per patch),
+// moves the pot 0.1 (0.2 d_max) from under the leaves, updates, and
+// compares with a bake of the moved scene on an atlas built again for it,
+// as a client that bakes the moved scene gets.
+void ExpectUpdateOfMovedPotMatchesRebake(bool depth_peeling, double lift = 0.0) {
+  Scene scene = PotUnderLeaves();
+  if (lift != 0) {
+    ASSERT_TRUE(MoveNodeSubtree(scene, 1, glm::translate(glm::dmat4(1.0), glm::dvec3(0, lift, 0))).ok());
+    UpdateBounds(scene);
+  }
+  const uint32_t pot = 1;
+  ASSERT_EQ(scene.nodes[pot].name, "pot");
+  const uint32_t kResolution = 96;
+  const ObscuranceAtlas atlas = Atlas(scene, kResolution);
+  ObscuranceParams params;
+  params.d_max = 0.5;
+  params.direction_count = 64;
+  RayEstimateOptions ray_options;
+  ray_options.rays_per_patch = 64;
+  ray_options.seed = params.seed;
+  // The result and, per texel, the samples behind it.
+  auto bake = [&](const Scene& s, const ObscuranceAtlas& a, std::vector<uint64_t>* samples) {
+    if (depth_peeling) {
+      Baked b = Bake(s, a, params);
+      *samples = b.partial.counts;
+      return b.result;
+    }
+    auto r = EstimateObscurancesByRays(s, a, params, ray_options);
+    EXPECT_TRUE(r.ok()) << r.status();
+    samples->assign(a.texel_count(), ray_options.rays_per_patch);
+    return *r;
+  };
+  std::vector<uint64_t> samples_before, samples_rebake;
+  const ObscuranceResult before = bake(scene, atlas, &samples_before);
+  UpdaterOptions options;
+  options.rays_per_patch = 64;
+  options.seed = params.seed;
+  // No dynamic node declared: the server's way (the pot becomes one on its move).
+  auto updater = ObscuranceUpdater::Create(scene, atlas, params, before, {}, options);
+  ASSERT_TRUE(updater.ok()) << updater.status();
+  const glm::dmat4 new_world = glm::translate(glm::dmat4(1.0), glm::dvec3(-0.1, lift, 0.0));
+  auto update = (*updater)->MoveNode(pot, new_world);
+  ASSERT_TRUE(update.ok()) << update.status();
+  const ObscuranceResult& after = (*updater)->result();
+  auto changed = [&](uint32_t t) { return std::binary_search(update->texels.begin(), update->texels.end(), t); };
+
+  // Unchanged texels keep the bake's bits.
+  int unchanged = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    if (changed(t)) continue;
+    ++unchanged;
+    ASSERT_EQ(std::memcmp(&after.w[t], &before.w[t], sizeof(glm::vec3)), 0) << "texel " << t;
+    ASSERT_EQ(std::memcmp(&after.intensity[t], &before.intensity[t], sizeof(glm::vec3)), 0) << "texel " << t;
+  }
+  EXPECT_GT(unchanged, 1000);
+
+  // The rebake, on the atlas built again for the moved scene: the same atlas.
+  Scene moved = scene;
+  ASSERT_TRUE(MoveNodeSubtree(moved, pot, new_world).ok());
+  UpdateBounds(moved);
+  const ObscuranceAtlas rebuilt = Atlas(moved, kResolution);
+  ASSERT_EQ(rebuilt.corner_uv.size(), atlas.corner_uv.size());
+  EXPECT_EQ(std::memcmp(rebuilt.corner_uv.data(), atlas.corner_uv.data(), atlas.corner_uv.size() * sizeof(glm::vec2)), 0)
+      << "building the atlas again after a rigid move gives other charts";
+  const ObscuranceResult rebake = bake(moved, rebuilt, &samples_rebake);
+
+  // The pot never comes back unoccluded where the rebake sees it occluded.
+  const std::vector<uint32_t> own = (*updater)->OwnPatches(pot);
+  int own_at_one = 0, triangles_at_one = 0, filled_at_one = 0;
+  for (uint32_t t : own)
+    if (after.w[t].x >= 0.999f && rebake.w[t].x < 0.9f) ++own_at_one;
+  for (uint32_t tri = 0; tri < moved.TriangleCount(); ++tri)
+    if (moved.triangle_node[tri] == pot && after.triangle_w[tri].x >= 0.999f && rebake.triangle_w[tri].x < 0.9f)
+      ++triangles_at_one;
+  // Every texel that differs from the rebake beyond the stated bound is in
+  // the change (unchanged ones hold the bake, whose bundles equal the
+  // rebake's: they may differ only where the pot was or is seen).
+  const double bound = Hoeffding95(options.rays_per_patch);
+  int missed = 0, beyond = 0, compared = 0;
+  double max_diff = 0, max_missed = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    const double d = std::abs(static_cast<double>(after.w[t].x) - rebake.w[t].x);
+    if (!atlas.Covered(t) && after.w[t].x >= 0.999f && rebake.w[t].x < 0.9f) ++filled_at_one;
+    if (!changed(t)) {
+      if (d > bound) {
+        ++missed;
+        max_missed = std::max(max_missed, d);
+        ADD_FAILURE() << "texel " << t << " (" << t % atlas.width << ", " << t / atlas.width << ", covered "
+                      << atlas.Covered(t) << ") is not in the change: " << after.w[t].x << ", rebake "
+                      << rebake.w[t].x;
+      }
+      continue;
+    }
+    // A changed patch against the rebake: both estimates' bounds, the
+    // rebake's from its own samples there (a sliver of a triangle gets few
+    // bundle rays). Filled texels follow their neighbours.
+    if (!atlas.Covered(t) || !after.estimated[t] || !rebake.estimated[t]) continue;
+    ++compared;
+    max_diff = std::max(max_diff, d);
+    if (d > bound + Hoeffding95(static_cast<double>(samples_rebake[t]))) ++beyond;
+  }
+  std::printf("%s bake, pot %.2f above the floor moved 0.1: %zu texels changed; pot texels at W=1 where the rebake < 0.9: %d, pot "
+              "triangles: %d, filled texels: %d; %d changed patches, max |update - rebake| %.3f, %d beyond both "
+              "bounds; %d texels beyond %.3f not in the change (max %.3f)\n",
+              depth_peeling ? "depth-peeling" : "ray-cast", lift, update->texels.size(), own_at_one, triangles_at_one,
+              filled_at_one, compared, max_diff, beyond, missed, bound, max_missed);
+  EXPECT_EQ(own_at_one, 0);
+  EXPECT_EQ(triangles_at_one, 0);
+  EXPECT_EQ(filled_at_one, 0);
+  EXPECT_EQ(missed, 0);
+  EXPECT_LE(beyond, std::max(1, compared / 100));
+}
+
+TEST(ObscuranceUpdate, MovedPotUnderLeavesMatchesRebakeAfterDepthPeelingBake) {
+  ExpectUpdateOfMovedPotMatchesRebake(true);
+}
+
+// The pot 0.01 above the floor: no contact, so what is left is the bake's
+// texels the bundles missed (slivers of the pot's triangles) and their gutter.
+TEST(ObscuranceUpdate, MovedFloatingPotMatchesRebakeAfterDepthPeelingBake) {
+  ExpectUpdateOfMovedPotMatchesRebake(true, 0.01);
+}
+
+TEST(ObscuranceUpdate, MovedPotUnderLeavesMatchesRebakeAfterRaycastBake) {
+  ExpectUpdateOfMovedPotMatchesRebake(false);
+}
+
+// Depth peeling and the ray estimator agree on a face resting on another
+// (the pot's base on the floor): coincident surfaces of opposite facing do
+// not occlude each other, whichever way the depths round.
+TEST(ObscuranceBake, BaseRestingOnTheFloorAgreesWithRays) {
+  const Scene scene = PotUnderLeaves();
+  const ObscuranceAtlas atlas = Atlas(scene, 96);
+  ObscuranceParams params;
+  params.d_max = 0.5;
+  params.direction_count = 64;
+  const Baked baked = Bake(scene, atlas, params);
+  RayEstimateOptions ro;
+  ro.rays_per_patch = 256;
+  auto rays = EstimateObscurancesByRays(scene, atlas, params, ro);
+  ASSERT_TRUE(rays.ok()) << rays.status();
+  // The base: the pot's triangles that face down.
+  double worst = 0;
+  int base = 0;
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    if (scene.triangle_node[t] != 1) continue;
+    const glm::dvec3 n = glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0), scene.Vertex(t, 2) - scene.Vertex(t, 0));
+    if (n.y > -0.99 * glm::length(n)) continue;
+    ++base;
+    worst = std::max(worst, std::abs(static_cast<double>(baked.result.triangle_w[t].x) - rays->triangle_w[t].x));
+  }
+  std::printf("%d base triangles: max |bake - rays| %.3f\n", base, worst);
+  EXPECT_EQ(base, 36);
+  EXPECT_LT(worst, 0.1);
+}
+
+// Building the atlas again after a node moved rigidly gives the same charts
+// at the same places, so texels of an update and of a rebake correspond.
+TEST(ObscuranceAtlas, RigidMoveKeepsTheAtlas) {
+  const Scene scene = PotUnderLeaves();
+  const ObscuranceAtlas a = Atlas(scene, 96);
+  for (const glm::dvec3& by : {glm::dvec3(-0.1, 0, 0), glm::dvec3(0.37, 0, -0.21), glm::dvec3(0.3, 0, -0.2),
+                               glm::dvec3(-0.1, 0.01, 0)}) {
+    Scene moved = scene;
+    ASSERT_TRUE(MoveNodeSubtree(moved, 1, glm::translate(glm::dmat4(1.0), by)).ok());
+    UpdateBounds(moved);
+    const ObscuranceAtlas b = Atlas(moved, 96);
+    ASSERT_EQ(a.chart_count, b.chart_count);
+    double max_uv = 0;
+    for (size_t i = 0; i < a.corner_uv.size(); ++i)
+      max_uv = std::max(max_uv, static_cast<double>(glm::length(a.corner_uv[i] - b.corner_uv[i])));
+    EXPECT_LT(max_uv, 1e-3) << "moved by " << by.x << ", " << by.z;
+    int coverage = 0;
+    for (uint32_t t = 0; t < a.texel_count(); ++t) coverage += a.Covered(t) != b.Covered(t);
+    EXPECT_EQ(coverage, 0);
+  }
+}
+
+// The bake marks as estimated only texels that hold surface.
+TEST(ObscuranceBake, EstimatesOnlyTexelsWithSurface) {
+  const Scene scene = PotUnderLeaves();
+  const ObscuranceAtlas atlas = Atlas(scene, 96);
+  ObscuranceParams params;
+  params.d_max = 0.5;
+  params.direction_count = 64;
+  const Baked baked = Bake(scene, atlas, params);
+  int stray = 0, outside = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+    stray += baked.partial.counts[t] > 0 && !atlas.Covered(t);
+    outside += baked.result.estimated[t] && !atlas.Covered(t);
+  }
+  std::printf("%d texels without surface got bake samples\n", stray);
+  EXPECT_EQ(outside, 0);
+}
+
 }  // namespace
 }  // namespace visq::obscurance
