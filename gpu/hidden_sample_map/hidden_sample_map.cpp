@@ -504,6 +504,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   }
   result.error.confidence = options.confidence;
   result.error.sampling = SamplingErrorBound(n, options.confidence);
+  result.error.rigorous = SamplesAreIndependentStrata(request);
   return result;
 }
 

@@ -55,35 +55,35 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
   VISQ_RETURN_IF_ERROR(ValidatePatch(s.patch, "source.patch"));
   VISQ_RETURN_IF_ERROR(ValidatePatch(r.patch, "receiver.patch"));
   if (s.sample_count < 1 || s.sample_count > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("source.sample_count: ", s.sample_count, " not in [1, 4096]"));
+    return absl::InvalidArgumentError(absl::StrCat("samples.count: ", s.sample_count, " not in [1, 4096]"));
   if (s.pattern == SamplePattern::kCustom) {
     if (static_cast<int>(s.custom_uv.size()) != s.sample_count)
-      return absl::InvalidArgumentError(absl::StrCat("source.custom_uv: ", s.custom_uv.size(),
+      return absl::InvalidArgumentError(absl::StrCat("samples.custom_uv: ", s.custom_uv.size(),
                                                      " positions for sample_count ", s.sample_count));
     for (size_t i = 0; i < s.custom_uv.size(); ++i) {
       const glm::dvec2 uv = s.custom_uv[i];
       if (!(uv.x >= 0.0 && uv.x <= 1.0 && uv.y >= 0.0 && uv.y <= 1.0))
         return absl::InvalidArgumentError(
-            absl::StrCat("source.custom_uv[", i, "]: (", uv.x, ", ", uv.y, ") not in [0, 1]^2"));
+            absl::StrCat("samples.custom_uv[", i, "]: (", uv.x, ", ", uv.y, ") not in [0, 1]^2"));
     }
   } else if (s.pattern != SamplePattern::kRegular && s.pattern != SamplePattern::kJittered) {
-    return absl::InvalidArgumentError(absl::StrCat("source.pattern: unknown value ", static_cast<int>(s.pattern)));
+    return absl::InvalidArgumentError(absl::StrCat("samples.pattern: unknown value ", static_cast<int>(s.pattern)));
   }
   if (!s.polygon_uv.empty()) {
     if (s.polygon_uv.size() < 3)
-      return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv: ", s.polygon_uv.size(), " vertices, need 3"));
+      return absl::InvalidArgumentError(absl::StrCat("samples.polygon_uv: ", s.polygon_uv.size(), " vertices, need 3"));
     for (size_t i = 0; i < s.polygon_uv.size(); ++i)
       if (!std::isfinite(s.polygon_uv[i].x) || !std::isfinite(s.polygon_uv[i].y))
-        return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv[", i, "]: non-finite or beyond ±1e15 (",
+        return absl::InvalidArgumentError(absl::StrCat("samples.polygon_uv[", i, "]: non-finite or beyond ±1e15 (",
                                                        s.polygon_uv[i].x, ", ", s.polygon_uv[i].y, ")"));
   }
   if (!s.color_texture.empty() || s.color_texture_width != 0 || s.color_texture_height != 0) {
     if (s.color_texture_width < 1 || s.color_texture_height < 1 ||
         s.color_texture.size() != size_t(s.color_texture_width) * s.color_texture_height)
-      return absl::InvalidArgumentError(absl::StrCat("source.color_texture: ", s.color_texture.size(), " texels for ",
+      return absl::InvalidArgumentError(absl::StrCat("samples.color_texture_rgb: ", s.color_texture.size(), " texels for ",
                                                      s.color_texture_width, " x ", s.color_texture_height));
     if (!s.sample_colors.empty())
-      return absl::InvalidArgumentError("source.sample_colors: give either sample_colors or color_texture");
+      return absl::InvalidArgumentError("samples.sample_colors: give either sample_colors or color_texture");
   }
   // Colours are light: finite, non-negative, and small enough that a sum of
   // 2^24 of them stays finite in float.
@@ -184,7 +184,7 @@ StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source) {
   SourceSamples out;
   const int n = source.sample_count;
   if (n < 1 || n > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("source.sample_count: ", n, " not in [1, 4096]"));
+    return absl::InvalidArgumentError(absl::StrCat("samples.count: ", n, " not in [1, 4096]"));
   out.requested = n;
   std::vector<glm::dvec2> uv;
   if (source.pattern == SamplePattern::kCustom) {
@@ -195,11 +195,11 @@ StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source) {
   for (const glm::dvec2& p : uv)
     if (source.polygon_uv.empty() || InsidePolygon(source.polygon_uv, p)) out.uv.push_back(p);
   if (out.uv.empty())
-    return absl::InvalidArgumentError(absl::StrCat("source.polygon_uv: none of the ", n, " samples is inside"));
+    return absl::InvalidArgumentError(absl::StrCat("samples.polygon_uv: none of the ", n, " samples is inside"));
   for (const glm::dvec2& p : out.uv) out.world.push_back(source.patch.At(p.x, p.y));
   if (!source.sample_colors.empty()) {
     if (source.sample_colors.size() != out.uv.size())
-      return absl::InvalidArgumentError(absl::StrCat("source.sample_colors: ", source.sample_colors.size(),
+      return absl::InvalidArgumentError(absl::StrCat("samples.sample_colors: ", source.sample_colors.size(),
                                                      " colours for ", out.uv.size(), " samples"));
     out.color = source.sample_colors;
   } else if (!source.color_texture.empty()) {
@@ -281,6 +281,7 @@ PatchVisibilityResult SummarizePatchVisibility(const PatchVisibilityRequest& req
   out.error = hsm.error;
   // Both sides are sampled: the mean over ns * nr pairs.
   out.error.sampling = SamplingErrorBound(ns, hsm.error.confidence);
+  out.error.rigorous = false;  // regular grids: an estimate
   out.timing = hsm.timing;
   return out;
 }
@@ -371,6 +372,11 @@ StatusOr<EndpointTolerances> ResolvableEndpointTolerances(const HiddenSampleMapR
   VISQ_RETURN_IF_ERROR(CheckEnd("receiver", out.receiver, receiver_spacing, hull.receiver, frame, receiver_magnitude));
   VISQ_RETURN_IF_ERROR(CheckEnd("source", out.source, source_spacing, hull.source, frame, source_magnitude));
   return out;
+}
+
+bool SamplesAreIndependentStrata(const HiddenSampleMapRequest& request) {
+  return request.source.pattern == SamplePattern::kJittered && request.source.polygon_uv.empty() &&
+         !request.options.decorrelate;
 }
 
 double SamplingErrorBound(int sample_count, double confidence) {

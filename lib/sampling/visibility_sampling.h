@@ -135,10 +135,13 @@ struct SourceSamples {
 struct ErrorBound {
   // Hoeffding: with probability >= confidence, |visible fraction over N
   // samples - true visible fraction over the source| <= sqrt(ln(2 /
-  // (1 - confidence)) / (2 N)) per texel. Rigorous for kJittered
-  // (independent strata of equal area); for kRegular and kCustom it is the
-  // usual figure, not a guarantee.
+  // (1 - confidence)) / (2 N)) per texel. Rigorous when the samples are one
+  // independent uniform sample in each of N equal-area cells (`rigorous`:
+  // kJittered, no polygon, no decorrelation); for other sample sets (kRegular,
+  // kCustom, PatchVisibility's grids) it is the half-width N such samples
+  // would have: an estimate, not a guarantee.
   double sampling = 0.0;
+  bool rigorous = false;
   double confidence = 0.95;
   // Lookup error, as a fraction of N: 0 for kExact (up to floating-point
   // ties); for kHough the largest per-texel bound (true blocked set B
@@ -259,6 +262,10 @@ struct EndpointTolerances {
 [[nodiscard]] StatusOr<EndpointTolerances> ResolvableEndpointTolerances(const HiddenSampleMapRequest& request,
                                                                         const FloatFrame& frame,
                                                                         SegmentTracer tracer);
+
+// Whether the request's samples support Hoeffding's bound as a guarantee
+// (ErrorBound::rigorous).
+bool SamplesAreIndependentStrata(const HiddenSampleMapRequest& request);
 
 // Hoeffding half-width of N samples' mean at `confidence`: the sampling
 // part of every bound this module reports.

@@ -104,6 +104,7 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
   if (request.options.want_bitmasks) result.blocked_bits = std::move(bits);
   result.error.confidence = request.options.confidence;
   result.error.sampling = sampling::SamplingErrorBound(n, request.options.confidence);
+  result.error.rigorous = sampling::SamplesAreIndependentStrata(request);
   result.error.lookup_max = 0.0;
   result.timing.run_ms = MillisecondsSince(start);
   result.passes = 0;

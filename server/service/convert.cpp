@@ -153,7 +153,10 @@ v1::Accuracy AccuracyToProto(const sampling::ErrorBound& error, VisibilityMethod
   out.set_confidence(error.confidence);
   out.set_note(absl::StrCat(
       "visible fraction within +-", error.sampling, " of the true (continuous) fraction at confidence ",
-      error.confidence, " (Hoeffding over the samples)",
+      error.confidence,
+      error.rigorous ? " (Hoeffding over one independent sample in each of N equal-area cells: a bound)"
+                     : " (the Hoeffding half-width of N independent samples; these samples are regular, custom, "
+                       "decorrelated or cut by a polygon, so it is an estimate, not a guarantee)",
       error.lookup_max > 0 ? absl::StrCat(", plus at most ", error.lookup_max,
                                           " from the Hough lookup (per texel in lookup_error)")
                            : std::string(", no lookup error (same bits as casting the same segments)")));

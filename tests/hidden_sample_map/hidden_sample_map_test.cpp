@@ -152,8 +152,8 @@ TEST(HiddenSampleMapValidation, RejectsBadParametersNamingTheField) {
       {"source.patch.origin", [](auto& r) { r.source.patch.origin.x = std::nan(""); }},
       {"source.patch", [](auto& r) { r.source.patch.edge_v = r.source.patch.edge_u * 2.0; }},
       {"receiver.patch", [](auto& r) { r.receiver.patch.edge_u = glm::dvec3(0.0); }},
-      {"source.sample_count", [](auto& r) { r.source.sample_count = 0; }},
-      {"source.sample_count", [](auto& r) { r.source.sample_count = 4097; }},
+      {"samples.count", [](auto& r) { r.source.sample_count = 0; }},
+      {"samples.count", [](auto& r) { r.source.sample_count = 4097; }},
       {"receiver.width", [](auto& r) { r.receiver.width = 0; }},
       {"receiver.height", [](auto& r) { r.receiver.height = 5000; }},
       {"receiver.heightfield", [](auto& r) { r.receiver.heightfield.assign(7, 0.0f); }},
@@ -161,11 +161,11 @@ TEST(HiddenSampleMapValidation, RejectsBadParametersNamingTheField) {
          r.receiver.heightfield.assign(size_t(r.receiver.width) * r.receiver.height, 0.0f);
          r.receiver.heightfield[3] = INFINITY;
        }},
-      {"source.custom_uv", [](auto& r) { r.source.pattern = SamplePattern::kCustom; }},
+      {"samples.custom_uv", [](auto& r) { r.source.pattern = SamplePattern::kCustom; }},
       {"options.hough_theta_resolution", [](auto& r) { r.options.hough_theta_resolution = 8; }},
       {"options.confidence", [](auto& r) { r.options.confidence = 1.0; }},
       {"receiver.patch", [](auto& r) { r.receiver.patch.edge_v = {0, 2, 1}; }},  // across the source plane
-      {"source.polygon_uv", [](auto& r) { r.source.polygon_uv = {{2, 2}, {3, 2}, {3, 3}}; }},
+      {"samples.polygon_uv", [](auto& r) { r.source.polygon_uv = {{2, 2}, {3, 2}, {3, 3}}; }},
   };
   auto scene = Upload(RandomCloud(4, 1, {0, 0.2, 0}, {1, 0.8, 1}, 0.1));
   ASSERT_TRUE(scene);

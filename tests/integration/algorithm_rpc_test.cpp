@@ -96,7 +96,7 @@ TEST_F(AlgorithmRpcTest, HiddenSampleMapBadInput) {
   v1::HiddenSampleMapRequest zero = LightOntoFloor(0, 8);
   auto status = client_->ComputeHiddenSampleMap(zero).status();
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(std::string(status.message()).find("sample_count"), std::string::npos) << status;
+  EXPECT_NE(std::string(status.message()).find("samples.count"), std::string::npos) << status;
   v1::HiddenSampleMapRequest huge = LightOntoFloor(4096, 4096);
   EXPECT_EQ(client_->ComputeHiddenSampleMap(huge).status().code(), absl::StatusCode::kResourceExhausted);
   v1::HiddenSampleMapRequest unknown = LightOntoFloor(32, 8);
