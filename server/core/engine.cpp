@@ -309,10 +309,17 @@ StatusOr<std::shared_ptr<LocalFrame>> Engine::LocalFrameFor(const ResidentScene&
   // The scene's own copies (GPU and Embree alike) are anchored at its centre.
   const sampling::FloatFrame own{scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center(), scene.bounds};
   if (sampling::ResolvableEndpointTolerances(request, own, tracer).ok()) return std::shared_ptr<LocalFrame>();
+  // A region that could not resolve the query even if geometry filled it
+  // (a query as large as the world, a light far out) is not copied: the
+  // copy would cost up to the whole scene and help nothing.
+  const Bounds hull = sampling::HullOf(request).Box();
+  const Bounds region = LocalFrames::RegionAround(hull);
+  VISQ_RETURN_IF_ERROR(
+      sampling::ResolvableEndpointTolerances(request, sampling::FloatFrame{region.Center(), region}, tracer).status());
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index, TriangleIndexOf(resident));
   const auto start = std::chrono::steady_clock::now();
   const size_t frames_before = resident.local_frames.size();
-  std::shared_ptr<LocalFrame> frame = resident.local_frames.For(scene, *index, sampling::HullOf(request).Box());
+  std::shared_ptr<LocalFrame> frame = resident.local_frames.For(scene, *index, hull);
   VISQ_RETURN_IF_ERROR(sampling::ResolvableEndpointTolerances(request, frame->float_frame(), tracer).status());
   if (resident.local_frames.size() != frames_before || frames_before == LocalFrames::kMaxFrames)
     spdlog::debug("scene '{}' v{}: local frame of side {} at ({}, {}, {}), {} triangles, in {:.1f} ms",

@@ -64,6 +64,16 @@ std::shared_ptr<LocalFrame> LocalFrames::For(const Scene& scene, const exact::Sc
   return frame;
 }
 
+Bounds LocalFrames::RegionAround(const Bounds& hull) {
+  glm::dvec3 lo;
+  double side = 0.0;
+  RegionOf(hull, lo, side);
+  Bounds region;
+  region.Extend(lo);
+  region.Extend(lo + glm::dvec3(side));
+  return region;
+}
+
 size_t LocalFrames::size() const {
   std::lock_guard lock(mutex_);
   return frames_.size();

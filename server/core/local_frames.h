@@ -50,6 +50,8 @@ class LocalFrames {
   [[nodiscard]] std::shared_ptr<LocalFrame> For(const Scene& scene, const exact::SceneTriangleIndex& index,
                                                 const Bounds& hull);
   size_t size() const;
+  // The region For would copy for `hull` (before copying anything).
+  static Bounds RegionAround(const Bounds& hull);
 
  private:
   mutable std::mutex mutex_;
