@@ -316,13 +316,22 @@ StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleM
       VISQ_RETURN_IF_ERROR(check(out.blocked_bits.size(), "blocked_bits"));
       out.blocked_bits.insert(out.blocked_bits.end(), message.blocked_bits().begin(), message.blocked_bits().end());
     }
+    // The figures: sizes and samples from the first message, the accuracy
+    // and timing from the last; lookup errors are chunks like the rest.
     if (first) {
       message.clear_visible_fraction();
       message.clear_visible_rgb();
       message.clear_blocked_bits();
       out.figures = std::move(message);
       first = false;
+      continue;
     }
+    if (message.lookup_error_size() > 0) {
+      VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.lookup_error_size()), "lookup_error"));
+      out.figures.mutable_lookup_error()->Add(message.lookup_error().begin(), message.lookup_error().end());
+    }
+    if (message.has_accuracy()) *out.figures.mutable_accuracy() = message.accuracy();
+    if (message.has_timing()) *out.figures.mutable_timing() = message.timing();
   }
   const grpc::Status status = reader->Finish();
   NoteServer(*context);

@@ -52,7 +52,9 @@ Status FromGrpcStatus(const grpc::Status& status);
 
 // A hidden-sample map reassembled from its streamed chunks.
 struct HiddenSampleMap {
-  v1::HiddenSampleMapResponse figures;  // sizes, accuracy, timing, lookup error, samples
+  // Sizes and samples (the stream's first message), accuracy and timing
+  // (its last), and the lookup errors reassembled (FAST only).
+  v1::HiddenSampleMapResponse figures;
   std::vector<float> visible_fraction;  // width * height, row-major
   std::vector<float> visible_rgb;       // 3 per texel for colored lights
   std::vector<uint32_t> blocked_bits;   // words_per_texel per texel (when asked for)

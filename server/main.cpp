@@ -81,6 +81,10 @@ int main(int argc, char** argv) {
                  "Memory that answers in progress may hold together; requests wait for it or are refused "
                  "(0: half of physical memory)")
       ->envname("VISQ_MAX_WORK_BYTES")->capture_default_str();
+  app.add_option("--map-band-bytes", options.engine.hidden_sample_map.band_readback_bytes,
+                 "Largest GPU read-back of one band of a hidden-sample map: each band is its own GL job and is "
+                 "sent as soon as it is counted")
+      ->envname("VISQ_MAP_BAND_BYTES")->check(CLI::Range(size_t{1} << 10, size_t{1} << 30))->capture_default_str();
   app.add_option("--light-cache-bytes", light_cache_bytes, "Bound on the exact light-visibility trees kept (LRU)")
       ->envname("VISQ_LIGHT_CACHE_BYTES")->capture_default_str();
   app.add_option("--light-receiver-cells", options.engine.light_receiver_cells,

@@ -419,39 +419,43 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
   return CollectGlErrors("hidden-sample map");
 }
 
-// Bit counting (section 8) for one band's read-back, into the result's
-// texels from `first_texel`; words beyond N are masked off.
-void CountBand(const std::vector<uint32_t>& readback, const PassPlan& plan, size_t first_texel, size_t band_texels,
-               const HiddenSampleMapOptions& options, const glm::dvec3& all_colors, HiddenSampleMapResult& result) {
-  const int n = result.sample_count;
-  const int wpt = result.words_per_texel;
+// Bit counting (section 8) for one band's read-back into `band` (its
+// texels from 0); words beyond N are masked off. The Hough lookup's worst
+// texel goes into the map's bound.
+void CountBand(const std::vector<uint32_t>& readback, const PassPlan& plan, size_t band_texels,
+               const HiddenSampleMapOptions& options, const glm::dvec3& all_colors, HiddenSampleMapResult& map,
+               HiddenSampleMapBand& band) {
+  const int n = map.sample_count;
+  const int wpt = map.words_per_texel;
   VISQ_DCHECK_EQ(readback.size(), size_t(plan.target_layers) * band_texels * 4);
-  VISQ_DCHECK_LE((first_texel + band_texels) * size_t(wpt), result.blocked_bits.empty() ? SIZE_MAX : result.blocked_bits.size());
   VISQ_DCHECK_LE(size_t(wpt), size_t(4 * plan.groups));
   const uint32_t last_mask = (n % 32 == 0) ? ~0u : ((1u << (n % 32)) - 1u);
   auto word_at = [&](int plane_layer_base, size_t texel, int w) {
     const int layer = plane_layer_base + w / 4;
     return readback[(size_t(layer) * band_texels + texel) * 4 + (w & 3)] & (w == wpt - 1 ? last_mask : ~0u);
   };
-  const bool colored = !result.samples.color.empty();
+  const bool colored = !map.samples.color.empty();
+  band.visible_fraction.resize(band_texels);
+  band.visible_rgb.resize(colored ? band_texels : 0);
+  band.blocked_bits.resize(options.want_bitmasks ? band_texels * size_t(wpt) : 0);
+  band.lookup_error.resize(plan.exact ? 0 : band_texels);
   for (size_t t = 0; t < band_texels; ++t) {
-    const size_t j = first_texel + t;
     int blocked = 0, sure = 0;
     glm::dvec3 blocked_color(0.0);
     for (int w = 0; w < wpt; ++w) {
       const uint32_t word = word_at(0, t, w);
       blocked += std::popcount(word);
-      if (options.want_bitmasks) result.blocked_bits[j * wpt + w] = word;
+      if (options.want_bitmasks) band.blocked_bits[t * wpt + w] = word;
       if (!plan.exact) sure += std::popcount(word_at(plan.groups, t, w));
       if (colored)
         for (uint32_t bits = word; bits != 0; bits &= bits - 1)
-          blocked_color += glm::dvec3(result.samples.color[w * 32 + std::countr_zero(bits)]);
+          blocked_color += glm::dvec3(map.samples.color[w * 32 + std::countr_zero(bits)]);
     }
-    result.visible_fraction[j] = float(n - blocked) / float(n);
-    if (colored) result.visible_rgb[j] = glm::vec3((all_colors - blocked_color) / double(n));
+    band.visible_fraction[t] = float(n - blocked) / float(n);
+    if (colored) band.visible_rgb[t] = glm::vec3((all_colors - blocked_color) / double(n));
     if (!plan.exact) {
-      result.error.lookup_per_texel[j] = float(blocked - sure) / float(n);
-      result.error.lookup_max = std::max(result.error.lookup_max, double(blocked - sure) / n);
+      band.lookup_error[t] = float(blocked - sure) / float(n);
+      map.error.lookup_max = std::max(map.error.lookup_max, double(blocked - sure) / n);
     }
   }
 }
@@ -460,7 +464,8 @@ void CountBand(const std::vector<uint32_t>& readback, const PassPlan& plan, size
 
 StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scene,
                                                             const HiddenSampleMapRequest& request,
-                                                            const JobOptions& job) {
+                                                            const JobOptions& job,
+                                                            const HiddenSampleMapBandSink& sink) {
   VISQ_RETURN_IF_ERROR(ValidateHiddenSampleMapRequest(request));
   const HiddenSampleMapOptions& options = request.options;
   HiddenSampleMapResult result;
@@ -481,16 +486,12 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
                                    state_->max_draw_buffers, width, height, options_.band_readback_bytes);
   result.passes = plan.passes;
 
-  const size_t texels = size_t(width) * height;
-  result.visible_fraction.resize(texels);
-  if (options.want_bitmasks) result.blocked_bits.resize(texels * result.words_per_texel);
-  if (!plan.exact) result.error.lookup_per_texel.resize(texels);
-  if (!result.samples.color.empty()) result.visible_rgb.resize(texels);
   glm::dvec3 all_colors(0.0);
   for (const glm::vec3& c : result.samples.color) all_colors += glm::dvec3(c);
 
   // One GL job per band: a large map yields the GL thread between bands.
   std::vector<uint32_t> readback;
+  HiddenSampleMapBand band;
   const int max_draw_buffers = state_->max_draw_buffers;
   for (int first_row = 0; first_row < height; first_row += plan.band_rows) {
     const int rows = std::min(plan.band_rows, height - first_row);
@@ -500,7 +501,9 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     }, &band_timing));
     result.timing.queue_ms += band_timing.queue_ms;
     result.timing.run_ms += band_timing.run_ms;
-    CountBand(readback, plan, size_t(first_row) * width, size_t(rows) * width, options, all_colors, result);
+    band.first_texel = size_t(first_row) * width;
+    CountBand(readback, plan, size_t(rows) * width, options, all_colors, result, band);
+    VISQ_RETURN_IF_ERROR(DeliverBand(result, band, sink));
   }
   result.error.confidence = options.confidence;
   result.error.sampling = SamplingErrorBound(n, options.confidence);

@@ -12,6 +12,7 @@
 //   4. (solid) each column's in/out state is resolved from its front and back
 //      bits on the CPU (ResolveSolidColumn below), on all cores.
 #include "visq/gpu/slicemap.h"
+#include "common/check.h"
 #include "common/job_timing.h"
 #include "common/coordinates.h"
 #include "common/parallel.h"
@@ -20,6 +21,7 @@
 #include <bit>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <map>
 #include <set>
 #include <mutex>
@@ -58,6 +60,7 @@ struct PassConfig {
   Rasterization rasterization = Rasterization::kStandard;
   std::vector<TriangleRange> triangles;
   uint64_t max_bytes = kDefaultMaxSlicemapBytes;
+  size_t max_columns_per_job = kDefaultSlicemapColumnsPerJob;
   JobOptions job;
 };
 
@@ -67,6 +70,7 @@ struct RawSlicemap {
   SlicemapGrid front, back;   // solid: entering / leaving faces (standard sampling)
   std::vector<float> near_far;  // local: (near, -far) per column, as rendered
   uint32_t passes = 0;
+  uint32_t gl_jobs = 0;
   SlicemapTimings timings;
 };
 
@@ -124,26 +128,63 @@ Status DrawTriangles(const GpuScene& scene, const std::vector<GLint>& firsts, co
   return absl::OkStatus();
 }
 
-// Copies one RGBA32UI target (128 slices of the pass) into the packed grid.
-void ScatterTarget(const std::vector<GLuint>& texels, SlicemapGrid& grid, uint32_t first_word) {
+// Copies one RGBA32UI target (128 slices of the pass), read back for the
+// columns from `first_column` on, into the packed grid.
+void ScatterTarget(const std::vector<GLuint>& texels, size_t first_column, size_t columns, SlicemapGrid& grid,
+                   uint32_t first_word) {
   const uint32_t wpc = grid.words_per_column;
-  const size_t columns = size_t{grid.width} * grid.height;
   const uint32_t words = std::min<uint32_t>(4, wpc - first_word);
+  VISQ_DCHECK_LE((first_column + columns) * wpc, grid.bits.size());
   for (size_t c = 0; c < columns; ++c) {
-    uint32_t* column = &grid.bits[c * wpc + first_word];
+    uint32_t* column = &grid.bits[(first_column + c) * wpc + first_word];
     const GLuint* texel = &texels[c * 4];
     for (uint32_t i = 0; i < words; ++i) column[i] |= texel[i];
   }
 }
 
 // The GL part: depth-range pass, slicemap passes, readback.
-Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
-                 RawSlicemap& raw) {
-  const auto setup_start = Clock::now();
-  const bool solid = config.mode == VoxelizeMode::kSolid;
-  const bool conservative = config.rasterization == Rasterization::kConservative;
-  const bool local = config.precision == SlicePrecision::kLocal;
+// The targets of one voxelization, made by its first GL job and used by
+// the next: the depth-range pass and every slicemap pass over every band of
+// image rows are GL jobs of their own, so other queries get the GL thread
+// between them.
+struct SlicemapTargets {
+  uint64_t generation = 0;
+  GlTexture2D near_far{NoCreate};
+  std::vector<GlTexture2D> targets;
+  GlFramebuffer framebuffer{NoCreate};
+};
 
+// The fixed state of every slicemap job, restored by RestoreState. The view
+// looks along +w with x = u, y = v: a face whose normal points back at the
+// viewer winds clockwise in window coordinates.
+void SetPassState(const PassConfig& config, uint32_t first_row, uint32_t rows) {
+  glViewport(0, 0, static_cast<GLsizei>(config.width), static_cast<GLsizei>(config.height));
+  glDisable(GL_DEPTH_TEST);
+  glDisable(GL_CULL_FACE);
+  glDisable(GL_BLEND);
+  glDisable(GL_MULTISAMPLE);
+  glEnable(GL_SCISSOR_TEST);
+  glScissor(0, static_cast<GLint>(first_row), static_cast<GLsizei>(config.width), static_cast<GLsizei>(rows));
+  glFrontFace(GL_CW);
+}
+
+void RestoreState() {
+  glDisable(GL_SCISSOR_TEST);
+  glFrontFace(GL_CCW);
+  glBindFramebuffer(GL_FRAMEBUFFER, 0);
+  glBindTextureUnit(0, 0);
+  glUseProgram(0);
+  glBindVertexArray(0);
+}
+
+// GL thread: the device's limits, the targets, and with local precision
+// each column's depth range (one pass over the whole image).
+StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, const ViewSetup& view,
+                                                         const PassConfig& config, const std::vector<GLint>& firsts,
+                                                         const std::vector<GLsizei>& counts, bool draw_nothing,
+                                                         uint32_t target_count, RawSlicemap& raw) {
+  const auto setup_start = Clock::now();
+  const bool conservative = config.rasterization == Rasterization::kConservative;
   // The device's limits: the image must fit a texture and a viewport, and a
   // pass needs 8 color attachments.
   GLint max_texture = 0, max_draw_buffers = 0, max_attachments = 0;
@@ -161,6 +202,64 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
     return absl::FailedPreconditionError(fmt::format("the device offers {} draw buffers and {} color attachments; the "
                                                      "slicemap needs 8",
                                                      max_draw_buffers, max_attachments));
+  auto t = std::make_shared<SlicemapTargets>();
+  t->generation = CurrentContextGeneration();
+  for (uint32_t i = 0; i < target_count; ++i) {
+    t->targets.emplace_back();
+    glTextureStorage2D(t->targets.back().id(), 1, GL_RGBA32UI, static_cast<GLsizei>(config.width),
+                       static_cast<GLsizei>(config.height));
+  }
+  t->framebuffer = GlFramebuffer();
+  for (uint32_t i = 0; i < t->targets.size(); ++i)
+    glNamedFramebufferTexture(t->framebuffer.id(), GL_COLOR_ATTACHMENT0 + i, t->targets[i].id(), 0);
+  raw.timings.setup_ms += MillisecondsSince(setup_start);
+
+  // Local precision: each column's depth range in one pass.
+  if (config.precision == SlicePrecision::kLocal) {
+    const auto start = Clock::now();
+    SetPassState(config, 0, config.height);
+    ShaderDefines defines = BaseDefines(view, config, conservative);
+    defines.emplace_back("DEPTH_RANGE_PASS", "1");
+    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(conservative, defines));
+    SetViewUniforms(*program, conservative, view, config);
+    t->near_far = GlTexture2D();
+    glTextureStorage2D(t->near_far.id(), 1, GL_RG32F, static_cast<GLsizei>(config.width),
+                       static_cast<GLsizei>(config.height));
+    glTextureParameteri(t->near_far.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+    glTextureParameteri(t->near_far.id(), GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+    GlFramebuffer framebuffer;
+    glNamedFramebufferTexture(framebuffer.id(), GL_COLOR_ATTACHMENT0, t->near_far.id(), 0);
+    if (glCheckNamedFramebufferStatus(framebuffer.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+      return absl::InternalError("slicemap: RG32F depth-range framebuffer incomplete");
+    glBindFramebuffer(GL_FRAMEBUFFER, framebuffer.id());
+    const GLfloat empty[4] = {2.0f, 2.0f, 0.0f, 0.0f};  // near 2 > far -2: no geometry
+    glClearNamedFramebufferfv(framebuffer.id(), GL_COLOR, 0, empty);
+    glEnable(GL_BLEND);
+    glBlendEquation(GL_MIN);
+    glUseProgram(program->id());
+    Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, firsts, counts);
+    glDisable(GL_BLEND);
+    glBlendEquation(GL_FUNC_ADD);
+    RestoreState();
+    VISQ_RETURN_IF_ERROR(drawn);
+    glFinish();
+    VISQ_GL_CHECK("slicemap depth-range pass");
+    raw.near_far.resize(size_t{config.width} * config.height * 2);
+    glGetTextureImage(t->near_far.id(), 0, GL_RG, GL_FLOAT, static_cast<GLsizei>(raw.near_far.size() * sizeof(float)),
+                      raw.near_far.data());
+    raw.passes += 1;
+    raw.timings.depth_ms += MillisecondsSince(start);
+  }
+  return t;
+}
+
+// Runs the passes, each band of rows of each pass a GL job, and merges a
+// solid's maps: the shared core of Voxelize and Transmittance.
+Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
+                 RawSlicemap& raw) {
+  const bool solid = config.mode == VoxelizeMode::kSolid;
+  const bool conservative = config.rasterization == Rasterization::kConservative;
+  const bool local = config.precision == SlicePrecision::kLocal;
 
   // Triangle selection as draw ranges (3 vertices per triangle).
   std::vector<GLint> firsts;
@@ -175,83 +274,57 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
   const uint32_t per_pass = solid ? kSolidSlicesPerPass : kSlicesPerPass;
   const uint32_t maps = solid ? 2 : 1;
   const uint32_t max_targets_per_map = (std::min(config.slices, per_pass) + 127) / 128;
-  const size_t columns = size_t{config.width} * config.height;
+  // Each band draws the selection again, under a scissor, and reads back
+  // only its rows.
+  const uint32_t band_rows = static_cast<uint32_t>(
+      std::clamp<size_t>(config.max_columns_per_job / std::max<uint32_t>(config.width, 1), 1, config.height));
 
-  // Fixed state for every pass; restored at the end.
-  glViewport(0, 0, static_cast<GLsizei>(config.width), static_cast<GLsizei>(config.height));
-  glDisable(GL_DEPTH_TEST);
-  glDisable(GL_CULL_FACE);
-  glDisable(GL_BLEND);
-  glDisable(GL_SCISSOR_TEST);
-  glDisable(GL_MULTISAMPLE);
-  // The view looks along +w with x = u, y = v: a face whose normal points
-  // back at the viewer winds clockwise in window coordinates.
-  glFrontFace(GL_CW);
-
-  GlTexture2D near_far(NoCreate);
-  raw.timings.setup_ms += MillisecondsSince(setup_start);
-
-  // 1. Local precision: each column's depth range in one pass.
-  if (local) {
-    const auto start = Clock::now();
-    ShaderDefines defines = BaseDefines(view, config, conservative);
-    defines.emplace_back("DEPTH_RANGE_PASS", "1");
-    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(conservative, defines));
-    SetViewUniforms(*program, conservative, view, config);
-    near_far = GlTexture2D();
-    glTextureStorage2D(near_far.id(), 1, GL_RG32F, static_cast<GLsizei>(config.width),
-                       static_cast<GLsizei>(config.height));
-    glTextureParameteri(near_far.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
-    glTextureParameteri(near_far.id(), GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-    GlFramebuffer framebuffer;
-    glNamedFramebufferTexture(framebuffer.id(), GL_COLOR_ATTACHMENT0, near_far.id(), 0);
-    if (glCheckNamedFramebufferStatus(framebuffer.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
-      return absl::InternalError("slicemap: RG32F depth-range framebuffer incomplete");
-    glBindFramebuffer(GL_FRAMEBUFFER, framebuffer.id());
-    const GLfloat empty[4] = {2.0f, 2.0f, 0.0f, 0.0f};  // near 2 > far -2: no geometry
-    glClearNamedFramebufferfv(framebuffer.id(), GL_COLOR, 0, empty);
-    glEnable(GL_BLEND);
-    glBlendEquation(GL_MIN);
-    glUseProgram(program->id());
-    if (!draw_nothing) VISQ_RETURN_IF_ERROR(DrawTriangles(scene, firsts, counts));
-    glDisable(GL_BLEND);
-    glBlendEquation(GL_FUNC_ADD);
-    glFinish();
-    VISQ_GL_CHECK("slicemap depth-range pass");
-    raw.near_far.resize(columns * 2);
-    glGetTextureImage(near_far.id(), 0, GL_RG, GL_FLOAT, static_cast<GLsizei>(raw.near_far.size() * sizeof(float)),
-                      raw.near_far.data());
-    glBindTextureUnit(0, near_far.id());
-    raw.passes += 1;
-    raw.timings.depth_ms += MillisecondsSince(start);
-  }
-
-  // 2. The slicemap targets, reused by every pass.
-  const auto targets_start = Clock::now();
-  std::vector<GlTexture2D> targets;
-  for (uint32_t t = 0; t < maps * max_targets_per_map; ++t) {
-    targets.emplace_back();
-    glTextureStorage2D(targets.back().id(), 1, GL_RGBA32UI, static_cast<GLsizei>(config.width),
-                       static_cast<GLsizei>(config.height));
-  }
-  GlFramebuffer framebuffer;
-  for (uint32_t t = 0; t < targets.size(); ++t)
-    glNamedFramebufferTexture(framebuffer.id(), GL_COLOR_ATTACHMENT0 + t, targets[t].id(), 0);
   raw.surface = EmptyGrid(config.width, config.height, config.slices);
   if (solid) {
     raw.front = EmptyGrid(config.width, config.height, config.slices);
     raw.back = EmptyGrid(config.width, config.height, config.slices);
   }
-  std::vector<GLuint> texels(columns * 4);
-  glBindFramebuffer(GL_FRAMEBUFFER, framebuffer.id());
-  raw.timings.setup_ms += MillisecondsSince(targets_start);
 
-  // One slicemap pass: `pass_solid` splits front and back faces, else every
-  // fragment goes to the surface map.
-  auto run_pass = [&](bool pass_solid, bool pass_conservative, uint32_t first_slice, uint32_t pass_slices) -> Status {
+  // The targets die on the GL thread however the voxelization ends.
+  std::shared_ptr<SlicemapTargets> targets;
+  struct ReleaseOnGlThread {
+    GpuWorker& worker;
+    std::shared_ptr<SlicemapTargets>& targets;
+    ~ReleaseOnGlThread() {
+      if (targets) worker.Post([t = std::move(targets)]() mutable { t.reset(); });
+    }
+  } release{worker, targets};
+  auto job = [&](const std::function<Status()>& body) -> Status {
+    JobTiming timing;
+    const Status status = worker.Run(
+        config.job,
+        [&]() -> Status {
+          if (targets && targets->generation != CurrentContextGeneration())
+            return absl::InternalError("slicemap: the GPU context was lost between passes; retry");
+          return body();
+        },
+        &timing);
+    raw.timings.queue_ms += timing.queue_ms;
+    ++raw.gl_jobs;
+    return status;
+  };
+  VISQ_RETURN_IF_ERROR(job([&]() -> Status {
+    VISQ_ASSIGN_OR_RETURN(targets, CreateTargets(scene, view, config, firsts, counts, draw_nothing,
+                                                 maps * max_targets_per_map, raw));
+    return absl::OkStatus();
+  }));
+
+  // One slicemap pass over rows [first_row, first_row + rows): `pass_solid`
+  // splits front and back faces, else every fragment goes to the surface map.
+  std::vector<GLuint> texels;
+  auto run_pass = [&](bool pass_solid, bool pass_conservative, uint32_t first_slice, uint32_t pass_slices,
+                      uint32_t first_row, uint32_t rows) -> Status {
     const uint32_t targets_per_map = (pass_slices + 127) / 128;
     const uint32_t pass_maps = pass_solid ? 2 : 1;
+    const GLuint framebuffer = targets->framebuffer.id();
     auto start = Clock::now();
+    SetPassState(config, first_row, rows);
+    if (local) glBindTextureUnit(0, targets->near_far.id());
     ShaderDefines defines = BaseDefines(view, config, pass_conservative);
     defines.emplace_back("TARGETS", std::to_string(targets_per_map));
     if (pass_solid) defines.emplace_back("SOLID", "1");
@@ -263,32 +336,41 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
     std::vector<GLenum> buffers;
     for (uint32_t m = 0; m < pass_maps; ++m)
       for (uint32_t t = 0; t < targets_per_map; ++t) buffers.push_back(GL_COLOR_ATTACHMENT0 + m * max_targets_per_map + t);
-    glNamedFramebufferDrawBuffers(framebuffer.id(), static_cast<GLsizei>(buffers.size()), buffers.data());
-    if (glCheckNamedFramebufferStatus(framebuffer.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+    glNamedFramebufferDrawBuffers(framebuffer, static_cast<GLsizei>(buffers.size()), buffers.data());
+    if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
+      RestoreState();
       return absl::InternalError("slicemap: RGBA32UI framebuffer incomplete");
+    }
+    glBindFramebuffer(GL_FRAMEBUFFER, framebuffer);
+    // Clears honour the scissor: only the band's rows.
     const GLuint zero[4] = {0, 0, 0, 0};
     for (GLint i = 0; i < static_cast<GLint>(buffers.size()); ++i)
-      glClearNamedFramebufferuiv(framebuffer.id(), GL_COLOR, i, zero);
+      glClearNamedFramebufferuiv(framebuffer, GL_COLOR, i, zero);
     raw.timings.setup_ms += MillisecondsSince(start);
 
     start = Clock::now();
     glUseProgram(program->id());
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
-    if (!draw_nothing) VISQ_RETURN_IF_ERROR(DrawTriangles(scene, firsts, counts));
+    const Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, firsts, counts);
     glDisable(GL_COLOR_LOGIC_OP);
+    RestoreState();
+    VISQ_RETURN_IF_ERROR(drawn);
     glFinish();
     VISQ_GL_CHECK("slicemap pass");
-    raw.passes += 1;
+    if (first_row == 0) raw.passes += 1;
     raw.timings.voxelize_ms += MillisecondsSince(start);
 
     start = Clock::now();
+    const size_t band_columns = size_t{config.width} * rows;
+    texels.resize(band_columns * 4);
     for (uint32_t m = 0; m < pass_maps; ++m) {
       SlicemapGrid& grid = !pass_solid ? raw.surface : (m == 0 ? raw.front : raw.back);
       for (uint32_t t = 0; t < targets_per_map; ++t) {
-        glGetTextureImage(targets[m * max_targets_per_map + t].id(), 0, GL_RGBA_INTEGER, GL_UNSIGNED_INT,
-                          static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
-        ScatterTarget(texels, grid, first_slice / 32 + t * 4);
+        glGetTextureSubImage(targets->targets[m * max_targets_per_map + t].id(), 0, 0, static_cast<GLint>(first_row),
+                             0, static_cast<GLsizei>(config.width), static_cast<GLsizei>(rows), 1, GL_RGBA_INTEGER,
+                             GL_UNSIGNED_INT, static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
+        ScatterTarget(texels, size_t{first_row} * config.width, band_columns, grid, first_slice / 32 + t * 4);
       }
     }
     VISQ_GL_CHECK("slicemap readback");
@@ -296,32 +378,26 @@ Status RunPasses(const GpuScene& scene, const ViewSetup& view, const PassConfig&
     return absl::OkStatus();
   };
 
-  // 3. Solid: front/back maps sampled at texel centers (the in/out events);
+  // Solid: front/back maps sampled at texel centers (the in/out events);
   // their union is the surface unless a conservative surface pass follows.
-  Status status = absl::OkStatus();
-  for (uint32_t first = 0; first < config.slices && status.ok(); first += per_pass) {
-    status = StillWanted(config.job, "slicemap: between passes");
-    if (!status.ok()) break;
+  for (uint32_t first = 0; first < config.slices; first += per_pass) {
     const uint32_t n = std::min(per_pass, config.slices - first);
-    if (solid) {
-      status = run_pass(true, false, first, n);
-      if (status.ok() && conservative) status = run_pass(false, true, first, n);
-    } else {
-      status = run_pass(false, conservative, first, n);
+    for (uint32_t first_row = 0; first_row < config.height; first_row += band_rows) {
+      const uint32_t rows = std::min(band_rows, config.height - first_row);
+      if (solid) {
+        VISQ_RETURN_IF_ERROR(job([&] { return run_pass(true, false, first, n, first_row, rows); }));
+        if (conservative) VISQ_RETURN_IF_ERROR(job([&] { return run_pass(false, true, first, n, first_row, rows); }));
+      } else {
+        VISQ_RETURN_IF_ERROR(job([&] { return run_pass(false, conservative, first, n, first_row, rows); }));
+      }
     }
   }
-  if (solid && status.ok()) {
+  if (solid) {
     const auto start = Clock::now();
     for (size_t i = 0; i < raw.surface.bits.size(); ++i) raw.surface.bits[i] |= raw.front.bits[i] | raw.back.bits[i];
     raw.timings.readback_ms += MillisecondsSince(start);
   }
-
-  glFrontFace(GL_CCW);
-  glBindFramebuffer(GL_FRAMEBUFFER, 0);
-  glBindTextureUnit(0, 0);
-  glUseProgram(0);
-  glBindVertexArray(0);
-  return status;
+  return absl::OkStatus();
 }
 
 // Sets (or flips) bits [a, b) of one column.
@@ -559,17 +635,15 @@ StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, 
                                       const PassConfig& config, SlicemapGrid* surface_out) {
   const auto start = Clock::now();
   RawSlicemap raw;
-  JobTiming job_timing;
-  VISQ_RETURN_IF_ERROR(
-      worker.Run(config.job, [&]() -> Status { return RunPasses(scene, view, config, raw); }, &job_timing));
+  VISQ_RETURN_IF_ERROR(RunPasses(worker, scene, view, config, raw));
 
   VoxelizeResult result;
   result.mode = config.mode;
   result.precision = config.precision;
   result.rasterization = config.rasterization;
   result.passes = raw.passes;
+  result.gl_jobs = raw.gl_jobs;
   result.timings = raw.timings;
-  result.timings.queue_ms = job_timing.queue_ms;
 
   // Local precision: report the range the shader really used.
   if (config.precision == SlicePrecision::kLocal) {
@@ -620,6 +694,7 @@ StatusOr<VoxelizeResult> Voxelize(GpuWorker& worker, const GpuScene& gpu_scene, 
   config.rasterization = params.rasterization;
   config.triangles = params.triangles;
   config.max_bytes = params.max_bytes;
+  config.max_columns_per_job = params.max_columns_per_job;
   config.job = params.job;
   return VoxelizeView(worker, gpu_scene, OrthographicView(params.box, gpu_scene.anchor()), config, nullptr);
 }

@@ -36,6 +36,7 @@ layout(std430, binding = 5) readonly buffer Prefix { float prefix[]; };
 layout(std430, binding = 7) writeonly buffer Output { vec4 out_pixels[]; };  // inscatter, direct rgb
 
 uniform ivec2 u_image_size;
+uniform int u_first_row;  // the band's first image row (one dispatch per band)
 uniform vec3 u_eye;                          // anchor-relative
 uniform vec3 u_cam_forward, u_cam_right, u_cam_up;  // right/up scaled by the half-FOV tangents
 uniform mat4 u_light_clip;                   // light clip space from anchor-relative
@@ -354,7 +355,7 @@ vec3 Direct(float t, vec3 n, vec3 albedo) {
 }
 
 void main() {
-  ivec2 id = ivec2(gl_GlobalInvocationID.xy);
+  ivec2 id = ivec2(gl_GlobalInvocationID.xy) + ivec2(0, u_first_row);
   if (any(greaterThanEqual(id, u_image_size))) return;
   vec2 ndc = vec2((float(id.x) + 0.5) / float(u_image_size.x) * 2.0 - 1.0,
                   1.0 - (float(id.y) + 0.5) / float(u_image_size.y) * 2.0);

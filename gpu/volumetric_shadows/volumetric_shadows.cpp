@@ -4,7 +4,8 @@
 // vol_shadow.vert + vol_camera.frag (camera distances and normals),
 // vol_rectify.comp, vol_minmax.comp, vol_prefix.comp, vol_integrate.comp.
 //
-// Pipeline of one call, each stage closed by glFinish and timed:
+// Pipeline of one call, each stage a GL job of its own, closed by glFinish
+// and timed (the traversal a job per band of image rows):
 //   1. shadow map: the scene's depth from the light (DEPTH32F, N x N);
 //   2. camera: distance to the first surface, face normal, material color;
 //   3. rectification: N rows (epipolar slices) x N columns (distance from the
@@ -27,6 +28,7 @@
 #include <bit>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <limits>
 #include <map>
 #include <mutex>
@@ -351,10 +353,37 @@ void SetRectUniforms(const GlProgram* program, const Setup& setup) {
   glProgramUniform1i(program->id(), program->Uniform("u_cols"), GLint(setup.cols));
 }
 
-Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams& params,
-                 std::vector<glm::vec4>& pixels, VolumetricTimings& timings) {
-  const auto setup_start = Clock::now();
-  const VolumetricLight& light = params.light;
+// One rendering's programs and GL objects, made by its first GL job and
+// used by the next: every stage is a GL job of its own, and the traversal
+// is split into bands of image rows, so other queries get the GL thread
+// between them. Each job binds what it uses and sets its programs' uniforms
+// (the jobs in between may use the same cached programs).
+struct VolumetricTargets {
+  uint64_t generation = 0;
+  const GlProgram* shadow = nullptr;
+  const GlProgram* camera = nullptr;
+  const GlProgram* rectify = nullptr;
+  const GlProgram* minmax = nullptr;
+  const GlProgram* prefix = nullptr;
+  const GlProgram* integrate = nullptr;
+  GlTexture2D shadow_map{NoCreate}, geometry{NoCreate}, albedo{NoCreate};
+  GlRenderbuffer camera_depth{NoCreate};
+  GlFramebuffer shadow_fb{NoCreate}, camera_fb{NoCreate};
+  GlBuffer rect_depth{NoCreate}, tree_min{NoCreate}, tree_max{NoCreate}, rect_weight{NoCreate}, rect_unit{NoCreate},
+      prefix_sums{NoCreate}, rect_phi{NoCreate}, svd_terms{NoCreate}, svd_table{NoCreate}, light_texture{NoCreate},
+      albedo_buffer{NoCreate}, output{NoCreate};
+  GlVertexArray empty_vao{NoCreate};
+};
+
+// Rows per traversal job: whole 8-row groups of the shader, at least one.
+uint32_t TraversalBandRows(uint32_t width, uint32_t max_pixels) {
+  return std::max<uint32_t>(8, max_pixels / std::max<uint32_t>(width, 1) / 8 * 8);
+}
+
+// GL thread: the programs for `setup` (which may fall back from kSvd when
+// its prefix sums exceed a storage block), the targets and the buffers.
+StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const VolumetricLight& light,
+                                                           VolumetricMethod method) {
   // kSvd's prefix sums (K doubles per row and column) must fit one storage
   // block; beyond it the per-texel sum serves.
   if (setup.integrand == VolumetricIntegrand::kSvd) {
@@ -384,228 +413,240 @@ Status RunPasses(const GpuScene& gpu_scene, Setup& setup, const VolumetricParams
                                                                                        : "INTEGRAND_PER_TEXEL",
                                    "1");
   }
-  if (params.method == VolumetricMethod::kRayMarching) integrate_defines.emplace_back("RAY_MARCH", "1");
+  if (method == VolumetricMethod::kRayMarching) integrate_defines.emplace_back("RAY_MARCH", "1");
 
-  VISQ_ASSIGN_OR_RETURN(const GlProgram* shadow_program,
+  auto t = std::make_shared<VolumetricTargets>();
+  t->generation = CurrentContextGeneration();
+  VISQ_ASSIGN_OR_RETURN(t->shadow,
                         Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(const GlProgram* camera_program,
+  VISQ_ASSIGN_OR_RETURN(t->camera,
                         Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(const GlProgram* rect_program, Program({{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
-  VISQ_ASSIGN_OR_RETURN(const GlProgram* minmax_program, Program({{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(const GlProgram* prefix_program, Program({{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
-  VISQ_ASSIGN_OR_RETURN(const GlProgram* integrate_program,
-                        Program({{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
+  VISQ_ASSIGN_OR_RETURN(t->rectify, Program({{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
+  VISQ_ASSIGN_OR_RETURN(t->minmax, Program({{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(t->prefix, Program({{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
+  VISQ_ASSIGN_OR_RETURN(t->integrate, Program({{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
 
-  // Targets and buffers.
   const uint32_t n = setup.map_size;
   const size_t cells = size_t{setup.rows} * setup.cols;
-  GlTexture2D shadow_map;
-  glTextureStorage2D(shadow_map.id(), 1, GL_DEPTH_COMPONENT32F, GLsizei(n), GLsizei(n));
-  glTextureParameteri(shadow_map.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
-  glTextureParameteri(shadow_map.id(), GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-  GlFramebuffer shadow_fb;
-  glNamedFramebufferTexture(shadow_fb.id(), GL_DEPTH_ATTACHMENT, shadow_map.id(), 0);
-  glNamedFramebufferDrawBuffer(shadow_fb.id(), GL_NONE);
-  if (glCheckNamedFramebufferStatus(shadow_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+  t->shadow_map = GlTexture2D();
+  glTextureStorage2D(t->shadow_map.id(), 1, GL_DEPTH_COMPONENT32F, GLsizei(n), GLsizei(n));
+  glTextureParameteri(t->shadow_map.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+  glTextureParameteri(t->shadow_map.id(), GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+  t->shadow_fb = GlFramebuffer();
+  glNamedFramebufferTexture(t->shadow_fb.id(), GL_DEPTH_ATTACHMENT, t->shadow_map.id(), 0);
+  glNamedFramebufferDrawBuffer(t->shadow_fb.id(), GL_NONE);
+  if (glCheckNamedFramebufferStatus(t->shadow_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
     return absl::InternalError("volumetric shadows: shadow-map framebuffer incomplete");
 
-  GlTexture2D geometry, albedo;
-  glTextureStorage2D(geometry.id(), 1, GL_RGBA32F, GLsizei(setup.width), GLsizei(setup.height));
-  glTextureStorage2D(albedo.id(), 1, GL_RGBA8, GLsizei(setup.width), GLsizei(setup.height));
-  GlRenderbuffer camera_depth;
-  glNamedRenderbufferStorage(camera_depth.id(), GL_DEPTH_COMPONENT32F, GLsizei(setup.width), GLsizei(setup.height));
-  GlFramebuffer camera_fb;
-  glNamedFramebufferTexture(camera_fb.id(), GL_COLOR_ATTACHMENT0, geometry.id(), 0);
-  glNamedFramebufferTexture(camera_fb.id(), GL_COLOR_ATTACHMENT1, albedo.id(), 0);
-  glNamedFramebufferRenderbuffer(camera_fb.id(), GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, camera_depth.id());
+  t->geometry = GlTexture2D();
+  t->albedo = GlTexture2D();
+  glTextureStorage2D(t->geometry.id(), 1, GL_RGBA32F, GLsizei(setup.width), GLsizei(setup.height));
+  glTextureStorage2D(t->albedo.id(), 1, GL_RGBA8, GLsizei(setup.width), GLsizei(setup.height));
+  t->camera_depth = GlRenderbuffer();
+  glNamedRenderbufferStorage(t->camera_depth.id(), GL_DEPTH_COMPONENT32F, GLsizei(setup.width), GLsizei(setup.height));
+  t->camera_fb = GlFramebuffer();
+  glNamedFramebufferTexture(t->camera_fb.id(), GL_COLOR_ATTACHMENT0, t->geometry.id(), 0);
+  glNamedFramebufferTexture(t->camera_fb.id(), GL_COLOR_ATTACHMENT1, t->albedo.id(), 0);
+  glNamedFramebufferRenderbuffer(t->camera_fb.id(), GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, t->camera_depth.id());
   const GLenum draw_buffers[2] = {GL_COLOR_ATTACHMENT0, GL_COLOR_ATTACHMENT1};
-  glNamedFramebufferDrawBuffers(camera_fb.id(), 2, draw_buffers);
-  if (glCheckNamedFramebufferStatus(camera_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+  glNamedFramebufferDrawBuffers(t->camera_fb.id(), 2, draw_buffers);
+  if (glCheckNamedFramebufferStatus(t->camera_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
     return absl::InternalError("volumetric shadows: camera framebuffer incomplete");
 
-  GlBuffer rect_depth = MakeBuffer(cells * sizeof(float));
-  GlBuffer tree_min = MakeBuffer(cells * sizeof(float));
-  GlBuffer tree_max = MakeBuffer(cells * sizeof(float));
+  t->rect_depth = MakeBuffer(cells * sizeof(float));
+  t->tree_min = MakeBuffer(cells * sizeof(float));
+  t->tree_max = MakeBuffer(cells * sizeof(float));
   const bool prefix = setup.integrand == VolumetricIntegrand::kPrefixSum;
-  GlBuffer rect_weight = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
-  GlBuffer rect_unit = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
+  t->rect_weight = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
+  t->rect_unit = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
   const size_t prefix_bytes = prefix ? sizeof(float) : svd ? setup.svd.rank * sizeof(double) : 0;
-  GlBuffer prefix_sums = MakeBuffer(size_t{setup.rows} * (setup.cols + 1) * prefix_bytes);
-  GlBuffer rect_phi = MakeBuffer(svd ? cells * sizeof(float) : 0);
-  GlBuffer svd_terms = MakeBuffer(svd ? cells * setup.svd.rank * sizeof(float) : 0);
+  t->prefix_sums = MakeBuffer(size_t{setup.rows} * (setup.cols + 1) * prefix_bytes);
+  t->rect_phi = MakeBuffer(svd ? cells * sizeof(float) : 0);
+  t->svd_terms = MakeBuffer(svd ? cells * setup.svd.rank * sizeof(float) : 0);
   std::vector<float> svd_table = setup.svd.u;
   svd_table.insert(svd_table.end(), setup.svd.v.begin(), setup.svd.v.end());
-  GlBuffer svd_table_buffer = MakeBuffer(svd ? svd_table.size() * sizeof(float) : 0, svd ? svd_table.data() : nullptr);
-  GlBuffer light_texture = MakeBuffer(light.texture.size() * sizeof(float), light.texture.empty() ? nullptr : light.texture.data());
-  GlBuffer albedo_buffer = MakeBuffer(setup.albedo.size() * sizeof(glm::vec4), setup.albedo.data());
-  const size_t pixel_count = size_t{setup.width} * setup.height;
-  GlBuffer output = MakeBuffer(pixel_count * sizeof(glm::vec4));
-  GlVertexArray empty_vao;
+  t->svd_table = MakeBuffer(svd ? svd_table.size() * sizeof(float) : 0, svd ? svd_table.data() : nullptr);
+  t->light_texture =
+      MakeBuffer(light.texture.size() * sizeof(float), light.texture.empty() ? nullptr : light.texture.data());
+  t->albedo_buffer = MakeBuffer(setup.albedo.size() * sizeof(glm::vec4), setup.albedo.data());
+  t->output = MakeBuffer(size_t{setup.width} * setup.height * sizeof(glm::vec4));
+  t->empty_vao = GlVertexArray();
   VISQ_GL_CHECK("volumetric shadows: setup");
   glFinish();
-  timings.setup_ms = MillisecondsSince(setup_start);
+  return t;
+}
 
-  VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* scene_resources, gpu_scene.CurrentResources());
-  const GpuScene::Resources& res = *scene_resources;
-  // 1. Shadow map.
-  auto stage = Clock::now();
-  {
-    const glm::mat4 clip(setup.light_clip);
-    glBindFramebuffer(GL_FRAMEBUFFER, shadow_fb.id());
-    glViewport(0, 0, GLsizei(n), GLsizei(n));
-    glEnable(GL_DEPTH_TEST);
-    glDepthFunc(GL_LESS);
-    glDepthMask(GL_TRUE);
-    glDisable(GL_CULL_FACE);
-    const float one = 1.0f;
-    glClearBufferfv(GL_DEPTH, 0, &one);
-    glUseProgram(shadow_program->id());
-    glProgramUniformMatrix4fv(shadow_program->id(), shadow_program->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
-    glBindVertexArray(res.vertex_array.id());
-    glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
-    VISQ_GL_CHECK("volumetric shadows: shadow map");
-    glFinish();
-  }
-  timings.shadow_map_ms = MillisecondsSince(stage);
-  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the shadow map"));
+// The rectified rows, trees, sums and output as the compute stages see
+// them, bound afresh by each of their jobs.
+void BindComputeStorage(const VolumetricTargets& t) {
+  glBindVertexArray(t.empty_vao.id());
+  glBindTextureUnit(0, t.shadow_map.id());
+  glBindTextureUnit(1, t.geometry.id());
+  glBindTextureUnit(2, t.albedo.id());
+  const GLuint buffers[11] = {t.rect_depth.id(),    t.tree_min.id(),  t.tree_max.id(),    t.rect_weight.id(),
+                              t.rect_unit.id(),     t.prefix_sums.id(), t.light_texture.id(), t.output.id(),
+                              t.rect_phi.id(),      t.svd_table.id(), t.svd_terms.id()};
+  for (GLuint binding = 0; binding < 11; ++binding)
+    glBindBufferBase(GL_SHADER_STORAGE_BUFFER, binding, buffers[binding]);
+}
 
-  // 2. Camera distances, normals, colors.
-  stage = Clock::now();
-  {
-    const glm::mat4 clip(setup.camera_clip);
-    glBindFramebuffer(GL_FRAMEBUFFER, camera_fb.id());
-    glViewport(0, 0, GLsizei(setup.width), GLsizei(setup.height));
-    const float no_surface[4] = {0, 0, 0, -1};
-    const float black[4] = {0, 0, 0, 0};
-    const float one = 1.0f;
-    glClearBufferfv(GL_COLOR, 0, no_surface);
-    glClearBufferfv(GL_COLOR, 1, black);
-    glClearBufferfv(GL_DEPTH, 0, &one);
-    glUseProgram(camera_program->id());
-    glProgramUniformMatrix4fv(camera_program->id(), camera_program->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
-    glProgramUniform3f(camera_program->id(), camera_program->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
-    glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, res.positions.id());
-    glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, res.triangle_materials.id());
-    glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, albedo_buffer.id());
-    glBindVertexArray(res.vertex_array.id());
-    glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
-    glDisable(GL_DEPTH_TEST);
-    glBindFramebuffer(GL_FRAMEBUFFER, 0);
-    VISQ_GL_CHECK("volumetric shadows: camera pass");
-    glFinish();
-  }
-  timings.camera_ms = MillisecondsSince(stage);
-  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the camera pass"));
-
-  // 3. Rectification.
-  stage = Clock::now();
-  glBindVertexArray(empty_vao.id());
-  glBindTextureUnit(0, shadow_map.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, rect_depth.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, tree_min.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, tree_max.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 3, rect_weight.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 4, rect_unit.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 5, prefix_sums.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 6, light_texture.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 7, output.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 8, rect_phi.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 9, svd_table_buffer.id());
-  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 10, svd_terms.id());
-  {
-    glUseProgram(rect_program->id());
-    SetRectUniforms(rect_program, setup);
-    SetLightUniforms(rect_program, setup, light);
-    glProgramUniform1i(rect_program->id(), rect_program->Uniform("u_map_size"), GLint(n));
-    glProgramUniform3f(rect_program->id(), rect_program->Uniform("u_eye_in_light"), float(setup.eye_in_light.x),
-                       float(setup.eye_in_light.y), float(setup.eye_in_light.z));
-    glProgramUniform2f(rect_program->id(), rect_program->Uniform("u_texel_world"), float(setup.texel_world.x),
-                       float(setup.texel_world.y));
-    glDispatchCompute(Groups(setup.cols, 8), Groups(setup.rows, 8), 1);
-    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
-    VISQ_GL_CHECK("volumetric shadows: rectification");
-    glFinish();
-  }
-  timings.rectification_ms = MillisecondsSince(stage);
-  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after rectification"));
-
-  // 4. Min-max levels, then prefix sums.
-  stage = Clock::now();
-  {
-    glUseProgram(minmax_program->id());
-    glProgramUniform1i(minmax_program->id(), minmax_program->Uniform("u_cols"), GLint(setup.cols));
-    glProgramUniform1i(minmax_program->id(), minmax_program->Uniform("u_rows"), GLint(setup.rows));
-    for (uint32_t level = 1; level <= setup.levels; ++level) {
-      glProgramUniform1i(minmax_program->id(), minmax_program->Uniform("u_level"), GLint(level));
-      glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
-      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
-    }
-    if (prefix || svd) {
-      glUseProgram(prefix_program->id());
-      glProgramUniform1i(prefix_program->id(), prefix_program->Uniform("u_cols"), GLint(setup.cols));
-      glProgramUniform1i(prefix_program->id(), prefix_program->Uniform("u_rows"), GLint(setup.rows));
-      glProgramUniform1f(prefix_program->id(), prefix_program->Uniform("u_svd_x_step"), float(setup.svd.x_step));
-      glDispatchCompute(Groups(setup.rows, 64), 1, 1);
-      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
-    }
-    VISQ_GL_CHECK("volumetric shadows: mipmap");
-    glFinish();
-  }
-  timings.mipmap_ms = MillisecondsSince(stage);
-  VISQ_RETURN_IF_ERROR(StillWanted(params.job, "volumetric shadows: after the min-max levels"));
-
-  // 5. Per-pixel integration.
-  stage = Clock::now();
-  {
-    const GlProgram* p = integrate_program;
-    glUseProgram(p->id());
-    SetRectUniforms(p, setup);
-    SetLightUniforms(p, setup, light);
-    const glm::mat4 light_clip(setup.light_clip);
-    glProgramUniformMatrix4fv(p->id(), p->Uniform("u_light_clip"), 1, GL_FALSE, glm::value_ptr(light_clip));
-    glProgramUniform4f(p->id(), p->Uniform("u_c0"), float(setup.c0.x), float(setup.c0.y), float(setup.c0.z), float(setup.c0.w));
-    glProgramUniform2i(p->id(), p->Uniform("u_image_size"), GLint(setup.width), GLint(setup.height));
-    glProgramUniform3f(p->id(), p->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
-    auto set3 = [&](const char* name, const glm::dvec3& x) {
-      glProgramUniform3f(p->id(), p->Uniform(name), float(x.x), float(x.y), float(x.z));
-    };
-    set3("u_cam_forward", setup.cam_forward);
-    set3("u_cam_right", setup.cam_right);
-    set3("u_cam_up", setup.cam_up);
-    set3("u_light_dir", setup.light_dir);
-    set3("u_light_pos", setup.light_pos);
-    glProgramUniform1f(p->id(), p->Uniform("u_map_size"), float(n));
-    glProgramUniform1i(p->id(), p->Uniform("u_levels"), GLint(setup.levels));
-    glProgramUniform1f(p->id(), p->Uniform("u_bias"), float(setup.bias));
-    glProgramUniform1f(p->id(), p->Uniform("u_sigma_s"), float(params.medium.scattering));
-    glProgramUniform1f(p->id(), p->Uniform("u_sigma_t"), params.medium.optically_thin ? 0.0f : float(params.medium.extinction));
-    glProgramUniform1f(p->id(), p->Uniform("u_g"), float(params.medium.hg_g));
-    glProgramUniform1f(p->id(), p->Uniform("u_intensity"), float(light.intensity));
-    glProgramUniform1f(p->id(), p->Uniform("u_half_depth"), float(setup.half_depth));
-    glProgramUniform1i(p->id(), p->Uniform("u_direct"), params.combined_image ? 1 : 0);
-    glProgramUniform1f(p->id(), p->Uniform("u_normal_offset"), float(setup.normal_offset));
-    glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha0"), float(setup.svd.alpha0));
-    glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha_step"), float(setup.svd.alpha_step));
-    glProgramUniform1f(p->id(), p->Uniform("u_eye_light_distance"), float(setup.eye_light_distance));
-    glBindTextureUnit(1, geometry.id());
-    glBindTextureUnit(2, albedo.id());
-    glDispatchCompute(Groups(setup.width, 8), Groups(setup.height, 8), 1);
-    glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
-    VISQ_GL_CHECK("volumetric shadows: traversal");
-    glFinish();
-  }
-  timings.traversal_ms = MillisecondsSince(stage);
-
-  stage = Clock::now();
-  pixels.resize(pixel_count);
-  glGetNamedBufferSubData(output.id(), 0, GLsizeiptr(pixel_count * sizeof(glm::vec4)), pixels.data());
+// What every job leaves as it found it: no program, buffers or textures.
+void UnbindAll() {
   for (GLuint unit = 0; unit < 3; ++unit) glBindTextureUnit(unit, 0);
   for (GLuint binding = 0; binding < 11; ++binding) glBindBufferBase(GL_SHADER_STORAGE_BUFFER, binding, 0);
+  glBindFramebuffer(GL_FRAMEBUFFER, 0);
   glBindVertexArray(0);
   glUseProgram(0);
-  VISQ_RETURN_IF_ERROR(CollectGlErrors("volumetric shadows: readback"));
-  timings.readback_ms = MillisecondsSince(stage);
+}
+
+// 1. Shadow map.
+Status DrawShadowMap(const GpuScene::Resources& res, const VolumetricTargets& t, const Setup& setup) {
+  const glm::mat4 clip(setup.light_clip);
+  const GLsizei n = GLsizei(setup.map_size);
+  glBindFramebuffer(GL_FRAMEBUFFER, t.shadow_fb.id());
+  glViewport(0, 0, n, n);
+  glEnable(GL_DEPTH_TEST);
+  glDepthFunc(GL_LESS);
+  glDepthMask(GL_TRUE);
+  glDisable(GL_CULL_FACE);
+  const float one = 1.0f;
+  glClearBufferfv(GL_DEPTH, 0, &one);
+  glUseProgram(t.shadow->id());
+  glProgramUniformMatrix4fv(t.shadow->id(), t.shadow->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
+  glBindVertexArray(res.vertex_array.id());
+  glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+  glDisable(GL_DEPTH_TEST);
+  UnbindAll();
+  VISQ_GL_CHECK("volumetric shadows: shadow map");
+  glFinish();
   return absl::OkStatus();
+}
+
+// 2. Camera distances, normals, colors.
+Status DrawCameraPass(const GpuScene::Resources& res, const VolumetricTargets& t, const Setup& setup) {
+  const glm::mat4 clip(setup.camera_clip);
+  glBindFramebuffer(GL_FRAMEBUFFER, t.camera_fb.id());
+  glViewport(0, 0, GLsizei(setup.width), GLsizei(setup.height));
+  glEnable(GL_DEPTH_TEST);
+  glDepthFunc(GL_LESS);
+  glDepthMask(GL_TRUE);
+  glDisable(GL_CULL_FACE);
+  const float no_surface[4] = {0, 0, 0, -1};
+  const float black[4] = {0, 0, 0, 0};
+  const float one = 1.0f;
+  glClearBufferfv(GL_COLOR, 0, no_surface);
+  glClearBufferfv(GL_COLOR, 1, black);
+  glClearBufferfv(GL_DEPTH, 0, &one);
+  const GlProgram* p = t.camera;
+  glUseProgram(p->id());
+  glProgramUniformMatrix4fv(p->id(), p->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
+  glProgramUniform3f(p->id(), p->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, res.positions.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, res.triangle_materials.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, t.albedo_buffer.id());
+  glBindVertexArray(res.vertex_array.id());
+  glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+  glDisable(GL_DEPTH_TEST);
+  UnbindAll();
+  VISQ_GL_CHECK("volumetric shadows: camera pass");
+  glFinish();
+  return absl::OkStatus();
+}
+
+// 3. Rectification.
+Status Rectify(const VolumetricTargets& t, const Setup& setup, const VolumetricLight& light) {
+  BindComputeStorage(t);
+  const GlProgram* p = t.rectify;
+  glUseProgram(p->id());
+  SetRectUniforms(p, setup);
+  SetLightUniforms(p, setup, light);
+  glProgramUniform1i(p->id(), p->Uniform("u_map_size"), GLint(setup.map_size));
+  glProgramUniform3f(p->id(), p->Uniform("u_eye_in_light"), float(setup.eye_in_light.x), float(setup.eye_in_light.y),
+                     float(setup.eye_in_light.z));
+  glProgramUniform2f(p->id(), p->Uniform("u_texel_world"), float(setup.texel_world.x), float(setup.texel_world.y));
+  glDispatchCompute(Groups(setup.cols, 8), Groups(setup.rows, 8), 1);
+  glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+  UnbindAll();
+  VISQ_GL_CHECK("volumetric shadows: rectification");
+  glFinish();
+  return absl::OkStatus();
+}
+
+// 4. Min-max levels, then prefix sums.
+Status BuildMinMax(const VolumetricTargets& t, const Setup& setup) {
+  BindComputeStorage(t);
+  glUseProgram(t.minmax->id());
+  glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_cols"), GLint(setup.cols));
+  glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_rows"), GLint(setup.rows));
+  for (uint32_t level = 1; level <= setup.levels; ++level) {
+    glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_level"), GLint(level));
+    glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
+    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+  }
+  if (setup.integrand == VolumetricIntegrand::kPrefixSum || setup.integrand == VolumetricIntegrand::kSvd) {
+    const GlProgram* p = t.prefix;
+    glUseProgram(p->id());
+    glProgramUniform1i(p->id(), p->Uniform("u_cols"), GLint(setup.cols));
+    glProgramUniform1i(p->id(), p->Uniform("u_rows"), GLint(setup.rows));
+    glProgramUniform1f(p->id(), p->Uniform("u_svd_x_step"), float(setup.svd.x_step));
+    glDispatchCompute(Groups(setup.rows, 64), 1, 1);
+    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+  }
+  UnbindAll();
+  VISQ_GL_CHECK("volumetric shadows: mipmap");
+  glFinish();
+  return absl::OkStatus();
+}
+
+// 5. Per-pixel integration of image rows [first_row, first_row + rows).
+Status IntegrateRows(const VolumetricTargets& t, const Setup& setup, const VolumetricParams& params,
+                     uint32_t first_row, uint32_t rows) {
+  BindComputeStorage(t);
+  const GlProgram* p = t.integrate;
+  const VolumetricLight& light = params.light;
+  glUseProgram(p->id());
+  SetRectUniforms(p, setup);
+  SetLightUniforms(p, setup, light);
+  const glm::mat4 light_clip(setup.light_clip);
+  glProgramUniformMatrix4fv(p->id(), p->Uniform("u_light_clip"), 1, GL_FALSE, glm::value_ptr(light_clip));
+  glProgramUniform4f(p->id(), p->Uniform("u_c0"), float(setup.c0.x), float(setup.c0.y), float(setup.c0.z), float(setup.c0.w));
+  glProgramUniform2i(p->id(), p->Uniform("u_image_size"), GLint(setup.width), GLint(setup.height));
+  glProgramUniform1i(p->id(), p->Uniform("u_first_row"), GLint(first_row));
+  glProgramUniform3f(p->id(), p->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
+  auto set3 = [&](const char* name, const glm::dvec3& x) {
+    glProgramUniform3f(p->id(), p->Uniform(name), float(x.x), float(x.y), float(x.z));
+  };
+  set3("u_cam_forward", setup.cam_forward);
+  set3("u_cam_right", setup.cam_right);
+  set3("u_cam_up", setup.cam_up);
+  set3("u_light_dir", setup.light_dir);
+  set3("u_light_pos", setup.light_pos);
+  glProgramUniform1f(p->id(), p->Uniform("u_map_size"), float(setup.map_size));
+  glProgramUniform1i(p->id(), p->Uniform("u_levels"), GLint(setup.levels));
+  glProgramUniform1f(p->id(), p->Uniform("u_bias"), float(setup.bias));
+  glProgramUniform1f(p->id(), p->Uniform("u_sigma_s"), float(params.medium.scattering));
+  glProgramUniform1f(p->id(), p->Uniform("u_sigma_t"), params.medium.optically_thin ? 0.0f : float(params.medium.extinction));
+  glProgramUniform1f(p->id(), p->Uniform("u_g"), float(params.medium.hg_g));
+  glProgramUniform1f(p->id(), p->Uniform("u_intensity"), float(light.intensity));
+  glProgramUniform1f(p->id(), p->Uniform("u_half_depth"), float(setup.half_depth));
+  glProgramUniform1i(p->id(), p->Uniform("u_direct"), params.combined_image ? 1 : 0);
+  glProgramUniform1f(p->id(), p->Uniform("u_normal_offset"), float(setup.normal_offset));
+  glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha0"), float(setup.svd.alpha0));
+  glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha_step"), float(setup.svd.alpha_step));
+  glProgramUniform1f(p->id(), p->Uniform("u_eye_light_distance"), float(setup.eye_light_distance));
+  glDispatchCompute(Groups(setup.width, 8), Groups(rows, 8), 1);
+  glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
+  UnbindAll();
+  VISQ_GL_CHECK("volumetric shadows: traversal");
+  glFinish();
+  return absl::OkStatus();
+}
+
+Status ReadPixels(const VolumetricTargets& t, const Setup& setup, std::vector<glm::vec4>& pixels) {
+  const size_t pixel_count = size_t{setup.width} * setup.height;
+  pixels.resize(pixel_count);
+  glGetNamedBufferSubData(t.output.id(), 0, GLsizeiptr(pixel_count * sizeof(glm::vec4)), pixels.data());
+  return CollectGlErrors("volumetric shadows: readback");
 }
 
 }  // namespace
@@ -685,11 +726,58 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
 
   VolumetricResult result;
   std::vector<glm::vec4> pixels;
-  JobTiming job_timing;
-  VISQ_RETURN_IF_ERROR(worker.Run(
-      params.job, [&]() -> Status { return RunPasses(gpu_scene, setup, params, pixels, result.timings); },
-      &job_timing));
-  result.timings.queue_ms = job_timing.queue_ms;
+  // Each stage, and each band of the traversal, is a GL job of its own; a
+  // cancelled or expired call stops at the next. The targets die on the GL
+  // thread however the rendering ends.
+  std::shared_ptr<VolumetricTargets> targets;
+  struct ReleaseOnGlThread {
+    GpuWorker& worker;
+    std::shared_ptr<VolumetricTargets>& targets;
+    ~ReleaseOnGlThread() {
+      if (targets) worker.Post([t = std::move(targets)]() mutable { t.reset(); });
+    }
+  } release{worker, targets};
+  auto stage = [&](double& stage_ms, const std::function<Status(const GpuScene::Resources&)>& body) -> Status {
+    JobTiming timing;
+    const Status status = worker.Run(
+        params.job,
+        [&]() -> Status {
+          if (targets && targets->generation != CurrentContextGeneration())
+            return absl::InternalError("volumetric shadows: the GPU context was lost between stages; retry");
+          VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, gpu_scene.CurrentResources());
+          return body(*resources);
+        },
+        &timing);
+    result.timings.queue_ms += timing.queue_ms;
+    stage_ms += timing.run_ms;
+    ++result.gl_jobs;
+    return status;
+  };
+  VolumetricTimings& ms = result.timings;
+  VISQ_RETURN_IF_ERROR(stage(ms.setup_ms, [&](const GpuScene::Resources&) -> Status {
+    VISQ_ASSIGN_OR_RETURN(targets, CreateTargets(setup, params.light, params.method));
+    return absl::OkStatus();
+  }));
+  VISQ_RETURN_IF_ERROR(stage(ms.shadow_map_ms, [&](const GpuScene::Resources& res) {
+    return DrawShadowMap(res, *targets, setup);
+  }));
+  VISQ_RETURN_IF_ERROR(stage(ms.camera_ms, [&](const GpuScene::Resources& res) {
+    return DrawCameraPass(res, *targets, setup);
+  }));
+  VISQ_RETURN_IF_ERROR(stage(ms.rectification_ms, [&](const GpuScene::Resources&) {
+    return Rectify(*targets, setup, params.light);
+  }));
+  VISQ_RETURN_IF_ERROR(stage(ms.mipmap_ms, [&](const GpuScene::Resources&) { return BuildMinMax(*targets, setup); }));
+  const uint32_t band_rows = TraversalBandRows(setup.width, params.max_pixels_per_job);
+  for (uint32_t first_row = 0; first_row < setup.height; first_row += band_rows) {
+    const uint32_t rows = std::min(band_rows, setup.height - first_row);
+    VISQ_RETURN_IF_ERROR(stage(ms.traversal_ms, [&](const GpuScene::Resources&) {
+      return IntegrateRows(*targets, setup, params, first_row, rows);
+    }));
+  }
+  VISQ_RETURN_IF_ERROR(stage(ms.readback_ms, [&](const GpuScene::Resources&) {
+    return ReadPixels(*targets, setup, pixels);
+  }));
   result.timings.integrand_table_ms = setup.svd_ms;
 
   // Light color applied here: the shader works in one channel for the medium.

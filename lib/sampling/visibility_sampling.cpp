@@ -10,6 +10,7 @@
 #include <string>
 
 #include "sampling/visibility_sampling.h"
+#include "common/check.h"
 #include "common/random.h"
 #include "common/coordinates.h"
 
@@ -382,6 +383,25 @@ bool SamplesAreIndependentStrata(const HiddenSampleMapRequest& request) {
 double SamplingErrorBound(int sample_count, double confidence) {
   // Hoeffding: P(|mean - p| > e) <= 2 exp(-2 N e^2).
   return std::sqrt(std::log(2.0 / (1.0 - confidence)) / (2.0 * double(sample_count)));
+}
+
+Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band, const HiddenSampleMapBandSink& sink) {
+  if (sink) return sink(map, band);
+  const size_t texels = size_t(map.width) * size_t(map.height);
+  VISQ_CHECK_EQ(band.first_texel, map.visible_fraction.size());
+  VISQ_CHECK_LE(band.first_texel + band.texels(), texels);
+  if (band.first_texel == 0) {
+    map.visible_fraction.reserve(texels);
+    if (!band.visible_rgb.empty()) map.visible_rgb.reserve(texels);
+    if (!band.blocked_bits.empty()) map.blocked_bits.reserve(texels * size_t(map.words_per_texel));
+    if (!band.lookup_error.empty()) map.error.lookup_per_texel.reserve(texels);
+  }
+  map.visible_fraction.insert(map.visible_fraction.end(), band.visible_fraction.begin(), band.visible_fraction.end());
+  map.visible_rgb.insert(map.visible_rgb.end(), band.visible_rgb.begin(), band.visible_rgb.end());
+  map.blocked_bits.insert(map.blocked_bits.end(), band.blocked_bits.begin(), band.blocked_bits.end());
+  map.error.lookup_per_texel.insert(map.error.lookup_per_texel.end(), band.lookup_error.begin(),
+                                    band.lookup_error.end());
+  return absl::OkStatus();
 }
 
 }  // namespace visq::sampling

@@ -21,6 +21,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -168,6 +169,30 @@ struct HiddenSampleMapResult {
   int passes = 0;
   SourceSamples samples;
 };
+
+// A map's texels [first_texel, first_texel + texels()) as they are made, a
+// band of receiver rows at a time, so a large map is sent while it is drawn
+// and never held whole. The arrays are laid out as HiddenSampleMapResult's,
+// from the band's first texel.
+struct HiddenSampleMapBand {
+  size_t first_texel = 0;
+  std::vector<float> visible_fraction;
+  std::vector<glm::vec3> visible_rgb;     // coloured lights only
+  std::vector<uint32_t> blocked_bits;     // want_bitmasks only
+  std::vector<float> lookup_error;        // kHough only: ErrorBound::lookup_per_texel's values
+  size_t texels() const { return visible_fraction.size(); }
+};
+
+// Receives each band in order, with the map's figures known before any
+// band (sizes, samples). A status other than OK stops the map there and is
+// what the map returns.
+using HiddenSampleMapBandSink = std::function<Status(const HiddenSampleMapResult& map, const HiddenSampleMapBand& band)>;
+
+// Hands `band` to `sink`, or, without a sink, appends it to `map`'s own
+// arrays (a map answered whole). Every method that makes maps ends its
+// bands here.
+[[nodiscard]] Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band,
+                                 const HiddenSampleMapBandSink& sink);
 
 // Source sample positions for `source` (validated). Deterministic.
 [[nodiscard]] StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source);

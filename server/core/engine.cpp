@@ -392,7 +392,7 @@ std::map<std::string, BuildTimes::Figures> BuildTimes::Snapshot() const {
 StatusOr<gpu::HiddenSampleMapper*> Engine::hidden_sample_mapper() {
   std::lock_guard lock(mapper_mutex_);
   if (!hidden_sample_mapper_) {
-    VISQ_ASSIGN_OR_RETURN(hidden_sample_mapper_, gpu::HiddenSampleMapper::Create(*gpu_));
+    VISQ_ASSIGN_OR_RETURN(hidden_sample_mapper_, gpu::HiddenSampleMapper::Create(*gpu_, options_.hidden_sample_map));
   }
   return hidden_sample_mapper_.get();
 }

@@ -51,6 +51,10 @@ struct EngineOptions {
   // Memory that answers in progress may hold together (WorkMemoryBudget);
   // 0: half of the machine's physical memory.
   uint64_t max_work_bytes = 0;
+  // How large a band of a hidden-sample map may be (its GPU read-back):
+  // smaller bands reach the client sooner and give other queries the GL
+  // thread sooner.
+  gpu::HiddenSampleMapperOptions hidden_sample_map;
 };
 
 // A scene as the server holds it: immutable geometry plus the lazily built

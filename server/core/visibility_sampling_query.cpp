@@ -34,8 +34,9 @@ std::function<bool()> StopRequested(const gpu::JobOptions& job) {
 }
 
 StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, const ResidentScene& resident,
-                                                            const sampling::HiddenSampleMapRequest& request,
-                                                            const gpu::JobOptions& job) {
+                                                                 const sampling::HiddenSampleMapRequest& request,
+                                                                 const gpu::JobOptions& job,
+                                                                 const sampling::HiddenSampleMapBandSink& sink = {}) {
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(request));
   // Embree holds float32 positions relative to an origin, like the GPU: the
   // scene's centre, or the query's own region when it lies far from it.
@@ -51,21 +52,26 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
   result.height = height;
   result.sample_count = n;
   result.words_per_texel = words;
-  result.visible_fraction.resize(size_t(width) * height);
-  const bool colored = !samples.color.empty();
-  if (colored) result.visible_rgb.resize(size_t(width) * height);
-  std::vector<uint32_t> bits(size_t(width) * height * words, 0u);
+  result.samples = std::move(samples);
+  const sampling::SourceSamples& source = result.samples;
+  const bool colored = !source.color.empty();
 
-  // Segments are made by the tracing threads from the receiver positions and
-  // the source samples, never stored; rows of texels at a time bound the
-  // per-segment results.
-  std::vector<glm::dvec3> receiver_points(size_t(width) * height);
-  for (int y = 0; y < height; ++y)
-    for (int x = 0; x < width; ++x) receiver_points[size_t(y) * width + x] = sampling::ReceiverSamplePosition(request.receiver, x, y);
-  const int rows_per_batch = std::max(1, (1 << 22) / std::max(1, width * n));
-  for (int y0 = 0; y0 < height; y0 += rows_per_batch) {
-    const int y1 = std::min(height, y0 + rows_per_batch);
-    const size_t first_texel = size_t(y0) * width;
+  // Bands of rows, each traced, counted and delivered before the next:
+  // segments are made by the tracing threads from the receiver positions and
+  // the source samples, never stored, and no band holds more than 4M
+  // segments' results.
+  const int rows_per_band = std::max(1, (1 << 22) / std::max(1, width * n));
+  std::vector<glm::dvec3> receiver_points;
+  std::vector<uint32_t> bits;
+  sampling::HiddenSampleMapBand band;
+  for (int y0 = 0; y0 < height; y0 += rows_per_band) {
+    const int y1 = std::min(height, y0 + rows_per_band);
+    const size_t band_texels = size_t(y1 - y0) * width;
+    band.first_texel = size_t(y0) * width;
+    receiver_points.resize(band_texels);
+    for (int y = y0; y < y1; ++y)
+      for (int x = 0; x < width; ++x)
+        receiver_points[size_t(y - y0) * width + x] = sampling::ReceiverSamplePosition(request.receiver, x, y);
     // Each texel's N segments share their receiver end: coherent.
     raycast::TraceOptions trace;
     trace.coherent = true;
@@ -73,42 +79,40 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
     VISQ_ASSIGN_OR_RETURN(
         std::vector<uint8_t> blocked,
         embree->Occluded(
-            size_t(y1 - y0) * width * n,
+            band_texels * n,
             [&](size_t k) {
-              const size_t texel = first_texel + k / n;
+              const size_t t = k / n;
               const int i = static_cast<int>(k % n);
-              const int x = static_cast<int>(texel % width), y = static_cast<int>(texel / width);
-              return raycast::Segment{receiver_points[texel], sampling::SourceSampleSeenFrom(request, samples, i, x, y)};
+              const int x = static_cast<int>(t % width), y = y0 + static_cast<int>(t / width);
+              return raycast::Segment{receiver_points[t], sampling::SourceSampleSeenFrom(request, source, i, x, y)};
             },
             trace));
-    size_t k = 0;
-    for (int y = y0; y < y1; ++y)
-      for (int x = 0; x < width; ++x) {
-        const size_t j = size_t(y) * width + x;
-        for (int i = 0; i < n; ++i, ++k)
-          if (blocked[k]) bits[j * words + i / 32] |= 1u << (i % 32);
+    bits.assign(band_texels * words, 0u);
+    for (size_t k = 0; k < blocked.size(); ++k)
+      if (blocked[k]) bits[(k / n) * words + (k % n) / 32] |= 1u << ((k % n) % 32);
+    // Bit counting, and colours of the unblocked samples.
+    band.visible_fraction.resize(band_texels);
+    band.visible_rgb.resize(colored ? band_texels : 0);
+    for (size_t t = 0; t < band_texels; ++t) {
+      int hidden = 0;
+      for (int w = 0; w < words; ++w) hidden += std::popcount(bits[t * words + w]);
+      band.visible_fraction[t] = float(n - hidden) / float(n);
+      if (colored) {
+        glm::vec3 rgb(0.0f);
+        for (int i = 0; i < n; ++i)
+          if (!((bits[t * words + i / 32] >> (i % 32)) & 1u)) rgb += source.color[i];
+        band.visible_rgb[t] = rgb / float(n);
       }
-  }
-  // Bit counting, and colors of the unblocked samples.
-  for (size_t j = 0; j < result.visible_fraction.size(); ++j) {
-    int hidden = 0;
-    for (int w = 0; w < words; ++w) hidden += std::popcount(bits[j * words + w]);
-    result.visible_fraction[j] = float(n - hidden) / float(n);
-    if (colored) {
-      glm::vec3 rgb(0.0f);
-      for (int i = 0; i < n; ++i)
-        if (!((bits[j * words + i / 32] >> (i % 32)) & 1u)) rgb += samples.color[i];
-      result.visible_rgb[j] = rgb / float(n);
     }
+    if (request.options.want_bitmasks) band.blocked_bits.swap(bits);
+    VISQ_RETURN_IF_ERROR(sampling::DeliverBand(result, band, sink));
   }
-  if (request.options.want_bitmasks) result.blocked_bits = std::move(bits);
   result.error.confidence = request.options.confidence;
   result.error.sampling = sampling::SamplingErrorBound(n, request.options.confidence);
   result.error.rigorous = sampling::SamplesAreIndependentStrata(request);
   result.error.lookup_max = 0.0;
   result.timing.run_ms = MillisecondsSince(start);
   result.passes = 0;
-  result.samples = std::move(samples);
   return result;
 }
 
@@ -127,8 +131,9 @@ double TwiceSignedArea(const std::vector<glm::dvec2>& polygon) {
 // core/light_visibility_query.h with the source as a light facing the
 // receiver. No samples, so no bitmasks and no sample colours.
 StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const std::string& scene,
-                                                          uint64_t scene_version,
-                                                          const sampling::HiddenSampleMapRequest& request) {
+                                                               uint64_t scene_version,
+                                                               const sampling::HiddenSampleMapRequest& request,
+                                                               const sampling::HiddenSampleMapBandSink& sink = {}) {
   if (request.options.want_bitmasks)
     return absl::InvalidArgumentError(
         "want_bitmasks: the exact method has no samples, hence no bitmasks; use RASTER or RAYCAST");
@@ -164,47 +169,60 @@ StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, c
   sampling::HiddenSampleMapResult result;
   result.width = width;
   result.height = height;
-  result.visible_fraction.reserve(answer.points.size());
-  for (const auto& point : answer.points) result.visible_fraction.push_back(float(point.visible_area_fraction));
+  // The points are answered together (they share the light's tree), so the
+  // map is one band.
+  sampling::HiddenSampleMapBand band;
+  band.visible_fraction.reserve(answer.points.size());
+  for (const auto& point : answer.points) band.visible_fraction.push_back(float(point.visible_area_fraction));
+  answer.points = {};
+  VISQ_RETURN_IF_ERROR(sampling::DeliverBand(result, band, sink));
   result.error.sampling = 0.0;
   result.error.confidence = 1.0;
   result.timing.run_ms = answer.compute_ms;
   return result;
 }
 
-// What a map holds while it is made: the bitmasks (read back a band at a
-// time, or traced) and the result's copy, the per-texel fractions and
-// colours, and the ray caster's receiver points and batch. The answer is
-// sent one chunk message at a time.
-uint64_t HiddenSampleMapWorkBytes(const sampling::HiddenSampleMapRequest& request) {
+// What a map holds while it is made: one band of rows (its bitmasks, the
+// GPU's read-back of them, its per-texel arrays and the ray caster's
+// receiver points and results), and then either the whole answer (a map
+// answered whole, sent one chunk message at a time) or, streamed, what its
+// writer may hold unsent.
+uint64_t HiddenSampleMapWorkBytes(const sampling::HiddenSampleMapRequest& request, bool streamed) {
   const uint64_t texels = uint64_t(std::max(request.receiver.width, 0)) * uint64_t(std::max(request.receiver.height, 0));
   const uint64_t words = (uint64_t(std::max(request.source.sample_count, 0)) + 31) / 32;
   const bool colored = !request.source.sample_colors.empty() || !request.source.color_texture.empty();
-  // The answer's bitmasks, and the GPU's read-back of them (twice the words
-  // for the Hough lookup), which the RASTER path holds one band at a time.
+  const uint64_t per_texel = 4 + (colored ? 12 : 0) + 4;  // fraction, colour, lookup error
   const uint64_t bits = texels * words * 4;
-  const uint64_t band_readback = std::min<uint64_t>(2 * bits, uint64_t{64} << 20);
-  return bits + band_readback + texels * (3 * (4 + (colored ? 12 : 0)) + 24) + (uint64_t{4} << 20);
+  // A band's read-back stays under 64 MiB (twice the words for the Hough
+  // lookup, at least 16 bytes a texel); the ray caster's bands are smaller.
+  constexpr uint64_t kBandBytes = uint64_t{64} << 20;
+  const uint64_t band_texels = std::min<uint64_t>(texels, kBandBytes / 16);
+  const uint64_t band = std::min(bits, kBandBytes) + std::min(2 * bits, kBandBytes) + band_texels * (per_texel + 24);
+  const uint64_t answer = (request.options.want_bitmasks ? bits : 0) + texels * per_texel;
+  return band + (streamed ? std::min(answer, kStreamedAnswerQueueBytes) : answer) + (uint64_t{4} << 20);
 }
 
-// With `hold`, the reservation outlives the call: it goes with the answer.
+// With `sink`, bands go to it as they are made; with `hold`, the
+// reservation outlives the call: it goes with the answer.
 StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,
-                                                       VisibilityMethod method, const sampling::HiddenSampleMapRequest& request,
-                                                       const gpu::JobOptions& job,
-                                                       std::shared_ptr<WorkMemoryBudget::Reservation>* hold = nullptr) {
-  VISQ_ASSIGN_OR_RETURN(
-      WorkMemoryBudget::Reservation memory,
-      engine.work_budget().Reserve(HiddenSampleMapWorkBytes(request), "width x height x samples", job));
+                                                            VisibilityMethod method,
+                                                            const sampling::HiddenSampleMapRequest& request,
+                                                            const gpu::JobOptions& job,
+                                                            const sampling::HiddenSampleMapBandSink& sink = {},
+                                                            std::shared_ptr<WorkMemoryBudget::Reservation>* hold = nullptr) {
+  VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
+                        engine.work_budget().Reserve(HiddenSampleMapWorkBytes(request, /*streamed=*/bool(sink)),
+                                                     "width x height x samples", job));
   if (hold != nullptr) *hold = std::make_shared<WorkMemoryBudget::Reservation>(std::move(memory));
   switch (method) {
-    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, job);
+    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, job, sink);
     case VisibilityMethod::kPluckerExact:
-      return ExactHiddenSampleMap(engine, resident.name, resident.version, request);
+      return ExactHiddenSampleMap(engine, resident.name, resident.version, request, sink);
     case VisibilityMethod::kRaster: break;
   }
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneFor(resident, request));
   VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
-  return mapper->Compute(*gpu_scene, request, job);
+  return mapper->Compute(*gpu_scene, request, job, sink);
 }
 
 // Patch visibility from a map of the receiver grid: the sampled methods'
@@ -218,7 +236,7 @@ StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, cons
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(map));
   VISQ_RETURN_IF_ERROR(CheckSize(map));
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
-                        engine.work_budget().Reserve(HiddenSampleMapWorkBytes(map),
+                        engine.work_budget().Reserve(HiddenSampleMapWorkBytes(map, /*streamed=*/false),
                                                      "source_columns x source_rows x receiver_columns x receiver_rows",
                                                      job));
   if (method == VisibilityMethod::kRaster) {
@@ -410,7 +428,8 @@ sampling::ReceiverSpec ReducedReceiver(const sampling::ReceiverSpec& receiver, i
 }
 
 StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const ResidentScene& resident,
-                                                         const HiddenSampleMapQuery& query) {
+                                                         const HiddenSampleMapQuery& query,
+                                                         const sampling::HiddenSampleMapBandSink& sink) {
   const AccuracyTarget& target = *query.target;
   const sampling::HiddenSampleMapRequest& request = query.request;
   if (request.source.pattern == sampling::SamplePattern::kCustom)
@@ -427,10 +446,12 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
     sized.options.confidence = target.confidence < 1.0 ? target.confidence : sized.options.confidence;
     return sized;
   };
-  auto run = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<sampling::HiddenSampleMapResult> {
+  // Probes are answered whole; only the chosen plan's map goes to the sink.
+  auto run = [&](VisibilityMethod method, int samples, int max_side,
+                 const sampling::HiddenSampleMapBandSink& bands = {}) -> StatusOr<sampling::HiddenSampleMapResult> {
     sampling::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
     VISQ_RETURN_IF_ERROR(CheckSize(sized));
-    return HiddenSampleMapBy(engine, resident, method, sized, query.call.Job());
+    return HiddenSampleMapBy(engine, resident, method, sized, query.call.Job(), bands);
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
     VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
@@ -449,7 +470,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   HiddenSampleMapAnswer answer;
   answer.method = MethodOfPlan(plan);
   const int samples = plan.parameters.contains("samples") ? int(plan.parameters.at("samples")) : 0;
-  VISQ_ASSIGN_OR_RETURN(answer.result, run(answer.method, samples, 0));
+  VISQ_ASSIGN_OR_RETURN(answer.result, run(answer.method, samples, 0, sink));
   engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing, answer.result.table_ms));
   answer.plan = std::move(report);
   return answer;
@@ -556,16 +577,17 @@ Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query) {
   return CheckSize(map);
 }
 
-StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query) {
+StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query,
+                                                   const sampling::HiddenSampleMapBandSink& sink) {
   VISQ_RETURN_IF_ERROR(CheckHiddenSampleMapQuery(query));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
-  if (query.target) return HiddenSampleMapForTarget(engine, *resident, query);
+  if (query.target) return HiddenSampleMapForTarget(engine, *resident, query, sink);
   const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
   HiddenSampleMapAnswer answer;
   answer.method = query.method;
-  VISQ_ASSIGN_OR_RETURN(answer.result,
-                        HiddenSampleMapBy(engine, *resident, query.method, checked, query.call.Job(), &answer.memory));
+  VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.call.Job(),
+                                                         sink, &answer.memory));
   return answer;
 }
 

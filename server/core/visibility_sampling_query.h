@@ -70,7 +70,12 @@ struct PatchVisibilityAnswer {
 [[nodiscard]] Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query);
 [[nodiscard]] Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query);
 
-[[nodiscard]] StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query);
+// Without a sink the answer holds the whole map. With one, every band of
+// receiver rows goes to it as soon as it is made (the first before the
+// second is drawn), and the answer holds the figures only: sizes, samples,
+// the bound (over every band) and the timing.
+[[nodiscard]] StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query,
+                                                                 const sampling::HiddenSampleMapBandSink& sink = {});
 [[nodiscard]] StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query);
 
 }  // namespace visq

@@ -17,6 +17,12 @@
 
 namespace visq {
 
+// What a streamed answer may hold written but not yet sent: its writer
+// (service/reactors.h, ProducedStreamReactor) makes the work wait beyond
+// this, so a slow reader holds back the work, not memory. The estimates of
+// streamed answers count it.
+inline constexpr uint64_t kStreamedAnswerQueueBytes = uint64_t{64} << 20;
+
 class WorkMemoryBudget {
  public:
   // 0: half of this machine's physical memory.

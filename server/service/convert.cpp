@@ -2,6 +2,8 @@
 
 #include <absl/strings/str_format.h>
 
+#include "common/check.h"
+
 namespace visq::service {
 
 glm::dvec3 FromProto(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
@@ -247,43 +249,62 @@ StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& reque
   return query;
 }
 
-ChunkedResponses<v1::HiddenSampleMapResponse> ToProtoStream(HiddenSampleMapAnswer answer_in) {
-  auto answer = std::make_shared<const HiddenSampleMapAnswer>(std::move(answer_in));
-  const sampling::HiddenSampleMapResult& result = answer->result;
+v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSampleMapResult& map) {
   v1::HiddenSampleMapResponse first;
-  first.set_width(result.width);
-  first.set_height(result.height);
-  first.set_sample_count(result.sample_count);
-  first.set_words_per_texel(result.words_per_texel);
-  const sampling::LookupMode lookup = result.error.lookup_max > 0 || !result.error.lookup_per_texel.empty()
-                                     ? sampling::LookupMode::kHough
-                                     : sampling::LookupMode::kExact;
-  *first.mutable_accuracy() = AccuracyToProto(result.error, answer->method, lookup, result.sample_count);
-  if (answer->plan) ToProto(*answer->plan, first.mutable_accuracy());
-  first.mutable_lookup_error()->Add(result.error.lookup_per_texel.begin(), result.error.lookup_per_texel.end());
-  for (const auto& p : result.samples.world) ToProto(p, first.add_source_samples());
+  first.set_width(map.width);
+  first.set_height(map.height);
+  first.set_sample_count(map.sample_count);
+  first.set_words_per_texel(map.words_per_texel);
+  for (const auto& p : map.samples.world) ToProto(p, first.add_source_samples());
+  return first;
+}
 
-  // Fractions, then colors (offsets count texels), then bitmask words.
-  ChunkedResponses<v1::HiddenSampleMapResponse> stream(std::move(first));
-  stream.Keep(answer);
-  stream.Add(result.visible_fraction.size(), [&result](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-    m.set_offset(a);
-    AddRange(result.visible_fraction, a, b, m.mutable_visible_fraction());
-  });
-  stream.Add(result.visible_rgb.size(), [&result](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-    m.set_offset(a);
-    m.mutable_visible_rgb()->Reserve(static_cast<int>(3 * (b - a)));
-    for (size_t i = a; i < b; ++i) {
-      m.add_visible_rgb(result.visible_rgb[i].r);
-      m.add_visible_rgb(result.visible_rgb[i].g);
-      m.add_visible_rgb(result.visible_rgb[i].b);
+Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int words_per_texel,
+                                const std::function<Status(v1::HiddenSampleMapResponse)>& write,
+                                size_t chunk_elements) {
+  VISQ_CHECK_LT(size_t{0}, chunk_elements);
+  // One array chunk per message; `offset` counts texels, or words for the
+  // bitmasks, from the map's first.
+  auto chunks = [&](size_t size, size_t first_offset, auto fill) -> Status {
+    for (size_t begin = 0; begin < size; begin += chunk_elements) {
+      const size_t end = std::min(size, begin + chunk_elements);
+      v1::HiddenSampleMapResponse message;
+      message.set_offset(first_offset + begin);
+      fill(message, begin, end);
+      VISQ_RETURN_IF_ERROR(write(std::move(message)));
     }
+    return absl::OkStatus();
+  };
+  const size_t first_word = band.first_texel * size_t(words_per_texel);
+  VISQ_RETURN_IF_ERROR(chunks(band.visible_fraction.size(), band.first_texel,
+                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+                                AddRange(band.visible_fraction, a, b, m.mutable_visible_fraction());
+                              }));
+  VISQ_RETURN_IF_ERROR(chunks(band.visible_rgb.size(), band.first_texel,
+                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+                                m.mutable_visible_rgb()->Reserve(static_cast<int>(3 * (b - a)));
+                                for (size_t i = a; i < b; ++i) {
+                                  m.add_visible_rgb(band.visible_rgb[i].r);
+                                  m.add_visible_rgb(band.visible_rgb[i].g);
+                                  m.add_visible_rgb(band.visible_rgb[i].b);
+                                }
+                              }));
+  VISQ_RETURN_IF_ERROR(chunks(band.blocked_bits.size(), first_word,
+                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+                                AddRange(band.blocked_bits, a, b, m.mutable_blocked_bits());
+                              }));
+  return chunks(band.lookup_error.size(), band.first_texel, [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    AddRange(band.lookup_error, a, b, m.mutable_lookup_error());
   });
-  stream.Add(result.blocked_bits.size(), [&result](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-    m.set_offset(a);
-    AddRange(result.blocked_bits, a, b, m.mutable_blocked_bits());
-  });
-  return stream;
+}
+
+v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer,
+                                                       sampling::LookupMode lookup) {
+  const sampling::HiddenSampleMapResult& result = answer.result;
+  v1::HiddenSampleMapResponse last;
+  *last.mutable_accuracy() = AccuracyToProto(result.error, answer.method, lookup, result.sample_count);
+  if (answer.plan) ToProto(*answer.plan, last.mutable_accuracy());
+  return last;
 }
 
 StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request) {

@@ -3,6 +3,8 @@
 // core's to validate.
 #pragma once
 
+#include <functional>
+
 #include "common/status.h"
 #include "core/light_visibility_query.h"
 #include "core/obscurance_query.h"
@@ -34,9 +36,19 @@ AccuracyTarget FromProto(const v1::AccuracyTarget& target);
 void ToProto(const PlanReport& plan, v1::Accuracy* out);
 
 [[nodiscard]] StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
-// The response as a stream of messages: figures first, then chunks of
-// fractions, colors and bitmask words. The stream keeps the answer.
-ChunkedResponses<v1::HiddenSampleMapResponse> ToProtoStream(HiddenSampleMapAnswer answer);
+// The response is streamed while the map is made (visq.proto): a first
+// message with what is known before any band (sizes, source samples), each
+// band's chunks of fractions, colours, bitmask words and lookup errors as
+// the band is counted, and a last message with what needs every band (the
+// accuracy, the timing).
+v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSampleMapResult& map);
+// Writes `band`'s messages, one array chunk each, to `write`; stops at the
+// first write that fails.
+[[nodiscard]] Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int words_per_texel,
+                                              const std::function<Status(v1::HiddenSampleMapResponse)>& write,
+                                              size_t chunk_elements = kChunkElements);
+v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer,
+                                                       sampling::LookupMode lookup);
 
 [[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
 void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);

@@ -5,8 +5,11 @@
 
 #include <atomic>
 #include <chrono>
+#include <condition_variable>
+#include <deque>
 #include <functional>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <type_traits>
 #include <vector>
@@ -14,6 +17,7 @@
 #include <grpcpp/server_context.h>
 
 #include "core/call_options.h"
+#include "core/work_budget.h"
 #include "service/chunked_responses.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
@@ -149,6 +153,142 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   std::atomic<bool> cancelled_{false};
   std::optional<ChunkedResponses<Response>> messages_;
   Response current_;
+};
+
+// Server-streaming answers written while they are made: `produce` runs on
+// the executor and hands each message to `out.Write` as soon as it is built;
+// what `produce` returns is written last (the figures that need the whole
+// answer: its bound and timing). Write waits while more than
+// kStreamedAnswerQueueBytes wait to be sent, so a slow reader holds back the
+// work rather than growing a queue; it fails once the call is cancelled or
+// when the client has read nothing for kMaxWriteStall.
+template <typename Response>
+class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
+ public:
+  static constexpr auto kMaxWriteStall = std::chrono::seconds(60);
+
+  using Produce = std::function<StatusOr<Response>(const std::atomic<bool>& cancelled, const RequestLog& log,
+                                                   ProducedStreamReactor& out)>;
+  ProducedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
+                        Produce produce)
+      : context_(context), log_(context, method, &ctx.metrics) {
+    context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
+    if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
+      Done(authorized);
+      return;
+    }
+    ctx.executor.Post([this, produce = std::move(produce)] {
+      StatusOr<Response> last = produce(cancelled_, log_, *this);
+      Status status = last.status();
+      if (status.ok()) status = Write(*std::move(last));
+      FinishProducing(status);
+    });
+  }
+
+  // Queues `message` for writing, after those before it.
+  [[nodiscard]] Status Write(Response message) {
+    std::unique_lock lock(mutex_);
+    while (!cancelled_ && queued_bytes_ > kStreamedAnswerQueueBytes) {
+      const uint64_t written_before = written_;
+      if (progress_.wait_for(lock, kMaxWriteStall) == std::cv_status::timeout && written_ == written_before) {
+        cancelled_ = true;
+        context_->TryCancel();
+        return absl::DeadlineExceededError(absl::StrCat("the client read nothing for ", kMaxWriteStall.count(), " s"));
+      }
+    }
+    if (cancelled_) return absl::CancelledError("the call was cancelled while its answer was written");
+    const uint64_t bytes = message.ByteSizeLong();
+    queued_bytes_ += bytes;
+    queue_.push_back({std::move(message), bytes});
+    if (writing_) return absl::OkStatus();
+    StartNext(lock);
+    return absl::OkStatus();
+  }
+
+  // Keeps `owner` (what the answer's memory reservation or arrays are) until
+  // the call ends.
+  void Keep(std::shared_ptr<const void> owner) {
+    std::lock_guard lock(mutex_);
+    kept_.push_back(std::move(owner));
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::unique_lock lock(mutex_);
+    writing_ = false;
+    queued_bytes_ -= current_bytes_;
+    ++written_;
+    if (!ok) cancelled_ = true;  // the client went away
+    progress_.notify_all();
+    if (!cancelled_ && !queue_.empty()) {
+      StartNext(lock);
+      return;
+    }
+    if (!producing_done_) return;
+    lock.unlock();
+    Done(cancelled_ && final_status_.ok() ? absl::CancelledError("the call was cancelled while its answer was written")
+                                          : final_status_);
+  }
+  void OnCancel() override {
+    std::lock_guard lock(mutex_);
+    cancelled_ = true;
+    progress_.notify_all();
+  }
+  void OnDone() override { delete this; }
+
+ private:
+  struct Queued {
+    Response message;
+    uint64_t bytes;
+  };
+
+  // With the lock held and the queue not empty: starts the next write, with
+  // the lock released (a reaction never runs under it).
+  void StartNext(std::unique_lock<std::mutex>& lock) {
+    current_ = std::move(queue_.front().message);
+    current_bytes_ = queue_.front().bytes;
+    queue_.pop_front();
+    writing_ = true;
+    lock.unlock();
+    this->StartWrite(&current_);
+  }
+
+  void FinishProducing(Status status) {
+    std::unique_lock lock(mutex_);
+    producing_done_ = true;
+    if (cancelled_ && status.ok()) status = absl::CancelledError("the call was cancelled while its answer was written");
+    final_status_ = status;
+    if (!status.ok()) {
+      for (const Queued& q : queue_) queued_bytes_ -= q.bytes;
+      queue_.clear();
+    }
+    if (writing_) return;  // OnWriteDone finishes the call
+    lock.unlock();
+    Done(status);
+  }
+
+  void Done(const Status& status) {
+    {
+      std::lock_guard lock(mutex_);
+      kept_.clear();  // the answer's memory goes before the call ends
+    }
+    log_.Done(status);
+    this->Finish(ToGrpcStatus(status));
+  }
+
+  grpc::CallbackServerContext* context_;
+  RequestLog log_;
+  std::atomic<bool> cancelled_{false};
+  std::mutex mutex_;
+  std::condition_variable progress_;
+  std::deque<Queued> queue_;
+  uint64_t queued_bytes_ = 0;  // queued and being written
+  uint64_t written_ = 0;
+  bool writing_ = false;
+  bool producing_done_ = false;
+  Status final_status_;
+  std::vector<std::shared_ptr<const void>> kept_;
+  Response current_;
+  uint64_t current_bytes_ = 0;
 };
 
 }  // namespace visq::service

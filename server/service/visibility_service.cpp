@@ -358,27 +358,44 @@ namespace visq::service {
 
 grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::HiddenSampleMap(
     grpc::CallbackServerContext* context, const v1::HiddenSampleMapRequest* request) {
-  return new PreparedStreamReactor<v1::HiddenSampleMapResponse>(
+  using Reactor = ProducedStreamReactor<v1::HiddenSampleMapResponse>;
+  return new Reactor(
       context, ctx_, "HiddenSampleMap",
-      [this, context, request](const std::atomic<bool>& cancelled,
-                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::HiddenSampleMapResponse>> {
+      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
+                               Reactor& out) -> StatusOr<v1::HiddenSampleMapResponse> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
-        VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, RunHiddenSampleMap(ctx_.engine, query));
+        // Each band is written as soon as it is counted, after the first
+        // message; time spent writing (and waiting for the reader) is
+        // transfer, not compute.
+        double transfer_ms = 0.0;
+        auto write = [&](v1::HiddenSampleMapResponse message) -> Status {
+          const double before = log.ElapsedMs();
+          Status written = out.Write(std::move(message));
+          transfer_ms += log.ElapsedMs() - before;
+          return written;
+        };
+        auto sink = [&](const sampling::HiddenSampleMapResult& map, const sampling::HiddenSampleMapBand& band) {
+          if (band.first_texel == 0) VISQ_RETURN_IF_ERROR(write(HiddenSampleMapFirstMessage(map)));
+          return WriteHiddenSampleMapBand(band, map.words_per_texel, write);
+        };
+        VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, RunHiddenSampleMap(ctx_.engine, query, sink));
         const sampling::HiddenSampleMapResult& result = answer.result;
         log.Info("{} {}x{} texels, {} samples{}", VisibilityMethodName(answer.method, query.request.options.lookup),
                  result.width, result.height, result.sample_count,
                  answer.plan ? absl::StrCat(" (chosen for the target, predicted ",
                                             absl::StrFormat("%.1f", answer.plan->chosen_plan().predicted_ms), " ms)")
                              : std::string());
-        const double before_transfer = log.ElapsedMs();
-        const JobTiming job_timing = result.timing;
-        const double compute_ms = result.timing.run_ms + result.table_ms;
-        ChunkedResponses<v1::HiddenSampleMapResponse> messages = ToProtoStream(std::move(answer));
-        SetStreamTiming(queue_ms + job_timing.queue_ms, compute_ms, before_transfer, log,
-                        messages.first().mutable_timing());
-        return messages;
+        // The memory reservation lasts until the last message is sent.
+        if (answer.memory) out.Keep(answer.memory);
+        v1::HiddenSampleMapResponse last = HiddenSampleMapLastMessage(answer, query.request.options.lookup);
+        v1::Timing* timing = last.mutable_timing();
+        timing->set_queue_ms(queue_ms + result.timing.queue_ms);
+        timing->set_compute_ms(result.timing.run_ms + result.table_ms);
+        timing->set_transfer_ms(transfer_ms);
+        timing->set_total_ms(log.ElapsedMs());
+        return last;
       });
 }
 

@@ -5,15 +5,18 @@
 
 #include <gtest/gtest.h>
 
+#include "core/visibility_sampling_query.h"
+
 #include "scene/sample_scenes.h"
 #include "test_support.h"
 
 namespace visq {
 namespace {
 
-std::unique_ptr<Engine> StartEngine(const std::filesystem::path& repo) {
+std::unique_ptr<Engine> StartEngine(const std::filesystem::path& repo, size_t map_band_bytes = 0) {
   EXPECT_TRUE(WriteSampleScenes(repo).ok());
   EngineOptions options;
+  if (map_band_bytes > 0) options.hidden_sample_map.band_readback_bytes = map_band_bytes;
   options.scene_repo = repo;
   options.gpu.debug = true;
   options.load_repository_at_start = false;
@@ -75,6 +78,74 @@ TEST(Engine, UnloadKeepsTheStoredSceneUnlessAskedToDelete) {
   ASSERT_TRUE(deleted.ok()) << deleted.status();
   EXPECT_TRUE(*deleted);
   EXPECT_EQ(engine->FindScene("cornell_box_visq", 0).status().code(), absl::StatusCode::kNotFound);
+}
+
+// The light over the tall box onto the floor beside it: partly shadowed.
+HiddenSampleMapQuery ShadowedFloorQuery(VisibilityMethod method, int samples, int size) {
+  HiddenSampleMapQuery query;
+  query.scene = "cornell_box_visq";
+  query.method = method;
+  sampling::HiddenSampleMapRequest& r = query.request;
+  r.source.patch = {{-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5}};
+  r.source.sample_count = samples;
+  r.receiver.patch = {{-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998}};
+  r.receiver.width = size;
+  r.receiver.height = size;
+  r.options.want_bitmasks = method != VisibilityMethod::kPluckerExact;
+  return query;
+}
+
+// With a sink, a map arrives a band of rows at a time, each band before the
+// next is made, and the bands are the map answered whole, bit for bit. A
+// sink that fails (the client went away) stops the map at that band.
+TEST(Engine, HiddenSampleMapStreamsItsBandsAsTheyAreMade) {
+  testing::ScratchDir dir;
+  // 32 x 32 texels, 64 samples: one uvec4 layer, 512 bytes of read-back a
+  // row, so 2 KiB bands hold 4 rows.
+  auto engine = StartEngine(dir.path() / "repo", /*map_band_bytes=*/2 << 10);
+  ASSERT_TRUE(engine);
+  for (VisibilityMethod method : {VisibilityMethod::kRaster, VisibilityMethod::kRaycast,
+                                  VisibilityMethod::kPluckerExact}) {
+    SCOPED_TRACE(VisibilityMethodName(method, sampling::LookupMode::kExact));
+    const HiddenSampleMapQuery query =
+        ShadowedFloorQuery(method, method == VisibilityMethod::kPluckerExact ? 0 : 64, 32);
+    auto whole = RunHiddenSampleMap(*engine, query);
+    ASSERT_TRUE(whole.ok()) << whole.status();
+
+    std::vector<float> fractions;
+    std::vector<uint32_t> bits;
+    int bands = 0;
+    auto streamed = RunHiddenSampleMap(
+        *engine, query, [&](const sampling::HiddenSampleMapResult& map, const sampling::HiddenSampleMapBand& band) {
+          EXPECT_EQ(map.width, 32);
+          EXPECT_EQ(band.first_texel, fractions.size()) << "bands in order, none missing";
+          EXPECT_TRUE(map.visible_fraction.empty()) << "a streamed map is never held whole";
+          fractions.insert(fractions.end(), band.visible_fraction.begin(), band.visible_fraction.end());
+          bits.insert(bits.end(), band.blocked_bits.begin(), band.blocked_bits.end());
+          ++bands;
+          return absl::OkStatus();
+        });
+    ASSERT_TRUE(streamed.ok()) << streamed.status();
+    EXPECT_EQ(fractions, whole->result.visible_fraction);
+    EXPECT_EQ(bits, whole->result.blocked_bits);
+    EXPECT_TRUE(streamed->result.visible_fraction.empty());
+    EXPECT_EQ(streamed->result.error.total(), whole->result.error.total());
+    if (method == VisibilityMethod::kPluckerExact) {
+      EXPECT_EQ(bands, 1) << "the exact method answers its points together";
+      continue;
+    }
+    // RASTER: 8 bands of 4 rows; RAYCAST: bands of 4M segments, one here.
+    if (method == VisibilityMethod::kRaster) EXPECT_EQ(bands, 8);
+
+    int calls = 0;
+    auto stopped = RunHiddenSampleMap(*engine, query,
+                                      [&](const sampling::HiddenSampleMapResult&, const sampling::HiddenSampleMapBand&) {
+                                        ++calls;
+                                        return absl::CancelledError("the client went away");
+                                      });
+    EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled);
+    EXPECT_EQ(calls, 1) << "no band is made after the sink failed";
+  }
 }
 
 }  // namespace

@@ -72,37 +72,71 @@ TEST(Convert, VoxelizeDefaultsFillUnsetSizes) {
   EXPECT_FALSE(query->box.has_value());
 }
 
-// A map's answer as the stream sends it: figures first, then the fractions
-// and bitmask words, each in order from offset 0.
-TEST(Convert, HiddenSampleMapAnswerStreamsEveryTexel) {
+// A map's bands as the stream sends them: each array's chunks carry the
+// offset of their first element in the whole map (texels, or words for the
+// bitmasks), so bands written one after another rebuild the map; the first
+// message holds the sizes, the last the accuracy.
+TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
   HiddenSampleMapAnswer answer;
-  sampling::HiddenSampleMapResult& r = answer.result;
-  r.width = 3;
-  r.height = 2;
-  r.sample_count = 40;
-  r.words_per_texel = 2;
-  r.visible_fraction = {1, 0.5f, 0.25f, 0, 1, 1};
-  r.blocked_bits = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12};
-  ChunkedResponses<v1::HiddenSampleMapResponse> stream = ToProtoStream(answer);
-  v1::HiddenSampleMapResponse m;
-  ASSERT_TRUE(stream.Next(m));
-  EXPECT_EQ(m.width(), 3u);
-  EXPECT_EQ(m.height(), 2u);
-  EXPECT_EQ(m.words_per_texel(), 2u);
-  std::vector<float> fractions(m.visible_fraction().begin(), m.visible_fraction().end());
-  std::vector<uint32_t> bits;
-  while (stream.Next(m)) {
-    if (m.visible_fraction_size() > 0) {
-      EXPECT_EQ(m.offset(), fractions.size());
-      fractions.insert(fractions.end(), m.visible_fraction().begin(), m.visible_fraction().end());
-    }
-    if (m.blocked_bits_size() > 0) {
-      EXPECT_EQ(m.offset(), bits.size());
-      bits.insert(bits.end(), m.blocked_bits().begin(), m.blocked_bits().end());
-    }
+  sampling::HiddenSampleMapResult& map = answer.result;
+  map.width = 3;
+  map.height = 2;
+  map.sample_count = 40;
+  map.words_per_texel = 2;
+  const std::vector<float> fractions = {1, 0.5f, 0.25f, 0, 1, 1};
+  const std::vector<uint32_t> words = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12};
+  const std::vector<float> lookup = {0, 0.1f, 0, 0.2f, 0, 0.3f};
+
+  std::vector<v1::HiddenSampleMapResponse> sent = {HiddenSampleMapFirstMessage(map)};
+  auto write = [&](v1::HiddenSampleMapResponse m) {
+    sent.push_back(std::move(m));
+    return absl::OkStatus();
+  };
+  for (size_t row = 0; row < 2; ++row) {
+    sampling::HiddenSampleMapBand band;
+    band.first_texel = row * 3;
+    band.visible_fraction.assign(fractions.begin() + row * 3, fractions.begin() + row * 3 + 3);
+    band.blocked_bits.assign(words.begin() + row * 6, words.begin() + row * 6 + 6);
+    band.lookup_error.assign(lookup.begin() + row * 3, lookup.begin() + row * 3 + 3);
+    ASSERT_TRUE(WriteHiddenSampleMapBand(band, map.words_per_texel, write, /*chunk_elements=*/2).ok());
   }
-  EXPECT_EQ(fractions, r.visible_fraction);
-  EXPECT_EQ(bits, r.blocked_bits);
+  map.error.sampling = 0.125;
+  sent.push_back(HiddenSampleMapLastMessage(answer, sampling::LookupMode::kHough));
+
+  EXPECT_EQ(sent.front().width(), 3u);
+  EXPECT_EQ(sent.front().words_per_texel(), 2u);
+  EXPECT_FALSE(sent.front().has_accuracy());
+  EXPECT_TRUE(sent.back().has_accuracy());
+  EXPECT_EQ(sent.back().accuracy().method(), "raster-hough-lookup");
+  std::vector<float> got_fractions(fractions.size(), -1), got_lookup(lookup.size(), -1);
+  std::vector<uint32_t> got_words(words.size(), 0);
+  for (const v1::HiddenSampleMapResponse& m : sent) {
+    const int arrays = (m.visible_fraction_size() > 0) + (m.blocked_bits_size() > 0) + (m.lookup_error_size() > 0);
+    EXPECT_LE(arrays, 1) << "one array chunk per message";
+    EXPECT_LE(m.visible_fraction_size() + m.blocked_bits_size() + m.lookup_error_size(), 2);
+    for (int i = 0; i < m.visible_fraction_size(); ++i) got_fractions.at(m.offset() + i) = m.visible_fraction(i);
+    for (int i = 0; i < m.blocked_bits_size(); ++i) got_words.at(m.offset() + i) = m.blocked_bits(i);
+    for (int i = 0; i < m.lookup_error_size(); ++i) got_lookup.at(m.offset() + i) = m.lookup_error(i);
+  }
+  EXPECT_EQ(got_fractions, fractions);
+  EXPECT_EQ(got_words, words);
+  EXPECT_EQ(got_lookup, lookup);
+}
+
+// A write that fails (the client went away) stops the band there.
+TEST(Convert, HiddenSampleMapBandStopsAtAFailedWrite) {
+  sampling::HiddenSampleMapBand band;
+  band.visible_fraction.assign(10, 0.5f);
+  int writes = 0;
+  const Status status = WriteHiddenSampleMapBand(
+      band, 1,
+      [&](v1::HiddenSampleMapResponse) {
+        ++writes;
+        return absl::CancelledError("gone");
+      },
+      /*chunk_elements=*/2);
+  EXPECT_EQ(status.code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(writes, 1);
 }
 
 }  // namespace

@@ -237,6 +237,41 @@ TEST(SlicemapSurface, MoreThan1024SlicesUseSeveralPasses) {
   CheckConservativeSurface(s, params, "1100 slices");
 }
 
+// Bands of image rows, each a GL job of its own (other queries run between
+// them), give the bits of one job, in every mode: surface, solid with a
+// conservative surface pass, local precision, and several slice passes.
+TEST(SlicemapBands, BandsOfRowsGiveTheBitsOfOneJob) {
+  const Uploaded s = Upload(MakeSphere(kSphereCenter, 1.0, 3));
+  struct Case {
+    VoxelizeMode mode;
+    SlicePrecision precision;
+    Rasterization rasterization;
+    uint32_t slices;
+  };
+  for (const Case& c : {Case{VoxelizeMode::kSurface, SlicePrecision::kUniform, Rasterization::kStandard, 64},
+                        Case{VoxelizeMode::kSolid, SlicePrecision::kUniform, Rasterization::kConservative, 600},
+                        Case{VoxelizeMode::kSolid, SlicePrecision::kLocal, Rasterization::kStandard, 64},
+                        Case{VoxelizeMode::kSurface, SlicePrecision::kUniform, Rasterization::kConservative, 1100}}) {
+    VoxelizeParams params = Params(s.scene, 2, 40, 36, c.slices);
+    params.mode = c.mode;
+    params.precision = c.precision;
+    params.rasterization = c.rasterization;
+    const gpu::VoxelizeResult whole = MustVoxelize(s, params);
+    params.max_columns_per_job = 40 * 5;  // bands of 5 rows, the last of 1
+    const gpu::VoxelizeResult banded = MustVoxelize(s, params);
+    SCOPED_TRACE(::testing::Message() << "slices " << c.slices << ", mode " << int(c.mode));
+    EXPECT_GT(whole.occupied_voxels, 0u);
+    EXPECT_EQ(banded.grid.bits, whole.grid.bits);
+    EXPECT_EQ(banded.column_near, whole.column_near);
+    EXPECT_EQ(banded.passes, whole.passes) << "rasterizations of the scene, not bands";
+    const uint32_t per_band = (c.mode == VoxelizeMode::kSolid && c.rasterization == Rasterization::kConservative) ? 2 : 1;
+    const uint32_t slice_passes = (c.slices + (c.mode == VoxelizeMode::kSolid ? 511 : 1023)) /
+                                  (c.mode == VoxelizeMode::kSolid ? 512 : 1024);
+    EXPECT_EQ(whole.gl_jobs, 1 + slice_passes * per_band);
+    EXPECT_EQ(banded.gl_jobs, 1 + slice_passes * per_band * 8) << "36 rows in bands of 5";
+  }
+}
+
 TEST(SlicemapSurface, TranslatedBy1e6GivesTheSameGrid) {
   const Uploaded near_origin = Upload(MakeSphere(kSphereCenter, 1.0, 3));
   const Uploaded far = Upload(MakeSphere(kSphereCenter + glm::dvec3(1e6, -1e6, 1e6), 1.0, 3));

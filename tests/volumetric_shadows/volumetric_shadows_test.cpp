@@ -571,6 +571,34 @@ TEST(VolumetricShadowsTest, TranslatedWorldGivesSameImage) {
   std::printf("translated by 1e6: max diff %.3g (peak %.3g)\n", diff, peak);
 }
 
+// Every stage is its own GL job and the traversal one per band of rows
+// (other queries run between them): bands give the image of one pass, for
+// the min-max traversal and for ray marching, with the direct light too.
+TEST(VolumetricShadowsTest, BandsOfRowsGiveTheImageOfOnePass) {
+  VolumetricParams params = CornellSpotParams();
+  params.camera.width = 80;
+  params.camera.height = 60;
+  params.medium = {0.3, 0.5, 0.2};
+  params.shadow_map_size = 256;
+  params.combined_image = true;
+  const Scene scene = OccluderScene(glm::dvec3(0.0));
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  for (VolumetricMethod method : {VolumetricMethod::kMinMaxTraversal, VolumetricMethod::kRayMarching}) {
+    params.method = method;
+    params.max_pixels_per_job = 80 * 64;  // whole 8-row groups: one band of 64 rows
+    const VolumetricResult whole = Render(*gpu_scene, scene, params);
+    params.max_pixels_per_job = 80 * 16;  // bands of 16 rows: 16, 16, 16, 12
+    const VolumetricResult banded = Render(*gpu_scene, scene, params);
+    ASSERT_GT(MaxOf(whole.inscattering), 0.0);
+    EXPECT_EQ(banded.inscattering, whole.inscattering);
+    EXPECT_EQ(banded.combined, whole.combined);
+    // Set-up, shadow map, camera, rectification, min-max, read-back.
+    EXPECT_EQ(whole.gl_jobs, 6u + 1u);
+    EXPECT_EQ(banded.gl_jobs, 6u + 4u);
+  }
+}
+
 // ---------------------------------------------------------------------------
 // Bad inputs name the field and the value.
 TEST(VolumetricShadowsTest, BadInputsAreRejected) {

@@ -428,6 +428,12 @@ class Client:
                 for field, _, _, _ in arrays:
                     m.ClearField(field)
                 first.append(m)
+            else:
+                # Figures that need the whole answer (a hidden-sample map's
+                # accuracy and timing) come in its last message.
+                for field in ("accuracy", "timing"):
+                    if field in m.DESCRIPTOR.fields_by_name and m.HasField(field):
+                        getattr(first[0], field).CopyFrom(getattr(m, field))
 
         self._server_stream(rpc, request, scene, timeout, cancel, on_message)
         if not first:
@@ -562,9 +568,10 @@ class Client:
         chunks, f = self._chunked_stream(self._stub.HiddenSampleMap, "HiddenSampleMap", request, scene, timeout, cancel,
                                          [("visible_fraction", "offset", np.float32, 1),
                                           ("visible_rgb", "offset", np.float32, 3),
-                                          ("blocked_bits", "offset", np.uint32, 1)])
+                                          ("blocked_bits", "offset", np.uint32, 1),
+                                          ("lookup_error", "offset", np.float32, 1)])
         h, w = f.height, f.width
-        lookup_error = _array(f.lookup_error, np.float32).reshape(h, w) if len(f.lookup_error) == h * w else None
+        lookup_error = chunks.get("lookup_error", np.float32, (h, w))
         samples_xyz = np.array([(p.x, p.y, p.z) for p in f.source_samples], dtype=np.float64).reshape(-1, 3)
         return HiddenSampleMap(
             visible_fraction=chunks.get("visible_fraction", np.float32, (h, w), required=True),

@@ -34,8 +34,13 @@ class HiddenSampleMapper {
   HiddenSampleMapper(const HiddenSampleMapper&) = delete;
   HiddenSampleMapper& operator=(const HiddenSampleMapper&) = delete;
 
-  [[nodiscard]] StatusOr<sampling::HiddenSampleMapResult> Compute(const GpuScene& scene, const sampling::HiddenSampleMapRequest& request,
-                                                        const JobOptions& job = {});
+  // Without a sink the result holds the whole map; with one, each band of
+  // rows goes to the sink as soon as it is counted and the result holds the
+  // figures only (sizes, samples, bound, timing).
+  [[nodiscard]] StatusOr<sampling::HiddenSampleMapResult> Compute(const GpuScene& scene,
+                                                                  const sampling::HiddenSampleMapRequest& request,
+                                                                  const JobOptions& job = {},
+                                                                  const sampling::HiddenSampleMapBandSink& sink = {});
   [[nodiscard]] StatusOr<sampling::PatchVisibilityResult> PatchVisibility(const GpuScene& scene,
                                                                 const sampling::PatchVisibilityRequest& request,
                                                                 const JobOptions& job = {});

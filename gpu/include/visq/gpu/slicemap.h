@@ -71,6 +71,7 @@ inline constexpr uint32_t kMaxSlicemapSlices = 4096;
 inline constexpr uint32_t kSlicesPerPass = 1024;       // 8 targets x 4 channels x 32 bits
 inline constexpr uint32_t kSolidSlicesPerPass = 512;   // front and back maps share the 8 targets
 inline constexpr uint64_t kDefaultMaxSlicemapBytes = uint64_t{1} << 30;
+inline constexpr size_t kDefaultSlicemapColumnsPerJob = size_t{1} << 20;
 
 struct VoxelizeParams {
   SlicemapBox box;
@@ -84,6 +85,10 @@ struct VoxelizeParams {
   std::vector<TriangleRange> triangles;
   // Largest packed result (and per-pass GPU targets) accepted.
   uint64_t max_bytes = kDefaultMaxSlicemapBytes;
+  // Each pass is drawn and read back a band of image rows of at most this
+  // many columns at a time, each band a GL job: other queries get the GL
+  // thread between bands. The bits are those of one draw.
+  size_t max_columns_per_job = kDefaultSlicemapColumnsPerJob;
   JobOptions job;
 };
 
@@ -117,6 +122,10 @@ struct VoxelizeResult {
   SlicePrecision precision = SlicePrecision::kUniform;
   Rasterization rasterization = Rasterization::kStandard;
   uint32_t passes = 0;  // rasterizations of the scene, depth pass included
+  // GL jobs: the set-up (with the depth pass), then one per pass and band of
+  // image rows (up to 2^20 columns each). Other queries get the GL thread
+  // between them.
+  uint32_t gl_jobs = 0;
   // Local precision: per column (index y * width + x), the depth range the
   // column's slices split, as a fraction of the box depth (0 = front face,
   // 1 = back face); slice k of the column covers

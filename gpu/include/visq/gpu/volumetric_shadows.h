@@ -167,6 +167,10 @@ struct VolumetricParams {
   // kSvd: the largest residual of the rank-K table allowed, relative to its
   // largest value (the rank stops growing at 8).
   double svd_tolerance = 1e-3;
+  // Each stage is a GL job, and the traversal one per band of image rows
+  // of at most this many pixels (rounded to whole 8-row groups): other
+  // queries get the GL thread between them. The image is that of one pass.
+  uint32_t max_pixels_per_job = 1u << 18;
   JobOptions job;
 };
 
@@ -208,6 +212,9 @@ struct VolumetricResult {
   bool epipole_inside_map = false;
   VolumetricBox medium_box;  // directional light only (the medium's box)
   VolumetricTimings timings;
+  // GL jobs the rendering took: one per stage and one per band of image
+  // rows of the traversal. Other queries get the GL thread between them.
+  uint32_t gl_jobs = 0;
 };
 
 // Renders `params` over `gpu_scene` (the GPU copy of `scene`; `scene` gives
