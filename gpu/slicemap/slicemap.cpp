@@ -31,6 +31,7 @@
 #include <fmt/format.h>
 
 #include "gl_check.h"
+#include "gl_state_across_jobs.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
 #include "shader_program.h"
@@ -148,7 +149,6 @@ void ScatterTarget(const std::vector<GLuint>& texels, size_t first_column, size_
 // image rows are GL jobs of their own, so other queries get the GL thread
 // between them.
 struct SlicemapTargets {
-  uint64_t generation = 0;
   GlTexture2D near_far{NoCreate};
   std::vector<GlTexture2D> targets;
   GlFramebuffer framebuffer{NoCreate};
@@ -203,7 +203,6 @@ StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, 
                                                      "slicemap needs 8",
                                                      max_draw_buffers, max_attachments));
   auto t = std::make_shared<SlicemapTargets>();
-  t->generation = CurrentContextGeneration();
   for (uint32_t i = 0; i < target_count; ++i) {
     t->targets.emplace_back();
     glTextureStorage2D(t->targets.back().id(), 1, GL_RGBA32UI, static_cast<GLsizei>(config.width),
@@ -285,32 +284,18 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     raw.back = EmptyGrid(config.width, config.height, config.slices);
   }
 
-  // The targets die on the GL thread however the voxelization ends.
-  std::shared_ptr<SlicemapTargets> targets;
-  struct ReleaseOnGlThread {
-    GpuWorker& worker;
-    std::shared_ptr<SlicemapTargets>& targets;
-    ~ReleaseOnGlThread() {
-      if (targets) worker.Post([t = std::move(targets)]() mutable { t.reset(); });
-    }
-  } release{worker, targets};
+  GlStateAcrossJobs<SlicemapTargets> targets(worker);
   auto job = [&](const std::function<Status()>& body) -> Status {
     JobTiming timing;
-    const Status status = worker.Run(
-        config.job,
-        [&]() -> Status {
-          if (targets && targets->generation != CurrentContextGeneration())
-            return absl::InternalError("slicemap: the GPU context was lost between passes; retry");
-          return body();
-        },
-        &timing);
+    const Status status = worker.Run(config.job, body, &timing);
     raw.timings.queue_ms += timing.queue_ms;
     ++raw.gl_jobs;
     return status;
   };
   VISQ_RETURN_IF_ERROR(job([&]() -> Status {
-    VISQ_ASSIGN_OR_RETURN(targets, CreateTargets(scene, view, config, firsts, counts, draw_nothing,
-                                                 maps * max_targets_per_map, raw));
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<SlicemapTargets> made,
+                          CreateTargets(scene, view, config, firsts, counts, draw_nothing, maps * max_targets_per_map, raw));
+    targets.Set(std::move(made));
     return absl::OkStatus();
   }));
 
@@ -319,12 +304,13 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   std::vector<GLuint> texels;
   auto run_pass = [&](bool pass_solid, bool pass_conservative, uint32_t first_slice, uint32_t pass_slices,
                       uint32_t first_row, uint32_t rows) -> Status {
+    VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
     const uint32_t targets_per_map = (pass_slices + 127) / 128;
     const uint32_t pass_maps = pass_solid ? 2 : 1;
-    const GLuint framebuffer = targets->framebuffer.id();
+    const GLuint framebuffer = made->framebuffer.id();
     auto start = Clock::now();
     SetPassState(config, first_row, rows);
-    if (local) glBindTextureUnit(0, targets->near_far.id());
+    if (local) glBindTextureUnit(0, made->near_far.id());
     ShaderDefines defines = BaseDefines(view, config, pass_conservative);
     defines.emplace_back("TARGETS", std::to_string(targets_per_map));
     if (pass_solid) defines.emplace_back("SOLID", "1");
@@ -367,7 +353,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     for (uint32_t m = 0; m < pass_maps; ++m) {
       SlicemapGrid& grid = !pass_solid ? raw.surface : (m == 0 ? raw.front : raw.back);
       for (uint32_t t = 0; t < targets_per_map; ++t) {
-        glGetTextureSubImage(targets->targets[m * max_targets_per_map + t].id(), 0, 0, static_cast<GLint>(first_row),
+        glGetTextureSubImage(made->targets[m * max_targets_per_map + t].id(), 0, 0, static_cast<GLint>(first_row),
                              0, static_cast<GLsizei>(config.width), static_cast<GLsizei>(rows), 1, GL_RGBA_INTEGER,
                              GL_UNSIGNED_INT, static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
         ScatterTarget(texels, size_t{first_row} * config.width, band_columns, grid, first_slice / 32 + t * 4);

@@ -41,6 +41,7 @@
 
 #include "common/job_timing.h"
 #include "gl_check.h"
+#include "gl_state_across_jobs.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
 #include "shader_program.h"
@@ -359,7 +360,6 @@ void SetRectUniforms(const GlProgram* program, const Setup& setup) {
 // between them. Each job binds what it uses and sets its programs' uniforms
 // (the jobs in between may use the same cached programs).
 struct VolumetricTargets {
-  uint64_t generation = 0;
   const GlProgram* shadow = nullptr;
   const GlProgram* camera = nullptr;
   const GlProgram* rectify = nullptr;
@@ -416,7 +416,6 @@ StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const V
   if (method == VolumetricMethod::kRayMarching) integrate_defines.emplace_back("RAY_MARCH", "1");
 
   auto t = std::make_shared<VolumetricTargets>();
-  t->generation = CurrentContextGeneration();
   VISQ_ASSIGN_OR_RETURN(t->shadow,
                         Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
   VISQ_ASSIGN_OR_RETURN(t->camera,
@@ -727,56 +726,51 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
   VolumetricResult result;
   std::vector<glm::vec4> pixels;
   // Each stage, and each band of the traversal, is a GL job of its own; a
-  // cancelled or expired call stops at the next. The targets die on the GL
-  // thread however the rendering ends.
-  std::shared_ptr<VolumetricTargets> targets;
-  struct ReleaseOnGlThread {
-    GpuWorker& worker;
-    std::shared_ptr<VolumetricTargets>& targets;
-    ~ReleaseOnGlThread() {
-      if (targets) worker.Post([t = std::move(targets)]() mutable { t.reset(); });
-    }
-  } release{worker, targets};
-  auto stage = [&](double& stage_ms, const std::function<Status(const GpuScene::Resources&)>& body) -> Status {
+  // cancelled or expired call stops at the next.
+  GlStateAcrossJobs<VolumetricTargets> targets(worker);
+  VolumetricTimings& ms = result.timings;
+  auto job = [&](double& stage_ms, const std::function<Status()>& body) -> Status {
     JobTiming timing;
-    const Status status = worker.Run(
-        params.job,
-        [&]() -> Status {
-          if (targets && targets->generation != CurrentContextGeneration())
-            return absl::InternalError("volumetric shadows: the GPU context was lost between stages; retry");
-          VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, gpu_scene.CurrentResources());
-          return body(*resources);
-        },
-        &timing);
-    result.timings.queue_ms += timing.queue_ms;
+    const Status status = worker.Run(params.job, body, &timing);
+    ms.queue_ms += timing.queue_ms;
     stage_ms += timing.run_ms;
     ++result.gl_jobs;
     return status;
   };
-  VolumetricTimings& ms = result.timings;
-  VISQ_RETURN_IF_ERROR(stage(ms.setup_ms, [&](const GpuScene::Resources&) -> Status {
-    VISQ_ASSIGN_OR_RETURN(targets, CreateTargets(setup, params.light, params.method));
+  using Stage = std::function<Status(const GpuScene::Resources&, const VolumetricTargets&)>;
+  auto stage = [&](double& stage_ms, const Stage& body) -> Status {
+    return job(stage_ms, [&]() -> Status {
+      VISQ_ASSIGN_OR_RETURN(const VolumetricTargets* t, targets.Get("volumetric shadows"));
+      VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, gpu_scene.CurrentResources());
+      return body(*resources, *t);
+    });
+  };
+  VISQ_RETURN_IF_ERROR(job(ms.setup_ms, [&]() -> Status {
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<VolumetricTargets> made, CreateTargets(setup, params.light, params.method));
+    targets.Set(std::move(made));
     return absl::OkStatus();
   }));
-  VISQ_RETURN_IF_ERROR(stage(ms.shadow_map_ms, [&](const GpuScene::Resources& res) {
-    return DrawShadowMap(res, *targets, setup);
+  VISQ_RETURN_IF_ERROR(stage(ms.shadow_map_ms, [&](const GpuScene::Resources& res, const VolumetricTargets& t) {
+    return DrawShadowMap(res, t, setup);
   }));
-  VISQ_RETURN_IF_ERROR(stage(ms.camera_ms, [&](const GpuScene::Resources& res) {
-    return DrawCameraPass(res, *targets, setup);
+  VISQ_RETURN_IF_ERROR(stage(ms.camera_ms, [&](const GpuScene::Resources& res, const VolumetricTargets& t) {
+    return DrawCameraPass(res, t, setup);
   }));
-  VISQ_RETURN_IF_ERROR(stage(ms.rectification_ms, [&](const GpuScene::Resources&) {
-    return Rectify(*targets, setup, params.light);
+  VISQ_RETURN_IF_ERROR(stage(ms.rectification_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
+    return Rectify(t, setup, params.light);
   }));
-  VISQ_RETURN_IF_ERROR(stage(ms.mipmap_ms, [&](const GpuScene::Resources&) { return BuildMinMax(*targets, setup); }));
+  VISQ_RETURN_IF_ERROR(stage(ms.mipmap_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
+    return BuildMinMax(t, setup);
+  }));
   const uint32_t band_rows = TraversalBandRows(setup.width, params.max_pixels_per_job);
   for (uint32_t first_row = 0; first_row < setup.height; first_row += band_rows) {
     const uint32_t rows = std::min(band_rows, setup.height - first_row);
-    VISQ_RETURN_IF_ERROR(stage(ms.traversal_ms, [&](const GpuScene::Resources&) {
-      return IntegrateRows(*targets, setup, params, first_row, rows);
+    VISQ_RETURN_IF_ERROR(stage(ms.traversal_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
+      return IntegrateRows(t, setup, params, first_row, rows);
     }));
   }
-  VISQ_RETURN_IF_ERROR(stage(ms.readback_ms, [&](const GpuScene::Resources&) {
-    return ReadPixels(*targets, setup, pixels);
+  VISQ_RETURN_IF_ERROR(stage(ms.readback_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
+    return ReadPixels(t, setup, pixels);
   }));
   result.timings.integrand_table_ms = setup.svd_ms;
 
