@@ -71,7 +71,7 @@ inline constexpr uint32_t kMaxSlicemapSlices = 4096;
 inline constexpr uint32_t kSlicesPerPass = 1024;       // 8 targets x 4 channels x 32 bits
 inline constexpr uint32_t kSolidSlicesPerPass = 512;   // front and back maps share the 8 targets
 inline constexpr uint64_t kDefaultMaxSlicemapBytes = uint64_t{1} << 30;
-inline constexpr size_t kDefaultSlicemapColumnsPerJob = size_t{1} << 20;
+inline constexpr size_t kDefaultSlicemapColumnsPerJob = size_t{1} << 18;
 
 struct VoxelizeParams {
   SlicemapBox box;
@@ -123,7 +123,7 @@ struct VoxelizeResult {
   Rasterization rasterization = Rasterization::kStandard;
   uint32_t passes = 0;  // rasterizations of the scene, depth pass included
   // GL jobs: the set-up (with the depth pass), then one per pass and band of
-  // image rows (up to 2^20 columns each). Other queries get the GL thread
+  // image rows (up to 2^18 columns each). Other queries get the GL thread
   // between them.
   uint32_t gl_jobs = 0;
   // Local precision: per column (index y * width + x), the depth range the
