@@ -330,6 +330,10 @@ StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleM
       VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.lookup_error_size()), "lookup_error"));
       out.figures.mutable_lookup_error()->Add(message.lookup_error().begin(), message.lookup_error().end());
     }
+    if (message.texel_error_size() > 0) {
+      VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.texel_error_size()), "texel_error"));
+      out.figures.mutable_texel_error()->Add(message.texel_error().begin(), message.texel_error().end());
+    }
     if (message.has_accuracy()) *out.figures.mutable_accuracy() = message.accuracy();
     if (message.has_timing()) *out.figures.mutable_timing() = message.timing();
   }

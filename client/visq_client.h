@@ -53,7 +53,8 @@ Status FromGrpcStatus(const grpc::Status& status);
 // A hidden-sample map reassembled from its streamed chunks.
 struct HiddenSampleMap {
   // Sizes and samples (the stream's first message), accuracy and timing
-  // (its last), and the lookup errors reassembled (FAST only).
+  // (its last), and the lookup errors (FAST) and per-texel bounds
+  // (want_texel_error) reassembled.
   v1::HiddenSampleMapResponse figures;
   std::vector<float> visible_fraction;  // width * height, row-major
   std::vector<float> visible_rgb;       // 3 per texel for colored lights

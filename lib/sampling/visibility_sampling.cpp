@@ -11,6 +11,7 @@
 
 #include "sampling/visibility_sampling.h"
 #include "common/check.h"
+#include "sampling/count_intervals.h"
 #include "common/random.h"
 #include "common/coordinates.h"
 
@@ -385,6 +386,29 @@ double SamplingErrorBound(int sample_count, double confidence) {
   return std::sqrt(std::log(2.0 / (1.0 - confidence)) / (2.0 * double(sample_count)));
 }
 
+void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& map, HiddenSampleMapBand& band) {
+  if (!SamplesAreIndependentStrata(request) || map.sample_count <= 0) {
+    band.texel_error.clear();
+    return;
+  }
+  const int n = map.sample_count;
+  const std::shared_ptr<const CountIntervals> limits = StratifiedCountIntervals(n, request.options.confidence);
+  map.error.has_per_texel = true;
+  band.texel_error.resize(band.texels());
+  for (size_t t = 0; t < band.texels(); ++t) {
+    // The count is exact: (n - blocked) / n in float for n <= 4096.
+    const float answer = band.visible_fraction[t];
+    const int visible = static_cast<int>(std::lround(double(answer) * n));
+    // The Hough lookup may have called up to lookup_error * n visible samples
+    // hidden: the samples' own count lies in [visible, visible + that].
+    const int maybe = band.lookup_error.empty() ? 0 : static_cast<int>(std::lround(double(band.lookup_error[t]) * n));
+    const float low = limits->low[size_t(visible)], high = limits->high[size_t(std::min(n, visible + maybe))];
+    const float error = std::max(answer - low, high - answer);
+    band.texel_error[t] = error;
+    map.error.per_texel_max = std::max(map.error.per_texel_max, double(error));
+  }
+}
+
 Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band, const HiddenSampleMapBandSink& sink) {
   if (sink) return sink(map, band);
   const size_t texels = size_t(map.width) * size_t(map.height);
@@ -395,12 +419,14 @@ Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band, 
     if (!band.visible_rgb.empty()) map.visible_rgb.reserve(texels);
     if (!band.blocked_bits.empty()) map.blocked_bits.reserve(texels * size_t(map.words_per_texel));
     if (!band.lookup_error.empty()) map.error.lookup_per_texel.reserve(texels);
+    if (!band.texel_error.empty()) map.error.per_texel.reserve(texels);
   }
   map.visible_fraction.insert(map.visible_fraction.end(), band.visible_fraction.begin(), band.visible_fraction.end());
   map.visible_rgb.insert(map.visible_rgb.end(), band.visible_rgb.begin(), band.visible_rgb.end());
   map.blocked_bits.insert(map.blocked_bits.end(), band.blocked_bits.begin(), band.blocked_bits.end());
   map.error.lookup_per_texel.insert(map.error.lookup_per_texel.end(), band.lookup_error.begin(),
                                     band.lookup_error.end());
+  map.error.per_texel.insert(map.error.per_texel.end(), band.texel_error.begin(), band.texel_error.end());
   return absl::OkStatus();
 }
 

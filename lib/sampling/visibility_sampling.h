@@ -149,7 +149,14 @@ struct ErrorBound {
   // satisfies sure <= B <= answer, see lookup_per_texel).
   double lookup_max = 0.0;
   std::vector<float> lookup_per_texel;  // kHough only: (|answer| - |sure|) / N
-  double total() const { return sampling + lookup_max; }
+  // Rigorous sample sets only: each texel's own bound from its count of
+  // visible samples (sampling/count_intervals.h), the lookup's part
+  // included; with probability >= confidence, |answer_j - true_j| <=
+  // per_texel[j]. `per_texel_max` is the largest, and the map's bound.
+  bool has_per_texel = false;
+  double per_texel_max = 0.0;
+  std::vector<float> per_texel;
+  double total() const { return has_per_texel ? per_texel_max : sampling + lookup_max; }
 };
 
 struct HiddenSampleMapResult {
@@ -180,6 +187,7 @@ struct HiddenSampleMapBand {
   std::vector<glm::vec3> visible_rgb;     // coloured lights only
   std::vector<uint32_t> blocked_bits;     // want_bitmasks only
   std::vector<float> lookup_error;        // kHough only: ErrorBound::lookup_per_texel's values
+  std::vector<float> texel_error;         // rigorous sample sets only: ErrorBound::per_texel's values
   size_t texels() const { return visible_fraction.size(); }
 };
 
@@ -187,6 +195,12 @@ struct HiddenSampleMapBand {
 // band (sizes, samples). A status other than OK stops the map there and is
 // what the map returns.
 using HiddenSampleMapBandSink = std::function<Status(const HiddenSampleMapResult& map, const HiddenSampleMapBand& band)>;
+
+// For a rigorous sample set (SamplesAreIndependentStrata): the bound of
+// each of `band`'s texels from its count of visible samples (and its lookup
+// error), into band.texel_error, and the largest into map.error. Every
+// sampled method calls it on each band before delivering it.
+void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& map, HiddenSampleMapBand& band);
 
 // Hands `band` to `sink`, or, without a sink, appends it to `map`'s own
 // arrays (a map answered whole). Every method that makes maps ends its

@@ -105,6 +105,7 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
       }
     }
     if (request.options.want_bitmasks) band.blocked_bits.swap(bits);
+    sampling::BoundTexels(request, result, band);
     VISQ_RETURN_IF_ERROR(sampling::DeliverBand(result, band, sink));
   }
   result.error.confidence = request.options.confidence;

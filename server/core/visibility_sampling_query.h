@@ -36,6 +36,9 @@ struct HiddenSampleMapQuery {
   // Instead of request.source.sample_count and method: the planner chooses
   // the method and the count (jittered samples, or the exact method).
   std::optional<AccuracyTarget> target;
+  // Send each texel's own bound (rigorous sample sets); the map's bound,
+  // the largest of them, goes with every answer.
+  bool want_texel_error = false;
   CallOptions call;
 };
 

@@ -153,6 +153,18 @@ v1::Accuracy AccuracyToProto(const sampling::ErrorBound& error, VisibilityMethod
   (*out.mutable_parameters())["samples"] = samples;
   out.set_error_bound(error.total());
   out.set_confidence(error.confidence);
+  if (error.has_per_texel) {
+    out.set_note(absl::StrCat(
+        "each texel's visible fraction within its own bound of the true (continuous) fraction at confidence ",
+        error.confidence,
+        ", from its count of visible samples (one independent sample in each of N equal-area cells: the count is "
+        "Poisson-binomial, and the binomial's Clopper-Pearson limits one count wider hold for it, Hoeffding 1956); "
+        "error_bound is the largest texel's, texel_error gives each (want_texel_error)",
+        error.lookup_max > 0 ? absl::StrCat("; the Hough lookup's error (at most ", error.lookup_max,
+                                            ", per texel in lookup_error) is included")
+                             : std::string("; no lookup error (same bits as casting the same segments)")));
+    return out;
+  }
   out.set_note(absl::StrCat(
       "visible fraction within +-", error.sampling, " of the true (continuous) fraction at confidence ",
       error.confidence,
@@ -245,6 +257,7 @@ StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& reque
     r.options.hough_r_resolution = r.options.hough_theta_resolution;
   }
   r.options.want_bitmasks = request.want_bitmasks();
+  query.want_texel_error = request.want_texel_error();
   if (request.confidence() != 0.0) r.options.confidence = request.confidence();
   return query;
 }
@@ -259,7 +272,7 @@ v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSa
   return first;
 }
 
-Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int words_per_texel,
+Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int words_per_texel, bool with_texel_error,
                                 const std::function<Status(v1::HiddenSampleMapResponse)>& write,
                                 size_t chunk_elements) {
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
@@ -293,8 +306,13 @@ Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int w
                               [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
                                 AddRange(band.blocked_bits, a, b, m.mutable_blocked_bits());
                               }));
-  return chunks(band.lookup_error.size(), band.first_texel, [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-    AddRange(band.lookup_error, a, b, m.mutable_lookup_error());
+  VISQ_RETURN_IF_ERROR(chunks(band.lookup_error.size(), band.first_texel,
+                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+                                AddRange(band.lookup_error, a, b, m.mutable_lookup_error());
+                              }));
+  if (!with_texel_error) return absl::OkStatus();
+  return chunks(band.texel_error.size(), band.first_texel, [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+    AddRange(band.texel_error, a, b, m.mutable_texel_error());
   });
 }
 

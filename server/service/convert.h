@@ -45,6 +45,7 @@ v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSa
 // Writes `band`'s messages, one array chunk each, to `write`; stops at the
 // first write that fails.
 [[nodiscard]] Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int words_per_texel,
+                                              bool with_texel_error,
                                               const std::function<Status(v1::HiddenSampleMapResponse)>& write,
                                               size_t chunk_elements = kChunkElements);
 v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer,

@@ -378,7 +378,7 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         };
         auto sink = [&](const sampling::HiddenSampleMapResult& map, const sampling::HiddenSampleMapBand& band) {
           if (band.first_texel == 0) VISQ_RETURN_IF_ERROR(write(HiddenSampleMapFirstMessage(map)));
-          return WriteHiddenSampleMapBand(band, map.words_per_texel, write);
+          return WriteHiddenSampleMapBand(band, map.words_per_texel, query.want_texel_error, write);
         };
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, RunHiddenSampleMap(ctx_.engine, query, sink));
         const sampling::HiddenSampleMapResult& result = answer.result;

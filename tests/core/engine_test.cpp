@@ -135,7 +135,9 @@ TEST(Engine, HiddenSampleMapStreamsItsBandsAsTheyAreMade) {
       continue;
     }
     // RASTER: 8 bands of 4 rows; RAYCAST: bands of 4M segments, one here.
-    if (method == VisibilityMethod::kRaster) EXPECT_EQ(bands, 8);
+    if (method == VisibilityMethod::kRaster) {
+      EXPECT_EQ(bands, 8);
+    }
 
     int calls = 0;
     auto stopped = RunHiddenSampleMap(*engine, query,
@@ -145,6 +147,60 @@ TEST(Engine, HiddenSampleMapStreamsItsBandsAsTheyAreMade) {
                                       });
     EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled);
     EXPECT_EQ(calls, 1) << "no band is made after the sink failed";
+  }
+}
+
+// Each texel's own bound (jittered samples, one per equal-area cell) holds
+// against the exact method for at least the stated share of texels, and is
+// far tighter than Hoeffding's worst case where the texel's samples agree.
+TEST(Engine, PerTexelBoundsHoldAgainstTheExactMethod) {
+  testing::ScratchDir dir;
+  auto engine = StartEngine(dir.path() / "repo");
+  ASSERT_TRUE(engine);
+  const HiddenSampleMapQuery exact_query = ShadowedFloorQuery(VisibilityMethod::kPluckerExact, 0, 48);
+  auto exact = RunHiddenSampleMap(*engine, exact_query);
+  ASSERT_TRUE(exact.ok()) << exact.status();
+  for (VisibilityMethod method : {VisibilityMethod::kRaster, VisibilityMethod::kRaycast}) {
+    for (int samples : {64, 256}) {
+      HiddenSampleMapQuery query = ShadowedFloorQuery(method, samples, 48);
+      query.request.options.want_bitmasks = false;
+      query.request.source.pattern = sampling::SamplePattern::kJittered;
+      size_t outside = 0, penumbra = 0;
+      double hoeffding = 0.0, widest = 0.0;
+      std::vector<double> penumbra_bounds, penumbra_errors;
+      for (uint64_t seed = 1; seed <= 4; ++seed) {
+        query.request.source.seed = seed;
+        auto map = RunHiddenSampleMap(*engine, query);
+        ASSERT_TRUE(map.ok()) << map.status();
+        const sampling::ErrorBound& error = map->result.error;
+        ASSERT_TRUE(error.has_per_texel);
+        ASSERT_EQ(error.per_texel.size(), exact->result.visible_fraction.size());
+        hoeffding = error.sampling;
+        widest = std::max(widest, error.per_texel_max);
+        for (size_t j = 0; j < error.per_texel.size(); ++j) {
+          const double truth = exact->result.visible_fraction[j];
+          const double answer = map->result.visible_fraction[j];
+          if (std::abs(answer - truth) > error.per_texel[j] + 1e-6) ++outside;
+          if (truth > 0.02 && truth < 0.98) {
+            ++penumbra;
+            penumbra_bounds.push_back(error.per_texel[j]);
+            penumbra_errors.push_back(std::abs(answer - truth));
+          }
+        }
+      }
+      const size_t texels = 4 * exact->result.visible_fraction.size();
+      auto median = [](std::vector<double> v) {
+        std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+        return v[v.size() / 2];
+      };
+      std::printf("%s, %d samples: %zu of %zu texels outside their bound; widest %.4f (Hoeffding %.4f); "
+                  "penumbra (%zu texels): median bound %.4f, median error %.4f\n",
+                  VisibilityMethodName(method, sampling::LookupMode::kExact).c_str(), samples, outside, texels,
+                  widest, hoeffding, penumbra, median(penumbra_bounds), median(penumbra_errors));
+      EXPECT_LE(double(outside), 0.05 * double(texels));
+      EXPECT_LE(widest, hoeffding) << "never looser than the worst case";
+      ASSERT_GT(penumbra, 20u) << "the placement must have a penumbra";
+    }
   }
 }
 

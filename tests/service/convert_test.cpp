@@ -98,7 +98,8 @@ TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
     band.visible_fraction.assign(fractions.begin() + row * 3, fractions.begin() + row * 3 + 3);
     band.blocked_bits.assign(words.begin() + row * 6, words.begin() + row * 6 + 6);
     band.lookup_error.assign(lookup.begin() + row * 3, lookup.begin() + row * 3 + 3);
-    ASSERT_TRUE(WriteHiddenSampleMapBand(band, map.words_per_texel, write, /*chunk_elements=*/2).ok());
+    ASSERT_TRUE(WriteHiddenSampleMapBand(band, map.words_per_texel, /*with_texel_error=*/false, write,
+                                         /*chunk_elements=*/2).ok());
   }
   map.error.sampling = 0.125;
   sent.push_back(HiddenSampleMapLastMessage(answer, sampling::LookupMode::kHough));
@@ -129,7 +130,7 @@ TEST(Convert, HiddenSampleMapBandStopsAtAFailedWrite) {
   band.visible_fraction.assign(10, 0.5f);
   int writes = 0;
   const Status status = WriteHiddenSampleMapBand(
-      band, 1,
+      band, 1, /*with_texel_error=*/false,
       [&](v1::HiddenSampleMapResponse) {
         ++writes;
         return absl::CancelledError("gone");

@@ -224,6 +224,12 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(fast.lookup_error.shape, (16, 24))
         self.assertTrue((fast.lookup_error >= 0).all())
         self.assertLessEqual(float(fast.lookup_error.max()), fast.accuracy.error_bound)
+        # Jittered samples: each texel's own bound, the largest of which is the map's.
+        bounded = self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, FLOOR, width=24, height=16, samples=64,
+                                                texel_error=True)
+        self.assertEqual(bounded.texel_error.shape, (16, 24))
+        self.assertAlmostEqual(float(bounded.texel_error.max()), bounded.accuracy.error_bound, places=6)
+        self.assertIn("Clopper-Pearson", bounded.accuracy.note)
         cli = os.environ.get("VISQ_CLI_BINARY")
         if not cli:
             self.skipTest("VISQ_CLI_BINARY unset: no C++ answer to compare with")

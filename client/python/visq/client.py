@@ -111,6 +111,7 @@ class HiddenSampleMap:
     visible_rgb: Optional[np.ndarray]          # (height, width, 3) float32, coloured lights
     blocked_bits: Optional[np.ndarray]         # (height, width, words_per_texel) uint32; bit i: sample i hidden
     lookup_error: Optional[np.ndarray]         # (height, width) float32, FAST lookup only
+    texel_error: Optional[np.ndarray]          # (height, width) float32, each texel's bound (texel_error=True)
     source_samples: np.ndarray                 # (samples, 3) float64 world positions
     figures: Any                               # HiddenSampleMapResponse without the arrays
 
@@ -545,7 +546,8 @@ class Client:
 
     def hidden_sample_map(self, scene, source, receiver, width=128, height=128, samples=256, method="raster",
                           lookup="exact", seed=1, decorrelate=False, watertight=False, bitmasks=False, target=None,
-                          confidence=0.0, version=0, timeout=_UNSET, cancel=None) -> HiddenSampleMap:
+                          confidence=0.0, texel_error=False, version=0, timeout=_UNSET,
+                          cancel=None) -> HiddenSampleMap:
         """Per receiver texel, the fraction of the source's samples visible.
 
         target: {"max_error": e, "confidence": c, "time_budget_ms": t} instead
@@ -565,19 +567,22 @@ class Client:
         request.lookup = _choice(lookup, "lookup", _LOOKUPS)
         request.decorrelate, request.watertight, request.want_bitmasks = decorrelate, watertight, bitmasks
         request.confidence = float(confidence)
+        request.want_texel_error = bool(texel_error)
         chunks, f = self._chunked_stream(self._stub.HiddenSampleMap, "HiddenSampleMap", request, scene, timeout, cancel,
                                          [("visible_fraction", "offset", np.float32, 1),
                                           ("visible_rgb", "offset", np.float32, 3),
                                           ("blocked_bits", "offset", np.uint32, 1),
-                                          ("lookup_error", "offset", np.float32, 1)])
+                                          ("lookup_error", "offset", np.float32, 1),
+                                          ("texel_error", "offset", np.float32, 1)])
         h, w = f.height, f.width
         lookup_error = chunks.get("lookup_error", np.float32, (h, w))
+        texel_error = chunks.get("texel_error", np.float32, (h, w))
         samples_xyz = np.array([(p.x, p.y, p.z) for p in f.source_samples], dtype=np.float64).reshape(-1, 3)
         return HiddenSampleMap(
             visible_fraction=chunks.get("visible_fraction", np.float32, (h, w), required=True),
             visible_rgb=chunks.get("visible_rgb", np.float32, (h, w, 3)),
             blocked_bits=chunks.get("blocked_bits", np.uint32, (h, w, f.words_per_texel)),
-            lookup_error=lookup_error, source_samples=samples_xyz, figures=f)
+            lookup_error=lookup_error, texel_error=texel_error, source_samples=samples_xyz, figures=f)
 
     def patch_visibility(self, scene, source, receiver, source_grid=32, receiver_grid=32, method="raster",
                          lookup="exact", watertight=False, unblocked_limit=0, target=None, version=0,
