@@ -120,7 +120,7 @@ void AddSamplingCommands(Cli& cli) {
   hidden_map->add_option("--scene", hm->scene, "Scene name")->required();
   hidden_map->add_option("--source", hm->source, "Source patch 'ox,oy,oz;ux,uy,uz;vx,vy,vz'")->required();
   hidden_map->add_option("--receiver", hm->receiver, "Receiver patch 'ox,oy,oz;ux,uy,uz;vx,vy,vz'")->required();
-  hidden_map->add_option("--samples", hm->samples, "Source samples (1..4096)")->capture_default_str();
+  hidden_map->add_option("--samples", hm->samples, "Source samples (1..4096; up to 65536 for jittered visible fractions, as several maps)")->capture_default_str();
   hidden_map->add_option("--seed", hm->seed, "Jitter seed")->capture_default_str();
   hidden_map->add_option("--width", hm->width, "Receiver texels across")->capture_default_str();
   hidden_map->add_option("--height", hm->height, "Receiver texels down")->capture_default_str();

@@ -194,6 +194,7 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
   result.optical_depth.assign(points.size(), 0.0f);
   result.optical_depth_error.assign(points.size(), 0.0f);
   result.lateral_offset.assign(points.size(), 0.0f);
+  result.ambiguous.assign(points.size(), 0);
   if (bounds.Empty()) {
     result.error_statement = "the absorbing nodes have no triangles: nothing absorbs";
     result.timings.total_ms = MillisecondsSince(start);
@@ -273,6 +274,8 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
     const auto count_start = Clock::now();
     const SlicemapGrid& grid = voxels.grid;
     const uint32_t wpc = grid.words_per_column;
+    std::vector<bool> ambiguous_column(size_t{size} * size, false);
+    for (uint32_t column : voxels.ambiguous_column_list) ambiguous_column[column] = true;
     for (size_t i = 0; i < points.size(); ++i) {
       const ColumnHit hit = Locate(frame, size, points[i]);
       if (!hit.inside_image) continue;
@@ -284,6 +287,17 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
       result.max_voxel_length = std::max(result.max_voxel_length, slice_length);
       const double position = (hit.depth - near) / (far - near) * grid.slices;
       if (position <= 0.0) continue;
+      if (ambiguous_column[column]) {
+        // The column's in/out order did not resolve (open, overlapping or
+        // nested absorbers): its voxels say nothing of the inside. The path
+        // inside lies anywhere between none and all of the column's length
+        // up to the point; the answer is the upper end, as everywhere.
+        const double upper = sigma * std::min<double>(position, grid.slices) * slice_length;
+        result.optical_depth[i] += static_cast<float>(upper);
+        result.optical_depth_error[i] += static_cast<float>(upper);
+        result.ambiguous[i] = 1;
+        continue;
+      }
       const uint32_t whole = static_cast<uint32_t>(std::min<double>(std::floor(position), grid.slices));
       const double fraction = whole < grid.slices ? position - whole : 0.0;
       const uint32_t* solid_column = &grid.bits[column * wpc];
@@ -309,14 +323,18 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
   }
   for (size_t i = 0; i < points.size(); ++i) result.transmittance[i] = std::exp(-result.optical_depth[i]);
 
+  size_t ambiguous_points = 0;
+  for (uint8_t a : result.ambiguous) ambiguous_points += a;
   result.error_statement = fmt::format(
-      "optical depth = sigma x occupied length along the texel's column, in voxels up to {:.4g} long (texels up to "
-      "{:.4g} wide at the absorbers). Surface voxels count whole, so each surface crossing can add up to one voxel "
-      "length: the exact value lies in [optical_depth - optical_depth_error, optical_depth]. The column follows its "
-      "texel's center ray, lateral_offset away from the point's own ray, so absorber thickness varying within a texel "
-      "adds to the error. {} columns were ambiguous (open or overlapping absorbers) and count only their surface "
-      "voxels.",
-      result.max_voxel_length, result.max_texel_size, result.ambiguous_columns);
+      "optical depth = sigma x occupied length along the point's light-view column, in voxels up to {:.4g} long "
+      "(texels up to {:.4g} wide at the absorbers). The bound is for the column's centre ray, up to the point's "
+      "depth: along that ray the exact optical depth lies in [optical_depth - optical_depth_error, optical_depth] "
+      "(surface voxels count whole, so each surface crossing can add up to one voxel length). The point's own ray "
+      "lies lateral_offset from it: where the absorbers' thickness varies within that distance, the point's own "
+      "value can lie outside the interval. {} columns were ambiguous (open, overlapping or nested absorbers); the "
+      "{} points behind one are flagged in `ambiguous` and state the whole interval [0, their column's length up "
+      "to them x sigma].",
+      result.max_voxel_length, result.max_texel_size, result.ambiguous_columns, ambiguous_points);
   result.timings.total_ms = MillisecondsSince(start);
   return result;
 }

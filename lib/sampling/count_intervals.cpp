@@ -3,8 +3,6 @@
 #include <algorithm>
 #include <cmath>
 #include <deque>
-#include <limits>
-#include <mutex>
 
 #include "common/check.h"
 #include "common/parallel.h"
@@ -42,47 +40,27 @@ double BetaContinuedFraction(double a, double b, double x) {
   return h;
 }
 
-// The p at which the increasing function tail(p) reaches `target`, by
-// bisection on [0, 1] to float precision and beyond.
-template <typename Tail>
-double Solve(const Tail& tail, double target) {
-  double lo = 0.0, hi = 1.0;
-  for (int i = 0; i < 60; ++i) {
-    const double mid = 0.5 * (lo + hi);
-    (tail(mid) < target ? lo : hi) = mid;
-  }
-  return 0.5 * (lo + hi);
+// log of the Beta(a, b) density at x in (0, 1).
+double LogBetaDensity(double a, double b, double x) {
+  return std::lgamma(a + b) - std::lgamma(a) - std::lgamma(b) + (a - 1.0) * std::log(x) + (b - 1.0) * std::log1p(-x);
 }
 
-CountIntervals Compute(int n, double confidence) {
-  CountIntervals out;
-  out.sample_count = n;
-  out.confidence = confidence;
-  out.low.assign(size_t(n) + 1, 0.0f);
-  out.high.assign(size_t(n) + 1, 1.0f);
-  const double alpha = 0.5 * (1.0 - confidence);  // each side
-  // Clopper-Pearson for count j: low(j) solves P(Bin(n, p) >= j) = alpha,
-  // high(j) solves P(Bin(n, p) <= j) = alpha, i.e. P(Bin >= j + 1) = 1 - alpha.
-  auto clopper_low = [&](int j) {
-    if (j <= 0) return 0.0;
-    return Solve([&](double p) { return RegularizedIncompleteBeta(j, n - j + 1, p); }, alpha);
-  };
-  auto clopper_high = [&](int j) {
-    if (j >= n) return 1.0;
-    return Solve([&](double p) { return RegularizedIncompleteBeta(j + 1, n - j, p); }, 1.0 - alpha);
-  };
-  // One count wider: k's limits are those of k - 1 and k + 1. Rounded
-  // outwards to float.
-  ParallelFor(size_t(n) + 1, 64, [&](size_t begin, size_t end) {
-    for (size_t k = begin; k < end; ++k) {
-      const double low = clopper_low(int(k) - 1), high = clopper_high(int(k) + 1);
-      out.low[k] = std::nextafter(static_cast<float>(low), -1.0f);
-      out.high[k] = std::nextafter(static_cast<float>(high), 2.0f);
-      out.low[k] = std::clamp(out.low[k], 0.0f, 1.0f);
-      out.high[k] = std::clamp(out.high[k], 0.0f, 1.0f);
-    }
-  });
-  return out;
+// The x in (0, 1) at which I_x(a, b) = target: Newton's steps on the
+// incomplete beta, kept inside a bracket that shrinks with every step, and
+// a bisection wherever a step would leave it.
+double BetaQuantile(double a, double b, double target) {
+  double lo = 0.0, hi = 1.0;
+  double x = std::clamp(a / (a + b), 1e-12, 1.0 - 1e-12);
+  for (int i = 0; i < 200; ++i) {
+    const double f = RegularizedIncompleteBeta(a, b, x) - target;
+    if (f < 0.0) lo = x; else hi = x;
+    const double density = std::exp(LogBetaDensity(a, b, x));
+    double next = density > 0.0 ? x - f / density : 0.5 * (lo + hi);
+    if (!(next > lo && next < hi)) next = 0.5 * (lo + hi);
+    if (std::abs(next - x) <= 1e-13 * x || hi - lo <= 1e-15) return next;
+    x = next;
+  }
+  return x;
 }
 
 }  // namespace
@@ -97,20 +75,64 @@ double RegularizedIncompleteBeta(double a, double b, double x) {
   return 1.0 - std::exp(log_front) * BetaContinuedFraction(b, a, 1.0 - x) / b;
 }
 
-std::shared_ptr<const CountIntervals> StratifiedCountIntervals(int sample_count, double confidence) {
+CountIntervals::CountIntervals(int sample_count, double confidence)
+    : sample_count_(sample_count),
+      confidence_(confidence),
+      low_(size_t(sample_count) + 1, 0.0f),
+      high_(size_t(sample_count) + 1, 1.0f),
+      ready_(size_t(sample_count) + 1, 0) {
   VISQ_CHECK(sample_count >= 1 && confidence > 0.0 && confidence < 1.0);
-  static std::mutex mutex;
-  static std::deque<std::shared_ptr<const CountIntervals>> recent;  // most recent first
-  {
-    std::lock_guard lock(mutex);
-    for (const auto& t : recent)
-      if (t->sample_count == sample_count && t->confidence == confidence) return t;
+}
+
+void CountIntervals::Prepare(const std::vector<int>& counts) {
+  std::lock_guard lock(mutex_);
+  std::vector<int> missing;
+  for (int k : counts) {
+    VISQ_CHECK(k >= 0 && k <= sample_count_);
+    if (ready_[size_t(k)] == 0) {
+      ready_[size_t(k)] = 2;  // listed once
+      missing.push_back(k);
+    }
   }
-  auto made = std::make_shared<const CountIntervals>(Compute(sample_count, confidence));
+  const int n = sample_count_;
+  const double alpha = 0.5 * (1.0 - confidence_);  // each side
+  // Clopper-Pearson for count j: low(j) solves P(Bin(n, p) >= j) = alpha,
+  // i.e. I_p(j, n - j + 1) = alpha; high(j) solves P(Bin(n, p) <= j) =
+  // alpha, i.e. I_p(j + 1, n - j) = 1 - alpha. Count k takes the limits of
+  // k - 1 and k + 1 (one count wider), rounded outwards to float.
+  ParallelFor(missing.size(), 16, [&](size_t begin, size_t end) {
+    for (size_t i = begin; i < end; ++i) {
+      const int k = missing[i];
+      const int below = k - 1, above = k + 1;
+      const double low = below <= 0 ? 0.0 : BetaQuantile(below, n - below + 1, alpha);
+      const double high = above >= n ? 1.0 : BetaQuantile(above + 1, n - above, 1.0 - alpha);
+      low_[size_t(k)] = std::clamp(std::nextafter(static_cast<float>(low), -1.0f), 0.0f, 1.0f);
+      high_[size_t(k)] = std::clamp(std::nextafter(static_cast<float>(high), 2.0f), 0.0f, 1.0f);
+      ready_[size_t(k)] = 1;
+    }
+  });
+}
+
+float CountIntervals::Low(int k) const {
+  VISQ_DCHECK_EQ(int(ready_[size_t(k)]), 1);
+  return low_[size_t(k)];
+}
+
+float CountIntervals::High(int k) const {
+  VISQ_DCHECK_EQ(int(ready_[size_t(k)]), 1);
+  return high_[size_t(k)];
+}
+
+std::shared_ptr<CountIntervals> StratifiedCountIntervals(int sample_count, double confidence) {
+  VISQ_CHECK(sample_count >= 1 && sample_count <= 65536 && confidence > 0.0 && confidence < 1.0);
+  static std::mutex mutex;
+  static std::deque<std::shared_ptr<CountIntervals>> recent;  // most recent first
   std::lock_guard lock(mutex);
-  recent.push_front(made);
+  for (const auto& t : recent)
+    if (t->sample_count() == sample_count && t->confidence() == confidence) return t;
+  recent.push_front(std::make_shared<CountIntervals>(sample_count, confidence));
   if (recent.size() > 8) recent.pop_back();
-  return made;
+  return recent.front();
 }
 
 }  // namespace visq::sampling

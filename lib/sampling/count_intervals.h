@@ -10,23 +10,39 @@
 // within 0.022 of 1 at 95 %, where Hoeffding's worst case states 0.085.
 #pragma once
 
+#include <cstdint>
 #include <memory>
+#include <mutex>
 #include <vector>
 
 namespace visq::sampling {
 
-struct CountIntervals {
-  int sample_count = 0;
-  double confidence = 0.0;
-  // For k visible samples of sample_count: with probability >= confidence,
-  // low[k] <= true visible fraction <= high[k].
-  std::vector<float> low, high;
+// The limits for counts k in [0, sample_count]: for k visible samples of
+// sample_count, with probability >= confidence, Low(k) <= true visible
+// fraction <= High(k). Each limit is computed the first time a map needs it
+// (a map of 65,536 samples needs a few of the 65,537 counts) and kept.
+class CountIntervals {
+ public:
+  CountIntervals(int sample_count, double confidence);
+  int sample_count() const { return sample_count_; }
+  double confidence() const { return confidence_; }
+  // Computes the limits of `counts` not computed yet. Thread-safe; after it
+  // returns, this thread may read those counts' limits.
+  void Prepare(const std::vector<int>& counts);
+  float Low(int k) const;
+  float High(int k) const;
+
+ private:
+  int sample_count_;
+  double confidence_;
+  std::mutex mutex_;
+  std::vector<float> low_, high_;
+  std::vector<uint8_t> ready_;
 };
 
-// The limits for every k in [0, sample_count] (1..4096 samples, confidence
-// in (0, 1)), computed once per (sample_count, confidence) and kept (the
-// last few). Thread-safe.
-std::shared_ptr<const CountIntervals> StratifiedCountIntervals(int sample_count, double confidence);
+// The limits for (sample_count, confidence), 1..65536 samples and a
+// confidence in (0, 1); the last few kept. Thread-safe.
+std::shared_ptr<CountIntervals> StratifiedCountIntervals(int sample_count, double confidence);
 
 // Regularized incomplete beta function I_x(a, b), a, b > 0, x in [0, 1]:
 // the binomial's tail, P(Bin(n, p) >= k) = I_p(k, n - k + 1).

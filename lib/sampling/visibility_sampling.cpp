@@ -48,20 +48,28 @@ uint32_t Hash(uint32_t h) {
   return h;
 }
 
+// A size the caller chose: below 1 is malformed (INVALID_ARGUMENT), above
+// the server's cap RESOURCE_EXHAUSTED, as every cap of every RPC is.
+Status CheckCount(int64_t value, int64_t cap, std::string_view field) {
+  if (value < 1) return absl::InvalidArgumentError(absl::StrCat(AbslView(field), ": ", value, " (must be at least 1)"));
+  if (value > cap)
+    return absl::ResourceExhaustedError(absl::StrCat(AbslView(field), ": ", value, " exceeds the cap of ", cap));
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
   const SourceSpec& s = request.source;
   const ReceiverSpec& r = request.receiver;
   const HiddenSampleMapOptions& o = request.options;
-  VISQ_RETURN_IF_ERROR(ValidatePatch(s.patch, "source.patch"));
-  VISQ_RETURN_IF_ERROR(ValidatePatch(r.patch, "receiver.patch"));
-  if (s.sample_count < 1 || s.sample_count > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("samples.count: ", s.sample_count, " not in [1, 4096]"));
+  VISQ_RETURN_IF_ERROR(ValidatePatch(s.patch, "source"));
+  VISQ_RETURN_IF_ERROR(ValidatePatch(r.patch, "receiver"));
+  VISQ_RETURN_IF_ERROR(CheckCount(s.sample_count, kMaxHiddenSampleMapSamples, "samples.count"));
   if (s.pattern == SamplePattern::kCustom) {
     if (static_cast<int>(s.custom_uv.size()) != s.sample_count)
       return absl::InvalidArgumentError(absl::StrCat("samples.custom_uv: ", s.custom_uv.size(),
-                                                     " positions for sample_count ", s.sample_count));
+                                                     " positions for samples.count ", s.sample_count));
     for (size_t i = 0; i < s.custom_uv.size(); ++i) {
       const glm::dvec2 uv = s.custom_uv[i];
       if (!(uv.x >= 0.0 && uv.x <= 1.0 && uv.y >= 0.0 && uv.y <= 1.0))
@@ -102,35 +110,33 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
       return absl::InvalidArgumentError(absl::StrCat("samples.color_texture_rgb[", 3 * i, "..", 3 * i + 2, "]: ",
                                                      Vec(s.color_texture[i]),
                                                      " is not finite, non-negative and at most 1e30"));
-  if (r.width < 1 || r.width > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("receiver.width: ", r.width, " not in [1, 4096]"));
-  if (r.height < 1 || r.height > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("receiver.height: ", r.height, " not in [1, 4096]"));
+  VISQ_RETURN_IF_ERROR(CheckCount(r.width, 4096, "width"));
+  VISQ_RETURN_IF_ERROR(CheckCount(r.height, 4096, "height"));
   if (!r.heightfield.empty() && r.heightfield.size() != size_t(r.width) * r.height)
-    return absl::InvalidArgumentError(absl::StrCat("receiver.heightfield: ", r.heightfield.size(),
+    return absl::InvalidArgumentError(absl::StrCat("heightfield: ", r.heightfield.size(),
                                                    " heights for ", r.width, " x ", r.height, " texels"));
   float h_min = 0.0f, h_max = 0.0f;
   for (size_t i = 0; i < r.heightfield.size(); ++i) {
     if (!std::isfinite(r.heightfield[i]))
-      return absl::InvalidArgumentError(absl::StrCat("receiver.heightfield[", i, "]: ", r.heightfield[i]));
+      return absl::InvalidArgumentError(absl::StrCat("heightfield[", i, "]: ", r.heightfield[i]));
     h_min = std::min(h_min, r.heightfield[i]);
     h_max = std::max(h_max, r.heightfield[i]);
   }
   if (o.lookup != LookupMode::kExact && o.lookup != LookupMode::kHough)
-    return absl::InvalidArgumentError(absl::StrCat("options.lookup: unknown value ", static_cast<int>(o.lookup)));
+    return absl::InvalidArgumentError(absl::StrCat("lookup: unknown value ", static_cast<int>(o.lookup)));
   if (o.hough_theta_resolution < 16 || o.hough_theta_resolution > 2048)
     return absl::InvalidArgumentError(
-        absl::StrCat("options.hough_theta_resolution: ", o.hough_theta_resolution, " not in [16, 2048]"));
+        absl::StrCat("hough_resolution: ", o.hough_theta_resolution, " not in [16, 2048]"));
   if (o.hough_r_resolution < 16 || o.hough_r_resolution > 2048)
     return absl::InvalidArgumentError(
-        absl::StrCat("options.hough_r_resolution: ", o.hough_r_resolution, " not in [16, 2048]"));
+        absl::StrCat("hough_resolution: ", o.hough_r_resolution, " not in [16, 2048]"));
   const double table_bytes =
       2.0 * o.hough_theta_resolution * o.hough_r_resolution * ((s.sample_count + 127) / 128) * 16.0;
   if (table_bytes > 1024.0 * 1024 * 1024)
-    return absl::InvalidArgumentError(absl::StrCat("options.hough_*_resolution: table of ", table_bytes / 1048576,
+    return absl::InvalidArgumentError(absl::StrCat("hough_resolution: table of ", table_bytes / 1048576,
                                                    " MiB for ", s.sample_count, " samples exceeds 1024 MiB"));
   if (!(o.confidence > 0.0 && o.confidence < 1.0))
-    return absl::InvalidArgumentError(absl::StrCat("options.confidence: ", o.confidence, " not in (0, 1)"));
+    return absl::InvalidArgumentError(absl::StrCat("confidence: ", o.confidence, " not in (0, 1)"));
 
   // Geometry: every receiver point strictly on one side of the source plane,
   // every source corner strictly in front of the (bumpy) receiver.
@@ -143,7 +149,7 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
         const double d = glm::dot(ns, r.patch.At(a, b) + h * nr - s.patch.origin);
         const int sd = d > 0 ? 1 : (d < 0 ? -1 : 0);
         if (sd == 0 || (side != 0 && sd != side))
-          return absl::InvalidArgumentError(absl::StrCat("receiver.patch: corner ", Vec(r.patch.At(a, b)),
+          return absl::InvalidArgumentError(absl::StrCat("receiver: corner ", Vec(r.patch.At(a, b)),
                                                          " is on or across the source plane"));
         side = sd;
       }
@@ -185,8 +191,7 @@ std::vector<glm::dvec2> StratifiedSamplePattern(int n, SamplePattern pattern, ui
 StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source) {
   SourceSamples out;
   const int n = source.sample_count;
-  if (n < 1 || n > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("samples.count: ", n, " not in [1, 4096]"));
+  VISQ_RETURN_IF_ERROR(CheckCount(n, kMaxHiddenSampleMapSamples, "samples.count"));
   out.requested = n;
   std::vector<glm::dvec2> uv;
   if (source.pattern == SamplePattern::kCustom) {
@@ -239,10 +244,12 @@ glm::dvec3 SourceSampleSeenFrom(const HiddenSampleMapRequest& request, const Sou
 
 
 StatusOr<HiddenSampleMapRequest> PatchVisibilityAsHiddenSampleMap(const PatchVisibilityRequest& request) {
-  if (request.source_columns < 1 || request.source_rows < 1 ||
-      int64_t(request.source_columns) * request.source_rows > 4096)
-    return absl::InvalidArgumentError(absl::StrCat("source_columns x source_rows: ", request.source_columns, " x ",
-                                                   request.source_rows, " not in [1, 4096] samples"));
+  VISQ_RETURN_IF_ERROR(CheckCount(request.source_columns, kMaxHiddenSampleMapSamples, "source_columns"));
+  VISQ_RETURN_IF_ERROR(CheckCount(request.source_rows, kMaxHiddenSampleMapSamples, "source_rows"));
+  VISQ_RETURN_IF_ERROR(CheckCount(int64_t(request.source_columns) * request.source_rows, kMaxHiddenSampleMapSamples,
+                                  "source_columns x source_rows"));
+  VISQ_RETURN_IF_ERROR(CheckCount(request.receiver_columns, 4096, "receiver_columns"));
+  VISQ_RETURN_IF_ERROR(CheckCount(request.receiver_rows, 4096, "receiver_rows"));
   HiddenSampleMapRequest map;
   map.source.patch = request.source;
   map.source.sample_count = request.source_columns * request.source_rows;
@@ -392,18 +399,26 @@ void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& m
     return;
   }
   const int n = map.sample_count;
-  const std::shared_ptr<const CountIntervals> limits = StratifiedCountIntervals(n, request.options.confidence);
+  const std::shared_ptr<CountIntervals> limits = StratifiedCountIntervals(n, request.options.confidence);
   map.error.has_per_texel = true;
+  // Each texel's count is exact: (n - blocked) / n in float, for n <= 65536.
+  // The Hough lookup may have called up to lookup_error * n visible samples
+  // hidden: the samples' own count then lies in [visible, visible + that].
+  std::vector<int> visible(band.texels()), most(band.texels());
+  for (size_t t = 0; t < band.texels(); ++t) {
+    visible[t] = std::clamp(static_cast<int>(std::lround(double(band.visible_fraction[t]) * n)), 0, n);
+    const int maybe = band.lookup_error.empty() ? 0 : static_cast<int>(std::lround(double(band.lookup_error[t]) * n));
+    most[t] = std::clamp(visible[t] + maybe, 0, n);
+  }
+  std::vector<int> counts = visible;
+  counts.insert(counts.end(), most.begin(), most.end());
+  std::sort(counts.begin(), counts.end());
+  counts.erase(std::unique(counts.begin(), counts.end()), counts.end());
+  limits->Prepare(counts);
   band.texel_error.resize(band.texels());
   for (size_t t = 0; t < band.texels(); ++t) {
-    // The count is exact: (n - blocked) / n in float for n <= 4096.
     const float answer = band.visible_fraction[t];
-    const int visible = static_cast<int>(std::lround(double(answer) * n));
-    // The Hough lookup may have called up to lookup_error * n visible samples
-    // hidden: the samples' own count lies in [visible, visible + that].
-    const int maybe = band.lookup_error.empty() ? 0 : static_cast<int>(std::lround(double(band.lookup_error[t]) * n));
-    const float low = limits->low[size_t(visible)], high = limits->high[size_t(std::min(n, visible + maybe))];
-    const float error = std::max(answer - low, high - answer);
+    const float error = std::max(answer - limits->Low(visible[t]), limits->High(most[t]) - answer);
     band.texel_error[t] = error;
     map.error.per_texel_max = std::max(map.error.per_texel_max, double(error));
   }

@@ -7,6 +7,7 @@
 #include <functional>
 #include <set>
 
+#include "common/check.h"
 #include "common/job_timing.h"
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
@@ -323,17 +324,21 @@ double PolygonShare(const sampling::SourceSpec& source) {
 // points, each predicted by the cost model after probing the methods this
 // scene has not run yet, and the choice among them.
 StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_base, const AccuracyTarget& target,
-                                    double points, double polygon_share, bool exact_possible,
+                                    double points, double polygon_share, bool exact_possible, int max_samples,
                                     const gpu::JobOptions& job, const VisibilityRunner& run,
                                     const PrecisionCheck& resolves) {
   std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast};
   if (exact_possible) methods.push_back(VisibilityMethod::kPluckerExact);
 
-  // Sample counts: powers of two, and the least count meeting the error.
+  // Sample counts: powers of two, and the least count meeting the error
+  // (beyond one map's 4096, a whole number of maps).
   std::set<int> counts;
-  for (int n = 32; n <= sampling::kMaxHiddenSampleMapSamples; n *= 2) counts.insert(n);
+  for (int n = 32; n <= max_samples; n *= 2) counts.insert(n);
   const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / polygon_share;
-  if (needed <= sampling::kMaxHiddenSampleMapSamples) counts.insert(std::max(32, int(std::ceil(needed / 32.0)) * 32));
+  if (needed <= max_samples) {
+    const int step = needed <= sampling::kMaxHiddenSampleMapSamples ? 32 : sampling::kMaxHiddenSampleMapSamples;
+    counts.insert(std::min(max_samples, std::max(32, int(std::ceil(needed / step)) * step)));
+  }
 
   PlanReport report;
   CostModel& model = engine.cost_model();
@@ -428,6 +433,82 @@ sampling::ReceiverSpec ReducedReceiver(const sampling::ReceiverSpec& receiver, i
   return reduced;
 }
 
+// Whether a map may take more samples than one map holds (SeveralMaps):
+// only jittered samples vary between maps, and only visible fractions add
+// up (no bitmasks or colours; no polygon's cut or Hough lookup, which make
+// each map's count its own).
+Status CheckSeveralMaps(const sampling::HiddenSampleMapRequest& request) {
+  const int n = request.source.sample_count;
+  auto refuse = [&](const char* why) {
+    return absl::ResourceExhaustedError(absl::StrCat("samples.count: ", n, " exceeds one map's ",
+                                                     sampling::kMaxHiddenSampleMapSamples, ", and ", why));
+  };
+  if (n > kMaxPlannedSamples)
+    return absl::ResourceExhaustedError(absl::StrCat("samples.count: ", n, " exceeds the cap of ", kMaxPlannedSamples));
+  if (request.source.pattern != sampling::SamplePattern::kJittered)
+    return refuse("only JITTERED samples can be spread over several maps");
+  if (request.options.want_bitmasks) return refuse("want_bitmasks needs one map");
+  if (!request.source.sample_colors.empty() || !request.source.color_texture.empty())
+    return refuse("coloured lights need one map");
+  if (!request.source.polygon_uv.empty()) return refuse("a polygon needs one map");
+  if (request.options.lookup != sampling::LookupMode::kExact) return refuse("the FAST lookup needs one map");
+  return absl::OkStatus();
+}
+
+// A map of `samples` jittered samples beyond one map's 4096: ceil(samples /
+// 4096) maps of equal counts, each with its own seed, so every cell of the
+// pattern holds that many independent uniform samples. The visible counts
+// add up; the sum is still Poisson-binomial, so the per-texel bounds hold at
+// the total count. The maps are made whole (fractions only) and the sum is
+// delivered as one band.
+StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const ResidentScene& resident,
+                                                      VisibilityMethod method, sampling::HiddenSampleMapRequest request,
+                                                      int samples, const gpu::JobOptions& job,
+                                                      const sampling::HiddenSampleMapBandSink& sink) {
+  const int maps = (samples + sampling::kMaxHiddenSampleMapSamples - 1) / sampling::kMaxHiddenSampleMapSamples;
+  const int per_map = (samples + maps - 1) / maps;
+  request.source.sample_count = per_map;
+  request.options.want_bitmasks = false;
+  VISQ_RETURN_IF_ERROR(CheckSize(request));
+  const size_t texels = size_t(request.receiver.width) * request.receiver.height;
+  std::vector<uint32_t> visible(texels, 0);
+  sampling::HiddenSampleMapResult sum;
+  const uint64_t first_seed = request.source.seed;
+  for (int m = 0; m < maps; ++m) {
+    request.source.seed = first_seed + uint64_t(m) * 0x9E3779B97F4A7C15ull;
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult one,
+                          HiddenSampleMapBy(engine, resident, method, request, job));
+    VISQ_CHECK_EQ(one.visible_fraction.size(), texels);
+    VISQ_CHECK_EQ(one.sample_count, per_map);  // no polygon: every sample counts
+    for (size_t j = 0; j < texels; ++j)
+      visible[j] += static_cast<uint32_t>(std::lround(double(one.visible_fraction[j]) * per_map));
+    if (m == 0) {
+      sum.width = one.width;
+      sum.height = one.height;
+      sum.error.confidence = one.error.confidence;
+    }
+    sum.samples.uv.insert(sum.samples.uv.end(), one.samples.uv.begin(), one.samples.uv.end());
+    sum.samples.world.insert(sum.samples.world.end(), one.samples.world.begin(), one.samples.world.end());
+    sum.timing.queue_ms += one.timing.queue_ms;
+    sum.timing.run_ms += one.timing.run_ms;
+    sum.table_ms += one.table_ms;
+    sum.passes += one.passes;
+  }
+  const int total = maps * per_map;
+  sum.sample_count = total;
+  sum.samples.requested = total;
+  sum.error.sampling = sampling::SamplingErrorBound(total, sum.error.confidence);
+  sum.error.rigorous = sampling::SamplesAreIndependentStrata(request);
+  sampling::HiddenSampleMapBand band;
+  band.visible_fraction.resize(texels);
+  for (size_t j = 0; j < texels; ++j) band.visible_fraction[j] = float(double(visible[j]) / total);
+  sampling::HiddenSampleMapRequest as_one = request;
+  as_one.options.confidence = sum.error.confidence;
+  sampling::BoundTexels(as_one, sum, band);
+  VISQ_RETURN_IF_ERROR(sampling::DeliverBand(sum, band, sink));
+  return sum;
+}
+
 StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const ResidentScene& resident,
                                                          const HiddenSampleMapQuery& query,
                                                          const sampling::HiddenSampleMapBandSink& sink) {
@@ -442,15 +523,18 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
 
   auto with_samples = [&](int samples, int max_side) {
     sampling::HiddenSampleMapRequest sized = request;
-    sized.source.sample_count = samples;
+    sized.source.sample_count = std::min(samples, sampling::kMaxHiddenSampleMapSamples);
     sized.receiver = ReducedReceiver(request.receiver, max_side);
     sized.options.confidence = target.confidence < 1.0 ? target.confidence : sized.options.confidence;
     return sized;
   };
   // Probes are answered whole; only the chosen plan's map goes to the sink.
+  // Beyond 4096 samples, several maps with independent jitter.
   auto run = [&](VisibilityMethod method, int samples, int max_side,
                  const sampling::HiddenSampleMapBandSink& bands = {}) -> StatusOr<sampling::HiddenSampleMapResult> {
     sampling::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
+    if (samples > sampling::kMaxHiddenSampleMapSamples)
+      return SeveralMaps(engine, resident, method, sized, samples, query.call.Job(), bands);
     VISQ_RETURN_IF_ERROR(CheckSize(sized));
     return HiddenSampleMapBy(engine, resident, method, sized, query.call.Job(), bands);
   };
@@ -461,9 +545,11 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   };
 
   const double texels = double(request.receiver.width) * request.receiver.height;
+  const bool several_maps = CheckSeveralMaps(request).ok();
+  const int max_samples = several_maps ? kMaxPlannedSamples : sampling::kMaxHiddenSampleMapSamples;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
                                                           texels, PolygonShare(request.source), exact_possible,
-                                                          query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
+                                                          max_samples, query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
                                                             return engine.CheckSampledPrecision(
                                                                 resident, with_samples(samples, 0), TracerOf(method));
                                                           }));
@@ -505,7 +591,8 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
   const double points = double(request.receiver_columns) * request.receiver_rows;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
-                                                          points, 1.0, exact_possible, query.call.Job(), cost_of,
+                                                          points, 1.0, exact_possible,
+                                                          sampling::kMaxHiddenSampleMapSamples, query.call.Job(), cost_of,
                                                           [&](VisibilityMethod method, int samples) -> Status {
                                                             VISQ_ASSIGN_OR_RETURN(
                                                                 sampling::HiddenSampleMapRequest map,
@@ -565,7 +652,13 @@ Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query) {
     if (query.request.source.sample_count != 0)
       return absl::InvalidArgumentError("samples.count: give either a count or a target, not both");
   }
-  const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
+  sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
+  if (checked.source.sample_count > sampling::kMaxHiddenSampleMapSamples) {
+    VISQ_RETURN_IF_ERROR(CheckSeveralMaps(checked));
+    if (query.method == VisibilityMethod::kPluckerExact)
+      return absl::InvalidArgumentError("samples.count: the exact method takes no samples (leave it 0)");
+    checked.source.sample_count = sampling::kMaxHiddenSampleMapSamples;  // one of the maps
+  }
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(checked));
   if (!query.target) VISQ_RETURN_IF_ERROR(CheckSize(checked));
   return absl::OkStatus();
@@ -587,6 +680,11 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
   HiddenSampleMapAnswer answer;
   answer.method = query.method;
+  if (checked.source.sample_count > sampling::kMaxHiddenSampleMapSamples) {
+    VISQ_ASSIGN_OR_RETURN(answer.result, SeveralMaps(engine, *resident, query.method, checked,
+                                                     checked.source.sample_count, query.call.Job(), sink));
+    return answer;
+  }
   VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.call.Job(),
                                                          sink, &answer.memory));
   return answer;

@@ -28,6 +28,11 @@ std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode l
 // 4 Gbit, e.g. 2048 x 2048 texels x 1024 samples.
 inline constexpr uint64_t kMaxHiddenSampleBits = 1ull << 32;
 
+// A target's plans go up to this many samples: beyond one map's 4096, a
+// whole number of maps with independent jitter (JITTERED, EXACT lookup, no
+// polygon), their counts added.
+inline constexpr int kMaxPlannedSamples = 16 * 4096;
+
 struct HiddenSampleMapQuery {
   std::string scene;
   uint64_t scene_version = 0;

@@ -641,6 +641,7 @@ void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* 
   out->set_max_voxel_length(result.max_voxel_length);
   out->set_max_texel_size(result.max_texel_size);
   out->set_ambiguous_columns(result.ambiguous_columns);
+  for (uint8_t a : result.ambiguous) out->add_ambiguous(a != 0);
   auto* accuracy = out->mutable_accuracy();
   accuracy->set_method("transmittance-slicemap");
   float worst = 0;

@@ -204,5 +204,49 @@ TEST(Engine, PerTexelBoundsHoldAgainstTheExactMethod) {
   }
 }
 
+// Beyond one map's 4096 samples: several maps with independent jitter, their
+// counts added. The answer states the total, its per-texel bounds hold
+// against the exact method and are tighter than one map's; what cannot be
+// spread over maps is refused by name.
+TEST(Engine, MoreSamplesThanOneMapHoldsAreSeveralMaps) {
+  testing::ScratchDir dir;
+  auto engine = StartEngine(dir.path() / "repo");
+  ASSERT_TRUE(engine);
+  auto exact = RunHiddenSampleMap(*engine, ShadowedFloorQuery(VisibilityMethod::kPluckerExact, 0, 24));
+  ASSERT_TRUE(exact.ok()) << exact.status();
+  for (VisibilityMethod method : {VisibilityMethod::kRaster, VisibilityMethod::kRaycast}) {
+    HiddenSampleMapQuery one_map = ShadowedFloorQuery(method, 4096, 24);
+    one_map.request.options.want_bitmasks = false;
+    one_map.request.source.pattern = sampling::SamplePattern::kJittered;
+    HiddenSampleMapQuery four_maps = one_map;
+    four_maps.request.source.sample_count = 16384;
+    auto one = RunHiddenSampleMap(*engine, one_map);
+    auto four = RunHiddenSampleMap(*engine, four_maps);
+    ASSERT_TRUE(one.ok()) << one.status();
+    ASSERT_TRUE(four.ok()) << four.status();
+    EXPECT_EQ(four->result.sample_count, 16384);
+    EXPECT_EQ(four->result.samples.world.size(), 16384u);
+    ASSERT_TRUE(four->result.error.has_per_texel);
+    EXPECT_LT(four->result.error.per_texel_max, 0.6 * one->result.error.per_texel_max);
+    size_t outside = 0;
+    for (size_t j = 0; j < exact->result.visible_fraction.size(); ++j)
+      if (std::abs(four->result.visible_fraction[j] - exact->result.visible_fraction[j]) >
+          four->result.error.per_texel[j] + 1e-6)
+        ++outside;
+    EXPECT_LE(outside, exact->result.visible_fraction.size() / 20);
+    std::printf("%s: 4096 samples widest bound %.4f, 16384 (4 maps) %.4f; %zu texels outside\n",
+                VisibilityMethodName(method, sampling::LookupMode::kExact).c_str(), one->result.error.per_texel_max,
+                four->result.error.per_texel_max, outside);
+  }
+  HiddenSampleMapQuery bitmasks = ShadowedFloorQuery(VisibilityMethod::kRaster, 8192, 8);
+  bitmasks.request.source.pattern = sampling::SamplePattern::kJittered;
+  auto refused = RunHiddenSampleMap(*engine, bitmasks);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted) << refused.status();
+  EXPECT_NE(std::string(refused.status().message()).find("samples.count"), std::string::npos) << refused.status();
+  HiddenSampleMapQuery too_many = ShadowedFloorQuery(VisibilityMethod::kRaster, kMaxPlannedSamples + 1, 8);
+  too_many.request.options.want_bitmasks = false;
+  EXPECT_EQ(RunHiddenSampleMap(*engine, too_many).status().code(), absl::StatusCode::kResourceExhausted);
+}
+
 }  // namespace
 }  // namespace visq

@@ -117,6 +117,34 @@ TEST_F(AccuracyTargetTest, ATimeBudgetAloneGetsTheMostAccuratePlanPredictedToFit
   }
 }
 
+// A target tighter than one map's 4096 samples reach (about 0.021) still
+// has sampled plans: several maps with independent jitter, their counts
+// added. An explicit count beyond 4096 answers with that many samples and a
+// bound tighter than one map's.
+TEST_F(AccuracyTargetTest, TightTargetsHaveSampledPlansBeyondOneMap) {
+  v1::HiddenSampleMapRequest request = ShadowedFloor(12);
+  request.mutable_target()->set_max_error(0.012);
+  auto answer = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  bool sampled_beyond_one_map = false;
+  for (const v1::PlanEstimate& plan : answer->figures.accuracy().plans())
+    if (plan.method() != "plucker-exact" && plan.parameters().contains("samples") &&
+        plan.parameters().at("samples") > 4096 && plan.meets_target())
+      sampled_beyond_one_map = true;
+  EXPECT_TRUE(sampled_beyond_one_map) << answer->figures.accuracy().DebugString();
+  EXPECT_LE(answer->figures.accuracy().error_bound(), 0.012);
+
+  v1::HiddenSampleMapRequest explicit_count = ShadowedFloor(12);
+  explicit_count.set_method(v1::RAYCAST);
+  explicit_count.mutable_samples()->set_count(12288);
+  auto three_maps = client_->ComputeHiddenSampleMap(explicit_count);
+  ASSERT_TRUE(three_maps.ok()) << three_maps.status();
+  EXPECT_EQ(three_maps->figures.sample_count(), 12288u);
+  EXPECT_LT(three_maps->figures.accuracy().error_bound(), 0.012);
+  const std::vector<float> exact = ExactFractions(explicit_count);
+  EXPECT_LE(ShareOutsideBound(three_maps->visible_fraction, exact, three_maps->figures.accuracy().error_bound()), 0.05);
+}
+
 TEST_F(AccuracyTargetTest, UnreachableTargetsAreOutOfRangeAndNamed) {
   // Bitmasks rule out the exact method; 4096 samples reach only about 0.021.
   v1::HiddenSampleMapRequest request = ShadowedFloor(8);

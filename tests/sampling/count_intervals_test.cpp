@@ -29,25 +29,33 @@ TEST(CountIntervals, IncompleteBetaIsTheBinomialTail) {
 }
 
 TEST(CountIntervals, LimitsBracketTheCountAndGrowWithIt) {
-  for (int n : {1, 16, 256, 4096}) {
+  for (int n : {1, 16, 256, 4096, 65536}) {
     auto limits = StratifiedCountIntervals(n, 0.95);
-    ASSERT_EQ(limits->low.size(), size_t(n) + 1);
-    for (int k = 0; k <= n; ++k) {
-      EXPECT_LE(limits->low[k], float(k) / n);
-      EXPECT_GE(limits->high[k], float(k) / n);
-      if (k > 0) {
-        EXPECT_GE(limits->low[k], limits->low[k - 1]);
-        EXPECT_GE(limits->high[k], limits->high[k - 1]);
+    std::vector<int> all(size_t(n) + 1);
+    for (int k = 0; k <= n; ++k) all[size_t(k)] = k;
+    if (n > 4096) all = {0, 1, 2, n / 3, n / 2, n / 2 + 1, n - 1, n};  // a map needs a few
+    limits->Prepare(all);
+    for (size_t i = 0; i < all.size(); ++i) {
+      const int k = all[i];
+      EXPECT_LE(limits->Low(k), float(k) / n);
+      EXPECT_GE(limits->High(k), float(k) / n);
+      if (i > 0) {
+        EXPECT_GE(limits->Low(k), limits->Low(all[i - 1]));
+        EXPECT_GE(limits->High(k), limits->High(all[i - 1]));
       }
     }
-    EXPECT_EQ(limits->low[0], 0.0f);
-    EXPECT_EQ(limits->high[n], 1.0f);
+    EXPECT_EQ(limits->Low(0), 0.0f);
+    EXPECT_EQ(limits->High(n), 1.0f);
   }
   // The figure the header gives: 256 samples all visible, at 95 %.
   auto limits = StratifiedCountIntervals(256, 0.95);
   std::printf("256 samples, all visible: true fraction >= %.4f (Hoeffding's worst case: 1 - %.4f)\n",
-              limits->low[256], std::sqrt(std::log(2.0 / 0.05) / (2.0 * 256)));
-  EXPECT_NEAR(1.0 - limits->low[256], 0.022, 0.001);
+              limits->Low(256), std::sqrt(std::log(2.0 / 0.05) / (2.0 * 256)));
+  EXPECT_NEAR(1.0 - limits->Low(256), 0.022, 0.001);
+  // Half visible: Clopper-Pearson's 95 % half-width sqrt(.25 / n) * 1.96,
+  // plus the count of widening.
+  const double half_width = limits->High(128) - 0.5;
+  EXPECT_NEAR(half_width, 1.96 * std::sqrt(0.25 / 256) + 1.0 / 256, 0.006);
 }
 
 // One jittered sample per cell: cell i is visible with its own probability
@@ -57,6 +65,9 @@ TEST(CountIntervals, CoverStratifiedCountsAtTheirConfidence) {
   std::mt19937_64 random(12345);
   const int n = 64;
   auto limits = StratifiedCountIntervals(n, 0.95);
+  std::vector<int> all;
+  for (int k = 0; k <= n; ++k) all.push_back(k);
+  limits->Prepare(all);
   std::vector<std::vector<double>> cases;
   for (double edge : {0.05, 0.3, 0.5, 0.8}) {
     std::vector<double> p(n);
@@ -76,7 +87,7 @@ TEST(CountIntervals, CoverStratifiedCountsAtTheirConfidence) {
     for (int t = 0; t < trials; ++t) {
       int visible = 0;
       for (double q : cases[c]) visible += std::bernoulli_distribution(q)(random);
-      covered += limits->low[visible] <= truth && truth <= limits->high[visible];
+      covered += limits->Low(visible) <= truth && truth <= limits->High(visible);
     }
     EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << "case " << c << ", true fraction " << truth;
   }

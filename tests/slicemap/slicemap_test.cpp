@@ -578,6 +578,43 @@ TEST(SlicemapTransmittance, ReceiverPatchAndNoAbsorbers) {
   EXPECT_EQ(result->transmittance[255], 1.0f);
 }
 
+// Two absorbing boxes of one coefficient that overlap in depth: columns
+// through both enter twice before they leave, which does not resolve. The
+// points behind those columns are flagged and state the whole interval, [0,
+// sigma x the column's length up to them], which holds the union's path;
+// the other points keep their tight interval and no flag.
+TEST(SlicemapTransmittance, AmbiguousColumnsFlagTheirPointsAndWidenTheirBounds) {
+  Scene scene;
+  AddBox(scene, "a", {0, 0, 0}, {2, 2, 2}, 0);
+  AddBox(scene, "b", {1, 1, 0}, {3, 3, 2}, 0);
+  UpdateBounds(scene);
+  const Uploaded s = Upload(std::move(scene));
+  gpu::TransmittanceParams params;
+  params.light.kind = gpu::LightKind::kDirectional;
+  params.light.direction = glm::dvec3(0, -1, 0);
+  params.nodes = {{0, 1.0}, {1, 1.0}};
+  params.resolution = 64;
+  params.slices = 128;
+  // Under a only, under both (in a, below b), under b only, under nothing.
+  params.points = {{0.5, -1, 1}, {1.5, 0.5, 1}, {2.5, -1, 1}, {4.0, -1, 1}};
+  const double union_path[4] = {2.0, 2.5, 2.0, 0.0};
+  auto result = gpu::Transmittance(testing::SharedGpuWorker(), s.scene, *s.gpu, params);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_GT(result->ambiguous_columns, 0u);
+  const std::vector<uint8_t> expected_flags = {0, 1, 0, 0};
+  EXPECT_EQ(result->ambiguous, expected_flags);
+  for (size_t i = 0; i < 4; ++i) {
+    const double od = result->optical_depth[i], error = result->optical_depth_error[i];
+    EXPECT_LE(od - error, union_path[i] + 1e-3) << "point " << i;
+    EXPECT_GE(od, union_path[i] - 1e-3) << "point " << i;
+    if (!result->ambiguous[i]) {
+      EXPECT_LE(error, 0.1) << "point " << i << ": a resolved column stays tight";
+    }
+  }
+  EXPECT_EQ(result->transmittance[3], 1.0f) << "no absorber on the way";
+  EXPECT_NEAR(result->optical_depth_error[1], result->optical_depth[1], 1e-6) << "the whole interval [0, od]";
+}
+
 TEST(SlicemapValidation, BadParamsNameTheField) {
   const Uploaded s = Upload(MakeSphere(kSphereCenter, 1.0, 1));
   auto expect = [&](VoxelizeParams p, absl::StatusCode code, const std::string& needle) {

@@ -562,7 +562,7 @@ class Client:
         if target is not None:
             _target(target, request.target)
         else:
-            request.samples.count = _count(samples, "samples", 1, 4096)
+            request.samples.count = _count(samples, "samples", 1, 65536)
             request.method = _choice(method, "method", _METHODS)
         request.lookup = _choice(lookup, "lookup", _LOOKUPS)
         request.decorrelate, request.watertight, request.want_bitmasks = decorrelate, watertight, bitmasks

@@ -196,16 +196,19 @@ struct TransmittanceResult {
   // Per query point (explicit points first, then the patch's texels).
   std::vector<float> transmittance;        // exp(-optical_depth)
   std::vector<float> optical_depth;        // sum over groups of sigma * occupied length
-  // Upper bound on |optical_depth - exact| from the voxelization along the
-  // column: each surface crossing puts its whole voxel in the solid, so each
-  // shell voxel counted contributes up to sigma * its length. The true value
-  // lies in [optical_depth - optical_depth_error, optical_depth].
+  // Along the ray through the centre of the point's light-view texel, up to
+  // the point's depth, the exact optical depth lies in [optical_depth -
+  // optical_depth_error, optical_depth]: each surface crossing puts its
+  // whole voxel in the solid, so each shell voxel counted contributes up to
+  // sigma * its length. In an ambiguous column the interval is [0, sigma *
+  // the column's length up to the point].
   std::vector<float> optical_depth_error;
-  // Distance from the point's own light ray to the ray through its texel's
-  // center, at the point (world units): the column answers for that ray, so
-  // where the absorber's thickness varies across a texel the answer can be
-  // off by that variation on top of optical_depth_error.
+  // Distance from the point's own light ray to that centre ray, at the point
+  // (world units). Where the absorbers' thickness varies within it, the
+  // point's own value can lie outside the interval.
   std::vector<float> lateral_offset;
+  // 1 where the point's column was ambiguous in some group of absorbers.
+  std::vector<uint8_t> ambiguous;
   // Largest slice length along the ray and texel size at the absorbers.
   double max_voxel_length = 0;
   double max_texel_size = 0;
