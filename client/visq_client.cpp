@@ -427,12 +427,17 @@ StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request) {
     VISQ_RETURN_IF_ERROR(AppendChunk(message.bits(), message.offset(), out.bits, "bits"));
     VISQ_RETURN_IF_ERROR(AppendChunk(message.column_near(), message.offset(), out.column_near, "column_near"));
     VISQ_RETURN_IF_ERROR(AppendChunk(message.column_far(), message.offset(), out.column_far, "column_far"));
+    // The figures: sizes, box and accuracy from the first message, counts
+    // and timing from the last.
+    message.clear_bits();
+    message.clear_column_near();
+    message.clear_column_far();
+    message.clear_offset();
     if (first) {
-      message.clear_bits();
-      message.clear_column_near();
-      message.clear_column_far();
       out.figures = std::move(message);
       first = false;
+    } else {
+      out.figures.MergeFrom(message);
     }
   }
   const grpc::Status status = reader->Finish();

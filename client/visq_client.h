@@ -66,7 +66,7 @@ struct HiddenSampleMap {
 
 // A voxel grid reassembled from its streamed chunks.
 struct VoxelGrid {
-  v1::VoxelizeResponse figures;  // sizes, counts, box, accuracy, timing
+  v1::VoxelizeResponse figures;  // sizes, box, accuracy (first message); counts, timing (last)
   std::vector<uint32_t> bits;    // word (y * width + x) * words_per_column + k / 32, bit k % 32
   std::vector<float> column_near, column_far;
   bool Occupied(uint32_t x, uint32_t y, uint32_t k) const {

@@ -48,10 +48,11 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 
-// What the GL thread hands back; solids are resolved afterwards.
+// What the GL thread hands back, a band of rows at a time; solids are
+// resolved afterwards.
 struct RawSlicemap {
-  SlicemapGrid surface;       // every voxel a surface touches
-  SlicemapGrid front, back;   // solid: entering / leaving faces (standard sampling)
+  SlicemapGrid surface;       // the band: every voxel a surface touches
+  SlicemapGrid front, back;   // the band, solid: entering / leaving faces (standard sampling)
   std::vector<float> near_far;  // local: (near, -far) per column, as rendered
   uint32_t passes = 0;
   uint32_t gl_jobs = 0;
@@ -231,10 +232,12 @@ StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, 
   return t;
 }
 
-// Runs the passes, each band of rows of each pass a GL job, and merges a
-// solid's maps: the shared core of Voxelize and Transmittance.
+// Runs the passes, each band of rows of each pass a GL job, and hands each
+// band on as soon as all its passes are done: `raw`'s grids then hold that
+// band's rows (a solid's surface merged with its front and back maps).
+using RawBand = std::function<Status(uint32_t first_row, RawSlicemap& raw)>;
 Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
-                 RawSlicemap& raw) {
+                 RawSlicemap& raw, const RawBand& on_band) {
   const bool solid = config.mode == VoxelizeMode::kSolid;
   const bool conservative = config.rasterization == Rasterization::kConservative;
   const bool local = config.precision == SlicePrecision::kLocal;
@@ -257,11 +260,6 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   const uint32_t band_rows = static_cast<uint32_t>(
       std::clamp<size_t>(config.max_columns_per_job / std::max<uint32_t>(config.width, 1), 1, config.height));
 
-  raw.surface = EmptyGrid(config.width, config.height, config.slices);
-  if (solid) {
-    raw.front = EmptyGrid(config.width, config.height, config.slices);
-    raw.back = EmptyGrid(config.width, config.height, config.slices);
-  }
 
   GlStateAcrossJobs<SlicemapTargets> targets(worker);
   auto job = [&](const std::function<Status()>& body) -> Status {
@@ -335,7 +333,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
         glGetTextureSubImage(made->targets[m * max_targets_per_map + t].id(), 0, 0, static_cast<GLint>(first_row),
                              0, static_cast<GLsizei>(config.width), static_cast<GLsizei>(rows), 1, GL_RGBA_INTEGER,
                              GL_UNSIGNED_INT, static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
-        ScatterTarget(texels, size_t{first_row} * config.width, band_columns, grid, first_slice / 32 + t * 4);
+        ScatterTarget(texels, 0, band_columns, grid, first_slice / 32 + t * 4);
       }
     }
     VISQ_GL_CHECK("slicemap readback");
@@ -345,10 +343,17 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
 
   // Solid: front/back maps sampled at texel centers (the in/out events);
   // their union is the surface unless a conservative surface pass follows.
-  for (uint32_t first = 0; first < config.slices; first += per_pass) {
-    const uint32_t n = std::min(per_pass, config.slices - first);
-    for (uint32_t first_row = 0; first_row < config.height; first_row += band_rows) {
-      const uint32_t rows = std::min(band_rows, config.height - first_row);
+  // Band by band, every slice pass of the band, so each band's columns are
+  // whole when it is handed on.
+  for (uint32_t first_row = 0; first_row < config.height; first_row += band_rows) {
+    const uint32_t rows = std::min(band_rows, config.height - first_row);
+    raw.surface = EmptyGrid(config.width, rows, config.slices);
+    if (solid) {
+      raw.front = EmptyGrid(config.width, rows, config.slices);
+      raw.back = EmptyGrid(config.width, rows, config.slices);
+    }
+    for (uint32_t first = 0; first < config.slices; first += per_pass) {
+      const uint32_t n = std::min(per_pass, config.slices - first);
       if (solid) {
         VISQ_RETURN_IF_ERROR(job([&] { return run_pass(true, false, first, n, first_row, rows); }));
         if (conservative) VISQ_RETURN_IF_ERROR(job([&] { return run_pass(false, true, first, n, first_row, rows); }));
@@ -356,11 +361,12 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
         VISQ_RETURN_IF_ERROR(job([&] { return run_pass(false, conservative, first, n, first_row, rows); }));
       }
     }
-  }
-  if (solid) {
-    const auto start = Clock::now();
-    for (size_t i = 0; i < raw.surface.bits.size(); ++i) raw.surface.bits[i] |= raw.front.bits[i] | raw.back.bits[i];
-    raw.timings.readback_ms += MillisecondsSince(start);
+    if (solid) {
+      const auto start = Clock::now();
+      for (size_t i = 0; i < raw.surface.bits.size(); ++i) raw.surface.bits[i] |= raw.front.bits[i] | raw.back.bits[i];
+      raw.timings.readback_ms += MillisecondsSince(start);
+    }
+    VISQ_RETURN_IF_ERROR(on_band(first_row, raw));
   }
   return absl::OkStatus();
 }
@@ -596,58 +602,73 @@ Status ValidateVoxelizeParams(const VoxelizeParams& params, uint32_t triangle_co
 namespace slicemap_internal {
 
 StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view,
-                                      const PassConfig& config, SlicemapGrid* surface_out) {
+                                      const PassConfig& config, const VoxelizeBandSink& sink,
+                                      SlicemapGrid* surface_out) {
   const auto start = Clock::now();
-  RawSlicemap raw;
-  VISQ_RETURN_IF_ERROR(RunPasses(worker, scene, view, config, raw));
-
   VoxelizeResult result;
   result.mode = config.mode;
   result.precision = config.precision;
   result.rasterization = config.rasterization;
+  result.grid = EmptyGrid(config.width, config.height, config.slices);
+  result.grid.bits.clear();  // the sizes; the bits come band by band
+  if (!sink) result.grid.bits.reserve(size_t{config.width} * config.height * result.grid.words_per_column);
+  if (surface_out != nullptr) {
+    *surface_out = result.grid;
+    surface_out->bits.reserve(size_t{config.width} * config.height * result.grid.words_per_column);
+  }
+  const bool local = config.precision == SlicePrecision::kLocal;
+  RawSlicemap raw;
+  VoxelizeBand band;
+  auto on_band = [&](uint32_t first_row, RawSlicemap& made) -> Status {
+    const size_t first_column = size_t{first_row} * config.width;
+    const size_t columns = size_t{config.width} * made.surface.height;
+    band.first_column = first_column;
+    // Local precision: the range the shader really used.
+    band.column_near.clear();
+    band.column_far.clear();
+    if (local) {
+      band.column_near.resize(columns);
+      band.column_far.resize(columns);
+      for (size_t c = 0; c < columns; ++c) {
+        const float near = made.near_far[2 * (first_column + c)], far = -made.near_far[2 * (first_column + c) + 1];
+        band.column_near[c] = near > far ? 1.0f : near;
+        band.column_far[c] = near > far ? 0.0f : std::max(far, near + kMinLocalRange);
+      }
+    }
+    if (surface_out != nullptr)
+      surface_out->bits.insert(surface_out->bits.end(), made.surface.bits.begin(), made.surface.bits.end());
+    if (config.mode == VoxelizeMode::kSolid) {
+      const auto resolve_start = Clock::now();
+      SolidSummary summary = ResolveSolid(made.front, made.back, made.surface);
+      result.resolved_columns += summary.resolved;
+      result.ambiguous_columns += summary.ambiguous.size();
+      for (uint32_t c : summary.ambiguous) result.ambiguous_column_list.push_back(static_cast<uint32_t>(first_column + c));
+      made.timings.resolve_ms += MillisecondsSince(resolve_start);
+    }
+    result.occupied_voxels += made.surface.CountOccupied();
+    band.bits = std::move(made.surface.bits);
+    if (sink) {
+      result.passes = made.passes;
+      return sink(result, band);
+    }
+    result.grid.bits.insert(result.grid.bits.end(), band.bits.begin(), band.bits.end());
+    result.column_near.insert(result.column_near.end(), band.column_near.begin(), band.column_near.end());
+    result.column_far.insert(result.column_far.end(), band.column_far.begin(), band.column_far.end());
+    return absl::OkStatus();
+  };
+  VISQ_RETURN_IF_ERROR(RunPasses(worker, scene, view, config, raw, on_band));
+  std::sort(result.ambiguous_column_list.begin(), result.ambiguous_column_list.end());
   result.passes = raw.passes;
   result.gl_jobs = raw.gl_jobs;
   result.timings = raw.timings;
-
-  // Local precision: report the range the shader really used.
-  if (config.precision == SlicePrecision::kLocal) {
-    const size_t columns = size_t{config.width} * config.height;
-    result.column_near.resize(columns);
-    result.column_far.resize(columns);
-    for (size_t c = 0; c < columns; ++c) {
-      const float near = raw.near_far[2 * c], far = -raw.near_far[2 * c + 1];
-      if (near > far) {
-        result.column_near[c] = 1.0f;
-        result.column_far[c] = 0.0f;
-      } else {
-        result.column_near[c] = near;
-        result.column_far[c] = std::max(far, near + kMinLocalRange);
-      }
-    }
-  }
-
-  if (config.mode == VoxelizeMode::kSolid) {
-    const auto resolve_start = Clock::now();
-    if (surface_out != nullptr) *surface_out = raw.surface;
-    result.grid = std::move(raw.surface);
-    SolidSummary summary = ResolveSolid(raw.front, raw.back, result.grid);
-    result.resolved_columns = summary.resolved;
-    result.ambiguous_columns = summary.ambiguous.size();
-    result.ambiguous_column_list = std::move(summary.ambiguous);
-    std::sort(result.ambiguous_column_list.begin(), result.ambiguous_column_list.end());
-    result.timings.resolve_ms = MillisecondsSince(resolve_start);
-  } else {
-    if (surface_out != nullptr) *surface_out = raw.surface;
-    result.grid = std::move(raw.surface);
-  }
-  result.occupied_voxels = result.grid.CountOccupied();
   result.timings.total_ms = MillisecondsSince(start);
   return result;
 }
 
 }  // namespace slicemap_internal
 
-StatusOr<VoxelizeResult> Voxelize(GpuWorker& worker, const GpuScene& gpu_scene, const VoxelizeParams& params) {
+StatusOr<VoxelizeResult> Voxelize(GpuWorker& worker, const GpuScene& gpu_scene, const VoxelizeParams& params,
+                                  const VoxelizeBandSink& sink) {
   VISQ_RETURN_IF_ERROR(ValidateVoxelizeParams(params, gpu_scene.triangle_count()));
   PassConfig config;
   config.width = params.width;
@@ -660,7 +681,7 @@ StatusOr<VoxelizeResult> Voxelize(GpuWorker& worker, const GpuScene& gpu_scene, 
   config.max_bytes = params.max_bytes;
   config.max_columns_per_job = params.max_columns_per_job;
   config.job = params.job;
-  return VoxelizeView(worker, gpu_scene, OrthographicView(params.box, gpu_scene.anchor()), config, nullptr);
+  return VoxelizeView(worker, gpu_scene, OrthographicView(params.box, gpu_scene.anchor()), config, sink, nullptr);
 }
 
 }  // namespace visq::gpu

@@ -54,9 +54,11 @@ inline std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})",
 // and then float.
 ViewSetup OrthographicView(const SlicemapBox& box, const glm::dvec3& anchor);
 
-// Runs the passes (GL jobs per pass and band of rows) and resolves a solid;
-// with `surface_out`, also the surface grid.
+// Runs the passes (GL jobs per pass and band of rows) and resolves a solid,
+// band by band; with `sink`, each band goes to it (see Voxelize); with
+// `surface_out`, also the surface grid, whole.
 [[nodiscard]] StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view,
-                                                    const PassConfig& config, SlicemapGrid* surface_out);
+                                                    const PassConfig& config, const VoxelizeBandSink& sink,
+                                                    SlicemapGrid* surface_out);
 
 }  // namespace visq::gpu::slicemap_internal

@@ -259,7 +259,7 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
     config.triangles = ranges;
     config.job = params.job;
     SlicemapGrid surface;
-    VISQ_ASSIGN_OR_RETURN(VoxelizeResult voxels, VoxelizeView(worker, gpu_scene, view, config, &surface));
+    VISQ_ASSIGN_OR_RETURN(VoxelizeResult voxels, VoxelizeView(worker, gpu_scene, view, config, /*sink=*/{}, &surface));
     result.ambiguous_columns += voxels.ambiguous_columns;
     SlicemapTimings& t = result.timings;
     t.queue_ms += voxels.timings.queue_ms;

@@ -1,5 +1,7 @@
 #include "core/voxel_query.h"
 
+#include <algorithm>
+
 #include "core/engine.h"
 
 namespace visq {
@@ -47,18 +49,29 @@ StatusOr<gpu::TransmittanceParams> ResolveTransmittanceQuery(TransmittanceQuery 
   return std::move(query.params);
 }
 
-StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query, gpu::SlicemapBox* box_used) {
+StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query, gpu::SlicemapBox* box_used,
+                                          const gpu::VoxelizeBandSink& sink) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeParams params, ResolveVoxelizeQuery(query, *resident->scene));
   params.job = query.call.Job();
-  // The grid read back, the result's copy and the messages' copies.
-  const uint64_t grid_bytes = uint64_t(params.width) * params.height * ((uint64_t(params.slices) + 31) / 32) * 4;
+  // One band's grids (surface, front and back for a solid) and read-back,
+  // and then the whole grid with its copy in messages, or, streamed, what
+  // the stream's writer may hold unsent.
+  const uint64_t column_bytes = ((uint64_t(params.slices) + 31) / 32) * 4;
+  const uint64_t grid_bytes = uint64_t(params.width) * params.height * column_bytes;
+  const uint64_t band_columns = std::min<uint64_t>(uint64_t(params.width) * params.height,
+                                                   std::max<uint64_t>(params.max_columns_per_job, params.width));
+  const uint64_t local_ranges = params.precision == gpu::SlicePrecision::kLocal
+                                    ? uint64_t(params.width) * params.height * 8  // near and far, whole
+                                    : 0;
+  const uint64_t band_bytes = band_columns * (3 * column_bytes + 16 + 8) + local_ranges;
+  const uint64_t bytes = band_bytes + (sink ? std::min(grid_bytes, kStreamedAnswerQueueBytes) : 2 * grid_bytes);
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
-                        engine.work_budget().Reserve(3 * grid_bytes, "width x height x slices", params.job));
+                        engine.work_budget().Reserve(bytes, "width x height x slices", params.job));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
   if (box_used != nullptr) *box_used = params.box;
-  return gpu::Voxelize(engine.gpu(), *gpu_scene, params);
+  return gpu::Voxelize(engine.gpu(), *gpu_scene, params, sink);
 }
 
 StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query) {

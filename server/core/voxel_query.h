@@ -39,8 +39,11 @@ struct TransmittanceQuery {
 [[nodiscard]] StatusOr<gpu::TransmittanceParams> ResolveTransmittanceQuery(TransmittanceQuery query,
                                                                            const Scene& scene);
 
+// With `sink`, each band of image rows goes to it as soon as it is made and
+// the result holds the figures only (gpu::Voxelize).
 [[nodiscard]] StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query,
-                                                        gpu::SlicemapBox* box_used);
+                                                        gpu::SlicemapBox* box_used,
+                                                        const gpu::VoxelizeBandSink& sink = {});
 [[nodiscard]] StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query);
 
 }  // namespace visq

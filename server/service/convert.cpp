@@ -532,24 +532,15 @@ StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   return query;
 }
 
-ChunkedResponses<v1::VoxelizeResponse> ToProtoStream(gpu::VoxelizeResult result_in, const gpu::SlicemapBox& box) {
-  constexpr size_t kMaxAmbiguousListed = 10000;
-  auto kept = std::make_shared<const gpu::VoxelizeResult>(std::move(result_in));
-  const gpu::VoxelizeResult& result = *kept;
+v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& result, const gpu::SlicemapBox& box) {
   v1::VoxelizeResponse first;
   const gpu::SlicemapGrid& grid = result.grid;
   first.set_width(grid.width);
   first.set_height(grid.height);
   first.set_slices(grid.slices);
   first.set_words_per_column(grid.words_per_column);
-  first.set_occupied_voxels(result.occupied_voxels);
   first.set_rasterization(result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard");
   first.set_precision(result.precision == gpu::SlicePrecision::kLocal ? "local" : "uniform");
-  first.set_passes(result.passes);
-  first.set_ambiguous_columns(result.ambiguous_columns);
-  first.set_resolved_columns(result.resolved_columns);
-  for (size_t i = 0; i < result.ambiguous_column_list.size() && i < kMaxAmbiguousListed; ++i)
-    first.add_ambiguous_column_list(result.ambiguous_column_list[i]);
   auto* b = first.mutable_box();
   ToProto(box.center, b->mutable_center());
   ToProto(box.axis_u, b->mutable_axis_u());
@@ -580,29 +571,44 @@ ChunkedResponses<v1::VoxelizeResponse> ToProtoStream(gpu::VoxelizeResult result_
                                     voxel_size, ") of the surface. Ask for conservative for a bound",
                                     precision_note));
   }
+  return first;
+}
+
+Status WriteVoxelizeBand(const gpu::VoxelizeBand& band, uint32_t words_per_column,
+                         const std::function<Status(v1::VoxelizeResponse)>& write, size_t chunk_elements) {
+  VISQ_CHECK_LT(size_t{0}, chunk_elements);
+  auto chunks = [&](const auto& values, size_t first_offset, auto field) -> Status {
+    for (size_t begin = 0; begin < values.size(); begin += chunk_elements) {
+      const size_t end = std::min(values.size(), begin + chunk_elements);
+      v1::VoxelizeResponse message;
+      message.set_offset(first_offset + begin);
+      AddRange(values, begin, end, (message.*field)());
+      VISQ_RETURN_IF_ERROR(write(std::move(message)));
+    }
+    return absl::OkStatus();
+  };
+  VISQ_RETURN_IF_ERROR(chunks(band.bits, band.first_column * words_per_column, &v1::VoxelizeResponse::mutable_bits));
+  VISQ_RETURN_IF_ERROR(chunks(band.column_near, band.first_column, &v1::VoxelizeResponse::mutable_column_near));
+  return chunks(band.column_far, band.first_column, &v1::VoxelizeResponse::mutable_column_far);
+}
+
+v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result) {
+  constexpr size_t kMaxAmbiguousListed = 10000;
+  v1::VoxelizeResponse last;
+  last.set_occupied_voxels(result.occupied_voxels);
+  last.set_passes(result.passes);
+  last.set_ambiguous_columns(result.ambiguous_columns);
+  last.set_resolved_columns(result.resolved_columns);
+  for (size_t i = 0; i < result.ambiguous_column_list.size() && i < kMaxAmbiguousListed; ++i)
+    last.add_ambiguous_column_list(result.ambiguous_column_list[i]);
   const auto& stages = result.timings;
-  auto& stage_ms = *first.mutable_stage_ms();
+  auto& stage_ms = *last.mutable_stage_ms();
   stage_ms["setup"] = stages.setup_ms;
   stage_ms["depth"] = stages.depth_ms;
   stage_ms["voxelize"] = stages.voxelize_ms;
   stage_ms["readback"] = stages.readback_ms;
   stage_ms["resolve"] = stages.resolve_ms;
-
-  ChunkedResponses<v1::VoxelizeResponse> stream(std::move(first));
-  stream.Keep(kept);
-  stream.Add(grid.bits.size(), [&grid](v1::VoxelizeResponse& m, size_t a, size_t e) {
-    m.set_offset(a);
-    AddRange(grid.bits, a, e, m.mutable_bits());
-  });
-  stream.Add(result.column_near.size(), [&result](v1::VoxelizeResponse& m, size_t a, size_t e) {
-    m.set_offset(a);
-    AddRange(result.column_near, a, e, m.mutable_column_near());
-  });
-  stream.Add(result.column_far.size(), [&result](v1::VoxelizeResponse& m, size_t a, size_t e) {
-    m.set_offset(a);
-    AddRange(result.column_far, a, e, m.mutable_column_far());
-  });
-  return stream;
+  return last;
 }
 
 StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {

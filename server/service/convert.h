@@ -66,7 +66,15 @@ ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewA
 ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResult result);
 
 [[nodiscard]] StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
-ChunkedResponses<v1::VoxelizeResponse> ToProtoStream(gpu::VoxelizeResult result, const gpu::SlicemapBox& box);
+// Streamed while the grid is made, like the hidden-sample map: the first
+// message holds what is known before any band (sizes, box, modes,
+// accuracy), each band's chunks of bits and local ranges follow as the band
+// is made, and the last message holds the counts and the timing.
+v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& figures, const gpu::SlicemapBox& box);
+[[nodiscard]] Status WriteVoxelizeBand(const gpu::VoxelizeBand& band, uint32_t words_per_column,
+                                       const std::function<Status(v1::VoxelizeResponse)>& write,
+                                       size_t chunk_elements = kChunkElements);
+v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result);
 [[nodiscard]] StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request);
 void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* out);
 

@@ -423,24 +423,39 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
 
 grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
     grpc::CallbackServerContext* context, const v1::VoxelizeRequest* request) {
-  return new PreparedStreamReactor<v1::VoxelizeResponse>(
+  using Reactor = ProducedStreamReactor<v1::VoxelizeResponse>;
+  return new Reactor(
       context, ctx_, "Voxelize",
-      [this, context, request](const std::atomic<bool>& cancelled,
-                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::VoxelizeResponse>> {
+      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
+                               Reactor& out) -> StatusOr<v1::VoxelizeResponse> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(VoxelizeQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
         gpu::SlicemapBox box;
-        VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, RunVoxelize(ctx_.engine, query, &box));
-        const double before_transfer = log.ElapsedMs();
-        const auto timings = result.timings;
+        // Each band is written as soon as it is made, after the first
+        // message; time spent writing is transfer, not compute.
+        double transfer_ms = 0.0;
+        auto write = [&](v1::VoxelizeResponse message) -> Status {
+          const double before = log.ElapsedMs();
+          Status written = out.Write(std::move(message));
+          transfer_ms += log.ElapsedMs() - before;
+          return written;
+        };
+        auto sink = [&](const gpu::VoxelizeResult& figures, const gpu::VoxelizeBand& band) -> Status {
+          if (band.first_column == 0) VISQ_RETURN_IF_ERROR(write(VoxelizeFirstMessage(figures, box)));
+          return WriteVoxelizeBand(band, figures.grid.words_per_column, write);
+        };
+        VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, RunVoxelize(ctx_.engine, query, &box, sink));
         log.Info("{}x{}x{} {}: {} occupied voxels", result.grid.width, result.grid.height, result.grid.slices,
                  result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard",
                  result.occupied_voxels);
-        ChunkedResponses<v1::VoxelizeResponse> messages = ToProtoStream(std::move(result), box);
-        SetStreamTiming(queue_ms + timings.queue_ms, timings.total_ms - timings.queue_ms, before_transfer, log,
-                        messages.first().mutable_timing());
-        return messages;
+        v1::VoxelizeResponse last = VoxelizeLastMessage(result);
+        v1::Timing* timing = last.mutable_timing();
+        timing->set_queue_ms(queue_ms + result.timings.queue_ms);
+        timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms - transfer_ms);
+        timing->set_transfer_ms(transfer_ms);
+        timing->set_total_ms(log.ElapsedMs());
+        return last;
       });
 }
 

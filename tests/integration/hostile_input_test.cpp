@@ -381,6 +381,47 @@ TEST(HostileServerSetup, LargeMapsAreSentABandAtATime) {
   EXPECT_GT(raster->figures.timing().total_ms(), 0.0);
 }
 
+// Item 12, for voxel grids: 1024 x 1024 columns go out in bands of 2^18
+// columns (whole in depth) while the rest is drawn; the first message holds
+// the sizes and the accuracy, the last the counts and the timing.
+TEST_F(HostileInputTest, VoxelGridsAreSentABandAtATime) {
+  v1::VoxelizeRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  request.set_width(1024);
+  request.set_height(1024);
+  request.set_slices(32);
+  request.set_mode(v1::VoxelizeRequest::SOLID);
+  auto stub = v1::VisibilityService::NewStub(grpc::CreateChannel(server_->address(), grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(120));
+  auto reader = stub->Voxelize(&context, request);
+  std::vector<v1::VoxelizeResponse> messages;
+  for (v1::VoxelizeResponse m; reader->Read(&m);) messages.push_back(m);
+  ASSERT_TRUE(reader->Finish().ok());
+  ASSERT_GE(messages.size(), 3u);
+  EXPECT_EQ(messages.front().width(), 1024u);
+  EXPECT_TRUE(messages.front().has_accuracy());
+  EXPECT_EQ(messages.front().occupied_voxels(), 0u) << "the count needs every band";
+  EXPECT_GT(messages.back().occupied_voxels(), 0u);
+  EXPECT_TRUE(messages.back().has_timing());
+  uint64_t next_word = 0;
+  int bit_messages = 0;
+  for (const v1::VoxelizeResponse& m : messages) {
+    if (m.bits_size() == 0) continue;
+    EXPECT_EQ(m.offset(), next_word);
+    EXPECT_LE(m.bits_size(), 1 << 18) << "a band at most";
+    next_word += m.bits_size();
+    ++bit_messages;
+  }
+  EXPECT_EQ(next_word, 1024u * 1024u);
+  EXPECT_EQ(bit_messages, 4);
+  auto grid = client_->Voxelize(request);
+  ASSERT_TRUE(grid.ok()) << grid.status();
+  EXPECT_EQ(grid->figures.occupied_voxels(), messages.back().occupied_voxels());
+  EXPECT_TRUE(grid->figures.has_accuracy());
+  EXPECT_EQ(grid->bits.size(), 1024u * 1024u);
+}
+
 // Item 17: a long rendering that is still wanted does not hold the GL
 // thread: its stages and its traversal's bands of rows are GL jobs of their
 // own, so another client's small map answers between them. (Before, the

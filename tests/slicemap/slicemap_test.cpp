@@ -269,6 +269,35 @@ TEST(SlicemapBands, BandsOfRowsGiveTheBitsOfOneJob) {
                                   (c.mode == VoxelizeMode::kSolid ? 512 : 1024);
     EXPECT_EQ(whole.gl_jobs, 1 + slice_passes * per_band);
     EXPECT_EQ(banded.gl_jobs, 1 + slice_passes * per_band * 8) << "36 rows in bands of 5";
+
+    // Streamed: each band, whole in depth, goes to the sink as it is made,
+    // and the bands are the grid; the result keeps the figures only.
+    std::vector<uint32_t> bits;
+    std::vector<float> near;
+    int bands = 0;
+    auto streamed = gpu::Voxelize(testing::SharedGpuWorker(), *s.gpu, params,
+                                  [&](const gpu::VoxelizeResult& figures, const gpu::VoxelizeBand& band) {
+                                    EXPECT_EQ(band.first_column * figures.grid.words_per_column, bits.size());
+                                    bits.insert(bits.end(), band.bits.begin(), band.bits.end());
+                                    near.insert(near.end(), band.column_near.begin(), band.column_near.end());
+                                    ++bands;
+                                    return absl::OkStatus();
+                                  });
+    ASSERT_TRUE(streamed.ok()) << streamed.status();
+    EXPECT_EQ(bands, 8);
+    EXPECT_EQ(bits, whole.grid.bits);
+    EXPECT_EQ(near, whole.column_near);
+    EXPECT_TRUE(streamed->grid.bits.empty());
+    EXPECT_EQ(streamed->occupied_voxels, whole.occupied_voxels);
+    EXPECT_EQ(streamed->ambiguous_columns, whole.ambiguous_columns);
+    int calls = 0;
+    auto stopped = gpu::Voxelize(testing::SharedGpuWorker(), *s.gpu, params,
+                                 [&](const gpu::VoxelizeResult&, const gpu::VoxelizeBand&) {
+                                   ++calls;
+                                   return absl::CancelledError("the client went away");
+                                 });
+    EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled);
+    EXPECT_EQ(calls, 1);
   }
 }
 

@@ -430,11 +430,12 @@ class Client:
                     m.ClearField(field)
                 first.append(m)
             else:
-                # Figures that need the whole answer (a hidden-sample map's
-                # accuracy and timing) come in its last message.
-                for field in ("accuracy", "timing"):
-                    if field in m.DESCRIPTOR.fields_by_name and m.HasField(field):
-                        getattr(first[0], field).CopyFrom(getattr(m, field))
+                # Figures that need the whole answer (a map's accuracy, a
+                # grid's counts, the timing) come in the last message.
+                for field, offset, _, _ in arrays:
+                    m.ClearField(field)
+                    m.ClearField(offset)
+                first[0].MergeFrom(m)
 
         self._server_stream(rpc, request, scene, timeout, cancel, on_message)
         if not first:

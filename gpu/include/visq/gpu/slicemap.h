@@ -18,6 +18,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -143,9 +144,23 @@ struct VoxelizeResult {
   SlicemapTimings timings;
 };
 
-// Voxelizes `gpu_scene` (the GPU copy of `scene`) into `params.box`.
+// One band of image rows of a voxelization, whole in depth, as soon as its
+// passes are done: columns [first_column, first_column + columns) in the
+// packed layout, and their local ranges (local precision only).
+struct VoxelizeBand {
+  size_t first_column = 0;
+  std::vector<uint32_t> bits;
+  std::vector<float> column_near, column_far;
+};
+// Receives each band in order, with the figures so far (sizes, modes; the
+// counts up to this band). A status other than OK stops the voxelization.
+using VoxelizeBandSink = std::function<Status(const VoxelizeResult& figures, const VoxelizeBand& band)>;
+
+// Voxelizes `gpu_scene` (the GPU copy of `scene`) into `params.box`. Without
+// a sink the result holds the whole grid; with one, each band goes to the
+// sink and the result holds the figures only (the grid's sizes, no bits).
 [[nodiscard]] StatusOr<VoxelizeResult> Voxelize(GpuWorker& worker, const GpuScene& gpu_scene,
-                                                const VoxelizeParams& params);
+                                                const VoxelizeParams& params, const VoxelizeBandSink& sink = {});
 
 // Checks params without touching the GPU: INVALID_ARGUMENT or
 // RESOURCE_EXHAUSTED naming the field and value.
