@@ -460,11 +460,15 @@ StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowReq
   while (reader->Read(&message)) {
     VISQ_RETURN_IF_ERROR(AppendChunk(message.inscattering(), message.offset(), out.inscattering, "inscattering"));
     VISQ_RETURN_IF_ERROR(AppendChunk(message.combined(), message.offset(), out.combined, "combined"));
+    // The figures from the first message, the timing from the last.
+    message.clear_inscattering();
+    message.clear_combined();
+    message.clear_offset();
     if (first) {
-      message.clear_inscattering();
-      message.clear_combined();
       out.figures = std::move(message);
       first = false;
+    } else {
+      out.figures.MergeFrom(message);
     }
   }
   const grpc::Status status = reader->Finish();

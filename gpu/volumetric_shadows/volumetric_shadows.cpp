@@ -641,10 +641,12 @@ Status IntegrateRows(const VolumetricTargets& t, const Setup& setup, const Volum
   return absl::OkStatus();
 }
 
-Status ReadPixels(const VolumetricTargets& t, const Setup& setup, std::vector<glm::vec4>& pixels) {
-  const size_t pixel_count = size_t{setup.width} * setup.height;
-  pixels.resize(pixel_count);
-  glGetNamedBufferSubData(t.output.id(), 0, GLsizeiptr(pixel_count * sizeof(glm::vec4)), pixels.data());
+// Rows [first_row, first_row + rows) of the image.
+Status ReadRows(const VolumetricTargets& t, const Setup& setup, uint32_t first_row, uint32_t rows,
+                std::vector<glm::vec4>& pixels) {
+  pixels.resize(size_t{setup.width} * rows);
+  glGetNamedBufferSubData(t.output.id(), GLintptr(size_t{first_row} * setup.width * sizeof(glm::vec4)),
+                          GLsizeiptr(pixels.size() * sizeof(glm::vec4)), pixels.data());
   return CollectGlErrors("volumetric shadows: readback");
 }
 
@@ -718,13 +720,12 @@ Status ValidateVolumetricParams(const VolumetricParams& params) {
 }
 
 StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuScene& gpu_scene, const Scene& scene,
-                                                   const VolumetricParams& params) {
+                                                   const VolumetricParams& params, const VolumetricBandSink& sink) {
   const auto start = Clock::now();
   VISQ_RETURN_IF_ERROR(ValidateVolumetricParams(params));
   VISQ_ASSIGN_OR_RETURN(Setup setup, BuildSetup(gpu_scene, scene, params));
 
   VolumetricResult result;
-  std::vector<glm::vec4> pixels;
   // Each stage, and each band of the traversal, is a GL job of its own; a
   // cancelled or expired call stops at the next.
   GlStateAcrossJobs<VolumetricTargets> targets(worker);
@@ -762,19 +763,9 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
   VISQ_RETURN_IF_ERROR(stage(ms.mipmap_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
     return BuildMinMax(t, setup);
   }));
-  const uint32_t band_rows = TraversalBandRows(setup.width, params.max_pixels_per_job);
-  for (uint32_t first_row = 0; first_row < setup.height; first_row += band_rows) {
-    const uint32_t rows = std::min(band_rows, setup.height - first_row);
-    VISQ_RETURN_IF_ERROR(stage(ms.traversal_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
-      return IntegrateRows(t, setup, params, first_row, rows);
-    }));
-  }
-  VISQ_RETURN_IF_ERROR(stage(ms.readback_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
-    return ReadPixels(t, setup, pixels);
-  }));
+  // The figures are known now (the first job may have fallen back from
+  // kSvd), before any band.
   result.timings.integrand_table_ms = setup.svd_ms;
-
-  // Light color applied here: the shader works in one channel for the medium.
   result.width = setup.width;
   result.height = setup.height;
   result.method = params.method;
@@ -787,13 +778,45 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
   result.rectified_columns = setup.cols;
   result.epipole_inside_map = setup.epipole_inside;
   if (!setup.spot) result.medium_box = setup.box;
+  const size_t pixel_count = size_t{setup.width} * setup.height;
+  if (!sink) {
+    result.inscattering.reserve(pixel_count * 3);
+    if (params.combined_image) result.combined.reserve(pixel_count * 3);
+  }
+
+  // The traversal a band of rows per job, each band read back in its job
+  // and handed on (the light colour applied here: the shader works in one
+  // channel for the medium).
   const glm::vec3 color(params.light.color);
-  result.inscattering.resize(pixels.size() * 3);
-  if (params.combined_image) result.combined.resize(pixels.size() * 3);
-  for (size_t i = 0; i < pixels.size(); ++i) {
-    for (int k = 0; k < 3; ++k) {
-      result.inscattering[i * 3 + k] = color[k] * pixels[i].x;
-      if (params.combined_image) result.combined[i * 3 + k] = color[k] * (pixels[i].x + pixels[i][k + 1]);
+  std::vector<glm::vec4> pixels;
+  VolumetricBand band;
+  const uint32_t band_rows = TraversalBandRows(setup.width, params.max_pixels_per_job);
+  for (uint32_t first_row = 0; first_row < setup.height; first_row += band_rows) {
+    const uint32_t rows = std::min(band_rows, setup.height - first_row);
+    double readback_ms = 0.0;
+    VISQ_RETURN_IF_ERROR(stage(ms.traversal_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
+      VISQ_RETURN_IF_ERROR(IntegrateRows(t, setup, params, first_row, rows));
+      const auto readback_start = Clock::now();
+      const Status read = ReadRows(t, setup, first_row, rows, pixels);
+      readback_ms = MillisecondsSince(readback_start);
+      return read;
+    }));
+    ms.traversal_ms -= readback_ms;  // the job held both
+    ms.readback_ms += readback_ms;
+    band.first_pixel = size_t{first_row} * setup.width;
+    band.inscattering.resize(pixels.size() * 3);
+    band.combined.resize(params.combined_image ? pixels.size() * 3 : 0);
+    for (size_t i = 0; i < pixels.size(); ++i) {
+      for (int k = 0; k < 3; ++k) {
+        band.inscattering[i * 3 + k] = color[k] * pixels[i].x;
+        if (params.combined_image) band.combined[i * 3 + k] = color[k] * (pixels[i].x + pixels[i][k + 1]);
+      }
+    }
+    if (sink) {
+      VISQ_RETURN_IF_ERROR(sink(result, band));
+    } else {
+      result.inscattering.insert(result.inscattering.end(), band.inscattering.begin(), band.inscattering.end());
+      result.combined.insert(result.combined.end(), band.combined.begin(), band.combined.end());
     }
   }
   result.timings.total_ms = MillisecondsSince(start);

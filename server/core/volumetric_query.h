@@ -18,6 +18,9 @@ struct VolumetricQuery {
   CallOptions call;  // the core sets params.job from it
 };
 
-[[nodiscard]] StatusOr<gpu::VolumetricResult> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query);
+// With `sink`, each band of image rows goes to it as the traversal makes it
+// and the result holds the figures only (gpu::RenderVolumetricShadows).
+[[nodiscard]] StatusOr<gpu::VolumetricResult> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
+                                                                 const gpu::VolumetricBandSink& sink = {});
 
 }  // namespace visq

@@ -12,6 +12,7 @@
 #include <utility>
 #include <vector>
 
+#include <absl/status/status.h>
 #include <glm/vec3.hpp>
 #include <google/protobuf/repeated_field.h>
 
@@ -94,6 +95,24 @@ class ChunkedResponses {
   size_t array_ = 0;
   size_t offset_ = 0;
 };
+
+// An answer made in parts (a band of a map or a grid), written as it is
+// made: elements [0, size) of one array in messages of at most
+// `chunk_elements`, each naming in `offset` its first element's index in the
+// whole answer (`first_offset` + begin). `fill(message, begin, end)` adds the
+// elements. Stops at the first write that fails.
+template <typename Response, typename Fill>
+[[nodiscard]] absl::Status WriteChunks(size_t size, uint64_t first_offset, size_t chunk_elements,
+                                       const std::function<absl::Status(Response)>& write, const Fill& fill) {
+  for (size_t begin = 0; begin < size; begin += chunk_elements) {
+    const size_t end = std::min(size, begin + chunk_elements);
+    Response message;
+    message.set_offset(first_offset + begin);
+    fill(message, begin, end);
+    if (absl::Status written = write(std::move(message)); !written.ok()) return written;
+  }
+  return absl::OkStatus();
+}
 
 // Elements [begin, end) of `values` onto a repeated field.
 template <typename T, typename Field>

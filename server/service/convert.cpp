@@ -276,42 +276,32 @@ Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int w
                                 const std::function<Status(v1::HiddenSampleMapResponse)>& write,
                                 size_t chunk_elements) {
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
-  // One array chunk per message; `offset` counts texels, or words for the
+  using Message = v1::HiddenSampleMapResponse;
+  // One array chunk per message; offsets count texels, or words for the
   // bitmasks, from the map's first.
-  auto chunks = [&](size_t size, size_t first_offset, auto fill) -> Status {
-    for (size_t begin = 0; begin < size; begin += chunk_elements) {
-      const size_t end = std::min(size, begin + chunk_elements);
-      v1::HiddenSampleMapResponse message;
-      message.set_offset(first_offset + begin);
-      fill(message, begin, end);
-      VISQ_RETURN_IF_ERROR(write(std::move(message)));
-    }
-    return absl::OkStatus();
+  auto chunks = [&](size_t size, size_t first_offset, auto fill) {
+    return WriteChunks<Message>(size, first_offset, chunk_elements, write, fill);
   };
-  const size_t first_word = band.first_texel * size_t(words_per_texel);
-  VISQ_RETURN_IF_ERROR(chunks(band.visible_fraction.size(), band.first_texel,
-                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-                                AddRange(band.visible_fraction, a, b, m.mutable_visible_fraction());
-                              }));
-  VISQ_RETURN_IF_ERROR(chunks(band.visible_rgb.size(), band.first_texel,
-                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-                                m.mutable_visible_rgb()->Reserve(static_cast<int>(3 * (b - a)));
-                                for (size_t i = a; i < b; ++i) {
-                                  m.add_visible_rgb(band.visible_rgb[i].r);
-                                  m.add_visible_rgb(band.visible_rgb[i].g);
-                                  m.add_visible_rgb(band.visible_rgb[i].b);
-                                }
-                              }));
-  VISQ_RETURN_IF_ERROR(chunks(band.blocked_bits.size(), first_word,
-                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+  VISQ_RETURN_IF_ERROR(chunks(band.visible_fraction.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+    AddRange(band.visible_fraction, a, b, m.mutable_visible_fraction());
+  }));
+  VISQ_RETURN_IF_ERROR(chunks(band.visible_rgb.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+    m.mutable_visible_rgb()->Reserve(static_cast<int>(3 * (b - a)));
+    for (size_t i = a; i < b; ++i) {
+      m.add_visible_rgb(band.visible_rgb[i].r);
+      m.add_visible_rgb(band.visible_rgb[i].g);
+      m.add_visible_rgb(band.visible_rgb[i].b);
+    }
+  }));
+  VISQ_RETURN_IF_ERROR(chunks(band.blocked_bits.size(), band.first_texel * size_t(words_per_texel),
+                              [&](Message& m, size_t a, size_t b) {
                                 AddRange(band.blocked_bits, a, b, m.mutable_blocked_bits());
                               }));
-  VISQ_RETURN_IF_ERROR(chunks(band.lookup_error.size(), band.first_texel,
-                              [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
-                                AddRange(band.lookup_error, a, b, m.mutable_lookup_error());
-                              }));
+  VISQ_RETURN_IF_ERROR(chunks(band.lookup_error.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+    AddRange(band.lookup_error, a, b, m.mutable_lookup_error());
+  }));
   if (!with_texel_error) return absl::OkStatus();
-  return chunks(band.texel_error.size(), band.first_texel, [&](v1::HiddenSampleMapResponse& m, size_t a, size_t b) {
+  return chunks(band.texel_error.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
     AddRange(band.texel_error, a, b, m.mutable_texel_error());
   });
 }
@@ -416,9 +406,7 @@ StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) 
   return query;
 }
 
-ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResult result_in) {
-  auto kept = std::make_shared<const gpu::VolumetricResult>(std::move(result_in));
-  const gpu::VolumetricResult& result = *kept;
+v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult& result) {
   v1::VolumetricShadowResponse first;
   first.set_width(result.width);
   first.set_height(result.height);
@@ -448,7 +436,25 @@ ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResu
     (*accuracy->mutable_parameters())["svd_rank"] = result.svd_rank;
     (*accuracy->mutable_parameters())["integrand_error"] = result.integrand_error;
   }
-  auto& stage_ms = *first.mutable_stage_ms();
+  return first;
+}
+
+Status WriteVolumetricBand(const gpu::VolumetricBand& band,
+                           const std::function<Status(v1::VolumetricShadowResponse)>& write, size_t chunk_elements) {
+  VISQ_CHECK_LT(size_t{0}, chunk_elements);
+  using Message = v1::VolumetricShadowResponse;
+  // Offsets count floats, 3 per pixel.
+  auto chunks = [&](const std::vector<float>& values, auto field) {
+    return WriteChunks<Message>(values.size(), band.first_pixel * 3, chunk_elements, write,
+                                [&](Message& m, size_t a, size_t b) { AddRange(values, a, b, (m.*field)()); });
+  };
+  VISQ_RETURN_IF_ERROR(chunks(band.inscattering, &Message::mutable_inscattering));
+  return chunks(band.combined, &Message::mutable_combined);
+}
+
+v1::VolumetricShadowResponse VolumetricLastMessage(const gpu::VolumetricResult& result) {
+  v1::VolumetricShadowResponse last;
+  auto& stage_ms = *last.mutable_stage_ms();
   stage_ms["setup"] = result.timings.setup_ms;
   if (result.integrand == gpu::VolumetricIntegrand::kSvd) stage_ms["integrand_table"] = result.timings.integrand_table_ms;
   stage_ms["shadow_map"] = result.timings.shadow_map_ms;
@@ -457,17 +463,7 @@ ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResu
   stage_ms["mipmap"] = result.timings.mipmap_ms;
   stage_ms["traversal"] = result.timings.traversal_ms;
   stage_ms["readback"] = result.timings.readback_ms;
-  ChunkedResponses<v1::VolumetricShadowResponse> stream(std::move(first));
-  stream.Keep(kept);
-  stream.Add(result.inscattering.size(), [&result](v1::VolumetricShadowResponse& m, size_t a, size_t b) {
-    m.set_offset(a);
-    AddRange(result.inscattering, a, b, m.mutable_inscattering());
-  });
-  stream.Add(result.combined.size(), [&result](v1::VolumetricShadowResponse& m, size_t a, size_t b) {
-    m.set_offset(a);
-    AddRange(result.combined, a, b, m.mutable_combined());
-  });
-  return stream;
+  return last;
 }
 
 StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request) {
@@ -577,19 +573,15 @@ v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& result, con
 Status WriteVoxelizeBand(const gpu::VoxelizeBand& band, uint32_t words_per_column,
                          const std::function<Status(v1::VoxelizeResponse)>& write, size_t chunk_elements) {
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
-  auto chunks = [&](const auto& values, size_t first_offset, auto field) -> Status {
-    for (size_t begin = 0; begin < values.size(); begin += chunk_elements) {
-      const size_t end = std::min(values.size(), begin + chunk_elements);
-      v1::VoxelizeResponse message;
-      message.set_offset(first_offset + begin);
-      AddRange(values, begin, end, (message.*field)());
-      VISQ_RETURN_IF_ERROR(write(std::move(message)));
-    }
-    return absl::OkStatus();
+  using Message = v1::VoxelizeResponse;
+  // Offsets count words for the bits, columns for the local ranges.
+  auto chunks = [&](const auto& values, size_t first_offset, auto field) {
+    return WriteChunks<Message>(values.size(), first_offset, chunk_elements, write,
+                                [&](Message& m, size_t a, size_t b) { AddRange(values, a, b, (m.*field)()); });
   };
-  VISQ_RETURN_IF_ERROR(chunks(band.bits, band.first_column * words_per_column, &v1::VoxelizeResponse::mutable_bits));
-  VISQ_RETURN_IF_ERROR(chunks(band.column_near, band.first_column, &v1::VoxelizeResponse::mutable_column_near));
-  return chunks(band.column_far, band.first_column, &v1::VoxelizeResponse::mutable_column_far);
+  VISQ_RETURN_IF_ERROR(chunks(band.bits, band.first_column * words_per_column, &Message::mutable_bits));
+  VISQ_RETURN_IF_ERROR(chunks(band.column_near, band.first_column, &Message::mutable_column_near));
+  return chunks(band.column_far, band.first_column, &Message::mutable_column_far);
 }
 
 v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result) {

@@ -63,7 +63,14 @@ void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* o
 ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewAnswer answer);
 
 [[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
-ChunkedResponses<v1::VolumetricShadowResponse> ToProtoStream(gpu::VolumetricResult result);
+// Streamed as the traversal makes the image: the first message holds the
+// figures known before any band (sizes, method, integrand, accuracy), each
+// band's chunks follow, and the last message holds the timing.
+v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult& figures);
+[[nodiscard]] Status WriteVolumetricBand(const gpu::VolumetricBand& band,
+                                         const std::function<Status(v1::VolumetricShadowResponse)>& write,
+                                         size_t chunk_elements = kChunkElements);
+v1::VolumetricShadowResponse VolumetricLastMessage(const gpu::VolumetricResult& result);
 
 [[nodiscard]] StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
 // Streamed while the grid is made, like the hidden-sample map: the first

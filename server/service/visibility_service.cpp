@@ -401,23 +401,37 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
 
 grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::VolumetricShadow(
     grpc::CallbackServerContext* context, const v1::VolumetricShadowRequest* request) {
-  return new PreparedStreamReactor<v1::VolumetricShadowResponse>(
+  using Reactor = ProducedStreamReactor<v1::VolumetricShadowResponse>;
+  return new Reactor(
       context, ctx_, "VolumetricShadow",
-      [this, context, request](const std::atomic<bool>& cancelled,
-                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::VolumetricShadowResponse>> {
+      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
+                               Reactor& out) -> StatusOr<v1::VolumetricShadowResponse> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(VolumetricQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
-        VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult result, RunVolumetricShadow(ctx_.engine, query));
-        const double before_transfer = log.ElapsedMs();
-        const gpu::VolumetricTimings timings = result.timings;
-        const uint32_t width = result.width, height = result.height;
-        ChunkedResponses<v1::VolumetricShadowResponse> messages = ToProtoStream(std::move(result));
-        SetStreamTiming(queue_ms + timings.queue_ms, timings.total_ms - timings.queue_ms, before_transfer, log,
-                        messages.first().mutable_timing());
-        log.Info("{}x{} {} ({}), traversal {:.1f} ms", width, height, messages.first().method(),
-                 messages.first().integrand(), timings.traversal_ms);
-        return messages;
+        double transfer_ms = 0.0;
+        auto write = [&](v1::VolumetricShadowResponse message) -> Status {
+          const double before = log.ElapsedMs();
+          Status written = out.Write(std::move(message));
+          transfer_ms += log.ElapsedMs() - before;
+          return written;
+        };
+        auto sink = [&](const gpu::VolumetricResult& figures, const gpu::VolumetricBand& band) -> Status {
+          if (band.first_pixel == 0) VISQ_RETURN_IF_ERROR(write(VolumetricFirstMessage(figures)));
+          return WriteVolumetricBand(band, write);
+        };
+        VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult result, RunVolumetricShadow(ctx_.engine, query, sink));
+        const gpu::VolumetricTimings& timings = result.timings;
+        log.Info("{}x{} {} ({}), traversal {:.1f} ms", result.width, result.height,
+                 result.method == gpu::VolumetricMethod::kMinMaxTraversal ? "min-max-mipmap" : "ray-marching",
+                 gpu::VolumetricIntegrandName(result.integrand), timings.traversal_ms);
+        v1::VolumetricShadowResponse last = VolumetricLastMessage(result);
+        v1::Timing* timing = last.mutable_timing();
+        timing->set_queue_ms(queue_ms + timings.queue_ms);
+        timing->set_compute_ms(timings.total_ms - timings.queue_ms - transfer_ms);
+        timing->set_transfer_ms(transfer_ms);
+        timing->set_total_ms(log.ElapsedMs());
+        return last;
       });
 }
 

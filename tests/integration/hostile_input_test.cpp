@@ -422,6 +422,49 @@ TEST_F(HostileInputTest, VoxelGridsAreSentABandAtATime) {
   EXPECT_EQ(grid->bits.size(), 1024u * 1024u);
 }
 
+// Item 12, for volumetric images: a 1024 x 512 image goes out in bands of
+// 256 rows as the traversal makes them; figures first, the timing last.
+TEST_F(HostileInputTest, VolumetricImagesAreSentABandAtATime) {
+  v1::VolumetricShadowRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  testing::Set(request.mutable_camera_position(), 0, 1, 3.5);
+  testing::Set(request.mutable_camera_forward(), 0, 0, -1);
+  testing::Set(request.mutable_light_direction(), 0.3, -0.6, -1.0);
+  request.set_width(1024);
+  request.set_height(512);
+  request.set_shadow_map_size(256);
+  request.set_scattering(0.2);
+  request.set_extinction(0.2);
+  auto stub = v1::VisibilityService::NewStub(grpc::CreateChannel(server_->address(), grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(120));
+  auto reader = stub->VolumetricShadow(&context, request);
+  std::vector<v1::VolumetricShadowResponse> messages;
+  for (v1::VolumetricShadowResponse m; reader->Read(&m);) messages.push_back(m);
+  ASSERT_TRUE(reader->Finish().ok());
+  ASSERT_GE(messages.size(), 3u);
+  EXPECT_EQ(messages.front().width(), 1024u);
+  EXPECT_TRUE(messages.front().has_accuracy());
+  EXPECT_FALSE(messages.front().has_timing());
+  EXPECT_TRUE(messages.back().has_timing());
+  uint64_t next = 0;
+  int chunks = 0;
+  for (const v1::VolumetricShadowResponse& m : messages) {
+    if (m.inscattering_size() == 0) continue;
+    EXPECT_EQ(m.offset(), next);
+    EXPECT_EQ(m.inscattering_size(), 1024 * 256 * 3) << "one band of 256 rows";
+    next += m.inscattering_size();
+    ++chunks;
+  }
+  EXPECT_EQ(next, 1024u * 512u * 3u);
+  EXPECT_EQ(chunks, 2);
+  auto image = client_->VolumetricShadow(request);
+  ASSERT_TRUE(image.ok()) << image.status();
+  EXPECT_EQ(image->inscattering.size(), 1024u * 512u * 3u);
+  EXPECT_TRUE(image->figures.has_timing());
+  EXPECT_EQ(image->figures.width(), 1024u);
+}
+
 // Item 17: a long rendering that is still wanted does not hold the GL
 // thread: its stages and its traversal's bands of rows are GL jobs of their
 // own, so another client's small map answers between them. (Before, the

@@ -593,9 +593,26 @@ TEST(VolumetricShadowsTest, BandsOfRowsGiveTheImageOfOnePass) {
     ASSERT_GT(MaxOf(whole.inscattering), 0.0);
     EXPECT_EQ(banded.inscattering, whole.inscattering);
     EXPECT_EQ(banded.combined, whole.combined);
-    // Set-up, shadow map, camera, rectification, min-max, read-back.
-    EXPECT_EQ(whole.gl_jobs, 6u + 1u);
-    EXPECT_EQ(banded.gl_jobs, 6u + 4u);
+    // Set-up, shadow map, camera, rectification, min-max, then a job per
+    // band (its traversal and its read-back).
+    EXPECT_EQ(whole.gl_jobs, 5u + 1u);
+    EXPECT_EQ(banded.gl_jobs, 5u + 4u);
+    // Streamed: the bands are the image; the result keeps the figures.
+    std::vector<float> streamed_image;
+    int bands = 0;
+    auto streamed = RenderVolumetricShadows(testing::SharedGpuWorker(), *gpu_scene, scene, params,
+                                            [&](const VolumetricResult& figures, const gpu::VolumetricBand& band) {
+                                              EXPECT_EQ(figures.width, 80u);
+                                              EXPECT_EQ(band.first_pixel * 3, streamed_image.size());
+                                              streamed_image.insert(streamed_image.end(), band.inscattering.begin(),
+                                                                    band.inscattering.end());
+                                              ++bands;
+                                              return absl::OkStatus();
+                                            });
+    ASSERT_TRUE(streamed.ok()) << streamed.status();
+    EXPECT_EQ(bands, 4);
+    EXPECT_EQ(streamed_image, whole.inscattering);
+    EXPECT_TRUE(streamed->inscattering.empty());
   }
 }
 

@@ -82,6 +82,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -217,10 +218,26 @@ struct VolumetricResult {
   uint32_t gl_jobs = 0;
 };
 
+// Rows of the image as each band of the traversal ends: pixels
+// [first_pixel, first_pixel + inscattering.size() / 3), laid out as
+// VolumetricResult's arrays.
+struct VolumetricBand {
+  size_t first_pixel = 0;
+  std::vector<float> inscattering;
+  std::vector<float> combined;  // empty unless asked for
+};
+// Receives each band in order, with the figures (everything but the
+// timings is known before the first band). A status other than OK stops
+// the rendering.
+using VolumetricBandSink = std::function<Status(const VolumetricResult& figures, const VolumetricBand& band)>;
+
 // Renders `params` over `gpu_scene` (the GPU copy of `scene`; `scene` gives
-// the bounds and material colors).
+// the bounds and material colors). Without a sink the result holds the
+// whole image; with one, each band goes to the sink and the result holds
+// the figures only.
 [[nodiscard]] StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuScene& gpu_scene,
-                                                                 const Scene& scene, const VolumetricParams& params);
+                                                                 const Scene& scene, const VolumetricParams& params,
+                                                                 const VolumetricBandSink& sink = {});
 
 // Checks params without touching the GPU: INVALID_ARGUMENT naming the field
 // and value, RESOURCE_EXHAUSTED naming the cap.
