@@ -185,8 +185,16 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     });
   }
 
-  // Queues `message` for writing, after those before it.
+  // Queues `message` for writing, after those before it. Producer thread.
   [[nodiscard]] Status Write(Response message) {
+    const auto start = std::chrono::steady_clock::now();
+    struct AddTime {
+      double& total;
+      std::chrono::steady_clock::time_point start;
+      ~AddTime() {
+        total += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+      }
+    } add_time{write_ms_, start};
     std::unique_lock lock(mutex_);
     while (!cancelled_ && queued_bytes_ > kStreamedAnswerQueueBytes) {
       const uint64_t written_before = written_;
@@ -204,6 +212,10 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     StartNext(lock);
     return absl::OkStatus();
   }
+
+  // Milliseconds the producer has spent in Write, waiting for the reader
+  // included: transfer, not compute. Producer thread.
+  double write_ms() const { return write_ms_; }
 
   // Keeps `owner` (what the answer's memory reservation or arrays are) until
   // the call ends.
@@ -289,6 +301,16 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   std::vector<std::shared_ptr<const void>> kept_;
   Response current_;
   uint64_t current_bytes_ = 0;
+  double write_ms_ = 0.0;  // producer thread only
 };
+
+// The last message's timing of a produced stream.
+inline void SetProducedTiming(double queue_ms, double compute_ms, double write_ms, const RequestLog& log,
+                              v1::Timing* timing) {
+  timing->set_queue_ms(queue_ms);
+  timing->set_compute_ms(compute_ms);
+  timing->set_transfer_ms(write_ms);
+  timing->set_total_ms(log.ElapsedMs());
+}
 
 }  // namespace visq::service

@@ -367,15 +367,8 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
         // Each band is written as soon as it is counted, after the first
-        // message; time spent writing (and waiting for the reader) is
-        // transfer, not compute.
-        double transfer_ms = 0.0;
-        auto write = [&](v1::HiddenSampleMapResponse message) -> Status {
-          const double before = log.ElapsedMs();
-          Status written = out.Write(std::move(message));
-          transfer_ms += log.ElapsedMs() - before;
-          return written;
-        };
+        // message.
+        auto write = [&out](v1::HiddenSampleMapResponse message) { return out.Write(std::move(message)); };
         auto sink = [&](const sampling::HiddenSampleMapResult& map, const sampling::HiddenSampleMapBand& band) {
           if (band.first_texel == 0) VISQ_RETURN_IF_ERROR(write(HiddenSampleMapFirstMessage(map)));
           return WriteHiddenSampleMapBand(band, map.words_per_texel, query.want_texel_error, write);
@@ -390,11 +383,8 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         // The memory reservation lasts until the last message is sent.
         if (answer.memory) out.Keep(answer.memory);
         v1::HiddenSampleMapResponse last = HiddenSampleMapLastMessage(answer, query.request.options.lookup);
-        v1::Timing* timing = last.mutable_timing();
-        timing->set_queue_ms(queue_ms + result.timing.queue_ms);
-        timing->set_compute_ms(result.timing.run_ms + result.table_ms);
-        timing->set_transfer_ms(transfer_ms);
-        timing->set_total_ms(log.ElapsedMs());
+        SetProducedTiming(queue_ms + result.timing.queue_ms, result.timing.run_ms + result.table_ms, out.write_ms(),
+                          log, last.mutable_timing());
         return last;
       });
 }
@@ -409,13 +399,7 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(VolumetricQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
-        double transfer_ms = 0.0;
-        auto write = [&](v1::VolumetricShadowResponse message) -> Status {
-          const double before = log.ElapsedMs();
-          Status written = out.Write(std::move(message));
-          transfer_ms += log.ElapsedMs() - before;
-          return written;
-        };
+        auto write = [&out](v1::VolumetricShadowResponse message) { return out.Write(std::move(message)); };
         auto sink = [&](const gpu::VolumetricResult& figures, const gpu::VolumetricBand& band) -> Status {
           if (band.first_pixel == 0) VISQ_RETURN_IF_ERROR(write(VolumetricFirstMessage(figures)));
           return WriteVolumetricBand(band, write);
@@ -426,11 +410,8 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
                  result.method == gpu::VolumetricMethod::kMinMaxTraversal ? "min-max-mipmap" : "ray-marching",
                  gpu::VolumetricIntegrandName(result.integrand), timings.traversal_ms);
         v1::VolumetricShadowResponse last = VolumetricLastMessage(result);
-        v1::Timing* timing = last.mutable_timing();
-        timing->set_queue_ms(queue_ms + timings.queue_ms);
-        timing->set_compute_ms(timings.total_ms - timings.queue_ms - transfer_ms);
-        timing->set_transfer_ms(transfer_ms);
-        timing->set_total_ms(log.ElapsedMs());
+        SetProducedTiming(queue_ms + timings.queue_ms, timings.total_ms - timings.queue_ms - out.write_ms(),
+                          out.write_ms(), log, last.mutable_timing());
         return last;
       });
 }
@@ -447,14 +428,8 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
         query.call = CallOptionsFor(context, &cancelled);
         gpu::SlicemapBox box;
         // Each band is written as soon as it is made, after the first
-        // message; time spent writing is transfer, not compute.
-        double transfer_ms = 0.0;
-        auto write = [&](v1::VoxelizeResponse message) -> Status {
-          const double before = log.ElapsedMs();
-          Status written = out.Write(std::move(message));
-          transfer_ms += log.ElapsedMs() - before;
-          return written;
-        };
+        // message.
+        auto write = [&out](v1::VoxelizeResponse message) { return out.Write(std::move(message)); };
         auto sink = [&](const gpu::VoxelizeResult& figures, const gpu::VoxelizeBand& band) -> Status {
           if (band.first_column == 0) VISQ_RETURN_IF_ERROR(write(VoxelizeFirstMessage(figures, box)));
           return WriteVoxelizeBand(band, figures.grid.words_per_column, write);
@@ -464,11 +439,9 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
                  result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard",
                  result.occupied_voxels);
         v1::VoxelizeResponse last = VoxelizeLastMessage(result);
-        v1::Timing* timing = last.mutable_timing();
-        timing->set_queue_ms(queue_ms + result.timings.queue_ms);
-        timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms - transfer_ms);
-        timing->set_transfer_ms(transfer_ms);
-        timing->set_total_ms(log.ElapsedMs());
+        SetProducedTiming(queue_ms + result.timings.queue_ms,
+                          result.timings.total_ms - result.timings.queue_ms - out.write_ms(), out.write_ms(), log,
+                          last.mutable_timing());
         return last;
       });
 }
