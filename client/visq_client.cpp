@@ -148,15 +148,14 @@ StatusOr<std::vector<std::string>> ReferencedFiles(const std::filesystem::path& 
   if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", gltf.string()));
   nlohmann::json doc = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
   if (doc.is_discarded()) return absl::InvalidArgumentError(absl::StrCat(gltf.string(), ": malformed JSON"));
+  // Buffers only: the server drops images, so they are never sent.
   std::vector<std::string> files;
-  for (const char* key : {"buffers", "images"}) {
-    if (!doc.contains(key) || !doc[key].is_array()) continue;
-    for (const auto& entry : doc[key]) {
-      if (!entry.is_object() || !entry.contains("uri") || !entry["uri"].is_string()) continue;
-      const std::string uri = entry["uri"];
-      if (uri.rfind("data:", 0) == 0) continue;
-      files.push_back(DecodeUri(uri));
-    }
+  if (!doc.contains("buffers") || !doc["buffers"].is_array()) return files;
+  for (const auto& entry : doc["buffers"]) {
+    if (!entry.is_object() || !entry.contains("uri") || !entry["uri"].is_string()) continue;
+    const std::string uri = entry["uri"];
+    if (uri.rfind("data:", 0) == 0) continue;
+    files.push_back(DecodeUri(uri));
   }
   return files;
 }
@@ -164,8 +163,8 @@ StatusOr<std::vector<std::string>> ReferencedFiles(const std::filesystem::path& 
 StatusOr<v1::SceneInfo> Client::UploadScene(const std::filesystem::path& file, std::string name, bool replace) {
   if (name.empty()) name = file.stem().string();
   VISQ_ASSIGN_OR_RETURN(std::vector<std::string> referenced, ReferencedFiles(file));
-  // Images are dropped by the server: send only what it will read, skipping
-  // referenced files that are absent (textures stripped from a scene).
+  // Send only what the server will read, skipping referenced files that are
+  // absent.
   std::vector<std::pair<std::string, std::filesystem::path>> to_send = {{file.filename().string(), file}};
   uint64_t total = std::filesystem::file_size(file);
   for (const auto& relative : referenced) {

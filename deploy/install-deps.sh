@@ -31,6 +31,8 @@ build_packages=(
   python3-grpcio python3-protobuf python3-numpy python3-venv python3-setuptools
   # The CLI's float images (--exr).
   libopenexr-dev
+  # Compressed glTF (EXT_meshopt_compression, KHR_draco_mesh_compression).
+  libmeshoptimizer-dev libdraco-dev
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
 runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
@@ -41,7 +43,7 @@ if (( runtime_only )); then
   wanted=("${runtime_packages[@]}" ca-certificates
     libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
     libspdlog1.10 libssl3 libstb0 libcpp-httplib0.11 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl
-    libopenexr-3-1-30 libimath-3-1-29)
+    libopenexr-3-1-30 libimath-3-1-29 libmeshoptimizer2d)
 fi
 
 if (( print_only )); then

@@ -7,26 +7,33 @@
 #include <iterator>
 #include <limits>
 #include <map>
+#include <optional>
 #include <set>
 #include <stdexcept>
 
 #include <absl/strings/escaping.h>
+#include <absl/strings/numbers.h>
 #include <absl/strings/str_join.h>
 #include <absl/strings/str_replace.h>
 #include <glm/gtc/matrix_transform.hpp>
 #include <glm/gtc/quaternion.hpp>
 #include <glm/gtc/type_ptr.hpp>
+#include <nlohmann/json.hpp>
 #include <tiny_gltf.h>
 
 #include "common/coordinates.h"
+#include "scene/gltf_compression.h"
 
 namespace visq {
 namespace {
 
-// Required extensions that only change shading, which visq does not model:
-// a scene that requires them is still exact for visibility.
-bool IsIgnorableRequiredExtension(const std::string& name) {
-  return name.rfind("KHR_materials_", 0) == 0 || name.rfind("KHR_texture_", 0) == 0 ||
+// Required extensions that visq reads (geometry: compression, quantization
+// and instancing), and those that only change shading, which visq does not
+// model: a scene that requires them is still exact for visibility.
+bool IsSupportedRequiredExtension(const std::string& name) {
+  return name == "KHR_mesh_quantization" || name == "EXT_meshopt_compression" ||
+         name == "KHR_draco_mesh_compression" || name == "EXT_mesh_gpu_instancing" ||
+         name.rfind("KHR_materials_", 0) == 0 || name.rfind("KHR_texture_", 0) == 0 ||
          name == "KHR_lights_punctual";
 }
 
@@ -87,6 +94,24 @@ class AccessorReader {
   size_t count() const { return accessor_->count; }
   int components() const { return components_; }
   int component_type() const { return accessor_->componentType; }
+  bool is_float() const { return accessor_->componentType == TINYGLTF_COMPONENT_TYPE_FLOAT; }
+  bool normalized() const { return accessor_->normalized; }
+  // 8- and 16-bit integers, as KHR_mesh_quantization allows for geometry.
+  bool is_small_integer() const { return component_bytes_ <= 2; }
+
+  // Component c of element i as the value it stands for: a normalized
+  // integer mapped to [0, 1] or [-1, 1] by glTF's rules, anything else as is.
+  double Value(size_t i, int c) const {
+    const double v = Get(i, c);
+    if (!accessor_->normalized) return v;
+    switch (accessor_->componentType) {
+      case TINYGLTF_COMPONENT_TYPE_BYTE: return std::max(v / 127.0, -1.0);
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE: return v / 255.0;
+      case TINYGLTF_COMPONENT_TYPE_SHORT: return std::max(v / 32767.0, -1.0);
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT: return v / 65535.0;
+      default: return v;
+    }
+  }
 
   // Component c of element i as a double (integers converted exactly).
   double Get(size_t i, int c) const {
@@ -171,6 +196,28 @@ glm::dmat4 LocalMatrix(const tinygltf::Node& node) {
   return m;
 }
 
+// EXT_mesh_gpu_instancing: a node whose mesh is drawn once per instance,
+// each placed by the node's world transform times the instance's own TRS.
+// The attributes' accessors, or empty when the node has no instances.
+struct InstanceAttributes {
+  int translation = -1, rotation = -1, scale = -1;
+  bool any() const { return translation >= 0 || rotation >= 0 || scale >= 0; }
+};
+
+InstanceAttributes InstanceAttributesOf(const tinygltf::Node& node) {
+  InstanceAttributes attributes;
+  auto ext = node.extensions.find("EXT_mesh_gpu_instancing");
+  if (ext == node.extensions.end() || !ext->second.Has("attributes")) return attributes;
+  const tinygltf::Value& a = ext->second.Get("attributes");
+  auto index = [&](const char* name) {
+    return a.Has(name) && a.Get(name).IsNumber() ? static_cast<int>(a.Get(name).GetNumberAsInt()) : -1;
+  };
+  attributes.translation = index("TRANSLATION");
+  attributes.rotation = index("ROTATION");
+  attributes.scale = index("SCALE");
+  return attributes;
+}
+
 // What a document flattens to, counted from its numbers alone. Nodes may
 // share children (a DAG), so a node's subtree is counted once and reused;
 // sums saturate instead of wrapping.
@@ -184,6 +231,11 @@ struct FlattenedCounts {
 uint64_t SaturatingAdd(uint64_t a, uint64_t b) {
   uint64_t sum = 0;
   return __builtin_add_overflow(a, b, &sum) ? std::numeric_limits<uint64_t>::max() : sum;
+}
+
+uint64_t SaturatingMultiply(uint64_t a, uint64_t b) {
+  uint64_t product = 0;
+  return __builtin_mul_overflow(a, b, &product) ? std::numeric_limits<uint64_t>::max() : product;
 }
 
 uint64_t AccessorCount(const tinygltf::Model& model, int accessor) {
@@ -287,7 +339,17 @@ class SceneBuilder {
           continue;
         }
         FlattenedCounts counts;
-        if (node.mesh >= 0 && node.mesh < static_cast<int>(mesh_counts.size())) counts = mesh_counts[node.mesh];
+        if (node.mesh >= 0 && node.mesh < static_cast<int>(mesh_counts.size())) {
+          counts = mesh_counts[node.mesh];
+          const InstanceAttributes instances = InstanceAttributesOf(node);
+          if (instances.any()) {
+            const uint64_t copies = std::max({AccessorCount(model_, instances.translation),
+                                              AccessorCount(model_, instances.rotation),
+                                              AccessorCount(model_, instances.scale)});
+            counts.triangles = SaturatingMultiply(counts.triangles, copies);
+            counts.vertices = SaturatingMultiply(counts.vertices, copies);
+          }
+        }
         counts.nodes = 1;
         for (int child : node.children) {
           const FlattenedCounts& c = subtree[child];
@@ -384,9 +446,11 @@ class SceneBuilder {
         if (node.mesh >= static_cast<int>(model_.meshes.size()))
           return Invalid(absl::StrCat("nodes[", index, "].mesh ", node.mesh, " out of range"));
         const auto& mesh = model_.meshes[node.mesh];
-        for (size_t p = 0; p < mesh.primitives.size(); ++p)
-          VISQ_RETURN_IF_ERROR(AddPrimitive(mesh.primitives[p], world, node_id,
-                                            absl::StrCat("meshes[", node.mesh, "].primitives[", p, "]")));
+        VISQ_ASSIGN_OR_RETURN(std::vector<glm::dmat4> placements, MeshPlacements(node, index, world));
+        for (const glm::dmat4& placement : placements)
+          for (size_t p = 0; p < mesh.primitives.size(); ++p)
+            VISQ_RETURN_IF_ERROR(AddPrimitive(mesh.primitives[p], placement, node_id,
+                                              absl::StrCat("meshes[", node.mesh, "].primitives[", p, "]")));
       }
       scene_->nodes[node_id].triangle_count =
           static_cast<uint32_t>(scene_->triangles.size()) - scene_->nodes[node_id].first_triangle;
@@ -394,6 +458,62 @@ class SceneBuilder {
         stack.push_back({*it, static_cast<int>(node_id), world});
     }
     return absl::OkStatus();
+  }
+
+  // Where a node's mesh is drawn: at the node, or once per instance of
+  // EXT_mesh_gpu_instancing (instances are flattened like shared nodes, and
+  // were counted before anything was built).
+  StatusOr<std::vector<glm::dmat4>> MeshPlacements(const tinygltf::Node& node, int index, const glm::dmat4& world) {
+    const InstanceAttributes attributes = InstanceAttributesOf(node);
+    if (!attributes.any()) return std::vector<glm::dmat4>{world};
+    const std::string label = absl::StrCat("nodes[", index, "].extensions.EXT_mesh_gpu_instancing.attributes");
+    struct Attribute {
+      int accessor;
+      const char* name;
+      int components;
+    };
+    std::optional<size_t> count;
+    std::vector<std::optional<AccessorReader>> readers;
+    for (const Attribute& a : {Attribute{attributes.translation, "TRANSLATION", 3},
+                               Attribute{attributes.rotation, "ROTATION", 4}, Attribute{attributes.scale, "SCALE", 3}}) {
+      readers.emplace_back();
+      if (a.accessor < 0) continue;
+      VISQ_ASSIGN_OR_RETURN(AccessorReader reader,
+                            AccessorReader::Create(model_, a.accessor, absl::StrCat(label, ".", a.name)));
+      if (reader.components() != a.components || !(reader.is_float() || reader.is_small_integer()))
+        return Invalid(absl::StrCat(label, ".", a.name, ": must be VEC", a.components,
+                                    " of float or of 8- or 16-bit integers"));
+      if (count && *count != reader.count())
+        return Invalid(absl::StrCat(label, ".", a.name, ": ", reader.count(), " instances where another attribute has ",
+                                    *count));
+      count = reader.count();
+      readers.back() = std::move(reader);
+    }
+    std::vector<glm::dmat4> placements;
+    placements.reserve(*count);
+    for (size_t i = 0; i < *count; ++i) {
+      glm::dmat4 instance(1.0);
+      if (readers[0]) instance = glm::translate(instance, glm::dvec3(readers[0]->Value(i, 0), readers[0]->Value(i, 1),
+                                                                     readers[0]->Value(i, 2)));
+      if (readers[1]) {  // (x, y, z, w) in the file; glm's constructor takes w first
+        glm::dquat rotation(readers[1]->Value(i, 3), readers[1]->Value(i, 0), readers[1]->Value(i, 1),
+                            readers[1]->Value(i, 2));
+        // Quantized quaternions are unit only to their step; float ones are
+        // taken as written, as a node's rotation is.
+        if (!readers[1]->is_float()) rotation = glm::normalize(rotation);
+        instance *= glm::mat4_cast(rotation);
+      }
+      if (readers[2])
+        instance = glm::scale(instance, glm::dvec3(readers[2]->Value(i, 0), readers[2]->Value(i, 1),
+                                                   readers[2]->Value(i, 2)));
+      const glm::dmat4 placed = world * instance;
+      for (int c = 0; c < 4; ++c)
+        for (int r = 0; r < 4; ++r)
+          if (!std::isfinite(placed[c][r]))
+            return Invalid(absl::StrCat(label, ": instance ", i, " has a non-finite transform"));
+      placements.push_back(placed);
+    }
+    return placements;
   }
 
   Status AddPrimitive(const tinygltf::Primitive& prim, const glm::dmat4& world, uint32_t node_id,
@@ -408,13 +528,14 @@ class SceneBuilder {
     if (pos_it == prim.attributes.end()) return Invalid(absl::StrCat(label, ": no POSITION attribute"));
     VISQ_ASSIGN_OR_RETURN(AccessorReader positions,
                           AccessorReader::Create(model_, pos_it->second, label + ".POSITION"));
-    if (positions.components() != 3 || positions.component_type() != TINYGLTF_COMPONENT_TYPE_FLOAT)
-      return Invalid(absl::StrCat(label, ".POSITION: must be VEC3 float (quantized positions unsupported)"));
+    if (positions.components() != 3 || !(positions.is_float() || positions.is_small_integer()))
+      return Invalid(absl::StrCat(label, ".POSITION: must be VEC3 of float, or of 8- or 16-bit integers "
+                                         "(KHR_mesh_quantization)"));
 
     // Vertices: transformed to world space and appended.
     const uint32_t base = static_cast<uint32_t>(scene_->positions.size());
     for (size_t i = 0; i < positions.count(); ++i) {
-      const glm::dvec3 local(positions.Get(i, 0), positions.Get(i, 1), positions.Get(i, 2));
+      const glm::dvec3 local(positions.Value(i, 0), positions.Value(i, 1), positions.Value(i, 2));
       if (!std::isfinite(local.x) || !std::isfinite(local.y) || !std::isfinite(local.z))
         return Invalid(absl::StrCat(label, ".POSITION[", i, "]: NaN or Inf coordinate"));
       const glm::dvec3 placed(world * glm::dvec4(local, 1.0));
@@ -427,16 +548,14 @@ class SceneBuilder {
       all_primitives_have_lightmap_uvs_ = false;
     } else if (all_primitives_have_lightmap_uvs_) {
       VISQ_ASSIGN_OR_RETURN(AccessorReader uvs, AccessorReader::Create(model_, uv_it->second, label + ".TEXCOORD_1"));
-      if (uvs.count() != positions.count() || uvs.components() != 2)
-        return Invalid(absl::StrCat(label, ".TEXCOORD_1: must be VEC2 with one per position"));
-      const bool normalized = model_.accessors[uv_it->second].normalized;
-      const double scale = !normalized ? 1.0
-                           : uvs.component_type() == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ? 1.0 / 255.0
-                           : uvs.component_type() == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ? 1.0 / 65535.0
-                                                                                             : 1.0;
+      // Integers that are not normalized need a texture transform to
+      // become UVs, and visq applies none.
+      if (uvs.count() != positions.count() || uvs.components() != 2 ||
+          !(uvs.is_float() || (uvs.is_small_integer() && uvs.normalized())))
+        return Invalid(absl::StrCat(label, ".TEXCOORD_1: must be VEC2 of float or of normalized 8- or 16-bit "
+                                           "integers, one per position"));
       scene_->lightmap_uvs.resize(base);
-      for (size_t i = 0; i < uvs.count(); ++i)
-        scene_->lightmap_uvs.emplace_back(uvs.Get(i, 0) * scale, uvs.Get(i, 1) * scale);
+      for (size_t i = 0; i < uvs.count(); ++i) scene_->lightmap_uvs.emplace_back(uvs.Value(i, 0), uvs.Value(i, 1));
     }
 
     // Corner indices: given, or implicit 0..n-1.
@@ -547,8 +666,12 @@ std::string_view JsonPart(const std::string& bytes, bool binary) {
 // root, is ever opened.
 class UploadFiles {
  public:
-  UploadFiles(const std::filesystem::path& base_dir, const std::filesystem::path& root)
-      : base_dir_(base_dir.lexically_normal()), root_(root.lexically_normal()) {
+  // `image_uris`: the document's image URIs, percent-decoded. Images are
+  // dropped, so their files are never opened (tinygltf would read each
+  // whole before handing it to the image loader).
+  UploadFiles(const std::filesystem::path& base_dir, const std::filesystem::path& root,
+              std::set<std::string> image_uris)
+      : base_dir_(base_dir.lexically_normal()), root_(root.lexically_normal()), image_uris_(std::move(image_uris)) {
     std::error_code ec;
     canonical_root_ = std::filesystem::weakly_canonical(root_, ec);
     if (ec) canonical_root_ = root_;
@@ -562,6 +685,7 @@ class UploadFiles {
   // The first URI refused, and why; empty when none was.
   const std::string& refusal() const { return refusal_; }
   const std::string& base_prefix() const { return base_prefix_; }
+  const std::vector<std::filesystem::path>& files_read() const { return files_read_; }
 
  private:
   static bool Inside(const std::filesystem::path& path, const std::filesystem::path& folder) {
@@ -584,6 +708,7 @@ class UploadFiles {
       return std::filesystem::path();
     };
     if (uri.empty()) return refuse("is empty");
+    if (image_uris_.count(uri)) return {};  // an image: never read
     if (uri[0] == '/' || uri.find('\\') != std::string::npos || uri.find('\0') != std::string::npos)
       return refuse("is an absolute path or holds a backslash or NUL");
     const std::filesystem::path lexical = (base_dir_ / uri).lexically_normal();
@@ -614,6 +739,7 @@ class UploadFiles {
       return false;
     }
     out->assign(std::istreambuf_iterator<char>(file), std::istreambuf_iterator<char>());
+    static_cast<UploadFiles*>(self)->files_read_.push_back(resolved);
     return true;
   }
   static bool WriteWholeFile(std::string* err, const std::string&, const std::vector<unsigned char>&, void*) {
@@ -625,8 +751,36 @@ class UploadFiles {
   std::filesystem::path root_;
   std::filesystem::path canonical_root_;
   std::string base_prefix_;
+  std::set<std::string> image_uris_;
   std::string refusal_;
+  std::vector<std::filesystem::path> files_read_;
 };
+
+// The image URIs of a document, percent-decoded as tinygltf decodes them
+// before it asks for the file.
+std::set<std::string> ImageUris(std::string_view json) {
+  std::set<std::string> uris;
+  if (json.find("\"images\"") == std::string_view::npos) return uris;
+  const nlohmann::json document = nlohmann::json::parse(json.begin(), json.end(), nullptr, /*allow_exceptions=*/false);
+  if (!document.is_object() || !document.contains("images") || !document["images"].is_array()) return uris;
+  for (const auto& image : document["images"]) {
+    if (!image.is_object() || !image.contains("uri") || !image["uri"].is_string()) continue;
+    const std::string uri = image["uri"].get<std::string>();
+    if (uri.rfind("data:", 0) == 0) continue;
+    std::string decoded;
+    for (size_t i = 0; i < uri.size(); ++i) {
+      int value = 0;
+      if (uri[i] == '%' && i + 2 < uri.size() && absl::SimpleHexAtoi(uri.substr(i + 1, 2), &value)) {
+        decoded.push_back(static_cast<char>(value));
+        i += 2;
+      } else {
+        decoded.push_back(uri[i] == '+' ? ' ' : uri[i]);
+      }
+    }
+    uris.insert(std::move(decoded));
+  }
+  return uris;
+}
 
 }  // namespace
 
@@ -653,8 +807,10 @@ StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* 
     return absl::ResourceExhaustedError(absl::StrCat(file_name, ": larger than 4 GiB"));
   if (JsonNestsTooDeep(JsonPart(bytes, binary)))
     return Invalid(absl::StrCat(file_name, ": JSON nested deeper than ", kMaxJsonDepth, " levels"));
+  VISQ_ASSIGN_OR_RETURN(bytes, PrepareCompressedDocument(std::move(bytes), binary));
   const std::filesystem::path base_dir = main_file.parent_path();
-  UploadFiles files(base_dir, limits.file_root.empty() ? base_dir : std::filesystem::absolute(limits.file_root, ec));
+  UploadFiles files(base_dir, limits.file_root.empty() ? base_dir : std::filesystem::absolute(limits.file_root, ec),
+                    ImageUris(JsonPart(bytes, binary)));
 
   tinygltf::TinyGLTF loader;
   loader.SetImageLoader(&SkipImage, nullptr);
@@ -685,14 +841,17 @@ StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* 
     return Invalid(absl::StrCat(file_name, ": malformed glTF: ", error));
   }
   for (const auto& required : model.extensionsRequired)
-    if (!IsIgnorableRequiredExtension(required))
+    if (!IsSupportedRequiredExtension(required))
       return Invalid(absl::StrCat(file_name, ": unsupported required extension ", required));
+  if (Status decoded = DecodeCompressedGeometry(model, limits.max_scene_bytes); !decoded.ok())
+    return Status(decoded.code(), absl::StrCat(file_name, ": ", decoded.message()));
 
   Scene scene;
   SceneBuilder builder(model, limits, out_report);
   Status status = builder.Build(scene);
   if (!status.ok()) return Status(status.code(), absl::StrCat(file_name, ": ", status.message()));
   ReportDroppedContent(model, out_report);
+  out_report.files_read = files.files_read();
   return scene;
 }
 

@@ -15,6 +15,9 @@ struct GltfLoadReport {
   // "1 animation"), so the log can say in one line what was dropped.
   std::vector<std::string> dropped;
   size_t ignored_primitives = 0;  // points and lines
+  // The external files the geometry was read from (buffers; images are
+  // never read), resolved: an upload stores these and its main file only.
+  std::vector<std::filesystem::path> files_read;
 };
 
 // What one glTF file may reach and produce. Every file is hostile: its URIs

@@ -148,6 +148,10 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report, LoadLimits(staging.dir())));
   VISQ_RETURN_IF_ERROR(CheckSceneSize(scene));
+  // Only what the scene model keeps is stored: textures and other files the
+  // geometry never read are not.
+  VISQ_ASSIGN_OR_RETURN(const size_t unused_files, staging.KeepOnly(report.files_read));
+  if (unused_files > 0) report.dropped.push_back(absl::StrCat(unused_files, " uploaded file(s) the geometry does not use"));
 
   std::lock_guard commit_lock(commit_mutex_);
   {

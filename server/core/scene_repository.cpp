@@ -129,6 +129,26 @@ Status UploadStaging::Append(absl::string_view file, absl::string_view data) {
   return absl::OkStatus();
 }
 
+StatusOr<size_t> UploadStaging::KeepOnly(const std::vector<fs::path>& needed) {
+  VISQ_RETURN_IF_ERROR(CloseAll());
+  std::set<fs::path> keep;
+  std::error_code ec;
+  for (const fs::path& path : needed) keep.insert(fs::weakly_canonical(path, ec));
+  size_t removed = 0;
+  std::vector<std::string> kept;
+  for (const std::string& file : files_) {
+    const fs::path path = dir_ / fs::path(file);
+    if (file == main_file_ || keep.count(fs::weakly_canonical(path, ec))) {
+      kept.push_back(file);
+      continue;
+    }
+    if (!fs::remove(path, ec) || ec) return ErrorCodeError("remove", path, ec);
+    ++removed;
+  }
+  files_ = std::move(kept);
+  return removed;
+}
+
 Status UploadStaging::CloseAll() {
   if (open_fd_ >= 0) {
     if (::fsync(open_fd_) != 0) return ErrnoError("fsync", dir_ / open_file_);

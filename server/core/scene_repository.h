@@ -30,6 +30,10 @@ class UploadStaging {
   // The folder the upload's files are in: its glTF may read nothing else.
   const std::filesystem::path& dir() const { return dir_; }
   uint64_t bytes() const { return bytes_; }
+  // Removes the uploaded files, other than the main file, that are not in
+  // `needed` (resolved paths, as the loader reports the files it read):
+  // textures and stray files are not stored. Returns how many went.
+  [[nodiscard]] StatusOr<size_t> KeepOnly(const std::vector<std::filesystem::path>& needed);
 
  private:
   friend class SceneRepository;

@@ -8,7 +8,9 @@
 #include <sstream>
 #include <thread>
 #include <fstream>
+#include <iterator>
 
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
@@ -234,6 +236,49 @@ TEST_F(SceneRpcTest, ProtocolMisuseIsInvalidArgument) {
     EXPECT_EQ(writer->Finish().error_code(), grpc::StatusCode::INVALID_ARGUMENT);
   }
   EXPECT_EQ(RepositoryEntries(), (std::vector<std::string>{"cornell_box_visq"}));
+}
+
+// Textures cost the server nothing: the client does not send them, and a
+// client that does finds them not stored. What was dropped is said.
+TEST_F(SceneRpcTest, TexturesAreNeitherSentNorStored) {
+  const fs::path gltf = WriteUserScene("textured.gltf");
+  {
+    std::ifstream in(gltf);
+    nlohmann::json doc = nlohmann::json::parse(in);
+    doc["images"] = {{{"uri", "albedo.png"}}};
+    doc["textures"] = {{{"source", 0}}};
+    std::ofstream(gltf) << doc.dump();
+  }
+  const std::string texture(1 << 20, 'x');  // stands for a large image
+  std::ofstream(user_files_.path() / "albedo.png", std::ios::binary) << texture;
+
+  auto info = client_->UploadScene(gltf, "textured");
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_TRUE(fs::exists(repo_.path() / "textured" / "textured.bin"));
+  EXPECT_FALSE(fs::exists(repo_.path() / "textured" / "albedo.png"));
+
+  // A client that sends every file, the image too.
+  auto context = client_->NewContext();
+  v1::SceneInfo sent;
+  auto writer = client_->stub().LoadScene(context.get(), &sent);
+  v1::LoadSceneRequest header;
+  header.mutable_header()->set_name("textured_raw");
+  header.mutable_header()->set_upload_main_file("textured.gltf");
+  ASSERT_TRUE(writer->Write(header));
+  for (const char* file : {"textured.gltf", "textured.bin", "albedo.png"}) {
+    std::ifstream in(user_files_.path() / file, std::ios::binary);
+    v1::LoadSceneRequest chunk;
+    chunk.mutable_chunk()->set_file(file);
+    chunk.mutable_chunk()->set_data(std::string(std::istreambuf_iterator<char>(in), {}));
+    ASSERT_TRUE(writer->Write(chunk));
+  }
+  writer->WritesDone();
+  const grpc::Status status = writer->Finish();
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_TRUE(fs::exists(repo_.path() / "textured_raw" / "textured.bin"));
+  EXPECT_FALSE(fs::exists(repo_.path() / "textured_raw" / "albedo.png"));
+  EXPECT_THAT(std::vector<std::string>(sent.dropped().begin(), sent.dropped().end()),
+              ::testing::Contains("1 uploaded file(s) the geometry does not use"));
 }
 
 TEST_F(SceneRpcTest, UploadLimitIsResourceExhausted) {
