@@ -574,6 +574,38 @@ StatusOr<ObscurancePreview> Client::RenderObscurancePreview(const v1::Obscurance
   return out;
 }
 
+StatusOr<ObscuranceExport> Client::ExportObscurances(const v1::ExportObscurancesRequest& request) {
+  VISQ_RETURN_IF_ERROR(init_status_);
+  auto context = NewContext(request.scene().name(), /*stream=*/true);
+  auto reader = stub_->ExportObscurances(context.get(), request);
+  ObscuranceExport out;
+  v1::ExportObscurancesResponse message;
+  bool first = true;
+  Status chunks = absl::OkStatus();
+  while (reader->Read(&message)) {
+    Status s = AppendObscuranceChunk(message.atlas_uv(), message.offset(), out.atlas_uv, "atlas_uv");
+    if (s.ok()) s = AppendObscuranceChunk(message.glb(), message.glb_offset(), out.glb, "glb");
+    if (!s.ok() && chunks.ok()) {
+      chunks = s;
+      context->TryCancel();
+    }
+    if (first) {
+      message.clear_atlas_uv();
+      message.clear_glb();
+      out.figures = std::move(message);
+      first = false;
+    }
+  }
+  const grpc::Status status = reader->Finish();
+  NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(chunks);
+  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  if (request.want_atlas_uvs() && out.atlas_uv.size() != out.figures.triangles() * 6)
+    return absl::DataLossError(absl::StrCat("obscurance export: ", out.atlas_uv.size(), " UV floats for ",
+                                            out.figures.triangles(), " triangles"));
+  return out;
+}
+
 Status MergeObscurancePartials(obscurance::ObscurancePartial& into, const obscurance::ObscurancePartial& from) {
   std::string error;
   if (!obscurance::MergeObscurancePartial(into, from, &error)) return absl::InvalidArgumentError(error);

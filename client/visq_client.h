@@ -100,6 +100,13 @@ struct ObscurancePreview {
   std::vector<uint8_t> covered;           // per pixel: 1 a surface, 0 background (rgb 0)
 };
 
+// An ExportObscurances answer reassembled from its stream.
+struct ObscuranceExport {
+  v1::ExportObscurancesResponse figures;  // solution_version, width, height, triangles, timing
+  std::vector<float> atlas_uv;            // want_atlas_uvs: (u, v) per triangle corner
+  std::vector<uint8_t> glb;               // want_gltf: the baked scene as binary glTF
+};
+
 class Client {
  public:
   explicit Client(ClientOptions options);
@@ -150,6 +157,7 @@ class Client {
   [[nodiscard]] StatusOr<v1::UpdateObscurancesResponse> UpdateObscurances(const v1::UpdateObscurancesRequest& request);
   // The scene from a camera with the current solution's W (or I) applied.
   [[nodiscard]] StatusOr<ObscurancePreview> RenderObscurancePreview(const v1::ObscurancePreviewRequest& request);
+  [[nodiscard]] StatusOr<ObscuranceExport> ExportObscurances(const v1::ExportObscurancesRequest& request);
 
   // The x-visq-server-id of the last response (which replica answered).
   std::string last_server_id() const;

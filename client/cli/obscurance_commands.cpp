@@ -1,5 +1,6 @@
-// visq obscurance, move, obscurance-update, obscurance-preview: bake,
-// move nodes, bring the bake up to date, look at it.
+// visq obscurance, move, obscurance-update, obscurance-preview,
+// obscurance-export: bake, move nodes, bring the bake up to date, look at
+// it, put it on the game's mesh.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -364,6 +365,38 @@ Status RunPreview(const PreviewOptions& o, Cli& cli) {
   return absl::OkStatus();
 }
 
+struct ExportOptions {
+  std::string scene, gltf, uv_npy;
+};
+
+Status RunExport(const ExportOptions& o, Cli& cli) {
+  if (o.gltf.empty() && o.uv_npy.empty()) return absl::InvalidArgumentError("--gltf, --uv-npy: give at least one");
+  v1::ExportObscurancesRequest request;
+  request.mutable_scene()->set_name(o.scene);
+  request.set_want_atlas_uvs(!o.uv_npy.empty());
+  request.set_want_gltf(!o.gltf.empty());
+  auto client = MakeClient(cli.flags);
+  VISQ_ASSIGN_OR_RETURN(const client::ObscuranceExport exported,
+                        WhileWaiting(cli.flags, "obscurance-export", [&] { return client.ExportObscurances(request); }));
+  const auto& f = exported.figures;
+  if (!o.gltf.empty()) {
+    std::ofstream out(o.gltf, std::ios::binary);
+    out.write(reinterpret_cast<const char*>(exported.glb.data()), static_cast<std::streamsize>(exported.glb.size()));
+    if (!out) return absl::UnavailableError(absl::StrCat("cannot write ", o.gltf));
+  }
+  if (!o.uv_npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.uv_npy, {f.triangles(), 3, 2}, exported.atlas_uv));
+  if (cli.flags.json) {
+    fmt::print("{{\"gltf\": \"{}\", \"uv_npy\": \"{}\", \"figures\": {}}}\n", o.gltf, o.uv_npy, ToJson(f));
+    return absl::OkStatus();
+  }
+  fmt::print("solution version {}: {}x{} atlas ({}), {} triangles, {} glTF bytes\n", f.solution_version(), f.width(),
+             f.height(), f.from_lightmap_uvs() ? "the scene's TEXCOORD_1" : "built by the server", f.triangles(),
+             exported.glb.size());
+  PrintTiming(f.timing());
+  PrintWritten(o.gltf, o.uv_npy, "");
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 void AddObscuranceCommands(Cli& cli) {
@@ -426,6 +459,19 @@ void AddObscuranceCommands(Cli& cli) {
   preview->add_option("--exr", op->exr, "Write the linear RGB image as a float OpenEXR image");
   preview->add_option("--npy", op->npy, "Write the linear RGB image as a float32 .npy (height, width, 3), row 0 on top");
   OnRun(preview, cli, op, RunPreview);
+
+  auto oe = std::make_shared<ExportOptions>();
+  auto* exporter = cli.app.add_subcommand(
+      "obscurance-export", "Write the current obscurance solution so that a game mesh can take it: the atlas UVs, "
+                           "and the scene as glTF with TEXCOORD_1 and W as its occlusion texture");
+  exporter->add_option("SCENE,--scene", oe->scene, "Scene name")->required();
+  exporter->add_option("--gltf", oe->gltf,
+                       "Write the baked scene as binary glTF (.glb): one vertex per triangle corner, the atlas as "
+                       "TEXCOORD_1, W as an 8-bit PNG occlusion texture");
+  exporter->add_option("--uv-npy", oe->uv_npy,
+                       "Write the atlas UVs as a float32 .npy (triangles, 3, 2) in the scene's triangle order, "
+                       "the order of the bake's triangle_w");
+  OnRun(exporter, cli, oe, RunExport);
 }
 
 }  // namespace visq::cli

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstring>
 #include <map>
+#include <sstream>
 
 #include <tiny_gltf.h>
 
@@ -30,9 +31,7 @@ int AddView(tinygltf::Model& model, size_t offset, size_t length, int target) {
   return static_cast<int>(model.bufferViews.size() - 1);
 }
 
-}  // namespace
-
-Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
+tinygltf::Model BuildModel(const Scene& scene, const GltfExtras& extras) {
   tinygltf::Model model;
   model.asset.version = "2.0";
   model.asset.generator = "visq";
@@ -61,6 +60,21 @@ Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
     model.materials.push_back(material);
   }
   if (uses_emissive_strength) model.extensionsUsed.push_back("KHR_materials_emissive_strength");
+  if (!extras.occlusion_png.empty()) {
+    std::vector<unsigned char> png(extras.occlusion_png.begin(), extras.occlusion_png.end());
+    tinygltf::Image image;
+    image.name = "occlusion";
+    image.mimeType = "image/png";
+    image.bufferView = AddView(model, AppendBytes(bytes, png), png.size(), 0);
+    model.images.push_back(image);
+    tinygltf::Texture texture;
+    texture.source = 0;
+    model.textures.push_back(texture);
+    for (auto& material : model.materials) {
+      material.occlusionTexture.index = 0;
+      material.occlusionTexture.texCoord = 1;
+    }
+  }
 
   // A node far from the origin stores its positions relative to its own
   // centre (rounded to a whole unit, so the offsets add up exactly), moved
@@ -158,7 +172,13 @@ Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
   }
   model.scenes.push_back(gltf_scene);
   model.defaultScene = 0;
+  return model;
+}
 
+}  // namespace
+
+Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
+  tinygltf::Model model = BuildModel(scene, {});
   const bool binary = path.extension() == ".glb";
   if (!binary) model.buffers[0].uri = path.stem().string() + ".bin";
   tinygltf::TinyGLTF writer;
@@ -166,6 +186,15 @@ Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
                                    /*prettyPrint=*/true, /*writeBinary=*/binary))
     return absl::InternalError(absl::StrCat("writing ", path.string(), " failed"));
   return absl::OkStatus();
+}
+
+StatusOr<std::string> WriteGlb(const Scene& scene, const GltfExtras& extras) {
+  tinygltf::Model model = BuildModel(scene, extras);
+  std::ostringstream out;
+  tinygltf::TinyGLTF writer;
+  if (!writer.WriteGltfSceneToStream(&model, out, /*prettyPrint=*/false, /*writeBinary=*/true))
+    return absl::InternalError("writing a binary glTF failed");
+  return std::move(out).str();
 }
 
 }  // namespace visq

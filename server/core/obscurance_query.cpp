@@ -8,6 +8,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/job_timing.h"
+#include "obscurance/obscurance_export.h"
 #include "obscurance/obscurance_rays.h"
 #include "scene/scene_edit.h"
 
@@ -395,6 +396,20 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
   return answer;
 }
 
+// FAILED_PRECONDITION unless the scene has a whole-bake solution that
+// matches its version. Under the state's lock.
+Status CheckCurrentSolution(const ResidentScene& resident, const ObscuranceState& state, const char* purpose) {
+  if (!state.updater)
+    return absl::FailedPreconditionError(absl::StrCat("scene '", resident.name,
+                                                      "' has no whole-bake obscurance solution to ", purpose,
+                                                      ": run ComputeObscurances first (a whole bake, not partial_only)"));
+  if (state.solution_version != resident.version)
+    return absl::FailedPreconditionError(absl::StrCat(
+        "scene '", resident.name, "' is at version ", resident.version, " but its obscurance solution matches version ",
+        state.solution_version, ": run UpdateObscurances to apply the node moves since (or bake again)"));
+  return absl::OkStatus();
+}
+
 StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, const ObscurancePreviewQuery& query) {
   VISQ_RETURN_IF_ERROR(gpu::ValidatePinholeCamera(query.camera, gpu::kMaxObscurancePreviewSize));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
@@ -413,15 +428,7 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
     std::lock_guard lock(state->mutex);
     // Re-read under the lock: a move may have landed in between.
     VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
-    if (!state->updater)
-      return absl::FailedPreconditionError(absl::StrCat("scene '", resident->name,
-                                                        "' has no whole-bake obscurance solution to preview: run "
-                                                        "ComputeObscurances first (a whole bake, not partial_only)"));
-    if (state->solution_version != resident->version)
-      return absl::FailedPreconditionError(absl::StrCat(
-          "scene '", resident->name, "' is at version ", resident->version,
-          " but its obscurance solution matches version ", state->solution_version,
-          ": run UpdateObscurances to apply the node moves since (or bake again)"));
+    VISQ_RETURN_IF_ERROR(CheckCurrentSolution(*resident, *state, "preview"));
     const obscurance::ObscuranceResult& result = state->updater->result();
     const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
     corner_uv = atlas.corner_uv;
@@ -444,6 +451,57 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
   request.texel_values = values;
   request.job = query.call.Job();
   VISQ_ASSIGN_OR_RETURN(answer.image, gpu::RenderObscurancePreview(engine.gpu(), *gpu_scene, request));
+  return answer;
+}
+
+StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const ObscuranceExportQuery& query) {
+  if (!query.want_atlas_uvs && !query.want_gltf)
+    return absl::InvalidArgumentError("want_atlas_uvs, want_gltf: ask for at least one of the two");
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  // What the answer holds until it is sent: per corner a UV (8 bytes) and,
+  // in the glTF, a position, a UV and an index (24 bytes); the PNG at most
+  // 3 bytes a texel (and a little more for its rows and headers).
+  const uint64_t triangles = resident->scene->triangles.size();
+  uint64_t texels = 0;
+  {
+    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::lock_guard lock(state->mutex);
+    if (state->updater) texels = uint64_t{state->updater->result().width} * state->updater->result().height;
+  }
+  const uint64_t bytes = (query.want_atlas_uvs ? 3 * triangles * 8 : 0) +
+                         (query.want_gltf ? 3 * triangles * 24 + texels * 4 + (uint64_t{1} << 20) : 0);
+  ObscuranceExportAnswer answer;
+  VISQ_ASSIGN_OR_RETURN(answer.memory, engine.work_budget().Reserve(bytes, "scene", query.call.Job()));
+
+  const auto start = std::chrono::steady_clock::now();
+  std::vector<glm::vec2> corner_uv;
+  std::vector<glm::vec3> w;
+  {
+    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::lock_guard lock(state->mutex);
+    VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
+    VISQ_RETURN_IF_ERROR(CheckCurrentSolution(*resident, *state, "export"));
+    const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
+    corner_uv = atlas.corner_uv;
+    if (query.want_gltf) w = state->updater->result().w;
+    answer.width = atlas.width;
+    answer.height = atlas.height;
+    answer.from_lightmap_uvs = atlas.from_lightmap_uvs;
+    answer.solution_version = state->solution_version;
+  }
+  answer.copy_ms = MillisecondsSince(start);
+  answer.scene_version = resident->version;
+  answer.triangles = resident->scene->triangles.size();
+  VISQ_RETURN_IF_ERROR(query.call.StillWanted("ExportObscurances"));
+
+  const auto export_start = std::chrono::steady_clock::now();
+  if (query.want_atlas_uvs) answer.atlas_uv = obscurance::AtlasUvs(corner_uv, answer.width, answer.height);
+  if (query.want_gltf) {
+    VISQ_ASSIGN_OR_RETURN(answer.glb, obscurance::BakedSceneGlb(*resident->scene, corner_uv, answer.width,
+                                                                answer.height, w));
+  }
+  answer.export_ms = MillisecondsSince(export_start);
   return answer;
 }
 

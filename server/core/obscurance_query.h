@@ -167,4 +167,28 @@ struct ObscurancePreviewAnswer {
 [[nodiscard]] StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine,
                                                                          const ObscurancePreviewQuery& query);
 
+struct ObscuranceExportQuery {
+  std::string scene;
+  uint64_t scene_version = 0;
+  bool want_atlas_uvs = false;
+  bool want_gltf = false;
+  CallOptions call;
+};
+
+struct ObscuranceExportAnswer {
+  uint64_t scene_version = 0;
+  uint64_t solution_version = 0;  // equals scene_version
+  uint32_t width = 0, height = 0;
+  bool from_lightmap_uvs = false;
+  uint64_t triangles = 0;
+  std::vector<float> atlas_uv;  // obscurance::AtlasUvs, with want_atlas_uvs
+  std::string glb;              // obscurance::BakedSceneGlb, with want_gltf
+  double copy_ms = 0, export_ms = 0;
+  WorkMemoryBudget::Reservation memory;  // held until the answer is sent
+};
+
+// INVALID_ARGUMENT when neither part is wanted; otherwise as
+// RunRenderObscurancePreview.
+[[nodiscard]] StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const ObscuranceExportQuery& query);
+
 }  // namespace visq

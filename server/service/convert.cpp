@@ -502,6 +502,36 @@ ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewA
   return stream;
 }
 
+StatusOr<ObscuranceExportQuery> FromProto(const v1::ExportObscurancesRequest& request) {
+  ObscuranceExportQuery query;
+  VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
+  query.want_atlas_uvs = request.want_atlas_uvs();
+  query.want_gltf = request.want_gltf();
+  return query;
+}
+
+ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(ObscuranceExportAnswer answer_in) {
+  auto kept = std::make_shared<const ObscuranceExportAnswer>(std::move(answer_in));
+  const ObscuranceExportAnswer& answer = *kept;
+  v1::ExportObscurancesResponse first;
+  first.set_solution_version(answer.solution_version);
+  first.set_width(answer.width);
+  first.set_height(answer.height);
+  first.set_from_lightmap_uvs(answer.from_lightmap_uvs);
+  first.set_triangles(answer.triangles);
+  ChunkedResponses<v1::ExportObscurancesResponse> stream(std::move(first));
+  stream.Keep(kept);
+  stream.Add(answer.atlas_uv.size(), [&answer](v1::ExportObscurancesResponse& m, size_t a, size_t b) {
+    m.set_offset(a);
+    AddRange(answer.atlas_uv, a, b, m.mutable_atlas_uv());
+  });
+  stream.Add(answer.glb.size(), [&answer](v1::ExportObscurancesResponse& m, size_t a, size_t b) {
+    m.set_glb_offset(a);
+    m.set_glb(answer.glb.data() + a, b - a);
+  });
+  return stream;
+}
+
 StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   VoxelizeQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));

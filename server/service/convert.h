@@ -62,6 +62,10 @@ void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* o
 // Figures first, then chunks of rgb floats, then of coverage bytes.
 ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewAnswer answer);
 
+[[nodiscard]] StatusOr<ObscuranceExportQuery> FromProto(const v1::ExportObscurancesRequest& request);
+// Figures first, then chunks of atlas_uv floats, then of glb bytes.
+ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(ObscuranceExportAnswer answer);
+
 [[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
 // Streamed as the traversal makes the image: the first message holds the
 // figures known before any band (sizes, method, integrand, accuracy), each

@@ -1,7 +1,8 @@
 // The obscurance RPCs (Méndez-Feliu, Sbert et al.): ComputeObscurances
 // streams progress while the GPU bakes, then the result in chunks;
 // SetNodeTransform and UpdateObscurances are unary; RenderObscurancePreview
-// streams the picture like VolumetricShadow. The work is in
+// streams the picture like VolumetricShadow, and ExportObscurances the
+// atlas UVs and the baked glTF. The work is in
 // core/obscurance_query.h; this file converts messages and runs the calls.
 #include <algorithm>
 #include <cmath>
@@ -370,6 +371,27 @@ grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::
         const double compute_ms = answer.copy_ms + answer.image.total_ms - answer.image.queue_ms;
         ChunkedResponses<v1::ObscurancePreviewResponse> messages = ToProtoStream(std::move(answer));
         SetStreamTiming(queue_ms + image_queue_ms, compute_ms, before_transfer, log, messages.first().mutable_timing());
+        return messages;
+      });
+}
+
+grpc::ServerWriteReactor<v1::ExportObscurancesResponse>* VisibilityServiceImpl::ExportObscurances(
+    grpc::CallbackServerContext* context, const v1::ExportObscurancesRequest* request) {
+  return new PreparedStreamReactor<v1::ExportObscurancesResponse>(
+      context, ctx_, "ExportObscurances",
+      [this, context, request](const std::atomic<bool>& cancelled,
+                               const RequestLog& log) -> StatusOr<ChunkedResponses<v1::ExportObscurancesResponse>> {
+        const double queue_ms = log.ElapsedMs();
+        VISQ_ASSIGN_OR_RETURN(ObscuranceExportQuery query, FromProto(*request));
+        query.call = CallOptionsFor(context, &cancelled);
+        VISQ_ASSIGN_OR_RETURN(ObscuranceExportAnswer answer, RunExportObscurances(ctx_.engine, query));
+        const double before_transfer = log.ElapsedMs();
+        log.Info("v{} {}x{}, {} triangles, {} UV floats, {} glTF bytes, export {:.1f} ms", answer.solution_version,
+                 answer.width, answer.height, answer.triangles, answer.atlas_uv.size(), answer.glb.size(),
+                 answer.export_ms);
+        const double compute_ms = answer.copy_ms + answer.export_ms;
+        ChunkedResponses<v1::ExportObscurancesResponse> messages = ToProtoStream(std::move(answer));
+        SetStreamTiming(queue_ms, compute_ms, before_transfer, log, messages.first().mutable_timing());
         return messages;
       });
 }

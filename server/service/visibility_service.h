@@ -70,6 +70,8 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
                                               v1::UpdateObscurancesResponse* response) override;
   grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* RenderObscurancePreview(
       grpc::CallbackServerContext* context, const v1::ObscurancePreviewRequest* request) override;
+  grpc::ServerWriteReactor<v1::ExportObscurancesResponse>* ExportObscurances(
+      grpc::CallbackServerContext* context, const v1::ExportObscurancesRequest* request) override;
   grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
                                      v1::ServerStats* response) override;
 

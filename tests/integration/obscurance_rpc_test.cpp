@@ -1,17 +1,24 @@
 // The obscurance RPCs end to end through the real server and client, on the
 // generated Cornell box: the bake's range, progress and determinism, the
 // client's shard merge against the whole bake, node moves and the update,
-// the preview render (and its CLI), and bad input.
+// the preview render (and its CLI), the export onto a real scene's mesh,
+// and bad input.
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <numbers>
 #include <set>
 
 #include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+#include <stb_image.h>
 
+#include "scene/gltf_loader.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
 #include "proto_builders.h"
@@ -366,6 +373,131 @@ TEST_F(ObscuranceRpcTest, PreviewShowsWAndNeedsACurrentBake) {
   EXPECT_NE(output.find("covered_pixels"), std::string::npos) << output;
   ASSERT_TRUE(std::filesystem::exists(png)) << output;
   EXPECT_GT(std::filesystem::file_size(png), 100u);
+}
+
+// The bake put on the mesh: the exported UVs, applied to the W atlas,
+// give back every triangle's W, and the exported glTF carries those UVs
+// and W on the scene's own geometry. A real scene (Kenney's palm: thin
+// fronds, node TRS with non-uniform scale) with an atlas the server built.
+TEST_F(ObscuranceRpcTest, ExportedUvsAndGltfPutTheBakeOnTheMesh) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  const std::filesystem::path palm = scenes / "tree_kenney/tree_palmDetailedTall.glb";
+  ASSERT_TRUE(client_->UploadScene(palm, "palm_export", /*replace=*/true).ok());
+  v1::ExportObscurancesRequest request;
+  request.mutable_scene()->set_name("palm_export");
+  request.set_want_atlas_uvs(true);
+  request.set_want_gltf(true);
+  Status before = client_->ExportObscurances(request).status();
+  EXPECT_EQ(before.code(), absl::StatusCode::kFailedPrecondition) << before;
+
+  v1::ComputeObscurancesRequest bake_request = SmallBake("palm_export");
+  bake_request.set_resolution(128);
+  bake_request.set_direction_count(16);
+  bake_request.set_d_max(0.5);
+  bake_request.set_want_averages(true);
+  auto bake = client_->ComputeObscurances(bake_request);
+  ASSERT_TRUE(bake.ok()) << bake.status();
+  auto exported = client_->ExportObscurances(request);
+  ASSERT_TRUE(exported.ok()) << exported.status();
+  const auto& f = exported->figures;
+  const uint32_t width = f.width(), height = f.height();
+  ASSERT_EQ(width, bake->figures.atlas().width());
+  ASSERT_EQ(height, bake->figures.atlas().height());
+  EXPECT_FALSE(f.from_lightmap_uvs());
+  const size_t triangles = f.triangles();
+  ASSERT_EQ(triangles, 336u);
+  ASSERT_EQ(exported->atlas_uv.size(), 6 * triangles);
+  ASSERT_EQ(bake->triangle_w.size(), 3 * triangles);
+
+  // W over each triangle's UV triangle (a barycentric grid, nearest texel)
+  // is the bake's triangle_w: an area average over the same texels.
+  const std::vector<float>& uv = exported->atlas_uv;
+  double worst = 0;
+  for (size_t t = 0; t < triangles; ++t) {
+    constexpr int kSteps = 40;
+    double sum = 0;
+    int samples = 0;
+    for (int i = 0; i < kSteps; ++i)
+      for (int j = 0; i + j < kSteps; ++j) {
+        const double a = (i + 1.0 / 3.0) / kSteps, b = (j + 1.0 / 3.0) / kSteps, c = 1.0 - a - b;
+        const double u = a * uv[6 * t] + b * uv[6 * t + 2] + c * uv[6 * t + 4];
+        const double v = a * uv[6 * t + 1] + b * uv[6 * t + 3] + c * uv[6 * t + 5];
+        const uint32_t x = std::min<uint32_t>(width - 1, static_cast<uint32_t>(u * width));
+        const uint32_t y = std::min<uint32_t>(height - 1, static_cast<uint32_t>(v * height));
+        sum += bake->w[3 * (size_t(y) * width + x)];
+        ++samples;
+      }
+    worst = std::max(worst, std::abs(sum / samples - bake->triangle_w[3 * t]));
+  }
+  EXPECT_LT(worst, 0.02) << "W sampled through the exported UVs against triangle_w";
+  RecordProperty("w_through_uvs_max_error", std::to_string(worst));
+
+  // The glTF: the scene's geometry, one vertex per corner, with the UVs as
+  // TEXCOORD_1 and W as the occlusion texture.
+  testing::ScratchDir dir;
+  const std::filesystem::path glb = dir.path() / "baked.glb";
+  std::ofstream(glb, std::ios::binary)
+      .write(reinterpret_cast<const char*>(exported->glb.data()), static_cast<std::streamsize>(exported->glb.size()));
+  StatusOr<Scene> baked = LoadGltfFile(glb);
+  ASSERT_TRUE(baked.ok()) << baked.status();
+  StatusOr<Scene> original = LoadGltfFile(palm);
+  ASSERT_TRUE(original.ok()) << original.status();
+  ASSERT_EQ(baked->triangles.size(), triangles);
+  ASSERT_EQ(baked->lightmap_uvs.size(), baked->positions.size());
+  double position_error = 0, uv_error = 0;
+  for (size_t t = 0; t < triangles; ++t)
+    for (int c = 0; c < 3; ++c) {
+      const uint32_t v = baked->triangles[t][c];
+      position_error = std::max(position_error, glm::length(baked->positions[v] - original->Vertex(t, c)));
+      uv_error = std::max(uv_error, double(glm::length(baked->lightmap_uvs[v] -
+                                                       glm::vec2(uv[6 * t + 2 * c], uv[6 * t + 2 * c + 1]))));
+    }
+  EXPECT_LT(position_error, 1e-5);  // float32 accessors
+  EXPECT_EQ(uv_error, 0.0);
+
+  const std::string bytes(exported->glb.begin(), exported->glb.end());
+  uint32_t json_length = 0;
+  std::memcpy(&json_length, bytes.data() + 12, 4);
+  const nlohmann::json doc = nlohmann::json::parse(bytes.substr(20, json_length));
+  for (const auto& material : doc["materials"]) {
+    EXPECT_EQ(material["occlusionTexture"]["index"], 0);
+    EXPECT_EQ(material["occlusionTexture"]["texCoord"], 1);
+  }
+  const auto& view = doc["bufferViews"][doc["images"][0]["bufferView"].get<size_t>()];
+  const size_t bin = 20 + json_length + 8;
+  int png_width = 0, png_height = 0, channels = 0;
+  unsigned char* pixels = stbi_load_from_memory(
+      reinterpret_cast<const unsigned char*>(bytes.data() + bin + view.value("byteOffset", 0)),
+      view["byteLength"].get<int>(), &png_width, &png_height, &channels, 3);
+  ASSERT_NE(pixels, nullptr);
+  ASSERT_EQ(png_width, int(width));
+  ASSERT_EQ(png_height, int(height));
+  size_t differing = 0;
+  for (size_t i = 0; i < size_t(width) * height * 3; ++i)
+    differing += pixels[i] != std::lround(std::clamp(bake->w[i], 0.0f, 1.0f) * 255.0f);
+  stbi_image_free(pixels);
+  EXPECT_EQ(differing, 0u) << "the PNG is W in 8 bits, row 0 on top";
+
+  // The CLI writes the same glTF, and the UVs as a (triangles, 3, 2) array.
+  const std::filesystem::path cli_glb = dir.path() / "cli.glb", cli_uv = dir.path() / "uv.npy";
+  int exit_status = 0;
+  const std::string output = testing::RunCommand(std::string(VISQ_CLI_BINARY) + " obscurance-export palm_export --gltf " +
+                                                     cli_glb.string() + " --uv-npy " + cli_uv.string() + " --server " +
+                                                     server_->address(),
+                                                 &exit_status);
+  ASSERT_EQ(exit_status, 0) << output;
+  std::ifstream cli_in(cli_glb, std::ios::binary);
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(cli_in), {}), bytes);
+  std::ifstream npy(cli_uv, std::ios::binary);
+  const std::string npy_bytes(std::istreambuf_iterator<char>(npy), {});
+  EXPECT_NE(npy_bytes.find("'shape': (336, 3, 2)"), std::string::npos) << npy_bytes.substr(0, 128);
+
+  // Asking for nothing is refused by the fields.
+  v1::ExportObscurancesRequest nothing;
+  nothing.mutable_scene()->set_name("palm_export");
+  Status refused = client_->ExportObscurances(nothing).status();
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
+  EXPECT_NE(std::string(refused.message()).find("want_atlas_uvs"), std::string::npos) << refused;
 }
 
 TEST_F(ObscuranceRpcTest, PreviewRejectsABadCamera) {

@@ -315,6 +315,10 @@ class ClientTest(unittest.TestCase):
         preview = self.client.obscurance_preview(SCENE, (0, 1, 3.5), (0, 0, -1), width=24, height=16)
         self.assertEqual(preview.rgb.shape, (16, 24, 3))
         self.assertTrue(preview.covered.any())
+        exported = self.client.export_obscurances(SCENE, atlas_uvs=True, gltf=True)
+        self.assertEqual(exported.atlas_uv.shape, (exported.figures.triangles, 3, 2))
+        self.assertTrue(((exported.atlas_uv >= 0) & (exported.atlas_uv <= 1)).all())
+        self.assertEqual(exported.glb[:4], b"glTF")
 
     def test_a_node_move_and_the_incremental_update(self):
         self.client.load_from_repository(SCENE, replace=True)

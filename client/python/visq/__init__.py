@@ -10,11 +10,11 @@ Every failure raises visq.VisqError (.code: grpc.StatusCode, .field: the
 request field or server flag the message names).
 """
 from .client import (DEFAULT_PORT, Cancellation, Client, HiddenSampleMap, LightVisibility, ObscuranceBake,
-                     ObscurancePreview, ObscuranceUpdate, Patch, PatchVisibility, Progress, Transmittance,
+                     ObscuranceExport, ObscurancePreview, ObscuranceUpdate, Patch, PatchVisibility, Progress, Transmittance,
                      VolumetricImage, VoxelGrid, geometry_files, normalize_address)
 from .errors import Cancelled, VisqError
 
 __all__ = ["DEFAULT_PORT", "Cancellation", "Cancelled", "Client", "HiddenSampleMap", "LightVisibility",
-           "ObscuranceBake", "ObscurancePreview", "ObscuranceUpdate", "Patch", "PatchVisibility", "Progress",
+           "ObscuranceBake", "ObscuranceExport", "ObscurancePreview", "ObscuranceUpdate", "Patch", "PatchVisibility", "Progress",
            "Transmittance", "VisqError", "VolumetricImage", "VoxelGrid", "geometry_files", "normalize_address"]
 __version__ = "0.1.0"

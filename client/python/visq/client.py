@@ -224,6 +224,13 @@ class ObscurancePreview:
     figures: Any
 
 
+@dataclass
+class ObscuranceExport:
+    atlas_uv: Optional[np.ndarray]  # (triangles, 3, 2) float32 glTF UVs, the order of triangle_w (want_atlas_uvs)
+    glb: Optional[bytes]            # the baked scene as binary glTF (want_gltf)
+    figures: Any
+
+
 # ---------------------------------------------------------------------------
 # Request building: every value is checked here, naming the argument.
 
@@ -937,6 +944,20 @@ class Client:
                                                            ("covered", "covered_offset", np.uint8, 1)])
         return ObscurancePreview(chunks.get("rgb", np.float32, (f.height, f.width, 3), required=True),
                                  chunks.get("covered", np.uint8, (f.height, f.width), required=True).astype(bool), f)
+
+    def export_obscurances(self, scene, atlas_uvs=True, gltf=False, version=0, timeout=_UNSET,
+                           cancel=None) -> ObscuranceExport:
+        """The current obscurance solution as a game mesh takes it: the atlas
+        UV of every triangle corner, and/or the scene as binary glTF with
+        those UVs as TEXCOORD_1 and W as its occlusion texture."""
+        request = pb.ExportObscurancesRequest(want_atlas_uvs=bool(atlas_uvs), want_gltf=bool(gltf))
+        request.scene.name, request.scene.version = scene, version
+        chunks, f = self._chunked_stream(self._stub.ExportObscurances, "ExportObscurances", request, scene, timeout,
+                                         cancel, [("atlas_uv", "offset", np.float32, 1),
+                                                  ("glb", "glb_offset", np.uint8, 1)])
+        uv = chunks.get("atlas_uv", np.float32, (f.triangles, 3, 2), required=atlas_uvs)
+        glb = chunks.get("glb", np.uint8, (chunks.sizes.get("glb", 0),), required=gltf)
+        return ObscuranceExport(uv, None if glb is None else glb.tobytes(), f)
 
 
 # ---------------------------------------------------------------------------
