@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cstring>
 #include <fstream>
+#include <iterator>
 
 #include <draco/compression/encode.h>
 #include <draco/mesh/mesh.h>
@@ -365,6 +366,30 @@ TEST_F(CompressedBunny, GpuInstancesLoadAsTheNodesTheyStandFor) {
   EXPECT_NE(mismatched.status().message().find("nodes[0].extensions.EXT_mesh_gpu_instancing.attributes"),
             std::string::npos)
       << mismatched.status();
+}
+
+// The fuzz corpus's seeds of each form (tests/fuzz/corpus/gltf, a first
+// byte choosing the container) load, so that the fuzzers start from inputs
+// that reach the decoders.
+TEST(CompressedSeeds, TheFuzzCorpusSeedsReachTheDecoders) {
+  const struct {
+    const char* seed;
+    size_t triangles;
+  } seeds[] = {{"meshopt_box_glb", 12},
+               {"draco_sequential_box_glb", 12},
+               {"draco_edgebreaker_box_glb", 12},
+               {"quantized_instanced_box_glb", 36}};
+  ScratchDir dir;
+  for (const auto& s : seeds) {
+    std::ifstream in(fs::path(VISQ_FUZZ_CORPUS_DIR) / "gltf" / s.seed, std::ios::binary);
+    const std::string bytes(std::istreambuf_iterator<char>(in), {});
+    ASSERT_GT(bytes.size(), 1u) << s.seed;
+    const fs::path path = dir.path() / (std::string(s.seed) + ".glb");
+    std::ofstream(path, std::ios::binary) << bytes.substr(1);
+    StatusOr<Scene> scene = LoadGltfFile(path);
+    ASSERT_TRUE(scene.ok()) << s.seed << ": " << scene.status();
+    EXPECT_EQ(scene->triangles.size(), s.triangles) << s.seed;
+  }
 }
 
 }  // namespace
