@@ -8,6 +8,8 @@
 #include <cmath>
 #include <mutex>
 
+#include <absl/cleanup/cleanup.h>
+
 #include "common/job_timing.h"
 #include "core/engine.h"
 #include "common/coordinates.h"
@@ -97,12 +99,17 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
 
   // Work in chunks of one group's points, in order, on every core: a single
   // cell's batch runs in parallel as well as many cells. The first chunk of
-  // a group to run finds or builds its tree; the others wait for it.
+  // a group to run finds or builds its tree; the others wait for it; the
+  // last to finish lets the tree go. Chunks are taken in order, so at most
+  // one group more than there are workers holds a tree at any time: a
+  // request's own trees take at most (workers + 1) x base.max_bytes beside
+  // what the cache keeps, however many groups it has.
   struct GroupTree {
     std::once_flag once;
     Status status;
     std::shared_ptr<exact::LightVisibilityTree> tree;
     bool created = false;
+    std::atomic<uint32_t> chunks_left{0};
   };
   // Trees this request built but the cache did not keep die with `trees`;
   // then glibc is asked to hand their memory back (declared first, so it
@@ -121,7 +128,10 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   std::vector<Chunk> chunks;
   for (uint32_t g = 0; g < groups.size(); ++g) {
     const auto n = static_cast<uint32_t>(groups[g].points.size());
-    for (uint32_t b = 0; b < n; b += kChunkPoints) chunks.push_back({g, b, std::min(n, b + kChunkPoints)});
+    for (uint32_t b = 0; b < n; b += kChunkPoints) {
+      chunks.push_back({g, b, std::min(n, b + kChunkPoints)});
+      trees[g].chunks_left.fetch_add(1, std::memory_order_relaxed);
+    }
   }
   auto get_tree = [&](uint32_t g) {
     GroupTree& t = trees[g];
@@ -144,6 +154,19 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   };
 
   LightVisibilityAnswer answer;
+  std::mutex held_mutex;  // the trees held now, and what the released ones did
+  size_t held = 0;
+  auto hold = [&] {
+    std::lock_guard lock(held_mutex);
+    answer.peak_trees_held = std::max(answer.peak_trees_held, ++held);
+  };
+  auto release = [&](GroupTree& t) {
+    std::lock_guard lock(held_mutex);
+    answer.tree += t.tree->Stats();
+    t.tree.reset();
+    --held;
+  };
+
   answer.points.resize(query.points.size());
   std::atomic<size_t> answered{0};
   std::atomic<bool> stopped{false};
@@ -160,8 +183,15 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     {
       const Chunk& chunk = chunks[c];
       GroupTree& t = trees[chunk.group];
-      std::call_once(t.once, get_tree, chunk.group);
+      std::call_once(t.once, [&] {
+        get_tree(chunk.group);
+        if (t.status.ok()) hold();
+      });
       if (!t.status.ok()) return fail(t.status);
+      // Every return below has answered or failed this chunk.
+      absl::Cleanup last_chunk = [&] {
+        if (t.chunks_left.fetch_sub(1) == 1) release(t);
+      };
       for (uint32_t k = chunk.begin; k < chunk.end; ++k) {
         if (query.call.cancelled != nullptr && query.call.cancelled->load())
           return fail(absl::CancelledError(absl::StrCat("cancelled with ", query.points.size() - answered.load(),
@@ -183,7 +213,6 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
 
   answer.tree_reused = true;
   for (size_t g = 0; g < groups.size(); ++g) {
-    answer.tree += trees[g].tree->Stats();
     answer.tree_reused &= !trees[g].created;
     answer.trees_created += trees[g].created ? 1 : 0;
     answer.receiver_region.Extend(groups[g].box.min);

@@ -34,6 +34,9 @@ struct LightVisibilityAnswer {
   bool tree_reused = false;  // every one of them existed before
   size_t trees = 0;
   size_t trees_created = 0;
+  // The most of the batch's trees held at once: each is let go when its
+  // group's points are answered, so at most ParallelWorkers() + 1.
+  size_t peak_trees_held = 0;
   Bounds receiver_region;  // the union of their receiver boxes
   double compute_ms = 0;
 };
