@@ -141,7 +141,7 @@ Status RunTransmittance(const TransmittanceOptions& o, Cli& cli) {
 }
 
 struct VolumetricOptions {
-  std::string scene, light = "0.3,-1,0.2", png, npy, exr, method = "min-max";
+  std::string scene, light = "0.3,-1,0.2", png, npy, exr, method = "min-max", medium_box;
   CameraFlags camera;
   uint32_t shadow_map = 1024;
   double scattering = 0.05, extinction = 0.05, intensity = 1.0;
@@ -161,6 +161,13 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
   request.set_method(o.method == "ray-marching" ? v1::VolumetricShadowRequest::RAY_MARCHING
                                                 : v1::VolumetricShadowRequest::MIN_MAX);
   request.set_combined_image(o.combined);
+  if (!o.medium_box.empty()) {
+    const size_t split = o.medium_box.find(';');
+    if (split == std::string::npos ||
+        !ParseVec3(o.medium_box.substr(0, split), request.mutable_medium_box()->mutable_min()) ||
+        !ParseVec3(o.medium_box.substr(split + 1), request.mutable_medium_box()->mutable_max()))
+      return absl::InvalidArgumentError("--medium-box: expected 'minx,miny,minz;maxx,maxy,maxz'");
+  }
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const client::VolumetricImage image, WhileWaiting(cli.flags, "volumetric", [&] { return client.VolumetricShadow(request); }));
   const auto& f = image.figures;
@@ -234,6 +241,8 @@ void AddVoxelCommands(Cli& cli) {
   volumetric->add_option("--intensity", vo->intensity, "Light intensity")->capture_default_str();
   AddChoice(volumetric, "--method", vo->method, {"min-max", "ray-marching"}, "min-max or ray-marching");
   volumetric->add_flag("--combined", vo->combined, "Add the directly lit surfaces");
+  volumetric->add_option("--medium-box", vo->medium_box,
+                         "Where the medium is, 'minx,miny,minz;maxx,maxy,maxz' (default: the scene's bounds)");
   volumetric->add_option("--png", vo->png, "Write the image (tone-mapped to its peak)");
   volumetric->add_option("--exr", vo->exr, "Write the linear RGB image as a float OpenEXR image");
   volumetric->add_option("--npy", vo->npy, "Write the linear RGB image as a float32 .npy (height, width, 3), row 0 on top");

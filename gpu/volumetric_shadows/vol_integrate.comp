@@ -51,6 +51,8 @@ uniform float u_intensity;
 uniform vec3 u_light_dir;                    // directional: travel direction
 uniform vec3 u_light_pos;                    // spot: anchor-relative
 uniform float u_half_depth;                  // directional: the box's half depth (l = (z_ndc + 1) * half)
+uniform float u_medium_start;                // directional: l of the medium's entry plane
+uniform vec3 u_medium_min, u_medium_max;     // the medium's box, anchor-relative
 uniform int u_direct;
 uniform float u_normal_offset;               // direct light: world offset per unit distance (spot) or absolute
 
@@ -231,10 +233,25 @@ vec2 ProjectTexel(float s, out float w, out float z) {
   return (clip.xy / clip.w * 0.5 + 0.5) * u_map_size;
 }
 
+// The part of [lo, hi] inside the medium's box.
+bool ClipToMedium(inout float lo, inout float hi) {
+  for (int axis = 0; axis < 3; ++axis) {
+    if (abs(g_d[axis]) < 1e-30) {
+      if (u_eye[axis] < u_medium_min[axis] || u_eye[axis] > u_medium_max[axis]) return false;
+      continue;
+    }
+    float t0 = (u_medium_min[axis] - u_eye[axis]) / g_d[axis];
+    float t1 = (u_medium_max[axis] - u_eye[axis]) / g_d[axis];
+    lo = max(lo, min(t0, t1));
+    hi = min(hi, max(t0, t1));
+  }
+  return hi > lo;
+}
+
 float Inscatter(float s_end) {
   g_sin = 0.0;
   g_sout = s_end;
-  if (!ClipToLight(g_sin, g_sout)) {
+  if (!ClipToLight(g_sin, g_sout) || !ClipToMedium(g_sin, g_sout)) {
     g_sout = g_sin;
     return 0.0;
   }
@@ -257,7 +274,7 @@ float Inscatter(float s_end) {
   }
 #endif
 #else
-  g_l0 = u_half_depth * (g_c0.z + 1.0);
+  g_l0 = u_half_depth * (g_c0.z + 1.0) - u_medium_start;
   g_l1 = u_half_depth * g_c1.z;
   g_a = u_sigma_t * (1.0 + g_l1);
   g_K = u_sigma_s * u_intensity * Phase(dot(u_light_dir, -g_d));
@@ -348,7 +365,7 @@ vec3 Direct(float t, vec3 n, vec3 albedo) {
 #ifdef SPOT
   float e = u_intensity * w * exp(-u_sigma_t * dist) / (dist * dist);
 #else
-  float e = u_intensity * w * exp(-u_sigma_t * u_half_depth * (ndc.z + 1.0));
+  float e = u_intensity * w * exp(-u_sigma_t * max(0.0, u_half_depth * (ndc.z + 1.0) - u_medium_start));
 #endif
   float towards_eye = exp(-u_sigma_t * max(0.0, min(t, g_sout) - g_sin));
   return albedo / kPi * e * cos_i * towards_eye;

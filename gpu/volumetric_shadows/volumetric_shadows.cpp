@@ -39,6 +39,7 @@
 #include <glm/gtc/matrix_transform.hpp>
 #include <glm/gtc/type_ptr.hpp>
 
+#include "common/coordinates.h"
 #include "common/job_timing.h"
 #include "gl_check.h"
 #include "gl_state_across_jobs.h"
@@ -85,7 +86,9 @@ struct Setup {
   glm::dvec2 epipole{0.0};       // shadow-map texels
   bool epipole_inside = false;
   double theta_ref = 0, theta_min_rel = 0, dtheta = 0, r0 = 0, dr = 0;
-  double half_depth = 0;         // directional: the box's half depth
+  double half_depth = 0;         // directional: the shadow map box's half depth
+  double medium_start = 0;       // directional: the medium's entry plane below that box's near face
+  Bounds medium;                 // anchor-relative: the camera rays' part that scatters
   double tan_half = 0, cos_outer = 0, cos_inner = 0;
   double normal_offset = 0;
   double bias = 0;               // window depth
@@ -151,18 +154,26 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
   setup.height = camera.height;
   setup.spot = light.kind == VolumetricLightKind::kSpot;
 
-  // What the medium and the shadow map cover: the scene and the extra bounds.
-  Bounds bounds = scene.bounds;
-  if (!params.extra_medium_bounds.Empty()) {
-    bounds.Extend(params.extra_medium_bounds.min);
-    bounds.Extend(params.extra_medium_bounds.max);
+  // The medium: its box (the scene's bounds unless the request gives one).
+  // The camera sees the scene and the medium; the shadow map covers the
+  // medium and whatever lies between it and the light.
+  const Bounds medium = params.medium_bounds.Empty() ? scene.bounds : params.medium_bounds;
+  if (medium.Empty()) return absl::FailedPreconditionError("volumetric shadows: the scene has no geometry and no medium box");
+  Bounds bounds = medium;
+  if (!scene.bounds.Empty()) {
+    bounds.Extend(scene.bounds.min);
+    bounds.Extend(scene.bounds.max);
   }
-  if (bounds.Empty()) return absl::FailedPreconditionError("volumetric shadows: the scene has no geometry and no medium bounds");
+  setup.medium.Extend(medium.min - anchor);
+  setup.medium.Extend(medium.max - anchor);
   const double diagonal = std::max(glm::length(bounds.Extent()), 1e-9);
-  std::array<glm::dvec3, 8> corners;
-  for (int i = 0; i < 8; ++i)
-    corners[i] = glm::dvec3(i & 1 ? bounds.max.x : bounds.min.x, i & 2 ? bounds.max.y : bounds.min.y,
-                            i & 4 ? bounds.max.z : bounds.min.z) - anchor;
+  auto corners_of = [&](const Bounds& b) {
+    std::array<glm::dvec3, 8> corners;
+    for (int i = 0; i < 8; ++i)
+      corners[i] = glm::dvec3(i & 1 ? b.max.x : b.min.x, i & 2 ? b.max.y : b.min.y, i & 4 ? b.max.z : b.min.z) - anchor;
+    return corners;
+  };
+  const std::array<glm::dvec3, 8> corners = corners_of(bounds);
 
   // The light's frame: w along the light, v its up, u = w x v its right.
   const glm::dvec3 w = glm::normalize(light.direction);
@@ -175,23 +186,40 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
   setup.light_dir = w;
 
   if (!setup.spot) {
-    // The medium's box in the light's frame around every corner.
-    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
-    for (const auto& p : corners) {
-      const glm::dvec3 q(glm::dot(p, u), glm::dot(p, v), glm::dot(p, w));
-      lo = glm::min(lo, q);
-      hi = glm::max(hi, q);
-    }
-    const glm::dvec3 center = 0.5 * (lo + hi);
-    const glm::dvec3 half = glm::max(0.5 * (hi - lo) * 1.01, glm::dvec3(1e-3 * diagonal));
-    setup.light_clip = FromRows({glm::dvec4(u / half.x, -center.x / half.x), glm::dvec4(v / half.y, -center.y / half.y),
-                                 glm::dvec4(w / half.z, -center.z / half.z), glm::dvec4(0, 0, 0, 1)});
-    setup.half_depth = half.z;
+    // The medium's box in the light's frame around its corners; the shadow
+    // map's box is the same, deepened towards the light over the scene's
+    // corners there: occluders above the medium shadow it.
+    auto light_frame_box = [&](const std::array<glm::dvec3, 8>& points, glm::dvec3& center, glm::dvec3& half) {
+      glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+      for (const auto& p : points) {
+        const glm::dvec3 q(glm::dot(p, u), glm::dot(p, v), glm::dot(p, w));
+        lo = glm::min(lo, q);
+        hi = glm::max(hi, q);
+      }
+      center = 0.5 * (lo + hi);
+      half = glm::max(0.5 * (hi - lo) * 1.01, glm::dvec3(1e-3 * diagonal));
+    };
+    glm::dvec3 center, half;
+    light_frame_box(corners_of(medium), center, half);
     setup.box.center = anchor + center.x * u + center.y * v + center.z * w;
     setup.box.axis[0] = u;
     setup.box.axis[1] = v;
     setup.box.axis[2] = w;
     setup.box.half_extent = half;
+    const double medium_near = center.z - half.z;
+    double scene_near = medium_near;
+    if (!scene.bounds.Empty())
+      for (const auto& p : corners_of(scene.bounds)) scene_near = std::min(scene_near, glm::dot(p, w));
+    if (scene_near < medium_near) {
+      const double far = center.z + half.z;
+      const double near = scene_near - 0.005 * (far - scene_near);
+      center.z = 0.5 * (near + far);
+      half.z = 0.5 * (far - near);
+    }
+    setup.medium_start = medium_near - (center.z - half.z);
+    setup.light_clip = FromRows({glm::dvec4(u / half.x, -center.x / half.x), glm::dvec4(v / half.y, -center.y / half.y),
+                                 glm::dvec4(w / half.z, -center.z / half.z), glm::dvec4(0, 0, 0, 1)});
+    setup.half_depth = half.z;
     setup.normal_offset = 1.5 * 2.0 * std::max(half.x, half.y) / setup.map_size;
     // World depth -> window depth is 1 / (2 half.z).
     setup.bias = kMediumBiasTexels * 2.0 * std::max(half.x, half.y) / setup.map_size / (2.0 * half.z);
@@ -628,6 +656,9 @@ Status IntegrateRows(const VolumetricTargets& t, const Setup& setup, const Volum
   glProgramUniform1f(p->id(), p->Uniform("u_g"), float(params.medium.hg_g));
   glProgramUniform1f(p->id(), p->Uniform("u_intensity"), float(light.intensity));
   glProgramUniform1f(p->id(), p->Uniform("u_half_depth"), float(setup.half_depth));
+  glProgramUniform1f(p->id(), p->Uniform("u_medium_start"), float(setup.medium_start));
+  set3("u_medium_min", setup.medium.min);
+  set3("u_medium_max", setup.medium.max);
   glProgramUniform1i(p->id(), p->Uniform("u_direct"), params.combined_image ? 1 : 0);
   glProgramUniform1f(p->id(), p->Uniform("u_normal_offset"), float(setup.normal_offset));
   glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha0"), float(setup.svd.alpha0));
@@ -709,6 +740,13 @@ Status ValidateVolumetricParams(const VolumetricParams& params) {
     return Invalid(fmt::format("medium.hg_g: {} is not in (-1, 1)", medium.hg_g));
   if (!(params.svd_tolerance > 0.0 && params.svd_tolerance < 1.0))
     return Invalid(fmt::format("svd_tolerance: {} is not in (0, 1)", params.svd_tolerance));
+  if (!params.medium_bounds.Empty()) {
+    const Bounds& m = params.medium_bounds;
+    if (!InCoordinateRange(m.min) || !InCoordinateRange(m.max) || m.min.x >= m.max.x || m.min.y >= m.max.y ||
+        m.min.z >= m.max.z)
+      return Invalid(fmt::format("medium_box: min {} and max {} must be within ±{:g} with min < max on every axis",
+                                 Vec(m.min), Vec(m.max), kMaxCoordinate));
+  }
   // Shadow map.
   if (params.shadow_map_size > kMaxVolumetricShadowMapSize)
     return absl::ResourceExhaustedError(fmt::format("shadow_map_size: {} exceeds the cap of {}",

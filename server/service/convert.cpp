@@ -403,6 +403,14 @@ StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) 
     default: return absl::InvalidArgumentError("method: unknown value");
   }
   p.combined_image = request.combined_image();
+  if (request.has_medium_box()) {
+    // Given: the medium box whole; unset: the scene's bounds.
+    const Bounds box = FromProto(request.medium_box());
+    if (!(box.min.x < box.max.x && box.min.y < box.max.y && box.min.z < box.max.z))
+      return absl::InvalidArgumentError("medium_box: min must be below max on every axis");
+    p.medium_bounds.min = box.min;
+    p.medium_bounds.max = box.max;
+  }
   return query;
 }
 

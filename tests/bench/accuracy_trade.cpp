@@ -249,8 +249,8 @@ bool Prepare(SceneCase& c) {
     c.volumetric = BaseVolumetric(c.scene, m + glm::dvec3(0.2 * e.x, -0.1 * e.y, -2.0 * std::max(e.x, e.z)), m);
     c.volumetric.light.direction = {-0.3, -1.0, 0.2};
     c.volumetric.light.intensity = 4.0;
-    c.volumetric.extra_medium_bounds.Extend(b.min - e);
-    c.volumetric.extra_medium_bounds.Extend(b.max + glm::dvec3(e.x, 0, e.z));
+    c.volumetric.medium_bounds.Extend(b.min - e);
+    c.volumetric.medium_bounds.Extend(b.max + glm::dvec3(e.x, 0, e.z));
   } else {  // cornell
     // A patch just under the ceiling (below its emitter quad); the floor.
     const glm::dvec3 light = {m.x, b.max.y - 0.04 * e.y, m.z};

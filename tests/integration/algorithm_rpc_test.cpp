@@ -350,6 +350,20 @@ TEST_F(AlgorithmRpcTest, VolumetricMinMaxEqualsRayMarching) {
   EXPECT_LE(worst, 1e-4f * peak + 1e-7f);
   EXPECT_EQ(min_max->figures.method(), "min-max-mipmap");
 
+  // The medium where the request puts it: a box that holds none of the
+  // camera's rays scatters nothing, and a box without volume is refused by
+  // its field.
+  v1::VolumetricShadowRequest boxed = request;
+  Set(boxed.mutable_medium_box()->mutable_min(), 5, 5, 5);
+  Set(boxed.mutable_medium_box()->mutable_max(), 6, 6, 6);
+  auto empty = client_->VolumetricShadow(boxed);
+  ASSERT_TRUE(empty.ok()) << empty.status();
+  EXPECT_EQ(*std::max_element(empty->inscattering.begin(), empty->inscattering.end()), 0.0f);
+  Set(boxed.mutable_medium_box()->mutable_max(), 6, 5, 6);
+  const Status flat = client_->VolumetricShadow(boxed).status();
+  EXPECT_EQ(flat.code(), absl::StatusCode::kInvalidArgument) << flat;
+  EXPECT_NE(std::string(flat.message()).find("medium_box"), std::string::npos) << flat;
+
   // A spot light with extinction takes the SVD integrand and states its rank
   // and table error among the accuracy parameters.
   request.set_method(v1::VolumetricShadowRequest::MIN_MAX);

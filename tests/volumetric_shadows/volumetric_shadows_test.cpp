@@ -60,6 +60,17 @@ bool ClipToBox(const VolumetricBox& box, const glm::dvec3& eye, const glm::dvec3
   return hi > lo;
 }
 
+// The medium's world box as an oriented box, for ClipToBox.
+VolumetricBox AxisBox(const Bounds& b) {
+  VolumetricBox box;
+  box.center = b.Center();
+  box.axis[0] = {1, 0, 0};
+  box.axis[1] = {0, 1, 0};
+  box.axis[2] = {0, 0, 1};
+  box.half_extent = 0.5 * b.Extent();
+  return box;
+}
+
 // Closed form of the directional single-scattering integral over [a, b] of a
 // ray entering the medium at s_in (the header's model, in double).
 struct DirectionalIntegral {
@@ -148,8 +159,8 @@ TEST(VolumetricShadowsTest, NoOccluderMatchesClosedForm) {
   params.light.intensity = 3.0;
   params.medium = {0.08, 0.15, 0.3};
   params.shadow_map_size = 256;
-  params.extra_medium_bounds.Extend({-5, 0, -5});
-  params.extra_medium_bounds.Extend({5, 4, 5});
+  params.medium_bounds.Extend({-5, 0, -5});
+  params.medium_bounds.Extend({5, 4, 5});
   const VolumetricResult result = Render(*gpu_scene, scene, params);
   ASSERT_EQ(result.inscattering.size(), 96u * 72 * 3);
   EXPECT_EQ(result.integrand, VolumetricIntegrand::kAnalytic);
@@ -169,6 +180,8 @@ TEST(VolumetricShadowsTest, NoOccluderMatchesClosedForm) {
       const glm::dvec3 d = PixelRay(params.camera, x, y);
       double lo = 0, hi = 1e30;
       ASSERT_TRUE(ClipToBox(box, params.camera.position, d, lo, hi));
+      // Rays scatter only inside the medium's world box.
+      ASSERT_TRUE(ClipToBox(AxisBox(params.medium_bounds), params.camera.position, d, lo, hi));
       // The floor: y = 0 inside the quad.
       const double t_floor = -params.camera.position.y / d.y;
       const glm::dvec3 hit = params.camera.position + t_floor * d;
@@ -211,8 +224,8 @@ TEST(VolumetricShadowsTest, OccludingPlaneMatchesClosedForm) {
   params.light.direction = {0.0, -1.0, -0.5};
   params.medium = {0.1, 0.12, 0.0};
   params.shadow_map_size = 1024;
-  params.extra_medium_bounds.Extend({-4, 0, -8});
-  params.extra_medium_bounds.Extend({4, 4, 5});
+  params.medium_bounds.Extend({-4, 0, -8});
+  params.medium_bounds.Extend({4, 4, 5});
   const VolumetricResult result = Render(*gpu_scene, scene, params);
   ASSERT_EQ(result.inscattering.size(), 96u * 72 * 3);
   const VolumetricBox& box = result.medium_box;
@@ -232,6 +245,7 @@ TEST(VolumetricShadowsTest, OccludingPlaneMatchesClosedForm) {
       const glm::dvec3 d = PixelRay(params.camera, x, y);
       double lo = 0, hi = 1e30;
       ASSERT_TRUE(ClipToBox(box, eye, d, lo, hi));
+      ASSERT_TRUE(ClipToBox(AxisBox(params.medium_bounds), eye, d, lo, hi));
       // Rays that rise into the occluder end on it.
       if (d.y > 0) {
         const double t_plane = (3.0 - eye.y) / d.y;
@@ -271,7 +285,9 @@ TEST(VolumetricShadowsTest, OccludingPlaneMatchesClosedForm) {
         } else if (eye.y > 3.0) {
           b = a;
         }
-        b = std::max(a, b);
+        // A shadow that would begin beyond the ray's end is empty.
+        a = std::min(a, hi);
+        b = std::min(std::max(a, b), hi);
       };
       auto lit_integral = [&](double a, double b) { return integral(lo, a) + integral(b, hi); };
       double a_narrow, b_narrow, a_wide, b_wide, a, b;
@@ -571,6 +587,54 @@ TEST(VolumetricShadowsTest, TranslatedWorldGivesSameImage) {
   std::printf("translated by 1e6: max diff %.3g (peak %.3g)\n", diff, peak);
 }
 
+// The medium is where the request puts it: a far object beside the medium
+// (a second building 2 km away) changes nothing in the medium's image when
+// the medium box is given, while with the scene's bounds as the medium the
+// shadow map spreads over the whole world and the occluder's shadow blurs.
+TEST(VolumetricShadowsTest, AMediumBoxKeepsFarGeometryOutOfTheImage) {
+  auto occluder_scene = [](bool far_object) {
+    Scene scene;
+    scene.materials.push_back({"occluder", glm::dvec3(0.5), glm::dvec3(0.0)});
+    AddQuad(scene, "occluder", {-4, 3, 0}, {8, 0, 0}, {0, 0, -8}, 0);
+    if (far_object) AddBox(scene, "far", glm::dvec3(2000, 0, -10), glm::dvec3(2010, 10, 0), 0);
+    UpdateBounds(scene);
+    return scene;
+  };
+  const Scene alone = occluder_scene(false), with_far = occluder_scene(true);
+  auto alone_gpu = Upload(alone), far_gpu = Upload(with_far);
+  ASSERT_TRUE(alone_gpu && far_gpu);
+  VolumetricParams params;
+  params.camera.position = {0.0, 1.5, 5.0};
+  params.camera.forward = {0.0, 0.0, -1.0};
+  params.camera.vertical_fov_deg = 40;
+  params.camera.width = 96;
+  params.camera.height = 72;
+  params.light.direction = {0.0, -1.0, -0.5};
+  params.medium = {0.1, 0.12, 0.0};
+  params.shadow_map_size = 512;
+  params.medium_bounds.Extend({-4, 0, -8});
+  params.medium_bounds.Extend({4, 4, 5});
+  const VolumetricResult reference = Render(*alone_gpu, alone, params);
+  const VolumetricResult boxed = Render(*far_gpu, with_far, params);
+  VolumetricParams scene_bounds = params;
+  scene_bounds.medium_bounds = Bounds{};
+  const VolumetricResult unboxed = Render(*far_gpu, with_far, scene_bounds);
+  ASSERT_EQ(boxed.inscattering.size(), reference.inscattering.size());
+  ASSERT_EQ(unboxed.inscattering.size(), reference.inscattering.size());
+  const double peak = MaxOf(reference.inscattering);
+  ASSERT_GT(peak, 0.0);
+  size_t boxed_off = 0, unboxed_off = 0;
+  for (size_t i = 0; i < reference.inscattering.size(); ++i) {
+    boxed_off += std::abs(boxed.inscattering[i] - reference.inscattering[i]) > 0.01 * peak;
+    unboxed_off += std::abs(unboxed.inscattering[i] - reference.inscattering[i]) > 0.01 * peak;
+  }
+  const size_t pixels = reference.inscattering.size();
+  EXPECT_LE(boxed_off, pixels / 200) << "with the medium box, the far building moves only the anchor";
+  EXPECT_GT(unboxed_off, pixels / 20) << "with the scene's bounds, the far building takes the shadow map's texels";
+  std::printf("far geometry: pixels off by > 1%% of the peak: %zu of %zu with the medium box, %zu with the scene's bounds\n",
+              boxed_off, pixels, unboxed_off);
+}
+
 // Every stage is its own GL job and the traversal one per band of rows
 // (other queries run between them): bands give the image of one pass, for
 // the min-max traversal and for ray marching, with the direct light too.
@@ -637,6 +701,10 @@ TEST(VolumetricShadowsTest, BadInputsAreRejected) {
   check([](VolumetricParams& p) { p.camera.height = 5000; }, C::kResourceExhausted, "resolution", "4096");
   check([](VolumetricParams& p) { p.camera.up = p.camera.forward; }, C::kInvalidArgument, "camera.up", "parallel");
   check([](VolumetricParams& p) { p.shadow_map_size = 8192; }, C::kResourceExhausted, "shadow_map_size", "4096");
+  check([](VolumetricParams& p) { p.medium_bounds = Bounds{glm::dvec3(0.0), glm::dvec3(1.0, 1.0, std::nan(""))}; },
+        C::kInvalidArgument, "medium_box", "nan");
+  check([](VolumetricParams& p) { p.medium_bounds = Bounds{glm::dvec3(0.0), glm::dvec3(1.0, 0.0, 1.0)}; },
+        C::kInvalidArgument, "medium_box", "min < max");
   check([](VolumetricParams& p) { p.shadow_map_size = 1000; }, C::kInvalidArgument, "shadow_map_size", "1000");
   check([](VolumetricParams& p) { p.medium.scattering = -0.5; }, C::kInvalidArgument, "medium.scattering", "-0.5");
   check([](VolumetricParams& p) { p.medium.extinction = -1; }, C::kInvalidArgument, "medium.extinction", "-1");

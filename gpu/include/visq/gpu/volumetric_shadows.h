@@ -13,15 +13,23 @@
 //
 // where s is the distance from the eye, s_in where the ray enters the medium,
 // l(x) the light's path length inside the medium to x, and "lit" is decided by
-// the shadow map. The medium fills the light's shadow-map volume:
-//   directional light: the box around the scene bounds in the light's frame
-//     (axes and extent in VolumetricResult::medium_box); light enters at the
-//     box face the light comes from, so l(x) = depth of x below that face and
-//     E_light = intensity (irradiance) * light texture;
-//   spot light: the square frustum of the cone (near = 1e-3 of the scene
-//     diagonal, far = beyond the farthest scene corner); l(x) = |x - position|
-//     and E_light = intensity (radiant intensity) * cone * texture / l^2.
-// Outside the medium there is vacuum (no scattering, no attenuation).
+// the shadow map. The medium is a world box, VolumetricParams::medium_bounds
+// (the scene's bounds unless given): s runs over the part of the ray inside
+// it, and inside the light's shadow-map volume:
+//   directional light: light enters the medium at the plane, across the
+//     light, through the box's corner it reaches first (the near face of the
+//     box around the medium in the light's frame, VolumetricResult::
+//     medium_box), so l(x) = depth of x below that plane and E_light =
+//     intensity (irradiance) * light texture. The shadow map covers that
+//     frame box, deepened towards the light over the scene, so occluders
+//     outside the medium still shadow it;
+//   spot light: also inside the square frustum of the cone (near = 1e-3 of
+//     the diagonal, far = beyond the farthest corner of the scene and the
+//     medium); l(x) = |x - position| and E_light = intensity (radiant
+//     intensity) * cone * texture / l^2.
+// Outside the medium there is vacuum (no scattering, no attenuation). Geometry
+// far from the medium costs only the shadow map's depth range: a medium box
+// given with the request keeps the map's texels on the medium.
 //
 // The shadow map (the light's depth) is resampled into an epipolar
 // rectified map: row = one epipolar slice (a direction from the epipole, the
@@ -161,9 +169,10 @@ struct VolumetricParams {
   // Also return `combined`: Lambert direct light on surfaces (material
   // reflectivity, shadow-mapped, attenuated both ways) plus in-scattering.
   bool combined_image = false;
-  // The medium's box (directional) or far plane (spot) covers the scene's
-  // bounds and these (empty: the scene's only).
-  Bounds extra_medium_bounds;
+  // Where the medium is: a world box (empty: the scene's bounds). Camera
+  // rays scatter only inside it; see the file comment for where light
+  // enters it.
+  Bounds medium_bounds;
   VolumetricIntegrandChoice integrand_choice = VolumetricIntegrandChoice::kAuto;
   // kSvd: the largest residual of the rank-K table allowed, relative to its
   // largest value (the rank stops growing at 8).
