@@ -145,7 +145,8 @@ struct VolumetricOptions {
   CameraFlags camera;
   uint32_t shadow_map = 1024;
   double scattering = 0.05, extinction = 0.05, intensity = 1.0;
-  bool combined = false;
+  bool combined = false, estimate_error = false;
+  TargetFlags target;
 };
 
 Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
@@ -154,7 +155,9 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
   VISQ_RETURN_IF_ERROR(FillCamera(o.camera, &request));
   if (!ParseVec3(o.light, request.mutable_light_direction()))
     return absl::InvalidArgumentError("--sun: expected 'x,y,z'");
-  request.set_shadow_map_size(o.shadow_map);
+  if (o.target.set()) o.target.Fill(request.mutable_target());
+  else request.set_shadow_map_size(o.shadow_map);
+  request.set_estimate_error(o.estimate_error);
   request.set_scattering(o.scattering);
   request.set_extinction(o.extinction);
   request.set_light_intensity(o.intensity);
@@ -186,6 +189,10 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
   fmt::print("{}x{} {} ({} integrand, {}x{} rectified)\n", f.width(), f.height(), f.method(), f.integrand(),
              f.rectified_rows(), f.rectified_columns());
   for (const auto& [stage, ms] : f.stage_ms()) fmt::print("  {:<14} {:8.1f} ms\n", stage, ms);
+  if (f.accuracy().error_bound() >= 0)
+    fmt::print("error, estimated: {:.4g} per pixel at most ({} shadow map); {}\n", f.accuracy().error_bound(),
+               f.accuracy().parameters().count("shadow_map_size") ? f.accuracy().parameters().at("shadow_map_size") : 0.0,
+               f.accuracy().note());
   fmt::print("total {:.1f} ms\n", f.timing().total_ms());
   PrintWritten(o.png, o.npy, o.exr);
   return absl::OkStatus();
@@ -241,6 +248,9 @@ void AddVoxelCommands(Cli& cli) {
   volumetric->add_option("--intensity", vo->intensity, "Light intensity")->capture_default_str();
   AddChoice(volumetric, "--method", vo->method, {"min-max", "ray-marching"}, "min-max or ray-marching");
   volumetric->add_flag("--combined", vo->combined, "Add the directly lit surfaces");
+  volumetric->add_flag("--estimate-error", vo->estimate_error,
+                       "Also render with half the shadow map and state the difference as the error estimate");
+  AddTargetFlags(volumetric, vo->target);
   volumetric->add_option("--medium-box", vo->medium_box,
                          "Where the medium is, 'minx,miny,minz;maxx,maxy,maxz' (default: the scene's bounds)");
   volumetric->add_option("--png", vo->png, "Write the image (tone-mapped to its peak)");

@@ -1,33 +1,148 @@
 #include "core/volumetric_query.h"
 
 #include <algorithm>
+#include <chrono>
+#include <cmath>
 
+#include "common/job_timing.h"
 #include "core/engine.h"
 
 namespace visq {
+namespace {
 
-StatusOr<gpu::VolumetricResult> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
-                                                    const gpu::VolumetricBandSink& sink) {
+// The estimate's figures over pixels [first_pixel, ...) of the fine image.
+struct EstimateSums {
+  double max_abs = 0, abs_sum = 0, fine_sum = 0;
+  void Add(const std::vector<float>& fine, size_t first_value, const std::vector<float>& coarse) {
+    for (size_t i = 0; i < fine.size(); ++i) {
+      const double difference = std::abs(double(fine[i]) - double(coarse[first_value + i]));
+      max_abs = std::max(max_abs, difference);
+      abs_sum += difference;
+      fine_sum += std::abs(double(fine[i]));
+    }
+  }
+  VolumetricErrorEstimate Estimate(uint32_t coarse_map_size) const {
+    return {coarse_map_size, max_abs, fine_sum > 0 ? abs_sum / fine_sum : 0.0};
+  }
+};
+
+// Sends a whole image to a band sink, a band of rows at a time.
+Status SendInBands(const gpu::VolumetricResult& image, const gpu::VolumetricBandSink& sink) {
+  constexpr size_t kBandRows = 256;
+  gpu::VolumetricResult figures = image;
+  figures.inscattering.clear();
+  figures.combined.clear();
+  const size_t width = image.width;
+  for (size_t row = 0; row < image.height; row += kBandRows) {
+    const size_t rows = std::min<size_t>(kBandRows, image.height - row);
+    gpu::VolumetricBand band;
+    band.first_pixel = row * width;
+    const auto begin = image.inscattering.begin() + std::ptrdiff_t(3 * row * width);
+    band.inscattering.assign(begin, begin + std::ptrdiff_t(3 * rows * width));
+    if (!image.combined.empty()) {
+      const auto c = image.combined.begin() + std::ptrdiff_t(3 * row * width);
+      band.combined.assign(c, c + std::ptrdiff_t(3 * rows * width));
+    }
+    VISQ_RETURN_IF_ERROR(sink(figures, band));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
+                                               const gpu::VolumetricBandSink& sink) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
-  // Validate before the GPU upload: a bad request costs nothing.
-  VISQ_RETURN_IF_ERROR(gpu::ValidateVolumetricParams(query.params));
   gpu::VolumetricParams p = query.params;
+  if (query.target) {
+    VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));
+    if (!(query.target->max_error > 0) && !(query.target->time_budget_ms > 0))
+      return absl::InvalidArgumentError("target: give max_error or time_budget_ms");
+    if (query.target->confidence >= 1.0)
+      return absl::InvalidArgumentError(
+          "target.confidence: 1 asks for a worst-case bound; volumetric shadows state an error estimate");
+    p.shadow_map_size = 256;
+  }
+  // Validate before the GPU upload: a bad request costs nothing.
+  VISQ_RETURN_IF_ERROR(gpu::ValidateVolumetricParams(p));
   p.job = query.call.Job();
+  const bool two_images = query.estimate_error || query.target;
   // A band's read-back (16 bytes a pixel) and RGB arrays, then the whole
-  // image's arrays or, streamed, what the stream's writer may hold unsent;
-  // and the shadow map's.
+  // image's arrays or, streamed, what the stream's writer may hold unsent
+  // (with an estimate or a target, the images compared are whole); and the
+  // shadow map's.
   const uint64_t pixels = uint64_t{p.camera.width} * p.camera.height;
   const uint64_t rgb_bytes = 12 * (p.combined_image ? 2 : 1);
   const uint64_t band_pixels = std::min<uint64_t>(pixels, uint64_t{p.max_pixels_per_job} + 8 * p.camera.width);
   const uint64_t image_bytes = pixels * rgb_bytes;
-  const uint64_t map_texels = uint64_t{p.shadow_map_size} * p.shadow_map_size;
+  const uint32_t largest_map = query.target ? gpu::kMaxVolumetricShadowMapSize : p.shadow_map_size;
+  const uint64_t map_texels = uint64_t{largest_map} * largest_map;
   const uint64_t bytes = band_pixels * (16 + rgb_bytes) + map_texels * 8 +
-                         (sink ? std::min(image_bytes, kStreamedAnswerQueueBytes) : 2 * image_bytes);
+                         (two_images ? 3 * image_bytes
+                                     : (sink ? std::min(image_bytes, kStreamedAnswerQueueBytes) : 2 * image_bytes));
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(bytes, "camera.width x camera.height, shadow_map_size", p.job));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
-  return gpu::RenderVolumetricShadows(engine.gpu(), *gpu_scene, *resident->scene, p, sink);
+  auto render = [&](uint32_t map_size, const gpu::VolumetricBandSink& to) {
+    gpu::VolumetricParams at = p;
+    at.shadow_map_size = map_size;
+    return gpu::RenderVolumetricShadows(engine.gpu(), *gpu_scene, *resident->scene, at, to);
+  };
+
+  VolumetricAnswer answer;
+  if (!two_images) {
+    VISQ_ASSIGN_OR_RETURN(answer.result, render(p.shadow_map_size, sink));
+    answer.maps_rendered = {p.shadow_map_size};
+    return answer;
+  }
+  const uint32_t first_coarse = std::max(gpu::kMinVolumetricShadowMapSize, p.shadow_map_size / 2);
+  VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult coarse, render(first_coarse, {}));
+  answer.maps_rendered.push_back(first_coarse);
+  answer.other_renders_ms = coarse.timings.total_ms;
+
+  if (!query.target) {
+    // The answer streams as it is made, each band compared on its way.
+    EstimateSums sums;
+    auto comparing = [&](const gpu::VolumetricResult& figures, const gpu::VolumetricBand& band) -> Status {
+      sums.Add(band.inscattering, 3 * band.first_pixel, coarse.inscattering);
+      return sink ? sink(figures, band) : absl::OkStatus();
+    };
+    VISQ_ASSIGN_OR_RETURN(answer.result, render(p.shadow_map_size, comparing));
+    answer.maps_rendered.push_back(p.shadow_map_size);
+    answer.estimate = sums.Estimate(first_coarse);
+    return answer;
+  }
+
+  // A target: double the map until the estimate meets it, the cap, or the
+  // time budget (the next map costs at least the last one).
+  const auto start = std::chrono::steady_clock::now();
+  uint32_t size = p.shadow_map_size;
+  while (true) {
+    const auto render_start = std::chrono::steady_clock::now();
+    VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult fine, render(size, {}));
+    answer.maps_rendered.push_back(size);
+    EstimateSums sums;
+    sums.Add(fine.inscattering, 0, coarse.inscattering);
+    answer.estimate = sums.Estimate(size / 2);
+    const double last_ms = MillisecondsSince(render_start);
+    const bool met = query.target->max_error > 0 && answer.estimate->max_pixel_error <= query.target->max_error;
+    const bool out_of_time = query.target->time_budget_ms > 0 &&
+                             MillisecondsSince(start) + 2.0 * last_ms > query.target->time_budget_ms;
+    if (met || size >= gpu::kMaxVolumetricShadowMapSize || out_of_time) {
+      answer.result = std::move(fine);
+      break;
+    }
+    answer.other_renders_ms += fine.timings.total_ms;
+    coarse = std::move(fine);
+    size *= 2;
+  }
+  if (sink) {
+    VISQ_RETURN_IF_ERROR(SendInBands(answer.result, sink));
+    answer.result.inscattering.clear();
+    answer.result.combined.clear();
+  }
+  return answer;
 }
 
 }  // namespace visq

@@ -1,10 +1,14 @@
-// Volumetric shadows as a core query over a resident scene.
+// Volumetric shadows (Chen et al. 2011) as a core query: the budget, the
+// render, and what the shadow map's resolution costs in accuracy.
 #pragma once
 
+#include <optional>
 #include <string>
+#include <vector>
 
-#include "core/call_options.h"
 #include "common/status.h"
+#include "core/accuracy_planner.h"
+#include "core/call_options.h"
 #include "visq/gpu/volumetric_shadows.h"
 
 namespace visq {
@@ -15,12 +19,39 @@ struct VolumetricQuery {
   std::string scene;
   uint64_t scene_version = 0;
   gpu::VolumetricParams params;
+  // Also render with a shadow map of half the size and state the
+  // difference as an estimate of the image's error.
+  bool estimate_error = false;
+  // Instead of params.shadow_map_size: the smallest map, from 256 up by
+  // doubling, whose error estimate is within target.max_error (or, without
+  // one, the largest the time budget allows; 4096 at most).
+  std::optional<AccuracyTarget> target;
   CallOptions call;  // the core sets params.job from it
 };
 
-// With `sink`, each band of image rows goes to it as the traversal makes it
-// and the result holds the figures only (gpu::RenderVolumetricShadows).
-[[nodiscard]] StatusOr<gpu::VolumetricResult> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
-                                                                 const gpu::VolumetricBandSink& sink = {});
+// The image error the shadow map's resolution leaves, estimated from the
+// same image at half the map's size: the min-max traversal integrates the
+// rectified map exactly, so what is left is where the map puts shadow
+// edges, an error that falls about as the map's texel (first order).
+// |I(N) - I(N / 2)| then estimates the error of I(N). An estimate, not a
+// bound.
+struct VolumetricErrorEstimate {
+  uint32_t coarse_map_size = 0;
+  double max_pixel_error = 0;     // the largest |I(N) - I(N / 2)| of any pixel and channel
+  double relative_l1_error = 0;   // sum |I(N) - I(N / 2)| / sum I(N)
+};
+
+struct VolumetricAnswer {
+  gpu::VolumetricResult result;
+  std::optional<VolumetricErrorEstimate> estimate;
+  std::vector<uint32_t> maps_rendered;  // in order; the answer's is the last
+  double other_renders_ms = 0;          // the renders before the answer's
+};
+
+// With `sink`, each band of image rows goes to it as it is made (or, with a
+// target, once the map is chosen) and the result holds the figures only
+// (gpu::RenderVolumetricShadows).
+[[nodiscard]] StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
+                                                            const gpu::VolumetricBandSink& sink = {});
 
 }  // namespace visq

@@ -403,6 +403,12 @@ StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) 
     default: return absl::InvalidArgumentError("method: unknown value");
   }
   p.combined_image = request.combined_image();
+  query.estimate_error = request.estimate_error();
+  if (request.has_target()) {
+    if (request.shadow_map_size() != 0)
+      return absl::InvalidArgumentError("shadow_map_size: leave it unset with a target (the server chooses the map)");
+    query.target = FromProto(request.target());
+  }
   if (request.has_medium_box()) {
     // Given: the medium box whole; unset: the scene's bounds.
     const Bounds box = FromProto(request.medium_box());
@@ -460,8 +466,25 @@ Status WriteVolumetricBand(const gpu::VolumetricBand& band,
   return chunks(band.combined, &Message::mutable_combined);
 }
 
-v1::VolumetricShadowResponse VolumetricLastMessage(const gpu::VolumetricResult& result) {
+v1::VolumetricShadowResponse VolumetricLastMessage(const VolumetricAnswer& answer) {
+  const gpu::VolumetricResult& result = answer.result;
   v1::VolumetricShadowResponse last;
+  if (answer.estimate) {
+    const VolumetricErrorEstimate& e = *answer.estimate;
+    auto* accuracy = last.mutable_accuracy();
+    accuracy->set_error_bound(e.max_pixel_error);
+    accuracy->set_confidence(0.0);
+    accuracy->set_note(absl::StrCat(
+        "an estimate, not a bound: the largest per-pixel difference from the same image with a ", e.coarse_map_size,
+        "^2 shadow map (relative L1 difference ", e.relative_l1_error,
+        "); the traversal integrates the rectified map exactly, so the error left is where the map puts shadow "
+        "edges, which falls about as the map's texel: the difference estimates the error of this image"));
+    auto& parameters = *accuracy->mutable_parameters();
+    parameters["shadow_map_size"] = answer.maps_rendered.back();
+    parameters["coarse_shadow_map_size"] = e.coarse_map_size;
+    parameters["relative_l1_error"] = e.relative_l1_error;
+    parameters["maps_rendered"] = double(answer.maps_rendered.size());
+  }
   auto& stage_ms = *last.mutable_stage_ms();
   stage_ms["setup"] = result.timings.setup_ms;
   if (result.integrand == gpu::VolumetricIntegrand::kSvd) stage_ms["integrand_table"] = result.timings.integrand_table_ms;

@@ -74,7 +74,7 @@ v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult&
 [[nodiscard]] Status WriteVolumetricBand(const gpu::VolumetricBand& band,
                                          const std::function<Status(v1::VolumetricShadowResponse)>& write,
                                          size_t chunk_elements = kChunkElements);
-v1::VolumetricShadowResponse VolumetricLastMessage(const gpu::VolumetricResult& result);
+v1::VolumetricShadowResponse VolumetricLastMessage(const VolumetricAnswer& answer);
 
 [[nodiscard]] StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
 // Streamed while the grid is made, like the hidden-sample map: the first

@@ -404,13 +404,15 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
           if (band.first_pixel == 0) VISQ_RETURN_IF_ERROR(write(VolumetricFirstMessage(figures)));
           return WriteVolumetricBand(band, write);
         };
-        VISQ_ASSIGN_OR_RETURN(gpu::VolumetricResult result, RunVolumetricShadow(ctx_.engine, query, sink));
+        VISQ_ASSIGN_OR_RETURN(VolumetricAnswer answer, RunVolumetricShadow(ctx_.engine, query, sink));
+        const gpu::VolumetricResult& result = answer.result;
         const gpu::VolumetricTimings& timings = result.timings;
-        log.Info("{}x{} {} ({}), traversal {:.1f} ms", result.width, result.height,
+        log.Info("{}x{} {} ({}), {} map(s) rendered, traversal {:.1f} ms", result.width, result.height,
                  result.method == gpu::VolumetricMethod::kMinMaxTraversal ? "min-max-mipmap" : "ray-marching",
-                 gpu::VolumetricIntegrandName(result.integrand), timings.traversal_ms);
-        v1::VolumetricShadowResponse last = VolumetricLastMessage(result);
-        SetProducedTiming(queue_ms + timings.queue_ms, timings.total_ms - timings.queue_ms - out.write_ms(),
+                 gpu::VolumetricIntegrandName(result.integrand), answer.maps_rendered.size(), timings.traversal_ms);
+        v1::VolumetricShadowResponse last = VolumetricLastMessage(answer);
+        SetProducedTiming(queue_ms + timings.queue_ms,
+                          answer.other_renders_ms + timings.total_ms - timings.queue_ms - out.write_ms(),
                           out.write_ms(), log, last.mutable_timing());
         return last;
       });

@@ -323,6 +323,88 @@ TEST_F(AlgorithmRpcTest, TransmittanceThroughTheShortBox) {
   EXPECT_EQ(client_->Transmittance(request).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+// The error estimate of a volumetric image (the same image with half the
+// shadow map) against the error itself, measured against a 4096^2 map, on
+// Sponza's atrium; and a target that makes the server choose the map.
+TEST_F(AlgorithmRpcTest, VolumetricErrorEstimateTracksTheErrorAndATargetChoosesTheMap) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  auto info = client_->UploadScene(scenes / "sponza_dabrovic/sponza.gltf", "sponza_volumetric", /*replace=*/true);
+  ASSERT_TRUE(info.ok()) << info.status();
+  const glm::dvec3 lo(info->bounds_min().x(), info->bounds_min().y(), info->bounds_min().z());
+  const glm::dvec3 hi(info->bounds_max().x(), info->bounds_max().y(), info->bounds_max().z());
+  auto at = [&](double x, double y, double z) { return lo + glm::dvec3(x, y, z) * (hi - lo); };
+  v1::VolumetricShadowRequest request;
+  request.mutable_scene()->set_name("sponza_volumetric");
+  const glm::dvec3 eye = at(0.12, 0.25, 0.5), target_point = at(0.9, 0.35, 0.45);
+  Set(request.mutable_camera_position(), eye.x, eye.y, eye.z);
+  Set(request.mutable_camera_forward(), target_point.x - eye.x, target_point.y - eye.y, target_point.z - eye.z);
+  request.set_vertical_fov_deg(60);
+  request.set_width(96);
+  request.set_height(72);
+  Set(request.mutable_light_direction(), 0.25, -1.0, 0.45);
+  request.set_light_intensity(4.0);
+  const double extent = glm::length(hi - lo);
+  request.set_scattering(2.0 / extent);
+  request.set_extinction(3.0 / extent);
+
+  v1::VolumetricShadowRequest reference_request = request;
+  reference_request.set_shadow_map_size(4096);
+  auto reference = client_->VolumetricShadow(reference_request);
+  ASSERT_TRUE(reference.ok()) << reference.status();
+  EXPECT_LT(reference->figures.accuracy().error_bound(), 0.0) << "no estimate unless asked for";
+
+  request.set_shadow_map_size(256);
+  request.set_estimate_error(true);
+  auto estimated = client_->VolumetricShadow(request);
+  ASSERT_TRUE(estimated.ok()) << estimated.status();
+  const v1::Accuracy& accuracy = estimated->figures.accuracy();
+  ASSERT_EQ(estimated->inscattering.size(), reference->inscattering.size());
+  double true_max = 0, abs_sum = 0, sum = 0;
+  for (size_t i = 0; i < reference->inscattering.size(); ++i) {
+    const double error = std::abs(double(estimated->inscattering[i]) - reference->inscattering[i]);
+    true_max = std::max(true_max, error);
+    abs_sum += error;
+    sum += reference->inscattering[i];
+  }
+  ASSERT_GT(true_max, 0.0);
+  const double true_l1 = abs_sum / sum;
+  const double estimate = accuracy.error_bound(), estimate_l1 = accuracy.parameters().at("relative_l1_error");
+  EXPECT_EQ(accuracy.confidence(), 0.0) << "an estimate, not a bound";
+  EXPECT_NE(accuracy.note().find("an estimate"), std::string::npos) << accuracy.note();
+  EXPECT_EQ(accuracy.parameters().at("coarse_shadow_map_size"), 128);
+  // An estimate of the right size: within 3x of the error, either way.
+  EXPECT_GT(estimate, true_max / 3) << "true " << true_max;
+  EXPECT_LT(estimate, true_max * 3) << "true " << true_max;
+  EXPECT_GT(estimate_l1, true_l1 / 3) << "true " << true_l1;
+  EXPECT_LT(estimate_l1, true_l1 * 3) << "true " << true_l1;
+  RecordProperty("estimate_256", absl::StrCat(estimate, " (true ", true_max, "), L1 ", estimate_l1, " (true ", true_l1, ")"));
+
+  // A target half the 256 map's estimate: a larger map, whose estimate meets it.
+  v1::VolumetricShadowRequest targeted = request;
+  targeted.clear_shadow_map_size();
+  targeted.set_estimate_error(false);
+  targeted.mutable_target()->set_max_error(estimate / 2);
+  auto chosen = client_->VolumetricShadow(targeted);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  const v1::Accuracy& chosen_accuracy = chosen->figures.accuracy();
+  EXPECT_GT(chosen_accuracy.parameters().at("shadow_map_size"), 256);
+  EXPECT_TRUE(chosen_accuracy.error_bound() <= estimate / 2 ||
+              chosen_accuracy.parameters().at("shadow_map_size") == 4096)
+      << chosen_accuracy.error_bound();
+  ASSERT_EQ(chosen->inscattering.size(), reference->inscattering.size());
+  RecordProperty("target_map", absl::StrCat(chosen_accuracy.parameters().at("shadow_map_size")));
+
+  // A worst-case target is refused by its field; so is a map size beside a target.
+  targeted.mutable_target()->set_confidence(1.0);
+  Status worst_case = client_->VolumetricShadow(targeted).status();
+  EXPECT_EQ(worst_case.code(), absl::StatusCode::kInvalidArgument) << worst_case;
+  EXPECT_NE(std::string(worst_case.message()).find("target.confidence"), std::string::npos) << worst_case;
+  targeted.mutable_target()->set_confidence(0.0);
+  targeted.set_shadow_map_size(512);
+  Status both = client_->VolumetricShadow(targeted).status();
+  EXPECT_EQ(both.code(), absl::StatusCode::kInvalidArgument) << both;
+}
+
 TEST_F(AlgorithmRpcTest, VolumetricMinMaxEqualsRayMarching) {
   v1::VolumetricShadowRequest request;
   request.mutable_scene()->set_name("cornell_box_visq");

@@ -302,6 +302,11 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(image.inscattering.shape, (24, 32, 3))
         self.assertEqual(image.combined.shape, (24, 32, 3))
         self.assertTrue(np.isfinite(image.inscattering).all())
+        boxed = self.client.volumetric_shadow(SCENE, (0, 1, 3.5), (0, 0, -1), width=32, height=24,
+                                              sun=(0.2, -1, 0.1), shadow_map_size=128,
+                                              medium_box=((-1, 0, -1), (1, 2, 1)), estimate_error=True)
+        self.assertGreaterEqual(boxed.figures.accuracy.error_bound, 0.0)
+        self.assertIn("an estimate", boxed.figures.accuracy.note)
 
     def test_obscurance_bake_with_progress_then_preview(self):
         progress = []

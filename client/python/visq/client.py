@@ -797,10 +797,13 @@ class Client:
                           height=240, sun=(0.3, -1.0, 0.2), light_kind="directional", light_position=None,
                           cone_angle_deg=30.0, light_color=(1, 1, 1), intensity=1.0, scattering=0.05,
                           extinction=0.05, hg_g=0.0, shadow_map_size=1024, method="min-max", combined=False,
-                          medium_box=None, version=0, timeout=_UNSET, cancel=None) -> VolumetricImage:
+                          medium_box=None, estimate_error=False, version=0, timeout=_UNSET,
+                          cancel=None) -> VolumetricImage:
         """Single-scattering light shafts from a pinhole camera; RGB images
         shaped (height, width, 3), row 0 at the top. `medium_box`: where the
-        medium is, ((min x, y, z), (max x, y, z)); None: the scene's bounds."""
+        medium is, ((min x, y, z), (max x, y, z)); None: the scene's bounds.
+        `estimate_error`: figures.accuracy states the error the shadow map's
+        resolution leaves, estimated from a render with half the map."""
         request = pb.VolumetricShadowRequest()
         request.scene.name, request.scene.version = scene, version
         _vec3(camera_position, "camera_position", request.camera_position)
@@ -823,6 +826,7 @@ class Client:
         request.method = _choice(method, "method", {"min-max": pb.VolumetricShadowRequest.MIN_MAX,
                                                     "ray-marching": pb.VolumetricShadowRequest.RAY_MARCHING})
         request.combined_image = combined
+        request.estimate_error = bool(estimate_error)
         if medium_box is not None:
             low, high = medium_box
             _vec3(low, "medium_box", request.medium_box.min)
