@@ -8,6 +8,7 @@
 #include <sstream>
 #include <thread>
 
+#include <absl/strings/str_cat.h>
 #include <grpcpp/client_context.h>
 #include <grpcpp/create_channel.h>
 #include <grpcpp/security/credentials.h>

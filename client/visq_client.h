@@ -1,18 +1,24 @@
 // The C++ client of visq: a class owning the gRPC stub, with a deadline on
 // every call and chunked scene upload. The `visq` CLI is a thin main over it.
+//
+// Installed (cmake --install) as include/visq/visq_client.h with the public
+// floor (visq/status.h, visq/obscurance_partial.h) and the generated proto,
+// so this header includes nothing from lib/ or server/ (tests/layout checks).
 #pragma once
 
 #include <chrono>
+#include <cstdint>
 #include <functional>
 #include <filesystem>
 #include <memory>
 #include <mutex>
 #include <string>
+#include <vector>
 
 #include <grpcpp/channel.h>
 
-#include "common/status.h"
-#include "obscurance/obscurance_partial.h"  // header-only: the merge the server uses
+#include "visq/obscurance_partial.h"  // header-only: the merge the server uses
+#include "visq/status.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "visq/v1/visq.grpc.pb.h"
 

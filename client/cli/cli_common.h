@@ -12,6 +12,7 @@
 #include <CLI/CLI.hpp>
 #include <google/protobuf/message.h>
 
+#include "common/status.h"  // the tool stands on lib/: fmt prints Status messages
 #include "visq_client.h"
 
 namespace visq::cli {

@@ -1,0 +1,66 @@
+# What `cmake --install build --prefix P` puts where: the two binaries, and
+# the C++ client as a package of its own (find_package(visq CONFIG) with
+# visq::client, or pkg-config visq-client), with the .proto files for other
+# languages.
+#   P/bin/visq-server, P/bin/visq
+#   P/include/visq/       visq_client.h, the public floor (status.h,
+#                         obscurance_partial.h), the generated visq/v1 and
+#                         grpc/health/v1 headers
+#   P/lib/                libvisq_client.a, libvisq_proto.a, cmake/visq/, pkgconfig/visq-client.pc
+#   P/share/visq/proto/   visq/v1/visq.proto, grpc/health/v1/health.proto
+include(CMakePackageConfigHelpers)
+set(visq_cmake_dir ${CMAKE_INSTALL_LIBDIR}/cmake/visq)
+
+install(TARGETS visq-server visq RUNTIME DESTINATION ${CMAKE_INSTALL_BINDIR})
+
+# The generated library: its headers go under include/visq, the health
+# proto's too (its generated code includes "grpc/health/v1/...", so
+# include/visq is on the include path), so that no file lands in gRPC's own
+# include/grpc. proto/CMakeLists.txt gives the build tree's folder alone;
+# the installed package needs it as a build-only path (a build-tree path in
+# an exported target is an error) and the installed folders beside it.
+get_target_property(visq_proto_gen_dir visq_proto INTERFACE_INCLUDE_DIRECTORIES)
+if(NOT IS_DIRECTORY "${visq_proto_gen_dir}")
+  message(FATAL_ERROR "visq_proto's include directory is no longer one plain folder (${visq_proto_gen_dir}): "
+                      "give cmake/Install.cmake the generated folder another way")
+endif()
+set_target_properties(visq_proto PROPERTIES
+  INTERFACE_INCLUDE_DIRECTORIES
+    "$<BUILD_INTERFACE:${visq_proto_gen_dir}>;$<INSTALL_INTERFACE:${CMAKE_INSTALL_INCLUDEDIR}>;$<INSTALL_INTERFACE:${CMAKE_INSTALL_INCLUDEDIR}/visq>"
+  POSITION_INDEPENDENT_CODE ON  # with visq_client, into a consumer's shared object
+  EXPORT_NAME proto)
+set(gen ${visq_proto_gen_dir})
+set(include_visq ${CMAKE_INSTALL_INCLUDEDIR}/visq)
+install(FILES ${gen}/visq/v1/visq.pb.h ${gen}/visq/v1/visq.grpc.pb.h DESTINATION ${include_visq}/v1)
+install(FILES ${gen}/grpc/health/v1/health.pb.h ${gen}/grpc/health/v1/health.grpc.pb.h
+        DESTINATION ${include_visq}/grpc/health/v1)
+set(proto_share ${CMAKE_INSTALL_DATADIR}/visq/proto)
+install(FILES ${PROJECT_SOURCE_DIR}/proto/visq/v1/visq.proto DESTINATION ${proto_share}/visq/v1)
+install(FILES ${PROJECT_SOURCE_DIR}/proto/grpc/health/v1/health.proto DESTINATION ${proto_share}/grpc/health/v1)
+
+# The client, its headers and the public floor's.
+install(TARGETS visq_client visq_proto visq_public EXPORT visqTargets ARCHIVE DESTINATION ${CMAKE_INSTALL_LIBDIR})
+# The client's public headers are the .h files directly in client/ (cli/ is
+# the tool's); tests/layout checks that these include only installed files.
+file(GLOB visq_client_headers CONFIGURE_DEPENDS ${PROJECT_SOURCE_DIR}/client/*.h)
+install(FILES ${visq_client_headers} DESTINATION ${include_visq})
+install(DIRECTORY ${PROJECT_SOURCE_DIR}/include/visq DESTINATION ${CMAKE_INSTALL_INCLUDEDIR}
+        FILES_MATCHING PATTERN "*.h")
+
+# The CMake package: visqConfig.cmake finds gRPC, protobuf and abseil, then
+# defines visq::client (with visq::proto and visq::public under it).
+install(EXPORT visqTargets NAMESPACE visq:: FILE visqTargets.cmake DESTINATION ${visq_cmake_dir})
+configure_package_config_file(${CMAKE_CURRENT_LIST_DIR}/visqConfig.cmake.in
+                              ${PROJECT_BINARY_DIR}/visqConfig.cmake INSTALL_DESTINATION ${visq_cmake_dir})
+# 0.x: a minor version may change the API.
+write_basic_package_version_file(${PROJECT_BINARY_DIR}/visqConfigVersion.cmake COMPATIBILITY SameMinorVersion)
+install(FILES ${PROJECT_BINARY_DIR}/visqConfig.cmake ${PROJECT_BINARY_DIR}/visqConfigVersion.cmake
+        DESTINATION ${visq_cmake_dir})
+
+# pkg-config: paths relative to the .pc file itself, so the tree stays right
+# wherever --prefix puts it (the prefix is chosen at install time, not at
+# configure time).
+file(RELATIVE_PATH visq_pc_to_prefix /prefix/${CMAKE_INSTALL_LIBDIR}/pkgconfig /prefix)
+string(REGEX REPLACE "/$" "" visq_pc_to_prefix "${visq_pc_to_prefix}")
+configure_file(${CMAKE_CURRENT_LIST_DIR}/visq-client.pc.in ${PROJECT_BINARY_DIR}/visq-client.pc @ONLY)
+install(FILES ${PROJECT_BINARY_DIR}/visq-client.pc DESTINATION ${CMAKE_INSTALL_LIBDIR}/pkgconfig)
