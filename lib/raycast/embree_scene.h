@@ -81,12 +81,13 @@ struct TraceOptions {
   std::function<bool()> stop;
 };
 
-// Embree's BVH build quality. MEDIUM builds 2.5-4x faster than HIGH on the
-// shared scenes and traces coherent occlusion segments as fast (within the
-// run-to-run noise of 5 %), but closest hits 12-16 % slower on Sponza, whose
-// large thin triangles HIGH's spatial splits serve better
-// (tests/bench/structure_bench.cpp). So HIGH stays the default, and callers
-// that only cast shadow segments and must build fast ask for MEDIUM.
+// Embree's BVH build quality. On the shared scenes (tests/bench/structure_bench.cpp,
+// 4 runs on a shared 2-core machine) MEDIUM builds 2.2-5x faster than HIGH.
+// It traces coherent shadow segments as fast or faster on the "ajar" room
+// and the bunny, and 1-15 % slower on Sponza (7 % on average); closest hits
+// 10-23 % slower on Sponza, whose large thin triangles HIGH's spatial splits
+// serve better. So HIGH stays the default, and callers that cast shadow
+// segments and must build fast (a level's first query) ask for MEDIUM.
 enum class BuildQuality { kMedium, kHigh };
 
 struct EmbreeSceneOptions {

@@ -11,16 +11,19 @@
 
 namespace visq {
 
-// Bytes per triangle of each structure, measured with
-// `visq_bench_structures --copies 16 --repeat 5` (tests/bench/structure_bench.cpp)
-// on Sponza (66K triangles), Veach's "ajar" room (383K) and the bunny (69K),
-// each alone and as 16 copies (1.06M to 6.1M triangles):
-//   Embree BVH, MEDIUM (Engine's resident BVH): 82.4-93.6; HIGH 82.8-102.5.
-//     Embree's own float32 copy of the vertices and indices included.
-//   triangle index (exact::SceneTriangleIndex): 73.9-83.6.
-//   GPU buffers: 40 exactly (3 float32 corners and a material index).
+// Bytes of each structure, measured with `visq_bench_structures --copies 16`
+// (tests/bench/structure_bench.cpp) on Sponza (66K triangles, 0.94 vertices
+// a triangle), Veach's "ajar" room (383K, 0.50) and the bunny (69K, 0.52),
+// each alone and as 16 copies (1.06M to 6.1M triangles), and on the tests'
+// generated grid (2M, 0.50):
+//   Embree BVH at MEDIUM (the Engine's resident BVH): 82.4-93.6 a triangle,
+//     of which Embree's float32 copy of the vertices is 12 a vertex; the rest
+//     78.9-82.3 a triangle (HIGH: 82.4-102.5 in all).
+//   triangle index (exact::SceneTriangleIndex): 73.9-83.6 a triangle.
+//   GPU buffers: 40 a triangle exactly (3 float32 corners, a material index).
 // Each constant is the largest measured, rounded up.
-inline constexpr uint64_t kEmbreeBvhBytesPerTriangle = 96;
+inline constexpr uint64_t kEmbreeBvhBytesPerTriangle = 84;
+inline constexpr uint64_t kEmbreeBvhBytesPerVertex = 12;
 inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 86;
 inline constexpr uint64_t kGpuBytesPerTriangle = 40;
 
