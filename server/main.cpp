@@ -75,8 +75,14 @@ int main(int argc, char** argv) {
       ->envname("VISQ_MAX_UPLOAD_BYTES")->capture_default_str();
   uint64_t max_scene_bytes = options.engine.max_scene_bytes;
   uint64_t light_cache_bytes = options.engine.light_cache_bytes;
-  app.add_option("--max-scene-bytes", max_scene_bytes, "Largest resident scene (geometry) accepted")
+  app.add_option("--max-scene-bytes", max_scene_bytes,
+                 "Largest resident scene accepted, by an estimate of its geometry and every structure its queries "
+                 "build (Embree BVH, triangle index, GPU buffers)")
       ->envname("VISQ_MAX_SCENE_BYTES")->capture_default_str();
+  app.add_flag("--warm-scenes", options.engine.warm_at_load,
+               "Build every structure of each scene loaded (at start or later) or uploaded right after the load, in "
+               "the background, so that its first query does not wait for them")
+      ->envname("VISQ_WARM_SCENES");
   app.add_option("--max-work-bytes", options.engine.max_work_bytes,
                  "Memory that answers in progress may hold together; requests wait for it or are refused "
                  "(0: half of physical memory)")

@@ -32,6 +32,12 @@ Status EmbreeStatus(RTCDevice device, const char* what) {
   return absl::InternalError(absl::StrCat(what, ": ", message));
 }
 
+// Embree's progress callback: false cancels the build.
+bool OnEmbreeProgress(void* user, double /*fraction*/) {
+  const auto* stop = static_cast<const std::function<bool()>*>(user);
+  return !(*stop)();
+}
+
 bool OnEmbreeMemory(void* user, ssize_t bytes, bool /*post*/) {
   static_cast<std::atomic<int64_t>*>(user)->fetch_add(bytes, std::memory_order_relaxed);
   return true;
@@ -116,7 +122,9 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   // Upload the triangles in float32 relative to the origin.
   out.scene_ = rtcNewScene(out.device_);
   rtcSetSceneFlags(out.scene_, RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION);
-  rtcSetSceneBuildQuality(out.scene_, RTC_BUILD_QUALITY_HIGH);
+  rtcSetSceneBuildQuality(out.scene_, options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH
+                                                                             : RTC_BUILD_QUALITY_MEDIUM);
+  if (options.stop) rtcSetSceneProgressMonitorFunction(out.scene_, OnEmbreeProgress, const_cast<std::function<bool()>*>(&options.stop));
   if (!scene.triangles.empty()) {
     RTCGeometry geom = rtcNewGeometry(out.device_, RTC_GEOMETRY_TYPE_TRIANGLE);
     auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(
@@ -143,6 +151,11 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
     rtcReleaseGeometry(geom);
   }
   rtcCommitScene(out.scene_);
+  if (options.stop && options.stop()) {
+    t_last_embree_error.clear();
+    rtcGetDeviceError(out.device_);  // clears RTC_ERROR_CANCELLED
+    return absl::CancelledError("the Embree build was stopped");
+  }
   VISQ_RETURN_IF_ERROR(EmbreeStatus(out.device_, "building the Embree scene"));
   return out;
 }

@@ -6,14 +6,32 @@
 #pragma once
 
 #include <atomic>
+#include <memory>
 
 #include "visq/gpu/gpu_worker.h"
 
 namespace visq {
 
+// The time a call spent on structures built on first use (the Embree BVH,
+// the triangle index, the GPU buffers, local frames): building one, or
+// waiting for another call's build of it. Reported apart from compute
+// (Timing.build_ms). A call's waits follow one another, so they add up.
+class BuildClock {
+ public:
+  void Add(double ms) { ms_.fetch_add(ms, std::memory_order_relaxed); }
+  double ms() const { return ms_.load(std::memory_order_relaxed); }
+
+ private:
+  std::atomic<double> ms_{0.0};
+};
+
 struct CallOptions {
   gpu::SteadyTime deadline = gpu::SteadyTime::max();
   const std::atomic<bool>* cancelled = nullptr;  // set when the call is cancelled or drained
+  // Shared by the copies of one call's options; null: not measured.
+  std::shared_ptr<BuildClock> build_clock;
+
+  double BuildMs() const { return build_clock ? build_clock->ms() : 0.0; }
 
   // OK while the call still wants its answer (see gpu::StillWanted).
   [[nodiscard]] Status StillWanted(std::string_view where) const { return gpu::StillWanted(Job(), where); }

@@ -13,9 +13,6 @@
 #include "scene/gltf_loader.h"
 
 namespace visq {
-namespace {
-
-}  // namespace
 
 std::string SceneContentHash(const Scene& scene) {
   XXH3_state_t* state = XXH3_createState();
@@ -30,6 +27,18 @@ std::string SceneContentHash(const Scene& scene) {
   const XXH128_hash_t hash = XXH3_128bits_digest(state);
   XXH3_freeState(state);
   return absl::StrCat(absl::Hex(hash.high64, absl::kZeroPad16), absl::Hex(hash.low64, absl::kZeroPad16));
+}
+
+std::shared_ptr<ResidentScene> NewResidentScene(std::string name, Scene scene) {
+  auto resident = std::make_shared<ResidentScene>();
+  resident->name = std::move(name);
+  resident->content_hash = SceneContentHash(scene);
+  // Counted once here: metadata calls must not walk millions of triangles.
+  for (uint32_t m : scene.triangle_material)
+    if (glm::dot(scene.materials[m].emission, glm::dvec3(1.0)) > 0.0) ++resident->emissive_triangles;
+  resident->estimate = EstimateStructures(scene);
+  resident->scene = std::make_shared<const Scene>(std::move(scene));
+  return resident;
 }
 
 StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
@@ -60,11 +69,13 @@ void Engine::LoadRepositoryScenes() {
   }
 }
 
-Status Engine::CheckSceneSize(const Scene& scene) const {
-  const uint64_t bytes = scene.CpuBytes();
-  if (bytes > options_.max_scene_bytes)
-    return absl::ResourceExhaustedError(absl::StrCat("scene needs ", bytes, " bytes resident, above the cap of ",
-                                                     options_.max_scene_bytes, " (--max-scene-bytes)"));
+Status Engine::CheckSceneSize(const ResidentScene& resident) const {
+  const StructureEstimate& e = resident.estimate;
+  if (e.total_bytes() > options_.max_scene_bytes)
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "scene '", resident.name, "' needs about ", e.total_bytes(), " bytes once its structures are built (geometry ",
+        e.scene_bytes, ", Embree BVH ", e.embree_bvh_bytes, ", triangle index ", e.triangle_index_bytes,
+        ", GPU buffers ", e.gpu_bytes, "), above the cap of ", options_.max_scene_bytes, " (--max-scene-bytes)"));
   return absl::OkStatus();
 }
 
@@ -81,11 +92,8 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene,
                         LoadGltfFile(main_file, &report, LoadLimits(repository_->FileRoot(main_file))));
-  VISQ_RETURN_IF_ERROR(CheckSceneSize(scene));
-  auto resident = std::make_shared<ResidentScene>();
-  resident->name = std::move(name);
-  resident->content_hash = SceneContentHash(scene);
-  resident->scene = std::make_shared<const Scene>(std::move(scene));
+  std::shared_ptr<ResidentScene> resident = NewResidentScene(std::move(name), std::move(scene));
+  VISQ_RETURN_IF_ERROR(CheckSceneSize(*resident));
   resident->dropped = std::move(report.dropped);
   resident->persisted = persisted;
   resident->load_ms = MillisecondsSince(start);
@@ -108,6 +116,7 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
     spdlog::info("scene '{}': dropped {}", resident->name, absl::StrJoin(resident->dropped, ", "));
   spdlog::info("scene '{}' v{} resident: {} triangles, {:.1f} ms", resident->name, resident->version,
                resident->scene->TriangleCount(), resident->load_ms);
+  if (options_.warm_at_load) StartWarming(*resident, kEveryStructure);
   return Summarize(*resident, false);
 }
 
@@ -147,7 +156,8 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
   // the repository, and the staging folder goes with `upload`.
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report, LoadLimits(staging.dir())));
-  VISQ_RETURN_IF_ERROR(CheckSceneSize(scene));
+  std::shared_ptr<ResidentScene> resident = NewResidentScene(staging.name(), std::move(scene));
+  VISQ_RETURN_IF_ERROR(CheckSceneSize(*resident));
   // Only what the scene model keeps is stored: textures and other files the
   // geometry never read are not.
   VISQ_ASSIGN_OR_RETURN(const size_t unused_files, staging.KeepOnly(report.files_read));
@@ -163,10 +173,6 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
     return absl::CancelledError("LoadScene was cancelled before it was stored: nothing stored");
   VISQ_ASSIGN_OR_RETURN(const SceneRepository::Stored stored, repository_->Commit(staging));
 
-  auto resident = std::make_shared<ResidentScene>();
-  resident->name = staging.name();
-  resident->content_hash = SceneContentHash(scene);
-  resident->scene = std::make_shared<const Scene>(std::move(scene));
   resident->dropped = std::move(report.dropped);
   resident->persisted = true;
   resident->load_ms = MillisecondsSince(start);
@@ -181,6 +187,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
                staging.bytes(), resident->scene->TriangleCount(), resident->load_ms);
   if (!resident->dropped.empty())
     spdlog::info("scene '{}': dropped {}", resident->name, absl::StrJoin(resident->dropped, ", "));
+  if (options_.warm_at_load) StartWarming(*resident, kEveryStructure);
   return Summarize(*resident, false);
 }
 
@@ -251,10 +258,9 @@ StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_vi
 }
 
 StatusOr<SceneSummary> Engine::ReplaceWithEdited(const ResidentScene& current, Scene scene) {
-  auto resident = std::make_shared<ResidentScene>();
-  resident->name = current.name;
-  resident->content_hash = SceneContentHash(scene);
-  resident->scene = std::make_shared<const Scene>(std::move(scene));
+  // Not warmed: a node being dragged makes a version per move, and most are
+  // never queried.
+  std::shared_ptr<ResidentScene> resident = NewResidentScene(current.name, std::move(scene));
   resident->dropped = current.dropped;
   resident->load_ms = current.load_ms;
   resident->persisted = false;  // the repository still holds the stored scene
@@ -280,35 +286,108 @@ std::shared_ptr<ObscuranceState> Engine::ObscuranceStateOf(absl::string_view sce
   return it->second;
 }
 
-StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneOf(const ResidentScene& resident) {
-  std::lock_guard lock(resident.lazy_mutex);
-  // A scene uploaded into a context that was lost since is uploaded again.
-  if (!resident.gpu_scene || !resident.gpu_scene->IsCurrent()) {
+namespace {
+
+// A lazy structure's build of `resident`'s scene by `make`: counted in
+// `times` under `kind` while it runs and when it ends, and logged with its
+// size. The build holds the scene, not the ResidentScene.
+template <typename T>
+typename LazyStructure<T>::Build TimedBuild(BuildTimes& times, const char* kind, const ResidentScene& resident,
+                                            std::function<StatusOr<std::shared_ptr<T>>(const Scene&)> make,
+                                            std::function<uint64_t(const T&)> bytes) {
+  typename LazyStructure<T>::Build build;
+  build.bytes = bytes;
+  build.make = [&times, kind, make = std::move(make), bytes, scene = resident.scene, name = resident.name,
+                version = resident.version]() -> StatusOr<std::shared_ptr<T>> {
     const auto start = std::chrono::steady_clock::now();
-    VISQ_ASSIGN_OR_RETURN(resident.gpu_scene, gpu::GpuScene::Upload(*gpu_, *resident.scene));
-    build_times_.Record("gpu_upload", MillisecondsSince(start));
-    spdlog::info("scene '{}' v{}: GPU upload of {} bytes in {:.1f} ms", resident.name, resident.version,
-                 resident.gpu_scene->gpu_bytes(), MillisecondsSince(start));
-  }
-  return resident.gpu_scene;
+    times.Started(kind);
+    StatusOr<std::shared_ptr<T>> built = make(*scene);
+    times.Finished(kind, MillisecondsSince(start), built.ok());
+    if (built.ok())
+      spdlog::info("scene '{}' v{}: {} of {} bytes built in {:.1f} ms", name, version, kind, bytes(**built),
+                   MillisecondsSince(start));
+    return built;
+  };
+  return build;
 }
 
-StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const ResidentScene& resident) {
-  std::lock_guard lock(resident.lazy_mutex);
-  if (!resident.embree_scene) {
-    const auto start = std::chrono::steady_clock::now();
-    VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(*resident.scene));
-    resident.embree_scene = std::make_shared<raycast::EmbreeScene>(std::move(embree));
-    build_times_.Record("embree_bvh", MillisecondsSince(start));
-    spdlog::info("scene '{}' v{}: Embree BVH ({} bytes) in {:.1f} ms", resident.name, resident.version,
-                 resident.embree_scene->memory_bytes(), MillisecondsSince(start));
+}  // namespace
+
+LazyStructure<gpu::GpuScene>::Build Engine::GpuBuild(const ResidentScene& resident) {
+  auto build = TimedBuild<gpu::GpuScene>(
+      build_times_, "gpu_upload", resident, [this](const Scene& scene) { return gpu::GpuScene::Upload(*gpu_, scene); },
+      [](const gpu::GpuScene& g) -> uint64_t { return g.gpu_bytes(); });
+  // Buffers uploaded into a context that was lost since are uploaded again.
+  build.usable = [](const gpu::GpuScene& g) { return g.IsCurrent(); };
+  return build;
+}
+
+LazyStructure<raycast::EmbreeScene>::Build Engine::EmbreeBuild(const ResidentScene& resident) {
+  return TimedBuild<raycast::EmbreeScene>(
+      build_times_, "embree_bvh", resident,
+      [this](const Scene& scene) -> StatusOr<std::shared_ptr<raycast::EmbreeScene>> {
+        raycast::EmbreeSceneOptions options;
+        // The resident BVH only casts shadow segments: MEDIUM builds it
+        // 2.2-5x faster than HIGH, and traces them about as fast (7 % slower
+        // on Sponza, as fast or faster elsewhere; raycast::BuildQuality).
+        options.quality = raycast::BuildQuality::kMedium;
+        options.stop = [this] { return builds_.stopping(); };
+        VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(scene, options));
+        return std::make_shared<raycast::EmbreeScene>(std::move(embree));
+      },
+      [](const raycast::EmbreeScene& e) -> uint64_t { return e.memory_bytes(); });
+}
+
+LazyStructure<const exact::SceneTriangleIndex>::Build Engine::TriangleIndexBuild(const ResidentScene& resident) {
+  return TimedBuild<const exact::SceneTriangleIndex>(
+      build_times_, "triangle_index", resident,
+      [](const Scene& scene) -> StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> {
+        VISQ_ASSIGN_OR_RETURN(std::unique_ptr<exact::SceneTriangleIndex> index, exact::SceneTriangleIndex::Build(scene));
+        return std::shared_ptr<const exact::SceneTriangleIndex>(std::move(index));
+      },
+      [](const exact::SceneTriangleIndex& i) -> uint64_t { return i.MemoryBytes(); });
+}
+
+StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneOf(const ResidentScene& resident, const CallOptions& call) {
+  return resident.gpu_scene.Get(builds_, call, GpuBuild(resident), "GPU upload");
+}
+
+StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const ResidentScene& resident,
+                                                                      const CallOptions& call) {
+  return resident.embree_scene.Get(builds_, call, EmbreeBuild(resident), "Embree BVH");
+}
+
+StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> Engine::TriangleIndexOf(const ResidentScene& resident,
+                                                                                   const CallOptions& call) {
+  return resident.triangle_index.Get(builds_, call, TriangleIndexBuild(resident), "triangle index");
+}
+
+void Engine::StartWarming(const ResidentScene& resident, std::span<const StructureKind> kinds) {
+  for (StructureKind kind : kinds) {
+    switch (kind) {
+      case StructureKind::kGpuBuffers: resident.gpu_scene.Start(builds_, GpuBuild(resident)); break;
+      case StructureKind::kEmbreeBvh: resident.embree_scene.Start(builds_, EmbreeBuild(resident)); break;
+      case StructureKind::kTriangleIndex: resident.triangle_index.Start(builds_, TriangleIndexBuild(resident)); break;
+    }
   }
-  return resident.embree_scene;
+}
+
+Status Engine::Warm(absl::string_view name, uint64_t version, std::span<const StructureKind> kinds) {
+  std::shared_ptr<const ResidentScene> resident;
+  {
+    std::shared_lock lock(scenes_mutex_);
+    auto it = scenes_.find(name);
+    if (it != scenes_.end() && it->second->version == version) resident = it->second;
+  }
+  if (!resident)
+    return absl::NotFoundError(absl::StrCat("scene '", name, "' v", version, " is no longer resident"));
+  StartWarming(*resident, kinds);
+  return absl::OkStatus();
 }
 
 StatusOr<std::shared_ptr<LocalFrame>> Engine::LocalFrameFor(const ResidentScene& resident,
                                                             const sampling::HiddenSampleMapRequest& request,
-                                                            sampling::SegmentTracer tracer) {
+                                                            sampling::SegmentTracer tracer, const CallOptions& call) {
   const Scene& scene = *resident.scene;
   // The scene's own copies (GPU and Embree alike) are anchored at its centre.
   const sampling::FloatFrame own{scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center(), scene.bounds};
@@ -320,69 +399,82 @@ StatusOr<std::shared_ptr<LocalFrame>> Engine::LocalFrameFor(const ResidentScene&
   const Bounds region = LocalFrames::RegionAround(hull);
   VISQ_RETURN_IF_ERROR(
       sampling::ResolvableEndpointTolerances(request, sampling::FloatFrame{region.Center(), region}, tracer).status());
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index, TriangleIndexOf(resident));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index, TriangleIndexOf(resident, call));
   const auto start = std::chrono::steady_clock::now();
   const size_t frames_before = resident.local_frames.size();
   std::shared_ptr<LocalFrame> frame = resident.local_frames.For(scene, *index, hull);
+  // A copy made (or, with every slot taken, perhaps made) is a build.
+  const bool copied = resident.local_frames.size() != frames_before || frames_before == LocalFrames::kMaxFrames;
+  if (copied && call.build_clock) call.build_clock->Add(MillisecondsSince(start));
   VISQ_RETURN_IF_ERROR(sampling::ResolvableEndpointTolerances(request, frame->float_frame(), tracer).status());
-  if (resident.local_frames.size() != frames_before || frames_before == LocalFrames::kMaxFrames)
+  if (copied)
     spdlog::debug("scene '{}' v{}: local frame of side {} at ({}, {}, {}), {} triangles, in {:.1f} ms",
                   resident.name, resident.version, frame->side, frame->lo.x, frame->lo.y, frame->lo.z,
                   frame->scene->TriangleCount(), MillisecondsSince(start));
   return frame;
 }
 
+// A local frame's copies are small (the triangles near one query) and built
+// under the frame's own lock, which no metadata call takes; the time still
+// goes to the call's build clock.
 StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneFor(const ResidentScene& resident,
-                                                             const sampling::HiddenSampleMapRequest& request) {
+                                                             const sampling::HiddenSampleMapRequest& request,
+                                                             const CallOptions& call) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<LocalFrame> frame,
-                        LocalFrameFor(resident, request, sampling::SegmentTracer::kRaster));
-  if (!frame) return GpuSceneOf(resident);
+                        LocalFrameFor(resident, request, sampling::SegmentTracer::kRaster, call));
+  if (!frame) return GpuSceneOf(resident, call);
+  const auto start = std::chrono::steady_clock::now();
   std::lock_guard lock(frame->mutex);
   if (!frame->gpu_scene || !frame->gpu_scene->IsCurrent()) {
-    const auto start = std::chrono::steady_clock::now();
     VISQ_ASSIGN_OR_RETURN(frame->gpu_scene, gpu::GpuScene::Upload(*gpu_, *frame->scene, frame->origin()));
     build_times_.Record("gpu_upload_local", MillisecondsSince(start));
+    if (call.build_clock) call.build_clock->Add(MillisecondsSince(start));
   }
   return frame->gpu_scene;
 }
 
 StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneFor(
-    const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request) {
+    const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request, const CallOptions& call) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<LocalFrame> frame,
-                        LocalFrameFor(resident, request, sampling::SegmentTracer::kRaycast));
-  if (!frame) return EmbreeSceneOf(resident);
+                        LocalFrameFor(resident, request, sampling::SegmentTracer::kRaycast, call));
+  if (!frame) return EmbreeSceneOf(resident, call);
+  const auto start = std::chrono::steady_clock::now();
   std::lock_guard lock(frame->mutex);
   if (!frame->embree_scene) {
-    const auto start = std::chrono::steady_clock::now();
     raycast::EmbreeSceneOptions options;
     options.origin = frame->origin();
+    options.quality = raycast::BuildQuality::kMedium;  // shadow segments only, as the scene's own BVH
     VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(*frame->scene, options));
     frame->embree_scene = std::make_shared<raycast::EmbreeScene>(std::move(embree));
     build_times_.Record("embree_bvh_local", MillisecondsSince(start));
+    if (call.build_clock) call.build_clock->Add(MillisecondsSince(start));
   }
   return frame->embree_scene;
 }
 
 Status Engine::CheckSampledPrecision(const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request,
-                                     sampling::SegmentTracer tracer) {
-  return LocalFrameFor(resident, request, tracer).status();
-}
-
-StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> Engine::TriangleIndexOf(const ResidentScene& resident) {
-  std::lock_guard lock(resident.lazy_mutex);
-  if (!resident.triangle_index) {
-    const auto start = std::chrono::steady_clock::now();
-    VISQ_ASSIGN_OR_RETURN(resident.triangle_index, exact::SceneTriangleIndex::Build(*resident.scene));
-    build_times_.Record("triangle_index", MillisecondsSince(start));
-    spdlog::info("scene '{}' v{}: triangle index ({} bytes) in {:.1f} ms", resident.name, resident.version,
-                 resident.triangle_index->MemoryBytes(), MillisecondsSince(start));
-  }
-  return resident.triangle_index;
+                                     sampling::SegmentTracer tracer, const CallOptions& call) {
+  return LocalFrameFor(resident, request, tracer, call).status();
 }
 
 void BuildTimes::Record(const std::string& kind, double ms) {
+  Started(kind);
+  Finished(kind, ms, /*ok=*/true);
+}
+
+void BuildTimes::Started(const std::string& kind) {
+  std::lock_guard lock(mutex_);
+  ++kinds_[kind].in_progress;
+}
+
+void BuildTimes::Finished(const std::string& kind, double ms, bool ok) {
   std::lock_guard lock(mutex_);
   Figures& f = kinds_[kind];
+  --f.in_progress;
+  if (!ok) {
+    ++f.failures;
+    return;
+  }
   ++f.count;
   f.total_ms += ms;
   f.max_ms = std::max(f.max_ms, ms);
@@ -410,17 +502,13 @@ SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) c
   s.vertices = scene.positions.size();
   s.bounds = scene.bounds;
   s.content_hash = resident.content_hash;
-  s.cpu_bytes = scene.CpuBytes();
-  {
-    // Nothing is uploaded until a GPU query needs it.
-    std::lock_guard lock(resident.lazy_mutex);
-    s.gpu_bytes = resident.gpu_scene ? resident.gpu_scene->gpu_bytes() : 0;
-    if (resident.embree_scene) s.cpu_bytes += resident.embree_scene->memory_bytes();
-    if (resident.triangle_index) s.cpu_bytes += resident.triangle_index->MemoryBytes();
-  }
+  // What is built so far, read without waiting for a build in progress:
+  // nothing is uploaded until a GPU query needs it.
+  s.cpu_bytes = scene.CpuBytes() + resident.embree_scene.bytes() + resident.triangle_index.bytes();
+  s.gpu_bytes = resident.gpu_scene.bytes();
+  s.estimate = resident.estimate;
   s.materials = static_cast<uint32_t>(scene.materials.size());
-  for (uint32_t m : scene.triangle_material)
-    if (glm::dot(scene.materials[m].emission, glm::dvec3(1.0)) > 0.0) ++s.emissive_triangles;
+  s.emissive_triangles = resident.emissive_triangles;
   s.has_lightmap_uvs = !scene.lightmap_uvs.empty();
   s.dropped = resident.dropped;
   s.load_ms = resident.load_ms;

@@ -8,13 +8,17 @@
 #include <mutex>
 #include <memory>
 #include <shared_mutex>
+#include <span>
 #include <string>
 #include <vector>
 
 #include "common/status.h"
 #include "core/accuracy_planner.h"
+#include "core/call_options.h"
+#include "core/lazy_structure.h"
 #include "core/local_frames.h"
 #include "core/scene_repository.h"
+#include "core/structure_estimate.h"
 #include "core/work_budget.h"
 #include "exact/light_visibility.h"
 #include "raycast/embree_scene.h"
@@ -28,13 +32,24 @@ namespace visq {
 
 struct ObscuranceState;  // core/obscurance_query.h
 
+// The structures a scene builds on first use, which a load may ask to build
+// at once (warm) instead.
+enum class StructureKind { kGpuBuffers, kEmbreeBvh, kTriangleIndex };
+inline constexpr StructureKind kEveryStructure[] = {StructureKind::kGpuBuffers, StructureKind::kEmbreeBvh,
+                                                     StructureKind::kTriangleIndex};
+
 struct EngineOptions {
   std::filesystem::path scene_repo = "/var/lib/visq/scenes";
   gpu::GpuOptions gpu;
   uint64_t max_upload_bytes = 4ull << 30;
-  // A scene whose resident geometry would exceed this is refused
+  // A scene whose geometry and every structure its queries may build
+  // (core/structure_estimate.h) would exceed this is refused
   // (RESOURCE_EXHAUSTED), before it displaces anything.
   uint64_t max_scene_bytes = 8ull << 30;
+  // Build every structure (GPU buffers, Embree BVH, triangle index) of each
+  // scene loaded or uploaded, in the background right after the load, so
+  // that its first query does not wait for them.
+  bool warm_at_load = false;
   // Bound on the exact light-visibility trees kept (LRU beyond it).
   size_t light_cache_bytes = 256ull << 20;
   // LightVisibility batches without a receiver_region are grouped into cubes
@@ -68,14 +83,22 @@ struct ResidentScene {
   double load_ms = 0;
   bool persisted = false;
 
-  // Structures built on first use by the queries that need them, and only
-  // then: a scene that is never queried on the GPU never costs GPU memory.
-  mutable std::mutex lazy_mutex;
-  mutable std::shared_ptr<gpu::GpuScene> gpu_scene;
-  mutable std::shared_ptr<raycast::EmbreeScene> embree_scene;
-  mutable std::shared_ptr<const exact::SceneTriangleIndex> triangle_index;  // for exact light trees and local frames
+  uint32_t emissive_triangles = 0;
+  StructureEstimate estimate;  // what --max-scene-bytes admitted it by
+
+  // Structures built on first use by the queries that need them (or at
+  // load, when warmed), and only then: a scene that is never queried on the
+  // GPU never costs GPU memory. Each is built once, outside any lock that
+  // metadata calls take (core/lazy_structure.h).
+  mutable LazyStructure<gpu::GpuScene> gpu_scene;
+  mutable LazyStructure<raycast::EmbreeScene> embree_scene;
+  mutable LazyStructure<const exact::SceneTriangleIndex> triangle_index;  // for exact light trees and local frames
   mutable LocalFrames local_frames;  // for sampled queries far from the scene's centre
 };
+
+// A ResidentScene of `scene` under `name`, with what is derived from the
+// geometry once (hash, emissive count, estimate); no version yet.
+std::shared_ptr<ResidentScene> NewResidentScene(std::string name, Scene scene);
 
 struct SceneSummary {
   std::string name;
@@ -86,6 +109,7 @@ struct SceneSummary {
   std::string content_hash;
   uint64_t cpu_bytes = 0;
   uint64_t gpu_bytes = 0;
+  StructureEstimate estimate;  // every structure built
   uint32_t materials = 0;
   uint32_t emissive_triangles = 0;
   bool has_lightmap_uvs = false;
@@ -110,15 +134,21 @@ class SceneUpload {
 };
 
 // How long the structures built on first use took, per kind ("scene_load",
-// "gpu_upload", "embree_bvh", "triangle_index"): for GetStats and /metrics.
+// "gpu_upload", "embree_bvh", "triangle_index"), and how many are being
+// built: for GetStats and /metrics.
 class BuildTimes {
  public:
   struct Figures {
-    uint64_t count = 0;
-    double total_ms = 0;
+    uint64_t count = 0;  // finished builds
+    uint64_t failures = 0;
+    uint32_t in_progress = 0;
+    double total_ms = 0;  // of the finished builds
     double max_ms = 0;
   };
+  // A build that was not counted as started.
   void Record(const std::string& kind, double ms);
+  void Started(const std::string& kind);
+  void Finished(const std::string& kind, double ms, bool ok);
   std::map<std::string, Figures> Snapshot() const;
 
  private:
@@ -164,24 +194,33 @@ class Engine {
   // Per-scene obscurance state (core/obscurance_query.h), created on first use.
   std::shared_ptr<ObscuranceState> ObscuranceStateOf(absl::string_view scene);
 
-  // The scene's GPU buffers, uploaded by the first caller.
-  [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneOf(const ResidentScene& resident);
-  // The scene's Embree BVH, built by the first caller.
-  [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneOf(const ResidentScene& resident);
+  // The scene's GPU buffers, Embree BVH and triangle index: built once, by
+  // the first call that needs them (on a thread of the build's own), the
+  // calls meanwhile waiting for that build until their deadline or
+  // cancellation (`call`, whose build clock gets the time waited).
+  [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneOf(const ResidentScene& resident,
+                                                                    const CallOptions& call = {});
+  [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneOf(const ResidentScene& resident,
+                                                                              const CallOptions& call = {});
   [[nodiscard]] StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> TriangleIndexOf(
-      const ResidentScene& resident);
+      const ResidentScene& resident, const CallOptions& call = {});
+  // Starts building `kinds` of the resident scene `name` at `version` in the
+  // background, unless built or being built already; returns at once.
+  // NOT_FOUND when that version is no longer resident.
+  [[nodiscard]] Status Warm(absl::string_view name, uint64_t version, std::span<const StructureKind> kinds);
   // The float32 copy of the scene that resolves `request` as RASTER
   // (GpuSceneFor) or RAYCAST (EmbreeSceneFor) trace it: the scene's own when
   // it does, else the local frame of the query's region (core/local_frames.h).
   // FAILED_PRECONDITION, naming the end, when neither does.
   [[nodiscard]] StatusOr<std::shared_ptr<gpu::GpuScene>> GpuSceneFor(const ResidentScene& resident,
-                                                                     const sampling::HiddenSampleMapRequest& request);
+                                                                     const sampling::HiddenSampleMapRequest& request,
+                                                                     const CallOptions& call = {});
   [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneFor(
-      const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request);
+      const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request, const CallOptions& call = {});
   // The same decision without building either copy: for the planner.
   [[nodiscard]] Status CheckSampledPrecision(const ResidentScene& resident,
                                              const sampling::HiddenSampleMapRequest& request,
-                                             sampling::SegmentTracer tracer);
+                                             sampling::SegmentTracer tracer, const CallOptions& call = {});
   // The hidden-sample map's programs, compiled on first use.
   [[nodiscard]] StatusOr<gpu::HiddenSampleMapper*> hidden_sample_mapper();
 
@@ -209,8 +248,13 @@ class Engine {
   // The local frame that resolves `request` (null: the scene's own frame does).
   StatusOr<std::shared_ptr<LocalFrame>> LocalFrameFor(const ResidentScene& resident,
                                                       const sampling::HiddenSampleMapRequest& request,
-                                                      sampling::SegmentTracer tracer);
-  Status CheckSceneSize(const Scene& scene) const;
+                                                      sampling::SegmentTracer tracer, const CallOptions& call);
+  Status CheckSceneSize(const ResidentScene& resident) const;
+  // What each lazy structure's build does (and records in build_times_).
+  LazyStructure<gpu::GpuScene>::Build GpuBuild(const ResidentScene& resident);
+  LazyStructure<raycast::EmbreeScene>::Build EmbreeBuild(const ResidentScene& resident);
+  LazyStructure<const exact::SceneTriangleIndex>::Build TriangleIndexBuild(const ResidentScene& resident);
+  void StartWarming(const ResidentScene& resident, std::span<const StructureKind> kinds);
   GltfLoadLimits LoadLimits(const std::filesystem::path& file_root) const;
 
   EngineOptions options_;
@@ -229,6 +273,9 @@ class Engine {
   std::map<std::string, std::shared_ptr<ObscuranceState>, std::less<>> obscurance_states_;
   CostModel cost_model_;
   BuildTimes build_times_;
+  // Last: destroyed first, so builds still running stop and are joined
+  // while the GPU worker and everything else they use still exist.
+  StructureBuilds builds_;
 };
 
 // XXH3-128 of the flattened geometry and materials, as 32 hex digits.

@@ -248,7 +248,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     answer.partial.channels = query.params.color_bleeding ? 3 : 1;
   } else {
     // The bake: one GPU job per direction at the caller's (batch) priority.
-    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
     start = std::chrono::steady_clock::now();
     VISQ_ASSIGN_OR_RETURN(answer.partial, gpu::BakeObscurancePartial(engine.gpu(), *gpu_scene, scene, atlas,
                                                                      query.params, BakeOptions(query), &answer.stats));
@@ -441,7 +441,7 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
   answer.scene_version = resident->version;
 
   // The picture: one interactive GPU job.
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
   gpu::ObscurancePreviewRequest request;
   request.camera = query.camera;
   request.scene_bounds = resident->scene->bounds;

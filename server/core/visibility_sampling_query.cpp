@@ -36,12 +36,13 @@ std::function<bool()> StopRequested(const gpu::JobOptions& job) {
 
 StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, const ResidentScene& resident,
                                                                  const sampling::HiddenSampleMapRequest& request,
-                                                                 const gpu::JobOptions& job,
+                                                                 const CallOptions& call,
                                                                  const sampling::HiddenSampleMapBandSink& sink = {}) {
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(request));
+  const gpu::JobOptions job = call.Job();
   // Embree holds float32 positions relative to an origin, like the GPU: the
   // scene's centre, or the query's own region when it lies far from it.
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneFor(resident, request));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneFor(resident, request, call));
   const auto start = std::chrono::steady_clock::now();
   VISQ_ASSIGN_OR_RETURN(sampling::SourceSamples samples, sampling::ComputeSourceSamples(request.source));
   sampling::HiddenSampleMapResult result;
@@ -135,6 +136,7 @@ double TwiceSignedArea(const std::vector<glm::dvec2>& polygon) {
 StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const std::string& scene,
                                                                uint64_t scene_version,
                                                                const sampling::HiddenSampleMapRequest& request,
+                                                               const CallOptions& call,
                                                                const sampling::HiddenSampleMapBandSink& sink = {}) {
   if (request.options.want_bitmasks)
     return absl::InvalidArgumentError(
@@ -148,6 +150,7 @@ StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, c
   LightVisibilityQuery light_query;
   light_query.scene = scene;
   light_query.scene_version = scene_version;
+  light_query.call = call;
   std::vector<glm::dvec3>& light = light_query.light.vertices;
   double winding = 1.0;
   if (request.source.polygon_uv.empty()) {
@@ -209,20 +212,21 @@ uint64_t HiddenSampleMapWorkBytes(const sampling::HiddenSampleMapRequest& reques
 StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, const ResidentScene& resident,
                                                             VisibilityMethod method,
                                                             const sampling::HiddenSampleMapRequest& request,
-                                                            const gpu::JobOptions& job,
+                                                            const CallOptions& call,
                                                             const sampling::HiddenSampleMapBandSink& sink = {},
                                                             std::shared_ptr<WorkMemoryBudget::Reservation>* hold = nullptr) {
+  const gpu::JobOptions job = call.Job();
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(HiddenSampleMapWorkBytes(request, /*streamed=*/bool(sink)),
                                                      "width x height x samples", job));
   if (hold != nullptr) *hold = std::make_shared<WorkMemoryBudget::Reservation>(std::move(memory));
   switch (method) {
-    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, job, sink);
+    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, call, sink);
     case VisibilityMethod::kPluckerExact:
-      return ExactHiddenSampleMap(engine, resident.name, resident.version, request, sink);
+      return ExactHiddenSampleMap(engine, resident.name, resident.version, request, call, sink);
     case VisibilityMethod::kRaster: break;
   }
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneFor(resident, request));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneFor(resident, request, call));
   VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
   return mapper->Compute(*gpu_scene, request, job, sink);
 }
@@ -233,7 +237,8 @@ StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, cons
 StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, const ResidentScene& resident,
                                                        VisibilityMethod method,
                                                        const sampling::PatchVisibilityRequest& request,
-                                                       const gpu::JobOptions& job) {
+                                                       const CallOptions& call) {
+  const gpu::JobOptions job = call.Job();
   VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(map));
   VISQ_RETURN_IF_ERROR(CheckSize(map));
@@ -242,19 +247,19 @@ StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, cons
                                                      "source_columns x source_rows x receiver_columns x receiver_rows",
                                                      job));
   if (method == VisibilityMethod::kRaster) {
-    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneFor(resident, map));
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneFor(resident, map, call));
     VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
     return mapper->PatchVisibility(*gpu_scene, request, job);
   }
   if (method == VisibilityMethod::kRaycast) {
-    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map, job));
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map, call));
     return sampling::SummarizePatchVisibility(request, result);
   }
   if (request.unblocked_limit > 0)
     return absl::InvalidArgumentError("unblocked_limit: the exact method has no sample pairs; use RASTER or RAYCAST");
   map.options.want_bitmasks = false;  // the sampled paths count pairs from them
   VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult exact,
-                        ExactHiddenSampleMap(engine, resident.name, resident.version, map));
+                        ExactHiddenSampleMap(engine, resident.name, resident.version, map, call));
   sampling::PatchVisibilityResult out;
   out.receiver_visible = std::move(exact.visible_fraction);
   double sum = 0.0;
@@ -463,7 +468,7 @@ Status CheckSeveralMaps(const sampling::HiddenSampleMapRequest& request) {
 // delivered as one band.
 StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const ResidentScene& resident,
                                                       VisibilityMethod method, sampling::HiddenSampleMapRequest request,
-                                                      int samples, const gpu::JobOptions& job,
+                                                      int samples, const CallOptions& call,
                                                       const sampling::HiddenSampleMapBandSink& sink) {
   const int maps = (samples + sampling::kMaxHiddenSampleMapSamples - 1) / sampling::kMaxHiddenSampleMapSamples;
   const int per_map = (samples + maps - 1) / maps;
@@ -477,7 +482,7 @@ StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const Resi
   for (int m = 0; m < maps; ++m) {
     request.source.seed = first_seed + uint64_t(m) * 0x9E3779B97F4A7C15ull;
     VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult one,
-                          HiddenSampleMapBy(engine, resident, method, request, job));
+                          HiddenSampleMapBy(engine, resident, method, request, call));
     VISQ_CHECK_EQ(one.visible_fraction.size(), texels);
     VISQ_CHECK_EQ(one.sample_count, per_map);  // no polygon: every sample counts
     for (size_t j = 0; j < texels; ++j)
@@ -534,9 +539,9 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
                  const sampling::HiddenSampleMapBandSink& bands = {}) -> StatusOr<sampling::HiddenSampleMapResult> {
     sampling::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
     if (samples > sampling::kMaxHiddenSampleMapSamples)
-      return SeveralMaps(engine, resident, method, sized, samples, query.call.Job(), bands);
+      return SeveralMaps(engine, resident, method, sized, samples, query.call, bands);
     VISQ_RETURN_IF_ERROR(CheckSize(sized));
-    return HiddenSampleMapBy(engine, resident, method, sized, query.call.Job(), bands);
+    return HiddenSampleMapBy(engine, resident, method, sized, query.call, bands);
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
     VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
@@ -551,7 +556,8 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
                                                           texels, PolygonShare(request.source), exact_possible,
                                                           max_samples, query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
                                                             return engine.CheckSampledPrecision(
-                                                                resident, with_samples(samples, 0), TracerOf(method));
+                                                                resident, with_samples(samples, 0), TracerOf(method),
+                                                                query.call);
                                                           }));
   const Plan& plan = report.chosen_plan();
   HiddenSampleMapAnswer answer;
@@ -583,7 +589,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
     const sampling::PatchVisibilityRequest probe = sized(samples, max_side);
-    VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.call.Job()));
+    VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.call));
     return RunCost{ComputeMs(result.timing),
                    PlanWork(method, double(probe.receiver_columns) * probe.receiver_rows,
                             probe.source_columns * probe.source_rows)};
@@ -598,7 +604,8 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
                                                                 sampling::HiddenSampleMapRequest map,
                                                                 sampling::PatchVisibilityAsHiddenSampleMap(sized(samples, 0)));
                                                             return engine.CheckSampledPrecision(resident, map,
-                                                                                                TracerOf(method));
+                                                                                                TracerOf(method),
+                                                                                                query.call);
                                                           }));
   Plan& plan = report.plans[report.chosen];
   PatchVisibilityAnswer answer;
@@ -609,7 +616,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
     plan.parameters["source_columns"] = chosen.source_columns;
     plan.parameters["source_rows"] = chosen.source_rows;
   }
-  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, resident, answer.method, chosen, query.call.Job()));
+  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, resident, answer.method, chosen, query.call));
   engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing));
   // The grid's bound restated at the target's confidence, as the plan was
   // weighed (the map itself is built at the default one).
@@ -682,10 +689,10 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   answer.method = query.method;
   if (checked.source.sample_count > sampling::kMaxHiddenSampleMapSamples) {
     VISQ_ASSIGN_OR_RETURN(answer.result, SeveralMaps(engine, *resident, query.method, checked,
-                                                     checked.source.sample_count, query.call.Job(), sink));
+                                                     checked.source.sample_count, query.call, sink));
     return answer;
   }
-  VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.call.Job(),
+  VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.call,
                                                          sink, &answer.memory));
   return answer;
 }
@@ -697,7 +704,7 @@ StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVi
   if (query.target) return PatchVisibilityForTarget(engine, *resident, query);
   PatchVisibilityAnswer answer;
   answer.method = query.method;
-  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.call.Job()));
+  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.call));
   return answer;
 }
 

@@ -83,7 +83,7 @@ StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQ
                                      : (sink ? std::min(image_bytes, kStreamedAnswerQueueBytes) : 2 * image_bytes));
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(bytes, "camera.width x camera.height, shadow_map_size", p.job));
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
   auto render = [&](uint32_t map_size, const gpu::VolumetricBandSink& to) {
     gpu::VolumetricParams at = p;
     at.shadow_map_size = map_size;

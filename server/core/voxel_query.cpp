@@ -69,7 +69,7 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& q
   const uint64_t bytes = band_bytes + (sink ? std::min(grid_bytes, kStreamedAnswerQueueBytes) : 2 * grid_bytes);
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(bytes, "width x height x slices", params.job));
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
   if (box_used != nullptr) *box_used = params.box;
   return gpu::Voxelize(engine.gpu(), *gpu_scene, params, sink);
 }
@@ -80,7 +80,7 @@ StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const Transm
   // Resolved and validated before the GPU upload: a bad request costs nothing.
   VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceParams params, ResolveTransmittanceQuery(query, *resident->scene));
   params.job = query.call.Job();
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
   return gpu::Transmittance(engine.gpu(), *resident->scene, *gpu_scene, params);
 }
 

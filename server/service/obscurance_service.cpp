@@ -186,7 +186,8 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
                                                                      const v1::ComputeObscurancesRequest& request,
                                                                      gpu::SteadyTime deadline, double queue_ms) {
     VISQ_ASSIGN_OR_RETURN(ObscuranceQuery query, FromProto(request));
-    query.call = {deadline, &cancelled_};
+    query.call = {deadline, &cancelled_, std::make_shared<BuildClock>()};
+    const std::shared_ptr<BuildClock> build_clock = query.call.build_clock;
     // At most ~10 progress messages a second (and the first and last).
     auto last_sent = std::make_shared<double>(-1e9);
     query.progress = [this, last_sent](const gpu::ObscuranceProgress& p) {
@@ -213,7 +214,8 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     log_.Info("{}x{} texels, {} layers, bake {:.1f} ms", answer.width, answer.height, answer.stats.layers,
               answer.bake_ms);
     ChunkedResponses<v1::ComputeObscurancesResponse> messages = ToProtoStream(std::move(answer), want_averages);
-    SetStreamTiming(queue_ms, compute_ms, before_transfer, log_, messages.first().mutable_figures()->mutable_timing());
+    SetStreamTiming(queue_ms, compute_ms, build_clock->ms(), before_transfer, log_,
+                    messages.first().mutable_figures()->mutable_timing());
     return messages;
   }
 
@@ -370,7 +372,8 @@ grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::
         const double image_queue_ms = answer.image.queue_ms;
         const double compute_ms = answer.copy_ms + answer.image.total_ms - answer.image.queue_ms;
         ChunkedResponses<v1::ObscurancePreviewResponse> messages = ToProtoStream(std::move(answer));
-        SetStreamTiming(queue_ms + image_queue_ms, compute_ms, before_transfer, log, messages.first().mutable_timing());
+        SetStreamTiming(queue_ms + image_queue_ms, compute_ms, query.call.BuildMs(), before_transfer, log,
+                        messages.first().mutable_timing());
         return messages;
       });
 }
@@ -391,7 +394,7 @@ grpc::ServerWriteReactor<v1::ExportObscurancesResponse>* VisibilityServiceImpl::
                  answer.export_ms);
         const double compute_ms = answer.copy_ms + answer.export_ms;
         ChunkedResponses<v1::ExportObscurancesResponse> messages = ToProtoStream(std::move(answer));
-        SetStreamTiming(queue_ms, compute_ms, before_transfer, log, messages.first().mutable_timing());
+        SetStreamTiming(queue_ms, compute_ms, query.call.BuildMs(), before_transfer, log, messages.first().mutable_timing());
         return messages;
       });
 }

@@ -171,6 +171,13 @@ std::string RenderPrometheusText(const ServerFigures& f) {
     w.Sample("visq_structure_build_seconds_sum", {{"structure", kind}}, b.total_ms / 1e3);
     w.Sample("visq_structure_build_seconds_count", {{"structure", kind}}, static_cast<double>(b.count));
   }
+  w.Family("visq_structure_builds_in_progress", "gauge", "Per-scene structures being built now, by kind.");
+  for (const auto& [kind, b] : f.structure_builds)
+    w.Sample("visq_structure_builds_in_progress", {{"structure", kind}}, static_cast<double>(b.in_progress));
+  w.Family("visq_structure_build_failures_total", "counter",
+           "Per-scene structure builds that failed (built again by the next call that needs them), by kind.");
+  for (const auto& [kind, b] : f.structure_builds)
+    w.Sample("visq_structure_build_failures_total", {{"structure", kind}}, static_cast<double>(b.failures));
 
   w.Single("visq_gpu_contexts_lost_total", "counter",
            "GPU contexts lost (GPU resets) since start; each failed the job that was running.",

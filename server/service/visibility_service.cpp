@@ -19,6 +19,23 @@
 namespace visq::service {
 namespace {
 
+// LoadSceneHeader.warm as the core takes it; INVALID_ARGUMENT naming the
+// entry for a value this server does not know.
+StatusOr<std::vector<StructureKind>> WarmFromProto(const v1::LoadSceneHeader& header) {
+  std::vector<StructureKind> kinds;
+  for (int i = 0; i < header.warm_size(); ++i) {
+    switch (header.warm(i)) {
+      case v1::GPU_BUFFERS: kinds.push_back(StructureKind::kGpuBuffers); break;
+      case v1::EMBREE_BVH: kinds.push_back(StructureKind::kEmbreeBvh); break;
+      case v1::TRIANGLE_INDEX: kinds.push_back(StructureKind::kTriangleIndex); break;
+      default:
+        return absl::InvalidArgumentError(absl::StrCat("header.warm[", i, "]: unknown structure ", header.warm(i),
+                                                       " (GPU_BUFFERS, EMBREE_BVH or TRIANGLE_INDEX)"));
+    }
+  }
+  return kinds;
+}
+
 // Client-streamed scene load: a header, then (for uploads) file chunks.
 class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneRequest> {
  public:
@@ -65,6 +82,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
       const v1::LoadSceneHeader& header = request_.header();
       name_ = header.name();
       replace_ = header.replace();
+      VISQ_ASSIGN_OR_RETURN(warm_, WarmFromProto(header));
       switch (header.source_case()) {
         case v1::LoadSceneHeader::kFromRepository:
           from_repository_ = true;
@@ -99,6 +117,11 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
     executor_.Post([this] {
       StatusOr<SceneSummary> summary = from_repository_ ? engine_.LoadFromRepository(name_, replace_)
                                                         : engine_.FinishUpload(std::move(upload_), &cancelled_);
+      // The structures build in the background; the answer does not wait.
+      if (summary.ok() && !warm_.empty()) {
+        if (Status warming = engine_.Warm(summary->name, summary->version, warm_); !warming.ok())
+          log_.Info("not warmed: {}", warming.message());
+      }
       if (summary.ok()) ToProto(*summary, response_);
       if (!summary.ok()) Fail(summary.status());
       else {
@@ -125,6 +148,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
   bool from_repository_ = false;
   bool replace_ = false;
   std::string name_;
+  std::vector<StructureKind> warm_;
   std::unique_ptr<SceneUpload> upload_;
 };
 
@@ -140,6 +164,8 @@ void ToProto(const SceneSummary& s, v1::SceneInfo* out) {
   out->set_content_hash(s.content_hash);
   out->mutable_memory()->set_cpu_bytes(s.cpu_bytes);
   out->mutable_memory()->set_gpu_bytes(s.gpu_bytes);
+  out->mutable_estimated_memory()->set_cpu_bytes(s.estimate.cpu_bytes());
+  out->mutable_estimated_memory()->set_gpu_bytes(s.estimate.gpu_bytes);
   out->set_material_count(s.materials);
   out->set_emissive_triangle_count(s.emissive_triangles);
   out->set_has_lightmap_uvs(s.has_lightmap_uvs);
@@ -224,6 +250,15 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerCo
       cache->set_misses(c.misses);
       cache->set_evictions(c.evictions);
     }
+    for (const auto& [kind, b] : f.structure_builds) {
+      auto* out = response->add_structure_builds();
+      out->set_structure(kind);
+      out->set_builds(b.count);
+      out->set_failures(b.failures);
+      out->set_in_progress(b.in_progress);
+      out->set_total_ms(b.total_ms);
+      out->set_max_ms(b.max_ms);
+    }
     for (const auto& m : f.methods) {
       auto* out = response->add_methods();
       out->set_method(m.method);
@@ -261,6 +296,7 @@ Status AnswerLightVisibility(Engine& engine, const LightVisibilityQuery& query, 
   auto* timing = response->mutable_timing();
   timing->set_queue_ms(queue_ms);
   timing->set_compute_ms(answer.compute_ms);
+  timing->set_build_ms(query.call.BuildMs());
   timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
   timing->set_total_ms(log.ElapsedMs());
   log.Info("{} point(s), {} tree(s), {} built ({} nodes, {} refinements), {:.2f} ms", query.points.size(),
@@ -293,7 +329,7 @@ class LightVisibilityStreamReactor final
       Status status = query.status();
       response_.Clear();
       if (status.ok()) {
-        query->call = {deadline_, &cancelled_};
+        query->call = {deadline_, &cancelled_, std::make_shared<BuildClock>()};
       }
       if (status.ok()) status = AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms,
                                                       &response_);
@@ -383,8 +419,8 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         // The memory reservation lasts until the last message is sent.
         if (answer.memory) out.Keep(answer.memory);
         v1::HiddenSampleMapResponse last = HiddenSampleMapLastMessage(answer, query.request.options.lookup);
-        SetProducedTiming(queue_ms + result.timing.queue_ms, result.timing.run_ms + result.table_ms, out.write_ms(),
-                          log, last.mutable_timing());
+        SetProducedTiming(queue_ms + result.timing.queue_ms, result.timing.run_ms + result.table_ms,
+                          query.call.BuildMs(), out.write_ms(), log, last.mutable_timing());
         return last;
       });
 }
@@ -413,7 +449,7 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
         v1::VolumetricShadowResponse last = VolumetricLastMessage(answer);
         SetProducedTiming(queue_ms + timings.queue_ms,
                           answer.other_renders_ms + timings.total_ms - timings.queue_ms - out.write_ms(),
-                          out.write_ms(), log, last.mutable_timing());
+                          query.call.BuildMs(), out.write_ms(), log, last.mutable_timing());
         return last;
       });
 }
@@ -442,8 +478,8 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
                  result.occupied_voxels);
         v1::VoxelizeResponse last = VoxelizeLastMessage(result);
         SetProducedTiming(queue_ms + result.timings.queue_ms,
-                          result.timings.total_ms - result.timings.queue_ms - out.write_ms(), out.write_ms(), log,
-                          last.mutable_timing());
+                          result.timings.total_ms - result.timings.queue_ms - out.write_ms(), query.call.BuildMs(),
+                          out.write_ms(), log, last.mutable_timing());
         return last;
       });
 }
@@ -456,12 +492,13 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(TransmittanceQuery query, FromProto(*request));
     query.call = CallOptionsFor(context, &cancelled);
-    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, RunTransmittance(ctx_.engine, std::move(query)));
+    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, RunTransmittance(ctx_.engine, query));
     const double before_transfer = log.ElapsedMs();
     ToProto(result, response);
     auto* timing = response->mutable_timing();
     timing->set_queue_ms(queue_ms + result.timings.queue_ms);
     timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms);
+    timing->set_build_ms(query.call.BuildMs());
     timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
     timing->set_total_ms(log.ElapsedMs());
     return absl::OkStatus();
@@ -483,6 +520,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
     auto* timing = response->mutable_timing();
     timing->set_queue_ms(queue_ms + result.timing.queue_ms);
     timing->set_compute_ms(result.timing.run_ms);
+    timing->set_build_ms(query.call.BuildMs());
     timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
     timing->set_total_ms(log.ElapsedMs());
     log.Info("{} {} source samples by {}x{} receiver samples: mutual visible fraction {:.4f}",

@@ -3,10 +3,17 @@
 // name and version, structures built lazily, unloaded and deleted.
 #include "core/engine.h"
 
+#include <atomic>
+#include <chrono>
+#include <thread>
+
 #include <gtest/gtest.h>
 
+#include "core/light_visibility_query.h"
 #include "core/visibility_sampling_query.h"
 
+#include "large_scene.h"
+#include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
 #include "test_support.h"
 
@@ -246,6 +253,163 @@ TEST(Engine, MoreSamplesThanOneMapHoldsAreSeveralMaps) {
   HiddenSampleMapQuery too_many = ShadowedFloorQuery(VisibilityMethod::kRaster, kMaxPlannedSamples + 1, 8);
   too_many.request.options.want_bitmasks = false;
   EXPECT_EQ(RunHiddenSampleMap(*engine, too_many).status().code(), absl::StatusCode::kResourceExhausted);
+}
+
+}  // namespace
+}  // namespace visq
+
+// ---------------------------------------------------------------------------
+// Structures built on first use: once, off every lock that metadata takes,
+// each waiter stopping at its own deadline, a failure built again.
+
+namespace visq {
+namespace {
+
+// A repository with the sample scenes and `name`: a grid of 2 cells^2
+// triangles whose BVH takes a while to build.
+std::unique_ptr<Engine> StartEngineWithGrid(const std::filesystem::path& repo, const std::string& name, int cells,
+                                            uint64_t lose_context_at_job = 0) {
+  EXPECT_TRUE(WriteSampleScenes(repo).ok());
+  EXPECT_TRUE(WriteGltfFile(testing::MakeRippledGrid(cells), repo / (name + ".glb")).ok());
+  EngineOptions options;
+  options.scene_repo = repo;
+  options.load_repository_at_start = false;
+  options.gpu.lose_context_at_job = lose_context_at_job;
+  auto engine = Engine::Create(options);
+  EXPECT_TRUE(engine.ok()) << engine.status();
+  return engine.ok() ? std::move(*engine) : nullptr;
+}
+
+BuildTimes::Figures BuildFigures(const Engine& engine, const std::string& kind) {
+  const auto all = engine.build_times().Snapshot();
+  auto it = all.find(kind);
+  return it == all.end() ? BuildTimes::Figures{} : it->second;
+}
+
+// Waits (for a hang, not a time) until `kind` is being built.
+void AwaitBuildInProgress(const Engine& engine, const std::string& kind) {
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (BuildFigures(engine, kind).in_progress == 0 && BuildFigures(engine, kind).count == 0 &&
+         std::chrono::steady_clock::now() < give_up)
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+}
+
+// Each test's engine, over a repository holding the grid, which is made
+// resident.
+class EngineStructures : public ::testing::Test {
+ protected:
+  void Start(int cells, uint64_t lose_context_at_job = 0) {
+    engine_ = StartEngineWithGrid(dir_.path() / "repo", "grid", cells, lose_context_at_job);
+    ASSERT_TRUE(engine_);
+    auto resident = engine_->FindScene("grid", 0);
+    ASSERT_TRUE(resident.ok()) << resident.status();
+    resident_ = *resident;
+  }
+
+  testing::ScratchDir dir_;
+  std::unique_ptr<Engine> engine_;
+  std::shared_ptr<const ResidentScene> resident_;
+};
+
+TEST_F(EngineStructures, ConcurrentFirstUsersShareOneBuild) {
+  ASSERT_NO_FATAL_FAILURE(Start(500));
+  constexpr int kCallers = 6;
+  std::vector<std::shared_ptr<raycast::EmbreeScene>> bvhs(kCallers);
+  std::vector<std::shared_ptr<const exact::SceneTriangleIndex>> indices(kCallers);
+  std::vector<std::thread> callers;
+  for (int i = 0; i < kCallers; ++i)
+    callers.emplace_back([&, i] {
+      auto bvh = engine_->EmbreeSceneOf(*resident_);
+      auto index = engine_->TriangleIndexOf(*resident_);
+      EXPECT_TRUE(bvh.ok()) << bvh.status();
+      EXPECT_TRUE(index.ok()) << index.status();
+      if (bvh.ok()) bvhs[i] = *bvh;
+      if (index.ok()) indices[i] = *index;
+    });
+  for (std::thread& t : callers) t.join();
+  for (int i = 1; i < kCallers; ++i) {
+    EXPECT_EQ(bvhs[i], bvhs[0]) << "caller " << i;
+    EXPECT_EQ(indices[i], indices[0]) << "caller " << i;
+  }
+  EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").count, 1u);
+  EXPECT_EQ(BuildFigures(*engine_, "triangle_index").count, 1u);
+  EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").in_progress, 0u);
+}
+
+TEST_F(EngineStructures, WaitersStopAtTheirDeadlineOrCancelWhileTheBuildGoesOn) {
+  // 2M triangles: a BVH build of a good fraction of a second on 2 cores.
+  ASSERT_NO_FATAL_FAILURE(Start(1000));
+
+  // The first user gives up at once: the build it started goes on.
+  std::atomic<bool> cancelled{true};
+  CallOptions gave_up{gpu::SteadyTime::max(), &cancelled, std::make_shared<BuildClock>()};
+  EXPECT_EQ(engine_->EmbreeSceneOf(*resident_, gave_up).status().code(), absl::StatusCode::kCancelled);
+  AwaitBuildInProgress(*engine_, "embree_bvh");
+  ASSERT_EQ(BuildFigures(*engine_, "embree_bvh").in_progress, 1u) << "the build should still be running";
+
+  // Meanwhile: a waiter past its deadline and a cancelled one return, and
+  // metadata answers, all before the build ends.
+  CallOptions expired{std::chrono::steady_clock::now() + std::chrono::milliseconds(1), nullptr,
+                      std::make_shared<BuildClock>()};
+  EXPECT_EQ(engine_->EmbreeSceneOf(*resident_, expired).status().code(), absl::StatusCode::kDeadlineExceeded);
+  EXPECT_EQ(engine_->EmbreeSceneOf(*resident_, gave_up).status().code(), absl::StatusCode::kCancelled);
+  auto summary = engine_->GetScene("grid", false);
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  EXPECT_EQ(summary->cpu_bytes, resident_->scene->CpuBytes()) << "no BVH counted before it is built";
+  EXPECT_EQ(engine_->ListScenes().size(), 1u);
+  EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").in_progress, 1u)
+      << "the waiters and metadata calls must have returned while the build ran";
+  EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").count, 0u);
+
+  // A patient caller gets the one BVH, and its wait is build time.
+  CallOptions patient{gpu::SteadyTime::max(), nullptr, std::make_shared<BuildClock>()};
+  auto bvh = engine_->EmbreeSceneOf(*resident_, patient);
+  ASSERT_TRUE(bvh.ok()) << bvh.status();
+  EXPECT_GT(patient.BuildMs(), 0.0);
+  EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").count, 1u);
+  EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").failures, 0u);
+  summary = engine_->GetScene("grid", false);
+  ASSERT_TRUE(summary.ok());
+  EXPECT_EQ(summary->cpu_bytes, resident_->scene->CpuBytes() + (*bvh)->memory_bytes());
+
+  // Built: no wait, no build time, no second build.
+  CallOptions later{gpu::SteadyTime::max(), nullptr, std::make_shared<BuildClock>()};
+  auto again = engine_->EmbreeSceneOf(*resident_, later);
+  ASSERT_TRUE(again.ok());
+  EXPECT_EQ(again->get(), bvh->get());
+  EXPECT_EQ(later.BuildMs(), 0.0);
+  EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").count, 1u);
+}
+
+TEST_F(EngineStructures, AFailedBuildIsBuiltAgainByTheNextCall) {
+  // GPU jobs: 1 the self-test, 2 the first upload, which loses the context.
+  ASSERT_NO_FATAL_FAILURE(Start(8, /*lose_context_at_job=*/2));
+  auto lost = engine_->GpuSceneOf(*resident_);
+  EXPECT_EQ(lost.status().code(), absl::StatusCode::kInternal) << lost.status();
+  EXPECT_EQ(BuildFigures(*engine_, "gpu_upload").failures, 1u);
+  EXPECT_EQ(engine_->GetScene("grid", false)->gpu_bytes, 0u);
+  auto uploaded = engine_->GpuSceneOf(*resident_);
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  EXPECT_TRUE((*uploaded)->IsCurrent());
+  EXPECT_EQ(BuildFigures(*engine_, "gpu_upload").count, 1u);
+  EXPECT_EQ(engine_->GetScene("grid", false)->gpu_bytes, (*uploaded)->gpu_bytes());
+}
+
+TEST_F(EngineStructures, LightVisibilityCountsItsIndexBuildApartFromCompute) {
+  ASSERT_NO_FATAL_FAILURE(Start(300));
+  LightVisibilityQuery query;
+  query.scene = "grid";
+  query.light.vertices = {{-0.1, 1, -0.1}, {0.1, 1, -0.1}, {0.1, 1, 0.1}, {-0.1, 1, 0.1}};
+  query.points = {{glm::dvec3(0.3, 0.05, 0.3), glm::dvec3(0, 1, 0), std::nullopt}};
+  query.call.build_clock = std::make_shared<BuildClock>();
+  auto first = RunLightVisibility(*engine_, query);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_GT(query.call.BuildMs(), 0.0) << "the first call builds the triangle index";
+  EXPECT_EQ(BuildFigures(*engine_, "triangle_index").count, 1u);
+  query.call.build_clock = std::make_shared<BuildClock>();
+  ASSERT_TRUE(RunLightVisibility(*engine_, query).ok());
+  EXPECT_EQ(query.call.BuildMs(), 0.0);
+  EXPECT_EQ(BuildFigures(*engine_, "triangle_index").count, 1u);
 }
 
 }  // namespace

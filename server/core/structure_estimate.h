@@ -1,0 +1,42 @@
+// What a resident scene will hold once every structure its queries build
+// exists: the geometry (known at load), the Embree BVH, the exact method's
+// triangle index and the GPU buffers. --max-scene-bytes admits a scene by
+// this estimate, so a scene that fits as geometry but not once queried is
+// refused at load instead of failing a query later.
+#pragma once
+
+#include <cstdint>
+
+#include "scene/scene.h"
+
+namespace visq {
+
+// Bytes of each structure, measured with `visq_bench_structures --copies 16`
+// (tests/bench/structure_bench.cpp) on Sponza (66K triangles, 0.94 vertices
+// a triangle), Veach's "ajar" room (383K, 0.50) and the bunny (69K, 0.52),
+// each alone and as 16 copies (1.06M to 6.1M triangles), and on the tests'
+// generated grid (2M, 0.50):
+//   Embree BVH at MEDIUM (the Engine's resident BVH): 82.4-93.6 a triangle,
+//     of which Embree's float32 copy of the vertices is 12 a vertex; the rest
+//     78.9-82.3 a triangle (HIGH: 82.4-102.5 in all).
+//   triangle index (exact::SceneTriangleIndex): 73.9-83.6 a triangle.
+//   GPU buffers: 40 a triangle exactly (3 float32 corners, a material index).
+// Each constant is the largest measured, rounded up.
+inline constexpr uint64_t kEmbreeBvhBytesPerTriangle = 84;
+inline constexpr uint64_t kEmbreeBvhBytesPerVertex = 12;
+inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 86;
+inline constexpr uint64_t kGpuBytesPerTriangle = 40;
+
+struct StructureEstimate {
+  uint64_t scene_bytes = 0;           // the geometry as loaded (Scene::CpuBytes)
+  uint64_t embree_bvh_bytes = 0;
+  uint64_t triangle_index_bytes = 0;
+  uint64_t gpu_bytes = 0;
+
+  uint64_t cpu_bytes() const { return scene_bytes + embree_bvh_bytes + triangle_index_bytes; }
+  uint64_t total_bytes() const { return cpu_bytes() + gpu_bytes; }
+};
+
+StructureEstimate EstimateStructures(const Scene& scene);
+
+}  // namespace visq

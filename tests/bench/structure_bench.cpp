@@ -1,0 +1,162 @@
+// What a resident scene's lazily built structures cost: the Embree BVH at
+// MEDIUM and HIGH build quality (build time, trace rate, bytes), the exact
+// method's triangle index and the GPU buffers (time, bytes), per triangle.
+// A table, not a test; the bytes per triangle are what
+// server/core/structure_estimate.h admits scenes by.
+//
+//   visq_bench_structures [--scenes DIR] [--copies N] [--repeat R]
+//
+// Each scene is measured as loaded and as N copies side by side (a level
+// made of repeated meshes, flattened as the loader flattens instances).
+// Build and trace times are the least of R rounds, each round building and
+// tracing MEDIUM then HIGH. Trace: 1M coherent occlusion
+// segments (4096 receiver points x 256 samples of a light patch, as a
+// RAYCAST hidden-sample map traces them) and 1M incoherent closest-hit rays
+// from random points in random directions (as obscurance rays), on every
+// core.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <random>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "exact/light_visibility.h"
+#include "raycast/embree_scene.h"
+#include "scene/gltf_loader.h"
+#include "visq/gpu/gpu_scene.h"
+
+using namespace visq;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+double Ms(Clock::time_point a) { return std::chrono::duration<double, std::milli>(Clock::now() - a).count(); }
+
+// `copies` copies of `scene` on a square grid, one scene extent apart.
+Scene Copies(const Scene& scene, int copies) {
+  if (copies <= 1) return scene;
+  Scene out;
+  out.materials = scene.materials;
+  out.nodes = scene.nodes;
+  const int side = int(std::ceil(std::sqrt(double(copies))));
+  const glm::dvec3 e = scene.bounds.Extent();
+  for (int c = 0; c < copies; ++c) {
+    const glm::dvec3 offset(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side));
+    const auto base = static_cast<uint32_t>(out.positions.size());
+    for (const glm::dvec3& p : scene.positions) {
+      out.positions.push_back(p + offset);
+      out.bounds.Extend(p + offset);
+    }
+    for (const glm::uvec3& t : scene.triangles) out.triangles.push_back(t + glm::uvec3(base));
+    out.triangle_material.insert(out.triangle_material.end(), scene.triangle_material.begin(),
+                                 scene.triangle_material.end());
+    out.triangle_node.insert(out.triangle_node.end(), scene.triangle_node.begin(), scene.triangle_node.end());
+  }
+  return out;
+}
+
+struct Trace {
+  std::vector<raycast::Segment> segments;
+  std::vector<raycast::Ray> rays;
+};
+
+// The first copy's workloads (the query at one copy of a level).
+Trace MakeTrace(const Scene& one) {
+  Trace t;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  const glm::dvec3 lo = one.bounds.min, e = one.bounds.Extent();
+  // A light patch high in the middle, receivers over the lower fifth.
+  const glm::dvec3 light(lo.x + 0.45 * e.x, lo.y + 0.8 * e.y, lo.z + 0.45 * e.z);
+  for (int r = 0; r < 4096; ++r) {
+    const glm::dvec3 p(lo.x + u(rng) * e.x, lo.y + (0.02 + 0.2 * u(rng)) * e.y, lo.z + u(rng) * e.z);
+    for (int s = 0; s < 256; ++s)
+      t.segments.push_back({p, light + glm::dvec3(0.1 * e.x * (s % 16) / 16.0, 0.0, 0.1 * e.z * (s / 16) / 16.0)});
+  }
+  std::normal_distribution<double> n(0.0, 1.0);
+  for (int r = 0; r < (1 << 20); ++r) {
+    const glm::dvec3 o(lo.x + u(rng) * e.x, lo.y + u(rng) * e.y, lo.z + u(rng) * e.z);
+    t.rays.push_back({o, glm::normalize(glm::dvec3(n(rng), n(rng), n(rng)))});
+  }
+  return t;
+}
+
+template <typename F>
+double Best(int repeat, F&& f) {
+  double best = 1e300;
+  for (int i = 0; i < repeat; ++i) {
+    const auto start = Clock::now();
+    f();
+    best = std::min(best, Ms(start));
+  }
+  return best;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::filesystem::path scenes = "../shared/scenes";
+  int copies = 16;
+  int repeat = 3;
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--scenes") && i + 1 < argc) scenes = argv[++i];
+    else if (!std::strcmp(argv[i], "--copies") && i + 1 < argc) copies = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--repeat") && i + 1 < argc) repeat = std::max(1, std::atoi(argv[++i]));
+  }
+  auto worker = gpu::GpuWorker::Start({});
+  if (!worker.ok()) {
+    std::fprintf(stderr, "%s\n", std::string(worker.status().message()).c_str());
+    return 1;
+  }
+  std::printf("device: %s; %u hardware threads\n", (*worker)->device().gl_renderer.c_str(),
+              std::thread::hardware_concurrency());
+  std::printf("%-22s %9s %5s | %-6s %9s %8s %9s %9s | %9s %8s | %8s %8s | %8s\n", "scene", "triangles", "V/T", "BVH",
+              "build ms", "B/tri", "occl Mr/s", "hit Mr/s", "index ms", "B/tri", "GPU ms", "B/tri", "scene B/t");
+  for (const char* file : {"sponza_dabrovic/sponza.gltf", "interior_veach_ajar/veach_ajar.gltf", "bunny/bunny.gltf"}) {
+    auto loaded = LoadGltfFile(scenes / file);
+    if (!loaded.ok()) {
+      std::printf("skip %s: %s\n", file, std::string(loaded.status().message()).c_str());
+      continue;
+    }
+    const Trace trace = MakeTrace(*loaded);
+    for (int n : {1, copies}) {
+      const Scene scene = Copies(*loaded, n);
+      const double tris = double(scene.TriangleCount());
+      const std::string name = std::filesystem::path(file).stem().string() + (n > 1 ? " x" + std::to_string(n) : "");
+      // The exact method's index and the GPU buffers.
+      size_t index_bytes = 0;
+      const double index_ms = Best(repeat, [&] { index_bytes = (*exact::SceneTriangleIndex::Build(scene))->MemoryBytes(); });
+      uint64_t gpu_bytes = 0;
+      const double gpu_ms = Best(repeat, [&] { gpu_bytes = (*gpu::GpuScene::Upload(**worker, scene))->gpu_bytes(); });
+      // Both qualities built and traced in turn, R rounds, the best of each:
+      // load from elsewhere on the machine then weighs on both alike.
+      const raycast::BuildQuality qualities[2] = {raycast::BuildQuality::kMedium, raycast::BuildQuality::kHigh};
+      std::optional<raycast::EmbreeScene> bvh[2];
+      double build_ms[2] = {1e300, 1e300}, occl_ms[2] = {1e300, 1e300}, hit_ms[2] = {1e300, 1e300};
+      raycast::TraceOptions coherent;
+      coherent.coherent = true;
+      for (int round = 0; round < repeat; ++round)
+        for (int q = 0; q < 2; ++q) {
+          raycast::EmbreeSceneOptions options;
+          options.quality = qualities[q];
+          bvh[q].reset();
+          build_ms[q] = std::min(build_ms[q], Best(1, [&] { bvh[q].emplace(*raycast::EmbreeScene::Create(scene, options)); }));
+          occl_ms[q] = std::min(occl_ms[q], Best(1, [&] { (void)bvh[q]->Occluded(trace.segments, coherent); }));
+          hit_ms[q] = std::min(hit_ms[q], Best(1, [&] { (void)bvh[q]->Intersect(trace.rays); }));
+        }
+      for (int q = 0; q < 2; ++q)
+        std::printf("%-22s %9.0f %5.2f | %-6s %9.1f %8.1f %9.2f %9.2f | %9.1f %8.1f | %8.1f %8.1f | %8.1f\n",
+                    name.c_str(), tris, scene.positions.size() / tris, q == 1 ? "HIGH" : "MEDIUM", build_ms[q],
+                    bvh[q]->memory_bytes() / tris, trace.segments.size() / occl_ms[q] / 1e3,
+                    trace.rays.size() / hit_ms[q] / 1e3, index_ms, index_bytes / tris, gpu_ms, gpu_bytes / tris,
+                    scene.CpuBytes() / tris);
+    }
+  }
+  return 0;
+}
