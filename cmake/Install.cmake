@@ -13,23 +13,9 @@ set(visq_cmake_dir ${CMAKE_INSTALL_LIBDIR}/cmake/visq)
 
 install(TARGETS visq-server visq RUNTIME DESTINATION ${CMAKE_INSTALL_BINDIR})
 
-# The generated library: its headers go under include/visq, the health
-# proto's too (its generated code includes "grpc/health/v1/...", so
-# include/visq is on the include path), so that no file lands in gRPC's own
-# include/grpc. proto/CMakeLists.txt gives the build tree's folder alone;
-# the installed package needs it as a build-only path (a build-tree path in
-# an exported target is an error) and the installed folders beside it.
-get_target_property(visq_proto_gen_dir visq_proto INTERFACE_INCLUDE_DIRECTORIES)
-if(NOT IS_DIRECTORY "${visq_proto_gen_dir}")
-  message(FATAL_ERROR "visq_proto's include directory is no longer one plain folder (${visq_proto_gen_dir}): "
-                      "give cmake/Install.cmake the generated folder another way")
-endif()
-set_target_properties(visq_proto PROPERTIES
-  INTERFACE_INCLUDE_DIRECTORIES
-    "$<BUILD_INTERFACE:${visq_proto_gen_dir}>;$<INSTALL_INTERFACE:${CMAKE_INSTALL_INCLUDEDIR}>;$<INSTALL_INTERFACE:${CMAKE_INSTALL_INCLUDEDIR}/visq>"
-  POSITION_INDEPENDENT_CODE ON  # with visq_client, into a consumer's shared object
-  EXPORT_NAME proto)
-set(gen ${visq_proto_gen_dir})
+# The generated library's headers, under include/visq (proto/CMakeLists.txt
+# gives the target its installed include folders).
+set(gen ${VISQ_PROTO_GEN_DIR})
 set(include_visq ${CMAKE_INSTALL_INCLUDEDIR}/visq)
 install(FILES ${gen}/visq/v1/visq.pb.h ${gen}/visq/v1/visq.grpc.pb.h DESTINATION ${include_visq}/v1)
 install(FILES ${gen}/grpc/health/v1/health.pb.h ${gen}/grpc/health/v1/health.grpc.pb.h

@@ -13,7 +13,7 @@
 
 #include "common/status.h"
 #include "obscurance/obscurance_atlas.h"
-#include "obscurance/obscurance_partial.h"
+#include "visq/obscurance_partial.h"
 #include "scene/scene.h"
 
 namespace visq::obscurance {

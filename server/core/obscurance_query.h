@@ -20,7 +20,7 @@
 #include "core/engine.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
-#include "obscurance/obscurance_partial.h"
+#include "visq/obscurance_partial.h"
 #include "obscurance/obscurance_update.h"
 #include "visq/gpu/obscurance.h"
 

@@ -13,7 +13,7 @@
 
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
-#include "obscurance/obscurance_partial.h"
+#include "visq/obscurance_partial.h"
 #include "obscurance/obscurance_rays.h"
 #include "obscurance/obscurance_update.h"
 #include "raycast/embree_scene.h"

@@ -8,7 +8,7 @@
 // default), so interactive queries overtake it and cancellation takes effect
 // between directions. Sums are integers: the same seed gives the same bits,
 // and partial bakes over disjoint direction ranges merge exactly
-// (obscurance/obscurance_partial.h).
+// (visq/obscurance_partial.h).
 #pragma once
 
 #include <atomic>
@@ -20,7 +20,7 @@
 #include "common/status.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
-#include "obscurance/obscurance_partial.h"
+#include "visq/obscurance_partial.h"
 #include "scene/scene.h"
 #include "visq/gpu/camera.h"
 #include "visq/gpu/gpu_scene.h"
