@@ -286,6 +286,59 @@ TEST(Kubernetes, TheDrainEndsWithinTheGracePeriod) {
   EXPECT_GE(std::stoi(grace), drain + 5) << "compose: drain " << drain << " s, stop_grace_period " << grace;
 }
 
+// The farm bake (deploy/k8s/farm-bake/): an Indexed Job of shards and a
+// merge Job that agree on the shards' folder and count, on volumes every pod
+// of both can reach. farm_bake_job_test.cpp runs their commands.
+TEST(Kubernetes, TheFarmBakeIsAnIndexedJobAndAMergeOverTheSameShards) {
+  const YAML::Node bake = FindManifest("Job", "visq-bake");
+  const YAML::Node merge = FindManifest("Job", "visq-bake-merge");
+  ASSERT_TRUE(bake && merge);
+  EXPECT_EQ(bake["spec"]["completionMode"].as<std::string>(), "Indexed");
+  const int completions = bake["spec"]["completions"].as<int>();
+  EXPECT_GE(completions, 2);
+  EXPECT_GE(bake["spec"]["backoffLimit"].as<int>(), 1) << "a lost pod's index must be rerun";
+  for (const YAML::Node& job : {bake, merge}) {
+    const YAML::Node pod = job["spec"]["template"]["spec"];
+    const std::string restart = pod["restartPolicy"].as<std::string>();
+    EXPECT_TRUE(restart == "Never" || restart == "OnFailure") << restart;
+    const YAML::Node container = pod["containers"][0];
+    auto env = EnvOf(container);
+    EXPECT_EQ(std::stoi(env["VISQ_BAKE_PODS"]), completions) << job["metadata"]["name"];
+    // The shards' folder lies on the shared claim, mounted where it says.
+    std::string shards_mount;
+    for (const auto& mount : container["volumeMounts"])
+      for (const auto& volume : pod["volumes"])
+        if (volume["name"].as<std::string>() == mount["name"].as<std::string>() && volume["persistentVolumeClaim"] &&
+            volume["persistentVolumeClaim"]["claimName"].as<std::string>() == "visq-bake-shards")
+          shards_mount = mount["mountPath"].as<std::string>();
+    ASSERT_FALSE(shards_mount.empty()) << job["metadata"]["name"] << " does not mount visq-bake-shards";
+    EXPECT_EQ(env["VISQ_BAKE_SHARDS"].rfind(shards_mount + "/", 0), 0u) << env["VISQ_BAKE_SHARDS"];
+    EXPECT_EQ(env["VISQ_BAKE_SHARDS"], EnvOf(bake["spec"]["template"]["spec"]["containers"][0])["VISQ_BAKE_SHARDS"]);
+  }
+  const YAML::Node claim = FindManifest("PersistentVolumeClaim", "visq-bake-shards");
+  ASSERT_TRUE(claim);
+  EXPECT_EQ(claim["spec"]["accessModes"][0].as<std::string>(), "ReadWriteMany") << "pods on many nodes write it";
+  const YAML::Node baker = bake["spec"]["template"]["spec"]["containers"][0];
+  EXPECT_EQ(baker["resources"]["limits"]["nvidia.com/gpu"].as<int>(), 1) << "a GPU per shard";
+  const std::string script = YAML::Dump(baker["args"]);
+  for (const char* part : {"JOB_COMPLETION_INDEX", "--partial-out", "--first-direction", "--total-directions"})
+    EXPECT_NE(script.find(part), std::string::npos) << part;
+  EXPECT_NE(YAML::Dump(merge["spec"]["template"]["spec"]["containers"][0]["args"]).find("obscurance-merge"),
+            std::string::npos);
+  // The bake pods read the replicas' repository, at the path they give it.
+  bool repository = false;
+  for (const auto& volume : bake["spec"]["template"]["spec"]["volumes"])
+    repository |= volume["persistentVolumeClaim"] &&
+                  volume["persistentVolumeClaim"]["claimName"].as<std::string>() == "visq-scenes";
+  EXPECT_TRUE(repository);
+  // `kubectl apply -f deploy/k8s/` is not recursive: it must not start a bake.
+  for (const auto& entry : fs::directory_iterator(kSource / "deploy/k8s")) {
+    if (entry.is_regular_file()) {
+      EXPECT_EQ(Read(entry.path()).find("kind: Job"), std::string::npos) << entry.path();
+    }
+  }
+}
+
 TEST(Compose, TheTokenSecretIsMadeByAStepTheReadmeGivesAndNeverCommitted) {
   YAML::Node compose = YAML::LoadFile((kSource / "deploy/compose.yaml").string());
   const std::string file = compose["secrets"]["visq_token"]["file"].as<std::string>();
