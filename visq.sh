@@ -2,6 +2,7 @@
 # What a person does with a fresh checkout, as root on Debian 12:
 #   ./visq.sh serve [visq-server flags...]   install, build, start the server
 #   ./visq.sh test                           install, build, run every test
+#   ./visq.sh container                      install, build the binaries, run test's stage 3 alone
 #   ./visq.sh accuracy [bench flags...]      install, build, regenerate docs/accuracy.md and
 #                                            its plots (the published accuracy/time trade)
 #
@@ -14,6 +15,13 @@
 #      sanitizers (VISQ_TEST_SANITIZERS=0 skips them), then the libFuzzer
 #      targets, each for VISQ_FUZZ_SECONDS (default 60) from the corpus in
 #      tests/fuzz/corpus (VISQ_FUZZ_SECONDS=0 skips them).
+#   3. The container: tests/deploy/container_test.sh builds the image from
+#      deploy/Dockerfile around stage 1's binaries with podman, runs it,
+#      waits for SERVING and answers one query (a few seconds once the base
+#      image and the runtime layer are cached; minutes the first time). A
+#      machine that cannot run containers skips it, saying why in one line
+#      and again in the last one; VISQ_TEST_CONTAINER=0 skips it,
+#      VISQ_TEST_CONTAINER=required makes a skip fail.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -21,6 +29,29 @@ jobs=$(nproc 2>/dev/null || echo 2)
 build_dir=${VISQ_BUILD_DIR:-build}
 
 stage() { printf '\n=== visq: %s ===\n' "$*"; }
+
+# The container stage (tests/deploy/container_test.sh) on $build_dir's
+# binaries. Sets `skipped` to the reason when this machine cannot run
+# containers (the script's exit 77); exits 1 when the image fails.
+container_stage() {
+  skipped=
+  if [[ "${VISQ_TEST_CONTAINER:-1}" == 0 ]]; then
+    skipped="container stage skipped: VISQ_TEST_CONTAINER=0"
+    echo "visq: $skipped"
+    return
+  fi
+  local began=$SECONDS status=0
+  # With pipefail the pipeline's status is the script's (tee's is 0).
+  bash tests/deploy/container_test.sh "$build_dir" | tee "$build_dir/container-stage.log" || status=$?
+  if [[ "$status" == 77 ]]; then
+    skipped=$(sed -n 's/^visq: \(container stage skipped: .*\)/\1/p' "$build_dir/container-stage.log")
+  elif [[ "$status" != 0 ]]; then
+    echo "visq: the container stage failed after $((SECONDS - began)) s" >&2
+    exit 1
+  else
+    echo "visq: the container stage took $((SECONDS - began)) s"
+  fi
+}
 
 case "${1:-}" in
   serve)
@@ -37,7 +68,7 @@ case "${1:-}" in
     start=$SECONDS
     bash deploy/install-deps.sh
 
-    stage "1/2 Release build and every test"
+    stage "1/3 Release build and every test"
     # Optimized as users run it, with the debug checks kept (VISQ_DCHECKS).
     cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=ON
     cmake --build "$build_dir" -j"$jobs"
@@ -49,7 +80,7 @@ case "${1:-}" in
     sanitized_tests=${VISQ_TEST_SANITIZERS:-1}
     fuzz_seconds=${VISQ_FUZZ_SECONDS:-60}
     if [[ "$sanitized_tests" != 0 || "$fuzz_seconds" != 0 ]]; then
-      stage "2/2 clang build with ASan + UBSan: the tests under the sanitizers, then fuzzing ${fuzz_seconds} s per target"
+      stage "2/3 clang build with ASan + UBSan: the tests under the sanitizers, then fuzzing ${fuzz_seconds} s per target"
       asan_dir="${build_dir}-asan"
       # -O1 without debug info: the sanitizers need no more, and the build is
       # the longest part of this command on a 2-core machine.
@@ -74,7 +105,19 @@ case "${1:-}" in
         ASAN_OPTIONS=detect_leaks=0 ctest --test-dir "$asan_dir" --output-on-failure -R fuzz
       fi
     fi
-    echo "visq: every stage passed in $((SECONDS - start)) s"
+    stage "3/3 the container: the image built from deploy/Dockerfile, run, SERVING and one query"
+    container_stage
+    echo "visq: every stage passed in $((SECONDS - start)) s${skipped:+ (${skipped})}"
+    ;;
+  container)
+    # test's stage 3 alone: the two binaries, then the image built and run.
+    shift
+    bash deploy/install-deps.sh
+    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=ON
+    cmake --build "$build_dir" -j"$jobs" --target visq-server visq
+    stage "the container: the image built from deploy/Dockerfile, run, SERVING and one query"
+    container_stage
+    echo "visq: ${skipped:-container stage passed}"
     ;;
   accuracy)
     # The published trade (issue 8): sweeps every query kind's accuracy
@@ -89,7 +132,7 @@ case "${1:-}" in
       --command "./visq.sh accuracy $*" "$@"
     ;;
   *)
-    echo "usage: $0 serve [visq-server flags...] | test [ctest flags...] | accuracy [bench flags...]" >&2
+    echo "usage: $0 serve [visq-server flags...] | test [ctest flags...] | container | accuracy [bench flags...]" >&2
     exit 2
     ;;
 esac

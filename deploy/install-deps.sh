@@ -2,17 +2,20 @@
 # Installs every Debian 12 package visq needs to build, test and run.
 # This is the only place that lists apt packages; the README, .ci/run and the
 # Dockerfile all call it. Idempotent: packages already present are skipped.
-#   install-deps.sh [--runtime-only] [--print]
+#   install-deps.sh [--runtime-only | --without-container-tools] [--print]
 # --print writes the wanted packages, one a line, and installs nothing
 # (deploy/check-package-list.sh reads the list this way).
+# --without-container-tools: all but the container stage's tools (the
+# Dockerfile's build stage: an image has no use for podman).
 set -euo pipefail
 
-runtime_only=0 print_only=0
+runtime_only=0 print_only=0 container_tools=1
 for arg in "$@"; do
   case "$arg" in
     --runtime-only) runtime_only=1 ;;
+    --without-container-tools) container_tools=0 ;;
     --print) print_only=1 ;;
-    *) echo "usage: $0 [--runtime-only] [--print]" >&2; exit 2 ;;
+    *) echo "usage: $0 [--runtime-only | --without-container-tools] [--print]" >&2; exit 2 ;;
   esac
 done
 
@@ -37,7 +40,13 @@ build_packages=(
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
 runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
 
+# ./visq.sh test's container stage (tests/deploy/container_test.sh): podman
+# builds and runs the image with runc (as root: no user namespaces, so no
+# uidmap), on a debian:bookworm base that debootstrap makes once.
+container_packages=(podman runc debootstrap)
+
 wanted=("${build_packages[@]}" "${runtime_packages[@]}")
+if (( container_tools )); then wanted+=("${container_packages[@]}"); fi
 if (( runtime_only )); then
   # What the built binaries link (ldd), for the slim container stage.
   wanted=("${runtime_packages[@]}" ca-certificates

@@ -59,7 +59,7 @@ struct Cli {
 };
 
 void AddGlobalFlags(Cli& cli);
-void AddSceneCommands(Cli& cli);       // health, load, list, info, unload, stats
+void AddSceneCommands(Cli& cli);       // health, load, list, info, unload, stats (--fleet: fleet.h)
 void AddSamplingCommands(Cli& cli);    // hidden-map, patch-visibility
 void AddLightCommands(Cli& cli);       // light-visibility
 void AddVoxelCommands(Cli& cli);       // voxelize, transmittance, volumetric

@@ -1,9 +1,10 @@
-// visq health, load, list, info, unload, stats.
+// visq health, load, list, info, unload, stats (list and stats over the fleet: fleet_commands.cpp).
 #include <filesystem>
 
 #include <fmt/format.h>
 
 #include "cli_common.h"
+#include "fleet.h"
 
 namespace visq::cli {
 namespace {
@@ -55,7 +56,13 @@ Status RunLoad(const LoadOptions& o, Cli& cli) {
   return absl::OkStatus();
 }
 
-Status RunList(const NoOptions&, Cli& cli) {
+// list and stats: one server (--server), or the whole fleet (--fleet).
+struct ServerOrFleet {
+  FleetFlags fleet;
+};
+
+Status RunList(const ServerOrFleet& o, Cli& cli) {
+  if (o.fleet.set()) return RunFleetList(o.fleet, cli);
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const v1::ListScenesResponse scenes, client.ListScenes());
   if (cli.flags.json) {
@@ -95,7 +102,8 @@ Status RunUnload(const UnloadOptions& o, Cli& cli) {
   return absl::OkStatus();
 }
 
-Status RunStats(const NoOptions&, Cli& cli) {
+Status RunStats(const ServerOrFleet& o, Cli& cli) {
+  if (o.fleet.set()) return RunFleetStats(o.fleet, cli);
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const v1::ServerStats s, client.GetStats());
   if (cli.flags.json) {
@@ -136,7 +144,10 @@ void AddSceneCommands(Cli& cli) {
   load_command->add_flag("--replace", load->replace, "Replace a resident scene of that name");
   OnRun(load_command, cli, load, RunLoad);
 
-  OnRun(cli.app.add_subcommand("list", "List resident scenes"), cli, none, RunList);
+  auto list = std::make_shared<ServerOrFleet>();
+  auto* list_command = cli.app.add_subcommand("list", "List resident scenes (--fleet: on every replica)");
+  AddFleetFlags(list_command, list->fleet);
+  OnRun(list_command, cli, list, RunList);
 
   auto info = std::make_shared<InfoOptions>();
   auto* info_command = cli.app.add_subcommand("info", "Describe a resident scene");
@@ -150,8 +161,11 @@ void AddSceneCommands(Cli& cli) {
   unload_command->add_flag("--delete", unload->delete_stored, "Also delete it from the server's repository");
   OnRun(unload_command, cli, unload, RunUnload);
 
-  OnRun(cli.app.add_subcommand("stats", "Server statistics: per-RPC latencies, queues, memory, GPU"), cli, none,
-        RunStats);
+  auto stats = std::make_shared<ServerOrFleet>();
+  auto* stats_command = cli.app.add_subcommand(
+      "stats", "Server statistics: per-RPC latencies, queues, memory, GPU (--fleet: every replica and the totals)");
+  AddFleetFlags(stats_command, stats->fleet);
+  OnRun(stats_command, cli, stats, RunStats);
 }
 
 }  // namespace visq::cli

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 #include <fstream>
+#include <map>
 #include <sstream>
 
 #include <OpenEXR/ImfChannelList.h>
@@ -477,6 +478,103 @@ TEST_F(CliTest, HiddenMapNpyHoldsTheClientsFractions) {
   auto answer = client.ComputeHiddenSampleMap(request);
   ASSERT_TRUE(answer.ok()) << answer.status();
   EXPECT_EQ(map.values, answer->visible_fraction);
+}
+
+}  // namespace
+}  // namespace visq
+
+namespace visq {
+namespace {
+
+// The fleet view against two real replicas sharing one repository, as in
+// the Kubernetes Deployment: replica-a holds the seeded scene and an upload,
+// replica-b the same upload (loaded from the repository) and one of its own.
+TEST(CliFleet, StatsHaveARowPerReplicaAndTotalsAndListTheUnionWithItsHolders) {
+  ScratchDir repo;
+  auto a = ServerProcess::Start({repo.path(), {"--seed-samples", "--server-id", "replica-a"}});
+  auto b = ServerProcess::Start({repo.path(), {"--no-preload", "--server-id", "replica-b"}});
+  ASSERT_NE(a, nullptr);
+  ASSERT_NE(b, nullptr);
+  fs::path gltf;
+  for (const auto& entry : fs::directory_iterator(repo.path() / kScene))
+    if (entry.path().extension() == ".gltf" || entry.path().extension() == ".glb") gltf = entry.path();
+  ASSERT_FALSE(gltf.empty()) << "no glTF file in the seeded " << kScene;
+  for (const std::string& arguments :
+       {"--server " + a->address() + " load " + gltf.string() + " --name shared_box",
+        "--server " + b->address() + " load shared_box",
+        "--server " + b->address() + " load " + gltf.string() + " --name only_b"}) {
+    const CliRun run = Visq(arguments);
+    ASSERT_EQ(run.exit_code, 0) << arguments << "\n" << run.output;
+  }
+  // replica-a twice (as localhost too): one row, both addresses.
+  const std::string fleet = "--fleet " + a->address() + ",localhost:" + std::to_string(a->port()) + "," + b->address();
+
+  const CliRun stats = Visq("stats --json " + fleet);
+  ASSERT_EQ(stats.exit_code, 0) << stats.output;
+  const auto s = nlohmann::json::parse(stats.output);
+  ASSERT_EQ(s["replicas"].size(), 2u) << s.dump(2);
+  EXPECT_EQ(s["replicas"][0]["server_id"], "replica-a");
+  EXPECT_EQ(s["replicas"][0]["addresses"].size(), 2u) << s["replicas"][0]["addresses"];
+  EXPECT_EQ(s["replicas"][1]["server_id"], "replica-b");
+  // The totals are the rows' sums, from the same answers.
+  uint64_t calls = 0, scenes = 0, cpu = 0;
+  for (const auto& r : s["replicas"]) {
+    for (const auto& m : r["stats"]["methods"]) calls += m["calls"].get<uint64_t>();
+    scenes += r["stats"]["scenes_resident"].get<uint64_t>();
+    cpu += r["stats"]["scene_memory"]["cpu_bytes"].get<uint64_t>();
+  }
+  const auto& totals = s["totals"];
+  EXPECT_EQ(totals["replicas"], 2);
+  EXPECT_EQ(totals["unreachable"], 0);
+  EXPECT_EQ(totals["calls"], calls);
+  EXPECT_GT(calls, 0u);
+  EXPECT_EQ(totals["scenes_resident"], scenes);
+  EXPECT_EQ(scenes, 4u) << "replica-a: the seeded scene and shared_box; replica-b: shared_box and only_b";
+  EXPECT_EQ(totals["scene_memory"]["cpu_bytes"], cpu);
+  EXPECT_EQ(totals["versions"].size(), 1u) << totals["versions"];
+
+  const CliRun table = Visq("stats " + fleet);
+  ASSERT_EQ(table.exit_code, 0) << table.output;
+  for (const char* part : {"replica-a", "replica-b", "TOTAL", "2 of 2 answered", "RPC (fleet)"})
+    EXPECT_TRUE(Contains(table.output, part)) << part << "\n" << table.output;
+
+  const CliRun list = Visq("list --json " + fleet);
+  ASSERT_EQ(list.exit_code, 0) << list.output;
+  std::map<std::string, std::vector<std::string>> holders;
+  const auto listed = nlohmann::json::parse(list.output);
+  for (const auto& scene : listed["scenes"]) {
+    const std::string name = scene["name"].get<std::string>();
+    ASSERT_EQ(holders.count(name), 0u) << name << " listed twice (two versions?)\n" << list.output;
+    holders[name] = scene["replicas"].get<std::vector<std::string>>();
+  }
+  ASSERT_EQ(holders.size(), 3u) << list.output;
+  EXPECT_EQ(holders[kScene], (std::vector<std::string>{"replica-a"})) << list.output;
+  EXPECT_EQ(holders["shared_box"], (std::vector<std::string>{"replica-a", "replica-b"})) << list.output;
+  EXPECT_EQ(holders["only_b"], (std::vector<std::string>{"replica-b"})) << list.output;
+  const CliRun list_table = Visq("list " + fleet);
+  ASSERT_EQ(list_table.exit_code, 0) << list_table.output;
+  EXPECT_TRUE(Contains(list_table.output, "replica-a, replica-b")) << list_table.output;
+
+  // A replica that does not answer is a row saying so, the others are still
+  // shown, and the command fails. The DNS form finds replica-b.
+  const std::string partial_fleet = "--fleet " + a->address() + ",127.0.0.1:1 --fleet-dns " + b->address();
+  int status = 0;
+  const std::string json =
+      testing::RunCommand(std::string(VISQ_CLI_BINARY) + " stats --json " + partial_fleet + " 2>/dev/null", &status);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 1) << json;
+  const auto p = nlohmann::json::parse(json);
+  ASSERT_EQ(p["replicas"].size(), 3u) << json;
+  EXPECT_EQ(p["replicas"][1]["server_id"], "replica-b");
+  EXPECT_EQ(p["replicas"][2]["address"], "127.0.0.1:1");
+  EXPECT_EQ(p["replicas"][2]["error"]["code"], "UNAVAILABLE");
+  EXPECT_EQ(p["totals"]["unreachable"], 1);
+  const CliRun partial = Visq("stats " + partial_fleet);
+  EXPECT_EQ(partial.exit_code, 1) << partial.output;
+  EXPECT_TRUE(Contains(partial.output, "2 of 3 answered")) << partial.output;
+  EXPECT_TRUE(Contains(partial.output, "visq: replica 127.0.0.1:1: UNAVAILABLE")) << partial.output;
+  const CliRun unresolved = Visq("list --fleet-dns no-such-replica.invalid:50051");
+  EXPECT_EQ(unresolved.exit_code, 1);
+  EXPECT_TRUE(Contains(unresolved.output, "cannot resolve no-such-replica.invalid")) << unresolved.output;
 }
 
 }  // namespace

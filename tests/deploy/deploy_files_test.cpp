@@ -1,7 +1,7 @@
-// Static checks of deploy/: there is no container engine or cluster here,
-// so the Dockerfile and manifests are checked for what can break without
-// one — every path the Dockerfile copies exists, every script it runs is the
-// project's, and every manifest has the fields the issue requires.
+// Static checks of deploy/, for what can break without a cluster (the image
+// itself is built and run by container_test.sh, ./visq.sh test's container
+// stage): every path the Dockerfile copies exists, every script it runs is
+// the project's, and every manifest has the fields the issue requires.
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -18,49 +18,37 @@
 #include <gtest/gtest.h>
 #include <yaml-cpp/yaml.h>
 
+#include "deploy_files.h"
+
 namespace visq {
 namespace {
 
 namespace fs = std::filesystem;
-const fs::path kSource = VISQ_SOURCE_DIR;
-
-std::string Read(const fs::path& path) {
-  std::ifstream in(path);
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
-}
-
-// Dockerfile instructions, with continuation lines joined.
-std::vector<std::string> DockerInstructions() {
-  std::vector<std::string> out;
-  std::istringstream in(Read(kSource / "deploy/Dockerfile"));
-  std::string line, current;
-  while (std::getline(in, line)) {
-    if (line.empty() || line[0] == '#') continue;
-    if (!line.empty() && line.back() == '\\') {
-      current += line.substr(0, line.size() - 1) + " ";
-      continue;
-    }
-    out.push_back(current + line);
-    current.clear();
-  }
-  return out;
-}
+using namespace deploy_testing;
 
 TEST(Dockerfile, EveryCopiedPathAndScriptExists) {
   const auto instructions = DockerInstructions();
   ASSERT_FALSE(instructions.empty());
-  int copies = 0, scripts = 0;
+  // The runtime-prebuilt stage's context is the one container_test.sh
+  // makes: install-deps.sh and the binaries under prebuilt/.
+  const std::string container_test = Read(kSource / "tests/deploy/container_test.sh");
+  int copies = 0, scripts = 0, prebuilt = 0;
+  std::string stage;
   for (const auto& instruction : instructions) {
     std::istringstream words(instruction);
     std::string verb;
     words >> verb;
+    if (verb == "FROM") stage = instruction.substr(instruction.rfind(' ') + 1);
     if (verb == "COPY" && instruction.find("--from=") == std::string::npos) {
       std::vector<std::string> args;
       for (std::string w; words >> w;) args.push_back(w);
       ASSERT_GE(args.size(), 2u) << instruction;
       for (size_t i = 0; i + 1 < args.size(); ++i) {
+        if (stage == "runtime-prebuilt") {
+          EXPECT_TRUE(args[i] == "prebuilt/visq-server" || args[i] == "prebuilt/visq") << args[i];
+          ++prebuilt;
+          continue;
+        }
         EXPECT_TRUE(fs::exists(kSource / args[i])) << "COPY source missing: " << args[i];
         ++copies;
       }
@@ -74,14 +62,24 @@ TEST(Dockerfile, EveryCopiedPathAndScriptExists) {
     }
   }
   EXPECT_GT(copies, 5);
+  EXPECT_EQ(prebuilt, 2) << "runtime-prebuilt copies visq-server and visq";
+  EXPECT_NE(container_test.find("cp \"$server_bin\" \"$cli_bin\" \"$tmp/context/prebuilt/\""), std::string::npos)
+      << "container_test.sh must put the binaries where runtime-prebuilt copies them from";
+  EXPECT_NE(container_test.find("cp \"$source_dir/deploy/install-deps.sh\" \"$tmp/context/deploy/\""),
+            std::string::npos);
   EXPECT_GE(scripts, 1) << "the image must build with the project's own install script";
 }
 
 TEST(Dockerfile, RuntimeStageIsSlimNonRootWithGraphicsCapability) {
   const std::string text = Read(kSource / "deploy/Dockerfile");
   EXPECT_NE(text.find("FROM debian:bookworm AS build"), std::string::npos);
-  EXPECT_NE(text.find("FROM debian:bookworm-slim AS runtime"), std::string::npos);
+  EXPECT_NE(text.find("FROM debian:bookworm-slim AS runtime-base"), std::string::npos);
+  EXPECT_NE(text.find("FROM runtime-base AS runtime-prebuilt"), std::string::npos);
   EXPECT_NE(text.find("install-deps.sh --runtime-only"), std::string::npos);
+  EXPECT_NE(text.find("install-deps.sh --without-container-tools"), std::string::npos);
+  // The last stage is what a build without --target makes: the release.
+  EXPECT_NE(text.rfind("FROM runtime-base AS runtime\n"), std::string::npos);
+  EXPECT_GT(text.rfind("FROM runtime-base AS runtime\n"), text.rfind("AS runtime-prebuilt"));
   EXPECT_NE(text.find("USER visq"), std::string::npos);
   EXPECT_NE(text.find("NVIDIA_DRIVER_CAPABILITIES=graphics"), std::string::npos);
   EXPECT_NE(text.find("VOLUME /var/lib/visq/scenes"), std::string::npos);
@@ -96,15 +94,6 @@ TEST(Compose, ServiceHasVolumeGpuAndLoopbackPort) {
   EXPECT_EQ(visq["ports"][0].as<std::string>().rfind("127.0.0.1:", 0), 0u);
   EXPECT_TRUE(visq["volumes"].IsSequence());
   EXPECT_TRUE(visq["deploy"]["resources"]["reservations"]["devices"].IsSequence());
-}
-
-// Every document of every manifest in deploy/k8s, by kind.
-std::multimap<std::string, YAML::Node> Manifests() {
-  std::multimap<std::string, YAML::Node> out;
-  for (const auto& entry : fs::directory_iterator(kSource / "deploy/k8s"))
-    for (const YAML::Node& doc : YAML::LoadAllFromFile(entry.path().string()))
-      if (doc && doc.IsMap()) out.emplace(doc["kind"].as<std::string>(), doc);
-  return out;
 }
 
 TEST(Kubernetes, ManifestsParseAndHaveApiVersionKindAndName) {
@@ -156,25 +145,6 @@ TEST(Kubernetes, RouterHashesTheSceneHeader) {
     found = true;
   }
   EXPECT_TRUE(found);
-}
-
-// The pod specs of every workload in the manifests, with the object's name.
-std::vector<std::pair<std::string, YAML::Node>> PodSpecs() {
-  std::vector<std::pair<std::string, YAML::Node>> out;
-  for (const auto& [kind, doc] : Manifests()) {
-    if (kind == "Pod") out.emplace_back(doc["metadata"]["name"].as<std::string>(), doc["spec"]);
-    if (kind == "Deployment" || kind == "StatefulSet" || kind == "DaemonSet" || kind == "Job")
-      out.emplace_back(doc["metadata"]["name"].as<std::string>(), doc["spec"]["template"]["spec"]);
-  }
-  return out;
-}
-
-std::vector<YAML::Node> ContainersOf(const YAML::Node& pod) {
-  std::vector<YAML::Node> out;
-  for (const char* list : {"initContainers", "containers", "ephemeralContainers"})
-    if (pod[list])
-      for (const auto& c : pod[list]) out.push_back(c);
-  return out;
 }
 
 // A field set on the container, else on the pod (the container's wins).
@@ -316,26 +286,65 @@ TEST(Kubernetes, TheDrainEndsWithinTheGracePeriod) {
   EXPECT_GE(std::stoi(grace), drain + 5) << "compose: drain " << drain << " s, stop_grace_period " << grace;
 }
 
+// The farm bake (deploy/k8s/farm-bake/): an Indexed Job of shards and a
+// merge Job that agree on the shards' folder and count, on volumes every pod
+// of both can reach. farm_bake_job_test.cpp runs their commands.
+TEST(Kubernetes, TheFarmBakeIsAnIndexedJobAndAMergeOverTheSameShards) {
+  const YAML::Node bake = FindManifest("Job", "visq-bake");
+  const YAML::Node merge = FindManifest("Job", "visq-bake-merge");
+  ASSERT_TRUE(bake && merge);
+  EXPECT_EQ(bake["spec"]["completionMode"].as<std::string>(), "Indexed");
+  const int completions = bake["spec"]["completions"].as<int>();
+  EXPECT_GE(completions, 2);
+  EXPECT_GE(bake["spec"]["backoffLimit"].as<int>(), 1) << "a lost pod's index must be rerun";
+  for (const YAML::Node& job : {bake, merge}) {
+    const YAML::Node pod = job["spec"]["template"]["spec"];
+    const std::string restart = pod["restartPolicy"].as<std::string>();
+    EXPECT_TRUE(restart == "Never" || restart == "OnFailure") << restart;
+    const YAML::Node container = pod["containers"][0];
+    auto env = EnvOf(container);
+    EXPECT_EQ(std::stoi(env["VISQ_BAKE_PODS"]), completions) << job["metadata"]["name"];
+    // The shards' folder lies on the shared claim, mounted where it says.
+    std::string shards_mount;
+    for (const auto& mount : container["volumeMounts"])
+      for (const auto& volume : pod["volumes"])
+        if (volume["name"].as<std::string>() == mount["name"].as<std::string>() && volume["persistentVolumeClaim"] &&
+            volume["persistentVolumeClaim"]["claimName"].as<std::string>() == "visq-bake-shards")
+          shards_mount = mount["mountPath"].as<std::string>();
+    ASSERT_FALSE(shards_mount.empty()) << job["metadata"]["name"] << " does not mount visq-bake-shards";
+    EXPECT_EQ(env["VISQ_BAKE_SHARDS"].rfind(shards_mount + "/", 0), 0u) << env["VISQ_BAKE_SHARDS"];
+    EXPECT_EQ(env["VISQ_BAKE_SHARDS"], EnvOf(bake["spec"]["template"]["spec"]["containers"][0])["VISQ_BAKE_SHARDS"]);
+  }
+  const YAML::Node claim = FindManifest("PersistentVolumeClaim", "visq-bake-shards");
+  ASSERT_TRUE(claim);
+  EXPECT_EQ(claim["spec"]["accessModes"][0].as<std::string>(), "ReadWriteMany") << "pods on many nodes write it";
+  const YAML::Node baker = bake["spec"]["template"]["spec"]["containers"][0];
+  EXPECT_EQ(baker["resources"]["limits"]["nvidia.com/gpu"].as<int>(), 1) << "a GPU per shard";
+  const std::string script = YAML::Dump(baker["args"]);
+  for (const char* part : {"JOB_COMPLETION_INDEX", "--partial-out", "--first-direction", "--total-directions"})
+    EXPECT_NE(script.find(part), std::string::npos) << part;
+  EXPECT_NE(YAML::Dump(merge["spec"]["template"]["spec"]["containers"][0]["args"]).find("obscurance-merge"),
+            std::string::npos);
+  // The bake pods read the replicas' repository, at the path they give it.
+  bool repository = false;
+  for (const auto& volume : bake["spec"]["template"]["spec"]["volumes"])
+    repository |= volume["persistentVolumeClaim"] &&
+                  volume["persistentVolumeClaim"]["claimName"].as<std::string>() == "visq-scenes";
+  EXPECT_TRUE(repository);
+  // `kubectl apply -f deploy/k8s/` is not recursive: it must not start a bake.
+  for (const auto& entry : fs::directory_iterator(kSource / "deploy/k8s")) {
+    if (entry.is_regular_file()) {
+      EXPECT_EQ(Read(entry.path()).find("kind: Job"), std::string::npos) << entry.path();
+    }
+  }
+}
+
 TEST(Compose, TheTokenSecretIsMadeByAStepTheReadmeGivesAndNeverCommitted) {
   YAML::Node compose = YAML::LoadFile((kSource / "deploy/compose.yaml").string());
   const std::string file = compose["secrets"]["visq_token"]["file"].as<std::string>();
   const std::string in_repo = "deploy/" + fs::path(file).filename().string();
   EXPECT_NE(Read(kSource / "README.md").find(in_repo), std::string::npos) << "README must say how to make " << in_repo;
   EXPECT_NE(Read(kSource / ".gitignore").find("/" + in_repo), std::string::npos) << in_repo << " must be ignored";
-}
-
-// The Dockerfile's ENV, as the image's defaults.
-std::map<std::string, std::string> DockerEnv() {
-  std::map<std::string, std::string> env;
-  for (const auto& instruction : DockerInstructions()) {
-    std::istringstream words(instruction);
-    std::string verb;
-    words >> verb;
-    if (verb != "ENV") continue;
-    for (std::string w; words >> w;)
-      if (const size_t eq = w.find('='); eq != std::string::npos) env[w.substr(0, eq)] = w.substr(eq + 1);
-  }
-  return env;
 }
 
 // The image's defaults start the real server: with the Dockerfile's ENV and

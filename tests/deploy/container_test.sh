@@ -1,0 +1,237 @@
+#!/usr/bin/env bash
+# container_test.sh BUILD_DIR
+# Builds the visq image from deploy/Dockerfile with podman and runs it: health
+# SERVING, the token made in the volume as the Dockerfile documents, one real
+# query answered, a clean stop. ./visq.sh test runs it as its own stage.
+#
+# The image is the Dockerfile's runtime-prebuilt target around BUILD_DIR's
+# visq-server and visq (built on this Debian 12 host, as the image is), so
+# the stage costs no second compile; the release target's build stage is the
+# same install script and CMake flags. The debian:bookworm base comes from
+# the local podman store, else from a tarball cached in $VISQ_CI_CACHE
+# (default /var/cache/visq-ci), else debootstrap makes it once (minutes) and
+# caches it. The runtime stage's apt layer is cached by podman, so a rerun
+# rebuilds only the binaries' layer.
+#
+# The container runs as the Kubernetes pods do: the image's user, a
+# read-only root filesystem (tmpfs /tmp), every capability dropped, no new
+# privileges, shader caches on /tmp. --network host, because this machine has no container network
+# plugins; the server listens on a port of its choosing on 127.0.0.1.
+#
+# Exit status: 0 passed; 1 failed (the image does not build, start, serve or
+# answer); 77 skipped because this machine cannot build or run containers,
+# after one line "visq: container stage skipped: WHY".
+# VISQ_TEST_CONTAINER=required turns a skip into a failure (for machines
+# that must run it).
+set -euo pipefail
+export LC_ALL=C
+
+if [[ $# -ne 1 || ! -d "$1" ]]; then
+  echo "usage: $0 BUILD_DIR (a built visq build directory)" >&2
+  exit 2
+fi
+source_dir=$(cd "$(dirname "$0")/../.." && pwd)
+build=$(cd "$1" && pwd)
+cache=${VISQ_CI_CACHE:-/var/cache/visq-ci}
+mirror=${VISQ_DEBIAN_MIRROR:-http://deb.debian.org/debian}
+base=debian:bookworm
+image=localhost/visq:ci-test
+scene=cornell_box_visq
+
+skip() {
+  echo "visq: container stage skipped: $*"
+  if [[ "${VISQ_TEST_CONTAINER:-}" == required ]]; then
+    echo "visq: VISQ_TEST_CONTAINER=required: a skipped container stage fails" >&2
+    exit 1
+  fi
+  exit 77
+}
+fail() {
+  echo "visq: container stage FAILED: $*" >&2
+  exit 1
+}
+now() { date +%s.%N; }
+since() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.2f", b - a }'; }
+
+server_bin="$build/server/visq-server"
+cli_bin="$build/client/cli/visq"
+for bin in "$server_bin" "$cli_bin"; do
+  [[ -x "$bin" ]] || fail "$bin is not built (cmake --build $build --target visq-server visq)"
+done
+
+# --- What this machine can do ----------------------------------------------
+command -v podman > /dev/null || skip "podman is not installed (deploy/install-deps.sh installs it)"
+command -v runc > /dev/null || command -v crun > /dev/null ||
+  skip "no OCI runtime: neither runc nor crun is installed"
+if [[ $(id -u) != 0 ]] && ! podman unshare true > /dev/null 2>&1; then
+  skip "rootless podman cannot make a user namespace here ($(podman unshare true 2>&1 | head -n 1))"
+fi
+# Limits runc can set here: podman's defaults (2^20 files, and a process
+# limit near the host's) are refused where the hard limits are lower or
+# runc may not raise them ("error setting rlimit type 7", "type 6"). The
+# host's hard file limit fits; 4096 processes for the container's user is
+# far more than visq-server's threads (workers, gRPC, llvmpipe, Embree).
+nofile=$(ulimit -Hn)
+[[ "$nofile" == unlimited || "$nofile" -gt 1048576 ]] && nofile=1048576
+nproc=$(ulimit -Hu)
+[[ "$nproc" == unlimited || "$nproc" -gt 4096 ]] && nproc=4096
+limits=(--ulimit "nofile=$nofile:$nofile" --ulimit "nproc=$nproc:$nproc")
+
+tmp=$(mktemp -d)
+container=visq-ci-test-$$
+cleanup() {
+  podman rm --force --volumes --time 0 "$container" > /dev/null 2>&1 || true
+  rm -rf "$tmp"
+}
+trap cleanup EXIT
+
+# --- The base image: once per machine ----------------------------------------
+start=$(now)
+base_how=reused
+if ! podman image exists "$base"; then
+  tarball="$cache/debian-bookworm-minbase.tar"
+  if [[ ! -f "$tarball" ]]; then
+    command -v debootstrap > /dev/null ||
+      skip "no $base image and no debootstrap to make one (deploy/install-deps.sh installs it)"
+    [[ $(id -u) == 0 ]] || skip "no $base image, and debootstrap needs root to make one"
+    mkdir -p "$cache" || skip "cannot write the base image cache $cache (set VISQ_CI_CACHE)"
+    rootfs="$cache/rootfs.tmp"
+    rm -rf "$rootfs"
+    echo "visq: making the $base base image with debootstrap from $mirror (once; cached in $cache)"
+    if ! debootstrap --variant=minbase bookworm "$rootfs" "$mirror" > "$tmp/debootstrap.log" 2>&1; then
+      rm -rf "$rootfs"
+      skip "debootstrap could not make $base from $mirror (no network to the mirror?): $(tail -n 1 "$tmp/debootstrap.log")"
+    fi
+    # The sources of the official image (updates and security too), so the
+    # runtime stage installs the versions the host built against.
+    rm -f "$rootfs/etc/apt/sources.list"
+    cat > "$rootfs/etc/apt/sources.list.d/debian.sources" << EOF
+Types: deb
+URIs: $mirror
+Suites: bookworm bookworm-updates
+Components: main
+Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
+
+Types: deb
+URIs: ${mirror%/debian}/debian-security
+Suites: bookworm-security
+Components: main
+Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
+EOF
+    rm -rf "$rootfs"/var/cache/apt/archives/*.deb "$rootfs"/var/lib/apt/lists/*
+    tar --numeric-owner -C "$rootfs" -cf "$tarball.tmp" . && mv "$tarball.tmp" "$tarball"
+    rm -rf "$rootfs"
+    base_how="made by debootstrap"
+  else
+    base_how="imported from $tarball"
+  fi
+  podman import --change 'ENV PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin' \
+    --change 'CMD ["bash"]' "$tarball" "$base" > "$tmp/import.log" 2>&1 || fail "podman import $tarball: $(tail -n 1 "$tmp/import.log")"
+fi
+# The runtime stage starts from the slim tag; here both are the same image.
+podman image exists "$base-slim" || podman tag "$base" "$base-slim"
+base_s=$(since "$start")
+
+# A machine that has podman but cannot run containers (no cgroups, a
+# seccomp or AppArmor policy that forbids it, a nested sandbox) says so here.
+if ! podman run --rm --pull=never --network host "${limits[@]}" "$base" true > "$tmp/probe.log" 2>&1; then
+  skip "podman cannot run a container here: $(grep -m 1 -i error "$tmp/probe.log" || head -n 1 "$tmp/probe.log")"
+fi
+
+# --- Build the image around the host's binaries --------------------------------
+# A context of its own, three files: the build reads nothing else.
+mkdir -p "$tmp/context/deploy" "$tmp/context/prebuilt"
+cp "$source_dir/deploy/install-deps.sh" "$tmp/context/deploy/"
+cp "$server_bin" "$cli_bin" "$tmp/context/prebuilt/"
+old_image=$(podman image inspect --format '{{.Id}}' "$image" 2> /dev/null || true)
+start=$(now)
+# --format docker keeps the Dockerfile's HEALTHCHECK (OCI images drop it).
+if ! podman build --pull=never --network host "${limits[@]}" --format docker --target runtime-prebuilt \
+    -f "$source_dir/deploy/Dockerfile" -t "$image" "$tmp/context" > "$tmp/build.log" 2>&1; then
+  # The runtime stage installs its libraries with apt-get: without the
+  # mirror (and without the layer in the cache) the image cannot build here.
+  if grep -qE "Temporary failure resolving|Could not resolve|Failed to fetch|Unable to connect" "$tmp/build.log"; then
+    skip "the image's apt-get cannot reach the Debian mirror: $(grep -m 1 -E 'resolv|fetch|connect' "$tmp/build.log")"
+  fi
+  tail -n 30 "$tmp/build.log" >&2
+  fail "podman build of deploy/Dockerfile (target runtime-prebuilt) failed; the log's end is above"
+fi
+build_s=$(since "$start")
+new_image=$(podman image inspect --format '{{.Id}}' "$image")
+# Each run's binaries are a new layer: drop the previous run's image.
+if [[ -n "$old_image" && "$old_image" != "$new_image" ]]; then podman image rm "$old_image" > /dev/null 2>&1 || true; fi
+
+# --- Run it as the pods do ---------------------------------------------------
+# The image's defaults (seeded sample scenes, a token made in the volume),
+# except the address: a port of the server's choosing on loopback.
+start=$(now)
+# --no-healthcheck: the image's HEALTHCHECK asks port 50051, and podman
+# would schedule it through systemd; the same command runs below, on the
+# server's port.
+podman run -d --name "$container" --pull=never --network host "${limits[@]}" --no-healthcheck \
+  --read-only --cap-drop ALL --security-opt no-new-privileges \
+  -e VISQ_ADDRESS=127.0.0.1:0 -e VISQ_PORT_FILE=/tmp/visq-port -e XDG_CACHE_HOME=/tmp/cache "$image" > /dev/null ||
+  fail "podman run $image failed"
+logs() { podman logs "$container" 2>&1 | tail -n 40 >&2; }
+port=
+serving=0
+for ((i = 0; i < 1200; ++i)); do  # up to two minutes
+  if [[ $(podman inspect --format '{{.State.Running}}' "$container") != true ]]; then
+    logs
+    fail "the container stopped before it served (exit $(podman inspect --format '{{.State.ExitCode}}' "$container")); its log is above"
+  fi
+  [[ -z "$port" ]] && port=$(podman exec "$container" cat /tmp/visq-port 2> /dev/null || true)
+  if [[ -n "$port" ]] && "$cli_bin" health --server "127.0.0.1:$port" --timeout 2 > /dev/null 2>&1; then
+    serving=1
+    break
+  fi
+  sleep 0.1
+done
+(( serving )) || { logs; fail "health did not report SERVING within two minutes; the log is above"; }
+serving_s=$(since "$start")
+server=127.0.0.1:$port
+# The HEALTHCHECK's command, with the image's own CLI: its libraries are there.
+healthcheck=$(podman image inspect --format '{{json .Config.Healthcheck}}' "$image")
+[[ "$healthcheck" == *'"/usr/local/bin/visq","health"'* ]] ||
+  fail "the image has no HEALTHCHECK running visq health (built without --format docker?)"
+podman exec "$container" /usr/local/bin/visq health --server "$server" > /dev/null ||
+  fail "the image's visq health does not report SERVING"
+
+# The token, as the Dockerfile's comment says to fetch it.
+podman cp "$container:/var/lib/visq/scenes/.visq-auth-token" "$tmp/token" ||
+  { logs; fail "no token in the volume at /var/lib/visq/scenes/.visq-auth-token"; }
+# To a file first: grep -q stops reading at the match, and under pipefail
+# the writer's SIGPIPE would fail the check.
+podman logs "$container" > "$tmp/server.log" 2>&1
+grep -q "/var/lib/visq/scenes/.visq-auth-token" "$tmp/server.log" ||
+  { logs; fail "the log does not say where the token is; the log is above"; }
+if "$cli_bin" list --server "$server" > "$tmp/denied.log" 2>&1; then
+  fail "visq list without the token was answered: the image's defaults must require it"
+fi
+grep -q UNAUTHENTICATED "$tmp/denied.log" || fail "visq list without the token: $(cat "$tmp/denied.log")"
+
+# One real query on the seeded sample scene: the ceiling light's visibility
+# from the floor, which the two boxes shade in part.
+start=$(now)
+"$cli_bin" list --server "$server" --token-file "$tmp/token" > "$tmp/list.log" 2>&1 ||
+  fail "visq list: $(cat "$tmp/list.log")"
+grep -q "^$scene " "$tmp/list.log" || fail "the seeded scene $scene is not listed: $(cat "$tmp/list.log")"
+"$cli_bin" hidden-map --server "$server" --token-file "$tmp/token" --scene "$scene" \
+  --source "-0.25,1.99,-0.25;0.5,0,0;0,0,0.5" --receiver "-0.999,0.001,-0.999;1.998,0,0;0,0,1.998" \
+  --samples 64 --width 32 --height 32 > "$tmp/query.log" 2>&1 || fail "visq hidden-map: $(cat "$tmp/query.log")"
+mean=$(sed -n 's/.*mean visible fraction \([0-9.]*\).*/\1/p' "$tmp/query.log")
+awk -v m="$mean" 'BEGIN { exit !(m > 0 && m < 1) }' ||
+  fail "the hidden-sample map's mean visible fraction is '$mean', not inside (0, 1): $(cat "$tmp/query.log")"
+query_s=$(since "$start")
+gpu=$("$cli_bin" stats --server "$server" --token-file "$tmp/token" | sed -n 's/^GPU *//p')
+
+# A clean stop: SIGTERM, the drain, exit 0.
+start=$(now)
+podman stop --time 30 "$container" > /dev/null
+stop_s=$(since "$start")
+code=$(podman inspect --format '{{.State.ExitCode}}' "$container")
+[[ "$code" == 0 ]] || { logs; fail "the server exited $code on SIGTERM, not 0; the log is above"; }
+
+echo "visq: container stage passed: base image ${base_s} s ($base_how), image build ${build_s} s," \
+  "SERVING ${serving_s} s after podman run, list + hidden-map ${query_s} s (mean visible fraction $mean)," \
+  "stop ${stop_s} s; GPU: $gpu"
