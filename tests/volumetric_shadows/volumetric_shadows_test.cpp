@@ -202,6 +202,22 @@ TEST(VolumetricShadowsTest, NoOccluderMatchesClosedForm) {
   std::printf("no occluder: max |gpu - closed form| = %.3g (max value %.3g)\n", max_err, max_ref);
 }
 
+// The camera, sun and medium (box x in [-4, 4], y in [0, 4], z in [-8, 5])
+// of the occluding-plane scenes.
+VolumetricParams OccludingPlaneParams() {
+  VolumetricParams params;
+  params.camera.position = {0.0, 1.5, 5.0};
+  params.camera.forward = {0.0, 0.0, -1.0};
+  params.camera.vertical_fov_deg = 40;
+  params.camera.width = 96;
+  params.camera.height = 72;
+  params.light.direction = {0.0, -1.0, -0.5};
+  params.medium = {0.1, 0.12, 0.0};
+  params.medium_bounds.Extend({-4, 0, -8});
+  params.medium_bounds.Extend({4, 4, 5});
+  return params;
+}
+
 // ---------------------------------------------------------------------------
 // One occluding plane y = 3 over x in [-4, 4], z in [-8, 0]; the sun travels
 // along (0, -1, -0.5). A point below the plane is shadowed when its light
@@ -215,17 +231,8 @@ TEST(VolumetricShadowsTest, OccludingPlaneMatchesClosedForm) {
   auto gpu_scene = Upload(scene);
   ASSERT_TRUE(gpu_scene);
 
-  VolumetricParams params;
-  params.camera.position = {0.0, 1.5, 5.0};
-  params.camera.forward = {0.0, 0.0, -1.0};
-  params.camera.vertical_fov_deg = 40;
-  params.camera.width = 96;
-  params.camera.height = 72;
-  params.light.direction = {0.0, -1.0, -0.5};
-  params.medium = {0.1, 0.12, 0.0};
+  VolumetricParams params = OccludingPlaneParams();
   params.shadow_map_size = 1024;
-  params.medium_bounds.Extend({-4, 0, -8});
-  params.medium_bounds.Extend({4, 4, 5});
   const VolumetricResult result = Render(*gpu_scene, scene, params);
   ASSERT_EQ(result.inscattering.size(), 96u * 72 * 3);
   const VolumetricBox& box = result.medium_box;
@@ -603,17 +610,8 @@ TEST(VolumetricShadowsTest, AMediumBoxKeepsFarGeometryOutOfTheImage) {
   const Scene alone = occluder_scene(false), with_far = occluder_scene(true);
   auto alone_gpu = Upload(alone), far_gpu = Upload(with_far);
   ASSERT_TRUE(alone_gpu && far_gpu);
-  VolumetricParams params;
-  params.camera.position = {0.0, 1.5, 5.0};
-  params.camera.forward = {0.0, 0.0, -1.0};
-  params.camera.vertical_fov_deg = 40;
-  params.camera.width = 96;
-  params.camera.height = 72;
-  params.light.direction = {0.0, -1.0, -0.5};
-  params.medium = {0.1, 0.12, 0.0};
+  VolumetricParams params = OccludingPlaneParams();
   params.shadow_map_size = 512;
-  params.medium_bounds.Extend({-4, 0, -8});
-  params.medium_bounds.Extend({4, 4, 5});
   const VolumetricResult reference = Render(*alone_gpu, alone, params);
   const VolumetricResult boxed = Render(*far_gpu, with_far, params);
   VolumetricParams scene_bounds = params;
