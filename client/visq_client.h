@@ -59,7 +59,7 @@ Status FromGrpcStatus(const grpc::Status& status);
 // A hidden-sample map reassembled from its streamed chunks.
 struct HiddenSampleMap {
   // Sizes and samples (the stream's first message), accuracy and timing
-  // (its last), and the lookup errors (FAST) and per-texel bounds
+  // (its last), and the lookup errors (HOUGH) and per-texel bounds
   // (want_texel_error) reassembled.
   v1::HiddenSampleMapResponse figures;
   std::vector<float> visible_fraction;  // width * height, row-major

@@ -9,7 +9,8 @@ namespace visq::cli {
 namespace {
 
 const std::vector<std::string> kMethods = {"raster", "raycast", "exact"};
-const std::vector<std::string> kLookups = {"exact", "fast"};
+// "fast" was the Hough lookup's first name, kept for scripts that use it.
+const std::vector<std::string> kLookups = {"exact", "hough", "fast"};
 
 v1::VisibilityMethod Method(const std::string& name) {
   return name == "raycast" ? v1::RAYCAST : name == "exact" ? v1::PLUCKER_EXACT : v1::RASTER;
@@ -37,7 +38,7 @@ Status RunHiddenMap(const HiddenMapOptions& o, Cli& cli) {
     request.mutable_samples()->set_count(o.samples);
     request.set_method(Method(o.method));
   }
-  request.set_lookup(o.lookup == "fast" ? v1::FAST : v1::EXACT);
+  request.set_lookup(o.lookup == "exact" ? v1::EXACT : v1::HOUGH);
   request.set_decorrelate(o.decorrelate);
   request.set_watertight(o.watertight);
   request.set_want_bitmasks(o.bitmasks);
@@ -95,7 +96,7 @@ Status RunPatchVisibility(const PatchVisibilityOptions& o, Cli& cli) {
     request.set_source_rows(o.source_grid);
     request.set_method(Method(o.method));
   }
-  request.set_lookup(o.lookup == "fast" ? v1::FAST : v1::EXACT);
+  request.set_lookup(o.lookup == "exact" ? v1::EXACT : v1::HOUGH);
   request.set_unblocked_limit(o.limit);
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const v1::PatchVisibilityResponse response, WhileWaiting(cli.flags, "patch-visibility", [&] { return client.PatchVisibility(request); }));
@@ -125,7 +126,7 @@ void AddSamplingCommands(Cli& cli) {
   hidden_map->add_option("--width", hm->width, "Receiver texels across")->capture_default_str();
   hidden_map->add_option("--height", hm->height, "Receiver texels down")->capture_default_str();
   AddChoice(hidden_map, "--method", hm->method, kMethods, "raster, raycast or exact (the Plücker method)");
-  AddChoice(hidden_map, "--lookup", hm->lookup, kLookups, "RASTER's lookup: exact or fast (Hough)");
+  AddChoice(hidden_map, "--lookup", hm->lookup, kLookups, "RASTER's lookup: exact (the ray-cast bits) or hough");
   hidden_map->add_flag("--decorrelate", hm->decorrelate, "Per-texel sample offsets (noise instead of aliasing)");
   hidden_map->add_flag("--watertight", hm->watertight, "Front-face culling for closed casters");
   hidden_map->add_flag("--bitmasks", hm->bitmasks, "Also fetch the raw bitmasks (counted in --json)");
@@ -146,7 +147,7 @@ void AddSamplingCommands(Cli& cli) {
   patch_visibility->add_option("--receiver-grid", pv->receiver_grid, "Samples per side on the receiver")
       ->capture_default_str();
   AddChoice(patch_visibility, "--method", pv->method, kMethods, "raster, raycast or exact (the Plücker method)");
-  AddChoice(patch_visibility, "--lookup", pv->lookup, kLookups, "RASTER's lookup: exact or fast (Hough)");
+  AddChoice(patch_visibility, "--lookup", pv->lookup, kLookups, "RASTER's lookup: exact (the ray-cast bits) or hough");
   patch_visibility->add_option("--unblocked-limit", pv->limit, "Return up to this many unblocked rays");
   AddTargetFlags(patch_visibility, pv->target);
   OnRun(patch_visibility, cli, pv, RunPatchVisibility);

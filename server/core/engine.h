@@ -226,10 +226,19 @@ class Engine {
 
   exact::LightVisibilityCache& light_cache() { return *light_cache_; }
   WorkMemoryBudget& work_budget() { return *work_budget_; }
-  // Requests that found their light's tree cached, and those that built one.
-  std::atomic<uint64_t> light_tree_hits{0};
-  std::atomic<uint64_t> light_tree_misses{0};
-  size_t light_cache_capacity() const { return options_.light_cache_bytes; }
+  // A LightVisibility request's use of the cache: a hit when every tree it
+  // used was cached, a miss when it built any.
+  void RecordLightTreeUse(bool built_any) { (built_any ? light_tree_misses_ : light_tree_hits_).fetch_add(1); }
+  struct LightCacheStats {
+    size_t entries = 0;
+    size_t bytes = 0;
+    size_t capacity_bytes = 0;
+    uint64_t hits = 0, misses = 0, evictions = 0;
+  };
+  LightCacheStats light_cache_stats() const {
+    return {light_cache_->size(),      light_cache_->bytes(),      options_.light_cache_bytes,
+            light_tree_hits_.load(),   light_tree_misses_.load(), light_cache_->evictions()};
+  }
   int light_receiver_cells() const { return options_.light_receiver_cells; }
   uint32_t light_receiver_min_points() const { return options_.light_receiver_min_points; }
 
@@ -273,6 +282,8 @@ class Engine {
   std::map<std::string, std::shared_ptr<ObscuranceState>, std::less<>> obscurance_states_;
   CostModel cost_model_;
   BuildTimes build_times_;
+  std::atomic<uint64_t> light_tree_hits_{0};
+  std::atomic<uint64_t> light_tree_misses_{0};
   // Last: destroyed first, so builds still running stop and are joined
   // while the GPU worker and everything else they use still exist.
   StructureBuilds builds_;

@@ -71,7 +71,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   // themselves, exactly and, since line boxes skip the subtractions that
   // cannot meet a piece, about as fast; smaller trees were faster still
   // (docs/exact-method-notes.md).
-  base.max_bytes = engine.light_cache_capacity() / 16;
+  base.max_bytes = engine.light_cache_stats().capacity_bytes / 16;
   base.cancelled = query.call.cancelled;
   base.deadline = query.call.deadline;
   for (const std::string& node_name : query.exclude_nodes) {
@@ -227,9 +227,15 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     answer.receiver_region.Extend(groups[g].box.max);
   }
   answer.trees = groups.size();
-  (answer.trees_created > 0 ? engine.light_tree_misses : engine.light_tree_hits).fetch_add(1);
+  engine.RecordLightTreeUse(answer.trees_created > 0);
   answer.compute_ms = MillisecondsSince(start) - index_ms;
   return answer;
+}
+
+AccuracyStatement LightVisibilityStatement() {
+  return ExactStatement("plucker-exact",
+                        "exact visibility: every side decision is an exact predicate; only the final areas and "
+                        "integrals are double-precision sums (relative error about 1e-12)");
 }
 
 }  // namespace visq

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "core/accuracy_statement.h"
 #include "core/call_options.h"
 #include "common/status.h"
 #include "exact/light_visibility.h"
@@ -50,5 +51,7 @@ inline constexpr size_t kMaxLightVertices = 1024;
 
 [[nodiscard]] StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query);
 
+// Every LightVisibility answer's: exact, with no samples to bound.
+AccuracyStatement LightVisibilityStatement();
 
 }  // namespace visq

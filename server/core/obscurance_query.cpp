@@ -7,6 +7,8 @@
 
 #include <spdlog/spdlog.h>
 
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "common/job_timing.h"
 #include "obscurance/obscurance_export.h"
 #include "obscurance/obscurance_rays.h"
@@ -93,6 +95,67 @@ double ObscuranceErrorEstimate(uint64_t directions, double confidence) {
   if (confidence >= 1.0) return 1.0;  // no worst-case figure below the trivial one
   const double d = static_cast<double>(std::max<uint64_t>(directions, 1));
   return std::min(1.0, std::sqrt(std::log(2.0 / (1.0 - confidence)) / (2.0 * d)));
+}
+
+ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer) {
+  ObscuranceCoverage out;
+  if (answer.method == ObscuranceMethod::kRaycast && answer.result) {
+    // Every estimated patch got exactly rays_per_patch rays.
+    for (uint8_t e : answer.result->estimated) out.estimated_texels += e;
+    out.mean_samples_per_patch = answer.result->mean_samples_per_patch;
+    return out;
+  }
+  uint64_t samples = 0;
+  for (uint64_t c : answer.partial.counts)
+    if (c > 0) {
+      ++out.estimated_texels;
+      samples += c;
+    }
+  if (out.estimated_texels > 0)
+    out.mean_samples_per_patch = static_cast<double>(samples) / static_cast<double>(out.estimated_texels);
+  return out;
+}
+
+AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
+  AccuracyStatement out;
+  out.confidence = answer.confidence;
+  if (answer.method == ObscuranceMethod::kRaycast) {
+    // N rays per patch, each a value in [0, 1] per channel.
+    out.method = "obscurance-raycast";
+    out.error_bound = ObscuranceErrorEstimate(answer.rays_per_patch, answer.confidence);
+    out.parameters["rays_per_patch"] = static_cast<double>(answer.rays_per_patch);
+    out.note = absl::StrCat("estimate, not a bound: Hoeffding half-width at ", answer.confidence, " for ",
+                            answer.rays_per_patch,
+                            " rays per patch with values in [0, 1]; the rays are a rotated Halton sequence "
+                            "(usually better than independent), cosine-distributed from points uniform on the patch");
+  } else {
+    // Per direction, a patch's value is a mean of values in [0, 1] (per
+    // channel); the directions are weighed per patch by its projected area.
+    const uint64_t directions = answer.partial.DirectionCount();
+    out.method = "obscurance-depth-peeling";
+    out.error_bound = ObscuranceErrorEstimate(directions, answer.confidence);
+    out.parameters["directions"] = static_cast<double>(directions);
+    out.note = absl::StrCat(
+        "estimate, not a bound: Hoeffding half-width at ", answer.confidence, " for ", directions,
+        " independent directions with per-direction values in [0, 1]; the directions are a rotated Halton sequence "
+        "(usually better than independent) and are cosine-weighted per patch (mean ",
+        absl::StrFormat("%.1f", CoverageOf(answer).mean_samples_per_patch),
+        " samples per patch); rasterization of the bundles is not counted");
+  }
+  if (answer.plan) AddChosenPlan(*answer.plan, out);
+  return out;
+}
+
+AccuracyStatement ObscuranceUpdateStatement(const ObscuranceUpdateAnswer& answer) {
+  AccuracyStatement out;
+  out.method = "obscurance-raycast-update";
+  out.confidence = 0.95;
+  out.error_bound = ObscuranceErrorEstimate(std::max<uint32_t>(answer.rays_per_patch, 1), out.confidence);
+  out.note = absl::StrCat("recomputed patches: Hoeffding half-width at 95 % for ", answer.rays_per_patch,
+                          " independent cosine-distributed rays per patch (values in [0, 1]); the other patches keep "
+                          "the bake's values (",
+                          answer.directions, " directions) bit for bit");
+  return out;
 }
 
 namespace {

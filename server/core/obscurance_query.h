@@ -16,6 +16,7 @@
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "core/accuracy_statement.h"
 #include "core/call_options.h"
 #include "core/engine.h"
 #include "obscurance/obscurance_atlas.h"
@@ -94,6 +95,20 @@ struct ObscuranceAnswer {
 // directions are a rotated Halton sequence).
 double ObscuranceErrorEstimate(uint64_t directions, double confidence);
 
+// How many patches the bake estimated and with how many samples each, on
+// average: from the partial's counts for depth peeling (so partial bakes
+// have them too), from the result for the ray-cast estimator.
+struct ObscuranceCoverage {
+  uint64_t estimated_texels = 0;
+  double mean_samples_per_patch = 0;
+};
+ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer);
+
+// What W and I can promise: Hoeffding's half-width over the directions (or
+// rays), stated as an estimate because the directions are a rotated Halton
+// sequence; with a target, the chosen plan.
+AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer);
+
 // INVALID_ARGUMENT (naming the field) for bad parameters before any work.
 [[nodiscard]] Status ValidateObscuranceQuery(const ObscuranceQuery& query);
 // Builds the atlas, bakes on the GPU and (unless partial_only) finalizes W
@@ -134,6 +149,10 @@ struct ObscuranceUpdateAnswer {
   double compute_ms = 0;
 };
 inline constexpr size_t kMaxFullUpdateFloats = size_t{1} << 22;
+
+// The update's: recomputed patches by their rays; the others keep the
+// bake's values bit for bit.
+AccuracyStatement ObscuranceUpdateStatement(const ObscuranceUpdateAnswer& answer);
 
 // FAILED_PRECONDITION when the scene has no full bake, or when the moves
 // recorded since do not lead from the bake's version to the resident one

@@ -7,8 +7,10 @@
 #include <functional>
 #include <set>
 
+#include "absl/strings/str_cat.h"
 #include "common/check.h"
 #include "common/job_timing.h"
+#include "core/accuracy_statement.h"
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
 
@@ -456,7 +458,7 @@ Status CheckSeveralMaps(const sampling::HiddenSampleMapRequest& request) {
   if (!request.source.sample_colors.empty() || !request.source.color_texture.empty())
     return refuse("coloured lights need one map");
   if (!request.source.polygon_uv.empty()) return refuse("a polygon needs one map");
-  if (request.options.lookup != sampling::LookupMode::kExact) return refuse("the FAST lookup needs one map");
+  if (request.options.lookup != sampling::LookupMode::kExact) return refuse("the HOUGH lookup needs one map");
   return absl::OkStatus();
 }
 
@@ -678,9 +680,10 @@ Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query) {
   return CheckSize(map);
 }
 
-StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query,
-                                                   const sampling::HiddenSampleMapBandSink& sink) {
-  VISQ_RETURN_IF_ERROR(CheckHiddenSampleMapQuery(query));
+namespace {
+
+StatusOr<HiddenSampleMapAnswer> HiddenSampleMapUnstated(Engine& engine, const HiddenSampleMapQuery& query,
+                                                        const sampling::HiddenSampleMapBandSink& sink) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   if (query.target) return HiddenSampleMapForTarget(engine, *resident, query, sink);
@@ -697,14 +700,71 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   return answer;
 }
 
-StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query) {
-  VISQ_RETURN_IF_ERROR(CheckPatchVisibilityQuery(query));
+StatusOr<PatchVisibilityAnswer> PatchVisibilityUnstated(Engine& engine, const PatchVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   if (query.target) return PatchVisibilityForTarget(engine, *resident, query);
   PatchVisibilityAnswer answer;
   answer.method = query.method;
   VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.call));
+  return answer;
+}
+
+}  // namespace
+
+AccuracyStatement SampledVisibilityStatement(const sampling::ErrorBound& error, VisibilityMethod method,
+                                             sampling::LookupMode lookup, int samples) {
+  if (method == VisibilityMethod::kPluckerExact)
+    return ExactStatement(VisibilityMethodName(method, lookup),
+                          "exact visible fractions (Plücker method): every side decision is an exact predicate; only "
+                          "the areas are double-precision sums");
+  AccuracyStatement out;
+  out.method = VisibilityMethodName(method, lookup);
+  out.parameters["samples"] = samples;
+  out.error_bound = error.total();
+  out.confidence = error.confidence;
+  const std::string lookup_words =
+      error.lookup_max > 0 ? absl::StrCat("; the Hough lookup's error (at most ", error.lookup_max,
+                                          ", per texel in lookup_error) is included")
+                           : std::string("; no lookup error (same bits as casting the same segments)");
+  if (error.has_per_texel) {
+    out.note = absl::StrCat(
+        "each texel's visible fraction within its own bound of the true (continuous) fraction at confidence ",
+        error.confidence,
+        ", from its count of visible samples (one independent sample in each of N equal-area cells: the count is "
+        "Poisson-binomial, and the binomial's Clopper-Pearson limits one count wider hold for it, Hoeffding 1956); "
+        "error_bound is the largest texel's, texel_error gives each (want_texel_error)",
+        lookup_words);
+    return out;
+  }
+  out.note = absl::StrCat(
+      "visible fraction within +-", error.sampling, " of the true (continuous) fraction at confidence ",
+      error.confidence,
+      error.rigorous ? " (Hoeffding over one independent sample in each of N equal-area cells: a bound)"
+                     : " (the Hoeffding half-width of N independent samples; these samples are regular, custom, "
+                       "decorrelated or cut by a polygon, so it is an estimate, not a guarantee)",
+      error.lookup_max > 0 ? absl::StrCat(", plus at most ", error.lookup_max,
+                                          " from the Hough lookup (per texel in lookup_error)")
+                           : std::string(", no lookup error (same bits as casting the same segments)"));
+  return out;
+}
+
+StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query,
+                                                   const sampling::HiddenSampleMapBandSink& sink) {
+  VISQ_RETURN_IF_ERROR(CheckHiddenSampleMapQuery(query));
+  VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, HiddenSampleMapUnstated(engine, query, sink));
+  answer.accuracy = SampledVisibilityStatement(answer.result.error, answer.method, query.request.options.lookup,
+                                               answer.result.sample_count);
+  if (answer.plan) AddChosenPlan(*answer.plan, answer.accuracy);
+  return answer;
+}
+
+StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query) {
+  VISQ_RETURN_IF_ERROR(CheckPatchVisibilityQuery(query));
+  VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, PatchVisibilityUnstated(engine, query));
+  answer.accuracy = SampledVisibilityStatement(answer.result.error, answer.method, query.request.lookup,
+                                               static_cast<int>(answer.result.source_visible.size()));
+  if (answer.plan) AddChosenPlan(*answer.plan, answer.accuracy);
   return answer;
 }
 

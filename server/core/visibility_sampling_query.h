@@ -11,6 +11,7 @@
 
 #include "common/status.h"
 #include "core/accuracy_planner.h"
+#include "core/accuracy_statement.h"
 #include "core/call_options.h"
 #include "core/work_budget.h"
 #include "visq/gpu/hidden_sample_map.h"
@@ -23,6 +24,13 @@ enum class VisibilityMethod { kRaster, kRaycast, kPluckerExact };
 
 // "raster-exact-lookup", "raster-hough-lookup", "raycast", "plucker-exact".
 std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode lookup);
+
+// What a sampled (or exact) visible fraction can promise: per-texel
+// Clopper-Pearson limits for one independent sample per equal-area cell, a
+// Hoeffding half-width otherwise (an estimate where the samples are not
+// independent), plus the Hough lookup's own error.
+AccuracyStatement SampledVisibilityStatement(const sampling::ErrorBound& error, VisibilityMethod method,
+                                             sampling::LookupMode lookup, int samples);
 
 // Beyond this many bits (texels x samples) a request is RESOURCE_EXHAUSTED:
 // 4 Gbit, e.g. 2048 x 2048 texels x 1024 samples.
@@ -51,6 +59,7 @@ struct HiddenSampleMapAnswer {
   sampling::HiddenSampleMapResult result;
   VisibilityMethod method = VisibilityMethod::kRaster;  // what produced it
   std::optional<PlanReport> plan;                       // with a target
+  AccuracyStatement accuracy;                           // over every band
   // The answer's share of the budget for work in flight: it goes with the
   // answer, once the answer has been sent.
   std::shared_ptr<WorkMemoryBudget::Reservation> memory;
@@ -70,6 +79,7 @@ struct PatchVisibilityAnswer {
   sampling::PatchVisibilityResult result;
   VisibilityMethod method = VisibilityMethod::kRaster;
   std::optional<PlanReport> plan;
+  AccuracyStatement accuracy;
 };
 
 // Every check of a query that needs neither the scene nor the GPU: what is

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 
+#include "absl/strings/str_cat.h"
 #include "common/job_timing.h"
 #include "core/engine.h"
 
@@ -143,6 +144,52 @@ StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQ
     answer.result.combined.clear();
   }
   return answer;
+}
+
+const char* VolumetricMethodName(gpu::VolumetricMethod method) {
+  return method == gpu::VolumetricMethod::kMinMaxTraversal ? "min-max-mipmap" : "ray-marching";
+}
+
+AccuracyStatement VolumetricStatement(const gpu::VolumetricResult& figures) {
+  AccuracyStatement out;
+  out.method = VolumetricMethodName(figures.method);
+  const bool svd = figures.integrand == gpu::VolumetricIntegrand::kSvd;
+  out.note = absl::StrCat(
+      "no numeric bound against the continuous integral is stated; deterministic: the min-max traversal and ray "
+      "marching integrate the same rectified shadow map and give the same image up to float summation order; the "
+      "shadow boundary is resolved to the rectified map (",
+      figures.rectified_rows, " rows x ", figures.rectified_columns, " columns), the ",
+      std::string(gpu::VolumetricIntegrandName(figures.integrand)),
+      svd ? absl::StrCat(" integrand approximates the spot light's phase x attenuation by a rank-", figures.svd_rank,
+                         " SVD whose largest residual is ", figures.integrand_error,
+                         " of its largest value (parameters svd_rank, integrand_error); texels cut by shadow edges or "
+                         "the ray's ends, and rays nearly towards or away from the light, are exact per texel")
+          : std::string(" integrand is exact per texel span (per-texel midpoint rule for attenuation with spot or "
+                        "textured lights)"));
+  if (svd) {
+    out.parameters["svd_rank"] = figures.svd_rank;
+    out.parameters["integrand_error"] = figures.integrand_error;
+  }
+  return out;
+}
+
+std::optional<AccuracyStatement> VolumetricEstimateStatement(const VolumetricAnswer& answer) {
+  if (!answer.estimate) return std::nullopt;
+  const VolumetricErrorEstimate& e = *answer.estimate;
+  AccuracyStatement out;
+  out.method = VolumetricMethodName(answer.result.method);
+  out.error_bound = e.max_pixel_error;
+  out.confidence = 0.0;
+  out.note = absl::StrCat(
+      "an estimate, not a bound: the largest per-pixel difference from the same image with a ", e.coarse_map_size,
+      "^2 shadow map (relative L1 difference ", e.relative_l1_error,
+      "); the traversal integrates the rectified map exactly, so the error left is where the map puts shadow edges, "
+      "which falls about as the map's texel: the difference estimates the error of this image");
+  out.parameters["shadow_map_size"] = answer.maps_rendered.back();
+  out.parameters["coarse_shadow_map_size"] = e.coarse_map_size;
+  out.parameters["relative_l1_error"] = e.relative_l1_error;
+  out.parameters["maps_rendered"] = double(answer.maps_rendered.size());
+  return out;
 }
 
 }  // namespace visq

@@ -8,6 +8,7 @@
 
 #include "common/status.h"
 #include "core/accuracy_planner.h"
+#include "core/accuracy_statement.h"
 #include "core/call_options.h"
 #include "visq/gpu/volumetric_shadows.h"
 
@@ -53,5 +54,17 @@ struct VolumetricAnswer {
 // (gpu::RenderVolumetricShadows).
 [[nodiscard]] StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
                                                             const gpu::VolumetricBandSink& sink = {});
+
+// "min-max-mipmap" or "ray-marching".
+const char* VolumetricMethodName(gpu::VolumetricMethod method);
+
+// The image's promise from its figures (it goes with the first band): no
+// numeric bound against the continuous integral, what is exact and at what
+// resolution the shadow boundary is resolved.
+AccuracyStatement VolumetricStatement(const gpu::VolumetricResult& figures);
+
+// With an error estimate, the statement the last message carries; without
+// one, nothing to add.
+std::optional<AccuracyStatement> VolumetricEstimateStatement(const VolumetricAnswer& answer);
 
 }  // namespace visq

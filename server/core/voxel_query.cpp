@@ -2,7 +2,9 @@
 
 #include <algorithm>
 
+#include "absl/strings/str_cat.h"
 #include "core/engine.h"
+#include "glm/geometric.hpp"
 
 namespace visq {
 namespace {
@@ -82,6 +84,52 @@ StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const Transm
   params.job = query.call.Job();
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
   return gpu::Transmittance(engine.gpu(), *resident->scene, *gpu_scene, params);
+}
+
+const char* RasterizationName(gpu::Rasterization rasterization) {
+  return rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard";
+}
+
+const char* SlicePrecisionName(gpu::SlicePrecision precision) {
+  return precision == gpu::SlicePrecision::kLocal ? "local" : "uniform";
+}
+
+AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures, const gpu::SlicemapBox& box) {
+  const gpu::SlicemapGrid& grid = figures.grid;
+  const glm::dvec3 voxel(2.0 * box.half_extent.x / grid.width, 2.0 * box.half_extent.y / grid.height,
+                         2.0 * box.half_extent.z / grid.slices);
+  AccuracyStatement out;
+  out.method =
+      absl::StrCat("slicemap-", RasterizationName(figures.rasterization), "-", SlicePrecisionName(figures.precision));
+  const std::string voxel_size = absl::StrCat(voxel.x, " x ", voxel.y, " x ", voxel.z);
+  const char* precision_words =
+      figures.precision == gpu::SlicePrecision::kLocal ? "; local precision: slices span each column's near..far" : "";
+  if (figures.rasterization == gpu::Rasterization::kConservative) {
+    out.error_bound = glm::length(voxel);
+    out.confidence = 1.0;
+    out.note = absl::StrCat("every voxel a triangle touches is set, and some neighbours may be: each surface point is "
+                            "within one voxel (",
+                            voxel_size, "; error_bound is its diagonal) of a set voxel", precision_words);
+    return out;
+  }
+  // Standard rasterization samples texel centres: a triangle thinner than a
+  // texel, or seen edge-on, may set no voxel at all, so no distance bounds
+  // what is missed.
+  out.note = absl::StrCat("no numeric bound: standard rasterization samples texel centres and misses triangles "
+                          "thinner than a texel or seen edge-on; set voxels are within one voxel (",
+                          voxel_size, ") of the surface. Ask for conservative for a bound", precision_words);
+  return out;
+}
+
+AccuracyStatement TransmittanceStatement(const gpu::TransmittanceResult& result) {
+  AccuracyStatement out;
+  out.method = "transmittance-slicemap";
+  float worst = 0;
+  for (float e : result.optical_depth_error) worst = std::max(worst, e);
+  out.error_bound = worst;
+  out.confidence = 1.0;
+  out.note = result.error_statement;
+  return out;
 }
 
 }  // namespace visq

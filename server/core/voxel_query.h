@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "core/accuracy_statement.h"
 #include "core/call_options.h"
 #include "common/status.h"
 #include "visq/gpu/slicemap.h"
@@ -45,5 +46,18 @@ struct TransmittanceQuery {
                                                         gpu::SlicemapBox* box_used,
                                                         const gpu::VoxelizeBandSink& sink = {});
 [[nodiscard]] StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query);
+
+// "conservative" or "standard"; "local" or "uniform".
+const char* RasterizationName(gpu::Rasterization rasterization);
+const char* SlicePrecisionName(gpu::SlicePrecision precision);
+
+// A grid's promise (from its figures, so it can go with the first band):
+// conservative rasterization puts every surface point within one voxel of
+// a set voxel; standard rasterization bounds nothing.
+AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures, const gpu::SlicemapBox& box);
+
+// Transmittance: the optical depth's worst per-point bound, from the
+// slicemap's own error model.
+AccuracyStatement TransmittanceStatement(const gpu::TransmittanceResult& result);
 
 }  // namespace visq

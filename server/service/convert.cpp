@@ -97,13 +97,7 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
   tree->set_trees(static_cast<uint32_t>(answer.trees));
   tree->set_trees_created(static_cast<uint32_t>(answer.trees_created));
   ToProto(answer.receiver_region, tree->mutable_receiver_region());
-  auto* accuracy = out->mutable_accuracy();
-  accuracy->set_method("plucker-exact");
-  accuracy->set_error_bound(0.0);
-  accuracy->set_confidence(1.0);
-  accuracy->set_note(
-      "exact visibility: every side decision is an exact predicate; only the final areas and integrals are "
-      "double-precision sums (relative error about 1e-12)");
+  ToProto(LightVisibilityStatement(), out->mutable_accuracy());
 }
 
 namespace {
@@ -126,7 +120,7 @@ StatusOr<sampling::LookupMode> LookupFromProto(v1::LookupMode lookup) {
   switch (lookup) {
     case v1::LOOKUP_UNSPECIFIED:
     case v1::EXACT: return sampling::LookupMode::kExact;
-    case v1::FAST: return sampling::LookupMode::kHough;
+    case v1::HOUGH: return sampling::LookupMode::kHough;
     default: return absl::InvalidArgumentError(absl::StrCat("lookup: unknown value ", static_cast<int>(lookup)));
   }
 }
@@ -136,45 +130,6 @@ StatusOr<sampling::LookupMode> LookupFromProto(v1::LookupMode lookup) {
 StatusOr<int> SizeFromProto(uint32_t value, const char* field) {
   if (value > (1u << 24)) return absl::InvalidArgumentError(absl::StrCat(field, ": ", value, " is out of range"));
   return static_cast<int>(value);
-}
-
-v1::Accuracy AccuracyToProto(const sampling::ErrorBound& error, VisibilityMethod method, sampling::LookupMode lookup,
-                             int samples) {
-  v1::Accuracy out;
-  out.set_method(VisibilityMethodName(method, lookup));
-  if (method == VisibilityMethod::kPluckerExact) {
-    out.set_error_bound(0.0);
-    out.set_confidence(1.0);
-    out.set_note(
-        "exact visible fractions (Plücker method): every side decision is an exact predicate; only the areas are "
-        "double-precision sums");
-    return out;
-  }
-  (*out.mutable_parameters())["samples"] = samples;
-  out.set_error_bound(error.total());
-  out.set_confidence(error.confidence);
-  if (error.has_per_texel) {
-    out.set_note(absl::StrCat(
-        "each texel's visible fraction within its own bound of the true (continuous) fraction at confidence ",
-        error.confidence,
-        ", from its count of visible samples (one independent sample in each of N equal-area cells: the count is "
-        "Poisson-binomial, and the binomial's Clopper-Pearson limits one count wider hold for it, Hoeffding 1956); "
-        "error_bound is the largest texel's, texel_error gives each (want_texel_error)",
-        error.lookup_max > 0 ? absl::StrCat("; the Hough lookup's error (at most ", error.lookup_max,
-                                            ", per texel in lookup_error) is included")
-                             : std::string("; no lookup error (same bits as casting the same segments)")));
-    return out;
-  }
-  out.set_note(absl::StrCat(
-      "visible fraction within +-", error.sampling, " of the true (continuous) fraction at confidence ",
-      error.confidence,
-      error.rigorous ? " (Hoeffding over one independent sample in each of N equal-area cells: a bound)"
-                     : " (the Hoeffding half-width of N independent samples; these samples are regular, custom, "
-                       "decorrelated or cut by a polygon, so it is an estimate, not a guarantee)",
-      error.lookup_max > 0 ? absl::StrCat(", plus at most ", error.lookup_max,
-                                          " from the Hough lookup (per texel in lookup_error)")
-                           : std::string(", no lookup error (same bits as casting the same segments)")));
-  return out;
 }
 
 // A request with a target leaves the count and the method to the server.
@@ -196,6 +151,15 @@ AccuracyTarget FromProto(const v1::AccuracyTarget& target) {
   return out;
 }
 
+void ToProto(const AccuracyStatement& statement, v1::Accuracy* out) {
+  out->set_method(statement.method);
+  out->set_error_bound(statement.error_bound);
+  out->set_confidence(statement.confidence);
+  out->set_note(statement.note);
+  for (const auto& [name, value] : statement.parameters) (*out->mutable_parameters())[name] = value;
+  if (statement.predicted_ms > 0) out->set_predicted_ms(statement.predicted_ms);
+}
+
 void ToProto(const PlanReport& plan, v1::Accuracy* out) {
   for (const Plan& p : plan.plans) {
     v1::PlanEstimate* estimate = out->add_plans();
@@ -205,14 +169,6 @@ void ToProto(const PlanReport& plan, v1::Accuracy* out) {
     estimate->set_predicted_ms(p.predicted_ms);
     estimate->set_meets_target(p.meets_target);
   }
-  const Plan& chosen = plan.chosen_plan();
-  for (const auto& [name, value] : chosen.parameters) (*out->mutable_parameters())[name] = value;
-  out->set_predicted_ms(chosen.predicted_ms);
-  out->set_note(absl::StrCat(out->note(), "; chosen for the target among ", plan.plans.size(),
-                             " plans by the cost model (", plan.probe_ms > 0
-                                 ? absl::StrFormat("%.1f ms spent probing methods new to this scene", plan.probe_ms)
-                                 : std::string("no probing needed"),
-                             ")"));
 }
 
 StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request) {
@@ -306,11 +262,9 @@ Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int w
   });
 }
 
-v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer,
-                                                       sampling::LookupMode lookup) {
-  const sampling::HiddenSampleMapResult& result = answer.result;
+v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer) {
   v1::HiddenSampleMapResponse last;
-  *last.mutable_accuracy() = AccuracyToProto(result.error, answer.method, lookup, result.sample_count);
+  ToProto(answer.accuracy, last.mutable_accuracy());
   if (answer.plan) ToProto(*answer.plan, last.mutable_accuracy());
   return last;
 }
@@ -347,9 +301,7 @@ void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* o
     p->set_receiver_sample(pair.receiver_sample);
   }
   out->set_unblocked_total(result.unblocked_total);
-  const sampling::LookupMode lookup = result.error.lookup_max > 0 ? sampling::LookupMode::kHough : sampling::LookupMode::kExact;
-  *out->mutable_accuracy() =
-      AccuracyToProto(result.error, answer.method, lookup, static_cast<int>(result.source_visible.size()));
+  ToProto(answer.accuracy, out->mutable_accuracy());
   if (answer.plan) ToProto(*answer.plan, out->mutable_accuracy());
 }
 
@@ -424,32 +376,12 @@ v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult&
   v1::VolumetricShadowResponse first;
   first.set_width(result.width);
   first.set_height(result.height);
-  const bool min_max = result.method == gpu::VolumetricMethod::kMinMaxTraversal;
-  first.set_method(min_max ? "min-max-mipmap" : "ray-marching");
+  first.set_method(VolumetricMethodName(result.method));
   first.set_integrand(std::string(gpu::VolumetricIntegrandName(result.integrand)));
   first.set_rectified_rows(result.rectified_rows);
   first.set_rectified_columns(result.rectified_columns);
   first.set_epipole_inside_map(result.epipole_inside_map);
-  auto* accuracy = first.mutable_accuracy();
-  accuracy->set_method(first.method());
-  // No numeric bound against the continuous integral is derived yet.
-  accuracy->set_error_bound(-1.0);
-  accuracy->set_confidence(0.0);
-  accuracy->set_note(absl::StrCat(
-      "no numeric bound against the continuous integral is stated; deterministic: the min-max traversal and ray marching integrate the same rectified shadow map and give the "
-      "same image up to float summation order; the shadow boundary is resolved to the rectified map (",
-      result.rectified_rows, " rows x ", result.rectified_columns, " columns), the ", first.integrand(),
-      result.integrand == gpu::VolumetricIntegrand::kSvd
-          ? absl::StrCat(" integrand approximates the spot light's phase x attenuation by a rank-", result.svd_rank,
-                         " SVD whose largest residual is ", result.integrand_error,
-                         " of its largest value (parameters svd_rank, integrand_error); texels cut by shadow edges or "
-                         "the ray's ends, and rays nearly towards or away from the light, are exact per texel")
-          : std::string(" integrand is exact per texel span (per-texel midpoint rule for attenuation with spot or "
-                        "textured lights)")));
-  if (result.integrand == gpu::VolumetricIntegrand::kSvd) {
-    (*accuracy->mutable_parameters())["svd_rank"] = result.svd_rank;
-    (*accuracy->mutable_parameters())["integrand_error"] = result.integrand_error;
-  }
+  ToProto(VolumetricStatement(result), first.mutable_accuracy());
   return first;
 }
 
@@ -469,22 +401,8 @@ Status WriteVolumetricBand(const gpu::VolumetricBand& band,
 v1::VolumetricShadowResponse VolumetricLastMessage(const VolumetricAnswer& answer) {
   const gpu::VolumetricResult& result = answer.result;
   v1::VolumetricShadowResponse last;
-  if (answer.estimate) {
-    const VolumetricErrorEstimate& e = *answer.estimate;
-    auto* accuracy = last.mutable_accuracy();
-    accuracy->set_error_bound(e.max_pixel_error);
-    accuracy->set_confidence(0.0);
-    accuracy->set_note(absl::StrCat(
-        "an estimate, not a bound: the largest per-pixel difference from the same image with a ", e.coarse_map_size,
-        "^2 shadow map (relative L1 difference ", e.relative_l1_error,
-        "); the traversal integrates the rectified map exactly, so the error left is where the map puts shadow "
-        "edges, which falls about as the map's texel: the difference estimates the error of this image"));
-    auto& parameters = *accuracy->mutable_parameters();
-    parameters["shadow_map_size"] = answer.maps_rendered.back();
-    parameters["coarse_shadow_map_size"] = e.coarse_map_size;
-    parameters["relative_l1_error"] = e.relative_l1_error;
-    parameters["maps_rendered"] = double(answer.maps_rendered.size());
-  }
+  if (const std::optional<AccuracyStatement> estimate = VolumetricEstimateStatement(answer))
+    ToProto(*estimate, last.mutable_accuracy());
   auto& stage_ms = *last.mutable_stage_ms();
   stage_ms["setup"] = result.timings.setup_ms;
   if (result.integrand == gpu::VolumetricIntegrand::kSvd) stage_ms["integrand_table"] = result.timings.integrand_table_ms;
@@ -596,38 +514,15 @@ v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& result, con
   first.set_height(grid.height);
   first.set_slices(grid.slices);
   first.set_words_per_column(grid.words_per_column);
-  first.set_rasterization(result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard");
-  first.set_precision(result.precision == gpu::SlicePrecision::kLocal ? "local" : "uniform");
+  first.set_rasterization(RasterizationName(result.rasterization));
+  first.set_precision(SlicePrecisionName(result.precision));
   auto* b = first.mutable_box();
   ToProto(box.center, b->mutable_center());
   ToProto(box.axis_u, b->mutable_axis_u());
   ToProto(box.axis_v, b->mutable_axis_v());
   ToProto(box.axis_w, b->mutable_axis_w());
   ToProto(box.half_extent, b->mutable_half_extent());
-  const glm::dvec3 voxel(2.0 * box.half_extent.x / grid.width, 2.0 * box.half_extent.y / grid.height,
-                         2.0 * box.half_extent.z / grid.slices);
-  auto* accuracy = first.mutable_accuracy();
-  accuracy->set_method(absl::StrCat("slicemap-", first.rasterization(), "-", first.precision()));
-  const std::string voxel_size = absl::StrCat(voxel.x, " x ", voxel.y, " x ", voxel.z);
-  const char* precision_note =
-      result.precision == gpu::SlicePrecision::kLocal ? "; local precision: slices span each column's near..far" : "";
-  if (result.rasterization == gpu::Rasterization::kConservative) {
-    accuracy->set_error_bound(glm::length(voxel));
-    accuracy->set_confidence(1.0);
-    accuracy->set_note(absl::StrCat("every voxel a triangle touches is set, and some neighbours may be: each surface "
-                                    "point is within one voxel (",
-                                    voxel_size, "; error_bound is its diagonal) of a set voxel", precision_note));
-  } else {
-    // Standard rasterization samples texel centres: a triangle thinner than
-    // a texel, or seen edge-on, may set no voxel at all, so no distance
-    // bounds what is missed.
-    accuracy->set_error_bound(-1.0);
-    accuracy->set_confidence(0.0);
-    accuracy->set_note(absl::StrCat("no numeric bound: standard rasterization samples texel centres and misses "
-                                    "triangles thinner than a texel or seen edge-on; set voxels are within one voxel (",
-                                    voxel_size, ") of the surface. Ask for conservative for a bound",
-                                    precision_note));
-  }
+  ToProto(VoxelizeStatement(result, box), first.mutable_accuracy());
   return first;
 }
 
@@ -701,13 +596,7 @@ void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* 
   out->set_max_texel_size(result.max_texel_size);
   out->set_ambiguous_columns(result.ambiguous_columns);
   for (uint8_t a : result.ambiguous) out->add_ambiguous(a != 0);
-  auto* accuracy = out->mutable_accuracy();
-  accuracy->set_method("transmittance-slicemap");
-  float worst = 0;
-  for (float e : result.optical_depth_error) worst = std::max(worst, e);
-  accuracy->set_error_bound(worst);
-  accuracy->set_confidence(1.0);
-  accuracy->set_note(result.error_statement);
+  ToProto(TransmittanceStatement(result), out->mutable_accuracy());
 }
 
 StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request) {

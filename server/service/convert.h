@@ -31,8 +31,9 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
 
 // A target as the core takes it (confidence 0 on the wire means 0.95).
 AccuracyTarget FromProto(const v1::AccuracyTarget& target);
-// What the planner weighed and chose, into an Accuracy already carrying the
-// chosen method's bound.
+// The core's statement, field by field.
+void ToProto(const AccuracyStatement& statement, v1::Accuracy* out);
+// The plans the planner weighed, beside the statement of the chosen one.
 void ToProto(const PlanReport& plan, v1::Accuracy* out);
 
 [[nodiscard]] StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
@@ -48,8 +49,7 @@ v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSa
                                               bool with_texel_error,
                                               const std::function<Status(v1::HiddenSampleMapResponse)>& write,
                                               size_t chunk_elements = kChunkElements);
-v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer,
-                                                       sampling::LookupMode lookup);
+v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer);
 
 [[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
 void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);

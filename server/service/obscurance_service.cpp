@@ -21,36 +21,6 @@
 namespace visq::service {
 namespace {
 
-// The error of W: Monte Carlo over D directions. Per direction, a patch's
-// value is a mean of values in [0, 1] (per channel), so Hoeffding's
-// inequality for D independent directions gives the half-width below at
-// 95 %. The directions are a rotated Halton sequence and each patch weighs
-// them by its projected area, so this is an estimate, not a guarantee.
-void SetAccuracy(uint64_t directions, double mean_samples, double confidence, v1::Accuracy* out) {
-  out->set_method("obscurance-depth-peeling");
-  out->set_confidence(confidence);
-  out->set_error_bound(ObscuranceErrorEstimate(directions, confidence));
-  (*out->mutable_parameters())["directions"] = static_cast<double>(directions);
-  out->set_note(absl::StrCat(
-      "estimate, not a bound: Hoeffding half-width at ", confidence, " for ", directions,
-      " independent directions with per-direction values in [0, 1]; the directions are a rotated Halton sequence "
-      "(usually better than independent) and are cosine-weighted per patch (mean ",
-      absl::StrFormat("%.1f", mean_samples), " samples per patch); rasterization of the bundles is not counted"));
-}
-
-// The ray-cast estimator: N rays per patch, each a value in [0, 1] per
-// channel; Hoeffding's half-width for N independent rays (an estimate: the
-// rays are a rotated Halton sequence).
-void SetRaycastAccuracy(uint32_t rays_per_patch, double confidence, v1::Accuracy* out) {
-  out->set_method("obscurance-raycast");
-  out->set_confidence(confidence);
-  out->set_error_bound(ObscuranceErrorEstimate(rays_per_patch, confidence));
-  (*out->mutable_parameters())["rays_per_patch"] = static_cast<double>(rays_per_patch);
-  out->set_note(absl::StrCat("estimate, not a bound: Hoeffding half-width at ", confidence, " for ", rays_per_patch,
-                             " rays per patch with values in [0, 1]; the rays are a rotated Halton sequence "
-                             "(usually better than independent), cosine-distributed from points uniform on the patch"));
-}
-
 void AddVec3(const glm::vec3& v, google::protobuf::RepeatedField<float>* out) {
   out->Add(v.x);
   out->Add(v.y);
@@ -86,26 +56,10 @@ ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(ObscuranceAnswer 
   f->set_truncated_directions(a.stats.truncated_directions);
   f->set_bundle_resolution(a.stats.bundle_resolution);
   f->set_update_ready(a.update_ready);
-  if (a.method == ObscuranceMethod::kRaycast) {
-    // Every estimated patch got exactly rays_per_patch rays.
-    uint64_t estimated = 0;
-    for (uint8_t e : a.result->estimated) estimated += e;
-    f->set_estimated_texels(estimated);
-    f->set_mean_samples_per_patch(a.result->mean_samples_per_patch);
-    SetRaycastAccuracy(a.rays_per_patch, a.confidence, f->mutable_accuracy());
-  } else {
-    // Samples per patch from the partial's counts, so partial bakes have them too.
-    uint64_t estimated = 0, samples = 0;
-    for (uint64_t c : a.partial.counts)
-      if (c > 0) {
-        ++estimated;
-        samples += c;
-      }
-    const double mean_samples = estimated > 0 ? static_cast<double>(samples) / static_cast<double>(estimated) : 0.0;
-    f->set_estimated_texels(estimated);
-    f->set_mean_samples_per_patch(mean_samples);
-    SetAccuracy(a.partial.DirectionCount(), mean_samples, a.confidence, f->mutable_accuracy());
-  }
+  const ObscuranceCoverage coverage = CoverageOf(a);
+  f->set_estimated_texels(coverage.estimated_texels);
+  f->set_mean_samples_per_patch(coverage.mean_samples_per_patch);
+  service::ToProto(ObscuranceStatement(a), f->mutable_accuracy());
   if (a.plan) ToProto(*a.plan, f->mutable_accuracy());
 
   // The figures alone, then each array's chunks.
@@ -294,16 +248,7 @@ void ToProto(const ObscuranceUpdateAnswer& a, v1::UpdateObscurancesResponse* out
   out->set_width(a.width);
   out->set_height(a.height);
   for (const glm::vec3& v : a.full_w) AddVec3(v, out->mutable_full_w());
-  // Recomputed patches: R rays each, values in [0, 1]: Hoeffding at 95 %.
-  auto* accuracy = out->mutable_accuracy();
-  accuracy->set_method("obscurance-raycast-update");
-  accuracy->set_confidence(0.95);
-  const double r = static_cast<double>(std::max<uint32_t>(a.rays_per_patch, 1));
-  accuracy->set_error_bound(std::sqrt(std::log(2.0 / 0.05) / (2.0 * r)));
-  accuracy->set_note(absl::StrCat("recomputed patches: Hoeffding half-width at 95 % for ", a.rays_per_patch,
-                                  " independent cosine-distributed rays per patch (values in [0, 1]); the other "
-                                  "patches keep the bake's values (",
-                                  a.directions, " directions) bit for bit"));
+  service::ToProto(ObscuranceUpdateStatement(a), out->mutable_accuracy());
 }
 
 }  // namespace

@@ -28,9 +28,9 @@ ServerFigures CollectServerFigures(const ServiceContext& ctx) {
   f.work_bytes_in_use = budget.in_use();
   f.work_bytes_peak = budget.peak();
   f.work_bytes_capacity = budget.capacity();
-  f.caches.push_back({"light_visibility", ctx.engine.light_cache().size(), ctx.engine.light_cache().bytes(),
-                      ctx.engine.light_cache_capacity(), ctx.engine.light_tree_hits.load(),
-                      ctx.engine.light_tree_misses.load(), ctx.engine.light_cache().evictions()});
+  const Engine::LightCacheStats light = ctx.engine.light_cache_stats();
+  f.caches.push_back(
+      {"light_visibility", light.entries, light.bytes, light.capacity_bytes, light.hits, light.misses, light.evictions});
   f.methods = ctx.metrics.Summaries();
   f.structure_builds = ctx.engine.build_times().Snapshot();
   return f;

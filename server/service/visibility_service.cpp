@@ -287,12 +287,13 @@ Status AnswerLightVisibility(Engine& engine, const LightVisibilityQuery& query, 
   ToProto(answer, response);
   auto* cache = response->mutable_cache();
   cache->set_name("light_visibility");
-  cache->set_entries(engine.light_cache().size());
-  cache->set_bytes(engine.light_cache().bytes());
-  cache->set_capacity_bytes(engine.light_cache_capacity());
-  cache->set_hits(engine.light_tree_hits.load());
-  cache->set_misses(engine.light_tree_misses.load());
-  cache->set_evictions(engine.light_cache().evictions());
+  const Engine::LightCacheStats light = engine.light_cache_stats();
+  cache->set_entries(light.entries);
+  cache->set_bytes(light.bytes);
+  cache->set_capacity_bytes(light.capacity_bytes);
+  cache->set_hits(light.hits);
+  cache->set_misses(light.misses);
+  cache->set_evictions(light.evictions);
   auto* timing = response->mutable_timing();
   timing->set_queue_ms(queue_ms);
   timing->set_compute_ms(answer.compute_ms);
@@ -418,7 +419,7 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
                              : std::string());
         // The memory reservation lasts until the last message is sent.
         if (answer.memory) out.Keep(answer.memory);
-        v1::HiddenSampleMapResponse last = HiddenSampleMapLastMessage(answer, query.request.options.lookup);
+        v1::HiddenSampleMapResponse last = HiddenSampleMapLastMessage(answer);
         SetProducedTiming(queue_ms + result.timing.queue_ms, result.timing.run_ms + result.table_ms,
                           query.call.BuildMs(), out.write_ms(), log, last.mutable_timing());
         return last;

@@ -158,7 +158,7 @@ TEST_F(CliTest, UnknownEnumValuesAreRefusedNamingTheAllowedOnes) {
   };
   for (const Case& c : std::vector<Case>{
            {"hidden-map --scene x" + patches + " --method raycats", "'raycats' is not one of raster, raycast, exact"},
-           {"hidden-map --scene x" + patches + " --lookup fsat", "'fsat' is not one of exact, fast"},
+           {"hidden-map --scene x" + patches + " --lookup fsat", "'fsat' is not one of exact, hough, fast"},
            {"patch-visibility --scene x" + patches + " --method rastr", "'rastr' is not one of raster, raycast, exact"},
            {std::string("transmittance --scene x --light 0,-1,0 --absorber a=1 --receiver '") + kFloorUp +
                 "' --light-kind spot",

@@ -358,7 +358,7 @@ struct MethodCase {
 };
 constexpr MethodCase kSamplingMethods[] = {
     {"raster-exact", v1::RASTER, v1::EXACT},
-    {"raster-fast", v1::RASTER, v1::FAST},
+    {"raster-hough", v1::RASTER, v1::HOUGH},
     {"raycast", v1::RAYCAST, v1::EXACT},
 };
 

@@ -3,6 +3,7 @@
 // and scene upload.
 #include <atomic>
 #include <cmath>
+#include <cstdio>
 #include <future>
 #include <thread>
 #include <type_traits>
@@ -122,6 +123,9 @@ TEST(GpuContext, IsOpenGl45Core) {
   EXPECT_NE(device.gl_version.find("4.5"), std::string::npos) << device.gl_version;
   EXPECT_FALSE(device.gl_renderer.empty());
   EXPECT_FALSE(device.egl_platform.empty());
+  // tests/bench/gpu-check.sh reads this line to show which device ran.
+  std::printf("gpu-context: renderer \"%s\", %s, EGL platform %s\n", device.gl_renderer.c_str(),
+              device.gl_version.c_str(), device.egl_platform.c_str());
 }
 
 TEST(GpuContext, SelfTestDrawsAndReadsBackWithLogicOpOr) {

@@ -218,7 +218,7 @@ TEST_F(HostileInputTest, FarCoordinatesAreRefusedNotAnAbort) {
   EXPECT_TRUE(Alive()) << server_->Log();
 }
 
-// The long computation: a RAYCAST PatchVisibility of 64^2 x 512^2
+// A long computation: a RAYCAST PatchVisibility of 64^2 x 512^2
 // pairs (a billion segments, about a minute on two cores).
 v1::PatchVisibilityRequest BillionSegmentRaycast() {
   v1::PatchVisibilityRequest request;

@@ -102,7 +102,9 @@ TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
                                          /*chunk_elements=*/2).ok());
   }
   map.error.sampling = 0.125;
-  sent.push_back(HiddenSampleMapLastMessage(answer, sampling::LookupMode::kHough));
+  answer.accuracy =
+      SampledVisibilityStatement(map.error, VisibilityMethod::kRaster, sampling::LookupMode::kHough, map.sample_count);
+  sent.push_back(HiddenSampleMapLastMessage(answer));
 
   EXPECT_EQ(sent.front().width(), 3u);
   EXPECT_EQ(sent.front().words_per_texel(), 2u);
@@ -122,6 +124,27 @@ TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
   EXPECT_EQ(got_fractions, fractions);
   EXPECT_EQ(got_words, words);
   EXPECT_EQ(got_lookup, lookup);
+}
+
+// The transport adds nothing to the core's statement and drops nothing.
+TEST(Convert, AccuracyStatementCopiedFieldByField) {
+  AccuracyStatement statement;
+  statement.method = "slicemap-conservative-uniform";
+  statement.error_bound = 0.25;
+  statement.confidence = 1.0;
+  statement.note = "why";
+  statement.parameters = {{"samples", 64.0}, {"directions", 8.0}};
+  statement.predicted_ms = 12.5;
+  v1::Accuracy out;
+  ToProto(statement, &out);
+  EXPECT_EQ(out.method(), statement.method);
+  EXPECT_EQ(out.error_bound(), statement.error_bound);
+  EXPECT_EQ(out.confidence(), statement.confidence);
+  EXPECT_EQ(out.note(), statement.note);
+  ASSERT_EQ(out.parameters_size(), 2);
+  EXPECT_EQ(out.parameters().at("samples"), 64.0);
+  EXPECT_EQ(out.parameters().at("directions"), 8.0);
+  EXPECT_EQ(out.predicted_ms(), 12.5);
 }
 
 // A write that fails (the client went away) stops the band there.

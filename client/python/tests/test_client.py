@@ -213,13 +213,13 @@ class ClientTest(unittest.TestCase):
         # The bitmasks say the same as the fractions.
         blocked = m.blocked()
         np.testing.assert_allclose(1.0 - blocked.mean(axis=-1), m.visible_fraction, atol=1e-6)
-        # The accuracy comes in the stream's last message; FAST lookup errors
+        # The accuracy comes in the stream's last message; HOUGH lookup errors
         # are chunks like the fractions.
         self.assertEqual(m.accuracy.method, "raster-exact-lookup")
         self.assertGreater(m.accuracy.error_bound, 0.0)
         self.assertIsNone(m.lookup_error)
         fast = self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, FLOOR, width=24, height=16, samples=64,
-                                             lookup="fast")
+                                             lookup="hough")
         self.assertEqual(fast.accuracy.method, "raster-hough-lookup")
         self.assertEqual(fast.lookup_error.shape, (16, 24))
         self.assertTrue((fast.lookup_error >= 0).all())

@@ -110,7 +110,7 @@ class HiddenSampleMap:
     visible_fraction: np.ndarray               # (height, width) float32
     visible_rgb: Optional[np.ndarray]          # (height, width, 3) float32, coloured lights
     blocked_bits: Optional[np.ndarray]         # (height, width, words_per_texel) uint32; bit i: sample i hidden
-    lookup_error: Optional[np.ndarray]         # (height, width) float32, FAST lookup only
+    lookup_error: Optional[np.ndarray]         # (height, width) float32, HOUGH lookup only
     texel_error: Optional[np.ndarray]          # (height, width) float32, each texel's bound (texel_error=True)
     source_samples: np.ndarray                 # (samples, 3) float64 world positions
     figures: Any                               # HiddenSampleMapResponse without the arrays
@@ -299,7 +299,8 @@ def _target(target, out):
 
 
 _METHODS = {"raster": pb.RASTER, "raycast": pb.RAYCAST, "exact": pb.PLUCKER_EXACT, "plucker-exact": pb.PLUCKER_EXACT}
-_LOOKUPS = {"exact": pb.EXACT, "fast": pb.FAST}
+# "fast" was the Hough lookup's first name.
+_LOOKUPS = {"exact": pb.EXACT, "hough": pb.HOUGH, "fast": pb.HOUGH}
 
 
 def _array(field, dtype):

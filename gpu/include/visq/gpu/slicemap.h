@@ -65,8 +65,9 @@ struct TriangleRange {
   uint32_t count = 0;
 };
 
-// Caps. The image and slice caps follow the issue; the byte cap keeps one
-// request from taking the GPU's memory (RESOURCE_EXHAUSTED beyond it).
+// Caps (RESOURCE_EXHAUSTED beyond them). 4096 columns, rows and slices
+// covers every grid the tools ask for; the byte cap keeps one request from
+// taking the GPU's memory.
 inline constexpr uint32_t kMaxSlicemapImageSize = 4096;
 inline constexpr uint32_t kMaxSlicemapSlices = 4096;
 inline constexpr uint32_t kSlicesPerPass = 1024;       // 8 targets x 4 channels x 32 bits

@@ -1,0 +1,31 @@
+#include "core/accuracy_statement.h"
+
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/accuracy_planner.h"
+
+namespace visq {
+
+AccuracyStatement ExactStatement(std::string method, std::string note) {
+  AccuracyStatement out;
+  out.method = std::move(method);
+  out.error_bound = 0.0;
+  out.confidence = 1.0;
+  out.note = std::move(note);
+  return out;
+}
+
+void AddChosenPlan(const PlanReport& plan, AccuracyStatement& statement) {
+  const Plan& chosen = plan.chosen_plan();
+  for (const auto& [name, value] : chosen.parameters) statement.parameters[name] = value;
+  statement.predicted_ms = chosen.predicted_ms;
+  absl::StrAppend(&statement.note, "; chosen for the target among ", plan.plans.size(), " plans by the cost model (",
+                  plan.probe_ms > 0
+                      ? absl::StrFormat("%.1f ms spent probing methods new to this scene", plan.probe_ms)
+                      : std::string("no probing needed"),
+                  ")");
+}
+
+}  // namespace visq
