@@ -203,7 +203,7 @@ std::vector<Ball> ObscuranceUpdater::ClusterBalls(const Object& object) const {
   return balls;
 }
 
-std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const {
+std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object, ObscuranceUpdate* figures) const {
   const std::vector<Ball> balls = ClusterBalls(object);
   std::vector<uint32_t> out;
   if (balls.empty()) return out;
@@ -235,6 +235,10 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const 
     if (glm::length(patch_center_[texel] - all.center) > all.radius + params_.d_max + patch_radius_[texel]) continue;
     if (std::binary_search(object.own.begin(), object.own.end(), texel)) continue;
     near.push_back(texel);
+  }
+  if (figures != nullptr) {
+    figures->pooled = static_cast<uint32_t>(pool.size());
+    figures->within_reach = static_cast<uint32_t>(near.size());
   }
   // Keep those with a ray that meets the object alone within d_max. Tests,
   // cheapest first: balls in reach of the patch and in front of some of its
@@ -348,7 +352,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   update.move_ms = MillisecondsBetween(start, moved);
 
   // Recompute: old list, own patches, and patches whose rays meet the object now.
-  const std::vector<uint32_t> fresh = Candidates(object);
+  const std::vector<uint32_t> fresh = Candidates(object, &update);
   update.candidates = static_cast<uint32_t>(fresh.size());
   update.own_patches = static_cast<uint32_t>(object.own.size());
   const std::vector<uint32_t> must = SortedUnion(object.influenced, object.own);

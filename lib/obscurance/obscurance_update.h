@@ -63,6 +63,9 @@ struct ObscuranceUpdate {
   std::vector<glm::vec3> vertex_w;
   // Figures.
   uint32_t influenced_before = 0, influenced_after = 0, own_patches = 0, candidates = 0, recomputed = 0;
+  // Patches the candidate search looked at (from the patch index, or every
+  // texel on the plain path) and those within d_max of the object's balls.
+  uint32_t pooled = 0, within_reach = 0;
   uint64_t rays = 0;
   double milliseconds = 0;
   // Where the time went: moving the geometry and re-committing the instance,
@@ -115,7 +118,7 @@ class ObscuranceUpdater {
   // more are tracked through met_object).
   void TracePatches(const std::vector<uint32_t>& texels, std::vector<glm::vec3>& value,
                     std::vector<std::vector<int32_t>>& met) const;
-  std::vector<uint32_t> Candidates(const Object& object) const;
+  std::vector<uint32_t> Candidates(const Object& object, ObscuranceUpdate* figures = nullptr) const;
   // Bounding balls of groups of the object's triangles.
   std::vector<Ball> ClusterBalls(const Object& object) const;
 

@@ -191,11 +191,12 @@ int main(int argc, char** argv) {
       }
       std::sort(ms.begin(), ms.end());
       std::printf("update sponza node '%s' (%u triangles), %u rays/patch, %s, d_max %.2f: median %.1f ms (min %.1f, max %.1f); "
-                  "last move: %zu texels changed, %u recomputed, %llu rays (move %.1f, candidates %.1f, trace %.1f ms); "
+                  "last move: %u pooled, %u within reach, %u candidates, %zu texels changed, %u recomputed, %llu rays "
+                  "(move %.1f, candidates %.1f, trace %.1f ms); "
                   "create %.2f s\n",
                   scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, rays,
                   variant == 0 ? "plain (scan, 1 ray)" : variant == 1 ? "index, 1 ray" : "index, streams", params.d_max, ms[2], ms[0],
-                  ms[4], last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), last.move_ms, last.candidates_ms,
+                  ms[4], last.pooled, last.within_reach, last.candidates, last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), last.move_ms, last.candidates_ms,
                   last.trace_ms, create_s);
       if (exhaustive) {
         plain_w = (*updater)->result().w;
