@@ -1,5 +1,6 @@
 #include "obscurance/instanced_ray_scene.h"
 
+#include <algorithm>
 #include <limits>
 
 #include <embree3/rtcore.h>
@@ -143,6 +144,38 @@ RTCRayHit MakeRay(const glm::dvec3& origin, const glm::dvec3& frame, const glm::
   return rh;
 }
 }  // namespace
+
+namespace {
+// Rays per stream call: enough for Embree to fill its packets, few enough
+// to stay on a thread's stack.
+constexpr size_t kStream = 64;
+}  // namespace
+
+void InstancedRayScene::ClosestStream(std::span<const PatchRay> rays, double tmax, std::span<Hit> hits) const {
+  RTCRayHit stream[kStream];
+  for (size_t base = 0; base < rays.size(); base += kStream) {
+    const size_t n = std::min(kStream, rays.size() - base);
+    for (size_t i = 0; i < n; ++i)
+      stream[i] = MakeRay(rays[base + i].origin, impl_->origin, rays[base + i].direction, impl_->t_min, tmax);
+    RTCIntersectContext context;
+    rtcInitIntersectContext(&context);
+    rtcIntersect1M(impl_->top, &context, stream, static_cast<unsigned>(n), sizeof(RTCRayHit));
+    for (size_t i = 0; i < n; ++i) {
+      const RTCRayHit& rh = stream[i];
+      Hit& hit = hits[base + i];
+      hit = Hit{};
+      if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
+      hit.hit = true;
+      hit.t = rh.ray.tfar;
+      if (rh.hit.instID[0] != 0) {
+        hit.object = static_cast<int32_t>(rh.hit.instID[0]) - 1;
+        hit.triangle = impl_->objects[hit.object][rh.hit.primID];
+      } else {
+        hit.triangle = impl_->static_triangles[rh.hit.primID];
+      }
+    }
+  }
+}
 
 InstancedRayScene::Hit InstancedRayScene::Closest(const glm::dvec3& origin, const glm::dvec3& direction,
                                                   double tmax) const {

@@ -8,11 +8,13 @@
 
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <vector>
 
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "obscurance/obscurance_rays.h"
 #include "scene/scene.h"
 
 namespace visq::obscurance {
@@ -43,6 +45,13 @@ class InstancedRayScene {
   Hit Closest(const glm::dvec3& origin, const glm::dvec3& direction, double tmax) const;
   // Whether object k alone (other geometry ignored) meets the ray in (t_min, tmax].
   bool HitsObject(size_t object, const glm::dvec3& origin, const glm::dvec3& direction, double tmax) const;
+
+  // Closest for many rays at once, traced as streams (rtcIntersect1M), which
+  // Embree traverses in SIMD packets. hits[i] for rays[i]; hits.size() ==
+  // rays.size(). A packet rounds a grazing ray through an instance transform
+  // a little differently from a single ray, so a few hits can differ from
+  // Closest's.
+  void ClosestStream(std::span<const PatchRay> rays, double tmax, std::span<Hit> hits) const;
 
   size_t object_count() const;
 

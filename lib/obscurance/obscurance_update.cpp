@@ -142,6 +142,17 @@ Status ObscuranceUpdater::Rebuild() {
     o.pose_at_build = scene_.nodes[o.node].world;
     triangle_lists.push_back(o.triangles);
   }
+  // The spatial index over static patches; cells about d_max wide, the
+  // reach of a candidate query around the moved object.
+  std::vector<uint8_t> is_static(atlas_.texel_count(), 1);
+  dynamic_patches_.clear();
+  for (const Object& o : objects_)
+    for (uint32_t texel : o.own) {
+      if (is_static[texel]) dynamic_patches_.push_back(texel);
+      is_static[texel] = 0;
+    }
+  std::sort(dynamic_patches_.begin(), dynamic_patches_.end());
+  static_patches_.Build(patch_center_, patch_radius_, is_static, params_.d_max);
   VISQ_ASSIGN_OR_RETURN(rays_, InstancedRayScene::Create(scene_, triangle_lists));
 
   // Influenced lists: patches near each object whose rays meet it first.
@@ -192,7 +203,7 @@ std::vector<Ball> ObscuranceUpdater::ClusterBalls(const Object& object) const {
   return balls;
 }
 
-std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const {
+std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object, ObscuranceUpdate* figures) const {
   const std::vector<Ball> balls = ClusterBalls(object);
   std::vector<uint32_t> out;
   if (balls.empty()) return out;
@@ -207,12 +218,27 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const 
   }
   const size_t k = static_cast<size_t>(&object - objects_.data());
   // Patches within d_max of the object's balls, minus its own.
+  // The pool: every texel (the plain path) or the static patches whose
+  // cells meet the reach of the object's balls, and the dynamic patches.
+  std::vector<uint32_t> pool;
+  if (options_.exhaustive) {
+    pool.resize(atlas_.texel_count());
+    for (uint32_t texel = 0; texel < pool.size(); ++texel) pool[texel] = texel;
+  } else {
+    const glm::dvec3 reach(all.radius + params_.d_max);
+    static_patches_.Query(all.center - reach, all.center + reach, pool);
+    pool = SortedUnion(pool, dynamic_patches_);
+  }
   std::vector<uint32_t> near;
-  for (uint32_t texel = 0; texel < atlas_.texel_count(); ++texel) {
+  for (uint32_t texel : pool) {
     if (patch_radius_[texel] < 0) continue;
     if (glm::length(patch_center_[texel] - all.center) > all.radius + params_.d_max + patch_radius_[texel]) continue;
     if (std::binary_search(object.own.begin(), object.own.end(), texel)) continue;
     near.push_back(texel);
+  }
+  if (figures != nullptr) {
+    figures->pooled = static_cast<uint32_t>(pool.size());
+    figures->within_reach = static_cast<uint32_t>(near.size());
   }
   // Keep those with a ray that meets the object alone within d_max. Tests,
   // cheapest first: balls in reach of the patch and in front of some of its
@@ -255,6 +281,10 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object) const 
         may_meet = true;
         break;
       }
+      // One ray at a time on both paths: the first hit ends the patch's
+      // search, and a stream's packet traversal rounds grazing rays
+      // through the instance transform differently from a single ray's,
+      // which would make the fast path's lists differ from the plain one's.
       if (may_meet && rays_->HitsObject(k, r.origin, r.direction, params_.d_max)) {
         keep[i] = 1;
         break;
@@ -273,9 +303,17 @@ void ObscuranceUpdater::TracePatches(const std::vector<uint32_t>& texels, std::v
   ForEachIndex(texels.size(), options_.threads, [&](size_t i) {
     thread_local std::vector<PatchRay> patch_rays;
     GeneratePatchRays(scene_, atlas_, texels[i], options_.seed, options_.rays_per_patch, patch_rays);
+    thread_local std::vector<InstancedRayScene::Hit> hits;
+    hits.resize(patch_rays.size());
+    if (!options_.ray_streams) {
+      for (size_t j = 0; j < patch_rays.size(); ++j)
+        hits[j] = rays_->Closest(patch_rays[j].origin, patch_rays[j].direction, params_.d_max);
+    } else {
+      rays_->ClosestStream(patch_rays, params_.d_max, hits);
+    }
     glm::dvec3 sum(0.0);
-    for (const PatchRay& r : patch_rays) {
-      const InstancedRayScene::Hit hit = rays_->Closest(r.origin, r.direction, params_.d_max);
+    for (size_t j = 0; j < patch_rays.size(); ++j) {
+      const InstancedRayScene::Hit& hit = hits[j];
       sum += RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle);
       if (hit.hit && hit.object >= 0 && std::find(met[i].begin(), met[i].end(), hit.object) == met[i].end())
         met[i].push_back(hit.object);
@@ -314,7 +352,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   update.move_ms = MillisecondsBetween(start, moved);
 
   // Recompute: old list, own patches, and patches whose rays meet the object now.
-  const std::vector<uint32_t> fresh = Candidates(object);
+  const std::vector<uint32_t> fresh = Candidates(object, &update);
   update.candidates = static_cast<uint32_t>(fresh.size());
   update.own_patches = static_cast<uint32_t>(object.own.size());
   const std::vector<uint32_t> must = SortedUnion(object.influenced, object.own);

@@ -7,8 +7,10 @@
 //   - the patches of the old list (they saw the object where it was),
 //   - the object's own patches,
 //   - the patches whose rays meet the object where it is now (found among the
-//     patches within d_max of its new bounding sphere: a ray-sphere test, then
-//     rays against the object alone, then the full scene),
+//     patches within d_max of its new bounding sphere, which a grid over the
+//     static patches (patch_index.h) and the list of patches on dynamic
+//     objects give without scanning the atlas: a ray-sphere test, then rays
+//     against the object alone, then the full scene),
 // and the new list is the set of recomputed patches whose rays met it. Every
 // other patch keeps its value bit for bit. The recomputed values are the ray
 // estimator of eq. 6 (obscurance_rays.h), so they agree with a GPU rebake
@@ -26,6 +28,7 @@
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
 #include "obscurance/obscurance_rays.h"
+#include "obscurance/patch_index.h"
 #include "scene/scene.h"
 
 namespace visq::obscurance {
@@ -34,6 +37,18 @@ struct UpdaterOptions {
   uint32_t rays_per_patch = 64;
   uint64_t seed = 7;
   int threads = 0;  // 0: all cores
+  // The plain path, kept as the reference the tests hold the fast one to:
+  // candidates from a scan of every atlas texel and rays traced one at a
+  // time. The fast path (a spatial index over patches, ray streams) gives
+  // the same answers.
+  bool exhaustive = false;
+  // Trace each patch's rays as one Embree stream (rtcIntersect1M) instead
+  // of one rtcIntersect1 per ray. Off by default: on the 2-core test box it
+  // gained under 10 % (generating the rays costs more than tracing them),
+  // and packet traversal rounds a few grazing rays through the instance
+  // transform differently, so 16 of 262,144 Sponza texels came out
+  // different from the single-ray path after five moves at 64 rays.
+  bool ray_streams = false;
 };
 
 struct ObscuranceUpdate {
@@ -48,6 +63,9 @@ struct ObscuranceUpdate {
   std::vector<glm::vec3> vertex_w;
   // Figures.
   uint32_t influenced_before = 0, influenced_after = 0, own_patches = 0, candidates = 0, recomputed = 0;
+  // Patches the candidate search looked at (from the patch index, or every
+  // texel on the plain path) and those within d_max of the object's balls.
+  uint32_t pooled = 0, within_reach = 0;
   uint64_t rays = 0;
   double milliseconds = 0;
   // Where the time went: moving the geometry and re-committing the instance,
@@ -100,7 +118,7 @@ class ObscuranceUpdater {
   // more are tracked through met_object).
   void TracePatches(const std::vector<uint32_t>& texels, std::vector<glm::vec3>& value,
                     std::vector<std::vector<int32_t>>& met) const;
-  std::vector<uint32_t> Candidates(const Object& object) const;
+  std::vector<uint32_t> Candidates(const Object& object, ObscuranceUpdate* figures = nullptr) const;
   // Bounding balls of groups of the object's triangles.
   std::vector<Ball> ClusterBalls(const Object& object) const;
 
@@ -114,6 +132,11 @@ class ObscuranceUpdater {
   std::vector<int32_t> object_of_triangle_;
   std::vector<glm::dvec3> patch_center_;
   std::vector<double> patch_radius_;
+  // The patches of static surface only, indexed once per Rebuild; patches
+  // with a fragment of any dynamic object move, so they are listed apart
+  // (sorted) and tested one by one.
+  PatchIndex static_patches_;
+  std::vector<uint32_t> dynamic_patches_;
   std::vector<uint32_t> vertex_begin_, vertex_triangles_;  // triangles per position
   std::unique_ptr<InstancedRayScene> rays_;
 };

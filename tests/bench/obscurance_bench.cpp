@@ -164,9 +164,17 @@ int main(int argc, char** argv) {
     params.direction_count = 16;
     auto baked = gpu::BakeObscurances(**worker, **gpu_scene, *scene, *atlas, params);
     if (!baked.ok()) return 1;
-    for (uint32_t rays : {16u, 64u}) {
+    // Each ray count twice: the plain path (every texel scanned, one ray at
+    // a time) and the fast one (patch index, ray streams); the two must end
+    // with the same W bit for bit.
+    std::vector<glm::vec3> plain_w;
+    for (uint32_t rays : {16u, 64u})
+    for (int variant = 0; variant < 3; ++variant) {
+      const bool exhaustive = variant == 0;
       UpdaterOptions uo;
       uo.rays_per_patch = rays;
+      uo.exhaustive = exhaustive;
+      uo.ray_streams = variant == 2;
       auto t0 = std::chrono::steady_clock::now();
       auto updater = ObscuranceUpdater::Create(*scene, *atlas, params, *baked, {node}, uo);
       if (!updater.ok()) { std::printf("updater: %s\n", std::string(updater.status().message()).c_str()); return 1; }
@@ -182,12 +190,22 @@ int main(int argc, char** argv) {
         last = *up;
       }
       std::sort(ms.begin(), ms.end());
-      std::printf("update sponza node '%s' (%u triangles), %u rays/patch, d_max %.2f: median %.1f ms (min %.1f, max %.1f); "
-                  "last move: %zu texels changed, %u recomputed, %llu rays (move %.1f, candidates %.1f, trace %.1f ms); "
+      std::printf("update sponza node '%s' (%u triangles), %u rays/patch, %s, d_max %.2f: median %.1f ms (min %.1f, max %.1f); "
+                  "last move: %u pooled, %u within reach, %u candidates, %zu texels changed, %u recomputed, %llu rays "
+                  "(move %.1f, candidates %.1f, trace %.1f ms); "
                   "create %.2f s\n",
-                  scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, rays, params.d_max, ms[2], ms[0],
-                  ms[4], last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), last.move_ms, last.candidates_ms,
+                  scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, rays,
+                  variant == 0 ? "plain (scan, 1 ray)" : variant == 1 ? "index, 1 ray" : "index, streams", params.d_max, ms[2], ms[0],
+                  ms[4], last.pooled, last.within_reach, last.candidates, last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), last.move_ms, last.candidates_ms,
                   last.trace_ms, create_s);
+      if (exhaustive) {
+        plain_w = (*updater)->result().w;
+      } else {
+        size_t differ = 0;
+        for (size_t t = 0; t < plain_w.size(); ++t)
+          differ += std::memcmp(&plain_w[t], &(*updater)->result().w[t], sizeof(glm::vec3)) != 0;
+        std::printf("  vs plain after 5 moves: %zu of %zu texels differ\n", differ, plain_w.size());
+      }
     }
   }
   return 0;

@@ -16,6 +16,8 @@
 #include "visq/obscurance_partial.h"
 #include "obscurance/obscurance_rays.h"
 #include "obscurance/obscurance_update.h"
+#include "obscurance/patch_index.h"
+#include "common/random.h"
 #include "raycast/embree_scene.h"
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
@@ -611,6 +613,94 @@ TEST(ObscuranceUpdate, RejectsUnknownNode) {
   auto bad = (*updater)->MoveNode(99, glm::dmat4(1.0));
   EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(std::string(bad.status().message()), HasSubstr("node: 99"));
+}
+
+// The patch index finds every patch whose ball meets the query box (the
+// brute-force scan's answer), on the patches of a real scene.
+TEST(PatchIndex, QueryFindsEveryBallMeetingTheBox) {
+  std::vector<glm::dvec3> center;
+  std::vector<double> radius;
+  std::vector<uint8_t> indexed;
+  uint64_t h = 5;
+  for (int i = 0; i < 20000; ++i) {
+    glm::dvec3 c;
+    for (int a = 0; a < 3; ++a) c[a] = 10.0 * UnitFromBits(h = SplitMix64(h)) - 5.0;
+    center.push_back(c);
+    // Mostly small balls, a few large ones, some texels with no surface.
+    const double u = UnitFromBits(h = SplitMix64(h));
+    radius.push_back(u < 0.05 ? -1.0 : u < 0.1 ? 2.0 * u : 0.02 * u);
+    indexed.push_back(i % 7 != 0);
+  }
+  PatchIndex index;
+  index.Build(center, radius, indexed, 0.5);
+  EXPECT_GT(index.cell_count(), 100u);
+  for (int q = 0; q < 50; ++q) {
+    glm::dvec3 lo, hi;
+    for (int a = 0; a < 3; ++a) {
+      const double x = 14.0 * UnitFromBits(h = SplitMix64(h)) - 7.0, w = 3.0 * UnitFromBits(h = SplitMix64(h));
+      lo[a] = x;
+      hi[a] = x + w;
+    }
+    std::vector<uint32_t> found;
+    index.Query(lo, hi, found);
+    ASSERT_TRUE(std::is_sorted(found.begin(), found.end()));
+    ASSERT_EQ(std::adjacent_find(found.begin(), found.end()), found.end());
+    for (uint32_t i = 0; i < center.size(); ++i) {
+      if (!indexed[i] || radius[i] < 0) {
+        EXPECT_FALSE(std::binary_search(found.begin(), found.end(), i)) << "texel " << i << " is not indexed";
+        continue;
+      }
+      bool meets = true;
+      for (int a = 0; a < 3; ++a) meets &= center[i][a] + radius[i] >= lo[a] && center[i][a] - radius[i] <= hi[a];
+      if (meets) {
+        EXPECT_TRUE(std::binary_search(found.begin(), found.end(), i)) << "query " << q << " missed texel " << i;
+      }
+    }
+  }
+}
+
+// Candidates from the patch index give the plain scan's answers bit for bit,
+// over moves of two dynamic objects (each one's patches are candidates of
+// the other, and move with it).
+TEST(ObscuranceUpdate, PatchIndexGivesTheScansAnswers) {
+  Scene scene;
+  scene.materials = {{"grey", glm::dvec3(0.5), glm::dvec3(0.0)}};
+  AddQuad(scene, "floor", {-2, 0, -2}, {0, 0, 4}, {4, 0, 0}, 0);
+  AddBox(scene, "a", {-1.0, 0.0, -1.0}, {-0.6, 0.4, -0.6}, 0);
+  AddBox(scene, "b", {0.6, 0.0, 0.6}, {1.0, 0.4, 1.0}, 0);
+  UpdateBounds(scene);
+  const ObscuranceAtlas atlas = Atlas(scene, 64);
+  ObscuranceParams params;
+  params.d_max = 0.5;
+  RayEstimateOptions ro;
+  ro.rays_per_patch = 8;
+  auto baked = EstimateObscurancesByRays(scene, atlas, params, ro);
+  ASSERT_TRUE(baked.ok()) << baked.status();
+  UpdaterOptions plain_options, fast_options;
+  plain_options.rays_per_patch = fast_options.rays_per_patch = 32;
+  plain_options.exhaustive = true;
+  auto plain = ObscuranceUpdater::Create(scene, atlas, params, *baked, {1, 2}, plain_options);
+  auto fast = ObscuranceUpdater::Create(scene, atlas, params, *baked, {1, 2}, fast_options);
+  ASSERT_TRUE(plain.ok() && fast.ok());
+  const std::vector<std::pair<uint32_t, glm::dvec3>> moves = {
+      {1, {0.5, 0, 0.5}}, {2, {-0.6, 0, -0.3}}, {1, {0.4, 0, 0.6}}, {2, {-0.3, 0, -0.7}}};
+  for (const auto& [node, offset] : moves) {
+    const glm::dmat4 world = glm::translate(glm::dmat4(1.0), offset) * (*plain)->scene().nodes[node].world;
+    auto a = (*plain)->MoveNode(node, world);
+    auto b = (*fast)->MoveNode(node, world);
+    ASSERT_TRUE(a.ok() && b.ok());
+    EXPECT_EQ(a->texels, b->texels);
+    EXPECT_EQ(a->candidates, b->candidates);
+    EXPECT_GT(a->texels.size(), 50u);
+    for (uint32_t n : {1u, 2u}) {
+      EXPECT_EQ((*plain)->InfluencedPatches(n), (*fast)->InfluencedPatches(n));
+    }
+  }
+  const ObscuranceResult& x = (*plain)->result();
+  const ObscuranceResult& y = (*fast)->result();
+  ASSERT_EQ(std::memcmp(x.w.data(), y.w.data(), x.w.size() * sizeof(glm::vec3)), 0);
+  ASSERT_EQ(std::memcmp(x.triangle_w.data(), y.triangle_w.data(), x.triangle_w.size() * sizeof(glm::vec3)), 0);
+  ASSERT_EQ(std::memcmp(x.vertex_w.data(), y.vertex_w.data(), x.vertex_w.size() * sizeof(glm::vec3)), 0);
 }
 
 
