@@ -9,7 +9,7 @@
 #include <xxhash.h>
 
 #include "common/job_timing.h"
-#include "core/obscurance_query.h"
+#include "scene/scene_edit.h"
 #include "scene/gltf_loader.h"
 
 namespace visq {
@@ -111,7 +111,7 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
     resident->version = version;
     scenes_[resident->name] = resident;
   }
-  light_cache_->InvalidateScene(resident->name);
+  ForgetScene(resident->name);
   if (!resident->dropped.empty())
     spdlog::info("scene '{}': dropped {}", resident->name, absl::StrJoin(resident->dropped, ", "));
   spdlog::info("scene '{}' v{} resident: {} triangles, {:.1f} ms", resident->name, resident->version,
@@ -182,7 +182,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
     std::unique_lock lock(scenes_mutex_);
     scenes_[resident->name] = resident;
   }
-  light_cache_->InvalidateScene(resident->name);
+  ForgetScene(resident->name);
   spdlog::info("scene '{}' v{} uploaded ({} bytes): {} triangles, {:.1f} ms", resident->name, resident->version,
                staging.bytes(), resident->scene->TriangleCount(), resident->load_ms);
   if (!resident->dropped.empty())
@@ -215,10 +215,10 @@ StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repo
       was_resident = true;
     }
   }
-  light_cache_->InvalidateScene(std::string(name));
+  ForgetScene(name);
   {
-    std::lock_guard obscurance_lock(obscurance_mutex_);
-    obscurance_states_.erase(std::string(name));
+    std::lock_guard lock(scene_states_mutex_);
+    std::erase_if(scene_states_, [&](const auto& entry) { return entry.first.first == name; });
   }
   if (delete_from_repository) {
     Status removed = repository_->Remove(name);
@@ -278,12 +278,46 @@ StatusOr<SceneSummary> Engine::ReplaceWithEdited(const ResidentScene& current, S
   return Summarize(*resident, false);
 }
 
-std::shared_ptr<ObscuranceState> Engine::ObscuranceStateOf(absl::string_view scene) {
-  std::lock_guard lock(obscurance_mutex_);
-  auto it = obscurance_states_.find(scene);
-  if (it == obscurance_states_.end())
-    it = obscurance_states_.emplace(std::string(scene), std::make_shared<ObscuranceState>()).first;
-  return it->second;
+// What a new resident version (or none) of `name` makes stale: its cached
+// light trees, and the edits that led to the version it replaces.
+void Engine::ForgetScene(absl::string_view name) {
+  light_cache_->InvalidateScene(std::string(name));
+  std::lock_guard lock(edits_mutex_);
+  if (auto it = edit_logs_.find(name); it != edit_logs_.end()) edit_logs_.erase(it);
+}
+
+StatusOr<SceneSummary> Engine::MoveNode(absl::string_view name, uint64_t version,
+                                        const std::function<StatusOr<uint32_t>(const Scene&)>& pick_node,
+                                        const glm::dmat4& world) {
+  // Held across the edit, so that the version the move starts from is the
+  // one the last logged move made. Queries never take it.
+  std::lock_guard edit(one_edit_at_a_time_);
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> current, FindScene(name, version));
+  VISQ_ASSIGN_OR_RETURN(const uint32_t node, pick_node(*current->scene));
+  // The resident Scene is shared and immutable: edit a copy.
+  Scene moved = *current->scene;
+  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(moved, node, world));
+  VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ReplaceWithEdited(*current, std::move(moved)));
+  {
+    std::lock_guard lock(edits_mutex_);
+    std::vector<SceneEdit>& log = edit_logs_[std::string(name)];
+    if (log.size() >= kMaxSceneEdits) log.erase(log.begin(), log.begin() + static_cast<ptrdiff_t>(log.size() / 2));
+    log.push_back(SceneEdit{current->version, summary.version, node, world});
+  }
+  spdlog::info("scene '{}' v{}: node {} ('{}') moved", summary.name, summary.version, node,
+               current->scene->nodes[node].name);
+  return summary;
+}
+
+std::vector<SceneEdit> Engine::EditsBetween(absl::string_view scene, uint64_t after_version,
+                                            uint64_t up_to_version) const {
+  std::lock_guard lock(edits_mutex_);
+  std::vector<SceneEdit> out;
+  auto it = edit_logs_.find(scene);
+  if (it == edit_logs_.end()) return out;
+  for (const SceneEdit& e : it->second)
+    if (e.version > after_version && e.version <= up_to_version) out.push_back(e);
+  return out;
 }
 
 namespace {

@@ -2,15 +2,20 @@
 // service is a thin layer over this class; nothing here knows protobuf.
 #pragma once
 
+#include <any>
 #include <atomic>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <memory>
 #include <shared_mutex>
 #include <span>
 #include <string>
+#include <typeindex>
 #include <vector>
+
+#include <glm/glm.hpp>
 
 #include "common/status.h"
 #include "core/accuracy_planner.h"
@@ -30,7 +35,19 @@
 
 namespace visq {
 
-struct ObscuranceState;  // core/obscurance_query.h
+// One node move of a resident scene: what its edit log holds, and what a
+// query that keeps a solution across versions (the obscurance updater)
+// replays.
+struct SceneEdit {
+  uint64_t from_version = 0;  // the scene version the move was made on
+  uint64_t version = 0;       // the scene version this move made
+  uint32_t node = 0;
+  glm::dmat4 world{1.0};      // the node's new world matrix (its subtree follows)
+};
+
+// A scene's log keeps this many edits; a solution older than the oldest can
+// no longer be replayed forward (and says so).
+inline constexpr size_t kMaxSceneEdits = 1 << 16;
 
 // The structures a scene builds on first use, which a load may ask to build
 // at once (warm) instead.
@@ -187,12 +204,29 @@ class Engine {
   // load_if_stored so that a scene stored but not resident is loaded first.
   [[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> FindScene(absl::string_view name, uint64_t version,
                                                                          bool load_if_stored = true);
-  // Makes `scene`, an edited copy of `current`'s (a node moved), resident
-  // as the next version: in memory only, not written to the repository.
-  // FAILED_PRECONDITION if `current` is no longer the resident version.
-  [[nodiscard]] StatusOr<SceneSummary> ReplaceWithEdited(const ResidentScene& current, Scene scene);
-  // Per-scene obscurance state (core/obscurance_query.h), created on first use.
-  std::shared_ptr<ObscuranceState> ObscuranceStateOf(absl::string_view scene);
+  // Moves node `pick_node(scene)` (and its subtree) to `world` in a copy of
+  // the resident scene `name` and makes the copy resident as the next
+  // version, in memory only, appending the move to the scene's edit log.
+  // Edits of the engine's scenes are one at a time, so each logged edit
+  // starts from the version the one before it made.
+  [[nodiscard]] StatusOr<SceneSummary> MoveNode(absl::string_view name, uint64_t version,
+                                                const std::function<StatusOr<uint32_t>(const Scene&)>& pick_node,
+                                                const glm::dmat4& world);
+  // The edits of `scene` that made versions after `after_version`, up to
+  // and including `up_to_version`, in order. A load, reload or unload of the
+  // scene clears its log.
+  std::vector<SceneEdit> EditsBetween(absl::string_view scene, uint64_t after_version, uint64_t up_to_version) const;
+
+  // State that a query kind keeps per scene name (the obscurance updater's
+  // solution), created on first use and dropped with the scene when it is
+  // unloaded. The engine holds it without knowing its type.
+  template <typename State>
+  std::shared_ptr<State> SceneStateOf(absl::string_view scene) {
+    std::lock_guard lock(scene_states_mutex_);
+    std::any& slot = scene_states_[{std::string(scene), std::type_index(typeid(State))}];
+    if (!slot.has_value()) slot = std::make_shared<State>();
+    return std::any_cast<std::shared_ptr<State>>(slot);
+  }
 
   // The scene's GPU buffers, Embree BVH and triangle index: built once, by
   // the first call that needs them (on a thread of the build's own), the
@@ -278,8 +312,16 @@ class Engine {
   // Serializes check-then-commit of uploads, unloads and first-use loads;
   // parsing happens outside it.
   std::mutex commit_mutex_;
-  std::mutex obscurance_mutex_;
-  std::map<std::string, std::shared_ptr<ObscuranceState>, std::less<>> obscurance_states_;
+  std::mutex scene_states_mutex_;
+  std::map<std::pair<std::string, std::type_index>, std::any> scene_states_;
+  std::mutex one_edit_at_a_time_;
+  mutable std::mutex edits_mutex_;  // guards edit_logs_
+  std::map<std::string, std::vector<SceneEdit>, std::less<>> edit_logs_;
+  void ForgetScene(absl::string_view name);
+  // Makes `scene`, an edited copy of `current`'s, resident as the next
+  // version: in memory only, not written to the repository.
+  // FAILED_PRECONDITION if `current` is no longer the resident version.
+  StatusOr<SceneSummary> ReplaceWithEdited(const ResidentScene& current, Scene scene);
   CostModel cost_model_;
   BuildTimes build_times_;
   std::atomic<uint64_t> light_tree_hits_{0};

@@ -12,55 +12,11 @@
 #include "common/job_timing.h"
 #include "obscurance/obscurance_export.h"
 #include "obscurance/obscurance_rays.h"
-#include "scene/scene_edit.h"
 
 namespace visq {
 namespace {
 
 // The one node `query` names; INVALID_ARGUMENT naming the field otherwise.
-StatusOr<uint32_t> NamedNode(const Scene& scene, const NodeTransformQuery& query) {
-  if (query.node_index) {
-    if (*query.node_index >= scene.nodes.size())
-      return absl::InvalidArgumentError(absl::StrCat("node_index: ", *query.node_index, " is not a node of the scene (",
-                                                     scene.nodes.size(), " nodes)"));
-    return *query.node_index;
-  }
-  if (!query.node_name) return absl::InvalidArgumentError("node: set node_name or node_index");
-  std::vector<uint32_t> found;
-  for (uint32_t i = 0; i < scene.nodes.size(); ++i)
-    if (scene.nodes[i].name == *query.node_name) found.push_back(i);
-  if (found.empty()) return absl::InvalidArgumentError(absl::StrCat("node_name: no node named '", *query.node_name, "'"));
-  if (found.size() > 1)
-    return absl::InvalidArgumentError(absl::StrCat("node_name: '", *query.node_name, "' names ", found.size(),
-                                                   " nodes; give node_index"));
-  return found[0];
-}
-
-// 16 column-major numbers -> an affine, invertible matrix.
-StatusOr<glm::dmat4> WorldMatrix(const std::vector<double>& m) {
-  if (m.size() != 16)
-    return absl::InvalidArgumentError(absl::StrCat("world_matrix: ", m.size(), " numbers, expected 16 (column-major)"));
-  glm::dmat4 world;
-  double scale = 0;
-  for (int c = 0; c < 4; ++c)
-    for (int r = 0; r < 4; ++r) {
-      const double v = m[static_cast<size_t>(c * 4 + r)];
-      if (!std::isfinite(v))
-        return absl::InvalidArgumentError(absl::StrCat("world_matrix[", c * 4 + r, "]: ", v, " is not finite"));
-      world[c][r] = v;
-      if (c < 3 && r < 3) scale = std::max(scale, std::abs(v));
-    }
-  if (world[0][3] != 0 || world[1][3] != 0 || world[2][3] != 0 || world[3][3] != 1)
-    return absl::InvalidArgumentError(
-        absl::StrCat("world_matrix: last row (", world[0][3], ", ", world[1][3], ", ", world[2][3], ", ", world[3][3],
-                     ") must be (0, 0, 0, 1): an affine transform"));
-  // Relative to the matrix's own scale, so tiny but well-conditioned scenes pass.
-  const double det = glm::determinant(glm::dmat3(world));
-  if (!(std::abs(det) > 1e-12 * scale * scale * scale))
-    return absl::InvalidArgumentError(absl::StrCat("world_matrix: not invertible (determinant ", det, ")"));
-  return world;
-}
-
 // Adds `from` into `into` keyed by index: later values win.
 template <typename Index>
 void MergeKeyed(std::map<Index, glm::vec3>& into, const std::vector<Index>& keys, const std::vector<glm::vec3>& values) {
@@ -333,14 +289,13 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     options.seed = query.params.seed;
     VISQ_ASSIGN_OR_RETURN(std::unique_ptr<obscurance::ObscuranceUpdater> updater,
                           obscurance::ObscuranceUpdater::Create(scene, atlas, query.params, result, {}, options));
-    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
     // A newer bake installed meanwhile stays.
     if (!state->updater || state->solution_version <= resident->version) {
       state->updater = std::move(updater);
       state->solution_version = resident->version;
       state->rays_per_patch = query.update_rays_per_patch;
-      std::erase_if(state->moves, [&](const ObscuranceState::Move& m) { return m.version <= resident->version; });
       answer.update_ready = true;
     }
     answer.updater_ms = MillisecondsSince(start);
@@ -354,43 +309,21 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   return answer;
 }
 
-StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQuery& query) {
-  VISQ_ASSIGN_OR_RETURN(glm::dmat4 world, WorldMatrix(query.world_matrix));
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
-  // One move of a scene at a time: the recorded move and the version it
-  // makes must match.
-  std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
-  std::lock_guard lock(state->mutex);
-  VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
-  VISQ_ASSIGN_OR_RETURN(uint32_t node, NamedNode(*resident->scene, query));
-  // The resident Scene is shared and immutable: edit a copy.
-  Scene moved = *resident->scene;
-  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(moved, node, world));
-  VISQ_ASSIGN_OR_RETURN(SceneSummary summary, engine.ReplaceWithEdited(*resident, std::move(moved)));
-  state->moves.push_back(ObscuranceState::Move{resident->version, summary.version, node, world});
-  spdlog::info("scene '{}' v{}: node {} ('{}') moved", summary.name, summary.version, node,
-               resident->scene->nodes[node].name);
-  return summary;
-}
-
 StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const ObscuranceUpdateQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
-  std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+  std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
   std::lock_guard lock(state->mutex);
-  // Re-read under the lock: a move may have landed in between.
-  VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
   if (!state->updater)
     return absl::FailedPreconditionError(absl::StrCat("scene '", resident->name,
                                                       "' has no full ComputeObscurances bake to update"));
-  // The moves since the solution must lead, each from the version the last
-  // one made (versions are not consecutive: they come from the repository's
-  // counter), to the resident version; a reload or replace breaks the chain.
-  std::vector<ObscuranceState::Move> todo;
+  // The scene's edits since the solution must lead, each from the version
+  // the last one made (versions are not consecutive: they come from the
+  // repository's counter), to the resident version; a reload or replace
+  // clears the log and so breaks the chain.
+  std::vector<SceneEdit> todo;
   uint64_t version = state->solution_version;
-  for (const ObscuranceState::Move& m : state->moves) {
-    if (m.version <= state->solution_version) continue;
+  for (const SceneEdit& m : engine.EditsBetween(resident->name, state->solution_version, resident->version)) {
     if (m.from_version != version) break;
     todo.push_back(m);
     version = m.version;
@@ -411,7 +344,7 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
   answer.rays_per_patch = state->rays_per_patch;
   const auto start = std::chrono::steady_clock::now();
   std::map<uint32_t, glm::vec3> w, intensity, triangle_w, vertex_w;
-  for (const ObscuranceState::Move& m : todo) {
+  for (const SceneEdit& m : todo) {
     StatusOr<obscurance::ObscuranceUpdate> update = state->updater->MoveNode(m.node, m.world);
     if (!update.ok()) {
       // The updater may be half-moved: it can no longer be trusted.
@@ -446,7 +379,6 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
     answer.update.vertices.push_back(vertex);
     answer.update.vertex_w.push_back(value);
   }
-  std::erase_if(state->moves, [&](const ObscuranceState::Move& m) { return m.version <= state->solution_version; });
   answer.compute_ms = MillisecondsSince(start);
   answer.update.milliseconds = answer.compute_ms;
   answer.scene_version = state->solution_version;
@@ -487,7 +419,7 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
   std::vector<glm::vec3> values;
   uint32_t width = 0, height = 0;
   {
-    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
     // Re-read under the lock: a move may have landed in between.
     VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
@@ -528,7 +460,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   const uint64_t triangles = resident->scene->triangles.size();
   uint64_t texels = 0;
   {
-    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
     if (state->updater) texels = uint64_t{state->updater->result().width} * state->updater->result().height;
   }
@@ -541,7 +473,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   std::vector<glm::vec2> corner_uv;
   std::vector<glm::vec3> w;
   {
-    std::shared_ptr<ObscuranceState> state = engine.ObscuranceStateOf(resident->name);
+    std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
     VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
     VISQ_RETURN_IF_ERROR(CheckCurrentSolution(*resident, *state, "export"));

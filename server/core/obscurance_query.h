@@ -27,22 +27,14 @@
 
 namespace visq {
 
-// Per scene name (Engine::ObscuranceStateOf): the updater of the last full
-// bake and the node moves made since, so UpdateObscurances can replay them.
+// Per scene name (Engine::SceneStateOf): the updater of the last full bake.
+// UpdateObscurances replays the scene's edit log (Engine::EditsBetween) from
+// the version it matches.
 struct ObscuranceState {
-  // Serializes moves and updates of one scene, so a recorded move and the
-  // scene version it made are one step.
-  std::mutex mutex;
+  std::mutex mutex;  // one update (or installation of a bake) at a time
   std::unique_ptr<obscurance::ObscuranceUpdater> updater;  // after a full bake
   uint64_t solution_version = 0;  // the scene version the updater's solution matches
   uint32_t rays_per_patch = 0;
-  struct Move {
-    uint64_t from_version = 0;  // the scene version the move was made on
-    uint64_t version = 0;       // the scene version this move made
-    uint32_t node = 0;
-    glm::dmat4 world{1.0};
-  };
-  std::vector<Move> moves;  // in version order; those after solution_version matter
 };
 
 // The paper's GPU bake by depth peeling along bundles of parallel rays, or
@@ -115,20 +107,6 @@ AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer);
 // and I. A full bake ([0, total), not partial_only) becomes the scene's
 // solution for UpdateObscurances.
 [[nodiscard]] StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery query);
-
-struct NodeTransformQuery {
-  std::string scene;
-  uint64_t scene_version = 0;
-  std::optional<std::string> node_name;
-  std::optional<uint32_t> node_index;
-  std::vector<double> world_matrix;  // 16, column-major
-};
-
-// Moves the node (and subtree) in a copy of the resident scene and makes the
-// copy resident as the next version (in memory only). INVALID_ARGUMENT for
-// an unknown or ambiguous node, a matrix that is not 16 finite numbers, not
-// affine or not invertible.
-[[nodiscard]] StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQuery& query);
 
 struct ObscuranceUpdateQuery {
   std::string scene;

@@ -12,6 +12,7 @@
 #include <absl/strings/str_format.h>
 
 #include "core/obscurance_query.h"
+#include "core/scene_edit_query.h"
 #include "service/convert.h"
 #include "service/reactors.h"
 #include "service/request_log.h"

@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include "core/light_visibility_query.h"
+#include "core/scene_edit_query.h"
 #include "core/visibility_sampling_query.h"
 
 #include "large_scene.h"
@@ -69,6 +70,61 @@ TEST(Engine, BuildsEachStructureOnceAndCountsItsMemory) {
   EXPECT_GT(summary->gpu_bytes, 0u);
   EXPECT_GT(summary->cpu_bytes, 0u);
   EXPECT_EQ(summary->triangles, (*resident)->scene->triangles.size());
+}
+
+// Node moves make versions and join the scene's edit log, each starting
+// from the version the one before made; a reload starts the log afresh, and
+// per-scene state of a query kind goes with an unload.
+TEST(Engine, NodeMovesFormTheScenesEditLog) {
+  testing::ScratchDir dir;
+  auto engine = StartEngine(dir.path() / "repo");
+  ASSERT_TRUE(engine);
+  auto resident = engine->FindScene("cornell_box_visq", 0);
+  ASSERT_TRUE(resident.ok()) << resident.status();
+  const uint64_t loaded = (*resident)->version;
+  NodeTransformQuery move;
+  move.scene = "cornell_box_visq";
+  move.node_index = 0;
+  std::vector<uint64_t> versions = {loaded};
+  for (int i = 1; i <= 3; ++i) {
+    move.world_matrix = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0.01 * i, 0, 0, 1};
+    auto moved = RunSetNodeTransform(*engine, move);
+    ASSERT_TRUE(moved.ok()) << moved.status();
+    versions.push_back(moved->version);
+  }
+  const std::vector<SceneEdit> all = engine->EditsBetween("cornell_box_visq", loaded, versions.back());
+  ASSERT_EQ(all.size(), 3u);
+  for (size_t i = 0; i < all.size(); ++i) {
+    EXPECT_EQ(all[i].from_version, versions[i]);
+    EXPECT_EQ(all[i].version, versions[i + 1]);
+    EXPECT_EQ(all[i].node, 0u);
+    EXPECT_DOUBLE_EQ(all[i].world[3][0], 0.01 * double(i + 1));
+  }
+  const std::vector<SceneEdit> middle = engine->EditsBetween("cornell_box_visq", versions[1], versions[2]);
+  ASSERT_EQ(middle.size(), 1u);
+  EXPECT_EQ(middle[0].version, versions[2]);
+
+  // An edit names its field when its input is bad, and logs nothing.
+  move.world_matrix = {1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
+  auto singular = RunSetNodeTransform(*engine, move);
+  EXPECT_EQ(singular.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(singular.status().message().find("world_matrix"), std::string::npos) << singular.status();
+  move.node_index = 100000;
+  move.world_matrix = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
+  EXPECT_EQ(RunSetNodeTransform(*engine, move).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(engine->EditsBetween("cornell_box_visq", loaded, UINT64_MAX).size(), 3u);
+
+  struct Counter {
+    int value = 0;
+  };
+  engine->SceneStateOf<Counter>("cornell_box_visq")->value = 7;
+  EXPECT_EQ(engine->SceneStateOf<Counter>("cornell_box_visq")->value, 7) << "one state per scene and kind";
+
+  auto reloaded = engine->LoadFromRepository("cornell_box_visq", /*replace=*/true);
+  ASSERT_TRUE(reloaded.ok()) << reloaded.status();
+  EXPECT_TRUE(engine->EditsBetween("cornell_box_visq", 0, UINT64_MAX).empty()) << "a reload starts a new log";
+  ASSERT_TRUE(engine->UnloadScene("cornell_box_visq", false).ok());
+  EXPECT_EQ(engine->SceneStateOf<Counter>("cornell_box_visq")->value, 0) << "an unload drops the scene's state";
 }
 
 TEST(Engine, UnloadKeepsTheStoredSceneUnlessAskedToDelete) {
