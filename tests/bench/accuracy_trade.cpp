@@ -237,13 +237,9 @@ bool Prepare(SceneCase& c) {
     c.volumetric.light.direction = {0.25, -1.0, 0.45};
     c.volumetric.light.intensity = 4.0;
   } else if (c.name == "veach-ajar") {
-    // A light over the table; the floor around it (the bottom of the
-    // bounds). The first surface below the light is the table top: a
-    // receiver at that height cuts through the furniture, whose insides are
-    // umbra, and one as wide as the bounds reaches past the walls; together
-    // they left 39 of 4096 texels in penumbra.
-    const glm::dvec3 light = {m.x, b.min.y + 0.6 * e.y, m.z};
-    PlacePatches(c, embree, light, 0.12 * std::min(e.x, e.z), m, 0.3 * e.x, 0.3 * e.z, false);
+    // A light under the ceiling over the table; the room's floor.
+    const glm::dvec3 light = {m.x, b.min.y + 0.85 * e.y, m.z};
+    PlacePatches(c, embree, light, 0.08 * std::min(e.x, e.z), m, 0.8 * e.x, 0.8 * e.z, true);
     // A spot in place of that light (the room is closed to a sun), the
     // camera across the room.
     c.volumetric = BaseVolumetric(c.scene, Lerp(b, 0.15, 0.5, 0.5), Lerp(b, 0.85, 0.3, 0.5));
