@@ -69,6 +69,11 @@ int main(int argc, char** argv) {
   app.set_version_flag("--version", std::string("visq-server ") + visq::kVersion + " (" + visq::kBuildCommit + ")");
   app.add_option("--address", options.address, "HOST:PORT to listen on")->envname("VISQ_ADDRESS")->capture_default_str();
   app.add_option("--scene-repo", scene_repo, "Scene repository directory")->envname("VISQ_SCENE_REPO")->capture_default_str();
+  std::string cost_model_file;
+  app.add_option("--cost-model-file", cost_model_file,
+                 "Where the accuracy planner keeps its measured costs across restarts (default: "
+                 "<scene-repo>/.visq-cost-model.tsv; '-': not kept)")
+      ->envname("VISQ_COST_MODEL_FILE");
   app.add_option("--max-receive-bytes", options.max_receive_message_bytes, "Largest gRPC message accepted")
       ->envname("VISQ_MAX_RECEIVE_BYTES")->check(CLI::Range(1 << 16, 1 << 30))->capture_default_str();
   app.add_option("--max-upload-bytes", max_upload_bytes, "Largest scene upload accepted")
@@ -156,6 +161,7 @@ int main(int argc, char** argv) {
   else visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   visq::service::RouteLibraryLogsToSpdlog();
   options.engine.scene_repo = scene_repo;
+  options.engine.cost_model_file = cost_model_file;
   options.engine.max_upload_bytes = max_upload_bytes;
   options.engine.max_scene_bytes = max_scene_bytes;
   options.engine.light_cache_bytes = static_cast<size_t>(light_cache_bytes);

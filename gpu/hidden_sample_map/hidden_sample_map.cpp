@@ -255,7 +255,6 @@ StatusOr<MapFrames> PlanFrames(const HiddenSampleMapRequest& request, const GpuS
   f.receiver_to_source = f.world_to_source * receiver_to_world;
   f.d_gradient = glm::dvec3(s_sign * glm::dot(sn, rp.edge_u), s_sign * glm::dot(sn, rp.edge_v),
                             s_sign * f.r_sign * glm::dot(sn, rn));
-  for (int k = 0; k < 4; ++k) f.source_corners[k] = glm::vec3(sp.At(k & 1, k >> 1) - anchor);
 
   VISQ_ASSIGN_OR_RETURN(const EndpointTolerances tolerances,
                         ResolvableEndpointTolerances(request, FloatFrame{anchor, scene.bounds()}, SegmentTracer::kRaster));
@@ -270,6 +269,14 @@ StatusOr<MapFrames> PlanFrames(const HiddenSampleMapRequest& request, const GpuS
   // relative. The slack covers the float rounding of anchor-relative
   // positions and the endpoint tolerance.
   const double spread = request.options.decorrelate ? 0.5 * f.decorrelation_amplitude : 0.0;
+  // The corners that the influence regions and the watertight culling
+  // project from bound every sample as seen from any texel, so they take the
+  // decorrelation's spread too: a sample moved off the patch is still
+  // blocked by a triangle whose region the patch alone would not reach.
+  for (int k = 0; k < 4; ++k) {
+    const double u = (k & 1) ? 1.0 + spread : -spread, v = (k & 2) ? 1.0 + spread : -spread;
+    f.source_corners[k] = glm::vec3(sp.At(u, v) - anchor);
+  }
   double height_lo = 0.0, height_hi = 0.0;
   for (float h : request.receiver.heightfield) {
     height_lo = std::min(height_lo, double(h));

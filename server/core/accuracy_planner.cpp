@@ -2,7 +2,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <fstream>
 #include <limits>
+#include <sstream>
+
+#include <spdlog/spdlog.h>
 
 namespace visq {
 
@@ -25,10 +29,59 @@ std::string CostSeries(const std::string& scene, const std::string& kind, const 
 
 void CostModel::Record(const std::string& series, double work, double ms) {
   if (!std::isfinite(work) || !std::isfinite(ms) || work <= 0.0 || ms < 0.0) return;
+  if (series.find_first_of("\t\n") != std::string::npos) return;  // the file's separators
   std::lock_guard lock(mutex_);
+  if (!series_.contains(series) && series_.size() >= kSeriesKept) series_.erase(series_.begin());
   auto& observations = series_[series];
   observations.push_back({work, ms});
   if (observations.size() > kObservationsKept) observations.pop_front();
+  SaveLocked();
+}
+
+size_t CostModel::Observations(const std::string& series) const {
+  std::lock_guard lock(mutex_);
+  auto it = series_.find(series);
+  return it == series_.end() ? 0 : it->second.size();
+}
+
+// One observation a line: series, work and ms, tab-separated (Record keeps
+// no series holding a tab or newline).
+void CostModel::PersistTo(const std::filesystem::path& path) {
+  std::lock_guard lock(mutex_);
+  file_ = path;
+  std::ifstream in(path);
+  std::string line;
+  size_t read = 0;
+  while (in && std::getline(in, line)) {
+    const size_t tab1 = line.find('\t'), tab2 = tab1 == std::string::npos ? tab1 : line.find('\t', tab1 + 1);
+    if (tab2 == std::string::npos || tab1 == 0) continue;
+    double work = 0.0, ms = 0.0;
+    std::istringstream numbers(line.substr(tab1 + 1));
+    if (!(numbers >> work >> ms) || !std::isfinite(work) || !std::isfinite(ms) || work <= 0.0 || ms < 0.0) continue;
+    const std::string series = line.substr(0, tab1);
+    if (!series_.contains(series) && series_.size() >= kSeriesKept) continue;
+    auto& observations = series_[series];
+    observations.push_back({work, ms});
+    if (observations.size() > kObservationsKept) observations.pop_front();
+    ++read;
+  }
+  if (read > 0) spdlog::info("cost model: {} observations of {} series from {}", read, series_.size(), path.string());
+}
+
+void CostModel::SaveLocked() const {
+  if (file_.empty()) return;
+  std::filesystem::path temporary = file_;
+  temporary += ".tmp";
+  {
+    std::ofstream out(temporary, std::ios::trunc);
+    out.precision(17);
+    for (const auto& [series, observations] : series_)
+      for (const Observation& o : observations) out << series << '\t' << o.work << '\t' << o.ms << '\n';
+    if (!out) return;
+  }
+  std::error_code ec;
+  std::filesystem::rename(temporary, file_, ec);
+  if (ec) spdlog::warn("cost model: cannot write {}: {}", file_.string(), ec.message());
 }
 
 std::optional<double> CostModel::Predict(const std::string& series, double work) const {

@@ -11,6 +11,7 @@
 
 #include <cstddef>
 #include <deque>
+#include <filesystem>
 #include <map>
 #include <mutex>
 #include <optional>
@@ -54,11 +55,23 @@ struct PlanReport {
 // least-squares over the most recent observations, so it follows the
 // machine's load and the scene's caches (the exact method's tree gets
 // cheaper as it grows). Thread-safe.
+//
+// With a file (PersistTo), the observations outlive the process: a restart
+// predicts from what the last one measured instead of probing every scene
+// and method again. The series name the scene's content hash, so a file
+// left by another scene of the same name predicts nothing.
 class CostModel {
  public:
   void Record(const std::string& series, double work, double ms);
   // Nothing until the series has an observation.
   std::optional<double> Predict(const std::string& series, double work) const;
+  // How many observations the series holds.
+  size_t Observations(const std::string& series) const;
+
+  // Reads the observations `path` holds (none when it is absent; malformed
+  // lines are skipped) and rewrites it, whole and atomically, after every
+  // Record. An unreadable or unwritable file costs the persistence only.
+  void PersistTo(const std::filesystem::path& path);
 
  private:
   struct Observation {
@@ -66,8 +79,11 @@ class CostModel {
     double ms = 0.0;
   };
   static constexpr size_t kObservationsKept = 16;
+  static constexpr size_t kSeriesKept = 4096;  // bounds the file a hostile series name could grow
+  void SaveLocked() const;
   mutable std::mutex mutex_;
   std::map<std::string, std::deque<Observation>> series_;
+  std::filesystem::path file_;
 };
 
 // The cost model's series name: "<scene>/<kind>/<method>".

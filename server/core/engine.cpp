@@ -48,6 +48,9 @@ StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
   VISQ_ASSIGN_OR_RETURN(engine->gpu_, gpu::GpuWorker::Start(options.gpu));
   engine->light_cache_ = std::make_unique<exact::LightVisibilityCache>(options.light_cache_bytes);
   engine->work_budget_ = std::make_unique<WorkMemoryBudget>(options.max_work_bytes);
+  if (options.cost_model_file != "-")
+    engine->cost_model_.PersistTo(options.cost_model_file.empty() ? options.scene_repo / ".visq-cost-model.tsv"
+                                                                  : options.cost_model_file);
   spdlog::info("budget for work in flight: {} bytes (--max-work-bytes)", engine->work_budget_->capacity());
   const auto& device = engine->gpu_->device();
   spdlog::info("GPU: {} / {} / OpenGL {} via EGL {} ({}){}", device.gl_vendor, device.gl_renderer,

@@ -87,6 +87,10 @@ struct EngineOptions {
   // smaller bands reach the client sooner and give other queries the GL
   // thread sooner.
   gpu::HiddenSampleMapperOptions hidden_sample_map;
+  // Where the accuracy planner's cost model keeps its observations across
+  // restarts (CostModel::PersistTo); empty: <scene_repo>/.visq-cost-model.tsv,
+  // which the repository's scene listing skips. "-": nowhere.
+  std::filesystem::path cost_model_file;
 };
 
 // A scene as the server holds it: immutable geometry plus the lazily built

@@ -303,14 +303,59 @@ Status CheckPredictionFitsDeadline(const Plan& plan, const gpu::JobOptions& job)
                                                   " ms; the call's deadline leaves ", left_ms, " ms"));
 }
 
-// Work units: receiver points x samples for the sampled methods, receiver
-// points for the exact one.
+// Work units: receiver points x samples for the sampled methods. The exact
+// method's cost is its trees, one per receiver cell that its points fall in
+// (exact::GroupReceivers, as RunLightVisibility groups them): a tree costs
+// what its cell's shaft holds, and the points that share it descend it for
+// little. Counting points instead made a probe of one point, whose tree's
+// cell is the whole scene, predict a 64 x 64 map 100x too slow.
 double PlanWork(VisibilityMethod method, double points, int samples) {
-  return method == VisibilityMethod::kPluckerExact ? points : points * samples;
+  VISQ_CHECK(method != VisibilityMethod::kPluckerExact);
+  return points * samples;
+}
+
+double ExactTrees(const Engine& engine, const ResidentScene& resident, std::vector<glm::dvec3> positions) {
+  std::vector<exact::QueryPoint> points;
+  points.reserve(positions.size());
+  for (const glm::dvec3& p : positions) points.push_back({p, std::nullopt, std::nullopt});
+  const std::vector<exact::ReceiverCell> cells = exact::GroupReceivers(
+      points, resident.scene->bounds, engine.light_receiver_cells(), engine.light_receiver_min_points());
+  return double(std::max<size_t>(cells.size(), 1));
+}
+
+// The central block of at most `side` x `side` texels of a receiver, as a
+// receiver of its own whose texel centres are the request's: the exact
+// method's probe, whose trees then follow the request's own receiver cells
+// (a coarser receiver's points would fall in other, larger cells).
+sampling::ReceiverSpec CentralBlock(const sampling::ReceiverSpec& receiver, int side) {
+  const int bw = std::min(receiver.width, side), bh = std::min(receiver.height, side);
+  const int x0 = (receiver.width - bw) / 2, y0 = (receiver.height - bh) / 2;
+  sampling::ReceiverSpec block = receiver;
+  block.patch.origin = receiver.patch.At(double(x0) / receiver.width, double(y0) / receiver.height);
+  block.patch.edge_u = receiver.patch.edge_u * (double(bw) / receiver.width);
+  block.patch.edge_v = receiver.patch.edge_v * (double(bh) / receiver.height);
+  block.width = bw;
+  block.height = bh;
+  if (!receiver.heightfield.empty()) {
+    block.heightfield.clear();
+    for (int y = 0; y < bh; ++y)
+      for (int x = 0; x < bw; ++x) block.heightfield.push_back(receiver.heightfield[size_t(y0 + y) * receiver.width + x0 + x]);
+  }
+  return block;
+}
+
+std::vector<glm::dvec3> TexelCentres(const sampling::ReceiverSpec& receiver) {
+  std::vector<glm::dvec3> out;
+  out.reserve(size_t(receiver.width) * receiver.height);
+  for (int y = 0; y < receiver.height; ++y)
+    for (int x = 0; x < receiver.width; ++x) out.push_back(sampling::ReceiverSamplePosition(receiver, x, y));
+  return out;
 }
 
 // Runs `method` with `samples` per receiver point over a receiver reduced to
-// at most `max_side` points a side (0: the request's own receiver).
+// at most `max_side` points a side (0: the request's own receiver); for the
+// exact method, over the central block of max_side points a side of the
+// request's own receiver (CentralBlock).
 using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method, int samples, int max_side)>;
 // Whether a sampled method resolves the request with `samples` samples in
 // float32 (Engine::CheckSampledPrecision): FAILED_PRECONDITION when not.
@@ -331,7 +376,8 @@ double PolygonShare(const sampling::SourceSpec& source) {
 // points, each predicted by the cost model after probing the methods this
 // scene has not run yet, and the choice among them.
 StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_base, const AccuracyTarget& target,
-                                    double points, double polygon_share, bool exact_possible, int max_samples,
+                                    double points, double exact_trees, double polygon_share, bool exact_possible,
+                                    int max_samples,
                                     const gpu::JobOptions& job, const VisibilityRunner& run,
                                     const PrecisionCheck& resolves) {
   std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast};
@@ -369,9 +415,9 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
     // a large light over a busy scene, and one point already says so.
     if (!model.Predict(series, 1.0)) {
       const bool exact = method == VisibilityMethod::kPluckerExact;
-      const std::pair<int, int> probes[] = {exact ? std::pair{1, 0} : std::pair{4, 32},
-                                            exact ? std::pair{2, 0} : std::pair{16, 256}};
-      const double second_probe_below_ms = exact ? 50.0 : 200.0;
+      const std::pair<int, int> probes[] = {exact ? std::pair{8, 0} : std::pair{4, 32},
+                                            exact ? std::pair{16, 0} : std::pair{16, 256}};
+      const double second_probe_below_ms = 200.0;
       bool usable = true;
       for (const auto& [side, samples] : probes) {
         VISQ_RETURN_IF_ERROR(CheckNotCancelled(job));
@@ -402,7 +448,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
         const double inside = std::max(1.0, std::floor(samples * polygon_share));
         plan.error_bound = std::min(1.0, sampling::SamplingErrorBound(int(inside), target.confidence));
       }
-      plan.work = PlanWork(method, points, samples);
+      plan.work = method == VisibilityMethod::kPluckerExact ? exact_trees : PlanWork(method, points, samples);
       plan.predicted_ms = model.Predict(series, plan.work).value_or(0.0);
       report.plans.push_back(std::move(plan));
       return absl::OkStatus();
@@ -528,10 +574,11 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
     return absl::InvalidArgumentError("target: per-sample colours fix the samples; give samples.count instead");
   const bool exact_possible = !request.options.want_bitmasks && !colored;
 
-  auto with_samples = [&](int samples, int max_side) {
+  auto with_samples = [&](int samples, int max_side, bool block = false) {
     sampling::HiddenSampleMapRequest sized = request;
     sized.source.sample_count = std::min(samples, sampling::kMaxHiddenSampleMapSamples);
-    sized.receiver = ReducedReceiver(request.receiver, max_side);
+    sized.receiver = block && max_side > 0 ? CentralBlock(request.receiver, max_side)
+                                           : ReducedReceiver(request.receiver, max_side);
     sized.options.confidence = target.confidence < 1.0 ? target.confidence : sized.options.confidence;
     return sized;
   };
@@ -539,7 +586,8 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   // Beyond 4096 samples, several maps with independent jitter.
   auto run = [&](VisibilityMethod method, int samples, int max_side,
                  const sampling::HiddenSampleMapBandSink& bands = {}) -> StatusOr<sampling::HiddenSampleMapResult> {
-    sampling::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
+    sampling::HiddenSampleMapRequest sized =
+        with_samples(std::max(samples, 1), max_side, method == VisibilityMethod::kPluckerExact);
     if (samples > sampling::kMaxHiddenSampleMapSamples)
       return SeveralMaps(engine, resident, method, sized, samples, query.call, bands);
     VISQ_RETURN_IF_ERROR(CheckSize(sized));
@@ -547,6 +595,9 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
     VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
+    if (method == VisibilityMethod::kPluckerExact)
+      return RunCost{ComputeMs(result.timing),
+                     ExactTrees(engine, resident, TexelCentres(with_samples(1, max_side, true).receiver))};
     return RunCost{ComputeMs(result.timing, result.table_ms),
                    PlanWork(method, double(result.width) * result.height, samples)};
   };
@@ -555,7 +606,9 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   const bool several_maps = CheckSeveralMaps(request).ok();
   const int max_samples = several_maps ? kMaxPlannedSamples : sampling::kMaxHiddenSampleMapSamples;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
-                                                          texels, PolygonShare(request.source), exact_possible,
+                                                          texels,
+                                                          exact_possible ? ExactTrees(engine, resident, TexelCentres(request.receiver)) : 1.0,
+                                                          PolygonShare(request.source), exact_possible,
                                                           max_samples, query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
                                                             return engine.CheckSampledPrecision(
                                                                 resident, with_samples(samples, 0), TracerOf(method),
@@ -579,19 +632,34 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
   // A plan's sample count becomes the most nearly square source grid with
   // at least that many cells.
-  auto sized = [&](int samples, int max_side) {
+  // The receiver grid's points are a map's texel centres.
+  auto grid_of = [](const sampling::PatchVisibilityRequest& r) {
+    sampling::ReceiverSpec grid;
+    grid.patch = r.receiver;
+    grid.width = r.receiver_columns;
+    grid.height = r.receiver_rows;
+    return grid;
+  };
+  auto sized = [&](int samples, int max_side, bool block = false) {
     sampling::PatchVisibilityRequest out = request;
     out.source_columns = std::max(1, int(std::ceil(std::sqrt(double(std::max(samples, 1))))));
     out.source_rows = std::max(1, (std::max(samples, 1) + out.source_columns - 1) / out.source_columns);
-    if (max_side > 0) {
+    if (max_side > 0 && block) {
+      const sampling::ReceiverSpec central = CentralBlock(grid_of(request), max_side);
+      out.receiver = central.patch;
+      out.receiver_columns = central.width;
+      out.receiver_rows = central.height;
+    } else if (max_side > 0) {
       out.receiver_columns = std::min(request.receiver_columns, max_side);
       out.receiver_rows = std::min(request.receiver_rows, max_side);
     }
     return out;
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
-    const sampling::PatchVisibilityRequest probe = sized(samples, max_side);
+    const bool exact = method == VisibilityMethod::kPluckerExact;
+    const sampling::PatchVisibilityRequest probe = sized(samples, max_side, exact);
     VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.call));
+    if (exact) return RunCost{ComputeMs(result.timing), ExactTrees(engine, resident, TexelCentres(grid_of(probe)))};
     return RunCost{ComputeMs(result.timing),
                    PlanWork(method, double(probe.receiver_columns) * probe.receiver_rows,
                             probe.source_columns * probe.source_rows)};
@@ -599,7 +667,9 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
   const double points = double(request.receiver_columns) * request.receiver_rows;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
-                                                          points, 1.0, exact_possible,
+                                                          points,
+                                                          exact_possible ? ExactTrees(engine, resident, TexelCentres(grid_of(request))) : 1.0,
+                                                          1.0, exact_possible,
                                                           sampling::kMaxHiddenSampleMapSamples, query.call.Job(), cost_of,
                                                           [&](VisibilityMethod method, int samples) -> Status {
                                                             VISQ_ASSIGN_OR_RETURN(

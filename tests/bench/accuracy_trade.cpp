@@ -43,17 +43,23 @@
 #include <fstream>
 #include <functional>
 #include <limits>
+#include <map>
 #include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include <unistd.h>
+
+#include "core/engine.h"
+#include "core/visibility_sampling_query.h"
 #include "exact/light_visibility.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
 #include "obscurance/obscurance_rays.h"
 #include "raycast/embree_scene.h"
 #include "scene/gltf_loader.h"
+#include "scene/gltf_writer.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/gpu_worker.h"
 #include "visq/gpu/hidden_sample_map.h"
@@ -84,6 +90,8 @@ std::string Fmt(const char* format, double v) {
 // Results: one row per (scene, method, setting); four error figures per row,
 // the first being the kind's headline error (plotted, and used by the
 // summary).
+
+std::string Num(double v, bool percent = false);
 
 struct Row {
   std::string scene;
@@ -278,7 +286,7 @@ std::string PatchText(const sampling::Patch& p) {
 // ---------------------------------------------------------------------------
 // The run's sizes.
 
-struct Plan {
+struct RunSizes {
   bool quick = false;
   int repeats = 3;
   int receiver = 64;  // receiver texels per side (both visibility kinds)
@@ -297,7 +305,7 @@ struct Plan {
 
 // Scenes other than Sponza get a lighter sweep where the GPU path is slow
 // (every rasterization pass costs seconds on llvmpipe for veach-ajar).
-bool Full(const Plan& plan, const SceneCase& c) { return plan.quick || c.name == "sponza"; }
+bool Full(const RunSizes& plan, const SceneCase& c) { return plan.quick || c.name == "sponza"; }
 
 // ---------------------------------------------------------------------------
 // Exact reference: the visible fraction of the source patch, as a light
@@ -407,7 +415,35 @@ std::vector<double> Diff(const std::vector<float>& answer, const std::vector<dou
 // ---------------------------------------------------------------------------
 // Hidden-sample map.
 
-void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMapper& mapper,
+// How the per-texel bounds (sampling::BoundTexels) fare against the exact
+// fractions: the share of texels whose error is within their bound (the
+// bound's confidence is the share promised), and in the penumbra, where the
+// answer is uncertain, the median bound against the median error.
+std::string PerTexelBoundNote(const sampling::HiddenSampleMapResult& map, const ExactReference& ref) {
+  if (!map.error.has_per_texel || map.error.per_texel.size() != ref.fraction.size()) return "no per-texel bound";
+  size_t inside = 0;
+  std::vector<double> bounds, errors;
+  for (size_t j = 0; j < ref.fraction.size(); ++j) {
+    const double error = std::abs(double(map.visible_fraction[j]) - ref.fraction[j]);
+    inside += error <= double(map.error.per_texel[j]) + 1e-7;
+    if (ref.fraction[j] > 1e-9 && ref.fraction[j] < 1 - 1e-9) {
+      bounds.push_back(map.error.per_texel[j]);
+      errors.push_back(error);
+    }
+  }
+  std::string note = "per-texel bound holds at " + Num(double(inside) / ref.fraction.size(), true) + " of texels (" +
+                     Num(map.error.confidence, true) + " stated)";
+  if (!bounds.empty()) {
+    std::sort(bounds.begin(), bounds.end());
+    std::sort(errors.begin(), errors.end());
+    const double mb = bounds[bounds.size() / 2], me = errors[errors.size() / 2];
+    note += "; penumbra median bound " + Fmt("%.3g", mb) + ", median error " + Fmt("%.3g", me);
+    if (me > 0) note += " (" + Fmt("%.2g", mb / me) + "x)";
+  }
+  return note;
+}
+
+void SweepHiddenSampleMap(const RunSizes& plan, SceneCase& c, gpu::HiddenSampleMapper& mapper,
                           const gpu::GpuScene& gpu_scene, const raycast::EmbreeScene& embree,
                           const ExactReference& ref, Kind& kind) {
   const bool full = Full(plan, c);
@@ -470,8 +506,96 @@ void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
       const Stats s = AbsErrorStats(Diff(last.visible_fraction, ref.fraction));
       std::string note;
       if (v.lookup == sampling::LookupMode::kHough) note = "stated bound " + Fmt("%.3g", last.error.lookup_max);
+      if (v.lookup == sampling::LookupMode::kExact) note = PerTexelBoundNote(last, ref);
       Record(kind, {c.name, v.method, setting, t.median, t.runs, {s.mean, s.p95, s.max, mismatch}, note});
     }
+  }
+}
+
+// ---------------------------------------------------------------------------
+// Accuracy targets through the core (server/core, the server's own planner
+// and cost model, without gRPC): the plan each target chose, what it was
+// predicted to take and what it took; then each method's cheapest plan
+// meeting the target, run as a plain request, so that the choice can be
+// checked against what every candidate measures.
+
+struct TargetRow {
+  std::string scene;
+  double max_error = 0;
+  std::string call;  // which call of the target, or "direct"
+  std::string plan;
+  double predicted_ms = kNaN, measured_ms = kNaN;
+  bool chosen = false;
+};
+
+struct TargetCheck {
+  std::string scene;
+  double max_error = 0;
+  std::string chosen, cheapest;
+  double chosen_ms = kNaN, cheapest_ms = kNaN;
+};
+
+double ComputeMsOf(const sampling::HiddenSampleMapResult& r) { return r.timing.run_ms + r.table_ms; }
+
+void MeasureTargets(const RunSizes& plan, const SceneCase& c, Engine& engine, const std::string& name,
+                    std::vector<TargetRow>& rows, std::vector<TargetCheck>& checks) {
+  const std::vector<double> targets = plan.quick ? std::vector<double>{0.1} : std::vector<double>{0.05, 0.03};
+  for (const double max_error : targets) {
+    HiddenSampleMapQuery query;
+    query.scene = name;
+    query.request.source.patch = c.source;
+    query.request.source.pattern = sampling::SamplePattern::kJittered;
+    query.request.source.seed = 1;
+    query.request.receiver.patch = c.receiver;
+    query.request.receiver.width = query.request.receiver.height = plan.receiver;
+    query.request.options.want_bitmasks = false;
+    query.request.source.sample_count = 0;  // the target sets it
+    query.target = AccuracyTarget{.max_error = max_error, .confidence = 0.95};
+    const std::string what = c.name + " target " + Fmt("%.3g", max_error);
+    auto first = Must(RunHiddenSampleMap(engine, query), what);
+    const PlanReport& report = *first.plan;
+    const ::visq::Plan& chosen = report.chosen_plan();
+    rows.push_back({c.name, max_error, "1st call (probes " + Fmt("%.0f", report.probe_ms) + " ms)",
+                    DescribePlan(chosen), chosen.predicted_ms, ComputeMsOf(first.result), true});
+    std::printf("  target %.3g: chose %s, predicted %.1f ms, took %.1f ms, probes %.1f ms\n", max_error,
+                DescribePlan(chosen).c_str(), chosen.predicted_ms, ComputeMsOf(first.result), report.probe_ms);
+    TargetCheck check{c.name, max_error, DescribePlan(chosen), DescribePlan(chosen), ComputeMsOf(first.result),
+                      ComputeMsOf(first.result)};
+
+    // Every other method's cheapest plan meeting the target, run directly.
+    std::map<std::string, const ::visq::Plan*> cheapest;
+    for (const ::visq::Plan& p : report.plans)
+      if (p.meets_target && (!cheapest.contains(p.method) || p.predicted_ms < cheapest[p.method]->predicted_ms))
+        cheapest[p.method] = &p;
+    for (const auto& [method, p] : cheapest) {
+      if (method == chosen.method) continue;
+      if (p->predicted_ms > 60000) {
+        rows.push_back({c.name, max_error, "direct", DescribePlan(*p) + " (not run: predicted over 60 s)",
+                        p->predicted_ms, kNaN, false});
+        continue;
+      }
+      HiddenSampleMapQuery direct = query;
+      direct.target.reset();
+      direct.method = method == "plucker-exact" ? VisibilityMethod::kPluckerExact
+                      : method == "raycast"    ? VisibilityMethod::kRaycast
+                                               : VisibilityMethod::kRaster;
+      direct.request.source.sample_count = p->parameters.contains("samples") ? int(p->parameters.at("samples")) : 0;
+      auto answer = Must(RunHiddenSampleMap(engine, direct), what + " " + DescribePlan(*p));
+      const double ms = ComputeMsOf(answer.result);
+      rows.push_back({c.name, max_error, "direct", DescribePlan(*p), p->predicted_ms, ms, false});
+      std::printf("    %s: predicted %.1f ms, took %.1f ms\n", DescribePlan(*p).c_str(), p->predicted_ms, ms);
+      if (ms < check.cheapest_ms) {
+        check.cheapest_ms = ms;
+        check.cheapest = DescribePlan(*p);
+      }
+    }
+    checks.push_back(check);
+
+    // The same target again: predicted from what the first call measured.
+    auto second = Must(RunHiddenSampleMap(engine, query), what + " again");
+    const ::visq::Plan& again = second.plan->chosen_plan();
+    rows.push_back({c.name, max_error, "2nd call", DescribePlan(again), again.predicted_ms,
+                    ComputeMsOf(second.result), true});
   }
 }
 
@@ -480,7 +604,7 @@ void SweepHiddenSampleMap(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
 // per-receiver-sample fractions (the receiver grid is the texel grid of the
 // hidden-sample map, so the exact reference is shared).
 
-void SweepPatchVisibility(const Plan& plan, SceneCase& c, gpu::HiddenSampleMapper& mapper,
+void SweepPatchVisibility(const RunSizes& plan, SceneCase& c, gpu::HiddenSampleMapper& mapper,
                           const gpu::GpuScene& gpu_scene, const raycast::EmbreeScene& embree,
                           const ExactReference& ref, Kind& kind) {
   std::vector<int> grids = plan.source_grids;
@@ -538,7 +662,7 @@ void SweepPatchVisibility(const Plan& plan, SceneCase& c, gpu::HiddenSampleMappe
 // Obscurances: W per atlas texel against a GPU bake with many more
 // directions (another seed, so the sweep's sequences are not its prefixes).
 
-void SweepObscurances(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
+void SweepObscurances(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
                       Kind& kind) {
   using namespace visq::obscurance;
   const bool full = Full(plan, c);
@@ -619,7 +743,7 @@ void SweepObscurances(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, co
 // Voxelization: the GPU slicemap against the CPU reference voxelizer on the
 // same grid (surface, uniform slices, depth along y).
 
-void SweepVoxelization(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
+void SweepVoxelization(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
                        Kind& kind) {
   std::vector<uint32_t> sizes = plan.voxel_sizes;
   if (!Full(plan, c)) sizes = {64, 128, 256};
@@ -669,7 +793,7 @@ void SweepVoxelization(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, c
 // Volumetric shadows: in-scattered radiance against ray marching on a large
 // shadow map, same camera, light and medium.
 
-void SweepVolumetric(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
+void SweepVolumetric(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
                      Kind& kind) {
   gpu::VolumetricParams params = c.volumetric;
   params.camera.width = plan.image_w;
@@ -730,7 +854,7 @@ void SweepVolumetric(const Plan& plan, SceneCase& c, gpu::GpuWorker& worker, con
 // ---------------------------------------------------------------------------
 // Output: Markdown tables, gnuplot data and script, the plots.
 
-std::string Num(double v, bool percent = false) {
+std::string Num(double v, bool percent) {
   if (!std::isfinite(v)) return "–";
   if (percent) return Fmt(v == 0 ? "%.0f %%" : (v < 0.001 ? "%.2e %%" : "%.3g %%"), 100 * v);
   return Fmt(v == 0 ? "%.0f" : "%.3g", v);
@@ -813,7 +937,8 @@ struct Machine {
 };
 
 void WriteReport(const fs::path& md, const std::string& plot_dir_name, const std::vector<Kind>& kinds,
-                 const Machine& machine, const Plan& plan, bool plotted, double total_s) {
+                 const std::vector<TargetRow>& target_rows, const std::vector<TargetCheck>& target_checks,
+                 const Machine& machine, const RunSizes& plan, bool plotted, double total_s) {
   std::ofstream o(md);
   o << "# The published trade: accuracy against time\n\n"
     << "Every number and plot on this page was measured by one run of `visq_bench_accuracy_trade` "
@@ -886,6 +1011,34 @@ void WriteReport(const fs::path& md, const std::string& plot_dir_name, const std
     o << "**No plots in this run**: gnuplot was not found (or failed), so only the tables were written. Install "
          "`gnuplot-nox` (`deploy/install-deps.sh` lists it) and run the command again.\n\n";
 
+  // Accuracy targets.
+  if (!target_rows.empty()) {
+    o << "## Accuracy targets: predicted against measured\n\n"
+      << "A hidden-sample map asked by error (`target.max_error` at 95 %) on each scene's placement below, "
+         "through the server's core (its planner and cost model, without gRPC), starting with an empty cost "
+         "model. The 1st call probes each method on this scene, then chooses; the 2nd call of the same target "
+         "predicts from what the 1st measured. `direct` rows run every other method's cheapest plan meeting the "
+         "target as a plain request, to check the choice. Times are compute (the GL job or the CPU work, Hough "
+         "table included), as the cost model sees them; the 1st call of a plan also pays its cold caches "
+         "(exact trees, Hough tables). A ratio is measured / predicted.\n\n"
+      << "| scene | target | call | plan | predicted (ms) | measured (ms) | measured / predicted |\n"
+      << "|---|---:|---|---|---:|---:|---:|\n";
+    for (const TargetRow& r : target_rows)
+      o << "| " << r.scene << " | ±" << Fmt("%.3g", r.max_error) << " | " << r.call << " | " << Cell(r.plan)
+        << (r.chosen ? " (chosen)" : "") << " | " << Num(r.predicted_ms) << " | " << Num(r.measured_ms) << " | "
+        << (std::isfinite(r.measured_ms) && r.predicted_ms > 0 ? Fmt("%.2f", r.measured_ms / r.predicted_ms) : "–")
+        << " |\n";
+    o << "\nThe choice against what the candidates then measured (the goal: the chosen plan within 2x of the "
+         "cheapest measured):\n\n"
+      << "| scene | target | chosen | its time (ms) | cheapest measured | its time (ms) | chosen / cheapest |\n"
+      << "|---|---:|---|---:|---|---:|---:|\n";
+    for (const TargetCheck& t : target_checks)
+      o << "| " << t.scene << " | ±" << Fmt("%.3g", t.max_error) << " | " << Cell(t.chosen) << " | "
+        << Num(t.chosen_ms) << " | " << Cell(t.cheapest) << " | " << Num(t.cheapest_ms) << " | "
+        << Fmt("%.2f", t.chosen_ms / std::max(t.cheapest_ms, 1e-9)) << " |\n";
+    o << "\n";
+  }
+
   // Per kind.
   for (const Kind& kind : kinds) {
     o << "## " << kind.title << "\n\n" << kind.definition << "\n\n";
@@ -955,7 +1108,7 @@ bool CheckOutputs(const fs::path& md, const fs::path& plots, const std::vector<K
 }  // namespace
 
 int main(int argc, char** argv) {
-  Plan plan;
+  RunSizes plan;
   fs::path scenes_dir = "../shared/scenes", out_dir = "docs";
   std::string md_name = "accuracy.md", command, only, kinds_filter;
   for (int i = 1; i < argc; ++i) {
@@ -1028,6 +1181,19 @@ int main(int argc, char** argv) {
   }
   std::printf("device: %s | %s; CPU %s\n", machine.gl_renderer.c_str(), machine.gl_version.c_str(),
               machine.cpu.c_str());
+
+  // The core for the accuracy targets: a scratch repository that the
+  // scenes are written into, and a cost model that starts empty.
+  const fs::path target_repo =
+      fs::temp_directory_path() / ("visq-accuracy-targets-" + std::to_string(static_cast<long>(::getpid())));
+  fs::create_directories(target_repo);
+  EngineOptions engine_options;
+  engine_options.scene_repo = target_repo;
+  engine_options.cost_model_file = "-";
+  engine_options.load_repository_at_start = false;
+  auto engine = Must(Engine::Create(engine_options), "engine");
+  std::vector<TargetRow> target_rows;
+  std::vector<TargetCheck> target_checks;
 
   std::vector<Kind> kinds(5);
   Kind& hsm = kinds[0];
@@ -1115,6 +1281,13 @@ int main(int argc, char** argv) {
     if (wanted(obsc)) SweepObscurances(plan, c, worker, *gpu_scene, obsc);
     if (wanted(voxel)) SweepVoxelization(plan, c, worker, *gpu_scene, voxel);
     if (wanted(vol)) SweepVolumetric(plan, c, worker, *gpu_scene, vol);
+    if (kinds_filter.empty() || kinds_filter.find("targets") != std::string::npos) {
+      std::string stored = c.name;
+      std::replace(stored.begin(), stored.end(), '-', '_');
+      const Status written = WriteGltfFile(c.scene, target_repo / (stored + ".glb"));
+      if (!written.ok()) Fail(c.name + ": writing the scene for the core", written);
+      MeasureTargets(plan, c, *engine, stored, target_rows, target_checks);
+    }
     std::printf("%s: %.0f s\n", c.name.c_str(), MsSince(t_scene) / 1000);
     std::fflush(stdout);
   }
@@ -1131,7 +1304,10 @@ int main(int argc, char** argv) {
   if (have_gnuplot && !plotted) std::printf("WARNING: gnuplot failed on some plot; see the messages above\n");
   const double total_s = MsSince(start) / 1000;
   const fs::path md = out_dir / md_name;
-  WriteReport(md, "accuracy", kinds, machine, plan, plotted, total_s);
+  WriteReport(md, "accuracy", kinds, target_rows, target_checks, machine, plan, plotted, total_s);
+  engine.reset();
+  std::error_code ec;
+  fs::remove_all(target_repo, ec);
   std::printf("wrote %s and %s/*.png in %.0f s\n", md.c_str(), plot_dir.c_str(), total_s);
   if (plan.quick && !CheckOutputs(md, plot_dir, kinds, plotted)) return 1;
   return 0;

@@ -3,8 +3,11 @@
 #include "core/accuracy_planner.h"
 
 #include <cmath>
+#include <fstream>
 
 #include <gtest/gtest.h>
+
+#include "test_support.h"
 
 namespace visq {
 namespace {
@@ -36,6 +39,32 @@ TEST(CostModel, ANegativeFittedSlopeFallsBackToProportional) {
   model.Record("s", 100.0, 20.0);
   const double predicted = *model.Predict("s", 110.0);
   EXPECT_NEAR(predicted, 120.0 / 110.0 * 110.0, 1e-9);
+}
+
+TEST(CostModel, ObservationsOutliveTheModelInItsFile) {
+  testing::ScratchDir dir;
+  const std::filesystem::path file = dir.path() / "costs.tsv";
+  {
+    CostModel model;
+    model.PersistTo(file);  // absent: nothing read
+    EXPECT_FALSE(model.Predict("s/a", 1.0));
+    model.Record("s/a", 10.0, 30.0);
+    model.Record("s/a", 20.0, 50.0);
+    model.Record("s/b", 4.0, 8.0);
+    model.Record("bad\tname", 1.0, 1.0);  // the file's separator: not kept
+  }
+  {
+    std::ofstream append(file, std::ios::app);
+    append << "junk line\n" << "s/c\tnan\t3\n" << "s/c\t-1\t3\n" << "\t1\t2\n";
+  }
+  CostModel restored;
+  restored.PersistTo(file);
+  EXPECT_EQ(restored.Observations("s/a"), 2u);
+  EXPECT_EQ(restored.Observations("s/b"), 1u);
+  EXPECT_EQ(restored.Observations("s/c"), 0u);
+  EXPECT_EQ(restored.Observations("bad\tname"), 0u);
+  EXPECT_DOUBLE_EQ(*restored.Predict("s/a", 40.0), 90.0);  // 10 + 2 x 40, as fitted before
+  EXPECT_DOUBLE_EQ(*restored.Predict("s/b", 2.0), 4.0);
 }
 
 TEST(CostModel, KeepsOnlyRecentObservations) {

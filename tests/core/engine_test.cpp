@@ -311,6 +311,68 @@ TEST(Engine, MoreSamplesThanOneMapHoldsAreSeveralMaps) {
   EXPECT_EQ(RunHiddenSampleMap(*engine, too_many).status().code(), absl::StatusCode::kResourceExhausted);
 }
 
+
+// A target's plans are predicted by the cost model: probed once per scene
+// and method, updated by every run, and kept across a restart in the
+// repository, so the restarted engine predicts what the first measured and
+// probes nothing. The exact method's work is its trees (one per receiver
+// cell), not its points.
+TEST(Engine, CostModelLearnsFromEachRunAndOutlivesARestart) {
+  testing::ScratchDir dir;
+  HiddenSampleMapQuery query = ShadowedFloorQuery(VisibilityMethod::kRaster, 0, 32);
+  query.request.options.want_bitmasks = false;
+  query.target = AccuracyTarget{.max_error = 0.05, .confidence = 0.95};
+  std::map<std::string, double> predicted;  // cost key|work -> the first engine's prediction
+  std::map<std::string, size_t> observations;
+  {
+    auto engine = StartEngine(dir.path() / "repo");
+    ASSERT_TRUE(engine);
+    auto first = RunHiddenSampleMap(*engine, query);
+    ASSERT_TRUE(first.ok()) << first.status();
+    ASSERT_TRUE(first->plan);
+    EXPECT_GT(first->plan->probe_ms, 0.0);
+    bool saw_exact = false;
+    for (const Plan& plan : first->plan->plans) {
+      EXPECT_GE(engine->cost_model().Observations(plan.cost_key), 1u) << plan.cost_key;
+      if (plan.method == "plucker-exact") {
+        saw_exact = true;
+        EXPECT_GE(plan.work, 1.0);
+        EXPECT_LT(plan.work, 32.0 * 32.0) << "the exact method's work counts trees, not points";
+      }
+    }
+    EXPECT_TRUE(saw_exact);
+    // The chosen plan's run is one more observation of its series.
+    const Plan& chosen = first->plan->chosen_plan();
+    const size_t before = engine->cost_model().Observations(chosen.cost_key);
+    auto second = RunHiddenSampleMap(*engine, query);
+    ASSERT_TRUE(second.ok()) << second.status();
+    EXPECT_EQ(second->plan->probe_ms, 0.0);
+    if (second->plan->chosen_plan().cost_key == chosen.cost_key) {
+      EXPECT_EQ(engine->cost_model().Observations(chosen.cost_key), std::min<size_t>(before + 1, 16))
+          << "a run updates its series";
+    }
+    for (const Plan& plan : second->plan->plans) {
+      const std::optional<double> p = engine->cost_model().Predict(plan.cost_key, plan.work);
+      ASSERT_TRUE(p);
+      predicted[plan.cost_key + "|" + std::to_string(plan.work)] = *p;
+      observations[plan.cost_key] = engine->cost_model().Observations(plan.cost_key);
+    }
+  }
+  EXPECT_TRUE(std::filesystem::exists(dir.path() / "repo" / ".visq-cost-model.tsv"));
+
+  auto restarted = StartEngine(dir.path() / "repo");
+  ASSERT_TRUE(restarted);
+  for (const auto& [key, count] : observations) EXPECT_EQ(restarted->cost_model().Observations(key), count) << key;
+  auto third = RunHiddenSampleMap(*restarted, query);
+  ASSERT_TRUE(third.ok()) << third.status();
+  EXPECT_EQ(third->plan->probe_ms, 0.0) << "the restarted engine probed again";
+  for (const Plan& plan : third->plan->plans) {
+    auto it = predicted.find(plan.cost_key + "|" + std::to_string(plan.work));
+    ASSERT_NE(it, predicted.end()) << plan.cost_key;
+    EXPECT_DOUBLE_EQ(plan.predicted_ms, it->second) << plan.cost_key;
+  }
+}
+
 }  // namespace
 }  // namespace visq
 
