@@ -482,7 +482,7 @@ void SweepHiddenSampleMap(const RunSizes& plan, SceneCase& c, gpu::HiddenSampleM
       int hough;
     };
     std::vector<Variant> variants = {{"RASTER EXACT", sampling::LookupMode::kExact, 256}};
-    for (int h : hough) variants.push_back({"RASTER FAST h" + std::to_string(h), sampling::LookupMode::kHough, h});
+    for (int h : hough) variants.push_back({"RASTER HOUGH h" + std::to_string(h), sampling::LookupMode::kHough, h});
     for (const Variant& v : variants) {
       r.options.lookup = v.lookup;
       r.options.hough_theta_resolution = r.options.hough_r_resolution = v.hough;
@@ -653,7 +653,7 @@ void SweepPatchVisibility(const RunSizes& plan, SceneCase& c, gpu::HiddenSampleM
         return true;
       };
       if (!body() || !Time(plan.repeats, body, t)) Fail("patch visibility", absl::InternalError("failed"));
-      record(lookup == sampling::LookupMode::kExact ? "RASTER EXACT" : "RASTER FAST h256", t, last);
+      record(lookup == sampling::LookupMode::kExact ? "RASTER EXACT" : "RASTER HOUGH h256", t, last);
     }
   }
 }
@@ -1207,8 +1207,8 @@ int main(int argc, char** argv) {
          "Error: |visible fraction − exact| over the " + std::to_string(plan.receiver) + "² receiver texels "
          "(mean, 95th percentile, max), in units of the whole light. `bits ≠ Embree` is the fraction of "
          "(texel, sample) bits that differ from Embree casting the same segments. RASTER EXACT should be 0 up to "
-         "float ties, and FAST is conservative. Jittered source samples, seed 1. N is the number of source samples. "
-         "For FAST, hN is the Hough table's θ and r resolution.",
+         "float ties, and HOUGH is conservative. Jittered source samples, seed 1. N is the number of source samples. "
+         "For HOUGH, hN is the Hough table's θ and r resolution.",
          {}, {}};
   patch = {"patch_visibility",
            "Patch visibility",
@@ -1216,7 +1216,7 @@ int main(int argc, char** argv) {
            "Error: |mutual visible fraction − exact mutual fraction|, where the exact mutual fraction is the mean of "
            "the exact per-receiver-sample fractions. The receiver grid is the hidden-sample map's " +
                std::to_string(plan.receiver) + "² texels. The per-sample columns compare each receiver sample's "
-               "fraction with its exact value. The source grid (regular, cell centres) is swept. FAST uses the "
+               "fraction with its exact value. The source grid (regular, cell centres) is swept. HOUGH uses the "
                "default 256² Hough table.",
            {}, {}};
   obsc = {"obscurances",
