@@ -103,6 +103,42 @@ struct LightTriangle {
   const XPlane* plane;
 };
 
+// A query as the store of answers knows it: every input bit that the answer
+// depends on.
+struct AnswerKey {
+  uint64_t position[3];
+  uint64_t normal[3];
+  uint32_t receiver_triangle;
+  uint8_t has_normal, has_triangle, want_polygons;
+  bool operator==(const AnswerKey&) const = default;
+  template <typename H>
+  friend H AbslHashValue(H h, const AnswerKey& k) {
+    return H::combine(std::move(h), k.position[0], k.position[1], k.position[2], k.normal[0], k.normal[1],
+                      k.normal[2], k.receiver_triangle, k.has_normal, k.has_triangle, k.want_polygons);
+  }
+};
+
+AnswerKey KeyOf(const QueryPoint& q, bool want_polygons) {
+  AnswerKey k{};
+  const glm::dvec3 n = q.normal.value_or(glm::dvec3(0.0));
+  for (int i = 0; i < 3; ++i) {
+    k.position[i] = std::bit_cast<uint64_t>(q.position[i]);
+    k.normal[i] = std::bit_cast<uint64_t>(n[i]);
+  }
+  k.receiver_triangle = q.receiver_triangle.value_or(0);
+  k.has_normal = q.normal.has_value();
+  k.has_triangle = q.receiver_triangle.has_value();
+  k.want_polygons = want_polygons;
+  return k;
+}
+
+size_t AnswerBytes(const PointVisibility& v) {
+  // The entry, the map's slot overhead, and the polygons.
+  size_t bytes = sizeof(AnswerKey) + sizeof(PointVisibility) + 16;
+  for (const auto& polygon : v.visible_polygons) bytes += sizeof(polygon) + polygon.size() * sizeof(glm::dvec3);
+  return bytes;
+}
+
 struct PairHash {
   size_t operator()(const std::pair<const void*, const void*>& p) const {
     const auto a = reinterpret_cast<uintptr_t>(p.first), b = reinterpret_cast<uintptr_t>(p.second);
@@ -284,6 +320,31 @@ class OccluderIndex {
     }
   }
 
+  // How many occluders' boxes `box_misses` does not rule out, counting no
+  // further than `limit`.
+  template <typename BoxMisses>
+  size_t CountUpTo(const BoxMisses& box_misses, size_t limit) const {
+    if (nodes_.empty()) return 0;
+    uint32_t stack[64];
+    int top = 0;
+    stack[top++] = 0;
+    size_t count = 0;
+    while (top > 0 && count < limit) {
+      const Node& node = nodes_[stack[--top]];
+      if (box_misses(node.lo, node.hi)) continue;
+      if (node.left == kLeaf) {
+        for (uint32_t i = node.begin; i < node.end; ++i) {
+          const auto& [lo, hi] = boxes_[order_[i]];
+          count += box_misses(lo, hi) ? 0 : 1;
+        }
+      } else {
+        stack[top++] = node.left;
+        stack[top++] = node.left + 1;
+      }
+    }
+    return std::min(count, limit);
+  }
+
   size_t MemoryBytes() const {
     return boxes_.capacity() * sizeof(boxes_[0]) + order_.capacity() * 4 + nodes_.capacity() * sizeof(Node);
   }
@@ -359,7 +420,14 @@ struct LightVisibilityTree::Impl {
   size_t list_bytes = 0;
 
   std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0},
-      subtracted_directly{0};
+      subtracted_directly{0}, answers_reused{0};
+
+  // The store of answers (Query), under a lock of its own: a lookup must
+  // not wait for a refinement.
+  mutable std::shared_mutex answers_mutex;
+  absl::flat_hash_map<AnswerKey, PointVisibility> answers;
+  size_t answer_bytes = 0;  // under answers_mutex
+  size_t max_answer_bytes = 0;
   size_t max_bytes = 0;
   bool classify_points = true;
   size_t direct_candidates = 0;
@@ -554,6 +622,10 @@ struct LightVisibilityTree::Impl {
     absl::flat_hash_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
     std::vector<int> signs;
     const XPoint* p = nullptr;
+    // The query's stop: looked at every kStopStride calls of StopNow.
+    const StopToken* stop = nullptr;
+    uint32_t stop_countdown = 0;
+    Status stopped;
     // The sign of d[light_axis] for every direction from P to the light;
     // 0 when it is not one strict sign (then no LineBoxes this query).
     int line_box_sign = 0;
@@ -566,8 +638,23 @@ struct LightVisibilityTree::Impl {
       edge_planes.clear();
       p = nullptr;
       line_box_sign = 0;
+      stop = nullptr;
+      stop_countdown = 0;
+      stopped = absl::OkStatus();
     }
   };
+
+  // Whether the query must stop (its status then in s.stopped). The clock
+  // is read every few calls: a call is one occluder subtracted or one step
+  // of the descent, a few microseconds at most.
+  static constexpr uint32_t kStopStride = 8;
+  static bool StopNow(Scratch& s) {
+    if (!s.stopped.ok()) return true;
+    if (s.stop == nullptr || s.stop_countdown-- > 0) return false;
+    s.stop_countdown = kStopStride;
+    s.stopped = s.stop->Check();
+    return !s.stopped.ok();
+  }
 
   // The plane through P and edge line (a, b), shared by both orientations
   // of the line (so that a vertex created on it is recognised as lying on it
@@ -885,7 +972,7 @@ struct LightVisibilityTree::Impl {
     std::vector<uint32_t> ids;
     for (const Blocker& blocker : *blockers) ids.push_back(blocker.id);
     SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers);
-    return left.empty();
+    return left.empty() && s.stopped.ok();
   }
 
   // A triangle's size as seen from p: its area over its squared distance,
@@ -1132,7 +1219,7 @@ struct LightVisibilityTree::Impl {
     bool all_valid = UnionLineBox(s, *fragments, &all);
     size_t subtracted = 0;
     for (const uint32_t id : ids) {
-      if (fragments->empty() || subtracted == max_subtracted) break;
+      if (fragments->empty() || subtracted == max_subtracted || StopNow(s)) break;
       if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
       LineBox shadow;
       const bool has_shadow = LineBoxOf(s, corners, &shadow);
@@ -1145,7 +1232,28 @@ struct LightVisibilityTree::Impl {
     return subtracted;
   }
 
-  StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons) {
+  // The answer from the store, or a new one, kept while the store has room.
+  StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop) {
+    const AnswerKey key = KeyOf(q, want_polygons);
+    {
+      std::shared_lock lock(answers_mutex);
+      if (auto it = answers.find(key); it != answers.end()) {
+        queries.fetch_add(1, std::memory_order_relaxed);
+        hits.fetch_add(1, std::memory_order_relaxed);
+        answers_reused.fetch_add(1, std::memory_order_relaxed);
+        return it->second;
+      }
+    }
+    StatusOr<PointVisibility> answer = Compute(q, want_polygons, stop);
+    if (answer.ok()) {
+      const size_t bytes = AnswerBytes(*answer);
+      std::unique_lock lock(answers_mutex);
+      if (answer_bytes + bytes <= max_answer_bytes && answers.emplace(key, *answer).second) answer_bytes += bytes;
+    }
+    return answer;
+  }
+
+  StatusOr<PointVisibility> Compute(const QueryPoint& q, bool want_polygons, const StopToken& stop) {
     // Validate and move the point into the local frame.
     for (int i = 0; i < 3; ++i) {
       if (!InCoordinateRange(q.position[i])) {
@@ -1176,6 +1284,7 @@ struct LightVisibilityTree::Impl {
     thread_local Scratch scratch;
     Scratch& s = scratch;
     s.Reset();
+    s.stop = &stop;
     s.p = s.Add(XPoint::Input(p_local));
     // A light seen from behind (or edge-on) gives nothing.
     if (EuclidSide(*s.p, *light_plane) <= 0) {
@@ -1333,6 +1442,7 @@ struct LightVisibilityTree::Impl {
       std::vector<int> sg;
       std::shared_lock lock(mutex);
       while (!stack.empty()) {
+        if (StopNow(s)) return s.stopped;
         auto [id, f] = std::move(stack.back());
         stack.pop_back();
         const Node& node = nodes[id];
@@ -1368,6 +1478,7 @@ struct LightVisibilityTree::Impl {
           SortLargestFirst(p_local, &ids);
           const XPlane* no_slab = nullptr;  // far occluders are whole
           SubtractOccluders(s, &pieces, ids, &no_slab);
+          if (!s.stopped.ok()) return s.stopped;
           for (Fragment& piece : pieces) visible.push_back(std::move(piece));
         } else if (node.kind == kUndefined) {
           // Refine this leaf under the exclusive lock, then resume here.
@@ -1419,6 +1530,7 @@ struct LightVisibilityTree::Impl {
       // (docs/exact-method-notes.md).
       SortLargestFirst(p_local, &subtract);
       SubtractOccluders(s, &visible, subtract, &slab_top);
+      if (!s.stopped.ok()) return s.stopped;
     }
 
     // Integrate over the visible polygons.
@@ -1653,6 +1765,14 @@ std::vector<uint32_t> SceneTriangleIndex::InBox(const glm::dvec3& lo, const glm:
   return out;
 }
 
+size_t SceneTriangleIndex::CountInBox(const glm::dvec3& lo, const glm::dvec3& hi, size_t limit) const {
+  return impl_->boxes.CountUpTo(
+      [&](const glm::dvec3& box_lo, const glm::dvec3& box_hi) {
+        return glm::any(glm::lessThan(box_hi, lo)) || glm::any(glm::greaterThan(box_lo, hi));
+      },
+      limit);
+}
+
 size_t SceneTriangleIndex::triangle_count() const { return impl_->triangle_count; }
 size_t SceneTriangleIndex::MemoryBytes() const { return sizeof(Impl) + impl_->boxes.MemoryBytes(); }
 
@@ -1668,6 +1788,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   impl->origin = prepared.origin;
   impl->radiance = light.radiance;
   impl->max_bytes = options.max_bytes;
+  impl->max_answer_bytes = options.keep_answers ? options.max_bytes / 4 : 0;
   impl->classify_points = options.classify_points;
   impl->direct_candidates = options.classify_points ? options.direct_candidates : 0;
   impl->light_local = std::move(prepared.local);
@@ -1966,8 +2087,16 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
 LightVisibilityTree::LightVisibilityTree(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 LightVisibilityTree::~LightVisibilityTree() = default;
 
-StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bool want_polygons) {
-  return impl_->Query(point, want_polygons);
+Status StopToken::Check() const {
+  if (cancelled != nullptr && cancelled->load(std::memory_order_relaxed)) return absl::CancelledError("cancelled");
+  if (deadline != std::chrono::steady_clock::time_point::max() && std::chrono::steady_clock::now() > deadline)
+    return absl::DeadlineExceededError("deadline passed");
+  return absl::OkStatus();
+}
+
+StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bool want_polygons,
+                                                     const StopToken& stop) {
+  return impl_->Query(point, want_polygons, stop);
 }
 
 StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
@@ -1990,7 +2119,7 @@ StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
           stop = true;
           return;
         }
-        auto r = impl_->Query(points[i], want_polygons);
+        auto r = impl_->Query(points[i], want_polygons, StopToken{nullptr, deadline});
         if (!r.ok()) {
           std::lock_guard lock(error_mutex);
           if (error.ok()) error = Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message()));
@@ -2015,6 +2144,12 @@ TreeStats LightVisibilityTree::Stats() const {
   s.wholly_visible = impl_->wholly_visible.load();
   s.wholly_hidden = impl_->wholly_hidden.load();
   s.subtracted_directly = impl_->subtracted_directly.load();
+  s.answers_reused = impl_->answers_reused.load();
+  {
+    std::shared_lock answers_lock(impl_->answers_mutex);
+    s.answers_kept = impl_->answers.size();
+    s.memory_bytes += impl_->answer_bytes;
+  }
   s.far_occluders = impl_->far.size();
   s.near_occluders = impl_->near.size();
   return s;
@@ -2030,14 +2165,21 @@ TreeStats& TreeStats::operator+=(const TreeStats& o) {
   wholly_visible += o.wholly_visible;
   wholly_hidden += o.wholly_hidden;
   subtracted_directly += o.subtracted_directly;
+  answers_reused += o.answers_reused;
+  answers_kept += o.answers_kept;
   far_occluders += o.far_occluders;
   near_occluders += o.near_occluders;
   return *this;
 }
 
 size_t LightVisibilityTree::MemoryBytes() const {
-  std::shared_lock lock(impl_->mutex);
-  return impl_->MemoryBytesLocked();
+  size_t bytes;
+  {
+    std::shared_lock lock(impl_->mutex);
+    bytes = impl_->MemoryBytesLocked();
+  }
+  std::shared_lock lock(impl_->answers_mutex);
+  return bytes + impl_->answer_bytes;
 }
 
 double LightVisibilityTree::light_area() const { return impl_->light_area; }
@@ -2131,6 +2273,52 @@ std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, con
     cells.push_back(std::move(c));
   }
   return cells;
+}
+
+std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,
+                                                const SceneTriangleIndex& index, const ShaftGrouping& options) {
+  // Groups to judge: each is split at the median of its box's longest axis
+  // while its shaft's box holds too many triangles and both halves keep
+  // min_points; what cannot be split, or need not be, is a cell.
+  const size_t min_points = std::max<size_t>(1, options.min_points);
+  glm::dvec3 light_lo(std::numeric_limits<double>::infinity()), light_hi(-std::numeric_limits<double>::infinity());
+  for (const glm::dvec3& v : light.vertices) {
+    light_lo = glm::min(light_lo, v);
+    light_hi = glm::max(light_hi, v);
+  }
+  std::vector<ReceiverCell> done;
+  std::vector<std::vector<uint32_t>> open(1);
+  open[0].resize(points.size());
+  for (uint32_t i = 0; i < points.size(); ++i) open[0][i] = i;
+  if (points.empty()) return done;
+  while (!open.empty()) {
+    std::vector<uint32_t> group = std::move(open.back());
+    open.pop_back();
+    Bounds box;
+    for (const uint32_t i : group) box.Extend(points[i].position);
+    const glm::dvec3 shaft_lo = glm::min(light_lo, box.min), shaft_hi = glm::max(light_hi, box.max);
+    const glm::dvec3 extent = box.Extent();
+    const int axis = extent.x >= extent.y && extent.x >= extent.z ? 0 : extent.y >= extent.z ? 1 : 2;
+    const bool splittable = group.size() >= 2 * min_points && extent[axis] > 0.0;
+    if (!splittable ||
+        index.CountInBox(shaft_lo, shaft_hi, options.max_shaft_triangles + 1) <= options.max_shaft_triangles) {
+      std::sort(group.begin(), group.end());
+      done.push_back({box, std::move(group)});
+      continue;
+    }
+    const size_t middle = group.size() / 2;
+    std::nth_element(group.begin(), group.begin() + static_cast<std::ptrdiff_t>(middle), group.end(),
+                     [&](uint32_t a, uint32_t b) {
+                       const double pa = points[a].position[axis], pb = points[b].position[axis];
+                       return pa < pb || (pa == pb && a < b);
+                     });
+    open.emplace_back(group.begin() + static_cast<std::ptrdiff_t>(middle), group.end());
+    group.resize(middle);
+    open.push_back(std::move(group));
+  }
+  std::sort(done.begin(), done.end(),
+            [](const ReceiverCell& a, const ReceiverCell& b) { return a.points.front() < b.points.front(); });
+  return done;
 }
 
 uint64_t HashLight(const AreaLight& light, const TreeOptions& options) {
