@@ -2300,10 +2300,13 @@ std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> poin
     const glm::dvec3 extent = box.Extent();
     const int axis = extent.x >= extent.y && extent.x >= extent.z ? 0 : extent.y >= extent.z ? 1 : 2;
     const bool splittable = group.size() >= 2 * min_points && extent[axis] > 0.0;
-    if (!splittable ||
-        index.CountInBox(shaft_lo, shaft_hi, options.max_shaft_triangles + 1) <= options.max_shaft_triangles) {
+    const size_t count = splittable ? index.CountInBox(shaft_lo, shaft_hi, SIZE_MAX) : 0;
+    auto keep_whole = [&] {
       std::sort(group.begin(), group.end());
       done.push_back({box, std::move(group)});
+    };
+    if (count <= options.max_shaft_triangles) {
+      keep_whole();
       continue;
     }
     const size_t middle = group.size() / 2;
@@ -2312,9 +2315,26 @@ std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> poin
                        const double pa = points[a].position[axis], pb = points[b].position[axis];
                        return pa < pb || (pa == pb && a < b);
                      });
-    open.emplace_back(group.begin() + static_cast<std::ptrdiff_t>(middle), group.end());
-    group.resize(middle);
-    open.push_back(std::move(group));
+    std::vector<uint32_t> upper(group.begin() + static_cast<std::ptrdiff_t>(middle), group.end());
+    std::vector<uint32_t> lower(group.begin(), group.begin() + static_cast<std::ptrdiff_t>(middle));
+    // Halves whose shafts together still meet nearly twice the whole's
+    // triangles (compact receivers under a dense mesh: the shaft is the
+    // light's) would only build the same tree twice: one tree it stays,
+    // unless it would hold more than the hard cap (its memory).
+    if (count <= 4 * options.max_shaft_triangles) {
+      size_t halves = 0;
+      for (const auto* half : {&lower, &upper}) {
+        Bounds half_box;
+        for (const uint32_t i : *half) half_box.Extend(points[i].position);
+        halves += index.CountInBox(glm::min(light_lo, half_box.min), glm::max(light_hi, half_box.max), SIZE_MAX);
+      }
+      if (static_cast<double>(halves) > 2.0 * options.split_gain * static_cast<double>(count)) {
+        keep_whole();
+        continue;
+      }
+    }
+    open.push_back(std::move(upper));
+    open.push_back(std::move(lower));
   }
   std::sort(done.begin(), done.end(),
             [](const ReceiverCell& a, const ReceiverCell& b) { return a.points.front() < b.points.front(); });

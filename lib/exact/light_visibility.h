@@ -275,7 +275,8 @@ std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, con
 // group of every point, its box the points' box, split in two at the median
 // of its longest axis while the box around its shaft (the light and the
 // group's box) meets more than max_shaft_triangles scene triangles, as long
-// as both halves keep min_points. A compact batch under a light in open
+// as both halves keep min_points and their shafts meet markedly fewer (or
+// the whole is past a hard cap). A compact batch under a light in open
 // space stays one tree over its own box (the best single region); a frame
 // over a dense room is cut until each tree's occluders are few enough to
 // bound its memory. The points' boxes are tight, so the trees' shafts are
@@ -284,6 +285,11 @@ std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, con
 struct ShaftGrouping {
   size_t max_shaft_triangles = 20000;
   size_t min_points = 64;
+  // ... and as long as the halves' shafts meet at most this fraction of
+  // twice the whole's triangles: halves that each meet nearly all of them
+  // would build the same tree twice. Past 4 x max_shaft_triangles (a tree
+  // of about 20 MB) a group is halved whatever the gain.
+  double split_gain = 0.75;
 };
 // Cells in order of their first point. Points must be finite.
 std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,

@@ -263,7 +263,7 @@ void ErrorTable(const BenchCase& bc, const visq::raycast::EmbreeScene& embree,
   std::printf("%6s %8s %10s %10s %14s\n", "k", "rays", "RMS", "max err", "CPU s (+BVH)");
   visq::raycast::TraceOptions trace;
   trace.threads = threads;
-  for (const int k : {2, 3, 4, 6, 8, 11, 16, 23, 32, 45, 64}) {
+  for (const int k : {2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 18, 20, 23, 26, 29, 32, 36, 40, 45, 51, 57, 64}) {
     const size_t rays = static_cast<size_t>(k) * k;
     const double cpu0 = ProcessCpuSeconds();
     double sq = 0.0, worst = 0.0;
