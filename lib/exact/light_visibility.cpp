@@ -427,6 +427,7 @@ struct LightVisibilityTree::Impl {
   mutable std::shared_mutex answers_mutex;
   absl::flat_hash_map<AnswerKey, PointVisibility> answers;
   size_t answer_bytes = 0;  // under answers_mutex
+  std::atomic<size_t> answer_bytes_now{0};  // the same, for the tree's budget, which counts the store too
   size_t max_answer_bytes = 0;
   size_t max_bytes = 0;
   bool classify_points = true;
@@ -439,6 +440,35 @@ struct LightVisibilityTree::Impl {
            near.capacity() * sizeof(NearOccluder) + index.MemoryBytes() + near_by_triangle.size() * 24 +
            light_points.size() * sizeof(XPoint) +
            light_planes.size() * sizeof(XPlane);
+  }
+
+  // --- The end of Create, once the occluders are selected. ----------------
+  // The occluders' boxes in their hierarchy (far ones first), then the tree
+  // as one undefined leaf holding every far occluder. Node 0 is the root; 1
+  // and 2 are the shared visible / invisible leaves.
+  void IndexOccludersAndPlantTheTree() {
+    far.shrink_to_fit();
+    near.shrink_to_fit();
+    std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
+    boxes.reserve(far.size() + near.size());
+    auto add_box = [&](const uint32_t (&v)[3]) {
+      const glm::dvec3 a = points[v[0]].input, b = points[v[1]].input, c = points[v[2]].input;
+      boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
+    };
+    for (const FarOccluder& o : far) add_box(o.v);
+    for (const NearOccluder& n : near) add_box(n.v);
+    index.Build(std::move(boxes));
+
+    if (far.empty()) {
+      NewNode(kVisible);
+    } else {
+      const uint32_t list = NewList();
+      for (uint32_t i = 0; i < far.size(); ++i) lists[list].push_back(i);
+      list_bytes = lists[list].capacity() * sizeof(uint32_t);
+      NewNode(kUndefined, 0, list);
+    }
+    NewNode(kVisible);
+    NewNode(kInvisible);
   }
 
   // --- Tree growth (under the exclusive lock). -----------------------------
@@ -1248,7 +1278,10 @@ struct LightVisibilityTree::Impl {
     if (answer.ok()) {
       const size_t bytes = AnswerBytes(*answer);
       std::unique_lock lock(answers_mutex);
-      if (answer_bytes + bytes <= max_answer_bytes && answers.emplace(key, *answer).second) answer_bytes += bytes;
+      if (answer_bytes + bytes <= max_answer_bytes && answers.emplace(key, *answer).second) {
+        answer_bytes += bytes;
+        answer_bytes_now.store(answer_bytes, std::memory_order_relaxed);
+      }
     }
     return answer;
   }
@@ -1437,83 +1470,7 @@ struct LightVisibilityTree::Impl {
     if (!any_far || direct) {
       visible = std::move(pending);
     } else {
-      std::vector<std::pair<int32_t, Fragment>> stack;
-      for (auto& f : pending) stack.emplace_back(0, std::move(f));
-      std::vector<int> sg;
-      std::shared_lock lock(mutex);
-      while (!stack.empty()) {
-        if (StopNow(s)) return s.stopped;
-        auto [id, f] = std::move(stack.back());
-        stack.pop_back();
-        const Node& node = nodes[id];
-        if (node.kind == kVisible) {
-          visible.push_back(std::move(f));
-        } else if (node.kind == kUndefined && MemoryBytesLocked() >= max_bytes) {
-          // The tree is at its budget: resolve this fragment against the
-          // leaf's occluders here, without growing the tree.
-          // Only the occluders whose shadows can meet the light, largest
-          // first, as the near ones: a leaf of a dense room lists
-          // thousands, and in index order a penumbra point was cut into
-          // thousands of pieces (docs/exact-method-notes.md).
-          unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
-          std::vector<Fragment> pieces;
-          pieces.push_back(std::move(f));
-          // The fragment is usually a small part of the light: occluders
-          // whose line boxes are apart from its box go first.
-          const bool fragment_box = HasLineBox(s, pieces[0]);
-          std::vector<uint32_t> ids;
-          VISQ_DCHECK_LT(size_t(node.b), lists.size());
-          for (const uint32_t index : lists[node.b]) {
-            const uint32_t* t = far[index].v;
-            const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
-            if (cull.Misses(v)) continue;
-            if (fragment_box) {
-              const XPoint* corners[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
-              LineBox box;
-              if (LineBoxOf(s, corners, &box) && pieces[0].box.Apart(box)) continue;
-            }
-            if (ShadowMissesLight(p_local, v)) continue;
-            ids.push_back(index);
-          }
-          SortLargestFirst(p_local, &ids);
-          const XPlane* no_slab = nullptr;  // far occluders are whole
-          SubtractOccluders(s, &pieces, ids, &no_slab);
-          if (!s.stopped.ok()) return s.stopped;
-          for (Fragment& piece : pieces) visible.push_back(std::move(piece));
-        } else if (node.kind == kUndefined) {
-          // Refine this leaf under the exclusive lock, then resume here.
-          lock.unlock();
-          {
-            std::unique_lock exclusive(mutex);
-            glm::dvec3 y(0.0);  // the fragment's vertex average, inside it
-            for (const FVert& fv : f.v) y += fv.point->Euclid();
-            Refine(id, p_local, y / static_cast<double>(f.v.size()));
-          }
-          lock.lock();
-          refined = true;
-          stack.emplace_back(id, std::move(f));
-        } else if (node.kind == kInner) {
-          EdgeLine line{&points[node.a], &points[node.b]};
-          const int32_t c0 = node.child[0], c1 = node.child[1];
-          if (!EdgeSides(s, f, line, &sg)) {
-            stack.emplace_back(c1, std::move(f));
-            continue;
-          }
-          const bool any_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
-          const bool any_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
-          if (!any_neg) {
-            stack.emplace_back(c0, std::move(f));
-          } else if (!any_pos) {
-            stack.emplace_back(c1, std::move(f));
-          } else {
-            Fragment pos, neg;
-            Split(s, f, sg, *PlaneOf(s, line).plane, &pos, &neg);
-            stack.emplace_back(c0, std::move(pos));
-            stack.emplace_back(c1, std::move(neg));
-          }
-        }
-        // kInvisible: dropped.
-      }
+      VISQ_RETURN_IF_ERROR(DescendTree(s, pending, cull, p_local, &visible, &refined));
     }
     if (!refined) hits.fetch_add(1, std::memory_order_relaxed);
 
@@ -1534,6 +1491,105 @@ struct LightVisibilityTree::Impl {
     }
 
     // Integrate over the visible polygons.
+    return Integrate(visible, p_local, normal, want_polygons);
+  }
+
+  // Pushes the light fragments down the shared tree from its root: the
+  // parts that reach visible leaves go to *visible; an undefined leaf is
+  // refined under the exclusive lock (*refined), or, with the tree at its
+  // budget, resolved against its occluders here. CANCELLED or
+  // DEADLINE_EXCEEDED when the query's stop says so.
+  Status DescendTree(Scratch& s, std::vector<Fragment>& pending, const PyramidCull& cull,
+                     const glm::dvec3& p_local, std::vector<Fragment>* out, bool* refined_out) {
+    std::vector<Fragment>& visible = *out;
+    bool& refined = *refined_out;
+    std::vector<std::pair<int32_t, Fragment>> stack;
+    for (auto& f : pending) stack.emplace_back(0, std::move(f));
+    std::vector<int> sg;
+    std::shared_lock lock(mutex);
+    while (!stack.empty()) {
+      if (StopNow(s)) return s.stopped;
+      auto [id, f] = std::move(stack.back());
+      stack.pop_back();
+      const Node& node = nodes[id];
+      if (node.kind == kVisible) {
+        visible.push_back(std::move(f));
+      } else if (node.kind == kUndefined &&
+                 MemoryBytesLocked() + answer_bytes_now.load(std::memory_order_relaxed) >= max_bytes) {
+        // The tree is at its budget: resolve this fragment against the
+        // leaf's occluders here, without growing the tree.
+        // Only the occluders whose shadows can meet the light, largest
+        // first, as the near ones: a leaf of a dense room lists
+        // thousands, and in index order a penumbra point was cut into
+        // thousands of pieces (docs/exact-method-notes.md).
+        unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
+        std::vector<Fragment> pieces;
+        pieces.push_back(std::move(f));
+        // The fragment is usually a small part of the light: occluders
+        // whose line boxes are apart from its box go first.
+        const bool fragment_box = HasLineBox(s, pieces[0]);
+        std::vector<uint32_t> ids;
+        VISQ_DCHECK_LT(size_t(node.b), lists.size());
+        for (const uint32_t index : lists[node.b]) {
+          const uint32_t* t = far[index].v;
+          const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+          if (cull.Misses(v)) continue;
+          if (fragment_box) {
+            const XPoint* corners[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
+            LineBox box;
+            if (LineBoxOf(s, corners, &box) && pieces[0].box.Apart(box)) continue;
+          }
+          if (ShadowMissesLight(p_local, v)) continue;
+          ids.push_back(index);
+        }
+        SortLargestFirst(p_local, &ids);
+        const XPlane* no_slab = nullptr;  // far occluders are whole
+        SubtractOccluders(s, &pieces, ids, &no_slab);
+        if (!s.stopped.ok()) return s.stopped;
+        for (Fragment& piece : pieces) visible.push_back(std::move(piece));
+      } else if (node.kind == kUndefined) {
+        // Refine this leaf under the exclusive lock, then resume here.
+        lock.unlock();
+        {
+          std::unique_lock exclusive(mutex);
+          glm::dvec3 y(0.0);  // the fragment's vertex average, inside it
+          for (const FVert& fv : f.v) y += fv.point->Euclid();
+          Refine(id, p_local, y / static_cast<double>(f.v.size()));
+        }
+        lock.lock();
+        refined = true;
+        stack.emplace_back(id, std::move(f));
+      } else if (node.kind == kInner) {
+        EdgeLine line{&points[node.a], &points[node.b]};
+        const int32_t c0 = node.child[0], c1 = node.child[1];
+        if (!EdgeSides(s, f, line, &sg)) {
+          stack.emplace_back(c1, std::move(f));
+          continue;
+        }
+        const bool any_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+        const bool any_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+        if (!any_neg) {
+          stack.emplace_back(c0, std::move(f));
+        } else if (!any_pos) {
+          stack.emplace_back(c1, std::move(f));
+        } else {
+          Fragment pos, neg;
+          Split(s, f, sg, *PlaneOf(s, line).plane, &pos, &neg);
+          stack.emplace_back(c0, std::move(pos));
+          stack.emplace_back(c1, std::move(neg));
+        }
+      }
+      // kInvisible: dropped.
+    }
+    return absl::OkStatus();
+  }
+
+  // The visible fraction of the light's area and solid angle, and the
+  // irradiance for the normal, from the visible fragments (and their
+  // polygons, when asked for).
+  PointVisibility Integrate(const std::vector<Fragment>& visible, const glm::dvec3& p_local,
+                            const std::optional<glm::dvec3>& normal, bool want_polygons) const {
+    PointVisibility result;
     double area = 0.0, solid_angle = 0.0, irradiance = 0.0;
     for (const Fragment& f : visible) {
       std::vector<glm::dvec3> v(f.v.size());
@@ -2055,32 +2111,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
       impl->near.push_back({{p.v[0], p.v[1], p.v[2]}, {p.side[0], p.side[1], p.side[2]}, p.tri});
     }
   }
-  impl->far.shrink_to_fit();
-  impl->near.shrink_to_fit();
-  {
-    std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
-    boxes.reserve(impl->far.size() + impl->near.size());
-    auto add_box = [&](const uint32_t (&v)[3]) {
-      const glm::dvec3 a = impl->points[v[0]].input, b = impl->points[v[1]].input, c = impl->points[v[2]].input;
-      boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
-    };
-    for (const FarOccluder& o : impl->far) add_box(o.v);
-    for (const NearOccluder& n : impl->near) add_box(n.v);
-    impl->index.Build(std::move(boxes));
-  }
-
-  // The tree: one undefined leaf holding every far occluder.
-  // Node 0 is the root; 1 and 2 are the shared visible / invisible leaves.
-  if (impl->far.empty()) {
-    impl->NewNode(kVisible);
-  } else {
-    const uint32_t list = impl->NewList();
-    for (uint32_t i = 0; i < impl->far.size(); ++i) impl->lists[list].push_back(i);
-    impl->list_bytes = impl->lists[list].capacity() * sizeof(uint32_t);
-    impl->NewNode(kUndefined, 0, list);
-  }
-  impl->NewNode(kVisible);
-  impl->NewNode(kInvisible);
+  impl->IndexOccludersAndPlantTheTree();
   return std::unique_ptr<LightVisibilityTree>(new LightVisibilityTree(std::move(impl)));
 }
 

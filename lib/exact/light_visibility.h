@@ -103,7 +103,7 @@ struct TreeOptions {
   std::optional<Bounds> receiver_bounds;
   // Scene triangles that are never occluders (e.g. the emitter's own mesh).
   std::vector<uint32_t> exclude_triangles;
-  // The tree stops growing at this size. A query that then reaches an
+  // The tree (with its store of answers) stops growing at this size. A query that then reaches an
   // undefined leaf subtracts the leaf's occluders from its fragment itself,
   // as it does the near ones: the answer stays exact, only slower, and the
   // memory stays bounded (the tree of a dense scene otherwise grows close to
@@ -227,7 +227,8 @@ class LightVisibilityTree {
   // when `stop` says so, within one occluder's subtraction or one leaf's
   // refinement; the tree stays whole.
   //
-  // Answers are kept, up to a quarter of the tree's max_bytes beside it: a
+  // Answers are kept, up to a quarter of the tree's max_bytes (which counts
+  // them with the tree): a
   // point asked again with the same position, normal and receiver triangle
   // (bit for bit) is answered from that store. A frame asked twice (a
   // re-render, a client's retry) then costs a hash lookup per point.
@@ -286,10 +287,13 @@ struct ShaftGrouping {
   size_t max_shaft_triangles = 20000;
   size_t min_points = 64;
   // ... and as long as the halves' shafts meet at most this fraction of
-  // twice the whole's triangles: halves that each meet nearly all of them
-  // would build the same tree twice. Past 4 x max_shaft_triangles (a tree
-  // of about 20 MB) a group is halved whatever the gain.
-  double split_gain = 0.75;
+  // twice the whole's triangles (0.5: no more than the whole, together):
+  // halves that share their occluders would build the same tree twice, and
+  // each half's tree would hold as far occluders what the whole's clips as
+  // near ones (on the bunny, two halves cost 2.3x one tree). Past 4 x max_shaft_triangles (a tree
+  // whose occluders alone take about 18 MB, at some 225 bytes each) a group
+  // is halved whatever the gain.
+  double split_gain = 0.5;
 };
 // Cells in order of their first point. Points must be finite.
 std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,

@@ -433,10 +433,12 @@ int Run(const BenchCase& bc, const Params& p) {
   });
   const double t_warm = Seconds(t0);
   size_t max_tree_bytes = 0;
+  visq::exact::TreeStats largest;
   for (const auto& tree : trees) {
     if (!tree) continue;
     const auto st = tree->Stats();
     stats += st;
+    if (st.memory_bytes > max_tree_bytes) largest = st;
     max_tree_bytes = std::max(max_tree_bytes, st.memory_bytes);
   }
 
@@ -554,8 +556,10 @@ int Run(const BenchCase& bc, const Params& p) {
               "(%.2f%% of mean %.4f)\n",
               p.rays, std::sqrt(sq_frac / n), max_frac, std::sqrt(sq_irr / n),
               100.0 * std::sqrt(sq_irr / n) / (sum_irr / n), sum_irr / n);
-  std::printf("memory: trees %.1f MiB in all (largest %.1f MiB), process peak RSS %.0f MiB\n",
-              stats.memory_bytes / 1048576.0, max_tree_bytes / 1048576.0, PeakRssMiB());
+  std::printf("memory: trees %.1f MiB in all (largest %.1f MiB: %zu far + %zu near occluders, %zu nodes, "
+              "%zu answers), process peak RSS %.0f MiB\n",
+              stats.memory_bytes / 1048576.0, max_tree_bytes / 1048576.0, largest.far_occluders,
+              largest.near_occluders, largest.nodes, largest.answers_kept, PeakRssMiB());
   if (p.error_table) ErrorTable(bc, *embree, exact, cpu_exact_cold, cpu_embree_build, threads);
   return 0;
 }

@@ -1068,7 +1068,7 @@ TEST(LightVisibilityTest, ShaftGroupsSplitOnlyWhereTheOccludersAreMany) {
   // A smaller budget: groups split, and never below min_points; every point
   // is in one group, inside its box; their trees answer as one tree does.
   const auto groups = GroupReceiversByShaft(points, light, **index, {1500, 64});
-  EXPECT_GT(groups.size(), 2u);
+  EXPECT_GE(groups.size(), 2u);
   std::vector<int> seen(points.size(), 0);
   for (const ReceiverCell& g : groups) {
     EXPECT_GE(g.points.size(), 64u);
