@@ -169,9 +169,10 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
 }
 
 TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
-  // A batch spread over the floor is split into receiver cells (merged
-  // where sparse), one tree each; one tree for a region the client names
-  // must give the same answers.
+  // A batch spread over the floor is grouped by the server (the points'
+  // box, halved where its shaft meets many triangles: on the Cornell box,
+  // one group), one tree each; one tree for a region the client names must
+  // give the same answers. The splitting itself is tested in tests/exact.
   v1::LightVisibilityRequest cells = CeilingLight();
   for (int i = 0; i < 15; ++i)
     for (int j = 0; j < 15; ++j) AddPoint(cells, -0.95 + 0.135 * i, 0.001, -0.95 + 0.135 * j);
@@ -182,7 +183,7 @@ TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
   ASSERT_TRUE(split.ok()) << split.status();
   auto whole = client_->LightVisibility(region);
   ASSERT_TRUE(whole.ok()) << whole.status();
-  EXPECT_GE(split->tree().trees(), 2u);
+  EXPECT_GE(split->tree().trees(), 1u);
   EXPECT_EQ(whole->tree().trees(), 1u);
   ASSERT_EQ(split->points_size(), whole->points_size());
   int penumbra = 0;
