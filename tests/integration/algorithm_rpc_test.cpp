@@ -152,13 +152,14 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
   EXPECT_EQ(second->tree().trees(), 1u);
   EXPECT_EQ(second->tree().trees_created(), 0u);
   EXPECT_EQ(second->tree().refinements(), first->tree().refinements()) << "a second pass refines nothing";
-  // The point in the open is answered before the tree, on each pass; the
-  // point under the box is hidden by the box's bottom faces (two triangles
+  // The point in the open is answered before the tree on the first pass
+  // (the second is answered from the tree's store of answers); the point
+  // under the box is hidden by the box's bottom faces (two triangles
   // together, or one), before the tree too: by one of them, or by
   // subtracting the few triangles whose shadows can meet the light.
   const auto& t = second->tree();
-  EXPECT_GE(t.wholly_visible(), 2u);
-  EXPECT_GE(t.wholly_hidden() + t.subtracted_directly(), 2u);
+  EXPECT_GE(t.wholly_visible(), 1u);
+  EXPECT_GE(t.wholly_hidden() + t.subtracted_directly(), 1u);
   EXPECT_LE(t.wholly_visible() + t.wholly_hidden() + t.subtracted_directly(), t.queries());
   for (int i = 0; i < 4; ++i) {
     EXPECT_EQ(second->points(i).visible_fraction(), first->points(i).visible_fraction());
