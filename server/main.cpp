@@ -99,8 +99,9 @@ int main(int argc, char** argv) {
   app.add_option("--light-cache-bytes", light_cache_bytes, "Bound on the exact light-visibility trees kept (LRU)")
       ->envname("VISQ_LIGHT_CACHE_BYTES")->capture_default_str();
   app.add_option("--light-receiver-cells", options.engine.light_receiver_cells,
-                 "LightVisibility trees per side of the scene (receiver cubes of its extent / N)")
-      ->envname("VISQ_LIGHT_RECEIVER_CELLS")->check(CLI::Range(1, 4096))->capture_default_str();
+                 "LightVisibility trees per side of the scene (receiver cubes of its extent / N); 0: groups "
+                 "that follow the batch and its occluders")
+      ->envname("VISQ_LIGHT_RECEIVER_CELLS")->check(CLI::Range(0, 4096))->capture_default_str();
   app.add_option("--light-receiver-min-points", options.engine.light_receiver_min_points,
                  "A receiver cube with fewer points joins its parent cube's tree (1: every cube its own)")
       ->envname("VISQ_LIGHT_RECEIVER_MIN_POINTS")->check(CLI::Range(1, 1 << 20))->capture_default_str();

@@ -103,6 +103,42 @@ struct LightTriangle {
   const XPlane* plane;
 };
 
+// A query as the store of answers knows it: every input bit that the answer
+// depends on.
+struct AnswerKey {
+  uint64_t position[3];
+  uint64_t normal[3];
+  uint32_t receiver_triangle;
+  uint8_t has_normal, has_triangle, want_polygons;
+  bool operator==(const AnswerKey&) const = default;
+  template <typename H>
+  friend H AbslHashValue(H h, const AnswerKey& k) {
+    return H::combine(std::move(h), k.position[0], k.position[1], k.position[2], k.normal[0], k.normal[1],
+                      k.normal[2], k.receiver_triangle, k.has_normal, k.has_triangle, k.want_polygons);
+  }
+};
+
+AnswerKey KeyOf(const QueryPoint& q, bool want_polygons) {
+  AnswerKey k{};
+  const glm::dvec3 n = q.normal.value_or(glm::dvec3(0.0));
+  for (int i = 0; i < 3; ++i) {
+    k.position[i] = std::bit_cast<uint64_t>(q.position[i]);
+    k.normal[i] = std::bit_cast<uint64_t>(n[i]);
+  }
+  k.receiver_triangle = q.receiver_triangle.value_or(0);
+  k.has_normal = q.normal.has_value();
+  k.has_triangle = q.receiver_triangle.has_value();
+  k.want_polygons = want_polygons;
+  return k;
+}
+
+size_t AnswerBytes(const PointVisibility& v) {
+  // The entry, the map's slot overhead, and the polygons.
+  size_t bytes = sizeof(AnswerKey) + sizeof(PointVisibility) + 16;
+  for (const auto& polygon : v.visible_polygons) bytes += sizeof(polygon) + polygon.size() * sizeof(glm::dvec3);
+  return bytes;
+}
+
 struct PairHash {
   size_t operator()(const std::pair<const void*, const void*>& p) const {
     const auto a = reinterpret_cast<uintptr_t>(p.first), b = reinterpret_cast<uintptr_t>(p.second);
@@ -284,6 +320,31 @@ class OccluderIndex {
     }
   }
 
+  // How many occluders' boxes `box_misses` does not rule out, counting no
+  // further than `limit`.
+  template <typename BoxMisses>
+  size_t CountUpTo(const BoxMisses& box_misses, size_t limit) const {
+    if (nodes_.empty()) return 0;
+    uint32_t stack[64];
+    int top = 0;
+    stack[top++] = 0;
+    size_t count = 0;
+    while (top > 0 && count < limit) {
+      const Node& node = nodes_[stack[--top]];
+      if (box_misses(node.lo, node.hi)) continue;
+      if (node.left == kLeaf) {
+        for (uint32_t i = node.begin; i < node.end; ++i) {
+          const auto& [lo, hi] = boxes_[order_[i]];
+          count += box_misses(lo, hi) ? 0 : 1;
+        }
+      } else {
+        stack[top++] = node.left;
+        stack[top++] = node.left + 1;
+      }
+    }
+    return std::min(count, limit);
+  }
+
   size_t MemoryBytes() const {
     return boxes_.capacity() * sizeof(boxes_[0]) + order_.capacity() * 4 + nodes_.capacity() * sizeof(Node);
   }
@@ -359,7 +420,15 @@ struct LightVisibilityTree::Impl {
   size_t list_bytes = 0;
 
   std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0},
-      subtracted_directly{0};
+      subtracted_directly{0}, answers_reused{0};
+
+  // The store of answers (Query), under a lock of its own: a lookup must
+  // not wait for a refinement.
+  mutable std::shared_mutex answers_mutex;
+  absl::flat_hash_map<AnswerKey, PointVisibility> answers;
+  size_t answer_bytes = 0;  // under answers_mutex
+  std::atomic<size_t> answer_bytes_now{0};  // the same, for the tree's budget, which counts the store too
+  size_t max_answer_bytes = 0;
   size_t max_bytes = 0;
   bool classify_points = true;
   size_t direct_candidates = 0;
@@ -371,6 +440,35 @@ struct LightVisibilityTree::Impl {
            near.capacity() * sizeof(NearOccluder) + index.MemoryBytes() + near_by_triangle.size() * 24 +
            light_points.size() * sizeof(XPoint) +
            light_planes.size() * sizeof(XPlane);
+  }
+
+  // --- The end of Create, once the occluders are selected. ----------------
+  // The occluders' boxes in their hierarchy (far ones first), then the tree
+  // as one undefined leaf holding every far occluder. Node 0 is the root; 1
+  // and 2 are the shared visible / invisible leaves.
+  void IndexOccludersAndPlantTheTree() {
+    far.shrink_to_fit();
+    near.shrink_to_fit();
+    std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
+    boxes.reserve(far.size() + near.size());
+    auto add_box = [&](const uint32_t (&v)[3]) {
+      const glm::dvec3 a = points[v[0]].input, b = points[v[1]].input, c = points[v[2]].input;
+      boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
+    };
+    for (const FarOccluder& o : far) add_box(o.v);
+    for (const NearOccluder& n : near) add_box(n.v);
+    index.Build(std::move(boxes));
+
+    if (far.empty()) {
+      NewNode(kVisible);
+    } else {
+      const uint32_t list = NewList();
+      for (uint32_t i = 0; i < far.size(); ++i) lists[list].push_back(i);
+      list_bytes = lists[list].capacity() * sizeof(uint32_t);
+      NewNode(kUndefined, 0, list);
+    }
+    NewNode(kVisible);
+    NewNode(kInvisible);
   }
 
   // --- Tree growth (under the exclusive lock). -----------------------------
@@ -554,6 +652,10 @@ struct LightVisibilityTree::Impl {
     absl::flat_hash_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
     std::vector<int> signs;
     const XPoint* p = nullptr;
+    // The query's stop: looked at every kStopStride calls of StopNow.
+    const StopToken* stop = nullptr;
+    uint32_t stop_countdown = 0;
+    Status stopped;
     // The sign of d[light_axis] for every direction from P to the light;
     // 0 when it is not one strict sign (then no LineBoxes this query).
     int line_box_sign = 0;
@@ -566,8 +668,23 @@ struct LightVisibilityTree::Impl {
       edge_planes.clear();
       p = nullptr;
       line_box_sign = 0;
+      stop = nullptr;
+      stop_countdown = 0;
+      stopped = absl::OkStatus();
     }
   };
+
+  // Whether the query must stop (its status then in s.stopped). The clock
+  // is read every few calls: a call is one occluder subtracted or one step
+  // of the descent, a few microseconds at most.
+  static constexpr uint32_t kStopStride = 8;
+  static bool StopNow(Scratch& s) {
+    if (!s.stopped.ok()) return true;
+    if (s.stop == nullptr || s.stop_countdown-- > 0) return false;
+    s.stop_countdown = kStopStride;
+    s.stopped = s.stop->Check();
+    return !s.stopped.ok();
+  }
 
   // The plane through P and edge line (a, b), shared by both orientations
   // of the line (so that a vertex created on it is recognised as lying on it
@@ -885,7 +1002,7 @@ struct LightVisibilityTree::Impl {
     std::vector<uint32_t> ids;
     for (const Blocker& blocker : *blockers) ids.push_back(blocker.id);
     SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers);
-    return left.empty();
+    return left.empty() && s.stopped.ok();
   }
 
   // A triangle's size as seen from p: its area over its squared distance,
@@ -1132,7 +1249,7 @@ struct LightVisibilityTree::Impl {
     bool all_valid = UnionLineBox(s, *fragments, &all);
     size_t subtracted = 0;
     for (const uint32_t id : ids) {
-      if (fragments->empty() || subtracted == max_subtracted) break;
+      if (fragments->empty() || subtracted == max_subtracted || StopNow(s)) break;
       if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
       LineBox shadow;
       const bool has_shadow = LineBoxOf(s, corners, &shadow);
@@ -1145,7 +1262,31 @@ struct LightVisibilityTree::Impl {
     return subtracted;
   }
 
-  StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons) {
+  // The answer from the store, or a new one, kept while the store has room.
+  StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop) {
+    const AnswerKey key = KeyOf(q, want_polygons);
+    {
+      std::shared_lock lock(answers_mutex);
+      if (auto it = answers.find(key); it != answers.end()) {
+        queries.fetch_add(1, std::memory_order_relaxed);
+        hits.fetch_add(1, std::memory_order_relaxed);
+        answers_reused.fetch_add(1, std::memory_order_relaxed);
+        return it->second;
+      }
+    }
+    StatusOr<PointVisibility> answer = Compute(q, want_polygons, stop);
+    if (answer.ok()) {
+      const size_t bytes = AnswerBytes(*answer);
+      std::unique_lock lock(answers_mutex);
+      if (answer_bytes + bytes <= max_answer_bytes && answers.emplace(key, *answer).second) {
+        answer_bytes += bytes;
+        answer_bytes_now.store(answer_bytes, std::memory_order_relaxed);
+      }
+    }
+    return answer;
+  }
+
+  StatusOr<PointVisibility> Compute(const QueryPoint& q, bool want_polygons, const StopToken& stop) {
     // Validate and move the point into the local frame.
     for (int i = 0; i < 3; ++i) {
       if (!InCoordinateRange(q.position[i])) {
@@ -1176,6 +1317,7 @@ struct LightVisibilityTree::Impl {
     thread_local Scratch scratch;
     Scratch& s = scratch;
     s.Reset();
+    s.stop = &stop;
     s.p = s.Add(XPoint::Input(p_local));
     // A light seen from behind (or edge-on) gives nothing.
     if (EuclidSide(*s.p, *light_plane) <= 0) {
@@ -1328,81 +1470,7 @@ struct LightVisibilityTree::Impl {
     if (!any_far || direct) {
       visible = std::move(pending);
     } else {
-      std::vector<std::pair<int32_t, Fragment>> stack;
-      for (auto& f : pending) stack.emplace_back(0, std::move(f));
-      std::vector<int> sg;
-      std::shared_lock lock(mutex);
-      while (!stack.empty()) {
-        auto [id, f] = std::move(stack.back());
-        stack.pop_back();
-        const Node& node = nodes[id];
-        if (node.kind == kVisible) {
-          visible.push_back(std::move(f));
-        } else if (node.kind == kUndefined && MemoryBytesLocked() >= max_bytes) {
-          // The tree is at its budget: resolve this fragment against the
-          // leaf's occluders here, without growing the tree.
-          // Only the occluders whose shadows can meet the light, largest
-          // first, as the near ones: a leaf of a dense room lists
-          // thousands, and in index order a penumbra point was cut into
-          // thousands of pieces (docs/exact-method-notes.md).
-          unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
-          std::vector<Fragment> pieces;
-          pieces.push_back(std::move(f));
-          // The fragment is usually a small part of the light: occluders
-          // whose line boxes are apart from its box go first.
-          const bool fragment_box = HasLineBox(s, pieces[0]);
-          std::vector<uint32_t> ids;
-          VISQ_DCHECK_LT(size_t(node.b), lists.size());
-          for (const uint32_t index : lists[node.b]) {
-            const uint32_t* t = far[index].v;
-            const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
-            if (cull.Misses(v)) continue;
-            if (fragment_box) {
-              const XPoint* corners[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
-              LineBox box;
-              if (LineBoxOf(s, corners, &box) && pieces[0].box.Apart(box)) continue;
-            }
-            if (ShadowMissesLight(p_local, v)) continue;
-            ids.push_back(index);
-          }
-          SortLargestFirst(p_local, &ids);
-          const XPlane* no_slab = nullptr;  // far occluders are whole
-          SubtractOccluders(s, &pieces, ids, &no_slab);
-          for (Fragment& piece : pieces) visible.push_back(std::move(piece));
-        } else if (node.kind == kUndefined) {
-          // Refine this leaf under the exclusive lock, then resume here.
-          lock.unlock();
-          {
-            std::unique_lock exclusive(mutex);
-            glm::dvec3 y(0.0);  // the fragment's vertex average, inside it
-            for (const FVert& fv : f.v) y += fv.point->Euclid();
-            Refine(id, p_local, y / static_cast<double>(f.v.size()));
-          }
-          lock.lock();
-          refined = true;
-          stack.emplace_back(id, std::move(f));
-        } else if (node.kind == kInner) {
-          EdgeLine line{&points[node.a], &points[node.b]};
-          const int32_t c0 = node.child[0], c1 = node.child[1];
-          if (!EdgeSides(s, f, line, &sg)) {
-            stack.emplace_back(c1, std::move(f));
-            continue;
-          }
-          const bool any_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
-          const bool any_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
-          if (!any_neg) {
-            stack.emplace_back(c0, std::move(f));
-          } else if (!any_pos) {
-            stack.emplace_back(c1, std::move(f));
-          } else {
-            Fragment pos, neg;
-            Split(s, f, sg, *PlaneOf(s, line).plane, &pos, &neg);
-            stack.emplace_back(c0, std::move(pos));
-            stack.emplace_back(c1, std::move(neg));
-          }
-        }
-        // kInvisible: dropped.
-      }
+      VISQ_RETURN_IF_ERROR(DescendTree(s, pending, cull, p_local, &visible, &refined));
     }
     if (!refined) hits.fetch_add(1, std::memory_order_relaxed);
 
@@ -1419,9 +1487,109 @@ struct LightVisibilityTree::Impl {
       // (docs/exact-method-notes.md).
       SortLargestFirst(p_local, &subtract);
       SubtractOccluders(s, &visible, subtract, &slab_top);
+      if (!s.stopped.ok()) return s.stopped;
     }
 
     // Integrate over the visible polygons.
+    return Integrate(visible, p_local, normal, want_polygons);
+  }
+
+  // Pushes the light fragments down the shared tree from its root: the
+  // parts that reach visible leaves go to *visible; an undefined leaf is
+  // refined under the exclusive lock (*refined), or, with the tree at its
+  // budget, resolved against its occluders here. CANCELLED or
+  // DEADLINE_EXCEEDED when the query's stop says so.
+  Status DescendTree(Scratch& s, std::vector<Fragment>& pending, const PyramidCull& cull,
+                     const glm::dvec3& p_local, std::vector<Fragment>* out, bool* refined_out) {
+    std::vector<Fragment>& visible = *out;
+    bool& refined = *refined_out;
+    std::vector<std::pair<int32_t, Fragment>> stack;
+    for (auto& f : pending) stack.emplace_back(0, std::move(f));
+    std::vector<int> sg;
+    std::shared_lock lock(mutex);
+    while (!stack.empty()) {
+      if (StopNow(s)) return s.stopped;
+      auto [id, f] = std::move(stack.back());
+      stack.pop_back();
+      const Node& node = nodes[id];
+      if (node.kind == kVisible) {
+        visible.push_back(std::move(f));
+      } else if (node.kind == kUndefined &&
+                 MemoryBytesLocked() + answer_bytes_now.load(std::memory_order_relaxed) >= max_bytes) {
+        // The tree is at its budget: resolve this fragment against the
+        // leaf's occluders here, without growing the tree.
+        // Only the occluders whose shadows can meet the light, largest
+        // first, as the near ones: a leaf of a dense room lists
+        // thousands, and in index order a penumbra point was cut into
+        // thousands of pieces (docs/exact-method-notes.md).
+        unrefined_leaf_visits.fetch_add(1, std::memory_order_relaxed);
+        std::vector<Fragment> pieces;
+        pieces.push_back(std::move(f));
+        // The fragment is usually a small part of the light: occluders
+        // whose line boxes are apart from its box go first.
+        const bool fragment_box = HasLineBox(s, pieces[0]);
+        std::vector<uint32_t> ids;
+        VISQ_DCHECK_LT(size_t(node.b), lists.size());
+        for (const uint32_t index : lists[node.b]) {
+          const uint32_t* t = far[index].v;
+          const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+          if (cull.Misses(v)) continue;
+          if (fragment_box) {
+            const XPoint* corners[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
+            LineBox box;
+            if (LineBoxOf(s, corners, &box) && pieces[0].box.Apart(box)) continue;
+          }
+          if (ShadowMissesLight(p_local, v)) continue;
+          ids.push_back(index);
+        }
+        SortLargestFirst(p_local, &ids);
+        const XPlane* no_slab = nullptr;  // far occluders are whole
+        SubtractOccluders(s, &pieces, ids, &no_slab);
+        if (!s.stopped.ok()) return s.stopped;
+        for (Fragment& piece : pieces) visible.push_back(std::move(piece));
+      } else if (node.kind == kUndefined) {
+        // Refine this leaf under the exclusive lock, then resume here.
+        lock.unlock();
+        {
+          std::unique_lock exclusive(mutex);
+          glm::dvec3 y(0.0);  // the fragment's vertex average, inside it
+          for (const FVert& fv : f.v) y += fv.point->Euclid();
+          Refine(id, p_local, y / static_cast<double>(f.v.size()));
+        }
+        lock.lock();
+        refined = true;
+        stack.emplace_back(id, std::move(f));
+      } else if (node.kind == kInner) {
+        EdgeLine line{&points[node.a], &points[node.b]};
+        const int32_t c0 = node.child[0], c1 = node.child[1];
+        if (!EdgeSides(s, f, line, &sg)) {
+          stack.emplace_back(c1, std::move(f));
+          continue;
+        }
+        const bool any_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+        const bool any_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+        if (!any_neg) {
+          stack.emplace_back(c0, std::move(f));
+        } else if (!any_pos) {
+          stack.emplace_back(c1, std::move(f));
+        } else {
+          Fragment pos, neg;
+          Split(s, f, sg, *PlaneOf(s, line).plane, &pos, &neg);
+          stack.emplace_back(c0, std::move(pos));
+          stack.emplace_back(c1, std::move(neg));
+        }
+      }
+      // kInvisible: dropped.
+    }
+    return absl::OkStatus();
+  }
+
+  // The visible fraction of the light's area and solid angle, and the
+  // irradiance for the normal, from the visible fragments (and their
+  // polygons, when asked for).
+  PointVisibility Integrate(const std::vector<Fragment>& visible, const glm::dvec3& p_local,
+                            const std::optional<glm::dvec3>& normal, bool want_polygons) const {
+    PointVisibility result;
     double area = 0.0, solid_angle = 0.0, irradiance = 0.0;
     for (const Fragment& f : visible) {
       std::vector<glm::dvec3> v(f.v.size());
@@ -1653,6 +1821,14 @@ std::vector<uint32_t> SceneTriangleIndex::InBox(const glm::dvec3& lo, const glm:
   return out;
 }
 
+size_t SceneTriangleIndex::CountInBox(const glm::dvec3& lo, const glm::dvec3& hi, size_t limit) const {
+  return impl_->boxes.CountUpTo(
+      [&](const glm::dvec3& box_lo, const glm::dvec3& box_hi) {
+        return glm::any(glm::lessThan(box_hi, lo)) || glm::any(glm::greaterThan(box_lo, hi));
+      },
+      limit);
+}
+
 size_t SceneTriangleIndex::triangle_count() const { return impl_->triangle_count; }
 size_t SceneTriangleIndex::MemoryBytes() const { return sizeof(Impl) + impl_->boxes.MemoryBytes(); }
 
@@ -1668,6 +1844,7 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
   impl->origin = prepared.origin;
   impl->radiance = light.radiance;
   impl->max_bytes = options.max_bytes;
+  impl->max_answer_bytes = options.keep_answers ? options.max_bytes / 4 : 0;
   impl->classify_points = options.classify_points;
   impl->direct_candidates = options.classify_points ? options.direct_candidates : 0;
   impl->light_local = std::move(prepared.local);
@@ -1934,40 +2111,23 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(
       impl->near.push_back({{p.v[0], p.v[1], p.v[2]}, {p.side[0], p.side[1], p.side[2]}, p.tri});
     }
   }
-  impl->far.shrink_to_fit();
-  impl->near.shrink_to_fit();
-  {
-    std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
-    boxes.reserve(impl->far.size() + impl->near.size());
-    auto add_box = [&](const uint32_t (&v)[3]) {
-      const glm::dvec3 a = impl->points[v[0]].input, b = impl->points[v[1]].input, c = impl->points[v[2]].input;
-      boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
-    };
-    for (const FarOccluder& o : impl->far) add_box(o.v);
-    for (const NearOccluder& n : impl->near) add_box(n.v);
-    impl->index.Build(std::move(boxes));
-  }
-
-  // The tree: one undefined leaf holding every far occluder.
-  // Node 0 is the root; 1 and 2 are the shared visible / invisible leaves.
-  if (impl->far.empty()) {
-    impl->NewNode(kVisible);
-  } else {
-    const uint32_t list = impl->NewList();
-    for (uint32_t i = 0; i < impl->far.size(); ++i) impl->lists[list].push_back(i);
-    impl->list_bytes = impl->lists[list].capacity() * sizeof(uint32_t);
-    impl->NewNode(kUndefined, 0, list);
-  }
-  impl->NewNode(kVisible);
-  impl->NewNode(kInvisible);
+  impl->IndexOccludersAndPlantTheTree();
   return std::unique_ptr<LightVisibilityTree>(new LightVisibilityTree(std::move(impl)));
 }
 
 LightVisibilityTree::LightVisibilityTree(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 LightVisibilityTree::~LightVisibilityTree() = default;
 
-StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bool want_polygons) {
-  return impl_->Query(point, want_polygons);
+Status StopToken::Check() const {
+  if (cancelled != nullptr && cancelled->load(std::memory_order_relaxed)) return absl::CancelledError("cancelled");
+  if (deadline != std::chrono::steady_clock::time_point::max() && std::chrono::steady_clock::now() > deadline)
+    return absl::DeadlineExceededError("deadline passed");
+  return absl::OkStatus();
+}
+
+StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bool want_polygons,
+                                                     const StopToken& stop) {
+  return impl_->Query(point, want_polygons, stop);
 }
 
 StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
@@ -1990,7 +2150,7 @@ StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
           stop = true;
           return;
         }
-        auto r = impl_->Query(points[i], want_polygons);
+        auto r = impl_->Query(points[i], want_polygons, StopToken{nullptr, deadline});
         if (!r.ok()) {
           std::lock_guard lock(error_mutex);
           if (error.ok()) error = Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message()));
@@ -2015,6 +2175,12 @@ TreeStats LightVisibilityTree::Stats() const {
   s.wholly_visible = impl_->wholly_visible.load();
   s.wholly_hidden = impl_->wholly_hidden.load();
   s.subtracted_directly = impl_->subtracted_directly.load();
+  s.answers_reused = impl_->answers_reused.load();
+  {
+    std::shared_lock answers_lock(impl_->answers_mutex);
+    s.answers_kept = impl_->answers.size();
+    s.memory_bytes += impl_->answer_bytes;
+  }
   s.far_occluders = impl_->far.size();
   s.near_occluders = impl_->near.size();
   return s;
@@ -2030,14 +2196,21 @@ TreeStats& TreeStats::operator+=(const TreeStats& o) {
   wholly_visible += o.wholly_visible;
   wholly_hidden += o.wholly_hidden;
   subtracted_directly += o.subtracted_directly;
+  answers_reused += o.answers_reused;
+  answers_kept += o.answers_kept;
   far_occluders += o.far_occluders;
   near_occluders += o.near_occluders;
   return *this;
 }
 
 size_t LightVisibilityTree::MemoryBytes() const {
-  std::shared_lock lock(impl_->mutex);
-  return impl_->MemoryBytesLocked();
+  size_t bytes;
+  {
+    std::shared_lock lock(impl_->mutex);
+    bytes = impl_->MemoryBytesLocked();
+  }
+  std::shared_lock lock(impl_->answers_mutex);
+  return bytes + impl_->answer_bytes;
 }
 
 double LightVisibilityTree::light_area() const { return impl_->light_area; }
@@ -2131,6 +2304,72 @@ std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, con
     cells.push_back(std::move(c));
   }
   return cells;
+}
+
+std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,
+                                                const SceneTriangleIndex& index, const ShaftGrouping& options) {
+  // Groups to judge: each is split at the median of its box's longest axis
+  // while its shaft's box holds too many triangles and both halves keep
+  // min_points; what cannot be split, or need not be, is a cell.
+  const size_t min_points = std::max<size_t>(1, options.min_points);
+  glm::dvec3 light_lo(std::numeric_limits<double>::infinity()), light_hi(-std::numeric_limits<double>::infinity());
+  for (const glm::dvec3& v : light.vertices) {
+    light_lo = glm::min(light_lo, v);
+    light_hi = glm::max(light_hi, v);
+  }
+  std::vector<ReceiverCell> done;
+  std::vector<std::vector<uint32_t>> open(1);
+  open[0].resize(points.size());
+  for (uint32_t i = 0; i < points.size(); ++i) open[0][i] = i;
+  if (points.empty()) return done;
+  while (!open.empty()) {
+    std::vector<uint32_t> group = std::move(open.back());
+    open.pop_back();
+    Bounds box;
+    for (const uint32_t i : group) box.Extend(points[i].position);
+    const glm::dvec3 shaft_lo = glm::min(light_lo, box.min), shaft_hi = glm::max(light_hi, box.max);
+    const glm::dvec3 extent = box.Extent();
+    const int axis = extent.x >= extent.y && extent.x >= extent.z ? 0 : extent.y >= extent.z ? 1 : 2;
+    const bool splittable = group.size() >= 2 * min_points && extent[axis] > 0.0;
+    const size_t count = splittable ? index.CountInBox(shaft_lo, shaft_hi, SIZE_MAX) : 0;
+    auto keep_whole = [&] {
+      std::sort(group.begin(), group.end());
+      done.push_back({box, std::move(group)});
+    };
+    if (count <= options.max_shaft_triangles) {
+      keep_whole();
+      continue;
+    }
+    const size_t middle = group.size() / 2;
+    std::nth_element(group.begin(), group.begin() + static_cast<std::ptrdiff_t>(middle), group.end(),
+                     [&](uint32_t a, uint32_t b) {
+                       const double pa = points[a].position[axis], pb = points[b].position[axis];
+                       return pa < pb || (pa == pb && a < b);
+                     });
+    std::vector<uint32_t> upper(group.begin() + static_cast<std::ptrdiff_t>(middle), group.end());
+    std::vector<uint32_t> lower(group.begin(), group.begin() + static_cast<std::ptrdiff_t>(middle));
+    // Halves whose shafts together still meet nearly twice the whole's
+    // triangles (compact receivers under a dense mesh: the shaft is the
+    // light's) would only build the same tree twice: one tree it stays,
+    // unless it would hold more than the hard cap (its memory).
+    if (count <= 4 * options.max_shaft_triangles) {
+      size_t halves = 0;
+      for (const auto* half : {&lower, &upper}) {
+        Bounds half_box;
+        for (const uint32_t i : *half) half_box.Extend(points[i].position);
+        halves += index.CountInBox(glm::min(light_lo, half_box.min), glm::max(light_hi, half_box.max), SIZE_MAX);
+      }
+      if (static_cast<double>(halves) > 2.0 * options.split_gain * static_cast<double>(count)) {
+        keep_whole();
+        continue;
+      }
+    }
+    open.push_back(std::move(upper));
+    open.push_back(std::move(lower));
+  }
+  std::sort(done.begin(), done.end(),
+            [](const ReceiverCell& a, const ReceiverCell& b) { return a.points.front() < b.points.front(); });
+  return done;
 }
 
 uint64_t HashLight(const AreaLight& light, const TreeOptions& options) {

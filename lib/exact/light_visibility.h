@@ -103,7 +103,7 @@ struct TreeOptions {
   std::optional<Bounds> receiver_bounds;
   // Scene triangles that are never occluders (e.g. the emitter's own mesh).
   std::vector<uint32_t> exclude_triangles;
-  // The tree stops growing at this size. A query that then reaches an
+  // The tree (with its store of answers) stops growing at this size. A query that then reaches an
   // undefined leaf subtracts the leaf's occluders from its fragment itself,
   // as it does the near ones: the answer stays exact, only slower, and the
   // memory stays bounded (the tree of a dense scene otherwise grows close to
@@ -120,11 +120,24 @@ struct TreeOptions {
   // rounding in the area sums.
   // 0: every point that is not decided before the tree descends it.
   size_t direct_candidates = 32;
+  // Keep answers for points asked again (LightVisibilityTree::Query). The
+  // answers are the same either way; off only to time the tree itself.
+  bool keep_answers = true;
   // Read by Create only, every few thousand triangles while it selects the
   // occluders: a call that was cancelled or whose deadline passed stops
   // there (CANCELLED / DEADLINE_EXCEEDED). Not part of the tree's identity.
   const std::atomic<bool>* cancelled = nullptr;
   std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
+};
+
+// What stops a query that is under way: a cancelled call or a passed
+// deadline. Checked between occluders while a query subtracts them and
+// between the steps of its descent, so one long query stops too.
+struct StopToken {
+  const std::atomic<bool>* cancelled = nullptr;
+  std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
+  // CANCELLED or DEADLINE_EXCEEDED when one of them holds; OK otherwise.
+  Status Check() const;
 };
 
 struct QueryPoint {
@@ -155,6 +168,11 @@ struct TreeStats {
   uint64_t wholly_visible = 0;  // queries answered before the tree: no occluder can block
   uint64_t wholly_hidden = 0;   // ... one occluder blocks the whole light
   uint64_t subtracted_directly = 0;  // ... few candidates, subtracted without the tree
+  // Answers given again from the tree's store of answers (an identical
+  // point, normal and receiver triangle was asked before): no descent, no
+  // subtraction. `answers_kept` is the store's size.
+  uint64_t answers_reused = 0;
+  size_t answers_kept = 0;
   size_t far_occluders = 0;  // in the shared tree
   size_t near_occluders = 0;  // clipped per query
 
@@ -177,6 +195,8 @@ class SceneTriangleIndex {
 
   // The triangles whose boxes meet the box [lo, hi], in increasing order.
   std::vector<uint32_t> InBox(const glm::dvec3& lo, const glm::dvec3& hi) const;
+  // How many triangles' boxes meet [lo, hi], counting no further than `limit`.
+  size_t CountInBox(const glm::dvec3& lo, const glm::dvec3& hi, size_t limit) const;
   size_t triangle_count() const;
   size_t MemoryBytes() const;
 
@@ -203,17 +223,26 @@ class LightVisibilityTree {
   LightVisibilityTree(const LightVisibilityTree&) = delete;
   LightVisibilityTree& operator=(const LightVisibilityTree&) = delete;
 
-  // Thread-safe; grows the tree as needed.
-  [[nodiscard]] StatusOr<PointVisibility> Query(const QueryPoint& point,
-                                                bool want_polygons = false);
+  // Thread-safe; grows the tree as needed. CANCELLED or DEADLINE_EXCEEDED
+  // when `stop` says so, within one occluder's subtraction or one leaf's
+  // refinement; the tree stays whole.
+  //
+  // Answers are kept, up to a quarter of the tree's max_bytes (which counts
+  // them with the tree): a
+  // point asked again with the same position, normal and receiver triangle
+  // (bit for bit) is answered from that store. A frame asked twice (a
+  // re-render, a client's retry) then costs a hash lookup per point.
+  [[nodiscard]] StatusOr<PointVisibility> Query(const QueryPoint& point, bool want_polygons = false,
+                                                const StopToken& stop = {});
   // Queries in parallel on `threads` workers (0: hardware concurrency).
-  // DEADLINE_EXCEEDED once `deadline` passes (checked between points), so a
-  // batch whose caller gave up stops.
+  // DEADLINE_EXCEEDED once `deadline` passes (checked between points and
+  // inside them), so a batch whose caller gave up stops.
   [[nodiscard]] StatusOr<std::vector<PointVisibility>> QueryBatch(
       std::span<const QueryPoint> points, int threads = 0, bool want_polygons = false,
       std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max());
 
   TreeStats Stats() const;
+  // The tree and its store of answers.
   size_t MemoryBytes() const;
   double light_area() const;
 
@@ -242,6 +271,33 @@ struct ReceiverCell {
 // dense one keeps small cubes. 1: the grid's cubes as they are.
 std::vector<ReceiverCell> GroupReceivers(std::span<const QueryPoint> points, const Bounds& scene_bounds,
                                          int cells_per_side, size_t min_points = 1);
+
+// Receivers grouped by the batch and the occluders, without a grid: one
+// group of every point, its box the points' box, split in two at the median
+// of its longest axis while the box around its shaft (the light and the
+// group's box) meets more than max_shaft_triangles scene triangles, as long
+// as both halves keep min_points and their shafts meet markedly fewer (or
+// the whole is past a hard cap). A compact batch under a light in open
+// space stays one tree over its own box (the best single region); a frame
+// over a dense room is cut until each tree's occluders are few enough to
+// bound its memory. The points' boxes are tight, so the trees' shafts are
+// too; a different batch over the same surfaces gets different boxes, and
+// so new trees (GroupReceivers' grid cells are found again instead).
+struct ShaftGrouping {
+  size_t max_shaft_triangles = 20000;
+  size_t min_points = 64;
+  // ... and as long as the halves' shafts meet at most this fraction of
+  // twice the whole's triangles (0.5: no more than the whole, together):
+  // halves that share their occluders would build the same tree twice, and
+  // each half's tree would hold as far occluders what the whole's clips as
+  // near ones (on the bunny, two halves cost 2.3x one tree). Past 4 x max_shaft_triangles (a tree
+  // whose occluders alone take about 18 MB, at some 225 bytes each) a group
+  // is halved whatever the gain.
+  double split_gain = 0.5;
+};
+// Cells in order of their first point. Points must be finite.
+std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,
+                                                const SceneTriangleIndex& index, const ShaftGrouping& options = {});
 
 // A 64-bit hash of the light (and of the tree options, which change the
 // tree), for cache keys.

@@ -69,12 +69,16 @@ struct EngineOptions {
   bool warm_at_load = false;
   // Bound on the exact light-visibility trees kept (LRU beyond it).
   size_t light_cache_bytes = 256ull << 20;
-  // LightVisibility batches without a receiver_region are grouped into cubes
-  // of the scene's largest extent / this, one tree each (exact::GroupReceivers).
-  // More for large open worlds, where 1/32 of the world is a wide shaft.
-  int light_receiver_cells = 32;
-  // ... and a cube with fewer points than this gives them to its parent cube
-  // (exact::GroupReceivers): a sparse batch shares a few trees.
+  // LightVisibility batches without a receiver_region: 0 groups them by the
+  // batch and its occluders (exact::GroupReceiversByShaft: the points' box,
+  // halved while its shaft meets more than light_shaft_triangles triangles);
+  // N > 0 into cubes of the scene's largest extent / N, one tree each
+  // (exact::GroupReceivers), which later batches over the same surfaces
+  // find again.
+  int light_receiver_cells = 0;
+  size_t light_shaft_triangles = 20000;
+  // ... and no group has fewer points than this unless the batch has (a cube
+  // with fewer gives them to its parent cube): a sparse batch shares a few trees.
   uint32_t light_receiver_min_points = 64;
   // Load every scene of the repository at start (resident from the first
   // request on). Either way, a request naming a scene that is stored but not
@@ -278,6 +282,7 @@ class Engine {
             light_tree_hits_.load(),   light_tree_misses_.load(), light_cache_->evictions()};
   }
   int light_receiver_cells() const { return options_.light_receiver_cells; }
+  size_t light_shaft_triangles() const { return options_.light_shaft_triangles; }
   uint32_t light_receiver_min_points() const { return options_.light_receiver_min_points; }
 
   const gpu::DeviceInfo& device() const { return gpu_->device(); }

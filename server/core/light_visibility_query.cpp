@@ -85,27 +85,30 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     if (!found) return absl::InvalidArgumentError(absl::StrCat("exclude_nodes: no node named '", node_name, "'"));
   }
 
-  // One tree for the client's region, or one per receiver cell.
+  // The scene's triangle index, which new trees select their occluders
+  // from and the grouping counts shafts in: fetched (or built, or waited
+  // for) here, once, so that the wait is the call's build time, not its
+  // compute, and is not paid in parallel by every group that builds a tree.
+  const auto index_start = std::chrono::steady_clock::now();
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
+                        engine.TriangleIndexOf(*resident, query.call));
+  const double index_ms = MillisecondsSince(index_start);
+
+  // One tree for the client's region, or one per group of receivers.
   std::vector<exact::ReceiverCell> groups;
   if (query.receiver_region) {
     exact::ReceiverCell all{*query.receiver_region, {}};
     all.points.resize(query.points.size());
     for (uint32_t i = 0; i < all.points.size(); ++i) all.points[i] = i;
     groups.push_back(std::move(all));
-  } else {
+  } else if (engine.light_receiver_cells() > 0) {
     groups = exact::GroupReceivers(query.points, scene.bounds, engine.light_receiver_cells(),
                                    engine.light_receiver_min_points());
+  } else {
+    groups = exact::GroupReceiversByShaft(query.points, query.light, *index,
+                                          {engine.light_shaft_triangles(), engine.light_receiver_min_points()});
   }
-
-  // The scene's triangle index, which new trees select their occluders
-  // from: fetched (or built, or waited for) here, once, so that the wait is
-  // the call's build time, not its compute, and is not paid in parallel by
-  // every group that builds a tree. When every tree is cached it is built
-  // already.
-  const auto index_start = std::chrono::steady_clock::now();
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
-                        engine.TriangleIndexOf(*resident, query.call));
-  const double index_ms = MillisecondsSince(index_start);
+  const exact::StopToken stop{query.call.cancelled, query.call.deadline};
 
   // Work in chunks of one group's points, in order, on every core: a single
   // cell's batch runs in parallel as well as many cells. The first chunk of
@@ -210,7 +213,11 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
                                                                query.points.size(), " points left")));
         }
         const uint32_t i = groups[chunk.group].points[k];
-        StatusOr<exact::PointVisibility> r = t.tree->Query(query.points[i], query.want_polygons);
+        StatusOr<exact::PointVisibility> r = t.tree->Query(query.points[i], query.want_polygons, stop);
+        if (!r.ok() && (absl::IsCancelled(r.status()) || absl::IsDeadlineExceeded(r.status())))
+          return fail(Status(r.status().code(), absl::StrCat(r.status().message(), " with ",
+                                                             query.points.size() - answered.load(), " of ",
+                                                             query.points.size(), " points left")));
         if (!r.ok()) return fail(Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message())));
         answer.points[i] = std::move(*r);
         answered.fetch_add(1, std::memory_order_relaxed);

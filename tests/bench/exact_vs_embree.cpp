@@ -32,6 +32,9 @@
 #include <filesystem>
 #include <optional>
 
+#include <sys/resource.h>
+#include <time.h>
+
 #include "exact/light_visibility.h"
 #include "scene/gltf_loader.h"
 #include "raycast/embree_scene.h"
@@ -76,7 +79,27 @@ struct Params {
   // each, as the server groups a batch; 0: image tiles instead.
   int cells_per_side = 32;
   double tree_max_mb = 16;    // each tree's memory budget (TreeOptions::max_bytes), as the server's default
+  // > 0: group the points as the server does without a grid
+  // (exact::GroupReceiversByShaft with this many triangles per shaft),
+  // instead of cells or tiles.
+  size_t shaft_triangles = 0;
+  // The time-to-error table: Embree with k x k rays on an even grid per
+  // point, k growing until its RMS error reaches the last target (or k = 64).
+  bool error_table = true;
 };
+
+// CPU seconds of the whole process (every thread).
+double ProcessCpuSeconds() {
+  timespec t{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
+
+double PeakRssMiB() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return static_cast<double>(u.ru_maxrss) / 1024.0;
+}
 
 void AddTriangle(Scene& s, const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
   const uint32_t base = static_cast<uint32_t>(s.positions.size());
@@ -197,8 +220,15 @@ std::optional<BenchCase> MakeFromGltf(const Params& p) {
     const int px = static_cast<int>(i % p.width), py = static_cast<int>(i / p.width);
     bc.tile_of_point.push_back(static_cast<uint32_t>((py / p.tile_pixels) * tiles_x + px / p.tile_pixels));
   }
-  if (p.cells_per_side > 0) {
-    const auto cells = visq::exact::GroupReceivers(bc.points, bc.scene.bounds, p.cells_per_side);
+  if (p.cells_per_side > 0 || p.shaft_triangles > 0) {
+    std::vector<visq::exact::ReceiverCell> cells;
+    if (p.shaft_triangles > 0) {
+      auto index = visq::exact::SceneTriangleIndex::Build(bc.scene);
+      if (!index.ok()) return std::nullopt;
+      cells = visq::exact::GroupReceiversByShaft(bc.points, bc.light, **index, {p.shaft_triangles, 64});
+    } else {
+      cells = visq::exact::GroupReceivers(bc.points, bc.scene.bounds, p.cells_per_side);
+    }
     for (uint32_t c = 0; c < cells.size(); ++c) {
       for (uint32_t i : cells[c].points) bc.tile_of_point[i] = c;
       bc.tile_boxes.push_back(cells[c].box);
@@ -212,13 +242,96 @@ double Seconds(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
+// Embree with k x k shadow rays per point at the centres of an even k x k
+// grid over the light (no jitter), for growing k, against the exact
+// answers: the smallest k whose RMS error in the visible fraction reaches
+// each target, its CPU time (the BVH build included, as the exact side
+// includes its index and trees), and the exact method's cold CPU time over
+// it. Ratios below 1: the exact method is faster at that error.
+void ErrorTable(const BenchCase& bc, const visq::raycast::EmbreeScene& embree,
+                const std::vector<visq::exact::PointVisibility>& exact, double cpu_exact_cold, double cpu_embree_build,
+                int threads) {
+  const double targets[3] = {0.01, 0.005, 0.002};
+  int reached_k[3] = {0, 0, 0};
+  double reached_cpu[3] = {0, 0, 0}, reached_rms[3] = {0, 0, 0};
+  const auto& lv = bc.light.vertices;
+  const glm::dvec3 e1 = lv[1] - lv[0], e2 = lv[3] - lv[0];
+  const glm::dvec3 light_normal = glm::normalize(glm::cross(e1, e2));
+  const size_t n = bc.points.size();
+  std::printf("\nEmbree, k x k even grid per point, against the exact answers (%zu points, %d threads):\n", n,
+              threads);
+  std::printf("%6s %8s %10s %10s %14s\n", "k", "rays", "RMS", "max err", "CPU s (+BVH)");
+  visq::raycast::TraceOptions trace;
+  trace.threads = threads;
+  for (const int k : {2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 18, 20, 23, 26, 29, 32, 36, 40, 45, 51, 57, 64}) {
+    const size_t rays = static_cast<size_t>(k) * k;
+    const double cpu0 = ProcessCpuSeconds();
+    double sq = 0.0, worst = 0.0;
+    constexpr size_t kBlock = 4096;  // points per trace, so the flags stay small
+    for (size_t begin = 0; begin < n; begin += kBlock) {
+      const size_t end = std::min(n, begin + kBlock);
+      auto occluded = embree.Occluded((end - begin) * rays, [&](size_t s) {
+        const auto& q = bc.points[begin + s / rays];
+        const size_t r = s % rays;
+        const double u = (static_cast<double>(r % k) + 0.5) / k, v = (static_cast<double>(r / k) + 0.5) / k;
+        return visq::raycast::Segment{q.position, lv[0] + u * e1 + v * e2,
+                                      q.receiver_triangle.value_or(visq::raycast::kNoTriangle)};
+      }, trace);
+      if (!occluded.ok()) {
+        std::fprintf(stderr, "occluded: %s\n", occluded.status().ToString().c_str());
+        return;
+      }
+      for (size_t i = begin; i < end; ++i) {
+        const auto& q = bc.points[i];
+        size_t visible = 0;
+        for (size_t r = 0; r < rays; ++r) {
+          if ((*occluded)[(i - begin) * rays + r]) continue;
+          const double u = (static_cast<double>(r % k) + 0.5) / k, v = (static_cast<double>(r / k) + 0.5) / k;
+          const glm::dvec3 w = lv[0] + u * e1 + v * e2 - q.position;
+          if ((q.normal && glm::dot(*q.normal, w) <= 0.0) || glm::dot(light_normal, w) >= 0.0) continue;
+          ++visible;
+        }
+        const double err = static_cast<double>(visible) / static_cast<double>(rays) - exact[i].visible_area_fraction;
+        sq += err * err;
+        worst = std::max(worst, std::abs(err));
+      }
+    }
+    const double cpu = ProcessCpuSeconds() - cpu0 + cpu_embree_build;
+    const double rms = std::sqrt(sq / static_cast<double>(n));
+    std::printf("%6d %8zu %10.5f %10.4f %14.3f\n", k, rays, rms, worst, cpu);
+    for (int t = 0; t < 3; ++t) {
+      if (reached_k[t] == 0 && rms <= targets[t]) {
+        reached_k[t] = k;
+        reached_cpu[t] = cpu;
+        reached_rms[t] = rms;
+      }
+    }
+    if (reached_k[2] != 0) break;
+  }
+  std::printf("\ntime to error (%s): exact cold CPU %.3f s (index, trees, queries)\n", bc.name.c_str(),
+              cpu_exact_cold);
+  std::printf("%10s %10s %12s %16s\n", "RMS", "Embree k^2", "Embree CPU s", "exact / Embree");
+  for (int t = 0; t < 3; ++t) {
+    if (reached_k[t] == 0) {
+      std::printf("%10.3f %10s %12s %16s\n", targets[t], "> 4096", "-", "< (not reached)");
+    } else {
+      std::printf("%10.3f %10d %12.3f %16.2f\n", targets[t], reached_k[t] * reached_k[t], reached_cpu[t],
+                  cpu_exact_cold / reached_cpu[t]);
+    }
+  }
+  (void)reached_rms;
+}
+
 int Run(const BenchCase& bc, const Params& p) {
   const int threads = p.threads > 0 ? p.threads : static_cast<int>(std::thread::hardware_concurrency());
   std::printf("scene %s: %zu triangles, %zu points, %d threads, %d rays/point, %u receiver %s\n",
               bc.name.c_str(), bc.scene.TriangleCount(), bc.points.size(), threads, p.rays,
               bc.tile_of_point.empty() ? static_cast<unsigned>(p.tiles * p.tiles) : bc.tile_count,
               bc.tile_boxes.empty() ? "tiles" : "cells");
-  if (!bc.tile_boxes.empty()) {
+  if (p.shaft_triangles > 0) {
+    std::printf("receiver groups: the points' box, halved while its shaft meets more than %zu triangles\n",
+                p.shaft_triangles);
+  } else if (!bc.tile_boxes.empty()) {
     const glm::dvec3 e = bc.scene.bounds.Extent();
     std::printf("receiver cells: cubes of %.3g (the scene's largest extent / %d)\n",
                 std::max({e.x, e.y, e.z}) / p.cells_per_side, p.cells_per_side);
@@ -253,6 +366,7 @@ int Run(const BenchCase& bc, const Params& p) {
     work();
     for (auto& th : pool) th.join();
   };
+  const double cpu_exact_start = ProcessCpuSeconds();
   auto t0 = std::chrono::steady_clock::now();
   // The scene's triangle index, once (a server keeps it with the scene).
   auto index = visq::exact::SceneTriangleIndex::Build(bc.scene);
@@ -292,6 +406,7 @@ int Run(const BenchCase& bc, const Params& p) {
     }
   });
   const double t_cold_total = Seconds(t0);
+  const double cpu_exact_cold = ProcessCpuSeconds() - cpu_exact_start;
   if (failed) return 1;
   const double t_create = t_index + 1e-9 * static_cast<double>(create_ns.load()) / threads;  // wall share
   const double t_cold = t_cold_total - t_create;
@@ -318,14 +433,17 @@ int Run(const BenchCase& bc, const Params& p) {
   });
   const double t_warm = Seconds(t0);
   size_t max_tree_bytes = 0;
+  visq::exact::TreeStats largest;
   for (const auto& tree : trees) {
     if (!tree) continue;
     const auto st = tree->Stats();
     stats += st;
+    if (st.memory_bytes > max_tree_bytes) largest = st;
     max_tree_bytes = std::max(max_tree_bytes, st.memory_bytes);
   }
 
   // Embree: build, then p.rays stratified (jittered) shadow rays per point.
+  const double cpu_embree_start = ProcessCpuSeconds();
   t0 = std::chrono::steady_clock::now();
   auto embree = visq::raycast::EmbreeScene::Create(bc.scene);
   if (!embree.ok()) {
@@ -333,6 +451,7 @@ int Run(const BenchCase& bc, const Params& p) {
     return 1;
   }
   const double t_embree_build = Seconds(t0);
+  const double cpu_embree_build = ProcessCpuSeconds() - cpu_embree_start;
   const auto& lv = bc.light.vertices;  // a parallelogram light: lv[0] + s e1 + t e2
   const glm::dvec3 e1 = lv[1] - lv[0], e2 = lv[3] - lv[0];
   const glm::dvec3 light_normal = glm::normalize(glm::cross(e1, e2));  // emitting side
@@ -437,6 +556,11 @@ int Run(const BenchCase& bc, const Params& p) {
               "(%.2f%% of mean %.4f)\n",
               p.rays, std::sqrt(sq_frac / n), max_frac, std::sqrt(sq_irr / n),
               100.0 * std::sqrt(sq_irr / n) / (sum_irr / n), sum_irr / n);
+  std::printf("memory: trees %.1f MiB in all (largest %.1f MiB: %zu far + %zu near occluders, %zu nodes, "
+              "%zu answers), process peak RSS %.0f MiB\n",
+              stats.memory_bytes / 1048576.0, max_tree_bytes / 1048576.0, largest.far_occluders,
+              largest.near_occluders, largest.nodes, largest.answers_kept, PeakRssMiB());
+  if (p.error_table) ErrorTable(bc, *embree, exact, cpu_exact_cold, cpu_embree_build, threads);
   return 0;
 }
 
@@ -467,6 +591,8 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--tile-pixels")) p.tile_pixels = std::max(1, std::atoi(v));
     else if (const char* v = value("--tree-max-mb")) p.tree_max_mb = std::atof(v);
     else if (const char* v = value("--cells-per-side")) p.cells_per_side = std::atoi(v);
+    else if (const char* v = value("--shaft-triangles")) p.shaft_triangles = static_cast<size_t>(std::atoll(v));
+    else if (const char* v = value("--error-table")) p.error_table = std::atoi(v) != 0;
     else {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"

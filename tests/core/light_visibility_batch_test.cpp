@@ -3,11 +3,19 @@
 // as its points are answered, so the request holds a few trees at a time
 // however many cells it has, and the answers equal those of one tree over
 // the whole region.
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <random>
+#include <thread>
+
 #include <gtest/gtest.h>
 
 #include "common/parallel.h"
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
+#include "large_scene.h"
+#include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
 #include "test_support.h"
 
@@ -20,6 +28,7 @@ TEST(LightVisibilityBatch, ManyCellsHoldFewTreesAtATime) {
   EngineOptions options;
   options.scene_repo = dir.path() / "repo";
   options.load_repository_at_start = false;
+  options.light_receiver_cells = 32;      // the grid's cubes, 2 m / 32
   options.light_receiver_min_points = 1;  // every occupied cell keeps its own tree
   auto engine = Engine::Create(options);
   ASSERT_TRUE(engine.ok()) << engine.status();
@@ -47,6 +56,113 @@ TEST(LightVisibilityBatch, ManyCellsHoldFewTreesAtATime) {
   EXPECT_EQ(one->trees, 1u);
   for (size_t i = 0; i < query.points.size(); ++i)
     EXPECT_NEAR(cells->points[i].visible_area_fraction, one->points[i].visible_area_fraction, 1e-12) << "point " << i;
+}
+
+// A rippled floor under a layer of foliage (`leaves` small triangles at
+// y ~ 1) and a square light at y = 2 facing down, as "foliage" in a fresh
+// repository; and `points` points on the floor under the light.
+struct Foliage {
+  testing::ScratchDir dir;
+  std::unique_ptr<Engine> engine;
+  LightVisibilityQuery query;
+};
+std::unique_ptr<Foliage> MakeFoliage(int leaves, int points) {
+  auto f = std::make_unique<Foliage>();
+  Scene scene = testing::MakeRippledGrid(32);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int i = 0; i < leaves; ++i) {
+    const glm::dvec3 c(0.8 * u(rng), 1.0 + 0.2 * u(rng), 0.8 * u(rng));
+    const auto base = static_cast<uint32_t>(scene.positions.size());
+    for (int k = 0; k < 3; ++k) {
+      scene.positions.push_back(c + 0.03 * glm::dvec3(u(rng), u(rng), u(rng)));
+      scene.bounds.Extend(scene.positions.back());
+    }
+    scene.triangles.emplace_back(base, base + 1, base + 2);
+    scene.triangle_material.push_back(0);
+    scene.triangle_node.push_back(0);
+  }
+  scene.nodes[0].triangle_count = static_cast<uint32_t>(scene.triangles.size());
+  std::filesystem::create_directories(f->dir.path() / "repo");
+  EXPECT_TRUE(WriteGltfFile(scene, f->dir.path() / "repo" / "foliage.glb").ok());
+  EngineOptions options;
+  options.scene_repo = f->dir.path() / "repo";
+  options.load_repository_at_start = false;
+  auto engine = Engine::Create(options);
+  EXPECT_TRUE(engine.ok()) << engine.status();
+  if (!engine.ok()) return nullptr;
+  f->engine = std::move(*engine);
+  f->query.scene = "foliage";
+  f->query.light.vertices = {{-0.3, 2, -0.3}, {0.3, 2, -0.3}, {0.3, 2, 0.3}, {-0.3, 2, 0.3}};  // facing down
+  std::uniform_real_distribution<double> floor(-0.6, 0.6);
+  for (int i = 0; i < points; ++i) {
+    const double x = floor(rng), z = floor(rng);
+    f->query.points.push_back({glm::dvec3(x, 0.05, z), glm::dvec3(0, 1, 0), {}});
+  }
+  return f;
+}
+
+TEST(LightVisibilityBatch, AnIdenticalSecondBatchRefinesNothing) {
+  auto f = MakeFoliage(1000, 256);
+  ASSERT_NE(f, nullptr);
+  StatusOr<LightVisibilityAnswer> first = RunLightVisibility(*f->engine, f->query);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_GT(first->trees_created, 0u);
+  EXPECT_GT(first->tree.refinements, 0u);
+  StatusOr<LightVisibilityAnswer> second = RunLightVisibility(*f->engine, f->query);
+  ASSERT_TRUE(second.ok()) << second.status();
+  // The statistics are the trees' own, summed: unchanged counts mean the
+  // second call grew nothing.
+  EXPECT_TRUE(second->tree_reused);
+  EXPECT_EQ(second->trees_created, 0u);
+  EXPECT_EQ(second->tree.refinements, first->tree.refinements);
+  EXPECT_EQ(second->tree.nodes, first->tree.nodes);
+  EXPECT_EQ(second->tree.unrefined_leaf_visits, first->tree.unrefined_leaf_visits);
+  EXPECT_EQ(second->tree.answers_reused - first->tree.answers_reused, f->query.points.size());
+  int penumbra = 0;
+  for (size_t i = 0; i < f->query.points.size(); ++i) {
+    EXPECT_EQ(second->points[i].visible_area_fraction, first->points[i].visible_area_fraction) << "point " << i;
+    penumbra += first->points[i].visible_area_fraction > 0 && first->points[i].visible_area_fraction < 1;
+  }
+  EXPECT_GT(penumbra, 50);
+  std::printf("first call %.1f ms, identical second call %.1f ms (%zu trees)\n", first->compute_ms,
+              second->compute_ms, second->trees);
+}
+
+TEST(LightVisibilityBatch, ACancelledBatchStopsWhileItRuns) {
+  auto f = MakeFoliage(20000, 4096);
+  ASSERT_NE(f, nullptr);
+  // The scene's index first, so that the call's work is the batch's.
+  auto resident = f->engine->FindScene("foliage", 0);
+  ASSERT_TRUE(resident.ok()) << resident.status();
+  ASSERT_TRUE(f->engine->TriangleIndexOf(**resident).ok());
+  std::atomic<bool> cancelled{false};
+  f->query.call.cancelled = &cancelled;
+  using Clock = std::chrono::steady_clock;
+  Clock::time_point cancelled_at;
+  std::thread canceller([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    cancelled_at = Clock::now();
+    cancelled = true;
+  });
+  StatusOr<LightVisibilityAnswer> answer = RunLightVisibility(*f->engine, f->query);
+  const auto returned_at = Clock::now();
+  canceller.join();
+  ASSERT_EQ(answer.status().code(), absl::StatusCode::kCancelled) << "the batch ran to its end in under 300 ms";
+  EXPECT_NE(std::string(answer.status().message()).find("points left"), std::string::npos) << answer.status();
+  const double after_ms = std::chrono::duration<double, std::milli>(returned_at - cancelled_at).count();
+  EXPECT_LT(after_ms, 1000.0);
+  std::printf("returned %.1f ms after the cancel: %s\n", after_ms, answer.status().ToString().c_str());
+  RecordProperty("stop_after_cancel_ms", std::to_string(after_ms));
+
+  // A deadline passes mid-batch the same way.
+  f->query.call.cancelled = nullptr;
+  f->query.call.deadline = Clock::now() + std::chrono::milliseconds(300);
+  StatusOr<LightVisibilityAnswer> late = RunLightVisibility(*f->engine, f->query);
+  const double late_ms = std::chrono::duration<double, std::milli>(Clock::now() - f->query.call.deadline).count();
+  EXPECT_EQ(late.status().code(), absl::StatusCode::kDeadlineExceeded) << late.status();
+  EXPECT_LT(late_ms, 1000.0);
+  std::printf("returned %.1f ms after the deadline: %s\n", late_ms, late.status().ToString().c_str());
 }
 
 }  // namespace

@@ -1,6 +1,9 @@
 #include "exact/light_visibility.h"
 
+#include <atomic>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <numbers>
 #include <random>
 #include <thread>
@@ -638,6 +641,7 @@ TEST(LightVisibilityTest, SecondPassRefinesNothingAndRepeats) {
   TreeOptions options;
   options.receiver_bounds = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});
   options.direct_candidates = 0;  // every undecided point grows the tree
+  options.keep_answers = false;   // the second pass descends the warm tree
   auto created = LightVisibilityTree::Create(SquareLight(2.0, 0.7), scene, options);
   ASSERT_TRUE(created.ok()) << created.status();
   auto& tree = *created;
@@ -657,6 +661,101 @@ TEST(LightVisibilityTest, SecondPassRefinesNothingAndRepeats) {
   EXPECT_EQ(after_second.nodes, after_first.nodes);
   EXPECT_EQ(after_second.hits - after_first.hits, pts.size());
   EXPECT_GT(after_second.memory_bytes, 0u);
+}
+
+TEST(LightVisibilityTest, PointsAskedAgainAreAnsweredFromTheStore) {
+  const Scene scene = MakeScene(Cloud(120, 31));
+  TreeOptions options;
+  options.receiver_bounds = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});
+  auto created = LightVisibilityTree::Create(SquareLight(2.0, 0.7), scene, options);
+  ASSERT_TRUE(created.ok()) << created.status();
+  auto& tree = *created;
+  std::vector<QueryPoint> points;
+  for (const auto& p : FloorPoints(200, 4)) points.push_back({p, glm::dvec3(0, 0, 1), std::nullopt});
+  auto first = tree->QueryBatch(points, 2);
+  ASSERT_TRUE(first.ok()) << first.status();
+  const TreeStats after_first = tree->Stats();
+  EXPECT_EQ(after_first.answers_kept, points.size());
+  EXPECT_EQ(after_first.answers_reused, 0u);
+  auto second = tree->QueryBatch(points, 2);
+  ASSERT_TRUE(second.ok()) << second.status();
+  const TreeStats after_second = tree->Stats();
+  EXPECT_EQ(after_second.answers_reused, points.size());
+  EXPECT_EQ(after_second.refinements, after_first.refinements);
+  EXPECT_EQ(after_second.nodes, after_first.nodes);
+  EXPECT_EQ(after_second.unrefined_leaf_visits, after_first.unrefined_leaf_visits);
+  for (size_t i = 0; i < points.size(); ++i) {
+    EXPECT_EQ((*second)[i].visible_area_fraction, (*first)[i].visible_area_fraction);
+    EXPECT_EQ((*second)[i].irradiance, (*first)[i].irradiance);
+  }
+  // Another normal, or polygons asked for, is another question.
+  QueryPoint tilted = points[0];
+  tilted.normal = glm::dvec3(0, 1, 1);
+  ASSERT_TRUE(tree->Query(tilted).ok());
+  ASSERT_TRUE(tree->Query(points[0], /*want_polygons=*/true).ok());
+  EXPECT_EQ(tree->Stats().answers_reused, points.size());
+  EXPECT_EQ(tree->Stats().answers_kept, points.size() + 2);
+
+  // The store stays within a quarter of the tree's budget.
+  TreeOptions small = options;
+  small.max_bytes = 64 << 10;
+  auto bounded = LightVisibilityTree::Create(SquareLight(2.0, 0.7), scene, small);
+  ASSERT_TRUE(bounded.ok());
+  std::vector<QueryPoint> many;
+  for (const auto& p : FloorPoints(3000, 5)) many.push_back({p, glm::dvec3(0, 0, 1), std::nullopt});
+  ASSERT_TRUE((*bounded)->QueryBatch(many, 2).ok());
+  const TreeStats kept = (*bounded)->Stats();
+  EXPECT_GT(kept.answers_kept, 0u);
+  EXPECT_LT(kept.answers_kept, many.size());
+  EXPECT_LE(kept.answers_kept * sizeof(PointVisibility), small.max_bytes / 4);
+}
+
+// Foliage of many small triangles over the receivers, every one of them
+// near (no receiver bounds): one penumbra point subtracts thousands.
+TEST(LightVisibilityTest, AQueryStopsInsideItsSubtractions) {
+  std::vector<Tri> tris;
+  std::mt19937 rng(43);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int i = 0; i < 20000; ++i) {
+    const glm::dvec3 c(1.0 * u(rng), 1.0 * u(rng), 1.0 + 0.3 * u(rng));
+    Tri t;
+    for (auto& p : t) p = c + 0.02 * glm::dvec3(u(rng), u(rng), u(rng));
+    tris.push_back(t);
+  }
+  const Scene scene = MakeScene(tris);
+  auto tree = MakeTree(SquareLight(2.0, 0.5), scene, std::nullopt);
+  ASSERT_NE(tree, nullptr);
+  const QueryPoint point{{0.05, 0.03, 0.0}, glm::dvec3(0, 0, 1), std::nullopt};
+  using Clock = std::chrono::steady_clock;
+  const auto t0 = Clock::now();
+  auto whole = tree->Query(point);
+  const double whole_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  ASSERT_GT(whole->visible_area_fraction, 0.0);
+  ASSERT_LT(whole->visible_area_fraction, 1.0);
+
+  // A cancelled call: CANCELLED before any work is kept.
+  std::atomic<bool> cancelled{true};
+  QueryPoint moved = point;
+  moved.position.x += 0.01;
+  auto stopped = tree->Query(moved, false, StopToken{&cancelled});
+  EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled) << stopped.status();
+
+  // A deadline a tenth of the way in: it stops in the middle of the point.
+  const auto t1 = Clock::now();
+  const auto deadline = t1 + std::chrono::duration_cast<Clock::duration>(
+                                 std::chrono::duration<double, std::milli>(whole_ms / 10));
+  auto late = tree->Query(moved, false, StopToken{nullptr, deadline});
+  const double late_ms = std::chrono::duration<double, std::milli>(Clock::now() - deadline).count();
+  EXPECT_EQ(late.status().code(), absl::StatusCode::kDeadlineExceeded) << late.status();
+  EXPECT_LT(late_ms, 1000.0);
+  std::printf("one penumbra point of %zu near occluders: %.1f ms whole; stopped %.2f ms after its deadline\n",
+              scene.triangles.size(), whole_ms, late_ms);
+  RecordProperty("stop_after_deadline_ms", std::to_string(late_ms));
+  // The tree still answers, and the stopped query kept no answer.
+  auto again = tree->Query(moved);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(tree->Stats().answers_reused, 0u);
 }
 
 TEST(LightVisibilityTest, ConcurrentQueriesMatchSingleThreaded) {
@@ -803,6 +902,7 @@ TEST(LightVisibilityTest, AnOccluderThatHidTheLastPointIsNotThisPointsOwnTriangl
   const Scene scene = MakeScene({{glm::dvec3(-3, -3, 1), glm::dvec3(3, -3, 1), glm::dvec3(0, 4, 1)}});
   TreeOptions options;
   options.receiver_bounds = Box({-1, -1, 0}, {1, 1, 1});
+  options.keep_answers = false;  // the second round takes the shortcut again
   auto tree = LightVisibilityTree::Create(SquareLight(2.0, 0.5), scene, options);
   ASSERT_TRUE(tree.ok()) << tree.status();
   for (int round = 0; round < 2; ++round) {
@@ -936,6 +1036,74 @@ TEST(LightVisibilityTest, SparseReceiversMergeIntoParentCubesDenseOnesStay) {
     EXPECT_EQ(again[c].box.min, merged[c].box.min);
     EXPECT_EQ(again[c].box.max, merged[c].box.max);
   }
+}
+
+TEST(LightVisibilityTest, ShaftGroupsSplitOnlyWhereTheOccludersAreMany) {
+  // A dense cloud over the left half of the floor, nothing over the right.
+  std::vector<Tri> tris;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int i = 0; i < 4000; ++i) {
+    const glm::dvec3 c(-1.0 + 0.45 * u(rng), 1.4 * u(rng), 1.0 + 0.5 * u(rng));
+    Tri t;
+    for (auto& p : t) p = c + 0.03 * glm::dvec3(u(rng), u(rng), u(rng));
+    tris.push_back(t);
+  }
+  const Scene scene = MakeScene(tris);
+  auto index = SceneTriangleIndex::Build(scene);
+  ASSERT_TRUE(index.ok());
+  std::vector<QueryPoint> points;
+  for (const auto& p : FloorPoints(1024, 12)) points.push_back({p, glm::dvec3(0, 0, 1), std::nullopt});
+
+  // Few occluders in every shaft: one group over the points' own box.
+  const AreaLight light = SquareLight(2.0, 0.2);
+  const auto one = GroupReceiversByShaft(points, light, **index, {100000, 64});
+  ASSERT_EQ(one.size(), 1u);
+  EXPECT_EQ(one[0].points.size(), points.size());
+  Bounds points_box;
+  for (const auto& q : points) points_box.Extend(q.position);
+  EXPECT_EQ(one[0].box.min, points_box.min);
+  EXPECT_EQ(one[0].box.max, points_box.max);
+
+  // A smaller budget: groups split, and never below min_points; every point
+  // is in one group, inside its box; their trees answer as one tree does.
+  const auto groups = GroupReceiversByShaft(points, light, **index, {1500, 64});
+  EXPECT_GE(groups.size(), 2u);
+  std::vector<int> seen(points.size(), 0);
+  for (const ReceiverCell& g : groups) {
+    EXPECT_GE(g.points.size(), 64u);
+    for (uint32_t i : g.points) {
+      ++seen[i];
+      EXPECT_TRUE(glm::all(glm::greaterThanEqual(points[i].position, g.box.min)) &&
+                  glm::all(glm::lessThanEqual(points[i].position, g.box.max)));
+    }
+    if (&g != &groups.front()) {
+      EXPECT_LT((&g - 1)->points.front(), g.points.front()) << "in order of their first point";
+    }
+  }
+  for (size_t i = 0; i < points.size(); ++i) EXPECT_EQ(seen[i], 1) << "point " << i;
+  TreeOptions whole_options;
+  whole_options.receiver_bounds = points_box;
+  auto whole = LightVisibilityTree::Create(light, scene, whole_options, index->get());
+  ASSERT_TRUE(whole.ok());
+  size_t largest_tree = 0;
+  int penumbra = 0;
+  for (const ReceiverCell& g : groups) {
+    TreeOptions options;
+    options.receiver_bounds = g.box;
+    auto tree = LightVisibilityTree::Create(light, scene, options, index->get());
+    ASSERT_TRUE(tree.ok());
+    for (uint32_t i : g.points) {
+      auto a = (*tree)->Query(points[i]);
+      auto b = (*whole)->Query(points[i]);
+      ASSERT_TRUE(a.ok() && b.ok());
+      EXPECT_NEAR(a->visible_area_fraction, b->visible_area_fraction, 1e-12) << "point " << i;
+      penumbra += a->visible_area_fraction > 0 && a->visible_area_fraction < 1;
+    }
+    largest_tree = std::max(largest_tree, (*tree)->MemoryBytes());
+  }
+  EXPECT_GT(penumbra, 50);
+  EXPECT_LT(largest_tree, TreeOptions{}.max_bytes);
 }
 
 TEST(LightVisibilityCacheTest, ReuseInvalidateAndEvict) {

@@ -152,13 +152,14 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
   EXPECT_EQ(second->tree().trees(), 1u);
   EXPECT_EQ(second->tree().trees_created(), 0u);
   EXPECT_EQ(second->tree().refinements(), first->tree().refinements()) << "a second pass refines nothing";
-  // The point in the open is answered before the tree, on each pass; the
-  // point under the box is hidden by the box's bottom faces (two triangles
+  // The point in the open is answered before the tree on the first pass
+  // (the second is answered from the tree's store of answers); the point
+  // under the box is hidden by the box's bottom faces (two triangles
   // together, or one), before the tree too: by one of them, or by
   // subtracting the few triangles whose shadows can meet the light.
   const auto& t = second->tree();
-  EXPECT_GE(t.wholly_visible(), 2u);
-  EXPECT_GE(t.wholly_hidden() + t.subtracted_directly(), 2u);
+  EXPECT_GE(t.wholly_visible(), 1u);
+  EXPECT_GE(t.wholly_hidden() + t.subtracted_directly(), 1u);
   EXPECT_LE(t.wholly_visible() + t.wholly_hidden() + t.subtracted_directly(), t.queries());
   for (int i = 0; i < 4; ++i) {
     EXPECT_EQ(second->points(i).visible_fraction(), first->points(i).visible_fraction());
@@ -169,9 +170,10 @@ TEST_F(AlgorithmRpcTest, LightVisibilityIsExactAndReusesTheTree) {
 }
 
 TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
-  // A batch spread over the floor is split into receiver cells (merged
-  // where sparse), one tree each; one tree for a region the client names
-  // must give the same answers.
+  // A batch spread over the floor is grouped by the server (the points'
+  // box, halved where its shaft meets many triangles: on the Cornell box,
+  // one group), one tree each; one tree for a region the client names must
+  // give the same answers. The splitting itself is tested in tests/exact.
   v1::LightVisibilityRequest cells = CeilingLight();
   for (int i = 0; i < 15; ++i)
     for (int j = 0; j < 15; ++j) AddPoint(cells, -0.95 + 0.135 * i, 0.001, -0.95 + 0.135 * j);
@@ -182,7 +184,7 @@ TEST_F(AlgorithmRpcTest, LightVisibilityCellsAnswerAsOneRegion) {
   ASSERT_TRUE(split.ok()) << split.status();
   auto whole = client_->LightVisibility(region);
   ASSERT_TRUE(whole.ok()) << whole.status();
-  EXPECT_GE(split->tree().trees(), 2u);
+  EXPECT_GE(split->tree().trees(), 1u);
   EXPECT_EQ(whole->tree().trees(), 1u);
   ASSERT_EQ(split->points_size(), whole->points_size());
   int penumbra = 0;
