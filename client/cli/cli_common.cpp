@@ -45,7 +45,7 @@ void AddGlobalFlags(Cli& cli) {
   app.add_option("--tls-key", flags.tls_key, "PEM client key (mutual TLS)")->envname("VISQ_TLS_CLIENT_KEY");
 }
 
-Status CheckGlobalFlags(const GlobalFlags& flags) {
+Status ValidateGlobalFlags(const GlobalFlags& flags) {
   if (auto address = client::WithDefaultPort(flags.server); !address.ok())
     return absl::InvalidArgumentError(fmt::format("--server: {}", address.status().message()));
   if (!flags.token_file.empty()) {

@@ -70,7 +70,7 @@ void AddObscuranceCommands(Cli& cli);  // obscurance, move, obscurance-update, o
 int Fail(const Status& status, const GlobalFlags& flags);
 
 // INVALID_ARGUMENT naming the flag when --server or --token-file is unusable.
-[[nodiscard]] Status CheckGlobalFlags(const GlobalFlags& flags);
+[[nodiscard]] Status ValidateGlobalFlags(const GlobalFlags& flags);
 // A client for the flags; its init_status() says whether they were usable.
 client::Client MakeClient(const GlobalFlags& flags);
 
@@ -79,7 +79,7 @@ client::Client MakeClient(const GlobalFlags& flags);
 template <typename Options, typename Run>
 void OnRun(CLI::App* command, Cli& cli, std::shared_ptr<Options> options, Run run) {
   command->callback([&cli, options, run] {
-    Status status = CheckGlobalFlags(cli.flags);
+    Status status = ValidateGlobalFlags(cli.flags);
     if (status.ok()) status = run(*options, cli);
     if (!status.ok()) cli.exit_code = Fail(status, cli.flags);
   });

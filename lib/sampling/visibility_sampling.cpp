@@ -50,7 +50,7 @@ uint32_t Hash(uint32_t h) {
 
 // A size the caller chose: below 1 is malformed (INVALID_ARGUMENT), above
 // the server's cap RESOURCE_EXHAUSTED, as every cap of every RPC is.
-Status CheckCount(int64_t value, int64_t cap, std::string_view field) {
+Status ValidateCount(int64_t value, int64_t cap, std::string_view field) {
   if (value < 1) return absl::InvalidArgumentError(absl::StrCat(AbslView(field), ": ", value, " (must be at least 1)"));
   if (value > cap)
     return absl::ResourceExhaustedError(absl::StrCat(AbslView(field), ": ", value, " exceeds the cap of ", cap));
@@ -65,7 +65,7 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
   const HiddenSampleMapOptions& o = request.options;
   VISQ_RETURN_IF_ERROR(ValidatePatch(s.patch, "source"));
   VISQ_RETURN_IF_ERROR(ValidatePatch(r.patch, "receiver"));
-  VISQ_RETURN_IF_ERROR(CheckCount(s.sample_count, kMaxHiddenSampleMapSamples, "samples.count"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(s.sample_count, kMaxHiddenSampleMapSamples, "samples.count"));
   if (s.pattern == SamplePattern::kCustom) {
     if (static_cast<int>(s.custom_uv.size()) != s.sample_count)
       return absl::InvalidArgumentError(absl::StrCat("samples.custom_uv: ", s.custom_uv.size(),
@@ -110,8 +110,8 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
       return absl::InvalidArgumentError(absl::StrCat("samples.color_texture_rgb[", 3 * i, "..", 3 * i + 2, "]: ",
                                                      Vec(s.color_texture[i]),
                                                      " is not finite, non-negative and at most 1e30"));
-  VISQ_RETURN_IF_ERROR(CheckCount(r.width, 4096, "width"));
-  VISQ_RETURN_IF_ERROR(CheckCount(r.height, 4096, "height"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(r.width, 4096, "width"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(r.height, 4096, "height"));
   if (!r.heightfield.empty() && r.heightfield.size() != size_t(r.width) * r.height)
     return absl::InvalidArgumentError(absl::StrCat("heightfield: ", r.heightfield.size(),
                                                    " heights for ", r.width, " x ", r.height, " texels"));
@@ -191,7 +191,7 @@ std::vector<glm::dvec2> StratifiedSamplePattern(int n, SamplePattern pattern, ui
 StatusOr<SourceSamples> ComputeSourceSamples(const SourceSpec& source) {
   SourceSamples out;
   const int n = source.sample_count;
-  VISQ_RETURN_IF_ERROR(CheckCount(n, kMaxHiddenSampleMapSamples, "samples.count"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(n, kMaxHiddenSampleMapSamples, "samples.count"));
   out.requested = n;
   std::vector<glm::dvec2> uv;
   if (source.pattern == SamplePattern::kCustom) {
@@ -244,12 +244,12 @@ glm::dvec3 SourceSampleSeenFrom(const HiddenSampleMapRequest& request, const Sou
 
 
 StatusOr<HiddenSampleMapRequest> PatchVisibilityAsHiddenSampleMap(const PatchVisibilityRequest& request) {
-  VISQ_RETURN_IF_ERROR(CheckCount(request.source_columns, kMaxHiddenSampleMapSamples, "source_columns"));
-  VISQ_RETURN_IF_ERROR(CheckCount(request.source_rows, kMaxHiddenSampleMapSamples, "source_rows"));
-  VISQ_RETURN_IF_ERROR(CheckCount(int64_t(request.source_columns) * request.source_rows, kMaxHiddenSampleMapSamples,
+  VISQ_RETURN_IF_ERROR(ValidateCount(request.source_columns, kMaxHiddenSampleMapSamples, "source_columns"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(request.source_rows, kMaxHiddenSampleMapSamples, "source_rows"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(int64_t(request.source_columns) * request.source_rows, kMaxHiddenSampleMapSamples,
                                   "source_columns x source_rows"));
-  VISQ_RETURN_IF_ERROR(CheckCount(request.receiver_columns, 4096, "receiver_columns"));
-  VISQ_RETURN_IF_ERROR(CheckCount(request.receiver_rows, 4096, "receiver_rows"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(request.receiver_columns, 4096, "receiver_columns"));
+  VISQ_RETURN_IF_ERROR(ValidateCount(request.receiver_rows, 4096, "receiver_rows"));
   HiddenSampleMapRequest map;
   map.source.patch = request.source;
   map.source.sample_count = request.source_columns * request.source_rows;
@@ -342,7 +342,7 @@ double BoxDistance(const Bounds& a, const Bounds& b) {
 }
 
 // Refuses an end whose tolerance hides detail that could matter.
-Status CheckEnd(const char* field, double tolerance, double spacing, const std::vector<glm::dvec3>& corners,
+Status ValidateEndPrecision(const char* field, double tolerance, double spacing, const std::vector<glm::dvec3>& corners,
                 const FloatFrame& frame, double magnitude) {
   if (tolerance <= spacing / 4.0) return absl::OkStatus();
   Bounds end;
@@ -378,8 +378,8 @@ StatusOr<EndpointTolerances> ResolvableEndpointTolerances(const HiddenSampleMapR
                                           double(std::max(request.source.sample_count, 1)));
   const double receiver_spacing = std::min(glm::length(rp.edge_u) / std::max(request.receiver.width, 1),
                                            glm::length(rp.edge_v) / std::max(request.receiver.height, 1));
-  VISQ_RETURN_IF_ERROR(CheckEnd("receiver", out.receiver, receiver_spacing, hull.receiver, frame, receiver_magnitude));
-  VISQ_RETURN_IF_ERROR(CheckEnd("source", out.source, source_spacing, hull.source, frame, source_magnitude));
+  VISQ_RETURN_IF_ERROR(ValidateEndPrecision("receiver", out.receiver, receiver_spacing, hull.receiver, frame, receiver_magnitude));
+  VISQ_RETURN_IF_ERROR(ValidateEndPrecision("source", out.source, source_spacing, hull.source, frame, source_magnitude));
   return out;
 }
 

@@ -286,7 +286,7 @@ class SceneBuilder {
       for (size_t i = 0; i < model_.nodes.size(); ++i)
         if (!has_parent[i]) roots.push_back(static_cast<int>(i));
     }
-    VISQ_RETURN_IF_ERROR(CheckFlattenedSize(roots));
+    VISQ_RETURN_IF_ERROR(ValidateFlattenedSize(roots));
     VISQ_RETURN_IF_ERROR(VisitNodes(roots));
     if (scene.triangles.empty()) return Invalid("scene has no triangles");
     if (!all_primitives_have_lightmap_uvs_) {
@@ -303,7 +303,7 @@ class SceneBuilder {
   // flatten beyond the triangle or byte limits, before anything is built.
   // Iterative: a chain of nodes as deep as the file likes cannot exhaust the
   // stack.
-  Status CheckFlattenedSize(const std::vector<int>& roots) {
+  Status ValidateFlattenedSize(const std::vector<int>& roots) {
     const size_t n = model_.nodes.size();
     std::vector<FlattenedCounts> subtree(n);
     std::vector<uint8_t> state(n, 0);  // 0 unvisited, 1 on the path, 2 counted

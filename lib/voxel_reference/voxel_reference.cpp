@@ -27,7 +27,7 @@ ReferenceGrid EmptyGrid(const GridBox& box) {
   return grid;
 }
 
-Status CheckBox(const GridBox& box) {
+Status ValidateBox(const GridBox& box) {
   if (box.width == 0 || box.height == 0 || box.slices == 0)
     return absl::InvalidArgumentError(
         fmt::format("grid {} x {} x {}: every size must be at least 1", box.width, box.height, box.slices));
@@ -121,7 +121,7 @@ bool TriangleBoxOverlap(const glm::dvec3& center, const glm::dvec3& half, const 
 StatusOr<ReferenceGrid> VoxelizeSurface(const Scene& scene, const GridBox& box, const SurfaceOptions& options,
                                         SurfaceStats* stats) {
   const auto start = Clock::now();
-  if (Status s = CheckBox(box); !s.ok()) return s;
+  if (Status s = ValidateBox(box); !s.ok()) return s;
   const bool local = !options.column_near.empty();
   const size_t columns = size_t{box.width} * box.height;
   if (local && (options.column_near.size() != columns || options.column_far.size() != columns))
@@ -201,7 +201,7 @@ StatusOr<ReferenceGrid> VoxelizeSurface(const Scene& scene, const GridBox& box, 
 }
 
 StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& box, const SurfaceOptions& options) {
-  if (Status s = CheckBox(box); !s.ok()) return s;
+  if (Status s = ValidateBox(box); !s.ok()) return s;
   const bool local = !options.column_near.empty();
   std::vector<std::pair<uint32_t, uint32_t>> ranges = options.triangles;
   if (ranges.empty()) ranges.emplace_back(0u, static_cast<uint32_t>(scene.TriangleCount()));
@@ -247,7 +247,7 @@ StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& b
 
 StatusOr<SolidReference> VoxelizeSolid(const Scene& scene, const GridBox& box, int threads) {
   const auto start = Clock::now();
-  if (Status s = CheckBox(box); !s.ok()) return s;
+  if (Status s = ValidateBox(box); !s.ok()) return s;
   SolidReference out;
   SurfaceOptions surface_options;
   surface_options.threads = threads;

@@ -72,7 +72,7 @@ void Engine::LoadRepositoryScenes() {
   }
 }
 
-Status Engine::CheckSceneSize(const ResidentScene& resident) const {
+Status Engine::AdmitSceneSize(const ResidentScene& resident) const {
   const StructureEstimate& e = resident.estimate;
   if (e.total_bytes() > options_.max_scene_bytes)
     return absl::ResourceExhaustedError(absl::StrCat(
@@ -96,7 +96,7 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
   VISQ_ASSIGN_OR_RETURN(Scene scene,
                         LoadGltfFile(main_file, &report, LoadLimits(repository_->FileRoot(main_file))));
   std::shared_ptr<ResidentScene> resident = NewResidentScene(std::move(name), std::move(scene));
-  VISQ_RETURN_IF_ERROR(CheckSceneSize(*resident));
+  VISQ_RETURN_IF_ERROR(AdmitSceneSize(*resident));
   resident->dropped = std::move(report.dropped);
   resident->persisted = persisted;
   resident->load_ms = MillisecondsSince(start);
@@ -160,7 +160,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(staging.main_file(), &report, LoadLimits(staging.dir())));
   std::shared_ptr<ResidentScene> resident = NewResidentScene(staging.name(), std::move(scene));
-  VISQ_RETURN_IF_ERROR(CheckSceneSize(*resident));
+  VISQ_RETURN_IF_ERROR(AdmitSceneSize(*resident));
   // Only what the scene model keeps is stored: textures and other files the
   // geometry never read are not.
   VISQ_ASSIGN_OR_RETURN(const size_t unused_files, staging.KeepOnly(report.files_read));
@@ -489,7 +489,7 @@ StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneFor(
   return frame->embree_scene;
 }
 
-Status Engine::CheckSampledPrecision(const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request,
+Status Engine::ValidateSampledPrecision(const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request,
                                      sampling::SegmentTracer tracer, const CallOptions& call) {
   return LocalFrameFor(resident, request, tracer, call).status();
 }

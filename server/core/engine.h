@@ -260,7 +260,7 @@ class Engine {
   [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneFor(
       const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request, const CallOptions& call = {});
   // The same decision without building either copy: for the planner.
-  [[nodiscard]] Status CheckSampledPrecision(const ResidentScene& resident,
+  [[nodiscard]] Status ValidateSampledPrecision(const ResidentScene& resident,
                                              const sampling::HiddenSampleMapRequest& request,
                                              sampling::SegmentTracer tracer, const CallOptions& call = {});
   // The hidden-sample map's programs, compiled on first use.
@@ -301,7 +301,7 @@ class Engine {
   StatusOr<std::shared_ptr<LocalFrame>> LocalFrameFor(const ResidentScene& resident,
                                                       const sampling::HiddenSampleMapRequest& request,
                                                       sampling::SegmentTracer tracer, const CallOptions& call);
-  Status CheckSceneSize(const ResidentScene& resident) const;
+  Status AdmitSceneSize(const ResidentScene& resident) const;
   // What each lazy structure's build does (and records in build_times_).
   LazyStructure<gpu::GpuScene>::Build GpuBuild(const ResidentScene& resident);
   LazyStructure<raycast::EmbreeScene>::Build EmbreeBuild(const ResidentScene& resident);

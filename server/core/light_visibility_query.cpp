@@ -23,7 +23,7 @@ bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 
 }  // namespace
 
-Status CheckLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene) {
+Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene) {
   if (query.points.empty()) return absl::InvalidArgumentError("points: empty");
   if (query.points.size() > kMaxLightVisibilityPoints)
     return absl::ResourceExhaustedError(absl::StrCat("points: ", query.points.size(), " exceeds the cap of ",
@@ -61,7 +61,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   const Scene& scene = *resident->scene;
-  VISQ_RETURN_IF_ERROR(CheckLightVisibilityQuery(query, scene));
+  VISQ_RETURN_IF_ERROR(ValidateLightVisibilityQuery(query, scene));
   const auto start = std::chrono::steady_clock::now();
 
   // The trees' options: the excluded nodes' triangles, the memory budget.

@@ -47,7 +47,7 @@ inline constexpr size_t kMaxLightVertices = 1024;
 
 // Every check of the query against its scene that needs no tree: what is
 // refused before any work starts.
-[[nodiscard]] Status CheckLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene);
+[[nodiscard]] Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene);
 
 [[nodiscard]] StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query);
 

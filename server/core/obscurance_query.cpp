@@ -393,7 +393,7 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
 
 // FAILED_PRECONDITION unless the scene has a whole-bake solution that
 // matches its version. Under the state's lock.
-Status CheckCurrentSolution(const ResidentScene& resident, const ObscuranceState& state, const char* purpose) {
+Status RequireCurrentSolution(const ResidentScene& resident, const ObscuranceState& state, const char* purpose) {
   if (!state.updater)
     return absl::FailedPreconditionError(absl::StrCat("scene '", resident.name,
                                                       "' has no whole-bake obscurance solution to ", purpose,
@@ -423,7 +423,7 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
     std::lock_guard lock(state->mutex);
     // Re-read under the lock: a move may have landed in between.
     VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
-    VISQ_RETURN_IF_ERROR(CheckCurrentSolution(*resident, *state, "preview"));
+    VISQ_RETURN_IF_ERROR(RequireCurrentSolution(*resident, *state, "preview"));
     const obscurance::ObscuranceResult& result = state->updater->result();
     const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
     corner_uv = atlas.corner_uv;
@@ -476,7 +476,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
     std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
     VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
-    VISQ_RETURN_IF_ERROR(CheckCurrentSolution(*resident, *state, "export"));
+    VISQ_RETURN_IF_ERROR(RequireCurrentSolution(*resident, *state, "export"));
     const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
     corner_uv = atlas.corner_uv;
     if (query.want_gltf) w = state->updater->result().w;

@@ -17,7 +17,7 @@
 namespace visq {
 namespace {
 
-Status CheckSize(const sampling::HiddenSampleMapRequest& request) {
+Status ValidateSize(const sampling::HiddenSampleMapRequest& request) {
   const uint64_t bits = uint64_t(std::max(request.receiver.width, 0)) * uint64_t(std::max(request.receiver.height, 0)) *
                         uint64_t(std::max(request.source.sample_count, 0));
   if (bits > kMaxHiddenSampleBits)
@@ -243,7 +243,7 @@ StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, cons
   const gpu::JobOptions job = call.Job();
   VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(map));
-  VISQ_RETURN_IF_ERROR(CheckSize(map));
+  VISQ_RETURN_IF_ERROR(ValidateSize(map));
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(HiddenSampleMapWorkBytes(map, /*streamed=*/false),
                                                      "source_columns x source_rows x receiver_columns x receiver_rows",
@@ -284,7 +284,7 @@ struct RunCost {
 
 double ComputeMs(const gpu::JobTiming& timing, double table_ms = 0.0) { return timing.run_ms + table_ms; }
 
-Status CheckNotCancelled(const gpu::JobOptions& job) {
+Status RequireNotCancelled(const gpu::JobOptions& job) {
   if (job.cancelled && job.cancelled->load()) return absl::CancelledError("cancelled while choosing a method");
   if (std::chrono::steady_clock::now() > job.deadline)
     return absl::DeadlineExceededError("deadline passed while choosing a method");
@@ -293,7 +293,7 @@ Status CheckNotCancelled(const gpu::JobOptions& job) {
 
 // A plan predicted to outlast the call's deadline fails now rather than
 // after the work.
-Status CheckPredictionFitsDeadline(const Plan& plan, const gpu::JobOptions& job) {
+Status RequirePredictionFitsDeadline(const Plan& plan, const gpu::JobOptions& job) {
   if (job.deadline == gpu::SteadyTime::max()) return absl::OkStatus();
   const double left_ms =
       MillisecondsBetween(std::chrono::steady_clock::now(), job.deadline);
@@ -358,7 +358,7 @@ std::vector<glm::dvec3> TexelCentres(const sampling::ReceiverSpec& receiver) {
 // request's own receiver (CentralBlock).
 using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method, int samples, int max_side)>;
 // Whether a sampled method resolves the request with `samples` samples in
-// float32 (Engine::CheckSampledPrecision): FAILED_PRECONDITION when not.
+// float32 (Engine::ValidateSampledPrecision): FAILED_PRECONDITION when not.
 using PrecisionCheck = std::function<Status(VisibilityMethod method, int samples)>;
 
 sampling::SegmentTracer TracerOf(VisibilityMethod method) {
@@ -420,7 +420,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       const double second_probe_below_ms = 200.0;
       bool usable = true;
       for (const auto& [side, samples] : probes) {
-        VISQ_RETURN_IF_ERROR(CheckNotCancelled(job));
+        VISQ_RETURN_IF_ERROR(RequireNotCancelled(job));
         StatusOr<RunCost> cost = run(method, samples, side);
         // A method that cannot answer this request honestly (a sampled one
         // far from the scene's float32 anchor) is left out of the plans.
@@ -460,7 +460,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
     }
   }
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
-  VISQ_RETURN_IF_ERROR(CheckPredictionFitsDeadline(report.chosen_plan(), job));
+  VISQ_RETURN_IF_ERROR(RequirePredictionFitsDeadline(report.chosen_plan(), job));
   return report;
 }
 
@@ -490,7 +490,7 @@ sampling::ReceiverSpec ReducedReceiver(const sampling::ReceiverSpec& receiver, i
 // only jittered samples vary between maps, and only visible fractions add
 // up (no bitmasks or colours; no polygon's cut or Hough lookup, which make
 // each map's count its own).
-Status CheckSeveralMaps(const sampling::HiddenSampleMapRequest& request) {
+Status ValidateSeveralMaps(const sampling::HiddenSampleMapRequest& request) {
   const int n = request.source.sample_count;
   auto refuse = [&](const char* why) {
     return absl::ResourceExhaustedError(absl::StrCat("samples.count: ", n, " exceeds one map's ",
@@ -522,7 +522,7 @@ StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const Resi
   const int per_map = (samples + maps - 1) / maps;
   request.source.sample_count = per_map;
   request.options.want_bitmasks = false;
-  VISQ_RETURN_IF_ERROR(CheckSize(request));
+  VISQ_RETURN_IF_ERROR(ValidateSize(request));
   const size_t texels = size_t(request.receiver.width) * request.receiver.height;
   std::vector<uint32_t> visible(texels, 0);
   sampling::HiddenSampleMapResult sum;
@@ -590,7 +590,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
         with_samples(std::max(samples, 1), max_side, method == VisibilityMethod::kPluckerExact);
     if (samples > sampling::kMaxHiddenSampleMapSamples)
       return SeveralMaps(engine, resident, method, sized, samples, query.call, bands);
-    VISQ_RETURN_IF_ERROR(CheckSize(sized));
+    VISQ_RETURN_IF_ERROR(ValidateSize(sized));
     return HiddenSampleMapBy(engine, resident, method, sized, query.call, bands);
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
@@ -603,14 +603,14 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   };
 
   const double texels = double(request.receiver.width) * request.receiver.height;
-  const bool several_maps = CheckSeveralMaps(request).ok();
+  const bool several_maps = ValidateSeveralMaps(request).ok();
   const int max_samples = several_maps ? kMaxPlannedSamples : sampling::kMaxHiddenSampleMapSamples;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
                                                           texels,
                                                           exact_possible ? ExactTrees(engine, resident, TexelCentres(request.receiver)) : 1.0,
                                                           PolygonShare(request.source), exact_possible,
                                                           max_samples, query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
-                                                            return engine.CheckSampledPrecision(
+                                                            return engine.ValidateSampledPrecision(
                                                                 resident, with_samples(samples, 0), TracerOf(method),
                                                                 query.call);
                                                           }));
@@ -675,7 +675,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
                                                             VISQ_ASSIGN_OR_RETURN(
                                                                 sampling::HiddenSampleMapRequest map,
                                                                 sampling::PatchVisibilityAsHiddenSampleMap(sized(samples, 0)));
-                                                            return engine.CheckSampledPrecision(resident, map,
+                                                            return engine.ValidateSampledPrecision(resident, map,
                                                                                                 TracerOf(method),
                                                                                                 query.call);
                                                           }));
@@ -725,7 +725,7 @@ sampling::HiddenSampleMapRequest WithStandInCount(const HiddenSampleMapQuery& qu
 
 }  // namespace
 
-Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query) {
+Status ValidateHiddenSampleMapQuery(const HiddenSampleMapQuery& query) {
   if (query.target) {
     VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));
     if (query.request.source.sample_count != 0)
@@ -733,21 +733,21 @@ Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query) {
   }
   sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
   if (checked.source.sample_count > sampling::kMaxHiddenSampleMapSamples) {
-    VISQ_RETURN_IF_ERROR(CheckSeveralMaps(checked));
+    VISQ_RETURN_IF_ERROR(ValidateSeveralMaps(checked));
     if (query.method == VisibilityMethod::kPluckerExact)
       return absl::InvalidArgumentError("samples.count: the exact method takes no samples (leave it 0)");
     checked.source.sample_count = sampling::kMaxHiddenSampleMapSamples;  // one of the maps
   }
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(checked));
-  if (!query.target) VISQ_RETURN_IF_ERROR(CheckSize(checked));
+  if (!query.target) VISQ_RETURN_IF_ERROR(ValidateSize(checked));
   return absl::OkStatus();
 }
 
-Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query) {
+Status ValidatePatchVisibilityQuery(const PatchVisibilityQuery& query) {
   if (query.target) return ValidateAccuracyTarget(*query.target);
   VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(query.request));
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(map));
-  return CheckSize(map);
+  return ValidateSize(map);
 }
 
 namespace {
@@ -821,7 +821,7 @@ AccuracyStatement SampledVisibilityStatement(const sampling::ErrorBound& error, 
 
 StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenSampleMapQuery& query,
                                                    const sampling::HiddenSampleMapBandSink& sink) {
-  VISQ_RETURN_IF_ERROR(CheckHiddenSampleMapQuery(query));
+  VISQ_RETURN_IF_ERROR(ValidateHiddenSampleMapQuery(query));
   VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, HiddenSampleMapUnstated(engine, query, sink));
   answer.accuracy = SampledVisibilityStatement(answer.result.error, answer.method, query.request.options.lookup,
                                                answer.result.sample_count);
@@ -830,7 +830,7 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
 }
 
 StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query) {
-  VISQ_RETURN_IF_ERROR(CheckPatchVisibilityQuery(query));
+  VISQ_RETURN_IF_ERROR(ValidatePatchVisibilityQuery(query));
   VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, PatchVisibilityUnstated(engine, query));
   answer.accuracy = SampledVisibilityStatement(answer.result.error, answer.method, query.request.lookup,
                                                static_cast<int>(answer.result.source_visible.size()));

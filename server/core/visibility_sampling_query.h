@@ -85,8 +85,8 @@ struct PatchVisibilityAnswer {
 // Every check of a query that needs neither the scene nor the GPU: what is
 // refused before any work is queued. The Run functions start with these (the
 // request-validation fuzz target calls them alone).
-[[nodiscard]] Status CheckHiddenSampleMapQuery(const HiddenSampleMapQuery& query);
-[[nodiscard]] Status CheckPatchVisibilityQuery(const PatchVisibilityQuery& query);
+[[nodiscard]] Status ValidateHiddenSampleMapQuery(const HiddenSampleMapQuery& query);
+[[nodiscard]] Status ValidatePatchVisibilityQuery(const PatchVisibilityQuery& query);
 
 // Without a sink the answer holds the whole map. With one, every band of
 // receiver rows goes to it as soon as it is made (the first before the

@@ -92,6 +92,8 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
   tree->set_wholly_visible(answer.tree.wholly_visible);
   tree->set_wholly_hidden(answer.tree.wholly_hidden);
   tree->set_subtracted_directly(answer.tree.subtracted_directly);
+  tree->set_answers_reused(answer.tree.answers_reused);
+  tree->set_answers_kept(answer.tree.answers_kept);
   tree->set_far_occluders(answer.tree.far_occluders);
   tree->set_near_occluders(answer.tree.near_occluders);
   tree->set_trees(static_cast<uint32_t>(answer.trees));

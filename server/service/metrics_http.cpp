@@ -39,7 +39,7 @@ StatusOr<HostPort> ParseHostPort(const std::string& address) {
 
 }  // namespace
 
-Status CheckMetricsAddress(const std::string& address) { return ParseHostPort(address).status(); }
+Status ValidateMetricsAddress(const std::string& address) { return ParseHostPort(address).status(); }
 
 StatusOr<std::unique_ptr<MetricsHttpServer>> MetricsHttpServer::Start(const std::string& address,
                                                                      std::function<ServerFigures()> collect) {

@@ -19,7 +19,7 @@ class Server;
 namespace visq::service {
 
 // Whether `address` is HOST:PORT or [V6]:PORT with a port in 0..65535.
-[[nodiscard]] Status CheckMetricsAddress(const std::string& address);
+[[nodiscard]] Status ValidateMetricsAddress(const std::string& address);
 
 class MetricsHttpServer {
  public:

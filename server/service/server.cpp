@@ -109,7 +109,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
     return absl::FailedPreconditionError(absl::StrCat(
         "refusing to listen on ", options.address,
         " without TLS or a bearer token; set --tls-cert/--tls-key, --auth-token-file, or --allow-insecure-remote"));
-  if (!options.metrics_address.empty()) VISQ_RETURN_IF_ERROR(CheckMetricsAddress(options.metrics_address));
+  if (!options.metrics_address.empty()) VISQ_RETURN_IF_ERROR(ValidateMetricsAddress(options.metrics_address));
   if (!options.metrics_address.empty() && !options.allow_remote_metrics && !IsLoopbackAddress(options.metrics_address))
     return absl::FailedPreconditionError(absl::StrCat(
         "refusing to serve /metrics on ", options.metrics_address,

@@ -50,7 +50,7 @@ void HiddenSampleMap(const uint8_t* data, size_t size) {
   v1::HiddenSampleMapRequest request;
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
-  if (!query.ok() || !CheckHiddenSampleMapQuery(*query).ok()) return;
+  if (!query.ok() || !ValidateHiddenSampleMapQuery(*query).ok()) return;
   const sampling::HiddenSampleMapRequest& r = query->request;
   Require(r.receiver.width > 0 && r.receiver.height > 0);
   if (!query->target && query->method != VisibilityMethod::kPluckerExact)
@@ -64,14 +64,14 @@ void PatchVisibility(const uint8_t* data, size_t size) {
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
   if (!query.ok()) return;
-  (void)CheckPatchVisibilityQuery(*query);
+  (void)ValidatePatchVisibilityQuery(*query);
 }
 
 void LightVisibility(const uint8_t* data, size_t size) {
   v1::LightVisibilityRequest request;
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
-  if (!query.ok() || !CheckLightVisibilityQuery(*query, ResidentScene()).ok()) return;
+  if (!query.ok() || !ValidateLightVisibilityQuery(*query, ResidentScene()).ok()) return;
   Require(query->light.vertices.size() >= 3 && query->light.vertices.size() <= kMaxLightVertices);
   Require(std::isfinite(query->light.radiance) && query->light.radiance >= 0);
   for (const exact::QueryPoint& p : query->points) {
