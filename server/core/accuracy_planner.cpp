@@ -49,6 +49,14 @@ size_t CostModel::Observations(const std::string& series) const {
 void CostModel::PersistTo(const std::filesystem::path& path) {
   std::lock_guard lock(mutex_);
   file_ = path;
+  // A file far larger than kSeriesKept x kObservationsKept lines can be is
+  // not this model's: it is left unread (and replaced at the next record).
+  std::error_code size_error;
+  const uintmax_t size = std::filesystem::file_size(path, size_error);
+  if (!size_error && size > kMaxCostModelFileBytes) {
+    spdlog::warn("cost model: {} is {} bytes, over {}: not read", path.string(), size, kMaxCostModelFileBytes);
+    return;
+  }
   std::ifstream in(path);
   std::string line;
   size_t read = 0;

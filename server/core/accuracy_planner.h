@@ -10,6 +10,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <deque>
 #include <filesystem>
 #include <map>
@@ -50,6 +51,10 @@ struct PlanReport {
   double probe_ms = 0.0;  // spent measuring methods not seen before on this scene
   const Plan& chosen_plan() const { return plans[chosen]; }
 };
+
+// A cost-model file larger than this is not the model's own (4096 series
+// of 16 observations are a few MiB): it is left unread.
+inline constexpr uintmax_t kMaxCostModelFileBytes = uintmax_t{64} << 20;
 
 // ms = fixed + rate * work per series (a scene, a query kind and a method),
 // least-squares over the most recent observations, so it follows the

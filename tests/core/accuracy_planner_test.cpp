@@ -67,6 +67,23 @@ TEST(CostModel, ObservationsOutliveTheModelInItsFile) {
   EXPECT_DOUBLE_EQ(*restored.Predict("s/b", 2.0), 4.0);
 }
 
+// A file larger than any model's (a stray or hostile one) is not read into
+// memory; the model starts empty and replaces it at its next record.
+TEST(CostModel, AFileLargerThanAnyModelsIsLeftUnread) {
+  testing::ScratchDir dir;
+  const std::filesystem::path file = dir.path() / "costs.tsv";
+  {
+    std::ofstream out(file);
+    out << "s/a\t10\t30\n";
+  }
+  std::filesystem::resize_file(file, kMaxCostModelFileBytes + 1);  // sparse: no disk used
+  CostModel model;
+  model.PersistTo(file);
+  EXPECT_EQ(model.Observations("s/a"), 0u);
+  model.Record("s/b", 1.0, 2.0);
+  EXPECT_LT(std::filesystem::file_size(file), 1024u);
+}
+
 TEST(CostModel, KeepsOnlyRecentObservations) {
   CostModel model;
   for (int i = 0; i < 100; ++i) model.Record("s", 10.0, 1000.0);  // a slow past
