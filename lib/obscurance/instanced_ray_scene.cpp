@@ -26,6 +26,22 @@ struct InstancedRayScene::Impl {
     if (device) rtcReleaseDevice(device);
   }
 
+  // What one traced ray found: the scene's triangle, and the object whose
+  // instance it belongs to (-1: the static mesh).
+  Hit HitOf(const RTCRayHit& rh) const {
+    Hit hit;
+    if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return hit;
+    hit.hit = true;
+    hit.t = rh.ray.tfar;
+    if (rh.hit.instID[0] != 0) {
+      hit.object = static_cast<int32_t>(rh.hit.instID[0]) - 1;
+      hit.triangle = objects[hit.object][rh.hit.primID];
+    } else {
+      hit.triangle = static_triangles[rh.hit.primID];
+    }
+    return hit;
+  }
+
   // Attaches `triangles` (frame-relative float copies) as geometry 0 of `mesh`.
   void AddTriangles(RTCScene mesh, const Scene& scene, const std::vector<uint32_t>& triangles) const {
     if (!triangles.empty()) {
@@ -160,20 +176,7 @@ void InstancedRayScene::ClosestStream(std::span<const PatchRay> rays, double tma
     RTCIntersectContext context;
     rtcInitIntersectContext(&context);
     rtcIntersect1M(impl_->top, &context, stream, static_cast<unsigned>(n), sizeof(RTCRayHit));
-    for (size_t i = 0; i < n; ++i) {
-      const RTCRayHit& rh = stream[i];
-      Hit& hit = hits[base + i];
-      hit = Hit{};
-      if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
-      hit.hit = true;
-      hit.t = rh.ray.tfar;
-      if (rh.hit.instID[0] != 0) {
-        hit.object = static_cast<int32_t>(rh.hit.instID[0]) - 1;
-        hit.triangle = impl_->objects[hit.object][rh.hit.primID];
-      } else {
-        hit.triangle = impl_->static_triangles[rh.hit.primID];
-      }
-    }
+    for (size_t i = 0; i < n; ++i) hits[base + i] = impl_->HitOf(stream[i]);
   }
 }
 
@@ -183,17 +186,7 @@ InstancedRayScene::Hit InstancedRayScene::Closest(const glm::dvec3& origin, cons
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
   rtcIntersect1(impl_->top, &context, &rh);
-  Hit hit;
-  if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return hit;
-  hit.hit = true;
-  hit.t = rh.ray.tfar;
-  if (rh.hit.instID[0] != 0) {
-    hit.object = static_cast<int32_t>(rh.hit.instID[0]) - 1;
-    hit.triangle = impl_->objects[hit.object][rh.hit.primID];
-  } else {
-    hit.triangle = impl_->static_triangles[rh.hit.primID];
-  }
-  return hit;
+  return impl_->HitOf(rh);
 }
 
 bool InstancedRayScene::HitsObject(size_t object, const glm::dvec3& origin, const glm::dvec3& direction,
