@@ -87,13 +87,13 @@ case "${1:-}" in
       CC=clang CXX=clang++ cmake -S . -B "$asan_dir" -DCMAKE_BUILD_TYPE=None -DCMAKE_CXX_FLAGS=-O1 \
         -DVISQ_SANITIZE=ON -DVISQ_FUZZ=ON -DVISQ_FUZZ_SECONDS="$fuzz_seconds"
       cmake --build "$asan_dir" -j"$jobs" --target visq-server visq visq_scene_tests visq_gpu_tests \
-        visq_integration_tests visq_operability_tests visq_service_tests visq_raycast_test visq_exact_test \
+        visq_integration_tests visq_operability_tests visq_service_tests visq_raycast_tests visq_exact_tests \
         visq_core_tests \
         gltf_loader_fuzz gltf_structure_fuzz request_validation_fuzz algorithm_request_fuzz
       if [[ "$sanitized_tests" != 0 ]]; then
         # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
         # allocations; ASan's use-after-free and overflow checks still apply.
-        for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_test exact/visq_exact_test \
+        for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_tests exact/visq_exact_tests \
                     core/visq_core_tests service/visq_service_tests integration/visq_integration_tests \
                     integration/visq_operability_tests; do
           echo "--- $test (ASan + UBSan)"

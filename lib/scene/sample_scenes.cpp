@@ -42,6 +42,34 @@ void AddBox(Scene& scene, const std::string& node_name, const glm::dvec3& lo, co
   }
 }
 
+void AddTriangle(Scene& scene, const std::string& node_name, const glm::dvec3& a, const glm::dvec3& b,
+                 const glm::dvec3& c, uint32_t material) {
+  const uint32_t base = static_cast<uint32_t>(scene.positions.size());
+  scene.positions.insert(scene.positions.end(), {a, b, c});
+  const uint32_t node = static_cast<uint32_t>(scene.nodes.size());
+  scene.nodes.push_back(SceneNode{node_name, static_cast<int>(node), -1, glm::dmat4(1.0),
+                                  static_cast<uint32_t>(scene.triangles.size()), 1});
+  scene.triangles.emplace_back(base, base + 1, base + 2);
+  scene.triangle_material.push_back(material);
+  scene.triangle_node.push_back(node);
+}
+
+Scene SceneOfTriangles(std::span<const std::array<glm::dvec3, 3>> triangles) {
+  Scene scene;
+  scene.materials = {{"grey", glm::dvec3(0.5), glm::dvec3(0.0)}};
+  scene.nodes.push_back(SceneNode{"triangles", 0, -1, glm::dmat4(1.0), 0, static_cast<uint32_t>(triangles.size())});
+  scene.positions.reserve(3 * triangles.size());
+  for (const auto& t : triangles) {
+    const uint32_t base = static_cast<uint32_t>(scene.positions.size());
+    scene.positions.insert(scene.positions.end(), t.begin(), t.end());
+    scene.triangles.emplace_back(base, base + 1, base + 2);
+  }
+  scene.triangle_material.assign(triangles.size(), 0);
+  scene.triangle_node.assign(triangles.size(), 0);
+  UpdateBounds(scene);
+  return scene;
+}
+
 void UpdateBounds(Scene& scene) {
   scene.bounds = Bounds{};
   for (const auto& p : scene.positions) scene.bounds.Extend(p);

@@ -2,7 +2,9 @@
 // resident and tests have inputs without the shared scene folder.
 #pragma once
 
+#include <array>
 #include <filesystem>
+#include <span>
 
 #include "common/status.h"
 #include "scene/scene.h"
@@ -21,6 +23,12 @@ void AddBox(Scene& scene, const std::string& node_name, const glm::dvec3& lo, co
 // as a new node; its front faces u x v.
 void AddQuad(Scene& scene, const std::string& node_name, const glm::dvec3& origin, const glm::dvec3& u,
              const glm::dvec3& v, uint32_t material);
+// Appends one triangle a, b, c as a new node; its front faces (b - a) x (c - a).
+void AddTriangle(Scene& scene, const std::string& node_name, const glm::dvec3& a, const glm::dvec3& b,
+                 const glm::dvec3& c, uint32_t material);
+// A scene of loose triangles, all in one node "triangles" with one grey
+// material, bounds set: the input of most algorithm tests.
+Scene SceneOfTriangles(std::span<const std::array<glm::dvec3, 3>> triangles);
 // Recomputes bounds after edits.
 void UpdateBounds(Scene& scene);
 

@@ -8,7 +8,7 @@
 
 #include <spdlog/spdlog.h>
 
-namespace visq {
+namespace visq::core {
 
 Status ValidateAccuracyTarget(const AccuracyTarget& target) {
   if (!std::isfinite(target.max_error) || target.max_error < 0.0 || target.max_error >= 1.0)
@@ -177,4 +177,4 @@ StatusOr<size_t> ChoosePlan(std::vector<Plan>& plans, const AccuracyTarget& targ
   return index_of(std::min_element(plans.begin(), plans.end(), cheaper));
 }
 
-}  // namespace visq
+}  // namespace visq::core

@@ -21,7 +21,7 @@
 
 #include "common/status.h"
 
-namespace visq {
+namespace visq::core {
 
 struct AccuracyTarget {
   double max_error = 0.0;    // half-width on the answered quantity; 0: none
@@ -109,4 +109,4 @@ double HoeffdingSamplesNeeded(double max_error, double confidence);
 // "raycast {samples: 2048}" for messages and logs.
 std::string DescribePlan(const Plan& plan);
 
-}  // namespace visq
+}  // namespace visq::core

@@ -6,7 +6,7 @@
 #include "absl/strings/str_format.h"
 #include "core/accuracy_planner.h"
 
-namespace visq {
+namespace visq::core {
 
 AccuracyStatement ExactStatement(std::string method, std::string note) {
   AccuracyStatement out;
@@ -28,4 +28,4 @@ void AddChosenPlan(const PlanReport& plan, AccuracyStatement& statement) {
                   ")");
 }
 
-}  // namespace visq
+}  // namespace visq::core

@@ -11,7 +11,7 @@
 #include <map>
 #include <string>
 
-namespace visq {
+namespace visq::core {
 
 struct PlanReport;
 
@@ -36,4 +36,4 @@ AccuracyStatement ExactStatement(std::string method, std::string note);
 // statement, and the note says how it was chosen.
 void AddChosenPlan(const PlanReport& plan, AccuracyStatement& statement);
 
-}  // namespace visq
+}  // namespace visq::core

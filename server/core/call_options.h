@@ -10,7 +10,7 @@
 
 #include "visq/gpu/gpu_worker.h"
 
-namespace visq {
+namespace visq::core {
 
 // The time a call spent on structures built on first use (the Embree BVH,
 // the triangle index, the GPU buffers, local frames): building one, or
@@ -44,4 +44,4 @@ struct CallOptions {
   gpu::JobOptions BatchJob() const { return {gpu::kBatch, deadline, cancelled}; }
 };
 
-}  // namespace visq
+}  // namespace visq::core

@@ -12,7 +12,7 @@
 #include "scene/scene_edit.h"
 #include "scene/gltf_loader.h"
 
-namespace visq {
+namespace visq::core {
 
 std::string SceneContentHash(const Scene& scene) {
   XXH3_state_t* state = XXH3_createState();
@@ -554,4 +554,4 @@ SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) c
   return s;
 }
 
-}  // namespace visq
+}  // namespace visq::core

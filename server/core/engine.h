@@ -33,7 +33,7 @@
 #include "visq/gpu/hidden_sample_map.h"
 #include "visq/gpu/gpu_worker.h"
 
-namespace visq {
+namespace visq::core {
 
 // One node move of a resident scene: what its edit log holds, and what a
 // query that keeps a solution across versions (the obscurance updater)
@@ -343,4 +343,4 @@ class Engine {
 // XXH3-128 of the flattened geometry and materials, as 32 hex digits.
 std::string SceneContentHash(const Scene& scene);
 
-}  // namespace visq
+}  // namespace visq::core

@@ -1,6 +1,6 @@
 #include "core/lazy_structure.h"
 
-namespace visq {
+namespace visq::core {
 
 StructureBuilds::~StructureBuilds() {
   stopping_ = true;
@@ -28,4 +28,4 @@ void StructureBuilds::Start(std::function<void()> build) {
                       done});
 }
 
-}  // namespace visq
+}  // namespace visq::core

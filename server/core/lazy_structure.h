@@ -23,7 +23,7 @@
 #include "common/status.h"
 #include "core/call_options.h"
 
-namespace visq {
+namespace visq::core {
 
 // Runs builds, each on a thread of its own, and when destroyed asks those
 // still running to stop (stopping()) and waits for them. A thread per build
@@ -150,4 +150,4 @@ class LazyStructure {
   std::shared_ptr<State> state_ = std::make_shared<State>();
 };
 
-}  // namespace visq
+}  // namespace visq::core

@@ -15,7 +15,7 @@
 #include "common/coordinates.h"
 #include "common/parallel.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 // Finite and within visq's coordinate range (common/coordinates.h).
@@ -245,4 +245,4 @@ AccuracyStatement LightVisibilityStatement() {
                         "integrals are double-precision sums (relative error about 1e-12)");
 }
 
-}  // namespace visq
+}  // namespace visq::core

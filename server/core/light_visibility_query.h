@@ -13,7 +13,7 @@
 #include "common/status.h"
 #include "exact/light_visibility.h"
 
-namespace visq {
+namespace visq::core {
 
 class Engine;
 
@@ -54,4 +54,4 @@ inline constexpr size_t kMaxLightVertices = 1024;
 // Every LightVisibility answer's: exact, with no samples to bound.
 AccuracyStatement LightVisibilityStatement();
 
-}  // namespace visq
+}  // namespace visq::core

@@ -3,7 +3,7 @@
 #include <algorithm>
 #include <cmath>
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 // The region's side and corner for a query box: side 2c, corner on the grid
@@ -79,4 +79,4 @@ size_t LocalFrames::size() const {
   return frames_.size();
 }
 
-}  // namespace visq
+}  // namespace visq::core

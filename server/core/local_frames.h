@@ -25,7 +25,7 @@
 #include "scene/scene.h"
 #include "visq/gpu/gpu_scene.h"
 
-namespace visq {
+namespace visq::core {
 
 struct LocalFrame {
   glm::dvec3 lo{0.0};  // the region [lo, lo + side]^3, world space
@@ -58,4 +58,4 @@ class LocalFrames {
   std::list<std::shared_ptr<LocalFrame>> frames_;  // most recent first
 };
 
-}  // namespace visq
+}  // namespace visq::core

@@ -13,7 +13,7 @@
 #include "obscurance/obscurance_export.h"
 #include "obscurance/obscurance_rays.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 // The one node `query` names; INVALID_ARGUMENT naming the field otherwise.
@@ -500,4 +500,4 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   return answer;
 }
 
-}  // namespace visq
+}  // namespace visq::core

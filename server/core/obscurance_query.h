@@ -25,7 +25,7 @@
 #include "obscurance/obscurance_update.h"
 #include "visq/gpu/obscurance.h"
 
-namespace visq {
+namespace visq::core {
 
 // Per scene name (Engine::SceneStateOf): the updater of the last full bake.
 // UpdateObscurances replays the scene's edit log (Engine::EditsBetween) from
@@ -188,4 +188,4 @@ struct ObscuranceExportAnswer {
 // RunRenderObscurancePreview.
 [[nodiscard]] StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const ObscuranceExportQuery& query);
 
-}  // namespace visq
+}  // namespace visq::core

@@ -5,7 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 StatusOr<uint32_t> NamedNode(const Scene& scene, const NodeTransformQuery& query) {
@@ -59,4 +59,4 @@ StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQu
       query.scene, query.scene_version, [&query](const Scene& scene) { return NamedNode(scene, query); }, world);
 }
 
-}  // namespace visq
+}  // namespace visq::core

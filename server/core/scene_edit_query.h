@@ -12,7 +12,7 @@
 #include "common/status.h"
 #include "core/engine.h"
 
-namespace visq {
+namespace visq::core {
 
 struct NodeTransformQuery {
   std::string scene;
@@ -26,4 +26,4 @@ struct NodeTransformQuery {
 // finite numbers, not affine or not invertible.
 [[nodiscard]] StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQuery& query);
 
-}  // namespace visq
+}  // namespace visq::core

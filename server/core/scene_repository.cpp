@@ -16,7 +16,7 @@
 #include <absl/strings/numbers.h>
 #include <spdlog/spdlog.h>
 
-namespace visq {
+namespace visq::core {
 namespace fs = std::filesystem;
 namespace {
 
@@ -374,4 +374,4 @@ Status SceneRepository::Remove(absl::string_view name) {
   return FsyncPath(root_, true);
 }
 
-}  // namespace visq
+}  // namespace visq::core

@@ -11,7 +11,7 @@
 
 #include "common/status.h"
 
-namespace visq {
+namespace visq::core {
 
 class SceneRepository;
 
@@ -98,4 +98,4 @@ class SceneRepository {
   std::filesystem::path root_;
 };
 
-}  // namespace visq
+}  // namespace visq::core

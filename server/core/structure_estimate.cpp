@@ -1,6 +1,6 @@
 #include "core/structure_estimate.h"
 
-namespace visq {
+namespace visq::core {
 
 StructureEstimate EstimateStructures(const Scene& scene) {
   const uint64_t triangles = scene.TriangleCount();
@@ -12,4 +12,4 @@ StructureEstimate EstimateStructures(const Scene& scene) {
   return e;
 }
 
-}  // namespace visq
+}  // namespace visq::core

@@ -9,7 +9,7 @@
 
 #include "scene/scene.h"
 
-namespace visq {
+namespace visq::core {
 
 // Bytes of each structure, measured with `visq_bench_structures --copies 16`
 // (tests/bench/structure_bench.cpp) on Sponza (66K triangles, 0.94 vertices
@@ -39,4 +39,4 @@ struct StructureEstimate {
 
 StructureEstimate EstimateStructures(const Scene& scene);
 
-}  // namespace visq
+}  // namespace visq::core

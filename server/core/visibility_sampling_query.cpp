@@ -14,7 +14,7 @@
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 Status ValidateSize(const sampling::HiddenSampleMapRequest& request) {
@@ -838,4 +838,4 @@ StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVi
   return answer;
 }
 
-}  // namespace visq
+}  // namespace visq::core

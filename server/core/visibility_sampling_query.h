@@ -16,7 +16,7 @@
 #include "core/work_budget.h"
 #include "visq/gpu/hidden_sample_map.h"
 
-namespace visq {
+namespace visq::core {
 
 class Engine;
 
@@ -96,4 +96,4 @@ struct PatchVisibilityAnswer {
                                                                  const sampling::HiddenSampleMapBandSink& sink = {});
 [[nodiscard]] StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query);
 
-}  // namespace visq
+}  // namespace visq::core

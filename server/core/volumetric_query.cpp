@@ -8,7 +8,7 @@
 #include "common/job_timing.h"
 #include "core/engine.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 // The estimate's figures over pixels [first_pixel, ...) of the fine image.
@@ -192,4 +192,4 @@ std::optional<AccuracyStatement> VolumetricEstimateStatement(const VolumetricAns
   return out;
 }
 
-}  // namespace visq
+}  // namespace visq::core

@@ -12,7 +12,7 @@
 #include "core/call_options.h"
 #include "visq/gpu/volumetric_shadows.h"
 
-namespace visq {
+namespace visq::core {
 
 class Engine;
 
@@ -67,4 +67,4 @@ AccuracyStatement VolumetricStatement(const gpu::VolumetricResult& figures);
 // one, nothing to add.
 std::optional<AccuracyStatement> VolumetricEstimateStatement(const VolumetricAnswer& answer);
 
-}  // namespace visq
+}  // namespace visq::core

@@ -6,7 +6,7 @@
 #include "core/engine.h"
 #include "glm/geometric.hpp"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 // Every node named, by name; INVALID_ARGUMENT for a name not in the scene.
@@ -132,4 +132,4 @@ AccuracyStatement TransmittanceStatement(const gpu::TransmittanceResult& result)
   return out;
 }
 
-}  // namespace visq
+}  // namespace visq::core

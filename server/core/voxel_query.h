@@ -11,7 +11,7 @@
 #include "common/status.h"
 #include "visq/gpu/slicemap.h"
 
-namespace visq {
+namespace visq::core {
 
 class Engine;
 
@@ -60,4 +60,4 @@ AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures, const gp
 // slicemap's own error model.
 AccuracyStatement TransmittanceStatement(const gpu::TransmittanceResult& result);
 
-}  // namespace visq
+}  // namespace visq::core

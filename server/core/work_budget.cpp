@@ -8,7 +8,7 @@
 #include <chrono>
 #include <utility>
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 uint64_t HalfOfPhysicalMemory() {
@@ -82,4 +82,4 @@ uint64_t WorkMemoryBudget::peak() const {
   return peak_;
 }
 
-}  // namespace visq
+}  // namespace visq::core

@@ -15,7 +15,7 @@
 #include "common/status.h"
 #include "visq/gpu/gpu_worker.h"
 
-namespace visq {
+namespace visq::core {
 
 // What a streamed answer may hold written but not yet sent: its writer
 // (service/reactors.h, ProducedStreamReactor) makes the work wait beyond
@@ -67,4 +67,4 @@ class WorkMemoryBudget {
   uint64_t peak_ = 0;
 };
 
-}  // namespace visq
+}  // namespace visq::core

@@ -37,9 +37,9 @@ void ToProto(const std::vector<glm::dvec3>& polygon, v1::Polygon* out) {
   for (const auto& v : polygon) ToProto(v, out->add_vertices());
 }
 
-StatusOr<LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest& request,
-                                         const LightVisibilityQuery* previous) {
-  LightVisibilityQuery query;
+StatusOr<core::LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest& request,
+                                               const core::LightVisibilityQuery* previous) {
+  core::LightVisibilityQuery query;
   if (request.scene().name().empty()) {
     if (previous == nullptr) return absl::InvalidArgumentError("scene.name: empty");
     query.scene = previous->scene;
@@ -72,7 +72,7 @@ StatusOr<LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest& reque
   return query;
 }
 
-void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out) {
+void ToProto(const core::LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out) {
   out->mutable_points()->Reserve(static_cast<int>(answer.points.size()));
   for (const auto& p : answer.points) {
     auto* point = out->add_points();
@@ -99,7 +99,7 @@ void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* o
   tree->set_trees(static_cast<uint32_t>(answer.trees));
   tree->set_trees_created(static_cast<uint32_t>(answer.trees_created));
   ToProto(answer.receiver_region, tree->mutable_receiver_region());
-  ToProto(LightVisibilityStatement(), out->mutable_accuracy());
+  ToProto(core::LightVisibilityStatement(), out->mutable_accuracy());
 }
 
 namespace {
@@ -108,12 +108,12 @@ sampling::Patch PatchFromProto(const v1::Patch& p) {
   return sampling::Patch{FromProto(p.origin()), FromProto(p.edge_u()), FromProto(p.edge_v())};
 }
 
-StatusOr<VisibilityMethod> MethodFromProto(v1::VisibilityMethod method) {
+StatusOr<core::VisibilityMethod> MethodFromProto(v1::VisibilityMethod method) {
   switch (method) {
     case v1::METHOD_UNSPECIFIED:
-    case v1::RASTER: return VisibilityMethod::kRaster;
-    case v1::RAYCAST: return VisibilityMethod::kRaycast;
-    case v1::PLUCKER_EXACT: return VisibilityMethod::kPluckerExact;
+    case v1::RASTER: return core::VisibilityMethod::kRaster;
+    case v1::RAYCAST: return core::VisibilityMethod::kRaycast;
+    case v1::PLUCKER_EXACT: return core::VisibilityMethod::kPluckerExact;
     default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", static_cast<int>(method)));
   }
 }
@@ -135,25 +135,25 @@ StatusOr<int> SizeFromProto(uint32_t value, const char* field) {
 }
 
 // A request with a target leaves the count and the method to the server.
-StatusOr<std::optional<AccuracyTarget>> TargetFromRequest(bool has_target, const v1::AccuracyTarget& target,
-                                                          v1::VisibilityMethod method) {
-  if (!has_target) return std::optional<AccuracyTarget>();
+StatusOr<std::optional<core::AccuracyTarget>> TargetFromRequest(bool has_target, const v1::AccuracyTarget& target,
+                                                                v1::VisibilityMethod method) {
+  if (!has_target) return std::optional<core::AccuracyTarget>();
   if (method != v1::METHOD_UNSPECIFIED)
     return absl::InvalidArgumentError("method: give either a method or a target, not both");
-  return std::optional<AccuracyTarget>(FromProto(target));
+  return std::optional<core::AccuracyTarget>(FromProto(target));
 }
 
 }  // namespace
 
-AccuracyTarget FromProto(const v1::AccuracyTarget& target) {
-  AccuracyTarget out;
+core::AccuracyTarget FromProto(const v1::AccuracyTarget& target) {
+  core::AccuracyTarget out;
   out.max_error = target.max_error();
   if (target.confidence() != 0.0) out.confidence = target.confidence();
   out.time_budget_ms = target.time_budget_ms();
   return out;
 }
 
-void ToProto(const AccuracyStatement& statement, v1::Accuracy* out) {
+void ToProto(const core::AccuracyStatement& statement, v1::Accuracy* out) {
   out->set_method(statement.method);
   out->set_error_bound(statement.error_bound);
   out->set_confidence(statement.confidence);
@@ -162,8 +162,8 @@ void ToProto(const AccuracyStatement& statement, v1::Accuracy* out) {
   if (statement.predicted_ms > 0) out->set_predicted_ms(statement.predicted_ms);
 }
 
-void ToProto(const PlanReport& plan, v1::Accuracy* out) {
-  for (const Plan& p : plan.plans) {
+void ToProto(const core::PlanReport& plan, v1::Accuracy* out) {
+  for (const core::Plan& p : plan.plans) {
     v1::PlanEstimate* estimate = out->add_plans();
     estimate->set_method(p.method);
     for (const auto& [name, value] : p.parameters) (*estimate->mutable_parameters())[name] = value;
@@ -173,8 +173,8 @@ void ToProto(const PlanReport& plan, v1::Accuracy* out) {
   }
 }
 
-StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request) {
-  HiddenSampleMapQuery query;
+StatusOr<core::HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request) {
+  core::HiddenSampleMapQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
   VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
@@ -264,15 +264,15 @@ Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int w
   });
 }
 
-v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer) {
+v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const core::HiddenSampleMapAnswer& answer) {
   v1::HiddenSampleMapResponse last;
   ToProto(answer.accuracy, last.mutable_accuracy());
   if (answer.plan) ToProto(*answer.plan, last.mutable_accuracy());
   return last;
 }
 
-StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request) {
-  PatchVisibilityQuery query;
+StatusOr<core::PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request) {
+  core::PatchVisibilityQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(query.method, MethodFromProto(request.method()));
   VISQ_ASSIGN_OR_RETURN(query.target, TargetFromRequest(request.has_target(), request.target(), request.method()));
@@ -292,7 +292,7 @@ StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& reque
   return query;
 }
 
-void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out) {
+void ToProto(const core::PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out) {
   const sampling::PatchVisibilityResult& result = answer.result;
   out->set_mutual_visible_fraction(result.mutual_visible_fraction);
   out->mutable_source_visible()->Add(result.source_visible.begin(), result.source_visible.end());
@@ -327,8 +327,8 @@ gpu::PinholeCamera CameraFromProto(const Request& request) {
 
 }  // namespace
 
-StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) {
-  VolumetricQuery query;
+StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) {
+  core::VolumetricQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   gpu::VolumetricParams& p = query.params;
   p.camera = CameraFromProto(request);
@@ -378,12 +378,12 @@ v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult&
   v1::VolumetricShadowResponse first;
   first.set_width(result.width);
   first.set_height(result.height);
-  first.set_method(VolumetricMethodName(result.method));
+  first.set_method(core::VolumetricMethodName(result.method));
   first.set_integrand(std::string(gpu::VolumetricIntegrandName(result.integrand)));
   first.set_rectified_rows(result.rectified_rows);
   first.set_rectified_columns(result.rectified_columns);
   first.set_epipole_inside_map(result.epipole_inside_map);
-  ToProto(VolumetricStatement(result), first.mutable_accuracy());
+  ToProto(core::VolumetricStatement(result), first.mutable_accuracy());
   return first;
 }
 
@@ -400,10 +400,10 @@ Status WriteVolumetricBand(const gpu::VolumetricBand& band,
   return chunks(band.combined, &Message::mutable_combined);
 }
 
-v1::VolumetricShadowResponse VolumetricLastMessage(const VolumetricAnswer& answer) {
+v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer& answer) {
   const gpu::VolumetricResult& result = answer.result;
   v1::VolumetricShadowResponse last;
-  if (const std::optional<AccuracyStatement> estimate = VolumetricEstimateStatement(answer))
+  if (const std::optional<core::AccuracyStatement> estimate = core::VolumetricEstimateStatement(answer))
     ToProto(*estimate, last.mutable_accuracy());
   auto& stage_ms = *last.mutable_stage_ms();
   stage_ms["setup"] = result.timings.setup_ms;
@@ -417,27 +417,29 @@ v1::VolumetricShadowResponse VolumetricLastMessage(const VolumetricAnswer& answe
   return last;
 }
 
-StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request) {
-  ObscurancePreviewQuery query;
+StatusOr<core::ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request) {
+  core::ObscurancePreviewQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   query.camera = CameraFromProto(request);
   switch (request.quantity()) {
-    case v1::ObscurancePreviewRequest::W: query.quantity = ObscurancePreviewQuery::Quantity::kW; break;
-    case v1::ObscurancePreviewRequest::INTENSITY: query.quantity = ObscurancePreviewQuery::Quantity::kIntensity; break;
+    case v1::ObscurancePreviewRequest::W: query.quantity = core::ObscurancePreviewQuery::Quantity::kW; break;
+    case v1::ObscurancePreviewRequest::INTENSITY:
+      query.quantity = core::ObscurancePreviewQuery::Quantity::kIntensity;
+      break;
     default: return absl::InvalidArgumentError(absl::StrCat("quantity: unknown value ", request.quantity()));
   }
   return query;
 }
 
-ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewAnswer answer_in) {
-  auto kept = std::make_shared<const ObscurancePreviewAnswer>(std::move(answer_in));
-  const ObscurancePreviewAnswer& answer = *kept;
+ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(core::ObscurancePreviewAnswer answer_in) {
+  auto kept = std::make_shared<const core::ObscurancePreviewAnswer>(std::move(answer_in));
+  const core::ObscurancePreviewAnswer& answer = *kept;
   const gpu::ObscurancePreviewImage& image = answer.image;
   v1::ObscurancePreviewResponse first;
   first.set_width(image.width);
   first.set_height(image.height);
   first.set_solution_version(answer.solution_version);
-  first.set_quantity(answer.quantity == ObscurancePreviewQuery::Quantity::kW ? v1::ObscurancePreviewRequest::W
+  first.set_quantity(answer.quantity == core::ObscurancePreviewQuery::Quantity::kW ? v1::ObscurancePreviewRequest::W
                                                                              : v1::ObscurancePreviewRequest::INTENSITY);
   // The rgb floats, then the coverage bytes.
   ChunkedResponses<v1::ObscurancePreviewResponse> stream(std::move(first));
@@ -453,17 +455,17 @@ ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewA
   return stream;
 }
 
-StatusOr<ObscuranceExportQuery> FromProto(const v1::ExportObscurancesRequest& request) {
-  ObscuranceExportQuery query;
+StatusOr<core::ObscuranceExportQuery> FromProto(const v1::ExportObscurancesRequest& request) {
+  core::ObscuranceExportQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   query.want_atlas_uvs = request.want_atlas_uvs();
   query.want_gltf = request.want_gltf();
   return query;
 }
 
-ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(ObscuranceExportAnswer answer_in) {
-  auto kept = std::make_shared<const ObscuranceExportAnswer>(std::move(answer_in));
-  const ObscuranceExportAnswer& answer = *kept;
+ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(core::ObscuranceExportAnswer answer_in) {
+  auto kept = std::make_shared<const core::ObscuranceExportAnswer>(std::move(answer_in));
+  const core::ObscuranceExportAnswer& answer = *kept;
   v1::ExportObscurancesResponse first;
   first.set_solution_version(answer.solution_version);
   first.set_width(answer.width);
@@ -483,8 +485,8 @@ ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(ObscuranceExportAn
   return stream;
 }
 
-StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
-  VoxelizeQuery query;
+StatusOr<core::VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
+  core::VoxelizeQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   if (request.has_box()) {
     const v1::VoxelBox& b = request.box();
@@ -516,15 +518,15 @@ v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& result, con
   first.set_height(grid.height);
   first.set_slices(grid.slices);
   first.set_words_per_column(grid.words_per_column);
-  first.set_rasterization(RasterizationName(result.rasterization));
-  first.set_precision(SlicePrecisionName(result.precision));
+  first.set_rasterization(core::RasterizationName(result.rasterization));
+  first.set_precision(core::SlicePrecisionName(result.precision));
   auto* b = first.mutable_box();
   ToProto(box.center, b->mutable_center());
   ToProto(box.axis_u, b->mutable_axis_u());
   ToProto(box.axis_v, b->mutable_axis_v());
   ToProto(box.axis_w, b->mutable_axis_w());
   ToProto(box.half_extent, b->mutable_half_extent());
-  ToProto(VoxelizeStatement(result, box), first.mutable_accuracy());
+  ToProto(core::VoxelizeStatement(result, box), first.mutable_accuracy());
   return first;
 }
 
@@ -561,8 +563,8 @@ v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result) {
   return last;
 }
 
-StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {
-  TransmittanceQuery query;
+StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {
+  core::TransmittanceQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   gpu::TransmittanceParams& p = query.params;
   switch (request.light_kind()) {
@@ -598,11 +600,11 @@ void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* 
   out->set_max_texel_size(result.max_texel_size);
   out->set_ambiguous_columns(result.ambiguous_columns);
   for (uint8_t a : result.ambiguous) out->add_ambiguous(a != 0);
-  ToProto(TransmittanceStatement(result), out->mutable_accuracy());
+  ToProto(core::TransmittanceStatement(result), out->mutable_accuracy());
 }
 
-StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request) {
-  ObscuranceQuery query;
+StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request) {
+  core::ObscuranceQuery query;
   query.scene = request.scene().name();
   query.scene_version = request.scene().version();
   query.resolution = request.resolution() != 0 ? request.resolution() : 256;
@@ -619,8 +621,8 @@ StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request
   query.update_rays_per_patch = request.update_rays_per_patch() != 0 ? request.update_rays_per_patch() : 64;
   switch (request.method()) {
     case v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED:
-    case v1::ComputeObscurancesRequest::DEPTH_PEELING: query.method = ObscuranceMethod::kDepthPeeling; break;
-    case v1::ComputeObscurancesRequest::RAYCAST: query.method = ObscuranceMethod::kRaycast; break;
+    case v1::ComputeObscurancesRequest::DEPTH_PEELING: query.method = core::ObscuranceMethod::kDepthPeeling; break;
+    case v1::ComputeObscurancesRequest::RAYCAST: query.method = core::ObscuranceMethod::kRaycast; break;
     default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));
   }
   if (request.rays_per_patch() != 0) query.rays_per_patch = request.rays_per_patch();
@@ -632,7 +634,7 @@ StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request
     query.target = service::FromProto(request.target());
     return query;  // the core validates once the count is chosen
   }
-  VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
+  VISQ_RETURN_IF_ERROR(core::ValidateObscuranceQuery(query));
   return query;
 }
 

@@ -25,18 +25,18 @@ void ToProto(const Bounds& box, v1::Box* out);
 void ToProto(const std::vector<glm::dvec3>& polygon, v1::Polygon* out);
 
 // `previous` supplies scene and light for stream messages that omit them.
-[[nodiscard]] StatusOr<LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest& request,
-                                                       const LightVisibilityQuery* previous = nullptr);
-void ToProto(const LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out);
+[[nodiscard]] StatusOr<core::LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest& request,
+                                                             const core::LightVisibilityQuery* previous = nullptr);
+void ToProto(const core::LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out);
 
 // A target as the core takes it (confidence 0 on the wire means 0.95).
-AccuracyTarget FromProto(const v1::AccuracyTarget& target);
+core::AccuracyTarget FromProto(const v1::AccuracyTarget& target);
 // The core's statement, field by field.
-void ToProto(const AccuracyStatement& statement, v1::Accuracy* out);
+void ToProto(const core::AccuracyStatement& statement, v1::Accuracy* out);
 // The plans the planner weighed, beside the statement of the chosen one.
-void ToProto(const PlanReport& plan, v1::Accuracy* out);
+void ToProto(const core::PlanReport& plan, v1::Accuracy* out);
 
-[[nodiscard]] StatusOr<HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
+[[nodiscard]] StatusOr<core::HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
 // The response is streamed while the map is made (visq.proto): a first
 // message with what is known before any band (sizes, source samples), each
 // band's chunks of fractions, colours, bitmask words and lookup errors as
@@ -49,24 +49,24 @@ v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSa
                                               bool with_texel_error,
                                               const std::function<Status(v1::HiddenSampleMapResponse)>& write,
                                               size_t chunk_elements = kChunkElements);
-v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const HiddenSampleMapAnswer& answer);
+v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const core::HiddenSampleMapAnswer& answer);
 
-[[nodiscard]] StatusOr<PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
-void ToProto(const PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);
+[[nodiscard]] StatusOr<core::PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
+void ToProto(const core::PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);
 
 // A whole-bake request with a target is returned unvalidated beyond the
 // target's exclusions: the core validates once the planner chose the count.
-[[nodiscard]] StatusOr<ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request);
+[[nodiscard]] StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request);
 
-[[nodiscard]] StatusOr<ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request);
+[[nodiscard]] StatusOr<core::ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request);
 // Figures first, then chunks of rgb floats, then of coverage bytes.
-ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(ObscurancePreviewAnswer answer);
+ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(core::ObscurancePreviewAnswer answer);
 
-[[nodiscard]] StatusOr<ObscuranceExportQuery> FromProto(const v1::ExportObscurancesRequest& request);
+[[nodiscard]] StatusOr<core::ObscuranceExportQuery> FromProto(const v1::ExportObscurancesRequest& request);
 // Figures first, then chunks of atlas_uv floats, then of glb bytes.
-ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(ObscuranceExportAnswer answer);
+ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(core::ObscuranceExportAnswer answer);
 
-[[nodiscard]] StatusOr<VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
+[[nodiscard]] StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
 // Streamed as the traversal makes the image: the first message holds the
 // figures known before any band (sizes, method, integrand, accuracy), each
 // band's chunks follow, and the last message holds the timing.
@@ -74,9 +74,9 @@ v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult&
 [[nodiscard]] Status WriteVolumetricBand(const gpu::VolumetricBand& band,
                                          const std::function<Status(v1::VolumetricShadowResponse)>& write,
                                          size_t chunk_elements = kChunkElements);
-v1::VolumetricShadowResponse VolumetricLastMessage(const VolumetricAnswer& answer);
+v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer& answer);
 
-[[nodiscard]] StatusOr<VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
+[[nodiscard]] StatusOr<core::VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
 // Streamed while the grid is made, like the hidden-sample map: the first
 // message holds what is known before any band (sizes, box, modes,
 // accuracy), each band's chunks of bits and local ranges follow as the band
@@ -86,7 +86,7 @@ v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& figures, co
                                        const std::function<Status(v1::VoxelizeResponse)>& write,
                                        size_t chunk_elements = kChunkElements);
 v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result);
-[[nodiscard]] StatusOr<TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request);
+[[nodiscard]] StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request);
 void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* out);
 
 }  // namespace visq::service

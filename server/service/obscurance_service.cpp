@@ -29,9 +29,9 @@ void AddVec3(const glm::vec3& v, google::protobuf::RepeatedField<float>* out) {
 }
 
 // Figures, then the arrays in the order the proto gives.
-ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(ObscuranceAnswer answer, bool want_averages) {
-  auto kept = std::make_shared<const ObscuranceAnswer>(std::move(answer));
-  const ObscuranceAnswer& a = *kept;
+ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(core::ObscuranceAnswer answer, bool want_averages) {
+  auto kept = std::make_shared<const core::ObscuranceAnswer>(std::move(answer));
+  const core::ObscuranceAnswer& a = *kept;
   v1::ComputeObscurancesResponse figures;
   v1::ObscuranceFigures* f = figures.mutable_figures();
   f->set_scene_version(a.scene_version);
@@ -57,10 +57,10 @@ ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(ObscuranceAnswer 
   f->set_truncated_directions(a.stats.truncated_directions);
   f->set_bundle_resolution(a.stats.bundle_resolution);
   f->set_update_ready(a.update_ready);
-  const ObscuranceCoverage coverage = CoverageOf(a);
+  const core::ObscuranceCoverage coverage = core::CoverageOf(a);
   f->set_estimated_texels(coverage.estimated_texels);
   f->set_mean_samples_per_patch(coverage.mean_samples_per_patch);
-  service::ToProto(ObscuranceStatement(a), f->mutable_accuracy());
+  service::ToProto(core::ObscuranceStatement(a), f->mutable_accuracy());
   if (a.plan) ToProto(*a.plan, f->mutable_accuracy());
 
   // The figures alone, then each array's chunks.
@@ -137,12 +137,12 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
   void OnDone() override { delete this; }
 
  private:
-  StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> Compute(Engine& engine,
+  StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> Compute(core::Engine& engine,
                                                                      const v1::ComputeObscurancesRequest& request,
                                                                      gpu::SteadyTime deadline, double queue_ms) {
-    VISQ_ASSIGN_OR_RETURN(ObscuranceQuery query, FromProto(request));
-    query.call = {deadline, &cancelled_, std::make_shared<BuildClock>()};
-    const std::shared_ptr<BuildClock> build_clock = query.call.build_clock;
+    VISQ_ASSIGN_OR_RETURN(core::ObscuranceQuery query, FromProto(request));
+    query.call = {deadline, &cancelled_, std::make_shared<core::BuildClock>()};
+    const std::shared_ptr<core::BuildClock> build_clock = query.call.build_clock;
     // At most ~10 progress messages a second (and the first and last).
     auto last_sent = std::make_shared<double>(-1e9);
     query.progress = [this, last_sent](const gpu::ObscuranceProgress& p) {
@@ -163,7 +163,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
               query.total_directions, query.params.d_max, query.params.color_bleeding ? ", color bleeding" : "",
               query.partial_only ? ", partial" : "");
     const bool want_averages = query.want_averages;
-    VISQ_ASSIGN_OR_RETURN(ObscuranceAnswer answer, RunComputeObscurances(engine, std::move(query)));
+    VISQ_ASSIGN_OR_RETURN(core::ObscuranceAnswer answer, core::RunComputeObscurances(engine, std::move(query)));
     const double before_transfer = log_.ElapsedMs();
     const double compute_ms = answer.atlas_ms + answer.bake_ms + answer.finalize_ms + answer.updater_ms;
     log_.Info("{}x{} texels, {} layers, bake {:.1f} ms", answer.width, answer.height, answer.stats.layers,
@@ -227,7 +227,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
   v1::ComputeObscurancesResponse current_;
 };
 
-void ToProto(const ObscuranceUpdateAnswer& a, v1::UpdateObscurancesResponse* out) {
+void ToProto(const core::ObscuranceUpdateAnswer& a, v1::UpdateObscurancesResponse* out) {
   const obscurance::ObscuranceUpdate& u = a.update;
   out->set_from_version(a.from_version);
   out->set_scene_version(a.scene_version);
@@ -249,7 +249,7 @@ void ToProto(const ObscuranceUpdateAnswer& a, v1::UpdateObscurancesResponse* out
   out->set_width(a.width);
   out->set_height(a.height);
   for (const glm::vec3& v : a.full_w) AddVec3(v, out->mutable_full_w());
-  service::ToProto(ObscuranceUpdateStatement(a), out->mutable_accuracy());
+  service::ToProto(core::ObscuranceUpdateStatement(a), out->mutable_accuracy());
 }
 
 }  // namespace
@@ -263,7 +263,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::Callback
                                                                   const v1::SetNodeTransformRequest* request,
                                                                   v1::SceneInfo* response) {
   return RunUnaryCall(ctx_, context, "SetNodeTransform", [this, request, response](RequestLog& log) -> Status {
-    NodeTransformQuery query;
+    core::NodeTransformQuery query;
     query.scene = request->scene().name();
     query.scene_version = request->scene().version();
     if (request->node_case() == v1::SetNodeTransformRequest::kNodeName) query.node_name = request->node_name();
@@ -271,7 +271,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::Callback
     query.world_matrix.assign(request->world_matrix().begin(), request->world_matrix().end());
     log.Info("'{}' node {}", query.scene,
              query.node_name ? "'" + *query.node_name + "'" : query.node_index ? std::to_string(*query.node_index) : "?");
-    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, RunSetNodeTransform(ctx_.engine, query));
+    VISQ_ASSIGN_OR_RETURN(core::SceneSummary summary, core::RunSetNodeTransform(ctx_.engine, query));
     ToProto(summary, response);
     return absl::OkStatus();
   });
@@ -282,11 +282,11 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::UpdateObscurances(grpc::Callbac
                                                                    v1::UpdateObscurancesResponse* response) {
   return RunUnaryCall(ctx_, context, "UpdateObscurances", [this, request, response](RequestLog& log) -> Status {
     const double queue_ms = log.ElapsedMs();
-    ObscuranceUpdateQuery query;
+    core::ObscuranceUpdateQuery query;
     query.scene = request->scene().name();
     query.scene_version = request->scene().version();
     query.want_full_w = request->want_full_w();
-    VISQ_ASSIGN_OR_RETURN(ObscuranceUpdateAnswer answer, RunUpdateObscurances(ctx_.engine, query));
+    VISQ_ASSIGN_OR_RETURN(core::ObscuranceUpdateAnswer answer, core::RunUpdateObscurances(ctx_.engine, query));
     const double before_transfer = log.ElapsedMs();
     ToProto(answer, response);
     auto* timing = response->mutable_timing();
@@ -308,9 +308,10 @@ grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::
       [this, context, request](const std::atomic<bool>& cancelled,
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::ObscurancePreviewResponse>> {
         const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(ObscurancePreviewQuery query, FromProto(*request));
+        VISQ_ASSIGN_OR_RETURN(core::ObscurancePreviewQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
-        VISQ_ASSIGN_OR_RETURN(ObscurancePreviewAnswer answer, RunRenderObscurancePreview(ctx_.engine, query));
+        VISQ_ASSIGN_OR_RETURN(core::ObscurancePreviewAnswer answer,
+                              core::RunRenderObscurancePreview(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
         log.Info("v{} {}x{} {}, render {:.1f} ms", answer.solution_version, answer.image.width, answer.image.height,
                  request->quantity() == v1::ObscurancePreviewRequest::INTENSITY ? "intensity" : "W",
@@ -331,9 +332,9 @@ grpc::ServerWriteReactor<v1::ExportObscurancesResponse>* VisibilityServiceImpl::
       [this, context, request](const std::atomic<bool>& cancelled,
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::ExportObscurancesResponse>> {
         const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(ObscuranceExportQuery query, FromProto(*request));
+        VISQ_ASSIGN_OR_RETURN(core::ObscuranceExportQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
-        VISQ_ASSIGN_OR_RETURN(ObscuranceExportAnswer answer, RunExportObscurances(ctx_.engine, query));
+        VISQ_ASSIGN_OR_RETURN(core::ObscuranceExportAnswer answer, core::RunExportObscurances(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
         log.Info("v{} {}x{}, {} triangles, {} UV floats, {} glTF bytes, export {:.1f} ms", answer.solution_version,
                  answer.width, answer.height, answer.triangles, answer.atlas_uv.size(), answer.glb.size(),

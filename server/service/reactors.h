@@ -83,8 +83,8 @@ inline gpu::SteadyTime SteadyDeadline(const grpc::CallbackServerContext* context
 // The call's deadline and cancellation for the core, so a request whose
 // client gave up stops (the core chooses the GPU priority), and the clock of
 // its waits for lazily built structures (Timing.build_ms).
-inline CallOptions CallOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
-  return {SteadyDeadline(context), cancelled, std::make_shared<BuildClock>()};
+inline core::CallOptions CallOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
+  return {SteadyDeadline(context), cancelled, std::make_shared<core::BuildClock>()};
 }
 
 // The figures' timing for a streamed answer; transfer_ms and total_ms are as
@@ -198,7 +198,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
       }
     } add_time{write_ms_, start};
     std::unique_lock lock(mutex_);
-    while (!cancelled_ && queued_bytes_ > kStreamedAnswerQueueBytes) {
+    while (!cancelled_ && queued_bytes_ > core::kStreamedAnswerQueueBytes) {
       const uint64_t written_before = written_;
       if (progress_.wait_for(lock, kMaxWriteStall) == std::cv_status::timeout && written_ == written_before) {
         cancelled_ = true;

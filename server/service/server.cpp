@@ -118,7 +118,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
 
   std::unique_ptr<Server> server(new Server());
   server->options_ = options;
-  VISQ_ASSIGN_OR_RETURN(server->engine_, Engine::Create(options.engine));
+  VISQ_ASSIGN_OR_RETURN(server->engine_, core::Engine::Create(options.engine));
   server->executor_ = std::make_unique<Executor>(options.worker_threads);
   server->metadata_executor_ = std::make_unique<Executor>(2);
   server->metrics_ = std::make_unique<Metrics>();

@@ -34,7 +34,7 @@ struct ServerOptions {
   // HOST:PORT for Prometheus's GET /metrics (plain HTTP); empty: no endpoint.
   std::string metrics_address;
   bool allow_remote_metrics = false;  // metrics_address may be beyond loopback
-  EngineOptions engine;
+  core::EngineOptions engine;
 };
 
 // Whether HOST:PORT (or a unix: address) can only be reached from this
@@ -53,14 +53,14 @@ class Server {
   // The /metrics port bound, 0 without one.
   int metrics_port() const { return metrics_http_ ? metrics_http_->port() : 0; }
   void GracefulStop(std::chrono::milliseconds drain);
-  Engine& engine() { return *engine_; }
+  core::Engine& engine() { return *engine_; }
 
  private:
   Server() = default;
   void SetServing(bool serving);
 
   ServerOptions options_;
-  std::unique_ptr<Engine> engine_;
+  std::unique_ptr<core::Engine> engine_;
   std::unique_ptr<Executor> executor_;
   std::unique_ptr<Executor> metadata_executor_;
   std::unique_ptr<Metrics> metrics_;

@@ -24,11 +24,11 @@ ServerFigures CollectServerFigures(const ServiceContext& ctx) {
     f.scene_cpu_bytes += scene.cpu_bytes;
     f.scene_gpu_bytes += scene.gpu_bytes;
   }
-  WorkMemoryBudget& budget = ctx.engine.work_budget();
+  core::WorkMemoryBudget& budget = ctx.engine.work_budget();
   f.work_bytes_in_use = budget.in_use();
   f.work_bytes_peak = budget.peak();
   f.work_bytes_capacity = budget.capacity();
-  const Engine::LightCacheStats light = ctx.engine.light_cache_stats();
+  const core::Engine::LightCacheStats light = ctx.engine.light_cache_stats();
   f.caches.push_back(
       {"light_visibility", light.entries, light.bytes, light.capacity_bytes, light.hits, light.misses, light.evictions});
   f.methods = ctx.metrics.Summaries();

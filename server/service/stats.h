@@ -42,7 +42,7 @@ struct ServerFigures {
   uint64_t work_bytes_capacity = 0;
   std::vector<CacheFigures> caches;
   std::vector<MethodSummary> methods;
-  std::map<std::string, BuildTimes::Figures> structure_builds;
+  std::map<std::string, core::BuildTimes::Figures> structure_builds;
 };
 
 ServerFigures CollectServerFigures(const ServiceContext& ctx);

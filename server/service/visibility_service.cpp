@@ -21,13 +21,13 @@ namespace {
 
 // LoadSceneHeader.warm as the core takes it; INVALID_ARGUMENT naming the
 // entry for a value this server does not know.
-StatusOr<std::vector<StructureKind>> WarmFromProto(const v1::LoadSceneHeader& header) {
-  std::vector<StructureKind> kinds;
+StatusOr<std::vector<core::StructureKind>> WarmFromProto(const v1::LoadSceneHeader& header) {
+  std::vector<core::StructureKind> kinds;
   for (int i = 0; i < header.warm_size(); ++i) {
     switch (header.warm(i)) {
-      case v1::GPU_BUFFERS: kinds.push_back(StructureKind::kGpuBuffers); break;
-      case v1::EMBREE_BVH: kinds.push_back(StructureKind::kEmbreeBvh); break;
-      case v1::TRIANGLE_INDEX: kinds.push_back(StructureKind::kTriangleIndex); break;
+      case v1::GPU_BUFFERS: kinds.push_back(core::StructureKind::kGpuBuffers); break;
+      case v1::EMBREE_BVH: kinds.push_back(core::StructureKind::kEmbreeBvh); break;
+      case v1::TRIANGLE_INDEX: kinds.push_back(core::StructureKind::kTriangleIndex); break;
       default:
         return absl::InvalidArgumentError(absl::StrCat("header.warm[", i, "]: unknown structure ", header.warm(i),
                                                        " (GPU_BUFFERS, EMBREE_BVH or TRIANGLE_INDEX)"));
@@ -115,7 +115,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
     }
     // Parsing and storing block: off the callback thread.
     executor_.Post([this] {
-      StatusOr<SceneSummary> summary = from_repository_ ? engine_.LoadFromRepository(name_, replace_)
+      StatusOr<core::SceneSummary> summary = from_repository_ ? engine_.LoadFromRepository(name_, replace_)
                                                         : engine_.FinishUpload(std::move(upload_), &cancelled_);
       // The structures build in the background; the answer does not wait.
       if (summary.ok() && !warm_.empty()) {
@@ -139,7 +139,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
 
   grpc::CallbackServerContext* context_;
   RequestLog log_;
-  Engine& engine_;
+  core::Engine& engine_;
   Executor& executor_;
   v1::SceneInfo* response_;
   v1::LoadSceneRequest request_;
@@ -148,13 +148,13 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
   bool from_repository_ = false;
   bool replace_ = false;
   std::string name_;
-  std::vector<StructureKind> warm_;
-  std::unique_ptr<SceneUpload> upload_;
+  std::vector<core::StructureKind> warm_;
+  std::unique_ptr<core::SceneUpload> upload_;
 };
 
 }  // namespace
 
-void ToProto(const SceneSummary& s, v1::SceneInfo* out) {
+void ToProto(const core::SceneSummary& s, v1::SceneInfo* out) {
   out->set_name(s.name);
   out->set_version(s.version);
   out->set_triangle_count(s.triangles);
@@ -200,7 +200,8 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetScene(grpc::CallbackServerCo
                                                           v1::SceneInfo* response) {
   return RunUnaryCall(ctx_, context, "GetScene", [this, request, response](RequestLog& log) -> Status {
     log.Info("'{}'", request->name());
-    VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ctx_.engine.GetScene(request->name(), request->include_nodes(), request->load_if_stored()));
+    VISQ_ASSIGN_OR_RETURN(core::SceneSummary summary,
+                          ctx_.engine.GetScene(request->name(), request->include_nodes(), request->load_if_stored()));
     ToProto(summary, response);
     return absl::OkStatus();
   }, Lane::kMetadata);
@@ -280,14 +281,14 @@ namespace {
 
 // One light-visibility batch: convert, run, convert back, with the timing
 // breakdown measured from the request's arrival.
-Status AnswerLightVisibility(Engine& engine, const LightVisibilityQuery& query, const RequestLog& log,
+Status AnswerLightVisibility(core::Engine& engine, const core::LightVisibilityQuery& query, const RequestLog& log,
                              double queue_ms, v1::LightVisibilityResponse* response) {
-  VISQ_ASSIGN_OR_RETURN(LightVisibilityAnswer answer, RunLightVisibility(engine, query));
+  VISQ_ASSIGN_OR_RETURN(core::LightVisibilityAnswer answer, core::RunLightVisibility(engine, query));
   const double before_transfer = log.ElapsedMs();
   ToProto(answer, response);
   auto* cache = response->mutable_cache();
   cache->set_name("light_visibility");
-  const Engine::LightCacheStats light = engine.light_cache_stats();
+  const core::Engine::LightCacheStats light = engine.light_cache_stats();
   cache->set_entries(light.entries);
   cache->set_bytes(light.bytes);
   cache->set_capacity_bytes(light.capacity_bytes);
@@ -326,11 +327,11 @@ class LightVisibilityStreamReactor final
     }
     const double arrived_ms = log_.ElapsedMs();
     ctx_.executor.Post([this, arrived_ms] {
-      StatusOr<LightVisibilityQuery> query = FromProto(request_, previous_ ? &*previous_ : nullptr);
+      StatusOr<core::LightVisibilityQuery> query = FromProto(request_, previous_ ? &*previous_ : nullptr);
       Status status = query.status();
       response_.Clear();
       if (status.ok()) {
-        query->call = {deadline_, &cancelled_, std::make_shared<BuildClock>()};
+        query->call = {deadline_, &cancelled_, std::make_shared<core::BuildClock>()};
       }
       if (status.ok()) status = AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms,
                                                       &response_);
@@ -365,7 +366,7 @@ class LightVisibilityStreamReactor final
   const ServiceContext& ctx_;
   v1::LightVisibilityRequest request_;
   v1::LightVisibilityResponse response_;
-  std::optional<LightVisibilityQuery> previous_;
+  std::optional<core::LightVisibilityQuery> previous_;
   std::chrono::steady_clock::time_point deadline_;  // the whole stream's
   std::atomic<bool> cancelled_{false};
 };
@@ -378,7 +379,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::LightVisibility(grpc::CallbackS
   return RunUnaryCall(ctx_, context, "LightVisibility", [this, context, request, response](
                                                              RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
-    VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery query, FromProto(*request));
+    VISQ_ASSIGN_OR_RETURN(core::LightVisibilityQuery query, FromProto(*request));
     query.call = CallOptionsFor(context, &cancelled);
     return AnswerLightVisibility(ctx_.engine, query, log, queue_ms, response);
   });
@@ -401,7 +402,7 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
       [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
                                Reactor& out) -> StatusOr<v1::HiddenSampleMapResponse> {
         const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(HiddenSampleMapQuery query, FromProto(*request));
+        VISQ_ASSIGN_OR_RETURN(core::HiddenSampleMapQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
         // Each band is written as soon as it is counted, after the first
         // message.
@@ -410,10 +411,10 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
           if (band.first_texel == 0) VISQ_RETURN_IF_ERROR(write(HiddenSampleMapFirstMessage(map)));
           return WriteHiddenSampleMapBand(band, map.words_per_texel, query.want_texel_error, write);
         };
-        VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, RunHiddenSampleMap(ctx_.engine, query, sink));
+        VISQ_ASSIGN_OR_RETURN(core::HiddenSampleMapAnswer answer, core::RunHiddenSampleMap(ctx_.engine, query, sink));
         const sampling::HiddenSampleMapResult& result = answer.result;
-        log.Info("{} {}x{} texels, {} samples{}", VisibilityMethodName(answer.method, query.request.options.lookup),
-                 result.width, result.height, result.sample_count,
+        log.Info("{} {}x{} texels, {} samples{}",
+                 core::VisibilityMethodName(answer.method, query.request.options.lookup), result.width, result.height, result.sample_count,
                  answer.plan ? absl::StrCat(" (chosen for the target, predicted ",
                                             absl::StrFormat("%.1f", answer.plan->chosen_plan().predicted_ms), " ms)")
                              : std::string());
@@ -434,14 +435,14 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
       [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
                                Reactor& out) -> StatusOr<v1::VolumetricShadowResponse> {
         const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(VolumetricQuery query, FromProto(*request));
+        VISQ_ASSIGN_OR_RETURN(core::VolumetricQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
         auto write = [&out](v1::VolumetricShadowResponse message) { return out.Write(std::move(message)); };
         auto sink = [&](const gpu::VolumetricResult& figures, const gpu::VolumetricBand& band) -> Status {
           if (band.first_pixel == 0) VISQ_RETURN_IF_ERROR(write(VolumetricFirstMessage(figures)));
           return WriteVolumetricBand(band, write);
         };
-        VISQ_ASSIGN_OR_RETURN(VolumetricAnswer answer, RunVolumetricShadow(ctx_.engine, query, sink));
+        VISQ_ASSIGN_OR_RETURN(core::VolumetricAnswer answer, core::RunVolumetricShadow(ctx_.engine, query, sink));
         const gpu::VolumetricResult& result = answer.result;
         const gpu::VolumetricTimings& timings = result.timings;
         log.Info("{}x{} {} ({}), {} map(s) rendered, traversal {:.1f} ms", result.width, result.height,
@@ -463,7 +464,7 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
       [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
                                Reactor& out) -> StatusOr<v1::VoxelizeResponse> {
         const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(VoxelizeQuery query, FromProto(*request));
+        VISQ_ASSIGN_OR_RETURN(core::VoxelizeQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled);
         gpu::SlicemapBox box;
         // Each band is written as soon as it is made, after the first
@@ -473,7 +474,7 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
           if (band.first_column == 0) VISQ_RETURN_IF_ERROR(write(VoxelizeFirstMessage(figures, box)));
           return WriteVoxelizeBand(band, figures.grid.words_per_column, write);
         };
-        VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, RunVoxelize(ctx_.engine, query, &box, sink));
+        VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, core::RunVoxelize(ctx_.engine, query, &box, sink));
         log.Info("{}x{}x{} {}: {} occupied voxels", result.grid.width, result.grid.height, result.grid.slices,
                  result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard",
                  result.occupied_voxels);
@@ -491,9 +492,9 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
   return RunUnaryCall(ctx_, context, "Transmittance", [this, context, request, response](
                                                            RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
-    VISQ_ASSIGN_OR_RETURN(TransmittanceQuery query, FromProto(*request));
+    VISQ_ASSIGN_OR_RETURN(core::TransmittanceQuery query, FromProto(*request));
     query.call = CallOptionsFor(context, &cancelled);
-    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, RunTransmittance(ctx_.engine, query));
+    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, core::RunTransmittance(ctx_.engine, query));
     const double before_transfer = log.ElapsedMs();
     ToProto(result, response);
     auto* timing = response->mutable_timing();
@@ -512,9 +513,9 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
   return RunUnaryCall(ctx_, context, "PatchVisibility", [this, context, request, response](
                                                              RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
-    VISQ_ASSIGN_OR_RETURN(PatchVisibilityQuery query, FromProto(*request));
+    VISQ_ASSIGN_OR_RETURN(core::PatchVisibilityQuery query, FromProto(*request));
     query.call = CallOptionsFor(context, &cancelled);
-    VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, RunPatchVisibility(ctx_.engine, query));
+    VISQ_ASSIGN_OR_RETURN(core::PatchVisibilityAnswer answer, core::RunPatchVisibility(ctx_.engine, query));
     const sampling::PatchVisibilityResult& result = answer.result;
     const double before_transfer = log.ElapsedMs();
     ToProto(answer, response);
@@ -525,7 +526,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
     timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
     timing->set_total_ms(log.ElapsedMs());
     log.Info("{} {} source samples by {}x{} receiver samples: mutual visible fraction {:.4f}",
-             VisibilityMethodName(answer.method, query.request.lookup), result.source_visible.size(),
+             core::VisibilityMethodName(answer.method, query.request.lookup), result.source_visible.size(),
              query.request.receiver_columns, query.request.receiver_rows, result.mutual_visible_fraction);
     return absl::OkStatus();
   });

@@ -16,7 +16,7 @@ namespace visq::service {
 
 // What every handler needs; owned by the Server.
 struct ServiceContext {
-  Engine& engine;
+  core::Engine& engine;
   Executor& executor;           // calls that compute
   Executor& metadata_executor;  // calls that compute nothing: never queued behind those that do
   Metrics& metrics;
@@ -80,6 +80,6 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
 };
 
 // Core summary -> wire message (shared by the scene RPCs).
-void ToProto(const SceneSummary& summary, v1::SceneInfo* out);
+void ToProto(const core::SceneSummary& summary, v1::SceneInfo* out);
 
 }  // namespace visq::service

@@ -537,11 +537,11 @@ struct TargetCheck {
 
 double ComputeMsOf(const sampling::HiddenSampleMapResult& r) { return r.timing.run_ms + r.table_ms; }
 
-void MeasureTargets(const RunSizes& plan, const SceneCase& c, Engine& engine, const std::string& name,
+void MeasureTargets(const RunSizes& plan, const SceneCase& c, core::Engine& engine, const std::string& name,
                     std::vector<TargetRow>& rows, std::vector<TargetCheck>& checks) {
   const std::vector<double> targets = plan.quick ? std::vector<double>{0.1} : std::vector<double>{0.05, 0.03};
   for (const double max_error : targets) {
-    HiddenSampleMapQuery query;
+    core::HiddenSampleMapQuery query;
     query.scene = name;
     query.request.source.patch = c.source;
     query.request.source.pattern = sampling::SamplePattern::kJittered;
@@ -550,51 +550,51 @@ void MeasureTargets(const RunSizes& plan, const SceneCase& c, Engine& engine, co
     query.request.receiver.width = query.request.receiver.height = plan.receiver;
     query.request.options.want_bitmasks = false;
     query.request.source.sample_count = 0;  // the target sets it
-    query.target = AccuracyTarget{.max_error = max_error, .confidence = 0.95};
+    query.target = core::AccuracyTarget{.max_error = max_error, .confidence = 0.95};
     const std::string what = c.name + " target " + Fmt("%.3g", max_error);
-    auto first = Must(RunHiddenSampleMap(engine, query), what);
-    const PlanReport& report = *first.plan;
-    const ::visq::Plan& chosen = report.chosen_plan();
+    auto first = Must(core::RunHiddenSampleMap(engine, query), what);
+    const core::PlanReport& report = *first.plan;
+    const ::visq::core::Plan& chosen = report.chosen_plan();
     rows.push_back({c.name, max_error, "1st call (probes " + Fmt("%.0f", report.probe_ms) + " ms)",
-                    DescribePlan(chosen), chosen.predicted_ms, ComputeMsOf(first.result), true});
+                    core::DescribePlan(chosen), chosen.predicted_ms, ComputeMsOf(first.result), true});
     std::printf("  target %.3g: chose %s, predicted %.1f ms, took %.1f ms, probes %.1f ms\n", max_error,
-                DescribePlan(chosen).c_str(), chosen.predicted_ms, ComputeMsOf(first.result), report.probe_ms);
-    TargetCheck check{c.name, max_error, DescribePlan(chosen), DescribePlan(chosen), ComputeMsOf(first.result),
-                      ComputeMsOf(first.result)};
+                core::DescribePlan(chosen).c_str(), chosen.predicted_ms, ComputeMsOf(first.result), report.probe_ms);
+    TargetCheck check{c.name, max_error, core::DescribePlan(chosen), core::DescribePlan(chosen),
+                      ComputeMsOf(first.result), ComputeMsOf(first.result)};
 
     // Every other method's cheapest plan meeting the target, run directly.
-    std::map<std::string, const ::visq::Plan*> cheapest;
-    for (const ::visq::Plan& p : report.plans)
+    std::map<std::string, const ::visq::core::Plan*> cheapest;
+    for (const ::visq::core::Plan& p : report.plans)
       if (p.meets_target && (!cheapest.contains(p.method) || p.predicted_ms < cheapest[p.method]->predicted_ms))
         cheapest[p.method] = &p;
     for (const auto& [method, p] : cheapest) {
       if (method == chosen.method) continue;
       if (p->predicted_ms > 60000) {
-        rows.push_back({c.name, max_error, "direct", DescribePlan(*p) + " (not run: predicted over 60 s)",
+        rows.push_back({c.name, max_error, "direct", core::DescribePlan(*p) + " (not run: predicted over 60 s)",
                         p->predicted_ms, kNaN, false});
         continue;
       }
-      HiddenSampleMapQuery direct = query;
+      core::HiddenSampleMapQuery direct = query;
       direct.target.reset();
-      direct.method = method == "plucker-exact" ? VisibilityMethod::kPluckerExact
-                      : method == "raycast"    ? VisibilityMethod::kRaycast
-                                               : VisibilityMethod::kRaster;
+      direct.method = method == "plucker-exact" ? core::VisibilityMethod::kPluckerExact
+                      : method == "raycast"    ? core::VisibilityMethod::kRaycast
+                                               : core::VisibilityMethod::kRaster;
       direct.request.source.sample_count = p->parameters.contains("samples") ? int(p->parameters.at("samples")) : 0;
-      auto answer = Must(RunHiddenSampleMap(engine, direct), what + " " + DescribePlan(*p));
+      auto answer = Must(core::RunHiddenSampleMap(engine, direct), what + " " + core::DescribePlan(*p));
       const double ms = ComputeMsOf(answer.result);
-      rows.push_back({c.name, max_error, "direct", DescribePlan(*p), p->predicted_ms, ms, false});
-      std::printf("    %s: predicted %.1f ms, took %.1f ms\n", DescribePlan(*p).c_str(), p->predicted_ms, ms);
+      rows.push_back({c.name, max_error, "direct", core::DescribePlan(*p), p->predicted_ms, ms, false});
+      std::printf("    %s: predicted %.1f ms, took %.1f ms\n", core::DescribePlan(*p).c_str(), p->predicted_ms, ms);
       if (ms < check.cheapest_ms) {
         check.cheapest_ms = ms;
-        check.cheapest = DescribePlan(*p);
+        check.cheapest = core::DescribePlan(*p);
       }
     }
     checks.push_back(check);
 
     // The same target again: predicted from what the first call measured.
-    auto second = Must(RunHiddenSampleMap(engine, query), what + " again");
-    const ::visq::Plan& again = second.plan->chosen_plan();
-    rows.push_back({c.name, max_error, "2nd call", DescribePlan(again), again.predicted_ms,
+    auto second = Must(core::RunHiddenSampleMap(engine, query), what + " again");
+    const ::visq::core::Plan& again = second.plan->chosen_plan();
+    rows.push_back({c.name, max_error, "2nd call", core::DescribePlan(again), again.predicted_ms,
                     ComputeMsOf(second.result), true});
   }
 }
@@ -1187,11 +1187,11 @@ int main(int argc, char** argv) {
   const fs::path target_repo =
       fs::temp_directory_path() / ("visq-accuracy-targets-" + std::to_string(static_cast<long>(::getpid())));
   fs::create_directories(target_repo);
-  EngineOptions engine_options;
+  core::EngineOptions engine_options;
   engine_options.scene_repo = target_repo;
   engine_options.cost_model_file = "-";
   engine_options.load_repository_at_start = false;
-  auto engine = Must(Engine::Create(engine_options), "engine");
+  auto engine = Must(core::Engine::Create(engine_options), "engine");
   std::vector<TargetRow> target_rows;
   std::vector<TargetCheck> target_checks;
 

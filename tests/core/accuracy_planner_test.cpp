@@ -9,7 +9,7 @@
 
 #include "test_support.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 TEST(CostModel, PredictsNothingBeforeAnObservation) {
@@ -164,4 +164,4 @@ TEST(ValidateAccuracyTarget, NamesTheBadField) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core

@@ -12,7 +12,7 @@
 #include "core/visibility_sampling_query.h"
 #include "core/voxel_query.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 bool Mentions(const std::string& note, const std::string& words) { return note.find(words) != std::string::npos; }
@@ -101,4 +101,4 @@ TEST(AccuracyStatement, AChosenPlanAddsItsParametersAndPrediction) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core

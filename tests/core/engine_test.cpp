@@ -18,7 +18,7 @@
 #include "scene/sample_scenes.h"
 #include "test_support.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 std::unique_ptr<Engine> StartEngine(const std::filesystem::path& repo, size_t map_band_bytes = 0) {
@@ -374,13 +374,13 @@ TEST(Engine, CostModelLearnsFromEachRunAndOutlivesARestart) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core
 
 // ---------------------------------------------------------------------------
 // Structures built on first use: once, off every lock that metadata takes,
 // each waiter stopping at its own deadline, a failure built again.
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 // A repository with the sample scenes and `name`: a grid of 2 cells^2
@@ -531,4 +531,4 @@ TEST_F(EngineStructures, LightVisibilityCountsItsIndexBuildApartFromCompute) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core

@@ -19,7 +19,7 @@
 #include "scene/sample_scenes.h"
 #include "test_support.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 TEST(LightVisibilityBatch, ManyCellsHoldFewTreesAtATime) {
@@ -166,4 +166,4 @@ TEST(LightVisibilityBatch, ACancelledBatchStopsWhileItRuns) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core

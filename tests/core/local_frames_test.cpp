@@ -4,24 +4,16 @@
 #include <gtest/gtest.h>
 
 #include "core/local_frames.h"
+#include "scene/sample_scenes.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 // One small triangle at each of `corners`.
 Scene TrianglesAt(const std::vector<glm::dvec3>& corners) {
-  Scene scene;
-  scene.materials = {Material{"m", glm::dvec3(0.5), glm::dvec3(0.0)}};
-  for (const glm::dvec3& c : corners) {
-    const uint32_t base = uint32_t(scene.positions.size());
-    for (const glm::dvec3& d : {glm::dvec3(0), glm::dvec3(0.25, 0, 0), glm::dvec3(0, 0, 0.25)}) {
-      scene.positions.push_back(c + d);
-      scene.bounds.Extend(c + d);
-    }
-    scene.triangles.emplace_back(base, base + 1, base + 2);
-    scene.triangle_material.push_back(0);
-  }
-  return scene;
+  std::vector<std::array<glm::dvec3, 3>> triangles;
+  for (const glm::dvec3& c : corners) triangles.push_back({c, c + glm::dvec3(0.25, 0, 0), c + glm::dvec3(0, 0, 0.25)});
+  return SceneOfTriangles(triangles);
 }
 
 Bounds Box(const glm::dvec3& lo, const glm::dvec3& hi) {
@@ -56,4 +48,4 @@ TEST(LocalFrames, ARegionHoldsTheTrianglesNearTheQueryRebasedToItsCentre) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core

@@ -11,7 +11,7 @@
 
 #include <gtest/gtest.h>
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 TEST(ParallelFor, VisitsEveryIndexOnceInChunksOfTheGrain) {
@@ -62,4 +62,4 @@ TEST(ParallelFor, ConcurrentCallersShareThePool) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core

@@ -11,7 +11,7 @@
 
 #include "test_support.h"
 
-namespace visq {
+namespace visq::core {
 namespace {
 
 namespace fs = std::filesystem;
@@ -95,4 +95,4 @@ TEST(SceneRepository, VersionsNeverRepeatAcrossReopenings) {
 }
 
 }  // namespace
-}  // namespace visq
+}  // namespace visq::core

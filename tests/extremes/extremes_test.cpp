@@ -100,19 +100,6 @@ const char* KindName(SceneKind kind) {
 constexpr SceneKind kAllKinds[] = {SceneKind::kHalfPlane, SceneKind::kCover,  SceneKind::kTouching, SceneKind::kEdgeOn,
                                    SceneKind::kSlivers,   SceneKind::kSlab,   SceneKind::kPole};
 
-// Appends one triangle as its own node (AddQuad's layout, one triangle).
-void AddTriangle(Scene& scene, const std::string& node_name, const glm::dvec3& a, const glm::dvec3& b,
-                 const glm::dvec3& c) {
-  const uint32_t base = static_cast<uint32_t>(scene.positions.size());
-  scene.positions.insert(scene.positions.end(), {a, b, c});
-  const uint32_t node = static_cast<uint32_t>(scene.nodes.size());
-  scene.nodes.push_back(SceneNode{node_name, static_cast<int>(node), -1, glm::dmat4(1.0),
-                                  static_cast<uint32_t>(scene.triangles.size()), 1});
-  scene.triangles.emplace_back(base, base + 1, base + 2);
-  scene.triangle_material.push_back(0);
-  scene.triangle_node.push_back(node);
-}
-
 Scene BuildScene(SceneKind kind, const Frame& frame) {
   Scene scene;
   scene.materials = {Material{"white", glm::dvec3(0.75), glm::dvec3(0.0)}};
@@ -140,10 +127,10 @@ Scene BuildScene(SceneKind kind, const Frame& frame) {
       // sampled bits have no float ties. Translated by 1e6 its width rounds
       // away and it is one more zero-area triangle.
       const double w = std::ldexp(1.0, -20);
-      AddTriangle(scene, "sliver", {-0.5, 0.5, -0.5}, {0.5, 0.5, 0.4375}, {0.5 + w, 0.5, 0.4375});
-      AddTriangle(scene, "repeated_corner", {-0.5, 0.5, 0.25}, {-0.5, 0.5, 0.25}, {0.5, 0.5, -0.25});
-      AddTriangle(scene, "collinear", {-0.5, 0.5, 0}, {0, 0.5, 0}, {0.5, 0.5, 0});
-      AddTriangle(scene, "flat_in_floor", {-0.5, 0, 0.5}, {0, 0, 0.5}, {0.5, 0, 0.5});
+      AddTriangle(scene, "sliver", {-0.5, 0.5, -0.5}, {0.5, 0.5, 0.4375}, {0.5 + w, 0.5, 0.4375}, 0);
+      AddTriangle(scene, "repeated_corner", {-0.5, 0.5, 0.25}, {-0.5, 0.5, 0.25}, {0.5, 0.5, -0.25}, 0);
+      AddTriangle(scene, "collinear", {-0.5, 0.5, 0}, {0, 0.5, 0}, {0.5, 0.5, 0}, 0);
+      AddTriangle(scene, "flat_in_floor", {-0.5, 0, 0.5}, {0, 0, 0.5}, {0.5, 0, 0.5}, 0);
       break;
     }
     case SceneKind::kSlab: AddBox(scene, "slab", {-0.5625, 0.3125, -0.5625}, {0.5625, 0.6875, 0.5625}, 0); break;
@@ -303,7 +290,7 @@ class ExtremesTest : public ::testing::Test {
   static Status UploadWorldOnce(Client& client) {
     static Status uploaded = [&client] {
       Scene world = BuildScene(SceneKind::kHalfPlane, Frames()[3]);
-      AddTriangle(world, "marker_at_origin", {0, 0, 0}, {0.0625, 0, 0}, {0, 0, 0.0625});
+      AddTriangle(world, "marker_at_origin", {0, 0, 0}, {0.0625, 0, 0}, {0, 0, 0.0625}, 0);
       UpdateBounds(world);
       return Upload(client, world, "world");
     }();
@@ -1139,7 +1126,7 @@ TEST_F(ExtremesTest, WorldSpanningTheOriginTo1e6SampledMethodsWorkRelativeToTheQ
   const Frame farther{"farther", 1.0, glm::dvec3(1e7)};
   {
     Scene world = BuildScene(SceneKind::kHalfPlane, farther);
-    AddTriangle(world, "marker_at_origin", {0, 0, 0}, {0.0625, 0, 0}, {0, 0, 0.0625});
+    AddTriangle(world, "marker_at_origin", {0, 0, 0}, {0.0625, 0, 0}, {0, 0, 0.0625}, 0);
     UpdateBounds(world);
     ASSERT_TRUE(Upload(*client_, world, "world_1e7").ok());
   }

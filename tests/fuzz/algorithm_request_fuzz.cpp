@@ -30,7 +30,7 @@ namespace {
 
 using namespace visq;
 
-const Scene& ResidentScene() {
+const Scene& FuzzScene() {
   static const Scene scene = MakeCornellBox();
   return scene;
 }
@@ -50,12 +50,12 @@ void HiddenSampleMap(const uint8_t* data, size_t size) {
   v1::HiddenSampleMapRequest request;
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
-  if (!query.ok() || !ValidateHiddenSampleMapQuery(*query).ok()) return;
+  if (!query.ok() || !core::ValidateHiddenSampleMapQuery(*query).ok()) return;
   const sampling::HiddenSampleMapRequest& r = query->request;
   Require(r.receiver.width > 0 && r.receiver.height > 0);
-  if (!query->target && query->method != VisibilityMethod::kPluckerExact)
+  if (!query->target && query->method != core::VisibilityMethod::kPluckerExact)
     Require(uint64_t(r.receiver.width) * uint64_t(r.receiver.height) * uint64_t(r.source.sample_count) <=
-            kMaxHiddenSampleBits);
+            core::kMaxHiddenSampleBits);
   Require(r.source.sample_count >= 0 && r.source.sample_count <= sampling::kMaxHiddenSampleMapSamples);
 }
 
@@ -64,19 +64,19 @@ void PatchVisibility(const uint8_t* data, size_t size) {
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
   if (!query.ok()) return;
-  (void)ValidatePatchVisibilityQuery(*query);
+  (void)core::ValidatePatchVisibilityQuery(*query);
 }
 
 void LightVisibility(const uint8_t* data, size_t size) {
   v1::LightVisibilityRequest request;
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
-  if (!query.ok() || !ValidateLightVisibilityQuery(*query, ResidentScene()).ok()) return;
-  Require(query->light.vertices.size() >= 3 && query->light.vertices.size() <= kMaxLightVertices);
+  if (!query.ok() || !core::ValidateLightVisibilityQuery(*query, FuzzScene()).ok()) return;
+  Require(query->light.vertices.size() >= 3 && query->light.vertices.size() <= core::kMaxLightVertices);
   Require(std::isfinite(query->light.radiance) && query->light.radiance >= 0);
   for (const exact::QueryPoint& p : query->points) {
     Require(Finite(p.position));
-    if (p.receiver_triangle) Require(*p.receiver_triangle < ResidentScene().TriangleCount());
+    if (p.receiver_triangle) Require(*p.receiver_triangle < FuzzScene().TriangleCount());
   }
 }
 
@@ -85,11 +85,11 @@ void Voxelize(const uint8_t* data, size_t size) {
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
   if (!query.ok()) return;
-  auto params = ResolveVoxelizeQuery(*query, ResidentScene());
+  auto params = core::ResolveVoxelizeQuery(*query, FuzzScene());
   if (!params.ok()) return;
   Require(Finite(params->box.center) && Finite(params->box.half_extent));
   for (const auto& range : params->triangles)
-    Require(uint64_t(range.first) + range.count <= ResidentScene().TriangleCount());
+    Require(uint64_t(range.first) + range.count <= FuzzScene().TriangleCount());
 }
 
 void Transmittance(const uint8_t* data, size_t size) {
@@ -97,11 +97,11 @@ void Transmittance(const uint8_t* data, size_t size) {
   if (!Parse(data, size, &request)) return;
   auto query = service::FromProto(request);
   if (!query.ok()) return;
-  auto params = ResolveTransmittanceQuery(*query, ResidentScene());
+  auto params = core::ResolveTransmittanceQuery(*query, FuzzScene());
   if (!params.ok()) return;
   Require(!params->nodes.empty());
   for (const gpu::AbsorbingNode& node : params->nodes) {
-    Require(node.node < ResidentScene().nodes.size());
+    Require(node.node < FuzzScene().nodes.size());
     Require(std::isfinite(node.absorption) && node.absorption >= 0);
   }
   for (const glm::dvec3& p : params->points) Require(Finite(p));
@@ -121,10 +121,10 @@ void Obscurances(const uint8_t* data, size_t size) {
   auto query = service::FromProto(request);
   if (!query.ok()) return;
   if (query->target) {
-    (void)ValidateAccuracyTarget(*query->target);
+    (void)core::ValidateAccuracyTarget(*query->target);
     return;
   }
-  Require(ValidateObscuranceQuery(*query).ok());  // FromProto validated it already
+  Require(core::ValidateObscuranceQuery(*query).ok());  // FromProto validated it already
   Require(std::isfinite(query->params.d_max));
 }
 

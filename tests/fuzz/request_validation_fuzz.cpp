@@ -13,13 +13,13 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     std::filesystem::create_directories(d);
     return d;
   }();
-  static auto repository = visq::SceneRepository::Open(root);
+  static auto repository = visq::core::SceneRepository::Open(root);
   const std::string input(reinterpret_cast<const char*>(data), size);
   const size_t split = input.find('\n');
   const std::string name = input.substr(0, split);
   const std::string file = split == std::string::npos ? "scene.gltf" : input.substr(split + 1);
 
-  if (visq::SceneRepository::ValidateName(name).ok()) {
+  if (visq::core::SceneRepository::ValidateName(name).ok()) {
     // An accepted name is one path component inside the repository.
     if (name.find('/') != std::string::npos || name == "." || name == "..") __builtin_trap();
   }

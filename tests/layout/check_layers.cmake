@@ -113,8 +113,34 @@ check_installed("${public_headers}" "absl/.+" "the public floor is standard C++ 
 check_installed("${client_headers}" "(absl|grpc|grpcpp|google/protobuf)/.+"
                 "the installed client needs only the installed tree, gRPC, protobuf and abseil")
 
+# Each folder's code lives in its own namespace, so a name says its floor
+# at the call site (core::Engine in the transport, exact::StopToken in the
+# core). lib/common and lib/scene are the shared vocabulary, in visq itself.
+function(check_namespace folder expected)
+  file(GLOB files RELATIVE "${SOURCE_DIR}" "${SOURCE_DIR}/${folder}/*.h" "${SOURCE_DIR}/${folder}/*.cpp")
+  foreach(file IN LISTS files)
+    file(STRINGS "${SOURCE_DIR}/${file}" lines REGEX "^namespace visq[a-z_:]* {")
+    foreach(line IN LISTS lines)
+      if(NOT line MATCHES "^namespace ${expected}(::[a-z_:]+)? {")
+        violation("${file}: ${line} (code in ${folder}/ lives in ${expected})")
+      endif()
+    endforeach()
+  endforeach()
+  set(violations ${violations} PARENT_SCOPE)
+endfunction()
+foreach(rule IN ITEMS "lib/exact=visq::exact" "lib/obscurance=visq::obscurance" "lib/raycast=visq::raycast"
+                      "lib/sampling=visq::sampling" "lib/voxel_reference=visq::voxel_reference" "gpu/src=visq::gpu"
+                      "gpu/include/visq/gpu=visq::gpu" "gpu/hidden_sample_map=visq::gpu" "gpu/slicemap=visq::gpu"
+                      "gpu/obscurance=visq::gpu" "gpu/volumetric_shadows=visq::gpu" "server/core=visq::core"
+                      "server/service=visq::service" "client=visq::client" "client/cli=visq::cli")
+  string(REPLACE "=" ";" pair "${rule}")
+  list(GET pair 0 folder)
+  list(GET pair 1 expected)
+  check_namespace("${folder}" "${expected}")
+endforeach()
+
 if(violations GREATER 0)
   message(FATAL_ERROR "${violations} include(s) break the floors of the house")
 endif()
 message("the floors hold: include/ < lib/ < gpu/ < server/, lib/ < client/, no GL outside gpu/, no gRPC below the service, "
-        "the installed client headers self-contained")
+        "the installed client headers self-contained, each folder in its namespace")

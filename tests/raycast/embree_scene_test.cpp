@@ -1,21 +1,18 @@
 #include "raycast/embree_scene.h"
 
+#include <array>
 #include <random>
 
 #include <gtest/gtest.h>
+
+#include "scene/sample_scenes.h"
 
 namespace visq::raycast {
 namespace {
 
 Scene OneTriangle(const glm::dvec3& offset = glm::dvec3(0.0), double scale = 1.0) {
-  Scene s;
-  s.positions = {offset + scale * glm::dvec3(0, 0, 0), offset + scale * glm::dvec3(1, 0, 0),
-                 offset + scale * glm::dvec3(0, 1, 0)};
-  s.triangles = {glm::uvec3(0, 1, 2)};
-  s.triangle_material = {0};
-  s.triangle_node = {0};
-  for (const auto& p : s.positions) s.bounds.Extend(p);
-  return s;
+  const std::array<glm::dvec3, 3> t = {offset, offset + scale * glm::dvec3(1, 0, 0), offset + scale * glm::dvec3(0, 1, 0)};
+  return SceneOfTriangles({&t, 1});
 }
 
 std::vector<uint8_t> Occ(const EmbreeScene& e, std::vector<Segment> segs) {

@@ -77,7 +77,7 @@ TEST(Convert, VoxelizeDefaultsFillUnsetSizes) {
 // bitmasks), so bands written one after another rebuild the map; the first
 // message holds the sizes, the last the accuracy.
 TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
-  HiddenSampleMapAnswer answer;
+  core::HiddenSampleMapAnswer answer;
   sampling::HiddenSampleMapResult& map = answer.result;
   map.width = 3;
   map.height = 2;
@@ -103,7 +103,8 @@ TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
   }
   map.error.sampling = 0.125;
   answer.accuracy =
-      SampledVisibilityStatement(map.error, VisibilityMethod::kRaster, sampling::LookupMode::kHough, map.sample_count);
+      core::SampledVisibilityStatement(map.error, core::VisibilityMethod::kRaster, sampling::LookupMode::kHough,
+                                       map.sample_count);
   sent.push_back(HiddenSampleMapLastMessage(answer));
 
   EXPECT_EQ(sent.front().width(), 3u);
@@ -128,7 +129,7 @@ TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
 
 // The transport adds nothing to the core's statement and drops nothing.
 TEST(Convert, AccuracyStatementCopiedFieldByField) {
-  AccuracyStatement statement;
+  core::AccuracyStatement statement;
   statement.method = "slicemap-conservative-uniform";
   statement.error_bound = 0.25;
   statement.confidence = 1.0;
