@@ -114,8 +114,12 @@ Status DrawTriangles(const GpuScene& scene, const std::vector<GLint>& firsts, co
 void ScatterTarget(const std::vector<GLuint>& texels, size_t first_column, size_t columns, SlicemapGrid& grid,
                    uint32_t first_word) {
   const uint32_t wpc = grid.words_per_column;
+  // A target past the column's last word would make `wpc - first_word` wrap
+  // and write beyond the column.
+  VISQ_CHECK_LT(first_word, wpc);
+  VISQ_CHECK_LE((first_column + columns) * wpc, grid.bits.size());
+  VISQ_CHECK_LE(columns * 4, texels.size());
   const uint32_t words = std::min<uint32_t>(4, wpc - first_word);
-  VISQ_DCHECK_LE((first_column + columns) * wpc, grid.bits.size());
   for (size_t c = 0; c < columns; ++c) {
     uint32_t* column = &grid.bits[(first_column + c) * wpc + first_word];
     const GLuint* texel = &texels[c * 4];
@@ -325,6 +329,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     raw.timings.voxelize_ms += MillisecondsSince(start);
 
     start = Clock::now();
+    VISQ_CHECK_LE(size_t{first_row} + rows, size_t{config.height});
     const size_t band_columns = size_t{config.width} * rows;
     texels.resize(band_columns * 4);
     for (uint32_t m = 0; m < pass_maps; ++m) {

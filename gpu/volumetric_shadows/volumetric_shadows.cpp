@@ -39,6 +39,7 @@
 #include <glm/gtc/matrix_transform.hpp>
 #include <glm/gtc/type_ptr.hpp>
 
+#include "common/check.h"
 #include "common/coordinates.h"
 #include "common/job_timing.h"
 #include "gl_check.h"
@@ -675,6 +676,9 @@ Status IntegrateRows(const VolumetricTargets& t, const Setup& setup, const Volum
 // Rows [first_row, first_row + rows) of the image.
 Status ReadRows(const VolumetricTargets& t, const Setup& setup, uint32_t first_row, uint32_t rows,
                 std::vector<glm::vec4>& pixels) {
+  // The output buffer holds width x height pixels: a band past it is the
+  // band planner's bug, not a GL error for the caller to see.
+  VISQ_CHECK_LE(size_t{first_row} + rows, size_t{setup.height});
   pixels.resize(size_t{setup.width} * rows);
   glGetNamedBufferSubData(t.output.id(), GLintptr(size_t{first_row} * setup.width * sizeof(glm::vec4)),
                           GLsizeiptr(pixels.size() * sizeof(glm::vec4)), pixels.data());

@@ -8,6 +8,7 @@
 
 #include <embree3/rtcore.h>
 
+#include "common/check.h"
 #include "common/parallel.h"
 
 namespace visq::raycast {
@@ -311,6 +312,7 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
         h.hit = true;
         h.t = rays[i].ray.tfar;
         h.triangle = rays[i].hit.primID;
+        VISQ_CHECK_LT(h.triangle, triangle_count_);  // one geometry, the scene's triangles in order
         h.u = rays[i].hit.u;
         h.v = rays[i].hit.v;
       }
