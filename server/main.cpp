@@ -55,133 +55,144 @@ visq::StatusOr<bool> CreateTokenFileIfAbsent(const std::string& path) {
   return true;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+// Every flag's value. Most go straight into the server's options; the rest
+// are read once at start (files, logging, signals).
+struct Flags {
   visq::service::ServerOptions options;
   std::string log_level = "info";
   uint64_t max_upload_bytes = options.engine.max_upload_bytes;
   bool seed_samples = false;
   std::string port_file;
   std::string scene_repo = options.engine.scene_repo.string();
-
-  CLI::App app{"visq-server: visibility queries on GPU-resident scenes"};
-  app.set_version_flag("--version", std::string("visq-server ") + visq::kVersion + " (" + visq::kBuildCommit + ")");
-  app.add_option("--address", options.address, "HOST:PORT to listen on")->envname("VISQ_ADDRESS")->capture_default_str();
-  app.add_option("--scene-repo", scene_repo, "Scene repository directory")->envname("VISQ_SCENE_REPO")->capture_default_str();
   std::string cost_model_file;
-  app.add_option("--cost-model-file", cost_model_file,
+  uint64_t max_scene_bytes = options.engine.max_scene_bytes;
+  uint64_t light_cache_bytes = options.engine.light_cache_bytes;
+  std::string auth_token_file;
+  bool create_auth_token = false;
+  bool no_preload = false;
+  std::string metrics_port_file;
+  std::string log_format = "text";
+  int drain_seconds = 10;
+};
+
+// Each flag, its environment variable (for containers), its check.
+void AddFlags(CLI::App& app, Flags& flags) {
+  app.set_version_flag("--version", std::string("visq-server ") + visq::kVersion + " (" + visq::kBuildCommit + ")");
+  app.add_option("--address", flags.options.address, "HOST:PORT to listen on")->envname("VISQ_ADDRESS")->capture_default_str();
+  app.add_option("--scene-repo", flags.scene_repo, "Scene repository directory")->envname("VISQ_SCENE_REPO")->capture_default_str();
+  app.add_option("--cost-model-file", flags.cost_model_file,
                  "Where the accuracy planner keeps its measured costs across restarts (default: "
                  "<scene-repo>/.visq-cost-model.tsv; '-': not kept)")
       ->envname("VISQ_COST_MODEL_FILE");
-  app.add_option("--max-receive-bytes", options.max_receive_message_bytes, "Largest gRPC message accepted")
+  app.add_option("--max-receive-bytes", flags.options.max_receive_message_bytes, "Largest gRPC message accepted")
       ->envname("VISQ_MAX_RECEIVE_BYTES")->check(CLI::Range(1 << 16, 1 << 30))->capture_default_str();
-  app.add_option("--max-upload-bytes", max_upload_bytes, "Largest scene upload accepted")
+  app.add_option("--max-upload-bytes", flags.max_upload_bytes, "Largest scene upload accepted")
       ->envname("VISQ_MAX_UPLOAD_BYTES")->capture_default_str();
-  uint64_t max_scene_bytes = options.engine.max_scene_bytes;
-  uint64_t light_cache_bytes = options.engine.light_cache_bytes;
-  app.add_option("--max-scene-bytes", max_scene_bytes,
+  app.add_option("--max-scene-bytes", flags.max_scene_bytes,
                  "Largest resident scene accepted, by an estimate of its geometry and every structure its queries "
                  "build (Embree BVH, triangle index, GPU buffers)")
       ->envname("VISQ_MAX_SCENE_BYTES")->capture_default_str();
-  app.add_flag("--warm-scenes", options.engine.warm_at_load,
+  app.add_flag("--warm-scenes", flags.options.engine.warm_at_load,
                "Build every structure of each scene loaded (at start or later) or uploaded right after the load, in "
                "the background, so that its first query does not wait for them")
       ->envname("VISQ_WARM_SCENES");
-  app.add_option("--max-work-bytes", options.engine.max_work_bytes,
+  app.add_option("--max-work-bytes", flags.options.engine.max_work_bytes,
                  "Memory that answers in progress may hold together; requests wait for it or are refused "
                  "(0: half of physical memory)")
       ->envname("VISQ_MAX_WORK_BYTES")->capture_default_str();
-  app.add_option("--map-band-bytes", options.engine.hidden_sample_map.band_readback_bytes,
+  app.add_option("--map-band-bytes", flags.options.engine.hidden_sample_map.band_readback_bytes,
                  "Largest GPU read-back of one band of a hidden-sample map: each band is its own GL job and is "
                  "sent as soon as it is counted")
       ->envname("VISQ_MAP_BAND_BYTES")->check(CLI::Range(size_t{1} << 10, size_t{1} << 30))->capture_default_str();
-  app.add_option("--light-cache-bytes", light_cache_bytes, "Bound on the exact light-visibility trees kept (LRU)")
+  app.add_option("--light-cache-bytes", flags.light_cache_bytes, "Bound on the exact light-visibility trees kept (LRU)")
       ->envname("VISQ_LIGHT_CACHE_BYTES")->capture_default_str();
-  app.add_option("--light-receiver-cells", options.engine.light_receiver_cells,
+  app.add_option("--light-receiver-cells", flags.options.engine.light_receiver_cells,
                  "LightVisibility trees per side of the scene (receiver cubes of its extent / N); 0: groups "
                  "that follow the batch and its occluders")
       ->envname("VISQ_LIGHT_RECEIVER_CELLS")->check(CLI::Range(0, 4096))->capture_default_str();
-  app.add_option("--light-receiver-min-points", options.engine.light_receiver_min_points,
+  app.add_option("--light-receiver-min-points", flags.options.engine.light_receiver_min_points,
                  "A receiver cube with fewer points joins its parent cube's tree (1: every cube its own)")
       ->envname("VISQ_LIGHT_RECEIVER_MIN_POINTS")->check(CLI::Range(1, 1 << 20))->capture_default_str();
-  app.add_option("--worker-threads", options.worker_threads, "Threads for blocking request work")
+  app.add_option("--worker-threads", flags.options.worker_threads, "Threads for blocking request work")
       ->envname("VISQ_WORKER_THREADS")->check(CLI::Range(1, 256))->capture_default_str();
-  app.add_option("--log-level", log_level, "trace, debug, info, warn, error")->envname("VISQ_LOG_LEVEL")->capture_default_str();
-  app.add_option("--gpu-device", options.engine.gpu.device, "auto, surfaceless, or device:N")
+  app.add_option("--log-level", flags.log_level, "trace, debug, info, warn, error")->envname("VISQ_LOG_LEVEL")->capture_default_str();
+  app.add_option("--gpu-device", flags.options.engine.gpu.device, "auto, surfaceless, or device:N")
       ->envname("VISQ_EGL_DEVICE")->capture_default_str();
-  app.add_flag("--gpu-debug", options.engine.gpu.debug, "KHR_debug to the log, GL error checks")->envname("VISQ_GPU_DEBUG");
-  app.add_option("--fault-lose-gpu-context-at-job", options.engine.gpu.lose_context_at_job,
+  app.add_flag("--gpu-debug", flags.options.engine.gpu.debug, "KHR_debug to the log, GL error checks")->envname("VISQ_GPU_DEBUG");
+  app.add_option("--fault-lose-gpu-context-at-job", flags.options.engine.gpu.lose_context_at_job,
                  "Testing the recovery path: treat the N-th GPU job as if the GPU had reset during it")
       ->envname("VISQ_FAULT_LOSE_GPU_CONTEXT_AT_JOB")->group("Fault injection");
-  app.add_flag("--seed-samples", seed_samples, "Write the generated sample scenes into the repository if absent")
+  app.add_flag("--seed-samples", flags.seed_samples, "Write the generated sample scenes into the repository if absent")
       ->envname("VISQ_SEED_SAMPLES");
-  std::string auth_token_file;
-  app.add_option("--server-id", options.server_id, "Name reported by GetStats (default host:port)")->envname("VISQ_SERVER_ID");
-  app.add_option("--auth-token-file", auth_token_file, "File holding the bearer token every call must carry")
+  app.add_option("--server-id", flags.options.server_id, "Name reported by GetStats (default host:port)")->envname("VISQ_SERVER_ID");
+  app.add_option("--auth-token-file", flags.auth_token_file, "File holding the bearer token every call must carry")
       ->envname("VISQ_AUTH_TOKEN_FILE");
-  bool create_auth_token = false;
-  app.add_flag("--auth-token-create", create_auth_token,
+  app.add_flag("--auth-token-create", flags.create_auth_token,
                "If --auth-token-file does not exist, write a new random token there (mode 0600) first")
       ->envname("VISQ_AUTH_TOKEN_CREATE");
-  app.add_option("--tls-cert", options.tls.cert_file, "PEM certificate chain: serve TLS")->envname("VISQ_TLS_CERT");
-  app.add_option("--tls-key", options.tls.key_file, "PEM private key for --tls-cert")->envname("VISQ_TLS_KEY");
-  app.add_option("--tls-client-ca", options.tls.client_ca_file, "PEM CA that client certificates must chain to (mutual TLS)")
+  app.add_option("--tls-cert", flags.options.tls.cert_file, "PEM certificate chain: serve TLS")->envname("VISQ_TLS_CERT");
+  app.add_option("--tls-key", flags.options.tls.key_file, "PEM private key for --tls-cert")->envname("VISQ_TLS_KEY");
+  app.add_option("--tls-client-ca", flags.options.tls.client_ca_file, "PEM CA that client certificates must chain to (mutual TLS)")
       ->envname("VISQ_TLS_CLIENT_CA");
-  app.add_flag("--allow-insecure-remote", options.allow_insecure_remote,
+  app.add_flag("--allow-insecure-remote", flags.options.allow_insecure_remote,
                "Listen beyond loopback without TLS or a token")->envname("VISQ_ALLOW_INSECURE_REMOTE");
-  bool no_preload = false;
-  app.add_flag("--no-preload", no_preload, "Load repository scenes on first use instead of at start (replicas)")
+  app.add_flag("--no-preload", flags.no_preload, "Load repository scenes on first use instead of at start (replicas)")
       ->envname("VISQ_NO_PRELOAD");
-  app.add_option("--port-file", port_file, "Write the bound port here once listening (for --address HOST:0)")
+  app.add_option("--port-file", flags.port_file, "Write the bound port here once listening (for --address HOST:0)")
       ->envname("VISQ_PORT_FILE");
-  app.add_option("--metrics-address", options.metrics_address,
+  app.add_option("--metrics-address", flags.options.metrics_address,
                  "HOST:PORT for Prometheus (GET /metrics, plain HTTP); empty: none")
       ->envname("VISQ_METRICS_ADDRESS");
-  app.add_flag("--metrics-allow-remote", options.allow_remote_metrics,
+  app.add_flag("--metrics-allow-remote", flags.options.allow_remote_metrics,
                "Let --metrics-address be beyond loopback")->envname("VISQ_METRICS_ALLOW_REMOTE");
-  std::string metrics_port_file;
-  app.add_option("--metrics-port-file", metrics_port_file,
+  app.add_option("--metrics-port-file", flags.metrics_port_file,
                  "Write the bound /metrics port here (for --metrics-address HOST:0)")
       ->envname("VISQ_METRICS_PORT_FILE");
-  std::string log_format = "text";
-  app.add_option("--log-format", log_format, "text, or json (one object a line)")
+  app.add_option("--log-format", flags.log_format, "text, or json (one object a line)")
       ->envname("VISQ_LOG_FORMAT")->check(CLI::IsMember({"text", "json"}))->capture_default_str();
-  int drain_seconds = 10;
-  app.add_option("--drain-seconds", drain_seconds,
+  app.add_option("--drain-seconds", flags.drain_seconds,
                  "On SIGTERM, how long calls in progress may take to finish before they are cancelled")
       ->envname("VISQ_DRAIN_SECONDS")->check(CLI::Range(0, 3600))->capture_default_str();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Flags flags;
+  CLI::App app{"visq-server: visibility queries on GPU-resident scenes"};
+  AddFlags(app, flags);
   CLI11_PARSE(app, argc, argv);
-  if (!metrics_port_file.empty() && options.metrics_address.empty()) {
+  visq::service::ServerOptions& options = flags.options;
+  if (!flags.metrics_port_file.empty() && options.metrics_address.empty()) {
     std::cerr << "--metrics-port-file needs --metrics-address\n";
     return EXIT_FAILURE;
   }
 
-  spdlog::set_level(spdlog::level::from_str(log_level));
-  if (log_format == "json") visq::service::UseJsonLogFormat();
+  spdlog::set_level(spdlog::level::from_str(flags.log_level));
+  if (flags.log_format == "json") visq::service::UseJsonLogFormat();
   else visq::service::UseEscapingLogFormat("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
   visq::service::RouteLibraryLogsToSpdlog();
-  options.engine.scene_repo = scene_repo;
-  options.engine.cost_model_file = cost_model_file;
-  options.engine.max_upload_bytes = max_upload_bytes;
-  options.engine.max_scene_bytes = max_scene_bytes;
-  options.engine.light_cache_bytes = static_cast<size_t>(light_cache_bytes);
-  options.engine.load_repository_at_start = !no_preload;
-  if (create_auth_token && auth_token_file.empty()) {
+  options.engine.scene_repo = flags.scene_repo;
+  options.engine.cost_model_file = flags.cost_model_file;
+  options.engine.max_upload_bytes = flags.max_upload_bytes;
+  options.engine.max_scene_bytes = flags.max_scene_bytes;
+  options.engine.light_cache_bytes = static_cast<size_t>(flags.light_cache_bytes);
+  options.engine.load_repository_at_start = !flags.no_preload;
+  if (flags.create_auth_token && flags.auth_token_file.empty()) {
     std::cerr << "--auth-token-create needs --auth-token-file\n";
     return EXIT_FAILURE;
   }
-  if (create_auth_token) {
-    visq::StatusOr<bool> created = CreateTokenFileIfAbsent(auth_token_file);
+  if (flags.create_auth_token) {
+    visq::StatusOr<bool> created = CreateTokenFileIfAbsent(flags.auth_token_file);
     if (!created.ok()) {
-      spdlog::critical("--auth-token-create {}: {}", auth_token_file, created.status().message());
+      spdlog::critical("--auth-token-create {}: {}", flags.auth_token_file, created.status().message());
       return EXIT_FAILURE;
     }
     // The path only: the token never goes to the log.
-    if (*created) spdlog::info("created a new bearer token in {}; clients read it from there", auth_token_file);
+    if (*created) spdlog::info("created a new bearer token in {}; clients read it from there", flags.auth_token_file);
   }
-  if (!auth_token_file.empty()) {
-    std::ifstream in(auth_token_file, std::ios::binary);
+  if (!flags.auth_token_file.empty()) {
+    std::ifstream in(flags.auth_token_file, std::ios::binary);
     std::stringstream text;
     text << in.rdbuf();
     std::vector<std::string> warnings;
@@ -189,10 +200,10 @@ int main(int argc, char** argv) {
         in ? visq::service::ParseAuthToken(text.str(), &warnings)
            : visq::StatusOr<std::string>(absl::NotFoundError("cannot read the file"));
     if (!token.ok()) {
-      spdlog::critical("--auth-token-file {}: {}", auth_token_file, token.status().message());
+      spdlog::critical("--auth-token-file {}: {}", flags.auth_token_file, token.status().message());
       return EXIT_FAILURE;
     }
-    for (const std::string& warning : warnings) spdlog::warn("--auth-token-file {}: {}", auth_token_file, warning);
+    for (const std::string& warning : warnings) spdlog::warn("--auth-token-file {}: {}", flags.auth_token_file, warning);
     options.auth_token = *std::move(token);
   }
 
@@ -204,7 +215,7 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGTERM);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
-  if (seed_samples) {
+  if (flags.seed_samples) {
     std::error_code ec;
     std::filesystem::create_directories(options.engine.scene_repo, ec);
     if (auto status = visq::WriteSampleScenes(options.engine.scene_repo); !status.ok()) {
@@ -217,12 +228,12 @@ int main(int argc, char** argv) {
     spdlog::critical("start-up failed: {}", server.status().message());
     return EXIT_FAILURE;
   }
-  if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {
-    spdlog::critical("cannot write --port-file {}", port_file);
+  if (!flags.port_file.empty() && !WritePortFile(flags.port_file, (*server)->port())) {
+    spdlog::critical("cannot write --port-file {}", flags.port_file);
     return EXIT_FAILURE;
   }
-  if (!metrics_port_file.empty() && !WritePortFile(metrics_port_file, (*server)->metrics_port())) {
-    spdlog::critical("cannot write --metrics-port-file {}", metrics_port_file);
+  if (!flags.metrics_port_file.empty() && !WritePortFile(flags.metrics_port_file, (*server)->metrics_port())) {
+    spdlog::critical("cannot write --metrics-port-file {}", flags.metrics_port_file);
     return EXIT_FAILURE;
   }
   (*server)->Ready();
@@ -230,6 +241,6 @@ int main(int argc, char** argv) {
   int signal_number = 0;
   sigwait(&signals, &signal_number);
   spdlog::info("received {}", signal_number == SIGINT ? "SIGINT" : "SIGTERM");
-  (*server)->GracefulStop(std::chrono::seconds(drain_seconds));
+  (*server)->GracefulStop(std::chrono::seconds(flags.drain_seconds));
   return EXIT_SUCCESS;
 }

@@ -57,14 +57,10 @@ Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Sce
   return absl::OkStatus();
 }
 
-StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
-  const Scene& scene = *resident->scene;
-  VISQ_RETURN_IF_ERROR(ValidateLightVisibilityQuery(query, scene));
-  const auto start = std::chrono::steady_clock::now();
+namespace {
 
-  // The trees' options: the excluded nodes' triangles, the memory budget.
+// The trees' options: the excluded nodes' triangles, the memory budget.
+StatusOr<exact::TreeOptions> BaseTreeOptions(Engine& engine, const LightVisibilityQuery& query, const Scene& scene) {
   exact::TreeOptions base;
   // A batch uses one tree per receiver cell, so each may grow to 1/16 of
   // the cache; past that its queries resolve the undefined leaves they meet
@@ -84,17 +80,12 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     }
     if (!found) return absl::InvalidArgumentError(absl::StrCat("exclude_nodes: no node named '", node_name, "'"));
   }
+  return base;
+}
 
-  // The scene's triangle index, which new trees select their occluders
-  // from and the grouping counts shafts in: fetched (or built, or waited
-  // for) here, once, so that the wait is the call's build time, not its
-  // compute, and is not paid in parallel by every group that builds a tree.
-  const auto index_start = std::chrono::steady_clock::now();
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
-                        engine.TriangleIndexOf(*resident, query.call));
-  const double index_ms = MillisecondsSince(index_start);
-
-  // One tree for the client's region, or one per group of receivers.
+// One tree for the client's region, or one per group of receivers.
+std::vector<exact::ReceiverCell> ReceiverGroups(Engine& engine, const LightVisibilityQuery& query, const Scene& scene,
+                                                const exact::SceneTriangleIndex& index) {
   std::vector<exact::ReceiverCell> groups;
   if (query.receiver_region) {
     exact::ReceiverCell all{*query.receiver_region, {}};
@@ -105,9 +96,38 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     groups = exact::GroupReceivers(query.points, scene.bounds, engine.light_receiver_cells(),
                                    engine.light_receiver_min_points());
   } else {
-    groups = exact::GroupReceiversByShaft(query.points, query.light, *index,
+    groups = exact::GroupReceiversByShaft(query.points, query.light, index,
                                           {engine.light_shaft_triangles(), engine.light_receiver_min_points()});
   }
+  return groups;
+}
+
+// A stopped batch's status says how much of it was left.
+Status WithPointsLeft(absl::StatusCode code, absl::string_view message, size_t left, size_t total) {
+  return Status(code, absl::StrCat(message, " with ", left, " of ", total, " points left"));
+}
+
+}  // namespace
+
+StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  const Scene& scene = *resident->scene;
+  VISQ_RETURN_IF_ERROR(ValidateLightVisibilityQuery(query, scene));
+  const auto start = std::chrono::steady_clock::now();
+
+  VISQ_ASSIGN_OR_RETURN(const exact::TreeOptions base, BaseTreeOptions(engine, query, scene));
+
+  // The scene's triangle index, which new trees select their occluders
+  // from and the grouping counts shafts in: fetched (or built, or waited
+  // for) here, once, so that the wait is the call's build time, not its
+  // compute, and is not paid in parallel by every group that builds a tree.
+  const auto index_start = std::chrono::steady_clock::now();
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
+                        engine.TriangleIndexOf(*resident, query.call));
+  const double index_ms = MillisecondsSince(index_start);
+
+  const std::vector<exact::ReceiverCell> groups = ReceiverGroups(engine, query, scene, *index);
   const exact::StopToken stop{query.call.cancelled, query.call.deadline};
 
   // Work in chunks of one group's points, in order, on every core: a single
@@ -204,20 +224,15 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
         if (t.chunks_left.fetch_sub(1) == 1) release(t);
       };
       for (uint32_t k = chunk.begin; k < chunk.end; ++k) {
+        const size_t left = query.points.size() - answered.load();
         if (query.call.cancelled != nullptr && query.call.cancelled->load())
-          return fail(absl::CancelledError(absl::StrCat("cancelled with ", query.points.size() - answered.load(),
-                                                        " of ", query.points.size(), " points left")));
-        if (std::chrono::steady_clock::now() > query.call.deadline) {
-          return fail(absl::DeadlineExceededError(absl::StrCat("deadline passed with ",
-                                                               query.points.size() - answered.load(), " of ",
-                                                               query.points.size(), " points left")));
-        }
+          return fail(WithPointsLeft(absl::StatusCode::kCancelled, "cancelled", left, query.points.size()));
+        if (std::chrono::steady_clock::now() > query.call.deadline)
+          return fail(WithPointsLeft(absl::StatusCode::kDeadlineExceeded, "deadline passed", left, query.points.size()));
         const uint32_t i = groups[chunk.group].points[k];
         StatusOr<exact::PointVisibility> r = t.tree->Query(query.points[i], query.want_polygons, stop);
         if (!r.ok() && (absl::IsCancelled(r.status()) || absl::IsDeadlineExceeded(r.status())))
-          return fail(Status(r.status().code(), absl::StrCat(r.status().message(), " with ",
-                                                             query.points.size() - answered.load(), " of ",
-                                                             query.points.size(), " points left")));
+          return fail(WithPointsLeft(r.status().code(), r.status().message(), left, query.points.size()));
         if (!r.ok()) return fail(Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message())));
         answer.points[i] = std::move(*r);
         answered.fetch_add(1, std::memory_order_relaxed);
