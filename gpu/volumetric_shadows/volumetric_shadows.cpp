@@ -143,144 +143,98 @@ glm::dmat4 FromRows(const std::array<glm::dvec4, 4>& rows) {
   return m;
 }
 
-StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const VolumetricParams& params) {
-  Setup setup;
-  const glm::dvec3 anchor = gpu_scene.anchor();
-  const VolumetricCamera& camera = params.camera;
-  const VolumetricLight& light = params.light;
-  setup.map_size = params.shadow_map_size;
-  setup.rows = setup.cols = params.shadow_map_size;
-  setup.levels = static_cast<uint32_t>(std::countr_zero(setup.cols));
-  setup.width = camera.width;
-  setup.height = camera.height;
-  setup.spot = light.kind == VolumetricLightKind::kSpot;
+// The eight corners of `b`, relative to the scene's anchor.
+std::array<glm::dvec3, 8> CornersOf(const Bounds& b, const glm::dvec3& anchor) {
+  std::array<glm::dvec3, 8> corners;
+  for (int i = 0; i < 8; ++i)
+    corners[i] = glm::dvec3(i & 1 ? b.max.x : b.min.x, i & 2 ? b.max.y : b.min.y, i & 4 ? b.max.z : b.min.z) - anchor;
+  return corners;
+}
 
-  // The medium: its box (the scene's bounds unless the request gives one).
-  // The camera sees the scene and the medium; the shadow map covers the
-  // medium and whatever lies between it and the light.
-  const Bounds medium = params.medium_bounds.Empty() ? scene.bounds : params.medium_bounds;
-  if (medium.Empty()) return absl::FailedPreconditionError("volumetric shadows: the scene has no geometry and no medium box");
-  Bounds bounds = medium;
-  if (!scene.bounds.Empty()) {
-    bounds.Extend(scene.bounds.min);
-    bounds.Extend(scene.bounds.max);
-  }
-  setup.medium.Extend(medium.min - anchor);
-  setup.medium.Extend(medium.max - anchor);
-  const double diagonal = std::max(glm::length(bounds.Extent()), 1e-9);
-  auto corners_of = [&](const Bounds& b) {
-    std::array<glm::dvec3, 8> corners;
-    for (int i = 0; i < 8; ++i)
-      corners[i] = glm::dvec3(i & 1 ? b.max.x : b.min.x, i & 2 ? b.max.y : b.min.y, i & 4 ? b.max.z : b.min.z) - anchor;
-    return corners;
-  };
-  const std::array<glm::dvec3, 8> corners = corners_of(bounds);
+// The light's frame: w along the light, v its up, u = w x v its right.
+struct LightFrame {
+  glm::dvec3 u, v, w;
+};
 
-  // The light's frame: w along the light, v its up, u = w x v its right.
-  const glm::dvec3 w = glm::normalize(light.direction);
-  glm::dvec3 up = light.up;
-  if (glm::length(up) == 0.0) up = std::abs(w.y) > 0.99 ? glm::dvec3(0, 0, 1) : glm::dvec3(0, 1, 0);
-  glm::dvec3 v = up - glm::dot(up, w) * w;
-  if (glm::length(v) < 1e-9) return Invalid(fmt::format("light.up: {} is parallel to light.direction", Vec(light.up)));
-  v = glm::normalize(v);
-  const glm::dvec3 u = glm::cross(w, v);
-  setup.light_dir = w;
-
-  if (!setup.spot) {
-    // The medium's box in the light's frame around its corners; the shadow
-    // map's box is the same, deepened towards the light over the scene's
-    // corners there: occluders above the medium shadow it.
-    auto light_frame_box = [&](const std::array<glm::dvec3, 8>& points, glm::dvec3& center, glm::dvec3& half) {
-      glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
-      for (const auto& p : points) {
-        const glm::dvec3 q(glm::dot(p, u), glm::dot(p, v), glm::dot(p, w));
-        lo = glm::min(lo, q);
-        hi = glm::max(hi, q);
-      }
-      center = 0.5 * (lo + hi);
-      half = glm::max(0.5 * (hi - lo) * 1.01, glm::dvec3(1e-3 * diagonal));
-    };
-    glm::dvec3 center, half;
-    light_frame_box(corners_of(medium), center, half);
-    setup.box.center = anchor + center.x * u + center.y * v + center.z * w;
-    setup.box.axis[0] = u;
-    setup.box.axis[1] = v;
-    setup.box.axis[2] = w;
-    setup.box.half_extent = half;
-    const double medium_near = center.z - half.z;
-    double scene_near = medium_near;
-    if (!scene.bounds.Empty())
-      for (const auto& p : corners_of(scene.bounds)) scene_near = std::min(scene_near, glm::dot(p, w));
-    if (scene_near < medium_near) {
-      const double far = center.z + half.z;
-      const double near = scene_near - 0.005 * (far - scene_near);
-      center.z = 0.5 * (near + far);
-      half.z = 0.5 * (far - near);
+// A directional light's shadow map: an orthographic box in the light's frame.
+void FrameDirectionalLight(const Scene& scene, const Bounds& medium, const LightFrame& frame, const glm::dvec3& anchor,
+                           double diagonal, Setup& setup) {
+  const auto& [u, v, w] = frame;
+  // The medium's box in the light's frame around its corners; the shadow
+  // map's box is the same, deepened towards the light over the scene's
+  // corners there: occluders above the medium shadow it.
+  auto light_frame_box = [&](const std::array<glm::dvec3, 8>& points, glm::dvec3& center, glm::dvec3& half) {
+    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+    for (const auto& p : points) {
+      const glm::dvec3 q(glm::dot(p, u), glm::dot(p, v), glm::dot(p, w));
+      lo = glm::min(lo, q);
+      hi = glm::max(hi, q);
     }
-    setup.medium_start = medium_near - (center.z - half.z);
-    setup.light_clip = FromRows({glm::dvec4(u / half.x, -center.x / half.x), glm::dvec4(v / half.y, -center.y / half.y),
-                                 glm::dvec4(w / half.z, -center.z / half.z), glm::dvec4(0, 0, 0, 1)});
-    setup.half_depth = half.z;
-    setup.normal_offset = 1.5 * 2.0 * std::max(half.x, half.y) / setup.map_size;
-    // World depth -> window depth is 1 / (2 half.z).
-    setup.bias = kMediumBiasTexels * 2.0 * std::max(half.x, half.y) / setup.map_size / (2.0 * half.z);
-  } else {
-    // The cone's square frustum from a near plane close to the light to
-    // beyond the farthest corner.
-    const glm::dvec3 l = light.position - anchor;
-    double far_depth = 0;
-    for (const auto& p : corners) far_depth = std::max(far_depth, glm::dot(p - l, w));
-    const double near_depth = 5e-3 * diagonal;
-    far_depth *= 1.01;
-    if (far_depth <= near_depth)
-      return absl::FailedPreconditionError(
-          fmt::format("light.direction: the scene lies behind the spot light at {}", Vec(light.position)));
-    const double tan_half = std::tan(light.cone_angle_deg * std::numbers::pi / 180.0);
-    const double a = (far_depth + near_depth) / (far_depth - near_depth);
-    const double b = -2.0 * far_depth * near_depth / (far_depth - near_depth);
-    setup.light_clip = FromRows({glm::dvec4(u / tan_half, -glm::dot(u, l) / tan_half),
-                                 glm::dvec4(v / tan_half, -glm::dot(v, l) / tan_half),
-                                 glm::dvec4(a * w, -a * glm::dot(w, l) + b), glm::dvec4(w, -glm::dot(w, l))});
-    setup.light_pos = l;
-    setup.tan_half = tan_half;
-    setup.light_reach = far_depth * std::sqrt(1.0 + 2.0 * tan_half * tan_half);
-    setup.cos_outer = std::cos(light.cone_angle_deg * std::numbers::pi / 180.0);
-    setup.cos_inner =
-        std::cos(std::max(0.0, light.cone_angle_deg - light.cone_falloff_deg) * std::numbers::pi / 180.0);
-    setup.normal_offset = 1.5 * 2.0 * tan_half / setup.map_size;
-    // Window depth = (a + b / z) / 2 + 1/2: d/dz = -b / (2 z^2).
-    const double z_mid = std::sqrt(near_depth * far_depth);
-    setup.bias = kMediumBiasTexels * (2.0 * tan_half * z_mid / setup.map_size) * std::abs(b) / (2.0 * z_mid * z_mid);
+    center = 0.5 * (lo + hi);
+    half = glm::max(0.5 * (hi - lo) * 1.01, glm::dvec3(1e-3 * diagonal));
+  };
+  glm::dvec3 center, half;
+  light_frame_box(CornersOf(medium, anchor), center, half);
+  setup.box.center = anchor + center.x * u + center.y * v + center.z * w;
+  setup.box.axis[0] = u;
+  setup.box.axis[1] = v;
+  setup.box.axis[2] = w;
+  setup.box.half_extent = half;
+  const double medium_near = center.z - half.z;
+  double scene_near = medium_near;
+  if (!scene.bounds.Empty())
+    for (const auto& p : CornersOf(scene.bounds, anchor)) scene_near = std::min(scene_near, glm::dot(p, w));
+  if (scene_near < medium_near) {
+    const double far = center.z + half.z;
+    const double near = scene_near - 0.005 * (far - scene_near);
+    center.z = 0.5 * (near + far);
+    half.z = 0.5 * (far - near);
   }
+  setup.medium_start = medium_near - (center.z - half.z);
+  setup.light_clip = FromRows({glm::dvec4(u / half.x, -center.x / half.x), glm::dvec4(v / half.y, -center.y / half.y),
+                               glm::dvec4(w / half.z, -center.z / half.z), glm::dvec4(0, 0, 0, 1)});
+  setup.half_depth = half.z;
+  setup.normal_offset = 1.5 * 2.0 * std::max(half.x, half.y) / setup.map_size;
+  // World depth -> window depth is 1 / (2 half.z).
+  setup.bias = kMediumBiasTexels * 2.0 * std::max(half.x, half.y) / setup.map_size / (2.0 * half.z);
+}
 
-  // The camera: rays through pixel centers, and the matching raster transform.
-  setup.eye = camera.position - anchor;
-  const glm::dvec3 f = glm::normalize(camera.forward);
-  const glm::dvec3 r = glm::normalize(glm::cross(f, camera.up));
-  const glm::dvec3 cu = glm::cross(r, f);
-  const double aspect = double(camera.width) / camera.height;
-  const double tan_y = std::tan(0.5 * camera.vertical_fov_deg * std::numbers::pi / 180.0);
-  setup.cam_forward = f;
-  setup.cam_right = r * tan_y * aspect;
-  setup.cam_up = cu * tan_y;
-  // The raster transform every pinhole image shares (camera.h), over the
-  // medium's bounds as well as the scene's.
-  setup.camera_clip = PinholeClipFromAnchor(camera, anchor, bounds);
+// A spot light's shadow map: a square frustum along its axis.
+Status FrameSpotLight(const VolumetricLight& light, const std::array<glm::dvec3, 8>& corners, const LightFrame& frame,
+                      const glm::dvec3& anchor, double diagonal, Setup& setup) {
+  const auto& [u, v, w] = frame;
+  // The cone's square frustum from a near plane close to the light to
+  // beyond the farthest corner.
+  const glm::dvec3 l = light.position - anchor;
+  double far_depth = 0;
+  for (const auto& p : corners) far_depth = std::max(far_depth, glm::dot(p - l, w));
+  const double near_depth = 5e-3 * diagonal;
+  far_depth *= 1.01;
+  if (far_depth <= near_depth)
+    return absl::FailedPreconditionError(
+        fmt::format("light.direction: the scene lies behind the spot light at {}", Vec(light.position)));
+  const double tan_half = std::tan(light.cone_angle_deg * std::numbers::pi / 180.0);
+  const double a = (far_depth + near_depth) / (far_depth - near_depth);
+  const double b = -2.0 * far_depth * near_depth / (far_depth - near_depth);
+  setup.light_clip = FromRows({glm::dvec4(u / tan_half, -glm::dot(u, l) / tan_half),
+                               glm::dvec4(v / tan_half, -glm::dot(v, l) / tan_half),
+                               glm::dvec4(a * w, -a * glm::dot(w, l) + b), glm::dvec4(w, -glm::dot(w, l))});
+  setup.light_pos = l;
+  setup.tan_half = tan_half;
+  setup.light_reach = far_depth * std::sqrt(1.0 + 2.0 * tan_half * tan_half);
+  setup.cos_outer = std::cos(light.cone_angle_deg * std::numbers::pi / 180.0);
+  setup.cos_inner =
+      std::cos(std::max(0.0, light.cone_angle_deg - light.cone_falloff_deg) * std::numbers::pi / 180.0);
+  setup.normal_offset = 1.5 * 2.0 * tan_half / setup.map_size;
+  // Window depth = (a + b / z) / 2 + 1/2: d/dz = -b / (2 z^2).
+  const double z_mid = std::sqrt(near_depth * far_depth);
+  setup.bias = kMediumBiasTexels * (2.0 * tan_half * z_mid / setup.map_size) * std::abs(b) / (2.0 * z_mid * z_mid);
+  return absl::OkStatus();
+}
 
-  // The epipole: the eye in the shadow map.
-  setup.c0 = setup.light_clip * glm::dvec4(setup.eye, 1.0);
+// The shadow map's rows as slices around the epipole (setup.epipole set).
+void RectifyAroundTheEpipole(Setup& setup) {
   const double n = setup.map_size;
-  if (std::abs(setup.c0.w) < 1e-12 * diagonal)
-    return absl::FailedPreconditionError(fmt::format(
-        "camera.position: {} lies in the spot light's plane (the epipole is at infinity); move it off that plane",
-        Vec(camera.position)));
-  setup.epipole = (glm::dvec2(setup.c0) / setup.c0.w * 0.5 + 0.5) * n;
-  if (glm::length(setup.epipole - glm::dvec2(0.5 * n)) > kMaxEpipoleDistance * n)
-    return absl::FailedPreconditionError(fmt::format(
-        "camera.position: {} projects {} shadow-map widths from the map (more than {}): too close to the spot "
-        "light's plane for float rectification",
-        Vec(camera.position), glm::length(setup.epipole - glm::dvec2(0.5 * n)) / n, kMaxEpipoleDistance));
-
   // Rectification: slices over the full circle when the epipole lies inside
   // the map, else over the angles the map subtends from it.
   const std::array<glm::dvec2, 4> square = {glm::dvec2(0, 0), glm::dvec2(n, 0), glm::dvec2(0, n), glm::dvec2(n, n)};
@@ -308,8 +262,14 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
     setup.r0 = glm::length(nearest - setup.epipole);
   }
   setup.dr = (r_max - setup.r0) / setup.cols;
+}
 
-  // The integrand (see the header).
+// Which integrand the traversal evaluates, and its SVD table if any.
+void ChooseIntegrand(const VolumetricParams& params, const LightFrame& frame, double diagonal, Setup& setup) {
+  const auto& [u, v, w] = frame;
+  const VolumetricLight& light = params.light;
+  const double n = setup.map_size;
+  const std::array<glm::dvec2, 4> square = {glm::dvec2(0, 0), glm::dvec2(n, 0), glm::dvec2(0, n), glm::dvec2(n, n)};
   const bool textured = !light.texture.empty();
   const bool zero_extinction = params.medium.extinction == 0.0 || params.medium.optically_thin;
   if (!setup.spot && !textured) {
@@ -343,6 +303,82 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
     setup.integrand = VolumetricIntegrand::kSvd;
   }
   setup.weighted = setup.integrand != VolumetricIntegrand::kAnalytic;
+}
+
+StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const VolumetricParams& params) {
+  Setup setup;
+  const glm::dvec3 anchor = gpu_scene.anchor();
+  const VolumetricCamera& camera = params.camera;
+  const VolumetricLight& light = params.light;
+  setup.map_size = params.shadow_map_size;
+  setup.rows = setup.cols = params.shadow_map_size;
+  setup.levels = static_cast<uint32_t>(std::countr_zero(setup.cols));
+  setup.width = camera.width;
+  setup.height = camera.height;
+  setup.spot = light.kind == VolumetricLightKind::kSpot;
+
+  // The medium: its box (the scene's bounds unless the request gives one).
+  // The camera sees the scene and the medium; the shadow map covers the
+  // medium and whatever lies between it and the light.
+  const Bounds medium = params.medium_bounds.Empty() ? scene.bounds : params.medium_bounds;
+  if (medium.Empty()) return absl::FailedPreconditionError("volumetric shadows: the scene has no geometry and no medium box");
+  Bounds bounds = medium;
+  if (!scene.bounds.Empty()) {
+    bounds.Extend(scene.bounds.min);
+    bounds.Extend(scene.bounds.max);
+  }
+  setup.medium.Extend(medium.min - anchor);
+  setup.medium.Extend(medium.max - anchor);
+  const double diagonal = std::max(glm::length(bounds.Extent()), 1e-9);
+  const std::array<glm::dvec3, 8> corners = CornersOf(bounds, anchor);
+
+  // The light's frame (LightFrame).
+  const glm::dvec3 w = glm::normalize(light.direction);
+  glm::dvec3 up = light.up;
+  if (glm::length(up) == 0.0) up = std::abs(w.y) > 0.99 ? glm::dvec3(0, 0, 1) : glm::dvec3(0, 1, 0);
+  glm::dvec3 v = up - glm::dot(up, w) * w;
+  if (glm::length(v) < 1e-9) return Invalid(fmt::format("light.up: {} is parallel to light.direction", Vec(light.up)));
+  v = glm::normalize(v);
+  const glm::dvec3 u = glm::cross(w, v);
+  setup.light_dir = w;
+
+  const LightFrame frame{u, v, w};
+  if (setup.spot) {
+    VISQ_RETURN_IF_ERROR(FrameSpotLight(light, corners, frame, anchor, diagonal, setup));
+  } else {
+    FrameDirectionalLight(scene, medium, frame, anchor, diagonal, setup);
+  }
+
+  // The camera: rays through pixel centers, and the matching raster transform.
+  setup.eye = camera.position - anchor;
+  const glm::dvec3 f = glm::normalize(camera.forward);
+  const glm::dvec3 r = glm::normalize(glm::cross(f, camera.up));
+  const glm::dvec3 cu = glm::cross(r, f);
+  const double aspect = double(camera.width) / camera.height;
+  const double tan_y = std::tan(0.5 * camera.vertical_fov_deg * std::numbers::pi / 180.0);
+  setup.cam_forward = f;
+  setup.cam_right = r * tan_y * aspect;
+  setup.cam_up = cu * tan_y;
+  // The raster transform every pinhole image shares (camera.h), over the
+  // medium's bounds as well as the scene's.
+  setup.camera_clip = PinholeClipFromAnchor(camera, anchor, bounds);
+
+  // The epipole: the eye in the shadow map.
+  setup.c0 = setup.light_clip * glm::dvec4(setup.eye, 1.0);
+  const double n = setup.map_size;
+  if (std::abs(setup.c0.w) < 1e-12 * diagonal)
+    return absl::FailedPreconditionError(fmt::format(
+        "camera.position: {} lies in the spot light's plane (the epipole is at infinity); move it off that plane",
+        Vec(camera.position)));
+  setup.epipole = (glm::dvec2(setup.c0) / setup.c0.w * 0.5 + 0.5) * n;
+  if (glm::length(setup.epipole - glm::dvec2(0.5 * n)) > kMaxEpipoleDistance * n)
+    return absl::FailedPreconditionError(fmt::format(
+        "camera.position: {} projects {} shadow-map widths from the map (more than {}): too close to the spot "
+        "light's plane for float rectification",
+        Vec(camera.position), glm::length(setup.epipole - glm::dvec2(0.5 * n)) / n, kMaxEpipoleDistance));
+
+  RectifyAroundTheEpipole(setup);
+  ChooseIntegrand(params, frame, diagonal, setup);
 
   for (const auto& m : scene.materials) setup.albedo.emplace_back(glm::vec3(m.reflectivity), 1.0f);
   if (setup.albedo.empty()) setup.albedo.emplace_back(1.0f);
