@@ -1,5 +1,7 @@
 // Hidden-sample maps on the GPU (Eisemann & Décoret 2007): plans the passes,
-// keeps the Hough tables and programs, runs the draw on the GL thread and
+// keeps the Hough tables and programs, culls the scene's triangle clusters
+// against the shaft (so that a pass draws what lies near the query, not the
+// whole scene), runs the draw on the GL thread and
 // turns the read-back bitmasks into visible fractions (section 8's bit
 // counting is std::popcount on the CPU: the bitmasks are read back anyway).
 #include <algorithm>

@@ -7,6 +7,8 @@
 #include <limits>
 #include <utility>
 
+#include "common/parallel.h"
+
 namespace visq::gpu {
 
 namespace {
@@ -25,24 +27,19 @@ uint32_t Spread(uint32_t v) {
 
 bool Finite(const glm::vec3& p) { return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z); }
 
-// Stable least-significant-digit radix sort of `ids` by `keys` (both
-// permuted): equal codes keep the scene's order, so a build is reproducible.
-void RadixSort(std::vector<uint32_t>& keys, std::vector<uint32_t>& ids) {
+// Stable least-significant-digit radix sort of (code << 32 | triangle) by
+// the code: equal codes keep the scene's order, so a build is reproducible.
+void RadixSortByCode(std::vector<uint64_t>& keys) {
   constexpr int kDigitBits = 10;
-  constexpr uint32_t kDigits = 1u << kDigitBits;
-  std::vector<uint32_t> keys_out(keys.size()), ids_out(ids.size());
-  for (int shift = 0; shift < 3 * kBitsPerAxis; shift += kDigitBits) {
-    std::array<uint32_t, kDigits> start{};
-    for (const uint32_t k : keys) ++start[(k >> shift) & (kDigits - 1)];
-    uint32_t sum = 0;
-    for (uint32_t& s : start) sum += std::exchange(s, sum);
-    for (size_t i = 0; i < keys.size(); ++i) {
-      const uint32_t at = start[(keys[i] >> shift) & (kDigits - 1)]++;
-      keys_out[at] = keys[i];
-      ids_out[at] = ids[i];
-    }
-    keys.swap(keys_out);
-    ids.swap(ids_out);
+  constexpr uint64_t kDigits = uint64_t{1} << kDigitBits;
+  std::vector<uint64_t> sorted(keys.size());
+  for (int shift = 32; shift < 32 + 3 * kBitsPerAxis; shift += kDigitBits) {
+    std::array<size_t, kDigits> start{};
+    for (const uint64_t k : keys) ++start[(k >> shift) & (kDigits - 1)];
+    size_t sum = 0;
+    for (size_t& s : start) sum += std::exchange(s, sum);
+    for (const uint64_t k : keys) sorted[start[(k >> shift) & (kDigits - 1)]++] = k;
+    keys.swap(sorted);
   }
 }
 
@@ -52,74 +49,119 @@ TriangleClusters TriangleClusters::Build(std::span<const glm::vec3> corners, std
   TriangleClusters out;
   const size_t triangles = corners.size() / 3;
   order.resize(triangles);
-  for (size_t t = 0; t < triangles; ++t) order[t] = static_cast<uint32_t>(t);
   if (triangles == 0) return out;
 
   // Morton codes of the centroids over the centroids' bounds; a triangle
   // with a corner that is not finite gets code 0 (its cluster is never culled).
-  std::vector<glm::vec3> centroids(triangles);
+  constexpr size_t kGrain = size_t{1} << 16;
+  const size_t chunks = (triangles + kGrain - 1) / kGrain;
+  std::vector<glm::vec3> chunk_lo(chunks, glm::vec3(std::numeric_limits<float>::max()));
+  std::vector<glm::vec3> chunk_hi(chunks, glm::vec3(std::numeric_limits<float>::lowest()));
+  auto centroid = [&corners](size_t t) { return (corners[3 * t] + corners[3 * t + 1] + corners[3 * t + 2]) / 3.0f; };
+  ParallelFor(triangles, kGrain, [&](size_t begin, size_t end) {
+    glm::vec3& lo = chunk_lo[begin / kGrain];
+    glm::vec3& hi = chunk_hi[begin / kGrain];
+    for (size_t t = begin; t < end; ++t) {
+      const glm::vec3 c = centroid(t);
+      if (!Finite(c)) continue;
+      lo = glm::min(lo, c);
+      hi = glm::max(hi, c);
+    }
+  });
   glm::vec3 lo(std::numeric_limits<float>::max()), hi(std::numeric_limits<float>::lowest());
-  for (size_t t = 0; t < triangles; ++t) {
-    centroids[t] = (corners[3 * t] + corners[3 * t + 1] + corners[3 * t + 2]) / 3.0f;
-    if (!Finite(centroids[t])) continue;
-    lo = glm::min(lo, centroids[t]);
-    hi = glm::max(hi, centroids[t]);
+  for (size_t k = 0; k < chunks; ++k) {
+    lo = glm::min(lo, chunk_lo[k]);
+    hi = glm::max(hi, chunk_hi[k]);
   }
   const glm::vec3 extent = glm::max(hi - lo, glm::vec3(std::numeric_limits<float>::min()));
   constexpr float kCells = float(1 << kBitsPerAxis);
-  std::vector<uint32_t> codes(triangles, 0);
-  for (size_t t = 0; t < triangles; ++t) {
-    if (!Finite(centroids[t])) continue;
-    const glm::vec3 q = glm::clamp((centroids[t] - lo) / extent * kCells, glm::vec3(0.0f), glm::vec3(kCells - 1.0f));
-    codes[t] = Spread(uint32_t(q.x)) << 2 | Spread(uint32_t(q.y)) << 1 | Spread(uint32_t(q.z));
+  std::vector<uint64_t> keys(triangles);
+  ParallelFor(triangles, kGrain, [&](size_t begin, size_t end) {
+    for (size_t t = begin; t < end; ++t) {
+      const glm::vec3 c = centroid(t);
+      uint64_t code = 0;
+      if (Finite(c)) {
+        const glm::vec3 q = glm::clamp((c - lo) / extent * kCells, glm::vec3(0.0f), glm::vec3(kCells - 1.0f));
+        code = Spread(uint32_t(q.x)) << 2 | Spread(uint32_t(q.y)) << 1 | Spread(uint32_t(q.z));
+      }
+      keys[t] = code << 32 | t;
+    }
+  });
+  RadixSortByCode(keys);
+  std::vector<uint32_t> codes(triangles);
+  for (size_t i = 0; i < triangles; ++i) {
+    codes[i] = static_cast<uint32_t>(keys[i] >> 32);
+    order[i] = static_cast<uint32_t>(keys[i]);
   }
-  std::vector<glm::vec3>().swap(centroids);
-  RadixSort(codes, order);
+  std::vector<uint64_t>().swap(keys);
 
-  // Split ranges at the highest differing Morton bit (in the middle where
-  // every code is equal) until each is a cluster; boxes from the leaves up.
+  // The tree: ranges split at the highest differing Morton bit (in the
+  // middle where every code is equal) until each is a cluster.
   out.nodes_.reserve(2 * (triangles / (kMaxClusterTriangles / 2) + 1));
-  auto build = [&](auto& self, uint32_t first, uint32_t last) -> uint32_t {
+  std::vector<uint32_t> leaves;
+  auto split = [&](auto& self, uint32_t first, uint32_t last) -> uint32_t {
     const auto index = static_cast<uint32_t>(out.nodes_.size());
     out.nodes_.push_back({});
     out.nodes_[index].first = first;
     out.nodes_[index].count = last - first;
     if (last - first <= kMaxClusterTriangles) {
-      glm::vec3 box_lo(std::numeric_limits<float>::infinity()), box_hi(-std::numeric_limits<float>::infinity());
-      bool finite = true;
-      for (uint32_t i = first; i < last; ++i)
-        for (int c = 0; c < 3; ++c) {
-          const glm::vec3& p = corners[3 * size_t(order[i]) + c];
-          finite = finite && Finite(p);
-          box_lo = glm::min(box_lo, p);
-          box_hi = glm::max(box_hi, p);
-        }
-      if (!finite) {
-        box_lo = glm::vec3(-std::numeric_limits<float>::infinity());
-        box_hi = glm::vec3(std::numeric_limits<float>::infinity());
-      }
-      out.nodes_[index].lo = box_lo;
-      out.nodes_[index].hi = box_hi;
-      ++out.clusters_;
+      leaves.push_back(index);
       return index;
     }
-    uint32_t split = first + (last - first) / 2;
+    uint32_t middle = first + (last - first) / 2;
     const uint32_t differ = codes[first] ^ codes[last - 1];
     if (differ != 0) {
       const int bit = 31 - std::countl_zero(differ);
-      split = static_cast<uint32_t>(
+      middle = static_cast<uint32_t>(
           std::partition_point(codes.begin() + first, codes.begin() + last,
                                [bit](uint32_t code) { return ((code >> bit) & 1u) == 0; }) -
           codes.begin());
     }
-    const uint32_t left = self(self, first, split);
-    const uint32_t right = self(self, split, last);
-    out.nodes_[index].second_child = right;
-    out.nodes_[index].lo = glm::min(out.nodes_[left].lo, out.nodes_[right].lo);
-    out.nodes_[index].hi = glm::max(out.nodes_[left].hi, out.nodes_[right].hi);
+    self(self, first, middle);
+    out.nodes_[index].second_child = self(self, middle, last);
     return index;
   };
-  build(build, 0, static_cast<uint32_t>(triangles));
+  split(split, 0, static_cast<uint32_t>(triangles));
+  out.clusters_ = leaves.size();
+
+  // The clusters' boxes from their corners (an unbounded box for a corner
+  // that is not finite), read in the scene's order: the corners are read
+  // once, in sequence, while the boxes written stay in cache (gathering
+  // corners in cluster order misses the cache at every triangle of a scene
+  // not already in spatial order).
+  std::vector<uint32_t> leaf_of(triangles);
+  ParallelFor(leaves.size(), 1024, [&](size_t begin, size_t end) {
+    for (size_t k = begin; k < end; ++k) {
+      const Node& node = out.nodes_[leaves[k]];
+      for (uint32_t i = node.first; i < node.first + node.count; ++i) leaf_of[order[i]] = leaves[k];
+    }
+  });
+  for (const uint32_t leaf : leaves) {
+    out.nodes_[leaf].lo = glm::vec3(std::numeric_limits<float>::infinity());
+    out.nodes_[leaf].hi = glm::vec3(-std::numeric_limits<float>::infinity());
+  }
+  std::vector<uint8_t> unbounded(out.nodes_.size(), 0);
+  for (size_t t = 0; t < triangles; ++t) {
+    Node& node = out.nodes_[leaf_of[t]];
+    for (int c = 0; c < 3; ++c) {
+      const glm::vec3& p = corners[3 * t + c];
+      if (!Finite(p)) unbounded[leaf_of[t]] = 1;
+      node.lo = glm::min(node.lo, p);
+      node.hi = glm::max(node.hi, p);
+    }
+  }
+  for (const uint32_t leaf : leaves)
+    if (unbounded[leaf]) {
+      out.nodes_[leaf].lo = glm::vec3(-std::numeric_limits<float>::infinity());
+      out.nodes_[leaf].hi = glm::vec3(std::numeric_limits<float>::infinity());
+    }
+  for (size_t index = out.nodes_.size(); index-- > 0;) {
+    Node& node = out.nodes_[index];
+    if (node.second_child == 0) continue;
+    const Node &left = out.nodes_[index + 1], &right = out.nodes_[node.second_child];
+    node.lo = glm::min(left.lo, right.lo);
+    node.hi = glm::max(left.hi, right.hi);
+  }
   out.nodes_.shrink_to_fit();
   return out;
 }
