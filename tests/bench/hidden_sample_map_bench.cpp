@@ -3,7 +3,7 @@
 // a test.
 //
 //   visq_bench_hidden_sample_map [--quick] [--scenes DIR]
-//   visq_bench_hidden_sample_map --copies 1,4,16,64 [--scenes DIR]
+//   visq_bench_hidden_sample_map --copies 1,4,16,64,300 [--scenes DIR]
 //
 // --quick: receivers 128^2 only, N = 32 and 1024, clouds of 1K and 10K.
 // --copies: what a query costs as the level around it grows. Sponza copied
