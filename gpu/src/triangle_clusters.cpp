@@ -14,6 +14,7 @@ namespace visq::gpu {
 namespace {
 
 constexpr int kBitsPerAxis = 10;  // a 30-bit Morton code
+constexpr size_t kGrain = size_t{1} << 16;  // triangles a parallel chunk
 
 // The low 10 bits of v, two zero bits after each.
 uint32_t Spread(uint32_t v) {
@@ -26,6 +27,48 @@ uint32_t Spread(uint32_t v) {
 }
 
 bool Finite(const glm::vec3& p) { return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z); }
+
+// Where Morton codes are taken: the bounds of a set of centroids.
+struct CentroidBox {
+  glm::dvec3 origin{0.0};
+  glm::dvec3 extent{1.0};
+  // A 30-bit code; 0 for a centroid that is not finite. In double: the
+  // extent of float centroids never overflows there.
+  uint32_t Code(const glm::vec3& c) const {
+    if (!Finite(c)) return 0;
+    constexpr double kCells = double(1 << kBitsPerAxis);
+    const glm::dvec3 q =
+        glm::clamp((glm::dvec3(c) - origin) / extent * kCells, glm::dvec3(0.0), glm::dvec3(kCells - 1));
+    return Spread(uint32_t(q.x)) << 2 | Spread(uint32_t(q.y)) << 1 | Spread(uint32_t(q.z));
+  }
+};
+
+// The box of the finite centroids of triangles triangle_at(0 .. count - 1).
+template <typename TriangleAt, typename Centroid>
+CentroidBox CentroidBounds(size_t count, TriangleAt triangle_at, Centroid centroid) {
+  const size_t chunks = (count + kGrain - 1) / kGrain;
+  std::vector<glm::vec3> chunk_lo(chunks, glm::vec3(std::numeric_limits<float>::max()));
+  std::vector<glm::vec3> chunk_hi(chunks, glm::vec3(std::numeric_limits<float>::lowest()));
+  ParallelFor(count, kGrain, [&](size_t begin, size_t end) {
+    glm::vec3& lo = chunk_lo[begin / kGrain];
+    glm::vec3& hi = chunk_hi[begin / kGrain];
+    for (size_t k = begin; k < end; ++k) {
+      const glm::vec3 c = centroid(triangle_at(k));
+      if (!Finite(c)) continue;
+      lo = glm::min(lo, c);
+      hi = glm::max(hi, c);
+    }
+  });
+  glm::vec3 lo(std::numeric_limits<float>::max()), hi(std::numeric_limits<float>::lowest());
+  for (size_t k = 0; k < chunks; ++k) {
+    lo = glm::min(lo, chunk_lo[k]);
+    hi = glm::max(hi, chunk_hi[k]);
+  }
+  CentroidBox box;
+  box.origin = glm::dvec3(lo);
+  box.extent = glm::max(glm::dvec3(hi) - box.origin, glm::dvec3(1e-300));
+  return box;
+}
 
 // Stable least-significant-digit radix sort of (code << 32 | triangle) by
 // the code: equal codes keep the scene's order, so a build is reproducible.
@@ -53,47 +96,41 @@ TriangleClusters TriangleClusters::Build(std::span<const glm::vec3> corners, std
 
   // Morton codes of the centroids over the centroids' bounds; a triangle
   // with a corner that is not finite gets code 0 (its cluster is never culled).
-  constexpr size_t kGrain = size_t{1} << 16;
-  const size_t chunks = (triangles + kGrain - 1) / kGrain;
-  std::vector<glm::vec3> chunk_lo(chunks, glm::vec3(std::numeric_limits<float>::max()));
-  std::vector<glm::vec3> chunk_hi(chunks, glm::vec3(std::numeric_limits<float>::lowest()));
   auto centroid = [&corners](size_t t) { return (corners[3 * t] + corners[3 * t + 1] + corners[3 * t + 2]) / 3.0f; };
-  ParallelFor(triangles, kGrain, [&](size_t begin, size_t end) {
-    glm::vec3& lo = chunk_lo[begin / kGrain];
-    glm::vec3& hi = chunk_hi[begin / kGrain];
-    for (size_t t = begin; t < end; ++t) {
-      const glm::vec3 c = centroid(t);
-      if (!Finite(c)) continue;
-      lo = glm::min(lo, c);
-      hi = glm::max(hi, c);
-    }
-  });
-  glm::vec3 lo(std::numeric_limits<float>::max()), hi(std::numeric_limits<float>::lowest());
-  for (size_t k = 0; k < chunks; ++k) {
-    lo = glm::min(lo, chunk_lo[k]);
-    hi = glm::max(hi, chunk_hi[k]);
-  }
-  const glm::vec3 extent = glm::max(hi - lo, glm::vec3(std::numeric_limits<float>::min()));
-  constexpr float kCells = float(1 << kBitsPerAxis);
   std::vector<uint64_t> keys(triangles);
-  ParallelFor(triangles, kGrain, [&](size_t begin, size_t end) {
-    for (size_t t = begin; t < end; ++t) {
-      const glm::vec3 c = centroid(t);
-      uint64_t code = 0;
-      if (Finite(c)) {
-        const glm::vec3 q = glm::clamp((c - lo) / extent * kCells, glm::vec3(0.0f), glm::vec3(kCells - 1.0f));
-        code = Spread(uint32_t(q.x)) << 2 | Spread(uint32_t(q.y)) << 1 | Spread(uint32_t(q.z));
-      }
-      keys[t] = code << 32 | t;
-    }
-  });
+  {
+    const CentroidBox box = CentroidBounds(triangles, [](size_t t) { return t; }, centroid);
+    ParallelFor(triangles, kGrain, [&](size_t begin, size_t end) {
+      for (size_t t = begin; t < end; ++t) keys[t] = uint64_t{box.Code(centroid(t))} << 32 | t;
+    });
+  }
   RadixSortByCode(keys);
-  std::vector<uint32_t> codes(triangles);
+  std::vector<uint64_t> codes(triangles);
   for (size_t i = 0; i < triangles; ++i) {
-    codes[i] = static_cast<uint32_t>(keys[i] >> 32);
+    codes[i] = keys[i] & ~uint64_t{0xffffffff};
     order[i] = static_cast<uint32_t>(keys[i]);
   }
   std::vector<uint64_t>().swap(keys);
+
+  // A cell holding more than a cluster, in a scene whose extent a few far
+  // triangles set (a sky dome around a level), is coded again over its own
+  // centroids' bounds, into the low half of the code: else the level would
+  // sit in a handful of cells and its clusters would cut across it.
+  for (size_t i = 0; i < triangles;) {
+    size_t j = i + 1;
+    while (j < triangles && codes[j] == codes[i]) ++j;
+    if (j - i > kMaxClusterTriangles) {
+      const CentroidBox box = CentroidBounds(j - i, [&](size_t k) { return order[i + k]; }, centroid);
+      std::vector<uint64_t> fine(j - i);
+      for (size_t k = i; k < j; ++k) fine[k - i] = uint64_t{box.Code(centroid(order[k]))} << 32 | order[k];
+      std::sort(fine.begin(), fine.end());
+      for (size_t k = i; k < j; ++k) {
+        codes[k] |= fine[k - i] >> 32;
+        order[k] = static_cast<uint32_t>(fine[k - i]);
+      }
+    }
+    i = j;
+  }
 
   // The tree: ranges split at the highest differing Morton bit (in the
   // middle where every code is equal) until each is a cluster.
@@ -109,12 +146,12 @@ TriangleClusters TriangleClusters::Build(std::span<const glm::vec3> corners, std
       return index;
     }
     uint32_t middle = first + (last - first) / 2;
-    const uint32_t differ = codes[first] ^ codes[last - 1];
+    const uint64_t differ = codes[first] ^ codes[last - 1];
     if (differ != 0) {
-      const int bit = 31 - std::countl_zero(differ);
+      const int bit = 63 - std::countl_zero(differ);
       middle = static_cast<uint32_t>(
           std::partition_point(codes.begin() + first, codes.begin() + last,
-                               [bit](uint32_t code) { return ((code >> bit) & 1u) == 0; }) -
+                               [bit](uint64_t code) { return ((code >> bit) & 1u) == 0; }) -
           codes.begin());
     }
     self(self, first, middle);

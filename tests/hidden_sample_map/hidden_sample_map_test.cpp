@@ -701,8 +701,11 @@ TEST(TriangleClusters, CullDropsOnlyWhatTheShaderDrops) {
     const glm::vec3 c(u(rng), u(rng), u(rng));
     for (int k = 0; k < 3; ++k) corners.push_back(c + glm::vec3(small(rng), small(rng), small(rng)));
   }
-  // One triangle with a corner that is not finite: never dropped.
+  // One triangle with a corner that is not finite: never dropped. Two with
+  // corners near the float range's ends, whose extent overflows a float.
   corners[3 * 77] = glm::vec3(std::numeric_limits<float>::quiet_NaN());
+  corners[3 * 78] = glm::vec3(3e38f, -3e38f, 3e38f);
+  corners[3 * 79 + 1] = glm::vec3(-3e38f, 3e38f, -3e38f);
   std::vector<uint32_t> order;
   const TriangleClusters clusters = TriangleClusters::Build(corners, order);
   ASSERT_EQ(clusters.triangle_count(), 5000u);

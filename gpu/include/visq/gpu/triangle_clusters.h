@@ -1,9 +1,11 @@
 // A bounding-volume hierarchy over clusters of a scene's triangles, so that a
 // draw pays for the triangles near a query instead of the whole scene.
 //
-// The triangles are put in Morton order of their centroids and split, the
-// way a linear BVH is (Lauterbach et al. 2009), at the highest Morton bit
-// that differs until a range holds at most kMaxClusterTriangles: each node
+// The triangles are put in Morton order of their centroids (a cell holding
+// more than a cluster coded again over its own bounds, so that a few far
+// triangles do not squeeze the rest into a few cells) and split, the way a
+// linear BVH is (Lauterbach et al. 2009), at the highest Morton bit that
+// differs until a range holds at most kMaxClusterTriangles: each node
 // covers one contiguous range of that order, so whatever survives a cull is
 // a few index ranges of one element buffer (GpuScene keeps it on the GPU).
 // Pure CPU and immutable once built: any thread may cull.
