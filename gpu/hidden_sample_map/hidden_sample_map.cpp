@@ -1,5 +1,7 @@
 // Hidden-sample maps on the GPU (Eisemann & Décoret 2007): plans the passes,
-// keeps the Hough tables and programs, runs the draw on the GL thread and
+// keeps the Hough tables and programs, culls the scene's triangle clusters
+// against the shaft (so that a pass draws what lies near the query, not the
+// whole scene), runs the draw on the GL thread and
 // turns the read-back bitmasks into visible fractions (section 8's bit
 // counting is std::popcount on the CPU: the bitmasks are read back anyway).
 #include <algorithm>
@@ -294,6 +296,31 @@ StatusOr<MapFrames> PlanFrames(const HiddenSampleMapRequest& request, const GpuS
   return f;
 }
 
+// What each pass draws: the whole scene in upload order, or the index
+// ranges of the clusters the shaft keeps (which hold every triangle the
+// geometry shader's shaft test keeps, so the bits are the same).
+struct DrawList {
+  bool everything = true;
+  std::vector<GLsizei> counts;        // corners a range
+  std::vector<const void*> offsets;   // byte offsets into the element buffer
+  uint64_t triangles = 0;
+};
+
+DrawList PlanDraw(const GpuScene& scene, const MapFrames& frames, bool cull_clusters) {
+  DrawList list;
+  if (!cull_clusters) {
+    list.triangles = scene.triangle_count();
+    return list;
+  }
+  list.everything = false;
+  for (const TriangleClusters::Range& range : scene.clusters().Cull(frames.shaft_planes)) {
+    list.counts.push_back(static_cast<GLsizei>(3 * range.count));
+    list.offsets.push_back(reinterpret_cast<const void*>(size_t(3) * range.first * sizeof(uint32_t)));
+    list.triangles += range.count;
+  }
+  return list;
+}
+
 // How the bitmask targets are split: EXACT writes `groups` uvec4 targets,
 // HOUGH twice as many (maybe and surely blocked), at most max_draw_buffers
 // per pass; and the receiver into bands of rows.
@@ -352,8 +379,8 @@ void SetPassUniforms(const GlProgram& p, const MapFrames& f, const HiddenSampleM
 // One band of receiver rows [first_row, first_row + rows), every pass, read
 // back into `readback` (target layers x band texels x uvec4). GL thread.
 Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, const HiddenSampleMapRequest& request,
-                const PassPlan& plan, int max_draw_buffers, int first_row, int rows, const JobOptions& job,
-                std::vector<uint32_t>& readback) {
+                const DrawList& draw, const PassPlan& plan, int max_draw_buffers, int first_row, int rows,
+                const JobOptions& job, std::vector<uint32_t>& readback) {
   const int width = request.receiver.width, height = request.receiver.height;
   VISQ_RETURN_IF_ERROR(EnsureTableOnGpu(table, plan.groups));
   GlTexture2DArray targets;
@@ -414,7 +441,11 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
     const GLuint zero[4] = {0, 0, 0, 0};
     for (int k = 0; k < attached; ++k) glClearBufferuiv(GL_COLOR, k, zero);
     glUseProgram(program->id());
-    glDrawArrays(GL_TRIANGLES, 0, vertex_count);
+    if (draw.everything)
+      glDrawArrays(GL_TRIANGLES, 0, vertex_count);
+    else if (!draw.counts.empty())
+      glMultiDrawElements(GL_TRIANGLES, draw.counts.data(), GL_UNSIGNED_INT, draw.offsets.data(),
+                          static_cast<GLsizei>(draw.counts.size()));
     VISQ_GL_CHECK("hidden-sample map pass");
   }
   glDisable(GL_COLOR_LOGIC_OP);
@@ -489,6 +520,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     centred.emplace_back(static_cast<float>(uv.x - 0.5), static_cast<float>(uv.y - 0.5));
   std::shared_ptr<Table> table = CachedTable(*state_, *worker_, centred, options, result.table_ms);
   VISQ_ASSIGN_OR_RETURN(const MapFrames frames, PlanFrames(request, scene));
+  const DrawList draw = PlanDraw(scene, frames, options_.cull_clusters);
   const PassPlan plan = PlanPasses(table->layout.groups(), options.lookup == LookupMode::kExact,
                                    state_->max_draw_buffers, width, height, options_.band_readback_bytes);
   result.passes = plan.passes;
@@ -504,7 +536,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     const int rows = std::min(plan.band_rows, height - first_row);
     JobTiming band_timing;
     VISQ_RETURN_IF_ERROR(worker_->Run(job, [&]() -> Status {
-      return DrawBand(scene, *table, frames, request, plan, max_draw_buffers, first_row, rows, job, readback);
+      return DrawBand(scene, *table, frames, request, draw, plan, max_draw_buffers, first_row, rows, job, readback);
     }, &band_timing));
     result.timing.queue_ms += band_timing.queue_ms;
     result.timing.run_ms += band_timing.run_ms;
@@ -517,6 +549,13 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   result.error.sampling = SamplingErrorBound(n, options.confidence);
   result.error.rigorous = SamplesAreIndependentStrata(request);
   return result;
+}
+
+StatusOr<uint64_t> HiddenSampleMapper::TrianglesDrawnPerPass(const GpuScene& scene,
+                                                            const HiddenSampleMapRequest& request) const {
+  VISQ_RETURN_IF_ERROR(ValidateHiddenSampleMapRequest(request));
+  VISQ_ASSIGN_OR_RETURN(const MapFrames frames, PlanFrames(request, scene));
+  return PlanDraw(scene, frames, options_.cull_clusters).triangles;
 }
 
 StatusOr<PatchVisibilityResult> HiddenSampleMapper::PatchVisibility(const GpuScene& scene,

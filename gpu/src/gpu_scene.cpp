@@ -22,6 +22,15 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
   corners.reserve(scene.TriangleCount() * 3);
   for (size_t t = 0; t < scene.TriangleCount(); ++t)
     for (int c = 0; c < 3; ++c) corners.emplace_back(scene.Vertex(t, c) - out->anchor_);
+  // The cluster hierarchy, over the very floats the GPU gets, and its order
+  // as corner indices for the element buffer.
+  std::vector<uint32_t> order;
+  out->clusters_ = TriangleClusters::Build(corners, order);
+  std::vector<uint32_t> cluster_corners;
+  cluster_corners.reserve(order.size() * 3);
+  for (const uint32_t t : order)
+    for (uint32_t c = 0; c < 3; ++c) cluster_corners.push_back(3 * t + c);
+  std::vector<uint32_t>().swap(order);
 
   Status status = worker.Run({}, [&]() -> Status {
     auto resources = std::make_shared<Resources>();
@@ -33,7 +42,11 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
     glNamedBufferStorage(resources->triangle_materials.id(),
                          std::max<size_t>(scene.triangle_material.size(), 1) * sizeof(uint32_t),
                          scene.triangle_material.empty() ? &no_material : scene.triangle_material.data(), 0);
+    const uint32_t no_index = 0;
+    glNamedBufferStorage(resources->cluster_order.id(), std::max<size_t>(cluster_corners.size(), 1) * sizeof(uint32_t),
+                         cluster_corners.empty() ? &no_index : cluster_corners.data(), 0);
     const GLuint vao = resources->vertex_array.id();
+    glVertexArrayElementBuffer(vao, resources->cluster_order.id());
     glVertexArrayVertexBuffer(vao, 0, resources->positions.id(), 0, sizeof(glm::vec3));
     glEnableVertexArrayAttrib(vao, 0);
     glVertexArrayAttribFormat(vao, 0, 3, GL_FLOAT, GL_FALSE, 0);
@@ -45,7 +58,8 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
     return absl::OkStatus();
   });
   VISQ_RETURN_IF_ERROR(status);
-  out->gpu_bytes_ = corners.size() * sizeof(glm::vec3) + scene.triangle_material.size() * sizeof(uint32_t);
+  out->gpu_bytes_ = corners.size() * sizeof(glm::vec3) + scene.triangle_material.size() * sizeof(uint32_t) +
+                    cluster_corners.size() * sizeof(uint32_t);
   return out;
 }
 

@@ -20,12 +20,13 @@ namespace visq::core {
 //     of which Embree's float32 copy of the vertices is 12 a vertex; the rest
 //     78.9-82.3 a triangle (HIGH: 82.4-102.5 in all).
 //   triangle index (exact::SceneTriangleIndex): 73.9-83.6 a triangle.
-//   GPU buffers: 40 a triangle exactly (3 float32 corners, a material index).
+//   GPU buffers: 52 a triangle exactly (3 float32 corners, a material index,
+//     3 element indices in the order of the triangle cluster hierarchy).
 // Each constant is the largest measured, rounded up.
 inline constexpr uint64_t kEmbreeBvhBytesPerTriangle = 84;
 inline constexpr uint64_t kEmbreeBvhBytesPerVertex = 12;
 inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 86;
-inline constexpr uint64_t kGpuBytesPerTriangle = 40;
+inline constexpr uint64_t kGpuBytesPerTriangle = 52;
 
 struct StructureEstimate {
   uint64_t scene_bytes = 0;           // the geometry as loaded (Scene::CpuBytes)

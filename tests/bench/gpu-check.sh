@@ -107,6 +107,7 @@ if grep -qi 'llvmpipe\|softpipe' "$out/renderer.log" 2> /dev/null; then
 fi
 step gpu-test-suites 120 ctest --test-dir "$build" -L gpu -LE slow --output-on-failure -j4 --timeout 300
 step bench-hidden-sample-map 60 "$bench/visq_bench_hidden_sample_map" --quick --scenes "$scenes"
+step bench-hsm-copies 60 "$bench/visq_bench_hidden_sample_map" --copies 1,64 --scenes "$scenes"
 step bench-slicemap 60 "$bench/visq_bench_slicemap" "$scenes" 3 2
 step bench-volumetric 60 "$bench/visq_bench_volumetric" --quick --scene "$scenes/sponza_dabrovic/sponza.gltf"
 step bench-obscurance 60 "$bench/visq_bench_obscurance" --quick --scenes "$scenes"

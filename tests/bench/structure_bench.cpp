@@ -29,6 +29,7 @@
 #include "exact/light_visibility.h"
 #include "raycast/embree_scene.h"
 #include "scene/gltf_loader.h"
+#include "large_scene.h"
 #include "visq/gpu/gpu_scene.h"
 
 using namespace visq;
@@ -37,29 +38,6 @@ using Clock = std::chrono::steady_clock;
 namespace {
 
 double Ms(Clock::time_point a) { return std::chrono::duration<double, std::milli>(Clock::now() - a).count(); }
-
-// `copies` copies of `scene` on a square grid, one scene extent apart.
-Scene Copies(const Scene& scene, int copies) {
-  if (copies <= 1) return scene;
-  Scene out;
-  out.materials = scene.materials;
-  out.nodes = scene.nodes;
-  const int side = int(std::ceil(std::sqrt(double(copies))));
-  const glm::dvec3 e = scene.bounds.Extent();
-  for (int c = 0; c < copies; ++c) {
-    const glm::dvec3 offset(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side));
-    const auto base = static_cast<uint32_t>(out.positions.size());
-    for (const glm::dvec3& p : scene.positions) {
-      out.positions.push_back(p + offset);
-      out.bounds.Extend(p + offset);
-    }
-    for (const glm::uvec3& t : scene.triangles) out.triangles.push_back(t + glm::uvec3(base));
-    out.triangle_material.insert(out.triangle_material.end(), scene.triangle_material.begin(),
-                                 scene.triangle_material.end());
-    out.triangle_node.insert(out.triangle_node.end(), scene.triangle_node.begin(), scene.triangle_node.end());
-  }
-  return out;
-}
 
 struct Trace {
   std::vector<raycast::Segment> segments;
@@ -126,7 +104,7 @@ int main(int argc, char** argv) {
     }
     const Trace trace = MakeTrace(*loaded);
     for (int n : {1, copies}) {
-      const Scene scene = Copies(*loaded, n);
+      const Scene scene = testing::MakeCopies(*loaded, n);
       const double tris = double(scene.TriangleCount());
       const std::string name = std::filesystem::path(file).stem().string() + (n > 1 ? " x" + std::to_string(n) : "");
       // The exact method's index and the GPU buffers.

@@ -7,6 +7,8 @@
 // triangle edge's shadow can fall either way; nothing else may differ.
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <optional>
 #include <random>
 
 #include <gtest/gtest.h>
@@ -16,9 +18,11 @@
 #include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
 #include "gpu_test_support.h"
+#include "large_scene.h"
 #include "test_support.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/hidden_sample_map.h"
+#include "visq/gpu/triangle_clusters.h"
 
 namespace visq::gpu {
 
@@ -680,6 +684,159 @@ TEST(HiddenSampleMapEmbree, SourceInsideAWindowTrimGivesTheRayCastBits) {
       EXPECT_GT(a.blocked_fraction(), 0.003);
     }
   }
+}
+
+
+// ------------------------------------------------------- cluster culling
+
+// The cluster hierarchy alone (no context): every triangle once in its
+// order, and a cull drops only triangles that the geometry shader's own
+// float test (every corner below one plane) would drop, also for planes
+// through the very corners of the clusters' boxes.
+TEST(TriangleClusters, CullDropsOnlyWhatTheShaderDrops) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> u(-10.0f, 10.0f), small(-0.3f, 0.3f);
+  std::vector<glm::vec3> corners;
+  for (int t = 0; t < 5000; ++t) {
+    const glm::vec3 c(u(rng), u(rng), u(rng));
+    for (int k = 0; k < 3; ++k) corners.push_back(c + glm::vec3(small(rng), small(rng), small(rng)));
+  }
+  // One triangle with a corner that is not finite: never dropped. Two with
+  // corners near the float range's ends, whose extent overflows a float.
+  corners[3 * 77] = glm::vec3(std::numeric_limits<float>::quiet_NaN());
+  corners[3 * 78] = glm::vec3(3e38f, -3e38f, 3e38f);
+  corners[3 * 79 + 1] = glm::vec3(-3e38f, 3e38f, -3e38f);
+  std::vector<uint32_t> order;
+  const TriangleClusters clusters = TriangleClusters::Build(corners, order);
+  ASSERT_EQ(clusters.triangle_count(), 5000u);
+  std::vector<uint32_t> sorted = order;
+  std::sort(sorted.begin(), sorted.end());
+  for (uint32_t t = 0; t < 5000; ++t) ASSERT_EQ(sorted[t], t);
+  EXPECT_GE(clusters.cluster_count(), 5000u / TriangleClusters::kMaxClusterTriangles);
+  EXPECT_EQ(clusters.node_count(), 2 * clusters.cluster_count() - 1);
+  EXPECT_EQ(clusters.Cull({}), (std::vector<TriangleClusters::Range>{{0, 5000}}));
+
+  auto shader_drops = [&](uint32_t t, const std::vector<glm::vec4>& planes) {
+    for (const glm::vec4& p : planes) {
+      bool below = true;
+      for (int k = 0; k < 3; ++k) below = below && glm::dot(glm::vec3(p), corners[3 * t + k]) + p.w < 0.0f;
+      if (below) return true;
+    }
+    return false;
+  };
+  std::normal_distribution<float> normal(0.0f, 1.0f);
+  size_t dropped_total = 0;
+  for (int round = 0; round < 60; ++round) {
+    // Random slabs, and axis planes through a corner (where a box's face
+    // lies on the plane, and its triangles must stay).
+    std::vector<glm::vec4> planes;
+    for (int k = 0; k < 4; ++k) {
+      const glm::vec3 n = glm::normalize(glm::vec3(normal(rng), normal(rng), normal(rng)));
+      planes.emplace_back(n, 4.0f - glm::dot(n, glm::vec3(u(rng), u(rng), u(rng))));
+    }
+    const glm::vec3& corner = corners[3 * (rng() % 5000) + rng() % 3];
+    const int axis = round % 3;
+    glm::vec4 through(0.0f);
+    through[axis] = (round & 1) ? 1.0f : -1.0f;
+    through.w = -through[axis] * corner[axis];
+    planes.push_back(through);
+    std::vector<uint8_t> kept(5000, 0);
+    std::optional<uint32_t> previous_end;
+    for (const TriangleClusters::Range& range : clusters.Cull(planes)) {
+      if (previous_end) {
+        EXPECT_GT(range.first, *previous_end) << "ranges ascend and are merged";
+      }
+      previous_end = range.first + range.count;
+      for (uint32_t i = range.first; i < range.first + range.count; ++i) kept[order[i]] = 1;
+    }
+    for (uint32_t t = 0; t < 5000; ++t) {
+      if (kept[t]) continue;
+      ++dropped_total;
+      EXPECT_TRUE(shader_drops(t, planes)) << "triangle " << t << " dropped, round " << round;
+    }
+    EXPECT_TRUE(kept[77]);
+  }
+  EXPECT_GT(dropped_total, 60u * 1000u) << "the culling should drop most triangles";
+}
+
+// A query at one copy of a level of copies: drawing only the clusters in
+// the shaft gives the bits of drawing everything, for the exact and the
+// Hough lookups, with a bumpy receiver and decorrelated samples (both widen
+// the shaft), and draws a small part of the level.
+TEST(HiddenSampleMap, CulledClustersGiveTheBitsOfDrawingEverything) {
+  const Scene level = testing::MakeCopies(RandomCloud(300, 31, {-0.2, 0.2, -0.2}, {1.2, 0.95, 1.2}, 0.08), 16);
+  auto gpu_scene = Upload(level);
+  ASSERT_TRUE(gpu_scene);
+  HiddenSampleMapperOptions draw_all;
+  draw_all.cull_clusters = false;
+  auto all_mapper = HiddenSampleMapper::Create(testing::SharedGpuWorker(), draw_all);
+  ASSERT_TRUE(all_mapper.ok()) << all_mapper.status();
+  HiddenSampleMapRequest r = UnitRequest(200, 20);
+  for (const bool bumpy : {false, true}) {
+    SCOPED_TRACE(bumpy ? "bumpy, decorrelated" : "flat");
+    r.receiver.heightfield.clear();
+    if (bumpy)
+      for (int k = 0; k < 20 * 20; ++k) r.receiver.heightfield.push_back(0.15f * std::sin(0.9f * k));
+    r.options.decorrelate = bumpy;
+    for (const LookupMode lookup : {LookupMode::kExact, LookupMode::kHough}) {
+      r.options.lookup = lookup;
+      auto culled = Mapper().Compute(*gpu_scene, r);
+      auto all = (*all_mapper)->Compute(*gpu_scene, r);
+      ASSERT_TRUE(culled.ok()) << culled.status();
+      ASSERT_TRUE(all.ok()) << all.status();
+      EXPECT_EQ(culled->blocked_bits, all->blocked_bits);
+      EXPECT_EQ(culled->visible_fraction, all->visible_fraction);
+      EXPECT_EQ(culled->error.lookup_per_texel, all->error.lookup_per_texel);
+      EXPECT_EQ(culled->error.lookup_max, all->error.lookup_max);
+      const auto [lo, hi] = std::minmax_element(all->visible_fraction.begin(), all->visible_fraction.end());
+      EXPECT_LT(*lo, 1.0f);
+      EXPECT_GT(*hi, 0.0f);
+    }
+    auto drawn = Mapper().TrianglesDrawnPerPass(*gpu_scene, r);
+    auto drawn_all = (*all_mapper)->TrianglesDrawnPerPass(*gpu_scene, r);
+    ASSERT_TRUE(drawn.ok() && drawn_all.ok());
+    EXPECT_EQ(*drawn_all, level.TriangleCount());
+    EXPECT_LT(*drawn, level.TriangleCount() / 4) << "one copy of 16 and its neighbours' edges";
+    EXPECT_GT(*drawn, 0u);
+  }
+}
+
+// The same on a real level: four copies of Sponza, the query in the first.
+TEST(HiddenSampleMapRealScenes, SponzaCopiesCulledGiveTheBitsOfDrawingEverything) {
+  VISQ_REQUIRE_SHARED_SCENES(dir);
+  const Scene sponza = LoadOrFail(dir / "sponza_dabrovic/sponza.gltf");
+  ASSERT_GT(sponza.TriangleCount(), 0u);
+  const Scene level = testing::MakeCopies(sponza, 4);
+  auto gpu_scene = Upload(level);
+  ASSERT_TRUE(gpu_scene);
+  HiddenSampleMapperOptions draw_all;
+  draw_all.cull_clusters = false;
+  auto all_mapper = HiddenSampleMapper::Create(testing::SharedGpuWorker(), draw_all);
+  ASSERT_TRUE(all_mapper.ok()) << all_mapper.status();
+  // A light patch high in the atrium, the atrium floor (at y = 0.135, far
+  // above the foundations' bounds) as receiver, as the benchmark queries.
+  const glm::dvec3 lo = sponza.bounds.min, e = sponza.bounds.Extent(), m = sponza.bounds.Center();
+  const double ls = 0.08 * e.x;
+  HiddenSampleMapRequest r = SceneRequest(sponza, 0.75, 0.1, 128, 24);
+  r.source.patch = {{m.x - ls / 2, lo.y + 0.75 * e.y, m.z - ls / 2}, {ls, 0, 0}, {0, 0, ls}};
+  r.receiver.patch = {{lo.x + 0.15 * e.x, 0.135, m.z - 0.2 * e.z}, {0.7 * e.x, 0, 0}, {0, 0, 0.4 * e.z}};
+  r.options.decorrelate = true;
+  for (const LookupMode lookup : {LookupMode::kExact, LookupMode::kHough}) {
+    r.options.lookup = lookup;
+    auto culled = Mapper().Compute(*gpu_scene, r);
+    auto all = (*all_mapper)->Compute(*gpu_scene, r);
+    ASSERT_TRUE(culled.ok()) << culled.status();
+    ASSERT_TRUE(all.ok()) << all.status();
+    EXPECT_EQ(culled->blocked_bits, all->blocked_bits);
+    EXPECT_EQ(culled->visible_fraction, all->visible_fraction);
+    EXPECT_EQ(culled->error.lookup_per_texel, all->error.lookup_per_texel);
+    const auto [lo, hi] = std::minmax_element(all->visible_fraction.begin(), all->visible_fraction.end());
+    EXPECT_LT(*lo, 1.0f);
+    EXPECT_GT(*hi, 0.0f);
+  }
+  auto drawn = Mapper().TrianglesDrawnPerPass(*gpu_scene, r);
+  ASSERT_TRUE(drawn.ok()) << drawn.status();
+  EXPECT_LT(*drawn, sponza.TriangleCount()) << "at most the first copy's share";
 }
 
 }  // namespace

@@ -1,10 +1,12 @@
-// A generated scene of any size, for tests whose point is a long structure
-// build (an Embree BVH of millions of triangles): a rippled square grid,
-// header-only so that suites which already link visq_scene use it without a
-// library of their own.
+// Generated scenes of any size, for tests and benchmarks whose point is a
+// large scene (an Embree BVH of millions of triangles, a level of repeated
+// meshes): a rippled square grid and copies of a scene side by side,
+// header-only so that suites which already link visq_scene use them without
+// a library of their own.
 #pragma once
 
 #include <cmath>
+#include <cstdint>
 #include <string>
 
 #include "scene/scene.h"
@@ -38,6 +40,31 @@ inline Scene MakeRippledGrid(int cells) {
   scene.nodes.push_back(node);
   for (const glm::dvec3& p : scene.positions) scene.bounds.Extend(p);
   return scene;
+}
+
+// `copies` copies of `scene` on a square grid in x and z, one tenth of the
+// scene's extent apart, the first where `scene` is: a level made of one
+// repeated mesh, flattened as the loader flattens instances.
+inline Scene MakeCopies(const Scene& scene, int copies) {
+  if (copies <= 1) return scene;
+  Scene out;
+  out.materials = scene.materials;
+  out.nodes = scene.nodes;
+  const int side = int(std::ceil(std::sqrt(double(copies))));
+  const glm::dvec3 e = scene.bounds.Extent();
+  for (int c = 0; c < copies; ++c) {
+    const glm::dvec3 offset(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side));
+    const auto base = static_cast<uint32_t>(out.positions.size());
+    for (const glm::dvec3& p : scene.positions) {
+      out.positions.push_back(p + offset);
+      out.bounds.Extend(p + offset);
+    }
+    for (const glm::uvec3& t : scene.triangles) out.triangles.push_back(t + glm::uvec3(base));
+    out.triangle_material.insert(out.triangle_material.end(), scene.triangle_material.begin(),
+                                 scene.triangle_material.end());
+    out.triangle_node.insert(out.triangle_node.end(), scene.triangle_node.begin(), scene.triangle_node.end());
+  }
+  return out;
 }
 
 }  // namespace visq::testing

@@ -13,6 +13,7 @@
 #include "common/status.h"
 #include "scene/scene.h"
 #include "visq/gpu/gpu_worker.h"
+#include "visq/gpu/triangle_clusters.h"
 
 namespace visq::gpu {
 
@@ -30,6 +31,9 @@ class GpuScene {
   const Bounds& bounds() const { return bounds_; }  // of the positions uploaded, world space
   uint32_t triangle_count() const { return triangle_count_; }
   uint64_t gpu_bytes() const { return gpu_bytes_; }
+  // The hierarchy over the triangles' clusters, built at upload; its order
+  // is the GPU's element buffer (see src/gpu_scene_resources.h).
+  const TriangleClusters& clusters() const { return clusters_; }
 
   // The worker's context generation the buffers were made in: a cache
   // holding this scene re-uploads when the worker's generation moved on.
@@ -48,6 +52,7 @@ class GpuScene {
   std::shared_ptr<Resources> resources_;
   glm::dvec3 anchor_{0.0};
   Bounds bounds_;
+  TriangleClusters clusters_;
   uint32_t triangle_count_ = 0;
   uint64_t gpu_bytes_ = 0;
   uint64_t generation_ = 0;

@@ -21,6 +21,12 @@ struct HiddenSampleMapperOptions {
   // bitmask cap never holds its GL targets' copy whole, and other queries
   // get the GL thread between bands. The bits are those of one full draw.
   size_t band_readback_bytes = size_t{64} << 20;
+  // Each pass draws only the scene's triangle clusters (GpuScene::clusters())
+  // that are not wholly outside a plane of the shaft, the convex hull of
+  // source and receiver: a query costs what lies near it, not the whole
+  // scene. The geometry shader drops every triangle of the other clusters
+  // anyway, so the bits are those of drawing everything, which `false` does.
+  bool cull_clusters = true;
 };
 
 // Owns a small cache of Hough tables (keyed by the sample
@@ -41,6 +47,10 @@ class HiddenSampleMapper {
                                                                   const sampling::HiddenSampleMapRequest& request,
                                                                   const JobOptions& job = {},
                                                                   const sampling::HiddenSampleMapBandSink& sink = {});
+  // How many triangles each pass of `request` draws (the whole scene unless
+  // the clusters are culled). CPU only.
+  [[nodiscard]] StatusOr<uint64_t> TrianglesDrawnPerPass(const GpuScene& scene,
+                                                         const sampling::HiddenSampleMapRequest& request) const;
   [[nodiscard]] StatusOr<sampling::PatchVisibilityResult> PatchVisibility(const GpuScene& scene,
                                                                 const sampling::PatchVisibilityRequest& request,
                                                                 const JobOptions& job = {});
