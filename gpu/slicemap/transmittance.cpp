@@ -154,20 +154,15 @@ Status ValidateTransmittanceParams(const TransmittanceParams& params, const Scen
   return absl::OkStatus();
 }
 
-StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scene, const GpuScene& gpu_scene,
-                                            const TransmittanceParams& params) {
-  const auto start = Clock::now();
-  VISQ_RETURN_IF_ERROR(ValidateTransmittanceParams(params, scene));
-  const TransmittanceLight& light = params.light;
-  const ReceiverPatch& patch = params.patch;
+namespace {
 
-  // Absorbers grouped by coefficient: one solid slicemap per group.
+// The absorbing nodes grouped by coefficient, each group's triangles as
+// contiguous ranges; `bounds` receives the bounds of them all.
+using AbsorberGroup = std::pair<double, std::vector<TriangleRange>>;
+std::vector<AbsorberGroup> AbsorberGroups(const TransmittanceParams& params, const Scene& scene, Bounds& bounds) {
   std::map<double, std::vector<uint32_t>> groups;  // sigma -> node ids
   for (const AbsorbingNode& n : params.nodes) groups[n.absorption].push_back(n.node);
-
-  // Each group's triangles as contiguous ranges, and the bounds of them all.
-  Bounds bounds;
-  std::vector<std::pair<double, std::vector<TriangleRange>>> group_ranges;
+  std::vector<AbsorberGroup> group_ranges;
   for (const auto& [sigma, node_ids] : groups) {
     std::vector<bool> wanted(scene.nodes.size(), false);
     for (uint32_t id : node_ids) wanted[id] = true;
@@ -182,28 +177,13 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
     }
     group_ranges.emplace_back(sigma, std::move(ranges));
   }
+  return group_ranges;
+}
 
-  // Query points: explicit ones, then the patch.
-  std::vector<glm::dvec3> points = params.points;
-  for (uint32_t j = 0; j < patch.nv; ++j)
-    for (uint32_t i = 0; i < patch.nu; ++i)
-      points.push_back(patch.origin + (i + 0.5) / patch.nu * patch.u + (j + 0.5) / patch.nv * patch.v);
-
-  TransmittanceResult result;
-  result.transmittance.assign(points.size(), 1.0f);
-  result.optical_depth.assign(points.size(), 0.0f);
-  result.optical_depth_error.assign(points.size(), 0.0f);
-  result.lateral_offset.assign(points.size(), 0.0f);
-  result.ambiguous.assign(points.size(), 0);
-  if (bounds.Empty()) {
-    result.error_statement = "the absorbing nodes have no triangles: nothing absorbs";
-    result.timings.total_ms = MillisecondsSince(start);
-    return result;
-  }
-
-  // The light's frame around the absorbers.
+// The light's view of the absorbers: an orthographic box along a
+// directional light, a perspective cone from a point light.
+StatusOr<LightFrame> FrameAroundAbsorbers(const TransmittanceLight& light, const Bounds& bounds) {
   LightFrame frame;
-  const uint32_t size = params.resolution;
   if (light.kind == LightKind::kDirectional) {
     glm::dvec3 u, v;
     const glm::dvec3 w = glm::normalize(light.direction);
@@ -241,6 +221,98 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
     frame.r0 = distance - radius;
     frame.r1 = distance + radius;
   }
+  return frame;
+}
+
+// Bit counting for one group: full slices before each point's slice, plus
+// the covered fraction of its own slice (the slides' "value truncation by
+// position"), added to the points' optical depths and their errors.
+void AddOpticalDepths(double sigma, const VoxelizeResult& voxels, const SlicemapGrid& surface, const LightFrame& frame,
+                      uint32_t size, double depth_range, const std::vector<glm::dvec3>& points,
+                      TransmittanceResult& result) {
+  const SlicemapGrid& grid = voxels.grid;
+  const uint32_t wpc = grid.words_per_column;
+  std::vector<bool> ambiguous_column(size_t{size} * size, false);
+  for (uint32_t column : voxels.ambiguous_column_list) ambiguous_column[column] = true;
+  for (size_t i = 0; i < points.size(); ++i) {
+    const ColumnHit hit = Locate(frame, size, points[i]);
+    if (!hit.inside_image) continue;
+    const size_t column = size_t{hit.y} * size + hit.x;
+    result.lateral_offset[i] = static_cast<float>(std::max<double>(result.lateral_offset[i], hit.lateral_offset));
+    const double near = voxels.column_near[column], far = voxels.column_far[column];
+    if (near > far) continue;  // no absorber in this column
+    const double slice_length = (far - near) * depth_range / grid.slices;
+    result.max_voxel_length = std::max(result.max_voxel_length, slice_length);
+    const double position = (hit.depth - near) / (far - near) * grid.slices;
+    if (position <= 0.0) continue;
+    if (ambiguous_column[column]) {
+      // The column's in/out order did not resolve (open, overlapping or
+      // nested absorbers): its voxels say nothing of the inside. The path
+      // inside lies anywhere between none and all of the column's length
+      // up to the point; the answer is the upper end, as everywhere.
+      const double upper = sigma * std::min<double>(position, grid.slices) * slice_length;
+      result.optical_depth[i] += static_cast<float>(upper);
+      result.optical_depth_error[i] += static_cast<float>(upper);
+      result.ambiguous[i] = 1;
+      continue;
+    }
+    const uint32_t whole = static_cast<uint32_t>(std::min<double>(std::floor(position), grid.slices));
+    const double fraction = whole < grid.slices ? position - whole : 0.0;
+    const uint32_t* solid_column = &grid.bits[column * wpc];
+    const uint32_t* surface_column = &surface.bits[column * wpc];
+    double occupied = 0.0, shell = 0.0;
+    for (uint32_t w = 0; w < whole / 32; ++w) {
+      occupied += std::popcount(solid_column[w]);
+      shell += std::popcount(surface_column[w]);
+    }
+    if (whole % 32 != 0) {
+      const uint32_t mask = (1u << (whole % 32)) - 1u;
+      occupied += std::popcount(solid_column[whole / 32] & mask);
+      shell += std::popcount(surface_column[whole / 32] & mask);
+    }
+    if (whole < grid.slices) {
+      if ((solid_column[whole / 32] >> (whole % 32)) & 1u) occupied += fraction;
+      if ((surface_column[whole / 32] >> (whole % 32)) & 1u) shell += fraction;
+    }
+    result.optical_depth[i] += static_cast<float>(sigma * occupied * slice_length);
+    result.optical_depth_error[i] += static_cast<float>(sigma * shell * slice_length);
+  }
+}
+
+}  // namespace
+
+StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scene, const GpuScene& gpu_scene,
+                                            const TransmittanceParams& params) {
+  const auto start = Clock::now();
+  VISQ_RETURN_IF_ERROR(ValidateTransmittanceParams(params, scene));
+  const TransmittanceLight& light = params.light;
+  const ReceiverPatch& patch = params.patch;
+
+  // Absorbers grouped by coefficient: one solid slicemap per group.
+  Bounds bounds;
+  const std::vector<AbsorberGroup> group_ranges = AbsorberGroups(params, scene, bounds);
+
+  // Query points: explicit ones, then the patch.
+  std::vector<glm::dvec3> points = params.points;
+  for (uint32_t j = 0; j < patch.nv; ++j)
+    for (uint32_t i = 0; i < patch.nu; ++i)
+      points.push_back(patch.origin + (i + 0.5) / patch.nu * patch.u + (j + 0.5) / patch.nv * patch.v);
+
+  TransmittanceResult result;
+  result.transmittance.assign(points.size(), 1.0f);
+  result.optical_depth.assign(points.size(), 0.0f);
+  result.optical_depth_error.assign(points.size(), 0.0f);
+  result.lateral_offset.assign(points.size(), 0.0f);
+  result.ambiguous.assign(points.size(), 0);
+  if (bounds.Empty()) {
+    result.error_statement = "the absorbing nodes have no triangles: nothing absorbs";
+    result.timings.total_ms = MillisecondsSince(start);
+    return result;
+  }
+
+  // The light's frame around the absorbers.
+  const uint32_t size = params.resolution;
+  VISQ_ASSIGN_OR_RETURN(const LightFrame frame, FrameAroundAbsorbers(light, bounds));
   const ViewSetup view =
       frame.perspective ? PerspectiveView(frame, gpu_scene.anchor()) : OrthographicView(frame.box, gpu_scene.anchor());
   const double depth_range =
@@ -269,56 +341,8 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
     t.readback_ms += voxels.timings.readback_ms;
     t.resolve_ms += voxels.timings.resolve_ms;
 
-    // Bit counting: full slices before the point's slice, plus the covered
-    // fraction of its own slice (the slides' "value truncation by position").
     const auto count_start = Clock::now();
-    const SlicemapGrid& grid = voxels.grid;
-    const uint32_t wpc = grid.words_per_column;
-    std::vector<bool> ambiguous_column(size_t{size} * size, false);
-    for (uint32_t column : voxels.ambiguous_column_list) ambiguous_column[column] = true;
-    for (size_t i = 0; i < points.size(); ++i) {
-      const ColumnHit hit = Locate(frame, size, points[i]);
-      if (!hit.inside_image) continue;
-      const size_t column = size_t{hit.y} * size + hit.x;
-      result.lateral_offset[i] = static_cast<float>(std::max<double>(result.lateral_offset[i], hit.lateral_offset));
-      const double near = voxels.column_near[column], far = voxels.column_far[column];
-      if (near > far) continue;  // no absorber in this column
-      const double slice_length = (far - near) * depth_range / grid.slices;
-      result.max_voxel_length = std::max(result.max_voxel_length, slice_length);
-      const double position = (hit.depth - near) / (far - near) * grid.slices;
-      if (position <= 0.0) continue;
-      if (ambiguous_column[column]) {
-        // The column's in/out order did not resolve (open, overlapping or
-        // nested absorbers): its voxels say nothing of the inside. The path
-        // inside lies anywhere between none and all of the column's length
-        // up to the point; the answer is the upper end, as everywhere.
-        const double upper = sigma * std::min<double>(position, grid.slices) * slice_length;
-        result.optical_depth[i] += static_cast<float>(upper);
-        result.optical_depth_error[i] += static_cast<float>(upper);
-        result.ambiguous[i] = 1;
-        continue;
-      }
-      const uint32_t whole = static_cast<uint32_t>(std::min<double>(std::floor(position), grid.slices));
-      const double fraction = whole < grid.slices ? position - whole : 0.0;
-      const uint32_t* solid_column = &grid.bits[column * wpc];
-      const uint32_t* surface_column = &surface.bits[column * wpc];
-      double occupied = 0.0, shell = 0.0;
-      for (uint32_t w = 0; w < whole / 32; ++w) {
-        occupied += std::popcount(solid_column[w]);
-        shell += std::popcount(surface_column[w]);
-      }
-      if (whole % 32 != 0) {
-        const uint32_t mask = (1u << (whole % 32)) - 1u;
-        occupied += std::popcount(solid_column[whole / 32] & mask);
-        shell += std::popcount(surface_column[whole / 32] & mask);
-      }
-      if (whole < grid.slices) {
-        if ((solid_column[whole / 32] >> (whole % 32)) & 1u) occupied += fraction;
-        if ((surface_column[whole / 32] >> (whole % 32)) & 1u) shell += fraction;
-      }
-      result.optical_depth[i] += static_cast<float>(sigma * occupied * slice_length);
-      result.optical_depth_error[i] += static_cast<float>(sigma * shell * slice_length);
-    }
+    AddOpticalDepths(sigma, voxels, surface, frame, size, depth_range, points, result);
     result.timings.resolve_ms += MillisecondsSince(count_start);
   }
   for (size_t i = 0; i < points.size(); ++i) result.transmittance[i] = std::exp(-result.optical_depth[i]);
