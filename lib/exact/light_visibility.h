@@ -62,6 +62,12 @@
 // rare once the tree is warm (it is bounded by the tree size, queries are
 // not), so readers almost never wait; per-node locks would cost more in the
 // common, read-only case. All per-query geometry is query-local.
+//
+// Where the parts are: light_visibility_impl.h (the tree's state, and a map
+// of the files that define it: its build and growth, a query, the occluder
+// tests, the polygon subtraction, the light's triangulation),
+// occluder_index.h, scene_triangle_index.cpp, receiver_grouping.cpp,
+// light_visibility_cache.cpp; exact_geometry.h for the predicates.
 #pragma once
 
 #include <atomic>
@@ -84,6 +90,10 @@
 #include "scene/scene.h"
 
 namespace visq::exact {
+
+namespace detail {
+struct LightTree;  // light_visibility_impl.h
+}  // namespace detail
 
 // A planar polygon (convex or not, simple), emitting on its front side: the
 // side its counter-clockwise winding faces. Uniform Lambertian radiance.
@@ -247,9 +257,8 @@ class LightVisibilityTree {
   double light_area() const;
 
  private:
-  struct Impl;
-  explicit LightVisibilityTree(std::unique_ptr<Impl> impl);
-  std::unique_ptr<Impl> impl_;
+  explicit LightVisibilityTree(std::unique_ptr<detail::LightTree> impl);
+  std::unique_ptr<detail::LightTree> impl_;
 };
 
 // Receivers grouped for their trees: the cubes of a grid over the scene
