@@ -333,13 +333,14 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
     }
     pending.push_back(p);
   }
-  points.reserve(occ_local.size());  // filled once: the pointers into it stay valid
-  for (const auto& x : occ_local) points.push_back(XPoint::Input(x));
+  vertices = std::move(occ_local);
+  vertices.shrink_to_fit();
   for (const auto& p : pending) {
     if (p.far) {
       far.push_back({{p.v[0], p.v[1], p.v[2]}, p.two_sided});
     } else {
-      near_by_triangle[p.tri] = static_cast<uint32_t>(near.size());
+      // The triangles are visited in increasing order (NearOfTriangle).
+      if (!near.empty()) VISQ_CHECK_LT(near.back().scene_triangle, p.tri);
       near.push_back({{p.v[0], p.v[1], p.v[2]}, {p.side[0], p.side[1], p.side[2]}, p.tri});
     }
   }
@@ -349,8 +350,8 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
 size_t LightTree::MemoryBytesLocked() const {
   return sizeof(LightTree) + nodes.capacity() * sizeof(Node) + list_bytes +
          lists.capacity() * sizeof(std::vector<uint32_t>) + free_lists.capacity() * 4 +
-         points.size() * sizeof(XPoint) + far.capacity() * sizeof(FarOccluder) +
-         near.capacity() * sizeof(NearOccluder) + index.MemoryBytes() + near_by_triangle.size() * 24 +
+         vertices.capacity() * sizeof(glm::dvec3) + far.capacity() * sizeof(FarOccluder) +
+         near.capacity() * sizeof(NearOccluder) + index.MemoryBytes() +
          light_points.size() * sizeof(XPoint) +
          light_planes.size() * sizeof(XPlane);
 }
@@ -360,20 +361,20 @@ void LightTree::IndexOccludersAndPlantTheTree() {
   near.shrink_to_fit();
   VISQ_CHECK_LT(far.size() + near.size(), size_t{UINT32_MAX});
   for (const FarOccluder& o : far) {
-    for (const uint32_t v : o.v) VISQ_CHECK_LT(v, points.size());
+    for (const uint32_t v : o.v) VISQ_CHECK_LT(v, vertices.size());
   }
   for (const NearOccluder& n : near) {
-    for (const uint32_t v : n.v) VISQ_CHECK_LT(v, points.size());
+    for (const uint32_t v : n.v) VISQ_CHECK_LT(v, vertices.size());
   }
   std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
   boxes.reserve(far.size() + near.size());
   auto add_box = [&](const uint32_t (&v)[3]) {
-    const glm::dvec3 a = points[v[0]].input, b = points[v[1]].input, c = points[v[2]].input;
+    const glm::dvec3 a = vertices[v[0]], b = vertices[v[1]], c = vertices[v[2]];
     boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
   };
   for (const FarOccluder& o : far) add_box(o.v);
   for (const NearOccluder& n : near) add_box(n.v);
-  index.Build(std::move(boxes));
+  index.Build(std::move(boxes), /*keep_item_boxes=*/false);
 
   if (far.empty()) {
     NewNode(kVisible);
@@ -393,14 +394,14 @@ void LightTree::IndexOccludersAndPlantTheTree() {
 LightTree::EdgeFans LightTree::MakeEdgeFans(uint32_t a, uint32_t b) const {
   EdgeFans e{a, b, {}};
   e.fans.reserve(light_local.size());
-  for (const glm::dvec3& y : light_local) e.fans.emplace_back(y, points[a].input, points[b].input);
+  for (const glm::dvec3& y : light_local) e.fans.emplace_back(y, vertices[a], vertices[b]);
   return e;
 }
 
 void LightTree::OccluderSides(const uint32_t v[3], const EdgeFans& edge, bool* pos, bool* nonpos) const {
   *pos = *nonpos = false;
   for (int i = 0; i < 3 && !(*pos && *nonpos); ++i) {
-    const glm::dvec3& x = points[v[i]].input;
+    const glm::dvec3& x = vertices[v[i]];
     for (const Orient3dFan& fan : edge.fans) {
       if (fan.Side(x) > 0) *pos = true; else *nonpos = true;
       if (*pos && *nonpos) break;
@@ -411,8 +412,8 @@ void LightTree::OccluderSides(const uint32_t v[3], const EdgeFans& edge, bool* p
 int32_t LightTree::NewNode(uint8_t kind, uint32_t a, uint32_t b) {
   // Inner nodes name two occluder vertices; undefined leaves a list.
   if (kind == kInner) {
-    VISQ_DCHECK_LT(a, points.size());
-    VISQ_DCHECK_LT(b, points.size());
+    VISQ_DCHECK_LT(a, vertices.size());
+    VISQ_DCHECK_LT(b, vertices.size());
   } else if (kind == kUndefined) {
     VISQ_DCHECK_LT(b, lists.size());
   }
@@ -442,7 +443,7 @@ size_t LightTree::ChooseOccluder(const std::vector<uint32_t>& list, const glm::d
   double best_t = 0.0;  // crossings strictly between the light (t = 0) and P
   for (size_t k = 0; k < list.size(); ++k) {
     const FarOccluder& o = far[list[k]];
-    const glm::dvec3 a = points[o.v[0]].input, b = points[o.v[1]].input, c = points[o.v[2]].input;
+    const glm::dvec3 a = vertices[o.v[0]], b = vertices[o.v[1]], c = vertices[o.v[2]];
     // Möller-Trumbore: the crossing nearest P (t = 1) wins.
     const glm::dvec3 e1 = b - a, e2 = c - a, h = glm::cross(d, e2);
     const double det = glm::dot(e1, h);

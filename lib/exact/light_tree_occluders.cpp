@@ -88,7 +88,7 @@ void LightTree::SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids
   by_size.reserve(ids->size());
   for (const uint32_t id : *ids) {
     const uint32_t* t = OccluderVertices(id);
-    const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+    const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
     by_size.emplace_back(-ApparentSize(p, v), id);
   }
   std::sort(by_size.begin(), by_size.end());

@@ -199,7 +199,7 @@ bool LightTree::HiddenByLastCover(const glm::dvec3& p_local, uint32_t receiver) 
     return false;
   }
   const uint32_t* t = OccluderVertices(t_last_cover.id);
-  const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+  const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
   return TestOccluder(p_local, v).cover.all;
 }
 
@@ -217,7 +217,7 @@ bool LightTree::GatherCandidates(Scratch& s, const glm::dvec3& p_local, uint32_t
       if (is_far && !classify_points) continue;  // the tree decides
       if (is_receiver(id)) continue;
       const uint32_t* t = OccluderVertices(id);
-      const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+      const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
       if (cull.Misses(v)) continue;
       if (!classify_points) {
         if (ShadowMissesLight(p_local, v)) continue;
@@ -266,6 +266,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
   thread_local Scratch scratch;
   Scratch& s = scratch;
   s.Reset();
+  s.FitVertices(vertices.size());
   s.stop = &stop;
   s.p = s.Add(XPoint::Input(p_local));
   // A light seen from behind (or edge-on) gives nothing.
@@ -277,9 +278,8 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
   if (!normal && q.receiver_triangle) {
     // A triangle containing P is always near (never culled, never
     // separated from the receivers), so its vertices are at hand.
-    if (auto it = near_by_triangle.find(receiver); it != near_by_triangle.end()) {
-      const NearOccluder& n = near[it->second];
-      const glm::dvec3 a = points[n.v[0]].input, b = points[n.v[1]].input, c = points[n.v[2]].input;
+    if (const NearOccluder* n = NearOfTriangle(receiver)) {
+      const glm::dvec3 a = vertices[n->v[0]], b = vertices[n->v[1]], c = vertices[n->v[2]];
       const glm::dvec3 g = glm::cross(b - a, c - a);
       if (g != glm::dvec3(0.0)) normal = g;
     }
@@ -389,10 +389,10 @@ Status LightTree::DescendTree(Scratch& s, std::vector<Fragment>& pending, const 
       VISQ_DCHECK_LT(size_t(node.b), lists.size());
       for (const uint32_t index : lists[node.b]) {
         const uint32_t* t = far[index].v;
-        const glm::dvec3 v[3] = {points[t[0]].input, points[t[1]].input, points[t[2]].input};
+        const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
         if (cull.Misses(v)) continue;
         if (fragment_box) {
-          const XPoint* corners[3] = {&points[t[0]], &points[t[1]], &points[t[2]]};
+          const XPoint* corners[3] = {&Vertex(s, t[0]), &Vertex(s, t[1]), &Vertex(s, t[2])};
           LineBox box;
           if (LineBoxOf(s, corners, &box) && pieces[0].box.Apart(box)) continue;
         }
@@ -417,7 +417,7 @@ Status LightTree::DescendTree(Scratch& s, std::vector<Fragment>& pending, const 
       refined = true;
       stack.emplace_back(id, std::move(f));
     } else if (node.kind == kInner) {
-      EdgeLine line{&points[node.a], &points[node.b]};
+      EdgeLine line{&Vertex(s, node.a), &Vertex(s, node.b)};
       const int32_t c0 = node.child[0], c1 = node.child[1];
       VISQ_DCHECK_LT(size_t(c0), nodes.size());
       VISQ_DCHECK_LT(size_t(c1), nodes.size());

@@ -86,7 +86,7 @@ bool LightTree::EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vecto
 
 bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
                        Corners* corners) const {
-  const XPoint* v[3] = {&points[n.v[0]], &points[n.v[1]], &points[n.v[2]]};
+  const XPoint* v[3] = {&Vertex(s, n.v[0]), &Vertex(s, n.v[1]), &Vertex(s, n.v[2])};
   bool any_below_top = false;
   for (int i = 0; i < 3; ++i) any_below_top |= EuclidSide(*v[i], slab_top) < 0;
   if (!any_below_top) return false;  // nothing strictly between
@@ -157,7 +157,7 @@ bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, 
   const uint32_t far_count = static_cast<uint32_t>(far.size());
   if (id < far_count) {
     const uint32_t* t = far[id].v;
-    *corners = {&points[t[0]], &points[t[1]], &points[t[2]]};
+    *corners = {&Vertex(s, t[0]), &Vertex(s, t[1]), &Vertex(s, t[2])};
     *edges = {{(*corners)[0], (*corners)[1]}, {(*corners)[1], (*corners)[2]}, {(*corners)[2], (*corners)[0]}};
     return true;
   }

@@ -82,6 +82,7 @@ TreeStats LightVisibilityTree::Stats() const {
   {
     std::shared_lock answers_lock(impl_->answers_mutex);
     s.answers_kept = impl_->answers.size();
+    s.answer_bytes = impl_->answer_bytes;
     s.memory_bytes += impl_->answer_bytes;
   }
   s.far_occluders = impl_->far.size();
@@ -101,6 +102,7 @@ TreeStats& TreeStats::operator+=(const TreeStats& o) {
   subtracted_directly += o.subtracted_directly;
   answers_reused += o.answers_reused;
   answers_kept += o.answers_kept;
+  answer_bytes += o.answer_bytes;
   far_occluders += o.far_occluders;
   near_occluders += o.near_occluders;
   return *this;

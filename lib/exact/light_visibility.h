@@ -183,6 +183,7 @@ struct TreeStats {
   // subtraction. `answers_kept` is the store's size.
   uint64_t answers_reused = 0;
   size_t answers_kept = 0;
+  size_t answer_bytes = 0;  // the store's part of memory_bytes
   size_t far_occluders = 0;  // in the shared tree
   size_t near_occluders = 0;  // clipped per query
 

@@ -31,6 +31,7 @@
 #include <absl/container/inlined_vector.h>
 #include <glm/glm.hpp>
 
+#include "common/check.h"
 #include "exact/exact_geometry.h"
 #include "exact/light_visibility.h"
 #include "exact/occluder_index.h"
@@ -204,11 +205,16 @@ struct LightTree {
   const XPlane* light_plane = nullptr;  // the largest triangle's: front side positive
   int light_axis = 2;  // the axis nearest the light's normal: k of the LineBoxes
 
-  std::vector<XPoint> points;  // occluder vertices (local, inputs); never grows after Create
+  // The occluders' vertices (local frame, input doubles), one per position,
+  // shared by the triangles that meet there; never grows after Create. The
+  // tree keeps only these 24 bytes a vertex: a query makes the exact point of
+  // a vertex (an XPoint, ten times larger) on first use (Vertex), so that a
+  // dense room's tree of 100K occluders holds no 25 MB of exact points that
+  // each query touches a few dozen of.
+  std::vector<glm::dvec3> vertices;
   std::vector<FarOccluder> far;
-  std::vector<NearOccluder> near;
+  std::vector<NearOccluder> near;  // in increasing order of scene_triangle (NearOfTriangle)
   OccluderIndex index;  // ids: far occluders first, then near ones
-  std::unordered_map<uint32_t, uint32_t> near_by_triangle;  // scene triangle -> index in near
   std::optional<std::pair<glm::dvec3, glm::dvec3>> receiver_box;  // local frame
 
   mutable std::shared_mutex mutex;
@@ -297,6 +303,20 @@ struct LightTree {
     // The sign of d[light_axis] for every direction from P to the light;
     // 0 when it is not one strict sign (then no LineBoxes this query).
     int line_box_sign = 0;
+    // The exact points of the tree's vertices made by this query, by vertex
+    // index: valid where the stamp is this query's. One object per vertex
+    // and query, as when the tree kept them: a point made on an edge plane
+    // is then recognised as lying on it by its definition (EdgePlane,
+    // OnPlaneByDefinition). Their addresses now follow the order in which
+    // the query meets them, which only orients the edge planes (EdgePlane
+    // orders a line's ends by address): ThroughPoints(P, b, a) is exactly
+    // -ThroughPoints(P, a, b), so no sign and no rounded value changes.
+    struct VertexSlot {
+      uint32_t stamp = 0;
+      const XPoint* point = nullptr;
+    };
+    std::vector<VertexSlot> vertex_points;
+    uint32_t stamp = 0;
 
     const XPoint* Add(XPoint x) { return points.Add(std::move(x)); }
     const XPlane* Add(XPlane x) { return planes.Add(std::move(x)); }
@@ -309,8 +329,36 @@ struct LightTree {
       stop = nullptr;
       stop_countdown = 0;
       stopped = absl::OkStatus();
+      if (++stamp == 0) {  // wrapped: forget every slot
+        for (VertexSlot& slot : vertex_points) slot.stamp = 0;
+        stamp = 1;
+      }
+    }
+    // Room for a tree of `count` vertices (the slots outlive the query).
+    void FitVertices(size_t count) {
+      if (vertex_points.size() < count) vertex_points.resize(count);
     }
   };
+
+  // Vertex i as an exact input point, made on first use in this query (the
+  // scratch must have been fitted to this tree's vertices).
+  const XPoint& Vertex(Scratch& s, uint32_t i) const {
+    VISQ_DCHECK_LT(size_t(i), vertices.size());
+    VISQ_DCHECK_LE(vertices.size(), s.vertex_points.size());
+    Scratch::VertexSlot& slot = s.vertex_points[i];
+    if (slot.stamp != s.stamp) {
+      slot.point = s.Add(XPoint::Input(vertices[i]));
+      slot.stamp = s.stamp;
+    }
+    return *slot.point;
+  }
+
+  // The near occluder of a scene triangle, or null.
+  const NearOccluder* NearOfTriangle(uint32_t scene_triangle) const {
+    const auto it = std::lower_bound(near.begin(), near.end(), scene_triangle,
+                                     [](const NearOccluder& n, uint32_t t) { return n.scene_triangle < t; });
+    return it != near.end() && it->scene_triangle == scene_triangle ? &*it : nullptr;
+  }
 
   // Whether the query must stop (its status then in s.stopped). The clock
   // is read every few calls: a call is one occluder subtracted or one step

@@ -10,6 +10,8 @@
 
 #include <glm/glm.hpp>
 
+#include "common/check.h"
+
 namespace visq::exact::detail {
 
 // A bounding-volume hierarchy over the occluders' boxes (far and near), so
@@ -18,7 +20,10 @@ namespace visq::exact::detail {
 // dozen; docs/exact-method-notes.md). Built once per tree; read-only afterwards.
 class OccluderIndex {
  public:
-  void Build(std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes) {
+  // With keep_item_boxes false the items' own boxes are dropped after the
+  // build (a tree's occluders: 48 bytes each, and Collect needs only the
+  // nodes'); CountUpTo then cannot be used.
+  void Build(std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes, bool keep_item_boxes = true) {
     boxes_ = std::move(boxes);
     order_.resize(boxes_.size());
     for (uint32_t i = 0; i < order_.size(); ++i) order_[i] = i;
@@ -26,6 +31,8 @@ class OccluderIndex {
     if (boxes_.empty()) return;
     nodes_.emplace_back();
     BuildNode(0, 0, static_cast<uint32_t>(order_.size()));
+    nodes_.shrink_to_fit();
+    if (!keep_item_boxes) std::vector<std::pair<glm::dvec3, glm::dvec3>>().swap(boxes_);
   }
 
   // Appends the occluders whose boxes `box_misses` does not rule out.
@@ -52,6 +59,7 @@ class OccluderIndex {
   template <typename BoxMisses>
   size_t CountUpTo(const BoxMisses& box_misses, size_t limit) const {
     if (nodes_.empty()) return 0;
+    VISQ_CHECK_EQ(boxes_.size(), order_.size());  // built with keep_item_boxes
     uint32_t stack[64];
     int top = 0;
     stack[top++] = 0;

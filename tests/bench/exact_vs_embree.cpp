@@ -570,10 +570,14 @@ int Run(const BenchCase& bc, const Params& p) {
     const auto st = tree->Stats();
     occluders += st.far_occluders + st.near_occluders;
   }
-  std::printf("memory per occluder: %.1f bytes over all trees (%zu occluders), %.1f in the largest tree; "
-              "exact cold CPU %.3f s\n",
-              static_cast<double>(stats.memory_bytes) / std::max<size_t>(1, occluders), occluders,
-              static_cast<double>(max_tree_bytes) / std::max<size_t>(1, largest.far_occluders + largest.near_occluders),
+  // Bytes per occluder: the trees' memory (their occluders, their nodes)
+  // without their stores of answers, over their occluders.
+  std::printf("memory per occluder: %.1f bytes over all trees (%zu occluders; answers %.1f MiB more), %.1f in the "
+              "largest tree; exact cold CPU %.3f s\n",
+              static_cast<double>(stats.memory_bytes - stats.answer_bytes) / std::max<size_t>(1, occluders), occluders,
+              stats.answer_bytes / 1048576.0,
+              static_cast<double>(largest.memory_bytes - largest.answer_bytes) /
+                  std::max<size_t>(1, largest.far_occluders + largest.near_occluders),
               cpu_exact_cold);
   if (!p.answers_out.empty()) {
     if (FILE* f = std::fopen(p.answers_out.c_str(), "w")) {
