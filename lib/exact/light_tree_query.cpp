@@ -33,7 +33,8 @@ AnswerKey KeyOf(const QueryPoint& q, bool want_polygons) {
 
 size_t AnswerBytes(const PointVisibility& v) {
   // The entry, the map's slot overhead, and the polygons.
-  size_t bytes = sizeof(AnswerKey) + sizeof(PointVisibility) + 16;
+  size_t bytes = sizeof(AnswerKey) + sizeof(StoredAnswer) + 16;
+  if (!v.visible_polygons.empty()) bytes += sizeof(v.visible_polygons);
   for (const auto& polygon : v.visible_polygons) bytes += sizeof(polygon) + polygon.size() * sizeof(glm::dvec3);
   return bytes;
 }
@@ -141,14 +142,14 @@ StatusOr<PointVisibility> LightTree::Query(const QueryPoint& q, bool want_polygo
       queries.fetch_add(1, std::memory_order_relaxed);
       hits.fetch_add(1, std::memory_order_relaxed);
       answers_reused.fetch_add(1, std::memory_order_relaxed);
-      return it->second;
+      return it->second.Answer();
     }
   }
   StatusOr<PointVisibility> answer = Compute(q, want_polygons, stop);
   if (answer.ok()) {
     const size_t bytes = AnswerBytes(*answer);
     std::unique_lock lock(answers_mutex);
-    if (answer_bytes + bytes <= max_answer_bytes && answers.emplace(key, *answer).second) {
+    if (answer_bytes + bytes <= max_answer_bytes && answers.try_emplace(key, StoredAnswer::From(*answer)).second) {
       answer_bytes += bytes;
       answer_bytes_now.store(answer_bytes, std::memory_order_relaxed);
     }

@@ -238,8 +238,8 @@ class LightVisibilityTree {
   // when `stop` says so, within one occluder's subtraction or one leaf's
   // refinement; the tree stays whole.
   //
-  // Answers are kept, up to a quarter of the tree's max_bytes (which counts
-  // them with the tree): a
+  // Answers are kept, up to half the tree's max_bytes (which counts them
+  // with the tree; about 100 bytes an answer without polygons): a
   // point asked again with the same position, normal and receiver triangle
   // (bit for bit) is answered from that store. A frame asked twice (a
   // re-render, a client's retry) then costs a hash lookup per point.
