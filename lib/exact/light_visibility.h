@@ -300,10 +300,15 @@ struct ShaftGrouping {
   // twice the whole's triangles (0.5: no more than the whole, together):
   // halves that share their occluders would build the same tree twice, and
   // each half's tree would hold as far occluders what the whole's clips as
-  // near ones (on the bunny, two halves cost 2.3x one tree). Past 4 x max_shaft_triangles (a tree
-  // whose occluders alone take about 18 MB, at some 225 bytes each) a group
-  // is halved whatever the gain.
+  // near ones (on the bunny, two halves cost 2.3x one tree).
   double split_gain = 0.5;
+  // Past hard_cap x max_shaft_triangles a group is halved whatever the
+  // gain: a tree keeps some 55-70 bytes per occluder before it grows
+  // (docs/exact-method-notes.md), so the default cap's trees start with at
+  // most about 16 MB of occluders, the server's default tree budget. A
+  // lower cap cuts a dense room into more trees, which share most of their
+  // occluders: more memory in all, and slower.
+  double hard_cap = 12.0;
 };
 // Cells in order of their first point. Points must be finite.
 std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,

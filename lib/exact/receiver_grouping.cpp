@@ -147,7 +147,7 @@ std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> poin
     // triangles (compact receivers under a dense mesh: the shaft is the
     // light's) would only build the same tree twice: one tree it stays,
     // unless it would hold more than the hard cap (its memory).
-    if (count <= 4 * options.max_shaft_triangles) {
+    if (static_cast<double>(count) <= options.hard_cap * static_cast<double>(options.max_shaft_triangles)) {
       size_t halves = 0;
       for (const auto* half : {&lower, &upper}) {
         Bounds half_box;

@@ -84,6 +84,7 @@ struct Params {
   // (exact::GroupReceiversByShaft with this many triangles per shaft),
   // instead of cells or tiles.
   size_t shaft_triangles = 0;
+  double shaft_cap = visq::exact::ShaftGrouping{}.hard_cap;
   // The time-to-error table: Embree with k x k rays on an even grid per
   // point, k growing until its RMS error reaches the last target (or k = 64).
   bool error_table = true;
@@ -229,7 +230,7 @@ std::optional<BenchCase> MakeFromGltf(const Params& p) {
     if (p.shaft_triangles > 0) {
       auto index = visq::exact::SceneTriangleIndex::Build(bc.scene);
       if (!index.ok()) return std::nullopt;
-      cells = visq::exact::GroupReceiversByShaft(bc.points, bc.light, **index, {p.shaft_triangles, 64});
+      cells = visq::exact::GroupReceiversByShaft(bc.points, bc.light, **index, {p.shaft_triangles, 64, visq::exact::ShaftGrouping{}.split_gain, p.shaft_cap});
     } else {
       cells = visq::exact::GroupReceivers(bc.points, bc.scene.bounds, p.cells_per_side);
     }
@@ -625,6 +626,7 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--tree-max-mb")) p.tree_max_mb = std::atof(v);
     else if (const char* v = value("--cells-per-side")) p.cells_per_side = std::atoi(v);
     else if (const char* v = value("--shaft-triangles")) p.shaft_triangles = static_cast<size_t>(std::atoll(v));
+    else if (const char* v = value("--shaft-cap")) p.shaft_cap = std::atof(v);
     else if (const char* v = value("--error-table")) p.error_table = std::atoi(v) != 0;
     else if (const char* v = value("--answers-out")) p.answers_out = v;
     else {
