@@ -439,7 +439,7 @@ uint32_t LightTree::NewList() {
 }
 
 size_t LightTree::ChooseOccluder(const std::vector<uint32_t>& list, const glm::dvec3& p,
-                      const glm::dvec3& y) const {
+                                 const glm::dvec3& y) const {
   const glm::dvec3 d = p - y;
   size_t best = 0;
   double best_t = 0.0;  // crossings strictly between the light (t = 0) and P

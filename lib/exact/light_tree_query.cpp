@@ -357,7 +357,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
 }
 
 Status LightTree::DescendTree(Scratch& s, std::vector<Fragment>& pending, const PyramidCull& cull,
-                   const glm::dvec3& p_local, std::vector<Fragment>* out, bool* refined_out) {
+                              const glm::dvec3& p_local, std::vector<Fragment>* out, bool* refined_out) {
   std::vector<Fragment>& visible = *out;
   bool& refined = *refined_out;
   std::vector<std::pair<int32_t, Fragment>> stack;
@@ -445,7 +445,7 @@ Status LightTree::DescendTree(Scratch& s, std::vector<Fragment>& pending, const 
 }
 
 PointVisibility LightTree::Integrate(const std::vector<Fragment>& visible, const glm::dvec3& p_local,
-                          const std::optional<glm::dvec3>& normal, bool want_polygons) const {
+                                     const std::optional<glm::dvec3>& normal, bool want_polygons) const {
   PointVisibility result;
   double area = 0.0, solid_angle = 0.0, irradiance = 0.0;
   for (const Fragment& f : visible) {

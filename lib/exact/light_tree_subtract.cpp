@@ -85,7 +85,7 @@ bool LightTree::EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vecto
 }
 
 bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
-                       Corners* corners) const {
+                                  Corners* corners) const {
   const XPoint* v[3] = {&Vertex(s, n.v[0]), &Vertex(s, n.v[1]), &Vertex(s, n.v[2])};
   bool any_below_top = false;
   for (int i = 0; i < 3; ++i) any_below_top |= EuclidSide(*v[i], slab_top) < 0;
@@ -165,7 +165,8 @@ bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, 
   return NearOccluderEdges(s, near[id - far_count], **slab_top, edges, corners);
 }
 
-bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light, std::vector<Blocker>* blockers) const {
+bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light,
+                                    std::vector<Blocker>* blockers) const {
   std::stable_sort(blockers->begin(), blockers->end(),
                    [](const Blocker& x, const Blocker& y) { return x.vertices > y.vertices; });
   const XPlane* slab_top = nullptr;
@@ -187,7 +188,7 @@ const XPoint* LightTree::Meet(Scratch& s, const Fragment& f, const FVert& from, 
 }
 
 void LightTree::Split(Scratch& s, const Fragment& f, const std::vector<int>& sg, const XPlane& plane,
-           Fragment* pos, Fragment* neg) const {
+                      Fragment* pos, Fragment* neg) const {
   VISQ_DCHECK_EQ(sg.size(), f.v.size());
   pos->v.clear();
   neg->v.clear();
@@ -255,8 +256,8 @@ bool LightTree::ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) 
 }
 
 bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
-              const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
-              const LineBox* shadow) const {
+                         const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
+                         const LineBox* shadow) const {
   std::vector<EdgeLine> lines;
   lines.reserve(edges.size());
   for (const auto& [a, b] : edges) lines.push_back({a, b});
@@ -338,7 +339,7 @@ bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments,
 }
 
 size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
-                         const XPlane** slab_top, size_t max_subtracted) const {
+                                    const XPlane** slab_top, size_t max_subtracted) const {
   Edges edges;
   Corners corners;
   LineBox all;

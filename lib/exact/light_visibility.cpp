@@ -17,7 +17,8 @@ LightVisibilityTree::~LightVisibilityTree() = default;
 StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(const AreaLight& light, const Scene& scene,
                                                                            const TreeOptions& options,
                                                                            const SceneTriangleIndex* index) {
-  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<detail::LightTree> tree, detail::LightTree::Create(light, scene, options, index));
+  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<detail::LightTree> tree,
+                        detail::LightTree::Create(light, scene, options, index));
   return std::unique_ptr<LightVisibilityTree>(new LightVisibilityTree(std::move(tree)));
 }
 

@@ -119,7 +119,9 @@ struct StoredAnswer {
 
   static StoredAnswer From(const PointVisibility& v) {
     StoredAnswer a{v.visible_area_fraction, v.visible_solid_angle_fraction, v.irradiance, nullptr};
-    if (!v.visible_polygons.empty()) a.polygons = std::make_unique<std::vector<std::vector<glm::dvec3>>>(v.visible_polygons);
+    if (!v.visible_polygons.empty()) {
+      a.polygons = std::make_unique<std::vector<std::vector<glm::dvec3>>>(v.visible_polygons);
+    }
     return a;
   }
   PointVisibility Answer() const {
