@@ -62,6 +62,12 @@
 // rare once the tree is warm (it is bounded by the tree size, queries are
 // not), so readers almost never wait; per-node locks would cost more in the
 // common, read-only case. All per-query geometry is query-local.
+//
+// Where the parts are: light_visibility_impl.h (the tree's state, and a map
+// of the files that define it: its build and growth, a query, the occluder
+// tests, the polygon subtraction, the light's triangulation),
+// occluder_index.h, scene_triangle_index.cpp, receiver_grouping.cpp,
+// light_visibility_cache.cpp; exact_geometry.h for the predicates.
 #pragma once
 
 #include <atomic>
@@ -84,6 +90,10 @@
 #include "scene/scene.h"
 
 namespace visq::exact {
+
+namespace detail {
+struct LightTree;  // light_visibility_impl.h
+}  // namespace detail
 
 // A planar polygon (convex or not, simple), emitting on its front side: the
 // side its counter-clockwise winding faces. Uniform Lambertian radiance.
@@ -173,6 +183,7 @@ struct TreeStats {
   // subtraction. `answers_kept` is the store's size.
   uint64_t answers_reused = 0;
   size_t answers_kept = 0;
+  size_t answer_bytes = 0;  // the store's part of memory_bytes
   size_t far_occluders = 0;  // in the shared tree
   size_t near_occluders = 0;  // clipped per query
 
@@ -227,8 +238,8 @@ class LightVisibilityTree {
   // when `stop` says so, within one occluder's subtraction or one leaf's
   // refinement; the tree stays whole.
   //
-  // Answers are kept, up to a quarter of the tree's max_bytes (which counts
-  // them with the tree): a
+  // Answers are kept, up to half the tree's max_bytes (which counts them
+  // with the tree; about 100 bytes an answer without polygons): a
   // point asked again with the same position, normal and receiver triangle
   // (bit for bit) is answered from that store. A frame asked twice (a
   // re-render, a client's retry) then costs a hash lookup per point.
@@ -247,9 +258,8 @@ class LightVisibilityTree {
   double light_area() const;
 
  private:
-  struct Impl;
-  explicit LightVisibilityTree(std::unique_ptr<Impl> impl);
-  std::unique_ptr<Impl> impl_;
+  explicit LightVisibilityTree(std::unique_ptr<detail::LightTree> impl);
+  std::unique_ptr<detail::LightTree> impl_;
 };
 
 // Receivers grouped for their trees: the cubes of a grid over the scene
@@ -290,10 +300,15 @@ struct ShaftGrouping {
   // twice the whole's triangles (0.5: no more than the whole, together):
   // halves that share their occluders would build the same tree twice, and
   // each half's tree would hold as far occluders what the whole's clips as
-  // near ones (on the bunny, two halves cost 2.3x one tree). Past 4 x max_shaft_triangles (a tree
-  // whose occluders alone take about 18 MB, at some 225 bytes each) a group
-  // is halved whatever the gain.
+  // near ones (on the bunny, two halves cost 2.3x one tree).
   double split_gain = 0.5;
+  // Past hard_cap x max_shaft_triangles a group is halved whatever the
+  // gain: a tree keeps some 55-70 bytes per occluder before it grows
+  // (docs/exact-method-notes.md), so the default cap's trees start with at
+  // most about 16 MB of occluders, the server's default tree budget. A
+  // lower cap cuts a dense room into more trees, which share most of their
+  // occluders: more memory in all, and slower.
+  double hard_cap = 12.0;
 };
 // Cells in order of their first point. Points must be finite.
 std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,

@@ -20,6 +20,7 @@
 //     --look-at=10,3,0 [--width=1280 --height=720]
 //     [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32]
 #include <algorithm>
+#include <bit>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -83,9 +84,13 @@ struct Params {
   // (exact::GroupReceiversByShaft with this many triangles per shaft),
   // instead of cells or tiles.
   size_t shaft_triangles = 0;
+  double shaft_cap = visq::exact::ShaftGrouping{}.hard_cap;
   // The time-to-error table: Embree with k x k rays on an even grid per
   // point, k growing until its RMS error reaches the last target (or k = 64).
   bool error_table = true;
+  // Where to write every point's exact answer, as the bits of its three
+  // doubles (one line a point): two builds' files compare bit for bit.
+  std::string answers_out;
 };
 
 // CPU seconds of the whole process (every thread).
@@ -225,7 +230,7 @@ std::optional<BenchCase> MakeFromGltf(const Params& p) {
     if (p.shaft_triangles > 0) {
       auto index = visq::exact::SceneTriangleIndex::Build(bc.scene);
       if (!index.ok()) return std::nullopt;
-      cells = visq::exact::GroupReceiversByShaft(bc.points, bc.light, **index, {p.shaft_triangles, 64});
+      cells = visq::exact::GroupReceiversByShaft(bc.points, bc.light, **index, {p.shaft_triangles, 64, visq::exact::ShaftGrouping{}.split_gain, p.shaft_cap});
     } else {
       cells = visq::exact::GroupReceivers(bc.points, bc.scene.bounds, p.cells_per_side);
     }
@@ -560,6 +565,35 @@ int Run(const BenchCase& bc, const Params& p) {
               "%zu answers), process peak RSS %.0f MiB\n",
               stats.memory_bytes / 1048576.0, max_tree_bytes / 1048576.0, largest.far_occluders,
               largest.near_occluders, largest.nodes, largest.answers_kept, PeakRssMiB());
+  size_t occluders = 0;
+  for (const auto& tree : trees) {
+    if (!tree) continue;
+    const auto st = tree->Stats();
+    occluders += st.far_occluders + st.near_occluders;
+  }
+  // Bytes per occluder: the trees' memory (their occluders, their nodes)
+  // without their stores of answers, over their occluders.
+  std::printf("memory per occluder: %.1f bytes over all trees (%zu occluders; answers %.1f MiB more), %.1f in the "
+              "largest tree; exact cold CPU %.3f s\n",
+              static_cast<double>(stats.memory_bytes - stats.answer_bytes) / std::max<size_t>(1, occluders), occluders,
+              stats.answer_bytes / 1048576.0,
+              static_cast<double>(largest.memory_bytes - largest.answer_bytes) /
+                  std::max<size_t>(1, largest.far_occluders + largest.near_occluders),
+              cpu_exact_cold);
+  if (!p.answers_out.empty()) {
+    if (FILE* f = std::fopen(p.answers_out.c_str(), "w")) {
+      for (const auto& a : exact) {
+        std::fprintf(f, "%016llx %016llx %016llx\n",
+                     static_cast<unsigned long long>(std::bit_cast<uint64_t>(a.visible_area_fraction)),
+                     static_cast<unsigned long long>(std::bit_cast<uint64_t>(a.visible_solid_angle_fraction)),
+                     static_cast<unsigned long long>(std::bit_cast<uint64_t>(a.irradiance)));
+      }
+      std::fclose(f);
+    } else {
+      std::fprintf(stderr, "--answers-out: cannot write %s\n", p.answers_out.c_str());
+      return 1;
+    }
+  }
   if (p.error_table) ErrorTable(bc, *embree, exact, cpu_exact_cold, cpu_embree_build, threads);
   return 0;
 }
@@ -592,12 +626,14 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--tree-max-mb")) p.tree_max_mb = std::atof(v);
     else if (const char* v = value("--cells-per-side")) p.cells_per_side = std::atoi(v);
     else if (const char* v = value("--shaft-triangles")) p.shaft_triangles = static_cast<size_t>(std::atoll(v));
+    else if (const char* v = value("--shaft-cap")) p.shaft_cap = std::atof(v);
     else if (const char* v = value("--error-table")) p.error_table = std::atoi(v) != 0;
+    else if (const char* v = value("--answers-out")) p.answers_out = v;
     else {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
-                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--threads=N] [--rays=N]\n", argv[0], argv[0]);
+                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n", argv[0], argv[0]);
       return 2;
     }
   }

@@ -1,0 +1,362 @@
+// The polygon machinery of a query: light fragments split by planes through
+// the query point and occluder edges, near occluders clipped to the slab under
+// the point, and occluders subtracted from the fragments.
+#include "exact/light_visibility_impl.h"
+
+#include <algorithm>
+#include <array>
+#include <bit>
+#include <cmath>
+#include <limits>
+#include <mutex>
+
+#include "common/check.h"
+
+namespace visq::exact::detail {
+
+bool LightTree::StopNow(Scratch& s) {
+  if (!s.stopped.ok()) return true;
+  if (s.stop == nullptr || s.stop_countdown-- > 0) return false;
+  s.stop_countdown = kStopStride;
+  s.stopped = s.stop->Check();
+  return !s.stopped.ok();
+}
+
+LightTree::EdgePlaneRef LightTree::EdgePlane(Scratch& s, const XPoint& a, const XPoint& b) const {
+  const XPoint* lo = std::less<const XPoint*>()(&a, &b) ? &a : &b;
+  const XPoint* hi = lo == &a ? &b : &a;
+  auto [it, inserted] = s.edge_planes.try_emplace({lo, hi}, nullptr);
+  if (inserted) {
+    const XPlane* plane = s.Add(XPlane::ThroughPoints(*s.p, *lo, *hi));
+    it->second = plane->Degenerate() ? nullptr : plane;
+  }
+  return {it->second, lo == &a ? 1 : -1};
+}
+
+bool LightTree::OnPlaneByDefinition(const XPoint& x, const XPlane* plane) {
+  if (x.kind == XPoint::Kind::kLinePlane) return x.planes[0] == plane;
+  if (x.kind != XPoint::Kind::kThreePlanes) return false;
+  if (x.planes[0] == plane || x.planes[1] == plane || x.planes[2] == plane) return true;
+  const XPlane* p1 = x.planes[1];
+  const XPlane* p2 = x.planes[2];
+  using K = XPlane::Kind;
+  if (plane->kind != K::kThroughPoints || p1->kind != K::kThroughPoints ||
+      p2->kind != K::kThroughPoints || p1->points[0] != plane->points[0] ||
+      p2->points[0] != plane->points[0]) {
+    return false;
+  }
+  for (int i = 1; i < 3; ++i) {
+    const XPoint* v = p1->points[i];
+    if ((v == p2->points[1] || v == p2->points[2]) &&
+        (v == plane->points[1] || v == plane->points[2])) {
+      return true;
+    }
+  }
+  return false;
+}
+
+LightTree::EdgePlaneRef LightTree::PlaneOf(Scratch& s, EdgeLine& e) const {
+  if (!e.has_plane) {
+    e.plane = EdgePlane(s, *e.a, *e.b);
+    e.has_plane = true;
+  }
+  return e.plane;
+}
+
+int LightTree::LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
+  using K = XPoint::Kind;
+  if (x.kind == K::kInput && e.a->kind == K::kInput && e.b->kind == K::kInput) {
+    if (!e.fan) e.fan.emplace(s.p->input, e.a->input, e.b->input);
+    return -e.fan->Side(x.input);
+  }
+  const EdgePlaneRef ref = PlaneOf(s, e);
+  if (ref.plane == nullptr || OnPlaneByDefinition(x, ref.plane)) return 0;
+  return -ref.sign * EuclidSide(x, *ref.plane);
+}
+
+bool LightTree::EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vector<int>* signs) const {
+  signs->assign(f.v.size(), 0);
+  bool any = false;
+  for (size_t i = 0; i < f.v.size(); ++i) {
+    (*signs)[i] = LineSide(s, e, *f.v[i].point);
+    any |= (*signs)[i] != 0;
+  }
+  return any;
+}
+
+bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
+                                  Corners* corners) const {
+  const XPoint* v[3] = {&Vertex(s, n.v[0]), &Vertex(s, n.v[1]), &Vertex(s, n.v[2])};
+  bool any_below_top = false;
+  for (int i = 0; i < 3; ++i) any_below_top |= EuclidSide(*v[i], slab_top) < 0;
+  if (!any_below_top) return false;  // nothing strictly between
+  struct CV { const XPoint* point; int orig_edge; };  // orig_edge -1: on a cut
+  absl::InlinedVector<CV, 6> poly = {{v[0], 0}, {v[1], 1}, {v[2], 2}}, clipped;
+  absl::InlinedVector<int, 6> sides;
+  bool cut = false;
+  // Clip to the light's front (keep >= 0), then below P (keep >= 0).
+  for (int pass = 0; pass < 2 && !poly.empty(); ++pass) {
+    const XPlane& plane = pass == 0 ? *light_plane : slab_top;
+    sides.resize(poly.size());
+    bool any_neg = false, any_pos = false;
+    for (size_t i = 0; i < poly.size(); ++i) {
+      if (pass == 0) {
+        sides[i] = n.light_side[poly[i].orig_edge];  // poly is still the triangle
+      } else {
+        sides[i] = -EuclidSide(*poly[i].point, plane);
+      }
+      any_neg |= sides[i] < 0;
+      any_pos |= sides[i] > 0;
+    }
+    if (!any_pos) return false;
+    if (!any_neg) continue;
+    cut = true;
+    clipped.clear();
+    for (size_t i = 0; i < poly.size(); ++i) {
+      const size_t j = (i + 1) % poly.size();
+      const int sc = sides[i], sn = sides[j];
+      if (sc > 0) clipped.push_back(poly[i]);
+      if (sc == 0) clipped.push_back({poly[i].point, sn < 0 ? -1 : poly[i].orig_edge});
+      if ((sc > 0 && sn < 0) || (sc < 0 && sn > 0)) {
+        // Crossing edges of the second pass are parts of triangle
+        // edges too: the first cut lies in the light plane, strictly
+        // on the kept side of the second.
+        const int e = poly[i].orig_edge;
+        VISQ_CHECK(e >= 0);
+        const XPoint* x = s.Add(XPoint::LinePlane(*v[e], *v[(e + 1) % 3], plane));
+        clipped.push_back({x, sc > 0 ? -1 : e});
+      }
+    }
+    poly.swap(clipped);
+  }
+  if (poly.size() < 3) return false;
+  edges->clear();
+  corners->clear();
+  for (size_t i = 0; i < poly.size(); ++i) {
+    corners->push_back(poly[i].point);
+    const int e = poly[i].orig_edge;
+    if (e >= 0) {
+      edges->emplace_back(v[e], v[(e + 1) % 3]);
+    } else {
+      edges->emplace_back(poly[i].point, poly[(i + 1) % poly.size()].point);
+    }
+  }
+  if (!cut) return true;  // the whole triangle: ShadowMissesLight has passed it
+  // Skip clipped occluders whose shadow misses the whole light: some edge
+  // has every light vertex on its <= 0 side (no all-positive line) and
+  // some edge has every light vertex > 0 (no all-non-positive line). Sides
+  // are linear over each light triangle, so vertices decide.
+  std::vector<EdgeLine> lines;
+  lines.reserve(edges->size());
+  for (const auto& [a, b] : *edges) lines.push_back({a, b});
+  return !ShadowMissesLightBySides(lines.size(),
+                                   [&](size_t e, size_t i) { return LineSide(s, lines[e], light_points[i]); });
+}
+
+bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, Edges* edges, Corners* corners) const {
+  const uint32_t far_count = static_cast<uint32_t>(far.size());
+  if (id < far_count) {
+    const uint32_t* t = far[id].v;
+    *corners = {&Vertex(s, t[0]), &Vertex(s, t[1]), &Vertex(s, t[2])};
+    *edges = {{(*corners)[0], (*corners)[1]}, {(*corners)[1], (*corners)[2]}, {(*corners)[2], (*corners)[0]}};
+    return true;
+  }
+  if (*slab_top == nullptr) *slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+  return NearOccluderEdges(s, near[id - far_count], **slab_top, edges, corners);
+}
+
+bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light,
+                                    std::vector<Blocker>* blockers) const {
+  std::stable_sort(blockers->begin(), blockers->end(),
+                   [](const Blocker& x, const Blocker& y) { return x.vertices > y.vertices; });
+  const XPlane* slab_top = nullptr;
+  std::vector<Fragment> left = light;
+  std::vector<uint32_t> ids;
+  for (const Blocker& blocker : *blockers) ids.push_back(blocker.id);
+  SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers);
+  return left.empty() && s.stopped.ok();
+}
+
+const XPoint* LightTree::Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const {
+  VISQ_DCHECK_LT(size_t(f.triangle), light_triangles.size());
+  const LightTriangle& t = light_triangles[f.triangle];
+  if (from.light_edge >= 0) {
+    return s.Add(XPoint::LinePlane(light_points[t.v[from.light_edge]],
+                                   light_points[t.v[(from.light_edge + 1) % 3]], plane));
+  }
+  return s.Add(XPoint::ThreePlanes(*t.plane, *from.plane, plane));
+}
+
+void LightTree::Split(Scratch& s, const Fragment& f, const std::vector<int>& sg, const XPlane& plane,
+                      Fragment* pos, Fragment* neg) const {
+  VISQ_DCHECK_EQ(sg.size(), f.v.size());
+  pos->v.clear();
+  neg->v.clear();
+  pos->box_state = neg->box_state = 0;
+  pos->triangle = neg->triangle = f.triangle;
+  const size_t n = f.v.size();
+  const bool has_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+  const bool has_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+  for (size_t i = 0; i < n; ++i) {
+    const FVert& cur = f.v[i];
+    const int sc = sg[i], sn = sg[(i + 1) % n];
+    const FVert on_plane{cur.point, -1, &plane};
+    if (sc > 0) pos->v.push_back(cur);
+    if (sc < 0) neg->v.push_back(cur);
+    if (sc == 0) {
+      pos->v.push_back(sn < 0 ? on_plane : cur);
+      neg->v.push_back(sn > 0 ? on_plane : cur);
+    }
+    if ((sc > 0 && sn < 0) || (sc < 0 && sn > 0)) {
+      const XPoint* x = Meet(s, f, cur, plane);
+      const FVert along{x, cur.light_edge, cur.plane};
+      const FVert across{x, -1, &plane};
+      if (sc > 0) {
+        pos->v.push_back(across);
+        neg->v.push_back(along);
+      } else {
+        neg->v.push_back(across);
+        pos->v.push_back(along);
+      }
+    }
+  }
+  if (!has_pos) pos->v.clear();
+  if (!has_neg) neg->v.clear();
+}
+
+bool LightTree::Clip(Scratch& s, Fragment* f, const XPlane& plane, int flip) const {
+  s.signs.resize(f->v.size());
+  bool any_neg = false, any_pos = false;
+  for (size_t i = 0; i < f->v.size(); ++i) {
+    s.signs[i] = OnPlaneByDefinition(*f->v[i].point, &plane)
+                     ? 0
+                     : flip * EuclidSide(*f->v[i].point, plane);
+    any_neg |= s.signs[i] < 0;
+    any_pos |= s.signs[i] > 0;
+  }
+  if (!any_pos) return false;
+  if (!any_neg) return true;
+  Fragment pos, neg;
+  Split(s, *f, s.signs, plane, &pos, &neg);
+  *f = std::move(pos);
+  return true;
+}
+
+bool LightTree::HasLineBox(const Scratch& s, Fragment& f) const {
+  if (f.box_state == 0) {
+    absl::InlinedVector<const XPoint*, 8> xs;
+    for (const FVert& fv : f.v) xs.push_back(fv.point);
+    f.box_state = LineBoxOf(s, xs, &f.box) ? 1 : -1;
+  }
+  return f.box_state == 1;
+}
+
+bool LightTree::ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) const {
+  return HasLineBox(s, f) && f.box.Apart(shadow);
+}
+
+bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
+                         const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
+                         const LineBox* shadow) const {
+  std::vector<EdgeLine> lines;
+  lines.reserve(edges.size());
+  for (const auto& [a, b] : edges) lines.push_back({a, b});
+  // Fragments that stay whole stay in place (a fragment is a few hundred
+  // bytes, and a dense mesh's penumbra has hundreds for every occluder);
+  // the pieces of the cut ones are appended.
+  std::vector<Fragment>& out = *fragments;
+  size_t kept = 0;
+  struct Item { Fragment f; size_t k; int chain; };
+  std::vector<Item> stack;
+  std::vector<int> sg;
+  const auto keep = [&](size_t i) {
+    if (kept != i) out[kept] = std::move(out[i]);
+    ++kept;
+  };
+  for (size_t i = 0; i < out.size(); ++i) {
+    Fragment& f = out[i];
+    if (shadow != nullptr && ApartFrom(s, f, *shadow)) {
+      keep(i);
+      continue;
+    }
+    bool outside_positive = false, outside_negative = false, touches_only = false;
+    for (EdgeLine& line : lines) {
+      if (!EdgeSides(s, f, line, &sg)) {  // touches the edge line only: not inside
+        touches_only = true;
+        break;
+      }
+      outside_positive |= std::none_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+      outside_negative |= std::none_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+    }
+    if (touches_only || (outside_positive && outside_negative)) {
+      keep(i);
+      continue;
+    }
+    stack.push_back({std::move(f), 0, outside_positive ? -1 : outside_negative ? 1 : 0});
+  }
+  const bool cut = kept < out.size();
+  out.resize(kept);
+  while (!stack.empty()) {
+    Item item = std::move(stack.back());
+    stack.pop_back();
+    EdgeLine& line = lines[item.k];
+    if (!EdgeSides(s, item.f, line, &sg)) {  // touches the edge line only: not inside
+      out.push_back(std::move(item.f));
+      continue;
+    }
+    Fragment pos, neg;
+    Split(s, item.f, sg, *PlaneOf(s, line).plane, &pos, &neg);
+    const bool last = item.k + 1 == edges.size();
+    // Continue the chain with the part that keeps the chain's sign; the
+    // rest is outside the occluder's shadow.
+    Fragment* keep[2] = {&pos, &neg};
+    for (int side = 0; side < 2; ++side) {
+      Fragment& part = *keep[side];
+      if (part.v.empty()) continue;
+      const int sign = side == 0 ? 1 : -1;
+      if (item.chain != 0 && sign != item.chain) {
+        out.push_back(std::move(part));
+      } else if (!last) {
+        stack.push_back({std::move(part), item.k + 1, sign});
+      }
+      // else: inside all edges, shadowed.
+    }
+  }
+  return cut;
+}
+
+bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments, LineBox* box) const {
+  box->lo[0] = box->lo[1] = std::numeric_limits<double>::infinity();
+  box->hi[0] = box->hi[1] = -std::numeric_limits<double>::infinity();
+  for (Fragment& f : fragments) {
+    if (!HasLineBox(s, f)) return false;
+    for (int i = 0; i < 2; ++i) {
+      box->lo[i] = std::min(box->lo[i], f.box.lo[i]);
+      box->hi[i] = std::max(box->hi[i], f.box.hi[i]);
+    }
+  }
+  return true;
+}
+
+size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
+                                    const XPlane** slab_top, size_t max_subtracted) const {
+  Edges edges;
+  Corners corners;
+  LineBox all;
+  bool all_valid = UnionLineBox(s, *fragments, &all);
+  size_t subtracted = 0;
+  for (const uint32_t id : ids) {
+    if (fragments->empty() || subtracted == max_subtracted || StopNow(s)) break;
+    if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
+    LineBox shadow;
+    const bool has_shadow = LineBoxOf(s, corners, &shadow);
+    if (has_shadow && all_valid && all.Apart(shadow)) continue;
+    ++subtracted;
+    if (Subtract(s, fragments, edges, has_shadow ? &shadow : nullptr)) {
+      all_valid = UnionLineBox(s, *fragments, &all);
+    }
+  }
+  return subtracted;
+}
+
+}  // namespace visq::exact::detail

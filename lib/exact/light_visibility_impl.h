@@ -1,0 +1,682 @@
+// The tree behind LightVisibilityTree (private to lib/exact/): its state and
+// the declarations of its parts, each defined in a file of its own:
+//
+//   light_tree_build.cpp     Create: the light's exact geometry, the shaft, the
+//                            occluders' selection; the tree's growth (Refine)
+//   light_tree_query.cpp     a query: the store of answers, the classification
+//                            of points before the tree, the descent, the
+//                            integration over the visible polygons
+//   light_tree_occluders.cpp exact tests of one occluder against the whole light
+//   light_tree_subtract.cpp  the polygon machinery: edge planes, splitting,
+//                            clipping, subtracting occluders from fragments
+//   light_polygon.cpp        the light's checks and triangulation
+//
+// light_visibility.h explains the algorithm (Mora et al. 2013).
+#pragma once
+
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <deque>
+#include <limits>
+#include <memory>
+#include <optional>
+#include <shared_mutex>
+#include <span>
+#include <unordered_map>
+#include <utility>
+#include <vector>
+
+#include <absl/container/flat_hash_map.h>
+#include <absl/container/inlined_vector.h>
+#include <glm/glm.hpp>
+
+#include "common/check.h"
+#include "exact/exact_geometry.h"
+#include "exact/light_visibility.h"
+#include "exact/occluder_index.h"
+
+namespace visq::exact::detail {
+
+// Sides used by the BSP: child 0 takes lines with side > 0, child 1 lines with
+// side <= 0 (a line touching an edge line is never "inside" that edge).
+enum NodeKind : uint8_t { kInner, kVisible, kInvisible, kUndefined };
+
+// 20 bytes. Visible and invisible leaves without occluders are two shared
+// sentinel nodes (kSharedVisible, kSharedInvisible), so an occluder BSP costs
+// only its 3 or 5 inner nodes until occluders are filtered into a leaf.
+struct Node {
+  uint32_t a = 0, b = 0;        // inner: edge line a -> b (point indices);
+                                // undefined leaf: b = index into lists
+  int32_t child[2] = {-1, -1};  // inner only
+  uint8_t kind = kUndefined;
+};
+static_assert(sizeof(Node) == 20);
+constexpr int32_t kSharedVisible = 1, kSharedInvisible = 2;
+
+// A far occluder: a scene triangle oriented so that the light lies on its
+// non-negative side; lines from the light through its interior then have all
+// three edge sides > 0. When the light straddles its plane, lines may cross
+// it either way and the BSP also needs the all-negative class (5 nodes).
+struct FarOccluder {
+  uint32_t v[3];
+  bool two_sided = false;
+};
+
+// A near occluder, clipped per query; vertices as point indices and their
+// exact sides against the light plane.
+struct NearOccluder {
+  uint32_t v[3];
+  int8_t light_side[3];
+  uint32_t scene_triangle;
+};
+
+// One edge of a light fragment lies on a light-triangle edge or on a plane.
+struct FVert {
+  const XPoint* point;
+  int32_t light_edge;   // >= 0: edge (light_edge, light_edge + 1) of the triangle
+  const XPlane* plane;  // otherwise: the plane holding the edge to the next vertex
+};
+
+// An enclosure of the lines through the query point P that pass through a
+// convex set, as a box in gnomonic coordinates: the direction d = x - P maps
+// to (d[u] / d[k], d[v] / d[k]), the same point for d and -d, so every line
+// through P is one point and the lines through a convex set whose directions
+// all have d[k] of one strict sign are the convex hull of its vertices'
+// images. Bounds are outward-rounded (interval arithmetic): two boxes that
+// are apart certify that no line through P meets both sets.
+struct LineBox {
+  double lo[2], hi[2];
+  bool Apart(const LineBox& o) const {
+    return hi[0] < o.lo[0] || o.hi[0] < lo[0] || hi[1] < o.lo[1] || o.hi[1] < lo[1];
+  }
+};
+
+struct Fragment {
+  uint32_t triangle = 0;  // light triangle
+  absl::InlinedVector<FVert, 8> v;  // most fragments have few vertices: no allocation
+  // The LineBox of the fragment, computed on first use: 0 not yet, 1 valid,
+  // -1 none (a direction with d[k] not certainly of the light's sign).
+  int8_t box_state = 0;
+  LineBox box;
+};
+
+struct LightTriangle {
+  uint32_t v[3];  // indices into light points
+  const XPlane* plane;
+};
+
+// An answer as the store keeps it: the three figures, and the polygons only
+// when they were asked for (a PointVisibility carries an empty vector in
+// every answer: 24 bytes of the 48). 32 bytes, so a 16 MB tree's store
+// (half its budget) holds about 80,000 answers: a 320 x 180 frame on one
+// tree, asked again, is answered from it whole.
+struct StoredAnswer {
+  double visible_area_fraction = 0.0;
+  double visible_solid_angle_fraction = 0.0;
+  double irradiance = 0.0;
+  std::unique_ptr<std::vector<std::vector<glm::dvec3>>> polygons;
+
+  static StoredAnswer From(const PointVisibility& v) {
+    StoredAnswer a{v.visible_area_fraction, v.visible_solid_angle_fraction, v.irradiance, nullptr};
+    if (!v.visible_polygons.empty()) {
+      a.polygons = std::make_unique<std::vector<std::vector<glm::dvec3>>>(v.visible_polygons);
+    }
+    return a;
+  }
+  PointVisibility Answer() const {
+    PointVisibility v;
+    v.visible_area_fraction = visible_area_fraction;
+    v.visible_solid_angle_fraction = visible_solid_angle_fraction;
+    v.irradiance = irradiance;
+    if (polygons) v.visible_polygons = *polygons;
+    return v;
+  }
+};
+static_assert(sizeof(StoredAnswer) == 32);
+
+// A query as the store of answers knows it: every input bit that the answer
+// depends on.
+struct AnswerKey {
+  uint64_t position[3];
+  uint64_t normal[3];
+  uint32_t receiver_triangle;
+  uint8_t has_normal, has_triangle, want_polygons;
+  bool operator==(const AnswerKey&) const = default;
+  template <typename H>
+  friend H AbslHashValue(H h, const AnswerKey& k) {
+    return H::combine(std::move(h), k.position[0], k.position[1], k.position[2], k.normal[0], k.normal[1],
+                      k.normal[2], k.receiver_triangle, k.has_normal, k.has_triangle, k.want_polygons);
+  }
+};
+
+
+struct PairHash {
+  size_t operator()(const std::pair<const void*, const void*>& p) const {
+    const auto a = reinterpret_cast<uintptr_t>(p.first), b = reinterpret_cast<uintptr_t>(p.second);
+    return std::hash<uintptr_t>()(a * 0x9E3779B97F4A7C15ull ^ (b + 0x632BE59BD9B4E019ull));
+  }
+};
+
+// Objects at stable addresses, constructed one at a time into blocks of
+// 64 that outlive Clear(): a reused arena allocates nothing.
+template <typename T>
+class Arena {
+ public:
+  Arena() = default;
+  Arena(const Arena&) = delete;
+  Arena& operator=(const Arena&) = delete;
+  ~Arena() { Clear(); }
+
+  const T* Add(T value) {
+    const size_t block = size_ / kBlock, slot = size_ % kBlock;
+    if (block == blocks_.size()) blocks_.push_back(std::make_unique<Storage[]>(kBlock));
+    T* object = std::construct_at(reinterpret_cast<T*>(&blocks_[block][slot]), std::move(value));
+    ++size_;
+    return object;
+  }
+  void Clear() {
+    for (size_t i = 0; i < size_; ++i) std::destroy_at(reinterpret_cast<T*>(&blocks_[i / kBlock][i % kBlock]));
+    size_ = 0;
+  }
+
+ private:
+  static constexpr size_t kBlock = 64;
+  struct Storage {
+    alignas(T) unsigned char bytes[sizeof(T)];
+  };
+  std::vector<std::unique_ptr<Storage[]>> blocks_;
+  size_t size_ = 0;
+};
+
+inline double Area3(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
+  return 0.5 * glm::length(glm::cross(b - a, c - a));
+}
+
+// Solid angle of triangle (a, b, c) seen from the origin (Van Oosterom and
+// Strackee 1983).
+inline double SolidAngle(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
+  const double la = glm::length(a), lb = glm::length(b), lc = glm::length(c);
+  const double num = std::fabs(glm::dot(a, glm::cross(b, c)));
+  const double den = la * lb * lc + glm::dot(a, b) * lc + glm::dot(a, c) * lb + glm::dot(b, c) * la;
+  return 2.0 * std::atan2(num, den);
+}
+
+// The light moved to its centroid and triangulated, after every check
+// (light_polygon.cpp).
+struct PreparedLight {
+  glm::dvec3 origin{0.0};
+  std::vector<glm::dvec3> local;
+  std::vector<std::array<uint32_t, 3>> triangles;
+};
+[[nodiscard]] StatusOr<PreparedLight> PrepareLight(const AreaLight& light);
+
+class PyramidCull;  // light_tree_query.cpp
+
+// ---------------------------------------------------------------------------
+struct LightTree {
+  // Validates the light, selects the occluders and plants the tree
+  // (light_tree_build.cpp).
+  [[nodiscard]] static StatusOr<std::unique_ptr<LightTree>> Create(const AreaLight& light, const Scene& scene,
+                                                                   const TreeOptions& options,
+                                                                   const SceneTriangleIndex* index);
+
+  // The frame: everything is stored relative to the light centroid, rounded
+  // once; all exact predicates are exact for these local coordinates.
+  glm::dvec3 origin{0.0};
+  double radiance = 1.0;
+  double light_area = 0.0;
+
+  std::deque<XPoint> light_points;      // light vertices (local)
+  std::vector<glm::dvec3> light_local;  // same, as doubles
+  std::deque<XPlane> light_planes;      // one per light triangle
+  std::vector<LightTriangle> light_triangles;
+  const XPlane* light_plane = nullptr;  // the largest triangle's: front side positive
+  int light_axis = 2;  // the axis nearest the light's normal: k of the LineBoxes
+
+  // The occluders' vertices (local frame, input doubles), one per position,
+  // shared by the triangles that meet there; never grows after Create. The
+  // tree keeps only these 24 bytes a vertex: a query makes the exact point of
+  // a vertex (an XPoint, ten times larger) on first use (Vertex), so that a
+  // dense room's tree of 100K occluders holds no 25 MB of exact points that
+  // each query touches a few dozen of.
+  std::vector<glm::dvec3> vertices;
+  std::vector<FarOccluder> far;
+  std::vector<NearOccluder> near;  // in increasing order of scene_triangle (NearOfTriangle)
+  OccluderIndex index;  // ids: far occluders first, then near ones
+  std::optional<std::pair<glm::dvec3, glm::dvec3>> receiver_box;  // local frame
+
+  mutable std::shared_mutex mutex;
+  std::vector<Node> nodes;
+  std::vector<std::vector<uint32_t>> lists;  // occluder lists of undefined leaves
+  std::vector<uint32_t> free_lists;
+  size_t list_bytes = 0;
+
+  std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0},
+      subtracted_directly{0}, answers_reused{0};
+
+  // The store of answers (Query), under a lock of its own: a lookup must
+  // not wait for a refinement.
+  mutable std::shared_mutex answers_mutex;
+  absl::flat_hash_map<AnswerKey, StoredAnswer> answers;
+  size_t answer_bytes = 0;  // under answers_mutex
+  std::atomic<size_t> answer_bytes_now{0};  // the same, for the tree's budget, which counts the store too
+  size_t max_answer_bytes = 0;
+  size_t max_bytes = 0;
+  bool classify_points = true;
+  size_t direct_candidates = 0;
+
+  size_t MemoryBytesLocked() const;
+
+  // --- The end of Create, once the occluders are selected. ----------------
+  // The occluders' boxes in their hierarchy (far ones first), then the tree
+  // as one undefined leaf holding every far occluder. Node 0 is the root; 1
+  // and 2 are the shared visible / invisible leaves.
+  void IndexOccludersAndPlantTheTree();
+
+  // The scene's triangles that can block a segment from the light to the
+  // receivers, far ones and near ones (the rest of Create).
+  [[nodiscard]] Status SelectOccluders(const Scene& scene, const TreeOptions& options, const SceneTriangleIndex* index,
+                                       const LightTriangle& largest);
+
+  // --- Tree growth (under the exclusive lock). -----------------------------
+
+  // Which sides of edge line (a, b) the lines from the light to occluder o
+  // reach: it suffices to test the vertex-to-light-vertex lines, because the
+  // side of line(y, x) is bilinear in (y, x). The fans are orient3d(y, a, b, .)
+  // for the light's vertices y, made once per edge line and shared by all
+  // the occluders a refinement filters (a leaf of a dense room holds
+  // thousands): orient3d(y, a, b, x) = -orient3d(x, a, b, y), the side of the
+  // line x -> y.
+  struct EdgeFans {
+    uint32_t a = 0, b = 0;
+    std::vector<Orient3dFan> fans;
+  };
+  EdgeFans MakeEdgeFans(uint32_t a, uint32_t b) const;
+  void OccluderSides(const uint32_t v[3], const EdgeFans& edge, bool* pos, bool* nonpos) const;
+
+  int32_t NewNode(uint8_t kind, uint32_t a = 0, uint32_t b = 0);
+
+  uint32_t NewList();
+
+  // Which occluder of a leaf to insert. The paper takes a random one; we
+  // take one that the query's line from P to a point y of the fragment that
+  // reached the leaf actually crosses (a double-precision guess: it only
+  // steers the choice, never the answer). Its invisible class then swallows
+  // the occluders behind it at once, instead of growing nodes for occluders
+  // this region of line space never meets. Of the occluders the line
+  // crosses, the one nearest P: seen from the receivers it is the largest,
+  // so its class holds the most lines: smaller trees and faster queries than
+  // the one nearest the light (docs/exact-method-notes.md).
+  size_t ChooseOccluder(const std::vector<uint32_t>& list, const glm::dvec3& p,
+                        const glm::dvec3& y) const;
+
+  void Refine(int32_t id, const glm::dvec3& p, const glm::dvec3& y);
+
+  // --- Queries. --------------------------------------------------------------
+  // A query's own geometry: the points and planes it constructs, and the
+  // edge planes by edge. One per thread, reused from query to query: a
+  // query makes hundreds of objects, and allocating them one by one (a
+  // std::deque of these 200-byte objects allocates every second one) cost
+  // more than the warm queries' arithmetic.
+  struct Scratch {
+    Arena<XPoint> points;
+    Arena<XPlane> planes;
+    absl::flat_hash_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
+    std::vector<int> signs;
+    const XPoint* p = nullptr;
+    // The query's stop: looked at every kStopStride calls of StopNow.
+    const StopToken* stop = nullptr;
+    uint32_t stop_countdown = 0;
+    Status stopped;
+    // The sign of d[light_axis] for every direction from P to the light;
+    // 0 when it is not one strict sign (then no LineBoxes this query).
+    int line_box_sign = 0;
+    // The exact points of the tree's vertices made by this query, by vertex
+    // index: valid where the stamp is this query's. One object per vertex
+    // and query, as when the tree kept them: a point made on an edge plane
+    // is then recognised as lying on it by its definition (EdgePlane,
+    // OnPlaneByDefinition). Their addresses now follow the order in which
+    // the query meets them, which only orients the edge planes (EdgePlane
+    // orders a line's ends by address): ThroughPoints(P, b, a) is exactly
+    // -ThroughPoints(P, a, b), so no sign and no rounded value changes.
+    struct VertexSlot {
+      uint32_t stamp = 0;
+      const XPoint* point = nullptr;
+    };
+    std::vector<VertexSlot> vertex_points;
+    uint32_t stamp = 0;
+
+    const XPoint* Add(XPoint x) { return points.Add(std::move(x)); }
+    const XPlane* Add(XPlane x) { return planes.Add(std::move(x)); }
+    void Reset() {
+      points.Clear();
+      planes.Clear();
+      edge_planes.clear();
+      p = nullptr;
+      line_box_sign = 0;
+      stop = nullptr;
+      stop_countdown = 0;
+      stopped = absl::OkStatus();
+      if (++stamp == 0) {  // wrapped: forget every slot
+        for (VertexSlot& slot : vertex_points) slot.stamp = 0;
+        stamp = 1;
+      }
+    }
+    // Room for a tree of `count` vertices (the slots outlive the query).
+    void FitVertices(size_t count) {
+      if (vertex_points.size() < count) vertex_points.resize(count);
+    }
+  };
+
+  // Vertex i as an exact input point, made on first use in this query (the
+  // scratch must have been fitted to this tree's vertices).
+  const XPoint& Vertex(Scratch& s, uint32_t i) const {
+    VISQ_DCHECK_LT(size_t(i), vertices.size());
+    VISQ_DCHECK_LE(vertices.size(), s.vertex_points.size());
+    Scratch::VertexSlot& slot = s.vertex_points[i];
+    if (slot.stamp != s.stamp) {
+      slot.point = s.Add(XPoint::Input(vertices[i]));
+      slot.stamp = s.stamp;
+    }
+    return *slot.point;
+  }
+
+  // The near occluder of a scene triangle, or null.
+  const NearOccluder* NearOfTriangle(uint32_t scene_triangle) const {
+    const auto it = std::lower_bound(near.begin(), near.end(), scene_triangle,
+                                     [](const NearOccluder& n, uint32_t t) { return n.scene_triangle < t; });
+    return it != near.end() && it->scene_triangle == scene_triangle ? &*it : nullptr;
+  }
+
+  // Whether the query must stop (its status then in s.stopped). The clock
+  // is read every few calls: a call is one occluder subtracted or one step
+  // of the descent, a few microseconds at most.
+  static constexpr uint32_t kStopStride = 8;
+  static bool StopNow(Scratch& s);
+
+  // The plane through P and edge line (a, b), shared by both orientations
+  // of the line (so that a vertex created on it is recognised as lying on it
+  // later); `sign` orients it as the edge a -> b. Null when P is on the line.
+  struct EdgePlaneRef {
+    const XPlane* plane;
+    int sign;
+  };
+  EdgePlaneRef EdgePlane(Scratch& s, const XPoint& a, const XPoint& b) const;
+
+  // Whether x is on the plane by construction (then its sign is 0 without
+  // any arithmetic; this is also what keeps repeated planes off the exact
+  // fallback). Besides "x was made on this plane", one case matters a lot:
+  // the shadow of an occluder vertex v is Π_t ∩ plane(P, v, a) ∩ plane(P, v, b),
+  // a point of line(P, v), and so lies on every edge plane through P and v.
+  static bool OnPlaneByDefinition(const XPoint& x, const XPlane* plane);
+
+  // An edge line (a, b) as one query sees it. The plane through P and the
+  // line is made only when it is needed: to split, or to side a vertex that
+  // is not an input point. An input vertex takes the orientation test on its
+  // doubles (a static filter, about 20 flops), which is most of them: the
+  // light's own vertices, on every fragment that nothing has split yet. Both
+  // routes are exact, so they agree on every sign.
+  struct EdgeLine {
+    const XPoint* a;
+    const XPoint* b;
+    bool has_plane = false;
+    EdgePlaneRef plane{nullptr, 0};
+    std::optional<Orient3dFan> fan;  // orient3d(P, a, b, .), for input vertices
+  };
+  EdgePlaneRef PlaneOf(Scratch& s, EdgeLine& e) const;
+
+  // Side of x against the edge line, as the side of the line x -> P:
+  // orient3d(x, P, a, b) = -orient3d(P, a, b, x). Zero when P is on the line.
+  int LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const;
+
+  // The sides of every fragment vertex. Returns false when every sign is zero
+  // (P on the edge line, or a zero-area fragment).
+  bool EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vector<int>* signs) const;
+
+  // Exact tests of one occluder triangle against the whole light, on input
+  // doubles only (orientation tests with a static filter, no constructed
+  // points): a few hundred nanoseconds, against microseconds for clipping
+  // and subtracting it.
+  //
+  // Whether no line from P through the light passes strictly inside the
+  // triangle: some edge line has every light vertex on its <= 0 side (no
+  // all-positive line), and some edge line has every light vertex > 0 (no
+  // all-non-positive one). Sides are linear in the light point over each
+  // light triangle, so vertices decide; lines through the closed light
+  // polygon stand for the segments. P on an edge line: nothing is strictly
+  // inside. A triangle whose shadow misses by this test blocks nothing, and
+  // neither does any part of it (a clipped near occluder).
+  bool ShadowMissesLight(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const;
+
+  // The same decision from the sides of the lines from P to the light's
+  // vertices against a convex polygon's edge lines: side_of(edge, vertex).
+  template <typename SideOf>
+  bool ShadowMissesLightBySides(size_t edge_count, const SideOf& side_of) const {
+    bool miss_pos = false, miss_neg = false;
+    for (size_t e = 0; e < edge_count; ++e) {
+      bool all_nonpos = true, all_pos = true, all_zero = true;
+      for (size_t i = 0; i < light_local.size(); ++i) {
+        const int side = side_of(e, i);
+        all_nonpos &= side <= 0;
+        all_pos &= side > 0;
+        all_zero &= side == 0;
+      }
+      // Every light vertex on one plane with P and the line: P is on the
+      // line (P is strictly in front of the light), nothing strictly inside.
+      if (all_zero) return true;
+      miss_pos |= all_nonpos;
+      miss_neg |= all_pos;
+    }
+    return miss_pos && miss_neg;
+  }
+
+  // Which segments from P to the light's vertices cross the triangle's
+  // interior, P and the vertex strictly on opposite sides of its plane (bit
+  // i: vertex i, for the first 64), and whether all of them do. When all do,
+  // the triangle blocks every segment from P to the light: its plane
+  // separates P from the light's convex hull, whose central projection from
+  // P onto the plane is the convex hull of the vertices' crossings, inside
+  // the triangle.
+  struct Cover {
+    uint64_t mask = 0;
+    bool all = false;
+  };
+  Cover CoveredLightVertices(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const;
+
+  // The vertices of an occluder: far ones first, then near ones.
+  const uint32_t* OccluderVertices(uint32_t id) const;
+
+  // ShadowMissesLight and, when the shadow does not miss, CoveredLightVertices
+  // from one set of signs: both take the sides of the light's vertices
+  // against the planes through P and the triangle's edges, and every query
+  // tests dozens of candidates. Lights of many vertices take the two tests.
+  static constexpr size_t kSharedSidesVertices = 16;
+  struct OccluderTest {
+    bool misses = true;
+    Cover cover;
+  };
+  OccluderTest TestOccluder(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const;
+
+  // The edges of a near occluder clipped to the slab between the light
+  // plane and the plane through P parallel to it (`slab_top`): the part of
+  // it that lies between. False when no part of it can block (nothing
+  // strictly between, or its clipped shadow misses the light).
+  // `corners` gets the clipped polygon's vertices (for its LineBox).
+  using Edges = std::vector<std::pair<const XPoint*, const XPoint*>>;
+  using Corners = absl::InlinedVector<const XPoint*, 6>;
+  bool NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
+                         Corners* corners) const;
+
+  // An occluder's edges and corners as a query subtracts it: a far one
+  // whole, a near one clipped to the slab under P (made on first use in
+  // `*slab_top`). False when no part of it can block.
+  bool OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, Edges* edges, Corners* corners) const;
+
+  // Whether subtracting the blockers that block the most light vertices (at
+  // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
+  // of the light.
+  static constexpr size_t kFewBlockers = 16;
+  struct Blocker {
+    uint32_t id;   // occluder id: far ones first, then near ones
+    int vertices;  // light vertices whose segments it blocks
+  };
+  bool HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light, std::vector<Blocker>* blockers) const;
+
+  // A triangle's size as seen from p: its area over its squared distance,
+  // a proxy of its solid angle (it orders subtractions; any order gives the
+  // same answer).
+  static double ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]);
+
+  // Orders occluder ids largest as seen from p first (they leave the fewest
+  // fragments for the others to cut), ties by id, so the order (and the
+  // float sums over the fragments) do not depend on the traversal.
+  void SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids) const;
+
+  // The point where a fragment edge support meets a plane.
+  const XPoint* Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const;
+
+  // Splits f by `plane` given the vertex signs: *pos gets the part with
+  // sign >= 0 (if some vertex is > 0), *neg the part <= 0 (if some is < 0).
+  // New vertices are shared by both parts.
+  void Split(Scratch& s, const Fragment& f, const std::vector<int>& sg, const XPlane& plane,
+             Fragment* pos, Fragment* neg) const;
+
+  // Keeps the part of f with plane side >= 0 (side sign flipped by `flip`).
+  // Returns false when nothing of positive area remains.
+  bool Clip(Scratch& s, Fragment* f, const XPlane& plane, int flip) const;
+
+  // The LineBox of a convex set's vertices as seen from P; false when the
+  // box does not hold (some direction not certainly on the light's side of
+  // d[light_axis] = 0: its image would wrap through infinity).
+  template <typename Points>
+  bool LineBoxOf(const Scratch& s, const Points& xs, LineBox* box) const {
+    if (s.line_box_sign == 0) return false;
+    const int k = light_axis, u = (k + 1) % 3, v = (k + 2) % 3;
+    const glm::dvec3& p = s.p->input;
+    box->lo[0] = box->lo[1] = std::numeric_limits<double>::infinity();
+    box->hi[0] = box->hi[1] = -std::numeric_limits<double>::infinity();
+    for (const XPoint* x : xs) {
+      // d = X / W - P; the ratios d[u] / d[k] = (X[u] - P[u] W) / (X[k] - P[k] W).
+      const IV4& h = x->approx;
+      const Iv den = h[k] - Iv(p[k]) * h[3];
+      const int den_sign = SignOf(den);
+      if (den_sign == kUncertain || den_sign * x->w_sign != s.line_box_sign) return false;
+      const Iv g[2] = {(h[u] - Iv(p[u]) * h[3]) / den, (h[v] - Iv(p[v]) * h[3]) / den};
+      for (int i = 0; i < 2; ++i) {
+        box->lo[i] = std::min(box->lo[i], g[i].lo);
+        box->hi[i] = std::max(box->hi[i], g[i].hi);
+      }
+    }
+    return true;
+  }
+
+  // Whether the fragment has a line box (computed on first use).
+  bool HasLineBox(const Scratch& s, Fragment& f) const;
+
+  // Whether no line from P through the fragment meets the set in `shadow`.
+  bool ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) const;
+
+  // Removes from `fragments` the lines from the light to P that cross the
+  // convex polygon with the given edge lines (each pair a -> b). With the
+  // polygon's LineBox, fragments whose boxes are apart from it are kept
+  // without a predicate: a dense mesh's many small occluders each meet few
+  // of the many pieces it leaves.
+  //
+  // The lines inside the polygon's shadow have one sign against every edge
+  // line. A fragment is first judged whole: if for each sign some edge has
+  // none of its vertices on that sign's side, it is outside and kept as it
+  // is. Only the others are cut, edge by edge, following the one sign that
+  // can still hold. Cutting a fragment that lies outside anyway would leave
+  // it in pieces, and every piece costs each later occluder again.
+  // Returns whether it cut (or removed) any fragment.
+  bool Subtract(Scratch& s, std::vector<Fragment>* fragments,
+                const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
+                const LineBox* shadow = nullptr) const;
+
+  // The box around the fragments' line boxes; false when one has none.
+  bool UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments, LineBox* box) const;
+
+  // Subtracts the occluders `ids` (occluder ids, in this order) from the
+  // fragments, until nothing is left or `max_subtracted` of them have been
+  // subtracted. An occluder whose line box is apart from the box around all
+  // the fragments is passed over without visiting them: a dense mesh's
+  // leaf lists thousands of triangles, most of which miss the few pieces
+  // that reach it. Returns the number subtracted.
+  size_t SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
+                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX) const;
+
+  // The answer from the store, or a new one, kept while the store has room.
+  StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop);
+
+  // The answer to one query, from scratch.
+  StatusOr<PointVisibility> Compute(const QueryPoint& q, bool want_polygons, const StopToken& stop);
+
+  // The query point in the local frame, after the checks of its position
+  // and normal (INVALID_ARGUMENT) and of the receiver box (OUT_OF_RANGE).
+  StatusOr<glm::dvec3> LocalPosition(const QueryPoint& q) const;
+
+  // Whether occluder `id` is the receiver's own triangle (a near one).
+  bool IsReceiver(uint32_t id, uint32_t receiver) const {
+    return id >= far.size() && near[id - far.size()].scene_triangle == receiver;
+  }
+
+  // Classify first, with exact tests on input points only. The occluders
+  // whose triangles could block a segment from P to the light are
+  // gathered; most points end here, before any fragment work: when none
+  // can, the light is wholly visible (above the horizon); when one alone
+  // blocks every segment, it is wholly hidden (a wall or a floor above).
+  // Only the others (penumbrae, or umbrae cast by several triangles
+  // together) descend the tree and subtract their near occluders. The
+  // answers are those the tree would give: the tree never splits what it
+  // does not have to, but splitting a wholly visible light into pieces
+  // whose areas are summed gives 1 - 1e-16 where this gives 1.
+  //
+  // Umbrae cast by a few triangles together (the two halves of a quad, a
+  // mesh's neighbouring faces) are common too. When every light vertex's
+  // segment is blocked by some candidate, the few candidates that block
+  // the most vertices are subtracted from the light directly; if nothing
+  // is left, the point is hidden, exactly. Otherwise that work is dropped
+  // and the tree decides.
+  //
+  // A point with few candidates in all (direct_candidates) subtracts them
+  // all from the light itself: the candidates are every occluder whose
+  // shadow can meet the light, so what is left is the exact answer, and
+  // for a handful of triangles that costs no more than the descent while
+  // the tree does not grow for it.
+  // Neighbouring points are mostly hidden by the same wall or floor: the
+  // occluder that last hid a whole light from this thread, tried first,
+  // spares the gathering. The test is exact for any occluder of the tree
+  // but P's own triangle (excluded, as below: P may lie a rounding off its
+  // plane), so a stale entry costs one test and no wrong answer.
+  bool HiddenByLastCover(const glm::dvec3& p_local, uint32_t receiver) const;
+
+  // The occluders whose shadows can meet the light from P (far ids, and
+  // near ones as indices into `near`), and the route the query takes.
+  struct Candidates {
+    std::vector<uint32_t> near, far;
+    bool any_far = false;  // the tree must be descended (unless direct)
+    bool direct = false;   // few enough to subtract them all from the light
+  };
+  // Gathers them (GatherCandidates' caller has tried HiddenByLastCover);
+  // true when the point is wholly hidden, and then nothing else is filled
+  // in. Wholly visible: no candidate and any_far false.
+  bool GatherCandidates(Scratch& s, const glm::dvec3& p_local, uint32_t receiver, const PyramidCull& cull,
+                        const std::vector<Fragment>& pending, Candidates* out);
+
+  // Pushes the light fragments down the shared tree from its root: the
+  // parts that reach visible leaves go to *visible; an undefined leaf is
+  // refined under the exclusive lock (*refined), or, with the tree at its
+  // budget, resolved against its occluders here. CANCELLED or
+  // DEADLINE_EXCEEDED when the query's stop says so.
+  Status DescendTree(Scratch& s, std::vector<Fragment>& pending, const PyramidCull& cull,
+                     const glm::dvec3& p_local, std::vector<Fragment>* out, bool* refined_out);
+
+  // The visible fraction of the light's area and solid angle, and the
+  // irradiance for the normal, from the visible fragments (and their
+  // polygons, when asked for).
+  PointVisibility Integrate(const std::vector<Fragment>& visible, const glm::dvec3& p_local,
+                            const std::optional<glm::dvec3>& normal, bool want_polygons) const;
+};
+
+}  // namespace visq::exact::detail
