@@ -12,26 +12,14 @@
 
 #include "exact/exact_geometry.h"
 #include "raycast/embree_scene.h"
+#include "scene/sample_scenes.h"
 
 namespace visq::exact {
 namespace {
 
 using Tri = std::array<glm::dvec3, 3>;
 
-Scene MakeScene(const std::vector<Tri>& tris) {
-  Scene s;
-  for (const Tri& t : tris) {
-    const uint32_t base = static_cast<uint32_t>(s.positions.size());
-    for (const auto& p : t) {
-      s.positions.push_back(p);
-      s.bounds.Extend(p);
-    }
-    s.triangles.push_back(glm::uvec3(base, base + 1, base + 2));
-    s.triangle_material.push_back(0);
-    s.triangle_node.push_back(0);
-  }
-  return s;
-}
+Scene MakeScene(const std::vector<Tri>& tris) { return SceneOfTriangles(tris); }
 
 // A square light of half-size h centred at (0, 0, z), facing down (-z):
 // counter-clockwise seen from below.
