@@ -8,8 +8,8 @@
 //
 //   visq_bench_obscurance [--quick] [--update-only] [--scene NAME] [--atlas N] [--directions N]
 //                         [--bundle N] [--scenes DIR]
-//   visq_bench_obscurance --coverage [--scene bunny|palm] [--atlas N] [--reference-rays N]
-//                         [--directions N,N,...] [--bundles N,N,...] [--scenes DIR]
+//   visq_bench_obscurance --coverage [--scene bunny|palm|cornell|sponza] [--atlas N] [--reference-rays N]
+//                         [--directions-list N,N,...] [--bundles N,N,...] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
 // --update-only: only the Sponza update latency.
 // --scene sponza|veach_ajar, --atlas N, --directions N: only this scene,
@@ -114,18 +114,20 @@ ErrorFigures Compare(const std::vector<glm::vec3>& estimate, const std::vector<g
   return f;
 }
 
-// The variance of an N-ray reference's estimate, from the spread of two
-// halves: per element (a - b)^2 / 4 estimates var(mean of N) when a and b
-// are means of N/2 each... taken here simply as the mean over elements of
-// W (1 - W) / N, the largest variance values in [0, 1] with mean W allow.
-double ReferenceVariance(const std::vector<glm::vec3>& reference, const std::vector<uint8_t>& use, uint32_t rays) {
+// Two references of N/2 rays each: their mean is the reference, and per
+// element (a - b)^2 / 4 estimates its variance, whose mean is returned.
+double MeanOfTwo(const std::vector<glm::vec3>& a, const std::vector<glm::vec3>& b, const std::vector<uint8_t>& use,
+                 std::vector<glm::vec3>& mean) {
+  mean.resize(a.size());
   double v = 0;
   size_t n = 0;
-  for (size_t i = 0; i < reference.size(); ++i)
-    if (use[i]) {
-      v += reference[i].x * (1.0 - reference[i].x) / rays;
-      ++n;
-    }
+  for (size_t i = 0; i < a.size(); ++i) {
+    mean[i] = 0.5f * (a[i] + b[i]);
+    if (!use[i]) continue;
+    const double d = static_cast<double>(a[i].x) - b[i].x;
+    v += d * d / 4;
+    ++n;
+  }
   return n ? v / n : 0;
 }
 
@@ -154,38 +156,45 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
               static_cast<double>(scene->TriangleCount()) / covered, params.d_max, confidence);
   auto t0 = std::chrono::steady_clock::now();
   RayEstimateOptions ref_options;
-  ref_options.rays_per_patch = reference_rays;
+  ref_options.rays_per_patch = std::max<uint32_t>(1, reference_rays / 2);
   ref_options.seed = 999;
-  auto texel_reference = EstimateObscurancesByRays(*scene, *atlas, params, ref_options);
-  auto triangle_reference = EstimateTriangleObscuranceByRays(*scene, params, ref_options);
-  if (!texel_reference.ok() || !triangle_reference.ok()) return 1;
-  std::printf("references: %u rays per texel and per triangle, %.1f s\n", reference_rays, Seconds(t0));
-  // Vertices: the reference triangles' area-weighted means, like the bake's.
-  ObscuranceResult reference_vertices = *texel_reference;
-  reference_vertices.triangle_w = *triangle_reference;
-  std::vector<glm::dvec3> vsum(scene->positions.size(), glm::dvec3(0.0));
-  std::vector<double> varea(scene->positions.size(), 0.0);
+  auto texel_a = EstimateObscurancesByRays(*scene, *atlas, params, ref_options);
+  auto triangle_a = EstimateTriangleObscuranceByRays(*scene, params, ref_options);
+  ref_options.seed = 1999;
+  auto texel_b = EstimateObscurancesByRays(*scene, *atlas, params, ref_options);
+  auto triangle_b = EstimateTriangleObscuranceByRays(*scene, params, ref_options);
+  if (!texel_a.ok() || !triangle_a.ok() || !texel_b.ok() || !triangle_b.ok()) return 1;
+  std::printf("references: two of %u rays per texel and per triangle, %.1f s\n", ref_options.rays_per_patch,
+              Seconds(t0));
   std::vector<uint8_t> triangle_use(scene->TriangleCount(), 0), vertex_use(scene->positions.size(), 0);
+  std::vector<double> varea(scene->positions.size(), 0.0);
+  std::vector<glm::dvec3> vsum(scene->positions.size(), glm::dvec3(0.0));
   for (uint32_t t = 0; t < scene->TriangleCount(); ++t) {
     const double a = 0.5 * glm::length(glm::cross(scene->Vertex(t, 1) - scene->Vertex(t, 0),
                                                   scene->Vertex(t, 2) - scene->Vertex(t, 0)));
     if (!(a > 0)) continue;
     triangle_use[t] = 1;
     for (int c = 0; c < 3; ++c) {
-      vsum[scene->triangles[t][c]] += a * glm::dvec3((*triangle_reference)[t]);
       varea[scene->triangles[t][c]] += a;
       vertex_use[scene->triangles[t][c]] = 1;
     }
   }
+  std::vector<uint8_t> texel_use(atlas->texel_count(), 0);
+  for (uint32_t t = 0; t < atlas->texel_count(); ++t) texel_use[t] = texel_a->estimated[t];
+  std::vector<glm::vec3> texel_reference_w, triangle_reference;
+  const double texel_ref_var = MeanOfTwo(texel_a->w, texel_b->w, texel_use, texel_reference_w);
+  const double triangle_ref_var = MeanOfTwo(*triangle_a, *triangle_b, triangle_use, triangle_reference);
+  // Vertices: the reference triangles' area-weighted means, like the bake's.
+  for (uint32_t t = 0; t < scene->TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(scene->Vertex(t, 1) - scene->Vertex(t, 0),
+                                                  scene->Vertex(t, 2) - scene->Vertex(t, 0)));
+    for (int c = 0; c < 3; ++c) vsum[scene->triangles[t][c]] += a * glm::dvec3(triangle_reference[t]);
+  }
   std::vector<glm::vec3> vertex_reference(scene->positions.size(), glm::vec3(0.0f));
   for (size_t v = 0; v < vsum.size(); ++v)
     if (varea[v] > 0) vertex_reference[v] = glm::vec3(vsum[v] / varea[v]);
-  std::vector<uint8_t> texel_use(atlas->texel_count(), 0);
-  const double texel_ref_var = [&] {
-    for (uint32_t t = 0; t < atlas->texel_count(); ++t) texel_use[t] = texel_reference->estimated[t];
-    return ReferenceVariance(texel_reference->w, texel_use, reference_rays);
-  }();
-  const double triangle_ref_var = ReferenceVariance(*triangle_reference, triangle_use, reference_rays);
+  std::printf("reference noise (rms): texels %.4f, triangles %.4f\n", std::sqrt(texel_ref_var),
+              std::sqrt(triangle_ref_var));
 
   std::printf("\n%6s %5s | %-31s | %-31s | %-31s | %-22s | %-31s | %-22s | %s\n", "bundle", "dirs",
               "texel: rms (-ref) stated/own", "tri own: rms (-ref) st/own", "  median bound, unsampled",
@@ -203,19 +212,18 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
       const ObscuranceBounds bounds = ObscuranceBoundsOf(*scene, *baked, confidence);
       std::vector<uint8_t> use_texels(atlas->texel_count(), 0);
       for (uint32_t t = 0; t < atlas->texel_count(); ++t) use_texels[t] = texel_use[t] && baked->estimated[t];
-      const ErrorFigures texel = Compare(baked->w, texel_reference->w, use_texels, texel_ref_var, stated, &bounds.texel);
+      const ErrorFigures texel = Compare(baked->w, texel_reference_w, use_texels, texel_ref_var, stated, &bounds.texel);
       const ErrorFigures own =
-          Compare(baked->triangle_w, *triangle_reference, triangle_use, triangle_ref_var, stated, &bounds.triangle);
+          Compare(baked->triangle_w, triangle_reference, triangle_use, triangle_ref_var, stated, &bounds.triangle);
       // The texels' mean per triangle: the bake's triangle W before.
       std::vector<glm::vec3> texels_mean(scene->TriangleCount());
       for (uint32_t t = 0; t < scene->TriangleCount(); ++t) texels_mean[t] = TriangleAverage(*atlas, *baked, t);
-      const ErrorFigures mixed = Compare(texels_mean, *triangle_reference, triangle_use, triangle_ref_var, stated, nullptr);
+      const ErrorFigures mixed = Compare(texels_mean, triangle_reference, triangle_use, triangle_ref_var, stated, nullptr);
       size_t unsampled = 0;
       for (uint32_t t = 0; t < scene->TriangleCount(); ++t)
         unsampled += triangle_use[t] && baked->triangle_effective_samples[t] == 0;
       const ErrorFigures vertex = Compare(baked->vertex_w, vertex_reference, vertex_use, 0, stated, &bounds.vertex);
       // Vertices from the texels' triangle means.
-      ObscuranceResult before = *baked;
       std::fill(vsum.begin(), vsum.end(), glm::dvec3(0.0));
       for (uint32_t t = 0; t < scene->TriangleCount(); ++t) {
         const double a = 0.5 * glm::length(glm::cross(scene->Vertex(t, 1) - scene->Vertex(t, 0),
