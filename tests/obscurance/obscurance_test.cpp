@@ -889,7 +889,7 @@ TEST(ObscuranceUpdate, MovedPotUnderLeavesMatchesRebakeAfterRaycastBake) {
 // not occlude each other, whichever way the depths round.
 TEST(ObscuranceBake, BaseRestingOnTheFloorAgreesWithRays) {
   const Scene scene = PotUnderLeaves();
-  const ObscuranceAtlas atlas = Atlas(scene, 80);
+  const ObscuranceAtlas atlas = Atlas(scene, 96);
   ObscuranceParams params;
   params.d_max = 0.5;
   params.direction_count = 64;
@@ -917,7 +917,7 @@ TEST(ObscuranceBake, BaseRestingOnTheFloorAgreesWithRays) {
 // at the same places, so texels of an update and of a rebake correspond.
 TEST(ObscuranceAtlas, RigidMoveKeepsTheAtlas) {
   const Scene scene = PotUnderLeaves();
-  const ObscuranceAtlas a = Atlas(scene, 80);
+  const ObscuranceAtlas a = Atlas(scene, 96);
   for (const glm::dvec3& by : {glm::dvec3(-0.1, 0, 0), glm::dvec3(0.37, 0, -0.21), glm::dvec3(0.3, 0, -0.2),
                                glm::dvec3(-0.1, 0.01, 0)}) {
     Scene moved = scene;
@@ -938,7 +938,7 @@ TEST(ObscuranceAtlas, RigidMoveKeepsTheAtlas) {
 // The bake marks as estimated only texels that hold surface.
 TEST(ObscuranceBake, EstimatesOnlyTexelsWithSurface) {
   const Scene scene = PotUnderLeaves();
-  const ObscuranceAtlas atlas = Atlas(scene, 80);
+  const ObscuranceAtlas atlas = Atlas(scene, 96);
   ObscuranceParams params;
   params.d_max = 0.5;
   params.direction_count = 64;
