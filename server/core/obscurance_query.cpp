@@ -142,8 +142,9 @@ AccuracyStatement ObscuranceUpdateStatement(const ObscuranceUpdateAnswer& answer
   out.confidence = 0.95;
   out.error_bound = ObscuranceErrorEstimate(std::max<uint32_t>(answer.rays_per_patch, 1), out.confidence);
   out.note = absl::StrCat("recomputed patches: Hoeffding half-width at 95 % for ", answer.rays_per_patch,
-                          " independent cosine-distributed rays per patch (values in [0, 1]); the other patches keep "
-                          "the bake's values (",
+                          " independent cosine-distributed rays per patch (values in [0, 1]); triangles touching a "
+                          "changed texel by rays of their own (as many per texel of their area, 1 to 16 patches' worth); "
+                          "the other patches keep the bake's values (",
                           answer.directions, " directions) bit for bit");
   return out;
 }

@@ -195,6 +195,21 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
     if (varea[v] > 0) vertex_reference[v] = glm::vec3(vsum[v] / varea[v]);
   std::printf("reference noise (rms): texels %.4f, triangles %.4f\n", std::sqrt(texel_ref_var),
               std::sqrt(triangle_ref_var));
+  // The triangle reference carried to texels (area-weighted over each
+  // texel's fragments): close to the texel reference where triangles are
+  // small against the texel's W gradient; a check of the two references.
+  std::vector<glm::vec3> texel_from_triangles(atlas->texel_count(), glm::vec3(0.0f));
+  for (uint32_t t = 0; t < atlas->texel_count(); ++t) {
+    glm::dvec3 sum(0.0);
+    double area = 0;
+    for (uint32_t f = atlas->texel_begin[t]; f < atlas->texel_begin[t + 1]; ++f) {
+      sum += atlas->fragments[f].world_area * glm::dvec3(triangle_reference[atlas->fragments[f].triangle]);
+      area += atlas->fragments[f].world_area;
+    }
+    if (area > 0) texel_from_triangles[t] = glm::vec3(sum / area);
+  }
+  std::printf("texel reference vs triangle reference carried to texels: rms %.4f\n",
+              Compare(texel_reference_w, texel_from_triangles, texel_use, 0, 1, nullptr).rms);
 
   std::printf("\n%6s %5s | %-31s | %-31s | %-31s | %-22s | %-31s | %-22s | %s\n", "bundle", "dirs",
               "texel: rms (-ref) stated/own", "tri own: rms (-ref) st/own", "  median bound, unsampled",
@@ -213,6 +228,23 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
       std::vector<uint8_t> use_texels(atlas->texel_count(), 0);
       for (uint32_t t = 0; t < atlas->texel_count(); ++t) use_texels[t] = texel_use[t] && baked->estimated[t];
       const ErrorFigures texel = Compare(baked->w, texel_reference_w, use_texels, texel_ref_var, stated, &bounds.texel);
+      // Texels the surface covers nearly whole (built atlases: a texel's
+      // world area is 1 / texels_per_unit^2, up to the chart's tilt): a
+      // sliver's few samples make it noisy, not biased.
+      std::vector<uint8_t> whole(atlas->texel_count(), 0);
+      size_t whole_count = 0;
+      if (atlas->texels_per_unit > 0)
+        for (uint32_t t = 0; t < atlas->texel_count(); ++t) {
+          double area = 0;
+          for (uint32_t f = atlas->texel_begin[t]; f < atlas->texel_begin[t + 1]; ++f) area += atlas->fragments[f].world_area;
+          whole[t] = use_texels[t] && area * atlas->texels_per_unit * atlas->texels_per_unit >= 0.9;
+          whole_count += whole[t];
+        }
+      const ErrorFigures whole_texels = Compare(baked->w, texel_reference_w, whole, texel_ref_var, stated, &bounds.texel);
+      std::printf("  texel W vs the triangle reference carried to texels: rms %.4f; %zu nearly whole texels: rms %.4f "
+                  "(less reference noise %.4f), within stated %.4f, own %.4f\n",
+                  Compare(baked->w, texel_from_triangles, use_texels, 0, 1, nullptr).rms, whole_count, whole_texels.rms,
+                  whole_texels.rms_less_reference, whole_texels.within_stated, whole_texels.within_own);
       const ErrorFigures own =
           Compare(baked->triangle_w, triangle_reference, triangle_use, triangle_ref_var, stated, &bounds.triangle);
       // The texels' mean per triangle: the bake's triangle W before.
