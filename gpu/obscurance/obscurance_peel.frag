@@ -20,11 +20,9 @@ const float kBackFacingDepthOffset = 8e-6;
 //
 // The sample's patch is the texel of its atlas coordinates, pulled onto the
 // triangle's own atlas triangle first: the interpolated coordinates of a
-// pixel the rasterizer counts inside the triangle can fall a little outside
-// it, and near a chart's edge such a sample would land in the gutter (lost)
-// or in another texel than the surface it lies on, which biases the thin
-// slivers of triangles along chart edges by an amount that follows the
-// pixel size, not the number of directions.
+// pixel the rasterizer counts inside the triangle can fall a hair outside
+// it, and at a chart's edge such a sample would land in the gutter, lost to
+// the texel whose surface it lies on (rare: a few texels per bake).
 in vec2 v_uv;
 flat in uint v_triangle;
 layout(std430, binding = 0) readonly buffer CornerUv { vec2 corner_uv[]; };  // texels, per corner

@@ -241,6 +241,21 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
           whole_count += whole[t];
         }
       const ErrorFigures whole_texels = Compare(baked->w, texel_reference_w, whole, texel_ref_var, stated, &bounds.texel);
+      // Texels by what their estimate rests on: at least a quarter of the
+      // directions' worth, and the rest (slivers that a few samples reached,
+      // more of which become estimated as the directions grow).
+      std::vector<uint8_t> many(atlas->texel_count(), 0), few(atlas->texel_count(), 0);
+      for (uint32_t t = 0; t < atlas->texel_count(); ++t) {
+        many[t] = use_texels[t] && baked->texel_effective_samples[t] >= 0.25 * d;
+        few[t] = use_texels[t] && !many[t];
+      }
+      const ErrorFigures many_texels = Compare(baked->w, texel_reference_w, many, texel_ref_var, stated, &bounds.texel);
+      const ErrorFigures few_texels = Compare(baked->w, texel_reference_w, few, texel_ref_var, stated, &bounds.texel);
+      std::printf("  texels with >= d/4 effective directions: %zu, rms %.4f, within stated %.4f, own %.4f; the other %zu: "
+                  "rms %.4f, within stated %.4f, own %.4f (median own bound %.3f)\n",
+                  many_texels.elements, many_texels.rms_less_reference, many_texels.within_stated, many_texels.within_own,
+                  few_texels.elements, few_texels.rms_less_reference, few_texels.within_stated, few_texels.within_own,
+                  few_texels.median_own);
       std::printf("  texel W vs the triangle reference carried to texels: rms %.4f; %zu nearly whole texels: rms %.4f "
                   "(less reference noise %.4f), within stated %.4f, own %.4f\n",
                   Compare(baked->w, texel_from_triangles, use_texels, 0, 1, nullptr).rms, whole_count, whole_texels.rms,
