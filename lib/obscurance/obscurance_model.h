@@ -150,7 +150,6 @@ void RefillTexels(const ObscuranceAtlas& atlas, ObscuranceResult& result, const 
                   const glm::dvec3& fallback);
 glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& result, uint32_t triangle);
 
-
 // A stable 64-bit hash of what a bake depends on, for ObscurancePartial.
 uint64_t BakeFingerprint(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params);
 
