@@ -1,5 +1,6 @@
 #include "visq/gpu/obscurance.h"
 
+#include <algorithm>
 #include <chrono>
 #include <memory>
 #include <vector>
@@ -23,10 +24,14 @@ using obscurance::ObscurancePartial;
 struct BakeState {
   const GlProgram* peel = nullptr;      // the worker's program cache owns both
   const GlProgram* transfer = nullptr;
+  const GlProgram* count_squares = nullptr;
   GlBuffer corner_uv{NoCreate};
   GlBuffer triangle_material{NoCreate};
   GlBuffer reflectivity{NoCreate};
   GlBuffer sums{NoCreate};
+  GlBuffer triangle_sums{NoCreate};
+  GlBuffer direction_counts{NoCreate};  // texels, then triangles
+  GlBuffer count_squares_sums{NoCreate};
   GlTexture2D layer[2] = {GlTexture2D(NoCreate), GlTexture2D(NoCreate)};
   GlTexture2D depth[2] = {GlTexture2D(NoCreate), GlTexture2D(NoCreate)};
   GlFramebuffer framebuffer[2] = {GlFramebuffer(NoCreate), GlFramebuffer(NoCreate)};
@@ -49,6 +54,8 @@ Status CreateState(BakeState& s, const Scene& scene, const ObscuranceAtlas& atla
       s.transfer, CachedProgram(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_transfer.comp"}},
                                {{"CHANNELS", channel_text + "u"},
                                 {"FIXED_POINT_SCALE", std::to_string(obscurance::kObscuranceFixedPointScale)}}));
+  VISQ_ASSIGN_OR_RETURN(s.count_squares,
+                        CachedProgram(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_count_squares.comp"}}));
   // Per-corner atlas coordinates, per-triangle material, per-material color.
   s.corner_uv = GlBuffer();
   glNamedBufferStorage(s.corner_uv.id(), atlas.corner_uv.size() * sizeof(glm::vec2), atlas.corner_uv.data(), 0);
@@ -66,6 +73,19 @@ Status CreateState(BakeState& s, const Scene& scene, const ObscuranceAtlas& atla
   glNamedBufferStorage(s.sums.id(), words * sizeof(uint32_t), nullptr, GL_DYNAMIC_STORAGE_BIT);
   const GLuint zero = 0;
   glClearNamedBufferData(s.sums.id(), GL_R32UI, GL_RED_INTEGER, GL_UNSIGNED_INT, &zero);
+  // The same per triangle, and the per-direction counts and their squares.
+  const size_t triangles = scene.TriangleCount();
+  s.triangle_sums = GlBuffer();
+  glNamedBufferStorage(s.triangle_sums.id(), triangles * 2 * (channels + 1) * sizeof(uint32_t), nullptr,
+                       GL_DYNAMIC_STORAGE_BIT);
+  glClearNamedBufferData(s.triangle_sums.id(), GL_R32UI, GL_RED_INTEGER, GL_UNSIGNED_INT, &zero);
+  const size_t elements = atlas.texel_count() + triangles;
+  s.direction_counts = GlBuffer();
+  glNamedBufferStorage(s.direction_counts.id(), elements * sizeof(uint32_t), nullptr, GL_DYNAMIC_STORAGE_BIT);
+  glClearNamedBufferData(s.direction_counts.id(), GL_R32UI, GL_RED_INTEGER, GL_UNSIGNED_INT, &zero);
+  s.count_squares_sums = GlBuffer();
+  glNamedBufferStorage(s.count_squares_sums.id(), elements * sizeof(double), nullptr, GL_DYNAMIC_STORAGE_BIT);
+  glClearNamedBufferData(s.count_squares_sums.id(), GL_R32UI, GL_RED_INTEGER, GL_UNSIGNED_INT, &zero);
   // Two layers in flight: (patch + 1, triangle * 2 + front) and depth.
   for (int i = 0; i < 2; ++i) {
     s.layer[i] = GlTexture2D();
@@ -127,6 +147,9 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, s.triangle_material.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, s.reflectivity.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 3, s.sums.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 4, s.triangle_sums.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 5, s.direction_counts.id());
+  glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 6, s.count_squares_sums.id());
 
   const GLuint peel = s.peel->id(), transfer = s.transfer->id();
   glProgramUniformMatrix4fv(peel, s.peel->Uniform("u_clip_from_scene"), 1, GL_FALSE,
@@ -134,6 +157,7 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
   glProgramUniform2ui(peel, s.peel->Uniform("u_atlas_size"), atlas.width, atlas.height);
   const GLint first_loc = s.peel->Uniform("u_first");
   glProgramUniform1ui(transfer, s.transfer->Uniform("u_size"), bundle);
+  glProgramUniform1ui(transfer, s.transfer->Uniform("u_texel_count"), atlas.texel_count());
   glProgramUniform1f(transfer, s.transfer->Uniform("u_depth_to_distance"), frame.depth_to_distance);
   glProgramUniform1f(transfer, s.transfer->Uniform("u_d_max"), static_cast<float>(params.d_max));
   glProgramUniform3f(transfer, s.transfer->Uniform("u_unoccluded"), unoccluded.x, unoccluded.y,
@@ -186,6 +210,14 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
       break;
     }
   }
+  // The direction's counts: squared into their sums, then cleared.
+  const uint32_t elements = atlas.texel_count() + gpu_scene.triangle_count();
+  constexpr uint32_t kRowGroups = 32768;  // groups of 64 per row of the dispatch
+  const uint32_t element_groups = (elements + 63) / 64;
+  glUseProgram(s.count_squares->id());
+  glProgramUniform1ui(s.count_squares->id(), s.count_squares->Uniform("u_element_count"), elements);
+  glDispatchCompute(std::min(element_groups, kRowGroups), (element_groups + kRowGroups - 1) / kRowGroups, 1);
+  glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
   for (int unit = 0; unit < 4; ++unit) glBindTextureUnit(unit, 0);
   glBindVertexArray(0);
   glUseProgram(0);
@@ -256,21 +288,34 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
   partial.channels = channels;
   partial.ranges = {obscurance::DirectionRange{params.first_direction, params.direction_count}};
   const size_t texels = atlas.texel_count();
-  std::vector<uint32_t> words(texels * 2 * (channels + 1));
+  const size_t triangles = scene.TriangleCount();
+  std::vector<uint32_t> words(texels * 2 * (channels + 1)), triangle_words(triangles * 2 * (channels + 1));
+  partial.count_squares.resize(texels + triangles);
   VISQ_RETURN_IF_ERROR(worker.Run({options.priority, SteadyTime::max(), nullptr}, [&]() -> Status {
     glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
     glGetNamedBufferSubData(state->sums.id(), 0, static_cast<GLsizeiptr>(words.size() * sizeof(uint32_t)),
                             words.data());
+    glGetNamedBufferSubData(state->triangle_sums.id(), 0,
+                            static_cast<GLsizeiptr>(triangle_words.size() * sizeof(uint32_t)), triangle_words.data());
+    glGetNamedBufferSubData(state->count_squares_sums.id(), 0,
+                            static_cast<GLsizeiptr>(partial.count_squares.size() * sizeof(double)),
+                            partial.count_squares.data());
     return CollectGlErrors("obscurance bake readback");
   }));
-  partial.sums.resize(texels * channels);
-  partial.counts.resize(texels);
-  for (size_t t = 0; t < texels; ++t) {
-    const uint32_t* w = &words[t * 2 * (channels + 1)];
-    for (uint32_t c = 0; c < channels; ++c)
-      partial.sums[t * channels + c] = (static_cast<uint64_t>(w[2 * c + 1]) << 32) | w[2 * c];
-    partial.counts[t] = (static_cast<uint64_t>(w[2 * channels + 1]) << 32) | w[2 * channels];
-  }
+  // (lo, hi) words of `count` elements to 64-bit sums and counts.
+  auto unpack = [channels](const std::vector<uint32_t>& from, size_t count, std::vector<uint64_t>& sums,
+                           std::vector<uint64_t>& counts) {
+    sums.resize(count * channels);
+    counts.resize(count);
+    for (size_t t = 0; t < count; ++t) {
+      const uint32_t* w = &from[t * 2 * (channels + 1)];
+      for (uint32_t c = 0; c < channels; ++c)
+        sums[t * channels + c] = (static_cast<uint64_t>(w[2 * c + 1]) << 32) | w[2 * c];
+      counts[t] = (static_cast<uint64_t>(w[2 * channels + 1]) << 32) | w[2 * channels];
+    }
+  };
+  unpack(words, texels, partial.sums, partial.counts);
+  unpack(triangle_words, triangles, partial.triangle_sums, partial.triangle_counts);
   local.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (stats != nullptr) *stats = local;
   return partial;

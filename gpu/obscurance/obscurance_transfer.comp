@@ -7,6 +7,13 @@
 // surface"; the paper's shader skipped back sides, which leaves open
 // geometry undefined). Sums are 64-bit fixed point built from two 32-bit
 // atomics (carry on wrap), so the order of additions never matters.
+//
+// Every sample is summed twice: into its patch and into its own triangle.
+// A triangle smaller than a texel shares the texel's sum with its
+// neighbours, and the texel's W is not the triangle's (on a fine mesh the
+// difference goes far beyond the noise); its own sum is. Each sample also
+// counts in this direction's count of both (DirectionCounts, squared and
+// cleared after the direction by obscurance_count_squares.comp).
 layout(local_size_x = 8, local_size_y = 8) in;
 layout(binding = 0) uniform usampler2D u_layer_a;
 layout(binding = 1) uniform sampler2D u_depth_a;
@@ -21,6 +28,10 @@ uniform vec3 u_unoccluded;
 layout(std430, binding = 1) readonly buffer TriangleMaterial { uint triangle_material[]; };
 layout(std430, binding = 2) readonly buffer Reflectivity { vec4 reflectivity[]; };
 layout(std430, binding = 3) buffer Sums { uint sums[]; };
+layout(std430, binding = 4) buffer TriangleSums { uint triangle_sums[]; };
+// Texels first, then triangles (offset u_texel_count).
+layout(std430, binding = 5) buffer DirectionCounts { uint direction_counts[]; };
+uniform uint u_texel_count;
 
 const uint kStride = 2u * (CHANNELS + 1u);
 
@@ -29,7 +40,12 @@ void Add64(uint at, uint v) {
   if (old > 0xFFFFFFFFu - v) atomicAdd(sums[at + 1u], 1u);
 }
 
-void Contribute(uint patch_id, bool seen, float distance, uint seen_triangle) {
+void AddTriangle64(uint at, uint v) {
+  const uint old = atomicAdd(triangle_sums[at], v);
+  if (old > 0xFFFFFFFFu - v) atomicAdd(triangle_sums[at + 1u], 1u);
+}
+
+void Contribute(uint patch_id, uint own_triangle, bool seen, float distance, uint seen_triangle) {
   vec3 value = u_unoccluded;
   if (seen && distance < u_d_max) {
     const float rho = sqrt(max(distance, 0.0) / u_d_max);
@@ -39,9 +55,16 @@ void Contribute(uint patch_id, bool seen, float distance, uint seen_triangle) {
     value = vec3(rho);
 #endif
   }
-  const uint base = patch_id * kStride;
-  for (uint c = 0u; c < CHANNELS; ++c) Add64(base + 2u * c, uint(value[c] * FIXED_POINT_SCALE + 0.5));
+  const uint base = patch_id * kStride, own = own_triangle * kStride;
+  for (uint c = 0u; c < CHANNELS; ++c) {
+    const uint fixed_point = uint(value[c] * FIXED_POINT_SCALE + 0.5);
+    Add64(base + 2u * c, fixed_point);
+    AddTriangle64(own + 2u * c, fixed_point);
+  }
   Add64(base + 2u * CHANNELS, 1u);
+  AddTriangle64(own + 2u * CHANNELS, 1u);
+  atomicAdd(direction_counts[patch_id], 1u);
+  atomicAdd(direction_counts[u_texel_count + own_triangle], 1u);
 }
 
 void main() {
@@ -53,6 +76,6 @@ void main() {
   const float za = u_has_a != 0 ? texelFetch(u_depth_a, pixel, 0).r : 0.0;
   const float zb = u_has_b != 0 ? texelFetch(u_depth_b, pixel, 0).r : 1.0;
   const float distance = (zb - za) * u_depth_to_distance;
-  if (a.x != 0u && (a.y & 1u) == 0u) Contribute(a.x - 1u, b.x != 0u, distance, b.y >> 1);
-  if (b.x != 0u && (b.y & 1u) == 1u) Contribute(b.x - 1u, a.x != 0u, distance, a.y >> 1);
+  if (a.x != 0u && (a.y & 1u) == 0u) Contribute(a.x - 1u, a.y >> 1, b.x != 0u, distance, b.y >> 1);
+  if (b.x != 0u && (b.y & 1u) == 1u) Contribute(b.x - 1u, b.y >> 1, a.x != 0u, distance, a.y >> 1);
 }

@@ -36,6 +36,17 @@ struct ObscurancePartial {
   // Per patch (texel y * width + x): `channels` fixed-point sums, then counts.
   std::vector<uint64_t> sums;    // size width * height * channels
   std::vector<uint64_t> counts;  // size width * height
+  // Optional (empty when the baker did not gather them, and after a merge
+  // with a partial that lacks them): the same sums and counts per triangle of
+  // the scene, from the samples that fell on that triangle alone, so that a
+  // triangle's W is not its texels' W (a texel larger than its triangles
+  // mixes theirs); and per texel, then per triangle, the sum over directions
+  // of the squared number of samples the direction gave it, from which the
+  // effective number of directions behind an estimate follows. The squares
+  // are integers held as doubles: exact below 2^53.
+  std::vector<uint64_t> triangle_sums;    // triangles * channels
+  std::vector<uint64_t> triangle_counts;  // triangles
+  std::vector<double> count_squares;      // width * height + triangles
 
   uint64_t DirectionCount() const {
     uint64_t n = 0;
@@ -73,6 +84,18 @@ inline bool MergeObscurancePartial(ObscurancePartial& into, const ObscurancePart
                     std::to_string(b.first + b.count) + ")");
   for (size_t i = 0; i < into.sums.size(); ++i) into.sums[i] += from.sums[i];
   for (size_t i = 0; i < into.counts.size(); ++i) into.counts[i] += from.counts[i];
+  // The per-triangle parts merge when both partials have them; otherwise the
+  // merge has none (W per triangle then falls back to its texels').
+  if (!into.triangle_counts.empty() && into.triangle_counts.size() == from.triangle_counts.size() &&
+      into.triangle_sums.size() == from.triangle_sums.size() && into.count_squares.size() == from.count_squares.size()) {
+    for (size_t i = 0; i < into.triangle_sums.size(); ++i) into.triangle_sums[i] += from.triangle_sums[i];
+    for (size_t i = 0; i < into.triangle_counts.size(); ++i) into.triangle_counts[i] += from.triangle_counts[i];
+    for (size_t i = 0; i < into.count_squares.size(); ++i) into.count_squares[i] += from.count_squares[i];
+  } else {
+    into.triangle_sums.clear();
+    into.triangle_counts.clear();
+    into.count_squares.clear();
+  }
   into.ranges.insert(into.ranges.end(), from.ranges.begin(), from.ranges.end());
   std::sort(into.ranges.begin(), into.ranges.end(),
             [](const DirectionRange& a, const DirectionRange& b) { return a.first < b.first; });

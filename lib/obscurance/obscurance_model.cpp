@@ -1,5 +1,6 @@
 #include "obscurance/obscurance_model.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <numbers>
@@ -92,8 +93,30 @@ BundleDirection DirectionOfSequence(uint64_t seed, uint32_t index) {
   return d;
 }
 
+namespace {
+
+// sum / (count * scale) per channel, gray in all three without bleeding.
+glm::vec3 MeanOf(const uint64_t* sums, uint32_t channels, uint64_t count) {
+  const double denom = static_cast<double>(count) * kObscuranceFixedPointScale;
+  if (channels == 1) return glm::vec3(static_cast<float>(static_cast<double>(sums[0]) / denom));
+  glm::vec3 out(0.0f);
+  for (uint32_t c = 0; c < 3; ++c) out[c] = static_cast<float>(static_cast<double>(sums[c]) / denom);
+  return out;
+}
+
+// Kish's effective count (sum c)^2 / (sum c^2) of a mean weighted by the
+// per-direction counts c; `fallback` where the squares are unknown.
+float EffectiveDirections(uint64_t count, const std::vector<double>& squares, size_t at, double fallback) {
+  if (count == 0) return 0.0f;
+  if (at >= squares.size() || !(squares[at] > 0)) return static_cast<float>(fallback);
+  const double c = static_cast<double>(count);
+  return static_cast<float>(c * c / squares[at]);
+}
+
+}  // namespace
+
 void FinalizeFromPartial(const ObscurancePartial& partial, std::vector<glm::vec3>& w, std::vector<uint8_t>& estimated,
-                         double* mean_samples) {
+                         double* mean_samples, OwnSampleEstimates* own) {
   const size_t n = partial.counts.size();
   w.assign(n, glm::vec3(0.0f));
   estimated.assign(n, 0);
@@ -105,14 +128,58 @@ void FinalizeFromPartial(const ObscurancePartial& partial, std::vector<glm::vec3
     estimated[i] = 1;
     samples += static_cast<double>(count);
     ++with;
-    const double denom = static_cast<double>(count) * kObscuranceFixedPointScale;
-    if (partial.channels == 1) {
-      w[i] = glm::vec3(static_cast<float>(static_cast<double>(partial.sums[i]) / denom));
-    } else {
-      for (int c = 0; c < 3; ++c) w[i][c] = static_cast<float>(static_cast<double>(partial.sums[3 * i + c]) / denom);
-    }
+    w[i] = MeanOf(&partial.sums[i * partial.channels], partial.channels, count);
   }
   if (mean_samples != nullptr) *mean_samples = with ? samples / with : 0.0;
+  if (own == nullptr) return;
+  // Without the squares (a partial merged from a transport that drops them)
+  // every direction counts as one: the figure of the bake as a whole.
+  const double directions = static_cast<double>(partial.DirectionCount());
+  own->texel_effective_samples.assign(n, 0.0f);
+  for (size_t i = 0; i < n; ++i)
+    own->texel_effective_samples[i] = EffectiveDirections(partial.counts[i], partial.count_squares, i, directions);
+  own->triangle_w.clear();
+  own->triangle_effective_samples.clear();
+  const size_t triangles = partial.triangle_counts.size();
+  if (triangles == 0 || partial.triangle_sums.size() != triangles * partial.channels) return;
+  own->triangle_w.assign(triangles, glm::vec3(0.0f));
+  own->triangle_effective_samples.assign(triangles, 0.0f);
+  for (size_t t = 0; t < triangles; ++t) {
+    const uint64_t count = partial.triangle_counts[t];
+    if (count == 0) continue;
+    own->triangle_w[t] = MeanOf(&partial.triangle_sums[t * partial.channels], partial.channels, count);
+    own->triangle_effective_samples[t] = EffectiveDirections(count, partial.count_squares, n + t, directions);
+  }
+}
+
+double ObscuranceHalfWidth(double effective_samples, double confidence) {
+  if (!(effective_samples > 0) || confidence >= 1.0) return 1.0;
+  return std::min(1.0, std::sqrt(std::log(2.0 / (1.0 - confidence)) / (2.0 * effective_samples)));
+}
+
+ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& result, double confidence) {
+  ObscuranceBounds out;
+  out.texel.assign(result.w.size(), 1.0f);
+  for (size_t i = 0; i < out.texel.size(); ++i)
+    if (i < result.estimated.size() && result.estimated[i] && i < result.texel_effective_samples.size())
+      out.texel[i] = static_cast<float>(ObscuranceHalfWidth(result.texel_effective_samples[i], confidence));
+  out.triangle.assign(scene.TriangleCount(), 1.0f);
+  for (size_t t = 0; t < out.triangle.size() && t < result.triangle_effective_samples.size(); ++t)
+    out.triangle[t] = static_cast<float>(ObscuranceHalfWidth(result.triangle_effective_samples[t], confidence));
+  // A vertex: the area-weighted mean of its triangles' half-widths.
+  std::vector<double> sum(scene.positions.size(), 0.0), area(scene.positions.size(), 0.0);
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0),
+                                                  scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+    for (int c = 0; c < 3; ++c) {
+      sum[scene.triangles[t][c]] += a * out.triangle[t];
+      area[scene.triangles[t][c]] += a;
+    }
+  }
+  out.vertex.assign(scene.positions.size(), 1.0f);
+  for (size_t v = 0; v < sum.size(); ++v)
+    if (area[v] > 0) out.vertex[v] = static_cast<float>(std::min(1.0, sum[v] / area[v]));
+  return out;
 }
 
 glm::dvec3 TexelReflectivity(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel) {
@@ -173,7 +240,7 @@ glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& 
 }
 
 ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, bool color_bleeding,
-                             std::vector<glm::vec3> w, std::vector<uint8_t> estimated) {
+                             std::vector<glm::vec3> w, std::vector<uint8_t> estimated, OwnSampleEstimates own) {
   ObscuranceResult out;
   out.width = atlas.width;
   out.height = atlas.height;
@@ -203,9 +270,24 @@ ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, b
     if (atlas.Covered(i))
       out.intensity[i] = glm::vec3(TexelReflectivity(scene, atlas, i) * out.ambient.ambient_intensity *
                                    glm::dvec3(out.w[i]));
-  // Per-triangle and per-vertex averages.
-  out.triangle_w.resize(scene.TriangleCount());
-  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) out.triangle_w[t] = TriangleAverage(atlas, out, t);
+  // What each texel's estimate is worth; a filled texel nothing of its own.
+  out.texel_effective_samples = std::move(own.texel_effective_samples);
+  out.texel_effective_samples.resize(n, 0.0f);
+  for (uint32_t i = 0; i < n; ++i)
+    if (!out.estimated[i]) out.texel_effective_samples[i] = 0.0f;
+  // Per triangle its own samples' mean; where it has none, its texels'.
+  const size_t nt = scene.TriangleCount();
+  const bool has_own = own.triangle_w.size() == nt && own.triangle_effective_samples.size() == nt;
+  out.triangle_w.resize(nt);
+  out.triangle_effective_samples.assign(nt, 0.0f);
+  for (uint32_t t = 0; t < nt; ++t) {
+    if (has_own && own.triangle_effective_samples[t] > 0) {
+      out.triangle_w[t] = own.triangle_w[t];
+      out.triangle_effective_samples[t] = own.triangle_effective_samples[t];
+    } else {
+      out.triangle_w[t] = TriangleAverage(atlas, out, t);
+    }
+  }
   std::vector<glm::dvec3> vsum(scene.positions.size(), glm::dvec3(0.0));
   std::vector<double> varea(scene.positions.size(), 0.0);
   for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
@@ -229,11 +311,16 @@ StatusOr<ObscuranceResult> FinalizeObscurances(const Scene& scene, const Obscura
   if (partial.channels != (params.color_bleeding ? 3u : 1u))
     return absl::InvalidArgumentError(absl::StrCat("partial: ", partial.channels, " channels, color_bleeding ",
                                                    params.color_bleeding ? "on" : "off"));
+  if (!partial.triangle_counts.empty() && partial.triangle_counts.size() != scene.TriangleCount())
+    return absl::InvalidArgumentError(absl::StrCat("partial: ", partial.triangle_counts.size(),
+                                                   " triangle counts, the scene has ", scene.TriangleCount()));
   std::vector<glm::vec3> w;
   std::vector<uint8_t> estimated;
   double mean = 0;
-  FinalizeFromPartial(partial, w, estimated, &mean);
-  ObscuranceResult out = BuildResult(scene, atlas, params.color_bleeding, std::move(w), std::move(estimated));
+  OwnSampleEstimates own;
+  FinalizeFromPartial(partial, w, estimated, &mean, &own);
+  ObscuranceResult out =
+      BuildResult(scene, atlas, params.color_bleeding, std::move(w), std::move(estimated), std::move(own));
   out.directions = partial.DirectionCount();
   out.mean_samples_per_patch = mean;
   return out;

@@ -85,20 +85,54 @@ struct ObscuranceResult {
   // Per texel: 1 when the value is an estimate of that patch, 0 when it was
   // filled from neighbours (gutter or never sampled).
   std::vector<uint8_t> estimated;
-  std::vector<glm::vec3> triangle_w;  // area-weighted over each triangle's texels
+  // Per triangle: the mean of the samples that fell on the triangle itself
+  // (not the mean of its texels, which on a mesh finer than the atlas mixes
+  // in the neighbours sharing them); a triangle that no sample reached takes
+  // its texels' area-weighted mean, with no bound (effective count 0).
+  std::vector<glm::vec3> triangle_w;
   std::vector<glm::vec3> vertex_w;    // per Scene::positions, area-weighted over triangles
+  // How many independent samples each estimate is worth: per texel and per
+  // triangle, the effective number of directions (Kish: (sum of counts)^2 /
+  // (sum of squared counts), the counts being each direction's samples of
+  // the element) or of rays; 0 where there is no estimate of its own. The
+  // bounds (ObscuranceBoundsOf) follow from these.
+  std::vector<float> texel_effective_samples;
+  std::vector<float> triangle_effective_samples;
   AmbientModel ambient;
   uint64_t directions = 0;
   double mean_samples_per_patch = 0;  // over estimated texels
 };
 
-// W per texel from fixed-point sums (count 0: not estimated).
+// What each W of a result can promise at `confidence`: Hoeffding's
+// half-width for its effective number of samples, each a mean of values in
+// [0, 1] (ObscuranceHalfWidth); 1 (nothing) without an estimate of its own.
+// A vertex's W is the area-weighted mean of its triangles', so its
+// half-width is at most the area-weighted mean of theirs (Minkowski on the
+// ranges of the per-direction terms), which is what it gets.
+struct ObscuranceBounds {
+  std::vector<float> texel;     // per texel; 1 for texels filled from neighbours
+  std::vector<float> triangle;  // per triangle
+  std::vector<float> vertex;    // per Scene::positions
+};
+double ObscuranceHalfWidth(double effective_samples, double confidence);
+ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& result, double confidence);
+
+// What a triangle-level estimate rests on besides the texels: W per
+// triangle from its own samples and how many samples each estimate is worth.
+struct OwnSampleEstimates {
+  std::vector<float> texel_effective_samples;  // per texel (empty: none known)
+  std::vector<glm::vec3> triangle_w;           // per triangle (empty: from the texels)
+  std::vector<float> triangle_effective_samples;
+};
+
+// W per texel from fixed-point sums (count 0: not estimated); with `own`,
+// W per triangle from the partial's triangle sums and the effective counts.
 void FinalizeFromPartial(const ObscurancePartial& partial, std::vector<glm::vec3>& w, std::vector<uint8_t>& estimated,
-                         double* mean_samples);
+                         double* mean_samples, OwnSampleEstimates* own = nullptr);
 // Fills texels that are not estimated, then I, per-triangle and per-vertex
 // values. `w` and `estimated` come from FinalizeFromPartial or a ray estimate.
 ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, bool color_bleeding,
-                             std::vector<glm::vec3> w, std::vector<uint8_t> estimated);
+                             std::vector<glm::vec3> w, std::vector<uint8_t> estimated, OwnSampleEstimates own = {});
 // FinalizeFromPartial + BuildResult.
 [[nodiscard]] StatusOr<ObscuranceResult> FinalizeObscurances(const Scene& scene, const ObscuranceAtlas& atlas,
                                                              const ObscuranceParams& params,

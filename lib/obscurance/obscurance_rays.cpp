@@ -141,6 +141,69 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   }
 }
 
+void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n,
+                          std::vector<PatchRay>& out) {
+  out.clear();
+  const glm::dvec3 pa = scene.Vertex(triangle, 0), pb = scene.Vertex(triangle, 1), pc = scene.Vertex(triangle, 2);
+  const glm::dvec3 cross = glm::cross(pb - pa, pc - pa);
+  const double length = glm::length(cross);
+  if (!(length > 0)) return;
+  const glm::dvec3 normal = cross / length;
+  const glm::dvec3 helper = std::abs(normal.x) < 0.9 ? glm::dvec3(1, 0, 0) : glm::dvec3(0, 1, 0);
+  const glm::dvec3 tu = glm::normalize(glm::cross(helper, normal)), tv = glm::cross(normal, tu);
+  // Its own stream of the sequence: a shift hashed apart from the texels'.
+  const uint64_t h = SplitMix64(SplitMix64(seed ^ 0x7472692E72617973ull) ^ (uint64_t{triangle} * 0x9E3779B97F4A7C15ull));
+  double shift[4];
+  for (int k = 0; k < 4; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
+  out.reserve(n);
+  for (uint32_t j = 0; j < n; ++j) {
+    const std::array<double, 5>& halton = HaltonPoint(j);
+    const double u1 = Frac(halton[0] + shift[0]), u2 = Frac(halton[1] + shift[1]);
+    const double u3 = Frac(halton[2] + shift[2]), u4 = Frac(halton[3] + shift[3]);
+    const double s = std::sqrt(u1);
+    const glm::dvec3 point = pa * (1 - s) + pb * (s * (1 - u2)) + pc * (s * u2);
+    const double r = std::sqrt(u3), phi = 2.0 * std::numbers::pi * u4;
+    const glm::dvec3 dir = tu * (r * std::cos(phi)) + tv * (r * std::sin(phi)) + normal * std::sqrt(std::max(0.0, 1.0 - u3));
+    out.push_back(PatchRay{point, dir, triangle});
+  }
+}
+
+StatusOr<std::vector<glm::vec3>> EstimateTriangleObscuranceByRays(const Scene& scene, const ObscuranceParams& params,
+                                                                   const RayEstimateOptions& options) {
+  VISQ_RETURN_IF_ERROR(ValidateParams(params));
+  if (options.rays_per_patch == 0) return absl::InvalidArgumentError("rays_per_patch: 0 must be at least 1");
+  VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(scene));
+  const AmbientModel ambient = ComputeAmbient(scene, params.color_bleeding);
+  const uint32_t nt = static_cast<uint32_t>(scene.TriangleCount());
+  std::vector<glm::vec3> w(nt, glm::vec3(0.0f));
+  constexpr uint32_t kBatchTriangles = 2048;
+  std::vector<PatchRay> triangle_rays;
+  std::vector<raycast::Ray> rays;
+  for (uint32_t first = 0; first < nt; first += kBatchTriangles) {
+    rays.clear();
+    const uint32_t end = std::min(nt, first + kBatchTriangles);
+    std::vector<uint32_t> begin(end - first + 1, 0);
+    for (uint32_t t = first; t < end; ++t) {
+      GenerateTriangleRays(scene, t, options.seed, options.rays_per_patch, triangle_rays);
+      for (const PatchRay& r : triangle_rays) rays.push_back(raycast::Ray{r.origin, r.direction, params.d_max, t});
+      begin[t - first + 1] = static_cast<uint32_t>(rays.size());
+    }
+    if (rays.empty()) continue;
+    raycast::TraceOptions trace;
+    trace.threads = options.threads;
+    VISQ_ASSIGN_OR_RETURN(std::vector<raycast::Hit> hits, embree.Intersect(rays, trace));
+    for (uint32_t t = first; t < end; ++t) {
+      const uint32_t b = begin[t - first], e = begin[t - first + 1];
+      if (b == e) continue;
+      glm::dvec3 sum(0.0);
+      for (uint32_t i = b; i < e; ++i)
+        sum += RayValue(scene, ambient, params.color_bleeding, params.d_max, hits[i].hit, hits[i].t, hits[i].triangle);
+      w[t] = glm::vec3(sum / static_cast<double>(e - b));
+    }
+  }
+  return w;
+}
+
 bool DirectionFilter::MayMeet(const glm::dvec3& direction) const {
   // Shifted to start at patch_center, a ray that passes within r of a ball's
   // center passes within r + patch_radius of it.
@@ -178,6 +241,8 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
   std::vector<PatchRay> patch_rays;
   std::vector<raycast::Ray> rays;
   std::vector<uint32_t> ray_texel;
+  std::vector<glm::dvec3> triangle_sum(scene.TriangleCount(), glm::dvec3(0.0));
+  std::vector<uint32_t> triangle_count(scene.TriangleCount(), 0);
   for (uint32_t first = 0; first < n; first += kBatchTexels) {
     rays.clear();
     ray_texel.clear();
@@ -196,9 +261,13 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
     std::vector<uint32_t> count(kBatchTexels, 0);
     for (size_t i = 0; i < rays.size(); ++i) {
       const uint32_t slot = ray_texel[i] - first;
-      sum[slot] += RayValue(scene, ambient, params.color_bleeding, params.d_max, hits[i].hit, hits[i].t,
-                            hits[i].triangle);
+      const glm::dvec3 value = RayValue(scene, ambient, params.color_bleeding, params.d_max, hits[i].hit, hits[i].t,
+                                        hits[i].triangle);
+      sum[slot] += value;
       ++count[slot];
+      // Each ray also counts for the triangle it leaves (see BuildResult).
+      triangle_sum[rays[i].ignore_triangle] += value;
+      ++triangle_count[rays[i].ignore_triangle];
     }
     for (uint32_t s = 0; s < kBatchTexels && first + s < n; ++s)
       if (count[s]) {
@@ -206,7 +275,21 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
         estimated[first + s] = 1;
       }
   }
-  ObscuranceResult out = BuildResult(scene, atlas, params.color_bleeding, std::move(w), std::move(estimated));
+  // Every ray is an independent sample: a texel's estimate is worth its
+  // rays, a triangle's the rays that left it.
+  OwnSampleEstimates own;
+  own.texel_effective_samples.assign(n, 0.0f);
+  for (uint32_t t = 0; t < n; ++t)
+    if (estimated[t]) own.texel_effective_samples[t] = static_cast<float>(options.rays_per_patch);
+  own.triangle_w.assign(scene.TriangleCount(), glm::vec3(0.0f));
+  own.triangle_effective_samples.assign(scene.TriangleCount(), 0.0f);
+  for (size_t t = 0; t < scene.TriangleCount(); ++t)
+    if (triangle_count[t] > 0) {
+      own.triangle_w[t] = glm::vec3(triangle_sum[t] / static_cast<double>(triangle_count[t]));
+      own.triangle_effective_samples[t] = static_cast<float>(triangle_count[t]);
+    }
+  ObscuranceResult out =
+      BuildResult(scene, atlas, params.color_bleeding, std::move(w), std::move(estimated), std::move(own));
   out.mean_samples_per_patch = options.rays_per_patch;
   return out;
 }

@@ -56,6 +56,11 @@ struct DirectionFilter {
 void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel, uint64_t seed, uint32_t n,
                        std::vector<PatchRay>& out, const DirectionFilter* only_towards = nullptr);
 
+// N rays of one triangle: points uniform on it, cosine-distributed around
+// its normal, from the same Halton sequence under a rotation hashed from
+// seed and triangle (none for a degenerate triangle).
+void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out);
+
 // What one ray contributes, given its closest hit within d_max (hit false:
 // none). RGB; gray without color bleeding.
 glm::dvec3 RayValue(const Scene& scene, const AmbientModel& ambient, bool color_bleeding, double d_max, bool hit,
@@ -73,5 +78,13 @@ struct RayEstimateOptions {
 [[nodiscard]] StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const ObscuranceAtlas& atlas,
                                                                    const ObscuranceParams& params,
                                                                    const RayEstimateOptions& options);
+
+// W of every triangle by its own rays_per_patch rays (GenerateTriangleRays),
+// traced with raycast::EmbreeScene: an estimate of each triangle's W that
+// knows nothing of the atlas, for the tests and benches to hold the
+// per-triangle W of the bake to (degenerate triangles: 0).
+[[nodiscard]] StatusOr<std::vector<glm::vec3>> EstimateTriangleObscuranceByRays(const Scene& scene,
+                                                                               const ObscuranceParams& params,
+                                                                               const RayEstimateOptions& options);
 
 }  // namespace visq::obscurance

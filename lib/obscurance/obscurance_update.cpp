@@ -380,7 +380,11 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     // texel; depth peeling leaves such texels filled from their neighbours)
     // stays filled, as a rebake leaves it; its gutter neighbours then agree
     // with the rebake's too. After a ray-cast bake every patch is estimated.
-    if (result_.estimated[texel]) result_.w[texel] = value[i];
+    if (result_.estimated[texel]) {
+      result_.w[texel] = value[i];
+      if (texel < result_.texel_effective_samples.size())
+        result_.texel_effective_samples[texel] = static_cast<float>(options_.rays_per_patch);
+    }
     for (size_t j = 0; j < objects_.size(); ++j) {
       if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;
       const bool now = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(j)) != met[i].end();
@@ -432,9 +436,36 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
       update.triangles.push_back(atlas_.fragments[f].triangle);
   std::sort(update.triangles.begin(), update.triangles.end());
   update.triangles.erase(std::unique(update.triangles.begin(), update.triangles.end()), update.triangles.end());
-  for (uint32_t t : update.triangles) {
-    result_.triangle_w[t] = TriangleAverage(atlas_, result_, t);
+  // Each such triangle by rays of its own (its texels' mean would mix in
+  // the neighbours that share them): as many as its texels got, for its
+  // area in texels, from one patch's worth up to kMostTexelsPerTriangle.
+  constexpr double kMostTexelsPerTriangle = 16;
+  if (result_.triangle_effective_samples.size() != scene_.TriangleCount())
+    result_.triangle_effective_samples.resize(scene_.TriangleCount(), 0.0f);
+  std::vector<glm::vec3> own(update.triangles.size());
+  std::vector<uint32_t> own_rays(update.triangles.size(), 0);
+  ForEachIndex(update.triangles.size(), options_.threads, [&](size_t i) {
+    thread_local std::vector<PatchRay> triangle_rays;
+    const uint32_t t = update.triangles[i];
+    const glm::dvec2 a = atlas_.corner_uv[3 * t], b = atlas_.corner_uv[3 * t + 1], c = atlas_.corner_uv[3 * t + 2];
+    const double texels = 0.5 * std::abs((b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x));
+    const uint32_t n = static_cast<uint32_t>(
+        std::lround(options_.rays_per_patch * std::clamp(std::round(texels), 1.0, kMostTexelsPerTriangle)));
+    GenerateTriangleRays(scene_, t, options_.seed, n, triangle_rays);
+    glm::dvec3 sum(0.0);
+    for (const PatchRay& r : triangle_rays) {
+      const InstancedRayScene::Hit hit = rays_->Closest(r.origin, r.direction, params_.d_max);
+      sum += RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle);
+    }
+    own_rays[i] = static_cast<uint32_t>(triangle_rays.size());
+    if (!triangle_rays.empty()) own[i] = glm::vec3(sum / static_cast<double>(triangle_rays.size()));
+  });
+  for (size_t i = 0; i < update.triangles.size(); ++i) {
+    const uint32_t t = update.triangles[i];
+    result_.triangle_w[t] = own_rays[i] > 0 ? own[i] : TriangleAverage(atlas_, result_, t);
+    result_.triangle_effective_samples[t] = static_cast<float>(own_rays[i]);
     update.triangle_w.push_back(result_.triangle_w[t]);
+    update.rays += own_rays[i];
     for (int c = 0; c < 3; ++c) update.vertices.push_back(scene_.triangles[t][c]);
   }
   std::sort(update.vertices.begin(), update.vertices.end());

@@ -1,5 +1,6 @@
 #include "core/obscurance_query.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <map>
@@ -72,6 +73,38 @@ ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer) {
   return out;
 }
 
+namespace {
+
+// The median and 95th percentile of the per-element half-widths of one kind
+// (texel, triangle, vertex): error_bound is a patch's that every direction
+// reached; small or grazing elements rest on fewer effective directions and
+// carry wider half-widths of their own (answer.bounds).
+void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
+  auto add = [&](const char* kind, const std::vector<float>& bounds, const std::vector<uint8_t>* only) {
+    std::vector<float> kept;
+    for (size_t i = 0; i < bounds.size(); ++i)
+      if (only == nullptr || (i < only->size() && (*only)[i])) kept.push_back(bounds[i]);
+    if (kept.empty()) return;
+    std::sort(kept.begin(), kept.end());
+    out.parameters[absl::StrCat(kind, "_bound_median")] = kept[kept.size() / 2];
+    out.parameters[absl::StrCat(kind, "_bound_p95")] = kept[std::min(kept.size() - 1, kept.size() * 95 / 100)];
+  };
+  if (!answer.result) return;
+  add("texel", answer.bounds.texel, &answer.result->estimated);
+  add("triangle", answer.bounds.triangle, nullptr);
+  add("vertex", answer.bounds.vertex, nullptr);
+  uint64_t unsampled = 0;
+  for (float e : answer.result->triangle_effective_samples) unsampled += e == 0.0f;
+  out.parameters["triangles_without_samples"] = static_cast<double>(unsampled);
+  out.note += absl::StrCat(
+      "; per element (texel, triangle, vertex) the same half-width for its own effective number of directions "
+      "(triangles from their own samples, vertices the area-weighted mean of their triangles'): ",
+      "parameters *_bound_median and *_bound_p95; ", unsampled,
+      " triangles got no sample (their W is their texels', with no bound)");
+}
+
+}  // namespace
+
 AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
   AccuracyStatement out;
   out.confidence = answer.confidence;
@@ -98,6 +131,7 @@ AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
         absl::StrFormat("%.1f", CoverageOf(answer).mean_samples_per_patch),
         " samples per patch); rasterization of the bundles is not counted");
   }
+  AddElementBounds(answer, out);
   if (answer.plan) AddChosenPlan(*answer.plan, out);
   return out;
 }
@@ -108,8 +142,9 @@ AccuracyStatement ObscuranceUpdateStatement(const ObscuranceUpdateAnswer& answer
   out.confidence = 0.95;
   out.error_bound = ObscuranceErrorEstimate(std::max<uint32_t>(answer.rays_per_patch, 1), out.confidence);
   out.note = absl::StrCat("recomputed patches: Hoeffding half-width at 95 % for ", answer.rays_per_patch,
-                          " independent cosine-distributed rays per patch (values in [0, 1]); the other patches keep "
-                          "the bake's values (",
+                          " independent cosine-distributed rays per patch (values in [0, 1]); triangles touching a "
+                          "changed texel by rays of their own (as many per texel of their area, 1 to 16 patches' worth); "
+                          "the other patches keep the bake's values (",
                           answer.directions, " directions) bit for bit");
   return out;
 }
@@ -244,7 +279,9 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   const uint64_t channels = query.params.color_bleeding ? 3 : 1;
   const uint64_t texels = uint64_t{atlas.width} * atlas.height;
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
-                        engine.work_budget().Reserve(texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1), "resolution",
+                        engine.work_budget().Reserve(texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1 + 8 + 4 + 4) +
+                                                         scene.TriangleCount() * ((channels + 1) * (8 + 8) + 12 + 8 + 4 + 4),
+                                                     "resolution",
                                                      query.call.BatchJob()));
 
   answer.method = query.method;
@@ -300,6 +337,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     }
     answer.updater_ms = MillisecondsSince(start);
   }
+  answer.bounds = obscurance::ObscuranceBoundsOf(scene, result, answer.confidence);
   answer.result = std::move(result);
   if (plan) {
     const Plan& chosen = plan->chosen_plan();

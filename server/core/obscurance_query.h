@@ -72,6 +72,9 @@ struct ObscuranceAnswer {
   double texels_per_unit = 0;
   obscurance::ObscurancePartial partial;             // always
   std::optional<obscurance::ObscuranceResult> result;  // unless partial_only
+  // Each W's own half-width at `confidence` (per texel, triangle, vertex),
+  // with `result`.
+  obscurance::ObscuranceBounds bounds;
   obscurance::AmbientModel ambient;
   gpu::ObscuranceBakeStats stats;
   bool update_ready = false;
@@ -98,7 +101,8 @@ ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer);
 
 // What W and I can promise: Hoeffding's half-width over the directions (or
 // rays), stated as an estimate because the directions are a rotated Halton
-// sequence; with a target, the chosen plan.
+// sequence; the spread of the per-element half-widths (answer.bounds) in its
+// parameters; with a target, the chosen plan.
 AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer);
 
 // INVALID_ARGUMENT (naming the field) for bad parameters before any work.

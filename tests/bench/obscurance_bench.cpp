@@ -8,11 +8,20 @@
 //
 //   visq_bench_obscurance [--quick] [--update-only] [--scene NAME] [--atlas N] [--directions N]
 //                         [--bundle N] [--scenes DIR]
+//   visq_bench_obscurance --coverage [--scene bunny|palm|cornell|sponza] [--atlas N] [--reference-rays N]
+//                         [--directions-list N,N,...] [--bundles N,N,...] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
 // --update-only: only the Sponza update latency.
 // --scene sponza|veach_ajar, --atlas N, --directions N: only this scene,
 // atlas resolution, direction count.
 // --bundle N: pixels across each direction's bundle (default: 2 x atlas).
+// --coverage: W per texel, per triangle and per vertex of a bake of a scene
+// whose triangles are smaller than its texels (the Stanford bunny at atlas
+// 256 by default), against Embree references per texel (rays from the
+// patch) and per triangle (rays from the triangle), for each direction count
+// and bundle resolution: RMS error, and the share of elements within the
+// bound stated for them, for the triangle W taken from the triangle's own
+// samples (the bake's) and from its texels' mean (what the bake gave before).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -56,10 +65,239 @@ double Rms(const ObscuranceAtlas& atlas, const ObscuranceResult& x, const Obscur
   return n ? std::sqrt(s / n) : 0;
 }
 
+std::vector<uint32_t> ParseList(const char* text) {
+  std::vector<uint32_t> out;
+  for (const char* p = text; *p;) {
+    out.push_back(static_cast<uint32_t>(std::strtoul(p, nullptr, 10)));
+    while (*p && *p != ',') ++p;
+    if (*p == ',') ++p;
+  }
+  return out;
+}
+
+// Errors of one kind of element against its reference: RMS, the RMS with
+// the reference's own noise taken out (reference_variance per element), and
+// the shares within `stated` (one figure for all) and within each element's
+// own bound.
+struct ErrorFigures {
+  double rms = 0, rms_less_reference = 0, within_stated = 0, within_own = 0, median_own = 0;
+  size_t elements = 0;
+};
+
+ErrorFigures Compare(const std::vector<glm::vec3>& estimate, const std::vector<glm::vec3>& reference,
+                     const std::vector<uint8_t>& use, double reference_variance, double stated,
+                     const std::vector<float>* own_bound) {
+  ErrorFigures f;
+  double s2 = 0;
+  size_t within_stated = 0, within_own = 0;
+  std::vector<float> bounds;
+  for (size_t i = 0; i < estimate.size(); ++i) {
+    if (!use[i]) continue;
+    const double e = std::abs(static_cast<double>(estimate[i].x) - reference[i].x);
+    s2 += e * e;
+    ++f.elements;
+    within_stated += e <= stated;
+    if (own_bound) {
+      within_own += e <= (*own_bound)[i];
+      bounds.push_back((*own_bound)[i]);
+    }
+  }
+  if (f.elements == 0) return f;
+  f.rms = std::sqrt(s2 / f.elements);
+  f.rms_less_reference = std::sqrt(std::max(0.0, s2 / f.elements - reference_variance));
+  f.within_stated = static_cast<double>(within_stated) / f.elements;
+  f.within_own = own_bound ? static_cast<double>(within_own) / f.elements : std::nan("");
+  if (!bounds.empty()) {
+    std::nth_element(bounds.begin(), bounds.begin() + bounds.size() / 2, bounds.end());
+    f.median_own = bounds[bounds.size() / 2];
+  }
+  return f;
+}
+
+// Two references of N/2 rays each: their mean is the reference, and per
+// element (a - b)^2 / 4 estimates its variance, whose mean is returned.
+double MeanOfTwo(const std::vector<glm::vec3>& a, const std::vector<glm::vec3>& b, const std::vector<uint8_t>& use,
+                 std::vector<glm::vec3>& mean) {
+  mean.resize(a.size());
+  double v = 0;
+  size_t n = 0;
+  for (size_t i = 0; i < a.size(); ++i) {
+    mean[i] = 0.5f * (a[i] + b[i]);
+    if (!use[i]) continue;
+    const double d = static_cast<double>(a[i].x) - b[i].x;
+    v += d * d / 4;
+    ++n;
+  }
+  return n ? v / n : 0;
+}
+
+int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const std::string& scene_name,
+                uint32_t atlas_resolution, uint32_t reference_rays, std::vector<uint32_t> directions,
+                std::vector<uint32_t> bundles) {
+  const std::filesystem::path path = scene_name == "palm"      ? dir / "tree_kenney/tree_palmDetailedTall.glb"
+                                     : scene_name == "cornell" ? dir / "cornell_box/cornell_box.gltf"
+                                     : scene_name == "sponza"  ? dir / "sponza_dabrovic/sponza.gltf"
+                                                               : dir / "bunny/bunny.gltf";
+  auto scene = LoadGltfFile(path);
+  if (!scene.ok()) { std::printf("%s: %s\n", path.c_str(), std::string(scene.status().message()).c_str()); return 1; }
+  auto gpu_scene = gpu::GpuScene::Upload(worker, *scene);
+  if (!gpu_scene.ok()) return 1;
+  auto atlas = BuildObscuranceAtlas(*scene, atlas_resolution);
+  if (!atlas.ok()) { std::printf("atlas: %s\n", std::string(atlas.status().message()).c_str()); return 1; }
+  ObscuranceParams params;
+  params.d_max = 0.2 * glm::length(scene->bounds.Extent());
+  const double confidence = 0.95;
+  // How much finer than the atlas the mesh is: triangles per covered texel.
+  size_t covered = 0;
+  for (uint32_t t = 0; t < atlas->texel_count(); ++t) covered += atlas->Covered(t);
+  std::printf("coverage: %s, %zu triangles, extent %.3f, atlas %u (%zu texels with surface, %.2f triangles per texel), "
+              "d_max %.4f, W gray (no bleeding), confidence %.2f\n",
+              scene_name.c_str(), scene->TriangleCount(), glm::length(scene->bounds.Extent()), atlas_resolution, covered,
+              static_cast<double>(scene->TriangleCount()) / covered, params.d_max, confidence);
+  auto t0 = std::chrono::steady_clock::now();
+  RayEstimateOptions ref_options;
+  ref_options.rays_per_patch = std::max<uint32_t>(1, reference_rays / 2);
+  ref_options.seed = 999;
+  auto texel_a = EstimateObscurancesByRays(*scene, *atlas, params, ref_options);
+  auto triangle_a = EstimateTriangleObscuranceByRays(*scene, params, ref_options);
+  ref_options.seed = 1999;
+  auto texel_b = EstimateObscurancesByRays(*scene, *atlas, params, ref_options);
+  auto triangle_b = EstimateTriangleObscuranceByRays(*scene, params, ref_options);
+  if (!texel_a.ok() || !triangle_a.ok() || !texel_b.ok() || !triangle_b.ok()) return 1;
+  std::printf("references: two of %u rays per texel and per triangle, %.1f s\n", ref_options.rays_per_patch,
+              Seconds(t0));
+  std::vector<uint8_t> triangle_use(scene->TriangleCount(), 0), vertex_use(scene->positions.size(), 0);
+  std::vector<double> varea(scene->positions.size(), 0.0);
+  std::vector<glm::dvec3> vsum(scene->positions.size(), glm::dvec3(0.0));
+  for (uint32_t t = 0; t < scene->TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(scene->Vertex(t, 1) - scene->Vertex(t, 0),
+                                                  scene->Vertex(t, 2) - scene->Vertex(t, 0)));
+    if (!(a > 0)) continue;
+    triangle_use[t] = 1;
+    for (int c = 0; c < 3; ++c) {
+      varea[scene->triangles[t][c]] += a;
+      vertex_use[scene->triangles[t][c]] = 1;
+    }
+  }
+  std::vector<uint8_t> texel_use(atlas->texel_count(), 0);
+  for (uint32_t t = 0; t < atlas->texel_count(); ++t) texel_use[t] = texel_a->estimated[t];
+  std::vector<glm::vec3> texel_reference_w, triangle_reference;
+  const double texel_ref_var = MeanOfTwo(texel_a->w, texel_b->w, texel_use, texel_reference_w);
+  const double triangle_ref_var = MeanOfTwo(*triangle_a, *triangle_b, triangle_use, triangle_reference);
+  // Vertices: the reference triangles' area-weighted means, like the bake's.
+  for (uint32_t t = 0; t < scene->TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(scene->Vertex(t, 1) - scene->Vertex(t, 0),
+                                                  scene->Vertex(t, 2) - scene->Vertex(t, 0)));
+    for (int c = 0; c < 3; ++c) vsum[scene->triangles[t][c]] += a * glm::dvec3(triangle_reference[t]);
+  }
+  std::vector<glm::vec3> vertex_reference(scene->positions.size(), glm::vec3(0.0f));
+  for (size_t v = 0; v < vsum.size(); ++v)
+    if (varea[v] > 0) vertex_reference[v] = glm::vec3(vsum[v] / varea[v]);
+  std::printf("reference noise (rms): texels %.4f, triangles %.4f\n", std::sqrt(texel_ref_var),
+              std::sqrt(triangle_ref_var));
+  // The triangle reference carried to texels (area-weighted over each
+  // texel's fragments): close to the texel reference where triangles are
+  // small against the texel's W gradient; a check of the two references.
+  std::vector<glm::vec3> texel_from_triangles(atlas->texel_count(), glm::vec3(0.0f));
+  for (uint32_t t = 0; t < atlas->texel_count(); ++t) {
+    glm::dvec3 sum(0.0);
+    double area = 0;
+    for (uint32_t f = atlas->texel_begin[t]; f < atlas->texel_begin[t + 1]; ++f) {
+      sum += atlas->fragments[f].world_area * glm::dvec3(triangle_reference[atlas->fragments[f].triangle]);
+      area += atlas->fragments[f].world_area;
+    }
+    if (area > 0) texel_from_triangles[t] = glm::vec3(sum / area);
+  }
+  std::printf("texel reference vs triangle reference carried to texels: rms %.4f\n",
+              Compare(texel_reference_w, texel_from_triangles, texel_use, 0, 1, nullptr).rms);
+
+  std::printf("\n%6s %5s | %-31s | %-31s | %-31s | %-22s | %-31s | %-22s | %s\n", "bundle", "dirs",
+              "texel: rms (-ref) stated/own", "tri own: rms (-ref) st/own", "  median bound, unsampled",
+              "tri texels': rms  stated", "vertex own: rms st/own med", "vert texels': rms st", "bake s");
+  for (uint32_t bundle : bundles)
+    for (uint32_t d : directions) {
+      params.bundle_resolution = bundle;
+      params.direction_count = d;
+      gpu::ObscuranceBakeStats stats;
+      t0 = std::chrono::steady_clock::now();
+      auto baked = gpu::BakeObscurances(worker, **gpu_scene, *scene, *atlas, params, {}, &stats);
+      if (!baked.ok()) { std::printf("bake: %s\n", std::string(baked.status().message()).c_str()); return 1; }
+      const double bake_s = Seconds(t0);
+      const double stated = ObscuranceHalfWidth(static_cast<double>(d), confidence);
+      const ObscuranceBounds bounds = ObscuranceBoundsOf(*scene, *baked, confidence);
+      std::vector<uint8_t> use_texels(atlas->texel_count(), 0);
+      for (uint32_t t = 0; t < atlas->texel_count(); ++t) use_texels[t] = texel_use[t] && baked->estimated[t];
+      const ErrorFigures texel = Compare(baked->w, texel_reference_w, use_texels, texel_ref_var, stated, &bounds.texel);
+      // Texels the surface covers nearly whole (built atlases: a texel's
+      // world area is 1 / texels_per_unit^2, up to the chart's tilt): a
+      // sliver's few samples make it noisy, not biased.
+      std::vector<uint8_t> whole(atlas->texel_count(), 0);
+      size_t whole_count = 0;
+      if (atlas->texels_per_unit > 0)
+        for (uint32_t t = 0; t < atlas->texel_count(); ++t) {
+          double area = 0;
+          for (uint32_t f = atlas->texel_begin[t]; f < atlas->texel_begin[t + 1]; ++f) area += atlas->fragments[f].world_area;
+          whole[t] = use_texels[t] && area * atlas->texels_per_unit * atlas->texels_per_unit >= 0.9;
+          whole_count += whole[t];
+        }
+      const ErrorFigures whole_texels = Compare(baked->w, texel_reference_w, whole, texel_ref_var, stated, &bounds.texel);
+      // Texels by what their estimate rests on: at least a quarter of the
+      // directions' worth, and the rest (slivers that a few samples reached,
+      // more of which become estimated as the directions grow).
+      std::vector<uint8_t> many(atlas->texel_count(), 0), few(atlas->texel_count(), 0);
+      for (uint32_t t = 0; t < atlas->texel_count(); ++t) {
+        many[t] = use_texels[t] && baked->texel_effective_samples[t] >= 0.25 * d;
+        few[t] = use_texels[t] && !many[t];
+      }
+      const ErrorFigures many_texels = Compare(baked->w, texel_reference_w, many, texel_ref_var, stated, &bounds.texel);
+      const ErrorFigures few_texels = Compare(baked->w, texel_reference_w, few, texel_ref_var, stated, &bounds.texel);
+      std::printf("  texels with >= d/4 effective directions: %zu, rms %.4f, within stated %.4f, own %.4f; the other %zu: "
+                  "rms %.4f, within stated %.4f, own %.4f (median own bound %.3f)\n",
+                  many_texels.elements, many_texels.rms_less_reference, many_texels.within_stated, many_texels.within_own,
+                  few_texels.elements, few_texels.rms_less_reference, few_texels.within_stated, few_texels.within_own,
+                  few_texels.median_own);
+      std::printf("  texel W vs the triangle reference carried to texels: rms %.4f; %zu nearly whole texels: rms %.4f "
+                  "(less reference noise %.4f), within stated %.4f, own %.4f\n",
+                  Compare(baked->w, texel_from_triangles, use_texels, 0, 1, nullptr).rms, whole_count, whole_texels.rms,
+                  whole_texels.rms_less_reference, whole_texels.within_stated, whole_texels.within_own);
+      const ErrorFigures own =
+          Compare(baked->triangle_w, triangle_reference, triangle_use, triangle_ref_var, stated, &bounds.triangle);
+      // The texels' mean per triangle: the bake's triangle W before.
+      std::vector<glm::vec3> texels_mean(scene->TriangleCount());
+      for (uint32_t t = 0; t < scene->TriangleCount(); ++t) texels_mean[t] = TriangleAverage(*atlas, *baked, t);
+      const ErrorFigures mixed = Compare(texels_mean, triangle_reference, triangle_use, triangle_ref_var, stated, nullptr);
+      size_t unsampled = 0;
+      for (uint32_t t = 0; t < scene->TriangleCount(); ++t)
+        unsampled += triangle_use[t] && baked->triangle_effective_samples[t] == 0;
+      const ErrorFigures vertex = Compare(baked->vertex_w, vertex_reference, vertex_use, 0, stated, &bounds.vertex);
+      // Vertices from the texels' triangle means.
+      std::fill(vsum.begin(), vsum.end(), glm::dvec3(0.0));
+      for (uint32_t t = 0; t < scene->TriangleCount(); ++t) {
+        const double a = 0.5 * glm::length(glm::cross(scene->Vertex(t, 1) - scene->Vertex(t, 0),
+                                                      scene->Vertex(t, 2) - scene->Vertex(t, 0)));
+        for (int c = 0; c < 3; ++c) vsum[scene->triangles[t][c]] += a * glm::dvec3(texels_mean[t]);
+      }
+      std::vector<glm::vec3> vertex_before(scene->positions.size(), glm::vec3(0.0f));
+      for (size_t v = 0; v < vsum.size(); ++v)
+        if (varea[v] > 0) vertex_before[v] = glm::vec3(vsum[v] / varea[v]);
+      const ErrorFigures vertex_mixed = Compare(vertex_before, vertex_reference, vertex_use, 0, stated, nullptr);
+      std::printf("%6u %5u | %.4f (%.4f) %.4f %.4f | %.4f (%.4f) %.4f %.4f | %8.4f %6zu | %.4f (%.4f) %.4f | %.4f %.4f "
+                  "%.4f %.4f | %.4f %.4f | %.1f (stated %.4f)\n",
+                  stats.bundle_resolution, d, texel.rms, texel.rms_less_reference, texel.within_stated, texel.within_own,
+                  own.rms, own.rms_less_reference, own.within_stated, own.within_own, own.median_own, unsampled,
+                  mixed.rms, mixed.rms_less_reference, mixed.within_stated, vertex.rms, vertex.within_stated,
+                  vertex.within_own, vertex.median_own, vertex_mixed.rms, vertex_mixed.within_stated, bake_s, stated);
+      std::fflush(stdout);
+    }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
-  bool quick = false, update_only = false;
+  bool quick = false, update_only = false, coverage = false;
+  uint32_t reference_rays_option = 0;
+  std::vector<uint32_t> direction_list, bundle_list;
   uint32_t bundle = 0, only_directions = 0, only_atlas = 0;
   std::string only_scene;
   std::filesystem::path dir = "../shared/scenes";
@@ -72,10 +310,22 @@ int main(int argc, char** argv) {
       only_directions = static_cast<uint32_t>(std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--bundle") && i + 1 < argc) bundle = static_cast<uint32_t>(std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--scenes") && i + 1 < argc) dir = argv[++i];
+    else if (!std::strcmp(argv[i], "--coverage")) coverage = true;
+    else if (!std::strcmp(argv[i], "--reference-rays") && i + 1 < argc)
+      reference_rays_option = static_cast<uint32_t>(std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--directions-list") && i + 1 < argc) direction_list = ParseList(argv[++i]);
+    else if (!std::strcmp(argv[i], "--bundles") && i + 1 < argc) bundle_list = ParseList(argv[++i]);
   }
   auto worker = gpu::GpuWorker::Start({});
   if (!worker.ok()) { std::fprintf(stderr, "%s\n", std::string(worker.status().message()).c_str()); return 1; }
   std::printf("device: %s\n", (*worker)->device().gl_renderer.c_str());
+  if (coverage) {
+    if (direction_list.empty()) direction_list = only_directions ? std::vector<uint32_t>{only_directions}
+                                                                 : std::vector<uint32_t>{16, 64, 256};
+    if (bundle_list.empty()) bundle_list = {bundle};  // 0: 2 x atlas
+    return RunCoverage(**worker, dir, only_scene.empty() ? "bunny" : only_scene, only_atlas ? only_atlas : 256,
+                       reference_rays_option ? reference_rays_option : 4096, direction_list, bundle_list);
+  }
   struct SceneCase { std::string name; std::filesystem::path path; };
   std::vector<SceneCase> scenes = {{"sponza", dir / "sponza_dabrovic/sponza.gltf"}};
   if (!quick || !only_scene.empty()) scenes.push_back({"veach_ajar", dir / "interior_veach_ajar/veach_ajar.gltf"});

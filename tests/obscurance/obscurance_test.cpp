@@ -952,5 +952,155 @@ TEST(ObscuranceBake, EstimatesOnlyTexelsWithSurface) {
   EXPECT_EQ(outside, 0);
 }
 
+// An egg-crate height field of side L, cut into cells x cells quads: bumps
+// of period `period` and amplitude `amplitude`, fine triangles facing up.
+Scene EggCrate(double L, int cells, double period, double amplitude) {
+  Scene s;
+  s.materials = {{"grey", glm::dvec3(0.6), glm::dvec3(0.0)}};
+  const double step = L / cells;
+  for (int j = 0; j <= cells; ++j)
+    for (int i = 0; i <= cells; ++i) {
+      const double x = i * step - L / 2, z = j * step - L / 2;
+      const double k = 2 * std::numbers::pi / period;
+      s.positions.emplace_back(x, amplitude * std::sin(k * x) * std::sin(k * z), z);
+    }
+  s.nodes.push_back(SceneNode{"crate", 0, -1, glm::dmat4(1.0), 0, static_cast<uint32_t>(2 * cells * cells)});
+  auto at = [&](int i, int j) { return static_cast<uint32_t>(j * (cells + 1) + i); };
+  for (int j = 0; j < cells; ++j)
+    for (int i = 0; i < cells; ++i) {
+      // Counter-clockwise seen from +y: (x, z), (x, z + dz), (x + dx, z + dz).
+      for (const glm::uvec3& t : {glm::uvec3(at(i, j), at(i, j + 1), at(i + 1, j + 1)),
+                                  glm::uvec3(at(i, j), at(i + 1, j + 1), at(i + 1, j))}) {
+        s.triangles.push_back(t);
+        s.triangle_material.push_back(0);
+        s.triangle_node.push_back(0);
+      }
+    }
+  UpdateBounds(s);
+  return s;
+}
+
+// Share of `use`d elements whose estimate lies within `bound` (one figure,
+// or per element) of the reference, and the RMS error.
+struct Coverage {
+  double within = 0, rms = 0;
+  size_t n = 0;
+};
+Coverage CoverageWithin(const std::vector<glm::vec3>& estimate, const std::vector<glm::vec3>& reference,
+                        const std::vector<uint8_t>& use, double stated, const std::vector<float>* own = nullptr) {
+  Coverage c;
+  double s2 = 0;
+  size_t within = 0;
+  for (size_t i = 0; i < estimate.size(); ++i) {
+    if (!use[i]) continue;
+    const double e = std::abs(static_cast<double>(estimate[i].x) - reference[i].x);
+    within += e <= (own ? (*own)[i] : stated);
+    s2 += e * e;
+    ++c.n;
+  }
+  c.within = c.n ? static_cast<double>(within) / c.n : 0;
+  c.rms = c.n ? std::sqrt(s2 / c.n) : 0;
+  return c;
+}
+
+// Per-vertex W the way BuildResult makes it: triangles' W, area-weighted.
+std::vector<glm::vec3> VertexMeans(const Scene& scene, const std::vector<glm::vec3>& triangle_w) {
+  std::vector<glm::dvec3> sum(scene.positions.size(), glm::dvec3(0.0));
+  std::vector<double> area(scene.positions.size(), 0.0);
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    const double a = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0),
+                                                  scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+    for (int c = 0; c < 3; ++c) {
+      sum[scene.triangles[t][c]] += a * glm::dvec3(triangle_w[t]);
+      area[scene.triangles[t][c]] += a;
+    }
+  }
+  std::vector<glm::vec3> out(sum.size(), glm::vec3(0.0f));
+  for (size_t v = 0; v < sum.size(); ++v)
+    if (area[v] > 0) out[v] = glm::vec3(sum[v] / area[v]);
+  return out;
+}
+
+// Texels larger than triangles: an atlas whose every texel holds several
+// triangles of a bumpy surface, whose W differs from bump top to bottom far
+// more than the bound. The bake's W per triangle and per vertex must hold
+// its bound against Embree rays cast from each triangle (knowing nothing of
+// the atlas), for at least the stated share. The texels' mean per triangle
+// (what the bake answered before) is shown carrying a bias: its error stays
+// put when the directions quadruple, while the bake's falls.
+TEST(ObscuranceBake, TriangleAndVertexWHoldTheirBoundWhenTexelsAreLargerThanTriangles) {
+  const Scene scene = EggCrate(1.0, 64, 0.25, 0.06);
+  const ObscuranceAtlas atlas = Atlas(scene, 80);
+  size_t covered = 0;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t) covered += atlas.Covered(t);
+  const double triangles_per_texel = static_cast<double>(scene.TriangleCount()) / covered;
+  ASSERT_GT(triangles_per_texel, 4.0) << "the case needs texels larger than triangles";
+  ObscuranceParams params;
+  params.d_max = 0.2;
+  params.bundle_resolution = 160;
+  // Two references of 1024 rays per triangle: their mean is the reference,
+  // their difference tells its noise, which is taken out of the RMS.
+  RayEstimateOptions ref_options;
+  ref_options.rays_per_patch = 512;
+  ref_options.seed = 12345;
+  auto ref_a = EstimateTriangleObscuranceByRays(scene, params, ref_options);
+  ref_options.seed = 54321;
+  auto ref_b = EstimateTriangleObscuranceByRays(scene, params, ref_options);
+  ASSERT_TRUE(ref_a.ok() && ref_b.ok());
+  std::vector<glm::vec3> reference(scene.TriangleCount());
+  double reference_variance = 0, lo = 1, hi = 0;
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    reference[t] = 0.5f * ((*ref_a)[t] + (*ref_b)[t]);
+    const double d = (*ref_a)[t].x - (*ref_b)[t].x;
+    reference_variance += d * d / 4 / scene.TriangleCount();
+    lo = std::min(lo, double(reference[t].x));
+    hi = std::max(hi, double(reference[t].x));
+  }
+  const std::vector<glm::vec3> vertex_reference = VertexMeans(scene, reference);
+  std::vector<uint8_t> triangles(scene.TriangleCount(), 1), vertices(scene.positions.size(), 1);
+  std::printf("%zu triangles, %.1f per texel, reference W %.3f..%.3f (noise %.4f)\n", scene.TriangleCount(),
+              triangles_per_texel, lo, hi, std::sqrt(reference_variance));
+  const double confidence = 0.95;
+  auto less_noise = [&](double rms) { return std::sqrt(std::max(0.0, rms * rms - reference_variance)); };
+  double own_rms[2], mixed_rms[2];
+  int k = 0;
+  for (uint32_t directions : {64u, 256u}) {
+    params.direction_count = directions;
+    const Baked baked = Bake(scene, atlas, params);
+    const double stated = ObscuranceHalfWidth(directions, confidence);
+    const ObscuranceBounds bounds = ObscuranceBoundsOf(scene, baked.result, confidence);
+    std::vector<glm::vec3> texels_mean(scene.TriangleCount());
+    for (uint32_t t = 0; t < scene.TriangleCount(); ++t) texels_mean[t] = TriangleAverage(atlas, baked.result, t);
+    const Coverage own = CoverageWithin(baked.result.triangle_w, reference, triangles, stated, &bounds.triangle);
+    const Coverage own_stated = CoverageWithin(baked.result.triangle_w, reference, triangles, stated);
+    const Coverage mixed = CoverageWithin(texels_mean, reference, triangles, stated);
+    const Coverage vertex = CoverageWithin(baked.result.vertex_w, vertex_reference, vertices, stated, &bounds.vertex);
+    const Coverage vertex_mixed = CoverageWithin(VertexMeans(scene, texels_mean), vertex_reference, vertices, stated);
+    std::vector<float> sorted = bounds.triangle;
+    std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
+    std::printf("%u directions (stated %.4f):\n"
+                "  triangle W, own samples:  rms %.4f (less reference noise %.4f), within own bound %.4f (median %.4f),"
+                " within stated %.4f\n"
+                "  triangle W, texels' mean: rms %.4f (less reference noise %.4f), within stated %.4f\n"
+                "  vertex W, own samples:    rms %.4f, within own bound %.4f; texels' mean: rms %.4f, within stated %.4f\n",
+                directions, stated, own.rms, less_noise(own.rms), own.within, sorted[sorted.size() / 2],
+                own_stated.within, mixed.rms, less_noise(mixed.rms), mixed.within, vertex.rms, vertex.within,
+                vertex_mixed.rms, vertex_mixed.within);
+    EXPECT_GE(own.within, confidence);
+    EXPECT_GE(own_stated.within, confidence);
+    EXPECT_GE(vertex.within, confidence);
+    for (uint32_t t = 0; t < scene.TriangleCount(); ++t)
+      ASSERT_GT(baked.result.triangle_effective_samples[t], 0.0f) << "triangle " << t << " got no sample";
+    own_rms[k] = less_noise(own.rms);
+    mixed_rms[k] = less_noise(mixed.rms);
+    ++k;
+  }
+  // 4x the directions: the bake's error falls (about halves), the texels'
+  // mean keeps most of its error, which is the bias.
+  EXPECT_LT(own_rms[1], 0.7 * own_rms[0]);
+  EXPECT_GT(mixed_rms[1], 0.8 * mixed_rms[0]);
+  EXPECT_LT(own_rms[1], 0.5 * mixed_rms[1]);
+}
+
 }  // namespace
 }  // namespace visq::obscurance

@@ -2,7 +2,11 @@
 // 4): for each direction of the sequence, an orthographic bundle of parallel
 // rays over the scene, peeled layer by layer until no fragment is left; the
 // transfer between consecutive layers is summed per patch (atlas texel) in
-// 64-bit fixed point on the GPU. Only the final sums are read back.
+// 64-bit fixed point on the GPU, per patch and again per triangle (so that
+// a triangle's W comes from its own samples, not from texels it shares with
+// its neighbours), with the sum over directions of each one's squared
+// per-direction sample count (the effective number of directions behind its
+// estimate). Only the final sums are read back.
 //
 // The bake runs as one GpuWorker job per direction (priority kBatch by
 // default), so interactive queries overtake it and cancellation takes effect
