@@ -515,6 +515,9 @@ StatusOr<ObscuranceBake> Client::ComputeObscurances(const v1::ComputeObscurances
     if (s.ok()) s = AppendObscuranceChunk(message.estimated(), at, out.estimated, "estimated");
     if (s.ok()) s = AppendObscuranceChunk(message.triangle_w(), at, out.triangle_w, "triangle_w");
     if (s.ok()) s = AppendObscuranceChunk(message.vertex_w(), at, out.vertex_w, "vertex_w");
+    if (s.ok()) s = AppendObscuranceChunk(message.w_error(), at, out.w_error, "w_error");
+    if (s.ok()) s = AppendObscuranceChunk(message.triangle_w_error(), at, out.triangle_w_error, "triangle_w_error");
+    if (s.ok()) s = AppendObscuranceChunk(message.vertex_w_error(), at, out.vertex_w_error, "vertex_w_error");
     if (s.ok()) s = AppendObscuranceChunk(message.partial_sums(), at, out.partial.sums, "partial_sums");
     if (s.ok()) s = AppendObscuranceChunk(message.partial_counts(), at, out.partial.counts, "partial_counts");
     if (!s.ok() && chunks.ok()) {

@@ -94,6 +94,9 @@ struct ObscuranceBake {
   std::vector<float> w, intensity;       // 3 per texel, index (y * width + x) * 3
   std::vector<uint8_t> estimated;        // per texel: 1 estimated, 0 filled from neighbours
   std::vector<float> triangle_w, vertex_w;  // 3 each (want_averages)
+  // Each element's own half-width on its W (want_errors; triangle and vertex
+  // ones also want_averages): one per texel, triangle, scene position.
+  std::vector<float> w_error, triangle_w_error, vertex_w_error;
   obscurance::ObscurancePartial partial;  // partial_only (and ShardedBake)
   uint32_t progress_messages = 0;
 };

@@ -51,6 +51,7 @@ struct ObscuranceQuery {
   uint32_t total_directions = 0;  // 0: first + count
   bool partial_only = false;
   bool want_averages = false;
+  bool want_errors = false;  // the answer always has them; the transport sends them on request
   uint32_t update_rays_per_patch = 64;
   ObscuranceMethod method = ObscuranceMethod::kDepthPeeling;
   uint32_t rays_per_patch = 256;  // kRaycast

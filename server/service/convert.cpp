@@ -618,6 +618,7 @@ StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& r
   query.total_directions = request.total_directions();
   query.partial_only = request.partial_only();
   query.want_averages = request.want_averages();
+  query.want_errors = request.want_errors();
   query.update_rays_per_patch = request.update_rays_per_patch() != 0 ? request.update_rays_per_patch() : 64;
   switch (request.method()) {
     case v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED:

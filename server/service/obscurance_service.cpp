@@ -29,7 +29,8 @@ void AddVec3(const glm::vec3& v, google::protobuf::RepeatedField<float>* out) {
 }
 
 // Figures, then the arrays in the order the proto gives.
-ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(core::ObscuranceAnswer answer, bool want_averages) {
+ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(core::ObscuranceAnswer answer, bool want_averages,
+                                                               bool want_errors) {
   auto kept = std::make_shared<const core::ObscuranceAnswer>(std::move(answer));
   const core::ObscuranceAnswer& a = *kept;
   v1::ComputeObscurancesResponse figures;
@@ -95,6 +96,19 @@ ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(core::ObscuranceA
   if (want_averages) {
     add_vec3s(r.triangle_w, &Message::mutable_triangle_w);
     add_vec3s(r.vertex_w, &Message::mutable_vertex_w);
+  }
+  auto add_floats = [&stream](const std::vector<float>& values, auto field) {
+    stream.Add(values.size(), [&values, field](Message& m, size_t b, size_t e) {
+      m.set_offset(b);
+      AddRange(values, b, e, (m.*field)());
+    });
+  };
+  if (want_errors) {
+    add_floats(a.bounds.texel, &Message::mutable_w_error);
+    if (want_averages) {
+      add_floats(a.bounds.triangle, &Message::mutable_triangle_w_error);
+      add_floats(a.bounds.vertex, &Message::mutable_vertex_w_error);
+    }
   }
   return stream;
 }
@@ -162,13 +176,13 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
               query.params.first_direction, query.params.first_direction + query.params.direction_count,
               query.total_directions, query.params.d_max, query.params.color_bleeding ? ", color bleeding" : "",
               query.partial_only ? ", partial" : "");
-    const bool want_averages = query.want_averages;
+    const bool want_averages = query.want_averages, want_errors = query.want_errors;
     VISQ_ASSIGN_OR_RETURN(core::ObscuranceAnswer answer, core::RunComputeObscurances(engine, std::move(query)));
     const double before_transfer = log_.ElapsedMs();
     const double compute_ms = answer.atlas_ms + answer.bake_ms + answer.finalize_ms + answer.updater_ms;
     log_.Info("{}x{} texels, {} layers, bake {:.1f} ms", answer.width, answer.height, answer.stats.layers,
               answer.bake_ms);
-    ChunkedResponses<v1::ComputeObscurancesResponse> messages = ToProtoStream(std::move(answer), want_averages);
+    ChunkedResponses<v1::ComputeObscurancesResponse> messages = ToProtoStream(std::move(answer), want_averages, want_errors);
     SetStreamTiming(queue_ms, compute_ms, build_clock->ms(), before_transfer, log_,
                     messages.first().mutable_figures()->mutable_timing());
     return messages;

@@ -107,6 +107,54 @@ TEST_F(ObscuranceRpcTest, BakeGivesWInRangeWithProgress) {
   EXPECT_GT(sum / estimated, 0.2);
 }
 
+// want_errors: every texel, triangle and vertex gets its own half-width,
+// none tighter than the answer's single bound (an element rests on at most
+// every direction), and the triangles' own bounds hold against a bake with
+// eight times the directions.
+TEST_F(ObscuranceRpcTest, EachElementCarriesItsOwnBoundWhenAsked) {
+  v1::ComputeObscurancesRequest request = SmallBake("cornell_box_visq");
+  request.set_want_averages(true);
+  auto plain = client_->ComputeObscurances(request);
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  EXPECT_TRUE(plain->w_error.empty() && plain->triangle_w_error.empty() && plain->vertex_w_error.empty())
+      << "errors are sent only when asked";
+  request.set_want_errors(true);
+  auto bake = client_->ComputeObscurances(request);
+  ASSERT_TRUE(bake.ok()) << bake.status();
+  const size_t texels = 32 * 32, triangles = bake->triangle_w.size() / 3, vertices = bake->vertex_w.size() / 3;
+  ASSERT_EQ(bake->w_error.size(), texels);
+  ASSERT_EQ(bake->triangle_w_error.size(), triangles);
+  ASSERT_EQ(bake->vertex_w_error.size(), vertices);
+  EXPECT_EQ(bake->w, plain->w) << "asking for errors changes no W";
+  const double stated = bake->figures.accuracy().error_bound();
+  for (size_t t = 0; t < texels; ++t) {
+    if (!bake->estimated[t]) {
+      EXPECT_EQ(bake->w_error[t], 1.0f) << "a filled texel has no samples: W's whole range";
+      continue;
+    }
+    EXPECT_GE(bake->w_error[t], stated * (1 - 1e-6)) << "texel " << t;
+    EXPECT_LE(bake->w_error[t], 1.0f) << "texel " << t;
+  }
+  for (float e : bake->triangle_w_error) EXPECT_TRUE(e >= stated * (1 - 1e-6) && e <= 1.0f) << e;
+  for (float e : bake->vertex_w_error) EXPECT_TRUE(e > 0.0f && e <= 1.0f) << e;
+  std::vector<float> sorted = bake->triangle_w_error;
+  std::sort(sorted.begin(), sorted.end());
+  const auto& parameters = bake->figures.accuracy().parameters();
+  ASSERT_TRUE(parameters.contains("triangle_bound_median"));
+  EXPECT_NEAR(parameters.at("triangle_bound_median"), sorted[sorted.size() / 2], 1e-6);
+
+  v1::ComputeObscurancesRequest finer = request;
+  finer.set_direction_count(64);
+  auto reference = client_->ComputeObscurances(finer);
+  ASSERT_TRUE(reference.ok()) << reference.status();
+  size_t held = 0;
+  for (size_t t = 0; t < triangles; ++t) {
+    const double difference = std::abs(bake->triangle_w[3 * t] - reference->triangle_w[3 * t]);
+    held += difference <= bake->triangle_w_error[t] + reference->triangle_w_error[t];
+  }
+  EXPECT_GE(held, 0.95 * triangles) << held << " of " << triangles << " triangles within their bounds";
+}
+
 TEST_F(ObscuranceRpcTest, SameSeedSameBitsAndShardsMergeExactly) {
   v1::ComputeObscurancesRequest request = SmallBake("cornell_box_visq");
   auto a = client_->ComputeObscurances(request);

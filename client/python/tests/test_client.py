@@ -325,6 +325,17 @@ class ClientTest(unittest.TestCase):
         self.assertTrue(((exported.atlas_uv >= 0) & (exported.atlas_uv <= 1)).all())
         self.assertEqual(exported.glb[:4], b"glTF")
 
+    def test_obscurance_errors_per_element(self):
+        bake = self.client.compute_obscurances(SCENE, 0.5, resolution=32, directions=8, want_averages=True,
+                                               want_errors=True)
+        self.assertEqual(bake.w_error.shape, (32, 32))
+        self.assertEqual(bake.triangle_w_error.shape, (bake.triangle_w.shape[0],))
+        self.assertEqual(bake.vertex_w_error.shape, (bake.vertex_w.shape[0],))
+        stated = bake.figures.accuracy.error_bound
+        self.assertTrue((bake.w_error[bake.estimated] >= stated * (1 - 1e-6)).all())
+        self.assertTrue((bake.w_error[~bake.estimated] == 1).all())
+        self.assertIsNone(self.client.compute_obscurances(SCENE, 0.5, resolution=32, directions=8).w_error)
+
     def test_a_node_move_and_the_incremental_update(self):
         self.client.load_from_repository(SCENE, replace=True)
         self.client.compute_obscurances(SCENE, 0.5, resolution=32, directions=8)

@@ -207,6 +207,9 @@ class ObscuranceBake:
     partial_counts: Optional[np.ndarray]  # (height, width) uint64, partial_only
     figures: Any                          # ObscuranceFigures
     progress_messages: int = 0
+    w_error: Optional[np.ndarray] = None           # (height, width): each texel's own bound, want_errors
+    triangle_w_error: Optional[np.ndarray] = None  # (triangles,), want_errors and want_averages
+    vertex_w_error: Optional[np.ndarray] = None    # (vertices,), want_errors and want_averages
 
 
 @dataclass
@@ -844,7 +847,8 @@ class Client:
     def compute_obscurances(self, scene, d_max, resolution=256, directions=256, seed=1, color_bleeding=False,
                             force_built_atlas=False, want_averages=False, first_direction=0, total_directions=0,
                             partial_only=False, method="depth-peeling", rays_per_patch=256, target=None,
-                            bundle_resolution=0, version=0, progress=None, timeout=_UNSET, cancel=None) -> ObscuranceBake:
+                            bundle_resolution=0, version=0, want_errors=False, progress=None, timeout=_UNSET,
+                            cancel=None) -> ObscuranceBake:
         """Bakes obscurances. progress(visq.Progress) is called for each
         progress message; cancel=visq.Cancellation() stops the bake.
         method 'raycast' is the Embree estimator (rays_per_patch); target
@@ -858,6 +862,7 @@ class Client:
         request.seed = int(seed)
         request.color_bleeding, request.force_built_atlas = color_bleeding, force_built_atlas
         request.want_averages, request.partial_only = want_averages, partial_only
+        request.want_errors = bool(want_errors)
         request.bundle_resolution = _count(bundle_resolution, "bundle_resolution", 0)
         chosen = _choice(method, "method", {"depth-peeling": pb.ComputeObscurancesRequest.DEPTH_PEELING,
                                             "raycast": pb.ComputeObscurancesRequest.RAYCAST})
@@ -883,7 +888,8 @@ class Client:
             if m.HasField("figures"):
                 figures.append(m.figures)
             for name, dtype in (("w", np.float32), ("intensity", np.float32), ("triangle_w", np.float32),
-                                ("vertex_w", np.float32), ("partial_sums", np.uint64),
+                                ("vertex_w", np.float32), ("w_error", np.float32), ("triangle_w_error", np.float32),
+                                ("vertex_w_error", np.float32), ("partial_sums", np.uint64),
                                 ("partial_counts", np.uint64)):
                 chunks.add(name, getattr(m, name), m.offset, dtype)
             chunks.add("estimated", m.estimated, m.offset, np.uint8)
@@ -904,6 +910,9 @@ class Client:
             intensity=chunks.get("intensity", np.float32, (h, w, 3)),
             estimated=None if estimated is None else estimated.astype(bool),
             triangle_w=rows("triangle_w"), vertex_w=rows("vertex_w"),
+            w_error=chunks.get("w_error", np.float32, (h, w)),
+            triangle_w_error=chunks.get("triangle_w_error", np.float32, (chunks.sizes.get("triangle_w_error", 0),)),
+            vertex_w_error=chunks.get("vertex_w_error", np.float32, (chunks.sizes.get("vertex_w_error", 0),)),
             partial_sums=chunks.get("partial_sums", np.uint64, (h, w, f.channels), required=f.partial_only),
             partial_counts=chunks.get("partial_counts", np.uint64, (h, w), required=f.partial_only),
             figures=f, progress_messages=progress_messages[0])
