@@ -13,7 +13,7 @@
 //
 //   visq_bench_volumetric [--quick] [--svd-only] [--scene PATH] [--repeats N]
 // --quick: 1K and 4K maps at 320x240 and 640x480 (minutes on llvmpipe); the
-// full run is the 640x480 and 1280x960. --svd-only: the SVD rows
+// full run is 640x480 and 1280x960. --svd-only: the SVD rows
 // alone.
 #include <algorithm>
 #include <cmath>

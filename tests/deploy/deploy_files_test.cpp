@@ -1,7 +1,8 @@
 // Static checks of deploy/, for what can break without a cluster (the image
 // itself is built and run by container_test.sh, ./visq.sh test's container
 // stage): every path the Dockerfile copies exists, every script it runs is
-// the project's, and every manifest has the fields the issue requires.
+// the project's, and every manifest has the fields a cluster needs (probes,
+// limits, the restricted profile).
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -157,7 +158,7 @@ YAML::Node Effective(const YAML::Node& pod, const YAML::Node& container, const s
 // The "restricted" Pod Security Standard's required fields, as the
 // admission controller checks them (baseline's included: no host
 // namespaces, no privileged containers, no hostPath), plus a read-only root
-// filesystem, which the issue asks for.
+// filesystem.
 TEST(Kubernetes, EveryPodMeetsTheRestrictedProfile) {
   const auto pods = PodSpecs();
   ASSERT_GE(pods.size(), 2u);

@@ -34,7 +34,7 @@
 // The corpus (corpus/structure/) holds one input per interesting case; they
 // are written by this binary:
 //   VISQ_FUZZ_WRITE_SEEDS=tests/fuzz/corpus build-asan/tests/fuzz/gltf_structure_fuzz
-// which also writes the issue's cases as plain .gltf files (data: buffers)
+// which also writes the hostile-input cases as plain .gltf files (data: buffers)
 // for the byte-level target (corpus/gltf/issue19-*). Each seed is a script of
 // named decisions (ScriptChoices, below), encoded into the bytes from which
 // FuzzedDataProvider returns exactly those decisions, and checked by

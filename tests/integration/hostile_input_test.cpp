@@ -1,6 +1,6 @@
 // Hostile and unusual input, end to end: the real visq-server on
 // loopback, driven through the real client and raw gRPC calls, with hostile
-// files generated here. Each test names the item of the issue it shows.
+// files generated here. Each test names the attack it shows.
 #include <signal.h>
 #include <sys/mount.h>
 #include <sys/wait.h>
@@ -467,8 +467,8 @@ TEST_F(HostileInputTest, VolumetricImagesAreSentABandAtATime) {
 
 // Item 17: a long rendering that is still wanted does not hold the GL
 // thread: its stages and its traversal's bands of rows are GL jobs of their
-// own, so another client's small map answers between them. (Before, the
-// map waited for the whole rendering: 40-46 s in the issue.)
+// own, so another client's small map answers between them instead of
+// waiting for the whole rendering.
 TEST(HostileServerSetup, LongRenderingsLetOtherQueriesThrough) {
   ScratchDir repo;
   auto server = ServerProcess::Start({repo.path(), {"--seed-samples"}});
