@@ -159,7 +159,7 @@ struct LightFrame {
 // A directional light's shadow map: an orthographic box in the light's frame.
 void FrameDirectionalLight(const Scene& scene, const Bounds& medium, const LightFrame& frame, const glm::dvec3& anchor,
                            double diagonal, Setup& setup) {
-  const auto& [u, v, w] = frame;
+  const glm::dvec3 &u = frame.u, &v = frame.v, &w = frame.w;
   // The medium's box in the light's frame around its corners; the shadow
   // map's box is the same, deepened towards the light over the scene's
   // corners there: occluders above the medium shadow it.
@@ -202,7 +202,7 @@ void FrameDirectionalLight(const Scene& scene, const Bounds& medium, const Light
 // A spot light's shadow map: a square frustum along its axis.
 Status FrameSpotLight(const VolumetricLight& light, const std::array<glm::dvec3, 8>& corners, const LightFrame& frame,
                       const glm::dvec3& anchor, double diagonal, Setup& setup) {
-  const auto& [u, v, w] = frame;
+  const glm::dvec3 &u = frame.u, &v = frame.v, &w = frame.w;
   // The cone's square frustum from a near plane close to the light to
   // beyond the farthest corner.
   const glm::dvec3 l = light.position - anchor;
@@ -266,7 +266,7 @@ void RectifyAroundTheEpipole(Setup& setup) {
 
 // Which integrand the traversal evaluates, and its SVD table if any.
 void ChooseIntegrand(const VolumetricParams& params, const LightFrame& frame, double diagonal, Setup& setup) {
-  const auto& [u, v, w] = frame;
+  const glm::dvec3 &u = frame.u, &v = frame.v, &w = frame.w;
   const VolumetricLight& light = params.light;
   const double n = setup.map_size;
   const std::array<glm::dvec2, 4> square = {glm::dvec2(0, 0), glm::dvec2(n, 0), glm::dvec2(0, n), glm::dvec2(n, n)};
