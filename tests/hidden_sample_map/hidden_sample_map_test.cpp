@@ -75,6 +75,24 @@ Scene RandomCloud(int triangles, uint32_t seed, const glm::dvec3& lo, const glm:
 }
 
 // The unit-square light at y = 1 facing down and the unit-square receiver at y = 0.
+// The culled draw (`culled`) against drawing every triangle (`all`): the
+// same bits, fractions and lookup bounds, on a map that is neither all
+// hidden nor all visible.
+void ExpectCulledGivesTheBitsOfDrawingAll(HiddenSampleMapper& culled_mapper, HiddenSampleMapper& all_mapper,
+                                          const GpuScene& gpu_scene, const HiddenSampleMapRequest& r) {
+  auto culled = culled_mapper.Compute(gpu_scene, r);
+  auto all = all_mapper.Compute(gpu_scene, r);
+  ASSERT_TRUE(culled.ok()) << culled.status();
+  ASSERT_TRUE(all.ok()) << all.status();
+  EXPECT_EQ(culled->blocked_bits, all->blocked_bits);
+  EXPECT_EQ(culled->visible_fraction, all->visible_fraction);
+  EXPECT_EQ(culled->error.lookup_per_texel, all->error.lookup_per_texel);
+  EXPECT_EQ(culled->error.lookup_max, all->error.lookup_max);
+  const auto [lo, hi] = std::minmax_element(all->visible_fraction.begin(), all->visible_fraction.end());
+  EXPECT_LT(*lo, 1.0f);
+  EXPECT_GT(*hi, 0.0f);
+}
+
 HiddenSampleMapRequest UnitRequest(int n, int size) {
   HiddenSampleMapRequest r;
   r.source.patch = {{0, 1, 0}, {1, 0, 0}, {0, 0, 1}};
@@ -780,17 +798,7 @@ TEST(HiddenSampleMap, CulledClustersGiveTheBitsOfDrawingEverything) {
     r.options.decorrelate = bumpy;
     for (const LookupMode lookup : {LookupMode::kExact, LookupMode::kHough}) {
       r.options.lookup = lookup;
-      auto culled = Mapper().Compute(*gpu_scene, r);
-      auto all = (*all_mapper)->Compute(*gpu_scene, r);
-      ASSERT_TRUE(culled.ok()) << culled.status();
-      ASSERT_TRUE(all.ok()) << all.status();
-      EXPECT_EQ(culled->blocked_bits, all->blocked_bits);
-      EXPECT_EQ(culled->visible_fraction, all->visible_fraction);
-      EXPECT_EQ(culled->error.lookup_per_texel, all->error.lookup_per_texel);
-      EXPECT_EQ(culled->error.lookup_max, all->error.lookup_max);
-      const auto [lo, hi] = std::minmax_element(all->visible_fraction.begin(), all->visible_fraction.end());
-      EXPECT_LT(*lo, 1.0f);
-      EXPECT_GT(*hi, 0.0f);
+      ExpectCulledGivesTheBitsOfDrawingAll(Mapper(), **all_mapper, *gpu_scene, r);
     }
     auto drawn = Mapper().TrianglesDrawnPerPass(*gpu_scene, r);
     auto drawn_all = (*all_mapper)->TrianglesDrawnPerPass(*gpu_scene, r);
@@ -823,16 +831,7 @@ TEST(HiddenSampleMapRealScenes, SponzaCopiesCulledGiveTheBitsOfDrawingEverything
   r.options.decorrelate = true;
   for (const LookupMode lookup : {LookupMode::kExact, LookupMode::kHough}) {
     r.options.lookup = lookup;
-    auto culled = Mapper().Compute(*gpu_scene, r);
-    auto all = (*all_mapper)->Compute(*gpu_scene, r);
-    ASSERT_TRUE(culled.ok()) << culled.status();
-    ASSERT_TRUE(all.ok()) << all.status();
-    EXPECT_EQ(culled->blocked_bits, all->blocked_bits);
-    EXPECT_EQ(culled->visible_fraction, all->visible_fraction);
-    EXPECT_EQ(culled->error.lookup_per_texel, all->error.lookup_per_texel);
-    const auto [lo, hi] = std::minmax_element(all->visible_fraction.begin(), all->visible_fraction.end());
-    EXPECT_LT(*lo, 1.0f);
-    EXPECT_GT(*hi, 0.0f);
+    ExpectCulledGivesTheBitsOfDrawingAll(Mapper(), **all_mapper, *gpu_scene, r);
   }
   auto drawn = Mapper().TrianglesDrawnPerPass(*gpu_scene, r);
   ASSERT_TRUE(drawn.ok()) << drawn.status();
