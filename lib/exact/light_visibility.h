@@ -196,6 +196,10 @@ struct TreeStats {
 // whole scene (docs/exact-method-notes.md). It does
 // not depend on the light: build it once per scene, lazily, and pass it to
 // every Create on that scene.
+//
+// A mesh the scene places more than once (Scene::placements) is indexed once,
+// in its own space, and each placement is one box of the scene's level; what
+// the index answers is the same as if the scene were flattened.
 class SceneTriangleIndex {
  public:
   // Validates the triangles' vertex indices (INVALID_ARGUMENT).
@@ -204,11 +208,13 @@ class SceneTriangleIndex {
   SceneTriangleIndex(const SceneTriangleIndex&) = delete;
   SceneTriangleIndex& operator=(const SceneTriangleIndex&) = delete;
 
-  // The triangles whose boxes meet the box [lo, hi], in increasing order.
+  // Every triangle whose box meets the box [lo, hi], and perhaps others near
+  // it (those that share an index leaf with one), in increasing order.
   std::vector<uint32_t> InBox(const glm::dvec3& lo, const glm::dvec3& hi) const;
   // How many triangles' boxes meet [lo, hi], counting no further than `limit`.
   size_t CountInBox(const glm::dvec3& lo, const glm::dvec3& hi, size_t limit) const;
   size_t triangle_count() const;
+  size_t instance_count() const;
   size_t MemoryBytes() const;
 
  private:

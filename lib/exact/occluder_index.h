@@ -80,6 +80,9 @@ class OccluderIndex {
     return std::min(count, limit);
   }
 
+  // Item i's box; only when built with keep_item_boxes.
+  const std::pair<glm::dvec3, glm::dvec3>& item_box(uint32_t i) const { return boxes_[i]; }
+
   size_t MemoryBytes() const {
     return boxes_.capacity() * sizeof(boxes_[0]) + order_.capacity() * 4 + nodes_.capacity() * sizeof(Node);
   }

@@ -12,6 +12,25 @@
 #include "common/parallel.h"
 
 namespace visq::raycast {
+
+// The instanced meshes. The top-level scene holds the flattened triangles as
+// geometry 0 and placement k's instance as geometry k + 1; a hit names
+// (instance, primitive), which maps back to the scene's own triangle.
+struct EmbreeScene::Instancing {
+  std::vector<RTCScene> meshes;          // per Scene::meshes; null where no placement is instanced
+  std::vector<uint32_t> first_triangle;  // instance k's primitive 0 in Scene::triangles
+  std::vector<uint32_t> flat_triangles;  // geometry 0's primitive i in Scene::triangles
+  size_t instanced_triangles = 0;
+
+  uint32_t TriangleOf(unsigned instance, unsigned primitive) const {
+    return instance == RTC_INVALID_GEOMETRY_ID ? flat_triangles[primitive] : first_triangle[instance - 1] + primitive;
+  }
+  ~Instancing() {
+    for (RTCScene mesh : meshes)
+      if (mesh != nullptr) rtcReleaseScene(mesh);
+  }
+};
+
 namespace {
 
 // Embree reports error text only through a callback; it runs on the thread
@@ -51,13 +70,16 @@ struct FilterContext {
   const uint32_t* sorted_ignore = nullptr;
   size_t sorted_ignore_count = 0;
   const uint32_t* per_ray_ignore = nullptr;  // indexed by ray id within the stream
+  const EmbreeScene::Instancing* instancing = nullptr;  // null: a primitive id is the scene triangle
 };
 
 void IgnoreFilter(const RTCFilterFunctionNArguments* args) {
   const auto* context = reinterpret_cast<const FilterContext*>(args->context);
   for (unsigned i = 0; i < args->N; ++i) {
     if (args->valid[i] == 0) continue;
-    const uint32_t prim = RTCHitN_primID(args->hit, args->N, i);
+    uint32_t prim = RTCHitN_primID(args->hit, args->N, i);
+    if (context->instancing != nullptr)
+      prim = context->instancing->TriangleOf(RTCHitN_instID(args->hit, args->N, i, 0), prim);
     const uint32_t id = RTCRayN_id(args->ray, args->N, i);
     bool ignore = context->per_ray_ignore != nullptr && context->per_ray_ignore[id] == prim;
     if (!ignore && context->sorted_ignore_count > 0) {
@@ -89,7 +111,122 @@ bool ShouldStop(const TraceOptions& options, size_t done, std::atomic<bool>& sto
   return true;
 }
 
+// A placement is traced as an instance only where that keeps the
+// flattened upload's precision. Flattened, a vertex is rounded once, by an
+// ulp of its frame coordinate, and the tracing offset (2^-17 of
+// max(|p|, extent/8), see Occluded) leaves it 32 such ulps. As an instance,
+// Embree moves each ray into the mesh's own space in float32: the origin
+// picks up a few ulps of |p - translation| times the transform's condition
+// number, and the mesh's vertices an ulp of their own magnitude times its
+// scale. With the condition number at most 2, the translation within the
+// scene's extent of the frame origin and the placed mesh within the extent
+// of its own origin, that stays within about 8 ulps of the extent: under the
+// offset. Other placements (strong shears or scales, meshes modelled far
+// from their origin) are flattened.
+bool InstanceKeepsPrecision(const glm::dmat4& world, double mesh_magnitude, const glm::dvec3& origin, double extent) {
+  const glm::dmat3 linear(world);
+  const glm::dmat3 gram = glm::transpose(linear) * linear;
+  // Gershgorin bounds the largest eigenvalue of the Gram matrix; with the
+  // smallest at least det / largest^2, cond^2 <= largest^3 / det.
+  double largest = 0.0;
+  for (int r = 0; r < 3; ++r)
+    largest = std::max(largest, std::abs(gram[0][r]) + std::abs(gram[1][r]) + std::abs(gram[2][r]));
+  const double det = glm::determinant(gram);
+  if (!(det > 0.0) || !(largest * largest * largest <= 4.0 * det)) return false;
+  const glm::dvec3 translation = glm::dvec3(world[3]) - origin;
+  const double offset = std::max({std::abs(translation.x), std::abs(translation.y), std::abs(translation.z)});
+  return offset <= extent && mesh_magnitude * std::sqrt(largest) <= extent;
+}
+
+// Uploads triangles as geometry `id` of `scene`: `vertex(i)` gives vertex i
+// of `vertex_count` in the upload's frame, `triangle(i)` triangle i of
+// `triangle_count`.
+template <typename VertexAt, typename TriangleAt>
+Status AttachTriangles(RTCDevice device, RTCScene scene, unsigned id, size_t vertex_count, const VertexAt& vertex,
+                       size_t triangle_count, const TriangleAt& triangle) {
+  RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
+  auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                                               3 * sizeof(float), vertex_count));
+  auto* indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                                                                 3 * sizeof(uint32_t), triangle_count));
+  if (vertices == nullptr || indices == nullptr) {
+    rtcReleaseGeometry(geom);
+    return EmbreeStatus(device, "rtcSetNewGeometryBuffer");
+  }
+  for (size_t i = 0; i < vertex_count; ++i) {
+    const glm::dvec3 v = vertex(i);
+    vertices[3 * i + 0] = static_cast<float>(v.x);
+    vertices[3 * i + 1] = static_cast<float>(v.y);
+    vertices[3 * i + 2] = static_cast<float>(v.z);
+  }
+  for (size_t i = 0; i < triangle_count; ++i) {
+    const glm::uvec3 t = triangle(i);
+    for (int c = 0; c < 3; ++c) indices[3 * i + c] = t[c];
+  }
+  rtcCommitGeometry(geom);
+  rtcAttachGeometryByID(scene, geom, id);
+  rtcReleaseGeometry(geom);
+  return absl::OkStatus();
+}
+
 }  // namespace
+
+size_t EmbreeScene::instance_count() const { return instancing_ ? instancing_->first_triangle.size() : 0; }
+size_t EmbreeScene::instanced_triangle_count() const { return instancing_ ? instancing_->instanced_triangles : 0; }
+
+Status EmbreeScene::AddInstances(const Scene& scene, const EmbreeSceneOptions& options,
+                                 std::vector<uint8_t>& instanced) {
+  auto instancing = std::make_unique<Instancing>();
+  instancing->meshes.assign(scene.meshes.size(), nullptr);
+  std::vector<double> magnitude(scene.meshes.size(), 0.0);
+  for (size_t m = 0; m < scene.meshes.size(); ++m)
+    for (const glm::dvec3& p : scene.meshes[m].positions)
+      magnitude[m] = std::max({magnitude[m], std::abs(p.x), std::abs(p.y), std::abs(p.z)});
+  const RTCBuildQuality quality = options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH : RTC_BUILD_QUALITY_MEDIUM;
+  for (size_t k = 0; k < scene.placements.size(); ++k) {
+    const MeshPlacement& placement = scene.placements[k];
+    // A placement that does not stand for its flattened triangles, or
+    // overlaps an earlier one, is traced flattened.
+    if (!PlacementMatchesFlattened(scene, placement)) continue;
+    const SceneMesh& mesh = scene.meshes[placement.mesh];
+    if (mesh.triangles.empty() || std::any_of(instanced.begin() + placement.first_triangle,
+                    instanced.begin() + placement.first_triangle + mesh.triangles.size(), [](uint8_t b) { return b != 0; }) ||
+        !InstanceKeepsPrecision(placement.world, magnitude[placement.mesh], origin_, extent_))
+      continue;
+    RTCScene& blas = instancing->meshes[placement.mesh];
+    if (blas == nullptr) {
+      blas = rtcNewScene(device_);
+      rtcSetSceneFlags(blas, RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION);
+      rtcSetSceneBuildQuality(blas, quality);
+      if (options.stop)
+        rtcSetSceneProgressMonitorFunction(blas, OnEmbreeProgress, const_cast<std::function<bool()>*>(&options.stop));
+      VISQ_RETURN_IF_ERROR(AttachTriangles(
+          device_, blas, 0, mesh.positions.size(), [&](size_t i) { return mesh.positions[i]; }, mesh.triangles.size(),
+          [&](size_t i) { return mesh.triangles[i]; }));
+      rtcCommitScene(blas);
+      if (options.stop && options.stop()) break;
+    }
+    // Embree's 3x4 column-major transform: the linear part, then the
+    // translation in the upload's frame.
+    float transform[12];
+    for (int c = 0; c < 3; ++c)
+      for (int r = 0; r < 3; ++r) transform[3 * c + r] = static_cast<float>(placement.world[c][r]);
+    const glm::dvec3 translation = glm::dvec3(placement.world[3]) - origin_;
+    for (int r = 0; r < 3; ++r) transform[9 + r] = static_cast<float>(translation[r]);
+    RTCGeometry instance = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_INSTANCE);
+    rtcSetGeometryInstancedScene(instance, blas);
+    rtcSetGeometryTransform(instance, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR, transform);
+    rtcCommitGeometry(instance);
+    rtcAttachGeometryByID(scene_, instance, static_cast<unsigned>(instancing->first_triangle.size() + 1));
+    rtcReleaseGeometry(instance);
+    instancing->first_triangle.push_back(placement.first_triangle);
+    instancing->instanced_triangles += mesh.triangles.size();
+    std::fill_n(instanced.begin() + placement.first_triangle, mesh.triangles.size(), uint8_t{1});
+  }
+  VISQ_RETURN_IF_ERROR(EmbreeStatus(device_, "building the instanced meshes"));
+  if (!instancing->first_triangle.empty()) instancing_ = std::move(instancing);
+  return absl::OkStatus();
+}
 
 StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneOptions& options) {
   // Validate indices before Embree sees them: it would read out of bounds.
@@ -126,30 +263,39 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   rtcSetSceneBuildQuality(out.scene_, options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH
                                                                              : RTC_BUILD_QUALITY_MEDIUM);
   if (options.stop) rtcSetSceneProgressMonitorFunction(out.scene_, OnEmbreeProgress, const_cast<std::function<bool()>*>(&options.stop));
-  if (!scene.triangles.empty()) {
-    RTCGeometry geom = rtcNewGeometry(out.device_, RTC_GEOMETRY_TYPE_TRIANGLE);
-    auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(
-        geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float),
-        scene.positions.size()));
-    auto* indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(
-        geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(uint32_t),
-        scene.triangles.size()));
-    if (vertices == nullptr || indices == nullptr) {
-      rtcReleaseGeometry(geom);
-      return EmbreeStatus(out.device_, "rtcSetNewGeometryBuffer");
+  std::vector<uint8_t> instanced(scene.triangles.size(), 0);
+  if (options.instance_meshes && !scene.placements.empty())
+    VISQ_RETURN_IF_ERROR(out.AddInstances(scene, options, instanced));
+  if (!out.instancing_) {
+    if (!scene.triangles.empty()) {
+      VISQ_RETURN_IF_ERROR(AttachTriangles(
+          out.device_, out.scene_, 0, scene.positions.size(), [&](size_t i) { return scene.positions[i] - out.origin_; },
+          scene.triangles.size(), [&](size_t i) { return scene.triangles[i]; }));
     }
-    for (size_t i = 0; i < scene.positions.size(); ++i) {
-      const glm::dvec3 local = scene.positions[i] - out.origin_;
-      vertices[3 * i + 0] = static_cast<float>(local.x);
-      vertices[3 * i + 1] = static_cast<float>(local.y);
-      vertices[3 * i + 2] = static_cast<float>(local.z);
+  } else {
+    // The triangles no instance stands for, over the positions they use.
+    std::vector<uint32_t>& flat = out.instancing_->flat_triangles;
+    std::vector<uint32_t> vertex_of(scene.positions.size(), UINT32_MAX);
+    std::vector<uint32_t> positions_used;
+    for (uint32_t t = 0; t < scene.triangles.size(); ++t) {
+      if (instanced[t]) continue;
+      flat.push_back(t);
+      for (int c = 0; c < 3; ++c) {
+        uint32_t& v = vertex_of[scene.triangles[t][c]];
+        if (v == UINT32_MAX) {
+          v = static_cast<uint32_t>(positions_used.size());
+          positions_used.push_back(scene.triangles[t][c]);
+        }
+      }
     }
-    for (size_t i = 0; i < scene.triangles.size(); ++i) {
-      for (int c = 0; c < 3; ++c) indices[3 * i + c] = scene.triangles[i][c];
+    if (!flat.empty()) {
+      VISQ_RETURN_IF_ERROR(AttachTriangles(
+          out.device_, out.scene_, 0, positions_used.size(),
+          [&](size_t i) { return scene.positions[positions_used[i]] - out.origin_; }, flat.size(), [&](size_t i) {
+            const glm::uvec3 t = scene.triangles[flat[i]];
+            return glm::uvec3(vertex_of[t[0]], vertex_of[t[1]], vertex_of[t[2]]);
+          }));
     }
-    rtcCommitGeometry(geom);
-    rtcAttachGeometryByID(out.scene_, geom, 0);
-    rtcReleaseGeometry(geom);
   }
   rtcCommitScene(out.scene_);
   if (options.stop && options.stop()) {
@@ -173,6 +319,7 @@ EmbreeScene& EmbreeScene::operator=(EmbreeScene&& other) noexcept {
     extent_ = other.extent_;
     bounds_ = other.bounds_;
     triangle_count_ = std::exchange(other.triangle_count_, 0);
+    instancing_ = std::move(other.instancing_);
   }
   return *this;
 }
@@ -181,6 +328,7 @@ EmbreeScene::~EmbreeScene() { Reset(); }
 
 void EmbreeScene::Reset() {
   if (scene_ != nullptr) rtcReleaseScene(scene_);
+  instancing_.reset();
   if (device_ != nullptr) rtcReleaseDevice(device_);
   scene_ = nullptr;
   device_ = nullptr;
@@ -260,6 +408,7 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
         context.sorted_ignore = ignore.data();
         context.sorted_ignore_count = ignore.size();
         context.per_ray_ignore = per_ray_ignore;
+        context.instancing = instancing_.get();
       }
       rtcOccluded1M(scene_, &context.rtc, rays, static_cast<unsigned>(n), sizeof(RTCRay));
       // Embree marks an occluded ray by setting tfar to -inf.
@@ -304,6 +453,7 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
         context.sorted_ignore = ignore.data();
         context.sorted_ignore_count = ignore.size();
         context.per_ray_ignore = per_ray_ignore;
+        context.instancing = instancing_.get();
       }
       rtcIntersect1M(scene_, &context.rtc, rays.data(), static_cast<unsigned>(n), sizeof(RTCRayHit));
       for (size_t i = 0; i < n; ++i) {
@@ -311,8 +461,8 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
         if (rays[i].hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
         h.hit = true;
         h.t = rays[i].ray.tfar;
-        h.triangle = rays[i].hit.primID;
-        VISQ_CHECK_LT(h.triangle, triangle_count_);  // one geometry, the scene's triangles in order
+        h.triangle = instancing_ ? instancing_->TriangleOf(rays[i].hit.instID[0], rays[i].hit.primID) : rays[i].hit.primID;
+        VISQ_CHECK_LT(h.triangle, triangle_count_);
         h.u = rays[i].hit.u;
         h.v = rays[i].hit.v;
       }

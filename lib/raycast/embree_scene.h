@@ -91,6 +91,11 @@ struct TraceOptions {
 enum class BuildQuality { kMedium, kHigh };
 
 struct EmbreeSceneOptions {
+  // Meshes the scene places more than once (Scene::placements) are built
+  // once and traced as Embree instances where the instance transform keeps
+  // the precision of the flattened upload (InstanceKeepsPrecision in the
+  // .cpp); false flattens everything.
+  bool instance_meshes = true;
   // The frame origin for the float32 upload; default: scene bounds center.
   std::optional<glm::dvec3> origin;
   BuildQuality quality = BuildQuality::kHigh;
@@ -145,10 +150,17 @@ class EmbreeScene {
   // Bytes Embree holds for this scene (its memory monitor callback).
   size_t memory_bytes() const { return memory_ ? static_cast<size_t>(memory_->load()) : 0; }
   size_t triangle_count() const { return triangle_count_; }
+  // The placements traced as instances, and the triangles they stand for.
+  size_t instance_count() const;
+  size_t instanced_triangle_count() const;
+
+  struct Instancing;  // the instanced meshes and how hits map back to scene triangles
 
  private:
   EmbreeScene() = default;
   void Reset();
+  [[nodiscard]] Status AddInstances(const Scene& scene, const EmbreeSceneOptions& options,
+                                    std::vector<uint8_t>& instanced);
 
   RTCDeviceTy* device_ = nullptr;
   RTCSceneTy* scene_ = nullptr;
@@ -157,6 +169,7 @@ class EmbreeScene {
   double extent_ = 0.0;
   Bounds bounds_;
   size_t triangle_count_ = 0;
+  std::unique_ptr<Instancing> instancing_;  // null: every triangle in one flattened geometry
 };
 
 }  // namespace visq::raycast

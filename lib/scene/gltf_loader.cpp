@@ -287,8 +287,10 @@ class SceneBuilder {
         if (!has_parent[i]) roots.push_back(static_cast<int>(i));
     }
     VISQ_RETURN_IF_ERROR(ValidateFlattenedSize(roots));
+    mesh_uses_ = MeshUses();
     VISQ_RETURN_IF_ERROR(VisitNodes(roots));
     if (scene.triangles.empty()) return Invalid("scene has no triangles");
+    KeepRepeatedMeshes();
     if (!all_primitives_have_lightmap_uvs_) {
       if (!scene.lightmap_uvs.empty())
         report_.dropped.push_back("TEXCOORD_1 (not present on every primitive)");
@@ -447,10 +449,19 @@ class SceneBuilder {
           return Invalid(absl::StrCat("nodes[", index, "].mesh ", node.mesh, " out of range"));
         const auto& mesh = model_.meshes[node.mesh];
         VISQ_ASSIGN_OR_RETURN(std::vector<glm::dmat4> placements, MeshPlacements(node, index, world));
-        for (const glm::dmat4& placement : placements)
+        for (const glm::dmat4& placement : placements) {
+          const auto first_triangle = static_cast<uint32_t>(scene_->triangles.size());
+          const auto first_position = static_cast<uint32_t>(scene_->positions.size());
+          const bool repeated = mesh_uses_[node.mesh] >= 2;
+          const MeshKey key{node.mesh, glm::determinant(glm::dmat3(placement)) < 0.0};
+          std::vector<glm::dvec3> mesh_positions;
+          mesh_positions_ = repeated && !mesh_of_key_.contains(key) ? &mesh_positions : nullptr;
           for (size_t p = 0; p < mesh.primitives.size(); ++p)
             VISQ_RETURN_IF_ERROR(AddPrimitive(mesh.primitives[p], placement, node_id,
                                               absl::StrCat("meshes[", node.mesh, "].primitives[", p, "]")));
+          mesh_positions_ = nullptr;
+          if (repeated) RecordPlacement(key, placement, first_triangle, first_position, std::move(mesh_positions));
+        }
       }
       scene_->nodes[node_id].triangle_count =
           static_cast<uint32_t>(scene_->triangles.size()) - scene_->nodes[node_id].first_triangle;
@@ -538,10 +549,11 @@ class SceneBuilder {
       const glm::dvec3 local(positions.Value(i, 0), positions.Value(i, 1), positions.Value(i, 2));
       if (!std::isfinite(local.x) || !std::isfinite(local.y) || !std::isfinite(local.z))
         return Invalid(absl::StrCat(label, ".POSITION[", i, "]: NaN or Inf coordinate"));
-      const glm::dvec3 placed(world * glm::dvec4(local, 1.0));
+      const glm::dvec3 placed = PlacePoint(world, local);
       if (!InCoordinateRange(placed))
         return Invalid(absl::StrCat(label, ".POSITION[", i, "]: beyond ±", kMaxCoordinate, " once placed by its nodes"));
       scene_->positions.push_back(placed);
+      if (mesh_positions_ != nullptr) mesh_positions_->push_back(local);
     }
     auto uv_it = prim.attributes.find("TEXCOORD_1");
     if (uv_it == prim.attributes.end()) {
@@ -606,12 +618,88 @@ class SceneBuilder {
     return absl::OkStatus();
   }
 
+  // How many times each glTF mesh is placed, counted over the nodes and
+  // their GPU instances. Only meshes placed twice or more are recorded as
+  // SceneMesh; a node reached by several paths counts once here, so its mesh
+  // is flattened only.
+  std::vector<uint64_t> MeshUses() const {
+    std::vector<uint64_t> uses(model_.meshes.size(), 0);
+    for (const auto& node : model_.nodes) {
+      if (node.mesh < 0 || node.mesh >= static_cast<int>(uses.size())) continue;
+      const InstanceAttributes instances = InstanceAttributesOf(node);
+      uses[node.mesh] += instances.any() ? std::max({AccessorCount(model_, instances.translation),
+                                                     AccessorCount(model_, instances.rotation),
+                                                     AccessorCount(model_, instances.scale)})
+                                         : 1;
+    }
+    return uses;
+  }
+
+  // A glTF mesh as placed: a mirroring placement stores its corners in the
+  // other order, so mirrored and unmirrored placements are placements of two
+  // meshes.
+  struct MeshKey {
+    int gltf_mesh;
+    bool mirrored;
+    auto operator<=>(const MeshKey&) const = default;
+  };
+
+  // One placement of `key` just flattened: triangles from first_triangle,
+  // positions from first_position; `mesh_positions` (mesh space) when it is
+  // the key's first.
+  void RecordPlacement(const MeshKey& key, const glm::dmat4& world, uint32_t first_triangle, uint32_t first_position,
+                       std::vector<glm::dvec3> mesh_positions) {
+    const auto triangle_count = static_cast<uint32_t>(scene_->triangles.size()) - first_triangle;
+    const auto position_count = static_cast<uint32_t>(scene_->positions.size()) - first_position;
+    auto [it, added] = mesh_of_key_.try_emplace(key, static_cast<uint32_t>(scene_->meshes.size()));
+    if (added) {
+      SceneMesh mesh;
+      mesh.positions = std::move(mesh_positions);
+      mesh.triangles.reserve(triangle_count);
+      for (uint32_t t = first_triangle; t < first_triangle + triangle_count; ++t)
+        mesh.triangles.push_back(scene_->triangles[t] - glm::uvec3(first_position));
+      scene_->meshes.push_back(std::move(mesh));
+    }
+    const SceneMesh& mesh = scene_->meshes[it->second];
+    // The same glTF mesh flattens to the same triangles every time; a
+    // placement that did not is kept flattened only.
+    if (mesh.triangles.size() != triangle_count || mesh.positions.size() != position_count) return;
+    scene_->placements.push_back(MeshPlacement{it->second, first_triangle, first_position, world});
+  }
+
+  // Drops the meshes placed once, or too small to be worth an instance, and
+  // renumbers the rest.
+  void KeepRepeatedMeshes() {
+    std::vector<uint32_t> uses(scene_->meshes.size(), 0);
+    for (const MeshPlacement& placement : scene_->placements) ++uses[placement.mesh];
+    std::vector<uint32_t> renumbered(scene_->meshes.size(), UINT32_MAX);
+    std::vector<SceneMesh> kept;
+    for (size_t m = 0; m < scene_->meshes.size(); ++m) {
+      if (uses[m] < 2 || scene_->meshes[m].triangles.size() < kFewestTrianglesToInstance) continue;
+      renumbered[m] = static_cast<uint32_t>(kept.size());
+      kept.push_back(std::move(scene_->meshes[m]));
+    }
+    std::vector<MeshPlacement> placements;
+    for (MeshPlacement placement : scene_->placements) {
+      if (renumbered[placement.mesh] == UINT32_MAX) continue;
+      placement.mesh = renumbered[placement.mesh];
+      placements.push_back(placement);
+    }
+    scene_->meshes = std::move(kept);
+    scene_->placements = std::move(placements);
+    scene_->meshes.shrink_to_fit();
+    scene_->placements.shrink_to_fit();
+  }
+
   const tinygltf::Model& model_;
   const GltfLoadLimits& limits_;
   GltfLoadReport& report_;
   Scene* scene_ = nullptr;
   int default_material_ = -1;
   bool all_primitives_have_lightmap_uvs_ = true;
+  std::vector<uint64_t> mesh_uses_;
+  std::vector<glm::dvec3>* mesh_positions_ = nullptr;  // where AddPrimitive copies mesh-space positions, if anywhere
+  std::map<MeshKey, uint32_t> mesh_of_key_;  // into Scene::meshes
 };
 
 void ReportDroppedContent(const tinygltf::Model& model, GltfLoadReport& report) {

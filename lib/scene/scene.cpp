@@ -8,7 +8,40 @@ size_t Scene::CpuBytes() const {
                  triangle_node.capacity() * sizeof(uint32_t) + lightmap_uvs.capacity() * sizeof(glm::vec2);
   for (const auto& m : materials) bytes += sizeof(Material) + m.name.capacity();
   for (const auto& n : nodes) bytes += sizeof(SceneNode) + n.name.capacity();
+  for (const auto& m : meshes)
+    bytes += sizeof(SceneMesh) + m.positions.capacity() * sizeof(glm::dvec3) + m.triangles.capacity() * sizeof(glm::uvec3);
+  bytes += placements.capacity() * sizeof(MeshPlacement);
   return bytes;
+}
+
+bool PlacementMatchesFlattened(const Scene& scene, const MeshPlacement& placement) {
+  if (placement.mesh >= scene.meshes.size()) return false;
+  const SceneMesh& mesh = scene.meshes[placement.mesh];
+  if (uint64_t{placement.first_triangle} + mesh.triangles.size() > scene.triangles.size() ||
+      uint64_t{placement.first_position} + mesh.positions.size() > scene.positions.size())
+    return false;
+  for (size_t i = 0; i < mesh.triangles.size(); ++i)
+    if (glm::any(glm::greaterThanEqual(mesh.triangles[i], glm::uvec3(mesh.positions.size()))) ||
+        scene.triangles[placement.first_triangle + i] != mesh.triangles[i] + glm::uvec3(placement.first_position))
+      return false;
+  for (size_t j = 0; j < mesh.positions.size(); ++j)
+    if (scene.positions[placement.first_position + j] != PlacePoint(placement.world, mesh.positions[j])) return false;
+  return true;
+}
+
+Status ValidatePlacements(const Scene& scene) {
+  uint64_t end_of_previous = 0;
+  for (size_t k = 0; k < scene.placements.size(); ++k) {
+    const MeshPlacement& placement = scene.placements[k];
+    if (placement.first_triangle < end_of_previous)
+      return absl::InvalidArgumentError(absl::StrCat("scene.placements[", k, "].first_triangle: ",
+                                                     placement.first_triangle, " overlaps the previous placement"));
+    if (!PlacementMatchesFlattened(scene, placement))
+      return absl::InvalidArgumentError(absl::StrCat("scene.placements[", k,
+                                                     "]: out of range, or not the flattened triangles and positions"));
+    end_of_previous = uint64_t{placement.first_triangle} + scene.meshes[placement.mesh].triangles.size();
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace visq

@@ -11,6 +11,8 @@
 
 #include <glm/glm.hpp>
 
+#include "common/status.h"
+
 namespace visq {
 
 struct Bounds {
@@ -39,6 +41,34 @@ struct SceneNode {
   uint32_t triangle_count = 0;
 };
 
+// Where a point of a mesh lands in the world. Every flattened position is
+// computed by this one expression, so that a structure that keeps a mesh
+// once and places it again gets the flattened scene's doubles to the bit.
+inline glm::dvec3 PlacePoint(const glm::dmat4& world, const glm::dvec3& point) {
+  return glm::dvec3(world * glm::dvec4(point, 1.0));
+}
+
+// A mesh that the file places more than once (nodes sharing a glTF mesh, or
+// EXT_mesh_gpu_instancing), held once in its own coordinates so that the
+// structures built over the scene can hold it once and place it as
+// instances. The flattened arrays stay the scene of record.
+struct SceneMesh {
+  std::vector<glm::dvec3> positions;  // mesh space
+  std::vector<glm::uvec3> triangles;  // into positions, corners in the order the placements store them
+};
+
+// One placement of a SceneMesh. For i < mesh.triangles.size() and
+// j < mesh.positions.size():
+//   Scene::triangles[first_triangle + i] == mesh.triangles[i] + first_position
+//   Scene::positions[first_position + j] == PlacePoint(world, mesh.positions[j])  (bit for bit)
+// (ValidatePlacements checks both).
+struct MeshPlacement {
+  uint32_t mesh = 0;  // into Scene::meshes
+  uint32_t first_triangle = 0;
+  uint32_t first_position = 0;
+  glm::dmat4 world{1.0};
+};
+
 struct Scene {
   std::vector<glm::dvec3> positions;        // world space
   std::vector<glm::uvec3> triangles;        // counter-clockwise = front
@@ -47,6 +77,10 @@ struct Scene {
   std::vector<glm::vec2> lightmap_uvs;      // TEXCOORD_1 per position; empty if absent
   std::vector<Material> materials;
   std::vector<SceneNode> nodes;
+  // Repeated meshes and where each stands, ordered by first_triangle and
+  // disjoint; triangles of no placement are unique.
+  std::vector<SceneMesh> meshes;
+  std::vector<MeshPlacement> placements;
   Bounds bounds;
 
   size_t TriangleCount() const { return triangles.size(); }
@@ -55,5 +89,19 @@ struct Scene {
   }
   size_t CpuBytes() const;
 };
+
+// Whether `placement` is in range and stands for its flattened triangles
+// and positions exactly (the invariant of MeshPlacement). Structures that
+// instance a placement check it first and flatten one that does not.
+bool PlacementMatchesFlattened(const Scene& scene, const MeshPlacement& placement);
+
+// INVALID_ARGUMENT naming the first placement that is out of range, overlaps
+// another, or differs from the flattened triangles and positions it stands
+// for (the invariant of MeshPlacement).
+[[nodiscard]] Status ValidatePlacements(const Scene& scene);
+
+// Placements of a mesh with fewer triangles than this are flattened only:
+// an instance costs a few hundred bytes in every structure.
+inline constexpr uint32_t kFewestTrianglesToInstance = 16;
 
 }  // namespace visq

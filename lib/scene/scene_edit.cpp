@@ -42,6 +42,11 @@ Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world)
   for (size_t i = 0; i < scene.positions.size(); ++i)
     if (moved[i]) scene.positions[i] = placed[i];
   for (uint32_t n : subtree) scene.nodes[n].world = delta * scene.nodes[n].world;
+  // A moved placement's positions are delta * (world * p), which is not
+  // PlacePoint(delta * world, p) to the bit: the moved meshes stay flattened only.
+  std::erase_if(scene.placements, [&](const MeshPlacement& placement) {
+    return in_subtree[scene.triangle_node[placement.first_triangle]] != 0;
+  });
   scene.bounds = Bounds{};
   for (const auto& p : scene.positions) scene.bounds.Extend(p);
   return absl::OkStatus();

@@ -18,7 +18,8 @@ std::vector<uint32_t> SubtreeNodes(const Scene& scene, uint32_t node);
 
 // Moves node `node` and its subtree rigidly so that the node's world matrix
 // becomes `new_world` (positions of the subtree's triangles and the nodes'
-// world matrices). INVALID_ARGUMENT for an unknown node, a position shared
+// world matrices). The subtree's mesh placements are dropped (its triangles
+// stay, flattened). INVALID_ARGUMENT for an unknown node, a position shared
 // with triangles outside the subtree, or one moved beyond the coordinate
 // range; the scene is unchanged then.
 [[nodiscard]] Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world);

@@ -8,9 +8,11 @@
 #include <random>
 #include <thread>
 
+#include <glm/gtc/matrix_transform.hpp>
 #include <gtest/gtest.h>
 
 #include "exact/exact_geometry.h"
+#include "large_scene.h"
 #include "raycast/embree_scene.h"
 #include "scene/sample_scenes.h"
 
@@ -953,6 +955,69 @@ TEST(LightVisibilityTest, SceneIndexSelectsTheSameOccluders) {
   Scene broken = MakeScene(Cloud(2, 1));
   broken.triangles[1][2] = 99;
   EXPECT_EQ(SceneTriangleIndex::Build(broken).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST(LightVisibilityTest, PlacedMeshesAreIndexedOnceAndSelectTheSameOccluders) {
+  // A cloud placed nine times (rotated, one anisotropically scaled) far
+  // from the origin: the index holds it once, answers every box as the
+  // flattened scene's triangles would, and trees made with it hold the
+  // scanned trees' occluders: the same answers, bit for bit.
+  const glm::dvec3 offset(1e6, -2e6, 3e5);
+  std::vector<glm::dmat4> worlds;
+  for (int i = 0; i < 9; ++i) {
+    glm::dmat4 w = glm::translate(glm::dmat4(1.0), offset + glm::dvec3(1.0 * (i % 3 - 1), 1.0 * (i / 3 - 1), 0.0));
+    w = glm::rotate(w, 0.7 * i, glm::dvec3(0, 0, 1));
+    w = glm::scale(w, i == 4 ? glm::dvec3(0.42, 0.28, 1.0) : glm::dvec3(0.35, 0.35, 1.0));
+    worlds.push_back(w);
+  }
+  const Scene placed = testing::PlaceMesh(MakeScene(Cloud(24, 23)), worlds);
+  ASSERT_TRUE(ValidatePlacements(placed).ok()) << ValidatePlacements(placed);
+  auto index = SceneTriangleIndex::Build(placed);
+  auto flat_index = SceneTriangleIndex::Build(testing::Flattened(placed));
+  ASSERT_TRUE(index.ok() && flat_index.ok());
+  EXPECT_EQ((*index)->instance_count(), worlds.size());
+  EXPECT_EQ((*flat_index)->instance_count(), 0u);
+  EXPECT_EQ((*index)->triangle_count(), placed.TriangleCount());
+  EXPECT_LT((*index)->MemoryBytes(), (*flat_index)->MemoryBytes() / 2);
+
+  // Every placement is an instance, so the index answers each box exactly:
+  // the triangles whose boxes meet it.
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.8, 1.8), h(0.0, 2.0), side(0.01, 0.8);
+  for (int trial = 0; trial < 300; ++trial) {
+    const double x = u(rng), y = u(rng), z = h(rng), sx = side(rng), sy = side(rng), sz = side(rng);
+    const glm::dvec3 lo = offset + glm::dvec3(x, y, z), hi = lo + glm::dvec3(sx, sy, sz);
+    std::vector<uint32_t> meeting;
+    for (uint32_t t = 0; t < placed.TriangleCount(); ++t) {
+      const glm::dvec3 a = placed.Vertex(t, 0), b = placed.Vertex(t, 1), c = placed.Vertex(t, 2);
+      const glm::dvec3 t_lo = glm::min(a, glm::min(b, c)), t_hi = glm::max(a, glm::max(b, c));
+      if (!glm::any(glm::lessThan(t_hi, lo)) && !glm::any(glm::greaterThan(t_lo, hi))) meeting.push_back(t);
+    }
+    EXPECT_EQ((*index)->InBox(lo, hi), meeting) << "box " << trial;
+    EXPECT_EQ((*index)->CountInBox(lo, hi, SIZE_MAX), meeting.size());
+    EXPECT_EQ((*flat_index)->CountInBox(lo, hi, SIZE_MAX), meeting.size());
+    EXPECT_EQ((*index)->CountInBox(lo, hi, 3), std::min<size_t>(3, meeting.size()));
+  }
+
+  AreaLight light = SquareLight(2.0, 0.7);
+  for (auto& v : light.vertices) v += offset;
+  const auto pts = FloorPoints(24, 29);
+  TreeOptions options;
+  options.receiver_bounds = Box(offset + glm::dvec3(-1.5, -1.5, 0), offset + glm::dvec3(1.5, 1.5, 0));
+  auto scanned = LightVisibilityTree::Create(light, placed, options);
+  auto indexed = LightVisibilityTree::Create(light, placed, options, index->get());
+  ASSERT_TRUE(scanned.ok() && indexed.ok());
+  EXPECT_EQ((*scanned)->Stats().far_occluders, (*indexed)->Stats().far_occluders);
+  EXPECT_EQ((*scanned)->Stats().near_occluders, (*indexed)->Stats().near_occluders);
+  EXPECT_GT((*indexed)->Stats().far_occluders + (*indexed)->Stats().near_occluders, 60u);
+  int partial = 0;
+  for (const glm::dvec3& p : pts) {
+    const PointVisibility a = Q(**scanned, offset + p), b = Q(**indexed, offset + p);
+    EXPECT_EQ(a.visible_area_fraction, b.visible_area_fraction) << p.x << " " << p.y;
+    EXPECT_EQ(a.irradiance, b.irradiance);
+    partial += a.visible_area_fraction > 0.01 && a.visible_area_fraction < 0.99;
+  }
+  EXPECT_GT(partial, 5);
 }
 
 TEST(LightVisibilityTest, AnOccluderThatHidTheLastPointIsNotThisPointsOwnTriangle) {

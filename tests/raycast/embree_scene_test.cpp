@@ -3,8 +3,10 @@
 #include <array>
 #include <random>
 
+#include <glm/gtc/matrix_transform.hpp>
 #include <gtest/gtest.h>
 
+#include "large_scene.h"
 #include "scene/sample_scenes.h"
 
 namespace visq::raycast {
@@ -162,6 +164,128 @@ TEST(EmbreeSceneTest, MoveOnlyAndInvalidIndices) {
   ASSERT_TRUE(a.ok());
   EmbreeScene b = std::move(*a);
   EXPECT_EQ(b.triangle_count(), 1u);
+}
+
+
+// A mesh placed by rotations, uniform scales and translations: traced as
+// instances it answers as the flattened scene does. Random segments through
+// the placements, segments leaving the meshes' own surfaces (the offset
+// that skips a receiver's triangle) and ignored triangles inside instances.
+TEST(EmbreeSceneTest, PlacedMeshesTraceAsInstancesWithTheFlattenedAnswers) {
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::vector<std::array<glm::dvec3, 3>> cloud;
+  for (int i = 0; i < 60; ++i) {
+    const glm::dvec3 c(u(rng), u(rng), u(rng));
+    std::array<glm::dvec3, 3> t;
+    for (auto& p : t) {
+      const double x = u(rng), y = u(rng), z = u(rng);
+      p = c + 0.3 * glm::dvec3(x, y, z);
+    }
+    cloud.push_back(t);
+  }
+  const Scene mesh = SceneOfTriangles(cloud);
+  std::vector<glm::dmat4> worlds;
+  for (int i = 0; i < 12; ++i) {
+    glm::dmat4 w = glm::translate(glm::dmat4(1.0), glm::dvec3(2.0 * (i % 4), 0.5 * (i % 3), 2.0 * (i / 4)));
+    w = glm::rotate(w, 0.9 * i, glm::normalize(glm::dvec3(1.0, 2.0, 0.5 * i)));
+    w = glm::scale(w, glm::dvec3(0.6 + 0.1 * (i % 5)));
+    worlds.push_back(w);
+  }
+  const Scene placed = testing::PlaceMesh(mesh, worlds);
+  ASSERT_TRUE(ValidatePlacements(placed).ok()) << ValidatePlacements(placed);
+  auto instanced = EmbreeScene::Create(placed);
+  EmbreeSceneOptions flatten;
+  flatten.instance_meshes = false;
+  auto flat = EmbreeScene::Create(placed, flatten);
+  ASSERT_TRUE(instanced.ok() && flat.ok());
+  EXPECT_EQ(instanced->instance_count(), worlds.size());
+  EXPECT_EQ(instanced->instanced_triangle_count(), placed.TriangleCount());
+  EXPECT_EQ(flat->instance_count(), 0u);
+  // One mesh's BVH and twelve instances against twelve meshes' worth.
+  EXPECT_LT(instanced->memory_bytes(), flat->memory_bytes() / 2);
+
+  const Bounds& b = placed.bounds;
+  std::uniform_real_distribution<double> in_x(b.min.x, b.max.x), in_y(b.min.y, b.max.y), in_z(b.min.z, b.max.z);
+  std::uniform_int_distribution<uint32_t> any_triangle(0, static_cast<uint32_t>(placed.TriangleCount() - 1));
+  std::vector<Segment> segments;
+  std::vector<Ray> rays;
+  for (int i = 0; i < 20000; ++i) {
+    const double px = in_x(rng), py = in_y(rng), pz = in_z(rng), qx = in_x(rng), qy = in_y(rng), qz = in_z(rng);
+    segments.push_back({{px, py, pz}, {qx, qy, qz}});
+    rays.push_back({{px, py, pz}, glm::dvec3(qx, qy, qz) - glm::dvec3(px, py, pz)});
+  }
+  // A segment that leaves a surface nearly along it (under 0.6 degrees) is
+  // a float tie at its origin: the float32 upload decides, and the
+  // instance's upload rounds differently.
+  std::vector<uint8_t> grazing(segments.size() + 5000, 0);
+  for (int i = 0; i < 5000; ++i) {  // from a point on a triangle, that triangle ignored or not
+    const uint32_t t = any_triangle(rng);
+    const double a = 0.5 * (u(rng) + 1.0), c = 0.5 * (u(rng) + 1.0) * (1.0 - a);
+    const glm::dvec3 on = placed.Vertex(t, 0) + a * (placed.Vertex(t, 1) - placed.Vertex(t, 0)) +
+                          c * (placed.Vertex(t, 2) - placed.Vertex(t, 0));
+    const glm::dvec3 to(in_x(rng), in_y(rng), in_z(rng));
+    const glm::dvec3 normal = glm::normalize(glm::cross(placed.Vertex(t, 1) - placed.Vertex(t, 0),
+                                                        placed.Vertex(t, 2) - placed.Vertex(t, 0)));
+    grazing[segments.size()] = std::abs(glm::dot(normal, glm::normalize(to - on))) < 0.01;
+    segments.push_back({on, to, i % 2 == 0 ? t : kNoTriangle});
+    rays.push_back({on, to - on, 1.0, i % 2 == 0 ? t : kNoTriangle});
+  }
+  const std::vector<uint8_t> want = Occ(*flat, segments), got = Occ(*instanced, segments);
+  ASSERT_EQ(got.size(), want.size());
+  size_t blocked = 0, differing = 0;
+  for (size_t i = 0; i < got.size(); ++i) {
+    blocked += want[i];
+    differing += got[i] != want[i];
+    EXPECT_TRUE(got[i] == want[i] || grazing[i]) << "segment " << i;
+  }
+  EXPECT_LE(differing, 5u);
+  EXPECT_GT(blocked, segments.size() / 10);
+  EXPECT_LT(blocked, segments.size() * 9 / 10);
+
+  // Closest hits: the same triangle and distance (to float rounding), away
+  // from the ties.
+  auto want_hits = flat->Intersect(rays), got_hits = instanced->Intersect(rays);
+  ASSERT_TRUE(want_hits.ok() && got_hits.ok());
+  size_t other_triangle = 0;
+  for (size_t i = 0; i < rays.size(); ++i) {
+    const Hit &w = (*want_hits)[i], &g = (*got_hits)[i];
+    if (grazing[i]) continue;
+    ASSERT_EQ(w.hit, g.hit) << "ray " << i;
+    if (!w.hit) continue;
+    other_triangle += w.triangle != g.triangle;
+    EXPECT_NEAR(w.t, g.t, 1e-5) << "ray " << i;
+    if (w.triangle == g.triangle) {
+      EXPECT_NEAR(w.u, g.u, 1e-4);
+      EXPECT_NEAR(w.v, g.v, 1e-4);
+    }
+  }
+  EXPECT_LE(other_triangle, rays.size() / 1000);  // a ray through a shared edge may name either side
+
+  // A batch-wide ignore list names instanced triangles too.
+  std::vector<uint32_t> ignore(placed.TriangleCount());
+  for (uint32_t t = 0; t < ignore.size(); ++t) ignore[t] = t;
+  TraceOptions ignore_all;
+  ignore_all.ignore_triangles = ignore;
+  auto none = instanced->Occluded(segments, ignore_all);
+  ASSERT_TRUE(none.ok());
+  EXPECT_EQ(std::count(none->begin(), none->end(), 1), 0);
+}
+
+// Placements that would lose the flattened upload's precision as instances
+// (a strong anisotropic scale) are traced flattened.
+TEST(EmbreeSceneTest, IllConditionedPlacementsAreTracedFlattened) {
+  Scene grid = testing::MakeRippledGrid(4);
+  const Scene placed = testing::PlaceMesh(
+      grid, {glm::dmat4(1.0), glm::scale(glm::translate(glm::dmat4(1.0), glm::dvec3(3, 0, 0)), glm::dvec3(1, 1, 8)),
+             glm::translate(glm::dmat4(1.0), glm::dvec3(0, 0, 3))});
+  ASSERT_TRUE(ValidatePlacements(placed).ok());
+  auto scene = EmbreeScene::Create(placed);
+  ASSERT_TRUE(scene.ok());
+  EXPECT_EQ(scene->instance_count(), 2u);
+  EXPECT_EQ(scene->instanced_triangle_count(), 2 * grid.TriangleCount());
+  const Segment down{{3.2, 1.0, 0.3}, {3.2, -1.0, 0.3}};  // through the stretched copy
+  EXPECT_EQ(Occ(*scene, {down}), std::vector<uint8_t>{1});
 }
 
 }  // namespace

@@ -350,6 +350,15 @@ TEST_F(CompressedBunny, GpuInstancesLoadAsTheNodesTheyStandFor) {
   ExpectSameGeometry(*loaded, *flattened, 0.0);  // the mirrored instance flips its winding too
   EXPECT_EQ(loaded->nodes.size(), 1u);
   EXPECT_EQ(loaded->nodes[0].triangle_count, loaded->triangles.size());
+  // The bunny is kept once for the three unmirrored placements, in both
+  // forms; the mirrored one, placed once, is flattened only.
+  for (const Scene* scene : {&*loaded, &*flattened}) {
+    ASSERT_EQ(scene->meshes.size(), 1u);
+    EXPECT_EQ(scene->meshes[0].triangles.size(), reference_.triangles.size());
+    ASSERT_EQ(scene->placements.size(), 3u);
+    EXPECT_EQ(scene->placements[1].first_triangle, reference_.triangles.size());
+    EXPECT_TRUE(ValidatePlacements(*scene).ok()) << ValidatePlacements(*scene);
+  }
 
   // Instances count before they are flattened: 4 bunnies do not fit under a
   // cap of 3.

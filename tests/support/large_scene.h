@@ -8,6 +8,9 @@
 #include <cmath>
 #include <cstdint>
 #include <string>
+#include <vector>
+
+#include <glm/gtc/matrix_transform.hpp>
 
 #include "scene/scene.h"
 
@@ -42,29 +45,53 @@ inline Scene MakeRippledGrid(int cells) {
   return scene;
 }
 
-// `copies` copies of `scene` on a square grid in x and z, one tenth of the
-// scene's extent apart, the first where `scene` is: a level made of one
-// repeated mesh, flattened as the loader flattens instances.
-inline Scene MakeCopies(const Scene& scene, int copies) {
-  if (copies <= 1) return scene;
+// `mesh`'s triangles taken as one mesh in its own space and placed once by
+// each of `worlds` (none of them mirroring): flattened, and recorded as
+// placements of it as the loader records a mesh that several nodes share.
+// Materials and nodes are `mesh`'s; a scene that has placements of its own,
+// or too few triangles to instance, is placed flattened only.
+inline Scene PlaceMesh(const Scene& mesh, const std::vector<glm::dmat4>& worlds) {
   Scene out;
-  out.materials = scene.materials;
-  out.nodes = scene.nodes;
-  const int side = int(std::ceil(std::sqrt(double(copies))));
-  const glm::dvec3 e = scene.bounds.Extent();
-  for (int c = 0; c < copies; ++c) {
-    const glm::dvec3 offset(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side));
+  out.materials = mesh.materials;
+  out.nodes = mesh.nodes;
+  const bool as_placements =
+      worlds.size() >= 2 && mesh.placements.empty() && mesh.TriangleCount() >= kFewestTrianglesToInstance;
+  if (as_placements) out.meshes.push_back(SceneMesh{mesh.positions, mesh.triangles});
+  for (const glm::dmat4& world : worlds) {
     const auto base = static_cast<uint32_t>(out.positions.size());
-    for (const glm::dvec3& p : scene.positions) {
-      out.positions.push_back(p + offset);
-      out.bounds.Extend(p + offset);
+    if (as_placements)
+      out.placements.push_back(MeshPlacement{0, static_cast<uint32_t>(out.triangles.size()), base, world});
+    for (const glm::dvec3& p : mesh.positions) {
+      out.positions.push_back(PlacePoint(world, p));
+      out.bounds.Extend(out.positions.back());
     }
-    for (const glm::uvec3& t : scene.triangles) out.triangles.push_back(t + glm::uvec3(base));
-    out.triangle_material.insert(out.triangle_material.end(), scene.triangle_material.begin(),
-                                 scene.triangle_material.end());
-    out.triangle_node.insert(out.triangle_node.end(), scene.triangle_node.begin(), scene.triangle_node.end());
+    for (const glm::uvec3& t : mesh.triangles) out.triangles.push_back(t + glm::uvec3(base));
+    out.triangle_material.insert(out.triangle_material.end(), mesh.triangle_material.begin(),
+                                 mesh.triangle_material.end());
+    out.triangle_node.insert(out.triangle_node.end(), mesh.triangle_node.begin(), mesh.triangle_node.end());
   }
   return out;
+}
+
+// `copies` copies of `scene` on a square grid in x and z, one tenth of the
+// scene's extent apart, the first where `scene` is: a level made of one
+// repeated mesh (PlaceMesh).
+inline Scene MakeCopies(const Scene& scene, int copies) {
+  if (copies <= 1) return scene;
+  const int side = int(std::ceil(std::sqrt(double(copies))));
+  const glm::dvec3 e = scene.bounds.Extent();
+  std::vector<glm::dmat4> worlds;
+  for (int c = 0; c < copies; ++c)
+    worlds.push_back(glm::translate(glm::dmat4(1.0), glm::dvec3(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side))));
+  return PlaceMesh(scene, worlds);
+}
+
+// The same scene with its placements forgotten: what every structure builds
+// when it flattens everything.
+inline Scene Flattened(Scene scene) {
+  scene.meshes.clear();
+  scene.placements.clear();
+  return scene;
 }
 
 }  // namespace visq::testing
