@@ -18,6 +18,14 @@ bool BoxMisses(const glm::dvec3& box_lo, const glm::dvec3& box_hi, const glm::dv
   return glm::any(glm::lessThan(box_hi, lo)) || glm::any(glm::greaterThan(box_lo, hi));
 }
 
+// |world's linear part|, element by element: what a box's half-size
+// becomes when the box is placed.
+glm::dmat3 Spread(const glm::dmat4& world) {
+  glm::dmat3 spread;
+  for (int c = 0; c < 3; ++c) spread[c] = glm::abs(glm::dvec3(world[c]));
+  return spread;
+}
+
 Box TriangleBox(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
   return {glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c))};
 }
@@ -35,7 +43,6 @@ struct SceneTriangleIndex::Impl {
     uint32_t mesh;
     uint32_t first_triangle;
     glm::dmat4 world;
-    glm::dmat3 spread;  // |world's linear part|, element by element: what a box's half-size becomes
     // What placing a box may round by: a few ulps of the largest coordinate
     // the products and sums handle, covered by 1e-9 of it many times over.
     double pad;
@@ -59,11 +66,12 @@ struct SceneTriangleIndex::Impl {
   void InInstance(const Instance& instance, const glm::dvec3& lo, const glm::dvec3& hi,
                   const OnTriangle& on_triangle) const {
     const Mesh& mesh = meshes[instance.mesh];
+    const glm::dmat3 spread = Spread(instance.world);
     std::vector<uint32_t> candidates;
     mesh.boxes.Collect(
         [&](const glm::dvec3& box_lo, const glm::dvec3& box_hi) {
           const glm::dvec3 centre = PlacePoint(instance.world, 0.5 * (box_lo + box_hi));
-          const glm::dvec3 half = instance.spread * (0.5 * (box_hi - box_lo)) + glm::dvec3(instance.pad);
+          const glm::dvec3 half = spread * (0.5 * (box_hi - box_lo)) + glm::dvec3(instance.pad);
           return BoxMisses(centre - half, centre + half, lo, hi);
         },
         &candidates);
@@ -107,6 +115,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Sc
   std::vector<uint8_t> instanced(scene.triangles.size(), 0);
   std::vector<uint32_t> mesh_slot(scene.meshes.size(), UINT32_MAX);
   std::vector<Box> top_boxes;
+  impl->instances.reserve(scene.placements.size());
   for (const MeshPlacement& placement : scene.placements) {
     if (!FiniteTransform(placement.world) || !PlacementMatchesFlattened(scene, placement)) continue;
     const SceneMesh& mesh = scene.meshes[placement.mesh];
@@ -130,8 +139,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Sc
     instance.mesh = slot;
     instance.first_triangle = placement.first_triangle;
     instance.world = placement.world;
-    for (int c = 0; c < 3; ++c) instance.spread[c] = glm::abs(glm::dvec3(placement.world[c]));
-    const glm::dvec3 reach = glm::abs(glm::dvec3(placement.world[3])) + instance.spread * glm::dvec3(impl->meshes[slot].magnitude);
+    const glm::dvec3 reach = glm::abs(glm::dvec3(placement.world[3])) + Spread(placement.world) * glm::dvec3(impl->meshes[slot].magnitude);
     instance.pad = 1e-9 * std::max({reach.x, reach.y, reach.z}) + 1e-300;
     glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
     for (size_t j = 0; j < mesh.positions.size(); ++j) {
@@ -153,6 +161,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Sc
   }
   boxes.insert(boxes.end(), top_boxes.begin(), top_boxes.end());
   impl->flat.shrink_to_fit();
+  impl->instances.shrink_to_fit();
   impl->top.Build(std::move(boxes));
   return std::unique_ptr<SceneTriangleIndex>(new SceneTriangleIndex(std::move(impl)));
 }

@@ -174,25 +174,59 @@ Status AttachTriangles(RTCDevice device, RTCScene scene, unsigned id, size_t ver
 size_t EmbreeScene::instance_count() const { return instancing_ ? instancing_->first_triangle.size() : 0; }
 size_t EmbreeScene::instanced_triangle_count() const { return instancing_ ? instancing_->instanced_triangles : 0; }
 
-Status EmbreeScene::AddInstances(const Scene& scene, const EmbreeSceneOptions& options,
-                                 std::vector<uint8_t>& instanced) {
-  auto instancing = std::make_unique<Instancing>();
-  instancing->meshes.assign(scene.meshes.size(), nullptr);
+namespace {
+
+struct UploadFrame {
+  glm::dvec3 origin;
+  double extent;
+};
+
+UploadFrame FrameOf(const Scene& scene, const EmbreeSceneOptions& options) {
+  Bounds bounds;
+  for (const auto& p : scene.positions) bounds.Extend(p);
+  const glm::dvec3 ext = bounds.Empty() ? glm::dvec3(0.0) : bounds.Extent();
+  return {options.origin.value_or(bounds.Empty() ? glm::dvec3(0.0) : bounds.Center()), std::max({ext.x, ext.y, ext.z})};
+}
+
+std::vector<uint8_t> PlacementsToInstance(const Scene& scene, const EmbreeSceneOptions& options, const UploadFrame& frame) {
+  std::vector<uint8_t> traced(scene.placements.size(), 0);
+  if (!options.instance_meshes) return traced;
   std::vector<double> magnitude(scene.meshes.size(), 0.0);
   for (size_t m = 0; m < scene.meshes.size(); ++m)
     for (const glm::dvec3& p : scene.meshes[m].positions)
       magnitude[m] = std::max({magnitude[m], std::abs(p.x), std::abs(p.y), std::abs(p.z)});
-  const RTCBuildQuality quality = options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH : RTC_BUILD_QUALITY_MEDIUM;
+  std::vector<uint8_t> covered(scene.triangles.size(), 0);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& placement = scene.placements[k];
     // A placement that does not stand for its flattened triangles, or
     // overlaps an earlier one, is traced flattened.
     if (!PlacementMatchesFlattened(scene, placement)) continue;
-    const SceneMesh& mesh = scene.meshes[placement.mesh];
-    if (mesh.triangles.empty() || std::any_of(instanced.begin() + placement.first_triangle,
-                    instanced.begin() + placement.first_triangle + mesh.triangles.size(), [](uint8_t b) { return b != 0; }) ||
-        !InstanceKeepsPrecision(placement.world, magnitude[placement.mesh], origin_, extent_))
+    const size_t count = scene.meshes[placement.mesh].triangles.size();
+    const auto first = covered.begin() + placement.first_triangle;
+    if (count == 0 || std::any_of(first, first + count, [](uint8_t b) { return b != 0; }) ||
+        !InstanceKeepsPrecision(placement.world, magnitude[placement.mesh], frame.origin, frame.extent))
       continue;
+    std::fill_n(first, count, uint8_t{1});
+    traced[k] = 1;
+  }
+  return traced;
+}
+
+}  // namespace
+
+std::vector<uint8_t> EmbreeScene::TracedAsInstances(const Scene& scene, const EmbreeSceneOptions& options) {
+  return PlacementsToInstance(scene, options, FrameOf(scene, options));
+}
+
+Status EmbreeScene::AddInstances(const Scene& scene, const EmbreeSceneOptions& options,
+                                 const std::vector<uint8_t>& traced_as_instance, std::vector<uint8_t>& instanced) {
+  auto instancing = std::make_unique<Instancing>();
+  instancing->meshes.assign(scene.meshes.size(), nullptr);
+  const RTCBuildQuality quality = options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH : RTC_BUILD_QUALITY_MEDIUM;
+  for (size_t k = 0; k < scene.placements.size(); ++k) {
+    if (!traced_as_instance[k]) continue;
+    const MeshPlacement& placement = scene.placements[k];
+    const SceneMesh& mesh = scene.meshes[placement.mesh];
     RTCScene& blas = instancing->meshes[placement.mesh];
     if (blas == nullptr) {
       blas = rtcNewScene(device_);
@@ -242,9 +276,9 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   EmbreeScene out;
   Bounds bounds;
   for (const auto& p : scene.positions) bounds.Extend(p);
-  out.origin_ = options.origin.value_or(bounds.Empty() ? glm::dvec3(0.0) : bounds.Center());
-  const glm::dvec3 ext = bounds.Empty() ? glm::dvec3(0.0) : bounds.Extent();
-  out.extent_ = std::max({ext.x, ext.y, ext.z});
+  const UploadFrame frame = FrameOf(scene, options);
+  out.origin_ = frame.origin;
+  out.extent_ = frame.extent;
   out.bounds_ = bounds;
   out.triangle_count_ = scene.triangles.size();
 
@@ -265,7 +299,7 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   if (options.stop) rtcSetSceneProgressMonitorFunction(out.scene_, OnEmbreeProgress, const_cast<std::function<bool()>*>(&options.stop));
   std::vector<uint8_t> instanced(scene.triangles.size(), 0);
   if (options.instance_meshes && !scene.placements.empty())
-    VISQ_RETURN_IF_ERROR(out.AddInstances(scene, options, instanced));
+    VISQ_RETURN_IF_ERROR(out.AddInstances(scene, options, PlacementsToInstance(scene, options, frame), instanced));
   if (!out.instancing_) {
     if (!scene.triangles.empty()) {
       VISQ_RETURN_IF_ERROR(AttachTriangles(

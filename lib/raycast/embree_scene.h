@@ -150,6 +150,11 @@ class EmbreeScene {
   // Bytes Embree holds for this scene (its memory monitor callback).
   size_t memory_bytes() const { return memory_ ? static_cast<size_t>(memory_->load()) : 0; }
   size_t triangle_count() const { return triangle_count_; }
+  // For each of scene.placements, whether Create traces it as an instance
+  // (with `options`; the frame origin as Create chooses it): what memory
+  // estimates count by.
+  static std::vector<uint8_t> TracedAsInstances(const Scene& scene, const EmbreeSceneOptions& options = {});
+
   // The placements traced as instances, and the triangles they stand for.
   size_t instance_count() const;
   size_t instanced_triangle_count() const;
@@ -160,7 +165,7 @@ class EmbreeScene {
   EmbreeScene() = default;
   void Reset();
   [[nodiscard]] Status AddInstances(const Scene& scene, const EmbreeSceneOptions& options,
-                                    std::vector<uint8_t>& instanced);
+                                    const std::vector<uint8_t>& traced_as_instance, std::vector<uint8_t>& instanced);
 
   RTCDeviceTy* device_ = nullptr;
   RTCSceneTy* scene_ = nullptr;

@@ -1,13 +1,60 @@
 #include "core/structure_estimate.h"
 
+#include <algorithm>
+
+#include "raycast/embree_scene.h"
+
 namespace visq::core {
+namespace {
+
+// Triangles, vertices and instances a structure holds when it keeps the
+// placements marked in `as_instance` as instances and flattens the rest.
+struct Held {
+  uint64_t triangles = 0;
+  uint64_t vertices = 0;
+  uint64_t instances = 0;
+};
+
+Held HeldBy(const Scene& scene, const std::vector<uint8_t>& as_instance) {
+  Held held;
+  std::vector<uint8_t> instanced(scene.TriangleCount(), 0), mesh_held(scene.meshes.size(), 0);
+  for (size_t k = 0; k < scene.placements.size(); ++k) {
+    if (!as_instance[k]) continue;
+    const MeshPlacement& placement = scene.placements[k];
+    const SceneMesh& mesh = scene.meshes[placement.mesh];
+    std::fill_n(instanced.begin() + placement.first_triangle, mesh.triangles.size(), uint8_t{1});
+    ++held.instances;
+    if (!mesh_held[placement.mesh]) {
+      mesh_held[placement.mesh] = 1;
+      held.triangles += mesh.triangles.size();
+      held.vertices += mesh.positions.size();
+    }
+  }
+  const uint64_t flat = static_cast<uint64_t>(std::count(instanced.begin(), instanced.end(), uint8_t{0}));
+  held.triangles += flat;
+  // The flattened triangles' share of the positions, at the scene's ratio.
+  held.vertices += scene.TriangleCount() > 0 ? flat * scene.positions.size() / scene.TriangleCount() : 0;
+  return held;
+}
+
+}  // namespace
 
 StructureEstimate EstimateStructures(const Scene& scene) {
   const uint64_t triangles = scene.TriangleCount();
   StructureEstimate e;
   e.scene_bytes = scene.CpuBytes();
-  e.embree_bvh_bytes = triangles * kEmbreeBvhBytesPerTriangle + scene.positions.size() * kEmbreeBvhBytesPerVertex;
-  e.triangle_index_bytes = triangles * kTriangleIndexBytesPerTriangle;
+  raycast::EmbreeSceneOptions resident_bvh;
+  resident_bvh.quality = raycast::BuildQuality::kMedium;
+  const Held bvh = HeldBy(scene, raycast::EmbreeScene::TracedAsInstances(scene, resident_bvh));
+  e.embree_bvh_bytes = bvh.triangles * kEmbreeBvhBytesPerTriangle + bvh.vertices * kEmbreeBvhBytesPerVertex +
+                       bvh.instances * kEmbreeBvhBytesPerInstance;
+  std::vector<uint8_t> matching(scene.placements.size(), 0);
+  for (size_t k = 0; k < scene.placements.size(); ++k)
+    matching[k] = PlacementMatchesFlattened(scene, scene.placements[k]) ? 1 : 0;
+  const Held index = HeldBy(scene, matching);
+  e.triangle_index_bytes = index.triangles * kTriangleIndexBytesPerTriangle + index.instances * kTriangleIndexBytesPerInstance;
+  e.unique_triangles = index.triangles;
+  e.instances = index.instances;
   e.gpu_bytes = triangles * kGpuBytesPerTriangle;
   return e;
 }

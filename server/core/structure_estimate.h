@@ -23,9 +23,18 @@ namespace visq::core {
 //   GPU buffers: 52 a triangle exactly (3 float32 corners, a material index,
 //     3 element indices in the order of the triangle cluster hierarchy).
 // Each constant is the largest measured, rounded up.
+//
+// A mesh that the scene places more than once (Scene::placements) costs the
+// CPU structures its triangles once and an instance per placement where
+// they keep it as an instance (the BVH: EmbreeScene::TracedAsInstances; the
+// index: every placement); the GPU buffers still hold every triangle.
+// Per instance, measured over 1,000 and 10,000 placements of an
+// 800-triangle grid: Embree 117-138 bytes, the index 194-220.
 inline constexpr uint64_t kEmbreeBvhBytesPerTriangle = 84;
 inline constexpr uint64_t kEmbreeBvhBytesPerVertex = 12;
+inline constexpr uint64_t kEmbreeBvhBytesPerInstance = 160;
 inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 86;
+inline constexpr uint64_t kTriangleIndexBytesPerInstance = 240;
 inline constexpr uint64_t kGpuBytesPerTriangle = 52;
 
 struct StructureEstimate {
@@ -33,6 +42,9 @@ struct StructureEstimate {
   uint64_t embree_bvh_bytes = 0;
   uint64_t triangle_index_bytes = 0;
   uint64_t gpu_bytes = 0;
+  // What the CPU structures hold: triangles held once, and instances.
+  uint64_t unique_triangles = 0;
+  uint64_t instances = 0;
 
   uint64_t cpu_bytes() const { return scene_bytes + embree_bvh_bytes + triangle_index_bytes; }
   uint64_t total_bytes() const { return cpu_bytes() + gpu_bytes; }

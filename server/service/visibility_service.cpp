@@ -166,6 +166,8 @@ void ToProto(const core::SceneSummary& s, v1::SceneInfo* out) {
   out->mutable_memory()->set_gpu_bytes(s.gpu_bytes);
   out->mutable_estimated_memory()->set_cpu_bytes(s.estimate.cpu_bytes());
   out->mutable_estimated_memory()->set_gpu_bytes(s.estimate.gpu_bytes);
+  out->set_unique_triangle_count(s.estimate.unique_triangles);
+  out->set_instance_count(s.estimate.instances);
   out->set_material_count(s.materials);
   out->set_emissive_triangle_count(s.emissive_triangles);
   out->set_has_lightmap_uvs(s.has_lightmap_uvs);

@@ -4,10 +4,14 @@
 // A table, not a test; the bytes per triangle are what
 // server/core/structure_estimate.h admits scenes by.
 //
-//   visq_bench_structures [--scenes DIR] [--copies N] [--repeat R]
+//   visq_bench_structures [--scenes DIR] [--copies N] [--repeat R] [--only NAME]
 //
 // Each scene is measured as loaded and as N copies side by side (a level
-// made of repeated meshes, flattened as the loader flattens instances).
+// made of one repeated mesh), the copies twice: flattened ("flat", every
+// structure holds every triangle) and kept as instances ("inst", the mesh
+// once and N placements of it, as the loader keeps a mesh that several nodes
+// share). B/tri is per triangle of the level; B/unique per triangle held
+// once (the instanced rows' per-instance cost is in it).
 // Build and trace times are the least of R rounds, each round building and
 // tracing MEDIUM then HIGH. Trace: 1M coherent occlusion
 // segments (4096 receiver points x 256 samples of a light patch, as a
@@ -82,10 +86,12 @@ int main(int argc, char** argv) {
   std::filesystem::path scenes = "../shared/scenes";
   int copies = 16;
   int repeat = 3;
+  std::string only;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--scenes") && i + 1 < argc) scenes = argv[++i];
     else if (!std::strcmp(argv[i], "--copies") && i + 1 < argc) copies = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--repeat") && i + 1 < argc) repeat = std::max(1, std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--only") && i + 1 < argc) only = argv[++i];
   }
   auto worker = gpu::GpuWorker::Start({});
   if (!worker.ok()) {
@@ -94,19 +100,37 @@ int main(int argc, char** argv) {
   }
   std::printf("device: %s; %u hardware threads\n", (*worker)->device().gl_renderer.c_str(),
               std::thread::hardware_concurrency());
-  std::printf("%-22s %9s %5s | %-6s %9s %8s %9s %9s | %9s %8s | %8s %8s | %8s\n", "scene", "triangles", "V/T", "BVH",
-              "build ms", "B/tri", "occl Mr/s", "hit Mr/s", "index ms", "B/tri", "GPU ms", "B/tri", "scene B/t");
+  std::printf("%-24s %9s %5s %6s | %-6s %9s %8s %9s %9s %9s | %9s %8s %9s | %8s %8s | %8s\n", "scene", "triangles",
+              "V/T", "inst", "BVH", "build ms", "B/tri", "B/unique", "occl Mr/s", "hit Mr/s", "index ms", "B/tri",
+              "B/unique", "GPU ms", "B/tri", "scene B/t");
   for (const char* file : {"sponza_dabrovic/sponza.gltf", "interior_veach_ajar/veach_ajar.gltf", "bunny/bunny.gltf"}) {
+    if (!only.empty() && std::string(file).find(only) == std::string::npos) continue;
     auto loaded = LoadGltfFile(scenes / file);
     if (!loaded.ok()) {
       std::printf("skip %s: %s\n", file, std::string(loaded.status().message()).c_str());
       continue;
     }
     const Trace trace = MakeTrace(*loaded);
-    for (int n : {1, copies}) {
-      const Scene scene = testing::MakeCopies(*loaded, n);
+    struct Level {
+      int copies;
+      bool instanced;
+    };
+    for (const Level level : {Level{1, false}, Level{copies, false}, Level{copies, true}}) {
+      const int n = level.copies;
+      const Scene scene = level.instanced ? testing::MakeCopies(*loaded, n) : testing::Flattened(testing::MakeCopies(*loaded, n));
       const double tris = double(scene.TriangleCount());
-      const std::string name = std::filesystem::path(file).stem().string() + (n > 1 ? " x" + std::to_string(n) : "");
+      const std::string name = std::filesystem::path(file).stem().string() +
+                               (n > 1 ? " x" + std::to_string(n) + (level.instanced ? " inst" : " flat") : "");
+      // Triangles held once: those of no placement, and each mesh's once.
+      double unique = tris;
+      if (!scene.placements.empty()) {
+        unique = 0;
+        std::vector<uint8_t> placed(scene.TriangleCount(), 0);
+        for (const MeshPlacement& p : scene.placements)
+          std::fill_n(placed.begin() + p.first_triangle, scene.meshes[p.mesh].triangles.size(), uint8_t{1});
+        unique = double(std::count(placed.begin(), placed.end(), 0));
+        for (const SceneMesh& m : scene.meshes) unique += double(m.triangles.size());
+      }
       // The exact method's index and the GPU buffers.
       size_t index_bytes = 0;
       const double index_ms = Best(repeat, [&] { index_bytes = (*exact::SceneTriangleIndex::Build(scene))->MemoryBytes(); });
@@ -129,11 +153,12 @@ int main(int argc, char** argv) {
           hit_ms[q] = std::min(hit_ms[q], Best(1, [&] { (void)bvh[q]->Intersect(trace.rays); }));
         }
       for (int q = 0; q < 2; ++q)
-        std::printf("%-22s %9.0f %5.2f | %-6s %9.1f %8.1f %9.2f %9.2f | %9.1f %8.1f | %8.1f %8.1f | %8.1f\n",
-                    name.c_str(), tris, scene.positions.size() / tris, q == 1 ? "HIGH" : "MEDIUM", build_ms[q],
-                    bvh[q]->memory_bytes() / tris, trace.segments.size() / occl_ms[q] / 1e3,
-                    trace.rays.size() / hit_ms[q] / 1e3, index_ms, index_bytes / tris, gpu_ms, gpu_bytes / tris,
-                    scene.CpuBytes() / tris);
+        std::printf("%-24s %9.0f %5.2f %6zu | %-6s %9.1f %8.1f %9.1f %9.2f %9.2f | %9.1f %8.1f %9.1f | %8.1f %8.1f | %8.1f\n",
+                    name.c_str(), tris, scene.positions.size() / tris, bvh[q]->instance_count(),
+                    q == 1 ? "HIGH" : "MEDIUM", build_ms[q], bvh[q]->memory_bytes() / tris,
+                    bvh[q]->memory_bytes() / unique, trace.segments.size() / occl_ms[q] / 1e3,
+                    trace.rays.size() / hit_ms[q] / 1e3, index_ms, index_bytes / tris, index_bytes / unique, gpu_ms,
+                    gpu_bytes / tris, scene.CpuBytes() / tris);
     }
   }
   return 0;

@@ -4,11 +4,15 @@
 // load when asked, and --max-scene-bytes admits by every structure.
 // Ordering is shown by the server's own build counters (GetStats
 // structure_builds), not by timing.
+#include <bit>
 #include <chrono>
+#include <cmath>
+#include <fstream>
 #include <map>
 #include <thread>
 
 #include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
 
 #include "large_scene.h"
 #include "proto_builders.h"
@@ -215,6 +219,108 @@ TEST_F(StructureBuildTest, MaxSceneBytesAdmitsByEveryStructure) {
       << refused.status();
   EXPECT_NE(std::string(refused.status().message()).find("Embree BVH"), std::string::npos) << refused.status();
   EXPECT_FALSE(client_->GetScene("grid").ok()) << "nothing resident";
+}
+
+
+// A level of one repeated mesh: the grid placed sixteen times, tilted and
+// stacked so that the copies shadow each other. Written twice over the same
+// accessors: every node naming mesh 0 (placements, held once), and each
+// node naming a mesh of its own (flattened). Both load to the same
+// triangles; the placed one is held once by the CPU structures, admitted by
+// that estimate, and answers RAYCAST and LightVisibility with the flattened
+// scene's bits and numbers.
+TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) {
+  Start();
+  const fs::path grid = files_.path() / "grid.gltf";
+  ASSERT_TRUE(WriteGltfFile(testing::MakeRippledGrid(40), grid).ok());
+  nlohmann::json doc = nlohmann::json::parse(std::ifstream(grid));
+  ASSERT_EQ(doc["meshes"].size(), 1u);
+  const nlohmann::json mesh = doc["meshes"][0];
+  auto write_level = [&](const std::string& name, bool shared) {
+    nlohmann::json level = doc;
+    level["nodes"] = nlohmann::json::array();
+    level["meshes"] = nlohmann::json::array();
+    level["scenes"][0]["nodes"] = nlohmann::json::array();
+    for (int k = 0; k < 16; ++k) {
+      const double angle = 0.15 * (k % 5);  // about the x axis: (sin(a/2), 0, 0, cos(a/2))
+      level["nodes"].push_back({{"mesh", shared ? 0 : k},
+                                {"translation", {0.45 * (k % 4), 0.25 * k, 0.45 * (k / 4)}},
+                                {"rotation", {std::sin(angle / 2), 0.0, 0.0, std::cos(angle / 2)}},
+                                {"scale", {0.2, 0.2, 0.2}}});
+      level["scenes"][0]["nodes"].push_back(k);
+      if (!shared || k == 0) level["meshes"].push_back(mesh);
+    }
+    const fs::path path = files_.path() / (name + ".gltf");
+    std::ofstream(path) << level.dump();
+    return path;
+  };
+  auto placed = client_->UploadScene(write_level("placed", true), "placed");
+  auto flat = client_->UploadScene(write_level("flat", false), "flat");
+  ASSERT_TRUE(placed.ok() && flat.ok()) << placed.status() << flat.status();
+  const uint64_t grid_triangles = 2 * 40 * 40;
+  EXPECT_EQ(placed->triangle_count(), 16 * grid_triangles);
+  EXPECT_EQ(flat->triangle_count(), 16 * grid_triangles);
+  EXPECT_EQ(placed->content_hash(), flat->content_hash()) << "the same flattened geometry";
+  EXPECT_EQ(placed->instance_count(), 16u);
+  EXPECT_EQ(placed->unique_triangle_count(), grid_triangles);
+  EXPECT_EQ(flat->instance_count(), 0u);
+  EXPECT_EQ(flat->unique_triangle_count(), 16 * grid_triangles);
+  // The BVH and the index of one grid and sixteen instances, against sixteen grids'.
+  const uint64_t placed_structures = placed->estimated_memory().cpu_bytes() - placed->memory().cpu_bytes();
+  const uint64_t flat_structures = flat->estimated_memory().cpu_bytes() - flat->memory().cpu_bytes();
+  EXPECT_LT(placed_structures, flat_structures / 8) << placed_structures << " vs " << flat_structures;
+
+  // A light above the stack, a receiver below it: the copies shadow part of it.
+  v1::HiddenSampleMapRequest map;
+  map.set_method(v1::RAYCAST);
+  SetPatch(map.mutable_source(), {0.2, 6.0, 0.2}, {0.8, 0, 0}, {0, 0, 0.8});
+  map.mutable_samples()->set_count(64);
+  SetPatch(map.mutable_receiver(), {-0.6, -0.5, -0.6}, {2.4, 0, 0}, {0, 0, 2.4});
+  map.set_width(24);
+  map.set_height(24);
+  map.set_want_bitmasks(true);
+  map.mutable_scene()->set_name("placed");
+  auto placed_map = client_->ComputeHiddenSampleMap(map);
+  map.mutable_scene()->set_name("flat");
+  auto flat_map = client_->ComputeHiddenSampleMap(map);
+  ASSERT_TRUE(placed_map.ok() && flat_map.ok()) << placed_map.status() << flat_map.status();
+  EXPECT_EQ(placed_map->blocked_bits, flat_map->blocked_bits);
+  size_t blocked = 0;
+  for (uint32_t word : placed_map->blocked_bits) blocked += std::popcount(word);
+  EXPECT_GT(blocked, placed_map->blocked_bits.size() * 2) << "some of the receiver is shadowed";
+  EXPECT_LT(blocked, placed_map->blocked_bits.size() * 30) << "and some of it is lit";
+
+  v1::LightVisibilityRequest light;
+  for (const auto& v : {glm::dvec3(0.2, 6.0, 0.2), glm::dvec3(1.0, 6.0, 0.2), glm::dvec3(1.0, 6.0, 1.0),
+                        glm::dvec3(0.2, 6.0, 1.0)})
+    testing::Set(light.mutable_light()->add_vertices(), v.x, v.y, v.z);
+  light.set_radiance(1.0);
+  for (int i = 0; i < 25; ++i) {
+    auto* point = light.add_points();
+    testing::Set(point->mutable_position(), -0.5 + 0.1 * i, -0.5, -0.5 + 0.09 * i);
+    testing::Set(point->mutable_normal(), 0, 1, 0);
+  }
+  light.mutable_scene()->set_name("placed");
+  auto placed_light = client_->LightVisibility(light);
+  light.mutable_scene()->set_name("flat");
+  auto flat_light = client_->LightVisibility(light);
+  ASSERT_TRUE(placed_light.ok() && flat_light.ok()) << placed_light.status() << flat_light.status();
+  ASSERT_EQ(placed_light->points_size(), 25);
+  int partial = 0;
+  for (int i = 0; i < 25; ++i) {
+    EXPECT_EQ(placed_light->points(i).visible_fraction(), flat_light->points(i).visible_fraction()) << "point " << i;
+    const double f = placed_light->points(i).visible_fraction();
+    partial += f > 0.01 && f < 0.99;
+  }
+  EXPECT_GT(partial, 0);
+
+  // Once queried, the placed level holds less than the flattened one.
+  auto placed_now = client_->GetScene("placed");
+  auto flat_now = client_->GetScene("flat");
+  ASSERT_TRUE(placed_now.ok() && flat_now.ok());
+  EXPECT_LT(placed_now->memory().cpu_bytes(), flat_now->memory().cpu_bytes() / 2)
+      << placed_now->memory().cpu_bytes() << " vs " << flat_now->memory().cpu_bytes();
+  EXPECT_LE(placed_now->memory().cpu_bytes(), placed->estimated_memory().cpu_bytes());
 }
 
 }  // namespace
