@@ -62,15 +62,38 @@ void PreparePolygon(uint32_t x, uint32_t y, FragmentSampler& out) {
 }
 
 // The Halton points are the same for every patch (each patch rotates them by
-// its own shift), so they are computed once per thread.
-const std::array<double, 5>& HaltonPoint(uint32_t j) {
-  thread_local std::vector<std::array<double, 5>> table;
+// its own shift), so they are computed once per thread, with the cosine and
+// sine of the two coordinates that serve as azimuths (bases 7 and 11): a
+// shifted azimuth's cosine and sine then come from the angle-sum formulas,
+// not from a sincos per ray.
+struct HaltonSample {
+  std::array<double, 5> u;
+  double cos7, sin7, cos11, sin11;  // of 2 pi u[3] and of 2 pi u[4]
+};
+
+const HaltonSample& HaltonPoint(uint32_t j) {
+  thread_local std::vector<HaltonSample> table;
   while (table.size() <= j) {
     const uint64_t i = table.size() + 1ull;
-    table.push_back({RadicalInverse(2, i), RadicalInverse(3, i), RadicalInverse(5, i), RadicalInverse(7, i),
-                     RadicalInverse(11, i)});
+    HaltonSample h{{RadicalInverse(2, i), RadicalInverse(3, i), RadicalInverse(5, i), RadicalInverse(7, i),
+                    RadicalInverse(11, i)}};
+    h.cos7 = std::cos(2.0 * std::numbers::pi * h.u[3]);
+    h.sin7 = std::sin(2.0 * std::numbers::pi * h.u[3]);
+    h.cos11 = std::cos(2.0 * std::numbers::pi * h.u[4]);
+    h.sin11 = std::sin(2.0 * std::numbers::pi * h.u[4]);
+    table.push_back(h);
   }
   return table[j];
+}
+
+// A unit direction in the frame (tu, tv, normal), cosine-distributed for
+// uniform (u_radius, azimuth): the azimuth is 2 pi (u + shift), taken as the
+// rotation by the shift of the point at angle 2 pi u (cos_u, sin_u).
+glm::dvec3 CosineDirection(const glm::dvec3& tu, const glm::dvec3& tv, const glm::dvec3& normal, double u_radius,
+                           double cos_u, double sin_u, double cos_shift, double sin_shift) {
+  const double r = std::sqrt(u_radius);
+  const double c = cos_u * cos_shift - sin_u * sin_shift, s = sin_u * cos_shift + cos_u * sin_shift;
+  return tu * (r * c) + tv * (r * s) + normal * std::sqrt(std::max(0.0, 1.0 - u_radius));
 }
 
 }  // namespace
@@ -85,6 +108,7 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   const uint64_t h = SplitMix64(SplitMix64(seed) ^ (static_cast<uint64_t>(texel) * 0xD1B54A32D192ED03ull));
   double shift[5];
   for (int k = 0; k < 5; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
+  const double cos_shift = std::cos(2.0 * std::numbers::pi * shift[4]), sin_shift = std::sin(2.0 * std::numbers::pi * shift[4]);
   const uint32_t x = texel % atlas.width, y = texel / atlas.width;
   thread_local std::vector<FragmentSampler> samplers;
   thread_local std::vector<uint8_t> prepared;  // bit 0: frame, bit 1: polygon
@@ -92,12 +116,12 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   prepared.assign(end - begin, 0);
   out.reserve(n);
   for (uint32_t j = 0; j < n; ++j) {
-    const std::array<double, 5>& halton = HaltonPoint(j);
+    const HaltonSample& hs = HaltonPoint(j);
+    const std::array<double, 5>& halton = hs.u;
     const double u0 = Frac(halton[0] + shift[0]);
     const double u1 = Frac(halton[1] + shift[1]);
     const double u2 = Frac(halton[2] + shift[2]);
     const double u3 = Frac(halton[3] + shift[3]);
-    const double u4 = Frac(halton[4] + shift[4]);
     // A fragment in proportion to its world area, then a fan triangle of
     // its clipped polygon in proportion to atlas area (affine per triangle).
     double pick = u0 * total;
@@ -110,9 +134,7 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
       ready |= 1;
     }
     // Cosine-distributed direction around the geometric normal.
-    const double r = std::sqrt(u3), phi = 2.0 * std::numbers::pi * u4;
-    const glm::dvec3 dir =
-        f.tu * (r * std::cos(phi)) + f.tv * (r * std::sin(phi)) + f.normal * std::sqrt(std::max(0.0, 1.0 - u3));
+    const glm::dvec3 dir = CosineDirection(f.tu, f.tv, f.normal, u3, hs.cos11, hs.sin11, cos_shift, sin_shift);
     if (only_towards != nullptr && !only_towards->MayMeet(dir)) continue;
     if (!(ready & 2)) {
       PreparePolygon(x, y, f);
@@ -141,8 +163,8 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   }
 }
 
-void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n,
-                          std::vector<PatchRay>& out) {
+void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
+                          const DirectionFilter* only_towards) {
   out.clear();
   const glm::dvec3 pa = scene.Vertex(triangle, 0), pb = scene.Vertex(triangle, 1), pc = scene.Vertex(triangle, 2);
   const glm::dvec3 cross = glm::cross(pb - pa, pc - pa);
@@ -155,15 +177,16 @@ void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, 
   const uint64_t h = SplitMix64(SplitMix64(seed ^ 0x7472692E72617973ull) ^ (uint64_t{triangle} * 0x9E3779B97F4A7C15ull));
   double shift[4];
   for (int k = 0; k < 4; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
+  const double cos_shift = std::cos(2.0 * std::numbers::pi * shift[3]), sin_shift = std::sin(2.0 * std::numbers::pi * shift[3]);
   out.reserve(n);
   for (uint32_t j = 0; j < n; ++j) {
-    const std::array<double, 5>& halton = HaltonPoint(j);
-    const double u1 = Frac(halton[0] + shift[0]), u2 = Frac(halton[1] + shift[1]);
-    const double u3 = Frac(halton[2] + shift[2]), u4 = Frac(halton[3] + shift[3]);
+    const HaltonSample& hs = HaltonPoint(j);
+    const double u1 = Frac(hs.u[0] + shift[0]), u2 = Frac(hs.u[1] + shift[1]);
+    const double u3 = Frac(hs.u[2] + shift[2]);
+    const glm::dvec3 dir = CosineDirection(tu, tv, normal, u3, hs.cos7, hs.sin7, cos_shift, sin_shift);
+    if (only_towards != nullptr && !only_towards->MayMeet(dir)) continue;
     const double s = std::sqrt(u1);
     const glm::dvec3 point = pa * (1 - s) + pb * (s * (1 - u2)) + pc * (s * u2);
-    const double r = std::sqrt(u3), phi = 2.0 * std::numbers::pi * u4;
-    const glm::dvec3 dir = tu * (r * std::cos(phi)) + tv * (r * std::sin(phi)) + normal * std::sqrt(std::max(0.0, 1.0 - u3));
     out.push_back(PatchRay{point, dir, triangle});
   }
 }

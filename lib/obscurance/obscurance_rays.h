@@ -58,8 +58,10 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
 
 // N rays of one triangle: points uniform on it, cosine-distributed around
 // its normal, from the same Halton sequence under a rotation hashed from
-// seed and triangle (none for a degenerate triangle).
-void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out);
+// seed and triangle (none for a degenerate triangle). `only_towards` as for
+// GeneratePatchRays.
+void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
+                          const DirectionFilter* only_towards = nullptr);
 
 // What one ray contributes, given its closest hit within d_max (hit false:
 // none). RGB; gray without color bleeding.

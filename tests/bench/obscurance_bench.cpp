@@ -28,6 +28,7 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -414,48 +415,77 @@ int main(int argc, char** argv) {
     params.direction_count = 16;
     auto baked = gpu::BakeObscurances(**worker, **gpu_scene, *scene, *atlas, params);
     if (!baked.ok()) return 1;
-    // Each ray count twice: the plain path (every texel scanned, one ray at
-    // a time) and the fast one (patch index, ray streams); the two must end
-    // with the same W bit for bit.
-    std::vector<glm::vec3> plain_w;
-    for (uint32_t rays : {16u, 64u})
-    for (int variant = 0; variant < 3; ++variant) {
-      const bool exhaustive = variant == 0;
-      UpdaterOptions uo;
-      uo.rays_per_patch = rays;
-      uo.exhaustive = exhaustive;
-      uo.ray_streams = variant == 2;
-      auto t0 = std::chrono::steady_clock::now();
-      auto updater = ObscuranceUpdater::Create(*scene, *atlas, params, *baked, {node}, uo);
-      if (!updater.ok()) { std::printf("updater: %s\n", std::string(updater.status().message()).c_str()); return 1; }
-      const double create_s = Seconds(t0);
-      std::vector<double> ms;
+    // Each ray count on each path: the plain one (every texel scanned, every
+    // patch to recompute traced in full, one ray at a time) and the fast one
+    // (patch index, only the rays that can meet the object traced), with
+    // full traces as ray streams or not. The updaters move in turn, step by
+    // step, so that a load on the machine weighs on them alike; after the
+    // five moves each fast path's W per texel, triangle and vertex is held
+    // to the plain one's, bit for bit.
+    struct Row {
+      const char* path;
+      UpdaterOptions options;
+      std::unique_ptr<ObscuranceUpdater> updater;
+      std::vector<double> ms, candidates_ms, trace_ms, triangles_ms;
       ObscuranceUpdate last;
+      double create_s = 0;
+    };
+    std::printf("\nupdate: sponza node '%s' (%u triangles), 512^2 atlas, d_max %.2f, 5 moves of %.2f m; medians over the "
+                "moves, figures of the last move; 'differ': elements whose W is not bit for bit the plain path's\n",
+                scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, params.d_max, 0.2 * params.d_max);
+    std::printf("%-22s %4s | %8s %6s | %8s %8s %8s | %7s %7s %6s %7s | %8s %8s %8s | %6s %6s %6s\n", "path", "rays",
+                "ms", "x", "cand ms", "trace ms", "tri ms", "pooled", "reach", "cand", "recomp", "rays", "tri rays",
+                "probed", "texels", "tris", "verts");
+    for (uint32_t rays : {16u, 64u}) {
+      std::vector<Row> rows;
+      for (int variant = 0; variant < 3; ++variant) {
+        Row row;
+        row.path = variant == 0 ? "plain (scan, full)" : variant == 1 ? "fast (index, affected)" : "fast, full as streams";
+        row.options.rays_per_patch = rays;
+        row.options.exhaustive = variant == 0;
+        row.options.ray_streams = variant == 2;
+        auto t0 = std::chrono::steady_clock::now();
+        auto updater = ObscuranceUpdater::Create(*scene, *atlas, params, *baked, {node}, row.options);
+        if (!updater.ok()) { std::printf("updater: %s\n", std::string(updater.status().message()).c_str()); return 1; }
+        row.create_s = Seconds(t0);
+        row.updater = std::move(*updater);
+        rows.push_back(std::move(row));
+      }
       for (int step = 1; step <= 5; ++step) {
-        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.02 * step * params.d_max * 10, 0, 0)) *
+        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.2 * step * params.d_max, 0, 0)) *
                                  scene->nodes[node].world;
-        auto up = (*updater)->MoveNode(node, world);
-        if (!up.ok()) { std::printf("update: %s\n", std::string(up.status().message()).c_str()); return 1; }
-        ms.push_back(up->milliseconds);
-        last = *up;
+        for (Row& row : rows) {
+          auto up = row.updater->MoveNode(node, world);
+          if (!up.ok()) { std::printf("update: %s\n", std::string(up.status().message()).c_str()); return 1; }
+          row.ms.push_back(up->milliseconds);
+          row.candidates_ms.push_back(up->candidates_ms);
+          row.trace_ms.push_back(up->trace_ms);
+          row.triangles_ms.push_back(up->triangles_ms);
+          row.last = *up;
+        }
       }
-      std::sort(ms.begin(), ms.end());
-      std::printf("update sponza node '%s' (%u triangles), %u rays/patch, %s, d_max %.2f: median %.1f ms (min %.1f, max %.1f); "
-                  "last move: %u pooled, %u within reach, %u candidates, %zu texels changed, %u recomputed, %llu rays "
-                  "(move %.1f, candidates %.1f, trace %.1f ms); "
-                  "create %.2f s\n",
-                  scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, rays,
-                  variant == 0 ? "plain (scan, 1 ray)" : variant == 1 ? "index, 1 ray" : "index, streams", params.d_max, ms[2], ms[0],
-                  ms[4], last.pooled, last.within_reach, last.candidates, last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), last.move_ms, last.candidates_ms,
-                  last.trace_ms, create_s);
-      if (exhaustive) {
-        plain_w = (*updater)->result().w;
-      } else {
-        size_t differ = 0;
-        for (size_t t = 0; t < plain_w.size(); ++t)
-          differ += std::memcmp(&plain_w[t], &(*updater)->result().w[t], sizeof(glm::vec3)) != 0;
-        std::printf("  vs plain after 5 moves: %zu of %zu texels differ\n", differ, plain_w.size());
+      auto median = [](std::vector<double> v) {
+        std::sort(v.begin(), v.end());
+        return v[v.size() / 2];
+      };
+      auto differing = [](const std::vector<glm::vec3>& a, const std::vector<glm::vec3>& b) {
+        size_t n = 0;
+        for (size_t i = 0; i < a.size(); ++i) n += std::memcmp(&a[i], &b[i], sizeof(glm::vec3)) != 0;
+        return n;
+      };
+      const ObscuranceResult& plain = rows[0].updater->result();
+      const double plain_ms = median(rows[0].ms);
+      for (const Row& row : rows) {
+        const ObscuranceResult& r = row.updater->result();
+        const ObscuranceUpdate& u = row.last;
+        std::printf("%-22s %4u | %8.1f %6.2f | %8.1f %8.1f %8.1f | %7u %7u %6u %7u | %8llu %8llu %8llu | %6zu %6zu %6zu\n",
+                    row.path, rays, median(row.ms), median(row.ms) / plain_ms, median(row.candidates_ms),
+                    median(row.trace_ms), median(row.triangles_ms), u.pooled, u.within_reach, u.candidates, u.recomputed,
+                    static_cast<unsigned long long>(u.rays), static_cast<unsigned long long>(u.triangle_rays),
+                    static_cast<unsigned long long>(u.probed_rays), differing(plain.w, r.w),
+                    differing(plain.triangle_w, r.triangle_w), differing(plain.vertex_w, r.vertex_w));
       }
+      std::fflush(stdout);
     }
   }
   return 0;
