@@ -40,10 +40,14 @@ struct Ball {
 // Directions that may reach one of a few balls from a patch: a ray leaving
 // any point within patch_radius of patch_center along such a direction can
 // pass within a ball's radius of its center.
+// `bounds`, if any, are balls that hold all the targets between them: a
+// direction must pass one of them first, which spares testing the many
+// targets for most directions.
 struct DirectionFilter {
   glm::dvec3 patch_center{0.0};
   double patch_radius = 0;
   std::span<const Ball> targets;
+  std::span<const Ball> bounds;
   bool MayMeet(const glm::dvec3& direction) const;
 };
 

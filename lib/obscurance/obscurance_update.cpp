@@ -46,7 +46,8 @@ bool MayMeetABall(const PatchRay& r, const std::vector<Ball>& balls, double d_ma
 
 // The planes of a texel's triangles: its rays leave each into its front
 // half-space.
-void TexelPlanes(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel, std::vector<glm::dvec4>& planes);
+void TexelPlanes(const std::vector<glm::dvec4>& triangle_plane, const ObscuranceAtlas& atlas, uint32_t texel,
+                 std::vector<glm::dvec4>& planes);
 
 // One ball around a few.
 Ball Enclosing(const std::vector<Ball>& balls) {
@@ -67,10 +68,11 @@ glm::dvec4 TrianglePlane(const Scene& scene, uint32_t t) {
   return length > 0 ? glm::dvec4(n / length, -glm::dot(n / length, pa)) : glm::dvec4(0, 0, 0, 1e300);
 }
 
-void TexelPlanes(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel, std::vector<glm::dvec4>& planes) {
+void TexelPlanes(const std::vector<glm::dvec4>& triangle_plane, const ObscuranceAtlas& atlas, uint32_t texel,
+                 std::vector<glm::dvec4>& planes) {
   planes.clear();
   for (uint32_t f = atlas.texel_begin[texel]; f < atlas.texel_begin[texel + 1]; ++f)
-    planes.push_back(TrianglePlane(scene, atlas.fragments[f].triangle));
+    planes.push_back(triangle_plane[atlas.fragments[f].triangle]);
 }
 
 }  // namespace
@@ -114,6 +116,8 @@ StatusOr<std::unique_ptr<ObscuranceUpdater>> ObscuranceUpdater::Create(Scene sce
   u->patch_center_.assign(all.size(), glm::dvec3(0.0));
   u->patch_radius_.assign(all.size(), -1.0);
   u->ComputePatchBounds(all);
+  u->triangle_plane_.resize(s.triangles.size());
+  for (uint32_t t = 0; t < s.triangles.size(); ++t) u->triangle_plane_[t] = TrianglePlane(s, t);
   VISQ_RETURN_IF_ERROR(u->Rebuild());
   return u;
 }
@@ -199,19 +203,19 @@ Status ObscuranceUpdater::Rebuild() {
   // Influenced lists: patches near each object whose rays meet it first.
   // Their tallies are kept: every patch with a ray that meets a dynamic
   // object alone then has one, which the fast path's moves rely on.
-  patch_tally_.clear();
-  triangle_tally_.clear();
+  patch_tally_.Reset(atlas_.texel_count());
+  triangle_tally_.Reset(scene_.TriangleCount());
   for (size_t k = 0; k < objects_.size(); ++k) {
     Object& o = objects_[k];
     const std::vector<uint32_t> candidates = Candidates(o);
     std::vector<uint32_t> untraced;
     for (uint32_t texel : candidates)
-      if (!patch_tally_.contains(texel)) untraced.push_back(texel);
+      if (!patch_tally_.Contains(texel)) untraced.push_back(texel);
     std::vector<RayTally> tallies = TracePatches(untraced);
-    for (size_t i = 0; i < untraced.size(); ++i) patch_tally_[untraced[i]] = std::move(tallies[i]);
+    for (size_t i = 0; i < untraced.size(); ++i) patch_tally_.Set(untraced[i], std::move(tallies[i]));
     o.influenced.clear();
     for (uint32_t texel : candidates)
-      if (patch_tally_.at(texel).FirstHits(static_cast<int32_t>(k)) > 0) o.influenced.push_back(texel);
+      if (patch_tally_.At(texel).FirstHits(static_cast<int32_t>(k)) > 0) o.influenced.push_back(texel);
   }
   return absl::OkStatus();
 }
@@ -314,7 +318,7 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object, Obscur
     const uint32_t texel = near[i];
     thread_local std::vector<Ball> in_reach;
     thread_local std::vector<glm::dvec4> planes;
-    TexelPlanes(scene_, atlas_, texel, planes);
+    TexelPlanes(triangle_plane_, atlas_, texel, planes);
     BallsInReach(patch_center_[texel], patch_radius_[texel], planes, balls, in_reach);
     if (in_reach.empty()) return;
     thread_local std::vector<PatchRay> patch_rays;
@@ -437,6 +441,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodePlain(size_t k, const glm:
   rays_->SetTransform(k, new_world * glm::inverse(object.pose_at_build));
   rays_->Commit();
   ComputePatchBounds(object.own);
+  for (uint32_t t : object.triangles) triangle_plane_[t] = TrianglePlane(scene_, t);
   const auto moved = std::chrono::steady_clock::now();
   update.move_ms = MillisecondsBetween(start, moved);
 
@@ -458,7 +463,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodePlain(size_t k, const glm:
     const uint32_t texel = recompute[i];
     update.rays += tallies[i].rays;
     const bool meets = tallies[i].FirstHits(static_cast<int32_t>(k)) > 0;
-    patch_tally_[texel] = std::move(tallies[i]);
+    patch_tally_.Set(texel, std::move(tallies[i]));
     if (meets || std::binary_search(must.begin(), must.end(), texel)) changed.push_back(texel);
   }
   Finish(k, changed, update);
@@ -479,6 +484,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
   const std::vector<Ball> old_balls = ClusterBalls(object);
   VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, object.node, new_world));
   ComputePatchBounds(object.own);
+  for (uint32_t t : object.triangles) triangle_plane_[t] = TrianglePlane(scene_, t);
   const std::vector<Ball> new_balls = ClusterBalls(object);
   const glm::dmat4 delta = new_world * glm::inverse(object.pose_at_build);
   rays_->SetProbeTransform(k, delta);
@@ -512,23 +518,30 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
     }
     update.within_reach = static_cast<uint32_t>(near.size());
   }
-  // Triangles with tallies near the object (its own are traced in full).
+  // Triangles with tallies near the object (its own are traced in full):
+  // every point within reach lies in a near patch or one of the object's
+  // own, so their fragments name them all.
   std::vector<uint32_t> near_triangles;
   {
     std::vector<Ball> alls;
     if (!old_balls.empty()) alls.push_back(Enclosing(old_balls));
     if (!new_balls.empty()) alls.push_back(Enclosing(new_balls));
-    for (const auto& [t, tally] : triangle_tally_) {
-      if (object_of_triangle_[t] == kk) continue;
+    for (const std::vector<uint32_t>* texels : {&near, &object.own})
+      for (uint32_t texel : *texels)
+        for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f) {
+          const uint32_t t = atlas_.fragments[f].triangle;
+          if (object_of_triangle_[t] != kk && triangle_tally_.Contains(t)) near_triangles.push_back(t);
+        }
+    std::sort(near_triangles.begin(), near_triangles.end());
+    near_triangles.erase(std::unique(near_triangles.begin(), near_triangles.end()), near_triangles.end());
+    std::erase_if(near_triangles, [&](uint32_t t) {
       const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
       const glm::dvec3 center = (pa + pb + pc) / 3.0;
       const double radius = std::max({glm::length(pa - center), glm::length(pb - center), glm::length(pc - center)});
       for (const Ball& all : alls)
-        if (glm::length(center - all.center) <= all.radius + params_.d_max + radius) {
-          near_triangles.push_back(t);
-          break;
-        }
-    }
+        if (glm::length(center - all.center) <= all.radius + params_.d_max + radius) return false;
+      return true;
+    });
   }
 
   // Each near patch's rays towards the old or new balls, tested against the
@@ -544,7 +557,13 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
     if (in_old.empty() && in_new.empty()) return;
     in_either = in_old;
     in_either.insert(in_either.end(), in_new.begin(), in_new.end());
-    const DirectionFilter towards_object{center, radius, in_either};
+    thread_local std::vector<Ball> bounds;
+    bounds.clear();
+    if (in_either.size() > 2) {
+      if (!in_old.empty()) bounds.push_back(Enclosing(in_old));
+      if (!in_new.empty()) bounds.push_back(Enclosing(in_new));
+    }
+    const DirectionFilter towards_object{center, radius, in_either, bounds};
     thread_local std::vector<PatchRay> rays;
     if (triangle)
       GenerateTriangleRays(scene_, rec.element, options_.seed, TriangleRayCount(rec.element), rays, &towards_object);
@@ -556,21 +575,20 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
   ForEachIndex(near.size(), options_.threads, [&](size_t i) {
     Retrace& rec = patch_retrace[i];
     rec.element = near[i];
-    const auto it = patch_tally_.find(rec.element);
-    rec.tally = it == patch_tally_.end() ? nullptr : &it->second;
+    rec.tally = patch_tally_.Find(rec.element);
     thread_local std::vector<glm::dvec4> planes;
-    TexelPlanes(scene_, atlas_, rec.element, planes);
+    TexelPlanes(triangle_plane_, atlas_, rec.element, planes);
     search(rec, patch_center_[rec.element], patch_radius_[rec.element], planes, false, i);
   });
   ForEachIndex(near_triangles.size(), options_.threads, [&](size_t i) {
     Retrace& rec = triangle_retrace[i];
     rec.element = near_triangles[i];
-    rec.tally = &triangle_tally_.find(rec.element)->second;
+    rec.tally = triangle_tally_.Find(rec.element);
     const uint32_t t = rec.element;
     const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
     const glm::dvec3 center = (pa + pb + pc) / 3.0;
     const double radius = std::max({glm::length(pa - center), glm::length(pb - center), glm::length(pc - center)});
-    const std::vector<glm::dvec4> planes = {TrianglePlane(scene_, t)};
+    const std::vector<glm::dvec4> planes = {triangle_plane_[t]};
     search(rec, center, radius, planes, true, near.size() + i);
   });
   for (size_t i = 0; i < probed.size(); ++i) {
@@ -619,7 +637,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
   }
   for (size_t i = 0; i < full.size(); ++i) {
     update.rays += tallies[i].rays;
-    patch_tally_[full[i]] = std::move(tallies[i]);
+    patch_tally_.Set(full[i], std::move(tallies[i]));
   }
   update.trace_ms = MillisecondsSince(found);
   update.recomputed = static_cast<uint32_t>(retraced.size() + full.size());
@@ -628,7 +646,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
   // object first now.
   std::vector<uint32_t> meets;
   for (uint32_t texel : SortedUnion(retraced, full))
-    if (patch_tally_.at(texel).FirstHits(kk) > 0) meets.push_back(texel);
+    if (patch_tally_.At(texel).FirstHits(kk) > 0) meets.push_back(texel);
   Finish(k, SortedUnion(SortedUnion(object.influenced, object.own), meets), update);
   return update;
 }
@@ -638,7 +656,7 @@ void ObscuranceUpdater::Finish(size_t k, const std::vector<uint32_t>& changed, O
   // what their rays now meet first.
   std::vector<std::vector<uint32_t>> add(objects_.size()), drop(objects_.size());
   for (uint32_t texel : changed) {
-    const RayTally& tally = patch_tally_.at(texel);
+    const RayTally& tally = patch_tally_.At(texel);
     // A patch the bake's samples never reached (a sliver of a triangle in a
     // texel; depth peeling leaves such texels filled from their neighbours)
     // stays filled, as a rebake leaves it; its gutter neighbours then agree
@@ -707,10 +725,10 @@ void ObscuranceUpdater::Finish(size_t k, const std::vector<uint32_t>& changed, O
   const int32_t kk = static_cast<int32_t>(k);
   // The moved object's tallies not recomputed below are out of date.
   for (uint32_t t : objects_[k].triangles)
-    if (!std::binary_search(update.triangles.begin(), update.triangles.end(), t)) triangle_tally_.erase(t);
+    if (!std::binary_search(update.triangles.begin(), update.triangles.end(), t)) triangle_tally_.Erase(t);
   std::vector<uint32_t> full;
   for (uint32_t t : update.triangles)
-    if (options_.exhaustive || object_of_triangle_[t] == kk || !triangle_tally_.contains(t)) full.push_back(t);
+    if (options_.exhaustive || object_of_triangle_[t] == kk || !triangle_tally_.Contains(t)) full.push_back(t);
   std::vector<RayTally> tallies(full.size());
   ForEachIndex(full.size(), options_.threads, [&](size_t i) {
     thread_local std::vector<PatchRay> triangle_rays;
@@ -720,12 +738,12 @@ void ObscuranceUpdater::Finish(size_t k, const std::vector<uint32_t>& changed, O
   for (size_t i = 0; i < full.size(); ++i) {
     update.rays += tallies[i].rays;
     update.triangle_rays += tallies[i].rays;
-    triangle_tally_[full[i]] = std::move(tallies[i]);
+    triangle_tally_.Set(full[i], std::move(tallies[i]));
   }
   if (result_.triangle_effective_samples.size() != scene_.TriangleCount())
     result_.triangle_effective_samples.resize(scene_.TriangleCount(), 0.0f);
   for (uint32_t t : update.triangles) {
-    const RayTally& tally = triangle_tally_.at(t);
+    const RayTally& tally = triangle_tally_.At(t);
     result_.triangle_w[t] = tally.rays > 0 ? tally.Mean() : TriangleAverage(atlas_, result_, t);
     result_.triangle_effective_samples[t] = static_cast<float>(tally.rays);
     update.triangle_w.push_back(result_.triangle_w[t]);

@@ -201,8 +201,33 @@ class ObscuranceUpdater {
   std::vector<uint32_t> dynamic_patches_;
   std::vector<uint32_t> vertex_begin_, vertex_triangles_;  // triangles per position
   std::unique_ptr<InstancedRayScene> rays_;
-  // Tallies of the patches and triangles traced since the last Rebuild.
-  std::unordered_map<uint32_t, RayTally> patch_tally_, triangle_tally_;
+  // Tallies of the patches and triangles traced since the last Rebuild:
+  // a map (few elements have one), and a byte per element that spares the
+  // many look-ups of elements without one.
+  class Tallies {
+   public:
+    void Reset(size_t elements) { map_.clear(); present_.assign(elements, 0); }
+    RayTally* Find(uint32_t i) {
+      if (!present_[i]) return nullptr;
+      return &map_.find(i)->second;
+    }
+    bool Contains(uint32_t i) const { return present_[i] != 0; }
+    const RayTally& At(uint32_t i) const { return map_.at(i); }
+    void Set(uint32_t i, RayTally tally) {
+      map_[i] = std::move(tally);
+      present_[i] = 1;
+    }
+    void Erase(uint32_t i) {
+      if (present_[i]) map_.erase(i);
+      present_[i] = 0;
+    }
+   private:
+    std::unordered_map<uint32_t, RayTally> map_;
+    std::vector<uint8_t> present_;
+  };
+  Tallies patch_tally_, triangle_tally_;
+  // Unit normal and offset of every triangle at its current pose.
+  std::vector<glm::dvec4> triangle_plane_;
 };
 
 }  // namespace visq::obscurance

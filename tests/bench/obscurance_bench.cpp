@@ -6,12 +6,15 @@
 // the update latency for moving a ~1K-triangle object in Sponza. Prints a
 // table; not a test.
 //
-//   visq_bench_obscurance [--quick] [--update-only] [--scene NAME] [--atlas N] [--directions N]
+//   visq_bench_obscurance [--quick] [--update-only [--update-rays N] [--moves N] [--plain-only|--fast-only]] [--scene NAME] [--atlas N] [--directions N]
 //                         [--bundle N] [--scenes DIR]
 //   visq_bench_obscurance --coverage [--scene bunny|palm|cornell|sponza] [--atlas N] [--reference-rays N]
 //                         [--directions-list N,N,...] [--bundles N,N,...] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
-// --update-only: only the Sponza update latency.
+// --update-only: only the Sponza update latency, on the plain path and the
+// fast one (bit-for-bit comparison and ratios); --update-rays N: only N rays
+// per patch (default 16 and 64); --moves N: N moves (default 5; out and back
+// in steps of 0.2 d_max); --plain-only / --fast-only: one path (to profile).
 // --scene sponza|veach_ajar, --atlas N, --directions N: only this scene,
 // atlas resolution, direction count.
 // --bundle N: pixels across each direction's bundle (default: 2 x atlas).
@@ -296,7 +299,9 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
 }  // namespace
 
 int main(int argc, char** argv) {
-  bool quick = false, update_only = false, coverage = false;
+  bool quick = false, update_only = false, coverage = false, plain_only = false, fast_only = false;
+  int moves = 5;
+  uint32_t update_rays = 0;
   uint32_t reference_rays_option = 0;
   std::vector<uint32_t> direction_list, bundle_list;
   uint32_t bundle = 0, only_directions = 0, only_atlas = 0;
@@ -305,6 +310,11 @@ int main(int argc, char** argv) {
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--quick")) quick = true;
     else if (!std::strcmp(argv[i], "--update-only")) update_only = true;
+    else if (!std::strcmp(argv[i], "--moves") && i + 1 < argc) moves = std::max(1, std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--update-rays") && i + 1 < argc)
+      update_rays = static_cast<uint32_t>(std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--plain-only")) plain_only = true;
+    else if (!std::strcmp(argv[i], "--fast-only")) fast_only = true;
     else if (!std::strcmp(argv[i], "--scene") && i + 1 < argc) only_scene = argv[++i];
     else if (!std::strcmp(argv[i], "--atlas") && i + 1 < argc) only_atlas = static_cast<uint32_t>(std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--directions") && i + 1 < argc)
@@ -420,7 +430,7 @@ int main(int argc, char** argv) {
     // (patch index, only the rays that can meet the object traced), with
     // full traces as ray streams or not. The updaters move in turn, step by
     // step, so that a load on the machine weighs on them alike; after the
-    // five moves each fast path's W per texel, triangle and vertex is held
+    // moves each fast path's W per texel, triangle and vertex is held
     // to the plain one's, bit for bit.
     struct Row {
       const char* path;
@@ -432,13 +442,15 @@ int main(int argc, char** argv) {
     };
     std::printf("\nupdate: sponza node '%s' (%u triangles), 512^2 atlas, d_max %.2f, 5 moves of %.2f m; medians over the "
                 "moves, figures of the last move; 'differ': elements whose W is not bit for bit the plain path's\n",
-                scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, params.d_max, 0.2 * params.d_max);
+                scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, params.d_max, moves, 0.2 * params.d_max);
     std::printf("%-22s %4s | %8s %6s | %8s %8s %8s | %7s %7s %6s %7s | %8s %8s %8s | %6s %6s %6s\n", "path", "rays",
                 "ms", "x", "cand ms", "trace ms", "tri ms", "pooled", "reach", "cand", "recomp", "rays", "tri rays",
                 "probed", "texels", "tris", "verts");
-    for (uint32_t rays : {16u, 64u}) {
+    for (uint32_t rays : update_rays ? std::vector<uint32_t>{update_rays} : std::vector<uint32_t>{16u, 64u}) {
       std::vector<Row> rows;
       for (int variant = 0; variant < 3; ++variant) {
+        if (variant > 0 && plain_only) continue;
+        if (variant != 1 && fast_only) continue;
         Row row;
         row.path = variant == 0 ? "plain (scan, full)" : variant == 1 ? "fast (index, affected)" : "fast, full as streams";
         row.options.rays_per_patch = rays;
@@ -451,8 +463,10 @@ int main(int argc, char** argv) {
         row.updater = std::move(*updater);
         rows.push_back(std::move(row));
       }
-      for (int step = 1; step <= 5; ++step) {
-        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.2 * step * params.d_max, 0, 0)) *
+      for (int step = 1; step <= moves; ++step) {
+        // Five steps out and back, as often as asked.
+        const int out = (step - 1) % 10 < 5 ? (step - 1) % 10 + 1 : 10 - (step - 1) % 10 - 1;
+        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.2 * out * params.d_max, 0, 0)) *
                                  scene->nodes[node].world;
         for (Row& row : rows) {
           auto up = row.updater->MoveNode(node, world);
@@ -473,6 +487,7 @@ int main(int argc, char** argv) {
         for (size_t i = 0; i < a.size(); ++i) n += std::memcmp(&a[i], &b[i], sizeof(glm::vec3)) != 0;
         return n;
       };
+      // Without the plain path, the first row stands in (its 'differ' is 0).
       const ObscuranceResult& plain = rows[0].updater->result();
       const double plain_ms = median(rows[0].ms);
       for (const Row& row : rows) {
