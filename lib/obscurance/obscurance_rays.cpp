@@ -178,8 +178,13 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   out.clear();
   const uint32_t begin = atlas.texel_begin[texel], end = atlas.texel_begin[texel + 1];
   if (begin == end) return;
-  double total = 0;
-  for (uint32_t i = begin; i < end; ++i) total += atlas.fragments[i].world_area;
+  // Running sums of the fragments' areas: a sample picks its fragment by a
+  // binary search (a texel can hold many small triangles' fragments).
+  thread_local std::vector<double> area_below;
+  area_below.resize(end - begin + 1);
+  area_below[0] = 0;
+  for (uint32_t i = begin; i < end; ++i) area_below[i - begin + 1] = area_below[i - begin] + atlas.fragments[i].world_area;
+  const double total = area_below[end - begin];
   const uint64_t h = SplitMix64(SplitMix64(seed) ^ (static_cast<uint64_t>(texel) * 0xD1B54A32D192ED03ull));
   double shift[5];
   for (int k = 0; k < 5; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
@@ -198,9 +203,11 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
     const double u0 = Frac(halton[0] + shift[0]);
     // A fragment in proportion to its world area, then a fan triangle of
     // its clipped polygon in proportion to atlas area (affine per triangle).
-    double pick = u0 * total;
-    uint32_t fi = begin;
-    for (; fi + 1 < end && pick >= atlas.fragments[fi].world_area; ++fi) pick -= atlas.fragments[fi].world_area;
+    const double pick = u0 * total;
+    // The last fragment whose running sum is at most `pick`, the last one at most.
+    const size_t above = static_cast<size_t>(std::upper_bound(area_below.begin() + 1, area_below.end() - 1, pick) -
+                                             area_below.begin());
+    const uint32_t fi = begin + static_cast<uint32_t>(above - 1);
     FragmentSampler& f = samplers[fi - begin];
     uint8_t& ready = prepared[fi - begin];
     if (!(ready & 1)) {

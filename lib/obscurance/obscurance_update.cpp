@@ -380,7 +380,9 @@ void ObscuranceUpdater::BallsInReach(const glm::dvec3& center, double radius, co
                                      const std::vector<Ball>& balls, std::vector<Ball>& out) const {
   out.clear();
   for (const Ball& ball : balls) {
-    if (glm::length(center - ball.center) > ball.radius + params_.d_max + radius) continue;
+    const glm::dvec3 offset = center - ball.center;
+    const double reach = ball.radius + params_.d_max + radius;
+    if (glm::dot(offset, offset) > reach * reach) continue;
     bool in_front_of_one = false;
     for (const glm::dvec4& plane : planes)
       in_front_of_one |= glm::dot(glm::dvec3(plane), ball.center) + plane.w >= -ball.radius;
@@ -547,13 +549,22 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
   // Each near patch's rays towards the old or new balls, tested against the
   // object alone at both poses; the affected rays' old values leave the
   // tallies now, while the scene still holds the object where it was.
+  std::vector<Ball> old_bound, new_bound;
+  if (!old_balls.empty()) old_bound.push_back(Enclosing(old_balls));
+  if (!new_balls.empty()) new_bound.push_back(Enclosing(new_balls));
   std::vector<Retrace> patch_retrace(near.size()), triangle_retrace(near_triangles.size());
   std::vector<uint64_t> probed(near.size() + near_triangles.size(), 0), traced_before(probed.size(), 0);
   auto search = [&](Retrace& rec, const glm::dvec3& center, double radius, const std::vector<glm::dvec4>& planes,
                     bool triangle, size_t slot) {
+    // The ball around all of a pose's balls first: most patches are out of
+    // its reach, and then of every one of them.
     thread_local std::vector<Ball> in_old, in_new, in_either;
-    BallsInReach(center, radius, planes, old_balls, in_old);
-    BallsInReach(center, radius, planes, new_balls, in_new);
+    in_old.clear();
+    in_new.clear();
+    BallsInReach(center, radius, planes, old_bound, in_old);
+    if (!in_old.empty()) BallsInReach(center, radius, planes, old_balls, in_old);
+    BallsInReach(center, radius, planes, new_bound, in_new);
+    if (!in_new.empty()) BallsInReach(center, radius, planes, new_balls, in_new);
     if (in_old.empty() && in_new.empty()) return;
     in_either = in_old;
     in_either.insert(in_either.end(), in_new.begin(), in_new.end());
