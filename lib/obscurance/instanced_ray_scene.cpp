@@ -1,6 +1,7 @@
 #include "obscurance/instanced_ray_scene.h"
 
 #include <algorithm>
+#include <array>
 #include <limits>
 
 #include <embree3/rtcore.h>
@@ -13,12 +14,14 @@ struct InstancedRayScene::Impl {
   RTCScene static_mesh = nullptr;
   std::vector<RTCScene> object_meshes;    // object k's triangles, pose at Create, frame-relative
   std::vector<RTCScene> object_alone;     // an instance of object k only
+  std::vector<RTCScene> object_probe;     // the same, at a pose of its own (SetProbeTransform)
   std::vector<uint32_t> static_triangles;
   std::vector<std::vector<uint32_t>> objects;
   glm::dvec3 origin{0.0};
   double t_min = 0;
 
   ~Impl() {
+    for (RTCScene s : object_probe) rtcReleaseScene(s);
     for (RTCScene s : object_alone) rtcReleaseScene(s);
     for (RTCScene s : object_meshes) rtcReleaseScene(s);
     if (top) rtcReleaseScene(top);
@@ -114,30 +117,52 @@ StatusOr<std::unique_ptr<InstancedRayScene>> InstancedRayScene::Create(
     RTCScene mesh = impl->Mesh(scene, objects[k]);
     impl->object_meshes.push_back(mesh);
     Impl::AttachInstance(impl->device, impl->top, mesh, static_cast<unsigned>(k + 1));
-    RTCScene alone = rtcNewScene(impl->device);
-    Impl::AttachInstance(impl->device, alone, mesh, 0);
-    rtcCommitScene(alone);
-    impl->object_alone.push_back(alone);
+    for (std::vector<RTCScene>* list : {&impl->object_alone, &impl->object_probe}) {
+      RTCScene alone = rtcNewScene(impl->device);
+      Impl::AttachInstance(impl->device, alone, mesh, 0);
+      rtcCommitScene(alone);
+      list->push_back(alone);
+    }
   }
   rtcCommitScene(impl->top);
   if (rtcGetDeviceError(impl->device) != RTC_ERROR_NONE) return absl::InternalError("Embree scene build failed");
   return std::unique_ptr<InstancedRayScene>(new InstancedRayScene(std::move(impl)));
 }
 
-void InstancedRayScene::SetTransform(size_t object, const glm::dmat4& delta) {
-  // In the frame: p' = L (p + o) + t - o = L p + (L o + t - o).
+namespace {
+
+// `delta` as Embree's float matrix in the frame: p' = L (p + o) + t - o =
+// L p + (L o + t - o).
+std::array<float, 12> FrameTransform(const glm::dmat4& delta, const glm::dvec3& origin) {
   const glm::dmat3 lin(delta);
-  const glm::dvec3 trans = lin * impl_->origin + glm::dvec3(delta[3]) - impl_->origin;
-  float xfm[12];
+  const glm::dvec3 trans = lin * origin + glm::dvec3(delta[3]) - origin;
+  std::array<float, 12> xfm;
   for (int c = 0; c < 3; ++c)
     for (int r = 0; r < 3; ++r) xfm[3 * c + r] = static_cast<float>(lin[c][r]);
   for (int r = 0; r < 3; ++r) xfm[9 + r] = static_cast<float>(trans[r]);
-  for (RTCScene parent : {impl_->top, impl_->object_alone[object]}) {
-    RTCGeometry inst = rtcGetGeometry(parent, parent == impl_->top ? static_cast<unsigned>(object + 1) : 0u);
-    rtcSetGeometryTransform(inst, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR, xfm);
-    rtcCommitGeometry(inst);
-  }
+  return xfm;
+}
+
+void SetInstanceTransform(RTCScene parent, unsigned id, const std::array<float, 12>& xfm) {
+  RTCGeometry inst = rtcGetGeometry(parent, id);
+  rtcSetGeometryTransform(inst, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR, xfm.data());
+  rtcCommitGeometry(inst);
+}
+
+}  // namespace
+
+void InstancedRayScene::SetTransform(size_t object, const glm::dmat4& delta) {
+  const std::array<float, 12> xfm = FrameTransform(delta, impl_->origin);
+  SetInstanceTransform(impl_->top, static_cast<unsigned>(object + 1), xfm);
+  SetInstanceTransform(impl_->object_alone[object], 0, xfm);
   rtcCommitScene(impl_->object_alone[object]);
+}
+
+void InstancedRayScene::SetProbeTransform(size_t object, const glm::dmat4& delta) {
+  // The same float matrix as SetTransform makes for `delta`, so that the
+  // probe meets a ray exactly when the object moved there would.
+  SetInstanceTransform(impl_->object_probe[object], 0, FrameTransform(delta, impl_->origin));
+  rtcCommitScene(impl_->object_probe[object]);
 }
 
 void InstancedRayScene::Commit() { rtcCommitScene(impl_->top); }
@@ -196,6 +221,15 @@ bool InstancedRayScene::HitsObject(size_t object, const glm::dvec3& origin, cons
   rtcInitIntersectContext(&context);
   rtcOccluded1(impl_->object_alone[object], &context, &rh.ray);
   return rh.ray.tfar < 0;  // Embree sets tfar = -inf on a hit
+}
+
+bool InstancedRayScene::HitsProbe(size_t object, const glm::dvec3& origin, const glm::dvec3& direction,
+                                  double tmax) const {
+  RTCRayHit rh = MakeRay(origin, impl_->origin, direction, impl_->t_min, tmax);
+  RTCIntersectContext context;
+  rtcInitIntersectContext(&context);
+  rtcOccluded1(impl_->object_probe[object], &context, &rh.ray);
+  return rh.ray.tfar < 0;
 }
 
 }  // namespace visq::obscurance

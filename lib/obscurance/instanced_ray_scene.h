@@ -33,6 +33,9 @@ class InstancedRayScene {
   void SetTransform(size_t object, const glm::dmat4& delta);
   // Commits the transforms set since the last commit.
   void Commit();
+  // A second pose of object k, alone, for HitsProbe: where the object will
+  // be, while the scene still holds it where it was.
+  void SetProbeTransform(size_t object, const glm::dmat4& delta);
 
   struct Hit {
     bool hit = false;
@@ -45,6 +48,8 @@ class InstancedRayScene {
   Hit Closest(const glm::dvec3& origin, const glm::dvec3& direction, double tmax) const;
   // Whether object k alone (other geometry ignored) meets the ray in (t_min, tmax].
   bool HitsObject(size_t object, const glm::dvec3& origin, const glm::dvec3& direction, double tmax) const;
+  // Whether object k alone at its probe pose meets the ray in (t_min, tmax].
+  bool HitsProbe(size_t object, const glm::dvec3& origin, const glm::dvec3& direction, double tmax) const;
 
   // Closest for many rays at once, traced as streams (rtcIntersect1M), which
   // Embree traverses in SIMD packets. hits[i] for rays[i]; hits.size() ==

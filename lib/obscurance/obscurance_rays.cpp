@@ -1,8 +1,10 @@
 #include "obscurance/obscurance_rays.h"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <numbers>
+#include <span>
 
 #include "common/random.h"
 #include "raycast/embree_scene.h"
@@ -16,6 +18,78 @@ double Frac(double x) { return x - std::floor(x); }
 
 namespace {
 
+// Where, in the square of CosineDirection's (u_radius, azimuth in turns),
+// lie the directions a DirectionFilter may pass, for one frame: a few
+// windows, each a range of u_radius (the squared sine of the polar angle)
+// and an arc of azimuths, found from the cone each ball subtends. A sample
+// outside every window fails the filter, so it is skipped before its
+// direction is computed; one inside is still tested. The windows are wider
+// than the cones by kWindowMargin radians, far above the rounding of the
+// angle-sum azimuth.
+struct DirectionWindows {
+  static constexpr int kMost = 8;
+  static constexpr double kWindowMargin = 1e-7;
+  bool all = true;
+  int count = 0;
+  struct Window {
+    double u_lo = 0, u_hi = 1, turn_lo = 0, turn_width = 1;
+  } w[kMost];
+
+  bool Contains(double u_radius, double turn) const {
+    if (all) return true;
+    for (int i = 0; i < count; ++i) {
+      const Window& x = w[i];
+      if (u_radius < x.u_lo || u_radius > x.u_hi) continue;
+      double d = turn - x.turn_lo;
+      if (d < 0) d += 1.0;
+      if (d <= x.turn_width) return true;
+    }
+    return false;
+  }
+
+  static DirectionWindows Of(const DirectionFilter* filter, const glm::dvec3& tu, const glm::dvec3& tv,
+                             const glm::dvec3& normal) {
+    if (filter == nullptr) return DirectionWindows{};
+    // The bounds' cones when they are far enough, else the targets'.
+    DirectionWindows out = Of(filter->bounds, *filter, tu, tv, normal);
+    if (out.all || filter->bounds.empty()) out = Of(filter->targets, *filter, tu, tv, normal);
+    return out;
+  }
+
+  static DirectionWindows Of(std::span<const Ball> balls, const DirectionFilter& filter_ref, const glm::dvec3& tu,
+                             const glm::dvec3& tv, const glm::dvec3& normal) {
+    DirectionWindows out;
+    const DirectionFilter* filter = &filter_ref;
+    if (balls.empty() || balls.size() > kMost) return out;
+    constexpr double kPi = std::numbers::pi, m = kWindowMargin;
+    auto sin2 = [](double a) { return std::sin(a) * std::sin(a); };
+    for (const Ball& ball : balls) {
+      const glm::dvec3 v = ball.center - filter->patch_center;
+      const double distance = glm::length(v), reach = ball.radius + filter->patch_radius;
+      // Close by, MayMeet also passes some directions away from the ball.
+      if (!(distance > 2.0 * reach)) return out;
+      const double theta = std::asin(reach / distance);
+      const double alpha = std::acos(std::clamp(glm::dot(v, normal) / distance, -1.0, 1.0));
+      Window x;
+      if (alpha - theta - m > 0.5 * kPi) continue;  // wholly below the horizon
+      x.u_hi = alpha + theta + m >= 0.5 * kPi ? 1.0 : sin2(alpha + theta + m);
+      if (alpha - theta - m > 0) {
+        x.u_lo = sin2(alpha - theta - m);
+        const double ratio = std::sin(theta) / std::sin(alpha);
+        if (ratio < 1) {
+          const double half = (std::asin(ratio) + m) / (2.0 * kPi);
+          const double center = std::atan2(glm::dot(v, tv), glm::dot(v, tu)) / (2.0 * kPi);
+          x.turn_lo = center - half - std::floor(center - half);
+          x.turn_width = 2.0 * half;
+        }
+      }
+      out.w[out.count++] = x;
+    }
+    out.all = false;
+    return out;
+  }
+};
+
 // What every ray leaving one fragment shares: its triangle's corners, the
 // fragment's clipped atlas polygon split into a fan, and the tangent frame.
 // Computed once per fragment, not once per ray.
@@ -28,6 +102,7 @@ struct FragmentSampler {
   double fan[8] = {};
   double fan_total = 0;
   glm::dvec3 normal{0.0}, tu{0.0}, tv{0.0};
+  DirectionWindows windows;
 };
 
 // The frame is all a direction needs; the clipped polygon is prepared only
@@ -62,15 +137,38 @@ void PreparePolygon(uint32_t x, uint32_t y, FragmentSampler& out) {
 }
 
 // The Halton points are the same for every patch (each patch rotates them by
-// its own shift), so they are computed once per thread.
-const std::array<double, 5>& HaltonPoint(uint32_t j) {
-  thread_local std::vector<std::array<double, 5>> table;
+// its own shift), so they are computed once per thread, with the cosine and
+// sine of the two coordinates that serve as azimuths (bases 7 and 11): a
+// shifted azimuth's cosine and sine then come from the angle-sum formulas,
+// not from a sincos per ray.
+struct HaltonSample {
+  std::array<double, 5> u;
+  double cos7, sin7, cos11, sin11;  // of 2 pi u[3] and of 2 pi u[4]
+};
+
+const HaltonSample& HaltonPoint(uint32_t j) {
+  thread_local std::vector<HaltonSample> table;
   while (table.size() <= j) {
     const uint64_t i = table.size() + 1ull;
-    table.push_back({RadicalInverse(2, i), RadicalInverse(3, i), RadicalInverse(5, i), RadicalInverse(7, i),
-                     RadicalInverse(11, i)});
+    HaltonSample h{{RadicalInverse(2, i), RadicalInverse(3, i), RadicalInverse(5, i), RadicalInverse(7, i),
+                    RadicalInverse(11, i)}};
+    h.cos7 = std::cos(2.0 * std::numbers::pi * h.u[3]);
+    h.sin7 = std::sin(2.0 * std::numbers::pi * h.u[3]);
+    h.cos11 = std::cos(2.0 * std::numbers::pi * h.u[4]);
+    h.sin11 = std::sin(2.0 * std::numbers::pi * h.u[4]);
+    table.push_back(h);
   }
   return table[j];
+}
+
+// A unit direction in the frame (tu, tv, normal), cosine-distributed for
+// uniform (u_radius, azimuth): the azimuth is 2 pi (u + shift), taken as the
+// rotation by the shift of the point at angle 2 pi u (cos_u, sin_u).
+glm::dvec3 CosineDirection(const glm::dvec3& tu, const glm::dvec3& tv, const glm::dvec3& normal, double u_radius,
+                           double cos_u, double sin_u, double cos_shift, double sin_shift) {
+  const double r = std::sqrt(u_radius);
+  const double c = cos_u * cos_shift - sin_u * sin_shift, s = sin_u * cos_shift + cos_u * sin_shift;
+  return tu * (r * c) + tv * (r * s) + normal * std::sqrt(std::max(0.0, 1.0 - u_radius));
 }
 
 }  // namespace
@@ -80,39 +178,49 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   out.clear();
   const uint32_t begin = atlas.texel_begin[texel], end = atlas.texel_begin[texel + 1];
   if (begin == end) return;
-  double total = 0;
-  for (uint32_t i = begin; i < end; ++i) total += atlas.fragments[i].world_area;
+  // Running sums of the fragments' areas: a sample picks its fragment by a
+  // binary search (a texel can hold many small triangles' fragments).
+  thread_local std::vector<double> area_below;
+  area_below.resize(end - begin + 1);
+  area_below[0] = 0;
+  for (uint32_t i = begin; i < end; ++i) area_below[i - begin + 1] = area_below[i - begin] + atlas.fragments[i].world_area;
+  const double total = area_below[end - begin];
   const uint64_t h = SplitMix64(SplitMix64(seed) ^ (static_cast<uint64_t>(texel) * 0xD1B54A32D192ED03ull));
   double shift[5];
   for (int k = 0; k < 5; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
+  const double cos_shift = std::cos(2.0 * std::numbers::pi * shift[4]), sin_shift = std::sin(2.0 * std::numbers::pi * shift[4]);
   const uint32_t x = texel % atlas.width, y = texel / atlas.width;
   thread_local std::vector<FragmentSampler> samplers;
   thread_local std::vector<uint8_t> prepared;  // bit 0: frame, bit 1: polygon
-  samplers.resize(end - begin);
+  // Grown, never shrunk: a sampler is large, and re-constructing them for
+  // every patch cost more than the patch's filtered rays.
+  if (samplers.size() < end - begin) samplers.resize(end - begin);
   prepared.assign(end - begin, 0);
   out.reserve(n);
   for (uint32_t j = 0; j < n; ++j) {
-    const std::array<double, 5>& halton = HaltonPoint(j);
+    const HaltonSample& hs = HaltonPoint(j);
+    const std::array<double, 5>& halton = hs.u;
     const double u0 = Frac(halton[0] + shift[0]);
-    const double u1 = Frac(halton[1] + shift[1]);
-    const double u2 = Frac(halton[2] + shift[2]);
-    const double u3 = Frac(halton[3] + shift[3]);
-    const double u4 = Frac(halton[4] + shift[4]);
     // A fragment in proportion to its world area, then a fan triangle of
     // its clipped polygon in proportion to atlas area (affine per triangle).
-    double pick = u0 * total;
-    uint32_t fi = begin;
-    for (; fi + 1 < end && pick >= atlas.fragments[fi].world_area; ++fi) pick -= atlas.fragments[fi].world_area;
+    const double pick = u0 * total;
+    // The last fragment whose running sum is at most `pick`, the last one at most.
+    const size_t above = static_cast<size_t>(std::upper_bound(area_below.begin() + 1, area_below.end() - 1, pick) -
+                                             area_below.begin());
+    const uint32_t fi = begin + static_cast<uint32_t>(above - 1);
     FragmentSampler& f = samplers[fi - begin];
     uint8_t& ready = prepared[fi - begin];
     if (!(ready & 1)) {
       PrepareFrame(scene, atlas, atlas.fragments[fi], f);
+      f.windows = DirectionWindows::Of(only_towards, f.tu, f.tv, f.normal);
       ready |= 1;
     }
+    const double u3 = Frac(halton[3] + shift[3]);
+    if (!f.windows.Contains(u3, Frac(halton[4] + shift[4]))) continue;
+    const double u1 = Frac(halton[1] + shift[1]);
+    const double u2 = Frac(halton[2] + shift[2]);
     // Cosine-distributed direction around the geometric normal.
-    const double r = std::sqrt(u3), phi = 2.0 * std::numbers::pi * u4;
-    const glm::dvec3 dir =
-        f.tu * (r * std::cos(phi)) + f.tv * (r * std::sin(phi)) + f.normal * std::sqrt(std::max(0.0, 1.0 - u3));
+    const glm::dvec3 dir = CosineDirection(f.tu, f.tv, f.normal, u3, hs.cos11, hs.sin11, cos_shift, sin_shift);
     if (only_towards != nullptr && !only_towards->MayMeet(dir)) continue;
     if (!(ready & 2)) {
       PreparePolygon(x, y, f);
@@ -141,8 +249,8 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   }
 }
 
-void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n,
-                          std::vector<PatchRay>& out) {
+void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
+                          const DirectionFilter* only_towards) {
   out.clear();
   const glm::dvec3 pa = scene.Vertex(triangle, 0), pb = scene.Vertex(triangle, 1), pc = scene.Vertex(triangle, 2);
   const glm::dvec3 cross = glm::cross(pb - pa, pc - pa);
@@ -155,15 +263,18 @@ void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, 
   const uint64_t h = SplitMix64(SplitMix64(seed ^ 0x7472692E72617973ull) ^ (uint64_t{triangle} * 0x9E3779B97F4A7C15ull));
   double shift[4];
   for (int k = 0; k < 4; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
+  const double cos_shift = std::cos(2.0 * std::numbers::pi * shift[3]), sin_shift = std::sin(2.0 * std::numbers::pi * shift[3]);
   out.reserve(n);
+  const DirectionWindows windows = DirectionWindows::Of(only_towards, tu, tv, normal);
   for (uint32_t j = 0; j < n; ++j) {
-    const std::array<double, 5>& halton = HaltonPoint(j);
-    const double u1 = Frac(halton[0] + shift[0]), u2 = Frac(halton[1] + shift[1]);
-    const double u3 = Frac(halton[2] + shift[2]), u4 = Frac(halton[3] + shift[3]);
+    const HaltonSample& hs = HaltonPoint(j);
+    const double u3 = Frac(hs.u[2] + shift[2]);
+    if (!windows.Contains(u3, Frac(hs.u[3] + shift[3]))) continue;
+    const double u1 = Frac(hs.u[0] + shift[0]), u2 = Frac(hs.u[1] + shift[1]);
+    const glm::dvec3 dir = CosineDirection(tu, tv, normal, u3, hs.cos7, hs.sin7, cos_shift, sin_shift);
+    if (only_towards != nullptr && !only_towards->MayMeet(dir)) continue;
     const double s = std::sqrt(u1);
     const glm::dvec3 point = pa * (1 - s) + pb * (s * (1 - u2)) + pc * (s * u2);
-    const double r = std::sqrt(u3), phi = 2.0 * std::numbers::pi * u4;
-    const glm::dvec3 dir = tu * (r * std::cos(phi)) + tv * (r * std::sin(phi)) + normal * std::sqrt(std::max(0.0, 1.0 - u3));
     out.push_back(PatchRay{point, dir, triangle});
   }
 }
@@ -204,10 +315,13 @@ StatusOr<std::vector<glm::vec3>> EstimateTriangleObscuranceByRays(const Scene& s
   return w;
 }
 
-bool DirectionFilter::MayMeet(const glm::dvec3& direction) const {
-  // Shifted to start at patch_center, a ray that passes within r of a ball's
-  // center passes within r + patch_radius of it.
-  for (const Ball& ball : targets) {
+namespace {
+
+// Shifted to start at patch_center, a ray that passes within r of a ball's
+// center passes within r + patch_radius of it.
+bool MayMeetOne(std::span<const Ball> balls, const glm::dvec3& patch_center, double patch_radius,
+                const glm::dvec3& direction) {
+  for (const Ball& ball : balls) {
     const double reach = ball.radius + patch_radius;
     const glm::dvec3 to_target = ball.center - patch_center;
     const double along = glm::dot(to_target, direction);
@@ -215,6 +329,13 @@ bool DirectionFilter::MayMeet(const glm::dvec3& direction) const {
     if (glm::dot(to_target, to_target) - along * along <= reach * reach) return true;
   }
   return false;
+}
+
+}  // namespace
+
+bool DirectionFilter::MayMeet(const glm::dvec3& direction) const {
+  if (!bounds.empty() && !MayMeetOne(bounds, patch_center, patch_radius, direction)) return false;
+  return MayMeetOne(targets, patch_center, patch_radius, direction);
 }
 
 glm::dvec3 RayValue(const Scene& scene, const AmbientModel& ambient, bool color_bleeding, double d_max, bool hit,

@@ -40,10 +40,14 @@ struct Ball {
 // Directions that may reach one of a few balls from a patch: a ray leaving
 // any point within patch_radius of patch_center along such a direction can
 // pass within a ball's radius of its center.
+// `bounds`, if any, are balls that hold all the targets between them: a
+// direction must pass one of them first, which spares testing the many
+// targets for most directions.
 struct DirectionFilter {
   glm::dvec3 patch_center{0.0};
   double patch_radius = 0;
   std::span<const Ball> targets;
+  std::span<const Ball> bounds;
   bool MayMeet(const glm::dvec3& direction) const;
 };
 
@@ -58,8 +62,10 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
 
 // N rays of one triangle: points uniform on it, cosine-distributed around
 // its normal, from the same Halton sequence under a rotation hashed from
-// seed and triangle (none for a degenerate triangle).
-void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out);
+// seed and triangle (none for a degenerate triangle). `only_towards` as for
+// GeneratePatchRays.
+void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
+                          const DirectionFilter* only_towards = nullptr);
 
 // What one ray contributes, given its closest hit within d_max (hit false:
 // none). RGB; gray without color bleeding.

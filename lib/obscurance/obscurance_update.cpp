@@ -32,6 +32,49 @@ std::vector<uint32_t> SortedUnion(const std::vector<uint32_t>& a, const std::vec
   return out;
 }
 
+// Whether a ray can pass through one of the balls within d_max.
+bool MayMeetABall(const PatchRay& r, const std::vector<Ball>& balls, double d_max) {
+  for (const Ball& ball : balls) {
+    const glm::dvec3 oc = ball.center - r.origin;
+    const double along = glm::dot(oc, r.direction);
+    if (glm::dot(oc, oc) - along * along > ball.radius * ball.radius) continue;
+    if (along + ball.radius < 0 || along - ball.radius > d_max) continue;
+    return true;
+  }
+  return false;
+}
+
+// The planes of a texel's triangles: its rays leave each into its front
+// half-space.
+void TexelPlanes(const std::vector<glm::dvec4>& triangle_plane, const ObscuranceAtlas& atlas, uint32_t texel,
+                 std::vector<glm::dvec4>& planes);
+
+// One ball around a few.
+Ball Enclosing(const std::vector<Ball>& balls) {
+  Bounds b;
+  for (const Ball& ball : balls) {
+    b.Extend(ball.center - glm::dvec3(ball.radius));
+    b.Extend(ball.center + glm::dvec3(ball.radius));
+  }
+  return Ball{b.Center(), 0.5 * glm::length(b.Extent())};
+}
+
+// The plane of a triangle (unit normal, offset); a degenerate triangle
+// sends rays anywhere: a plane no ball is behind.
+glm::dvec4 TrianglePlane(const Scene& scene, uint32_t t) {
+  const glm::dvec3 pa = scene.Vertex(t, 0);
+  const glm::dvec3 n = glm::cross(scene.Vertex(t, 1) - pa, scene.Vertex(t, 2) - pa);
+  const double length = glm::length(n);
+  return length > 0 ? glm::dvec4(n / length, -glm::dot(n / length, pa)) : glm::dvec4(0, 0, 0, 1e300);
+}
+
+void TexelPlanes(const std::vector<glm::dvec4>& triangle_plane, const ObscuranceAtlas& atlas, uint32_t texel,
+                 std::vector<glm::dvec4>& planes) {
+  planes.clear();
+  for (uint32_t f = atlas.texel_begin[texel]; f < atlas.texel_begin[texel + 1]; ++f)
+    planes.push_back(triangle_plane[atlas.fragments[f].triangle]);
+}
+
 }  // namespace
 
 ObscuranceUpdater::~ObscuranceUpdater() = default;
@@ -73,6 +116,8 @@ StatusOr<std::unique_ptr<ObscuranceUpdater>> ObscuranceUpdater::Create(Scene sce
   u->patch_center_.assign(all.size(), glm::dvec3(0.0));
   u->patch_radius_.assign(all.size(), -1.0);
   u->ComputePatchBounds(all);
+  u->triangle_plane_.resize(s.triangles.size());
+  for (uint32_t t = 0; t < s.triangles.size(); ++t) u->triangle_plane_[t] = TrianglePlane(s, t);
   VISQ_RETURN_IF_ERROR(u->Rebuild());
   return u;
 }
@@ -156,18 +201,50 @@ Status ObscuranceUpdater::Rebuild() {
   VISQ_ASSIGN_OR_RETURN(rays_, InstancedRayScene::Create(scene_, triangle_lists));
 
   // Influenced lists: patches near each object whose rays meet it first.
+  // Their tallies are kept: every patch with a ray that meets a dynamic
+  // object alone then has one, which the fast path's moves rely on.
+  patch_tally_.Reset(atlas_.texel_count());
+  triangle_tally_.Reset(scene_.TriangleCount());
   for (size_t k = 0; k < objects_.size(); ++k) {
     Object& o = objects_[k];
     const std::vector<uint32_t> candidates = Candidates(o);
-    std::vector<glm::vec3> value;
-    std::vector<std::vector<int32_t>> met;
-    TracePatches(candidates, value, met);
+    std::vector<uint32_t> untraced;
+    for (uint32_t texel : candidates)
+      if (!patch_tally_.Contains(texel)) untraced.push_back(texel);
+    std::vector<RayTally> tallies = TracePatches(untraced);
+    for (size_t i = 0; i < untraced.size(); ++i) patch_tally_.Set(untraced[i], std::move(tallies[i]));
     o.influenced.clear();
-    for (size_t i = 0; i < candidates.size(); ++i)
-      if (std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(k)) != met[i].end())
-        o.influenced.push_back(candidates[i]);
+    for (uint32_t texel : candidates)
+      if (patch_tally_.At(texel).FirstHits(static_cast<int32_t>(k)) > 0) o.influenced.push_back(texel);
   }
   return absl::OkStatus();
+}
+
+void ObscuranceUpdater::RayTally::Add(const glm::dvec3& value, int32_t object, int sign) {
+  // Values are at most 1 per channel (rho times a reflectivity); the clamp
+  // only keeps a hostile material from overflowing the integer.
+  for (int c = 0; c < 3; ++c)
+    sum[c] += sign * static_cast<int64_t>(std::llround(std::clamp(value[c], -1048576.0, 1048576.0) * kFixedOne));
+  if (object < 0) return;
+  for (auto& [o, count] : first_hits)
+    if (o == object) {
+      count += sign;
+      return;
+    }
+  first_hits.emplace_back(object, sign);
+}
+
+int32_t ObscuranceUpdater::RayTally::FirstHits(int32_t object) const {
+  for (const auto& [o, count] : first_hits)
+    if (o == object) return count;
+  return 0;
+}
+
+glm::vec3 ObscuranceUpdater::RayTally::Mean() const {
+  if (rays == 0) return glm::vec3(0.0f);
+  glm::dvec3 mean;
+  for (int c = 0; c < 3; ++c) mean[c] = static_cast<double>(sum[c]) / kFixedOne / rays;
+  return glm::vec3(mean);
 }
 
 std::vector<Ball> ObscuranceUpdater::ClusterBalls(const Object& object) const {
@@ -207,15 +284,7 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object, Obscur
   const std::vector<Ball> balls = ClusterBalls(object);
   std::vector<uint32_t> out;
   if (balls.empty()) return out;
-  Ball all{glm::dvec3(0.0), 0.0};
-  {
-    Bounds b;
-    for (const Ball& ball : balls) {
-      b.Extend(ball.center - glm::dvec3(ball.radius));
-      b.Extend(ball.center + glm::dvec3(ball.radius));
-    }
-    all = Ball{b.Center(), 0.5 * glm::length(b.Extent())};
-  }
+  const Ball all = Enclosing(balls);
   const size_t k = static_cast<size_t>(&object - objects_.data());
   // Patches within d_max of the object's balls, minus its own.
   // The pool: every texel (the plain path) or the static patches whose
@@ -249,43 +318,17 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object, Obscur
     const uint32_t texel = near[i];
     thread_local std::vector<Ball> in_reach;
     thread_local std::vector<glm::dvec4> planes;
-    planes.clear();
-    for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f) {
-      const uint32_t t = atlas_.fragments[f].triangle;
-      const glm::dvec3 pa = scene_.Vertex(t, 0);
-      const glm::dvec3 n = glm::cross(scene_.Vertex(t, 1) - pa, scene_.Vertex(t, 2) - pa);
-      const double length = glm::length(n);
-      // A degenerate triangle sends rays anywhere: a plane no ball is behind.
-      planes.push_back(length > 0 ? glm::dvec4(n / length, -glm::dot(n / length, pa)) : glm::dvec4(0, 0, 0, 1e300));
-    }
-    in_reach.clear();
-    for (const Ball& ball : balls) {
-      if (glm::length(patch_center_[texel] - ball.center) > ball.radius + params_.d_max + patch_radius_[texel]) continue;
-      // Rays leave each triangle into its front half-space.
-      bool in_front_of_one = false;
-      for (const glm::dvec4& plane : planes)
-        in_front_of_one |= glm::dot(glm::dvec3(plane), ball.center) + plane.w >= -ball.radius;
-      if (in_front_of_one) in_reach.push_back(ball);
-    }
+    TexelPlanes(triangle_plane_, atlas_, texel, planes);
+    BallsInReach(patch_center_[texel], patch_radius_[texel], planes, balls, in_reach);
     if (in_reach.empty()) return;
     thread_local std::vector<PatchRay> patch_rays;
     const DirectionFilter towards_object{patch_center_[texel], patch_radius_[texel], in_reach};
     GeneratePatchRays(scene_, atlas_, texel, options_.seed, options_.rays_per_patch, patch_rays, &towards_object);
     for (const PatchRay& r : patch_rays) {
-      bool may_meet = false;
-      for (const Ball& ball : in_reach) {
-        const glm::dvec3 oc = ball.center - r.origin;
-        const double along = glm::dot(oc, r.direction);
-        if (glm::dot(oc, oc) - along * along > ball.radius * ball.radius) continue;
-        if (along + ball.radius < 0 || along - ball.radius > params_.d_max) continue;
-        may_meet = true;
-        break;
-      }
-      // One ray at a time on both paths: the first hit ends the patch's
-      // search, and a stream's packet traversal rounds grazing rays
-      // through the instance transform differently from a single ray's,
-      // which would make the fast path's lists differ from the plain one's.
-      if (may_meet && rays_->HitsObject(k, r.origin, r.direction, params_.d_max)) {
+      // One ray at a time: the first hit ends the patch's search, and a
+      // stream's packet traversal rounds grazing rays through the instance
+      // transform differently from a single ray's.
+      if (MayMeetABall(r, in_reach, params_.d_max) && rays_->HitsObject(k, r.origin, r.direction, params_.d_max)) {
         keep[i] = 1;
         break;
       }
@@ -296,30 +339,73 @@ std::vector<uint32_t> ObscuranceUpdater::Candidates(const Object& object, Obscur
   return out;
 }
 
-void ObscuranceUpdater::TracePatches(const std::vector<uint32_t>& texels, std::vector<glm::vec3>& value,
-                                     std::vector<std::vector<int32_t>>& met) const {
-  value.assign(texels.size(), glm::vec3(0.0f));
-  met.assign(texels.size(), {});
+ObscuranceUpdater::RayTally ObscuranceUpdater::TraceRays(const std::vector<PatchRay>& rays) const {
+  thread_local std::vector<InstancedRayScene::Hit> hits;
+  hits.resize(rays.size());
+  if (!options_.ray_streams) {
+    for (size_t j = 0; j < rays.size(); ++j) hits[j] = rays_->Closest(rays[j].origin, rays[j].direction, params_.d_max);
+  } else {
+    rays_->ClosestStream(rays, params_.d_max, hits);
+  }
+  RayTally tally;
+  tally.rays = static_cast<uint32_t>(rays.size());
+  for (const InstancedRayScene::Hit& hit : hits)
+    tally.Add(RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle),
+              hit.hit ? hit.object : -1, +1);
+  return tally;
+}
+
+std::vector<ObscuranceUpdater::RayTally> ObscuranceUpdater::TracePatches(const std::vector<uint32_t>& texels) const {
+  std::vector<RayTally> out(texels.size());
   ForEachIndex(texels.size(), options_.threads, [&](size_t i) {
     thread_local std::vector<PatchRay> patch_rays;
     GeneratePatchRays(scene_, atlas_, texels[i], options_.seed, options_.rays_per_patch, patch_rays);
-    thread_local std::vector<InstancedRayScene::Hit> hits;
-    hits.resize(patch_rays.size());
-    if (!options_.ray_streams) {
-      for (size_t j = 0; j < patch_rays.size(); ++j)
-        hits[j] = rays_->Closest(patch_rays[j].origin, patch_rays[j].direction, params_.d_max);
-    } else {
-      rays_->ClosestStream(patch_rays, params_.d_max, hits);
-    }
-    glm::dvec3 sum(0.0);
-    for (size_t j = 0; j < patch_rays.size(); ++j) {
-      const InstancedRayScene::Hit& hit = hits[j];
-      sum += RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle);
-      if (hit.hit && hit.object >= 0 && std::find(met[i].begin(), met[i].end(), hit.object) == met[i].end())
-        met[i].push_back(hit.object);
-    }
-    if (!patch_rays.empty()) value[i] = glm::vec3(sum / static_cast<double>(patch_rays.size()));
+    out[i] = TraceRays(patch_rays);
   });
+  return out;
+}
+
+uint32_t ObscuranceUpdater::TriangleRayCount(uint32_t t) const {
+  // As many rays as its texels got, for its area in texels: a triangle's
+  // W then has a patch's noise or less, and a large triangle costs at most
+  // kMostTexelsPerTriangle patches' worth.
+  constexpr double kMostTexelsPerTriangle = 16;
+  const glm::dvec2 a = atlas_.corner_uv[3 * t], b = atlas_.corner_uv[3 * t + 1], c = atlas_.corner_uv[3 * t + 2];
+  const double texels = 0.5 * std::abs((b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x));
+  return static_cast<uint32_t>(
+      std::lround(options_.rays_per_patch * std::clamp(std::round(texels), 1.0, kMostTexelsPerTriangle)));
+}
+
+void ObscuranceUpdater::BallsInReach(const glm::dvec3& center, double radius, const std::vector<glm::dvec4>& planes,
+                                     const std::vector<Ball>& balls, std::vector<Ball>& out) const {
+  out.clear();
+  for (const Ball& ball : balls) {
+    const glm::dvec3 offset = center - ball.center;
+    const double reach = ball.radius + params_.d_max + radius;
+    if (glm::dot(offset, offset) > reach * reach) continue;
+    bool in_front_of_one = false;
+    for (const glm::dvec4& plane : planes)
+      in_front_of_one |= glm::dot(glm::dvec3(plane), ball.center) + plane.w >= -ball.radius;
+    if (in_front_of_one) out.push_back(ball);
+  }
+}
+
+void ObscuranceUpdater::FindAffectedRays(size_t k, const std::vector<PatchRay>& rays, const std::vector<Ball>& old_balls,
+                                         const std::vector<Ball>& new_balls, Retrace& out, uint64_t& traced) const {
+  // A ray that meets the object alone at neither pose keeps its first hit.
+  for (const PatchRay& r : rays) {
+    const bool was = MayMeetABall(r, old_balls, params_.d_max) && rays_->HitsObject(k, r.origin, r.direction, params_.d_max);
+    const bool now = MayMeetABall(r, new_balls, params_.d_max) && rays_->HitsProbe(k, r.origin, r.direction, params_.d_max);
+    if (!was && !now) continue;
+    out.meets_now |= now;
+    out.rays.push_back(r);
+    if (out.tally == nullptr) continue;
+    // The Embree scene still holds the object where it was: the ray's old value leaves the tally.
+    const InstancedRayScene::Hit hit = rays_->Closest(r.origin, r.direction, params_.d_max);
+    out.tally->Add(RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle),
+                   hit.hit ? hit.object : -1, -1);
+    ++traced;
+  }
 }
 
 StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm::dmat4& new_world) {
@@ -338,57 +424,262 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     VISQ_RETURN_IF_ERROR(AddDynamicNode(node));
     k = objects_.size() - 1;
   }
+  VISQ_ASSIGN_OR_RETURN(ObscuranceUpdate update, options_.exhaustive ? MoveNodePlain(k, new_world)
+                                                                     : MoveNodeFast(k, new_world));
+  update.milliseconds = MillisecondsSince(start);
+  return update;
+}
+
+StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodePlain(size_t k, const glm::dmat4& new_world) {
+  const auto start = std::chrono::steady_clock::now();
   Object& object = objects_[k];
   ObscuranceUpdate update;
   update.influenced_before = static_cast<uint32_t>(object.influenced.size());
+  update.own_patches = static_cast<uint32_t>(object.own.size());
 
   // Move the geometry: scene positions (for ray origins on the object) and
   // the instance transform (for the rays).
-  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, node, new_world));
+  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, object.node, new_world));
   rays_->SetTransform(k, new_world * glm::inverse(object.pose_at_build));
   rays_->Commit();
   ComputePatchBounds(object.own);
+  for (uint32_t t : object.triangles) triangle_plane_[t] = TrianglePlane(scene_, t);
   const auto moved = std::chrono::steady_clock::now();
   update.move_ms = MillisecondsBetween(start, moved);
 
-  // Recompute: old list, own patches, and patches whose rays meet the object now.
+  // Recompute in full: old list, own patches, and patches whose rays meet the object now.
   const std::vector<uint32_t> fresh = Candidates(object, &update);
   update.candidates = static_cast<uint32_t>(fresh.size());
-  update.own_patches = static_cast<uint32_t>(object.own.size());
   const std::vector<uint32_t> must = SortedUnion(object.influenced, object.own);
   const std::vector<uint32_t> recompute = SortedUnion(must, fresh);
   const auto found = std::chrono::steady_clock::now();
   update.candidates_ms = MillisecondsBetween(moved, found);
-  std::vector<glm::vec3> value;
-  std::vector<std::vector<int32_t>> met;
-  TracePatches(recompute, value, met);
+  std::vector<RayTally> tallies = TracePatches(recompute);
   update.trace_ms = MillisecondsSince(found);
   update.recomputed = static_cast<uint32_t>(recompute.size());
-  update.rays = static_cast<uint64_t>(recompute.size()) * options_.rays_per_patch;
 
-  // A fresh candidate whose full-scene rays all met something else first did
-  // not change: it keeps its bits. The lists of every dynamic object follow
-  // what the recomputed patches now meet.
+  // A fresh candidate whose rays all met something else first did not
+  // change: it keeps its bits.
   std::vector<uint32_t> changed;
-  std::vector<std::vector<uint32_t>> add(objects_.size()), drop(objects_.size());
   for (size_t i = 0; i < recompute.size(); ++i) {
     const uint32_t texel = recompute[i];
-    const bool meets = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(k)) != met[i].end();
-    if (!meets && !std::binary_search(must.begin(), must.end(), texel)) continue;
-    changed.push_back(texel);
+    update.rays += tallies[i].rays;
+    const bool meets = tallies[i].FirstHits(static_cast<int32_t>(k)) > 0;
+    patch_tally_.Set(texel, std::move(tallies[i]));
+    if (meets || std::binary_search(must.begin(), must.end(), texel)) changed.push_back(texel);
+  }
+  Finish(k, changed, update);
+  return update;
+}
+
+StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::dmat4& new_world) {
+  const auto start = std::chrono::steady_clock::now();
+  Object& object = objects_[k];
+  ObscuranceUpdate update;
+  update.influenced_before = static_cast<uint32_t>(object.influenced.size());
+  update.own_patches = static_cast<uint32_t>(object.own.size());
+  const int32_t kk = static_cast<int32_t>(k);
+
+  // Move the scene positions (rays leaving the object start there) and the
+  // probe; the Embree scene keeps the object where it was until the old
+  // values of the affected rays are traced.
+  const std::vector<Ball> old_balls = ClusterBalls(object);
+  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, object.node, new_world));
+  ComputePatchBounds(object.own);
+  for (uint32_t t : object.triangles) triangle_plane_[t] = TrianglePlane(scene_, t);
+  const std::vector<Ball> new_balls = ClusterBalls(object);
+  const glm::dmat4 delta = new_world * glm::inverse(object.pose_at_build);
+  rays_->SetProbeTransform(k, delta);
+  const auto moved = std::chrono::steady_clock::now();
+  update.move_ms = MillisecondsBetween(start, moved);
+
+  // The pool: static patches whose cells meet the reach of the old or new
+  // balls, and the patches on dynamic objects; kept: those within d_max of
+  // either, minus the object's own.
+  std::vector<uint32_t> near;
+  if (!old_balls.empty() || !new_balls.empty()) {
+    std::vector<Ball> alls;
+    if (!old_balls.empty()) alls.push_back(Enclosing(old_balls));
+    if (!new_balls.empty()) alls.push_back(Enclosing(new_balls));
+    std::vector<uint32_t> pool;
+    for (const Ball& all : alls) {
+      std::vector<uint32_t> found;
+      const glm::dvec3 reach(all.radius + params_.d_max);
+      static_patches_.Query(all.center - reach, all.center + reach, found);
+      pool = SortedUnion(pool, found);
+    }
+    pool = SortedUnion(pool, dynamic_patches_);
+    update.pooled = static_cast<uint32_t>(pool.size());
+    for (uint32_t texel : pool) {
+      if (patch_radius_[texel] < 0) continue;
+      bool within = false;
+      for (const Ball& all : alls)
+        within |= glm::length(patch_center_[texel] - all.center) <= all.radius + params_.d_max + patch_radius_[texel];
+      if (!within || std::binary_search(object.own.begin(), object.own.end(), texel)) continue;
+      near.push_back(texel);
+    }
+    update.within_reach = static_cast<uint32_t>(near.size());
+  }
+  // Triangles with tallies near the object (its own are traced in full):
+  // every point within reach lies in a near patch or one of the object's
+  // own, so their fragments name them all.
+  std::vector<uint32_t> near_triangles;
+  {
+    std::vector<Ball> alls;
+    if (!old_balls.empty()) alls.push_back(Enclosing(old_balls));
+    if (!new_balls.empty()) alls.push_back(Enclosing(new_balls));
+    for (const std::vector<uint32_t>* texels : {&near, &object.own})
+      for (uint32_t texel : *texels)
+        for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f) {
+          const uint32_t t = atlas_.fragments[f].triangle;
+          if (object_of_triangle_[t] != kk && triangle_tally_.Contains(t)) near_triangles.push_back(t);
+        }
+    std::sort(near_triangles.begin(), near_triangles.end());
+    near_triangles.erase(std::unique(near_triangles.begin(), near_triangles.end()), near_triangles.end());
+    std::erase_if(near_triangles, [&](uint32_t t) {
+      const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
+      const glm::dvec3 center = (pa + pb + pc) / 3.0;
+      const double radius = std::max({glm::length(pa - center), glm::length(pb - center), glm::length(pc - center)});
+      for (const Ball& all : alls)
+        if (glm::length(center - all.center) <= all.radius + params_.d_max + radius) return false;
+      return true;
+    });
+  }
+
+  // Each near patch's rays towards the old or new balls, tested against the
+  // object alone at both poses; the affected rays' old values leave the
+  // tallies now, while the scene still holds the object where it was.
+  std::vector<Ball> old_bound, new_bound;
+  if (!old_balls.empty()) old_bound.push_back(Enclosing(old_balls));
+  if (!new_balls.empty()) new_bound.push_back(Enclosing(new_balls));
+  std::vector<Retrace> patch_retrace(near.size()), triangle_retrace(near_triangles.size());
+  std::vector<uint64_t> probed(near.size() + near_triangles.size(), 0), traced_before(probed.size(), 0);
+  auto search = [&](Retrace& rec, const glm::dvec3& center, double radius, const std::vector<glm::dvec4>& planes,
+                    bool triangle, size_t slot) {
+    // The ball around all of a pose's balls first: most patches are out of
+    // its reach, and then of every one of them.
+    thread_local std::vector<Ball> in_old, in_new, in_either;
+    in_old.clear();
+    in_new.clear();
+    BallsInReach(center, radius, planes, old_bound, in_old);
+    if (!in_old.empty()) BallsInReach(center, radius, planes, old_balls, in_old);
+    BallsInReach(center, radius, planes, new_bound, in_new);
+    if (!in_new.empty()) BallsInReach(center, radius, planes, new_balls, in_new);
+    if (in_old.empty() && in_new.empty()) return;
+    in_either = in_old;
+    in_either.insert(in_either.end(), in_new.begin(), in_new.end());
+    thread_local std::vector<Ball> bounds;
+    bounds.clear();
+    if (in_either.size() > 2) {
+      if (!in_old.empty()) bounds.push_back(Enclosing(in_old));
+      if (!in_new.empty()) bounds.push_back(Enclosing(in_new));
+    }
+    const DirectionFilter towards_object{center, radius, in_either, bounds};
+    thread_local std::vector<PatchRay> rays;
+    if (triangle)
+      GenerateTriangleRays(scene_, rec.element, options_.seed, TriangleRayCount(rec.element), rays, &towards_object);
+    else
+      GeneratePatchRays(scene_, atlas_, rec.element, options_.seed, options_.rays_per_patch, rays, &towards_object);
+    probed[slot] = rays.size();
+    FindAffectedRays(k, rays, in_old, in_new, rec, traced_before[slot]);
+  };
+  ForEachIndex(near.size(), options_.threads, [&](size_t i) {
+    Retrace& rec = patch_retrace[i];
+    rec.element = near[i];
+    rec.tally = patch_tally_.Find(rec.element);
+    thread_local std::vector<glm::dvec4> planes;
+    TexelPlanes(triangle_plane_, atlas_, rec.element, planes);
+    search(rec, patch_center_[rec.element], patch_radius_[rec.element], planes, false, i);
+  });
+  ForEachIndex(near_triangles.size(), options_.threads, [&](size_t i) {
+    Retrace& rec = triangle_retrace[i];
+    rec.element = near_triangles[i];
+    rec.tally = triangle_tally_.Find(rec.element);
+    const uint32_t t = rec.element;
+    const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
+    const glm::dvec3 center = (pa + pb + pc) / 3.0;
+    const double radius = std::max({glm::length(pa - center), glm::length(pb - center), glm::length(pc - center)});
+    const std::vector<glm::dvec4> planes = {triangle_plane_[t]};
+    search(rec, center, radius, planes, true, near.size() + i);
+  });
+  for (size_t i = 0; i < probed.size(); ++i) {
+    update.probed_rays += probed[i];
+    update.rays += traced_before[i];
+    if (i >= near.size()) update.triangle_rays += traced_before[i];
+  }
+
+  // Move the object in the Embree scene; the affected rays' new values join
+  // the tallies. A patch without a tally whose rays meet the object now,
+  // the object's own patches, and (should the search have missed one) a
+  // patch of the old list not re-traced, are traced in full.
+  rays_->SetTransform(k, delta);
+  rays_->Commit();
+  const auto found = std::chrono::steady_clock::now();
+  update.candidates_ms = MillisecondsBetween(moved, found);
+  std::vector<uint32_t> full;
+  std::vector<uint32_t> retraced;
+  for (const Retrace& rec : patch_retrace) {
+    if (rec.rays.empty()) continue;
+    update.candidates += rec.meets_now;
+    if (rec.tally != nullptr) retraced.push_back(rec.element);
+    else if (rec.meets_now) full.push_back(rec.element);
+  }
+  for (uint32_t texel : object.influenced)
+    if (!std::binary_search(retraced.begin(), retraced.end(), texel)) full.push_back(texel);
+  std::sort(full.begin(), full.end());
+  full = SortedUnion(full, object.own);
+  std::vector<uint64_t> traced_after(patch_retrace.size() + triangle_retrace.size(), 0);
+  auto add_new_values = [&](Retrace& rec, size_t slot) {
+    if (rec.tally == nullptr) return;
+    for (const PatchRay& r : rec.rays) {
+      const InstancedRayScene::Hit hit = rays_->Closest(r.origin, r.direction, params_.d_max);
+      rec.tally->Add(RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle),
+                     hit.hit ? hit.object : -1, +1);
+    }
+    traced_after[slot] = rec.rays.size();
+  };
+  ForEachIndex(patch_retrace.size(), options_.threads, [&](size_t i) { add_new_values(patch_retrace[i], i); });
+  ForEachIndex(triangle_retrace.size(), options_.threads,
+               [&](size_t i) { add_new_values(triangle_retrace[i], patch_retrace.size() + i); });
+  std::vector<RayTally> tallies = TracePatches(full);
+  for (size_t i = 0; i < traced_after.size(); ++i) {
+    update.rays += traced_after[i];
+    if (i >= patch_retrace.size()) update.triangle_rays += traced_after[i];
+  }
+  for (size_t i = 0; i < full.size(); ++i) {
+    update.rays += tallies[i].rays;
+    patch_tally_.Set(full[i], std::move(tallies[i]));
+  }
+  update.trace_ms = MillisecondsSince(found);
+  update.recomputed = static_cast<uint32_t>(retraced.size() + full.size());
+
+  // Changed: the old list, the own patches, and those whose rays meet the
+  // object first now.
+  std::vector<uint32_t> meets;
+  for (uint32_t texel : SortedUnion(retraced, full))
+    if (patch_tally_.At(texel).FirstHits(kk) > 0) meets.push_back(texel);
+  Finish(k, SortedUnion(SortedUnion(object.influenced, object.own), meets), update);
+  return update;
+}
+
+void ObscuranceUpdater::Finish(size_t k, const std::vector<uint32_t>& changed, ObscuranceUpdate& update) {
+  // New W of the changed patches. The lists of every dynamic object follow
+  // what their rays now meet first.
+  std::vector<std::vector<uint32_t>> add(objects_.size()), drop(objects_.size());
+  for (uint32_t texel : changed) {
+    const RayTally& tally = patch_tally_.At(texel);
     // A patch the bake's samples never reached (a sliver of a triangle in a
     // texel; depth peeling leaves such texels filled from their neighbours)
     // stays filled, as a rebake leaves it; its gutter neighbours then agree
     // with the rebake's too. After a ray-cast bake every patch is estimated.
     if (result_.estimated[texel]) {
-      result_.w[texel] = value[i];
+      result_.w[texel] = tally.Mean();
       if (texel < result_.texel_effective_samples.size())
         result_.texel_effective_samples[texel] = static_cast<float>(options_.rays_per_patch);
     }
     for (size_t j = 0; j < objects_.size(); ++j) {
       if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;
-      const bool now = std::find(met[i].begin(), met[i].end(), static_cast<int32_t>(j)) != met[i].end();
-      (now ? add[j] : drop[j]).push_back(texel);
+      (tally.FirstHits(static_cast<int32_t>(j)) > 0 ? add[j] : drop[j]).push_back(texel);
     }
   }
   for (size_t j = 0; j < objects_.size(); ++j) {
@@ -397,7 +688,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
                         std::back_inserter(kept));
     objects_[j].influenced = SortedUnion(kept, add[j]);
   }
-  update.influenced_after = static_cast<uint32_t>(object.influenced.size());
+  update.influenced_after = static_cast<uint32_t>(objects_[k].influenced.size());
 
   // Filled texels next to changed patches take the new neighbour values;
   // a gutter texel reads filled texels with surface too (FilledValue), so
@@ -430,44 +721,46 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     update.w.push_back(result_.w[texel]);
     update.intensity.push_back(result_.intensity[texel]);
   }
-  // Triangle and vertex averages over the changed texels.
+
+  // Each triangle touching a changed texel by rays of its own (its texels'
+  // mean would mix in the neighbours that share them). The plain path, the
+  // moved object's triangles, and triangles without a tally trace them in
+  // full; the fast path's other tallies are current (their affected rays
+  // were re-traced with the patches').
+  const auto triangles_start = std::chrono::steady_clock::now();
   for (uint32_t texel : texels)
     for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f)
       update.triangles.push_back(atlas_.fragments[f].triangle);
   std::sort(update.triangles.begin(), update.triangles.end());
   update.triangles.erase(std::unique(update.triangles.begin(), update.triangles.end()), update.triangles.end());
-  // Each such triangle by rays of its own (its texels' mean would mix in
-  // the neighbours that share them): as many as its texels got, for its
-  // area in texels, from one patch's worth up to kMostTexelsPerTriangle.
-  constexpr double kMostTexelsPerTriangle = 16;
+  const int32_t kk = static_cast<int32_t>(k);
+  // The moved object's tallies not recomputed below are out of date.
+  for (uint32_t t : objects_[k].triangles)
+    if (!std::binary_search(update.triangles.begin(), update.triangles.end(), t)) triangle_tally_.Erase(t);
+  std::vector<uint32_t> full;
+  for (uint32_t t : update.triangles)
+    if (options_.exhaustive || object_of_triangle_[t] == kk || !triangle_tally_.Contains(t)) full.push_back(t);
+  std::vector<RayTally> tallies(full.size());
+  ForEachIndex(full.size(), options_.threads, [&](size_t i) {
+    thread_local std::vector<PatchRay> triangle_rays;
+    GenerateTriangleRays(scene_, full[i], options_.seed, TriangleRayCount(full[i]), triangle_rays);
+    tallies[i] = TraceRays(triangle_rays);
+  });
+  for (size_t i = 0; i < full.size(); ++i) {
+    update.rays += tallies[i].rays;
+    update.triangle_rays += tallies[i].rays;
+    triangle_tally_.Set(full[i], std::move(tallies[i]));
+  }
   if (result_.triangle_effective_samples.size() != scene_.TriangleCount())
     result_.triangle_effective_samples.resize(scene_.TriangleCount(), 0.0f);
-  std::vector<glm::vec3> own(update.triangles.size());
-  std::vector<uint32_t> own_rays(update.triangles.size(), 0);
-  ForEachIndex(update.triangles.size(), options_.threads, [&](size_t i) {
-    thread_local std::vector<PatchRay> triangle_rays;
-    const uint32_t t = update.triangles[i];
-    const glm::dvec2 a = atlas_.corner_uv[3 * t], b = atlas_.corner_uv[3 * t + 1], c = atlas_.corner_uv[3 * t + 2];
-    const double texels = 0.5 * std::abs((b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x));
-    const uint32_t n = static_cast<uint32_t>(
-        std::lround(options_.rays_per_patch * std::clamp(std::round(texels), 1.0, kMostTexelsPerTriangle)));
-    GenerateTriangleRays(scene_, t, options_.seed, n, triangle_rays);
-    glm::dvec3 sum(0.0);
-    for (const PatchRay& r : triangle_rays) {
-      const InstancedRayScene::Hit hit = rays_->Closest(r.origin, r.direction, params_.d_max);
-      sum += RayValue(scene_, ambient_, params_.color_bleeding, params_.d_max, hit.hit, hit.t, hit.triangle);
-    }
-    own_rays[i] = static_cast<uint32_t>(triangle_rays.size());
-    if (!triangle_rays.empty()) own[i] = glm::vec3(sum / static_cast<double>(triangle_rays.size()));
-  });
-  for (size_t i = 0; i < update.triangles.size(); ++i) {
-    const uint32_t t = update.triangles[i];
-    result_.triangle_w[t] = own_rays[i] > 0 ? own[i] : TriangleAverage(atlas_, result_, t);
-    result_.triangle_effective_samples[t] = static_cast<float>(own_rays[i]);
+  for (uint32_t t : update.triangles) {
+    const RayTally& tally = triangle_tally_.At(t);
+    result_.triangle_w[t] = tally.rays > 0 ? tally.Mean() : TriangleAverage(atlas_, result_, t);
+    result_.triangle_effective_samples[t] = static_cast<float>(tally.rays);
     update.triangle_w.push_back(result_.triangle_w[t]);
-    update.rays += own_rays[i];
     for (int c = 0; c < 3; ++c) update.vertices.push_back(scene_.triangles[t][c]);
   }
+  update.triangles_ms = MillisecondsSince(triangles_start);
   std::sort(update.vertices.begin(), update.vertices.end());
   update.vertices.erase(std::unique(update.vertices.begin(), update.vertices.end()), update.vertices.end());
   for (uint32_t v : update.vertices) {
@@ -483,8 +776,6 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
     result_.vertex_w[v] = area > 0 ? glm::vec3(sum / area) : glm::vec3(0.0f);
     update.vertex_w.push_back(result_.vertex_w[v]);
   }
-  update.milliseconds = MillisecondsSince(start);
-  return update;
 }
 
 std::vector<uint32_t> ObscuranceUpdater::InfluencedPatches(uint32_t node) const {

@@ -6,12 +6,15 @@
 // the update latency for moving a ~1K-triangle object in Sponza. Prints a
 // table; not a test.
 //
-//   visq_bench_obscurance [--quick] [--update-only] [--scene NAME] [--atlas N] [--directions N]
+//   visq_bench_obscurance [--quick] [--update-only [--update-rays N] [--moves N] [--plain-only|--fast-only]] [--scene NAME] [--atlas N] [--directions N]
 //                         [--bundle N] [--scenes DIR]
 //   visq_bench_obscurance --coverage [--scene bunny|palm|cornell|sponza] [--atlas N] [--reference-rays N]
 //                         [--directions-list N,N,...] [--bundles N,N,...] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
-// --update-only: only the Sponza update latency.
+// --update-only: only the Sponza update latency, on the plain path and the
+// fast one (bit-for-bit comparison and ratios); --update-rays N: only N rays
+// per patch (default 16 and 64); --moves N: N moves (default 5; out and back
+// in steps of 0.2 d_max); --plain-only / --fast-only: one path (to profile).
 // --scene sponza|veach_ajar, --atlas N, --directions N: only this scene,
 // atlas resolution, direction count.
 // --bundle N: pixels across each direction's bundle (default: 2 x atlas).
@@ -28,6 +31,7 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -295,7 +299,9 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
 }  // namespace
 
 int main(int argc, char** argv) {
-  bool quick = false, update_only = false, coverage = false;
+  bool quick = false, update_only = false, coverage = false, plain_only = false, fast_only = false;
+  int moves = 5;
+  uint32_t update_rays = 0;
   uint32_t reference_rays_option = 0;
   std::vector<uint32_t> direction_list, bundle_list;
   uint32_t bundle = 0, only_directions = 0, only_atlas = 0;
@@ -304,6 +310,11 @@ int main(int argc, char** argv) {
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--quick")) quick = true;
     else if (!std::strcmp(argv[i], "--update-only")) update_only = true;
+    else if (!std::strcmp(argv[i], "--moves") && i + 1 < argc) moves = std::max(1, std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--update-rays") && i + 1 < argc)
+      update_rays = static_cast<uint32_t>(std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--plain-only")) plain_only = true;
+    else if (!std::strcmp(argv[i], "--fast-only")) fast_only = true;
     else if (!std::strcmp(argv[i], "--scene") && i + 1 < argc) only_scene = argv[++i];
     else if (!std::strcmp(argv[i], "--atlas") && i + 1 < argc) only_atlas = static_cast<uint32_t>(std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--directions") && i + 1 < argc)
@@ -414,48 +425,82 @@ int main(int argc, char** argv) {
     params.direction_count = 16;
     auto baked = gpu::BakeObscurances(**worker, **gpu_scene, *scene, *atlas, params);
     if (!baked.ok()) return 1;
-    // Each ray count twice: the plain path (every texel scanned, one ray at
-    // a time) and the fast one (patch index, ray streams); the two must end
-    // with the same W bit for bit.
-    std::vector<glm::vec3> plain_w;
-    for (uint32_t rays : {16u, 64u})
-    for (int variant = 0; variant < 3; ++variant) {
-      const bool exhaustive = variant == 0;
-      UpdaterOptions uo;
-      uo.rays_per_patch = rays;
-      uo.exhaustive = exhaustive;
-      uo.ray_streams = variant == 2;
-      auto t0 = std::chrono::steady_clock::now();
-      auto updater = ObscuranceUpdater::Create(*scene, *atlas, params, *baked, {node}, uo);
-      if (!updater.ok()) { std::printf("updater: %s\n", std::string(updater.status().message()).c_str()); return 1; }
-      const double create_s = Seconds(t0);
-      std::vector<double> ms;
+    // Each ray count on each path: the plain one (every texel scanned, every
+    // patch to recompute traced in full, one ray at a time) and the fast one
+    // (patch index, only the rays that can meet the object traced), with
+    // full traces as ray streams or not. The updaters move in turn, step by
+    // step, so that a load on the machine weighs on them alike; after the
+    // moves each fast path's W per texel, triangle and vertex is held
+    // to the plain one's, bit for bit.
+    struct Row {
+      const char* path;
+      UpdaterOptions options;
+      std::unique_ptr<ObscuranceUpdater> updater;
+      std::vector<double> ms, candidates_ms, trace_ms, triangles_ms;
       ObscuranceUpdate last;
-      for (int step = 1; step <= 5; ++step) {
-        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.02 * step * params.d_max * 10, 0, 0)) *
+      double create_s = 0;
+    };
+    std::printf("\nupdate: sponza node '%s' (%u triangles), 512^2 atlas, d_max %.2f, 5 moves of %.2f m; medians over the "
+                "moves, figures of the last move; 'differ': elements whose W is not bit for bit the plain path's\n",
+                scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, params.d_max, moves, 0.2 * params.d_max);
+    std::printf("%-22s %4s | %8s %6s | %8s %8s %8s | %7s %7s %6s %7s | %8s %8s %8s | %6s %6s %6s\n", "path", "rays",
+                "ms", "x", "cand ms", "trace ms", "tri ms", "pooled", "reach", "cand", "recomp", "rays", "tri rays",
+                "probed", "texels", "tris", "verts");
+    for (uint32_t rays : update_rays ? std::vector<uint32_t>{update_rays} : std::vector<uint32_t>{16u, 64u}) {
+      std::vector<Row> rows;
+      for (int variant = 0; variant < 3; ++variant) {
+        if (variant > 0 && plain_only) continue;
+        if (variant != 1 && fast_only) continue;
+        Row row;
+        row.path = variant == 0 ? "plain (scan, full)" : variant == 1 ? "fast (index, affected)" : "fast, full as streams";
+        row.options.rays_per_patch = rays;
+        row.options.exhaustive = variant == 0;
+        row.options.ray_streams = variant == 2;
+        auto t0 = std::chrono::steady_clock::now();
+        auto updater = ObscuranceUpdater::Create(*scene, *atlas, params, *baked, {node}, row.options);
+        if (!updater.ok()) { std::printf("updater: %s\n", std::string(updater.status().message()).c_str()); return 1; }
+        row.create_s = Seconds(t0);
+        row.updater = std::move(*updater);
+        rows.push_back(std::move(row));
+      }
+      for (int step = 1; step <= moves; ++step) {
+        // Five steps out and back, as often as asked.
+        const int out = (step - 1) % 10 < 5 ? (step - 1) % 10 + 1 : 10 - (step - 1) % 10 - 1;
+        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), glm::dvec3(0.2 * out * params.d_max, 0, 0)) *
                                  scene->nodes[node].world;
-        auto up = (*updater)->MoveNode(node, world);
-        if (!up.ok()) { std::printf("update: %s\n", std::string(up.status().message()).c_str()); return 1; }
-        ms.push_back(up->milliseconds);
-        last = *up;
+        for (Row& row : rows) {
+          auto up = row.updater->MoveNode(node, world);
+          if (!up.ok()) { std::printf("update: %s\n", std::string(up.status().message()).c_str()); return 1; }
+          row.ms.push_back(up->milliseconds);
+          row.candidates_ms.push_back(up->candidates_ms);
+          row.trace_ms.push_back(up->trace_ms);
+          row.triangles_ms.push_back(up->triangles_ms);
+          row.last = *up;
+        }
       }
-      std::sort(ms.begin(), ms.end());
-      std::printf("update sponza node '%s' (%u triangles), %u rays/patch, %s, d_max %.2f: median %.1f ms (min %.1f, max %.1f); "
-                  "last move: %u pooled, %u within reach, %u candidates, %zu texels changed, %u recomputed, %llu rays "
-                  "(move %.1f, candidates %.1f, trace %.1f ms); "
-                  "create %.2f s\n",
-                  scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, rays,
-                  variant == 0 ? "plain (scan, 1 ray)" : variant == 1 ? "index, 1 ray" : "index, streams", params.d_max, ms[2], ms[0],
-                  ms[4], last.pooled, last.within_reach, last.candidates, last.texels.size(), last.recomputed, static_cast<unsigned long long>(last.rays), last.move_ms, last.candidates_ms,
-                  last.trace_ms, create_s);
-      if (exhaustive) {
-        plain_w = (*updater)->result().w;
-      } else {
-        size_t differ = 0;
-        for (size_t t = 0; t < plain_w.size(); ++t)
-          differ += std::memcmp(&plain_w[t], &(*updater)->result().w[t], sizeof(glm::vec3)) != 0;
-        std::printf("  vs plain after 5 moves: %zu of %zu texels differ\n", differ, plain_w.size());
+      auto median = [](std::vector<double> v) {
+        std::sort(v.begin(), v.end());
+        return v[v.size() / 2];
+      };
+      auto differing = [](const std::vector<glm::vec3>& a, const std::vector<glm::vec3>& b) {
+        size_t n = 0;
+        for (size_t i = 0; i < a.size(); ++i) n += std::memcmp(&a[i], &b[i], sizeof(glm::vec3)) != 0;
+        return n;
+      };
+      // Without the plain path, the first row stands in (its 'differ' is 0).
+      const ObscuranceResult& plain = rows[0].updater->result();
+      const double plain_ms = median(rows[0].ms);
+      for (const Row& row : rows) {
+        const ObscuranceResult& r = row.updater->result();
+        const ObscuranceUpdate& u = row.last;
+        std::printf("%-22s %4u | %8.1f %6.2f | %8.1f %8.1f %8.1f | %7u %7u %6u %7u | %8llu %8llu %8llu | %6zu %6zu %6zu\n",
+                    row.path, rays, median(row.ms), median(row.ms) / plain_ms, median(row.candidates_ms),
+                    median(row.trace_ms), median(row.triangles_ms), u.pooled, u.within_reach, u.candidates, u.recomputed,
+                    static_cast<unsigned long long>(u.rays), static_cast<unsigned long long>(u.triangle_rays),
+                    static_cast<unsigned long long>(u.probed_rays), differing(plain.w, r.w),
+                    differing(plain.triangle_w, r.triangle_w), differing(plain.vertex_w, r.vertex_w));
       }
+      std::fflush(stdout);
     }
   }
   return 0;

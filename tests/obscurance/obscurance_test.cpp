@@ -496,10 +496,38 @@ TEST(ObscuranceUpdate, AgreesWithRebakeAndLeavesOthersBitIdentical) {
   EXPECT_LT(untouched_rms, 1.25 * untouched_noise / std::sqrt(2.0) + 0.002);
 }
 
+// The filter's rays are the unfiltered ones that pass it, bit for bit and in
+// order, and none left out passes a ball: for patch rays and triangle rays,
+// with the filter's targets alone and behind a bounding ball (both skip
+// samples by the cones the balls subtend before computing their directions).
+void ExpectFilteredRaysAreThePassingOnes(const std::vector<PatchRay>& all, const std::vector<PatchRay>& kept,
+                                         const DirectionFilter& filter, const std::vector<Ball>& balls,
+                                         const std::string& what) {
+  size_t next = 0;
+  for (const PatchRay& r : all) {
+    if (!filter.MayMeet(r.direction)) continue;
+    ASSERT_LT(next, kept.size()) << what;
+    ASSERT_EQ(std::memcmp(&kept[next].origin, &r.origin, sizeof(r.origin)), 0) << what;
+    ASSERT_EQ(std::memcmp(&kept[next].direction, &r.direction, sizeof(r.direction)), 0) << what;
+    ++next;
+  }
+  ASSERT_EQ(next, kept.size()) << what;
+  for (const PatchRay& r : all) {
+    if (filter.MayMeet(r.direction)) continue;
+    for (const Ball& ball : balls) {
+      const glm::dvec3 oc = ball.center - r.origin;
+      const double along = std::max(0.0, glm::dot(oc, r.direction));
+      EXPECT_GT(glm::length(oc - along * r.direction), ball.radius) << what;
+    }
+  }
+}
+
 TEST(ObscuranceRays, DirectionFilterLeavesOutOnlyRaysThatCannotReachItsBalls) {
   const Scene scene = MakeCornellBox();
   const ObscuranceAtlas atlas = Atlas(scene, 32);
-  const std::vector<Ball> balls = {{glm::dvec3(0.3, 0.2, 0.3), 0.15}, {glm::dvec3(-0.5, 0.6, -0.2), 0.05}};
+  const std::vector<Ball> balls = {{glm::dvec3(0.3, 0.2, 0.3), 0.15}, {glm::dvec3(-0.5, 0.6, -0.2), 0.05},
+                                   {glm::dvec3(0.0, 0.9, 0.1), 0.02}};
+  const std::vector<Ball> bounds = {{glm::dvec3(-0.1, 0.5, 0.05), 0.9}, {glm::dvec3(0.3, 0.2, 0.3), 0.2}};
   int patches = 0;
   size_t kept_total = 0, all_total = 0;
   std::vector<PatchRay> all, kept;
@@ -509,29 +537,26 @@ TEST(ObscuranceRays, DirectionFilterLeavesOutOnlyRaysThatCannotReachItsBalls) {
     ++patches;
     Bounds box;
     for (const PatchRay& r : all) box.Extend(r.origin);
-    const DirectionFilter filter{box.Center(), 0.5 * glm::length(box.Extent()), balls};
-    GeneratePatchRays(scene, atlas, texel, 5, 32, kept, &filter);
-    // The kept rays are the unfiltered ones that pass, bit for bit, in order.
-    size_t next = 0;
-    for (const PatchRay& r : all) {
-      if (!filter.MayMeet(r.direction)) continue;
-      ASSERT_LT(next, kept.size()) << "texel " << texel;
-      ASSERT_EQ(std::memcmp(&kept[next].origin, &r.origin, sizeof(r.origin)), 0) << "texel " << texel;
-      ASSERT_EQ(std::memcmp(&kept[next].direction, &r.direction, sizeof(r.direction)), 0) << "texel " << texel;
-      ++next;
+    for (bool bounded : {false, true}) {
+      const DirectionFilter filter{box.Center(), 0.5 * glm::length(box.Extent()), balls,
+                                   bounded ? std::span<const Ball>(bounds) : std::span<const Ball>()};
+      GeneratePatchRays(scene, atlas, texel, 5, 32, kept, &filter);
+      ExpectFilteredRaysAreThePassingOnes(all, kept, filter, balls, "texel " + std::to_string(texel));
+      if (!bounded) kept_total += kept.size();
     }
-    ASSERT_EQ(next, kept.size()) << "texel " << texel;
-    // Conservative: a ray left out passes no ball.
-    for (const PatchRay& r : all) {
-      if (filter.MayMeet(r.direction)) continue;
-      for (const Ball& ball : balls) {
-        const glm::dvec3 oc = ball.center - r.origin;
-        const double along = std::max(0.0, glm::dot(oc, r.direction));
-        EXPECT_GT(glm::length(oc - along * r.direction), ball.radius) << "texel " << texel;
-      }
-    }
-    kept_total += kept.size();
     all_total += all.size();
+  }
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    GenerateTriangleRays(scene, t, 5, 256, all);
+    if (all.empty()) continue;
+    Bounds box;
+    for (int c = 0; c < 3; ++c) box.Extend(scene.Vertex(t, c));
+    for (bool bounded : {false, true}) {
+      const DirectionFilter filter{box.Center(), 0.5 * glm::length(box.Extent()), balls,
+                                   bounded ? std::span<const Ball>(bounds) : std::span<const Ball>()};
+      GenerateTriangleRays(scene, t, 5, 256, kept, &filter);
+      ExpectFilteredRaysAreThePassingOnes(all, kept, filter, balls, "triangle " + std::to_string(t));
+    }
   }
   std::printf("%d patches: the filter kept %zu of %zu rays\n", patches, kept_total, all_total);
   EXPECT_GT(patches, 100);
@@ -659,10 +684,14 @@ TEST(PatchIndex, QueryFindsEveryBallMeetingTheBox) {
   }
 }
 
-// Candidates from the patch index give the plain scan's answers bit for bit,
-// over moves of two dynamic objects (each one's patches are candidates of
-// the other, and move with it).
-TEST(ObscuranceUpdate, PatchIndexGivesTheScansAnswers) {
+// The fast path (candidates from the patch index; only the rays that meet
+// the moved object alone before or after the move re-traced, against the
+// tallies kept since) gives the plain path's answers bit for bit (scan,
+// every patch and triangle traced in full), over moves of two dynamic
+// objects that come back near where they were (each one's patches are
+// candidates of the other, and move with it; tallies left by one object's
+// move are updated by the other's).
+TEST(ObscuranceUpdate, FastPathGivesThePlainPathsAnswersBitForBit) {
   Scene scene;
   scene.materials = {{"grey", glm::dvec3(0.5), glm::dvec3(0.0)}};
   AddQuad(scene, "floor", {-2, 0, -2}, {0, 0, 4}, {4, 0, 0}, 0);
@@ -683,14 +712,17 @@ TEST(ObscuranceUpdate, PatchIndexGivesTheScansAnswers) {
   auto fast = ObscuranceUpdater::Create(scene, atlas, params, *baked, {1, 2}, fast_options);
   ASSERT_TRUE(plain.ok() && fast.ok());
   const std::vector<std::pair<uint32_t, glm::dvec3>> moves = {
-      {1, {0.5, 0, 0.5}}, {2, {-0.6, 0, -0.3}}, {1, {0.4, 0, 0.6}}, {2, {-0.3, 0, -0.7}}};
+      {1, {0.5, 0, 0.5}}, {2, {-0.6, 0, -0.3}}, {1, {0.4, 0, 0.6}}, {2, {-0.3, 0, -0.7}},
+      {1, {-0.5, 0, -0.6}}, {2, {0.5, 0, 0.5}}};
   for (const auto& [node, offset] : moves) {
     const glm::dmat4 world = glm::translate(glm::dmat4(1.0), offset) * (*plain)->scene().nodes[node].world;
     auto a = (*plain)->MoveNode(node, world);
     auto b = (*fast)->MoveNode(node, world);
     ASSERT_TRUE(a.ok() && b.ok());
     EXPECT_EQ(a->texels, b->texels);
+    EXPECT_EQ(a->triangles, b->triangles);
     EXPECT_EQ(a->candidates, b->candidates);
+    EXPECT_LT(b->rays, a->rays);  // the fast path traces fewer rays
     EXPECT_GT(a->texels.size(), 50u);
     for (uint32_t n : {1u, 2u}) {
       EXPECT_EQ((*plain)->InfluencedPatches(n), (*fast)->InfluencedPatches(n));
