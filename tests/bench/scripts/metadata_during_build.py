@@ -1,4 +1,4 @@
-# metadata_during_build.py SERVER_BINARY SPONZA_GLTF COPIES [LABEL]
+# metadata_during_build.py SERVER_BINARY SPONZA_GLTF COPIES [LABEL] [--scaling]
 #
 # How long metadata calls take while a large scene builds its structures:
 # starts SERVER_BINARY on a free loopback port with an empty repository,
@@ -9,6 +9,11 @@
 # turn. Prints each one's p50 / p99 / max and the query's total and
 # build_ms. Not a test: figures.
 #
+# --scaling then goes on to the rest of a level's scaling table: RAYCAST
+# warm, RASTER first and warm, a first LightVisibility of 100 points on the
+# same floor, and the memory after all three (the scene's own cpu/gpu bytes,
+# its unique triangles and instances, and the server's RSS).
+#
 # Uses the generated Python stubs (tests/bench/scripts/README.md); run with
 # /usr/bin/python3 (Debian's grpcio).
 import json, os, subprocess, sys, tempfile, threading, time
@@ -17,8 +22,10 @@ sys.path.insert(0, os.environ.get("VISQ_PY_STUBS", "/tmp/visq-stubs"))
 import grpc
 from visq.v1 import visq_pb2 as pb, visq_pb2_grpc as rpc
 
-server_binary, sponza, copies = sys.argv[1], sys.argv[2], int(sys.argv[3])
-label = sys.argv[4] if len(sys.argv) > 4 else os.path.basename(server_binary)
+scaling = "--scaling" in sys.argv
+args = [a for a in sys.argv if a != "--scaling"]
+server_binary, sponza, copies = args[1], args[2], int(args[3])
+label = args[4] if len(args) > 4 else os.path.basename(server_binary)
 
 gltf = json.load(open(sponza))
 bin_name = gltf["buffers"][0]["uri"]
@@ -127,6 +134,43 @@ try:
     for name, v in times.items():
         print(f"  {name:10s} during it: {len(v):5d} calls, p50 {pct(v, 0.5):8.2f} ms, p99 {pct(v, 0.99):8.2f} ms, "
               f"max {max(v) if v else float('nan'):8.2f} ms")
+    if scaling:
+        def timed_map(method):
+            r.method = method
+            t0 = time.time()
+            for _ in stub.HiddenSampleMap(r, timeout=600):
+                pass
+            return time.time() - t0
+        raycast_warm = min(timed_map(pb.RAYCAST) for _ in range(3))
+        raster_first = timed_map(pb.RASTER)
+        raster_warm = min(timed_map(pb.RASTER) for _ in range(3))
+        lv = pb.LightVisibilityRequest()
+        lv.scene.name = "level"
+        for (x, z) in ((0, 0), (ls, 0), (ls, ls), (0, ls)):
+            v = lv.light.vertices.add()
+            v.x, v.y, v.z = mx - ls / 2 + x, lo.y + 0.75 * ey, mz - ls / 2 + z
+        lv.radiance = 1.0
+        for i in range(100):
+            p = lv.points.add()
+            p.position.x = lo.x + 0.15 * ex + 0.7 * ex * ((i % 10) + 0.5) / 10
+            p.position.y = 0.135
+            p.position.z = mz - 0.2 * ez + 0.4 * ez * ((i // 10) + 0.5) / 10
+            p.normal.y = 1.0
+        t0 = time.time()
+        stub.LightVisibility(lv, timeout=600)
+        lv_first = time.time() - t0
+        scene = stub.GetScene(pb.GetSceneRequest(name="level"), timeout=600)
+        rss = 0
+        for line in open(f"/proc/{server.pid}/status"):
+            if line.startswith("VmRSS:"):
+                rss = int(line.split()[1]) * 1024
+        mib = 1 << 20
+        print(f"  RAYCAST warm {1e3 * raycast_warm:.0f} ms; RASTER first {raster_first:.2f} s, warm "
+              f"{1e3 * raster_warm:.0f} ms; LightVisibility 100 points, first {lv_first:.2f} s")
+        print(f"  after all three: scene cpu {scene.memory.cpu_bytes / mib:.1f} MiB "
+              f"(estimated {scene.estimated_memory.cpu_bytes / mib:.1f}), gpu {scene.memory.gpu_bytes / mib:.1f} MiB; "
+              f"{scene.unique_triangle_count} unique triangles, {scene.instance_count} instances; "
+              f"server RSS {rss / mib:.0f} MiB")
 finally:
     server.terminate()
     server.wait(timeout=60)
