@@ -18,7 +18,7 @@ namespace visq::cli {
 namespace {
 
 struct BakeOptions {
-  std::string scene, png, npy, exr, partial_out;
+  std::string scene, png, npy, exr, partial_out, errors_npy;
   uint32_t resolution = 256, directions = 256, rays = 0, first_direction = 0, total_directions = 0;
   uint64_t seed = 1;
   double d_max = 0;
@@ -143,8 +143,9 @@ Status RunShard(const BakeOptions& o, const v1::ComputeObscurancesRequest& base,
   if (o.target.set() || o.rays > 0)
     return absl::InvalidArgumentError("--partial-out: a shard is a GPU bake of a direction range; not with "
                                       "--max-error, --time-budget-ms or --rays-per-patch");
-  if (!o.png.empty() || !o.npy.empty() || !o.exr.empty())
-    return absl::InvalidArgumentError("--partial-out: a shard has no W; merge the shards (obscurance-merge --npy)");
+  if (!o.png.empty() || !o.npy.empty() || !o.exr.empty() || !o.errors_npy.empty())
+    return absl::InvalidArgumentError(
+        "--partial-out: a shard has no W and no errors; merge the shards (obscurance-merge --npy)");
   v1::ComputeObscurancesRequest request = base;
   request.set_first_direction(o.first_direction);
   request.set_direction_count(o.directions);
@@ -179,6 +180,7 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
   request.set_seed(o.seed);
   request.set_color_bleeding(o.bleeding);
   request.set_force_built_atlas(o.built_atlas);
+  request.set_want_errors(!o.errors_npy.empty());
   if (!o.partial_out.empty()) return RunShard(o, request, cli);
   if (o.first_direction != 0 || o.total_directions != 0)
     return absl::InvalidArgumentError("--first-direction, --total-directions: a direction range is a shard; give "
@@ -212,8 +214,32 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
   // Row y of the array is atlas row y, as in the Python client.
   if (!o.npy.empty()) VISQ_RETURN_IF_ERROR(WriteNpy(o.npy, {f.atlas().height(), f.atlas().width(), 3}, bake->w));
   if (!o.exr.empty()) VISQ_RETURN_IF_ERROR(WriteExr(o.exr, f.atlas().width(), f.atlas().height(), 3, bake->w));
+  // Each estimated texel's own bound against the answer's single one.
+  std::vector<float> own;
+  size_t beyond = 0;
+  if (!o.errors_npy.empty()) {
+    if (bake->w_error.size() != bake->estimated.size())
+      return absl::InternalError(fmt::format("--errors-npy: the server sent {} errors for {} texels",
+                                             bake->w_error.size(), bake->estimated.size()));
+    VISQ_RETURN_IF_ERROR(WriteNpy(o.errors_npy, {f.atlas().height(), f.atlas().width()}, bake->w_error));
+    for (size_t t = 0; t < bake->estimated.size(); ++t)
+      if (bake->estimated[t]) {
+        own.push_back(bake->w_error[t]);
+        beyond += bake->w_error[t] > f.accuracy().error_bound();
+      }
+    std::sort(own.begin(), own.end());
+  }
+  auto quantile = [&own](double q) {
+    return own.empty() ? 0.0 : own[std::min(own.size() - 1, static_cast<size_t>(q * own.size()))];
+  };
   if (cli.flags.json) {
-    fmt::print("{{\"mean_w\": {}, \"estimated_texels\": {}, \"figures\": {}}}\n", mean, estimated, ToJson(f));
+    std::string errors;
+    if (!o.errors_npy.empty())
+      errors = fmt::format(", \"texel_errors\": {{\"npy\": \"{}\", \"median\": {}, \"p95\": {}, \"max\": {}, "
+                           "\"beyond_error_bound\": {}}}",
+                           o.errors_npy, quantile(0.5), quantile(0.95), quantile(1.0), beyond);
+    fmt::print("{{\"mean_w\": {}, \"estimated_texels\": {}{}, \"figures\": {}}}\n", mean, estimated, errors,
+               ToJson(f));
     return absl::OkStatus();
   }
   const auto& parameters = f.accuracy().parameters();
@@ -228,6 +254,11 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
              f.mean_samples_per_patch());
   fmt::print("error +-{:.4f} at confidence {} ({})\n", f.accuracy().error_bound(), f.accuracy().confidence(),
              f.accuracy().note());
+  if (!o.errors_npy.empty())
+    fmt::print("own texel errors: median +-{:.4f}, p95 +-{:.4f}, max +-{:.4f}; {} of {} estimated texels beyond "
+               "+-{:.4f}; wrote {}\n",
+               quantile(0.5), quantile(0.95), quantile(1.0), beyond, own.size(), f.accuracy().error_bound(),
+               o.errors_npy);
   PrintChosenPlan(f.accuracy());
   PrintTiming(f.timing());
   PrintWritten(o.png, o.npy, o.exr);
@@ -412,6 +443,10 @@ void AddObscuranceCommands(Cli& cli) {
   obscurance->add_option("--png", ob->png, "Write the W atlas as a PNG");
   obscurance->add_option("--npy", ob->npy, "Write W as a float32 .npy (atlas height, width, 3)");
   obscurance->add_option("--exr", ob->exr, "Write the W atlas as a float OpenEXR image (as the PNG)");
+  obscurance->add_option("--errors-npy", ob->errors_npy,
+                         "Also get each texel's own error bound (want_errors: its half-width at the answer's "
+                         "confidence; 1 for texels filled from neighbours) and write it as a float32 .npy (atlas "
+                         "height, width); prints their spread and how many exceed the single bound");
   AddTargetFlags(obscurance, ob->target);
   obscurance->add_option("--rays-per-patch", ob->rays,
                          "Instead of the GPU bake: the ray-cast estimator (Embree) with this many rays per patch");

@@ -10,19 +10,19 @@ set multiplot layout 2,2 title "Hidden-sample map: error against time"
 set title 'sponza'
 plot 'hidden_sample_map.dat' index 0 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'hidden_sample_map.dat' index 1 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'hidden_sample_map.dat' index 2 using 1:2 with linespoints pt 7 title "RASTER FAST h64", \
-    'hidden_sample_map.dat' index 3 using 1:2 with linespoints pt 8 title "RASTER FAST h256", \
-    'hidden_sample_map.dat' index 4 using 1:2 with linespoints pt 9 title "RASTER FAST h1024"
+    'hidden_sample_map.dat' index 2 using 1:2 with linespoints pt 7 title "RASTER HOUGH h64", \
+    'hidden_sample_map.dat' index 3 using 1:2 with linespoints pt 8 title "RASTER HOUGH h256", \
+    'hidden_sample_map.dat' index 4 using 1:2 with linespoints pt 9 title "RASTER HOUGH h1024"
 set title 'veach-ajar'
 plot 'hidden_sample_map.dat' index 5 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'hidden_sample_map.dat' index 6 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'hidden_sample_map.dat' index 7 using 1:2 with linespoints pt 7 title "RASTER FAST h256"
+    'hidden_sample_map.dat' index 7 using 1:2 with linespoints pt 7 title "RASTER HOUGH h256"
 set title 'tree'
 plot 'hidden_sample_map.dat' index 8 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'hidden_sample_map.dat' index 9 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'hidden_sample_map.dat' index 10 using 1:2 with linespoints pt 7 title "RASTER FAST h256"
+    'hidden_sample_map.dat' index 10 using 1:2 with linespoints pt 7 title "RASTER HOUGH h256"
 set title 'cornell'
 plot 'hidden_sample_map.dat' index 11 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'hidden_sample_map.dat' index 12 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'hidden_sample_map.dat' index 13 using 1:2 with linespoints pt 7 title "RASTER FAST h256"
+    'hidden_sample_map.dat' index 13 using 1:2 with linespoints pt 7 title "RASTER HOUGH h256"
 unset multiplot

@@ -10,17 +10,17 @@ set multiplot layout 2,2 title "Patch visibility: error against time"
 set title 'sponza'
 plot 'patch_visibility.dat' index 0 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'patch_visibility.dat' index 1 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'patch_visibility.dat' index 2 using 1:2 with linespoints pt 7 title "RASTER FAST h256"
+    'patch_visibility.dat' index 2 using 1:2 with linespoints pt 7 title "RASTER HOUGH h256"
 set title 'veach-ajar'
 plot 'patch_visibility.dat' index 3 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'patch_visibility.dat' index 4 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'patch_visibility.dat' index 5 using 1:2 with linespoints pt 7 title "RASTER FAST h256"
+    'patch_visibility.dat' index 5 using 1:2 with linespoints pt 7 title "RASTER HOUGH h256"
 set title 'tree'
 plot 'patch_visibility.dat' index 6 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'patch_visibility.dat' index 7 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'patch_visibility.dat' index 8 using 1:2 with linespoints pt 7 title "RASTER FAST h256"
+    'patch_visibility.dat' index 8 using 1:2 with linespoints pt 7 title "RASTER HOUGH h256"
 set title 'cornell'
 plot 'patch_visibility.dat' index 9 using 1:2 with linespoints pt 5 title "RAYCAST (Embree)", \
     'patch_visibility.dat' index 10 using 1:2 with linespoints pt 6 title "RASTER EXACT", \
-    'patch_visibility.dat' index 11 using 1:2 with linespoints pt 7 title "RASTER FAST h256"
+    'patch_visibility.dat' index 11 using 1:2 with linespoints pt 7 title "RASTER HOUGH h256"
 unset multiplot

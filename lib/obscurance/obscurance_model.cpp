@@ -182,6 +182,32 @@ ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& 
   return out;
 }
 
+double CoveredHalfWidth(double nominal_samples, double confidence) {
+  return ObscuranceHalfWidth(kCoveredShare * nominal_samples, confidence);
+}
+
+ObscuranceAnswerBound ObscuranceAnswerBoundOf(const ObscuranceResult& result, const ObscuranceBounds& bounds,
+                                              double nominal_samples, double confidence) {
+  // The per-element bounds are floats: compare them with the cap as floats.
+  const float cap = static_cast<float>(CoveredHalfWidth(nominal_samples, confidence));
+  ObscuranceAnswerBound out;
+  float widest = 0.0f;
+  auto count = [&](ObscuranceAnswerBound::Kind& kind, float own) {
+    ++kind.elements;
+    if (own > cap) ++kind.outside;
+    else widest = std::max(widest, own);
+  };
+  for (size_t i = 0; i < bounds.texel.size(); ++i)
+    if (i < result.estimated.size() && result.estimated[i]) count(out.texels, bounds.texel[i]);
+  for (size_t t = 0; t < bounds.triangle.size(); ++t)
+    if (t < result.triangle_effective_samples.size() && result.triangle_effective_samples[t] > 0)
+      count(out.triangles, bounds.triangle[t]);
+  for (float own : bounds.vertex)
+    if (own < 1.0f) count(out.vertices, own);
+  out.error_bound = widest > 0.0f ? widest : cap;
+  return out;
+}
+
 glm::dvec3 TexelReflectivity(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel) {
   glm::dvec3 r(0.0);
   double area = 0;

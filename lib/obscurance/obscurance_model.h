@@ -117,6 +117,28 @@ struct ObscuranceBounds {
 double ObscuranceHalfWidth(double effective_samples, double confidence);
 ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& result, double confidence);
 
+// One bound for a whole answer that holds for what it claims. An element
+// whose estimate rests on at least kCoveredShare of the nominal count (the
+// directions, or the rays per patch) is covered: at the confidence, its W is
+// within `error_bound`, the largest own half-width among the covered
+// elements, which is at most CoveredHalfWidth(nominal). The others (slivers
+// along a chart's edge, triangles a few samples reached) are counted outside,
+// and only their own, wider bounds hold for them. A fixed share, rather than
+// the widest bound of all, keeps one sliver from making the figure 1 and
+// lets a plan know its bound before the bake.
+inline constexpr double kCoveredShare = 0.25;
+double CoveredHalfWidth(double nominal_samples, double confidence);
+struct ObscuranceAnswerBound {
+  double error_bound = 1.0;
+  struct Kind {
+    uint64_t elements = 0;  // with an estimate of their own
+    uint64_t outside = 0;   // of those, the ones whose own bound exceeds error_bound
+  };
+  Kind texels, triangles, vertices;
+};
+ObscuranceAnswerBound ObscuranceAnswerBoundOf(const ObscuranceResult& result, const ObscuranceBounds& bounds,
+                                              double nominal_samples, double confidence);
+
 // What a triangle-level estimate rests on besides the texels: W per
 // triangle from its own samples and how many samples each estimate is worth.
 struct OwnSampleEstimates {

@@ -75,10 +75,8 @@ ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer) {
 
 namespace {
 
-// The median and 95th percentile of the per-element half-widths of one kind
-// (texel, triangle, vertex): error_bound is a patch's that every direction
-// reached; small or grazing elements rest on fewer effective directions and
-// carry wider half-widths of their own (answer.bounds).
+// The spread of the per-element half-widths of one kind (texel, triangle,
+// vertex): the median and 95th percentile.
 void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
   auto add = [&](const char* kind, const std::vector<float>& bounds, const std::vector<uint8_t>* only) {
     std::vector<float> kept;
@@ -89,18 +87,43 @@ void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
     out.parameters[absl::StrCat(kind, "_bound_median")] = kept[kept.size() / 2];
     out.parameters[absl::StrCat(kind, "_bound_p95")] = kept[std::min(kept.size() - 1, kept.size() * 95 / 100)];
   };
-  if (!answer.result) return;
   add("texel", answer.bounds.texel, &answer.result->estimated);
   add("triangle", answer.bounds.triangle, nullptr);
   add("vertex", answer.bounds.vertex, nullptr);
+}
+
+// error_bound and what it covers: with a result, the widest own half-width
+// among the elements resting on at least a quarter of the nominal count
+// (ObscuranceAnswerBoundOf), the others counted; a partial bake, which has
+// no per-element figures, states the cap itself.
+void SetCoveredBound(const ObscuranceAnswer& answer, double nominal, const char* unit, AccuracyStatement& out) {
+  const double cap = obscurance::CoveredHalfWidth(nominal, answer.confidence);
+  out.error_bound = cap;
+  const std::string rule =
+      absl::StrCat("at ", answer.confidence, ", Hoeffding's half-width for each element's own effective number of ",
+                   unit, " with values in [0, 1] per channel; error_bound holds for every element (texel, triangle, "
+                   "vertex) resting on at least ", obscurance::kCoveredShare, " x ", nominal, " ", unit,
+                   " (its own bound at most ", absl::StrFormat("%.4f", cap), ")");
+  if (!answer.result) {
+    out.note = absl::StrCat("estimate: ", rule, "; a partial bake: elements not counted");
+    return;
+  }
+  const obscurance::ObscuranceAnswerBound bound =
+      obscurance::ObscuranceAnswerBoundOf(*answer.result, answer.bounds, nominal, answer.confidence);
+  out.error_bound = bound.error_bound;
+  out.parameters["texels_outside_bound"] = static_cast<double>(bound.texels.outside);
+  out.parameters["triangles_outside_bound"] = static_cast<double>(bound.triangles.outside);
+  out.parameters["vertices_outside_bound"] = static_cast<double>(bound.vertices.outside);
   uint64_t unsampled = 0;
   for (float e : answer.result->triangle_effective_samples) unsampled += e == 0.0f;
   out.parameters["triangles_without_samples"] = static_cast<double>(unsampled);
-  out.note += absl::StrCat(
-      "; per element (texel, triangle, vertex) the same half-width for its own effective number of directions "
-      "(triangles from their own samples, vertices the area-weighted mean of their triangles'): ",
-      "parameters *_bound_median and *_bound_p95; ", unsampled,
-      " triangles got no sample (their W is their texels', with no bound)");
+  AddElementBounds(answer, out);
+  out.note = absl::StrCat(
+      "estimate: ", rule, "; outside it, with wider bounds of their own (want_errors): ", bound.texels.outside, " of ",
+      bound.texels.elements, " estimated texels, ", bound.triangles.outside, " of ", bound.triangles.elements,
+      " sampled triangles, ", bound.vertices.outside, " of ", bound.vertices.elements, " vertices; ", unsampled,
+      " triangles got no sample (their W is their texels', with no bound); the spread of the own bounds in "
+      "*_bound_median and *_bound_p95");
 }
 
 }  // namespace
@@ -111,27 +134,23 @@ AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
   if (answer.method == ObscuranceMethod::kRaycast) {
     // N rays per patch, each a value in [0, 1] per channel.
     out.method = "obscurance-raycast";
-    out.error_bound = ObscuranceErrorEstimate(answer.rays_per_patch, answer.confidence);
     out.parameters["rays_per_patch"] = static_cast<double>(answer.rays_per_patch);
-    out.note = absl::StrCat("estimate, not a bound: Hoeffding half-width at ", answer.confidence, " for ",
-                            answer.rays_per_patch,
-                            " rays per patch with values in [0, 1]; the rays are a rotated Halton sequence "
-                            "(usually better than independent), cosine-distributed from points uniform on the patch");
+    SetCoveredBound(answer, answer.rays_per_patch, "rays", out);
+    out.note += "; the rays are a rotated Halton sequence (usually better than independent), cosine-distributed "
+                "from points uniform on the patch";
   } else {
     // Per direction, a patch's value is a mean of values in [0, 1] (per
-    // channel); the directions are weighed per patch by its projected area.
+    // channel); the directions are weighed per patch by its samples.
     const uint64_t directions = answer.partial.DirectionCount();
     out.method = "obscurance-depth-peeling";
-    out.error_bound = ObscuranceErrorEstimate(directions, answer.confidence);
     out.parameters["directions"] = static_cast<double>(directions);
-    out.note = absl::StrCat(
-        "estimate, not a bound: Hoeffding half-width at ", answer.confidence, " for ", directions,
-        " independent directions with per-direction values in [0, 1]; the directions are a rotated Halton sequence "
-        "(usually better than independent) and are cosine-weighted per patch (mean ",
+    SetCoveredBound(answer, static_cast<double>(directions), "directions", out);
+    out.note += absl::StrCat(
+        "; the directions are a rotated Halton sequence (usually better than independent), each weighed per element "
+        "by its samples (mean ",
         absl::StrFormat("%.1f", CoverageOf(answer).mean_samples_per_patch),
         " samples per patch); rasterization of the bundles is not counted");
   }
-  AddElementBounds(answer, out);
   if (answer.plan) AddChosenPlan(*answer.plan, out);
   return out;
 }
@@ -210,16 +229,19 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
 
   // Counts: powers of two and the least count meeting the error, as
   // directions of the bake or rays per patch.
-  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence);
+  // A plan's bound is what its answer's error_bound can be at most: the
+  // covered elements' cap (CoveredHalfWidth), so the count meeting the error
+  // is Hoeffding's divided by the covered share.
+  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / obscurance::kCoveredShare;
   auto add_plans = [&](const char* method, const char* parameter, const std::string& plan_series, uint32_t most) {
     std::set<uint32_t> counts;
     for (uint32_t n = 8; n <= most; n *= 2) counts.insert(n);
-    if (needed <= most) counts.insert(std::max(1u, static_cast<uint32_t>(needed)));
+    if (needed <= most) counts.insert(std::max(1u, static_cast<uint32_t>(std::ceil(needed))));
     for (uint32_t n : counts) {
       Plan plan;
       plan.method = method;
       plan.parameters[parameter] = n;
-      plan.error_bound = ObscuranceErrorEstimate(n, target.confidence);
+      plan.error_bound = obscurance::CoveredHalfWidth(n, target.confidence);
       plan.work = n;
       plan.cost_key = plan_series;
       plan.predicted_ms = model.Predict(plan_series, plan.work).value_or(0.0);

@@ -86,9 +86,9 @@ struct ObscuranceAnswer {
   std::optional<PlanReport> plan;  // with a target
 };
 
-// The obscurance error figure: Hoeffding's half-width for D independent
-// directions with per-direction values in [0, 1] (an estimate: the
-// directions are a rotated Halton sequence).
+// Hoeffding's half-width for D independent directions (or rays) with values
+// in [0, 1] (an estimate: they are a rotated Halton sequence): the error
+// figure of an update's recomputed patches, each cast the same rays.
 double ObscuranceErrorEstimate(uint64_t directions, double confidence);
 
 // How many patches the bake estimated and with how many samples each, on
@@ -100,10 +100,12 @@ struct ObscuranceCoverage {
 };
 ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer);
 
-// What W and I can promise: Hoeffding's half-width over the directions (or
-// rays), stated as an estimate because the directions are a rotated Halton
-// sequence; the spread of the per-element half-widths (answer.bounds) in its
-// parameters; with a target, the chosen plan.
+// What W and I can promise: error_bound holds for the elements covered by
+// obscurance::ObscuranceAnswerBoundOf (those resting on at least a quarter of
+// the directions or rays), whose counts outside and the spread of the
+// per-element half-widths (answer.bounds) are in its parameters; stated as an
+// estimate because the directions are a rotated Halton sequence; with a
+// target, the chosen plan.
 AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer);
 
 // INVALID_ARGUMENT (naming the field) for bad parameters before any work.

@@ -237,9 +237,10 @@ bool Prepare(SceneCase& c) {
     c.volumetric.light.direction = {0.25, -1.0, 0.45};
     c.volumetric.light.intensity = 4.0;
   } else if (c.name == "veach-ajar") {
-    // A light under the ceiling over the table; the room's floor.
+    // A broad light under the ceiling over the table (a skylight's size,
+    // so that the table and chairs cast wide penumbrae); the room's floor.
     const glm::dvec3 light = {m.x, b.min.y + 0.85 * e.y, m.z};
-    PlacePatches(c, embree, light, 0.08 * std::min(e.x, e.z), m, 0.8 * e.x, 0.8 * e.z, true);
+    PlacePatches(c, embree, light, 0.3 * std::min(e.x, e.z), m, 0.8 * e.x, 0.8 * e.z, true);
     // A spot in place of that light (the room is closed to a sun), the
     // camera across the room.
     c.volumetric = BaseVolumetric(c.scene, Lerp(b, 0.15, 0.5, 0.5), Lerp(b, 0.85, 0.3, 0.5));
@@ -447,14 +448,16 @@ void SweepHiddenSampleMap(const RunSizes& plan, SceneCase& c, gpu::HiddenSampleM
                           const gpu::GpuScene& gpu_scene, const raycast::EmbreeScene& embree,
                           const ExactReference& ref, Kind& kind) {
   const bool full = Full(plan, c);
-  std::vector<int> counts = plan.counts;
+  // Embree takes every count on every scene (the error against N); the
+  // raster paths fewer where a pass is slow.
+  std::vector<int> raster_counts = plan.counts;
   std::vector<int> hough = plan.hough;
   if (!full) {
-    counts = {32, 256, 1024};  // one rasterization pass each
+    raster_counts = {32, 256, 1024};  // one rasterization pass each
     hough = {256};
   }
   const size_t texels = size_t(plan.receiver) * plan.receiver;
-  for (int n : counts) {
+  for (int n : plan.counts) {
     sampling::HiddenSampleMapRequest r;
     r.source.patch = c.source;
     r.source.sample_count = n;
@@ -475,6 +478,7 @@ void SweepHiddenSampleMap(const RunSizes& plan, SceneCase& c, gpu::HiddenSampleM
       const Stats s = AbsErrorStats(Diff(rays.visible_fraction, ref.fraction));
       Record(kind, {c.name, "RAYCAST (Embree)", setting, t.median, t.runs, {s.mean, s.p95, s.max, 0.0}, ""});
     }
+    if (std::find(raster_counts.begin(), raster_counts.end(), n) == raster_counts.end()) continue;
 
     struct Variant {
       std::string method;
@@ -662,6 +666,62 @@ void SweepPatchVisibility(const RunSizes& plan, SceneCase& c, gpu::HiddenSampleM
 // Obscurances: W per atlas texel against a GPU bake with many more
 // directions (another seed, so the sweep's sequences are not its prefixes).
 
+// How the obscurance bounds hold against the reference: the answer's
+// single bound over the texels, triangles and vertices it covers (and how
+// many it leaves outside), and each element's own bound over all of them.
+// Triangles (and vertices, all of whose triangles) whose reference rests on
+// fewer than 1024 rays are left out: the reference's noise would be counted
+// against the bake.
+std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAtlas& atlas,
+                              const obscurance::ObscuranceResult& result, const obscurance::ObscuranceResult& reference,
+                              double nominal) {
+  using namespace visq::obscurance;
+  constexpr double kConfidence = 0.95, kReferenceRays = 1024;
+  const ObscuranceBounds bounds = ObscuranceBoundsOf(scene, result, kConfidence);
+  const ObscuranceAnswerBound answer = ObscuranceAnswerBoundOf(result, bounds, nominal, kConfidence);
+  const double single = answer.error_bound;
+  struct Count {
+    size_t covered = 0, covered_within = 0, all = 0, own_within = 0;
+    void Add(double error, float own, double single) {
+      ++all;
+      own_within += error <= own;
+      if (own <= single) {
+        ++covered;
+        covered_within += error <= single;
+      }
+    }
+    std::string Share(size_t k, size_t n) const { return n ? Fmt("%.4g %%", 100.0 * double(k) / double(n)) : "–"; }
+  };
+  Count texels, triangles, vertices;
+  for (uint32_t t = 0; t < atlas.texel_count(); ++t)
+    if (atlas.Covered(t) && result.estimated[t] && reference.estimated[t])
+      texels.Add(std::abs(double(result.w[t].x) - reference.w[t].x), bounds.texel[t], single);
+  std::vector<uint8_t> vertex_ok(scene.positions.size(), 1);
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    const bool ok = reference.triangle_effective_samples[t] >= kReferenceRays && result.triangle_effective_samples[t] > 0;
+    if (!ok) {
+      for (int k = 0; k < 3; ++k) vertex_ok[scene.triangles[t][k]] = 0;
+      continue;
+    }
+    triangles.Add(std::abs(double(result.triangle_w[t].x) - reference.triangle_w[t].x), bounds.triangle[t], single);
+  }
+  std::vector<uint8_t> used(scene.positions.size(), 0);
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t)
+    for (int k = 0; k < 3; ++k) used[scene.triangles[t][k]] = 1;
+  for (size_t v = 0; v < scene.positions.size(); ++v)
+    if (used[v] && vertex_ok[v])
+      vertices.Add(std::abs(double(result.vertex_w[v].x) - reference.vertex_w[v].x), bounds.vertex[v], single);
+  return "single bound " + Fmt("%.3g", single) + " holds for texels " +
+         texels.Share(texels.covered_within, texels.covered) + " (" +
+         std::to_string(answer.texels.outside) + " outside), triangles " +
+         triangles.Share(triangles.covered_within, triangles.covered) + " (" +
+         std::to_string(answer.triangles.outside) + " outside), vertices " +
+         vertices.Share(vertices.covered_within, vertices.covered) + " (" + std::to_string(answer.vertices.outside) +
+         " outside); own bounds hold for texels " + texels.Share(texels.own_within, texels.all) + ", triangles " +
+         triangles.Share(triangles.own_within, triangles.all) + " (" + std::to_string(triangles.all) + "), vertices " +
+         vertices.Share(vertices.own_within, vertices.all) + " (" + std::to_string(vertices.all) + ")";
+}
+
 void SweepObscurances(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
                       Kind& kind) {
   using namespace visq::obscurance;
@@ -691,19 +751,20 @@ void SweepObscurances(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker
     std::string method, setting;
     Summary t;
     ObscuranceResult result;
+    double nominal = 0;  // directions or rays per patch: what the single bound rests on
   };
   std::vector<Point> points;
   const double max_bake_ms = plan.quick ? 5e3 : (full ? 40e3 : 15e3);
   double ms_per_direction = 0;
   for (uint32_t d : full ? plan.directions : std::vector<uint32_t>{4, 16, 64, 256}) {
     if (ms_per_direction * d > max_bake_ms) break;
-    Point p{"GPU depth peeling", std::to_string(d) + " dirs", {}, {}};
+    Point p{"GPU depth peeling", std::to_string(d) + " dirs", {}, {}, double(d)};
     Time(plan.repeats, [&] { p.result = bake(d, 1); return true; }, p.t);
     ms_per_direction = p.t.median / d;
     points.push_back(std::move(p));
   }
   for (uint32_t n : full ? plan.rays_per_patch : std::vector<uint32_t>{4, 16, 64}) {
-    Point p{"Embree rays (CPU)", std::to_string(n) + " rays/patch", {}, {}};
+    Point p{"Embree rays (CPU)", std::to_string(n) + " rays/patch", {}, {}, double(n)};
     Time(plan.repeats, [&] { p.result = rays(n, 1); return true; }, p.t);
     points.push_back(std::move(p));
   }
@@ -724,7 +785,11 @@ void SweepObscurances(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker
                        "costs " + Fmt("%.0f", ms_per_direction) + " ms per direction, so a converged GPU bake "
                        "(thousands of directions) does not fit in the run. GPU bakes stop before one would take "
                        "more than " + Fmt("%.0f", max_bake_ms / 1000) + " s. The Embree times include building "
-                       "its BVH, which every call does.");
+                       "its BVH, which every call does. Bounds (the note column) at 95 %: the answer's single bound "
+                       "(ObscuranceAnswerBoundOf, what ComputeObscurances states) over the elements it covers, how "
+                       "many it leaves outside, and each element's own bound (want_errors), against the reference "
+                       "per texel, per triangle and per vertex; triangles and vertices only where the reference "
+                       "rests on at least 1024 rays of their own (its own half-width 0.042).");
   for (const Point& p : points) {
     std::vector<double> d;
     for (uint32_t texel = 0; texel < atlas.texel_count(); ++texel)
@@ -735,7 +800,8 @@ void SweepObscurances(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker
     const Stats s = AbsErrorStats(d);
     Record(kind, {c.name, p.method, p.setting, p.t.median, p.t.runs,
                   {s.mean, s.p95, s.max, d.empty() ? kNaN : std::sqrt(sq / double(d.size()))},
-                  Fmt("%.0f samples/patch", p.result.mean_samples_per_patch)});
+                  Fmt("%.0f samples/patch", p.result.mean_samples_per_patch) + "; " +
+                      BoundCoverageNote(c.scene, atlas, p.result, reference, p.nominal)});
   }
 }
 
@@ -1037,6 +1103,57 @@ void WriteReport(const fs::path& md, const std::string& plot_dir_name, const std
         << Num(t.chosen_ms) << " | " << Cell(t.cheapest) << " | " << Num(t.cheapest_ms) << " | "
         << Fmt("%.2f", t.chosen_ms / std::max(t.cheapest_ms, 1e-9)) << " |\n";
     o << "\n";
+  }
+
+  // Error against N: the hidden-sample map's sample counts, Embree casting
+  // the segments (RASTER EXACT gives the same bits), per scene.
+  for (const Kind& kind : kinds) {
+    if (kind.key != "hidden_sample_map") continue;
+    const std::vector<std::string> scenes = Unique(kind.rows, &Row::scene);
+    std::vector<std::string> settings;
+    for (const Row& r : kind.rows)
+      if (r.method == "RAYCAST (Embree)" && std::find(settings.begin(), settings.end(), r.setting) == settings.end())
+        settings.push_back(r.setting);
+    if (settings.empty() || scenes.empty()) continue;
+    o << "## Hidden-sample map: error against N\n\n"
+      << "The mean |visible fraction − exact| over the receiver texels (and its 95th percentile) against the number "
+         "of source samples N, with RAYCAST (Embree casting the segments; RASTER EXACT gives the same bits), per "
+         "scene. Jittered samples, stratified for every N. The last row is the slope of log error against log N "
+         "(least squares over the rows): −0.5 is the 1/√N of independent samples; stratification can fall "
+         "faster.\n\n| N";
+    for (const std::string& scene : scenes) o << " | " << scene << " mean | p95";
+    o << " |\n|---";
+    for (size_t i = 0; i < scenes.size(); ++i) o << "|---:|---:";
+    o << "|\n";
+    for (const std::string& setting : settings) {
+      o << "| " << (setting.rfind("N=", 0) == 0 ? setting.substr(2) : setting);
+      for (const std::string& scene : scenes) {
+        const Row* found = nullptr;
+        for (const Row& r : kind.rows)
+          if (r.scene == scene && r.method == "RAYCAST (Embree)" && r.setting == setting) found = &r;
+        if (found) o << " | " << Num(found->err[0], true) << " | " << Num(found->err[1], true);
+        else o << " | – | –";
+      }
+      o << " |\n";
+    }
+    o << "| slope";
+    for (const std::string& scene : scenes)
+      for (int column = 0; column < 2; ++column) {
+        double sx = 0, sy = 0, sxx = 0, sxy = 0;
+        int n = 0;
+        for (const Row& r : kind.rows) {
+          if (r.scene != scene || r.method != "RAYCAST (Embree)" || !(r.err[column] > 0)) continue;
+          const double x = std::log(std::atof(r.setting.c_str() + 2)), y = std::log(r.err[column]);
+          sx += x;
+          sy += y;
+          sxx += x * x;
+          sxy += x * y;
+          ++n;
+        }
+        const double denominator = n * sxx - sx * sx;
+        o << " | " << (n >= 2 && denominator > 0 ? Fmt("%.2f", (n * sxy - sx * sy) / denominator) : "–");
+      }
+    o << " |\n\n";
   }
 
   // Per kind.

@@ -227,10 +227,42 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
       auto baked = gpu::BakeObscurances(worker, **gpu_scene, *scene, *atlas, params, {}, &stats);
       if (!baked.ok()) { std::printf("bake: %s\n", std::string(baked.status().message()).c_str()); return 1; }
       const double bake_s = Seconds(t0);
-      const double stated = ObscuranceHalfWidth(static_cast<double>(d), confidence);
+      // The answer's single bound (what ComputeObscurances states) and the
+      // elements it covers; Hoeffding over every direction for comparison.
       const ObscuranceBounds bounds = ObscuranceBoundsOf(*scene, *baked, confidence);
+      const ObscuranceAnswerBound answer_bound = ObscuranceAnswerBoundOf(*baked, bounds, d, confidence);
+      const double stated = answer_bound.error_bound;
       std::vector<uint8_t> use_texels(atlas->texel_count(), 0);
       for (uint32_t t = 0; t < atlas->texel_count(); ++t) use_texels[t] = texel_use[t] && baked->estimated[t];
+      {
+        std::vector<uint8_t> texel_in(use_texels.size(), 0), triangle_in(triangle_use.size(), 0),
+            vertex_in(vertex_use.size(), 0);
+        for (size_t t = 0; t < texel_in.size(); ++t) texel_in[t] = use_texels[t] && bounds.texel[t] <= stated;
+        for (size_t t = 0; t < triangle_in.size(); ++t) triangle_in[t] = triangle_use[t] && bounds.triangle[t] <= stated;
+        for (size_t v = 0; v < vertex_in.size(); ++v) vertex_in[v] = vertex_use[v] && bounds.vertex[v] <= stated;
+        const double all_directions = ObscuranceHalfWidth(static_cast<double>(d), confidence);
+        auto within = [&](const std::vector<glm::vec3>& estimate, const std::vector<glm::vec3>& reference,
+                          const std::vector<uint8_t>& use, double bound) {
+          return Compare(estimate, reference, use, 0, bound, nullptr);
+        };
+        const ErrorFigures tc = within(baked->w, texel_reference_w, texel_in, stated);
+        const ErrorFigures ta = within(baked->w, texel_reference_w, use_texels, stated);
+        const ErrorFigures th = within(baked->w, texel_reference_w, use_texels, all_directions);
+        const ErrorFigures rc = within(baked->triangle_w, triangle_reference, triangle_in, stated);
+        const ErrorFigures ra = within(baked->triangle_w, triangle_reference, triangle_use, stated);
+        const ErrorFigures rh = within(baked->triangle_w, triangle_reference, triangle_use, all_directions);
+        const ErrorFigures vc = within(baked->vertex_w, vertex_reference, vertex_in, stated);
+        const ErrorFigures va = within(baked->vertex_w, vertex_reference, vertex_use, stated);
+        std::printf("  single bound %.4f (Hoeffding over all %u directions: %.4f): within it, covered / all / all at "
+                    "the Hoeffding figure: texels %.4f (%zu) / %.4f (%zu) / %.4f, triangles %.4f (%zu) / %.4f (%zu) / "
+                    "%.4f, vertices %.4f (%zu) / %.4f (%zu); outside: %llu texels, %llu triangles, %llu vertices\n",
+                    stated, d, all_directions, tc.within_stated, tc.elements, ta.within_stated, ta.elements,
+                    th.within_stated, rc.within_stated, rc.elements, ra.within_stated, ra.elements, rh.within_stated,
+                    vc.within_stated, vc.elements, va.within_stated, va.elements,
+                    static_cast<unsigned long long>(answer_bound.texels.outside),
+                    static_cast<unsigned long long>(answer_bound.triangles.outside),
+                    static_cast<unsigned long long>(answer_bound.vertices.outside));
+      }
       const ErrorFigures texel = Compare(baked->w, texel_reference_w, use_texels, texel_ref_var, stated, &bounds.texel);
       // Texels the surface covers nearly whole (built atlases: a texel's
       // world area is 1 / texels_per_unit^2, up to the chart's tilt): a

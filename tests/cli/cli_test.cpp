@@ -359,6 +359,46 @@ TEST_F(CliTest, VoxelizePngKeepsTheBoxAspectRatio) {
   EXPECT_TRUE(Contains(help.output, "over the fullest column's")) << help.output;
 }
 
+// --errors-npy asks for want_errors: each texel's own bound, written as
+// (height, width), 1 on texels filled from neighbours; the JSON's count of
+// texels beyond the single bound is the server's own count, and a shard,
+// which has no W, refuses the flag by name.
+TEST_F(CliTest, ObscuranceErrorsNpyHoldsEachTexelsOwnBound) {
+  const fs::path d = scratch_.path();
+  const std::string bake = Server() + " obscurance --scene " + kScene + " --d-max 0.5 --resolution 32 --directions 16";
+  const CliRun run = Visq(bake + " --json --errors-npy " + (d / "errors.npy").string());
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  // The progress bar (stderr, no braces) comes first.
+  ASSERT_NE(run.output.find('{'), std::string::npos) << run.output;
+  const auto json = nlohmann::json::parse(run.output.substr(run.output.find('{')));
+  const Npy errors = ReadNpy(d / "errors.npy");
+  ASSERT_EQ(errors.shape, (std::vector<size_t>{32, 32}));
+  const double stated = json["figures"]["accuracy"]["error_bound"];
+  size_t filled = 0, beyond = 0;
+  for (float e : errors.values) {
+    EXPECT_TRUE(e > 0.0f && e <= 1.0f) << e;
+    filled += e == 1.0f;
+    beyond += e > stated && e < 1.0f;
+  }
+  const auto& texel_errors = json["texel_errors"];
+  EXPECT_EQ(texel_errors["beyond_error_bound"].get<double>(),
+            json["figures"]["accuracy"]["parameters"]["texels_outside_bound"].get<double>());
+  EXPECT_LE(beyond, texel_errors["beyond_error_bound"].get<size_t>()) << "estimated texels beyond, below 1";
+  EXPECT_GT(filled, 0u) << "the atlas has gutter texels";
+  EXPECT_LE(texel_errors["median"].get<double>(), stated) << "most texels are within the single bound";
+  EXPECT_GE(texel_errors["max"].get<double>(), texel_errors["p95"].get<double>());
+  // The human-readable line, and the flag in the help.
+  const CliRun plain = Visq(bake + " --errors-npy " + (d / "plain.npy").string());
+  ASSERT_EQ(plain.exit_code, 0) << plain.output;
+  EXPECT_TRUE(Contains(plain.output, "own texel errors: median")) << plain.output;
+  EXPECT_TRUE(Contains(Visq("obscurance --help").output, "--errors-npy"));
+  const CliRun shard = Visq(bake + " --partial-out " + (d / "s.vqp").string() + " --errors-npy " +
+                            (d / "s.npy").string());
+  EXPECT_EQ(shard.exit_code, 2) << shard.output;
+  EXPECT_TRUE(Contains(shard.output, "--partial-out: a shard has no W and no errors")) << shard.output;
+  EXPECT_FALSE(fs::exists(d / "s.npy"));
+}
+
 TEST_F(CliTest, FarmBakeShardsMergeToTheWholeBakeBitForBit) {
   const fs::path d = scratch_.path();
   const std::string bake = Server() + " obscurance --scene " + kScene + " --d-max 0.5 --resolution 32";

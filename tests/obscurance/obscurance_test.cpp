@@ -1134,5 +1134,90 @@ TEST(ObscuranceBake, TriangleAndVertexWHoldTheirBoundWhenTexelsAreLargerThanTria
   EXPECT_LT(own_rms[1], 0.5 * mixed_rms[1]);
 }
 
+// The answer's single bound against Embree rays cast from each texel and
+// each triangle (knowing nothing of the bake): it must hold for at least the
+// stated share of the elements it covers, and so for at least that share of
+// the covered count among all estimated elements, slivers included. Many
+// charts give sliver texels along their edges; the figure of Hoeffding over
+// every direction (the single bound before) is shown beside it.
+void ExpectSingleBoundHolds(const Scene& scene, uint32_t resolution, double d_max, uint32_t reference_rays,
+                            std::initializer_list<uint32_t> direction_counts) {
+  const ObscuranceAtlas atlas = Atlas(scene, resolution);
+  ObscuranceParams params;
+  params.d_max = d_max;
+  RayEstimateOptions ref_options;
+  ref_options.rays_per_patch = reference_rays;
+  ref_options.seed = 4242;
+  auto texel_reference = EstimateObscurancesByRays(scene, atlas, params, ref_options);
+  auto triangle_reference = EstimateTriangleObscuranceByRays(scene, params, ref_options);
+  ASSERT_TRUE(texel_reference.ok() && triangle_reference.ok());
+  const double confidence = 0.95;
+  for (uint32_t directions : direction_counts) {
+    params.direction_count = directions;
+    const Baked baked = Bake(scene, atlas, params);
+    const ObscuranceBounds bounds = ObscuranceBoundsOf(scene, baked.result, confidence);
+    const ObscuranceAnswerBound answer = ObscuranceAnswerBoundOf(baked.result, bounds, directions, confidence);
+    const double stated = answer.error_bound;
+    ASSERT_LE(stated, CoveredHalfWidth(directions, confidence) * (1 + 1e-6)) << "no looser than a plan expects";
+    // Texels: estimated by both; slivers are those whose surface covers
+    // under 90 % of the texel.
+    std::vector<uint8_t> texels(atlas.texel_count(), 0), covered(atlas.texel_count(), 0),
+        slivers(atlas.texel_count(), 0);
+    size_t sliver_count = 0;
+    for (uint32_t t = 0; t < atlas.texel_count(); ++t) {
+      texels[t] = baked.result.estimated[t] && texel_reference->estimated[t];
+      covered[t] = texels[t] && bounds.texel[t] <= stated;
+      double area = 0;
+      for (uint32_t f = atlas.texel_begin[t]; f < atlas.texel_begin[t + 1]; ++f) area += atlas.fragments[f].world_area;
+      slivers[t] = texels[t] && area * atlas.texels_per_unit * atlas.texels_per_unit < 0.9;
+      sliver_count += slivers[t];
+    }
+    std::vector<uint8_t> triangles(scene.TriangleCount(), 0), covered_triangles(scene.TriangleCount(), 0);
+    for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+      triangles[t] = baked.result.triangle_effective_samples[t] > 0;
+      covered_triangles[t] = triangles[t] && bounds.triangle[t] <= stated;
+    }
+    const Coverage texel_in = CoverageWithin(baked.result.w, texel_reference->w, covered, stated);
+    const Coverage texel_all = CoverageWithin(baked.result.w, texel_reference->w, texels, stated);
+    const Coverage sliver_all = CoverageWithin(baked.result.w, texel_reference->w, slivers, stated);
+    size_t covered_slivers = 0;
+    for (uint32_t t = 0; t < atlas.texel_count(); ++t) covered_slivers += slivers[t] && covered[t];
+    const double every_direction = ObscuranceHalfWidth(directions, confidence);
+    const Coverage sliver_before = CoverageWithin(baked.result.w, texel_reference->w, slivers, every_direction);
+    const Coverage triangle_in = CoverageWithin(baked.result.triangle_w, *triangle_reference, covered_triangles, stated);
+    const Coverage triangle_all = CoverageWithin(baked.result.triangle_w, *triangle_reference, triangles, stated);
+    std::printf("%u directions: single bound %.4f (Hoeffding over every direction %.4f)\n"
+                "  texels: %zu covered, within %.4f; of all %zu, within %.4f; %zu slivers (%zu covered) within %.4f (%.4f at "
+                "Hoeffding over every direction); %llu outside\n"
+                "  triangles: %zu covered, within %.4f; of all %zu sampled, within %.4f; %llu outside\n",
+                directions, stated, every_direction, texel_in.n, texel_in.within, texel_all.n, texel_all.within,
+                sliver_all.n, covered_slivers, sliver_all.within, sliver_before.within,
+                static_cast<unsigned long long>(answer.texels.outside), triangle_in.n, triangle_in.within,
+                triangle_all.n, triangle_all.within, static_cast<unsigned long long>(answer.triangles.outside));
+    ASSERT_GT(sliver_count, 100u) << "the case needs sliver texels";
+    EXPECT_GT(texel_in.n, texel_all.n / 2);
+    EXPECT_GE(texel_in.within, confidence);
+    EXPECT_GE(texel_all.within, confidence * texel_in.n / texel_all.n);
+    EXPECT_GE(sliver_all.within, confidence * covered_slivers / sliver_all.n);
+    EXPECT_GT(triangle_in.n, 0u);
+    EXPECT_GE(triangle_in.within, confidence);
+    EXPECT_GE(triangle_all.within, confidence * triangle_in.n / triangle_all.n);
+  }
+}
+
+
+TEST(ObscuranceBake, SingleBoundHoldsForTheStatedShareOfTexelsAndTriangles) {
+  ExpectSingleBoundHolds(PotUnderLeaves(), 96, 0.5, 1024, {16u, 64u});
+}
+
+// The same on a scanned model whose triangles are smaller than the texels,
+// with many charts and slivers.
+TEST(ObscuranceBake, SingleBoundHoldsOnTheSharedBunny) {
+  VISQ_REQUIRE_SHARED_SCENES(dir);
+  auto scene = LoadGltfFile(dir / "bunny" / "bunny.gltf");
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  ExpectSingleBoundHolds(*scene, 128, 0.2 * glm::length(scene->bounds.Extent()), 128, {64u});
+}
+
 }  // namespace
 }  // namespace visq::obscurance
