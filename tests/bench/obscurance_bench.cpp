@@ -472,7 +472,7 @@ int main(int argc, char** argv) {
       ObscuranceUpdate last;
       double create_s = 0;
     };
-    std::printf("\nupdate: sponza node '%s' (%u triangles), 512^2 atlas, d_max %.2f, 5 moves of %.2f m; medians over the "
+    std::printf("\nupdate: sponza node '%s' (%u triangles), 512^2 atlas, d_max %.2f, %d moves of %.2f m; medians over the "
                 "moves, figures of the last move; 'differ': elements whose W is not bit for bit the plain path's\n",
                 scene->nodes[node].name.c_str(), scene->nodes[node].triangle_count, params.d_max, moves, 0.2 * params.d_max);
     std::printf("%-22s %4s | %8s %6s | %8s %8s %8s | %7s %7s %6s %7s | %8s %8s %8s | %6s %6s %6s\n", "path", "rays",
