@@ -214,22 +214,28 @@ InstancedRayScene::Hit InstancedRayScene::Closest(const glm::dvec3& origin, cons
   return impl_->HitOf(rh);
 }
 
-bool InstancedRayScene::HitsObject(size_t object, const glm::dvec3& origin, const glm::dvec3& direction,
-                                   double tmax) const {
-  RTCRayHit rh = MakeRay(origin, impl_->origin, direction, impl_->t_min, tmax);
+namespace {
+
+// Whether anything in `scene` meets the ray in (t_min, tmax].
+bool Occludes(RTCScene scene, const glm::dvec3& frame_origin, double t_min, const glm::dvec3& origin,
+              const glm::dvec3& direction, double tmax) {
+  RTCRayHit rh = MakeRay(origin, frame_origin, direction, t_min, tmax);
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
-  rtcOccluded1(impl_->object_alone[object], &context, &rh.ray);
+  rtcOccluded1(scene, &context, &rh.ray);
   return rh.ray.tfar < 0;  // Embree sets tfar = -inf on a hit
+}
+
+}  // namespace
+
+bool InstancedRayScene::HitsObject(size_t object, const glm::dvec3& origin, const glm::dvec3& direction,
+                                   double tmax) const {
+  return Occludes(impl_->object_alone[object], impl_->origin, impl_->t_min, origin, direction, tmax);
 }
 
 bool InstancedRayScene::HitsProbe(size_t object, const glm::dvec3& origin, const glm::dvec3& direction,
                                   double tmax) const {
-  RTCRayHit rh = MakeRay(origin, impl_->origin, direction, impl_->t_min, tmax);
-  RTCIntersectContext context;
-  rtcInitIntersectContext(&context);
-  rtcOccluded1(impl_->object_probe[object], &context, &rh.ray);
-  return rh.ray.tfar < 0;
+  return Occludes(impl_->object_probe[object], impl_->origin, impl_->t_min, origin, direction, tmax);
 }
 
 }  // namespace visq::obscurance

@@ -430,20 +430,26 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNode(uint32_t node, const glm:
   return update;
 }
 
+Status ObscuranceUpdater::MoveObjectPositions(size_t k, const glm::dmat4& new_world, ObscuranceUpdate& update) {
+  Object& object = objects_[k];
+  update.influenced_before = static_cast<uint32_t>(object.influenced.size());
+  update.own_patches = static_cast<uint32_t>(object.own.size());
+  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, object.node, new_world));
+  ComputePatchBounds(object.own);
+  for (uint32_t t : object.triangles) triangle_plane_[t] = TrianglePlane(scene_, t);
+  return absl::OkStatus();
+}
+
 StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodePlain(size_t k, const glm::dmat4& new_world) {
   const auto start = std::chrono::steady_clock::now();
   Object& object = objects_[k];
   ObscuranceUpdate update;
-  update.influenced_before = static_cast<uint32_t>(object.influenced.size());
-  update.own_patches = static_cast<uint32_t>(object.own.size());
 
   // Move the geometry: scene positions (for ray origins on the object) and
   // the instance transform (for the rays).
-  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, object.node, new_world));
+  VISQ_RETURN_IF_ERROR(MoveObjectPositions(k, new_world, update));
   rays_->SetTransform(k, new_world * glm::inverse(object.pose_at_build));
   rays_->Commit();
-  ComputePatchBounds(object.own);
-  for (uint32_t t : object.triangles) triangle_plane_[t] = TrianglePlane(scene_, t);
   const auto moved = std::chrono::steady_clock::now();
   update.move_ms = MillisecondsBetween(start, moved);
 
@@ -476,17 +482,13 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
   const auto start = std::chrono::steady_clock::now();
   Object& object = objects_[k];
   ObscuranceUpdate update;
-  update.influenced_before = static_cast<uint32_t>(object.influenced.size());
-  update.own_patches = static_cast<uint32_t>(object.own.size());
   const int32_t kk = static_cast<int32_t>(k);
 
   // Move the scene positions (rays leaving the object start there) and the
   // probe; the Embree scene keeps the object where it was until the old
   // values of the affected rays are traced.
   const std::vector<Ball> old_balls = ClusterBalls(object);
-  VISQ_RETURN_IF_ERROR(MoveNodeSubtree(scene_, object.node, new_world));
-  ComputePatchBounds(object.own);
-  for (uint32_t t : object.triangles) triangle_plane_[t] = TrianglePlane(scene_, t);
+  VISQ_RETURN_IF_ERROR(MoveObjectPositions(k, new_world, update));
   const std::vector<Ball> new_balls = ClusterBalls(object);
   const glm::dmat4 delta = new_world * glm::inverse(object.pose_at_build);
   rays_->SetProbeTransform(k, delta);

@@ -178,6 +178,10 @@ class ObscuranceUpdater {
   // it is now (the probe), the ones whose old first hits leave `out.tally`.
   void FindAffectedRays(size_t k, const std::vector<PatchRay>& rays, const std::vector<Ball>& old_balls,
                         const std::vector<Ball>& new_balls, Retrace& out, uint64_t& traced) const;
+  // Moves object k's triangles in the scene, with the patch bounds and
+  // triangle planes that follow from their positions; the figures of an
+  // update that begins with it.
+  [[nodiscard]] Status MoveObjectPositions(size_t k, const glm::dmat4& new_world, ObscuranceUpdate& update);
   StatusOr<ObscuranceUpdate> MoveNodeFast(size_t k, const glm::dmat4& new_world);
   StatusOr<ObscuranceUpdate> MoveNodePlain(size_t k, const glm::dmat4& new_world);
   // What both paths share once the changed patches have new tallies: W,
