@@ -177,6 +177,7 @@ size_t EmbreeScene::instanced_triangle_count() const { return instancing_ ? inst
 namespace {
 
 struct UploadFrame {
+  Bounds bounds;  // of the positions, world space
   glm::dvec3 origin;
   double extent;
 };
@@ -185,7 +186,8 @@ UploadFrame FrameOf(const Scene& scene, const EmbreeSceneOptions& options) {
   Bounds bounds;
   for (const auto& p : scene.positions) bounds.Extend(p);
   const glm::dvec3 ext = bounds.Empty() ? glm::dvec3(0.0) : bounds.Extent();
-  return {options.origin.value_or(bounds.Empty() ? glm::dvec3(0.0) : bounds.Center()), std::max({ext.x, ext.y, ext.z})};
+  return {bounds, options.origin.value_or(bounds.Empty() ? glm::dvec3(0.0) : bounds.Center()),
+          std::max({ext.x, ext.y, ext.z})};
 }
 
 std::vector<uint8_t> PlacementsToInstance(const Scene& scene, const EmbreeSceneOptions& options, const UploadFrame& frame) {
@@ -274,12 +276,10 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
     }
   }
   EmbreeScene out;
-  Bounds bounds;
-  for (const auto& p : scene.positions) bounds.Extend(p);
   const UploadFrame frame = FrameOf(scene, options);
   out.origin_ = frame.origin;
   out.extent_ = frame.extent;
-  out.bounds_ = bounds;
+  out.bounds_ = frame.bounds;
   out.triangle_count_ = scene.triangles.size();
 
   t_last_embree_error.clear();
