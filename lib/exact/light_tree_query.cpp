@@ -134,6 +134,12 @@ class PyramidCull {
   std::vector<Sides> triangle_sides_;
 };
 
+bool LightTree::StoresAnswer(const QueryPoint& q, bool want_polygons) const {
+  const AnswerKey key = KeyOf(q, want_polygons);
+  std::shared_lock lock(answers_mutex);
+  return answers.contains(key);
+}
+
 StatusOr<PointVisibility> LightTree::Query(const QueryPoint& q, bool want_polygons, const StopToken& stop) {
   const AnswerKey key = KeyOf(q, want_polygons);
   {

@@ -34,6 +34,10 @@ StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bo
   return impl_->Query(point, want_polygons, stop);
 }
 
+bool LightVisibilityTree::StoresAnswer(const QueryPoint& point, bool want_polygons) const {
+  return impl_->StoresAnswer(point, want_polygons);
+}
+
 StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
     std::span<const QueryPoint> points, int threads, bool want_polygons,
     std::chrono::steady_clock::time_point deadline) {

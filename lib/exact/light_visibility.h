@@ -251,6 +251,8 @@ class LightVisibilityTree {
   // re-render, a client's retry) then costs a hash lookup per point.
   [[nodiscard]] StatusOr<PointVisibility> Query(const QueryPoint& point, bool want_polygons = false,
                                                 const StopToken& stop = {});
+  // Whether Query would answer `point` from the store (no counts change).
+  bool StoresAnswer(const QueryPoint& point, bool want_polygons = false) const;
   // Queries in parallel on `threads` workers (0: hardware concurrency).
   // DEADLINE_EXCEEDED once `deadline` passes (checked between points and
   // inside them), so a batch whose caller gave up stops.
@@ -343,6 +345,9 @@ class LightVisibilityCache {
   [[nodiscard]] StatusOr<std::shared_ptr<LightVisibilityTree>> GetOrCreate(const CacheKey& key,
                                                                            const Factory& make);
   std::shared_ptr<LightVisibilityTree> Find(const CacheKey& key);
+  // The key's tree if it is held, without counting as a use (a planner
+  // asking what a batch would build and which answers it holds).
+  std::shared_ptr<LightVisibilityTree> Peek(const CacheKey& key) const;
   // Drops every tree of the scene (all versions).
   void InvalidateScene(const std::string& scene_id);
 

@@ -36,6 +36,12 @@ std::shared_ptr<LightVisibilityTree> LightVisibilityCache::Find(const CacheKey& 
   return it->second->second;
 }
 
+std::shared_ptr<LightVisibilityTree> LightVisibilityCache::Peek(const CacheKey& key) const {
+  std::lock_guard lock(mutex_);
+  auto it = index_.find(key);
+  return it == index_.end() ? nullptr : it->second->second;
+}
+
 StatusOr<std::shared_ptr<LightVisibilityTree>> LightVisibilityCache::GetOrCreate(
     const CacheKey& key, const Factory& make) {
   if (auto hit = Find(key)) return hit;

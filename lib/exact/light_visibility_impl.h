@@ -608,6 +608,8 @@ struct LightTree {
 
   // The answer from the store, or a new one, kept while the store has room.
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop);
+  // Whether Query would answer from the store.
+  bool StoresAnswer(const QueryPoint& q, bool want_polygons) const;
 
   // The answer to one query, from scratch.
   StatusOr<PointVisibility> Compute(const QueryPoint& q, bool want_polygons, const StopToken& stop);

@@ -1,6 +1,7 @@
 #include "core/accuracy_planner.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <fstream>
 #include <limits>
@@ -27,13 +28,16 @@ std::string CostSeries(const std::string& scene, const std::string& kind, const 
   return absl::StrCat(scene, "/", kind, "/", method);
 }
 
-void CostModel::Record(const std::string& series, double work, double ms) {
-  if (!std::isfinite(work) || !std::isfinite(ms) || work <= 0.0 || ms < 0.0) return;
+void CostModel::Record(const std::string& series, double work, double ms, double extra) {
+  // A run of no work in either unit (the exact method answering from its
+  // trees' stores) is kept: it measures the fixed cost.
+  if (!std::isfinite(work) || !std::isfinite(ms) || !std::isfinite(extra) || work < 0.0 || extra < 0.0 || ms < 0.0)
+    return;
   if (series.find_first_of("\t\n") != std::string::npos) return;  // the file's separators
   std::lock_guard lock(mutex_);
   if (!series_.contains(series) && series_.size() >= kSeriesKept) series_.erase(series_.begin());
   auto& observations = series_[series];
-  observations.push_back({work, ms});
+  observations.push_back({work, ms, extra});
   if (observations.size() > kObservationsKept) observations.pop_front();
   SaveLocked();
 }
@@ -45,7 +49,8 @@ size_t CostModel::Observations(const std::string& series) const {
 }
 
 // One observation a line: series, work and ms, tab-separated (Record keeps
-// no series holding a tab or newline).
+// no series holding a tab or newline), then the extra work where there is
+// any (a file of one unit reads as before).
 void CostModel::PersistTo(const std::filesystem::path& path) {
   std::lock_guard lock(mutex_);
   file_ = path;
@@ -63,13 +68,16 @@ void CostModel::PersistTo(const std::filesystem::path& path) {
   while (in && std::getline(in, line)) {
     const size_t tab1 = line.find('\t'), tab2 = tab1 == std::string::npos ? tab1 : line.find('\t', tab1 + 1);
     if (tab2 == std::string::npos || tab1 == 0) continue;
-    double work = 0.0, ms = 0.0;
+    double work = 0.0, ms = 0.0, extra = 0.0;
     std::istringstream numbers(line.substr(tab1 + 1));
-    if (!(numbers >> work >> ms) || !std::isfinite(work) || !std::isfinite(ms) || work <= 0.0 || ms < 0.0) continue;
+    if (!(numbers >> work >> ms)) continue;
+    if (!(numbers >> extra)) extra = 0.0;
+    if (!std::isfinite(work) || !std::isfinite(ms) || !std::isfinite(extra) || work < 0.0 || extra < 0.0 || ms < 0.0)
+      continue;
     const std::string series = line.substr(0, tab1);
     if (!series_.contains(series) && series_.size() >= kSeriesKept) continue;
     auto& observations = series_[series];
-    observations.push_back({work, ms});
+    observations.push_back({work, ms, extra});
     if (observations.size() > kObservationsKept) observations.pop_front();
     ++read;
   }
@@ -84,7 +92,11 @@ void CostModel::SaveLocked() const {
     std::ofstream out(temporary, std::ios::trunc);
     out.precision(17);
     for (const auto& [series, observations] : series_)
-      for (const Observation& o : observations) out << series << '\t' << o.work << '\t' << o.ms << '\n';
+      for (const Observation& o : observations) {
+        out << series << '\t' << o.work << '\t' << o.ms;
+        if (o.extra > 0.0) out << '\t' << o.extra;
+        out << '\n';
+      }
     if (!out) return;
   }
   std::error_code ec;
@@ -92,11 +104,101 @@ void CostModel::SaveLocked() const {
   if (ec) spdlog::warn("cost model: cannot write {}: {}", file_.string(), ec.message());
 }
 
-std::optional<double> CostModel::Predict(const std::string& series, double work) const {
+namespace {
+
+// ms = c[0] + c[1] * work + c[2] * extra over the terms `use` names, by
+// least squares with every coefficient at least 0: each subset of the
+// terms is fitted, and the closest non-negative fit wins; among fits as
+// close (two observations fit two terms exactly), the one with more
+// work terms and then without the fixed part. Three terms at most, so the
+// subsets are seven small solves.
+std::array<double, 3> FitNonNegative(const std::deque<CostModel::Observation>& observations) {
+  constexpr std::array<std::array<bool, 3>, 7> kSubsets = {{{true, true, true},
+                                                           {false, true, true},
+                                                           {true, true, false},
+                                                           {true, false, true},
+                                                           {false, true, false},
+                                                           {false, false, true},
+                                                           {true, false, false}}};
+  auto term = [](const CostModel::Observation& o, int k) { return k == 0 ? 1.0 : k == 1 ? o.work : o.extra; };
+  double total = 0.0;
+  for (const auto& o : observations) total += o.ms * o.ms;
+  std::array<double, 3> best = {0.0, 0.0, 0.0};
+  double best_residual = std::numeric_limits<double>::infinity();
+  for (const auto& use : kSubsets) {
+    std::vector<int> terms;
+    for (int k = 0; k < 3; ++k)
+      if (use[k]) terms.push_back(k);
+    const size_t n = terms.size();
+    if (observations.size() < n) continue;
+    // The normal equations, solved by Gaussian elimination with partial
+    // pivoting; a pivot that vanishes against its column means the terms
+    // are not independent over these observations.
+    double a[3][4] = {};
+    for (const auto& o : observations)
+      for (size_t i = 0; i < n; ++i) {
+        for (size_t j = 0; j < n; ++j) a[i][j] += term(o, terms[i]) * term(o, terms[j]);
+        a[i][n] += term(o, terms[i]) * o.ms;
+      }
+    bool singular = false;
+    for (size_t col = 0; col < n && !singular; ++col) {
+      size_t pivot = col;
+      for (size_t r = col + 1; r < n; ++r)
+        if (std::abs(a[r][col]) > std::abs(a[pivot][col])) pivot = r;
+      std::swap(a[col], a[pivot]);
+      double scale = 0.0;
+      for (size_t r = 0; r < n; ++r) scale = std::max(scale, std::abs(a[r][col]));
+      if (!(std::abs(a[col][col]) > 1e-12 * scale)) {
+        singular = true;
+        break;
+      }
+      for (size_t r = 0; r < n; ++r) {
+        if (r == col) continue;
+        const double f = a[r][col] / a[col][col];
+        for (size_t c = col; c <= n; ++c) a[r][c] -= f * a[col][c];
+      }
+    }
+    if (singular) continue;
+    std::array<double, 3> c = {0.0, 0.0, 0.0};
+    bool negative = false;
+    for (size_t i = 0; i < n; ++i) {
+      c[terms[i]] = a[i][n] / a[i][i];
+      negative = negative || !(c[terms[i]] >= 0.0);
+    }
+    if (negative) continue;
+    double residual = 0.0;
+    for (const auto& o : observations) {
+      const double r = o.ms - (c[0] + c[1] * o.work + c[2] * o.extra);
+      residual += r * r;
+    }
+    if (residual < best_residual - 1e-9 * total) {
+      best_residual = residual;
+      best = c;
+    }
+  }
+  return best;
+}
+
+}  // namespace
+
+std::optional<double> CostModel::Predict(const std::string& series, double work, double extra) const {
   std::lock_guard lock(mutex_);
   auto it = series_.find(series);
   if (it == series_.end() || it->second.empty()) return std::nullopt;
   const auto& observations = it->second;
+
+  const bool two_units = extra > 0.0 || std::any_of(observations.begin(), observations.end(),
+                                                    [](const Observation& o) { return o.extra > 0.0; });
+  if (two_units) {
+    // Never below the cheapest run the series has measured: a fit of two
+    // probes may leave out the fixed part, and a run of no work in either
+    // unit (answers from the exact method's stores) then fits at 0 ms,
+    // which no run costs and which fits any time budget.
+    const std::array<double, 3> c = FitNonNegative(observations);
+    double cheapest = std::numeric_limits<double>::infinity();
+    for (const Observation& o : observations) cheapest = std::min(cheapest, o.ms);
+    return std::max(cheapest, c[0] + c[1] * work + c[2] * extra);
+  }
 
   // Least squares of ms on work. With one distinct amount of work there is
   // no slope to fit: the cost is taken as proportional, which over-predicts
@@ -109,6 +211,7 @@ std::optional<double> CostModel::Predict(const std::string& series, double work)
     sww += o.work * o.work;
     swm += o.work * o.ms;
   }
+  if (!(sw > 0.0)) return sm / n;  // only runs of no work: their mean is all there is
   const double variance = sww - sw * sw / n;
   double rate = sm / sw, fixed = 0.0;
   if (variance > 1e-9 * sww) {

@@ -39,6 +39,7 @@ struct Plan {
   std::map<std::string, double> parameters;
   double error_bound = 0.0;  // at the target's confidence; 0 for exact methods
   double work = 0.0;         // the cost model's unit for this method
+  double extra_work = 0.0;   // its second unit, for methods whose cost has two (CostModel)
   std::string cost_key;      // the cost model's series for this method
   double predicted_ms = 0.0;
   bool meets_target = false;
@@ -61,15 +62,22 @@ inline constexpr uintmax_t kMaxCostModelFileBytes = uintmax_t{64} << 20;
 // machine's load and the scene's caches (the exact method's tree gets
 // cheaper as it grows). Thread-safe.
 //
+// A series may have a second unit of work (`extra`): ms = fixed + rate *
+// work + extra_rate * extra, every coefficient at least 0. A method whose
+// cost has two parts that grow apart needs it: the GL passes of a map
+// (per sample) and its fragments (per texel and sample), or the exact
+// method's new trees (the triangles their shafts meet) and its points. With
+// one unit, a small probe extrapolates one part by the other's growth.
+//
 // With a file (PersistTo), the observations outlive the process: a restart
 // predicts from what the last one measured instead of probing every scene
 // and method again. The series name the scene's content hash, so a file
 // left by another scene of the same name predicts nothing.
 class CostModel {
  public:
-  void Record(const std::string& series, double work, double ms);
+  void Record(const std::string& series, double work, double ms, double extra = 0.0);
   // Nothing until the series has an observation.
-  std::optional<double> Predict(const std::string& series, double work) const;
+  std::optional<double> Predict(const std::string& series, double work, double extra = 0.0) const;
   // How many observations the series holds.
   size_t Observations(const std::string& series) const;
 
@@ -78,11 +86,13 @@ class CostModel {
   // Record. An unreadable or unwritable file costs the persistence only.
   void PersistTo(const std::filesystem::path& path);
 
- private:
   struct Observation {
     double work = 0.0;
     double ms = 0.0;
+    double extra = 0.0;
   };
+
+ private:
   static constexpr size_t kObservationsKept = 16;
   static constexpr size_t kSeriesKept = 4096;  // bounds the file a hostile series name could grow
   void SaveLocked() const;

@@ -44,6 +44,10 @@ Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Sce
       return absl::InvalidArgumentError(absl::StrCat("points[", i, "].triangle: ", *p.receiver_triangle,
                                                      " out of range (", scene.TriangleCount(), " triangles)"));
   }
+  for (size_t k = 0; k < query.answer_only.size(); ++k)
+    if (query.answer_only[k] >= query.points.size() || (k > 0 && query.answer_only[k] <= query.answer_only[k - 1]))
+      return absl::InvalidArgumentError(absl::StrCat("answer_only[", k, "]: ", query.answer_only[k],
+                                                     " is out of range or out of order"));
   if (query.receiver_region) {
     const Bounds& r = *query.receiver_region;
     if (!Finite(r.min) || !Finite(r.max) || r.min.x > r.max.x || r.min.y > r.max.y || r.min.z > r.max.z)
@@ -102,12 +106,62 @@ std::vector<exact::ReceiverCell> ReceiverGroups(Engine& engine, const LightVisib
   return groups;
 }
 
+// The groups' points cut down to those the query answers (answer_only);
+// groups left without a point are dropped: they need no tree.
+void KeepAnsweredPoints(const LightVisibilityQuery& query, std::vector<exact::ReceiverCell>& groups) {
+  if (query.answer_only.empty()) return;
+  for (exact::ReceiverCell& group : groups)
+    std::erase_if(group.points, [&](uint32_t i) {
+      return !std::binary_search(query.answer_only.begin(), query.answer_only.end(), i);
+    });
+  std::erase_if(groups, [](const exact::ReceiverCell& group) { return group.points.empty(); });
+}
+
 // A stopped batch's status says how much of it was left.
 Status WithPointsLeft(absl::StatusCode code, absl::string_view message, size_t left, size_t total) {
   return Status(code, absl::StrCat(message, " with ", left, " of ", total, " points left"));
 }
 
 }  // namespace
+
+// The cache key of a group's tree, as RunLightVisibility makes it.
+exact::CacheKey GroupTreeKey(const ResidentScene& resident, const exact::AreaLight& light,
+                             exact::TreeOptions options, const exact::ReceiverCell& group) {
+  options.receiver_bounds = group.box;
+  return exact::CacheKey{resident.name, resident.version, exact::HashLight(light, options)};
+}
+
+StatusOr<LightVisibilityWork> EstimateLightVisibilityWork(Engine& engine, const LightVisibilityQuery& query) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
+                        engine.FindScene(query.scene, query.scene_version));
+  const Scene& scene = *resident->scene;
+  VISQ_RETURN_IF_ERROR(ValidateLightVisibilityQuery(query, scene));
+  VISQ_ASSIGN_OR_RETURN(const exact::TreeOptions base, BaseTreeOptions(engine, query, scene));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index,
+                        engine.TriangleIndexOf(*resident, query.call));
+  Bounds light_box;
+  for (const glm::dvec3& v : query.light.vertices) light_box.Extend(v);
+
+  std::vector<exact::ReceiverCell> groups = ReceiverGroups(engine, query, scene, *index);
+  KeepAnsweredPoints(query, groups);
+  LightVisibilityWork work;
+  for (const exact::ReceiverCell& group : groups) {
+    ++work.groups;
+    if (std::shared_ptr<exact::LightVisibilityTree> held =
+            engine.light_cache().Peek(GroupTreeKey(*resident, query.light, base, group))) {
+      ++work.cached_groups;
+      for (uint32_t i : group.points) {
+        const bool stored = held->StoresAnswer(query.points[i], query.want_polygons);
+        (stored ? work.stored_points : work.points) += 1.0;
+      }
+      continue;
+    }
+    work.points += double(group.points.size());
+    const glm::dvec3 lo = glm::min(light_box.min, group.box.min), hi = glm::max(light_box.max, group.box.max);
+    work.new_shaft_triangles += double(index->CountInBox(lo, hi, SIZE_MAX));
+  }
+  return work;
+}
 
 StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
@@ -127,7 +181,8 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
                         engine.TriangleIndexOf(*resident, query.call));
   const double index_ms = MillisecondsSince(index_start);
 
-  const std::vector<exact::ReceiverCell> groups = ReceiverGroups(engine, query, scene, *index);
+  std::vector<exact::ReceiverCell> groups = ReceiverGroups(engine, query, scene, *index);
+  KeepAnsweredPoints(query, groups);
   const exact::StopToken stop{query.call.cancelled, query.call.deadline};
 
   // Work in chunks of one group's points, in order, on every core: a single
@@ -170,7 +225,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     GroupTree& t = trees[g];
     exact::TreeOptions options = base;
     options.receiver_bounds = groups[g].box;
-    const exact::CacheKey key{resident->name, resident->version, exact::HashLight(query.light, options)};
+    const exact::CacheKey key = GroupTreeKey(*resident, query.light, base, groups[g]);
     StatusOr<std::shared_ptr<exact::LightVisibilityTree>> tree = engine.light_cache().GetOrCreate(
         key, [&]() -> StatusOr<std::unique_ptr<exact::LightVisibilityTree>> {
           t.created = true;
@@ -199,6 +254,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   };
 
   answer.points.resize(query.points.size());
+  const size_t to_answer = query.answer_only.empty() ? query.points.size() : query.answer_only.size();
   std::atomic<size_t> answered{0};
   std::atomic<bool> stopped{false};
   std::mutex error_mutex;
@@ -224,15 +280,15 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
         if (t.chunks_left.fetch_sub(1) == 1) release(t);
       };
       for (uint32_t k = chunk.begin; k < chunk.end; ++k) {
-        const size_t left = query.points.size() - answered.load();
+        const size_t left = to_answer - answered.load();
         if (query.call.cancelled != nullptr && query.call.cancelled->load())
-          return fail(WithPointsLeft(absl::StatusCode::kCancelled, "cancelled", left, query.points.size()));
+          return fail(WithPointsLeft(absl::StatusCode::kCancelled, "cancelled", left, to_answer));
         if (std::chrono::steady_clock::now() > query.call.deadline)
-          return fail(WithPointsLeft(absl::StatusCode::kDeadlineExceeded, "deadline passed", left, query.points.size()));
+          return fail(WithPointsLeft(absl::StatusCode::kDeadlineExceeded, "deadline passed", left, to_answer));
         const uint32_t i = groups[chunk.group].points[k];
         StatusOr<exact::PointVisibility> r = t.tree->Query(query.points[i], query.want_polygons, stop);
         if (!r.ok() && (absl::IsCancelled(r.status()) || absl::IsDeadlineExceeded(r.status())))
-          return fail(WithPointsLeft(r.status().code(), r.status().message(), left, query.points.size()));
+          return fail(WithPointsLeft(r.status().code(), r.status().message(), left, to_answer));
         if (!r.ok()) return fail(Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message())));
         answer.points[i] = std::move(*r);
         answered.fetch_add(1, std::memory_order_relaxed);

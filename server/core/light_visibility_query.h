@@ -25,6 +25,12 @@ struct LightVisibilityQuery {
   bool want_polygons = false;
   std::optional<Bounds> receiver_region;
   std::vector<std::string> exclude_nodes;
+  // Not on the wire. When not empty, only these points (indices, sorted and
+  // distinct) are answered, on the trees the whole batch would use (the
+  // groups are made of every point); the others' answers are left empty.
+  // The planner's probe of a batch (core/visibility_sampling_query.cpp):
+  // the trees it builds and the answers it stores are the batch's own.
+  std::vector<uint32_t> answer_only;
   // Checked between points and while a tree selects its occluders.
   CallOptions call;
 };
@@ -50,6 +56,25 @@ inline constexpr size_t kMaxLightVertices = 1024;
 [[nodiscard]] Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene);
 
 [[nodiscard]] StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query);
+
+// What a batch would cost the exact method, found before it runs, in the
+// cost model's two units (core/accuracy_planner.h): the groups
+// RunLightVisibility would make of its points, which of their trees the
+// cache already holds, and, for each tree it would build, the scene
+// triangles whose boxes meet the box of its shaft (the light and the
+// group's box), which is what a new tree selects and refines; and the
+// points to answer that no held tree has in its store. A batch whose trees
+// are all held costs its new points' descents alone; a repeated frame,
+// hash lookups.
+struct LightVisibilityWork {
+  size_t groups = 0;
+  size_t cached_groups = 0;
+  double new_shaft_triangles = 0.0;
+  double points = 0.0;         // not answered from a store
+  double stored_points = 0.0;  // answered from a held tree's store
+};
+[[nodiscard]] StatusOr<LightVisibilityWork> EstimateLightVisibilityWork(Engine& engine,
+                                                                       const LightVisibilityQuery& query);
 
 // Every LightVisibility answer's: exact, with no samples to bound.
 AccuracyStatement LightVisibilityStatement();

@@ -131,15 +131,12 @@ double TwiceSignedArea(const std::vector<glm::dvec2>& polygon) {
   return twice_area;
 }
 
-// The exact visible fraction of the source (its polygon, or its rectangle)
-// from every receiver texel centre: the Plücker method of
-// core/light_visibility_query.h with the source as a light facing the
-// receiver. No samples, so no bitmasks and no sample colours.
-StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const std::string& scene,
-                                                               uint64_t scene_version,
-                                                               const sampling::HiddenSampleMapRequest& request,
-                                                               const CallOptions& call,
-                                                               const sampling::HiddenSampleMapBandSink& sink = {}) {
+// A map as the exact method's batch: the source (its polygon, or its
+// rectangle) as a light facing the receiver, and the receiver's texel
+// centres as points. No samples, so no bitmasks and no sample colours.
+StatusOr<LightVisibilityQuery> ExactLightQuery(const std::string& scene, uint64_t scene_version,
+                                               const sampling::HiddenSampleMapRequest& request,
+                                               const CallOptions& call) {
   if (request.options.want_bitmasks)
     return absl::InvalidArgumentError(
         "want_bitmasks: the exact method has no samples, hence no bitmasks; use RASTER or RAYCAST");
@@ -171,7 +168,19 @@ StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, c
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x)
       light_query.points.push_back({sampling::ReceiverSamplePosition(request.receiver, x, y), std::nullopt, std::nullopt});
+  return light_query;
+}
+
+// The exact visible fraction of the source from every receiver texel
+// centre: the Plücker method of core/light_visibility_query.h.
+StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, const std::string& scene,
+                                                               uint64_t scene_version,
+                                                               const sampling::HiddenSampleMapRequest& request,
+                                                               const CallOptions& call,
+                                                               const sampling::HiddenSampleMapBandSink& sink = {}) {
+  VISQ_ASSIGN_OR_RETURN(const LightVisibilityQuery light_query, ExactLightQuery(scene, scene_version, request, call));
   VISQ_ASSIGN_OR_RETURN(LightVisibilityAnswer answer, RunLightVisibility(engine, light_query));
+  const int width = request.receiver.width, height = request.receiver.height;
 
   sampling::HiddenSampleMapResult result;
   result.width = width;
@@ -275,11 +284,18 @@ StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, cons
 // ---------------------------------------------------------------------------
 // Accuracy targets.
 
+// Work in a method's units for the cost model (CostModel: a second unit
+// where the method's cost has two parts that grow apart).
+struct WorkUnits {
+  double work = 0.0;
+  double extra = 0.0;
+};
+
 // A run's cost as the cost model sees it: compute time (the GL job or the
 // CPU work; not the queue, which other requests cause) and the work done.
 struct RunCost {
   double ms = 0.0;
-  double work = 0.0;
+  WorkUnits units;
 };
 
 double ComputeMs(const gpu::JobTiming& timing, double table_ms = 0.0) { return timing.run_ms + table_ms; }
@@ -303,59 +319,71 @@ Status RequirePredictionFitsDeadline(const Plan& plan, const gpu::JobOptions& jo
                                                   " ms; the call's deadline leaves ", left_ms, " ms"));
 }
 
-// Work units: receiver points x samples for the sampled methods. The exact
-// method's cost is its trees, one per receiver cell that its points fall in
-// (exact::GroupReceivers, as RunLightVisibility groups them): a tree costs
-// what its cell's shaft holds, and the points that share it descend it for
-// little. Counting points instead made a probe of one point, whose tree's
-// cell is the whole scene, predict a 64 x 64 map 100x too slow.
-double PlanWork(VisibilityMethod method, double points, int samples) {
+// The sampled methods' work: receiver points x samples (rays, or
+// fragments), and for RASTER its samples too, each a set of passes over
+// the scene whatever the receiver's size: a probe of 4 x 4 texels costs
+// little per fragment and much per pass, and extrapolating it by the
+// fragments alone predicted a 64 x 64 map 3-6x too slow.
+WorkUnits SampledWork(VisibilityMethod method, double points, int samples) {
   VISQ_CHECK(method != VisibilityMethod::kPluckerExact);
-  return points * samples;
+  if (method == VisibilityMethod::kRaster) return {points * samples, double(samples)};
+  return {points * samples, 0.0};
 }
 
-double ExactTrees(const Engine& engine, const ResidentScene& resident, std::vector<glm::dvec3> positions) {
-  std::vector<exact::QueryPoint> points;
-  points.reserve(positions.size());
-  for (const glm::dvec3& p : positions) points.push_back({p, std::nullopt, std::nullopt});
-  const std::vector<exact::ReceiverCell> cells = exact::GroupReceivers(
-      points, resident.scene->bounds, engine.light_receiver_cells(), engine.light_receiver_min_points());
-  return double(std::max<size_t>(cells.size(), 1));
+// The exact method's: the scene triangles in the shafts of the trees the
+// batch would build (none where the cache holds its trees), and its points
+// that no held tree has in its store (EstimateLightVisibilityWork). Taken
+// before the run: a run leaves its trees and answers cached. Counting trees
+// alone (a first version) predicted a cold 64 x 64 map from its probes'
+// small blocks 700x too cheap on Sponza, and a warm repeat, answered from
+// the trees' stores, 100x too dear.
+StatusOr<WorkUnits> ExactWork(Engine& engine, const LightVisibilityQuery& batch) {
+  VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork work, EstimateLightVisibilityWork(engine, batch));
+  return WorkUnits{work.new_shaft_triangles, work.points};
 }
 
-// The central block of at most `side` x `side` texels of a receiver, as a
-// receiver of its own whose texel centres are the request's: the exact
-// method's probe, whose trees then follow the request's own receiver cells
-// (a coarser receiver's points would fall in other, larger cells).
-sampling::ReceiverSpec CentralBlock(const sampling::ReceiverSpec& receiver, int side) {
-  const int bw = std::min(receiver.width, side), bh = std::min(receiver.height, side);
-  const int x0 = (receiver.width - bw) / 2, y0 = (receiver.height - bh) / 2;
-  sampling::ReceiverSpec block = receiver;
-  block.patch.origin = receiver.patch.At(double(x0) / receiver.width, double(y0) / receiver.height);
-  block.patch.edge_u = receiver.patch.edge_u * (double(bw) / receiver.width);
-  block.patch.edge_v = receiver.patch.edge_v * (double(bh) / receiver.height);
-  block.width = bw;
-  block.height = bh;
-  if (!receiver.heightfield.empty()) {
-    block.heightfield.clear();
-    for (int y = 0; y < bh; ++y)
-      for (int x = 0; x < bw; ++x) block.heightfield.push_back(receiver.heightfield[size_t(y0 + y) * receiver.width + x0 + x]);
-  }
-  return block;
+StatusOr<WorkUnits> ExactWork(Engine& engine, const ResidentScene& resident,
+                              const sampling::HiddenSampleMapRequest& map, const CallOptions& call) {
+  VISQ_ASSIGN_OR_RETURN(const LightVisibilityQuery batch, ExactLightQuery(resident.name, resident.version, map, call));
+  return ExactWork(engine, batch);
 }
 
-std::vector<glm::dvec3> TexelCentres(const sampling::ReceiverSpec& receiver) {
-  std::vector<glm::dvec3> out;
-  out.reserve(size_t(receiver.width) * receiver.height);
-  for (int y = 0; y < receiver.height; ++y)
-    for (int x = 0; x < receiver.width; ++x) out.push_back(sampling::ReceiverSamplePosition(receiver, x, y));
-  return out;
+// About side x side texels of a width x height receiver, spread evenly
+// over it (the texel under each cell centre of a side x side lattice; the
+// whole receiver where it is smaller), as increasing indices.
+std::vector<uint32_t> LatticeTexels(int width, int height, int side) {
+  const int columns = std::min(width, side), rows = std::min(height, side);
+  std::vector<uint32_t> texels;
+  texels.reserve(size_t(columns) * rows);
+  for (int r = 0; r < rows; ++r)
+    for (int c = 0; c < columns; ++c) {
+      const auto x = static_cast<uint32_t>((2 * int64_t{c} + 1) * width / (2 * columns));
+      const auto y = static_cast<uint32_t>((2 * int64_t{r} + 1) * height / (2 * rows));
+      texels.push_back(y * uint32_t(width) + x);
+    }
+  return texels;  // rows and columns increase, so the indices do
+}
+
+// The exact method's probe of a map: about side x side of its own texels,
+// spread over the receiver and answered on the trees the whole map would
+// use (LightVisibilityQuery::answer_only). A central block of texels (the
+// earlier probe) got a tree of its own, whose narrow shaft held a fraction
+// of the map's occluders: on Sponza it predicted a map at 11 ms that took
+// 955. The trees this probe builds and the answers it stores are the
+// map's, which a chosen exact plan then finds cached.
+StatusOr<RunCost> ProbeExactMap(Engine& engine, const ResidentScene& resident,
+                                const sampling::HiddenSampleMapRequest& map, int side, const CallOptions& call) {
+  VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery batch, ExactLightQuery(resident.name, resident.version, map, call));
+  batch.answer_only = LatticeTexels(map.receiver.width, map.receiver.height, side);
+  VISQ_ASSIGN_OR_RETURN(const WorkUnits units, ExactWork(engine, batch));
+  VISQ_ASSIGN_OR_RETURN(const LightVisibilityAnswer answer, RunLightVisibility(engine, batch));
+  return RunCost{answer.compute_ms, units};
 }
 
 // Runs `method` with `samples` per receiver point over a receiver reduced to
 // at most `max_side` points a side (0: the request's own receiver); for the
-// exact method, over the central block of max_side points a side of the
-// request's own receiver (CentralBlock).
+// exact method, about max_side x max_side of the request's own points on
+// its own trees (ProbeExactMap).
 using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method, int samples, int max_side)>;
 // Whether a sampled method resolves the request with `samples` samples in
 // float32 (Engine::ValidateSampledPrecision): FAILED_PRECONDITION when not.
@@ -376,7 +404,8 @@ double PolygonShare(const sampling::SourceSpec& source) {
 // points, each predicted by the cost model after probing the methods this
 // scene has not run yet, and the choice among them.
 StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_base, const AccuracyTarget& target,
-                                    double points, double exact_trees, double polygon_share, bool exact_possible,
+                                    double points, const std::function<StatusOr<WorkUnits>()>& exact_work,
+                                    double polygon_share, bool exact_possible,
                                     int max_samples,
                                     const gpu::JobOptions& job, const VisibilityRunner& run,
                                     const PrecisionCheck& resolves) {
@@ -410,16 +439,24 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
     VISQ_ASSIGN_OR_RETURN(const bool usable_at_all, precise(*counts.begin()));
     if (!usable_at_all) continue;
     // A method never run on this scene: small runs of this very request give
-    // the model a fixed cost and a rate. The second, larger run only when the
-    // first was cheap: the exact method's tree can cost seconds per point on
-    // a large light over a busy scene, and one point already says so.
+    // the model a fixed cost and a rate. A sampled method's second, larger
+    // run only when the first was cheap.
+    // The exact method's second run always comes: only it (the first's
+    // trees held) separates what its points cost from what its trees cost,
+    // and a fit of one observation gave the points no cost at all (veach-ajar:
+    // a map predicted at 0 ms took 6.4 s). Its size is what the first run's
+    // cost per point (an upper bound: that run built the trees too) says
+    // takes about kExactSecondProbeMs: the tree can cost seconds per point on
+    // a large light over a busy scene. Its points and trees are the
+    // request's own, which a chosen exact plan keeps.
     if (!model.Predict(series, 1.0)) {
       const bool exact = method == VisibilityMethod::kPluckerExact;
-      const std::pair<int, int> probes[] = {exact ? std::pair{8, 0} : std::pair{4, 32},
-                                            exact ? std::pair{16, 0} : std::pair{16, 256}};
-      const double second_probe_below_ms = 200.0;
+      std::pair<int, int> probes[] = {exact ? std::pair{8, 0} : std::pair{4, 32},
+                                      exact ? std::pair{16, 0} : std::pair{16, 256}};
+      constexpr double kSecondProbeBelowMs = 200.0, kExactSecondProbeMs = 500.0;
       bool usable = true;
-      for (const auto& [side, samples] : probes) {
+      for (size_t p = 0; p < std::size(probes); ++p) {
+        auto& [side, samples] = probes[p];
         VISQ_RETURN_IF_ERROR(RequireNotCancelled(job));
         StatusOr<RunCost> cost = run(method, samples, side);
         // A method that cannot answer this request honestly (a sampled one
@@ -429,9 +466,16 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
           break;
         }
         if (!cost.ok()) return cost.status();
-        model.Record(series, cost->work, cost->ms);
+        model.Record(series, cost->units.work, cost->ms, cost->units.extra);
         report.probe_ms += cost->ms;
-        if (cost->ms >= second_probe_below_ms) break;
+        if (p + 1 == std::size(probes)) break;
+        if (exact) {
+          const double per_point_ms = cost->ms / std::max(1.0, cost->units.extra);
+          const int most = int(std::sqrt(kExactSecondProbeMs / std::max(per_point_ms, 1e-6)));
+          probes[p + 1].first = std::clamp(most, 2, probes[p + 1].first);
+        } else if (cost->ms >= kSecondProbeBelowMs) {
+          break;
+        }
       }
       if (!usable) continue;
     }
@@ -448,8 +492,15 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
         const double inside = std::max(1.0, std::floor(samples * polygon_share));
         plan.error_bound = std::min(1.0, sampling::SamplingErrorBound(int(inside), target.confidence));
       }
-      plan.work = method == VisibilityMethod::kPluckerExact ? exact_trees : PlanWork(method, points, samples);
-      plan.predicted_ms = model.Predict(series, plan.work).value_or(0.0);
+      WorkUnits units;
+      if (method == VisibilityMethod::kPluckerExact) {
+        VISQ_ASSIGN_OR_RETURN(units, exact_work());
+      } else {
+        units = SampledWork(method, points, samples);
+      }
+      plan.work = units.work;
+      plan.extra_work = units.extra;
+      plan.predicted_ms = model.Predict(series, plan.work, plan.extra_work).value_or(0.0);
       report.plans.push_back(std::move(plan));
       return absl::OkStatus();
     };
@@ -574,11 +625,10 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
     return absl::InvalidArgumentError("target: per-sample colours fix the samples; give samples.count instead");
   const bool exact_possible = !request.options.want_bitmasks && !colored;
 
-  auto with_samples = [&](int samples, int max_side, bool block = false) {
+  auto with_samples = [&](int samples, int max_side) {
     sampling::HiddenSampleMapRequest sized = request;
     sized.source.sample_count = std::min(samples, sampling::kMaxHiddenSampleMapSamples);
-    sized.receiver = block && max_side > 0 ? CentralBlock(request.receiver, max_side)
-                                           : ReducedReceiver(request.receiver, max_side);
+    sized.receiver = ReducedReceiver(request.receiver, max_side);
     sized.options.confidence = target.confidence < 1.0 ? target.confidence : sized.options.confidence;
     return sized;
   };
@@ -586,20 +636,18 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   // Beyond 4096 samples, several maps with independent jitter.
   auto run = [&](VisibilityMethod method, int samples, int max_side,
                  const sampling::HiddenSampleMapBandSink& bands = {}) -> StatusOr<sampling::HiddenSampleMapResult> {
-    sampling::HiddenSampleMapRequest sized =
-        with_samples(std::max(samples, 1), max_side, method == VisibilityMethod::kPluckerExact);
+    sampling::HiddenSampleMapRequest sized = with_samples(std::max(samples, 1), max_side);
     if (samples > sampling::kMaxHiddenSampleMapSamples)
       return SeveralMaps(engine, resident, method, sized, samples, query.call, bands);
     VISQ_RETURN_IF_ERROR(ValidateSize(sized));
     return HiddenSampleMapBy(engine, resident, method, sized, query.call, bands);
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
-    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
     if (method == VisibilityMethod::kPluckerExact)
-      return RunCost{ComputeMs(result.timing),
-                     ExactTrees(engine, resident, TexelCentres(with_samples(1, max_side, true).receiver))};
+      return ProbeExactMap(engine, resident, with_samples(1, 0), max_side, query.call);
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
     return RunCost{ComputeMs(result.timing, result.table_ms),
-                   PlanWork(method, double(result.width) * result.height, samples)};
+                   SampledWork(method, double(result.width) * result.height, samples)};
   };
 
   const double texels = double(request.receiver.width) * request.receiver.height;
@@ -607,7 +655,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   const int max_samples = several_maps ? kMaxPlannedSamples : sampling::kMaxHiddenSampleMapSamples;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
                                                           texels,
-                                                          exact_possible ? ExactTrees(engine, resident, TexelCentres(request.receiver)) : 1.0,
+                                                          [&] { return ExactWork(engine, resident, with_samples(1, 0), query.call); },
                                                           PolygonShare(request.source), exact_possible,
                                                           max_samples, query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
                                                             return engine.ValidateSampledPrecision(
@@ -619,7 +667,8 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   answer.method = MethodOfPlan(plan);
   const int samples = plan.parameters.contains("samples") ? int(plan.parameters.at("samples")) : 0;
   VISQ_ASSIGN_OR_RETURN(answer.result, run(answer.method, samples, 0, sink));
-  engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing, answer.result.table_ms));
+  engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing, answer.result.table_ms),
+                             plan.extra_work);
   answer.plan = std::move(report);
   return answer;
 }
@@ -632,43 +681,37 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
   // A plan's sample count becomes the most nearly square source grid with
   // at least that many cells.
-  // The receiver grid's points are a map's texel centres.
-  auto grid_of = [](const sampling::PatchVisibilityRequest& r) {
-    sampling::ReceiverSpec grid;
-    grid.patch = r.receiver;
-    grid.width = r.receiver_columns;
-    grid.height = r.receiver_rows;
-    return grid;
-  };
-  auto sized = [&](int samples, int max_side, bool block = false) {
+  auto sized = [&](int samples, int max_side) {
     sampling::PatchVisibilityRequest out = request;
     out.source_columns = std::max(1, int(std::ceil(std::sqrt(double(std::max(samples, 1))))));
     out.source_rows = std::max(1, (std::max(samples, 1) + out.source_columns - 1) / out.source_columns);
-    if (max_side > 0 && block) {
-      const sampling::ReceiverSpec central = CentralBlock(grid_of(request), max_side);
-      out.receiver = central.patch;
-      out.receiver_columns = central.width;
-      out.receiver_rows = central.height;
-    } else if (max_side > 0) {
+    if (max_side > 0) {
       out.receiver_columns = std::min(request.receiver_columns, max_side);
       out.receiver_rows = std::min(request.receiver_rows, max_side);
     }
     return out;
   };
+  // The exact method's work on a grid: that of its map (PatchVisibilityBy).
+  auto exact_work_of = [&](const sampling::PatchVisibilityRequest& r) -> StatusOr<WorkUnits> {
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(r));
+    map.options.want_bitmasks = false;
+    return ExactWork(engine, resident, map, query.call);
+  };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
-    const bool exact = method == VisibilityMethod::kPluckerExact;
-    const sampling::PatchVisibilityRequest probe = sized(samples, max_side, exact);
+    if (method == VisibilityMethod::kPluckerExact) {
+      VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
+      map.options.want_bitmasks = false;
+      return ProbeExactMap(engine, resident, map, max_side, query.call);
+    }
+    const sampling::PatchVisibilityRequest probe = sized(samples, max_side);
     VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.call));
-    if (exact) return RunCost{ComputeMs(result.timing), ExactTrees(engine, resident, TexelCentres(grid_of(probe)))};
-    return RunCost{ComputeMs(result.timing),
-                   PlanWork(method, double(probe.receiver_columns) * probe.receiver_rows,
-                            probe.source_columns * probe.source_rows)};
+    return RunCost{ComputeMs(result.timing), SampledWork(method, double(probe.receiver_columns) * probe.receiver_rows,
+                                                         probe.source_columns * probe.source_rows)};
   };
 
   const double points = double(request.receiver_columns) * request.receiver_rows;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
-                                                          points,
-                                                          exact_possible ? ExactTrees(engine, resident, TexelCentres(grid_of(request))) : 1.0,
+                                                          points, [&] { return exact_work_of(request); },
                                                           1.0, exact_possible,
                                                           sampling::kMaxHiddenSampleMapSamples, query.call.Job(), cost_of,
                                                           [&](VisibilityMethod method, int samples) -> Status {
@@ -689,7 +732,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
     plan.parameters["source_rows"] = chosen.source_rows;
   }
   VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, resident, answer.method, chosen, query.call));
-  engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing));
+  engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing), plan.extra_work);
   // The grid's bound restated at the target's confidence, as the plan was
   // weighed (the map itself is built at the default one).
   if (answer.method != VisibilityMethod::kPluckerExact && target.confidence < 1.0) {

@@ -41,6 +41,58 @@ TEST(CostModel, ANegativeFittedSlopeFallsBackToProportional) {
   EXPECT_NEAR(predicted, 120.0 / 110.0 * 110.0, 1e-9);
 }
 
+// Two units: ms = 2 + 0.5 x work + 3 x extra, exactly. Probes that grow
+// both units together cannot tell them apart; a third observation that
+// grows one alone can, and the fit then extrapolates each by its own rate.
+TEST(CostModel, FitsTwoUnitsOfWorkEachAtItsOwnRate) {
+  CostModel model;
+  auto cost = [](double work, double extra) { return 2.0 + 0.5 * work + 3.0 * extra; };
+  model.Record("s", 10.0, cost(10.0, 1.0), 1.0);
+  model.Record("s", 100.0, cost(100.0, 4.0), 4.0);
+  model.Record("s", 400.0, cost(400.0, 100.0), 100.0);
+  EXPECT_NEAR(*model.Predict("s", 1e5, 10.0), cost(1e5, 10.0), 1e-6);
+  EXPECT_NEAR(*model.Predict("s", 0.0, 1000.0), cost(0.0, 1000.0), 1e-6) << "the extra unit alone";
+}
+
+// A fit with a negative coefficient is refused for the closest one without
+// it: never a negative prediction, and never below what one unit alone
+// explains. A warm cache's run (nothing of the first unit, much of the
+// second, cheaply) does not make the second unit's rate negative.
+TEST(CostModel, TwoUnitsNeverFitANegativeRate) {
+  CostModel model;
+  model.Record("s", 1000.0, 1000.0, 64.0);  // cold: the work is the cost
+  model.Record("s", 4000.0, 4000.0, 256.0);
+  model.Record("s", 0.0, 1.0, 4096.0);  // warm: answered from the cache
+  const double cold = *model.Predict("s", 8000.0, 4096.0);
+  const double warm = *model.Predict("s", 0.0, 4096.0);
+  EXPECT_GT(cold, 4000.0);
+  EXPECT_GE(warm, 0.0);
+  EXPECT_LT(warm, 100.0) << "the warm run's own cost, not the cold runs' per point";
+  for (double work : {0.0, 10.0, 1e6})
+    for (double extra : {0.0, 1.0, 1e6}) EXPECT_GE(*model.Predict("s", work, extra), 0.0);
+}
+
+// A run of no work (the exact method answering every point from its
+// trees' stores) is kept: it is the fixed cost, alone or beside the rates.
+TEST(CostModel, ARunOfNoWorkMeasuresTheFixedCost) {
+  CostModel model;
+  model.Record("one", 0.0, 2.0);
+  model.Record("one", 0.0, 4.0);
+  EXPECT_DOUBLE_EQ(*model.Predict("one", 0.0), 3.0);
+  auto cost = [](double work, double extra) { return 2.0 + 1.0 * work + 0.5 * extra; };
+  model.Record("two", 0.0, cost(0, 0), 0.0);
+  model.Record("two", 100.0, cost(100, 0), 0.0);
+  model.Record("two", 0.0, cost(0, 400), 400.0);
+  EXPECT_NEAR(*model.Predict("two", 0.0, 0.0), 2.0, 1e-9);
+  EXPECT_NEAR(*model.Predict("two", 50.0, 1000.0), cost(50, 1000), 1e-9);
+
+  // Two probes fit exactly without a fixed part; a run of no work is then
+  // predicted at the cheapest run measured, not at 0 ms.
+  model.Record("probed", 1000.0, 100.0, 64.0);
+  model.Record("probed", 0.0, 30.0, 40.0);
+  EXPECT_DOUBLE_EQ(*model.Predict("probed", 0.0, 0.0), 30.0);
+}
+
 TEST(CostModel, ObservationsOutliveTheModelInItsFile) {
   testing::ScratchDir dir;
   const std::filesystem::path file = dir.path() / "costs.tsv";
@@ -51,6 +103,8 @@ TEST(CostModel, ObservationsOutliveTheModelInItsFile) {
     model.Record("s/a", 10.0, 30.0);
     model.Record("s/a", 20.0, 50.0);
     model.Record("s/b", 4.0, 8.0);
+    model.Record("s/d", 10.0, 20.0, 2.0);  // two units: a fourth column
+    model.Record("s/d", 0.0, 5.0, 5.0);
     model.Record("bad\tname", 1.0, 1.0);  // the file's separator: not kept
   }
   {
@@ -63,6 +117,8 @@ TEST(CostModel, ObservationsOutliveTheModelInItsFile) {
   EXPECT_EQ(restored.Observations("s/b"), 1u);
   EXPECT_EQ(restored.Observations("s/c"), 0u);
   EXPECT_EQ(restored.Observations("bad\tname"), 0u);
+  EXPECT_EQ(restored.Observations("s/d"), 2u);
+  EXPECT_DOUBLE_EQ(*restored.Predict("s/d", 20.0, 1.0), 37.0);  // 1.8 x work + 1 x extra, as fitted before
   EXPECT_DOUBLE_EQ(*restored.Predict("s/a", 40.0), 90.0);  // 10 + 2 x 40, as fitted before
   EXPECT_DOUBLE_EQ(*restored.Predict("s/b", 2.0), 4.0);
 }

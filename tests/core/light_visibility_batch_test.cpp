@@ -129,6 +129,50 @@ TEST(LightVisibilityBatch, AnIdenticalSecondBatchRefinesNothing) {
               second->compute_ms, second->trees);
 }
 
+// The planner's probe (answer_only): some of a batch's points answered on
+// the trees the whole batch would use. Those trees are then held and those
+// answers stored, so the batch itself builds nothing, answers the probed
+// points from the stores, and gives them the probe's bits; the work
+// estimate says so before either runs.
+TEST(LightVisibilityBatch, AProbeOfSomePointsBuildsTheBatchsOwnTrees) {
+  auto f = MakeFoliage(1000, 256);
+  ASSERT_NE(f, nullptr);
+  StatusOr<LightVisibilityWork> cold = EstimateLightVisibilityWork(*f->engine, f->query);
+  ASSERT_TRUE(cold.ok()) << cold.status();
+  EXPECT_GT(cold->new_shaft_triangles, 0.0);
+  EXPECT_EQ(cold->cached_groups, 0u);
+  EXPECT_EQ(cold->points, 256.0);
+
+  LightVisibilityQuery probe = f->query;
+  for (uint32_t i = 3; i < 256; i += 8) probe.answer_only.push_back(i);  // 32 points
+  StatusOr<LightVisibilityWork> probe_work = EstimateLightVisibilityWork(*f->engine, probe);
+  ASSERT_TRUE(probe_work.ok()) << probe_work.status();
+  EXPECT_EQ(probe_work->points, 32.0);
+  StatusOr<LightVisibilityAnswer> probed = RunLightVisibility(*f->engine, probe);
+  ASSERT_TRUE(probed.ok()) << probed.status();
+  EXPECT_GT(probed->trees_created, 0u);
+  EXPECT_EQ(probed->tree.queries, 32u);
+
+  StatusOr<LightVisibilityWork> warm = EstimateLightVisibilityWork(*f->engine, f->query);
+  ASSERT_TRUE(warm.ok()) << warm.status();
+  EXPECT_EQ(warm->new_shaft_triangles, 0.0) << "the probe built the batch's trees";
+  EXPECT_EQ(warm->cached_groups, warm->groups);
+  EXPECT_EQ(warm->stored_points, 32.0);
+  EXPECT_EQ(warm->points, 256.0 - 32.0);
+
+  StatusOr<LightVisibilityAnswer> batch = RunLightVisibility(*f->engine, f->query);
+  ASSERT_TRUE(batch.ok()) << batch.status();
+  EXPECT_EQ(batch->trees_created, 0u);
+  EXPECT_GE(batch->tree.answers_reused, 32u);
+  for (uint32_t i : probe.answer_only)
+    EXPECT_EQ(batch->points[i].visible_area_fraction, probed->points[i].visible_area_fraction) << "point " << i;
+
+  probe.answer_only = {5, 5};
+  EXPECT_EQ(RunLightVisibility(*f->engine, probe).status().code(), absl::StatusCode::kInvalidArgument);
+  probe.answer_only = {256};
+  EXPECT_EQ(RunLightVisibility(*f->engine, probe).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST(LightVisibilityBatch, ACancelledBatchStopsWhileItRuns) {
   auto f = MakeFoliage(20000, 4096);
   ASSERT_NE(f, nullptr);
