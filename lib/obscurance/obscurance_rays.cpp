@@ -12,12 +12,6 @@
 namespace visq::obscurance {
 namespace {
 
-double Frac(double x) { return x - std::floor(x); }
-
-}  // namespace
-
-namespace {
-
 // Where, in the square of CosineDirection's (u_radius, azimuth in turns),
 // lie the directions a DirectionFilter may pass, for one frame: a few
 // windows, each a range of u_radius (the squared sine of the polar angle)
@@ -136,39 +130,29 @@ void PreparePolygon(uint32_t x, uint32_t y, FragmentSampler& out) {
   }
 }
 
-// The Halton points are the same for every patch (each patch rotates them by
-// its own shift), so they are computed once per thread, with the cosine and
-// sine of the two coordinates that serve as azimuths (bases 7 and 11): a
-// shifted azimuth's cosine and sine then come from the angle-sum formulas,
-// not from a sincos per ray.
-struct HaltonSample {
-  std::array<double, 5> u;
-  double cos7, sin7, cos11, sin11;  // of 2 pi u[3] and of 2 pi u[4]
-};
-
-const HaltonSample& HaltonPoint(uint32_t j) {
-  thread_local std::vector<HaltonSample> table;
-  while (table.size() <= j) {
-    const uint64_t i = table.size() + 1ull;
-    HaltonSample h{{RadicalInverse(2, i), RadicalInverse(3, i), RadicalInverse(5, i), RadicalInverse(7, i),
-                    RadicalInverse(11, i)}};
-    h.cos7 = std::cos(2.0 * std::numbers::pi * h.u[3]);
-    h.sin7 = std::sin(2.0 * std::numbers::pi * h.u[3]);
-    h.cos11 = std::cos(2.0 * std::numbers::pi * h.u[4]);
-    h.sin11 = std::sin(2.0 * std::numbers::pi * h.u[4]);
-    table.push_back(h);
-  }
-  return table[j];
+// Ray j of n takes its direction from cell j of n equal cells of the square
+// of (u_radius, turn) (EqualAreaCellOf), computed once per n and thread.
+const std::vector<EqualAreaCell>& DirectionCells(uint32_t n) {
+  thread_local std::vector<std::pair<uint32_t, std::vector<EqualAreaCell>>> kept;
+  for (const auto& [count, cells] : kept)
+    if (count == n) return cells;
+  if (kept.size() >= 32) kept.erase(kept.begin());
+  std::vector<EqualAreaCell> cells(n);
+  for (uint32_t j = 0; j < n; ++j) cells[j] = EqualAreaCellOf(n, j);
+  kept.emplace_back(n, std::move(cells));
+  return kept.back().second;
 }
 
+// The uniforms of one ray: its own stream, independent of every other ray's.
+SplitMix RayStream(uint64_t element_hash, uint32_t j) { return SplitMix{SplitMix64(element_hash + j)}; }
+
 // A unit direction in the frame (tu, tv, normal), cosine-distributed for
-// uniform (u_radius, azimuth): the azimuth is 2 pi (u + shift), taken as the
-// rotation by the shift of the point at angle 2 pi u (cos_u, sin_u).
+// (u_radius, turn) uniform in the unit square: sin^2 of the polar angle and
+// the azimuth in turns.
 glm::dvec3 CosineDirection(const glm::dvec3& tu, const glm::dvec3& tv, const glm::dvec3& normal, double u_radius,
-                           double cos_u, double sin_u, double cos_shift, double sin_shift) {
-  const double r = std::sqrt(u_radius);
-  const double c = cos_u * cos_shift - sin_u * sin_shift, s = sin_u * cos_shift + cos_u * sin_shift;
-  return tu * (r * c) + tv * (r * s) + normal * std::sqrt(std::max(0.0, 1.0 - u_radius));
+                           double turn) {
+  const double r = std::sqrt(u_radius), phi = 2.0 * std::numbers::pi * turn;
+  return tu * (r * std::cos(phi)) + tv * (r * std::sin(phi)) + normal * std::sqrt(std::max(0.0, 1.0 - u_radius));
 }
 
 }  // namespace
@@ -186,9 +170,7 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   for (uint32_t i = begin; i < end; ++i) area_below[i - begin + 1] = area_below[i - begin] + atlas.fragments[i].world_area;
   const double total = area_below[end - begin];
   const uint64_t h = SplitMix64(SplitMix64(seed) ^ (static_cast<uint64_t>(texel) * 0xD1B54A32D192ED03ull));
-  double shift[5];
-  for (int k = 0; k < 5; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
-  const double cos_shift = std::cos(2.0 * std::numbers::pi * shift[4]), sin_shift = std::sin(2.0 * std::numbers::pi * shift[4]);
+  const std::vector<EqualAreaCell>& cells = DirectionCells(n);
   const uint32_t x = texel % atlas.width, y = texel / atlas.width;
   thread_local std::vector<FragmentSampler> samplers;
   thread_local std::vector<uint8_t> prepared;  // bit 0: frame, bit 1: polygon
@@ -198,12 +180,10 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   prepared.assign(end - begin, 0);
   out.reserve(n);
   for (uint32_t j = 0; j < n; ++j) {
-    const HaltonSample& hs = HaltonPoint(j);
-    const std::array<double, 5>& halton = hs.u;
-    const double u0 = Frac(halton[0] + shift[0]);
+    SplitMix uniforms = RayStream(h, j);
     // A fragment in proportion to its world area, then a fan triangle of
     // its clipped polygon in proportion to atlas area (affine per triangle).
-    const double pick = u0 * total;
+    const double pick = uniforms.Uniform() * total;
     // The last fragment whose running sum is at most `pick`, the last one at most.
     const size_t above = static_cast<size_t>(std::upper_bound(area_below.begin() + 1, area_below.end() - 1, pick) -
                                              area_below.begin());
@@ -215,12 +195,14 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
       f.windows = DirectionWindows::Of(only_towards, f.tu, f.tv, f.normal);
       ready |= 1;
     }
-    const double u3 = Frac(halton[3] + shift[3]);
-    if (!f.windows.Contains(u3, Frac(halton[4] + shift[4]))) continue;
-    const double u1 = Frac(halton[1] + shift[1]);
-    const double u2 = Frac(halton[2] + shift[2]);
-    // Cosine-distributed direction around the geometric normal.
-    const glm::dvec3 dir = CosineDirection(f.tu, f.tv, f.normal, u3, hs.cos11, hs.sin11, cos_shift, sin_shift);
+    // Cosine-distributed direction around the geometric normal, from the
+    // ray's own cell of the direction square.
+    const EqualAreaCell& cell = cells[j];
+    const double u_radius = cell.x0 + cell.width * uniforms.Uniform();
+    const double turn = cell.y0 + cell.height * uniforms.Uniform();
+    if (!f.windows.Contains(u_radius, turn)) continue;
+    const double u_fan = uniforms.Uniform(), u1 = uniforms.Uniform(), u2 = uniforms.Uniform();
+    const glm::dvec3 dir = CosineDirection(f.tu, f.tv, f.normal, u_radius, turn);
     if (only_towards != nullptr && !only_towards->MayMeet(dir)) continue;
     if (!(ready & 2)) {
       PreparePolygon(x, y, f);
@@ -233,7 +215,7 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
       point = f.pa * (1 - s) + f.pb * (s * (1 - u2)) + f.pc * (s * u2);
     } else {
       const ClippedPolygon& poly = f.poly;
-      double fp = Frac(u0 * 7919.0) * f.fan_total;  // decorrelated from the fragment pick
+      double fp = u_fan * f.fan_total;
       int k = 1;
       for (; k + 2 < poly.n && fp >= f.fan[k]; ++k) fp -= f.fan[k];
       const double s = std::sqrt(u1);
@@ -259,19 +241,19 @@ void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, 
   const glm::dvec3 normal = cross / length;
   const glm::dvec3 helper = std::abs(normal.x) < 0.9 ? glm::dvec3(1, 0, 0) : glm::dvec3(0, 1, 0);
   const glm::dvec3 tu = glm::normalize(glm::cross(helper, normal)), tv = glm::cross(normal, tu);
-  // Its own stream of the sequence: a shift hashed apart from the texels'.
+  // Its rays' streams, hashed apart from the texels'.
   const uint64_t h = SplitMix64(SplitMix64(seed ^ 0x7472692E72617973ull) ^ (uint64_t{triangle} * 0x9E3779B97F4A7C15ull));
-  double shift[4];
-  for (int k = 0; k < 4; ++k) shift[k] = UnitFromBits(SplitMix64(h + k));
-  const double cos_shift = std::cos(2.0 * std::numbers::pi * shift[3]), sin_shift = std::sin(2.0 * std::numbers::pi * shift[3]);
+  const std::vector<EqualAreaCell>& cells = DirectionCells(n);
   out.reserve(n);
   const DirectionWindows windows = DirectionWindows::Of(only_towards, tu, tv, normal);
   for (uint32_t j = 0; j < n; ++j) {
-    const HaltonSample& hs = HaltonPoint(j);
-    const double u3 = Frac(hs.u[2] + shift[2]);
-    if (!windows.Contains(u3, Frac(hs.u[3] + shift[3]))) continue;
-    const double u1 = Frac(hs.u[0] + shift[0]), u2 = Frac(hs.u[1] + shift[1]);
-    const glm::dvec3 dir = CosineDirection(tu, tv, normal, u3, hs.cos7, hs.sin7, cos_shift, sin_shift);
+    SplitMix uniforms = RayStream(h, j);
+    const EqualAreaCell& cell = cells[j];
+    const double u_radius = cell.x0 + cell.width * uniforms.Uniform();
+    const double turn = cell.y0 + cell.height * uniforms.Uniform();
+    if (!windows.Contains(u_radius, turn)) continue;
+    const double u1 = uniforms.Uniform(), u2 = uniforms.Uniform();
+    const glm::dvec3 dir = CosineDirection(tu, tv, normal, u_radius, turn);
     if (only_towards != nullptr && !only_towards->MayMeet(dir)) continue;
     const double s = std::sqrt(u1);
     const glm::dvec3 point = pa * (1 - s) + pb * (s * (1 - u2)) + pc * (s * u2);

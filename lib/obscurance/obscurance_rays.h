@@ -51,9 +51,17 @@ struct DirectionFilter {
   bool MayMeet(const glm::dvec3& direction) const;
 };
 
-// N rays of texel `texel` (nothing if the texel holds no surface). The same
-// (seed, texel, n) give the same rays: a Halton sequence (bases 2, 3, 5, 7,
-// 11) under a Cranley-Patterson rotation hashed from seed and texel.
+// N rays of texel `texel` (nothing if the texel holds no surface), each
+// independent of the others: ray j's direction is uniform in cell j of N
+// equal cells of the square it is made from (EqualAreaCellOf: sin^2 of the
+// polar angle, the azimuth), its origin uniform over the patch, from a
+// stream of its own hashed from (seed, texel, j). So the rays' mean value
+// is an unbiased estimate of the patch's W and Hoeffding's inequality
+// holds for it (independent values in [0, 1], not identically
+// distributed), while the directions still cover the hemisphere evenly. A
+// Halton sequence under one rotation per patch (an earlier choice) was as
+// even, but its rays were not independent, so no Hoeffding bound held for
+// them. The same (seed, texel, n) give the same rays.
 // With `only_towards`, the rays whose direction fails it are left out (and
 // their origins never computed: the update's candidate search skips most
 // rays this way); the others are the same rays, bit for bit.
@@ -61,9 +69,9 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
                        std::vector<PatchRay>& out, const DirectionFilter* only_towards = nullptr);
 
 // N rays of one triangle: points uniform on it, cosine-distributed around
-// its normal, from the same Halton sequence under a rotation hashed from
-// seed and triangle (none for a degenerate triangle). `only_towards` as for
-// GeneratePatchRays.
+// its normal, stratified and independent as GeneratePatchRays's, from
+// streams hashed from seed and triangle (none for a degenerate triangle).
+// `only_towards` as for GeneratePatchRays.
 void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
                           const DirectionFilter* only_towards = nullptr);
 

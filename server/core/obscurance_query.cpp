@@ -136,8 +136,8 @@ AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
     out.method = "obscurance-raycast";
     out.parameters["rays_per_patch"] = static_cast<double>(answer.rays_per_patch);
     SetCoveredBound(answer, answer.rays_per_patch, "rays", out);
-    out.note += "; the rays are a rotated Halton sequence (usually better than independent), cosine-distributed "
-                "from points uniform on the patch";
+    out.note += "; the rays are independent, each cosine-distributed within its own of N equal cells of the "
+                "directions (stratified) from a point uniform on the patch, so Hoeffding's inequality holds for them";
   } else {
     // Per direction, a patch's value is a mean of values in [0, 1] (per
     // channel); the directions are weighed per patch by its samples.
@@ -161,7 +161,8 @@ AccuracyStatement ObscuranceUpdateStatement(const ObscuranceUpdateAnswer& answer
   out.confidence = 0.95;
   out.error_bound = ObscuranceErrorEstimate(std::max<uint32_t>(answer.rays_per_patch, 1), out.confidence);
   out.note = absl::StrCat("recomputed patches: Hoeffding half-width at 95 % for ", answer.rays_per_patch,
-                          " independent cosine-distributed rays per patch (values in [0, 1]); triangles touching a "
+                          " independent rays per patch (values in [0, 1]; each cosine-distributed within its own of N "
+                          "equal cells of the directions, from a point uniform on the patch); triangles touching a "
                           "changed texel by rays of their own (as many per texel of their area, 1 to 16 patches' worth); "
                           "the other patches keep the bake's values (",
                           answer.directions, " directions) bit for bit");

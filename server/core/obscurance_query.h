@@ -87,8 +87,9 @@ struct ObscuranceAnswer {
 };
 
 // Hoeffding's half-width for D independent directions (or rays) with values
-// in [0, 1] (an estimate: they are a rotated Halton sequence): the error
-// figure of an update's recomputed patches, each cast the same rays.
+// in [0, 1]: the bound of an update's recomputed patches, whose rays are
+// independent (obscurance::GeneratePatchRays); for the bake's directions,
+// a rotated Halton sequence, an estimate.
 double ObscuranceErrorEstimate(uint64_t directions, double confidence);
 
 // How many patches the bake estimated and with how many samples each, on
@@ -103,9 +104,10 @@ ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer);
 // What W and I can promise: error_bound holds for the elements covered by
 // obscurance::ObscuranceAnswerBoundOf (those resting on at least a quarter of
 // the directions or rays), whose counts outside and the spread of the
-// per-element half-widths (answer.bounds) are in its parameters; stated as an
-// estimate because the directions are a rotated Halton sequence; with a
-// target, the chosen plan.
+// per-element half-widths (answer.bounds) are in its parameters; for the
+// depth-peeling bake stated as an estimate because its directions are a
+// rotated Halton sequence, for the ray-cast one as a bound (its rays are
+// independent); with a target, the chosen plan.
 AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer);
 
 // INVALID_ARGUMENT (naming the field) for bad parameters before any work.

@@ -522,6 +522,64 @@ void ExpectFilteredRaysAreThePassingOnes(const std::vector<PatchRay>& all, const
   }
 }
 
+// Ray j of n leaves in a direction of cell j of n equal cells of the square
+// (sin^2 of the polar angle, azimuth in turns) about its triangle's normal,
+// so that the rays are independent and still cover the hemisphere evenly:
+// checked for patches and triangles, for counts that are squares and that
+// are not. The frame is the generator's (tangent from the x axis, or the y
+// axis for normals near x).
+void ExpectRaysInTheirOwnCells(const Scene& scene, const std::vector<PatchRay>& rays, uint32_t n,
+                               const std::string& what) {
+  ASSERT_EQ(rays.size(), n) << what;
+  for (uint32_t j = 0; j < n; ++j) {
+    const PatchRay& r = rays[j];
+    const glm::dvec3 a = scene.Vertex(r.triangle, 0), b = scene.Vertex(r.triangle, 1), c = scene.Vertex(r.triangle, 2);
+    const glm::dvec3 normal = glm::normalize(glm::cross(b - a, c - a));
+    const glm::dvec3 helper = std::abs(normal.x) < 0.9 ? glm::dvec3(1, 0, 0) : glm::dvec3(0, 1, 0);
+    const glm::dvec3 tu = glm::normalize(glm::cross(helper, normal)), tv = glm::cross(normal, tu);
+    const double cos_polar = glm::dot(r.direction, normal);
+    const double u_radius = 1.0 - cos_polar * cos_polar;
+    double turn = std::atan2(glm::dot(r.direction, tv), glm::dot(r.direction, tu)) / (2.0 * std::numbers::pi);
+    if (turn < 0) turn += 1.0;
+    const EqualAreaCell cell = EqualAreaCellOf(n, j);
+    constexpr double kSlack = 1e-9;
+    EXPECT_GE(u_radius, cell.x0 - kSlack) << what << " ray " << j;
+    EXPECT_LE(u_radius, cell.x0 + cell.width + kSlack) << what << " ray " << j;
+    const bool in_turns = (turn >= cell.y0 - kSlack && turn <= cell.y0 + cell.height + kSlack) ||
+                          (cell.y0 < kSlack && turn > 1.0 - kSlack);  // the seam at 0 = 1 turn
+    EXPECT_TRUE(in_turns) << what << " ray " << j << ": turn " << turn << " outside [" << cell.y0 << ", "
+                          << cell.y0 + cell.height << "]";
+  }
+}
+
+TEST(ObscuranceRays, EachRayHasItsOwnCellOfTheDirections) {
+  const Scene scene = MakeCornellBox();
+  const ObscuranceAtlas atlas = Atlas(scene, 32);
+  std::vector<PatchRay> rays;
+  int patches = 0;
+  for (uint32_t n : {1u, 7u, 64u, 100u}) {
+    for (uint32_t texel = 0; texel < atlas.texel_count(); ++texel) {
+      GeneratePatchRays(scene, atlas, texel, 9, n, rays);
+      if (rays.empty()) continue;
+      ++patches;
+      ExpectRaysInTheirOwnCells(scene, rays, n, "texel " + std::to_string(texel) + ", n " + std::to_string(n));
+    }
+  }
+  EXPECT_GT(patches, 100);
+  for (uint32_t n : {1u, 64u, 1000u})
+    for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+      GenerateTriangleRays(scene, t, 9, n, rays);
+      ExpectRaysInTheirOwnCells(scene, rays, n, "triangle " + std::to_string(t) + ", n " + std::to_string(n));
+    }
+  // Another seed, other rays: the jitter is the seed's.
+  std::vector<PatchRay> other;
+  GenerateTriangleRays(scene, 0, 10, 64, other);
+  GenerateTriangleRays(scene, 0, 9, 64, rays);
+  int same = 0;
+  for (size_t j = 0; j < rays.size(); ++j) same += rays[j].direction == other[j].direction;
+  EXPECT_EQ(same, 0);
+}
+
 TEST(ObscuranceRays, DirectionFilterLeavesOutOnlyRaysThatCannotReachItsBalls) {
   const Scene scene = MakeCornellBox();
   const ObscuranceAtlas atlas = Atlas(scene, 32);

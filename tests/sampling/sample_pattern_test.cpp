@@ -7,12 +7,47 @@
 
 #include <gtest/gtest.h>
 
+#include "common/random.h"
 #include "sampling/visibility_sampling.h"
 
 namespace visq::sampling {
 namespace {
 
 constexpr int kMaxSamples = kMaxHiddenSampleMapSamples;
+
+// The cells the obscurance rays are stratified over: for every n, n cells
+// of area 1/n each, every point of the square in exactly one of them, and
+// the same layout as the hidden-sample map's regular pattern (its sample i
+// is cell i's centre).
+TEST(EqualAreaCells, TileTheSquareForEveryCount) {
+  SplitMix rng{11};
+  std::vector<int> counts;
+  for (int n = 1; n <= 300; ++n) counts.push_back(n);
+  for (int n : {511, 512, 513, 1000, 1024, 2080, 4095, 4096}) counts.push_back(n);
+  for (int n : counts) {
+    std::vector<EqualAreaCell> cells;
+    double area = 0.0;
+    for (int j = 0; j < n; ++j) {
+      cells.push_back(EqualAreaCellOf(n, j));
+      EXPECT_NEAR(cells.back().width * cells.back().height, 1.0 / n, 1e-12) << "n " << n << " cell " << j;
+      area += cells.back().width * cells.back().height;
+    }
+    EXPECT_NEAR(area, 1.0, 1e-9) << "n " << n;
+    for (int k = 0; k < 200; ++k) {
+      const double x = rng.Uniform(), y = rng.Uniform();
+      int holding = 0;
+      for (const EqualAreaCell& c : cells)
+        holding += x >= c.x0 && x < c.x0 + c.width && y >= c.y0 && y < c.y0 + c.height;
+      EXPECT_EQ(holding, 1) << "n " << n << " point (" << x << ", " << y << ")";
+    }
+    const std::vector<glm::dvec2> regular = StratifiedSamplePattern(n, SamplePattern::kRegular, 0);
+    ASSERT_EQ(regular.size(), cells.size());
+    for (int j = 0; j < n; ++j) {
+      EXPECT_NEAR(regular[j].x, cells[j].x0 + 0.5 * cells[j].width, 1e-12) << "n " << n << " cell " << j;
+      EXPECT_NEAR(regular[j].y, cells[j].y0 + 0.5 * cells[j].height, 1e-12) << "n " << n << " cell " << j;
+    }
+  }
+}
 
 TEST(StratifiedSamplePattern, EveryCountGivesThatManySamplesInsideThePatch) {
   for (SamplePattern pattern : {SamplePattern::kRegular, SamplePattern::kJittered})

@@ -1,4 +1,4 @@
-# metadata_during_build.py SERVER_BINARY SPONZA_GLTF COPIES [LABEL] [--scaling]
+# metadata_during_build.py SERVER_BINARY SPONZA_GLTF COPIES [LABEL] [--scaling] [--unique]
 #
 # How long metadata calls take while a large scene builds its structures:
 # starts SERVER_BINARY on a free loopback port with an empty repository,
@@ -14,6 +14,12 @@
 # same floor, and the memory after all three (the scene's own cpu/gpu bytes,
 # its unique triangles and instances, and the server's RSS).
 #
+# --unique writes each copy with meshes of its own (over the same
+# accessors, so the upload stays small): nothing is repeated for the
+# server, which holds and indexes every triangle as unique (a level of
+# COPIES x 66K unique triangles), where without it the copies share
+# Sponza's meshes and stay instances.
+#
 # Uses the generated Python stubs (tests/bench/scripts/README.md); run with
 # /usr/bin/python3 (Debian's grpcio).
 import json, os, subprocess, sys, tempfile, threading, time
@@ -23,7 +29,8 @@ import grpc
 from visq.v1 import visq_pb2 as pb, visq_pb2_grpc as rpc
 
 scaling = "--scaling" in sys.argv
-args = [a for a in sys.argv if a != "--scaling"]
+unique = "--unique" in sys.argv
+args = [a for a in sys.argv if a not in ("--scaling", "--unique")]
 server_binary, sponza, copies = args[1], args[2], int(args[3])
 label = args[4] if len(args) > 4 else os.path.basename(server_binary)
 
@@ -39,18 +46,23 @@ def write_level(spacing):
     side = 1
     while side * side < copies:
         side += 1
-    all_nodes, roots = [], []
+    all_nodes, roots, meshes = [], [], []
     for c in range(copies):
         base = len(all_nodes)
+        mesh_base = len(meshes) if unique else 0
+        if unique or c == 0:
+            meshes.extend(gltf.get("meshes", []))
         for n in nodes:
             m = dict(n)
             if "children" in m:
                 m["children"] = [base + k for k in n["children"]]
+            if "mesh" in m:
+                m["mesh"] = mesh_base + n["mesh"]
             all_nodes.append(m)
         all_nodes.append({"name": f"copy{c}", "translation": [spacing * (c % side), 0.0, spacing * (c // side)],
                           "children": [base + r for r in gltf["scenes"][gltf.get("scene", 0)]["nodes"]]})
         roots.append(len(all_nodes) - 1)
-    level = dict(gltf, nodes=all_nodes, scenes=[{"nodes": roots}], scene=0)
+    level = dict(gltf, nodes=all_nodes, meshes=meshes, scenes=[{"nodes": roots}], scene=0)
     path = os.path.join(work, "level.gltf")
     json.dump(level, open(path, "w"))
     return path
