@@ -1,6 +1,7 @@
 #include "obscurance/patch_index.h"
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <limits>
 
@@ -20,6 +21,7 @@ void PatchIndex::Build(const std::vector<glm::dvec3>& center, const std::vector<
   cell_begin_.clear();
   cell_texels_.clear();
   dims_ = glm::ivec3(0);
+  texel_count_ = center.size();
   // The grid's box: every indexed ball.
   glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
   for (size_t i = 0; i < center.size(); ++i) {
@@ -59,16 +61,23 @@ void PatchIndex::Query(const glm::dvec3& lo, const glm::dvec3& hi, std::vector<u
   const glm::dvec3 grid_hi = origin_ + glm::dvec3(dims_) * cell_;
   for (int a = 0; a < 3; ++a)
     if (hi[a] < origin_[a] || lo[a] > grid_hi[a]) return;
-  const size_t first = out.size();
+  // The cells' texels marked in a bitmap over the atlas, then read off it
+  // in order: a ball in several cells is listed once, and the list comes
+  // out sorted without sorting it (a sort of the ~150K entries around a
+  // Sponza object cost about 6 ms an update).
+  thread_local std::vector<uint64_t> marked;
+  marked.assign((texel_count_ + 63) / 64, 0);
   const glm::ivec3 a = CellOf(lo), b = CellOf(hi);
   for (int z = a.z; z <= b.z; ++z)
     for (int y = a.y; y <= b.y; ++y)
       for (int x = a.x; x <= b.x; ++x) {
         const size_t c = Linear({x, y, z});
-        out.insert(out.end(), cell_texels_.begin() + cell_begin_[c], cell_texels_.begin() + cell_begin_[c + 1]);
+        for (uint32_t k = cell_begin_[c]; k < cell_begin_[c + 1]; ++k)
+          marked[cell_texels_[k] >> 6] |= uint64_t{1} << (cell_texels_[k] & 63);
       }
-  std::sort(out.begin() + static_cast<std::ptrdiff_t>(first), out.end());
-  out.erase(std::unique(out.begin() + static_cast<std::ptrdiff_t>(first), out.end()), out.end());
+  for (size_t w = 0; w < marked.size(); ++w)
+    for (uint64_t bits = marked[w]; bits != 0; bits &= bits - 1)
+      out.push_back(static_cast<uint32_t>(64 * w + static_cast<size_t>(std::countr_zero(bits))));
 }
 
 }  // namespace visq::obscurance

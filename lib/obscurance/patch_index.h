@@ -34,6 +34,7 @@ class PatchIndex {
 
   glm::dvec3 origin_{0.0};
   double cell_ = 1.0;
+  size_t texel_count_ = 0;
   glm::ivec3 dims_{0};
   // Texels per cell: [cell_begin_[c], cell_begin_[c + 1]) of cell_texels_.
   std::vector<uint32_t> cell_begin_;
