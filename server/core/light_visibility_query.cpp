@@ -122,14 +122,14 @@ Status WithPointsLeft(absl::StatusCode code, absl::string_view message, size_t l
   return Status(code, absl::StrCat(message, " with ", left, " of ", total, " points left"));
 }
 
-}  // namespace
-
 // The cache key of a group's tree, as RunLightVisibility makes it.
 exact::CacheKey GroupTreeKey(const ResidentScene& resident, const exact::AreaLight& light,
                              exact::TreeOptions options, const exact::ReceiverCell& group) {
   options.receiver_bounds = group.box;
   return exact::CacheKey{resident.name, resident.version, exact::HashLight(light, options)};
 }
+
+}  // namespace
 
 StatusOr<LightVisibilityWork> EstimateLightVisibilityWork(Engine& engine, const LightVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,

@@ -448,15 +448,19 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
     // cost per point (an upper bound: that run built the trees too) says
     // takes about kExactSecondProbeMs: the tree can cost seconds per point on
     // a large light over a busy scene. Its points and trees are the
-    // request's own, which a chosen exact plan keeps.
+    // request's own, which a chosen exact plan keeps. A third asks the first
+    // run's points again: answered from the stores, it measures what a run
+    // of no work costs (a repeated frame), which the fit of working runs
+    // cannot tell (CostModel::Predict).
     if (!model.Predict(series, 1.0)) {
       const bool exact = method == VisibilityMethod::kPluckerExact;
-      std::pair<int, int> probes[] = {exact ? std::pair{8, 0} : std::pair{4, 32},
-                                      exact ? std::pair{16, 0} : std::pair{16, 256}};
+      std::vector<std::pair<int, int>> probes = {exact ? std::pair{8, 0} : std::pair{4, 32},
+                                                 exact ? std::pair{16, 0} : std::pair{16, 256}};
+      if (exact) probes.push_back(probes.front());
       constexpr double kSecondProbeBelowMs = 200.0, kExactSecondProbeMs = 500.0;
       bool usable = true;
-      for (size_t p = 0; p < std::size(probes); ++p) {
-        auto& [side, samples] = probes[p];
+      for (size_t p = 0; p < probes.size(); ++p) {
+        const auto [side, samples] = probes[p];
         VISQ_RETURN_IF_ERROR(RequireNotCancelled(job));
         StatusOr<RunCost> cost = run(method, samples, side);
         // A method that cannot answer this request honestly (a sampled one
@@ -468,11 +472,11 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
         if (!cost.ok()) return cost.status();
         model.Record(series, cost->units.work, cost->ms, cost->units.extra);
         report.probe_ms += cost->ms;
-        if (p + 1 == std::size(probes)) break;
+        if (p > 0) continue;
         if (exact) {
           const double per_point_ms = cost->ms / std::max(1.0, cost->units.extra);
           const int most = int(std::sqrt(kExactSecondProbeMs / std::max(per_point_ms, 1e-6)));
-          probes[p + 1].first = std::clamp(most, 2, probes[p + 1].first);
+          probes[1].first = std::clamp(most, 2, probes[1].first);
         } else if (cost->ms >= kSecondProbeBelowMs) {
           break;
         }

@@ -91,6 +91,17 @@ TEST(CostModel, ARunOfNoWorkMeasuresTheFixedCost) {
   model.Record("probed", 1000.0, 100.0, 64.0);
   model.Record("probed", 0.0, 30.0, 40.0);
   EXPECT_DOUBLE_EQ(*model.Predict("probed", 0.0, 0.0), 30.0);
+
+  // Points that get cheaper as there are more of them fit a large fixed
+  // part; a run of no work costs what such runs cost, not that part.
+  model.Record("falling", 5000.0, 100.0, 64.0);
+  model.Record("falling", 0.0, 60.0, 40.0);      // 1.5 ms a point, sparse
+  model.Record("falling", 0.0, 540.0, 4000.0);   // 0.135 ms a point, dense
+  EXPECT_GT(*model.Predict("falling", 0.0, 1.0), 20.0) << "the fit's fixed part";
+  EXPECT_DOUBLE_EQ(*model.Predict("falling", 0.0, 0.0), 60.0) << "the cheapest run measured";
+  model.Record("falling", 0.0, 3.0, 0.0);
+  model.Record("falling", 0.0, 5.0, 0.0);
+  EXPECT_DOUBLE_EQ(*model.Predict("falling", 0.0, 0.0), 4.0) << "what runs of no work cost";
 }
 
 TEST(CostModel, ObservationsOutliveTheModelInItsFile) {
