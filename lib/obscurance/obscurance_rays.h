@@ -58,10 +58,10 @@ struct DirectionFilter {
 // stream of its own hashed from (seed, texel, j). So the rays' mean value
 // is an unbiased estimate of the patch's W and Hoeffding's inequality
 // holds for it (independent values in [0, 1], not identically
-// distributed), while the directions still cover the hemisphere evenly. A
-// Halton sequence under one rotation per patch (an earlier choice) was as
-// even, but its rays were not independent, so no Hoeffding bound held for
-// them. The same (seed, texel, n) give the same rays.
+// distributed), while the directions still cover the hemisphere evenly.
+// A low-discrepancy sequence under one random rotation per patch would be
+// as even, but its rays would not be independent, and no Hoeffding bound
+// would hold for them. The same (seed, texel, n) give the same rays.
 // With `only_towards`, the rays whose direction fails it are left out (and
 // their origins never computed: the update's candidate search skips most
 // rays this way); the others are the same rays, bit for bit.

@@ -63,8 +63,8 @@ void PatchIndex::Query(const glm::dvec3& lo, const glm::dvec3& hi, std::vector<u
     if (hi[a] < origin_[a] || lo[a] > grid_hi[a]) return;
   // The cells' texels marked in a bitmap over the atlas, then read off it
   // in order: a ball in several cells is listed once, and the list comes
-  // out sorted without sorting it (a sort of the ~150K entries around a
-  // Sponza object cost about 6 ms an update).
+  // out sorted without sorting the ~150K entries around an object, which
+  // would cost more than the rest of the pool.
   thread_local std::vector<uint64_t> marked;
   marked.assign((texel_count_ + 63) / 64, 0);
   const glm::ivec3 a = CellOf(lo), b = CellOf(hi);

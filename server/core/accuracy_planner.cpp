@@ -202,9 +202,8 @@ std::optional<double> CostModel::Predict(const std::string& series, double work,
     // A run of no work in either unit (every answer from the exact method's
     // stores) only looks answers up: it costs what such runs have cost, and
     // at most the cheapest run measured. The fit's fixed part is no guide
-    // to it: with three observations it also absorbs how a rate falls as
-    // the work grows (a lazily refined tree's points get cheaper), and
-    // predicted Sponza's stored repeat at 153 ms where it took 3.4.
+    // to it: it also absorbs how a rate falls as the work grows (a lazily
+    // refined tree's points get cheaper), which can be 50x such a run.
     if (work == 0.0 && extra == 0.0) return idle_runs > 0 ? idle_sum / double(idle_runs) : cheapest;
     // Never below the cheapest run the series has measured: a fit of two
     // probes may leave out the fixed part and predict next to nothing.

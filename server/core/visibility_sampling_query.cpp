@@ -333,10 +333,10 @@ WorkUnits SampledWork(VisibilityMethod method, double points, int samples) {
 // The exact method's: the scene triangles in the shafts of the trees the
 // batch would build (none where the cache holds its trees), and its points
 // that no held tree has in its store (EstimateLightVisibilityWork). Taken
-// before the run: a run leaves its trees and answers cached. Counting trees
-// alone (a first version) predicted a cold 64 x 64 map from its probes'
-// small blocks 700x too cheap on Sponza, and a warm repeat, answered from
-// the trees' stores, 100x too dear.
+// before the run: a run leaves its trees and answers cached. A new tree
+// costs what its shaft holds, a point its descent, a stored answer a
+// lookup; counting any one of them alone mispredicts maps by 100x and more
+// (docs/exact-method-notes.md, "The planner's view of the exact method").
 StatusOr<WorkUnits> ExactWork(Engine& engine, const LightVisibilityQuery& batch) {
   VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork work, EstimateLightVisibilityWork(engine, batch));
   return WorkUnits{work.new_shaft_triangles, work.points};
@@ -366,11 +366,11 @@ std::vector<uint32_t> LatticeTexels(int width, int height, int side) {
 
 // The exact method's probe of a map: about side x side of its own texels,
 // spread over the receiver and answered on the trees the whole map would
-// use (LightVisibilityQuery::answer_only). A central block of texels (the
-// earlier probe) got a tree of its own, whose narrow shaft held a fraction
-// of the map's occluders: on Sponza it predicted a map at 11 ms that took
-// 955. The trees this probe builds and the answers it stores are the
-// map's, which a chosen exact plan then finds cached.
+// use (LightVisibilityQuery::answer_only). Points of a smaller receiver
+// would get trees of their own, whose narrower shafts hold a fraction of
+// the map's occluders, and so predict the map far too cheap. The trees
+// this probe builds and the answers it stores are the map's, which a
+// chosen exact plan then finds cached.
 StatusOr<RunCost> ProbeExactMap(Engine& engine, const ResidentScene& resident,
                                 const sampling::HiddenSampleMapRequest& map, int side, const CallOptions& call) {
   VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery batch, ExactLightQuery(resident.name, resident.version, map, call));
@@ -442,9 +442,8 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
     // the model a fixed cost and a rate. A sampled method's second, larger
     // run only when the first was cheap.
     // The exact method's second run always comes: only it (the first's
-    // trees held) separates what its points cost from what its trees cost,
-    // and a fit of one observation gave the points no cost at all (veach-ajar:
-    // a map predicted at 0 ms took 6.4 s). Its size is what the first run's
+    // trees held) separates what its points cost from what its trees cost;
+    // a fit of one observation may give the points no cost at all. Its size is what the first run's
     // cost per point (an upper bound: that run built the trees too) says
     // takes about kExactSecondProbeMs: the tree can cost seconds per point on
     // a large light over a busy scene. Its points and trees are the
