@@ -6,10 +6,14 @@
 # after the budget is spent is skipped and named, so the script always
 # ends with a summary.
 #
-#   tests/bench/gpu-check.sh [--build DIR] [--budget-s S] [--scenes DIR] [--out DIR]
+#   tests/bench/gpu-check.sh [--build DIR | --bundle DIR] [--budget-s S] [--scenes DIR] [--out DIR]
 #
 # --build DIR   a build folder to reuse (configured here when it has no
 #               CMakeCache.txt); default build-gpu
+# --bundle DIR  run what gpu-bundle.sh packed elsewhere (a folder or its
+#               .tar.gz) instead of building: for a machine with the NVIDIA
+#               driver but without Debian's development packages. The scenes
+#               default to the bundle's.
 # --scenes DIR  the shared real scenes (default $VISQ_SHARED_SCENES, then
 #               ../shared/scenes); benchmarks that need them say so and skip
 # --out DIR     where each step's full output goes (default $OUT when set,
@@ -21,16 +25,19 @@ set -u -o pipefail
 
 root="$(cd "$(dirname "$0")/../.." && pwd)"
 build="$root/build-gpu"
+bundle=""
 budget_s=540
 scenes="${VISQ_SHARED_SCENES:-$root/../shared/scenes}"
+scenes_given=0
 out="${OUT:-}"
 while [ $# -gt 0 ]; do
   case "$1" in
     --build) build="$(realpath -m "$2")"; shift 2 ;;
+    --bundle) bundle="$(realpath -m "$2")"; shift 2 ;;
     --budget-s) budget_s="$2"; shift 2 ;;
-    --scenes) scenes="$(realpath -m "$2")"; shift 2 ;;
+    --scenes) scenes="$(realpath -m "$2")"; scenes_given=1; shift 2 ;;
     --out) out="$(realpath -m "$2")"; shift 2 ;;
-    *) echo "usage: $0 [--build DIR] [--budget-s S] [--scenes DIR] [--out DIR]" >&2; exit 2 ;;
+    *) echo "usage: $0 [--build DIR | --bundle DIR] [--budget-s S] [--scenes DIR] [--out DIR]" >&2; exit 2 ;;
   esac
 done
 [ -n "$out" ] || out="$build/gpu-check"
@@ -74,7 +81,9 @@ finish() {
   exit "$failed"
 }
 
-for tool in cmake c++ nvidia-smi; do
+tools=(cmake c++ nvidia-smi)
+[ -z "$bundle" ] || tools=(nvidia-smi)
+for tool in "${tools[@]}"; do
   if ! command -v "$tool" > /dev/null; then
     if [ "$tool" = nvidia-smi ]; then
       echo "gpu-check: no nvidia-smi: this is not an NVIDIA machine, nothing to check"
@@ -91,26 +100,57 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | 
 export VISQ_EGL_DEVICE=auto
 export VISQ_SHARED_SCENES="$scenes"
 
-if [ ! -f "$build/CMakeCache.txt" ]; then
-  step configure 30 cmake -S "$root" -B "$build" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=ON
+if [ -n "$bundle" ]; then
+  if [[ "$bundle" == *.tar.gz ]]; then
+    mkdir -p "$build" && tar -C "$build" -xzf "$bundle" && bundle="$build/gpu-bundle" || exit 1
+  fi
+  [ -f "$bundle/suites.txt" ] || { echo "gpu-check: $bundle is not a gpu-bundle.sh folder" >&2; exit 1; }
+  echo "gpu-check: bundle of commit $(cat "$bundle/commit.txt" 2> /dev/null || echo unknown)"
+  [ "$scenes_given" -eq 1 ] || scenes="$bundle/scenes"
+  export VISQ_SHARED_SCENES="$scenes"
+  export LD_LIBRARY_PATH="$bundle/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+  # The machine's own GL loaders first; the bundle's only where it has none.
+  if ! ldconfig -p | grep -q 'libEGL\.so\.1 '; then
+    export LD_LIBRARY_PATH="$LD_LIBRARY_PATH:$bundle/lib/glvnd"
+    echo "gpu-check: no libEGL.so.1 on this machine: using the bundle's GLVND loaders"
+  fi
+  bench="$bundle/bin"
+  gpu_tests="$bundle/bin/visq_gpu_tests"
+  missing="$(ldd "$bundle"/bin/* 2> /dev/null | grep 'not found' | sort -u)"
+  if [ -n "$missing" ]; then
+    echo "gpu-check: libraries the bundle lacks here:"; echo "$missing"
+    exit 1
+  fi
+else
+  if [ ! -f "$build/CMakeCache.txt" ]; then
+    step configure 30 cmake -S "$root" -B "$build" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=ON
+  fi
+  step build 60 cmake --build "$build" -j"$(nproc)"
+  [ "$failed" -eq 0 ] || finish
+  bench="$build/tests/bench"
+  gpu_tests="$build/tests/gpu/visq_gpu_tests"
 fi
-step build 60 cmake --build "$build" -j"$(nproc)"
-[ "$failed" -eq 0 ] || finish
 
-bench="$build/tests/bench"
 # The device probe: the context test prints the renderer it got.
-step renderer 10 "$build/tests/gpu/visq_gpu_tests" --gtest_filter='GpuContext.IsOpenGl45Core'
+step renderer 10 "$gpu_tests" --gtest_filter='GpuContext.IsOpenGl45Core'
 if grep -qi 'llvmpipe\|softpipe' "$out/renderer.log" 2> /dev/null; then
   summary+=("renderer                     FAILED: a software renderer answered, not the GPU")
   failed=1
   finish
 fi
-step gpu-test-suites 120 ctest --test-dir "$build" -L gpu -LE slow --output-on-failure -j4 --timeout 300
+if [ -n "$bundle" ]; then
+  # ctest's files name this build's paths, so the suites run one by one.
+  while read -r suite; do
+    step "$suite" 30 "$bundle/bin/$suite" --gtest_brief=1
+  done < "$bundle/suites.txt"
+else
+  step gpu-test-suites 120 ctest --test-dir "$build" -L gpu -LE slow --output-on-failure -j4 --timeout 300
+fi
 step bench-hidden-sample-map 60 "$bench/visq_bench_hidden_sample_map" --quick --scenes "$scenes"
 step bench-hsm-copies 60 "$bench/visq_bench_hidden_sample_map" --copies 1,64 --scenes "$scenes"
 step bench-slicemap 60 "$bench/visq_bench_slicemap" "$scenes" 3 2
 step bench-volumetric 60 "$bench/visq_bench_volumetric" --quick --scene "$scenes/sponza_dabrovic/sponza.gltf"
 step bench-obscurance 60 "$bench/visq_bench_obscurance" --quick --scenes "$scenes"
 step bench-structures 30 "$bench/visq_bench_structures" --scenes "$scenes" --repeat 1
-step gpu-slow-suites 120 ctest --test-dir "$build" -L gpu -L slow --output-on-failure -j4 --timeout 300
+[ -n "$bundle" ] || step gpu-slow-suites 120 ctest --test-dir "$build" -L gpu -L slow --output-on-failure -j4 --timeout 300
 finish
