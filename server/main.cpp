@@ -77,6 +77,7 @@ struct Flags {
 
 // Each flag, its environment variable (for containers), its check.
 void AddFlags(CLI::App& app, Flags& flags) {
+  flags.options.engine.gpu.device = "auto";
   app.set_version_flag("--version", std::string("visq-server ") + visq::kVersion + " (" + visq::kBuildCommit + ")");
   app.add_option("--address", flags.options.address, "HOST:PORT to listen on")->envname("VISQ_ADDRESS")->capture_default_str();
   app.add_option("--scene-repo", flags.scene_repo, "Scene repository directory")->envname("VISQ_SCENE_REPO")->capture_default_str();

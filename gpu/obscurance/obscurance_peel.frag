@@ -14,9 +14,18 @@
 // other: the convention of the ray estimator (obscurance_rays.h), which
 // skips a surface met closer than its t_min, and the one the update uses.
 // 8e-6 of the view depth is 8e-6 of the scene's bounding diameter (0.08 mm
-// in a 10 m scene): far above the depth rounding between coplanar
-// triangles, far below any gap that geometry means.
+// in a 10 m scene): far above the float rounding between coplanar
+// triangles, far below any gap that geometry means. A slope term is added
+// because hardware rasterizers snap vertices to a sub-pixel grid (1/256 of a
+// pixel on NVIDIA) before they set up each triangle's depth plane: two
+// coplanar triangles seen at a grazing angle then differ in depth by their
+// slope times the snap, which the constant alone does not cover (with the
+// constant alone, an H200 baked a pot's base resting on the floor 0.21
+// darker than the rays; llvmpipe's rounding stays below the constant). A sixteenth of a
+// pixel's depth change is 16x that snap, and a gap a sixteenth of a pixel
+// deep is one the bundle cannot resolve anyway.
 const float kBackFacingDepthOffset = 8e-6;
+const float kBackFacingSlopePixels = 1.0 / 16.0;
 //
 // The sample's patch is the texel of its atlas coordinates, pulled onto the
 // triangle's own atlas triangle first: the interpolated coordinates of a
@@ -31,7 +40,10 @@ uniform int u_first;
 uniform uvec2 u_atlas_size;
 layout(location = 0) out uvec2 o_fragment;
 void main() {
-  const float depth = gl_FrontFacing ? gl_FragCoord.z : min(gl_FragCoord.z + kBackFacingDepthOffset, 1.0);
+  const float slope = fwidth(gl_FragCoord.z);
+  const float depth = gl_FrontFacing
+                          ? gl_FragCoord.z
+                          : min(gl_FragCoord.z + kBackFacingDepthOffset + kBackFacingSlopePixels * slope, 1.0);
   if (u_first == 0 && depth <= texelFetch(u_previous_depth, ivec2(gl_FragCoord.xy), 0).r) discard;
   gl_FragDepth = depth;
   const vec2 a = corner_uv[3u * v_triangle], b = corner_uv[3u * v_triangle + 1u], c = corner_uv[3u * v_triangle + 2u];

@@ -155,7 +155,10 @@ EglContext::~EglContext() {
 
 StatusOr<EglContext> EglContext::CreateCurrent(const GpuOptions& options) {
   std::string choice = options.device;
-  if (const char* env = std::getenv("VISQ_EGL_DEVICE"); env != nullptr && *env != '\0') choice = env;
+  if (choice.empty()) {
+    const char* env = std::getenv("VISQ_EGL_DEVICE");
+    choice = env != nullptr && *env != '\0' ? env : "auto";
+  }
 
   // Candidates in order of preference for the requested choice.
   std::vector<Candidate> candidates;

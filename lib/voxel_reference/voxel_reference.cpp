@@ -200,8 +200,10 @@ StatusOr<ReferenceGrid> VoxelizeSurface(const Scene& scene, const GridBox& box, 
   return grid;
 }
 
-StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& box, const SurfaceOptions& options) {
+StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& box, const SurfaceOptions& options,
+                                            double margin) {
   if (Status s = ValidateBox(box); !s.ok()) return s;
+  if (!(margin >= 0.0 && margin < 0.5)) return absl::InvalidArgumentError("margin must lie in [0, 0.5)");
   const bool local = !options.column_near.empty();
   std::vector<std::pair<uint32_t, uint32_t>> ranges = options.triangles;
   if (ranges.empty()) ranges.emplace_back(0u, static_cast<uint32_t>(scene.TriangleCount()));
@@ -213,6 +215,13 @@ StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& b
       for (int c = 0; c < 3; ++c) g[c] = ToGrid(box, scene.Vertex(tri, c));
       const double area = (g[1].x - g[0].x) * (g[2].y - g[0].y) - (g[2].x - g[0].x) * (g[1].y - g[0].y);
       if (area == 0.0) continue;  // edge-on: covers no column center
+      // A barycentric coordinate is the distance to the opposite edge over
+      // the corner's height above it: margin columns is margin / height.
+      double min_weight[3] = {0, 0, 0};
+      for (int c = 0; c < 3 && margin > 0.0; ++c) {
+        const glm::dvec2 edge = glm::dvec2(g[(c + 2) % 3]) - glm::dvec2(g[(c + 1) % 3]);
+        min_weight[c] = margin * glm::length(edge) / std::abs(area);
+      }
       const glm::dvec3 lo = glm::min(glm::min(g[0], g[1]), g[2]), hi = glm::max(glm::max(g[0], g[1]), g[2]);
       const int64_t x0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(lo.x - 0.5)));
       const int64_t x1 = std::min<int64_t>(box.width - 1, static_cast<int64_t>(std::ceil(hi.x - 0.5)));
@@ -225,7 +234,7 @@ StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& b
           const double w0 = ((g[1].x - px) * (g[2].y - py) - (g[2].x - px) * (g[1].y - py)) / area;
           const double w1 = ((g[2].x - px) * (g[0].y - py) - (g[0].x - px) * (g[2].y - py)) / area;
           const double w2 = 1.0 - w0 - w1;
-          if (w0 < 0.0 || w1 < 0.0 || w2 < 0.0) continue;
+          if (w0 < min_weight[0] || w1 < min_weight[1] || w2 < min_weight[2]) continue;
           const double depth = w0 * g[0].z + w1 * g[1].z + w2 * g[2].z;
           if (depth < 0.0 || depth > 1.0) continue;
           const size_t column = static_cast<size_t>(y) * box.width + static_cast<size_t>(x);
@@ -235,8 +244,9 @@ StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& b
             far = options.column_far[column];
             if (near > far) continue;
           }
-          const int64_t k = std::clamp<int64_t>(static_cast<int64_t>(std::floor((depth - near) / (far - near) * box.slices)),
-                                                0, box.slices - 1);
+          const double slice = (depth - near) / (far - near) * box.slices;
+          if (margin > 0.0 && std::abs(slice - std::round(slice)) < margin) continue;
+          const int64_t k = std::clamp<int64_t>(static_cast<int64_t>(std::floor(slice)), 0, box.slices - 1);
           grid.bits[column * wpc + k / 32] |= 1u << (k % 32);
         }
       }

@@ -79,8 +79,14 @@ struct SolidReference {
 // VoxelizeSurface has and this grid lacks is touched only by triangles that
 // miss its column's center at its depth (edge-on or thin triangles): the
 // slicemap's standard mode cannot see it. Same options as VoxelizeSurface.
+//
+// margin > 0 keeps only what every rasterizer that rounds to that precision
+// must see: a center closer than margin columns to a triangle's edge, or a
+// depth closer than margin slices to a slice boundary, is left out (GPUs
+// snap vertices to a sub-pixel grid, so such a center can fall either side).
 [[nodiscard]] StatusOr<ReferenceGrid> SampleColumnCenters(const Scene& scene, const GridBox& box,
-                                                          const SurfaceOptions& options = {});
+                                                          const SurfaceOptions& options = {},
+                                                          double margin = 0.0);
 
 // Exact (up to double rounding) separating-axis test between a triangle and
 // the closed axis-aligned box center +- half; touching counts as overlap.

@@ -60,7 +60,8 @@ step() {
   fi
   echo "=== $name (budget left ${remaining}s)"
   local t0; t0=$(date +%s)
-  timeout --signal=TERM --kill-after=10 "$remaining" "$@" 2>&1 | tee "$out/$name.log"
+  # Line-buffered, so a step stopped at the budget still shows how far it got.
+  timeout --signal=TERM --kill-after=10 "$remaining" stdbuf -oL "$@" 2>&1 | tee "$out/$name.log"
   local rc=${PIPESTATUS[0]}
   local took=$(( $(date +%s) - t0 ))
   if [ "$rc" -eq 0 ]; then
@@ -151,6 +152,6 @@ step bench-hsm-copies 60 "$bench/visq_bench_hidden_sample_map" --copies 1,64 --s
 step bench-slicemap 60 "$bench/visq_bench_slicemap" "$scenes" 3 2
 step bench-volumetric 60 "$bench/visq_bench_volumetric" --quick --scene "$scenes/sponza_dabrovic/sponza.gltf"
 step bench-obscurance 60 "$bench/visq_bench_obscurance" --quick --scenes "$scenes"
-step bench-structures 30 "$bench/visq_bench_structures" --scenes "$scenes" --repeat 1
+step bench-structures 30 "$bench/visq_bench_structures" --scenes "$scenes" --repeat 1 --only sponza
 [ -n "$bundle" ] || step gpu-slow-suites 120 ctest --test-dir "$build" -L gpu -L slow --output-on-failure -j4 --timeout 300
 finish

@@ -18,8 +18,9 @@ namespace visq::gpu {
 struct GpuOptions {
   // "auto": an EGL device that is not a software renderer (an NVIDIA GPU),
   // else Mesa surfaceless (llvmpipe). "surfaceless": Mesa only. "device:N":
-  // the N-th EGL device. Also settable with VISQ_EGL_DEVICE.
-  std::string device = "auto";
+  // the N-th EGL device. Empty: $VISQ_EGL_DEVICE, else "auto" (a choice
+  // made here is never overridden by the environment).
+  std::string device;
   // Route KHR_debug messages to the log and check glGetError after steps.
   bool debug = false;
   // Fault injection, for tests of the recovery path: the N-th job (1-based,
