@@ -145,7 +145,7 @@ void CheckStandardSurface(const Uploaded& s, const VoxelizeParams& params, const
   EXPECT_GT(occupied, 0u);
   EXPECT_EQ(gpu_result.occupied_voxels, occupied);
   EXPECT_LE(extra, occupied / 1000 + 2) << label;
-  EXPECT_LE(unexplained, reference / 1000 + 2) << label;
+  EXPECT_LE(unexplained, reference / 10000 + 2) << label;
 }
 
 // Conservative mode must contain the exact grid.
