@@ -94,8 +94,13 @@ struct EmbreeSceneOptions {
   // Meshes the scene places more than once (Scene::placements) are built
   // once and traced as Embree instances where the instance transform keeps
   // the precision of the flattened upload (InstanceKeepsPrecision in the
-  // .cpp); false flattens everything.
+  // .cpp) and the mesh has two such placements at least; false flattens
+  // everything.
   bool instance_meshes = true;
+  // Placements with the same world transform traced as one instance where
+  // that holds each mesh once (see Instancing in the .cpp); false: one
+  // instance per placement (for benchmarks to compare).
+  bool group_placements = true;
   // The frame origin for the float32 upload; default: scene bounds center.
   std::optional<glm::dvec3> origin;
   BuildQuality quality = BuildQuality::kHigh;
@@ -155,8 +160,10 @@ class EmbreeScene {
   // estimates count by.
   static std::vector<uint8_t> TracedAsInstances(const Scene& scene, const EmbreeSceneOptions& options = {});
 
-  // The placements traced as instances, and the triangles they stand for.
+  // The placements traced as instances, and the triangles they stand for;
+  // the Embree instances they make (one per distinct world transform).
   size_t instance_count() const;
+  size_t instance_group_count() const;
   size_t instanced_triangle_count() const;
 
   struct Instancing;  // the instanced meshes and how hits map back to scene triangles

@@ -10,8 +10,12 @@
 // made of one repeated mesh), the copies twice: flattened ("flat", every
 // structure holds every triangle) and kept as instances ("inst", the mesh
 // once and N placements of it, as the loader keeps a mesh that several nodes
-// share). B/tri is per triangle of the level; B/unique per triangle held
-// once (the instanced rows' per-instance cost is in it).
+// share). Then the scene split into its nodes' meshes, each placed once per
+// copy ("prefab", as a glTF of N parent nodes over one node tree loads): a
+// copy's placements traced as one Embree instance ("grouped") and as one
+// instance each ("each"). The inst column counts Embree instances.
+// B/tri is per triangle of the level; B/unique per triangle held once (the
+// instanced rows' per-instance cost is in it).
 // Build and trace times are the least of R rounds, each round building and
 // tracing MEDIUM then HIGH. Trace: 1M coherent occlusion
 // segments (4096 receiver points x 256 samples of a light patch, as a
@@ -100,7 +104,7 @@ int main(int argc, char** argv) {
   }
   std::printf("device: %s; %u hardware threads\n", (*worker)->device().gl_renderer.c_str(),
               std::thread::hardware_concurrency());
-  std::printf("%-24s %9s %5s %6s | %-6s %9s %8s %9s %9s %9s | %9s %8s %9s | %8s %8s | %8s\n", "scene", "triangles",
+  std::printf("%-28s %9s %5s %6s | %-6s %9s %8s %9s %9s %9s | %9s %8s %9s | %8s %8s | %8s\n", "scene", "triangles",
               "V/T", "inst", "BVH", "build ms", "B/tri", "B/unique", "occl Mr/s", "hit Mr/s", "index ms", "B/tri",
               "B/unique", "GPU ms", "B/tri", "scene B/t");
   for (const char* file : {"sponza_dabrovic/sponza.gltf", "interior_veach_ajar/veach_ajar.gltf", "bunny/bunny.gltf"}) {
@@ -111,16 +115,29 @@ int main(int argc, char** argv) {
       continue;
     }
     const Trace trace = MakeTrace(*loaded);
+    enum class Layout { kFlat, kInstanced, kPrefabGrouped, kPrefabEach };
     struct Level {
       int copies;
-      bool instanced;
+      Layout layout;
     };
-    for (const Level level : {Level{1, false}, Level{copies, false}, Level{copies, true}}) {
+    const std::vector<Scene> parts = testing::SplitByNode(*loaded);
+    std::vector<glm::dmat4> worlds;
+    for (int c = 0; c < copies; ++c) {
+      const int side = int(std::ceil(std::sqrt(double(copies))));
+      const glm::dvec3 e = loaded->bounds.Extent();
+      worlds.push_back(glm::translate(glm::dmat4(1.0), glm::dvec3(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side))));
+    }
+    for (const Level level : {Level{1, Layout::kFlat}, Level{copies, Layout::kFlat}, Level{copies, Layout::kInstanced},
+                              Level{copies, Layout::kPrefabGrouped}, Level{copies, Layout::kPrefabEach}}) {
       const int n = level.copies;
-      const Scene scene = level.instanced ? testing::MakeCopies(*loaded, n) : testing::Flattened(testing::MakeCopies(*loaded, n));
+      if (parts.size() < 2 && (level.layout == Layout::kPrefabGrouped || level.layout == Layout::kPrefabEach)) continue;
+      const Scene scene = level.layout == Layout::kFlat        ? testing::Flattened(testing::MakeCopies(*loaded, n))
+                          : level.layout == Layout::kInstanced ? testing::MakeCopies(*loaded, n)
+                                                               : testing::PlaceMeshes(parts, worlds);
       const double tris = double(scene.TriangleCount());
+      const char* layout_name[] = {" flat", " inst", " prefab grouped", " prefab each"};
       const std::string name = std::filesystem::path(file).stem().string() +
-                               (n > 1 ? " x" + std::to_string(n) + (level.instanced ? " inst" : " flat") : "");
+                               (n > 1 ? " x" + std::to_string(n) + layout_name[int(level.layout)] : "");
       // Triangles held once: those of no placement, and each mesh's once.
       double unique = tris;
       if (!scene.placements.empty()) {
@@ -147,14 +164,15 @@ int main(int argc, char** argv) {
         for (int q = 0; q < 2; ++q) {
           raycast::EmbreeSceneOptions options;
           options.quality = qualities[q];
+          options.group_placements = level.layout != Layout::kPrefabEach;
           bvh[q].reset();
           build_ms[q] = std::min(build_ms[q], Best(1, [&] { bvh[q].emplace(*raycast::EmbreeScene::Create(scene, options)); }));
           occl_ms[q] = std::min(occl_ms[q], Best(1, [&] { (void)bvh[q]->Occluded(trace.segments, coherent); }));
           hit_ms[q] = std::min(hit_ms[q], Best(1, [&] { (void)bvh[q]->Intersect(trace.rays); }));
         }
       for (int q = 0; q < 2; ++q)
-        std::printf("%-24s %9.0f %5.2f %6zu | %-6s %9.1f %8.1f %9.1f %9.2f %9.2f | %9.1f %8.1f %9.1f | %8.1f %8.1f | %8.1f\n",
-                    name.c_str(), tris, scene.positions.size() / tris, bvh[q]->instance_count(),
+        std::printf("%-28s %9.0f %5.2f %6zu | %-6s %9.1f %8.1f %9.1f %9.2f %9.2f | %9.1f %8.1f %9.1f | %8.1f %8.1f | %8.1f\n",
+                    name.c_str(), tris, scene.positions.size() / tris, bvh[q]->instance_group_count(),
                     q == 1 ? "HIGH" : "MEDIUM", build_ms[q], bvh[q]->memory_bytes() / tris,
                     bvh[q]->memory_bytes() / unique, trace.segments.size() / occl_ms[q] / 1e3,
                     trace.rays.size() / hit_ms[q] / 1e3, index_ms, index_bytes / tris, index_bytes / unique, gpu_ms,

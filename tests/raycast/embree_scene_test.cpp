@@ -272,6 +272,114 @@ TEST(EmbreeSceneTest, PlacedMeshesTraceAsInstancesWithTheFlattenedAnswers) {
   EXPECT_EQ(std::count(none->begin(), none->end(), 1), 0);
 }
 
+Scene RandomTriangles(std::mt19937& rng, int count, const glm::dvec3& centre) {
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::vector<std::array<glm::dvec3, 3>> cloud;
+  for (int i = 0; i < count; ++i) {
+    const glm::dvec3 c = centre + 0.5 * glm::dvec3(u(rng), u(rng), u(rng));
+    std::array<glm::dvec3, 3> t;
+    for (auto& p : t) {
+      const double x = u(rng), y = u(rng), z = u(rng);
+      p = c + 0.3 * glm::dvec3(x, y, z);
+    }
+    cloud.push_back(t);
+  }
+  return SceneOfTriangles(cloud);
+}
+
+// Closest hits of random rays through the scene: the same triangle as the
+// flattened scene's for all but ties on shared edges, at the same distance.
+void ExpectFlattenedHits(const Scene& placed, const EmbreeScene& instanced, std::mt19937& rng) {
+  EmbreeSceneOptions flatten;
+  flatten.instance_meshes = false;
+  auto flat = EmbreeScene::Create(placed, flatten);
+  ASSERT_TRUE(flat.ok());
+  const Bounds& b = placed.bounds;
+  std::uniform_real_distribution<double> in_x(b.min.x, b.max.x), in_y(b.min.y, b.max.y), in_z(b.min.z, b.max.z);
+  std::vector<Ray> rays;
+  std::vector<Segment> segments;
+  for (int i = 0; i < 20000; ++i) {
+    const glm::dvec3 p(in_x(rng), in_y(rng), in_z(rng)), q(in_x(rng), in_y(rng), in_z(rng));
+    rays.push_back({p, q - p});
+    segments.push_back({p, q});
+  }
+  EXPECT_EQ(Occ(instanced, segments), Occ(*flat, segments));
+  auto want = flat->Intersect(rays), got = instanced.Intersect(rays);
+  ASSERT_TRUE(want.ok() && got.ok());
+  size_t hits = 0, other_triangle = 0;
+  for (size_t i = 0; i < rays.size(); ++i) {
+    ASSERT_EQ((*got)[i].hit, (*want)[i].hit) << "ray " << i;
+    if (!(*want)[i].hit) continue;
+    ++hits;
+    other_triangle += (*got)[i].triangle != (*want)[i].triangle;
+    EXPECT_NEAR((*got)[i].t, (*want)[i].t, 1e-5) << "ray " << i;
+  }
+  EXPECT_GT(hits, rays.size() / 10);
+  EXPECT_LE(other_triangle, rays.size() / 1000);
+}
+
+// A prefab of three meshes placed by six parents: one Embree instance per
+// parent (its meshes' boxes overlap; as instances of their own they would
+// sit side by side in the top level), every mesh held once, and the
+// flattened scene's answers, each hit naming its own scene triangle.
+TEST(EmbreeSceneTest, APrefabsMeshesPlacedTogetherAreOneInstance) {
+  std::mt19937 rng(23);
+  const std::vector<Scene> parts = {RandomTriangles(rng, 40, glm::dvec3(0.0)), RandomTriangles(rng, 30, glm::dvec3(0.3)),
+                                    RandomTriangles(rng, 20, glm::dvec3(-0.2, 0.4, 0.0))};
+  std::vector<glm::dmat4> worlds;
+  for (int i = 0; i < 6; ++i)
+    worlds.push_back(glm::rotate(glm::translate(glm::dmat4(1.0), glm::dvec3(2.5 * (i % 3), 0.0, 2.5 * (i / 3))), 0.7 * i,
+                                 glm::dvec3(0.0, 1.0, 0.0)));
+  const Scene placed = testing::PlaceMeshes(parts, worlds);
+  ASSERT_TRUE(ValidatePlacements(placed).ok()) << ValidatePlacements(placed);
+  auto instanced = EmbreeScene::Create(placed);
+  ASSERT_TRUE(instanced.ok());
+  EXPECT_EQ(instanced->instance_count(), parts.size() * worlds.size());
+  EXPECT_EQ(instanced->instance_group_count(), worlds.size());
+  EXPECT_EQ(instanced->instanced_triangle_count(), placed.TriangleCount());
+  ExpectFlattenedHits(placed, *instanced, rng);
+}
+
+// A mesh in two prefabs (part 0 with part 1 at two parents, alone at two
+// others) is still held once: every placement of it is an instance of its
+// own. A mesh placed once is flattened.
+TEST(EmbreeSceneTest, AMeshInTwoPrefabsIsStillHeldOnce) {
+  std::mt19937 rng(29);
+  const std::vector<Scene> parts = {RandomTriangles(rng, 40, glm::dvec3(0.0)), RandomTriangles(rng, 30, glm::dvec3(0.3))};
+  const std::vector<glm::dmat4> worlds = {glm::translate(glm::dmat4(1.0), glm::dvec3(0, 0, 0)),
+                                          glm::translate(glm::dmat4(1.0), glm::dvec3(3, 0, 0))};
+  Scene placed = testing::PlaceMeshes(parts, worlds);
+  // Part 0 alone at two more parents.
+  auto place = [&](uint32_t mesh, const glm::dmat4& world) {
+    const auto base = static_cast<uint32_t>(placed.positions.size());
+    placed.placements.push_back(MeshPlacement{mesh, static_cast<uint32_t>(placed.triangles.size()), base, world});
+    for (const glm::dvec3& p : parts[mesh].positions) {
+      placed.positions.push_back(PlacePoint(world, p));
+      placed.bounds.Extend(placed.positions.back());
+    }
+    for (const glm::uvec3& t : parts[mesh].triangles) placed.triangles.push_back(t + glm::uvec3(base));
+    placed.triangle_material.insert(placed.triangle_material.end(), parts[mesh].triangles.size(), 0u);
+    placed.triangle_node.insert(placed.triangle_node.end(), parts[mesh].triangles.size(), mesh);
+  };
+  place(0, glm::translate(glm::dmat4(1.0), glm::dvec3(0, 0, 3)));
+  place(0, glm::translate(glm::dmat4(1.0), glm::dvec3(3, 0, 3)));
+  ASSERT_TRUE(ValidatePlacements(placed).ok()) << ValidatePlacements(placed);
+  auto instanced = EmbreeScene::Create(placed);
+  ASSERT_TRUE(instanced.ok());
+  EXPECT_EQ(instanced->instance_count(), 6u);
+  EXPECT_EQ(instanced->instance_group_count(), 6u);
+  ExpectFlattenedHits(placed, *instanced, rng);
+
+  // Without the parents of part 0 alone: one instance per parent.
+  auto two = EmbreeScene::Create(testing::PlaceMeshes(parts, worlds));
+  ASSERT_TRUE(two.ok());
+  EXPECT_EQ(two->instance_group_count(), 2u);
+
+  auto once = EmbreeScene::Create(testing::PlaceMeshes({parts[0]}, {worlds[1]}));
+  ASSERT_TRUE(once.ok());
+  EXPECT_EQ(once->instance_count(), 0u);
+}
+
 // Placements that would lose the flattened upload's precision as instances
 // (a strong anisotropic scale) are traced flattened.
 TEST(EmbreeSceneTest, IllConditionedPlacementsAreTracedFlattened) {

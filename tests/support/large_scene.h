@@ -73,6 +73,65 @@ inline Scene PlaceMesh(const Scene& mesh, const std::vector<glm::dmat4>& worlds)
   return out;
 }
 
+// A prefab placed by each of `worlds`: every part (a scene of its own, in
+// the prefab's space) a mesh that every world places, as the loader records
+// a node tree that several parents share. Materials are the first part's;
+// each part is one node.
+inline Scene PlaceMeshes(const std::vector<Scene>& parts, const std::vector<glm::dmat4>& worlds) {
+  Scene out;
+  if (!parts.empty()) out.materials = parts.front().materials;
+  for (const Scene& part : parts) {
+    out.meshes.push_back(SceneMesh{part.positions, part.triangles});
+    SceneNode node;
+    node.name = "part" + std::to_string(out.nodes.size());
+    out.nodes.push_back(node);
+  }
+  for (const glm::dmat4& world : worlds) {
+    for (uint32_t m = 0; m < parts.size(); ++m) {
+      const Scene& part = parts[m];
+      const auto base = static_cast<uint32_t>(out.positions.size());
+      out.placements.push_back(MeshPlacement{m, static_cast<uint32_t>(out.triangles.size()), base, world});
+      for (const glm::dvec3& p : part.positions) {
+        out.positions.push_back(PlacePoint(world, p));
+        out.bounds.Extend(out.positions.back());
+      }
+      for (const glm::uvec3& t : part.triangles) out.triangles.push_back(t + glm::uvec3(base));
+      out.triangle_material.insert(out.triangle_material.end(), part.triangles.size(), 0u);
+      out.triangle_node.insert(out.triangle_node.end(), part.triangles.size(), m);
+    }
+  }
+  return out;
+}
+
+// `scene`'s triangles split by node, each part over the positions it uses:
+// the parts of a prefab for PlaceMeshes.
+inline std::vector<Scene> SplitByNode(const Scene& scene) {
+  std::vector<Scene> parts(scene.nodes.size());
+  std::vector<uint32_t> vertex_of(scene.positions.size(), UINT32_MAX), vertex_part(scene.positions.size(), UINT32_MAX);
+  for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
+    const uint32_t n = scene.triangle_node[t];
+    Scene& part = parts[n];
+    glm::uvec3 corners;
+    for (int c = 0; c < 3; ++c) {
+      const uint32_t v = scene.triangles[t][c];
+      if (vertex_part[v] != n) {
+        vertex_part[v] = n;
+        vertex_of[v] = static_cast<uint32_t>(part.positions.size());
+        part.positions.push_back(scene.positions[v]);
+      }
+      corners[c] = vertex_of[v];
+    }
+    part.triangles.push_back(corners);
+  }
+  std::vector<Scene> kept;
+  for (Scene& part : parts) {
+    if (part.triangles.size() < kFewestTrianglesToInstance) continue;
+    part.materials = scene.materials;
+    kept.push_back(std::move(part));
+  }
+  return kept;
+}
+
 // `copies` copies of `scene` on a square grid in x and z, one tenth of the
 // scene's extent apart, the first where `scene` is: a level made of one
 // repeated mesh (PlaceMesh).
