@@ -55,11 +55,22 @@ class OccluderIndex {
   }
 
   // How many occluders' boxes `box_misses` does not rule out, counting no
-  // further than `limit`.
+  // further than `limit`. With item boxes dropped, `item_misses(i)` tests
+  // item i itself.
   template <typename BoxMisses>
   size_t CountUpTo(const BoxMisses& box_misses, size_t limit) const {
-    if (nodes_.empty()) return 0;
     VISQ_CHECK_EQ(boxes_.size(), order_.size());  // built with keep_item_boxes
+    return CountUpTo(
+        box_misses,
+        [&](uint32_t i) {
+          const auto& [lo, hi] = boxes_[i];
+          return box_misses(lo, hi);
+        },
+        limit);
+  }
+  template <typename BoxMisses, typename ItemMisses>
+  size_t CountUpTo(const BoxMisses& box_misses, const ItemMisses& item_misses, size_t limit) const {
+    if (nodes_.empty()) return 0;
     uint32_t stack[64];
     int top = 0;
     stack[top++] = 0;
@@ -68,10 +79,7 @@ class OccluderIndex {
       const Node& node = nodes_[stack[--top]];
       if (box_misses(node.lo, node.hi)) continue;
       if (node.left == kLeaf) {
-        for (uint32_t i = node.begin; i < node.end; ++i) {
-          const auto& [lo, hi] = boxes_[order_[i]];
-          count += box_misses(lo, hi) ? 0 : 1;
-        }
+        for (uint32_t i = node.begin; i < node.end; ++i) count += item_misses(order_[i]) ? 0 : 1;
       } else {
         stack[top++] = node.left;
         stack[top++] = node.left + 1;

@@ -34,10 +34,9 @@ Box TriangleBox(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c) {
 
 struct SceneTriangleIndex::Impl {
   struct Mesh {
-    detail::OccluderIndex boxes;  // of its triangles, in mesh space
-    std::vector<glm::dvec3> positions;
-    std::vector<glm::uvec3> triangles;
-    double magnitude = 0.0;  // largest coordinate of its positions
+    detail::OccluderIndex boxes;  // of its triangles, in mesh space (nodes only)
+    uint32_t scene_mesh = 0;      // into Scene::meshes
+    double magnitude = 0.0;       // largest coordinate of its positions
   };
   struct Instance {
     uint32_t mesh;
@@ -46,8 +45,10 @@ struct SceneTriangleIndex::Impl {
     // What placing a box may round by: a few ulps of the largest coordinate
     // the products and sums handle, covered by 1e-9 of it many times over.
     double pad;
+    Box box;  // of its placed positions
   };
-  detail::OccluderIndex top;    // items [0, flat.size()): flat triangles; then the instances
+  std::shared_ptr<const Scene> scene;
+  detail::OccluderIndex top;    // items [0, flat.size()): flat triangles; then the instances (nodes only)
   std::vector<uint32_t> flat;   // top item i's scene triangle; empty when the scene has no instances (item i is triangle i)
   std::vector<Instance> instances;
   std::vector<Mesh> meshes;
@@ -55,6 +56,13 @@ struct SceneTriangleIndex::Impl {
 
   size_t flat_count() const { return instances.empty() ? triangle_count : flat.size(); }
   uint32_t FlatTriangle(uint32_t item) const { return flat.empty() ? item : flat[item]; }
+  Box SceneTriangleBox(uint32_t t) const {
+    const glm::uvec3 tri = scene->triangles[t];
+    return TriangleBox(scene->positions[tri[0]], scene->positions[tri[1]], scene->positions[tri[2]]);
+  }
+  Box TopItemBox(uint32_t item) const {
+    return item < flat_count() ? SceneTriangleBox(FlatTriangle(item)) : instances[item - flat_count()].box;
+  }
 
   // Calls on_triangle(scene triangle) for each triangle of `instance` whose
   // world box meets [lo, hi], exactly as the flattened triangle's box would.
@@ -65,10 +73,11 @@ struct SceneTriangleIndex::Impl {
   template <typename OnTriangle>
   void InInstance(const Instance& instance, const glm::dvec3& lo, const glm::dvec3& hi,
                   const OnTriangle& on_triangle) const {
-    const Mesh& mesh = meshes[instance.mesh];
+    const Mesh& indexed = meshes[instance.mesh];
+    const SceneMesh& mesh = scene->meshes[indexed.scene_mesh];
     const glm::dmat3 spread = Spread(instance.world);
     std::vector<uint32_t> candidates;
-    mesh.boxes.Collect(
+    indexed.boxes.Collect(
         [&](const glm::dvec3& box_lo, const glm::dvec3& box_hi) {
           const glm::dvec3 centre = PlacePoint(instance.world, 0.5 * (box_lo + box_hi));
           const glm::dvec3 half = spread * (0.5 * (box_hi - box_lo)) + glm::dvec3(instance.pad);
@@ -96,8 +105,11 @@ bool FiniteTransform(const glm::dmat4& world) {
 
 }  // namespace
 
-StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Scene& scene) {
+StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::shared_ptr<const Scene> shared) {
+  VISQ_CHECK(shared != nullptr);
+  const Scene& scene = *shared;
   auto impl = std::make_unique<Impl>();
+  impl->scene = std::move(shared);
   for (size_t ti = 0; ti < scene.triangles.size(); ++ti) {
     const glm::uvec3 tri = scene.triangles[ti];
     for (int c = 0; c < 3; ++c) {
@@ -125,8 +137,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Sc
     if (slot == UINT32_MAX) {
       slot = static_cast<uint32_t>(impl->meshes.size());
       Impl::Mesh& indexed = impl->meshes.emplace_back();
-      indexed.positions = mesh.positions;
-      indexed.triangles = mesh.triangles;
+      indexed.scene_mesh = placement.mesh;
       for (const glm::dvec3& p : mesh.positions)
         indexed.magnitude = std::max({indexed.magnitude, std::abs(p.x), std::abs(p.y), std::abs(p.z)});
       std::vector<Box> boxes;
@@ -146,6 +157,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Sc
       lo = glm::min(lo, scene.positions[placement.first_position + j]);
       hi = glm::max(hi, scene.positions[placement.first_position + j]);
     }
+    instance.box = {lo, hi};
     top_boxes.emplace_back(lo, hi);
     std::fill_n(instanced.begin() + placement.first_triangle, mesh.triangles.size(), uint8_t{1});
   }
@@ -162,7 +174,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(const Sc
   boxes.insert(boxes.end(), top_boxes.begin(), top_boxes.end());
   impl->flat.shrink_to_fit();
   impl->instances.shrink_to_fit();
-  impl->top.Build(std::move(boxes));
+  impl->top.Build(std::move(boxes), /*keep_item_boxes=*/false);
   return std::unique_ptr<SceneTriangleIndex>(new SceneTriangleIndex(std::move(impl)));
 }
 
@@ -187,14 +199,22 @@ std::vector<uint32_t> SceneTriangleIndex::InBox(const glm::dvec3& lo, const glm:
 
 size_t SceneTriangleIndex::CountInBox(const glm::dvec3& lo, const glm::dvec3& hi, size_t limit) const {
   const auto misses = [&](const glm::dvec3& box_lo, const glm::dvec3& box_hi) { return BoxMisses(box_lo, box_hi, lo, hi); };
-  if (impl_->instances.empty()) return impl_->top.CountUpTo(misses, limit);
+  if (impl_->instances.empty()) {
+    return impl_->top.CountUpTo(
+        misses,
+        [&](uint32_t item) {
+          const auto [box_lo, box_hi] = impl_->SceneTriangleBox(item);
+          return misses(box_lo, box_hi);
+        },
+        limit);
+  }
   std::vector<uint32_t> items;
   impl_->top.Collect(misses, &items);
   const size_t flat_count = impl_->flat_count();
   size_t count = 0;
   for (uint32_t item : items) {
     if (count >= limit) break;
-    const auto& [box_lo, box_hi] = impl_->top.item_box(item);
+    const auto [box_lo, box_hi] = impl_->TopItemBox(item);
     if (misses(box_lo, box_hi)) continue;
     if (item < flat_count) {
       ++count;
@@ -211,9 +231,7 @@ size_t SceneTriangleIndex::instance_count() const { return impl_->instances.size
 size_t SceneTriangleIndex::MemoryBytes() const {
   size_t bytes = sizeof(Impl) + impl_->top.MemoryBytes() + impl_->flat.capacity() * sizeof(uint32_t) +
                  impl_->instances.capacity() * sizeof(Impl::Instance);
-  for (const Impl::Mesh& mesh : impl_->meshes)
-    bytes += sizeof(Impl::Mesh) + mesh.boxes.MemoryBytes() + mesh.positions.capacity() * sizeof(glm::dvec3) +
-             mesh.triangles.capacity() * sizeof(glm::uvec3);
+  for (const Impl::Mesh& mesh : impl_->meshes) bytes += sizeof(Impl::Mesh) + mesh.boxes.MemoryBytes();
   return bytes;
 }
 

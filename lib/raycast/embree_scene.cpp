@@ -155,16 +155,24 @@ bool InstanceKeepsPrecision(const glm::dmat4& world, double mesh_magnitude, cons
 
 // Uploads triangles as geometry `id` of `scene`: `vertex(i)` gives vertex i
 // of `vertex_count` in the upload's frame, `triangle(i)` triangle i of
-// `triangle_count`.
+// `triangle_count`. With `shared_indices` Embree reads those triangles in
+// place (they must outlive the geometry) and `triangle` is not called.
 template <typename VertexAt, typename TriangleAt>
 Status AttachTriangles(RTCDevice device, RTCScene scene, unsigned id, size_t vertex_count, const VertexAt& vertex,
-                       size_t triangle_count, const TriangleAt& triangle) {
+                       size_t triangle_count, const TriangleAt& triangle, const glm::uvec3* shared_indices = nullptr) {
+  static_assert(sizeof(glm::uvec3) == 3 * sizeof(uint32_t));
   RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
   auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                                                                3 * sizeof(float), vertex_count));
-  auto* indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
-                                                                 3 * sizeof(uint32_t), triangle_count));
-  if (vertices == nullptr || indices == nullptr) {
+  uint32_t* indices = nullptr;
+  if (shared_indices != nullptr) {
+    rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, shared_indices, 0, sizeof(glm::uvec3),
+                               triangle_count);
+  } else {
+    indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                                                             3 * sizeof(uint32_t), triangle_count));
+  }
+  if (vertices == nullptr || (indices == nullptr && shared_indices == nullptr)) {
     rtcReleaseGeometry(geom);
     return EmbreeStatus(device, "rtcSetNewGeometryBuffer");
   }
@@ -174,7 +182,7 @@ Status AttachTriangles(RTCDevice device, RTCScene scene, unsigned id, size_t ver
     vertices[3 * i + 1] = static_cast<float>(v.y);
     vertices[3 * i + 2] = static_cast<float>(v.z);
   }
-  for (size_t i = 0; i < triangle_count; ++i) {
+  for (size_t i = 0; indices != nullptr && i < triangle_count; ++i) {
     const glm::uvec3 t = triangle(i);
     for (int c = 0; c < 3; ++c) indices[3 * i + c] = t[c];
   }
@@ -372,9 +380,11 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
     VISQ_RETURN_IF_ERROR(out.AddInstances(scene, options, PlacementsToInstance(scene, options, frame), instanced));
   if (!out.instancing_) {
     if (!scene.triangles.empty()) {
+      if (options.shared_scene.get() == &scene) out.shared_scene_ = options.shared_scene;
       VISQ_RETURN_IF_ERROR(AttachTriangles(
           out.device_, out.scene_, 0, scene.positions.size(), [&](size_t i) { return scene.positions[i] - out.origin_; },
-          scene.triangles.size(), [&](size_t i) { return scene.triangles[i]; }));
+          scene.triangles.size(), [&](size_t i) { return scene.triangles[i]; },
+          out.shared_scene_ != nullptr ? scene.triangles.data() : nullptr));
     }
   } else {
     // The triangles no instance stands for, over the positions they use.
@@ -424,6 +434,7 @@ EmbreeScene& EmbreeScene::operator=(EmbreeScene&& other) noexcept {
     bounds_ = other.bounds_;
     triangle_count_ = std::exchange(other.triangle_count_, 0);
     instancing_ = std::move(other.instancing_);
+    shared_scene_ = std::move(other.shared_scene_);
   }
   return *this;
 }
@@ -436,6 +447,7 @@ void EmbreeScene::Reset() {
   if (device_ != nullptr) rtcReleaseDevice(device_);
   scene_ = nullptr;
   device_ = nullptr;
+  shared_scene_.reset();
 }
 
 namespace {

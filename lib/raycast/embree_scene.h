@@ -25,8 +25,8 @@
 #include <atomic>
 #include <cstdint>
 #include <functional>
-#include <memory>
 #include <limits>
+#include <memory>
 #include <optional>
 #include <span>
 #include <vector>
@@ -104,6 +104,10 @@ struct EmbreeSceneOptions {
   // The frame origin for the float32 upload; default: scene bounds center.
   std::optional<glm::dvec3> origin;
   BuildQuality quality = BuildQuality::kHigh;
+  // Create's own scene, shared: Embree then reads the scene's triangle
+  // indices in place instead of copying them (12 bytes a triangle), and the
+  // EmbreeScene keeps the scene alive. Ignored when it is another object.
+  std::shared_ptr<const Scene> shared_scene;
   // Polled while the BVH is built: when it returns true the build stops and
   // Create returns CANCELLED (a server shutting down does not wait for a
   // build of millions of triangles).
@@ -174,6 +178,7 @@ class EmbreeScene {
   [[nodiscard]] Status AddInstances(const Scene& scene, const EmbreeSceneOptions& options,
                                     const std::vector<uint8_t>& traced_as_instance, std::vector<uint8_t>& instanced);
 
+  std::shared_ptr<const Scene> shared_scene_;  // whose index buffer Embree reads, or null
   RTCDeviceTy* device_ = nullptr;
   RTCSceneTy* scene_ = nullptr;
   std::unique_ptr<std::atomic<int64_t>> memory_;  // stable address for the callback

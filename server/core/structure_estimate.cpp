@@ -48,6 +48,8 @@ StructureEstimate EstimateStructures(const Scene& scene) {
   const Held bvh = HeldBy(scene, raycast::EmbreeScene::TracedAsInstances(scene, resident_bvh));
   e.embree_bvh_bytes = bvh.triangles * kEmbreeBvhBytesPerTriangle + bvh.vertices * kEmbreeBvhBytesPerVertex +
                        bvh.instances * kEmbreeBvhBytesPerInstance;
+  // Without instances the BVH reads the scene's own triangle indices.
+  if (bvh.instances == 0) e.embree_bvh_bytes -= bvh.triangles * kEmbreeSharedIndexBytesPerTriangle;
   std::vector<uint8_t> matching(scene.placements.size(), 0);
   for (size_t k = 0; k < scene.placements.size(); ++k)
     matching[k] = PlacementMatchesFlattened(scene, scene.placements[k]) ? 1 : 0;

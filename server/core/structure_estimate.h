@@ -17,9 +17,13 @@ namespace visq::core {
 // each alone and as 16 copies (1.06M to 6.1M triangles), and on the tests'
 // generated grid (2M, 0.50):
 //   Embree BVH at MEDIUM (the Engine's resident BVH): 82.4-93.6 a triangle,
-//     of which Embree's float32 copy of the vertices is 12 a vertex; the rest
-//     78.9-82.3 a triangle (HIGH: 82.4-102.5 in all).
-//   triangle index (exact::SceneTriangleIndex): 73.9-83.6 a triangle.
+//     of which Embree's float32 copy of the vertices is 12 a vertex and its
+//     copy of the triangles' indices 12 a triangle; the rest 78.9-82.3 a
+//     triangle (HIGH: 82.4-102.5 in all). A scene traced without instances
+//     lends Embree its own indices (EmbreeSceneOptions::shared_scene):
+//     72.9-73.1 a triangle on the ajar room and the bunny.
+//   triangle index (exact::SceneTriangleIndex, which reads triangle boxes
+//     off the scene it shares): 21.5-26.3 a triangle.
 //   GPU buffers: 52 a triangle exactly (3 float32 corners, a material index,
 //     3 element indices in the order of the triangle cluster hierarchy).
 // Each constant is the largest measured, rounded up.
@@ -29,12 +33,14 @@ namespace visq::core {
 // they keep it as an instance (the BVH: EmbreeScene::TracedAsInstances; the
 // index: every placement); the GPU buffers still hold every triangle.
 // Per instance, measured over 1,000 and 10,000 placements of an
-// 800-triangle grid: Embree 117-138 bytes, the index 194-220.
+// 800-triangle grid: Embree 117-138 bytes, the index 194-220 (before it
+// kept each placement's box, 48 bytes more).
 inline constexpr uint64_t kEmbreeBvhBytesPerTriangle = 84;
+inline constexpr uint64_t kEmbreeSharedIndexBytesPerTriangle = 12;  // not copied when shared
 inline constexpr uint64_t kEmbreeBvhBytesPerVertex = 12;
 inline constexpr uint64_t kEmbreeBvhBytesPerInstance = 160;
-inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 86;
-inline constexpr uint64_t kTriangleIndexBytesPerInstance = 240;
+inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 28;
+inline constexpr uint64_t kTriangleIndexBytesPerInstance = 280;
 inline constexpr uint64_t kGpuBytesPerTriangle = 52;
 
 struct StructureEstimate {

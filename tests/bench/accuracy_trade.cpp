@@ -338,8 +338,9 @@ ExactReference ExactFractions(const SceneCase& c, int width, int height) {
   std::vector<exact::QueryPoint> points;
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x) points.push_back({sampling::ReceiverSamplePosition(receiver, x, y), {}, {}});
+  auto shared_scene = std::make_shared<const Scene>(c.scene);
   const auto t0 = Clock::now();
-  auto index = Must(exact::SceneTriangleIndex::Build(c.scene), c.name + ": triangle index");
+  auto index = Must(exact::SceneTriangleIndex::Build(shared_scene), c.name + ": triangle index");
   const auto cells = exact::GroupReceivers(points, c.scene.bounds, 32);
   ref.cells = cells.size();
   for (const exact::ReceiverCell& cell : cells) {

@@ -228,7 +228,7 @@ std::optional<BenchCase> MakeFromGltf(const Params& p) {
   if (p.cells_per_side > 0 || p.shaft_triangles > 0) {
     std::vector<visq::exact::ReceiverCell> cells;
     if (p.shaft_triangles > 0) {
-      auto index = visq::exact::SceneTriangleIndex::Build(bc.scene);
+      auto index = visq::exact::SceneTriangleIndex::Build(std::make_shared<const visq::Scene>(bc.scene));
       if (!index.ok()) return std::nullopt;
       cells = visq::exact::GroupReceiversByShaft(bc.points, bc.light, **index, {p.shaft_triangles, 64, visq::exact::ShaftGrouping{}.split_gain, p.shaft_cap});
     } else {
@@ -371,10 +371,11 @@ int Run(const BenchCase& bc, const Params& p) {
     work();
     for (auto& th : pool) th.join();
   };
+  auto shared_scene = std::make_shared<const visq::Scene>(bc.scene);
   const double cpu_exact_start = ProcessCpuSeconds();
   auto t0 = std::chrono::steady_clock::now();
   // The scene's triangle index, once (a server keeps it with the scene).
-  auto index = visq::exact::SceneTriangleIndex::Build(bc.scene);
+  auto index = visq::exact::SceneTriangleIndex::Build(shared_scene);
   if (!index.ok()) {
     std::fprintf(stderr, "index: %s\n", index.status().ToString().c_str());
     return 1;

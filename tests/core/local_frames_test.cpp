@@ -26,7 +26,7 @@ Bounds Box(const glm::dvec3& lo, const glm::dvec3& hi) {
 TEST(LocalFrames, ARegionHoldsTheTrianglesNearTheQueryRebasedToItsCentre) {
   const glm::dvec3 far(1e6, 0, 1e6);
   const Scene scene = TrianglesAt({glm::dvec3(0), far, far + glm::dvec3(1, 0, 0), far + glm::dvec3(100, 0, 0)});
-  auto index = exact::SceneTriangleIndex::Build(scene);
+  auto index = exact::SceneTriangleIndex::Build(std::make_shared<const Scene>(scene));
   ASSERT_TRUE(index.ok()) << index.status();
   LocalFrames frames;
   // A query 1.5 across: its region is a cube of side 4 on the grid of step 2.
