@@ -35,6 +35,12 @@ TEST_P(SharedSceneCounts, TriangleCountMatchesSources) {
   EXPECT_FALSE(scene->bounds.Empty());
   for (const auto& t : scene->triangles)
     for (int c = 0; c < 3; ++c) ASSERT_LT(t[c], scene->positions.size());
+  // A resident scene holds no growth slack.
+  EXPECT_EQ(scene->positions.capacity(), scene->positions.size());
+  EXPECT_EQ(scene->triangles.capacity(), scene->triangles.size());
+  EXPECT_EQ(scene->triangle_material.capacity(), scene->triangle_material.size());
+  EXPECT_EQ(scene->triangle_node.capacity(), scene->triangle_node.size());
+  EXPECT_EQ(scene->lightmap_uvs.capacity(), scene->lightmap_uvs.size());
 }
 
 constexpr const char* kKhronos = "gltf_conformance/khronos_sample_assets/";
