@@ -314,12 +314,14 @@ struct ShaftGrouping {
   // near ones (on the bunny, two halves cost 2.3x one tree).
   double split_gain = 0.5;
   // Past hard_cap x max_shaft_triangles a group is halved whatever the
-  // gain: a tree keeps some 55-70 bytes per occluder before it grows
-  // (docs/exact-method-notes.md), so the default cap's trees start with at
-  // most about 16 MB of occluders, the server's default tree budget. A
-  // lower cap cuts a dense room into more trees, which share most of their
-  // occluders: more memory in all, and slower.
-  double hard_cap = 12.0;
+  // gain. A tree keeps some 55-70 bytes per occluder (docs/exact-method-notes.md),
+  // so the default cap's trees start with at most about 64 MB of occluders,
+  // a quarter of the server's default cache. Below it, halves that share
+  // their occluders are not worth it even when the whole's occluders exceed
+  // its tree's growth budget: on veach-ajar (the whole room in the light's
+  // shaft) one tree of 26.8 MiB that cannot grow answered a frame in 1.2 s of
+  // CPU, where a cap of 12 cut it into 42 trees of 122 MiB in all, 3.8 s.
+  double hard_cap = 48.0;
 };
 // Cells in order of their first point. Points must be finite.
 std::vector<ReceiverCell> GroupReceiversByShaft(std::span<const QueryPoint> points, const AreaLight& light,
