@@ -254,14 +254,17 @@ Status EmbreeScene::AddInstances(const Scene& scene, const EmbreeSceneOptions& o
                                  const std::vector<uint8_t>& traced_as_instance, std::vector<uint8_t>& instanced) {
   auto instancing = std::make_unique<Instancing>();
   const RTCBuildQuality quality = options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH : RTC_BUILD_QUALITY_MEDIUM;
-  // The traced placements by world transform (bit for bit), in order.
-  std::map<std::array<double, 16>, std::vector<uint32_t>> by_world;
-  std::vector<std::array<double, 16>> world_order;
+  // The traced placements by world transform, bit for bit (a total order
+  // whatever the doubles hold), in order.
+  using WorldBits = std::array<uint64_t, 16>;
+  static_assert(sizeof(WorldBits) == sizeof(glm::dmat4));
+  std::map<WorldBits, std::vector<uint32_t>> by_world;
+  std::vector<WorldBits> world_order;
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     if (!traced_as_instance[k]) continue;
-    std::array<double, 16> key;
+    WorldBits key;
     std::memcpy(key.data(), &scene.placements[k].world[0][0], sizeof(key));
-    if (!options.group_placements) key[15] = static_cast<double>(k);  // a transform of its own
+    if (!options.group_placements) key[15] = k;  // a transform of its own
     auto [it, inserted] = by_world.try_emplace(key);
     if (inserted) world_order.push_back(key);
     it->second.push_back(static_cast<uint32_t>(k));
