@@ -21,9 +21,9 @@
 // coplanar triangles seen at a grazing angle then differ in depth by their
 // slope times the snap, which the constant alone does not cover (with the
 // constant alone, an H200 baked a pot's base resting on the floor 0.21
-// darker than the rays; llvmpipe's rounding stays below the constant). A sixteenth of a
-// pixel's depth change is 16x that snap, and a gap a sixteenth of a pixel
-// deep is one the bundle cannot resolve anyway.
+// darker than the rays; llvmpipe's rounding stays below the constant). A
+// sixteenth of a pixel's depth change is 16x that snap, and a gap a
+// sixteenth of a pixel deep is one the bundle cannot resolve anyway.
 const float kBackFacingDepthOffset = 8e-6;
 const float kBackFacingSlopePixels = 1.0 / 16.0;
 //
