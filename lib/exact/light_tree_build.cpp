@@ -376,7 +376,7 @@ void LightTree::IndexOccludersAndPlantTheTree() {
   };
   for (const FarOccluder& o : far) add_box(o.v);
   for (const NearOccluder& n : near) add_box(n.v);
-  index.Build(std::move(boxes), /*keep_item_boxes=*/false);
+  index.Build(std::move(boxes));
 
   if (far.empty()) {
     NewNode(kVisible);

@@ -10,8 +10,6 @@
 
 #include <glm/glm.hpp>
 
-#include "common/check.h"
-
 namespace visq::exact::detail {
 
 // A bounding-volume hierarchy over the occluders' boxes (far and near), so
@@ -20,9 +18,8 @@ namespace visq::exact::detail {
 // dozen; docs/exact-method-notes.md). Built once per tree; read-only afterwards.
 class OccluderIndex {
  public:
-  // With keep_item_boxes false the items' own boxes are dropped after the
-  // build (a tree's occluders: 48 bytes each, and Collect needs only the
-  // nodes'); CountUpTo then cannot be used.
+  // The items' own boxes are not kept (48 bytes each; Collect needs only
+  // the nodes', and CountUpTo asks the caller about each item).
   //
   // With full_leaves, every split gives its lower half a whole number of
   // full leaves (kLeafSize x a power of two), so all leaves but one per level
@@ -30,18 +27,15 @@ class OccluderIndex {
   // Halving at the median instead leaves between kLeafSize / 2 and
   // kLeafSize items a leaf, as the count falls: the scene's index of 20M
   // triangles held 27 bytes of nodes a triangle where 66K held 17.
-  void Build(std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes, bool keep_item_boxes = true,
-             bool full_leaves = false) {
-    full_leaves_ = full_leaves;
-    boxes_ = std::move(boxes);
-    order_.resize(boxes_.size());
+  // Takes the boxes by value: they are freed when the build returns.
+  void Build(std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes, bool full_leaves = false) {
+    order_.resize(boxes.size());
     for (uint32_t i = 0; i < order_.size(); ++i) order_[i] = i;
     nodes_.clear();
-    if (boxes_.empty()) return;
+    if (boxes.empty()) return;
     nodes_.emplace_back();
-    BuildNode(0, 0, static_cast<uint32_t>(order_.size()));
+    BuildNode(boxes, full_leaves, 0, 0, static_cast<uint32_t>(order_.size()));
     nodes_.shrink_to_fit();
-    if (!keep_item_boxes) std::vector<std::pair<glm::dvec3, glm::dvec3>>().swap(boxes_);
   }
 
   // Appends the occluders whose boxes `box_misses` does not rule out.
@@ -63,20 +57,8 @@ class OccluderIndex {
     }
   }
 
-  // How many occluders' boxes `box_misses` does not rule out, counting no
-  // further than `limit`. With item boxes dropped, `item_misses(i)` tests
-  // item i itself.
-  template <typename BoxMisses>
-  size_t CountUpTo(const BoxMisses& box_misses, size_t limit) const {
-    VISQ_CHECK_EQ(boxes_.size(), order_.size());  // built with keep_item_boxes
-    return CountUpTo(
-        box_misses,
-        [&](uint32_t i) {
-          const auto& [lo, hi] = boxes_[i];
-          return box_misses(lo, hi);
-        },
-        limit);
-  }
+  // How many items pass `item_misses(i) == false` among those whose nodes
+  // `box_misses` does not rule out, counting no further than `limit`.
   template <typename BoxMisses, typename ItemMisses>
   size_t CountUpTo(const BoxMisses& box_misses, const ItemMisses& item_misses, size_t limit) const {
     if (nodes_.empty()) return 0;
@@ -97,11 +79,8 @@ class OccluderIndex {
     return std::min(count, limit);
   }
 
-  // Item i's box; only when built with keep_item_boxes.
-  const std::pair<glm::dvec3, glm::dvec3>& item_box(uint32_t i) const { return boxes_[i]; }
-
   size_t MemoryBytes() const {
-    return boxes_.capacity() * sizeof(boxes_[0]) + order_.capacity() * 4 + nodes_.capacity() * sizeof(Node);
+    return order_.capacity() * 4 + nodes_.capacity() * sizeof(Node);
   }
 
  private:
@@ -115,11 +94,12 @@ class OccluderIndex {
 
   // Fills node `id` with the occluders order_[begin, end); its children go
   // to two new consecutive slots. Depth stays under 64: each split halves.
-  void BuildNode(uint32_t id, uint32_t begin, uint32_t end) {
+  void BuildNode(const std::vector<std::pair<glm::dvec3, glm::dvec3>>& boxes, bool full_leaves, uint32_t id,
+                 uint32_t begin, uint32_t end) {
     glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
     glm::dvec3 centre_lo = lo, centre_hi = hi;
     for (uint32_t i = begin; i < end; ++i) {
-      const auto& [box_lo, box_hi] = boxes_[order_[i]];
+      const auto& [box_lo, box_hi] = boxes[order_[i]];
       lo = glm::min(lo, box_lo);
       hi = glm::max(hi, box_hi);
       centre_lo = glm::min(centre_lo, box_lo + box_hi);
@@ -130,27 +110,25 @@ class OccluderIndex {
     const glm::dvec3 spread = centre_hi - centre_lo;
     const int axis = spread.x >= spread.y && spread.x >= spread.z ? 0 : spread.y >= spread.z ? 1 : 2;
     uint32_t half = (end - begin) / 2;
-    if (full_leaves_) {
+    if (full_leaves) {
       // The lower part: the least kLeafSize x 2^k that is at least half.
       half = kLeafSize;
       while (2 * half < end - begin) half *= 2;
     }
     const uint32_t middle = begin + half;
     std::nth_element(order_.begin() + begin, order_.begin() + middle, order_.begin() + end, [&](uint32_t x, uint32_t y) {
-      return boxes_[x].first[axis] + boxes_[x].second[axis] < boxes_[y].first[axis] + boxes_[y].second[axis];
+      return boxes[x].first[axis] + boxes[x].second[axis] < boxes[y].first[axis] + boxes[y].second[axis];
     });
     const uint32_t left = static_cast<uint32_t>(nodes_.size());
     nodes_.emplace_back();
     nodes_.emplace_back();
     nodes_[id].left = left;
-    BuildNode(left, begin, middle);
-    BuildNode(left + 1, middle, end);
+    BuildNode(boxes, full_leaves, left, begin, middle);
+    BuildNode(boxes, full_leaves, left + 1, middle, end);
   }
 
-  std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes_;
   std::vector<uint32_t> order_;
   std::vector<Node> nodes_;
-  bool full_leaves_ = false;
 };
 
 }  // namespace visq::exact::detail

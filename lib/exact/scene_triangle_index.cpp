@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "common/check.h"
 #include "exact/occluder_index.h"
 
 namespace visq::exact {
@@ -144,7 +145,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
       boxes.reserve(mesh.triangles.size());
       for (const glm::uvec3& t : mesh.triangles)
         boxes.push_back(TriangleBox(mesh.positions[t[0]], mesh.positions[t[1]], mesh.positions[t[2]]));
-      indexed.boxes.Build(std::move(boxes), /*keep_item_boxes=*/false, /*full_leaves=*/true);
+      indexed.boxes.Build(std::move(boxes), /*full_leaves=*/true);
     }
     Impl::Instance& instance = impl->instances.emplace_back();
     instance.mesh = slot;
@@ -174,7 +175,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
   boxes.insert(boxes.end(), top_boxes.begin(), top_boxes.end());
   impl->flat.shrink_to_fit();
   impl->instances.shrink_to_fit();
-  impl->top.Build(std::move(boxes), /*keep_item_boxes=*/false, /*full_leaves=*/true);
+  impl->top.Build(std::move(boxes), /*full_leaves=*/true);
   return std::unique_ptr<SceneTriangleIndex>(new SceneTriangleIndex(std::move(impl)));
 }
 

@@ -121,12 +121,7 @@ int main(int argc, char** argv) {
       Layout layout;
     };
     const std::vector<Scene> parts = testing::SplitByNode(*loaded);
-    std::vector<glm::dmat4> worlds;
-    for (int c = 0; c < copies; ++c) {
-      const int side = int(std::ceil(std::sqrt(double(copies))));
-      const glm::dvec3 e = loaded->bounds.Extent();
-      worlds.push_back(glm::translate(glm::dmat4(1.0), glm::dvec3(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side))));
-    }
+    const std::vector<glm::dmat4> worlds = testing::CopyWorlds(*loaded, copies);
     for (const Level level : {Level{1, Layout::kFlat}, Level{copies, Layout::kFlat}, Level{copies, Layout::kInstanced},
                               Level{copies, Layout::kPrefabGrouped}, Level{copies, Layout::kPrefabEach}}) {
       const int n = level.copies;

@@ -402,7 +402,7 @@ TEST(EmbreeSceneTest, ASharedSceneLendsItsTriangleIndices) {
 
   std::vector<Segment> segments;
   std::mt19937 rng(3);
-  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::uniform_real_distribution<double> u(-2.0, 2.0);  // the grid spans [-1, 1]: some miss it
   for (int i = 0; i < 5000; ++i) segments.push_back({{u(rng), 0.5, u(rng)}, {u(rng), -0.5, u(rng)}});
   const std::vector<uint8_t> want = Occ(*own, segments);
   std::weak_ptr<const Scene> watch = scene;
@@ -410,7 +410,9 @@ TEST(EmbreeSceneTest, ASharedSceneLendsItsTriangleIndices) {
   shared_options.shared_scene.reset();
   EXPECT_FALSE(watch.expired());
   EXPECT_EQ(Occ(*shared, segments), want);
-  EXPECT_EQ(std::count(want.begin(), want.end(), 1), static_cast<long>(want.size()));
+  const long blocked = std::count(want.begin(), want.end(), 1);
+  EXPECT_GT(blocked, 500);
+  EXPECT_LT(blocked, 4500);
   shared = absl::InternalError("released");
   EXPECT_TRUE(watch.expired());
 }

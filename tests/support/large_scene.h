@@ -132,17 +132,21 @@ inline std::vector<Scene> SplitByNode(const Scene& scene) {
   return kept;
 }
 
-// `copies` copies of `scene` on a square grid in x and z, one tenth of the
-// scene's extent apart, the first where `scene` is: a level made of one
-// repeated mesh (PlaceMesh).
-inline Scene MakeCopies(const Scene& scene, int copies) {
-  if (copies <= 1) return scene;
+// Where `copies` copies of `scene` stand on a square grid in x and z, one
+// tenth of the scene's extent apart, the first where `scene` is.
+inline std::vector<glm::dmat4> CopyWorlds(const Scene& scene, int copies) {
   const int side = int(std::ceil(std::sqrt(double(copies))));
   const glm::dvec3 e = scene.bounds.Extent();
   std::vector<glm::dmat4> worlds;
   for (int c = 0; c < copies; ++c)
     worlds.push_back(glm::translate(glm::dmat4(1.0), glm::dvec3(1.1 * e.x * (c % side), 0.0, 1.1 * e.z * (c / side))));
-  return PlaceMesh(scene, worlds);
+  return worlds;
+}
+
+// Those copies as a level made of one repeated mesh (PlaceMesh).
+inline Scene MakeCopies(const Scene& scene, int copies) {
+  if (copies <= 1) return scene;
+  return PlaceMesh(scene, CopyWorlds(scene, copies));
 }
 
 // The same scene with its placements forgotten: what every structure builds
