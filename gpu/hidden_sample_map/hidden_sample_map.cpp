@@ -19,6 +19,7 @@
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
 #include "hough_table.h"
+#include "sampling/count_intervals.h"
 #include "shader_program.h"
 #include "visq/gpu/hidden_sample_map.h"
 #include "common/job_timing.h"
@@ -477,19 +478,27 @@ void CountBand(const std::vector<uint32_t>& readback, const PassPlan& plan, size
   band.visible_rgb.resize(colored ? band_texels : 0);
   band.blocked_bits.resize(options.want_bitmasks ? band_texels * size_t(wpt) : 0);
   band.lookup_error.resize(plan.exact ? 0 : band_texels);
+  band.split_pairs.resize(band_texels);
+  std::vector<uint32_t> answer_words(size_t(wpt), 0u), sure_words(plan.exact ? 0 : size_t(wpt), 0u);
   for (size_t t = 0; t < band_texels; ++t) {
     int blocked = 0, sure = 0;
     glm::dvec3 blocked_color(0.0);
     for (int w = 0; w < wpt; ++w) {
       const uint32_t word = word_at(0, t, w);
+      answer_words[size_t(w)] = word;
       blocked += std::popcount(word);
       if (options.want_bitmasks) band.blocked_bits[t * wpt + w] = word;
-      if (!plan.exact) sure += std::popcount(word_at(plan.groups, t, w));
+      if (!plan.exact) {
+        sure_words[size_t(w)] = word_at(plan.groups, t, w);
+        sure += std::popcount(sure_words[size_t(w)]);
+      }
       if (colored)
         for (uint32_t bits = word; bits != 0; bits &= bits - 1)
           blocked_color += glm::dvec3(map.samples.color[w * 32 + std::countr_zero(bits)]);
     }
     band.visible_fraction[t] = float(n - blocked) / float(n);
+    band.split_pairs[t] = plan.exact ? sampling::SplitPairs(answer_words, n)
+                                     : sampling::SplitPairsAtMost(answer_words, sure_words, n);
     if (colored) band.visible_rgb[t] = glm::vec3((all_colors - blocked_color) / double(n));
     if (!plan.exact) {
       band.lookup_error[t] = float(blocked - sure) / float(n);

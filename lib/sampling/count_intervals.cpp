@@ -1,6 +1,7 @@
 #include "sampling/count_intervals.h"
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <deque>
 
@@ -133,6 +134,111 @@ std::shared_ptr<CountIntervals> StratifiedCountIntervals(int sample_count, doubl
   recent.push_front(std::make_shared<CountIntervals>(sample_count, confidence));
   if (recent.size() > 8) recent.pop_back();
   return recent.front();
+}
+
+double BennettDeviation(double variance, double delta) {
+  VISQ_CHECK(variance >= 0.0 && delta > 0.0 && delta < 1.0);
+  const double budget = std::log(2.0 / delta);  // two tails
+  if (variance == 0.0) return 0.0;
+  // V h(t / V) = budget, h(u) = (1 + u) ln(1 + u) - u, increasing in t.
+  auto exponent = [&](double t) {
+    const double u = t / variance;
+    return variance * ((1.0 + u) * std::log1p(u) - u);
+  };
+  double lo = 0.0, hi = 1.0;
+  while (exponent(hi) < budget) hi *= 2.0;
+  for (int i = 0; i < 200 && hi - lo > 1e-12 * hi; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (exponent(mid) < budget ? lo : hi) = mid;
+  }
+  return hi;
+}
+
+SplitPairBounds::SplitPairBounds(int pairs, int unpaired, int samples, double delta_pairs, double delta_count)
+    : pairs_(pairs),
+      unpaired_(unpaired),
+      samples_(samples),
+      delta_pairs_(delta_pairs),
+      delta_count_(delta_count),
+      deviation_(size_t(pairs) + 1, 1.0f),
+      ready_(size_t(pairs) + 1, 0) {
+  VISQ_CHECK(pairs >= 0 && unpaired >= 0 && samples >= 2 * pairs + unpaired && samples >= 1);
+  VISQ_CHECK(delta_pairs > 0.0 && delta_count > 0.0 && delta_pairs + delta_count < 1.0);
+  if (pairs > 0) pair_limits_ = StratifiedCountIntervals(pairs, 1.0 - 2.0 * delta_pairs);
+}
+
+void SplitPairBounds::Prepare(const std::vector<int>& split_counts) {
+  std::lock_guard lock(mutex_);
+  std::vector<int> missing;
+  for (int k : split_counts) {
+    VISQ_CHECK(k >= 0 && k <= pairs_);
+    if (ready_[size_t(k)] == 0) {
+      ready_[size_t(k)] = 2;  // listed once
+      missing.push_back(k);
+    }
+  }
+  if (missing.empty()) return;
+  if (pair_limits_) pair_limits_->Prepare(missing);
+  for (const int k : missing) {
+    // The variance can exceed neither its bound from the pairs nor a
+    // quarter per sample.
+    const double from_pairs = pair_limits_ ? double(pair_limits_->High(k)) * pairs_ : 0.0;
+    const double variance = std::min(from_pairs + 0.25 * unpaired_, 0.25 * samples_);
+    const double deviation = BennettDeviation(variance, delta_count_) / samples_;
+    deviation_[size_t(k)] = std::nextafter(static_cast<float>(deviation), 2.0f);
+    ready_[size_t(k)] = 1;
+  }
+}
+
+float SplitPairBounds::Deviation(int split_pairs) const {
+  VISQ_DCHECK_EQ(int(ready_[size_t(split_pairs)]), 1);
+  return deviation_[size_t(split_pairs)];
+}
+
+std::shared_ptr<SplitPairBounds> CachedSplitPairBounds(int pairs, int unpaired, int samples, double delta_pairs,
+                                                       double delta_count) {
+  static std::mutex mutex;
+  static std::deque<std::shared_ptr<SplitPairBounds>> recent;  // most recent first
+  std::lock_guard lock(mutex);
+  for (const auto& b : recent)
+    if (b->pairs() == pairs && b->unpaired() == unpaired && b->samples() == samples &&
+        b->delta_pairs() == delta_pairs && b->delta_count() == delta_count)
+      return b;
+  recent.push_front(std::make_shared<SplitPairBounds>(pairs, unpaired, samples, delta_pairs, delta_count));
+  if (recent.size() > 8) recent.pop_back();
+  return recent.front();
+}
+
+namespace {
+
+// Bit 2i of the result is set where pair (2i, 2i + 1) of `bits` is split;
+// `count` is how many of the word's 32 samples exist.
+constexpr uint32_t kEvenBits = 0x55555555u;
+uint32_t PairsInWord(int count) {
+  const int whole_pairs = std::clamp(count, 0, 32) / 2;
+  return whole_pairs >= 16 ? kEvenBits : (kEvenBits & ((1u << (2 * whole_pairs)) - 1u));
+}
+
+}  // namespace
+
+int SplitPairs(std::span<const uint32_t> blocked, int sample_count) {
+  int split = 0;
+  for (size_t w = 0; w < blocked.size(); ++w) {
+    const uint32_t word = blocked[w];
+    split += std::popcount((word ^ (word >> 1)) & PairsInWord(sample_count - 32 * int(w)));
+  }
+  return split;
+}
+
+int SplitPairsAtMost(std::span<const uint32_t> answer, std::span<const uint32_t> sure, int sample_count) {
+  VISQ_DCHECK_EQ(answer.size(), sure.size());
+  int split = 0;
+  for (size_t w = 0; w < answer.size(); ++w) {
+    const uint32_t unsure = answer[w] & ~sure[w];
+    const uint32_t maybe = (answer[w] ^ (answer[w] >> 1)) | unsure | (unsure >> 1);
+    split += std::popcount(maybe & PairsInWord(sample_count - 32 * int(w)));
+  }
+  return split;
 }
 
 }  // namespace visq::sampling

@@ -150,10 +150,12 @@ struct ErrorBound {
   double lookup_max = 0.0;
   std::vector<float> lookup_per_texel;  // kHough only: (|answer| - |sure|) / N
   // Rigorous sample sets only: each texel's own bound from its count of
-  // visible samples (sampling/count_intervals.h), the lookup's part
-  // included; with probability >= confidence, |answer_j - true_j| <=
-  // per_texel[j]. `per_texel_max` is the largest, and the map's bound.
+  // visible samples and its split pairs (sampling/count_intervals.h), the
+  // lookup's part included; with probability >= confidence, |answer_j -
+  // true_j| <= per_texel[j]. `per_texel_max` is the largest, and the map's
+  // bound.
   bool has_per_texel = false;
+  bool per_texel_split_pairs = false;  // the split pairs' bound taken where smaller
   double per_texel_max = 0.0;
   std::vector<float> per_texel;
   double total() const { return has_per_texel ? per_texel_max : sampling + lookup_max; }
@@ -188,6 +190,13 @@ struct HiddenSampleMapBand {
   std::vector<uint32_t> blocked_bits;     // want_bitmasks only
   std::vector<float> lookup_error;        // kHough only: ErrorBound::lookup_per_texel's values
   std::vector<float> texel_error;         // rigorous sample sets only: ErrorBound::per_texel's values
+  // For BoundTexels, not sent: per texel, the pairs of pattern cells
+  // (2i, 2i + 1) whose samples disagree, one blocked and one visible (with
+  // the Hough lookup, the most that can); summed over `split_pair_maps`
+  // maps of sample_count / split_pair_maps samples each. Empty where the
+  // method does not count them: the count's bound alone then.
+  std::vector<int32_t> split_pairs;
+  int split_pair_maps = 1;
   size_t texels() const { return visible_fraction.size(); }
 };
 
@@ -197,9 +206,10 @@ struct HiddenSampleMapBand {
 using HiddenSampleMapBandSink = std::function<Status(const HiddenSampleMapResult& map, const HiddenSampleMapBand& band)>;
 
 // For a rigorous sample set (SamplesAreIndependentStrata): the bound of
-// each of `band`'s texels from its count of visible samples (and its lookup
-// error), into band.texel_error, and the largest into map.error. Every
-// sampled method calls it on each band before delivering it.
+// each of `band`'s texels from its count of visible samples, its split
+// pairs where counted, and its lookup error, into band.texel_error, and the
+// largest into map.error. Every sampled method calls it on each band before
+// delivering it.
 void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& map, HiddenSampleMapBand& band);
 
 // Hands `band` to `sink`, or, without a sink, appends it to `map`'s own

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <functional>
 #include <set>
+#include <span>
 
 #include "absl/strings/str_cat.h"
 #include "common/check.h"
@@ -13,6 +14,7 @@
 #include "core/accuracy_statement.h"
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
+#include "sampling/count_intervals.h"
 
 namespace visq::core {
 namespace {
@@ -97,10 +99,12 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
     // Bit counting, and colours of the unblocked samples.
     band.visible_fraction.resize(band_texels);
     band.visible_rgb.resize(colored ? band_texels : 0);
+    band.split_pairs.resize(band_texels);
     for (size_t t = 0; t < band_texels; ++t) {
       int hidden = 0;
       for (int w = 0; w < words; ++w) hidden += std::popcount(bits[t * words + w]);
       band.visible_fraction[t] = float(n - hidden) / float(n);
+      band.split_pairs[t] = sampling::SplitPairs(std::span(bits).subspan(t * words, size_t(words)), n);
       if (colored) {
         glm::vec3 rgb(0.0f);
         for (int i = 0; i < n; ++i)
@@ -566,8 +570,8 @@ Status ValidateSeveralMaps(const sampling::HiddenSampleMapRequest& request) {
 // 4096) maps of equal counts, each with its own seed, so every cell of the
 // pattern holds that many independent uniform samples. The visible counts
 // add up; the sum is still Poisson-binomial, so the per-texel bounds hold at
-// the total count. The maps are made whole (fractions only) and the sum is
-// delivered as one band.
+// the total count, and their split pairs add up as well. Each map's bands
+// are added as they come; the sum is delivered as one band.
 StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const ResidentScene& resident,
                                                       VisibilityMethod method, sampling::HiddenSampleMapRequest request,
                                                       int samples, const CallOptions& call,
@@ -579,16 +583,24 @@ StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const Resi
   VISQ_RETURN_IF_ERROR(ValidateSize(request));
   const size_t texels = size_t(request.receiver.width) * request.receiver.height;
   std::vector<uint32_t> visible(texels, 0);
+  std::vector<int32_t> split_pairs(texels, 0);
+  bool every_band_split = true;
+  const auto add_band = [&](const sampling::HiddenSampleMapResult& one, const sampling::HiddenSampleMapBand& band) {
+    VISQ_CHECK_EQ(one.sample_count, per_map);  // no polygon: every sample counts
+    VISQ_CHECK_LE(band.first_texel + band.texels(), texels);
+    for (size_t j = 0; j < band.texels(); ++j)
+      visible[band.first_texel + j] += static_cast<uint32_t>(std::lround(double(band.visible_fraction[j]) * per_map));
+    if (band.split_pairs.size() != band.texels()) every_band_split = false;
+    else
+      for (size_t j = 0; j < band.texels(); ++j) split_pairs[band.first_texel + j] += band.split_pairs[j];
+    return absl::OkStatus();
+  };
   sampling::HiddenSampleMapResult sum;
   const uint64_t first_seed = request.source.seed;
   for (int m = 0; m < maps; ++m) {
     request.source.seed = first_seed + uint64_t(m) * 0x9E3779B97F4A7C15ull;
     VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult one,
-                          HiddenSampleMapBy(engine, resident, method, request, call));
-    VISQ_CHECK_EQ(one.visible_fraction.size(), texels);
-    VISQ_CHECK_EQ(one.sample_count, per_map);  // no polygon: every sample counts
-    for (size_t j = 0; j < texels; ++j)
-      visible[j] += static_cast<uint32_t>(std::lround(double(one.visible_fraction[j]) * per_map));
+                          HiddenSampleMapBy(engine, resident, method, request, call, add_band));
     if (m == 0) {
       sum.width = one.width;
       sum.height = one.height;
@@ -609,6 +621,10 @@ StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const Resi
   sampling::HiddenSampleMapBand band;
   band.visible_fraction.resize(texels);
   for (size_t j = 0; j < texels; ++j) band.visible_fraction[j] = float(double(visible[j]) / total);
+  if (every_band_split) {
+    band.split_pairs = std::move(split_pairs);
+    band.split_pair_maps = maps;
+  }
   sampling::HiddenSampleMapRequest as_one = request;
   as_one.options.confidence = sum.error.confidence;
   sampling::BoundTexels(as_one, sum, band);
@@ -848,8 +864,12 @@ AccuracyStatement SampledVisibilityStatement(const sampling::ErrorBound& error, 
         "each texel's visible fraction within its own bound of the true (continuous) fraction at confidence ",
         error.confidence,
         ", from its count of visible samples (one independent sample in each of N equal-area cells: the count is "
-        "Poisson-binomial, and the binomial's Clopper-Pearson limits one count wider hold for it, Hoeffding 1956); "
-        "error_bound is the largest texel's, texel_error gives each (want_texel_error)",
+        "Poisson-binomial, and the binomial's Clopper-Pearson limits one count wider hold for it, Hoeffding 1956)",
+        error.per_texel_split_pairs
+            ? "; or, where smaller, from its split pairs (cells 2i and 2i+1 whose samples disagree bound the count's "
+              "variance; Bennett's inequality at that variance), the two holding together at the confidence"
+            : "",
+        "; error_bound is the largest texel's, texel_error gives each (want_texel_error)",
         lookup_words);
     return out;
   }

@@ -1,11 +1,18 @@
 // Per-texel bounds from the counts (sampling/count_intervals.h): the beta
 // function against the binomial sums it stands for, the limits' shape, and
-// their coverage for stratified (Poisson-binomial) counts by simulation.
+// their coverage for stratified (Poisson-binomial) counts by simulation;
+// then the split pairs: counting them from bits, Bennett's deviation, and
+// BoundTexels' coverage and tightness on shadow edges over the real pattern.
 #include "sampling/count_intervals.h"
 
+#include <algorithm>
 #include <cmath>
 #include <random>
 #include <vector>
+
+#include <glm/glm.hpp>
+
+#include "sampling/visibility_sampling.h"
 
 #include <gtest/gtest.h>
 
@@ -88,6 +95,197 @@ TEST(CountIntervals, CoverStratifiedCountsAtTheirConfidence) {
       int visible = 0;
       for (double q : cases[c]) visible += std::bernoulli_distribution(q)(random);
       covered += limits->Low(visible) <= truth && truth <= limits->High(visible);
+    }
+    EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << "case " << c << ", true fraction " << truth;
+  }
+}
+
+TEST(SplitPairs, CountsPairsWithOneBitSetWithinTheSamples) {
+  // Word 0: samples 0, 1, 2, 4, 5 and 31 blocked, so pairs (2,3) and
+  // (30,31) are split; word 1: 32 and 34 blocked, pairs (32,33) and (34,35).
+  const std::vector<uint32_t> words = {0b110111u | (1u << 31), 0b101u};
+  EXPECT_EQ(SplitPairs(words, 64), 4);
+  EXPECT_EQ(SplitPairs(words, 35), 3);  // sample 34 has no partner
+  EXPECT_EQ(SplitPairs(words, 32), 2);
+  EXPECT_EQ(SplitPairs(std::vector<uint32_t>{0u, 0u}, 64), 0);
+  EXPECT_EQ(SplitPairs(std::vector<uint32_t>{0x55555555u}, 32), 16);
+  EXPECT_EQ(SplitPairs(std::vector<uint32_t>{0x55555555u}, 7), 3);
+  // The Hough lookup: a pair is certain only where both samples are.
+  const std::vector<uint32_t> answer = {0b1111u}, sure = {0b0111u};
+  EXPECT_EQ(SplitPairsAtMost(answer, sure, 32), 1);  // (2,3): 3 unsure
+  EXPECT_EQ(SplitPairsAtMost(answer, answer, 32), SplitPairs(answer, 32));
+  EXPECT_EQ(SplitPairsAtMost(std::vector<uint32_t>{0b11u}, std::vector<uint32_t>{0u}, 32), 1);
+}
+
+TEST(SplitPairs, BennettDeviationMeetsItsExponentAndBeatsBernstein) {
+  for (double variance : {0.5, 4.0, 30.0, 1000.0})
+    for (double delta : {0.01, 0.05}) {
+      const double t = BennettDeviation(variance, delta);
+      const double u = t / variance;
+      EXPECT_NEAR(variance * ((1 + u) * std::log1p(u) - u), std::log(2.0 / delta), 1e-9);
+      const double l = std::log(2.0 / delta);
+      EXPECT_LE(t, l / 3.0 + std::sqrt(l * l / 9.0 + 2.0 * variance * l));  // Bernstein's
+    }
+  EXPECT_EQ(BennettDeviation(0.0, 0.05), 0.0);
+}
+
+// A straight shadow edge across the source at angle `angle`, offset
+// `offset` from its centre: sample (u, v) is visible on one side.
+struct ShadowEdge {
+  double angle, offset;
+  bool Visible(const glm::dvec2& uv) const {
+    return (uv.x - 0.5) * std::cos(angle) + (uv.y - 0.5) * std::sin(angle) >= offset;
+  }
+};
+
+double VisibleArea(const ShadowEdge& edge) {
+  const int grid = 1024;
+  int64_t visible = 0;
+  for (int y = 0; y < grid; ++y)
+    for (int x = 0; x < grid; ++x) visible += edge.Visible({(x + 0.5) / grid, (y + 0.5) / grid});
+  return double(visible) / (double(grid) * grid);
+}
+
+struct TexelTrial {
+  std::vector<double> error, bound, count_bound;
+  int covered = 0;
+};
+
+// `trials` texels, each a new jittered pattern of n (the real one) under
+// a random edge; each texel bounded by BoundTexels with and without its
+// split pairs.
+TexelTrial EdgeTexels(int n, int trials, uint64_t seed) {
+  std::mt19937_64 random(seed);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  HiddenSampleMapRequest request;
+  request.source.pattern = SamplePattern::kJittered;
+  request.source.sample_count = n;
+  request.options.confidence = 0.95;
+  TexelTrial out;
+  const int words = (n + 31) / 32;
+  for (int k = 0; k < trials; ++k) {
+    const ShadowEdge edge{6.283185307179586 * unit(random), 0.45 * (2.0 * unit(random) - 1.0)};
+    const double truth = VisibleArea(edge);
+    const std::vector<glm::dvec2> pattern = StratifiedSamplePattern(n, SamplePattern::kJittered, random());
+    std::vector<uint32_t> blocked(size_t(words), 0u);
+    int visible = 0;
+    for (int i = 0; i < n; ++i) {
+      if (edge.Visible(pattern[size_t(i)])) ++visible;
+      else blocked[size_t(i / 32)] |= 1u << (i % 32);
+    }
+    HiddenSampleMapResult map;
+    map.sample_count = n;
+    HiddenSampleMapBand band;
+    band.visible_fraction = {float(visible) / float(n)};
+    BoundTexels(request, map, band);
+    out.count_bound.push_back(band.texel_error[0]);
+    band.split_pairs = {SplitPairs(blocked, n)};
+    BoundTexels(request, map, band);
+    out.bound.push_back(band.texel_error[0]);
+    const double error = std::abs(double(band.visible_fraction[0]) - truth);
+    out.error.push_back(error);
+    out.covered += error <= band.texel_error[0];
+  }
+  return out;
+}
+
+double Median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v[v.size() / 2];
+}
+
+// The split pairs' bound holds at its confidence (here it holds far more
+// often: Bennett's and the pairs' limits are worst cases) and is tighter
+// than the count's alone in the penumbra, more so as N grows (the error
+// falls as N^-3/4 there).
+TEST(SplitPairs, BoundTexelsCoversShadowEdgesAndTightensWithN) {
+  double previous_gain = 0.0;
+  for (int n : {256, 1024, 4096}) {
+    const int trials = n == 4096 ? 60 : 150;
+    const TexelTrial t = EdgeTexels(n, trials, 977 + n);
+    const double error = Median(t.error), bound = Median(t.bound), count_bound = Median(t.count_bound);
+    std::printf("N %4d: median error %.5f, bound %.5f (%.1fx), count's bound alone %.5f (%.1fx); covered %d of %d\n",
+                n, error, bound, bound / error, count_bound, count_bound / error, t.covered, trials);
+    EXPECT_GE(double(t.covered) / trials, 0.95);
+    EXPECT_LT(bound, count_bound);
+    const double gain = count_bound / bound;
+    EXPECT_GT(gain, previous_gain) << "N " << n;
+    previous_gain = gain;
+  }
+  EXPECT_GT(previous_gain, 2.0);  // at N = 4096
+}
+
+// Where every sample is visible, the split pairs add little: the texel's
+// bound stays within 15 % of the count's alone at the full confidence.
+TEST(SplitPairs, AllVisibleTexelKeepsNearlyTheCountsBound) {
+  for (int n : {64, 256, 4096}) {
+    HiddenSampleMapRequest request;
+    request.source.pattern = SamplePattern::kJittered;
+    request.source.sample_count = n;
+    HiddenSampleMapResult map;
+    map.sample_count = n;
+    HiddenSampleMapBand band;
+    band.visible_fraction = {1.0f};
+    BoundTexels(request, map, band);
+    const float count_alone = band.texel_error[0];
+    band.split_pairs = {0};
+    BoundTexels(request, map, band);
+    EXPECT_LE(band.texel_error[0], count_alone * 1.15f) << "N " << n;
+    EXPECT_GE(band.texel_error[0], count_alone) << "N " << n;  // it spends confidence on the pairs
+  }
+}
+
+// Several maps summed: N = 3 x 1366 samples, the pairs of each map.
+TEST(SplitPairs, SummedMapsCountTheirPairsTogether) {
+  HiddenSampleMapRequest request;
+  request.source.pattern = SamplePattern::kJittered;
+  request.source.sample_count = 1366;
+  HiddenSampleMapResult map;
+  map.sample_count = 3 * 1366;
+  HiddenSampleMapBand band;
+  band.visible_fraction = {0.5f};
+  band.split_pairs = {30};
+  band.split_pair_maps = 3;
+  BoundTexels(request, map, band);
+  const std::shared_ptr<SplitPairBounds> bounds = CachedSplitPairBounds(3 * 683, 0, 3 * 1366, 0.2 * 0.05, 0.3 * 0.05);
+  bounds->Prepare({30});
+  EXPECT_NEAR(band.texel_error[0], bounds->Deviation(30), 1e-6);
+}
+
+// Cells of given visibility probabilities, with pairs whose two cells are
+// alike (the pairs then overstate the variance least): the texel's bound
+// must still hold at its confidence.
+TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
+  std::mt19937_64 random(4242);
+  const int n = 64;
+  HiddenSampleMapRequest request;
+  request.source.pattern = SamplePattern::kJittered;
+  request.source.sample_count = n;
+  std::vector<std::vector<double>> cases;
+  cases.push_back(std::vector<double>(n, 0.5));
+  cases.push_back(std::vector<double>(n, 0.9));
+  std::vector<double> few(n, 1.0);
+  for (int i = 20; i < 28; ++i) few[size_t(i)] = 0.5;  // four mixed pairs
+  cases.push_back(few);
+  for (size_t c = 0; c < cases.size(); ++c) {
+    double truth = 0.0;
+    for (double q : cases[c]) truth += q / n;
+    const int trials = 20000;
+    int covered = 0;
+    for (int t = 0; t < trials; ++t) {
+      uint32_t blocked[2] = {0u, 0u};
+      int visible = 0;
+      for (int i = 0; i < n; ++i) {
+        if (std::bernoulli_distribution(cases[c][size_t(i)])(random)) ++visible;
+        else blocked[i / 32] |= 1u << (i % 32);
+      }
+      HiddenSampleMapResult map;
+      map.sample_count = n;
+      HiddenSampleMapBand band;
+      band.visible_fraction = {float(visible) / float(n)};
+      band.split_pairs = {SplitPairs(blocked, n)};
+      BoundTexels(request, map, band);
+      covered += std::abs(band.visible_fraction[0] - truth) <= band.texel_error[0];
     }
     EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << "case " << c << ", true fraction " << truth;
   }
