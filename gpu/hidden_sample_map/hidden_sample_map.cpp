@@ -19,6 +19,7 @@
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
 #include "hough_table.h"
+#include "scene_draw.h"
 #include "sampling/count_intervals.h"
 #include "shader_program.h"
 #include "visq/gpu/hidden_sample_map.h"
@@ -297,29 +298,11 @@ StatusOr<MapFrames> PlanFrames(const HiddenSampleMapRequest& request, const GpuS
   return f;
 }
 
-// What each pass draws: the whole scene in upload order, or the index
-// ranges of the clusters the shaft keeps (which hold every triangle the
-// geometry shader's shaft test keeps, so the bits are the same).
-struct DrawList {
-  bool everything = true;
-  std::vector<GLsizei> counts;        // corners a range
-  std::vector<const void*> offsets;   // byte offsets into the element buffer
-  uint64_t triangles = 0;
-};
-
-DrawList PlanDraw(const GpuScene& scene, const MapFrames& frames, bool cull_clusters) {
-  DrawList list;
-  if (!cull_clusters) {
-    list.triangles = scene.triangle_count();
-    return list;
-  }
-  list.everything = false;
-  for (const TriangleClusters::Range& range : scene.clusters().Cull(frames.shaft_planes)) {
-    list.counts.push_back(static_cast<GLsizei>(3 * range.count));
-    list.offsets.push_back(reinterpret_cast<const void*>(size_t(3) * range.first * sizeof(uint32_t)));
-    list.triangles += range.count;
-  }
-  return list;
+// What each pass draws: the whole scene, or the clusters the shaft keeps
+// (which hold every triangle the geometry shader's shaft test keeps, so the
+// bits are the same).
+ScenePartDraw PlanDraw(const GpuScene& scene, const MapFrames& frames, bool cull_clusters) {
+  return cull_clusters ? scene.ClustersInside(frames.shaft_planes) : scene.Whole();
 }
 
 // How the bitmask targets are split: EXACT writes `groups` uvec4 targets,
@@ -380,7 +363,7 @@ void SetPassUniforms(const GlProgram& p, const MapFrames& f, const HiddenSampleM
 // One band of receiver rows [first_row, first_row + rows), every pass, read
 // back into `readback` (target layers x band texels x uvec4). GL thread.
 Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, const HiddenSampleMapRequest& request,
-                const DrawList& draw, const PassPlan& plan, int max_draw_buffers, int first_row, int rows,
+                const ScenePartDraw& draw, const PassPlan& plan, int max_draw_buffers, int first_row, int rows,
                 const JobOptions& job, std::vector<uint32_t>& readback) {
   const int width = request.receiver.width, height = request.receiver.height;
   VISQ_RETURN_IF_ERROR(EnsureTableOnGpu(table, plan.groups));
@@ -411,7 +394,6 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
   glBindTextureUnit(0, table.texture.id());
   glBindTextureUnit(1, frames.bumpy ? heights.id() : 0);
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, table.samples.id());
-  const GLsizei vertex_count = static_cast<GLsizei>(scene.triangle_count()) * 3;
 
   for (int pass = 0; pass < plan.passes; ++pass) {
     VISQ_RETURN_IF_ERROR(StillWanted(job, "hidden-sample map: between passes"));
@@ -442,11 +424,7 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
     const GLuint zero[4] = {0, 0, 0, 0};
     for (int k = 0; k < attached; ++k) glClearBufferuiv(GL_COLOR, k, zero);
     glUseProgram(program->id());
-    if (draw.everything)
-      glDrawArrays(GL_TRIANGLES, 0, vertex_count);
-    else if (!draw.counts.empty())
-      glMultiDrawElements(GL_TRIANGLES, draw.counts.data(), GL_UNSIGNED_INT, draw.offsets.data(),
-                          static_cast<GLsizei>(draw.counts.size()));
+    VISQ_RETURN_IF_ERROR(DrawScenePart(*resources, draw));
     VISQ_GL_CHECK("hidden-sample map pass");
   }
   glDisable(GL_COLOR_LOGIC_OP);
@@ -529,7 +507,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     centred.emplace_back(static_cast<float>(uv.x - 0.5), static_cast<float>(uv.y - 0.5));
   std::shared_ptr<Table> table = CachedTable(*state_, *worker_, centred, options, result.table_ms);
   VISQ_ASSIGN_OR_RETURN(const MapFrames frames, PlanFrames(request, scene));
-  const DrawList draw = PlanDraw(scene, frames, options_.cull_clusters);
+  const ScenePartDraw draw = PlanDraw(scene, frames, options_.cull_clusters);
   const PassPlan plan = PlanPasses(table->layout.groups(), options.lookup == LookupMode::kExact,
                                    state_->max_draw_buffers, width, height, options_.band_readback_bytes);
   result.passes = plan.passes;

@@ -1,5 +1,5 @@
-// Hidden-sample map: scene corners (relative to the scene anchor) go straight
+// Hidden-sample map: scene corners, placed and anchor-relative, go straight
 // to the geometry shader, which does all the per-triangle work.
-layout(location = 0) in vec3 a_position;
+#include "scene_vertex.glsl"
 out vec3 v_position;
-void main() { v_position = a_position; }
+void main() { v_position = ScenePosition(); }

@@ -10,6 +10,7 @@
 #include "gl_check.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
+#include "scene_draw.h"
 #include "shader_program.h"
 #include "visq_gpu_obscurance_embedded.h"
 
@@ -178,10 +179,10 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
     glUseProgram(peel);
     glProgramUniform1i(peel, first_loc, k == 0 ? 1 : 0);
     glBindTextureUnit(0, s.depth[prev].id());
-    glBindVertexArray(res.vertex_array.id());
     glBeginQuery(GL_ANY_SAMPLES_PASSED, s.any_samples.id());
-    glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+    const Status drawn = DrawWholeScene(res);
     glEndQuery(GL_ANY_SAMPLES_PASSED);
+    VISQ_RETURN_IF_ERROR(drawn);
     GLuint any = 0;
     glGetQueryObjectuiv(s.any_samples.id(), GL_QUERY_RESULT, &any);
     const bool last_guard = k + 1 >= max_layers;

@@ -15,6 +15,7 @@
 #include "gl_check.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
+#include "scene_draw.h"
 #include "shader_program.h"
 #include "visq/gpu/obscurance.h"
 #include "visq_gpu_obscurance_embedded.h"
@@ -107,8 +108,7 @@ Status DrawPreview(const GpuScene& gpu_scene, const ObscurancePreviewRequest& re
                      1.0f / float(request.atlas_height));
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, o.corner_uv.id());
   glBindTextureUnit(0, o.values.id());
-  glBindVertexArray(res.vertex_array.id());
-  glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+  VISQ_RETURN_IF_ERROR(DrawWholeScene(res));
 
   // Read back (GL rows run bottom-up) and leave no state behind.
   pixels.resize(size_t{width} * height);

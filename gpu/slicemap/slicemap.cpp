@@ -32,6 +32,7 @@
 #include <fmt/format.h>
 
 #include "gl_check.h"
+#include "scene_draw.h"
 #include "gl_state_across_jobs.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
@@ -98,15 +99,10 @@ ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool 
   return defines;
 }
 
-// Draws the selected triangles (all when the list is empty).
-Status DrawTriangles(const GpuScene& scene, const std::vector<GLint>& firsts, const std::vector<GLsizei>& counts) {
+// Draws the selected triangles.
+Status DrawTriangles(const GpuScene& scene, const ScenePartDraw& part) {
   VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, scene.CurrentResources());
-  glBindVertexArray(resources->vertex_array.id());
-  if (firsts.empty())
-    glDrawArrays(GL_TRIANGLES, 0, resources->vertex_count);
-  else
-    glMultiDrawArrays(GL_TRIANGLES, firsts.data(), counts.data(), static_cast<GLsizei>(firsts.size()));
-  return absl::OkStatus();
+  return DrawScenePart(*resources, part);
 }
 
 // Copies one RGBA32UI target (128 slices of the pass), read back for the
@@ -164,8 +160,8 @@ void RestoreState() {
 // GL thread: the device's limits, the targets, and with local precision
 // each column's depth range (one pass over the whole image).
 StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, const ViewSetup& view,
-                                                         const PassConfig& config, const std::vector<GLint>& firsts,
-                                                         const std::vector<GLsizei>& counts, bool draw_nothing,
+                                                         const PassConfig& config, const ScenePartDraw& part,
+                                                         bool draw_nothing,
                                                          uint32_t target_count, RawSlicemap& raw) {
   const auto setup_start = Clock::now();
   const bool conservative = config.rasterization == Rasterization::kConservative;
@@ -220,7 +216,7 @@ StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, 
     glEnable(GL_BLEND);
     glBlendEquation(GL_MIN);
     glUseProgram(program->id());
-    Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, firsts, counts);
+    Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part);
     glDisable(GL_BLEND);
     glBlendEquation(GL_FUNC_ADD);
     RestoreState();
@@ -246,15 +242,12 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   const bool conservative = config.rasterization == Rasterization::kConservative;
   const bool local = config.precision == SlicePrecision::kLocal;
 
-  // Triangle selection as draw ranges (3 vertices per triangle).
-  std::vector<GLint> firsts;
-  std::vector<GLsizei> counts;
-  for (const TriangleRange& range : config.triangles) {
-    if (range.count == 0) continue;
-    firsts.push_back(static_cast<GLint>(range.first * 3));
-    counts.push_back(static_cast<GLsizei>(range.count * 3));
-  }
-  const bool draw_nothing = !config.triangles.empty() && firsts.empty();
+  // The triangle selection (all when the list is empty).
+  std::vector<std::pair<uint32_t, uint32_t>> selected;
+  for (const TriangleRange& range : config.triangles)
+    if (range.count > 0) selected.emplace_back(range.first, range.count);
+  const ScenePartDraw part = config.triangles.empty() ? scene.Whole() : scene.TriangleRanges(selected);
+  const bool draw_nothing = !part.everything && part.commands.empty();
 
   const uint32_t per_pass = solid ? kSolidSlicesPerPass : kSlicesPerPass;
   const uint32_t maps = solid ? 2 : 1;
@@ -275,7 +268,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   };
   VISQ_RETURN_IF_ERROR(job([&]() -> Status {
     VISQ_ASSIGN_OR_RETURN(std::shared_ptr<SlicemapTargets> made,
-                          CreateTargets(scene, view, config, firsts, counts, draw_nothing, maps * max_targets_per_map, raw));
+                          CreateTargets(scene, view, config, part, draw_nothing, maps * max_targets_per_map, raw));
     targets.Set(std::move(made));
     return absl::OkStatus();
   }));
@@ -319,7 +312,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     glUseProgram(program->id());
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
-    const Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, firsts, counts);
+    const Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part);
     glDisable(GL_COLOR_LOGIC_OP);
     RestoreState();
     VISQ_RETURN_IF_ERROR(drawn);

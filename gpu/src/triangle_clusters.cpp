@@ -203,26 +203,27 @@ TriangleClusters TriangleClusters::Build(std::span<const glm::vec3> corners, std
   return out;
 }
 
-std::vector<TriangleClusters::Range> TriangleClusters::Cull(std::span<const glm::vec4> planes) const {
-  std::vector<Range> ranges;
-  if (nodes_.empty()) return ranges;
-  auto emit = [&ranges](const Node& node) {
+// Keeps the clusters for which no plane k has most < -slack(k, magnitude):
+// `magnitude` is |n| . max|x| + |w| over the node's box.
+template <typename Plane, typename Slack>
+std::vector<TriangleClusters::Range> CullNodes(const std::vector<TriangleClusters::Node>& nodes,
+                                               std::span<const Plane> planes, Slack slack) {
+  std::vector<TriangleClusters::Range> ranges;
+  if (nodes.empty()) return ranges;
+  auto emit = [&ranges](const TriangleClusters::Node& node) {
     if (!ranges.empty() && ranges.back().first + ranges.back().count == node.first)
       ranges.back().count += node.count;
     else
       ranges.push_back({node.first, node.count});
   };
-  // The float32 test n . x + w < 0 errs by at most a few units in the last
-  // place of |n| . |x| + |w| (4 products and sums: under 2.4e-7 of it); a
-  // cluster is dropped only when its box is outside by 1e-6 of that.
-  constexpr double kFloatMargin = 1e-6;
   std::vector<uint32_t> stack = {0};
   while (!stack.empty()) {
-    const Node& node = nodes_[stack.back()];
+    const TriangleClusters::Node& node = nodes[stack.back()];
     const uint32_t index = stack.back();
     stack.pop_back();
     bool outside = false, inside = true;
-    for (const glm::vec4& plane : planes) {
+    for (size_t k = 0; k < planes.size(); ++k) {
+      const Plane& plane = planes[k];
       double most = plane.w, least = plane.w, magnitude = std::abs(double(plane.w));
       for (int axis = 0; axis < 3; ++axis) {
         const double a = plane[axis], lo = node.lo[axis], hi = node.hi[axis];
@@ -231,7 +232,7 @@ std::vector<TriangleClusters::Range> TriangleClusters::Cull(std::span<const glm:
         magnitude += std::abs(a) * std::max(std::abs(lo), std::abs(hi));
       }
       // NaN (an unbounded box) compares false: kept, and looked into.
-      if (most < -kFloatMargin * magnitude) { outside = true; break; }
+      if (most < -slack(k, magnitude)) { outside = true; break; }
       inside = inside && least >= 0.0;
     }
     if (outside) continue;
@@ -243,6 +244,19 @@ std::vector<TriangleClusters::Range> TriangleClusters::Cull(std::span<const glm:
     stack.push_back(index + 1);
   }
   return ranges;
+}
+
+std::vector<TriangleClusters::Range> TriangleClusters::Cull(std::span<const glm::vec4> planes) const {
+  // The float32 test n . x + w < 0 errs by at most a few units in the last
+  // place of |n| . |x| + |w| (4 products and sums: under 2.4e-7 of it); a
+  // cluster is dropped only when its box is outside by 1e-6 of that.
+  constexpr double kFloatMargin = 1e-6;
+  return CullNodes(nodes_, planes, [](size_t, double magnitude) { return kFloatMargin * magnitude; });
+}
+
+std::vector<TriangleClusters::Range> TriangleClusters::Cull(std::span<const glm::dvec4> planes,
+                                                            std::span<const double> slack) const {
+  return CullNodes(nodes_, planes, [slack](size_t k, double) { return slack[k]; });
 }
 
 }  // namespace visq::gpu

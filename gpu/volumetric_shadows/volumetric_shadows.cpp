@@ -46,6 +46,7 @@
 #include "gl_state_across_jobs.h"
 #include "gl_object.h"
 #include "gpu_scene_resources.h"
+#include "scene_draw.h"
 #include "shader_program.h"
 #include "svd_integrand.h"
 #include "visq_gpu_volumetric_shadows_embedded.h"
@@ -484,7 +485,8 @@ StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const V
   VISQ_ASSIGN_OR_RETURN(t->shadow,
                         Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
   VISQ_ASSIGN_OR_RETURN(t->camera,
-                        Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}}, {}));
+                        Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}},
+                                {{"CAMERA", "1"}}));
   VISQ_ASSIGN_OR_RETURN(t->rectify, Program({{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
   VISQ_ASSIGN_OR_RETURN(t->minmax, Program({{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
   VISQ_ASSIGN_OR_RETURN(t->prefix, Program({{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
@@ -577,10 +579,10 @@ Status DrawShadowMap(const GpuScene::Resources& res, const VolumetricTargets& t,
   glClearBufferfv(GL_DEPTH, 0, &one);
   glUseProgram(t.shadow->id());
   glProgramUniformMatrix4fv(t.shadow->id(), t.shadow->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
-  glBindVertexArray(res.vertex_array.id());
-  glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+  const Status drawn = DrawWholeScene(res);
   glDisable(GL_DEPTH_TEST);
   UnbindAll();
+  VISQ_RETURN_IF_ERROR(drawn);
   VISQ_GL_CHECK("volumetric shadows: shadow map");
   glFinish();
   return absl::OkStatus();
@@ -608,10 +610,10 @@ Status DrawCameraPass(const GpuScene::Resources& res, const VolumetricTargets& t
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, res.positions.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, res.triangle_materials.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, t.albedo_buffer.id());
-  glBindVertexArray(res.vertex_array.id());
-  glDrawArrays(GL_TRIANGLES, 0, res.vertex_count);
+  const Status drawn = DrawWholeScene(res);
   glDisable(GL_DEPTH_TEST);
   UnbindAll();
+  VISQ_RETURN_IF_ERROR(drawn);
   VISQ_GL_CHECK("volumetric shadows: camera pass");
   glFinish();
   return absl::OkStatus();

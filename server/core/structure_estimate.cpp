@@ -3,6 +3,7 @@
 #include <algorithm>
 
 #include "raycast/embree_scene.h"
+#include "visq/gpu/gpu_scene.h"
 
 namespace visq::core {
 namespace {
@@ -40,7 +41,6 @@ Held HeldBy(const Scene& scene, const std::vector<uint8_t>& as_instance) {
 }  // namespace
 
 StructureEstimate EstimateStructures(const Scene& scene) {
-  const uint64_t triangles = scene.TriangleCount();
   StructureEstimate e;
   e.scene_bytes = scene.CpuBytes();
   raycast::EmbreeSceneOptions resident_bvh;
@@ -57,7 +57,7 @@ StructureEstimate EstimateStructures(const Scene& scene) {
   e.triangle_index_bytes = index.triangles * kTriangleIndexBytesPerTriangle + index.instances * kTriangleIndexBytesPerInstance;
   e.unique_triangles = index.triangles;
   e.instances = index.instances;
-  e.gpu_bytes = triangles * kGpuBytesPerTriangle;
+  e.gpu_bytes = gpu::GpuScene::EstimateBytes(scene);
   return e;
 }
 

@@ -25,14 +25,18 @@ namespace visq::core {
 //   triangle index (exact::SceneTriangleIndex, which reads triangle boxes
 //     off the scene it shares, over full leaves): 20.0 a triangle at every
 //     size (66K to 20M).
-//   GPU buffers: 52 a triangle exactly (3 float32 corners, a material index,
-//     3 element indices in the order of the triangle cluster hierarchy).
+//   GPU buffers: exactly what gpu::GpuScene::EstimateBytes says: 48 a
+//     triangle it holds (3 float32 corners, 3 element indices in the order
+//     of the triangle cluster hierarchy), a material index (4) for every
+//     triangle placed, and 80 for each run of the scene's triangle order
+//     it draws with one placement record.
 // Each constant is the largest measured, rounded up.
 //
 // A mesh that the scene places more than once (Scene::placements) costs the
 // CPU structures its triangles once and an instance per placement where
 // they keep it as an instance (the BVH: EmbreeScene::TracedAsInstances; the
-// index: every placement); the GPU buffers still hold every triangle.
+// index: every placement; the GPU buffers: every placement of at least
+// kFewestTrianglesToInstance triangles).
 // Per instance, measured over 1,000 and 10,000 placements of an
 // 800-triangle grid: Embree 117-138 bytes, the index 194-220 (measured
 // before it kept each placement's box: 48 bytes more now).
@@ -42,7 +46,6 @@ inline constexpr uint64_t kEmbreeBvhBytesPerVertex = 12;
 inline constexpr uint64_t kEmbreeBvhBytesPerInstance = 160;
 inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 21;
 inline constexpr uint64_t kTriangleIndexBytesPerInstance = 280;
-inline constexpr uint64_t kGpuBytesPerTriangle = 52;
 
 struct StructureEstimate {
   uint64_t scene_bytes = 0;           // the geometry as loaded (Scene::CpuBytes)

@@ -438,8 +438,13 @@ TEST(GpuSceneUpload, UploadsRelativeToTheBoundsCenter) {
   auto gpu_scene = GpuScene::Upload(SharedGpuWorker(), scene);
   ASSERT_TRUE(gpu_scene.ok()) << gpu_scene.status();
   EXPECT_EQ((*gpu_scene)->triangle_count(), scene.TriangleCount());
-  // 3 float32 corners, a material index and 3 element indices (the cluster order) a triangle.
-  EXPECT_EQ((*gpu_scene)->gpu_bytes(), scene.TriangleCount() * (3 * sizeof(glm::vec3) + 4 * sizeof(uint32_t)));
+  // 3 float32 corners, a material index and 3 element indices (the cluster
+  // order) a triangle; the identity record and one run's record and draw.
+  EXPECT_EQ((*gpu_scene)->gpu_bytes(),
+            scene.TriangleCount() * (3 * sizeof(glm::vec3) + 4 * sizeof(uint32_t)) + 2 * 64 + 16);
+  EXPECT_EQ((*gpu_scene)->gpu_bytes(), GpuScene::EstimateBytes(scene));
+  EXPECT_EQ((*gpu_scene)->held_triangle_count(), scene.TriangleCount());
+  EXPECT_EQ((*gpu_scene)->instance_count(), 0u);
   EXPECT_NEAR((*gpu_scene)->anchor().x, 1e6, 1.0);
   EXPECT_NEAR((*gpu_scene)->anchor().y, -2e6 + 1.0, 1.0);
 }

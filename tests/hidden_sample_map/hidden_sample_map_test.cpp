@@ -809,6 +809,49 @@ TEST(HiddenSampleMap, CulledClustersGiveTheBitsOfDrawingEverything) {
   }
 }
 
+// The GPU holds a repeated mesh once and draws it at each placement: the
+// level of copies gives the flattened level's bits, drawn whole or culled
+// (planes taken into each placement's own space), at a sixth of the bytes.
+TEST(HiddenSampleMap, PlacedCopiesGiveTheFlattenedLevelsBits) {
+  const Scene level = testing::MakeCopies(RandomCloud(300, 37, {-0.2, 0.2, -0.2}, {1.2, 0.95, 1.2}, 0.08), 16);
+  ASSERT_EQ(level.placements.size(), 16u);
+  auto placed = Upload(level);
+  auto flat = Upload(testing::Flattened(level));
+  ASSERT_TRUE(placed && flat);
+  EXPECT_EQ(placed->instance_count(), 16u);
+  EXPECT_EQ(placed->held_triangle_count(), level.TriangleCount() / 16);
+  EXPECT_EQ(flat->instance_count(), 0u);
+  EXPECT_EQ(placed->gpu_bytes(), GpuScene::EstimateBytes(level));
+  EXPECT_LT(placed->gpu_bytes(), flat->gpu_bytes() / 6) << placed->gpu_bytes() << " vs " << flat->gpu_bytes();
+  HiddenSampleMapperOptions draw_all;
+  draw_all.cull_clusters = false;
+  auto all_mapper = HiddenSampleMapper::Create(testing::SharedGpuWorker(), draw_all);
+  ASSERT_TRUE(all_mapper.ok()) << all_mapper.status();
+  HiddenSampleMapRequest r = UnitRequest(128, 20);
+  // A source above the copies' middle, the receiver under four of them.
+  r.source.patch = {{1.0, 2.0, 1.0}, {0.6, 0, 0}, {0, 0, 0.6}};
+  r.receiver.patch = {{0.2, 0.0, 0.2}, {2.4, 0, 0}, {0, 0, 2.4}};
+  for (const LookupMode lookup : {LookupMode::kExact, LookupMode::kHough}) {
+    r.options.lookup = lookup;
+    auto flat_map = Mapper().Compute(*flat, r);
+    auto placed_culled = Mapper().Compute(*placed, r);
+    auto placed_all = (*all_mapper)->Compute(*placed, r);
+    ASSERT_TRUE(flat_map.ok() && placed_culled.ok() && placed_all.ok());
+    EXPECT_EQ(placed_culled->blocked_bits, flat_map->blocked_bits);
+    EXPECT_EQ(placed_all->blocked_bits, flat_map->blocked_bits);
+    const auto [lo, hi] = std::minmax_element(flat_map->visible_fraction.begin(), flat_map->visible_fraction.end());
+    EXPECT_LT(*lo, 0.9f);
+    EXPECT_GT(*hi, 0.1f);
+  }
+  auto drawn = Mapper().TrianglesDrawnPerPass(*placed, r);
+  auto drawn_flat = Mapper().TrianglesDrawnPerPass(*flat, r);
+  ASSERT_TRUE(drawn.ok() && drawn_flat.ok());
+  EXPECT_LT(*drawn, level.TriangleCount() / 2) << "the shaft holds a few copies";
+  EXPECT_GT(*drawn, 0u);
+  std::printf("triangles drawn: placed %llu, flattened %llu of %zu\n", static_cast<unsigned long long>(*drawn),
+              static_cast<unsigned long long>(*drawn_flat), level.TriangleCount());
+}
+
 // The same on a real level: four copies of Sponza, the query in the first.
 TEST(HiddenSampleMapRealScenes, SponzaCopiesCulledGiveTheBitsOfDrawingEverything) {
   VISQ_REQUIRE_SHARED_SCENES(dir);

@@ -46,13 +46,19 @@ class TriangleClusters {
   // geometry shaders' per-triangle test does. A corner that is not finite
   // keeps its cluster.
   std::vector<Range> Cull(std::span<const glm::vec4> planes) const;
+  // The same with planes in double and, per plane, the slack by which a box
+  // must be outside to be dropped (for corners the GPU places with a float
+  // transform, whose rounding the caller knows).
+  std::vector<Range> Cull(std::span<const glm::dvec4> planes, std::span<const double> slack) const;
+  // The box of every corner.
+  glm::vec3 lo() const { return nodes_.empty() ? glm::vec3(0.0f) : nodes_[0].lo; }
+  glm::vec3 hi() const { return nodes_.empty() ? glm::vec3(0.0f) : nodes_[0].hi; }
 
   uint32_t triangle_count() const { return nodes_.empty() ? 0 : nodes_[0].count; }
   size_t node_count() const { return nodes_.size(); }
   size_t cluster_count() const { return clusters_; }
   size_t memory_bytes() const { return nodes_.capacity() * sizeof(Node); }
 
- private:
   // Depth-first layout: a node's first child follows it, `second_child`
   // names the other (0 for a cluster, a leaf).
   struct Node {
@@ -63,6 +69,7 @@ class TriangleClusters {
     uint32_t second_child = 0;
   };
 
+ private:
   std::vector<Node> nodes_;
   size_t clusters_ = 0;
 };
