@@ -31,17 +31,22 @@ struct Layout {
   size_t segments = 0;
 };
 
-Layout PlanLayout(const Scene& scene) {
+Layout PlanLayout(const Scene& scene, const glm::dvec3& anchor) {
   Layout layout;
   layout.instanced.assign(scene.placements.size(), 0);
   layout.held_of_mesh.assign(scene.meshes.size(), -1);
   const uint64_t total = scene.TriangleCount();
+  const std::vector<double> magnitude = MeshMagnitudes(scene);
+  const glm::dvec3 extent = scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Extent();
+  const double largest_extent = std::max({extent.x, extent.y, extent.z});
   uint64_t cursor = 0, placed = 0, held = 0;
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& p = scene.placements[k];
     if (p.mesh >= scene.meshes.size() || p.first_triangle < cursor) continue;
     const uint64_t count = scene.meshes[p.mesh].triangles.size();
-    if (count < kFewestTrianglesToInstance || !PlacementMatchesFlattened(scene, p)) continue;
+    if (count < kFewestTrianglesToInstance || !PlacementMatchesFlattened(scene, p) ||
+        !PlacementKeepsFloatPrecision(p.world, magnitude[p.mesh], anchor, largest_extent))
+      continue;
     layout.instanced[k] = 1;
     if (p.first_triangle > cursor) ++layout.segments;
     ++layout.segments;
@@ -84,18 +89,22 @@ void Storage(const GlBuffer& buffer, const std::vector<T>& data) {
   glNamedBufferStorage(buffer.id(), BufferBytes(data.size(), sizeof(T)), data.empty() ? &none : data.data(), 0);
 }
 
+glm::dvec3 DefaultAnchor(const Scene& scene) { return scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center(); }
+
 }  // namespace
 
-uint64_t GpuScene::EstimateBytes(const Scene& scene) { return LayoutBytes(PlanLayout(scene), scene.TriangleCount()); }
+uint64_t GpuScene::EstimateBytes(const Scene& scene) {
+  return LayoutBytes(PlanLayout(scene, DefaultAnchor(scene)), scene.TriangleCount());
+}
 
 StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Scene& scene,
                                                      std::optional<glm::dvec3> anchor) {
   std::shared_ptr<GpuScene> out(new GpuScene());
   out->worker_ = &worker;
-  out->anchor_ = anchor.value_or(scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center());
+  out->anchor_ = anchor.value_or(DefaultAnchor(scene));
   out->bounds_ = scene.bounds;
   out->triangle_count_ = static_cast<uint32_t>(scene.TriangleCount());
-  const Layout layout = PlanLayout(scene);
+  const Layout layout = PlanLayout(scene, out->anchor_);
   out->held_triangles_ = layout.held_triangles;
   glm::dmat4 from_world(1.0);
   from_world[3] = glm::dvec4(-out->anchor_, 1.0);

@@ -126,33 +126,6 @@ bool ShouldStop(const TraceOptions& options, size_t done, std::atomic<bool>& sto
   return true;
 }
 
-// A placement is traced as an instance only where that keeps the
-// flattened upload's precision. Flattened, a vertex is rounded once, by an
-// ulp of its frame coordinate, and the tracing offset (2^-17 of
-// max(|p|, extent/8), see Occluded) leaves it 32 such ulps. As an instance,
-// Embree moves each ray into the mesh's own space in float32: the origin
-// picks up a few ulps of |p - translation| times the transform's condition
-// number, and the mesh's vertices an ulp of their own magnitude times its
-// scale. With the condition number at most 2, the translation within the
-// scene's extent of the frame origin and the placed mesh within the extent
-// of its own origin, that stays within about 8 ulps of the extent: under the
-// offset. Other placements (strong shears or scales, meshes modelled far
-// from their origin) are flattened.
-bool InstanceKeepsPrecision(const glm::dmat4& world, double mesh_magnitude, const glm::dvec3& origin, double extent) {
-  const glm::dmat3 linear(world);
-  const glm::dmat3 gram = glm::transpose(linear) * linear;
-  // Gershgorin bounds the largest eigenvalue of the Gram matrix; with the
-  // smallest at least det / largest^2, cond^2 <= largest^3 / det.
-  double largest = 0.0;
-  for (int r = 0; r < 3; ++r)
-    largest = std::max(largest, std::abs(gram[0][r]) + std::abs(gram[1][r]) + std::abs(gram[2][r]));
-  const double det = glm::determinant(gram);
-  if (!(det > 0.0) || !(largest * largest * largest <= 4.0 * det)) return false;
-  const glm::dvec3 translation = glm::dvec3(world[3]) - origin;
-  const double offset = std::max({std::abs(translation.x), std::abs(translation.y), std::abs(translation.z)});
-  return offset <= extent && mesh_magnitude * std::sqrt(largest) <= extent;
-}
-
 // Uploads triangles as geometry `id` of `scene`: `vertex(i)` gives vertex i
 // of `vertex_count` in the upload's frame, `triangle(i)` triangle i of
 // `triangle_count`. With `shared_indices` Embree reads those triangles in
@@ -217,10 +190,7 @@ UploadFrame FrameOf(const Scene& scene, const EmbreeSceneOptions& options) {
 std::vector<uint8_t> PlacementsToInstance(const Scene& scene, const EmbreeSceneOptions& options, const UploadFrame& frame) {
   std::vector<uint8_t> traced(scene.placements.size(), 0);
   if (!options.instance_meshes) return traced;
-  std::vector<double> magnitude(scene.meshes.size(), 0.0);
-  for (size_t m = 0; m < scene.meshes.size(); ++m)
-    for (const glm::dvec3& p : scene.meshes[m].positions)
-      magnitude[m] = std::max({magnitude[m], std::abs(p.x), std::abs(p.y), std::abs(p.z)});
+  const std::vector<double> magnitude = MeshMagnitudes(scene);
   std::vector<uint8_t> covered(scene.triangles.size(), 0);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& placement = scene.placements[k];
@@ -230,7 +200,7 @@ std::vector<uint8_t> PlacementsToInstance(const Scene& scene, const EmbreeSceneO
     const size_t count = scene.meshes[placement.mesh].triangles.size();
     const auto first = covered.begin() + placement.first_triangle;
     if (count == 0 || std::any_of(first, first + count, [](uint8_t b) { return b != 0; }) ||
-        !InstanceKeepsPrecision(placement.world, magnitude[placement.mesh], frame.origin, frame.extent))
+        !PlacementKeepsFloatPrecision(placement.world, magnitude[placement.mesh], frame.origin, frame.extent))
       continue;
     std::fill_n(first, count, uint8_t{1});
     traced[k] = 1;

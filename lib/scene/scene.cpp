@@ -1,6 +1,33 @@
 #include "scene/scene.h"
 
+#include <algorithm>
+#include <cmath>
+
 namespace visq {
+
+bool PlacementKeepsFloatPrecision(const glm::dmat4& world, double mesh_magnitude, const glm::dvec3& origin,
+                                  double extent) {
+  const glm::dmat3 linear(world);
+  const glm::dmat3 gram = glm::transpose(linear) * linear;
+  // Gershgorin bounds the largest eigenvalue of the Gram matrix; with the
+  // smallest at least det / largest^2, cond^2 <= largest^3 / det.
+  double largest = 0.0;
+  for (int r = 0; r < 3; ++r)
+    largest = std::max(largest, std::abs(gram[0][r]) + std::abs(gram[1][r]) + std::abs(gram[2][r]));
+  const double det = glm::determinant(gram);
+  if (!(det > 0.0) || !(largest * largest * largest <= 4.0 * det)) return false;
+  const glm::dvec3 translation = glm::dvec3(world[3]) - origin;
+  const double offset = std::max({std::abs(translation.x), std::abs(translation.y), std::abs(translation.z)});
+  return offset <= extent && mesh_magnitude * std::sqrt(largest) <= extent;
+}
+
+std::vector<double> MeshMagnitudes(const Scene& scene) {
+  std::vector<double> magnitude(scene.meshes.size(), 0.0);
+  for (size_t m = 0; m < scene.meshes.size(); ++m)
+    for (const glm::dvec3& p : scene.meshes[m].positions)
+      magnitude[m] = std::max({magnitude[m], std::abs(p.x), std::abs(p.y), std::abs(p.z)});
+  return magnitude;
+}
 
 size_t Scene::CpuBytes() const {
   size_t bytes = positions.capacity() * sizeof(glm::dvec3) + triangles.capacity() * sizeof(glm::uvec3) +

@@ -100,6 +100,23 @@ bool PlacementMatchesFlattened(const Scene& scene, const MeshPlacement& placemen
 // for (the invariant of MeshPlacement).
 [[nodiscard]] Status ValidatePlacements(const Scene& scene);
 
+// Whether a structure that places a mesh with a float32 transform (Embree
+// moving rays into the mesh's space, the GPU moving the mesh's corners into
+// the upload's frame) keeps the flattened upload's precision. Flattened, a
+// vertex is rounded once, by an ulp of its coordinate in the frame centred
+// at `origin`. Placed, the float transform picks up a few ulps of |x| times
+// the transform's condition number and scale, and of the translation. With
+// the condition number at most 2, the translation within `extent` (the
+// upload's largest extent) of `origin` and the placed mesh within `extent`
+// of its own origin, that stays within about 8 ulps of the extent (Embree's
+// tracing offset leaves 32; the GPU's tests resolve the scene's extent at
+// float32). Other placements (strong shears or scales, meshes modelled far
+// from their origin) are flattened. `mesh_magnitude`: the mesh's largest
+// |coordinate| (MeshMagnitudes).
+bool PlacementKeepsFloatPrecision(const glm::dmat4& world, double mesh_magnitude, const glm::dvec3& origin,
+                                  double extent);
+std::vector<double> MeshMagnitudes(const Scene& scene);
+
 // Placements of a mesh with fewer triangles than this are flattened only:
 // an instance costs a few hundred bytes in every structure.
 inline constexpr uint32_t kFewestTrianglesToInstance = 16;

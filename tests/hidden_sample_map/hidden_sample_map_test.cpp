@@ -852,6 +852,33 @@ TEST(HiddenSampleMap, PlacedCopiesGiveTheFlattenedLevelsBits) {
               static_cast<unsigned long long>(*drawn_flat), level.TriangleCount());
 }
 
+// A placement whose float transform would lose the flattened upload's
+// precision (here a scale of 8 along one axis: condition number 8) is drawn
+// from flattened corners; the others stay instances, and the bits are the
+// flattened level's.
+TEST(HiddenSampleMap, PlacementsThatWouldLosePrecisionAreDrawnFlattened) {
+  const Scene cloud = RandomCloud(200, 41, {-0.2, 0.2, -0.2}, {1.2, 0.95, 1.2}, 0.08);
+  std::vector<glm::dmat4> worlds = testing::CopyWorlds(cloud, 4);
+  glm::dmat4 stretch(1.0);
+  stretch[0][0] = 8.0;
+  worlds[1] = worlds[1] * stretch;
+  const Scene level = testing::PlaceMesh(cloud, worlds);
+  ASSERT_EQ(level.placements.size(), 4u);
+  auto placed = Upload(level);
+  auto flat = Upload(testing::Flattened(level));
+  ASSERT_TRUE(placed && flat);
+  EXPECT_EQ(placed->instance_count(), 3u);
+  EXPECT_EQ(placed->held_triangle_count(), 2 * cloud.TriangleCount());
+  EXPECT_EQ(placed->gpu_bytes(), GpuScene::EstimateBytes(level));
+  HiddenSampleMapRequest r = UnitRequest(64, 16);
+  r.source.patch = {{0.5, 3.0, 0.5}, {1.0, 0, 0}, {0, 0, 1.0}};
+  r.receiver.patch = {{0.0, 0.0, 0.0}, {3.0, 0, 0}, {0, 0, 3.0}};
+  auto flat_map = Mapper().Compute(*flat, r);
+  auto placed_map = Mapper().Compute(*placed, r);
+  ASSERT_TRUE(flat_map.ok() && placed_map.ok());
+  EXPECT_EQ(placed_map->blocked_bits, flat_map->blocked_bits);
+}
+
 // The same on a real level: four copies of Sponza, the query in the first.
 TEST(HiddenSampleMapRealScenes, SponzaCopiesCulledGiveTheBitsOfDrawingEverything) {
   VISQ_REQUIRE_SHARED_SCENES(dir);
