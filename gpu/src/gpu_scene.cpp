@@ -26,6 +26,7 @@ struct Layout {
   std::vector<uint8_t> instanced;      // per placement
   std::vector<int32_t> held_of_mesh;   // per scene mesh: its index among held meshes, or -1
   std::vector<uint32_t> held_meshes;   // scene mesh of each held mesh
+  std::vector<uint32_t> held_from;     // the placement whose triangles' materials each held mesh takes
   uint32_t unplaced_triangles = 0;
   uint32_t held_triangles = 0;         // unplaced + each held mesh once
   size_t segments = 0;
@@ -47,6 +48,13 @@ Layout PlanLayout(const Scene& scene, const glm::dvec3& anchor) {
     if (count < kFewestTrianglesToInstance || !PlacementMatchesFlattened(scene, p) ||
         !PlacementKeepsFloatPrecision(p.world, magnitude[p.mesh], anchor, largest_extent))
       continue;
+    // The GPU keeps a held mesh's materials once: a placement whose
+    // triangles' materials differ from the first's is drawn flattened.
+    const int32_t held_index = layout.held_of_mesh[p.mesh];
+    if (held_index >= 0 && scene.triangle_material.size() == total) {
+      const auto first = scene.triangle_material.begin() + scene.placements[layout.held_from[size_t(held_index)]].first_triangle;
+      if (!std::equal(first, first + count, scene.triangle_material.begin() + p.first_triangle)) continue;
+    }
     layout.instanced[k] = 1;
     if (p.first_triangle > cursor) ++layout.segments;
     ++layout.segments;
@@ -55,6 +63,7 @@ Layout PlanLayout(const Scene& scene, const glm::dvec3& anchor) {
     if (layout.held_of_mesh[p.mesh] < 0) {
       layout.held_of_mesh[p.mesh] = static_cast<int32_t>(layout.held_meshes.size());
       layout.held_meshes.push_back(p.mesh);
+      layout.held_from.push_back(static_cast<uint32_t>(k));
       held += count;
     }
   }
@@ -67,9 +76,10 @@ Layout PlanLayout(const Scene& scene, const glm::dvec3& anchor) {
 // GL refuses zero-sized storage: an empty scene gets one unused element.
 uint64_t BufferBytes(size_t elements, size_t element_bytes) { return std::max<size_t>(elements, 1) * element_bytes; }
 
-uint64_t LayoutBytes(const Layout& layout, size_t scene_triangles) {
+uint64_t LayoutBytes(const Layout& layout) {
   return BufferBytes(3 * size_t(layout.held_triangles), sizeof(glm::vec3)) +
-         BufferBytes(layout.segments + 1, sizeof(PlacementRecord)) + BufferBytes(scene_triangles, sizeof(uint32_t)) +
+         BufferBytes(layout.segments + 1, sizeof(PlacementRecord)) +
+         BufferBytes(layout.held_triangles, sizeof(uint32_t)) +
          BufferBytes(3 * size_t(layout.held_triangles), sizeof(uint32_t)) +
          BufferBytes(4 * layout.segments, sizeof(uint32_t));
 }
@@ -94,7 +104,7 @@ glm::dvec3 DefaultAnchor(const Scene& scene) { return scene.bounds.Empty() ? glm
 }  // namespace
 
 uint64_t GpuScene::EstimateBytes(const Scene& scene) {
-  return LayoutBytes(PlanLayout(scene, DefaultAnchor(scene)), scene.TriangleCount());
+  return LayoutBytes(PlanLayout(scene, DefaultAnchor(scene)));
 }
 
 StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Scene& scene,
@@ -123,13 +133,19 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
   std::vector<glm::vec3> corners;
   corners.reserve(3 * size_t(layout.held_triangles));
   std::vector<PlacementRecord> records = {Record(glm::dmat4(1.0), 0)};
+  // Materials in the buffer's order: a held mesh's once.
+  std::vector<uint32_t> materials;
+  materials.reserve(layout.held_triangles);
+  auto material_of = [&scene](size_t t) { return t < scene.triangle_material.size() ? scene.triangle_material[t] : 0u; };
   uint32_t unplaced_seen = 0;
   auto add_unplaced = [&](uint32_t first, uint32_t end) {
     if (first >= end) return;
     out->segments_.push_back({first, end - first, unplaced_seen, static_cast<uint32_t>(records.size()), -1});
     records.push_back(Record(glm::dmat4(1.0), int64_t(first) - int64_t(unplaced_seen)));
-    for (uint32_t t = first; t < end; ++t)
+    for (uint32_t t = first; t < end; ++t) {
       for (int c = 0; c < 3; ++c) corners.emplace_back(scene.Vertex(t, c) - out->anchor_);
+      materials.push_back(material_of(t));
+    }
     unplaced_seen += end - first;
   };
   std::vector<std::pair<size_t, size_t>> placed_segments;  // (segment, placement)
@@ -149,9 +165,14 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
   add_unplaced(cursor, out->triangle_count_);
   VISQ_CHECK_EQ(out->segments_.size(), layout.segments);
   VISQ_CHECK_EQ(unplaced_seen, layout.unplaced_triangles);
-  for (const uint32_t mesh : layout.held_meshes)
-    for (const glm::uvec3& triangle : scene.meshes[mesh].triangles)
-      for (int c = 0; c < 3; ++c) corners.emplace_back(scene.meshes[mesh].positions[triangle[c]]);
+  for (size_t h = 0; h < layout.held_meshes.size(); ++h) {
+    const SceneMesh& mesh = scene.meshes[layout.held_meshes[h]];
+    const uint32_t first = scene.placements[layout.held_from[h]].first_triangle;
+    for (size_t i = 0; i < mesh.triangles.size(); ++i) {
+      for (int c = 0; c < 3; ++c) corners.emplace_back(mesh.positions[mesh.triangles[i][c]]);
+      materials.push_back(material_of(first + i));
+    }
+  }
 
   // Each part's cluster hierarchy, over the very floats the GPU gets, and
   // its order as corner indices for the element buffer.
@@ -210,7 +231,7 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
     auto resources = std::make_shared<Resources>();
     Storage(resources->positions, corners);
     Storage(resources->placements, records);
-    Storage(resources->triangle_materials, scene.triangle_material);
+    Storage(resources->triangle_materials, materials);
     Storage(resources->cluster_order, cluster_corners);
     Storage(resources->whole_draw, whole);
     resources->whole_draws = static_cast<GLsizei>(out->segments_.size());
@@ -236,7 +257,7 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
     return absl::OkStatus();
   });
   VISQ_RETURN_IF_ERROR(status);
-  out->gpu_bytes_ = LayoutBytes(layout, scene.TriangleCount());
+  out->gpu_bytes_ = LayoutBytes(layout);
   return out;
 }
 

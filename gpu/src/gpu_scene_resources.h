@@ -14,8 +14,10 @@
 //   in the order of its TriangleClusters (the unplaced part's from element
 //   0), so that a cull's clusters are index ranges of one buffer.
 // - whole_draw: the indirect commands of GpuScene::Whole(), one a segment.
-// - triangle_materials: std430 uint per scene triangle (material index), for
-//   algorithms that need colors (bind as a shader storage buffer).
+// - triangle_materials: std430 uint per triangle of the buffer (material
+//   index, at gl_VertexID / 3: a held mesh's placements share their
+//   materials), for algorithms that need colors (bind as a shader storage
+//   buffer).
 // Non-indexed costs 3x the index-buffer layout's vertex memory but gives
 // every algorithm the triangle id for free without a geometry shader.
 #pragma once

@@ -23,6 +23,6 @@ void main() {
 #ifdef CAMERA
   vec3 a = Corner(0), b = Corner(1), c = Corner(2);
   v_face_normal = cross(b - a, c - a);
-  v_material = triangle_material[SceneTriangle()];
+  v_material = triangle_material[gl_VertexID / 3];
 #endif
 }

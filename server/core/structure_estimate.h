@@ -25,11 +25,11 @@ namespace visq::core {
 //   triangle index (exact::SceneTriangleIndex, which reads triangle boxes
 //     off the scene it shares, over full leaves): 20.0 a triangle at every
 //     size (66K to 20M).
-//   GPU buffers: exactly what gpu::GpuScene::EstimateBytes says: 48 a
-//     triangle it holds (3 float32 corners, 3 element indices in the order
-//     of the triangle cluster hierarchy), a material index (4) for every
-//     triangle placed, and 80 for each run of the scene's triangle order
-//     it draws with one placement record.
+//   GPU buffers: exactly what gpu::GpuScene::EstimateBytes says: 52 a
+//     triangle it holds (3 float32 corners, a material index, 3 element
+//     indices in the order of the triangle cluster hierarchy), and 80 for
+//     each run of the scene's triangle order it draws with one placement
+//     record.
 // Each constant is the largest measured, rounded up.
 //
 // A mesh that the scene places more than once (Scene::placements) costs the
