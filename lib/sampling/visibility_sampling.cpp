@@ -400,6 +400,11 @@ double SamplingErrorBound(int sample_count, double confidence) {
 // within 15 % of the count's alone and make a penumbra texel's 1.7x
 // tighter at N = 1024 (docs/texel-bounds.md).
 constexpr double kCountShare = 0.5, kPairsShare = 0.2, kDeviationShare = 0.3;
+// Below this many samples a penumbra splits too few pairs for their bound
+// to win back the confidence it takes from the count's (on every shared
+// scene at N = 32 and 128): the count's interval alone. A rule of N, fixed
+// before the samples are seen, so the bound stays rigorous.
+constexpr int kFewestSamplesToPair = 256;
 
 void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& map, HiddenSampleMapBand& band) {
   if (!SamplesAreIndependentStrata(request) || map.sample_count <= 0) {
@@ -408,8 +413,8 @@ void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& m
   }
   const int n = map.sample_count;
   const double failure = 1.0 - request.options.confidence;
-  const bool paired = !band.split_pairs.empty();
-  VISQ_CHECK(!paired || band.split_pairs.size() == band.texels());
+  VISQ_CHECK(band.split_pairs.empty() || band.split_pairs.size() == band.texels());
+  const bool paired = !band.split_pairs.empty() && n >= kFewestSamplesToPair;
   const std::shared_ptr<CountIntervals> limits =
       StratifiedCountIntervals(n, paired ? 1.0 - kCountShare * failure : request.options.confidence);
   std::shared_ptr<SplitPairBounds> pair_bounds;

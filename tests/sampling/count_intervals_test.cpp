@@ -218,7 +218,7 @@ TEST(SplitPairs, BoundTexelsCoversShadowEdgesAndTightensWithN) {
 // Where every sample is visible, the split pairs add little: the texel's
 // bound stays within 15 % of the count's alone at the full confidence.
 TEST(SplitPairs, AllVisibleTexelKeepsNearlyTheCountsBound) {
-  for (int n : {64, 256, 4096}) {
+  for (int n : {256, 1024, 4096}) {
     HiddenSampleMapRequest request;
     request.source.pattern = SamplePattern::kJittered;
     request.source.sample_count = n;
@@ -233,6 +233,23 @@ TEST(SplitPairs, AllVisibleTexelKeepsNearlyTheCountsBound) {
     EXPECT_LE(band.texel_error[0], count_alone * 1.15f) << "N " << n;
     EXPECT_GE(band.texel_error[0], count_alone) << "N " << n;  // it spends confidence on the pairs
   }
+}
+
+// Below 256 samples the count's interval alone, at the full confidence.
+TEST(SplitPairs, FewSamplesUseTheCountAlone) {
+  HiddenSampleMapRequest request;
+  request.source.pattern = SamplePattern::kJittered;
+  request.source.sample_count = 128;
+  HiddenSampleMapResult map;
+  map.sample_count = 128;
+  HiddenSampleMapBand band;
+  band.visible_fraction = {0.5f};
+  BoundTexels(request, map, band);
+  const float count_alone = band.texel_error[0];
+  band.split_pairs = {3};
+  BoundTexels(request, map, band);
+  EXPECT_EQ(band.texel_error[0], count_alone);
+  EXPECT_FALSE(map.error.per_texel_split_pairs);
 }
 
 // Several maps summed: N = 3 x 1366 samples, the pairs of each map.
@@ -257,15 +274,15 @@ TEST(SplitPairs, SummedMapsCountTheirPairsTogether) {
 // must still hold at its confidence.
 TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
   std::mt19937_64 random(4242);
-  const int n = 64;
+  const int n = 256;
   HiddenSampleMapRequest request;
   request.source.pattern = SamplePattern::kJittered;
   request.source.sample_count = n;
   std::vector<std::vector<double>> cases;
   cases.push_back(std::vector<double>(n, 0.5));
-  cases.push_back(std::vector<double>(n, 0.9));
+  cases.push_back(std::vector<double>(n, 0.97));
   std::vector<double> few(n, 1.0);
-  for (int i = 20; i < 28; ++i) few[size_t(i)] = 0.5;  // four mixed pairs
+  for (int i = 20; i < 36; ++i) few[size_t(i)] = 0.5;  // eight mixed pairs
   cases.push_back(few);
   for (size_t c = 0; c < cases.size(); ++c) {
     double truth = 0.0;
@@ -273,11 +290,11 @@ TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
     const int trials = 20000;
     int covered = 0;
     for (int t = 0; t < trials; ++t) {
-      uint32_t blocked[2] = {0u, 0u};
+      std::vector<uint32_t> blocked(n / 32, 0u);
       int visible = 0;
       for (int i = 0; i < n; ++i) {
         if (std::bernoulli_distribution(cases[c][size_t(i)])(random)) ++visible;
-        else blocked[i / 32] |= 1u << (i % 32);
+        else blocked[size_t(i / 32)] |= 1u << (i % 32);
       }
       HiddenSampleMapResult map;
       map.sample_count = n;
@@ -285,6 +302,7 @@ TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
       band.visible_fraction = {float(visible) / float(n)};
       band.split_pairs = {SplitPairs(blocked, n)};
       BoundTexels(request, map, band);
+      EXPECT_TRUE(map.error.per_texel_split_pairs);
       covered += std::abs(band.visible_fraction[0] - truth) <= band.texel_error[0];
     }
     EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << "case " << c << ", true fraction " << truth;
