@@ -64,6 +64,20 @@ double BetaQuantile(double a, double b, double target) {
   return x;
 }
 
+// The counts in [0, largest] whose entry is not computed yet, each once
+// (marked 2, "listed", until its computation marks it 1).
+std::vector<int> ListMissing(const std::vector<int>& counts, int largest, std::vector<uint8_t>& ready) {
+  std::vector<int> missing;
+  for (int k : counts) {
+    VISQ_CHECK(k >= 0 && k <= largest);
+    if (ready[size_t(k)] == 0) {
+      ready[size_t(k)] = 2;
+      missing.push_back(k);
+    }
+  }
+  return missing;
+}
+
 }  // namespace
 
 double RegularizedIncompleteBeta(double a, double b, double x) {
@@ -87,14 +101,7 @@ CountIntervals::CountIntervals(int sample_count, double confidence)
 
 void CountIntervals::Prepare(const std::vector<int>& counts) {
   std::lock_guard lock(mutex_);
-  std::vector<int> missing;
-  for (int k : counts) {
-    VISQ_CHECK(k >= 0 && k <= sample_count_);
-    if (ready_[size_t(k)] == 0) {
-      ready_[size_t(k)] = 2;  // listed once
-      missing.push_back(k);
-    }
-  }
+  const std::vector<int> missing = ListMissing(counts, sample_count_, ready_);
   const int n = sample_count_;
   const double alpha = 0.5 * (1.0 - confidence_);  // each side
   // Clopper-Pearson for count j: low(j) solves P(Bin(n, p) >= j) = alpha,
@@ -169,14 +176,7 @@ SplitPairBounds::SplitPairBounds(int pairs, int unpaired, int samples, double de
 
 void SplitPairBounds::Prepare(const std::vector<int>& split_counts) {
   std::lock_guard lock(mutex_);
-  std::vector<int> missing;
-  for (int k : split_counts) {
-    VISQ_CHECK(k >= 0 && k <= pairs_);
-    if (ready_[size_t(k)] == 0) {
-      ready_[size_t(k)] = 2;  // listed once
-      missing.push_back(k);
-    }
-  }
+  const std::vector<int> missing = ListMissing(split_counts, pairs_, ready_);
   if (missing.empty()) return;
   if (pair_limits_) pair_limits_->Prepare(missing);
   for (const int k : missing) {

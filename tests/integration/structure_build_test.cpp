@@ -12,6 +12,7 @@
 #include <fstream>
 #include <map>
 #include <thread>
+#include <utility>
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
@@ -283,10 +284,14 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
   map.set_width(24);
   map.set_height(24);
   map.set_want_bitmasks(true);
-  map.mutable_scene()->set_name("placed");
-  auto placed_map = client_->ComputeHiddenSampleMap(map);
-  map.mutable_scene()->set_name("flat");
-  auto flat_map = client_->ComputeHiddenSampleMap(map);
+  // The same request of the placed and of the flattened level.
+  auto on_both = [](auto request, auto call) {
+    request.mutable_scene()->set_name("placed");
+    auto placed_answer = call(request);
+    request.mutable_scene()->set_name("flat");
+    return std::make_pair(std::move(placed_answer), call(request));
+  };
+  auto [placed_map, flat_map] = on_both(map, [&](const auto& r) { return client_->ComputeHiddenSampleMap(r); });
   ASSERT_TRUE(placed_map.ok() && flat_map.ok()) << placed_map.status() << flat_map.status();
   EXPECT_EQ(placed_map->blocked_bits, flat_map->blocked_bits);
   size_t blocked = 0;
@@ -304,10 +309,7 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
     testing::Set(point->mutable_position(), -0.5 + 0.1 * i, -0.5, -0.5 + 0.09 * i);
     testing::Set(point->mutable_normal(), 0, 1, 0);
   }
-  light.mutable_scene()->set_name("placed");
-  auto placed_light = client_->LightVisibility(light);
-  light.mutable_scene()->set_name("flat");
-  auto flat_light = client_->LightVisibility(light);
+  auto [placed_light, flat_light] = on_both(light, [&](const auto& r) { return client_->LightVisibility(r); });
   ASSERT_TRUE(placed_light.ok() && flat_light.ok()) << placed_light.status() << flat_light.status();
   ASSERT_EQ(placed_light->points_size(), 25);
   int partial = 0;
@@ -318,9 +320,9 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
   }
   EXPECT_GT(partial, 0);
 
-  // The GPU draws the grid once per placement: RASTER, with and without the
-  // cluster cull, gives the flattened scene's bits, and so do the slicemap
-  // and the volumetric image. The placed corners are a float transform of
+  // The GPU draws the grid once per placement: RASTER (its cluster cull
+  // taken into each placement's space) gives the flattened scene's bits, and
+  // so do the slicemap and the volumetric image. The placed corners are a float transform of
   // the mesh's floats, not the flattened doubles rounded: bits may differ
   // where a segment passes within float rounding of an edge.
   auto differing_bits = [](const std::vector<uint32_t>& a, const std::vector<uint32_t>& b) {
@@ -329,10 +331,7 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
     return differ;
   };
   map.set_method(v1::RASTER);
-  map.mutable_scene()->set_name("placed");
-  auto placed_raster = client_->ComputeHiddenSampleMap(map);
-  map.mutable_scene()->set_name("flat");
-  auto flat_raster = client_->ComputeHiddenSampleMap(map);
+  auto [placed_raster, flat_raster] = on_both(map, [&](const auto& r) { return client_->ComputeHiddenSampleMap(r); });
   ASSERT_TRUE(placed_raster.ok() && flat_raster.ok()) << placed_raster.status() << flat_raster.status();
   const size_t raster_differ = differing_bits(placed_raster->blocked_bits, flat_raster->blocked_bits);
   std::printf("RASTER: %zu of %zu bits differ between placed and flattened; %zu between placed RASTER and RAYCAST\n",
@@ -347,10 +346,7 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
   voxels.set_slices(64);
   voxels.set_depth_axis(1);
   voxels.set_conservative(true);
-  voxels.mutable_scene()->set_name("placed");
-  auto placed_voxels = client_->Voxelize(voxels);
-  voxels.mutable_scene()->set_name("flat");
-  auto flat_voxels = client_->Voxelize(voxels);
+  auto [placed_voxels, flat_voxels] = on_both(voxels, [&](const auto& r) { return client_->Voxelize(r); });
   ASSERT_TRUE(placed_voxels.ok() && flat_voxels.ok()) << placed_voxels.status() << flat_voxels.status();
   const size_t voxels_differ = differing_bits(placed_voxels->bits, flat_voxels->bits);
   size_t occupied = 0;
@@ -370,10 +366,7 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
   shafts.set_scattering(0.3);
   shafts.set_extinction(0.3);
   shafts.set_combined_image(true);  // the surfaces too: face normals and materials
-  shafts.mutable_scene()->set_name("placed");
-  auto placed_shafts = client_->VolumetricShadow(shafts);
-  shafts.mutable_scene()->set_name("flat");
-  auto flat_shafts = client_->VolumetricShadow(shafts);
+  auto [placed_shafts, flat_shafts] = on_both(shafts, [&](const auto& r) { return client_->VolumetricShadow(r); });
   ASSERT_TRUE(placed_shafts.ok() && flat_shafts.ok()) << placed_shafts.status() << flat_shafts.status();
   ASSERT_EQ(placed_shafts->combined.size(), flat_shafts->combined.size());
   size_t pixels_differ = 0;
@@ -390,10 +383,7 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
   bake.set_d_max(0.5);
   bake.set_direction_count(16);
   bake.set_want_averages(true);
-  bake.mutable_scene()->set_name("placed");
-  auto placed_bake = client_->ComputeObscurances(bake);
-  bake.mutable_scene()->set_name("flat");
-  auto flat_bake = client_->ComputeObscurances(bake);
+  auto [placed_bake, flat_bake] = on_both(bake, [&](const auto& r) { return client_->ComputeObscurances(r); });
   ASSERT_TRUE(placed_bake.ok() && flat_bake.ok()) << placed_bake.status() << flat_bake.status();
   ASSERT_EQ(placed_bake->triangle_w.size(), flat_bake->triangle_w.size());
   size_t triangles_differ = 0;

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 #include <random>
 #include <vector>
 
@@ -151,16 +152,36 @@ struct TexelTrial {
   int covered = 0;
 };
 
+// One texel's bound from BoundTexels, and whether it took the split pairs':
+// `visible` of `samples` jittered samples, with `split_pairs` counted over
+// `maps` maps of samples / maps each (none: the count alone).
+struct OneTexel {
+  float answer = 0.0f;
+  float bound = 0.0f;
+  bool split_pairs_used = false;
+};
+OneTexel BoundOneTexel(int samples, int visible, std::optional<int> split_pairs, int maps = 1) {
+  HiddenSampleMapRequest request;
+  request.source.pattern = SamplePattern::kJittered;
+  request.source.sample_count = samples / maps;
+  HiddenSampleMapResult map;
+  map.sample_count = samples;
+  HiddenSampleMapBand band;
+  band.visible_fraction = {float(visible) / float(samples)};
+  if (split_pairs) {
+    band.split_pairs = {*split_pairs};
+    band.split_pair_maps = maps;
+  }
+  BoundTexels(request, map, band);
+  return {band.visible_fraction[0], band.texel_error[0], map.error.per_texel_split_pairs};
+}
+
 // `trials` texels, each a new jittered pattern of n (the real one) under
 // a random edge; each texel bounded by BoundTexels with and without its
 // split pairs.
 TexelTrial EdgeTexels(int n, int trials, uint64_t seed) {
   std::mt19937_64 random(seed);
   std::uniform_real_distribution<double> unit(0.0, 1.0);
-  HiddenSampleMapRequest request;
-  request.source.pattern = SamplePattern::kJittered;
-  request.source.sample_count = n;
-  request.options.confidence = 0.95;
   TexelTrial out;
   const int words = (n + 31) / 32;
   for (int k = 0; k < trials; ++k) {
@@ -173,18 +194,12 @@ TexelTrial EdgeTexels(int n, int trials, uint64_t seed) {
       if (edge.Visible(pattern[size_t(i)])) ++visible;
       else blocked[size_t(i / 32)] |= 1u << (i % 32);
     }
-    HiddenSampleMapResult map;
-    map.sample_count = n;
-    HiddenSampleMapBand band;
-    band.visible_fraction = {float(visible) / float(n)};
-    BoundTexels(request, map, band);
-    out.count_bound.push_back(band.texel_error[0]);
-    band.split_pairs = {SplitPairs(blocked, n)};
-    BoundTexels(request, map, band);
-    out.bound.push_back(band.texel_error[0]);
-    const double error = std::abs(double(band.visible_fraction[0]) - truth);
+    out.count_bound.push_back(BoundOneTexel(n, visible, std::nullopt).bound);
+    const OneTexel texel = BoundOneTexel(n, visible, SplitPairs(blocked, n));
+    out.bound.push_back(texel.bound);
+    const double error = std::abs(double(texel.answer) - truth);
     out.error.push_back(error);
-    out.covered += error <= band.texel_error[0];
+    out.covered += error <= texel.bound;
   }
   return out;
 }
@@ -219,54 +234,26 @@ TEST(SplitPairs, BoundTexelsCoversShadowEdgesAndTightensWithN) {
 // bound stays within 15 % of the count's alone at the full confidence.
 TEST(SplitPairs, AllVisibleTexelKeepsNearlyTheCountsBound) {
   for (int n : {256, 1024, 4096}) {
-    HiddenSampleMapRequest request;
-    request.source.pattern = SamplePattern::kJittered;
-    request.source.sample_count = n;
-    HiddenSampleMapResult map;
-    map.sample_count = n;
-    HiddenSampleMapBand band;
-    band.visible_fraction = {1.0f};
-    BoundTexels(request, map, band);
-    const float count_alone = band.texel_error[0];
-    band.split_pairs = {0};
-    BoundTexels(request, map, band);
-    EXPECT_LE(band.texel_error[0], count_alone * 1.15f) << "N " << n;
-    EXPECT_GE(band.texel_error[0], count_alone) << "N " << n;  // it spends confidence on the pairs
+    const float count_alone = BoundOneTexel(n, n, std::nullopt).bound;
+    const float with_pairs = BoundOneTexel(n, n, 0).bound;
+    EXPECT_LE(with_pairs, count_alone * 1.15f) << "N " << n;
+    EXPECT_GE(with_pairs, count_alone) << "N " << n;  // it spends confidence on the pairs
   }
 }
 
 // Below 256 samples the count's interval alone, at the full confidence.
 TEST(SplitPairs, FewSamplesUseTheCountAlone) {
-  HiddenSampleMapRequest request;
-  request.source.pattern = SamplePattern::kJittered;
-  request.source.sample_count = 128;
-  HiddenSampleMapResult map;
-  map.sample_count = 128;
-  HiddenSampleMapBand band;
-  band.visible_fraction = {0.5f};
-  BoundTexels(request, map, band);
-  const float count_alone = band.texel_error[0];
-  band.split_pairs = {3};
-  BoundTexels(request, map, band);
-  EXPECT_EQ(band.texel_error[0], count_alone);
-  EXPECT_FALSE(map.error.per_texel_split_pairs);
+  const OneTexel with_pairs = BoundOneTexel(128, 64, 3);
+  EXPECT_EQ(with_pairs.bound, BoundOneTexel(128, 64, std::nullopt).bound);
+  EXPECT_FALSE(with_pairs.split_pairs_used);
 }
 
 // Several maps summed: N = 3 x 1366 samples, the pairs of each map.
 TEST(SplitPairs, SummedMapsCountTheirPairsTogether) {
-  HiddenSampleMapRequest request;
-  request.source.pattern = SamplePattern::kJittered;
-  request.source.sample_count = 1366;
-  HiddenSampleMapResult map;
-  map.sample_count = 3 * 1366;
-  HiddenSampleMapBand band;
-  band.visible_fraction = {0.5f};
-  band.split_pairs = {30};
-  band.split_pair_maps = 3;
-  BoundTexels(request, map, band);
+  const OneTexel texel = BoundOneTexel(3 * 1366, 3 * 683, 30, 3);
   const std::shared_ptr<SplitPairBounds> bounds = CachedSplitPairBounds(3 * 683, 0, 3 * 1366, 0.2 * 0.05, 0.3 * 0.05);
   bounds->Prepare({30});
-  EXPECT_NEAR(band.texel_error[0], bounds->Deviation(30), 1e-6);
+  EXPECT_NEAR(texel.bound, bounds->Deviation(30), 1e-6);
 }
 
 // Cells of given visibility probabilities, with pairs whose two cells are
@@ -275,9 +262,6 @@ TEST(SplitPairs, SummedMapsCountTheirPairsTogether) {
 TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
   std::mt19937_64 random(4242);
   const int n = 256;
-  HiddenSampleMapRequest request;
-  request.source.pattern = SamplePattern::kJittered;
-  request.source.sample_count = n;
   std::vector<std::vector<double>> cases;
   cases.push_back(std::vector<double>(n, 0.5));
   cases.push_back(std::vector<double>(n, 0.97));
@@ -296,14 +280,9 @@ TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
         if (std::bernoulli_distribution(cases[c][size_t(i)])(random)) ++visible;
         else blocked[size_t(i / 32)] |= 1u << (i % 32);
       }
-      HiddenSampleMapResult map;
-      map.sample_count = n;
-      HiddenSampleMapBand band;
-      band.visible_fraction = {float(visible) / float(n)};
-      band.split_pairs = {SplitPairs(blocked, n)};
-      BoundTexels(request, map, band);
-      EXPECT_TRUE(map.error.per_texel_split_pairs);
-      covered += std::abs(band.visible_fraction[0] - truth) <= band.texel_error[0];
+      const OneTexel texel = BoundOneTexel(n, visible, SplitPairs(blocked, n));
+      EXPECT_TRUE(texel.split_pairs_used);
+      covered += std::abs(texel.answer - truth) <= texel.bound;
     }
     EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << "case " << c << ", true fraction " << truth;
   }
