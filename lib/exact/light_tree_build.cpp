@@ -368,15 +368,12 @@ void LightTree::IndexOccludersAndPlantTheTree() {
   for (const NearOccluder& n : near) {
     for (const uint32_t v : n.v) VISQ_CHECK_LT(v, vertices.size());
   }
-  std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes;
-  boxes.reserve(far.size() + near.size());
-  auto add_box = [&](const uint32_t (&v)[3]) {
+  // Ids: far occluders first, then near ones.
+  index.Build(static_cast<uint32_t>(far.size() + near.size()), [&](uint32_t id) {
+    const uint32_t* v = OccluderVertices(id);
     const glm::dvec3 a = vertices[v[0]], b = vertices[v[1]], c = vertices[v[2]];
-    boxes.emplace_back(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
-  };
-  for (const FarOccluder& o : far) add_box(o.v);
-  for (const NearOccluder& n : near) add_box(n.v);
-  index.Build(std::move(boxes));
+    return std::make_pair(glm::min(a, glm::min(b, c)), glm::max(a, glm::max(b, c)));
+  });
 
   if (far.empty()) {
     NewNode(kVisible);

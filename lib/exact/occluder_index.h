@@ -10,6 +10,8 @@
 
 #include <glm/glm.hpp>
 
+#include "common/check.h"
+
 namespace visq::exact::detail {
 
 // A bounding-volume hierarchy over the occluders' boxes (far and near), so
@@ -27,15 +29,33 @@ class OccluderIndex {
   // Halving at the median instead leaves between kLeafSize / 2 and
   // kLeafSize items a leaf, as the count falls: the scene's index of 20M
   // triangles held 27 bytes of nodes a triangle where 66K held 17.
-  // Takes the boxes by value: they are freed when the build returns.
-  void Build(std::vector<std::pair<glm::dvec3, glm::dvec3>> boxes, bool full_leaves = false) {
-    order_.resize(boxes.size());
-    for (uint32_t i = 0; i < order_.size(); ++i) order_[i] = i;
+  //
+  // box_of(i) gives item i's box as a pair (lo, hi). The items move with
+  // their boxes while they are partitioned: the partition reads each box in
+  // turn instead of through the order, which on a 382K-triangle room was
+  // most of the build. The comparisons are those of a partition through the
+  // order, so the hierarchy is the same.
+  template <typename BoxOf>
+  void Build(uint32_t count, const BoxOf& box_of, bool full_leaves = false) {
     nodes_.clear();
-    if (boxes.empty()) return;
+    order_.clear();
+    if (count == 0) {
+      nodes_.shrink_to_fit();
+      order_.shrink_to_fit();
+      return;
+    }
+    std::vector<Item> items(count);
+    for (uint32_t i = 0; i < count; ++i) {
+      const auto [lo, hi] = box_of(i);
+      items[i] = Item{lo, hi, i};
+    }
+    nodes_.reserve(NodeCount(count, full_leaves));
     nodes_.emplace_back();
-    BuildNode(boxes, full_leaves, 0, 0, static_cast<uint32_t>(order_.size()));
-    nodes_.shrink_to_fit();
+    BuildNode(items, full_leaves, 0, 0, count);
+    VISQ_DCHECK_EQ(nodes_.size(), nodes_.capacity());
+    order_.resize(count);
+    order_.shrink_to_fit();
+    for (uint32_t i = 0; i < count; ++i) order_[i] = items[i].id;
   }
 
   // Appends the occluders whose boxes `box_misses` does not rule out.
@@ -92,39 +112,63 @@ class OccluderIndex {
     uint32_t left;  // children at left and left + 1, or kLeaf
   };
 
-  // Fills node `id` with the occluders order_[begin, end); its children go
-  // to two new consecutive slots. Depth stays under 64: each split halves.
-  void BuildNode(const std::vector<std::pair<glm::dvec3, glm::dvec3>>& boxes, bool full_leaves, uint32_t id,
-                 uint32_t begin, uint32_t end) {
+  struct Item {
+    glm::dvec3 lo, hi;
+    uint32_t id;
+  };
+
+  // How many items a node of `count` gives its lower child.
+  static uint32_t LowerHalf(uint32_t count, bool full_leaves) {
+    if (!full_leaves) return count / 2;
+    // The least kLeafSize x 2^k that is at least half.
+    uint32_t half = kLeafSize;
+    while (2 * half < count) half *= 2;
+    return half;
+  }
+
+  // The nodes BuildNode makes for `count` items (reserved up front: the
+  // hierarchy of a large room is megabytes, grown and then shrunk it was
+  // copied twice). A level's counts take few distinct values, so each is
+  // counted once.
+  static size_t NodeCount(uint32_t count, bool full_leaves) {
+    std::vector<std::pair<uint32_t, size_t>> known;
+    const auto count_of = [&](const auto& self, uint32_t n) -> size_t {
+      if (n <= kLeafSize) return 1;
+      for (const auto& [m, nodes] : known)
+        if (m == n) return nodes;
+      const uint32_t half = LowerHalf(n, full_leaves);
+      const size_t nodes = 1 + self(self, half) + self(self, n - half);
+      known.emplace_back(n, nodes);
+      return nodes;
+    };
+    return count_of(count_of, count);
+  }
+
+  // Fills node `id` with the items [begin, end); its children go to two new
+  // consecutive slots. Depth stays under 64: each split halves.
+  void BuildNode(std::vector<Item>& items, bool full_leaves, uint32_t id, uint32_t begin, uint32_t end) {
     glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
     glm::dvec3 centre_lo = lo, centre_hi = hi;
     for (uint32_t i = begin; i < end; ++i) {
-      const auto& [box_lo, box_hi] = boxes[order_[i]];
-      lo = glm::min(lo, box_lo);
-      hi = glm::max(hi, box_hi);
-      centre_lo = glm::min(centre_lo, box_lo + box_hi);
-      centre_hi = glm::max(centre_hi, box_lo + box_hi);
+      const Item& item = items[i];
+      lo = glm::min(lo, item.lo);
+      hi = glm::max(hi, item.hi);
+      centre_lo = glm::min(centre_lo, item.lo + item.hi);
+      centre_hi = glm::max(centre_hi, item.lo + item.hi);
     }
     nodes_[id] = Node{lo, hi, begin, end, kLeaf};
     if (end - begin <= kLeafSize) return;
     const glm::dvec3 spread = centre_hi - centre_lo;
     const int axis = spread.x >= spread.y && spread.x >= spread.z ? 0 : spread.y >= spread.z ? 1 : 2;
-    uint32_t half = (end - begin) / 2;
-    if (full_leaves) {
-      // The lower part: the least kLeafSize x 2^k that is at least half.
-      half = kLeafSize;
-      while (2 * half < end - begin) half *= 2;
-    }
-    const uint32_t middle = begin + half;
-    std::nth_element(order_.begin() + begin, order_.begin() + middle, order_.begin() + end, [&](uint32_t x, uint32_t y) {
-      return boxes[x].first[axis] + boxes[x].second[axis] < boxes[y].first[axis] + boxes[y].second[axis];
-    });
+    const uint32_t middle = begin + LowerHalf(end - begin, full_leaves);
+    std::nth_element(items.begin() + begin, items.begin() + middle, items.begin() + end,
+                     [axis](const Item& x, const Item& y) { return x.lo[axis] + x.hi[axis] < y.lo[axis] + y.hi[axis]; });
     const uint32_t left = static_cast<uint32_t>(nodes_.size());
     nodes_.emplace_back();
     nodes_.emplace_back();
     nodes_[id].left = left;
-    BuildNode(boxes, full_leaves, left, begin, middle);
-    BuildNode(boxes, full_leaves, left + 1, middle, end);
+    BuildNode(items, full_leaves, left, begin, middle);
+    BuildNode(items, full_leaves, left + 1, middle, end);
   }
 
   std::vector<uint32_t> order_;

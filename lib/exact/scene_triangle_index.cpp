@@ -141,11 +141,13 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
       indexed.scene_mesh = placement.mesh;
       for (const glm::dvec3& p : mesh.positions)
         indexed.magnitude = std::max({indexed.magnitude, std::abs(p.x), std::abs(p.y), std::abs(p.z)});
-      std::vector<Box> boxes;
-      boxes.reserve(mesh.triangles.size());
-      for (const glm::uvec3& t : mesh.triangles)
-        boxes.push_back(TriangleBox(mesh.positions[t[0]], mesh.positions[t[1]], mesh.positions[t[2]]));
-      indexed.boxes.Build(std::move(boxes), /*full_leaves=*/true);
+      indexed.boxes.Build(
+          static_cast<uint32_t>(mesh.triangles.size()),
+          [&](uint32_t i) {
+            const glm::uvec3 t = mesh.triangles[i];
+            return TriangleBox(mesh.positions[t[0]], mesh.positions[t[1]], mesh.positions[t[2]]);
+          },
+          /*full_leaves=*/true);
     }
     Impl::Instance& instance = impl->instances.emplace_back();
     instance.mesh = slot;
@@ -163,19 +165,19 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
     std::fill_n(instanced.begin() + placement.first_triangle, mesh.triangles.size(), uint8_t{1});
   }
 
-  std::vector<Box> boxes;
-  boxes.reserve(scene.triangles.size() - (impl->instances.empty() ? 0 : std::count(instanced.begin(), instanced.end(), 1)) +
-                top_boxes.size());
-  for (size_t ti = 0; ti < scene.triangles.size(); ++ti) {
-    if (instanced[ti]) continue;
-    if (!impl->instances.empty()) impl->flat.push_back(static_cast<uint32_t>(ti));
-    const glm::uvec3 tri = scene.triangles[ti];
-    boxes.push_back(TriangleBox(scene.positions[tri[0]], scene.positions[tri[1]], scene.positions[tri[2]]));
+  if (!impl->instances.empty()) {
+    for (size_t ti = 0; ti < scene.triangles.size(); ++ti) {
+      if (!instanced[ti]) impl->flat.push_back(static_cast<uint32_t>(ti));
+    }
   }
-  boxes.insert(boxes.end(), top_boxes.begin(), top_boxes.end());
   impl->flat.shrink_to_fit();
   impl->instances.shrink_to_fit();
-  impl->top.Build(std::move(boxes), /*full_leaves=*/true);
+  const size_t flat_count = impl->flat_count();
+  VISQ_CHECK_LT(flat_count + top_boxes.size(), size_t{UINT32_MAX});
+  impl->top.Build(
+      static_cast<uint32_t>(flat_count + top_boxes.size()),
+      [&](uint32_t item) { return item < flat_count ? impl->SceneTriangleBox(impl->FlatTriangle(item)) : top_boxes[item - flat_count]; },
+      /*full_leaves=*/true);
   return std::unique_ptr<SceneTriangleIndex>(new SceneTriangleIndex(std::move(impl)));
 }
 
