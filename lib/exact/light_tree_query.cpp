@@ -44,10 +44,18 @@ size_t AnswerBytes(const PointVisibility& v) {
 // A floating-point cull of the near occluders that cannot touch the pyramid
 // from P to the light: before any exact predicate, an occluder whose box
 // misses the pyramid's box, or that lies wholly outside one side plane of
-// the pyramid over every light triangle, blocks no segment from P to the
-// light. It only ever skips an occluder when the double-precision test
-// clears a margin far above its rounding error, so it never changes an
-// answer; anything closer is left to the exact code.
+// the pyramid, blocks no segment from P to the light. It only ever skips an
+// occluder when the double-precision test clears a margin far above its
+// rounding error, so it never changes an answer; anything closer is left to
+// the exact code.
+//
+// The side planes are those of the light's outline (through P and each
+// edge of the light polygon) when every one of them has the whole light on
+// its inner side: a convex light, four planes for a quad. Otherwise (a
+// concave outline, or a vertex too close to call) they are the three of
+// each light triangle, and an occluder must be outside one of every
+// triangle's. The outline's planes cull at least what the triangles' do
+// on a convex light, in fewer tests.
 class PyramidCull {
  public:
   PyramidCull(const glm::dvec3& p, const std::vector<glm::dvec3>& light, const std::vector<LightTriangle>& triangles)
@@ -56,23 +64,23 @@ class PyramidCull {
       lo_ = glm::min(lo_, v);
       hi_ = glm::max(hi_, v);
     }
+    if (OutlinePlanes(light)) return;
     for (const LightTriangle& t : triangles) {
       Sides sides;
       for (int e = 0; e < 3; ++e) {
         const glm::dvec3 a = light[t.v[e]] - p, b = light[t.v[(e + 1) % 3]] - p, c = light[t.v[(e + 2) % 3]] - p;
         glm::dvec3 normal = glm::cross(a, b);
-        const double scale = glm::length(a) * glm::length(b);
+        const double scale = Norm1(a) * Norm1(b);
         // Orient inwards by the opposite vertex; too close to call: no cull.
         const double inside = glm::dot(normal, c);
-        if (!(std::fabs(inside) > kRelativeMargin * scale * glm::length(c))) {
+        if (!(std::fabs(inside) > kRelativeMargin * scale * Norm1(c))) {
           sides.usable = false;
           break;
         }
         if (inside < 0) normal = -normal;
-        sides.normal[e] = normal;
-        sides.scale[e] = scale;
+        sides.planes.push_back({normal, scale});
       }
-      triangle_sides_.push_back(sides);
+      triangle_sides_.push_back(std::move(sides));
     }
   }
 
@@ -84,19 +92,13 @@ class PyramidCull {
     for (int axis = 0; axis < 3; ++axis)
       if (hi[axis] < lo_[axis] || lo[axis] > hi_[axis]) return true;
     // The farthest corner from P takes, per axis, the farther face.
-    const glm::dvec3 far_offset = glm::max(glm::abs(lo - p_), glm::abs(hi - p_));
-    const double reach = glm::length(far_offset);
-    for (const Sides& sides : triangle_sides_) {
-      if (!sides.usable) return false;
-      bool outside = false;
-      for (int e = 0; e < 3 && !outside; ++e) {
-        const glm::dvec3& n = sides.normal[e];
-        const glm::dvec3 furthest_inside(n.x > 0 ? hi.x : lo.x, n.y > 0 ? hi.y : lo.y, n.z > 0 ? hi.z : lo.z);
-        outside = glm::dot(n, furthest_inside - p_) < -kRelativeMargin * sides.scale[e] * reach;
-      }
-      if (!outside) return false;
-    }
-    return !triangle_sides_.empty();
+    const double reach = Norm1(glm::max(glm::abs(lo - p_), glm::abs(hi - p_)));
+    const auto outside = [&](const Plane& plane) {
+      const glm::dvec3& n = plane.normal;
+      const glm::dvec3 furthest_inside(n.x > 0 ? hi.x : lo.x, n.y > 0 ? hi.y : lo.y, n.z > 0 ? hi.z : lo.z);
+      return glm::dot(n, furthest_inside - p_) < -kRelativeMargin * plane.scale * reach;
+    };
+    return OutsideEverySet(outside);
   }
 
   bool Misses(const glm::dvec3 (&v)[3]) const {
@@ -105,33 +107,75 @@ class PyramidCull {
       if (v[0][axis] > hi_[axis] && v[1][axis] > hi_[axis] && v[2][axis] > hi_[axis]) return true;
     }
     const glm::dvec3 x[3] = {v[0] - p_, v[1] - p_, v[2] - p_};
-    const double length[3] = {glm::length(x[0]), glm::length(x[1]), glm::length(x[2])};
-    for (const Sides& sides : triangle_sides_) {
-      if (!sides.usable) return false;
-      bool outside = false;
-      for (int e = 0; e < 3 && !outside; ++e) {
-        outside = true;
-        for (int i = 0; i < 3 && outside; ++i) {
-          outside = glm::dot(sides.normal[e], x[i]) < -kRelativeMargin * sides.scale[e] * length[i];
-        }
+    const double reach[3] = {Norm1(x[0]), Norm1(x[1]), Norm1(x[2])};
+    const auto outside = [&](const Plane& plane) {
+      for (int i = 0; i < 3; ++i) {
+        if (!(glm::dot(plane.normal, x[i]) < -kRelativeMargin * plane.scale * reach[i])) return false;
       }
-      if (!outside) return false;
-    }
-    return !triangle_sides_.empty();
+      return true;
+    };
+    return OutsideEverySet(outside);
   }
 
  private:
   // The side value is a 3x3 determinant of differences of doubles; its
   // rounding error is a few ulps of the product of the vectors' lengths.
-  // This margin is about 450 ulps of that product.
+  // This margin is about 450 ulps of that product; the 1-norms it is taken
+  // of are at least the lengths.
   static constexpr double kRelativeMargin = 1e-13;
+  struct Plane {
+    glm::dvec3 normal;  // inwards
+    double scale;       // at least |normal|
+  };
   struct Sides {
     bool usable = true;
-    glm::dvec3 normal[3];
-    double scale[3] = {};
+    absl::InlinedVector<Plane, 4> planes;
   };
+
+  static double Norm1(const glm::dvec3& x) { return std::fabs(x.x) + std::fabs(x.y) + std::fabs(x.z); }
+
+  // The outline's planes, when each has every light vertex but its edge's
+  // clearly inside. False (and none kept) otherwise.
+  bool OutlinePlanes(const std::vector<glm::dvec3>& light) {
+    const size_t n = light.size();
+    if (n > kMaxOutlineVertices) return false;
+    Sides outline;
+    for (size_t e = 0; e < n; ++e) {
+      const size_t f = (e + 1) % n;
+      const glm::dvec3 a = light[e] - p_, b = light[f] - p_;
+      glm::dvec3 normal = glm::cross(a, b);
+      const double scale = Norm1(a) * Norm1(b);
+      int sign = 0;
+      for (size_t c = 0; c < n; ++c) {
+        if (c == e || c == f) continue;
+        const glm::dvec3 y = light[c] - p_;
+        const double inside = glm::dot(normal, y);
+        if (!(std::fabs(inside) > kRelativeMargin * scale * Norm1(y))) return false;
+        const int side = inside > 0 ? 1 : -1;
+        if (sign != 0 && side != sign) return false;  // not supporting: concave here
+        sign = side;
+      }
+      if (sign < 0) normal = -normal;
+      outline.planes.push_back({normal, scale});
+    }
+    triangle_sides_.push_back(std::move(outline));
+    return true;
+  }
+
+  // Whether, in every set of planes, some plane has the tested thing
+  // outside (and there is a set at all).
+  template <typename Outside>
+  bool OutsideEverySet(const Outside& outside) const {
+    for (const Sides& sides : triangle_sides_) {
+      if (!sides.usable) return false;
+      if (!std::any_of(sides.planes.begin(), sides.planes.end(), outside)) return false;
+    }
+    return !triangle_sides_.empty();
+  }
+
+  static constexpr size_t kMaxOutlineVertices = 16;
   glm::dvec3 p_, lo_, hi_;
-  std::vector<Sides> triangle_sides_;
+  std::vector<Sides> triangle_sides_;  // the outline's planes alone, or each light triangle's
 };
 
 bool LightTree::StoresAnswer(const QueryPoint& q, bool want_polygons) const {
@@ -354,7 +398,9 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     // into thousands of pieces, and nearest first was little better
     // (docs/exact-method-notes.md).
     SortLargestFirst(p_local, &subtract);
-    SubtractOccluders(s, &visible, subtract, &slab_top);
+    std::vector<OccluderPolygon> polygons;
+    MergeAdjacentNear(s, &slab_top, &subtract, &polygons);
+    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, polygons);
     if (!s.stopped.ok()) return s.stopped;
   }
 

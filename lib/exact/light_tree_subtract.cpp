@@ -70,8 +70,24 @@ int LightTree::LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
     return -e.fan->Side(x.input);
   }
   const EdgePlaneRef ref = PlaneOf(s, e);
-  if (ref.plane == nullptr || OnPlaneByDefinition(x, ref.plane)) return 0;
-  return -ref.sign * EuclidSide(x, *ref.plane);
+  if (ref.plane == nullptr) return 0;
+  // The filter first: it settles nearly every vertex, and it never settles
+  // one that lies on the plane by its definition (an exact zero).
+  const int fast = FastSignOfDot(ref.plane->fast, x.fast);
+  if (fast != kUncertain) return -ref.sign * fast * x.w_sign * ref.plane->o_sign;
+  if (OnPlaneByDefinition(x, ref.plane)) return 0;
+  return -ref.sign * EuclidSideSlow(x, *ref.plane);
+}
+
+LightTree::Straddle LightTree::EdgeStraddle(Scratch& s, const Fragment& f, EdgeLine& e) const {
+  Straddle straddle;
+  for (const FVert& v : f.v) {
+    const int side = LineSide(s, e, *v.point);
+    straddle.any_positive |= side > 0;
+    straddle.any_negative |= side < 0;
+    if (straddle.any_positive && straddle.any_negative) break;  // the rest cannot change the verdict
+  }
+  return straddle;
 }
 
 bool LightTree::EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vector<int>* signs) const {
@@ -163,6 +179,102 @@ bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, 
   }
   if (*slab_top == nullptr) *slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
   return NearOccluderEdges(s, near[id - far_count], **slab_top, edges, corners);
+}
+
+void LightTree::MergeAdjacentNear(Scratch& s, const XPlane** slab_top, std::vector<uint32_t>* ids,
+                                  std::vector<OccluderPolygon>* polygons) {
+  constexpr uint8_t kCandidate = 1, kTaken = 2;
+  // Two triangles a polygon: a mesh's quadrilaterals. Longer runs of the
+  // scene's order (strips) took no more time on Sponza, veach-ajar and the
+  // bunny (docs/exact-method-notes.md).
+  constexpr size_t kMaxTriangles = 2;
+  const uint32_t far_count = static_cast<uint32_t>(far.size());
+  const uint32_t occluder_count = far_count + static_cast<uint32_t>(near.size());
+  s.FitOccluders(occluder_count);
+  for (const uint32_t id : *ids) s.occluder_marks[id] = {s.stamp, kCandidate};
+  const auto is_candidate = [&](uint32_t id) {
+    return id >= far_count && id < occluder_count && s.occluder_marks[id].stamp == s.stamp &&
+           s.occluder_marks[id].state == kCandidate;
+  };
+  // Strictly inside the slab: in the light's open front and strictly below
+  // the plane through P parallel to the light (nothing to clip).
+  const auto inside_slab = [&](const NearOccluder& n) {
+    if (n.light_side[0] <= 0 || n.light_side[1] <= 0 || n.light_side[2] <= 0) return false;
+    if (*slab_top == nullptr) *slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+    for (const uint32_t v : n.v) {
+      if (EuclidSide(Vertex(s, v), **slab_top) >= 0) return false;
+    }
+    return true;
+  };
+  const glm::dvec3& p = s.p->input;
+  const auto orient = [&](uint32_t a, uint32_t b, uint32_t c) {
+    return Orient3d(p, vertices[a], vertices[b], vertices[c]);
+  };
+  // Takes triangle n into the polygon (seen from P turning with sign o)
+  // when it lies across one of the polygon's edges (u, v) and the union
+  // stays strictly convex. The polygon's own strict convexity puts P's view
+  // of the new vertex w beyond u on the line (a, u) when the turn (a, u, w)
+  // is zero, so u is then dropped (and v likewise): a planar strip stays
+  // four-sided.
+  const auto take = [&](OccluderPolygon& poly, int o, const NearOccluder& n) {
+    const size_t m = poly.size();
+    for (size_t k = 0; k < m; ++k) {
+      const uint32_t u = poly[k], v = poly[(k + 1) % m];
+      int on_edge = 0;
+      uint32_t w = 0;
+      for (const uint32_t x : n.v) {
+        if (x == u || x == v) {
+          ++on_edge;
+        } else {
+          w = x;
+        }
+      }
+      if (on_edge != 2 || std::find(poly.begin(), poly.end(), w) != poly.end()) continue;
+      if (orient(u, w, v) != o) return false;
+      const uint32_t a = poly[(k + m - 1) % m], b = poly[(k + 2) % m];
+      const int turn_u = orient(a, u, w), turn_v = orient(w, v, b);
+      if ((turn_u != o && turn_u != 0) || (turn_v != o && turn_v != 0)) return false;
+      poly.insert(poly.begin() + static_cast<std::ptrdiff_t>(k + 1), w);
+      const auto drop = [&](uint32_t x) { poly.erase(std::find(poly.begin(), poly.end(), x)); };
+      if (turn_v == 0) drop(v);
+      if (turn_u == 0) drop(u);
+      return true;
+    }
+    return false;
+  };
+
+  polygons->clear();
+  size_t kept = 0, merged = 0;
+  for (size_t i = 0; i < ids->size(); ++i) {
+    const uint32_t id = (*ids)[i];
+    if (s.occluder_marks[id].state == kTaken) continue;  // inside an earlier polygon
+    OccluderPolygon poly;
+    if (is_candidate(id) && (is_candidate(id + 1) || is_candidate(id - 1)) && inside_slab(near[id - far_count])) {
+      const NearOccluder& first = near[id - far_count];
+      const int o = orient(first.v[0], first.v[1], first.v[2]);
+      if (o != 0) {
+        poly = {first.v[0], first.v[1], first.v[2]};
+        size_t triangles = 1;
+        for (const int step : {1, -1}) {
+          for (uint32_t other = id + step; is_candidate(other) && triangles < kMaxTriangles; other += step) {
+            const NearOccluder& n = near[other - far_count];
+            if (!inside_slab(n) || !take(poly, o, n)) break;
+            s.occluder_marks[other].state = kTaken;
+            ++triangles;
+          }
+        }
+        // Alone: the triangle's own path. (A polygon of two can have three
+        // corners, where a shared vertex lies on the line of its neighbours.)
+        if (triangles == 1) poly.clear();
+        merged += triangles - 1;
+      }
+    }
+    s.occluder_marks[id].state = kTaken;
+    (*ids)[kept++] = id;
+    polygons->push_back(std::move(poly));
+  }
+  ids->resize(kept);
+  if (merged > 0) merged_occluders.fetch_add(merged, std::memory_order_relaxed);
 }
 
 bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light,
@@ -281,12 +393,14 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
     }
     bool outside_positive = false, outside_negative = false, touches_only = false;
     for (EdgeLine& line : lines) {
-      if (!EdgeSides(s, f, line, &sg)) {  // touches the edge line only: not inside
+      const Straddle straddle = EdgeStraddle(s, f, line);
+      if (!straddle.any_positive && !straddle.any_negative) {  // touches the edge line only: not inside
         touches_only = true;
         break;
       }
-      outside_positive |= std::none_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
-      outside_negative |= std::none_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
+      outside_positive |= !straddle.any_positive;
+      outside_negative |= !straddle.any_negative;
+      if (outside_positive && outside_negative) break;  // outside for either sign: kept whole
     }
     if (touches_only || (outside_positive && outside_negative)) {
       keep(i);
@@ -339,15 +453,26 @@ bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments,
 }
 
 size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
-                                    const XPlane** slab_top, size_t max_subtracted) const {
+                                    const XPlane** slab_top, size_t max_subtracted,
+                                    std::span<const OccluderPolygon> polygons) const {
+  VISQ_DCHECK(polygons.empty() || polygons.size() == ids.size());
   Edges edges;
   Corners corners;
   LineBox all;
   bool all_valid = UnionLineBox(s, *fragments, &all);
   size_t subtracted = 0;
-  for (const uint32_t id : ids) {
+  for (size_t i = 0; i < ids.size(); ++i) {
     if (fragments->empty() || subtracted == max_subtracted || StopNow(s)) break;
-    if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
+    const uint32_t id = ids[i];
+    if (!polygons.empty() && !polygons[i].empty()) {
+      const OccluderPolygon& polygon = polygons[i];
+      corners.clear();
+      for (const uint32_t v : polygon) corners.push_back(&Vertex(s, v));
+      edges.clear();
+      for (size_t k = 0; k < corners.size(); ++k) edges.emplace_back(corners[k], corners[(k + 1) % corners.size()]);
+    } else if (!OccluderEdges(s, id, slab_top, &edges, &corners)) {
+      continue;
+    }
     LineBox shadow;
     const bool has_shadow = LineBoxOf(s, corners, &shadow);
     if (has_shadow && all_valid && all.Apart(shadow)) continue;

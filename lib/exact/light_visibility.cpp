@@ -83,6 +83,7 @@ TreeStats LightVisibilityTree::Stats() const {
   s.wholly_visible = impl_->wholly_visible.load();
   s.wholly_hidden = impl_->wholly_hidden.load();
   s.subtracted_directly = impl_->subtracted_directly.load();
+  s.merged_occluders = impl_->merged_occluders.load();
   s.answers_reused = impl_->answers_reused.load();
   {
     std::shared_lock answers_lock(impl_->answers_mutex);
@@ -105,6 +106,7 @@ TreeStats& TreeStats::operator+=(const TreeStats& o) {
   wholly_visible += o.wholly_visible;
   wholly_hidden += o.wholly_hidden;
   subtracted_directly += o.subtracted_directly;
+  merged_occluders += o.merged_occluders;
   answers_reused += o.answers_reused;
   answers_kept += o.answers_kept;
   answer_bytes += o.answer_bytes;

@@ -178,6 +178,9 @@ struct TreeStats {
   uint64_t wholly_visible = 0;  // queries answered before the tree: no occluder can block
   uint64_t wholly_hidden = 0;   // ... one occluder blocks the whole light
   uint64_t subtracted_directly = 0;  // ... few candidates, subtracted without the tree
+  // Near occluders subtracted inside a neighbour's polygon (two triangles
+  // seen as one convex quadrilateral), not on their own.
+  uint64_t merged_occluders = 0;
   // Answers given again from the tree's store of answers (an identical
   // point, normal and receiver triangle was asked before): no descent, no
   // subtraction. `answers_kept` is the store's size.

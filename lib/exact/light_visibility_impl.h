@@ -253,7 +253,7 @@ struct LightTree {
   size_t list_bytes = 0;
 
   std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0},
-      subtracted_directly{0}, answers_reused{0};
+      subtracted_directly{0}, merged_occluders{0}, answers_reused{0};
 
   // The store of answers (Query), under a lock of its own: a lookup must
   // not wait for a refinement.
@@ -345,6 +345,14 @@ struct LightTree {
       const XPoint* point = nullptr;
     };
     std::vector<VertexSlot> vertex_points;
+    // Which occluders this query subtracts, by occluder id: a candidate,
+    // or taken into a polygon, where the stamp is this query's
+    // (MergeAdjacentNear).
+    struct OccluderSlot {
+      uint32_t stamp = 0;
+      uint8_t state = 0;
+    };
+    std::vector<OccluderSlot> occluder_marks;
     uint32_t stamp = 0;
 
     const XPoint* Add(XPoint x) { return points.Add(std::move(x)); }
@@ -360,12 +368,16 @@ struct LightTree {
       stopped = absl::OkStatus();
       if (++stamp == 0) {  // wrapped: forget every slot
         for (VertexSlot& slot : vertex_points) slot.stamp = 0;
+        for (OccluderSlot& slot : occluder_marks) slot.stamp = 0;
         stamp = 1;
       }
     }
     // Room for a tree of `count` vertices (the slots outlive the query).
     void FitVertices(size_t count) {
       if (vertex_points.size() < count) vertex_points.resize(count);
+    }
+    void FitOccluders(size_t count) {
+      if (occluder_marks.size() < count) occluder_marks.resize(count);
     }
   };
 
@@ -433,6 +445,12 @@ struct LightTree {
   // The sides of every fragment vertex. Returns false when every sign is zero
   // (P on the edge line, or a zero-area fragment).
   bool EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vector<int>* signs) const;
+  // Whether some vertex of f lies on each strict side of the edge line,
+  // stopping at the first vertex that shows both.
+  struct Straddle {
+    bool any_positive = false, any_negative = false;
+  };
+  Straddle EdgeStraddle(Scratch& s, const Fragment& f, EdgeLine& e) const;
 
   // Exact tests of one occluder triangle against the whole light, on input
   // doubles only (orientation tests with a static filter, no constructed
@@ -512,6 +530,20 @@ struct LightTree {
   // whole, a near one clipped to the slab under P (made on first use in
   // `*slab_top`). False when no part of it can block.
   bool OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, Edges* edges, Corners* corners) const;
+
+  // Near occluders next to each other in the scene's triangle order (as
+  // meshes list the triangles of a strip or of a quadrilateral) that share
+  // edges and are seen from P as one strictly convex polygon, wholly inside
+  // the slab between P and the light, cast that polygon's shadow:
+  // subtracted as one polygon, the fragments are not cut along the edges
+  // they share. Each id of `ids` (occluder ids, in subtraction order)
+  // starts a polygon of the candidates after and before it that it can
+  // take in; the ids taken leave `ids`, and `polygons` (aligned with the
+  // new ids) holds each polygon's vertex cycle, empty for an occluder
+  // subtracted alone.
+  using OccluderPolygon = absl::InlinedVector<uint32_t, 6>;
+  void MergeAdjacentNear(Scratch& s, const XPlane** slab_top, std::vector<uint32_t>* ids,
+                         std::vector<OccluderPolygon>* polygons);
 
   // Whether subtracting the blockers that block the most light vertices (at
   // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
@@ -604,7 +636,8 @@ struct LightTree {
   // leaf lists thousands of triangles, most of which miss the few pieces
   // that reach it. Returns the number subtracted.
   size_t SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
-                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX) const;
+                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX,
+                           std::span<const OccluderPolygon> polygons = {}) const;
 
   // The answer from the store, or a new one, kept while the store has room.
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop);

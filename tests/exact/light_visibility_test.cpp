@@ -430,6 +430,77 @@ TEST(LightVisibilityTest, NearOccludersMatchEmbreeAndTheAllNearPath) {
   EXPECT_GT(shadowed, 30);
 }
 
+// A bumpy grid of quadrilaterals with holes, each quadrilateral two
+// triangles listed one after the other (as meshes list them), and some of
+// them three: one triangle cut in two at the midpoint of an edge, so that
+// the pair's union is a triangle whose middle vertex lies on its edge.
+// Coordinates are dyadic, so the midpoints are exact.
+std::vector<Tri> QuadGrid() {
+  std::vector<Tri> tris;
+  constexpr int kCells = 10;
+  const auto at = [](int i, int j) {
+    return glm::dvec3(-0.8 + 0.15625 * i, -0.8 + 0.15625 * j, 1.0 + 0.0625 * ((i * j) % 3));
+  };
+  for (int i = 0; i < kCells; ++i) {
+    for (int j = 0; j < kCells; ++j) {
+      if ((i * 7 + j * 3) % 5 == 0) continue;  // a hole
+      const glm::dvec3 p00 = at(i, j), p10 = at(i + 1, j), p11 = at(i + 1, j + 1), p01 = at(i, j + 1);
+      if ((i + j) % 2 == 0) {
+        tris.push_back({p00, p10, p11});
+        if ((i + j) % 4 == 0) {
+          const glm::dvec3 m = 0.5 * (p01 + p00);
+          tris.push_back({m, p11, p01});
+          tris.push_back({m, p00, p11});
+        } else {
+          tris.push_back({p00, p11, p01});
+        }
+      } else {
+        tris.push_back({p00, p10, p01});
+        tris.push_back({p10, p11, p01});
+      }
+    }
+  }
+  return tris;
+}
+
+TEST(LightVisibilityTest, NeighbouringTrianglesSubtractedAsOneQuadrilateralGiveTheTrianglesAnswers) {
+  const std::vector<Tri> floor = {{glm::dvec3(-2, -2, 0), glm::dvec3(2, -2, 0), glm::dvec3(2, 2, 0)},
+                                  {glm::dvec3(-2, -2, 0), glm::dvec3(2, 2, 0), glm::dvec3(-2, 2, 0)}};
+  const std::vector<Tri> grid = QuadGrid();
+  // The same triangles with one below the floor after each: no two
+  // candidates of a floor point are neighbours in the scene's order, so
+  // every triangle is subtracted on its own.
+  std::vector<Tri> listed = floor, apart = floor;
+  for (const Tri& t : grid) {
+    listed.push_back(t);
+    apart.push_back(t);
+    Tri below = t;
+    for (glm::dvec3& v : below) v.z = -1.0 - v.z;
+    apart.push_back(below);
+  }
+  const AreaLight light = SquareLight(2.0, 0.7);
+  const Scene listed_scene = MakeScene(listed), apart_scene = MakeScene(apart);
+  auto merging = MakeTree(light, listed_scene, std::nullopt);
+  auto alone = MakeTree(light, apart_scene, std::nullopt);
+  ASSERT_TRUE(merging && alone);
+  int penumbra = 0;
+  for (const glm::dvec3& p : FloorPoints(300, 23)) {
+    const uint32_t receiver = p.x - p.y > 0 ? 0u : 1u;
+    auto a = merging->Query({p, std::nullopt, receiver});
+    auto b = alone->Query({p, std::nullopt, receiver});
+    ASSERT_TRUE(a.ok() && b.ok());
+    EXPECT_NEAR(a->visible_area_fraction, b->visible_area_fraction, 1e-12) << p.x << " " << p.y;
+    EXPECT_NEAR(a->visible_solid_angle_fraction, b->visible_solid_angle_fraction, 1e-12);
+    EXPECT_NEAR(a->irradiance, b->irradiance, 1e-12);
+    penumbra += a->visible_area_fraction > 0.0 && a->visible_area_fraction < 1.0;
+  }
+  EXPECT_GT(penumbra, 100);
+  // Most of the grid's quadrilaterals were subtracted whole, the cut
+  // triangles' pairs among them; none of the separated triangles.
+  EXPECT_GT(merging->Stats().merged_occluders, 2000u);
+  EXPECT_EQ(alone->Stats().merged_occluders, 0u);
+}
+
 TEST(LightVisibilityTest, AlignedDegenerateGeometryAgreesAcrossPaths) {
   // Axis-aligned boxes: coplanar faces, shared and collinear edges, one box
   // whose top face lies in the light plane with edges along the light's
