@@ -9,6 +9,8 @@
 #include <limits>
 #include <mutex>
 
+#include <absl/hash/hash.h>
+
 #include "common/check.h"
 
 namespace visq::exact::detail {
@@ -54,6 +56,7 @@ struct Shaft {
   struct Plane {
     Orient3dFan fan;
     int outside;  // the fan's side of points outside the shaft
+    std::array<size_t, 3> triple;  // the hull points it was made of
   };
   glm::dvec3 lo, hi;
   std::vector<Plane> planes;
@@ -134,7 +137,18 @@ Shaft::Shaft(const LightTree& tree) {
           neg |= o < 0;
         }
         if (pos == neg) continue;  // not supporting (or all coplanar)
-        planes.push_back({Orient3dFan(hull_points[i], hull_points[j], hull_points[k]), pos ? -1 : 1});
+        // A face with four or more corners (a box's side, the light with a
+        // box edge) is found once per triple of them: keep it once. Its
+        // points lie on a plane already kept exactly when the triple does.
+        const auto on_plane = [&](const Plane& plane, size_t x) {
+          const auto& [a, b, c] = plane.triple;
+          return Orient3d(hull_points[a], hull_points[b], hull_points[c], hull_points[x]) == 0;
+        };
+        const bool known = std::any_of(planes.begin(), planes.end(), [&](const Plane& plane) {
+          return on_plane(plane, i) && on_plane(plane, j) && on_plane(plane, k);
+        });
+        if (known) continue;
+        planes.push_back({Orient3dFan(hull_points[i], hull_points[j], hull_points[k]), pos ? -1 : 1, {i, j, k}});
       }
     }
   }
@@ -261,11 +275,10 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
   absl::flat_hash_map<uint32_t, uint32_t> remap;
   struct PositionHash {
     size_t operator()(const glm::dvec3& p) const {
-      size_t h = 0;
-      for (int i = 0; i < 3; ++i) {
-        h = h * 0x9E3779B97F4A7C15ull + std::hash<double>()(p[i] + 0.0);  // -0 == +0
-      }
-      return h;
+      // The coordinates' bits, mixed (the map mixes the result again);
+      // + 0.0 makes -0 hash as +0, which it equals.
+      return absl::HashOf(std::bit_cast<uint64_t>(p.x + 0.0), std::bit_cast<uint64_t>(p.y + 0.0),
+                          std::bit_cast<uint64_t>(p.z + 0.0));
     }
   };
   absl::flat_hash_map<glm::dvec3, uint32_t, PositionHash> by_position;
@@ -285,6 +298,10 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
     near_shaft = index->InBox(shaft.lo + origin - pad, shaft.hi + origin + pad);
   }
   const size_t visit_count = indexed ? near_shaft.size() : scene.triangles.size();
+  // Most triangles the shaft meets are kept, with about half a new vertex
+  // each: growing the maps by doubling cost a tenth of a large room's tree.
+  remap.reserve(visit_count / 2);
+  by_position.reserve(visit_count / 2);
   for (size_t visit = 0; visit < visit_count; ++visit) {
     if (visit % 4096 == 0) {
       if (options.cancelled != nullptr && options.cancelled->load())

@@ -30,11 +30,13 @@ class OccluderIndex {
   // kLeafSize items a leaf, as the count falls: the scene's index of 20M
   // triangles held 27 bytes of nodes a triangle where 66K held 17.
   //
-  // box_of(i) gives item i's box as a pair (lo, hi). The items move with
-  // their boxes while they are partitioned: the partition reads each box in
-  // turn instead of through the order, which on a 382K-triangle room was
-  // most of the build. The comparisons are those of a partition through the
-  // order, so the hierarchy is the same.
+  // box_of(i) gives item i's box as a pair (lo, hi). The items are put in
+  // the Morton order of their boxes' centres (on cubic cells over the
+  // centres' box), and every node halves its range of that order: a split
+  // that costs a sort once instead of a partition a level, with each node's
+  // box the union of its children's. On a 382K-triangle room the halving
+  // at each level's median along the node's widest axis cost twice the
+  // tree's queries (docs/exact-method-notes.md).
   template <typename BoxOf>
   void Build(uint32_t count, const BoxOf& box_of, bool full_leaves = false) {
     nodes_.clear();
@@ -44,18 +46,36 @@ class OccluderIndex {
       order_.shrink_to_fit();
       return;
     }
-    std::vector<Item> items(count);
+    // box_of is asked twice (for the centres' box, then for the codes)
+    // rather than keeping every box twice: a large room's boxes are tens of
+    // megabytes, and fresh memory costs its page faults.
+    glm::dvec3 centre_lo(std::numeric_limits<double>::infinity()), centre_hi(-std::numeric_limits<double>::infinity());
     for (uint32_t i = 0; i < count; ++i) {
       const auto [lo, hi] = box_of(i);
-      items[i] = Item{lo, hi, i};
+      centre_lo = glm::min(centre_lo, lo + hi);
+      centre_hi = glm::max(centre_hi, lo + hi);
     }
+    const glm::dvec3 extent = centre_hi - centre_lo;
+    const double largest = std::max({extent.x, extent.y, extent.z});
+    const double to_cells = largest > 0.0 ? (kMortonCells - 1) / largest : 0.0;
+    std::vector<std::pair<uint64_t, uint32_t>> keys(count);
+    for (uint32_t i = 0; i < count; ++i) {
+      const auto [lo, hi] = box_of(i);
+      const glm::dvec3 cell = glm::clamp(((lo + hi) - centre_lo) * to_cells, 0.0, kMortonCells - 1.0);
+      keys[i] = {Morton(static_cast<uint32_t>(cell.x), static_cast<uint32_t>(cell.y), static_cast<uint32_t>(cell.z)), i};
+    }
+    std::sort(keys.begin(), keys.end());
+    order_.resize(count);
+    std::vector<Box> boxes(count);
+    for (uint32_t i = 0; i < count; ++i) {
+      order_[i] = keys[i].second;
+      boxes[i] = box_of(order_[i]);
+    }
+    keys = {};
     nodes_.reserve(NodeCount(count, full_leaves));
     nodes_.emplace_back();
-    BuildNode(items, full_leaves, 0, 0, count);
+    BuildNode(boxes, full_leaves, 0, 0, count);
     VISQ_DCHECK_EQ(nodes_.size(), nodes_.capacity());
-    order_.resize(count);
-    order_.shrink_to_fit();
-    for (uint32_t i = 0; i < count; ++i) order_[i] = items[i].id;
   }
 
   // Appends the occluders whose boxes `box_misses` does not rule out.
@@ -112,10 +132,7 @@ class OccluderIndex {
     uint32_t left;  // children at left and left + 1, or kLeaf
   };
 
-  struct Item {
-    glm::dvec3 lo, hi;
-    uint32_t id;
-  };
+  using Box = std::pair<glm::dvec3, glm::dvec3>;
 
   // How many items a node of `count` gives its lower child.
   static uint32_t LowerHalf(uint32_t count, bool full_leaves) {
@@ -144,31 +161,44 @@ class OccluderIndex {
     return count_of(count_of, count);
   }
 
-  // Fills node `id` with the items [begin, end); its children go to two new
-  // consecutive slots. Depth stays under 64: each split halves.
-  void BuildNode(std::vector<Item>& items, bool full_leaves, uint32_t id, uint32_t begin, uint32_t end) {
-    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
-    glm::dvec3 centre_lo = lo, centre_hi = hi;
-    for (uint32_t i = begin; i < end; ++i) {
-      const Item& item = items[i];
-      lo = glm::min(lo, item.lo);
-      hi = glm::max(hi, item.hi);
-      centre_lo = glm::min(centre_lo, item.lo + item.hi);
-      centre_hi = glm::max(centre_hi, item.lo + item.hi);
+  // 2^21 cells an axis: three axes' bits fill a 63-bit code.
+  static constexpr double kMortonCells = 2097152.0;
+  static uint64_t SpreadBits(uint32_t x) {
+    uint64_t v = x & 0x1FFFFF;
+    v = (v | v << 32) & 0x1F00000000FFFFull;
+    v = (v | v << 16) & 0x1F0000FF0000FFull;
+    v = (v | v << 8) & 0x100F00F00F00F00Full;
+    v = (v | v << 4) & 0x10C30C30C30C30C3ull;
+    v = (v | v << 2) & 0x1249249249249249ull;
+    return v;
+  }
+  static uint64_t Morton(uint32_t x, uint32_t y, uint32_t z) {
+    return SpreadBits(x) << 2 | SpreadBits(y) << 1 | SpreadBits(z);
+  }
+
+  // Fills node `id` with the items [begin, end) of the order, whose boxes
+  // `boxes` holds in that order; its
+  // children go to two new consecutive slots. Depth stays under 64: each
+  // split halves.
+  void BuildNode(const std::vector<Box>& boxes, bool full_leaves, uint32_t id, uint32_t begin, uint32_t end) {
+    if (end - begin <= kLeafSize) {
+      glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+      for (uint32_t i = begin; i < end; ++i) {
+        lo = glm::min(lo, boxes[i].first);
+        hi = glm::max(hi, boxes[i].second);
+      }
+      nodes_[id] = Node{lo, hi, begin, end, kLeaf};
+      return;
     }
-    nodes_[id] = Node{lo, hi, begin, end, kLeaf};
-    if (end - begin <= kLeafSize) return;
-    const glm::dvec3 spread = centre_hi - centre_lo;
-    const int axis = spread.x >= spread.y && spread.x >= spread.z ? 0 : spread.y >= spread.z ? 1 : 2;
     const uint32_t middle = begin + LowerHalf(end - begin, full_leaves);
-    std::nth_element(items.begin() + begin, items.begin() + middle, items.begin() + end,
-                     [axis](const Item& x, const Item& y) { return x.lo[axis] + x.hi[axis] < y.lo[axis] + y.hi[axis]; });
     const uint32_t left = static_cast<uint32_t>(nodes_.size());
     nodes_.emplace_back();
     nodes_.emplace_back();
-    nodes_[id].left = left;
-    BuildNode(items, full_leaves, left, begin, middle);
-    BuildNode(items, full_leaves, left + 1, middle, end);
+    BuildNode(boxes, full_leaves, left, begin, middle);
+    BuildNode(boxes, full_leaves, left + 1, middle, end);
+    const Node& a = nodes_[left];
+    const Node& b = nodes_[left + 1];
+    nodes_[id] = Node{glm::min(a.lo, b.lo), glm::max(a.hi, b.hi), begin, end, left};
   }
 
   std::vector<uint32_t> order_;
