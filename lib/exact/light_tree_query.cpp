@@ -398,9 +398,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     // into thousands of pieces, and nearest first was little better
     // (docs/exact-method-notes.md).
     SortLargestFirst(p_local, &subtract);
-    std::vector<OccluderPolygon> polygons;
-    MergeAdjacentNear(s, &slab_top, &subtract, &polygons);
-    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, polygons);
+    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, /*quads=*/true);
     if (!s.stopped.ok()) return s.stopped;
   }
 

@@ -181,21 +181,14 @@ bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, 
   return NearOccluderEdges(s, near[id - far_count], **slab_top, edges, corners);
 }
 
-void LightTree::MergeAdjacentNear(Scratch& s, const XPlane** slab_top, std::vector<uint32_t>* ids,
-                                  std::vector<OccluderPolygon>* polygons) {
-  constexpr uint8_t kCandidate = 1, kTaken = 2;
-  // Two triangles a polygon: a mesh's quadrilaterals. Longer runs of the
-  // scene's order (strips) took no more time on Sponza, veach-ajar and the
-  // bunny (docs/exact-method-notes.md).
-  constexpr size_t kMaxTriangles = 2;
+bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t id, OccluderPolygon* quad) const {
   const uint32_t far_count = static_cast<uint32_t>(far.size());
   const uint32_t occluder_count = far_count + static_cast<uint32_t>(near.size());
-  s.FitOccluders(occluder_count);
-  for (const uint32_t id : *ids) s.occluder_marks[id] = {s.stamp, kCandidate};
-  const auto is_candidate = [&](uint32_t id) {
-    return id >= far_count && id < occluder_count && s.occluder_marks[id].stamp == s.stamp &&
-           s.occluder_marks[id].state == kCandidate;
+  const auto is_candidate = [&](uint32_t other) {
+    return other >= far_count && other < occluder_count && s.occluder_marks[other].stamp == s.stamp &&
+           s.occluder_marks[other].state == Scratch::kCandidate;
   };
+  if (id < far_count || !(is_candidate(id + 1) || is_candidate(id - 1))) return false;
   // Strictly inside the slab: in the light's open front and strictly below
   // the plane through P parallel to the light (nothing to clip).
   const auto inside_slab = [&](const NearOccluder& n) {
@@ -206,20 +199,25 @@ void LightTree::MergeAdjacentNear(Scratch& s, const XPlane** slab_top, std::vect
     }
     return true;
   };
+  const NearOccluder& first = near[id - far_count];
+  if (!inside_slab(first)) return false;
   const glm::dvec3& p = s.p->input;
   const auto orient = [&](uint32_t a, uint32_t b, uint32_t c) {
     return Orient3d(p, vertices[a], vertices[b], vertices[c]);
   };
-  // Takes triangle n into the polygon (seen from P turning with sign o)
-  // when it lies across one of the polygon's edges (u, v) and the union
-  // stays strictly convex. The polygon's own strict convexity puts P's view
-  // of the new vertex w beyond u on the line (a, u) when the turn (a, u, w)
-  // is zero, so u is then dropped (and v likewise): a planar strip stays
-  // four-sided.
-  const auto take = [&](OccluderPolygon& poly, int o, const NearOccluder& n) {
-    const size_t m = poly.size();
-    for (size_t k = 0; k < m; ++k) {
-      const uint32_t u = poly[k], v = poly[(k + 1) % m];
+  const int o = orient(first.v[0], first.v[1], first.v[2]);
+  if (o == 0) return false;
+  for (const uint32_t other : {id + 1, id - 1}) {
+    if (!is_candidate(other)) continue;
+    const NearOccluder& n = near[other - far_count];
+    // The edge (u, v) of the first triangle that n lies across, and n's
+    // third vertex w. The union is the quadrilateral (u, w, v, t) when it
+    // turns with sign o at every corner. A zero turn at u puts P's view of
+    // u on the segment from t to w (the turns at the other corners are
+    // strict), so u is dropped and the union is the triangle (t, w, v); v
+    // likewise.
+    for (int k = 0; k < 3; ++k) {
+      const uint32_t u = first.v[k], v = first.v[(k + 1) % 3], t = first.v[(k + 2) % 3];
       int on_edge = 0;
       uint32_t w = 0;
       for (const uint32_t x : n.v) {
@@ -229,52 +227,20 @@ void LightTree::MergeAdjacentNear(Scratch& s, const XPlane** slab_top, std::vect
           w = x;
         }
       }
-      if (on_edge != 2 || std::find(poly.begin(), poly.end(), w) != poly.end()) continue;
-      if (orient(u, w, v) != o) return false;
-      const uint32_t a = poly[(k + m - 1) % m], b = poly[(k + 2) % m];
-      const int turn_u = orient(a, u, w), turn_v = orient(w, v, b);
-      if ((turn_u != o && turn_u != 0) || (turn_v != o && turn_v != 0)) return false;
-      poly.insert(poly.begin() + static_cast<std::ptrdiff_t>(k + 1), w);
-      const auto drop = [&](uint32_t x) { poly.erase(std::find(poly.begin(), poly.end(), x)); };
-      if (turn_v == 0) drop(v);
-      if (turn_u == 0) drop(u);
+      if (on_edge != 2 || w == t) continue;
+      if (!inside_slab(n) || orient(u, w, v) != o) break;
+      const int turn_u = orient(t, u, w), turn_v = orient(w, v, t);
+      if ((turn_u != o && turn_u != 0) || (turn_v != o && turn_v != 0)) break;
+      quad->clear();
+      if (turn_u != 0) quad->push_back(u);
+      quad->push_back(w);
+      if (turn_v != 0) quad->push_back(v);
+      quad->push_back(t);
+      s.occluder_marks[other].state = Scratch::kTaken;
       return true;
     }
-    return false;
-  };
-
-  polygons->clear();
-  size_t kept = 0, merged = 0;
-  for (size_t i = 0; i < ids->size(); ++i) {
-    const uint32_t id = (*ids)[i];
-    if (s.occluder_marks[id].state == kTaken) continue;  // inside an earlier polygon
-    OccluderPolygon poly;
-    if (is_candidate(id) && (is_candidate(id + 1) || is_candidate(id - 1)) && inside_slab(near[id - far_count])) {
-      const NearOccluder& first = near[id - far_count];
-      const int o = orient(first.v[0], first.v[1], first.v[2]);
-      if (o != 0) {
-        poly = {first.v[0], first.v[1], first.v[2]};
-        size_t triangles = 1;
-        for (const int step : {1, -1}) {
-          for (uint32_t other = id + step; is_candidate(other) && triangles < kMaxTriangles; other += step) {
-            const NearOccluder& n = near[other - far_count];
-            if (!inside_slab(n) || !take(poly, o, n)) break;
-            s.occluder_marks[other].state = kTaken;
-            ++triangles;
-          }
-        }
-        // Alone: the triangle's own path. (A polygon of two can have three
-        // corners, where a shared vertex lies on the line of its neighbours.)
-        if (triangles == 1) poly.clear();
-        merged += triangles - 1;
-      }
-    }
-    s.occluder_marks[id].state = kTaken;
-    (*ids)[kept++] = id;
-    polygons->push_back(std::move(poly));
   }
-  ids->resize(kept);
-  if (merged > 0) merged_occluders.fetch_add(merged, std::memory_order_relaxed);
+  return false;
 }
 
 bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light,
@@ -453,29 +419,37 @@ bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments,
 }
 
 size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
-                                    const XPlane** slab_top, size_t max_subtracted,
-                                    std::span<const OccluderPolygon> polygons) const {
-  VISQ_DCHECK(polygons.empty() || polygons.size() == ids.size());
+                                    const XPlane** slab_top, size_t max_subtracted, bool quads) const {
+  if (quads) {
+    s.FitOccluders(far.size() + near.size());
+    for (const uint32_t id : ids) s.occluder_marks[id] = {s.stamp, Scratch::kCandidate};
+  }
   Edges edges;
   Corners corners;
   LineBox all;
   bool all_valid = UnionLineBox(s, *fragments, &all);
   size_t subtracted = 0;
-  for (size_t i = 0; i < ids.size(); ++i) {
+  OccluderPolygon quad;
+  for (const uint32_t id : ids) {
     if (fragments->empty() || subtracted == max_subtracted || StopNow(s)) break;
-    const uint32_t id = ids[i];
-    if (!polygons.empty() && !polygons[i].empty()) {
-      const OccluderPolygon& polygon = polygons[i];
+    if (quads) {
+      if (s.occluder_marks[id].state == Scratch::kTaken) continue;  // inside an earlier quadrilateral
+      s.occluder_marks[id].state = Scratch::kTaken;
+    }
+    if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
+    LineBox shadow;
+    bool has_shadow = LineBoxOf(s, corners, &shadow);
+    if (has_shadow && all_valid && all.Apart(shadow)) continue;
+    // Only an occluder that reaches the fragments looks for its neighbour:
+    // most candidates of a penumbra point are passed over above.
+    if (quads && QuadWithNeighbour(s, slab_top, id, &quad)) {
+      merged_occluders.fetch_add(1, std::memory_order_relaxed);
       corners.clear();
-      for (const uint32_t v : polygon) corners.push_back(&Vertex(s, v));
+      for (const uint32_t v : quad) corners.push_back(&Vertex(s, v));
       edges.clear();
       for (size_t k = 0; k < corners.size(); ++k) edges.emplace_back(corners[k], corners[(k + 1) % corners.size()]);
-    } else if (!OccluderEdges(s, id, slab_top, &edges, &corners)) {
-      continue;
+      has_shadow = LineBoxOf(s, corners, &shadow);
     }
-    LineBox shadow;
-    const bool has_shadow = LineBoxOf(s, corners, &shadow);
-    if (has_shadow && all_valid && all.Apart(shadow)) continue;
     ++subtracted;
     if (Subtract(s, fragments, edges, has_shadow ? &shadow : nullptr)) {
       all_valid = UnionLineBox(s, *fragments, &all);

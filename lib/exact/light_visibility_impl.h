@@ -253,7 +253,9 @@ struct LightTree {
   size_t list_bytes = 0;
 
   std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0},
-      subtracted_directly{0}, merged_occluders{0}, answers_reused{0};
+      subtracted_directly{0}, answers_reused{0};
+  // Counted where occluders are subtracted, which reads the tree only.
+  mutable std::atomic<uint64_t> merged_occluders{0};
 
   // The store of answers (Query), under a lock of its own: a lookup must
   // not wait for a refinement.
@@ -345,9 +347,10 @@ struct LightTree {
       const XPoint* point = nullptr;
     };
     std::vector<VertexSlot> vertex_points;
-    // Which occluders this query subtracts, by occluder id: a candidate,
-    // or taken into a polygon, where the stamp is this query's
-    // (MergeAdjacentNear).
+    // Which occluders this query subtracts, by occluder id: still to come,
+    // or taken (subtracted, passed over, or inside a quadrilateral), where
+    // the stamp is this query's (SubtractOccluders with quads).
+    static constexpr uint8_t kCandidate = 1, kTaken = 2;
     struct OccluderSlot {
       uint32_t stamp = 0;
       uint8_t state = 0;
@@ -531,19 +534,19 @@ struct LightTree {
   // `*slab_top`). False when no part of it can block.
   bool OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, Edges* edges, Corners* corners) const;
 
-  // Near occluders next to each other in the scene's triangle order (as
-  // meshes list the triangles of a strip or of a quadrilateral) that share
-  // edges and are seen from P as one strictly convex polygon, wholly inside
-  // the slab between P and the light, cast that polygon's shadow:
-  // subtracted as one polygon, the fragments are not cut along the edges
-  // they share. Each id of `ids` (occluder ids, in subtraction order)
-  // starts a polygon of the candidates after and before it that it can
-  // take in; the ids taken leave `ids`, and `polygons` (aligned with the
-  // new ids) holds each polygon's vertex cycle, empty for an occluder
-  // subtracted alone.
-  using OccluderPolygon = absl::InlinedVector<uint32_t, 6>;
-  void MergeAdjacentNear(Scratch& s, const XPlane** slab_top, std::vector<uint32_t>* ids,
-                         std::vector<OccluderPolygon>* polygons);
+  // Two near occluders next to each other in the scene's triangle order
+  // (as meshes list a quadrilateral's triangles) that share an edge and
+  // are seen from P as one strictly convex quadrilateral, wholly inside the
+  // slab between P and the light, cast that quadrilateral's shadow:
+  // subtracted as one polygon, the fragments are not cut along their
+  // diagonal. Longer runs of the order (strips) took no less time on
+  // Sponza, veach-ajar and the bunny (docs/exact-method-notes.md).
+  using OccluderPolygon = absl::InlinedVector<uint32_t, 4>;
+  // The quadrilateral (or, where a shared vertex lies on the line of its
+  // neighbours, the triangle) of occluder `id` and a neighbour still to be
+  // subtracted in this query (Scratch::occluder_marks), which it marks
+  // taken. False when there is none.
+  bool QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t id, OccluderPolygon* quad) const;
 
   // Whether subtracting the blockers that block the most light vertices (at
   // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
@@ -635,9 +638,11 @@ struct LightTree {
   // the fragments is passed over without visiting them: a dense mesh's
   // leaf lists thousands of triangles, most of which miss the few pieces
   // that reach it. Returns the number subtracted.
+  // With `quads`, near occluders that reach the fragments are subtracted
+  // with a neighbour as one quadrilateral where they can be
+  // (QuadWithNeighbour).
   size_t SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
-                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX,
-                           std::span<const OccluderPolygon> polygons = {}) const;
+                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX, bool quads = false) const;
 
   // The answer from the store, or a new one, kept while the store has room.
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop);
