@@ -317,6 +317,20 @@ std::vector<glm::dvec3> FloorPoints(int count, uint32_t seed) {
   return pts;
 }
 
+// Both trees' answers at a point of the floor (its receiver the floor's
+// triangle under it), expected the same to 1e-12; the first tree's.
+PointVisibility SameOnBoth(LightVisibilityTree& a, LightVisibilityTree& b, const glm::dvec3& p) {
+  const uint32_t receiver = p.x - p.y > 0 ? 0u : 1u;
+  auto x = a.Query({p, std::nullopt, receiver});
+  auto y = b.Query({p, std::nullopt, receiver});
+  EXPECT_TRUE(x.ok() && y.ok());
+  if (!x.ok() || !y.ok()) return {};
+  EXPECT_NEAR(x->visible_area_fraction, y->visible_area_fraction, 1e-12) << p.x << " " << p.y;
+  EXPECT_NEAR(x->visible_solid_angle_fraction, y->visible_solid_angle_fraction, 1e-12) << p.x << " " << p.y;
+  EXPECT_NEAR(x->irradiance, y->irradiance, 1e-12) << p.x << " " << p.y;
+  return *x;
+}
+
 TEST(LightVisibilityTest, EmbreeSamplingConvergesToExact) {
   const Scene scene = MakeScene(Cloud(150, 11));
   const AreaLight light = SquareLight(2.0, 0.7);
@@ -405,12 +419,7 @@ TEST(LightVisibilityTest, NearOccludersMatchEmbreeAndTheAllNearPath) {
   std::vector<double> exact;
   for (const auto& p : pts) {
     const uint32_t receiver = p.x - p.y > 0 ? 0u : 1u;
-    auto a = with_bounds->Query({p, std::nullopt, receiver});
-    auto b = all_near->Query({p, std::nullopt, receiver});
-    ASSERT_TRUE(a.ok() && b.ok());
-    EXPECT_NEAR(a->visible_area_fraction, b->visible_area_fraction, 1e-12) << p.x << " " << p.y;
-    EXPECT_NEAR(a->irradiance, b->irradiance, 1e-12);
-    exact.push_back(a->visible_area_fraction);
+    exact.push_back(SameOnBoth(*with_bounds, *all_near, p).visible_area_fraction);
     for (int k = 0; k < kSamples; ++k) {
       const glm::dvec3 y(0.7 * (2 * u(rng) - 1), 0.7 * (2 * u(rng) - 1), 2.0);
       segs.push_back({p, y, receiver});
@@ -485,14 +494,8 @@ TEST(LightVisibilityTest, NeighbouringTrianglesSubtractedAsOneQuadrilateralGiveT
   ASSERT_TRUE(merging && alone);
   int penumbra = 0;
   for (const glm::dvec3& p : FloorPoints(300, 23)) {
-    const uint32_t receiver = p.x - p.y > 0 ? 0u : 1u;
-    auto a = merging->Query({p, std::nullopt, receiver});
-    auto b = alone->Query({p, std::nullopt, receiver});
-    ASSERT_TRUE(a.ok() && b.ok());
-    EXPECT_NEAR(a->visible_area_fraction, b->visible_area_fraction, 1e-12) << p.x << " " << p.y;
-    EXPECT_NEAR(a->visible_solid_angle_fraction, b->visible_solid_angle_fraction, 1e-12);
-    EXPECT_NEAR(a->irradiance, b->irradiance, 1e-12);
-    penumbra += a->visible_area_fraction > 0.0 && a->visible_area_fraction < 1.0;
+    const double visible = SameOnBoth(*merging, *alone, p).visible_area_fraction;
+    penumbra += visible > 0.0 && visible < 1.0;
   }
   EXPECT_GT(penumbra, 100);
   // Most of the grid's quadrilaterals were subtracted whole, the cut
