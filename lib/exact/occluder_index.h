@@ -57,12 +57,20 @@ class OccluderIndex {
     }
     const glm::dvec3 extent = centre_hi - centre_lo;
     const double largest = std::max({extent.x, extent.y, extent.z});
-    const double to_cells = largest > 0.0 ? (kMortonCells - 1) / largest : 0.0;
+    // The cell of a centre coordinate: its place in [0, 1] across the
+    // largest extent (a ratio, so a subnormal extent cannot overflow it),
+    // then scaled; anything not a number in [0, 1] goes to an end.
+    const auto cell = [&](double offset) {
+      double t = largest > 0.0 ? offset / largest : 0.0;
+      if (!(t >= 0.0)) t = 0.0;
+      if (!(t <= 1.0)) t = 1.0;
+      return static_cast<uint32_t>(t * (kMortonCells - 1));
+    };
     std::vector<std::pair<uint64_t, uint32_t>> keys(count);
     for (uint32_t i = 0; i < count; ++i) {
       const auto [lo, hi] = box_of(i);
-      const glm::dvec3 cell = glm::clamp(((lo + hi) - centre_lo) * to_cells, 0.0, kMortonCells - 1.0);
-      keys[i] = {Morton(static_cast<uint32_t>(cell.x), static_cast<uint32_t>(cell.y), static_cast<uint32_t>(cell.z)), i};
+      const glm::dvec3 offset = (lo + hi) - centre_lo;
+      keys[i] = {Morton(cell(offset.x), cell(offset.y), cell(offset.z)), i};
     }
     std::sort(keys.begin(), keys.end());
     order_.resize(count);

@@ -1,5 +1,6 @@
 #include "exact/light_visibility.h"
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -1029,6 +1030,32 @@ TEST(LightVisibilityTest, SceneIndexSelectsTheSameOccluders) {
   Scene broken = MakeScene(Cloud(2, 1));
   broken.triangles[1][2] = 99;
   EXPECT_EQ(SceneTriangleIndex::Build(std::make_shared<const Scene>(broken)).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST(LightVisibilityTest, AnIndexOfSubnormalTrianglesHoldsThemAll) {
+  // Centres spread over a subnormal extent: the hierarchy's Morton cells
+  // are a ratio to that extent (scaling by its inverse overflowed to
+  // infinity, and 0 x infinity is no cell; UBSan reports the cast).
+  std::vector<Tri> tris;
+  for (int i = 0; i < 40; ++i) {
+    const double x = (i % 8) * 1e-310, y = (i / 8) * 1e-310;
+    tris.push_back({glm::dvec3(x, y, 0), glm::dvec3(x + 1e-310, y, 0), glm::dvec3(x, y + 1e-310, 1e-310)});
+  }
+  const Scene scene = MakeScene(tris);
+  auto index = SceneTriangleIndex::Build(std::make_shared<const Scene>(scene));
+  ASSERT_TRUE(index.ok()) << index.status();
+  const std::vector<uint32_t> all = (*index)->InBox(glm::dvec3(-1.0), glm::dvec3(1.0));
+  EXPECT_EQ(all.size(), tris.size());
+  EXPECT_EQ((*index)->CountInBox(glm::dvec3(-1.0), glm::dvec3(1.0), 1000), tris.size());
+  // A thin box meets the first column only (their corners at x = 0); the
+  // index lists its leaves' triangles, those among them.
+  const glm::dvec3 thin_lo(-1.0), thin_hi(0.5e-310, 1.0, 1.0);
+  EXPECT_EQ((*index)->CountInBox(thin_lo, thin_hi, 1000), 5u);
+  const std::vector<uint32_t> near_thin = (*index)->InBox(thin_lo, thin_hi);
+  for (uint32_t t = 0; t < tris.size(); t += 8) {
+    EXPECT_TRUE(std::binary_search(near_thin.begin(), near_thin.end(), t)) << t;
+  }
+  EXPECT_LT(near_thin.size(), tris.size());
 }
 
 TEST(LightVisibilityTest, PlacedMeshesAreIndexedOnceAndSelectTheSameOccluders) {
