@@ -367,6 +367,12 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     wholly_hidden.fetch_add(1, std::memory_order_relaxed);
     return result;
   }
+  if (classify_points && HiddenByLastBlockers(s, pending, receiver)) {
+    hits.fetch_add(1, std::memory_order_relaxed);
+    wholly_hidden.fetch_add(1, std::memory_order_relaxed);
+    hidden_by_remembered_blockers.fetch_add(1, std::memory_order_relaxed);
+    return result;
+  }
   const PyramidCull cull(p_local, light_local, light_triangles);
   Candidates candidates;
   if (GatherCandidates(s, p_local, receiver, cull, pending, &candidates)) {
@@ -398,8 +404,14 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     // into thousands of pieces, and nearest first was little better
     // (docs/exact-method-notes.md).
     SortLargestFirst(p_local, &subtract);
-    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, /*quads=*/true);
+    std::vector<uint32_t> cutting;
+    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, /*quads=*/true, &cutting);
     if (!s.stopped.ok()) return s.stopped;
+    // Only the light itself was cut on these routes, so the cutting
+    // occluders alone hide it when nothing is left.
+    if (visible.empty() && classify_points && (!candidates.any_far || candidates.direct)) {
+      RememberBlockers(s, &cutting);
+    }
   }
 
   // Integrate over the visible polygons.

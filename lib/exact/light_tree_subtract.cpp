@@ -181,7 +181,8 @@ bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, 
   return NearOccluderEdges(s, near[id - far_count], **slab_top, edges, corners);
 }
 
-bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t id, OccluderPolygon* quad) const {
+bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t id, OccluderPolygon* quad,
+                                  uint32_t* neighbour) const {
   const uint32_t far_count = static_cast<uint32_t>(far.size());
   const uint32_t occluder_count = far_count + static_cast<uint32_t>(near.size());
   const auto is_candidate = [&](uint32_t other) {
@@ -237,6 +238,7 @@ bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t 
       if (turn_v != 0) quad->push_back(v);
       quad->push_back(t);
       s.occluder_marks[other].state = Scratch::kTaken;
+      *neighbour = other;
       return true;
     }
   }
@@ -251,8 +253,33 @@ bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& lig
   std::vector<Fragment> left = light;
   std::vector<uint32_t> ids;
   for (const Blocker& blocker : *blockers) ids.push_back(blocker.id);
-  SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers);
-  return left.empty() && s.stopped.ok();
+  std::vector<uint32_t> cutting;
+  SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers, /*quads=*/false, &cutting);
+  if (!left.empty() || !s.stopped.ok()) return false;
+  RememberBlockers(s, &cutting);
+  return true;
+}
+
+void LightTree::RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const {
+  if (ids->empty() || ids->size() > kRememberedBlockers) return;
+  s.blockers_tree = this;
+  s.last_blockers.swap(*ids);
+}
+
+bool LightTree::HiddenByLastBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const {
+  if (s.blockers_tree != this || s.last_blockers.empty()) return false;
+  const size_t occluders = far.size() + near.size();
+  const bool usable = std::none_of(s.last_blockers.begin(), s.last_blockers.end(), [&](uint32_t id) {
+    return id >= occluders || IsReceiver(id, receiver);
+  });
+  if (usable) {
+    std::vector<Fragment> left = light;
+    const XPlane* slab_top = nullptr;
+    SubtractOccluders(s, &left, s.last_blockers, &slab_top);
+    if (left.empty() && s.stopped.ok()) return true;
+  }
+  s.last_blockers.clear();
+  return false;
 }
 
 const XPoint* LightTree::Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const {
@@ -419,7 +446,8 @@ bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments,
 }
 
 size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
-                                    const XPlane** slab_top, size_t max_subtracted, bool quads) const {
+                                    const XPlane** slab_top, size_t max_subtracted, bool quads,
+                                    std::vector<uint32_t>* cutting) const {
   if (quads) {
     s.FitOccluders(far.size() + near.size());
     for (const uint32_t id : ids) s.occluder_marks[id] = {s.stamp, Scratch::kCandidate};
@@ -430,19 +458,22 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
   bool all_valid = UnionLineBox(s, *fragments, &all);
   size_t subtracted = 0;
   OccluderPolygon quad;
+  uint32_t neighbour = 0;
   for (const uint32_t id : ids) {
     if (fragments->empty() || subtracted == max_subtracted || StopNow(s)) break;
     if (quads) {
       if (s.occluder_marks[id].state == Scratch::kTaken) continue;  // inside an earlier quadrilateral
       s.occluder_marks[id].state = Scratch::kTaken;
     }
-    if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
     LineBox shadow;
+    if (all_valid && ShadowBoxBound(s, id, &shadow) && all.Apart(shadow)) continue;
+    if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
     bool has_shadow = LineBoxOf(s, corners, &shadow);
     if (has_shadow && all_valid && all.Apart(shadow)) continue;
     // Only an occluder that reaches the fragments looks for its neighbour:
     // most candidates of a penumbra point are passed over above.
-    if (quads && QuadWithNeighbour(s, slab_top, id, &quad)) {
+    const bool merged = quads && QuadWithNeighbour(s, slab_top, id, &quad, &neighbour);
+    if (merged) {
       merged_occluders.fetch_add(1, std::memory_order_relaxed);
       corners.clear();
       for (const uint32_t v : quad) corners.push_back(&Vertex(s, v));
@@ -453,6 +484,10 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
     ++subtracted;
     if (Subtract(s, fragments, edges, has_shadow ? &shadow : nullptr)) {
       all_valid = UnionLineBox(s, *fragments, &all);
+      if (cutting != nullptr) {
+        cutting->push_back(id);
+        if (merged) cutting->push_back(neighbour);
+      }
     }
   }
   return subtracted;

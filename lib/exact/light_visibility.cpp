@@ -84,6 +84,7 @@ TreeStats LightVisibilityTree::Stats() const {
   s.wholly_hidden = impl_->wholly_hidden.load();
   s.subtracted_directly = impl_->subtracted_directly.load();
   s.merged_occluders = impl_->merged_occluders.load();
+  s.hidden_by_remembered_blockers = impl_->hidden_by_remembered_blockers.load();
   s.answers_reused = impl_->answers_reused.load();
   {
     std::shared_lock answers_lock(impl_->answers_mutex);
@@ -107,6 +108,7 @@ TreeStats& TreeStats::operator+=(const TreeStats& o) {
   wholly_hidden += o.wholly_hidden;
   subtracted_directly += o.subtracted_directly;
   merged_occluders += o.merged_occluders;
+  hidden_by_remembered_blockers += o.hidden_by_remembered_blockers;
   answers_reused += o.answers_reused;
   answers_kept += o.answers_kept;
   answer_bytes += o.answer_bytes;

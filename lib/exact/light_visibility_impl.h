@@ -253,7 +253,7 @@ struct LightTree {
   size_t list_bytes = 0;
 
   std::atomic<uint64_t> queries{0}, hits{0}, refinements{0}, unrefined_leaf_visits{0}, wholly_visible{0}, wholly_hidden{0},
-      subtracted_directly{0}, answers_reused{0};
+      subtracted_directly{0}, answers_reused{0}, hidden_by_remembered_blockers{0};
   // Counted where occluders are subtracted, which reads the tree only.
   mutable std::atomic<uint64_t> merged_occluders{0};
 
@@ -357,6 +357,10 @@ struct LightTree {
     };
     std::vector<OccluderSlot> occluder_marks;
     uint32_t stamp = 0;
+    // The occluders that together last hid a whole light from this thread,
+    // and their tree (HiddenByLastBlockers); kept from query to query.
+    const LightTree* blockers_tree = nullptr;
+    std::vector<uint32_t> last_blockers;
 
     const XPoint* Add(XPoint x) { return points.Add(std::move(x)); }
     const XPlane* Add(XPlane x) { return planes.Add(std::move(x)); }
@@ -546,7 +550,8 @@ struct LightTree {
   // neighbours, the triangle) of occluder `id` and a neighbour still to be
   // subtracted in this query (Scratch::occluder_marks), which it marks
   // taken. False when there is none.
-  bool QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t id, OccluderPolygon* quad) const;
+  bool QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t id, OccluderPolygon* quad,
+                         uint32_t* neighbour) const;
 
   // Whether subtracting the blockers that block the most light vertices (at
   // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
@@ -557,6 +562,19 @@ struct LightTree {
     int vertices;  // light vertices whose segments it blocks
   };
   bool HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& light, std::vector<Blocker>* blockers) const;
+
+  // Neighbouring points in an umbra cast by several triangles together (a
+  // gallery's vault, a mesh's faces) are mostly hidden by the same few:
+  // those that last hid a whole light from this thread (at most
+  // kRememberedBlockers, remembered where a point was found hidden by
+  // subtraction), subtracted from the light before any gathering. If
+  // nothing is left, the point is hidden, exactly: any occluders of the
+  // tree but P's own triangle prove it, so a stale memory costs one try
+  // and no wrong answer. A failed try forgets them (a penumbra follows).
+  static constexpr size_t kRememberedBlockers = 64;
+  bool HiddenByLastBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const;
+  // Remembers `ids` as the blockers that hid the last point, if few.
+  void RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const;
 
   // A triangle's size as seen from p: its area over its squared distance,
   // a proxy of its solid angle (it orders subtractions; any order gives the
@@ -606,6 +624,38 @@ struct LightTree {
     return true;
   }
 
+  // A box around the LineBox of occluder `id`'s shadow, from its input
+  // vertices in double precision, widened past the rounding: the cheap
+  // test a query applies to each of its dozens of candidates before making
+  // the exact points of any (most are apart from the few fragments a
+  // penumbra has left). A near occluder's clipped polygon lies inside its
+  // triangle, so its shadow inside the triangle's, whose directions from P
+  // span the hull of the vertices' when all lie on the light's side of P
+  // (d[light_axis] of the query's sign). False otherwise.
+  bool ShadowBoxBound(const Scratch& s, uint32_t id, LineBox* box) const {
+    if (s.line_box_sign == 0) return false;
+    const int k = light_axis, u = (k + 1) % 3, v = (k + 2) % 3;
+    const glm::dvec3& p = s.p->input;
+    const uint32_t* t = OccluderVertices(id);
+    box->lo[0] = box->lo[1] = std::numeric_limits<double>::infinity();
+    box->hi[0] = box->hi[1] = -std::numeric_limits<double>::infinity();
+    for (int i = 0; i < 3; ++i) {
+      const glm::dvec3& x = vertices[t[i]];
+      // A rounded difference has the sign of the exact one.
+      const double den = x[k] - p[k];
+      if (!(den * s.line_box_sign > 0.0)) return false;
+      const double g[2] = {(x[u] - p[u]) / den, (x[v] - p[v]) / den};
+      for (int j = 0; j < 2; ++j) {
+        if (!std::isfinite(g[j])) return false;
+        // Three roundings of at most half an ulp each, and underflow.
+        const double margin = std::fabs(g[j]) * 0x1p-50 + 0x1p-1022;
+        box->lo[j] = std::min(box->lo[j], g[j] - margin);
+        box->hi[j] = std::max(box->hi[j], g[j] + margin);
+      }
+    }
+    return true;
+  }
+
   // Whether the fragment has a line box (computed on first use).
   bool HasLineBox(const Scratch& s, Fragment& f) const;
 
@@ -640,9 +690,11 @@ struct LightTree {
   // that reach it. Returns the number subtracted.
   // With `quads`, near occluders that reach the fragments are subtracted
   // with a neighbour as one quadrilateral where they can be
-  // (QuadWithNeighbour).
+  // (QuadWithNeighbour). With `cutting`, the ids of the occluders that cut
+  // or removed a fragment are appended to it (both of a quadrilateral).
   size_t SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
-                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX, bool quads = false) const;
+                           const XPlane** slab_top, size_t max_subtracted = SIZE_MAX, bool quads = false,
+                           std::vector<uint32_t>* cutting = nullptr) const;
 
   // The answer from the store, or a new one, kept while the store has room.
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop);

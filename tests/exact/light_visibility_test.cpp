@@ -505,6 +505,81 @@ TEST(LightVisibilityTest, NeighbouringTrianglesSubtractedAsOneQuadrilateralGiveT
   EXPECT_EQ(alone->Stats().merged_occluders, 0u);
 }
 
+TEST(LightVisibilityTest, PointsHiddenByTheBlockersOfThePointBeforeAnswerAsOnAFreshThread) {
+  // A ceiling of small quadrilaterals (two triangles each) with holes: from
+  // the floor under it, no one triangle hides the light, a few dozen do
+  // together. Points walk the floor row by row, as a frame's pixels come;
+  // some in the middle lie on the ceiling itself, their own triangles among
+  // the blockers the floor point before them remembered.
+  std::vector<Tri> tris = {{glm::dvec3(-2, -2, 0), glm::dvec3(2, -2, 0), glm::dvec3(2, 2, 0)},
+                           {glm::dvec3(-2, -2, 0), glm::dvec3(2, 2, 0), glm::dvec3(-2, 2, 0)}};
+  // Dyadic corners: neighbouring cells share theirs exactly (with a step
+  // of 0.2 they would leave cracks of 1e-16, which the method sees).
+  constexpr int kCells = 13;
+  constexpr double kCell = 0.25;
+  std::vector<uint32_t> first_triangle_of_cell(kCells * kCells, 0);
+  for (int i = 0; i < kCells; ++i) {
+    for (int j = 0; j < kCells; ++j) {
+      if ((i == 3 || i == 9) && j % 5 == 2) continue;  // holes
+      first_triangle_of_cell[i * kCells + j] = static_cast<uint32_t>(tris.size());
+      const glm::dvec3 a(-1.625 + kCell * i, -1.625 + kCell * j, 1.0);
+      const glm::dvec3 b = a + glm::dvec3(kCell, 0, 0), c = a + glm::dvec3(kCell, kCell, 0),
+                       d = a + glm::dvec3(0, kCell, 0);
+      tris.push_back({a, b, c});
+      tris.push_back({a, c, d});
+    }
+  }
+  const Scene scene = MakeScene(tris);
+  const AreaLight light = SquareLight(2.0, 0.7);
+  auto walked = MakeTree(light, scene, std::nullopt);
+  auto fresh = MakeTree(light, scene, std::nullopt);
+  ASSERT_TRUE(walked && fresh);
+  std::vector<QueryPoint> points;
+  std::vector<QueryPoint> on_ceiling;
+  for (int row = 0; row < 12; ++row) {
+    for (int k = 0; k < 40; ++k) {
+      const glm::dvec3 p(-1.4 + 2.8 * k / 39.0, -1.4 + 2.8 * row / 11.0, 0.0);
+      points.push_back({p, glm::dvec3(0, 0, 1), p.x - p.y > 0 ? 0u : 1u});
+      if (row == 6 && k == 20) {
+        // (0.04, 0.13) is hidden by cells 5 to 7 of rows 5 to 7: the
+        // centres of some of them, facing the light, each with its own
+        // triangle as the receiver.
+        for (int i = 5; i < 8; ++i) {
+          const uint32_t triangle = first_triangle_of_cell[i * kCells + 6];
+          const Tri& t = tris[triangle];
+          points.push_back({(t[0] + t[1] + t[2]) / 3.0, glm::dvec3(0, 0, 1), triangle});
+          on_ceiling.push_back(points.back());
+        }
+      }
+    }
+  }
+  int hidden = 0, penumbra = 0;
+  for (const QueryPoint& q : points) {
+    auto in_walk = walked->Query(q);
+    // A new thread's scratch remembers nothing.
+    StatusOr<PointVisibility> alone = absl::UnknownError("not run");
+    std::thread([&] { alone = fresh->Query(q); }).join();
+    ASSERT_TRUE(in_walk.ok() && alone.ok());
+    EXPECT_EQ(in_walk->visible_area_fraction, alone->visible_area_fraction) << q.position.x << " " << q.position.y;
+    EXPECT_EQ(in_walk->visible_solid_angle_fraction, alone->visible_solid_angle_fraction);
+    EXPECT_EQ(in_walk->irradiance, alone->irradiance);
+    hidden += in_walk->visible_area_fraction == 0.0;
+    penumbra += in_walk->visible_area_fraction > 0.0 && in_walk->visible_area_fraction < 1.0;
+  }
+  EXPECT_GT(hidden, 100);
+  EXPECT_GT(penumbra, 50);
+  // Most hidden points after the first of a run were settled by the
+  // remembered blockers, none on the fresh threads.
+  EXPECT_GT(walked->Stats().hidden_by_remembered_blockers, static_cast<uint64_t>(hidden / 2));
+  EXPECT_EQ(fresh->Stats().hidden_by_remembered_blockers, 0u);
+  // The ceiling points see the light whole.
+  for (const QueryPoint& q : on_ceiling) {
+    auto v = walked->Query(q);
+    ASSERT_TRUE(v.ok());
+    EXPECT_EQ(v->visible_area_fraction, 1.0);
+  }
+}
+
 TEST(LightVisibilityTest, AlignedDegenerateGeometryAgreesAcrossPaths) {
   // Axis-aligned boxes: coplanar faces, shared and collinear edges, one box
   // whose top face lies in the light plane with edges along the light's
