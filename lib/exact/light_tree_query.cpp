@@ -270,6 +270,11 @@ bool LightTree::GatherCandidates(Scratch& s, const glm::dvec3& p_local, uint32_t
       const uint32_t* t = OccluderVertices(id);
       const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
       if (cull.Misses(v)) continue;
+      if (!is_far && s.penumbra_tree == this) {
+        out->near.push_back(id - far_count);
+        out->near_untested = true;
+        continue;
+      }
       if (!classify_points) {
         if (ShadowMissesLight(p_local, v)) continue;
       } else {
@@ -405,7 +410,8 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     // (docs/exact-method-notes.md).
     SortLargestFirst(p_local, &subtract);
     std::vector<uint32_t> cutting;
-    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, /*quads=*/true, &cutting);
+    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, /*quads=*/true, &cutting,
+                      candidates.near_untested);
     if (!s.stopped.ok()) return s.stopped;
     // Only the light itself was cut on these routes, so the cutting
     // occluders alone hide it when nothing is left.
@@ -415,7 +421,10 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
   }
 
   // Integrate over the visible polygons.
-  return Integrate(visible, p_local, normal, want_polygons);
+  PointVisibility answer = Integrate(visible, p_local, normal, want_polygons);
+  s.penumbra_tree =
+      answer.visible_area_fraction > 0.0 && answer.visible_area_fraction < 1.0 ? this : nullptr;
+  return answer;
 }
 
 Status LightTree::DescendTree(Scratch& s, std::vector<Fragment>& pending, const PyramidCull& cull,

@@ -447,7 +447,7 @@ bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments,
 
 size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
                                     const XPlane** slab_top, size_t max_subtracted, bool quads,
-                                    std::vector<uint32_t>* cutting) const {
+                                    std::vector<uint32_t>* cutting, bool test_near) const {
   if (quads) {
     s.FitOccluders(far.size() + near.size());
     for (const uint32_t id : ids) s.occluder_marks[id] = {s.stamp, Scratch::kCandidate};
@@ -467,6 +467,11 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
     }
     LineBox shadow;
     if (all_valid && ShadowBoxBound(s, id, &shadow) && all.Apart(shadow)) continue;
+    if (test_near && id >= far.size()) {
+      const uint32_t* t = OccluderVertices(id);
+      const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
+      if (ShadowMissesLight(s.p->input, v)) continue;
+    }
     if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
     bool has_shadow = LineBoxOf(s, corners, &shadow);
     if (has_shadow && all_valid && all.Apart(shadow)) continue;
