@@ -567,7 +567,9 @@ TEST(LightVisibilityTest, PointsHiddenByTheBlockersOfThePointBeforeAnswerAsOnAFr
         << q.position.x << " " << q.position.y;
     EXPECT_NEAR(in_walk->visible_solid_angle_fraction, alone->visible_solid_angle_fraction, 1e-12);
     EXPECT_NEAR(in_walk->irradiance, alone->irradiance, 1e-12);
-    if (in_walk->visible_area_fraction == 0.0) EXPECT_EQ(alone->visible_area_fraction, 0.0);
+    if (in_walk->visible_area_fraction == 0.0) {
+      EXPECT_EQ(alone->visible_area_fraction, 0.0);
+    }
     hidden += in_walk->visible_area_fraction == 0.0;
     penumbra += in_walk->visible_area_fraction > 0.0 && in_walk->visible_area_fraction < 1.0;
   }
