@@ -614,6 +614,10 @@ struct LightTree {
     box->lo[0] = box->lo[1] = std::numeric_limits<double>::infinity();
     box->hi[0] = box->hi[1] = -std::numeric_limits<double>::infinity();
     for (const XPoint* x : xs) {
+      if (x->kind == XPoint::Kind::kInput) {
+        if (!ExtendByInputDirection(s, x->input, box)) return false;
+        continue;
+      }
       // d = X / W - P; the ratios d[u] / d[k] = (X[u] - P[u] W) / (X[k] - P[k] W).
       const IV4& h = x->approx;
       const Iv den = h[k] - Iv(p[k]) * h[3];
@@ -638,24 +642,31 @@ struct LightTree {
   // (d[light_axis] of the query's sign). False otherwise.
   bool ShadowBoxBound(const Scratch& s, uint32_t id, LineBox* box) const {
     if (s.line_box_sign == 0) return false;
-    const int k = light_axis, u = (k + 1) % 3, v = (k + 2) % 3;
-    const glm::dvec3& p = s.p->input;
     const uint32_t* t = OccluderVertices(id);
     box->lo[0] = box->lo[1] = std::numeric_limits<double>::infinity();
     box->hi[0] = box->hi[1] = -std::numeric_limits<double>::infinity();
     for (int i = 0; i < 3; ++i) {
-      const glm::dvec3& x = vertices[t[i]];
-      // A rounded difference has the sign of the exact one.
-      const double den = x[k] - p[k];
-      if (!(den * s.line_box_sign > 0.0)) return false;
-      const double g[2] = {(x[u] - p[u]) / den, (x[v] - p[v]) / den};
-      for (int j = 0; j < 2; ++j) {
-        if (!std::isfinite(g[j])) return false;
-        // Three roundings of at most half an ulp each, and underflow.
-        const double margin = std::fabs(g[j]) * 0x1p-50 + 0x1p-1022;
-        box->lo[j] = std::min(box->lo[j], g[j] - margin);
-        box->hi[j] = std::max(box->hi[j], g[j] + margin);
-      }
+      if (!ExtendByInputDirection(s, vertices[t[i]], box)) return false;
+    }
+    return true;
+  }
+
+  // Extends a LineBox by the direction from P to an input point x, in
+  // double precision widened past its rounding; false when x is not
+  // certainly on the light's side of P (d[light_axis] of the query's sign).
+  bool ExtendByInputDirection(const Scratch& s, const glm::dvec3& x, LineBox* box) const {
+    const int k = light_axis, u = (k + 1) % 3, v = (k + 2) % 3;
+    const glm::dvec3& p = s.p->input;
+    // A rounded difference has the sign of the exact one.
+    const double den = x[k] - p[k];
+    if (!(den * s.line_box_sign > 0.0)) return false;
+    const double g[2] = {(x[u] - p[u]) / den, (x[v] - p[v]) / den};
+    for (int j = 0; j < 2; ++j) {
+      if (!std::isfinite(g[j])) return false;
+      // Three roundings of at most half an ulp each, and underflow.
+      const double margin = std::fabs(g[j]) * 0x1p-50 + 0x1p-1022;
+      box->lo[j] = std::min(box->lo[j], g[j] - margin);
+      box->hi[j] = std::max(box->hi[j], g[j] + margin);
     }
     return true;
   }
