@@ -761,6 +761,7 @@ struct LightTree {
   // SubtractOccluders gives the exact whole-light test only to those whose
   // shadow's box reaches the fragments. The answer is the same: an
   // occluder whose shadow misses the light cuts nothing.
+  //
   // Neighbouring points are mostly hidden by the same wall or floor: the
   // occluder that last hid a whole light from this thread, tried first,
   // spares the gathering. The test is exact for any occluder of the tree
