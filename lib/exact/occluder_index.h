@@ -185,9 +185,8 @@ class OccluderIndex {
   }
 
   // Fills node `id` with the items [begin, end) of the order, whose boxes
-  // `boxes` holds in that order; its
-  // children go to two new consecutive slots. Depth stays under 64: each
-  // split halves.
+  // `boxes` holds in that order; its children go to two new consecutive
+  // slots. Depth stays under 64: each split halves.
   void BuildNode(const std::vector<Box>& boxes, bool full_leaves, uint32_t id, uint32_t begin, uint32_t end) {
     if (end - begin <= kLeafSize) {
       glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());

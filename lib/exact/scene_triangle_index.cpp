@@ -176,7 +176,9 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
   VISQ_CHECK_LT(flat_count + top_boxes.size(), size_t{UINT32_MAX});
   impl->top.Build(
       static_cast<uint32_t>(flat_count + top_boxes.size()),
-      [&](uint32_t item) { return item < flat_count ? impl->SceneTriangleBox(impl->FlatTriangle(item)) : top_boxes[item - flat_count]; },
+      [&](uint32_t item) {
+        return item < flat_count ? impl->SceneTriangleBox(impl->FlatTriangle(item)) : top_boxes[item - flat_count];
+      },
       /*full_leaves=*/true);
   return std::unique_ptr<SceneTriangleIndex>(new SceneTriangleIndex(std::move(impl)));
 }
