@@ -372,7 +372,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     wholly_hidden.fetch_add(1, std::memory_order_relaxed);
     return result;
   }
-  if (classify_points && HiddenByLastBlockers(s, pending, receiver)) {
+  if (classify_points && HiddenByRememberedBlockers(s, pending, receiver)) {
     hits.fetch_add(1, std::memory_order_relaxed);
     wholly_hidden.fetch_add(1, std::memory_order_relaxed);
     hidden_by_remembered_blockers.fetch_add(1, std::memory_order_relaxed);

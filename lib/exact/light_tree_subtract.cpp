@@ -262,23 +262,58 @@ bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& lig
 
 void LightTree::RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const {
   if (ids->empty() || ids->size() > kRememberedBlockers) return;
+  if (s.blockers_tree != this) s.blocker_sets.clear();
   s.blockers_tree = this;
-  s.last_blockers.swap(*ids);
+  if (s.blocker_sets.size() == kRememberedSets) s.blocker_sets.pop_back();
+  s.blocker_sets.insert(s.blocker_sets.begin(), {s.p->input, {}});
+  s.blocker_sets.front().ids.swap(*ids);
 }
 
-bool LightTree::HiddenByLastBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const {
-  if (s.blockers_tree != this || s.last_blockers.empty()) return false;
+bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const {
+  if (s.blockers_tree != this || s.blocker_sets.empty()) return false;
+  const glm::dvec3& p = s.p->input;
+  size_t nearest = 0;
+  double nearest_distance = std::numeric_limits<double>::infinity();
+  for (size_t i = 1; i < s.blocker_sets.size(); ++i) {
+    const glm::dvec3 d = s.blocker_sets[i].p - p;
+    const double distance = glm::dot(d, d);
+    if (distance < nearest_distance) {
+      nearest = i;
+      nearest_distance = distance;
+    }
+  }
   const size_t occluders = far.size() + near.size();
-  const bool usable = std::none_of(s.last_blockers.begin(), s.last_blockers.end(), [&](uint32_t id) {
-    return id >= occluders || IsReceiver(id, receiver);
-  });
-  if (usable) {
+  const uint64_t all_vertices = light_local.size() >= 64 ? ~uint64_t{0} : (uint64_t{1} << light_local.size()) - 1;
+  const size_t tries[2] = {0, nearest};
+  for (size_t k = 0; k < (nearest != 0 ? 2u : 1u); ++k) {
+    const size_t set = tries[k];
+    std::vector<uint32_t>& ids = s.blocker_sets[set].ids;
+    if (std::any_of(ids.begin(), ids.end(),
+                    [&](uint32_t id) { return id >= occluders || IsReceiver(id, receiver); })) {
+      continue;
+    }
+    // A light vertex whose segment from P crosses none of the set's
+    // triangles leaves some of the light to see: a penumbra point after a
+    // hidden run ends here, before any subtraction.
+    uint64_t covered = 0;
+    for (size_t i = 0; i < ids.size() && covered != all_vertices; ++i) {
+      const uint32_t* t = OccluderVertices(ids[i]);
+      const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
+      covered |= CoveredLightVertices(p, v).mask;
+    }
+    if (covered != all_vertices) continue;
     std::vector<Fragment> left = light;
     const XPlane* slab_top = nullptr;
-    SubtractOccluders(s, &left, s.last_blockers, &slab_top);
-    if (left.empty() && s.stopped.ok()) return true;
+    SubtractOccluders(s, &left, ids, &slab_top);
+    if (!s.stopped.ok()) return false;
+    if (left.empty()) {
+      if (set != 0) std::rotate(s.blocker_sets.begin(), s.blocker_sets.begin() + static_cast<ptrdiff_t>(set),
+                                s.blocker_sets.begin() + static_cast<ptrdiff_t>(set) + 1);
+      return true;
+    }
+    s.blocker_sets.erase(s.blocker_sets.begin() + static_cast<ptrdiff_t>(set));
+    return false;
   }
-  s.last_blockers.clear();
   return false;
 }
 

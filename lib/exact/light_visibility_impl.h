@@ -357,10 +357,15 @@ struct LightTree {
     };
     std::vector<OccluderSlot> occluder_marks;
     uint32_t stamp = 0;
-    // The occluders that together last hid a whole light from this thread,
-    // and their tree (HiddenByLastBlockers); kept from query to query.
+    // Sets of occluders that together hid a whole light from this thread,
+    // each with the point they hid, most recent first, and their tree
+    // (HiddenByRememberedBlockers); kept from query to query.
+    struct BlockerSet {
+      glm::dvec3 p;
+      std::vector<uint32_t> ids;
+    };
     const LightTree* blockers_tree = nullptr;
-    std::vector<uint32_t> last_blockers;
+    std::vector<BlockerSet> blocker_sets;
     // The tree whose last query on this thread was a penumbra point
     // (GatherCandidates then leaves near occluders' exact tests to
     // SubtractOccluders).
@@ -569,15 +574,20 @@ struct LightTree {
 
   // Neighbouring points in an umbra cast by several triangles together (a
   // gallery's vault, a mesh's faces) are mostly hidden by the same few:
-  // those that last hid a whole light from this thread (at most
-  // kRememberedBlockers, remembered where a point was found hidden by
-  // subtraction), subtracted from the light before any gathering. If
-  // nothing is left, the point is hidden, exactly: any occluders of the
-  // tree but P's own triangle prove it, so a stale memory costs one try
-  // and no wrong answer. A failed try forgets them (a penumbra follows).
+  // those that hid a whole light from this thread at a point nearby (at
+  // most kRememberedBlockers a set, remembered where a point was found
+  // hidden by subtraction; kRememberedSets sets), subtracted from the
+  // light before any gathering. The most recent set is tried, and the one
+  // found at the point nearest P (a frame's row above). A set is
+  // subtracted only when each light vertex's segment crosses one of its
+  // triangles; then, if nothing is left, the point is hidden, exactly: any
+  // occluders of the tree but P's own triangle prove it, so a stale memory
+  // costs a try and no wrong answer. A set whose subtraction fails is
+  // forgotten.
   static constexpr size_t kRememberedBlockers = 64;
-  bool HiddenByLastBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const;
-  // Remembers `ids` as the blockers that hid the last point, if few.
+  static constexpr size_t kRememberedSets = 64;
+  bool HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const;
+  // Remembers `ids` as blockers that hid the point P, if few.
   void RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const;
 
   // A triangle's size as seen from p: its area over its squared distance,
