@@ -43,12 +43,6 @@ LightTree::Cover LightTree::CoveredLightVertices(const glm::dvec3& p, const glm:
   return cover;
 }
 
-const uint32_t* LightTree::OccluderVertices(uint32_t id) const {
-  const uint32_t far_count = static_cast<uint32_t>(far.size());
-  VISQ_DCHECK_LT(size_t(id), far.size() + near.size());
-  return id < far_count ? far[id].v : near[id - far_count].v;
-}
-
 LightTree::OccluderTest LightTree::TestOccluder(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const {
   OccluderTest test;
   const size_t n = light_local.size();

@@ -58,45 +58,41 @@ size_t AnswerBytes(const PointVisibility& v) {
 // on a convex light, in fewer tests.
 class PyramidCull {
  public:
-  PyramidCull(const glm::dvec3& p, const std::vector<glm::dvec3>& light, const std::vector<LightTriangle>& triangles)
+  // MissesBox and Misses are asked only about boxes and triangles inside
+  // `bounds` (the occluders').
+  PyramidCull(const glm::dvec3& p, const std::vector<glm::dvec3>& light, const std::vector<LightTriangle>& triangles,
+              const std::pair<glm::dvec3, glm::dvec3>& bounds)
       : p_(p), lo_(p), hi_(p) {
     for (const glm::dvec3& v : light) {
       lo_ = glm::min(lo_, v);
       hi_ = glm::max(hi_, v);
     }
-    if (OutlinePlanes(light)) return;
-    for (const LightTriangle& t : triangles) {
-      Sides sides;
-      for (int e = 0; e < 3; ++e) {
-        const glm::dvec3 a = light[t.v[e]] - p, b = light[t.v[(e + 1) % 3]] - p, c = light[t.v[(e + 2) % 3]] - p;
-        glm::dvec3 normal = glm::cross(a, b);
-        const double scale = Norm1(a) * Norm1(b);
-        // Orient inwards by the opposite vertex; too close to call: no cull.
-        const double inside = glm::dot(normal, c);
-        if (!(std::fabs(inside) > kRelativeMargin * scale * Norm1(c))) {
-          sides.usable = false;
-          break;
-        }
-        if (inside < 0) normal = -normal;
-        sides.planes.push_back({normal, scale});
+    if (!OutlinePlanes(light)) TrianglePlanes(light, triangles);
+    // The margin is taken at the farthest point of `bounds` from P, at
+    // least that of every point tested: one margin a plane, and the box
+    // corner furthest inside picked once a plane (MissesBox runs at every
+    // node a query visits, Misses at every occluder it lists).
+    const double reach = Norm1(glm::max(glm::abs(bounds.first - p), glm::abs(bounds.second - p)));
+    for (Sides& sides : triangle_sides_) {
+      for (Plane& plane : sides.planes) {
+        plane.margin = -kRelativeMargin * plane.scale * reach;
+        for (int axis = 0; axis < 3; ++axis) plane.pick[axis] = plane.normal[axis] > 0 ? 1 : 0;
       }
-      triangle_sides_.push_back(std::move(sides));
     }
   }
 
-  // Whether every point of the box [lo, hi] passes the test Misses applies to
-  // vertices (so no triangle inside the box can touch the pyramid). Per
-  // plane, the corner furthest inside decides; the margin is taken at the
-  // box's farthest corner from P, which is at least each point's own.
+  // Whether every point of the box [lo, hi] (inside the constructor's
+  // bounds) passes the test Misses applies to vertices (so no triangle
+  // inside the box can touch the pyramid). Per plane, the corner furthest
+  // inside decides.
   bool MissesBox(const glm::dvec3& lo, const glm::dvec3& hi) const {
     for (int axis = 0; axis < 3; ++axis)
       if (hi[axis] < lo_[axis] || lo[axis] > hi_[axis]) return true;
-    // The farthest corner from P takes, per axis, the farther face.
-    const double reach = Norm1(glm::max(glm::abs(lo - p_), glm::abs(hi - p_)));
+    const glm::dvec3* corners[2] = {&lo, &hi};
     const auto outside = [&](const Plane& plane) {
-      const glm::dvec3& n = plane.normal;
-      const glm::dvec3 furthest_inside(n.x > 0 ? hi.x : lo.x, n.y > 0 ? hi.y : lo.y, n.z > 0 ? hi.z : lo.z);
-      return glm::dot(n, furthest_inside - p_) < -kRelativeMargin * plane.scale * reach;
+      const glm::dvec3 furthest_inside((*corners[plane.pick[0]]).x, (*corners[plane.pick[1]]).y,
+                                       (*corners[plane.pick[2]]).z);
+      return glm::dot(plane.normal, furthest_inside - p_) < plane.margin;
     };
     return OutsideEverySet(outside);
   }
@@ -107,10 +103,9 @@ class PyramidCull {
       if (v[0][axis] > hi_[axis] && v[1][axis] > hi_[axis] && v[2][axis] > hi_[axis]) return true;
     }
     const glm::dvec3 x[3] = {v[0] - p_, v[1] - p_, v[2] - p_};
-    const double reach[3] = {Norm1(x[0]), Norm1(x[1]), Norm1(x[2])};
     const auto outside = [&](const Plane& plane) {
       for (int i = 0; i < 3; ++i) {
-        if (!(glm::dot(plane.normal, x[i]) < -kRelativeMargin * plane.scale * reach[i])) return false;
+        if (!(glm::dot(plane.normal, x[i]) < plane.margin)) return false;
       }
       return true;
     };
@@ -126,6 +121,8 @@ class PyramidCull {
   struct Plane {
     glm::dvec3 normal;  // inwards
     double scale;       // at least |normal|
+    double margin = 0.0;            // a side below it is outside (MissesBox, Misses)
+    std::array<uint8_t, 3> pick{};  // per axis, the box corner furthest inside: 0 lo, 1 hi
   };
   struct Sides {
     bool usable = true;
@@ -133,6 +130,27 @@ class PyramidCull {
   };
 
   static double Norm1(const glm::dvec3& x) { return std::fabs(x.x) + std::fabs(x.y) + std::fabs(x.z); }
+
+  // Each light triangle's three planes.
+  void TrianglePlanes(const std::vector<glm::dvec3>& light, const std::vector<LightTriangle>& triangles) {
+    for (const LightTriangle& t : triangles) {
+      Sides sides;
+      for (int e = 0; e < 3; ++e) {
+        const glm::dvec3 a = light[t.v[e]] - p_, b = light[t.v[(e + 1) % 3]] - p_, c = light[t.v[(e + 2) % 3]] - p_;
+        glm::dvec3 normal = glm::cross(a, b);
+        const double scale = Norm1(a) * Norm1(b);
+        // Orient inwards by the opposite vertex; too close to call: no cull.
+        const double inside = glm::dot(normal, c);
+        if (!(std::fabs(inside) > kRelativeMargin * scale * Norm1(c))) {
+          sides.usable = false;
+          break;
+        }
+        if (inside < 0) normal = -normal;
+        sides.planes.push_back({normal, scale});
+      }
+      triangle_sides_.push_back(std::move(sides));
+    }
+  }
 
   // The outline's planes, when each has every light vertex but its edge's
   // clearly inside. False (and none kept) otherwise.
@@ -378,7 +396,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     hidden_by_remembered_blockers.fetch_add(1, std::memory_order_relaxed);
     return result;
   }
-  const PyramidCull cull(p_local, light_local, light_triangles);
+  const PyramidCull cull(p_local, light_local, light_triangles, index.Bounds());
   Candidates candidates;
   if (GatherCandidates(s, p_local, receiver, cull, pending, &candidates)) {
     hits.fetch_add(1, std::memory_order_relaxed);

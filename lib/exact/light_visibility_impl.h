@@ -519,7 +519,11 @@ struct LightTree {
   Cover CoveredLightVertices(const glm::dvec3& p, const glm::dvec3 (&v)[3]) const;
 
   // The vertices of an occluder: far ones first, then near ones.
-  const uint32_t* OccluderVertices(uint32_t id) const;
+  const uint32_t* OccluderVertices(uint32_t id) const {
+    const uint32_t far_count = static_cast<uint32_t>(far.size());
+    VISQ_DCHECK_LT(size_t(id), far.size() + near.size());
+    return id < far_count ? far[id].v : near[id - far_count].v;
+  }
 
   // ShadowMissesLight and, when the shadow does not miss, CoveredLightVertices
   // from one set of signs: both take the sides of the light's vertices

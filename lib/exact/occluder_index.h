@@ -127,6 +127,13 @@ class OccluderIndex {
     return std::min(count, limit);
   }
 
+  // The box around every item (the root's); a point box at the origin when
+  // there are none.
+  std::pair<glm::dvec3, glm::dvec3> Bounds() const {
+    if (nodes_.empty()) return {glm::dvec3(0.0), glm::dvec3(0.0)};
+    return {nodes_[0].lo, nodes_[0].hi};
+  }
+
   size_t MemoryBytes() const {
     return order_.capacity() * 4 + nodes_.capacity() * sizeof(Node);
   }
