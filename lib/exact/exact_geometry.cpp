@@ -293,13 +293,6 @@ int Orient3d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, cons
   return sgn(q);
 }
 
-Orient3dFan::Orient3dFan(const glm::dvec3& p, const glm::dvec3& a, const glm::dvec3& b) : p_(p), a_(a), b_(b) {
-  const glm::dvec3 u = a - p, v = b - p;
-  normal_ = glm::dvec3(u.y * v.z - u.z * v.y, u.z * v.x - u.x * v.z, u.x * v.y - u.y * v.x);
-  magnitude_ = glm::dvec3(std::fabs(u.y * v.z) + std::fabs(u.z * v.y), std::fabs(u.z * v.x) + std::fabs(u.x * v.z),
-                          std::fabs(u.x * v.y) + std::fabs(u.y * v.x));
-}
-
 int Orient2d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, int i, int j) {
   // Shared coordinates make exact zeros that no filter can certify.
   if ((a[i] == b[i] && a[i] == c[i]) || (a[j] == b[j] && a[j] == c[j])) return 0;

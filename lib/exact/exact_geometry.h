@@ -315,7 +315,12 @@ int Orient3d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, cons
 
 class Orient3dFan {
  public:
-  Orient3dFan(const glm::dvec3& p, const glm::dvec3& a, const glm::dvec3& b);
+  VISQ_EXACT_INLINE Orient3dFan(const glm::dvec3& p, const glm::dvec3& a, const glm::dvec3& b) : p_(p), a_(a), b_(b) {
+    const glm::dvec3 u = a - p, v = b - p;
+    normal_ = glm::dvec3(u.y * v.z - u.z * v.y, u.z * v.x - u.x * v.z, u.x * v.y - u.y * v.x);
+    magnitude_ = glm::dvec3(std::fabs(u.y * v.z) + std::fabs(u.z * v.y), std::fabs(u.z * v.x) + std::fabs(u.x * v.z),
+                            std::fabs(u.x * v.y) + std::fabs(u.y * v.x));
+  }
   VISQ_EXACT_INLINE int Side(const glm::dvec3& x) const {
     const glm::dvec3 w = x - p_;
     const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;

@@ -267,17 +267,23 @@ void LightTree::RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const {
   if (s.blocker_sets.size() == kRememberedSets) s.blocker_sets.pop_back();
   s.blocker_sets.insert(s.blocker_sets.begin(), {s.p->input, {}});
   s.blocker_sets.front().ids.swap(*ids);
+  s.most_recent_failed = false;
 }
 
 bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const {
-  if (s.blockers_tree != this || s.blocker_sets.empty()) return false;
   const glm::dvec3& p = s.p->input;
+  // The step from the thread's previous point sizes "nearby": a frame's
+  // neighbouring pixel, in the row or the row above.
+  const glm::dvec3 step = p - s.previous_p;
+  const double reach = 16.0 * glm::dot(step, step);  // four steps, squared
+  s.previous_p = p;
+  if (s.blockers_tree != this || s.blocker_sets.empty()) return false;
   size_t nearest = 0;
-  double nearest_distance = std::numeric_limits<double>::infinity();
+  double nearest_distance = reach;
   for (size_t i = 1; i < s.blocker_sets.size(); ++i) {
     const glm::dvec3 d = s.blocker_sets[i].p - p;
     const double distance = glm::dot(d, d);
-    if (distance < nearest_distance) {
+    if (distance <= nearest_distance) {
       nearest = i;
       nearest_distance = distance;
     }
@@ -287,9 +293,13 @@ bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragmen
   const size_t tries[2] = {0, nearest};
   for (size_t k = 0; k < (nearest != 0 ? 2u : 1u); ++k) {
     const size_t set = tries[k];
+    // The most recent set, once it has failed, waits for a newer one (the
+    // points after a hidden run are mostly not hidden).
+    if (set == 0 && s.most_recent_failed) continue;
     std::vector<uint32_t>& ids = s.blocker_sets[set].ids;
     if (std::any_of(ids.begin(), ids.end(),
                     [&](uint32_t id) { return id >= occluders || IsReceiver(id, receiver); })) {
+      if (set == 0) s.most_recent_failed = true;
       continue;
     }
     // A light vertex whose segment from P crosses none of the set's
@@ -301,17 +311,24 @@ bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragmen
       const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
       covered |= CoveredLightVertices(p, v).mask;
     }
-    if (covered != all_vertices) continue;
+    if (covered != all_vertices) {
+      if (set == 0) s.most_recent_failed = true;
+      continue;
+    }
     std::vector<Fragment> left = light;
     const XPlane* slab_top = nullptr;
     SubtractOccluders(s, &left, ids, &slab_top);
     if (!s.stopped.ok()) return false;
     if (left.empty()) {
-      if (set != 0) std::rotate(s.blocker_sets.begin(), s.blocker_sets.begin() + static_cast<ptrdiff_t>(set),
-                                s.blocker_sets.begin() + static_cast<ptrdiff_t>(set) + 1);
+      if (set != 0) {
+        std::rotate(s.blocker_sets.begin(), s.blocker_sets.begin() + static_cast<ptrdiff_t>(set),
+                    s.blocker_sets.begin() + static_cast<ptrdiff_t>(set) + 1);
+        s.most_recent_failed = false;
+      }
       return true;
     }
     s.blocker_sets.erase(s.blocker_sets.begin() + static_cast<ptrdiff_t>(set));
+    if (set == 0) s.most_recent_failed = false;  // the next one is tried afresh
     return false;
   }
   return false;

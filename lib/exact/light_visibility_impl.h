@@ -366,6 +366,8 @@ struct LightTree {
     };
     const LightTree* blockers_tree = nullptr;
     std::vector<BlockerSet> blocker_sets;
+    bool most_recent_failed = false;  // the first set failed a try since it came
+    glm::dvec3 previous_p{0.0};       // the last point HiddenByRememberedBlockers saw
     // The tree whose last query on this thread was a penumbra point
     // (GatherCandidates then leaves near occluders' exact tests to
     // SubtractOccluders).
