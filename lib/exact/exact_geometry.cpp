@@ -7,10 +7,40 @@
 namespace visq::exact::detail {
 namespace {
 
+// Exact integer images of doubles: each nonzero double is m * 2^e with an
+// integer |m| < 2^53, so scaling a set of them by 2^-emin (emin the smallest
+// such e) gives integers. Determinants of input doubles are then computed in
+// mpz, with none of the gcd normalisation mpq pays on every operation.
+template <size_t N>
+void ToCommonIntegers(const std::array<double, N>& v, std::array<mpz_class, N>* out) {
+  int emin = std::numeric_limits<int>::max();
+  std::array<int, N> exps{};
+  std::array<double, N> mant{};
+  for (size_t i = 0; i < N; ++i) {
+    if (v[i] == 0.0) continue;
+    mant[i] = std::ldexp(std::frexp(v[i], &exps[i]), 53);  // integer, |m| < 2^53
+    exps[i] -= 53;
+    emin = std::min(emin, exps[i]);
+  }
+  for (size_t i = 0; i < N; ++i) {
+    if (v[i] == 0.0) {
+      (*out)[i] = 0;
+      continue;
+    }
+    (*out)[i] = mant[i];  // exact: an integer below 2^53
+    mpz_mul_2exp((*out)[i].get_mpz_t(), (*out)[i].get_mpz_t(),
+                 static_cast<mp_bitcnt_t>(exps[i] - emin));
+  }
+}
+
 IV4 InputInterval(const glm::dvec3& x) { return IV4{{Iv(x.x), Iv(x.y), Iv(x.z), Iv(1.0)}}; }
 
-QV4 InputExact(const glm::dvec3& x) {
-  return QV4{{mpq_class(x.x), mpq_class(x.y), mpq_class(x.z), mpq_class(1)}};
+// (x, y, z, 1) scaled by a power of two that makes every coordinate an
+// integer: a positive multiple, the same point.
+ZV4 InputExact(const glm::dvec3& x) {
+  std::array<mpz_class, 4> z;
+  ToCommonIntegers(std::array<double, 4>{x.x, x.y, x.z, 1.0}, &z);
+  return ZV4{z};
 }
 
 // Sign of Dot4(a, b) from intervals, or exactly from the given thunks.
@@ -19,7 +49,7 @@ int SignOfDot(const IV4& a, const IV4& b, const ExactA& exact_a, const ExactB& e
   const int s = SignOf(Dot4(a, b));
   if (s != kUncertain) return s;
   g_exact_fallbacks.fetch_add(1, std::memory_order_relaxed);
-  return SignOf(mpq_class(Dot4(exact_a(), exact_b())));
+  return sgn(Dot4(exact_a(), exact_b()));
 }
 
 }  // namespace
@@ -72,8 +102,8 @@ XPoint XPoint::ThreePlanes(const XPlane& a, const XPlane& b, const XPlane& c) {
   return out;
 }
 
-const QV4& XPoint::Exact() const {
-  return exact.Get([this]() -> QV4 {
+const ZV4& XPoint::Exact() const {
+  return exact.Get([this]() -> ZV4 {
     switch (kind) {
       case Kind::kInput:
         return InputExact(input);
@@ -109,8 +139,12 @@ glm::dvec3 XPoint::Euclid() const {
   if (rel_w < 1e-9 && std::isfinite(err) && err <= 1e-11 * scale) {
     euclid = e;
   } else {
-    const QV4& q = Exact();
-    for (int i = 0; i < 3; ++i) euclid[i] = mpq_class(q[i] / q[3]).get_d();
+    const ZV4& q = Exact();
+    for (int i = 0; i < 3; ++i) {
+      mpq_class ratio(q[i], q[3]);
+      ratio.canonicalize();
+      euclid[i] = ratio.get_d();
+    }
   }
   has_euclid = true;
   return euclid;
@@ -175,15 +209,15 @@ XPlane XPlane::PointNormal(const XPoint& point, const glm::dvec3& normal) {
   return out;
 }
 
-const QV4& XPlane::Exact() const {
-  return exact.Get([this]() -> QV4 {
-    QV4 r;
+const ZV4& XPlane::Exact() const {
+  return exact.Get([this]() -> ZV4 {
+    ZV4 r;
     switch (kind) {
       case Kind::kThroughPoints:
         return Cross4(points[0]->Exact(), points[1]->Exact(), points[2]->Exact());
       case Kind::kParallelThrough: {
-        const QV4& b = base->Exact();
-        const QV4& x = points[0]->Exact();
+        const ZV4& b = base->Exact();
+        const ZV4& x = points[0]->Exact();
         r[0] = b[0] * x[3];
         r[1] = b[1] * x[3];
         r[2] = b[2] * x[3];
@@ -193,11 +227,13 @@ const QV4& XPlane::Exact() const {
       case Kind::kPointNormal:
         break;
     }
-    const QV4& x = points[0]->Exact();
-    r[0] = normal.x;
-    r[1] = normal.y;
-    r[2] = normal.z;
-    r[3] = -(r[0] * x[0] + r[1] * x[1] + r[2] * x[2]);
+    // n . (y - x) for the integer multiple N of the normal and x = X / w:
+    // w N . y - N . X, a positive multiple of the interval's coefficients.
+    const ZV4& x = points[0]->Exact();
+    std::array<mpz_class, 3> n;
+    ToCommonIntegers(std::array<double, 3>{normal.x, normal.y, normal.z}, &n);
+    for (int i = 0; i < 3; ++i) r[i] = n[i] * x[3];
+    r[3] = -(n[0] * x[0] + n[1] * x[1] + n[2] * x[2]);
     return r;
   });
 }
@@ -218,41 +254,10 @@ bool XPlane::Degenerate() const {
 
 int EuclidSideSlow(const XPoint& x, const XPlane& plane) {
   const int s = SignOfDot(
-      plane.approx, x.approx, [&]() -> const QV4& { return plane.Exact(); },
-      [&]() -> const QV4& { return x.Exact(); });
+      plane.approx, x.approx, [&]() -> const ZV4& { return plane.Exact(); },
+      [&]() -> const ZV4& { return x.Exact(); });
   return s * x.w_sign * plane.o_sign;
 }
-
-// ---------------------------------------------------------------------------
-namespace {
-
-// Exact integer images of doubles: each nonzero double is m * 2^e with an
-// integer |m| < 2^53, so scaling a set of them by 2^-emin (emin the smallest
-// such e) gives integers. Determinants of input doubles are then computed in
-// mpz, with none of the gcd normalisation mpq pays on every operation.
-template <size_t N>
-void ToCommonIntegers(const std::array<double, N>& v, std::array<mpz_class, N>* out) {
-  int emin = std::numeric_limits<int>::max();
-  std::array<int, N> exps{};
-  std::array<double, N> mant{};
-  for (size_t i = 0; i < N; ++i) {
-    if (v[i] == 0.0) continue;
-    mant[i] = std::ldexp(std::frexp(v[i], &exps[i]), 53);  // integer, |m| < 2^53
-    exps[i] -= 53;
-    emin = std::min(emin, exps[i]);
-  }
-  for (size_t i = 0; i < N; ++i) {
-    if (v[i] == 0.0) {
-      (*out)[i] = 0;
-      continue;
-    }
-    (*out)[i] = mant[i];  // exact: an integer below 2^53
-    mpz_mul_2exp((*out)[i].get_mpz_t(), (*out)[i].get_mpz_t(),
-                 static_cast<mp_bitcnt_t>(exps[i] - emin));
-  }
-}
-
-}  // namespace
 
 int Orient3d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, const glm::dvec3& d) {
   // Repeated points (shared mesh vertices) make the exact answer zero; catch

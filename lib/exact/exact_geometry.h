@@ -29,7 +29,7 @@
 // Points and planes use homogeneous coordinates (x, y, z, w) so that no
 // predicate divides. Each carries an interval enclosure of its coordinates
 // (outward-rounded double arithmetic, see Iv) and, lazily, the exact value in
-// GMP rationals. A sign is read from the interval when the interval excludes
+// GMP integers (ZV4). A sign is read from the interval when the interval excludes
 // zero (the filter); otherwise it is recomputed exactly. Input-only
 // orientation tests use Shewchuk's static error bound for orient3d instead of
 // intervals, again with an exact fallback.
@@ -122,7 +122,6 @@ inline int SignOf(const Iv& a) {
   if (a.lo == 0.0 && a.hi == 0.0) return 0;
   return kUncertain;
 }
-inline int SignOf(const mpq_class& a) { return sgn(a); }
 
 // ---------------------------------------------------------------------------
 // Homogeneous 4-vectors and the two operations everything is built from.
@@ -133,7 +132,11 @@ struct V4 {
   T& operator[](int i) { return v[i]; }
 };
 using IV4 = V4<Iv>;
-using QV4 = V4<mpq_class>;
+// Exact homogeneous coordinates: integers. Inputs are scaled by powers of
+// two (InputExact), and every construction is a polynomial that is linear
+// in each of its objects, so a positive scale of any of them only scales
+// the result: no rationals, none of their gcds.
+using ZV4 = V4<mpz_class>;
 
 template <typename T>
 VISQ_EXACT_INLINE T Dot4(const V4<T>& a, const V4<T>& b) {
@@ -190,17 +193,17 @@ class ExactCache {
   }
   ~ExactCache() { delete value_.load(); }
   template <typename Make>
-  const QV4& Get(const Make& make) const {
-    if (const QV4* v = value_.load(std::memory_order_acquire)) return *v;
-    auto* fresh = new QV4(make());
-    QV4* expected = nullptr;
+  const ZV4& Get(const Make& make) const {
+    if (const ZV4* v = value_.load(std::memory_order_acquire)) return *v;
+    auto* fresh = new ZV4(make());
+    ZV4* expected = nullptr;
     if (value_.compare_exchange_strong(expected, fresh, std::memory_order_acq_rel)) return *fresh;
     delete fresh;
     return *expected;
   }
 
  private:
-  mutable std::atomic<QV4*> value_{nullptr};
+  mutable std::atomic<ZV4*> value_{nullptr};
 };
 
 // Midpoint-radius form of an interval vector, for the fast sign filter of
@@ -259,7 +262,7 @@ struct XPoint {
   static XPoint ThreePlanes(const XPlane& a, const XPlane& b, const XPlane& c);
 
   // Exact homogeneous coordinates, computed on first use (thread-safe).
-  const QV4& Exact() const;
+  const ZV4& Exact() const;
   void PrecomputeExact() const { (void)Exact(); }
   // Euclidean coordinates in double (from the interval when it is tight,
   // else from the exact value). Cached without synchronization: call it only
@@ -285,7 +288,7 @@ struct XPlane {
   static XPlane ParallelThrough(const XPlane& base, const XPoint& point);
   static XPlane PointNormal(const XPoint& point, const glm::dvec3& normal);
 
-  const QV4& Exact() const;
+  const ZV4& Exact() const;
   void PrecomputeExact() const { (void)Exact(); }
   // Whether the coefficients are exactly zero (three collinear points).
   bool Degenerate() const;
