@@ -44,6 +44,29 @@ const LightTriangle& PlantLight(LightTree& tree, const std::vector<std::array<ui
   const glm::dvec3 n =
       glm::abs(glm::cross(ll[largest->v[1]] - ll[largest->v[0]], ll[largest->v[2]] - ll[largest->v[0]]));
   tree.light_axis = n.x >= n.y && n.x >= n.z ? 0 : n.y >= n.z ? 1 : 2;
+
+  // One piece when every vertex lies on the light plane and every other
+  // vertex is strictly on one side of each edge (exact tests).
+  bool convex = ll.size() > 3;
+  for (size_t i = 0; convex && i < ll.size(); ++i) convex = EuclidSide(tree.light_points[i], *tree.light_plane) == 0;
+  const int i2 = (tree.light_axis + 1) % 3, j2 = (tree.light_axis + 2) % 3;
+  int turn = 0;
+  for (size_t e = 0; convex && e < ll.size(); ++e) {
+    const size_t f = (e + 1) % ll.size();
+    for (size_t m = 0; convex && m < ll.size(); ++m) {
+      if (m == e || m == f) continue;
+      const int side = Orient2d(ll[e], ll[f], ll[m], i2, j2);
+      convex = side != 0 && (turn == 0 || side == turn);
+      turn = side;
+    }
+  }
+  if (convex) {
+    LightPiece whole{{}, tree.light_plane};
+    for (uint32_t i = 0; i < ll.size(); ++i) whole.v.push_back(i);
+    tree.light_pieces.push_back(std::move(whole));
+  } else {
+    for (const LightTriangle& t : tree.light_triangles) tree.light_pieces.push_back({{t.v[0], t.v[1], t.v[2]}, t.plane});
+  }
   return *largest;
 }
 

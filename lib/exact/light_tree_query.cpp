@@ -359,13 +359,16 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     }
   }
 
-  // Start from the light triangles, clipped to the receiver's hemisphere.
+  // Start from the light's pieces, clipped to the receiver's hemisphere.
   std::vector<Fragment> pending;
   const XPlane* horizon = normal ? s.Add(XPlane::PointNormal(*s.p, *normal)) : nullptr;
-  for (uint32_t t = 0; t < light_triangles.size(); ++t) {
+  for (uint32_t t = 0; t < light_pieces.size(); ++t) {
     Fragment f;
-    f.triangle = t;
-    for (int i = 0; i < 3; ++i) f.v.push_back({&light_points[light_triangles[t].v[i]], i, nullptr});
+    f.piece = t;
+    const LightPiece& piece = light_pieces[t];
+    for (size_t i = 0; i < piece.v.size(); ++i) {
+      f.v.push_back({&light_points[piece.v[i]], static_cast<int32_t>(i), nullptr});
+    }
     if (horizon != nullptr && !Clip(s, &f, *horizon, 1)) continue;
     pending.push_back(std::move(f));
   }

@@ -335,13 +335,13 @@ bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragmen
 }
 
 const XPoint* LightTree::Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const {
-  VISQ_DCHECK_LT(size_t(f.triangle), light_triangles.size());
-  const LightTriangle& t = light_triangles[f.triangle];
+  VISQ_DCHECK_LT(size_t(f.piece), light_pieces.size());
+  const LightPiece& piece = light_pieces[f.piece];
   if (from.light_edge >= 0) {
-    return s.Add(XPoint::LinePlane(light_points[t.v[from.light_edge]],
-                                   light_points[t.v[(from.light_edge + 1) % 3]], plane));
+    return s.Add(XPoint::LinePlane(light_points[piece.v[from.light_edge]],
+                                   light_points[piece.v[(from.light_edge + 1) % piece.v.size()]], plane));
   }
-  return s.Add(XPoint::ThreePlanes(*t.plane, *from.plane, plane));
+  return s.Add(XPoint::ThreePlanes(*piece.plane, *from.plane, plane));
 }
 
 void LightTree::Split(Scratch& s, const Fragment& f, const std::vector<int>& sg, const XPlane& plane,
@@ -350,7 +350,7 @@ void LightTree::Split(Scratch& s, const Fragment& f, const std::vector<int>& sg,
   pos->v.clear();
   neg->v.clear();
   pos->box_state = neg->box_state = 0;
-  pos->triangle = neg->triangle = f.triangle;
+  pos->piece = neg->piece = f.piece;
   const size_t n = f.v.size();
   const bool has_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
   const bool has_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });

@@ -74,7 +74,7 @@ struct NearOccluder {
 // One edge of a light fragment lies on a light-triangle edge or on a plane.
 struct FVert {
   const XPoint* point;
-  int32_t light_edge;   // >= 0: edge (light_edge, light_edge + 1) of the triangle
+  int32_t light_edge;   // >= 0: edge (light_edge, light_edge + 1) of the light piece
   const XPlane* plane;  // otherwise: the plane holding the edge to the next vertex
 };
 
@@ -93,7 +93,7 @@ struct LineBox {
 };
 
 struct Fragment {
-  uint32_t triangle = 0;  // light triangle
+  uint32_t piece = 0;  // the light piece it lies in (LightTree::light_pieces)
   absl::InlinedVector<FVert, 8> v;  // most fragments have few vertices: no allocation
   // The LineBox of the fragment, computed on first use: 0 not yet, 1 valid,
   // -1 none (a direction with d[k] not certainly of the light's sign).
@@ -103,6 +103,13 @@ struct Fragment {
 
 struct LightTriangle {
   uint32_t v[3];  // indices into light points
+  const XPlane* plane;
+};
+
+// A convex part of the light that fragments start from: its vertices (into
+// light points, in the light's winding) and its plane.
+struct LightPiece {
+  absl::InlinedVector<uint32_t, 8> v;
   const XPlane* plane;
 };
 
@@ -231,6 +238,10 @@ struct LightTree {
   std::vector<glm::dvec3> light_local;  // same, as doubles
   std::deque<XPlane> light_planes;      // one per light triangle
   std::vector<LightTriangle> light_triangles;
+  // The whole light when it is one strictly convex polygon in the light
+  // plane, else its triangles: a quadrilateral's diagonal would cut every
+  // shadow across it in two (docs/exact-method-notes.md).
+  std::vector<LightPiece> light_pieces;
   const XPlane* light_plane = nullptr;  // the largest triangle's: front side positive
   int light_axis = 2;  // the axis nearest the light's normal: k of the LineBoxes
 

@@ -505,6 +505,34 @@ TEST(LightVisibilityTest, NeighbouringTrianglesSubtractedAsOneQuadrilateralGiveT
   EXPECT_EQ(alone->Stats().merged_occluders, 0u);
 }
 
+TEST(LightVisibilityTest, AStrictlyConvexLightSplitWholeGivesItsTrianglesAnswers) {
+  // A strictly convex light in one plane is one piece: fragments start from
+  // the whole polygon. The same polygon with a vertex in the middle of an
+  // edge is not strictly convex, so its fragments start from its triangles
+  // (the pieces of any light before). Both must give the same answers.
+  std::vector<Tri> tris = {{glm::dvec3(-2, -2, 0), glm::dvec3(2, -2, 0), glm::dvec3(2, 2, 0)},
+                           {glm::dvec3(-2, -2, 0), glm::dvec3(2, 2, 0), glm::dvec3(-2, 2, 0)}};
+  for (const Tri& t : Cloud(150, 11)) tris.push_back(t);
+  const Scene scene = MakeScene(tris);
+  const double z = 2.0, h = 0.75;
+  const std::vector<std::vector<glm::dvec3>> outlines = {
+      {{-h, -h, z}, {-h, h, z}, {h, h, z}, {h, -h, z}},
+      {{-h, 0, z}, {-0.5 * h, h, z}, {0.5 * h, h, z}, {h, 0, z}, {0.5 * h, -h, z}, {-0.5 * h, -h, z}}};
+  for (const std::vector<glm::dvec3>& outline : outlines) {
+    std::vector<glm::dvec3> straight = outline;
+    straight.insert(straight.begin() + 1, 0.5 * (outline[0] + outline[1]));
+    auto whole = MakeTree({outline, 1.0}, scene, std::nullopt);
+    auto triangles = MakeTree({straight, 1.0}, scene, std::nullopt);
+    ASSERT_TRUE(whole && triangles);
+    int penumbra = 0;
+    for (const glm::dvec3& p : FloorPoints(300, 23)) {
+      const double visible = SameOnBoth(*whole, *triangles, p).visible_area_fraction;
+      penumbra += visible > 0.0 && visible < 1.0;
+    }
+    EXPECT_GT(penumbra, 100) << outline.size() << " vertices";
+  }
+}
+
 TEST(LightVisibilityTest, PointsHiddenByTheBlockersOfThePointBeforeAnswerAsOnAFreshThread) {
   // A ceiling of small quadrilaterals (two triangles each) with holes: from
   // the floor under it, no one triangle hides the light, a few dozen do
