@@ -1,5 +1,6 @@
 #include "exact/exact_geometry.h"
 
+#include <cmath>
 #include <limits>
 
 #include "common/check.h"
@@ -177,11 +178,16 @@ glm::dvec3 XPoint::Euclid() const {
   if (rel_w < 1e-9 && std::isfinite(err) && err <= 1e-11 * scale) {
     euclid = e;
   } else {
+    // Each integer as a double in [0.5, 1) times a power of two (truncated,
+    // within an ulp): the ratio within a few ulps, with no gcd of integers
+    // hundreds of bits long.
     const ZV4& q = Exact();
+    long w_exp = 0;
+    const double w_mantissa = mpz_get_d_2exp(&w_exp, q[3].get_mpz_t());
     for (int i = 0; i < 3; ++i) {
-      mpq_class ratio(q[i], q[3]);
-      ratio.canonicalize();
-      euclid[i] = ratio.get_d();
+      long exp = 0;
+      const double mantissa = mpz_get_d_2exp(&exp, q[i].get_mpz_t());
+      euclid[i] = std::ldexp(mantissa / w_mantissa, static_cast<int>(exp - w_exp));
     }
   }
   has_euclid = true;
