@@ -415,17 +415,17 @@ bool LightTree::ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) 
 bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
                          const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
                          const LineBox* shadow) const {
-  std::vector<EdgeLine> lines;
-  lines.reserve(edges.size());
+  std::vector<EdgeLine>& lines = s.subtract_lines;
+  lines.clear();
   for (const auto& [a, b] : edges) lines.push_back({a, b});
   // Fragments that stay whole stay in place (a fragment is a few hundred
   // bytes, and a dense mesh's penumbra has hundreds for every occluder);
   // the pieces of the cut ones are appended.
   std::vector<Fragment>& out = *fragments;
   size_t kept = 0;
-  struct Item { Fragment f; size_t k; int chain; };
-  std::vector<Item> stack;
-  std::vector<int> sg;
+  std::vector<Scratch::ChainPiece>& stack = s.subtract_stack;
+  stack.clear();
+  std::vector<int>& sg = s.subtract_signs;
   const auto keep = [&](size_t i) {
     if (kept != i) out[kept] = std::move(out[i]);
     ++kept;
@@ -456,7 +456,7 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
   const bool cut = kept < out.size();
   out.resize(kept);
   while (!stack.empty()) {
-    Item item = std::move(stack.back());
+    Scratch::ChainPiece item = std::move(stack.back());
     stack.pop_back();
     EdgeLine& line = lines[item.k];
     if (!EdgeSides(s, item.f, line, &sg)) {  // touches the edge line only: not inside

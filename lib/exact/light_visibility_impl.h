@@ -332,11 +332,22 @@ struct LightTree {
   // query makes hundreds of objects, and allocating them one by one (a
   // std::deque of these 200-byte objects allocates every second one) cost
   // more than the warm queries' arithmetic.
+  struct EdgeLine;
   struct Scratch {
     Arena<XPoint> points;
     Arena<XPlane> planes;
     absl::flat_hash_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
     std::vector<int> signs;
+    // Subtract's working lists, kept for their capacity (it runs once per
+    // occluder that reaches the fragments).
+    struct ChainPiece {
+      Fragment f;
+      size_t k;   // the next edge line to split it by
+      int chain;  // the sign that keeps a part in the chain (0: either)
+    };
+    std::vector<EdgeLine> subtract_lines;
+    std::vector<ChainPiece> subtract_stack;
+    std::vector<int> subtract_signs;
     const XPoint* p = nullptr;
     // The query's stop: looked at every kStopStride calls of StopNow.
     const StopToken* stop = nullptr;
