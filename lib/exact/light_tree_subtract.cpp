@@ -103,8 +103,12 @@ bool LightTree::EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vecto
 bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
                                   Corners* corners) const {
   const XPoint* v[3] = {&Vertex(s, n.v[0]), &Vertex(s, n.v[1]), &Vertex(s, n.v[2])};
+  int top_side[3];
   bool any_below_top = false;
-  for (int i = 0; i < 3; ++i) any_below_top |= EuclidSide(*v[i], slab_top) < 0;
+  for (int i = 0; i < 3; ++i) {
+    top_side[i] = EuclidSide(*v[i], slab_top);
+    any_below_top |= top_side[i] < 0;
+  }
   if (!any_below_top) return false;  // nothing strictly between
   struct CV { const XPoint* point; int orig_edge; };  // orig_edge -1: on a cut
   absl::InlinedVector<CV, 6> poly = {{v[0], 0}, {v[1], 1}, {v[2], 2}}, clipped;
@@ -118,6 +122,8 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
     for (size_t i = 0; i < poly.size(); ++i) {
       if (pass == 0) {
         sides[i] = n.light_side[poly[i].orig_edge];  // poly is still the triangle
+      } else if (!cut) {
+        sides[i] = -top_side[poly[i].orig_edge];  // still the triangle, in its order
       } else {
         sides[i] = -EuclidSide(*poly[i].point, plane);
       }
