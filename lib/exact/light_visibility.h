@@ -181,9 +181,9 @@ struct TreeStats {
   // Near occluders subtracted inside a neighbour's polygon (two triangles
   // seen as one convex quadrilateral), not on their own.
   uint64_t merged_occluders = 0;
-  // Queries found wholly hidden by the occluders that together hid the
-  // thread's previous hidden point (no gathering); counted in
-  // wholly_hidden too.
+  // Queries found wholly hidden by occluders that together hid a point
+  // nearby on the same thread (the most recent such set, or the one found
+  // nearest; no gathering); counted in wholly_hidden too.
   uint64_t hidden_by_remembered_blockers = 0;
   // Answers given again from the tree's store of answers (an identical
   // point, normal and receiver triangle was asked before): no descent, no

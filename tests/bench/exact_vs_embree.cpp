@@ -558,7 +558,7 @@ int Run(const BenchCase& bc, const Params& p) {
               static_cast<unsigned long long>(stats_cold.queries), same ? "yes" : "NO");
   std::printf("penumbra points (0 < exact < 1): %zu of %zu\n", penumbra, bc.points.size());
   std::printf("queries answered before the tree: %llu wholly visible, %llu wholly hidden (%llu by the blockers of "
-              "the point before), %llu subtracted directly; "
+              "a point nearby), %llu subtracted directly; "
               "%llu near occluders subtracted inside a neighbour's quadrilateral\n",
               static_cast<unsigned long long>(stats.wholly_visible),
               static_cast<unsigned long long>(stats.wholly_hidden),
