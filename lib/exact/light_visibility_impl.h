@@ -605,13 +605,14 @@ struct LightTree {
   // those that hid a whole light from this thread at a point nearby (at
   // most kRememberedBlockers a set, remembered where a point was found
   // hidden by subtraction; kRememberedSets sets), subtracted from the
-  // light before any gathering. The most recent set is tried, and the one
-  // found at the point nearest P (a frame's row above). A set is
-  // subtracted only when each light vertex's segment crosses one of its
-  // triangles; then, if nothing is left, the point is hidden, exactly: any
-  // occluders of the tree but P's own triangle prove it, so a stale memory
-  // costs a try and no wrong answer. A set whose subtraction fails is
-  // forgotten.
+  // light before any gathering. The most recent set is tried (until it
+  // fails, then not until a newer one comes), and the one found at the
+  // point nearest P, within four steps of the thread's previous point (a
+  // frame's row above). A set is subtracted only when each light vertex's
+  // segment crosses one of its triangles; then, if nothing is left, the
+  // point is hidden, exactly: any occluders of the tree but P's own
+  // triangle prove it, so a stale memory costs a try and no wrong answer.
+  // A set whose subtraction fails is forgotten.
   static constexpr size_t kRememberedBlockers = 64;
   static constexpr size_t kRememberedSets = 64;
   bool HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const;
