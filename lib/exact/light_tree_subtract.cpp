@@ -421,6 +421,9 @@ bool LightTree::ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) 
 bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
                          const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
                          const LineBox* shadow) const {
+  // A polygon has a handful of edges (a triangle clipped twice, five).
+  VISQ_CHECK_LE(edges.size(), size_t{32});
+  const auto line_bit = [](size_t k) { return uint32_t{1} << k; };
   std::vector<EdgeLine>& lines = s.subtract_lines;
   lines.clear();
   for (const auto& [a, b] : edges) lines.push_back({a, b});
@@ -443,8 +446,9 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
       continue;
     }
     bool outside_positive = false, outside_negative = false, touches_only = false;
-    for (EdgeLine& line : lines) {
-      const Straddle straddle = EdgeStraddle(s, f, line);
+    uint32_t straddled = 0;
+    for (size_t k = 0; k < lines.size(); ++k) {
+      const Straddle straddle = EdgeStraddle(s, f, lines[k]);
       if (!straddle.any_positive && !straddle.any_negative) {  // touches the edge line only: not inside
         touches_only = true;
         break;
@@ -452,26 +456,39 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
       outside_positive |= !straddle.any_positive;
       outside_negative |= !straddle.any_negative;
       if (outside_positive && outside_negative) break;  // outside for either sign: kept whole
+      if (straddle.any_positive && straddle.any_negative) straddled |= line_bit(k);
     }
     if (touches_only || (outside_positive && outside_negative)) {
       keep(i);
       continue;
     }
-    stack.push_back({std::move(f), 0, outside_positive ? -1 : outside_negative ? 1 : 0});
+    // Every line it does not straddle has it, and so each of its pieces,
+    // on the chain's side: only the straddled lines can cut it, and with
+    // none it lies inside the shadow.
+    if (straddled == 0) continue;
+    stack.push_back({std::move(f), straddled, outside_positive ? -1 : outside_negative ? 1 : 0});
   }
   const bool cut = kept < out.size();
   out.resize(kept);
   while (!stack.empty()) {
     Scratch::ChainPiece item = std::move(stack.back());
     stack.pop_back();
-    EdgeLine& line = lines[item.k];
+    const int k = std::countr_zero(item.lines);
+    const uint32_t later_lines = item.lines & (item.lines - 1);
+    EdgeLine& line = lines[k];
     if (!EdgeSides(s, item.f, line, &sg)) {  // touches the edge line only: not inside
       out.push_back(std::move(item.f));
       continue;
     }
+    const bool any_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
+    const bool any_neg = std::any_of(sg.begin(), sg.end(), [](int x) { return x < 0; });
     Fragment pos, neg;
-    Split(s, item.f, sg, *PlaneOf(s, line).plane, &pos, &neg);
-    const bool last = item.k + 1 == edges.size();
+    if (any_pos && any_neg) {
+      Split(s, item.f, sg, *PlaneOf(s, line).plane, &pos, &neg);
+    } else {  // a piece on one side of this line: not cut by it
+      (any_pos ? pos : neg) = std::move(item.f);
+    }
+    const bool last = later_lines == 0;
     // Continue the chain with the part that keeps the chain's sign; the
     // rest is outside the occluder's shadow.
     Fragment* keep[2] = {&pos, &neg};
@@ -482,7 +499,7 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
       if (item.chain != 0 && sign != item.chain) {
         out.push_back(std::move(part));
       } else if (!last) {
-        stack.push_back({std::move(part), item.k + 1, sign});
+        stack.push_back({std::move(part), later_lines, sign});
       }
       // else: inside all edges, shadowed.
     }

@@ -342,8 +342,8 @@ struct LightTree {
     // occluder that reaches the fragments).
     struct ChainPiece {
       Fragment f;
-      size_t k;   // the next edge line to split it by
-      int chain;  // the sign that keeps a part in the chain (0: either)
+      uint32_t lines;  // the edge lines still to split it by (bit k: line k)
+      int chain;       // the sign that keeps a part in the chain (0: either)
     };
     std::vector<EdgeLine> subtract_lines;
     std::vector<ChainPiece> subtract_stack;
@@ -725,9 +725,11 @@ struct LightTree {
   // The lines inside the polygon's shadow have one sign against every edge
   // line. A fragment is first judged whole: if for each sign some edge has
   // none of its vertices on that sign's side, it is outside and kept as it
-  // is. Only the others are cut, edge by edge, following the one sign that
-  // can still hold. Cutting a fragment that lies outside anyway would leave
-  // it in pieces, and every piece costs each later occluder again.
+  // is. Only the others are cut, following the one sign that can still
+  // hold, and only by the edge lines they straddle: the rest have the
+  // fragment, and so each of its pieces, on that sign's side. Cutting a
+  // fragment that lies outside anyway would leave it in pieces, and every
+  // piece costs each later occluder again.
   // Returns whether it cut (or removed) any fragment.
   bool Subtract(Scratch& s, std::vector<Fragment>* fragments,
                 const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
