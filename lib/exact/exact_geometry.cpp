@@ -64,7 +64,7 @@ XPoint XPoint::Input(const glm::dvec3& x) {
   out.w_sign = 1;
   out.has_euclid = true;
   out.euclid = x;
-  out.fast = MidRad::From(out.approx);
+  out.fast = PointFilter::From(out.approx);
   return out;
 }
 
@@ -84,7 +84,7 @@ XPoint XPoint::LinePlane(const XPoint& p, const XPoint& q, const XPlane& plane) 
   out.q = &q;
   out.planes[0] = &plane;
   out.approx = LinePlanePoint(p.approx, q.approx, plane.approx);
-  out.fast = MidRad::From(out.approx);
+  out.fast = PointFilter::From(out.approx);
   out.w_sign = ExactWSign(out);
   VISQ_CHECK(out.w_sign != 0);
   return out;
@@ -132,7 +132,7 @@ XPoint XPoint::ThreePlanes(const XPlane& a, const XPlane& b, const XPlane& c) {
   } else {
     out.approx = Cross4(a.approx, b.approx, c.approx);
   }
-  out.fast = MidRad::From(out.approx);
+  out.fast = PointFilter::From(out.approx);
   out.w_sign = ExactWSign(out);
   VISQ_CHECK(out.w_sign != 0);
   return out;
@@ -215,7 +215,7 @@ XPlane XPlane::ThroughPoints(const XPoint& p, const XPoint& q, const XPoint& r) 
   }
   // Dot4(coeffs, x) = det4(p, q, r, x) = -wp wq wr wx orient3d(p, q, r, x).
   out.o_sign = static_cast<int8_t>(-p.w_sign * q.w_sign * r.w_sign);
-  out.fast = MidRad::From(out.approx);
+  out.fast = PlaneFilter::From(out.approx);
   return out;
 }
 
@@ -233,7 +233,7 @@ XPlane XPlane::ParallelThrough(const XPlane& base, const XPoint& point) {
   // For Euclidean y: Dot4 = w_x * (b . (y - x)), and the base's natural
   // function grows along o_sign(base) * b.
   out.o_sign = static_cast<int8_t>(base.o_sign * point.w_sign);
-  out.fast = MidRad::From(out.approx);
+  out.fast = PlaneFilter::From(out.approx);
   return out;
 }
 
@@ -249,7 +249,7 @@ XPlane XPlane::PointNormal(const XPoint& point, const glm::dvec3& normal) {
   out.approx[2] = Iv(normal.z);
   out.approx[3] = -(Iv(normal.x) * x[0] + Iv(normal.y) * x[1] + Iv(normal.z) * x[2]);
   out.o_sign = 1;
-  out.fast = MidRad::From(out.approx);
+  out.fast = PlaneFilter::From(out.approx);
   return out;
 }
 

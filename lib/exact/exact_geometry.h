@@ -206,9 +206,7 @@ class ExactCache {
   mutable std::atomic<ZV4*> value_{nullptr};
 };
 
-// Midpoint-radius form of an interval vector, for the fast sign filter of
-// Dot4: |sum a_i x_i - fl(sum am_i xm_i)| <= sum(|am_i| xr_i + ar_i |xm_i|
-// + ar_i xr_i) + gamma_4 sum |am_i xm_i| (Higham's dot-product bound).
+// Midpoint-radius form of an interval vector.
 struct MidRad {
   std::array<double, 4> mid{}, rad{};
   static MidRad From(const IV4& v) {
@@ -222,18 +220,43 @@ struct MidRad {
   }
 };
 
-// Sign of the dot product of two enclosed vectors, or kUncertain.
-VISQ_EXACT_INLINE int FastSignOfDot(const MidRad& a, const MidRad& x) {
-  double s = 0.0, bound = 0.0, magnitude = 0.0;
-  for (int i = 0; i < 4; ++i) {
-    const double p = a.mid[i] * x.mid[i];
-    s += p;
-    magnitude += std::fabs(p);
-    bound += std::fabs(a.mid[i]) * x.rad[i] + a.rad[i] * std::fabs(x.mid[i]) + a.rad[i] * x.rad[i];
+// The fast sign filter of Dot4(a, x) for a plane a and a point x, from
+// Higham's dot-product bound: |sum a_i x_i - fl(sum am_i xm_i)| <=
+// sum(|am_i| xr_i + ar_i |xm_i| + ar_i xr_i) + gamma_4 sum |am_i xm_i|,
+// which is at most sum((|am_i| + ar_i)(xr_i + gamma_4 |xm_i|) + ar_i |xm_i|).
+// The plane keeps |am_i| + ar_i and the point xr_i + gamma_4 |xm_i|, made
+// once, so each test pays two products a term for its bound.
+inline constexpr double kGamma4 = 4.5e-16;  // 4u / (1 - 4u), rounded up
+struct PlaneFilter {
+  std::array<double, 4> mid{}, rad{}, wide{};  // wide: |mid| + rad
+  static PlaneFilter From(const IV4& v) {
+    const MidRad m = MidRad::From(v);
+    PlaneFilter f{m.mid, m.rad, {}};
+    for (int i = 0; i < 4; ++i) f.wide[i] = std::fabs(m.mid[i]) + m.rad[i];
+    return f;
   }
-  // gamma_4 = 4u / (1 - 4u) for the dot product; the bound's own rounding
-  // (about 16 operations) is covered by the factor and the absolute floor.
-  bound = (bound + 4.5e-16 * magnitude) * (1.0 + 4e-15) + 1e-300;
+};
+struct PointFilter {
+  std::array<double, 4> mid{}, rad{};  // rad: the radius plus gamma_4 |mid|
+  static PointFilter From(const IV4& v) {
+    const MidRad m = MidRad::From(v);
+    PointFilter f{m.mid, {}};
+    for (int i = 0; i < 4; ++i) f.rad[i] = m.rad[i] + kGamma4 * std::fabs(m.mid[i]);
+    return f;
+  }
+};
+
+// Sign of the dot product of an enclosed plane and point, or kUncertain.
+VISQ_EXACT_INLINE int FastSignOfDot(const PlaneFilter& a, const PointFilter& x) {
+  double s = 0.0, bound = 0.0;
+  for (int i = 0; i < 4; ++i) {
+    s += a.mid[i] * x.mid[i];
+    bound += a.wide[i] * x.rad[i] + a.rad[i] * std::fabs(x.mid[i]);
+  }
+  // The bound's own rounding (its terms are all positive: a relative error
+  // of about 12 ulps, the filter's precomputed terms included) is covered
+  // by the factor, underflow by the absolute floor.
+  bound = bound * (1.0 + 4e-15) + 1e-300;
   if (s > bound) return 1;
   if (s < -bound) return -1;
   return kUncertain;
@@ -248,7 +271,7 @@ struct XPoint {
   Kind kind = Kind::kInput;
   int8_t w_sign = 1;                    // exact sign of w (never 0)
   IV4 approx;                           // interval enclosure
-  MidRad fast;                          // the same, midpoint-radius
+  PointFilter fast;                     // the same, for FastSignOfDot
   glm::dvec3 input{0.0};                // kInput only
   const XPoint* p = nullptr;            // kLinePlane: the line
   const XPoint* q = nullptr;
@@ -278,7 +301,7 @@ struct XPlane {
   // ThroughPoints, n . (x - point) for the others).
   int8_t o_sign = 1;
   IV4 approx;
-  MidRad fast;
+  PlaneFilter fast;
   const XPoint* points[3] = {nullptr, nullptr, nullptr};
   const XPlane* base = nullptr;
   glm::dvec3 normal{0.0};
