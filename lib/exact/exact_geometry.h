@@ -41,6 +41,7 @@
 #include <bit>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <memory>
 
 #include <gmpxx.h>
@@ -226,36 +227,58 @@ struct MidRad {
 // which is at most sum((|am_i| + ar_i)(xr_i + gamma_4 |xm_i|) + ar_i |xm_i|).
 // The plane keeps |am_i| + ar_i and the point xr_i + gamma_4 |xm_i|, made
 // once, so each test pays two products a term for its bound.
+//
+// Each side also keeps two sums of its terms, for a first bound of one
+// product a side (at most four times the termwise one): sum_i wide_i xr_i
+// <= (sum_i wide_i) max_i xr_i, and sum_i ar_i |xm_i| <= (max_i ar_i)
+// sum_i |xm_i|. Most tests settle on it.
 inline constexpr double kGamma4 = 4.5e-16;  // 4u / (1 - 4u), rounded up
 struct PlaneFilter {
   std::array<double, 4> mid{}, rad{}, wide{};  // wide: |mid| + rad
+  double wide_sum = 0.0, rad_max = 0.0;
   static PlaneFilter From(const IV4& v) {
     const MidRad m = MidRad::From(v);
     PlaneFilter f{m.mid, m.rad, {}};
     for (int i = 0; i < 4; ++i) f.wide[i] = std::fabs(m.mid[i]) + m.rad[i];
+    f.Summarize();
     return f;
+  }
+  // Fills the sums from mid, rad and wide.
+  void Summarize() {
+    wide_sum = rad_max = 0.0;
+    for (int i = 0; i < 4; ++i) {
+      wide_sum += wide[i];
+      rad_max = std::max(rad_max, rad[i]);
+    }
   }
 };
 struct PointFilter {
   std::array<double, 4> mid{}, rad{};  // rad: the radius plus gamma_4 |mid|
+  double rad_max = 0.0, mid_sum = 0.0;  // max_i rad_i, sum_i |mid_i|
   static PointFilter From(const IV4& v) {
     const MidRad m = MidRad::From(v);
     PointFilter f{m.mid, {}};
-    for (int i = 0; i < 4; ++i) f.rad[i] = m.rad[i] + kGamma4 * std::fabs(m.mid[i]);
+    for (int i = 0; i < 4; ++i) {
+      f.rad[i] = m.rad[i] + kGamma4 * std::fabs(m.mid[i]);
+      f.rad_max = std::max(f.rad_max, f.rad[i]);
+      f.mid_sum += std::fabs(m.mid[i]);
+    }
     return f;
   }
 };
 
 // Sign of the dot product of an enclosed plane and point, or kUncertain.
 VISQ_EXACT_INLINE int FastSignOfDot(const PlaneFilter& a, const PointFilter& x) {
-  double s = 0.0, bound = 0.0;
-  for (int i = 0; i < 4; ++i) {
-    s += a.mid[i] * x.mid[i];
-    bound += a.wide[i] * x.rad[i] + a.rad[i] * std::fabs(x.mid[i]);
-  }
-  // The bound's own rounding (its terms are all positive: a relative error
-  // of about 12 ulps, the filter's precomputed terms included) is covered
-  // by the factor, underflow by the absolute floor.
+  double s = 0.0;
+  for (int i = 0; i < 4; ++i) s += a.mid[i] * x.mid[i];
+  // Each bound's own rounding (its terms are all positive: a relative
+  // error of about 12 ulps, the sums and precomputed terms included) is
+  // covered by the factor, underflow by the absolute floor.
+  const double first = (a.wide_sum * x.rad_max + a.rad_max * x.mid_sum) * (1.0 + 4e-15) + 1e-300;
+  if (s > first) return 1;
+  if (s < -first) return -1;
+  double bound = 0.0;
+  for (int i = 0; i < 4; ++i) bound += a.wide[i] * x.rad[i] + a.rad[i] * std::fabs(x.mid[i]);
   bound = bound * (1.0 + 4e-15) + 1e-300;
   if (s > bound) return 1;
   if (s < -bound) return -1;
@@ -347,6 +370,36 @@ class Orient3dFan {
     magnitude_ = glm::dvec3(std::fabs(u.y * v.z) + std::fabs(u.z * v.y), std::fabs(u.z * v.x) + std::fabs(u.x * v.z),
                             std::fabs(u.x * v.y) + std::fabs(u.y * v.x));
   }
+  // An enclosure of the plane (n, -n . p): Dot4 of it with (x, 1) is
+  // orient3d(p, a, b, x), so a derived point is tested against the fan by
+  // the fast filter, with no exact plane made. Each component of n carries
+  // the roundings of the two differences, of the product and of the
+  // difference of products: at most 4u of its magnitude (5.6e-16 covers
+  // the u^2 terms). The offset adds those radii times |p| and the rounding
+  // of its own dot product. With a difference so small that a product
+  // could underflow, the filter settles nothing (infinite radii).
+  PlaneFilter Filter() const {
+    const glm::dvec3 u = a_ - p_, v = b_ - p_;
+    bool safe = true;
+    for (int i = 0; i < 3; ++i) {
+      safe &= (u[i] == 0.0 || std::fabs(u[i]) > 1e-140) && (v[i] == 0.0 || std::fabs(v[i]) > 1e-140);
+    }
+    PlaneFilter f;
+    double offset = 0.0, offset_rad = 0.0, offset_magnitude = 0.0;
+    for (int i = 0; i < 3; ++i) {
+      f.mid[i] = normal_[i];
+      f.rad[i] = safe ? 5.6e-16 * magnitude_[i] : std::numeric_limits<double>::infinity();
+      offset -= normal_[i] * p_[i];
+      offset_rad += f.rad[i] * std::fabs(p_[i]);
+      offset_magnitude += std::fabs(normal_[i] * p_[i]);
+    }
+    f.mid[3] = offset;
+    f.rad[3] = (offset_rad + 3.4e-16 * offset_magnitude) * (1.0 + 2e-15);
+    for (int i = 0; i < 4; ++i) f.wide[i] = std::fabs(f.mid[i]) + f.rad[i];
+    f.Summarize();
+    return f;
+  }
+
   VISQ_EXACT_INLINE int Side(const glm::dvec3& x) const {
     const glm::dvec3 w = x - p_;
     const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;

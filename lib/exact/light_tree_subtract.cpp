@@ -65,9 +65,14 @@ LightTree::EdgePlaneRef LightTree::PlaneOf(Scratch& s, EdgeLine& e) const {
 
 int LightTree::LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
   using K = XPoint::Kind;
-  if (x.kind == K::kInput && e.a->kind == K::kInput && e.b->kind == K::kInput) {
+  if (e.a->kind == K::kInput && e.b->kind == K::kInput) {
     if (!e.fan) e.fan.emplace(s.p->input, e.a->input, e.b->input);
-    return -e.fan->Side(x.input);
+    if (x.kind == K::kInput) return -e.fan->Side(x.input);
+    // Most lines only test the fragments (a third ever cut one): their
+    // exact planes are made when the fan's filter cannot settle a side.
+    if (!e.fan_filter) e.fan_filter = e.fan->Filter();
+    const int fast = FastSignOfDot(*e.fan_filter, x.fast);
+    if (fast != kUncertain) return -fast * x.w_sign;
   }
   const EdgePlaneRef ref = PlaneOf(s, e);
   if (ref.plane == nullptr) return 0;

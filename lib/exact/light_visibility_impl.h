@@ -475,6 +475,7 @@ struct LightTree {
     bool has_plane = false;
     EdgePlaneRef plane{nullptr, 0};
     std::optional<Orient3dFan> fan;  // orient3d(P, a, b, .), for input vertices
+    std::optional<PlaneFilter> fan_filter;  // its plane, for derived ones
   };
   EdgePlaneRef PlaneOf(Scratch& s, EdgeLine& e) const;
 
