@@ -546,7 +546,11 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
       s.occluder_marks[id].state = Scratch::kTaken;
     }
     LineBox shadow;
-    if (all_valid && ShadowBoxBound(s, id, &shadow) && all.Apart(shadow)) continue;
+    // all_valid: every fragment has its box.
+    if (all_valid && ShadowBoxBound(s, id, &shadow) &&
+        std::all_of(fragments->begin(), fragments->end(), [&](const Fragment& f) { return f.box.Apart(shadow); })) {
+      continue;
+    }
     if (test_near && id >= far.size()) {
       const uint32_t* t = OccluderVertices(id);
       const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};

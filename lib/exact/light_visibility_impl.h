@@ -744,7 +744,9 @@ struct LightTree {
   // subtracted. An occluder whose line box is apart from the box around all
   // the fragments is passed over without visiting them: a dense mesh's
   // leaf lists thousands of triangles, most of which miss the few pieces
-  // that reach it. Returns the number subtracted.
+  // that reach it. So is one whose triangle's box (in double, before any
+  // exact point of it is made) is apart from each fragment's. Returns the
+  // number subtracted.
   // With `quads`, near occluders that reach the fragments are subtracted
   // with a neighbour as one quadrilateral where they can be
   // (QuadWithNeighbour). With `cutting`, the ids of the occluders that cut
