@@ -302,6 +302,11 @@ struct XPoint {
   ExactCache exact;                     // lazily, thread-safe
   mutable bool has_euclid = false;
   mutable glm::dvec3 euclid{0.0};
+  // A query's image of a derived point in its chart of lines (the LineBox
+  // of the point alone: lo, hi per axis), made on first use by the query
+  // that owns the point: 0 not yet, 1 held, -1 none.
+  mutable int8_t chart_state = 0;
+  mutable std::array<double, 4> chart{};
 
   static XPoint Input(const glm::dvec3& x);
   static XPoint LinePlane(const XPoint& p, const XPoint& q, const XPlane& plane);

@@ -658,15 +658,23 @@ struct LightTree {
         if (!ExtendByInputDirection(s, x->input, box)) return false;
         continue;
       }
-      // d = X / W - P; the ratios d[u] / d[k] = (X[u] - P[u] W) / (X[k] - P[k] W).
-      const IV4& h = x->approx;
-      const Iv den = h[k] - Iv(p[k]) * h[3];
-      const int den_sign = SignOf(den);
-      if (den_sign == kUncertain || den_sign * x->w_sign != s.line_box_sign) return false;
-      const Iv g[2] = {(h[u] - Iv(p[u]) * h[3]) / den, (h[v] - Iv(p[v]) * h[3]) / den};
+      // A derived point belongs to the query (Scratch), and most are
+      // corners of two fragments or more: its image is made once.
+      if (x->chart_state == 0) {
+        // d = X / W - P; the ratios d[u] / d[k] = (X[u] - P[u] W) / (X[k] - P[k] W).
+        const IV4& h = x->approx;
+        const Iv den = h[k] - Iv(p[k]) * h[3];
+        const int den_sign = SignOf(den);
+        x->chart_state = den_sign == kUncertain || den_sign * x->w_sign != s.line_box_sign ? -1 : 1;
+        if (x->chart_state > 0) {
+          const Iv g[2] = {(h[u] - Iv(p[u]) * h[3]) / den, (h[v] - Iv(p[v]) * h[3]) / den};
+          x->chart = {g[0].lo, g[0].hi, g[1].lo, g[1].hi};
+        }
+      }
+      if (x->chart_state < 0) return false;
       for (int i = 0; i < 2; ++i) {
-        box->lo[i] = std::min(box->lo[i], g[i].lo);
-        box->hi[i] = std::max(box->hi[i], g[i].hi);
+        box->lo[i] = std::min(box->lo[i], x->chart[2 * i]);
+        box->hi[i] = std::max(box->hi[i], x->chart[2 * i + 1]);
       }
     }
     return true;
