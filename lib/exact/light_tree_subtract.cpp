@@ -348,11 +348,16 @@ bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragmen
 const XPoint* LightTree::Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const {
   VISQ_DCHECK_LT(size_t(f.piece), light_pieces.size());
   const LightPiece& piece = light_pieces[f.piece];
+  const void* support = from.light_edge >= 0 ? static_cast<const void*>(&piece.v[from.light_edge]) : from.plane;
+  auto [it, inserted] = s.meets.try_emplace({support, &plane}, nullptr);
+  if (!inserted) return it->second;
   if (from.light_edge >= 0) {
-    return s.Add(XPoint::LinePlane(light_points[piece.v[from.light_edge]],
-                                   light_points[piece.v[(from.light_edge + 1) % piece.v.size()]], plane));
+    it->second = s.Add(XPoint::LinePlane(light_points[piece.v[from.light_edge]],
+                                         light_points[piece.v[(from.light_edge + 1) % piece.v.size()]], plane));
+  } else {
+    it->second = s.Add(XPoint::ThreePlanes(*piece.plane, *from.plane, plane));
   }
-  return s.Add(XPoint::ThreePlanes(*piece.plane, *from.plane, plane));
+  return it->second;
 }
 
 void LightTree::Split(Scratch& s, const Fragment& f, const std::vector<int>& sg, const XPlane& plane,

@@ -337,6 +337,10 @@ struct LightTree {
     Arena<XPoint> points;
     Arena<XPlane> planes;
     absl::flat_hash_map<std::pair<const void*, const void*>, const XPlane*, PairHash> edge_planes;
+    // The points where a fragment edge's support (a light piece's edge,
+    // by the address of its first vertex's slot, or a plane) meets a
+    // plane: neighbouring fragments cut by one plane share them.
+    absl::flat_hash_map<std::pair<const void*, const void*>, const XPoint*, PairHash> meets;
     std::vector<int> signs;
     // Subtract's working lists, kept for their capacity (it runs once per
     // occluder that reaches the fragments).
@@ -401,6 +405,7 @@ struct LightTree {
       points.Clear();
       planes.Clear();
       edge_planes.clear();
+      meets.clear();
       p = nullptr;
       line_box_sign = 0;
       stop = nullptr;
