@@ -437,6 +437,13 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
   std::vector<EdgeLine>& lines = s.subtract_lines;
   lines.clear();
   for (const auto& [a, b] : edges) lines.push_back({a, b});
+  // The side of every edge line that the lines through the polygon lie on:
+  // that of any corner off the first edge's line (the polygon is convex and
+  // on the light's side of P). With none, P sees it edge on, and it hides
+  // no set of lines of positive measure.
+  int inside = 0;
+  for (size_t j = 2; j < edges.size() && inside == 0; ++j) inside = LineSide(s, lines[0], *edges[j].first);
+  if (inside == 0) return false;
   // Fragments that stay whole stay in place (a fragment is a few hundred
   // bytes, and a dense mesh's penumbra has hundreds for every occluder);
   // the pieces of the cut ones are appended.
@@ -455,28 +462,29 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
       keep(i);
       continue;
     }
-    bool outside_positive = false, outside_negative = false, touches_only = false;
+    // Outside when some edge line has none of its vertices on the inside
+    // (touching it at most): kept whole.
+    bool outside = false;
     uint32_t straddled = 0;
     for (size_t k = 0; k < lines.size(); ++k) {
       const Straddle straddle = EdgeStraddle(s, f, lines[k]);
-      if (!straddle.any_positive && !straddle.any_negative) {  // touches the edge line only: not inside
-        touches_only = true;
+      const bool any_inside = inside > 0 ? straddle.any_positive : straddle.any_negative;
+      const bool any_outside = inside > 0 ? straddle.any_negative : straddle.any_positive;
+      if (!any_inside) {
+        outside = true;
         break;
       }
-      outside_positive |= !straddle.any_positive;
-      outside_negative |= !straddle.any_negative;
-      if (outside_positive && outside_negative) break;  // outside for either sign: kept whole
-      if (straddle.any_positive && straddle.any_negative) straddled |= line_bit(k);
+      if (any_outside) straddled |= line_bit(k);
     }
-    if (touches_only || (outside_positive && outside_negative)) {
+    if (outside) {
       keep(i);
       continue;
     }
     // Every line it does not straddle has it, and so each of its pieces,
-    // on the chain's side: only the straddled lines can cut it, and with
-    // none it lies inside the shadow.
+    // on the inside: only the straddled lines can cut it, and with none it
+    // lies inside the shadow.
     if (straddled == 0) continue;
-    stack.push_back({std::move(f), straddled, outside_positive ? -1 : outside_negative ? 1 : 0});
+    stack.push_back({std::move(f), straddled, inside});
   }
   const bool cut = kept < out.size();
   out.resize(kept);

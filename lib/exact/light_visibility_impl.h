@@ -737,10 +737,10 @@ struct LightTree {
   // of the many pieces it leaves.
   //
   // The lines inside the polygon's shadow have one sign against every edge
-  // line. A fragment is first judged whole: if for each sign some edge has
-  // none of its vertices on that sign's side, it is outside and kept as it
-  // is. Only the others are cut, following the one sign that can still
-  // hold, and only by the edge lines they straddle: the rest have the
+  // line, that of the polygon's corners against the first edge line. A
+  // fragment is first judged whole: if some edge has none of its vertices
+  // on that sign's side, it is outside and kept as it is. Only the others
+  // are cut, and only by the edge lines they straddle: the rest have the
   // fragment, and so each of its pieces, on that sign's side. Cutting a
   // fragment that lies outside anyway would leave it in pieces, and every
   // piece costs each later occluder again.
