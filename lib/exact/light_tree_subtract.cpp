@@ -265,7 +265,7 @@ bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& lig
   std::vector<uint32_t> ids;
   for (const Blocker& blocker : *blockers) ids.push_back(blocker.id);
   std::vector<uint32_t> cutting;
-  SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers, /*quads=*/false, &cutting);
+  SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers, /*quads=*/true, &cutting);
   if (!left.empty() || !s.stopped.ok()) return false;
   RememberBlockers(s, &cutting);
   return true;
@@ -328,7 +328,7 @@ bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragmen
     }
     std::vector<Fragment> left = light;
     const XPlane* slab_top = nullptr;
-    SubtractOccluders(s, &left, ids, &slab_top);
+    SubtractOccluders(s, &left, ids, &slab_top, SIZE_MAX, /*quads=*/true);
     if (!s.stopped.ok()) return false;
     if (left.empty()) {
       if (set != 0) {

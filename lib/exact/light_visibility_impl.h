@@ -597,8 +597,9 @@ struct LightTree {
                          uint32_t* neighbour) const;
 
   // Whether subtracting the blockers that block the most light vertices (at
-  // most kFewBlockers of them; near ones clipped to the slab) leaves nothing
-  // of the light.
+  // most kFewBlockers of them; near ones clipped to the slab, and with a
+  // neighbour among them as one quadrilateral, as on the main route) leaves
+  // nothing of the light.
   static constexpr size_t kFewBlockers = 16;
   struct Blocker {
     uint32_t id;   // occluder id: far ones first, then near ones
@@ -614,7 +615,8 @@ struct LightTree {
   // light before any gathering. The most recent set is tried (until it
   // fails, then not until a newer one comes), and the one found at the
   // point nearest P, within four steps of the thread's previous point (a
-  // frame's row above). A set is subtracted only when each light vertex's
+  // frame's row above). A set is subtracted (its neighbours as
+  // quadrilaterals) only when each light vertex's
   // segment crosses one of its triangles; then, if nothing is left, the
   // point is hidden, exactly: any occluders of the tree but P's own
   // triangle prove it, so a stale memory costs a try and no wrong answer.
