@@ -115,7 +115,10 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
     any_below_top |= top_side[i] < 0;
   }
   if (!any_below_top) return false;  // nothing strictly between
-  struct CV { const XPoint* point; int orig_edge; };  // orig_edge -1: on a cut
+  // The edge from a vertex to the next: a part of the triangle's edge
+  // orig_edge, or on the cut by the light plane or by the slab's top.
+  constexpr int kLightCut = -1, kTopCut = -2;
+  struct CV { const XPoint* point; int orig_edge; };
   absl::InlinedVector<CV, 6> poly = {{v[0], 0}, {v[1], 1}, {v[2], 2}}, clipped;
   absl::InlinedVector<int, 6> sides;
   bool cut = false;
@@ -143,7 +146,8 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
       const size_t j = (i + 1) % poly.size();
       const int sc = sides[i], sn = sides[j];
       if (sc > 0) clipped.push_back(poly[i]);
-      if (sc == 0) clipped.push_back({poly[i].point, sn < 0 ? -1 : poly[i].orig_edge});
+      const int cut_edge = pass == 0 ? kLightCut : kTopCut;
+      if (sc == 0) clipped.push_back({poly[i].point, sn < 0 ? cut_edge : poly[i].orig_edge});
       if ((sc > 0 && sn < 0) || (sc < 0 && sn > 0)) {
         // Crossing edges of the second pass are parts of triangle
         // edges too: the first cut lies in the light plane, strictly
@@ -151,7 +155,7 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
         const int e = poly[i].orig_edge;
         VISQ_CHECK(e >= 0);
         const XPoint* x = s.Add(XPoint::LinePlane(*v[e], *v[(e + 1) % 3], plane));
-        clipped.push_back({x, sc > 0 ? -1 : e});
+        clipped.push_back({x, sc > 0 ? cut_edge : e});
       }
     }
     poly.swap(clipped);
@@ -164,20 +168,38 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
     const int e = poly[i].orig_edge;
     if (e >= 0) {
       edges->emplace_back(v[e], v[(e + 1) % 3]);
-    } else {
+    } else if (e == kLightCut) {
       edges->emplace_back(poly[i].point, poly[(i + 1) % poly.size()].point);
     }
+    // An edge on the slab's top has no line: the top passes through P, so
+    // the plane through P and the edge is the top itself, and every point
+    // of the light lies on its inner side. The shadow on the light's plane
+    // is the wedge of the other edges.
   }
   if (!cut) return true;  // the whole triangle: ShadowMissesLight has passed it
   // Skip clipped occluders whose shadow misses the whole light: some edge
-  // has every light vertex on its <= 0 side (no all-positive line) and
-  // some edge has every light vertex > 0 (no all-non-positive line). Sides
-  // are linear over each light triangle, so vertices decide.
+  // line has no light vertex on its inner side. Sides are linear over
+  // each light triangle, so vertices decide.
   std::vector<EdgeLine> lines;
   lines.reserve(edges->size());
   for (const auto& [a, b] : *edges) lines.push_back({a, b});
-  return !ShadowMissesLightBySides(lines.size(),
-                                   [&](size_t e, size_t i) { return LineSide(s, lines[e], light_points[i]); });
+  const int inside = InsideSign(s, lines, *edges);
+  if (inside == 0) return false;  // seen edge on
+  for (EdgeLine& line : lines) {
+    bool any_inside = false;
+    for (size_t i = 0; i < light_points.size() && !any_inside; ++i) any_inside = LineSide(s, line, light_points[i]) == inside;
+    if (!any_inside) return false;
+  }
+  return true;
+}
+
+int LightTree::InsideSign(Scratch& s, std::vector<EdgeLine>& lines, const Edges& edges) const {
+  int inside = 0;
+  for (size_t j = 1; j < edges.size() && inside == 0; ++j) {
+    inside = LineSide(s, lines[0], *edges[j].first);
+    if (inside == 0) inside = LineSide(s, lines[0], *edges[j].second);
+  }
+  return inside;
 }
 
 bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, Edges* edges, Corners* corners) const {
@@ -437,12 +459,9 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
   std::vector<EdgeLine>& lines = s.subtract_lines;
   lines.clear();
   for (const auto& [a, b] : edges) lines.push_back({a, b});
-  // The side of every edge line that the lines through the polygon lie on:
-  // that of any corner off the first edge's line (the polygon is convex and
-  // on the light's side of P). With none, P sees it edge on, and it hides
-  // no set of lines of positive measure.
-  int inside = 0;
-  for (size_t j = 2; j < edges.size() && inside == 0; ++j) inside = LineSide(s, lines[0], *edges[j].first);
+  // With no inner side, P sees the polygon edge on, and it hides no set
+  // of lines of positive measure.
+  const int inside = InsideSign(s, lines, edges);
   if (inside == 0) return false;
   // Fragments that stay whole stay in place (a fragment is a few hundred
   // bytes, and a dense mesh's penumbra has hundreds for every occluder);

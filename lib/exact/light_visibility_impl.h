@@ -568,13 +568,21 @@ struct LightTree {
 
   // The edges of a near occluder clipped to the slab between the light
   // plane and the plane through P parallel to it (`slab_top`): the part of
-  // it that lies between. False when no part of it can block (nothing
-  // strictly between, or its clipped shadow misses the light).
+  // it that lies between, but for an edge on the slab's top (every light
+  // point is on its inner side). False when no part of it can block
+  // (nothing strictly between, or its clipped shadow misses the light).
   // `corners` gets the clipped polygon's vertices (for its LineBox).
   using Edges = std::vector<std::pair<const XPoint*, const XPoint*>>;
   using Corners = absl::InlinedVector<const XPoint*, 6>;
   bool NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
                          Corners* corners) const;
+
+  // The side of every line of a convex polygon's edges (`lines`, made from
+  // `edges`, a -> b in order around it, an edge on the slab's top left
+  // out) that the lines from the light through the polygon lie on: that of
+  // any corner off the first edge's line (the polygon is on the light's
+  // side of P). 0 when every corner is on it: P sees the polygon edge on.
+  int InsideSign(Scratch& s, std::vector<EdgeLine>& lines, const Edges& edges) const;
 
   // An occluder's edges and corners as a query subtracts it: a far one
   // whole, a near one clipped to the slab under P (made on first use in
