@@ -164,8 +164,8 @@ glm::dvec3 XPoint::Euclid() const {
   // ~100 operations) stay clear of the slow path.
   double mid[4], width[4];
   for (int i = 0; i < 4; ++i) {
-    mid[i] = 0.5 * (approx[i].lo + approx[i].hi);
-    width[i] = approx[i].hi - approx[i].lo;
+    mid[i] = approx[i].mid;
+    width[i] = 2.0 * approx[i].rad;
   }
   const double w = mid[3];
   const double rel_w = std::fabs(w) > 0.0 ? width[3] / std::fabs(w) : 1.0;

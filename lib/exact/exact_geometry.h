@@ -53,24 +53,39 @@ namespace visq::exact::detail {
 inline std::atomic<uint64_t> g_exact_fallbacks{0};
 
 // ---------------------------------------------------------------------------
-// Interval arithmetic with outward rounding. Each operation rounds to nearest
-// and then widens by |r| * 2^-52 + 2^-1074, which is at least one ulp of r
-// (and covers underflow), so the true value of every operation stays inside.
+// Interval arithmetic in midpoint-radius form: an Iv holds the reals within
+// rad of mid. Each operation rounds its midpoint to nearest and bounds, in
+// its radius, the operands' radii and that rounding (u |result|, u = 2^-53);
+// the radius, a sum of positive terms rounded to nearest, is scaled up by
+// Up past its own roundings (at most a few ulps) and underflow. A product
+// costs 3 products for its radius where endpoint intervals took 4 and their
+// minimum and maximum, and a plane's or point's fast filter (MidRad) reads
+// the form as it is.
 //
-// Point intervals stay points while the arithmetic is exact (error-free
-// TwoSum for sums, a significant-bit count for products). Why: degenerate
-// configurations with "nice" coordinates (axis-aligned boxes, a receiver on
-// the floor, a light at z = 2) produce exact zeros, and an exact zero is then
-// certified as [0, 0] here instead of falling back to GMP on every query.
-struct Iv {
-  double lo = 0.0, hi = 0.0;
-  Iv() = default;
-  explicit Iv(double x) : lo(x), hi(x) {}
-  Iv(double l, double h) : lo(l), hi(h) {}
-};
+// Point intervals (rad 0) stay points while the arithmetic is exact
+// (error-free TwoSum for sums, whose error is then the exact radius; a
+// significant-bit count for products). Why: degenerate configurations with
+// "nice" coordinates (axis-aligned boxes, a receiver on the floor, a light
+// at z = 2) produce exact zeros, and an exact zero is then certified as
+// [0, 0] here instead of falling back to GMP on every query.
 #define VISQ_EXACT_INLINE [[gnu::always_inline]] inline
 VISQ_EXACT_INLINE double RoundDown(double r) { return r - (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
 VISQ_EXACT_INLINE double RoundUp(double r) { return r + (std::fabs(r) * 0x1p-52 + 0x1p-1074); }
+// A bound on the exact value of a sum of at most 8 positive terms (products
+// or sums of doubles) computed with rounding to nearest: each rounding loses
+// at most u of the running value, or 2^-1075 in underflow.
+VISQ_EXACT_INLINE double Up(double r) { return r * (1.0 + 0x1p-49) + 0x1p-1068; }
+inline constexpr double kUnitRoundoff = 0x1p-53;
+
+struct Iv {
+  double mid = 0.0, rad = 0.0;
+  Iv() = default;
+  explicit Iv(double x) : mid(x) {}
+  Iv(double m, double r) : mid(m), rad(r) {}
+  // Outward bounds of the interval's ends.
+  double Lo() const { return rad == 0.0 ? mid : RoundDown(mid - rad); }
+  double Hi() const { return rad == 0.0 ? mid : RoundUp(mid + rad); }
+};
 
 // Bits between the leading and the last set bit of a normal double's
 // significand (1..53); 64 for zero, subnormals, inf and NaN.
@@ -82,45 +97,44 @@ VISQ_EXACT_INLINE int SignificantBits(double x) {
   return 53 - std::countr_zero(m);
 }
 
-VISQ_EXACT_INLINE Iv ExactOrWiden(double r, bool exact) {
-  return exact ? Iv(r) : Iv(RoundDown(r), RoundUp(r));
-}
-
 VISQ_EXACT_INLINE Iv operator+(const Iv& a, const Iv& b) {
-  if (a.lo == a.hi && b.lo == b.hi) {
-    const double s = a.lo + b.lo;
-    const double bb = s - a.lo;  // TwoSum: err is the exact rounding error
-    const double err = (a.lo - (s - bb)) + (b.lo - bb);
-    return ExactOrWiden(s, err == 0.0 && std::isfinite(s));
+  const double s = a.mid + b.mid;
+  if (a.rad == 0.0 && b.rad == 0.0) {
+    const double bb = s - a.mid;  // TwoSum: err is the exact rounding error
+    const double err = (a.mid - (s - bb)) + (b.mid - bb);
+    if (std::isfinite(s)) return {s, std::fabs(err)};
+    return {s, std::numeric_limits<double>::infinity()};
   }
-  return {RoundDown(a.lo + b.lo), RoundUp(a.hi + b.hi)};
+  return {s, Up(a.rad + b.rad + kUnitRoundoff * std::fabs(s))};
 }
-VISQ_EXACT_INLINE Iv operator-(const Iv& a) { return {-a.hi, -a.lo}; }
+VISQ_EXACT_INLINE Iv operator-(const Iv& a) { return {-a.mid, a.rad}; }
 VISQ_EXACT_INLINE Iv operator-(const Iv& a, const Iv& b) { return a + (-b); }
 VISQ_EXACT_INLINE Iv operator*(const Iv& a, const Iv& b) {
-  if (a.lo == a.hi && b.lo == b.hi) {
-    if (a.lo == 0.0 || b.lo == 0.0) return Iv(0.0);
-    const double p = a.lo * b.lo;
-    return ExactOrWiden(p, SignificantBits(a.lo) + SignificantBits(b.lo) <= 53 && std::isnormal(p));
+  const double p = a.mid * b.mid;
+  if (a.rad == 0.0 && b.rad == 0.0) {
+    if (a.mid == 0.0 || b.mid == 0.0) return Iv(0.0);
+    if (SignificantBits(a.mid) + SignificantBits(b.mid) <= 53 && std::isnormal(p)) return Iv(p);
+    return {p, Up(kUnitRoundoff * std::fabs(p))};
   }
-  const double p1 = a.lo * b.lo, p2 = a.lo * b.hi, p3 = a.hi * b.lo, p4 = a.hi * b.hi;
-  return {RoundDown(std::min(std::min(p1, p2), std::min(p3, p4))),
-          RoundUp(std::max(std::max(p1, p2), std::max(p3, p4)))};
+  const double am = std::fabs(a.mid), bm = std::fabs(b.mid);
+  return {p, Up(am * b.rad + a.rad * (bm + b.rad) + kUnitRoundoff * std::fabs(p))};
 }
 
-// a / b for an interval b that excludes zero (the caller checks SignOf(b)):
-// the quotient is monotone in each operand there, so the corners bound it.
-VISQ_EXACT_INLINE Iv operator/(const Iv& a, const Iv& b) {
-  const double q1 = a.lo / b.lo, q2 = a.lo / b.hi, q3 = a.hi / b.lo, q4 = a.hi / b.hi;
-  return {RoundDown(std::min(std::min(q1, q2), std::min(q3, q4))),
-          RoundUp(std::max(std::max(q1, q2), std::max(q3, q4)))};
+// Outward bounds of a / b for an interval b that excludes zero (the caller
+// checks SignOf(b)): the quotient is monotone in each operand there, so the
+// corners bound it.
+VISQ_EXACT_INLINE void QuotientBounds(const Iv& a, const Iv& b, double* lo, double* hi) {
+  const double al = a.Lo(), ah = a.Hi(), bl = b.Lo(), bh = b.Hi();
+  const double q1 = al / bl, q2 = al / bh, q3 = ah / bl, q4 = ah / bh;
+  *lo = RoundDown(std::min(std::min(q1, q2), std::min(q3, q4)));
+  *hi = RoundUp(std::max(std::max(q1, q2), std::max(q3, q4)));
 }
 inline constexpr int kUncertain = 2;
 // Sign of an interval, or kUncertain when it contains zero (or is NaN).
 inline int SignOf(const Iv& a) {
-  if (a.lo > 0.0) return 1;
-  if (a.hi < 0.0) return -1;
-  if (a.lo == 0.0 && a.hi == 0.0) return 0;
+  if (a.mid > a.rad) return 1;
+  if (-a.mid > a.rad) return -1;
+  if (a.mid == 0.0 && a.rad == 0.0) return 0;
   return kUncertain;
 }
 
@@ -221,9 +235,8 @@ struct MidRad {
   static MidRad From(const IV4& v) {
     MidRad m;
     for (int i = 0; i < 4; ++i) {
-      m.mid[i] = 0.5 * (v[i].lo + v[i].hi);
-      // Covers the rounding of mid as well (one ulp of it).
-      m.rad[i] = RoundUp(0.5 * (v[i].hi - v[i].lo)) + std::fabs(m.mid[i]) * 0x1p-52;
+      m.mid[i] = v[i].mid;
+      m.rad[i] = v[i].rad;
     }
     return m;
   }

@@ -682,8 +682,8 @@ struct LightTree {
         const int den_sign = SignOf(den);
         x->chart_state = den_sign == kUncertain || den_sign * x->w_sign != s.line_box_sign ? -1 : 1;
         if (x->chart_state > 0) {
-          const Iv g[2] = {(h[u] - Iv(p[u]) * h[3]) / den, (h[v] - Iv(p[v]) * h[3]) / den};
-          x->chart = {g[0].lo, g[0].hi, g[1].lo, g[1].hi};
+          QuotientBounds(h[u] - Iv(p[u]) * h[3], den, &x->chart[0], &x->chart[1]);
+          QuotientBounds(h[v] - Iv(p[v]) * h[3], den, &x->chart[2], &x->chart[3]);
         }
       }
       if (x->chart_state < 0) return false;
