@@ -72,9 +72,12 @@ LightTree::OccluderTest LightTree::TestOccluder(const glm::dvec3& p, const glm::
 }
 
 double LightTree::ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]) {
-  const glm::dvec3 offset = (v[0] + v[1] + v[2]) / 3.0 - p;
-  const double area = glm::length(glm::cross(v[1] - v[0], v[2] - v[0]));
-  return area / std::max(glm::dot(offset, offset), 1e-300);
+  // Squared, and with constant factors left out: no root and one division
+  // a candidate (a penumbra point sorts a hundred).
+  const glm::dvec3 offset = v[0] + v[1] + v[2] - 3.0 * p;  // three times the centroid's
+  const glm::dvec3 normal = glm::cross(v[1] - v[0], v[2] - v[0]);
+  const double distance2 = glm::dot(offset, offset);
+  return glm::dot(normal, normal) / std::max(distance2 * distance2, 1e-300);
 }
 
 void LightTree::SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids) const {

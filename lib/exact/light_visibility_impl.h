@@ -635,9 +635,9 @@ struct LightTree {
   // Remembers `ids` as blockers that hid the point P, if few.
   void RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const;
 
-  // A triangle's size as seen from p: its area over its squared distance,
-  // a proxy of its solid angle (it orders subtractions; any order gives the
-  // same answer).
+  // A triangle's size as seen from p: a number that grows with its area
+  // over its squared distance, a proxy of its solid angle (it orders
+  // subtractions; any order gives the same answer).
   static double ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]);
 
   // Orders occluder ids largest as seen from p first (they leave the fewest
