@@ -401,26 +401,21 @@ class Orient3dFan {
   // the fast filter, with no exact plane made. Each component of n carries
   // the roundings of the two differences, of the product and of the
   // difference of products: at most 4u of its magnitude (5.6e-16 covers
-  // the u^2 terms). The offset adds those radii times |p| and the rounding
-  // of its own dot product. With a difference so small that a product
-  // could underflow, the filter settles nothing (infinite radii).
+  // the u^2 terms), and 2^-1075 a product that underflows (differences are
+  // exact there). The offset adds those radii times |p| and the rounding
+  // of its own dot product.
   PlaneFilter Filter() const {
-    const glm::dvec3 u = a_ - p_, v = b_ - p_;
-    bool safe = true;
-    for (int i = 0; i < 3; ++i) {
-      safe &= (u[i] == 0.0 || std::fabs(u[i]) > 1e-140) && (v[i] == 0.0 || std::fabs(v[i]) > 1e-140);
-    }
     PlaneFilter f;
     double offset = 0.0, offset_rad = 0.0, offset_magnitude = 0.0;
     for (int i = 0; i < 3; ++i) {
       f.mid[i] = normal_[i];
-      f.rad[i] = safe ? 5.6e-16 * magnitude_[i] : std::numeric_limits<double>::infinity();
+      f.rad[i] = 5.6e-16 * magnitude_[i] + 0x1p-1072;
       offset -= normal_[i] * p_[i];
       offset_rad += f.rad[i] * std::fabs(p_[i]);
       offset_magnitude += std::fabs(normal_[i] * p_[i]);
     }
     f.mid[3] = offset;
-    f.rad[3] = (offset_rad + 3.4e-16 * offset_magnitude) * (1.0 + 2e-15);
+    f.rad[3] = (offset_rad + 3.4e-16 * offset_magnitude) * (1.0 + 2e-15) + 0x1p-1070;
     for (int i = 0; i < 4; ++i) f.wide[i] = std::fabs(f.mid[i]) + f.rad[i];
     f.Summarize();
     return f;

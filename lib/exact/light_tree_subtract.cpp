@@ -86,8 +86,9 @@ int LightTree::LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
 
 LightTree::Straddle LightTree::EdgeStraddle(Scratch& s, const Fragment& f, EdgeLine& e) const {
   Straddle straddle;
+  ReadyFan(s, e);
   for (const FVert& v : f.v) {
-    const int side = LineSide(s, e, *v.point);
+    const int side = QuickLineSide(s, e, *v.point);
     straddle.any_positive |= side > 0;
     straddle.any_negative |= side < 0;
     if (straddle.any_positive && straddle.any_negative) break;  // the rest cannot change the verdict
@@ -98,8 +99,9 @@ LightTree::Straddle LightTree::EdgeStraddle(Scratch& s, const Fragment& f, EdgeL
 bool LightTree::EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vector<int>* signs) const {
   signs->assign(f.v.size(), 0);
   bool any = false;
+  ReadyFan(s, e);
   for (size_t i = 0; i < f.v.size(); ++i) {
-    (*signs)[i] = LineSide(s, e, *f.v[i].point);
+    (*signs)[i] = QuickLineSide(s, e, *f.v[i].point);
     any |= (*signs)[i] != 0;
   }
   return any;

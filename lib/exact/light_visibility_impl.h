@@ -487,6 +487,21 @@ struct LightTree {
   // Side of x against the edge line, as the side of the line x -> P:
   // orient3d(x, P, a, b) = -orient3d(P, a, b, x). Zero when P is on the line.
   int LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const;
+  // The same, for the many vertices a fragment tests against one line: the
+  // line's fan and filter made once (ReadyFan), and their tests inline.
+  void ReadyFan(Scratch& s, EdgeLine& e) const {
+    if (e.fan || e.a->kind != XPoint::Kind::kInput || e.b->kind != XPoint::Kind::kInput) return;
+    e.fan.emplace(s.p->input, e.a->input, e.b->input);
+    e.fan_filter = e.fan->Filter();
+  }
+  VISQ_EXACT_INLINE int QuickLineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
+    if (e.fan_filter) {
+      if (x.kind == XPoint::Kind::kInput) return -e.fan->Side(x.input);
+      const int fast = FastSignOfDot(*e.fan_filter, x.fast);
+      if (fast != kUncertain) return -fast * x.w_sign;
+    }
+    return LineSide(s, e, x);
+  }
 
   // The sides of every fragment vertex. Returns false when every sign is zero
   // (P on the edge line, or a zero-area fragment).
