@@ -421,6 +421,22 @@ class Orient3dFan {
     return f;
   }
 
+  // The sign of n . (x - base) for another base point (the side of x
+  // against the plane through base parallel to the fan's), when the same
+  // static bound settles it (its terms are Side's); else kUncertain.
+  VISQ_EXACT_INLINE int ParallelSide(const glm::dvec3& base, const glm::dvec3& x) const {
+    const glm::dvec3 w = x - base;
+    const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;
+    const double permanent =
+        magnitude_.x * std::fabs(w.x) + magnitude_.y * std::fabs(w.y) + magnitude_.z * std::fabs(w.z);
+    const double bound = 7.7715611723761027e-16 * permanent;
+    if (permanent > 1e-250) {
+      if (det > bound) return 1;
+      if (-det > bound) return -1;
+    }
+    return kUncertain;
+  }
+
   VISQ_EXACT_INLINE int Side(const glm::dvec3& x) const {
     const glm::dvec3 w = x - p_;
     const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;

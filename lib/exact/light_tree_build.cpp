@@ -41,6 +41,7 @@ const LightTriangle& PlantLight(LightTree& tree, const std::vector<std::array<ui
     if (t.plane == tree.light_plane) largest = &t;
   }
   VISQ_CHECK(largest != nullptr);
+  tree.light_fan.emplace(ll[largest->v[0]], ll[largest->v[1]], ll[largest->v[2]]);
   const glm::dvec3 n =
       glm::abs(glm::cross(ll[largest->v[1]] - ll[largest->v[0]], ll[largest->v[2]] - ll[largest->v[0]]));
   tree.light_axis = n.x >= n.y && n.x >= n.z ? 0 : n.y >= n.z ? 1 : 2;

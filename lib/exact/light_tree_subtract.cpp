@@ -113,7 +113,7 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
   int top_side[3];
   bool any_below_top = false;
   for (int i = 0; i < 3; ++i) {
-    top_side[i] = EuclidSide(*v[i], slab_top);
+    top_side[i] = TopSide(s, n.v[i], slab_top);
     any_below_top |= top_side[i] < 0;
   }
   if (!any_below_top) return false;  // nothing strictly between
@@ -231,7 +231,7 @@ bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t 
     if (n.light_side[0] <= 0 || n.light_side[1] <= 0 || n.light_side[2] <= 0) return false;
     if (*slab_top == nullptr) *slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
     for (const uint32_t v : n.v) {
-      if (EuclidSide(Vertex(s, v), **slab_top) >= 0) return false;
+      if (TopSide(s, v, **slab_top) >= 0) return false;
     }
     return true;
   };

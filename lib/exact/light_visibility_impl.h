@@ -243,6 +243,9 @@ struct LightTree {
   // shadow across it in two (docs/exact-method-notes.md).
   std::vector<LightPiece> light_pieces;
   const XPlane* light_plane = nullptr;  // the largest triangle's: front side positive
+  // orient3d through the same three points: moved to P, the side of a vertex
+  // against the slab's top (TopSide) in double where it is clear.
+  std::optional<Orient3dFan> light_fan;
   int light_axis = 2;  // the axis nearest the light's normal: k of the LineBoxes
 
   // The occluders' vertices (local frame, input doubles), one per position,
@@ -591,6 +594,16 @@ struct LightTree {
   using Corners = absl::InlinedVector<const XPoint*, 6>;
   bool NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlane& slab_top, Edges* edges,
                          Corners* corners) const;
+
+  // EuclidSide of occluder vertex `vertex` against the slab's top (the
+  // plane through P parallel to the light's): the light plane's normal, in
+  // double, dotted with the vertex's offset from P where the static filter
+  // settles it, else the exact test.
+  int TopSide(Scratch& s, uint32_t vertex, const XPlane& slab_top) const {
+    const int fast = light_fan->ParallelSide(s.p->input, vertices[vertex]);
+    if (fast != kUncertain) return fast;
+    return EuclidSide(Vertex(s, vertex), slab_top);
+  }
 
   // The side of every line of a convex polygon's edges (`lines`, made from
   // `edges`, a -> b in order around it, an edge on the slab's top left
