@@ -580,8 +580,9 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
       s.occluder_marks[id].state = Scratch::kTaken;
     }
     LineBox shadow;
+    const bool triangle_box = ShadowBoxBound(s, id, &shadow);
     // all_valid: every fragment has its box.
-    if (all_valid && ShadowBoxBound(s, id, &shadow) &&
+    if (all_valid && triangle_box &&
         std::all_of(fragments->begin(), fragments->end(), [&](const Fragment& f) { return f.box.Apart(shadow); })) {
       continue;
     }
@@ -591,7 +592,11 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
       if (ShadowMissesLight(s.p->input, v)) continue;
     }
     if (!OccluderEdges(s, id, slab_top, &edges, &corners)) continue;
-    bool has_shadow = LineBoxOf(s, corners, &shadow);
+    // An unclipped triangle's corners are its vertices, whose box is made.
+    const bool whole = corners.size() == 3 && std::all_of(corners.begin(), corners.end(), [](const XPoint* x) {
+                         return x->kind == XPoint::Kind::kInput;
+                       });
+    bool has_shadow = whole ? triangle_box : LineBoxOf(s, corners, &shadow);
     if (has_shadow && all_valid && all.Apart(shadow)) continue;
     // Only an occluder that reaches the fragments looks for its neighbour:
     // most candidates of a penumbra point are passed over above.
