@@ -81,15 +81,19 @@ double LightTree::ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]) {
 }
 
 void LightTree::SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids) const {
-  std::vector<std::pair<double, uint32_t>> by_size;
-  by_size.reserve(ids->size());
+  // One integer a candidate: the size as a float's bits (an order-keeping
+  // map for positive floats), complemented so the largest comes first, over
+  // the id.
+  std::vector<uint64_t> keys;
+  keys.reserve(ids->size());
   for (const uint32_t id : *ids) {
     const uint32_t* t = OccluderVertices(id);
     const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
-    by_size.emplace_back(-ApparentSize(p, v), id);
+    const float size = static_cast<float>(std::min(ApparentSize(p, v), 1e38));
+    keys.push_back(uint64_t{~std::bit_cast<uint32_t>(size)} << 32 | id);
   }
-  std::sort(by_size.begin(), by_size.end());
-  for (size_t i = 0; i < by_size.size(); ++i) (*ids)[i] = by_size[i].second;
+  std::sort(keys.begin(), keys.end());
+  for (size_t i = 0; i < keys.size(); ++i) (*ids)[i] = static_cast<uint32_t>(keys[i]);
 }
 
 }  // namespace visq::exact::detail
