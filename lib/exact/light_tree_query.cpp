@@ -342,7 +342,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
   s.Reset();
   s.FitVertices(vertices.size());
   s.stop = &stop;
-  s.p = s.Add(XPoint::Input(p_local));
+  s.p = s.Add([&] { return XPoint::Input(p_local); });
   // A light seen from behind (or edge-on) gives nothing.
   if (EuclidSide(*s.p, *light_plane) <= 0) {
     hits.fetch_add(1, std::memory_order_relaxed);
@@ -361,7 +361,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
 
   // Start from the light's pieces, clipped to the receiver's hemisphere.
   std::vector<Fragment> pending;
-  const XPlane* horizon = normal ? s.Add(XPlane::PointNormal(*s.p, *normal)) : nullptr;
+  const XPlane* horizon = normal ? s.Add([&] { return XPlane::PointNormal(*s.p, *normal); }) : nullptr;
   for (uint32_t t = 0; t < light_pieces.size(); ++t) {
     Fragment f;
     f.piece = t;

@@ -27,7 +27,7 @@ LightTree::EdgePlaneRef LightTree::EdgePlane(Scratch& s, const XPoint& a, const 
   const XPoint* hi = lo == &a ? &b : &a;
   auto [it, inserted] = s.edge_planes.try_emplace({lo, hi}, nullptr);
   if (inserted) {
-    const XPlane* plane = s.Add(XPlane::ThroughPoints(*s.p, *lo, *hi));
+    const XPlane* plane = s.Add([&] { return XPlane::ThroughPoints(*s.p, *lo, *hi); });
     it->second = plane->Degenerate() ? nullptr : plane;
   }
   return {it->second, lo == &a ? 1 : -1};
@@ -156,7 +156,7 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
         // on the kept side of the second.
         const int e = poly[i].orig_edge;
         VISQ_CHECK(e >= 0);
-        const XPoint* x = s.Add(XPoint::LinePlane(*v[e], *v[(e + 1) % 3], plane));
+        const XPoint* x = s.Add([&] { return XPoint::LinePlane(*v[e], *v[(e + 1) % 3], plane); });
         clipped.push_back({x, sc > 0 ? cut_edge : e});
       }
     }
@@ -189,7 +189,9 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
   if (inside == 0) return false;  // seen edge on
   for (EdgeLine& line : lines) {
     bool any_inside = false;
-    for (size_t i = 0; i < light_points.size() && !any_inside; ++i) any_inside = LineSide(s, line, light_points[i]) == inside;
+    for (size_t i = 0; i < light_points.size() && !any_inside; ++i) {
+      any_inside = LineSide(s, line, light_points[i]) == inside;
+    }
     if (!any_inside) return false;
   }
   return true;
@@ -212,7 +214,7 @@ bool LightTree::OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, 
     *edges = {{(*corners)[0], (*corners)[1]}, {(*corners)[1], (*corners)[2]}, {(*corners)[2], (*corners)[0]}};
     return true;
   }
-  if (*slab_top == nullptr) *slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+  if (*slab_top == nullptr) *slab_top = s.Add([&] { return XPlane::ParallelThrough(*light_plane, *s.p); });
   return NearOccluderEdges(s, near[id - far_count], **slab_top, edges, corners);
 }
 
@@ -229,7 +231,7 @@ bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t 
   // the plane through P parallel to the light (nothing to clip).
   const auto inside_slab = [&](const NearOccluder& n) {
     if (n.light_side[0] <= 0 || n.light_side[1] <= 0 || n.light_side[2] <= 0) return false;
-    if (*slab_top == nullptr) *slab_top = s.Add(XPlane::ParallelThrough(*light_plane, *s.p));
+    if (*slab_top == nullptr) *slab_top = s.Add([&] { return XPlane::ParallelThrough(*light_plane, *s.p); });
     for (const uint32_t v : n.v) {
       if (TopSide(s, v, **slab_top) >= 0) return false;
     }
@@ -376,10 +378,11 @@ const XPoint* LightTree::Meet(Scratch& s, const Fragment& f, const FVert& from, 
   auto [it, inserted] = s.meets.try_emplace({support, &plane}, nullptr);
   if (!inserted) return it->second;
   if (from.light_edge >= 0) {
-    it->second = s.Add(XPoint::LinePlane(light_points[piece.v[from.light_edge]],
-                                         light_points[piece.v[(from.light_edge + 1) % piece.v.size()]], plane));
+    const XPoint& a = light_points[piece.v[from.light_edge]];
+    const XPoint& b = light_points[piece.v[(from.light_edge + 1) % piece.v.size()]];
+    it->second = s.Add([&] { return XPoint::LinePlane(a, b, plane); });
   } else {
-    it->second = s.Add(XPoint::ThreePlanes(*piece.plane, *from.plane, plane));
+    it->second = s.Add([&] { return XPoint::ThreePlanes(*piece.plane, *from.plane, plane); });
   }
   return it->second;
 }

@@ -20,9 +20,11 @@
 #include <deque>
 #include <limits>
 #include <memory>
+#include <new>
 #include <optional>
 #include <shared_mutex>
 #include <span>
+#include <type_traits>
 #include <unordered_map>
 #include <utility>
 #include <vector>
@@ -175,10 +177,13 @@ class Arena {
   Arena& operator=(const Arena&) = delete;
   ~Arena() { Clear(); }
 
-  const T* Add(T value) {
+  // Constructs make()'s result in its slot: no move of the few hundred
+  // bytes a point or plane holds.
+  template <typename Make>
+  const T* Add(const Make& make) {
     const size_t block = size_ / kBlock, slot = size_ % kBlock;
     if (block == blocks_.size()) blocks_.push_back(std::make_unique<Storage[]>(kBlock));
-    T* object = std::construct_at(reinterpret_cast<T*>(&blocks_[block][slot]), std::move(value));
+    T* object = ::new (static_cast<void*>(&blocks_[block][slot])) T(make());
     ++size_;
     return object;
   }
@@ -402,8 +407,15 @@ struct LightTree {
     // SubtractOccluders).
     const LightTree* penumbra_tree = nullptr;
 
-    const XPoint* Add(XPoint x) { return points.Add(std::move(x)); }
-    const XPlane* Add(XPlane x) { return planes.Add(std::move(x)); }
+    // A point or plane from its factory, made in the query's arena.
+    template <typename Make>
+    const std::invoke_result_t<Make>* Add(const Make& make) {
+      if constexpr (std::is_same_v<std::invoke_result_t<Make>, XPoint>) {
+        return points.Add(make);
+      } else {
+        return planes.Add(make);
+      }
+    }
     void Reset() {
       points.Clear();
       planes.Clear();
@@ -436,7 +448,7 @@ struct LightTree {
     VISQ_DCHECK_LE(vertices.size(), s.vertex_points.size());
     Scratch::VertexSlot& slot = s.vertex_points[i];
     if (slot.stamp != s.stamp) {
-      slot.point = s.Add(XPoint::Input(vertices[i]));
+      slot.point = s.Add([&] { return XPoint::Input(vertices[i]); });
       slot.stamp = s.stamp;
     }
     return *slot.point;
