@@ -116,6 +116,95 @@ TEST(ExactPredicatesTest, Orient3dFanAgreesWithOrient3d) {
   EXPECT_GT(zeros, 2400);  // the repeated points at least
 }
 
+// The exact sign of orient3d(p, a, b, x) for a derived point x, from the
+// GMP values alone: Dot4 of ThroughPoints(p, a, b) with x is -w orient3d.
+int ExactOrient(const detail::XPlane& through, const detail::XPoint& x) {
+  return -sgn(detail::Dot4(through.Exact(), x.Exact())) * sgn(x.Exact()[3]);
+}
+
+TEST(ExactPredicatesTest, IntervalsAndFanFiltersAgreeWithExactSignsNearAPlane) {
+  // Derived points on a plane tilted from (p, a, b) by a relative 1e-9 to
+  // 1e-16 lie a hair off it: the intervals (midpoint-radius) and the fan's
+  // plane filter must decide no sign the exact values do not (the closest
+  // are beyond doubles, so a third or so of them go to the exact values);
+  // at tiny and huge scales and far from the origin.
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(-1, 1);
+  int decided_by_filter = 0, cases = 0;
+  for (const double scale : {1e-4, 1.0, 1e5}) {
+    for (const double offset : {0.0, 1e6}) {
+      for (int i = 0; i < 200; ++i) {
+        auto point = [&]() { return offset + scale * glm::dvec3(u(rng), u(rng), u(rng)); };
+        const glm::dvec3 p = point(), a = point(), b = point();
+        const double tilt = std::pow(10.0, -9.0 - 7.0 * (i % 8) / 7.0);
+        const glm::dvec3 b_tilted = b + tilt * scale * glm::dvec3(u(rng), u(rng), u(rng));
+        const auto pp = detail::XPoint::Input(p), pa = detail::XPoint::Input(a), pb = detail::XPoint::Input(b),
+                   pbt = detail::XPoint::Input(b_tilted);
+        const auto through = detail::XPlane::ThroughPoints(pp, pa, pb);
+        const auto tilted = detail::XPlane::ThroughPoints(pp, pa, pbt);
+        const detail::PlaneFilter filter = detail::Orient3dFan(p, a, b).Filter();
+        for (int k = 0; k < 4; ++k) {
+          // A segment across the tilted plane, cut by it.
+          const glm::dvec3 mid = p + u(rng) * (a - p) + u(rng) * (b - p);
+          const glm::dvec3 normal = glm::cross(a - p, b - p);
+          const glm::dvec3 q = mid + 0.3 * scale * glm::normalize(normal) + 0.1 * scale * glm::dvec3(u(rng), u(rng), u(rng));
+          const glm::dvec3 r = mid - 0.3 * scale * glm::normalize(normal) + 0.1 * scale * glm::dvec3(u(rng), u(rng), u(rng));
+          const auto pq = detail::XPoint::Input(q), pr = detail::XPoint::Input(r);
+          if (detail::EuclidSide(pq, tilted) * detail::EuclidSide(pr, tilted) >= 0) continue;
+          const auto x = detail::XPoint::LinePlane(pq, pr, tilted);
+          const int expected = ExactOrient(through, x);
+          ++cases;
+          EXPECT_EQ(detail::EuclidSide(x, through), expected) << scale << " " << offset << " " << i << " " << k;
+          const int fast = detail::FastSignOfDot(filter, x.fast);
+          if (fast != detail::kUncertain) {
+            ++decided_by_filter;
+            EXPECT_EQ(fast * x.w_sign, expected) << scale << " " << offset << " " << i << " " << k;
+          }
+        }
+      }
+    }
+  }
+  EXPECT_GT(cases, 3000);
+  EXPECT_GT(decided_by_filter, cases / 4);
+}
+
+TEST(ExactPredicatesTest, ParallelSideAgreesWithTheExactParallelPlane) {
+  // The side of x against the plane through `base` parallel to (p, a, b),
+  // for x near that plane: the fan's double test, where it decides, is the
+  // exact ParallelThrough plane's.
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<double> u(-1, 1);
+  int decided = 0, total = 0;
+  for (const double scale : {1e-4, 1.0, 1e5}) {
+    for (const double offset : {0.0, 1e6}) {
+      for (int i = 0; i < 300; ++i) {
+        auto point = [&]() { return offset + scale * glm::dvec3(u(rng), u(rng), u(rng)); };
+        const glm::dvec3 p = point(), a = point(), b = point(), base = point();
+        const detail::Orient3dFan fan(p, a, b);
+        const auto pp = detail::XPoint::Input(p), pa = detail::XPoint::Input(a), pb = detail::XPoint::Input(b),
+                   pbase = detail::XPoint::Input(base);
+        const auto through = detail::XPlane::ThroughPoints(pp, pa, pb);
+        const auto parallel = detail::XPlane::ParallelThrough(through, pbase);
+        const glm::dvec3 normal = glm::normalize(glm::cross(a - p, b - p));
+        for (int k = 0; k < 4; ++k) {
+          const double lift = k == 0 ? 0.0 : std::pow(10.0, -4.0 * k) * scale * u(rng);
+          const glm::dvec3 x = base + u(rng) * (a - p) + u(rng) * (b - p) + lift * normal;
+          const auto px = detail::XPoint::Input(x);
+          const int expected = sgn(detail::Dot4(parallel.Exact(), px.Exact())) * parallel.o_sign;
+          EXPECT_EQ(detail::EuclidSide(px, parallel), expected) << scale << " " << offset << " " << i << " " << k;
+          const int fast = fan.ParallelSide(base, x);
+          ++total;
+          if (fast != detail::kUncertain) {
+            ++decided;
+            EXPECT_EQ(fast, expected) << scale << " " << offset << " " << i << " " << k;
+          }
+        }
+      }
+    }
+  }
+  EXPECT_GT(decided, total / 2);
+}
+
 TEST(LightVisibilityTest, ValidationNamesTheField) {
   Scene empty;
   AreaLight light = SquareLight(1.0);
