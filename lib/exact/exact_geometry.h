@@ -59,8 +59,8 @@ inline std::atomic<uint64_t> g_exact_fallbacks{0};
 // the radius, a sum of positive terms rounded to nearest, is scaled up by
 // Up past its own roundings (at most a few ulps) and underflow. A product
 // costs 3 products for its radius where endpoint intervals took 4 and their
-// minimum and maximum, and a plane's or point's fast filter (MidRad) reads
-// the form as it is.
+// minimum and maximum, and a plane's or point's fast filter (PlaneFilter,
+// PointFilter) reads the form as it is.
 //
 // Point intervals (rad 0) stay points while the arithmetic is exact
 // (error-free TwoSum for sums, whose error is then the exact radius; a
@@ -229,19 +229,6 @@ class ExactCache {
   mutable std::atomic<ZV4*> value_{nullptr};
 };
 
-// Midpoint-radius form of an interval vector.
-struct MidRad {
-  std::array<double, 4> mid{}, rad{};
-  static MidRad From(const IV4& v) {
-    MidRad m;
-    for (int i = 0; i < 4; ++i) {
-      m.mid[i] = v[i].mid;
-      m.rad[i] = v[i].rad;
-    }
-    return m;
-  }
-};
-
 // The fast sign filter of Dot4(a, x) for a plane a and a point x, from
 // Higham's dot-product bound: |sum a_i x_i - fl(sum am_i xm_i)| <=
 // sum(|am_i| xr_i + ar_i |xm_i| + ar_i xr_i) + gamma_4 sum |am_i xm_i|,
@@ -258,9 +245,12 @@ struct PlaneFilter {
   std::array<double, 4> mid{}, rad{}, wide{};  // wide: |mid| + rad
   double wide_sum = 0.0, rad_max = 0.0;
   static PlaneFilter From(const IV4& v) {
-    const MidRad m = MidRad::From(v);
-    PlaneFilter f{m.mid, m.rad, {}};
-    for (int i = 0; i < 4; ++i) f.wide[i] = std::fabs(m.mid[i]) + m.rad[i];
+    PlaneFilter f;
+    for (int i = 0; i < 4; ++i) {
+      f.mid[i] = v[i].mid;
+      f.rad[i] = v[i].rad;
+      f.wide[i] = std::fabs(v[i].mid) + v[i].rad;
+    }
     f.Summarize();
     return f;
   }
@@ -277,12 +267,12 @@ struct PointFilter {
   std::array<double, 4> mid{}, rad{};  // rad: the radius plus gamma_4 |mid|
   double rad_max = 0.0, mid_sum = 0.0;  // max_i rad_i, sum_i |mid_i|
   static PointFilter From(const IV4& v) {
-    const MidRad m = MidRad::From(v);
-    PointFilter f{m.mid, {}};
+    PointFilter f;
     for (int i = 0; i < 4; ++i) {
-      f.rad[i] = m.rad[i] + kGamma4 * std::fabs(m.mid[i]);
+      f.mid[i] = v[i].mid;
+      f.rad[i] = v[i].rad + kGamma4 * std::fabs(v[i].mid);
       f.rad_max = std::max(f.rad_max, f.rad[i]);
-      f.mid_sum += std::fabs(m.mid[i]);
+      f.mid_sum += std::fabs(v[i].mid);
     }
     return f;
   }

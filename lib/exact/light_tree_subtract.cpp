@@ -508,7 +508,7 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
     // on the inside: only the straddled lines can cut it, and with none it
     // lies inside the shadow.
     if (straddled == 0) continue;
-    stack.push_back({std::move(f), straddled, inside});
+    stack.push_back({std::move(f), straddled});
   }
   const bool cut = kept < out.size();
   out.resize(kept);
@@ -531,17 +531,17 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
       (any_pos ? pos : neg) = std::move(item.f);
     }
     const bool last = later_lines == 0;
-    // Continue the chain with the part that keeps the chain's sign; the
-    // rest is outside the occluder's shadow.
+    // Continue the chain with the part on the inner side; the rest is
+    // outside the occluder's shadow.
     Fragment* keep[2] = {&pos, &neg};
     for (int side = 0; side < 2; ++side) {
       Fragment& part = *keep[side];
       if (part.v.empty()) continue;
       const int sign = side == 0 ? 1 : -1;
-      if (item.chain != 0 && sign != item.chain) {
+      if (sign != inside) {
         out.push_back(std::move(part));
       } else if (!last) {
-        stack.push_back({std::move(part), later_lines, sign});
+        stack.push_back({std::move(part), later_lines});
       }
       // else: inside all edges, shadowed.
     }

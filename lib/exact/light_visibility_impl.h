@@ -355,7 +355,6 @@ struct LightTree {
     struct ChainPiece {
       Fragment f;
       uint32_t lines;  // the edge lines still to split it by (bit k: line k)
-      int chain;       // the sign that keeps a part in the chain (0: either)
     };
     std::vector<EdgeLine> subtract_lines;
     std::vector<ChainPiece> subtract_stack;
