@@ -201,17 +201,9 @@ V4<T> LinePlanePoint(const V4<T>& p, const V4<T>& q, const V4<T>& plane) {
 class ExactCache {
  public:
   ExactCache() = default;
-  // Objects move only before they are shared (into an arena or a tree's
-  // vectors), so a move needs no atomic exchange (a locked instruction on
-  // every point and plane a query makes).
-  ExactCache(ExactCache&& other) noexcept : value_(other.value_.load(std::memory_order_relaxed)) {
-    other.value_.store(nullptr, std::memory_order_relaxed);
-  }
+  ExactCache(ExactCache&& other) noexcept : value_(other.value_.exchange(nullptr)) {}
   ExactCache& operator=(ExactCache&& other) noexcept {
-    if (this == &other) return *this;
-    delete value_.load(std::memory_order_relaxed);
-    value_.store(other.value_.load(std::memory_order_relaxed), std::memory_order_relaxed);
-    other.value_.store(nullptr, std::memory_order_relaxed);
+    delete value_.exchange(other.value_.exchange(nullptr));
     return *this;
   }
   ~ExactCache() { delete value_.load(); }

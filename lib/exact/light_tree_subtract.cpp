@@ -74,6 +74,10 @@ int LightTree::LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
     const int fast = FastSignOfDot(*e.fan_filter, x.fast);
     if (fast != kUncertain) return -fast * x.w_sign;
   }
+  return PlaneLineSide(s, e, x);
+}
+
+int LightTree::PlaneLineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
   const EdgePlaneRef ref = PlaneOf(s, e);
   if (ref.plane == nullptr) return 0;
   // The filter first: it settles nearly every vertex, and it never settles

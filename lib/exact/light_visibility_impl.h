@@ -501,6 +501,9 @@ struct LightTree {
   // Side of x against the edge line, as the side of the line x -> P:
   // orient3d(x, P, a, b) = -orient3d(P, a, b, x). Zero when P is on the line.
   int LineSide(Scratch& s, EdgeLine& e, const XPoint& x) const;
+  // The same from the line's exact plane (made on first use), past the
+  // fan's tests.
+  int PlaneLineSide(Scratch& s, EdgeLine& e, const XPoint& x) const;
   // The same, for the many vertices a fragment tests against one line: the
   // line's fan and filter made once (ReadyFan), and their tests inline.
   void ReadyFan(Scratch& s, EdgeLine& e) const {
@@ -513,6 +516,7 @@ struct LightTree {
       if (x.kind == XPoint::Kind::kInput) return -e.fan->Side(x.input);
       const int fast = FastSignOfDot(*e.fan_filter, x.fast);
       if (fast != kUncertain) return -fast * x.w_sign;
+      return PlaneLineSide(s, e, x);
     }
     return LineSide(s, e, x);
   }
