@@ -262,7 +262,7 @@ StatusOr<glm::dvec3> LightTree::LocalPosition(const QueryPoint& q) const {
   return p_local;
 }
 
-bool LightTree::HiddenByLastCover(const glm::dvec3& p_local, uint32_t receiver) const {
+bool LightTree::HiddenByLastCover(const glm::dvec3& p_local, const Receiver& receiver) const {
   if (t_last_cover.tree != this || t_last_cover.id >= far.size() + near.size() ||
       IsReceiver(t_last_cover.id, receiver)) {
     return false;
@@ -272,9 +272,8 @@ bool LightTree::HiddenByLastCover(const glm::dvec3& p_local, uint32_t receiver) 
   return TestOccluder(p_local, v).cover.all;
 }
 
-bool LightTree::GatherCandidates(Scratch& s, const glm::dvec3& p_local, uint32_t receiver, const PyramidCull& cull,
-                                 const std::vector<Fragment>& pending, Candidates* out) {
-  const auto is_receiver = [&](uint32_t id) { return IsReceiver(id, receiver); };
+bool LightTree::GatherCandidates(Scratch& s, const glm::dvec3& p_local, const Receiver& receiver,
+                                 const PyramidCull& cull, const std::vector<Fragment>& pending, Candidates* out) {
   std::vector<Blocker> blockers;
   uint64_t blocked_vertices = 0;
   const uint32_t far_count = static_cast<uint32_t>(far.size());
@@ -284,20 +283,23 @@ bool LightTree::GatherCandidates(Scratch& s, const glm::dvec3& p_local, uint32_t
     for (const uint32_t id : ids) {
       const bool is_far = id < far_count;
       if (is_far && !classify_points) continue;  // the tree decides
-      if (is_receiver(id)) continue;
+      if (IsReceiverTriangle(id, receiver)) continue;
       const uint32_t* t = OccluderVertices(id);
       const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
       if (cull.Misses(v)) continue;
+      // The receiver's plane is tested on the few that pass the culls (an
+      // occluder that misses the light is dropped either way).
       if (!is_far && s.penumbra_tree == this) {
+        if (InReceiverPlane(id, receiver)) continue;
         out->near.push_back(id - far_count);
         out->near_untested = true;
         continue;
       }
       if (!classify_points) {
-        if (ShadowMissesLight(p_local, v)) continue;
+        if (ShadowMissesLight(p_local, v) || InReceiverPlane(id, receiver)) continue;
       } else {
         const OccluderTest test = TestOccluder(p_local, v);
-        if (test.misses) continue;
+        if (test.misses || InReceiverPlane(id, receiver)) continue;
         const Cover& cover = test.cover;
         if (cover.all) {
           t_last_cover.tree = this;
@@ -348,11 +350,11 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     hits.fetch_add(1, std::memory_order_relaxed);
     return result;
   }
-  const uint32_t receiver = q.receiver_triangle.value_or(UINT32_MAX);
+  const Receiver receiver = ReceiverOf(q.receiver_triangle);
   if (!normal && q.receiver_triangle) {
     // A triangle containing P is always near (never culled, never
     // separated from the receivers), so its vertices are at hand.
-    if (const NearOccluder* n = NearOfTriangle(receiver)) {
+    if (const NearOccluder* n = receiver.near) {
       const glm::dvec3 a = vertices[n->v[0]], b = vertices[n->v[1]], c = vertices[n->v[2]];
       const glm::dvec3 g = glm::cross(b - a, c - a);
       if (g != glm::dvec3(0.0)) normal = g;

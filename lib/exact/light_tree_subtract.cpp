@@ -311,7 +311,8 @@ void LightTree::RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const {
   s.most_recent_failed = false;
 }
 
-bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragment>& light, uint32_t receiver) const {
+bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragment>& light,
+                                           const Receiver& receiver) const {
   const glm::dvec3& p = s.p->input;
   // The step from the thread's previous point sizes "nearby": a frame's
   // neighbouring pixel, in the row or the row above.

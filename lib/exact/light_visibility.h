@@ -34,15 +34,18 @@
 // and the plane through P parallel to it, and subtracts their shadow from the
 // tree's visible fragments with the same split machinery. So a point lying on
 // a surface works: its own triangle (and its neighbours) become boundary
-// touchers, which never block. Near occluders cost O(count) per query (each
-// is clipped, and tested against the light before any fragment work), so
-// the tree only pays off for receivers grouped tightly: without receiver
-// bounds every occluder is near (correct, but nothing is cached). The paper
-// groups receivers per triangle; GroupReceivers groups them by cubes of a
-// grid over the scene (the server's default, one tree per cube), which
-// stays tight whatever the view, where an image tile of a deep room spans
-// its depth. The shaft (convex hull of light and receiver box, exact) then
-// also culls everything that cannot matter.
+// touchers, which never block; so does one on a surface modelled two-sided,
+// whose twin its rounded position may lie a hair behind (triangles in the
+// receiver triangle's plane are left out, see QueryPoint). Near occluders
+// cost O(count) per query (each is clipped, and tested against the light
+// before any fragment work), so the tree only pays off for receivers
+// grouped tightly: without receiver bounds every occluder is near (correct,
+// but nothing is cached). The paper groups receivers per triangle;
+// GroupReceivers groups them by cubes of a grid over the scene (the
+// server's default, one tree per cube), which stays tight whatever the
+// view, where an image tile of a deep room spans its depth. The shaft
+// (convex hull of light and receiver box, exact) then also culls
+// everything that cannot matter.
 //
 // Cost. The tree is exact for every line through the light, so its size
 // grows with the arrangement of the occluders' shadow edges on the light:
@@ -155,8 +158,12 @@ struct QueryPoint {
   // Receiver normal: light below the tangent plane is invisible and the
   // irradiance uses this cosine. Optional.
   std::optional<glm::dvec3> normal;
-  // The receiver's own triangle: never an occluder for this point; its
-  // geometric normal is used when `normal` is absent.
+  // The receiver's own triangle: never an occluder for this point, nor is
+  // any triangle lying exactly in its plane (a two-sided surface's
+  // coincident twin, a coplanar neighbour): P is taken to lie on that
+  // plane, which its rounded position misses by a hair to either side.
+  // Its geometric normal is used when `normal` is absent (so a point named
+  // on a twin facing away from the light, without a normal, sees nothing).
   std::optional<uint32_t> receiver_triangle;
 };
 

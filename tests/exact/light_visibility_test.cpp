@@ -1343,6 +1343,255 @@ TEST(LightVisibilityTest, AnOccluderThatHidTheLastPointIsNotThisPointsOwnTriangl
   EXPECT_EQ((*tree)->Stats().wholly_hidden, 2u);
 }
 
+// ---------------------------------------------------------------------------
+// Surfaces modelled two-sided: each triangle and a coincident twin, the same
+// three vertices in the other order. A point on the surface, its position
+// rounded off the plane, lies a hair in front of one and a hair behind the
+// other; by the segment semantics (only what lies strictly between P and the
+// light blocks) neither can block, whichever of the two names it. So the
+// answers must be those of the same scene without the twins.
+
+// `tris` followed by each triangle of `twinned` (indices into tris) again in
+// reverse winding; *twins gets the twins' scene ids, in that order.
+std::vector<Tri> WithTwins(std::vector<Tri> tris, const std::vector<size_t>& twinned, std::vector<uint32_t>* twins) {
+  for (const size_t i : twinned) {
+    twins->push_back(static_cast<uint32_t>(tris.size()));
+    tris.push_back({tris[i][0], tris[i][2], tris[i][1]});
+  }
+  return tris;
+}
+
+// Points on receiver triangles (interpolated, so rounded), each asked as
+// lying on its triangle and on its twin, with the normal of the side that
+// faces the light; a reference tree over the scene without the twins
+// answers them as lying on the triangle. Returns how many were answered
+// in a penumbra, and how many the twinned scene answered wrong by more than
+// 1e-12 (every comparison is also an expectation).
+struct TwinCheck {
+  size_t penumbra = 0, lit = 0, wrong = 0;
+};
+TwinCheck CheckTwinsBlockNothing(const Scene& scene, const AreaLight& light, const std::vector<uint32_t>& twins,
+                                 const std::vector<std::pair<uint32_t, uint32_t>>& receivers, int per_triangle,
+                                 uint32_t seed, const std::optional<Bounds>& bounds, size_t direct) {
+  TreeOptions twinned, reference;
+  twinned.receiver_bounds = reference.receiver_bounds = bounds;
+  twinned.direct_candidates = reference.direct_candidates = direct;
+  reference.exclude_triangles = twins;
+  auto tree = LightVisibilityTree::Create(light, scene, twinned);
+  auto ref = LightVisibilityTree::Create(light, scene, reference);
+  EXPECT_TRUE(tree.ok() && ref.ok());
+  if (!tree.ok() || !ref.ok()) return {};
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0.02, 1.0);
+  TwinCheck check;
+  for (const auto& [triangle, twin] : receivers) {
+    const glm::uvec3 t = scene.triangles[triangle];
+    const glm::dvec3 a = scene.positions[t[0]], b = scene.positions[t[1]], c = scene.positions[t[2]];
+    const glm::dvec3 up = glm::cross(b - a, c - a);
+    for (int k = 0; k < per_triangle; ++k) {
+      const double w[3] = {u(rng), u(rng), u(rng)};
+      const double sum = w[0] + w[1] + w[2];
+      const glm::dvec3 p = (w[0] / sum) * a + (w[1] / sum) * b + (w[2] / sum) * c;
+      auto expected = (*ref)->Query({p, up, triangle});
+      EXPECT_TRUE(expected.ok());
+      if (!expected.ok()) continue;
+      check.penumbra += expected->visible_area_fraction > 0.0 && expected->visible_area_fraction < 1.0;
+      check.lit += expected->visible_area_fraction > 0.0;
+      // On the triangle, with and without its normal, and on the twin.
+      const QueryPoint asked[3] = {{p, up, triangle}, {p, std::nullopt, triangle}, {p, up, twin}};
+      bool wrong = false;
+      for (const QueryPoint& q : asked) {
+        auto r = (*tree)->Query(q);
+        EXPECT_TRUE(r.ok());
+        if (!r.ok()) continue;
+        const auto differs = [](double x, double y) { return !(std::fabs(x - y) <= 1e-12); };
+        wrong |= differs(r->visible_area_fraction, expected->visible_area_fraction) ||
+                 differs(r->visible_solid_angle_fraction, expected->visible_solid_angle_fraction) ||
+                 differs(r->irradiance, expected->irradiance);
+        EXPECT_NEAR(r->visible_area_fraction, expected->visible_area_fraction, 1e-12)
+            << "triangle " << triangle << " twin " << twin << " point " << k << " at " << p.x << " " << p.y << " "
+            << p.z << (q.receiver_triangle == twin ? " (on the twin)" : "") << (q.normal ? "" : " (no normal)");
+        EXPECT_NEAR(r->visible_solid_angle_fraction, expected->visible_solid_angle_fraction, 1e-12);
+        EXPECT_NEAR(r->irradiance, expected->irradiance, 1e-12);
+      }
+      check.wrong += wrong;
+    }
+  }
+  return check;
+}
+
+// Occluders for the twin tests: a cloud of small triangles between the
+// surface (about z = 0) and the light.
+std::vector<Tri> CloudAbove(int count, uint32_t seed) {
+  std::vector<Tri> tris = Cloud(count, seed, 0.25);
+  for (Tri& t : tris) {
+    for (glm::dvec3& p : t) p.z += 0.4;
+  }
+  return tris;
+}
+
+TEST(LightVisibilityTest, ATwoSidedSheetsTwinsBlockNothingOfThePointsOnIt) {
+  // A tilted sheet of 4 x 4 quads, each two triangles wound to face up, and
+  // every triangle again facing down (appended, as exporters write a
+  // double-sided mesh's back faces), under a cloud and a light.
+  constexpr int kCells = 4;
+  const auto corner = [](int i, int j) {
+    const double x = -1.5 + 3.0 * i / kCells, y = -1.5 + 3.0 * j / kCells;
+    return glm::dvec3(x, y, 0.07 * x + 0.03 * y + 0.01);
+  };
+  std::vector<Tri> sheet;
+  for (int j = 0; j < kCells; ++j) {
+    for (int i = 0; i < kCells; ++i) {
+      sheet.push_back({corner(i, j), corner(i + 1, j), corner(i + 1, j + 1)});
+      sheet.push_back({corner(i, j), corner(i + 1, j + 1), corner(i, j + 1)});
+    }
+  }
+  std::vector<size_t> all(sheet.size());
+  for (size_t i = 0; i < all.size(); ++i) all[i] = i;
+  std::vector<Tri> tris = sheet;
+  for (const Tri& t : CloudAbove(25, 31)) tris.push_back(t);
+  std::vector<uint32_t> twins;
+  tris = WithTwins(tris, all, &twins);
+  const Scene scene = MakeScene(tris);
+  std::vector<std::pair<uint32_t, uint32_t>> receivers;
+  for (size_t i = 0; i < sheet.size(); ++i) receivers.emplace_back(static_cast<uint32_t>(i), twins[i]);
+  const AreaLight light = SquareLight(2.5, 0.6);
+  for (const size_t direct : {size_t{32}, size_t{0}}) {
+    for (const std::optional<Bounds>& bounds :
+         {std::optional<Bounds>(Box({-1.5, -1.5, -0.2}, {1.5, 1.5, 0.2})), std::optional<Bounds>()}) {
+      SCOPED_TRACE(::testing::Message() << "direct " << direct << (bounds ? " bounds" : " no bounds"));
+      const TwinCheck check = CheckTwinsBlockNothing(scene, light, twins, receivers, 12, 3, bounds, direct);
+      EXPECT_EQ(check.wrong, 0u);
+      EXPECT_GT(check.penumbra, 60u);
+      EXPECT_GT(check.lit, 200u);
+    }
+  }
+}
+
+TEST(LightVisibilityTest, AScannedMeshsCoincidentPairsBlockNothingOfThePointsOnThem) {
+  // A bumpy heightfield (no two neighbours coplanar) where a scan left a
+  // third of the faces twice, the copies reversed; points on twinned faces
+  // and on single ones.
+  constexpr int kCells = 10;
+  std::mt19937 rng(8);
+  std::uniform_real_distribution<double> bump(-0.04, 0.04), pick(0, 1);
+  std::vector<glm::dvec3> grid;
+  for (int j = 0; j <= kCells; ++j) {
+    for (int i = 0; i <= kCells; ++i) {
+      grid.emplace_back(-1.5 + 3.0 * i / kCells + 0.3 * bump(rng), -1.5 + 3.0 * j / kCells + 0.3 * bump(rng),
+                        bump(rng));
+    }
+  }
+  const auto at = [&](int i, int j) { return grid[static_cast<size_t>(j * (kCells + 1) + i)]; };
+  std::vector<Tri> mesh;
+  for (int j = 0; j < kCells; ++j) {
+    for (int i = 0; i < kCells; ++i) {
+      mesh.push_back({at(i, j), at(i + 1, j), at(i + 1, j + 1)});
+      mesh.push_back({at(i, j), at(i + 1, j + 1), at(i, j + 1)});
+    }
+  }
+  std::vector<size_t> twinned;
+  for (size_t i = 0; i < mesh.size(); ++i) {
+    if (pick(rng) < 0.35) twinned.push_back(i);
+  }
+  std::vector<Tri> tris = mesh;
+  for (const Tri& t : CloudAbove(30, 47)) tris.push_back(t);
+  std::vector<uint32_t> twins;
+  tris = WithTwins(tris, twinned, &twins);
+  const Scene scene = MakeScene(tris);
+  std::vector<std::pair<uint32_t, uint32_t>> receivers;
+  for (size_t k = 0; k < twinned.size(); ++k) receivers.emplace_back(static_cast<uint32_t>(twinned[k]), twins[k]);
+  // A face without a twin, asked as lying on itself twice.
+  for (size_t i = 0; i < mesh.size(); i += 7) {
+    if (!std::binary_search(twinned.begin(), twinned.end(), i)) {
+      receivers.emplace_back(static_cast<uint32_t>(i), static_cast<uint32_t>(i));
+    }
+  }
+  const AreaLight light = SquareLight(2.5, 0.6);
+  for (const size_t direct : {size_t{32}, size_t{0}}) {
+    for (const std::optional<Bounds>& bounds :
+         {std::optional<Bounds>(Box({-1.6, -1.6, -0.1}, {1.6, 1.6, 0.1})), std::optional<Bounds>()}) {
+      SCOPED_TRACE(::testing::Message() << "direct " << direct << (bounds ? " bounds" : " no bounds"));
+      const TwinCheck check = CheckTwinsBlockNothing(scene, light, twins, receivers, 4, 5, bounds, direct);
+      EXPECT_EQ(check.wrong, 0u);
+      EXPECT_GT(check.penumbra, 60u);
+      EXPECT_GT(check.lit, 200u);
+    }
+  }
+}
+
+TEST(LightVisibilityTest, OccludersThroughAPointWithoutAReceiverBlockNothingOfIt) {
+  // Points placed exactly (in double) on a tilted two-sided sheet, on its
+  // triangles' edges and vertices too, and on a wall standing across it,
+  // asked without a receiver triangle: every triangle through P touches the
+  // segments to the light at P only, so the answers are those without the
+  // triangles through P. Dyadic coordinates keep the plane z = 0.25 + x / 8
+  // exact.
+  const auto on_sheet = [](double x, double y) { return glm::dvec3(x, y, 0.25 + 0.125 * x); };
+  std::vector<Tri> tris;
+  std::vector<uint32_t> sheet, wall;
+  for (int j = -2; j < 2; ++j) {
+    for (int i = -2; i < 2; ++i) {
+      const double x0 = 0.75 * i, y0 = 0.75 * j, x1 = x0 + 0.75, y1 = y0 + 0.75;
+      const Tri a{on_sheet(x0, y0), on_sheet(x1, y0), on_sheet(x1, y1)};
+      const Tri b{on_sheet(x0, y0), on_sheet(x1, y1), on_sheet(x0, y1)};
+      for (const Tri& t : {a, b}) {
+        for (const Tri& side : {t, Tri{t[0], t[2], t[1]}}) {
+          sheet.push_back(static_cast<uint32_t>(tris.size()));
+          tris.push_back(side);
+        }
+      }
+    }
+  }
+  // The wall x = 0.5, across the sheet and the light's shadow, up to z = 1.
+  wall.push_back(static_cast<uint32_t>(tris.size()));
+  tris.push_back({glm::dvec3(0.5, -1.5, 0.0), glm::dvec3(0.5, 1.5, 0.0), glm::dvec3(0.5, 0.0, 1.0)});
+  for (const Tri& t : CloudAbove(25, 53)) tris.push_back(t);
+  const Scene scene = MakeScene(tris);
+  std::vector<QueryPoint> on_the_sheet, on_the_wall;
+  for (int j = -48; j <= 48; j += 3) {
+    for (int i = -48; i <= 48; i += 3) {
+      on_the_sheet.push_back({on_sheet(i / 32.0, j / 32.0), glm::dvec3(-0.125, 0.0, 1.0), std::nullopt});
+    }
+  }
+  // Above the sheet (z = 0.3125 at the wall) and below the wall's top.
+  for (int j = -16; j <= 16; ++j) {
+    const double y = j / 16.0, z = 0.3125 + 0.5 * (0.6875 - std::fabs(y) / 1.5);
+    on_the_wall.push_back({glm::dvec3(0.5, y, z), glm::dvec3(1.0, 0.0, 1.0), std::nullopt});
+  }
+  // A tilted light: no sheet or wall plane is parallel to it.
+  const AreaLight light{{{-0.6, -0.6, 2.4}, {-0.6, 0.6, 2.5}, {0.6, 0.6, 2.6}, {0.6, -0.6, 2.5}}, 1.0};
+  for (const size_t direct : {size_t{32}, size_t{0}}) {
+    for (const std::optional<Bounds>& bounds :
+         {std::optional<Bounds>(Box({-1.5, -1.5, 0.0}, {1.5, 1.5, 1.0})), std::optional<Bounds>()}) {
+      SCOPED_TRACE(::testing::Message() << "direct " << direct << (bounds ? " bounds" : " no bounds"));
+      TreeOptions with;
+      with.receiver_bounds = bounds;
+      with.direct_candidates = direct;
+      auto tree = LightVisibilityTree::Create(light, scene, with);
+      ASSERT_TRUE(tree.ok());
+      size_t penumbra = 0;
+      for (const auto& [points, through] : {std::pair(&on_the_sheet, &sheet), std::pair(&on_the_wall, &wall)}) {
+        TreeOptions without = with;
+        without.exclude_triangles = *through;
+        auto ref = LightVisibilityTree::Create(light, scene, without);
+        ASSERT_TRUE(ref.ok());
+        for (const QueryPoint& q : *points) {
+          auto r = (*tree)->Query(q);
+          auto e = (*ref)->Query(q);
+          ASSERT_TRUE(r.ok() && e.ok());
+          penumbra += e->visible_area_fraction > 0.0 && e->visible_area_fraction < 1.0;
+          EXPECT_NEAR(r->visible_area_fraction, e->visible_area_fraction, 1e-12)
+              << q.position.x << " " << q.position.y << " " << q.position.z;
+          EXPECT_NEAR(r->visible_solid_angle_fraction, e->visible_solid_angle_fraction, 1e-12);
+          EXPECT_NEAR(r->irradiance, e->irradiance, 1e-12);
+        }
+      }
+      EXPECT_GT(penumbra, 100u);
+    }
+  }
+}
+
 TEST(LightVisibilityTest, ReceiverCellsHoldTheirPointsAndGiveTheSameAnswers) {
   // Far from the origin, so that the cubes' faces round: every cell's box
   // must still hold its points (a tree refuses points outside its box).
