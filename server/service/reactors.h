@@ -35,11 +35,16 @@ enum class Lane { kCompute, kMetadata };
 // server's at shutdown), so work in progress can stop.
 class CancellableUnaryReactor final : public grpc::ServerUnaryReactor {
  public:
+  explicit CancellableUnaryReactor(CallRegistry& calls) : calls_(calls) { calls_.Add(&cancelled_); }
   void OnCancel() override { cancelled_ = true; }
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    calls_.Remove(&cancelled_);
+    delete this;
+  }
   const std::atomic<bool>& cancelled() const { return cancelled_; }
 
  private:
+  CallRegistry& calls_;
   std::atomic<bool> cancelled_{false};
 };
 
@@ -51,7 +56,7 @@ template <typename Work>
 grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::CallbackServerContext* context,
                                        const char* method, Work work, Lane lane = Lane::kCompute) {
   context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
-  auto* reactor = new CancellableUnaryReactor();
+  auto* reactor = new CancellableUnaryReactor(ctx.calls);
   auto log = std::make_shared<RequestLog>(context, method, &ctx.metrics);
   if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
     log->Done(authorized);
@@ -59,12 +64,13 @@ grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::Callback
     return reactor;
   }
   Executor& executor = lane == Lane::kMetadata ? ctx.metadata_executor : ctx.executor;
-  executor.Post([reactor, log, work = std::move(work)]() mutable {
+  executor.Post([reactor, log, calls = &ctx.calls, work = std::move(work)]() mutable {
     Status status;
     if constexpr (std::is_invocable_v<Work&, RequestLog&, const std::atomic<bool>&>)
       status = work(*log, reactor->cancelled());
     else
       status = work(*log);
+    status = calls->Final(std::move(status));
     log->Done(status);
     reactor->Finish(ToGrpcStatus(status));
   });
@@ -108,7 +114,8 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
       std::function<StatusOr<ChunkedResponses<Response>>(const std::atomic<bool>& cancelled, const RequestLog& log)>;
   PreparedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
                         Compute compute)
-      : log_(context, method, &ctx.metrics) {
+      : calls_(ctx.calls), log_(context, method, &ctx.metrics) {
+    calls_.Add(&cancelled_);
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
       Done(authorized);
@@ -133,7 +140,10 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     WriteNext();
   }
   void OnCancel() override { cancelled_ = true; }
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    calls_.Remove(&cancelled_);
+    delete this;
+  }
 
  private:
   void WriteNext() {
@@ -146,11 +156,13 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     this->StartWrite(&current_);
   }
 
-  void Done(const Status& status) {
+  void Done(const Status& given) {
+    const Status status = calls_.Final(given);
     log_.Done(status);
     this->Finish(ToGrpcStatus(status));
   }
 
+  CallRegistry& calls_;
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
   std::optional<ChunkedResponses<Response>> messages_;
@@ -173,7 +185,8 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
                                                    ProducedStreamReactor& out)>;
   ProducedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
                         Produce produce)
-      : context_(context), log_(context, method, &ctx.metrics) {
+      : context_(context), calls_(ctx.calls), log_(context, method, &ctx.metrics) {
+    calls_.Add(&cancelled_);
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
       Done(authorized);
@@ -247,7 +260,10 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     cancelled_ = true;
     progress_.notify_all();
   }
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    calls_.Remove(&cancelled_);
+    delete this;
+  }
 
  private:
   struct Queued {
@@ -280,16 +296,18 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     Done(status);
   }
 
-  void Done(const Status& status) {
+  void Done(const Status& given) {
     {
       std::lock_guard lock(mutex_);
       kept_.clear();  // the answer's memory goes before the call ends
     }
+    const Status status = calls_.Final(given);
     log_.Done(status);
     this->Finish(ToGrpcStatus(status));
   }
 
   grpc::CallbackServerContext* context_;
+  CallRegistry& calls_;
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
   std::mutex mutex_;

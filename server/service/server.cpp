@@ -6,9 +6,12 @@
 #include <sys/socket.h>
 
 #include <algorithm>
+#include <condition_variable>
 #include <cstring>
 #include <fstream>
+#include <mutex>
 #include <sstream>
+#include <thread>
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
@@ -140,7 +143,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   std::string server_id = options.server_id;
   auto service_context = [&] {
     return ServiceContext{*server->engine_, *server->executor_, *server->metadata_executor_, *server->metrics_,
-                          *server->authorizer_, server_id};
+                          *server->authorizer_, *server->calls_, server_id};
   };
   server->service_ = std::make_unique<VisibilityServiceImpl>(service_context());
   builder.RegisterService(server->service_.get());
@@ -197,7 +200,29 @@ void Server::GracefulStop(std::chrono::milliseconds drain) {
   // the engine (and its GL thread) goes with this object.
   SetServing(false);
   spdlog::info("shutting down: health NOT_SERVING, draining requests for up to {} ms", drain.count());
+  // The calls still running shortly before the drain's end are told to stop
+  // (their work polls the flag between GL jobs, ray batches and points) and
+  // answer UNAVAILABLE, so the process exits with the drain, not with the
+  // longest job: a pod's grace period holds.
+  const auto drain_end = std::chrono::steady_clock::now() + drain;
+  const auto stop_at = drain_end - std::min<std::chrono::steady_clock::duration>(drain / 2, std::chrono::seconds(1));
+  std::mutex ender_mutex;
+  std::condition_variable ender_wake;
+  bool drained = false;
+  std::thread ender([&] {
+    std::unique_lock lock(ender_mutex);
+    if (ender_wake.wait_until(lock, stop_at, [&] { return drained; })) return;
+    const size_t told = calls_->EndDrain();
+    if (told > 0) spdlog::warn("drain period ending: {} call(s) still running told to stop (UNAVAILABLE)", told);
+  });
   grpc_server_->Shutdown(std::chrono::system_clock::now() + drain);
+  {
+    std::lock_guard lock(ender_mutex);
+    drained = true;
+  }
+  ender_wake.notify_all();
+  ender.join();
+  calls_->EndDrain();  // anything gRPC left running stops now
   grpc_server_->Wait();
   // Scrapes read the executors and the engine: stopped before either goes.
   if (metrics_http_) metrics_http_->Stop();

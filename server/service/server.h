@@ -65,6 +65,7 @@ class Server {
   std::unique_ptr<Executor> metadata_executor_;
   std::unique_ptr<Metrics> metrics_;
   std::unique_ptr<Authorizer> authorizer_;
+  std::unique_ptr<CallRegistry> calls_ = std::make_unique<CallRegistry>();
   std::unique_ptr<VisibilityServiceImpl> service_;
   std::unique_ptr<ReflectionV1Service> reflection_v1_;
   std::unique_ptr<grpc::Server> grpc_server_;

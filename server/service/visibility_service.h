@@ -7,6 +7,7 @@
 
 #include "core/engine.h"
 #include "service/auth.h"
+#include "service/call_registry.h"
 #include "service/executor.h"
 #include "service/metrics.h"
 #include "service/stats.h"
@@ -21,6 +22,7 @@ struct ServiceContext {
   Executor& metadata_executor;  // calls that compute nothing: never queued behind those that do
   Metrics& metrics;
   const Authorizer& authorizer;
+  CallRegistry& calls;          // in flight, for the end of the drain
   std::string server_id;
   std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
 };

@@ -386,5 +386,73 @@ TEST(Drain, DrainSecondsIsValidatedAndUsed) {
   EXPECT_NE(server->Log().find("draining requests for up to 3000 ms"), std::string::npos) << server->Log();
 }
 
+// A map far longer than the drain (a few hundred million segments from the
+// ceiling light onto the floor), by each sampled method: SIGTERM during it
+// ends the process within the drain and a second, and the call is answered
+// UNAVAILABLE (retry elsewhere), not cut without a word.
+TEST(Drain, ALongCallIsAnsweredUnavailableAndTheServerExitsWithinItsDrain) {
+  for (v1::VisibilityMethod method : {v1::RAYCAST, v1::RASTER}) {
+    SCOPED_TRACE(v1::VisibilityMethod_Name(method));
+    ScratchDir repo;
+    auto server = ServerProcess::Start({repo.path(), {"--seed-samples", "--drain-seconds", "2"}});
+    ASSERT_NE(server, nullptr);
+    v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name("cornell_box_visq");
+    SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    request.mutable_samples()->set_count(4096);
+    request.set_width(1024);
+    request.set_height(512);
+    request.set_method(method);
+    absl::StatusCode code = absl::StatusCode::kOk;
+    std::thread call([&] {
+      Client client({.address = server->address(), .deadline = std::chrono::minutes(10),
+                     .stream_deadline = std::chrono::milliseconds(0)});
+      code = client.ComputeHiddenSampleMap(request).status().code();
+    });
+    std::this_thread::sleep_for(std::chrono::milliseconds(1500));  // under way
+    const auto start = std::chrono::steady_clock::now();
+    EXPECT_EQ(server->Stop(), 0);
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    call.join();
+    EXPECT_LT(seconds, 2.0 + 1.0) << server->Log();
+    EXPECT_EQ(code, absl::StatusCode::kUnavailable) << server->Log();
+    EXPECT_NE(server->Log().find("told to stop"), std::string::npos) << server->Log();
+  }
+}
+
+// A call whose deadline passes mid-map stops its work within a second of
+// it: the server's log has the call's end, with its time, soon after.
+TEST(Deadline, ALongMapStopsWithinASecondOfItsDeadline) {
+  for (v1::VisibilityMethod method : {v1::RAYCAST, v1::RASTER}) {
+    SCOPED_TRACE(v1::VisibilityMethod_Name(method));
+    ScratchDir repo;
+    auto server = ServerProcess::Start({repo.path(), {"--seed-samples"}});
+    ASSERT_NE(server, nullptr);
+    v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name("cornell_box_visq");
+    SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    request.mutable_samples()->set_count(4096);
+    request.set_width(1024);
+    request.set_height(512);
+    request.set_method(method);
+    Client client({.address = server->address(), .deadline = std::chrono::seconds(2)});
+    EXPECT_EQ(client.ComputeHiddenSampleMap(request).status().code(), absl::StatusCode::kDeadlineExceeded);
+    // The server's own end of the call, logged with its duration: its
+    // deadline, or the client's cancellation when that arrives first.
+    const std::regex ended(R"(HiddenSampleMap\] (CANCELLED|DEADLINE_EXCEEDED) in ([0-9.]+) ms)");
+    std::smatch match;
+    std::string log;
+    for (int i = 0; i < 40; ++i) {
+      log = server->Log();
+      if (std::regex_search(log, match, ended)) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+    ASSERT_FALSE(match.empty()) << log;
+    EXPECT_LT(std::stod(match[2].str()), 2000.0 + 1000.0) << log;
+  }
+}
+
 }  // namespace
 }  // namespace visq::testing
