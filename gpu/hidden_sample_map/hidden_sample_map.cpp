@@ -117,10 +117,55 @@ std::vector<glm::vec4> ShaftPlanes(const std::vector<glm::dvec3>& points, double
   return out;
 }
 
+// Sizes a map's bands by their measured GL time (band_target_ms): each
+// band's rows double while a band takes under half the target and halve
+// while it takes over twice, unless halving did not make the band cheaper
+// by a quarter (the passes' fixed cost, a draw of the scene per pass,
+// dominates): then the larger size stays.
+class BandSizer {
+ public:
+  BandSizer(double target_ms, int byte_limit_rows, int start_rows)
+      : target_ms_(target_ms), limit_(byte_limit_rows), rows_(std::clamp(start_rows, 1, byte_limit_rows)) {}
+  int rows() const { return rows_; }
+  void Measured(int rows, double ms) {
+    if (target_ms_ <= 0.0) return;
+    int next = rows;
+    if (last_rows_ == 2 * rows && ms > 0.75 * last_ms_) {
+      next = last_rows_;  // halving did not help: the fixed cost dominates
+      floor_ = last_rows_;
+    } else if (ms < 0.5 * target_ms_) {
+      next = rows * 2;
+    } else if (ms > 2.0 * target_ms_ && rows / 2 >= floor_) {
+      next = rows / 2;
+    }
+    last_rows_ = rows;
+    last_ms_ = ms;
+    rows_ = std::clamp(next, std::max(1, floor_), limit_);
+  }
+
+ private:
+  double target_ms_;
+  int limit_;
+  int rows_;
+  int floor_ = 1;
+  int last_rows_ = 0;
+  double last_ms_ = 0.0;
+};
+
 }  // namespace
 
+// Texel-passes (rows x width x passes) a band of the scene's last map held
+// when it met the target, so the next map starts there. Keyed by the scene
+// object (a heuristic: a new scene at a freed address starts from another's
+// size and corrects it within a band or two).
+struct HiddenSampleMapper::BandSizes {
+  std::mutex mutex;
+  std::map<const GpuScene*, double> texel_passes;
+};
+
 HiddenSampleMapper::HiddenSampleMapper(GpuWorker& worker, HiddenSampleMapperOptions options)
-    : worker_(&worker), options_(options), state_(std::make_shared<State>()) {}
+    : worker_(&worker), options_(options), state_(std::make_shared<State>()),
+      band_sizes_(std::make_shared<BandSizes>()) {}
 
 HiddenSampleMapper::~HiddenSampleMapper() {
   if (state_) worker_->Post([state = std::move(state_)]() mutable { state.reset(); });
@@ -515,22 +560,38 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   glm::dvec3 all_colors(0.0);
   for (const glm::vec3& c : result.samples.color) all_colors += glm::dvec3(c);
 
-  // One GL job per band: a large map yields the GL thread between bands.
+  // One GL job per band: a large map yields the GL thread between bands,
+  // and no band runs much past band_target_ms.
+  const double texel_passes_per_row = double(width) * plan.passes;
+  int start_rows = plan.band_rows;
+  if (options_.band_target_ms > 0.0) {
+    std::lock_guard lock(band_sizes_->mutex);
+    auto known = band_sizes_->texel_passes.find(&scene);
+    start_rows = known != band_sizes_->texel_passes.end() ? int(known->second / texel_passes_per_row)
+                                                          : std::max(1, height / 8);
+  }
+  BandSizer sizer(options_.band_target_ms, plan.band_rows, start_rows);
   std::vector<uint32_t> readback;
   HiddenSampleMapBand band;
   const int max_draw_buffers = state_->max_draw_buffers;
-  for (int first_row = 0; first_row < height; first_row += plan.band_rows) {
-    const int rows = std::min(plan.band_rows, height - first_row);
+  for (int first_row = 0, rows = 0; first_row < height; first_row += rows) {
+    rows = std::min(sizer.rows(), height - first_row);
     JobTiming band_timing;
     VISQ_RETURN_IF_ERROR(worker_->Run(job, [&]() -> Status {
       return DrawBand(scene, *table, frames, request, draw, plan, max_draw_buffers, first_row, rows, job, readback);
     }, &band_timing));
+    sizer.Measured(rows, band_timing.run_ms);
     result.timing.queue_ms += band_timing.queue_ms;
     result.timing.run_ms += band_timing.run_ms;
     band.first_texel = size_t(first_row) * width;
     CountBand(readback, plan, size_t(rows) * width, options, all_colors, result, band);
     BoundTexels(request, result, band);
     VISQ_RETURN_IF_ERROR(DeliverBand(result, band, sink));
+  }
+  if (options_.band_target_ms > 0.0) {
+    std::lock_guard lock(band_sizes_->mutex);
+    if (band_sizes_->texel_passes.size() >= 64) band_sizes_->texel_passes.clear();
+    band_sizes_->texel_passes[&scene] = sizer.rows() * texel_passes_per_row;
   }
   result.error.confidence = options.confidence;
   result.error.sampling = SamplingErrorBound(n, options.confidence);

@@ -21,6 +21,13 @@ struct HiddenSampleMapperOptions {
   // bitmask cap never holds its GL targets' copy whole, and other queries
   // get the GL thread between bands. The bits are those of one full draw.
   size_t band_readback_bytes = size_t{64} << 20;
+  // Bands are also sized by what they cost here, so that one GL job lasts
+  // about this long: the GL thread's other queries, a cancellation, a
+  // deadline and the server's drain wait at most about one job. Each band's
+  // measured time sizes the next (doubling or halving its rows, never below
+  // the size where the passes' fixed cost takes over), and a scene's last
+  // size starts its next map. 0: by bytes alone (one band for most maps).
+  double band_target_ms = 100.0;
   // Each pass draws only the scene's triangle clusters (GpuScene::clusters())
   // that are not wholly outside a plane of the shaft, the convex hull of
   // source and receiver: a query costs what lies near it, not the whole
@@ -55,13 +62,15 @@ class HiddenSampleMapper {
                                                                 const sampling::PatchVisibilityRequest& request,
                                                                 const JobOptions& job = {});
 
-  struct State;  // GL-thread state, defined in gpu/hidden_sample_map/
+  struct State;      // GL-thread state, defined in gpu/hidden_sample_map/
+  struct BandSizes;  // per scene, the band size that met band_target_ms
 
  private:
   HiddenSampleMapper(GpuWorker& worker, HiddenSampleMapperOptions options);
   GpuWorker* worker_;
   HiddenSampleMapperOptions options_;
   std::shared_ptr<State> state_;
+  std::shared_ptr<BandSizes> band_sizes_;
 };
 
 }  // namespace visq::gpu
