@@ -27,6 +27,11 @@ cd "$(dirname "$0")"
 
 jobs=$(nproc 2>/dev/null || echo 2)
 build_dir=${VISQ_BUILD_DIR:-build}
+# Every command configures the one build folder alike, so `serve` after
+# `test` (or the other way round) rebuilds nothing: Release with the debug
+# checks kept (VISQ_DCHECKS: a few dozen value checks at invariants, none
+# per ray or per fragment). VISQ_DCHECKS=OFF drops them, for every command.
+configure() { cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS="${VISQ_DCHECKS:-ON}"; }
 
 stage() { printf '\n=== visq: %s ===\n' "$*"; }
 
@@ -57,7 +62,7 @@ case "${1:-}" in
   serve)
     shift
     bash deploy/install-deps.sh
-    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=OFF
+    configure
     cmake --build "$build_dir" -j"$jobs" --target visq-server visq
     repo=${VISQ_SCENE_REPO:-/var/lib/visq/scenes}
     echo "visq: starting visq-server on ${VISQ_ADDRESS:-127.0.0.1:50051}, scene repository $repo"
@@ -70,7 +75,7 @@ case "${1:-}" in
 
     stage "1/3 Release build and every test"
     # Optimized as users run it, with the debug checks kept (VISQ_DCHECKS).
-    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=ON
+    configure
     cmake --build "$build_dir" -j"$jobs"
     # Every header, library and CMake file the build read is from a package
     # deploy/install-deps.sh lists or one they depend on (a clean machine has it).
@@ -113,7 +118,7 @@ case "${1:-}" in
     # test's stage 3 alone: the two binaries, then the image built and run.
     shift
     bash deploy/install-deps.sh
-    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release -DVISQ_DCHECKS=ON
+    configure
     cmake --build "$build_dir" -j"$jobs" --target visq-server visq
     stage "the container: the image built from deploy/Dockerfile, run, SERVING and one query"
     container_stage
@@ -125,7 +130,7 @@ case "${1:-}" in
     # docs/accuracy/*.png (about 20 minutes on 2 cores with llvmpipe).
     shift
     bash deploy/install-deps.sh
-    cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
+    configure
     cmake --build "$build_dir" -j"$jobs" --target visq_bench_accuracy_trade
     scenes=${VISQ_SHARED_SCENES:-../shared/scenes}
     exec "$build_dir/tests/bench/visq_bench_accuracy_trade" --scenes "$scenes" --out docs \
