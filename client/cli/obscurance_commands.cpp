@@ -20,6 +20,7 @@ namespace {
 struct BakeOptions {
   std::string scene, png, npy, exr, partial_out, errors_npy;
   uint32_t resolution = 256, directions = 256, rays = 0, first_direction = 0, total_directions = 0;
+  std::string method = "auto";
   uint64_t seed = 1;
   double d_max = 0;
   bool bleeding = false, built_atlas = false;
@@ -176,6 +177,7 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
     request.set_rays_per_patch(o.rays);
   } else {
     request.set_direction_count(o.directions);
+    if (o.method == "depth-peeling") request.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);
   }
   request.set_seed(o.seed);
   request.set_color_bleeding(o.bleeding);
@@ -448,6 +450,10 @@ void AddObscuranceCommands(Cli& cli) {
                          "confidence; 1 for texels filled from neighbours) and write it as a float32 .npy (atlas "
                          "height, width); prints their spread and how many exceed the single bound");
   AddTargetFlags(obscurance, ob->target);
+  AddChoice(obscurance, "--method", ob->method, {"auto", "depth-peeling"},
+            "auto (the server runs the faster here of the depth peeling with --directions directions and the "
+            "ray-cast estimator with as many rays per patch, at the same bound) or depth-peeling (the paper's GPU "
+            "bake); --rays-per-patch names the ray-cast estimator");
   obscurance->add_option("--rays-per-patch", ob->rays,
                          "Instead of the GPU bake: the ray-cast estimator (Embree) with this many rays per patch");
   obscurance->add_option("--partial-out", ob->partial_out,

@@ -8,16 +8,18 @@
 namespace visq::cli {
 namespace {
 
-const std::vector<std::string> kMethods = {"raster", "raycast", "exact"};
+// "auto": the server runs the fastest here of the methods giving the same bits.
+const std::vector<std::string> kMethods = {"auto", "raster", "raycast", "exact"};
 // "fast" was the Hough lookup's first name, kept for scripts that use it.
 const std::vector<std::string> kLookups = {"exact", "hough", "fast"};
 
 v1::VisibilityMethod Method(const std::string& name) {
+  if (name == "auto") return v1::METHOD_UNSPECIFIED;
   return name == "raycast" ? v1::RAYCAST : name == "exact" ? v1::PLUCKER_EXACT : v1::RASTER;
 }
 
 struct HiddenMapOptions {
-  std::string scene, source, receiver, method = "raster", lookup = "exact", png, npy, exr;
+  std::string scene, source, receiver, method = "auto", lookup = "exact", png, npy, exr;
   uint32_t samples = 256, width = 128, height = 128;
   uint64_t seed = 1;
   bool decorrelate = false, watertight = false, bitmasks = false;
@@ -77,7 +79,7 @@ Status RunHiddenMap(const HiddenMapOptions& o, Cli& cli) {
 }
 
 struct PatchVisibilityOptions {
-  std::string scene, source, receiver, method = "raster", lookup = "exact";
+  std::string scene, source, receiver, method = "auto", lookup = "exact";
   uint32_t source_grid = 32, receiver_grid = 32, limit = 0;
   TargetFlags target;
 };
@@ -125,7 +127,7 @@ void AddSamplingCommands(Cli& cli) {
   hidden_map->add_option("--seed", hm->seed, "Jitter seed")->capture_default_str();
   hidden_map->add_option("--width", hm->width, "Receiver texels across")->capture_default_str();
   hidden_map->add_option("--height", hm->height, "Receiver texels down")->capture_default_str();
-  AddChoice(hidden_map, "--method", hm->method, kMethods, "raster, raycast or exact (the Plücker method)");
+  AddChoice(hidden_map, "--method", hm->method, kMethods, "auto (the server picks the faster of raster and raycast), raster, raycast or exact (the Plücker method)");
   AddChoice(hidden_map, "--lookup", hm->lookup, kLookups, "RASTER's lookup: exact (the ray-cast bits) or hough");
   hidden_map->add_flag("--decorrelate", hm->decorrelate, "Per-texel sample offsets (noise instead of aliasing)");
   hidden_map->add_flag("--watertight", hm->watertight, "Front-face culling for closed casters");
@@ -146,7 +148,7 @@ void AddSamplingCommands(Cli& cli) {
   patch_visibility->add_option("--source-grid", pv->source_grid, "Samples per side on the source")->capture_default_str();
   patch_visibility->add_option("--receiver-grid", pv->receiver_grid, "Samples per side on the receiver")
       ->capture_default_str();
-  AddChoice(patch_visibility, "--method", pv->method, kMethods, "raster, raycast or exact (the Plücker method)");
+  AddChoice(patch_visibility, "--method", pv->method, kMethods, "auto (the server picks the faster of raster and raycast), raster, raycast or exact (the Plücker method)");
   AddChoice(patch_visibility, "--lookup", pv->lookup, kLookups, "RASTER's lookup: exact (the ray-cast bits) or hough");
   patch_visibility->add_option("--unblocked-limit", pv->limit, "Return up to this many unblocked rays");
   AddTargetFlags(patch_visibility, pv->target);

@@ -357,8 +357,10 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
       }
     }
     if (rays.empty()) continue;
+    if (options.stop && options.stop()) return absl::CancelledError("obscurance rays: the call stopped");
     raycast::TraceOptions trace;
     trace.threads = options.threads;
+    trace.stop = options.stop;
     VISQ_ASSIGN_OR_RETURN(std::vector<raycast::Hit> hits, embree.Intersect(rays, trace));
     std::vector<glm::dvec3> sum(kBatchTexels, glm::dvec3(0.0));
     std::vector<uint32_t> count(kBatchTexels, 0);

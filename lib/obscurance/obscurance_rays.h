@@ -14,6 +14,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <span>
 #include <vector>
 
@@ -84,6 +85,9 @@ struct RayEstimateOptions {
   uint32_t rays_per_patch = 64;
   uint64_t seed = 1;
   int threads = 0;  // 0: all cores
+  // Polled between batches of rays: when it returns true the estimate stops
+  // with CANCELLED (a call cancelled or past its deadline).
+  std::function<bool()> stop;
 };
 
 // The reference: every covered texel estimated with rays_per_patch rays,

@@ -3,11 +3,14 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <chrono>
 #include <fstream>
 #include <limits>
 #include <sstream>
 
 #include <spdlog/spdlog.h>
+
+#include "common/job_timing.h"
 
 namespace visq::core {
 
@@ -40,6 +43,42 @@ void CostModel::Record(const std::string& series, double work, double ms, double
   observations.push_back({work, ms, extra});
   if (observations.size() > kObservationsKept) observations.pop_front();
   SaveLocked();
+}
+
+void CostModel::RecordCutProbe(const std::string& series, double budget_ms) {
+  std::lock_guard lock(mutex_);
+  if (!cut_probes_.contains(series) && cut_probes_.size() >= kSeriesKept) cut_probes_.erase(cut_probes_.begin());
+  double& kept = cut_probes_[series];
+  kept = std::max(kept, budget_ms);
+}
+
+double CostModel::CutProbeBudget(const std::string& series) const {
+  std::lock_guard lock(mutex_);
+  auto it = cut_probes_.find(series);
+  return it == cut_probes_.end() ? 0.0 : it->second;
+}
+
+void CostModel::AddExplorationCredit(const std::string& series, double ms) {
+  if (!(ms > 0.0) || !std::isfinite(ms)) return;
+  std::lock_guard lock(mutex_);
+  if (!exploration_credit_.contains(series) && exploration_credit_.size() >= kSeriesKept)
+    exploration_credit_.erase(exploration_credit_.begin());
+  exploration_credit_[series] += ms;
+}
+
+double CostModel::TakeExplorationCredit(const std::string& series) {
+  std::lock_guard lock(mutex_);
+  auto it = exploration_credit_.find(series);
+  if (it == exploration_credit_.end()) return 0.0;
+  const double credit = it->second;
+  exploration_credit_.erase(it);
+  return credit;
+}
+
+double CostModel::ExplorationCredit(const std::string& series) const {
+  std::lock_guard lock(mutex_);
+  auto it = exploration_credit_.find(series);
+  return it == exploration_credit_.end() ? 0.0 : it->second;
 }
 
 size_t CostModel::Observations(const std::string& series) const {
@@ -241,6 +280,91 @@ std::optional<double> CostModel::Predict(const std::string& series, double work,
 double HoeffdingSamplesNeeded(double max_error, double confidence) {
   if (confidence >= 1.0 || max_error <= 0.0) return std::numeric_limits<double>::infinity();
   return std::ceil(std::log(2.0 / (1.0 - confidence)) / (2.0 * max_error * max_error));
+}
+
+namespace {
+
+enum class ProbeOutcome { kMeasured, kCut, kUnusable };
+
+// Runs an option's probes within `budget_ms` (and the call's own deadline
+// and cancellation), recording each into the model.
+StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& option, double budget_ms,
+                                   const CallOptions& call, double& probe_ms) {
+  const Plan& plan = option.plan;
+  const auto start = std::chrono::steady_clock::now();
+  CallOptions probe_call = call;
+  if (std::isfinite(budget_ms)) {
+    const auto budget_end = start + std::chrono::microseconds(static_cast<int64_t>(budget_ms * 1000.0));
+    probe_call.deadline = std::min(call.deadline, budget_end);
+  }
+  for (size_t k = 0; k < option.probes.size(); ++k) {
+    const EqualAnswerOption::Probe& probe = option.probes[k];
+    if (k > 0) {
+      // A larger probe only when it is cheap beside the request itself and
+      // fits what is left of the budget.
+      const double probe_predicted = model.Predict(plan.cost_key, probe.work, probe.extra).value_or(0.0);
+      const double request_predicted = model.Predict(plan.cost_key, plan.work, plan.extra_work).value_or(0.0);
+      if (probe_predicted > kNextProbeShareOfRequest * request_predicted) break;
+      if (std::isfinite(budget_ms) && MillisecondsSince(start) + probe_predicted > budget_ms) break;
+    }
+    VISQ_RETURN_IF_ERROR(call.StillWanted("choosing a method"));
+    const auto probe_start = std::chrono::steady_clock::now();
+    StatusOr<double> ms = probe.run(probe_call);
+    probe_ms += MillisecondsSince(probe_start);
+    if (!ms.ok()) {
+      // The call itself still wants its answer: the probe ran out of its
+      // budget, not the call.
+      if (!call.Stopped() && probe_call.Stopped()) {
+        model.RecordCutProbe(plan.cost_key, budget_ms);
+        return k == 0 ? ProbeOutcome::kCut : ProbeOutcome::kMeasured;
+      }
+      if (ms.status().code() == absl::StatusCode::kFailedPrecondition) return ProbeOutcome::kUnusable;
+      return ms.status();
+    }
+    model.Record(plan.cost_key, probe.work, *ms, probe.extra);
+  }
+  return ProbeOutcome::kMeasured;
+}
+
+}  // namespace
+
+StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOption> options, const CallOptions& call) {
+  PlanReport report;
+  report.reason = PlanReport::Reason::kFastestOfEqualAnswers;
+  double best_ms = std::numeric_limits<double>::infinity();
+  for (EqualAnswerOption& option : options) {
+    Plan& plan = option.plan;
+    if (model.Observations(plan.cost_key) == 0) {
+      // This request's share of the best plan, and what the requests before
+      // it that could not afford the probe have set aside.
+      const double share_ms = std::isfinite(best_ms) ? kProbeShareOfBest * best_ms : best_ms;
+      const double budget_ms = share_ms + model.ExplorationCredit(plan.cost_key);
+      // Too cheap to learn a new method on yet, or its probe was cut at a
+      // budget not far below this one.
+      if (budget_ms < kSmallestProbeBudgetMs || budget_ms < 4.0 * model.CutProbeBudget(plan.cost_key)) {
+        model.AddExplorationCredit(plan.cost_key, share_ms);
+        report.cut_probes.push_back(plan.method);
+        continue;
+      }
+      model.TakeExplorationCredit(plan.cost_key);
+      VISQ_ASSIGN_OR_RETURN(const ProbeOutcome outcome, ProbeOption(model, option, budget_ms, call, report.probe_ms));
+      if (outcome == ProbeOutcome::kUnusable) continue;
+      if (outcome == ProbeOutcome::kCut) {
+        report.cut_probes.push_back(plan.method);
+        continue;
+      }
+    }
+    plan.predicted_ms = model.Predict(plan.cost_key, plan.work, plan.extra_work).value_or(0.0);
+    plan.meets_target = true;  // every option gives the asked answer
+    best_ms = std::min(best_ms, plan.predicted_ms);
+    report.plans.push_back(std::move(plan));
+  }
+  if (report.plans.empty()) return absl::FailedPreconditionError("no method can answer this request");
+  report.chosen = static_cast<size_t>(
+      std::min_element(report.plans.begin(), report.plans.end(),
+                       [](const Plan& a, const Plan& b) { return a.predicted_ms < b.predicted_ms; }) -
+      report.plans.begin());
+  return report;
 }
 
 std::string DescribePlan(const Plan& plan) {

@@ -13,6 +13,7 @@
 #include <cstdint>
 #include <deque>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <optional>
@@ -20,6 +21,7 @@
 #include <vector>
 
 #include "common/status.h"
+#include "core/call_options.h"
 
 namespace visq::core {
 
@@ -50,6 +52,13 @@ struct PlanReport {
   std::vector<Plan> plans;
   size_t chosen = 0;
   double probe_ms = 0.0;  // spent measuring methods not seen before on this scene
+  // Why these plans: an AccuracyTarget's, or the server's own choice among
+  // methods giving the same answer for a request that named none.
+  enum class Reason { kTarget, kFastestOfEqualAnswers };
+  Reason reason = Reason::kTarget;
+  // Methods left out because their probe ran past its share of the best
+  // plan's time (ChooseFastest), by name.
+  std::vector<std::string> cut_probes;
   const Plan& chosen_plan() const { return plans[chosen]; }
 };
 
@@ -86,6 +95,22 @@ class CostModel {
   // Record. An unreadable or unwritable file costs the persistence only.
   void PersistTo(const std::filesystem::path& path);
 
+  // A probe stopped at its budget (ChooseFastest) says only that the method
+  // costs more than the budget on that probe: no observation is kept, and
+  // the series is probed again only with a budget several times larger, so
+  // a method that is slow here costs each request at most a share of it.
+  void RecordCutProbe(const std::string& series, double budget_ms);
+  // The largest budget a probe of the series was cut at; 0 when none.
+  double CutProbeBudget(const std::string& series) const;
+  // Exploration credit: each request that leaves an unmeasured method out
+  // (its budget too small to learn it) adds that budget to the method's
+  // credit, and its next probe may spend the sum; so requests too small to
+  // probe on still pay for a method's probe together, at the same share.
+  void AddExplorationCredit(const std::string& series, double ms);
+  // The credit, which the caller then spends (it is reset).
+  double TakeExplorationCredit(const std::string& series);
+  double ExplorationCredit(const std::string& series) const;
+
   struct Observation {
     double work = 0.0;
     double ms = 0.0;
@@ -98,6 +123,8 @@ class CostModel {
   void SaveLocked() const;
   mutable std::mutex mutex_;
   std::map<std::string, std::deque<Observation>> series_;
+  std::map<std::string, double> cut_probes_;
+  std::map<std::string, double> exploration_credit_;
   std::filesystem::path file_;
 };
 
@@ -115,6 +142,46 @@ double HoeffdingSamplesNeeded(double max_error, double confidence);
 // - a budget alone: the most accurate plan predicted to fit, ties to the
 //   cheaper; when none fits, the cheapest plan (its predicted_ms says so).
 [[nodiscard]] StatusOr<size_t> ChoosePlan(std::vector<Plan>& plans, const AccuracyTarget& target);
+
+// One of several methods that give the same answer (or, for a bake, one
+// whose stated bound is at least as tight): for a request that names no
+// method, the server runs the one predicted fastest on this device and
+// scene. `plan` holds the method, its parameters and bound, its cost series
+// and the request's work in the series' units.
+struct EqualAnswerOption {
+  Plan plan;
+  // Small runs of this request (a few receiver points, a few directions)
+  // that teach the cost model this method on this scene, smallest first:
+  // each returns its compute ms, and runs under `call`, whose deadline is
+  // the probe's budget.
+  struct Probe {
+    double work = 0.0;
+    double extra = 0.0;
+    std::function<StatusOr<double>(const CallOptions& call)> run;
+  };
+  std::vector<Probe> probes;
+};
+
+// Of a method without observations, at most this share of the best plan
+// predicted so far is spent on its probes: a method slower here than the
+// others costs a request at most this much more (plus one GL job, the
+// granularity at which a probe stops).
+inline constexpr double kProbeShareOfBest = 0.25;
+// Below this budget a method is not probed at all: the request is cheap
+// with the methods already known.
+inline constexpr double kSmallestProbeBudgetMs = 10.0;
+// A probe after the first runs only while the model predicts it at most
+// this share of the whole request.
+inline constexpr double kNextProbeShareOfRequest = 0.1;
+
+// Predicts every option (probing, in the order given, the ones this series
+// has not measured: put the cheapest to probe first; the first option's
+// probes have no budget but the call's) and chooses the fastest. An option
+// whose probe fails with FAILED_PRECONDITION (it cannot answer this
+// request honestly) or runs past its budget is left out; FAILED_PRECONDITION
+// when none is left.
+[[nodiscard]] StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOption> options,
+                                                 const CallOptions& call);
 
 // "raycast {samples: 2048}" for messages and logs.
 std::string DescribePlan(const Plan& plan);

@@ -21,11 +21,21 @@ void AddChosenPlan(const PlanReport& plan, AccuracyStatement& statement) {
   const Plan& chosen = plan.chosen_plan();
   for (const auto& [name, value] : chosen.parameters) statement.parameters[name] = value;
   statement.predicted_ms = chosen.predicted_ms;
-  absl::StrAppend(&statement.note, "; chosen for the target among ", plan.plans.size(), " plans by the cost model (",
-                  plan.probe_ms > 0
-                      ? absl::StrFormat("%.1f ms spent probing methods new to this scene", plan.probe_ms)
-                      : std::string("no probing needed"),
-                  ")");
+  const std::string probing = plan.probe_ms > 0
+                                  ? absl::StrFormat("%.1f ms spent probing methods new to this scene", plan.probe_ms)
+                                  : std::string("no probing needed");
+  if (plan.reason == PlanReport::Reason::kTarget) {
+    absl::StrAppend(&statement.note, "; chosen for the target among ", plan.plans.size(),
+                    " plans by the cost model (", probing, ")");
+    return;
+  }
+  std::string left_out;
+  for (const std::string& method : plan.cut_probes) absl::StrAppend(&left_out, left_out.empty() ? "" : ", ", method);
+  absl::StrAppend(&statement.note, "; no method named: the fastest here of ", plan.plans.size(),
+                  " methods giving this answer, by the cost model (", probing, ")",
+                  left_out.empty() ? std::string()
+                                   : absl::StrCat("; not weighed (its probe would cost more than a ",
+                                                  kProbeShareOfBest, " share of the best plan): ", left_out));
 }
 
 }  // namespace visq::core

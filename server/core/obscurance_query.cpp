@@ -186,11 +186,93 @@ gpu::ObscuranceBakeOptions BakeOptions(const ObscuranceQuery& query) {
 // least count meeting the error), each predicted from the measured cost per
 // direction of bakes of this scene at this resolution; a scene never baked at
 // it is probed with two short partial bakes (4 and 16 directions).
+// The cost series of a bake's depth peeling (per direction) and of its
+// ray-cast estimator (per ray a patch).
+std::string DepthPeelingSeries(const ResidentScene& resident, const ObscuranceQuery& query) {
+  return absl::StrCat(resident.name, "@", resident.content_hash.substr(0, 8), "/obscurance/", query.resolution, "/",
+                      query.params.bundle_resolution, query.params.color_bleeding ? "/rgb" : "/w");
+}
+std::string RaycastSeries(const ResidentScene& resident, const ObscuranceQuery& query) {
+  return absl::StrCat(DepthPeelingSeries(resident, query), "/raycast");
+}
+
+// A stopped estimate's status as the call sees it: CANCELLED or
+// DEADLINE_EXCEEDED, whichever stopped it.
+Status StoppedAs(const CallOptions& call, Status status) {
+  if (status.ok() || !call.Stopped()) return status;
+  return call.StillWanted("obscurance rays");
+}
+
+// A whole bake's ray-cast estimate with `rays` rays per patch, its atlas
+// included (as the chosen run's cost is recorded): its ms.
+StatusOr<double> RaycastEstimateMs(const ResidentScene& resident, const ObscuranceQuery& query, uint32_t rays,
+                                   const CallOptions& call) {
+  const auto start = std::chrono::steady_clock::now();
+  obscurance::AtlasOptions atlas_options;
+  atlas_options.force_build = query.force_built_atlas;
+  VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
+                        obscurance::BuildObscuranceAtlas(*resident.scene, query.resolution, atlas_options));
+  obscurance::RayEstimateOptions options;
+  options.rays_per_patch = rays;
+  options.seed = query.params.seed;
+  options.stop = [call] { return call.Stopped(); };
+  VISQ_RETURN_IF_ERROR(StoppedAs(call, obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params,
+                                                                             options).status()));
+  return MillisecondsSince(start);
+}
+
+// A request naming no method, for a whole bake of D directions: depth
+// peeling with D directions, or the ray-cast estimator with D rays per
+// patch, whose covered bound is the same figure; the faster here runs. The
+// ray-cast estimator is probed first (a few rays a patch); the bake's
+// probes (a direction, then four) get a share of its predicted time, since
+// on a CPU rasterizer one direction can cost more than a whole ray-cast
+// estimate.
+StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene& resident,
+                                            const ObscuranceQuery& query) {
+  const uint32_t directions = query.params.direction_count;
+  const double bound = obscurance::CoveredHalfWidth(directions, 0.95);
+  std::vector<EqualAnswerOption> options(2);
+  {
+    Plan& plan = options[0].plan;
+    plan.method = "obscurance-raycast";
+    plan.parameters["rays_per_patch"] = directions;
+    plan.cost_key = RaycastSeries(resident, query);
+    plan.work = directions;
+    plan.error_bound = bound;
+    for (uint32_t rays : {4u, 16u})
+      options[0].probes.push_back({double(rays), 0.0, [&resident, &query, rays](const CallOptions& call) {
+                                     return RaycastEstimateMs(resident, query, rays, call);
+                                   }});
+  }
+  {
+    Plan& plan = options[1].plan;
+    plan.method = "obscurance-depth-peeling";
+    plan.parameters["directions"] = directions;
+    plan.cost_key = DepthPeelingSeries(resident, query);
+    plan.work = directions;
+    plan.error_bound = bound;
+    for (uint32_t count : {1u, 4u})
+      options[1].probes.push_back({double(count), 0.0, [&engine, &query, count](const CallOptions& call) -> StatusOr<double> {
+                                     ObscuranceQuery probe = query;
+                                     probe.method = ObscuranceMethod::kDepthPeeling;
+                                     probe.params.first_direction = 0;
+                                     probe.params.direction_count = count;
+                                     probe.total_directions = count;
+                                     probe.partial_only = true;  // neither finalized nor installed for updates
+                                     probe.progress = nullptr;
+                                     probe.call = call;
+                                     VISQ_ASSIGN_OR_RETURN(const ObscuranceAnswer answer,
+                                                           RunComputeObscurances(engine, probe));
+                                     return answer.atlas_ms + answer.bake_ms;
+                                   }});
+  }
+  return ChooseFastest(engine.cost_model(), std::move(options), query.call);
+}
+
 StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& resident, const ObscuranceQuery& query) {
   const AccuracyTarget& target = *query.target;
-  const std::string series =
-      absl::StrCat(resident.name, "@", resident.content_hash.substr(0, 8), "/obscurance/", query.resolution, "/",
-                   query.params.bundle_resolution, query.params.color_bleeding ? "/rgb" : "/w");
+  const std::string series = DepthPeelingSeries(resident, query);
   PlanReport report;
   CostModel& model = engine.cost_model();
   if (!model.Predict(series, 1.0)) {
@@ -208,7 +290,7 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
     }
   }
   // The ray-cast estimator: probed with 4 and 16 rays per patch.
-  const std::string ray_series = absl::StrCat(series, "/raycast");
+  const std::string ray_series = RaycastSeries(resident, query);
   if (!model.Predict(ray_series, 1.0)) {
     const auto atlas_start = std::chrono::steady_clock::now();
     obscurance::AtlasOptions atlas_options;
@@ -268,13 +350,25 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
+  if (!query.target && !query.method) {
+    const bool whole_bake = query.params.first_direction == 0 && !query.partial_only &&
+                            (query.total_directions == 0 || query.total_directions == query.params.direction_count);
+    if (whole_bake) {
+      VISQ_ASSIGN_OR_RETURN(plan, ChooseObscuranceMethod(engine, *resident, query));
+    } else {
+      query.method = ObscuranceMethod::kDepthPeeling;  // partial sums are the bake's alone
+    }
+  }
   if (query.target) {
     VISQ_ASSIGN_OR_RETURN(plan, PlanObscurances(engine, *resident, query));
+  }
+  if (plan) {
     const Plan& chosen = plan->chosen_plan();
     if (chosen.parameters.contains("rays_per_patch")) {
       query.method = ObscuranceMethod::kRaycast;
       query.rays_per_patch = static_cast<uint32_t>(chosen.parameters.at("rays_per_patch"));
     } else {
+      query.method = ObscuranceMethod::kDepthPeeling;
       query.params.direction_count = static_cast<uint32_t>(chosen.parameters.at("directions"));
     }
   }
@@ -307,7 +401,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
                                                      "resolution",
                                                      query.call.BatchJob()));
 
-  answer.method = query.method;
+  answer.method = *query.method;
   answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);
   obscurance::ObscuranceResult result;
   if (query.method == ObscuranceMethod::kRaycast) {
@@ -317,7 +411,11 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     obscurance::RayEstimateOptions options;
     options.rays_per_patch = query.rays_per_patch;
     options.seed = query.params.seed;
-    VISQ_ASSIGN_OR_RETURN(result, obscurance::EstimateObscurancesByRays(scene, atlas, query.params, options));
+    options.stop = [call = query.call] { return call.Stopped(); };
+    StatusOr<obscurance::ObscuranceResult> estimate =
+        obscurance::EstimateObscurancesByRays(scene, atlas, query.params, options);
+    VISQ_RETURN_IF_ERROR(StoppedAs(query.call, estimate.status()));
+    result = *std::move(estimate);
     answer.bake_ms = MillisecondsSince(start);
     answer.rays_per_patch = query.rays_per_patch;
     answer.total_directions = 0;

@@ -53,7 +53,11 @@ struct ObscuranceQuery {
   bool want_averages = false;
   bool want_errors = false;  // the answer always has them; the transport sends them on request
   uint32_t update_rays_per_patch = 64;
-  ObscuranceMethod method = ObscuranceMethod::kDepthPeeling;
+  // None: for a whole bake, the server runs the faster here of the depth
+  // peeling with params.direction_count directions and the ray-cast
+  // estimator with as many rays per patch, whose bound is the same figure
+  // (and a bound, where the bake's is an estimate); a partial bake peels.
+  std::optional<ObscuranceMethod> method = ObscuranceMethod::kDepthPeeling;
   uint32_t rays_per_patch = 256;  // kRaycast
   // Instead of params.direction_count, for a whole bake: the planner picks
   // the number of directions (core/accuracy_planner.h).

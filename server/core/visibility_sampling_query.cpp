@@ -82,8 +82,7 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
     raycast::TraceOptions trace;
     trace.coherent = true;
     trace.stop = StopRequested(job);
-    VISQ_ASSIGN_OR_RETURN(
-        std::vector<uint8_t> blocked,
+    StatusOr<std::vector<uint8_t>> traced =
         embree->Occluded(
             band_texels * n,
             [&](size_t k) {
@@ -92,7 +91,10 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
               const int x = static_cast<int>(t % width), y = y0 + static_cast<int>(t / width);
               return raycast::Segment{receiver_points[t], sampling::SourceSampleSeenFrom(request, source, i, x, y)};
             },
-            trace));
+            trace);
+    // A stopped trace says why: the call's cancellation or its deadline.
+    if (!traced.ok() && trace.stop()) return gpu::StillWanted(job, "hidden-sample map: between ray batches");
+    VISQ_ASSIGN_OR_RETURN(std::vector<uint8_t> blocked, std::move(traced));
     bits.assign(band_texels * words, 0u);
     for (size_t k = 0; k < blocked.size(); ++k)
       if (blocked[k]) bits[(k / n) * words + (k % n) / 32] |= 1u << ((k % n) % 32);
@@ -763,6 +765,115 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   return answer;
 }
 
+// ---------------------------------------------------------------------------
+// A request with its own samples and no method: the server's choice.
+
+// RASTER with the EXACT lookup and RAYCAST give the same bits (up to float
+// ties on triangle edges), so the server runs the one this scene's cost
+// model predicts faster on this device. RAYCAST comes first: its probe of
+// a few receiver points costs a few thousand rays, so it is always measured,
+// and RASTER's probe (whole passes over the scene, slow on a CPU
+// rasterizer) then gets a share of RAYCAST's predicted time.
+// `run(method, side, call)` runs the request reduced to at most side x side
+// receiver points and returns its compute ms; `points(side)` counts them.
+StatusOr<PlanReport> ChooseSampledMethod(Engine& engine, const std::string& series_base, sampling::LookupMode lookup,
+                                         int samples, const std::function<double(int side)>& points,
+                                         const std::function<StatusOr<double>(VisibilityMethod, int, const CallOptions&)>& run,
+                                         const PrecisionCheck& resolves, const CallOptions& call) {
+  std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster};
+  if (lookup == sampling::LookupMode::kExact) methods.insert(methods.begin(), VisibilityMethod::kRaycast);
+  std::vector<EqualAnswerOption> options;
+  for (VisibilityMethod method : methods) {
+    const Status precise = resolves(method, samples);
+    if (precise.code() == absl::StatusCode::kFailedPrecondition) continue;  // not honest for this request
+    VISQ_RETURN_IF_ERROR(precise);
+    EqualAnswerOption option;
+    Plan& plan = option.plan;
+    plan.method = VisibilityMethodName(method, lookup);
+    plan.cost_key = absl::StrCat(series_base, "/", plan.method);
+    plan.parameters["samples"] = samples;
+    const WorkUnits whole = SampledWork(method, points(0), samples);
+    plan.work = whole.work;
+    plan.extra_work = whole.extra;
+    for (int side : {4, 16}) {
+      const WorkUnits units = SampledWork(method, points(side), samples);
+      option.probes.push_back({units.work, units.extra, [&run, method, side](const CallOptions& probe_call) {
+                                 return run(method, side, probe_call);
+                               }});
+    }
+    options.push_back(std::move(option));
+  }
+  if (options.empty())
+    return absl::FailedPreconditionError(
+        "method: no sampled method resolves this request in float32 (see the scene's anchor); name PLUCKER_EXACT");
+  return ChooseFastest(engine.cost_model(), std::move(options), call);
+}
+
+StatusOr<PlanReport> ChooseHiddenSampleMapMethod(Engine& engine, const ResidentScene& resident,
+                                                 const sampling::HiddenSampleMapRequest& request,
+                                                 const CallOptions& call) {
+  const int samples = request.source.sample_count;
+  auto sized = [&](int side) {
+    sampling::HiddenSampleMapRequest out = request;
+    out.receiver = ReducedReceiver(request.receiver, side);
+    return out;
+  };
+  auto run = [&](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
+    const sampling::HiddenSampleMapRequest probe = sized(side);
+    StatusOr<sampling::HiddenSampleMapResult> result =
+        samples > sampling::kMaxHiddenSampleMapSamples
+            ? SeveralMaps(engine, resident, method, probe, samples, probe_call, {})
+            : HiddenSampleMapBy(engine, resident, method, probe, probe_call);
+    if (!result.ok()) return result.status();
+    return ComputeMs(result->timing, result->table_ms);
+  };
+  auto points = [&](int side) {
+    const sampling::ReceiverSpec receiver = ReducedReceiver(request.receiver, side);
+    return double(receiver.width) * receiver.height;
+  };
+  auto resolves = [&](VisibilityMethod method, int) {
+    sampling::HiddenSampleMapRequest one_map = request;
+    one_map.source.sample_count = std::min(samples, sampling::kMaxHiddenSampleMapSamples);
+    return engine.ValidateSampledPrecision(resident, one_map, TracerOf(method), call);
+  };
+  return ChooseSampledMethod(engine, SeriesBase(resident, "hidden_sample_map"), request.options.lookup, samples,
+                             points, run, resolves, call);
+}
+
+StatusOr<PlanReport> ChoosePatchVisibilityMethod(Engine& engine, const ResidentScene& resident,
+                                                 const sampling::PatchVisibilityRequest& request,
+                                                 const CallOptions& call) {
+  auto sized = [&](int side) {
+    sampling::PatchVisibilityRequest out = request;
+    if (side > 0) {
+      out.receiver_columns = std::min(request.receiver_columns, side);
+      out.receiver_rows = std::min(request.receiver_rows, side);
+    }
+    return out;
+  };
+  auto run = [&](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
+    VISQ_ASSIGN_OR_RETURN(const sampling::PatchVisibilityResult result,
+                          PatchVisibilityBy(engine, resident, method, sized(side), probe_call));
+    return ComputeMs(result.timing);
+  };
+  auto points = [&](int side) {
+    const sampling::PatchVisibilityRequest r = sized(side);
+    return double(r.receiver_columns) * r.receiver_rows;
+  };
+  auto resolves = [&](VisibilityMethod method, int) -> Status {
+    VISQ_ASSIGN_OR_RETURN(const sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
+    return engine.ValidateSampledPrecision(resident, map, TracerOf(method), call);
+  };
+  return ChooseSampledMethod(engine, SeriesBase(resident, "patch_visibility"), request.lookup,
+                             request.source_columns * request.source_rows, points, run, resolves, call);
+}
+
+// The chosen method's run teaches the model too.
+void RecordChosenRun(Engine& engine, const PlanReport& report, double compute_ms) {
+  const Plan& plan = report.chosen_plan();
+  engine.cost_model().Record(plan.cost_key, plan.work, compute_ms, plan.extra_work);
+}
+
 }  // namespace
 
 std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode lookup) {
@@ -821,14 +932,21 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapUnstated(Engine& engine, const Hi
   if (query.target) return HiddenSampleMapForTarget(engine, *resident, query, sink);
   const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
   HiddenSampleMapAnswer answer;
-  answer.method = query.method;
-  if (checked.source.sample_count > sampling::kMaxHiddenSampleMapSamples) {
-    VISQ_ASSIGN_OR_RETURN(answer.result, SeveralMaps(engine, *resident, query.method, checked,
-                                                     checked.source.sample_count, query.call, sink));
-    return answer;
+  if (query.method) {
+    answer.method = *query.method;
+  } else {
+    VISQ_ASSIGN_OR_RETURN(PlanReport report, ChooseHiddenSampleMapMethod(engine, *resident, checked, query.call));
+    answer.method = MethodOfPlan(report.chosen_plan());
+    answer.plan = std::move(report);
   }
-  VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, query.method, checked, query.call,
-                                                         sink, &answer.memory));
+  if (checked.source.sample_count > sampling::kMaxHiddenSampleMapSamples) {
+    VISQ_ASSIGN_OR_RETURN(answer.result, SeveralMaps(engine, *resident, answer.method, checked,
+                                                     checked.source.sample_count, query.call, sink));
+  } else {
+    VISQ_ASSIGN_OR_RETURN(answer.result, HiddenSampleMapBy(engine, *resident, answer.method, checked, query.call,
+                                                           sink, &answer.memory));
+  }
+  if (answer.plan) RecordChosenRun(engine, *answer.plan, ComputeMs(answer.result.timing, answer.result.table_ms));
   return answer;
 }
 
@@ -837,8 +955,15 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityUnstated(Engine& engine, const Pa
                         engine.FindScene(query.scene, query.scene_version));
   if (query.target) return PatchVisibilityForTarget(engine, *resident, query);
   PatchVisibilityAnswer answer;
-  answer.method = query.method;
-  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, query.method, query.request, query.call));
+  if (query.method) {
+    answer.method = *query.method;
+  } else {
+    VISQ_ASSIGN_OR_RETURN(PlanReport report, ChoosePatchVisibilityMethod(engine, *resident, query.request, query.call));
+    answer.method = MethodOfPlan(report.chosen_plan());
+    answer.plan = std::move(report);
+  }
+  VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, answer.method, query.request, query.call));
+  if (answer.plan) RecordChosenRun(engine, *answer.plan, ComputeMs(answer.result.timing));
   return answer;
 }
 

@@ -45,7 +45,10 @@ struct HiddenSampleMapQuery {
   std::string scene;
   uint64_t scene_version = 0;
   sampling::HiddenSampleMapRequest request;
-  VisibilityMethod method = VisibilityMethod::kRaster;
+  // None: the server runs the fastest here of the methods that give this
+  // answer (RASTER with the EXACT lookup and RAYCAST cast the same segments;
+  // the HOUGH lookup is RASTER's alone).
+  std::optional<VisibilityMethod> method = VisibilityMethod::kRaster;
   // Instead of request.source.sample_count and method: the planner chooses
   // the method and the count (jittered samples, or the exact method).
   std::optional<AccuracyTarget> target;
@@ -69,7 +72,8 @@ struct PatchVisibilityQuery {
   std::string scene;
   uint64_t scene_version = 0;
   sampling::PatchVisibilityRequest request;
-  VisibilityMethod method = VisibilityMethod::kRaster;
+  // None: the server chooses, as for maps.
+  std::optional<VisibilityMethod> method = VisibilityMethod::kRaster;
   // Instead of the source grid and method (the receiver grid stays).
   std::optional<AccuracyTarget> target;
   CallOptions call;

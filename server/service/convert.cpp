@@ -108,9 +108,10 @@ sampling::Patch PatchFromProto(const v1::Patch& p) {
   return sampling::Patch{FromProto(p.origin()), FromProto(p.edge_u()), FromProto(p.edge_v())};
 }
 
-StatusOr<core::VisibilityMethod> MethodFromProto(v1::VisibilityMethod method) {
+// METHOD_UNSPECIFIED: none, the server chooses.
+StatusOr<std::optional<core::VisibilityMethod>> MethodFromProto(v1::VisibilityMethod method) {
   switch (method) {
-    case v1::METHOD_UNSPECIFIED:
+    case v1::METHOD_UNSPECIFIED: return std::optional<core::VisibilityMethod>();
     case v1::RASTER: return core::VisibilityMethod::kRaster;
     case v1::RAYCAST: return core::VisibilityMethod::kRaycast;
     case v1::PLUCKER_EXACT: return core::VisibilityMethod::kPluckerExact;
@@ -622,6 +623,9 @@ StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& r
   query.update_rays_per_patch = request.update_rays_per_patch() != 0 ? request.update_rays_per_patch() : 64;
   switch (request.method()) {
     case v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED:
+      // Rays per patch name the ray-cast estimator; otherwise the server chooses.
+      query.method = request.rays_per_patch() != 0 ? std::optional(core::ObscuranceMethod::kRaycast) : std::nullopt;
+      break;
     case v1::ComputeObscurancesRequest::DEPTH_PEELING: query.method = core::ObscuranceMethod::kDepthPeeling; break;
     case v1::ComputeObscurancesRequest::RAYCAST: query.method = core::ObscuranceMethod::kRaycast; break;
     default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));

@@ -417,7 +417,7 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         const sampling::HiddenSampleMapResult& result = answer.result;
         log.Info("{} {}x{} texels, {} samples{}",
                  core::VisibilityMethodName(answer.method, query.request.options.lookup), result.width, result.height, result.sample_count,
-                 answer.plan ? absl::StrCat(" (chosen for the target, predicted ",
+                 answer.plan ? absl::StrCat(" (chosen by the cost model, predicted ",
                                             absl::StrFormat("%.1f", answer.plan->chosen_plan().predicted_ms), " ms)")
                              : std::string());
         // The memory reservation lasts until the last message is sent.

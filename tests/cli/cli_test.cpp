@@ -157,9 +157,9 @@ TEST_F(CliTest, UnknownEnumValuesAreRefusedNamingTheAllowedOnes) {
     std::string arguments, message;
   };
   for (const Case& c : std::vector<Case>{
-           {"hidden-map --scene x" + patches + " --method raycats", "'raycats' is not one of raster, raycast, exact"},
+           {"hidden-map --scene x" + patches + " --method raycats", "'raycats' is not one of auto, raster, raycast, exact"},
            {"hidden-map --scene x" + patches + " --lookup fsat", "'fsat' is not one of exact, hough, fast"},
-           {"patch-visibility --scene x" + patches + " --method rastr", "'rastr' is not one of raster, raycast, exact"},
+           {"patch-visibility --scene x" + patches + " --method rastr", "'rastr' is not one of auto, raster, raycast, exact"},
            {std::string("transmittance --scene x --light 0,-1,0 --absorber a=1 --receiver '") + kFloorUp +
                 "' --light-kind spot",
             "'spot' is not one of directional, point"},
@@ -406,7 +406,7 @@ TEST_F(CliTest, FarmBakeShardsMergeToTheWholeBakeBitForBit) {
        {bake + " --directions 8 --partial-out " + (d / "whole.vqp").string(),
         bake + " --directions 3 --total-directions 8 --partial-out " + (d / "a.vqp").string(),
         bake + " --first-direction 3 --directions 5 --total-directions 8 --partial-out " + (d / "b.vqp").string(),
-        bake + " --directions 8 --npy " + (d / "whole.npy").string()}) {
+        bake + " --directions 8 --method depth-peeling --npy " + (d / "whole.npy").string()}) {
     const CliRun run = Visq(arguments);
     ASSERT_EQ(run.exit_code, 0) << arguments << "\n" << run.output;
   }

@@ -2,8 +2,11 @@
 // whose right answer is known by hand.
 #include "core/accuracy_planner.h"
 
+#include <atomic>
+#include <chrono>
 #include <cmath>
 #include <fstream>
+#include <thread>
 
 #include <gtest/gtest.h>
 
@@ -228,6 +231,142 @@ TEST(ValidateAccuracyTarget, NamesTheBadField) {
   EXPECT_NE(message({.max_error = 0.1, .confidence = 1.5}).find("target.confidence"), std::string::npos);
   EXPECT_NE(message({.time_budget_ms = -3}).find("target.time_budget_ms"), std::string::npos);
   EXPECT_NE(message({}).find("neither"), std::string::npos);
+}
+
+// ---------------------------------------------------------------------------
+// ChooseFastest: the server's choice for a request that names no method.
+// Each option's probe is a real run of `ms_per_unit` x work, measured as
+// such (no clock), or one that works until its call stops, as a GL job cut
+// at its deadline does.
+
+EqualAnswerOption Option(const std::string& method, double work, double ms_per_unit, int* probes_run) {
+  EqualAnswerOption option;
+  option.plan.method = method;
+  option.plan.cost_key = "scene/map/" + method;
+  option.plan.work = work;
+  for (double probe_work : {16.0, 256.0})
+    option.probes.push_back({probe_work, 0.0, [=](const CallOptions&) -> StatusOr<double> {
+                               ++*probes_run;
+                               return probe_work * ms_per_unit;
+                             }});
+  return option;
+}
+
+// A method whose probe never finishes before its budget: it polls its
+// call's stop, as the GL worker does between jobs.
+EqualAnswerOption EndlessOption(const std::string& method, double work, int* probes_run) {
+  EqualAnswerOption option;
+  option.plan.method = method;
+  option.plan.cost_key = "scene/map/" + method;
+  option.plan.work = work;
+  option.probes.push_back({16.0, 0.0, [=](const CallOptions& call) -> StatusOr<double> {
+                             ++*probes_run;
+                             while (!call.Stopped()) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+                             return call.StillWanted("the endless probe");
+                           }});
+  return option;
+}
+
+TEST(ChooseFastest, ProbesEachNewMethodAndRunsThePredictedFastest) {
+  CostModel model;
+  int raycast_probes = 0, raster_probes = 0;
+  // 1e5 units of work: the ray caster at 0.01 ms a unit (1 s), the
+  // rasterizer at 0.001 (0.1 s), its probe well inside 0.25 s.
+  std::vector<EqualAnswerOption> options;
+  options.push_back(Option("raycast", 1e5, 0.01, &raycast_probes));
+  options.push_back(Option("raster", 1e5, 0.001, &raster_probes));
+  auto report = ChooseFastest(model, options, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  ASSERT_EQ(report->plans.size(), 2u);
+  EXPECT_EQ(report->chosen_plan().method, "raster");
+  EXPECT_NEAR(report->chosen_plan().predicted_ms, 100.0, 1e-6);
+  EXPECT_EQ(report->reason, PlanReport::Reason::kFastestOfEqualAnswers);
+  EXPECT_GT(raycast_probes, 0);
+  EXPECT_GT(raster_probes, 0);
+  // Measured once, predicted from then on: no probe runs again.
+  const int before = raycast_probes + raster_probes;
+  report = ChooseFastest(model, options, {});
+  ASSERT_TRUE(report.ok());
+  EXPECT_EQ(report->chosen_plan().method, "raster");
+  EXPECT_EQ(raycast_probes + raster_probes, before);
+}
+
+TEST(ChooseFastest, AProbePastItsShareOfTheBestPlanIsCutAndItsMethodLeftOut) {
+  CostModel model;
+  int raycast_probes = 0, raster_probes = 0;
+  std::vector<EqualAnswerOption> options;
+  // The ray caster: 400 ms for the request, so the rasterizer's probe gets
+  // 100 ms.
+  options.push_back(Option("raycast", 4e4, 0.01, &raycast_probes));
+  options.push_back(EndlessOption("raster", 4e4, &raster_probes));
+  const auto start = std::chrono::steady_clock::now();
+  auto report = ChooseFastest(model, options, {});
+  const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_TRUE(report.ok()) << report.status();
+  ASSERT_EQ(report->plans.size(), 1u);
+  EXPECT_EQ(report->chosen_plan().method, "raycast");
+  ASSERT_EQ(report->cut_probes.size(), 1u);
+  EXPECT_EQ(report->cut_probes[0], "raster");
+  EXPECT_EQ(raster_probes, 1);
+  EXPECT_GE(ms, 100.0 * 0.9);
+  EXPECT_LT(ms, 1000.0) << "the probe stops at its budget";
+  EXPECT_NEAR(model.CutProbeBudget("scene/map/raster"), kProbeShareOfBest * 400.0, 1e-6);
+  EXPECT_EQ(model.Observations("scene/map/raster"), 0u) << "a cut probe measured nothing";
+  // The same request again: the cut method is not probed at the same budget.
+  report = ChooseFastest(model, options, {});
+  ASSERT_TRUE(report.ok());
+  EXPECT_EQ(raster_probes, 1);
+  EXPECT_EQ(report->chosen_plan().method, "raycast");
+}
+
+TEST(ChooseFastest, SmallRequestsSetCreditAsideUntilAProbeIsAffordable) {
+  CostModel model;
+  int raycast_probes = 0, raster_probes = 0;
+  // 8 ms a request: a 2 ms share each, under the smallest probe budget.
+  std::vector<EqualAnswerOption> options;
+  options.push_back(Option("raycast", 800, 0.01, &raycast_probes));
+  options.push_back(Option("raster", 800, 0.001, &raster_probes));
+  int requests = 0;
+  while (raster_probes == 0 && requests < 20) {
+    auto report = ChooseFastest(model, options, {});
+    ASSERT_TRUE(report.ok()) << report.status();
+    ++requests;
+    if (raster_probes == 0) {
+      EXPECT_EQ(report->chosen_plan().method, "raycast");
+    }
+  }
+  // 2 ms a request reaches kSmallestProbeBudgetMs at the fifth.
+  EXPECT_EQ(requests, int(std::ceil(kSmallestProbeBudgetMs / (kProbeShareOfBest * 8.0))));
+  auto report = ChooseFastest(model, options, {});
+  ASSERT_TRUE(report.ok());
+  EXPECT_EQ(report->chosen_plan().method, "raster");
+  EXPECT_DOUBLE_EQ(model.ExplorationCredit("scene/map/raster"), 0.0) << "the credit was spent";
+}
+
+TEST(ChooseFastest, AMethodThatCannotAnswerIsLeftOutAndNoneLeftIsRefused) {
+  CostModel model;
+  int probes = 0;
+  EqualAnswerOption imprecise = Option("raster", 1e4, 0.001, &probes);
+  imprecise.probes = {{16.0, 0.0, [](const CallOptions&) -> StatusOr<double> {
+                         return absl::FailedPreconditionError("float32 cannot resolve this request");
+                       }}};
+  auto report = ChooseFastest(model, {imprecise}, {});
+  EXPECT_EQ(report.status().code(), absl::StatusCode::kFailedPrecondition);
+  report = ChooseFastest(model, {Option("raycast", 1e4, 0.01, &probes), imprecise}, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  ASSERT_EQ(report->plans.size(), 1u);
+  EXPECT_EQ(report->chosen_plan().method, "raycast");
+}
+
+TEST(ChooseFastest, ACancelledCallStopsChoosing) {
+  CostModel model;
+  int probes = 0;
+  std::atomic<bool> cancelled{true};
+  CallOptions call;
+  call.cancelled = &cancelled;
+  auto report = ChooseFastest(model, {Option("raycast", 1e4, 0.01, &probes)}, call);
+  EXPECT_EQ(report.status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(probes, 0);
 }
 
 }  // namespace

@@ -40,6 +40,7 @@ class AlgorithmRpcTest : public testing::SharedServerSuite<AlgorithmRpcTest> {
 
 TEST_F(AlgorithmRpcTest, HiddenSampleMapRasterMatchesRaycastBitForBit) {
   v1::HiddenSampleMapRequest request = LightOntoFloor(64, 32);
+  request.set_method(v1::RASTER);
   auto raster = client_->ComputeHiddenSampleMap(request);
   ASSERT_TRUE(raster.ok()) << raster.status();
   request.set_method(v1::RAYCAST);
@@ -63,6 +64,61 @@ TEST_F(AlgorithmRpcTest, HiddenSampleMapRasterMatchesRaycastBitForBit) {
   EXPECT_GT(raster->figures.accuracy().error_bound(), 0.0) << "64 samples have a sampling error";
   EXPECT_GT(raster->figures.timing().total_ms(), 0.0);
   EXPECT_EQ(raster->figures.source_samples_size(), 64);
+}
+
+// With no method, a map runs the faster here of RASTER and RAYCAST, which
+// give the same bits: the answer says which, lists what was weighed, and
+// has the ray caster's bits; the HOUGH lookup is RASTER's alone.
+TEST_F(AlgorithmRpcTest, AMapNamingNoMethodRunsTheFasterOfTwoWithTheSameBits) {
+  v1::HiddenSampleMapRequest request = LightOntoFloor(64, 32);
+  auto chosen = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  request.set_method(v1::RAYCAST);
+  auto raycast = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(raycast.ok()) << raycast.status();
+  const v1::Accuracy& accuracy = chosen->figures.accuracy();
+  EXPECT_TRUE(accuracy.method() == "raster-exact-lookup" || accuracy.method() == "raycast") << accuracy.method();
+  EXPECT_NE(accuracy.note().find("no method named"), std::string::npos) << accuracy.note();
+  ASSERT_GE(accuracy.plans_size(), 1);
+  bool chosen_listed = false;
+  for (const v1::PlanEstimate& plan : accuracy.plans()) {
+    EXPECT_TRUE(plan.method() == "raster-exact-lookup" || plan.method() == "raycast") << plan.method();
+    EXPECT_EQ(plan.parameters().at("samples"), 64.0);
+    chosen_listed |= plan.method() == accuracy.method();
+  }
+  EXPECT_TRUE(chosen_listed);
+  ASSERT_EQ(chosen->blocked_bits.size(), raycast->blocked_bits.size());
+  size_t differing = 0;
+  for (size_t w = 0; w < chosen->blocked_bits.size(); ++w)
+    differing += std::popcount(chosen->blocked_bits[w] ^ raycast->blocked_bits[w]);
+  EXPECT_LE(differing, 32u * 32u * 64u / 10000u) << "the ray-cast bits, float ties aside";
+  EXPECT_DOUBLE_EQ(accuracy.error_bound(), raycast->figures.accuracy().error_bound());
+
+  request.set_method(v1::METHOD_UNSPECIFIED);
+  request.set_lookup(v1::HOUGH);
+  request.set_want_bitmasks(false);
+  auto hough = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(hough.ok()) << hough.status();
+  EXPECT_EQ(hough->figures.accuracy().method(), "raster-hough-lookup");
+}
+
+TEST_F(AlgorithmRpcTest, PatchVisibilityNamingNoMethodRunsOneOfTheTwo) {
+  v1::PatchVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.997}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.set_source_columns(8);
+  request.set_source_rows(8);
+  request.set_receiver_columns(12);
+  request.set_receiver_rows(12);
+  auto chosen = client_->PatchVisibility(request);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  request.set_method(v1::RAYCAST);
+  auto raycast = client_->PatchVisibility(request);
+  ASSERT_TRUE(raycast.ok()) << raycast.status();
+  EXPECT_TRUE(chosen->accuracy().method() == "raster-exact-lookup" || chosen->accuracy().method() == "raycast");
+  EXPECT_GE(chosen->accuracy().plans_size(), 1);
+  EXPECT_NEAR(chosen->mutual_visible_fraction(), raycast->mutual_visible_fraction(), 1e-3);
 }
 
 TEST_F(AlgorithmRpcTest, PatchVisibilityRasterMatchesRaycast) {

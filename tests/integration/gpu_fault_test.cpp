@@ -27,6 +27,7 @@ v1::HiddenSampleMapRequest CeilingLightOntoFloor() {
   request.set_width(32);
   request.set_height(32);
   request.set_want_bitmasks(true);
+  request.set_method(v1::RASTER);  // a GPU job per map
   return request;
 }
 

@@ -341,6 +341,7 @@ TEST(HostileServerSetup, LargeMapsAreSentABandAtATime) {
   request.set_width(64);
   request.set_height(64);
   request.set_want_bitmasks(true);
+  request.set_method(v1::RASTER);  // the GPU's bands, sized by --map-band-bytes
 
   auto stub = v1::VisibilityService::NewStub(grpc::CreateChannel(server->address(), grpc::InsecureChannelCredentials()));
   grpc::ClientContext context;
@@ -366,6 +367,7 @@ TEST(HostileServerSetup, LargeMapsAreSentABandAtATime) {
   EXPECT_EQ(next_texel, 64u * 64u);
 
   Client client({.address = server->address()});
+  request.set_method(v1::RASTER);
   auto raster = client.ComputeHiddenSampleMap(request);
   request.set_method(v1::RAYCAST);
   auto raycast = client.ComputeHiddenSampleMap(request);

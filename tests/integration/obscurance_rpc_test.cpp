@@ -58,9 +58,55 @@ class ObscuranceRpcTest : public testing::SharedServerSuite<ObscuranceRpcTest> {
     request.set_d_max(1.0);
     request.set_direction_count(8);
     request.set_seed(5);
+    // The paper's bake (progress, shards, updates, previews); the server's
+    // own choice is tested apart.
+    request.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);
     return request;
   }
 };
+
+// With no method, a whole bake of D directions runs the faster here of the
+// depth peeling with D directions and the ray-cast estimator with D rays a
+// patch (the same bound figure); the answer says which and lists both; a
+// shard's range only the bake can make.
+TEST_F(ObscuranceRpcTest, ABakeNamingNoMethodRunsTheFasterOfTwoAtTheSameBound) {
+  v1::ComputeObscurancesRequest request = SmallBake("cornell_box_visq");
+  request.clear_method();
+  auto bake = client_->ComputeObscurances(request);
+  ASSERT_TRUE(bake.ok()) << bake.status();
+  const v1::Accuracy& accuracy = bake->figures.accuracy();
+  EXPECT_TRUE(accuracy.method() == "obscurance-depth-peeling" || accuracy.method() == "obscurance-raycast")
+      << accuracy.method();
+  EXPECT_NE(accuracy.note().find("no method named"), std::string::npos) << accuracy.note();
+  ASSERT_GE(accuracy.plans_size(), 1);
+  bool chosen_listed = false;
+  for (const v1::PlanEstimate& plan : accuracy.plans()) {
+    EXPECT_TRUE(plan.meets_target());
+    EXPECT_GE(plan.predicted_ms(), 0.0);
+    EXPECT_DOUBLE_EQ(plan.error_bound(), accuracy.plans(0).error_bound()) << "the same bound figure";
+    const char* count = plan.method() == "obscurance-raycast" ? "rays_per_patch" : "directions";
+    ASSERT_TRUE(plan.parameters().contains(count)) << plan.method();
+    EXPECT_EQ(plan.parameters().at(count), 8.0);
+    chosen_listed |= plan.method() == accuracy.method();
+  }
+  EXPECT_TRUE(chosen_listed);
+  EXPECT_TRUE(bake->figures.update_ready()) << "either way a whole bake, ready for updates";
+  size_t estimated = 0;
+  for (size_t t = 0; t < bake->estimated.size(); ++t) {
+    if (!bake->estimated[t]) continue;
+    ++estimated;
+    EXPECT_GE(bake->w[3 * t], 0.0f);
+    EXPECT_LE(bake->w[3 * t], 1.0f);
+  }
+  EXPECT_GT(estimated, 100u);
+
+  v1::ComputeObscurancesRequest shard = request;
+  shard.set_total_directions(16);
+  shard.set_partial_only(true);
+  auto partial = client_->ComputeObscurances(shard);
+  ASSERT_TRUE(partial.ok()) << partial.status();
+  EXPECT_EQ(partial->figures.accuracy().method(), "obscurance-depth-peeling");
+}
 
 TEST_F(ObscuranceRpcTest, BakeGivesWInRangeWithProgress) {
   uint32_t progress_seen = 0, last_done = 0;

@@ -529,6 +529,7 @@ TEST_F(SceneRpcTest, KillDuringBakeKeepsAcknowledgedScenesAndRestartsCleanly) {
     request.set_resolution(64);
     request.set_d_max(0.5);
     request.set_direction_count(100000);
+    request.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);  // the GPU bake, with its progress
     auto bake = baker.ComputeObscurances(
         request, [&](const v1::ObscuranceProgress& p) { directions_done = p.directions_done(); });
     EXPECT_FALSE(bake.ok()) << "the server died mid-bake";
@@ -553,6 +554,7 @@ TEST_F(SceneRpcTest, KillDuringBakeKeepsAcknowledgedScenesAndRestartsCleanly) {
   small.set_resolution(16);
   small.set_d_max(0.5);
   small.set_direction_count(4);
+  small.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);
   auto rebake = client_->ComputeObscurances(small, nullptr);
   ASSERT_TRUE(rebake.ok()) << rebake.status();
   EXPECT_EQ(rebake->partial.DirectionCount(), 4u);

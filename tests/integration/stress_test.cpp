@@ -239,6 +239,7 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
     bake.set_d_max(1.0);
     bake.set_direction_count(4000);
     bake.set_total_directions(4000);
+    bake.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);  // the GPU's batch work
     // Ends by its deadline or by finishing; either way it held the queue.
     (void)client.ComputeObscurances(
         bake, [&](const v1::ObscuranceProgress& progress) { bake_directions = progress.directions_done(); });

@@ -180,7 +180,7 @@ class ClientTest(unittest.TestCase):
         with self.assertRaises(visq.VisqError) as caught:
             self.client.hidden_sample_map("no_such_scene", LIGHT_SOURCE, FLOOR, width=4, height=4)
         self.assertEqual(caught.exception.code, grpc.StatusCode.NOT_FOUND)
-        with self.assertRaisesRegex(ValueError, "method: 'raycats' is not one of raster, raycast, exact"):
+        with self.assertRaisesRegex(ValueError, "method: 'raycats' is not one of auto, raster, raycast, exact"):
             self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, FLOOR, method="raycats")
         with self.assertRaisesRegex(ValueError, r"receiver.edge_u: expected 3 numbers"):
             self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, ((0, 0, 0), (1, 0), (0, 0, 1)))
@@ -204,7 +204,7 @@ class ClientTest(unittest.TestCase):
 
     def test_hidden_sample_map_matches_the_cpp_cli(self):
         m = self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, FLOOR, width=24, height=16, samples=64,
-                                          bitmasks=True)
+                                          bitmasks=True, method="raster")
         self.assertEqual(m.visible_fraction.shape, (16, 24))
         self.assertEqual(m.visible_fraction.dtype, np.float32)
         self.assertTrue(((m.visible_fraction >= 0) & (m.visible_fraction <= 1)).all())
@@ -310,7 +310,8 @@ class ClientTest(unittest.TestCase):
 
     def test_obscurance_bake_with_progress_then_preview(self):
         progress = []
-        bake = self.client.compute_obscurances(SCENE, 0.5, resolution=32, directions=8, progress=progress.append)
+        bake = self.client.compute_obscurances(SCENE, 0.5, resolution=32, directions=8, progress=progress.append,
+                                               method="depth-peeling")
         self.assertEqual(bake.w.shape, (32, 32, 3))
         self.assertEqual(bake.estimated.shape, (32, 32))
         self.assertTrue(bake.estimated.any())
@@ -386,7 +387,7 @@ class ClientTest(unittest.TestCase):
 
         with self.assertRaises(visq.Cancelled) as caught:
             self.client.compute_obscurances(SCENE, 0.5, resolution=64, directions=4096, progress=progress,
-                                            cancel=cancel)
+                                            cancel=cancel, method="depth-peeling")
         self.assertEqual(caught.exception.code, grpc.StatusCode.CANCELLED)
         self.assertLess(time.monotonic() - started, 30)
         # Cancelled from another thread, before any message.

@@ -301,7 +301,7 @@ def _target(target, out):
     out.time_budget_ms = float(target.get("time_budget_ms", 0.0))
 
 
-_METHODS = {"raster": pb.RASTER, "raycast": pb.RAYCAST, "exact": pb.PLUCKER_EXACT, "plucker-exact": pb.PLUCKER_EXACT}
+_METHODS = {"auto": pb.METHOD_UNSPECIFIED, "raster": pb.RASTER, "raycast": pb.RAYCAST, "exact": pb.PLUCKER_EXACT, "plucker-exact": pb.PLUCKER_EXACT}
 # "fast" was the Hough lookup's first name.
 _LOOKUPS = {"exact": pb.EXACT, "hough": pb.HOUGH, "fast": pb.HOUGH}
 
@@ -556,7 +556,7 @@ class Client:
 
     # -- hidden-sample maps and patch visibility ------------------------------
 
-    def hidden_sample_map(self, scene, source, receiver, width=128, height=128, samples=256, method="raster",
+    def hidden_sample_map(self, scene, source, receiver, width=128, height=128, samples=256, method="auto",
                           lookup="exact", seed=1, decorrelate=False, watertight=False, bitmasks=False, target=None,
                           confidence=0.0, texel_error=False, version=0, timeout=_UNSET,
                           cancel=None) -> HiddenSampleMap:
@@ -596,7 +596,7 @@ class Client:
             blocked_bits=chunks.get("blocked_bits", np.uint32, (h, w, f.words_per_texel)),
             lookup_error=lookup_error, texel_error=texel_error, source_samples=samples_xyz, figures=f)
 
-    def patch_visibility(self, scene, source, receiver, source_grid=32, receiver_grid=32, method="raster",
+    def patch_visibility(self, scene, source, receiver, source_grid=32, receiver_grid=32, method="auto",
                          lookup="exact", watertight=False, unblocked_limit=0, target=None, version=0,
                          timeout=_UNSET) -> PatchVisibility:
         """Mutual visibility of two sampled patches. Grids are (columns, rows)
@@ -846,12 +846,14 @@ class Client:
 
     def compute_obscurances(self, scene, d_max, resolution=256, directions=256, seed=1, color_bleeding=False,
                             force_built_atlas=False, want_averages=False, first_direction=0, total_directions=0,
-                            partial_only=False, method="depth-peeling", rays_per_patch=256, target=None,
+                            partial_only=False, method="auto", rays_per_patch=256, target=None,
                             bundle_resolution=0, version=0, want_errors=False, progress=None, timeout=_UNSET,
                             cancel=None) -> ObscuranceBake:
         """Bakes obscurances. progress(visq.Progress) is called for each
         progress message; cancel=visq.Cancellation() stops the bake.
-        method 'raycast' is the Embree estimator (rays_per_patch); target
+        method 'raycast' is the Embree estimator (rays_per_patch),
+        'depth-peeling' the paper's GPU bake, 'auto' the faster of the two
+        here at the same bound (a shard range peels); target
         {max_error, confidence, time_budget_ms} lets the server choose."""
         request = pb.ComputeObscurancesRequest()
         request.scene.name, request.scene.version = scene, version
@@ -864,7 +866,8 @@ class Client:
         request.want_averages, request.partial_only = want_averages, partial_only
         request.want_errors = bool(want_errors)
         request.bundle_resolution = _count(bundle_resolution, "bundle_resolution", 0)
-        chosen = _choice(method, "method", {"depth-peeling": pb.ComputeObscurancesRequest.DEPTH_PEELING,
+        chosen = _choice(method, "method", {"auto": pb.ComputeObscurancesRequest.METHOD_UNSPECIFIED,
+                                            "depth-peeling": pb.ComputeObscurancesRequest.DEPTH_PEELING,
                                             "raycast": pb.ComputeObscurancesRequest.RAYCAST})
         if target is not None:
             _target(target, request.target)
@@ -872,6 +875,7 @@ class Client:
             request.method = chosen
             request.rays_per_patch = _count(rays_per_patch, "rays_per_patch", 1, 65536)
         else:
+            request.method = chosen
             request.direction_count = _count(directions, "directions", 1)
             request.first_direction = _count(first_direction, "first_direction", 0)
             request.total_directions = _count(total_directions, "total_directions", 0)

@@ -1,0 +1,327 @@
+// The server's choice of method, measured: a suite of requests that name no
+// method, each run through the real server beside the same request naming
+// each method that gives the same answer (RASTER and RAYCAST for sampled
+// visibility; DEPTH_PEELING and RAYCAST at the same bound for a bake). For
+// every request it prints the chosen method's time over the fastest
+// method's, on the first call (the probes of a fresh server included) and
+// warm, and the cost model's predicted compute time beside the measured one.
+// Every mode of a scene gets a fresh server of its own, so the first calls
+// start from nothing; the requests of a scene then follow one another on it.
+// Not a test: `--quick` (the Cornell box, small sizes) runs in ctest as a
+// smoke test of the table.
+//
+//   visq_bench_default_method [--scenes ../shared/scenes] [--quick]
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <functional>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+
+#include "server_process.h"
+#include "test_support.h"
+#include "visq_client.h"
+
+namespace visq {
+namespace {
+
+using testing::ServerProcess;
+
+void SetVec(v1::Vec3* v, double x, double y, double z) {
+  v->set_x(x);
+  v->set_y(y);
+  v->set_z(z);
+}
+// A patch's origin, edge_u and edge_v.
+using PatchSpec = std::array<std::array<double, 3>, 3>;
+void SetPatch(v1::Patch* p, const PatchSpec& patch) {
+  SetVec(p->mutable_origin(), patch[0][0], patch[0][1], patch[0][2]);
+  SetVec(p->mutable_edge_u(), patch[1][0], patch[1][1], patch[1][2]);
+  SetVec(p->mutable_edge_v(), patch[2][0], patch[2][1], patch[2][2]);
+}
+
+// What one call gave: the client's wall time, the method that ran, and the
+// cost model's prediction beside the server's compute time.
+struct Run {
+  bool ok = false;
+  std::string error;
+  double wall_ms = 0.0;
+  std::string method;
+  double predicted_ms = 0.0;
+  double compute_ms = 0.0;
+};
+
+// A request of the suite, sent with `mode` ("auto", or a method's name).
+struct Row {
+  std::string label;
+  std::vector<std::string> modes;  // the methods that give the same answer
+  std::function<Run(client::Client&, const std::string& mode)> call;
+};
+
+struct Scene {
+  std::string name;
+  std::filesystem::path file;  // empty: the server's generated sample scene
+  std::vector<Row> rows;
+};
+
+template <typename Body>
+Run Timed(Body body) {
+  Run run;
+  const auto start = std::chrono::steady_clock::now();
+  body(run);
+  run.wall_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  return run;
+}
+
+v1::VisibilityMethod SampledMethod(const std::string& mode) {
+  if (mode == "raster") return v1::RASTER;
+  if (mode == "raycast") return v1::RAYCAST;
+  return v1::METHOD_UNSPECIFIED;
+}
+
+Row MapRow(const std::string& scene, const PatchSpec& source, const PatchSpec& receiver, uint32_t side,
+           uint32_t samples) {
+  Row row;
+  row.label = "map " + std::to_string(side) + "^2 N=" + std::to_string(samples);
+  row.modes = {"raster", "raycast"};
+  row.call = [=](client::Client& client, const std::string& mode) {
+    return Timed([&](Run& run) {
+      v1::HiddenSampleMapRequest request;
+      request.mutable_scene()->set_name(scene);
+      SetPatch(request.mutable_source(), source);
+      SetPatch(request.mutable_receiver(), receiver);
+      request.mutable_samples()->set_count(samples);
+      request.mutable_samples()->set_seed(3);
+      request.set_width(side);
+      request.set_height(side);
+      request.set_method(SampledMethod(mode));
+      auto map = client.ComputeHiddenSampleMap(request);
+      run.ok = map.ok();
+      if (!map.ok()) {
+        run.error = std::string(map.status().message());
+        return;
+      }
+      run.method = map->figures.accuracy().method();
+      run.predicted_ms = map->figures.accuracy().predicted_ms();
+      run.compute_ms = map->figures.timing().compute_ms();
+    });
+  };
+  return row;
+}
+
+Row PatchRow(const std::string& scene, const PatchSpec& source, const PatchSpec& receiver, uint32_t source_grid,
+             uint32_t receiver_grid) {
+  Row row;
+  row.label = "patches " + std::to_string(source_grid) + "^2 x " + std::to_string(receiver_grid) + "^2";
+  row.modes = {"raster", "raycast"};
+  row.call = [=](client::Client& client, const std::string& mode) {
+    return Timed([&](Run& run) {
+      v1::PatchVisibilityRequest request;
+      request.mutable_scene()->set_name(scene);
+      SetPatch(request.mutable_source(), source);
+      SetPatch(request.mutable_receiver(), receiver);
+      request.set_source_columns(source_grid);
+      request.set_source_rows(source_grid);
+      request.set_receiver_columns(receiver_grid);
+      request.set_receiver_rows(receiver_grid);
+      request.set_method(SampledMethod(mode));
+      auto answer = client.PatchVisibility(request);
+      run.ok = answer.ok();
+      if (!answer.ok()) {
+        run.error = std::string(answer.status().message());
+        return;
+      }
+      run.method = answer->accuracy().method();
+      run.predicted_ms = answer->accuracy().predicted_ms();
+      run.compute_ms = answer->timing().compute_ms();
+    });
+  };
+  return row;
+}
+
+Row BakeRow(const std::string& scene, uint32_t resolution, uint32_t directions) {
+  Row row;
+  row.label = "bake " + std::to_string(resolution) + " D=" + std::to_string(directions);
+  row.modes = {"depth-peeling", "raycast"};
+  row.call = [=](client::Client& client, const std::string& mode) {
+    return Timed([&](Run& run) {
+      v1::ComputeObscurancesRequest request;
+      request.mutable_scene()->set_name(scene);
+      request.set_resolution(resolution);
+      request.set_d_max(1.0);
+      if (mode == "raycast") {
+        request.set_method(v1::ComputeObscurancesRequest::RAYCAST);
+        request.set_rays_per_patch(directions);
+      } else {
+        if (mode == "depth-peeling") request.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);
+        request.set_direction_count(directions);
+      }
+      auto bake = client.ComputeObscurances(request);
+      run.ok = bake.ok();
+      if (!bake.ok()) {
+        run.error = std::string(bake.status().message());
+        return;
+      }
+      run.method = bake->figures.accuracy().method();
+      run.predicted_ms = bake->figures.accuracy().predicted_ms();
+      run.compute_ms = bake->figures.timing().compute_ms();
+    });
+  };
+  return row;
+}
+
+std::vector<Scene> Suite(const std::optional<std::filesystem::path>& shared, bool quick) {
+  std::vector<Scene> scenes;
+  {
+    // The generated Cornell box: the ceiling light onto the floor.
+    const PatchSpec light = {{{-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5}}};
+    const PatchSpec floor = {{{-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998}}};
+    Scene cornell{"cornell_box_visq", {}, {}};
+    cornell.rows.push_back(MapRow(cornell.name, light, floor, 8, 32));
+    cornell.rows.push_back(MapRow(cornell.name, light, floor, 64, 256));
+    cornell.rows.push_back(PatchRow(cornell.name, light, floor, 16, 16));
+    cornell.rows.push_back(BakeRow(cornell.name, 32, 16));
+    if (!quick) {
+      cornell.rows.push_back(MapRow(cornell.name, light, floor, 256, 1024));
+      cornell.rows.push_back(BakeRow(cornell.name, 128, 128));
+    }
+    scenes.push_back(std::move(cornell));
+  }
+  if (quick || !shared) return scenes;
+  {
+    // Sponza: the sky patch over the atrium floor.
+    const PatchSpec sky = {{{-5, 14, -2}, {10, 0, 0}, {0, 0, 4}}};
+    const PatchSpec floor = {{{-16, 0.2, -7}, {0, 0, 14}, {32, 0, 0}}};
+    Scene sponza{"sponza", *shared / "sponza_dabrovic/sponza.gltf", {}};
+    for (auto [side, samples] : std::vector<std::pair<uint32_t, uint32_t>>{{8, 32}, {64, 256}, {128, 1024}, {256, 256}})
+      sponza.rows.push_back(MapRow(sponza.name, sky, floor, side, samples));
+    sponza.rows.push_back(PatchRow(sponza.name, sky, floor, 32, 32));
+    sponza.rows.push_back(BakeRow(sponza.name, 64, 16));
+    sponza.rows.push_back(BakeRow(sponza.name, 128, 64));
+    scenes.push_back(std::move(sponza));
+  }
+  {
+    // The flowers: thin occluders under a light above the vases.
+    const PatchSpec light = {{{-0.1, 0.35, -0.15}, {0.3, 0, 0}, {0, 0, 0.25}}};
+    const PatchSpec floor = {{{-0.15, 0.001, -0.2}, {0, 0, 0.35}, {0.45, 0, 0}}};
+    Scene flowers{"flowers", *shared / "foliage_glass_vase_flowers/GlassVaseFlowers.gltf", {}};
+    flowers.rows.push_back(MapRow(flowers.name, light, floor, 64, 256));
+    flowers.rows.push_back(MapRow(flowers.name, light, floor, 128, 1024));
+    flowers.rows.push_back(BakeRow(flowers.name, 64, 32));
+    scenes.push_back(std::move(flowers));
+  }
+  return scenes;
+}
+
+struct Measured {
+  Run first, warm;
+};
+
+}  // namespace
+}  // namespace visq
+
+int main(int argc, char** argv) {
+  using namespace visq;
+  CLI::App app{"visq: the server's choice of method against the fastest, per request"};
+  std::string scenes_dir;
+  bool quick = false;
+  app.add_option("--scenes", scenes_dir, "the shared scenes (default: ../shared/scenes when present)");
+  app.add_flag("--quick", quick, "the Cornell box at small sizes (the ctest smoke run)");
+  CLI11_PARSE(app, argc, argv);
+  std::optional<std::filesystem::path> shared;
+  if (!scenes_dir.empty() && std::filesystem::exists(scenes_dir)) shared = scenes_dir;
+  if (!shared) shared = visq::testing::SharedScenesDir();
+
+  const std::vector<Scene> suite = Suite(shared, quick);
+  std::printf("%-26s %-22s %9s %9s | %9s %9s | %s\n", "request", "auto chose", "first x", "warm x", "pred ms",
+              "comp ms", "each method's first / warm ms (auto's first)");
+  int rows = 0, failures = 0, predictions = 0, predictions_within_2x = 0;
+  double worst_first = 0.0, worst_warm = 0.0;
+  for (const Scene& scene : suite) {
+    std::vector<std::string> modes = {"auto"};
+    for (const Row& row : scene.rows)
+      for (const std::string& m : row.modes)
+        if (std::find(modes.begin(), modes.end(), m) == modes.end()) modes.push_back(m);
+    // mode -> row -> first and warm runs, each mode on a fresh server.
+    std::map<std::string, std::vector<Measured>> by_mode;
+    for (const std::string& mode : modes) {
+      visq::testing::ScratchDir repo;
+      auto server = ServerProcess::Start({repo.path(), {"--seed-samples"}});
+      if (!server) {
+        std::fprintf(stderr, "the server did not start\n");
+        return 1;
+      }
+      client::ClientOptions options;
+      options.address = server->address();
+      options.deadline = std::chrono::minutes(30);
+      options.stream_deadline = std::chrono::milliseconds(0);
+      client::Client client(options);
+      if (!scene.file.empty()) {
+        auto info = client.UploadScene(scene.file, scene.name);
+        if (!info.ok()) {
+          std::fprintf(stderr, "%s: upload failed: %s\n", scene.name.c_str(), std::string(info.status().message()).c_str());
+          return 1;
+        }
+      }
+      for (const Row& row : scene.rows) {
+        Measured m;
+        const bool runs = mode == "auto" || std::find(row.modes.begin(), row.modes.end(), mode) != row.modes.end();
+        if (runs) {
+          m.first = row.call(client, mode);
+          m.warm = row.call(client, mode);
+        }
+        by_mode[mode].push_back(m);
+      }
+    }
+    for (size_t r = 0; r < scene.rows.size(); ++r) {
+      const Row& row = scene.rows[r];
+      const Measured& chosen = by_mode["auto"][r];
+      ++rows;
+      if (!chosen.first.ok || !chosen.warm.ok) {
+        ++failures;
+        std::printf("%-26s failed: %s\n", (scene.name + " " + row.label).c_str(),
+                    (chosen.first.ok ? chosen.warm.error : chosen.first.error).c_str());
+        continue;
+      }
+      double best_first = 1e300, best_warm = 1e300;
+      std::string each;
+      for (const std::string& m : row.modes) {
+        const Measured& x = by_mode[m][r];
+        if (!x.first.ok || !x.warm.ok) {
+          each += " " + m + " failed";
+          continue;
+        }
+        best_first = std::min(best_first, x.first.wall_ms);
+        best_warm = std::min(best_warm, x.warm.wall_ms);
+        char text[96];
+        std::snprintf(text, sizeof text, " %s %.0f / %.0f", m.c_str(), x.first.wall_ms, x.warm.wall_ms);
+        each += text;
+      }
+      char text[64];
+      std::snprintf(text, sizeof text, " (auto %.0f / %.0f)", chosen.first.wall_ms, chosen.warm.wall_ms);
+      each += text;
+      const double first_ratio = chosen.first.wall_ms / best_first, warm_ratio = chosen.warm.wall_ms / best_warm;
+      worst_first = std::max(worst_first, first_ratio);
+      worst_warm = std::max(worst_warm, warm_ratio);
+      // The warm call's prediction (the first's may rest on probes alone).
+      if (chosen.warm.predicted_ms > 0 && chosen.warm.compute_ms > 0) {
+        ++predictions;
+        const double q = chosen.warm.predicted_ms / chosen.warm.compute_ms;
+        predictions_within_2x += q <= 2.0 && q >= 0.5;
+      }
+      std::printf("%-26s %-22s %9.2f %9.2f | %9.1f %9.1f |%s\n", (scene.name + " " + row.label).c_str(),
+                  chosen.warm.method.c_str(), first_ratio, warm_ratio, chosen.warm.predicted_ms,
+                  chosen.warm.compute_ms, each.c_str());
+    }
+  }
+  std::printf("\n%d requests (%d failed): the chosen method's time over the fastest, worst %.2fx on the first call "
+              "(probes included), %.2fx warm; predictions within 2x of the compute time: %d of %d\n",
+              rows, failures, worst_first, worst_warm, predictions_within_2x, predictions);
+  return failures == 0 ? 0 : 1;
+}
