@@ -567,8 +567,11 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   if (options_.band_target_ms > 0.0) {
     std::lock_guard lock(band_sizes_->mutex);
     auto known = band_sizes_->texel_passes.find(&scene);
-    start_rows = known != band_sizes_->texel_passes.end() ? int(known->second / texel_passes_per_row)
-                                                          : std::max(1, height / 8);
+    // A scene not yet measured starts small (64K texel-passes: a few ms on a
+    // GPU, tens on llvmpipe) and doubles from there.
+    constexpr double kFirstBandTexelPasses = 65536.0;
+    const double texel_passes = known != band_sizes_->texel_passes.end() ? known->second : kFirstBandTexelPasses;
+    start_rows = int(texel_passes / texel_passes_per_row);
   }
   BandSizer sizer(options_.band_target_ms, plan.band_rows, start_rows);
   std::vector<uint32_t> readback;

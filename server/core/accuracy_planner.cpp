@@ -48,14 +48,21 @@ void CostModel::Record(const std::string& series, double work, double ms, double
 void CostModel::RecordCutProbe(const std::string& series, double budget_ms) {
   std::lock_guard lock(mutex_);
   if (!cut_probes_.contains(series) && cut_probes_.size() >= kSeriesKept) cut_probes_.erase(cut_probes_.begin());
-  double& kept = cut_probes_[series];
-  kept = std::max(kept, budget_ms);
+  CutProbe& kept = cut_probes_[series];
+  kept.budget_ms = std::max(kept.budget_ms, budget_ms);
+  ++kept.count;
 }
 
 double CostModel::CutProbeBudget(const std::string& series) const {
   std::lock_guard lock(mutex_);
   auto it = cut_probes_.find(series);
-  return it == cut_probes_.end() ? 0.0 : it->second;
+  return it == cut_probes_.end() || it->second.count < 2 ? 0.0 : it->second.budget_ms;
+}
+
+int CostModel::CutProbes(const std::string& series) const {
+  std::lock_guard lock(mutex_);
+  auto it = cut_probes_.find(series);
+  return it == cut_probes_.end() ? 0 : it->second.count;
 }
 
 void CostModel::AddExplorationCredit(const std::string& series, double ms) {
@@ -300,12 +307,16 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
   for (size_t k = 0; k < option.probes.size(); ++k) {
     const EqualAnswerOption::Probe& probe = option.probes[k];
     if (k > 0) {
-      // A larger probe only when it is cheap beside the request itself and
-      // fits what is left of the budget.
+      // A larger probe only when it is cheap beside the request itself (as
+      // predicted by the probes so far, which take their cost as growing
+      // with the work: the safe side) and while some budget is left. It is
+      // not held to the prediction: one small probe cannot tell a fixed
+      // cost from a rate (a pass over the scene from its fragments), which
+      // is what the larger one is for; its deadline cuts it.
       const double probe_predicted = model.Predict(plan.cost_key, probe.work, probe.extra).value_or(0.0);
       const double request_predicted = model.Predict(plan.cost_key, plan.work, plan.extra_work).value_or(0.0);
       if (probe_predicted > kNextProbeShareOfRequest * request_predicted) break;
-      if (std::isfinite(budget_ms) && MillisecondsSince(start) + probe_predicted > budget_ms) break;
+      if (std::isfinite(budget_ms) && 2.0 * MillisecondsSince(start) > budget_ms) break;
     }
     VISQ_RETURN_IF_ERROR(call.StillWanted("choosing a method"));
     const auto probe_start = std::chrono::steady_clock::now();
@@ -315,8 +326,9 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
       // The call itself still wants its answer: the probe ran out of its
       // budget, not the call.
       if (!call.Stopped() && probe_call.Stopped()) {
+        if (k > 0) return ProbeOutcome::kMeasured;  // the smaller probes predict it
         model.RecordCutProbe(plan.cost_key, budget_ms);
-        return k == 0 ? ProbeOutcome::kCut : ProbeOutcome::kMeasured;
+        return ProbeOutcome::kCut;
       }
       if (ms.status().code() == absl::StatusCode::kFailedPrecondition) return ProbeOutcome::kUnusable;
       return ms.status();
@@ -346,10 +358,12 @@ StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOpti
         report.cut_probes.push_back(plan.method);
         continue;
       }
-      model.TakeExplorationCredit(plan.cost_key);
+      const double credit_ms = model.TakeExplorationCredit(plan.cost_key);
       VISQ_ASSIGN_OR_RETURN(const ProbeOutcome outcome, ProbeOption(model, option, budget_ms, call, report.probe_ms));
       if (outcome == ProbeOutcome::kUnusable) continue;
       if (outcome == ProbeOutcome::kCut) {
+        // A first cut paid one-time costs: what was set aside stays.
+        if (model.CutProbes(plan.cost_key) < 2) model.AddExplorationCredit(plan.cost_key, credit_ms + share_ms);
         report.cut_probes.push_back(plan.method);
         continue;
       }

@@ -99,9 +99,15 @@ class CostModel {
   // costs more than the budget on that probe: no observation is kept, and
   // the series is probed again only with a budget several times larger, so
   // a method that is slow here costs each request at most a share of it.
+  // The first cut of a series is not held against it: the first probe of a
+  // method pays its one-time costs (GL programs compiled, the scene's
+  // buffers uploaded), so only a second cut backs off.
   void RecordCutProbe(const std::string& series, double budget_ms);
-  // The largest budget a probe of the series was cut at; 0 when none.
+  // The largest budget a probe of the series was cut at, from its second
+  // cut on; 0 before.
   double CutProbeBudget(const std::string& series) const;
+  // How many of the series' probes were cut.
+  int CutProbes(const std::string& series) const;
   // Exploration credit: each request that leaves an unmeasured method out
   // (its budget too small to learn it) adds that budget to the method's
   // credit, and its next probe may spend the sum; so requests too small to
@@ -123,7 +129,11 @@ class CostModel {
   void SaveLocked() const;
   mutable std::mutex mutex_;
   std::map<std::string, std::deque<Observation>> series_;
-  std::map<std::string, double> cut_probes_;
+  struct CutProbe {
+    double budget_ms = 0.0;
+    int count = 0;
+  };
+  std::map<std::string, CutProbe> cut_probes_;
   std::map<std::string, double> exploration_credit_;
   std::filesystem::path file_;
 };

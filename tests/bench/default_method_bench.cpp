@@ -55,7 +55,21 @@ struct Run {
   std::string method;
   double predicted_ms = 0.0;
   double compute_ms = 0.0;
+  std::string weighed;  // each plan weighed, with its predicted ms
 };
+
+void NoteAccuracy(const v1::Accuracy& accuracy, Run& run) {
+  run.method = accuracy.method();
+  run.predicted_ms = accuracy.predicted_ms();
+  for (const v1::PlanEstimate& plan : accuracy.plans()) {
+    char text[96];
+    std::snprintf(text, sizeof text, "%s%s %.1f ms", run.weighed.empty() ? "" : ", ", plan.method().c_str(),
+                  plan.predicted_ms());
+    run.weighed += text;
+  }
+  const size_t left_out = accuracy.note().find("not weighed");
+  if (left_out != std::string::npos) run.weighed += "; " + accuracy.note().substr(left_out);
+}
 
 // A request of the suite, sent with `mode` ("auto", or a method's name).
 struct Row {
@@ -107,8 +121,7 @@ Row MapRow(const std::string& scene, const PatchSpec& source, const PatchSpec& r
         run.error = std::string(map.status().message());
         return;
       }
-      run.method = map->figures.accuracy().method();
-      run.predicted_ms = map->figures.accuracy().predicted_ms();
+      NoteAccuracy(map->figures.accuracy(), run);
       run.compute_ms = map->figures.timing().compute_ms();
     });
   };
@@ -137,8 +150,7 @@ Row PatchRow(const std::string& scene, const PatchSpec& source, const PatchSpec&
         run.error = std::string(answer.status().message());
         return;
       }
-      run.method = answer->accuracy().method();
-      run.predicted_ms = answer->accuracy().predicted_ms();
+      NoteAccuracy(answer->accuracy(), run);
       run.compute_ms = answer->timing().compute_ms();
     });
   };
@@ -168,8 +180,7 @@ Row BakeRow(const std::string& scene, uint32_t resolution, uint32_t directions) 
         run.error = std::string(bake.status().message());
         return;
       }
-      run.method = bake->figures.accuracy().method();
-      run.predicted_ms = bake->figures.accuracy().predicted_ms();
+      NoteAccuracy(bake->figures.accuracy(), run);
       run.compute_ms = bake->figures.timing().compute_ms();
     });
   };
@@ -202,8 +213,9 @@ std::vector<Scene> Suite(const std::optional<std::filesystem::path>& shared, boo
     for (auto [side, samples] : std::vector<std::pair<uint32_t, uint32_t>>{{8, 32}, {64, 256}, {128, 1024}, {256, 256}})
       sponza.rows.push_back(MapRow(sponza.name, sky, floor, side, samples));
     sponza.rows.push_back(PatchRow(sponza.name, sky, floor, 32, 32));
-    sponza.rows.push_back(BakeRow(sponza.name, 64, 16));
-    sponza.rows.push_back(BakeRow(sponza.name, 128, 64));
+    // Sponza's 5,624 atlas charts need 512 texels across.
+    sponza.rows.push_back(BakeRow(sponza.name, 512, 16));
+    sponza.rows.push_back(BakeRow(sponza.name, 512, 64));
     scenes.push_back(std::move(sponza));
   }
   {
@@ -213,7 +225,7 @@ std::vector<Scene> Suite(const std::optional<std::filesystem::path>& shared, boo
     Scene flowers{"flowers", *shared / "foliage_glass_vase_flowers/GlassVaseFlowers.gltf", {}};
     flowers.rows.push_back(MapRow(flowers.name, light, floor, 64, 256));
     flowers.rows.push_back(MapRow(flowers.name, light, floor, 128, 1024));
-    flowers.rows.push_back(BakeRow(flowers.name, 64, 32));
+    flowers.rows.push_back(BakeRow(flowers.name, 256, 32));
     scenes.push_back(std::move(flowers));
   }
   return scenes;
@@ -233,12 +245,18 @@ int main(int argc, char** argv) {
   bool quick = false;
   app.add_option("--scenes", scenes_dir, "the shared scenes (default: ../shared/scenes when present)");
   app.add_flag("--quick", quick, "the Cornell box at small sizes (the ctest smoke run)");
+  std::string only;
+  bool verbose = false;
+  app.add_flag("--verbose", verbose, "print the plans each of auto's calls weighed");
+  app.add_option("--only", only, "run the requests of this scene alone (cornell_box_visq, sponza, flowers)");
   CLI11_PARSE(app, argc, argv);
   std::optional<std::filesystem::path> shared;
   if (!scenes_dir.empty() && std::filesystem::exists(scenes_dir)) shared = scenes_dir;
   if (!shared) shared = visq::testing::SharedScenesDir();
 
-  const std::vector<Scene> suite = Suite(shared, quick);
+  std::vector<Scene> suite = Suite(shared, quick);
+  if (!only.empty())
+    std::erase_if(suite, [&](const Scene& scene) { return scene.name != only; });
   std::printf("%-26s %-22s %9s %9s | %9s %9s | %s\n", "request", "auto chose", "first x", "warm x", "pred ms",
               "comp ms", "each method's first / warm ms (auto's first)");
   int rows = 0, failures = 0, predictions = 0, predictions_within_2x = 0;
@@ -318,6 +336,8 @@ int main(int argc, char** argv) {
       std::printf("%-26s %-22s %9.2f %9.2f | %9.1f %9.1f |%s\n", (scene.name + " " + row.label).c_str(),
                   chosen.warm.method.c_str(), first_ratio, warm_ratio, chosen.warm.predicted_ms,
                   chosen.warm.compute_ms, each.c_str());
+      if (verbose)
+        std::printf("    first: %s\n    warm:  %s\n", chosen.first.weighed.c_str(), chosen.warm.weighed.c_str());
     }
   }
   std::printf("\n%d requests (%d failed): the chosen method's time over the fastest, worst %.2fx on the first call "

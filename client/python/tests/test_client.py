@@ -378,6 +378,27 @@ class ClientTest(unittest.TestCase):
             server.stop()
             shutil.rmtree(server.dir, ignore_errors=True)
 
+    def test_a_long_map_cancelled_stops_its_work_on_the_server(self):
+        # Half a billion segments by either sampled method; the Cancellation
+        # fires a second in, and the server's log must show the call's end
+        # within a second of it: the cancel reached the work.
+        import re
+        ended = re.compile(r"HiddenSampleMap\] CANCELLED in ([0-9.]+) ms")
+        for method in ("raycast", "raster"):
+            with self.subTest(method=method):
+                before = len(ended.findall(SERVER.log_text()))
+                cancel = visq.Cancellation()
+                threading.Timer(1.0, cancel.cancel).start()
+                with self.assertRaises(visq.Cancelled):
+                    self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, FLOOR, width=1024, height=512, samples=4096,
+                                                  method=method, cancel=cancel)
+                deadline = time.monotonic() + 5
+                while len(ended.findall(SERVER.log_text())) == before and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                found = ended.findall(SERVER.log_text())
+                self.assertGreater(len(found), before, SERVER.log_text()[-2000:])
+                self.assertLess(float(found[-1]), 2000.0, "the work ran on after the cancel")
+
     def test_a_bake_is_cancelled(self):
         cancel = visq.Cancellation()
         started = time.monotonic()
