@@ -452,6 +452,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     // A newer bake installed meanwhile stays.
     if (!state->updater || state->solution_version <= resident->version) {
       state->updater = std::move(updater);
+      state->undelivered.reset();  // the bake's answer holds every texel
       state->solution_version = resident->version;
       state->rays_per_patch = query.update_rays_per_patch;
       answer.update_ready = true;
@@ -499,15 +500,32 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
                                                      "; use the changed texels"));
 
   ObscuranceUpdateAnswer answer;
-  answer.from_version = state->solution_version;
   answer.rays_per_patch = state->rays_per_patch;
   const auto start = std::chrono::steady_clock::now();
-  std::map<uint32_t, glm::vec3> w, intensity, triangle_w, vertex_w;
+  // What an earlier update applied but could not deliver comes first.
+  ObscuranceState::Undelivered changes;
+  if (state->undelivered) changes = *std::move(state->undelivered);
+  else changes.from_version = state->solution_version;
+  state->undelivered.reset();
+  answer.from_version = changes.from_version;
+  answer.moves_applied = changes.moves;
+  answer.update = changes.counts;
+  std::map<uint32_t, glm::vec3>& w = changes.w;
+  std::map<uint32_t, glm::vec3>& intensity = changes.intensity;
+  std::map<uint32_t, glm::vec3>& triangle_w = changes.triangle_w;
+  std::map<uint32_t, glm::vec3>& vertex_w = changes.vertex_w;
   for (const SceneEdit& m : todo) {
+    if (Status wanted = query.call.StillWanted("obscurance update: between moves"); !wanted.ok()) {
+      changes.moves = answer.moves_applied;
+      changes.counts = answer.update;
+      state->undelivered = std::move(changes);
+      return wanted;
+    }
     StatusOr<obscurance::ObscuranceUpdate> update = state->updater->MoveNode(m.node, m.world);
     if (!update.ok()) {
       // The updater may be half-moved: it can no longer be trusted.
       state->updater.reset();
+      state->undelivered.reset();
       return absl::InternalError(absl::StrCat("update for the move of node ", m.node, " (version ", m.version,
                                               ") failed: ", update.status().message(), "; bake again"));
     }

@@ -7,6 +7,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -35,6 +36,17 @@ struct ObscuranceState {
   std::unique_ptr<obscurance::ObscuranceUpdater> updater;  // after a full bake
   uint64_t solution_version = 0;  // the scene version the updater's solution matches
   uint32_t rays_per_patch = 0;
+  // The changes of moves an update applied before its call stopped (each
+  // move is applied whole, so the solution stays consistent): the next
+  // update's answer carries them, from the version the last answer reached,
+  // so a client that applies the answers it gets misses no texel.
+  struct Undelivered {
+    uint64_t from_version = 0;
+    uint32_t moves = 0;
+    std::map<uint32_t, glm::vec3> w, intensity, triangle_w, vertex_w;
+    obscurance::ObscuranceUpdate counts;  // the figures, summed
+  };
+  std::optional<Undelivered> undelivered;
 };
 
 // The paper's GPU bake by depth peeling along bundles of parallel rays, or
@@ -125,6 +137,8 @@ struct ObscuranceUpdateQuery {
   std::string scene;
   uint64_t scene_version = 0;
   bool want_full_w = false;
+  // Checked before each move is applied.
+  CallOptions call;
 };
 
 struct ObscuranceUpdateAnswer {

@@ -276,7 +276,10 @@ grpc::ServerWriteReactor<v1::ComputeObscurancesResponse>* VisibilityServiceImpl:
 grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::CallbackServerContext* context,
                                                                   const v1::SetNodeTransformRequest* request,
                                                                   v1::SceneInfo* response) {
-  return RunUnaryCall(ctx_, context, "SetNodeTransform", [this, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "SetNodeTransform", [this, context, request, response](
+                                                              RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
+    // A call whose client gave up while it queued does not move the node.
+    VISQ_RETURN_IF_ERROR(CallOptionsFor(context, &cancelled).StillWanted("SetNodeTransform: before the move"));
     core::NodeTransformQuery query;
     query.scene = request->scene().name();
     query.scene_version = request->scene().version();
@@ -294,12 +297,14 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::Callback
 grpc::ServerUnaryReactor* VisibilityServiceImpl::UpdateObscurances(grpc::CallbackServerContext* context,
                                                                    const v1::UpdateObscurancesRequest* request,
                                                                    v1::UpdateObscurancesResponse* response) {
-  return RunUnaryCall(ctx_, context, "UpdateObscurances", [this, request, response](RequestLog& log) -> Status {
+  return RunUnaryCall(ctx_, context, "UpdateObscurances", [this, context, request, response](
+                                                               RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     core::ObscuranceUpdateQuery query;
     query.scene = request->scene().name();
     query.scene_version = request->scene().version();
     query.want_full_w = request->want_full_w();
+    query.call = CallOptionsFor(context, &cancelled);
     VISQ_ASSIGN_OR_RETURN(core::ObscuranceUpdateAnswer answer, core::RunUpdateObscurances(ctx_.engine, query));
     const double before_transfer = log.ElapsedMs();
     ToProto(answer, response);

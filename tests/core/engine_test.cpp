@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include "core/light_visibility_query.h"
+#include "core/obscurance_query.h"
 #include "core/scene_edit_query.h"
 #include "core/visibility_sampling_query.h"
 
@@ -70,6 +71,46 @@ TEST(Engine, BuildsEachStructureOnceAndCountsItsMemory) {
   EXPECT_GT(summary->gpu_bytes, 0u);
   EXPECT_GT(summary->cpu_bytes, 0u);
   EXPECT_EQ(summary->triangles, (*resident)->scene->triangles.size());
+}
+
+// An update whose call stopped before its moves loses nothing: the next
+// update reports every move since the last answer, from that answer's version.
+TEST(Engine, AStoppedUpdateLeavesItsMovesToTheNextAnswer) {
+  testing::ScratchDir dir;
+  auto engine = StartEngine(dir.path() / "repo");
+  ASSERT_TRUE(engine);
+  ObscuranceQuery bake;
+  bake.scene = "cornell_box_visq";
+  bake.resolution = 32;
+  bake.params.d_max = 0.5;
+  bake.params.direction_count = 8;
+  bake.method = ObscuranceMethod::kRaycast;
+  bake.rays_per_patch = 16;
+  auto baked = RunComputeObscurances(*engine, bake);
+  ASSERT_TRUE(baked.ok()) << baked.status();
+  ASSERT_TRUE(baked->update_ready);
+  NodeTransformQuery move;
+  move.scene = "cornell_box_visq";
+  move.node_name = "short_box";
+  uint64_t last = 0;
+  for (int i = 1; i <= 2; ++i) {
+    move.world_matrix = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0.1 * i, 0, 0, 1};
+    auto moved = RunSetNodeTransform(*engine, move);
+    ASSERT_TRUE(moved.ok()) << moved.status();
+    last = moved->version;
+  }
+  ObscuranceUpdateQuery update;
+  update.scene = "cornell_box_visq";
+  std::atomic<bool> cancelled{true};
+  update.call.cancelled = &cancelled;
+  EXPECT_EQ(RunUpdateObscurances(*engine, update).status().code(), absl::StatusCode::kCancelled);
+  cancelled = false;
+  auto answer = RunUpdateObscurances(*engine, update);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  EXPECT_EQ(answer->from_version, baked->scene_version);
+  EXPECT_EQ(answer->scene_version, last);
+  EXPECT_EQ(answer->moves_applied, 2u);
+  EXPECT_FALSE(answer->update.texels.empty()) << "moving the short box changes texels";
 }
 
 // Node moves make versions and join the scene's edit log, each starting
