@@ -1,5 +1,6 @@
 #include "scene/gltf_compression.h"
 
+#include <algorithm>
 #include <cstring>
 #include <map>
 #include <memory>
@@ -8,6 +9,9 @@
 
 #include <absl/strings/str_cat.h>
 #include <draco/compression/decode.h>
+#include <draco/compression/point_cloud/point_cloud_decoder.h>
+#include <draco/core/varint_decoding.h>
+#include <draco/metadata/metadata_decoder.h>
 #include <meshoptimizer.h>
 #include <nlohmann/json.hpp>
 #include <tiny_gltf.h>
@@ -30,6 +34,7 @@ class DecodedBytes {
                                                        " bytes (--max-scene-bytes)"));
     return absl::OkStatus();
   }
+  uint64_t left() const { return cap_ - std::min(total_, cap_); }
 
  private:
   uint64_t cap_;
@@ -74,6 +79,28 @@ StatusOr<const unsigned char*> SourceBytes(const tinygltf::Model& model, int64_t
   return data.data() + offset;
 }
 
+// The most bytes a meshopt stream of `length` bytes decodes to, by the
+// format itself (meshoptimizer's vertexcodec.cpp and indexcodec.cpp,
+// version 0 of the vertex codec):
+// - ATTRIBUTES: vertices come in blocks of at most 256; every byte of a
+//   vertex costs a block at least a 2-bit header per group of 16 vertices,
+//   rounded up to whole bytes: 4 bytes per 256 vertices, so a stream byte
+//   decodes to at most 64 bytes.
+// - TRIANGLES: a header byte, a 16-byte table and at least one code byte per
+//   triangle (the decoder's own first check).
+// - INDICES: a header byte, a 4-byte tail and at least one byte per index.
+uint64_t MeshoptDecodedBound(const std::string& mode, uint64_t stride, uint64_t length) {
+  uint64_t bound = 0;
+  if (mode == "ATTRIBUTES") {
+    if (__builtin_mul_overflow(length, uint64_t{64}, &bound)) return ~uint64_t{0};
+  } else if (mode == "TRIANGLES") {
+    bound = length > 17 ? (length - 17) * 3 * stride : 0;
+  } else if (mode == "INDICES") {
+    bound = length > 5 ? (length - 5) * stride : 0;
+  }
+  return bound;
+}
+
 Status DecodeMeshoptView(tinygltf::Model& model, int view_index, DecodedBytes& decoded) {
   tinygltf::BufferView& view = model.bufferViews[view_index];
   const tinygltf::Value& ext = view.extensions.at(kMeshopt);
@@ -91,19 +118,34 @@ Status DecodeMeshoptView(tinygltf::Model& model, int view_index, DecodedBytes& d
   if (__builtin_mul_overflow(uint64_t(count), uint64_t(stride), &bytes) || bytes != view.byteLength)
     return Invalid(absl::StrCat(label, ": count × byteStride (", count, " × ", stride,
                                 ") is not the buffer view's byteLength ", view.byteLength));
-  VISQ_RETURN_IF_ERROR(decoded.Reserve(bytes, label));
-  std::vector<unsigned char> out(bytes);
-  int result = -1;
   if (mode == "ATTRIBUTES") {
     if (stride % 4 != 0) return Invalid(absl::StrCat(label, ".byteStride: must be a multiple of 4 for ATTRIBUTES"));
-    result = meshopt_decodeVertexBuffer(out.data(), count, stride, source, length);
+    // EXT_meshopt_compression's vertex streams are version 0 (header 0xA0),
+    // the format whose bound MeshoptDecodedBound states.
+    if (length > 0 && source[0] != 0xA0)
+      return Invalid(absl::StrCat(label, ": malformed ATTRIBUTES stream (header byte ", int(source[0]),
+                                  ", expected 0xA0)"));
   } else if (mode == "TRIANGLES" || mode == "INDICES") {
     if (stride != 2 && stride != 4) return Invalid(absl::StrCat(label, ".byteStride: must be 2 or 4 for ", mode));
     if (mode == "TRIANGLES" && count % 3 != 0) return Invalid(absl::StrCat(label, ".count: not a multiple of 3"));
-    result = mode == "TRIANGLES" ? meshopt_decodeIndexBuffer(out.data(), count, stride, source, length)
-                                 : meshopt_decodeIndexSequence(out.data(), count, stride, source, length);
   } else {
     return Invalid(absl::StrCat(label, ".mode: '", mode, "' is not ATTRIBUTES, TRIANGLES or INDICES"));
+  }
+  // count and byteStride are the file's numbers: before anything is
+  // allocated, they must fit the cap, and what the stream itself can hold.
+  VISQ_RETURN_IF_ERROR(decoded.Reserve(bytes, label));
+  const uint64_t bound = MeshoptDecodedBound(mode, uint64_t(stride), uint64_t(length));
+  if (bytes > bound)
+    return Invalid(absl::StrCat(label, ": count × byteStride (", count, " × ", stride, " = ", bytes,
+                                " bytes) is more than a ", length, "-byte ", mode, " stream can encode (at most ", bound,
+                                ")"));
+  std::vector<unsigned char> out(bytes);
+  int result = -1;
+  if (mode == "ATTRIBUTES") {
+    result = meshopt_decodeVertexBuffer(out.data(), count, stride, source, length);
+  } else {
+    result = mode == "TRIANGLES" ? meshopt_decodeIndexBuffer(out.data(), count, stride, source, length)
+                                 : meshopt_decodeIndexSequence(out.data(), count, stride, source, length);
   }
   if (result != 0) return Invalid(absl::StrCat(label, ": malformed ", mode, " stream"));
   if (filter == "OCTAHEDRAL" && (stride == 4 || stride == 8)) {
@@ -138,6 +180,56 @@ void RepointAccessor(tinygltf::Model& model, int accessor_index, std::vector<uns
   accessor.sparse.isSparse = false;
 }
 
+// The faces and points a Draco mesh stream announces, read from its
+// headers as Draco's decoder reads them (the Draco header, the metadata,
+// then the sequential or edgebreaker connectivity header: see the Draco
+// bitstream specification), before the decoder builds anything: a stream of
+// a few hundred kilobytes can announce, and decode to, millions of faces.
+struct DracoCounts {
+  uint64_t faces = 0;
+  uint64_t points = 0;  // the encoded vertices; seams may add some, at most 3 per face
+};
+
+StatusOr<DracoCounts> ReadDracoCounts(const unsigned char* source, size_t length, const std::string& label) {
+  draco::DecoderBuffer buffer;
+  buffer.Init(reinterpret_cast<const char*>(source), length);
+  draco::DracoHeader header;
+  if (!draco::PointCloudDecoder::DecodeHeader(&buffer, &header).ok())
+    return Invalid(absl::StrCat(label, ": malformed Draco stream (its header)"));
+  if (header.encoder_type != draco::TRIANGULAR_MESH)
+    return Invalid(absl::StrCat(label, ": the Draco stream is a point cloud, not a triangle mesh"));
+  const uint16_t version = DRACO_BITSTREAM_VERSION(header.version_major, header.version_minor);
+  if (version > draco::kDracoMeshBitstreamVersion)
+    return Invalid(absl::StrCat(label, ": Draco bitstream version ", int(header.version_major), ".",
+                                int(header.version_minor), " is newer than this decoder's"));
+  buffer.set_bitstream_version(version);
+  if (version >= DRACO_BITSTREAM_VERSION(1, 3) && (header.flags & METADATA_FLAG_MASK)) {
+    draco::MetadataDecoder metadata_decoder;
+    draco::GeometryMetadata metadata;
+    if (!metadata_decoder.DecodeGeometryMetadata(&buffer, &metadata))
+      return Invalid(absl::StrCat(label, ": malformed Draco stream (its metadata)"));
+  }
+  // Before 2.2 the counts are 32-bit words; since, varints.
+  const bool varints = version >= DRACO_BITSTREAM_VERSION(2, 2);
+  auto count = [&](uint32_t* value) {
+    return varints ? draco::DecodeVarint(value, &buffer) : buffer.Decode(value);
+  };
+  uint32_t faces = 0, points = 0;
+  bool read = false;
+  if (header.encoder_method == draco::MESH_SEQUENTIAL_ENCODING) {
+    read = count(&faces) && count(&points);
+  } else if (header.encoder_method == draco::MESH_EDGEBREAKER_ENCODING) {
+    uint8_t traversal = 0;
+    int32_t new_vertices = 0;  // only before 2.0
+    read = buffer.Decode(&traversal) && (version >= DRACO_BITSTREAM_VERSION(2, 0) || buffer.Decode(&new_vertices)) &&
+           count(&points) && count(&faces);
+  } else {
+    return Invalid(absl::StrCat(label, ": unknown Draco encoder method ", int(header.encoder_method)));
+  }
+  if (!read) return Invalid(absl::StrCat(label, ": malformed Draco stream (its connectivity header)"));
+  return DracoCounts{faces, points};
+}
+
 Status DecodeDracoPrimitive(tinygltf::Model& model, int mesh_index, int primitive_index, DecodedBytes& decoded) {
   const std::string label =
       absl::StrCat("meshes[", mesh_index, "].primitives[", primitive_index, "].extensions.", kDraco);
@@ -152,6 +244,16 @@ Status DecodeDracoPrimitive(tinygltf::Model& model, int mesh_index, int primitiv
                         SourceBytes(model, view.buffer, view.byteOffset, view.byteLength,
                                     absl::StrCat("bufferViews[", view_index, "]")));
 
+  // Counted before Draco decodes: the corner indices and positions visq
+  // keeps of the mesh at least. Draco's own working set while it decodes is
+  // a small multiple of it (its faces, corner table and attribute values).
+  VISQ_ASSIGN_OR_RETURN(const DracoCounts counts, ReadDracoCounts(source, view.byteLength, label));
+  const uint64_t least = counts.faces * 3 * sizeof(uint32_t) + counts.points * 3 * sizeof(float);
+  if (least > decoded.left())
+    return absl::ResourceExhaustedError(absl::StrCat(label, ": the Draco stream announces ", counts.faces, " faces and ",
+                                                     counts.points, " points (", least, " bytes decoded at least), more ",
+                                                     "than the ", decoded.left(), " bytes left under the cap ",
+                                                     "(--max-scene-bytes)"));
   draco::DecoderBuffer stream;
   stream.Init(reinterpret_cast<const char*>(source), view.byteLength);
   draco::Decoder decoder;
@@ -290,9 +392,18 @@ Status DecodeCompressedGeometry(tinygltf::Model& model, uint64_t max_decoded_byt
     if (model.bufferViews[v].extensions.count(kMeshopt))
       VISQ_RETURN_IF_ERROR(DecodeMeshoptView(model, static_cast<int>(v), decoded));
   for (size_t m = 0; m < model.meshes.size(); ++m)
-    for (size_t p = 0; p < model.meshes[m].primitives.size(); ++p)
-      if (model.meshes[m].primitives[p].extensions.count(kDraco))
-        VISQ_RETURN_IF_ERROR(DecodeDracoPrimitive(model, static_cast<int>(m), static_cast<int>(p), decoded));
+    for (size_t p = 0; p < model.meshes[m].primitives.size(); ++p) {
+      tinygltf::Primitive& primitive = model.meshes[m].primitives[p];
+      if (!primitive.extensions.count(kDraco)) continue;
+      // Points and lines are dropped by the loader unread: their streams
+      // (point clouds, say) are not decoded at all.
+      const int mode = primitive.mode < 0 ? TINYGLTF_MODE_TRIANGLES : primitive.mode;
+      if (mode != TINYGLTF_MODE_TRIANGLES && mode != TINYGLTF_MODE_TRIANGLE_STRIP && mode != TINYGLTF_MODE_TRIANGLE_FAN) {
+        primitive.extensions.erase(kDraco);
+        continue;
+      }
+      VISQ_RETURN_IF_ERROR(DecodeDracoPrimitive(model, static_cast<int>(m), static_cast<int>(p), decoded));
+    }
   return absl::OkStatus();
 }
 

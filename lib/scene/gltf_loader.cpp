@@ -7,6 +7,7 @@
 #include <iterator>
 #include <limits>
 #include <map>
+#include <new>
 #include <optional>
 #include <set>
 #include <stdexcept>
@@ -44,6 +45,10 @@ bool SkipImage(tinygltf::Image*, const int, std::string*, std::string*, int, int
 }
 
 Status Invalid(const std::string& what) { return absl::InvalidArgumentError(what); }
+
+// Lightmap UVs are in [0, 1] (a few texels past it at most); beyond 1024 a
+// float UV times the largest atlas resolution no longer names one texel.
+constexpr double kMaxLightmapUv = 1024.0;
 
 // A typed, bounds-checked view of one accessor's elements (sparse applied).
 class AccessorReader {
@@ -225,6 +230,10 @@ struct FlattenedCounts {
   uint64_t triangles = 0;
   uint64_t vertices = 0;
   uint64_t nodes = 0;
+  // Meshes placed (a node's mesh, or each of its GPU instances): each costs
+  // its matrices and a pass over the mesh even when the mesh has no
+  // triangles, so placements are counted on their own.
+  uint64_t placements = 0;
   int depth = 0;
 };
 
@@ -351,6 +360,7 @@ class SceneBuilder {
         FlattenedCounts counts;
         if (node.mesh >= 0 && node.mesh < static_cast<int>(mesh_counts.size())) {
           counts = mesh_counts[node.mesh];
+          counts.placements = 1;
           const InstanceAttributes instances = InstanceAttributesOf(node);
           if (instances.any()) {
             const uint64_t copies = std::max({AccessorCount(model_, instances.translation),
@@ -358,6 +368,7 @@ class SceneBuilder {
                                               AccessorCount(model_, instances.scale)});
             counts.triangles = SaturatingMultiply(counts.triangles, copies);
             counts.vertices = SaturatingMultiply(counts.vertices, copies);
+            counts.placements = copies;
           }
         }
         counts.nodes = 1;
@@ -366,6 +377,7 @@ class SceneBuilder {
           counts.triangles = SaturatingAdd(counts.triangles, c.triangles);
           counts.vertices = SaturatingAdd(counts.vertices, c.vertices);
           counts.nodes = SaturatingAdd(counts.nodes, c.nodes);
+          counts.placements = SaturatingAdd(counts.placements, c.placements);
           counts.depth = std::max(counts.depth, c.depth);
         }
         counts.depth += 1;
@@ -377,10 +389,15 @@ class SceneBuilder {
       total.triangles = SaturatingAdd(total.triangles, c.triangles);
       total.vertices = SaturatingAdd(total.vertices, c.vertices);
       total.nodes = SaturatingAdd(total.nodes, c.nodes);
+      total.placements = SaturatingAdd(total.placements, c.placements);
     }
     if (total.triangles > limits_.max_triangles)
       return absl::ResourceExhaustedError(absl::StrCat("the node hierarchy flattens to ", total.triangles,
                                                        " triangles, above the limit of ", limits_.max_triangles));
+    if (total.placements > limits_.max_placements)
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "the node hierarchy places meshes ", total.placements,
+          " times (nodes and EXT_mesh_gpu_instancing instances), above the limit of ", limits_.max_placements));
     if (total.vertices > std::numeric_limits<uint32_t>::max())
       return absl::ResourceExhaustedError(
           absl::StrCat("the node hierarchy flattens to ", total.vertices, " vertices, above 2^32 - 1"));
@@ -388,9 +405,13 @@ class SceneBuilder {
     constexpr uint64_t kBytesPerVertex = sizeof(glm::dvec3) + sizeof(glm::vec2);
     constexpr uint64_t kBytesPerTriangle = sizeof(glm::uvec3) + 2 * sizeof(uint32_t);
     constexpr uint64_t kBytesPerNode = sizeof(SceneNode);
+    // A placement's matrix while its node is flattened (MeshPlacements),
+    // and the placement kept for a repeated mesh (Scene::placements).
+    constexpr uint64_t kBytesPerPlacement = sizeof(glm::dmat4) + sizeof(MeshPlacement);
     uint64_t bytes = 0, part = 0;
     for (auto [count, size] : {std::pair{total.vertices, kBytesPerVertex}, std::pair{total.triangles, kBytesPerTriangle},
-                               std::pair{total.nodes, kBytesPerNode}})
+                               std::pair{total.nodes, kBytesPerNode},
+                               std::pair{total.placements, kBytesPerPlacement}})
       bytes = SaturatingAdd(bytes, __builtin_mul_overflow(count, size, &part) ? ~uint64_t{0} : part);
     if (bytes > limits_.max_scene_bytes)
       return absl::ResourceExhaustedError(absl::StrCat("the node hierarchy flattens to about ", bytes,
@@ -575,7 +596,16 @@ class SceneBuilder {
         return Invalid(absl::StrCat(label, ".TEXCOORD_1: must be VEC2 of float or of normalized 8- or 16-bit "
                                            "integers, one per position"));
       scene_->lightmap_uvs.resize(base);
-      for (size_t i = 0; i < uvs.count(); ++i) scene_->lightmap_uvs.emplace_back(uvs.Value(i, 0), uvs.Value(i, 1));
+      for (size_t i = 0; i < uvs.count(); ++i) {
+        const double u = uvs.Value(i, 0), v = uvs.Value(i, 1);
+        // Baked as they are: a NaN would reach the exported .glb, and the
+        // atlas (UV times its resolution, in float) loses the texel beyond
+        // kMaxLightmapUv.
+        if (!std::isfinite(u) || !std::isfinite(v) || std::abs(u) > kMaxLightmapUv || std::abs(v) > kMaxLightmapUv)
+          return Invalid(absl::StrCat(label, ".TEXCOORD_1[", i, "] (accessors[", uv_it->second, "]): (", u, ", ", v,
+                                      ") is NaN, Inf or beyond ±", kMaxLightmapUv));
+        scene_->lightmap_uvs.emplace_back(u, v);
+      }
     }
 
     // Corner indices: given, or implicit 0..n-1.
@@ -878,10 +908,8 @@ std::set<std::string> ImageUris(std::string_view json) {
   return uris;
 }
 
-}  // namespace
-
-StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* report,
-                             const GltfLoadLimits& limits) {
+StatusOr<Scene> LoadGltfFileOrThrow(const std::filesystem::path& path, GltfLoadReport* report,
+                                    const GltfLoadLimits& limits) {
   GltfLoadReport local_report;
   GltfLoadReport& out_report = report ? *report : local_report;
   const std::string file_name = path.filename().string();
@@ -893,6 +921,14 @@ StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* 
   std::error_code ec;
   const std::filesystem::path main_file = std::filesystem::absolute(path, ec).lexically_normal();
   if (ec) return Invalid(absl::StrCat(file_name, ": ", ec.message()));
+  // A folder opens as an ifstream, and reading it throws (EISDIR); a FIFO
+  // or a device would block or never end. An upload whose chunk is named
+  // "a.gltf/x" makes its main file "a.gltf" such a folder.
+  const std::filesystem::file_status kind = std::filesystem::status(main_file, ec);
+  if (ec || !std::filesystem::exists(kind)) return absl::NotFoundError(absl::StrCat(file_name, ": cannot open"));
+  if (!std::filesystem::is_regular_file(kind))
+    return Invalid(absl::StrCat(file_name, ": not a regular file (",
+                                std::filesystem::is_directory(kind) ? "a folder" : "a special file", ")"));
   std::string bytes;
   {
     std::ifstream file(main_file, std::ios::binary);
@@ -949,6 +985,24 @@ StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* 
   ReportDroppedContent(model, out_report);
   out_report.files_read = files.files_read();
   return scene;
+}
+
+}  // namespace
+
+StatusOr<Scene> LoadGltfFile(const std::filesystem::path& path, GltfLoadReport* report,
+                             const GltfLoadLimits& limits) {
+  // Every size is checked before it is allocated, but a file is hostile and
+  // the libraries underneath throw (a read error of the stream, a decoder's
+  // allocation): the caller gets a status naming the file, never an
+  // exception (at start, one would end the server on a stored scene).
+  const std::string file_name = path.filename().string();
+  try {
+    return LoadGltfFileOrThrow(path, report, limits);
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError(absl::StrCat(file_name, ": loading it needs more memory than there is"));
+  } catch (const std::exception& e) {
+    return absl::InternalError(absl::StrCat(file_name, ": the loader failed (", e.what(), ")"));
+  }
 }
 
 }  // namespace visq

@@ -33,6 +33,11 @@ struct GltfLoadLimits {
   // Counted from the document before anything is flattened.
   uint64_t max_triangles = uint64_t{1} << 27;
   uint64_t max_scene_bytes = uint64_t{8} << 30;  // Scene::CpuBytes, estimated
+  // Meshes placed by nodes and EXT_mesh_gpu_instancing instances, whatever
+  // their triangles: a mesh without any, instanced 2^40 times by a sparse
+  // accessor of one value, is a kilobyte of JSON. Each placement also counts
+  // its matrices in max_scene_bytes.
+  uint64_t max_placements = uint64_t{1} << 24;
   int max_node_depth = 1024;                       // root = depth 1
 };
 

@@ -3,10 +3,15 @@
 // ../shared/scenes must load to the geometry of the plain file, exactly
 // where the encoding is lossless and within its step where it quantizes.
 // Malformed streams are refused by the buffer view or primitive they sit in.
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <cstring>
 #include <fstream>
 #include <iterator>
+#include <limits>
 
 #include <draco/compression/encode.h>
 #include <draco/mesh/mesh.h>
@@ -399,6 +404,167 @@ TEST(CompressedSeeds, TheFuzzCorpusSeedsReachTheDecoders) {
     ASSERT_TRUE(scene.ok()) << s.seed << ": " << scene.status();
     EXPECT_EQ(scene->triangles.size(), s.triangles) << s.seed;
   }
+}
+
+// --- Hostile streams: sizes checked before anything is allocated -----------
+
+// What a load did in a child process (fork), and how far the child's peak
+// resident memory rose while it ran: the child starts from this process's
+// pages, so memory that was allocated and freed before does not hide it.
+struct ChildLoad {
+  int code = -1;  // absl::StatusCode; -1: the child died
+  std::string message;
+  int64_t peak_growth_bytes = 0;
+};
+
+ChildLoad LoadInChild(const fs::path& path, const GltfLoadLimits& limits) {
+  int fds[2];
+  if (pipe(fds) != 0) return {};
+  const pid_t pid = fork();
+  if (pid == 0) {
+    close(fds[0]);
+    rusage before{}, after{};
+    getrusage(RUSAGE_SELF, &before);
+    StatusOr<Scene> scene = LoadGltfFile(path, nullptr, limits);
+    getrusage(RUSAGE_SELF, &after);
+    const int64_t growth = (int64_t{after.ru_maxrss} - before.ru_maxrss) * 1024;
+    const int code = static_cast<int>(scene.status().code());
+    const std::string message(scene.status().message());
+    std::string out(reinterpret_cast<const char*>(&code), sizeof(code));
+    out.append(reinterpret_cast<const char*>(&growth), sizeof(growth));
+    out += message;
+    for (size_t at = 0; at < out.size();) {
+      const ssize_t n = write(fds[1], out.data() + at, out.size() - at);
+      if (n <= 0) break;
+      at += static_cast<size_t>(n);
+    }
+    _exit(0);
+  }
+  close(fds[1]);
+  std::string in;
+  char buffer[4096];
+  for (ssize_t n; (n = read(fds[0], buffer, sizeof(buffer))) > 0;) in.append(buffer, static_cast<size_t>(n));
+  close(fds[0]);
+  int status = 0;
+  waitpid(pid, &status, 0);
+  ChildLoad result;
+  if (in.size() < sizeof(int) + sizeof(int64_t)) return result;
+  std::memcpy(&result.code, in.data(), sizeof(int));
+  std::memcpy(&result.peak_growth_bytes, in.data() + sizeof(int), sizeof(int64_t));
+  result.message = in.substr(sizeof(int) + sizeof(int64_t));
+  return result;
+}
+
+// An n × n grid of quads in the z = 0 plane, two triangles each.
+Mesh Grid(int n) {
+  Mesh mesh;
+  for (int y = 0; y <= n; ++y)
+    for (int x = 0; x <= n; ++x) mesh.positions.insert(mesh.positions.end(), {float(x), float(y), 0.0f});
+  for (int y = 0; y < n; ++y)
+    for (int x = 0; x < n; ++x) {
+      const uint32_t a = y * (n + 1) + x, b = a + 1, c = a + n + 1, d = c + 1;
+      mesh.indices.insert(mesh.indices.end(), {a, b, d, a, d, c});
+    }
+  return mesh;
+}
+
+// 847 bytes announcing 1 GiB made the loader allocate and zero all of it
+// before meshopt looked at the stream.
+TEST(HostileCompressedStreams, MeshoptCountBeyondWhatItsStreamEncodesIsRefusedBeforeAllocating) {
+  ScratchDir dir;
+  Document doc = MeshoptDocument(Grid(3));
+  const uint64_t count = uint64_t{1} << 26;  // × 12 bytes: 768 MiB
+  doc.gltf["bufferViews"][0]["extensions"]["EXT_meshopt_compression"]["count"] = count;
+  doc.gltf["bufferViews"][0]["byteLength"] = count * 12;
+  const fs::path path = doc.Write(dir, "announces");
+  ASSERT_LT(fs::file_size(dir.path() / "announces.bin") + fs::file_size(path), 2000u);
+  const ChildLoad load = LoadInChild(path, GltfLoadLimits{});
+  ASSERT_NE(load.code, -1) << "the load ended its process";
+  EXPECT_EQ(load.code, static_cast<int>(absl::StatusCode::kInvalidArgument)) << load.message;
+  EXPECT_NE(load.message.find("bufferViews[0].extensions.EXT_meshopt_compression: count × byteStride"),
+            std::string::npos)
+      << load.message;
+  EXPECT_NE(load.message.find("stream can encode"), std::string::npos) << load.message;
+  EXPECT_LT(load.peak_growth_bytes, int64_t{64} << 20) << "the refusal came after the allocation";
+}
+
+// The bound is meshopt's own: the most compressible stream there is (every
+// vertex the same) still loads.
+TEST(HostileCompressedStreams, MeshoptBoundAdmitsTheMostCompressibleStream) {
+  ScratchDir dir;
+  Mesh mesh;
+  mesh.positions.assign(3 * 65536, 0.0f);
+  mesh.indices = {0, 1, 2};
+  const fs::path path = MeshoptDocument(mesh).Write(dir, "zeros");
+  StatusOr<Scene> scene = LoadGltfFile(path);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(scene->positions.size(), 65536u);
+}
+
+// A Draco-compressed grid (draco::Encoder with the given method), as one
+// primitive.
+Document DracoGridDocument(const Mesh& grid, draco::MeshEncoderMethod method) {
+  draco::Mesh mesh;
+  mesh.set_num_points(static_cast<uint32_t>(grid.vertices()));
+  draco::GeometryAttribute position;
+  position.Init(draco::GeometryAttribute::POSITION, nullptr, 3, draco::DT_FLOAT32, false, 12, 0);
+  const int attribute = mesh.AddAttribute(position, true, static_cast<uint32_t>(grid.vertices()));
+  for (size_t v = 0; v < grid.vertices(); ++v)
+    mesh.attribute(attribute)->SetAttributeValue(draco::AttributeValueIndex(static_cast<uint32_t>(v)),
+                                                 &grid.positions[3 * v]);
+  for (size_t t = 0; t < grid.indices.size(); t += 3)
+    mesh.AddFace({draco::PointIndex(grid.indices[t]), draco::PointIndex(grid.indices[t + 1]),
+                  draco::PointIndex(grid.indices[t + 2])});
+  draco::Encoder encoder;
+  encoder.SetAttributeQuantization(draco::GeometryAttribute::POSITION, 14);
+  encoder.SetEncodingMethod(method);
+  draco::EncoderBuffer stream;
+  EXPECT_TRUE(encoder.EncodeMeshToBuffer(mesh, &stream).ok());
+  Document doc;
+  doc.gltf["extensionsUsed"] = {"KHR_draco_mesh_compression"};
+  doc.gltf["extensionsRequired"] = {"KHR_draco_mesh_compression"};
+  const int view = doc.View(stream.data(), stream.size());
+  const int p = doc.Accessor(-1, 5126, grid.vertices(), "VEC3");
+  const int i = doc.Accessor(-1, 5125, grid.indices.size(), "SCALAR");
+  doc.Primitive(p, i, {{"KHR_draco_mesh_compression",
+                        {{"bufferView", view}, {"attributes", {{"POSITION", mesh.attribute(attribute)->unique_id()}}}}}});
+  return doc;
+}
+
+// The counts come from the stream's header, as Draco reads them, for both
+// of its methods: the grid loads, and under a cap one byte short of what it
+// decodes to (its positions and corner indices) it is refused by its counts.
+TEST(HostileCompressedStreams, DracoHeaderCountsAreReadForBothMethods) {
+  ScratchDir dir;
+  const Mesh grid = Grid(8);  // 81 points, 128 faces
+  for (auto method : {draco::MESH_SEQUENTIAL_ENCODING, draco::MESH_EDGEBREAKER_ENCODING}) {
+    const fs::path path = DracoGridDocument(grid, method).Write(dir, "grid");
+    StatusOr<Scene> scene = LoadGltfFile(path);
+    ASSERT_TRUE(scene.ok()) << "method " << method << ": " << scene.status();
+    EXPECT_EQ(scene->TriangleCount(), 128u);
+    GltfLoadLimits limits;
+    limits.max_scene_bytes = 81 * 12 + 128 * 12 - 1;
+    scene = LoadGltfFile(path, nullptr, limits);
+    ASSERT_FALSE(scene.ok()) << "method " << method;
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kResourceExhausted) << scene.status();
+    EXPECT_NE(scene.status().message().find("the Draco stream announces 128 faces and 81 points"), std::string::npos)
+        << scene.status();
+  }
+}
+
+// A 615 KB stream added 550 MB under a 10 MB cap: Draco decoded the whole
+// mesh before visq counted it.
+TEST(HostileCompressedStreams, DracoStreamsBeyondTheCapAreRefusedBeforeDecoding) {
+  ScratchDir dir;
+  const fs::path path = DracoGridDocument(Grid(600), draco::MESH_EDGEBREAKER_ENCODING).Write(dir, "big");
+  GltfLoadLimits limits;
+  limits.max_scene_bytes = 1'000'000;
+  const ChildLoad load = LoadInChild(path, limits);
+  ASSERT_NE(load.code, -1) << "the load ended its process";
+  EXPECT_EQ(load.code, static_cast<int>(absl::StatusCode::kResourceExhausted)) << load.message;
+  EXPECT_NE(load.message.find("the Draco stream announces 720000 faces and 361201 points"), std::string::npos)
+      << load.message;
+  EXPECT_LT(load.peak_growth_bytes, int64_t{16} << 20) << "the refusal came after the decoding";
 }
 
 }  // namespace

@@ -1,8 +1,10 @@
 // The glTF loader on the conformance assets and real scenes of
 // ../shared/scenes (triangle counts from its SOURCES.md), on scenes written
 // by the project's own writer, and on malformed input.
+#include <cstring>
 #include <fstream>
 #include <iterator>
+#include <limits>
 
 #include <gtest/gtest.h>
 
@@ -501,6 +503,124 @@ TEST(GltfLoaderHostile, CoordinatesBeyondTheRangeAreRefused) {
   std::string json = TriangleJson("far");
   json.replace(json.find("\"nodes\":[{\"mesh\":0}]"), 20, "\"nodes\":[{\"mesh\":0,\"scale\":[1e300,1,1]}]");
   ExpectInvalid(WriteGltf(dir, "far", json, TriangleBuffer(1, 2)), "beyond");
+}
+
+// An upload whose one chunk is "a.gltf/x" makes its main file a folder:
+// reading it through an ifstream threw (EISDIR) out of the loader, and the
+// server ended.
+TEST(GltfLoaderHostile, MainFileThatIsAFolderIsRefusedByName) {
+  ScratchDir dir;
+  fs::create_directories(dir.path() / "a.gltf");
+  std::ofstream(dir.path() / "a.gltf" / "x") << "abcd";
+  StatusOr<Scene> scene = LoadGltfFile(dir.path() / "a.gltf");
+  ASSERT_FALSE(scene.ok());
+  EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << scene.status();
+  EXPECT_NE(scene.status().message().find("a.gltf: not a regular file"), std::string::npos) << scene.status();
+}
+
+// A triangle, and a mesh without a single vertex placed `instances` times
+// through EXT_mesh_gpu_instancing by a sparse TRANSLATION accessor holding
+// one value: a kilobyte whatever the count.
+std::string EmptyMeshInstancedJson(uint64_t instances) {
+  return absl::StrCat(R"({"asset":{"version":"2.0"},"extensionsUsed":["EXT_mesh_gpu_instancing"],
+     "scenes":[{"nodes":[0,1]}],"scene":0,
+     "nodes":[{"mesh":0},{"mesh":1,"extensions":{"EXT_mesh_gpu_instancing":{"attributes":{"TRANSLATION":2}}}}],
+     "meshes":[{"primitives":[{"attributes":{"POSITION":0},"indices":1}]},
+               {"primitives":[{"attributes":{"POSITION":3}}]}],
+     "buffers":[{"uri":"inst.bin","byteLength":60}],
+     "bufferViews":[{"buffer":0,"byteOffset":0,"byteLength":36},{"buffer":0,"byteOffset":36,"byteLength":6},
+                    {"buffer":0,"byteOffset":44,"byteLength":4},{"buffer":0,"byteOffset":48,"byteLength":12}],
+     "accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]},
+                  {"bufferView":1,"componentType":5123,"count":3,"type":"SCALAR"},
+                  {"componentType":5126,"count":)", instances, R"(,"type":"VEC3",
+                   "sparse":{"count":1,"indices":{"bufferView":2,"componentType":5125},"values":{"bufferView":3}}},
+                  {"bufferView":0,"componentType":5126,"count":0,"type":"VEC3"}]})");
+}
+
+std::vector<unsigned char> EmptyMeshInstancedBuffer() {
+  std::vector<unsigned char> bin = TriangleBuffer(0, 2);
+  const uint32_t index = 1;
+  const float translation[3] = {5, 0, 0};
+  bin.resize(60);
+  std::memcpy(bin.data() + 44, &index, 4);
+  std::memcpy(bin.data() + 48, translation, 12);
+  return bin;
+}
+
+// 2^40 placements of a mesh without triangles: nothing counted them, and
+// the loader reserved 2^40 matrices (std::bad_alloc, the server aborted);
+// 2^20 under a 1 MB cap were accepted (2^23 cost 2.3 GB and 28 s).
+TEST(GltfLoaderHostile, PlacementsCountWhateverTheirTriangles) {
+  ScratchDir dir;
+  const auto bin = EmptyMeshInstancedBuffer();
+  {
+    StatusOr<Scene> scene = LoadGltfFile(WriteGltf(dir, "inst", EmptyMeshInstancedJson(uint64_t{1} << 40), bin));
+    ASSERT_FALSE(scene.ok());
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kResourceExhausted) << scene.status();
+    EXPECT_NE(scene.status().message().find("places meshes 1099511627777 times"), std::string::npos)
+        << scene.status();
+  }
+  {
+    GltfLoadLimits limits;
+    limits.max_scene_bytes = 1'000'000;
+    StatusOr<Scene> scene =
+        LoadGltfFile(WriteGltf(dir, "inst", EmptyMeshInstancedJson(uint64_t{1} << 20), bin), nullptr, limits);
+    ASSERT_FALSE(scene.ok()) << "2^20 placements loaded under a 1 MB cap";
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kResourceExhausted) << scene.status();
+    EXPECT_NE(scene.status().message().find("--max-scene-bytes"), std::string::npos) << scene.status();
+  }
+  {
+    GltfLoadLimits limits;
+    limits.max_placements = 1000;
+    StatusOr<Scene> scene =
+        LoadGltfFile(WriteGltf(dir, "inst", EmptyMeshInstancedJson(1001), bin), nullptr, limits);
+    ASSERT_FALSE(scene.ok());
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kResourceExhausted) << scene.status();
+  }
+  // A few instances of it are harmless: the triangle loads.
+  StatusOr<Scene> few = LoadGltfFile(WriteGltf(dir, "inst", EmptyMeshInstancedJson(16), bin));
+  ASSERT_TRUE(few.ok()) << few.status();
+  EXPECT_EQ(few->TriangleCount(), 1u);
+}
+
+// The triangle with lightmap UVs (TEXCOORD_1) (0,0) (1,0) (third_u, 1).
+fs::path WriteTriangleWithLightmapUvs(const ScratchDir& dir, float third_u) {
+  std::string json = TriangleJson("uv");
+  auto replace = [&](const std::string& from, const std::string& to) {
+    ASSERT_NE(json.find(from), std::string::npos) << from;
+    json.replace(json.find(from), from.size(), to);
+  };
+  replace("\"attributes\":{\"POSITION\":0}", "\"attributes\":{\"POSITION\":0,\"TEXCOORD_1\":2}");
+  replace("\"byteLength\":44}", "\"byteLength\":68}");
+  replace("\"byteOffset\":36,\"byteLength\":6}", "\"byteOffset\":36,\"byteLength\":6},"
+                                                 "{\"buffer\":0,\"byteOffset\":44,\"byteLength\":24}");
+  replace("\"type\":\"SCALAR\"}", "\"type\":\"SCALAR\"},{\"bufferView\":2,\"componentType\":5126,\"count\":3,"
+                                  "\"type\":\"VEC2\"}");
+  std::vector<unsigned char> bin = TriangleBuffer(0, 2);
+  const float uvs[6] = {0, 0, 1, 0, third_u, 1};
+  bin.resize(68);
+  std::memcpy(bin.data() + 44, uvs, sizeof(uvs));
+  return WriteGltf(dir, "uv", json, bin);
+}
+
+// NaN, Inf and 1e30 lightmap UVs were accepted, baked, and exported into
+// the .glb as NaN.
+TEST(GltfLoaderHostile, LightmapUvsAreValidatedLikePositions) {
+  ScratchDir dir;
+  for (float bad : {std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity(),
+                    -std::numeric_limits<float>::infinity(), 1e30f, -2000.0f}) {
+    StatusOr<Scene> scene = LoadGltfFile(WriteTriangleWithLightmapUvs(dir, bad));
+    ASSERT_FALSE(scene.ok()) << bad << " loaded";
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << scene.status();
+    EXPECT_NE(scene.status().message().find("meshes[0].primitives[0].TEXCOORD_1[2] (accessors[2])"),
+              std::string::npos)
+        << scene.status();
+  }
+  // UVs a little past [0, 1] are a lightmap's own business.
+  StatusOr<Scene> scene = LoadGltfFile(WriteTriangleWithLightmapUvs(dir, 1.25f));
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  ASSERT_EQ(scene->lightmap_uvs.size(), 3u);
+  EXPECT_EQ(scene->lightmap_uvs[2].x, 1.25f);
 }
 
 }  // namespace
