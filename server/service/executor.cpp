@@ -1,5 +1,9 @@
 #include "service/executor.h"
 
+#include <exception>
+
+#include <spdlog/spdlog.h>
+
 namespace visq::service {
 
 Executor::Executor(int threads) {
@@ -38,7 +42,16 @@ void Executor::Loop() {
       task = std::move(tasks_.front());
       tasks_.pop_front();
     }
-    task();
+    // The last line of defence: a task's own call catches what its work
+    // throws (exception_boundary.h); what still escapes is logged here, and
+    // the thread goes on serving the queue instead of ending the process.
+    try {
+      task();
+    } catch (const std::exception& e) {
+      spdlog::error("executor: an exception escaped a task: {}", e.what());
+    } catch (...) {
+      spdlog::error("executor: an exception that is not a std::exception escaped a task");
+    }
   }
 }
 

@@ -132,8 +132,8 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     const gpu::SteadyTime deadline = SteadyDeadline(context);
     ctx.executor.Post([this, &ctx, request, deadline] {
       const double queue_ms = log_.ElapsedMs();
-      StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> messages =
-          Compute(ctx.engine, *request, deadline, queue_ms);
+      StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> messages = CatchExceptions(
+          log_.id(), "ComputeObscurances", [&] { return Compute(ctx.engine, *request, deadline, queue_ms); });
       Complete(std::move(messages));
     });
   }

@@ -19,6 +19,7 @@
 #include "core/call_options.h"
 #include "core/work_budget.h"
 #include "service/chunked_responses.h"
+#include "service/exception_boundary.h"
 #include "service/request_log.h"
 #include "service/status_conversion.h"
 #include "service/visibility_service.h"
@@ -64,12 +65,13 @@ grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::Callback
     return reactor;
   }
   Executor& executor = lane == Lane::kMetadata ? ctx.metadata_executor : ctx.executor;
-  executor.Post([reactor, log, calls = &ctx.calls, work = std::move(work)]() mutable {
-    Status status;
-    if constexpr (std::is_invocable_v<Work&, RequestLog&, const std::atomic<bool>&>)
-      status = work(*log, reactor->cancelled());
-    else
-      status = work(*log);
+  executor.Post([reactor, log, method, calls = &ctx.calls, work = std::move(work)]() mutable {
+    Status status = CatchExceptions(log->id(), method, [&]() -> Status {
+      if constexpr (std::is_invocable_v<Work&, RequestLog&, const std::atomic<bool>&>)
+        return work(*log, reactor->cancelled());
+      else
+        return work(*log);
+    });
     status = calls->Final(std::move(status));
     log->Done(status);
     reactor->Finish(ToGrpcStatus(status));
@@ -121,8 +123,9 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
       Done(authorized);
       return;
     }
-    ctx.executor.Post([this, compute = std::move(compute)] {
-      StatusOr<ChunkedResponses<Response>> messages = compute(cancelled_, log_);
+    ctx.executor.Post([this, method, compute = std::move(compute)] {
+      StatusOr<ChunkedResponses<Response>> messages =
+          CatchExceptions(log_.id(), method, [&] { return compute(cancelled_, log_); });
       if (!messages.ok()) {
         Done(messages.status());
         return;
@@ -192,8 +195,8 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
       Done(authorized);
       return;
     }
-    ctx.executor.Post([this, produce = std::move(produce)] {
-      StatusOr<Response> last = produce(cancelled_, log_, *this);
+    ctx.executor.Post([this, method, produce = std::move(produce)] {
+      StatusOr<Response> last = CatchExceptions(log_.id(), method, [&] { return produce(cancelled_, log_, *this); });
       Status status = last.status();
       if (status.ok()) status = Write(*std::move(last));
       FinishProducing(status);

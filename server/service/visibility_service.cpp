@@ -11,6 +11,7 @@
 #include "core/volumetric_query.h"
 #include "core/voxel_query.h"
 #include "service/convert.h"
+#include "service/exception_boundary.h"
 #include "service/reactors.h"
 #include "service/stats.h"
 #include "service/request_log.h"
@@ -61,7 +62,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
       EndOfStream();
       return;
     }
-    Status status = Consume();
+    Status status = CatchExceptions(log_.id(), "LoadScene", [&] { return Consume(); });
     if (!status.ok()) {
       Fail(status);
       return;
@@ -115,8 +116,10 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
     }
     // Parsing and storing block: off the callback thread.
     executor_.Post([this] {
-      StatusOr<core::SceneSummary> summary = from_repository_ ? engine_.LoadFromRepository(name_, replace_)
-                                                        : engine_.FinishUpload(std::move(upload_), &cancelled_);
+      StatusOr<core::SceneSummary> summary = CatchExceptions(log_.id(), "LoadScene", [&] {
+        return from_repository_ ? engine_.LoadFromRepository(name_, replace_)
+                                : engine_.FinishUpload(std::move(upload_), &cancelled_);
+      });
       // The structures build in the background; the answer does not wait.
       if (summary.ok() && !warm_.empty()) {
         if (Status warming = engine_.Warm(summary->name, summary->version, warm_); !warming.ok())
@@ -329,14 +332,14 @@ class LightVisibilityStreamReactor final
     }
     const double arrived_ms = log_.ElapsedMs();
     ctx_.executor.Post([this, arrived_ms] {
-      StatusOr<core::LightVisibilityQuery> query = FromProto(request_, previous_ ? &*previous_ : nullptr);
-      Status status = query.status();
-      response_.Clear();
-      if (status.ok()) {
+      StatusOr<core::LightVisibilityQuery> query;
+      const Status status = CatchExceptions(log_.id(), "LightVisibilityStream", [&]() -> Status {
+        query = FromProto(request_, previous_ ? &*previous_ : nullptr);
+        response_.Clear();
+        VISQ_RETURN_IF_ERROR(query.status());
         query->call = {deadline_, &cancelled_, std::make_shared<core::BuildClock>()};
-      }
-      if (status.ok()) status = AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms,
-                                                      &response_);
+        return AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms, &response_);
+      });
       if (!status.ok()) {
         Done(status);
         return;
