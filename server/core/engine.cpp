@@ -90,7 +90,7 @@ GltfLoadLimits Engine::LoadLimits(const std::filesystem::path& file_root) const 
 }
 
 StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
-                                            bool persisted) {
+                                            bool persisted, const SceneRepository::Identity* stored) {
   const auto start = std::chrono::steady_clock::now();
   GltfLoadReport report;
   VISQ_ASSIGN_OR_RETURN(Scene scene,
@@ -101,9 +101,11 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
   resident->persisted = persisted;
   resident->load_ms = MillisecondsSince(start);
   build_times_.Record("scene_load", resident->load_ms);
+  if (stored != nullptr && !(repository_->StoredIdentity(resident->name) == *stored))
+    return absl::AbortedError(absl::StrCat("scene '", resident->name, "' was replaced in the repository while it loaded"));
   // A stored upload keeps the version it was committed with; a scene placed
   // by hand (its file may have changed) takes a new one.
-  uint64_t version = repository_->StoredVersion(resident->name);
+  uint64_t version = stored != nullptr ? stored->version : repository_->StoredVersion(resident->name);
   if (version == 0) {
     VISQ_ASSIGN_OR_RETURN(version, repository_->NextVersion());
   }
@@ -124,8 +126,26 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
 }
 
 StatusOr<SceneSummary> Engine::LoadFromRepository(absl::string_view name, bool replace) {
-  VISQ_ASSIGN_OR_RETURN(std::filesystem::path main_file, repository_->MainFile(name));
-  return MakeResident(std::string(name), main_file, replace, /*persisted=*/true);
+  // A replica sharing the repository may exchange the scene's folder while
+  // this load reads its files one by one: the load is kept only when the
+  // folder and its version are the same before and after, so that it holds
+  // one upload's files and (scene, version) names one content. A load that
+  // met a commit tries again.
+  constexpr int kAttempts = 4;
+  Status last;
+  for (int attempt = 0; attempt < kAttempts; ++attempt) {
+    const SceneRepository::Identity before = repository_->StoredIdentity(name);
+    VISQ_ASSIGN_OR_RETURN(std::filesystem::path main_file, repository_->MainFile(name));
+    StatusOr<SceneSummary> loaded = MakeResident(std::string(name), main_file, replace, /*persisted=*/true, &before);
+    if (loaded.ok()) return loaded;
+    // A load that failed while a commit swapped the folder (its .gltf from
+    // one upload and its .bin from another) is that commit's doing too.
+    const bool swapped = loaded.status().code() == absl::StatusCode::kAborted ||
+                         !(repository_->StoredIdentity(name) == before);
+    if (!swapped) return loaded;
+    last = loaded.status();
+  }
+  return absl::UnavailableError(absl::StrCat(last.message(), ", ", kAttempts, " times: try again"));
 }
 
 StatusOr<std::unique_ptr<SceneUpload>> Engine::BeginUpload(absl::string_view name, absl::string_view main_file,
@@ -174,7 +194,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
   }
   if (cancelled != nullptr && cancelled->load())
     return absl::CancelledError("LoadScene was cancelled before it was stored: nothing stored");
-  VISQ_ASSIGN_OR_RETURN(const SceneRepository::Stored stored, repository_->Commit(staging));
+  VISQ_ASSIGN_OR_RETURN(const SceneRepository::Stored stored, repository_->Commit(staging, upload->replace_));
 
   resident->dropped = std::move(report.dropped);
   resident->persisted = true;

@@ -294,8 +294,11 @@ class Engine {
 
  private:
   Engine() = default;
+  // With `stored`, the scene is kept only if the repository still holds
+  // that identity after the load (ABORTED otherwise: another replica
+  // committed meanwhile), and takes its version.
   StatusOr<SceneSummary> MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
-                                      bool persisted);
+                                      bool persisted, const SceneRepository::Identity* stored = nullptr);
   SceneSummary Summarize(const ResidentScene& resident, bool with_nodes) const;
   // The local frame that resolves `request` (null: the scene's own frame does).
   StatusOr<std::shared_ptr<LocalFrame>> LocalFrameFor(const ResidentScene& resident,

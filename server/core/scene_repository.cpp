@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <sys/file.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -87,6 +88,7 @@ UploadStaging::UploadStaging(fs::path dir, std::string name, std::string main_fi
 
 UploadStaging::~UploadStaging() {
   if (open_fd_ >= 0) ::close(open_fd_);
+  if (lock_fd_ >= 0) ::close(lock_fd_);  // releases the flock
   if (!committed_) {
     std::error_code ec;
     fs::remove_all(dir_, ec);
@@ -188,13 +190,22 @@ StatusOr<std::unique_ptr<SceneRepository>> SceneRepository::Open(const fs::path&
   if (ec) return absl::UnavailableError(absl::StrCat("scene repository ", root.string(), ": ", ec.message()));
   const fs::path canonical = fs::canonical(root, ec);
   if (ec) return absl::UnavailableError(absl::StrCat("scene repository ", root.string(), ": ", ec.message()));
-  // Staging folders left by a crash never became scenes: remove them.
+  // Staging folders left by a crash never became scenes: remove them, but
+  // not those of uploads in flight on a replica sharing the repository,
+  // which hold their folder locked. (One made a moment ago and not locked
+  // yet is taken here: its upload fails at its own lock, with an error.)
   for (const auto& entry : fs::directory_iterator(canonical, ec)) {
     const std::string file = entry.path().filename().string();
-    if (file.rfind(kStagingPrefix, 0) == 0) {
-      spdlog::warn("removing staging folder left by an interrupted upload: {}", file);
-      fs::remove_all(entry.path(), ec);
+    if (file.rfind(kStagingPrefix, 0) != 0) continue;
+    const int fd = ::open(entry.path().c_str(), O_RDONLY | O_CLOEXEC | O_NOFOLLOW);
+    if (fd >= 0 && ::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+      ::close(fd);
+      spdlog::info("staging folder {} belongs to an upload in flight elsewhere: kept", file);
+      continue;
     }
+    spdlog::warn("removing staging folder left by an interrupted upload: {}", file);
+    fs::remove_all(entry.path(), ec);
+    if (fd >= 0) ::close(fd);
   }
   return std::unique_ptr<SceneRepository>(new SceneRepository(canonical));
 }
@@ -309,11 +320,29 @@ StatusOr<std::unique_ptr<UploadStaging>> SceneRepository::BeginUpload(absl::stri
   const fs::path dir = root_ / absl::StrCat(AbslView(kStagingPrefix), name, "-", RandomSuffix());
   std::error_code ec;
   if (!fs::create_directory(dir, ec) || ec) return ErrorCodeError("create staging folder", dir, ec);
-  return std::unique_ptr<UploadStaging>(
-      new UploadStaging(dir, std::string(name), std::string(main_file), max_bytes));
+  std::unique_ptr<UploadStaging> staging(new UploadStaging(dir, std::string(name), std::string(main_file), max_bytes));
+  staging->lock_fd_ = ::open(dir.c_str(), O_RDONLY | O_CLOEXEC | O_DIRECTORY | O_NOFOLLOW);
+  if (staging->lock_fd_ < 0 || ::flock(staging->lock_fd_, LOCK_EX | LOCK_NB) != 0)
+    return ErrnoError("lock staging folder", dir);
+  return staging;
 }
 
-StatusOr<SceneRepository::Stored> SceneRepository::Commit(UploadStaging& staging) {
+SceneRepository::Identity SceneRepository::StoredIdentity(absl::string_view name) const {
+  Identity identity;
+  if (!ValidateName(name).ok()) return identity;
+  struct stat info {};
+  for (const fs::path& path : {root_ / std::string(name), root_ / absl::StrCat(name, ".glb"),
+                               root_ / absl::StrCat(name, ".gltf")})
+    if (::lstat(path.c_str(), &info) == 0) {
+      identity.device = info.st_dev;
+      identity.inode = info.st_ino;
+      break;
+    }
+  identity.version = StoredVersion(name);
+  return identity;
+}
+
+StatusOr<SceneRepository::Stored> SceneRepository::Commit(UploadStaging& staging, bool replace) {
   VISQ_RETURN_IF_ERROR(staging.CloseAll());
   VISQ_ASSIGN_OR_RETURN(const uint64_t version, NextVersion());
   // The markers, then everything, reach the disk before the rename does.
@@ -343,14 +372,31 @@ StatusOr<SceneRepository::Stored> SceneRepository::Commit(UploadStaging& staging
   // A plain-file scene of the same name would shadow nothing but confuse
   // MainFile; uploads always become folders.
   for (const char* ext : {".glb", ".gltf"}) fs::remove(root_ / absl::StrCat(staging.name_, ext), ec);
-  if (replacing) {
+  auto stored_meanwhile = [&] {
+    return absl::AlreadyExistsError(absl::StrCat("scene '", staging.name_,
+                                                 "' was stored meanwhile (by another replica?); nothing stored: set "
+                                                 "replace to replace it"));
+  };
+  if (replacing && !replace) return stored_meanwhile();
+  // A create never replaces: the rename fails if the name appeared since the
+  // check (another replica's commit), and a replace that found nothing
+  // exchanges once the name has appeared.
+  bool exchanged = false;
+  if (!replacing) {
+    if (::renameat2(AT_FDCWD, staging.dir_.c_str(), AT_FDCWD, target.c_str(), RENAME_NOREPLACE) != 0) {
+      if (errno != EEXIST && errno != ENOTEMPTY) return ErrnoError("rename into", target);
+      if (!replace) return stored_meanwhile();
+      exchanged = true;
+    }
+  } else {
+    exchanged = true;
+  }
+  if (exchanged) {
     // Swap atomically: the old folder ends up at the staging path and is
     // removed after; readers see the old scene or the new one.
     if (::renameat2(AT_FDCWD, staging.dir_.c_str(), AT_FDCWD, target.c_str(), RENAME_EXCHANGE) != 0)
       return ErrnoError("exchange into", target);
     fs::remove_all(staging.dir_, ec);
-  } else if (::rename(staging.dir_.c_str(), target.c_str()) != 0) {
-    return ErrnoError("rename into", target);
   }
   staging.committed_ = true;
   VISQ_RETURN_IF_ERROR(FsyncPath(root_, true));

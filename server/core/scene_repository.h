@@ -48,13 +48,17 @@ class UploadStaging {
   bool committed_ = false;
   std::string open_file_;
   int open_fd_ = -1;
+  // Held (flock) while the upload lives, so that a replica starting on the
+  // same repository leaves this folder alone (SceneRepository::Open).
+  int lock_fd_ = -1;
   std::vector<std::string> files_;
 };
 
 class SceneRepository {
  public:
-  // Creates the directory if needed and removes stale staging folders left
-  // by a crash.
+  // Creates the directory if needed and removes the staging folders left by
+  // a crash: those no live upload holds locked (a replica sharing the
+  // repository keeps its uploads in flight).
   [[nodiscard]] static StatusOr<std::unique_ptr<SceneRepository>> Open(const std::filesystem::path& root);
 
   // Names are letters, digits, '.', '_' and '-', at most 128 characters, not
@@ -84,13 +88,26 @@ class SceneRepository {
   [[nodiscard]] StatusOr<std::unique_ptr<UploadStaging>> BeginUpload(absl::string_view name,
                                                                      absl::string_view main_file,
                                                                      uint64_t max_bytes) const;
-  // Makes the staged files the stored scene `name`, replacing an existing
-  // one atomically (renameat2 RENAME_EXCHANGE), under a new version.
+  // Makes the staged files the stored scene `name` under a new version.
+  // With `replace`, an existing one is exchanged atomically (renameat2
+  // RENAME_EXCHANGE); without, the rename refuses to replace anything
+  // (RENAME_NOREPLACE): a scene another replica stored meanwhile under the
+  // same name is ALREADY_EXISTS, never silently overwritten.
   struct Stored {
     std::filesystem::path main_file;
     uint64_t version = 0;
   };
-  [[nodiscard]] StatusOr<Stored> Commit(UploadStaging& staging);
+  [[nodiscard]] StatusOr<Stored> Commit(UploadStaging& staging, bool replace);
+
+  // What a stored scene is right now: its folder's (or file's) inode and its
+  // committed version. Equal before and after a load means the load read one
+  // upload's files, whatever other replicas committed meanwhile (a commit
+  // exchanges the folder: a new inode).
+  struct Identity {
+    uint64_t device = 0, inode = 0, version = 0;
+    bool operator==(const Identity&) const = default;
+  };
+  Identity StoredIdentity(absl::string_view name) const;
   [[nodiscard]] Status Remove(absl::string_view name);
 
  private:

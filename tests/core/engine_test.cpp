@@ -5,6 +5,9 @@
 
 #include <atomic>
 #include <chrono>
+#include <mutex>
+#include <map>
+#include <fstream>
 #include <thread>
 
 #include <gtest/gtest.h>
@@ -12,6 +15,7 @@
 #include "core/light_visibility_query.h"
 #include "core/obscurance_query.h"
 #include "core/scene_edit_query.h"
+#include "core/scene_repository.h"
 #include "core/visibility_sampling_query.h"
 
 #include "large_scene.h"
@@ -111,6 +115,91 @@ TEST(Engine, AStoppedUpdateLeavesItsMovesToTheNextAnswer) {
   EXPECT_EQ(answer->scene_version, last);
   EXPECT_EQ(answer->moves_applied, 2u);
   EXPECT_FALSE(answer->update.texels.empty()) << "moving the short box changes texels";
+}
+
+// Another replica replaces a scene over and over while this engine loads
+// it from the shared repository: every load holds one upload's files (no
+// .gltf of one with the .bin of another) and reports the version that
+// upload was committed with.
+TEST(Engine, LoadsRacingAnotherReplicasReplacesReadOneUploadEach) {
+  testing::ScratchDir dir;
+  auto engine = StartEngine(dir.path() / "repo");
+  ASSERT_TRUE(engine);
+  // Two uploads that differ in both files: the box, and the box scaled.
+  Scene scaled = MakeCornellBox();
+  for (glm::dvec3& p : scaled.positions) p *= 1.5;
+  for (SceneMesh& mesh : scaled.meshes)
+    for (glm::dvec3& p : mesh.positions) p *= 1.5;
+  std::vector<std::map<std::string, std::string>> uploads(2);
+  for (int k = 0; k < 2; ++k) {
+    const std::filesystem::path folder = dir.path() / ("upload" + std::to_string(k));
+    std::filesystem::create_directories(folder);
+    ASSERT_TRUE(WriteGltfFile(k == 0 ? MakeCornellBox() : scaled, folder / "scene.gltf").ok());
+    for (const auto& entry : std::filesystem::directory_iterator(folder)) {
+      std::ifstream in(entry.path(), std::ios::binary);
+      uploads[k][entry.path().filename().string()] =
+          std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    }
+    ASSERT_GE(uploads[k].size(), 2u) << "a .gltf and its .bin";
+  }
+  auto replica = SceneRepository::Open(dir.path() / "repo");
+  ASSERT_TRUE(replica.ok()) << replica.status();
+  auto store = [&](int k) -> StatusOr<uint64_t> {
+    VISQ_ASSIGN_OR_RETURN(std::unique_ptr<UploadStaging> staging,
+                          (*replica)->BeginUpload("racing", "scene.gltf", 1 << 26));
+    for (const auto& [file, bytes] : uploads[k]) VISQ_RETURN_IF_ERROR(staging->Append(file, bytes));
+    VISQ_ASSIGN_OR_RETURN(const SceneRepository::Stored stored, (*replica)->Commit(*staging, /*replace=*/true));
+    return stored.version;
+  };
+  // Each upload's content, loaded with nothing racing.
+  std::map<uint64_t, int> variant_of_version;
+  std::vector<std::string> hash(2);
+  for (int k = 0; k < 2; ++k) {
+    auto version = store(k);
+    ASSERT_TRUE(version.ok()) << version.status();
+    variant_of_version[*version] = k;
+    ASSERT_TRUE(engine->LoadFromRepository("racing", true).ok());
+    hash[k] = (*engine->FindScene("racing", 0))->content_hash;
+  }
+  ASSERT_NE(hash[0], hash[1]);
+
+  std::mutex mutex;
+  std::atomic<bool> writing{true};
+  std::thread writer([&] {
+    for (int i = 0; i < 150; ++i) {
+      auto version = store(i % 2);
+      ASSERT_TRUE(version.ok()) << version.status();
+      std::lock_guard lock(mutex);
+      variant_of_version[*version] = i % 2;
+    }
+    writing = false;
+  });
+  std::vector<std::pair<uint64_t, std::string>> seen;
+  int failed = 0;
+  while (writing) {
+    auto loaded = engine->LoadFromRepository("racing", true);
+    if (!loaded.ok()) {
+      ++failed;  // UNAVAILABLE after four commits in a row: never a wrong answer
+      continue;
+    }
+    auto resident = engine->FindScene("racing", 0);
+    ASSERT_TRUE(resident.ok());
+    seen.emplace_back((*resident)->version, (*resident)->content_hash);
+  }
+  writer.join();
+  size_t mixtures = 0, wrong_versions = 0;
+  for (const auto& [version, content] : seen) {
+    if (content != hash[0] && content != hash[1]) {
+      ++mixtures;
+      continue;
+    }
+    auto it = variant_of_version.find(version);
+    wrong_versions += it == variant_of_version.end() || hash[it->second] != content;
+  }
+  EXPECT_GE(seen.size(), 10u) << failed << " loads failed";
+  EXPECT_EQ(mixtures, 0u) << "of " << seen.size() << " loads";
+  EXPECT_EQ(wrong_versions, 0u) << "of " << seen.size() << " loads";
+  RecordProperty("loads", static_cast<int>(seen.size()));
 }
 
 // Node moves make versions and join the scene's edit log, each starting

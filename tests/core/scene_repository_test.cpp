@@ -19,7 +19,7 @@ namespace fs = std::filesystem;
 StatusOr<SceneRepository::Stored> Store(SceneRepository& repo, const std::string& name, const std::string& body) {
   VISQ_ASSIGN_OR_RETURN(std::unique_ptr<UploadStaging> staging, repo.BeginUpload(name, name + ".gltf", 1 << 20));
   VISQ_RETURN_IF_ERROR(staging->Append(name + ".gltf", body));
-  return repo.Commit(*staging);
+  return repo.Commit(*staging, /*replace=*/true);
 }
 
 TEST(SceneRepository, NamesAreCheckedBeforeAnyFileIsTouched) {
@@ -92,6 +92,70 @@ TEST(SceneRepository, VersionsNeverRepeatAcrossReopenings) {
       EXPECT_TRUE(seen.insert(*version).second) << "version " << *version << " repeated";
     }
   }
+}
+
+// Two replicas creating the same new name: one stores, the other is told the
+// name exists; neither upload is silently lost.
+TEST(SceneRepository, ConcurrentCreatesOfOneNameStoreOneAndRefuseTheOther) {
+  testing::ScratchDir dir;
+  auto first = SceneRepository::Open(dir.path());
+  auto second = SceneRepository::Open(dir.path());
+  ASSERT_TRUE(first.ok() && second.ok());
+  auto a = (*first)->BeginUpload("same", "same.gltf", 1 << 20);
+  auto b = (*second)->BeginUpload("same", "same.gltf", 1 << 20);
+  ASSERT_TRUE(a.ok() && b.ok());
+  ASSERT_TRUE((*a)->Append("same.gltf", "first").ok());
+  ASSERT_TRUE((*b)->Append("same.gltf", "second").ok());
+  // Both checked that the name was free; both commit without replace.
+  auto stored = (*first)->Commit(**a, /*replace=*/false);
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  auto refused = (*second)->Commit(**b, /*replace=*/false);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kAlreadyExists) << refused.status();
+  std::ifstream in(stored->main_file);
+  std::string body((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  EXPECT_EQ(body, "first") << "the acknowledged upload is the one stored";
+  // With replace, the second takes its place.
+  auto c = (*second)->BeginUpload("same", "same.gltf", 1 << 20);
+  ASSERT_TRUE(c.ok());
+  ASSERT_TRUE((*c)->Append("same.gltf", "third").ok());
+  EXPECT_TRUE((*second)->Commit(**c, /*replace=*/true).ok());
+}
+
+// A replica's start removes the staging folders a crash left, not those of
+// uploads in flight on another replica of the same repository.
+TEST(SceneRepository, AStartKeepsAnotherReplicasUploadInFlight) {
+  testing::ScratchDir dir;
+  auto running = SceneRepository::Open(dir.path());
+  ASSERT_TRUE(running.ok());
+  auto in_flight = (*running)->BeginUpload("busy", "busy.gltf", 1 << 20);
+  ASSERT_TRUE(in_flight.ok());
+  ASSERT_TRUE((*in_flight)->Append("busy.gltf", "half").ok());
+  // A folder a crashed upload left, beside the live one.
+  const fs::path crashed = dir.path() / ".staging-gone-0000000000000001";
+  fs::create_directory(crashed);
+
+  auto starting = SceneRepository::Open(dir.path());  // another replica starts
+  ASSERT_TRUE(starting.ok());
+  EXPECT_FALSE(fs::exists(crashed)) << "a crash's leftovers go";
+  EXPECT_TRUE(fs::exists((*in_flight)->dir())) << "a live upload's folder stays";
+  ASSERT_TRUE((*in_flight)->Append("busy.gltf", ", then done").ok());
+  EXPECT_TRUE((*running)->Commit(**in_flight, /*replace=*/false).ok());
+}
+
+// A commit gives the stored scene a new identity (folder and version), which
+// is how a load tells that the files it read were replaced meanwhile.
+TEST(SceneRepository, AReplaceChangesTheStoredIdentity) {
+  testing::ScratchDir dir;
+  auto repo = SceneRepository::Open(dir.path());
+  ASSERT_TRUE(repo.ok());
+  ASSERT_TRUE(Store(**repo, "s", "one").ok());
+  const SceneRepository::Identity before = (*repo)->StoredIdentity("s");
+  EXPECT_GT(before.version, 0u);
+  EXPECT_EQ((*repo)->StoredIdentity("s"), before);
+  ASSERT_TRUE(Store(**repo, "s", "two").ok());
+  const SceneRepository::Identity after = (*repo)->StoredIdentity("s");
+  EXPECT_NE(after.version, before.version);
+  EXPECT_NE(after.inode, before.inode);
 }
 
 }  // namespace
