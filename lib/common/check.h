@@ -34,8 +34,10 @@ std::string DescribeComparison(const char* text, const A& a, const B& b) {
 #define VISQ_CHECK_LT(a, b) VISQ_CHECK_OP(a, <, b)
 #define VISQ_CHECK_LE(a, b) VISQ_CHECK_OP(a, <=, b)
 
-// Debug checks: on in debug builds and in the optimized builds the tests
-// run (VISQ_DCHECKS=ON, which `visq.sh test` sets), off in what users run.
+// Debug checks: on in debug builds and in the optimized builds visq.sh
+// makes (VISQ_DCHECKS=ON for serve and test alike, so they share one build;
+// a few dozen value checks at invariants, none per ray or fragment); off in
+// a build configured without it.
 #if !defined(NDEBUG) || defined(VISQ_ENABLE_DCHECKS)
 #define VISQ_DCHECK(cond) VISQ_CHECK(cond)
 #define VISQ_DCHECK_EQ(a, b) VISQ_CHECK_EQ(a, b)
