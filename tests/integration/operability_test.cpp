@@ -386,8 +386,21 @@ TEST(Drain, DrainSecondsIsValidatedAndUsed) {
   EXPECT_NE(server->Log().find("draining requests for up to 3000 ms"), std::string::npos) << server->Log();
 }
 
-// A map far longer than the drain (a few hundred million segments from the
-// ceiling light onto the floor), by each sampled method: SIGTERM during it
+// The ceiling light onto the floor of the Cornell box at 1024 x 512 texels
+// and 4096 samples: two billion segments, far longer than any test waits.
+v1::HiddenSampleMapRequest LongCeilingMap(v1::VisibilityMethod method) {
+  v1::HiddenSampleMapRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.mutable_samples()->set_count(4096);
+  request.set_width(1024);
+  request.set_height(512);
+  request.set_method(method);
+  return request;
+}
+
+// A map far longer than the drain, by each sampled method: SIGTERM during it
 // ends the process within the drain and a second, and the call is answered
 // UNAVAILABLE (retry elsewhere), not cut without a word.
 TEST(Drain, ALongCallIsAnsweredUnavailableAndTheServerExitsWithinItsDrain) {
@@ -396,14 +409,7 @@ TEST(Drain, ALongCallIsAnsweredUnavailableAndTheServerExitsWithinItsDrain) {
     ScratchDir repo;
     auto server = ServerProcess::Start({repo.path(), {"--seed-samples", "--drain-seconds", "2"}});
     ASSERT_NE(server, nullptr);
-    v1::HiddenSampleMapRequest request;
-    request.mutable_scene()->set_name("cornell_box_visq");
-    SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
-    SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
-    request.mutable_samples()->set_count(4096);
-    request.set_width(1024);
-    request.set_height(512);
-    request.set_method(method);
+    const v1::HiddenSampleMapRequest request = LongCeilingMap(method);
     absl::StatusCode code = absl::StatusCode::kOk;
     std::thread call([&] {
       Client client({.address = server->address(), .deadline = std::chrono::minutes(10),
@@ -429,14 +435,7 @@ TEST(Deadline, ALongMapStopsWithinASecondOfItsDeadline) {
     ScratchDir repo;
     auto server = ServerProcess::Start({repo.path(), {"--seed-samples"}});
     ASSERT_NE(server, nullptr);
-    v1::HiddenSampleMapRequest request;
-    request.mutable_scene()->set_name("cornell_box_visq");
-    SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
-    SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
-    request.mutable_samples()->set_count(4096);
-    request.set_width(1024);
-    request.set_height(512);
-    request.set_method(method);
+    const v1::HiddenSampleMapRequest request = LongCeilingMap(method);
     Client client({.address = server->address(), .deadline = std::chrono::seconds(2)});
     EXPECT_EQ(client.ComputeHiddenSampleMap(request).status().code(), absl::StatusCode::kDeadlineExceeded);
     // The server's own end of the call, logged with its duration: its
