@@ -29,17 +29,40 @@ constexpr std::string_view kVersionCounter = ".visq-version-counter";
 
 // Names the file, not where the repository lives: messages reach clients.
 // A full disk or quota is the caller's to act on (RESOURCE_EXHAUSTED).
+// A repository the server may not write is the operator's to fix
+// (FAILED_PRECONDITION); an upload whose files clash (a file where another
+// chunk made a folder, or the reverse) is the client's (INVALID_ARGUMENT).
 Status ErrnoError(absl::string_view what, const fs::path& path) {
   const int error = errno;
   const std::string message = absl::StrCat(what, " ", path.filename().string(), ": ", std::strerror(error));
   if (error == ENOSPC || error == EDQUOT) return absl::ResourceExhaustedError(message);
+  if (error == EACCES || error == EPERM || error == EROFS)
+    return absl::FailedPreconditionError(absl::StrCat(message, " (the scene repository, --scene-repo, is not writable)"));
+  if (error == ENOTDIR || error == EISDIR || error == EEXIST)
+    return absl::InvalidArgumentError(absl::StrCat("chunk.file: ", message, " (a file and a folder of the upload clash)"));
   return absl::InternalError(message);
 }
 
 Status ErrorCodeError(absl::string_view what, const fs::path& path, const std::error_code& ec) {
-  const std::string message = absl::StrCat(what, " ", path.filename().string(), ": ", ec.message());
-  if (ec == std::errc::no_space_on_device) return absl::ResourceExhaustedError(message);
-  return absl::InternalError(message);
+  errno = ec.value();
+  if (ec.category() == std::generic_category() || ec.category() == std::system_category()) return ErrnoError(what, path);
+  return absl::InternalError(absl::StrCat(what, " ", path.filename().string(), ": ", ec.message()));
+}
+
+// Folders an upload makes are its owner's alone (0700), as its files are
+// (0600): a shared machine's other users read no uploaded scene.
+Status MakeOwnerFolders(const fs::path& root, const fs::path& relative) {
+  fs::path path = root;
+  for (const fs::path& part : relative) {
+    path /= part;
+    if (::mkdir(path.c_str(), 0700) != 0 && errno != EEXIST) return ErrnoError("create", path);
+    struct stat info {};
+    if (::lstat(path.c_str(), &info) != 0 || !S_ISDIR(info.st_mode)) {
+      errno = ENOTDIR;
+      return ErrnoError("create", path);
+    }
+  }
+  return absl::OkStatus();
 }
 
 bool IsSceneFile(const fs::path& path) {
@@ -66,6 +89,9 @@ Status ValidateUploadFile(absl::string_view file) {
     const std::string s = part.string();
     if (s == ".." || s == "." || s.empty() || s[0] == '.')
       return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': '", s, "' is not allowed"));
+    if (s.size() > 255)
+      return absl::InvalidArgumentError(
+          absl::StrCat("chunk.file: a name of ", s.size(), " bytes; a file or folder name holds at most 255"));
     for (char c : s)
       if (c == '\\' || c == '\0' || static_cast<unsigned char>(c) < 0x20)
         return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': control or backslash character"));
@@ -109,11 +135,10 @@ Status UploadStaging::Append(absl::string_view file, absl::string_view data) {
       ::close(open_fd_);
       open_fd_ = -1;
     }
-    const fs::path path = dir_ / fs::path(std::string(file));
-    std::error_code ec;
-    fs::create_directories(path.parent_path(), ec);
-    if (ec) return ErrorCodeError("create", path.parent_path(), ec);
-    open_fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | O_NOFOLLOW, 0644);
+    const fs::path relative{std::string(file)};
+    const fs::path path = dir_ / relative;
+    VISQ_RETURN_IF_ERROR(MakeOwnerFolders(dir_, relative.parent_path()));
+    open_fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | O_NOFOLLOW, 0600);
     if (open_fd_ < 0) return ErrnoError("create", path);
     open_file_ = std::string(file);
     files_.push_back(open_file_);
@@ -318,8 +343,7 @@ StatusOr<std::unique_ptr<UploadStaging>> SceneRepository::BeginUpload(absl::stri
   if (!IsSceneFile(fs::path(std::string(main_file))))
     return absl::InvalidArgumentError(absl::StrCat("upload_main_file '", main_file, "': not a .gltf or .glb"));
   const fs::path dir = root_ / absl::StrCat(AbslView(kStagingPrefix), name, "-", RandomSuffix());
-  std::error_code ec;
-  if (!fs::create_directory(dir, ec) || ec) return ErrorCodeError("create staging folder", dir, ec);
+  if (::mkdir(dir.c_str(), 0700) != 0) return ErrnoError("create staging folder", dir);
   std::unique_ptr<UploadStaging> staging(new UploadStaging(dir, std::string(name), std::string(main_file), max_bytes));
   staging->lock_fd_ = ::open(dir.c_str(), O_RDONLY | O_CLOEXEC | O_DIRECTORY | O_NOFOLLOW);
   if (staging->lock_fd_ < 0 || ::flock(staging->lock_fd_, LOCK_EX | LOCK_NB) != 0)
@@ -348,8 +372,13 @@ StatusOr<SceneRepository::Stored> SceneRepository::Commit(UploadStaging& staging
   // The markers, then everything, reach the disk before the rename does.
   auto write_marker = [&](std::string_view marker_name, const std::string& text) -> Status {
     const fs::path marker = staging.dir_ / std::string(marker_name);
-    std::FILE* f = std::fopen(marker.c_str(), "w");
-    if (f == nullptr) return ErrnoError("create", marker);
+    const int fd = ::open(marker.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0600);
+    std::FILE* f = fd >= 0 ? ::fdopen(fd, "w") : nullptr;
+    if (f == nullptr) {
+      const Status error = ErrnoError("create", marker);
+      if (fd >= 0) ::close(fd);
+      return error;
+    }
     const bool written = std::fputs(text.c_str(), f) >= 0 && std::fflush(f) == 0;
     const int rc = written ? ::fsync(fileno(f)) : -1;
     std::fclose(f);

@@ -158,5 +158,39 @@ TEST(SceneRepository, AReplaceChangesTheStoredIdentity) {
   EXPECT_NE(after.inode, before.inode);
 }
 
+// An upload's folders and files are its owner's alone; a name past what a
+// file system holds, and a file where another chunk made a folder, are the
+// client's mistakes, named as such.
+TEST(SceneRepository, UploadsAreTheOwnersAloneAndBadLayoutsAreTheClientsMistake) {
+  testing::ScratchDir dir;
+  auto repo = SceneRepository::Open(dir.path());
+  ASSERT_TRUE(repo.ok());
+  auto staging = (*repo)->BeginUpload("private", "private.gltf", 1 << 20);
+  ASSERT_TRUE(staging.ok());
+  ASSERT_TRUE((*staging)->Append("private.gltf", "{}").ok());
+  ASSERT_TRUE((*staging)->Append("buffers/data.bin", "bytes").ok());
+  auto stored = (*repo)->Commit(**staging, /*replace=*/false);
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  size_t checked = 0;
+  const fs::path folder = stored->main_file.parent_path();
+  for (const auto& entry : fs::recursive_directory_iterator(folder)) {
+    EXPECT_EQ(fs::status(entry.path()).permissions() & (fs::perms::group_all | fs::perms::others_all), fs::perms::none)
+        << entry.path();
+    ++checked;
+  }
+  EXPECT_GE(checked, 4u) << "the main file, the folder, its file and the markers";
+  EXPECT_EQ(fs::status(folder).permissions() & (fs::perms::group_all | fs::perms::others_all), fs::perms::none);
+
+  auto bad = (*repo)->BeginUpload("bad", "bad.gltf", 1 << 20);
+  ASSERT_TRUE(bad.ok());
+  const Status long_name = (*bad)->Append(std::string(300, 'a') + ".bin", "x");
+  EXPECT_EQ(long_name.code(), absl::StatusCode::kInvalidArgument) << long_name;
+  EXPECT_NE(long_name.message().find("chunk.file"), std::string::npos) << long_name;
+  ASSERT_TRUE((*bad)->Append("a/x.bin", "x").ok());
+  const Status clash = (*bad)->Append("a", "y");
+  EXPECT_EQ(clash.code(), absl::StatusCode::kInvalidArgument) << clash;
+  EXPECT_NE(clash.message().find("chunk.file"), std::string::npos) << clash;
+}
+
 }  // namespace
 }  // namespace visq::core
