@@ -158,11 +158,19 @@ namespace {
 
 using Table = HiddenSampleMapper::State::Table;
 
+// The call's stop for a table build: asked between rows of theta.
+std::function<bool()> StopFor(const JobOptions& job) {
+  return [&job] { return !StillWanted(job, "").ok(); };
+}
+
 // The table for this sample pattern: cached, else built here (not on the GL
-// thread, which other queries share). `build_ms` gets the time spent building.
-std::shared_ptr<Table> CachedTable(HiddenSampleMapper::State& state, GpuWorker& worker,
-                                   const std::vector<glm::vec2>& centred, const HiddenSampleMapOptions& options,
-                                   double& build_ms) {
+// thread, which other queries share) until the call stops wanting it.
+// `build_ms` gets the time spent building.
+
+StatusOr<std::shared_ptr<Table>> CachedTable(HiddenSampleMapper::State& state, GpuWorker& worker,
+                                             const std::vector<glm::vec2>& centred,
+                                             const HiddenSampleMapOptions& options, const JobOptions& job,
+                                             double& build_ms) {
   const std::string key = TableKey(centred, options.hough_theta_resolution, options.hough_r_resolution);
   {
     std::lock_guard lock(state.mutex);
@@ -176,7 +184,8 @@ std::shared_ptr<Table> CachedTable(HiddenSampleMapper::State& state, GpuWorker& 
   auto built = std::make_shared<Table>();
   built->layout.theta_res = options.hough_theta_resolution;
   built->layout.r_res = options.hough_r_resolution;
-  built->cpu = hsm::BuildHoughTable(centred, built->layout);
+  built->cpu = hsm::BuildHoughTable(centred, built->layout, StopFor(job));
+  if (built->cpu.empty()) return StillWanted(job, "hidden-sample map: building the sample table");
   built->centred = centred;
   build_ms = MillisecondsSince(start);
   std::lock_guard lock(state.mutex);
@@ -196,13 +205,14 @@ std::shared_ptr<Table> CachedTable(HiddenSampleMapper::State& state, GpuWorker& 
 // The table's texture and sample buffer in the current context (GL thread).
 // After a context loss they are gone: rebuilt here from the sample
 // positions rather than failing every request that follows.
-Status EnsureTableOnGpu(Table& table, int groups) {
+Status EnsureTableOnGpu(Table& table, int groups, const JobOptions& job) {
   const uint64_t generation = CurrentContextGeneration();
   if (table.texture && table.generation == generation) return absl::OkStatus();
   const hsm::HoughTableLayout layout = table.layout;  // other threads read table.layout
   if (table.cpu.empty()) {
     hsm::HoughTableLayout same_layout = layout;
-    table.cpu = hsm::BuildHoughTable(table.centred, same_layout);
+    table.cpu = hsm::BuildHoughTable(table.centred, same_layout, StopFor(job));
+    if (table.cpu.empty()) return StillWanted(job, "hidden-sample map: rebuilding the sample table");
   }
   GlTexture2DArray texture;
   glTextureStorage3D(texture.id(), 1, GL_RGBA32UI, layout.r_res, layout.theta_res, 2 * groups);
@@ -452,7 +462,7 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
                 const ScenePartDraw& draw, const PassPlan& plan, int max_draw_buffers, int first_row, int rows,
                 const JobOptions& job, BandSizer& pieces, std::vector<uint32_t>& readback) {
   const int width = request.receiver.width, height = request.receiver.height;
-  VISQ_RETURN_IF_ERROR(EnsureTableOnGpu(table, plan.groups));
+  VISQ_RETURN_IF_ERROR(EnsureTableOnGpu(table, plan.groups, job));
   GlTexture2DArray targets;
   glTextureStorage3D(targets.id(), 1, GL_RGBA32UI, width, rows, plan.target_layers);
   GlTexture2D heights(NoCreate);
@@ -601,7 +611,8 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
   std::vector<glm::vec2> centred;
   for (const glm::dvec2& uv : result.samples.uv)
     centred.emplace_back(static_cast<float>(uv.x - 0.5), static_cast<float>(uv.y - 0.5));
-  std::shared_ptr<Table> table = CachedTable(*state_, *worker_, centred, options, result.table_ms);
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<Table> table,
+                        CachedTable(*state_, *worker_, centred, options, job, result.table_ms));
   VISQ_ASSIGN_OR_RETURN(const MapFrames frames, PlanFrames(request, scene));
   const ScenePartDraw draw = PlanDraw(scene, frames, options_.cull_clusters);
   const PassPlan plan = PlanPasses(table->layout.groups(), options.lookup == LookupMode::kExact,

@@ -1,6 +1,7 @@
 #include "hough_table.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 #include <numbers>
@@ -9,7 +10,8 @@
 
 namespace visq::gpu::hsm {
 
-std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, HoughTableLayout& layout) {
+std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, HoughTableLayout& layout,
+                                      const std::function<bool()>& stop) {
   const int n = static_cast<int>(centred.size());
   layout.sample_count = n;
   double rho_max = 0.0;
@@ -44,8 +46,14 @@ std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, Hou
   };
 
   // Rows of theta are independent: split them over the cores.
+  std::atomic<bool> stopped{false};
   auto build_rows = [&](int first, int last) {
     for (int ti = first; ti < last; ++ti) {
+      if (stopped.load(std::memory_order_relaxed)) return;
+      if (stop && stop()) {
+        stopped = true;
+        return;
+      }
       const double t0 = -std::numbers::pi + ti * dtheta - kHoughMargin;
       const double width = dtheta + 2.0 * kHoughMargin;
       for (int i = 0; i < n; ++i) {
@@ -70,6 +78,7 @@ std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, Hou
   ParallelFor(static_cast<size_t>(tt), 8, [&](size_t begin, size_t end) {
     build_rows(static_cast<int>(begin), static_cast<int>(end));
   });
+  if (stopped) return {};
   return table;
 }
 
