@@ -5,6 +5,7 @@
 #include <optional>
 
 #include <absl/strings/str_format.h>
+#include <grpcpp/support/proto_buffer_reader.h>
 
 #include "common/version.h"
 #include "core/light_visibility_query.h"
@@ -12,6 +13,7 @@
 #include "core/voxel_query.h"
 #include "service/convert.h"
 #include "service/exception_boundary.h"
+#include "service/parse_failure.h"
 #include "service/reactors.h"
 #include "service/stats.h"
 #include "service/request_log.h"
@@ -38,9 +40,12 @@ StatusOr<std::vector<core::StructureKind>> WarmFromProto(const v1::LoadSceneHead
 }
 
 // Client-streamed scene load: a header, then (for uploads) file chunks.
-class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneRequest> {
+// The messages arrive as bytes and are parsed here: gRPC's generated reader
+// reports a message it cannot parse as the end of the stream, which would
+// commit an upload the client is still sending.
+class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
  public:
-  LoadSceneReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, v1::SceneInfo* response)
+  LoadSceneReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, grpc::ByteBuffer* response)
       : context_(context),
         log_(context, "LoadScene", &ctx.metrics),
         engine_(ctx.engine),
@@ -52,22 +57,25 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
       Fail(authorized);
       return;
     }
-    StartRead(&request_);
+    StartRead(&received_);
   }
 
   void OnReadDone(bool ok) override {
     // A failed read is a half-close, a cancellation or a broken stream (an
-    // oversize message): only the first may commit.
+    // oversize message): only the first may commit. A message that does not
+    // parse arrives as bytes (ok), so it never looks like the end.
     if (!ok) {
       EndOfStream();
       return;
     }
-    Status status = CatchExceptions(log_.id(), "LoadScene", [&] { return Consume(); });
+    ++messages_read_;
+    Status status = CatchExceptions(log_.id(), "LoadScene", [&] { return Parse(); });
+    if (status.ok()) status = CatchExceptions(log_.id(), "LoadScene", [&] { return Consume(); });
     if (!status.ok()) {
       Fail(status);
       return;
     }
-    StartRead(&request_);
+    StartRead(&received_);
   }
 
   void OnDone() override { delete this; }
@@ -75,6 +83,25 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
 
  private:
   bool Cancelled() const { return cancelled_ || context_->IsCancelled(); }
+
+  // received_ -> request_; INVALID_ARGUMENT naming the field (or saying
+  // the message is cut short) for bytes that are not a LoadSceneRequest.
+  Status Parse() {
+    request_.Clear();
+    grpc::ProtoBufferReader reader(&received_);
+    const bool parsed = request_.ParseFromZeroCopyStream(&reader);
+    if (parsed) {
+      received_.Clear();
+      return absl::OkStatus();
+    }
+    std::string bytes;
+    std::vector<grpc::Slice> slices;
+    if (received_.Dump(&slices).ok())
+      for (const grpc::Slice& slice : slices) bytes.append(reinterpret_cast<const char*>(slice.begin()), slice.size());
+    received_.Clear();
+    return absl::InvalidArgumentError(absl::StrCat(DescribeParseFailure(*v1::LoadSceneRequest::descriptor(), bytes),
+                                                   " (LoadScene message ", messages_read_, "): nothing stored"));
+  }
 
   Status Consume() {
     if (!header_seen_) {
@@ -125,12 +152,20 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
         if (Status warming = engine_.Warm(summary->name, summary->version, warm_); !warming.ok())
           log_.Info("not warmed: {}", warming.message());
       }
-      if (summary.ok()) ToProto(*summary, response_);
-      if (!summary.ok()) Fail(summary.status());
-      else {
-        log_.Done(absl::OkStatus());
-        Finish(grpc::Status::OK);
+      if (!summary.ok()) {
+        Fail(summary.status());
+        return;
       }
+      v1::SceneInfo info;
+      ToProto(*summary, &info);
+      bool own_buffer = false;
+      if (grpc::Status serialized = grpc::SerializationTraits<v1::SceneInfo>::Serialize(info, response_, &own_buffer);
+          !serialized.ok()) {
+        Fail(absl::InternalError(absl::StrCat("the answer did not serialize: ", serialized.error_message())));
+        return;
+      }
+      log_.Done(absl::OkStatus());
+      Finish(grpc::Status::OK);
     });
   }
 
@@ -144,7 +179,9 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<v1::LoadSceneReque
   RequestLog log_;
   core::Engine& engine_;
   Executor& executor_;
-  v1::SceneInfo* response_;
+  grpc::ByteBuffer* response_;
+  grpc::ByteBuffer received_;
+  uint64_t messages_read_ = 0;
   v1::LoadSceneRequest request_;
   std::atomic<bool> cancelled_{false};
   bool header_seen_ = false;
@@ -186,8 +223,8 @@ void ToProto(const core::SceneSummary& s, v1::SceneInfo* out) {
   }
 }
 
-grpc::ServerReadReactor<v1::LoadSceneRequest>* VisibilityServiceImpl::LoadScene(grpc::CallbackServerContext* context,
-                                                                                v1::SceneInfo* response) {
+grpc::ServerReadReactor<grpc::ByteBuffer>* VisibilityServiceImpl::LoadScene(grpc::CallbackServerContext* context,
+                                                                           grpc::ByteBuffer* response) {
   return new LoadSceneReactor(context, ctx_, response);
 }
 

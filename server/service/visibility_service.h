@@ -27,7 +27,10 @@ struct ServiceContext {
   std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
 };
 
-class VisibilityServiceImpl final : public v1::VisibilityService::CallbackService {
+// LoadScene is the raw method (bytes in, bytes out): the reactor parses its
+// messages itself, so one that does not parse is an error, not an end.
+class VisibilityServiceImpl final
+    : public v1::VisibilityService::WithRawCallbackMethod_LoadScene<v1::VisibilityService::CallbackService> {
  public:
   explicit VisibilityServiceImpl(ServiceContext context) : ctx_(std::move(context)) {}
   // Before the server starts serving only.
@@ -35,8 +38,8 @@ class VisibilityServiceImpl final : public v1::VisibilityService::CallbackServic
   // What GetStats reports, for the other transports (/metrics).
   ServerFigures Figures() const { return CollectServerFigures(ctx_); }
 
-  grpc::ServerReadReactor<v1::LoadSceneRequest>* LoadScene(grpc::CallbackServerContext* context,
-                                                           v1::SceneInfo* response) override;
+  grpc::ServerReadReactor<grpc::ByteBuffer>* LoadScene(grpc::CallbackServerContext* context,
+                                                       grpc::ByteBuffer* response) override;
   grpc::ServerUnaryReactor* ListScenes(grpc::CallbackServerContext* context, const v1::ListScenesRequest* request,
                                        v1::ListScenesResponse* response) override;
   grpc::ServerUnaryReactor* GetScene(grpc::CallbackServerContext* context, const v1::GetSceneRequest* request,

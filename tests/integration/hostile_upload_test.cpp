@@ -1,6 +1,10 @@
 // Uploads that used to end the server: the real visq-server on loopback, a
 // LoadScene stream written by hand as a hostile client would, and the
 // server's health asked afterwards.
+#include <cstring>
+#include <filesystem>
+
+#include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
@@ -35,6 +39,133 @@ grpc::Status Upload(Client& client, const std::string& name, const std::string& 
   }
   writer->WritesDone();
   return writer->Finish();
+}
+
+// One triangle as a .gltf and its .bin: a complete upload on its own.
+std::vector<std::pair<std::string, std::string>> TriangleFiles() {
+  const float positions[9] = {0, 0, 0, 1, 0, 0, 0, 1, 0};
+  const uint16_t indices[4] = {0, 1, 2, 0};
+  std::string bin(sizeof(positions) + sizeof(indices), '\0');
+  std::memcpy(bin.data(), positions, sizeof(positions));
+  std::memcpy(bin.data() + sizeof(positions), indices, sizeof(indices));
+  const std::string gltf =
+      R"({"asset":{"version":"2.0"},"scenes":[{"nodes":[0]}],"scene":0,"nodes":[{"mesh":0}],
+     "meshes":[{"primitives":[{"attributes":{"POSITION":0},"indices":1}]}],
+     "buffers":[{"uri":"t.bin","byteLength":44}],
+     "bufferViews":[{"buffer":0,"byteOffset":0,"byteLength":36},{"buffer":0,"byteOffset":36,"byteLength":6}],
+     "accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]},
+                  {"bufferView":1,"componentType":5123,"count":3,"type":"SCALAR"}]})";
+  return {{"t.bin", bin}, {"t.gltf", gltf}};
+}
+
+// A length-delimited field on the wire: tag, length (one byte), bytes.
+std::string LengthDelimited(int field, const std::string& bytes) {
+  EXPECT_LT(bytes.size(), 128u);
+  return std::string(1, static_cast<char>(field << 3 | 2)) + static_cast<char>(bytes.size()) + bytes;
+}
+
+// A LoadScene stream of messages as bytes on the wire, left open after the
+// last one: the client has not said it is done, so nothing may commit. The
+// server's answer, or the deadline's.
+grpc::Status UploadLeftOpen(const std::string& address, const std::vector<std::string>& messages) {
+  auto channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+  grpc::GenericStub stub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(15));
+  grpc::CompletionQueue queue;
+  auto call = stub.PrepareCall(&context, "/visq.v1.VisibilityService/LoadScene", &queue);
+  auto wait = [&queue](intptr_t expected) {
+    void* tag = nullptr;
+    bool ok = false;
+    queue.Next(&tag, &ok);
+    EXPECT_EQ(reinterpret_cast<intptr_t>(tag), expected);
+    return ok;
+  };
+  call->StartCall(reinterpret_cast<void*>(1));
+  wait(1);
+  for (const std::string& message : messages) {
+    grpc::Slice slice(message.data(), message.size());
+    grpc::ByteBuffer buffer(&slice, 1);
+    call->Write(buffer, reinterpret_cast<void*>(2));
+    if (!wait(2)) break;
+  }
+  grpc::ByteBuffer response;
+  call->Read(&response, reinterpret_cast<void*>(3));
+  wait(3);
+  grpc::Status status;
+  call->Finish(&status, reinterpret_cast<void*>(4));
+  wait(4);
+  queue.Shutdown();
+  void* tag;
+  bool ok;
+  while (queue.Next(&tag, &ok)) {
+  }
+  return status;
+}
+
+// A header and a complete triangle upload, as wire bytes.
+std::vector<std::string> TriangleUploadMessages(const std::string& name) {
+  v1::LoadSceneRequest header;
+  header.mutable_header()->set_name(name);
+  header.mutable_header()->set_upload_main_file("t.gltf");
+  std::vector<std::string> messages{header.SerializeAsString()};
+  for (const auto& [file, data] : TriangleFiles()) {
+    v1::LoadSceneRequest chunk;
+    chunk.mutable_chunk()->set_file(file);
+    chunk.mutable_chunk()->set_data(data);
+    messages.push_back(chunk.SerializeAsString());
+  }
+  return messages;
+}
+
+// Nothing of scene `name` in the repository: no scene folder, no staging.
+void ExpectNothingStored(const std::filesystem::path& repo, const std::string& name) {
+  EXPECT_FALSE(std::filesystem::exists(repo / name));
+  for (const auto& entry : std::filesystem::directory_iterator(repo))
+    EXPECT_EQ(entry.path().filename().string().rfind(".staging-", 0), std::string::npos) << entry.path();
+}
+
+// A chunk whose file name is not UTF-8 does not parse as a LoadSceneRequest.
+// gRPC's generated reader reported it as the end of the stream, so the
+// chunks before it were stored and acknowledged OK while the client was
+// still sending; now the upload fails naming the field.
+TEST(HostileUploads, ChunkThatDoesNotParseFailsTheUploadInsteadOfCommittingIt) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {}});
+  ASSERT_NE(server, nullptr);
+  Client client(client::ClientOptions{.address = server->address()});
+
+  std::vector<std::string> messages = TriangleUploadMessages("utf8");
+  messages.push_back(LengthDelimited(2, LengthDelimited(1, "\xff\xfe.bin") + LengthDelimited(2, "abcd")));
+  const grpc::Status status = UploadLeftOpen(server->address(), messages);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+  EXPECT_NE(status.error_message().find("chunk.file: invalid UTF-8"), std::string::npos) << status.error_message();
+
+  EXPECT_EQ(client.GetScene("utf8").status().code(), absl::StatusCode::kNotFound);
+  ExpectNothingStored(repo.path(), "utf8");
+  // The same upload, ended cleanly, is stored: only the bad message failed it.
+  ASSERT_EQ(Upload(client, "utf8", "t.gltf", TriangleFiles()).error_code(), grpc::StatusCode::OK);
+  EXPECT_TRUE(client.GetScene("utf8").ok());
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
+// A message cut short (a chunk announcing 32 bytes and carrying 3) is not
+// the end of the stream either.
+TEST(HostileUploads, TruncatedMessageFailsTheUploadInsteadOfCommittingIt) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {}});
+  ASSERT_NE(server, nullptr);
+  Client client(client::ClientOptions{.address = server->address()});
+
+  std::vector<std::string> messages = TriangleUploadMessages("cut");
+  messages.push_back(std::string("\x12\x20\x0a\x01x", 5));
+  const grpc::Status status = UploadLeftOpen(server->address(), messages);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+  EXPECT_NE(status.error_message().find("truncated or malformed"), std::string::npos) << status.error_message();
+
+  EXPECT_EQ(client.GetScene("cut").status().code(), absl::StatusCode::kNotFound);
+  ExpectNothingStored(repo.path(), "cut");
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
 }
 
 // One chunk named "a.gltf/x" makes the main file "a.gltf" a folder: the
