@@ -175,6 +175,12 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
     return absl::InvalidArgumentError(absl::StrCat("header.expected_bytes: ", upload->expected_bytes_,
                                                    " bytes announced, ", staging.bytes(),
                                                    " received; nothing stored"));
+  // A main file no chunk carried is the client's mistake, not a file the
+  // server lost.
+  std::error_code absent;
+  if (std::filesystem::symlink_status(staging.main_file(), absent).type() == std::filesystem::file_type::not_found)
+    return absl::InvalidArgumentError(absl::StrCat("header.upload_main_file '", staging.main_file().filename().string(),
+                                                   "': never sent (no chunk carries that file); nothing stored"));
   // Parse from the staging folder first: a malformed upload never reaches
   // the repository, and the staging folder goes with `upload`.
   GltfLoadReport report;

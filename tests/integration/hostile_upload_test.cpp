@@ -168,6 +168,26 @@ TEST(HostileUploads, TruncatedMessageFailsTheUploadInsteadOfCommittingIt) {
   EXPECT_EQ(server->Stop(), 0) << server->Log();
 }
 
+// An upload whose main file no chunk carries is the client's mistake: it
+// was NOT_FOUND ("cannot open"), as if the server had lost a file; now it is
+// INVALID_ARGUMENT naming the header's field, and nothing is stored.
+TEST(HostileUploads, MainFileNeverSentIsInvalidArgumentNamingTheField) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {}});
+  ASSERT_NE(server, nullptr);
+  Client client(client::ClientOptions{.address = server->address()});
+
+  for (const auto& chunks : {std::vector<std::pair<std::string, std::string>>{{"t.bin", "abcd"}},
+                             std::vector<std::pair<std::string, std::string>>{}}) {
+    const grpc::Status status = Upload(client, "nomain", "a.gltf", chunks);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+    EXPECT_NE(status.error_message().find("header.upload_main_file 'a.gltf': never sent"), std::string::npos)
+        << status.error_message();
+    ExpectNothingStored(repo.path(), "nomain");
+  }
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
 // One chunk named "a.gltf/x" makes the main file "a.gltf" a folder: the
 // loader read it through an ifstream, libstdc++ threw (EISDIR), nothing
 // caught it, and the server aborted.
