@@ -226,32 +226,41 @@ bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t 
                                   uint32_t* neighbour) const {
   const uint32_t far_count = static_cast<uint32_t>(far.size());
   const uint32_t occluder_count = far_count + static_cast<uint32_t>(near.size());
+  // Far occluders pair with far ones, near with near: a far one is
+  // subtracted whole, a near one only when nothing of it is clipped.
+  const bool is_far = id < far_count;
   const auto is_candidate = [&](uint32_t other) {
-    return other >= far_count && other < occluder_count && s.occluder_marks[other].stamp == s.stamp &&
+    return other < occluder_count && (other < far_count) == is_far && s.occluder_marks[other].stamp == s.stamp &&
            s.occluder_marks[other].state == Scratch::kCandidate;
   };
-  if (id < far_count || !(is_candidate(id + 1) || is_candidate(id - 1))) return false;
-  // Strictly inside the slab: in the light's open front and strictly below
-  // the plane through P parallel to the light (nothing to clip).
-  const auto inside_slab = [&](const NearOccluder& n) {
-    if (n.light_side[0] <= 0 || n.light_side[1] <= 0 || n.light_side[2] <= 0) return false;
+  if (!(is_candidate(id + 1) || is_candidate(id - 1))) return false;
+  // Strictly inside the slab: in the light's open front (a near one: a
+  // far one is subtracted whole, and never lies behind the light) and
+  // strictly below the plane through P parallel to the light (nothing to
+  // clip; and the four corners, on one side of a plane through P, are seen
+  // from P in one chart, where the turns below decide convexity).
+  const auto inside_slab = [&](uint32_t occluder) {
+    if (occluder >= far_count) {
+      const NearOccluder& n = near[occluder - far_count];
+      if (n.light_side[0] <= 0 || n.light_side[1] <= 0 || n.light_side[2] <= 0) return false;
+    }
     if (*slab_top == nullptr) *slab_top = s.Add([&] { return XPlane::ParallelThrough(*light_plane, *s.p); });
-    for (const uint32_t v : n.v) {
-      if (TopSide(s, v, **slab_top) >= 0) return false;
+    for (int i = 0; i < 3; ++i) {
+      if (TopSide(s, OccluderVertices(occluder)[i], **slab_top) >= 0) return false;
     }
     return true;
   };
-  const NearOccluder& first = near[id - far_count];
-  if (!inside_slab(first)) return false;
+  const uint32_t* first = OccluderVertices(id);
+  if (!inside_slab(id)) return false;
   const glm::dvec3& p = s.p->input;
   const auto orient = [&](uint32_t a, uint32_t b, uint32_t c) {
     return Orient3d(p, vertices[a], vertices[b], vertices[c]);
   };
-  const int o = orient(first.v[0], first.v[1], first.v[2]);
+  const int o = orient(first[0], first[1], first[2]);
   if (o == 0) return false;
   for (const uint32_t other : {id + 1, id - 1}) {
     if (!is_candidate(other)) continue;
-    const NearOccluder& n = near[other - far_count];
+    const uint32_t* n = OccluderVertices(other);
     // The edge (u, v) of the first triangle that n lies across, and n's
     // third vertex w. The union is the quadrilateral (u, w, v, t) when it
     // turns with sign o at every corner. A zero turn at u puts P's view of
@@ -259,10 +268,11 @@ bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t 
     // strict), so u is dropped and the union is the triangle (t, w, v); v
     // likewise.
     for (int k = 0; k < 3; ++k) {
-      const uint32_t u = first.v[k], v = first.v[(k + 1) % 3], t = first.v[(k + 2) % 3];
+      const uint32_t u = first[k], v = first[(k + 1) % 3], t = first[(k + 2) % 3];
       int on_edge = 0;
       uint32_t w = 0;
-      for (const uint32_t x : n.v) {
+      for (int i = 0; i < 3; ++i) {
+        const uint32_t x = n[i];
         if (x == u || x == v) {
           ++on_edge;
         } else {
@@ -270,7 +280,7 @@ bool LightTree::QuadWithNeighbour(Scratch& s, const XPlane** slab_top, uint32_t 
         }
       }
       if (on_edge != 2 || w == t) continue;
-      if (!inside_slab(n) || orient(u, w, v) != o) break;
+      if (!inside_slab(other) || orient(u, w, v) != o) break;
       const int turn_u = orient(t, u, w), turn_v = orient(w, v, t);
       if ((turn_u != o && turn_u != 0) || (turn_v != o && turn_v != 0)) break;
       quad->clear();

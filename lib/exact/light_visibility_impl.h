@@ -692,10 +692,11 @@ struct LightTree {
   // `*slab_top`). False when no part of it can block.
   bool OccluderEdges(Scratch& s, uint32_t id, const XPlane** slab_top, Edges* edges, Corners* corners) const;
 
-  // Two near occluders next to each other in the scene's triangle order
-  // (as meshes list a quadrilateral's triangles) that share an edge and
-  // are seen from P as one strictly convex quadrilateral, wholly inside the
-  // slab between P and the light, cast that quadrilateral's shadow:
+  // Two occluders of one kind (far or near) next to each other in the
+  // scene's triangle order (as meshes list a quadrilateral's triangles)
+  // that share an edge and are seen from P as one strictly convex
+  // quadrilateral, wholly inside the slab between P and the light, cast
+  // that quadrilateral's shadow:
   // subtracted as one polygon, the fragments are not cut along their
   // diagonal. Longer runs of the order (strips) took no less time on
   // Sponza, veach-ajar and the bunny (docs/exact-method-notes.md).
@@ -874,7 +875,7 @@ struct LightTree {
   // that reach it. So is one whose triangle's box (in double, before any
   // exact point of it is made) is apart from each fragment's. Returns the
   // number subtracted.
-  // With `quads`, near occluders that reach the fragments are subtracted
+  // With `quads`, occluders that reach the fragments are subtracted
   // with a neighbour as one quadrilateral where they can be
   // (QuadWithNeighbour). With `cutting`, the ids of the occluders that cut
   // or removed a fragment are appended to it (both of a quadrilateral).

@@ -91,6 +91,8 @@ struct Params {
   // each, as the server groups a batch; 0: image tiles instead.
   int cells_per_side = 32;
   double tree_max_mb = 16;    // each tree's memory budget (TreeOptions::max_bytes), as the server's default
+  long direct_candidates = -1;  // >= 0: TreeOptions::direct_candidates (else its default)
+  bool keep_answers = true;     // TreeOptions::keep_answers (0: the warm pass descends the grown tree)
   // > 0: group the points as the server does without a grid
   // (exact::GroupReceiversByShaft with this many triangles per shaft),
   // instead of cells or tiles.
@@ -644,6 +646,8 @@ int Run(const BenchCase& bc, const Params& p) {
     visq::exact::TreeOptions options;
     options.receiver_bounds = tb;
     options.max_bytes = static_cast<size_t>(p.tree_max_mb * (1 << 20));
+    if (p.direct_candidates >= 0) options.direct_candidates = static_cast<size_t>(p.direct_candidates);
+    options.keep_answers = p.keep_answers;
     auto tree = visq::exact::LightVisibilityTree::Create(bc.light, bc.scene, options, index->get());
     create_ns += std::chrono::duration_cast<std::chrono::nanoseconds>(
                      std::chrono::steady_clock::now() - c0).count();
@@ -804,7 +808,7 @@ int Run(const BenchCase& bc, const Params& p) {
   std::printf("penumbra points (0 < exact < 1): %zu of %zu\n", penumbra, bc.points.size());
   std::printf("queries answered before the tree: %llu wholly visible, %llu wholly hidden (%llu by the blockers of "
               "a point nearby), %llu subtracted directly; "
-              "%llu near occluders subtracted inside a neighbour's quadrilateral\n",
+              "%llu occluders subtracted inside a neighbour's quadrilateral\n",
               static_cast<unsigned long long>(stats.wholly_visible),
               static_cast<unsigned long long>(stats.wholly_hidden),
               static_cast<unsigned long long>(stats.hidden_by_remembered_blockers),
@@ -894,6 +898,8 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--height")) p.height = std::atoi(v);
     else if (const char* v = value("--tile-pixels")) p.tile_pixels = std::max(1, std::atoi(v));
     else if (const char* v = value("--tree-max-mb")) p.tree_max_mb = std::atof(v);
+    else if (const char* v = value("--direct-candidates")) p.direct_candidates = std::atol(v);
+    else if (const char* v = value("--keep-answers")) p.keep_answers = std::atoi(v) != 0;
     else if (const char* v = value("--cells-per-side")) p.cells_per_side = std::atoi(v);
     else if (const char* v = value("--shaft-triangles")) p.shaft_triangles = static_cast<size_t>(std::atoll(v));
     else if (const char* v = value("--shaft-cap")) p.shaft_cap = std::atof(v);
@@ -903,7 +909,7 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
-                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
+                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--direct-candidates=N] [--keep-answers=0] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
                    "       %s --scene=grille [the camera and grouping flags; --light, --eye, --look-at default to the grille's]\n",
                    argv[0], argv[0], argv[0]);
       return 2;

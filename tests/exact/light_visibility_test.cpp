@@ -817,6 +817,9 @@ TEST(LightVisibilityTest, TreeAtItsMemoryBudgetStopsGrowingAndStaysExact) {
   const AreaLight light = SquareLight(2.0);
   TreeOptions unbounded_options, bounded_options;
   unbounded_options.receiver_bounds = bounded_options.receiver_bounds = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});
+  // Every undecided point descends the tree (by default it subtracts its
+  // candidates directly, and the tree never grows).
+  unbounded_options.direct_candidates = bounded_options.direct_candidates = 0;
   bounded_options.max_bytes = 1;  // below the empty tree: it never refines
   auto unbounded = LightVisibilityTree::Create(light, scene, unbounded_options);
   auto bounded = LightVisibilityTree::Create(light, scene, bounded_options);
@@ -871,13 +874,19 @@ TEST(LightVisibilityTest, ADenseMeshAtTheBudgetMatchesTheGrownTree) {
       grown_options.receiver_bounds = capped_options.receiver_bounds =
           Box(f.offset + f.scale * glm::dvec3(-1.5, -1.5, 0), f.offset + f.scale * glm::dvec3(1.5, 1.5, 0));
       capped_options.max_bytes = 1;
+      // Every undecided point descends the tree; the default route (each
+      // point subtracts its candidates itself) must agree with both.
+      TreeOptions direct_options = grown_options;
+      grown_options.direct_candidates = capped_options.direct_candidates = 0;
       auto grown = LightVisibilityTree::Create(l, scene, grown_options);
       auto capped = LightVisibilityTree::Create(l, scene, capped_options);
-      ASSERT_TRUE(grown.ok() && capped.ok());
+      auto direct = LightVisibilityTree::Create(l, scene, direct_options);
+      ASSERT_TRUE(grown.ok() && capped.ok() && direct.ok());
       for (size_t i = 0; i < pts.size(); ++i) {
         const glm::dvec3 p = f.offset + f.scale * pts[i];
-        const PointVisibility a = Q(**grown, p), b = Q(**capped, p);
+        const PointVisibility a = Q(**grown, p), b = Q(**capped, p), c = Q(**direct, p);
         EXPECT_NEAR(a.visible_area_fraction, b.visible_area_fraction, 1e-12) << "scale " << f.scale << " point " << i;
+        EXPECT_NEAR(a.visible_area_fraction, c.visible_area_fraction, 1e-12) << "scale " << f.scale << " point " << i;
         if (reference.size() < pts.size()) {
           reference.push_back(a.visible_area_fraction);
           penumbra += a.visible_area_fraction > 0 && a.visible_area_fraction < 1;
