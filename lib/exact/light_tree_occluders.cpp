@@ -72,12 +72,14 @@ LightTree::OccluderTest LightTree::TestOccluder(const glm::dvec3& p, const glm::
 }
 
 double LightTree::ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]) {
-  // Squared, and with constant factors left out: no root and one division
-  // a candidate (a penumbra point sorts a hundred).
+  // (n . offset)^2 / |offset|^6: the projected area over the squared
+  // distance, squared, and with constant factors left out: no root and one
+  // division a candidate (a penumbra point sorts a hundred).
   const glm::dvec3 offset = v[0] + v[1] + v[2] - 3.0 * p;  // three times the centroid's
   const glm::dvec3 normal = glm::cross(v[1] - v[0], v[2] - v[0]);
   const double distance2 = glm::dot(offset, offset);
-  return glm::dot(normal, normal) / std::max(distance2 * distance2, 1e-300);
+  const double facing = glm::dot(normal, offset);
+  return facing * facing / std::max(distance2 * distance2 * distance2, 1e-300);
 }
 
 void LightTree::SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids) const {

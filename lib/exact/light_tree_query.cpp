@@ -289,10 +289,17 @@ bool LightTree::GatherCandidates(Scratch& s, const glm::dvec3& p_local, const Re
       if (cull.Misses(v)) continue;
       // The receiver's plane is tested on the few that pass the culls (an
       // occluder that misses the light is dropped either way).
-      if (!is_far && s.penumbra_tree == this) {
-        if (InReceiverPlane(id, receiver)) continue;
-        out->near.push_back(id - far_count);
-        out->near_untested = true;
+      if (s.penumbra_tree == this) {
+        if (is_far) {
+          // Far ones are used only by the direct route (the tree's descent
+          // meets them in its leaves), which tests them as near ones.
+          out->any_far = true;
+          out->far.push_back(id);
+        } else {
+          if (InReceiverPlane(id, receiver)) continue;
+          out->near.push_back(id - far_count);
+        }
+        out->untested = true;
         continue;
       }
       if (!classify_points) {
@@ -434,7 +441,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     SortLargestFirst(p_local, &subtract);
     std::vector<uint32_t> cutting;
     SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, /*quads=*/true, &cutting,
-                      candidates.near_untested);
+                      candidates.untested);
     if (!s.stopped.ok()) return s.stopped;
     // Only the light itself was cut on these routes, so the cutting
     // occluders alone hide it when nothing is left.

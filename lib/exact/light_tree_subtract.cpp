@@ -579,7 +579,7 @@ bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments,
 
 size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
                                     const XPlane** slab_top, size_t max_subtracted, bool quads,
-                                    std::vector<uint32_t>* cutting, bool test_near) const {
+                                    std::vector<uint32_t>* cutting, bool test_untested) const {
   if (quads) {
     s.FitOccluders(far.size() + near.size());
     for (const uint32_t id : ids) s.occluder_marks[id] = {s.stamp, Scratch::kCandidate};
@@ -599,12 +599,14 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
     }
     LineBox shadow;
     const bool triangle_box = ShadowBoxBound(s, id, &shadow);
-    // all_valid: every fragment has its box.
+    // all_valid: every fragment has its box. The box around them all
+    // first: one test where each fragment's is one a fragment.
     if (all_valid && triangle_box &&
-        std::all_of(fragments->begin(), fragments->end(), [&](const Fragment& f) { return f.box.Apart(shadow); })) {
+        (all.Apart(shadow) || std::all_of(fragments->begin(), fragments->end(),
+                                          [&](const Fragment& f) { return f.box.Apart(shadow); }))) {
       continue;
     }
-    if (test_near && id >= far.size()) {
+    if (test_untested) {
       const uint32_t* t = OccluderVertices(id);
       const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
       if (ShadowMissesLight(s.p->input, v)) continue;

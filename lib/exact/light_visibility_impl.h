@@ -741,8 +741,11 @@ struct LightTree {
   void RememberBlockers(Scratch& s, std::vector<uint32_t>* ids) const;
 
   // A triangle's size as seen from p: a number that grows with its area
-  // over its squared distance, a proxy of its solid angle (it orders
-  // subtractions; any order gives the same answer).
+  // projected across the direction from p (the area times the cosine of
+  // its tilt) over its squared distance, a proxy of its solid angle (it
+  // orders subtractions; any order gives the same answer). Without the
+  // tilt a slat seen edge on came before the panes' bars that it hides
+  // nothing of (a grille's window: 2 % slower).
   static double ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]);
 
   // Orders occluder ids largest as seen from p first (they leave the fewest
@@ -879,11 +882,11 @@ struct LightTree {
   // with a neighbour as one quadrilateral where they can be
   // (QuadWithNeighbour). With `cutting`, the ids of the occluders that cut
   // or removed a fragment are appended to it (both of a quadrilateral).
-  // With `test_near`, near occluders whose shadows miss the light
+  // With `test_untested`, occluders whose shadows miss the light
   // (ShadowMissesLight) are passed over: the caller has not tested them.
   size_t SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
                            const XPlane** slab_top, size_t max_subtracted = SIZE_MAX, bool quads = false,
-                           std::vector<uint32_t>* cutting = nullptr, bool test_near = false) const;
+                           std::vector<uint32_t>* cutting = nullptr, bool test_untested = false) const;
 
   // The answer from the store, or a new one, kept while the store has room.
   StatusOr<PointVisibility> Query(const QueryPoint& q, bool want_polygons, const StopToken& stop);
@@ -924,7 +927,7 @@ struct LightTree {
   // After a penumbra point the next one is mostly a penumbra point too, and
   // then the classification is spent for nothing: of a Sponza penumbra
   // point's 86 candidates, 18 reach the fragments that the largest leave.
-  // So after one, near candidates are kept on the float cull alone, and
+  // So after one, candidates are kept on the float cull alone, and
   // SubtractOccluders gives the exact whole-light test only to those whose
   // shadow's box reaches the fragments. The answer is the same: an
   // occluder whose shadow misses the light cuts nothing.
@@ -943,7 +946,7 @@ struct LightTree {
     std::vector<uint32_t> near, far;
     bool any_far = false;  // the tree must be descended (unless direct)
     bool direct = false;   // few enough to subtract them all from the light
-    bool near_untested = false;  // near ones kept without their exact test
+    bool untested = false;  // kept without their exact test (after a penumbra point)
   };
   // Gathers them (GatherCandidates' caller has tried HiddenByLastCover);
   // true when the point is wholly hidden, and then nothing else is filled
