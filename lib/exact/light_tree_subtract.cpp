@@ -55,6 +55,50 @@ bool LightTree::OnPlaneByDefinition(const XPoint& x, const XPlane* plane) {
   return false;
 }
 
+bool LightTree::OnPlaneByInputs(const XPoint& x, const XPlane& plane) {
+  using PK = XPlane::Kind;
+  using XK = XPoint::Kind;
+  if (plane.kind != PK::kThroughPoints) return false;
+  const XPoint* apex = plane.points[0];
+  const XPoint* c = plane.points[1];
+  const XPoint* d = plane.points[2];
+  if (apex->kind != XK::kInput || c->kind != XK::kInput || d->kind != XK::kInput) return false;
+  const glm::dvec3& p = apex->input;
+  // The planes x lies on by definition that pass through the apex and two
+  // more input points (edge planes through P).
+  const XPlane* own[3];
+  int count = 0;
+  const int defining = x.kind == XK::kLinePlane ? 1 : x.kind == XK::kThreePlanes ? 3 : 0;
+  for (int i = 0; i < defining; ++i) {
+    const XPlane* q = x.planes[i];
+    if (q->kind == PK::kThroughPoints && q->points[0] == apex && q->points[1]->kind == XK::kInput &&
+        q->points[2]->kind == XK::kInput) {
+      own[count++] = q;
+    }
+  }
+  // One of them is `plane` itself, through another edge on its line.
+  for (int i = 0; i < count; ++i) {
+    const glm::dvec3 &a = own[i]->points[1]->input, &b = own[i]->points[2]->input;
+    if (Orient3d(p, a, b, c->input) == 0 && Orient3d(p, a, b, d->input) == 0) return true;
+  }
+  // Two of them meet along the line from P through a vertex v of one that
+  // lies on the other (an edge ending on another's line, as where a bar
+  // meets an upright): x is on that line, and on `plane` when v is.
+  if (count == 2) {
+    for (int i = 0; i < 2; ++i) {
+      const XPlane* q = own[i];
+      const XPlane* r = own[1 - i];
+      for (int k = 1; k < 3; ++k) {
+        const glm::dvec3& v = q->points[k]->input;
+        if (v == p) continue;
+        if (Orient3d(p, r->points[1]->input, r->points[2]->input, v) != 0) continue;
+        if (Orient3d(p, c->input, d->input, v) == 0) return true;
+      }
+    }
+  }
+  return false;
+}
+
 LightTree::EdgePlaneRef LightTree::PlaneOf(Scratch& s, EdgeLine& e) const {
   if (!e.has_plane) {
     e.plane = EdgePlane(s, *e.a, *e.b);
@@ -85,6 +129,7 @@ int LightTree::PlaneLineSide(Scratch& s, EdgeLine& e, const XPoint& x) const {
   const int fast = FastSignOfDot(ref.plane->fast, x.fast);
   if (fast != kUncertain) return -ref.sign * fast * x.w_sign * ref.plane->o_sign;
   if (OnPlaneByDefinition(x, ref.plane)) return 0;
+  if (OnPlaneByInputs(x, *ref.plane)) return 0;
   return -ref.sign * EuclidSideSlow(x, *ref.plane);
 }
 

@@ -418,8 +418,14 @@ struct LightTree {
     void Reset() {
       points.Clear();
       planes.Clear();
+      // This absl's clear() frees a table past 127 slots, and a penumbra
+      // point of a grille fills a few hundred: each query grew them again
+      // through seven rehashes. One allocation of the last query's size.
+      const size_t edge_plane_count = edge_planes.size(), meet_count = meets.size();
       edge_planes.clear();
       meets.clear();
+      edge_planes.reserve(edge_plane_count);
+      meets.reserve(meet_count);
       p = nullptr;
       line_box_sign = 0;
       stop = nullptr;
@@ -541,6 +547,17 @@ struct LightTree {
   // the shadow of an occluder vertex v is Π_t ∩ plane(P, v, a) ∩ plane(P, v, b),
   // a point of line(P, v), and so lies on every edge plane through P and v.
   static bool OnPlaneByDefinition(const XPoint& x, const XPlane* plane);
+
+  // Whether x lies on `plane` (a plane through an input apex, P, and two
+  // more input points) by the input points of the planes it is defined on:
+  // one of those is `plane` itself, made from another edge on the same
+  // line, or two of them, through P, meet along the line from P through a
+  // vertex of one that lies on the other and on `plane` (boxes joined as a
+  // modeller joins them share edge lines and corners on edges, not
+  // vertices). Tested where the filter leaves a sign open, before the
+  // exact evaluation, which finds the same zero at a hundred times the
+  // cost of these orientation tests (a grille's window: 3.3 a query).
+  static bool OnPlaneByInputs(const XPoint& x, const XPlane& plane);
 
   // An edge line (a, b) as one query sees it. The plane through P and the
   // line is made only when it is needed: to split, or to side a vertex that
