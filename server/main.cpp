@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <csignal>
 #include <cstring>
 #include <cstdio>
@@ -73,6 +74,8 @@ struct Flags {
   std::string metrics_port_file;
   std::string log_format = "text";
   int drain_seconds = 10;
+  int upload_idle_seconds = static_cast<int>(options.uploads.idle.count() / 1000);
+  int metrics_read_seconds = static_cast<int>(options.metrics_limits.request_timeout.count() / 1000);
 };
 
 // Each flag, its environment variable (for containers), its check.
@@ -154,6 +157,42 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--drain-seconds", flags.drain_seconds,
                  "On SIGTERM, how long calls in progress may take to finish before they are cancelled")
       ->envname("VISQ_DRAIN_SECONDS")->check(CLI::Range(0, 3600))->capture_default_str();
+
+  // What one client may hold, so that no client holds what others need.
+  const char* limits = "Connection and upload limits";
+  app.add_option("--keepalive-seconds", flags.options.keepalive_seconds,
+                 "Ping a connection that has been quiet this long, to find peers that are gone")
+      ->envname("VISQ_KEEPALIVE_SECONDS")->check(CLI::Range(1, 86400))->capture_default_str()->group(limits);
+  app.add_option("--keepalive-timeout-seconds", flags.options.keepalive_timeout_seconds,
+                 "Close a connection whose keepalive ping goes unanswered this long")
+      ->envname("VISQ_KEEPALIVE_TIMEOUT_SECONDS")->check(CLI::Range(1, 3600))->capture_default_str()->group(limits);
+  app.add_option("--max-connection-idle-seconds", flags.options.max_connection_idle_seconds,
+                 "Close a connection that has had no call in progress this long (clients reconnect when they "
+                 "need to); 0: never")
+      ->envname("VISQ_MAX_CONNECTION_IDLE_SECONDS")->check(CLI::Range(0, 86400 * 7))->capture_default_str()
+      ->group(limits);
+  app.add_option("--max-streams-per-connection", flags.options.max_streams_per_connection,
+                 "Calls one connection may have in progress at once; a client's further calls wait for one to end")
+      ->envname("VISQ_MAX_STREAMS_PER_CONNECTION")->check(CLI::Range(1, 1 << 20))->capture_default_str()
+      ->group(limits);
+  app.add_option("--max-uploads-in-flight", flags.options.uploads.max_in_flight,
+                 "Uploads (LoadScene with upload_main_file) in progress at once, from every client together; "
+                 "more are refused RESOURCE_EXHAUSTED")
+      ->envname("VISQ_MAX_UPLOADS_IN_FLIGHT")->check(CLI::Range(1, 1 << 20))->capture_default_str()->group(limits);
+  app.add_option("--max-uploads-per-client", flags.options.uploads.max_per_client,
+                 "Uploads in progress at once from one client address (behind a proxy, every client shares its "
+                 "address); more are refused RESOURCE_EXHAUSTED")
+      ->envname("VISQ_MAX_UPLOADS_PER_CLIENT")->check(CLI::Range(1, 1 << 20))->capture_default_str()->group(limits);
+  app.add_option("--upload-idle-seconds", flags.upload_idle_seconds,
+                 "Abort a LoadScene stream that sends nothing for this long, and remove what it staged")
+      ->envname("VISQ_UPLOAD_IDLE_SECONDS")->check(CLI::Range(1, 86400))->capture_default_str()->group(limits);
+  app.add_option("--metrics-max-connections", flags.options.metrics_limits.max_connections,
+                 "/metrics connections open at once; more are closed as they arrive")
+      ->envname("VISQ_METRICS_MAX_CONNECTIONS")->check(CLI::Range(1, 1024))->capture_default_str()->group(limits);
+  app.add_option("--metrics-read-seconds", flags.metrics_read_seconds,
+                 "A /metrics request must arrive whole within this long, and its answer be taken within it again; "
+                 "else the connection is closed")
+      ->envname("VISQ_METRICS_READ_SECONDS")->check(CLI::Range(1, 600))->capture_default_str()->group(limits);
 }
 
 }  // namespace
@@ -179,6 +218,8 @@ int main(int argc, char** argv) {
   options.engine.max_scene_bytes = flags.max_scene_bytes;
   options.engine.light_cache_bytes = static_cast<size_t>(flags.light_cache_bytes);
   options.engine.load_repository_at_start = !flags.no_preload;
+  options.uploads.idle = std::chrono::seconds(flags.upload_idle_seconds);
+  options.metrics_limits.request_timeout = std::chrono::seconds(flags.metrics_read_seconds);
   if (flags.create_auth_token && flags.auth_token_file.empty()) {
     std::cerr << "--auth-token-create needs --auth-token-file\n";
     return EXIT_FAILURE;

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <condition_variable>
+#include <cstdint>
 #include <cstring>
 #include <fstream>
 #include <mutex>
@@ -126,6 +127,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   server->metadata_executor_ = std::make_unique<Executor>(2);
   server->metrics_ = std::make_unique<Metrics>();
   server->authorizer_ = std::make_unique<Authorizer>(options.auth_token);
+  server->uploads_ = std::make_unique<UploadLimits>(options.uploads);
 
   grpc::EnableDefaultHealthCheckService(true);
   // Reflection lists the API to anyone who asks: only without a token
@@ -138,12 +140,25 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   // A port in use is an error, not a port silently shared with another
   // server (gRPC sets SO_REUSEPORT by default).
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+  // No client holds what others need: a dead peer's connection is found by
+  // keepalive pings, a connection with no call is closed after a while
+  // (GOAWAY; clients reconnect), and one connection carries a bounded number
+  // of streams at once. Clients may ping as often as every 10 s without
+  // being told off, which is what gRPC clients' keepalive allows.
+  const auto ms = [](int seconds) { return static_cast<int>(std::min<int64_t>(int64_t{seconds} * 1000, INT32_MAX)); };
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, ms(options.keepalive_seconds));
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, ms(options.keepalive_timeout_seconds));
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 10000);
+  if (options.max_connection_idle_seconds > 0)
+    builder.AddChannelArgument(GRPC_ARG_MAX_CONNECTION_IDLE_MS, ms(options.max_connection_idle_seconds));
+  builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS, options.max_streams_per_connection);
   // The service is registered before the port is known; its id is fixed up
   // below when it defaults to host:port.
   std::string server_id = options.server_id;
   auto service_context = [&] {
     return ServiceContext{*server->engine_, *server->executor_, *server->metadata_executor_, *server->metrics_,
-                          *server->authorizer_, *server->calls_, server_id};
+                          *server->authorizer_, *server->calls_, *server->uploads_, server_id};
   };
   server->service_ = std::make_unique<VisibilityServiceImpl>(service_context());
   builder.RegisterService(server->service_.get());
@@ -163,7 +178,8 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   server->SetServing(false);
   if (!options.metrics_address.empty()) {
     VisibilityServiceImpl* service = server->service_.get();
-    auto metrics = MetricsHttpServer::Start(options.metrics_address, [service] { return service->Figures(); });
+    auto metrics = MetricsHttpServer::Start(options.metrics_address, [service] { return service->Figures(); },
+                                            options.metrics_limits);
     if (!metrics.ok()) return metrics.status();
     server->metrics_http_ = *std::move(metrics);
   }

@@ -13,6 +13,7 @@
 #include "service/executor.h"
 #include "service/metrics_http.h"
 #include "service/reflection_v1.h"
+#include "service/upload_limits.h"
 #include "service/visibility_service.h"
 
 namespace visq::service {
@@ -34,6 +35,15 @@ struct ServerOptions {
   // HOST:PORT for Prometheus's GET /metrics (plain HTTP); empty: no endpoint.
   std::string metrics_address;
   bool allow_remote_metrics = false;  // metrics_address may be beyond loopback
+  MetricsHttpLimits metrics_limits;
+  // What one client may hold: connections are pinged when quiet and closed
+  // when dead or idle, streams per connection are capped, and uploads are
+  // capped and aborted when they send nothing (UploadLimits).
+  int keepalive_seconds = 60;             // --keepalive-seconds: ping a quiet connection this often
+  int keepalive_timeout_seconds = 20;     // --keepalive-timeout-seconds: close it when the ping goes unanswered
+  int max_connection_idle_seconds = 300;  // --max-connection-idle-seconds: close a connection with no call
+  int max_streams_per_connection = 128;   // --max-streams-per-connection
+  UploadLimits::Options uploads;
   core::EngineOptions engine;
 };
 
@@ -66,6 +76,7 @@ class Server {
   std::unique_ptr<Metrics> metrics_;
   std::unique_ptr<Authorizer> authorizer_;
   std::unique_ptr<CallRegistry> calls_ = std::make_unique<CallRegistry>();
+  std::unique_ptr<UploadLimits> uploads_;
   std::unique_ptr<VisibilityServiceImpl> service_;
   std::unique_ptr<ReflectionV1Service> reflection_v1_;
   std::unique_ptr<grpc::Server> grpc_server_;

@@ -50,6 +50,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
         log_(context, "LoadScene", &ctx.metrics),
         engine_(ctx.engine),
         executor_(ctx.executor),
+        uploads_(ctx.uploads),
         response_(response) {
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     // Refuse before a single chunk is stored.
@@ -57,6 +58,12 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
       Fail(authorized);
       return;
     }
+    // A stream that sends nothing for the idle limit is cancelled: its read
+    // ends, and the upload with its staging goes (EndOfStream).
+    watch_ = uploads_.StartWatch([this] {
+      idle_ = true;
+      context_->TryCancel();
+    });
     StartRead(&received_);
   }
 
@@ -68,6 +75,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
       EndOfStream();
       return;
     }
+    watch_->Touch();
     ++messages_read_;
     Status status = CatchExceptions(log_.id(), "LoadScene", [&] { return Parse(); });
     if (status.ok()) status = CatchExceptions(log_.id(), "LoadScene", [&] { return Consume(); });
@@ -119,6 +127,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
         case v1::LoadSceneHeader::kUploadMainFile: {
           log_.Info("'{}' upload of {} ({} bytes announced)", name_, header.upload_main_file(),
                     header.expected_bytes());
+          VISQ_ASSIGN_OR_RETURN(slot_, uploads_.Acquire(UploadLimits::ClientOfPeer(context_->peer())));
           VISQ_ASSIGN_OR_RETURN(upload_, engine_.BeginUpload(name_, header.upload_main_file(), header.replace(),
                                                              header.expected_bytes()));
           return absl::OkStatus();
@@ -133,6 +142,13 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
   }
 
   void EndOfStream() {
+    if (watch_) watch_->Stop();
+    if (idle_) {
+      const double seconds = uploads_.options().idle.count() / 1000.0;
+      Fail(absl::DeadlineExceededError(
+          absl::StrCat("LoadScene sent nothing for ", seconds, " s (--upload-idle-seconds): aborted, nothing stored")));
+      return;
+    }
     if (!header_seen_) {
       Fail(absl::InvalidArgumentError("LoadScene stream ended without a header"));
       return;
@@ -147,6 +163,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
         return from_repository_ ? engine_.LoadFromRepository(name_, replace_)
                                 : engine_.FinishUpload(std::move(upload_), &cancelled_);
       });
+      slot_.reset();  // stored or not, the upload is no longer in flight
       // The structures build in the background; the answer does not wait.
       if (summary.ok() && !warm_.empty()) {
         if (Status warming = engine_.Warm(summary->name, summary->version, warm_); !warming.ok())
@@ -170,6 +187,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
   }
 
   void Fail(const Status& status) {
+    slot_.reset();
     upload_.reset();  // removes the staged files
     log_.Done(status);
     Finish(ToGrpcStatus(status));
@@ -179,6 +197,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
   RequestLog log_;
   core::Engine& engine_;
   Executor& executor_;
+  UploadLimits& uploads_;
   grpc::ByteBuffer* response_;
   grpc::ByteBuffer received_;
   uint64_t messages_read_ = 0;
@@ -189,7 +208,11 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
   bool replace_ = false;
   std::string name_;
   std::vector<core::StructureKind> warm_;
+  std::unique_ptr<UploadLimits::Slot> slot_;  // while an upload is in flight
   std::unique_ptr<core::SceneUpload> upload_;
+  std::atomic<bool> idle_{false};
+  // Last: it goes first, and waits for an idle cancellation in progress.
+  std::unique_ptr<UploadLimits::Watch> watch_;
 };
 
 }  // namespace

@@ -11,6 +11,7 @@
 #include "service/executor.h"
 #include "service/metrics.h"
 #include "service/stats.h"
+#include "service/upload_limits.h"
 #include "visq/v1/visq.grpc.pb.h"
 
 namespace visq::service {
@@ -23,6 +24,7 @@ struct ServiceContext {
   Metrics& metrics;
   const Authorizer& authorizer;
   CallRegistry& calls;          // in flight, for the end of the drain
+  UploadLimits& uploads;        // uploads in flight and their idle limit
   std::string server_id;
   std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
 };

@@ -1,8 +1,11 @@
 // Uploads that used to end the server: the real visq-server on loopback, a
 // LoadScene stream written by hand as a hostile client would, and the
 // server's health asked afterwards.
+#include <chrono>
 #include <cstring>
 #include <filesystem>
+#include <optional>
+#include <thread>
 
 #include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
@@ -186,6 +189,150 @@ TEST(HostileUploads, MainFileNeverSentIsInvalidArgumentNamingTheField) {
     ExpectNothingStored(repo.path(), "nomain");
   }
   EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
+// A LoadScene stream held open by the test: messages written as wire bytes,
+// the answer awaited for at most a given time, cancelled with the object.
+class OpenUpload {
+ public:
+  OpenUpload(const std::string& address, const std::vector<std::string>& messages)
+      : channel_(grpc::CreateChannel(address, grpc::InsecureChannelCredentials())), stub_(channel_) {
+    context_.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(60));
+    call_ = stub_.PrepareCall(&context_, "/visq.v1.VisibilityService/LoadScene", &queue_);
+    call_->StartCall(reinterpret_cast<void*>(1));
+    Next(std::chrono::seconds(10));
+    for (const std::string& message : messages) {
+      grpc::Slice slice(message.data(), message.size());
+      grpc::ByteBuffer buffer(&slice, 1);
+      call_->Write(buffer, reinterpret_cast<void*>(2));
+      if (!Next(std::chrono::seconds(10)).value_or(false)) break;
+    }
+    call_->Read(&response_, reinterpret_cast<void*>(3));
+  }
+  ~OpenUpload() {
+    context_.TryCancel();
+    if (!finishing_) {
+      call_->Finish(&status_, reinterpret_cast<void*>(4));
+    }
+    queue_.Shutdown();
+    void* tag;
+    bool ok;
+    while (queue_.Next(&tag, &ok)) {
+    }
+  }
+  // The call's status once the server has ended it within `wait`; nullopt
+  // while it is still open.
+  std::optional<grpc::Status> Ended(std::chrono::milliseconds wait) {
+    if (!read_done_) {
+      if (!Next(wait)) return std::nullopt;
+      read_done_ = true;
+    }
+    finishing_ = true;
+    call_->Finish(&status_, reinterpret_cast<void*>(4));
+    if (!Next(std::chrono::seconds(10))) return std::nullopt;
+    return status_;
+  }
+
+ private:
+  // The next completion's ok, or nullopt when none came within `wait`.
+  std::optional<bool> Next(std::chrono::milliseconds wait) {
+    void* tag = nullptr;
+    bool ok = false;
+    if (queue_.AsyncNext(&tag, &ok, std::chrono::system_clock::now() + wait) != grpc::CompletionQueue::GOT_EVENT)
+      return std::nullopt;
+    return ok;
+  }
+
+  std::shared_ptr<grpc::Channel> channel_;
+  grpc::GenericStub stub_;
+  grpc::ClientContext context_;
+  grpc::CompletionQueue queue_;
+  std::unique_ptr<grpc::GenericClientAsyncReaderWriter> call_;
+  grpc::ByteBuffer response_;
+  grpc::Status status_;
+  bool read_done_ = false;
+  bool finishing_ = false;
+};
+
+// The staging folders in the repository: one per upload in flight.
+int StagingFolders(const std::filesystem::path& repo) {
+  int count = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(repo))
+    count += entry.path().filename().string().rfind(".staging-", 0) == 0;
+  return count;
+}
+
+// Waits up to 5 s for the repository to hold `count` staging folders.
+bool WaitForStagingFolders(const std::filesystem::path& repo, int count) {
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (StagingFolders(repo) != count) {
+    if (std::chrono::steady_clock::now() > give_up) return false;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  return true;
+}
+
+// An upload that sends its header and a chunk, then nothing: it held its
+// stream, a descriptor and a staging folder for as long as its client
+// liked. Past --upload-idle-seconds it is aborted and its staging removed,
+// while the client still holds the stream open.
+TEST(HostileUploads, UploadThatSendsNothingIsAbortedAfterTheIdleLimit) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {"--upload-idle-seconds", "1"}});
+  ASSERT_NE(server, nullptr);
+
+  std::vector<std::string> messages = TriangleUploadMessages("idle");
+  messages.pop_back();  // header and t.bin; t.gltf never comes
+  const auto start = std::chrono::steady_clock::now();
+  OpenUpload upload(server->address(), messages);
+  ASSERT_TRUE(WaitForStagingFolders(repo.path(), 1)) << server->Log();
+  const std::optional<grpc::Status> status = upload.Ended(std::chrono::seconds(6));
+  ASSERT_TRUE(status.has_value()) << "the idle upload was still open after 6 s";
+  EXPECT_FALSE(status->ok());
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  EXPECT_GE(seconds, 0.9);
+  EXPECT_TRUE(WaitForStagingFolders(repo.path(), 0)) << "the aborted upload's staging folder stayed";
+  EXPECT_NE(server->Log().find("--upload-idle-seconds"), std::string::npos) << server->Log();
+
+  // An upload that keeps sending is not idle, however long it takes.
+  Client client(client::ClientOptions{.address = server->address()});
+  ASSERT_EQ(Upload(client, "busy", "t.gltf", TriangleFiles()).error_code(), grpc::StatusCode::OK);
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
+// Uploads left open count against --max-uploads-per-client and
+// --max-uploads-in-flight: the next one is RESOURCE_EXHAUSTED naming the
+// flag (it used to be accepted, until the server ran out of descriptors),
+// and a place freed is a place taken again.
+TEST(HostileUploads, UploadsBeyondTheCapsAreRefused) {
+  for (const std::string flag : {"--max-uploads-per-client", "--max-uploads-in-flight"}) {
+    SCOPED_TRACE(flag);
+    ScratchDir repo;
+    const std::string other =
+        flag == "--max-uploads-per-client" ? "--max-uploads-in-flight" : "--max-uploads-per-client";
+    auto server = ServerProcess::Start({repo.path(), {flag, "2", other, "100"}});
+    ASSERT_NE(server, nullptr);
+    Client client(client::ClientOptions{.address = server->address()});
+
+    std::vector<std::string> header = TriangleUploadMessages("held");
+    header.resize(1);
+    {
+      auto first = std::make_unique<OpenUpload>(server->address(), header);
+      OpenUpload second(server->address(), header);
+      ASSERT_TRUE(WaitForStagingFolders(repo.path(), 2)) << server->Log();
+      const grpc::Status refused = Upload(client, "third", "t.gltf", TriangleFiles());
+      EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << refused.error_message();
+      EXPECT_NE(refused.error_message().find(flag), std::string::npos) << refused.error_message();
+      EXPECT_FALSE(client.GetScene("third").ok());
+
+      first.reset();  // cancelled: its place is free again
+      ASSERT_TRUE(WaitForStagingFolders(repo.path(), 1)) << server->Log();
+      const grpc::Status accepted = Upload(client, "third", "t.gltf", TriangleFiles());
+      EXPECT_TRUE(accepted.ok()) << accepted.error_message();
+    }
+    EXPECT_TRUE(WaitForStagingFolders(repo.path(), 0)) << server->Log();
+    EXPECT_EQ(server->Stop(), 0) << server->Log();
+  }
 }
 
 // One chunk named "a.gltf/x" makes the main file "a.gltf" a folder: the

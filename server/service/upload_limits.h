@@ -1,0 +1,93 @@
+// What uploads may hold: how many are in flight at once (in all, and per
+// client), and how long one may send nothing before it is aborted. A client
+// that opens uploads and sends nothing would otherwise hold descriptors and
+// staging folders until the server runs out of them.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+
+#include "common/status.h"
+
+namespace visq::service {
+
+class UploadLimits {
+ public:
+  struct Options {
+    int max_in_flight = 64;    // --max-uploads-in-flight
+    int max_per_client = 8;    // --max-uploads-per-client
+    std::chrono::milliseconds idle{std::chrono::seconds(60)};  // --upload-idle-seconds
+  };
+
+  // A place among the uploads in flight, given back with the object.
+  class Slot {
+   public:
+    ~Slot();
+    Slot(const Slot&) = delete;
+    Slot& operator=(const Slot&) = delete;
+
+   private:
+    friend class UploadLimits;
+    Slot(UploadLimits& limits, std::string client) : limits_(limits), client_(std::move(client)) {}
+    UploadLimits& limits_;
+    std::string client_;
+  };
+
+  // A stream watched for idleness: `on_idle` runs once, on the watchdog's
+  // thread, when nothing was Touch()ed for the idle limit. The destructor
+  // waits for an `on_idle` in progress, so what it uses lives until then.
+  class Watch {
+   public:
+    ~Watch();
+    Watch(const Watch&) = delete;
+    Watch& operator=(const Watch&) = delete;
+    void Touch();
+    // The stream has ended: what follows (parsing, storing) is not idling.
+    void Stop();
+
+   private:
+    friend class UploadLimits;
+    struct Entry;
+    Watch(UploadLimits& limits, std::shared_ptr<Entry> entry) : limits_(limits), entry_(std::move(entry)) {}
+    UploadLimits& limits_;
+    std::shared_ptr<Entry> entry_;
+  };
+
+  explicit UploadLimits(Options options);
+  ~UploadLimits();  // every Slot and Watch goes first
+  UploadLimits(const UploadLimits&) = delete;
+  UploadLimits& operator=(const UploadLimits&) = delete;
+
+  const Options& options() const { return options_; }
+
+  // A place for an upload from `client` (its address, without the port);
+  // RESOURCE_EXHAUSTED naming the flag when either cap is reached.
+  [[nodiscard]] StatusOr<std::unique_ptr<Slot>> Acquire(const std::string& client);
+  std::unique_ptr<Watch> StartWatch(std::function<void()> on_idle);
+
+  // The client part of a gRPC peer string: "ipv4:10.0.0.7:51234" ->
+  // "ipv4:10.0.0.7", "ipv6:[::1]:5" -> "ipv6:[::1]"; others as they are.
+  static std::string ClientOfPeer(const std::string& peer);
+
+ private:
+  void Release(const std::string& client);
+  void WatchLoop();
+
+  const Options options_;
+  std::mutex mutex_;
+  int in_flight_ = 0;
+  std::map<std::string, int> per_client_;
+  std::map<Watch::Entry*, std::shared_ptr<Watch::Entry>> watched_;
+  std::condition_variable wake_;
+  bool stopping_ = false;
+  std::thread watchdog_;
+};
+
+}  // namespace visq::service
