@@ -233,7 +233,7 @@ bool LightTree::NearOccluderEdges(Scratch& s, const NearOccluder& n, const XPlan
   // each light triangle, so vertices decide.
   std::vector<EdgeLine> lines;
   lines.reserve(edges->size());
-  for (const auto& [a, b] : *edges) lines.push_back({a, b});
+  for (const auto& [a, b] : *edges) lines.emplace_back(a, b);
   const int inside = InsideSign(s, lines, *edges);
   if (inside == 0) return false;  // seen edge on
   for (EdgeLine& line : lines) {
@@ -523,7 +523,7 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
   const auto line_bit = [](size_t k) { return uint32_t{1} << k; };
   std::vector<EdgeLine>& lines = s.subtract_lines;
   lines.clear();
-  for (const auto& [a, b] : edges) lines.push_back({a, b});
+  for (const auto& [a, b] : edges) lines.emplace_back(a, b);
   // With no inner side, P sees the polygon edge on, and it hides no set
   // of lines of positive measure.
   const int inside = InsideSign(s, lines, edges);

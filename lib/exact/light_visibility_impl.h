@@ -566,6 +566,9 @@ struct LightTree {
   // light's own vertices, on every fragment that nothing has split yet. Both
   // routes are exact, so they agree on every sign.
   struct EdgeLine {
+    // Made in place (emplace_back): as an aggregate, each of a
+    // subtraction's lines was a zeroed 288-byte temporary, then copied.
+    EdgeLine(const XPoint* a_, const XPoint* b_) : a(a_), b(b_) {}
     const XPoint* a;
     const XPoint* b;
     bool has_plane = false;
