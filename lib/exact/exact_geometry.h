@@ -419,6 +419,11 @@ class Orient3dFan {
     return kUncertain;
   }
 
+  // n = (a - p) x (b - p) as rounded, and the magnitudes that bound its
+  // error (each component within 5.6e-16 of its magnitude, see Filter).
+  const glm::dvec3& Normal() const { return normal_; }
+  const glm::dvec3& Magnitude() const { return magnitude_; }
+
   VISQ_EXACT_INLINE int Side(const glm::dvec3& x) const {
     const glm::dvec3 w = x - p_;
     const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;

@@ -551,7 +551,15 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
     bool outside = false;
     uint32_t straddled = 0;
     for (size_t k = 0; k < lines.size(); ++k) {
-      const Straddle straddle = EdgeStraddle(s, f, lines[k]);
+      ReadyFan(s, lines[k]);
+      const int box_side = BoxLineSide(s, f, lines[k]);
+      Straddle straddle;
+      if (box_side != kUncertain) {
+        straddle.any_positive = box_side > 0;
+        straddle.any_negative = box_side < 0;
+      } else {
+        straddle = EdgeStraddle(s, f, lines[k]);
+      }
       const bool any_inside = inside > 0 ? straddle.any_positive : straddle.any_negative;
       const bool any_outside = inside > 0 ? straddle.any_negative : straddle.any_positive;
       if (!any_inside) {

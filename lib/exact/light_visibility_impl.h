@@ -601,6 +601,35 @@ struct LightTree {
     return LineSide(s, e, x);
   }
 
+  // The side that every vertex of f has against the edge line, when f's
+  // line box settles it (kUncertain otherwise): through P, the line's plane
+  // is a line in the chart of the LineBoxes, and a box wholly on one side
+  // of it, past the rounding of the fan's normal and of this evaluation,
+  // holds the images of f's vertices on that side. One test where
+  // EdgeStraddle takes one a vertex; exact as they are.
+  int BoxLineSide(const Scratch& s, Fragment& f, EdgeLine& e) const {
+    if (!e.fan || !HasLineBox(s, f)) return kUncertain;
+    const int k = light_axis, u = (k + 1) % 3, v = (k + 2) % 3;
+    const glm::dvec3& n = e.fan->Normal();
+    const glm::dvec3& m = e.fan->Magnitude();
+    const LineBox& b = f.box;
+    // h(g) = n[u] g[0] + n[v] g[1] + n[k]: n . d = d[k] h for a direction d
+    // whose image is g, and d[k] has the sign line_box_sign.
+    const double h_max = n[u] * (n[u] > 0 ? b.hi[0] : b.lo[0]) + n[v] * (n[v] > 0 ? b.hi[1] : b.lo[1]) + n[k];
+    const double h_min = n[u] * (n[u] > 0 ? b.lo[0] : b.hi[0]) + n[v] * (n[v] > 0 ? b.lo[1] : b.hi[1]) + n[k];
+    const double g0 = std::max(std::fabs(b.lo[0]), std::fabs(b.hi[0]));
+    const double g1 = std::max(std::fabs(b.lo[1]), std::fabs(b.hi[1]));
+    // The normal's error (5.6e-16 of m a component) and three roundings of
+    // the sum (of its absolute terms), with a factor of ten to spare.
+    const double scale = (m[u] + std::fabs(n[u])) * g0 + (m[v] + std::fabs(n[v])) * g1 + m[k] + std::fabs(n[k]);
+    if (!(scale > 1e-250) || !std::isfinite(scale)) return kUncertain;
+    const double margin = 1e-14 * scale;
+    // LineSide is -sign(n . d) = -line_box_sign * sign(h).
+    if (h_min > margin) return -s.line_box_sign;
+    if (h_max < -margin) return s.line_box_sign;
+    return kUncertain;
+  }
+
   // The sides of every fragment vertex. Returns false when every sign is zero
   // (P on the edge line, or a zero-area fragment).
   bool EdgeSides(Scratch& s, const Fragment& f, EdgeLine& e, std::vector<int>* signs) const;
