@@ -76,10 +76,18 @@ bool LightTree::OnPlaneByInputs(const XPoint& x, const XPlane& plane) {
       own[count++] = q;
     }
   }
+  // Whether x lies on the plane through P and the line (a, b): on the line
+  // itself first (exact 2D tests, which settle the shared coordinates of
+  // axis-aligned edges at once), then the exact test through P, which
+  // settles a zero only in GMP.
+  const auto on_plane = [&](const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& y) {
+    if (Orient2d(a, b, y, 0, 1) == 0 && Orient2d(a, b, y, 1, 2) == 0 && Orient2d(a, b, y, 2, 0) == 0) return true;
+    return Orient3d(p, a, b, y) == 0;
+  };
   // One of them is `plane` itself, through another edge on its line.
   for (int i = 0; i < count; ++i) {
     const glm::dvec3 &a = own[i]->points[1]->input, &b = own[i]->points[2]->input;
-    if (Orient3d(p, a, b, c->input) == 0 && Orient3d(p, a, b, d->input) == 0) return true;
+    if (on_plane(a, b, c->input) && on_plane(a, b, d->input)) return true;
   }
   // Two of them meet along the line from P through a vertex v of one that
   // lies on the other (an edge ending on another's line, as where a bar
@@ -91,8 +99,8 @@ bool LightTree::OnPlaneByInputs(const XPoint& x, const XPlane& plane) {
       for (int k = 1; k < 3; ++k) {
         const glm::dvec3& v = q->points[k]->input;
         if (v == p) continue;
-        if (Orient3d(p, r->points[1]->input, r->points[2]->input, v) != 0) continue;
-        if (Orient3d(p, c->input, d->input, v) == 0) return true;
+        if (!on_plane(r->points[1]->input, r->points[2]->input, v)) continue;
+        if (on_plane(c->input, d->input, v)) return true;
       }
     }
   }
