@@ -493,7 +493,11 @@ TEST(LightVisibilityTest, NearOccludersMatchEmbreeAndTheAllNearPath) {
   for (const Tri& t : Cloud(40, 61, 0.2)) tris.push_back(t);
   const Scene scene = MakeScene(tris);
   const AreaLight light = SquareLight(2.0, 0.7);
-  auto with_bounds = MakeTree(light, scene, Box({-2, -2, 0}, {2, 2, 0}));
+  // The BSP over the far occluders (every undecided point descends it),
+  // the default route (every point subtracts its far and near candidates
+  // itself), and all occluders near.
+  auto with_bounds = MakeTree(light, scene, Box({-2, -2, 0}, {2, 2, 0}), 0);
+  auto direct = MakeTree(light, scene, Box({-2, -2, 0}, {2, 2, 0}));
   auto all_near = MakeTree(light, scene, std::nullopt);
   EXPECT_GT(with_bounds->Stats().near_occluders, 20u);
   EXPECT_GT(with_bounds->Stats().far_occluders, 10u);
@@ -510,6 +514,7 @@ TEST(LightVisibilityTest, NearOccludersMatchEmbreeAndTheAllNearPath) {
   for (const auto& p : pts) {
     const uint32_t receiver = p.x - p.y > 0 ? 0u : 1u;
     exact.push_back(SameOnBoth(*with_bounds, *all_near, p).visible_area_fraction);
+    SameOnBoth(*direct, *all_near, p);
     for (int k = 0; k < kSamples; ++k) {
       const glm::dvec3 y(0.7 * (2 * u(rng) - 1), 0.7 * (2 * u(rng) - 1), 2.0);
       segs.push_back({p, y, receiver});
@@ -717,7 +722,11 @@ TEST(LightVisibilityTest, AlignedDegenerateGeometryAgreesAcrossPaths) {
   AddBox(tris, {-1.0, 0.5, 1.0}, {-0.5, 1.0, 1.0 + 1e-7});  // a sliver slab
   const Scene scene = MakeScene(tris);
   const AreaLight light = SquareLight(2.0);
-  auto tree = MakeTree(light, scene, Box({-1, -1, 0}, {1, 1, 0}));
+  // The BSP (every undecided point descends it) and the default route
+  // (every point subtracts its candidates, far ones whole and merged with
+  // their neighbours) over the same far occluders.
+  auto tree = MakeTree(light, scene, Box({-1, -1, 0}, {1, 1, 0}), 0);
+  auto direct = MakeTree(light, scene, Box({-1, -1, 0}, {1, 1, 0}));
   auto all_near = MakeTree(light, scene, std::nullopt);
   auto embree = raycast::EmbreeScene::Create(scene);
   ASSERT_TRUE(embree.ok());
@@ -726,9 +735,11 @@ TEST(LightVisibilityTest, AlignedDegenerateGeometryAgreesAcrossPaths) {
   for (int i = 0; i <= 8; ++i) {
     for (int j = 0; j <= 8; ++j) {
       const glm::dvec3 p(-1.0 + 0.25 * i, -1.0 + 0.25 * j, 0.0);
-      const PointVisibility a = Q(*tree, p), b = Q(*all_near, p);
+      const PointVisibility a = Q(*tree, p), b = Q(*all_near, p), c = Q(*direct, p);
       EXPECT_NEAR(a.visible_area_fraction, b.visible_area_fraction, 1e-12) << p.x << " " << p.y;
       EXPECT_NEAR(a.irradiance, b.irradiance, 1e-12) << p.x << " " << p.y;
+      EXPECT_NEAR(a.visible_area_fraction, c.visible_area_fraction, 1e-12) << p.x << " " << p.y;
+      EXPECT_NEAR(a.irradiance, c.irradiance, 1e-12) << p.x << " " << p.y;
       std::vector<raycast::Segment> segs;
       for (int k = 0; k < 2048; ++k) segs.push_back({p, {u(rng), u(rng), 2.0}});
       auto occ = embree->Occluded(segs);
@@ -739,6 +750,42 @@ TEST(LightVisibilityTest, AlignedDegenerateGeometryAgreesAcrossPaths) {
           << p.x << " " << p.y;
     }
   }
+}
+
+// A bar cut in two boxes joined end to end casts the shadow of the whole
+// bar: the halves' edges lie on the whole bar's edge lines (and the joint's
+// corners on them), which the query recognises by their input points
+// instead of evaluating exactly (OnPlaneByInputs). A crossbar meets the
+// bar's side at a T: its corners lie on the bar's edges. The BSP and the
+// default route (far occluders subtracted whole, merged with neighbours)
+// must give the one bar's answers.
+TEST(LightVisibilityTest, BoxesJoinedOnSharedEdgeLinesShadeAsOne) {
+  std::vector<Tri> one, joined;
+  AddBox(one, {-1.0, -0.05, 1.0}, {1.0, 0.05, 1.05});
+  AddBox(joined, {-1.0, -0.05, 1.0}, {0.25, 0.05, 1.05});
+  AddBox(joined, {0.25, -0.05, 1.0}, {1.0, 0.05, 1.05});
+  for (std::vector<Tri>* tris : {&one, &joined}) {
+    AddBox(*tris, {-0.03, 0.05, 1.0}, {0.03, 0.8, 1.05});
+    AddBox(*tris, {-0.6, -0.7, 1.2}, {0.9, -0.1, 1.25});  // a slab above, for fragments to cut
+  }
+  const AreaLight light = SquareLight(2.0, 0.7);
+  const Bounds receivers = Box({-1.5, -1.5, 0}, {1.5, 1.5, 0});
+  auto reference = MakeTree(light, MakeScene(one), receivers, 0);
+  auto joined_tree = MakeTree(light, MakeScene(joined), receivers, 0);
+  auto joined_direct = MakeTree(light, MakeScene(joined), receivers);
+  auto joined_near = MakeTree(light, MakeScene(joined), std::nullopt);
+  ASSERT_TRUE(reference && joined_tree && joined_direct && joined_near);
+  int penumbra = 0;
+  for (const glm::dvec3& p : FloorPoints(200, 31)) {
+    const PointVisibility r = Q(*reference, p);
+    for (LightVisibilityTree* t : {joined_tree.get(), joined_direct.get(), joined_near.get()}) {
+      const PointVisibility a = Q(*t, p);
+      EXPECT_NEAR(a.visible_area_fraction, r.visible_area_fraction, 1e-12) << p.x << " " << p.y;
+      EXPECT_NEAR(a.irradiance, r.irradiance, 1e-12) << p.x << " " << p.y;
+    }
+    penumbra += r.visible_area_fraction > 0.0 && r.visible_area_fraction < 1.0;
+  }
+  EXPECT_GT(penumbra, 50);
 }
 
 // The same world moved and scaled.
