@@ -292,6 +292,11 @@ TEST(HostileUploads, UploadThatSendsNothingIsAbortedAfterTheIdleLimit) {
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   EXPECT_GE(seconds, 0.9);
   EXPECT_TRUE(WaitForStagingFolders(repo.path(), 0)) << "the aborted upload's staging folder stayed";
+  // The client sees CANCELLED at once; the server's log line, which names
+  // the flag, follows the removal of the staging folder.
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (server->Log().find("--upload-idle-seconds") == std::string::npos && std::chrono::steady_clock::now() < give_up)
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
   EXPECT_NE(server->Log().find("--upload-idle-seconds"), std::string::npos) << server->Log();
 
   // An upload that keeps sending is not idle, however long it takes.
