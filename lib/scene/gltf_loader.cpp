@@ -500,12 +500,26 @@ class SceneBuilder {
     return absl::OkStatus();
   }
 
+  // A placement that shrinks its mesh below what float precision supports
+  // (kMinPlacementScale) is refused; one that flattens it to nothing (a
+  // zero scale, a hidden mesh) is kept: it is flattened, never instanced.
+  static Status CheckPlacementScale(const glm::dmat4& placed, const std::string& label) {
+    const double scale = PlacementScale(glm::dmat3(placed));
+    if (scale > 0.0 && scale < kMinPlacementScale)
+      return Invalid(absl::StrCat(label, ": scales its mesh by ", scale, ", below the ", kMinPlacementScale,
+                                  " that float precision supports"));
+    return absl::OkStatus();
+  }
+
   // Where a node's mesh is drawn: at the node, or once per instance of
   // EXT_mesh_gpu_instancing (instances are flattened like shared nodes, and
   // were counted before anything was built).
   StatusOr<std::vector<glm::dmat4>> MeshPlacements(const tinygltf::Node& node, int index, const glm::dmat4& world) {
     const InstanceAttributes attributes = InstanceAttributesOf(node);
-    if (!attributes.any()) return std::vector<glm::dmat4>{world};
+    if (!attributes.any()) {
+      VISQ_RETURN_IF_ERROR(CheckPlacementScale(world, absl::StrCat("nodes[", index, "]")));
+      return std::vector<glm::dmat4>{world};
+    }
     const std::string label = absl::StrCat("nodes[", index, "].extensions.EXT_mesh_gpu_instancing.attributes");
     struct Attribute {
       int accessor;
@@ -551,6 +565,7 @@ class SceneBuilder {
         for (int r = 0; r < 4; ++r)
           if (!std::isfinite(placed[c][r]))
             return Invalid(absl::StrCat(label, ": instance ", i, " has a non-finite transform"));
+      VISQ_RETURN_IF_ERROR(CheckPlacementScale(placed, absl::StrCat(label, ": instance ", i)));
       placements.push_back(placed);
     }
     return placements;

@@ -340,6 +340,63 @@ TEST(HostileUploads, UploadsBeyondTheCapsAreRefused) {
   }
 }
 
+// A triangle placed by node 0 with `node` (its JSON) and, when `scales` is
+// not empty, one EXT_mesh_gpu_instancing instance per scale.
+std::vector<std::pair<std::string, std::string>> PlacedTriangleFiles(const std::string& node,
+                                                                     const std::vector<float>& scales) {
+  std::string bin = TriangleFiles()[0].second;
+  for (float s : scales)
+    for (int k = 0; k < 3; ++k) bin.append(reinterpret_cast<const char*>(&s), sizeof(s));
+  const std::string instancing =
+      scales.empty() ? "" : R"(,"extensions":{"EXT_mesh_gpu_instancing":{"attributes":{"SCALE":2}}})";
+  std::string gltf = R"({"asset":{"version":"2.0"},"extensionsUsed":["EXT_mesh_gpu_instancing"],
+     "scenes":[{"nodes":[0]}],"scene":0,"nodes":[{"mesh":0)" + node + instancing + R"(}],
+     "meshes":[{"primitives":[{"attributes":{"POSITION":0},"indices":1}]}],
+     "buffers":[{"uri":"t.bin","byteLength":)" + std::to_string(bin.size()) + R"(}],
+     "bufferViews":[{"buffer":0,"byteOffset":0,"byteLength":36},{"buffer":0,"byteOffset":36,"byteLength":6},
+                    {"buffer":0,"byteOffset":44,"byteLength":)" + std::to_string(bin.size() - 44) + R"(}],
+     "accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]},
+                  {"bufferView":1,"componentType":5123,"count":3,"type":"SCALAR"})";
+  if (!scales.empty())
+    gltf += R"(,{"bufferView":2,"componentType":5126,"count":)" + std::to_string(scales.size()) + R"(,"type":"VEC3"})";
+  gltf += "]}";
+  return {{"t.bin", bin}, {"t.gltf", gltf}};
+}
+
+// Instances scaled by 1e-40 were accepted (their condition number is 1),
+// and a RAYCAST over them spun forever in Embree, whose float inverse of
+// the transform overflows. A placement that shrinks its mesh below 1e-15
+// is now refused, an instance's as a node's, naming which.
+TEST(HostileUploads, PlacementsScaledBelowFloatPrecisionAreRefused) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {}});
+  ASSERT_NE(server, nullptr);
+  Client client(client::ClientOptions{.address = server->address()});
+
+  grpc::Status status = Upload(client, "tiny_instances", "t.gltf", PlacedTriangleFiles("", {1.0f, 1e-40f}));
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+  EXPECT_NE(status.error_message().find(
+                "nodes[0].extensions.EXT_mesh_gpu_instancing.attributes: instance 1: scales its mesh by"),
+            std::string::npos)
+      << status.error_message();
+  status = Upload(client, "tiny_instances", "t.gltf", PlacedTriangleFiles("", {1.0f, 1e-16f}));
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+
+  status = Upload(client, "tiny_node", "t.gltf", PlacedTriangleFiles(R"(,"scale":[1e-40,1e-40,1e-40])", {}));
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+  EXPECT_NE(status.error_message().find("nodes[0]: scales its mesh by"), std::string::npos)
+      << status.error_message();
+  ExpectNothingStored(repo.path(), "tiny_instances");
+  ExpectNothingStored(repo.path(), "tiny_node");
+
+  // Small scales that float holds are kept.
+  status = Upload(client, "small_instances", "t.gltf", PlacedTriangleFiles("", {1.0f, 1e-6f}));
+  EXPECT_TRUE(status.ok()) << status.error_message();
+  status = Upload(client, "small_node", "t.gltf", PlacedTriangleFiles(R"(,"scale":[1e-9,1e-9,1e-9])", {}));
+  EXPECT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
 // One chunk named "a.gltf/x" makes the main file "a.gltf" a folder: the
 // loader read it through an ifstream, libstdc++ threw (EISDIR), nothing
 // caught it, and the server aborted.
