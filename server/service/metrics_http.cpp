@@ -121,7 +121,8 @@ std::optional<std::string> Answer(const std::string& in, const std::function<Ser
   }
   // The body is read (not left unread, which would reset the connection
   // under the answer) and ignored.
-  if (body_bytes > kMaxRequestBytes) return HttpResponse(413, "Payload Too Large", "text/plain", "");
+  if (body_bytes > kMaxRequestBytes || head_end + 4 + body_bytes > kMaxRequestBytes)
+    return HttpResponse(413, "Payload Too Large", "text/plain", "");
   if (in.size() < head_end + 4 + body_bytes) return std::nullopt;
   const std::vector<absl::string_view> request_line = absl::StrSplit(lines[0], ' ');
   if (request_line.size() == 3 && request_line[0] == "GET" &&
