@@ -56,7 +56,15 @@
 // decides those points with exact tests on input points alone: none can
 // block (visible), one blocks every segment to the light (hidden), or a
 // few that block the light's vertices leave nothing when subtracted
-// (hidden). Only the rest pay for fragments and the tree.
+// (hidden). Only the rest pay for fragments. By default they subtract their
+// candidates, far and near, from the light themselves
+// (TreeOptions::direct_candidates): the descent cuts a fragment along every
+// node line on its way down, however little of it the occluder below
+// hides, where the subtraction cuts it only along the shadow edges it
+// straddles, and on every scene the bench measured, cold or with a grown
+// tree, the descent cost more (a grille's window 2.4x; docs/
+// exact-method-notes.md, stop 50). The tree then keeps its root; a finite
+// direct_candidates grows and descends it as the paper does.
 //
 // Threads. Queries on one tree may run concurrently. A std::shared_mutex
 // guards the tree: queries descend under a shared lock; a query that reaches
