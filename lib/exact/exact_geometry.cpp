@@ -257,8 +257,30 @@ const ZV4& XPlane::Exact() const {
   return exact.Get([this]() -> ZV4 {
     ZV4 r;
     switch (kind) {
-      case Kind::kThroughPoints:
-        return Cross4(points[0]->Exact(), points[1]->Exact(), points[2]->Exact());
+      case Kind::kThroughPoints: {
+        const XPoint *p = points[0], *q = points[1], *s = points[2];
+        if (p->kind != XPoint::Kind::kInput || q->kind != XPoint::Kind::kInput || s->kind != XPoint::Kind::kInput) {
+          return Cross4(p->Exact(), q->Exact(), s->Exact());
+        }
+        // Three input points, as the interval is made (ThroughPoints): on
+        // one scale W (p = p' / W), n' = (q' - p') x (s' - p') and the
+        // coefficients (-W n', n' . p'), W^3 times the interval's (-n, n . p):
+        // 12 products where Cross4 of the points' own scales takes 36 and
+        // more, and a grille's crossings of nearly parallel edge planes make
+        // a few such planes exact each query (XPoint::Euclid).
+        std::array<mpz_class, 10> z;
+        ToCommonIntegers(std::array<double, 10>{p->input.x, p->input.y, p->input.z, q->input.x, q->input.y,
+                                                q->input.z, s->input.x, s->input.y, s->input.z, 1.0},
+                         &z);
+        const mpz_class u0 = z[3] - z[0], u1 = z[4] - z[1], u2 = z[5] - z[2];
+        const mpz_class v0 = z[6] - z[0], v1 = z[7] - z[1], v2 = z[8] - z[2];
+        const mpz_class n0 = u1 * v2 - u2 * v1, n1 = u2 * v0 - u0 * v2, n2 = u0 * v1 - u1 * v0;
+        r[0] = -(z[9] * n0);
+        r[1] = -(z[9] * n1);
+        r[2] = -(z[9] * n2);
+        r[3] = n0 * z[0] + n1 * z[1] + n2 * z[2];
+        return r;
+      }
       case Kind::kParallelThrough: {
         const ZV4& b = base->Exact();
         const ZV4& x = points[0]->Exact();
