@@ -1,5 +1,6 @@
 #include "visq/gpu/gpu_worker.h"
 
+#include <algorithm>
 #include <condition_variable>
 #include <deque>
 #include <future>
@@ -54,6 +55,9 @@ struct Job {
 // queries, which still get 8 of every 9 turns).
 constexpr int kOvertakesBeforeTheOldestRuns = 8;
 
+// How often a call waiting in the queue looks at its cancellation and deadline.
+constexpr std::chrono::milliseconds kQueuedStopCheck{20};
+
 }  // namespace
 
 class GpuWorker::Impl {
@@ -87,7 +91,22 @@ class GpuWorker::Impl {
     job->wants_result = true;
     job->timing = timing;
     auto result = job->done.get_future();
-    Enqueue(std::move(job));
+    const SteadyTime submitted = std::chrono::steady_clock::now();
+    const uint64_t sequence = Enqueue(std::move(job));
+    if (options.cancelled == nullptr && options.deadline == SteadyTime::max()) return result.get();
+    // A job still queued behind other calls' jobs is answered as soon as its
+    // call stops wanting it, not when the GL thread reaches it.
+    while (result.wait_for(kQueuedStopCheck) != std::future_status::ready) {
+      const bool cancelled = options.cancelled != nullptr && options.cancelled->load();
+      if (!cancelled && std::chrono::steady_clock::now() <= options.deadline) continue;
+      if (!Withdraw(options.priority, sequence)) continue;  // running: it asks StillWanted itself
+      if (timing) {
+        timing->queue_ms = MillisecondsSince(submitted);
+        timing->run_ms = 0.0;
+      }
+      return cancelled ? absl::CancelledError("cancelled while queued for the GPU")
+                       : absl::DeadlineExceededError("deadline passed while queued for the GPU");
+    }
     return result.get();
   }
 
@@ -108,14 +127,30 @@ class GpuWorker::Impl {
   DeviceInfo info;
 
  private:
-  void Enqueue(std::unique_ptr<Job> job) {
+  uint64_t Enqueue(std::unique_ptr<Job> job) {
+    uint64_t sequence = 0;
     {
       std::lock_guard lock(mutex_);
-      job->sequence = next_sequence_++;
+      sequence = job->sequence = next_sequence_++;
       job->submitted = std::chrono::steady_clock::now();
       queues_[job->priority].push_back(std::move(job));
     }
     wake_.notify_one();
+    return sequence;
+  }
+
+  // Takes a job that has not started out of the queue; false when the GL
+  // thread has taken it already.
+  bool Withdraw(int priority, uint64_t sequence) {
+    std::lock_guard lock(mutex_);
+    auto level = queues_.find(priority);
+    if (level == queues_.end()) return false;
+    auto& jobs = level->second;
+    auto it = std::find_if(jobs.begin(), jobs.end(), [&](const auto& job) { return job->sequence == sequence; });
+    if (it == jobs.end()) return false;
+    jobs.erase(it);
+    if (jobs.empty()) queues_.erase(level);
+    return true;
   }
 
   // Makes a context current on this thread (the first, or a replacement
