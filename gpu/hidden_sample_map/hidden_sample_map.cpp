@@ -22,6 +22,7 @@
 #include "scene_draw.h"
 #include "sampling/count_intervals.h"
 #include "shader_program.h"
+#include "timed_sizer.h"
 #include "visq/gpu/hidden_sample_map.h"
 #include "common/job_timing.h"
 #include "visq_gpu_hidden_sample_map_embedded.h"
@@ -126,7 +127,7 @@ std::vector<glm::vec4> ShaftPlanes(const std::vector<glm::dvec3>& points, double
 struct HiddenSampleMapper::BandSizes {
   std::mutex mutex;
   std::map<const GpuScene*, double> texel_passes;
-  std::map<const GpuScene*, int> piece_triangles;  // a draw piece's, at kPieceTargetMs
+  std::map<const GpuScene*, int> piece_triangles;  // a draw piece's, at a quarter of band_target_ms
 };
 
 HiddenSampleMapper::HiddenSampleMapper(GpuWorker& worker, HiddenSampleMapperOptions options)
@@ -381,86 +382,14 @@ void SetPassUniforms(const GlProgram& p, const MapFrames& f, const HiddenSampleM
   p.Set("u_decorrelation_amplitude", f.decorrelation_amplitude);
 }
 
-// Sizes a map's bands by their measured GL time (band_target_ms): each
-// band's rows double while a band takes under half the target and halve
-// while it takes over twice, unless halving did not make the band cheaper
-// by a quarter (the passes' fixed cost, a draw of the scene per pass,
-// dominates): then the larger size stays.
-class BandSizer {
- public:
-  BandSizer(double target_ms, int byte_limit_rows, int start_rows)
-      : target_ms_(target_ms), limit_(byte_limit_rows), rows_(std::clamp(start_rows, 1, byte_limit_rows)) {}
-  int rows() const { return rows_; }
-  // At the limit and measured under the target: nothing left to learn.
-  bool settled() const { return target_ms_ <= 0.0 || (rows_ >= limit_ && last_rows_ > 0 && last_ms_ < target_ms_); }
-  void Measured(int rows, double ms) {
-    if (target_ms_ <= 0.0) return;
-    int next = rows;
-    if (last_rows_ == 2 * rows && ms > 0.75 * last_ms_) {
-      next = last_rows_;  // halving did not help: the fixed cost dominates
-      floor_ = last_rows_;
-    } else if (ms < 0.5 * target_ms_) {
-      next = rows * 2;
-    } else if (ms > 2.0 * target_ms_ && rows / 2 >= floor_) {
-      next = rows / 2;
-    }
-    last_rows_ = rows;
-    last_ms_ = ms;
-    rows_ = std::clamp(next, std::max(1, floor_), limit_);
-  }
-
- private:
-  double target_ms_;
-  int limit_;
-  int rows_;
-  int floor_ = 1;
-  int last_rows_ = 0;
-  double last_ms_ = 0.0;
-};
-
-// A pass's draw in pieces of about `triangles` triangles each, in order; a
-// command longer than that is cut into runs of its triangles (indexed:
-// firstIndex moves 3 a triangle; arrays: first does). The bits are the
-// same, since every piece ORs its own. A draw of the whole scene (no
-// commands on the CPU) stays one piece.
-std::vector<ScenePartDraw> DrawPieces(const ScenePartDraw& draw, uint64_t triangles) {
-  const size_t stride = draw.indexed ? 5 : 4;
-  if (draw.everything || draw.triangles <= triangles) return {draw};
-  triangles = std::max<uint64_t>(triangles, 1);
-  std::vector<ScenePartDraw> pieces(1);
-  pieces.back().indexed = draw.indexed;
-  for (size_t c = 0; c + stride <= draw.commands.size(); c += stride) {
-    const uint32_t* command = draw.commands.data() + c;
-    const uint32_t command_triangles = command[0] / 3, instances = command[1];
-    for (uint32_t done = 0; done < command_triangles;) {
-      ScenePartDraw& piece = pieces.back();
-      const uint64_t room = triangles > piece.triangles ? triangles - piece.triangles : 0;
-      const uint64_t per_instance_room = std::max<uint64_t>(1, room / std::max<uint32_t>(instances, 1));
-      const uint32_t run = uint32_t(std::min<uint64_t>(command_triangles - done, per_instance_room));
-      piece.commands.insert(piece.commands.end(), command, command + stride);
-      uint32_t* copy = piece.commands.data() + piece.commands.size() - stride;
-      copy[0] = 3 * run;
-      copy[2] += 3 * done;  // firstIndex (indexed) or first vertex (arrays)
-      piece.triangles += uint64_t(run) * instances;
-      done += run;
-      if (piece.triangles >= triangles) {
-        pieces.emplace_back();
-        pieces.back().indexed = draw.indexed;
-      }
-    }
-  }
-  if (pieces.back().commands.empty()) pieces.pop_back();
-  return pieces;
-}
-
 // One band of receiver rows [first_row, first_row + rows), every pass, read
 // back into `readback` (target layers x band texels x uvec4). GL thread.
-// A pass is drawn in pieces sized by `pieces` (about kPieceTargetMs each,
+// A pass is drawn in pieces sized by `pieces` (a quarter of a band's target,
 // finished and timed), so that a stop reaches a band between pieces even
 // where one pass over the scene takes seconds (a CPU rasterizer).
 Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, const HiddenSampleMapRequest& request,
                 const ScenePartDraw& draw, const PassPlan& plan, int max_draw_buffers, int first_row, int rows,
-                const JobOptions& job, BandSizer& pieces, std::vector<uint32_t>& readback) {
+                const JobOptions& job, TimedSizer& pieces, std::vector<uint32_t>& readback) {
   const int width = request.receiver.width, height = request.receiver.height;
   VISQ_RETURN_IF_ERROR(EnsureTableOnGpu(table, plan.groups, job));
   GlTexture2DArray targets;
@@ -520,17 +449,7 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
     const GLuint zero[4] = {0, 0, 0, 0};
     for (int k = 0; k < attached; ++k) glClearBufferuiv(GL_COLOR, k, zero);
     glUseProgram(program->id());
-    const std::vector<ScenePartDraw> parts = DrawPieces(draw, uint64_t(pieces.rows()));
-    for (size_t k = 0; k < parts.size(); ++k) {
-      if (k > 0) VISQ_RETURN_IF_ERROR(StillWanted(job, "hidden-sample map: between draws"));
-      const auto piece_start = std::chrono::steady_clock::now();
-      VISQ_RETURN_IF_ERROR(DrawScenePart(*resources, parts[k]));
-      if (parts.size() > 1 || !pieces.settled()) {
-        glFinish();  // the piece's time, and the stop's chance
-        pieces.Measured(int(std::min<uint64_t>(parts[k].triangles, INT32_MAX)),
-                        MillisecondsSince(piece_start));
-      }
-    }
+    VISQ_RETURN_IF_ERROR(DrawInTimedPieces(scene, draw, pieces, job, "hidden-sample map: between draws"));
     VISQ_GL_CHECK("hidden-sample map pass");
   }
   glDisable(GL_COLOR_LOGIC_OP);
@@ -635,7 +554,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     const double texel_passes = known != band_sizes_->texel_passes.end() ? known->second : kFirstBandTexelPasses;
     start_rows = int(texel_passes / texel_passes_per_row);
   }
-  BandSizer sizer(options_.band_target_ms, plan.band_rows, start_rows);
+  TimedSizer sizer(options_.band_target_ms, plan.band_rows, start_rows);
   // Pieces of a pass: a quarter of a band's target each, from the scene's
   // last size; when none, about 2^20 triangle-texels (a triangle's
   // influence region can cover the band: on a CPU rasterizer a big
@@ -648,13 +567,13 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     if (known != band_sizes_->piece_triangles.end()) start_piece = known->second;
   }
   const int draw_triangles = int(std::clamp<uint64_t>(draw.triangles, 1, INT32_MAX));
-  BandSizer pieces(options_.band_target_ms > 0.0 ? options_.band_target_ms / 4.0 : 0.0, draw_triangles,
+  TimedSizer pieces(options_.band_target_ms > 0.0 ? options_.band_target_ms / 4.0 : 0.0, draw_triangles,
                    options_.band_target_ms > 0.0 ? start_piece : draw_triangles);
   std::vector<uint32_t> readback;
   HiddenSampleMapBand band;
   const int max_draw_buffers = state_->max_draw_buffers;
   for (int first_row = 0, rows = 0; first_row < height; first_row += rows) {
-    rows = std::min(sizer.rows(), height - first_row);
+    rows = std::min(sizer.size(), height - first_row);
     JobTiming band_timing;
     VISQ_RETURN_IF_ERROR(worker_->Run(job, [&]() -> Status {
       return DrawBand(scene, *table, frames, request, draw, plan, max_draw_buffers, first_row, rows, job, pieces,
@@ -674,8 +593,8 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
       band_sizes_->texel_passes.clear();
       band_sizes_->piece_triangles.clear();
     }
-    band_sizes_->texel_passes[&scene] = sizer.rows() * texel_passes_per_row;
-    band_sizes_->piece_triangles[&scene] = pieces.rows();
+    band_sizes_->texel_passes[&scene] = sizer.size() * texel_passes_per_row;
+    band_sizes_->piece_triangles[&scene] = pieces.size();
   }
   result.error.confidence = options.confidence;
   result.error.sampling = SamplingErrorBound(n, options.confidence);

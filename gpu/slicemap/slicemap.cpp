@@ -99,10 +99,10 @@ ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool 
   return defines;
 }
 
-// Draws the selected triangles.
-Status DrawTriangles(const GpuScene& scene, const ScenePartDraw& part) {
-  VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, scene.CurrentResources());
-  return DrawScenePart(*resources, part);
+// Draws the selected triangles, in pieces with the call asked between them
+// (a conservative pass over a large scene takes seconds on llvmpipe).
+Status DrawTriangles(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces, const JobOptions& job) {
+  return DrawInTimedPieces(scene, part, pieces, job, "voxelization: between draws");
 }
 
 // Copies one RGBA32UI target (128 slices of the pass), read back for the
@@ -161,7 +161,7 @@ void RestoreState() {
 // each column's depth range (one pass over the whole image).
 StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, const ViewSetup& view,
                                                          const PassConfig& config, const ScenePartDraw& part,
-                                                         bool draw_nothing,
+                                                         bool draw_nothing, TimedSizer& pieces,
                                                          uint32_t target_count, RawSlicemap& raw) {
   const auto setup_start = Clock::now();
   const bool conservative = config.rasterization == Rasterization::kConservative;
@@ -216,7 +216,7 @@ StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, 
     glEnable(GL_BLEND);
     glBlendEquation(GL_MIN);
     glUseProgram(program->id());
-    Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part);
+    Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part, pieces, config.job);
     glDisable(GL_BLEND);
     glBlendEquation(GL_FUNC_ADD);
     RestoreState();
@@ -258,6 +258,13 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       std::clamp<size_t>(config.max_columns_per_job / std::max<uint32_t>(config.width, 1), 1, config.height));
 
 
+  // Draw pieces of about piece_target_ms.
+  const int part_triangles = int(std::clamp<uint64_t>(part.triangles, 1, INT32_MAX));
+  TimedSizer pieces(config.piece_target_ms, part_triangles,
+                    config.piece_target_ms > 0.0
+                        ? FirstPieceTriangles(uint64_t{config.width} * band_rows, part_triangles)
+                        : part_triangles);
+
   GlStateAcrossJobs<SlicemapTargets> targets(worker);
   auto job = [&](const std::function<Status()>& body) -> Status {
     JobTiming timing;
@@ -268,7 +275,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   };
   VISQ_RETURN_IF_ERROR(job([&]() -> Status {
     VISQ_ASSIGN_OR_RETURN(std::shared_ptr<SlicemapTargets> made,
-                          CreateTargets(scene, view, config, part, draw_nothing, maps * max_targets_per_map, raw));
+                          CreateTargets(scene, view, config, part, draw_nothing, pieces, maps * max_targets_per_map,
+                                        raw));
     targets.Set(std::move(made));
     return absl::OkStatus();
   }));
@@ -312,7 +320,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     glUseProgram(program->id());
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
-    const Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part);
+    const Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part, pieces, config.job);
     glDisable(GL_COLOR_LOGIC_OP);
     RestoreState();
     VISQ_RETURN_IF_ERROR(drawn);

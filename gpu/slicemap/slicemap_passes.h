@@ -37,6 +37,9 @@ struct PassConfig {
   std::vector<TriangleRange> triangles;
   uint64_t max_bytes = kDefaultMaxSlicemapBytes;
   size_t max_columns_per_job = kDefaultSlicemapColumnsPerJob;
+  // A pass's draw is cut into pieces of about this long, the call asked
+  // between them. 0: one draw.
+  double piece_target_ms = 25.0;
   JobOptions job;
 };
 

@@ -268,6 +268,11 @@ ScenePartDraw GpuScene::Whole() const {
   return part;
 }
 
+ScenePartDraw GpuScene::WholeAsCommands() const {
+  const std::pair<uint32_t, uint32_t> everything{0, triangle_count_};
+  return TriangleRanges({&everything, 1});
+}
+
 ScenePartDraw GpuScene::ClustersInside(std::span<const glm::vec4> planes) const {
   ScenePartDraw part;
   part.indexed = true;

@@ -5,12 +5,31 @@
 // are bound.
 #pragma once
 
+#include <cstdint>
+#include <string_view>
+#include <vector>
+
 #include "common/status.h"
 #include "gpu_scene_resources.h"
+#include "timed_sizer.h"
+#include "visq/gpu/gpu_worker.h"
 
 namespace visq::gpu {
 
 [[nodiscard]] Status DrawScenePart(const GpuScene::Resources& resources, const ScenePartDraw& part);
+// `draw` in pieces of about `triangles` triangles each, in order; a command
+// longer than that is cut into runs of its triangles (indexed: firstIndex
+// moves 3 a triangle; arrays: first does), so drawing the pieces one after
+// the other draws what `draw` does, in the same order. A draw of the whole
+// scene (no commands on the CPU) stays one piece. No GL calls.
+std::vector<ScenePartDraw> DrawPieces(const ScenePartDraw& draw, uint64_t triangles);
+// Draws `part` of `scene` in pieces sized by `pieces`, each finished and
+// timed while the sizer still learns, and asks `job` between pieces
+// (StillWanted, naming `where`): a stop reaches a draw that takes seconds on
+// a CPU rasterizer within about one piece. For draws whose pieces combine
+// as one draw would (OR logic ops, depth-tested targets).
+[[nodiscard]] Status DrawInTimedPieces(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces,
+                                       const JobOptions& job, std::string_view where);
 // Every triangle once, in the scene's order (GpuScene::Whole()).
 [[nodiscard]] Status DrawWholeScene(const GpuScene::Resources& resources);
 

@@ -566,7 +566,8 @@ void UnbindAll() {
 }
 
 // 1. Shadow map.
-Status DrawShadowMap(const GpuScene::Resources& res, const VolumetricTargets& t, const Setup& setup) {
+Status DrawShadowMap(const GpuScene& scene, const VolumetricTargets& t, const Setup& setup, TimedSizer& pieces,
+                     const JobOptions& job) {
   const glm::mat4 clip(setup.light_clip);
   const GLsizei n = GLsizei(setup.map_size);
   glBindFramebuffer(GL_FRAMEBUFFER, t.shadow_fb.id());
@@ -579,7 +580,7 @@ Status DrawShadowMap(const GpuScene::Resources& res, const VolumetricTargets& t,
   glClearBufferfv(GL_DEPTH, 0, &one);
   glUseProgram(t.shadow->id());
   glProgramUniformMatrix4fv(t.shadow->id(), t.shadow->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
-  const Status drawn = DrawWholeScene(res);
+  const Status drawn = DrawInTimedPieces(scene, scene.Whole(), pieces, job, "volumetric shadows: shadow map");
   glDisable(GL_DEPTH_TEST);
   UnbindAll();
   VISQ_RETURN_IF_ERROR(drawn);
@@ -589,7 +590,8 @@ Status DrawShadowMap(const GpuScene::Resources& res, const VolumetricTargets& t,
 }
 
 // 2. Camera distances, normals, colors.
-Status DrawCameraPass(const GpuScene::Resources& res, const VolumetricTargets& t, const Setup& setup) {
+Status DrawCameraPass(const GpuScene& scene, const GpuScene::Resources& res, const VolumetricTargets& t,
+                      const Setup& setup, TimedSizer& pieces, const JobOptions& job) {
   const glm::mat4 clip(setup.camera_clip);
   glBindFramebuffer(GL_FRAMEBUFFER, t.camera_fb.id());
   glViewport(0, 0, GLsizei(setup.width), GLsizei(setup.height));
@@ -610,7 +612,7 @@ Status DrawCameraPass(const GpuScene::Resources& res, const VolumetricTargets& t
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, res.positions.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, res.triangle_materials.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, t.albedo_buffer.id());
-  const Status drawn = DrawWholeScene(res);
+  const Status drawn = DrawInTimedPieces(scene, scene.Whole(), pieces, job, "volumetric shadows: camera pass");
   glDisable(GL_DEPTH_TEST);
   UnbindAll();
   VISQ_RETURN_IF_ERROR(drawn);
@@ -831,11 +833,21 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
     targets.Set(std::move(made));
     return absl::OkStatus();
   }));
-  VISQ_RETURN_IF_ERROR(stage(ms.shadow_map_ms, [&](const GpuScene::Resources& res, const VolumetricTargets& t) {
-    return DrawShadowMap(res, t, setup);
+  // The two draws of the scene in pieces of about piece_target_ms (each
+  // pass learns its own: the shadow map and the camera image differ).
+  const int scene_triangles = int(std::clamp<uint64_t>(gpu_scene.triangle_count(), 1, INT32_MAX));
+  const bool cut = params.piece_target_ms > 0.0;
+  TimedSizer shadow_pieces(params.piece_target_ms, scene_triangles,
+                           cut ? FirstPieceTriangles(uint64_t{setup.map_size} * setup.map_size, scene_triangles)
+                               : scene_triangles);
+  TimedSizer camera_pieces(params.piece_target_ms, scene_triangles,
+                           cut ? FirstPieceTriangles(uint64_t{setup.width} * setup.height, scene_triangles)
+                               : scene_triangles);
+  VISQ_RETURN_IF_ERROR(stage(ms.shadow_map_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
+    return DrawShadowMap(gpu_scene, t, setup, shadow_pieces, params.job);
   }));
   VISQ_RETURN_IF_ERROR(stage(ms.camera_ms, [&](const GpuScene::Resources& res, const VolumetricTargets& t) {
-    return DrawCameraPass(res, t, setup);
+    return DrawCameraPass(gpu_scene, res, t, setup, camera_pieces, params.job);
   }));
   VISQ_RETURN_IF_ERROR(stage(ms.rectification_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
     return Rectify(t, setup, params.light);
@@ -870,17 +882,25 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
   const glm::vec3 color(params.light.color);
   std::vector<glm::vec4> pixels;
   VolumetricBand band;
-  const uint32_t band_rows = TraversalBandRows(setup.width, params.max_pixels_per_job);
-  for (uint32_t first_row = 0; first_row < setup.height; first_row += band_rows) {
-    const uint32_t rows = std::min(band_rows, setup.height - first_row);
-    double readback_ms = 0.0;
+  // Bands of 8-row groups: at most max_pixels_per_job (memory), sized by
+  // their measured time to about 4 x piece_target_ms (ray marching a large
+  // image takes seconds on llvmpipe), from one group.
+  const uint32_t most_groups = TraversalBandRows(setup.width, params.max_pixels_per_job) / 8;
+  TimedSizer band_groups(4.0 * params.piece_target_ms, int(most_groups),
+                         params.piece_target_ms > 0.0 ? 1 : int(most_groups));
+  for (uint32_t first_row = 0, rows = 0; first_row < setup.height; first_row += rows) {
+    rows = std::min(8 * uint32_t(band_groups.size()), setup.height - first_row);
+    double readback_ms = 0.0, integrate_ms = 0.0;
     VISQ_RETURN_IF_ERROR(stage(ms.traversal_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
+      const auto integrate_start = Clock::now();
       VISQ_RETURN_IF_ERROR(IntegrateRows(t, setup, params, first_row, rows));
+      integrate_ms = MillisecondsSince(integrate_start);
       const auto readback_start = Clock::now();
       const Status read = ReadRows(t, setup, first_row, rows, pixels);
       readback_ms = MillisecondsSince(readback_start);
       return read;
     }));
+    band_groups.Measured(int((rows + 7) / 8), integrate_ms);
     ms.traversal_ms -= readback_ms;  // the job held both
     ms.readback_ms += readback_ms;
     band.first_pixel = size_t{first_row} * setup.width;

@@ -425,7 +425,8 @@ TEST_F(HostileInputTest, VoxelGridsAreSentABandAtATime) {
 }
 
 // Item 12, for volumetric images: a 1024 x 512 image goes out in bands of
-// 256 rows as the traversal makes them; figures first, the timing last.
+// at most 256 rows (the band's memory) as the traversal makes them; figures
+// first, the timing last.
 TEST_F(HostileInputTest, VolumetricImagesAreSentABandAtATime) {
   v1::VolumetricShadowRequest request;
   request.mutable_scene()->set_name("cornell_box_visq");
@@ -454,12 +455,15 @@ TEST_F(HostileInputTest, VolumetricImagesAreSentABandAtATime) {
   for (const v1::VolumetricShadowResponse& m : messages) {
     if (m.inscattering_size() == 0) continue;
     EXPECT_EQ(m.offset(), next);
-    EXPECT_EQ(m.inscattering_size(), 1024 * 256 * 3) << "one band of 256 rows";
+    // Bands of whole rows, sized by their time, never past the 256 rows
+    // that the band's memory allows.
+    EXPECT_EQ(m.inscattering_size() % (1024 * 3), 0) << "whole rows";
+    EXPECT_LE(m.inscattering_size(), 1024 * 256 * 3) << "at most one band of 256 rows";
     next += m.inscattering_size();
     ++chunks;
   }
   EXPECT_EQ(next, 1024u * 512u * 3u);
-  EXPECT_EQ(chunks, 2);
+  EXPECT_GE(chunks, 2);
   auto image = client_->VolumetricShadow(request);
   ASSERT_TRUE(image.ok()) << image.status();
   EXPECT_EQ(image->inscattering.size(), 1024u * 512u * 3u);

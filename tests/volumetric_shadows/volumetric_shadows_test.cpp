@@ -683,8 +683,18 @@ TEST(VolumetricShadowsTest, BandsOfRowsGiveTheImageOfOnePass) {
   ASSERT_TRUE(gpu_scene);
   for (VolumetricMethod method : {VolumetricMethod::kMinMaxTraversal, VolumetricMethod::kRayMarching}) {
     params.method = method;
+    // Bands sized by their measured time (the default): whatever sizes they
+    // take, the image is that of one pass.
+    params.piece_target_ms = 0.001;
+    params.max_pixels_per_job = 80 * 64;
+    const VolumetricResult timed = Render(*gpu_scene, scene, params);
+    EXPECT_GT(timed.gl_jobs, 5u + 1u) << "bands of a microsecond's target stay one group of 8 rows";
+    // Bands of max_pixels_per_job only, to count them.
+    params.piece_target_ms = 0.0;
     params.max_pixels_per_job = 80 * 64;  // whole 8-row groups: one band of 64 rows
     const VolumetricResult whole = Render(*gpu_scene, scene, params);
+    EXPECT_EQ(timed.inscattering, whole.inscattering);
+    EXPECT_EQ(timed.combined, whole.combined);
     params.max_pixels_per_job = 80 * 16;  // bands of 16 rows: 16, 16, 16, 12
     const VolumetricResult banded = Render(*gpu_scene, scene, params);
     ASSERT_GT(MaxOf(whole.inscattering), 0.0);

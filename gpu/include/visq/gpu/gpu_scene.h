@@ -58,6 +58,8 @@ class GpuScene {
 
   // Every triangle once, in the scene's order.
   ScenePartDraw Whole() const;
+  // The same draw as commands on the CPU, which a draw cut into pieces needs.
+  ScenePartDraw WholeAsCommands() const;
   // The clusters (TriangleClusters) of every part, unplaced triangles and
   // each placement, not wholly outside one of `planes` ((n, w) in
   // anchor-relative space, inside where n . x + w >= 0): they hold every

@@ -181,6 +181,10 @@ struct VolumetricParams {
   // of at most this many pixels (rounded to whole 8-row groups): other
   // queries get the GL thread between them. The image is that of one pass.
   uint32_t max_pixels_per_job = 1u << 18;
+  // The scene's draws are cut into pieces of about this long, and the
+  // traversal's bands sized to about four of them, the call asked between
+  // them. 0: whole draws, bands of max_pixels_per_job.
+  double piece_target_ms = 25.0;
   JobOptions job;
 };
 
