@@ -12,6 +12,8 @@
 #include "gpu_scene_resources.h"
 #include "scene_draw.h"
 #include "shader_program.h"
+#include "timed_sizer.h"
+#include "common/job_timing.h"
 #include "visq_gpu_obscurance_embedded.h"
 
 namespace visq::gpu {
@@ -130,16 +132,45 @@ DirectionFrame FrameOf(const obscurance::BundleDirection& d, const glm::dvec3& c
   return DirectionFrame{glm::mat4(m), static_cast<float>(2.0 * R)};
 }
 
-// One direction: peel until a layer is empty, transferring between each
-// pair of consecutive layers as soon as the second is drawn.
-Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFrame& frame, uint32_t bundle,
-                     const ObscuranceAtlas& atlas, const ObscuranceParams& params, const glm::vec3& unoccluded,
-                     uint32_t max_layers, uint32_t* layers) {
+// Where a direction's peeling stands between GL jobs: the layer being drawn
+// and how much of its draw is done. A direction is peeled in GL jobs of
+// about a step's target, each drawing whole layers or pieces of one, so
+// that a call's stop, and other calls' jobs, get the GL thread between them
+// even where one layer over a large scene takes seconds (a CPU rasterizer).
+struct DirectionPeel {
+  uint32_t layer = 0;
+  std::vector<ScenePartDraw> pieces;  // the layer's draw, cut when it began
+  size_t next_piece = 0;
+  bool any_sample = false;  // a fragment of the layer passed, so far
+  bool done = false;
+};
+
+// The draw of layer k in pieces of about `triangles` each: the whole scene
+// from its resident commands when one piece holds it.
+std::vector<ScenePartDraw> LayerPieces(const GpuScene& gpu_scene, const ScenePartDraw& whole_commands,
+                                       int triangles) {
+  if (uint64_t(triangles) >= whole_commands.triangles) return {gpu_scene.Whole()};
+  return DrawPieces(whole_commands, uint64_t(triangles));
+}
+
+// Peels one direction on from `peel` until it is done or this job has run
+// for `step_ms` (then the next job resumes it): each layer's fragments
+// strictly behind the last layer's, a transfer between each pair of
+// consecutive layers as soon as the second is drawn, and the direction's
+// counts squared once a layer is empty. GL thread.
+Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& whole_commands,
+                const DirectionFrame& frame, uint32_t bundle, const ObscuranceAtlas& atlas,
+                const ObscuranceParams& params, const glm::vec3& unoccluded, uint32_t max_layers,
+                const JobOptions& job, double step_ms, TimedSizer& pieces, DirectionPeel& peel) {
+  const auto job_start = std::chrono::steady_clock::now();
   VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* scene_resources, gpu_scene.CurrentResources());
   const GpuScene::Resources& res = *scene_resources;
+  // Other calls' jobs ran since the last step: every binding and uniform
+  // is set again (the programs are the worker's, shared with other bakes).
   glViewport(0, 0, static_cast<GLsizei>(bundle), static_cast<GLsizei>(bundle));
   glDisable(GL_CULL_FACE);
   glDisable(GL_BLEND);
+  glDisable(GL_COLOR_LOGIC_OP);
   glEnable(GL_DEPTH_TEST);
   glDepthFunc(GL_LESS);
   glDepthMask(GL_TRUE);
@@ -152,10 +183,10 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 5, s.direction_counts.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 6, s.count_squares_sums.id());
 
-  const GLuint peel = s.peel->id(), transfer = s.transfer->id();
-  glProgramUniformMatrix4fv(peel, s.peel->Uniform("u_clip_from_scene"), 1, GL_FALSE,
+  const GLuint peel_program = s.peel->id(), transfer = s.transfer->id();
+  glProgramUniformMatrix4fv(peel_program, s.peel->Uniform("u_clip_from_scene"), 1, GL_FALSE,
                             &frame.clip_from_scene[0][0]);
-  glProgramUniform2ui(peel, s.peel->Uniform("u_atlas_size"), atlas.width, atlas.height);
+  glProgramUniform2ui(peel_program, s.peel->Uniform("u_atlas_size"), atlas.width, atlas.height);
   const GLint first_loc = s.peel->Uniform("u_first");
   glProgramUniform1ui(transfer, s.transfer->Uniform("u_size"), bundle);
   glProgramUniform1ui(transfer, s.transfer->Uniform("u_texel_count"), atlas.texel_count());
@@ -166,25 +197,44 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
   const GLint has_a_loc = s.transfer->Uniform("u_has_a");
   const GLint has_b_loc = s.transfer->Uniform("u_has_b");
   const GLuint groups = (bundle + 7) / 8;
+  auto step_spent = [&] { return MillisecondsSince(job_start) >= step_ms; };
 
   const GLuint clear_layer[4] = {0, 0, 0, 0};
   const GLfloat clear_depth = 1.0f;
-  uint32_t k = 0;
-  for (;; ++k) {
+  while (!peel.done) {
+    const uint32_t k = peel.layer;
     const int cur = static_cast<int>(k % 2), prev = 1 - cur;
-    // Layer k: fragments strictly behind layer k - 1.
+    // Layer k: fragments strictly behind layer k - 1, drawn piece by piece
+    // into the same targets (the depth test orders them as one draw would).
+    if (peel.next_piece == 0) {
+      peel.pieces = LayerPieces(gpu_scene, whole_commands, pieces.size());
+      peel.any_sample = false;
+      glClearNamedFramebufferuiv(s.framebuffer[cur].id(), GL_COLOR, 0, clear_layer);
+      glClearNamedFramebufferfv(s.framebuffer[cur].id(), GL_DEPTH, 0, &clear_depth);
+    }
     glBindFramebuffer(GL_FRAMEBUFFER, s.framebuffer[cur].id());
-    glClearNamedFramebufferuiv(s.framebuffer[cur].id(), GL_COLOR, 0, clear_layer);
-    glClearNamedFramebufferfv(s.framebuffer[cur].id(), GL_DEPTH, 0, &clear_depth);
-    glUseProgram(peel);
-    glProgramUniform1i(peel, first_loc, k == 0 ? 1 : 0);
+    glUseProgram(peel_program);
+    glProgramUniform1i(peel_program, first_loc, k == 0 ? 1 : 0);
     glBindTextureUnit(0, s.depth[prev].id());
-    glBeginQuery(GL_ANY_SAMPLES_PASSED, s.any_samples.id());
-    const Status drawn = DrawWholeScene(res);
-    glEndQuery(GL_ANY_SAMPLES_PASSED);
-    VISQ_RETURN_IF_ERROR(drawn);
-    GLuint any = 0;
-    glGetQueryObjectuiv(s.any_samples.id(), GL_QUERY_RESULT, &any);
+    while (peel.next_piece < peel.pieces.size()) {
+      const ScenePartDraw& piece = peel.pieces[peel.next_piece];
+      const auto piece_start = std::chrono::steady_clock::now();
+      glBeginQuery(GL_ANY_SAMPLES_PASSED, s.any_samples.id());
+      const Status drawn = DrawScenePart(res, piece);
+      glEndQuery(GL_ANY_SAMPLES_PASSED);
+      VISQ_RETURN_IF_ERROR(drawn);
+      GLuint any = 0;
+      glGetQueryObjectuiv(s.any_samples.id(), GL_QUERY_RESULT, &any);  // waits: the piece's time
+      peel.any_sample = peel.any_sample || any != 0;
+      ++peel.next_piece;
+      if (peel.pieces.size() > 1 || !pieces.settled())
+        pieces.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(piece_start));
+      if (peel.next_piece < peel.pieces.size()) {
+        VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between draws of a layer"));
+        if (step_spent()) return absl::OkStatus();
+      }
+    }
+    const bool any = peel.any_sample;
     const bool last_guard = k + 1 >= max_layers;
     // Transfer between layer k - 1 (A) and layer k (B, none if empty).
     glMemoryBarrier(GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
@@ -198,8 +248,11 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
     glBindTextureUnit(3, s.depth[cur].id());
     if (k > 0 || any) glDispatchCompute(groups, groups, 1);
     glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT | GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
-    if (!any) break;
-    if (last_guard) {
+    peel.next_piece = 0;
+    peel.pieces.clear();
+    if (!any) {
+      peel.done = true;
+    } else if (last_guard) {
       // The back faces of the last kept layer see nothing: transfer to "none".
       glProgramUniform1i(transfer, has_a_loc, 1);
       glProgramUniform1i(transfer, has_b_loc, 0);
@@ -207,22 +260,28 @@ Status BakeDirection(BakeState& s, const GpuScene& gpu_scene, const DirectionFra
       glBindTextureUnit(1, s.depth[cur].id());
       glDispatchCompute(groups, groups, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
-      ++k;
-      break;
+      peel.layer = k + 1;
+      peel.done = true;
+    } else {
+      peel.layer = k + 1;
+      VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between layers"));
+      if (step_spent()) break;
     }
   }
-  // The direction's counts: squared into their sums, then cleared.
-  const uint32_t elements = atlas.texel_count() + gpu_scene.triangle_count();
-  constexpr uint32_t kRowGroups = 32768;  // groups of 64 per row of the dispatch
-  const uint32_t element_groups = (elements + 63) / 64;
-  glUseProgram(s.count_squares->id());
-  glProgramUniform1ui(s.count_squares->id(), s.count_squares->Uniform("u_element_count"), elements);
-  glDispatchCompute(std::min(element_groups, kRowGroups), (element_groups + kRowGroups - 1) / kRowGroups, 1);
-  glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+  if (peel.done) {
+    // The direction's counts: squared into their sums, then cleared.
+    const uint32_t elements = atlas.texel_count() + gpu_scene.triangle_count();
+    constexpr uint32_t kRowGroups = 32768;  // groups of 64 per row of the dispatch
+    const uint32_t element_groups = (elements + 63) / 64;
+    glUseProgram(s.count_squares->id());
+    glProgramUniform1ui(s.count_squares->id(), s.count_squares->Uniform("u_element_count"), elements);
+    glDispatchCompute(std::min(element_groups, kRowGroups), (element_groups + kRowGroups - 1) / kRowGroups, 1);
+    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+  }
   for (int unit = 0; unit < 4; ++unit) glBindTextureUnit(unit, 0);
+  glBindFramebuffer(GL_FRAMEBUFFER, 0);
   glBindVertexArray(0);
   glUseProgram(0);
-  *layers = k;
   VISQ_GL_CHECK("obscurance bake direction");
   return absl::OkStatus();
 }
@@ -257,6 +316,16 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
   JobOptions job{options.priority, options.deadline, options.cancelled};
   VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() { return CreateState(*state, scene, atlas, channels, bundle); }));
 
+  // Steps of about step_target_ms, in draw pieces of a quarter of it, sized
+  // by their measured time (one sizer for the whole bake: every direction
+  // draws the same scene into the same bundle).
+  const double step_ms = options.step_target_ms > 0.0 ? options.step_target_ms : 1e300;
+  const ScenePartDraw whole_commands = gpu_scene.WholeAsCommands();
+  const int all_triangles = int(std::clamp<uint64_t>(whole_commands.triangles, 1, INT32_MAX));
+  TimedSizer pieces(options.step_target_ms / 4.0, all_triangles,
+                    options.step_target_ms > 0.0 ? FirstPieceTriangles(uint64_t{bundle} * bundle, all_triangles)
+                                                 : all_triangles);
+
   ObscuranceBakeStats local;
   local.bundle_resolution = bundle;
   const double kStart = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -266,10 +335,14 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
                                                " directions"));
     const uint32_t index = params.first_direction + i;
     const DirectionFrame frame = FrameOf(obscurance::DirectionOfSequence(params.seed, index), center, radius, bundle);
-    uint32_t layers = 0;
-    VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() {
-      return BakeDirection(*state, gpu_scene, frame, bundle, atlas, params, unoccluded, options.max_layers, &layers);
-    }));
+    DirectionPeel peel;
+    while (!peel.done) {
+      VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() {
+        return PeelSome(*state, gpu_scene, whole_commands, frame, bundle, atlas, params, unoccluded,
+                        options.max_layers, job, step_ms, pieces, peel);
+      }));
+    }
+    const uint32_t layers = peel.layer;
     local.layers += layers;
     local.max_layers = std::max(local.max_layers, layers);
     if (layers >= options.max_layers) ++local.truncated_directions;

@@ -455,3 +455,94 @@ TEST(Deadline, ALongMapStopsWithinASecondOfItsDeadline) {
 
 }  // namespace
 }  // namespace visq::testing
+
+namespace visq::testing {
+namespace {
+
+// How long the server took to end its `nth` call of `method` that stopped
+// (its log's "[rN method] CANCELLED / DEADLINE_EXCEEDED in X ms"), waiting
+// up to 10 s for the line; -1 when none came.
+double ServerEndOfCall(ServerProcess& server, const std::string& method, int nth) {
+  const std::regex ended("\\[r[0-9]+ " + method + "\\] (CANCELLED|DEADLINE_EXCEEDED) in ([0-9.]+) ms");
+  for (int i = 0; i < 100; ++i) {
+    const std::string log = server.Log();
+    int seen = 0;
+    for (auto it = std::sregex_iterator(log.begin(), log.end(), ended); it != std::sregex_iterator(); ++it)
+      if (++seen == nth) return std::stod((*it)[2].str());
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  return -1.0;
+}
+
+// Every long call stops within a second of its deadline, not at the end of
+// its GL job: a conservative voxelization, a ray-marched volumetric shadow
+// and a depth-peeling bake of Sponza, each far longer than 2 s on llvmpipe
+// (a layer or a pass over the scene alone takes seconds there, so they are
+// drawn in pieces of a few tens of ms). A GPU may finish one in time: then
+// there is nothing to stop.
+TEST(Deadline, EveryLongCallStopsWithinASecondOfItsDeadline) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {}});
+  ASSERT_NE(server, nullptr);
+  {
+    Client uploader({.address = server->address()});
+    auto info = uploader.UploadScene(scenes / "sponza_dabrovic/sponza.gltf", "sponza");
+    ASSERT_TRUE(info.ok()) << info.status();
+  }
+  Client client({.address = server->address(), .deadline = std::chrono::seconds(2),
+                 .stream_deadline = std::chrono::seconds(2)});
+
+  v1::VoxelizeRequest voxelize;
+  voxelize.mutable_scene()->set_name("sponza");
+  voxelize.set_width(2048);
+  voxelize.set_height(2048);
+  voxelize.set_slices(1024);
+  voxelize.set_conservative(true);
+
+  v1::VolumetricShadowRequest volumetric;
+  volumetric.mutable_scene()->set_name("sponza");
+  Set(volumetric.mutable_camera_position(), -10, 2, 0);
+  Set(volumetric.mutable_camera_forward(), 1, 0, 0);
+  volumetric.set_vertical_fov_deg(60);
+  volumetric.set_width(1920);
+  volumetric.set_height(1080);
+  Set(volumetric.mutable_light_direction(), 0.3, -1, 0.2);
+  volumetric.set_shadow_map_size(4096);
+  volumetric.set_scattering(0.05);
+  volumetric.set_extinction(0.05);
+  volumetric.set_method(v1::VolumetricShadowRequest::RAY_MARCHING);
+
+  v1::ComputeObscurancesRequest bake;
+  bake.mutable_scene()->set_name("sponza");
+  bake.set_resolution(1024);
+  bake.set_d_max(2.0);
+  bake.set_direction_count(256);
+  bake.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);
+
+  const std::vector<std::pair<std::string, std::function<absl::Status()>>> calls = {
+      {"Voxelize", [&] { return client.Voxelize(voxelize).status(); }},
+      {"VolumetricShadow", [&] { return client.VolumetricShadow(volumetric).status(); }},
+      {"ComputeObscurances", [&] { return client.ComputeObscurances(bake).status(); }},
+  };
+  for (const auto& [method, call] : calls) {
+    SCOPED_TRACE(method);
+    // Once to compile its programs (seconds on llvmpipe, and not cut short),
+    // then the call the test times.
+    const bool warm_up_stopped = !call().ok();
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    const absl::Status status = call();
+    if (status.ok()) {
+      RecordProperty(method, "finished within its deadline: nothing to stop");
+      continue;
+    }
+    ASSERT_EQ(status.code(), absl::StatusCode::kDeadlineExceeded) << status;
+    const double ms = ServerEndOfCall(*server, method, warm_up_stopped ? 2 : 1);
+    ASSERT_GE(ms, 0.0) << server->Log();
+    EXPECT_LT(ms, 2000.0 + 1000.0) << server->Log();
+    std::printf("%s: ended by the server %.0f ms after its start (deadline 2000 ms)\n", method.c_str(), ms);
+  }
+}
+
+}  // namespace
+}  // namespace visq::testing

@@ -79,11 +79,12 @@ struct Baked {
   ObscuranceResult result;
 };
 
-Baked Bake(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params) {
+Baked Bake(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params,
+           const gpu::ObscuranceBakeOptions& options = {}, gpu::ObscuranceBakeStats* stats = nullptr) {
   gpu::GpuWorker& worker = testing::SharedGpuWorker();
   auto gpu_scene = gpu::GpuScene::Upload(worker, scene);
   EXPECT_TRUE(gpu_scene.ok()) << gpu_scene.status();
-  auto partial = gpu::BakeObscurancePartial(worker, **gpu_scene, scene, atlas, params);
+  auto partial = gpu::BakeObscurancePartial(worker, **gpu_scene, scene, atlas, params, options, stats);
   EXPECT_TRUE(partial.ok()) << partial.status();
   auto result = FinalizeObscurances(scene, atlas, params, *partial);
   EXPECT_TRUE(result.ok()) << result.status();
@@ -328,6 +329,19 @@ TEST(ObscuranceBake, SameSeedSameBitsAndShardsMergeExactly) {
   const Baked again = Bake(box, atlas, params);
   EXPECT_EQ(full.partial.sums, again.partial.sums);
   EXPECT_EQ(full.partial.counts, again.partial.counts);
+  // Whatever GL jobs a direction is peeled in (each direction one job, or
+  // steps of a piece of a layer, each piece a triangle or two), the bits.
+  for (double step_ms : {0.0, 0.001}) {
+    gpu::ObscuranceBakeOptions options;
+    options.step_target_ms = step_ms;
+    gpu::ObscuranceBakeStats stats;
+    const Baked stepped = Bake(box, atlas, params, options, &stats);
+    EXPECT_EQ(stepped.partial.sums, full.partial.sums) << step_ms;
+    EXPECT_EQ(stepped.partial.counts, full.partial.counts) << step_ms;
+    EXPECT_EQ(stepped.partial.triangle_sums, full.partial.triangle_sums) << step_ms;
+    EXPECT_EQ(stepped.partial.count_squares, full.partial.count_squares) << step_ms;
+    EXPECT_GT(stats.layers, 12u) << step_ms;
+  }
   // Shards [0, 5), [5, 12), merged out of order.
   ObscuranceParams a = params, b = params;
   a.direction_count = 5;

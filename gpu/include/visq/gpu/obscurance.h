@@ -43,7 +43,11 @@ struct ObscuranceProgress {
 struct ObscuranceBakeOptions {
   int priority = kBatch;
   SteadyTime deadline = SteadyTime::max();
-  const std::atomic<bool>* cancelled = nullptr;  // checked between directions
+  const std::atomic<bool>* cancelled = nullptr;  // checked between steps
+  // A direction is peeled in GL jobs (steps) of about this long, each
+  // whole layers or pieces of one, so that a stop and other calls reach the
+  // GL thread between them. 0: a direction is one job.
+  double step_target_ms = 100.0;
   // Called on the calling thread after every direction.
   std::function<void(const ObscuranceProgress&)> progress;
   // Stops peeling a direction after this many layers (a guard; reported).
