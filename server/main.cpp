@@ -102,7 +102,8 @@ void AddFlags(CLI::App& app, Flags& flags) {
       ->envname("VISQ_WARM_SCENES");
   app.add_option("--max-work-bytes", flags.options.engine.max_work_bytes,
                  "Memory that answers in progress may hold together; requests wait for it or are refused "
-                 "(0: half of physical memory)")
+                 "(0: half of the memory this process may use: physical memory, or its cgroup's limit where that "
+                 "is smaller, v2 memory.max or v1 memory.limit_in_bytes; the log says which at start)")
       ->envname("VISQ_MAX_WORK_BYTES")->capture_default_str();
   app.add_option("--map-band-bytes", flags.options.engine.hidden_sample_map.band_readback_bytes,
                  "Largest GPU read-back of one band of a hidden-sample map: each band is its own GL job and is "
@@ -117,7 +118,10 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--light-receiver-min-points", flags.options.engine.light_receiver_min_points,
                  "A receiver cube with fewer points joins its parent cube's tree (1: every cube its own)")
       ->envname("VISQ_LIGHT_RECEIVER_MIN_POINTS")->check(CLI::Range(1, 1 << 20))->capture_default_str();
-  app.add_option("--worker-threads", flags.options.worker_threads, "Threads for blocking request work")
+  app.add_option("--worker-threads", flags.options.worker_threads,
+                 "Threads for blocking request work (the CPU-parallel loops within it use one thread per CPU the "
+                 "process may use: its cgroup's CPU quota, cpu.max or cpu.cfs_quota_us, rounded up, or its affinity "
+                 "mask where that is smaller)")
       ->envname("VISQ_WORKER_THREADS")->check(CLI::Range(1, 256))->capture_default_str();
   app.add_option("--log-level", flags.log_level, "trace, debug, info, warn, error")->envname("VISQ_LOG_LEVEL")->capture_default_str();
   app.add_option("--gpu-device", flags.options.engine.gpu.device, "auto, surfaceless, or device:N")

@@ -20,6 +20,8 @@
 #include <thread>
 #include <vector>
 
+#include "resource_limits/resource_limits.h"
+
 namespace visq {
 
 namespace parallel_detail {
@@ -102,9 +104,12 @@ class Pool {
   bool stopping_ = false;
 };
 
-// One thread per core besides the caller's.
+// One thread per CPU this process may use besides the caller's: the CPU
+// quota of its cgroup and its affinity mask, not the machine's cores
+// (hardware_concurrency()), which in a pod with a quota of 2 on a 64-core
+// node would start 63 threads to be throttled.
 inline Pool& ProcessPool() {
-  static Pool pool(std::max(1u, std::thread::hardware_concurrency()) - 1);
+  static Pool pool(resource_limits::ProcessCpuLimit().cpus - 1);
   return pool;
 }
 

@@ -9,6 +9,8 @@
 #include <xxhash.h>
 
 #include "common/job_timing.h"
+#include "common/parallel.h"
+#include "resource_limits/resource_limits.h"
 #include "scene/scene_edit.h"
 #include "scene/gltf_loader.h"
 
@@ -51,7 +53,9 @@ StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
   if (options.cost_model_file != "-")
     engine->cost_model_.PersistTo(options.cost_model_file.empty() ? options.scene_repo / ".visq-cost-model.tsv"
                                                                   : options.cost_model_file);
-  spdlog::info("budget for work in flight: {} bytes (--max-work-bytes)", engine->work_budget_->capacity());
+  spdlog::info("budget for work in flight (--max-work-bytes): {} bytes, {}", engine->work_budget_->capacity(),
+               engine->work_budget_->capacity_source());
+  spdlog::info("compute workers: {}, from the {}", ParallelWorkers(), resource_limits::ProcessCpuLimit().source);
   const auto& device = engine->gpu_->device();
   spdlog::info("GPU: {} / {} / OpenGL {} via EGL {} ({}){}", device.gl_vendor, device.gl_renderer,
                device.gl_version, device.egl_platform, device.egl_device, device.software ? ", software" : "");

@@ -2,25 +2,37 @@
 
 #include <malloc.h>
 
-#include <unistd.h>
-
 #include <algorithm>
 #include <chrono>
 #include <utility>
 
+#include "resource_limits/resource_limits.h"
+
 namespace visq::core {
 namespace {
 
-uint64_t HalfOfPhysicalMemory() {
-  const long pages = ::sysconf(_SC_PHYS_PAGES), page = ::sysconf(_SC_PAGE_SIZE);
-  if (pages <= 0 || page <= 0) return uint64_t{4} << 30;
-  return uint64_t(pages) * uint64_t(page) / 2;
-}
+// When the machine cannot say how much memory it has, nor a cgroup.
+constexpr uint64_t kUnknownMemoryBudget = uint64_t{4} << 30;
 
 }  // namespace
 
-WorkMemoryBudget::WorkMemoryBudget(uint64_t capacity_bytes)
-    : capacity_(capacity_bytes != 0 ? capacity_bytes : HalfOfPhysicalMemory()) {}
+WorkMemoryBudget::WorkMemoryBudget(uint64_t capacity_bytes) {
+  if (capacity_bytes != 0) {
+    capacity_ = capacity_bytes;
+    capacity_source_ = "as given";
+    return;
+  }
+  // Half: the rest is for the scenes, their structures and the caches,
+  // which have bounds of their own.
+  const resource_limits::MemoryLimit& usable = resource_limits::ProcessMemoryLimit();
+  if (usable.bytes == 0) {
+    capacity_ = kUnknownMemoryBudget;
+    capacity_source_ = "neither physical memory nor a cgroup limit could be read: 4 GiB";
+    return;
+  }
+  capacity_ = usable.bytes / 2;
+  capacity_source_ = absl::StrCat("half of ", usable.source, " (", usable.bytes, " bytes)");
+}
 
 WorkMemoryBudget::Reservation::Reservation(Reservation&& other) noexcept
     : budget_(std::exchange(other.budget_, nullptr)), bytes_(std::exchange(other.bytes_, 0)) {}

@@ -25,7 +25,8 @@ inline constexpr uint64_t kStreamedAnswerQueueBytes = uint64_t{64} << 20;
 
 class WorkMemoryBudget {
  public:
-  // 0: half of this machine's physical memory.
+  // 0: half of the memory this process may use, the smaller of physical
+  // memory and its cgroup's limit (resource_limits::ProcessMemoryLimit).
   explicit WorkMemoryBudget(uint64_t capacity_bytes);
   WorkMemoryBudget(const WorkMemoryBudget&) = delete;
   WorkMemoryBudget& operator=(const WorkMemoryBudget&) = delete;
@@ -54,13 +55,17 @@ class WorkMemoryBudget {
   static constexpr uint64_t kTrimAfterBytes = uint64_t{64} << 20;
 
   uint64_t capacity() const { return capacity_; }
+  // Where capacity() came from, for the start-up log: "as given", or
+  // "half of cgroup v2 memory.max /sys/fs/cgroup/memory.max (34359738368 bytes)".
+  const std::string& capacity_source() const { return capacity_source_; }
   uint64_t in_use() const;
   uint64_t peak() const;
 
  private:
   void Release(uint64_t bytes);
 
-  uint64_t capacity_;
+  uint64_t capacity_ = 0;
+  std::string capacity_source_;
   mutable std::mutex mutex_;
   std::condition_variable released_;
   uint64_t in_use_ = 0;
