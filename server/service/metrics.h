@@ -34,8 +34,11 @@ class Metrics {
  public:
   // Upper bounds of the exported latency buckets: fixed, so that a
   // dashboard's histogram_quantile sees the same `le` labels on every replica.
-  static constexpr std::array<double, 16> kPrometheusBucketsSeconds = {
-      0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 120};
+  // They reach 4 hours: a bake runs for hours, and beyond the last bucket
+  // histogram_quantile can only answer that bucket's bound.
+  static constexpr std::array<double, 22> kPrometheusBucketsSeconds = {
+      0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1,
+      2.5,    5,     10,     30,    120,  300,   600,  1800, 3600, 7200, 14400};
 
   // A call began (counted in flight until Record).
   void Begin(const std::string& method);
@@ -46,9 +49,9 @@ class Metrics {
   std::vector<MethodSummary> Summaries() const;
 
  private:
-  // Log-spaced buckets, 10 % apart, from 1 microsecond to about 3 hours:
-  // percentiles are exact to within one bucket.
-  static constexpr int kBuckets = 240;
+  // Log-spaced buckets, 10 % apart, from 1 microsecond to about 60
+  // hours (bakes run for hours): percentiles are exact to within one bucket.
+  static constexpr int kBuckets = 275;
   static constexpr double kFirstBucketMs = 1e-3;
   static constexpr double kGrowth = 1.1;
   struct Histogram {

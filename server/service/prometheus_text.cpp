@@ -183,6 +183,26 @@ std::string RenderPrometheusText(const ServerFigures& f) {
            "GPU contexts lost (GPU resets) since start; each failed the job that was running.",
            static_cast<double>(f.gpu_contexts_lost));
   w.Single("visq_scenes_resident", "gauge", "Scenes resident in memory.", static_cast<double>(f.scenes_resident));
+
+  // The standard process_* family, named and described as client_golang's
+  // process collector does, so that dashboards written for it work here; a
+  // figure /proc did not give is left out.
+  const ProcessFigures& p = f.process;
+  if (p.cpu_seconds)
+    w.Single("process_cpu_seconds_total", "counter", "Total user and system CPU time spent in seconds.", *p.cpu_seconds);
+  if (p.open_fds)
+    w.Single("process_open_fds", "gauge", "Number of open file descriptors.", static_cast<double>(*p.open_fds));
+  if (p.max_fds)
+    w.Single("process_max_fds", "gauge", "Maximum number of open file descriptors.", static_cast<double>(*p.max_fds));
+  if (p.virtual_bytes)
+    w.Single("process_virtual_memory_bytes", "gauge", "Virtual memory size in bytes.",
+             static_cast<double>(*p.virtual_bytes));
+  if (p.resident_bytes)
+    w.Single("process_resident_memory_bytes", "gauge", "Resident memory size in bytes.",
+             static_cast<double>(*p.resident_bytes));
+  if (p.start_time_seconds)
+    w.Single("process_start_time_seconds", "gauge", "Start time of the process since unix epoch in seconds.",
+             *p.start_time_seconds);
   return w.Take();
 }
 

@@ -9,6 +9,7 @@
 
 #include "core/engine.h"
 #include "service/metrics.h"
+#include "service/process_figures.h"
 
 namespace visq::service {
 
@@ -43,6 +44,7 @@ struct ServerFigures {
   std::vector<CacheFigures> caches;
   std::vector<MethodSummary> methods;
   std::map<std::string, core::BuildTimes::Figures> structure_builds;
+  ProcessFigures process;
 };
 
 ServerFigures CollectServerFigures(const ServiceContext& ctx);

@@ -180,6 +180,37 @@ TEST(MetricsEndpoint, CountsRealCallsByStatusWithCumulativeHistograms) {
   EXPECT_GE(after.Get("visq_structure_build_seconds_count{structure=\"triangle_index\"}"), 1)
       << "the exact query built the scene's triangle index";
 
+  // Latency buckets reach the hours a bake takes.
+  for (const char* le : {"120", "300", "600", "1800", "3600", "7200", "14400"})
+    EXPECT_EQ(after.samples.count("visq_rpc_duration_seconds_bucket{method=\"ListScenes\",le=\"" + std::string(le) +
+                                  "\"}"),
+              1u)
+        << le << "\n" << after.text;
+
+  // The standard process_* family, of the server's own process.
+  for (const auto& [family, type] : std::map<std::string, std::string>{{"process_cpu_seconds_total", "counter"},
+                                                                      {"process_resident_memory_bytes", "gauge"},
+                                                                      {"process_virtual_memory_bytes", "gauge"},
+                                                                      {"process_open_fds", "gauge"},
+                                                                      {"process_max_fds", "gauge"},
+                                                                      {"process_start_time_seconds", "gauge"}}) {
+    ASSERT_EQ(after.types.count(family), 1u) << family << "\n" << after.text;
+    EXPECT_EQ(after.types.at(family), type) << family;
+    EXPECT_EQ(after.samples.count(family), 1u) << family;
+  }
+  EXPECT_GT(after.Get("process_cpu_seconds_total"), 0);
+  EXPECT_GE(after.Get("process_cpu_seconds_total"), before.Get("process_cpu_seconds_total"));
+  EXPECT_GT(after.Get("process_resident_memory_bytes"), 1 << 20);
+  EXPECT_GE(after.Get("process_virtual_memory_bytes"), after.Get("process_resident_memory_bytes"));
+  EXPECT_GT(after.Get("process_open_fds"), 3) << "at least the standard three and the listening sockets";
+  EXPECT_GE(after.Get("process_max_fds"), after.Get("process_open_fds"));
+  // The server started within this test (a second's slack for the clock
+  // tick rounding).
+  const double now = std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  EXPECT_LE(after.Get("process_start_time_seconds"), now + 1);
+  EXPECT_GT(after.Get("process_start_time_seconds"), now - 600);
+  EXPECT_EQ(after.Get("process_start_time_seconds"), before.Get("process_start_time_seconds"));
+
   // Only GET /metrics is served.
   httplib::Client http("127.0.0.1", port);
   auto other = http.Get("/");
