@@ -6,6 +6,8 @@
 
 #include <embree3/rtcore.h>
 
+#include "raycast/embree_scene.h"
+
 namespace visq::obscurance {
 
 struct InstancedRayScene::Impl {
@@ -92,7 +94,7 @@ size_t InstancedRayScene::object_count() const { return impl_->objects.size(); }
 StatusOr<std::unique_ptr<InstancedRayScene>> InstancedRayScene::Create(
     const Scene& scene, const std::vector<std::vector<uint32_t>>& objects) {
   auto impl = std::make_unique<Impl>();
-  impl->device = rtcNewDevice(nullptr);
+  impl->device = rtcNewDevice(raycast::EmbreeDeviceConfig().c_str());
   if (impl->device == nullptr) return absl::InternalError("rtcNewDevice failed");
   impl->origin = scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center();
   impl->t_min = 1e-6 * std::max(1e-30, glm::length(scene.bounds.Extent()));

@@ -13,8 +13,11 @@
 
 #include "common/check.h"
 #include "common/parallel.h"
+#include "resource_limits/resource_limits.h"
 
 namespace visq::raycast {
+
+std::string EmbreeDeviceConfig() { return absl::StrCat("threads=", resource_limits::ProcessCpuLimit().cpus); }
 
 // The instanced meshes. Placements with the same world transform form one
 // group (a prefab's meshes placed by one parent node): one Embree instance
@@ -334,7 +337,7 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   out.triangle_count_ = scene.triangles.size();
 
   t_last_embree_error.clear();
-  out.device_ = rtcNewDevice(nullptr);
+  out.device_ = rtcNewDevice(EmbreeDeviceConfig().c_str());
   if (out.device_ == nullptr) {
     return absl::InternalError(absl::StrCat("rtcNewDevice failed: ", t_last_embree_error));
   }

@@ -29,6 +29,7 @@
 #include <memory>
 #include <optional>
 #include <span>
+#include <string>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -41,6 +42,13 @@ struct RTCDeviceTy;
 struct RTCSceneTy;
 
 namespace visq::raycast {
+
+// The configuration every Embree device in visq is created with: its BVH
+// builds run on as many threads as the process may use CPUs (its cgroup's
+// quota, its affinity mask; resource_limits::ProcessCpuLimit), where
+// Embree's default is every core of the machine, 64 threads throttled on a
+// quota of 2.
+std::string EmbreeDeviceConfig();
 
 inline constexpr uint32_t kNoTriangle = std::numeric_limits<uint32_t>::max();
 
@@ -70,7 +78,7 @@ struct Hit {
 };
 
 struct TraceOptions {
-  int threads = 0;  // 0: std::thread::hardware_concurrency()
+  int threads = 0;  // 0: the caller and every thread of the process's pool (common/parallel.h)
   // Triangles that block no ray of the batch (sorted or not; any size).
   std::span<const uint32_t> ignore_triangles;
   // Consecutive rays are coherent (a shared origin, nearby directions):
