@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <memory>
+#include <optional>
 #include <vector>
 
 #include <epoxy/gl.h>
@@ -139,26 +140,18 @@ DirectionFrame FrameOf(const obscurance::BundleDirection& d, const glm::dvec3& c
 // even where one layer over a large scene takes seconds (a CPU rasterizer).
 struct DirectionPeel {
   uint32_t layer = 0;
-  std::vector<ScenePartDraw> pieces;  // the layer's draw, cut when it began
-  size_t next_piece = 0;
+  std::optional<DrawCursor> layer_draw;  // what is left of the layer's draw
   bool any_sample = false;  // a fragment of the layer passed, so far
   bool done = false;
 };
-
-// The draw of layer k in pieces of about `triangles` each: the whole scene
-// from its resident commands when one piece holds it.
-std::vector<ScenePartDraw> LayerPieces(const GpuScene& gpu_scene, const ScenePartDraw& whole_commands,
-                                       int triangles) {
-  if (uint64_t(triangles) >= whole_commands.triangles) return {gpu_scene.Whole()};
-  return DrawPieces(whole_commands, uint64_t(triangles));
-}
 
 // Peels one direction on from `peel` until it is done or this job has run
 // for `step_ms` (then the next job resumes it): each layer's fragments
 // strictly behind the last layer's, a transfer between each pair of
 // consecutive layers as soon as the second is drawn, and the direction's
 // counts squared once a layer is empty. GL thread.
-Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& whole_commands,
+Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& whole_draw,
+                const ScenePartDraw& whole_commands,
                 const DirectionFrame& frame, uint32_t bundle, const ObscuranceAtlas& atlas,
                 const ObscuranceParams& params, const glm::vec3& unoccluded, uint32_t max_layers,
                 const JobOptions& job, double step_ms, TimedSizer& pieces, DirectionPeel& peel) {
@@ -206,8 +199,11 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
     const int cur = static_cast<int>(k % 2), prev = 1 - cur;
     // Layer k: fragments strictly behind layer k - 1, drawn piece by piece
     // into the same targets (the depth test orders them as one draw would).
-    if (peel.next_piece == 0) {
-      peel.pieces = LayerPieces(gpu_scene, whole_commands, pieces.size());
+    if (!peel.layer_draw) {
+      // The whole scene at once when the sizer holds it all, else pieces
+      // cut at the sizer's size of the moment.
+      const bool cut = uint64_t(pieces.size()) < whole_commands.triangles;
+      peel.layer_draw.emplace(cut ? whole_commands : whole_draw);
       peel.any_sample = false;
       glClearNamedFramebufferuiv(s.framebuffer[cur].id(), GL_COLOR, 0, clear_layer);
       glClearNamedFramebufferfv(s.framebuffer[cur].id(), GL_DEPTH, 0, &clear_depth);
@@ -216,8 +212,8 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
     glUseProgram(peel_program);
     glProgramUniform1i(peel_program, first_loc, k == 0 ? 1 : 0);
     glBindTextureUnit(0, s.depth[prev].id());
-    while (peel.next_piece < peel.pieces.size()) {
-      const ScenePartDraw& piece = peel.pieces[peel.next_piece];
+    while (!peel.layer_draw->done()) {
+      const ScenePartDraw piece = peel.layer_draw->Next(uint64_t(pieces.size()));
       const auto piece_start = std::chrono::steady_clock::now();
       glBeginQuery(GL_ANY_SAMPLES_PASSED, s.any_samples.id());
       const Status drawn = DrawScenePart(res, piece);
@@ -226,10 +222,9 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
       GLuint any = 0;
       glGetQueryObjectuiv(s.any_samples.id(), GL_QUERY_RESULT, &any);  // waits: the piece's time
       peel.any_sample = peel.any_sample || any != 0;
-      ++peel.next_piece;
-      if (peel.pieces.size() > 1 || !pieces.settled())
+      if (!piece.everything || !pieces.settled())
         pieces.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(piece_start));
-      if (peel.next_piece < peel.pieces.size()) {
+      if (!peel.layer_draw->done()) {
         VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between draws of a layer"));
         if (step_spent()) return absl::OkStatus();
       }
@@ -248,8 +243,7 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
     glBindTextureUnit(3, s.depth[cur].id());
     if (k > 0 || any) glDispatchCompute(groups, groups, 1);
     glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT | GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
-    peel.next_piece = 0;
-    peel.pieces.clear();
+    peel.layer_draw.reset();
     if (!any) {
       peel.done = true;
     } else if (last_guard) {
@@ -320,7 +314,7 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
   // by their measured time (one sizer for the whole bake: every direction
   // draws the same scene into the same bundle).
   const double step_ms = options.step_target_ms > 0.0 ? options.step_target_ms : 1e300;
-  const ScenePartDraw whole_commands = gpu_scene.WholeAsCommands();
+  const ScenePartDraw whole_draw = gpu_scene.Whole(), whole_commands = gpu_scene.WholeAsCommands();
   const int all_triangles = int(std::clamp<uint64_t>(whole_commands.triangles, 1, INT32_MAX));
   TimedSizer pieces(options.step_target_ms / 4.0, all_triangles,
                     options.step_target_ms > 0.0 ? FirstPieceTriangles(uint64_t{bundle} * bundle, all_triangles)
@@ -338,7 +332,7 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
     DirectionPeel peel;
     while (!peel.done) {
       VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() {
-        return PeelSome(*state, gpu_scene, whole_commands, frame, bundle, atlas, params, unoccluded,
+        return PeelSome(*state, gpu_scene, whole_draw, whole_commands, frame, bundle, atlas, params, unoccluded,
                         options.max_layers, job, step_ms, pieces, peel);
       }));
     }

@@ -35,50 +35,59 @@ Status DrawScenePart(const GpuScene::Resources& resources, const ScenePartDraw& 
   return absl::OkStatus();
 }
 
-std::vector<ScenePartDraw> DrawPieces(const ScenePartDraw& draw, uint64_t triangles) {
-  const size_t stride = draw.indexed ? 5 : 4;
-  if (draw.everything || draw.triangles <= triangles) return {draw};
+DrawCursor::DrawCursor(const ScenePartDraw& draw) : draw_(&draw) {}
+
+bool DrawCursor::done() const {
+  if (draw_->everything) return whole_taken_;
+  return command_ * Stride() + Stride() > draw_->commands.size();
+}
+
+ScenePartDraw DrawCursor::Next(uint64_t triangles) {
+  ScenePartDraw piece;
+  piece.indexed = draw_->indexed;
+  if (draw_->everything) {
+    if (!whole_taken_) piece = *draw_;
+    whole_taken_ = true;
+    return piece;
+  }
   triangles = std::max<uint64_t>(triangles, 1);
-  std::vector<ScenePartDraw> pieces(1);
-  pieces.back().indexed = draw.indexed;
-  for (size_t c = 0; c + stride <= draw.commands.size(); c += stride) {
-    const uint32_t* command = draw.commands.data() + c;
-    const uint32_t command_triangles = command[0] / 3, instances = command[1];
-    for (uint32_t done = 0; done < command_triangles;) {
-      ScenePartDraw& piece = pieces.back();
-      const uint64_t room = triangles > piece.triangles ? triangles - piece.triangles : 0;
-      const uint64_t per_instance_room = std::max<uint64_t>(1, room / std::max<uint32_t>(instances, 1));
-      const uint32_t run = uint32_t(std::min<uint64_t>(command_triangles - done, per_instance_room));
-      piece.commands.insert(piece.commands.end(), command, command + stride);
-      uint32_t* copy = piece.commands.data() + piece.commands.size() - stride;
-      copy[0] = 3 * run;
-      copy[2] += 3 * done;  // firstIndex (indexed) or first vertex (arrays)
-      piece.triangles += uint64_t(run) * instances;
-      done += run;
-      if (piece.triangles >= triangles) {
-        pieces.emplace_back();
-        pieces.back().indexed = draw.indexed;
-      }
+  const size_t stride = Stride();
+  while (!done() && piece.triangles < triangles) {
+    const uint32_t* command = draw_->commands.data() + command_ * stride;
+    const uint32_t command_triangles = command[0] / 3, instances = std::max<uint32_t>(command[1], 1);
+    const uint64_t room = triangles - piece.triangles;
+    const uint64_t per_instance_room = std::max<uint64_t>(1, room / instances);
+    const uint32_t run = uint32_t(std::min<uint64_t>(command_triangles - done_in_command_, per_instance_room));
+    piece.commands.insert(piece.commands.end(), command, command + stride);
+    uint32_t* copy = piece.commands.data() + piece.commands.size() - stride;
+    copy[0] = 3 * run;
+    copy[2] += 3 * done_in_command_;  // firstIndex (indexed) or first vertex (arrays)
+    piece.triangles += uint64_t(run) * command[1];
+    done_in_command_ += run;
+    if (done_in_command_ >= command_triangles) {
+      ++command_;
+      done_in_command_ = 0;
     }
   }
-  if (pieces.back().commands.empty()) pieces.pop_back();
-  return pieces;
+  return piece;
 }
 
 Status DrawInTimedPieces(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces,
                          const JobOptions& job, std::string_view where) {
   VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, scene.CurrentResources());
   const bool cut = uint64_t(pieces.size()) < part.triangles;
-  const std::vector<ScenePartDraw> parts =
-      cut ? DrawPieces(part.everything ? scene.WholeAsCommands() : part, uint64_t(pieces.size()))
-          : std::vector<ScenePartDraw>{part};
-  for (size_t k = 0; k < parts.size(); ++k) {
-    if (k > 0) VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  const ScenePartDraw commands = cut && part.everything ? scene.WholeAsCommands() : ScenePartDraw{};
+  // Each piece is cut at the sizer's size of the moment, so a draw that
+  // started small grows its pieces as it learns.
+  DrawCursor cursor(cut ? (part.everything ? commands : part) : part);
+  for (bool first = true; !cursor.done(); first = false) {
+    if (!first) VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+    const ScenePartDraw piece = cut ? cursor.Next(uint64_t(pieces.size())) : cursor.Next(UINT64_MAX);
     const auto start = std::chrono::steady_clock::now();
-    VISQ_RETURN_IF_ERROR(DrawScenePart(*resources, parts[k]));
-    if (parts.size() > 1 || !pieces.settled()) {
+    VISQ_RETURN_IF_ERROR(DrawScenePart(*resources, piece));
+    if (cut || !pieces.settled()) {
       glFinish();  // the piece's time, and the stop's chance
-      pieces.Measured(int(std::min<uint64_t>(parts[k].triangles, INT32_MAX)), MillisecondsSince(start));
+      pieces.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(start));
     }
   }
   return absl::OkStatus();

@@ -17,12 +17,27 @@
 namespace visq::gpu {
 
 [[nodiscard]] Status DrawScenePart(const GpuScene::Resources& resources, const ScenePartDraw& part);
-// `draw` in pieces of about `triangles` triangles each, in order; a command
-// longer than that is cut into runs of its triangles (indexed: firstIndex
-// moves 3 a triangle; arrays: first does), so drawing the pieces one after
-// the other draws what `draw` does, in the same order. A draw of the whole
-// scene (no commands on the CPU) stays one piece. No GL calls.
-std::vector<ScenePartDraw> DrawPieces(const ScenePartDraw& draw, uint64_t triangles);
+// Walks a draw's commands in order and hands out pieces of it: drawing
+// every piece, one after the other, draws what `draw` does, in the same
+// order. A command longer than a piece is cut into runs of its triangles
+// (indexed: firstIndex moves 3 a triangle; arrays: first does). A draw of
+// the whole scene (no commands on the CPU) is one piece. `draw` must
+// outlive the cursor. No GL calls.
+class DrawCursor {
+ public:
+  explicit DrawCursor(const ScenePartDraw& draw);
+  bool done() const;
+  // The next piece, of about `triangles` triangles (placements counted).
+  ScenePartDraw Next(uint64_t triangles);
+
+ private:
+  size_t Stride() const { return draw_->indexed ? 5 : 4; }
+  const ScenePartDraw* draw_;
+  size_t command_ = 0;            // the next command
+  uint32_t done_in_command_ = 0;  // its triangles already handed out
+  bool whole_taken_ = false;
+};
+
 // Draws `part` of `scene` in pieces sized by `pieces`, each finished and
 // timed while the sizer still learns, and asks `job` between pieces
 // (StillWanted, naming `where`): a stop reaches a draw that takes seconds on
