@@ -47,7 +47,7 @@ struct ObscuranceBakeOptions {
   // A direction is peeled in GL jobs (steps) of about this long, each
   // whole layers or pieces of one, so that a stop and other calls reach the
   // GL thread between them. 0: a direction is one job.
-  double step_target_ms = 100.0;
+  double step_target_ms = 25.0;
   // Called on the calling thread after every direction.
   std::function<void(const ObscuranceProgress&)> progress;
   // Stops peeling a direction after this many layers (a guard; reported).
