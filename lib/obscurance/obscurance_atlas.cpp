@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numeric>
 #include <unordered_map>
 
@@ -22,6 +23,39 @@ void ClipAgainst(ClippedPolygon& poly, Keep keep) {
     if ((ka >= 0) != (kb >= 0)) out.p[out.n++] = a + (b - a) * (ka / (ka - kb));
   }
   poly = out;
+}
+
+// The texels a triangle's fragments can lie in: its atlas box, clamped to
+// the atlas. A triangle of no atlas area, or with a corner that is not
+// finite, is degenerate: one fragment, in the texel of its centroid
+// (clamped; texel 0 when it is not finite), given as x0, y0.
+struct TriangleTexels {
+  bool degenerate = false;
+  uint32_t x0 = 0, y0 = 0, x1 = 0, y1 = 0;  // inclusive
+};
+
+uint32_t ClampTexel(double v, uint32_t resolution) {
+  const double f = std::floor(v);
+  if (!(f >= 0.0)) return 0;  // NaN too
+  return f >= resolution - 1.0 ? resolution - 1 : static_cast<uint32_t>(f);
+}
+
+TriangleTexels TexelsOf(const glm::dvec2& a, const glm::dvec2& b, const glm::dvec2& c, uint32_t resolution) {
+  TriangleTexels box;
+  const double uv_area = 0.5 * std::abs(Cross2(b - a, c - a));
+  if (!(uv_area > 1e-12) || !std::isfinite(uv_area)) {
+    const glm::dvec2 m = (a + b + c) / 3.0;
+    box.degenerate = true;
+    box.x0 = box.x1 = ClampTexel(m.x, resolution);
+    box.y0 = box.y1 = ClampTexel(m.y, resolution);
+    return box;
+  }
+  const glm::dvec2 lo = glm::min(a, glm::min(b, c)), hi = glm::max(a, glm::max(b, c));
+  box.x0 = ClampTexel(lo.x, resolution);
+  box.y0 = ClampTexel(lo.y, resolution);
+  box.x1 = ClampTexel(hi.x, resolution);
+  box.y1 = ClampTexel(hi.y, resolution);
+  return box;
 }
 
 struct Chart {
@@ -213,6 +247,9 @@ StatusOr<ObscuranceAtlas> BuildObscuranceAtlas(const Scene& scene, uint32_t reso
     return absl::InvalidArgumentError(
         absl::StrCat("resolution: ", resolution, " must be in [1, ", kMaxAtlasResolution, "]"));
   if (scene.TriangleCount() == 0) return absl::InvalidArgumentError("scene: no triangles to bake");
+  auto stopped = [&](const char* where) {
+    return options.stop && options.stop() ? absl::CancelledError(absl::StrCat("atlas: stopped ", where)) : Status();
+  };
   ObscuranceAtlas atlas;
   atlas.width = atlas.height = resolution;
   const size_t nt = scene.TriangleCount();
@@ -228,38 +265,64 @@ StatusOr<ObscuranceAtlas> BuildObscuranceAtlas(const Scene& scene, uint32_t reso
     VISQ_ASSIGN_OR_RETURN(atlas.corner_uv,
                           BuildCharts(scene, resolution, options, &atlas.chart_count, &atlas.texels_per_unit));
   }
+  VISQ_RETURN_IF_ERROR(stopped("after its charts"));
+
+  // What the fragments can cost, before any of them exists: four full-UV
+  // quads at 4096^2 are 67M fragments (2.4 GB), which a budget refuses here.
+  const AtlasWorkEstimate estimate = AtlasWorkBytes(atlas.corner_uv, resolution);
+  if (estimate.fragments > std::numeric_limits<uint32_t>::max())
+    return absl::ResourceExhaustedError(absl::StrCat("resolution: ", resolution, " makes up to ", estimate.fragments,
+                                                     " triangle-texel fragments, above the atlas's 2^32"));
+  if (options.reserve) VISQ_RETURN_IF_ERROR(options.reserve(estimate.bytes));
 
   // Fragments: each triangle clipped against the texels its box touches;
   // the world area of a piece is its atlas area times the triangle's
   // world-to-atlas area ratio (the map is affine on a triangle).
   std::vector<PatchFragment> fragments;
+  fragments.reserve(estimate.fragments);
+  uint64_t clipped_since_check = 0;
+  constexpr uint64_t kTexelsBetweenStopChecks = 16384;
   for (size_t t = 0; t < nt; ++t) {
     const glm::dvec2 a = atlas.corner_uv[3 * t], b = atlas.corner_uv[3 * t + 1], c = atlas.corner_uv[3 * t + 2];
     const double world = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0),
                                                       scene.Vertex(t, 2) - scene.Vertex(t, 0)));
-    const double uv_area = 0.5 * std::abs(Cross2(b - a, c - a));
     if (world <= 0) continue;
-    const glm::dvec2 lo = glm::clamp(glm::floor(glm::min(a, glm::min(b, c))), 0.0, resolution - 1.0);
-    const glm::dvec2 hi = glm::clamp(glm::floor(glm::max(a, glm::max(b, c))), 0.0, resolution - 1.0);
-    if (uv_area <= 1e-12) {
+    const TriangleTexels box = TexelsOf(a, b, c, resolution);
+    if (box.degenerate) {
       // Degenerate in the atlas (lightmap UVs can be): the whole triangle
       // belongs to the texel of its centroid.
-      const glm::dvec2 m = glm::clamp(glm::floor((a + b + c) / 3.0), 0.0, resolution - 1.0);
-      fragments.push_back({static_cast<uint32_t>(m.y) * resolution + static_cast<uint32_t>(m.x),
-                           static_cast<uint32_t>(t), world});
+      fragments.push_back({box.y0 * resolution + box.x0, static_cast<uint32_t>(t), world});
       continue;
     }
-    for (uint32_t y = static_cast<uint32_t>(lo.y); y <= static_cast<uint32_t>(hi.y); ++y)
-      for (uint32_t x = static_cast<uint32_t>(lo.x); x <= static_cast<uint32_t>(hi.x); ++x) {
+    const double uv_area = 0.5 * std::abs(Cross2(b - a, c - a));
+    for (uint32_t y = box.y0; y <= box.y1; ++y) {
+      for (uint32_t x = box.x0; x <= box.x1; ++x) {
         const double piece = ClipTriangleToTexel(a, b, c, x, y).Area();
         if (piece > uv_area * 1e-9) fragments.push_back({y * resolution + x, static_cast<uint32_t>(t), piece / uv_area * world});
       }
+      // One full-atlas triangle is 16M clips at 4096^2: ask between rows.
+      clipped_since_check += box.x1 - box.x0 + 1;
+      if (clipped_since_check >= kTexelsBetweenStopChecks) {
+        clipped_since_check = 0;
+        VISQ_RETURN_IF_ERROR(stopped("while clipping triangles to texels"));
+      }
+    }
   }
-  std::stable_sort(fragments.begin(), fragments.end(),
-                   [](const PatchFragment& p, const PatchFragment& q) { return p.texel < q.texel; });
+  VISQ_RETURN_IF_ERROR(stopped("before sorting its fragments"));
+
+  // Fragments by texel, stable (triangle order within a texel): a counting
+  // sort, linear in the fragments.
   atlas.texel_begin.assign(static_cast<size_t>(resolution) * resolution + 1, 0);
   for (const PatchFragment& f : fragments) ++atlas.texel_begin[f.texel + 1];
   std::partial_sum(atlas.texel_begin.begin(), atlas.texel_begin.end(), atlas.texel_begin.begin());
+  {
+    std::vector<PatchFragment> sorted(fragments.size());
+    // texel_begin[i] walks to the end of texel i, then is put back.
+    for (const PatchFragment& f : fragments) sorted[atlas.texel_begin[f.texel]++] = f;
+    for (size_t i = atlas.texel_begin.size() - 1; i > 0; --i) atlas.texel_begin[i] = atlas.texel_begin[i - 1];
+    atlas.texel_begin[0] = 0;
+    fragments = std::move(sorted);
+  }
   atlas.triangle_begin.assign(nt + 1, 0);
   for (const PatchFragment& f : fragments) ++atlas.triangle_begin[f.triangle + 1];
   std::partial_sum(atlas.triangle_begin.begin(), atlas.triangle_begin.end(), atlas.triangle_begin.begin());
@@ -268,6 +331,30 @@ StatusOr<ObscuranceAtlas> BuildObscuranceAtlas(const Scene& scene, uint32_t reso
   for (uint32_t i = 0; i < fragments.size(); ++i) atlas.triangle_fragments[cursor[fragments[i].triangle]++] = i;
   atlas.fragments = std::move(fragments);
   return atlas;
+}
+
+AtlasWorkEstimate AtlasWorkBytes(const std::vector<glm::vec2>& corner_uv, uint32_t resolution) {
+  AtlasWorkEstimate out;
+  const uint64_t nt = corner_uv.size() / 3;
+  for (uint64_t t = 0; t < nt; ++t) {
+    const glm::dvec2 a = corner_uv[3 * t], b = corner_uv[3 * t + 1], c = corner_uv[3 * t + 2];
+    const TriangleTexels box = TexelsOf(a, b, c, resolution);
+    if (box.degenerate) {
+      out.fragments += 1;
+      continue;
+    }
+    const uint64_t box_texels = uint64_t{box.x1 - box.x0 + 1} * (box.y1 - box.y0 + 1);
+    const glm::dvec2 extent = glm::max(a, glm::max(b, c)) - glm::min(a, glm::min(b, c));
+    const double met = 0.5 * std::abs(Cross2(b - a, c - a)) + 2.0 * (extent.x + extent.y) + 4.0;
+    out.fragments += met < double(box_texels) ? static_cast<uint64_t>(met) : box_texels;
+  }
+  // Per fragment: itself, its copy in the sort, its index per triangle;
+  // per texel and per triangle an offset (and the triangles' cursors); the
+  // corner coordinates.
+  out.bytes = out.fragments * (2 * sizeof(PatchFragment) + sizeof(uint32_t)) +
+              (uint64_t{resolution} * resolution + 1) * sizeof(uint32_t) + (nt + 1) * 2 * sizeof(uint32_t) +
+              corner_uv.size() * sizeof(glm::vec2);
+  return out;
 }
 
 }  // namespace visq::obscurance

@@ -8,6 +8,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -29,6 +30,14 @@ struct AtlasOptions {
   double chart_normal_cos = 0.8;
   // Ignore TEXCOORD_1 and build an atlas anyway.
   bool force_build = false;
+  // Called once, after the corner coordinates are known and before any
+  // fragment is allocated, with an upper bound of the bytes the rest of the
+  // build holds (AtlasWorkBytes): an error from it is the build's. The
+  // server reserves its work budget here.
+  std::function<Status(uint64_t bytes)> reserve;
+  // Asked every few thousand texels clipped and between the build's
+  // phases: true stops the build with CANCELLED ("atlas: stopped ...").
+  std::function<bool()> stop;
 };
 
 // The part of one triangle that lies in one texel.
@@ -57,6 +66,18 @@ struct ObscuranceAtlas {
   uint32_t texel_count() const { return width * height; }
   bool Covered(uint32_t texel) const { return texel_begin[texel + 1] > texel_begin[texel]; }
 };
+
+// What an atlas's fragments can cost at most, found from its corner
+// coordinates alone (no allocation): per triangle at most the texels of its
+// clamped box, and at most its area plus twice its width and height plus 4
+// in texels (the texels a convex shape meets lie in it grown by one texel
+// each way); the fragments, the sort's second copy and the per-triangle
+// index (36 bytes each), and the per-texel and per-triangle offsets.
+struct AtlasWorkEstimate {
+  uint64_t fragments = 0;  // upper bound
+  uint64_t bytes = 0;
+};
+AtlasWorkEstimate AtlasWorkBytes(const std::vector<glm::vec2>& corner_uv, uint32_t resolution);
 
 // INVALID_ARGUMENT for resolution 0 or above kMaxAtlasResolution
 // ("resolution: 0 ..."), or a resolution too small for the scene's charts.

@@ -163,11 +163,32 @@ StatusOr<LightVisibilityWork> EstimateLightVisibilityWork(Engine& engine, const 
   return work;
 }
 
+uint64_t LightVisibilityWorkBytes(const LightVisibilityQuery& query) {
+  // A point's answer (PointVisibility) and its message with its slot in
+  // the response; a polygon vertex as a dvec3 and as a Vec3 message with
+  // its slot; a point's polygon list as vectors and as messages.
+  constexpr uint64_t kPointBytes = sizeof(exact::PointVisibility) + 80;
+  constexpr uint64_t kVertexBytes = sizeof(glm::dvec3) + 56;
+  constexpr uint64_t kPolygonListBytes = 2 * 32 + 64;
+  const uint64_t points = query.answer_only.empty() ? query.points.size() : query.answer_only.size();
+  uint64_t per_point = kPointBytes;
+  if (query.want_polygons) per_point += kPolygonListBytes + (query.light.vertices.size() + 8) * kVertexBytes;
+  return uint64_t(query.points.size()) * sizeof(exact::PointVisibility) + points * per_point;
+}
+
 StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   const Scene& scene = *resident->scene;
   VISQ_RETURN_IF_ERROR(ValidateLightVisibilityQuery(query, scene));
+  LightVisibilityAnswer answer;
+  if (!query.work_reserved) {
+    VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
+                          engine.work_budget().Reserve(LightVisibilityWorkBytes(query),
+                                                       query.want_polygons ? "points, want_polygons" : "points",
+                                                       query.call.Job()));
+    answer.memory = std::make_shared<WorkMemoryBudget::Reservation>(std::move(memory));
+  }
   const auto start = std::chrono::steady_clock::now();
 
   VISQ_ASSIGN_OR_RETURN(const exact::TreeOptions base, BaseTreeOptions(engine, query, scene));
@@ -239,7 +260,6 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
     }
   };
 
-  LightVisibilityAnswer answer;
   std::mutex held_mutex;  // the trees held now, and what the released ones did
   size_t held = 0;
   auto hold = [&] {

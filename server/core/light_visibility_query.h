@@ -4,12 +4,14 @@
 
 #include <atomic>
 #include <chrono>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "core/accuracy_statement.h"
 #include "core/call_options.h"
+#include "core/work_budget.h"
 #include "common/status.h"
 #include "exact/light_visibility.h"
 
@@ -33,6 +35,10 @@ struct LightVisibilityQuery {
   std::vector<uint32_t> answer_only;
   // Checked between points and while a tree selects its occluders.
   CallOptions call;
+  // Not on the wire. The caller's reservation of the work budget covers
+  // this batch (a hidden-sample map's): RunLightVisibility takes none of
+  // its own, which would wait while the caller's is held.
+  bool work_reserved = false;
 };
 
 struct LightVisibilityAnswer {
@@ -46,6 +52,9 @@ struct LightVisibilityAnswer {
   size_t peak_trees_held = 0;
   Bounds receiver_region;  // the union of their receiver boxes
   double compute_ms = 0;
+  // The answers' share of the work budget (LightVisibilityWorkBytes), held
+  // until the answer is sent; empty when the query's caller reserved.
+  std::shared_ptr<WorkMemoryBudget::Reservation> memory;
 };
 
 inline constexpr size_t kMaxLightVisibilityPoints = 1'000'000;  // per request message
@@ -54,6 +63,13 @@ inline constexpr size_t kMaxLightVertices = 1024;
 // Every check of the query against its scene that needs no tree: what is
 // refused before any work starts.
 [[nodiscard]] Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Scene& scene);
+
+// What a batch's answers hold until they are sent, reserved before it
+// runs: per point its answer and its message, and with polygons, as many
+// as the light's vertices and 8 more a point (a visible part is the light
+// cut by a few occluder edges), as vectors and as messages. 200,000
+// points of a quad light with polygons: about 0.1 GB.
+uint64_t LightVisibilityWorkBytes(const LightVisibilityQuery& query);
 
 [[nodiscard]] StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query);
 

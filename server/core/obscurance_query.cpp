@@ -198,20 +198,52 @@ std::string RaycastSeries(const ResidentScene& resident, const ObscuranceQuery& 
 
 // A stopped estimate's status as the call sees it: CANCELLED or
 // DEADLINE_EXCEEDED, whichever stopped it.
-Status StoppedAs(const CallOptions& call, Status status) {
+Status StoppedAs(const CallOptions& call, Status status, std::string_view where = "obscurance rays") {
   if (status.ok() || !call.Stopped()) return status;
-  return call.StillWanted("obscurance rays");
+  return call.StillWanted(where);
+}
+
+// What a bake or a ray-cast estimate holds over its atlas: per texel and
+// channel (plus the count) the GPU's sums read back and the partial's
+// (uint64), then W and the intensity, and the estimated flags; per
+// triangle its averages.
+uint64_t ObscuranceWorkBytes(const Scene& scene, const ObscuranceQuery& query) {
+  const uint64_t channels = query.params.color_bleeding ? 3 : 1;
+  const uint64_t texels = uint64_t{query.resolution} * query.resolution;
+  return texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1 + 8 + 4 + 4) +
+         scene.TriangleCount() * ((channels + 1) * (8 + 8) + 12 + 8 + 4 + 4);
+}
+
+// The query's atlas, built under one reservation of the work budget: the
+// atlas's own bound (obscurance::AtlasWorkBytes, found from its corner
+// coordinates before any fragment exists) and `then_bytes`, what the
+// caller computes over it. The call's deadline and cancellation stop the
+// build between rows of texels. `memory` holds the reservation.
+StatusOr<obscurance::ObscuranceAtlas> BuildAtlasWithinBudget(Engine& engine, const Scene& scene,
+                                                             const ObscuranceQuery& query, const CallOptions& call,
+                                                             const gpu::JobOptions& job, uint64_t then_bytes,
+                                                             WorkMemoryBudget::Reservation& memory) {
+  obscurance::AtlasOptions options;
+  options.force_build = query.force_built_atlas;
+  options.reserve = [&](uint64_t atlas_bytes) -> Status {
+    VISQ_ASSIGN_OR_RETURN(memory, engine.work_budget().Reserve(atlas_bytes + then_bytes, "resolution", job));
+    return absl::OkStatus();
+  };
+  options.stop = [&call] { return call.Stopped(); };
+  StatusOr<obscurance::ObscuranceAtlas> atlas = obscurance::BuildObscuranceAtlas(scene, query.resolution, options);
+  VISQ_RETURN_IF_ERROR(StoppedAs(call, atlas.status(), "obscurance atlas"));
+  return atlas;
 }
 
 // A whole bake's ray-cast estimate with `rays` rays per patch, its atlas
 // included (as the chosen run's cost is recorded): its ms.
-StatusOr<double> RaycastEstimateMs(const ResidentScene& resident, const ObscuranceQuery& query, uint32_t rays,
-                                   const CallOptions& call) {
+StatusOr<double> RaycastEstimateMs(Engine& engine, const ResidentScene& resident, const ObscuranceQuery& query,
+                                   uint32_t rays, const CallOptions& call) {
   const auto start = std::chrono::steady_clock::now();
-  obscurance::AtlasOptions atlas_options;
-  atlas_options.force_build = query.force_built_atlas;
+  WorkMemoryBudget::Reservation memory;
   VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
-                        obscurance::BuildObscuranceAtlas(*resident.scene, query.resolution, atlas_options));
+                        BuildAtlasWithinBudget(engine, *resident.scene, query, call, call.Job(),
+                                               ObscuranceWorkBytes(*resident.scene, query), memory));
   obscurance::RayEstimateOptions options;
   options.rays_per_patch = rays;
   options.seed = query.params.seed;
@@ -241,8 +273,8 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
     plan.work = directions;
     plan.error_bound = bound;
     for (uint32_t rays : {4u, 16u})
-      options[0].probes.push_back({double(rays), 0.0, [&resident, &query, rays](const CallOptions& call) {
-                                     return RaycastEstimateMs(resident, query, rays, call);
+      options[0].probes.push_back({double(rays), 0.0, [&engine, &resident, &query, rays](const CallOptions& call) {
+                                     return RaycastEstimateMs(engine, resident, query, rays, call);
                                    }});
   }
   {
@@ -293,17 +325,19 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
   const std::string ray_series = RaycastSeries(resident, query);
   if (!model.Predict(ray_series, 1.0)) {
     const auto atlas_start = std::chrono::steady_clock::now();
-    obscurance::AtlasOptions atlas_options;
-    atlas_options.force_build = query.force_built_atlas;
+    WorkMemoryBudget::Reservation memory;
     VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
-                          obscurance::BuildObscuranceAtlas(*resident.scene, query.resolution, atlas_options));
+                          BuildAtlasWithinBudget(engine, *resident.scene, query, query.call, query.call.Job(),
+                                                 ObscuranceWorkBytes(*resident.scene, query), memory));
     const double atlas_ms = MillisecondsSince(atlas_start);
     for (uint32_t rays : {4u, 16u}) {
       const auto start = std::chrono::steady_clock::now();
       obscurance::RayEstimateOptions options;
       options.rays_per_patch = rays;
       options.seed = query.params.seed;
-      VISQ_RETURN_IF_ERROR(obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params, options).status());
+      options.stop = [call = query.call] { return call.Stopped(); };
+      VISQ_RETURN_IF_ERROR(StoppedAs(query.call, obscurance::EstimateObscurancesByRays(*resident.scene, atlas,
+                                                                                       query.params, options).status()));
       const double ms = atlas_ms + MillisecondsSince(start);
       model.Record(ray_series, rays, ms);
       report.probe_ms += ms;
@@ -379,27 +413,19 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   answer.total_directions = query.total_directions != 0 ? query.total_directions
                                                         : query.params.first_direction + query.params.direction_count;
 
-  // The patches: TEXCOORD_1 or a built atlas.
+  // The patches: TEXCOORD_1 or a built atlas, reserved together with the
+  // bake's own arrays before the atlas's fragments exist.
   auto start = std::chrono::steady_clock::now();
-  obscurance::AtlasOptions atlas_options;
-  atlas_options.force_build = query.force_built_atlas;
+  WorkMemoryBudget::Reservation memory;
   VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
-                        obscurance::BuildObscuranceAtlas(scene, query.resolution, atlas_options));
+                        BuildAtlasWithinBudget(engine, scene, query, query.call, query.call.BatchJob(),
+                                               ObscuranceWorkBytes(scene, query), memory));
   answer.width = atlas.width;
   answer.height = atlas.height;
   answer.from_lightmap_uvs = atlas.from_lightmap_uvs;
   answer.chart_count = atlas.chart_count;
   answer.texels_per_unit = atlas.texels_per_unit;
   answer.atlas_ms = MillisecondsSince(start);
-  // Per texel and channel (plus the count): the GPU's sums read back and the
-  // partial's (uint64), then W and the intensity, and the estimated flags.
-  const uint64_t channels = query.params.color_bleeding ? 3 : 1;
-  const uint64_t texels = uint64_t{atlas.width} * atlas.height;
-  VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
-                        engine.work_budget().Reserve(texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1 + 8 + 4 + 4) +
-                                                         scene.TriangleCount() * ((channels + 1) * (8 + 8) + 12 + 8 + 4 + 4),
-                                                     "resolution",
-                                                     query.call.BatchJob()));
 
   answer.method = *query.method;
   answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);
@@ -588,6 +614,27 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
                         engine.FindScene(query.scene, query.scene_version));
   ObscurancePreviewAnswer answer;
   answer.quantity = query.quantity;
+
+  // What the picture holds, reserved before anything is copied: the copies
+  // of the atlas's corners and values and their GL buffer and texture (on
+  // a CPU rasterizer, in this process), and per pixel the RGBA32F target
+  // and its float depth, the RGBA read-back and the answer's RGB and
+  // coverage, kept until sent. At 4096^2 about 0.8 GB.
+  {
+    uint64_t corners = 0, texels = 0;
+    {
+      std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
+      std::lock_guard lock(state->mutex);
+      if (state->updater) {
+        corners = state->updater->atlas().corner_uv.size();
+        texels = uint64_t{state->updater->result().width} * state->updater->result().height;
+      }
+    }
+    const uint64_t pixels = uint64_t{query.camera.width} * query.camera.height;
+    const uint64_t bytes = corners * 2 * sizeof(glm::vec2) + texels * (sizeof(glm::vec3) + 16) +
+                           pixels * (16 + 4 + 16 + 12 + 1) + (uint64_t{1} << 20);
+    VISQ_ASSIGN_OR_RETURN(answer.memory, engine.work_budget().Reserve(bytes, "width x height", query.call.Job()));
+  }
 
   // The solution, copied under the state's lock so that moves and updates
   // may go on while the GPU draws.

@@ -182,6 +182,7 @@ struct ObscurancePreviewAnswer {
   ObscurancePreviewQuery::Quantity quantity = ObscurancePreviewQuery::Quantity::kW;
   gpu::ObscurancePreviewImage image;
   double copy_ms = 0;  // copying the solution out of the updater
+  WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };
 
 // INVALID_ARGUMENT / RESOURCE_EXHAUSTED for a bad camera before any GPU

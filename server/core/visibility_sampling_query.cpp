@@ -156,6 +156,9 @@ StatusOr<LightVisibilityQuery> ExactLightQuery(const std::string& scene, uint64_
   light_query.scene = scene;
   light_query.scene_version = scene_version;
   light_query.call = call;
+  // The map's reservation (HiddenSampleMapWorkBytes) is the batch's; a
+  // planner's probe answers a lattice of a few hundred points.
+  light_query.work_reserved = true;
   std::vector<glm::dvec3>& light = light_query.light.vertices;
   double winding = 1.0;
   if (request.source.polygon_uv.empty()) {

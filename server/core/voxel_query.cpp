@@ -18,6 +18,16 @@ StatusOr<std::vector<uint32_t>> NodeIndices(const Scene& scene, const std::strin
   return found;
 }
 
+// One voxelization's working memory before its answer: a band's grids
+// (surface, front and back for a solid) and read-back, and with local
+// precision every column's near and far.
+uint64_t VoxelizeBandBytes(uint64_t width, uint64_t height, uint64_t slices, uint64_t max_columns_per_job,
+                           bool local) {
+  const uint64_t column_bytes = ((slices + 31) / 32) * 4;
+  const uint64_t band_columns = std::min<uint64_t>(width * height, std::max<uint64_t>(max_columns_per_job, width));
+  return band_columns * (3 * column_bytes + 16 + 8) + (local ? width * height * 8 : 0);
+}
+
 }  // namespace
 
 StatusOr<gpu::VoxelizeParams> ResolveVoxelizeQuery(VoxelizeQuery query, const Scene& scene) {
@@ -62,12 +72,8 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& q
   // the stream's writer may hold unsent.
   const uint64_t column_bytes = ((uint64_t(params.slices) + 31) / 32) * 4;
   const uint64_t grid_bytes = uint64_t(params.width) * params.height * column_bytes;
-  const uint64_t band_columns = std::min<uint64_t>(uint64_t(params.width) * params.height,
-                                                   std::max<uint64_t>(params.max_columns_per_job, params.width));
-  const uint64_t local_ranges = params.precision == gpu::SlicePrecision::kLocal
-                                    ? uint64_t(params.width) * params.height * 8  // near and far, whole
-                                    : 0;
-  const uint64_t band_bytes = band_columns * (3 * column_bytes + 16 + 8) + local_ranges;
+  const uint64_t band_bytes = VoxelizeBandBytes(params.width, params.height, params.slices, params.max_columns_per_job,
+                                                params.precision == gpu::SlicePrecision::kLocal);
   const uint64_t bytes = band_bytes + (sink ? std::min(grid_bytes, kStreamedAnswerQueueBytes) : 2 * grid_bytes);
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(bytes, "width x height x slices", params.job));
@@ -76,12 +82,28 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& q
   return gpu::Voxelize(engine.gpu(), *gpu_scene, params, sink);
 }
 
-StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query) {
+StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query,
+                                                    WorkMemoryBudget::Reservation* hold) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   // Resolved and validated before the GPU upload: a bad request costs nothing.
   VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceParams params, ResolveTransmittanceQuery(query, *resident->scene));
   params.job = query.call.Job();
+  // Reserved before anything is made: per query point its position (the
+  // explicit points copied, the receiver's texels added), its five answers
+  // (17 bytes) and their copy in the response; one group's solid
+  // voxelization at a time (a band, and the whole solid and surface grids
+  // with every column's ambiguity). A 4096^2 receiver is about 1 GB.
+  const uint64_t points = params.points.size() + uint64_t{params.patch.nu} * params.patch.nv;
+  const uint64_t size = params.resolution;
+  const uint64_t grid_bytes = size * size * (((uint64_t{params.slices} + 31) / 32) * 4);
+  const uint64_t bytes = points * (sizeof(glm::dvec3) + 2 * (4 * sizeof(float) + 1)) +
+                         VoxelizeBandBytes(size, size, params.slices, gpu::kDefaultSlicemapColumnsPerJob, true) +
+                         2 * grid_bytes + size * size / 8 + (uint64_t{1} << 20);
+  WorkMemoryBudget::Reservation memory;
+  VISQ_ASSIGN_OR_RETURN(memory, engine.work_budget().Reserve(
+                                    bytes, "points, receiver_width x receiver_height, resolution x slices", params.job));
+  if (hold != nullptr) *hold = std::move(memory);
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
   return gpu::Transmittance(engine.gpu(), *resident->scene, *gpu_scene, params);
 }

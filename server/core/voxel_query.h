@@ -8,6 +8,7 @@
 
 #include "core/accuracy_statement.h"
 #include "core/call_options.h"
+#include "core/work_budget.h"
 #include "common/status.h"
 #include "visq/gpu/slicemap.h"
 
@@ -45,7 +46,11 @@ struct TransmittanceQuery {
 [[nodiscard]] StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query,
                                                         gpu::SlicemapBox* box_used,
                                                         const gpu::VoxelizeBandSink& sink = {});
-[[nodiscard]] StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query);
+// Reserves its working memory (--max-work-bytes) before it starts; with
+// `hold`, the reservation outlives the call, to cover the answer's copy in
+// a response until it is sent.
+[[nodiscard]] StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query,
+                                                                  WorkMemoryBudget::Reservation* hold = nullptr);
 
 // "conservative" or "standard"; "local" or "uniform".
 const char* RasterizationName(gpu::Rasterization rasterization);

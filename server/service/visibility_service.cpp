@@ -559,7 +559,8 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(core::TransmittanceQuery query, FromProto(*request));
     query.call = CallOptionsFor(context, &cancelled);
-    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, core::RunTransmittance(ctx_.engine, query));
+    core::WorkMemoryBudget::Reservation memory;  // until the response is made
+    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, core::RunTransmittance(ctx_.engine, query, &memory));
     const double before_transfer = log.ElapsedMs();
     ToProto(result, response);
     auto* timing = response->mutable_timing();

@@ -194,6 +194,57 @@ TEST(ObscuranceAtlas, ChartsDoNotOverlapAndCoverEveryTriangle) {
   }
 }
 
+// The atlas's work bound (AtlasWorkBytes) is found from the corner
+// coordinates alone and holds: never fewer fragments than the build makes,
+// on built charts and on lightmap UVs of random (thin, large, partly
+// outside) triangles; and close for full-atlas triangles. The reserve hook
+// sees the bound before any fragment and its refusal is the build's; the
+// stop hook ends a build with CANCELLED.
+TEST(ObscuranceAtlas, WorkBoundHoldsAndHooksComeFirst) {
+  const Scene box = MakeCornellBox();
+  for (uint32_t resolution : {16u, 64u, 256u}) {
+    const ObscuranceAtlas atlas = Atlas(box, resolution);
+    const AtlasWorkEstimate estimate = AtlasWorkBytes(atlas.corner_uv, resolution);
+    EXPECT_GE(estimate.fragments, atlas.fragments.size()) << resolution;
+  }
+  Scene random = MakeCornellBox();
+  SplitMix rng{7};
+  random.lightmap_uvs.resize(random.positions.size());
+  for (glm::vec2& uv : random.lightmap_uvs)
+    uv = glm::vec2(float(rng.Uniform() * 1.4 - 0.2), float(rng.Uniform() * 1.4 - 0.2));
+  for (uint32_t resolution : {7u, 64u, 300u}) {
+    StatusOr<ObscuranceAtlas> atlas = BuildObscuranceAtlas(random, resolution);
+    ASSERT_TRUE(atlas.ok()) << atlas.status();
+    ASSERT_TRUE(atlas->from_lightmap_uvs);
+    const AtlasWorkEstimate estimate = AtlasWorkBytes(atlas->corner_uv, resolution);
+    EXPECT_GE(estimate.fragments, atlas->fragments.size()) << resolution;
+  }
+  // A plane whose two triangles cover the whole atlas: within 1% + 2 x
+  // (perimeter) of the real count.
+  Scene plane = LonePlane();
+  plane.lightmap_uvs.assign(plane.positions.size(), glm::vec2(0.0f));
+  for (size_t i = 0; i < plane.positions.size(); ++i)
+    plane.lightmap_uvs[i] = glm::vec2(plane.positions[i].x > 0 ? 1.0f : 0.0f, plane.positions[i].z > 0 ? 1.0f : 0.0f);
+  StatusOr<ObscuranceAtlas> full = BuildObscuranceAtlas(plane, 512);
+  ASSERT_TRUE(full.ok()) << full.status();
+  const AtlasWorkEstimate full_estimate = AtlasWorkBytes(full->corner_uv, 512);
+  EXPECT_GE(full_estimate.fragments, full->fragments.size());
+  EXPECT_LE(full_estimate.fragments, full->fragments.size() * 1.01 + 4 * 4 * 512);
+
+  AtlasOptions refusing;
+  uint64_t seen = 0;
+  refusing.reserve = [&seen](uint64_t bytes) {
+    seen = bytes;
+    return absl::ResourceExhaustedError("resolution: no room");
+  };
+  StatusOr<ObscuranceAtlas> refused = BuildObscuranceAtlas(plane, 512, refusing);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(seen, full_estimate.bytes);
+  AtlasOptions stopping;
+  stopping.stop = [] { return true; };
+  EXPECT_EQ(BuildObscuranceAtlas(plane, 512, stopping).status().code(), absl::StatusCode::kCancelled);
+}
+
 TEST(ObscuranceBake, LonePlaneIsOpen) {
   const Scene plane = LonePlane();
   const ObscuranceAtlas atlas = Atlas(plane, 32);
