@@ -378,7 +378,22 @@ StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOpti
       std::min_element(report.plans.begin(), report.plans.end(),
                        [](const Plan& a, const Plan& b) { return a.predicted_ms < b.predicted_ms; }) -
       report.plans.begin());
+  LogChosenPlan(report, call);
   return report;
+}
+
+void LogChosenPlan(const PlanReport& report, const CallOptions& call) {
+  if (report.plans.empty()) return;
+  constexpr double kLongCallMs = 1000.0;
+  const Plan& chosen = report.chosen_plan();
+  std::string weighed;
+  for (size_t i = 0; i < report.plans.size(); ++i)
+    if (i != report.chosen)
+      absl::StrAppend(&weighed, weighed.empty() ? "; weighed: " : ", ", DescribePlan(report.plans[i]), " ",
+                      fmt::format("{:.0f}", report.plans[i].predicted_ms), " ms");
+  spdlog::log(chosen.predicted_ms >= kLongCallMs ? spdlog::level::info : spdlog::level::debug,
+              "{} plan: {}, predicted {:.0f} ms{}", call.log_tag.empty() ? "[call]" : call.log_tag,
+              DescribePlan(chosen), chosen.predicted_ms, weighed);
 }
 
 std::string DescribePlan(const Plan& plan) {

@@ -62,6 +62,11 @@ struct PlanReport {
   const Plan& chosen_plan() const { return plans[chosen]; }
 };
 
+// A call says what it will run before it starts: the chosen plan, its
+// predicted time and the plans weighed, on the server's log under the
+// call's tag (info when predicted at a second or more, else debug).
+void LogChosenPlan(const PlanReport& report, const CallOptions& call);
+
 // A cost-model file larger than this is not the model's own (4096 series
 // of 16 observations are a few MiB): it is left unread.
 inline constexpr uintmax_t kMaxCostModelFileBytes = uintmax_t{64} << 20;

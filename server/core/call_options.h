@@ -7,6 +7,7 @@
 
 #include <atomic>
 #include <memory>
+#include <string>
 
 #include "visq/gpu/gpu_worker.h"
 
@@ -30,6 +31,9 @@ struct CallOptions {
   const std::atomic<bool>* cancelled = nullptr;  // set when the call is cancelled or drained
   // Shared by the copies of one call's options; null: not measured.
   std::shared_ptr<BuildClock> build_clock;
+  // How the server's log names the call ("[r5 HiddenSampleMap]"), for the
+  // core's own lines about it; empty: "[call]".
+  std::string log_tag;
 
   double BuildMs() const { return build_clock ? build_clock->ms() : 0.0; }
 

@@ -368,6 +368,7 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
   add_plans("obscurance-depth-peeling", "directions", series, obscurance::kMaxDirections);
   add_plans("obscurance-raycast", "rays_per_patch", ray_series, 65536);
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
+  LogChosenPlan(report, query.call);
   return report;
 }
 

@@ -686,6 +686,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
                                                                 resident, with_samples(samples, 0), TracerOf(method),
                                                                 query.call);
                                                           }));
+  LogChosenPlan(report, query.call);
   const Plan& plan = report.chosen_plan();
   HiddenSampleMapAnswer answer;
   answer.method = MethodOfPlan(plan);
@@ -746,6 +747,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
                                                                                                 TracerOf(method),
                                                                                                 query.call);
                                                           }));
+  LogChosenPlan(report, query.call);
   Plan& plan = report.plans[report.chosen];
   PatchVisibilityAnswer answer;
   answer.method = MethodOfPlan(plan);

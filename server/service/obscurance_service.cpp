@@ -279,7 +279,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::Callback
   return RunUnaryCall(ctx_, context, "SetNodeTransform", [this, context, request, response](
                                                               RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     // A call whose client gave up while it queued does not move the node.
-    VISQ_RETURN_IF_ERROR(CallOptionsFor(context, &cancelled).StillWanted("SetNodeTransform: before the move"));
+    VISQ_RETURN_IF_ERROR(CallOptionsFor(context, &cancelled, log).StillWanted("SetNodeTransform: before the move"));
     core::NodeTransformQuery query;
     query.scene = request->scene().name();
     query.scene_version = request->scene().version();
@@ -304,7 +304,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::UpdateObscurances(grpc::Callbac
     query.scene = request->scene().name();
     query.scene_version = request->scene().version();
     query.want_full_w = request->want_full_w();
-    query.call = CallOptionsFor(context, &cancelled);
+    query.call = CallOptionsFor(context, &cancelled, log);
     VISQ_ASSIGN_OR_RETURN(core::ObscuranceUpdateAnswer answer, core::RunUpdateObscurances(ctx_.engine, query));
     const double before_transfer = log.ElapsedMs();
     ToProto(answer, response);
@@ -328,7 +328,7 @@ grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::ObscurancePreviewResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(core::ObscurancePreviewQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled, log);
         VISQ_ASSIGN_OR_RETURN(core::ObscurancePreviewAnswer answer,
                               core::RunRenderObscurancePreview(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
@@ -352,7 +352,7 @@ grpc::ServerWriteReactor<v1::ExportObscurancesResponse>* VisibilityServiceImpl::
                                const RequestLog& log) -> StatusOr<ChunkedResponses<v1::ExportObscurancesResponse>> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(core::ObscuranceExportQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled, log);
         VISQ_ASSIGN_OR_RETURN(core::ObscuranceExportAnswer answer, core::RunExportObscurances(ctx_.engine, query));
         const double before_transfer = log.ElapsedMs();
         log.Info("v{} {}x{}, {} triangles, {} UV floats, {} glTF bytes, export {:.1f} ms", answer.solution_version,

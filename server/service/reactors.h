@@ -91,8 +91,9 @@ inline gpu::SteadyTime SteadyDeadline(const grpc::CallbackServerContext* context
 // The call's deadline and cancellation for the core, so a request whose
 // client gave up stops (the core chooses the GPU priority), and the clock of
 // its waits for lazily built structures (Timing.build_ms).
-inline core::CallOptions CallOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled) {
-  return {SteadyDeadline(context), cancelled, std::make_shared<core::BuildClock>()};
+inline core::CallOptions CallOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled,
+                                        const RequestLog& log) {
+  return {SteadyDeadline(context), cancelled, std::make_shared<core::BuildClock>(), log.Tag()};
 }
 
 // The figures' timing for a streamed answer; transfer_ms and total_ms are as

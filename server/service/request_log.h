@@ -33,6 +33,8 @@ class RequestLog {
   double Done(const Status& status) const;
   double ElapsedMs() const;
   const std::string& id() const { return id_; }
+  // "[id method]", as every line of the request starts.
+  std::string Tag() const { return fmt::format("[{} {}]", id_, method_); }
 
  private:
   std::string id_;

@@ -445,7 +445,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::LightVisibility(grpc::CallbackS
                                                              RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(core::LightVisibilityQuery query, FromProto(*request));
-    query.call = CallOptionsFor(context, &cancelled);
+    query.call = CallOptionsFor(context, &cancelled, log);
     return AnswerLightVisibility(ctx_.engine, query, log, queue_ms, response);
   });
 }
@@ -468,7 +468,7 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
                                Reactor& out) -> StatusOr<v1::HiddenSampleMapResponse> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(core::HiddenSampleMapQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled, log);
         // Each band is written as soon as it is counted, after the first
         // message.
         auto write = [&out](v1::HiddenSampleMapResponse message) { return out.Write(std::move(message)); };
@@ -501,7 +501,7 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
                                Reactor& out) -> StatusOr<v1::VolumetricShadowResponse> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(core::VolumetricQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled, log);
         auto write = [&out](v1::VolumetricShadowResponse message) { return out.Write(std::move(message)); };
         auto sink = [&](const gpu::VolumetricResult& figures, const gpu::VolumetricBand& band) -> Status {
           if (band.first_pixel == 0) VISQ_RETURN_IF_ERROR(write(VolumetricFirstMessage(figures)));
@@ -530,7 +530,7 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
                                Reactor& out) -> StatusOr<v1::VoxelizeResponse> {
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(core::VoxelizeQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled);
+        query.call = CallOptionsFor(context, &cancelled, log);
         gpu::SlicemapBox box;
         // Each band is written as soon as it is made, after the first
         // message.
@@ -558,7 +558,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
                                                            RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(core::TransmittanceQuery query, FromProto(*request));
-    query.call = CallOptionsFor(context, &cancelled);
+    query.call = CallOptionsFor(context, &cancelled, log);
     core::WorkMemoryBudget::Reservation memory;  // until the response is made
     VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, core::RunTransmittance(ctx_.engine, query, &memory));
     const double before_transfer = log.ElapsedMs();
@@ -580,7 +580,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
                                                              RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
     VISQ_ASSIGN_OR_RETURN(core::PatchVisibilityQuery query, FromProto(*request));
-    query.call = CallOptionsFor(context, &cancelled);
+    query.call = CallOptionsFor(context, &cancelled, log);
     VISQ_ASSIGN_OR_RETURN(core::PatchVisibilityAnswer answer, core::RunPatchVisibility(ctx_.engine, query));
     const sampling::PatchVisibilityResult& result = answer.result;
     const double before_transfer = log.ElapsedMs();
