@@ -8,6 +8,7 @@
 //
 //   visq_bench_obscurance [--quick] [--update-only [--update-rays N] [--moves N] [--plain-only|--fast-only]] [--scene NAME] [--atlas N] [--directions N]
 //                         [--bundle N] [--scenes DIR]
+//   visq_bench_obscurance --step-cost [--scene NAME] [--atlas N] [--directions N] [--scenes DIR]
 //   visq_bench_obscurance --coverage [--scene bunny|palm|cornell|sponza] [--atlas N] [--reference-rays N]
 //                         [--directions-list N,N,...] [--bundles N,N,...] [--scenes DIR]
 // --quick: Sponza only, 512^2, 16/64 directions, a 256-ray reference.
@@ -32,6 +33,8 @@
 #include <cstring>
 #include <filesystem>
 #include <memory>
+#include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -330,8 +333,49 @@ int RunCoverage(gpu::GpuWorker& worker, const std::filesystem::path& dir, const 
 
 }  // namespace
 
+// What cutting a bake into GL jobs of a step's target costs: the same bake
+// with each step target (0: a direction is one job), alternating rounds,
+// side by side; the bits must not change.
+int RunStepCost(gpu::GpuWorker& worker, const std::filesystem::path& dir, const std::string& scene_name,
+                uint32_t atlas_resolution, uint32_t directions, const std::vector<uint32_t>& steps_ms, int rounds) {
+  const std::filesystem::path path = scene_name == "veach_ajar" ? dir / "interior_veach_ajar/veach_ajar.gltf"
+                                     : scene_name == "bunny"    ? dir / "bunny/bunny.gltf"
+                                                                : dir / "sponza_dabrovic/sponza.gltf";
+  auto scene = LoadGltfFile(path);
+  if (!scene.ok()) { std::printf("%s: %s\n", path.c_str(), std::string(scene.status().message()).c_str()); return 1; }
+  auto gpu_scene = gpu::GpuScene::Upload(worker, *scene);
+  auto atlas = BuildObscuranceAtlas(*scene, atlas_resolution);
+  if (!gpu_scene.ok() || !atlas.ok()) return 1;
+  ObscuranceParams params;
+  params.d_max = 0.1 * glm::length(scene->bounds.Extent());
+  params.direction_count = directions;
+  std::map<uint32_t, std::vector<double>> seconds;
+  std::optional<std::vector<uint64_t>> first_sums;
+  for (int round = 0; round < rounds; ++round) {
+    for (uint32_t step : steps_ms) {
+      gpu::ObscuranceBakeOptions options;
+      options.step_target_ms = step;
+      const auto t0 = std::chrono::steady_clock::now();
+      auto partial = gpu::BakeObscurancePartial(worker, **gpu_scene, *scene, *atlas, params, options);
+      if (!partial.ok()) { std::printf("bake: %s\n", std::string(partial.status().message()).c_str()); return 1; }
+      seconds[step].push_back(Seconds(t0));
+      if (!first_sums) first_sums = partial->sums;
+      else if (*first_sums != partial->sums) { std::printf("step %u ms: the sums differ\n", step); return 1; }
+    }
+  }
+  auto median = [](std::vector<double> v) { std::sort(v.begin(), v.end()); return v[v.size() / 2]; };
+  const double whole = median(seconds[steps_ms.front()]);
+  std::printf("%s, atlas %u, %u directions, %d rounds (medians; bits equal):\n", scene_name.c_str(), atlas_resolution,
+              directions, rounds);
+  for (uint32_t step : steps_ms)
+    std::printf("  step %4u ms: %8.2f s  %.2fx step %u\n", step, median(seconds[step]), median(seconds[step]) / whole,
+                steps_ms.front());
+  return 0;
+}
+
 int main(int argc, char** argv) {
   bool quick = false, update_only = false, coverage = false, plain_only = false, fast_only = false;
+  bool step_cost = false;
   int moves = 5;
   uint32_t update_rays = 0;
   uint32_t reference_rays_option = 0;
@@ -358,10 +402,14 @@ int main(int argc, char** argv) {
       reference_rays_option = static_cast<uint32_t>(std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--directions-list") && i + 1 < argc) direction_list = ParseList(argv[++i]);
     else if (!std::strcmp(argv[i], "--bundles") && i + 1 < argc) bundle_list = ParseList(argv[++i]);
+    else if (!std::strcmp(argv[i], "--step-cost")) step_cost = true;
   }
   auto worker = gpu::GpuWorker::Start({});
   if (!worker.ok()) { std::fprintf(stderr, "%s\n", std::string(worker.status().message()).c_str()); return 1; }
   std::printf("device: %s\n", (*worker)->device().gl_renderer.c_str());
+  if (step_cost)
+    return RunStepCost(**worker, dir, only_scene.empty() ? "sponza" : only_scene, only_atlas ? only_atlas : 512,
+                       only_directions ? only_directions : 8, {0, 25, 100}, 3);
   if (coverage) {
     if (direction_list.empty()) direction_list = only_directions ? std::vector<uint32_t>{only_directions}
                                                                  : std::vector<uint32_t>{16, 64, 256};
