@@ -211,6 +211,7 @@ class GpuWorker::Impl {
       status = absl::InternalError(absl::StrCat("no GPU context: ", lost_reason_));
     } else {
       status = job.body();
+      ResetPipelineState();
       if (const std::string reset = ContextLossDuringJob(); !reset.empty()) {
         status = absl::InternalError(absl::StrCat("GPU context lost during this job (", reset,
                                                   "); a new context serves the next request"));
@@ -227,6 +228,23 @@ class GpuWorker::Impl {
     }
     if (job.wants_result) job.done.set_value(std::move(status));
     else if (!status.ok()) spdlog::warn("GPU background job failed: {}", status.message());
+  }
+
+  // Every job starts from the same pipeline state, whatever the last one
+  // left (a job that stops between draws returns before its own clean-up):
+  // the switches jobs turn on are off, nothing is bound.
+  static void ResetPipelineState() {
+    for (GLenum capability : {GL_COLOR_LOGIC_OP, GL_BLEND, GL_DEPTH_TEST, GL_SCISSOR_TEST, GL_CULL_FACE})
+      glDisable(capability);
+    glBlendEquation(GL_FUNC_ADD);
+    glLogicOp(GL_COPY);
+    glDepthFunc(GL_LESS);
+    glDepthMask(GL_TRUE);
+    glFrontFace(GL_CCW);
+    glBindFramebuffer(GL_FRAMEBUFFER, 0);
+    glUseProgram(0);
+    glBindVertexArray(0);
+    for (GLuint unit = 0; unit < 4; ++unit) glBindTextureUnit(unit, 0);
   }
 
   // The front of the lowest priority, unless it has overtaken waiting work

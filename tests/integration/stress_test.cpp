@@ -303,7 +303,18 @@ TEST(Stress, SixteenClientsMixingQueriesOnTwoScenesDuringABake) {
           ADD_FAILURE() << "client " << c << ": " << answer.status();
           continue;
         }
-        if (!Same(*answer, reference[scene][which])) ++mismatches;
+        if (!Same(*answer, reference[scene][which])) {
+          ++mismatches;
+          const Answers& expected = reference[scene][which];
+          std::string where;
+          for (size_t k = 0; k < std::min(answer->values.size(), expected.values.size()); ++k)
+            if (answer->values[k] != expected.values[k]) {
+              where = absl::StrCat(", first at value ", k, ": ", answer->values[k], " against ", expected.values[k]);
+              break;
+            }
+          ADD_FAILURE() << "scene " << scene << ", query kind " << which % kQueryKinds
+                        << " (see Ask) differs from its single-client answer" << where;
+        }
         if (!bake_done) ++small_done_during_bake;
       }
     });
