@@ -122,7 +122,12 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
  public:
   ComputeObscurancesReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx,
                             const v1::ComputeObscurancesRequest* request)
-      : log_(context, "ComputeObscurances", &ctx.metrics) {
+      : calls_(ctx.calls), log_(context, "ComputeObscurances", &ctx.metrics) {
+    // In the registry, so that the drain's end tells the bake to stop (it
+    // polls the flag between steps) and the call answers UNAVAILABLE: left
+    // out, a bake ran on until gRPC's own shutdown deadline cut it, answered
+    // CANCELLED, a full drain late.
+    calls_.Add(&cancelled_);
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
       log_.Done(authorized);
@@ -148,7 +153,10 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     Next(lock);
   }
   void OnCancel() override { cancelled_ = true; }
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    calls_.Remove(&cancelled_);
+    delete this;
+  }
 
  private:
   StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> Compute(core::Engine& engine,
@@ -223,12 +231,19 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     if (!final_) return;
     finished_ = true;
     results_.reset();  // the answer's memory goes before the call ends
-    const Status status = broken_ && final_->ok() ? absl::CancelledError("client went away") : *final_;
+    // A call stopped while its answer was written has not had all of it: not
+    // OK (the drain's end stops the writes of a call whose client is there).
+    const Status status = calls_.Final(
+        !final_->ok()  ? *final_
+        : broken_      ? absl::CancelledError("client went away")
+        : cancelled_   ? absl::CancelledError("the call was cancelled while its answer was written")
+                       : *final_);
     lock.unlock();
     log_.Done(status);
     Finish(ToGrpcStatus(status));
   }
 
+  CallRegistry& calls_;
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
   std::mutex mutex_;

@@ -377,6 +377,9 @@ class LightVisibilityStreamReactor final
  public:
   LightVisibilityStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx)
       : log_(context, "LightVisibilityStream", &ctx.metrics), ctx_(ctx), deadline_(SteadyDeadline(context)) {
+    // In the registry, so that the drain's end stops the batch at its next
+    // point and the call answers UNAVAILABLE (as the unary call does).
+    ctx_.calls.Add(&cancelled_);
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
       Done(authorized);
@@ -418,11 +421,15 @@ class LightVisibilityStreamReactor final
     StartRead(&request_);
   }
 
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    ctx_.calls.Remove(&cancelled_);
+    delete this;
+  }
   void OnCancel() override { cancelled_ = true; }
 
  private:
-  void Done(const Status& status) {
+  void Done(const Status& given) {
+    const Status status = ctx_.calls.Final(given);
     log_.Done(status);
     Finish(ToGrpcStatus(status));
   }
