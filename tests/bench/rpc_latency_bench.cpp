@@ -14,9 +14,12 @@
 
 #include <CLI/CLI.hpp>
 
+#include "latency_figures.h"
 #include "visq_client.h"
 
 namespace {
+
+using visq::bench::Report;
 
 bool ParseVec3(const std::string& text, visq::v1::Vec3* out) {
   double x, y, z;
@@ -32,13 +35,6 @@ bool ParsePatch(const std::string& text, visq::v1::Patch* out) {
   return a != std::string::npos && b != std::string::npos && ParseVec3(text.substr(0, a), out->mutable_origin()) &&
          ParseVec3(text.substr(a + 1, b - a - 1), out->mutable_edge_u()) &&
          ParseVec3(text.substr(b + 1), out->mutable_edge_v());
-}
-
-void Report(const char* what, std::vector<double> ms) {
-  std::sort(ms.begin(), ms.end());
-  auto at = [&](double q) { return ms[std::min(ms.size() - 1, static_cast<size_t>(q * ms.size()))]; };
-  std::printf("%-40s n=%zu  p50 %.3f ms  p90 %.3f ms  p99 %.3f ms  max %.3f ms\n", what, ms.size(), at(0.5), at(0.9),
-              at(0.99), ms.back());
 }
 
 template <typename Call>
