@@ -289,7 +289,8 @@ std::string Client::last_server_id() const {
 
 namespace visq::client {
 
-StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request) {
+StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request,
+                                                         const StreamProgressCallback& progress) {
   VISQ_RETURN_IF_ERROR(init_status_);
   auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->HiddenSampleMap(context.get(), request);
@@ -324,8 +325,12 @@ StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleM
       message.clear_blocked_bits();
       out.figures = std::move(message);
       first = false;
+      if (progress) progress(out.visible_fraction.size(), uint64_t{out.figures.width()} * out.figures.height());
       continue;
     }
+    // Every band carries its visible fractions: the texels received so far.
+    if (progress && message.visible_fraction_size() > 0)
+      progress(out.visible_fraction.size(), uint64_t{out.figures.width()} * out.figures.height());
     if (message.lookup_error_size() > 0) {
       VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.lookup_error_size()), "lookup_error"));
       out.figures.mutable_lookup_error()->Add(message.lookup_error().begin(), message.lookup_error().end());
@@ -416,7 +421,7 @@ Status AppendChunk(const Field& field, uint64_t offset, std::vector<T>& into, co
 
 }  // namespace
 
-StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request) {
+StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request, const StreamProgressCallback& progress) {
   VISQ_RETURN_IF_ERROR(init_status_);
   auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->Voxelize(context.get(), request);
@@ -424,6 +429,7 @@ StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request) {
   v1::VoxelizeResponse message;
   bool first = true;
   while (reader->Read(&message)) {
+    const bool had_bits = !message.bits().empty();
     VISQ_RETURN_IF_ERROR(AppendChunk(message.bits(), message.offset(), out.bits, "bits"));
     VISQ_RETURN_IF_ERROR(AppendChunk(message.column_near(), message.offset(), out.column_near, "column_near"));
     VISQ_RETURN_IF_ERROR(AppendChunk(message.column_far(), message.offset(), out.column_far, "column_far"));
@@ -439,6 +445,10 @@ StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request) {
     } else {
       out.figures.MergeFrom(message);
     }
+    // Bands are whole image rows, each row width x words_per_column words.
+    const uint64_t row_words = uint64_t{out.figures.width()} * out.figures.words_per_column();
+    if (progress && row_words > 0 && (had_bits || out.bits.empty()))
+      progress(out.bits.size() / row_words, out.figures.height());
   }
   const grpc::Status status = reader->Finish();
   NoteServer(*context);
@@ -450,7 +460,8 @@ StatusOr<v1::TransmittanceResponse> Client::Transmittance(const v1::Transmittanc
   return CallUnary(&v1::VisibilityService::Stub::Transmittance, request.scene().name(), request);
 }
 
-StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowRequest& request) {
+StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowRequest& request,
+                                                   const StreamProgressCallback& progress) {
   VISQ_RETURN_IF_ERROR(init_status_);
   auto context = NewContext(request.scene().name(), /*stream=*/true);
   auto reader = stub_->VolumetricShadow(context.get(), request);
@@ -461,6 +472,7 @@ StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowReq
     VISQ_RETURN_IF_ERROR(AppendChunk(message.inscattering(), message.offset(), out.inscattering, "inscattering"));
     VISQ_RETURN_IF_ERROR(AppendChunk(message.combined(), message.offset(), out.combined, "combined"));
     // The figures from the first message, the timing from the last.
+    const bool had_pixels = !message.combined().empty() || !message.inscattering().empty();
     message.clear_inscattering();
     message.clear_combined();
     message.clear_offset();
@@ -470,6 +482,10 @@ StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowReq
     } else {
       out.figures.MergeFrom(message);
     }
+    // Rows received so far: each band's images are 3 floats a pixel.
+    const uint64_t row_floats = uint64_t{3} * out.figures.width();
+    const uint64_t floats = std::max(out.combined.size(), out.inscattering.size());
+    if (progress && row_floats > 0 && (had_pixels || floats == 0)) progress(floats / row_floats, out.figures.height());
   }
   const grpc::Status status = reader->Finish();
   NoteServer(*context);

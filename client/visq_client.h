@@ -101,6 +101,11 @@ struct ObscuranceBake {
   uint32_t progress_messages = 0;
 };
 using ObscuranceProgressCallback = std::function<void(const v1::ObscuranceProgress&)>;
+// A streamed answer's progress, from what its stream carries: `done` of
+// `total` units (a map's texels, a grid's or an image's rows) received so
+// far. Called on the calling thread, once the sizes are known (done 0) and
+// after each chunk.
+using StreamProgressCallback = std::function<void(uint64_t done, uint64_t total)>;
 
 // A RenderObscurancePreview picture reassembled from its stream.
 struct ObscurancePreview {
@@ -139,12 +144,15 @@ class Client {
 
   [[nodiscard]] StatusOr<v1::ServerStats> GetStats();
 
-  [[nodiscard]] StatusOr<HiddenSampleMap> ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request);
+  [[nodiscard]] StatusOr<HiddenSampleMap> ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request,
+                                                                  const StreamProgressCallback& progress = {});
   [[nodiscard]] StatusOr<v1::PatchVisibilityResponse> PatchVisibility(const v1::PatchVisibilityRequest& request);
   [[nodiscard]] StatusOr<v1::LightVisibilityResponse> LightVisibility(const v1::LightVisibilityRequest& request);
-  [[nodiscard]] StatusOr<VoxelGrid> Voxelize(const v1::VoxelizeRequest& request);
+  [[nodiscard]] StatusOr<VoxelGrid> Voxelize(const v1::VoxelizeRequest& request,
+                                             const StreamProgressCallback& progress = {});
   [[nodiscard]] StatusOr<v1::TransmittanceResponse> Transmittance(const v1::TransmittanceRequest& request);
-  [[nodiscard]] StatusOr<VolumetricImage> VolumetricShadow(const v1::VolumetricShadowRequest& request);
+  [[nodiscard]] StatusOr<VolumetricImage> VolumetricShadow(const v1::VolumetricShadowRequest& request,
+                                                           const StreamProgressCallback& progress = {});
   // Sends the batches over one stream; answers come back in order.
   [[nodiscard]] StatusOr<std::vector<v1::LightVisibilityResponse>> LightVisibilityStream(
       const std::vector<v1::LightVisibilityRequest>& batches);

@@ -60,29 +60,78 @@ Status ValidateGlobalFlags(const GlobalFlags& flags) {
 }
 
 struct Waiting::State {
+  std::string what;
+  bool terminal = false;
+  std::chrono::steady_clock::time_point start = std::chrono::steady_clock::now();
   std::mutex mutex;
   std::condition_variable done;
   bool finished = false;
+  bool shown = false;       // something was printed (a terminal's line then ends with "\n")
+  bool last_shown = false;  // the line with everything arrived was printed
+  uint64_t parts_done = 0, parts_total = 0;
+  const char* unit = "";
+  std::chrono::steady_clock::time_point last_draw{};
   std::thread thread;
+
+  double Seconds() const {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  }
+  // One report: the bar once the stream told how far it is, the time worked
+  // before. Mutex held.
+  void Draw() {
+    const double seconds = Seconds();
+    std::string text;
+    if (parts_total == 0) {
+      text = fmt::format("{}: the server has worked {:.0f} s", what, std::floor(seconds));
+    } else {
+      const int width = 30;
+      const int bar = static_cast<int>(int64_t{width} * std::min(parts_done, parts_total) / parts_total);
+      text = fmt::format("{}: [{}{}] {}/{} {}, {:.1f} s", what, std::string(bar, '='), std::string(width - bar, ' '),
+                         parts_done, parts_total, unit, seconds);
+      // The time left at the rate so far; nothing until a part has come.
+      if (parts_done > 0 && parts_done < parts_total)
+        text += fmt::format(", ~{:.1f} s left", seconds * double(parts_total - parts_done) / double(parts_done));
+      last_shown = parts_done >= parts_total;
+    }
+    if (terminal) fmt::print(stderr, "\r{} ", text);
+    else fmt::print(stderr, "{}\n", text);
+    std::fflush(stderr);
+    shown = true;
+    last_draw = std::chrono::steady_clock::now();
+  }
 };
 
 Waiting::Waiting(const GlobalFlags& flags, std::string what) {
   const bool terminal = ::isatty(STDERR_FILENO) != 0;
   if (!terminal && !flags.progress) return;
   state_ = std::make_unique<State>();
-  state_->thread = std::thread([state = state_.get(), terminal, what = std::move(what)] {
-    const auto start = std::chrono::steady_clock::now();
+  state_->what = std::move(what);
+  state_->terminal = terminal;
+  state_->thread = std::thread([state = state_.get()] {
     std::unique_lock lock(state->mutex);
-    bool shown = false;
     for (int seconds = 1;; ++seconds) {
-      if (state->done.wait_until(lock, start + std::chrono::seconds(seconds), [&] { return state->finished; })) break;
-      if (terminal) fmt::print(stderr, "\r{}: the server has worked {} s ", what, seconds);
-      else fmt::print(stderr, "{}: the server has worked {} s\n", what, seconds);
-      std::fflush(stderr);
-      shown = true;
+      if (state->done.wait_until(lock, state->start + std::chrono::seconds(seconds), [&] { return state->finished; }))
+        break;
+      state->Draw();
     }
-    if (shown && terminal) fmt::print(stderr, "\n");
   });
+}
+
+void Waiting::Progress(uint64_t done, uint64_t total, const char* unit) {
+  if (!state_) return;
+  std::lock_guard lock(state_->mutex);
+  state_->parts_done = done;
+  state_->parts_total = total;
+  state_->unit = unit;
+  // Only a call past its first second reports at all (as the ticker), so a
+  // quick one stays silent; then a terminal's bar follows each part (at
+  // most 10 redraws a second), and a log gets the line of completion.
+  if (state_->Seconds() < 1.0) return;
+  const bool complete = total > 0 && done >= total;
+  if (state_->terminal ? (complete || std::chrono::steady_clock::now() - state_->last_draw >
+                                          std::chrono::milliseconds(100))
+                       : complete && !state_->last_shown)
+    state_->Draw();
 }
 
 Waiting::~Waiting() {
@@ -93,6 +142,7 @@ Waiting::~Waiting() {
   }
   state_->done.notify_all();
   state_->thread.join();
+  if (state_->shown && state_->terminal) fmt::print(stderr, "\n");
 }
 
 client::Client MakeClient(const GlobalFlags& flags) {

@@ -29,11 +29,20 @@ struct GlobalFlags {
 
 // Runs `call` (an RPC); while it lasts more than a second, says on stderr
 // how long the server has been working (rewritten in place on a terminal,
-// a line a second with --progress otherwise).
+// a line a second with --progress otherwise). Once the answer's stream
+// tells how far it is (Progress), that is a bar with the time left at the
+// rate so far, as the bake's: on a terminal redrawn as each part arrives,
+// otherwise in the line of each second and a last line when all is there.
 class Waiting {
  public:
   Waiting(const GlobalFlags& flags, std::string what);
   ~Waiting();
+  // `done` of `total` `unit` (texels, rows, points) have arrived. Any thread.
+  void Progress(uint64_t done, uint64_t total, const char* unit);
+  // For the client's StreamProgressCallback.
+  client::StreamProgressCallback Callback(const char* unit) {
+    return [this, unit](uint64_t done, uint64_t total) { Progress(done, total, unit); };
+  }
   Waiting(const Waiting&) = delete;
   Waiting& operator=(const Waiting&) = delete;
 

@@ -2,12 +2,11 @@
 // receiver patch, over LightVisibilityStream in batches, so that any size
 // fits the server's message limit and neither side holds every point's
 // request at once.
-#include <unistd.h>
-
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <optional>
 
 #include <fmt/format.h>
 #include <glm/glm.hpp>
@@ -147,8 +146,10 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
   v1::LightVisibilityResponse merged;  // --json: every point, the last batch's tree and cache
   uint64_t sent = 0, answered = 0, batches = 0;
   v1::LightTreeStats tree_sums;
-  // Several batches report each; one batch is a long call like any other.
-  const bool show_progress = total > kBatchPoints && (::isatty(STDERR_FILENO) || cli.flags.progress);
+  // The answers of the stream's batches are its progress (one batch says
+  // nothing until it is answered: until then, the time worked).
+  std::optional<Waiting> waiting;
+  waiting.emplace(cli.flags, "light-visibility");
   auto next = [&](v1::LightVisibilityRequest* batch) {
     if (sent == total) return false;
     *batch->mutable_scene() = first.scene();
@@ -195,21 +196,14 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
       *merged.mutable_accuracy() = response.accuracy();
       *merged.mutable_timing() = response.timing();
     }
-    if (show_progress) {
-      if (::isatty(STDERR_FILENO)) fmt::print(stderr, "\r{}/{} points", answered, total);
-      else fmt::print(stderr, "{}/{} points\n", answered, total);
-      std::fflush(stderr);
-    }
+    waiting->Progress(answered, total, "points");
     return absl::OkStatus();
   };
   auto client = MakeClient(cli.flags);
   const auto start = std::chrono::steady_clock::now();
-  const Status streamed =
-      total > kBatchPoints ? client.LightVisibilityStream(o.scene, next, answer)
-                           : WhileWaiting(cli.flags, "light-visibility",
-                                          [&] { return client.LightVisibilityStream(o.scene, next, answer); });
+  const Status streamed = client.LightVisibilityStream(o.scene, next, answer);
+  waiting.reset();  // its last line before the answer's
   const double total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-  if (show_progress && ::isatty(STDERR_FILENO)) fmt::print(stderr, "\n");
   VISQ_RETURN_IF_ERROR(streamed);
   if (answered != total)
     return absl::DataLossError(fmt::format("{} answers for {} points", answered, total));

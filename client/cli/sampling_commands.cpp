@@ -45,7 +45,13 @@ Status RunHiddenMap(const HiddenMapOptions& o, Cli& cli) {
   request.set_watertight(o.watertight);
   request.set_want_bitmasks(o.bitmasks);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const client::HiddenSampleMap map, WhileWaiting(cli.flags, "hidden-map", [&] { return client.ComputeHiddenSampleMap(request); }));
+  // The bands of rows the map streams as they are made are its progress.
+  StatusOr<client::HiddenSampleMap> answer;
+  {
+    Waiting waiting(cli.flags, "hidden-map");
+    answer = client.ComputeHiddenSampleMap(request, waiting.Callback("texels"));
+  }
+  VISQ_ASSIGN_OR_RETURN(const client::HiddenSampleMap map, std::move(answer));
   const auto& f = map.figures;
   double mean = 0;
   for (float v : map.visible_fraction) mean += v;

@@ -69,7 +69,13 @@ Status RunVoxelize(const VoxelizeOptions& o, Cli& cli) {
   request.set_local_precision(o.local);
   request.set_conservative(o.conservative);
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const client::VoxelGrid grid, WhileWaiting(cli.flags, "voxelize", [&] { return client.Voxelize(request); }));
+  // The bands of image rows the grid streams as they are made are its progress.
+  StatusOr<client::VoxelGrid> answer;
+  {
+    Waiting waiting(cli.flags, "voxelize");
+    answer = client.Voxelize(request, waiting.Callback("rows"));
+  }
+  VISQ_ASSIGN_OR_RETURN(const client::VoxelGrid grid, std::move(answer));
   const auto& f = grid.figures;
   if (!o.png.empty() || !o.npy.empty() || !o.exr.empty()) {
     const std::vector<float> counts = ColumnCounts(grid);
@@ -172,7 +178,12 @@ Status RunVolumetric(const VolumetricOptions& o, Cli& cli) {
       return absl::InvalidArgumentError("--medium-box: expected 'minx,miny,minz;maxx,maxy,maxz'");
   }
   auto client = MakeClient(cli.flags);
-  VISQ_ASSIGN_OR_RETURN(const client::VolumetricImage image, WhileWaiting(cli.flags, "volumetric", [&] { return client.VolumetricShadow(request); }));
+  StatusOr<client::VolumetricImage> answer;
+  {
+    Waiting waiting(cli.flags, "volumetric");
+    answer = client.VolumetricShadow(request, waiting.Callback("rows"));
+  }
+  VISQ_ASSIGN_OR_RETURN(const client::VolumetricImage image, std::move(answer));
   const auto& f = image.figures;
   const std::vector<float>& rgb = o.combined ? image.combined : image.inscattering;
   if (!o.png.empty()) {
