@@ -12,7 +12,9 @@
 // The scene is a BenchCase (scene, light, receiver points): MakeProcedural()
 // builds one; MakeView() takes the points a pinhole camera sees (one per
 // pixel) in a glTF scene or in one generated here (--scene=grille: a room
-// lit through a window with sash bars and a Venetian blind, MakeGrilleScene)
+// lit through a window with sash bars and a Venetian blind, MakeGrilleScene;
+// --scene=foliage: the same room, its window open, lit through flowers on
+// shelves and trees on the floor, MakeFoliageScene, from the shared scenes)
 // and groups them as the server groups a batch: by cubes of 1/32 of the
 // scene's size (exact::GroupReceivers), one tree each; --cells-per-side=0
 // groups them by image tile instead:
@@ -22,6 +24,7 @@
 //     --look-at=10,3,0 [--width=1280 --height=720]
 //     [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32]
 //   visq_bench_exact --scene=grille --width=160 --height=90 --shaft-triangles=20000
+//   visq_bench_exact --scene=foliage [--scenes=../shared/scenes] --width=160 --height=90 --shaft-triangles=20000
 //
 // The time-to-error table at the end sets the exact method's CPU time
 // against Embree's with k x k rays per point, jittered (the baseline) and on
@@ -83,6 +86,8 @@ struct Params {
   // scene generated here ("grille": MakeGrilleScene).
   std::string gltf;
   std::string scene;
+  // The shared scenes, where --scene=foliage takes its assets from.
+  std::filesystem::path scenes = VISQ_SHARED_SCENES_DIR;
   std::string light;          // "x,y,z;x,y,z;x,y,z;x,y,z", a parallelogram, front counter-clockwise
   glm::dvec3 eye{0.0}, look_at{1.0, 0.0, 0.0};
   int width = 1280, height = 720;
@@ -300,12 +305,114 @@ Scene MakeGrilleScene() {
   return s;
 }
 
-// A scene to look at: a glTF file, or --scene=grille built here.
+// Appends the triangles of `asset`'s nodes whose names start with `prefix`
+// (all: ""), moved by `world`, as one new node `name`: a copy placed by hand,
+// flattened like every triangle of a loaded scene.
+void AddCopy(Scene& s, const std::string& name, const Scene& asset, const std::string& prefix,
+             const glm::dmat4& world) {
+  const uint32_t node = static_cast<uint32_t>(s.nodes.size());
+  const uint32_t first = static_cast<uint32_t>(s.triangles.size());
+  for (size_t t = 0; t < asset.triangles.size(); ++t) {
+    if (asset.nodes[asset.triangle_node[t]].name.rfind(prefix, 0) != 0) continue;
+    const uint32_t base = static_cast<uint32_t>(s.positions.size());
+    for (int c = 0; c < 3; ++c) s.positions.push_back(visq::PlacePoint(world, asset.Vertex(t, c)));
+    s.triangles.push_back(glm::uvec3(base, base + 1, base + 2));
+    s.triangle_material.push_back(0);
+    s.triangle_node.push_back(node);
+  }
+  s.nodes.push_back(visq::SceneNode{name, static_cast<int>(node), -1, world, first,
+                                    static_cast<uint32_t>(s.triangles.size()) - first});
+}
+
+// Translation, rotation about +y and uniform scale.
+glm::dmat4 Place(const glm::dvec3& at, double degrees_about_y, double scale) {
+  const double a = degrees_about_y * M_PI / 180.0, c = std::cos(a), sn = std::sin(a);
+  glm::dmat4 m(1.0);
+  m[0] = glm::dvec4(scale * c, 0, -scale * sn, 0);
+  m[1] = glm::dvec4(0, scale, 0, 0);
+  m[2] = glm::dvec4(scale * sn, 0, scale * c, 0);
+  m[3] = glm::dvec4(at, 1.0);
+  return m;
+}
+
+// The foliage (issue 44, section 3): the grille's closed 5 x 2.8 x 5 room
+// (Y up, floor at y = 0, x in [0, 5], z in [-2.5, 2.5]) with the same
+// 2.1 x 1.4 window in its x = 0 wall, but open, and lit by the same
+// 1.6 x 1.6 light 1 m outside. The light reaches the floor through
+// foliage, as in a plant-filled room: the glass vase's flowers
+// (GlassVaseFlowers, the flowers alone, twice their size: 0.33 m tall)
+// stand in rows on the window sill and on a shelf across the opening at
+// 1.45 m, and Kenney's two trees (tree_detailed, tree_palmDetailedTall,
+// 0.7-1.1x) stand on the floor in a 3 x 4 grid where the window lights it.
+// Every lit floor point sees the light through dozens of petals, leaves and
+// fronds: thin, many, at every distance, with no regular pattern for a
+// ray caster's strata to alias against. Copies are flattened (the bench's
+// exact side works on the flattened triangles, as the server's does). The
+// assets come from the shared scenes; nullopt (and a message) without them.
+std::optional<Scene> MakeFoliageScene(const std::filesystem::path& scenes) {
+  const std::filesystem::path files[3] = {scenes / "foliage_glass_vase_flowers/GlassVaseFlowers.gltf",
+                                          scenes / "tree_kenney/tree_detailed.glb",
+                                          scenes / "tree_kenney/tree_palmDetailedTall.glb"};
+  std::vector<Scene> assets;
+  for (const auto& file : files) {
+    auto asset = visq::LoadGltfFile(file);
+    if (!asset.ok()) {
+      std::fprintf(stderr, "foliage: %s: %s\n", file.c_str(), asset.status().ToString().c_str());
+      return std::nullopt;
+    }
+    assets.push_back(std::move(*asset));
+  }
+  const Scene &flowers = assets[0], &tree = assets[1], &palm = assets[2];
+  Scene s;
+  s.materials = {{"white", glm::dvec3(0.7), glm::dvec3(0.0)}};
+  // The room, its window wall around the opening y in [0.8, 2.2], z in
+  // [-1.05, 1.05], as the grille's.
+  AddGrid(s, "floor", {0, 0, -2.5}, {0, 0, 5}, {5, 0, 0}, 32, 32);
+  visq::AddQuad(s, "ceiling", {0, 2.8, -2.5}, {5, 0, 0}, {0, 0, 5}, 0);
+  visq::AddQuad(s, "back_wall", {5, 0, -2.5}, {0, 0, 5}, {0, 2.8, 0}, 0);
+  visq::AddQuad(s, "side_wall_near", {0, 0, -2.5}, {5, 0, 0}, {0, 2.8, 0}, 0);
+  visq::AddQuad(s, "side_wall_far", {0, 0, 2.5}, {0, 2.8, 0}, {5, 0, 0}, 0);
+  visq::AddQuad(s, "wall_below", {0, 0, -2.5}, {0, 0.8, 0}, {0, 0, 5}, 0);
+  visq::AddQuad(s, "wall_above", {0, 2.2, -2.5}, {0, 0.6, 0}, {0, 0, 5}, 0);
+  visq::AddQuad(s, "wall_left", {0, 0.8, -2.5}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
+  visq::AddQuad(s, "wall_right", {0, 0.8, 1.05}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
+  // The sill (inside the wall's 0.25 m) and a shelf board across the opening.
+  visq::AddBox(s, "sill", {0.0, 0.78, -1.05}, {0.25, 0.8, 1.05}, 0);
+  visq::AddBox(s, "shelf", {0.0, 1.43, -1.05}, {0.25, 1.45, 1.05}, 0);
+  // Flowers: 9 on the sill and 9 on the shelf, each turned its own way.
+  // The asset's flower nodes stand at x 0.0016 and 0.1216: the first alone,
+  // moved to the origin, is one bunch.
+  int n = 0;
+  for (const double y : {0.8, 1.45})
+    for (int i = 0; i < 9; ++i, ++n) {
+      const double z = -0.92 + 1.84 * i / 8.0;
+      glm::dmat4 to_origin(1.0);
+      to_origin[3] = glm::dvec4(-0.0016, -0.038, 0.0022, 1.0);
+      AddCopy(s, "flowers", flowers, "Flowers1", Place({0.13, y, z}, 37.0 * n, 2.0) * to_origin);
+    }
+  // Trees on the floor where the window lights it, alternating the kinds.
+  n = 0;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 4; ++j, ++n) {
+      const glm::dvec3 at(0.9 + 0.75 * i, 0.05, -1.35 + 0.9 * j + (i % 2 ? 0.3 : 0.0));
+      AddCopy(s, n % 2 ? "palm" : "tree", n % 2 ? palm : tree, "", Place(at, 53.0 * n, 0.7 + 0.4 * ((n * 7) % 5) / 4.0));
+    }
+  visq::UpdateBounds(s);
+  return s;
+}
+
+// A scene to look at: a glTF file, or --scene=grille or foliage built here.
 std::optional<BenchCase> LoadCase(const Params& p) {
   BenchCase bc;
   if (p.scene == "grille") {
     bc.name = "grille";
     bc.scene = MakeGrilleScene();
+  } else if (p.scene == "foliage") {
+    bc.name = "foliage";
+    std::optional<Scene> scene = MakeFoliageScene(p.scenes);
+    if (!scene) return std::nullopt;
+    bc.scene = std::move(*scene);
+    std::printf("foliage: %zu triangles\n", bc.scene.TriangleCount());
   } else {
     auto scene = visq::LoadGltfFile(p.gltf);
     if (!scene.ok()) {
@@ -889,6 +996,7 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--seed")) p.seed = static_cast<uint32_t>(std::atoi(v));
     else if (const char* v = value("--gltf")) p.gltf = v;
     else if (const char* v = value("--scene")) p.scene = v;
+    else if (const char* v = value("--scenes")) p.scenes = v;
     else if (const char* v = value("--light")) p.light = v;
     else if (const char* v = value("--eye")) eye_given = std::sscanf(v, "%lf,%lf,%lf", &p.eye.x, &p.eye.y, &p.eye.z) == 3;
     else if (const char* v = value("--look-at")) {
@@ -910,16 +1018,22 @@ int main(int argc, char** argv) {
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
                    "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--direct-candidates=N] [--keep-answers=0] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
-                   "       %s --scene=grille [the camera and grouping flags; --light, --eye, --look-at default to the grille's]\n",
+                   "       %s --scene=grille|foliage [--scenes=DIR] [the camera and grouping flags; --light, --eye, --look-at default to the room's]\n",
                    argv[0], argv[0], argv[0]);
       return 2;
     }
   }
-  if (!p.scene.empty() && p.scene != "grille") {
-    std::fprintf(stderr, "--scene: '%s' is not a generated scene (grille)\n", p.scene.c_str());
+  if (!p.scene.empty() && p.scene != "grille" && p.scene != "foliage") {
+    std::fprintf(stderr, "--scene: '%s' is not a generated scene (grille, foliage)\n", p.scene.c_str());
     return 2;
   }
-  if (p.scene == "grille") {
+  if (p.scene == "foliage" && !std::filesystem::exists(p.scenes / "tree_kenney")) {
+    std::printf("--scene=foliage: the shared scenes are not at %s (--scenes=DIR): nothing measured\n",
+                p.scenes.c_str());
+    return 77;
+  }
+  // The foliage stands in the grille's room, under the same window and light.
+  if (p.scene == "grille" || p.scene == "foliage") {
     // The light just outside the window, facing into the room; the camera
     // 2.2 m over the floor, looking almost straight down at the part the
     // window lights (x in [0.35, 2.9]), so every point is on the floor and
