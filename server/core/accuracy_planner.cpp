@@ -94,6 +94,33 @@ size_t CostModel::Observations(const std::string& series) const {
   return it == series_.end() ? 0 : it->second.size();
 }
 
+bool CostModel::FirstProbeOfMethod(const std::string& series, double extra) {
+  const size_t after_scene = series.find('/');
+  std::lock_guard lock(mutex_);
+  return methods_probed_
+      .emplace(after_scene == std::string::npos ? series : series.substr(after_scene + 1), extra)
+      .second;
+}
+
+double CostModel::LargestWork(const std::string& series) const {
+  std::lock_guard lock(mutex_);
+  auto it = series_.find(series);
+  double largest = 0.0;
+  if (it != series_.end())
+    for (const Observation& o : it->second) largest = std::max(largest, o.work);
+  return largest;
+}
+
+size_t CostModel::DistinctSizes(const std::string& series) const {
+  std::lock_guard lock(mutex_);
+  auto it = series_.find(series);
+  if (it == series_.end()) return 0;
+  std::vector<std::pair<double, double>> sizes;
+  for (const Observation& o : it->second) sizes.emplace_back(o.work, o.extra);
+  std::sort(sizes.begin(), sizes.end());
+  return static_cast<size_t>(std::unique(sizes.begin(), sizes.end()) - sizes.begin());
+}
+
 // One observation a line: series, work and ms, tab-separated (Record keeps
 // no series holding a tab or newline), then the extra work where there is
 // any (a file of one unit reads as before).
@@ -251,9 +278,21 @@ std::optional<double> CostModel::Predict(const std::string& series, double work,
     // to it: it also absorbs how a rate falls as the work grows (a lazily
     // refined tree's points get cheaper), which can be 50x such a run.
     if (work == 0.0 && extra == 0.0) return idle_runs > 0 ? idle_sum / double(idle_runs) : cheapest;
+    // A run that cost more than twice a run of at least its work in both
+    // units paid for something else: one-time costs (a method's first
+    // probe compiles its GL programs: 103 ms for 16 Cornell texels against
+    // 7 ms for 256 right after), or a machine busy for a moment. Fitted,
+    // it turns into a rate and is extrapolated by the request's size.
+    std::deque<Observation> kept;
+    for (const Observation& o : observations) {
+      const bool paid_for_more = std::any_of(observations.begin(), observations.end(), [&](const Observation& other) {
+        return other.work >= o.work && other.extra >= o.extra && 2.0 * other.ms < o.ms;
+      });
+      if (!paid_for_more) kept.push_back(o);
+    }
     // Never below the cheapest run the series has measured: a fit of two
     // probes may leave out the fixed part and predict next to nothing.
-    const std::array<double, 3> c = FitNonNegative(observations);
+    const std::array<double, 3> c = FitNonNegative(kept);
     return std::max(cheapest, c[0] + c[1] * work + c[2] * extra);
   }
 
@@ -293,10 +332,14 @@ namespace {
 
 enum class ProbeOutcome { kMeasured, kCut, kUnusable };
 
-// Runs an option's probes within `budget_ms` (and the call's own deadline
-// and cancellation), recording each into the model.
-StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& option, double budget_ms,
-                                   const CallOptions& call, double& probe_ms) {
+// Runs an option's probes from `first_probe` on within `budget_ms` (and the
+// call's own deadline and cancellation), recording each into the model.
+// kCut: the first of them ran past the budget (nothing learned); a later
+// one that does leaves what the earlier ones measured (kMeasured) and is
+// recorded as a cut probe, so that later requests back off before trying it
+// again.
+StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& option, size_t first_probe,
+                                   double budget_ms, const CallOptions& call, double& probe_ms) {
   const Plan& plan = option.plan;
   const auto start = std::chrono::steady_clock::now();
   CallOptions probe_call = call;
@@ -304,7 +347,8 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
     const auto budget_end = start + std::chrono::microseconds(static_cast<int64_t>(budget_ms * 1000.0));
     probe_call.deadline = std::min(call.deadline, budget_end);
   }
-  for (size_t k = 0; k < option.probes.size(); ++k) {
+  const bool fresh = model.Observations(plan.cost_key) == 0;
+  for (size_t k = first_probe; k < option.probes.size(); ++k) {
     const EqualAnswerOption::Probe& probe = option.probes[k];
     if (k > 0) {
       // A larger probe only when it is cheap beside the request itself (as
@@ -321,14 +365,23 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
     VISQ_RETURN_IF_ERROR(call.StillWanted("choosing a method"));
     const auto probe_start = std::chrono::steady_clock::now();
     StatusOr<double> ms = probe.run(probe_call);
-    probe_ms += MillisecondsSince(probe_start);
+    const double first_run_ms = MillisecondsSince(probe_start);
+    probe_ms += first_run_ms;
+    const bool first_of_method = model.FirstProbeOfMethod(plan.cost_key, probe.extra);
+    if (ms.ok() && k == first_probe && (fresh || first_of_method) &&
+        (first_of_method || !std::isfinite(budget_ms) ||
+         MillisecondsSince(start) + first_run_ms <= kRepeatProbeShareOfBudget * budget_ms)) {
+      const auto again_start = std::chrono::steady_clock::now();
+      StatusOr<double> again = probe.run(probe_call);
+      probe_ms += MillisecondsSince(again_start);
+      if (again.ok()) ms = std::min(*ms, *again);
+    }
     if (!ms.ok()) {
       // The call itself still wants its answer: the probe ran out of its
       // budget, not the call.
       if (!call.Stopped() && probe_call.Stopped()) {
-        if (k > 0) return ProbeOutcome::kMeasured;  // the smaller probes predict it
         model.RecordCutProbe(plan.cost_key, budget_ms);
-        return ProbeOutcome::kCut;
+        return k > first_probe || !fresh ? ProbeOutcome::kMeasured : ProbeOutcome::kCut;
       }
       if (ms.status().code() == absl::StatusCode::kFailedPrecondition) return ProbeOutcome::kUnusable;
       return ms.status();
@@ -336,6 +389,28 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
     model.Record(plan.cost_key, probe.work, *ms, probe.extra);
   }
   return ProbeOutcome::kMeasured;
+}
+
+// The probe that would teach the model most about a measured option: the
+// second size of one measured at one size only, or the first larger than
+// its largest run for a request kLongestExtrapolation times that; none
+// where that probe is not small beside the request.
+std::optional<size_t> NextProbeToLearn(const CostModel& model, const EqualAnswerOption& option) {
+  const Plan& plan = option.plan;
+  const double largest = model.LargestWork(plan.cost_key);
+  std::optional<size_t> next;
+  if (model.DistinctSizes(plan.cost_key) < 2 && option.probes.size() > 1) {
+    next = 1;
+  } else if (plan.work > kLongestExtrapolation * largest) {
+    for (size_t k = 0; k < option.probes.size() && !next; ++k)
+      if (option.probes[k].work > largest) next = k;
+  }
+  if (!next) return std::nullopt;
+  const EqualAnswerOption::Probe& probe = option.probes[*next];
+  const double probe_ms = model.Predict(plan.cost_key, probe.work, probe.extra).value_or(0.0);
+  const double request_ms = model.Predict(plan.cost_key, plan.work, plan.extra_work).value_or(0.0);
+  if (probe_ms > kNextProbeShareOfRequest * request_ms) return std::nullopt;
+  return next;
 }
 
 }  // namespace
@@ -359,13 +434,29 @@ StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOpti
         continue;
       }
       const double credit_ms = model.TakeExplorationCredit(plan.cost_key);
-      VISQ_ASSIGN_OR_RETURN(const ProbeOutcome outcome, ProbeOption(model, option, budget_ms, call, report.probe_ms));
+      VISQ_ASSIGN_OR_RETURN(const ProbeOutcome outcome,
+                            ProbeOption(model, option, 0, budget_ms, call, report.probe_ms));
       if (outcome == ProbeOutcome::kUnusable) continue;
       if (outcome == ProbeOutcome::kCut) {
         // A first cut paid one-time costs: what was set aside stays.
         if (model.CutProbes(plan.cost_key) < 2) model.AddExplorationCredit(plan.cost_key, credit_ms + share_ms);
         report.cut_probes.push_back(plan.method);
         continue;
+      }
+    } else if (const std::optional<size_t> next = NextProbeToLearn(model, option)) {
+      // Measured at one size, or far below this request: its prediction is
+      // the safe side's guess (fixed costs taken for rate), which was 1000x
+      // a raster map's real cost and 10x the ray caster's. This request's
+      // share buys the next probe size.
+      const double share_ms = std::isfinite(best_ms) ? kProbeShareOfBest * best_ms : best_ms;
+      const double budget_ms = share_ms + model.ExplorationCredit(plan.cost_key);
+      if (budget_ms < kSmallestProbeBudgetMs || budget_ms < 4.0 * model.CutProbeBudget(plan.cost_key)) {
+        model.AddExplorationCredit(plan.cost_key, share_ms);
+      } else {
+        model.TakeExplorationCredit(plan.cost_key);
+        VISQ_ASSIGN_OR_RETURN(const ProbeOutcome outcome,
+                              ProbeOption(model, option, *next, budget_ms, call, report.probe_ms));
+        if (outcome == ProbeOutcome::kUnusable) continue;
       }
     }
     plan.predicted_ms = model.Predict(plan.cost_key, plan.work, plan.extra_work).value_or(0.0);

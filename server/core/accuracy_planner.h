@@ -17,6 +17,7 @@
 #include <map>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -94,6 +95,13 @@ class CostModel {
   std::optional<double> Predict(const std::string& series, double work, double extra = 0.0) const;
   // How many observations the series holds.
   size_t Observations(const std::string& series) const;
+  // How many different amounts of work (work and extra) they were made at:
+  // one size cannot tell a fixed cost from a rate, nor one unit's rate
+  // from the other's.
+  size_t DistinctSizes(const std::string& series) const;
+  // The most work (first unit) an observation of the series was made at; 0
+  // before one.
+  double LargestWork(const std::string& series) const;
 
   // Reads the observations `path` holds (none when it is absent; malformed
   // lines are skipped) and rewrites it, whole and atomically, after every
@@ -122,6 +130,14 @@ class CostModel {
   double TakeExplorationCredit(const std::string& series);
   double ExplorationCredit(const std::string& series) const;
 
+  // Whether this is the first probe of the series' kind and method (the
+  // series name after its scene) at this amount of `extra` work in this
+  // process, marking it probed: such a run pays the method's one-time
+  // costs (GL programs compiled; a raster map's tables for its sample
+  // count: 259 ms for a 4 x 4 Cornell map at 1,024 samples, 3.4 ms the
+  // next time).
+  bool FirstProbeOfMethod(const std::string& series, double extra);
+
   struct Observation {
     double work = 0.0;
     double ms = 0.0;
@@ -140,6 +156,7 @@ class CostModel {
   };
   std::map<std::string, CutProbe> cut_probes_;
   std::map<std::string, double> exploration_credit_;
+  std::set<std::pair<std::string, double>> methods_probed_;
   std::filesystem::path file_;
 };
 
@@ -188,10 +205,25 @@ inline constexpr double kSmallestProbeBudgetMs = 10.0;
 // A probe after the first runs only while the model predicts it at most
 // this share of the whole request.
 inline constexpr double kNextProbeShareOfRequest = 0.1;
+// A prediction for more than this many times the most work the method was
+// measured at extrapolates small runs, whose fixed costs (a thread pool's
+// wake-up, a pass's set-up) look like rate: the next larger probe runs
+// first, where it is small beside the request.
+inline constexpr double kLongestExtrapolation = 64.0;
+// A method's first probe on a scene is run twice, and the cheaper run kept,
+// where the second run fits in this share of the probe's budget or the
+// method was never probed in this process: the first pays one-time costs
+// (GL programs compiled, buffers uploaded) that a fit would otherwise take
+// for a rate and extrapolate by the request's size.
+inline constexpr double kRepeatProbeShareOfBudget = 0.25;
 
 // Predicts every option (probing, in the order given, the ones this series
 // has not measured: put the cheapest to probe first; the first option's
 // probes have no budget but the call's) and chooses the fastest. An option
+// measured at one size only (its larger probe did not fit the first
+// request's budget) runs its next probe within each later request's share,
+// until the model has two sizes to separate its fixed cost from its rates;
+// so does one asked for kLongestExtrapolation times its largest run. An option
 // whose probe fails with FAILED_PRECONDITION (it cannot answer this
 // request honestly) or runs past its budget is left out; FAILED_PRECONDITION
 // when none is left.

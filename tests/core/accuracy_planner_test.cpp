@@ -75,6 +75,17 @@ TEST(CostModel, TwoUnitsNeverFitANegativeRate) {
     for (double extra : {0.0, 1.0, 1e6}) EXPECT_GE(*model.Predict("s", work, extra), 0.0);
 }
 
+// A run that cost more than twice a larger one paid for something else
+// (its method's programs compiled): fitted, it would become a rate.
+TEST(CostModel, ARunThatCostMoreThanTwiceALargerOneIsLeftOutOfTheFit) {
+  CostModel model;
+  auto cost = [](double work, double extra) { return 1e-5 * work + 0.005 * extra; };
+  model.Record("s", 16.0 * 256, 100.0 + cost(16.0 * 256, 256.0), 256.0);  // and 100 ms of compiling
+  model.Record("s", 256.0 * 1024, cost(256.0 * 1024, 1024.0), 1024.0);
+  model.Record("s", 4096.0 * 1024, cost(4096.0 * 1024, 1024.0), 1024.0);
+  EXPECT_NEAR(*model.Predict("s", 65536.0 * 1024, 1024.0), cost(65536.0 * 1024, 1024.0), 1e-6);
+}
+
 // A run of no work (the exact method answering every point from its
 // trees' stores) is kept: it is the fixed cost, alone or beside the rates.
 TEST(CostModel, ARunOfNoWorkMeasuresTheFixedCost) {
@@ -363,6 +374,72 @@ TEST(ChooseFastest, AMethodThatCannotAnswerIsLeftOutAndNoneLeftIsRefused) {
   ASSERT_TRUE(report.ok()) << report.status();
   ASSERT_EQ(report->plans.size(), 1u);
   EXPECT_EQ(report->chosen_plan().method, "raycast");
+}
+
+// A raster map's cost: a pass over the scene per sample, whatever the
+// receiver (`per_pass` ms a sample), and a little per fragment; the first
+// run also compiles the method's programs (`one_time_ms`).
+EqualAnswerOption PassesAndFragmentsOption(const std::string& method, double points, double samples, double per_pass,
+                                           double per_fragment, double one_time_ms, int* probes_run) {
+  EqualAnswerOption option;
+  option.plan.method = method;
+  option.plan.cost_key = "scene/map/" + method;
+  option.plan.work = points * samples;
+  option.plan.extra_work = samples;
+  auto cost = [=](double probe_points) {
+    return [=](const CallOptions&) -> StatusOr<double> {
+      const double ms = per_pass * samples + per_fragment * probe_points * samples + (*probes_run == 0 ? one_time_ms : 0.0);
+      ++*probes_run;
+      return ms;
+    };
+  };
+  for (double probe_points : {16.0, 256.0}) option.probes.push_back({probe_points * samples, samples, cost(probe_points)});
+  return option;
+}
+
+// The Cornell box on llvmpipe at 256 x 256 texels and 1,024 samples: one
+// pass costs 0.1 ms and a fragment next to nothing, so the rasterizer
+// (about 140 ms) beats the ray caster (1 s). Its first probe of 16 texels
+// also compiled its programs (100 ms), which extrapolated by the texels
+// predicted the map at minutes; run again, the probe costs its passes.
+TEST(ChooseFastest, AFirstProbeThatPaidOneTimeCostsIsRunAgainAndTheCheaperKept) {
+  CostModel model;
+  int raycast_probes = 0, raster_probes = 0;
+  std::vector<EqualAnswerOption> options;
+  options.push_back(Option("raycast", 65536.0 * 1024.0, 1.5e-5, &raycast_probes));
+  options.push_back(PassesAndFragmentsOption("raster", 65536.0, 1024.0, 0.1, 1e-9, 100.0, &raster_probes));
+  auto report = ChooseFastest(model, options, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_GE(raster_probes, 2);
+  EXPECT_EQ(report->chosen_plan().method, "raster");
+  EXPECT_LT(report->chosen_plan().predicted_ms, 2.0 * (0.1 * 1024.0 + 1e-9 * 65536.0 * 1024.0));
+}
+
+// A method measured at one size: each later request's share buys its next
+// probe, until two sizes separate its passes from its fragments.
+TEST(ChooseFastest, AMethodMeasuredAtOneSizeProbesTheNextSizeOnALaterRequest) {
+  CostModel model;
+  int raycast_probes = 0, raster_probes = 0;
+  // A small map first: the larger probe (256 texels) is too large a share
+  // of a 1,000-texel request, so the rasterizer is measured at 16 only.
+  std::vector<EqualAnswerOption> small;
+  small.push_back(Option("raycast", 1000.0 * 1024.0, 1e-4, &raycast_probes));
+  small.push_back(PassesAndFragmentsOption("raster", 1000.0, 1024.0, 0.1, 1e-6, 0.0, &raster_probes));
+  ASSERT_TRUE(ChooseFastest(model, small, {}).ok());
+  EXPECT_EQ(model.DistinctSizes("scene/map/raster"), 1u);
+  const int after_small = raster_probes;
+  // A large map: the rasterizer's prediction from one size is the safe
+  // side's (all of it per fragment); the request's share buys the second.
+  std::vector<EqualAnswerOption> large;
+  large.push_back(Option("raycast", 65536.0 * 1024.0, 1e-4, &raycast_probes));
+  large.push_back(PassesAndFragmentsOption("raster", 65536.0, 1024.0, 0.1, 1e-6, 0.0, &raster_probes));
+  auto report = ChooseFastest(model, large, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_EQ(raster_probes, after_small + 1);
+  EXPECT_EQ(model.DistinctSizes("scene/map/raster"), 2u);
+  EXPECT_EQ(report->chosen_plan().method, "raster");
+  const double truth = 0.1 * 1024.0 + 1e-6 * 65536.0 * 1024.0;
+  EXPECT_NEAR(report->chosen_plan().predicted_ms, truth, 0.01 * truth);
 }
 
 TEST(ChooseFastest, ACancelledCallStopsChoosing) {
