@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <vector>
@@ -134,27 +135,39 @@ DirectionFrame FrameOf(const obscurance::BundleDirection& d, const glm::dvec3& c
 }
 
 // Where a direction's peeling stands between GL jobs: the layer being drawn
-// and how much of its draw is done. A direction is peeled in GL jobs of
-// about a step's target, each drawing whole layers or pieces of one, so
-// that a call's stop, and other calls' jobs, get the GL thread between them
-// even where one layer over a large scene takes seconds (a CPU rasterizer).
+// and how much of its draw is done, or how far the transfer after it (or
+// the count squares at the direction's end) has run. A direction is peeled
+// in GL jobs of about a step's target, each drawing whole layers or pieces
+// of one and dispatching bands of rows, so that a call's stop, and other
+// calls' jobs, get the GL thread between them even where one layer over a
+// large scene, or one transfer over a large bundle, takes a second (a CPU
+// rasterizer). The sums are integers added atomically: the bands leave the
+// bits as one dispatch would.
 struct DirectionPeel {
+  enum class Stage { kDraw, kTransfer, kLastTransfer, kCountSquares, kDone };
+  Stage stage = Stage::kDraw;
   uint32_t layer = 0;
   std::optional<DrawCursor> layer_draw;  // what is left of the layer's draw
-  bool any_sample = false;  // a fragment of the layer passed, so far
-  bool done = false;
+  bool any_sample = false;  // a fragment of the layer passed
+  uint32_t next_band = 0;   // the transfer's next row of groups, or the count squares' next group
+  bool done() const { return stage == Stage::kDone; }
 };
 
-// Peels one direction on from `peel` until it is done or this job has run
-// for `step_ms` (then the next job resumes it): each layer's fragments
-// strictly behind the last layer's, a transfer between each pair of
-// consecutive layers as soon as the second is drawn, and the direction's
-// counts squared once a layer is empty. GL thread.
+// Sizes of the units a step is made of, by their measured time: triangles
+// of a draw piece, rows of groups of a transfer band, groups of a count
+// squares band. One set for a whole bake: every direction draws the same
+// scene into the same bundle.
+struct PeelSizers {
+  TimedSizer draw;
+  TimedSizer transfer_rows;
+  TimedSizer square_groups;
+};
+
 Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& whole_draw,
                 const ScenePartDraw& whole_commands,
                 const DirectionFrame& frame, uint32_t bundle, const ObscuranceAtlas& atlas,
                 const ObscuranceParams& params, const glm::vec3& unoccluded, uint32_t max_layers,
-                const JobOptions& job, double step_ms, TimedSizer& pieces, DirectionPeel& peel) {
+                const JobOptions& job, double step_ms, PeelSizers& sizers, DirectionPeel& peel) {
   const auto job_start = std::chrono::steady_clock::now();
   VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* scene_resources, gpu_scene.CurrentResources());
   const GpuScene::Resources& res = *scene_resources;
@@ -194,83 +207,132 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
 
   const GLuint clear_layer[4] = {0, 0, 0, 0};
   const GLfloat clear_depth = 1.0f;
-  while (!peel.done) {
-    const uint32_t k = peel.layer;
-    const int cur = static_cast<int>(k % 2), prev = 1 - cur;
-    // Layer k: fragments strictly behind layer k - 1, drawn piece by piece
-    // into the same targets (the depth test orders them as one draw would).
-    if (!peel.layer_draw) {
-      // The whole scene at once when the sizer holds it all, else pieces
-      // cut at the sizer's size of the moment.
-      const bool cut = uint64_t(pieces.size()) < whole_commands.triangles;
-      peel.layer_draw.emplace(cut ? whole_commands : whole_draw);
-      peel.any_sample = false;
-      glClearNamedFramebufferuiv(s.framebuffer[cur].id(), GL_COLOR, 0, clear_layer);
-      glClearNamedFramebufferfv(s.framebuffer[cur].id(), GL_DEPTH, 0, &clear_depth);
-    }
-    glBindFramebuffer(GL_FRAMEBUFFER, s.framebuffer[cur].id());
-    glUseProgram(peel_program);
-    glProgramUniform1i(peel_program, first_loc, k == 0 ? 1 : 0);
-    glBindTextureUnit(0, s.depth[prev].id());
-    while (!peel.layer_draw->done()) {
-      const ScenePartDraw piece = peel.layer_draw->Next(uint64_t(pieces.size()));
-      const auto piece_start = std::chrono::steady_clock::now();
-      glBeginQuery(GL_ANY_SAMPLES_PASSED, s.any_samples.id());
-      const Status drawn = DrawScenePart(res, piece);
-      glEndQuery(GL_ANY_SAMPLES_PASSED);
-      VISQ_RETURN_IF_ERROR(drawn);
-      GLuint any = 0;
-      glGetQueryObjectuiv(s.any_samples.id(), GL_QUERY_RESULT, &any);  // waits: the piece's time
-      peel.any_sample = peel.any_sample || any != 0;
-      if (!piece.everything || !pieces.settled())
-        pieces.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(piece_start));
-      if (!peel.layer_draw->done()) {
-        VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between draws of a layer"));
-        if (step_spent()) return absl::OkStatus();
+  const GLint first_row_loc = s.transfer->Uniform("u_first_row");
+  const GLuint square_program = s.count_squares->id();
+  const uint32_t elements = atlas.texel_count() + gpu_scene.triangle_count();
+  const uint32_t element_groups = (elements + 63) / 64;
+  constexpr uint32_t kRowGroups = 32768;  // groups of 64 per row of the count squares' dispatch
+  const GLint first_element_loc = s.count_squares->Uniform("u_first_element");
+  const GLint end_element_loc = s.count_squares->Uniform("u_end_element");
+
+  // Dispatches `program` in bands from peel.next_band until `total` units
+  // are done (true) or the step is spent (false, to resume in the next
+  // job); `dispatch(first, count)` runs one band, which glFinish times.
+  auto in_bands = [&](TimedSizer& sizer, uint32_t total,
+                      const std::function<void(uint32_t, uint32_t)>& dispatch) -> StatusOr<bool> {
+    while (peel.next_band < total) {
+      const uint32_t count = std::min<uint32_t>(uint32_t(sizer.size()), total - peel.next_band);
+      const auto band_start = std::chrono::steady_clock::now();
+      dispatch(peel.next_band, count);
+      glFinish();
+      sizer.Measured(int(count), MillisecondsSince(band_start));
+      peel.next_band += count;
+      if (peel.next_band < total) {
+        VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between bands of a dispatch"));
+        if (step_spent()) return false;
       }
     }
-    const bool any = peel.any_sample;
-    const bool last_guard = k + 1 >= max_layers;
-    // Transfer between layer k - 1 (A) and layer k (B, none if empty).
-    glMemoryBarrier(GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
+    peel.next_band = 0;
+    return true;
+  };
+  // Transfers between the layers in `prev` (A, when has_a) and `cur` (B,
+  // when has_b), in bands of rows of 8 x 8 groups.
+  auto transfer_bands = [&](int a, int b, bool has_a, bool has_b) -> StatusOr<bool> {
     glBindFramebuffer(GL_FRAMEBUFFER, 0);
     glUseProgram(transfer);
-    glProgramUniform1i(transfer, has_a_loc, k > 0 ? 1 : 0);
-    glProgramUniform1i(transfer, has_b_loc, any ? 1 : 0);
-    glBindTextureUnit(0, s.layer[prev].id());
-    glBindTextureUnit(1, s.depth[prev].id());
-    glBindTextureUnit(2, s.layer[cur].id());
-    glBindTextureUnit(3, s.depth[cur].id());
-    if (k > 0 || any) glDispatchCompute(groups, groups, 1);
-    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT | GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
-    peel.layer_draw.reset();
-    if (!any) {
-      peel.done = true;
-    } else if (last_guard) {
-      // The back faces of the last kept layer see nothing: transfer to "none".
-      glProgramUniform1i(transfer, has_a_loc, 1);
-      glProgramUniform1i(transfer, has_b_loc, 0);
-      glBindTextureUnit(0, s.layer[cur].id());
-      glBindTextureUnit(1, s.depth[cur].id());
-      glDispatchCompute(groups, groups, 1);
-      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
-      peel.layer = k + 1;
-      peel.done = true;
-    } else {
-      peel.layer = k + 1;
-      VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between layers"));
+    glProgramUniform1i(transfer, has_a_loc, has_a ? 1 : 0);
+    glProgramUniform1i(transfer, has_b_loc, has_b ? 1 : 0);
+    glBindTextureUnit(0, s.layer[a].id());
+    glBindTextureUnit(1, s.depth[a].id());
+    glBindTextureUnit(2, s.layer[b].id());
+    glBindTextureUnit(3, s.depth[b].id());
+    return in_bands(sizers.transfer_rows, groups, [&](uint32_t first, uint32_t count) {
+      glProgramUniform1ui(transfer, first_row_loc, first * 8);
+      glDispatchCompute(groups, count, 1);
+      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT | GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
+    });
+  };
+
+  while (!peel.done()) {
+    const uint32_t k = peel.layer;
+    const int cur = static_cast<int>(k % 2), prev = 1 - cur;
+    if (peel.stage == DirectionPeel::Stage::kDraw) {
+      // Layer k: fragments strictly behind layer k - 1, drawn piece by
+      // piece into the same targets (the depth test orders them as one
+      // draw would).
+      if (!peel.layer_draw) {
+        // The whole scene at once when the sizer holds it all, else pieces
+        // cut at the sizer's size of the moment.
+        const bool cut = uint64_t(sizers.draw.size()) < whole_commands.triangles;
+        peel.layer_draw.emplace(cut ? whole_commands : whole_draw);
+        peel.any_sample = false;
+        glClearNamedFramebufferuiv(s.framebuffer[cur].id(), GL_COLOR, 0, clear_layer);
+        glClearNamedFramebufferfv(s.framebuffer[cur].id(), GL_DEPTH, 0, &clear_depth);
+      }
+      glBindFramebuffer(GL_FRAMEBUFFER, s.framebuffer[cur].id());
+      glUseProgram(peel_program);
+      glProgramUniform1i(peel_program, first_loc, k == 0 ? 1 : 0);
+      glBindTextureUnit(0, s.depth[prev].id());
+      while (!peel.layer_draw->done()) {
+        const ScenePartDraw piece = peel.layer_draw->Next(uint64_t(sizers.draw.size()));
+        const auto piece_start = std::chrono::steady_clock::now();
+        glBeginQuery(GL_ANY_SAMPLES_PASSED, s.any_samples.id());
+        const Status drawn = DrawScenePart(res, piece);
+        glEndQuery(GL_ANY_SAMPLES_PASSED);
+        VISQ_RETURN_IF_ERROR(drawn);
+        GLuint any = 0;
+        glGetQueryObjectuiv(s.any_samples.id(), GL_QUERY_RESULT, &any);  // waits: the piece's time
+        peel.any_sample = peel.any_sample || any != 0;
+        if (!piece.everything || !sizers.draw.settled())
+          sizers.draw.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(piece_start));
+        if (!peel.layer_draw->done()) {
+          VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between draws of a layer"));
+          if (step_spent()) return absl::OkStatus();
+        }
+      }
+      peel.layer_draw.reset();
+      glMemoryBarrier(GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
+      // Nothing to transfer from a first layer that is empty.
+      peel.stage = k > 0 || peel.any_sample ? DirectionPeel::Stage::kTransfer : DirectionPeel::Stage::kCountSquares;
       if (step_spent()) break;
     }
-  }
-  if (peel.done) {
-    // The direction's counts: squared into their sums, then cleared.
-    const uint32_t elements = atlas.texel_count() + gpu_scene.triangle_count();
-    constexpr uint32_t kRowGroups = 32768;  // groups of 64 per row of the dispatch
-    const uint32_t element_groups = (elements + 63) / 64;
-    glUseProgram(s.count_squares->id());
-    glProgramUniform1ui(s.count_squares->id(), s.count_squares->Uniform("u_element_count"), elements);
-    glDispatchCompute(std::min(element_groups, kRowGroups), (element_groups + kRowGroups - 1) / kRowGroups, 1);
-    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+    if (peel.stage == DirectionPeel::Stage::kTransfer) {
+      // Between layer k - 1 (A) and layer k (B, none if empty).
+      VISQ_ASSIGN_OR_RETURN(const bool transferred, transfer_bands(prev, cur, k > 0, peel.any_sample));
+      if (!transferred) break;
+      if (!peel.any_sample) {
+        peel.stage = DirectionPeel::Stage::kCountSquares;
+      } else if (k + 1 >= max_layers) {
+        peel.stage = DirectionPeel::Stage::kLastTransfer;
+      } else {
+        peel.layer = k + 1;
+        peel.stage = DirectionPeel::Stage::kDraw;
+        VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between layers"));
+        if (step_spent()) break;
+        continue;
+      }
+    }
+    if (peel.stage == DirectionPeel::Stage::kLastTransfer) {
+      // The back faces of the last kept layer see nothing: transfer to "none".
+      VISQ_ASSIGN_OR_RETURN(const bool transferred, transfer_bands(cur, prev, true, false));
+      if (!transferred) break;
+      peel.layer = k + 1;
+      peel.stage = DirectionPeel::Stage::kCountSquares;
+    }
+    if (peel.stage == DirectionPeel::Stage::kCountSquares) {
+      // The direction's counts: squared into their sums, then cleared.
+      glUseProgram(square_program);
+      VISQ_ASSIGN_OR_RETURN(const bool squared,
+                            in_bands(sizers.square_groups, element_groups, [&](uint32_t first, uint32_t count) {
+                              glProgramUniform1ui(square_program, first_element_loc, first * 64);
+                              glProgramUniform1ui(square_program, end_element_loc,
+                                                  std::min(elements, (first + count) * 64));
+                              glDispatchCompute(std::min(count, kRowGroups), (count + kRowGroups - 1) / kRowGroups, 1);
+                              glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+                            }));
+      if (!squared) break;
+      peel.stage = DirectionPeel::Stage::kDone;
+    }
   }
   for (int unit = 0; unit < 4; ++unit) glBindTextureUnit(unit, 0);
   glBindFramebuffer(GL_FRAMEBUFFER, 0);
@@ -316,9 +378,17 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
   const double step_ms = options.step_target_ms > 0.0 ? options.step_target_ms : 1e300;
   const ScenePartDraw whole_draw = gpu_scene.Whole(), whole_commands = gpu_scene.WholeAsCommands();
   const int all_triangles = int(std::clamp<uint64_t>(whole_commands.triangles, 1, INT32_MAX));
-  TimedSizer pieces(options.step_target_ms / 4.0, all_triangles,
-                    options.step_target_ms > 0.0 ? FirstPieceTriangles(uint64_t{bundle} * bundle, all_triangles)
-                                                 : all_triangles);
+  const double unit_ms = options.step_target_ms / 4.0;
+  const bool stepped = options.step_target_ms > 0.0;
+  const int transfer_rows = int((bundle + 7) / 8);
+  const int square_groups = int((atlas.texel_count() + gpu_scene.triangle_count() + 63) / 64);
+  // Unmeasured, a transfer band starts at 8 rows of groups (64 x bundle
+  // pixels) and a count squares band at 4096 groups; both double from there.
+  PeelSizers sizers{
+      TimedSizer(unit_ms, all_triangles,
+                 stepped ? FirstPieceTriangles(uint64_t{bundle} * bundle, all_triangles) : all_triangles),
+      TimedSizer(unit_ms, transfer_rows, stepped ? 8 : transfer_rows),
+      TimedSizer(unit_ms, square_groups, stepped ? 4096 : square_groups)};
 
   ObscuranceBakeStats local;
   local.bundle_resolution = bundle;
@@ -330,10 +400,10 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
     const uint32_t index = params.first_direction + i;
     const DirectionFrame frame = FrameOf(obscurance::DirectionOfSequence(params.seed, index), center, radius, bundle);
     DirectionPeel peel;
-    while (!peel.done) {
+    while (!peel.done()) {
       VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() {
         return PeelSome(*state, gpu_scene, whole_draw, whole_commands, frame, bundle, atlas, params, unoccluded,
-                        options.max_layers, job, step_ms, pieces, peel);
+                        options.max_layers, job, step_ms, sizers, peel);
       }));
     }
     const uint32_t layers = peel.layer;

@@ -8,11 +8,12 @@
 layout(local_size_x = 64) in;
 layout(std430, binding = 5) buffer DirectionCounts { uint direction_counts[]; };
 layout(std430, binding = 6) buffer CountSquares { double count_squares[]; };
-uniform uint u_element_count;
+uniform uint u_first_element;  // this dispatch's band: [u_first_element, u_end_element)
+uniform uint u_end_element;
 void main() {
   // Rows of groups: an 8192^2 atlas has more elements than one row holds.
-  const uint i = gl_GlobalInvocationID.y * gl_NumWorkGroups.x * 64u + gl_GlobalInvocationID.x;
-  if (i >= u_element_count) return;
+  const uint i = u_first_element + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * 64u + gl_GlobalInvocationID.x;
+  if (i >= u_end_element) return;
   const uint c = direction_counts[i];
   if (c == 0u) return;
   count_squares[i] += double(c) * double(c);

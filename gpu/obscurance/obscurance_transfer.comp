@@ -22,6 +22,7 @@ layout(binding = 3) uniform sampler2D u_depth_b;
 uniform int u_has_a;
 uniform int u_has_b;
 uniform uint u_size;
+uniform uint u_first_row;  // of this dispatch's band of pixel rows
 uniform float u_depth_to_distance;
 uniform float u_d_max;
 uniform vec3 u_unoccluded;
@@ -68,7 +69,7 @@ void Contribute(uint patch_id, uint own_triangle, bool seen, float distance, uin
 }
 
 void main() {
-  const ivec2 pixel = ivec2(gl_GlobalInvocationID.xy);
+  const ivec2 pixel = ivec2(gl_GlobalInvocationID.x, gl_GlobalInvocationID.y + u_first_row);
   if (pixel.x >= int(u_size) || pixel.y >= int(u_size)) return;
   const uvec2 a = u_has_a != 0 ? texelFetch(u_layer_a, pixel, 0).rg : uvec2(0u);
   const uvec2 b = u_has_b != 0 ? texelFetch(u_layer_b, pixel, 0).rg : uvec2(0u);
