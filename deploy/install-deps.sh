@@ -36,6 +36,10 @@ build_packages=(
   libopenexr-dev
   # Compressed glTF (EXT_meshopt_compression, KHR_draco_mesh_compression).
   libmeshoptimizer-dev libdraco-dev
+  # The scene repository: its catalog in SQLite (the default) or PostgreSQL
+  # (libpq, replicas on several machines), its blobs named by SHA-256
+  # (libcrypto); the replica race test starts a PostgreSQL cluster of its own.
+  libsqlite3-dev libpq-dev libssl-dev postgresql
 )
 # Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
 runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
@@ -52,7 +56,7 @@ if (( runtime_only )); then
   wanted=("${runtime_packages[@]}" ca-certificates
     libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
     libspdlog1.10 libssl3 libstb0 libcpp-httplib0.11 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl
-    libopenexr-3-1-30 libimath-3-1-29 libmeshoptimizer2d)
+    libopenexr-3-1-30 libimath-3-1-29 libmeshoptimizer2d libsqlite3-0 libpq5)
 fi
 
 if (( print_only )); then

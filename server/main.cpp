@@ -84,6 +84,14 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.set_version_flag("--version", std::string("visq-server ") + visq::kVersion + " (" + visq::kBuildCommit + ")");
   app.add_option("--address", flags.options.address, "HOST:PORT to listen on")->envname("VISQ_ADDRESS")->capture_default_str();
   app.add_option("--scene-repo", flags.scene_repo, "Scene repository directory")->envname("VISQ_SCENE_REPO")->capture_default_str();
+  app.add_option("--catalog", flags.options.engine.catalog,
+                 "Where the repository's catalog is: 'sqlite' (default, <scene-repo>/.visq/catalog.sqlite3, one "
+                 "machine), 'sqlite:<file>', or postgresql://user@host:port/db for replicas on several machines")
+      ->envname("VISQ_CATALOG");
+  app.add_option("--replica-id", flags.options.engine.replica_id,
+                 "This server's name among the replicas sharing --scene-repo (default: the host name); a start "
+                 "removes only its own staging")
+      ->envname("VISQ_REPLICA_ID");
   app.add_option("--cost-model-file", flags.cost_model_file,
                  "Where the accuracy planner keeps its measured costs across restarts (default: "
                  "<scene-repo>/.visq-cost-model.tsv; '-': not kept)")

@@ -46,7 +46,8 @@ std::shared_ptr<ResidentScene> NewResidentScene(std::string name, Scene scene) {
 StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
   std::unique_ptr<Engine> engine(new Engine());
   engine->options_ = options;
-  VISQ_ASSIGN_OR_RETURN(engine->repository_, SceneRepository::Open(options.scene_repo));
+  VISQ_ASSIGN_OR_RETURN(engine->repository_,
+                        SceneRepository::Open({options.scene_repo, options.catalog, options.replica_id}));
   VISQ_ASSIGN_OR_RETURN(engine->gpu_, gpu::GpuWorker::Start(options.gpu));
   engine->light_cache_ = std::make_unique<exact::LightVisibilityCache>(options.light_cache_bytes);
   engine->work_budget_ = std::make_unique<WorkMemoryBudget>(options.max_work_bytes);
@@ -93,31 +94,21 @@ GltfLoadLimits Engine::LoadLimits(const std::filesystem::path& file_root) const 
   return limits;
 }
 
-StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
-                                            bool persisted, const SceneRepository::Identity* stored) {
+StatusOr<SceneSummary> Engine::MakeResident(const StoredSceneView& stored, bool replace) {
   const auto start = std::chrono::steady_clock::now();
   GltfLoadReport report;
-  VISQ_ASSIGN_OR_RETURN(Scene scene,
-                        LoadGltfFile(main_file, &report, LoadLimits(repository_->FileRoot(main_file))));
-  std::shared_ptr<ResidentScene> resident = NewResidentScene(std::move(name), std::move(scene));
+  VISQ_ASSIGN_OR_RETURN(Scene scene, LoadGltfFile(stored.main_file(), &report, LoadLimits(stored.dir())));
+  std::shared_ptr<ResidentScene> resident = NewResidentScene(stored.name(), std::move(scene));
   VISQ_RETURN_IF_ERROR(AdmitSceneSize(*resident));
   resident->dropped = std::move(report.dropped);
-  resident->persisted = persisted;
+  resident->persisted = true;
   resident->load_ms = MillisecondsSince(start);
   build_times_.Record("scene_load", resident->load_ms);
-  if (stored != nullptr && !(repository_->StoredIdentity(resident->name) == *stored))
-    return absl::AbortedError(absl::StrCat("scene '", resident->name, "' was replaced in the repository while it loaded"));
-  // A stored upload keeps the version it was committed with; a scene placed
-  // by hand (its file may have changed) takes a new one.
-  uint64_t version = stored != nullptr ? stored->version : repository_->StoredVersion(resident->name);
-  if (version == 0) {
-    VISQ_ASSIGN_OR_RETURN(version, repository_->NextVersion());
-  }
   {
     std::unique_lock lock(scenes_mutex_);
     if (!replace && scenes_.count(resident->name))
       return absl::AlreadyExistsError(absl::StrCat("scene '", resident->name, "' is already resident (set replace)"));
-    resident->version = version;
+    resident->version = stored.version();
     scenes_[resident->name] = resident;
   }
   ForgetScene(resident->name);
@@ -130,26 +121,10 @@ StatusOr<SceneSummary> Engine::MakeResident(std::string name, const std::filesys
 }
 
 StatusOr<SceneSummary> Engine::LoadFromRepository(absl::string_view name, bool replace) {
-  // A replica sharing the repository may exchange the scene's folder while
-  // this load reads its files one by one: the load is kept only when the
-  // folder and its version are the same before and after, so that it holds
-  // one upload's files and (scene, version) names one content. A load that
-  // met a commit tries again.
-  constexpr int kAttempts = 4;
-  Status last;
-  for (int attempt = 0; attempt < kAttempts; ++attempt) {
-    const SceneRepository::Identity before = repository_->StoredIdentity(name);
-    VISQ_ASSIGN_OR_RETURN(std::filesystem::path main_file, repository_->MainFile(name));
-    StatusOr<SceneSummary> loaded = MakeResident(std::string(name), main_file, replace, /*persisted=*/true, &before);
-    if (loaded.ok()) return loaded;
-    // A load that failed while a commit swapped the folder (its .gltf from
-    // one upload and its .bin from another) is that commit's doing too.
-    const bool swapped = loaded.status().code() == absl::StatusCode::kAborted ||
-                         !(repository_->StoredIdentity(name) == before);
-    if (!swapped) return loaded;
-    last = loaded.status();
-  }
-  return absl::UnavailableError(absl::StrCat(last.message(), ", ", kAttempts, " times: try again"));
+  // One version's files, linked from their blobs: whatever other replicas
+  // commit meanwhile, the load reads one upload and reports its version.
+  VISQ_ASSIGN_OR_RETURN(const std::unique_ptr<StoredSceneView> stored, repository_->Checkout(name));
+  return MakeResident(*stored, replace);
 }
 
 StatusOr<std::unique_ptr<SceneUpload>> Engine::BeginUpload(absl::string_view name, absl::string_view main_file,

@@ -57,6 +57,10 @@ inline constexpr StructureKind kEveryStructure[] = {StructureKind::kGpuBuffers, 
 
 struct EngineOptions {
   std::filesystem::path scene_repo = "/var/lib/visq/scenes";
+  // Where the repository's catalog is and this replica's name in it
+  // (RepositoryOptions::catalog, ::replica_id).
+  std::string catalog;
+  std::string replica_id;
   gpu::GpuOptions gpu;
   uint64_t max_upload_bytes = 4ull << 30;
   // A scene whose geometry and every structure its queries may build
@@ -287,18 +291,15 @@ class Engine {
 
   const gpu::DeviceInfo& device() const { return gpu_->device(); }
   gpu::GpuWorker& gpu() { return *gpu_; }
-  const SceneRepository& repository() const { return *repository_; }
+  SceneRepository& repository() { return *repository_; }
   // Measured costs of the query methods, for AccuracyTarget requests.
   CostModel& cost_model() { return cost_model_; }
   const BuildTimes& build_times() const { return build_times_; }
 
  private:
   Engine() = default;
-  // With `stored`, the scene is kept only if the repository still holds
-  // that identity after the load (ABORTED otherwise: another replica
-  // committed meanwhile), and takes its version.
-  StatusOr<SceneSummary> MakeResident(std::string name, const std::filesystem::path& main_file, bool replace,
-                                      bool persisted, const SceneRepository::Identity* stored = nullptr);
+  // The stored version `stored` (checked out of the repository) made resident.
+  StatusOr<SceneSummary> MakeResident(const StoredSceneView& stored, bool replace);
   SceneSummary Summarize(const ResidentScene& resident, bool with_nodes) const;
   // The local frame that resolves `request` (null: the scene's own frame does).
   StatusOr<std::shared_ptr<LocalFrame>> LocalFrameFor(const ResidentScene& resident,

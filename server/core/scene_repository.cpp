@@ -7,76 +7,45 @@
 
 #include <algorithm>
 #include <cerrno>
-#include <cstdio>
+#include <chrono>
 #include <cstring>
+#include <fstream>
 #include <random>
 #include <set>
+#include <thread>
 
 #include <absl/strings/ascii.h>
+#include <absl/strings/escaping.h>
 #include <absl/strings/match.h>
 #include <absl/strings/numbers.h>
+#include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
+
+#include "core/file_errors.h"
 
 namespace visq::core {
 namespace fs = std::filesystem;
 namespace {
 
 constexpr size_t kMaxNameLength = 128;
-constexpr std::string_view kStagingPrefix = ".staging-";
-constexpr std::string_view kMainFileMarker = ".visq-main";
-constexpr std::string_view kVersionMarker = ".visq-version";
-constexpr std::string_view kVersionCounter = ".visq-version-counter";
-
-// Names the file, not where the repository lives: messages reach clients.
-// A full disk or quota is the caller's to act on (RESOURCE_EXHAUSTED).
-// A repository the server may not write is the operator's to fix
-// (FAILED_PRECONDITION); an upload whose files clash (a file where another
-// chunk made a folder, or the reverse) is the client's (INVALID_ARGUMENT).
-Status ErrnoError(absl::string_view what, const fs::path& path) {
-  const int error = errno;
-  const std::string message = absl::StrCat(what, " ", path.filename().string(), ": ", std::strerror(error));
-  if (error == ENOSPC || error == EDQUOT) return absl::ResourceExhaustedError(message);
-  if (error == EACCES || error == EPERM || error == EROFS)
-    return absl::FailedPreconditionError(absl::StrCat(message, " (the scene repository, --scene-repo, is not writable)"));
-  if (error == ENOTDIR || error == EISDIR || error == EEXIST)
-    return absl::InvalidArgumentError(absl::StrCat("chunk.file: ", message, " (a file and a folder of the upload clash)"));
-  return absl::InternalError(message);
-}
-
-Status ErrorCodeError(absl::string_view what, const fs::path& path, const std::error_code& ec) {
-  errno = ec.value();
-  if (ec.category() == std::generic_category() || ec.category() == std::system_category()) return ErrnoError(what, path);
-  return absl::InternalError(absl::StrCat(what, " ", path.filename().string(), ": ", ec.message()));
-}
-
-// Folders an upload makes are its owner's alone (0700), as its files are
-// (0600): a shared machine's other users read no uploaded scene.
-Status MakeOwnerFolders(const fs::path& root, const fs::path& relative) {
-  fs::path path = root;
-  for (const fs::path& part : relative) {
-    path /= part;
-    if (::mkdir(path.c_str(), 0700) != 0 && errno != EEXIST) return ErrnoError("create", path);
-    struct stat info {};
-    if (::lstat(path.c_str(), &info) != 0 || !S_ISDIR(info.st_mode)) {
-      errno = ENOTDIR;
-      return ErrnoError("create", path);
-    }
-  }
-  return absl::OkStatus();
-}
+constexpr size_t kMaxReplicaIdLength = 64;
+constexpr std::string_view kHidden = ".visq";
+constexpr std::string_view kOwnerLock = ".owner";
+constexpr std::string_view kCatalogKind = "catalog-kind";
+// The layout before the catalog: an upload's folder named its main file and
+// its version in these, a counter file numbered versions, and uploads were
+// staged at the top of the folder.
+constexpr std::string_view kLegacyMainMarker = ".visq-main";
+constexpr std::string_view kLegacyVersionMarker = ".visq-version";
+constexpr std::string_view kLegacyCounter = ".visq-version-counter";
+constexpr std::string_view kLegacyStagingPrefix = ".staging-";
+// The last version number the layout before the catalog handed out: a
+// migrated scene keeps its number only if it is at most this.
+constexpr absl::string_view kLegacyCounterMeta = "legacy_counter";
 
 bool IsSceneFile(const fs::path& path) {
   const std::string ext = path.extension().string();
   return ext == ".gltf" || ext == ".glb";
-}
-
-Status FsyncPath(const fs::path& path, bool directory) {
-  const int fd = ::open(path.c_str(), (directory ? O_DIRECTORY : 0) | O_RDONLY | O_CLOEXEC);
-  if (fd < 0) return ErrnoError("open for fsync", path);
-  const int rc = ::fsync(fd);
-  ::close(fd);
-  if (rc != 0) return ErrnoError("fsync", path);
-  return absl::OkStatus();
 }
 
 // A relative file name inside an upload: no absolute paths, no "..", no
@@ -104,6 +73,154 @@ std::string RandomSuffix() {
   return absl::StrCat(absl::Hex(rng(), absl::kZeroPad16));
 }
 
+std::optional<std::string> ReadSmallFile(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return std::nullopt;
+  std::string text(600, '\0');
+  in.read(text.data(), static_cast<std::streamsize>(text.size()));
+  text.resize(static_cast<size_t>(in.gcount()));
+  return std::string(absl::StripAsciiWhitespace(text));
+}
+
+uint64_t ReadNumberFile(const fs::path& path) {
+  uint64_t value = 0;
+  const std::optional<std::string> text = ReadSmallFile(path);
+  if (!text || !absl::SimpleAtoi(*text, &value)) return 0;
+  return value;
+}
+
+// A descriptor closed with its owner.
+struct OwnedFd {
+  int fd = -1;
+  explicit OwnedFd(int f) : fd(f) {}
+  ~OwnedFd() {
+    if (fd >= 0) ::close(fd);
+  }
+  OwnedFd(const OwnedFd&) = delete;
+  OwnedFd& operator=(const OwnedFd&) = delete;
+  int release() { return std::exchange(fd, -1); }
+};
+
+// ---------------------------------------------------------------------------
+// Scenes placed at the top of the folder by hand, or uploads of the layout
+// before the catalog: what to import for each.
+
+struct HandPlaced {
+  std::string name;
+  fs::path entry;                                    // the folder, or the .gltf/.glb
+  std::string main_file;                             // relative to `base`
+  fs::path base;                                     // the folder its files are relative to
+  std::vector<std::string> files;                    // relative to `base`, the main file among them
+  uint64_t version = 0;                              // from the old layout's marker; 0: none
+};
+
+// The buffers a glTF at the top of the folder reads beside it (images are
+// never read: the scene model keeps no textures). A .glb's JSON is its first
+// chunk.
+StatusOr<std::vector<std::string>> ReferencedBuffers(const fs::path& main_file) {
+  std::ifstream in(main_file, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", main_file.filename().string()));
+  std::string text;
+  if (main_file.extension() == ".glb") {
+    uint32_t header[5] = {};
+    in.read(reinterpret_cast<char*>(header), sizeof(header));
+    // magic "glTF", version, length, then the JSON chunk's length and type.
+    if (in.gcount() != sizeof(header) || header[0] != 0x46546C67u || header[4] != 0x4E4F534Au || header[3] > (64u << 20))
+      return absl::InvalidArgumentError(absl::StrCat(main_file.filename().string(), ": not a glTF binary"));
+    text.resize(header[3]);
+    in.read(text.data(), static_cast<std::streamsize>(text.size()));
+  } else {
+    text.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  const nlohmann::json doc = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (doc.is_discarded() || !doc.is_object())
+    return absl::InvalidArgumentError(absl::StrCat(main_file.filename().string(), ": not JSON"));
+  std::vector<std::string> uris;
+  if (doc.contains("buffers") && doc["buffers"].is_array())
+    for (const auto& buffer : doc["buffers"])
+      if (buffer.is_object() && buffer.contains("uri") && buffer["uri"].is_string()) {
+        const std::string uri = buffer["uri"].get<std::string>();
+        if (absl::StartsWith(uri, "data:")) continue;
+        // Percent-escapes, as URIs may carry them (a space as %20).
+        std::string decoded;
+        for (size_t i = 0; i < uri.size(); ++i) {
+          int hex = 0;
+          if (uri[i] == '%' && i + 2 < uri.size() && absl::SimpleHexAtoi(uri.substr(i + 1, 2), &hex)) {
+            decoded.push_back(static_cast<char>(hex));
+            i += 2;
+          } else {
+            decoded.push_back(uri[i]);
+          }
+        }
+        uris.push_back(decoded);
+      }
+  return uris;
+}
+
+// What a top-level entry holds, or nullopt for an entry that is no scene
+// (the repository's own files, logs, stray data).
+StatusOr<std::optional<HandPlaced>> ReadHandPlaced(const fs::path& root, const fs::directory_entry& entry) {
+  const std::string file = entry.path().filename().string();
+  std::error_code ec;
+  HandPlaced found;
+  found.entry = entry.path();
+  if (entry.is_directory(ec)) {
+    if (!SceneRepository::ValidateName(file).ok()) return std::optional<HandPlaced>();
+    found.name = file;
+    found.base = entry.path();
+    // Every regular file below (links only when they stay inside the
+    // repository), the old layout's markers aside.
+    const std::string root_prefix = root.string() + "/";
+    for (auto it = fs::recursive_directory_iterator(entry.path(), ec); !ec && it != fs::recursive_directory_iterator();
+         it.increment(ec)) {
+      const fs::path relative = it->path().lexically_relative(entry.path());
+      if (!ValidateUploadFile(relative.string()).ok()) {
+        if (it->is_directory()) it.disable_recursion_pending();
+        continue;
+      }
+      std::error_code inner;
+      const fs::path resolved = fs::weakly_canonical(it->path(), inner);
+      if (inner || resolved.string().rfind(root_prefix, 0) != 0) continue;
+      if (fs::is_regular_file(resolved, inner)) found.files.push_back(relative.string());
+    }
+    if (ec) return absl::InternalError(absl::StrCat("scene folder '", file, "': ", ec.message()));
+    if (std::optional<std::string> main = ReadSmallFile(entry.path() / std::string(kLegacyMainMarker))) {
+      found.main_file = *main;
+    } else {
+      std::vector<std::string> mains;
+      for (const std::string& f : found.files)
+        if (f.find('/') == std::string::npos && IsSceneFile(f)) mains.push_back(f);
+      if (mains.size() != 1)
+        return absl::InvalidArgumentError(
+            absl::StrCat("scene folder '", file, "' holds ", mains.size(), " .gltf/.glb files, expected exactly one"));
+      found.main_file = mains[0];
+    }
+    if (std::find(found.files.begin(), found.files.end(), found.main_file) == found.files.end())
+      return absl::InvalidArgumentError(absl::StrCat("scene folder '", file, "': main file missing"));
+    found.version = ReadNumberFile(entry.path() / std::string(kLegacyVersionMarker));
+    return std::optional<HandPlaced>(std::move(found));
+  }
+  if (!entry.is_regular_file(ec) || !IsSceneFile(entry.path())) return std::optional<HandPlaced>();
+  found.name = entry.path().stem().string();
+  if (!SceneRepository::ValidateName(found.name).ok()) return std::optional<HandPlaced>();
+  found.base = root;
+  found.main_file = file;
+  found.files.push_back(file);
+  // A file whose buffers cannot be told (not glTF, a buffer missing or
+  // outside the folder) is imported as it is: its load says what is wrong,
+  // as it would have before.
+  StatusOr<std::vector<std::string>> buffers = ReferencedBuffers(entry.path());
+  if (!buffers.ok()) spdlog::warn("{}: {}; imported alone", file, buffers.status().message());
+  for (const std::string& buffer : buffers.value_or(std::vector<std::string>())) {
+    if (Status valid = ValidateUploadFile(buffer); !valid.ok() || !fs::is_regular_file(root / buffer, ec)) {
+      spdlog::warn("{}: its buffer '{}' is not beside it; imported without", file, buffer);
+      continue;
+    }
+    if (std::find(found.files.begin(), found.files.end(), buffer) == found.files.end()) found.files.push_back(buffer);
+  }
+  return std::optional<HandPlaced>(std::move(found));
+}
+
 }  // namespace
 
 // ---------------------------------------------------------------------------
@@ -114,11 +231,9 @@ UploadStaging::UploadStaging(fs::path dir, std::string name, std::string main_fi
 
 UploadStaging::~UploadStaging() {
   if (open_fd_ >= 0) ::close(open_fd_);
-  if (lock_fd_ >= 0) ::close(lock_fd_);  // releases the flock
-  if (!committed_) {
-    std::error_code ec;
-    fs::remove_all(dir_, ec);
-  }
+  // A committed upload's files are blobs by now (links of their own).
+  std::error_code ec;
+  fs::remove_all(dir_, ec);
 }
 
 Status UploadStaging::Append(absl::string_view file, absl::string_view data) {
@@ -126,32 +241,32 @@ Status UploadStaging::Append(absl::string_view file, absl::string_view data) {
   if (bytes_ + data.size() > max_bytes_)
     return absl::ResourceExhaustedError(
         absl::StrCat("upload exceeds the server's upload limit of ", max_bytes_, " bytes (--max-upload-bytes)"));
-  if (file != open_file_) {
+  if (open_fd_ < 0 || files_.empty() || file != files_.back().path) {
     // Chunks of one file arrive together; a file seen before must not reopen.
-    if (std::find(files_.begin(), files_.end(), std::string(file)) != files_.end())
-      return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': chunks of a file must be contiguous"));
-    if (open_fd_ >= 0) {
-      if (::fsync(open_fd_) != 0) return ErrnoError("fsync", dir_ / open_file_);
-      ::close(open_fd_);
-      open_fd_ = -1;
-    }
+    for (const File& seen : files_)
+      if (seen.path == file)
+        return absl::InvalidArgumentError(absl::StrCat("chunk.file '", file, "': chunks of a file must be contiguous"));
+    VISQ_RETURN_IF_ERROR(CloseAll());
     const fs::path relative{std::string(file)};
     const fs::path path = dir_ / relative;
     VISQ_RETURN_IF_ERROR(MakeOwnerFolders(dir_, relative.parent_path()));
     open_fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | O_NOFOLLOW, 0600);
     if (open_fd_ < 0) return ErrnoError("create", path);
-    open_file_ = std::string(file);
-    files_.push_back(open_file_);
+    open_hash_ = std::make_unique<Sha256>();
+    files_.push_back(File{std::string(file), 0, ""});
   }
+  File& open = files_.back();
   size_t written = 0;
   while (written < data.size()) {
     const ssize_t n = ::write(open_fd_, data.data() + written, data.size() - written);
     if (n < 0) {
       if (errno == EINTR) continue;
-      return ErrnoError("write", dir_ / open_file_);
+      return ErrnoError("write", dir_ / open.path);
     }
     written += static_cast<size_t>(n);
   }
+  open_hash_->Update(data);
+  open.size += data.size();
   bytes_ += data.size();
   return absl::OkStatus();
 }
@@ -162,14 +277,14 @@ StatusOr<size_t> UploadStaging::KeepOnly(const std::vector<fs::path>& needed) {
   std::error_code ec;
   for (const fs::path& path : needed) keep.insert(fs::weakly_canonical(path, ec));
   size_t removed = 0;
-  std::vector<std::string> kept;
-  for (const std::string& file : files_) {
-    const fs::path path = dir_ / fs::path(file);
-    if (file == main_file_ || keep.count(fs::weakly_canonical(path, ec))) {
-      kept.push_back(file);
+  std::vector<File> kept;
+  for (File& file : files_) {
+    const fs::path path = dir_ / fs::path(file.path);
+    if (file.path == main_file_ || keep.count(fs::weakly_canonical(path, ec))) {
+      kept.push_back(std::move(file));
       continue;
     }
-    if (!fs::remove(path, ec) || ec) return ErrorCodeError("remove", path, ec);
+    if (!fs::remove(path, ec) || ec) return ErrnoError("remove", path, ec ? ec.value() : ENOENT);
     ++removed;
   }
   files_ = std::move(kept);
@@ -178,12 +293,24 @@ StatusOr<size_t> UploadStaging::KeepOnly(const std::vector<fs::path>& needed) {
 
 Status UploadStaging::CloseAll() {
   if (open_fd_ >= 0) {
-    if (::fsync(open_fd_) != 0) return ErrnoError("fsync", dir_ / open_file_);
+    // Durable before it can become a blob: a blob is never a torn file.
+    const int rc = ::fsync(open_fd_);
+    const int error = errno;
     ::close(open_fd_);
     open_fd_ = -1;
+    if (rc != 0) return ErrnoError("fsync", dir_ / files_.back().path, error);
+    files_.back().blob = open_hash_->HexDigest();
+    open_hash_.reset();
   }
-  open_file_.clear();
   return absl::OkStatus();
+}
+
+// ---------------------------------------------------------------------------
+// StoredSceneView
+
+StoredSceneView::~StoredSceneView() {
+  std::error_code ec;
+  fs::remove_all(dir_, ec);
 }
 
 // ---------------------------------------------------------------------------
@@ -194,7 +321,7 @@ Status SceneRepository::ValidateName(absl::string_view name) {
   if (name.size() > kMaxNameLength)
     return absl::InvalidArgumentError(absl::StrCat("scene name longer than ", kMaxNameLength, " characters"));
   if (name[0] == '.') return absl::InvalidArgumentError(absl::StrCat("scene name '", name, "' starts with '.'"));
-  // "x.glb" is where the scene "x" may be stored: the name would alias it.
+  // "x.glb" is where a hand-placed scene "x" lies: the name would alias it.
   const std::string lower = absl::AsciiStrToLower(name);
   if (absl::EndsWith(lower, ".glb") || absl::EndsWith(lower, ".gltf"))
     return absl::InvalidArgumentError(
@@ -209,244 +336,390 @@ Status SceneRepository::ValidateName(absl::string_view name) {
   return absl::OkStatus();
 }
 
-StatusOr<std::unique_ptr<SceneRepository>> SceneRepository::Open(const fs::path& root) {
+SceneRepository::SceneRepository(fs::path root, std::string replica_id, fs::path staging, int owner_fd,
+                                 BlobStore blobs, std::unique_ptr<SceneCatalog> catalog)
+    : root_(std::move(root)),
+      replica_id_(std::move(replica_id)),
+      staging_(std::move(staging)),
+      owner_fd_(owner_fd),
+      blobs_(std::move(blobs)),
+      catalog_(std::move(catalog)) {}
+
+SceneRepository::~SceneRepository() {
+  if (owner_fd_ >= 0) ::close(owner_fd_);  // releases the replica's flock
+}
+
+namespace {
+
+// The catalog's database from --catalog. The value may hold a password:
+// messages never repeat it.
+StatusOr<std::unique_ptr<CatalogDb>> OpenCatalogDb(const std::string& spec, const fs::path& hidden) {
+  if (absl::StartsWith(spec, "postgresql://") || absl::StartsWith(spec, "postgres://"))
+    return OpenPostgresCatalog(spec);
+  std::string file = (hidden / "catalog.sqlite3").string();
+  if (absl::StartsWith(spec, "sqlite:") && spec.size() > 7) {
+    file = spec.substr(7);
+  } else if (!spec.empty() && spec != "sqlite") {
+    return absl::InvalidArgumentError(
+        "--catalog: expected 'sqlite', 'sqlite:<file>' or a PostgreSQL URI (postgresql://user@host:port/database)");
+  }
+  // The catalog names every scene: its owner's alone, as the scenes are.
+  // (SQLite gives its -wal and -shm files the database file's mode.)
+  const int fd = ::open(file.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0600);
+  if (fd < 0) return ErrnoError("create catalog", file);
+  ::close(fd);
+  return OpenSqliteCatalog(file);
+}
+
+std::string CatalogKindOf(const std::string& spec) {
+  return absl::StartsWith(spec, "postgres") ? "postgresql" : "sqlite";
+}
+
+// Takes this replica's staging folder: its lock is held as long as the
+// server runs. A process that died released it.
+StatusOr<int> LockReplicaStaging(const fs::path& folder) {
+  if (::mkdir(folder.c_str(), 0700) != 0 && errno != EEXIST) return ErrnoError("create staging folder", folder);
+  OwnedFd fd(::open((folder / std::string(kOwnerLock)).c_str(), O_RDWR | O_CREAT | O_CLOEXEC | O_NOFOLLOW, 0600));
+  if (fd.fd < 0) return ErrnoError("create", folder / std::string(kOwnerLock));
+  // Another replica cleaning this folder after a crash holds the lock for
+  // a moment: wait for it before concluding that a live server has it.
+  for (int attempt = 0; attempt < 20; ++attempt) {
+    if (::flock(fd.fd, LOCK_EX | LOCK_NB) == 0) return fd.release();
+    if (errno != EWOULDBLOCK && errno != EINTR) return ErrnoError("lock", folder / std::string(kOwnerLock));
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  return absl::AlreadyExistsError("held by a running server");
+}
+
+// Removes what a folder holds, its lock file aside.
+void EmptyStaging(const fs::path& folder) {
   std::error_code ec;
-  fs::create_directories(root, ec);
+  for (const auto& entry : fs::directory_iterator(folder, ec)) {
+    if (entry.path().filename() == std::string(kOwnerLock)) continue;
+    std::error_code inner;
+    fs::remove_all(entry.path(), inner);
+  }
+}
+
+}  // namespace
+
+StatusOr<std::unique_ptr<SceneRepository>> SceneRepository::Open(const RepositoryOptions& options) {
+  std::error_code ec;
+  fs::create_directories(options.root, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat("scene repository ", options.root.string(), ": ", ec.message()));
+  const fs::path root = fs::canonical(options.root, ec);
   if (ec) return absl::UnavailableError(absl::StrCat("scene repository ", root.string(), ": ", ec.message()));
-  const fs::path canonical = fs::canonical(root, ec);
-  if (ec) return absl::UnavailableError(absl::StrCat("scene repository ", root.string(), ": ", ec.message()));
-  // Staging folders left by a crash never became scenes: remove them, but
-  // not those of uploads in flight on a replica sharing the repository,
-  // which hold their folder locked. (One made a moment ago and not locked
-  // yet is taken here: its upload fails at its own lock, with an error.)
-  for (const auto& entry : fs::directory_iterator(canonical, ec)) {
+  const fs::path hidden = root / std::string(kHidden);
+  VISQ_RETURN_IF_ERROR(MakeOwnerFolders(root, fs::path(std::string(kHidden)) / "staging"));
+
+  // Which database holds this repository's catalog is fixed at its first
+  // start: a replica pointed at the other would see an empty catalog and
+  // serve a repository without its scenes.
+  const std::string kind = CatalogKindOf(options.catalog);
+  const fs::path kind_file = hidden / std::string(kCatalogKind);
+  if (std::optional<std::string> recorded = ReadSmallFile(kind_file); recorded && *recorded != kind)
+    return absl::FailedPreconditionError(absl::StrCat("--catalog: this repository's catalog is in ", *recorded,
+                                                      ", not ", kind, " (see docs/deploy.md, choosing the catalog)"));
+
+  // This replica's staging, and whose it is.
+  std::string replica_id = options.replica_id;
+  const bool named = !replica_id.empty();
+  if (!named) {
+    char host[256] = {};
+    ::gethostname(host, sizeof(host) - 1);
+    replica_id = host;
+    for (char& c : replica_id)
+      if (!absl::ascii_isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_' && c != '.') c = '_';
+    if (replica_id.empty() || replica_id[0] == '.') replica_id = "replica" + replica_id;
+    replica_id = replica_id.substr(0, kMaxReplicaIdLength);
+  } else {
+    for (char c : replica_id)
+      if (!absl::ascii_isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_')
+        return absl::InvalidArgumentError(
+            absl::StrCat("--replica-id '", absl::CHexEscape(replica_id), "': only letters, digits, '-' and '_'"));
+    if (replica_id.size() > kMaxReplicaIdLength)
+      return absl::InvalidArgumentError(absl::StrCat("--replica-id: longer than ", kMaxReplicaIdLength, " characters"));
+  }
+  const fs::path staging_root = hidden / "staging";
+  StatusOr<int> owner = LockReplicaStaging(staging_root / replica_id);
+  if (!owner.ok() && absl::IsAlreadyExists(owner.status())) {
+    if (named)
+      return absl::FailedPreconditionError(absl::StrCat("--replica-id '", replica_id,
+                                                        "': a running server sharing this repository uses it; give "
+                                                        "each replica its own"));
+    // Two servers on one host, neither named: the second is told apart by
+    // its pid (its staging is then cleaned when it is found unlocked).
+    replica_id = absl::StrCat(replica_id, "-", ::getpid());
+    owner = LockReplicaStaging(staging_root / replica_id);
+  }
+  if (!owner.ok()) return owner.status();
+  OwnedFd owner_fd(*owner);
+  const fs::path staging = staging_root / replica_id;
+
+  // Staging left by this replica's last run never became anything. Other
+  // replicas' staging is theirs while they run (they hold its lock); that
+  // of a replica no longer running is emptied.
+  EmptyStaging(staging);
+  for (const auto& entry : fs::directory_iterator(staging_root, ec)) {
+    if (entry.path() == staging) continue;
+    // Every live replica holds its folder's lock file locked; a folder
+    // without one has no live owner either.
+    OwnedFd fd(::open((entry.path() / std::string(kOwnerLock)).c_str(), O_RDONLY | O_CLOEXEC | O_NOFOLLOW));
+    if (fd.fd < 0 ? errno != ENOENT : ::flock(fd.fd, LOCK_EX | LOCK_NB) != 0) continue;
+    spdlog::info("emptying the staging of replica {}, which is not running", entry.path().filename().string());
+    EmptyStaging(entry.path());
+  }
+  // The layout before the catalog staged uploads at the top of the folder,
+  // each holding its folder locked while it ran.
+  for (const auto& entry : fs::directory_iterator(root, ec)) {
     const std::string file = entry.path().filename().string();
-    if (file.rfind(kStagingPrefix, 0) != 0) continue;
-    const int fd = ::open(entry.path().c_str(), O_RDONLY | O_CLOEXEC | O_NOFOLLOW);
-    if (fd >= 0 && ::flock(fd, LOCK_EX | LOCK_NB) != 0) {
-      ::close(fd);
-      spdlog::info("staging folder {} belongs to an upload in flight elsewhere: kept", file);
+    if (file.rfind(kLegacyStagingPrefix, 0) != 0) continue;
+    OwnedFd fd(::open(entry.path().c_str(), O_RDONLY | O_CLOEXEC | O_NOFOLLOW));
+    if (fd.fd >= 0 && ::flock(fd.fd, LOCK_EX | LOCK_NB) != 0) continue;
+    spdlog::warn("removing staging folder left by an interrupted upload: {}", file);
+    std::error_code inner;
+    fs::remove_all(entry.path(), inner);
+  }
+
+  VISQ_ASSIGN_OR_RETURN(BlobStore blobs, BlobStore::Open(hidden / "blobs"));
+  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<CatalogDb> db, OpenCatalogDb(options.catalog, hidden));
+  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<SceneCatalog> catalog, SceneCatalog::Open(std::move(db)));
+  if (!fs::exists(kind_file, ec)) {
+    std::ofstream(kind_file) << kind << "\n";
+    fs::permissions(kind_file, fs::perms::owner_read | fs::perms::owner_write, ec);
+  }
+  std::unique_ptr<SceneRepository> repository(new SceneRepository(
+      root, replica_id, staging, owner_fd.release(), std::move(blobs), std::move(catalog)));
+  spdlog::info("scene repository {}: catalog {}, replica {}", root.string(), repository->DescribeCatalog(), replica_id);
+
+  // A repository of the layout before the catalog: its numbers go on where
+  // its counter stopped, and its scenes keep theirs.
+  uint64_t legacy = ReadNumberFile(root / std::string(kLegacyCounter));
+  for (const auto& entry : fs::directory_iterator(root, ec))
+    legacy = std::max(legacy, ReadNumberFile(entry.path() / std::string(kLegacyVersionMarker)));
+  VISQ_ASSIGN_OR_RETURN(const std::optional<std::string> recorded, repository->catalog_->Meta(kLegacyCounterMeta));
+  if (!recorded) VISQ_RETURN_IF_ERROR(repository->catalog_->SetMeta(kLegacyCounterMeta, absl::StrCat(legacy)));
+  if (legacy > 0) VISQ_RETURN_IF_ERROR(repository->catalog_->RaiseCounter(legacy));
+  VISQ_RETURN_IF_ERROR(repository->ImportHandPlaced(std::nullopt));
+  // Blobs no version names: those of deleted and replaced versions, and
+  // those a commit published before it failed.
+  repository->Collect(repository->blobs_.List());
+  return repository;
+}
+
+Status SceneRepository::ImportHandPlaced(const std::optional<std::string>& only) {
+  std::error_code ec;
+  std::vector<fs::directory_entry> entries;
+  if (only) {
+    for (const fs::path& path : {root_ / *only, root_ / (*only + ".glb"), root_ / (*only + ".gltf")})
+      if (fs::exists(fs::symlink_status(path, ec))) entries.emplace_back(path);
+  } else {
+    for (const auto& entry : fs::directory_iterator(root_, ec)) entries.push_back(entry);
+    std::sort(entries.begin(), entries.end());
+  }
+  if (entries.empty()) return absl::OkStatus();
+  VISQ_ASSIGN_OR_RETURN(const std::optional<std::string> legacy_text, catalog_->Meta(kLegacyCounterMeta));
+  uint64_t legacy_counter = 0;
+  if (legacy_text && !absl::SimpleAtoi(*legacy_text, &legacy_counter)) legacy_counter = 0;
+
+  std::vector<HandPlaced> imported;
+  std::set<std::string> names_seen;
+  for (const fs::directory_entry& entry : entries) {
+    if (entry.path().filename().string()[0] == '.') continue;
+    StatusOr<std::optional<HandPlaced>> read = ReadHandPlaced(root_, entry);
+    if (!read.ok()) {
+      spdlog::error("{} in the scene repository is not imported: {}", entry.path().filename().string(),
+                    read.status().message());
       continue;
     }
-    spdlog::warn("removing staging folder left by an interrupted upload: {}", file);
-    fs::remove_all(entry.path(), ec);
-    if (fd >= 0) ::close(fd);
+    if (!read->has_value()) continue;
+    HandPlaced& scene = **read;
+    // "x/", "x.glb" and "x.gltf" would all be the scene x: the first wins.
+    if (!names_seen.insert(scene.name).second) {
+      spdlog::error("{} in the scene repository is not imported: another entry is the scene '{}'",
+                    entry.path().filename().string(), scene.name);
+      continue;
+    }
+    // Copied through a staging like an upload's: the hand-placed file may be
+    // edited in place later, a blob never is.
+    VISQ_ASSIGN_OR_RETURN(std::unique_ptr<UploadStaging> staging,
+                          BeginUpload(scene.name, scene.main_file, std::numeric_limits<uint64_t>::max()));
+    Status copied = absl::OkStatus();
+    for (const std::string& file : scene.files) {
+      std::ifstream in(scene.base / file, std::ios::binary);
+      if (!in) {
+        copied = absl::NotFoundError(absl::StrCat("cannot read ", file));
+        break;
+      }
+      std::string chunk(1 << 20, '\0');
+      do {
+        in.read(chunk.data(), static_cast<std::streamsize>(chunk.size()));
+        copied = staging->Append(file, absl::string_view(chunk.data(), static_cast<size_t>(in.gcount())));
+      } while (copied.ok() && in.gcount() > 0);
+      if (!copied.ok()) break;
+    }
+    bool stored = false;
+    const uint64_t keep = scene.version <= legacy_counter ? scene.version : 0;
+    StatusOr<Stored> committed =
+        copied.ok() ? CommitFiles(*staging, /*replace=*/true, /*unless_unchanged=*/true, keep, &stored) : copied;
+    if (!committed.ok()) {
+      // Another replica importing the same entry may have removed it.
+      if (fs::exists(fs::symlink_status(entry.path(), ec)))
+        spdlog::error("{} in the scene repository is not imported: {}", entry.path().filename().string(),
+                      committed.status().message());
+      continue;
+    }
+    spdlog::info("scene '{}' {} from {} as v{}", scene.name, stored ? "imported" : "already in the catalog",
+                 entry.path().filename().string(), committed->version);
+    imported.push_back(std::move(scene));
   }
-  return std::unique_ptr<SceneRepository>(new SceneRepository(canonical));
-}
 
-std::vector<std::string> SceneRepository::List() const {
-  std::set<std::string> names;
-  std::error_code ec;
+  // The imported entries go: the catalog has them now, and an entry left
+  // there would be imported again over later uploads. A buffer beside a
+  // top-level .gltf stays while another top-level glTF still reads it.
+  std::set<fs::path> still_read;
   for (const auto& entry : fs::directory_iterator(root_, ec)) {
-    const fs::path& path = entry.path();
-    std::string name = entry.is_directory() ? path.filename().string() : path.stem().string();
-    if (!ValidateName(name).ok()) continue;
-    if (entry.is_directory() || IsSceneFile(path))
-      if (MainFile(name).ok()) names.insert(name);
+    if (!entry.is_regular_file() || !IsSceneFile(entry.path())) continue;
+    if (std::any_of(imported.begin(), imported.end(), [&](const HandPlaced& s) { return s.entry == entry.path(); }))
+      continue;
+    if (StatusOr<std::vector<std::string>> buffers = ReferencedBuffers(entry.path()); buffers.ok())
+      for (const std::string& buffer : *buffers) still_read.insert(root_ / buffer);
   }
-  return {names.begin(), names.end()};
-}
-
-StatusOr<fs::path> SceneRepository::MainFile(absl::string_view name) const {
-  VISQ_RETURN_IF_ERROR(ValidateName(name));
-  std::error_code ec;
-  const fs::path folder = root_ / std::string(name);
-  fs::path candidate;
-  if (fs::is_directory(folder, ec)) {
-    // An uploaded folder names its main file; a hand-made one has exactly one.
-    std::FILE* marker = std::fopen((folder / std::string(kMainFileMarker)).c_str(), "r");
-    if (marker != nullptr) {
-      char buffer[600] = {};
-      const size_t n = std::fread(buffer, 1, sizeof(buffer) - 1, marker);
-      std::fclose(marker);
-      std::string main(buffer, n);
-      while (!main.empty() && (main.back() == '\n' || main.back() == ' ')) main.pop_back();
-      VISQ_RETURN_IF_ERROR(ValidateUploadFile(main));
-      candidate = folder / main;
+  for (const HandPlaced& scene : imported) {
+    std::error_code inner;
+    if (scene.base == root_) {
+      for (const std::string& file : scene.files)
+        if (!still_read.count(root_ / file)) fs::remove(root_ / file, inner);
     } else {
-      std::vector<fs::path> found;
-      for (const auto& entry : fs::directory_iterator(folder, ec))
-        if (entry.is_regular_file() && IsSceneFile(entry.path())) found.push_back(entry.path());
-      if (found.size() != 1)
-        return absl::NotFoundError(absl::StrCat("scene '", name, "': folder holds ", found.size(),
-                                                " .gltf/.glb files, expected exactly one"));
-      candidate = found[0];
+      fs::remove_all(scene.entry, inner);
     }
-  } else if (fs::is_regular_file(root_ / absl::StrCat(name, ".glb"), ec)) {
-    candidate = root_ / absl::StrCat(name, ".glb");
-  } else if (fs::is_regular_file(root_ / absl::StrCat(name, ".gltf"), ec)) {
-    candidate = root_ / absl::StrCat(name, ".gltf");
-  } else {
-    return absl::NotFoundError(absl::StrCat("scene '", name, "' is not in the repository"));
   }
-  // Symlinks may point anywhere on disk: only what stays inside the
-  // repository is served.
-  const fs::path resolved = fs::weakly_canonical(candidate, ec);
-  const std::string root_prefix = root_.string() + "/";
-  if (ec || resolved.string().rfind(root_prefix, 0) != 0)
-    return absl::PermissionDeniedError(absl::StrCat("scene '", name, "' resolves outside the repository"));
-  if (!fs::is_regular_file(resolved, ec))
-    return absl::NotFoundError(absl::StrCat("scene '", name, "': main file missing"));
-  return resolved;
+  if (!imported.empty()) (void)FsyncPath(root_, /*directory=*/true);
+  return absl::OkStatus();
 }
 
-fs::path SceneRepository::FileRoot(const fs::path& main_file) const {
-  const fs::path relative = main_file.lexically_relative(root_);
-  if (relative.empty() || std::distance(relative.begin(), relative.end()) < 2) return root_;
-  return root_ / *relative.begin();
+void SceneRepository::Collect(const std::vector<std::string>& blobs) {
+  size_t removed = 0;
+  const Status collected = catalog_->CollectBlobs(blobs, [&](const std::string& blob) {
+    ++removed;
+    return blobs_.Remove(blob);
+  });
+  if (!collected.ok()) spdlog::warn("scene repository: blobs not collected: {}", collected.message());
+  if (removed > 0) spdlog::info("scene repository: {} blob(s) no version names removed", removed);
 }
 
-StatusOr<uint64_t> SceneRepository::NextVersion() const {
-  const fs::path path = root_ / std::string(kVersionCounter);
-  const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC | O_NOFOLLOW, 0644);
-  if (fd < 0) return ErrnoError("open", path);
-  // The lock goes with the descriptor: a crashed holder releases it.
-  while (::flock(fd, LOCK_EX) != 0)
-    if (errno != EINTR) {
-      const Status error = ErrnoError("lock", path);
-      ::close(fd);
-      return error;
-    }
-  char text[32] = {};
-  const ssize_t n = ::pread(fd, text, sizeof(text) - 1, 0);
-  uint64_t last = 0;
-  if (n > 0 && !absl::SimpleAtoi(absl::StripAsciiWhitespace(absl::string_view(text, static_cast<size_t>(n))), &last))
-    last = 0;
-  const std::string next = absl::StrCat(last + 1, "\n");
-  Status status = absl::OkStatus();
-  if (::pwrite(fd, next.data(), next.size(), 0) != static_cast<ssize_t>(next.size()) ||
-      ::ftruncate(fd, static_cast<off_t>(next.size())) != 0 || ::fsync(fd) != 0)
-    status = ErrnoError("write", path);
-  ::close(fd);
-  if (!status.ok()) return status;
-  return last + 1;
+std::vector<std::string> SceneRepository::List() {
+  StatusOr<std::vector<std::string>> names = catalog_->Names();
+  if (!names.ok()) {
+    spdlog::error("scene repository: cannot list the catalog: {}", names.status().message());
+    return {};
+  }
+  return *std::move(names);
 }
 
-uint64_t SceneRepository::StoredVersion(absl::string_view name) const {
-  if (!ValidateName(name).ok()) return 0;
-  std::FILE* f = std::fopen((root_ / std::string(name) / std::string(kVersionMarker)).c_str(), "r");
-  if (f == nullptr) return 0;
-  char text[32] = {};
-  const size_t n = std::fread(text, 1, sizeof(text) - 1, f);
-  std::fclose(f);
-  uint64_t version = 0;
-  if (!absl::SimpleAtoi(absl::StripAsciiWhitespace(absl::string_view(text, n)), &version)) return 0;
-  return version;
+bool SceneRepository::Contains(absl::string_view name) {
+  if (!ValidateName(name).ok()) return false;
+  StatusOr<std::optional<CatalogVersion>> current = catalog_->Current(name);
+  if (current.ok() && current->has_value()) return true;
+  // A scene placed by hand while the server runs is taken in on first use.
+  const Status imported = ImportHandPlaced(std::string(name));
+  if (!imported.ok()) spdlog::error("scene '{}' not imported: {}", name, imported.message());
+  current = catalog_->Current(name);
+  return current.ok() && current->has_value();
+}
+
+StatusOr<uint64_t> SceneRepository::NextVersion() { return catalog_->NextVersion(); }
+
+StatusOr<fs::path> SceneRepository::NewStagingFolder(absl::string_view prefix) const {
+  const fs::path dir = staging_ / absl::StrCat(prefix, RandomSuffix());
+  if (::mkdir(dir.c_str(), 0700) != 0) return ErrnoError("create staging folder", dir);
+  return dir;
 }
 
 StatusOr<std::unique_ptr<UploadStaging>> SceneRepository::BeginUpload(absl::string_view name,
                                                                       absl::string_view main_file,
-                                                                      uint64_t max_bytes) const {
+                                                                      uint64_t max_bytes) {
   VISQ_RETURN_IF_ERROR(ValidateName(name));
   VISQ_RETURN_IF_ERROR(ValidateUploadFile(main_file));
   if (!IsSceneFile(fs::path(std::string(main_file))))
     return absl::InvalidArgumentError(absl::StrCat("upload_main_file '", main_file, "': not a .gltf or .glb"));
-  const fs::path dir = root_ / absl::StrCat(AbslView(kStagingPrefix), name, "-", RandomSuffix());
-  if (::mkdir(dir.c_str(), 0700) != 0) return ErrnoError("create staging folder", dir);
-  std::unique_ptr<UploadStaging> staging(new UploadStaging(dir, std::string(name), std::string(main_file), max_bytes));
-  staging->lock_fd_ = ::open(dir.c_str(), O_RDONLY | O_CLOEXEC | O_DIRECTORY | O_NOFOLLOW);
-  if (staging->lock_fd_ < 0 || ::flock(staging->lock_fd_, LOCK_EX | LOCK_NB) != 0)
-    return ErrnoError("lock staging folder", dir);
-  return staging;
-}
-
-SceneRepository::Identity SceneRepository::StoredIdentity(absl::string_view name) const {
-  Identity identity;
-  if (!ValidateName(name).ok()) return identity;
-  struct stat info {};
-  for (const fs::path& path : {root_ / std::string(name), root_ / absl::StrCat(name, ".glb"),
-                               root_ / absl::StrCat(name, ".gltf")})
-    if (::lstat(path.c_str(), &info) == 0) {
-      identity.device = info.st_dev;
-      identity.inode = info.st_ino;
-      break;
-    }
-  identity.version = StoredVersion(name);
-  return identity;
+  VISQ_ASSIGN_OR_RETURN(const fs::path dir, NewStagingFolder("upload-"));
+  return std::unique_ptr<UploadStaging>(
+      new UploadStaging(dir, std::string(name), std::string(main_file), max_bytes));
 }
 
 StatusOr<SceneRepository::Stored> SceneRepository::Commit(UploadStaging& staging, bool replace) {
-  VISQ_RETURN_IF_ERROR(staging.CloseAll());
-  VISQ_ASSIGN_OR_RETURN(const uint64_t version, NextVersion());
-  // The markers, then everything, reach the disk before the rename does.
-  auto write_marker = [&](std::string_view marker_name, const std::string& text) -> Status {
-    const fs::path marker = staging.dir_ / std::string(marker_name);
-    const int fd = ::open(marker.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0600);
-    std::FILE* f = fd >= 0 ? ::fdopen(fd, "w") : nullptr;
-    if (f == nullptr) {
-      const Status error = ErrnoError("create", marker);
-      if (fd >= 0) ::close(fd);
-      return error;
-    }
-    const bool written = std::fputs(text.c_str(), f) >= 0 && std::fflush(f) == 0;
-    const int rc = written ? ::fsync(fileno(f)) : -1;
-    std::fclose(f);
-    if (rc != 0) return ErrnoError("write", marker);
-    return absl::OkStatus();
-  };
-  VISQ_RETURN_IF_ERROR(write_marker(kMainFileMarker, staging.main_file_));
-  VISQ_RETURN_IF_ERROR(write_marker(kVersionMarker, absl::StrCat(version, "\n")));
-  VISQ_RETURN_IF_ERROR(FsyncPath(staging.dir_, true));
+  bool stored = false;
+  return CommitFiles(staging, replace, /*unless_unchanged=*/false, /*keep_version=*/0, &stored);
+}
 
-  const fs::path target = root_ / staging.name_;
-  std::error_code ec;
-  const fs::file_status target_status = fs::symlink_status(target, ec);
-  const bool replacing = fs::exists(target_status);
-  // Only a stored scene's folder is ever exchanged: a file or link of that
-  // name is not ours to destroy.
-  if (replacing && !fs::is_directory(target_status))
-    return absl::AlreadyExistsError(
-        absl::StrCat("scene '", staging.name_, "': the repository holds a file of that name; nothing stored"));
-  // A plain-file scene of the same name would shadow nothing but confuse
-  // MainFile; uploads always become folders.
-  for (const char* ext : {".glb", ".gltf"}) fs::remove(root_ / absl::StrCat(staging.name_, ext), ec);
-  auto stored_meanwhile = [&] {
-    return absl::AlreadyExistsError(absl::StrCat("scene '", staging.name_,
-                                                 "' was stored meanwhile (by another replica?); nothing stored: set "
-                                                 "replace to replace it"));
-  };
-  if (replacing && !replace) return stored_meanwhile();
-  // A create never replaces: the rename fails if the name appeared since the
-  // check (another replica's commit), and a replace that found nothing
-  // exchanges once the name has appeared.
-  bool exchanged = false;
-  if (!replacing) {
-    if (::renameat2(AT_FDCWD, staging.dir_.c_str(), AT_FDCWD, target.c_str(), RENAME_NOREPLACE) != 0) {
-      if (errno != EEXIST && errno != ENOTEMPTY) return ErrnoError("rename into", target);
-      if (!replace) return stored_meanwhile();
-      exchanged = true;
+StatusOr<SceneRepository::Stored> SceneRepository::CommitFiles(UploadStaging& staging, bool replace,
+                                                               bool unless_unchanged, uint64_t keep_version,
+                                                               bool* stored) {
+  VISQ_RETURN_IF_ERROR(staging.CloseAll());
+  SceneCatalog::CommitRequest request;
+  request.name = staging.name_;
+  request.main_file = staging.main_file_;
+  request.replace = replace;
+  request.unless_unchanged = unless_unchanged;
+  request.keep_version = keep_version;
+  bool has_main = false;
+  for (const UploadStaging::File& file : staging.files_) {
+    request.files.push_back(CatalogFile{file.path, file.blob, file.size});
+    has_main |= file.path == staging.main_file_;
+  }
+  if (!has_main)
+    return absl::InvalidArgumentError(absl::StrCat("header.upload_main_file '", staging.main_file_,
+                                                   "': never sent (no chunk carries that file); nothing stored"));
+  VISQ_ASSIGN_OR_RETURN(const SceneCatalog::Committed committed,
+                        catalog_->Commit(request, [&](const CatalogFile& file) {
+                          return blobs_.Publish(staging.dir_ / file.path, file.blob);
+                        }));
+  *stored = committed.stored;
+  Collect(committed.released);
+  return Stored{committed.version};
+}
+
+StatusOr<std::unique_ptr<StoredSceneView>> SceneRepository::Checkout(absl::string_view name) {
+  VISQ_RETURN_IF_ERROR(ValidateName(name));
+  // A version replaced by another replica between reading the catalog and
+  // linking its blobs may have lost them to collection: read the catalog
+  // again, which now names the newer version.
+  constexpr int kAttempts = 4;
+  Status last;
+  for (int attempt = 0; attempt < kAttempts; ++attempt) {
+    VISQ_ASSIGN_OR_RETURN(std::optional<CatalogVersion> current, catalog_->Current(name));
+    if (!current && attempt == 0 && Contains(name)) {  // placed by hand since the start
+      VISQ_ASSIGN_OR_RETURN(current, catalog_->Current(name));
     }
-  } else {
-    exchanged = true;
+    if (!current) return absl::NotFoundError(absl::StrCat("scene '", name, "' is not in the repository"));
+    VISQ_ASSIGN_OR_RETURN(const fs::path dir, NewStagingFolder("load-"));
+    std::unique_ptr<StoredSceneView> view(new StoredSceneView(dir, current->name, current->version, current->main_file));
+    last = absl::OkStatus();
+    for (const CatalogFile& file : current->files) {
+      // The catalog's paths were checked as the upload's were; a catalog
+      // edited by hand is still not followed out of the view.
+      if (Status valid = ValidateUploadFile(file.path); !valid.ok())
+        return absl::DataLossError(absl::StrCat("scene '", name, "' v", current->version, ": ", valid.message()));
+      const fs::path relative(file.path);
+      last = MakeOwnerFolders(dir, relative.parent_path());
+      if (last.ok()) last = blobs_.LinkTo(file.blob, file.size, dir / relative);
+      if (!last.ok()) break;
+    }
+    if (last.ok()) return view;
+    if (!absl::IsNotFound(last)) return last;
   }
-  if (exchanged) {
-    // Swap atomically: the old folder ends up at the staging path and is
-    // removed after; readers see the old scene or the new one.
-    if (::renameat2(AT_FDCWD, staging.dir_.c_str(), AT_FDCWD, target.c_str(), RENAME_EXCHANGE) != 0)
-      return ErrnoError("exchange into", target);
-    fs::remove_all(staging.dir_, ec);
-  }
-  staging.committed_ = true;
-  VISQ_RETURN_IF_ERROR(FsyncPath(root_, true));
-  return Stored{target / staging.main_file_, version};
+  return absl::DataLossError(absl::StrCat("scene '", name, "': ", last.message()));
 }
 
 Status SceneRepository::Remove(absl::string_view name) {
   VISQ_RETURN_IF_ERROR(ValidateName(name));
-  std::error_code ec;
-  bool removed = false;
-  const fs::path folder = root_ / std::string(name);
-  if (fs::exists(fs::symlink_status(folder, ec))) {
-    // Move aside first so a crash mid-delete never leaves a half scene.
-    const fs::path doomed = root_ / absl::StrCat(AbslView(kStagingPrefix), "deleted-", name, "-", RandomSuffix());
-    if (::rename(folder.c_str(), doomed.c_str()) != 0) return ErrnoError("rename", folder);
-    fs::remove_all(doomed, ec);
-    removed = true;
-  }
-  for (const char* ext : {".glb", ".gltf"}) removed |= fs::remove(root_ / absl::StrCat(name, ext), ec);
-  if (!removed) return absl::NotFoundError(absl::StrCat("scene '", name, "' is not in the repository"));
-  return FsyncPath(root_, true);
+  StatusOr<std::vector<std::string>> released = catalog_->Remove(name);
+  // A scene placed by hand and never used is still the operator's to delete.
+  if (absl::IsNotFound(released.status()) && Contains(name)) released = catalog_->Remove(name);
+  VISQ_RETURN_IF_ERROR(released.status());
+  Collect(*released);
+  return absl::OkStatus();
 }
 
 }  // namespace visq::core

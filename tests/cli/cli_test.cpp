@@ -18,6 +18,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "scene/sample_scenes.h"
 #include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
@@ -599,13 +600,16 @@ namespace {
 // the Kubernetes Deployment: replica-a holds the seeded scene and an upload,
 // replica-b the same upload (loaded from the repository) and one of its own.
 TEST(CliFleet, StatsHaveARowPerReplicaAndTotalsAndListTheUnionWithItsHolders) {
-  ScratchDir repo;
+  ScratchDir repo, files;
   auto a = ServerProcess::Start({repo.path(), {"--seed-samples", "--server-id", "replica-a"}});
   auto b = ServerProcess::Start({repo.path(), {"--no-preload", "--server-id", "replica-b"}});
   ASSERT_NE(a, nullptr);
   ASSERT_NE(b, nullptr);
+  // The seeded scene's files as a user has them (the repository keeps its
+  // scenes as blobs).
+  ASSERT_TRUE(WriteSampleScenes(files.path()).ok());
   fs::path gltf;
-  for (const auto& entry : fs::directory_iterator(repo.path() / kScene))
+  for (const auto& entry : fs::directory_iterator(files.path() / kScene))
     if (entry.path().extension() == ".gltf" || entry.path().extension() == ".glb") gltf = entry.path();
   ASSERT_FALSE(gltf.empty()) << "no glTF file in the seeded " << kScene;
   for (const std::string& arguments :

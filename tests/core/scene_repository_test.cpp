@@ -1,6 +1,7 @@
-// The scene repository on a real folder: names, uploads committed or
-// abandoned, replacement, versions that never repeat across reopenings,
-// and stale staging left by a crash.
+// The scene repository on a real folder and a real SQLite catalog: names,
+// uploads committed or abandoned, replacement, deletion and the blobs it
+// frees, versions that never repeat across reopenings, replicas' staging,
+// and the move of a repository of the layout before the catalog.
 #include "core/scene_repository.h"
 
 #include <filesystem>
@@ -16,10 +17,48 @@ namespace {
 
 namespace fs = std::filesystem;
 
-StatusOr<SceneRepository::Stored> Store(SceneRepository& repo, const std::string& name, const std::string& body) {
+std::string ReadFile(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+}
+
+void WriteFile(const fs::path& path, const std::string& body) {
+  fs::create_directories(path.parent_path());
+  std::ofstream(path, std::ios::binary) << body;
+}
+
+StatusOr<SceneRepository::Stored> Store(SceneRepository& repo, const std::string& name,
+                                        const std::map<std::string, std::string>& files, bool replace = true) {
   VISQ_ASSIGN_OR_RETURN(std::unique_ptr<UploadStaging> staging, repo.BeginUpload(name, name + ".gltf", 1 << 20));
-  VISQ_RETURN_IF_ERROR(staging->Append(name + ".gltf", body));
-  return repo.Commit(*staging, /*replace=*/true);
+  VISQ_RETURN_IF_ERROR(staging->Append(name + ".gltf", files.count("") ? files.at("") : "{}"));
+  for (const auto& [file, body] : files)
+    if (!file.empty()) VISQ_RETURN_IF_ERROR(staging->Append(file, body));
+  return repo.Commit(*staging, replace);
+}
+
+StatusOr<SceneRepository::Stored> Store(SceneRepository& repo, const std::string& name, const std::string& body) {
+  return Store(repo, name, {{"", body}});
+}
+
+// The main file's bytes of the version `name` holds now.
+std::string StoredBody(SceneRepository& repo, const std::string& name) {
+  auto view = repo.Checkout(name);
+  if (!view.ok()) return "(" + std::string(view.status().message()) + ")";
+  return ReadFile((*view)->main_file());
+}
+
+size_t BlobCount(const fs::path& root) {
+  size_t count = 0;
+  for (const auto& entry : fs::recursive_directory_iterator(root / ".visq" / "blobs")) count += entry.is_regular_file();
+  return count;
+}
+
+// What a replica's staging holds, its lock file aside.
+size_t StagingEntries(const fs::path& root, const std::string& replica) {
+  size_t count = 0;
+  for (const auto& entry : fs::directory_iterator(root / ".visq" / "staging" / replica))
+    count += entry.path().filename() != ".owner";
+  return count;
 }
 
 TEST(SceneRepository, NamesAreCheckedBeforeAnyFileIsTouched) {
@@ -36,22 +75,56 @@ TEST(SceneRepository, CommitStoresListsAndReplacesUnderANewVersion) {
   auto first = Store(**repo, "box", "{\"asset\":{\"version\":\"2.0\"}}");
   ASSERT_TRUE(first.ok()) << first.status();
   EXPECT_EQ((*repo)->List(), std::vector<std::string>{"box"});
-  auto main_file = (*repo)->MainFile("box");
-  ASSERT_TRUE(main_file.ok()) << main_file.status();
-  EXPECT_TRUE(fs::exists(*main_file));
-  EXPECT_EQ((*repo)->StoredVersion("box"), first->version);
+  {
+    auto view = (*repo)->Checkout("box");
+    ASSERT_TRUE(view.ok()) << view.status();
+    EXPECT_EQ((*view)->version(), first->version);
+    EXPECT_EQ(ReadFile((*view)->main_file()), "{\"asset\":{\"version\":\"2.0\"}}");
+  }
 
   auto second = Store(**repo, "box", "{\"asset\":{\"version\":\"2.0\"},\"scenes\":[]}");
   ASSERT_TRUE(second.ok()) << second.status();
   EXPECT_GT(second->version, first->version);
   EXPECT_EQ((*repo)->List(), std::vector<std::string>{"box"});
-  std::ifstream in(*(*repo)->MainFile("box"));
-  const std::string stored((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  EXPECT_NE(stored.find("scenes"), std::string::npos) << "the replacement is what is stored";
+  EXPECT_NE(StoredBody(**repo, "box").find("scenes"), std::string::npos) << "the replacement is what is stored";
+  EXPECT_EQ(BlobCount((*repo)->root()), 1u) << "the replaced version's blob is collected";
 
   EXPECT_TRUE((*repo)->Remove("box").ok());
   EXPECT_TRUE((*repo)->List().empty());
   EXPECT_FALSE((*repo)->Contains("box"));
+  EXPECT_EQ((*repo)->Checkout("box").status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ((*repo)->Remove("box").code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(BlobCount((*repo)->root()), 0u);
+  EXPECT_EQ(StagingEntries((*repo)->root(), (*repo)->replica_id()), 0u) << "loads and uploads leave no staging";
+}
+
+// A blob is named by the SHA-256 of its bytes; two scenes that hold the
+// same file share it, and deleting one keeps what the other names.
+TEST(SceneRepository, BlobsAreContentAddressedSharedAndCollectedWhenNoVersionNamesThem) {
+  testing::ScratchDir dir;
+  auto repo = SceneRepository::Open(dir.path());
+  ASSERT_TRUE(repo.ok()) << repo.status();
+  const std::string shared(1000, 's');
+  ASSERT_TRUE(Store(**repo, "a", {{"", "{\"a\":1}"}, {"data/shared.bin", shared}}).ok());
+  ASSERT_TRUE(Store(**repo, "b", {{"", "{\"b\":1}"}, {"other/path.bin", shared}}).ok());
+  EXPECT_EQ(BlobCount(dir.path()), 3u) << "two main files and one shared buffer";
+  Sha256 hash;
+  hash.Update(shared);
+  const std::string digest = hash.HexDigest();
+  const fs::path blob = dir.path() / ".visq" / "blobs" / digest.substr(0, 2) / digest;
+  ASSERT_TRUE(fs::is_regular_file(blob));
+  EXPECT_EQ(ReadFile(blob), shared);
+
+  ASSERT_TRUE((*repo)->Remove("a").ok());
+  EXPECT_TRUE(fs::is_regular_file(blob)) << "b still names it";
+  EXPECT_EQ(BlobCount(dir.path()), 2u);
+  auto view = (*repo)->Checkout("b");
+  ASSERT_TRUE(view.ok()) << view.status();
+  EXPECT_EQ(ReadFile((*view)->dir() / "other/path.bin"), shared);
+  ASSERT_TRUE((*repo)->Remove("b").ok());
+  EXPECT_FALSE(fs::exists(blob));
+  // The view links the bytes: a load that had checked out b reads them still.
+  EXPECT_EQ(ReadFile((*view)->dir() / "other/path.bin"), shared);
 }
 
 TEST(SceneRepository, AnAbandonedUploadLeavesNothing) {
@@ -62,9 +135,12 @@ TEST(SceneRepository, AnAbandonedUploadLeavesNothing) {
     auto staging = (*repo)->BeginUpload("half", "half.gltf", 1 << 20);
     ASSERT_TRUE(staging.ok()) << staging.status();
     ASSERT_TRUE((*staging)->Append("half.gltf", "{").ok());
+    EXPECT_EQ(StagingEntries((*repo)->root(), (*repo)->replica_id()), 1u);
   }  // never committed
   EXPECT_TRUE((*repo)->List().empty());
   EXPECT_FALSE((*repo)->Contains("half"));
+  EXPECT_EQ(StagingEntries((*repo)->root(), (*repo)->replica_id()), 0u);
+  EXPECT_EQ(BlobCount((*repo)->root()), 0u);
 }
 
 TEST(SceneRepository, UploadFilesStayInsideTheirFolderAndUnderTheirCap) {
@@ -75,9 +151,28 @@ TEST(SceneRepository, UploadFilesStayInsideTheirFolderAndUnderTheirCap) {
   ASSERT_TRUE(staging.ok()) << staging.status();
   EXPECT_EQ((*staging)->Append("../escape.bin", "x").code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ((*staging)->Append("/etc/passwd", "x").code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ((*staging)->Append(".visq/x", "x").code(), absl::StatusCode::kInvalidArgument);
   EXPECT_FALSE(fs::exists(dir.path() / "escape.bin"));
   EXPECT_TRUE((*staging)->Append("s.gltf", "12345678").ok());
   EXPECT_EQ((*staging)->Append("s.gltf", "9").code(), absl::StatusCode::kResourceExhausted);
+  for (const char* bad : {"../x.gltf", "x.txt", ""})
+    EXPECT_EQ((*repo)->BeginUpload("s", bad, 8).status().code(), absl::StatusCode::kInvalidArgument) << bad;
+  EXPECT_EQ((*repo)->BeginUpload("../s", "s.gltf", 8).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// A main file no chunk carried is the client's mistake, named; nothing is
+// stored.
+TEST(SceneRepository, ACommitWithoutItsMainFileStoresNothing) {
+  testing::ScratchDir dir;
+  auto repo = SceneRepository::Open(dir.path());
+  ASSERT_TRUE(repo.ok());
+  auto staging = (*repo)->BeginUpload("s", "s.gltf", 1 << 20);
+  ASSERT_TRUE(staging.ok());
+  ASSERT_TRUE((*staging)->Append("other.bin", "x").ok());
+  const auto committed = (*repo)->Commit(**staging, false);
+  EXPECT_EQ(committed.status().code(), absl::StatusCode::kInvalidArgument) << committed.status();
+  EXPECT_NE(committed.status().message().find("upload_main_file"), std::string::npos) << committed.status();
+  EXPECT_TRUE((*repo)->List().empty());
 }
 
 TEST(SceneRepository, VersionsNeverRepeatAcrossReopenings) {
@@ -91,6 +186,9 @@ TEST(SceneRepository, VersionsNeverRepeatAcrossReopenings) {
       ASSERT_TRUE(version.ok()) << version.status();
       EXPECT_TRUE(seen.insert(*version).second) << "version " << *version << " repeated";
     }
+    auto stored = Store(**repo, "s" + std::to_string(opening), "{}");
+    ASSERT_TRUE(stored.ok()) << stored.status();
+    EXPECT_TRUE(seen.insert(stored->version).second) << "version " << stored->version << " repeated";
   }
 }
 
@@ -98,8 +196,8 @@ TEST(SceneRepository, VersionsNeverRepeatAcrossReopenings) {
 // name exists; neither upload is silently lost.
 TEST(SceneRepository, ConcurrentCreatesOfOneNameStoreOneAndRefuseTheOther) {
   testing::ScratchDir dir;
-  auto first = SceneRepository::Open(dir.path());
-  auto second = SceneRepository::Open(dir.path());
+  auto first = SceneRepository::Open({dir.path(), "", "first"});
+  auto second = SceneRepository::Open({dir.path(), "", "second"});
   ASSERT_TRUE(first.ok() && second.ok());
   auto a = (*first)->BeginUpload("same", "same.gltf", 1 << 20);
   auto b = (*second)->BeginUpload("same", "same.gltf", 1 << 20);
@@ -111,56 +209,86 @@ TEST(SceneRepository, ConcurrentCreatesOfOneNameStoreOneAndRefuseTheOther) {
   ASSERT_TRUE(stored.ok()) << stored.status();
   auto refused = (*second)->Commit(**b, /*replace=*/false);
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kAlreadyExists) << refused.status();
-  std::ifstream in(stored->main_file);
-  std::string body((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  EXPECT_EQ(body, "first") << "the acknowledged upload is the one stored";
+  EXPECT_EQ(StoredBody(**second, "same"), "first") << "the acknowledged upload is the one stored";
   // With replace, the second takes its place.
   auto c = (*second)->BeginUpload("same", "same.gltf", 1 << 20);
   ASSERT_TRUE(c.ok());
   ASSERT_TRUE((*c)->Append("same.gltf", "third").ok());
   EXPECT_TRUE((*second)->Commit(**c, /*replace=*/true).ok());
+  EXPECT_EQ(StoredBody(**first, "same"), "third");
 }
 
-// A replica's start removes the staging folders a crash left, not those of
-// uploads in flight on another replica of the same repository.
+// A replica's start removes its own staging (left by its last run) and that
+// of replicas no longer running, never an upload in flight on a live one.
 TEST(SceneRepository, AStartKeepsAnotherReplicasUploadInFlight) {
   testing::ScratchDir dir;
-  auto running = SceneRepository::Open(dir.path());
+  auto running = SceneRepository::Open({dir.path(), "", "running"});
   ASSERT_TRUE(running.ok());
   auto in_flight = (*running)->BeginUpload("busy", "busy.gltf", 1 << 20);
   ASSERT_TRUE(in_flight.ok());
   ASSERT_TRUE((*in_flight)->Append("busy.gltf", "half").ok());
-  // A folder a crashed upload left, beside the live one.
-  const fs::path crashed = dir.path() / ".staging-gone-0000000000000001";
-  fs::create_directory(crashed);
+  // What a crashed run of "starting" left, and a replica long gone.
+  const fs::path own_crash = dir.path() / ".visq" / "staging" / "starting" / "upload-0000000000000001";
+  const fs::path gone_crash = dir.path() / ".visq" / "staging" / "gone" / "upload-0000000000000002";
+  WriteFile(own_crash / "x.gltf", "x");
+  WriteFile(gone_crash / "y.gltf", "y");
 
-  auto starting = SceneRepository::Open(dir.path());  // another replica starts
-  ASSERT_TRUE(starting.ok());
-  EXPECT_FALSE(fs::exists(crashed)) << "a crash's leftovers go";
+  auto starting = SceneRepository::Open({dir.path(), "", "starting"});  // another replica starts
+  ASSERT_TRUE(starting.ok()) << starting.status();
+  EXPECT_FALSE(fs::exists(own_crash)) << "its own leftovers go";
+  EXPECT_FALSE(fs::exists(gone_crash)) << "a replica that is not running has none in flight";
   EXPECT_TRUE(fs::exists((*in_flight)->dir())) << "a live upload's folder stays";
   ASSERT_TRUE((*in_flight)->Append("busy.gltf", ", then done").ok());
   EXPECT_TRUE((*running)->Commit(**in_flight, /*replace=*/false).ok());
+  EXPECT_EQ(StoredBody(**starting, "busy"), "half, then done");
+
+  // A replica name a live server holds is refused, naming the flag.
+  auto twin = SceneRepository::Open({dir.path(), "", "running"});
+  EXPECT_EQ(twin.status().code(), absl::StatusCode::kFailedPrecondition) << twin.status();
+  EXPECT_NE(twin.status().message().find("--replica-id"), std::string::npos) << twin.status();
 }
 
-// A commit gives the stored scene a new identity (folder and version), which
-// is how a load tells that the files it read were replaced meanwhile.
-TEST(SceneRepository, AReplaceChangesTheStoredIdentity) {
+// Every input naming a place is checked: a bad flag is refused by name.
+TEST(SceneRepository, BadFlagsAreNamed) {
+  testing::ScratchDir dir;
+  auto bad_id = SceneRepository::Open({dir.path(), "", "../evil"});
+  EXPECT_EQ(bad_id.status().code(), absl::StatusCode::kInvalidArgument) << bad_id.status();
+  EXPECT_NE(bad_id.status().message().find("--replica-id"), std::string::npos) << bad_id.status();
+  auto bad_catalog = SceneRepository::Open({dir.path(), "mysql://root:hunter2@db/x", ""});
+  EXPECT_EQ(bad_catalog.status().code(), absl::StatusCode::kInvalidArgument) << bad_catalog.status();
+  EXPECT_NE(bad_catalog.status().message().find("--catalog"), std::string::npos) << bad_catalog.status();
+  EXPECT_EQ(bad_catalog.status().message().find("hunter2"), std::string::npos) << "a password is never repeated";
+  // A repository whose catalog is in SQLite is not opened as PostgreSQL's
+  // (nor the reverse): the replica would serve an empty catalog.
+  ASSERT_TRUE(SceneRepository::Open(dir.path()).ok());
+  auto other = SceneRepository::Open({dir.path(), "postgresql://nobody@127.0.0.1:1/none", ""});
+  EXPECT_EQ(other.status().code(), absl::StatusCode::kFailedPrecondition) << other.status();
+  EXPECT_NE(other.status().message().find("--catalog"), std::string::npos) << other.status();
+}
+
+// Each version's files are linked out of the blobs it was committed with:
+// a (scene, version) names one content, and versions never name two.
+TEST(SceneRepository, AVersionNamesOneContent) {
   testing::ScratchDir dir;
   auto repo = SceneRepository::Open(dir.path());
   ASSERT_TRUE(repo.ok());
-  ASSERT_TRUE(Store(**repo, "s", "one").ok());
-  const SceneRepository::Identity before = (*repo)->StoredIdentity("s");
-  EXPECT_GT(before.version, 0u);
-  EXPECT_EQ((*repo)->StoredIdentity("s"), before);
-  ASSERT_TRUE(Store(**repo, "s", "two").ok());
-  const SceneRepository::Identity after = (*repo)->StoredIdentity("s");
-  EXPECT_NE(after.version, before.version);
-  EXPECT_NE(after.inode, before.inode);
+  std::map<uint64_t, std::string> content_of;
+  for (int i = 0; i < 6; ++i) {
+    const std::string body = "body " + std::to_string(i % 2);
+    auto stored = Store(**repo, "s", {{"", body}, {"b.bin", body + " bin"}});
+    ASSERT_TRUE(stored.ok()) << stored.status();
+    EXPECT_TRUE(content_of.emplace(stored->version, body).second) << "a version number given twice";
+    auto view = (*repo)->Checkout("s");
+    ASSERT_TRUE(view.ok());
+    EXPECT_EQ((*view)->version(), stored->version);
+    EXPECT_EQ(ReadFile((*view)->main_file()), body);
+    EXPECT_EQ(ReadFile((*view)->dir() / "b.bin"), body + " bin");
+  }
 }
 
-// An upload's folders and files are its owner's alone; a name past what a
-// file system holds, and a file where another chunk made a folder, are the
-// client's mistakes, named as such.
+// An upload's blobs and folders are its owner's alone, as is the catalog; a
+// name past what a file system holds, and a file where another chunk made a
+// folder, are the client's mistakes, named as such.
 TEST(SceneRepository, UploadsAreTheOwnersAloneAndBadLayoutsAreTheClientsMistake) {
   testing::ScratchDir dir;
   auto repo = SceneRepository::Open(dir.path());
@@ -172,14 +300,12 @@ TEST(SceneRepository, UploadsAreTheOwnersAloneAndBadLayoutsAreTheClientsMistake)
   auto stored = (*repo)->Commit(**staging, /*replace=*/false);
   ASSERT_TRUE(stored.ok()) << stored.status();
   size_t checked = 0;
-  const fs::path folder = stored->main_file.parent_path();
-  for (const auto& entry : fs::recursive_directory_iterator(folder)) {
+  for (const auto& entry : fs::recursive_directory_iterator(dir.path() / ".visq")) {
     EXPECT_EQ(fs::status(entry.path()).permissions() & (fs::perms::group_all | fs::perms::others_all), fs::perms::none)
         << entry.path();
     ++checked;
   }
-  EXPECT_GE(checked, 4u) << "the main file, the folder, its file and the markers";
-  EXPECT_EQ(fs::status(folder).permissions() & (fs::perms::group_all | fs::perms::others_all), fs::perms::none);
+  EXPECT_GE(checked, 6u) << "the blobs, their folders, the catalog and the staging";
 
   auto bad = (*repo)->BeginUpload("bad", "bad.gltf", 1 << 20);
   ASSERT_TRUE(bad.ok());
@@ -190,6 +316,92 @@ TEST(SceneRepository, UploadsAreTheOwnersAloneAndBadLayoutsAreTheClientsMistake)
   const Status clash = (*bad)->Append("a", "y");
   EXPECT_EQ(clash.code(), absl::StatusCode::kInvalidArgument) << clash;
   EXPECT_NE(clash.message().find("chunk.file"), std::string::npos) << clash;
+}
+
+// A repository of the layout before the catalog (upload folders with their
+// markers, a counter file, a hand-placed .glb, a .gltf with its buffer
+// beside it, an interrupted upload's staging) is moved over on its first
+// start: every scene in the catalog with its bytes, uploads keeping their
+// versions, numbers going on past the old counter, the old entries gone.
+// A second start changes nothing.
+TEST(SceneRepository, AnOldRepositoryIsMovedOverOnFirstStart) {
+  testing::ScratchDir dir;
+  const fs::path root = dir.path();
+  WriteFile(root / "uploaded" / "scene.gltf", "{\"uploaded\":1}");
+  WriteFile(root / "uploaded" / "data" / "x.bin", "uploaded bytes");
+  WriteFile(root / "uploaded" / ".visq-main", "scene.gltf\n");
+  WriteFile(root / "uploaded" / ".visq-version", "7\n");
+  WriteFile(root / ".visq-version-counter", "9\n");
+  WriteFile(root / "by_hand" / "only.glb", "glb bytes");
+  WriteFile(root / "plain.gltf", R"({"buffers":[{"uri":"plain%20data.bin","byteLength":3},{"uri":"data:,x"}]})");
+  WriteFile(root / "plain data.bin", "abc");
+  WriteFile(root / "stray.bin", "not a scene");
+  WriteFile(root / ".staging-old-0000000000000001" / "half.gltf", "{");
+  WriteFile(root / "two" / "a.gltf", "{}");
+  WriteFile(root / "two" / "b.gltf", "{}");  // no main marker, two glTFs: not a scene
+
+  std::map<std::string, uint64_t> versions;
+  {
+    auto repo = SceneRepository::Open(root);
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    EXPECT_EQ((*repo)->List(), (std::vector<std::string>{"by_hand", "plain", "uploaded"}));
+    for (const std::string& name : (*repo)->List()) {
+      auto view = (*repo)->Checkout(name);
+      ASSERT_TRUE(view.ok()) << view.status();
+      versions[name] = (*view)->version();
+    }
+    EXPECT_EQ(versions["uploaded"], 7u) << "an upload keeps the version it was committed with";
+    EXPECT_GT(versions["by_hand"], 9u) << "new numbers go on past the old counter";
+    EXPECT_GT(versions["plain"], 9u);
+    EXPECT_NE(versions["by_hand"], versions["plain"]);
+    auto uploaded = (*repo)->Checkout("uploaded");
+    ASSERT_TRUE(uploaded.ok());
+    EXPECT_EQ(ReadFile((*uploaded)->main_file()), "{\"uploaded\":1}");
+    EXPECT_EQ(ReadFile((*uploaded)->dir() / "data" / "x.bin"), "uploaded bytes");
+    EXPECT_FALSE(fs::exists((*uploaded)->dir() / ".visq-main")) << "the old markers are not scene files";
+    auto plain = (*repo)->Checkout("plain");
+    ASSERT_TRUE(plain.ok());
+    EXPECT_EQ(ReadFile((*plain)->dir() / "plain data.bin"), "abc");
+    auto next = (*repo)->NextVersion();
+    ASSERT_TRUE(next.ok());
+    EXPECT_GT(*next, 9u);
+  }
+  for (const char* gone : {"uploaded", "by_hand", "plain.gltf", "plain data.bin", ".staging-old-0000000000000001"})
+    EXPECT_FALSE(fs::exists(root / gone)) << gone;
+  EXPECT_TRUE(fs::exists(root / "stray.bin")) << "what is no scene is left alone";
+  EXPECT_TRUE(fs::exists(root / "two" / "a.gltf")) << "what cannot be imported is left where it is";
+
+  // A crash after the import's commit and before the removal leaves the
+  // entry in place: the next start finds it unchanged and stores nothing.
+  WriteFile(root / "uploaded" / "scene.gltf", "{\"uploaded\":1}");
+  WriteFile(root / "uploaded" / "data" / "x.bin", "uploaded bytes");
+  WriteFile(root / "uploaded" / ".visq-main", "scene.gltf\n");
+  {
+    auto repo = SceneRepository::Open(root);
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    for (const auto& [name, version] : versions) {
+      auto view = (*repo)->Checkout(name);
+      ASSERT_TRUE(view.ok()) << view.status();
+      EXPECT_EQ((*view)->version(), version) << name << ": a second start changes nothing";
+    }
+    EXPECT_FALSE(fs::exists(root / "uploaded"));
+    // A scene placed by hand while the server runs is taken in on first use,
+    // as the newest version of its name.
+    WriteFile(root / "uploaded.glb", "newer bytes");
+    EXPECT_TRUE((*repo)->Contains("uploaded"));
+    WriteFile(root / "late.glb", "late bytes");
+    EXPECT_TRUE((*repo)->Contains("late"));
+    EXPECT_EQ(StoredBody(**repo, "late"), "late bytes");
+    EXPECT_FALSE(fs::exists(root / "late.glb"));
+  }
+  {
+    auto repo = SceneRepository::Open(root);
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    EXPECT_EQ(StoredBody(**repo, "uploaded"), "newer bytes") << "placed by hand: the newest version at the next start";
+    auto view = (*repo)->Checkout("uploaded");
+    ASSERT_TRUE(view.ok());
+    EXPECT_GT((*view)->version(), versions["plain"]);
+  }
 }
 
 }  // namespace

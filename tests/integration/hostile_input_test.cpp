@@ -22,6 +22,7 @@
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
 #include "raw_grpc_call.h"
+#include "repository_files.h"
 #include "server_process.h"
 #include "test_support.h"
 #include "visq/v1/visq.grpc.pb.h"
@@ -36,6 +37,8 @@ using testing::RawBidiCall;
 using testing::ScratchDir;
 using testing::ServerProcess;
 using testing::SetPatch;
+using testing::StagingEntries;
+using testing::StoredSceneNames;
 
 // One triangle: positions (x0,0,0) (1,0,0) (0,1,0), indices 0 1 2, in a
 // 44-byte buffer.
@@ -558,9 +561,8 @@ TEST(HostileServerSetup, FullDiskIsResourceExhausted) {
     EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << status.error_message();
     EXPECT_EQ(status.error_message().find(repo.string()), std::string::npos) << status.error_message();
     EXPECT_EQ(client.GetScene("big").status().code(), absl::StatusCode::kNotFound);
-    for (const auto& entry : fs::directory_iterator(repo))
-      EXPECT_EQ(entry.path().filename().string().rfind(".staging-", 0), std::string::npos)
-          << "staging left behind: " << entry.path();
+    EXPECT_EQ(StagingEntries(repo), 0) << "staging left behind";
+    EXPECT_TRUE(StoredSceneNames(repo).empty());
   }
 }
 
@@ -588,7 +590,8 @@ TEST_F(HostileInputTest, CancelledOrShortUploadsStoreNothing) {
   std::this_thread::sleep_for(std::chrono::milliseconds(500));
   for (const char* name : {"cancelled", "short"}) {
     EXPECT_EQ(client_->GetScene(name).status().code(), absl::StatusCode::kNotFound) << name;
-    EXPECT_FALSE(fs::exists(repo_.path() / name)) << name;
+    const std::vector<std::string> stored = StoredSceneNames(repo_.path());
+    EXPECT_EQ(std::count(stored.begin(), stored.end(), name), 0) << name;
   }
   Restart();
   for (const char* name : {"cancelled", "short"})
@@ -604,7 +607,7 @@ TEST_F(HostileInputTest, UploadNamedLikeAStoredFileDestroysNothing) {
   upload.Send("tri.bin", TriangleBuffer(0.0f));
   const grpc::Status status = upload.Finish();
   EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
-  EXPECT_TRUE(fs::is_regular_file(repo_.path() / "x.glb"));
+  EXPECT_EQ(StoredSceneNames(repo_.path()), (std::vector<std::string>{"cornell_box_visq", "x"}));
   Restart();
   auto x = client_->GetScene("x", false, true);
   ASSERT_TRUE(x.ok()) << x.status();

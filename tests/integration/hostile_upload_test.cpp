@@ -11,6 +11,7 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include "repository_files.h"
 #include "server_process.h"
 #include "test_support.h"
 #include "visq/v1/visq.grpc.pb.h"
@@ -121,11 +122,11 @@ std::vector<std::string> TriangleUploadMessages(const std::string& name) {
   return messages;
 }
 
-// Nothing of scene `name` in the repository: no scene folder, no staging.
+// Nothing of scene `name` in the repository: not in the catalog, no staging.
 void ExpectNothingStored(const std::filesystem::path& repo, const std::string& name) {
-  EXPECT_FALSE(std::filesystem::exists(repo / name));
-  for (const auto& entry : std::filesystem::directory_iterator(repo))
-    EXPECT_EQ(entry.path().filename().string().rfind(".staging-", 0), std::string::npos) << entry.path();
+  const std::vector<std::string> stored = testing::StoredSceneNames(repo);
+  EXPECT_EQ(std::count(stored.begin(), stored.end(), name), 0) << name;
+  EXPECT_EQ(testing::StagingEntries(repo), 0);
 }
 
 // A chunk whose file name is not UTF-8 does not parse as a LoadSceneRequest.
@@ -255,12 +256,7 @@ class OpenUpload {
 };
 
 // The staging folders in the repository: one per upload in flight.
-int StagingFolders(const std::filesystem::path& repo) {
-  int count = 0;
-  for (const auto& entry : std::filesystem::directory_iterator(repo))
-    count += entry.path().filename().string().rfind(".staging-", 0) == 0;
-  return count;
-}
+int StagingFolders(const std::filesystem::path& repo) { return testing::StagingEntries(repo); }
 
 // Waits up to 5 s for the repository to hold `count` staging folders.
 bool WaitForStagingFolders(const std::filesystem::path& repo, int count) {
@@ -415,7 +411,7 @@ TEST(HostileUploads, MainFileThatIsAFolderFailsTheUploadNotTheServer) {
   EXPECT_EQ(*health, grpc::health::v1::HealthCheckResponse::SERVING);
   EXPECT_EQ(client.GetScene("folder").status().code(), absl::StatusCode::kNotFound);
   // Nothing of it is stored: the repository holds no scene of that name.
-  EXPECT_FALSE(std::filesystem::exists(repo.path() / "folder"));
+  EXPECT_TRUE(testing::StoredSceneNames(repo.path()).empty());
   EXPECT_EQ(server->Stop(), 0) << server->Log();
 }
 

@@ -18,6 +18,7 @@
 #include "proto_builders.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
+#include "repository_files.h"
 #include "server_process.h"
 #include "test_support.h"
 #include "visq_client.h"
@@ -68,11 +69,11 @@ class SceneRpcTest : public ::testing::Test {
     return names;
   }
 
+  // The scenes the repository's catalog holds, and a ".staging" per upload
+  // or load in flight.
   std::vector<std::string> RepositoryEntries() const {
-    std::vector<std::string> names;
-    for (const auto& entry : fs::directory_iterator(repo_.path()))
-      if (entry.path().filename() != ".visq-version-counter") names.push_back(entry.path().filename().string());
-    std::sort(names.begin(), names.end());
+    std::vector<std::string> names = testing::StoredSceneNames(repo_.path());
+    for (int i = testing::StagingEntries(repo_.path()); i > 0; --i) names.push_back(".staging");
     return names;
   }
 
@@ -254,8 +255,8 @@ TEST_F(SceneRpcTest, TexturesAreNeitherSentNorStored) {
 
   auto info = client_->UploadScene(gltf, "textured");
   ASSERT_TRUE(info.ok()) << info.status();
-  EXPECT_TRUE(fs::exists(repo_.path() / "textured" / "textured.bin"));
-  EXPECT_FALSE(fs::exists(repo_.path() / "textured" / "albedo.png"));
+  EXPECT_EQ(testing::StoredFiles(repo_.path(), "textured"),
+            (std::vector<std::string>{"textured.bin", "textured.gltf"}));
 
   // A client that sends every file, the image too.
   auto context = client_->NewContext();
@@ -275,8 +276,8 @@ TEST_F(SceneRpcTest, TexturesAreNeitherSentNorStored) {
   writer->WritesDone();
   const grpc::Status status = writer->Finish();
   ASSERT_TRUE(status.ok()) << status.error_message();
-  EXPECT_TRUE(fs::exists(repo_.path() / "textured_raw" / "textured.bin"));
-  EXPECT_FALSE(fs::exists(repo_.path() / "textured_raw" / "albedo.png"));
+  EXPECT_EQ(testing::StoredFiles(repo_.path(), "textured_raw"),
+            (std::vector<std::string>{"textured.bin", "textured.gltf"}));
   EXPECT_THAT(std::vector<std::string>(sent.dropped().begin(), sent.dropped().end()),
               ::testing::Contains("1 uploaded file(s) the geometry does not use"));
 }
@@ -454,10 +455,7 @@ TEST_F(SceneRpcTest, KillDuringUploadLeavesNoPartialSceneAndKeepsAcknowledgedOne
     for (int i = 0; i < 4; ++i) ASSERT_TRUE(writer->Write(chunk));
     // Give the server time to write the chunks into its staging folder.
     std::this_thread::sleep_for(std::chrono::milliseconds(300));
-    bool staged = false;
-    for (const auto& entry : fs::directory_iterator(repo_.path()))
-      staged |= entry.path().filename().string().rfind(".staging-", 0) == 0;
-    EXPECT_TRUE(staged) << "the upload should be in a staging folder while it runs";
+    EXPECT_GT(testing::StagingEntries(repo_.path()), 0) << "the upload should be in a staging folder while it runs";
     server_->Kill();
     context->TryCancel();
   }
