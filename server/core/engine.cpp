@@ -287,9 +287,17 @@ StatusOr<SceneSummary> Engine::ReplaceWithEdited(const ResidentScene& current, S
 }
 
 // What a new resident version (or none) of `name` makes stale: its cached
-// light trees, and the edits that led to the version it replaces.
+// light trees, the edits that led to the version it replaces, and the
+// per-scene state of each query kind (an obscurance solution of an edited
+// version). A reload from the repository brings back the stored version's
+// number, lower than its edits': state compared by number would take the
+// edits' solution for the newer one.
 void Engine::ForgetScene(absl::string_view name) {
   light_cache_->InvalidateScene(std::string(name));
+  {
+    std::lock_guard lock(scene_states_mutex_);
+    std::erase_if(scene_states_, [&](const auto& entry) { return entry.first.first == name; });
+  }
   std::lock_guard lock(edits_mutex_);
   if (auto it = edit_logs_.find(name); it != edit_logs_.end()) edit_logs_.erase(it);
 }
