@@ -3,6 +3,7 @@
 #include <absl/strings/numbers.h>
 
 #include <algorithm>
+#include <set>
 
 namespace visq::core {
 namespace {
@@ -218,10 +219,22 @@ Status SceneCatalog::CollectBlobs(const std::vector<std::string>& candidates,
                                   const std::function<Status(const std::string&)>& remove) {
   if (candidates.empty()) return absl::OkStatus();
   std::lock_guard lock(mutex_);
+  // A start offers every blob: those named now are set aside in one read,
+  // without the lock, so that other replicas' commits wait only for the
+  // few left (each checked again under the lock).
+  std::vector<std::string> unnamed = candidates;
+  if (candidates.size() > 16) {
+    VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> named,
+                          db_->Query("SELECT DISTINCT blob FROM visq_version_files"));
+    std::set<std::string> in_use;
+    for (const CatalogRow& row : named) in_use.insert(row[0].value_or(""));
+    std::erase_if(unnamed, [&](const std::string& blob) { return in_use.count(blob) > 0; });
+    if (unnamed.empty()) return absl::OkStatus();
+  }
   CatalogTransaction transaction(*db_);
   VISQ_RETURN_IF_ERROR(transaction.BeginWrite());
   VISQ_RETURN_IF_ERROR(LockForWrite());
-  for (const std::string& blob : candidates) {
+  for (const std::string& blob : unnamed) {
     VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> named,
                           db_->Query("SELECT 1 FROM visq_version_files WHERE blob = ? LIMIT 1", {blob}));
     if (named.empty()) VISQ_RETURN_IF_ERROR(remove(blob));

@@ -127,6 +127,31 @@ TEST(SceneRepository, BlobsAreContentAddressedSharedAndCollectedWhenNoVersionNam
   EXPECT_EQ(ReadFile((*view)->dir() / "other/path.bin"), shared);
 }
 
+// A start collects the blobs no version names (a commit that failed after
+// publishing them, a crash between a delete and its collection), however
+// many, and keeps every one a version names.
+TEST(SceneRepository, AStartCollectsEveryBlobNoVersionNames) {
+  testing::ScratchDir dir;
+  {
+    auto repo = SceneRepository::Open(dir.path());
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    for (int i = 0; i < 10; ++i)
+      ASSERT_TRUE(Store(**repo, "s" + std::to_string(i), {{"", "{" + std::to_string(i) + "}"}, {"b.bin", "b"}}).ok());
+  }
+  EXPECT_EQ(BlobCount(dir.path()), 11u) << "ten main files and one shared buffer";
+  for (int i = 0; i < 30; ++i) {
+    Sha256 hash;
+    hash.Update("orphan " + std::to_string(i));
+    const std::string digest = hash.HexDigest();
+    WriteFile(dir.path() / ".visq" / "blobs" / digest.substr(0, 2) / digest, "orphan " + std::to_string(i));
+  }
+  EXPECT_EQ(BlobCount(dir.path()), 41u);
+  auto repo = SceneRepository::Open(dir.path());
+  ASSERT_TRUE(repo.ok()) << repo.status();
+  EXPECT_EQ(BlobCount(dir.path()), 11u);
+  for (int i = 0; i < 10; ++i) EXPECT_EQ(StoredBody(**repo, "s" + std::to_string(i)), "{" + std::to_string(i) + "}");
+}
+
 TEST(SceneRepository, AnAbandonedUploadLeavesNothing) {
   testing::ScratchDir dir;
   auto repo = SceneRepository::Open(dir.path() / "repo");
