@@ -75,6 +75,7 @@ struct Flags {
   std::string log_format = "text";
   int drain_seconds = 10;
   int upload_idle_seconds = static_cast<int>(options.uploads.idle.count() / 1000);
+  int stream_stall_seconds = static_cast<int>(options.uploads.stream_stall.count() / 1000);
   int metrics_read_seconds = static_cast<int>(options.metrics_limits.request_timeout.count() / 1000);
 };
 
@@ -198,6 +199,10 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--upload-idle-seconds", flags.upload_idle_seconds,
                  "Abort a LoadScene stream that sends nothing for this long, and remove what it staged")
       ->envname("VISQ_UPLOAD_IDLE_SECONDS")->check(CLI::Range(1, 86400))->capture_default_str()->group(limits);
+  app.add_option("--stream-stall-seconds", flags.stream_stall_seconds,
+                 "Cancel a streamed answer whose client reads nothing for this long (a map, a bake, a preview, an "
+                 "export: every stream), freeing its memory and its worker")
+      ->envname("VISQ_STREAM_STALL_SECONDS")->check(CLI::Range(1, 86400))->capture_default_str()->group(limits);
   app.add_option("--metrics-max-connections", flags.options.metrics_limits.max_connections,
                  "/metrics connections open at once; more are closed as they arrive")
       ->envname("VISQ_METRICS_MAX_CONNECTIONS")->check(CLI::Range(1, 1024))->capture_default_str()->group(limits);
@@ -231,6 +236,7 @@ int main(int argc, char** argv) {
   options.engine.light_cache_bytes = static_cast<size_t>(flags.light_cache_bytes);
   options.engine.load_repository_at_start = !flags.no_preload;
   options.uploads.idle = std::chrono::seconds(flags.upload_idle_seconds);
+  options.uploads.stream_stall = std::chrono::seconds(flags.stream_stall_seconds);
   options.metrics_limits.request_timeout = std::chrono::seconds(flags.metrics_read_seconds);
   if (flags.create_auth_token && flags.auth_token_file.empty()) {
     std::cerr << "--auth-token-create needs --auth-token-file\n";

@@ -122,7 +122,11 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
  public:
   ComputeObscurancesReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx,
                             const v1::ComputeObscurancesRequest* request)
-      : calls_(ctx.calls), log_(context, "ComputeObscurances", &ctx.metrics) {
+      : calls_(ctx.calls), log_(context, "ComputeObscurances", &ctx.metrics),
+        stall_(ctx.uploads.StartStallWatch([this, context] {
+          cancelled_ = true;  // the bake stops at its next step
+          context->TryCancel();
+        })) {
     // In the registry, so that the drain's end tells the bake to stop (it
     // polls the flag between steps) and the call answers UNAVAILABLE: left
     // out, a bake ran on until gRPC's own shutdown deadline cut it, answered
@@ -155,6 +159,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
   void OnCancel() override { cancelled_ = true; }
   void OnDone() override {
     calls_.Remove(&cancelled_);
+    stall_.reset();
     delete this;
   }
 
@@ -219,15 +224,18 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
         current_ = std::move(*progress_);
         progress_.reset();
         writing_ = true;
+        stall_->Resume();
         StartWrite(&current_);
         return;
       }
       if (final_ && results_ && !cancelled_ && results_->Next(current_)) {
         writing_ = true;
+        stall_->Resume();
         StartWrite(&current_);
         return;
       }
     }
+    stall_->Stop();  // nothing waits for the client while the bake runs
     if (!final_) return;
     finished_ = true;
     results_.reset();  // the answer's memory goes before the call ends
@@ -246,6 +254,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
   CallRegistry& calls_;
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
+  std::unique_ptr<UploadLimits::Watch> stall_;  // --stream-stall-seconds, while a write waits for the client
   std::mutex mutex_;
   bool writing_ = false;
   bool broken_ = false;

@@ -117,7 +117,11 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
       std::function<StatusOr<ChunkedResponses<Response>>(const std::atomic<bool>& cancelled, const RequestLog& log)>;
   PreparedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
                         Compute compute)
-      : calls_(ctx.calls), log_(context, method, &ctx.metrics) {
+      : calls_(ctx.calls), log_(context, method, &ctx.metrics),
+        stall_(ctx.uploads.StartStallWatch([this, context] {
+          cancelled_ = true;
+          context->TryCancel();
+        })) {
     calls_.Add(&cancelled_);
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
@@ -146,17 +150,20 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   void OnCancel() override { cancelled_ = true; }
   void OnDone() override {
     calls_.Remove(&cancelled_);
+    stall_.reset();
     delete this;
   }
 
  private:
   void WriteNext() {
     if (cancelled_ || !messages_->Next(current_)) {
+      stall_->Stop();
       messages_.reset();  // the answer's memory goes before the call ends
       Done(cancelled_ ? absl::CancelledError("the call was cancelled while its answer was written")
                       : absl::OkStatus());
       return;
     }
+    stall_->Resume();
     this->StartWrite(&current_);
   }
 
@@ -169,6 +176,7 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   CallRegistry& calls_;
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
+  std::unique_ptr<UploadLimits::Watch> stall_;  // --stream-stall-seconds, while a write waits for the client
   std::optional<ChunkedResponses<Response>> messages_;
   Response current_;
 };
@@ -179,17 +187,28 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
 // answer: its bound and timing). Write waits while more than
 // kStreamedAnswerQueueBytes wait to be sent, so a slow reader holds back the
 // work rather than growing a queue; it fails once the call is cancelled or
-// when the client has read nothing for kMaxWriteStall.
+// when the client has read nothing for the stall limit
+// (--stream-stall-seconds), which also ends a call whose produced answer
+// waits, whole, for a client that reads nothing.
 template <typename Response>
 class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
  public:
-  static constexpr auto kMaxWriteStall = std::chrono::seconds(60);
 
   using Produce = std::function<StatusOr<Response>(const std::atomic<bool>& cancelled, const RequestLog& log,
                                                    ProducedStreamReactor& out)>;
   ProducedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
                         Produce produce)
-      : context_(context), calls_(ctx.calls), log_(context, method, &ctx.metrics) {
+      : context_(context), calls_(ctx.calls), log_(context, method, &ctx.metrics),
+        stall_seconds_(std::chrono::duration<double>(ctx.uploads.options().stream_stall).count()),
+        stall_(ctx.uploads.StartStallWatch([this] {
+          {
+            std::lock_guard lock(mutex_);
+            cancelled_ = true;
+            stalled_ = true;
+          }
+          progress_.notify_all();
+          context_->TryCancel();
+        })) {
     calls_.Add(&cancelled_);
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
@@ -215,14 +234,10 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
       }
     } add_time{write_ms_, start};
     std::unique_lock lock(mutex_);
-    while (!cancelled_ && queued_bytes_ > core::kStreamedAnswerQueueBytes) {
-      const uint64_t written_before = written_;
-      if (progress_.wait_for(lock, kMaxWriteStall) == std::cv_status::timeout && written_ == written_before) {
-        cancelled_ = true;
-        context_->TryCancel();
-        return absl::DeadlineExceededError(absl::StrCat("the client read nothing for ", kMaxWriteStall.count(), " s"));
-      }
-    }
+    progress_.wait(lock, [&] { return cancelled_ || queued_bytes_ <= core::kStreamedAnswerQueueBytes; });
+    if (stalled_)
+      return absl::DeadlineExceededError(
+          absl::StrCat("the client read nothing for ", stall_seconds_, " s (--stream-stall-seconds)"));
     if (cancelled_) return absl::CancelledError("the call was cancelled while its answer was written");
     const uint64_t bytes = message.ByteSizeLong();
     queued_bytes_ += bytes;
@@ -266,6 +281,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   }
   void OnDone() override {
     calls_.Remove(&cancelled_);
+    stall_.reset();
     delete this;
   }
 
@@ -282,6 +298,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     current_bytes_ = queue_.front().bytes;
     queue_.pop_front();
     writing_ = true;
+    stall_->Resume();
     lock.unlock();
     this->StartWrite(&current_);
   }
@@ -301,6 +318,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   }
 
   void Done(const Status& given) {
+    stall_->Stop();
     {
       std::lock_guard lock(mutex_);
       kept_.clear();  // the answer's memory goes before the call ends
@@ -314,6 +332,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   CallRegistry& calls_;
   RequestLog log_;
   std::atomic<bool> cancelled_{false};
+  bool stalled_ = false;  // under mutex_: the stall limit ended the call
   std::mutex mutex_;
   std::condition_variable progress_;
   std::deque<Queued> queue_;
@@ -326,6 +345,8 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   Response current_;
   uint64_t current_bytes_ = 0;
   double write_ms_ = 0.0;  // producer thread only
+  double stall_seconds_;
+  std::unique_ptr<UploadLimits::Watch> stall_;  // --stream-stall-seconds, while a write waits for the client
 };
 
 // The last message's timing of a produced stream.

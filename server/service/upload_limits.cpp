@@ -16,6 +16,7 @@ struct UploadLimits::Watch::Entry {
   bool fired = false;    // under `mutex`
   std::atomic<bool> watching{true};
   std::atomic<Clock::rep> last{Clock::now().time_since_epoch().count()};
+  Clock::rep limit = 0;
   std::function<void()> on_idle;
 };
 
@@ -29,6 +30,11 @@ void UploadLimits::Watch::Stop() {
   entry_->watching = false;
 }
 
+void UploadLimits::Watch::Resume() {
+  entry_->last = Clock::now().time_since_epoch().count();
+  entry_->watching = true;
+}
+
 UploadLimits::Watch::~Watch() {
   {
     std::lock_guard lock(entry_->mutex);
@@ -39,7 +45,7 @@ UploadLimits::Watch::~Watch() {
 }
 
 UploadLimits::UploadLimits(Options options) : options_(options) {
-  if (options_.idle.count() > 0) watchdog_ = std::thread([this] { WatchLoop(); });
+  if (options_.idle.count() > 0 || options_.stream_stall.count() > 0) watchdog_ = std::thread([this] { WatchLoop(); });
 }
 
 UploadLimits::~UploadLimits() {
@@ -74,25 +80,37 @@ void UploadLimits::Release(const std::string& client) {
 }
 
 std::unique_ptr<UploadLimits::Watch> UploadLimits::StartWatch(std::function<void()> on_idle) {
+  return StartWatch(std::move(on_idle), options_.idle, true);
+}
+
+std::unique_ptr<UploadLimits::Watch> UploadLimits::StartStallWatch(std::function<void()> on_stall) {
+  return StartWatch(std::move(on_stall), options_.stream_stall, false);
+}
+
+std::unique_ptr<UploadLimits::Watch> UploadLimits::StartWatch(std::function<void()> on_idle,
+                                                              std::chrono::milliseconds limit, bool watching) {
   auto entry = std::make_shared<Watch::Entry>();
   entry->on_idle = std::move(on_idle);
+  entry->limit = std::chrono::duration_cast<Clock::duration>(limit).count();
+  entry->watching = watching;
   std::lock_guard lock(mutex_);
-  if (options_.idle.count() > 0) watched_.emplace(entry.get(), entry);
+  if (limit.count() > 0) watched_.emplace(entry.get(), entry);
   return std::unique_ptr<Watch>(new Watch(*this, std::move(entry)));
 }
 
 void UploadLimits::WatchLoop() {
-  // Wakes a few times per idle period, so an idle upload ends within about
-  // 1.25 idle periods.
-  const auto period = std::min<Clock::duration>(options_.idle / 4, std::chrono::seconds(1));
+  // Wakes a few times per limit, so an idle upload or a stalled answer ends
+  // within about 1.25 of its limit.
+  Clock::duration period = std::chrono::seconds(1);
+  for (const std::chrono::milliseconds limit : {options_.idle, options_.stream_stall})
+    if (limit.count() > 0) period = std::min<Clock::duration>(period, limit / 4);
   std::unique_lock lock(mutex_);
   while (!wake_.wait_for(lock, period, [this] { return stopping_; })) {
     // Which streams have sent nothing for the idle limit.
     const Clock::rep now = Clock::now().time_since_epoch().count();
-    const Clock::rep limit = std::chrono::duration_cast<Clock::duration>(options_.idle).count();
     std::vector<std::shared_ptr<Watch::Entry>> idle;
     for (const auto& [key, entry] : watched_)
-      if (entry->watching && now - entry->last.load() > limit) idle.push_back(entry);
+      if (entry->watching && now - entry->last.load() > entry->limit) idle.push_back(entry);
     lock.unlock();
     // Each ends once, outside the limits' lock: its end gives back its slot.
     for (const auto& entry : idle) {

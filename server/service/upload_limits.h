@@ -24,6 +24,9 @@ class UploadLimits {
     int max_in_flight = 64;    // --max-uploads-in-flight
     int max_per_client = 8;    // --max-uploads-per-client
     std::chrono::milliseconds idle{std::chrono::seconds(60)};  // --upload-idle-seconds
+    // An answer's stream whose client reads nothing for this long is
+    // cancelled, its memory freed: every streamed answer shares it.
+    std::chrono::milliseconds stream_stall{std::chrono::seconds(60)};  // --stream-stall-seconds
   };
 
   // A place among the uploads in flight, given back with the object.
@@ -51,6 +54,8 @@ class UploadLimits {
     void Touch();
     // The stream has ended: what follows (parsing, storing) is not idling.
     void Stop();
+    // Watching again from now (an answer's stream: from each write on).
+    void Resume();
 
    private:
     friend class UploadLimits;
@@ -71,6 +76,10 @@ class UploadLimits {
   // RESOURCE_EXHAUSTED naming the flag when either cap is reached.
   [[nodiscard]] StatusOr<std::unique_ptr<Slot>> Acquire(const std::string& client);
   std::unique_ptr<Watch> StartWatch(std::function<void()> on_idle);
+  // A watch of an answer's stream by the stall limit: `on_stall` runs once
+  // when a write has waited for the client for that long. It watches only
+  // while Resume()d (a write in flight), not while the answer is computed.
+  std::unique_ptr<Watch> StartStallWatch(std::function<void()> on_stall);
 
   // The client part of a gRPC peer string: "ipv4:10.0.0.7:51234" ->
   // "ipv4:10.0.0.7", "ipv6:[::1]:5" -> "ipv6:[::1]"; others as they are.
@@ -78,6 +87,7 @@ class UploadLimits {
 
  private:
   void Release(const std::string& client);
+  std::unique_ptr<Watch> StartWatch(std::function<void()> on_idle, std::chrono::milliseconds limit, bool watching);
   void WatchLoop();
 
   const Options options_;

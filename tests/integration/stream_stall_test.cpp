@@ -1,0 +1,76 @@
+// A streamed answer whose client reads nothing is ended by the stall limit
+// that every stream shares (--stream-stall-seconds), whether its writer still
+// produces it or has put it, whole, in the queue for the client: before,
+// an answer that fit the queue (64 MiB) waited for its reader as long as
+// the connection lived, holding its memory.
+#include <chrono>
+#include <thread>
+
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
+#include "proto_builders.h"
+#include "server_process.h"
+#include "test_support.h"
+#include "visq/v1/visq.grpc.pb.h"
+
+namespace visq {
+namespace {
+
+using testing::ScratchDir;
+using testing::ServerProcess;
+using testing::SetPatch;
+
+// A 512 x 512 map of the Cornell box with its bitmasks (32 words a texel:
+// 32 MiB), far past what HTTP/2 flow control lets through to a client that
+// reads nothing, and within the writer's queue.
+v1::HiddenSampleMapRequest LargeMap() {
+  v1::HiddenSampleMapRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  request.mutable_samples()->set_count(1024);
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.set_width(512);
+  request.set_height(512);
+  request.set_want_bitmasks(true);
+  request.set_method(v1::RASTER);
+  return request;
+}
+
+// Reads what `reader` has, after `wait` without reading; the call's status.
+grpc::Status ReadAfter(grpc::ClientReader<v1::HiddenSampleMapResponse>& reader, std::chrono::seconds wait,
+                       size_t* messages) {
+  std::this_thread::sleep_for(wait);
+  *messages = 0;
+  for (v1::HiddenSampleMapResponse m; reader.Read(&m);) ++*messages;
+  return reader.Finish();
+}
+
+TEST(StreamStall, AnAnswerWhoseClientReadsNothingEndsAtTheStallLimit) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(), {"--seed-samples", "--stream-stall-seconds", "1"}});
+  ASSERT_NE(server, nullptr);
+  auto stub = v1::VisibilityService::NewStub(grpc::CreateChannel(server->address(), grpc::InsecureChannelCredentials()));
+
+  // A reader that keeps up gets the whole answer under the same limit.
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(300));
+    auto reader = stub->HiddenSampleMap(&context, LargeMap());
+    size_t messages = 0;
+    const grpc::Status status = ReadAfter(*reader, std::chrono::seconds(0), &messages);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    EXPECT_GT(messages, 2u);
+  }
+  // One that reads nothing for 5 s: the server ended the call at its limit.
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(300));
+  auto reader = stub->HiddenSampleMap(&context, LargeMap());
+  size_t messages = 0;
+  const grpc::Status status = ReadAfter(*reader, std::chrono::seconds(5), &messages);
+  EXPECT_FALSE(status.ok()) << "read " << messages << " messages after 5 s: the answer waited for its reader";
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::CANCELLED) << status.error_message();
+}
+
+}  // namespace
+}  // namespace visq
