@@ -171,7 +171,8 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
   VISQ_ASSIGN_OR_RETURN(const size_t unused_files, staging.KeepOnly(report.files_read));
   if (unused_files > 0) report.dropped.push_back(absl::StrCat(unused_files, " uploaded file(s) the geometry does not use"));
 
-  std::lock_guard commit_lock(commit_mutex_);
+  const std::shared_ptr<std::mutex> name_lock = NameLock(staging.name());
+  std::lock_guard commit_lock(*name_lock);
   {
     std::shared_lock lock(scenes_mutex_);
     if (!upload->replace_ && (scenes_.count(staging.name()) || repository_->Contains(staging.name())))
@@ -213,7 +214,8 @@ StatusOr<SceneSummary> Engine::GetScene(absl::string_view name, bool with_nodes,
 
 StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repository) {
   VISQ_RETURN_IF_ERROR(SceneRepository::ValidateName(name));
-  std::lock_guard commit_lock(commit_mutex_);
+  const std::shared_ptr<std::mutex> name_lock = NameLock(name);
+  std::lock_guard commit_lock(*name_lock);
   bool was_resident = false;
   {
     std::unique_lock lock(scenes_mutex_);
@@ -238,6 +240,20 @@ StatusOr<bool> Engine::UnloadScene(absl::string_view name, bool delete_from_repo
   return false;
 }
 
+std::shared_ptr<std::mutex> Engine::NameLock(absl::string_view name) {
+  std::lock_guard lock(name_locks_mutex_);
+  // Locks nobody holds any more go first: the map stays as large as the
+  // names in use, whatever names clients try.
+  std::erase_if(name_locks_, [](const auto& entry) { return entry.second.expired(); });
+  auto [it, added] = name_locks_.try_emplace(std::string(name));
+  std::shared_ptr<std::mutex> held = it->second.lock();
+  if (!held) {
+    held = std::make_shared<std::mutex>();
+    it->second = held;
+  }
+  return held;
+}
+
 StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_view name, uint64_t version,
                                                                  bool load_if_stored) {
   VISQ_RETURN_IF_ERROR(SceneRepository::ValidateName(name));
@@ -247,7 +263,8 @@ StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_vi
     resident = scenes_.count(name) > 0;
   }
   if (!resident && load_if_stored && repository_->Contains(name)) {
-    std::lock_guard commit_lock(commit_mutex_);  // one loader per name at a time
+    const std::shared_ptr<std::mutex> name_lock = NameLock(name);
+    std::lock_guard commit_lock(*name_lock);  // one loader per name at a time
     std::shared_lock lock(scenes_mutex_);
     resident = scenes_.count(name) > 0;
     lock.unlock();

@@ -322,9 +322,14 @@ class Engine {
   std::unique_ptr<gpu::HiddenSampleMapper> hidden_sample_mapper_;
   mutable std::shared_mutex scenes_mutex_;
   std::map<std::string, std::shared_ptr<const ResidentScene>, std::less<>> scenes_;
-  // Serializes check-then-commit of uploads, unloads and first-use loads;
-  // parsing happens outside it.
-  std::mutex commit_mutex_;
+  // Serializes check-then-commit of one name's uploads, unloads and
+  // first-use loads (parsing an upload happens outside it); other names'
+  // go on. One lock for every name made an unload of one scene wait out a
+  // first-use load of another (9.4 s), holding a metadata thread, so that
+  // ListScenes and GetStats queued behind it.
+  std::shared_ptr<std::mutex> NameLock(absl::string_view name);
+  std::mutex name_locks_mutex_;
+  std::map<std::string, std::weak_ptr<std::mutex>, std::less<>> name_locks_;
   std::mutex scene_states_mutex_;
   std::map<std::pair<std::string, std::type_index>, std::any> scene_states_;
   std::mutex one_edit_at_a_time_;

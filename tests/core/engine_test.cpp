@@ -273,6 +273,38 @@ TEST(Engine, UnloadKeepsTheStoredSceneUnlessAskedToDelete) {
   EXPECT_EQ(engine->FindScene("cornell_box_visq", 0).status().code(), absl::StatusCode::kNotFound);
 }
 
+// A first-use load of one scene holds that name only: an unload of
+// another scene returns while it runs. One lock for every name made the
+// unload (and the metadata thread it ran on) wait the load out.
+TEST(Engine, AFirstUseLoadHoldsOnlyItsOwnName) {
+  testing::ScratchDir dir;
+  const std::filesystem::path repo = dir.path() / "repo";
+  std::filesystem::create_directories(repo);
+  ASSERT_TRUE(WriteGltfFile(testing::MakeRippledGrid(1000), repo / "big_grid.gltf").ok());
+  auto engine = StartEngine(repo);
+  ASSERT_TRUE(engine);
+  ASSERT_TRUE(engine->FindScene("cornell_box_visq", 0).ok());
+
+  using Clock = std::chrono::steady_clock;
+  Clock::time_point load_start, load_end;
+  std::atomic<bool> started{false};
+  std::thread loader([&] {
+    load_start = Clock::now();
+    started = true;
+    EXPECT_TRUE(engine->FindScene("big_grid", 0).ok());
+    load_end = Clock::now();
+  });
+  while (!started) std::this_thread::yield();
+  std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  auto unloaded = engine->UnloadScene("cornell_box_visq", false);
+  const Clock::time_point unload_end = Clock::now();
+  loader.join();
+  ASSERT_TRUE(unloaded.ok()) << unloaded.status();
+  const double load_ms = std::chrono::duration<double, std::milli>(load_end - load_start).count();
+  if (load_ms < 200.0) GTEST_SKIP() << "the 2M-triangle load took " << load_ms << " ms: too quick to overlap";
+  EXPECT_LT(unload_end, load_end) << "the unload waited for another scene's load (" << load_ms << " ms)";
+}
+
 // The light over the tall box onto the floor beside it: partly shadowed.
 HiddenSampleMapQuery ShadowedFloorQuery(VisibilityMethod method, int samples, int size) {
   HiddenSampleMapQuery query;
