@@ -53,6 +53,7 @@ TEST(StreamStall, AnAnswerWhoseClientReadsNothingEndsAtTheStallLimit) {
   auto stub = v1::VisibilityService::NewStub(grpc::CreateChannel(server->address(), grpc::InsecureChannelCredentials()));
 
   // A reader that keeps up gets the whole answer under the same limit.
+  const auto start = std::chrono::steady_clock::now();
   {
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(300));
@@ -62,13 +63,18 @@ TEST(StreamStall, AnAnswerWhoseClientReadsNothingEndsAtTheStallLimit) {
     ASSERT_TRUE(status.ok()) << status.error_message();
     EXPECT_GT(messages, 2u);
   }
-  // One that reads nothing for 5 s: the server ended the call at its limit.
+  // One that reads nothing until the map is made (as long again as the
+  // first took) and the limit has passed twice over: the server ended the
+  // call at its limit.
+  const auto wait = std::chrono::seconds(3) + 2 * std::chrono::ceil<std::chrono::seconds>(
+                                                     std::chrono::steady_clock::now() - start);
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(300));
   auto reader = stub->HiddenSampleMap(&context, LargeMap());
   size_t messages = 0;
-  const grpc::Status status = ReadAfter(*reader, std::chrono::seconds(5), &messages);
-  EXPECT_FALSE(status.ok()) << "read " << messages << " messages after 5 s: the answer waited for its reader";
+  const grpc::Status status = ReadAfter(*reader, wait, &messages);
+  EXPECT_FALSE(status.ok()) << "read " << messages << " messages after " << wait.count()
+                            << " s: the answer waited for its reader";
   EXPECT_EQ(status.error_code(), grpc::StatusCode::CANCELLED) << status.error_message();
 }
 
