@@ -206,6 +206,7 @@ class GpuWorker::Impl {
         wake_.wait(lock, [&] { return stopping_ || !queues_.empty(); });
         if (queues_.empty()) break;  // stopping, and everything queued has run
         WaitForTheSameCallerLocked(lock);
+        if (queues_.empty()) continue;  // what waited was withdrawn (its call stopped)
         job = PopNext();
       }
       const int priority = job->priority;
@@ -278,7 +279,7 @@ class GpuWorker::Impl {
       return;
     const int priority = *last_priority_;
     wake_.wait_until(lock, last_end_ + kWaitForTheSameCaller,
-                     [&] { return stopping_ || queues_.begin()->first <= priority; });
+                     [&] { return stopping_ || queues_.empty() || queues_.begin()->first <= priority; });
   }
 
   // What WaitForTheSameCallerLocked weighs: when the current priority's
