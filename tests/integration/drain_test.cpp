@@ -110,6 +110,11 @@ struct LongCall {
   // scene's structures (seconds on llvmpipe) before the timed call.
   std::function<absl::Status(Client&)> warm_up;
   std::function<absl::Status(Client&)> run;  // far longer than the drain on llvmpipe
+  // Also warm up with `run` itself, cut by a deadline: what only the timed
+  // call's size allocates (a 4096^2 shadow map's targets, 2.4 s in one GL
+  // job under ASan) is not counted against the drain. Not for calls that
+  // cache their answers (the light's trees would answer the timed call).
+  bool warm_up_at_size = false;
 };
 
 std::vector<LongCall> SponzaLongCalls() {
@@ -125,7 +130,8 @@ std::vector<LongCall> SponzaLongCalls() {
        [](Client& c) { return c.Voxelize(SponzaVoxels(2048, 1024)).status(); }},
       {"VolumetricShadow RAY_MARCHING", "VolumetricShadow",
        [](Client& c) { return c.VolumetricShadow(SponzaVolumetric(32, 32, 256)).status(); },
-       [](Client& c) { return c.VolumetricShadow(SponzaVolumetric(1920, 1080, 4096)).status(); }},
+       [](Client& c) { return c.VolumetricShadow(SponzaVolumetric(1920, 1080, 4096)).status(); },
+       /*warm_up_at_size=*/true},
       {"LightVisibility batch", "LightVisibility",
        [](Client& c) { return c.LightVisibility(SponzaLightBatch(4, 0.0)).status(); },
        [](Client& c) { return c.LightVisibility(SponzaLightBatch(200, 0.25)).status(); }},
@@ -162,6 +168,11 @@ TEST(Drain, SigtermDuringEachLongCallOnSponzaExitsWithinTheDrainAnsweringUnavail
     {
       const absl::Status warm = call.warm_up(client);
       ASSERT_TRUE(warm.ok()) << warm << "\n" << server->Log();
+      if (call.warm_up_at_size) {
+        Client cut({.address = server->address(), .deadline = std::chrono::seconds(3),
+                    .stream_deadline = std::chrono::seconds(3)});
+        (void)call.run(cut);
+      }
     }
     absl::Status status;
     std::chrono::steady_clock::time_point answered;
