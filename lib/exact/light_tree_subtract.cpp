@@ -523,71 +523,36 @@ bool LightTree::ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) 
   return HasLineBox(s, f) && f.box.Apart(shadow);
 }
 
-bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
-                         const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
-                         const LineBox* shadow) const {
-  // A polygon has a handful of edges (a triangle clipped twice, five).
-  VISQ_CHECK_LE(edges.size(), size_t{32});
-  const auto line_bit = [](size_t k) { return uint32_t{1} << k; };
-  std::vector<EdgeLine>& lines = s.subtract_lines;
-  lines.clear();
-  for (const auto& [a, b] : edges) lines.emplace_back(a, b);
-  // With no inner side, P sees the polygon edge on, and it hides no set
-  // of lines of positive measure.
-  const int inside = InsideSign(s, lines, edges);
-  if (inside == 0) return false;
-  // Fragments that stay whole stay in place (a fragment is a few hundred
-  // bytes, and a dense mesh's penumbra has hundreds for every occluder);
-  // the pieces of the cut ones are appended.
-  std::vector<Fragment>& out = *fragments;
-  size_t kept = 0;
-  std::vector<Scratch::ChainPiece>& stack = s.subtract_stack;
-  stack.clear();
-  std::vector<int>& sg = s.subtract_signs;
-  const auto keep = [&](size_t i) {
-    if (kept != i) out[kept] = std::move(out[i]);
-    ++kept;
-  };
-  for (size_t i = 0; i < out.size(); ++i) {
-    Fragment& f = out[i];
-    if (shadow != nullptr && ApartFrom(s, f, *shadow)) {
-      keep(i);
-      continue;
+LightTree::Against LightTree::FragmentAgainst(Scratch& s, Fragment& f, std::vector<EdgeLine>& lines, int inside,
+                                               uint32_t* straddled) const {
+  // Outside when some edge line has none of its vertices on the inside
+  // (touching it at most): kept whole.
+  *straddled = 0;
+  for (size_t k = 0; k < lines.size(); ++k) {
+    ReadyFan(s, lines[k]);
+    const int box_side = BoxLineSide(s, f, lines[k]);
+    Straddle straddle;
+    if (box_side != kUncertain) {
+      straddle.any_positive = box_side > 0;
+      straddle.any_negative = box_side < 0;
+    } else {
+      straddle = EdgeStraddle(s, f, lines[k]);
     }
-    // Outside when some edge line has none of its vertices on the inside
-    // (touching it at most): kept whole.
-    bool outside = false;
-    uint32_t straddled = 0;
-    for (size_t k = 0; k < lines.size(); ++k) {
-      ReadyFan(s, lines[k]);
-      const int box_side = BoxLineSide(s, f, lines[k]);
-      Straddle straddle;
-      if (box_side != kUncertain) {
-        straddle.any_positive = box_side > 0;
-        straddle.any_negative = box_side < 0;
-      } else {
-        straddle = EdgeStraddle(s, f, lines[k]);
-      }
-      const bool any_inside = inside > 0 ? straddle.any_positive : straddle.any_negative;
-      const bool any_outside = inside > 0 ? straddle.any_negative : straddle.any_positive;
-      if (!any_inside) {
-        outside = true;
-        break;
-      }
-      if (any_outside) straddled |= line_bit(k);
-    }
-    if (outside) {
-      keep(i);
-      continue;
-    }
-    // Every line it does not straddle has it, and so each of its pieces,
-    // on the inside: only the straddled lines can cut it, and with none it
-    // lies inside the shadow.
-    if (straddled == 0) continue;
-    stack.push_back({std::move(f), straddled});
+    const bool any_inside = inside > 0 ? straddle.any_positive : straddle.any_negative;
+    const bool any_outside = inside > 0 ? straddle.any_negative : straddle.any_positive;
+    if (!any_inside) return Against::kOutside;
+    if (any_outside) *straddled |= uint32_t{1} << k;
   }
-  const bool cut = kept < out.size();
-  out.resize(kept);
+  // Every line it does not straddle has it, and so each of its pieces,
+  // on the inside: only the straddled lines can cut it, and with none it
+  // lies inside the shadow.
+  return *straddled == 0 ? Against::kInside : Against::kStraddles;
+}
+
+void LightTree::CutChains(Scratch& s, std::vector<Fragment>* out, int inside) const {
+  std::vector<Scratch::ChainPiece>& stack = s.subtract_stack;
+  std::vector<EdgeLine>& lines = s.subtract_lines;
+  std::vector<int>& sg = s.subtract_signs;
   while (!stack.empty()) {
     Scratch::ChainPiece item = std::move(stack.back());
     stack.pop_back();
@@ -595,7 +560,7 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
     const uint32_t later_lines = item.lines & (item.lines - 1);
     EdgeLine& line = lines[k];
     if (!EdgeSides(s, item.f, line, &sg)) {  // touches the edge line only: not inside
-      out.push_back(std::move(item.f));
+      out->push_back(std::move(item.f));
       continue;
     }
     const bool any_pos = std::any_of(sg.begin(), sg.end(), [](int x) { return x > 0; });
@@ -609,19 +574,86 @@ bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
     const bool last = later_lines == 0;
     // Continue the chain with the part on the inner side; the rest is
     // outside the occluder's shadow.
-    Fragment* keep[2] = {&pos, &neg};
+    Fragment* parts[2] = {&pos, &neg};
     for (int side = 0; side < 2; ++side) {
-      Fragment& part = *keep[side];
+      Fragment& part = *parts[side];
       if (part.v.empty()) continue;
       const int sign = side == 0 ? 1 : -1;
       if (sign != inside) {
-        out.push_back(std::move(part));
+        out->push_back(std::move(part));
       } else if (!last) {
         stack.push_back({std::move(part), later_lines});
       }
       // else: inside all edges, shadowed.
     }
   }
+}
+
+bool LightTree::Subtract(Scratch& s, std::vector<Fragment>* fragments,
+                         const std::vector<std::pair<const XPoint*, const XPoint*>>& edges,
+                         const LineBox* shadow, FragmentGrid* grid) const {
+  // A polygon has a handful of edges (a triangle clipped twice, five).
+  VISQ_CHECK_LE(edges.size(), size_t{32});
+  std::vector<EdgeLine>& lines = s.subtract_lines;
+  lines.clear();
+  for (const auto& [a, b] : edges) lines.emplace_back(a, b);
+  // With no inner side, P sees the polygon edge on, and it hides no set
+  // of lines of positive measure.
+  const int inside = InsideSign(s, lines, edges);
+  if (inside == 0) return false;
+  std::vector<Fragment>& out = *fragments;
+  std::vector<Scratch::ChainPiece>& stack = s.subtract_stack;
+  stack.clear();
+  bool cut = false;
+  if (grid != nullptr) {
+    // Only the fragments whose boxes meet the shadow's can be cut; the
+    // others stay in place, as below, and the cut ones die in place.
+    VISQ_CHECK_EQ(grid->Size(), out.size());
+    std::vector<uint32_t>& meeting = s.grid_meeting;
+    if (shadow != nullptr) {
+      grid->Meeting(*shadow, &meeting);
+    } else {
+      meeting.clear();
+      for (uint32_t i = 0; i < out.size(); ++i) {
+        if (grid->Alive(i)) meeting.push_back(i);
+      }
+    }
+    for (const uint32_t i : meeting) {
+      uint32_t straddled = 0;
+      const Against against = FragmentAgainst(s, out[i], lines, inside, &straddled);
+      if (against == Against::kOutside) continue;
+      grid->Remove(i);
+      cut = true;
+      if (against == Against::kStraddles) stack.push_back({std::move(out[i]), straddled});
+    }
+    CutChains(s, &out, inside);
+    return cut;
+  }
+  // Fragments that stay whole stay in place (a fragment is a few hundred
+  // bytes, and a dense mesh's penumbra has hundreds for every occluder);
+  // the pieces of the cut ones are appended.
+  size_t kept = 0;
+  const auto keep = [&](size_t i) {
+    if (kept != i) out[kept] = std::move(out[i]);
+    ++kept;
+  };
+  for (size_t i = 0; i < out.size(); ++i) {
+    Fragment& f = out[i];
+    if (shadow != nullptr && ApartFrom(s, f, *shadow)) {
+      keep(i);
+      continue;
+    }
+    uint32_t straddled = 0;
+    const Against against = FragmentAgainst(s, f, lines, inside, &straddled);
+    if (against == Against::kOutside) {
+      keep(i);
+    } else if (against == Against::kStraddles) {
+      stack.push_back({std::move(f), straddled});
+    }
+  }
+  cut = kept < out.size();
+  out.resize(kept);
+  CutChains(s, &out, inside);
   return cut;
 }
 
@@ -638,6 +670,34 @@ bool LightTree::UnionLineBox(const Scratch& s, std::vector<Fragment>& fragments,
   return true;
 }
 
+bool LightTree::StartFragmentGrid(Scratch& s, std::vector<Fragment>& fragments, const LineBox& all) const {
+  FragmentGrid& grid = s.fragment_grid;
+  if (!grid.Reset(all)) return false;
+  for (uint32_t i = 0; i < fragments.size(); ++i) {
+    VISQ_DCHECK_EQ(int(fragments[i].box_state), 1);
+    if (!grid.Add(i, fragments[i].box)) return false;
+  }
+  return true;
+}
+
+bool LightTree::GridTakesNewFragments(const Scratch& s, std::vector<Fragment>& fragments, FragmentGrid& grid) const {
+  for (size_t i = grid.Size(); i < fragments.size(); ++i) {
+    if (!HasLineBox(s, fragments[i]) || !grid.Add(static_cast<uint32_t>(i), fragments[i].box)) return false;
+  }
+  return true;
+}
+
+void LightTree::DropDeadFragments(const FragmentGrid& grid, std::vector<Fragment>* fragments) {
+  size_t kept = 0;
+  for (size_t i = 0; i < fragments->size(); ++i) {
+    // Pieces past the grid's last were never listed: alive.
+    if (i < grid.Size() && !grid.Alive(static_cast<uint32_t>(i))) continue;
+    if (kept != i) (*fragments)[kept] = std::move((*fragments)[i]);
+    ++kept;
+  }
+  fragments->resize(kept);
+}
+
 size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments, std::span<const uint32_t> ids,
                                     const XPlane** slab_top, size_t max_subtracted, bool quads,
                                     std::vector<uint32_t>* cutting, bool test_untested) const {
@@ -649,11 +709,29 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
   Corners corners;
   LineBox all;
   bool all_valid = UnionLineBox(s, *fragments, &all);
+  // Past kGridFragments fragments (and with every box), the fragments move
+  // to the grid: the occluders are then tested against the few fragments
+  // near their shadows. Every verdict is the one the whole list gives.
+  VISQ_CHECK(!s.fragment_grid_in_use);  // subtractions do not nest
+  FragmentGrid* grid = nullptr;
+  const auto stop_grid = [&] {
+    DropDeadFragments(*grid, fragments);
+    grid = nullptr;
+    s.fragment_grid_in_use = false;
+  };
   size_t subtracted = 0;
   OccluderPolygon quad;
   uint32_t neighbour = 0;
-  for (const uint32_t id : ids) {
-    if (fragments->empty() || subtracted == max_subtracted || StopNow(s)) break;
+  for (size_t position = 0; position < ids.size(); ++position) {
+    const uint32_t id = ids[position];
+    const size_t live = grid != nullptr ? grid->Live() + (fragments->size() - grid->Size()) : fragments->size();
+    if (live == 0 || subtracted == max_subtracted || StopNow(s)) break;
+    // The grid pays where many candidates are left for many fragments.
+    if (grid == nullptr && all_valid && live >= kGridFragments && ids.size() - position >= 4 * live &&
+        StartFragmentGrid(s, *fragments, all)) {
+      grid = &s.fragment_grid;
+      s.fragment_grid_in_use = true;
+    }
     if (quads) {
       if (s.occluder_marks[id].state == Scratch::kTaken) continue;  // inside an earlier quadrilateral
       s.occluder_marks[id].state = Scratch::kTaken;
@@ -661,11 +739,15 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
     LineBox shadow;
     const bool triangle_box = ShadowBoxBound(s, id, &shadow);
     // all_valid: every fragment has its box. The box around them all
-    // first: one test where each fragment's is one a fragment.
-    if (all_valid && triangle_box &&
-        (all.Apart(shadow) || std::all_of(fragments->begin(), fragments->end(),
-                                          [&](const Fragment& f) { return f.box.Apart(shadow); }))) {
-      continue;
+    // first: one test where each fragment's is one a fragment (the grid:
+    // the fragments near the shadow).
+    if (all_valid && triangle_box) {
+      const bool apart = grid != nullptr ? !grid->AnyMeets(shadow)
+                                         : all.Apart(shadow) || std::all_of(fragments->begin(), fragments->end(),
+                                                                            [&](const Fragment& f) {
+                                                                              return f.box.Apart(shadow);
+                                                                            });
+      if (apart) continue;
     }
     if (test_untested) {
       const uint32_t* t = OccluderVertices(id);
@@ -678,6 +760,7 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
                          return x->kind == XPoint::Kind::kInput;
                        });
     bool has_shadow = whole ? triangle_box : LineBoxOf(s, corners, &shadow);
+    if (has_shadow && all_valid && grid != nullptr) all = grid->Union();
     if (has_shadow && all_valid && all.Apart(shadow)) continue;
     // Only an occluder that reaches the fragments looks for its neighbour:
     // most candidates of a penumbra point are passed over above.
@@ -691,14 +774,17 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
       has_shadow = LineBoxOf(s, corners, &shadow);
     }
     ++subtracted;
-    if (Subtract(s, fragments, edges, has_shadow ? &shadow : nullptr)) {
+    if (!Subtract(s, fragments, edges, has_shadow ? &shadow : nullptr, grid)) continue;
+    if (cutting != nullptr) {
+      cutting->push_back(id);
+      if (merged) cutting->push_back(neighbour);
+    }
+    if (grid == nullptr || !GridTakesNewFragments(s, *fragments, *grid)) {
+      if (grid != nullptr) stop_grid();  // a piece without a box: as without a grid
       all_valid = UnionLineBox(s, *fragments, &all);
-      if (cutting != nullptr) {
-        cutting->push_back(id);
-        if (merged) cutting->push_back(neighbour);
-      }
     }
   }
+  if (grid != nullptr) stop_grid();
   return subtracted;
 }
 
