@@ -731,6 +731,7 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
         StartFragmentGrid(s, *fragments, all)) {
       grid = &s.fragment_grid;
       s.fragment_grid_in_use = true;
+      fragment_grids.fetch_add(1, std::memory_order_relaxed);
     }
     if (quads) {
       if (s.occluder_marks[id].state == Scratch::kTaken) continue;  // inside an earlier quadrilateral

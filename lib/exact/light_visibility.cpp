@@ -84,6 +84,7 @@ TreeStats LightVisibilityTree::Stats() const {
   s.wholly_hidden = impl_->wholly_hidden.load();
   s.subtracted_directly = impl_->subtracted_directly.load();
   s.merged_occluders = impl_->merged_occluders.load();
+  s.fragment_grids = impl_->fragment_grids.load();
   s.hidden_by_remembered_blockers = impl_->hidden_by_remembered_blockers.load();
   s.answers_reused = impl_->answers_reused.load();
   {
@@ -108,6 +109,7 @@ TreeStats& TreeStats::operator+=(const TreeStats& o) {
   wholly_hidden += o.wholly_hidden;
   subtracted_directly += o.subtracted_directly;
   merged_occluders += o.merged_occluders;
+  fragment_grids += o.fragment_grids;
   hidden_by_remembered_blockers += o.hidden_by_remembered_blockers;
   answers_reused += o.answers_reused;
   answers_kept += o.answers_kept;

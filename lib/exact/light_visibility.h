@@ -202,6 +202,9 @@ struct TreeStats {
   // Occluders subtracted inside a neighbour's polygon (two triangles
   // seen as one convex quadrilateral), not on their own.
   uint64_t merged_occluders = 0;
+  // Subtractions whose fragments grew many enough to be kept in a grid over
+  // their line boxes (SubtractOccluders): a penumbra seen through foliage.
+  uint64_t fragment_grids = 0;
   // Queries found wholly hidden by occluders that together hid a point
   // nearby on the same thread (the most recent such set, or the one found
   // nearest; no gathering); counted in wholly_hidden too.

@@ -263,6 +263,7 @@ struct LightTree {
       subtracted_directly{0}, answers_reused{0}, hidden_by_remembered_blockers{0};
   // Counted where occluders are subtracted, which reads the tree only.
   mutable std::atomic<uint64_t> merged_occluders{0};
+  mutable std::atomic<uint64_t> fragment_grids{0};
 
   // The store of answers (Query), under a lock of its own: a lookup must
   // not wait for a refinement.

@@ -915,12 +915,14 @@ int Run(const BenchCase& bc, const Params& p) {
   std::printf("penumbra points (0 < exact < 1): %zu of %zu\n", penumbra, bc.points.size());
   std::printf("queries answered before the tree: %llu wholly visible, %llu wholly hidden (%llu by the blockers of "
               "a point nearby), %llu subtracted directly; "
-              "%llu occluders subtracted inside a neighbour's quadrilateral\n",
+              "%llu occluders subtracted inside a neighbour's quadrilateral; "
+              "%llu subtractions kept their fragments in a grid\n",
               static_cast<unsigned long long>(stats.wholly_visible),
               static_cast<unsigned long long>(stats.wholly_hidden),
               static_cast<unsigned long long>(stats.hidden_by_remembered_blockers),
               static_cast<unsigned long long>(stats.subtracted_directly),
-              static_cast<unsigned long long>(stats.merged_occluders));
+              static_cast<unsigned long long>(stats.merged_occluders),
+              static_cast<unsigned long long>(stats.fragment_grids));
   const char* class_names[3] = {"hidden (0)", "visible (1)", "penumbra"};
   for (int c = 0; c < 3; ++c) {
     std::printf("first pass, %-12s %8lld points, %8.2f us per point (one thread's time, tree growth included)\n",

@@ -15,7 +15,9 @@
 #include "exact/exact_geometry.h"
 #include "large_scene.h"
 #include "raycast/embree_scene.h"
+#include "scene/gltf_loader.h"
 #include "scene/sample_scenes.h"
+#include "test_support.h"
 
 namespace visq::exact {
 namespace {
@@ -945,6 +947,79 @@ TEST(LightVisibilityTest, ADenseMeshAtTheBudgetMatchesTheGrownTree) {
     }
     EXPECT_GT(penumbra, 20);
   }
+}
+
+// The foliage of issue 44 in small (docs/exact-method-notes.md, "The
+// foliage"): four bunches of the shared scenes' flowers (petals and stems,
+// about 3,500 triangles each) on a board between the floor and a square
+// light, so that a floor point sees the light through hundreds of small
+// triangles and its light is left in many pieces: the subtractions keep
+// them in a grid over their line boxes (FragmentGrid). Answers against
+// 1,024 rays a point, and against the route that clips every occluder as a
+// near one (no receiver bounds).
+TEST(LightVisibilityTest, FlowersFromTheSharedScenesMatchEmbreeRays) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  auto flowers = LoadGltfFile(scenes / "foliage_glass_vase_flowers/GlassVaseFlowers.gltf");
+  ASSERT_TRUE(flowers.ok()) << flowers.status();
+  std::vector<Tri> tris = {{glm::dvec3(-2, -2, 0), glm::dvec3(2, -2, 0), glm::dvec3(2, 2, 0)},
+                           {glm::dvec3(-2, -2, 0), glm::dvec3(2, 2, 0), glm::dvec3(-2, 2, 0)}};
+  // The asset is Y-up; its first flower node ("Flowers1"), moved to the
+  // origin, is one bunch (as the bench's MakeFoliageScene takes it), here
+  // 0.66 m tall, standing at z = 0.7, each bunch turned its own way.
+  const glm::dvec3 base(0.0016, 0.038, 0.0022);
+  int bunch = 0;
+  for (const glm::dvec2 at : {glm::dvec2(-0.3, -0.3), glm::dvec2(0.3, -0.3), glm::dvec2(-0.3, 0.3),
+                              glm::dvec2(0.3, 0.3)}) {
+    const double a = 1.1 * bunch++, c = std::cos(a), sn = std::sin(a);
+    for (size_t t = 0; t < flowers->triangles.size(); ++t) {
+      if (flowers->nodes[flowers->triangle_node[t]].name.rfind("Flowers1", 0) != 0) continue;
+      Tri tri;
+      for (int k = 0; k < 3; ++k) {
+        const glm::dvec3 q = 4.0 * (flowers->Vertex(t, k) - base);
+        tri[k] = glm::dvec3(at.x + c * q.x - sn * q.z, at.y + sn * q.x + c * q.z, 0.7 + q.y);
+      }
+      tris.push_back(tri);
+    }
+  }
+  ASSERT_GT(tris.size(), 4000u);
+  const Scene scene = MakeScene(tris);
+  const AreaLight light = SquareLight(2.0, 0.5);
+  auto direct = MakeTree(light, scene, Box({-2, -2, 0}, {2, 2, 0}));
+  auto all_near = MakeTree(light, scene, std::nullopt);
+  ASSERT_TRUE(direct && all_near);
+  auto embree = raycast::EmbreeScene::Create(scene);
+  ASSERT_TRUE(embree.ok());
+
+  std::vector<glm::dvec3> pts = FloorPoints(48, 71);
+  for (glm::dvec3& p : pts) p *= 0.4;  // under the bunches
+  constexpr int kSamples = 1024;
+  std::mt19937 rng(12);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  std::vector<raycast::Segment> segs;
+  std::vector<double> exact;
+  for (const glm::dvec3& p : pts) {
+    const uint32_t receiver = p.x - p.y > 0 ? 0u : 1u;
+    exact.push_back(SameOnBoth(*direct, *all_near, p).visible_area_fraction);
+    for (int k = 0; k < kSamples; ++k) {
+      const glm::dvec3 y(0.5 * (2 * u(rng) - 1), 0.5 * (2 * u(rng) - 1), 2.0);
+      segs.push_back({p, y, receiver});
+    }
+  }
+  auto occ = embree->Occluded(segs);
+  ASSERT_TRUE(occ.ok());
+  int penumbra = 0;
+  for (size_t i = 0; i < pts.size(); ++i) {
+    int visible = 0;
+    for (int k = 0; k < kSamples; ++k) visible += (*occ)[i * kSamples + k] == 0;
+    const double est = static_cast<double>(visible) / kSamples;
+    EXPECT_LT(std::abs(est - exact[i]), 6.0 * 0.5 / std::sqrt(kSamples) + 2e-3)
+        << "point " << i << " at " << pts[i].x << ", " << pts[i].y;
+    penumbra += exact[i] > 0.0 && exact[i] < 1.0;
+  }
+  EXPECT_GT(penumbra, 24);
+  // The points' light was left in many pieces: the grid was used.
+  EXPECT_GT(direct->Stats().fragment_grids, 0u);
+  EXPECT_GT(all_near->Stats().fragment_grids, 0u);
 }
 
 TEST(LightVisibilityTest, BatchStopsAtItsDeadline) {
