@@ -340,6 +340,39 @@ TEST(Kubernetes, TheFarmBakeIsAnIndexedJobAndAMergeOverTheSameShards) {
   }
 }
 
+// Replicas on several nodes share one repository, so every server that
+// opens it (the replicas, the farm bake's pods) reads one PostgreSQL catalog
+// from one Secret, and each replica is named by its pod (a start clears only
+// its own staging). The Secret is required: a pod without it must not start
+// on a SQLite file shared over the network.
+TEST(Kubernetes, EveryServerOnTheSharedRepositoryReadsTheCatalogFromOneSecret) {
+  const YAML::Node replicas = FindManifest("Deployment", "visq");
+  const YAML::Node bake = FindManifest("Job", "visq-bake");
+  ASSERT_TRUE(replicas && bake);
+  for (const YAML::Node& owner : {replicas, bake}) {
+    const std::string name = owner["metadata"]["name"].as<std::string>();
+    const YAML::Node container = owner["spec"]["template"]["spec"]["containers"][0];
+    auto variable = [&](const std::string& wanted) -> YAML::Node {
+      for (const YAML::Node& e : container["env"])
+        if (e["name"].as<std::string>() == wanted) return e;
+      return YAML::Node(YAML::NodeType::Undefined);
+    };
+    const YAML::Node catalog = variable("VISQ_CATALOG");
+    const YAML::Node replica_id = variable("VISQ_REPLICA_ID");
+    ASSERT_TRUE(catalog) << name << " does not set VISQ_CATALOG";
+    const YAML::Node secret = catalog["valueFrom"]["secretKeyRef"];
+    ASSERT_TRUE(secret) << name << ": the catalog's URI holds a password, so it comes from a Secret";
+    EXPECT_EQ(secret["name"].as<std::string>(), "visq-catalog") << name;
+    EXPECT_EQ(secret["key"].as<std::string>(), "uri") << name;
+    EXPECT_FALSE(secret["optional"] && secret["optional"].as<bool>()) << name;
+    ASSERT_TRUE(replica_id) << name << " does not set VISQ_REPLICA_ID";
+    EXPECT_EQ(replica_id["valueFrom"]["fieldRef"]["fieldPath"].as<std::string>(), "metadata.name") << name;
+  }
+  const std::string guide = Read(kSource / "docs/deploy.md");
+  EXPECT_NE(guide.find("create secret generic visq-catalog"), std::string::npos)
+      << "the deploy guide must give the step that makes the catalog's Secret";
+}
+
 // The deploy guide (docs/deploy.md, linked from the README) is where an
 // operator reads how to run the compose file.
 TEST(Compose, TheTokenSecretIsMadeByAStepTheDeployGuideGivesAndNeverCommitted) {
