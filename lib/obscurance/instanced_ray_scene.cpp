@@ -6,6 +6,7 @@
 
 #include <embree3/rtcore.h>
 
+#include "raycast/embree_float_mode.h"
 #include "raycast/embree_scene.h"
 
 namespace visq::obscurance {
@@ -202,7 +203,10 @@ void InstancedRayScene::ClosestStream(std::span<const PatchRay> rays, double tma
       stream[i] = MakeRay(rays[base + i].origin, impl_->origin, rays[base + i].direction, impl_->t_min, tmax);
     RTCIntersectContext context;
     rtcInitIntersectContext(&context);
-    rtcIntersect1M(impl_->top, &context, stream, static_cast<unsigned>(n), sizeof(RTCRayHit));
+    {
+      const raycast::EmbreeFloatMode float_mode;
+      rtcIntersect1M(impl_->top, &context, stream, static_cast<unsigned>(n), sizeof(RTCRayHit));
+    }
     for (size_t i = 0; i < n; ++i) hits[base + i] = impl_->HitOf(stream[i]);
   }
 }
@@ -212,7 +216,10 @@ InstancedRayScene::Hit InstancedRayScene::Closest(const glm::dvec3& origin, cons
   RTCRayHit rh = MakeRay(origin, impl_->origin, direction, impl_->t_min, tmax);
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
-  rtcIntersect1(impl_->top, &context, &rh);
+  {
+    const raycast::EmbreeFloatMode float_mode;
+    rtcIntersect1(impl_->top, &context, &rh);
+  }
   return impl_->HitOf(rh);
 }
 
@@ -224,7 +231,10 @@ bool Occludes(RTCScene scene, const glm::dvec3& frame_origin, double t_min, cons
   RTCRayHit rh = MakeRay(origin, frame_origin, direction, t_min, tmax);
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
-  rtcOccluded1(scene, &context, &rh.ray);
+  {
+    const raycast::EmbreeFloatMode float_mode;
+    rtcOccluded1(scene, &context, &rh.ray);
+  }
   return rh.ray.tfar < 0;  // Embree sets tfar = -inf on a hit
 }
 

@@ -13,6 +13,7 @@
 
 #include "common/check.h"
 #include "common/parallel.h"
+#include "raycast/embree_float_mode.h"
 #include "resource_limits/resource_limits.h"
 
 namespace visq::raycast {
@@ -502,7 +503,10 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
         context.per_ray_ignore = per_ray_ignore;
         context.instancing = instancing_.get();
       }
-      rtcOccluded1M(scene_, &context.rtc, rays, static_cast<unsigned>(n), sizeof(RTCRay));
+      {
+        const EmbreeFloatMode float_mode;
+        rtcOccluded1M(scene_, &context.rtc, rays, static_cast<unsigned>(n), sizeof(RTCRay));
+      }
       // Embree marks an occluded ray by setting tfar to -inf.
       for (size_t i = 0; i < n; ++i) result[base + i] = rays[i].tfar < 0.0f ? 1 : 0;
     }
@@ -547,7 +551,10 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
         context.per_ray_ignore = per_ray_ignore;
         context.instancing = instancing_.get();
       }
-      rtcIntersect1M(scene_, &context.rtc, rays.data(), static_cast<unsigned>(n), sizeof(RTCRayHit));
+      {
+        const EmbreeFloatMode float_mode;
+        rtcIntersect1M(scene_, &context.rtc, rays.data(), static_cast<unsigned>(n), sizeof(RTCRayHit));
+      }
       for (size_t i = 0; i < n; ++i) {
         Hit& h = result[base + i];
         if (rays[i].hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;

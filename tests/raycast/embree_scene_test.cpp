@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "large_scene.h"
+#include "raycast/embree_float_mode.h"
 #include "scene/sample_scenes.h"
 
 namespace visq::raycast {
@@ -34,6 +35,39 @@ TEST(EmbreeSceneTest, SingleTriangleBlocksCrossingSegments) {
                         {{0.2, 0.2, 1}, {0.2, 0.2, -1}}});   // reversed direction
   EXPECT_EQ(r, (std::vector<uint8_t>{1, 0, 0, 1}));
 }
+
+#if defined(__SSE__) || defined(__x86_64__)
+// Whether the thread's MXCSR makes a denormal float input count as zero.
+bool DenormalsReadAsZero() {
+  volatile float denormal = 1e-39f;
+  volatile float product = denormal * 1.0f;
+  return product == 0.0f;
+}
+
+// Rays are traced with flush-to-zero and denormals-are-zero, as Embree
+// expects, and the thread gets its own mode back: the exact method runs on
+// the same threads and its error filters count on gradual underflow.
+TEST(EmbreeSceneTest, RaysAreTracedInEmbreesFloatModeAndTheThreadsModeIsRestored) {
+  ASSERT_FALSE(DenormalsReadAsZero()) << "the test process starts in the IEEE mode";
+  {
+    const EmbreeFloatMode float_mode;
+    EXPECT_TRUE(DenormalsReadAsZero());
+    EXPECT_EQ(_mm_getcsr() & _MM_FLUSH_ZERO_ON, unsigned{_MM_FLUSH_ZERO_ON});
+  }
+  EXPECT_FALSE(DenormalsReadAsZero());
+  const unsigned before = _mm_getcsr();
+  auto scene = EmbreeScene::Create(OneTriangle());
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  // A segment whose direction has a denormal component still gets its answer.
+  TraceOptions one_thread;
+  one_thread.threads = 1;
+  auto r = scene->Occluded(std::vector<Segment>{{{0.2, 0.2, -1}, {0.2 + 1e-39, 0.2, 1}}}, one_thread);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(*r, std::vector<uint8_t>{1});
+  EXPECT_EQ(_mm_getcsr(), before);
+  EXPECT_FALSE(DenormalsReadAsZero());
+}
+#endif
 
 TEST(EmbreeSceneTest, EndpointOnTriangleDoesNotBlock) {
   auto scene = EmbreeScene::Create(OneTriangle());
