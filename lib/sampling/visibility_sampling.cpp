@@ -341,6 +341,20 @@ double BoxDistance(const Bounds& a, const Bounds& b) {
   return glm::length(gap);
 }
 
+// The sample spacing at each end: the source's sqrt(area / N), the
+// receiver's texel (its shorter side).
+struct Spacings {
+  double source = 0.0;
+  double receiver = 0.0;
+};
+Spacings SpacingsOf(const HiddenSampleMapRequest& request) {
+  const Patch& sp = request.source.patch;
+  const Patch& rp = request.receiver.patch;
+  return {std::sqrt(glm::length(glm::cross(sp.edge_u, sp.edge_v)) / double(std::max(request.source.sample_count, 1))),
+          std::min(glm::length(rp.edge_u) / std::max(request.receiver.width, 1),
+                   glm::length(rp.edge_v) / std::max(request.receiver.height, 1))};
+}
+
 // Refuses an end whose tolerance hides detail that could matter.
 Status ValidateEndPrecision(const char* field, double tolerance, double spacing, const std::vector<glm::dvec3>& corners,
                 const FloatFrame& frame, double magnitude) {
@@ -372,15 +386,16 @@ StatusOr<EndpointTolerances> ResolvableEndpointTolerances(const HiddenSampleMapR
   } else {
     out.source = out.receiver = std::ldexp(std::max({source_magnitude, receiver_magnitude, geometry, query}), -17);
   }
-  const Patch& sp = request.source.patch;
-  const Patch& rp = request.receiver.patch;
-  const double source_spacing = std::sqrt(glm::length(glm::cross(sp.edge_u, sp.edge_v)) /
-                                          double(std::max(request.source.sample_count, 1)));
-  const double receiver_spacing = std::min(glm::length(rp.edge_u) / std::max(request.receiver.width, 1),
-                                           glm::length(rp.edge_v) / std::max(request.receiver.height, 1));
-  VISQ_RETURN_IF_ERROR(ValidateEndPrecision("receiver", out.receiver, receiver_spacing, hull.receiver, frame, receiver_magnitude));
-  VISQ_RETURN_IF_ERROR(ValidateEndPrecision("source", out.source, source_spacing, hull.source, frame, source_magnitude));
+  const Spacings spacing = SpacingsOf(request);
+  VISQ_RETURN_IF_ERROR(ValidateEndPrecision("receiver", out.receiver, spacing.receiver, hull.receiver, frame, receiver_magnitude));
+  VISQ_RETURN_IF_ERROR(ValidateEndPrecision("source", out.source, spacing.source, hull.source, frame, source_magnitude));
   return out;
+}
+
+bool TolerancesAreNegligible(const HiddenSampleMapRequest& request, const EndpointTolerances& tolerances) {
+  const Spacings spacing = SpacingsOf(request);
+  return tolerances.source <= kNegligibleToleranceShare * spacing.source &&
+         tolerances.receiver <= kNegligibleToleranceShare * spacing.receiver;
 }
 
 bool SamplesAreIndependentStrata(const HiddenSampleMapRequest& request) {

@@ -312,6 +312,16 @@ struct EndpointTolerances {
                                                                         const FloatFrame& frame,
                                                                         SegmentTracer tracer);
 
+// Whether `tolerances` ignore at most 1/128 of a sample spacing at each end
+// (ResolvableEndpointTolerances' spacings): an occluder must then lie within
+// that share of a spacing of an end to be missed, as in a scene of a few
+// hundred units traced at its own centre. Coarser tolerances may still
+// resolve the query (at most 1/4), but they hide occluders that a frame
+// nearer the query would see: the bits would change with geometry far from
+// it (a copy of the scene 1e3 to 1e5 away).
+bool TolerancesAreNegligible(const HiddenSampleMapRequest& request, const EndpointTolerances& tolerances);
+inline constexpr double kNegligibleToleranceShare = 1.0 / 128.0;
+
 // Whether the request's samples support Hoeffding's bound as a guarantee
 // (ErrorBound::rigorous).
 bool SamplesAreIndependentStrata(const HiddenSampleMapRequest& request);

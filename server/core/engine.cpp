@@ -458,15 +458,30 @@ StatusOr<std::shared_ptr<LocalFrame>> Engine::LocalFrameFor(const ResidentScene&
                                                             sampling::SegmentTracer tracer, const CallOptions& call) {
   const Scene& scene = *resident.scene;
   // The scene's own copies (GPU and Embree alike) are anchored at its centre.
+  // They serve where their tolerances are negligible beside the sample
+  // spacing. Merely resolving the query (tolerances up to 1/4 of it) is not
+  // enough: a copy of the scene 1e3 to 1e5 away moved the centre so far that
+  // RASTER ignored occluders 0.38 from the receiver and changed 3,440 bits
+  // of a map that a local frame answers like the scene alone.
   const sampling::FloatFrame own{scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Center(), scene.bounds};
-  if (sampling::ResolvableEndpointTolerances(request, own, tracer).ok()) return std::shared_ptr<LocalFrame>();
+  const StatusOr<sampling::EndpointTolerances> own_tolerances =
+      sampling::ResolvableEndpointTolerances(request, own, tracer);
+  if (own_tolerances.ok() && sampling::TolerancesAreNegligible(request, *own_tolerances))
+    return std::shared_ptr<LocalFrame>();
   // A region that could not resolve the query even if geometry filled it
   // (a query as large as the world, a light far out) is not copied: the
-  // copy would cost up to the whole scene and help nothing.
+  // copy would cost up to the whole scene and help nothing. Nor is one that
+  // would not resolve it at least twice as finely as the scene's own frame.
   const Bounds hull = sampling::HullOf(request).Box();
   const Bounds region = LocalFrames::RegionAround(hull);
-  VISQ_RETURN_IF_ERROR(
-      sampling::ResolvableEndpointTolerances(request, sampling::FloatFrame{region.Center(), region}, tracer).status());
+  const StatusOr<sampling::EndpointTolerances> region_tolerances =
+      sampling::ResolvableEndpointTolerances(request, sampling::FloatFrame{region.Center(), region}, tracer);
+  if (own_tolerances.ok() &&
+      (!region_tolerances.ok() ||
+       2.0 * std::max(region_tolerances->source, region_tolerances->receiver) >
+           std::max(own_tolerances->source, own_tolerances->receiver)))
+    return std::shared_ptr<LocalFrame>();
+  VISQ_RETURN_IF_ERROR(region_tolerances.status());
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const exact::SceneTriangleIndex> index, TriangleIndexOf(resident, call));
   const auto start = std::chrono::steady_clock::now();
   const size_t frames_before = resident.local_frames.size();

@@ -2,9 +2,12 @@
 // float32 copies of a scene, and a scene's own copies are anchored at its
 // centre: there a query resolves occluders only to 2^-17 of its distance
 // from the centre (sampling::ResolvableEndpointTolerances). A query far from
-// it (a room 5e5 units out in a world spanning 1e6) is traced instead
-// against a copy of the region around it, rebased in double to the region's
-// centre before it becomes float.
+// it (a room 5e5 units out in a world spanning 1e6, or 5e2 units out beside a
+// copy of the room 1e3 away) is traced instead against a copy of the region
+// around it, rebased in double to the region's centre before it becomes
+// float: whenever the scene's own frame would ignore more than
+// sampling::kNegligibleToleranceShare of a sample spacing and the region
+// resolves the query at least twice as finely (Engine::LocalFrameFor).
 //
 // The region is a cube of side 2c on a grid of step c, c the least power of
 // two at least the query's extent: it holds every segment of the query, the

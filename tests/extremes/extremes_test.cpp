@@ -21,8 +21,10 @@
 // translated scene is the canonical one moved, not a perturbed copy.
 #include <algorithm>
 #include <bit>
+#include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <iostream>
 #include <map>
 #include <numbers>
 #include <string>
@@ -1272,6 +1274,139 @@ TEST_F(ExtremesTest, CornellBoxHiddenSampleMapMatchesExactReferenceUnderTransfor
       EXPECT_LE(check.OutsideShare(), (1.0 - map->figures.accuracy().confidence()) + 0.05) << check.first_failure;
     }
   }
+}
+
+
+// ---------------------------------------------------------------------------
+// A world of any size: the Cornell box of ../shared/scenes (snapped to 1/16)
+// with a second copy of itself at (D, 0, D), D from 1e3 to 1e7 in steps of
+// 10. The copy moves the scene's centre (where its own float32 copies are
+// anchored) D / 2 away from every query at the original box. Each sampled
+// method must give the bits of the box alone, or refuse with
+// FAILED_PRECONDITION naming the anchor; never other bits. Before the local
+// frame was taken whenever the scene's own frame hid more than a negligible
+// share of a sample spacing, D = 1e3 and 1e4 answered in the moved frame:
+// the receiver 1/512 under the short box's top saw through it (RASTER and
+// RAYCAST alike), with no refusal.
+TEST_F(ExtremesTest, CornellBoxWithACopyFarAwayKeepsItsBitsAtEveryOffset) {
+  VISQ_REQUIRE_SHARED_SCENES(shared);
+  auto loaded = LoadGltfFile(shared / "cornell_box" / "cornell_box.gltf");
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  Scene canonical = *loaded;
+  for (glm::dvec3& p : canonical.positions) p = glm::round(p * 16.0) / 16.0;
+  UpdateBounds(canonical);
+  // The short box's top: 0.6 snapped.
+  constexpr double kShortTop = 0.625;
+  ASSERT_NEAR(canonical.bounds.max.y, 2.0, 1e-12) << "the box's ceiling moved: the test's frame is off";
+
+  ASSERT_TRUE(Upload(*client_, canonical, "cornell_alone").ok());
+  // A light 1.5 across just under the ceiling (64 samples: 0.1875 apart),
+  // and two receivers of 8 x 8 texels (0.23 apart): the floor, and a plane
+  // 1/512 under the short box's top, inside the box there.
+  struct Receiver {
+    const char* name;
+    double height;
+  };
+  constexpr Receiver kReceivers[] = {{"floor", 0.0}, {"under_the_short_box_top", kShortTop - 1.0 / 512.0}};
+  const Frame& unit = Frames()[0];
+  auto request_for = [&](const std::string& scene, const Receiver& receiver, const MethodCase& m) {
+    v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name(scene);
+    SetPatch(request.mutable_source(), unit, {-0.75, 1.9375, -0.75}, {1.5, 0, 0}, {0, 0, 1.5});
+    request.mutable_samples()->set_count(64);
+    request.mutable_samples()->set_seed(11);
+    SetPatch(request.mutable_receiver(), unit, {-0.9375, receiver.height, 0.9375}, {1.875, 0, 0}, {0, 0, -1.875});
+    request.set_width(8);
+    request.set_height(8);
+    request.set_method(m.method);
+    request.set_lookup(m.lookup);
+    request.set_want_bitmasks(true);
+    return request;
+  };
+  const MethodCase methods[] = {kSamplingMethods[0], kSamplingMethods[2]};  // the EXACT lookups: bits to compare
+
+  std::map<std::string, std::vector<uint32_t>> alone;
+  for (const Receiver& receiver : kReceivers)
+    for (const MethodCase& m : methods) {
+      const std::string label = absl::StrCat("alone ", receiver.name, " ", m.name);
+      auto map = client_->ComputeHiddenSampleMap(request_for("cornell_alone", receiver, m));
+      ASSERT_TRUE(map.ok()) << label << ": " << map.status();
+      size_t blocked = 0;
+      for (uint32_t w : map->blocked_bits) blocked += std::popcount(w);
+      // Both receivers are partly shadowed; the one in the short box is
+      // hidden under it.
+      EXPECT_GT(blocked, 64u * 4) << label;
+      EXPECT_LT(blocked, 64u * 60) << label;
+      alone[label] = map->blocked_bits;
+    }
+
+  for (const double offset : {1e3, 1e4, 1e5, 1e6, 1e7}) {
+    const std::string name = absl::StrCat("cornell_with_copy_at_", int64_t(offset));
+    Scene world = canonical;
+    for (const glm::uvec3& t : canonical.triangles)
+      AddTriangle(world, "copy", canonical.positions[t.x] + glm::dvec3(offset, 0, offset),
+                  canonical.positions[t.y] + glm::dvec3(offset, 0, offset),
+                  canonical.positions[t.z] + glm::dvec3(offset, 0, offset), 0);
+    UpdateBounds(world);
+    ASSERT_TRUE(Upload(*client_, world, name).ok()) << name;
+    for (const Receiver& receiver : kReceivers)
+      for (const MethodCase& m : methods) {
+        const std::string label = absl::StrCat(name, " ", receiver.name, " ", m.name);
+        auto map = client_->ComputeHiddenSampleMap(request_for(name, receiver, m));
+        if (!map.ok()) {
+          EXPECT_EQ(map.status().code(), absl::StatusCode::kFailedPrecondition) << label << ": " << map.status();
+          EXPECT_NE(std::string(map.status().message()).find("anchor"), std::string::npos) << map.status();
+          continue;
+        }
+        const std::vector<uint32_t>& expected = alone[absl::StrCat("alone ", receiver.name, " ", m.name)];
+        ASSERT_EQ(map->blocked_bits.size(), expected.size()) << label;
+        size_t differing = 0;
+        for (size_t w = 0; w < expected.size(); ++w) differing += std::popcount(expected[w] ^ map->blocked_bits[w]);
+        EXPECT_EQ(differing, 0u) << label << ": " << differing << " of " << 64 * 64
+                                 << " bits differ from the box alone's, with no refusal";
+      }
+  }
+}
+
+
+// The same target request (max_error 0.05, no method) on the Cornell box
+// with its copy at 1e5 and then at 1e6, on a server of its own: the second
+// must answer within the client's deadline, and the server must stop at
+// SIGTERM afterwards (nothing left spinning).
+TEST_F(ExtremesTest, TargetRequestsOnCopiesAtGrowingOffsetsAnswerInTime) {
+  VISQ_REQUIRE_SHARED_SCENES(shared);
+  auto loaded = LoadGltfFile(shared / "cornell_box" / "cornell_box.gltf");
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  const Scene canonical = *loaded;
+  ScratchDir repo;
+  std::unique_ptr<ServerProcess> server = ServerProcess::Start({repo.path(), {}});
+  ASSERT_NE(server, nullptr);
+  constexpr auto kDeadline = std::chrono::seconds(60);
+  Client client({.address = server->address(), .deadline = kDeadline});
+  for (const double offset : {1e5, 1e6}) {
+    const std::string name = absl::StrCat("cornell_target_copy_at_", int64_t(offset));
+    Scene world = canonical;
+    for (const glm::uvec3& t : canonical.triangles)
+      AddTriangle(world, "copy", canonical.positions[t.x] + glm::dvec3(offset, 0, offset),
+                  canonical.positions[t.y] + glm::dvec3(offset, 0, offset),
+                  canonical.positions[t.z] + glm::dvec3(offset, 0, offset), 0);
+    UpdateBounds(world);
+    ASSERT_TRUE(Upload(client, world, name).ok()) << name;
+    v1::HiddenSampleMapRequest request;
+    request.mutable_scene()->set_name(name);
+    SetPatch(request.mutable_source(), Frames()[0], {-0.25, 1.9375, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    SetPatch(request.mutable_receiver(), Frames()[0], {-0.9375, 0, 0.9375}, {1.875, 0, 0}, {0, 0, -1.875});
+    request.set_width(32);
+    request.set_height(32);
+    request.mutable_target()->set_max_error(0.05);
+    const auto start = std::chrono::steady_clock::now();
+    auto map = client.ComputeHiddenSampleMap(request);
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    ASSERT_TRUE(map.ok()) << name << ": " << map.status() << " after " << seconds << " s";
+    EXPECT_LE(map->figures.accuracy().error_bound(), 0.05 + 1e-9) << name;
+    std::cerr << name << ": " << map->figures.accuracy().method() << " in " << seconds << " s\n";
+  }
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
 }
 
 }  // namespace
