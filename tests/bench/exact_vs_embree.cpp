@@ -614,24 +614,17 @@ void ErrorTable(const BenchCase& bc, const visq::raycast::EmbreeScene& embree,
 
 // What a penumbra point's light looks like from the point, measured from
 // outside the exact method (which keeps no per-query counts): how many
-// scene triangles are the first thing seen along 16 x 16 even rays towards
-// the light (the blockers whose outlines cut the visible part, so what its
+// scene triangles are the first thing seen along k x k even rays towards
+// the light (k = 16, and 64 on fewer points) (the blockers whose outlines cut the visible part, so what its
 // fragments and splits grow with), from how many scene nodes (slats, bars),
 // and how many triangles the scene index finds in the box of the point and
 // the light (what the candidate gather starts from, before its culls).
 // Printed per scene, so a scene that is hard for the exact method shows
 // where: many blockers per point, not many triangles.
-void PenumbraGeometry(const BenchCase& bc, const visq::raycast::EmbreeScene& embree,
-                      const visq::exact::SceneTriangleIndex& index,
-                      const std::vector<visq::exact::PointVisibility>& exact, int threads) {
-  std::vector<size_t> penumbra;
-  for (size_t i = 0; i < bc.points.size(); ++i) {
-    if (exact[i].visible_area_fraction > 0.0 && exact[i].visible_area_fraction < 1.0) penumbra.push_back(i);
-  }
-  if (penumbra.empty()) return;
-  // At most 2,000 of them, evenly spread, so this costs well under a second.
-  const size_t stride = std::max<size_t>(1, penumbra.size() / 2000);
-  constexpr int kSide = 16;
+void BlockersSeen(const BenchCase& bc, const visq::raycast::EmbreeScene& embree,
+                  const visq::exact::SceneTriangleIndex& index, const std::vector<size_t>& penumbra, int side,
+                  size_t max_points, int threads) {
+  const size_t stride = std::max<size_t>(1, penumbra.size() / max_points);
   const auto& lv = bc.light.vertices;
   const glm::dvec3 e1 = lv[1] - lv[0], e2 = lv[3] - lv[0];
   Bounds light_box;
@@ -641,8 +634,8 @@ void PenumbraGeometry(const BenchCase& bc, const visq::raycast::EmbreeScene& emb
   for (size_t j = 0; j < penumbra.size(); j += stride) {
     const auto& q = bc.points[penumbra[j]];
     chosen.push_back(penumbra[j]);
-    for (int r = 0; r < kSide * kSide; ++r) {
-      const glm::dvec3 y = lv[0] + ((r % kSide + 0.5) / kSide) * e1 + ((r / kSide + 0.5) / kSide) * e2;
+    for (int r = 0; r < side * side; ++r) {
+      const glm::dvec3 y = lv[0] + ((r % side + 0.5) / side) * e1 + ((r / side + 0.5) / side) * e2;
       // Up to the light and no further (tmax in units of the direction).
       rays.push_back({q.position, y - q.position, 1.0 - 1e-9,
                       q.receiver_triangle.value_or(visq::raycast::kNoTriangle)});
@@ -656,8 +649,8 @@ void PenumbraGeometry(const BenchCase& bc, const visq::raycast::EmbreeScene& emb
   size_t max_tris = 0, max_box = 0;
   for (size_t c = 0; c < chosen.size(); ++c) {
     std::vector<uint32_t> tris, nodes;
-    for (int r = 0; r < kSide * kSide; ++r) {
-      const auto& h = (*hits)[c * kSide * kSide + r];
+    for (int r = 0; r < side * side; ++r) {
+      const auto& h = (*hits)[c * side * side + r];
       if (!h.hit) continue;
       tris.push_back(h.triangle);
       nodes.push_back(bc.scene.triangle_node.empty() ? 0 : bc.scene.triangle_node[h.triangle]);
@@ -676,9 +669,26 @@ void PenumbraGeometry(const BenchCase& bc, const visq::raycast::EmbreeScene& emb
     max_box = std::max(max_box, in_box);
   }
   const double m = static_cast<double>(chosen.size());
-  std::printf("penumbra geometry (%zu of %zu penumbra points, 16 x 16 rays each): blockers seen %.1f triangles "
+  std::printf("penumbra geometry (%zu of %zu penumbra points, %d x %d rays each): blockers seen %.1f triangles "
               "(max %zu) from %.1f nodes; triangles in the box of the point and the light %.0f (max %zu)\n",
-              chosen.size(), penumbra.size(), sum_tris / m, max_tris, sum_nodes / m, sum_box / m, max_box);
+              chosen.size(), penumbra.size(), side, side, sum_tris / m, max_tris, sum_nodes / m, sum_box / m,
+              max_box);
+}
+
+void PenumbraGeometry(const BenchCase& bc, const visq::raycast::EmbreeScene& embree,
+                      const visq::exact::SceneTriangleIndex& index,
+                      const std::vector<visq::exact::PointVisibility>& exact, int threads) {
+  std::vector<size_t> penumbra;
+  for (size_t i = 0; i < bc.points.size(); ++i) {
+    if (exact[i].visible_area_fraction > 0.0 && exact[i].visible_area_fraction < 1.0) penumbra.push_back(i);
+  }
+  if (penumbra.empty()) return;
+  // 16 x 16 rays at most 2,000 of them, evenly spread, so this costs well
+  // under a second; then 64 x 64 at at most 100 (first hits undercount what
+  // a point sees of a dense, deep layer: each ray reports only one).
+  for (const int side : {16, 64}) {
+    BlockersSeen(bc, embree, index, penumbra, side, side == 16 ? 2000 : 100, threads);
+  }
 }
 
 int Run(const BenchCase& bc, const Params& p) {
