@@ -714,6 +714,7 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
   // near their shadows. Every verdict is the one the whole list gives.
   VISQ_CHECK(!s.fragment_grid_in_use);  // subtractions do not nest
   FragmentGrid* grid = nullptr;
+  bool grid_possible = true;
   const auto stop_grid = [&] {
     DropDeadFragments(*grid, fragments);
     grid = nullptr;
@@ -727,11 +728,16 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
     const size_t live = grid != nullptr ? grid->Live() + (fragments->size() - grid->Size()) : fragments->size();
     if (live == 0 || subtracted == max_subtracted || StopNow(s)) break;
     // The grid pays where many candidates are left for many fragments.
-    if (grid == nullptr && all_valid && live >= kGridFragments && ids.size() - position >= 4 * live &&
-        StartFragmentGrid(s, *fragments, all)) {
-      grid = &s.fragment_grid;
-      s.fragment_grid_in_use = true;
-      fragment_grids.fetch_add(1, std::memory_order_relaxed);
+    if (grid == nullptr && grid_possible && all_valid && live >= kGridFragments &&
+        ids.size() - position >= 4 * live) {
+      // A box the grid cannot place (not finite) keeps the list for good,
+      // rather than a try per candidate.
+      grid_possible = StartFragmentGrid(s, *fragments, all);
+      if (grid_possible) {
+        grid = &s.fragment_grid;
+        s.fragment_grid_in_use = true;
+        fragment_grids.fetch_add(1, std::memory_order_relaxed);
+      }
     }
     if (quads) {
       if (s.occluder_marks[id].state == Scratch::kTaken) continue;  // inside an earlier quadrilateral
