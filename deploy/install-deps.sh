@@ -5,8 +5,9 @@
 #   install-deps.sh [--runtime-only | --without-container-tools] [--print]
 # --print writes the wanted packages, one a line, and installs nothing
 # (deploy/check-package-list.sh reads the list this way).
-# --without-container-tools: all but the container stage's tools (the
-# Dockerfile's build stage: an image has no use for podman).
+# --without-container-tools: all but the container stage's tools and the
+# test-only tools (the Dockerfile's build stage: an image has no use for
+# podman, and it builds no tests).
 set -euo pipefail
 
 runtime_only=0 print_only=0 container_tools=1
@@ -49,8 +50,14 @@ runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
 # uidmap), on a debian:bookworm base that debootstrap makes once.
 container_packages=(podman runc debootstrap)
 
+# The baked glTF's tests (tests/gltf_export): the Khronos glTF validator runs
+# on node (npm installs it into the build folder from a committed lock).
+# Test tools only: an image's build stage, which builds no tests, leaves
+# them out with the container tools.
+test_tool_packages=(nodejs npm)
+
 wanted=("${build_packages[@]}" "${runtime_packages[@]}")
-if (( container_tools )); then wanted+=("${container_packages[@]}"); fi
+if (( container_tools )); then wanted+=("${container_packages[@]}" "${test_tool_packages[@]}"); fi
 if (( runtime_only )); then
   # What the built binaries link (ldd), for the slim container stage.
   wanted=("${runtime_packages[@]}" ca-certificates
@@ -64,9 +71,15 @@ if (( print_only )); then
   exit 0
 fi
 
+# A package counts as present when it is installed, or when an installed
+# package provides it (NodeSource's nodejs provides npm and conflicts with
+# Debian's: asking apt for npm there would fail).
+provided=" $(dpkg-query -W -f='${db:Status-Abbrev} ${Provides}\n' 2>/dev/null | awk '/^ii/ { $1 = ""; print }' |
+  tr ',' '\n' | sed 's/(.*)//; s/^ *//; s/ *$//' | tr '\n' ' ') "
 missing=()
 for pkg in "${wanted[@]}"; do
-  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" ||
+    [[ "$provided" == *" $pkg "* ]] || missing+=("$pkg")
 done
 if (( ${#missing[@]} == 0 )); then
   echo "install-deps: all ${#wanted[@]} packages present"

@@ -400,14 +400,17 @@ Status RunPreview(const PreviewOptions& o, Cli& cli) {
 
 struct ExportOptions {
   std::string scene, gltf, uv_npy;
+  bool vertex_colors = false;
 };
 
 Status RunExport(const ExportOptions& o, Cli& cli) {
   if (o.gltf.empty() && o.uv_npy.empty()) return absl::InvalidArgumentError("--gltf, --uv-npy: give at least one");
+  if (o.vertex_colors && o.gltf.empty()) return absl::InvalidArgumentError("--vertex-colors: colours the --gltf file");
   v1::ExportObscurancesRequest request;
   request.mutable_scene()->set_name(o.scene);
   request.set_want_atlas_uvs(!o.uv_npy.empty());
   request.set_want_gltf(!o.gltf.empty());
+  request.set_want_vertex_colors(o.vertex_colors);
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const client::ObscuranceExport exported,
                         WhileWaiting(cli.flags, "obscurance-export", [&] { return client.ExportObscurances(request); }));
@@ -504,11 +507,15 @@ void AddObscuranceCommands(Cli& cli) {
   auto oe = std::make_shared<ExportOptions>();
   auto* exporter = cli.app.add_subcommand(
       "obscurance-export", "Write the current obscurance solution so that a game mesh can take it: the atlas UVs, "
-                           "and the scene as glTF with TEXCOORD_1 and W as its occlusion texture");
+                           "and the scene as glTF with the atlas UVs and W as its occlusion texture");
   exporter->add_option("SCENE,--scene", oe->scene, "Scene name")->required();
   exporter->add_option("--gltf", oe->gltf,
-                       "Write the baked scene as binary glTF (.glb): one vertex per triangle corner, the atlas as "
-                       "TEXCOORD_1, W as an 8-bit PNG occlusion texture");
+                       "Write the baked scene as binary glTF (.glb): the scene's nodes, materials, normals and UV "
+                       "sets, indexed, the atlas UVs as the UV set after the scene's own (or its TEXCOORD_1 when "
+                       "the bake used it), W as an 8-bit PNG occlusionTexture read through it");
+  exporter->add_flag("--vertex-colors", oe->vertex_colors,
+                     "Also write W per vertex (area-weighted over its triangles) as COLOR_0 in the --gltf file, "
+                     "which DCC viewports show where they ignore glTF's occlusionTexture");
   exporter->add_option("--uv-npy", oe->uv_npy,
                        "Write the atlas UVs as a float32 .npy (triangles, 3, 2) in the scene's triangle order, "
                        "the order of the bake's triangle_w");

@@ -16,6 +16,7 @@
 #include <absl/strings/numbers.h>
 #include <absl/strings/str_join.h>
 #include <absl/strings/str_replace.h>
+#include <glm/gtc/matrix_inverse.hpp>
 #include <glm/gtc/matrix_transform.hpp>
 #include <glm/gtc/quaternion.hpp>
 #include <glm/gtc/type_ptr.hpp>
@@ -234,6 +235,9 @@ struct FlattenedCounts {
   // its matrices and a pass over the mesh even when the mesh has no
   // triangles, so placements are counted on their own.
   uint64_t placements = 0;
+  // Bytes of the attributes kept for the export beyond the positions
+  // (NORMAL, TEXCOORD_n other than 1): Scene::normals and texcoords.
+  uint64_t attribute_bytes = 0;
   int depth = 0;
 };
 
@@ -267,6 +271,10 @@ FlattenedCounts MeshCounts(const tinygltf::Model& model, const tinygltf::Mesh& m
     else continue;  // points and lines are not kept
     counts.vertices = SaturatingAdd(counts.vertices, vertices);
     counts.triangles = SaturatingAdd(counts.triangles, triangles);
+    uint64_t per_vertex = prim.attributes.count("NORMAL") ? sizeof(glm::vec3) : 0;
+    for (int set = 0; set < kMaxKeptTexcoordSets; ++set)
+      if (set != 1 && prim.attributes.count(absl::StrCat("TEXCOORD_", set))) per_vertex += sizeof(glm::vec2);
+    counts.attribute_bytes = SaturatingAdd(counts.attribute_bytes, SaturatingMultiply(vertices, per_vertex));
   }
   return counts;
 }
@@ -305,6 +313,19 @@ class SceneBuilder {
         report_.dropped.push_back("TEXCOORD_1 (not present on every primitive)");
       scene.lightmap_uvs.clear();
     }
+    // The export's attributes: normals if every primitive had them, the
+    // texture coordinate sets that every primitive had.
+    if (!all_primitives_have_normals_) {
+      if (!scene.normals.empty()) report_.dropped.push_back("NORMAL (not present and valid on every primitive)");
+      scene.normals.clear();
+    }
+    if (scene.texcoords.size() > static_cast<size_t>(texcoord_sets_)) {
+      report_.dropped.push_back(absl::StrCat("TEXCOORD_", texcoord_sets_, " and above (not present and valid on "
+                                             "every primitive, or beyond ", kMaxKeptTexcoordSets, " sets)"));
+      scene.texcoords.resize(texcoord_sets_);
+    }
+    scene.normals.shrink_to_fit();
+    for (auto& set : scene.texcoords) set.shrink_to_fit();
     for (const auto& p : scene.positions) scene.bounds.Extend(p);
     // The arrays grew by doubling: up to half of each was slack (20 bytes a
     // triangle on 16 unique copies of Sponza), held while the scene is
@@ -368,6 +389,7 @@ class SceneBuilder {
                                               AccessorCount(model_, instances.scale)});
             counts.triangles = SaturatingMultiply(counts.triangles, copies);
             counts.vertices = SaturatingMultiply(counts.vertices, copies);
+            counts.attribute_bytes = SaturatingMultiply(counts.attribute_bytes, copies);
             counts.placements = copies;
           }
         }
@@ -376,6 +398,7 @@ class SceneBuilder {
           const FlattenedCounts& c = subtree[child];
           counts.triangles = SaturatingAdd(counts.triangles, c.triangles);
           counts.vertices = SaturatingAdd(counts.vertices, c.vertices);
+          counts.attribute_bytes = SaturatingAdd(counts.attribute_bytes, c.attribute_bytes);
           counts.nodes = SaturatingAdd(counts.nodes, c.nodes);
           counts.placements = SaturatingAdd(counts.placements, c.placements);
           counts.depth = std::max(counts.depth, c.depth);
@@ -388,6 +411,7 @@ class SceneBuilder {
       const FlattenedCounts& c = subtree[root];
       total.triangles = SaturatingAdd(total.triangles, c.triangles);
       total.vertices = SaturatingAdd(total.vertices, c.vertices);
+      total.attribute_bytes = SaturatingAdd(total.attribute_bytes, c.attribute_bytes);
       total.nodes = SaturatingAdd(total.nodes, c.nodes);
       total.placements = SaturatingAdd(total.placements, c.placements);
     }
@@ -408,7 +432,7 @@ class SceneBuilder {
     // A placement's matrix while its node is flattened (MeshPlacements),
     // and the placement kept for a repeated mesh (Scene::placements).
     constexpr uint64_t kBytesPerPlacement = sizeof(glm::dmat4) + sizeof(MeshPlacement);
-    uint64_t bytes = 0, part = 0;
+    uint64_t bytes = total.attribute_bytes, part = 0;
     for (auto [count, size] : {std::pair{total.vertices, kBytesPerVertex}, std::pair{total.triangles, kBytesPerTriangle},
                                std::pair{total.nodes, kBytesPerNode},
                                std::pair{total.placements, kBytesPerPlacement}})
@@ -623,6 +647,8 @@ class SceneBuilder {
       }
     }
 
+    KeepExportAttributes(prim, positions.count(), world, label);
+
     // Corner indices: given, or implicit 0..n-1.
     std::vector<uint32_t> corners;
     if (prim.indices >= 0) {
@@ -669,6 +695,59 @@ class SceneBuilder {
       for (size_t i = 1; i + 1 < n; ++i) emit(corners[0], corners[i], corners[i + 1]);
     }
     return absl::OkStatus();
+  }
+
+  // NORMAL and TEXCOORD_n of a primitive whose positions were just
+  // appended, kept for the export while every primitive so far has them.
+  // Unlike TEXCOORD_1, which the bake reads, an attribute visq does not
+  // understand (a wrong type, a count other than the positions', a
+  // non-finite value) is dropped with a line in the report, not refused.
+  void KeepExportAttributes(const tinygltf::Primitive& prim, size_t count, const glm::dmat4& world,
+                            const std::string& label) {
+    const size_t base = scene_->positions.size() - count;
+    auto reader_of = [&](const char* name, int components) -> std::optional<AccessorReader> {
+      auto it = prim.attributes.find(name);
+      if (it == prim.attributes.end()) return std::nullopt;
+      StatusOr<AccessorReader> reader = AccessorReader::Create(model_, it->second, absl::StrCat(label, ".", name));
+      if (!reader.ok() || reader->count() != count || reader->components() != components ||
+          !(reader->is_float() || (reader->is_small_integer() && reader->normalized())))
+        return std::nullopt;
+      return std::move(*reader);
+    };
+    if (all_primitives_have_normals_) {
+      std::optional<AccessorReader> normals = reader_of("NORMAL", 3);
+      bool finite = normals.has_value();
+      std::vector<glm::vec3> turned;
+      if (finite) {
+        // World space, as the positions are.
+        const glm::dmat3 normal_matrix = glm::inverseTranspose(glm::dmat3(world));
+        turned.reserve(count);
+        for (size_t i = 0; i < count && finite; ++i) {
+          const glm::vec3 n(normals->Value(i, 0), normals->Value(i, 1), normals->Value(i, 2));
+          finite = std::isfinite(n.x) && std::isfinite(n.y) && std::isfinite(n.z);
+          turned.push_back(UnitNormal(normal_matrix, n));
+        }
+      }
+      if (finite && scene_->normals.size() == base) scene_->normals.insert(scene_->normals.end(), turned.begin(), turned.end());
+      else all_primitives_have_normals_ = false;
+    }
+    int sets = 0;
+    for (; sets < texcoord_sets_; ++sets) {
+      std::optional<AccessorReader> uvs = reader_of(absl::StrCat("TEXCOORD_", sets).c_str(), 2);
+      if (!uvs) break;
+      std::vector<glm::vec2> values(count);
+      bool finite = true;
+      for (size_t i = 0; i < count && finite; ++i) {
+        values[i] = glm::vec2(uvs->Value(i, 0), uvs->Value(i, 1));
+        finite = std::isfinite(values[i].x) && std::isfinite(values[i].y);
+      }
+      if (!finite) break;
+      if (scene_->texcoords.size() <= static_cast<size_t>(sets)) scene_->texcoords.resize(sets + 1);
+      std::vector<glm::vec2>& kept = scene_->texcoords[sets];
+      if (kept.size() != base) break;  // a set that an earlier primitive lacked
+      kept.insert(kept.end(), values.begin(), values.end());
+    }
+    texcoord_sets_ = std::min(texcoord_sets_, sets);
   }
 
   // How many times each glTF mesh is placed, counted over the nodes and
@@ -750,6 +829,8 @@ class SceneBuilder {
   Scene* scene_ = nullptr;
   int default_material_ = -1;
   bool all_primitives_have_lightmap_uvs_ = true;
+  bool all_primitives_have_normals_ = true;
+  int texcoord_sets_ = kMaxKeptTexcoordSets;  // the sets every primitive so far had
   std::vector<uint64_t> mesh_uses_;
   std::vector<glm::dvec3>* mesh_positions_ = nullptr;  // where AddPrimitive copies mesh-space positions, if anywhere
   std::map<MeshKey, uint32_t> mesh_of_key_;  // into Scene::meshes

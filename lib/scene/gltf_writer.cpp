@@ -1,10 +1,14 @@
 #include "scene/gltf_writer.h"
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <map>
 #include <sstream>
+#include <tuple>
+
+#include <absl/strings/str_cat.h>
 
 #include <tiny_gltf.h>
 
@@ -60,6 +64,23 @@ tinygltf::Model BuildModel(const Scene& scene, const GltfExtras& extras) {
     model.materials.push_back(material);
   }
   if (uses_emissive_strength) model.extensionsUsed.push_back("KHR_materials_emissive_strength");
+  // Attributes: each written only where it covers every position (or
+  // corner) of the scene; a scene built in code may leave any out.
+  const size_t vertex_count = scene.positions.size();
+  std::vector<const std::vector<glm::vec2>*> uv_sets;
+  for (const auto& set : scene.texcoords) {
+    if (set.size() != vertex_count) break;
+    uv_sets.push_back(&set);
+  }
+  if (uv_sets.size() < 2 && scene.lightmap_uvs.size() == vertex_count && vertex_count > 0) {
+    uv_sets.resize(std::min<size_t>(uv_sets.size(), 1));
+    if (uv_sets.empty()) uv_sets.push_back(&scene.lightmap_uvs);
+    uv_sets.push_back(&scene.lightmap_uvs);
+  }
+  const bool with_normals = scene.normals.size() == vertex_count;
+  const bool with_colors = extras.vertex_colors.size() == vertex_count && vertex_count > 0;
+  const bool with_occlusion_uv =
+      !extras.occlusion_uv.empty() && extras.occlusion_uv.size() == 3 * scene.triangles.size();
   if (!extras.occlusion_png.empty()) {
     std::vector<unsigned char> png(extras.occlusion_png.begin(), extras.occlusion_png.end());
     tinygltf::Image image;
@@ -72,7 +93,7 @@ tinygltf::Model BuildModel(const Scene& scene, const GltfExtras& extras) {
     model.textures.push_back(texture);
     for (auto& material : model.materials) {
       material.occlusionTexture.index = 0;
-      material.occlusionTexture.texCoord = 1;
+      material.occlusionTexture.texCoord = with_occlusion_uv ? static_cast<int>(uv_sets.size()) : 1;
     }
   }
 
@@ -101,30 +122,48 @@ tinygltf::Model BuildModel(const Scene& scene, const GltfExtras& extras) {
     if (offset != parent_offset)
       gltf_node.translation = {offset.x - parent_offset.x, offset.y - parent_offset.y, offset.z - parent_offset.z};
     if (node.triangle_count > 0) {
-      // Primitives: the node's triangles grouped by material, each with its
-      // own compact vertex set.
-      std::map<uint32_t, std::vector<uint32_t>> by_material;
-      for (uint32_t t = node.first_triangle; t < node.first_triangle + node.triangle_count; ++t)
-        by_material[scene.triangle_material[t]].push_back(t);
+      // Primitives: runs of the node's triangles with one material, each
+      // with its own compact vertex set. The loader appends a node's
+      // primitives in order, so the runs give back the input's primitives
+      // and the triangles keep their order (that of the answers' arrays).
+      std::vector<std::pair<uint32_t, std::vector<uint32_t>>> by_material;
+      for (uint32_t t = node.first_triangle; t < node.first_triangle + node.triangle_count; ++t) {
+        if (by_material.empty() || by_material.back().first != scene.triangle_material[t])
+          by_material.emplace_back(scene.triangle_material[t], std::vector<uint32_t>{});
+        by_material.back().second.push_back(t);
+      }
       tinygltf::Mesh mesh;
       mesh.name = node.name;
       for (const auto& [material, tris] : by_material) {
-        std::map<uint32_t, uint32_t> remap;
-        std::vector<float> positions;
-        std::vector<float> uvs;
+        // Vertices: one per scene position and occlusion UV that the
+        // primitive's corners use. Corners of one position share its
+        // normal and UVs by construction; positions the input kept apart
+        // stay apart, as the artist's mesh had them.
+        std::map<std::tuple<uint32_t, uint32_t, uint32_t>, uint32_t> vertex_of;
+        std::vector<float> positions, normals, colors, occlusion;
+        std::vector<std::vector<float>> uvs(uv_sets.size());
         std::vector<uint32_t> indices;
         glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
         for (uint32_t t : tris) {
           for (int c = 0; c < 3; ++c) {
             const uint32_t v = scene.triangles[t][c];
-            auto [it, inserted] = remap.emplace(v, static_cast<uint32_t>(remap.size()));
+            const glm::vec2 atlas = with_occlusion_uv ? extras.occlusion_uv[3 * size_t(t) + c] : glm::vec2(0.0f);
+            auto [it, inserted] = vertex_of.emplace(std::tuple{v, std::bit_cast<uint32_t>(atlas.x),
+                                                               std::bit_cast<uint32_t>(atlas.y)},
+                                                    static_cast<uint32_t>(vertex_of.size()));
             if (inserted) {
               const glm::dvec3 p = scene.positions[v] - offset;
               const glm::vec3 pf(p);
               positions.insert(positions.end(), {pf.x, pf.y, pf.z});
               lo = glm::min(lo, glm::dvec3(pf));
               hi = glm::max(hi, glm::dvec3(pf));
-              if (!scene.lightmap_uvs.empty()) uvs.insert(uvs.end(), {scene.lightmap_uvs[v].x, scene.lightmap_uvs[v].y});
+              if (with_normals) normals.insert(normals.end(), {scene.normals[v].x, scene.normals[v].y, scene.normals[v].z});
+              for (size_t s = 0; s < uv_sets.size(); ++s) uvs[s].insert(uvs[s].end(), {(*uv_sets[s])[v].x, (*uv_sets[s])[v].y});
+              if (with_occlusion_uv) occlusion.insert(occlusion.end(), {atlas.x, atlas.y});
+              if (with_colors) {
+                const glm::vec3 w = glm::clamp(extras.vertex_colors[v], 0.0f, 1.0f);
+                colors.insert(colors.end(), {w.x, w.y, w.z});
+              }
             }
             indices.push_back(it->second);
           }
@@ -132,24 +171,24 @@ tinygltf::Model BuildModel(const Scene& scene, const GltfExtras& extras) {
         tinygltf::Primitive prim;
         prim.mode = TINYGLTF_MODE_TRIANGLES;
         prim.material = static_cast<int>(material);
-        tinygltf::Accessor pos;
-        pos.bufferView = AddView(model, AppendBytes(bytes, positions), positions.size() * 4, TINYGLTF_TARGET_ARRAY_BUFFER);
-        pos.componentType = TINYGLTF_COMPONENT_TYPE_FLOAT;
-        pos.type = TINYGLTF_TYPE_VEC3;
-        pos.count = positions.size() / 3;
-        pos.minValues = {lo.x, lo.y, lo.z};
-        pos.maxValues = {hi.x, hi.y, hi.z};
-        model.accessors.push_back(pos);
-        prim.attributes["POSITION"] = static_cast<int>(model.accessors.size() - 1);
-        if (!uvs.empty()) {
-          tinygltf::Accessor uv;
-          uv.bufferView = AddView(model, AppendBytes(bytes, uvs), uvs.size() * 4, TINYGLTF_TARGET_ARRAY_BUFFER);
-          uv.componentType = TINYGLTF_COMPONENT_TYPE_FLOAT;
-          uv.type = TINYGLTF_TYPE_VEC2;
-          uv.count = uvs.size() / 2;
-          model.accessors.push_back(uv);
-          prim.attributes["TEXCOORD_1"] = static_cast<int>(model.accessors.size() - 1);
-        }
+        auto add_attribute = [&](const std::vector<float>& values, int type, int components) {
+          tinygltf::Accessor accessor;
+          accessor.bufferView = AddView(model, AppendBytes(bytes, values), values.size() * 4, TINYGLTF_TARGET_ARRAY_BUFFER);
+          accessor.componentType = TINYGLTF_COMPONENT_TYPE_FLOAT;
+          accessor.type = type;
+          accessor.count = values.size() / components;
+          model.accessors.push_back(accessor);
+          return static_cast<int>(model.accessors.size() - 1);
+        };
+        prim.attributes["POSITION"] = add_attribute(positions, TINYGLTF_TYPE_VEC3, 3);
+        model.accessors.back().minValues = {lo.x, lo.y, lo.z};
+        model.accessors.back().maxValues = {hi.x, hi.y, hi.z};
+        if (with_normals) prim.attributes["NORMAL"] = add_attribute(normals, TINYGLTF_TYPE_VEC3, 3);
+        for (size_t s = 0; s < uv_sets.size(); ++s)
+          prim.attributes[absl::StrCat("TEXCOORD_", s)] = add_attribute(uvs[s], TINYGLTF_TYPE_VEC2, 2);
+        if (with_occlusion_uv)
+          prim.attributes[absl::StrCat("TEXCOORD_", uv_sets.size())] = add_attribute(occlusion, TINYGLTF_TYPE_VEC2, 2);
+        if (with_colors) prim.attributes["COLOR_0"] = add_attribute(colors, TINYGLTF_TYPE_VEC3, 3);
         tinygltf::Accessor idx;
         idx.bufferView = AddView(model, AppendBytes(bytes, indices), indices.size() * 4,
                                  TINYGLTF_TARGET_ELEMENT_ARRAY_BUFFER);

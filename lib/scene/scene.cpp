@@ -32,7 +32,9 @@ std::vector<double> MeshMagnitudes(const Scene& scene) {
 size_t Scene::CpuBytes() const {
   size_t bytes = positions.capacity() * sizeof(glm::dvec3) + triangles.capacity() * sizeof(glm::uvec3) +
                  triangle_material.capacity() * sizeof(uint32_t) +
-                 triangle_node.capacity() * sizeof(uint32_t) + lightmap_uvs.capacity() * sizeof(glm::vec2);
+                 triangle_node.capacity() * sizeof(uint32_t) + lightmap_uvs.capacity() * sizeof(glm::vec2) +
+                 normals.capacity() * sizeof(glm::vec3) + texcoords.capacity() * sizeof(std::vector<glm::vec2>);
+  for (const auto& set : texcoords) bytes += set.capacity() * sizeof(glm::vec2);
   for (const auto& m : materials) bytes += sizeof(Material) + m.name.capacity();
   for (const auto& n : nodes) bytes += sizeof(SceneNode) + n.name.capacity();
   for (const auto& m : meshes)

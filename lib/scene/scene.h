@@ -4,6 +4,7 @@
 // query before converting to float.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <string>
@@ -69,12 +70,28 @@ struct MeshPlacement {
   glm::dmat4 world{1.0};
 };
 
+// A normal carried to world space by `normal_matrix` (the inverse transpose
+// of the placement's 3x3), unit again; one of no direction stays zero.
+inline glm::vec3 UnitNormal(const glm::dmat3& normal_matrix, const glm::vec3& normal) {
+  const glm::dvec3 turned = normal_matrix * glm::dvec3(normal);
+  const double length = glm::length(turned);
+  return length > 0.0 && std::isfinite(length) ? glm::vec3(turned / length) : glm::vec3(0.0f);
+}
+
 struct Scene {
   std::vector<glm::dvec3> positions;        // world space
   std::vector<glm::uvec3> triangles;        // counter-clockwise = front
   std::vector<uint32_t> triangle_material;  // index into materials
   std::vector<uint32_t> triangle_node;      // index into nodes
   std::vector<glm::vec2> lightmap_uvs;      // TEXCOORD_1 per position; empty if absent
+  // What no query reads but an export writes back, so that the game mesh
+  // returns to the studio's tools as it came (obscurance_export.h): NORMAL
+  // per position, world space and unit (empty unless every primitive has
+  // one), and TEXCOORD_0 .. TEXCOORD_{k-1} per position, the k sets (at most
+  // kMaxKeptTexcoordSets) that every primitive has. A kept TEXCOORD_1 is
+  // lightmap_uvs again: 8 bytes a position, against a second representation.
+  std::vector<glm::vec3> normals;
+  std::vector<std::vector<glm::vec2>> texcoords;
   std::vector<Material> materials;
   std::vector<SceneNode> nodes;
   // Repeated meshes and where each stands, ordered by first_triangle and
@@ -116,6 +133,10 @@ bool PlacementMatchesFlattened(const Scene& scene, const MeshPlacement& placemen
 bool PlacementKeepsFloatPrecision(const glm::dmat4& world, double mesh_magnitude, const glm::dvec3& origin,
                                   double extent);
 std::vector<double> MeshMagnitudes(const Scene& scene);
+
+// The most TEXCOORD sets a scene keeps (glTF asks every viewer for two;
+// DCCs write up to eight): each costs 8 bytes a position.
+inline constexpr int kMaxKeptTexcoordSets = 4;
 
 // Placements of a mesh with fewer triangles than this are flattened only:
 // an instance costs a few hundred bytes in every structure.

@@ -1,5 +1,7 @@
 #include "scene/scene_edit.h"
 
+#include <glm/gtc/matrix_inverse.hpp>
+
 #include "common/coordinates.h"
 
 namespace visq {
@@ -41,6 +43,13 @@ Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world)
   }
   for (size_t i = 0; i < scene.positions.size(); ++i)
     if (moved[i]) scene.positions[i] = placed[i];
+  // Normals turn with the inverse transpose, so that they stay normal to
+  // surfaces that a non-uniform scale stretched.
+  if (!scene.normals.empty()) {
+    const glm::dmat3 normal_matrix = glm::inverseTranspose(glm::dmat3(delta));
+    for (size_t i = 0; i < scene.normals.size(); ++i)
+      if (moved[i]) scene.normals[i] = UnitNormal(normal_matrix, scene.normals[i]);
+  }
   for (uint32_t n : subtree) scene.nodes[n].world = delta * scene.nodes[n].world;
   // A moved placement's positions are delta * (world * p), which is not
   // PlacePoint(delta * world, p) to the bit: the moved meshes stay flattened only.

@@ -677,12 +677,18 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
 StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const ObscuranceExportQuery& query) {
   if (!query.want_atlas_uvs && !query.want_gltf)
     return absl::InvalidArgumentError("want_atlas_uvs, want_gltf: ask for at least one of the two");
+  if (query.want_vertex_colors && !query.want_gltf)
+    return absl::InvalidArgumentError("want_vertex_colors: colours the glb, so needs want_gltf");
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.FindScene(query.scene, query.scene_version));
   // What the answer holds until it is sent: per corner a UV (8 bytes) and,
-  // in the glTF, a position, a UV and an index (24 bytes); the PNG at most
-  // 3 bytes a texel (and a little more for its rows and headers).
+  // in the glTF, twice (the model's buffer, then the serialized file) at
+  // most a vertex per corner (a position, a normal and a colour, 36 bytes,
+  // and 8 bytes a TEXCOORD set, the atlas's included) and an index; the
+  // PNG at most 3 bytes a texel (and a little more for its rows and
+  // headers).
   const uint64_t triangles = resident->scene->triangles.size();
+  const uint64_t uv_sets = std::max<uint64_t>(resident->scene->texcoords.size(), 2) + 1;
   uint64_t texels = 0;
   {
     std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
@@ -690,13 +696,13 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
     if (state->updater) texels = uint64_t{state->updater->result().width} * state->updater->result().height;
   }
   const uint64_t bytes = (query.want_atlas_uvs ? 3 * triangles * 8 : 0) +
-                         (query.want_gltf ? 3 * triangles * 24 + texels * 4 + (uint64_t{1} << 20) : 0);
+                         (query.want_gltf ? 2 * 3 * triangles * (40 + 8 * uv_sets) + texels * 4 + (uint64_t{1} << 20) : 0);
   ObscuranceExportAnswer answer;
   VISQ_ASSIGN_OR_RETURN(answer.memory, engine.work_budget().Reserve(bytes, "scene", query.call.Job()));
 
   const auto start = std::chrono::steady_clock::now();
   std::vector<glm::vec2> corner_uv;
-  std::vector<glm::vec3> w;
+  std::vector<glm::vec3> w, vertex_w;
   {
     std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
@@ -705,6 +711,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
     const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
     corner_uv = atlas.corner_uv;
     if (query.want_gltf) w = state->updater->result().w;
+    if (query.want_vertex_colors) vertex_w = state->updater->result().vertex_w;
     answer.width = atlas.width;
     answer.height = atlas.height;
     answer.from_lightmap_uvs = atlas.from_lightmap_uvs;
@@ -718,8 +725,11 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   const auto export_start = std::chrono::steady_clock::now();
   if (query.want_atlas_uvs) answer.atlas_uv = obscurance::AtlasUvs(corner_uv, answer.width, answer.height);
   if (query.want_gltf) {
+    obscurance::BakedSceneOptions options;
+    options.atlas_is_lightmap_uvs = answer.from_lightmap_uvs;
+    options.vertex_w = std::move(vertex_w);
     VISQ_ASSIGN_OR_RETURN(answer.glb, obscurance::BakedSceneGlb(*resident->scene, corner_uv, answer.width,
-                                                                answer.height, w));
+                                                                answer.height, w, std::move(options)));
   }
   answer.export_ms = MillisecondsSince(export_start);
   return answer;

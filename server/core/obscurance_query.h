@@ -197,6 +197,7 @@ struct ObscuranceExportQuery {
   uint64_t scene_version = 0;
   bool want_atlas_uvs = false;
   bool want_gltf = false;
+  bool want_vertex_colors = false;  // with want_gltf: W per vertex as COLOR_0
   CallOptions call;
 };
 

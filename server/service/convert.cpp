@@ -461,6 +461,7 @@ StatusOr<core::ObscuranceExportQuery> FromProto(const v1::ExportObscurancesReque
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   query.want_atlas_uvs = request.want_atlas_uvs();
   query.want_gltf = request.want_gltf();
+  query.want_vertex_colors = request.want_vertex_colors();
   return query;
 }
 

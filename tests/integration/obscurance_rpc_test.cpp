@@ -566,8 +566,9 @@ TEST_F(ObscuranceRpcTest, ExportedUvsAndGltfPutTheBakeOnTheMesh) {
   EXPECT_LE(beyond, triangles / 20) << "W sampled through the exported UVs against triangle_w";
   RecordProperty("w_through_uvs_max_error", std::to_string(worst));
 
-  // The glTF: the scene's geometry, one vertex per corner, with the UVs as
-  // TEXCOORD_1 and W as the occlusion texture.
+  // The glTF: the scene's geometry, indexed, with the UVs as TEXCOORD_1
+  // (after the palm's own TEXCOORD_0) and W as the occlusion texture; its
+  // validity and the trip into Blender are tests/gltf_export's.
   testing::ScratchDir dir;
   const std::filesystem::path glb = dir.path() / "baked.glb";
   std::ofstream(glb, std::ios::binary)
@@ -632,6 +633,14 @@ TEST_F(ObscuranceRpcTest, ExportedUvsAndGltfPutTheBakeOnTheMesh) {
   Status refused = client_->ExportObscurances(nothing).status();
   EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
   EXPECT_NE(std::string(refused.message()).find("want_atlas_uvs"), std::string::npos) << refused;
+  // Vertex colours colour the glb, and are refused without it.
+  v1::ExportObscurancesRequest colours_alone;
+  colours_alone.mutable_scene()->set_name("palm_export");
+  colours_alone.set_want_atlas_uvs(true);
+  colours_alone.set_want_vertex_colors(true);
+  refused = client_->ExportObscurances(colours_alone).status();
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
+  EXPECT_NE(std::string(refused.message()).find("want_vertex_colors"), std::string::npos) << refused;
 }
 
 TEST_F(ObscuranceRpcTest, PreviewRejectsABadCamera) {

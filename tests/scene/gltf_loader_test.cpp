@@ -11,6 +11,7 @@
 #include "scene/gltf_loader.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
+#include "scene/scene_edit.h"
 #include "test_support.h"
 
 namespace visq {
@@ -196,6 +197,52 @@ TEST(GltfWriter, GeneratedCornellBoxRoundTrips) {
       EXPECT_NEAR(loaded->bounds.max[a], original.bounds.max[a], 1e-6);
     }
   }
+}
+
+// What no query reads but the export writes back: the palm's normals (world
+// space through node TRS with non-uniform scale, unit) and TEXCOORD_0 are
+// kept, come back through the writer as they were, and a move turns the
+// normals with the node.
+TEST(GltfWriter, NormalsAndUvSetsRoundTripAndMoveWithTheirNode) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  StatusOr<Scene> palm = LoadGltfFile(scenes / "tree_kenney/tree_palmDetailedTall.glb");
+  ASSERT_TRUE(palm.ok()) << palm.status();
+  ASSERT_EQ(palm->normals.size(), palm->positions.size());
+  ASSERT_EQ(palm->texcoords.size(), 1u);
+  ASSERT_EQ(palm->texcoords[0].size(), palm->positions.size());
+  EXPECT_TRUE(palm->lightmap_uvs.empty());
+  for (const glm::vec3& n : palm->normals) ASSERT_NEAR(glm::length(n), 1.0f, 1e-5f);
+  // Smooth normals face the way of their triangles' winding.
+  size_t facing = 0;
+  for (size_t t = 0; t < palm->TriangleCount(); ++t) {
+    const glm::dvec3 face = glm::cross(palm->Vertex(t, 1) - palm->Vertex(t, 0), palm->Vertex(t, 2) - palm->Vertex(t, 0));
+    facing += glm::dot(face, glm::dvec3(palm->normals[palm->triangles[t][0]])) > 0.0;
+  }
+  EXPECT_GT(facing, palm->TriangleCount() * 9 / 10);
+
+  ScratchDir dir;
+  ASSERT_TRUE(WriteGltfFile(*palm, dir.path() / "palm.glb").ok());
+  StatusOr<Scene> back = LoadGltfFile(dir.path() / "palm.glb");
+  ASSERT_TRUE(back.ok()) << back.status();
+  ASSERT_EQ(back->TriangleCount(), palm->TriangleCount());
+  EXPECT_EQ(back->positions.size(), palm->positions.size());
+  ASSERT_EQ(back->texcoords.size(), 1u);
+  for (size_t t = 0; t < palm->TriangleCount(); ++t)
+    for (int c = 0; c < 3; ++c) {
+      const uint32_t a = palm->triangles[t][c], b = back->triangles[t][c];
+      ASSERT_LT(glm::length(back->positions[b] - palm->positions[a]), 1e-5);
+      ASSERT_LT(glm::length(back->normals[b] - palm->normals[a]), 1e-6f);
+      ASSERT_EQ(back->texcoords[0][b], palm->texcoords[0][a]);
+    }
+
+  // A quarter turn about y of every root: every normal turns with it.
+  const glm::dmat4 turn(glm::dvec4(0, 0, -1, 0), glm::dvec4(0, 1, 0, 0), glm::dvec4(1, 0, 0, 0), glm::dvec4(0, 0, 0, 1));
+  Scene moved = *palm;
+  for (uint32_t root = 0; root < palm->nodes.size(); ++root)
+    if (palm->nodes[root].parent < 0)
+      ASSERT_TRUE(MoveNodeSubtree(moved, root, turn * palm->nodes[root].world).ok());
+  for (size_t i = 0; i < palm->normals.size(); ++i)
+    ASSERT_LT(glm::length(glm::dvec3(moved.normals[i]) - glm::dmat3(turn) * glm::dvec3(palm->normals[i])), 1e-6) << i;
 }
 
 // --- Malformed input ---------------------------------------------------------

@@ -969,11 +969,14 @@ class Client:
                                  chunks.get("covered", np.uint8, (f.height, f.width), required=True).astype(bool), f)
 
     def export_obscurances(self, scene, atlas_uvs=True, gltf=False, version=0, timeout=_UNSET,
-                           cancel=None) -> ObscuranceExport:
+                           cancel=None, vertex_colors=False) -> ObscuranceExport:
         """The current obscurance solution as a game mesh takes it: the atlas
         UV of every triangle corner, and/or the scene as binary glTF with
-        those UVs as TEXCOORD_1 and W as its occlusion texture."""
-        request = pb.ExportObscurancesRequest(want_atlas_uvs=bool(atlas_uvs), want_gltf=bool(gltf))
+        its own normals and UV sets, the atlas UVs as the set after them (or
+        its TEXCOORD_1 when the bake used it) and W as its occlusion texture;
+        vertex_colors (with gltf) adds W per vertex as COLOR_0."""
+        request = pb.ExportObscurancesRequest(want_atlas_uvs=bool(atlas_uvs), want_gltf=bool(gltf),
+                                              want_vertex_colors=bool(vertex_colors))
         request.scene.name, request.scene.version = scene, version
         chunks, f = self._chunked_stream(self._stub.ExportObscurances, "ExportObscurances", request, scene, timeout,
                                          cancel, [("atlas_uv", "offset", np.float32, 1),
