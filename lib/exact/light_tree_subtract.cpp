@@ -523,7 +523,9 @@ bool LightTree::ApartFrom(const Scratch& s, Fragment& f, const LineBox& shadow) 
   return HasLineBox(s, f) && f.box.Apart(shadow);
 }
 
-LightTree::Against LightTree::FragmentAgainst(Scratch& s, Fragment& f, std::vector<EdgeLine>& lines, int inside,
+// Inline: it runs once per fragment a shadow meets, in Subtract's two loops
+// (out of line, Sponza's queries took 0.4 % more instructions).
+VISQ_EXACT_INLINE LightTree::Against LightTree::FragmentAgainst(Scratch& s, Fragment& f, std::vector<EdgeLine>& lines, int inside,
                                                uint32_t* straddled) const {
   // Outside when some edge line has none of its vertices on the inside
   // (touching it at most): kept whole.
@@ -725,10 +727,13 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
   uint32_t neighbour = 0;
   for (size_t position = 0; position < ids.size(); ++position) {
     const uint32_t id = ids[position];
-    const size_t live = grid != nullptr ? grid->Live() + (fragments->size() - grid->Size()) : fragments->size();
+    // With a grid, its live fragments and the pieces it has not listed yet
+    // (none between subtractions).
+    VISQ_DCHECK(grid == nullptr || grid->Size() == fragments->size());
+    const size_t live = grid != nullptr ? grid->Live() : fragments->size();
     if (live == 0 || subtracted == max_subtracted || StopNow(s)) break;
     // The grid pays where many candidates are left for many fragments.
-    if (grid == nullptr && grid_possible && all_valid && live >= kGridFragments &&
+    if (grid == nullptr && live >= kGridFragments && grid_possible && all_valid &&
         ids.size() - position >= 4 * live) {
       // A box the grid cannot place (not finite) keeps the list for good,
       // rather than a try per candidate.
