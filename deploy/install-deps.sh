@@ -51,10 +51,11 @@ runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
 container_packages=(podman runc debootstrap)
 
 # The baked glTF's tests (tests/gltf_export): the Khronos glTF validator runs
-# on node (npm installs it into the build folder from a committed lock).
-# Test tools only: an image's build stage, which builds no tests, leaves
-# them out with the container tools.
-test_tool_packages=(nodejs npm)
+# on node (npm installs it into the build folder from a committed lock), and
+# Blender imports the file in background mode (blender -b; about 300 MB with
+# its libraries). Test tools only: an image's build stage, which builds no
+# tests, leaves them out with the container tools.
+test_tool_packages=(nodejs npm blender)
 
 wanted=("${build_packages[@]}" "${runtime_packages[@]}")
 if (( container_tools )); then wanted+=("${container_packages[@]}" "${test_tool_packages[@]}"); fi

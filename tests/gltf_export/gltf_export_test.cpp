@@ -1,12 +1,14 @@
 // The baked glTF (ExportObscurances, `visq obscurance-export --gltf`) as the
 // studio's tools read it, end to end through the real server and the visq
 // CLI on real scenes: the Khronos glTF validator finds no error and no
-// warning in it, and the input's attributes come back with the bake added.
+// warning in it, the input's attributes come back with the bake added, and
+// Debian's Blender imports it with the occlusion texture wired to the atlas
+// UV layer and W there equal to the bake's triangle_w.
 //
 // The validator is npm's gltf-validator, which `npm ci` installs into the
 // build directory before these tests (the visq_gltf_validator_install
-// fixture, tests/gltf_export/validator/package-lock.json); node comes from
-// deploy/install-deps.sh. A machine without it skips, saying so.
+// fixture, tests/gltf_export/validator/package-lock.json); node and blender
+// come from deploy/install-deps.sh. A machine without them skips, saying so.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -230,6 +232,56 @@ TEST_F(GltfExportTest, ALightmapUvSetCarriesTheBakeItself) {
     for (const auto& primitive : mesh["primitives"])
       EXPECT_FALSE(primitive["attributes"].contains("TEXCOORD_2")) << primitive["attributes"].dump();
   EXPECT_EQ(GlbVertices(doc), palm->positions.size()) << "no corner split: the lightmap UVs are the input's";
+}
+
+// Debian's Blender imports the export with the occlusion texture wired to a
+// UV layer of the mesh, and W read there at each triangle's centre is the
+// W atlas at the atlas UVs' centre (to its 8 bits) and the bake's
+// triangle_w within the stated bounds (tests/gltf_export/blender_check.py).
+TEST_F(GltfExportTest, BlenderImportsTheBakeOnTheMesh) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  if (!HaveCommand("blender"))
+    GTEST_SKIP() << "blender is absent (deploy/install-deps.sh installs Debian's blender)";
+  struct Case {
+    const char* name;
+    fs::path file;
+    double d_max;
+  };
+  for (const Case& c : {Case{"cornell_blender", scenes / "cornell_box/cornell_box.gltf", 0.5},
+                        Case{"palm_blender", scenes / "tree_kenney/tree_palmDetailedTall.glb", 0.5},
+                        Case{"sponza_blender", scenes / "sponza_dabrovic/sponza.gltf", 2.0}}) {
+    SCOPED_TRACE(c.name);
+    Baked baked;
+    ASSERT_NO_FATAL_FAILURE(BakeAndExport(c.file, c.name, c.d_max, baked));
+    // What Blender checks, per triangle: its centre (glTF axes), triangle_w,
+    // its own bound, and the W atlas at the atlas UVs' centre.
+    const uint32_t width = baked.exported.figures.width(), height = baked.exported.figures.height();
+    const std::vector<float>& uv = baked.exported.atlas_uv;
+    nlohmann::json triangles = nlohmann::json::array();
+    for (size_t t = 0; t < baked.input.triangles.size(); ++t) {
+      const glm::dvec3 centre = (baked.input.Vertex(t, 0) + baked.input.Vertex(t, 1) + baked.input.Vertex(t, 2)) / 3.0;
+      const double u = (uv[6 * t] + uv[6 * t + 2] + uv[6 * t + 4]) / 3.0;
+      const double v = (uv[6 * t + 1] + uv[6 * t + 3] + uv[6 * t + 5]) / 3.0;
+      const uint32_t x = std::min<uint32_t>(width - 1, static_cast<uint32_t>(u * width));
+      const uint32_t y = std::min<uint32_t>(height - 1, static_cast<uint32_t>(v * height));
+      triangles.push_back({centre.x, centre.y, centre.z, baked.bake.triangle_w[3 * t],
+                           baked.bake.triangle_w_error[t], baked.bake.w[3 * (size_t(y) * width + x)]});
+    }
+    const nlohmann::json expected = {{"triangles", triangles},
+                                     {"bound", baked.bake.figures.accuracy().error_bound()},
+                                     {"atlas_texcoord", baked.input.texcoords.size()}};
+    const fs::path expected_file = dir_.path() / (std::string(c.name) + ".json");
+    std::ofstream(expected_file) << expected.dump();
+    int status = 0;
+    const std::string output = testing::RunCommand(
+        "blender -b --factory-startup --python-exit-code 1 --python " + std::string(VISQ_BLENDER_CHECK_SCRIPT) +
+            " -- " + c.file.string() + " " + baked.glb.string() + " " + expected_file.string() + " 2>&1",
+        &status);
+    const size_t line = output.find("blender_check:");
+    std::printf("%s: %s\n", c.name,
+                line == std::string::npos ? "(no result line)" : output.substr(line, output.find('\n', line) - line).c_str());
+    EXPECT_EQ(status, 0) << output.substr(output.size() > 6000 ? output.size() - 6000 : 0);
+  }
 }
 
 }  // namespace
