@@ -145,7 +145,11 @@ awk -F '\t' '
     if ($3 == "yes") listed[pkg] = 1
     n = names($4, prov); for (i = 1; i <= n; i++) if (prov[i] != "") providers[prov[i]] = providers[prov[i]] " " pkg }
   END {
+    # A listed package that an installed one provides (install-deps.sh counts
+    # it present: NodeSource nodejs provides npm) stands for its providers.
     for (p in listed) if (p in installed) { queue[++tail] = p; covered[p] = 1 }
+      else if (p in providers) { k = split(providers[p], c, / /)
+        for (q = 1; q <= k; q++) if (c[q] in installed && !(c[q] in covered)) { covered[c[q]] = 1; queue[++tail] = c[q] } }
       else print "check-package-list: listed package " p " is not installed (run deploy/install-deps.sh)" > "/dev/stderr"
     for (head = 1; head <= tail; head++) {
       n = names(deps[queue[head]], clause)
