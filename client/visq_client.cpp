@@ -480,6 +480,12 @@ StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowReq
       out.figures = std::move(message);
       first = false;
     } else {
+      // A later accuracy (the error estimate) replaces the first one whole:
+      // merged, an estimate of exactly 0 would keep the first's -1.
+      if (message.has_accuracy()) {
+        *out.figures.mutable_accuracy() = message.accuracy();
+        message.clear_accuracy();
+      }
       out.figures.MergeFrom(message);
     }
     // Rows received so far: each band's images are 3 floats a pixel.

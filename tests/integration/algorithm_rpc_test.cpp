@@ -381,9 +381,9 @@ TEST_F(AlgorithmRpcTest, TransmittanceThroughTheShortBox) {
   EXPECT_EQ(client_->Transmittance(request).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
-// The error estimate of a volumetric image (the same image with half the
-// shadow map) against the error itself, measured against fine ray marching
-// of a 4096^2 map, on
+// The error estimate of a volumetric image (Richardson's, from the same
+// image with a half and a quarter of the shadow map) against the error
+// itself, measured against fine ray marching of a 4096^2 map, on
 // Sponza's atrium; and a target that makes the server choose the map.
 TEST_F(AlgorithmRpcTest, VolumetricErrorEstimateTracksTheErrorAndATargetChoosesTheMap) {
   VISQ_REQUIRE_SHARED_SCENES(scenes);
@@ -432,8 +432,16 @@ TEST_F(AlgorithmRpcTest, VolumetricErrorEstimateTracksTheErrorAndATargetChoosesT
   EXPECT_EQ(accuracy.confidence(), 0.0) << "an estimate, not a bound";
   EXPECT_NE(accuracy.note().find("an estimate"), std::string::npos) << accuracy.note();
   EXPECT_EQ(accuracy.parameters().at("coarse_shadow_map_size"), 128);
-  // An estimate of the right size: within 3x of the error, either way.
-  EXPECT_GT(estimate, true_max / 3) << "true " << true_max;
+  EXPECT_EQ(accuracy.parameters().at("coarser_shadow_map_size"), 64) << "three maps measure the convergence";
+  EXPECT_NE(accuracy.note().find("Richardson"), std::string::npos) << accuracy.note();
+  const double ratio = accuracy.parameters().at("convergence_ratio");
+  EXPECT_GE(ratio, 0.5);
+  EXPECT_LE(ratio, 0.75);
+  EXPECT_NEAR(estimate, accuracy.parameters().at("max_difference") * ratio / (1 - ratio), 1e-12 + 1e-9 * estimate);
+  // An estimate of the right size: not under the error it estimates (the
+  // reference's own error, a 4096^2 map's, allows a quarter less), and not
+  // more than 3x over it.
+  EXPECT_GT(estimate, true_max / 1.25) << "true " << true_max;
   EXPECT_LT(estimate, true_max * 3) << "true " << true_max;
   EXPECT_GT(estimate_l1, true_l1 / 3) << "true " << true_l1;
   EXPECT_LT(estimate_l1, true_l1 * 3) << "true " << true_l1;

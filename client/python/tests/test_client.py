@@ -307,6 +307,16 @@ class ClientTest(unittest.TestCase):
                                               medium_box=((-1, 0, -1), (1, 2, 1)), estimate_error=True)
         self.assertGreaterEqual(boxed.figures.accuracy.error_bound, 0.0)
         self.assertIn("an estimate", boxed.figures.accuracy.note)
+        # Inside the closed box under a sun from above, the medium is all in
+        # shadow: every map gives the same black image, and the estimate is
+        # exactly 0 (it was read as -1, "none", when merged into the first
+        # message's accuracy).
+        dark = self.client.volumetric_shadow(SCENE, (0, 1, 0.5), (0, 0, -1), width=16, height=12,
+                                             sun=(0.2, -1, 0.1), shadow_map_size=256,
+                                             medium_box=((-0.9, 0.1, -0.9), (0.9, 1.8, 0.9)), estimate_error=True)
+        self.assertEqual(float(np.abs(dark.inscattering).max()), 0.0)
+        self.assertEqual(dark.figures.accuracy.error_bound, 0.0)
+        self.assertIn("Richardson", dark.figures.accuracy.note)
 
     def test_obscurance_bake_with_progress_then_preview(self):
         progress = []

@@ -446,6 +446,11 @@ class Client:
                 for field, offset, _, _ in arrays:
                     m.ClearField(field)
                     m.ClearField(offset)
+                # A later accuracy (an error estimate) replaces the first one
+                # whole: merged, an estimate of exactly 0 would keep its -1.
+                if "accuracy" in m.DESCRIPTOR.fields_by_name and m.HasField("accuracy"):
+                    first[0].accuracy.CopyFrom(m.accuracy)
+                    m.ClearField("accuracy")
                 first[0].MergeFrom(m)
 
         self._server_stream(rpc, request, scene, timeout, cancel, on_message)
