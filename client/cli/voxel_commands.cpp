@@ -260,7 +260,8 @@ void AddVoxelCommands(Cli& cli) {
   AddChoice(volumetric, "--method", vo->method, {"min-max", "ray-marching"}, "min-max or ray-marching");
   volumetric->add_flag("--combined", vo->combined, "Add the directly lit surfaces");
   volumetric->add_flag("--estimate-error", vo->estimate_error,
-                       "Also render with half the shadow map and state the difference as the error estimate");
+                       "Also render with a half and a quarter of the shadow map and state the error estimate "
+                       "(Richardson's, from how fast the images converge)");
   AddTargetFlags(volumetric, vo->target);
   volumetric->add_option("--medium-box", vo->medium_box,
                          "Where the medium is, 'minx,miny,minz;maxx,maxy,maxz' (default: the scene's bounds)");

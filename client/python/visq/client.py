@@ -812,7 +812,8 @@ class Client:
         shaped (height, width, 3), row 0 at the top. `medium_box`: where the
         medium is, ((min x, y, z), (max x, y, z)); None: the scene's bounds.
         `estimate_error`: figures.accuracy states the error the shadow map's
-        resolution leaves, estimated from a render with half the map."""
+        resolution leaves, estimated from renders with a half and a quarter
+        of the map (Richardson's estimate)."""
         request = pb.VolumetricShadowRequest()
         request.scene.name, request.scene.version = scene, version
         _vec3(camera_position, "camera_position", request.camera_position)
