@@ -335,6 +335,17 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(exported.atlas_uv.shape, (exported.figures.triangles, 3, 2))
         self.assertTrue(((exported.atlas_uv >= 0) & (exported.atlas_uv <= 1)).all())
         self.assertEqual(exported.glb[:4], b"glTF")
+        # W per vertex as COLOR_0 on request; TEXCOORD_0 always (glTF wants set 0 before any other).
+        coloured = self.client.export_obscurances(SCENE, atlas_uvs=False, gltf=True, vertex_colors=True)
+        json_length = int.from_bytes(coloured.glb[12:16], "little")
+        document = json.loads(coloured.glb[20:20 + json_length])
+        for mesh in document["meshes"]:
+            for primitive in mesh["primitives"]:
+                self.assertIn("COLOR_0", primitive["attributes"])
+                self.assertIn("TEXCOORD_0", primitive["attributes"])
+        with self.assertRaises(visq.VisqError) as refused:
+            self.client.export_obscurances(SCENE, atlas_uvs=True, gltf=False, vertex_colors=True)
+        self.assertIn("want_vertex_colors", str(refused.exception))
 
     def test_obscurance_errors_per_element(self):
         bake = self.client.compute_obscurances(SCENE, 0.5, resolution=32, directions=8, want_averages=True,
