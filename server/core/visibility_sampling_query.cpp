@@ -1025,11 +1025,38 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   return answer;
 }
 
+AccuracyStatement PatchVisibilityStatement(const sampling::ErrorBound& error, VisibilityMethod method,
+                                           const sampling::PatchVisibilityRequest& request, int source_samples) {
+  // The statement of the source's sampling (or its exact integral), then
+  // what every method answers: the receiver grid's mean, not the continuous
+  // patch-to-patch fraction, whose receiver integral is not bounded.
+  sampling::ErrorBound source_only = error;
+  source_only.has_per_texel = false;  // one number, the grid mean, is stated
+  AccuracyStatement out = SampledVisibilityStatement(source_only, method, request.lookup, source_samples);
+  const std::string grid = absl::StrCat(request.receiver_columns, " x ", request.receiver_rows);
+  const std::string quantity = absl::StrCat(
+      "mutual_visible_fraction is the mean, over the receiver grid's ", grid,
+      " cell centres, of the fraction of the source visible from each (every method answers this grid mean); ");
+  const std::string receiver_words =
+      "; the bound is on that grid mean only: the continuous patch-to-patch fraction differs from it by the "
+      "receiver grid's quadrature error, which is not bounded (a regular grid can alias with regular occluders; "
+      "compare a finer receiver grid)";
+  if (method == VisibilityMethod::kPluckerExact) {
+    out.note = absl::StrCat(quantity, "each point's fraction is exact (Plücker method: every side decision is an exact "
+                            "predicate; only the areas are double-precision sums), so error_bound is 0",
+                            receiver_words);
+    return out;
+  }
+  out.note = absl::StrCat(quantity, "each point's fraction is estimated from the source grid's ", source_samples,
+                          " cell centres: ", out.note, receiver_words);
+  return out;
+}
+
 StatusOr<PatchVisibilityAnswer> RunPatchVisibility(Engine& engine, const PatchVisibilityQuery& query) {
   VISQ_RETURN_IF_ERROR(ValidatePatchVisibilityQuery(query));
   VISQ_ASSIGN_OR_RETURN(PatchVisibilityAnswer answer, PatchVisibilityUnstated(engine, query));
-  answer.accuracy = SampledVisibilityStatement(answer.result.error, answer.method, query.request.lookup,
-                                               static_cast<int>(answer.result.source_visible.size()));
+  answer.accuracy = PatchVisibilityStatement(answer.result.error, answer.method, query.request,
+                                             static_cast<int>(answer.result.source_visible.size()));
   if (answer.plan) AddChosenPlan(*answer.plan, answer.accuracy);
   return answer;
 }

@@ -32,6 +32,12 @@ std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode l
 AccuracyStatement SampledVisibilityStatement(const sampling::ErrorBound& error, VisibilityMethod method,
                                              sampling::LookupMode lookup, int samples);
 
+// PatchVisibility's statement: SampledVisibilityStatement's for the source,
+// with what every method answers said exactly (the mean over the receiver
+// grid's cell centres, not the continuous patch-to-patch fraction).
+AccuracyStatement PatchVisibilityStatement(const sampling::ErrorBound& error, VisibilityMethod method,
+                                           const sampling::PatchVisibilityRequest& request, int source_samples);
+
 // Beyond this many bits (texels x samples) a request is RESOURCE_EXHAUSTED:
 // 4 Gbit, e.g. 2048 x 2048 texels x 1024 samples.
 inline constexpr uint64_t kMaxHiddenSampleBits = 1ull << 32;
