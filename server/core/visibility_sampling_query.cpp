@@ -9,6 +9,7 @@
 #include <span>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_replace.h"
 #include "common/check.h"
 #include "common/job_timing.h"
 #include "core/accuracy_statement.h"
@@ -1047,8 +1048,13 @@ AccuracyStatement PatchVisibilityStatement(const sampling::ErrorBound& error, Vi
                             receiver_words);
     return out;
   }
+  // The source statement's "true (continuous) fraction" is, here, each
+  // point's exact fraction averaged over the grid.
   out.note = absl::StrCat(quantity, "each point's fraction is estimated from the source grid's ", source_samples,
-                          " cell centres: ", out.note, receiver_words);
+                          " cell centres: ",
+                          absl::StrReplaceAll(out.note, {{"the true (continuous) fraction",
+                                                          "the grid mean of the points' exact fractions"}}),
+                          receiver_words);
   return out;
 }
 

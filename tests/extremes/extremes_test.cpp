@@ -596,6 +596,7 @@ TEST_F(ExtremesTest, PatchVisibilityEveryMethodAnswersTheReceiverGridMeanAndSays
     EXPECT_NE(answer->accuracy().note().find("mean, over the receiver grid's 3 x 1 cell centres"), std::string::npos)
         << m.name << ": " << answer->accuracy().note();
     EXPECT_NE(answer->accuracy().note().find("not bounded"), std::string::npos) << answer->accuracy().note();
+    EXPECT_EQ(answer->accuracy().note().find("continuous) fraction"), std::string::npos) << answer->accuracy().note();
     if (m.method == v1::PLUCKER_EXACT) {
       EXPECT_EQ(answer->accuracy().error_bound(), 0.0);
     }
