@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstring>
 #include <numbers>
+#include <unordered_map>
 
 #include "common/random.h"
 
@@ -179,6 +180,45 @@ ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& 
   out.vertex.assign(scene.positions.size(), 1.0f);
   for (size_t v = 0; v < sum.size(); ++v)
     if (area[v] > 0) out.vertex[v] = static_cast<float>(std::min(1.0, sum[v] / area[v]));
+  return out;
+}
+
+ObscuranceBounds ObscuranceBoundsOfListed(const Scene& scene, const ObscuranceResult& result, double confidence,
+                                          std::span<const uint32_t> texels, std::span<const uint32_t> triangles,
+                                          std::span<const uint32_t> vertices) {
+  auto texel_bound = [&](uint32_t i) {
+    const bool own = i < result.estimated.size() && result.estimated[i] && i < result.texel_effective_samples.size();
+    return own ? static_cast<float>(ObscuranceHalfWidth(result.texel_effective_samples[i], confidence)) : 1.0f;
+  };
+  auto triangle_bound = [&](uint32_t t) {
+    return t < result.triangle_effective_samples.size()
+               ? static_cast<float>(ObscuranceHalfWidth(result.triangle_effective_samples[t], confidence))
+               : 1.0f;
+  };
+  ObscuranceBounds out;
+  out.texel.reserve(texels.size());
+  for (uint32_t i : texels) out.texel.push_back(texel_bound(i));
+  out.triangle.reserve(triangles.size());
+  for (uint32_t t : triangles) out.triangle.push_back(triangle_bound(t));
+  // A vertex: the area-weighted mean of its triangles' half-widths.
+  std::unordered_map<uint32_t, size_t> slot;
+  slot.reserve(vertices.size());
+  for (size_t k = 0; k < vertices.size(); ++k) slot.emplace(vertices[k], k);
+  std::vector<double> sum(vertices.size(), 0.0), area(vertices.size(), 0.0);
+  for (uint32_t t = 0; t < scene.TriangleCount() && !slot.empty(); ++t) {
+    double a = -1.0;  // computed for the triangles that touch a listed vertex only
+    for (int c = 0; c < 3; ++c) {
+      const auto it = slot.find(scene.triangles[t][c]);
+      if (it == slot.end()) continue;
+      if (a < 0.0)
+        a = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0), scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+      sum[it->second] += a * triangle_bound(t);
+      area[it->second] += a;
+    }
+  }
+  out.vertex.assign(vertices.size(), 1.0f);
+  for (size_t k = 0; k < vertices.size(); ++k)
+    if (area[k] > 0) out.vertex[k] = static_cast<float>(std::min(1.0, sum[k] / area[k]));
   return out;
 }
 

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -116,6 +117,14 @@ struct ObscuranceBounds {
 };
 double ObscuranceHalfWidth(double effective_samples, double confidence);
 ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& result, double confidence);
+
+// ObscuranceBoundsOf's half-widths for the listed elements only, each
+// vector in the order of its list (an update's changed texels, triangles
+// and vertices): a vertex's from all of its triangles, listed or not. One
+// pass over the triangles, none over the atlas.
+ObscuranceBounds ObscuranceBoundsOfListed(const Scene& scene, const ObscuranceResult& result, double confidence,
+                                          std::span<const uint32_t> texels, std::span<const uint32_t> triangles,
+                                          std::span<const uint32_t> vertices);
 
 // One bound for a whole answer that holds for what it claims. An element
 // whose estimate rests on at least kCoveredShare of the nominal count (the

@@ -158,14 +158,23 @@ AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
 AccuracyStatement ObscuranceUpdateStatement(const ObscuranceUpdateAnswer& answer) {
   AccuracyStatement out;
   out.method = "obscurance-raycast-update";
-  out.confidence = 0.95;
+  out.confidence = kUpdateConfidence;
   out.error_bound = ObscuranceErrorEstimate(std::max<uint32_t>(answer.rays_per_patch, 1), out.confidence);
-  out.note = absl::StrCat("recomputed patches: Hoeffding half-width at 95 % for ", answer.rays_per_patch,
-                          " independent rays per patch (values in [0, 1]; each cosine-distributed within its own of N "
-                          "equal cells of the directions, from a point uniform on the patch); triangles touching a "
-                          "changed texel by rays of their own (as many per texel of their area, 1 to 16 patches' worth); "
-                          "the other patches keep the bake's values (",
-                          answer.directions, " directions) bit for bit");
+  uint64_t texels_without = 0, triangles_without = 0;
+  for (float e : answer.bounds.texel) texels_without += e >= 1.0f;
+  for (float e : answer.bounds.triangle) triangles_without += e >= 1.0f;
+  out.parameters["texels_without_samples"] = static_cast<double>(texels_without);
+  out.parameters["triangles_without_samples"] = static_cast<double>(triangles_without);
+  out.note = absl::StrCat(
+      "recomputed patches: Hoeffding half-width at 95 % for ", answer.rays_per_patch,
+      " independent rays per patch (values in [0, 1]; each cosine-distributed within its own of N equal cells of the "
+      "directions, from a point uniform on the patch); triangles touching a changed texel by rays of their own (as "
+      "many per texel of their area, 1 to 16 patches' worth); each listed element's own half-width in w_error, "
+      "triangle_w_error and vertex_w_error (a vertex's the area-weighted mean of its triangles', the bake's for those "
+      "the update did not trace); 1 where W rests on no sample of its own: ",
+      texels_without, " changed texels refilled from their neighbours, ", triangles_without,
+      " triangles no ray reached; the other patches keep the bake's values (", answer.directions,
+      " directions) bit for bit");
   return out;
 }
 
@@ -591,6 +600,9 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
   answer.height = result.height;
   answer.mean_samples_per_patch = result.mean_samples_per_patch;
   answer.directions = result.directions;
+  answer.bounds = obscurance::ObscuranceBoundsOfListed(state->updater->scene(), result, kUpdateConfidence,
+                                                       answer.update.texels, answer.update.triangles,
+                                                       answer.update.vertices);
   if (query.want_full_w) answer.full_w = result.w;
   return answer;
 }

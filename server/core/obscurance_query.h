@@ -148,12 +148,18 @@ struct ObscuranceUpdateAnswer {
   obscurance::ObscuranceUpdate update;
   uint32_t rays_per_patch = 0;
   uint32_t width = 0, height = 0;
+  // Each listed element's own half-width at kUpdateConfidence, in the
+  // order of update.texels, update.triangles and update.vertices
+  // (obscurance::ObscuranceBoundsOfListed): 1 where W rests on no sample of
+  // its own (a texel refilled from its neighbours, a triangle no ray reached).
+  obscurance::ObscuranceBounds bounds;
   std::vector<glm::vec3> full_w;  // want_full_w
   double mean_samples_per_patch = 0;  // of the bake
   uint64_t directions = 0;            // of the bake
   double compute_ms = 0;
 };
 inline constexpr size_t kMaxFullUpdateFloats = size_t{1} << 22;
+inline constexpr double kUpdateConfidence = 0.95;
 
 // The update's: recomputed patches by their rays; the others keep the
 // bake's values bit for bit.

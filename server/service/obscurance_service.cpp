@@ -287,6 +287,9 @@ void ToProto(const core::ObscuranceUpdateAnswer& a, v1::UpdateObscurancesRespons
   out->set_width(a.width);
   out->set_height(a.height);
   for (const glm::vec3& v : a.full_w) AddVec3(v, out->mutable_full_w());
+  out->mutable_w_error()->Add(a.bounds.texel.begin(), a.bounds.texel.end());
+  out->mutable_triangle_w_error()->Add(a.bounds.triangle.begin(), a.bounds.triangle.end());
+  out->mutable_vertex_w_error()->Add(a.bounds.vertex.begin(), a.bounds.vertex.end());
   service::ToProto(core::ObscuranceUpdateStatement(a), out->mutable_accuracy());
 }
 

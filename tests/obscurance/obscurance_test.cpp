@@ -1224,6 +1224,24 @@ TEST(ObscuranceBake, TriangleAndVertexWHoldTheirBoundWhenTexelsAreLargerThanTria
     const Baked baked = Bake(scene, atlas, params);
     const double stated = ObscuranceHalfWidth(directions, confidence);
     const ObscuranceBounds bounds = ObscuranceBoundsOf(scene, baked.result, confidence);
+    {
+      // An update's listed elements get the same half-widths as the whole
+      // answer's (ObscuranceBoundsOfListed, one pass over the triangles).
+      std::vector<uint32_t> some_texels, some_triangles, some_vertices;
+      for (uint32_t i = 3; i < bounds.texel.size(); i += 7) some_texels.push_back(i);
+      for (uint32_t t = 1; t < bounds.triangle.size(); t += 5) some_triangles.push_back(t);
+      for (uint32_t v = 2; v < bounds.vertex.size(); v += 3) some_vertices.push_back(v);
+      const ObscuranceBounds listed =
+          ObscuranceBoundsOfListed(scene, baked.result, confidence, some_texels, some_triangles, some_vertices);
+      ASSERT_EQ(listed.texel.size(), some_texels.size());
+      ASSERT_EQ(listed.triangle.size(), some_triangles.size());
+      ASSERT_EQ(listed.vertex.size(), some_vertices.size());
+      for (size_t k = 0; k < some_texels.size(); ++k) EXPECT_EQ(listed.texel[k], bounds.texel[some_texels[k]]);
+      for (size_t k = 0; k < some_triangles.size(); ++k)
+        EXPECT_EQ(listed.triangle[k], bounds.triangle[some_triangles[k]]);
+      for (size_t k = 0; k < some_vertices.size(); ++k)
+        EXPECT_FLOAT_EQ(listed.vertex[k], bounds.vertex[some_vertices[k]]);
+    }
     std::vector<glm::vec3> texels_mean(scene.TriangleCount());
     for (uint32_t t = 0; t < scene.TriangleCount(); ++t) texels_mean[t] = TriangleAverage(atlas, baked.result, t);
     const Coverage own = CoverageWithin(baked.result.triangle_w, reference, triangles, stated, &bounds.triangle);

@@ -218,6 +218,12 @@ class ObscuranceUpdate:
     w: np.ndarray                 # (len(texels), 3)
     full_w: Optional[np.ndarray]  # (height, width, 3), want_full_w
     response: Any
+    # Each changed element's own half-width at response.accuracy.confidence
+    # (1 where its W rests on no sample of its own): per texel of `texels`,
+    # per response.triangles, per response.vertices.
+    w_error: Optional[np.ndarray] = None
+    triangle_w_error: Optional[np.ndarray] = None
+    vertex_w_error: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -953,7 +959,9 @@ class Client:
         full = _array(r.full_w, np.float32)
         return ObscuranceUpdate(texels=_array(r.texels, np.uint32), w=_array(r.w, np.float32).reshape(-1, 3),
                                 full_w=full.reshape(r.height, r.width, 3) if want_full_w and full.size else None,
-                                response=r)
+                                response=r, w_error=_array(r.w_error, np.float32),
+                                triangle_w_error=_array(r.triangle_w_error, np.float32),
+                                vertex_w_error=_array(r.vertex_w_error, np.float32))
 
     def obscurance_preview(self, scene, camera_position, camera_forward, camera_up=(0, 1, 0), fov=60.0,
                            width=320, height=240, quantity="w", version=0, timeout=_UNSET, cancel=None) -> ObscurancePreview:
