@@ -158,20 +158,36 @@ double ObscuranceHalfWidth(double effective_samples, double confidence) {
   return std::min(1.0, std::sqrt(std::log(2.0 / (1.0 - confidence)) / (2.0 * effective_samples)));
 }
 
+namespace {
+
+// One element's own half-width: 1 (W's whole range) without an estimate of
+// its own.
+float TexelHalfWidth(const ObscuranceResult& result, size_t texel, double confidence) {
+  const bool own = texel < result.estimated.size() && result.estimated[texel] &&
+                   texel < result.texel_effective_samples.size();
+  return own ? static_cast<float>(ObscuranceHalfWidth(result.texel_effective_samples[texel], confidence)) : 1.0f;
+}
+float TriangleHalfWidth(const ObscuranceResult& result, size_t triangle, double confidence) {
+  return triangle < result.triangle_effective_samples.size()
+             ? static_cast<float>(ObscuranceHalfWidth(result.triangle_effective_samples[triangle], confidence))
+             : 1.0f;
+}
+double TriangleArea(const Scene& scene, uint32_t t) {
+  return 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0), scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+}
+
+}  // namespace
+
 ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& result, double confidence) {
   ObscuranceBounds out;
-  out.texel.assign(result.w.size(), 1.0f);
-  for (size_t i = 0; i < out.texel.size(); ++i)
-    if (i < result.estimated.size() && result.estimated[i] && i < result.texel_effective_samples.size())
-      out.texel[i] = static_cast<float>(ObscuranceHalfWidth(result.texel_effective_samples[i], confidence));
-  out.triangle.assign(scene.TriangleCount(), 1.0f);
-  for (size_t t = 0; t < out.triangle.size() && t < result.triangle_effective_samples.size(); ++t)
-    out.triangle[t] = static_cast<float>(ObscuranceHalfWidth(result.triangle_effective_samples[t], confidence));
+  out.texel.resize(result.w.size());
+  for (size_t i = 0; i < out.texel.size(); ++i) out.texel[i] = TexelHalfWidth(result, i, confidence);
+  out.triangle.resize(scene.TriangleCount());
+  for (size_t t = 0; t < out.triangle.size(); ++t) out.triangle[t] = TriangleHalfWidth(result, t, confidence);
   // A vertex: the area-weighted mean of its triangles' half-widths.
   std::vector<double> sum(scene.positions.size(), 0.0), area(scene.positions.size(), 0.0);
   for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
-    const double a = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0),
-                                                  scene.Vertex(t, 2) - scene.Vertex(t, 0)));
+    const double a = TriangleArea(scene, t);
     for (int c = 0; c < 3; ++c) {
       sum[scene.triangles[t][c]] += a * out.triangle[t];
       area[scene.triangles[t][c]] += a;
@@ -186,33 +202,22 @@ ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& 
 ObscuranceBounds ObscuranceBoundsOfListed(const Scene& scene, const ObscuranceResult& result, double confidence,
                                           std::span<const uint32_t> texels, std::span<const uint32_t> triangles,
                                           std::span<const uint32_t> vertices) {
-  auto texel_bound = [&](uint32_t i) {
-    const bool own = i < result.estimated.size() && result.estimated[i] && i < result.texel_effective_samples.size();
-    return own ? static_cast<float>(ObscuranceHalfWidth(result.texel_effective_samples[i], confidence)) : 1.0f;
-  };
-  auto triangle_bound = [&](uint32_t t) {
-    return t < result.triangle_effective_samples.size()
-               ? static_cast<float>(ObscuranceHalfWidth(result.triangle_effective_samples[t], confidence))
-               : 1.0f;
-  };
   ObscuranceBounds out;
   out.texel.reserve(texels.size());
-  for (uint32_t i : texels) out.texel.push_back(texel_bound(i));
+  for (uint32_t i : texels) out.texel.push_back(TexelHalfWidth(result, i, confidence));
   out.triangle.reserve(triangles.size());
-  for (uint32_t t : triangles) out.triangle.push_back(triangle_bound(t));
-  // A vertex: the area-weighted mean of its triangles' half-widths.
+  for (uint32_t t : triangles) out.triangle.push_back(TriangleHalfWidth(result, t, confidence));
+  // A vertex, as in ObscuranceBoundsOf, from the triangles that touch it.
   std::unordered_map<uint32_t, size_t> slot;
   slot.reserve(vertices.size());
   for (size_t k = 0; k < vertices.size(); ++k) slot.emplace(vertices[k], k);
   std::vector<double> sum(vertices.size(), 0.0), area(vertices.size(), 0.0);
   for (uint32_t t = 0; t < scene.TriangleCount() && !slot.empty(); ++t) {
-    double a = -1.0;  // computed for the triangles that touch a listed vertex only
     for (int c = 0; c < 3; ++c) {
       const auto it = slot.find(scene.triangles[t][c]);
       if (it == slot.end()) continue;
-      if (a < 0.0)
-        a = 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0), scene.Vertex(t, 2) - scene.Vertex(t, 0)));
-      sum[it->second] += a * triangle_bound(t);
+      const double a = TriangleArea(scene, t);
+      sum[it->second] += a * TriangleHalfWidth(result, t, confidence);
       area[it->second] += a;
     }
   }
