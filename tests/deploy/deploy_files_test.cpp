@@ -340,6 +340,37 @@ TEST(Kubernetes, TheFarmBakeIsAnIndexedJobAndAMergeOverTheSameShards) {
   }
 }
 
+// GPU nodes are usually tainted (nvidia.com/gpu:NoSchedule) so that only
+// GPU work lands there: every pod that asks for a GPU (the replicas, the
+// farm bake's pods) tolerates the taint and selects GPU nodes by a label; a
+// pod that asks for none (the router, the merge) neither tolerates it nor
+// selects GPU nodes, so it does not take a GPU node's room.
+TEST(Kubernetes, EveryGpuPodToleratesTheGpuTaintAndSelectsGpuNodes) {
+  int gpu_pods = 0;
+  for (const auto& [name, pod] : PodSpecs()) {
+    bool wants_gpu = false;
+    for (const auto& c : ContainersOf(pod))
+      wants_gpu |= c["resources"]["limits"]["nvidia.com/gpu"] && c["resources"]["limits"]["nvidia.com/gpu"].as<int>() > 0;
+    bool tolerates = false;
+    for (const auto& t : pod["tolerations"])
+      tolerates |= t["key"].as<std::string>() == "nvidia.com/gpu" && t["operator"].as<std::string>() == "Exists" &&
+                   t["effect"].as<std::string>() == "NoSchedule";
+    const YAML::Node selector = pod["nodeSelector"];
+    const bool selects_gpu = selector && selector["nvidia.com/gpu.present"] &&
+                             selector["nvidia.com/gpu.present"].as<std::string>() == "true";
+    if (!wants_gpu) {
+      EXPECT_FALSE(tolerates) << name << " asks for no GPU but tolerates the GPU taint";
+      EXPECT_FALSE(selects_gpu) << name << " asks for no GPU but selects GPU nodes";
+      continue;
+    }
+    ++gpu_pods;
+    EXPECT_TRUE(tolerates) << name << ": no toleration {nvidia.com/gpu, Exists, NoSchedule}";
+    EXPECT_TRUE(selects_gpu) << name << ": no nodeSelector nvidia.com/gpu.present: \"true\"";
+  }
+  EXPECT_GE(gpu_pods, 2) << "the replicas and the farm bake's pods";
+  EXPECT_TRUE(FindManifest("Job", "visq-bake-merge")) << "the merge Job, which needs no GPU, is checked above";
+}
+
 // Replicas on several nodes share one repository, so every server that
 // opens it (the replicas, the farm bake's pods) reads one PostgreSQL catalog
 // from one Secret, and each replica is named by its pod (a start clears only
