@@ -371,6 +371,157 @@ TEST(Kubernetes, EveryGpuPodToleratesTheGpuTaintAndSelectsGpuNodes) {
   EXPECT_TRUE(FindManifest("Job", "visq-bake-merge")) << "the merge Job, which needs no GPU, is checked above";
 }
 
+// deploy/k8s/optional/: objects a cluster may lack the means for (an
+// ingress controller, Prometheus Operator's CRDs), so kept out of
+// `kubectl apply -f deploy/k8s/` (which does not recurse into folders).
+const fs::path kOptional = kSource / "deploy/k8s/optional";
+
+std::vector<YAML::Node> OptionalManifests(const std::string& kind) {
+  std::vector<YAML::Node> out;
+  for (const auto& entry : fs::directory_iterator(kOptional))
+    if (entry.is_regular_file() && entry.path().extension() == ".yaml")
+      for (const YAML::Node& doc : YAML::LoadAllFromFile(entry.path().string()))
+        if (doc && doc.IsMap() && doc["kind"].as<std::string>() == kind) out.push_back(doc);
+  return out;
+}
+
+bool LabelsMatch(const YAML::Node& match_labels, const YAML::Node& labels) {
+  if (!match_labels || match_labels.size() == 0) return false;
+  for (const auto& label : match_labels) {
+    const std::string key = label.first.as<std::string>();
+    if (!labels[key] || labels[key].as<std::string>() != label.second.as<std::string>()) return false;
+  }
+  return true;
+}
+
+// The ServiceMonitor selects a Service by its labels and scrapes the port
+// the endpoint names: some Service must carry those labels and that port,
+// whose target is the visq pods' `metrics` container port (9464, where
+// --metrics-address listens), and the Service must select those pods.
+TEST(Kubernetes, TheServiceMonitorScrapesTheReplicasMetricsPortThroughAService) {
+  const auto monitors = OptionalManifests("ServiceMonitor");
+  ASSERT_EQ(monitors.size(), 1u);
+  const YAML::Node monitor = monitors[0];
+  EXPECT_EQ(monitor["apiVersion"].as<std::string>(), "monitoring.coreos.com/v1");
+  EXPECT_EQ(monitor["metadata"]["namespace"].as<std::string>(), "visq");
+  const YAML::Node replicas = FindManifest("Deployment", "visq");
+  ASSERT_TRUE(replicas);
+  const YAML::Node pod_labels = replicas["spec"]["template"]["metadata"]["labels"];
+  int metrics_port = 0;
+  for (const auto& port : replicas["spec"]["template"]["spec"]["containers"][0]["ports"])
+    if (port["name"].as<std::string>() == "metrics") metrics_port = port["containerPort"].as<int>();
+  ASSERT_EQ(metrics_port, 9464);
+  EXPECT_NE(YAML::Dump(replicas["spec"]["template"]["spec"]["containers"][0]["args"]).find("0.0.0.0:9464"),
+            std::string::npos);
+  ASSERT_EQ(monitor["spec"]["endpoints"].size(), 1u);
+  const YAML::Node endpoint = monitor["spec"]["endpoints"][0];
+  const std::string port_name = endpoint["port"].as<std::string>();
+  EXPECT_EQ(endpoint["path"].as<std::string>(), "/metrics");
+  const auto manifests = Manifests();
+  int scraped = 0;
+  for (auto [it, end] = manifests.equal_range("Service"); it != end; ++it) {
+    const YAML::Node service = it->second;
+    if (!LabelsMatch(monitor["spec"]["selector"]["matchLabels"], service["metadata"]["labels"])) continue;
+    const std::string name = service["metadata"]["name"].as<std::string>();
+    EXPECT_TRUE(LabelsMatch(service["spec"]["selector"], pod_labels)) << name << " does not select the replicas";
+    bool has_port = false;
+    for (const auto& port : service["spec"]["ports"]) {
+      if (port["name"].as<std::string>() != port_name) continue;
+      has_port = true;
+      const std::string target = port["targetPort"].as<std::string>();
+      EXPECT_TRUE(target == "metrics" || target == std::to_string(metrics_port)) << name << " targets " << target;
+    }
+    EXPECT_TRUE(has_port) << name << " has no port named " << port_name;
+    ++scraped;
+  }
+  EXPECT_EQ(scraped, 1) << "the ServiceMonitor must select exactly one Service (the headless visq-replicas)";
+}
+
+// The Ingress carries gRPC over TLS to the router's Service, on the port
+// the router listens on, so the scene hashing stays in the path.
+TEST(Kubernetes, TheIngressCarriesGrpcOverTlsToTheVisqServicesGrpcPort) {
+  const auto ingresses = OptionalManifests("Ingress");
+  ASSERT_EQ(ingresses.size(), 1u);
+  const YAML::Node ingress = ingresses[0];
+  EXPECT_EQ(ingress["apiVersion"].as<std::string>(), "networking.k8s.io/v1");
+  EXPECT_EQ(ingress["metadata"]["annotations"]["nginx.ingress.kubernetes.io/backend-protocol"].as<std::string>(),
+            "GRPC");
+  ASSERT_EQ(ingress["spec"]["tls"].size(), 1u);
+  const YAML::Node tls = ingress["spec"]["tls"][0];
+  EXPECT_TRUE(tls["secretName"].IsScalar());
+  std::set<std::string> tls_hosts;
+  for (const auto& host : tls["hosts"]) tls_hosts.insert(host.as<std::string>());
+  const YAML::Node service = FindManifest("Service", "visq");
+  ASSERT_TRUE(service);
+  int backends = 0;
+  for (const auto& rule : ingress["spec"]["rules"]) {
+    ASSERT_TRUE(rule["host"]) << "a rule without a host has no certificate";
+    EXPECT_TRUE(tls_hosts.count(rule["host"].as<std::string>())) << rule["host"] << " is not in tls.hosts";
+    for (const auto& path : rule["http"]["paths"]) {
+      const YAML::Node backend = path["backend"]["service"];
+      EXPECT_EQ(backend["name"].as<std::string>(), "visq");
+      bool grpc_port = false;
+      for (const auto& port : service["spec"]["ports"]) {
+        const bool named = backend["port"]["name"] && backend["port"]["name"].as<std::string>() == port["name"].as<std::string>();
+        const bool numbered = backend["port"]["number"] && backend["port"]["number"].as<int>() == port["port"].as<int>();
+        if (named || numbered) grpc_port = port["name"].as<std::string>() == "grpc";
+      }
+      EXPECT_TRUE(grpc_port) << "the backend is not the visq Service's grpc port";
+      ++backends;
+    }
+  }
+  EXPECT_GE(backends, 1);
+}
+
+// `kubectl apply -f deploy/k8s/` applies the top folder's files only: none
+// of them may need what a cluster may lack (an ingress controller, the
+// Operator's CRDs), and the optional objects live only below it.
+TEST(Kubernetes, TheOptionalManifestsAreNotAppliedByDefault) {
+  ASSERT_TRUE(fs::is_directory(kOptional));
+  EXPECT_EQ(OptionalManifests("Ingress").size() + OptionalManifests("ServiceMonitor").size(), 2u);
+  int files = 0;
+  for (const auto& entry : fs::directory_iterator(kSource / "deploy/k8s")) {
+    if (!entry.is_regular_file() || entry.path().extension() != ".yaml") continue;
+    ++files;
+    for (const YAML::Node& doc : YAML::LoadAllFromFile(entry.path().string())) {
+      if (!doc || !doc.IsMap()) continue;
+      const std::string kind = doc["kind"].as<std::string>();
+      EXPECT_TRUE(kind != "Ingress" && kind != "ServiceMonitor" && kind != "Job")
+          << entry.path() << " holds a " << kind << ", which is optional";
+      EXPECT_EQ(doc["apiVersion"].as<std::string>().find("monitoring.coreos.com"), std::string::npos) << entry.path();
+    }
+  }
+  EXPECT_GE(files, 5);
+  const std::string guide = Read(kSource / "docs/deploy.md");
+  for (const char* step : {"kubectl apply -f deploy/k8s/optional/ingress.yaml",
+                           "deploy/k8s/optional/servicemonitor.yaml"})
+    EXPECT_NE(guide.find(step), std::string::npos) << "docs/deploy.md does not say: " << step;
+}
+
+// What the manifests cannot know, the deploy guide says: that the image is
+// built and pushed to the studio's registry and where its name is set, that
+// the repository's claim needs a ReadWriteMany class (and what to do
+// without one), and how machines outside the cluster reach it.
+TEST(Kubernetes, TheDeployGuideSaysHowToPushTheImageAndThatTheRepositoryNeedsReadWriteMany) {
+  const std::string guide = Read(kSource / "docs/deploy.md");
+  for (const char* needed :
+       {"docker build -f deploy/Dockerfile -t REGISTRY/visq:0.1.0", "docker push REGISTRY/visq:0.1.0",
+        "kubectl -n visq set image deployment/visq visq=REGISTRY/visq:0.1.0", "images:",
+        "deploy/k8s/farm-bake/obscurance-bake-job.yaml", "ReadWriteMany", "ReadWriteOnce", "Pending",
+        "volumeClaimTemplates", "initContainer", "git lfs", "SQLite", "backend-protocol: GRPC",
+        "LoadBalancer", "VISQ_TLS_CERT", "nvidia.com/gpu.present"})
+    EXPECT_NE(guide.find(needed), std::string::npos) << "docs/deploy.md does not say: " << needed;
+  // Every manifest naming the image is named where the guide says to set it.
+  int naming = 0;
+  for (const auto& entry : fs::recursive_directory_iterator(kSource / "deploy/k8s")) {
+    if (!entry.is_regular_file() || Read(entry.path()).find("image: visq:") == std::string::npos) continue;
+    ++naming;
+    const std::string relative = fs::relative(entry.path(), kSource).generic_string();
+    EXPECT_NE(guide.find(relative), std::string::npos) << "docs/deploy.md does not name " << relative;
+  }
+  EXPECT_GE(naming, 2);
+}
+
 // Replicas on several nodes share one repository, so every server that
 // opens it (the replicas, the farm bake's pods) reads one PostgreSQL catalog
 // from one Secret, and each replica is named by its pod (a start clears only
