@@ -1,9 +1,11 @@
 #include "service/log_format.h"
 
 #include <chrono>
+#include <cmath>
 #include <ctime>
 #include <memory>
 
+#include <absl/strings/str_cat.h>
 #include <absl/strings/str_format.h>
 #include <google/protobuf/stubs/logging.h>
 #include <grpc/support/log.h>
@@ -12,6 +14,9 @@
 
 namespace visq::service {
 namespace {
+
+// The fields of the innermost ScopedLogFields alive on this thread.
+thread_local const std::vector<LogField>* current_fields = nullptr;
 
 bool NeedsEscape(unsigned char c) { return c < 0x20 || c == 0x7f || c == '\\'; }
 
@@ -52,11 +57,14 @@ class JsonFormatter final : public spdlog::formatter {
     const spdlog::string_view_t level = spdlog::level::to_string_view(msg.level);
     const std::string logger = msg.logger_name.size() ? std::string(msg.logger_name.data(), msg.logger_name.size())
                                                       : std::string("visq");
-    const std::string line = absl::StrFormat(
-        "{\"time\":\"%04d-%02d-%02dT%02d:%02d:%02d.%03dZ\",\"level\":\"%s\",\"logger\":\"%s\",\"message\":\"%s\"}\n",
+    std::string line = absl::StrFormat(
+        "{\"time\":\"%04d-%02d-%02dT%02d:%02d:%02d.%03dZ\",\"level\":\"%s\",\"logger\":\"%s\",\"message\":\"%s\"",
         utc.tm_year + 1900, utc.tm_mon + 1, utc.tm_mday, utc.tm_hour, utc.tm_min, utc.tm_sec,
         static_cast<int>(millis), std::string_view(level.data(), level.size()), EscapeForJson(logger),
         EscapeForJson(std::string_view(msg.payload.data(), msg.payload.size())));
+    if (current_fields != nullptr)
+      for (const LogField& field : *current_fields) absl::StrAppend(&line, ",\"", EscapeForJson(field.name), "\":", field.json);
+    line += "}\n";
     dest.append(line.data(), line.data() + line.size());
   }
   std::unique_ptr<spdlog::formatter> clone() const override { return std::make_unique<JsonFormatter>(); }
@@ -133,6 +141,20 @@ void RouteLibraryLogsToSpdlog() {
     spdlog::log(spd, "grpc {}:{}: {}", args->file, args->line, args->message);
   });
 }
+
+LogField LogField::String(std::string name, std::string_view value) {
+  return {std::move(name), absl::StrCat("\"", EscapeForJson(value), "\"")};
+}
+
+LogField LogField::Number(std::string name, double value) {
+  return {std::move(name), std::isfinite(value) ? absl::StrFormat("%.3f", value) : std::string("null")};
+}
+
+ScopedLogFields::ScopedLogFields(std::vector<LogField> fields) : fields_(std::move(fields)), outer_(current_fields) {
+  current_fields = &fields_;
+}
+
+ScopedLogFields::~ScopedLogFields() { current_fields = outer_; }
 
 void UseJsonLogFormat() { spdlog::set_formatter(std::make_unique<JsonFormatter>()); }
 

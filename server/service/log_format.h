@@ -5,6 +5,7 @@
 
 #include <string>
 #include <string_view>
+#include <vector>
 
 namespace visq::service {
 
@@ -23,8 +24,38 @@ std::string EscapeForJson(std::string_view text);
 
 // One JSON object a line, for log collectors:
 // {"time":"2026-01-02T03:04:05.678Z","level":"info","logger":"visq","message":"..."}
-// with the time in UTC (RFC 3339).
+// with the time in UTC (RFC 3339), and the ScopedLogFields of the logging
+// thread after "message".
 void UseJsonLogFormat();
+
+// A member of the JSON format's lines beside "message": its name and its
+// value written as JSON (a quoted, escaped string, or a number).
+struct LogField {
+  std::string name;
+  std::string json;
+  static LogField String(std::string name, std::string_view value);
+  // A finite number with 3 decimals; null otherwise.
+  static LogField Number(std::string name, double value);
+};
+
+// While it lives, every line the calling thread logs in the JSON format
+// carries `fields` as members of their own after "message", so that a log
+// collector indexes them without parsing the message; the text format
+// leaves them out (its message says the same). spdlog's loggers here are
+// synchronous: a line is formatted on the thread that logs it. An inner
+// scope's fields replace the outer's until it ends. Names must not be
+// time, level, logger or message.
+class ScopedLogFields {
+ public:
+  explicit ScopedLogFields(std::vector<LogField> fields);
+  ~ScopedLogFields();
+  ScopedLogFields(const ScopedLogFields&) = delete;
+  ScopedLogFields& operator=(const ScopedLogFields&) = delete;
+
+ private:
+  std::vector<LogField> fields_;
+  const std::vector<LogField>* outer_;
+};
 
 // Sends what protobuf and gRPC log (to stderr, by default) through spdlog,
 // so that those lines take the chosen format and escaping too.

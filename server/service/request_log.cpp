@@ -30,9 +30,17 @@ double RequestLog::ElapsedMs() const {
   return MillisecondsSince(start_);
 }
 
+std::vector<LogField> RequestLog::Fields() const {
+  return {LogField::String("request_id", id_), LogField::String("method", method_)};
+}
+
 double RequestLog::Done(const Status& status) const {
   const double ms = ElapsedMs();
   if (metrics_ != nullptr && !done_.exchange(true)) metrics_->Record(method_, ms, status.code());
+  std::vector<LogField> fields = Fields();
+  fields.push_back(LogField::String("status", absl::StatusCodeToString(status.code())));
+  fields.push_back(LogField::Number("duration_ms", ms));
+  const ScopedLogFields scoped(std::move(fields));
   if (status.ok())
     spdlog::info("[{} {}] OK in {:.2f} ms", id_, method_, ms);
   else

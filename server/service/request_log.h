@@ -10,6 +10,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/status.h"
+#include "service/log_format.h"
 #include "service/metrics.h"
 
 namespace visq::service {
@@ -24,12 +25,17 @@ class RequestLog {
   RequestLog(const RequestLog&) = delete;
   RequestLog& operator=(const RequestLog&) = delete;
 
+  // In the JSON format the line also carries request_id and method as
+  // fields of their own.
   template <typename... Args>
   void Info(fmt::format_string<Args...> format, Args&&... args) const {
+    const ScopedLogFields fields(Fields());
     spdlog::info("[{} {}] {}", id_, method_, fmt::format(format, std::forward<Args>(args)...));
   }
   // Logs the outcome with the total time and records it in the metrics
-  // (the first call only); returns the time in milliseconds.
+  // (the first call only); returns the time in milliseconds. In the JSON
+  // format the line carries request_id, method, status (the code's name,
+  // "OK" included) and duration_ms as fields of their own.
   double Done(const Status& status) const;
   double ElapsedMs() const;
   const std::string& id() const { return id_; }
@@ -37,6 +43,9 @@ class RequestLog {
   std::string Tag() const { return fmt::format("[{} {}]", id_, method_); }
 
  private:
+  // request_id and method, as every JSON line of the request carries them.
+  std::vector<LogField> Fields() const;
+
   std::string id_;
   const char* method_;
   Metrics* metrics_;

@@ -289,7 +289,7 @@ TEST(JsonLogs, EveryLineIsOneObjectWhateverTheClientSent) {
   std::istringstream in(log);
   static const std::regex rfc3339(R"(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z)");
   int lines = 0;
-  bool hostile_logged = false, protobuf_logged = false;
+  bool hostile_logged = false, protobuf_logged = false, list_ended = false;
   for (std::string line; std::getline(in, line);) {
     ++lines;
     nlohmann::json object;
@@ -306,8 +306,23 @@ TEST(JsonLogs, EveryLineIsOneObjectWhateverTheClientSent) {
     // The name comes back exactly.
     if (object["message"].get<std::string>().find(hostile) != std::string::npos) hostile_logged = true;
     if (object["message"].get<std::string>().find("protobuf") != std::string::npos) protobuf_logged = true;
+    // A call's end carries its id, method, status and duration as fields
+    // of their own, the same as its message says.
+    if (object.contains("status")) {
+      ASSERT_TRUE(object["request_id"].is_string() && object["method"].is_string()) << line;
+      ASSERT_TRUE(object["status"].is_string() && object["duration_ms"].is_number()) << line;
+      std::string tag = "[";
+      tag += object["request_id"].get<std::string>();
+      tag += " ";
+      tag += object["method"].get<std::string>();
+      tag += "] ";
+      tag += object["status"].get<std::string>();
+      EXPECT_EQ(object["message"].get<std::string>().rfind(tag, 0), 0u) << line;
+      list_ended |= object["method"] == "ListScenes" && object["status"] == "OK";
+    }
   }
   EXPECT_GT(lines, 5);
+  EXPECT_TRUE(list_ended) << "no ListScenes line with status OK as a field\n" << log;
   EXPECT_TRUE(hostile_logged) << log;
   EXPECT_TRUE(protobuf_logged) << "protobuf's own line goes through the JSON format\n" << log;
 }
