@@ -33,7 +33,25 @@ fi
 source_dir=$(cd "$(dirname "$0")/../.." && pwd)
 build=$(cd "$1" && pwd)
 cache=${VISQ_CI_CACHE:-/var/cache/visq-ci}
-mirror=${VISQ_DEBIAN_MIRROR:-http://deb.debian.org/debian}
+# The Debian mirror for `suite` from this machine's own apt sources (deb822
+# .sources stanzas and one-line .list entries): the repository names no
+# mirror's host. Empty when the machine has none.
+apt_source_for() {
+  local suite=$1
+  {
+    awk -v suite="$suite" '
+      /^[[:space:]]*$/ { if (uri != "" && found) { print uri; exit } uri = ""; found = 0; next }
+      /^URIs:/ { uri = $2 }
+      /^Suites:/ { for (i = 2; i <= NF; ++i) if ($i == suite) found = 1 }
+      END { if (uri != "" && found) print uri }' /etc/apt/sources.list.d/*.sources 2>/dev/null
+    awk -v suite="$suite" '$1 == "deb" {
+        for (i = 2; i <= NF; ++i) if ($i ~ /^[a-z]+:\/\//) { if ($(i + 1) == suite) print $i; break } }' \
+      /etc/apt/sources.list /etc/apt/sources.list.d/*.list 2>/dev/null
+  } | head -n 1
+}
+mirror=${VISQ_DEBIAN_MIRROR:-$(apt_source_for bookworm)}
+security_mirror=${VISQ_DEBIAN_SECURITY_MIRROR:-$(apt_source_for bookworm-security)}
+security_mirror=${security_mirror:-${mirror%/debian}/debian-security}
 base=debian:bookworm
 image=localhost/visq:ci-test
 scene=cornell_box_visq
@@ -97,6 +115,8 @@ if ! podman image exists "$base"; then
     mkdir -p "$cache" || skip "cannot write the base image cache $cache (set VISQ_CI_CACHE)"
     rootfs="$cache/rootfs.tmp"
     rm -rf "$rootfs"
+    [[ -n $mirror ]] ||
+      skip "no Debian mirror for bookworm in this machine's apt sources to make $base from (set VISQ_DEBIAN_MIRROR)"
     echo "visq: making the $base base image with debootstrap from $mirror (once; cached in $cache)"
     if ! debootstrap --variant=minbase bookworm "$rootfs" "$mirror" > "$tmp/debootstrap.log" 2>&1; then
       rm -rf "$rootfs"
@@ -113,7 +133,7 @@ Components: main
 Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
 
 Types: deb
-URIs: ${mirror%/debian}/debian-security
+URIs: $security_mirror
 Suites: bookworm-security
 Components: main
 Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg

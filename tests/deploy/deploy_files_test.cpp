@@ -97,6 +97,31 @@ TEST(Compose, ServiceHasVolumeGpuAndLoopbackPort) {
   EXPECT_TRUE(visq["deploy"]["resources"]["reservations"]["devices"].IsSequence());
 }
 
+// The repository names no package mirror's or registry's host: a machine
+// takes its mirror from its own apt sources (container_test.sh) and npm its
+// registry from its own configuration. The hosts are split here so that
+// this file does not name them either.
+TEST(Repository, NoFileNamesAPackageMirrorsOrRegistrysHost) {
+  const std::vector<std::string> hosts = {std::string("deb.") + "debian.org", std::string("security.") + "debian.org",
+                                          std::string("registry.") + "npmjs.org", std::string("pypi.") + "org",
+                                          std::string("archive.") + "ubuntu.com"};
+  size_t files = 0;
+  for (const char* top : {"deploy", "tests", "docs", "client", "server", "lib", "gpu", ".ci", "cmake"}) {
+    if (!fs::exists(kSource / top)) continue;
+    for (const auto& entry : fs::recursive_directory_iterator(kSource / top)) {
+      if (!entry.is_regular_file() || entry.file_size() > (4u << 20)) continue;
+      const std::string text = Read(entry.path());
+      ++files;
+      for (const std::string& host : hosts) EXPECT_EQ(text.find(host), std::string::npos) << entry.path() << ": " << host;
+    }
+  }
+  for (const char* file : {"README.md", "visq.sh", "CMakeLists.txt"}) {
+    const std::string text = Read(kSource / file);
+    for (const std::string& host : hosts) EXPECT_EQ(text.find(host), std::string::npos) << file << ": " << host;
+  }
+  EXPECT_GT(files, 100u);
+}
+
 TEST(Kubernetes, ManifestsParseAndHaveApiVersionKindAndName) {
   const auto manifests = Manifests();
   EXPECT_GE(manifests.size(), 5u);
