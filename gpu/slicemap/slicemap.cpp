@@ -564,12 +564,12 @@ SlicemapBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double 
 
 Status ValidateVoxelizeParams(const VoxelizeParams& params, uint32_t triangle_count) {
   const SlicemapBox& box = params.box;
-  if (!Finite(box.center))
+  if (!InCoordinateRange(box.center))
     return absl::InvalidArgumentError(fmt::format("params.box.center: non-finite or beyond ±1e15 {}", Vec(box.center)));
   const std::pair<const char*, const glm::dvec3*> axes[3] = {
       {"axis_u", &box.axis_u}, {"axis_v", &box.axis_v}, {"axis_w", &box.axis_w}};
   for (const auto& [name, axis] : axes) {
-    if (!Finite(*axis)) return absl::InvalidArgumentError(fmt::format("params.box.{}: non-finite or beyond ±1e15 {}", name, Vec(*axis)));
+    if (!InCoordinateRange(*axis)) return absl::InvalidArgumentError(fmt::format("params.box.{}: non-finite or beyond ±1e15 {}", name, Vec(*axis)));
     if (std::abs(glm::length(*axis) - 1.0) > 1e-6)
       return absl::InvalidArgumentError(
           fmt::format("params.box.{}: {} is not unit length (|a| = {})", name, Vec(*axis), glm::length(*axis)));

@@ -44,7 +44,6 @@ struct PassConfig {
 };
 
 // Finite and within visq's coordinate range (common/coordinates.h).
-inline bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 inline std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }
 
 // The width, height and slice caps, and the byte cap on the packed result

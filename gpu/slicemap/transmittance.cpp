@@ -111,9 +111,9 @@ Status ValidateTransmittanceParams(const TransmittanceParams& params, const Scen
   const TransmittanceLight& light = params.light;
   if (light.kind != LightKind::kPoint && light.kind != LightKind::kDirectional)
     return absl::InvalidArgumentError(fmt::format("params.light.kind: unknown value {}", static_cast<int>(light.kind)));
-  if (light.kind == LightKind::kPoint && !Finite(light.position))
+  if (light.kind == LightKind::kPoint && !InCoordinateRange(light.position))
     return absl::InvalidArgumentError(fmt::format("params.light.position: non-finite or beyond ±1e15 {}", Vec(light.position)));
-  if (light.kind == LightKind::kDirectional && (!Finite(light.direction) || glm::length(light.direction) < 1e-12))
+  if (light.kind == LightKind::kDirectional && (!InCoordinateRange(light.direction) || glm::length(light.direction) < 1e-12))
     return absl::InvalidArgumentError(
         fmt::format("params.light.direction: {} must be finite and non-zero", Vec(light.direction)));
   if (params.nodes.empty()) return absl::InvalidArgumentError("params.nodes: empty (name at least one absorbing node)");
@@ -124,13 +124,13 @@ Status ValidateTransmittanceParams(const TransmittanceParams& params, const Scen
       return Status(size.code(), fmt::format("{} (params.resolution = {})", size.message(), params.resolution));
   }
   for (size_t i = 0; i < params.points.size(); ++i)
-    if (!Finite(params.points[i]))
+    if (!InCoordinateRange(params.points[i]))
       return absl::InvalidArgumentError(fmt::format("params.points[{}]: non-finite or beyond ±1e15 {}", i, Vec(params.points[i])));
   const ReceiverPatch& patch = params.patch;
   if ((patch.nu == 0) != (patch.nv == 0))
     return absl::InvalidArgumentError(
         fmt::format("params.patch: nu = {}, nv = {} (both zero for no patch, or both positive)", patch.nu, patch.nv));
-  if (patch.nu > 0 && (!Finite(patch.origin) || !Finite(patch.u) || !Finite(patch.v)))
+  if (patch.nu > 0 && (!InCoordinateRange(patch.origin) || !InCoordinateRange(patch.u) || !InCoordinateRange(patch.v)))
     return absl::InvalidArgumentError("params.patch: non-finite or beyond ±1e15 origin, u or v");
   const uint64_t point_count = params.points.size() + uint64_t{patch.nu} * patch.nv;
   if (point_count > kMaxTransmittancePoints)

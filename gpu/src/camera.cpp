@@ -9,23 +9,27 @@
 #include <fmt/format.h>
 #include <glm/gtc/matrix_transform.hpp>
 
+#include "common/coordinates.h"
+
 namespace visq::gpu {
 namespace {
 
-bool Finite(double v) { return std::isfinite(v); }
-bool Finite(const glm::dvec3& v) { return Finite(v.x) && Finite(v.y) && Finite(v.z); }
 std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }
 Status Invalid(std::string message) { return absl::InvalidArgumentError(message); }
 
 }  // namespace
 
 Status ValidatePinholeCamera(const PinholeCamera& camera, uint32_t max_size) {
-  if (!Finite(camera.position)) return Invalid(fmt::format("camera.position: non-finite {}", Vec(camera.position)));
-  if (!Finite(camera.forward) || glm::length(camera.forward) == 0.0)
-    return Invalid(fmt::format("camera.forward: {} is not a direction", Vec(camera.forward)));
-  if (!Finite(camera.up) || glm::length(glm::cross(glm::normalize(camera.forward), camera.up)) < 1e-9 * glm::length(camera.up) ||
-      glm::length(camera.up) == 0.0)
-    return Invalid(fmt::format("camera.up: {} is zero, non-finite or parallel to camera.forward", Vec(camera.up)));
+  if (!InCoordinateRange(camera.position))
+    return Invalid(fmt::format("camera.position: {} is not finite or beyond ±{:g}", Vec(camera.position),
+                               kMaxCoordinate));
+  if (!IsDirection(camera.forward))
+    return Invalid(fmt::format("camera.forward: {} is not a direction (zero, not finite or too long to normalize)",
+                               Vec(camera.forward)));
+  if (!IsDirection(camera.up) ||
+      glm::length(glm::cross(glm::normalize(camera.forward), camera.up)) < 1e-9 * glm::length(camera.up))
+    return Invalid(fmt::format("camera.up: {} is zero, not finite, too long to normalize or parallel to camera.forward",
+                               Vec(camera.up)));
   if (!(camera.vertical_fov_deg > 0.0 && camera.vertical_fov_deg < 180.0))
     return Invalid(fmt::format("camera.vertical_fov_deg: {} is not in (0, 180)", camera.vertical_fov_deg));
   if (camera.width == 0 || camera.height == 0)

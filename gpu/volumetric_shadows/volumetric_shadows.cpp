@@ -743,15 +743,18 @@ Status ValidateVolumetricParams(const VolumetricParams& params) {
   const VolumetricMedium& medium = params.medium;
   VISQ_RETURN_IF_ERROR(ValidatePinholeCamera(camera, kMaxVolumetricImageSize));
   // Light.
-  if (!Finite(light.direction) || glm::length(light.direction) == 0.0)
-    return Invalid(fmt::format("light.direction: {} is not a direction", Vec(light.direction)));
+  if (!IsDirection(light.direction))
+    return Invalid(fmt::format("light.direction: {} is not a direction (zero, not finite or too long to normalize)",
+                               Vec(light.direction)));
   if (!Finite(light.up)) return Invalid(fmt::format("light.up: non-finite {}", Vec(light.up)));
   if (!Finite(light.color) || light.color.x < 0 || light.color.y < 0 || light.color.z < 0)
     return Invalid(fmt::format("light.color: {} must be finite and non-negative", Vec(light.color)));
   if (!Finite(light.intensity) || light.intensity < 0)
     return Invalid(fmt::format("light.intensity: {} must be finite and non-negative", light.intensity));
   if (light.kind == VolumetricLightKind::kSpot) {
-    if (!Finite(light.position)) return Invalid(fmt::format("light.position: non-finite {}", Vec(light.position)));
+    if (!InCoordinateRange(light.position))
+      return Invalid(fmt::format("light.position: {} is not finite or beyond ±{:g}", Vec(light.position),
+                                 kMaxCoordinate));
     if (!(light.cone_angle_deg > 0.0 && light.cone_angle_deg <= 80.0))
       return Invalid(fmt::format("light.cone_angle_deg: {} is not in (0, 80]", light.cone_angle_deg));
     if (!(light.cone_falloff_deg >= 0.0 && light.cone_falloff_deg <= light.cone_angle_deg))

@@ -27,9 +27,20 @@ inline double PlacementScale(const glm::dmat3& linear) {
   return std::max({glm::length(linear[0]), glm::length(linear[1]), glm::length(linear[2])});
 }
 
+// A position (a point, a box corner, a patch's origin or edge) from a
+// request: finite and within the range. A direction is checked with
+// IsDirection, a scalar with std::isfinite.
 inline bool InCoordinateRange(double v) { return std::isfinite(v) && std::abs(v) <= kMaxCoordinate; }
 inline bool InCoordinateRange(const glm::dvec3& v) {
   return InCoordinateRange(v.x) && InCoordinateRange(v.y) && InCoordinateRange(v.z);
+}
+
+// A direction from a request: its length finite (no NaN or infinite
+// component, none so large that the length overflows) and above zero, so
+// that normalizing it gives a unit vector.
+inline bool IsDirection(const glm::dvec3& v) {
+  const double length = glm::length(v);
+  return std::isfinite(length) && length > 0.0;
 }
 
 }  // namespace visq

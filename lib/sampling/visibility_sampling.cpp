@@ -20,12 +20,11 @@ namespace {
 
 std::string Vec(const glm::dvec3& v) { return absl::StrCat("(", v.x, ", ", v.y, ", ", v.z, ")"); }
 // Finite and within visq's coordinate range (common/coordinates.h).
-bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 
 Status ValidatePatch(const Patch& p, const std::string& field) {
-  if (!Finite(p.origin)) return absl::InvalidArgumentError(absl::StrCat(field, ".origin: non-finite or beyond ±1e15 ", Vec(p.origin)));
-  if (!Finite(p.edge_u)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_u: non-finite or beyond ±1e15 ", Vec(p.edge_u)));
-  if (!Finite(p.edge_v)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_v: non-finite or beyond ±1e15 ", Vec(p.edge_v)));
+  if (!InCoordinateRange(p.origin)) return absl::InvalidArgumentError(absl::StrCat(field, ".origin: non-finite or beyond ±1e15 ", Vec(p.origin)));
+  if (!InCoordinateRange(p.edge_u)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_u: non-finite or beyond ±1e15 ", Vec(p.edge_u)));
+  if (!InCoordinateRange(p.edge_v)) return absl::InvalidArgumentError(absl::StrCat(field, ".edge_v: non-finite or beyond ±1e15 ", Vec(p.edge_v)));
   const double area = glm::length(glm::cross(p.edge_u, p.edge_v));
   if (!(area > 1e-12 * glm::length(p.edge_u) * glm::length(p.edge_v)) || area == 0.0)
     return absl::InvalidArgumentError(absl::StrCat(field, ": degenerate patch, edge_u ", Vec(p.edge_u), " edge_v ",
@@ -99,7 +98,8 @@ Status ValidateHiddenSampleMapRequest(const HiddenSampleMapRequest& request) {
   // 2^24 of them stays finite in float.
   constexpr double kMaxColor = 1e30;
   auto valid_color = [](const glm::dvec3& c) {
-    return Finite(c) && c.x >= 0 && c.y >= 0 && c.z >= 0 && c.x <= kMaxColor && c.y <= kMaxColor && c.z <= kMaxColor;
+    // NaN fails every comparison, infinity the cap.
+    return c.x >= 0 && c.y >= 0 && c.z >= 0 && c.x <= kMaxColor && c.y <= kMaxColor && c.z <= kMaxColor;
   };
   for (size_t i = 0; i < s.sample_colors.size(); ++i)
     if (!valid_color(s.sample_colors[i]))

@@ -19,7 +19,6 @@ namespace visq::core {
 namespace {
 
 // Finite and within visq's coordinate range (common/coordinates.h).
-bool Finite(const glm::dvec3& v) { return InCoordinateRange(v); }
 
 }  // namespace
 
@@ -37,9 +36,9 @@ Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Sce
     return absl::InvalidArgumentError(absl::StrCat("radiance: ", query.light.radiance, " is not a finite value >= 0"));
   for (size_t i = 0; i < query.points.size(); ++i) {
     const auto& p = query.points[i];
-    if (!Finite(p.position)) return absl::InvalidArgumentError(absl::StrCat("points[", i, "].position: NaN, Inf or beyond ±1e15"));
-    if (p.normal && (!Finite(*p.normal) || glm::dot(*p.normal, *p.normal) == 0.0))
-      return absl::InvalidArgumentError(absl::StrCat("points[", i, "].normal: zero, NaN or Inf"));
+    if (!InCoordinateRange(p.position)) return absl::InvalidArgumentError(absl::StrCat("points[", i, "].position: NaN, Inf or beyond ±1e15"));
+    if (p.normal && !IsDirection(*p.normal))
+      return absl::InvalidArgumentError(absl::StrCat("points[", i, "].normal: zero, NaN, Inf or too long to normalize"));
     if (p.receiver_triangle && *p.receiver_triangle >= scene.TriangleCount())
       return absl::InvalidArgumentError(absl::StrCat("points[", i, "].triangle: ", *p.receiver_triangle,
                                                      " out of range (", scene.TriangleCount(), " triangles)"));
@@ -50,7 +49,7 @@ Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Sce
                                                      " is out of range or out of order"));
   if (query.receiver_region) {
     const Bounds& r = *query.receiver_region;
-    if (!Finite(r.min) || !Finite(r.max) || r.min.x > r.max.x || r.min.y > r.max.y || r.min.z > r.max.z)
+    if (!InCoordinateRange(r.min) || !InCoordinateRange(r.max) || r.min.x > r.max.x || r.min.y > r.max.y || r.min.z > r.max.z)
       return absl::InvalidArgumentError("receiver_region: min must be finite and <= max");
     for (size_t i = 0; i < query.points.size(); ++i) {
       const glm::dvec3& q = query.points[i].position;

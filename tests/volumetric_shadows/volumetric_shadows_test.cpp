@@ -737,6 +737,17 @@ TEST(VolumetricShadowsTest, BadInputsAreRejected) {
   };
   using C = absl::StatusCode;
   check([](VolumetricParams& p) { p.camera.position.x = std::nan(""); }, C::kInvalidArgument, "camera.position", "nan");
+  // Positions are held to the coordinate range as every other request's
+  // points are, directions to a length that normalizes (a camera 1e300 away
+  // had passed, and a forward of -1e300 was blamed on camera.up).
+  check([](VolumetricParams& p) { p.camera.position.z = 1e300; }, C::kInvalidArgument, "camera.position", "1e+15");
+  check([](VolumetricParams& p) { p.camera.forward = glm::dvec3(0, 0, -1e300); }, C::kInvalidArgument,
+        "camera.forward", "-1e+300");
+  check([](VolumetricParams& p) { p.camera.up = glm::dvec3(0, 1e300, 0); }, C::kInvalidArgument, "camera.up", "1e+300");
+  check([](VolumetricParams& p) { p.light.direction = glm::dvec3(1e300, -1e300, 0); }, C::kInvalidArgument,
+        "light.direction", "1e+300");
+  check([](VolumetricParams& p) { p.light.kind = VolumetricLightKind::kSpot; p.light.position = glm::dvec3(0, 2e15, 0); },
+        C::kInvalidArgument, "light.position", "2000000000000000");
   check([](VolumetricParams& p) { p.camera.vertical_fov_deg = 0; }, C::kInvalidArgument, "vertical_fov_deg", "0");
   check([](VolumetricParams& p) { p.camera.vertical_fov_deg = 180; }, C::kInvalidArgument, "vertical_fov_deg", "180");
   check([](VolumetricParams& p) { p.camera.vertical_fov_deg = std::nan(""); }, C::kInvalidArgument, "vertical_fov_deg", "nan");
