@@ -37,17 +37,22 @@ cache=${VISQ_CI_CACHE:-/var/cache/visq-ci}
 # .sources stanzas and one-line .list entries): the repository names no
 # mirror's host. Empty when the machine has none.
 apt_source_for() {
-  local suite=$1
-  {
-    awk -v suite="$suite" '
-      /^[[:space:]]*$/ { if (uri != "" && found) { print uri; exit } uri = ""; found = 0; next }
-      /^URIs:/ { uri = $2 }
-      /^Suites:/ { for (i = 2; i <= NF; ++i) if ($i == suite) found = 1 }
-      END { if (uri != "" && found) print uri }' /etc/apt/sources.list.d/*.sources 2>/dev/null
-    awk -v suite="$suite" '$1 == "deb" {
-        for (i = 2; i <= NF; ++i) if ($i ~ /^[a-z]+:\/\//) { if ($(i + 1) == suite) print $i; break } }' \
-      /etc/apt/sources.list /etc/apt/sources.list.d/*.list 2>/dev/null
-  } | head -n 1
+  local suite=$1 found
+  # Absent files (no .list, no .sources) are no error: the first match or
+  # nothing, and always a zero status (this script runs under set -e).
+  found=$(
+    {
+      awk -v suite="$suite" '
+        /^[[:space:]]*$/ { if (uri != "" && found) { print uri; exit } uri = ""; found = 0; next }
+        /^URIs:/ { uri = $2 }
+        /^Suites:/ { for (i = 2; i <= NF; ++i) if ($i == suite) found = 1 }
+        END { if (uri != "" && found) print uri }' /etc/apt/sources.list.d/*.sources
+      awk -v suite="$suite" '$1 == "deb" {
+          for (i = 2; i <= NF; ++i) if ($i ~ /^[a-z]+:\/\//) { if ($(i + 1) == suite) print $i; break } }' \
+        /etc/apt/sources.list /etc/apt/sources.list.d/*.list
+    } 2>/dev/null || true
+  )
+  printf '%s\n' "${found%%$'\n'*}"
 }
 mirror=${VISQ_DEBIAN_MIRROR:-$(apt_source_for bookworm)}
 security_mirror=${VISQ_DEBIAN_SECURITY_MIRROR:-$(apt_source_for bookworm-security)}
