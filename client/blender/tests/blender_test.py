@@ -1,0 +1,404 @@
+# The visq add-on in Blender's background mode against a real visq-server.
+#   blender -b --factory-startup --python-exit-code 1 --python blender_test.py -- \
+#     --address HOST:PORT --package DIR_WITH_visq --addon client/blender/visq_blender --scratch DIR
+# (tests/blender/run_blender_test.sh runs it). It installs the add-on from a
+# zip as an artist would, builds a scene (a floor grid, two cubes, a lamp
+# plane above), and checks, against the server's own answers:
+#   bake: every object gets the 'visq_atlas' UV map (the server's atlas UVs at
+#     each corner), the 'visq_w' colour attribute (each face's area-weighted
+#     triangle_w) and the W image (the atlas at each triangle's UVs); the
+#     floor under the cube is darker than the floor far away;
+#   move and update: the server's scene bounds after SetNodeTransform equal
+#     Blender's world bounds (the Y-up conversion), W rises where the cube
+#     left and falls where it went, faces with no changed triangle keep their
+#     colours bit for bit, changed texels are the update's;
+#   cancel: a long bake on the worker thread stops within seconds of cancel;
+#   show visibility: a hidden-sample map from the lamp to a floor face under
+#     the cube (hidden) and far away (seen), as an image;
+#   hostile inputs: a bad address, a server that is down, nothing to bake,
+#     nothing moved, one face selected: each a clear error report, fast.
+# Background mode has no event loop, so the operators run through execute()
+# (the same prepare / work / finish as the modal invoke(), with work() on the
+# calling thread); the cancel check runs work() on a worker thread as the
+# modal operator does. The modal shell itself (timer, progress bar, Esc) is
+# not exercised here.
+import math
+import os
+import shutil
+import socket
+import sys
+import time
+
+import bpy
+import numpy as np
+from mathutils import Vector
+from mathutils.kdtree import KDTree
+
+argv = sys.argv[sys.argv.index("--") + 1:]
+args = dict(zip(argv[0::2], argv[1::2]))
+ADDRESS, PACKAGE, ADDON, SCRATCH = args["--address"], args["--package"], args["--addon"], args["--scratch"]
+started = time.monotonic()
+figures = []
+
+
+def log(message):
+    print(f"blender_test [{time.monotonic() - started:5.1f} s]: {message}", flush=True)
+
+
+def check(condition, message):
+    if not condition:
+        raise AssertionError(message)
+
+
+# -- install and enable the add-on from a zip, as Preferences > Add-ons > Install does
+archive = shutil.make_archive(os.path.join(SCRATCH, "visq_blender"), "zip", os.path.dirname(ADDON),
+                              os.path.basename(ADDON))
+check(bpy.ops.preferences.addon_install(filepath=archive) == {"FINISHED"}, "addon_install failed")
+bpy.ops.preferences.addon_enable(module="visq_blender")
+import visq_blender  # noqa: E402  (installed just now)
+from visq_blender import core  # noqa: E402
+
+check(os.path.abspath(visq_blender.__file__).startswith(os.path.abspath(SCRATCH)),
+      f"the add-on was imported from {visq_blender.__file__}, not the installed copy")
+prefs = bpy.context.preferences.addons["visq_blender"].preferences
+prefs.address = ADDRESS
+prefs.python_path = PACKAGE
+prefs.timeout = 10.0
+visq = visq_blender.import_visq(bpy.context)  # as the operators find it: PACKAGE from the preferences
+with visq.Client(ADDRESS) as c:
+    c.wait_until_serving(60)
+log("add-on installed and enabled; server SERVING")
+
+# -- the scene: Blender's Z up; the floor a 12 x 12 grid of 4 m
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.preferences.addon_enable(module="visq_blender")
+prefs = bpy.context.preferences.addons["visq_blender"].preferences
+prefs.address, prefs.python_path, prefs.timeout = ADDRESS, PACKAGE, 10.0
+scene = bpy.context.scene
+
+
+def add(kind, name, **kw):
+    getattr(bpy.ops.mesh, kind)(**kw)
+    obj = bpy.context.active_object
+    obj.name = obj.data.name = name
+    return obj
+
+
+floor = add("primitive_grid_add", "Floor", x_subdivisions=12, y_subdivisions=12, size=4.0)
+cube = add("primitive_cube_add", "Cube", size=1.0, location=(0.0, 0.0, 0.55), rotation=(0, 0, math.radians(30)))
+crate = add("primitive_cube_add", "Crate", size=0.6, location=(1.3, -1.3, 0.32))
+lamp = add("primitive_plane_add", "Lamp", size=0.6, location=(0.0, 0.0, 3.0), rotation=(math.pi, 0, 0))
+objects = [floor, cube, crate, lamp]
+bpy.context.view_layer.update()
+settings = scene.visq
+settings.scene_name = "blender_test"
+settings.resolution = 64
+settings.method = "raycast"
+settings.rays_per_patch = 64
+settings.d_max = 1.0
+for o in objects:
+    o.select_set(True)
+
+
+def loop_triangles(obj):
+    mesh = obj.data
+    mesh.calc_loop_triangles()
+    m = len(mesh.loop_triangles)
+    loops = np.empty(3 * m, np.int64)
+    verts = np.empty(3 * m, np.int64)
+    poly = np.empty(m, np.int64)
+    mesh.loop_triangles.foreach_get("loops", loops)
+    mesh.loop_triangles.foreach_get("vertices", verts)
+    mesh.loop_triangles.foreach_get("polygon_index", poly)
+    co = np.empty(3 * len(mesh.vertices))
+    mesh.vertices.foreach_get("co", co)
+    local = co.reshape(-1, 3)[verts].reshape(m, 3, 3)
+    return loops.reshape(m, 3), poly, local
+
+
+def colors(obj):
+    attribute = obj.data.color_attributes["visq_w"]
+    check(attribute.domain == "CORNER" and attribute.data_type == "FLOAT_COLOR",
+          f"{obj.name}: visq_w is {attribute.domain} {attribute.data_type}")
+    values = np.empty(4 * len(obj.data.loops), np.float32)
+    attribute.data.foreach_get("color", values)
+    return values.reshape(-1, 4)
+
+
+def polygon_colors(obj):
+    """Per polygon: its corners' colour (all equal)."""
+    c = colors(obj)
+    starts = np.empty(len(obj.data.polygons), np.int64)
+    obj.data.polygons.foreach_get("loop_start", starts)
+    return c[starts, :3]
+
+
+def polygon_centres(obj):
+    m = obj.matrix_world
+    return np.array([tuple(m @ p.center) for p in obj.data.polygons])
+
+
+def image_pixels(name):
+    image = bpy.data.images[name]
+    w, h = image.size
+    p = np.empty(w * h * 4, np.float32)
+    image.pixels.foreach_get(p)
+    return p.reshape(h, w, 4)
+
+
+def server_triangles(info, glb):
+    """{node name: (first, KDTree over its triangles' centres in the node's
+    glTF frame, centres)}: the test's own match, independent of the add-on's."""
+    nodes = core.glb_node_triangles(glb)
+    out, first = {}, 0
+    for (name, tris), node in zip(nodes, info.nodes):
+        check(node.name == name and node.triangle_count == len(tris),
+              f"node {node.name}: {node.triangle_count} triangles on the server, {len(tris)} in the file")
+        centres = tris.mean(axis=1)
+        tree = KDTree(len(centres))
+        for i, c in enumerate(centres):
+            tree.insert(c, i)
+        tree.balance()
+        out[name] = (first, tree, tris)
+        first += len(tris)
+    return out
+
+
+def expect_error(operator, words, limit_s=15.0, **kw):
+    t = time.monotonic()
+    try:
+        operator(**kw)
+    except RuntimeError as error:
+        elapsed = time.monotonic() - t
+        text = str(error)
+        check(all(w in text for w in words), f"the report '{text}' lacks {words}")
+        check(elapsed < limit_s, f"'{text}' took {elapsed:.1f} s")
+        log(f"refused in {elapsed:.2f} s: {text.strip()}")
+        return text
+    raise AssertionError(f"{operator} with {kw} did not fail (expected {words})")
+
+
+# -- bake -------------------------------------------------------------------
+t = time.monotonic()
+check(bpy.ops.visq.bake() == {"FINISHED"}, "bake did not finish")
+bake_s = time.monotonic() - t
+result = dict(visq_blender.last_result)
+bake, exported, info = result["bake"], result["export"], result["info"]
+session = visq_blender._sessions[scene.name]
+height, width = bake.w.shape[:2]
+bound = bake.figures.accuracy.error_bound
+log(f"baked {bake.triangle_w.shape[0]} triangles, {width}x{height} atlas in {bake_s:.2f} s "
+    f"(bound {bound:.3f}, {bake.progress_messages} progress messages, {result['torn']} torn corners, "
+    f"{result['unmatched']} unmatched)")
+check(result["unmatched"] == 0, f"{result['unmatched']} Blender triangles matched no server triangle")
+check((width, height) == (64, 64), f"atlas {width}x{height}")
+mapping = server_triangles(info, session["glb"])
+pixels = image_pixels(result["image"])
+check(pixels.shape[:2] == (height, width), f"image {pixels.shape}")
+
+matched = {}
+uv_worst = color_worst = texel_worst = 0.0
+texel_vs_triangle = []
+for obj in objects:
+    mesh = obj.data
+    check("visq_atlas" in mesh.uv_layers, f"{obj.name}: no visq_atlas UV map")
+    check(bpy.data.images.get(obj.get("visq_image", "")) is not None, f"{obj.name}: no image named")
+    loops, poly, local = loop_triangles(obj)
+    gltf_local = np.stack([local[..., 0], local[..., 2], -local[..., 1]], axis=-1)  # Blender -> glTF axes
+    first, tree, tris = mapping[obj.name]
+    index = np.empty(len(loops), np.int64)
+    for j, tri in enumerate(gltf_local):
+        _, i, distance = tree.find(tri.mean(axis=0))
+        check(distance < 1e-5, f"{obj.name} triangle {j}: no server triangle at its centre ({distance})")
+        index[j] = first + i
+    matched[obj.name] = (index, poly, local)
+    # The UV map: the server's atlas UVs at each corner (v flipped).
+    uv = np.empty(2 * len(mesh.loops), np.float32)
+    mesh.uv_layers["visq_atlas"].data.foreach_get("uv", uv)
+    uv = uv.reshape(-1, 2)
+    for j, tri in enumerate(gltf_local):
+        server_tri = tris[index[j] - first]
+        for k in range(3):
+            corner = int(np.linalg.norm(server_tri - tri[k], axis=1).argmin())
+            a = exported.atlas_uv[index[j], corner]
+            uv_worst = max(uv_worst, float(np.abs(uv[loops[j, k]] - (a[0], 1 - a[1])).max()))
+        # The image at the triangle's UV centre is the atlas texel there.
+        cu, cv = uv[loops[j]].mean(axis=0)
+        x, y = min(width - 1, int(cu * width)), min(height - 1, int((1 - cv) * height))
+        image_w = pixels[height - 1 - y, x, :3]
+        texel_worst = max(texel_worst, float(np.abs(image_w - bake.w[y, x]).max()))
+        texel_vs_triangle.append(abs(float(image_w[0]) - float(bake.triangle_w[index[j], 0])))
+    # The colour attribute: each face's area-weighted triangle_w.
+    areas = 0.5 * np.linalg.norm(np.cross(local[:, 1] - local[:, 0], local[:, 2] - local[:, 0]), axis=1)
+    expected = np.zeros((len(mesh.polygons), 3))
+    np.add.at(expected, poly, bake.triangle_w[index] * areas[:, None])
+    total = np.zeros(len(mesh.polygons))
+    np.add.at(total, poly, areas)
+    expected /= total[:, None]
+    color_worst = max(color_worst, float(np.abs(polygon_colors(obj) - expected).max()))
+log(f"UVs vs the atlas: worst {uv_worst:.2e}; colours vs triangle_w: worst {color_worst:.2e}; "
+    f"image vs atlas texels: worst {texel_worst:.2e}; image vs triangle_w: mean {np.mean(texel_vs_triangle):.3f}")
+torn_allowed = result["torn"]
+check(uv_worst < 1e-6 or torn_allowed, f"visq_atlas differs from the server's atlas UVs by {uv_worst}")
+check(color_worst < 1e-5, f"visq_w differs from the area-weighted triangle_w by {color_worst}")
+check(texel_worst < 1e-6, f"the image differs from the atlas by {texel_worst}")
+check(np.mean(texel_vs_triangle) < max(bound, 0.05) + 0.05,
+      f"the image at triangle UV centres is {np.mean(texel_vs_triangle):.3f} from triangle_w on average")
+
+# The floor under the cube is darker than the floor far from both cubes.
+centres = polygon_centres(floor)
+floor_w = polygon_colors(floor)[:, 0]
+under = (np.abs(centres[:, 0]) < 0.3) & (np.abs(centres[:, 1]) < 0.3)
+far = np.hypot(centres[:, 0], centres[:, 1]) > 1.2
+far &= np.hypot(centres[:, 0] - 1.3, centres[:, 1] + 1.3) > 1.0
+check(under.any() and far.any(), "the floor grid has no face under the cube or far away")
+log(f"floor W: under the cube {floor_w[under].mean():.3f} ({under.sum()} faces), far {floor_w[far].mean():.3f} "
+    f"({far.sum()} faces)")
+check(floor_w[under].mean() < floor_w[far].mean() - 0.3, "the floor under the cube is not darker than far away")
+figures.append(f"bake {bake_s:.2f} s")
+
+# -- move and update ---------------------------------------------------------
+expect_error(bpy.ops.visq.move_update, ["no baked object moved"])
+before = {o.name: polygon_colors(o).copy() for o in objects}
+pixels_before = image_pixels(result["image"]).copy()
+old_under = under
+cube.location = (-1.0, 0.9, 0.55)
+cube.rotation_euler = (0.0, 0.0, math.radians(45))
+bpy.context.view_layer.update()
+t = time.monotonic()
+check(bpy.ops.visq.move_update() == {"FINISHED"}, "move_update did not finish")
+update_s = time.monotonic() - t
+result = dict(visq_blender.last_result)
+update, info = result["update"], result["info"]
+r = update.response
+log(f"update in {update_s:.2f} s: {r.moves_applied} move(s), {len(update.texels)} texels, {len(r.triangles)} "
+    f"triangles changed, {result['refreshed_objects']} object(s) refreshed")
+check(r.moves_applied == 1 and result["moved"] == ["Cube"], f"moves {r.moves_applied} {result['moved']}")
+check(len(update.texels) > 0 and len(r.triangles) > 0, "the update changed nothing")
+
+# The server's bounds (glTF axes) are Blender's world bounds turned Y up.
+corners = np.array([tuple(o.matrix_world @ Vector(c)) for o in objects for c in o.bound_box])
+low, high = corners.min(axis=0), corners.max(axis=0)
+expect_low, expect_high = (low[0], low[2], -high[1]), (high[0], high[2], -low[1])
+server_low = (info.bounds_min.x, info.bounds_min.y, info.bounds_min.z)
+server_high = (info.bounds_max.x, info.bounds_max.y, info.bounds_max.z)
+bounds_off = float(np.abs(np.subtract(server_low, expect_low)).max() + np.abs(np.subtract(server_high, expect_high)).max())
+log(f"server bounds {np.round(server_low, 4)} .. {np.round(server_high, 4)}, Blender's Y up: off by {bounds_off:.1e}")
+check(bounds_off < 1e-4, "the moved cube is not where Blender has it (Y-up conversion)")
+
+after = {o.name: polygon_colors(o) for o in objects}
+new_under = (np.abs(centres[:, 0] + 1.0) < 0.3) & (np.abs(centres[:, 1] - 0.9) < 0.3)
+floor_after = after["Floor"][:, 0]
+log(f"floor W where the cube was {floor_w[old_under].mean():.3f} -> {floor_after[old_under].mean():.3f}; "
+    f"where it went {floor_w[new_under].mean():.3f} -> {floor_after[new_under].mean():.3f}")
+check(floor_after[old_under].mean() > floor_w[old_under].mean() + 0.3, "W did not rise where the cube left")
+check(floor_after[new_under].mean() < floor_w[new_under].mean() - 0.3, "W did not fall where the cube went")
+# Faces with no changed triangle keep their colours bit for bit; changed ones
+# are the area-weighted W of the server's triangles now.
+triangle_w = bake.triangle_w.copy()
+triangle_w[np.array(r.triangles, np.int64)] = np.array(r.triangle_w, np.float32).reshape(-1, 3)
+unchanged_faces = changed_faces = 0
+for obj in objects:
+    index, poly, local = matched[obj.name]
+    hit = np.isin(index, np.array(r.triangles))
+    touched = np.zeros(len(obj.data.polygons), bool)
+    touched[poly[hit]] = True
+    check(np.array_equal(after[obj.name][~touched], before[obj.name][~touched]),
+          f"{obj.name}: a face with no changed triangle changed colour")
+    areas = 0.5 * np.linalg.norm(np.cross(local[:, 1] - local[:, 0], local[:, 2] - local[:, 0]), axis=1)
+    expected = np.zeros((len(obj.data.polygons), 3))
+    np.add.at(expected, poly, triangle_w[index] * areas[:, None])
+    total = np.zeros(len(obj.data.polygons))
+    np.add.at(total, poly, areas)
+    expected /= total[:, None]
+    check(np.abs(after[obj.name] - expected).max() < 1e-5, f"{obj.name}: colours differ from the updated triangle_w")
+    unchanged_faces += int((~touched).sum())
+    changed_faces += int(touched.sum())
+pixels_after = image_pixels(session["image"])
+texels = np.asarray(update.texels, np.int64)
+ty, tx = texels // width, texels % width
+check(np.array_equal(pixels_after[height - 1 - ty, tx, :3], update.w.astype(np.float32)),
+      "changed texels differ from the update's W")
+mask = np.ones((height, width), bool)
+mask[height - 1 - ty, tx] = False
+check(np.array_equal(pixels_after[mask], pixels_before[mask]), "texels the update did not name changed")
+log(f"{changed_faces} faces refreshed, {unchanged_faces} kept bit for bit")
+figures.append(f"update {update_s:.2f} s")
+
+# -- cancel: a long bake on the worker thread, as the modal operator runs it
+settings.resolution, settings.rays_per_patch = 512, 4096
+task = visq_blender.BakeTask(bpy.context)
+job = core.Job(task.work, task.cancellation).start()
+deadline = time.monotonic() + 20
+while not job.done and not job.message.startswith("baking") and time.monotonic() < deadline:
+    time.sleep(0.02)
+time.sleep(0.5)
+check(not job.done, f"the long bake ended before it was cancelled ({job.error!r})")
+t = time.monotonic()
+job.cancel()
+check(job.wait(20), "the bake did not stop within 20 s of cancel")
+cancel_s = time.monotonic() - t
+check(type(job.error).__name__ == "Cancelled", f"the cancelled bake ended with {job.error!r}")
+check(core.describe_error(job.error) == "visq: cancelled", core.describe_error(job.error))
+log(f"cancelled at '{job.message}' ({job.fraction:.0%}); stopped {cancel_s:.2f} s after cancel")
+check(cancel_s < 5.0, f"the bake took {cancel_s:.2f} s to stop")
+figures.append(f"cancel {cancel_s:.2f} s")
+settings.resolution, settings.rays_per_patch = 64, 64
+
+# -- show visibility: the lamp's face to floor faces -------------------------
+def select_faces(pairs, active):
+    for o in objects:
+        o.select_set(False)
+        for p in o.data.polygons:
+            p.select = False
+    for o, i in pairs:
+        o.select_set(True)
+        o.data.polygons[i].select = True
+    bpy.context.view_layer.objects.active = active
+
+
+settings.map_size, settings.map_samples = 16, 64
+hidden_face = int(np.argmin(np.hypot(centres[:, 0] + 1.0, centres[:, 1] - 0.9)))  # under the moved cube
+seen_face = int(np.argmax(np.where(far, -np.hypot(centres[:, 0], centres[:, 1]), -np.inf)))  # the nearest far face
+fractions = []
+for face in (hidden_face, seen_face):
+    select_faces([(lamp, 0), (floor, face)], floor)
+    t = time.monotonic()
+    check(bpy.ops.visq.show_visibility() == {"FINISHED"}, "show_visibility did not finish")
+    result = dict(visq_blender.last_result)
+    check(result["faces"] == [("Lamp", 0), ("Floor", face)], f"faces {result['faces']}")
+    image = image_pixels(result["image"])
+    fraction = result["map"].visible_fraction
+    check(image.shape[:2] == fraction.shape and np.array_equal(image[..., 0], fraction), "the map image is not the map")
+    fractions.append(float(fraction.mean()))
+    log(f"map Lamp -> Floor face {face} at {np.round(centres[face], 2)}: {fractions[-1]:.3f} visible "
+        f"({time.monotonic() - t:.2f} s)")
+check(fractions[0] < 0.35, f"the floor under the cube sees {fractions[0]:.2f} of the lamp")
+check(fractions[1] > 0.95, f"the open floor sees {fractions[1]:.2f} of the lamp")
+select_faces([(floor, hidden_face)], floor)
+expect_error(bpy.ops.visq.show_visibility, ["select exactly two faces", "1 selected"])
+
+# -- hostile inputs -----------------------------------------------------------
+for o in objects:
+    o.select_set(True)
+prefs.address = "no such host"
+expect_error(bpy.ops.visq.bake, ["server address", "is not HOST[:PORT]"])
+prefs.address = "localhost:99999"
+expect_error(bpy.ops.visq.bake, ["port '99999'"])
+probe = socket.socket()
+probe.bind(("127.0.0.1", 0))
+closed_port = probe.getsockname()[1]
+probe.close()
+prefs.address = f"127.0.0.1:{closed_port}"
+expect_error(bpy.ops.visq.bake, ["cannot be reached"])
+prefs.address = ADDRESS
+prefs.token_file = os.path.join(SCRATCH, "no-such-token")
+expect_error(bpy.ops.visq.bake, ["token file"])
+prefs.token_file = ""
+for o in objects:
+    o.select_set(False)
+expect_error(bpy.ops.visq.bake, ["no mesh object"])
+bpy.ops.object.empty_add()
+bpy.context.active_object.select_set(True)
+expect_error(bpy.ops.visq.bake, ["no mesh object"])
+log("PASSED: " + ", ".join(figures))

@@ -1,0 +1,625 @@
+"""visq in Blender: bake obscurances onto the selected objects, update them
+after a move, and show a hidden-sample map between two faces.
+
+The Blender side is thin: it exports with Blender's own glTF exporter, reads
+and writes mesh data, and runs each call of the visq Python client
+(client/python) on a worker thread that a modal operator polls, so Blender's
+UI never waits on the network; Esc cancels. What needs no Blender is in
+core.py. Installing: README.md, "The Blender add-on".
+"""
+import os
+import sys
+import tempfile
+import time
+
+import bpy
+import numpy as np
+
+from . import core
+
+bl_info = {
+    "name": "visq",
+    "author": "visq",
+    "version": (0, 1, 0),
+    "blender": (3, 4, 0),
+    "location": "3D Viewport > Sidebar > visq",
+    "description": "Obscurance bakes, updates after moves and visibility maps from a visq server",
+    "category": "Render",
+}
+
+UV_LAYER = "visq_atlas"
+COLOR_ATTRIBUTE = "visq_w"
+MAP_IMAGE = "visq_visibility"
+
+# Per Blender scene: what the last bake uploaded and how its triangles map
+# onto the objects (numpy arrays; not saved with the .blend: a reopened file
+# bakes again before Move and update).
+_sessions = {}
+# The last finished call's numbers, for scripts and the headless test.
+last_result = {}
+
+
+class VisqAddonError(Exception):
+    """A problem the artist can fix, reported as is."""
+
+
+def _prefs(context):
+    addon = context.preferences.addons.get(__name__)
+    if addon is None:
+        raise VisqAddonError("the visq add-on is not enabled")
+    return addon.preferences
+
+
+def import_visq(context):
+    """The visq package, from the folder the preferences name or sys.path."""
+    folder = _prefs(context).python_path
+    if folder:
+        folder = bpy.path.abspath(folder)
+        if not os.path.isdir(folder):
+            raise VisqAddonError(f"Python package folder '{folder}' does not exist (add-on preferences)")
+        if folder not in sys.path:
+            sys.path.insert(0, folder)
+    try:
+        import visq
+    except ImportError as error:
+        raise VisqAddonError(
+            f"cannot import the visq Python package ({error}); install client/python into a venv made with "
+            "--system-site-packages and set its site-packages folder in the add-on's preferences") from None
+    return visq
+
+
+def _client(visq, prefs):
+    address = prefs.address.strip()
+    if not address or any(c.isspace() for c in address):
+        raise VisqAddonError(f"server address '{prefs.address}' is not HOST[:PORT] (add-on preferences)")
+    token_file = bpy.path.abspath(prefs.token_file) if prefs.token_file else None
+    if token_file and not os.path.isfile(token_file):
+        raise VisqAddonError(f"token file '{token_file}' does not exist")
+    return visq.Client(address, token=prefs.token or None, token_file=token_file,
+                       timeout=prefs.timeout)
+
+
+def _check_server(client, prefs):
+    """One short health call first: an address that swallows packets fails
+    here within the timeout instead of stalling the upload."""
+    status = client.health(timeout=min(prefs.timeout, 10.0))
+    if status != "SERVING":
+        raise VisqAddonError(f"the server at {client.address} is {status}, not SERVING")
+
+
+def _server_scene_name(context):
+    name = context.scene.visq.scene_name.strip()
+    if not name:
+        raise VisqAddonError("server scene name is empty (visq panel)")
+    return name
+
+
+# ---------------------------------------------------------------------------
+# Reading Blender's meshes.
+
+def _mesh_objects(context, selected_only):
+    objects = context.selected_objects if selected_only else context.scene.objects
+    meshes = [o for o in objects if o.type == "MESH" and o.data is not None and len(o.data.polygons)]
+    if not meshes:
+        where = "selected" if selected_only else "in the scene"
+        raise VisqAddonError(f"no mesh object with faces {where}: select meshes to bake")
+    return meshes
+
+
+def _loop_triangles(obj):
+    """(loops (m, 3), polygon (m,), corners in the object's frame as glTF
+    axes (m, 3, 3)) of the triangles Blender's exporter writes."""
+    mesh = obj.data
+    mesh.calc_loop_triangles()
+    m = len(mesh.loop_triangles)
+    loops = np.empty(m * 3, dtype=np.int64)
+    mesh.loop_triangles.foreach_get("loops", loops)
+    vertices = np.empty(m * 3, dtype=np.int64)
+    mesh.loop_triangles.foreach_get("vertices", vertices)
+    polygon = np.empty(m, dtype=np.int64)
+    mesh.loop_triangles.foreach_get("polygon_index", polygon)
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float64)
+    mesh.vertices.foreach_get("co", co)
+    corners = co.reshape(-1, 3)[vertices].reshape(m, 3, 3)
+    return loops.reshape(m, 3), polygon, core.to_gltf_points(corners)
+
+
+def _export_glb(context, objects, path):
+    """Blender's own glTF exporter over exactly these objects (node names
+    are object names), Y up, modifiers not applied: the mesh data as is."""
+    view_layer = context.view_layer
+    before = [o for o in context.scene.objects if o.select_get()]
+    active = view_layer.objects.active
+    try:
+        for o in before:
+            o.select_set(False)
+        for o in objects:
+            o.select_set(True)
+        result = bpy.ops.export_scene.gltf(
+            filepath=path, export_format="GLB", use_selection=True, export_yup=True, export_apply=False,
+            export_animations=False, export_cameras=False, export_lights=False, export_extras=False,
+            export_skins=False, export_morph=False, export_image_format="NONE", export_colors=False)
+    finally:
+        for o in objects:
+            o.select_set(False)
+        for o in before:
+            o.select_set(True)
+        view_layer.objects.active = active
+    if result != {"FINISHED"} or not os.path.isfile(path):
+        raise VisqAddonError(f"Blender's glTF exporter ended {result}")
+
+
+def _matrix(obj):
+    return np.array(obj.matrix_world, dtype=np.float64)
+
+
+def _new_image(name, width, height, pixels):
+    image = bpy.data.images.get(name)
+    if image is not None and tuple(image.size) != (width, height):
+        bpy.data.images.remove(image)
+        image = None
+    if image is None:
+        image = bpy.data.images.new(name, width, height, alpha=False, float_buffer=True)
+    image.colorspace_settings.name = "Non-Color"
+    image.pixels.foreach_set(np.ascontiguousarray(pixels, dtype=np.float32).reshape(-1))
+    image.update()
+    return image
+
+
+def _write_colors(obj, colors):
+    mesh = obj.data
+    attribute = mesh.color_attributes.get(COLOR_ATTRIBUTE)
+    if attribute is not None and (attribute.domain != "CORNER" or attribute.data_type != "FLOAT_COLOR"):
+        mesh.color_attributes.remove(attribute)
+        attribute = None
+    if attribute is None:
+        attribute = mesh.color_attributes.new(COLOR_ATTRIBUTE, "FLOAT_COLOR", "CORNER")
+    attribute.data.foreach_set("color", np.ascontiguousarray(colors, dtype=np.float32).reshape(-1))
+    mesh.update()
+
+
+def _show_image(context, image):
+    screen = context.screen if context.window is not None else None
+    for area in (screen.areas if screen else ()):
+        if area.type == "IMAGE_EDITOR":
+            area.spaces.active.image = image
+            return
+
+
+# ---------------------------------------------------------------------------
+# The three tasks: prepare on the main thread, work on a worker thread,
+# finish on the main thread. An operator's execute() runs them in a row
+# (scripts and background mode); invoke() runs work() off the main thread.
+
+class BakeTask:
+    def __init__(self, context, cancellation=None):
+        settings = context.scene.visq
+        self.visq = import_visq(context)
+        self.prefs = _prefs(context)
+        self.scene_name = _server_scene_name(context)
+        self.settings = {"d_max": settings.d_max, "resolution": settings.resolution, "method": settings.method,
+                         "rays_per_patch": settings.rays_per_patch, "directions": settings.directions}
+        objects = _mesh_objects(context, settings.selected_only)
+        names = [o.name for o in objects]
+        self.folder = tempfile.mkdtemp(prefix="visq-blender-")
+        self.glb = os.path.join(self.folder, f"{self.scene_name}.glb")
+        _export_glb(context, objects, self.glb)
+        self.objects = {}
+        for obj in objects:
+            loops, polygon, corners = _loop_triangles(obj)
+            self.objects[obj.name] = {"loops": loops, "polygon": polygon, "corners": corners,
+                                      "areas": core.triangle_areas(corners), "loop_count": len(obj.data.loops),
+                                      "polygon_count": len(obj.data.polygons), "matrix": _matrix(obj)}
+        self.names = names
+        self.cancellation = cancellation or self.visq.Cancellation()
+
+    def work(self, job):
+        visq = self.visq
+        with _client(visq, self.prefs) as client:
+            job.report_progress(0.0, "connecting")
+            _check_server(client, self.prefs)
+            job.report_progress(0.01, "uploading")
+            client.upload_gltf(self.glb, name=self.scene_name, replace=True)
+            info = client.get_scene(self.scene_name, include_nodes=True)
+            ranges = core.node_ranges(core.glb_node_triangles(self.glb),
+                                      [(n.name, n.triangle_count) for n in info.nodes])
+
+            def progress(p):
+                if p.directions_total:
+                    job.report_progress(0.02 + 0.93 * p.directions_done / p.directions_total,
+                                        f"baking {p.directions_done}/{p.directions_total}")
+
+            s = self.settings
+            job.report_progress(0.02, "baking")
+            bake = client.compute_obscurances(
+                self.scene_name, s["d_max"], resolution=s["resolution"], method=s["method"],
+                rays_per_patch=s["rays_per_patch"], directions=s["directions"], want_averages=True,
+                progress=progress, cancel=job.cancellation)
+            job.report_progress(0.96, "reading the atlas")
+            exported = client.export_obscurances(self.scene_name, atlas_uvs=True, cancel=job.cancellation)
+        # Each Blender triangle's server triangle, by position.
+        maps = {}
+        for name, data in self.objects.items():
+            if name not in ranges:
+                raise VisqAddonError(f"object '{name}' is not a node of the uploaded scene")
+            first, triangles = ranges[name]
+            local, corner = core.match_triangles(data["corners"], triangles)
+            maps[name] = {"server": np.where(local >= 0, local + first, -1), "corner": corner,
+                          "unmatched": int((local < 0).sum())}
+        return {"bake": bake, "export": exported, "maps": maps, "info": info}
+
+    def finish(self, context, result):
+        bake, exported = result["bake"], result["export"]
+        height, width = bake.w.shape[:2]
+        image = _new_image(f"visq_w_{self.scene_name}", width, height, core.atlas_to_pixels(bake.w))
+        torn = unmatched = 0
+        for name, data in self.objects.items():
+            obj = bpy.data.objects.get(name)
+            if obj is None or obj.type != "MESH" or len(obj.data.loops) != data["loop_count"]:
+                raise VisqAddonError(f"object '{name}' changed during the bake; bake again")
+            m = result["maps"][name]
+            mesh = obj.data
+            # The atlas as a UV map of its own.
+            layer = mesh.uv_layers.get(UV_LAYER)
+            if layer is None:
+                if len(mesh.uv_layers) >= 8:
+                    raise VisqAddonError(f"'{name}' has 8 UV maps, Blender's most: remove one for '{UV_LAYER}'")
+                layer = mesh.uv_layers.new(name=UV_LAYER, do_init=False)
+            uvs, written, object_torn = core.loop_uvs(exported.atlas_uv, m["server"], m["corner"], data["loops"],
+                                                      data["loop_count"])
+            layer.data.foreach_set("uv", uvs.reshape(-1))
+            torn += object_torn
+            unmatched += m["unmatched"]
+            # W per corner: each polygon's area-weighted triangle W.
+            triangle_w = np.full((len(m["server"]), 3), np.nan)
+            ok = m["server"] >= 0
+            triangle_w[ok] = bake.triangle_w[m["server"][ok]]
+            data["triangle_w"] = triangle_w
+            polygons = core.polygon_w(triangle_w, data["polygon"], data["areas"], data["polygon_count"])
+            loop_polygon = np.empty(data["loop_count"], dtype=np.int64)
+            loop_polygon[data["loops"].reshape(-1)] = np.repeat(data["polygon"], 3)
+            data["loop_polygon"] = loop_polygon
+            _write_colors(obj, core.corner_colors(polygons, loop_polygon))
+            obj["visq_image"] = image.name
+            data.update(m)
+        _sessions[context.scene.name] = {"scene": self.scene_name, "objects": self.objects, "image": image.name,
+                                         "glb": self.glb, "triangle_w": bake.triangle_w.copy()}
+        last_result.clear()
+        last_result.update(kind="bake", bake=bake, export=exported, info=result["info"], torn=torn,
+                           unmatched=unmatched, image=image.name)
+        f = bake.figures
+        message = (f"visq: baked {len(self.objects)} object(s), {width}x{height} atlas, "
+                   f"error bound {f.accuracy.error_bound:.3f}" if f.HasField("accuracy") else
+                   f"visq: baked {len(self.objects)} object(s), {width}x{height} atlas")
+        if unmatched:
+            message += f"; {unmatched} triangle(s) matched none of the server's"
+        if torn:
+            message += f"; {torn} corner(s) where the atlas cut a face apart"
+        return message
+
+
+class UpdateTask:
+    def __init__(self, context, cancellation=None):
+        self.visq = import_visq(context)
+        self.prefs = _prefs(context)
+        session = _sessions.get(context.scene.name)
+        if session is None:
+            raise VisqAddonError("nothing baked in this Blender session: run Bake obscurances first")
+        self.session = session
+        self.moved = {}
+        for name, data in session["objects"].items():
+            obj = bpy.data.objects.get(name)
+            if obj is None:
+                raise VisqAddonError(f"baked object '{name}' is gone; bake again")
+            if len(obj.data.loops) != data["loop_count"]:
+                raise VisqAddonError(f"'{name}' was edited, not only moved; bake again")
+            matrix = _matrix(obj)
+            if not np.allclose(matrix, data["matrix"], rtol=0, atol=1e-7):
+                self.moved[name] = matrix
+        if not self.moved:
+            raise VisqAddonError("no baked object moved since the bake")
+        self.cancellation = cancellation or self.visq.Cancellation()
+
+    def work(self, job):
+        scene = self.session["scene"]
+        with _client(self.visq, self.prefs) as client:
+            _check_server(client, self.prefs)
+            for i, (name, matrix) in enumerate(self.moved.items()):
+                job.report_progress(0.5 * i / len(self.moved), f"moving {name}")
+                client.set_node_transform(scene, name, core.to_gltf_matrix(matrix))
+            job.report_progress(0.5, "updating")
+            update = client.update_obscurances(scene)
+            info = client.get_scene(scene)
+        return {"update": update, "info": info}
+
+    def finish(self, context, result):
+        update = result["update"]
+        session = self.session
+        image = bpy.data.images.get(session["image"])
+        texels = 0
+        if image is not None:
+            width, height = image.size
+            pixels = np.empty(width * height * 4, dtype=np.float32)
+            image.pixels.foreach_get(pixels)
+            pixels = pixels.reshape(height, width, 4)
+            texels = core.apply_texels(pixels, update.texels, update.w)
+            image.pixels.foreach_set(pixels.reshape(-1))
+            image.update()
+        # Only the polygons with a changed triangle get new colours.
+        r = update.response
+        changed = np.array(r.triangles, dtype=np.int64)
+        changed_w = np.array(r.triangle_w, dtype=np.float32).reshape(-1, 3)
+        triangle_w = session["triangle_w"]
+        triangle_w[changed] = changed_w
+        refreshed = 0
+        for name, data in session["objects"].items():
+            server = data["server"]
+            hit = np.isin(server, changed)
+            if name in self.moved:
+                data["matrix"] = self.moved[name]
+            if not hit.any():
+                continue
+            data["triangle_w"][hit] = triangle_w[server[hit]]
+            polygons = core.polygon_w(data["triangle_w"], data["polygon"], data["areas"], data["polygon_count"])
+            obj = bpy.data.objects[name]
+            attribute = obj.data.color_attributes.get(COLOR_ATTRIBUTE)
+            colors = np.empty(data["loop_count"] * 4, dtype=np.float32)
+            attribute.data.foreach_get("color", colors)
+            colors = colors.reshape(-1, 4)
+            touched = np.unique(data["polygon"][hit])
+            loops = np.isin(data["loop_polygon"], touched)
+            colors[loops] = core.corner_colors(polygons, data["loop_polygon"])[loops]
+            _write_colors(obj, colors)
+            refreshed += 1
+        last_result.clear()
+        last_result.update(kind="update", update=update, info=result["info"], texels=texels,
+                           moved=sorted(self.moved), refreshed_objects=refreshed)
+        return (f"visq: moved {len(self.moved)} object(s); {texels} texels and {len(changed)} triangles changed "
+                f"on {refreshed} object(s)")
+
+
+def _selected_faces(context):
+    """(object, polygon index) of every selected face of the selected meshes,
+    the active object's last."""
+    faces = []
+    objects = sorted((o for o in context.selected_objects if o.type == "MESH"),
+                     key=lambda o: (o == context.view_layer.objects.active, o.name))
+    for obj in objects:
+        if obj.mode == "EDIT":
+            obj.update_from_editmode()
+        for polygon in obj.data.polygons:
+            if polygon.select:
+                faces.append((obj, polygon.index))
+    return faces
+
+
+def _face_corners(obj, index):
+    matrix = obj.matrix_world
+    polygon = obj.data.polygons[index]
+    return np.array([tuple(matrix @ obj.data.vertices[v].co) for v in polygon.vertices], dtype=np.float64)
+
+
+class VisibilityTask:
+    """A hidden-sample map: source the first selected face, receiver the
+    second (the active object's, when the faces are on two objects)."""
+
+    def __init__(self, context, cancellation=None):
+        self.visq = import_visq(context)
+        self.prefs = _prefs(context)
+        settings = context.scene.visq
+        faces = _selected_faces(context)
+        if len(faces) != 2:
+            raise VisqAddonError(f"select exactly two faces (source, then receiver); {len(faces)} selected")
+        if settings.swap_faces:
+            faces.reverse()
+        self.faces = [(o.name, i) for o, i in faces]
+        self.source = core.face_patch(_face_corners(*faces[0]))
+        self.receiver = core.face_patch(_face_corners(*faces[1]))
+        session = _sessions.get(context.scene.name)
+        if session is None:
+            raise VisqAddonError("no scene uploaded in this Blender session: run Bake obscurances first")
+        self.scene_name = session["scene"]
+        self.size = settings.map_size
+        self.samples = settings.map_samples
+        self.cancellation = cancellation or self.visq.Cancellation()
+
+    def work(self, job):
+        with _client(self.visq, self.prefs) as client:
+            _check_server(client, self.prefs)
+            job.report_progress(0.1, "hidden-sample map")
+            return client.hidden_sample_map(self.scene_name, source=self.visq.Patch(*self.source),
+                                            receiver=self.visq.Patch(*self.receiver), width=self.size,
+                                            height=self.size, samples=self.samples, cancel=job.cancellation)
+
+    def finish(self, context, result):
+        fraction = result.visible_fraction
+        image = _new_image(MAP_IMAGE, fraction.shape[1], fraction.shape[0], core.map_to_pixels(fraction))
+        _show_image(context, image)
+        last_result.clear()
+        last_result.update(kind="map", map=result, faces=self.faces, source=self.source, receiver=self.receiver,
+                           image=image.name)
+        return (f"visq: '{image.name}': {self.faces[1][0]} face {self.faces[1][1]} sees "
+                f"{float(fraction.mean()):.1%} of {self.faces[0][0]} face {self.faces[0][1]}")
+
+
+# ---------------------------------------------------------------------------
+# Operators: a modal shell around a task.
+
+class _TaskOperator:
+    task = None
+    _running = None  # one call at a time: Blender's data is written when it ends
+
+    def _fail(self, error):
+        self.report({"ERROR"}, str(error) if isinstance(error, VisqAddonError) and str(error).startswith("visq")
+                    else (f"visq: {error}" if isinstance(error, VisqAddonError) else core.describe_error(error)))
+        return {"CANCELLED"}
+
+    def _prepare(self, context):
+        if _TaskOperator._running is not None:
+            raise VisqAddonError("another visq call is running; wait for it or press Esc")
+        return type(self).task(context)
+
+    def execute(self, context):
+        try:
+            task = self._prepare(context)
+            job = core.Job(task.work, task.cancellation).run_here()
+            if job.error is not None:
+                return self._fail(job.error)
+            self.report({"INFO"}, task.finish(context, job.result))
+        except Exception as error:  # every failure is a report, never a traceback in the artist's face
+            return self._fail(error)
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if context.window is None or bpy.app.background:
+            return self.execute(context)
+        try:
+            self._task = self._prepare(context)
+        except Exception as error:
+            return self._fail(error)
+        self._job = core.Job(self._task.work, self._task.cancellation).start()
+        _TaskOperator._running = self._job
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _end(self, context):
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+        _TaskOperator._running = None
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and event.value == "PRESS" and not job.cancel_requested:
+            job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        if not job.done:
+            context.window_manager.progress_update(int(job.fraction * 100))
+            if context.workspace is not None:
+                # A ray-cast bake may send no progress: the elapsed time shows it is alive.
+                elapsed = time.monotonic() - job.started
+                state = "cancelling" if job.cancel_requested else f"{job.message} {job.fraction:.0%}, {elapsed:.0f} s"
+                context.workspace.status_text_set(f"visq: {state} (Esc cancels)")
+            return {"PASS_THROUGH"}
+        self._end(context)
+        if job.error is not None:
+            return self._fail(job.error)
+        try:
+            self.report({"INFO"}, self._task.finish(context, job.result))
+        except Exception as error:
+            return self._fail(error)
+        return {"FINISHED"}
+
+
+class VISQ_OT_bake(_TaskOperator, bpy.types.Operator):
+    """Bake obscurances of the selected meshes (or the scene) on the visq server: W comes back as an image on a new UV map and a colour attribute"""
+    bl_idname = "visq.bake"
+    bl_label = "Bake obscurances"
+    task = BakeTask
+
+
+class VISQ_OT_move_update(_TaskOperator, bpy.types.Operator):
+    """Send the baked objects' new placements to the server and refresh only the W that changed"""
+    bl_idname = "visq.move_update"
+    bl_label = "Move and update"
+    task = UpdateTask
+
+
+class VISQ_OT_show_visibility(_TaskOperator, bpy.types.Operator):
+    """Hidden-sample map from the first selected face (source) to the second (receiver), as an image"""
+    bl_idname = "visq.show_visibility"
+    bl_label = "Show visibility"
+    task = VisibilityTask
+
+
+# ---------------------------------------------------------------------------
+# Preferences, settings, panel.
+
+class VisqPreferences(bpy.types.AddonPreferences):
+    bl_idname = __name__
+    address: bpy.props.StringProperty(name="Server address", default="127.0.0.1:50051",
+                                      description="HOST[:PORT] of visq-server")
+    token: bpy.props.StringProperty(name="Token", subtype="PASSWORD", default="",
+                                    description="Bearer token, where the server asks for one")
+    token_file: bpy.props.StringProperty(name="Token file", subtype="FILE_PATH", default="",
+                                         description="A file whose first line is the token (instead of Token)")
+    python_path: bpy.props.StringProperty(
+        name="visq package folder", subtype="DIR_PATH", default="",
+        description="Folder holding the installed visq Python package (a venv's site-packages)")
+    timeout: bpy.props.FloatProperty(name="Timeout (s)", default=30.0, min=1.0, max=3600.0,
+                                     description="Deadline of the short calls (health, moves, update)")
+
+    def draw(self, context):
+        layout = self.layout
+        for name in ("address", "token", "token_file", "python_path", "timeout"):
+            layout.prop(self, name)
+
+
+class VisqSettings(bpy.types.PropertyGroup):
+    scene_name: bpy.props.StringProperty(name="Server scene", default="blender",
+                                         description="Name of the scene on the server")
+    selected_only: bpy.props.BoolProperty(name="Selected only", default=True,
+                                          description="Bake the selected meshes (else every mesh of the scene)")
+    d_max: bpy.props.FloatProperty(name="Distance", default=1.0, min=1e-4, description="Obscurance range d_max")
+    resolution: bpy.props.IntProperty(name="Atlas size", default=256, min=8, max=8192)
+    method: bpy.props.EnumProperty(name="Method", default="raycast", items=(
+        ("auto", "Auto", "The server's faster estimator at the same bound"),
+        ("raycast", "Ray casting", "Embree rays per patch"),
+        ("depth-peeling", "Depth peeling", "The GPU bake over directions")))
+    rays_per_patch: bpy.props.IntProperty(name="Rays per patch", default=64, min=1, max=65536)
+    directions: bpy.props.IntProperty(name="Directions", default=64, min=1, max=65536)
+    map_size: bpy.props.IntProperty(name="Map size", default=64, min=1, max=4096)
+    map_samples: bpy.props.IntProperty(name="Map samples", default=256, min=1, max=65536)
+    swap_faces: bpy.props.BoolProperty(name="Swap faces", default=False,
+                                       description="Use the second selected face as the source")
+
+
+class VISQ_PT_panel(bpy.types.Panel):
+    bl_label = "visq"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "visq"
+
+    def draw(self, context):
+        layout = self.layout
+        prefs = context.preferences.addons[__name__].preferences
+        box = layout.box()
+        box.prop(prefs, "address")
+        box.prop(prefs, "token")
+        box.prop(prefs, "token_file")
+        settings = context.scene.visq
+        layout.prop(settings, "scene_name")
+        layout.prop(settings, "selected_only")
+        layout.prop(settings, "d_max")
+        layout.prop(settings, "resolution")
+        layout.prop(settings, "method")
+        layout.prop(settings, "rays_per_patch" if settings.method == "raycast" else "directions")
+        layout.operator(VISQ_OT_bake.bl_idname, icon="RENDER_STILL")
+        layout.operator(VISQ_OT_move_update.bl_idname, icon="ORIENTATION_GLOBAL")
+        col = layout.column(align=True)
+        col.prop(settings, "map_size")
+        col.prop(settings, "map_samples")
+        col.prop(settings, "swap_faces")
+        layout.operator(VISQ_OT_show_visibility.bl_idname, icon="HIDE_OFF")
+
+
+_classes = (VisqPreferences, VisqSettings, VISQ_OT_bake, VISQ_OT_move_update, VISQ_OT_show_visibility, VISQ_PT_panel)
+
+
+def register():
+    for cls in _classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.visq = bpy.props.PointerProperty(type=VisqSettings)
+
+
+def unregister():
+    del bpy.types.Scene.visq
+    for cls in reversed(_classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,359 @@
+"""What the visq add-on does that needs no Blender: frames, the uploaded
+glTF's triangles, matching them to Blender's, W per corner, patches and the
+worker that runs a call off Blender's main thread. numpy only (visq is
+imported where a call is made), so it is tested with plain python3
+(client/blender/tests/test_core.py).
+
+Frames. Blender's glTF exporter (export_yup, its default) writes a Blender
+point (x, y, z) as glTF (x, z, -y): positions in a mesh's own frame, and
+node transforms as C @ M @ C^-1 with C that rotation. visq flattens the file
+to world space in glTF's frame, so everything sent to the server (a node's
+world matrix, a patch) goes through C, and everything read back (positions)
+through C^-1.
+"""
+import json
+import math
+import struct
+import threading
+import time
+
+import numpy as np
+
+# Blender (x, y, z) -> glTF (x, z, -y), as 4x4 acting on column vectors.
+BLENDER_TO_GLTF = np.array([[1.0, 0.0, 0.0, 0.0],
+                            [0.0, 0.0, 1.0, 0.0],
+                            [0.0, -1.0, 0.0, 0.0],
+                            [0.0, 0.0, 0.0, 1.0]])
+GLTF_TO_BLENDER = BLENDER_TO_GLTF.T
+
+
+def to_gltf_points(points):
+    """(..., 3) Blender coordinates -> glTF's (x, z, -y)."""
+    p = np.asarray(points, dtype=np.float64)
+    return np.stack([p[..., 0], p[..., 2], -p[..., 1]], axis=-1)
+
+
+def to_gltf_matrix(blender_world):
+    """A Blender object's matrix_world (4x4, column vectors, as
+    np.array(obj.matrix_world) gives it) as the world matrix of its node in
+    the file Blender's exporter wrote: the matrix SetNodeTransform takes."""
+    m = np.asarray(blender_world, dtype=np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise ValueError(f"matrix_world: expected a finite 4x4 matrix, got shape {m.shape}")
+    return BLENDER_TO_GLTF @ m @ GLTF_TO_BLENDER
+
+
+# ---------------------------------------------------------------------------
+# The uploaded .glb's triangles, node by node, in the server's order.
+
+class GlbError(ValueError):
+    pass
+
+
+_COMPONENTS = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+
+def read_glb(path):
+    """(json document, BIN chunk bytes) of a binary glTF."""
+    with open(path, "rb") as f:
+        data = f.read()
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise GlbError(f"{path}: not a binary glTF")
+    length, kind = struct.unpack_from("<I4s", data, 12)
+    if kind != b"JSON" or 20 + length > len(data):
+        raise GlbError(f"{path}: the first chunk is not JSON")
+    doc = json.loads(data[20:20 + length].decode("utf-8"))
+    binary = b""
+    offset = 20 + length
+    if offset + 8 <= len(data):
+        size, kind = struct.unpack_from("<I4s", data, offset)
+        if kind == b"BIN\x00":
+            binary = data[offset + 8:offset + 8 + size]
+    return doc, binary
+
+
+def _accessor(doc, binary, index, what):
+    try:
+        accessor = doc["accessors"][index]
+        view = doc["bufferViews"][accessor["bufferView"]]
+        dtype = _COMPONENTS[accessor["componentType"]]
+        width = _WIDTH[accessor["type"]]
+    except (KeyError, IndexError, TypeError):
+        raise GlbError(f"accessors[{index}] ({what}): not a plain accessor this add-on reads") from None
+    if view.get("buffer", 0) != 0 or "sparse" in accessor:
+        raise GlbError(f"accessors[{index}] ({what}): external or sparse data")
+    count = int(accessor["count"])
+    item = np.dtype(dtype).itemsize * width
+    stride = int(view.get("byteStride", item))
+    start = int(view.get("byteOffset", 0)) + int(accessor.get("byteOffset", 0))
+    if count and start + stride * (count - 1) + item > len(binary):
+        raise GlbError(f"accessors[{index}] ({what}): runs past the binary chunk")
+    raw = np.frombuffer(binary, dtype=np.uint8, count=stride * (count - 1) + item if count else 0, offset=start)
+    rows = np.lib.stride_tricks.as_strided(raw, shape=(count, item), strides=(stride, 1)) if count else \
+        np.zeros((0, item), np.uint8)
+    return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
+
+
+def glb_node_triangles(path):
+    """[(node name, (n, 3, 3) float64 corner positions in the node's own glTF
+    frame)] for every node of the default scene, depth first with children
+    in order: the order visq-server flattens a file in (its triangles are
+    numbered node after node, a node's primitives in order)."""
+    doc, binary = read_glb(path)
+    nodes, meshes = doc.get("nodes", []), doc.get("meshes", [])
+    scenes = doc.get("scenes", [])
+    roots = scenes[doc.get("scene", 0)].get("nodes", []) if scenes else list(range(len(nodes)))
+    out = []
+    stack = list(reversed(roots))
+    while stack:
+        index = stack.pop()
+        node = nodes[index]
+        triangles = []
+        if "mesh" in node:
+            for p, primitive in enumerate(meshes[node["mesh"]].get("primitives", [])):
+                what = f"meshes[{node['mesh']}].primitives[{p}]"
+                if primitive.get("mode", 4) != 4:
+                    raise GlbError(f"{what}: mode {primitive.get('mode')}, only triangle lists are read here")
+                positions = _accessor(doc, binary, primitive["attributes"]["POSITION"], what).astype(np.float64)
+                if "indices" in primitive:
+                    indices = _accessor(doc, binary, primitive["indices"], what).reshape(-1).astype(np.int64)
+                else:
+                    indices = np.arange(len(positions))
+                triangles.append(positions[indices[: len(indices) // 3 * 3]].reshape(-1, 3, 3))
+        out.append((node.get("name", ""), np.concatenate(triangles) if triangles else np.zeros((0, 3, 3))))
+        stack.extend(reversed(node.get("children", [])))
+    return out
+
+
+def node_ranges(glb_nodes, server_nodes):
+    """{node name: (first triangle, (n, 3, 3) positions)}: each named node's
+    triangles and where the server's numbering of them starts.
+    server_nodes: [(name, triangle_count)] as SceneInfo.nodes lists them.
+    Refuses a file the server read otherwise (a triangle it dropped, another
+    order): the W it answers could not be put on the right faces."""
+    if len(glb_nodes) != len(server_nodes):
+        raise GlbError(f"the server has {len(server_nodes)} nodes, the exported file {len(glb_nodes)}")
+    ranges, first = {}, 0
+    for (name, triangles), (server_name, count) in zip(glb_nodes, server_nodes):
+        if name != server_name or len(triangles) != count:
+            raise GlbError(f"node '{server_name}' has {count} triangles on the server, '{name}' {len(triangles)} "
+                           "in the exported file")
+        if count:
+            if name in ranges:
+                raise GlbError(f"two nodes are named '{name}'")
+            ranges[name] = (first, triangles)
+        first += count
+    return ranges
+
+
+# ---------------------------------------------------------------------------
+# Blender's loop triangles against the file's.
+
+def match_triangles(blender, server, tolerance=None):
+    """For each Blender triangle ((m, 3, 3) corners, glTF frame), the index of
+    the server triangle with the same corners ((n, 3, 3)) and, per Blender
+    corner, which of that triangle's corners it is: (index (m,), corner
+    (m, 3)); -1 where none matches. Matched by centre on a hash grid, then
+    corner by corner (nearest)."""
+    blender = np.asarray(blender, dtype=np.float64).reshape(-1, 3, 3)
+    server = np.asarray(server, dtype=np.float64).reshape(-1, 3, 3)
+    index = np.full(len(blender), -1, dtype=np.int64)
+    corner = np.full((len(blender), 3), -1, dtype=np.int64)
+    if not len(blender) or not len(server):
+        return index, corner
+    if tolerance is None:
+        extent = float(np.ptp(server.reshape(-1, 3), axis=0).max()) if len(server) else 1.0
+        tolerance = max(extent, 1.0) * 1e-5
+    cell = tolerance * 4
+    centres = server.mean(axis=1)
+    keys = np.floor(centres / cell).astype(np.int64)
+    grid = {}
+    for i, key in enumerate(map(tuple, keys)):
+        grid.setdefault(key, []).append(i)
+    offsets = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
+    for j, tri in enumerate(blender):
+        c = tri.mean(axis=0)
+        kx, ky, kz = np.floor(c / cell).astype(np.int64)
+        best, best_error = -1, tolerance * 3
+        for a, b, d in offsets:
+            for i in grid.get((kx + a, ky + b, kz + d), ()):
+                # Each Blender corner to its nearest server corner.
+                distance = np.linalg.norm(tri[:, None, :] - server[i][None, :, :], axis=2)
+                error = distance.min(axis=1).max()
+                if error < best_error:
+                    best, best_error = i, error
+        if best >= 0:
+            distance = np.linalg.norm(tri[:, None, :] - server[best][None, :, :], axis=2)
+            index[j] = best
+            corner[j] = distance.argmin(axis=1)
+    return index, corner
+
+
+def loop_uvs(atlas_uv, server_index, corner, loops, loop_count):
+    """Blender UVs (loop_count, 2) for the atlas layer: each loop triangle's
+    corners from the atlas UVs ((N, 3, 2) glTF UVs, v down) of the server
+    triangle it matched (server_index: global indices, -1 unmatched), flipped
+    to Blender's v up. Returns (uvs, written mask per loop, loops whose two
+    triangles disagreed: a quad the atlas cut apart)."""
+    uvs = np.zeros((loop_count, 2), dtype=np.float32)
+    written = np.zeros(loop_count, dtype=bool)
+    torn = 0
+    for t in np.nonzero(server_index >= 0)[0]:
+        for k in range(3):
+            uv = atlas_uv[server_index[t], corner[t, k]]
+            value = (uv[0], 1.0 - uv[1])
+            loop = loops[t, k]
+            if written[loop] and np.abs(uvs[loop] - value).max() > 1e-6:
+                torn += 1
+            uvs[loop] = value
+            written[loop] = True
+    return uvs, written, torn
+
+
+def triangle_areas(corners):
+    corners = np.asarray(corners, dtype=np.float64)
+    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+
+
+def polygon_w(triangle_w, polygon, areas, polygon_count):
+    """Per polygon, the area-weighted mean of its loop triangles' W
+    ((m, 3) per triangle, NaN rows skipped): what its corners show.
+    Returns (polygon_count, 3), NaN where no triangle had a value."""
+    triangle_w = np.asarray(triangle_w, dtype=np.float64)
+    ok = np.isfinite(triangle_w).all(axis=1)
+    weights = np.where(ok, np.maximum(areas, 1e-30), 0.0)
+    sums = np.zeros((polygon_count, 3))
+    np.add.at(sums, polygon, np.where(ok[:, None], triangle_w, 0.0) * weights[:, None])
+    total = np.zeros(polygon_count)
+    np.add.at(total, polygon, weights)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / total[:, None]
+
+
+def corner_colors(per_polygon_w, loop_polygon):
+    """RGBA per loop (corner) from per-polygon W: the colour attribute."""
+    w = np.nan_to_num(np.asarray(per_polygon_w, dtype=np.float32), nan=1.0)[loop_polygon]
+    return np.concatenate([w, np.ones((len(w), 1), np.float32)], axis=1)
+
+
+# ---------------------------------------------------------------------------
+# Images: the atlas is indexed [y, x] with row 0 at v = 0 (glTF's top);
+# Blender stores rows from the bottom.
+
+def atlas_to_pixels(w):
+    """(height, width, 3) atlas W -> Blender image pixels (height, width, 4)
+    float32, rows bottom up."""
+    w = np.asarray(w, dtype=np.float32)
+    pixels = np.ones(w.shape[:2] + (4,), dtype=np.float32)
+    pixels[..., :3] = w[::-1]
+    return pixels
+
+
+def apply_texels(pixels, texels, w):
+    """Writes changed texels (y * width + x) into Blender pixels in place."""
+    height, width = pixels.shape[:2]
+    texels = np.asarray(texels, dtype=np.int64)
+    if texels.size and (texels.min() < 0 or texels.max() >= width * height):
+        raise ValueError(f"texels: index beyond the {width}x{height} atlas")
+    y, x = texels // width, texels % width
+    pixels[height - 1 - y, x, :3] = np.asarray(w, dtype=np.float32).reshape(-1, 3)
+    return len(texels)
+
+
+def map_to_pixels(fraction):
+    """(height, width) visible fraction, row y along the receiver's edge_v,
+    -> grey Blender pixels: Blender's row 0 is the image's bottom, which is
+    where a receiver face's edge_v starts: no flip."""
+    f = np.asarray(fraction, dtype=np.float32)
+    pixels = np.ones(f.shape + (4,), dtype=np.float32)
+    pixels[..., 0] = pixels[..., 1] = pixels[..., 2] = f
+    return pixels
+
+
+def face_patch(corners):
+    """A Blender face's world corners ((k, 3), k >= 3, counter-clockwise seen
+    from its front) as a visq patch in glTF's frame: origin the first corner,
+    edge_u to the second, edge_v to the last, so edge_u x edge_v faces the
+    face's front (a quad's parallelogram; a triangle's spans its bounds)."""
+    c = to_gltf_points(np.asarray(corners, dtype=np.float64))
+    if c.ndim != 2 or len(c) < 3 or not np.isfinite(c).all():
+        raise ValueError("face: expected three or more finite corners")
+    origin, u, v = c[0], c[1] - c[0], c[-1] - c[0]
+    if not np.linalg.norm(np.cross(u, v)) > 0:
+        raise ValueError("face: its first edges are parallel (a degenerate face)")
+    return tuple(origin), tuple(u), tuple(v)
+
+
+# ---------------------------------------------------------------------------
+# A call off Blender's main thread.
+
+class Job:
+    """Runs work(job) on a thread; Blender's modal operator polls it on a
+    timer (done, fraction, message) and calls cancel() on Esc. work() reads
+    job.cancellation (a visq.Cancellation, or None before visq is imported)
+    and reports with job.report_progress(fraction, message)."""
+
+    def __init__(self, work, cancellation=None):
+        self._work = work
+        self.cancellation = cancellation
+        self.fraction = 0.0
+        self.message = ""
+        self.result = None
+        self.error = None
+        self.cancel_requested = False
+        self.started = time.monotonic()
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="visq-blender-job", daemon=True)
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def run_here(self):
+        """The same work on the calling thread (scripts, background mode)."""
+        self._run()
+        return self
+
+    def _run(self):
+        try:
+            self.result = self._work(self)
+        except BaseException as error:  # shown to the artist, never lost on the thread
+            self.error = error
+        finally:
+            self._done.set()
+
+    def report_progress(self, fraction, message=""):
+        if math.isfinite(fraction):
+            self.fraction = min(1.0, max(0.0, float(fraction)))
+        self.message = message
+
+    def cancel(self):
+        self.cancel_requested = True
+        if self.cancellation is not None:
+            self.cancellation.cancel()
+
+    @property
+    def done(self):
+        return self._done.is_set()
+
+    def wait(self, timeout=None):
+        return self._done.wait(timeout)
+
+
+def describe_error(error):
+    """One line for Blender's report: what failed, and what to do."""
+    name = type(error).__name__
+    code = getattr(error, "code", None)
+    text = str(error) or name
+    if name == "Cancelled":
+        return "visq: cancelled"
+    if code is not None and getattr(code, "name", "") == "UNAVAILABLE":
+        return f"visq: the server cannot be reached ({text}); check the address in the add-on's preferences"
+    if code is not None and getattr(code, "name", "") == "UNAUTHENTICATED":
+        return f"visq: the server refused the token ({text}); check the token in the add-on's preferences"
+    if code is not None and getattr(code, "name", "") == "DEADLINE_EXCEEDED":
+        return f"visq: the server did not answer in time ({text})"
+    if isinstance(error, (OSError, ValueError)):
+        return f"visq: {text}"
+    return f"visq: {name}: {text}"
