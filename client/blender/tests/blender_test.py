@@ -88,7 +88,10 @@ floor = add("primitive_grid_add", "Floor", x_subdivisions=12, y_subdivisions=12,
 cube = add("primitive_cube_add", "Cube", size=1.0, location=(0.0, 0.0, 0.55), rotation=(0, 0, math.radians(30)))
 crate = add("primitive_cube_add", "Crate", size=0.6, location=(1.3, -1.3, 0.32))
 lamp = add("primitive_plane_add", "Lamp", size=0.6, location=(0.0, 0.0, 3.0), rotation=(math.pi, 0, 0))
-objects = [floor, cube, crate, lamp]
+# Mirrored (a negative scale): the server flips its triangles' winding.
+mirror = add("primitive_cube_add", "Mirror", size=0.5, location=(-1.4, -1.4, 0.25))
+mirror.scale = (-1.0, 0.6, 1.0)
+objects = [floor, cube, crate, lamp, mirror]
 bpy.context.view_layer.update()
 settings = scene.visq
 settings.scene_name = "blender_test"
@@ -197,6 +200,7 @@ pixels = image_pixels(result["image"])
 check(pixels.shape[:2] == (height, width), f"image {pixels.shape}")
 
 matched = {}
+shear_worst = {}
 uv_worst = color_worst = texel_worst = 0.0
 texel_vs_triangle = []
 for obj in objects:
@@ -206,6 +210,10 @@ for obj in objects:
     loops, poly, local = loop_triangles(obj)
     gltf_local = np.stack([local[..., 0], local[..., 2], -local[..., 1]], axis=-1)  # Blender -> glTF axes
     first, tree, tris = mapping[obj.name]
+    mw = np.array(obj.matrix_world)
+    world = local @ mw[:3, :3].T + mw[:3, 3]
+    mirrored = np.linalg.det(mw[:3, :3]) < 0
+    check(mirrored == (obj is mirror), f"{obj.name}: mirrored {mirrored}")
     index = np.empty(len(loops), np.int64)
     for j, tri in enumerate(gltf_local):
         _, i, distance = tree.find(tri.mean(axis=0))
@@ -220,8 +228,18 @@ for obj in objects:
         server_tri = tris[index[j] - first]
         for k in range(3):
             corner = int(np.linalg.norm(server_tri - tri[k], axis=1).argmin())
+            if mirrored:  # the server flips a mirrored node's winding (docs/scenes.md): corners 1, 2 swap
+                corner = (0, 2, 1)[corner]
             a = exported.atlas_uv[index[j], corner]
             uv_worst = max(uv_worst, float(np.abs(uv[loops[j, k]] - (a[0], 1 - a[1])).max()))
+        # The atlas maps a triangle without shear: each UV edge is its 3D
+        # edge scaled alike (corners put back in the wrong order, as a
+        # mirrored node's flipped winding would, break it on scalene ones).
+        p3 = world[j]  # the atlas is laid out in world space (the mirror's scale is not uniform)
+        p2 = np.array([uv[loops[j, k]] for k in range(3)], np.float64)
+        ratios = [np.linalg.norm(p2[(k + 1) % 3] - p2[k]) / max(np.linalg.norm(p3[(k + 1) % 3] - p3[k]), 1e-12)
+                  for k in range(3)]
+        shear_worst[obj.name] = max(shear_worst.get(obj.name, 0.0), (max(ratios) - min(ratios)) / np.mean(ratios))
         # The image at the triangle's UV centre is the atlas texel there.
         cu, cv = uv[loops[j]].mean(axis=0)
         x, y = min(width - 1, int(cu * width)), min(height - 1, int((1 - cv) * height))
@@ -236,9 +254,11 @@ for obj in objects:
     np.add.at(total, poly, areas)
     expected /= total[:, None]
     color_worst = max(color_worst, float(np.abs(polygon_colors(obj) - expected).max()))
+log(f"atlas shear per object: { {k: round(v, 4) for k, v in shear_worst.items()} }")
 log(f"UVs vs the atlas: worst {uv_worst:.2e}; colours vs triangle_w: worst {color_worst:.2e}; "
     f"image vs atlas texels: worst {texel_worst:.2e}; image vs triangle_w: mean {np.mean(texel_vs_triangle):.3f}")
 torn_allowed = result["torn"]
+check(max(shear_worst.values()) < 1e-3, f"atlas UVs on the wrong corners (shear {shear_worst})")
 check(uv_worst < 1e-6 or torn_allowed, f"visq_atlas differs from the server's atlas UVs by {uv_worst}")
 check(color_worst < 1e-5, f"visq_w differs from the area-weighted triangle_w by {color_worst}")
 check(texel_worst < 1e-6, f"the image differs from the atlas by {texel_worst}")

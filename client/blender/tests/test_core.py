@@ -107,6 +107,10 @@ class Matching(unittest.TestCase):
         self.assertEqual(index[0], -1)
         self.assertTrue((corner[0] == -1).all())
 
+    def test_a_mirrored_nodes_corners_swap(self):
+        np.testing.assert_array_equal(core.server_corners([[0, 1, 2], [-1, -1, -1]], True), [[0, 2, 1], [-1, -1, -1]])
+        np.testing.assert_array_equal(core.server_corners([[2, 0, 1]], False), [[2, 0, 1]])
+
     def test_loop_uvs_flip_v_and_count_torn_corners(self):
         atlas = np.array([[[0.1, 0.2], [0.3, 0.2], [0.1, 0.4]], [[0.5, 0.5], [0.6, 0.5], [0.5, 0.6]]], np.float32)
         loops = np.array([[0, 1, 2], [2, 1, 3]])

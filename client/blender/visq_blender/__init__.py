@@ -244,6 +244,7 @@ class BakeTask:
                 raise VisqAddonError(f"object '{name}' is not a node of the uploaded scene")
             first, triangles = ranges[name]
             local, corner = core.match_triangles(data["corners"], triangles)
+            corner = core.server_corners(corner, np.linalg.det(data["matrix"][:3, :3]) < 0)
             maps[name] = {"server": np.where(local >= 0, local + first, -1), "corner": corner,
                           "unmatched": int((local < 0).sum())}
         return {"bake": bake, "export": exported, "maps": maps, "info": info}

@@ -190,6 +190,17 @@ def match_triangles(blender, server, tolerance=None):
     return index, corner
 
 
+def server_corners(corner, mirrored):
+    """Corner indices in the file's order -> the server's: visq flips the
+    winding of a mirrored node's triangles (corners 1 and 2 swap), and its
+    atlas UVs follow its own order."""
+    corner = np.asarray(corner, dtype=np.int64)
+    if not mirrored:
+        return corner
+    swapped = np.array([0, 2, 1])[np.clip(corner, 0, 2)]
+    return np.where(corner >= 0, swapped, corner)
+
+
 def loop_uvs(atlas_uv, server_index, corner, loops, loop_count):
     """Blender UVs (loop_count, 2) for the atlas layer: each loop triangle's
     corners from the atlas UVs ((N, 3, 2) glTF UVs, v down) of the server
