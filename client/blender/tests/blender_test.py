@@ -345,6 +345,14 @@ check(np.array_equal(pixels_after[mask], pixels_before[mask]), "texels the updat
 log(f"{changed_faces} faces refreshed, {unchanged_faces} kept bit for bit")
 figures.append(f"update {update_s:.2f} s")
 
+# The server lost the bake (unloaded, restarted): Move and update says so.
+cube.location.x += 0.2
+bpy.context.view_layer.update()
+with visq.Client(ADDRESS) as c:
+    c.unload_scene("blender_test")
+expect_error(bpy.ops.visq.move_update, ["no longer has this bake", "Bake obscurances again"])
+check(bpy.ops.visq.bake() == {"FINISHED"}, "the bake again did not finish")
+
 # -- cancel: a long bake on the worker thread, as the modal operator runs it
 settings.resolution, settings.rays_per_patch = 512, 4096
 task = visq_blender.BakeTask(bpy.context)
@@ -364,6 +372,11 @@ log(f"cancelled at '{job.message}' ({job.fraction:.0%}); stopped {cancel_s:.2f} 
 check(cancel_s < 5.0, f"the bake took {cancel_s:.2f} s to stop")
 figures.append(f"cancel {cancel_s:.2f} s")
 settings.resolution, settings.rays_per_patch = 64, 64
+# The cancelled bake replaced the server's scene: the session went with it.
+cube.location.x -= 0.2
+bpy.context.view_layer.update()
+expect_error(bpy.ops.visq.move_update, ["nothing baked", "run Bake obscurances first"])
+check(bpy.ops.visq.bake() == {"FINISHED"}, "the bake after the cancel did not finish")
 
 # -- show visibility: the lamp's face to floor faces -------------------------
 def select_faces(pairs, active):
@@ -411,7 +424,15 @@ closed_port = probe.getsockname()[1]
 probe.close()
 prefs.address = f"127.0.0.1:{closed_port}"
 expect_error(bpy.ops.visq.bake, ["cannot be reached"])
-prefs.address = ADDRESS
+# A server that accepts connections and never answers: the health call's
+# deadline (the preferences' timeout) ends it.
+silent = socket.socket()
+silent.bind(("127.0.0.1", 0))
+silent.listen(8)
+prefs.address, prefs.timeout = f"127.0.0.1:{silent.getsockname()[1]}", 2.0
+expect_error(bpy.ops.visq.bake, ["did not answer in time"], limit_s=8.0)
+silent.close()
+prefs.address, prefs.timeout = ADDRESS, 10.0
 prefs.token_file = os.path.join(SCRATCH, "no-such-token")
 expect_error(bpy.ops.visq.bake, ["token file"])
 prefs.token_file = ""

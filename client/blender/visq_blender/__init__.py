@@ -175,7 +175,20 @@ def _write_colors(obj, colors):
     if attribute is None:
         attribute = mesh.color_attributes.new(COLOR_ATTRIBUTE, "FLOAT_COLOR", "CORNER")
     attribute.data.foreach_set("color", np.ascontiguousarray(colors, dtype=np.float32).reshape(-1))
+    # The viewport's Solid mode with Color: Attribute shows the active one.
+    mesh.color_attributes.active_color = attribute
     mesh.update()
+
+
+def _show_colors(context):
+    """Solid shading by colour attribute in the 3D views, so W shows at once
+    (Blender's renderers ignore glTF's occlusion; the attribute they see)."""
+    screen = context.screen if context.window is not None else None
+    for area in (screen.areas if screen else ()):
+        if area.type == "VIEW_3D":
+            shading = area.spaces.active.shading
+            if shading.type == "SOLID":
+                shading.color_type = "VERTEX"
 
 
 def _show_image(context, image):
@@ -197,6 +210,7 @@ class BakeTask:
         self.visq = import_visq(context)
         self.prefs = _prefs(context)
         self.scene_name = _server_scene_name(context)
+        self.blender_scene = context.scene.name
         self.settings = {"d_max": settings.d_max, "resolution": settings.resolution, "method": settings.method,
                          "rays_per_patch": settings.rays_per_patch, "directions": settings.directions}
         objects = _mesh_objects(context, settings.selected_only)
@@ -220,6 +234,8 @@ class BakeTask:
             _check_server(client, self.prefs)
             job.report_progress(0.01, "uploading")
             client.upload_gltf(self.glb, name=self.scene_name, replace=True)
+            # The server's earlier bake went with the replaced scene.
+            _sessions.pop(self.blender_scene, None)
             info = client.get_scene(self.scene_name, include_nodes=True)
             ranges = core.node_ranges(core.glb_node_triangles(self.glb),
                                       [(n.name, n.triangle_count) for n in info.nodes])
@@ -283,6 +299,7 @@ class BakeTask:
             _write_colors(obj, core.corner_colors(polygons, loop_polygon))
             obj["visq_image"] = image.name
             data.update(m)
+        _show_colors(context)
         _sessions[context.scene.name] = {"scene": self.scene_name, "objects": self.objects, "image": image.name,
                                          "glb": self.glb, "triangle_w": bake.triangle_w.copy()}
         last_result.clear()

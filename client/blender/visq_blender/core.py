@@ -363,6 +363,8 @@ def describe_error(error):
         return f"visq: the server cannot be reached ({text}); check the address in the add-on's preferences"
     if code is not None and getattr(code, "name", "") == "UNAUTHENTICATED":
         return f"visq: the server refused the token ({text}); check the token in the add-on's preferences"
+    if code is not None and getattr(code, "name", "") in ("NOT_FOUND", "FAILED_PRECONDITION"):
+        return f"visq: the server no longer has this bake ({text}); run Bake obscurances again"
     if code is not None and getattr(code, "name", "") == "DEADLINE_EXCEEDED":
         return f"visq: the server did not answer in time ({text})"
     if isinstance(error, (OSError, ValueError)):
