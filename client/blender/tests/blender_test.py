@@ -362,6 +362,16 @@ while not job.done and not job.message.startswith("baking") and time.monotonic()
     time.sleep(0.02)
 time.sleep(0.5)
 check(not job.done, f"the long bake ended before it was cancelled ({job.error!r})")
+
+
+def bake_calls():
+    with visq.Client(ADDRESS) as c:
+        methods = {m.method.rsplit("/", 1)[-1]: m for m in c.stats().methods}
+    m = methods.get("ComputeObscurances")
+    return (m.calls, m.errors) if m else (0, 0)
+
+
+calls_before = bake_calls()
 t = time.monotonic()
 job.cancel()
 check(job.wait(20), "the bake did not stop within 20 s of cancel")
@@ -370,6 +380,13 @@ check(type(job.error).__name__ == "Cancelled", f"the cancelled bake ended with {
 check(core.describe_error(job.error) == "visq: cancelled", core.describe_error(job.error))
 log(f"cancelled at '{job.message}' ({job.fraction:.0%}); stopped {cancel_s:.2f} s after cancel")
 check(cancel_s < 5.0, f"the bake took {cancel_s:.2f} s to stop")
+# The server ended the call too (its stats count a call when it ends).
+while bake_calls()[1] <= calls_before[1] and time.monotonic() - t < 10:
+    time.sleep(0.05)
+server_stop_s = time.monotonic() - t
+log(f"ComputeObscurances calls/errors {calls_before} -> {bake_calls()}: the server ended it {server_stop_s:.2f} s "
+    "after cancel")
+check(bake_calls()[1] > calls_before[1], "the server did not end the cancelled bake within 10 s")
 figures.append(f"cancel {cancel_s:.2f} s")
 settings.resolution, settings.rays_per_patch = 64, 64
 # The cancelled bake replaced the server's scene: the session went with it.
