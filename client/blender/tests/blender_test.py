@@ -1,6 +1,7 @@
 # The visq add-on in Blender's background mode against a real visq-server.
 #   blender -b --factory-startup --python-exit-code 1 --python blender_test.py -- \
-#     --address HOST:PORT --package DIR_WITH_visq --addon client/blender/visq_blender --scratch DIR
+#     --address HOST:PORT --package DIR_WITH_visq --addon client/blender/visq_blender --scratch DIR \
+#     --token-file FILE
 # (tests/blender/run_blender_test.sh runs it). It installs the add-on from a
 # zip as an artist would, builds a scene (a floor grid, two cubes, a lamp
 # plane above), and checks, against the server's own answers:
@@ -37,6 +38,7 @@ from mathutils.kdtree import KDTree
 argv = sys.argv[sys.argv.index("--") + 1:]
 args = dict(zip(argv[0::2], argv[1::2]))
 ADDRESS, PACKAGE, ADDON, SCRATCH = args["--address"], args["--package"], args["--addon"], args["--scratch"]
+TOKEN_FILE = args["--token-file"]
 started = time.monotonic()
 figures = []
 
@@ -64,8 +66,9 @@ prefs = bpy.context.preferences.addons["visq_blender"].preferences
 prefs.address = ADDRESS
 prefs.python_path = PACKAGE
 prefs.timeout = 10.0
+prefs.token_file = TOKEN_FILE
 visq = visq_blender.import_visq(bpy.context)  # as the operators find it: PACKAGE from the preferences
-with visq.Client(ADDRESS) as c:
+with visq.Client(ADDRESS, token_file=TOKEN_FILE) as c:
     c.wait_until_serving(60)
 log("add-on installed and enabled; server SERVING")
 
@@ -73,7 +76,7 @@ log("add-on installed and enabled; server SERVING")
 bpy.ops.wm.read_factory_settings(use_empty=True)
 bpy.ops.preferences.addon_enable(module="visq_blender")
 prefs = bpy.context.preferences.addons["visq_blender"].preferences
-prefs.address, prefs.python_path, prefs.timeout = ADDRESS, PACKAGE, 10.0
+prefs.address, prefs.python_path, prefs.timeout, prefs.token_file = ADDRESS, PACKAGE, 10.0, TOKEN_FILE
 scene = bpy.context.scene
 
 
@@ -348,7 +351,7 @@ figures.append(f"update {update_s:.2f} s")
 # The server lost the bake (unloaded, restarted): Move and update says so.
 cube.location.x += 0.2
 bpy.context.view_layer.update()
-with visq.Client(ADDRESS) as c:
+with visq.Client(ADDRESS, token_file=TOKEN_FILE) as c:
     c.unload_scene("blender_test")
 expect_error(bpy.ops.visq.move_update, ["no longer has this bake", "Bake obscurances again"])
 check(bpy.ops.visq.bake() == {"FINISHED"}, "the bake again did not finish")
@@ -365,7 +368,7 @@ check(not job.done, f"the long bake ended before it was cancelled ({job.error!r}
 
 
 def bake_calls():
-    with visq.Client(ADDRESS) as c:
+    with visq.Client(ADDRESS, token_file=TOKEN_FILE) as c:
         methods = {m.method.rsplit("/", 1)[-1]: m for m in c.stats().methods}
     m = methods.get("ComputeObscurances")
     return (m.calls, m.errors) if m else (0, 0)
@@ -408,6 +411,12 @@ def select_faces(pairs, active):
 
 
 settings.map_size, settings.map_samples = 16, 64
+crate.location.z += 0.1
+bpy.context.view_layer.update()
+select_faces([(lamp, 0), (floor, 0)], floor)
+expect_error(bpy.ops.visq.show_visibility, ["'Crate' moved since the bake", "Move and update"])
+crate.location.z -= 0.1
+bpy.context.view_layer.update()
 hidden_face = int(np.argmin(np.hypot(centres[:, 0] + 1.0, centres[:, 1] - 0.9)))  # under the moved cube
 seen_face = int(np.argmax(np.where(far, -np.hypot(centres[:, 0], centres[:, 1]), -np.inf)))  # the nearest far face
 fractions = []
@@ -452,7 +461,9 @@ silent.close()
 prefs.address, prefs.timeout = ADDRESS, 10.0
 prefs.token_file = os.path.join(SCRATCH, "no-such-token")
 expect_error(bpy.ops.visq.bake, ["token file"])
-prefs.token_file = ""
+prefs.token_file, prefs.token = "", "not-the-token"
+expect_error(bpy.ops.visq.bake, ["refused the token"])
+prefs.token_file, prefs.token = TOKEN_FILE, ""
 for o in objects:
     o.select_set(False)
 expect_error(bpy.ops.visq.bake, ["no mesh object"])

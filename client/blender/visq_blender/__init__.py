@@ -68,21 +68,29 @@ def import_visq(context):
     return visq
 
 
-def _client(visq, prefs):
+def _connection(context):
+    """The preferences as plain values, read on the main thread (a worker
+    thread must not touch Blender's data), checked."""
+    prefs = _prefs(context)
     address = prefs.address.strip()
     if not address or any(c.isspace() for c in address):
         raise VisqAddonError(f"server address '{prefs.address}' is not HOST[:PORT] (add-on preferences)")
     token_file = bpy.path.abspath(prefs.token_file) if prefs.token_file else None
     if token_file and not os.path.isfile(token_file):
         raise VisqAddonError(f"token file '{token_file}' does not exist")
-    return visq.Client(address, token=prefs.token or None, token_file=token_file,
-                       timeout=prefs.timeout)
+    return {"address": address, "token": prefs.token or None, "token_file": token_file,
+            "timeout": float(prefs.timeout)}
 
 
-def _check_server(client, prefs):
+def _client(visq, connection):
+    return visq.Client(connection["address"], token=connection["token"], token_file=connection["token_file"],
+                       timeout=connection["timeout"])
+
+
+def _check_server(client, connection):
     """One short health call first: an address that swallows packets fails
     here within the timeout instead of stalling the upload."""
-    status = client.health(timeout=min(prefs.timeout, 10.0))
+    status = client.health(timeout=min(connection["timeout"], 10.0))
     if status != "SERVING":
         raise VisqAddonError(f"the server at {client.address} is {status}, not SERVING")
 
@@ -208,7 +216,7 @@ class BakeTask:
     def __init__(self, context, cancellation=None):
         settings = context.scene.visq
         self.visq = import_visq(context)
-        self.prefs = _prefs(context)
+        self.connection = _connection(context)
         self.scene_name = _server_scene_name(context)
         self.blender_scene = context.scene.name
         self.settings = {"d_max": settings.d_max, "resolution": settings.resolution, "method": settings.method,
@@ -229,9 +237,9 @@ class BakeTask:
 
     def work(self, job):
         visq = self.visq
-        with _client(visq, self.prefs) as client:
+        with _client(visq, self.connection) as client:
             job.report_progress(0.0, "connecting")
-            _check_server(client, self.prefs)
+            _check_server(client, self.connection)
             job.report_progress(0.01, "uploading")
             client.upload_gltf(self.glb, name=self.scene_name, replace=True)
             # The server's earlier bake went with the replaced scene.
@@ -319,7 +327,7 @@ class BakeTask:
 class UpdateTask:
     def __init__(self, context, cancellation=None):
         self.visq = import_visq(context)
-        self.prefs = _prefs(context)
+        self.connection = _connection(context)
         session = _sessions.get(context.scene.name)
         if session is None:
             raise VisqAddonError("nothing baked in this Blender session: run Bake obscurances first")
@@ -340,8 +348,8 @@ class UpdateTask:
 
     def work(self, job):
         scene = self.session["scene"]
-        with _client(self.visq, self.prefs) as client:
-            _check_server(client, self.prefs)
+        with _client(self.visq, self.connection) as client:
+            _check_server(client, self.connection)
             for i, (name, matrix) in enumerate(self.moved.items()):
                 job.report_progress(0.5 * i / len(self.moved), f"moving {name}")
                 client.set_node_transform(scene, name, core.to_gltf_matrix(matrix))
@@ -423,7 +431,7 @@ class VisibilityTask:
 
     def __init__(self, context, cancellation=None):
         self.visq = import_visq(context)
-        self.prefs = _prefs(context)
+        self.connection = _connection(context)
         settings = context.scene.visq
         faces = _selected_faces(context)
         if len(faces) != 2:
@@ -436,14 +444,19 @@ class VisibilityTask:
         session = _sessions.get(context.scene.name)
         if session is None:
             raise VisqAddonError("no scene uploaded in this Blender session: run Bake obscurances first")
+        # The server answers for the placements it has.
+        for name, data in session["objects"].items():
+            obj = bpy.data.objects.get(name)
+            if obj is not None and not np.allclose(_matrix(obj), data["matrix"], rtol=0, atol=1e-7):
+                raise VisqAddonError(f"'{name}' moved since the bake: run Move and update first")
         self.scene_name = session["scene"]
         self.size = settings.map_size
         self.samples = settings.map_samples
         self.cancellation = cancellation or self.visq.Cancellation()
 
     def work(self, job):
-        with _client(self.visq, self.prefs) as client:
-            _check_server(client, self.prefs)
+        with _client(self.visq, self.connection) as client:
+            _check_server(client, self.connection)
             job.report_progress(0.1, "hidden-sample map")
             return client.hidden_sample_map(self.scene_name, source=self.visq.Patch(*self.source),
                                             receiver=self.visq.Patch(*self.receiver), width=self.size,
