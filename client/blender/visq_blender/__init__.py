@@ -332,7 +332,7 @@ class UpdateTask:
         if session is None:
             raise VisqAddonError("nothing baked in this Blender session: run Bake obscurances first")
         self.session = session
-        self.moved = {}
+        moved = []
         for name, data in session["objects"].items():
             obj = bpy.data.objects.get(name)
             if obj is None:
@@ -341,7 +341,13 @@ class UpdateTask:
                 raise VisqAddonError(f"'{name}' was edited, not only moved; bake again")
             matrix = _matrix(obj)
             if not np.allclose(matrix, data["matrix"], rtol=0, atol=1e-7):
-                self.moved[name] = matrix
+                depth, parent = 0, obj.parent
+                while parent is not None:
+                    depth, parent = depth + 1, parent.parent
+                moved.append((depth, name, matrix))
+        # Parents first: SetNodeTransform carries a node's subtree, and each
+        # child's own world matrix then puts it where Blender has it.
+        self.moved = {name: matrix for _, name, matrix in sorted(moved, key=lambda m: m[0])}
         if not self.moved:
             raise VisqAddonError("no baked object moved since the bake")
         self.cancellation = cancellation or self.visq.Cancellation()
@@ -481,8 +487,11 @@ class _TaskOperator:
     _running = None  # one call at a time: Blender's data is written when it ends
 
     def _fail(self, error):
-        self.report({"ERROR"}, str(error) if isinstance(error, VisqAddonError) and str(error).startswith("visq")
-                    else (f"visq: {error}" if isinstance(error, VisqAddonError) else core.describe_error(error)))
+        if type(error).__name__ == "Cancelled":
+            self.report({"WARNING"}, core.describe_error(error))
+        else:
+            self.report({"ERROR"}, f"visq: {error}" if isinstance(error, VisqAddonError)
+                        else core.describe_error(error))
         return {"CANCELLED"}
 
     def _prepare(self, context):
@@ -523,6 +532,11 @@ class _TaskOperator:
         if context.workspace is not None:
             context.workspace.status_text_set(None)
         _TaskOperator._running = None
+
+    def cancel(self, context):
+        """Blender ends the modal (the window closes): stop the call too."""
+        self._job.cancel()
+        self._end(context)
 
     def modal(self, context, event):
         job = self._job
