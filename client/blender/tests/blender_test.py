@@ -18,11 +18,15 @@
 #     the cube (hidden) and far away (seen), as an image;
 #   hostile inputs: a bad address, a server that is down, nothing to bake,
 #     nothing moved, one face selected: each a clear error report, fast.
-# Background mode has no event loop, so the operators run through execute()
-# (the same prepare / work / finish as the modal invoke(), with work() on the
-# calling thread); the cancel check runs work() on a worker thread as the
-# modal operator does. The modal shell itself (timer, progress bar, Esc) is
-# not exercised here.
+#   a bake on a worker thread, polled as the modal operator polls it: the
+#     progress states (depth peeling's per-direction messages) never go back;
+#   the server's token, from the add-on's token file; a wrong one refused.
+# Background mode has no window and no event loop, so the operators run
+# through execute() (the same prepare / work / finish as the modal invoke(),
+# with work() on the calling thread); the threaded bake and the cancel run
+# work() on a worker thread as invoke() does and call finish() / cancel() as
+# modal() does on its timer and on Esc. The modal shell itself (the timer
+# event, wm.progress_update, the status text, the Esc key) is not exercised.
 import math
 import os
 import shutil
@@ -354,7 +358,28 @@ bpy.context.view_layer.update()
 with visq.Client(ADDRESS, token_file=TOKEN_FILE) as c:
     c.unload_scene("blender_test")
 expect_error(bpy.ops.visq.move_update, ["no longer has this bake", "Bake obscurances again"])
-check(bpy.ops.visq.bake() == {"FINISHED"}, "the bake again did not finish")
+
+# -- bake again as the modal operator runs it: work() on a worker thread,
+# polled for its progress (what the status bar shows), finish() here. The
+# GPU's depth peeling sends progress per direction (ray casting sends none).
+settings.method, settings.directions = "depth-peeling", 16
+task = visq_blender.BakeTask(bpy.context)
+job = core.Job(task.work, task.cancellation).start()
+seen = []
+while not job.done:
+    if not seen or seen[-1] != (job.message, job.fraction):
+        seen.append((job.message, job.fraction))
+    time.sleep(0.005)
+check(job.error is None, f"the threaded bake failed: {job.error!r}")
+message = task.finish(bpy.context, job.result)
+fractions = [f for _, f in seen]
+log(f"threaded depth-peeling bake: {len(seen)} progress states polled, "
+    f"{job.result['bake'].progress_messages} progress messages; '{message}'")
+check(fractions == sorted(fractions), f"progress went backwards: {seen}")
+check(job.result["bake"].progress_messages > 0, "the depth-peeling bake sent no progress")
+check(any(m.startswith("baking ") and "/16" in m for m, _ in seen), f"no 'baking n/16' state polled: {seen}")
+check(visq_blender._sessions[scene.name]["scene"] == "blender_test", "the threaded bake left no session")
+settings.method = "raycast"
 
 # -- cancel: a long bake on the worker thread, as the modal operator runs it
 settings.resolution, settings.rays_per_patch = 512, 4096
