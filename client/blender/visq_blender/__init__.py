@@ -143,10 +143,12 @@ def _export_glb(context, objects, path):
             o.select_set(False)
         for o in objects:
             o.select_set(True)
-        result = bpy.ops.export_scene.gltf(
-            filepath=path, export_format="GLB", use_selection=True, export_yup=True, export_apply=False,
-            export_animations=False, export_cameras=False, export_lights=False, export_extras=False,
-            export_skins=False, export_morph=False, export_image_format="NONE", export_colors=False)
+        options = dict(export_format="GLB", use_selection=True, export_yup=True, export_apply=False,
+                       export_animations=False, export_cameras=False, export_lights=False, export_extras=False,
+                       export_skins=False, export_morph=False, export_image_format="NONE", export_colors=False)
+        # Only the options this Blender's exporter has (they change between versions).
+        known = bpy.ops.export_scene.gltf.get_rna_type().properties.keys()
+        result = bpy.ops.export_scene.gltf(filepath=path, **{k: v for k, v in options.items() if k in known})
     finally:
         for o in objects:
             o.select_set(False)
