@@ -61,6 +61,8 @@ archive = shutil.make_archive(os.path.join(SCRATCH, "visq_blender"), "zip", os.p
                               os.path.basename(ADDON))
 check(bpy.ops.preferences.addon_install(filepath=archive) == {"FINISHED"}, "addon_install failed")
 bpy.ops.preferences.addon_enable(module="visq_blender")
+bpy.ops.preferences.addon_disable(module="visq_blender")  # unregister() runs clean
+bpy.ops.preferences.addon_enable(module="visq_blender")
 import visq_blender  # noqa: E402  (installed just now)
 from visq_blender import core  # noqa: E402
 
@@ -99,6 +101,8 @@ lamp = add("primitive_plane_add", "Lamp", size=0.6, location=(0.0, 0.0, 3.0), ro
 mirror = add("primitive_cube_add", "Mirror", size=0.5, location=(-1.4, -1.4, 0.25))
 mirror.scale = (-1.0, 0.6, 1.0)
 objects = [floor, cube, crate, lamp, mirror]
+floor.data.materials.append(bpy.data.materials.new("FloorMaterial"))
+floor.data.materials[0].use_nodes = True
 bpy.context.view_layer.update()
 settings = scene.visq
 settings.scene_name = "blender_test"
@@ -202,6 +206,13 @@ log(f"baked {bake.triangle_w.shape[0]} triangles, {width}x{height} atlas in {bak
     f"{result['unmatched']} unmatched)")
 check(result["unmatched"] == 0, f"{result['unmatched']} Blender triangles matched no server triangle")
 check((width, height) == (64, 64), f"atlas {width}x{height}")
+# The floor's material reads the image through the atlas UV map.
+tree = floor.data.materials[0].node_tree
+texture = tree.nodes.get("visq W")
+check(texture is not None and texture.image is bpy.data.images[result["image"]], "no 'visq W' node on the image")
+vector = texture.inputs["Vector"].links
+check(vector and vector[0].from_node.type == "UVMAP" and vector[0].from_node.uv_map == "visq_atlas",
+      "'visq W' does not read the visq_atlas UV map")
 mapping = server_triangles(info, session["glb"])
 pixels = image_pixels(result["image"])
 check(pixels.shape[:2] == (height, width), f"image {pixels.shape}")

@@ -201,6 +201,33 @@ def _show_colors(context):
                 shading.color_type = "VERTEX"
 
 
+def _wire_materials(obj, image):
+    """In each node material of the object, an Image Texture node 'visq W'
+    reading the image through the 'visq_atlas' UV map, left unconnected:
+    the artist links it where the look wants W (Blender's renderers have no
+    glTF occlusion input). Materials are shared between objects, and all
+    read the same image and UV map name."""
+    for slot in obj.material_slots:
+        material = slot.material
+        if material is None or not material.use_nodes or material.node_tree is None:
+            continue
+        nodes, links = material.node_tree.nodes, material.node_tree.links
+        texture = nodes.get("visq W")
+        if texture is None:
+            texture = nodes.new("ShaderNodeTexImage")
+            texture.name = texture.label = "visq W"
+            texture.location = (-600, -400)
+        texture.image = image
+        uv = nodes.get("visq UV")
+        if uv is None:
+            uv = nodes.new("ShaderNodeUVMap")
+            uv.name = uv.label = "visq UV"
+            uv.location = (-800, -400)
+        uv.uv_map = UV_LAYER
+        if not texture.inputs["Vector"].links:
+            links.new(uv.outputs["UV"], texture.inputs["Vector"])
+
+
 def _show_image(context, image):
     screen = context.screen if context.window is not None else None
     for area in (screen.areas if screen else ()):
@@ -308,6 +335,7 @@ class BakeTask:
             data["loop_polygon"] = loop_polygon
             _write_colors(obj, core.corner_colors(polygons, loop_polygon))
             obj["visq_image"] = image.name
+            _wire_materials(obj, image)
             data.update(m)
         _show_colors(context)
         _sessions[context.scene.name] = {"scene": self.scene_name, "objects": self.objects, "image": image.name,
