@@ -66,7 +66,8 @@ port=$(cat "$scratch/port")
 echo "== Blender, against visq-server on 127.0.0.1:$port"
 # Blender's user folders in the scratch folder: the add-on installs there.
 status=0
-BLENDER_USER_SCRIPTS="$scratch/scripts" BLENDER_USER_CONFIG="$scratch/config" \
+mkdir -p "$scratch/tmp"
+TMPDIR="$scratch/tmp" BLENDER_USER_SCRIPTS="$scratch/scripts" BLENDER_USER_CONFIG="$scratch/config" \
   PYTHONDONTWRITEBYTECODE=1 blender -b --factory-startup --python-exit-code 1 \
   --python "$source_dir/client/blender/tests/blender_test.py" -- \
   --address "127.0.0.1:$port" --package "$scratch/pkg" --addon "$source_dir/client/blender/visq_blender" \

@@ -32,6 +32,7 @@ import os
 import shutil
 import socket
 import sys
+import tempfile
 import time
 
 import bpy
@@ -506,4 +507,11 @@ expect_error(bpy.ops.visq.bake, ["no mesh object"])
 bpy.ops.object.empty_add()
 bpy.context.active_object.select_set(True)
 expect_error(bpy.ops.visq.bake, ["no mesh object"])
+# The add-on keeps one uploaded .glb per Blender scene (the last bake's), no
+# more; disabling it removes that too.
+leftovers = [n for n in os.listdir(tempfile.gettempdir()) if n.startswith("visq-blender-")]
+check(len(leftovers) <= 1, f"the add-on left {leftovers} in {tempfile.gettempdir()}")
+bpy.ops.preferences.addon_disable(module="visq_blender")
+leftovers = [n for n in os.listdir(tempfile.gettempdir()) if n.startswith("visq-blender-")]
+check(not leftovers, f"disabled, the add-on left {leftovers}")
 log("PASSED: " + ", ".join(figures))

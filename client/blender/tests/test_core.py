@@ -4,6 +4,7 @@ patches and the worker job."""
 import importlib.util
 import json
 import os
+import shutil
 import struct
 import tempfile
 import threading
@@ -57,6 +58,9 @@ class Frames(unittest.TestCase):
 class Glb(unittest.TestCase):
     def setUp(self):
         self.folder = tempfile.mkdtemp(prefix="visq-blender-core-")
+
+    def tearDown(self):
+        shutil.rmtree(self.folder, ignore_errors=True)
 
     def test_nodes_in_the_servers_order_with_their_triangles(self):
         positions = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)

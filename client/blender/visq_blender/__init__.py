@@ -8,6 +8,7 @@ UI never waits on the network; Esc cancels. What needs no Blender is in
 core.py. Installing: README.md, "The Blender add-on".
 """
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -37,6 +38,14 @@ MAP_IMAGE = "visq_visibility"
 _sessions = {}
 # The last finished call's numbers, for scripts and the headless test.
 last_result = {}
+
+
+def _drop_session(key):
+    """Forgets a bake, and the folder of the .glb it uploaded (kept while
+    the session lives: scripts and the test read it)."""
+    session = _sessions.pop(key, None)
+    if session is not None:
+        shutil.rmtree(os.path.dirname(session["glb"]), ignore_errors=True)
 
 
 class VisqAddonError(Exception):
@@ -254,7 +263,11 @@ class BakeTask:
         names = [o.name for o in objects]
         self.folder = tempfile.mkdtemp(prefix="visq-blender-")
         self.glb = os.path.join(self.folder, f"{self.scene_name}.glb")
-        _export_glb(context, objects, self.glb)
+        try:
+            _export_glb(context, objects, self.glb)
+        except BaseException:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            raise
         self.objects = {}
         for obj in objects:
             loops, polygon, corners = _loop_triangles(obj)
@@ -265,6 +278,13 @@ class BakeTask:
         self.cancellation = cancellation or self.visq.Cancellation()
 
     def work(self, job):
+        try:
+            return self._work(job)
+        except BaseException:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            raise
+
+    def _work(self, job):
         visq = self.visq
         with _client(visq, self.connection) as client:
             job.report_progress(0.0, "connecting")
@@ -272,7 +292,7 @@ class BakeTask:
             job.report_progress(0.01, "uploading")
             client.upload_gltf(self.glb, name=self.scene_name, replace=True)
             # The server's earlier bake went with the replaced scene.
-            _sessions.pop(self.blender_scene, None)
+            _drop_session(self.blender_scene)
             info = client.get_scene(self.scene_name, include_nodes=True)
             ranges = core.node_ranges(core.glb_node_triangles(self.glb),
                                       [(n.name, n.triangle_count) for n in info.nodes])
@@ -338,6 +358,7 @@ class BakeTask:
             _wire_materials(obj, image)
             data.update(m)
         _show_colors(context)
+        _drop_session(context.scene.name)
         _sessions[context.scene.name] = {"scene": self.scene_name, "objects": self.objects, "image": image.name,
                                          "glb": self.glb, "triangle_w": bake.triangle_w.copy()}
         last_result.clear()
@@ -695,6 +716,8 @@ def register():
 
 
 def unregister():
+    for key in list(_sessions):
+        _drop_session(key)
     del bpy.types.Scene.visq
     for cls in reversed(_classes):
         bpy.utils.unregister_class(cls)
