@@ -260,7 +260,6 @@ class BakeTask:
         self.settings = {"d_max": settings.d_max, "resolution": settings.resolution, "method": settings.method,
                          "rays_per_patch": settings.rays_per_patch, "directions": settings.directions}
         objects = _mesh_objects(context, settings.selected_only)
-        names = [o.name for o in objects]
         self.folder = tempfile.mkdtemp(prefix="visq-blender-")
         self.glb = os.path.join(self.folder, f"{self.scene_name}.glb")
         try:
@@ -274,7 +273,6 @@ class BakeTask:
             self.objects[obj.name] = {"loops": loops, "polygon": polygon, "corners": corners,
                                       "areas": core.triangle_areas(corners), "loop_count": len(obj.data.loops),
                                       "polygon_count": len(obj.data.polygons), "matrix": _matrix(obj)}
-        self.names = names
         self.cancellation = cancellation or self.visq.Cancellation()
 
     def work(self, job):
@@ -323,6 +321,13 @@ class BakeTask:
         return {"bake": bake, "export": exported, "maps": maps, "info": info}
 
     def finish(self, context, result):
+        try:
+            return self._finish(context, result)
+        except BaseException:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            raise
+
+    def _finish(self, context, result):
         bake, exported = result["bake"], result["export"]
         height, width = bake.w.shape[:2]
         image = _new_image(f"visq_w_{self.scene_name}", width, height, core.atlas_to_pixels(bake.w))
@@ -372,6 +377,11 @@ class BakeTask:
             message += f"; {unmatched} triangle(s) matched none of the server's"
         if torn:
             message += f"; {torn} corner(s) where the atlas cut a face apart"
+        meshes = [bpy.data.objects[name].data for name in self.objects]
+        shared = sorted({m.name for m in meshes if meshes.count(m) > 1})
+        if shared:
+            message += (f"; mesh data {', '.join(shared)} is shared by several baked objects: its UV map and "
+                        "colours hold the last one's W (make the objects single user to keep each one's)")
         return message
 
 
