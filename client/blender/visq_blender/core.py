@@ -150,12 +150,20 @@ def node_ranges(glb_nodes, server_nodes):
 # ---------------------------------------------------------------------------
 # Blender's loop triangles against the file's.
 
+def _corner_order(blender, server):
+    """Per triangle pair ((k, 3, 3) each): which server corner is nearest each
+    Blender corner, and the worst such distance."""
+    distance = np.linalg.norm(blender[:, :, None, :] - server[:, None, :, :], axis=3)  # (k, 3, 3)
+    return distance.argmin(axis=2), distance.min(axis=2).max(axis=1)
+
+
 def match_triangles(blender, server, tolerance=None):
     """For each Blender triangle ((m, 3, 3) corners, glTF frame), the index of
     the server triangle with the same corners ((n, 3, 3)) and, per Blender
     corner, which of that triangle's corners it is: (index (m,), corner
-    (m, 3)); -1 where none matches. Matched by centre on a hash grid, then
-    corner by corner (nearest)."""
+    (m, 3)); -1 where none matches. Matched by centre on a hash grid: in one
+    vectorized pass where the centres fall in the same cell, then one by one
+    over the neighbouring cells for the rest."""
     blender = np.asarray(blender, dtype=np.float64).reshape(-1, 3, 3)
     server = np.asarray(server, dtype=np.float64).reshape(-1, 3, 3)
     index = np.full(len(blender), -1, dtype=np.int64)
@@ -163,30 +171,47 @@ def match_triangles(blender, server, tolerance=None):
     if not len(blender) or not len(server):
         return index, corner
     if tolerance is None:
-        extent = float(np.ptp(server.reshape(-1, 3), axis=0).max()) if len(server) else 1.0
+        extent = float(np.ptp(server.reshape(-1, 3), axis=0).max())
         tolerance = max(extent, 1.0) * 1e-5
     cell = tolerance * 4
-    centres = server.mean(axis=1)
-    keys = np.floor(centres / cell).astype(np.int64)
-    grid = {}
-    for i, key in enumerate(map(tuple, keys)):
-        grid.setdefault(key, []).append(i)
-    offsets = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
-    for j, tri in enumerate(blender):
-        c = tri.mean(axis=0)
-        kx, ky, kz = np.floor(c / cell).astype(np.int64)
-        best, best_error = -1, tolerance * 3
-        for a, b, d in offsets:
-            for i in grid.get((kx + a, ky + b, kz + d), ()):
-                # Each Blender corner to its nearest server corner.
-                distance = np.linalg.norm(tri[:, None, :] - server[i][None, :, :], axis=2)
-                error = distance.min(axis=1).max()
-                if error < best_error:
-                    best, best_error = i, error
-        if best >= 0:
-            distance = np.linalg.norm(tri[:, None, :] - server[best][None, :, :], axis=2)
-            index[j] = best
-            corner[j] = distance.argmin(axis=1)
+    server_keys = np.floor(server.mean(axis=1) / cell).astype(np.int64)
+    blender_keys = np.floor(blender.mean(axis=1) / cell).astype(np.int64)
+
+    # Same cell: sort the server's cells, look each Blender cell up.
+    def packed(keys):  # one int64 per cell; a collision only costs a look in the slow pass
+        with np.errstate(over="ignore"):
+            return keys[:, 0] * 73856093 ^ keys[:, 1] * 19349663 ^ keys[:, 2] * 83492791
+
+    order = np.argsort(packed(server_keys), kind="stable")
+    sorted_keys = packed(server_keys)[order]
+    position = np.searchsorted(sorted_keys, packed(blender_keys))
+    found = position < len(sorted_keys)
+    found[found] = sorted_keys[position[found]] == packed(blender_keys)[found]
+    candidates = np.nonzero(found)[0]
+    if len(candidates):
+        chosen = order[position[candidates]]
+        corners, error = _corner_order(blender[candidates], server[chosen])
+        good = error < tolerance * 3
+        index[candidates[good]] = chosen[good]
+        corner[candidates[good]] = corners[good]
+
+    # The rest (a centre near a cell's edge, coincident triangles): the
+    # neighbouring cells, one triangle at a time.
+    rest = np.nonzero(index < 0)[0]
+    if len(rest):
+        grid = {}
+        for i, key in enumerate(map(tuple, server_keys)):
+            grid.setdefault(key, []).append(i)
+        offsets = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
+        for j in rest:
+            kx, ky, kz = blender_keys[j]
+            near = [i for a, b, d in offsets for i in grid.get((kx + a, ky + b, kz + d), ())]
+            if not near:
+                continue
+            corners, error = _corner_order(np.repeat(blender[j][None], len(near), axis=0), server[near])
+            best = int(error.argmin())
+            if error[best] < tolerance * 3:
+                index[j], corner[j] = near[best], corners[best]
     return index, corner
 
 
@@ -205,20 +230,24 @@ def loop_uvs(atlas_uv, server_index, corner, loops, loop_count):
     """Blender UVs (loop_count, 2) for the atlas layer: each loop triangle's
     corners from the atlas UVs ((N, 3, 2) glTF UVs, v down) of the server
     triangle it matched (server_index: global indices, -1 unmatched), flipped
-    to Blender's v up. Returns (uvs, written mask per loop, loops whose two
-    triangles disagreed: a quad the atlas cut apart)."""
+    to Blender's v up. Returns (uvs, written mask per loop, corners where two
+    triangles of one face disagree on a shared loop: the atlas cut it apart)."""
     uvs = np.zeros((loop_count, 2), dtype=np.float32)
     written = np.zeros(loop_count, dtype=bool)
-    torn = 0
-    for t in np.nonzero(server_index >= 0)[0]:
-        for k in range(3):
-            uv = atlas_uv[server_index[t], corner[t, k]]
-            value = (uv[0], 1.0 - uv[1])
-            loop = loops[t, k]
-            if written[loop] and np.abs(uvs[loop] - value).max() > 1e-6:
-                torn += 1
-            uvs[loop] = value
-            written[loop] = True
+    valid = np.nonzero(np.asarray(server_index) >= 0)[0]
+    if not len(valid):
+        return uvs, written, 0
+    atlas_uv = np.asarray(atlas_uv, dtype=np.float32)
+    values = atlas_uv[np.asarray(server_index)[valid][:, None], np.asarray(corner)[valid]].reshape(-1, 2)
+    values = np.stack([values[:, 0], 1.0 - values[:, 1]], axis=1)
+    targets = np.asarray(loops)[valid].reshape(-1)
+    # A loop in two triangles (a quad's diagonal) with two different UVs.
+    order = np.argsort(targets, kind="stable")
+    same = targets[order][1:] == targets[order][:-1]
+    differ = np.abs(values[order][1:] - values[order][:-1]).max(axis=1) > 1e-6
+    torn = int((same & differ).sum())
+    uvs[targets] = values
+    written[targets] = True
     return uvs, written, torn
 
 
