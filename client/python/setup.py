@@ -14,15 +14,37 @@
 #   VENV/bin/pip install --no-build-isolation --no-index ./client/python
 # The .proto files are read from ../../proto (this checkout), or from
 # $VISQ_PROTO_DIR.
+#
+# Nothing is written into this folder: setuptools' build/ and visq.egg-info
+# go to $VISQ_PYTHON_BUILD_DIR, else to a temporary folder removed at exit
+# (pip builds in the source tree since pip 21.3). A wheel, built offline:
+#   cmake --build BUILD --target visq_python_wheel   # BUILD/packages/visq-*.whl
+# or by hand, with Debian's python3-pip and python3-wheel:
+#   python3 -m pip wheel --no-build-isolation --no-index --no-deps -w DIST ./client/python
+import atexit
 import os
 import shutil
 import subprocess
+import tempfile
 
 from setuptools import setup
 from setuptools.command.build_py import build_py
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 PROTOS = ["visq/v1/visq.proto"]
+
+
+def build_dir():
+    path = os.environ.get("VISQ_PYTHON_BUILD_DIR")
+    if path:
+        os.makedirs(path, exist_ok=True)
+        return os.path.abspath(path)
+    path = tempfile.mkdtemp(prefix="visq-python-build-")
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
+
+
+BUILD_DIR = build_dir()
 
 
 def proto_dir():
@@ -71,4 +93,5 @@ setup(
     # --system-site-packages venv and needs no index.
     install_requires=["grpcio", "protobuf", "numpy"],
     cmdclass={"build_py": BuildWithStubs},
+    options={"build": {"build_base": os.path.join(BUILD_DIR, "build")}, "egg_info": {"egg_base": BUILD_DIR}},
 )
