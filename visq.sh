@@ -15,8 +15,9 @@
 #      sanitizers (VISQ_TEST_SANITIZERS=0 skips them), then the libFuzzer
 #      targets, each for VISQ_FUZZ_SECONDS (default 60) from the corpus in
 #      tests/fuzz/corpus (VISQ_FUZZ_SECONDS=0 skips them).
-#   3. The container: tests/deploy/container_test.sh builds the image from
-#      deploy/Dockerfile around stage 1's binaries with podman, runs it,
+#   3. The container: tests/deploy/container_test.sh packs stage 1's
+#      binaries as the visq-server and visq-client .debs (cpack), builds the
+#      image from deploy/Dockerfile around them with podman, runs it,
 #      waits for SERVING and answers one query (a few seconds once the base
 #      image and the runtime layer are cached; minutes the first time). A
 #      machine that cannot run containers skips it, saying why in one line

@@ -101,9 +101,10 @@ Keeps 3D scenes resident on a GPU (headless EGL: the NVIDIA EGL device, or
 Mesa llvmpipe without a GPU) and answers visibility queries over gRPC.
 Installs the visq-server systemd service (127.0.0.1:50051, a bearer token
 made at first start in /var/lib/visq/token).")
-# Not linked, loaded through libglvnd: Mesa's EGL and GL drivers, and the
-# GLES dispatch library libepoxy opens.
-set(CPACK_DEBIAN_SERVER_PACKAGE_DEPENDS "libegl-mesa0, libgl1-mesa-dri, libgles2")
+# Not linked, opened at run time: the GL dispatch libraries libepoxy loads
+# (libEGL, libOpenGL, libGLESv2 of libglvnd) and Mesa's EGL and GL drivers
+# that libglvnd loads in turn.
+set(CPACK_DEBIAN_SERVER_PACKAGE_DEPENDS "libegl1, libopengl0, libgles2, libegl-mesa0, libgl1-mesa-dri")
 set(CPACK_DEBIAN_SERVER_PACKAGE_RECOMMENDS "ca-certificates")
 set(CPACK_DEBIAN_SERVER_PACKAGE_SUGGESTS "visq-client")
 set(CPACK_DEBIAN_SERVER_PACKAGE_CONTROL_EXTRA

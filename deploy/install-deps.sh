@@ -3,6 +3,12 @@
 # This is the only place that lists apt packages; the README, .ci/run and the
 # Dockerfile all call it. Idempotent: packages already present are skipped.
 #   install-deps.sh [--runtime-only | --without-container-tools] [--print]
+# --runtime-only: what a machine that only runs visq-server and the visq CLI
+# needs, and nothing to build with (runtime_packages below; the Dockerfile's
+# slim stage). The visq-server and visq-client .debs (cmake/Package.cmake)
+# depend on exactly these: the container stage installs them with dpkg on a
+# root that has this list alone, and fails where the list names a package
+# neither .deb needs.
 # --print writes the wanted packages, one a line, and installs nothing
 # (deploy/check-package-list.sh reads the list this way).
 # --without-container-tools: all but the container stage's tools and the
@@ -31,8 +37,9 @@ build_packages=(
   clang libclang-rt-14-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   gnuplot-nox
-  # The Python client (client/python): its runtime, and the venv its test installs it into offline.
-  python3-grpcio python3-protobuf python3-numpy python3-venv python3-setuptools
+  # The Python client (client/python): its runtime, the venv its test installs
+  # it into offline, and pip and wheel for its wheel (visq_python_wheel).
+  python3-grpcio python3-protobuf python3-numpy python3-venv python3-setuptools python3-pip python3-wheel
   # The CLI's float images (--exr).
   libopenexr-dev
   # Compressed glTF (EXT_meshopt_compression, KHR_draco_mesh_compression).
@@ -42,8 +49,18 @@ build_packages=(
   # (libcrypto); the replica race test starts a PostgreSQL cluster of its own.
   libsqlite3-dev libpq-dev libssl-dev postgresql
 )
-# Mesa's EGL/GL drivers (llvmpipe) for machines without an NVIDIA GPU.
-runtime_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0)
+# What visq-server and the visq CLI run with: the libraries the two binaries
+# load (ldd: what dpkg-shlibdeps puts in the .debs' Depends and the libraries
+# those load; libc6, libgcc-s1 and libstdc++6 are in every Debian root),
+# Mesa's EGL/GL drivers (llvmpipe, for machines without an NVIDIA GPU; loaded
+# through libglvnd, not linked) and the CA certificates (visq-server
+# recommends them).
+runtime_packages=(
+  libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0 ca-certificates
+  libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
+  libspdlog1.10 libssl3 libstb0 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10
+  libopenexr-3-1-30 libimath-3-1-29 libmeshoptimizer2d libsqlite3-0 libpq5
+)
 
 # ./visq.sh test's container stage (tests/deploy/container_test.sh): podman
 # builds and runs the image with runc (as root: no user namespaces, so no
@@ -59,13 +76,7 @@ test_tool_packages=(nodejs npm blender)
 
 wanted=("${build_packages[@]}" "${runtime_packages[@]}")
 if (( container_tools )); then wanted+=("${container_packages[@]}" "${test_tool_packages[@]}"); fi
-if (( runtime_only )); then
-  # What the built binaries link (ldd), for the slim container stage.
-  wanted=("${runtime_packages[@]}" ca-certificates
-    libabsl20220623 libc-ares2 libepoxy0 libfmt9 libgrpc++1.51 libgrpc29 libprotobuf32 libre2-9
-    libspdlog1.10 libssl3 libstb0 libcpp-httplib0.11 libtinygltf2d libxxhash0 libembree3-3 libtbb12 libgmp10 libgmpxx4ldbl
-    libopenexr-3-1-30 libimath-3-1-29 libmeshoptimizer2d libsqlite3-0 libpq5)
-fi
+if (( runtime_only )); then wanted=("${runtime_packages[@]}"); fi
 
 if (( print_only )); then
   printf '%s\n' "${wanted[@]}"

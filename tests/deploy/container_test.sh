@@ -4,10 +4,16 @@
 # SERVING, the token made in the volume as the Dockerfile documents, one real
 # query answered, a clean stop. ./visq.sh test runs it as its own stage.
 #
-# The image is the Dockerfile's runtime-prebuilt target around BUILD_DIR's
-# visq-server and visq (built on this Debian 12 host, as the image is), so
-# the stage costs no second compile; the release target's build stage is the
-# same install script and CMake flags. The debian:bookworm base comes from
+# The image is the Dockerfile's runtime-prebuilt target: BUILD_DIR's
+# visq-server and visq (built on this Debian 12 host, as the image is),
+# packed here as the visq-server and visq-client .debs (cpack, seconds) and
+# installed in the image with dpkg on a root that has deploy/install-deps.sh
+# --runtime-only's packages alone, so the stage costs no second compile and
+# the .debs install on a clean Debian root; the release target's build stage
+# is the same install script, CMake flags and cpack. The run-time list and
+# the .debs' Depends must agree both ways: dpkg refuses a Depends the list
+# lacks, and a package of the list that neither .deb needs (apt's
+# autoremove, with the list marked automatic) fails the stage. The debian:bookworm base comes from
 # the local podman store, else from a tarball cached in $VISQ_CI_CACHE
 # (default /var/cache/visq-ci), else debootstrap makes it once (minutes) and
 # caches it. The runtime stage's apt layer is cached by podman, so a rerun
@@ -81,6 +87,8 @@ cli_bin="$build/client/cli/visq"
 for bin in "$server_bin" "$cli_bin"; do
   [[ -x "$bin" ]] || fail "$bin is not built (cmake --build $build --target visq-server visq)"
 done
+[[ -f "$build/CPackConfig.cmake" ]] || fail "$build has no CPackConfig.cmake (configure it again: cmake/Package.cmake)"
+command -v dpkg-shlibdeps > /dev/null || fail "no dpkg-shlibdeps (dpkg-dev) to give the .debs their Depends"
 
 # --- What this machine can do ----------------------------------------------
 command -v podman > /dev/null || skip "podman is not installed (deploy/install-deps.sh installs it)"
@@ -164,11 +172,18 @@ if ! podman run --rm --pull=never --network host "${limits[@]}" "$base" true > "
   skip "podman cannot run a container here: $(grep -m 1 -i error "$tmp/probe.log" || head -n 1 "$tmp/probe.log")"
 fi
 
-# --- Build the image around the host's binaries --------------------------------
+# --- The .debs, then the image around them -------------------------------------
+start=$(now)
+(cd "$build" && VISQ_CPACK_COMPONENTS="server;client" cpack -G DEB -B "$tmp/packages") > "$tmp/cpack.log" 2>&1 ||
+  { tail -n 20 "$tmp/cpack.log" >&2; fail "cpack could not make the visq-server and visq-client .debs"; }
+server_deb=$(ls "$tmp/packages"/visq-server_*.deb 2> /dev/null) || fail "cpack made no visq-server .deb: $(tail -n 3 "$tmp/cpack.log")"
+client_deb=$(ls "$tmp/packages"/visq-client_*.deb 2> /dev/null) || fail "cpack made no visq-client .deb: $(tail -n 3 "$tmp/cpack.log")"
+pack_s=$(since "$start")
 # A context of its own, three files: the build reads nothing else.
 mkdir -p "$tmp/context/deploy" "$tmp/context/prebuilt"
 cp "$source_dir/deploy/install-deps.sh" "$tmp/context/deploy/"
-cp "$server_bin" "$cli_bin" "$tmp/context/prebuilt/"
+cp "$server_deb" "$tmp/context/prebuilt/visq-server.deb"
+cp "$client_deb" "$tmp/context/prebuilt/visq-client.deb"
 old_image=$(podman image inspect --format '{{.Id}}' "$image" 2> /dev/null || true)
 start=$(now)
 # --format docker keeps the Dockerfile's HEALTHCHECK (OCI images drop it).
@@ -180,12 +195,30 @@ if ! podman build --pull=never --network host "${limits[@]}" --format docker --t
     skip "the image's apt-get cannot reach the Debian mirror: $(grep -m 1 -E 'resolv|fetch|connect' "$tmp/build.log")"
   fi
   tail -n 30 "$tmp/build.log" >&2
+  if grep -q "dependency problems" "$tmp/build.log"; then
+    fail "dpkg refused the .debs on a root with install-deps.sh --runtime-only's packages: add what the" \
+      "'depends on' lines above name to runtime_packages in deploy/install-deps.sh"
+  fi
   fail "podman build of deploy/Dockerfile (target runtime-prebuilt) failed; the log's end is above"
 fi
 build_s=$(since "$start")
 new_image=$(podman image inspect --format '{{.Id}}' "$image")
-# Each run's binaries are a new layer: drop the previous run's image.
+# Each run's packages are a new layer: drop the previous run's image.
 if [[ -n "$old_image" && "$old_image" != "$new_image" ]]; then podman image rm "$old_image" > /dev/null 2>&1 || true; fi
+
+# The other way round: every package of the run-time list is one the .debs
+# need (Depends or Recommends, directly or through another package). With
+# the list marked automatically installed, apt's autoremove would take
+# exactly the packages nothing else needs.
+mapfile -t runtime_list < <(bash "$source_dir/deploy/install-deps.sh" --runtime-only --print)
+podman run --rm --pull=never --network host "${limits[@]}" --user root --entrypoint /bin/sh "$image" -c \
+  'apt-mark auto "$@" > /dev/null && apt-get -s autoremove && dpkg-query -W visq-server visq-client' \
+  sh "${runtime_list[@]}" > "$tmp/autoremove.log" 2>&1 ||
+  { cat "$tmp/autoremove.log" >&2; fail "apt-get -s autoremove in the image failed"; }
+unneeded=$(awk 'NR == FNR { listed[$1] = 1; next } $1 == "Remv" && ($2 in listed) { print $2 }' \
+  <(printf '%s\n' "${runtime_list[@]}") "$tmp/autoremove.log" | sort | tr '\n' ' ')
+[[ -z "$unneeded" ]] || fail "install-deps.sh --runtime-only lists packages neither .deb needs: $unneeded"
+installed=$(awk '$1 ~ /^visq-(server|client)$/ { printf "%s%s %s", sep, $1, $2; sep = ", " }' "$tmp/autoremove.log")
 
 # --- Run it as the pods do ---------------------------------------------------
 # The image's defaults (seeded sample scenes, a token made in the volume),
@@ -218,9 +251,9 @@ serving_s=$(since "$start")
 server=127.0.0.1:$port
 # The HEALTHCHECK's command, with the image's own CLI: its libraries are there.
 healthcheck=$(podman image inspect --format '{{json .Config.Healthcheck}}' "$image")
-[[ "$healthcheck" == *'"/usr/local/bin/visq","health"'* ]] ||
+[[ "$healthcheck" == *'"/usr/bin/visq","health"'* ]] ||
   fail "the image has no HEALTHCHECK running visq health (built without --format docker?)"
-podman exec "$container" /usr/local/bin/visq health --server "$server" > /dev/null ||
+podman exec "$container" /usr/bin/visq health --server "$server" > /dev/null ||
   fail "the image's visq health does not report SERVING"
 
 # The token, as the Dockerfile's comment says to fetch it.
@@ -258,6 +291,7 @@ stop_s=$(since "$start")
 code=$(podman inspect --format '{{.State.ExitCode}}' "$container")
 [[ "$code" == 0 ]] || { logs; fail "the server exited $code on SIGTERM, not 0; the log is above"; }
 
-echo "visq: container stage passed: base image ${base_s} s ($base_how), image build ${build_s} s," \
+echo "visq: container stage passed: base image ${base_s} s ($base_how), .debs ${pack_s} s ($installed:" \
+  "their Depends and install-deps.sh --runtime-only agree), image build ${build_s} s," \
   "SERVING ${serving_s} s after podman run, list + hidden-map ${query_s} s (mean visible fraction $mean)," \
   "stop ${stop_s} s; GPU: $gpu"

@@ -31,7 +31,7 @@ TEST(Dockerfile, EveryCopiedPathAndScriptExists) {
   const auto instructions = DockerInstructions();
   ASSERT_FALSE(instructions.empty());
   // The runtime-prebuilt stage's context is the one container_test.sh
-  // makes: install-deps.sh and the binaries under prebuilt/.
+  // makes: install-deps.sh and the two .debs under prebuilt/.
   const std::string container_test = Read(kSource / "tests/deploy/container_test.sh");
   int copies = 0, scripts = 0, prebuilt = 0;
   std::string stage;
@@ -46,7 +46,7 @@ TEST(Dockerfile, EveryCopiedPathAndScriptExists) {
       ASSERT_GE(args.size(), 2u) << instruction;
       for (size_t i = 0; i + 1 < args.size(); ++i) {
         if (stage == "runtime-prebuilt") {
-          EXPECT_TRUE(args[i] == "prebuilt/visq-server" || args[i] == "prebuilt/visq") << args[i];
+          EXPECT_TRUE(args[i] == "prebuilt/visq-server.deb" || args[i] == "prebuilt/visq-client.deb") << args[i];
           ++prebuilt;
           continue;
         }
@@ -63,9 +63,10 @@ TEST(Dockerfile, EveryCopiedPathAndScriptExists) {
     }
   }
   EXPECT_GT(copies, 5);
-  EXPECT_EQ(prebuilt, 2) << "runtime-prebuilt copies visq-server and visq";
-  EXPECT_NE(container_test.find("cp \"$server_bin\" \"$cli_bin\" \"$tmp/context/prebuilt/\""), std::string::npos)
-      << "container_test.sh must put the binaries where runtime-prebuilt copies them from";
+  EXPECT_EQ(prebuilt, 2) << "runtime-prebuilt copies the visq-server and visq-client .debs";
+  EXPECT_NE(container_test.find("cp \"$server_deb\" \"$tmp/context/prebuilt/visq-server.deb\""), std::string::npos)
+      << "container_test.sh must put the .debs where runtime-prebuilt copies them from";
+  EXPECT_NE(container_test.find("cp \"$client_deb\" \"$tmp/context/prebuilt/visq-client.deb\""), std::string::npos);
   EXPECT_NE(container_test.find("cp \"$source_dir/deploy/install-deps.sh\" \"$tmp/context/deploy/\""),
             std::string::npos);
   EXPECT_GE(scripts, 1) << "the image must build with the project's own install script";
@@ -84,7 +85,9 @@ TEST(Dockerfile, RuntimeStageIsSlimNonRootWithGraphicsCapability) {
   EXPECT_NE(text.find("USER visq"), std::string::npos);
   EXPECT_NE(text.find("NVIDIA_DRIVER_CAPABILITIES=graphics"), std::string::npos);
   EXPECT_NE(text.find("VOLUME /var/lib/visq/scenes"), std::string::npos);
-  EXPECT_NE(text.find("ENTRYPOINT [\"/usr/local/bin/visq-server\"]"), std::string::npos);
+  // The binaries come from the .debs (cmake/Package.cmake), installed with dpkg.
+  EXPECT_NE(text.find("ENTRYPOINT [\"/usr/bin/visq-server\"]"), std::string::npos);
+  EXPECT_NE(text.find("RUN dpkg -i /tmp/visq-debs/visq-server.deb /tmp/visq-debs/visq-client.deb"), std::string::npos);
 }
 
 TEST(Compose, ServiceHasVolumeGpuAndLoopbackPort) {

@@ -1,7 +1,9 @@
 // visq_consumer ADDRESS: waits until the server is SERVING, then prints its
-// health and one line per resident scene ("scene NAME TRIANGLES").
+// health and one line per resident scene ("scene NAME TRIANGLES"). The
+// bearer token, where the server wants one, comes from $VISQ_TOKEN.
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 
 #include <visq/visq_client.h>
 
@@ -12,6 +14,7 @@ int main(int argc, char** argv) {
   }
   visq::client::ClientOptions options;
   options.address = argv[1];
+  if (const char* token = std::getenv("VISQ_TOKEN")) options.auth_token = token;
   visq::client::Client client(options);
   if (const visq::Status ready = client.WaitUntilServing(std::chrono::seconds(60)); !ready.ok()) {
     std::fprintf(stderr, "not serving: %s\n", ready.ToString().c_str());
