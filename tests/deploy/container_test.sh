@@ -13,7 +13,9 @@
 # is the same install script, CMake flags and cpack. The run-time list and
 # the .debs' Depends must agree both ways: dpkg refuses a Depends the list
 # lacks, and a package of the list that neither .deb needs (apt's
-# autoremove, with the list marked automatic) fails the stage. The debian:bookworm base comes from
+# autoremove, with the list marked automatic) fails the stage.
+# python3-visq installs on a clean debian:bookworm-slim of its own (its
+# Depends from the mirror, in a layer podman caches) and answers Health. The debian:bookworm base comes from
 # the local podman store, else from a tarball cached in $VISQ_CI_CACHE
 # (default /var/cache/visq-ci), else debootstrap makes it once (minutes) and
 # caches it. The runtime stage's apt layer is cached by podman, so a rerun
@@ -65,6 +67,7 @@ security_mirror=${VISQ_DEBIAN_SECURITY_MIRROR:-$(apt_source_for bookworm-securit
 security_mirror=${security_mirror:-${mirror%/debian}/debian-security}
 base=debian:bookworm
 image=localhost/visq:ci-test
+python_image=localhost/visq-python:ci-test
 scene=cornell_box_visq
 
 skip() {
@@ -174,10 +177,13 @@ fi
 
 # --- The .debs, then the image around them -------------------------------------
 start=$(now)
-(cd "$build" && VISQ_CPACK_COMPONENTS="server;client" cpack -G DEB -B "$tmp/packages") > "$tmp/cpack.log" 2>&1 ||
-  { tail -n 20 "$tmp/cpack.log" >&2; fail "cpack could not make the visq-server and visq-client .debs"; }
+(cd "$build" && VISQ_CPACK_COMPONENTS="server;client;python" cpack -G DEB -B "$tmp/packages") > "$tmp/cpack.log" 2>&1 ||
+  { tail -n 20 "$tmp/cpack.log" >&2
+    fail "cpack could not make the visq-server, visq-client and python3-visq .debs" \
+      "(cmake --build $build --target visq-server visq visq_python_stubs)"; }
 server_deb=$(ls "$tmp/packages"/visq-server_*.deb 2> /dev/null) || fail "cpack made no visq-server .deb: $(tail -n 3 "$tmp/cpack.log")"
 client_deb=$(ls "$tmp/packages"/visq-client_*.deb 2> /dev/null) || fail "cpack made no visq-client .deb: $(tail -n 3 "$tmp/cpack.log")"
+python_deb=$(ls "$tmp/packages"/python3-visq_*.deb 2> /dev/null) || fail "cpack made no python3-visq .deb: $(tail -n 3 "$tmp/cpack.log")"
 pack_s=$(since "$start")
 # A context of its own, three files: the build reads nothing else.
 mkdir -p "$tmp/context/deploy" "$tmp/context/prebuilt"
@@ -272,8 +278,9 @@ grep -q UNAUTHENTICATED "$tmp/denied.log" || fail "visq list without the token: 
 # One real query on the seeded sample scene: the ceiling light's visibility
 # from the floor, which the two boxes shade in part.
 start=$(now)
-"$cli_bin" list --server "$server" --token-file "$tmp/token" > "$tmp/list.log" 2>&1 ||
-  fail "visq list: $(cat "$tmp/list.log")"
+# visq-client's CLI, in the image, with the token where the image keeps it.
+podman exec "$container" /usr/bin/visq list --server "$server" --token-file /var/lib/visq/scenes/.visq-auth-token \
+  > "$tmp/list.log" 2>&1 || fail "the image's visq list: $(cat "$tmp/list.log")"
 grep -q "^$scene " "$tmp/list.log" || fail "the seeded scene $scene is not listed: $(cat "$tmp/list.log")"
 "$cli_bin" hidden-map --server "$server" --token-file "$tmp/token" --scene "$scene" \
   --source "-0.25,1.99,-0.25;0.5,0,0;0,0,0.5" --receiver "-0.999,0.001,-0.999;1.998,0,0;0,0,1.998" \
@@ -283,6 +290,47 @@ awk -v m="$mean" 'BEGIN { exit !(m > 0 && m < 1) }' ||
   fail "the hidden-sample map's mean visible fraction is '$mean', not inside (0, 1): $(cat "$tmp/query.log")"
 query_s=$(since "$start")
 gpu=$("$cli_bin" stats --server "$server" --token-file "$tmp/token" | sed -n 's/^GPU *//p')
+
+# python3-visq on a clean Debian root: its Depends from the mirror (apt, a
+# layer podman caches: the package names come from the .deb, so the layer
+# changes only when they do), the .deb with dpkg, then import visq and ask
+# the image's server for Health and the scenes.
+start=$(now)
+mkdir -p "$tmp/python-context"
+cp "$python_deb" "$tmp/python-context/python3-visq.deb"
+python_depends=$(dpkg-deb -f "$python_deb" Depends | tr ',' '\n' | sed 's/(.*)//; s/|.*//; s/^ *//; s/ *$//' |
+  sed '/^$/d' | sort | tr '\n' ' ')
+cat > "$tmp/python-context/Containerfile" << 'CONTAINERFILE'
+FROM debian:bookworm-slim
+ARG PACKAGES
+RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $PACKAGES \
+ && rm -rf /var/lib/apt/lists/*
+COPY python3-visq.deb /tmp/
+RUN dpkg -i /tmp/python3-visq.deb && rm /tmp/python3-visq.deb
+CONTAINERFILE
+old_python_image=$(podman image inspect --format '{{.Id}}' "$python_image" 2> /dev/null || true)
+if ! podman build --pull=never --network host "${limits[@]}" --build-arg "PACKAGES=$python_depends" \
+    -t "$python_image" "$tmp/python-context" > "$tmp/python-build.log" 2>&1; then
+  tail -n 30 "$tmp/python-build.log" >&2
+  if grep -qE "Temporary failure resolving|Could not resolve|Failed to fetch|Unable to connect" "$tmp/python-build.log"; then
+    skip "apt-get cannot reach the Debian mirror for python3-visq's Depends: $(grep -m 1 -E 'resolv|fetch|connect' "$tmp/python-build.log")"
+  fi
+  fail "python3-visq did not install on a clean debian:bookworm-slim (apt-get install $python_depends, then dpkg -i)"
+fi
+new_python_image=$(podman image inspect --format '{{.Id}}' "$python_image")
+if [[ -n "$old_python_image" && "$old_python_image" != "$new_python_image" ]]; then
+  podman image rm "$old_python_image" > /dev/null 2>&1 || true
+fi
+podman run --rm --pull=never --network host "${limits[@]}" -e VISQ_TOKEN="$(head -n 1 "$tmp/token")" "$python_image" \
+  python3 -c 'import os, sys, visq
+assert visq.__file__.startswith("/usr/lib/python3/dist-packages/visq/"), visq.__file__
+with visq.Client(sys.argv[1], token=os.environ["VISQ_TOKEN"]) as c:
+    print("health", c.health())
+    print("scenes", " ".join(s.name for s in c.list_scenes()))' "$server" > "$tmp/python.log" 2>&1 ||
+  fail "python3-visq in a clean root: $(cat "$tmp/python.log")"
+grep -qx "health SERVING" "$tmp/python.log" && grep -q "^scenes.* $scene" "$tmp/python.log" ||
+  fail "python3-visq in a clean root: $(cat "$tmp/python.log")"
+python_s=$(since "$start")
 
 # A clean stop: SIGTERM, the drain, exit 0.
 start=$(now)
@@ -294,4 +342,5 @@ code=$(podman inspect --format '{{.State.ExitCode}}' "$container")
 echo "visq: container stage passed: base image ${base_s} s ($base_how), .debs ${pack_s} s ($installed:" \
   "their Depends and install-deps.sh --runtime-only agree), image build ${build_s} s," \
   "SERVING ${serving_s} s after podman run, list + hidden-map ${query_s} s (mean visible fraction $mean)," \
+  "python3-visq on a clean root ${python_s} s," \
   "stop ${stop_s} s; GPU: $gpu"
