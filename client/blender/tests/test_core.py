@@ -17,6 +17,10 @@ _spec = importlib.util.spec_from_file_location("visq_blender_core",
                                                os.path.join(HERE, "..", "visq_blender", "core.py"))
 core = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(core)
+try:
+    import visq
+except ImportError:
+    visq = None
 
 
 def write_glb(path, doc, binary):
@@ -177,6 +181,18 @@ class JobTest(unittest.TestCase):
 
     def test_describe_error(self):
         self.assertEqual(core.describe_error(ValueError("address: bad")), "visq: address: bad")
+        self.assertEqual(core.describe_error(RuntimeError("x")), "visq: RuntimeError: x")
+
+    @unittest.skipIf(visq is None, "the visq package is not importable (run_blender_test.sh puts it on PYTHONPATH)")
+    def test_describe_the_clients_errors(self):
+        import grpc
+        down = visq.VisqError(grpc.StatusCode.UNAVAILABLE, "failed to connect")
+        self.assertIn("cannot be reached", core.describe_error(down))
+        gone = visq.VisqError(grpc.StatusCode.FAILED_PRECONDITION, "scene 'x' has no full bake to update")
+        self.assertIn("run Bake obscurances again", core.describe_error(gone))
+        bad = visq.VisqError(grpc.StatusCode.INVALID_ARGUMENT, "d_max: -1 must be > 0")
+        self.assertEqual(core.describe_error(bad), f"visq: {bad}")
+        self.assertEqual(core.describe_error(visq.Cancelled()), "visq: cancelled")
 
 
 if __name__ == "__main__":

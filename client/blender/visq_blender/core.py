@@ -396,6 +396,6 @@ def describe_error(error):
         return f"visq: the server no longer has this bake ({text}); run Bake obscurances again"
     if code is not None and getattr(code, "name", "") == "DEADLINE_EXCEEDED":
         return f"visq: the server did not answer in time ({text})"
-    if isinstance(error, (OSError, ValueError)):
-        return f"visq: {text}"
+    if code is not None or isinstance(error, (OSError, ValueError)):
+        return f"visq: {text}"  # a server's status names its code: "INVALID_ARGUMENT: d_max: ..."
     return f"visq: {name}: {text}"
