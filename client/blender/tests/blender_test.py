@@ -496,6 +496,9 @@ prefs.address, prefs.timeout = f"127.0.0.1:{silent.getsockname()[1]}", 2.0
 expect_error(bpy.ops.visq.bake, ["did not answer in time"], limit_s=8.0)
 silent.close()
 prefs.address, prefs.timeout = ADDRESS, 10.0
+prefs.python_path = os.path.join(SCRATCH, "no-such-folder")
+expect_error(bpy.ops.visq.bake, ["Python package folder", "does not exist"])
+prefs.python_path = PACKAGE
 prefs.token_file = os.path.join(SCRATCH, "no-such-token")
 expect_error(bpy.ops.visq.bake, ["token file"])
 prefs.token_file, prefs.token = "", "not-the-token"

@@ -5,7 +5,7 @@ The Blender side is thin: it exports with Blender's own glTF exporter, reads
 and writes mesh data, and runs each call of the visq Python client
 (client/python) on a worker thread that a modal operator polls, so Blender's
 UI never waits on the network; Esc cancels. What needs no Blender is in
-core.py. Installing: README.md, "The Blender add-on".
+core.py. Installing: README.md, "In Blender".
 """
 import os
 import shutil
@@ -116,6 +116,9 @@ def _server_scene_name(context):
 
 def _mesh_objects(context, selected_only):
     objects = context.selected_objects if selected_only else context.scene.objects
+    for o in objects:
+        if o.type == "MESH" and o.mode == "EDIT":
+            o.update_from_editmode()  # edit mode's changes into the mesh the exporter and the bake read
     meshes = [o for o in objects if o.type == "MESH" and o.data is not None and len(o.data.polygons)]
     if not meshes:
         where = "selected" if selected_only else "in the scene"
