@@ -420,13 +420,15 @@ check(type(job.error).__name__ == "Cancelled", f"the cancelled bake ended with {
 check(core.describe_error(job.error) == "visq: cancelled", core.describe_error(job.error))
 log(f"cancelled at '{job.message}' ({job.fraction:.0%}); stopped {cancel_s:.2f} s after cancel")
 check(cancel_s < 5.0, f"the bake took {cancel_s:.2f} s to stop")
-# The server ended the call too (its stats count a call when it ends).
-while bake_calls()[1] <= calls_before[1] and time.monotonic() - t < 10:
+# The server ended the call too (its stats count a call when it ends): the
+# whole bake (512^2 texels x 4096 rays) would take minutes here; 30 s leaves
+# room for a loaded machine.
+while bake_calls()[1] <= calls_before[1] and time.monotonic() - t < 30:
     time.sleep(0.05)
 server_stop_s = time.monotonic() - t
 log(f"ComputeObscurances calls/errors {calls_before} -> {bake_calls()}: the server ended it {server_stop_s:.2f} s "
     "after cancel")
-check(bake_calls()[1] > calls_before[1], "the server did not end the cancelled bake within 10 s")
+check(bake_calls()[1] > calls_before[1], "the server did not end the cancelled bake within 30 s")
 figures.append(f"cancel {cancel_s:.2f} s")
 settings.resolution, settings.rays_per_patch = 64, 64
 # The cancelled bake replaced the server's scene: the session went with it.
