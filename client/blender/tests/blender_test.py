@@ -421,7 +421,7 @@ check(core.describe_error(job.error) == "visq: cancelled", core.describe_error(j
 log(f"cancelled at '{job.message}' ({job.fraction:.0%}); stopped {cancel_s:.2f} s after cancel")
 check(cancel_s < 5.0, f"the bake took {cancel_s:.2f} s to stop")
 # The server ended the call too (its stats count a call when it ends): the
-# whole bake (512^2 texels x 4096 rays) would take minutes here; 30 s leaves
+# whole bake (512^2 texels x 4096 rays, ~10^9 rays) is far longer; 30 s leaves
 # room for a loaded machine.
 while bake_calls()[1] <= calls_before[1] and time.monotonic() - t < 30:
     time.sleep(0.05)
