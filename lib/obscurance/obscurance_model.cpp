@@ -160,17 +160,106 @@ double ObscuranceHalfWidth(double effective_samples, double confidence) {
 
 namespace {
 
+// Bernoulli Kullback-Leibler divergence KL(p || q).
+double BernoulliDivergence(double p, double q) {
+  auto term = [](double a, double b) { return a > 0.0 ? a * std::log(a / b) : 0.0; };
+  return term(p, q) + term(1.0 - p, 1.0 - q);
+}
+
+// The Chernoff half-width around `mean`: the farthest q on either side with
+// rays * KL(mean || q) <= log(2 / risk) (each tail at risk / 2), by
+// bisection, rounded outwards.
+double ChernoffHalfWidth(double rays, double mean, double risk) {
+  const double limit = std::log(2.0 / risk) / rays;
+  // The float the mean was stored in may sit a rounding off the sum's mean.
+  const double slack = 1e-6;
+  double widest = 0.0;
+  for (const double side : {-1.0, 1.0}) {
+    const double from = std::clamp(mean + side * slack, 0.0, 1.0);
+    const double end = side > 0 ? 1.0 : 0.0;
+    if (BernoulliDivergence(from, end) <= limit) {
+      widest = std::max(widest, std::abs(end - mean));
+      continue;
+    }
+    double inside = from, outside = end;
+    for (int i = 0; i < 60; ++i) {
+      const double mid = 0.5 * (inside + outside);
+      (BernoulliDivergence(from, mid) <= limit ? inside : outside) = mid;
+    }
+    widest = std::max(widest, std::abs(outside - mean));
+  }
+  return widest;
+}
+
+}  // namespace
+
+double ObscuranceHalfWidthOfRays(double rays, const glm::dvec3& mean, double variance, double confidence) {
+  if (!(rays >= 2) || !(variance >= 0) || confidence >= 1.0) return ObscuranceHalfWidth(rays, confidence);
+  const double risk = 1.0 - confidence;
+  // Maurer & Pontil's bound at risk / 2, shared three ways: the variance's
+  // upper confidence bound and the two tails of Bernstein's inequality, so
+  // log(3 / (risk / 2)) in each.
+  const double log_term = std::log(6.0 / risk);
+  const double bernstein = std::sqrt(2.0 * variance * log_term / rays) + 7.0 * log_term / (3.0 * (rays - 1.0));
+  // Chernoff's at the other risk / 2, channel by channel.
+  double widest = 0.0;
+  for (int c = 0; c < 3; ++c) {
+    if (!(mean[c] >= 0.0 && mean[c] <= 1.0)) return ObscuranceHalfWidth(rays, confidence);
+    widest = std::max(widest, std::min(bernstein, ChernoffHalfWidth(rays, mean[c], risk / 2)));
+  }
+  return std::min(1.0, widest);
+}
+
+double ObscuranceNormalHalfWidth(double rays, double variance, double confidence) {
+  if (!(rays >= 2) || !(variance >= 0) || !(confidence > 0) || confidence >= 1.0) return 1.0;
+  // z with P(|N(0, 1)| > z) = 1 - confidence, by bisection on erfc.
+  double low = 0.0, high = 40.0;
+  for (int i = 0; i < 100; ++i) {
+    const double mid = 0.5 * (low + high);
+    (std::erfc(mid / std::sqrt(2.0)) > 1.0 - confidence ? low : high) = mid;
+  }
+  return std::min(1.0, high * std::sqrt(variance / rays));
+}
+
+float LargestChannelVariance(const glm::dvec3& sum, const glm::dvec3& sum_of_squares, double n) {
+  if (!(n >= 2)) return 0.0f;
+  double largest = 0.0;
+  for (int c = 0; c < 3; ++c)
+    largest = std::max(largest, (sum_of_squares[c] - sum[c] * sum[c] / n) / (n - 1.0));
+  const float f = static_cast<float>(largest);
+  return static_cast<double>(f) < largest ? std::nextafter(f, 2.0f) : f;
+}
+
+namespace {
+
 // One element's own half-width: 1 (W's whole range) without an estimate of
 // its own.
+// Rounded up to a float, so that the stored bound never says less than the
+// computed one.
+float UpFloat(double half_width) {
+  const float f = static_cast<float>(half_width);
+  return static_cast<double>(f) < half_width ? std::nextafter(f, 2.0f) : f;
+}
+float ElementHalfWidth(const std::vector<float>& samples, const std::vector<float>& variance,
+                       const std::vector<glm::vec3>& mean, size_t i, double confidence) {
+  if (i >= samples.size()) return 1.0f;
+  if (i < variance.size() && i < mean.size())
+    return UpFloat(ObscuranceHalfWidthOfRays(samples[i], glm::dvec3(mean[i]), variance[i], confidence));
+  return UpFloat(ObscuranceHalfWidth(samples[i], confidence));
+}
 float TexelHalfWidth(const ObscuranceResult& result, size_t texel, double confidence) {
-  const bool own = texel < result.estimated.size() && result.estimated[texel] &&
-                   texel < result.texel_effective_samples.size();
-  return own ? static_cast<float>(ObscuranceHalfWidth(result.texel_effective_samples[texel], confidence)) : 1.0f;
+  const bool own = texel < result.estimated.size() && result.estimated[texel];
+  return own ? ElementHalfWidth(result.texel_effective_samples, result.texel_sample_variance, result.w, texel,
+                                confidence)
+             : 1.0f;
 }
 float TriangleHalfWidth(const ObscuranceResult& result, size_t triangle, double confidence) {
-  return triangle < result.triangle_effective_samples.size()
-             ? static_cast<float>(ObscuranceHalfWidth(result.triangle_effective_samples[triangle], confidence))
-             : 1.0f;
+  return ElementHalfWidth(result.triangle_effective_samples, result.triangle_sample_variance, result.triangle_w,
+                          triangle, confidence);
+}
+// What a vertex's bound averages: Hoeffding's, whatever the triangle's own.
+float TriangleHoeffdingHalfWidth(const ObscuranceResult& result, size_t triangle, double confidence) {
+  return ElementHalfWidth(result.triangle_effective_samples, {}, {}, triangle, confidence);
 }
 double TriangleArea(const Scene& scene, uint32_t t) {
   return 0.5 * glm::length(glm::cross(scene.Vertex(t, 1) - scene.Vertex(t, 0), scene.Vertex(t, 2) - scene.Vertex(t, 0)));
@@ -188,8 +277,9 @@ ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& 
   std::vector<double> sum(scene.positions.size(), 0.0), area(scene.positions.size(), 0.0);
   for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
     const double a = TriangleArea(scene, t);
+    const double half_width = TriangleHoeffdingHalfWidth(result, t, confidence);
     for (int c = 0; c < 3; ++c) {
-      sum[scene.triangles[t][c]] += a * out.triangle[t];
+      sum[scene.triangles[t][c]] += a * half_width;
       area[scene.triangles[t][c]] += a;
     }
   }
@@ -217,7 +307,7 @@ ObscuranceBounds ObscuranceBoundsOfListed(const Scene& scene, const ObscuranceRe
       const auto it = slot.find(scene.triangles[t][c]);
       if (it == slot.end()) continue;
       const double a = TriangleArea(scene, t);
-      sum[it->second] += a * TriangleHalfWidth(result, t, confidence);
+      sum[it->second] += a * TriangleHoeffdingHalfWidth(result, t, confidence);
       area[it->second] += a;
     }
   }
@@ -234,7 +324,7 @@ double CoveredHalfWidth(double nominal_samples, double confidence) {
 ObscuranceAnswerBound ObscuranceAnswerBoundOf(const ObscuranceResult& result, const ObscuranceBounds& bounds,
                                               double nominal_samples, double confidence) {
   // The per-element bounds are floats: compare them with the cap as floats.
-  const float cap = static_cast<float>(CoveredHalfWidth(nominal_samples, confidence));
+  const float cap = UpFloat(CoveredHalfWidth(nominal_samples, confidence));
   ObscuranceAnswerBound out;
   float widest = 0.0f;
   auto count = [&](ObscuranceAnswerBound::Kind& kind, float own) {
@@ -346,15 +436,20 @@ ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, b
   out.texel_effective_samples.resize(n, 0.0f);
   for (uint32_t i = 0; i < n; ++i)
     if (!out.estimated[i]) out.texel_effective_samples[i] = 0.0f;
+  out.texel_sample_variance = std::move(own.texel_sample_variance);
+  if (!out.texel_sample_variance.empty()) out.texel_sample_variance.resize(n, -1.0f);
   // Per triangle its own samples' mean; where it has none, its texels'.
   const size_t nt = scene.TriangleCount();
   const bool has_own = own.triangle_w.size() == nt && own.triangle_effective_samples.size() == nt;
+  const bool has_variance = has_own && own.triangle_sample_variance.size() == nt;
   out.triangle_w.resize(nt);
   out.triangle_effective_samples.assign(nt, 0.0f);
+  if (has_variance) out.triangle_sample_variance.assign(nt, 0.0f);
   for (uint32_t t = 0; t < nt; ++t) {
     if (has_own && own.triangle_effective_samples[t] > 0) {
       out.triangle_w[t] = own.triangle_w[t];
       out.triangle_effective_samples[t] = own.triangle_effective_samples[t];
+      if (has_variance) out.triangle_sample_variance[t] = own.triangle_sample_variance[t];
     } else {
       out.triangle_w[t] = TriangleAverage(atlas, out, t);
     }

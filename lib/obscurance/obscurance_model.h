@@ -99,23 +99,53 @@ struct ObscuranceResult {
   // bounds (ObscuranceBoundsOf) follow from these.
   std::vector<float> texel_effective_samples;
   std::vector<float> triangle_effective_samples;
+  // Where an element's estimate is the mean of independent rays (the
+  // ray-cast bake, the update): the unbiased sample variance of its rays'
+  // values, the largest over the channels; empty, or negative for an
+  // element, where the estimate is not (depth peeling weighs directions of
+  // one Halton sequence; an update over such a bake). With it, the
+  // element's bound follows how little its values vary
+  // (ObscuranceHalfWidthOfRays).
+  std::vector<float> texel_sample_variance;
+  std::vector<float> triangle_sample_variance;
   AmbientModel ambient;
   uint64_t directions = 0;
   double mean_samples_per_patch = 0;  // over estimated texels
 };
 
-// What each W of a result can promise at `confidence`: Hoeffding's
-// half-width for its effective number of samples, each a mean of values in
-// [0, 1] (ObscuranceHalfWidth); 1 (nothing) without an estimate of its own.
-// A vertex's W is the area-weighted mean of its triangles', so its
-// half-width is at most the area-weighted mean of theirs (Minkowski on the
-// ranges of the per-direction terms), which is what it gets.
+// What each W of a result can promise at `confidence`, 1 (nothing) without
+// an estimate of its own. A texel or triangle whose rays' variance is known
+// gets ObscuranceHalfWidthOfRays; the others Hoeffding's half-width for
+// their effective number of samples, each a mean of values in [0, 1]
+// (ObscuranceHalfWidth). A vertex's W is the area-weighted mean of its
+// triangles', so its Hoeffding half-width is at most the area-weighted mean
+// of theirs (Minkowski on the ranges of the per-direction terms), which is
+// what it gets: the variance-aware bounds of several triangles would only
+// hold together at a lower confidence.
 struct ObscuranceBounds {
   std::vector<float> texel;     // per texel; 1 for texels filled from neighbours
   std::vector<float> triangle;  // per triangle
   std::vector<float> vertex;    // per Scene::positions
 };
 double ObscuranceHalfWidth(double effective_samples, double confidence);
+// The half-width, per channel the widest, of the mean `mean` of `rays`
+// independent values in [0, 1] whose unbiased sample variance is at most
+// `variance` in every channel, at `confidence`: per channel the smaller of
+// Chernoff's (Hoeffding 1963, Theorem 1: the Kullback-Leibler form, tight
+// where the mean is near 0 or 1) and the empirical Bernstein half-width
+// (Maurer & Pontil 2009, Theorem 4, two-sided), each at half the risk, so
+// the smaller holds at `confidence`. Both hold for independent values that
+// are not identically distributed, as stratified rays are
+// (docs/obscurance-bounds.md).
+// Never more than Hoeffding's at half the risk.
+double ObscuranceHalfWidthOfRays(double rays, const glm::dvec3& mean, double variance, double confidence);
+// The estimate beside the bound: the normal approximation's half-width at
+// the sample variance, z(confidence) sqrt(variance / rays). Not a bound.
+double ObscuranceNormalHalfWidth(double rays, double variance, double confidence);
+// The unbiased sample variance of `n` values (per channel, from their sums
+// and sums of squares), the largest over the channels, never below 0 and
+// rounded up to a float.
+float LargestChannelVariance(const glm::dvec3& sum, const glm::dvec3& sum_of_squares, double n);
 ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& result, double confidence);
 
 // ObscuranceBoundsOf's half-widths for the listed elements only, each
@@ -154,6 +184,8 @@ struct OwnSampleEstimates {
   std::vector<float> texel_effective_samples;  // per texel (empty: none known)
   std::vector<glm::vec3> triangle_w;           // per triangle (empty: from the texels)
   std::vector<float> triangle_effective_samples;
+  std::vector<float> texel_sample_variance;     // ObscuranceResult's; empty: unknown
+  std::vector<float> triangle_sample_variance;
 };
 
 // W per texel from fixed-point sums (count 0: not estimated); with `own`,

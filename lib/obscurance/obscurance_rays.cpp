@@ -344,7 +344,9 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
   std::vector<PatchRay> patch_rays;
   std::vector<raycast::Ray> rays;
   std::vector<uint32_t> ray_texel;
+  std::vector<float> texel_variance(n, 0.0f);
   std::vector<glm::dvec3> triangle_sum(scene.TriangleCount(), glm::dvec3(0.0));
+  std::vector<glm::dvec3> triangle_squares(scene.TriangleCount(), glm::dvec3(0.0));
   std::vector<uint32_t> triangle_count(scene.TriangleCount(), 0);
   for (uint32_t first = 0; first < n; first += kBatchTexels) {
     rays.clear();
@@ -362,21 +364,24 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
     trace.threads = options.threads;
     trace.stop = options.stop;
     VISQ_ASSIGN_OR_RETURN(std::vector<raycast::Hit> hits, embree.Intersect(rays, trace));
-    std::vector<glm::dvec3> sum(kBatchTexels, glm::dvec3(0.0));
+    std::vector<glm::dvec3> sum(kBatchTexels, glm::dvec3(0.0)), squares(kBatchTexels, glm::dvec3(0.0));
     std::vector<uint32_t> count(kBatchTexels, 0);
     for (size_t i = 0; i < rays.size(); ++i) {
       const uint32_t slot = ray_texel[i] - first;
       const glm::dvec3 value = RayValue(scene, ambient, params.color_bleeding, params.d_max, hits[i].hit, hits[i].t,
                                         hits[i].triangle);
       sum[slot] += value;
+      squares[slot] += value * value;
       ++count[slot];
       // Each ray also counts for the triangle it leaves (see BuildResult).
       triangle_sum[rays[i].ignore_triangle] += value;
+      triangle_squares[rays[i].ignore_triangle] += value * value;
       ++triangle_count[rays[i].ignore_triangle];
     }
     for (uint32_t s = 0; s < kBatchTexels && first + s < n; ++s)
       if (count[s]) {
         w[first + s] = glm::vec3(sum[s] / static_cast<double>(count[s]));
+        texel_variance[first + s] = LargestChannelVariance(sum[s], squares[s], count[s]);
         estimated[first + s] = 1;
       }
   }
@@ -386,12 +391,16 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
   own.texel_effective_samples.assign(n, 0.0f);
   for (uint32_t t = 0; t < n; ++t)
     if (estimated[t]) own.texel_effective_samples[t] = static_cast<float>(options.rays_per_patch);
+  own.texel_sample_variance = std::move(texel_variance);
   own.triangle_w.assign(scene.TriangleCount(), glm::vec3(0.0f));
   own.triangle_effective_samples.assign(scene.TriangleCount(), 0.0f);
+  own.triangle_sample_variance.assign(scene.TriangleCount(), 0.0f);
   for (size_t t = 0; t < scene.TriangleCount(); ++t)
     if (triangle_count[t] > 0) {
       own.triangle_w[t] = glm::vec3(triangle_sum[t] / static_cast<double>(triangle_count[t]));
       own.triangle_effective_samples[t] = static_cast<float>(triangle_count[t]);
+      own.triangle_sample_variance[t] =
+          LargestChannelVariance(triangle_sum[t], triangle_squares[t], triangle_count[t]);
     }
   ObscuranceResult out =
       BuildResult(scene, atlas, params.color_bleeding, std::move(w), std::move(estimated), std::move(own));

@@ -223,8 +223,10 @@ Status ObscuranceUpdater::Rebuild() {
 void ObscuranceUpdater::RayTally::Add(const glm::dvec3& value, int32_t object, int sign) {
   // Values are at most 1 per channel (rho times a reflectivity); the clamp
   // only keeps a hostile material from overflowing the integer.
-  for (int c = 0; c < 3; ++c)
+  for (int c = 0; c < 3; ++c) {
     sum[c] += sign * static_cast<int64_t>(std::llround(std::clamp(value[c], -1048576.0, 1048576.0) * kFixedOne));
+    sum_of_squares[c] += sign * static_cast<int64_t>(std::llround(std::min(value[c] * value[c], 1.0) * kFixedOne));
+  }
   if (object < 0) return;
   for (auto& [o, count] : first_hits)
     if (o == object) {
@@ -238,6 +240,19 @@ int32_t ObscuranceUpdater::RayTally::FirstHits(int32_t object) const {
   for (const auto& [o, count] : first_hits)
     if (o == object) return count;
   return 0;
+}
+
+float ObscuranceUpdater::RayTally::Variance() const {
+  if (rays < 2) return -1.0f;
+  glm::dvec3 sums, squares;
+  for (int c = 0; c < 3; ++c) {
+    sums[c] = static_cast<double>(sum[c]) / kFixedOne;
+    // Each fixed-point term is within 2^-33 of its value, so the variance
+    // from the sums is within 2^-31 n / (n - 1) of the values' own: raising
+    // the squares by 2^-31 a ray covers it.
+    squares[c] = static_cast<double>(sum_of_squares[c]) / kFixedOne + 0x1p-31 * rays;
+  }
+  return LargestChannelVariance(sums, squares, rays);
 }
 
 glm::vec3 ObscuranceUpdater::RayTally::Mean() const {
@@ -678,6 +693,11 @@ void ObscuranceUpdater::Finish(size_t k, const std::vector<uint32_t>& changed, O
       result_.w[texel] = tally.Mean();
       if (texel < result_.texel_effective_samples.size())
         result_.texel_effective_samples[texel] = static_cast<float>(options_.rays_per_patch);
+      // Over a depth-peeling bake, the recomputed patches' variance is known
+      // and the others' is not.
+      if (result_.texel_sample_variance.size() != result_.w.size())
+        result_.texel_sample_variance.assign(result_.w.size(), -1.0f);
+      result_.texel_sample_variance[texel] = tally.Variance();
     }
     for (size_t j = 0; j < objects_.size(); ++j) {
       if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;
@@ -755,10 +775,13 @@ void ObscuranceUpdater::Finish(size_t k, const std::vector<uint32_t>& changed, O
   }
   if (result_.triangle_effective_samples.size() != scene_.TriangleCount())
     result_.triangle_effective_samples.resize(scene_.TriangleCount(), 0.0f);
+  if (result_.triangle_sample_variance.size() != scene_.TriangleCount())
+    result_.triangle_sample_variance.assign(scene_.TriangleCount(), -1.0f);
   for (uint32_t t : update.triangles) {
     const RayTally& tally = triangle_tally_.At(t);
     result_.triangle_w[t] = tally.rays > 0 ? tally.Mean() : TriangleAverage(atlas_, result_, t);
     result_.triangle_effective_samples[t] = static_cast<float>(tally.rays);
+    result_.triangle_sample_variance[t] = tally.Variance();
     update.triangle_w.push_back(result_.triangle_w[t]);
     for (int c = 0; c < 3; ++c) update.vertices.push_back(scene_.triangles[t][c]);
   }

@@ -139,11 +139,14 @@ class ObscuranceUpdater {
   // ray's old value and adding its new one gives the bits of a full re-trace.
   struct RayTally {
     std::array<int64_t, 3> sum{};
+    std::array<int64_t, 3> sum_of_squares{};
     uint32_t rays = 0;
     std::vector<std::pair<int32_t, int32_t>> first_hits;  // (object, rays)
     void Add(const glm::dvec3& value, int32_t object, int sign);
     int32_t FirstHits(int32_t object) const;
     glm::vec3 Mean() const;
+    // LargestChannelVariance of the values, with the fixed point's rounding.
+    float Variance() const;
   };
   static constexpr double kFixedOne = 4294967296.0;  // 2^32
 

@@ -460,6 +460,14 @@ class SceneBuilder {
       for (int c = 0; c < 3; ++c)
         if (!std::isfinite(material.reflectivity[c]) || !std::isfinite(material.emission[c]))
           return Invalid(absl::StrCat("materials[", i, "]: non-finite color"));
+      // glTF's range, which the obscurance bounds rest on (a ray's value is
+      // rho times a reflectivity, in [0, 1]); within a rounding of it, clamped.
+      for (int c = 0; c < 3; ++c) {
+        if (!(material.reflectivity[c] >= -1e-6 && material.reflectivity[c] <= 1.0 + 1e-6))
+          return Invalid(absl::StrCat("materials[", i, "].pbrMetallicRoughness.baseColorFactor[", c, "]: ",
+                                      material.reflectivity[c], " is outside glTF's range [0, 1]"));
+        material.reflectivity[c] = std::clamp(material.reflectivity[c], 0.0, 1.0);
+      }
       scene_->materials.push_back(std::move(material));
     }
     return absl::OkStatus();

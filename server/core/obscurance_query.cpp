@@ -92,6 +92,27 @@ void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
   add("vertex", answer.bounds.vertex, nullptr);
 }
 
+// Beside the bounds, where the rays' variance is known: the normal
+// approximation's half-width at each texel's sample variance, an estimate
+// (not a bound), its median and 95th percentile over the estimated texels.
+void AddNormalEstimate(const obscurance::ObscuranceResult& result, double confidence, AccuracyStatement& out) {
+  if (result.texel_sample_variance.size() != result.w.size()) return;
+  std::vector<double> kept;
+  for (size_t i = 0; i < result.w.size(); ++i)
+    if (result.estimated[i] && result.texel_sample_variance[i] >= 0)
+      kept.push_back(obscurance::ObscuranceNormalHalfWidth(result.texel_effective_samples[i],
+                                                           result.texel_sample_variance[i], confidence));
+  if (kept.empty()) return;
+  std::sort(kept.begin(), kept.end());
+  out.parameters["texel_estimate_median"] = kept[kept.size() / 2];
+  out.parameters["texel_estimate_p95"] = kept[std::min(kept.size() - 1, kept.size() * 95 / 100)];
+}
+
+constexpr const char* kRaysBoundRule =
+    "the smaller of Hoeffding's and the empirical Bernstein half-width at its rays' own sample variance (Maurer & "
+    "Pontil 2009, two-sided), each at half the risk, for each texel and triangle (a vertex: the area-weighted mean "
+    "of its triangles' Hoeffding half-widths)";
+
 // error_bound and what it covers: with a result, the widest own half-width
 // among the elements resting on at least a quarter of the nominal count
 // (ObscuranceAnswerBoundOf), the others counted; a partial bake, which has
@@ -99,11 +120,13 @@ void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
 void SetCoveredBound(const ObscuranceAnswer& answer, double nominal, const char* unit, AccuracyStatement& out) {
   const double cap = obscurance::CoveredHalfWidth(nominal, answer.confidence);
   out.error_bound = cap;
-  const std::string rule =
-      absl::StrCat("at ", answer.confidence, ", Hoeffding's half-width for each element's own effective number of ",
-                   unit, " with values in [0, 1] per channel; error_bound holds for every element (texel, triangle, "
-                   "vertex) resting on at least ", obscurance::kCoveredShare, " x ", nominal, " ", unit,
-                   " (its own bound at most ", absl::StrFormat("%.4f", cap), ")");
+  const bool rays = answer.result && !answer.result->texel_sample_variance.empty();
+  const std::string rule = absl::StrCat(
+      "at ", answer.confidence, ", ",
+      rays ? kRaysBoundRule : "Hoeffding's half-width for each element's own effective number of ", rays ? "" : unit,
+      rays ? "; the rays' values" : "", " with values in [0, 1] per channel; error_bound holds for every element "
+      "(texel, triangle, vertex) resting on at least ", obscurance::kCoveredShare, " x ", nominal, " ", unit,
+      " (its own bound at most ", absl::StrFormat("%.4f", cap), ")");
   if (!answer.result) {
     out.note = absl::StrCat("estimate: ", rule, "; a partial bake: elements not counted");
     return;
@@ -118,12 +141,17 @@ void SetCoveredBound(const ObscuranceAnswer& answer, double nominal, const char*
   for (float e : answer.result->triangle_effective_samples) unsampled += e == 0.0f;
   out.parameters["triangles_without_samples"] = static_cast<double>(unsampled);
   AddElementBounds(answer, out);
+  AddNormalEstimate(*answer.result, answer.confidence, out);
   out.note = absl::StrCat(
       "estimate: ", rule, "; outside it, with wider bounds of their own (want_errors): ", bound.texels.outside, " of ",
       bound.texels.elements, " estimated texels, ", bound.triangles.outside, " of ", bound.triangles.elements,
       " sampled triangles, ", bound.vertices.outside, " of ", bound.vertices.elements, " vertices; ", unsampled,
       " triangles got no sample (their W is their texels', with no bound); the spread of the own bounds in "
-      "*_bound_median and *_bound_p95");
+      "*_bound_median and *_bound_p95",
+      rays ? absl::StrCat("; beside them an estimate, not a bound: the normal approximation's half-width at each "
+                          "texel's sample variance (at ", answer.confidence, "), texel_estimate_median and "
+                          "texel_estimate_p95")
+           : "");
 }
 
 }  // namespace
@@ -137,7 +165,8 @@ AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
     out.parameters["rays_per_patch"] = static_cast<double>(answer.rays_per_patch);
     SetCoveredBound(answer, answer.rays_per_patch, "rays", out);
     out.note += "; the rays are independent, each cosine-distributed within its own of N equal cells of the "
-                "directions (stratified) from a point uniform on the patch, so Hoeffding's inequality holds for them";
+                "directions (stratified) from a point uniform on the patch, so Hoeffding's and Bernstein's "
+                "inequalities hold for them";
   } else {
     // Per direction, a patch's value is a mean of values in [0, 1] (per
     // channel); the directions are weighed per patch by its samples.
@@ -170,8 +199,8 @@ AccuracyStatement ObscuranceUpdateStatement(const ObscuranceUpdateAnswer& answer
       " independent rays per patch (values in [0, 1]; each cosine-distributed within its own of N equal cells of the "
       "directions, from a point uniform on the patch); triangles touching a changed texel by rays of their own (as "
       "many per texel of their area, 1 to 16 patches' worth); each listed element's own half-width in w_error, "
-      "triangle_w_error and vertex_w_error (a vertex's the area-weighted mean of its triangles', the bake's for those "
-      "the update did not trace); 1 where W rests on no sample of its own: ",
+      "triangle_w_error and vertex_w_error: for a recomputed texel or triangle ", kRaysBoundRule,
+      "; the bake's for those the update did not trace; 1 where W rests on no sample of its own: ",
       texels_without, " changed texels refilled from their neighbours, ", triangles_without,
       " triangles no ray reached; the other patches keep the bake's values (", answer.directions,
       " directions) bit for bit");
