@@ -15,11 +15,11 @@
 # lacks, and a package of the list that neither .deb needs (apt's
 # autoremove, with the list marked automatic) fails the stage.
 # python3-visq installs on a clean debian:bookworm-slim of its own (its
-# Depends from the mirror, in a layer podman caches) and answers Health. The debian:bookworm base comes from
-# the local podman store, else from a tarball cached in $VISQ_CI_CACHE
-# (default /var/cache/visq-ci), else debootstrap makes it once (minutes) and
-# caches it. The runtime stage's apt layer is cached by podman, so a rerun
-# rebuilds only the binaries' layer.
+# Depends from the mirror, in a layer podman caches) and answers Health.
+# The debian:bookworm base comes from the local podman store, else from a
+# tarball cached in $VISQ_CI_CACHE (default /var/cache/visq-ci), else
+# debootstrap makes it once (minutes) and caches it. The runtime stage's apt
+# layer is cached by podman, so a rerun rebuilds only the packages' layer.
 #
 # The container runs as the Kubernetes pods do: the image's user, a
 # read-only root filesystem (tmpfs /tmp), every capability dropped, no new
