@@ -345,9 +345,19 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
   std::vector<raycast::Ray> rays;
   std::vector<uint32_t> ray_texel;
   std::vector<float> texel_variance(n, 0.0f);
-  std::vector<glm::dvec3> triangle_sum(scene.TriangleCount(), glm::dvec3(0.0));
-  std::vector<glm::dvec3> triangle_squares(scene.TriangleCount(), glm::dvec3(0.0));
-  std::vector<uint32_t> triangle_count(scene.TriangleCount(), 0);
+  // A triangle's estimate from the rays that leave it, each weighed by the
+  // surface its patch's rays share (the patch's area over its rays): a texel
+  // that the triangle shares with the gutter or a neighbour sends all its
+  // rays from less surface, and unweighted, those rays near the triangle's
+  // edges (often its most occluded part) would count for more than its
+  // interior.
+  struct TriangleRays {
+    glm::dvec3 weighted_sum{0.0}, sum{0.0}, squares{0.0};
+    double weight = 0, weight_squared = 0, first_weight = -1;
+    uint32_t count = 0;
+    bool equal_weights = true;
+  };
+  std::vector<TriangleRays> triangle_rays(scene.TriangleCount());
   for (uint32_t first = 0; first < n; first += kBatchTexels) {
     rays.clear();
     ray_texel.clear();
@@ -366,17 +376,31 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
     VISQ_ASSIGN_OR_RETURN(std::vector<raycast::Hit> hits, embree.Intersect(rays, trace));
     std::vector<glm::dvec3> sum(kBatchTexels, glm::dvec3(0.0)), squares(kBatchTexels, glm::dvec3(0.0));
     std::vector<uint32_t> count(kBatchTexels, 0);
+    std::vector<glm::dvec3> values(rays.size());
     for (size_t i = 0; i < rays.size(); ++i) {
       const uint32_t slot = ray_texel[i] - first;
-      const glm::dvec3 value = RayValue(scene, ambient, params.color_bleeding, params.d_max, hits[i].hit, hits[i].t,
-                                        hits[i].triangle);
-      sum[slot] += value;
-      squares[slot] += value * value;
+      values[i] = RayValue(scene, ambient, params.color_bleeding, params.d_max, hits[i].hit, hits[i].t,
+                           hits[i].triangle);
+      sum[slot] += values[i];
+      squares[slot] += values[i] * values[i];
       ++count[slot];
-      // Each ray also counts for the triangle it leaves (see BuildResult).
-      triangle_sum[rays[i].ignore_triangle] += value;
-      triangle_squares[rays[i].ignore_triangle] += value * value;
-      ++triangle_count[rays[i].ignore_triangle];
+    }
+    // Each ray also counts for the triangle it leaves (see BuildResult).
+    for (size_t i = 0; i < rays.size(); ++i) {
+      const uint32_t texel = ray_texel[i];
+      double patch_area = 0;
+      for (uint32_t f = atlas.texel_begin[texel]; f < atlas.texel_begin[texel + 1]; ++f)
+        patch_area += atlas.fragments[f].world_area;
+      const double weight = patch_area / count[texel - first];
+      TriangleRays& tr = triangle_rays[rays[i].ignore_triangle];
+      tr.weighted_sum += weight * values[i];
+      tr.sum += values[i];
+      tr.squares += values[i] * values[i];
+      tr.weight += weight;
+      tr.weight_squared += weight * weight;
+      if (tr.first_weight < 0) tr.first_weight = weight;
+      tr.equal_weights = tr.equal_weights && weight == tr.first_weight;
+      ++tr.count;
     }
     for (uint32_t s = 0; s < kBatchTexels && first + s < n; ++s)
       if (count[s]) {
@@ -395,13 +419,23 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
   own.triangle_w.assign(scene.TriangleCount(), glm::vec3(0.0f));
   own.triangle_effective_samples.assign(scene.TriangleCount(), 0.0f);
   own.triangle_sample_variance.assign(scene.TriangleCount(), 0.0f);
-  for (size_t t = 0; t < scene.TriangleCount(); ++t)
-    if (triangle_count[t] > 0) {
-      own.triangle_w[t] = glm::vec3(triangle_sum[t] / static_cast<double>(triangle_count[t]));
-      own.triangle_effective_samples[t] = static_cast<float>(triangle_count[t]);
-      own.triangle_sample_variance[t] =
-          LargestChannelVariance(triangle_sum[t], triangle_squares[t], triangle_count[t]);
+  for (size_t t = 0; t < scene.TriangleCount(); ++t) {
+    const TriangleRays& tr = triangle_rays[t];
+    if (tr.count == 0 || !(tr.weight > 0)) continue;
+    if (tr.equal_weights) {
+      // One weight: the plain mean, whose rays' variance bounds it.
+      own.triangle_w[t] = glm::vec3(tr.sum / static_cast<double>(tr.count));
+      own.triangle_effective_samples[t] = static_cast<float>(tr.count);
+      own.triangle_sample_variance[t] = LargestChannelVariance(tr.sum, tr.squares, tr.count);
+    } else {
+      // Weighted: Hoeffding's inequality holds for it at Kish's effective
+      // count (the weighted mean's sum of squared normalized weights); the
+      // variance-aware bounds are for equal weights.
+      own.triangle_w[t] = glm::vec3(tr.weighted_sum / tr.weight);
+      own.triangle_effective_samples[t] = static_cast<float>(tr.weight * tr.weight / tr.weight_squared);
+      own.triangle_sample_variance[t] = -1.0f;
     }
+  }
   ObscuranceResult out =
       BuildResult(scene, atlas, params.color_bleeding, std::move(w), std::move(estimated), std::move(own));
   out.mean_samples_per_patch = options.rays_per_patch;
