@@ -694,9 +694,25 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
     std::string Share(size_t k, size_t n) const { return n ? Fmt("%.4g %%", 100.0 * double(k) / double(n)) : "–"; }
   };
   Count texels, triangles, vertices;
+  // Where the rays' variance is known: the texels' median error and own
+  // bound, and how often the normal-approximation estimate holds.
+  const bool rays = result.texel_sample_variance.size() == result.w.size();
+  std::vector<double> texel_errors, texel_bounds;
+  size_t estimate_within = 0;
   for (uint32_t t = 0; t < atlas.texel_count(); ++t)
-    if (atlas.Covered(t) && result.estimated[t] && reference.estimated[t])
-      texels.Add(std::abs(double(result.w[t].x) - reference.w[t].x), bounds.texel[t], single);
+    if (atlas.Covered(t) && result.estimated[t] && reference.estimated[t]) {
+      const double error = std::abs(double(result.w[t].x) - reference.w[t].x);
+      texels.Add(error, bounds.texel[t], single);
+      texel_errors.push_back(error);
+      texel_bounds.push_back(bounds.texel[t]);
+      if (rays)
+        estimate_within += error <= ObscuranceNormalHalfWidth(result.texel_effective_samples[t],
+                                                              result.texel_sample_variance[t], kConfidence);
+    }
+  auto median = [](std::vector<double> v) {
+    std::sort(v.begin(), v.end());
+    return v.empty() ? 0.0 : v[v.size() / 2];
+  };
   std::vector<uint8_t> vertex_ok(scene.positions.size(), 1);
   for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
     const bool ok = reference.triangle_effective_samples[t] >= kReferenceRays && result.triangle_effective_samples[t] > 0;
@@ -720,7 +736,11 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
          vertices.Share(vertices.covered_within, vertices.covered) + " (" + std::to_string(answer.vertices.outside) +
          " outside); own bounds hold for texels " + texels.Share(texels.own_within, texels.all) + ", triangles " +
          triangles.Share(triangles.own_within, triangles.all) + " (" + std::to_string(triangles.all) + "), vertices " +
-         vertices.Share(vertices.own_within, vertices.all) + " (" + std::to_string(vertices.all) + ")";
+         vertices.Share(vertices.own_within, vertices.all) + " (" + std::to_string(vertices.all) + ")" +
+         (rays ? "; texels' median error " + Fmt("%.3g", median(texel_errors)) + ", median own bound " +
+                     Fmt("%.3g", median(texel_bounds)) + "; the normal estimate holds for texels " +
+                     texels.Share(estimate_within, texels.all)
+               : "");
 }
 
 void SweepObscurances(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worker, const gpu::GpuScene& gpu_scene,
