@@ -1265,6 +1265,17 @@ TEST_F(ExtremesTest, FarSmallLightKeepsTheReceiversPrecision) {
   }
 }
 
+// The Cornell box of ../shared/scenes with its corners snapped to 1/16, so
+// that its translations far from the origin stay exact in float32.
+void LoadSnappedCornellBox(const std::filesystem::path& shared, Scene& out) {
+  auto loaded = LoadGltfFile(shared / "cornell_box" / "cornell_box.gltf");
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  out = *loaded;
+  for (glm::dvec3& p : out.positions) p = glm::round(p * 16.0) / 16.0;
+  UpdateBounds(out);
+  ASSERT_NEAR(out.bounds.max.y, 2.0, 1e-12) << "the box's ceiling moved: the test's frame is off";
+}
+
 // ---------------------------------------------------------------------------
 // A real scene, transformed: the Cornell box of ../shared/scenes, its corners
 // snapped to 1/16 (so its translation by 1e6 is exact in float32), is the
@@ -1273,12 +1284,8 @@ TEST_F(ExtremesTest, FarSmallLightKeepsTheReceiversPrecision) {
 // and translated copies.
 TEST_F(ExtremesTest, CornellBoxHiddenSampleMapMatchesExactReferenceUnderTransforms) {
   VISQ_REQUIRE_SHARED_SCENES(shared);
-  auto loaded = LoadGltfFile(shared / "cornell_box" / "cornell_box.gltf");
-  ASSERT_TRUE(loaded.ok()) << loaded.status();
-  Scene canonical = *loaded;
-  for (glm::dvec3& p : canonical.positions) p = glm::round(p * 16.0) / 16.0;
-  UpdateBounds(canonical);
-  ASSERT_NEAR(canonical.bounds.max.y, 2.0, 1e-12) << "the box's ceiling moved: the test's frame is off";
+  Scene canonical;
+  ASSERT_NO_FATAL_FAILURE(LoadSnappedCornellBox(shared, canonical));
 
   // The light just under the ceiling, the receiver just inside the walls on the floor.
   const glm::dvec3 source_origin(-0.25, 1.9375, -0.25), source_u(0.5, 0, 0), source_v(0, 0, 0.5);
@@ -1354,14 +1361,10 @@ TEST_F(ExtremesTest, CornellBoxHiddenSampleMapMatchesExactReferenceUnderTransfor
 // RAYCAST alike), with no refusal.
 TEST_F(ExtremesTest, CornellBoxWithACopyFarAwayKeepsItsBitsAtEveryOffset) {
   VISQ_REQUIRE_SHARED_SCENES(shared);
-  auto loaded = LoadGltfFile(shared / "cornell_box" / "cornell_box.gltf");
-  ASSERT_TRUE(loaded.ok()) << loaded.status();
-  Scene canonical = *loaded;
-  for (glm::dvec3& p : canonical.positions) p = glm::round(p * 16.0) / 16.0;
-  UpdateBounds(canonical);
+  Scene canonical;
+  ASSERT_NO_FATAL_FAILURE(LoadSnappedCornellBox(shared, canonical));
   // The short box's top: 0.6 snapped.
   constexpr double kShortTop = 0.625;
-  ASSERT_NEAR(canonical.bounds.max.y, 2.0, 1e-12) << "the box's ceiling moved: the test's frame is off";
 
   ASSERT_TRUE(Upload(*client_, canonical, "cornell_alone").ok());
   // A light 1.5 across just under the ceiling (64 samples: 0.1875 apart),

@@ -1278,6 +1278,13 @@ TEST(ObscuranceBake, TriangleAndVertexWHoldTheirBoundWhenTexelsAreLargerThanTria
   EXPECT_LT(own_rms[1], 0.5 * mixed_rms[1]);
 }
 
+RayEstimateOptions RaysOf(uint32_t rays_per_patch, uint64_t seed) {
+  RayEstimateOptions options;
+  options.rays_per_patch = rays_per_patch;
+  options.seed = seed;
+  return options;
+}
+
 // The answer's single bound against Embree rays cast from each texel and
 // each triangle (knowing nothing of the bake): it must hold for at least the
 // stated share of the elements it covers, and so for at least that share of
@@ -1289,9 +1296,7 @@ void ExpectSingleBoundHolds(const Scene& scene, uint32_t resolution, double d_ma
   const ObscuranceAtlas atlas = Atlas(scene, resolution);
   ObscuranceParams params;
   params.d_max = d_max;
-  RayEstimateOptions ref_options;
-  ref_options.rays_per_patch = reference_rays;
-  ref_options.seed = 4242;
+  const RayEstimateOptions ref_options = RaysOf(reference_rays, 4242);
   auto texel_reference = EstimateObscurancesByRays(scene, atlas, params, ref_options);
   auto triangle_reference = EstimateTriangleObscuranceByRays(scene, params, ref_options);
   ASSERT_TRUE(texel_reference.ok() && triangle_reference.ok());
@@ -1376,12 +1381,7 @@ void ExpectRayBoundsHoldAndFollowTheVariance(const Scene& scene, uint32_t resolu
   const ObscuranceAtlas atlas = Atlas(scene, resolution);
   ObscuranceParams params;
   params.d_max = d_max;
-  RayEstimateOptions options;
-  options.rays_per_patch = rays;
-  options.seed = 7;
-  RayEstimateOptions ref_options = options;
-  ref_options.rays_per_patch = 16 * rays;
-  ref_options.seed = 4242;
+  const RayEstimateOptions options = RaysOf(rays, 7), ref_options = RaysOf(16 * rays, 4242);
   auto baked = EstimateObscurancesByRays(scene, atlas, params, options);
   auto texel_reference = EstimateObscurancesByRays(scene, atlas, params, ref_options);
   auto triangle_reference = triangles_too ? EstimateTriangleObscuranceByRays(scene, params, ref_options)
@@ -1461,14 +1461,8 @@ TEST(ObscuranceBake, RayCastTriangleWIsTheTrianglesAreaMean) {
   const ObscuranceAtlas atlas = Atlas(scene, 128);
   ObscuranceParams params;
   params.d_max = 0.5 * glm::length(scene.bounds.Extent());
-  RayEstimateOptions options;
-  options.rays_per_patch = 64;
-  options.seed = 3;
-  RayEstimateOptions ref_options;
-  ref_options.rays_per_patch = 1 << 16;
-  ref_options.seed = 99;
-  auto baked = EstimateObscurancesByRays(scene, atlas, params, options);
-  auto reference = EstimateTriangleObscuranceByRays(scene, params, ref_options);
+  auto baked = EstimateObscurancesByRays(scene, atlas, params, RaysOf(64, 3));
+  auto reference = EstimateTriangleObscuranceByRays(scene, params, RaysOf(1 << 16, 99));
   ASSERT_TRUE(baked.ok() && reference.ok());
   const ObscuranceBounds bounds = ObscuranceBoundsOf(scene, *baked, 0.95);
   double signed_sum = 0, area_sum = 0, largest_wall_error = 0;
