@@ -116,12 +116,12 @@ case "${1:-}" in
     echo "visq: every stage passed in $((SECONDS - start)) s${skipped:+ (${skipped})}"
     ;;
   container)
-    # test's stage 3 alone: the two binaries and the Python stubs (the .debs
-    # it packs), then the image built and run.
+    # test's stage 3 alone: what its four .debs hold (the two binaries, the
+    # client libraries, the Python stubs), then the image built and run.
     shift
     bash deploy/install-deps.sh
     configure
-    cmake --build "$build_dir" -j"$jobs" --target visq-server visq visq_python_stubs
+    cmake --build "$build_dir" -j"$jobs" --target visq-server visq visq_client visq_proto visq_python_stubs
     stage "the container: the image built from deploy/Dockerfile, run, SERVING and one query"
     container_stage
     echo "visq: ${skipped:-container stage passed}"

@@ -128,7 +128,8 @@ visq-client.pc and the .proto files.")
 # What visqConfig.cmake and visq-client.pc find: gRPC's CMake package checks
 # that grpc_cpp_plugin exists (protobuf-compiler-grpc).
 set(CPACK_DEBIAN_DEV_PACKAGE_DEPENDS "libgrpc++-dev, libprotobuf-dev, libabsl-dev, protobuf-compiler-grpc")
-set(CPACK_DEBIAN_DEV_PACKAGE_SUGGESTS "cmake, pkgconf")
+# A consumer's build tools: the container stage installs these with the package.
+set(CPACK_DEBIAN_DEV_PACKAGE_SUGGESTS "cmake, make, g++, pkgconf")
 
 set(CPACK_DEBIAN_PYTHON_PACKAGE_NAME python3-visq)
 set(CPACK_DEBIAN_PYTHON_PACKAGE_SECTION python)

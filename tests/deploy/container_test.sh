@@ -14,8 +14,10 @@
 # the .debs' Depends must agree both ways: dpkg refuses a Depends the list
 # lacks, and a package of the list that neither .deb needs (apt's
 # autoremove, with the list marked automatic) fails the stage.
-# python3-visq installs on a clean debian:bookworm-slim of its own (its
-# Depends from the mirror, in a layer podman caches) and answers Health.
+# python3-visq and libvisq-client-dev install each on a clean
+# debian:bookworm-slim of its own (their Depends from the mirror, in a layer
+# podman caches): the Python package answers Health, and a find_package and
+# a pkg-config consumer build against the -dev package and answer.
 # The debian:bookworm base comes from the local podman store, else from a
 # tarball cached in $VISQ_CI_CACHE (default /var/cache/visq-ci), else
 # debootstrap makes it once (minutes) and caches it. The runtime stage's apt
@@ -68,6 +70,7 @@ security_mirror=${security_mirror:-${mirror%/debian}/debian-security}
 base=debian:bookworm
 image=localhost/visq:ci-test
 python_image=localhost/visq-python:ci-test
+dev_image=localhost/visq-dev:ci-test
 scene=cornell_box_visq
 
 skip() {
@@ -177,13 +180,15 @@ fi
 
 # --- The .debs, then the image around them -------------------------------------
 start=$(now)
-(cd "$build" && VISQ_CPACK_COMPONENTS="server;client;python" cpack -G DEB -B "$tmp/packages") > "$tmp/cpack.log" 2>&1 ||
+(cd "$build" && cpack -G DEB -B "$tmp/packages") > "$tmp/cpack.log" 2>&1 ||
   { tail -n 20 "$tmp/cpack.log" >&2
-    fail "cpack could not make the visq-server, visq-client and python3-visq .debs" \
-      "(cmake --build $build --target visq-server visq visq_python_stubs)"; }
+    fail "cpack could not make the four .debs" \
+      "(cmake --build $build --target visq-server visq visq_client visq_proto visq_python_stubs)"; }
 server_deb=$(ls "$tmp/packages"/visq-server_*.deb 2> /dev/null) || fail "cpack made no visq-server .deb: $(tail -n 3 "$tmp/cpack.log")"
 client_deb=$(ls "$tmp/packages"/visq-client_*.deb 2> /dev/null) || fail "cpack made no visq-client .deb: $(tail -n 3 "$tmp/cpack.log")"
 python_deb=$(ls "$tmp/packages"/python3-visq_*.deb 2> /dev/null) || fail "cpack made no python3-visq .deb: $(tail -n 3 "$tmp/cpack.log")"
+dev_deb=$(ls "$tmp/packages"/libvisq-client-dev_*.deb 2> /dev/null) ||
+  fail "cpack made no libvisq-client-dev .deb: $(tail -n 3 "$tmp/cpack.log")"
 pack_s=$(since "$start")
 # A context of its own, three files: the build reads nothing else.
 mkdir -p "$tmp/context/deploy" "$tmp/context/prebuilt"
@@ -291,37 +296,48 @@ awk -v m="$mean" 'BEGIN { exit !(m > 0 && m < 1) }' ||
 query_s=$(since "$start")
 gpu=$("$cli_bin" stats --server "$server" --token-file "$tmp/token" | sed -n 's/^GPU *//p')
 
-# python3-visq on a clean Debian root: its Depends from the mirror (apt, a
-# layer podman caches: the package names come from the .deb, so the layer
-# changes only when they do), the .deb with dpkg, then import visq and ask
-# the image's server for Health and the scenes.
-start=$(now)
-mkdir -p "$tmp/python-context"
-cp "$python_deb" "$tmp/python-context/python3-visq.deb"
-python_depends=$(dpkg-deb -f "$python_deb" Depends | tr ',' '\n' | sed 's/(.*)//; s/|.*//; s/^ *//; s/ *$//' |
-  sed '/^$/d' | sort | tr '\n' ' ')
-cat > "$tmp/python-context/Containerfile" << 'CONTAINERFILE'
+# python3-visq and libvisq-client-dev, each on a clean Debian root of its
+# own: debian:bookworm-slim, the names the .deb gives (its Depends, and for
+# the -dev package the build tools it suggests) from the mirror with apt in
+# a layer podman caches (the layer changes only when the names do), then
+# the .deb with dpkg, which refuses it if a Depends is missing.
+#   clean_root_image TAG DEB FIELDS...: builds TAG.
+clean_root_image() {
+  local tag=$1 deb=$2 context old new packages field
+  shift 2
+  context=$tmp/context-$(basename "$deb" .deb)
+  mkdir -p "$context"
+  cp "$deb" "$context/package.deb"
+  packages=$(for field in "$@"; do dpkg-deb -f "$deb" "$field"; echo; done | tr ',' '\n' |
+    sed 's/(.*)//; s/|.*//; s/^ *//; s/ *$//' | sed '/^$/d' | sort -u | tr '\n' ' ')
+  cat > "$context/Containerfile" << 'CONTAINERFILE'
 FROM debian:bookworm-slim
 ARG PACKAGES
 RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $PACKAGES \
  && rm -rf /var/lib/apt/lists/*
-COPY python3-visq.deb /tmp/
-RUN dpkg -i /tmp/python3-visq.deb && rm /tmp/python3-visq.deb
+COPY package.deb /tmp/
+RUN dpkg -i /tmp/package.deb && rm /tmp/package.deb
 CONTAINERFILE
-old_python_image=$(podman image inspect --format '{{.Id}}' "$python_image" 2> /dev/null || true)
-if ! podman build --pull=never --network host "${limits[@]}" --build-arg "PACKAGES=$python_depends" \
-    -t "$python_image" "$tmp/python-context" > "$tmp/python-build.log" 2>&1; then
-  tail -n 30 "$tmp/python-build.log" >&2
-  if grep -qE "Temporary failure resolving|Could not resolve|Failed to fetch|Unable to connect" "$tmp/python-build.log"; then
-    skip "apt-get cannot reach the Debian mirror for python3-visq's Depends: $(grep -m 1 -E 'resolv|fetch|connect' "$tmp/python-build.log")"
+  old=$(podman image inspect --format '{{.Id}}' "$tag" 2> /dev/null || true)
+  if ! podman build --pull=never --network host "${limits[@]}" --build-arg "PACKAGES=$packages" \
+      -t "$tag" "$context" > "$context/build.log" 2>&1; then
+    tail -n 30 "$context/build.log" >&2
+    if grep -qE "Temporary failure resolving|Could not resolve|Failed to fetch|Unable to connect" "$context/build.log"; then
+      skip "apt-get cannot reach the Debian mirror for $(basename "$deb")'s Depends:" \
+        "$(grep -m 1 -E 'resolv|fetch|connect' "$context/build.log")"
+    fi
+    fail "$(basename "$deb") did not install on a clean debian:bookworm-slim (apt-get install $packages, then dpkg -i)"
   fi
-  fail "python3-visq did not install on a clean debian:bookworm-slim (apt-get install $python_depends, then dpkg -i)"
-fi
-new_python_image=$(podman image inspect --format '{{.Id}}' "$python_image")
-if [[ -n "$old_python_image" && "$old_python_image" != "$new_python_image" ]]; then
-  podman image rm "$old_python_image" > /dev/null 2>&1 || true
-fi
-podman run --rm --pull=never --network host "${limits[@]}" -e VISQ_TOKEN="$(head -n 1 "$tmp/token")" "$python_image" \
+  new=$(podman image inspect --format '{{.Id}}' "$tag")
+  if [[ -n "$old" && "$old" != "$new" ]]; then podman image rm "$old" > /dev/null 2>&1 || true; fi
+}
+token_value=$(head -n 1 "$tmp/token")
+
+# python3-visq: import visq (the stubs from the package, no protoc there)
+# and ask the image's server for Health and the scenes.
+start=$(now)
+clean_root_image "$python_image" "$python_deb" Depends
+podman run --rm --pull=never --network host "${limits[@]}" -e VISQ_TOKEN="$token_value" "$python_image" \
   python3 -c 'import os, sys, visq
 assert visq.__file__.startswith("/usr/lib/python3/dist-packages/visq/"), visq.__file__
 with visq.Client(sys.argv[1], token=os.environ["VISQ_TOKEN"]) as c:
@@ -331,6 +347,25 @@ with visq.Client(sys.argv[1], token=os.environ["VISQ_TOKEN"]) as c:
 grep -qx "health SERVING" "$tmp/python.log" && grep -q "^scenes.* $scene" "$tmp/python.log" ||
   fail "python3-visq in a clean root: $(cat "$tmp/python.log")"
 python_s=$(since "$start")
+
+# libvisq-client-dev: tests/install/consumer built with find_package(visq)
+# and with pkg-config visq-client, both run against the image's server.
+start=$(now)
+clean_root_image "$dev_image" "$dev_deb" Depends Suggests
+podman run --rm --pull=never --network host "${limits[@]}" -e VISQ_TOKEN="$token_value" \
+  -v "$source_dir/tests/install/consumer:/consumer:ro" "$dev_image" sh -ec '
+    cp -r /consumer /tmp/consumer
+    cmake -S /tmp/consumer -B /tmp/build -DCMAKE_FIND_USE_PACKAGE_REGISTRY=OFF > /tmp/log 2>&1 || { cat /tmp/log; exit 1; }
+    grep -qx "visq_DIR:PATH=/usr/lib/cmake/visq" /tmp/build/CMakeCache.txt ||
+      { echo "find_package(visq): $(grep ^visq_DIR /tmp/build/CMakeCache.txt)"; exit 1; }
+    cmake --build /tmp/build > /tmp/log 2>&1 || { cat /tmp/log; exit 1; }
+    c++ -std=c++17 -O0 /tmp/consumer/main.cpp $(pkg-config --cflags --libs visq-client) -o /tmp/consumer_pkg_config
+    /tmp/build/visq_consumer "$1"
+    /tmp/consumer_pkg_config "$1"' sh "$server" > "$tmp/dev.log" 2>&1 ||
+  fail "libvisq-client-dev in a clean root: $(cat "$tmp/dev.log")"
+[[ $(grep -cx "health SERVING" "$tmp/dev.log") == 2 && $(grep -c "^scene $scene [1-9]" "$tmp/dev.log") == 2 ]] ||
+  fail "libvisq-client-dev in a clean root: $(cat "$tmp/dev.log")"
+dev_s=$(since "$start")
 
 # A clean stop: SIGTERM, the drain, exit 0.
 start=$(now)
@@ -342,5 +377,5 @@ code=$(podman inspect --format '{{.State.ExitCode}}' "$container")
 echo "visq: container stage passed: base image ${base_s} s ($base_how), .debs ${pack_s} s ($installed:" \
   "their Depends and install-deps.sh --runtime-only agree), image build ${build_s} s," \
   "SERVING ${serving_s} s after podman run, list + hidden-map ${query_s} s (mean visible fraction $mean)," \
-  "python3-visq on a clean root ${python_s} s," \
+  "python3-visq on a clean root ${python_s} s, libvisq-client-dev on a clean root and two consumers ${dev_s} s," \
   "stop ${stop_s} s; GPU: $gpu"

@@ -18,9 +18,10 @@
 #    the stubs inside; pip install of the checkout (the README's command)
 #    and of the wheel write nothing into client/python; the installed wheel
 #    answers Health.
-# The clean-root install of visq-server and visq-client (dpkg -i, their
-# Depends against the run-time list) is ./visq.sh test's container stage
-# (tests/deploy/container_test.sh).
+# The clean-root installs (dpkg -i of all four on debian:bookworm-slim
+# roots, visq-server's and visq-client's Depends against the run-time list)
+# are ./visq.sh test's container stage (tests/deploy/container_test.sh); this
+# test covers machines where that stage cannot run.
 set -euo pipefail
 export LC_ALL=C
 build=$(cd "$1" && pwd) source_dir=$(cd "$2" && pwd) cmake=$3 cxx=$4 pkg_config=$5
