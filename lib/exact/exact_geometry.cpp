@@ -341,7 +341,7 @@ int Orient3d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, cons
   const double permanent = (std::fabs(m0) + std::fabs(m1)) * std::fabs(ux) +
                            (std::fabs(m2) + std::fabs(m3)) * std::fabs(vx) +
                            (std::fabs(m4) + std::fabs(m5)) * std::fabs(wx);
-  const double bound = 7.7715611723761027e-16 * permanent;  // (7 + 56 eps) eps
+  const double bound = kOrient3dFilter * permanent;
   if (det > bound) return 1;
   if (-det > bound) return -1;
   // Second stage: the same expression in exactness-tracking intervals, which
@@ -370,7 +370,7 @@ int Orient2d(const glm::dvec3& a, const glm::dvec3& b, const glm::dvec3& c, int 
   const double detleft = (b[i] - a[i]) * (c[j] - a[j]);
   const double detright = (b[j] - a[j]) * (c[i] - a[i]);
   const double det = detleft - detright;
-  const double bound = 3.3306690738754716e-16 * (std::fabs(detleft) + std::fabs(detright));
+  const double bound = kOrient2dFilter * (std::fabs(detleft) + std::fabs(detright));
   if (det > bound) return 1;
   if (-det > bound) return -1;
   g_exact_fallbacks.fetch_add(1, std::memory_order_relaxed);

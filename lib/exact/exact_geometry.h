@@ -47,6 +47,8 @@
 #include <gmpxx.h>
 #include <glm/glm.hpp>
 
+#include "exact/rounding.h"
+
 namespace visq::exact::detail {
 
 // Counts of exact (GMP) fallbacks, for statistics and tests.
@@ -232,7 +234,7 @@ class ExactCache {
 // product a side (at most four times the termwise one): sum_i wide_i xr_i
 // <= (sum_i wide_i) max_i xr_i, and sum_i ar_i |xm_i| <= (max_i ar_i)
 // sum_i |xm_i|. Most tests settle on it.
-inline constexpr double kGamma4 = 4.5e-16;  // 4u / (1 - 4u), rounded up
+inline constexpr double kGamma4 = Gamma(4);
 struct PlaneFilter {
   std::array<double, 4> mid{}, rad{}, wide{};  // wide: |mid| + rad
   double wide_sum = 0.0, rad_max = 0.0;
@@ -277,12 +279,12 @@ VISQ_EXACT_INLINE int FastSignOfDot(const PlaneFilter& a, const PointFilter& x) 
   // Each bound's own rounding (its terms are all positive: a relative
   // error of about 12 ulps, the sums and precomputed terms included) is
   // covered by the factor, underflow by the absolute floor.
-  const double first = (a.wide_sum * x.rad_max + a.rad_max * x.mid_sum) * (1.0 + 4e-15) + 1e-300;
+  const double first = (a.wide_sum * x.rad_max + a.rad_max * x.mid_sum) * kDotFilterRounding + 1e-300;
   if (s > first) return 1;
   if (s < -first) return -1;
   double bound = 0.0;
   for (int i = 0; i < 4; ++i) bound += a.wide[i] * x.rad[i] + a.rad[i] * std::fabs(x.mid[i]);
-  bound = bound * (1.0 + 4e-15) + 1e-300;
+  bound = bound * kDotFilterRounding + 1e-300;
   if (s > bound) return 1;
   if (s < -bound) return -1;
   return kUncertain;
@@ -382,8 +384,8 @@ class Orient3dFan {
   // orient3d(p, a, b, x), so a derived point is tested against the fan by
   // the fast filter, with no exact plane made. Each component of n carries
   // the roundings of the two differences, of the product and of the
-  // difference of products: at most 4u of its magnitude (5.6e-16 covers
-  // the u^2 terms), and 2^-1075 a product that underflows (differences are
+  // difference of products: within kFanNormalError of its magnitude, and
+  // 2^-1075 a product that underflows (differences are
   // exact there). The offset adds those radii times |p| and the rounding
   // of its own dot product.
   PlaneFilter Filter() const {
@@ -391,13 +393,13 @@ class Orient3dFan {
     double offset = 0.0, offset_rad = 0.0, offset_magnitude = 0.0;
     for (int i = 0; i < 3; ++i) {
       f.mid[i] = normal_[i];
-      f.rad[i] = 5.6e-16 * magnitude_[i] + 0x1p-1072;
+      f.rad[i] = kFanNormalError * magnitude_[i] + 0x1p-1072;
       offset -= normal_[i] * p_[i];
       offset_rad += f.rad[i] * std::fabs(p_[i]);
       offset_magnitude += std::fabs(normal_[i] * p_[i]);
     }
     f.mid[3] = offset;
-    f.rad[3] = (offset_rad + 3.4e-16 * offset_magnitude) * (1.0 + 2e-15) + 0x1p-1070;
+    f.rad[3] = (offset_rad + Gamma(3) * offset_magnitude) * kOffsetRadiusRounding + 0x1p-1070;
     for (int i = 0; i < 4; ++i) f.wide[i] = std::fabs(f.mid[i]) + f.rad[i];
     f.Summarize();
     return f;
@@ -411,7 +413,7 @@ class Orient3dFan {
     const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;
     const double permanent =
         magnitude_.x * std::fabs(w.x) + magnitude_.y * std::fabs(w.y) + magnitude_.z * std::fabs(w.z);
-    const double bound = 7.7715611723761027e-16 * permanent;
+    const double bound = kOrient3dFilter * permanent;
     if (permanent > 1e-250) {
       if (det > bound) return 1;
       if (-det > bound) return -1;
@@ -420,7 +422,7 @@ class Orient3dFan {
   }
 
   // n = (a - p) x (b - p) as rounded, and the magnitudes that bound its
-  // error (each component within 5.6e-16 of its magnitude, see Filter).
+  // error (each component within kFanNormalError of its magnitude, see Filter).
   const glm::dvec3& Normal() const { return normal_; }
   const glm::dvec3& Magnitude() const { return magnitude_; }
 
@@ -429,7 +431,7 @@ class Orient3dFan {
     const double det = normal_.x * w.x + normal_.y * w.y + normal_.z * w.z;
     const double permanent =
         magnitude_.x * std::fabs(w.x) + magnitude_.y * std::fabs(w.y) + magnitude_.z * std::fabs(w.z);
-    const double bound = 7.7715611723761027e-16 * permanent;  // (7 + 56 eps) eps, as in Orient3d
+    const double bound = kOrient3dFilter * permanent;  // as in Orient3d
     if (permanent > 1e-250) {
       if (det > bound) return 1;
       if (-det > bound) return -1;

@@ -614,7 +614,7 @@ struct LightTree {
     const double h_min = n[u] * (n[u] > 0 ? b.lo[0] : b.hi[0]) + n[v] * (n[v] > 0 ? b.lo[1] : b.hi[1]) + n[k];
     const double g0 = std::max(std::fabs(b.lo[0]), std::fabs(b.hi[0]));
     const double g1 = std::max(std::fabs(b.lo[1]), std::fabs(b.hi[1]));
-    // The normal's error (5.6e-16 of m a component) and three roundings of
+    // The normal's error (kFanNormalError of m a component) and three roundings of
     // the sum (of its absolute terms), with a factor of ten to spare.
     const double scale = (m[u] + std::fabs(n[u])) * g0 + (m[v] + std::fabs(n[v])) * g1 + m[k] + std::fabs(n[k]);
     if (!(scale > 1e-250) || !std::isfinite(scale)) return kUncertain;
