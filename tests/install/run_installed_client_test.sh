@@ -9,18 +9,7 @@
 set -euo pipefail
 build=$(cd "$1" && pwd) consumer=$2 cmake=$3 cxx=$4 pkg_config=$5 libdir=$6
 scratch=$(mktemp -d /tmp/visq-install-XXXXXX)
-server_pid=""
-cleanup() {
-  if [[ -n "$server_pid" ]]; then kill "$server_pid" 2>/dev/null || true; wait "$server_pid" 2>/dev/null || true; fi
-  rm -rf "$scratch"
-}
-trap cleanup EXIT
-fail() {
-  echo "FAILED: $*"
-  [[ -f "$scratch/server.log" ]] && { echo "--- visq-server log"; tail -n 40 "$scratch/server.log"; }
-  exit 1
-}
-step() { printf '[%3d s] %s\n' "$SECONDS" "$*"; }
+source "$(dirname "${BASH_SOURCE[0]}")/script_support.sh"
 prefix=$scratch/prefix
 
 step "cmake --install $build --prefix $prefix"
@@ -62,14 +51,7 @@ mkdir "$scratch/repo"
 "$prefix/bin/visq-server" --address 127.0.0.1:0 --port-file "$scratch/port" --scene-repo "$scratch/repo" \
   --seed-samples --drain-seconds 1 > "$scratch/server.log" 2>&1 &
 server_pid=$!
-port=""
-for _ in $(seq 600); do  # 60 s
-  port=$(cat "$scratch/port" 2>/dev/null || true)
-  [[ -n "$port" && "$port" != 0 ]] && break
-  kill -0 "$server_pid" 2>/dev/null || fail "visq-server exited during start-up"
-  sleep 0.1
-done
-[[ -n "$port" && "$port" != 0 ]] || fail "visq-server wrote no port in 60 s"
+wait_for_port
 
 for consumer_binary in consumer-build/visq_consumer consumer_pkg_config; do
   step "$consumer_binary 127.0.0.1:$port"

@@ -27,18 +27,7 @@ export LC_ALL=C
 build=$(cd "$1" && pwd) source_dir=$(cd "$2" && pwd) cmake=$3 cxx=$4 pkg_config=$5
 python=/usr/bin/python3
 scratch=$(mktemp -d /tmp/visq-packages-XXXXXX)
-server_pid=""
-cleanup() {
-  if [[ -n "$server_pid" ]]; then kill "$server_pid" 2>/dev/null || true; wait "$server_pid" 2>/dev/null || true; fi
-  rm -rf "$scratch"
-}
-trap cleanup EXIT
-fail() {
-  echo "FAILED: $*"
-  [[ -f "$scratch/server.log" ]] && { echo "--- visq-server log"; tail -n 40 "$scratch/server.log"; }
-  exit 1
-}
-step() { printf '[%3d s] %s\n' "$SECONDS" "$*"; }
+source "$(dirname "${BASH_SOURCE[0]}")/script_support.sh"
 for tool in dpkg-deb dpkg-shlibdeps; do
   command -v "$tool" > /dev/null || fail "no $tool (dpkg-dev; deploy/install-deps.sh installs it)"
 done
@@ -118,14 +107,7 @@ env "${unit_env[@]}" VISQ_ADDRESS=127.0.0.1:0 VISQ_SCENE_REPO="$scratch/state/sc
   VISQ_AUTH_TOKEN_FILE="$scratch/state/token" XDG_CACHE_HOME="$scratch/state/cache" \
   "$root/usr/bin/visq-server" --port-file "$scratch/port" --drain-seconds 1 > "$scratch/server.log" 2>&1 &
 server_pid=$!
-port=""
-for _ in $(seq 600); do  # 60 s
-  port=$(cat "$scratch/port" 2>/dev/null || true)
-  [[ -n "$port" && "$port" != 0 ]] && break
-  kill -0 "$server_pid" 2>/dev/null || fail "visq-server exited during start-up"
-  sleep 0.1
-done
-[[ -n "$port" && "$port" != 0 ]] || fail "visq-server wrote no port in 60 s"
+wait_for_port
 server=127.0.0.1:$port
 [[ -s "$scratch/state/token" ]] || fail "no token made at first start in VISQ_AUTH_TOKEN_FILE"
 [[ $(stat -c %a "$scratch/state/token") == 600 ]] || fail "the token's mode is $(stat -c %a "$scratch/state/token"), not 600"
