@@ -40,12 +40,13 @@
 // cost O(count) per query (each is clipped, and tested against the light
 // before any fragment work), so the tree only pays off for receivers
 // grouped tightly: without receiver bounds every occluder is near (correct,
-// but nothing is cached). The paper groups receivers per triangle;
-// GroupReceivers groups them by cubes of a grid over the scene (the
-// server's default, one tree per cube), which stays tight whatever the
-// view, where an image tile of a deep room spans its depth. The shaft
-// (convex hull of light and receiver box, exact) then also culls
-// everything that cannot matter.
+// but nothing is cached). The paper groups receivers per triangle; the
+// server groups a batch by its shafts by default (GroupReceiversByShaft:
+// the points' box, halved while its shaft meets too many triangles), and
+// by cubes of a grid over the scene with --light-receiver-cells
+// (GroupReceivers: the same cells, so the same cached trees, for the next
+// batch over the same surfaces). The shaft (convex hull of light and
+// receiver box, exact) then also culls everything that cannot matter.
 //
 // Cost. The tree is exact for every line through the light, so its size
 // grows with the arrangement of the occluders' shadow edges on the light:
