@@ -178,6 +178,27 @@ TEST(GltfLoader, CornellBoxMaterialsCarryReflectivityAndEmission) {
 
 // --- Scenes written by the project's writer --------------------------------
 
+// A reflectivity is glTF's baseColorFactor, in [0, 1], which the obscurance
+// bounds rest on: beyond a rounding of the range the file is refused, naming
+// the field; within it, clamped.
+TEST(GltfLoader, BaseColorOutsideGltfsRangeIsRefusedAndARoundingClamped) {
+  ScratchDir dir;
+  Scene scene = MakeCornellBox();
+  scene.materials[0].reflectivity = glm::dvec3(0.5, 5.0, 0.5);
+  ASSERT_TRUE(WriteGltfFile(scene, dir.path() / "bright.gltf").ok());
+  StatusOr<Scene> bright = LoadGltfFile(dir.path() / "bright.gltf");
+  ASSERT_FALSE(bright.ok());
+  EXPECT_EQ(bright.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(bright.status().message().find("materials[0].pbrMetallicRoughness.baseColorFactor[1]"),
+            absl::string_view::npos)
+      << bright.status();
+  scene.materials[0].reflectivity = glm::dvec3(1.0 + 1e-7, 0.5, -1e-7);
+  ASSERT_TRUE(WriteGltfFile(scene, dir.path() / "rounded.gltf").ok());
+  StatusOr<Scene> rounded = LoadGltfFile(dir.path() / "rounded.gltf");
+  ASSERT_TRUE(rounded.ok()) << rounded.status();
+  EXPECT_EQ(rounded->materials[0].reflectivity, glm::dvec3(1.0, 0.5, 0.0));
+}
+
 TEST(GltfWriter, GeneratedCornellBoxRoundTrips) {
   ScratchDir dir;
   const Scene original = MakeCornellBox();
