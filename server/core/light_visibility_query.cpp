@@ -311,6 +311,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
         if (!r.ok()) return fail(Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message())));
         answer.points[i] = std::move(*r);
         answered.fetch_add(1, std::memory_order_relaxed);
+        if (query.answered != nullptr) query.answered->fetch_add(1, std::memory_order_relaxed);
       }
     }
   });

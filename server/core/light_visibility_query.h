@@ -33,6 +33,9 @@ struct LightVisibilityQuery {
   // The planner's probe of a batch (core/visibility_sampling_query.cpp):
   // the trees it builds and the answers it stores are the batch's own.
   std::vector<uint32_t> answer_only;
+  // Not on the wire. Where set, counts the points answered as they are,
+  // so that a probe stopped at its budget still says how far it got.
+  std::atomic<size_t>* answered = nullptr;
   // Checked between points and while a tree selects its occluders.
   CallOptions call;
   // Not on the wire. The caller's reservation of the work budget covers

@@ -1,12 +1,16 @@
 #include "core/visibility_sampling_query.h"
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <chrono>
 #include <cmath>
 #include <functional>
+#include <limits>
 #include <set>
 #include <span>
+
+#include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_replace.h"
@@ -340,60 +344,193 @@ WorkUnits SampledWork(VisibilityMethod method, double points, int samples) {
   return {points * samples, 0.0};
 }
 
-// The exact method's: the scene triangles in the shafts of the trees the
-// batch would build (none where the cache holds its trees), and its points
-// that no held tree has in its store (EstimateLightVisibilityWork). Taken
-// before the run: a run leaves its trees and answers cached. A new tree
-// costs what its shaft holds, a point its descent, a stored answer a
-// lookup; counting any one of them alone mispredicts maps by 100x and more
-// (docs/exact-method-notes.md, "The planner's view of the exact method").
-StatusOr<WorkUnits> ExactWork(Engine& engine, const LightVisibilityQuery& batch) {
-  VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork work, EstimateLightVisibilityWork(engine, batch));
-  return WorkUnits{work.new_shaft_triangles, work.points};
-}
-
-StatusOr<WorkUnits> ExactWork(Engine& engine, const ResidentScene& resident,
-                              const sampling::HiddenSampleMapRequest& map, const CallOptions& call) {
-  VISQ_ASSIGN_OR_RETURN(const LightVisibilityQuery batch, ExactLightQuery(resident.name, resident.version, map, call));
-  return ExactWork(engine, batch);
-}
-
 // About side x side texels of a width x height receiver, spread evenly
 // over it (the texel under each cell centre of a side x side lattice; the
 // whole receiver where it is smaller), as increasing indices.
-std::vector<uint32_t> LatticeTexels(int width, int height, int side) {
+// `quarter` places each texel at that many quarters of its lattice cell
+// (2: the centre; 1: a lattice of as many other texels, for a second probe).
+std::vector<uint32_t> LatticeTexels(int width, int height, int side, int quarter = 2) {
   const int columns = std::min(width, side), rows = std::min(height, side);
   std::vector<uint32_t> texels;
   texels.reserve(size_t(columns) * rows);
   for (int r = 0; r < rows; ++r)
     for (int c = 0; c < columns; ++c) {
-      const auto x = static_cast<uint32_t>((2 * int64_t{c} + 1) * width / (2 * columns));
-      const auto y = static_cast<uint32_t>((2 * int64_t{r} + 1) * height / (2 * rows));
+      const auto x = static_cast<uint32_t>((4 * int64_t{c} + quarter) * width / (4 * columns));
+      const auto y = static_cast<uint32_t>((4 * int64_t{r} + quarter) * height / (4 * rows));
       texels.push_back(y * uint32_t(width) + x);
     }
   return texels;  // rows and columns increase, so the indices do
 }
 
-// The exact method's probe of a map: about side x side of its own texels,
-// spread over the receiver and answered on the trees the whole map would
-// use (LightVisibilityQuery::answer_only). Points of a smaller receiver
-// would get trees of their own, whose narrower shafts hold a fraction of
-// the map's occluders, and so predict the map far too cheap. The trees
-// this probe builds and the answers it stores are the map's, which a
-// chosen exact plan then finds cached.
-StatusOr<RunCost> ProbeExactMap(Engine& engine, const ResidentScene& resident,
-                                const sampling::HiddenSampleMapRequest& map, int side, const CallOptions& call) {
-  VISQ_ASSIGN_OR_RETURN(LightVisibilityQuery batch, ExactLightQuery(resident.name, resident.version, map, call));
-  batch.answer_only = LatticeTexels(map.receiver.width, map.receiver.height, side);
-  VISQ_ASSIGN_OR_RETURN(const WorkUnits units, ExactWork(engine, batch));
-  VISQ_ASSIGN_OR_RETURN(const LightVisibilityAnswer answer, RunLightVisibility(engine, batch));
-  return RunCost{answer.compute_ms, units};
+// The exact method's batch for a request, and the receiver grid its points
+// lie on (row-major), for the probes' lattices.
+struct ExactBatch {
+  LightVisibilityQuery batch;
+  int width = 0, height = 0;
+};
+
+// The exact plan's predicted time, from probes of the request itself.
+struct ExactPrediction {
+  double ms = 0.0;
+  WorkUnits units;       // the request's, after the probes (CostModel units)
+  double probe_ms = 0.0;
+  bool cut = false;      // a probe ran past its budget: `ms` extrapolates it
+};
+
+// One probe: `only` of the batch's points on the batch's own trees, within
+// `call` (whose deadline is the probe's budget).
+struct ExactProbeRun {
+  double ms = 0.0;
+  double answered = 0.0;
+  double new_trees = 0.0;    // trees it had to build (not held before)
+  double new_points = 0.0;   // points no held tree had stored
+  double stored_points = 0.0;
+  bool cut = false;
+};
+
+StatusOr<ExactBatch> ExactBatchOf(const ResidentScene& resident, const sampling::HiddenSampleMapRequest& map,
+                                  const CallOptions& call) {
+  ExactBatch exact;
+  VISQ_ASSIGN_OR_RETURN(exact.batch, ExactLightQuery(resident.name, resident.version, map, call));
+  exact.width = map.receiver.width;
+  exact.height = map.receiver.height;
+  return exact;
 }
 
-// Runs `method` with `samples` per receiver point over a receiver reduced to
-// at most `max_side` points a side (0: the request's own receiver); for the
-// exact method, about max_side x max_side of the request's own points on
-// its own trees (ProbeExactMap).
+StatusOr<ExactProbeRun> RunExactProbe(Engine& engine, const LightVisibilityQuery& batch, std::vector<uint32_t> only,
+                                      const CallOptions& call, const CallOptions& probe_call) {
+  LightVisibilityQuery probe = batch;
+  probe.answer_only = std::move(only);
+  probe.call = probe_call;
+  std::atomic<size_t> answered{0};
+  probe.answered = &answered;
+  VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork before, EstimateLightVisibilityWork(engine, probe));
+  ExactProbeRun run;
+  run.new_trees = double(before.groups - before.cached_groups);
+  run.new_points = before.points;
+  run.stored_points = before.stored_points;
+  const auto start = std::chrono::steady_clock::now();
+  StatusOr<LightVisibilityAnswer> answer = RunLightVisibility(engine, probe);
+  run.ms = MillisecondsSince(start);
+  run.answered = double(answered.load());
+  if (answer.ok()) {
+    run.ms = answer->compute_ms;  // as the plan's run is measured: without the index's build
+    return run;
+  }
+  // Stopped by its budget, not by the call: what it measured so far.
+  if (!call.Stopped() && probe_call.Stopped()) {
+    run.cut = true;
+    return run;
+  }
+  return answer.status();
+}
+
+// What the exact plan would cost this request, measured on the request's
+// own points and trees rather than fitted from other requests: the
+// method's cost per point follows the light and the penumbra's occluders
+// (0.01 ms on a lit floor, 50-90 ms behind foliage), so a model of one
+// request mispredicts the next by 1000x (Sponza x4, a copy at 1e5:
+// predicted 1.6 ms, took 5,152 ms). Three probes, each a lattice over the
+// receiver answered on the batch's own trees (answer_only), so that what
+// they build and store is the plan's:
+// - 1: 2 x 2 points, cold: mostly the trees they need;
+// - 2: up to 8 x 8 other points (a shifted lattice) on the trees now held,
+//   stopped at the budget: a point's time from the points it answered;
+// - 3: the first lattice again, from the stores: a stored answer's cost.
+// Solving the first two for a tree's cost and a point's, the request is
+// predicted at its trees still to build, its points still to answer and
+// its stored ones. All within `budget_ms` (and the call's deadline and
+// cancellation); a first probe past it extrapolates its trees (`cut`),
+// which is enough to route around the method.
+StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch& exact, double budget_ms,
+                                               const CallOptions& call) {
+  constexpr int kFirstSide = 2, kLatticeSide = 8;
+  ExactPrediction out;
+  // The scene's triangle index (built once per scene, outside compute_ms)
+  // is fetched before the probes' clock starts.
+  VISQ_RETURN_IF_ERROR(EstimateLightVisibilityWork(engine, exact.batch).status());
+  const auto start = std::chrono::steady_clock::now();
+  CallOptions probe_call = call;
+  if (std::isfinite(budget_ms))
+    probe_call.deadline =
+        std::min(call.deadline, start + std::chrono::microseconds(static_cast<int64_t>(budget_ms * 1000.0)));
+  auto finish_units = [&]() -> StatusOr<LightVisibilityWork> {
+    VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, EstimateLightVisibilityWork(engine, exact.batch));
+    out.units = {after.new_shaft_triangles, after.points};
+    return after;
+  };
+
+  // 1: cold, a few points: mostly the trees they need.
+  const std::vector<uint32_t> first = LatticeTexels(exact.width, exact.height, kFirstSide, 2);
+  VISQ_ASSIGN_OR_RETURN(const ExactProbeRun one, RunExactProbe(engine, exact.batch, first, call, probe_call));
+  out.probe_ms += one.ms;
+  if (one.cut) {
+    // Its trees alone ran past the budget, a share kProbeShareOfBest of the
+    // best other plan: the method is not known to be faster than that plan,
+    // so it is predicted at least at that plan's time (which the other plan
+    // then wins), and at least what its trees cost per tree. A lower side:
+    // routing around the method needs no more (veach-ajar, one tree for a
+    // 32 x 32 floor: cut at 55 ms, the plan then takes 0.5-0.9 s).
+    out.cut = true;
+    VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
+    out.ms = one.ms * std::max(1.0, double(after.groups - after.cached_groups) / std::max(1.0, one.new_trees));
+    if (std::isfinite(budget_ms)) out.ms = std::max(out.ms, budget_ms / kProbeShareOfBest);
+    spdlog::debug("{} exact probes: the first cut at {:.1f} ms (budget {:.1f} ms) for {} trees and {} points; left "
+                  "{} of {} trees: predicted {:.1f} ms",
+                  call.log_tag.empty() ? "[call]" : call.log_tag, one.ms, budget_ms, one.new_trees, one.new_points,
+                  after.groups - after.cached_groups, after.groups, out.ms);
+    return out;
+  }
+  // 2: other points on the trees now held, until the budget: a point's
+  // time from the points it answered.
+  std::vector<uint32_t> second = LatticeTexels(exact.width, exact.height, kLatticeSide, 1);
+  std::erase_if(second, [&](uint32_t t) { return std::binary_search(first.begin(), first.end(), t); });
+  const double first_per_point = one.ms / std::max(1.0, double(first.size()));
+  double point_ms = first_per_point, tree_ms = 0.0;
+  double second_ms = 0.0, second_trees = 0.0, second_points = 0.0;  // for the log
+  if (!second.empty()) {
+    VISQ_ASSIGN_OR_RETURN(const ExactProbeRun two, RunExactProbe(engine, exact.batch, second, call, probe_call));
+    out.probe_ms += two.ms;
+    second_ms = two.ms;
+    second_trees = two.new_trees;
+    second_points = two.cut ? two.answered : two.new_points;
+    // ms = trees * tree_ms + points * point_ms, for both probes (a cut one
+    // at the points it answered); a solution with a negative part falls
+    // back to the second probe's time per point.
+    out.cut = two.cut;
+    const double a1 = one.new_trees, b1 = std::max(1.0, one.new_points), a2 = two.cut ? 0.0 : two.new_trees,
+                 b2 = std::max(1.0, two.cut ? two.answered : two.new_points);
+    const double det = a1 * b2 - a2 * b1;
+    if (std::abs(det) > 1e-9) {
+      tree_ms = (one.ms * b2 - two.ms * b1) / det;
+      point_ms = (a1 * two.ms - a2 * one.ms) / det;
+    }
+    if (std::abs(det) <= 1e-9 || tree_ms < 0.0 || point_ms < 0.0) {
+      point_ms = two.ms / b2;
+      tree_ms = a1 > 0.0 ? std::max(0.0, one.ms - point_ms * b1) / a1 : 0.0;
+    }
+  }
+  // 3: stored answers.
+  double stored_ms = 0.0;
+  if (!std::isfinite(budget_ms) || MillisecondsSince(start) < 0.75 * budget_ms) {
+    VISQ_ASSIGN_OR_RETURN(const ExactProbeRun three, RunExactProbe(engine, exact.batch, first, call, probe_call));
+    out.probe_ms += three.ms;
+    if (!three.cut) stored_ms = three.ms / std::max(1.0, three.answered);
+  }
+  VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
+  out.ms = double(after.groups - after.cached_groups) * tree_ms + after.points * point_ms +
+           after.stored_points * std::min(stored_ms, point_ms);
+  spdlog::debug("{} exact probes (budget {:.1f} ms): {:.1f} ms for {} trees and {} points, {:.1f} ms for {} trees and {} points{}; "
+                "a tree {:.2f} ms, a point {:.3f} ms, a stored one {:.4f} ms; left {} of {} trees, {} points, {} "
+                "stored: predicted {:.1f} ms",
+                call.log_tag.empty() ? "[call]" : call.log_tag, budget_ms, one.ms, one.new_trees, one.new_points, second_ms,
+                second_trees, second_points, out.cut ? " (cut)" : "", tree_ms, point_ms, stored_ms,
+                after.groups - after.cached_groups, after.groups, after.points, after.stored_points, out.ms);
+  return out;
+}
+
+// Runs a sampled `method` with `samples` per receiver point over a receiver
+// reduced to at most `max_side` points a side (0: the request's own receiver).
 using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method, int samples, int max_side)>;
 // Whether a sampled method resolves the request with `samples` samples in
 // float32 (Engine::ValidateSampledPrecision): FAILED_PRECONDITION when not.
@@ -414,7 +551,7 @@ double PolygonShare(const sampling::SourceSpec& source) {
 // points, each predicted by the cost model after probing the methods this
 // scene has not run yet, and the choice among them.
 StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_base, const AccuracyTarget& target,
-                                    double points, const std::function<StatusOr<WorkUnits>()>& exact_work,
+                                    double points, const std::function<StatusOr<ExactBatch>()>& exact_batch,
                                     double polygon_share, bool exact_possible,
                                     int max_samples,
                                     const gpu::JobOptions& job, const VisibilityRunner& run,
@@ -448,28 +585,47 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
     };
     VISQ_ASSIGN_OR_RETURN(const bool usable_at_all, precise(*counts.begin()));
     if (!usable_at_all) continue;
-    // A method never run on this scene: small runs of this very request give
-    // the model a fixed cost and a rate. A sampled method's second, larger
+    if (method == VisibilityMethod::kPluckerExact) {
+      // The exact method is probed on every request (PredictExactByProbes),
+      // after the sampled ones, within a share of the cheapest sampled plan
+      // that meets the target: a request where it is slow pays at most that
+      // share to learn so; one where it is chosen finds what the probes
+      // built and stored.
+      double best_sampled_ms = std::numeric_limits<double>::infinity();
+      for (const Plan& p : report.plans) {
+        const bool meets = (target.max_error <= 0.0 || p.error_bound <= target.max_error) &&
+                           (target.time_budget_ms <= 0.0 || p.predicted_ms <= target.time_budget_ms);
+        if (meets) best_sampled_ms = std::min(best_sampled_ms, p.predicted_ms);
+      }
+      if (target.time_budget_ms > 0.0) best_sampled_ms = std::min(best_sampled_ms, target.time_budget_ms);
+      const double budget_ms = std::isfinite(best_sampled_ms)
+                                   ? std::max(kSmallestProbeBudgetMs, kProbeShareOfBest * best_sampled_ms)
+                                   : best_sampled_ms;
+      VISQ_RETURN_IF_ERROR(RequireNotCancelled(job));
+      VISQ_ASSIGN_OR_RETURN(const ExactBatch batch, exact_batch());
+      CallOptions call;
+      call.deadline = job.deadline;
+      call.cancelled = job.cancelled;
+      VISQ_ASSIGN_OR_RETURN(const ExactPrediction predicted, PredictExactByProbes(engine, batch, budget_ms, call));
+      report.probe_ms += predicted.probe_ms;
+      Plan plan;
+      plan.method = name;
+      plan.cost_key = series;
+      plan.error_bound = 0.0;
+      plan.work = predicted.units.work;
+      plan.extra_work = predicted.units.extra;
+      plan.predicted_ms = predicted.ms;
+      report.plans.push_back(std::move(plan));
+      continue;
+    }
+    // A sampled method never run on this scene: small runs of this very
+    // request give the model a fixed cost and a rate; the second, larger
     // run only when the first was cheap.
-    // The exact method's second run always comes: only it (the first's
-    // trees held) separates what its points cost from what its trees cost;
-    // a fit of one observation may give the points no cost at all. Its size is what the first run's
-    // cost per point (an upper bound: that run built the trees too) says
-    // takes about kExactSecondProbeMs: the tree can cost seconds per point on
-    // a large light over a busy scene. Its points and trees are the
-    // request's own, which a chosen exact plan keeps. A third asks the first
-    // run's points again: answered from the stores, it measures what a run
-    // of no work costs (a repeated frame), which the fit of working runs
-    // cannot tell (CostModel::Predict).
     if (!model.Predict(series, 1.0)) {
-      const bool exact = method == VisibilityMethod::kPluckerExact;
-      std::vector<std::pair<int, int>> probes = {exact ? std::pair{8, 0} : std::pair{4, 32},
-                                                 exact ? std::pair{16, 0} : std::pair{16, 256}};
-      if (exact) probes.push_back(probes.front());
-      constexpr double kSecondProbeBelowMs = 200.0, kExactSecondProbeMs = 500.0;
+      const std::pair<int, int> probes[] = {{4, 32}, {16, 256}};
+      constexpr double kSecondProbeBelowMs = 200.0;
       bool usable = true;
-      for (size_t p = 0; p < probes.size(); ++p) {
-        const auto [side, samples] = probes[p];
+      for (const auto& [side, samples] : probes) {
         VISQ_RETURN_IF_ERROR(RequireNotCancelled(job));
         StatusOr<RunCost> cost = run(method, samples, side);
         // A method that cannot answer this request honestly (a sampled one
@@ -481,14 +637,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
         if (!cost.ok()) return cost.status();
         model.Record(series, cost->units.work, cost->ms, cost->units.extra);
         report.probe_ms += cost->ms;
-        if (p > 0) continue;
-        if (exact) {
-          const double per_point_ms = cost->ms / std::max(1.0, cost->units.extra);
-          const int most = int(std::sqrt(kExactSecondProbeMs / std::max(per_point_ms, 1e-6)));
-          probes[1].first = std::clamp(most, 2, probes[1].first);
-        } else if (cost->ms >= kSecondProbeBelowMs) {
-          break;
-        }
+        if (cost->ms >= kSecondProbeBelowMs) break;
       }
       if (!usable) continue;
     }
@@ -505,12 +654,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
         const double inside = std::max(1.0, std::floor(samples * polygon_share));
         plan.error_bound = std::min(1.0, sampling::SamplingErrorBound(int(inside), target.confidence));
       }
-      WorkUnits units;
-      if (method == VisibilityMethod::kPluckerExact) {
-        VISQ_ASSIGN_OR_RETURN(units, exact_work());
-      } else {
-        units = SampledWork(method, points, samples);
-      }
+      const WorkUnits units = SampledWork(method, points, samples);
       plan.work = units.work;
       plan.extra_work = units.extra;
       plan.predicted_ms = model.Predict(series, plan.work, plan.extra_work).value_or(0.0);
@@ -668,8 +812,6 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
     return HiddenSampleMapBy(engine, resident, method, sized, query.call, bands);
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
-    if (method == VisibilityMethod::kPluckerExact)
-      return ProbeExactMap(engine, resident, with_samples(1, 0), max_side, query.call);
     VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, run(method, samples, max_side));
     return RunCost{ComputeMs(result.timing, result.table_ms),
                    SampledWork(method, double(result.width) * result.height, samples)};
@@ -680,7 +822,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   const int max_samples = several_maps ? kMaxPlannedSamples : sampling::kMaxHiddenSampleMapSamples;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
                                                           texels,
-                                                          [&] { return ExactWork(engine, resident, with_samples(1, 0), query.call); },
+                                                          [&] { return ExactBatchOf(resident, with_samples(1, 0), query.call); },
                                                           PolygonShare(request.source), exact_possible,
                                                           max_samples, query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
                                                             return engine.ValidateSampledPrecision(
@@ -717,18 +859,13 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
     }
     return out;
   };
-  // The exact method's work on a grid: that of its map (PatchVisibilityBy).
-  auto exact_work_of = [&](const sampling::PatchVisibilityRequest& r) -> StatusOr<WorkUnits> {
-    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(r));
+  // The exact method's batch on a grid: that of its map (PatchVisibilityBy).
+  auto exact_batch_of = [&]() -> StatusOr<ExactBatch> {
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
     map.options.want_bitmasks = false;
-    return ExactWork(engine, resident, map, query.call);
+    return ExactBatchOf(resident, map, query.call);
   };
   auto cost_of = [&](VisibilityMethod method, int samples, int max_side) -> StatusOr<RunCost> {
-    if (method == VisibilityMethod::kPluckerExact) {
-      VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
-      map.options.want_bitmasks = false;
-      return ProbeExactMap(engine, resident, map, max_side, query.call);
-    }
     const sampling::PatchVisibilityRequest probe = sized(samples, max_side);
     VISQ_ASSIGN_OR_RETURN(sampling::PatchVisibilityResult result, PatchVisibilityBy(engine, resident, method, probe, query.call));
     return RunCost{ComputeMs(result.timing), SampledWork(method, double(probe.receiver_columns) * probe.receiver_rows,
@@ -737,7 +874,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 
   const double points = double(request.receiver_columns) * request.receiver_rows;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
-                                                          points, [&] { return exact_work_of(request); },
+                                                          points, exact_batch_of,
                                                           1.0, exact_possible,
                                                           sampling::kMaxHiddenSampleMapSamples, query.call.Job(), cost_of,
                                                           [&](VisibilityMethod method, int samples) -> Status {

@@ -11,6 +11,15 @@
 // smoke test of the table.
 //
 //   visq_bench_default_method [--scenes ../shared/scenes] [--quick]
+//   visq_bench_default_method --exact [--scenes ../shared/scenes]
+//
+// --exact: the exact method's predicted time (Accuracy.plans) against its
+// measured one, per request with a target, on the shared scenes (Sponza,
+// veach-ajar, the flowers, the bunny, and Sponza with a copy 1e5 away):
+// each scene on a fresh server, two requests in a row (the second elsewhere
+// in the scene, after the first taught the cost model), each followed by the
+// same request naming PLUCKER_EXACT, which finds the trees and answers the
+// target call's probes left, as the exact plan would have.
 #include <algorithm>
 #include <array>
 #include <chrono>
@@ -23,6 +32,8 @@
 #include <vector>
 
 #include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+#include <fstream>
 
 #include "server_process.h"
 #include "test_support.h"
@@ -235,6 +246,162 @@ struct Measured {
   Run first, warm;
 };
 
+// --exact: one target request, then the exact method on the same request.
+struct ExactRequest {
+  std::string label;
+  PatchSpec light, receiver;
+};
+struct ExactScene {
+  std::string name;
+  std::filesystem::path file;
+  std::vector<ExactRequest> requests;
+};
+
+// Sponza with a second copy of its whole hierarchy 1e5 m away in x, the
+// copies' nodes sharing the meshes (a glTF beside a link to sponza.bin).
+std::optional<std::filesystem::path> WriteFarCopies(const std::filesystem::path& sponza_dir,
+                                                    const std::filesystem::path& out_dir) {
+  std::ifstream in(sponza_dir / "sponza.gltf");
+  if (!in) return std::nullopt;
+  nlohmann::json gltf = nlohmann::json::parse(in, nullptr, false);
+  if (gltf.is_discarded()) return std::nullopt;
+  nlohmann::json& nodes = gltf["nodes"];
+  const size_t count = nodes.size();
+  const int root = gltf["scenes"][0]["nodes"][0].get<int>();
+  for (size_t i = 0; i < count; ++i) {
+    nlohmann::json copy = nodes[i];
+    if (copy.contains("children"))
+      for (auto& child : copy["children"]) child = child.get<int>() + int(count);
+    if (int(i) == root) {
+      copy["name"] = "far copy";
+      copy["matrix"][12] = copy["matrix"][12].get<double>() + 1e5;
+    }
+    nodes.push_back(copy);
+  }
+  gltf["scenes"][0]["nodes"].push_back(root + int(count));
+  std::filesystem::create_directories(out_dir);
+  std::error_code ec;
+  std::filesystem::create_symlink(std::filesystem::absolute(sponza_dir / "sponza.bin"), out_dir / "sponza.bin", ec);
+  std::ofstream(out_dir / "sponza_far.gltf") << gltf.dump();
+  return out_dir / "sponza_far.gltf";
+}
+
+std::vector<ExactScene> ExactSuite(const std::filesystem::path& shared, const std::filesystem::path& scratch) {
+  std::vector<ExactScene> scenes;
+  const PatchSpec sky = {{{-5, 14, -2}, {10, 0, 0}, {0, 0, 4}}};
+  const PatchSpec atrium = {{{-16, 0.2, -7}, {0, 0, 14}, {32, 0, 0}}};
+  const PatchSpec corner = {{{-12, 0.2, -5}, {0, 0, 6}, {8, 0, 0}}};
+  scenes.push_back({"sponza", shared / "sponza_dabrovic/sponza.gltf",
+                    {{"atrium", sky, atrium}, {"corner", sky, corner}}});
+  const PatchSpec veach_light = {{{-2.34, 3.23, -4.73}, {2.46, 0, 0}, {0, 0, 2.46}}};
+  scenes.push_back({"veach-ajar", shared / "interior_veach_ajar/veach_ajar.gltf",
+                    {{"floor", veach_light, {{{-7.94, 0.67, -6.78}, {13.7, 0, 0}, {0, 0, 6.56}}}},
+                     {"near the door", veach_light, {{{-4, 0.67, -6}, {6, 0, 0}, {0, 0, 4}}}}}});
+  const PatchSpec flowers_floor = {{{-0.15, 0.001, -0.2}, {0, 0, 0.35}, {0.45, 0, 0}}};
+  scenes.push_back({"flowers", shared / "foliage_glass_vase_flowers/GlassVaseFlowers.gltf",
+                    {{"wide light", {{{-0.1, 0.35, -0.15}, {0.3, 0, 0}, {0, 0, 0.25}}}, flowers_floor},
+                     {"small light", {{{0.0, 0.4, -0.1}, {0.2, 0, 0}, {0, 0, 0.2}}}, flowers_floor}}});
+  const PatchSpec bunny_floor = {{{-0.2, 0.03, -0.2}, {0, 0, 0.4}, {0.4, 0, 0}}};
+  scenes.push_back({"bunny", shared / "bunny/bunny.gltf",
+                    {{"above", {{{-0.05, 0.3, -0.05}, {0.1, 0, 0}, {0, 0, 0.1}}}, bunny_floor},
+                     {"aside", {{{0.05, 0.25, 0.0}, {0.08, 0, 0}, {0, 0, 0.08}}}, bunny_floor}}});
+  if (std::optional<std::filesystem::path> far = WriteFarCopies(shared / "sponza_dabrovic", scratch / "far")) {
+    PatchSpec far_sky = sky, far_atrium = atrium;
+    far_sky[0][0] += 1e5;
+    far_atrium[0][0] += 1e5;
+    scenes.push_back({"sponza_far", *far, {{"atrium", sky, atrium}, {"atrium at 1e5", far_sky, far_atrium}}});
+  }
+  return scenes;
+}
+
+v1::HiddenSampleMapRequest ExactMapRequest(const std::string& scene, const ExactRequest& r, uint32_t side) {
+  v1::HiddenSampleMapRequest request;
+  request.mutable_scene()->set_name(scene);
+  SetPatch(request.mutable_source(), r.light);
+  SetPatch(request.mutable_receiver(), r.receiver);
+  request.set_width(side);
+  request.set_height(side);
+  return request;
+}
+
+int RunExactPredictions(const std::filesystem::path& shared, uint32_t side, double max_error, const std::string& only,
+                        bool verbose) {
+  visq::testing::ScratchDir scratch;
+  std::printf("%-14s %-14s %-22s %10s %10s %8s | %10s %12s %8s\n", "scene", "request", "target chose", "exact pred",
+              "exact meas", "pred/meas", "chosen ms", "exact/chosen", "probes");
+  int within = 0, rows = 0, failures = 0;
+  for (const ExactScene& scene : ExactSuite(shared, scratch.path())) {
+    if (!only.empty() && scene.name != only) continue;
+    visq::testing::ScratchDir repo;
+    std::vector<std::string> flags;
+    if (verbose) flags = {"--log-level", "debug"};
+    auto server = ServerProcess::Start({repo.path(), flags});
+    if (!server) return 1;
+    client::ClientOptions options;
+    options.address = server->address();
+    options.deadline = std::chrono::minutes(30);
+    options.stream_deadline = std::chrono::milliseconds(0);
+    client::Client client(options);
+    auto info = client.UploadScene(scene.file, scene.name);
+    if (!info.ok()) {
+      std::fprintf(stderr, "%s: upload failed: %s\n", scene.name.c_str(), std::string(info.status().message()).c_str());
+      ++failures;
+      continue;
+    }
+    for (const ExactRequest& r : scene.requests) {
+      v1::HiddenSampleMapRequest request = ExactMapRequest(scene.name, r, side);
+      request.mutable_target()->set_max_error(max_error);
+      const auto start = std::chrono::steady_clock::now();
+      auto target = client.ComputeHiddenSampleMap(request);
+      const double target_wall = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+      if (!target.ok()) {
+        std::printf("%-14s %-14s failed: %s\n", scene.name.c_str(), r.label.c_str(),
+                    std::string(target.status().message()).c_str());
+        ++failures;
+        continue;
+      }
+      const v1::Accuracy& accuracy = target->figures.accuracy();
+      double exact_predicted = -1.0;
+      for (const v1::PlanEstimate& plan : accuracy.plans())
+        if (plan.method() == "plucker-exact") exact_predicted = plan.predicted_ms();
+      const double chosen_ms = target->figures.timing().compute_ms();
+      double exact_measured = chosen_ms;
+      if (accuracy.method() != "plucker-exact") {
+        v1::HiddenSampleMapRequest exact = ExactMapRequest(scene.name, r, side);
+        exact.set_method(v1::PLUCKER_EXACT);
+        auto answer = client.ComputeHiddenSampleMap(exact);
+        if (!answer.ok()) {
+          std::printf("%-14s %-14s exact failed: %s\n", scene.name.c_str(), r.label.c_str(),
+                      std::string(answer.status().message()).c_str());
+          ++failures;
+          continue;
+        }
+        exact_measured = answer->figures.timing().compute_ms();
+      }
+      const double q = exact_predicted / exact_measured;
+      ++rows;
+      within += q >= 0.5 && q <= 2.0;
+      std::string chose = accuracy.method();
+      if (accuracy.parameters().contains("samples"))
+        chose += " " + std::to_string(int(accuracy.parameters().at("samples")));
+      std::printf("%-14s %-14s %-22s %10.1f %10.1f %8.2f | %10.1f %12.2f %8.0f\n", scene.name.c_str(),
+                  r.label.c_str(), chose.c_str(), exact_predicted, exact_measured, q, chosen_ms,
+                  accuracy.method() == "plucker-exact" ? 1.0 : exact_measured / chosen_ms,
+                  target_wall - chosen_ms);
+      std::fflush(stdout);
+    }
+    if (verbose) {
+      // The server's own account of its exact probes (VISQ_LOG_LEVEL=debug).
+      const std::string log = server->Log();
+      for (size_t at = log.find("exact probes"); at != std::string::npos; at = log.find("exact probes", at + 1))
+        std::printf("    %s\n", log.substr(at, log.find('\n', at) - at).c_str());
+    }
+  }
+  std::printf("\n%d requests (%d failed), %ux%u, target +-%.3f: the exact plan's prediction within 2x of its "
+              "measured time: %d of %d\n", rows, failures, side, side, max_error, within, rows);
+  return failures == 0 ? 0 : 1;
+}
+
 }  // namespace
 }  // namespace visq
 
@@ -249,10 +416,23 @@ int main(int argc, char** argv) {
   bool verbose = false;
   app.add_flag("--verbose", verbose, "print the plans each of auto's calls weighed");
   app.add_option("--only", only, "run the requests of this scene alone (cornell_box_visq, sponza, flowers)");
+  bool exact = false;
+  uint32_t exact_side = 32;
+  double exact_error = 0.02;
+  app.add_flag("--exact", exact, "the exact method's predicted time against its measured one (the shared scenes)");
+  app.add_option("--exact-side", exact_side, "--exact: the map's side in texels");
+  app.add_option("--exact-error", exact_error, "--exact: the target's max_error");
   CLI11_PARSE(app, argc, argv);
   std::optional<std::filesystem::path> shared;
   if (!scenes_dir.empty() && std::filesystem::exists(scenes_dir)) shared = scenes_dir;
   if (!shared) shared = visq::testing::SharedScenesDir();
+  if (exact) {
+    if (!shared) {
+      std::printf("--exact: the shared scenes are absent: nothing measured\n");
+      return 77;
+    }
+    return RunExactPredictions(*shared, exact_side, exact_error, only, verbose);
+  }
 
   std::vector<Scene> suite = Suite(shared, quick);
   if (!only.empty())
