@@ -17,17 +17,9 @@
 
 #include "common/status.h"
 #include "scene/scene.h"
+#include "voxel_reference/voxel_box.h"
 
 namespace visq::voxel_reference {
-
-struct GridBox {
-  glm::dvec3 center{0.0};
-  glm::dvec3 axis_u{1.0, 0.0, 0.0};
-  glm::dvec3 axis_v{0.0, 1.0, 0.0};
-  glm::dvec3 axis_w{0.0, 0.0, 1.0};  // depth
-  glm::dvec3 half_extent{1.0};
-  uint32_t width = 0, height = 0, slices = 0;
-};
 
 struct ReferenceGrid {
   uint32_t width = 0, height = 0, slices = 0, words_per_column = 0;

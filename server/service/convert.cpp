@@ -492,8 +492,8 @@ StatusOr<core::VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
   if (request.has_box()) {
     const v1::VoxelBox& b = request.box();
-    query.box = gpu::SlicemapBox{FromProto(b.center()), FromProto(b.axis_u()), FromProto(b.axis_v()),
-                                 FromProto(b.axis_w()), FromProto(b.half_extent())};
+    query.box = voxel_reference::OrientedBox{FromProto(b.center()), FromProto(b.axis_u()), FromProto(b.axis_v()),
+                                             FromProto(b.axis_w()), FromProto(b.half_extent())};
   }
   if (request.depth_axis() > 2)
     return absl::InvalidArgumentError(absl::StrCat("depth_axis: ", request.depth_axis(), " not in {0, 1, 2}"));

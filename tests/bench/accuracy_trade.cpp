@@ -839,8 +839,7 @@ void SweepVoxelization(const RunSizes& plan, SceneCase& c, gpu::GpuWorker& worke
     params.box = gpu::AxisAlignedSlicemapBox(c.scene.bounds, 1, 1e-3 * glm::length(c.scene.bounds.Extent()));
     params.width = params.height = params.slices = n;
     params.max_bytes = uint64_t{4} << 30;
-    const voxel_reference::GridBox box{params.box.center, params.box.axis_u, params.box.axis_v, params.box.axis_w,
-                                       params.box.half_extent, n, n, n};
+    const voxel_reference::GridBox box{params.box, n, n, n};
     voxel_reference::SurfaceStats stats;
     const auto reference = Must(voxel_reference::VoxelizeSurface(c.scene, box, {}, &stats), "voxel reference");
     const double occupied = static_cast<double>(reference.CountOccupied());

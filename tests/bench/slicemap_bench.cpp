@@ -73,9 +73,7 @@ int main(int argc, char** argv) {
       params.height = size.h;
       params.slices = size.s;
       params.max_bytes = uint64_t{4} << 30;
-      const voxel_reference::GridBox box{params.box.center,     params.box.axis_u, params.box.axis_v,
-                                         params.box.axis_w,     params.box.half_extent, size.w,
-                                         size.h,                size.s};
+      const voxel_reference::GridBox box{params.box, size.w, size.h, size.s};
       // The CPU reference once per grid (it does not depend on the GPU mode).
       voxel_reference::SurfaceStats stats;
       auto reference = voxel_reference::VoxelizeSurface(*scene, box, {}, &stats);

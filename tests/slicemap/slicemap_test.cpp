@@ -65,7 +65,7 @@ Scene MakeSphere(const glm::dvec3& center, double radius, int subdivisions) {
 }
 
 voxel_reference::GridBox ToReference(const gpu::SlicemapBox& box, uint32_t w, uint32_t h, uint32_t s) {
-  return {box.center, box.axis_u, box.axis_v, box.axis_w, box.half_extent, w, h, s};
+  return {box, w, h, s};
 }
 
 // |a & ~b| over two packed grids of the same shape.

@@ -26,20 +26,15 @@
 
 #include "common/status.h"
 #include "scene/scene.h"
+#include "voxel_reference/voxel_box.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/gpu_worker.h"
 
 namespace visq::gpu {
 
-// An oriented orthographic box in world coordinates. The axes must be
-// orthonormal (checked); w is the depth (slice) direction.
-struct SlicemapBox {
-  glm::dvec3 center{0.0};
-  glm::dvec3 axis_u{1.0, 0.0, 0.0};
-  glm::dvec3 axis_v{0.0, 1.0, 0.0};
-  glm::dvec3 axis_w{0.0, 0.0, 1.0};
-  glm::dvec3 half_extent{1.0};  // along u, v, w
-};
+// The voxel grid's oriented box (lib/voxel_reference/voxel_box.h), shared
+// with the CPU reference.
+using SlicemapBox = voxel_reference::OrientedBox;
 
 // The axis-aligned box `bounds` (grown by `margin` on every side) seen along
 // world axis `depth_axis` (0 = x, 1 = y, 2 = z); u, v follow cyclically
