@@ -383,6 +383,7 @@ struct ExactProbeRun {
   double ms = 0.0;
   double answered = 0.0;
   double new_trees = 0.0;    // trees it had to build (not held before)
+  double built_trees = 0.0;  // of those, the ones it built (all, unless cut)
   double new_points = 0.0;   // points no held tree had stored
   double stored_points = 0.0;
   bool cut = false;
@@ -415,11 +416,16 @@ StatusOr<ExactProbeRun> RunExactProbe(Engine& engine, const LightVisibilityQuery
   run.answered = double(answered.load());
   if (answer.ok()) {
     run.ms = answer->compute_ms;  // as the plan's run is measured: without the index's build
+    run.built_trees = run.new_trees;
     return run;
   }
-  // Stopped by its budget, not by the call: what it measured so far.
+  // Stopped by its budget, not by the call: what it measured so far (the
+  // trees it built are the ones now held).
   if (!call.Stopped() && probe_call.Stopped()) {
     run.cut = true;
+    probe.call = call;
+    VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, EstimateLightVisibilityWork(engine, probe));
+    run.built_trees = std::max(0.0, run.new_trees - double(after.groups - after.cached_groups));
     return run;
   }
   return answer.status();
@@ -492,13 +498,13 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
     VISQ_ASSIGN_OR_RETURN(const ExactProbeRun two, RunExactProbe(engine, exact.batch, second, call, probe_call));
     out.probe_ms += two.ms;
     second_ms = two.ms;
-    second_trees = two.new_trees;
+    second_trees = two.built_trees;
     second_points = two.cut ? two.answered : two.new_points;
     // ms = trees * tree_ms + points * point_ms, for both probes (a cut one
     // at the points it answered); a solution with a negative part falls
     // back to the second probe's time per point.
     out.cut = two.cut;
-    const double a1 = one.new_trees, b1 = std::max(1.0, one.new_points), a2 = two.cut ? 0.0 : two.new_trees,
+    const double a1 = one.new_trees, b1 = std::max(1.0, one.new_points), a2 = two.built_trees,
                  b2 = std::max(1.0, two.cut ? two.answered : two.new_points);
     const double det = a1 * b2 - a2 * b1;
     if (std::abs(det) > 1e-9) {
