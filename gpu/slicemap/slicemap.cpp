@@ -677,16 +677,7 @@ StatusOr<VoxelizeResult> Voxelize(GpuWorker& worker, const GpuScene& gpu_scene, 
                                   const VoxelizeBandSink& sink) {
   VISQ_RETURN_IF_ERROR(ValidateVoxelizeParams(params, gpu_scene.triangle_count()));
   PassConfig config;
-  config.width = params.width;
-  config.height = params.height;
-  config.slices = params.slices;
-  config.mode = params.mode;
-  config.precision = params.precision;
-  config.rasterization = params.rasterization;
-  config.triangles = params.triangles;
-  config.max_bytes = params.max_bytes;
-  config.max_columns_per_job = params.max_columns_per_job;
-  config.job = params.job;
+  static_cast<SlicemapSettings&>(config) = params;
   return VoxelizeView(worker, gpu_scene, OrthographicView(params.box, gpu_scene.anchor()), config, sink, nullptr);
 }
 

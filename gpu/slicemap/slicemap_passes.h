@@ -29,18 +29,10 @@ struct ViewSetup {
   glm::vec2 radial{0.0f};  // perspective: (r0, 1 / (r1 - r0))
 };
 
-struct PassConfig {
-  uint32_t width = 0, height = 0, slices = 0;
-  VoxelizeMode mode = VoxelizeMode::kSurface;
-  SlicePrecision precision = SlicePrecision::kUniform;
-  Rasterization rasterization = Rasterization::kStandard;
-  std::vector<TriangleRange> triangles;
-  uint64_t max_bytes = kDefaultMaxSlicemapBytes;
-  size_t max_columns_per_job = kDefaultSlicemapColumnsPerJob;
+struct PassConfig : SlicemapSettings {
   // A pass's draw is cut into pieces of about this long, the call asked
   // between them. 0: one draw.
   double piece_target_ms = 25.0;
-  JobOptions job;
 };
 
 // Finite and within visq's coordinate range (common/coordinates.h).

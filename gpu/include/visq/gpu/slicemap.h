@@ -70,8 +70,10 @@ inline constexpr uint32_t kSolidSlicesPerPass = 512;   // front and back maps sh
 inline constexpr uint64_t kDefaultMaxSlicemapBytes = uint64_t{1} << 30;
 inline constexpr size_t kDefaultSlicemapColumnsPerJob = size_t{1} << 18;
 
-struct VoxelizeParams {
-  SlicemapBox box;
+// What a slicemap draws, in whichever view: the grid, what it records, the
+// triangles and the caps. Voxelization draws it in a box (VoxelizeParams),
+// transmittance in each light's view.
+struct SlicemapSettings {
   uint32_t width = 128;   // texels along u
   uint32_t height = 128;  // texels along v
   uint32_t slices = 128;  // bits along w
@@ -87,6 +89,10 @@ struct VoxelizeParams {
   // thread between bands. The bits are those of one draw.
   size_t max_columns_per_job = kDefaultSlicemapColumnsPerJob;
   JobOptions job;
+};
+
+struct VoxelizeParams : SlicemapSettings {
+  SlicemapBox box;
 };
 
 struct SlicemapGrid {
