@@ -442,6 +442,8 @@ StatusOr<ExactProbeRun> RunExactProbe(Engine& engine, const LightVisibilityQuery
 // - 1: 2 x 2 points, cold: mostly the trees they need;
 // - 2: up to 8 x 8 other points (a shifted lattice) on the trees now held,
 //   stopped at the budget: a point's time from the points it answered;
+// - 2b: a third lattice, where half the budget is left: the trees refine
+//   lazily, so the latest rate is the one the rest of the batch will see;
 // - 3: the first lattice again, from the stores: a stored answer's cost.
 // Solving the first two for a tree's cost and a point's, the request is
 // predicted at its trees still to build, its points still to answer and
@@ -514,6 +516,24 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
     if (std::abs(det) <= 1e-9 || tree_ms < 0.0 || point_ms < 0.0) {
       point_ms = two.ms / b2;
       tree_ms = a1 > 0.0 ? std::max(0.0, one.ms - point_ms * b1) / a1 : 0.0;
+    }
+  }
+  // 2b: a third lattice on the trees as the second left them, while at
+  // least half the budget is left. The trees refine lazily, so a point
+  // answered later costs less (the bunny: 2-4x less than the second
+  // lattice's): the rate the rest of the batch will see is the latest one.
+  if (!out.cut && point_ms > 0.0 && (!std::isfinite(budget_ms) || MillisecondsSince(start) < 0.5 * budget_ms)) {
+    std::vector<uint32_t> third = LatticeTexels(exact.width, exact.height, kLatticeSide, 3);
+    std::erase_if(third, [&](uint32_t t) {
+      return std::binary_search(first.begin(), first.end(), t) || std::binary_search(second.begin(), second.end(), t);
+    });
+    if (!third.empty()) {
+      VISQ_ASSIGN_OR_RETURN(const ExactProbeRun later, RunExactProbe(engine, exact.batch, third, call, probe_call));
+      out.probe_ms += later.ms;
+      const double points = later.cut ? later.answered : later.new_points;
+      // Only a lattice that built no tree and answered enough points to
+      // average over the penumbra's heavy tail.
+      if (later.built_trees == 0.0 && points >= 16.0) point_ms = std::min(point_ms, later.ms / points);
     }
   }
   // 3: stored answers.
