@@ -16,6 +16,7 @@
 #include "absl/strings/str_replace.h"
 #include "common/check.h"
 #include "common/job_timing.h"
+#include "common/parallel.h"
 #include "core/accuracy_statement.h"
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
@@ -384,6 +385,7 @@ struct ExactProbeRun {
   double answered = 0.0;
   double new_trees = 0.0;    // trees it had to build (not held before)
   double built_trees = 0.0;  // of those, the ones it built (all, unless cut)
+  double groups = 0.0;       // the batch's groups its points fall in
   double new_points = 0.0;   // points no held tree had stored
   double stored_points = 0.0;
   bool cut = false;
@@ -408,6 +410,7 @@ StatusOr<ExactProbeRun> RunExactProbe(Engine& engine, const LightVisibilityQuery
   VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork before, EstimateLightVisibilityWork(engine, probe));
   ExactProbeRun run;
   run.new_trees = double(before.groups - before.cached_groups);
+  run.groups = double(before.groups);
   run.new_points = before.points;
   run.stored_points = before.stored_points;
   const auto start = std::chrono::steady_clock::now();
@@ -495,6 +498,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   std::erase_if(second, [&](uint32_t t) { return std::binary_search(first.begin(), first.end(), t); });
   const double first_per_point = one.ms / std::max(1.0, double(first.size()));
   double point_ms = first_per_point, tree_ms = 0.0;
+  double rate_groups = one.groups;  // of the probe that gave point_ms
   double second_ms = 0.0, second_trees = 0.0, second_points = 0.0;  // for the log
   if (!second.empty()) {
     VISQ_ASSIGN_OR_RETURN(const ExactProbeRun two, RunExactProbe(engine, exact.batch, second, call, probe_call));
@@ -517,6 +521,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
       point_ms = two.ms / b2;
       tree_ms = a1 > 0.0 ? std::max(0.0, one.ms - point_ms * b1) / a1 : 0.0;
     }
+    rate_groups = two.groups;
   }
   // 2b: a third lattice on the trees as the second left them, while at
   // least half the budget is left. The trees refine lazily, so a point
@@ -533,7 +538,10 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
       const double points = later.cut ? later.answered : later.new_points;
       // Only a lattice that built no tree and answered enough points to
       // average over the penumbra's heavy tail.
-      if (later.built_trees == 0.0 && points >= 16.0) point_ms = std::min(point_ms, later.ms / points);
+      if (later.built_trees == 0.0 && points >= 16.0 && later.ms / points < point_ms) {
+        point_ms = later.ms / points;
+        rate_groups = later.groups;
+      }
     }
   }
   // 3: stored answers.
@@ -544,8 +552,25 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
     if (!three.cut) stored_ms = three.ms / std::max(1.0, three.answered);
   }
   VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
+  // A probe's few points per group are one chunk of work per group, on one
+  // worker each; the batch's many chunks keep every worker busy
+  // (RunLightVisibility, 64 points a chunk): its points take that much less
+  // time (2x on this 2-core machine when idle).
+  const double workers = double(ParallelWorkers());
+  const double batch_chunks = std::max(double(after.groups), std::ceil(after.points / 64.0));
+  point_ms *= std::min(workers, std::max(1.0, rate_groups)) / std::min(workers, std::max(1.0, batch_chunks));
   out.ms = double(after.groups - after.cached_groups) * tree_ms + after.points * point_ms +
            after.stored_points * std::min(stored_ms, point_ms);
+  // A second lattice cut after a few points measured the first points a
+  // barely refined tree answers, which cost several times the batch's
+  // average (the bunny: 23 ms against 2 ms): an upper side. The lower side
+  // is that the method is not known to be faster than the best sampled
+  // plan (the budget over its share). Their geometric mean is within the
+  // square root of their ratio of any time between them.
+  if (out.cut && second_points < 16.0 && std::isfinite(budget_ms)) {
+    const double lower = budget_ms / kProbeShareOfBest;
+    if (out.ms > lower) out.ms = std::sqrt(out.ms * lower);
+  }
   spdlog::debug("{} exact probes (budget {:.1f} ms): {:.1f} ms for {} trees and {} points, {:.1f} ms for {} trees and {} points{}; "
                 "a tree {:.2f} ms, a point {:.3f} ms, a stored one {:.4f} ms; left {} of {} trees, {} points, {} "
                 "stored: predicted {:.1f} ms",
