@@ -489,6 +489,26 @@ TEST_F(ExactPredictionTest, WhereTheExactMethodIsChosenItsPredictionFollowsItsTi
                        "cornell: the chosen exact plan's predicted ms against its compute ms");
   }
   EXPECT_GT(chosen, 0) << "a 0.01 target on the Cornell box wants 18,445 rays a texel; the exact method is cheaper";
+
+  // Patch visibility weighs the exact method through the same probes (its
+  // receiver grid as the batch's points).
+  v1::PatchVisibilityRequest patches;
+  patches.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(patches.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(patches.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+  patches.set_receiver_columns(20);
+  patches.set_receiver_rows(20);
+  patches.mutable_target()->set_max_error(0.01);
+  auto grid = client_->PatchVisibility(patches);
+  ASSERT_TRUE(grid.ok()) << grid.status();
+  bool weighed_exact = false;
+  for (const v1::PlanEstimate& plan : grid->accuracy().plans()) weighed_exact |= plan.method() == "plucker-exact";
+  EXPECT_TRUE(weighed_exact) << grid->accuracy().DebugString();
+  std::printf("cornell patches 20 x 20: chose %s, predicted %.2f ms, computed %.2f ms\n",
+              grid->accuracy().method().c_str(), grid->accuracy().predicted_ms(), grid->timing().compute_ms());
+  if (grid->accuracy().method() == "plucker-exact")
+    ExpectWithinFactor(grid->accuracy().predicted_ms(), grid->timing().compute_ms(), 4.0,
+                       "cornell patches: the chosen exact plan's predicted ms against its compute ms");
 }
 
 }  // namespace
