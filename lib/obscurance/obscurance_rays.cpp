@@ -385,13 +385,18 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const O
       squares[slot] += values[i] * values[i];
       ++count[slot];
     }
-    // Each ray also counts for the triangle it leaves (see BuildResult).
-    for (size_t i = 0; i < rays.size(); ++i) {
-      const uint32_t texel = ray_texel[i];
+    // Each ray also counts for the triangle it leaves (see BuildResult),
+    // weighed by its patch's area over the patch's rays.
+    std::vector<double> ray_weight(kBatchTexels, 0.0);
+    for (uint32_t s = 0; s < kBatchTexels && first + s < n; ++s) {
+      if (count[s] == 0) continue;
       double patch_area = 0;
-      for (uint32_t f = atlas.texel_begin[texel]; f < atlas.texel_begin[texel + 1]; ++f)
+      for (uint32_t f = atlas.texel_begin[first + s]; f < atlas.texel_begin[first + s + 1]; ++f)
         patch_area += atlas.fragments[f].world_area;
-      const double weight = patch_area / count[texel - first];
+      ray_weight[s] = patch_area / count[s];
+    }
+    for (size_t i = 0; i < rays.size(); ++i) {
+      const double weight = ray_weight[ray_texel[i] - first];
       TriangleRays& tr = triangle_rays[rays[i].ignore_triangle];
       tr.weighted_sum += weight * values[i];
       tr.sum += values[i];
