@@ -48,6 +48,9 @@ build_packages=(
   # (libpq, replicas on several machines), its blobs named by SHA-256
   # (libcrypto); the replica race test starts a PostgreSQL cluster of its own.
   libsqlite3-dev libpq-dev libssl-dev postgresql
+  # The .debs (cpack -G DEB): CPack's dpkg-shlibdeps step runs file(1) on
+  # each binary; a minimal Debian root has no file.
+  file
 )
 # What visq-server and the visq CLI run with: the libraries the two binaries
 # load (ldd: what dpkg-shlibdeps puts in the .debs' Depends and the libraries
