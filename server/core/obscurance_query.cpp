@@ -124,8 +124,9 @@ void SetCoveredBound(const ObscuranceAnswer& answer, double nominal, const char*
   const std::string rule = absl::StrCat(
       "at ", answer.confidence, ", ",
       rays ? kRaysBoundRule : "Hoeffding's half-width for each element's own effective number of ", rays ? "" : unit,
-      rays ? "; the rays' values" : "", " with values in [0, 1] per channel; error_bound holds for every element "
-      "(texel, triangle, vertex) resting on at least ", obscurance::kCoveredShare, " x ", nominal, " ", unit,
+      rays ? "; the rays' values in [0, 1] per channel" : " with values in [0, 1] per channel",
+      "; error_bound holds for every element (texel, triangle, vertex) resting on at least ", obscurance::kCoveredShare,
+      " x ", nominal, " ", unit,
       " (its own bound at most ", absl::StrFormat("%.4f", cap), ")");
   if (!answer.result) {
     out.note = absl::StrCat("estimate: ", rule, "; a partial bake: elements not counted");
