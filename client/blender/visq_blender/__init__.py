@@ -213,6 +213,16 @@ def _show_colors(context):
                 shading.color_type = "VERTEX"
 
 
+def _node_named(nodes, kind, name, location):
+    """The material's node called `name`, made (of `kind`, at `location`) if absent."""
+    node = nodes.get(name)
+    if node is None:
+        node = nodes.new(kind)
+        node.name = node.label = name
+        node.location = location
+    return node
+
+
 def _wire_materials(obj, image):
     """In each node material of the object, an Image Texture node 'visq W'
     reading the image through the 'visq_atlas' UV map, left unconnected:
@@ -224,17 +234,9 @@ def _wire_materials(obj, image):
         if material is None or not material.use_nodes or material.node_tree is None:
             continue
         nodes, links = material.node_tree.nodes, material.node_tree.links
-        texture = nodes.get("visq W")
-        if texture is None:
-            texture = nodes.new("ShaderNodeTexImage")
-            texture.name = texture.label = "visq W"
-            texture.location = (-600, -400)
+        texture = _node_named(nodes, "ShaderNodeTexImage", "visq W", (-600, -400))
         texture.image = image
-        uv = nodes.get("visq UV")
-        if uv is None:
-            uv = nodes.new("ShaderNodeUVMap")
-            uv.name = uv.label = "visq UV"
-            uv.location = (-800, -400)
+        uv = _node_named(nodes, "ShaderNodeUVMap", "visq UV", (-800, -400))
         uv.uv_map = UV_LAYER
         if not texture.inputs["Vector"].links:
             links.new(uv.outputs["UV"], texture.inputs["Vector"])
