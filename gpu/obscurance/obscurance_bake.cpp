@@ -50,8 +50,9 @@ void NearestNoMips(GLuint texture) {
   glTextureParameteri(texture, GL_TEXTURE_WRAP_T, GL_CLAMP_TO_EDGE);
 }
 
-Status CreateState(BakeState& s, const Scene& scene, const ObscuranceAtlas& atlas, uint32_t channels,
+Status CreateState(BakeState& s, const Scene& placed_scene, const ObscuranceAtlas& atlas, uint32_t channels,
                    uint32_t bundle) {
+  const Scene& scene = placed_scene.Flattened();
   const std::string channel_text = std::to_string(channels);
   VISQ_ASSIGN_OR_RETURN(s.peel, CachedProgram(obscurance_shaders::Find, {{GL_VERTEX_SHADER, "obscurance_peel.vert"},
                                                                         {GL_FRAGMENT_SHADER, "obscurance_peel.frag"}}));
@@ -344,9 +345,10 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
 
 }  // namespace
 
-StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuScene& gpu_scene, const Scene& scene,
+StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuScene& gpu_scene, const Scene& placed_scene,
                                                   const ObscuranceAtlas& atlas, const ObscuranceParams& params,
                                                   const ObscuranceBakeOptions& options, ObscuranceBakeStats* stats) {
+  const Scene& scene = placed_scene.Flattened();
   const auto start = std::chrono::steady_clock::now();
   VISQ_RETURN_IF_ERROR(obscurance::ValidateParams(params));
   if (gpu_scene.triangle_count() != scene.TriangleCount())
@@ -460,10 +462,11 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
 }
 
 StatusOr<obscurance::ObscuranceResult> BakeObscurances(GpuWorker& worker, const GpuScene& gpu_scene,
-                                                       const Scene& scene, const ObscuranceAtlas& atlas,
+                                                       const Scene& placed_scene, const ObscuranceAtlas& atlas,
                                                        const ObscuranceParams& params,
                                                        const ObscuranceBakeOptions& options,
                                                        ObscuranceBakeStats* stats) {
+  const Scene& scene = placed_scene.Flattened();
   VISQ_ASSIGN_OR_RETURN(ObscurancePartial partial,
                         BakeObscurancePartial(worker, gpu_scene, scene, atlas, params, options, stats));
   return obscurance::FinalizeObscurances(scene, atlas, params, partial);

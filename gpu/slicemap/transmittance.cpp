@@ -168,7 +168,7 @@ std::vector<AbsorberGroup> AbsorberGroups(const TransmittanceParams& params, con
     for (uint32_t id : node_ids) wanted[id] = true;
     std::vector<TriangleRange> ranges;
     for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
-      if (!wanted[scene.triangle_node[t]]) continue;
+      if (!wanted[scene.NodeOf(t)]) continue;
       for (int c = 0; c < 3; ++c) bounds.Extend(scene.Vertex(t, c));
       if (!ranges.empty() && ranges.back().first + ranges.back().count == t)
         ++ranges.back().count;

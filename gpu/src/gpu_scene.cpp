@@ -45,16 +45,11 @@ Layout PlanLayout(const Scene& scene, const glm::dvec3& anchor) {
     const MeshPlacement& p = scene.placements[k];
     if (p.mesh >= scene.meshes.size() || p.first_triangle < cursor) continue;
     const uint64_t count = scene.meshes[p.mesh].triangles.size();
-    if (count < kFewestTrianglesToInstance || !PlacementMatchesFlattened(scene, p) ||
+    if (count < kFewestTrianglesToInstance || !PlacementInRange(scene, p) ||
         !PlacementKeepsFloatPrecision(p.world, magnitude[p.mesh], anchor, largest_extent))
       continue;
-    // The GPU keeps a held mesh's materials once: a placement whose
-    // triangles' materials differ from the first's is drawn flattened.
-    const int32_t held_index = layout.held_of_mesh[p.mesh];
-    if (held_index >= 0 && scene.triangle_material.size() == total) {
-      const auto first = scene.triangle_material.begin() + scene.placements[layout.held_from[size_t(held_index)]].first_triangle;
-      if (!std::equal(first, first + count, scene.triangle_material.begin() + p.first_triangle)) continue;
-    }
+    // The GPU keeps a held mesh's materials once, as the scene does
+    // (SceneMesh::triangle_material).
     layout.instanced[k] = 1;
     if (p.first_triangle > cursor) ++layout.segments;
     ++layout.segments;
@@ -136,7 +131,7 @@ StatusOr<std::shared_ptr<GpuScene>> GpuScene::Upload(GpuWorker& worker, const Sc
   // Materials in the buffer's order: a held mesh's once.
   std::vector<uint32_t> materials;
   materials.reserve(layout.held_triangles);
-  auto material_of = [&scene](size_t t) { return t < scene.triangle_material.size() ? scene.triangle_material[t] : 0u; };
+  auto material_of = [&scene](size_t t) { return scene.MaterialOf(t); };
   uint32_t unplaced_seen = 0;
   auto add_unplaced = [&](uint32_t first, uint32_t end) {
     if (first >= end) return;

@@ -245,9 +245,9 @@ std::optional<Selected> SelectTriangle(const LightTree& tree, const Shaft& shaft
 
 StatusOr<std::unique_ptr<LightTree>> LightTree::Create(const AreaLight& light, const Scene& scene,
                                                        const TreeOptions& options, const SceneTriangleIndex* index) {
-  if (index != nullptr && index->triangle_count() != scene.triangles.size()) {
+  if (index != nullptr && index->triangle_count() != scene.TriangleCount()) {
     return absl::InvalidArgumentError(absl::StrCat("the triangle index has ", index->triangle_count(),
-                                                   " triangles, the scene ", scene.triangles.size()));
+                                                   " triangles, the scene ", scene.TriangleCount()));
   }
   auto tree = std::make_unique<LightTree>();
   VISQ_ASSIGN_OR_RETURN(PreparedLight prepared, PrepareLight(light));
@@ -283,7 +283,7 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
   const Shaft shaft(*this);
   std::vector<uint8_t> excluded;
   if (!options.exclude_triangles.empty()) {
-    excluded.assign(scene.triangles.size(), 0);
+    excluded.assign(scene.TriangleCount(), 0);
     for (uint32_t t : options.exclude_triangles) {
       if (t < excluded.size()) excluded[t] = 1;
     }
@@ -296,7 +296,9 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
   // By scene vertex index, for the triangles visited only: a vector over
   // all the scene's positions would be filled per tree, however few
   // triangles the shaft meets.
-  absl::flat_hash_map<uint32_t, uint32_t> remap;
+  // A placed position's key is its placement's (plus one) in the high
+  // half, its mesh vertex in the low one.
+  absl::flat_hash_map<uint64_t, uint32_t> remap;
   struct PositionHash {
     size_t operator()(const glm::dvec3& p) const {
       // The coordinates' bits, mixed (the map mixes the result again);
@@ -321,7 +323,7 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
     const glm::dvec3 pad(1e-9 * magnitude + 1e-300);
     near_shaft = index->InBox(shaft.lo + origin - pad, shaft.hi + origin + pad);
   }
-  const size_t visit_count = indexed ? near_shaft.size() : scene.triangles.size();
+  const size_t visit_count = indexed ? near_shaft.size() : scene.TriangleCount();
   // Most triangles the shaft meets are kept, with about half a new vertex
   // each: growing the maps by doubling cost a tenth of a large room's tree.
   remap.reserve(visit_count / 2);
@@ -336,17 +338,34 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
                                                         visit_count, " triangles"));
     }
     const size_t ti = indexed ? near_shaft[visit] : visit;
-    const glm::uvec3 tri = scene.triangles[ti];
-    for (int c = 0; c < 3; ++c) {
-      if (tri[c] >= scene.positions.size()) {
-        return absl::InvalidArgumentError(absl::StrCat("scene.triangles[", ti, "][", c, "]: index ",
-                                                       tri[c], " >= ", scene.positions.size(),
-                                                       " positions"));
+    // The triangle's corners where the scene holds it: the record's, or
+    // placed (PlacePoint: the flattened scene's doubles to the bit).
+    const Scene::Held held = scene.Locate(ti);
+    uint64_t tri[3];
+    glm::dvec3 v[3];
+    if (held.placement < 0) {
+      const glm::uvec3 corners = scene.triangles[held.index];
+      for (int c = 0; c < 3; ++c) {
+        if (corners[c] >= scene.positions.size()) {
+          return absl::InvalidArgumentError(absl::StrCat("scene.triangles[", held.index, "][", c, "]: index ",
+                                                         corners[c], " >= ", scene.positions.size(), " positions"));
+        }
+      }
+      if (!excluded.empty() && excluded[ti]) continue;
+      for (int c = 0; c < 3; ++c) {
+        tri[c] = corners[c];
+        v[c] = scene.positions[corners[c]] - origin;
+      }
+    } else {
+      if (!excluded.empty() && excluded[ti]) continue;
+      const MeshPlacement& placement = scene.placements[size_t(held.placement)];
+      const SceneMesh& mesh = scene.meshes[placement.mesh];
+      const glm::uvec3 corners = mesh.triangles[held.index];
+      for (int c = 0; c < 3; ++c) {
+        tri[c] = (uint64_t(held.placement) + 1) << 32 | corners[c];
+        v[c] = PlacePoint(placement.world, mesh.positions[corners[c]]) - origin;
       }
     }
-    if (!excluded.empty() && excluded[ti]) continue;
-    glm::dvec3 v[3];
-    for (int c = 0; c < 3; ++c) v[c] = scene.positions[tri[c]] - origin;
     const std::optional<Selected> selected = SelectTriangle(*this, shaft, light_fan, v);
     if (!selected) continue;
     Pending p{};

@@ -58,8 +58,7 @@ struct SceneTriangleIndex::Impl {
   size_t flat_count() const { return instances.empty() ? triangle_count : flat.size(); }
   uint32_t FlatTriangle(uint32_t item) const { return flat.empty() ? item : flat[item]; }
   Box SceneTriangleBox(uint32_t t) const {
-    const glm::uvec3 tri = scene->triangles[t];
-    return TriangleBox(scene->positions[tri[0]], scene->positions[tri[1]], scene->positions[tri[2]]);
+    return TriangleBox(scene->Vertex(t, 0), scene->Vertex(t, 1), scene->Vertex(t, 2));
   }
   Box TopItemBox(uint32_t item) const {
     return item < flat_count() ? SceneTriangleBox(FlatTriangle(item)) : instances[item - flat_count()].box;
@@ -120,17 +119,17 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
       }
     }
   }
-  impl->triangle_count = scene.triangles.size();
+  impl->triangle_count = scene.TriangleCount();
 
   // The placements indexed as instances: those that stand for their
   // flattened triangles exactly (a placement that does not, or overlaps an
   // earlier one, is indexed flattened).
-  std::vector<uint8_t> instanced(scene.triangles.size(), 0);
+  std::vector<uint8_t> instanced(impl->triangle_count, 0);
   std::vector<uint32_t> mesh_slot(scene.meshes.size(), UINT32_MAX);
   std::vector<Box> top_boxes;
   impl->instances.reserve(scene.placements.size());
   for (const MeshPlacement& placement : scene.placements) {
-    if (!FiniteTransform(placement.world) || !PlacementMatchesFlattened(scene, placement)) continue;
+    if (!FiniteTransform(placement.world) || !PlacementInRange(scene, placement)) continue;
     const SceneMesh& mesh = scene.meshes[placement.mesh];
     if (mesh.triangles.empty() || std::any_of(instanced.begin() + placement.first_triangle,
                     instanced.begin() + placement.first_triangle + mesh.triangles.size(), [](uint8_t b) { return b != 0; })) continue;
@@ -156,9 +155,11 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
     const glm::dvec3 reach = glm::abs(glm::dvec3(placement.world[3])) + Spread(placement.world) * glm::dvec3(impl->meshes[slot].magnitude);
     instance.pad = 1e-9 * std::max({reach.x, reach.y, reach.z}) + 1e-300;
     glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
-    for (size_t j = 0; j < mesh.positions.size(); ++j) {
-      lo = glm::min(lo, scene.positions[placement.first_position + j]);
-      hi = glm::max(hi, scene.positions[placement.first_position + j]);
+    // The placed positions, the flattened scene's to the bit (PlacePoint).
+    for (const glm::dvec3& p : mesh.positions) {
+      const glm::dvec3 placed = PlacePoint(placement.world, p);
+      lo = glm::min(lo, placed);
+      hi = glm::max(hi, placed);
     }
     instance.box = {lo, hi};
     top_boxes.emplace_back(lo, hi);
@@ -166,7 +167,7 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
   }
 
   if (!impl->instances.empty()) {
-    for (size_t ti = 0; ti < scene.triangles.size(); ++ti) {
+    for (size_t ti = 0; ti < impl->triangle_count; ++ti) {
       if (!instanced[ti]) impl->flat.push_back(static_cast<uint32_t>(ti));
     }
   }

@@ -66,7 +66,8 @@ struct Chart {
 };
 
 // Welded vertex ids, so that charts grow across vertices the file split.
-std::vector<uint32_t> WeldPositions(const Scene& scene) {
+std::vector<uint32_t> WeldPositions(const Scene& placed_scene) {
+  const Scene& scene = placed_scene.Flattened();
   const double extent = std::max(1e-30, glm::length(scene.bounds.Extent()));
   const double cell = extent * 1e-7;
   std::unordered_map<uint64_t, uint32_t> ids;
@@ -99,8 +100,9 @@ bool Pack(std::vector<Chart>& charts, const std::vector<uint32_t>& order, double
   return true;
 }
 
-StatusOr<std::vector<glm::vec2>> BuildCharts(const Scene& scene, uint32_t resolution, const AtlasOptions& options,
+StatusOr<std::vector<glm::vec2>> BuildCharts(const Scene& placed_scene, uint32_t resolution, const AtlasOptions& options,
                                              uint32_t* chart_count, double* texels_per_unit) {
+  const Scene& scene = placed_scene.Flattened();
   const size_t nt = scene.TriangleCount();
   std::vector<glm::dvec3> normal(nt);
   std::vector<double> area(nt);
@@ -242,7 +244,8 @@ ClippedPolygon ClipTriangleToTexel(const glm::dvec2& a, const glm::dvec2& b, con
   return poly;
 }
 
-StatusOr<ObscuranceAtlas> BuildObscuranceAtlas(const Scene& scene, uint32_t resolution, const AtlasOptions& options) {
+StatusOr<ObscuranceAtlas> BuildObscuranceAtlas(const Scene& placed_scene, uint32_t resolution, const AtlasOptions& options) {
+  const Scene& scene = placed_scene.Flattened();
   if (resolution == 0 || resolution > kMaxAtlasResolution)
     return absl::InvalidArgumentError(
         absl::StrCat("resolution: ", resolution, " must be in [1, ", kMaxAtlasResolution, "]"));

@@ -19,8 +19,9 @@ std::vector<float> AtlasUvs(const std::vector<glm::vec2>& corner_uv, uint32_t wi
   return uvs;
 }
 
-StatusOr<std::string> BakedSceneGlb(const Scene& scene, const std::vector<glm::vec2>& corner_uv, uint32_t width,
+StatusOr<std::string> BakedSceneGlb(const Scene& placed_scene, const std::vector<glm::vec2>& corner_uv, uint32_t width,
                                     uint32_t height, const std::vector<glm::vec3>& w, BakedSceneOptions options) {
+  const Scene& scene = placed_scene.Flattened();
   const size_t triangles = scene.triangles.size();
   if (corner_uv.size() != 3 * triangles || w.size() != size_t(width) * height || width == 0 || height == 0 ||
       (!options.vertex_w.empty() && options.vertex_w.size() != scene.positions.size()) ||

@@ -101,7 +101,8 @@ struct FragmentSampler {
 
 // The frame is all a direction needs; the clipped polygon is prepared only
 // when a ray from the fragment is kept.
-void PrepareFrame(const Scene& scene, const ObscuranceAtlas& atlas, const PatchFragment& f, FragmentSampler& out) {
+void PrepareFrame(const Scene& placed_scene, const ObscuranceAtlas& atlas, const PatchFragment& f, FragmentSampler& out) {
+  const Scene& scene = placed_scene.Flattened();
   const uint32_t t = f.triangle;
   out.triangle = t;
   out.a = atlas.corner_uv[3 * t];
@@ -157,8 +158,9 @@ glm::dvec3 CosineDirection(const glm::dvec3& tu, const glm::dvec3& tv, const glm
 
 }  // namespace
 
-void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_t texel, uint64_t seed, uint32_t n,
+void GeneratePatchRays(const Scene& placed_scene, const ObscuranceAtlas& atlas, uint32_t texel, uint64_t seed, uint32_t n,
                        std::vector<PatchRay>& out, const DirectionFilter* only_towards) {
+  const Scene& scene = placed_scene.Flattened();
   out.clear();
   const uint32_t begin = atlas.texel_begin[texel], end = atlas.texel_begin[texel + 1];
   if (begin == end) return;
@@ -231,8 +233,9 @@ void GeneratePatchRays(const Scene& scene, const ObscuranceAtlas& atlas, uint32_
   }
 }
 
-void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
+void GenerateTriangleRays(const Scene& placed_scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
                           const DirectionFilter* only_towards) {
+  const Scene& scene = placed_scene.Flattened();
   out.clear();
   const glm::dvec3 pa = scene.Vertex(triangle, 0), pb = scene.Vertex(triangle, 1), pc = scene.Vertex(triangle, 2);
   const glm::dvec3 cross = glm::cross(pb - pa, pc - pa);
@@ -261,8 +264,9 @@ void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, 
   }
 }
 
-StatusOr<std::vector<glm::vec3>> EstimateTriangleObscuranceByRays(const Scene& scene, const ObscuranceParams& params,
+StatusOr<std::vector<glm::vec3>> EstimateTriangleObscuranceByRays(const Scene& placed_scene, const ObscuranceParams& params,
                                                                    const RayEstimateOptions& options) {
+  const Scene& scene = placed_scene.Flattened();
   VISQ_RETURN_IF_ERROR(ValidateParams(params));
   if (options.rays_per_patch == 0) return absl::InvalidArgumentError("rays_per_patch: 0 must be at least 1");
   VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(scene));
@@ -320,17 +324,19 @@ bool DirectionFilter::MayMeet(const glm::dvec3& direction) const {
   return MayMeetOne(targets, patch_center, patch_radius, direction);
 }
 
-glm::dvec3 RayValue(const Scene& scene, const AmbientModel& ambient, bool color_bleeding, double d_max, bool hit,
+glm::dvec3 RayValue(const Scene& placed_scene, const AmbientModel& ambient, bool color_bleeding, double d_max, bool hit,
                     double distance, uint32_t hit_triangle) {
+  const Scene& scene = placed_scene.Flattened();
   if (!hit || distance >= d_max) return UnoccludedValue(ambient, color_bleeding);
   const double rho = Rho(distance, d_max);
   if (!color_bleeding) return glm::dvec3(rho);
   return rho * scene.materials[scene.triangle_material[hit_triangle]].reflectivity;
 }
 
-StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& scene, const ObscuranceAtlas& atlas,
+StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, const ObscuranceAtlas& atlas,
                                                      const ObscuranceParams& params,
                                                      const RayEstimateOptions& options) {
+  const Scene& scene = placed_scene.Flattened();
   VISQ_RETURN_IF_ERROR(ValidateParams(params));
   if (options.rays_per_patch == 0)
     return absl::InvalidArgumentError("rays_per_patch: 0 must be at least 1");

@@ -89,7 +89,9 @@ StatusOr<std::unique_ptr<ObscuranceUpdater>> ObscuranceUpdater::Create(Scene sce
   if (baked.w.size() != atlas.texel_count())
     return absl::InvalidArgumentError(absl::StrCat("baked: ", baked.w.size(), " texels, atlas has ", atlas.texel_count()));
   std::unique_ptr<ObscuranceUpdater> u(new ObscuranceUpdater());
-  u->scene_ = std::move(scene);
+  // The updater moves nodes and reads vertices by index: it keeps the
+  // scene flattened.
+  u->scene_ = scene.placements.empty() ? std::move(scene) : Scene(scene.Flattened());
   u->atlas_ = std::move(atlas);
   u->params_ = params;
   u->options_ = options;

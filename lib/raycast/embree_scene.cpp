@@ -184,8 +184,7 @@ struct UploadFrame {
 };
 
 UploadFrame FrameOf(const Scene& scene, const EmbreeSceneOptions& options) {
-  Bounds bounds;
-  for (const auto& p : scene.positions) bounds.Extend(p);
+  const Bounds bounds = PositionBounds(scene);
   const glm::dvec3 ext = bounds.Empty() ? glm::dvec3(0.0) : bounds.Extent();
   return {bounds, options.origin.value_or(bounds.Empty() ? glm::dvec3(0.0) : bounds.Center()),
           std::max({ext.x, ext.y, ext.z})};
@@ -195,12 +194,12 @@ std::vector<uint8_t> PlacementsToInstance(const Scene& scene, const EmbreeSceneO
   std::vector<uint8_t> traced(scene.placements.size(), 0);
   if (!options.instance_meshes) return traced;
   const std::vector<double> magnitude = MeshMagnitudes(scene);
-  std::vector<uint8_t> covered(scene.triangles.size(), 0);
+  std::vector<uint8_t> covered(scene.TriangleCount(), 0);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& placement = scene.placements[k];
-    // A placement that does not stand for its flattened triangles, or
-    // overlaps an earlier one, is traced flattened.
-    if (!PlacementMatchesFlattened(scene, placement)) continue;
+    // A placement out of range, or that overlaps an earlier one, is traced
+    // flattened.
+    if (!PlacementInRange(scene, placement)) continue;
     const size_t count = scene.meshes[placement.mesh].triangles.size();
     const auto first = covered.begin() + placement.first_triangle;
     if (count == 0 || std::any_of(first, first + count, [](uint8_t b) { return b != 0; }) ||
@@ -335,7 +334,7 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   out.origin_ = frame.origin;
   out.extent_ = frame.extent;
   out.bounds_ = frame.bounds;
-  out.triangle_count_ = scene.triangles.size();
+  out.triangle_count_ = scene.TriangleCount();
 
   t_last_embree_error.clear();
   out.device_ = rtcNewDevice(EmbreeDeviceConfig().c_str());
@@ -352,10 +351,18 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   rtcSetSceneBuildQuality(out.scene_, options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH
                                                                              : RTC_BUILD_QUALITY_MEDIUM);
   if (options.stop) rtcSetSceneProgressMonitorFunction(out.scene_, OnEmbreeProgress, const_cast<std::function<bool()>*>(&options.stop));
-  std::vector<uint8_t> instanced(scene.triangles.size(), 0);
+  std::vector<uint8_t> instanced(scene.TriangleCount(), 0);
   if (options.instance_meshes && !scene.placements.empty())
     VISQ_RETURN_IF_ERROR(out.AddInstances(scene, options, PlacementsToInstance(scene, options, frame), instanced));
-  if (!out.instancing_) {
+  if (!out.instancing_ && !scene.placements.empty()) {
+    // Placements none of which is traced as an instance: the whole scene
+    // flattened for Embree alone, in the scene's order (primID is the
+    // scene's triangle).
+    const FlattenedPart part = FlattenPart(scene, {});
+    VISQ_RETURN_IF_ERROR(AttachTriangles(
+        out.device_, out.scene_, 0, part.positions.size(), [&](size_t i) { return part.positions[i] - out.origin_; },
+        part.triangles.size(), [&](size_t i) { return part.triangles[i]; }));
+  } else if (!out.instancing_) {
     if (!scene.triangles.empty()) {
       if (options.shared_scene.get() == &scene) out.shared_scene_ = options.shared_scene;
       VISQ_RETURN_IF_ERROR(AttachTriangles(
@@ -365,27 +372,12 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
     }
   } else {
     // The triangles no instance stands for, over the positions they use.
-    std::vector<uint32_t>& flat = out.instancing_->flat_triangles;
-    std::vector<uint32_t> vertex_of(scene.positions.size(), UINT32_MAX);
-    std::vector<uint32_t> positions_used;
-    for (uint32_t t = 0; t < scene.triangles.size(); ++t) {
-      if (instanced[t]) continue;
-      flat.push_back(t);
-      for (int c = 0; c < 3; ++c) {
-        uint32_t& v = vertex_of[scene.triangles[t][c]];
-        if (v == UINT32_MAX) {
-          v = static_cast<uint32_t>(positions_used.size());
-          positions_used.push_back(scene.triangles[t][c]);
-        }
-      }
-    }
-    if (!flat.empty()) {
+    FlattenedPart part = FlattenPart(scene, instanced);
+    out.instancing_->flat_triangles = std::move(part.scene_triangle);
+    if (!part.triangles.empty()) {
       VISQ_RETURN_IF_ERROR(AttachTriangles(
-          out.device_, out.scene_, 0, positions_used.size(),
-          [&](size_t i) { return scene.positions[positions_used[i]] - out.origin_; }, flat.size(), [&](size_t i) {
-            const glm::uvec3 t = scene.triangles[flat[i]];
-            return glm::uvec3(vertex_of[t[0]], vertex_of[t[1]], vertex_of[t[2]]);
-          }));
+          out.device_, out.scene_, 0, part.positions.size(), [&](size_t i) { return part.positions[i] - out.origin_; },
+          part.triangles.size(), [&](size_t i) { return part.triangles[i]; }));
     }
   }
   rtcCommitScene(out.scene_);

@@ -327,6 +327,9 @@ class SceneBuilder {
     scene.normals.shrink_to_fit();
     for (auto& set : scene.texcoords) set.shrink_to_fit();
     for (const auto& p : scene.positions) scene.bounds.Extend(p);
+    // The repeated meshes' placements held once: the record keeps the
+    // unplaced triangles only (a level of 300 placed rooms holds one room).
+    HoldPlacementsOnce(scene);
     // The arrays grew by doubling: up to half of each was slack (20 bytes a
     // triangle on 16 unique copies of Sponza), held while the scene is
     // resident.
@@ -516,12 +519,17 @@ class SceneBuilder {
           const bool repeated = mesh_uses_[node.mesh] >= 2;
           const MeshKey key{node.mesh, glm::determinant(glm::dmat3(placement)) < 0.0};
           std::vector<glm::dvec3> mesh_positions;
+          std::vector<glm::vec3> mesh_normals;
           mesh_positions_ = repeated && !mesh_of_key_.contains(key) ? &mesh_positions : nullptr;
+          mesh_normals_ = mesh_positions_ != nullptr ? &mesh_normals : nullptr;
           for (size_t p = 0; p < mesh.primitives.size(); ++p)
             VISQ_RETURN_IF_ERROR(AddPrimitive(mesh.primitives[p], placement, node_id,
                                               absl::StrCat("meshes[", node.mesh, "].primitives[", p, "]")));
           mesh_positions_ = nullptr;
-          if (repeated) RecordPlacement(key, placement, first_triangle, first_position, std::move(mesh_positions));
+          mesh_normals_ = nullptr;
+          if (repeated)
+            RecordPlacement(key, placement, first_triangle, first_position, std::move(mesh_positions),
+                            std::move(mesh_normals));
         }
       }
       scene_->nodes[node_id].triangle_count =
@@ -734,6 +742,7 @@ class SceneBuilder {
           const glm::vec3 n(normals->Value(i, 0), normals->Value(i, 1), normals->Value(i, 2));
           finite = std::isfinite(n.x) && std::isfinite(n.y) && std::isfinite(n.z);
           turned.push_back(UnitNormal(normal_matrix, n));
+          if (mesh_normals_ != nullptr) mesh_normals_->push_back(n);
         }
       }
       if (finite && scene_->normals.size() == base) scene_->normals.insert(scene_->normals.end(), turned.begin(), turned.end());
@@ -788,13 +797,14 @@ class SceneBuilder {
   // positions from first_position; `mesh_positions` (mesh space) when it is
   // the key's first.
   void RecordPlacement(const MeshKey& key, const glm::dmat4& world, uint32_t first_triangle, uint32_t first_position,
-                       std::vector<glm::dvec3> mesh_positions) {
+                       std::vector<glm::dvec3> mesh_positions, std::vector<glm::vec3> mesh_normals) {
     const auto triangle_count = static_cast<uint32_t>(scene_->triangles.size()) - first_triangle;
     const auto position_count = static_cast<uint32_t>(scene_->positions.size()) - first_position;
     auto [it, added] = mesh_of_key_.try_emplace(key, static_cast<uint32_t>(scene_->meshes.size()));
     if (added) {
       SceneMesh mesh;
       mesh.positions = std::move(mesh_positions);
+      mesh.normals = std::move(mesh_normals);
       mesh.triangles.reserve(triangle_count);
       for (uint32_t t = first_triangle; t < first_triangle + triangle_count; ++t)
         mesh.triangles.push_back(scene_->triangles[t] - glm::uvec3(first_position));
@@ -841,6 +851,7 @@ class SceneBuilder {
   int texcoord_sets_ = kMaxKeptTexcoordSets;  // the sets every primitive so far had
   std::vector<uint64_t> mesh_uses_;
   std::vector<glm::dvec3>* mesh_positions_ = nullptr;  // where AddPrimitive copies mesh-space positions, if anywhere
+  std::vector<glm::vec3>* mesh_normals_ = nullptr;     // and the file's normals, for the mesh's placements
   std::map<MeshKey, uint32_t> mesh_of_key_;  // into Scene::meshes
 };
 

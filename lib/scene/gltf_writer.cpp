@@ -35,7 +35,8 @@ int AddView(tinygltf::Model& model, size_t offset, size_t length, int target) {
   return static_cast<int>(model.bufferViews.size() - 1);
 }
 
-tinygltf::Model BuildModel(const Scene& scene, const GltfExtras& extras) {
+tinygltf::Model BuildModel(const Scene& placed_scene, const GltfExtras& extras) {
+  const Scene& scene = placed_scene.Flattened();
   tinygltf::Model model;
   model.asset.version = "2.0";
   model.asset.generator = "visq";
@@ -216,7 +217,8 @@ tinygltf::Model BuildModel(const Scene& scene, const GltfExtras& extras) {
 
 }  // namespace
 
-Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
+Status WriteGltfFile(const Scene& placed_scene, const std::filesystem::path& path) {
+  const Scene& scene = placed_scene.Flattened();
   tinygltf::Model model = BuildModel(scene, {});
   const bool binary = path.extension() == ".glb";
   if (!binary) model.buffers[0].uri = path.stem().string() + ".bin";
@@ -227,7 +229,8 @@ Status WriteGltfFile(const Scene& scene, const std::filesystem::path& path) {
   return absl::OkStatus();
 }
 
-StatusOr<std::string> WriteGlb(const Scene& scene, const GltfExtras& extras) {
+StatusOr<std::string> WriteGlb(const Scene& placed_scene, const GltfExtras& extras) {
+  const Scene& scene = placed_scene.Flattened();
   tinygltf::Model model = BuildModel(scene, extras);
   std::ostringstream out;
   tinygltf::TinyGLTF writer;

@@ -1,10 +1,17 @@
 // The resident scene model: exactly what visibility queries need and nothing
-// more. Positions are flattened to world space in double precision, so that
-// worlds far from the origin keep their detail; GPU paths re-center on the
-// query before converting to float.
+// more. Positions are in world space in double precision, so that worlds far
+// from the origin keep their detail; GPU paths re-center on the query before
+// converting to float. A mesh the file places more than once is held once
+// with its placements, and flattened only where a consumer asks for it.
 #pragma once
 
+#include <atomic>
 #include <cmath>
+#include <functional>
+#include <span>
+#include <memory>
+#include <mutex>
+#include <utility>
 #include <cstdint>
 #include <limits>
 #include <string>
@@ -49,36 +56,10 @@ inline glm::dvec3 PlacePoint(const glm::dmat4& world, const glm::dvec3& point) {
   return glm::dvec3(world * glm::dvec4(point, 1.0));
 }
 
-// A mesh that the file places more than once (nodes sharing a glTF mesh, or
-// EXT_mesh_gpu_instancing), held once in its own coordinates so that the
-// structures built over the scene can hold it once and place it as
-// instances. The flattened arrays stay the scene of record.
-struct SceneMesh {
-  std::vector<glm::dvec3> positions;  // mesh space
-  std::vector<glm::uvec3> triangles;  // into positions, corners in the order the placements store them
-};
-
-// One placement of a SceneMesh. For i < mesh.triangles.size() and
-// j < mesh.positions.size():
-//   Scene::triangles[first_triangle + i] == mesh.triangles[i] + first_position
-//   Scene::positions[first_position + j] == PlacePoint(world, mesh.positions[j])  (bit for bit)
-// (ValidatePlacements checks both).
-struct MeshPlacement {
-  uint32_t mesh = 0;  // into Scene::meshes
-  uint32_t first_triangle = 0;
-  uint32_t first_position = 0;
-  glm::dmat4 world{1.0};
-};
-
-// A normal carried to world space by `normal_matrix` (the inverse transpose
-// of the placement's 3x3), unit again; one of no direction stays zero.
-inline glm::vec3 UnitNormal(const glm::dmat3& normal_matrix, const glm::vec3& normal) {
-  const glm::dvec3 turned = normal_matrix * glm::dvec3(normal);
-  const double length = glm::length(turned);
-  return length > 0.0 && std::isfinite(length) ? glm::vec3(turned / length) : glm::vec3(0.0f);
-}
-
-struct Scene {
+// The triangles and what each position carries, in one index space: the
+// scene of record's unplaced triangles (Scene), or every triangle of the
+// scene flattened to world space (Scene::Flattened).
+struct TriangleArrays {
   std::vector<glm::dvec3> positions;        // world space
   std::vector<glm::uvec3> triangles;        // counter-clockwise = front
   std::vector<uint32_t> triangle_material;  // index into materials
@@ -92,30 +73,177 @@ struct Scene {
   // lightmap_uvs again: 8 bytes a position, against a second representation.
   std::vector<glm::vec3> normals;
   std::vector<std::vector<glm::vec2>> texcoords;
+
+  size_t Bytes() const;
+};
+
+// A mesh that the file places more than once (nodes sharing a glTF mesh, or
+// EXT_mesh_gpu_instancing), held once in its own coordinates: the scene of
+// record keeps its placements as placements, and each structure built over
+// the scene holds it once and places it as instances.
+struct SceneMesh {
+  std::vector<glm::dvec3> positions;  // mesh space
+  std::vector<glm::uvec3> triangles;  // into positions, corners in the order the placements store them
+  // Per triangle, the same at every placement.
+  std::vector<uint32_t> triangle_material;
+  // Per position, where the scene keeps them: lightmap UVs and texture
+  // coordinates as they are, normals in mesh space as the file gave them
+  // (placed: UnitNormal(inverseTranspose(dmat3(world)), normal)).
+  std::vector<glm::vec2> lightmap_uvs;
+  std::vector<glm::vec3> normals;
+  std::vector<std::vector<glm::vec2>> texcoords;
+};
+
+// One placement of a SceneMesh: the scene's triangles [first_triangle,
+// first_triangle + mesh.triangles.size()) and, flattened, its positions
+// [first_position, first_position + mesh.positions.size()), with
+//   flattened triangle first_triangle + i == mesh.triangles[i] + first_position
+//   flattened position first_position + j == PlacePoint(world, mesh.positions[j])  (bit for bit)
+// Ordered by first_triangle and disjoint; the scene of record holds the
+// triangles of no placement (unplaced) in its own arrays, in order.
+struct MeshPlacement {
+  uint32_t mesh = 0;  // into Scene::meshes
+  uint32_t first_triangle = 0;
+  uint32_t first_position = 0;
+  glm::dmat4 world{1.0};
+  uint32_t node = 0;  // into Scene::nodes: every triangle of the placement's
+  // The unplaced triangles and positions before this placement (indices
+  // into the scene of record's arrays where the placement would stand).
+  uint32_t unplaced_triangles_before = 0;
+  uint32_t unplaced_positions_before = 0;
+};
+
+// A normal carried to world space by `normal_matrix` (the inverse transpose
+// of the placement's 3x3), unit again; one of no direction stays zero.
+inline glm::vec3 UnitNormal(const glm::dmat3& normal_matrix, const glm::vec3& normal) {
+  const glm::dvec3 turned = normal_matrix * glm::dvec3(normal);
+  const double length = glm::length(turned);
+  return length > 0.0 && std::isfinite(length) ? glm::vec3(turned / length) : glm::vec3(0.0f);
+}
+
+struct Scene;
+
+// The whole scene flattened, built on the first request and kept: a copy
+// of a scene starts without it, and an edit of the record drops it.
+class LazyFlattened {
+ public:
+  LazyFlattened() : state_(std::make_unique<State>()) {}
+  LazyFlattened(const LazyFlattened&) : LazyFlattened() {}
+  LazyFlattened& operator=(const LazyFlattened&) {
+    state_ = std::make_unique<State>();
+    return *this;
+  }
+  LazyFlattened(LazyFlattened&& other) noexcept : state_(std::exchange(other.state_, std::make_unique<State>())) {}
+  LazyFlattened& operator=(LazyFlattened&& other) noexcept {
+    state_ = std::exchange(other.state_, std::make_unique<State>());
+    return *this;
+  }
+  // Flattens `record` on the first call, whichever thread asks first; the
+  // others wait for it.
+  const Scene& Get(const Scene& record) const;
+  // The flattened scene's bytes, 0 before it is built; never waits.
+  size_t Bytes() const;
+  bool Built() const { return state_->built.load(std::memory_order_acquire); }
+
+ private:
+  struct State {
+    std::once_flag once;
+    std::atomic<bool> built{false};
+    std::shared_ptr<const Scene> scene;
+  };
+  std::unique_ptr<State> state_;
+};
+
+// The scene of record: the unplaced triangles in the inherited arrays, the
+// repeated meshes once, and where each is placed. Triangle indices (of
+// nodes, queries' answers, structures) run over the whole scene in the
+// flattened order: the unplaced and the placed ones interleaved as the file
+// placed them. A scene without placements is its own flattened scene.
+struct Scene : TriangleArrays {
   std::vector<Material> materials;
   std::vector<SceneNode> nodes;
-  // Repeated meshes and where each stands, ordered by first_triangle and
-  // disjoint; triangles of no placement are unique.
   std::vector<SceneMesh> meshes;
   std::vector<MeshPlacement> placements;
   Bounds bounds;
 
-  size_t TriangleCount() const { return triangles.size(); }
-  glm::dvec3 Vertex(size_t triangle, int corner) const {
-    return positions[triangles[triangle][corner]];
-  }
+  // Placed triangles and positions counted.
+  size_t TriangleCount() const;
+  size_t PositionCount() const;
+
+  // Where triangle t (in the whole scene's order) is held: placements[placement]'s
+  // mesh triangle `index`, or (placement < 0) the record's triangle `index`.
+  struct Held {
+    int64_t placement = -1;
+    uint32_t index = 0;
+  };
+  Held Locate(size_t triangle) const;
+  glm::dvec3 Vertex(size_t triangle, int corner) const;
+  uint32_t MaterialOf(size_t triangle) const;
+  uint32_t NodeOf(size_t triangle) const;
+
+  // The scene with every triangle flattened to world space and no
+  // placements, for a consumer that needs the whole scene flat (the bake's
+  // atlas, the export): the record itself without placements, else built
+  // once on first request and kept (counted in CpuBytes from then on).
+  // Thread-safe.
+  const Scene& Flattened() const;
+  bool FlattenedBuilt() const { return placements.empty() || flattened_.Built(); }
+  // After an edit of the record's arrays or placements.
+  void DropFlattened() { flattened_ = LazyFlattened(); }
+
   size_t CpuBytes() const;
+
+ private:
+  LazyFlattened flattened_;
 };
 
-// Whether `placement` is in range and stands for its flattened triangles
-// and positions exactly (the invariant of MeshPlacement). Structures that
-// instance a placement check it first and flatten one that does not.
-bool PlacementMatchesFlattened(const Scene& scene, const MeshPlacement& placement);
+// Whether `placement` is in range: its mesh exists and its corners index
+// the mesh's positions. (A placement of the record stands for its
+// triangles by construction: HoldPlacementsOnce.)
+bool PlacementInRange(const Scene& scene, const MeshPlacement& placement);
 
-// INVALID_ARGUMENT naming the first placement that is out of range, overlaps
-// another, or differs from the flattened triangles and positions it stands
-// for (the invariant of MeshPlacement).
+// INVALID_ARGUMENT naming the first placement that is out of range,
+// overlaps another, or whose counts of unplaced triangles and positions
+// before it disagree with the record.
 [[nodiscard]] Status ValidatePlacements(const Scene& scene);
+
+// A scene whose arrays hold every triangle flattened, with `placements`
+// (and their meshes' positions and triangles) pointing into them, made a
+// scene of record: each placement that stands for its flattened triangles
+// and positions bit for bit (PlacePoint, the same materials, node and
+// per-position attributes as its mesh's first placement) is taken out of
+// the arrays and held by its mesh; the others are forgotten (their
+// triangles stay unplaced). The loader and the scene's editors call it.
+void HoldPlacementsOnce(Scene& scene);
+
+// The inverse: every placement's triangles back in the record's arrays
+// (placements kept, pointing into them again), as HoldPlacementsOnce
+// takes them. Until then only the arrays describe the scene (TriangleCount
+// and the per-triangle accessors do not): for an edit between the two.
+void FlattenPlacements(Scene& scene);
+
+// Some triangles flattened, for a structure that holds the rest as
+// instances: the triangles whose `skip` is 0 (all where `skip` is empty),
+// in order, over the world positions they use.
+struct FlattenedPart {
+  std::vector<glm::dvec3> positions;
+  std::vector<glm::uvec3> triangles;     // into positions
+  std::vector<uint32_t> scene_triangle;  // each one's index in the scene
+};
+FlattenedPart FlattenPart(const Scene& scene, const std::vector<uint8_t>& skip);
+
+// The flattened scene's positions, then its triangles, then their
+// materials, in runs, in order, without building it (a content hash reads
+// the same bytes as from Scene::Flattened).
+struct FlattenedRuns {
+  std::function<void(std::span<const glm::dvec3>)> positions;
+  std::function<void(std::span<const glm::uvec3>)> triangles;
+  std::function<void(std::span<const uint32_t>)> materials;
+};
+void VisitFlattened(const Scene& scene, const FlattenedRuns& runs);
+
+// The bounds of every position, placed ones included.
+Bounds PositionBounds(const Scene& scene);
 
 // Whether a structure that places a mesh with a float32 transform (Embree
 // moving rays into the mesh's space, the GPU moving the mesh's corners into

@@ -15,7 +15,11 @@ std::vector<uint32_t> SubtreeNodes(const Scene& scene, uint32_t node) {
   return out;
 }
 
-Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world) {
+namespace {
+
+// MoveNodeSubtree on a scene whose arrays hold every triangle (placements
+// pointing into them).
+Status MoveFlattenedSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world) {
   if (node >= scene.nodes.size())
     return absl::InvalidArgumentError(absl::StrCat("node: ", node, " is not a node of the scene (", scene.nodes.size(),
                                                    " nodes)"));
@@ -28,7 +32,7 @@ Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world)
   for (uint32_t n : subtree)
     for (uint32_t t = scene.nodes[n].first_triangle; t < scene.nodes[n].first_triangle + scene.nodes[n].triangle_count; ++t)
       for (int c = 0; c < 3; ++c) moved[scene.triangles[t][c]] = 1;
-  for (size_t t = 0; t < scene.TriangleCount(); ++t)
+  for (size_t t = 0; t < scene.triangles.size(); ++t)
     if (!in_subtree[scene.triangle_node[t]])
       for (int c = 0; c < 3; ++c)
         if (moved[scene.triangles[t][c]])
@@ -59,6 +63,17 @@ Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world)
   scene.bounds = Bounds{};
   for (const auto& p : scene.positions) scene.bounds.Extend(p);
   return absl::OkStatus();
+}
+
+}  // namespace
+
+Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world) {
+  // The placements flattened for the edit, and the ones it left in place
+  // held once again (the moved ones stay flattened).
+  FlattenPlacements(scene);
+  const Status moved = MoveFlattenedSubtree(scene, node, new_world);
+  HoldPlacementsOnce(scene);
+  return moved;
 }
 
 }  // namespace visq

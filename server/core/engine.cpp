@@ -19,9 +19,11 @@ namespace visq::core {
 std::string SceneContentHash(const Scene& scene) {
   XXH3_state_t* state = XXH3_createState();
   XXH3_128bits_reset(state);
-  XXH3_128bits_update(state, scene.positions.data(), scene.positions.size() * sizeof(glm::dvec3));
-  XXH3_128bits_update(state, scene.triangles.data(), scene.triangles.size() * sizeof(glm::uvec3));
-  XXH3_128bits_update(state, scene.triangle_material.data(), scene.triangle_material.size() * sizeof(uint32_t));
+  // The flattened geometry's bytes, read through the placements: a placed
+  // level hashes as the same level written flattened.
+  VisitFlattened(scene, {[&](std::span<const glm::dvec3> run) { XXH3_128bits_update(state, run.data(), run.size_bytes()); },
+                         [&](std::span<const glm::uvec3> run) { XXH3_128bits_update(state, run.data(), run.size_bytes()); },
+                         [&](std::span<const uint32_t> run) { XXH3_128bits_update(state, run.data(), run.size_bytes()); }});
   for (const auto& m : scene.materials) {
     XXH3_128bits_update(state, &m.reflectivity, sizeof(m.reflectivity));
     XXH3_128bits_update(state, &m.emission, sizeof(m.emission));
@@ -36,8 +38,12 @@ std::shared_ptr<ResidentScene> NewResidentScene(std::string name, Scene scene) {
   resident->name = std::move(name);
   resident->content_hash = SceneContentHash(scene);
   // Counted once here: metadata calls must not walk millions of triangles.
+  auto emissive = [&](uint32_t m) { return glm::dot(scene.materials[m].emission, glm::dvec3(1.0)) > 0.0; };
   for (uint32_t m : scene.triangle_material)
-    if (glm::dot(scene.materials[m].emission, glm::dvec3(1.0)) > 0.0) ++resident->emissive_triangles;
+    if (emissive(m)) ++resident->emissive_triangles;
+  for (const MeshPlacement& p : scene.placements)
+    for (uint32_t m : scene.meshes[p.mesh].triangle_material)
+      if (emissive(m)) ++resident->emissive_triangles;
   resident->estimate = EstimateStructures(scene);
   resident->scene = std::make_shared<const Scene>(std::move(scene));
   return resident;
@@ -582,7 +588,7 @@ SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) c
   s.name = resident.name;
   s.version = resident.version;
   s.triangles = scene.TriangleCount();
-  s.vertices = scene.positions.size();
+  s.vertices = scene.PositionCount();
   s.bounds = scene.bounds;
   s.content_hash = resident.content_hash;
   // What is built so far, read without waiting for a build in progress:

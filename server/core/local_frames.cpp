@@ -33,7 +33,7 @@ Scene CopyOfTriangles(const Scene& scene, const std::vector<uint32_t>& candidate
       out.bounds.Extend(out.positions.back());
     }
     out.triangles.emplace_back(base, base + 1, base + 2);
-    out.triangle_material.push_back(t < scene.triangle_material.size() ? scene.triangle_material[t] : 0);
+    out.triangle_material.push_back(scene.MaterialOf(t));
   }
   return out;
 }

@@ -446,7 +446,8 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
       query.params.direction_count = static_cast<uint32_t>(chosen.parameters.at("directions"));
     }
   }
-  const Scene& scene = *resident->scene;
+  // The bake's atlas, model and updater read every triangle flattened.
+  const Scene& scene = resident->scene->Flattened();
   ObscuranceAnswer answer;
   if (query.target) answer.confidence = query.target->confidence;
   answer.scene_version = resident->version;
@@ -729,7 +730,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   // and 8 bytes a TEXCOORD set, the atlas's included) and an index; the
   // PNG at most 3 bytes a texel (and a little more for its rows and
   // headers).
-  const uint64_t triangles = resident->scene->triangles.size();
+  const uint64_t triangles = resident->scene->TriangleCount();
   const uint64_t uv_sets = std::max<uint64_t>(resident->scene->texcoords.size(), 2) + 1;
   uint64_t texels = 0;
   {
@@ -761,7 +762,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   }
   answer.copy_ms = MillisecondsSince(start);
   answer.scene_version = resident->version;
-  answer.triangles = resident->scene->triangles.size();
+  answer.triangles = resident->scene->TriangleCount();
   VISQ_RETURN_IF_ERROR(query.call.StillWanted("ExportObscurances"));
 
   const auto export_start = std::chrono::steady_clock::now();

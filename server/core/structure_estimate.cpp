@@ -34,7 +34,7 @@ Held HeldBy(const Scene& scene, const std::vector<uint8_t>& as_instance) {
   const uint64_t flat = static_cast<uint64_t>(std::count(instanced.begin(), instanced.end(), uint8_t{0}));
   held.triangles += flat;
   // The flattened triangles' share of the positions, at the scene's ratio.
-  held.vertices += scene.TriangleCount() > 0 ? flat * scene.positions.size() / scene.TriangleCount() : 0;
+  held.vertices += scene.TriangleCount() > 0 ? flat * scene.PositionCount() / scene.TriangleCount() : 0;
   return held;
 }
 
@@ -52,7 +52,7 @@ StructureEstimate EstimateStructures(const Scene& scene) {
   if (bvh.instances == 0) e.embree_bvh_bytes -= bvh.triangles * kEmbreeSharedIndexBytesPerTriangle;
   std::vector<uint8_t> matching(scene.placements.size(), 0);
   for (size_t k = 0; k < scene.placements.size(); ++k)
-    matching[k] = PlacementMatchesFlattened(scene, scene.placements[k]) ? 1 : 0;
+    matching[k] = PlacementInRange(scene, scene.placements[k]) ? 1 : 0;
   const Held index = HeldBy(scene, matching);
   e.triangle_index_bytes = index.triangles * kTriangleIndexBytesPerTriangle + index.instances * kTriangleIndexBytesPerInstance;
   e.unique_triangles = index.triangles;

@@ -2,7 +2,9 @@
 // exists: the geometry (known at load), the Embree BVH, the exact method's
 // triangle index and the GPU buffers. --max-scene-bytes admits a scene by
 // this estimate, so a scene that fits as geometry but not once queried is
-// refused at load instead of failing a query later.
+// refused at load instead of failing a query later. A placed scene's
+// flattened copy (Scene::Flattened), which a bake or an export builds and
+// the scene then keeps and counts, is not in it: no visibility query needs it.
 #pragma once
 
 #include <cstdint>

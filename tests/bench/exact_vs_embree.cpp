@@ -312,8 +312,8 @@ void AddCopy(Scene& s, const std::string& name, const Scene& asset, const std::s
              const glm::dmat4& world) {
   const uint32_t node = static_cast<uint32_t>(s.nodes.size());
   const uint32_t first = static_cast<uint32_t>(s.triangles.size());
-  for (size_t t = 0; t < asset.triangles.size(); ++t) {
-    if (asset.nodes[asset.triangle_node[t]].name.rfind(prefix, 0) != 0) continue;
+  for (size_t t = 0; t < asset.TriangleCount(); ++t) {
+    if (asset.nodes[asset.NodeOf(t)].name.rfind(prefix, 0) != 0) continue;
     const uint32_t base = static_cast<uint32_t>(s.positions.size());
     for (int c = 0; c < 3; ++c) s.positions.push_back(visq::PlacePoint(world, asset.Vertex(t, c)));
     s.triangles.push_back(glm::uvec3(base, base + 1, base + 2));
@@ -653,7 +653,7 @@ void BlockersSeen(const BenchCase& bc, const visq::raycast::EmbreeScene& embree,
       const auto& h = (*hits)[c * side * side + r];
       if (!h.hit) continue;
       tris.push_back(h.triangle);
-      nodes.push_back(bc.scene.triangle_node.empty() ? 0 : bc.scene.triangle_node[h.triangle]);
+      nodes.push_back(bc.scene.NodeOf(h.triangle));
     }
     for (auto* v : {&tris, &nodes}) {
       std::sort(v->begin(), v->end());

@@ -840,8 +840,8 @@ TEST(LightVisibilityTest, FlowersFromTheSharedScenesMatchEmbreeRays) {
   for (const glm::dvec2 at : {glm::dvec2(-0.3, -0.3), glm::dvec2(0.3, -0.3), glm::dvec2(-0.3, 0.3),
                               glm::dvec2(0.3, 0.3)}) {
     const double a = 1.1 * bunch++, c = std::cos(a), sn = std::sin(a);
-    for (size_t t = 0; t < flowers->triangles.size(); ++t) {
-      if (flowers->nodes[flowers->triangle_node[t]].name.rfind("Flowers1", 0) != 0) continue;
+    for (size_t t = 0; t < flowers->TriangleCount(); ++t) {
+      if (flowers->nodes[flowers->NodeOf(t)].name.rfind("Flowers1", 0) != 0) continue;
       Tri tri;
       for (int k = 0; k < 3; ++k) {
         const glm::dvec3 q = 4.0 * (flowers->Vertex(t, k) - base);

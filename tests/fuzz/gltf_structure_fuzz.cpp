@@ -855,12 +855,12 @@ bool ContainsSentinel(const visq::Scene& s) {
   bool all_identity = true;
   for (const auto& node : s.nodes) all_identity &= node.world == glm::dmat4(1.0);
   if (all_identity) {
-    for (const auto& p : s.positions)
+    for (const auto& p : s.Flattened().positions)
       if (NearSentinel(p)) return true;
     return false;
   }
-  for (size_t t = 0; t < s.triangles.size(); ++t) {
-    const uint32_t n = t < s.triangle_node.size() ? s.triangle_node[t] : 0;
+  for (size_t t = 0; t < s.TriangleCount(); ++t) {
+    const uint32_t n = s.NodeOf(t);
     if (n >= s.nodes.size()) continue;
     if (state[n] == 0) {
       const glm::dmat4& w = s.nodes[n].world;
@@ -872,11 +872,8 @@ bool ContainsSentinel(const visq::Scene& s) {
       state[n] = std::isfinite(err) && err < 1e-9 ? 1 : -1;
     }
     if (state[n] < 0) continue;
-    for (int corner = 0; corner < 3; ++corner) {
-      const uint32_t v = s.triangles[t][corner];
-      if (v >= s.positions.size()) continue;
-      if (NearSentinel(glm::dvec3(inverse[n] * glm::dvec4(s.positions[v], 1.0)))) return true;
-    }
+    for (int corner = 0; corner < 3; ++corner)
+      if (NearSentinel(glm::dvec3(inverse[n] * glm::dvec4(s.Vertex(t, corner), 1.0)))) return true;
   }
   return false;
 }

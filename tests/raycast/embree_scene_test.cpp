@@ -385,7 +385,9 @@ TEST(EmbreeSceneTest, AMeshInTwoPrefabsIsStillHeldOnce) {
   const std::vector<glm::dmat4> worlds = {glm::translate(glm::dmat4(1.0), glm::dvec3(0, 0, 0)),
                                           glm::translate(glm::dmat4(1.0), glm::dvec3(3, 0, 0))};
   Scene placed = testing::PlaceMeshes(parts, worlds);
-  // Part 0 alone at two more parents.
+  // Part 0 alone at two more parents (placed in the flattened arrays, then
+  // held once again).
+  FlattenPlacements(placed);
   auto place = [&](uint32_t mesh, const glm::dmat4& world) {
     const auto base = static_cast<uint32_t>(placed.positions.size());
     placed.placements.push_back(MeshPlacement{mesh, static_cast<uint32_t>(placed.triangles.size()), base, world});
@@ -399,6 +401,7 @@ TEST(EmbreeSceneTest, AMeshInTwoPrefabsIsStillHeldOnce) {
   };
   place(0, glm::translate(glm::dmat4(1.0), glm::dvec3(0, 0, 3)));
   place(0, glm::translate(glm::dmat4(1.0), glm::dvec3(3, 0, 3)));
+  HoldPlacementsOnce(placed);
   ASSERT_TRUE(ValidatePlacements(placed).ok()) << ValidatePlacements(placed);
   auto instanced = EmbreeScene::Create(placed);
   ASSERT_TRUE(instanced.ok());

@@ -13,6 +13,7 @@
 #include "scene/sample_scenes.h"
 #include "scene/scene_edit.h"
 #include "test_support.h"
+#include "large_scene.h"
 
 namespace visq {
 namespace {
@@ -33,8 +34,10 @@ TEST_P(SharedSceneCounts, TriangleCountMatchesSources) {
   StatusOr<Scene> scene = LoadGltfFile(scenes / GetParam().path, &report);
   ASSERT_TRUE(scene.ok()) << scene.status();
   EXPECT_EQ(scene->TriangleCount(), GetParam().triangles);
-  EXPECT_EQ(scene->triangle_material.size(), scene->TriangleCount());
-  EXPECT_EQ(scene->triangle_node.size(), scene->TriangleCount());
+  // The record's unplaced triangles; the placed ones through their meshes.
+  EXPECT_EQ(scene->triangle_material.size(), scene->triangles.size());
+  EXPECT_EQ(scene->triangle_node.size(), scene->triangles.size());
+  EXPECT_TRUE(ValidatePlacements(*scene).ok()) << ValidatePlacements(*scene);
   EXPECT_FALSE(scene->bounds.Empty());
   for (const auto& t : scene->triangles)
     for (int c = 0; c < 3; ++c) ASSERT_LT(t[c], scene->positions.size());
@@ -689,6 +692,72 @@ TEST(GltfLoaderHostile, LightmapUvsAreValidatedLikePositions) {
   ASSERT_TRUE(scene.ok()) << scene.status();
   ASSERT_EQ(scene->lightmap_uvs.size(), 3u);
   EXPECT_EQ(scene->lightmap_uvs[2].x, 1.25f);
+}
+
+// A level of nine placed copies of a grid: the scene of record holds the
+// grid once and nine placements (no flattened copy), answers per triangle
+// through the placements with the flattened scene's bits, flattens the
+// whole scene or a part of it on request to the same bits, and counts the
+// flattened scene in its bytes once built. An edit that moves one copy
+// keeps the other eight held once.
+TEST(ScenePlacements, HeldOnceAndFlattenedOnRequestToTheSameBits) {
+  const Scene grid = testing::MakeRippledGrid(20);
+  const std::vector<glm::dmat4> worlds = testing::CopyWorlds(grid, 9);
+  Scene reference;  // flattened by hand
+  reference.materials = grid.materials;
+  reference.nodes = grid.nodes;
+  for (const glm::dmat4& world : worlds) {
+    const auto base = static_cast<uint32_t>(reference.positions.size());
+    for (const glm::dvec3& p : grid.positions) reference.positions.push_back(PlacePoint(world, p));
+    for (const glm::uvec3& t : grid.triangles) reference.triangles.push_back(t + glm::uvec3(base));
+    reference.triangle_material.insert(reference.triangle_material.end(), grid.triangle_material.begin(),
+                                       grid.triangle_material.end());
+    reference.triangle_node.insert(reference.triangle_node.end(), grid.triangle_node.begin(), grid.triangle_node.end());
+  }
+  const Scene placed = testing::PlaceMesh(grid, worlds);
+  ASSERT_TRUE(ValidatePlacements(placed).ok()) << ValidatePlacements(placed);
+  EXPECT_EQ(placed.placements.size(), 9u);
+  EXPECT_TRUE(placed.triangles.empty()) << "every triangle is placed";
+  EXPECT_EQ(placed.TriangleCount(), reference.TriangleCount());
+  EXPECT_EQ(placed.PositionCount(), reference.positions.size());
+  EXPECT_LT(placed.CpuBytes(), reference.CpuBytes() / 5) << "one grid and nine placements";
+  for (size_t t = 0; t < reference.TriangleCount(); ++t) {
+    for (int c = 0; c < 3; ++c) ASSERT_EQ(placed.Vertex(t, c), reference.Vertex(t, c)) << "triangle " << t;
+    ASSERT_EQ(placed.MaterialOf(t), reference.triangle_material[t]);
+    ASSERT_EQ(placed.NodeOf(t), reference.triangle_node[t]);
+  }
+  EXPECT_EQ(PositionBounds(placed).min, PositionBounds(reference).min);
+  EXPECT_EQ(PositionBounds(placed).max, PositionBounds(reference).max);
+
+  // A part: every other triangle, over the positions it uses.
+  std::vector<uint8_t> skip(reference.TriangleCount(), 0);
+  for (size_t t = 0; t < skip.size(); t += 2) skip[t] = 1;
+  const FlattenedPart part = FlattenPart(placed, skip);
+  ASSERT_EQ(part.triangles.size(), skip.size() / 2);
+  for (size_t i = 0; i < part.triangles.size(); ++i)
+    for (int c = 0; c < 3; ++c)
+      ASSERT_EQ(part.positions[part.triangles[i][c]], reference.Vertex(part.scene_triangle[i], c));
+  EXPECT_FALSE(placed.FlattenedBuilt()) << "a part flattens nothing else";
+
+  const size_t held_bytes = placed.CpuBytes();
+  const Scene& flat = placed.Flattened();
+  EXPECT_TRUE(placed.FlattenedBuilt());
+  EXPECT_EQ(flat.positions, reference.positions);
+  EXPECT_EQ(flat.triangles, reference.triangles);
+  EXPECT_EQ(flat.triangle_material, reference.triangle_material);
+  EXPECT_EQ(flat.triangle_node, reference.triangle_node);
+  EXPECT_GT(placed.CpuBytes(), held_bytes + reference.positions.size() * sizeof(glm::dvec3));
+  EXPECT_FALSE(Scene(placed).FlattenedBuilt()) << "a copy starts without it";
+
+  // Moving the node every copy's triangles belong to: the moved copies are
+  // not PlacePoint's bits of a placement any more, and stay flattened.
+  Scene edited = placed;
+  const Status moved = MoveNodeSubtree(edited, 0, glm::translate(edited.nodes[0].world, glm::dvec3(0, 1, 0)));
+  ASSERT_TRUE(moved.ok()) << moved;
+  EXPECT_TRUE(edited.placements.empty());
+  EXPECT_EQ(edited.TriangleCount(), reference.TriangleCount());
+  EXPECT_NEAR(edited.Vertex(5, 1).y, reference.Vertex(5, 1).y + 1.0, 1e-12);
+  EXPECT_TRUE(placed.FlattenedBuilt()) << "the original is untouched";
 }
 
 }  // namespace

@@ -46,8 +46,8 @@ inline Scene MakeRippledGrid(int cells) {
 }
 
 // `mesh`'s triangles taken as one mesh in its own space and placed once by
-// each of `worlds` (none of them mirroring): flattened, and recorded as
-// placements of it as the loader records a mesh that several nodes share.
+// each of `worlds` (none of them mirroring), held once as placements of
+// it as the loader holds a mesh that several nodes share.
 // Materials and nodes are `mesh`'s; a scene that has placements of its own,
 // or too few triangles to instance, is placed flattened only.
 inline Scene PlaceMesh(const Scene& mesh, const std::vector<glm::dmat4>& worlds) {
@@ -70,6 +70,7 @@ inline Scene PlaceMesh(const Scene& mesh, const std::vector<glm::dmat4>& worlds)
                                  mesh.triangle_material.end());
     out.triangle_node.insert(out.triangle_node.end(), mesh.triangle_node.begin(), mesh.triangle_node.end());
   }
+  HoldPlacementsOnce(out);
   return out;
 }
 
@@ -100,12 +101,14 @@ inline Scene PlaceMeshes(const std::vector<Scene>& parts, const std::vector<glm:
       out.triangle_node.insert(out.triangle_node.end(), part.triangles.size(), m);
     }
   }
+  HoldPlacementsOnce(out);
   return out;
 }
 
 // `scene`'s triangles split by node, each part over the positions it uses:
 // the parts of a prefab for PlaceMeshes.
-inline std::vector<Scene> SplitByNode(const Scene& scene) {
+inline std::vector<Scene> SplitByNode(const Scene& placed) {
+  const Scene& scene = placed.Flattened();
   std::vector<Scene> parts(scene.nodes.size());
   std::vector<uint32_t> vertex_of(scene.positions.size(), UINT32_MAX), vertex_part(scene.positions.size(), UINT32_MAX);
   for (uint32_t t = 0; t < scene.TriangleCount(); ++t) {
@@ -151,10 +154,6 @@ inline Scene MakeCopies(const Scene& scene, int copies) {
 
 // The same scene with its placements forgotten: what every structure builds
 // when it flattens everything.
-inline Scene Flattened(Scene scene) {
-  scene.meshes.clear();
-  scene.placements.clear();
-  return scene;
-}
+inline Scene Flattened(const Scene& scene) { return Scene(scene.Flattened()); }
 
 }  // namespace visq::testing
