@@ -306,8 +306,7 @@ class SceneBuilder {
     VISQ_RETURN_IF_ERROR(ValidateFlattenedSize(roots));
     mesh_uses_ = MeshUses();
     VISQ_RETURN_IF_ERROR(VisitNodes(roots));
-    if (scene.triangles.empty()) return Invalid("scene has no triangles");
-    KeepRepeatedMeshes();
+    if (SceneTriangles() == 0) return Invalid("scene has no triangles");
     if (!all_primitives_have_lightmap_uvs_) {
       if (!scene.lightmap_uvs.empty())
         report_.dropped.push_back("TEXCOORD_1 (not present on every primitive)");
@@ -326,10 +325,7 @@ class SceneBuilder {
     }
     scene.normals.shrink_to_fit();
     for (auto& set : scene.texcoords) set.shrink_to_fit();
-    for (const auto& p : scene.positions) scene.bounds.Extend(p);
-    // The repeated meshes' placements held once: the record keeps the
-    // unplaced triangles only (a level of 300 placed rooms holds one room).
-    HoldPlacementsOnce(scene);
+    TrimMeshAttributes();
     // The arrays grew by doubling: up to half of each was slack (20 bytes a
     // triangle on 16 unique copies of Sponza), held while the scene is
     // resident.
@@ -506,18 +502,19 @@ class SceneBuilder {
             return Invalid(absl::StrCat("nodes[", index, "]: non-finite transform"));
 
       const uint32_t node_id = static_cast<uint32_t>(scene_->nodes.size());
-      scene_->nodes.push_back(SceneNode{node.name, index, pending.parent, world,
-                                        static_cast<uint32_t>(scene_->triangles.size()), 0});
+      scene_->nodes.push_back(SceneNode{node.name, index, pending.parent, world, SceneTriangles(), 0});
       if (node.mesh >= 0) {
         if (node.mesh >= static_cast<int>(model_.meshes.size()))
           return Invalid(absl::StrCat("nodes[", index, "].mesh ", node.mesh, " out of range"));
         const auto& mesh = model_.meshes[node.mesh];
         VISQ_ASSIGN_OR_RETURN(std::vector<glm::dmat4> placements, MeshPlacements(node, index, world));
         for (const glm::dmat4& placement : placements) {
-          const auto first_triangle = static_cast<uint32_t>(scene_->triangles.size());
-          const auto first_position = static_cast<uint32_t>(scene_->positions.size());
           const bool repeated = mesh_uses_[node.mesh] >= 2;
           const MeshKey key{node.mesh, glm::determinant(glm::dmat3(placement)) < 0.0};
+          // A mesh already held is placed by its matrix, not read again.
+          if (repeated && PlaceHeldMesh(key, placement, node_id)) continue;
+          const Unplaced before{static_cast<uint32_t>(scene_->triangles.size()),
+                                static_cast<uint32_t>(scene_->positions.size()), report_.ignored_primitives};
           std::vector<glm::dvec3> mesh_positions;
           std::vector<glm::vec3> mesh_normals;
           mesh_positions_ = repeated && !mesh_of_key_.contains(key) ? &mesh_positions : nullptr;
@@ -527,13 +524,10 @@ class SceneBuilder {
                                               absl::StrCat("meshes[", node.mesh, "].primitives[", p, "]")));
           mesh_positions_ = nullptr;
           mesh_normals_ = nullptr;
-          if (repeated)
-            RecordPlacement(key, placement, first_triangle, first_position, std::move(mesh_positions),
-                            std::move(mesh_normals));
+          if (repeated) HoldPlacement(key, placement, node_id, before, std::move(mesh_positions), std::move(mesh_normals));
         }
       }
-      scene_->nodes[node_id].triangle_count =
-          static_cast<uint32_t>(scene_->triangles.size()) - scene_->nodes[node_id].first_triangle;
+      scene_->nodes[node_id].triangle_count = SceneTriangles() - scene_->nodes[node_id].first_triangle;
       for (auto it = node.children.rbegin(); it != node.children.rend(); ++it)
         stack.push_back({*it, static_cast<int>(node_id), world});
     }
@@ -637,6 +631,7 @@ class SceneBuilder {
       if (!InCoordinateRange(placed))
         return Invalid(absl::StrCat(label, ".POSITION[", i, "]: beyond ±", kMaxCoordinate, " once placed by its nodes"));
       scene_->positions.push_back(placed);
+      scene_->bounds.Extend(placed);
       if (mesh_positions_ != nullptr) mesh_positions_->push_back(local);
     }
     auto uv_it = prim.attributes.find("TEXCOORD_1");
@@ -793,52 +788,117 @@ class SceneBuilder {
     auto operator<=>(const MeshKey&) const = default;
   };
 
-  // One placement of `key` just flattened: triangles from first_triangle,
-  // positions from first_position; `mesh_positions` (mesh space) when it is
-  // the key's first.
-  void RecordPlacement(const MeshKey& key, const glm::dmat4& world, uint32_t first_triangle, uint32_t first_position,
-                       std::vector<glm::dvec3> mesh_positions, std::vector<glm::vec3> mesh_normals) {
-    const auto triangle_count = static_cast<uint32_t>(scene_->triangles.size()) - first_triangle;
-    const auto position_count = static_cast<uint32_t>(scene_->positions.size()) - first_position;
-    auto [it, added] = mesh_of_key_.try_emplace(key, static_cast<uint32_t>(scene_->meshes.size()));
-    if (added) {
+  // Triangles and positions so far in the whole scene's order: the record's
+  // and the placements'.
+  uint32_t SceneTriangles() const { return static_cast<uint32_t>(scene_->triangles.size() + placed_triangles_); }
+  uint32_t ScenePositions() const { return static_cast<uint32_t>(scene_->positions.size() + placed_positions_); }
+
+  // The record's sizes, and the primitives ignored, before a placement.
+  struct Unplaced {
+    uint32_t triangles;
+    uint32_t positions;
+    uint64_t ignored_primitives;
+  };
+
+  // One placement of `key` just flattened at the end of the record (from
+  // `before`), with `mesh_positions` and `mesh_normals` (mesh space) when it
+  // is the key's first: the mesh is kept once (unless too small to be worth
+  // an instance) and the placement taken out of the record.
+  void HoldPlacement(const MeshKey& key, const glm::dmat4& world, uint32_t node_id, const Unplaced& before,
+                     std::vector<glm::dvec3> mesh_positions, std::vector<glm::vec3> mesh_normals) {
+    const auto triangle_count = static_cast<uint32_t>(scene_->triangles.size()) - before.triangles;
+    const auto position_count = static_cast<uint32_t>(scene_->positions.size()) - before.positions;
+    auto [it, added] = mesh_of_key_.try_emplace(key, kFlattenedOnly);
+    if (added && triangle_count >= kFewestTrianglesToInstance) {
+      it->second = static_cast<uint32_t>(scene_->meshes.size());
       SceneMesh mesh;
       mesh.positions = std::move(mesh_positions);
       mesh.normals = std::move(mesh_normals);
       mesh.triangles.reserve(triangle_count);
-      for (uint32_t t = first_triangle; t < first_triangle + triangle_count; ++t)
-        mesh.triangles.push_back(scene_->triangles[t] - glm::uvec3(first_position));
+      for (uint32_t t = before.triangles; t < before.triangles + triangle_count; ++t)
+        mesh.triangles.push_back(scene_->triangles[t] - glm::uvec3(before.positions));
+      mesh.triangle_material.assign(scene_->triangle_material.begin() + before.triangles,
+                                    scene_->triangle_material.end());
+      if (scene_->lightmap_uvs.size() == scene_->positions.size())
+        mesh.lightmap_uvs.assign(scene_->lightmap_uvs.begin() + before.positions, scene_->lightmap_uvs.end());
+      for (const auto& set : scene_->texcoords) {
+        if (set.size() != scene_->positions.size()) break;
+        mesh.texcoords.emplace_back(set.begin() + before.positions, set.end());
+      }
       scene_->meshes.push_back(std::move(mesh));
+      ignored_primitives_of_mesh_.push_back(report_.ignored_primitives - before.ignored_primitives);
     }
+    if (it->second == kFlattenedOnly) return;
     const SceneMesh& mesh = scene_->meshes[it->second];
     // The same glTF mesh flattens to the same triangles every time; a
-    // placement that did not is kept flattened only.
+    // placement that did not stays in the record.
     if (mesh.triangles.size() != triangle_count || mesh.positions.size() != position_count) return;
-    scene_->placements.push_back(MeshPlacement{it->second, first_triangle, first_position, world});
+    scene_->placements.push_back(MeshPlacement{it->second, before.triangles + placed_triangles_,
+                                               before.positions + placed_positions_, world, node_id, before.triangles,
+                                               before.positions});
+    placed_triangles_ += triangle_count;
+    placed_positions_ += position_count;
+    // The record drops what the placement now stands for.
+    scene_->triangles.resize(before.triangles);
+    scene_->triangle_material.resize(before.triangles);
+    scene_->triangle_node.resize(before.triangles);
+    auto keep_record_positions = [&](auto& values) {
+      if (values.size() > before.positions) values.resize(before.positions);
+    };
+    keep_record_positions(scene_->positions);
+    keep_record_positions(scene_->lightmap_uvs);
+    keep_record_positions(scene_->normals);
+    for (auto& set : scene_->texcoords) keep_record_positions(set);
   }
 
-  // Drops the meshes placed once, or too small to be worth an instance, and
-  // renumbers the rest.
-  void KeepRepeatedMeshes() {
-    std::vector<uint32_t> uses(scene_->meshes.size(), 0);
-    for (const MeshPlacement& placement : scene_->placements) ++uses[placement.mesh];
-    std::vector<uint32_t> renumbered(scene_->meshes.size(), UINT32_MAX);
-    std::vector<SceneMesh> kept;
-    for (size_t m = 0; m < scene_->meshes.size(); ++m) {
-      if (uses[m] < 2 || scene_->meshes[m].triangles.size() < kFewestTrianglesToInstance) continue;
-      renumbered[m] = static_cast<uint32_t>(kept.size());
-      kept.push_back(std::move(scene_->meshes[m]));
+  // A later placement of a mesh already held: its positions placed only to
+  // check their range and extend the bounds (the primitives were read and
+  // checked at the first; their attributes are the mesh's). False when the
+  // key's mesh is not held or a position leaves the range (read again, the
+  // primitive then names it).
+  bool PlaceHeldMesh(const MeshKey& key, const glm::dmat4& world, uint32_t node_id) {
+    const auto it = mesh_of_key_.find(key);
+    if (it == mesh_of_key_.end() || it->second == kFlattenedOnly) return false;
+    const SceneMesh& mesh = scene_->meshes[it->second];
+    Bounds bounds;
+    for (const glm::dvec3& local : mesh.positions) {
+      const glm::dvec3 placed = PlacePoint(world, local);
+      if (!InCoordinateRange(placed)) return false;
+      bounds.Extend(placed);
     }
-    std::vector<MeshPlacement> placements;
-    for (MeshPlacement placement : scene_->placements) {
-      if (renumbered[placement.mesh] == UINT32_MAX) continue;
-      placement.mesh = renumbered[placement.mesh];
-      placements.push_back(placement);
+    if (!bounds.Empty()) {
+      scene_->bounds.Extend(bounds.min);
+      scene_->bounds.Extend(bounds.max);
     }
-    scene_->meshes = std::move(kept);
-    scene_->placements = std::move(placements);
+    scene_->placements.push_back(MeshPlacement{it->second, SceneTriangles(), ScenePositions(), world, node_id,
+                                               static_cast<uint32_t>(scene_->triangles.size()),
+                                               static_cast<uint32_t>(scene_->positions.size())});
+    placed_triangles_ += mesh.triangles.size();
+    placed_positions_ += mesh.positions.size();
+    report_.ignored_primitives += ignored_primitives_of_mesh_[it->second];
+    return true;
+  }
+
+  // The meshes' attributes as the scene keeps them (the sets every
+  // primitive had), and a mesh placed once flattened after all: it saves
+  // nothing held once (a mirrored placement is a mesh of its own).
+  void TrimMeshAttributes() {
+    for (SceneMesh& mesh : scene_->meshes) {
+      if (scene_->normals.empty()) mesh.normals.clear();
+      if (scene_->lightmap_uvs.empty()) mesh.lightmap_uvs.clear();
+      mesh.texcoords.resize(std::min(mesh.texcoords.size(), scene_->texcoords.size()));
+      // Held while the scene is resident: no growth slack.
+      mesh.positions.shrink_to_fit();
+      mesh.normals.shrink_to_fit();
+    }
     scene_->meshes.shrink_to_fit();
     scene_->placements.shrink_to_fit();
+    std::vector<uint32_t> uses(scene_->meshes.size(), 0);
+    for (const MeshPlacement& placement : scene_->placements) ++uses[placement.mesh];
+    if (std::all_of(uses.begin(), uses.end(), [](uint32_t n) { return n >= 2; })) return;
+    FlattenPlacements(*scene_);
+    std::erase_if(scene_->placements, [&](const MeshPlacement& p) { return uses[p.mesh] < 2; });
+    HoldPlacementsOnce(*scene_);
   }
 
   const tinygltf::Model& model_;
@@ -852,7 +912,11 @@ class SceneBuilder {
   std::vector<uint64_t> mesh_uses_;
   std::vector<glm::dvec3>* mesh_positions_ = nullptr;  // where AddPrimitive copies mesh-space positions, if anywhere
   std::vector<glm::vec3>* mesh_normals_ = nullptr;     // and the file's normals, for the mesh's placements
-  std::map<MeshKey, uint32_t> mesh_of_key_;  // into Scene::meshes
+  // Into Scene::meshes; kFlattenedOnly for a mesh too small to instance.
+  static constexpr uint32_t kFlattenedOnly = UINT32_MAX;
+  std::map<MeshKey, uint32_t> mesh_of_key_;
+  std::vector<uint64_t> ignored_primitives_of_mesh_;  // per Scene::meshes: ignored at each placement
+  uint64_t placed_triangles_ = 0, placed_positions_ = 0;
 };
 
 void ReportDroppedContent(const tinygltf::Model& model, GltfLoadReport& report) {
