@@ -339,6 +339,10 @@ StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleM
       VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.texel_error_size()), "texel_error"));
       out.figures.mutable_texel_error()->Add(message.texel_error().begin(), message.texel_error().end());
     }
+    if (message.texel_estimate_size() > 0) {
+      VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.texel_estimate_size()), "texel_estimate"));
+      out.figures.mutable_texel_estimate()->Add(message.texel_estimate().begin(), message.texel_estimate().end());
+    }
     if (message.has_accuracy()) *out.figures.mutable_accuracy() = message.accuracy();
     if (message.has_timing()) *out.figures.mutable_timing() = message.timing();
   }

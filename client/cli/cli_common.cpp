@@ -388,6 +388,8 @@ void TargetFlags::Fill(v1::AccuracyTarget* out) const {
   out->set_max_error(max_error);
   out->set_confidence(confidence);
   out->set_time_budget_ms(time_budget_ms);
+  if (guarantee == "rigorous") out->set_guarantee(v1::AccuracyTarget::RIGOROUS);
+  if (guarantee == "estimate") out->set_guarantee(v1::AccuracyTarget::ESTIMATE);
 }
 
 void AddTargetFlags(CLI::App* command, TargetFlags& target) {
@@ -396,6 +398,11 @@ void AddTargetFlags(CLI::App* command, TargetFlags& target) {
   command->add_option("--confidence", target.confidence, "Confidence of --max-error (default 0.95; 1: worst case)");
   command->add_option("--time-budget-ms", target.time_budget_ms,
                       "Instead of a count: as accurate as possible within this many milliseconds");
+  command
+      ->add_option("--guarantee", target.guarantee,
+                   "What --max-error is on: 'rigorous' (the stated bound, the default) or 'estimate' (the normal "
+                   "approximation beside it: cheaper, not a bound)")
+      ->check(CLI::IsMember({"rigorous", "estimate"}));
 }
 
 void PrintTiming(const v1::Timing& timing) {
@@ -409,6 +416,9 @@ void PrintWritten(const std::string& png, const std::string& npy, const std::str
 }
 
 void PrintChosenPlan(const v1::Accuracy& accuracy) {
+  if (accuracy.has_estimate() && accuracy.error_bound() != accuracy.estimate())
+    fmt::print("estimate +-{:.4f} at confidence {} (an estimate beside the bound, not a bound)\n", accuracy.estimate(),
+               accuracy.confidence());
   if (accuracy.plans_size() == 0) return;
   std::string parameters;
   for (const auto& [name, value] : accuracy.parameters())

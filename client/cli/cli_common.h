@@ -152,12 +152,14 @@ struct TargetFlags {
   double max_error = 0.0;
   double confidence = 0.0;
   double time_budget_ms = 0.0;
+  std::string guarantee;  // "rigorous", "estimate" or empty (the server's default)
   bool set() const { return max_error > 0.0 || time_budget_ms > 0.0; }
   void Fill(v1::AccuracyTarget* out) const;
 };
 void AddTargetFlags(CLI::App* command, TargetFlags& target);
-// "chosen: raycast {samples: 2048}, predicted 12.3 ms (of 17 plans)" for a
-// target's answer; nothing otherwise.
+// "estimate +-0.0012 ..." where the answer states an estimate beside its
+// bound, and "chosen: raycast {samples: 2048}, predicted 12.3 ms (of 17
+// plans)" for a target's answer.
 void PrintChosenPlan(const v1::Accuracy& accuracy);
 // "time: queue ... ms, compute ..., transfer ..., total ..." from the answer's timing.
 void PrintTiming(const v1::Timing& timing);

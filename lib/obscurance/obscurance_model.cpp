@@ -6,6 +6,7 @@
 #include <numbers>
 #include <unordered_map>
 
+#include "common/normal_estimate.h"
 #include "common/random.h"
 
 namespace visq::obscurance {
@@ -212,13 +213,7 @@ double ObscuranceHalfWidthOfRays(double rays, const glm::dvec3& mean, double var
 
 double ObscuranceNormalHalfWidth(double rays, double variance, double confidence) {
   if (!(rays >= 2) || !(variance >= 0) || !(confidence > 0) || confidence >= 1.0) return 1.0;
-  // z with P(|N(0, 1)| > z) = 1 - confidence, by bisection on erfc.
-  double low = 0.0, high = 40.0;
-  for (int i = 0; i < 100; ++i) {
-    const double mid = 0.5 * (low + high);
-    (std::erfc(mid / std::sqrt(2.0)) > 1.0 - confidence ? low : high) = mid;
-  }
-  return std::min(1.0, high * std::sqrt(variance / rays));
+  return std::min(1.0, TwoSidedNormalQuantile(confidence) * std::sqrt(variance / rays));
 }
 
 float LargestChannelVariance(const glm::dvec3& sum, const glm::dvec3& sum_of_squares, double n) {

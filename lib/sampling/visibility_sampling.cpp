@@ -424,6 +424,7 @@ constexpr int kFewestSamplesToPair = 256;
 void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& map, HiddenSampleMapBand& band) {
   if (!SamplesAreIndependentStrata(request) || map.sample_count <= 0) {
     band.texel_error.clear();
+    band.texel_estimate.clear();
     return;
   }
   const int n = map.sample_count;
@@ -476,6 +477,32 @@ void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& m
     band.texel_error[t] = error;
     map.error.per_texel_max = std::max(map.error.per_texel_max, double(error));
   }
+
+  band.texel_estimate.clear();
+  if (band.split_pairs.empty() || !(request.options.confidence < 1.0)) return;
+  const int maps = band.split_pair_maps;
+  const int unpaired = maps * ((n / maps) % 2);
+  const double z = TwoSidedNormalQuantile(request.options.confidence);
+  map.error.has_estimate = true;
+  band.texel_estimate.resize(band.texels());
+  for (size_t t = 0; t < band.texels(); ++t) {
+    const float estimate = EstimateOfTexel(n, visible[t], most[t] - visible[t], band.split_pairs[t], unpaired,
+                                           band.visible_fraction[t], z, band.texel_error[t]);
+    band.texel_estimate[t] = estimate;
+    map.error.estimate_max = std::max(map.error.estimate_max, double(estimate));
+    map.error.estimate_spread.Add(estimate);
+  }
+}
+
+float EstimateOfTexel(int n, int visible, int lookup_samples, int split_pairs, int unpaired, float answer, double z,
+                      float bound) {
+  VISQ_DCHECK_LT(0, n);
+  const bool mixed = visible < n && visible + lookup_samples > 0;
+  double variance = double(split_pairs) + (mixed ? 0.25 * unpaired : 0.0);
+  if (mixed && split_pairs == 0) variance = std::max(variance, 1.0);
+  const double rounding = std::abs(double(answer) - double(visible) / n);
+  const double estimate = rounding + double(lookup_samples) / n + z * std::sqrt(variance) / n;
+  return std::min(bound, std::nextafter(static_cast<float>(std::min(1.0, estimate)), 2.0f));
 }
 
 Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band, const HiddenSampleMapBandSink& sink) {
@@ -489,6 +516,7 @@ Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band, 
     if (!band.blocked_bits.empty()) map.blocked_bits.reserve(texels * size_t(map.words_per_texel));
     if (!band.lookup_error.empty()) map.error.lookup_per_texel.reserve(texels);
     if (!band.texel_error.empty()) map.error.per_texel.reserve(texels);
+    if (!band.texel_estimate.empty()) map.error.per_texel_estimate.reserve(texels);
   }
   map.visible_fraction.insert(map.visible_fraction.end(), band.visible_fraction.begin(), band.visible_fraction.end());
   map.visible_rgb.insert(map.visible_rgb.end(), band.visible_rgb.begin(), band.visible_rgb.end());
@@ -496,6 +524,8 @@ Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band, 
   map.error.lookup_per_texel.insert(map.error.lookup_per_texel.end(), band.lookup_error.begin(),
                                     band.lookup_error.end());
   map.error.per_texel.insert(map.error.per_texel.end(), band.texel_error.begin(), band.texel_error.end());
+  map.error.per_texel_estimate.insert(map.error.per_texel_estimate.end(), band.texel_estimate.begin(),
+                                      band.texel_estimate.end());
   return absl::OkStatus();
 }
 

@@ -27,6 +27,7 @@
 #include <glm/glm.hpp>
 
 #include "common/job_timing.h"
+#include "common/normal_estimate.h"
 #include "common/status.h"
 #include "scene/scene.h"
 
@@ -158,6 +159,16 @@ struct ErrorBound {
   bool per_texel_split_pairs = false;  // the split pairs' bound taken where smaller
   double per_texel_max = 0.0;
   std::vector<float> per_texel;
+  // Beside the bounds, where the split pairs were counted (any N): each
+  // texel's estimate, not a bound: the normal approximation's half-width at
+  // the variance the split pairs estimate (EstimateOfTexel), at
+  // `confidence`. `estimate_max` is the largest, `estimate_spread` their
+  // spread over the map (bands are not held whole), `per_texel_estimate`
+  // each, when the map is delivered whole.
+  bool has_estimate = false;
+  double estimate_max = 0.0;
+  LogSpread estimate_spread;
+  std::vector<float> per_texel_estimate;
   double total() const { return has_per_texel ? per_texel_max : sampling + lookup_max; }
 };
 
@@ -190,6 +201,7 @@ struct HiddenSampleMapBand {
   std::vector<uint32_t> blocked_bits;     // want_bitmasks only
   std::vector<float> lookup_error;        // kHough only: ErrorBound::lookup_per_texel's values
   std::vector<float> texel_error;         // rigorous sample sets only: ErrorBound::per_texel's values
+  std::vector<float> texel_estimate;      // where split pairs were counted: ErrorBound::per_texel_estimate's
   // For BoundTexels, not sent: per texel, the pairs of pattern cells
   // (2i, 2i + 1) whose samples disagree, one blocked and one visible (with
   // the Hough lookup, the most that can); summed over `split_pair_maps`
@@ -210,7 +222,24 @@ using HiddenSampleMapBandSink = std::function<Status(const HiddenSampleMapResult
 // pairs where counted, and its lookup error, into band.texel_error, and the
 // largest into map.error. Every sampled method calls it on each band before
 // delivering it.
+// Where the band's split pairs were counted, also each texel's estimate
+// into band.texel_estimate (EstimateOfTexel) and their spread into
+// map.error.
 void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& map, HiddenSampleMapBand& band);
+
+// A texel's estimate beside its bound. For independent samples, one in each
+// of n cells, the visible count's variance is the sum of the cells'
+// p(1 - p); a pair of cells disagrees with probability p(1 - p) + q(1 - q)
+// + (p - q)^2, so the `split_pairs` count is an estimate of the variance
+// from above (by the squared difference of neighbouring cells, small where
+// visibility changes smoothly), and each of the `unpaired` cells adds at
+// most 1/4. A texel that saw both visible and hidden samples with no pair
+// split is given one split pair's variance, not zero. The estimate is
+// z(confidence) times that standard deviation over n, plus the count's
+// lookup uncertainty (`lookup_samples`, the Hough lookup's) and the
+// float rounding of `answer`; never above `bound`, the texel's rigorous one.
+float EstimateOfTexel(int n, int visible, int lookup_samples, int split_pairs, int unpaired, float answer, double z,
+                      float bound);
 
 // Hands `band` to `sink`, or, without a sink, appends it to `map`'s own
 // arrays (a map answered whole). Every method that makes maps ends its

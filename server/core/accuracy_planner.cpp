@@ -24,6 +24,9 @@ Status ValidateAccuracyTarget(const AccuracyTarget& target) {
         absl::StrCat("target.time_budget_ms: ", target.time_budget_ms, " is not a finite value >= 0"));
   if (target.max_error == 0.0 && target.time_budget_ms == 0.0)
     return absl::InvalidArgumentError("target: neither max_error nor time_budget_ms is set");
+  if (target.wants_estimate() && target.confidence >= 1.0)
+    return absl::InvalidArgumentError(
+        "target.guarantee: an ESTIMATE has no worst case; give a confidence below 1, or ask for RIGOROUS");
   return absl::OkStatus();
 }
 

@@ -30,6 +30,12 @@ struct AccuracyTarget {
   double max_error = 0.0;    // half-width on the answered quantity; 0: none
   double confidence = 0.95;  // (0, 1]; 1: a worst-case bound
   double time_budget_ms = 0.0;  // 0: none
+  // What max_error is on: the stated bound, or the estimate beside it (the
+  // normal approximation at the answer's own variance). kDefault is the
+  // bound where the query kind states one.
+  enum class Guarantee { kDefault, kRigorous, kEstimate };
+  Guarantee guarantee = Guarantee::kDefault;
+  bool wants_estimate() const { return guarantee == Guarantee::kEstimate; }
 };
 
 // INVALID_ARGUMENT naming "target.<field>" for a bad target.
@@ -57,6 +63,9 @@ struct PlanReport {
   // methods giving the same answer for a request that named none.
   enum class Reason { kTarget, kFastestOfEqualAnswers };
   Reason reason = Reason::kTarget;
+  // kTarget: the target the plans were weighed for, so that the answer can
+  // say whether it met it (a prediction can miss).
+  std::optional<AccuracyTarget> target;
   // Methods left out because their probe ran past its share of the best
   // plan's time (ChooseFastest), by name.
   std::vector<std::string> cut_probes;

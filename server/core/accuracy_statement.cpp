@@ -27,6 +27,20 @@ void AddChosenPlan(const PlanReport& plan, AccuracyStatement& statement) {
   if (plan.reason == PlanReport::Reason::kTarget) {
     absl::StrAppend(&statement.note, "; chosen for the target among ", plan.plans.size(),
                     " plans by the cost model (", probing, ")");
+    if (plan.target && plan.target->max_error > 0) {
+      // What the target was on, against what the answer states: a plan
+      // chosen by a predicted estimate can miss it, and says so. An answer
+      // with a bound and no estimate (the exact method's 0) meets an
+      // estimate's target by its bound.
+      const bool on_estimate = plan.target->wants_estimate() && statement.estimate >= 0;
+      const double stated = on_estimate ? statement.estimate : statement.error_bound;
+      const bool met = stated >= 0 && stated <= plan.target->max_error;
+      statement.parameters["target_met"] = met ? 1.0 : 0.0;
+      if (!met)
+        absl::StrAppend(&statement.note, "; the target's max_error ", plan.target->max_error, " on the ",
+                        on_estimate ? "estimate" : "bound", " was missed: the answer states ",
+                        stated >= 0 ? absl::StrCat(stated) : std::string("none"));
+    }
     return;
   }
   std::string left_out;

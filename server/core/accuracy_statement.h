@@ -22,6 +22,11 @@ struct AccuracyStatement {
   double error_bound = -1.0;
   double confidence = 0.0;  // 1 for a worst-case bound, 0 with no bound
   std::string note;
+  // Beside the bound, where the answer can estimate its own variance: the
+  // normal approximation's half-width at `confidence`, the largest
+  // element's. An estimate, not a bound (its coverage is measured, not
+  // promised); negative where the answer has none.
+  double estimate = -1.0;
   // What produced the answer: samples, directions, hough_resolution, ...
   std::map<std::string, double> parameters;
   // With an accuracy target: the chosen plan's predicted cost.

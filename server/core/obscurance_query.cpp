@@ -11,6 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "common/job_timing.h"
+#include "common/normal_estimate.h"
 #include "obscurance/obscurance_export.h"
 #include "obscurance/obscurance_rays.h"
 
@@ -94,18 +95,35 @@ void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
 
 // Beside the bounds, where the rays' variance is known: the normal
 // approximation's half-width at each texel's sample variance, an estimate
-// (not a bound), its median and 95th percentile over the estimated texels.
-void AddNormalEstimate(const obscurance::ObscuranceResult& result, double confidence, AccuracyStatement& out) {
+// (not a bound), its median and 95th percentile over the estimated texels,
+// and as the answer's estimate the largest among the texels that error_bound
+// covers (resting on at least kCoveredShare of the `nominal` rays).
+void AddNormalEstimate(const obscurance::ObscuranceResult& result, double nominal, double confidence,
+                       AccuracyStatement& out) {
   if (result.texel_sample_variance.size() != result.w.size()) return;
   std::vector<double> kept;
+  double covered_largest = 0.0;
   for (size_t i = 0; i < result.w.size(); ++i)
-    if (result.estimated[i] && result.texel_sample_variance[i] >= 0)
-      kept.push_back(obscurance::ObscuranceNormalHalfWidth(result.texel_effective_samples[i],
-                                                           result.texel_sample_variance[i], confidence));
+    if (result.estimated[i] && result.texel_sample_variance[i] >= 0) {
+      const double estimate = obscurance::ObscuranceNormalHalfWidth(result.texel_effective_samples[i],
+                                                                    result.texel_sample_variance[i], confidence);
+      kept.push_back(estimate);
+      if (result.texel_effective_samples[i] >= obscurance::kCoveredShare * nominal)
+        covered_largest = std::max(covered_largest, estimate);
+    }
   if (kept.empty()) return;
   std::sort(kept.begin(), kept.end());
   out.parameters["texel_estimate_median"] = kept[kept.size() / 2];
   out.parameters["texel_estimate_p95"] = kept[std::min(kept.size() - 1, kept.size() * 95 / 100)];
+  out.estimate = covered_largest;
+}
+
+// The estimate a ray-cast bake of `rays` rays per patch states at most: a
+// covered texel rests on at least kCoveredShare of them, and values in
+// [0, 1] have a sample variance of at most m / (4 (m - 1)) over m samples.
+double LargestCoveredEstimate(double rays, double confidence) {
+  const double m = std::max(2.0, std::ceil(obscurance::kCoveredShare * rays));
+  return obscurance::ObscuranceNormalHalfWidth(m, m / (4.0 * (m - 1.0)), confidence);
 }
 
 constexpr const char* kRaysBoundRule =
@@ -142,7 +160,7 @@ void SetCoveredBound(const ObscuranceAnswer& answer, double nominal, const char*
   for (float e : answer.result->triangle_effective_samples) unsampled += e == 0.0f;
   out.parameters["triangles_without_samples"] = static_cast<double>(unsampled);
   AddElementBounds(answer, out);
-  AddNormalEstimate(*answer.result, answer.confidence, out);
+  AddNormalEstimate(*answer.result, nominal, answer.confidence, out);
   out.note = absl::StrCat(
       "estimate: ", rule, "; outside it, with wider bounds of their own (want_errors): ", bound.texels.outside, " of ",
       bound.texels.elements, " estimated texels, ", bound.triangles.outside, " of ", bound.triangles.elements,
@@ -346,7 +364,11 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
   const std::string series = DepthPeelingSeries(resident, query);
   PlanReport report;
   CostModel& model = engine.cost_model();
-  if (!model.Predict(series, 1.0)) {
+  // On the estimate, only the rays state one (a depth-peeling bake keeps
+  // no per-direction values), and a plan's is at most
+  // LargestCoveredEstimate, whatever the scene.
+  const bool on_estimate = target.wants_estimate();
+  if (!on_estimate && !model.Predict(series, 1.0)) {
     for (uint32_t directions : {4u, 16u}) {
       ObscuranceQuery probe = query;
       probe.target.reset();
@@ -388,7 +410,16 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
   // A plan's bound is what its answer's error_bound can be at most: the
   // covered elements' cap (CoveredHalfWidth), so the count meeting the error
   // is Hoeffding's divided by the covered share.
-  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / obscurance::kCoveredShare;
+  auto error_of = [&](uint32_t n) {
+    return on_estimate ? LargestCoveredEstimate(n, target.confidence)
+                       : obscurance::CoveredHalfWidth(n, target.confidence);
+  };
+  double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / obscurance::kCoveredShare;
+  if (on_estimate && target.max_error > 0) {
+    const double z = TwoSidedNormalQuantile(target.confidence);
+    needed = 0.25 * z * z / (target.max_error * target.max_error) / obscurance::kCoveredShare;
+    while (needed < 1e9 && error_of(static_cast<uint32_t>(std::ceil(needed))) > target.max_error) needed *= 1.01;
+  }
   auto add_plans = [&](const char* method, const char* parameter, const std::string& plan_series, uint32_t most) {
     std::set<uint32_t> counts;
     for (uint32_t n = 8; n <= most; n *= 2) counts.insert(n);
@@ -397,16 +428,17 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
       Plan plan;
       plan.method = method;
       plan.parameters[parameter] = n;
-      plan.error_bound = obscurance::CoveredHalfWidth(n, target.confidence);
+      plan.error_bound = error_of(n);
       plan.work = n;
       plan.cost_key = plan_series;
       plan.predicted_ms = model.Predict(plan_series, plan.work).value_or(0.0);
       report.plans.push_back(std::move(plan));
     }
   };
-  add_plans("obscurance-depth-peeling", "directions", series, obscurance::kMaxDirections);
+  if (!on_estimate) add_plans("obscurance-depth-peeling", "directions", series, obscurance::kMaxDirections);
   add_plans("obscurance-raycast", "rays_per_patch", ray_series, 65536);
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
+  report.target = target;
   LogChosenPlan(report, query.call);
   return report;
 }

@@ -16,6 +16,7 @@
 #include "absl/strings/str_replace.h"
 #include "common/check.h"
 #include "common/job_timing.h"
+#include "common/normal_estimate.h"
 #include "common/parallel.h"
 #include "core/accuracy_statement.h"
 #include "core/engine.h"
@@ -222,7 +223,8 @@ uint64_t HiddenSampleMapWorkBytes(const sampling::HiddenSampleMapRequest& reques
   const uint64_t texels = uint64_t(std::max(request.receiver.width, 0)) * uint64_t(std::max(request.receiver.height, 0));
   const uint64_t words = (uint64_t(std::max(request.source.sample_count, 0)) + 31) / 32;
   const bool colored = !request.source.sample_colors.empty() || !request.source.color_texture.empty();
-  const uint64_t per_texel = 4 + (colored ? 12 : 0) + 4;  // fraction, colour, lookup error
+  // fraction, colour, lookup error, the texel's bound and estimate
+  const uint64_t per_texel = 4 + (colored ? 12 : 0) + 4 + 8;
   const uint64_t bits = texels * words * 4;
   // A band's read-back stays under 64 MiB (twice the words for the Hough
   // lookup, at least 16 bytes a texel); the ray caster's bands are smaller.
@@ -598,12 +600,59 @@ double PolygonShare(const sampling::SourceSpec& source) {
   return std::clamp(std::abs(TwiceSignedArea(source.polygon_uv)) / 2.0, 1e-6, 1.0);
 }
 
+// What a sampled plan of N samples would state on the target's guarantee
+// (`at`), and the least N predicted to meet max_error.
+struct SampledErrorModel {
+  std::function<double(int samples)> at;
+  double samples_needed = 0.0;
+};
+
+// The bound a sampled map states at most, whatever the scene: Hoeffding's
+// for the samples inside the polygon.
+SampledErrorModel WorstCaseBound(const AccuracyTarget& target, double polygon_share) {
+  SampledErrorModel model;
+  model.at = [confidence = target.confidence, polygon_share](int samples) {
+    const double inside = std::max(1.0, std::floor(samples * polygon_share));
+    return std::min(1.0, sampling::SamplingErrorBound(int(inside), confidence));
+  };
+  model.samples_needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / polygon_share;
+  return model;
+}
+
+// The estimate a map of N jittered samples will state (its largest
+// texel's, EstimateOfTexel), predicted from the same request at two small
+// sizes: `at_fewer` from kEstimateProbeSamples[0] samples, `at_more` from
+// [1]. Where shadow edges cross the source, the split pairs grow as
+// sqrt(N) and the estimate falls as N^-3/4; where occluders are finer than
+// the cells (foliage, a grille seen from afar) most pairs split and it
+// falls as N^-1/2 only. The two probes give the rate between, clamped to
+// that range, and each is floored at one split pair (a probe that saw no
+// penumbra says little about texels it did not sample). Never above the
+// worst case, every pair split.
+constexpr int kEstimateProbeSamples[2] = {256, 1024};
+constexpr int kEstimateProbeSide = 16;
+
+SampledErrorModel PredictedEstimate(const AccuracyTarget& target, double at_fewer, double at_more) {
+  const double z = TwoSidedNormalQuantile(target.confidence);
+  const double n0 = kEstimateProbeSamples[0], n1 = kEstimateProbeSamples[1];
+  const double e0 = std::max(at_fewer, z / n0), e1 = std::max(at_more, z / n1);
+  const double rate = std::clamp(std::log(e0 / e1) / std::log(n1 / n0), 0.5, 0.75);
+  SampledErrorModel model;
+  model.at = [z, e1, n1, rate](int samples) {
+    const double n = std::max(samples, 1);
+    return std::min({1.0, e1 * std::pow(n1 / n, rate), z * std::sqrt(0.5 / n)});
+  };
+  model.samples_needed = target.max_error > 0 ? n1 * std::pow(e1 / target.max_error, 1.0 / rate) : 0.0;
+  model.samples_needed = std::min(model.samples_needed, 0.5 * z * z / (target.max_error * target.max_error));
+  return model;
+}
+
 // The candidate plans for a visible-fraction answer over `points` receiver
 // points, each predicted by the cost model after probing the methods this
 // scene has not run yet, and the choice among them.
 StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_base, const AccuracyTarget& target,
                                     double points, const std::function<StatusOr<ExactBatch>()>& exact_batch,
-                                    double polygon_share, bool exact_possible,
+                                    const SampledErrorModel& error_of, bool exact_possible,
                                     int max_samples,
                                     const gpu::JobOptions& job, const VisibilityRunner& run,
                                     const PrecisionCheck& resolves) {
@@ -614,7 +663,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
   // (beyond one map's 4096, a whole number of maps).
   std::set<int> counts;
   for (int n = 32; n <= max_samples; n *= 2) counts.insert(n);
-  const double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / polygon_share;
+  const double needed = error_of.samples_needed;
   if (needed <= max_samples) {
     const int step = needed <= sampling::kMaxHiddenSampleMapSamples ? 32 : sampling::kMaxHiddenSampleMapSamples;
     counts.insert(std::min(max_samples, std::max(32, int(std::ceil(needed / step)) * step)));
@@ -702,8 +751,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
         plan.error_bound = 0.0;
       } else {
         plan.parameters["samples"] = samples;
-        const double inside = std::max(1.0, std::floor(samples * polygon_share));
-        plan.error_bound = std::min(1.0, sampling::SamplingErrorBound(int(inside), target.confidence));
+        plan.error_bound = error_of.at(samples);
       }
       const WorkUnits units = SampledWork(method, points, samples);
       plan.work = units.work;
@@ -720,6 +768,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
   }
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
   VISQ_RETURN_IF_ERROR(RequirePredictionFitsDeadline(report.chosen_plan(), job));
+  report.target = target;
   return report;
 }
 
@@ -868,18 +917,43 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
                    SampledWork(method, double(result.width) * result.height, samples)};
   };
 
+  const auto resolves = [&](VisibilityMethod method, int samples) {
+    return engine.ValidateSampledPrecision(resident, with_samples(samples, 0), TracerOf(method), query.call);
+  };
+  // On the estimate: two small maps of this request say how it falls with
+  // N here (PredictedEstimate), by the cheaper method on a CPU that
+  // resolves it (both give the same bits).
+  SampledErrorModel error_of = WorstCaseBound(target, PolygonShare(request.source));
+  double estimate_probe_ms = 0.0;
+  if (target.wants_estimate()) {
+    if (!sampling::SamplesAreIndependentStrata(request))
+      return absl::InvalidArgumentError(
+          "target.guarantee: ESTIMATE needs JITTERED samples without a polygon or decorrelation (one independent "
+          "sample in each of N equal cells, whose split pairs estimate the variance); ask for RIGOROUS");
+    VisibilityMethod probe_method = VisibilityMethod::kRaycast;
+    const Status raycast_resolves = resolves(probe_method, kEstimateProbeSamples[1]);
+    if (raycast_resolves.code() == absl::StatusCode::kFailedPrecondition) probe_method = VisibilityMethod::kRaster;
+    else VISQ_RETURN_IF_ERROR(raycast_resolves);
+    double at[2] = {0.0, 0.0};
+    for (int i = 0; i < 2; ++i) {
+      VISQ_RETURN_IF_ERROR(RequireNotCancelled(query.call.Job()));
+      VISQ_ASSIGN_OR_RETURN(const sampling::HiddenSampleMapResult probe,
+                            run(probe_method, kEstimateProbeSamples[i], kEstimateProbeSide));
+      at[i] = probe.error.has_estimate ? probe.error.estimate_max : 1.0;
+      estimate_probe_ms += ComputeMs(probe.timing, probe.table_ms);
+    }
+    error_of = PredictedEstimate(target, at[0], at[1]);
+  }
+
   const double texels = double(request.receiver.width) * request.receiver.height;
   const bool several_maps = ValidateSeveralMaps(request).ok();
   const int max_samples = several_maps ? kMaxPlannedSamples : sampling::kMaxHiddenSampleMapSamples;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
                                                           texels,
                                                           [&] { return ExactBatchOf(resident, with_samples(1, 0), query.call); },
-                                                          PolygonShare(request.source), exact_possible,
-                                                          max_samples, query.call.Job(), cost_of, [&](VisibilityMethod method, int samples) {
-                                                            return engine.ValidateSampledPrecision(
-                                                                resident, with_samples(samples, 0), TracerOf(method),
-                                                                query.call);
-                                                          }));
+                                                          error_of, exact_possible,
+                                                          max_samples, query.call.Job(), cost_of, resolves));
+  report.probe_ms += estimate_probe_ms;
   LogChosenPlan(report, query.call);
   const Plan& plan = report.chosen_plan();
   HiddenSampleMapAnswer answer;
@@ -897,6 +971,10 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   const AccuracyTarget& target = *query.target;
   const sampling::PatchVisibilityRequest& request = query.request;
   const bool exact_possible = request.unblocked_limit == 0;
+  if (target.wants_estimate())
+    return absl::InvalidArgumentError(
+        "target.guarantee: ESTIMATE needs samples whose variance the answer can estimate, and PatchVisibility's "
+        "source grid is regular; ask for RIGOROUS, or a HiddenSampleMap of JITTERED samples");
 
   // A plan's sample count becomes the most nearly square source grid with
   // at least that many cells.
@@ -926,7 +1004,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   const double points = double(request.receiver_columns) * request.receiver_rows;
   VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "patch_visibility"), target,
                                                           points, exact_batch_of,
-                                                          1.0, exact_possible,
+                                                          WorstCaseBound(target, 1.0), exact_possible,
                                                           sampling::kMaxHiddenSampleMapSamples, query.call.Job(), cost_of,
                                                           [&](VisibilityMethod method, int samples) -> Status {
                                                             VISQ_ASSIGN_OR_RETURN(
@@ -1190,6 +1268,17 @@ AccuracyStatement SampledVisibilityStatement(const sampling::ErrorBound& error, 
             : "",
         "; error_bound is the largest texel's, texel_error gives each (want_texel_error)",
         lookup_words);
+    if (error.has_estimate) {
+      out.estimate = error.estimate_max;
+      out.parameters["texel_estimate_median"] = error.estimate_spread.Quantile(0.5);
+      out.parameters["texel_estimate_p95"] = error.estimate_spread.Quantile(0.95);
+      absl::StrAppend(&out.note,
+                      "; beside the bounds an estimate, not a bound: the normal approximation's half-width at the "
+                      "variance each texel's split pairs estimate (at ",
+                      error.confidence,
+                      "), estimate the largest texel's, texel_estimate gives each (want_texel_error), "
+                      "texel_estimate_median and texel_estimate_p95 their spread (rounded up, within 4 %)");
+    }
     return out;
   }
   out.note = absl::StrCat(

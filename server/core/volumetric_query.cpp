@@ -86,6 +86,9 @@ StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQ
     if (query.target->confidence >= 1.0)
       return absl::InvalidArgumentError(
           "target.confidence: 1 asks for a worst-case bound; volumetric shadows state an error estimate");
+    if (query.target->guarantee == AccuracyTarget::Guarantee::kRigorous)
+      return absl::InvalidArgumentError(
+          "target.guarantee: volumetric shadows state an error estimate, not a bound; leave it unset or ESTIMATE");
     p.shadow_map_size = 256;
   }
   // Validate before the GPU upload: a bad request costs nothing.
@@ -223,6 +226,7 @@ std::optional<AccuracyStatement> VolumetricEstimateStatement(const VolumetricAns
   AccuracyStatement out;
   out.method = VolumetricMethodName(answer.result.method);
   out.error_bound = e.max_pixel_error;
+  out.estimate = e.max_pixel_error;
   out.confidence = 0.0;
   const std::string convergence =
       e.coarser_map_size > 0

@@ -141,16 +141,23 @@ StatusOr<std::optional<core::AccuracyTarget>> TargetFromRequest(bool has_target,
   if (!has_target) return std::optional<core::AccuracyTarget>();
   if (method != v1::METHOD_UNSPECIFIED)
     return absl::InvalidArgumentError("method: give either a method or a target, not both");
-  return std::optional<core::AccuracyTarget>(FromProto(target));
+  VISQ_ASSIGN_OR_RETURN(core::AccuracyTarget out, FromProto(target));
+  return std::optional<core::AccuracyTarget>(out);
 }
 
 }  // namespace
 
-core::AccuracyTarget FromProto(const v1::AccuracyTarget& target) {
+StatusOr<core::AccuracyTarget> FromProto(const v1::AccuracyTarget& target) {
   core::AccuracyTarget out;
   out.max_error = target.max_error();
   if (target.confidence() != 0.0) out.confidence = target.confidence();
   out.time_budget_ms = target.time_budget_ms();
+  switch (target.guarantee()) {
+    case v1::AccuracyTarget::GUARANTEE_UNSPECIFIED: out.guarantee = core::AccuracyTarget::Guarantee::kDefault; break;
+    case v1::AccuracyTarget::RIGOROUS: out.guarantee = core::AccuracyTarget::Guarantee::kRigorous; break;
+    case v1::AccuracyTarget::ESTIMATE: out.guarantee = core::AccuracyTarget::Guarantee::kEstimate; break;
+    default: return absl::InvalidArgumentError(absl::StrCat("target.guarantee: unknown value ", target.guarantee()));
+  }
   return out;
 }
 
@@ -161,6 +168,7 @@ void ToProto(const core::AccuracyStatement& statement, v1::Accuracy* out) {
   out->set_note(statement.note);
   for (const auto& [name, value] : statement.parameters) (*out->mutable_parameters())[name] = value;
   if (statement.predicted_ms > 0) out->set_predicted_ms(statement.predicted_ms);
+  if (statement.estimate >= 0) out->set_estimate(statement.estimate);
 }
 
 void ToProto(const core::PlanReport& plan, v1::Accuracy* out) {
@@ -260,8 +268,11 @@ Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int w
     AddRange(band.lookup_error, a, b, m.mutable_lookup_error());
   }));
   if (!with_texel_error) return absl::OkStatus();
-  return chunks(band.texel_error.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+  VISQ_RETURN_IF_ERROR(chunks(band.texel_error.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
     AddRange(band.texel_error, a, b, m.mutable_texel_error());
+  }));
+  return chunks(band.texel_estimate.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+    AddRange(band.texel_estimate, a, b, m.mutable_texel_estimate());
   });
 }
 
@@ -362,7 +373,7 @@ StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& req
   if (request.has_target()) {
     if (request.shadow_map_size() != 0)
       return absl::InvalidArgumentError("shadow_map_size: leave it unset with a target (the server chooses the map)");
-    query.target = FromProto(request.target());
+    VISQ_ASSIGN_OR_RETURN(query.target, FromProto(request.target()));
   }
   if (request.has_medium_box()) {
     // Given: the medium box whole; unset: the scene's bounds.
@@ -637,7 +648,7 @@ StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& r
       return absl::InvalidArgumentError("direction_count: give either a direction count or a target, not both");
     if (request.method() != v1::ComputeObscurancesRequest::METHOD_UNSPECIFIED || request.rays_per_patch() != 0)
       return absl::InvalidArgumentError("method, rays_per_patch: give either a method or a target, not both");
-    query.target = service::FromProto(request.target());
+    VISQ_ASSIGN_OR_RETURN(query.target, service::FromProto(request.target()));
     return query;  // the core validates once the count is chosen
   }
   VISQ_RETURN_IF_ERROR(core::ValidateObscuranceQuery(query));

@@ -30,7 +30,7 @@ void ToProto(const std::vector<glm::dvec3>& polygon, v1::Polygon* out);
 void ToProto(const core::LightVisibilityAnswer& answer, v1::LightVisibilityResponse* out);
 
 // A target as the core takes it (confidence 0 on the wire means 0.95).
-core::AccuracyTarget FromProto(const v1::AccuracyTarget& target);
+StatusOr<core::AccuracyTarget> FromProto(const v1::AccuracyTarget& target);
 // The core's statement, field by field.
 void ToProto(const core::AccuracyStatement& statement, v1::Accuracy* out);
 // The plans the planner weighed, beside the statement of the chosen one.

@@ -423,14 +423,19 @@ std::vector<double> Diff(const std::vector<float>& answer, const std::vector<dou
 // answer is uncertain, the median bound against the median error.
 std::string PerTexelBoundNote(const sampling::HiddenSampleMapResult& map, const ExactReference& ref) {
   if (!map.error.has_per_texel || map.error.per_texel.size() != ref.fraction.size()) return "no per-texel bound";
-  size_t inside = 0;
-  std::vector<double> bounds, errors;
+  size_t inside = 0, estimate_covers = 0;
+  const bool estimated = map.error.per_texel_estimate.size() == ref.fraction.size();
+  std::vector<double> bounds, errors, estimates;
   for (size_t j = 0; j < ref.fraction.size(); ++j) {
     const double error = std::abs(double(map.visible_fraction[j]) - ref.fraction[j]);
     inside += error <= double(map.error.per_texel[j]) + 1e-7;
     if (ref.fraction[j] > 1e-9 && ref.fraction[j] < 1 - 1e-9) {
       bounds.push_back(map.error.per_texel[j]);
       errors.push_back(error);
+      if (estimated) {
+        estimates.push_back(map.error.per_texel_estimate[j]);
+        estimate_covers += error <= double(map.error.per_texel_estimate[j]) + 1e-7;
+      }
     }
   }
   std::string note = "per-texel bound holds at " + Num(double(inside) / ref.fraction.size(), true) + " of texels (" +
@@ -441,6 +446,15 @@ std::string PerTexelBoundNote(const sampling::HiddenSampleMapResult& map, const 
     const double mb = bounds[bounds.size() / 2], me = errors[errors.size() / 2];
     note += "; penumbra median bound " + Fmt("%.3g", mb) + ", median error " + Fmt("%.3g", me);
     if (me > 0) note += " (" + Fmt("%.2g", mb / me) + "x)";
+    if (!estimates.empty()) {
+      // The estimate beside the bound (EstimateOfTexel): how tight, and how
+      // often it covers the error where the answer is uncertain.
+      std::sort(estimates.begin(), estimates.end());
+      const double ms = estimates[estimates.size() / 2];
+      note += "; penumbra median estimate " + Fmt("%.3g", ms);
+      if (me > 0) note += " (" + Fmt("%.2g", ms / me) + "x)";
+      note += ", covering " + Num(double(estimate_covers) / estimates.size(), true) + " of penumbra texels";
+    }
   }
   return note;
 }

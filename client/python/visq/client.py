@@ -114,6 +114,9 @@ class HiddenSampleMap:
     texel_error: Optional[np.ndarray]          # (height, width) float32, each texel's bound (texel_error=True)
     source_samples: np.ndarray                 # (samples, 3) float64 world positions
     figures: Any                               # HiddenSampleMapResponse without the arrays
+    # (height, width) float32, each texel's estimate beside its bound, not a
+    # bound (texel_error=True, JITTERED samples)
+    texel_estimate: Optional[np.ndarray] = None
 
     @property
     def accuracy(self):
@@ -294,19 +297,23 @@ def _points(values, name):
 
 
 def _target(target, out):
-    """target: a dict (or visq.v1 AccuracyTarget) of max_error, confidence, time_budget_ms."""
+    """target: a dict (or visq.v1 AccuracyTarget) of max_error, confidence, time_budget_ms and guarantee
+    ("rigorous": max_error on the stated bound, the default; "estimate": on the estimate beside it)."""
     if isinstance(target, pb.AccuracyTarget):
         out.CopyFrom(target)
         return
-    unknown = set(target) - {"max_error", "confidence", "time_budget_ms"}
+    unknown = set(target) - {"max_error", "confidence", "time_budget_ms", "guarantee"}
     if unknown:
         raise ValueError(f"target: unknown key(s) {', '.join(sorted(unknown))}; "
-                         "allowed: max_error, confidence, time_budget_ms")
+                         "allowed: max_error, confidence, time_budget_ms, guarantee")
     out.max_error = float(target.get("max_error", 0.0))
     out.confidence = float(target.get("confidence", 0.0))
     out.time_budget_ms = float(target.get("time_budget_ms", 0.0))
+    if "guarantee" in target:
+        out.guarantee = _choice(target["guarantee"], "target.guarantee", _GUARANTEES)
 
 
+_GUARANTEES = {"rigorous": pb.AccuracyTarget.RIGOROUS, "estimate": pb.AccuracyTarget.ESTIMATE}
 _METHODS = {"auto": pb.METHOD_UNSPECIFIED, "raster": pb.RASTER, "raycast": pb.RAYCAST, "exact": pb.PLUCKER_EXACT, "plucker-exact": pb.PLUCKER_EXACT}
 # "fast" was the Hough lookup's first name.
 _LOOKUPS = {"exact": pb.EXACT, "hough": pb.HOUGH, "fast": pb.HOUGH}
@@ -596,16 +603,19 @@ class Client:
                                           ("visible_rgb", "offset", np.float32, 3),
                                           ("blocked_bits", "offset", np.uint32, 1),
                                           ("lookup_error", "offset", np.float32, 1),
-                                          ("texel_error", "offset", np.float32, 1)])
+                                          ("texel_error", "offset", np.float32, 1),
+                                          ("texel_estimate", "offset", np.float32, 1)])
         h, w = f.height, f.width
         lookup_error = chunks.get("lookup_error", np.float32, (h, w))
         texel_error = chunks.get("texel_error", np.float32, (h, w))
+        texel_estimate = chunks.get("texel_estimate", np.float32, (h, w))
         samples_xyz = np.array([(p.x, p.y, p.z) for p in f.source_samples], dtype=np.float64).reshape(-1, 3)
         return HiddenSampleMap(
             visible_fraction=chunks.get("visible_fraction", np.float32, (h, w), required=True),
             visible_rgb=chunks.get("visible_rgb", np.float32, (h, w, 3)),
             blocked_bits=chunks.get("blocked_bits", np.uint32, (h, w, f.words_per_texel)),
-            lookup_error=lookup_error, texel_error=texel_error, source_samples=samples_xyz, figures=f)
+            lookup_error=lookup_error, texel_error=texel_error, source_samples=samples_xyz, figures=f,
+            texel_estimate=texel_estimate)
 
     def patch_visibility(self, scene, source, receiver, source_grid=32, receiver_grid=32, method="auto",
                          lookup="exact", watertight=False, unblocked_limit=0, target=None, version=0,
