@@ -6,8 +6,9 @@
 # over Sponza's meshes, as a level places repeated meshes), fires the first
 # RAYCAST hidden-sample map (64x64 texels, 64 samples, at the copy at the
 # origin) and, until it answers, calls GetScene, ListScenes and GetStats in
-# turn. Prints each one's p50 / p99 / max and the query's total and
-# build_ms. Not a test: figures.
+# turn. Prints the scene's CPU memory and the server's RSS after the upload,
+# each call's p50 / p99 / max and the query's total and build_ms. Not a
+# test: figures.
 #
 # --scaling then goes on to the rest of a level's scaling table: RAYCAST
 # warm, RASTER first and warm, a first LightVisibility of 100 points on the
@@ -100,6 +101,13 @@ try:
     start = time.time()
     info = stub.LoadScene(upload("level", "level.gltf", (("level.gltf", level), (bin_name, bin_path))), timeout=600)
     upload_s = time.time() - start
+    def rss_mib():
+        for line in open(f"/proc/{server.pid}/status"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return float("nan")
+    loaded = stub.GetScene(pb.GetSceneRequest(name="level"), timeout=600)
+    loaded_cpu_mib, loaded_rss_mib = loaded.memory.cpu_bytes / (1 << 20), rss_mib()
 
     # The query at the copy at the origin: a light patch high in the atrium,
     # the atrium floor as receiver (hidden_sample_map_bench.cpp's).
@@ -143,6 +151,7 @@ try:
     t = answer["timing"]
     print(f"{label}: {copies} copies, {info.triangle_count} triangles, upload {upload_s:.1f} s; first RAYCAST "
           f"{answer['s']:.2f} s (build_ms {t.build_ms:.0f}, compute_ms {t.compute_ms:.0f})")
+    print(f"  after the upload: scene cpu {loaded_cpu_mib:.1f} MiB, server RSS {loaded_rss_mib:.0f} MiB")
     for name, v in times.items():
         print(f"  {name:10s} during it: {len(v):5d} calls, p50 {pct(v, 0.5):8.2f} ms, p99 {pct(v, 0.99):8.2f} ms, "
               f"max {max(v) if v else float('nan'):8.2f} ms")
