@@ -5,6 +5,7 @@
 #include <cmath>
 #include <numbers>
 #include <span>
+#include <type_traits>
 
 #include "common/random.h"
 #include "raycast/embree_scene.h"
@@ -131,6 +132,19 @@ void PreparePolygon(uint32_t x, uint32_t y, FragmentSampler& out) {
   }
 }
 
+// What a thread keeps of its scratch between patches: a texel of many
+// fragments, or many rays, would otherwise hold the thread's largest
+// patch's buffers for the life of the process (they are thread_local), out
+// of the work budget's sight.
+inline constexpr size_t kKeptScratchBytes = size_t{1} << 20;
+template <typename... Vectors>
+void ReleaseLargeScratch(Vectors&... vectors) {
+  auto release = [](auto& v) {
+    if (v.capacity() * sizeof(v[0]) > kKeptScratchBytes) std::remove_reference_t<decltype(v)>().swap(v);
+  };
+  (release(vectors), ...);
+}
+
 // Ray j of n takes its direction from cell j of n equal cells of the square
 // of (u_radius, turn) (EqualAreaCellOf), computed once per n and thread.
 const std::vector<EqualAreaCell>& DirectionCells(uint32_t n) {
@@ -174,12 +188,16 @@ void GeneratePatchRays(const Scene& placed_scene, const ObscuranceAtlas& atlas, 
   const uint64_t h = SplitMix64(SplitMix64(seed) ^ (static_cast<uint64_t>(texel) * 0xD1B54A32D192ED03ull));
   const std::vector<EqualAreaCell>& cells = DirectionCells(n);
   const uint32_t x = texel % atlas.width, y = texel / atlas.width;
+  // A sampler for each fragment a ray picks: at most n of them, however
+  // many fragments the texel holds (a texel under a million tiny triangles
+  // grew a sampler per fragment, some 700 bytes each, kept by the thread).
+  // Reused, not re-constructed, from patch to patch: constructing them cost
+  // more than the patch's filtered rays.
   thread_local std::vector<FragmentSampler> samplers;
-  thread_local std::vector<uint8_t> prepared;  // bit 0: frame, bit 1: polygon
-  // Grown, never shrunk: a sampler is large, and re-constructing them for
-  // every patch cost more than the patch's filtered rays.
-  if (samplers.size() < end - begin) samplers.resize(end - begin);
-  prepared.assign(end - begin, 0);
+  thread_local std::vector<uint32_t> slot_of;  // per fragment: its sampler's index + 1; 0: none yet
+  thread_local std::vector<uint8_t> prepared;  // per sampler; bit 0: frame, bit 1: polygon
+  slot_of.assign(end - begin, 0);
+  uint32_t slots_used = 0;
   out.reserve(n);
   for (uint32_t j = 0; j < n; ++j) {
     SplitMix uniforms = RayStream(h, j);
@@ -190,8 +208,15 @@ void GeneratePatchRays(const Scene& placed_scene, const ObscuranceAtlas& atlas, 
     const size_t above = static_cast<size_t>(std::upper_bound(area_below.begin() + 1, area_below.end() - 1, pick) -
                                              area_below.begin());
     const uint32_t fi = begin + static_cast<uint32_t>(above - 1);
-    FragmentSampler& f = samplers[fi - begin];
-    uint8_t& ready = prepared[fi - begin];
+    uint32_t& slot = slot_of[fi - begin];
+    if (slot == 0) {
+      if (slots_used == samplers.size()) samplers.emplace_back();
+      if (slots_used == prepared.size()) prepared.push_back(0);
+      prepared[slots_used] = 0;
+      slot = ++slots_used;
+    }
+    FragmentSampler& f = samplers[slot - 1];
+    uint8_t& ready = prepared[slot - 1];
     if (!(ready & 1)) {
       PrepareFrame(scene, atlas, atlas.fragments[fi], f);
       f.windows = DirectionWindows::Of(only_towards, f.tu, f.tv, f.normal);
@@ -231,6 +256,7 @@ void GeneratePatchRays(const Scene& placed_scene, const ObscuranceAtlas& atlas, 
     }
     out.push_back(PatchRay{point, dir, f.triangle});
   }
+  ReleaseLargeScratch(area_below, slot_of, samplers, prepared);
 }
 
 void GenerateTriangleRays(const Scene& placed_scene, uint32_t triangle, uint64_t seed, uint32_t n, std::vector<PatchRay>& out,
@@ -333,6 +359,22 @@ glm::dvec3 RayValue(const Scene& placed_scene, const AmbientModel& ambient, bool
   return rho * scene.materials[scene.triangle_material[hit_triangle]].reflectivity;
 }
 
+uint32_t RayEstimateBatchTexels(uint32_t rays_per_patch) {
+  return static_cast<uint32_t>(std::clamp<uint64_t>(kRayEstimateBatchRays / std::max(rays_per_patch, 1u), 1, 4096));
+}
+
+uint64_t RayEstimateBatchBytes(uint32_t rays_per_patch) {
+  const uint64_t texels = RayEstimateBatchTexels(rays_per_patch);
+  const uint64_t rays = texels * rays_per_patch;
+  return rays * (sizeof(raycast::Ray) + sizeof(uint32_t) + sizeof(raycast::Hit) + sizeof(glm::dvec3)) +
+         texels * (2 * sizeof(glm::dvec3) + sizeof(uint32_t) + sizeof(double));
+}
+
+uint64_t PatchRayScratchBytes(uint32_t n, uint64_t fragments) {
+  return uint64_t{n} * (sizeof(PatchRay) + sizeof(FragmentSampler) + 1) +
+         (fragments + 1) * (sizeof(double) + sizeof(uint32_t)) + uint64_t{n} * sizeof(EqualAreaCell);
+}
+
 StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, const ObscuranceAtlas& atlas,
                                                      const ObscuranceParams& params,
                                                      const RayEstimateOptions& options) {
@@ -345,8 +387,11 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
   const uint32_t n = atlas.texel_count();
   std::vector<glm::vec3> w(n, glm::vec3(0.0f));
   std::vector<uint8_t> estimated(n, 0);
-  // Texels in batches: generate rays, trace them in one Intersect call.
-  constexpr uint32_t kBatchTexels = 4096;
+  // Texels in batches of about kRayEstimateBatchRays rays: generate them,
+  // trace them in one Intersect call. Sized by rays, not texels: 4,096
+  // texels a batch were 35 GB of rays at 65,536 rays a patch.
+  const uint32_t kBatchTexels = RayEstimateBatchTexels(options.rays_per_patch);
+  const size_t batch_rays = size_t{kBatchTexels} * options.rays_per_patch;
   std::vector<PatchRay> patch_rays;
   std::vector<raycast::Ray> rays;
   std::vector<uint32_t> ray_texel;
@@ -364,6 +409,12 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
     bool equal_weights = true;
   };
   std::vector<TriangleRays> triangle_rays(scene.TriangleCount());
+  // Exactly one batch's worth: grown by doubling, they would hold up to
+  // twice that.
+  rays.reserve(batch_rays);
+  ray_texel.reserve(batch_rays);
+  std::vector<glm::dvec3> values;
+  values.reserve(batch_rays);
   for (uint32_t first = 0; first < n; first += kBatchTexels) {
     rays.clear();
     ray_texel.clear();
@@ -382,7 +433,7 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
     VISQ_ASSIGN_OR_RETURN(std::vector<raycast::Hit> hits, embree.Intersect(rays, trace));
     std::vector<glm::dvec3> sum(kBatchTexels, glm::dvec3(0.0)), squares(kBatchTexels, glm::dvec3(0.0));
     std::vector<uint32_t> count(kBatchTexels, 0);
-    std::vector<glm::dvec3> values(rays.size());
+    values.resize(rays.size());
     for (size_t i = 0; i < rays.size(); ++i) {
       const uint32_t slot = ray_texel[i] - first;
       values[i] = RayValue(scene, ambient, params.color_bleeding, params.d_max, hits[i].hit, hits[i].t,

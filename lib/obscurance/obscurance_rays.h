@@ -90,6 +90,20 @@ struct RayEstimateOptions {
   std::function<bool()> stop;
 };
 
+// The texels of one batch of EstimateObscurancesByRays: as many as make
+// about kRayEstimateBatchRays rays, at least one and at most 4,096. What a
+// batch holds follows from it (RayEstimateBatchBytes), whatever
+// rays_per_patch is.
+inline constexpr uint64_t kRayEstimateBatchRays = uint64_t{1} << 16;
+uint32_t RayEstimateBatchTexels(uint32_t rays_per_patch);
+// The most one batch of EstimateObscurancesByRays holds: its rays, their
+// texels, hits and values, and the per-texel sums.
+uint64_t RayEstimateBatchBytes(uint32_t rays_per_patch);
+// The most GeneratePatchRays holds on one thread for n rays of a texel of
+// `fragments` fragments: the rays, a sampler per fragment picked (at most
+// n), and the per-fragment sums and slots.
+uint64_t PatchRayScratchBytes(uint32_t n, uint64_t fragments);
+
 // The reference: every covered texel estimated with rays_per_patch rays,
 // traced with raycast::EmbreeScene (helper-independent of the GPU bake and
 // of the update's instanced scene).

@@ -113,11 +113,9 @@ StatusOr<std::unique_ptr<ObscuranceUpdater>> ObscuranceUpdater::Create(Scene sce
   std::vector<uint32_t> cursor(u->vertex_begin_.begin(), u->vertex_begin_.end() - 1);
   for (uint32_t t = 0; t < s.triangles.size(); ++t)
     for (int c = 0; c < 3; ++c) u->vertex_triangles_[cursor[s.triangles[t][c]]++] = t;
-  std::vector<uint32_t> all(u->atlas_.texel_count());
-  for (uint32_t i = 0; i < all.size(); ++i) all[i] = i;
-  u->patch_center_.assign(all.size(), glm::dvec3(0.0));
-  u->patch_radius_.assign(all.size(), -1.0);
-  u->ComputePatchBounds(all);
+  u->patch_center_.assign(u->atlas_.texel_count(), glm::dvec3(0.0));
+  u->patch_radius_.assign(u->atlas_.texel_count(), -1.0);
+  for (uint32_t texel = 0; texel < u->atlas_.texel_count(); ++texel) u->ComputePatchBound(texel);
   u->triangle_plane_.resize(s.triangles.size());
   for (uint32_t t = 0; t < s.triangles.size(); ++t) u->triangle_plane_[t] = TrianglePlane(s, t);
   VISQ_RETURN_IF_ERROR(u->Rebuild());
@@ -135,34 +133,36 @@ Status ObscuranceUpdater::AddDynamicNode(uint32_t node) {
 }
 
 void ObscuranceUpdater::ComputePatchBounds(const std::vector<uint32_t>& texels) {
+  for (uint32_t texel : texels) ComputePatchBound(texel);
+}
+
+void ObscuranceUpdater::ComputePatchBound(uint32_t texel) {
   // A patch's world footprint: its fragments' clipped polygons mapped back
   // through each triangle's atlas-to-world map.
-  for (uint32_t texel : texels) {
-    const uint32_t x = texel % atlas_.width, y = texel / atlas_.width;
-    glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
-    for (uint32_t i = atlas_.texel_begin[texel]; i < atlas_.texel_begin[texel + 1]; ++i) {
-      const uint32_t t = atlas_.fragments[i].triangle;
-      const glm::dvec2 a = atlas_.corner_uv[3 * t], b = atlas_.corner_uv[3 * t + 1], c = atlas_.corner_uv[3 * t + 2];
-      const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
-      const double det = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
-      if (std::abs(det) <= 1e-12) {
-        for (const glm::dvec3& p : {pa, pb, pc}) { lo = glm::min(lo, p); hi = glm::max(hi, p); }
-        continue;
-      }
-      const ClippedPolygon poly = ClipTriangleToTexel(a, b, c, x, y);
-      for (int k = 0; k < poly.n; ++k) {
-        const glm::dvec2 q = poly.p[k];
-        const double l1 = ((q.x - a.x) * (c.y - a.y) - (q.y - a.y) * (c.x - a.x)) / det;
-        const double l2 = ((b.x - a.x) * (q.y - a.y) - (b.y - a.y) * (q.x - a.x)) / det;
-        const glm::dvec3 p = pa + (pb - pa) * l1 + (pc - pa) * l2;
-        lo = glm::min(lo, p);
-        hi = glm::max(hi, p);
-      }
+  const uint32_t x = texel % atlas_.width, y = texel / atlas_.width;
+  glm::dvec3 lo(std::numeric_limits<double>::infinity()), hi(-std::numeric_limits<double>::infinity());
+  for (uint32_t i = atlas_.texel_begin[texel]; i < atlas_.texel_begin[texel + 1]; ++i) {
+    const uint32_t t = atlas_.fragments[i].triangle;
+    const glm::dvec2 a = atlas_.corner_uv[3 * t], b = atlas_.corner_uv[3 * t + 1], c = atlas_.corner_uv[3 * t + 2];
+    const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
+    const double det = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
+    if (std::abs(det) <= 1e-12) {
+      for (const glm::dvec3& p : {pa, pb, pc}) { lo = glm::min(lo, p); hi = glm::max(hi, p); }
+      continue;
     }
-    if (lo.x > hi.x) continue;
-    patch_center_[texel] = 0.5 * (lo + hi);
-    patch_radius_[texel] = 0.5 * glm::length(hi - lo);
+    const ClippedPolygon poly = ClipTriangleToTexel(a, b, c, x, y);
+    for (int k = 0; k < poly.n; ++k) {
+      const glm::dvec2 q = poly.p[k];
+      const double l1 = ((q.x - a.x) * (c.y - a.y) - (q.y - a.y) * (c.x - a.x)) / det;
+      const double l2 = ((b.x - a.x) * (q.y - a.y) - (b.y - a.y) * (q.x - a.x)) / det;
+      const glm::dvec3 p = pa + (pb - pa) * l1 + (pc - pa) * l2;
+      lo = glm::min(lo, p);
+      hi = glm::max(hi, p);
+    }
   }
+  if (lo.x > hi.x) return;
+  patch_center_[texel] = 0.5 * (lo + hi);
+  patch_radius_[texel] = 0.5 * glm::length(hi - lo);
 }
 
 Status ObscuranceUpdater::Rebuild() {

@@ -163,6 +163,7 @@ class ObscuranceUpdater {
   Status Rebuild();
   // Patch centers and radii (texels with fragments) from current positions.
   void ComputePatchBounds(const std::vector<uint32_t>& texels);
+  void ComputePatchBound(uint32_t texel);
   // All rays_per_patch rays of each texel traced in the current scene.
   std::vector<RayTally> TracePatches(const std::vector<uint32_t>& texels) const;
   RayTally TraceRays(const std::vector<PatchRay>& rays) const;

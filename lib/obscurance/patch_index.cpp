@@ -34,8 +34,29 @@ void PatchIndex::Build(const std::vector<glm::dvec3>& center, const std::vector<
   const double longest = std::max({extent.x, extent.y, extent.z});
   cell_ = std::max({cell_hint, longest / kMaxCellsPerAxis, 1e-12 * std::max(1.0, longest)});
   origin_ = lo;
-  for (int a = 0; a < 3; ++a)
-    dims_[a] = std::clamp(static_cast<int>(std::ceil(extent[a] / cell_)), 1, kMaxCellsPerAxis);
+  auto set_dims = [&] {
+    for (int a = 0; a < 3; ++a)
+      dims_[a] = std::clamp(static_cast<int>(std::ceil(extent[a] / cell_)), 1, kMaxCellsPerAxis);
+  };
+  set_dims();
+  // Each ball is listed in every cell its box meets: balls as wide as the
+  // scene (a triangle that is one point in the atlas is one patch) would be
+  // listed in up to 128^3 cells each. Coarser cells until the lists hold at
+  // most kMostEntriesPerBall entries a ball (counted from the boxes, before
+  // anything is allocated), so the index's memory is bounded by its texels.
+  size_t balls = 0;
+  for (size_t i = 0; i < center.size(); ++i) balls += indexed[i] && radius[i] >= 0;
+  for (;;) {
+    uint64_t entries = 0;
+    for (size_t i = 0; i < center.size(); ++i) {
+      if (!indexed[i] || radius[i] < 0) continue;
+      const glm::ivec3 a = CellOf(center[i] - radius[i]), b = CellOf(center[i] + radius[i]);
+      entries += uint64_t(b.x - a.x + 1) * uint64_t(b.y - a.y + 1) * uint64_t(b.z - a.z + 1);
+    }
+    if (entries <= kMostEntriesPerBall * balls || (dims_.x == 1 && dims_.y == 1 && dims_.z == 1)) break;
+    cell_ *= 2.0;
+    set_dims();
+  }
   // Counting pass, then the fill: each ball goes into every cell its box meets.
   const size_t cells = static_cast<size_t>(dims_.x) * dims_.y * dims_.z;
   cell_begin_.assign(cells + 1, 0);
@@ -53,6 +74,17 @@ void PatchIndex::Build(const std::vector<glm::dvec3>& center, const std::vector<
   for (size_t i = 0; i < center.size(); ++i)
     if (indexed[i] && radius[i] >= 0)
       for_each_cell(i, [&](size_t c) { cell_texels_[cursor[c]++] = static_cast<uint32_t>(i); });
+}
+
+uint64_t PatchIndex::CellBytesAtMost(const glm::dvec3& extent, double cell_hint) {
+  const double longest = std::max({extent.x, extent.y, extent.z});
+  uint64_t cells = 1;
+  for (int a = 0; a < 3; ++a) {
+    const double across = (extent[a] + longest) / cell_hint + 1.0;
+    cells *= std::isfinite(across) ? static_cast<uint64_t>(std::clamp(across, 1.0, double{kMaxCellsPerAxis}))
+                                   : uint64_t{kMaxCellsPerAxis};
+  }
+  return 2 * sizeof(uint32_t) * (cells + 1);
 }
 
 void PatchIndex::Query(const glm::dvec3& lo, const glm::dvec3& hi, std::vector<uint32_t>& out) const {

@@ -25,6 +25,15 @@ class PatchIndex {
   size_t cell_count() const { return cell_begin_.empty() ? 0 : cell_begin_.size() - 1; }
 
   static constexpr int kMaxCellsPerAxis = 128;
+  // The cells' lists hold at most this many entries per indexed ball on
+  // average (the grid grows coarser until they do): with the cells' offsets
+  // and their cursor while built, the index holds at most kMaxBytesPerBall
+  // a ball plus CellBytesAtMost.
+  static constexpr uint64_t kMostEntriesPerBall = 8;
+  static constexpr uint64_t kMaxBytesPerBall = 4 * kMostEntriesPerBall;
+  // For balls of patches on surfaces within a box of `extent` (a ball
+  // reaches past its patch's box by less than the box's longest side).
+  static uint64_t CellBytesAtMost(const glm::dvec3& extent, double cell_hint);
 
  private:
   glm::ivec3 CellOf(const glm::dvec3& p) const;

@@ -12,6 +12,7 @@
 #include "absl/strings/str_format.h"
 #include "common/job_timing.h"
 #include "common/normal_estimate.h"
+#include "core/obscurance_work.h"
 #include "obscurance/obscurance_export.h"
 #include "obscurance/obscurance_rays.h"
 
@@ -260,15 +261,44 @@ Status StoppedAs(const CallOptions& call, Status status, std::string_view where 
   return call.StillWanted(where);
 }
 
-// What a bake or a ray-cast estimate holds over its atlas: per texel and
-// channel (plus the count) the GPU's sums read back and the partial's
-// (uint64), then W and the intensity, and the estimated flags; per
-// triangle its averages.
+// Whether a query's bake is whole, so that it becomes the scene's solution
+// for UpdateObscurances.
+bool IsWholeBake(const ObscuranceQuery& query, uint32_t total_directions) {
+  if (query.partial_only) return false;
+  return query.method == ObscuranceMethod::kRaycast ||
+         (query.params.first_direction == 0 && query.params.direction_count == total_directions);
+}
+
+// What a bake or a ray-cast estimate holds beside its atlas
+// (core/obscurance_work.h). The depth peeling: per texel and channel (plus
+// the count) the GPU's sums read back and the partial's (uint64), then W
+// and the intensity, and the estimated flags; per triangle its averages.
+// The ray-cast estimator: its result and what it holds while it traces. A
+// whole bake then builds the updater and keeps its answer until it is sent.
 uint64_t ObscuranceWorkBytes(const Scene& scene, const ObscuranceQuery& query) {
-  const uint64_t channels = query.params.color_bleeding ? 3 : 1;
-  const uint64_t texels = uint64_t{query.resolution} * query.resolution;
-  return texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1 + 8 + 4 + 4) +
-         scene.TriangleCount() * ((channels + 1) * (8 + 8) + 12 + 8 + 4 + 4);
+  const ObscuranceWorkShape shape = ObscuranceShapeOf(scene, query.resolution, query.params);
+  const uint64_t channels = shape.channels;
+  uint64_t bytes = shape.texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1 + 8 + 4 + 4) +
+                   shape.triangles * ((channels + 1) * (8 + 8) + 12 + 8 + 4 + 4);
+  if (query.method == ObscuranceMethod::kRaycast)
+    bytes = ObscuranceResultBytes(shape) + RayEstimateWorkBytes(shape, query.rays_per_patch);
+  const uint32_t total = query.total_directions != 0 ? query.total_directions
+                                                     : query.params.first_direction + query.params.direction_count;
+  if (IsWholeBake(query, total))
+    bytes += ObscuranceUpdaterBytes(shape, query.update_rays_per_patch) + ObscuranceAnswerExtraBytes(shape);
+  return bytes;
+}
+
+// A probe of the ray-cast estimator with `rays` rays a patch: its estimate
+// alone (no updater, no answer).
+uint64_t RayProbeWorkBytes(const Scene& scene, const ObscuranceQuery& query, uint32_t rays) {
+  ObscuranceQuery probe;
+  probe.resolution = query.resolution;
+  probe.params = query.params;
+  probe.method = ObscuranceMethod::kRaycast;
+  probe.rays_per_patch = rays;
+  probe.partial_only = true;
+  return ObscuranceWorkBytes(scene, probe);
 }
 
 // The query's atlas, built under one reservation of the work budget: the
@@ -283,7 +313,11 @@ StatusOr<obscurance::ObscuranceAtlas> BuildAtlasWithinBudget(Engine& engine, con
   obscurance::AtlasOptions options;
   options.force_build = query.force_built_atlas;
   options.reserve = [&](uint64_t atlas_bytes) -> Status {
-    VISQ_ASSIGN_OR_RETURN(memory, engine.work_budget().Reserve(atlas_bytes + then_bytes, "resolution", job));
+    VISQ_ASSIGN_OR_RETURN(memory, engine.work_budget().Reserve(atlas_bytes + then_bytes,
+                                                               query.method == ObscuranceMethod::kRaycast
+                                                                   ? "resolution, rays_per_patch"
+                                                                   : "resolution",
+                                                               job));
     return absl::OkStatus();
   };
   options.stop = [&call] { return call.Stopped(); };
@@ -300,7 +334,7 @@ StatusOr<double> RaycastEstimateMs(Engine& engine, const ResidentScene& resident
   WorkMemoryBudget::Reservation memory;
   VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
                         BuildAtlasWithinBudget(engine, *resident.scene, query, call, call.Job(),
-                                               ObscuranceWorkBytes(*resident.scene, query), memory));
+                                               RayProbeWorkBytes(*resident.scene, query, rays), memory));
   obscurance::RayEstimateOptions options;
   options.rays_per_patch = rays;
   options.seed = query.params.seed;
@@ -389,7 +423,7 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
     WorkMemoryBudget::Reservation memory;
     VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
                           BuildAtlasWithinBudget(engine, *resident.scene, query, query.call, query.call.Job(),
-                                                 ObscuranceWorkBytes(*resident.scene, query), memory));
+                                                 RayProbeWorkBytes(*resident.scene, query, 16), memory));
     const double atlas_ms = MillisecondsSince(atlas_start);
     for (uint32_t rays : {4u, 16u}) {
       const auto start = std::chrono::steady_clock::now();
@@ -537,20 +571,22 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   }
 
   // A whole bake becomes the scene's solution for UpdateObscurances.
-  const bool whole = query.method == ObscuranceMethod::kRaycast ||
-                     (query.params.first_direction == 0 && query.params.direction_count == answer.total_directions);
-  if (whole) {
+  if (IsWholeBake(query, answer.total_directions)) {
     start = std::chrono::steady_clock::now();
     obscurance::UpdaterOptions options;
     options.rays_per_patch = query.update_rays_per_patch;
     options.seed = query.params.seed;
     VISQ_ASSIGN_OR_RETURN(std::unique_ptr<obscurance::ObscuranceUpdater> updater,
-                          obscurance::ObscuranceUpdater::Create(scene, atlas, query.params, result, {}, options));
+                          obscurance::ObscuranceUpdater::Create(scene, std::move(atlas), query.params, result, {},
+                                                                options));
     std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
     // A newer bake installed meanwhile stays.
     if (!state->updater || state->solution_version <= resident->version) {
       state->updater = std::move(updater);
+      // The updater's share of the reservation lives as long as it does.
+      state->updater_memory = memory.KeepLasting(ObscuranceUpdaterBytes(
+          ObscuranceShapeOf(scene, query.resolution, query.params), query.update_rays_per_patch));
       state->undelivered.reset();  // the bake's answer holds every texel
       state->solution_version = resident->version;
       state->rays_per_patch = query.update_rays_per_patch;
@@ -565,6 +601,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     engine.cost_model().Record(chosen.cost_key, chosen.work, answer.atlas_ms + answer.bake_ms);
     answer.plan = std::move(plan);
   }
+  answer.memory = std::move(memory);
   return answer;
 }
 
@@ -599,6 +636,17 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
                                                      "; use the changed texels"));
 
   ObscuranceUpdateAnswer answer;
+  // What the moves' merged changes, the answer and the candidate search
+  // may hold, reserved before the first move: at most every texel,
+  // triangle and vertex changed.
+  {
+    const obscurance::ObscuranceResult& solution = state->updater->result();
+    obscurance::ObscuranceParams params;  // the index's cells are the updater's own, already reserved
+    const ObscuranceWorkShape shape = ObscuranceShapeOf(state->updater->scene(), solution.width, params);
+    VISQ_ASSIGN_OR_RETURN(answer.memory,
+                          engine.work_budget().Reserve(ObscuranceUpdateCallBytes(shape, state->rays_per_patch),
+                                                       "scene (its bake's atlas)", query.call.Job()));
+  }
   answer.rays_per_patch = state->rays_per_patch;
   const auto start = std::chrono::steady_clock::now();
   // What an earlier update applied but could not deliver comes first.

@@ -34,6 +34,9 @@ namespace visq::core {
 struct ObscuranceState {
   std::mutex mutex;  // one update (or installation of a bake) at a time
   std::unique_ptr<obscurance::ObscuranceUpdater> updater;  // after a full bake
+  // What the updater holds (ObscuranceUpdaterBytes), reserved by its bake
+  // and kept as long as it lives.
+  WorkMemoryBudget::Reservation updater_memory;
   uint64_t solution_version = 0;  // the scene version the updater's solution matches
   uint32_t rays_per_patch = 0;
   // The changes of moves an update applied before its call stopped (each
@@ -100,6 +103,7 @@ struct ObscuranceAnswer {
   ObscuranceMethod method = ObscuranceMethod::kDepthPeeling;
   uint32_t rays_per_patch = 0;    // kRaycast
   std::optional<PlanReport> plan;  // with a target
+  WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };
 
 // Hoeffding's half-width for D independent directions (or rays) with values
@@ -157,6 +161,7 @@ struct ObscuranceUpdateAnswer {
   double mean_samples_per_patch = 0;  // of the bake
   uint64_t directions = 0;            // of the bake
   double compute_ms = 0;
+  WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };
 inline constexpr size_t kMaxFullUpdateFloats = size_t{1} << 22;
 inline constexpr double kUpdateConfidence = 0.95;

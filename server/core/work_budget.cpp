@@ -35,19 +35,33 @@ WorkMemoryBudget::WorkMemoryBudget(uint64_t capacity_bytes) {
 }
 
 WorkMemoryBudget::Reservation::Reservation(Reservation&& other) noexcept
-    : budget_(std::exchange(other.budget_, nullptr)), bytes_(std::exchange(other.bytes_, 0)) {}
+    : budget_(std::exchange(other.budget_, nullptr)),
+      bytes_(std::exchange(other.bytes_, 0)),
+      lasting_(std::exchange(other.lasting_, false)) {}
 
 WorkMemoryBudget::Reservation& WorkMemoryBudget::Reservation::operator=(Reservation&& other) noexcept {
   if (this != &other) {
-    if (budget_ != nullptr) budget_->Release(bytes_);
+    if (budget_ != nullptr) budget_->Release(bytes_, lasting_);
     budget_ = std::exchange(other.budget_, nullptr);
     bytes_ = std::exchange(other.bytes_, 0);
+    lasting_ = std::exchange(other.lasting_, false);
   }
   return *this;
 }
 
+WorkMemoryBudget::Reservation WorkMemoryBudget::Reservation::KeepLasting(uint64_t bytes) {
+  bytes = std::min(bytes, bytes_);
+  if (budget_ == nullptr || bytes == 0) return Reservation();
+  bytes_ -= bytes;
+  if (!lasting_) {
+    std::lock_guard lock(budget_->mutex_);
+    budget_->lasting_ += bytes;
+  }
+  return Reservation(budget_, bytes, /*lasting=*/true);
+}
+
 WorkMemoryBudget::Reservation::~Reservation() {
-  if (budget_ != nullptr) budget_->Release(bytes_);
+  if (budget_ != nullptr) budget_->Release(bytes_, lasting_);
 }
 
 StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes, const std::string& what,
@@ -60,6 +74,14 @@ StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes
   std::unique_lock lock(mutex_);
   // Polled in short waits: a cancellation sets a flag, it does not notify.
   while (in_use_ + bytes > capacity_) {
+    // Lasting reservations go only with their scene's next bake or unload:
+    // waiting for them would last until the deadline.
+    if (bytes > capacity_ - lasting_)
+      return absl::ResourceExhaustedError(absl::StrCat(
+          what, ": needs about ", bytes, " bytes while it runs; of the server's budget for work in flight of ",
+          capacity_, " (--max-work-bytes), ", lasting_,
+          " are held by results it keeps (obscurance solutions for UpdateObscurances, until their scene's next "
+          "whole bake or unload)"));
     if (job.cancelled != nullptr && job.cancelled->load())
       return absl::CancelledError(absl::StrCat(what, ": cancelled while waiting for memory (--max-work-bytes)"));
     const auto now = std::chrono::steady_clock::now();
@@ -73,10 +95,11 @@ StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes
   return Reservation(this, bytes);
 }
 
-void WorkMemoryBudget::Release(uint64_t bytes) {
+void WorkMemoryBudget::Release(uint64_t bytes, bool lasting) {
   {
     std::lock_guard lock(mutex_);
     in_use_ -= bytes;
+    if (lasting) lasting_ -= bytes;
   }
   released_.notify_all();
   // glibc keeps freed memory of a large answer in its arenas (1.4 GB after

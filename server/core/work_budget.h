@@ -39,11 +39,21 @@ class WorkMemoryBudget {
     Reservation& operator=(Reservation&& other) noexcept;
     ~Reservation();
 
+    // Moves `bytes` of this reservation (all of it, at most) into a lasting
+    // one of their own, for a part of the work the server keeps after the
+    // call (a bake's updater, until the scene's next whole bake or unload).
+    // What lasting reservations hold is not waited for: a request that
+    // could fit only once they go is refused at once.
+    [[nodiscard]] Reservation KeepLasting(uint64_t bytes);
+    uint64_t bytes() const { return bytes_; }
+
    private:
     friend class WorkMemoryBudget;
-    Reservation(WorkMemoryBudget* budget, uint64_t bytes) : budget_(budget), bytes_(bytes) {}
+    Reservation(WorkMemoryBudget* budget, uint64_t bytes, bool lasting = false)
+        : budget_(budget), bytes_(bytes), lasting_(lasting) {}
     WorkMemoryBudget* budget_ = nullptr;
     uint64_t bytes_ = 0;
+    bool lasting_ = false;
   };
 
   // `what` names the request's part that needs the memory ("width x height
@@ -62,13 +72,14 @@ class WorkMemoryBudget {
   uint64_t peak() const;
 
  private:
-  void Release(uint64_t bytes);
+  void Release(uint64_t bytes, bool lasting);
 
   uint64_t capacity_ = 0;
   std::string capacity_source_;
   mutable std::mutex mutex_;
   std::condition_variable released_;
   uint64_t in_use_ = 0;
+  uint64_t lasting_ = 0;  // of in_use_, held by lasting reservations
   uint64_t peak_ = 0;
 };
 

@@ -15,6 +15,7 @@
 
 #include <gtest/gtest.h>
 
+#include "proto_builders.h"
 #include "server_process.h"
 #include "test_support.h"
 #include "visq/v1/visq.pb.h"
@@ -79,6 +80,10 @@ Memory MemoryOf(int pid) {
   return m;
 }
 
+// Starts the server's peak resident memory (VmHWM) again from its resident
+// memory now (Linux's clear_refs, value 5).
+void ResetPeakMemory(int pid) { std::ofstream("/proc/" + std::to_string(pid) + "/clear_refs") << "5"; }
+
 // The server's CPU time so far (user and system), seconds.
 double CpuSecondsOf(int pid) {
   std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
@@ -112,6 +117,9 @@ void Set(v1::Vec3* v, double x, double y, double z) {
 
 constexpr uint64_t kBudget = 32'000'000;
 constexpr uint64_t kMiB = uint64_t{1} << 20;
+// Holds a 512^2 ray-cast bake of two full-UV quads (about 100 MB) but not
+// its updater and an update together (about 190 MB).
+constexpr uint64_t kUpdateBudget = 140 * kMiB;
 
 class HostileWork : public ::testing::Test {
  protected:
@@ -206,6 +214,101 @@ TEST(HostileWorkDeadline, DeadlineStopsALargeObscuranceAtlasBuild) {
   v1::ComputeObscurancesRequest small = Bake("quads", 16);
   small.set_method(v1::ComputeObscurancesRequest::RAYCAST);
   EXPECT_TRUE(uploader.ComputeObscurances(small).ok());
+}
+
+v1::ComputeObscurancesRequest RaycastBake(const std::string& scene, uint32_t resolution, uint32_t rays) {
+  v1::ComputeObscurancesRequest request = Bake(scene, resolution);
+  request.set_method(v1::ComputeObscurancesRequest::RAYCAST);
+  request.set_rays_per_patch(rays);
+  return request;
+}
+
+// A ray-cast bake traced its rays in batches of 4,096 texels whatever
+// rays_per_patch was, and reserved only its per-texel arrays: not the
+// batches, nor the updater a whole bake leaves behind, nor the answer's
+// bounds and copies. At 64^2 and 2,048 rays a patch (two full-UV quads,
+// one batch of 8.4M rays) the server's peak grew by 1,090 MiB under a
+// 256 MiB budget. Now a batch holds about 65,536 rays, and what the bake
+// holds is reserved before it starts: the peak grows by less than the
+// budget plus a slack for the process's own (thread stacks, malloc's
+// arenas, the answer's messages in gRPC).
+TEST(HostileWorkBudget, RaycastBakeStaysWithinItsReservation) {
+  constexpr uint64_t kBudgetBytes = 256 * kMiB, kSlack = 64 * kMiB;
+  ScratchDir repo, files;
+  auto server = ServerProcess::Start({repo.path(), {"--max-work-bytes", std::to_string(kBudgetBytes)}});
+  ASSERT_NE(server, nullptr);
+  Client client({.address = server->address()});
+  ASSERT_TRUE(client.UploadScene(WriteFullUvQuads(files.path(), 2), "quads").ok());
+  ResetPeakMemory(server->pid());
+  const Memory before = MemoryOf(server->pid());
+  const auto start = std::chrono::steady_clock::now();
+  auto baked = client.ComputeObscurances(RaycastBake("quads", 64, 2048));
+  const double seconds = SecondsSince(start);
+  ASSERT_TRUE(baked.ok()) << baked.status();
+  const Memory after = MemoryOf(server->pid());
+  const uint64_t growth = after.peak > before.rss ? after.peak - before.rss : 0;
+  std::cout << "[ measured ] 64^2 x 2048 rays in " << seconds << " s: peak RSS grew by " << growth / kMiB
+            << " MiB (budget " << kBudgetBytes / kMiB << " MiB, slack " << kSlack / kMiB << " MiB)\n";
+  EXPECT_LT(growth, kBudgetBytes + kSlack);
+  EXPECT_EQ(baked->figures.estimated_texels(), 64u * 64u);
+}
+
+// UpdateObscurances took no reservation, though its moves' merged changes,
+// its answer and its candidate search may hold every texel of the bake's
+// atlas. Now it reserves that before its first move, beside what the
+// bake's updater keeps for as long as it lives (a lasting reservation,
+// which a request does not wait for): under a budget that holds the bake
+// but not the bake's updater and an update together, the update is
+// refused at once by name, and after a smaller bake (whose updater
+// replaces the first) an update answers.
+TEST(HostileWorkBudget, ObscuranceUpdateBeyondTheBudgetIsRefused) {
+  ScratchDir repo, files;
+  auto server = ServerProcess::Start({repo.path(), {"--max-work-bytes", std::to_string(kUpdateBudget)}});
+  ASSERT_NE(server, nullptr);
+  Client client({.address = server->address()});
+  ASSERT_TRUE(client.UploadScene(WriteFullUvQuads(files.path(), 2), "quads").ok());
+  double update_seconds = 0;
+  auto update_after_bake = [&](uint32_t resolution) {
+    auto baked = client.ComputeObscurances(RaycastBake("quads", resolution, 16));
+    EXPECT_TRUE(baked.ok()) << baked.status();
+    if (!baked.ok()) return Status(baked.status());
+    EXPECT_TRUE(baked->figures.update_ready());
+    v1::SetNodeTransformRequest move;
+    move.mutable_scene()->set_name("quads");
+    move.set_node_name("quad1");
+    for (double v : testing::Translation(0.1, 1.5, 0)) move.add_world_matrix(v);
+    EXPECT_TRUE(client.SetNodeTransform(move).ok());
+    v1::UpdateObscurancesRequest update;
+    update.mutable_scene()->set_name("quads");
+    const auto start = std::chrono::steady_clock::now();
+    const Status status = client.UpdateObscurances(update).status();
+    update_seconds = SecondsSince(start);
+    return status;
+  };
+  const Status refused = update_after_bake(512);
+  std::cout << "[ refused  ] update after a 512^2 bake, in " << update_seconds << " s: " << refused.message()
+            << "\n";
+  EXPECT_EQ(refused.code(), absl::StatusCode::kResourceExhausted) << refused;
+  EXPECT_NE(std::string(refused.message()).find("--max-work-bytes"), std::string::npos) << refused;
+  EXPECT_LT(update_seconds, 0.5);
+  const Status small = update_after_bake(64);
+  EXPECT_TRUE(small.ok()) << small;
+}
+
+// What a ray-cast bake holds grows with rays_per_patch (a sampler per ray
+// on each thread that makes a patch's rays) and with the atlas (the
+// updater's patch balls, index and tallies, its copies of the scene and
+// the result): a bake whose whole is beyond the budget is refused before
+// its atlas exists, naming the flag and the fields. One full-UV quad at
+// 256^2 and 16,384 rays a patch was accepted on its per-texel arrays
+// alone (about 10 MB of this 32 MB budget), to trace batches of 4,096
+// texels' rays: 67M rays, some 8.8 GB.
+TEST_F(HostileWork, RaycastBakeBeyondTheBudgetIsRefusedBeforeItStarts) {
+  ASSERT_TRUE(client_->UploadScene(WriteFullUvQuads(files_.path(), 1), "quad").ok());
+  ExpectRefusedBeforeWork("rays_per_patch",
+                          [&] { return client_->ComputeObscurances(RaycastBake("quad", 256, 16384)).status(); });
+  auto small = client_->ComputeObscurances(RaycastBake("quad", 32, 64));
+  ASSERT_TRUE(small.ok()) << small.status();
 }
 
 // RenderObscurancePreview at 4096^2 held about 0.8 GB unreserved (the GL
