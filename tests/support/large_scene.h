@@ -48,8 +48,10 @@ inline Scene MakeRippledGrid(int cells) {
 // `mesh`'s triangles taken as one mesh in its own space and placed once by
 // each of `worlds` (none of them mirroring), held once as placements of
 // it as the loader holds a mesh that several nodes share.
-// Materials and nodes are `mesh`'s; a scene that has placements of its own,
-// or too few triangles to instance, is placed flattened only.
+// Materials and nodes are `mesh`'s, except that a placement is one node's
+// (as the loader makes them): a mesh of several nodes is placed as one node
+// covering the level. A scene that has placements of its own, or too few
+// triangles to instance, is placed flattened only.
 inline Scene PlaceMesh(const Scene& mesh, const std::vector<glm::dmat4>& worlds) {
   Scene out;
   out.materials = mesh.materials;
@@ -69,6 +71,13 @@ inline Scene PlaceMesh(const Scene& mesh, const std::vector<glm::dmat4>& worlds)
     out.triangle_material.insert(out.triangle_material.end(), mesh.triangle_material.begin(),
                                  mesh.triangle_material.end());
     out.triangle_node.insert(out.triangle_node.end(), mesh.triangle_node.begin(), mesh.triangle_node.end());
+  }
+  if (as_placements && out.nodes.size() > 1) {
+    SceneNode level;
+    level.name = "level";
+    level.triangle_count = static_cast<uint32_t>(out.triangles.size());
+    out.nodes = {level};
+    out.triangle_node.assign(out.triangles.size(), 0);
   }
   HoldPlacementsOnce(out);
   return out;
