@@ -619,31 +619,43 @@ SampledErrorModel WorstCaseBound(const AccuracyTarget& target, double polygon_sh
   return model;
 }
 
-// The estimate a map of N jittered samples will state (its largest
-// texel's, EstimateOfTexel), predicted from the same request at two small
-// sizes: `at_fewer` from kEstimateProbeSamples[0] samples, `at_more` from
-// [1]. Where shadow edges cross the source, the split pairs grow as
-// sqrt(N) and the estimate falls as N^-3/4; where occluders are finer than
-// the cells (foliage, a grille seen from afar) most pairs split and it
-// falls as N^-1/2 only. The two probes give the rate between, clamped to
-// that range, and each is floored at one split pair (a probe that saw no
-// penumbra says little about texels it did not sample). Never above the
-// worst case, every pair split.
-constexpr int kEstimateProbeSamples[2] = {256, 1024};
-constexpr int kEstimateProbeSide = 16;
+// What a map of N jittered samples will state on the target's guarantee
+// (its largest texel's bound, or estimate), predicted from the same request
+// at two small sizes: `at_fewer` from kProbeSamples[0] samples, `at_more`
+// from [1], each at least its `floor`. Where shadow edges cross the source,
+// the split pairs grow as sqrt(N) and a texel's estimate and split-pair
+// bound fall as N^-3/4; where occluders are finer than the cells (foliage, a
+// grille seen from afar) most pairs split and they fall as N^-1/2 only. The
+// two probes give the rate between, clamped to that range. Never above
+// `worst`, what the answer can state whatever the scene. A prediction can
+// miss (the probes see 16 x 16 of the request's texels): the chosen plan is
+// topped up with more maps until its answer meets the target
+// (HiddenSampleMapForTarget).
+constexpr int kProbeSamples[2] = {256, 1024};
+constexpr int kProbeSide = 16;
 
-SampledErrorModel PredictedEstimate(const AccuracyTarget& target, double at_fewer, double at_more) {
-  const double z = TwoSidedNormalQuantile(target.confidence);
-  const double n0 = kEstimateProbeSamples[0], n1 = kEstimateProbeSamples[1];
-  const double e0 = std::max(at_fewer, z / n0), e1 = std::max(at_more, z / n1);
+SampledErrorModel PredictedFromProbes(const AccuracyTarget& target, double at_fewer, double at_more,
+                                      const double floor[2], const SampledErrorModel& worst) {
+  const double n0 = kProbeSamples[0], n1 = kProbeSamples[1];
+  const double e0 = std::max(at_fewer, floor[0]), e1 = std::max(at_more, floor[1]);
   const double rate = std::clamp(std::log(e0 / e1) / std::log(n1 / n0), 0.5, 0.75);
   SampledErrorModel model;
-  model.at = [z, e1, n1, rate](int samples) {
+  model.at = [e1, n1, rate, worst = worst.at](int samples) {
     const double n = std::max(samples, 1);
-    return std::min({1.0, e1 * std::pow(n1 / n, rate), z * std::sqrt(0.5 / n)});
+    return std::min(e1 * std::pow(n1 / n, rate), worst(samples));
   };
-  model.samples_needed = target.max_error > 0 ? n1 * std::pow(e1 / target.max_error, 1.0 / rate) : 0.0;
-  model.samples_needed = std::min(model.samples_needed, 0.5 * z * z / (target.max_error * target.max_error));
+  model.samples_needed = worst.samples_needed;
+  if (target.max_error > 0)
+    model.samples_needed = std::min(model.samples_needed, n1 * std::pow(e1 / target.max_error, 1.0 / rate));
+  return model;
+}
+
+// The estimate a map states at most, whatever the scene: every pair split.
+SampledErrorModel WorstCaseEstimate(const AccuracyTarget& target) {
+  const double z = TwoSidedNormalQuantile(target.confidence);
+  SampledErrorModel model;
+  model.at = [z](int samples) { return std::min(1.0, z * std::sqrt(0.5 / std::max(samples, 1))); };
+  model.samples_needed = target.max_error > 0 ? 0.5 * z * z / (target.max_error * target.max_error) : 0.0;
   return model;
 }
 
@@ -715,6 +727,9 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       plan.work = predicted.units.work;
       plan.extra_work = predicted.units.extra;
       plan.predicted_ms = predicted.ms;
+      // A probe cut at its budget (a share of the cheapest sampled plan)
+      // extrapolates what it answered: the method costs at least that.
+      if (predicted.cut) plan.parameters["probe_cut"] = 1.0;
       report.plans.push_back(std::move(plan));
       continue;
     }
@@ -816,18 +831,22 @@ Status ValidateSeveralMaps(const sampling::HiddenSampleMapRequest& request) {
   return absl::OkStatus();
 }
 
-// A map of `samples` jittered samples beyond one map's 4096: ceil(samples /
-// 4096) maps of equal counts, each with its own seed, so every cell of the
-// pattern holds that many independent uniform samples. The visible counts
-// add up; the sum is still Poisson-binomial, so the per-texel bounds hold at
-// the total count, and their split pairs add up as well. Each map's bands
-// are added as they come; the sum is delivered as one band.
-StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const ResidentScene& resident,
-                                                      VisibilityMethod method, sampling::HiddenSampleMapRequest request,
-                                                      int samples, const CallOptions& call,
-                                                      const sampling::HiddenSampleMapBandSink& sink) {
-  const int maps = (samples + sampling::kMaxHiddenSampleMapSamples - 1) / sampling::kMaxHiddenSampleMapSamples;
-  const int per_map = (samples + maps - 1) / maps;
+// Maps of `per_map` jittered samples each, each with its own seed, summed:
+// every cell of the pattern then holds as many independent uniform samples
+// as there are maps. The visible counts add up; the sum is still
+// Poisson-binomial, so the per-texel bounds hold at the total count, and the
+// split pairs add up as well. Each map's bands are added as they come. After
+// `first_maps` maps, and after each later round (as many maps again as are
+// summed, up to `most_maps`), the sum's statement is made and `enough` asked
+// whether it will do; the sum that does, or the last, is delivered as one
+// band.
+StatusOr<sampling::HiddenSampleMapResult> SummedMaps(
+    Engine& engine, const ResidentScene& resident, VisibilityMethod method, sampling::HiddenSampleMapRequest request,
+    int per_map, int first_maps, int most_maps,
+    const std::function<bool(const sampling::HiddenSampleMapResult& stated)>& enough, const CallOptions& call,
+    const sampling::HiddenSampleMapBandSink& sink) {
+  VISQ_CHECK_LE(1, first_maps);
+  VISQ_CHECK_LE(first_maps, most_maps);
   request.source.sample_count = per_map;
   request.options.want_bitmasks = false;
   VISQ_RETURN_IF_ERROR(ValidateSize(request));
@@ -847,39 +866,63 @@ StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const Resi
   };
   sampling::HiddenSampleMapResult sum;
   const uint64_t first_seed = request.source.seed;
-  for (int m = 0; m < maps; ++m) {
-    request.source.seed = first_seed + uint64_t(m) * 0x9E3779B97F4A7C15ull;
-    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult one,
-                          HiddenSampleMapBy(engine, resident, method, request, call, add_band));
-    if (m == 0) {
-      sum.width = one.width;
-      sum.height = one.height;
-      sum.error.confidence = one.error.confidence;
-    }
-    sum.samples.uv.insert(sum.samples.uv.end(), one.samples.uv.begin(), one.samples.uv.end());
-    sum.samples.world.insert(sum.samples.world.end(), one.samples.world.begin(), one.samples.world.end());
-    sum.timing.queue_ms += one.timing.queue_ms;
-    sum.timing.run_ms += one.timing.run_ms;
-    sum.table_ms += one.table_ms;
-    sum.passes += one.passes;
-  }
-  const int total = maps * per_map;
-  sum.sample_count = total;
-  sum.samples.requested = total;
-  sum.error.sampling = sampling::SamplingErrorBound(total, sum.error.confidence);
-  sum.error.rigorous = sampling::SamplesAreIndependentStrata(request);
-  sampling::HiddenSampleMapBand band;
-  band.visible_fraction.resize(texels);
-  for (size_t j = 0; j < texels; ++j) band.visible_fraction[j] = float(double(visible[j]) / total);
-  if (every_band_split) {
-    band.split_pairs = std::move(split_pairs);
-    band.split_pair_maps = maps;
-  }
   sampling::HiddenSampleMapRequest as_one = request;
-  as_one.options.confidence = sum.error.confidence;
-  sampling::BoundTexels(as_one, sum, band);
-  VISQ_RETURN_IF_ERROR(sampling::DeliverBand(sum, band, sink));
-  return sum;
+  // The sum of `maps` maps as one band, bounded at the total count.
+  const auto summed_band = [&](int maps) {
+    const int total = maps * per_map;
+    sum.sample_count = total;
+    sum.samples.requested = total;
+    sum.error = sampling::ErrorBound();
+    sum.error.confidence = request.options.confidence;
+    sum.error.sampling = sampling::SamplingErrorBound(total, sum.error.confidence);
+    sum.error.rigorous = sampling::SamplesAreIndependentStrata(request);
+    sampling::HiddenSampleMapBand band;
+    band.visible_fraction.resize(texels);
+    for (size_t j = 0; j < texels; ++j) band.visible_fraction[j] = float(double(visible[j]) / total);
+    if (every_band_split) {
+      band.split_pairs = split_pairs;
+      band.split_pair_maps = maps;
+    }
+    as_one.source.sample_count = total;
+    sampling::BoundTexels(as_one, sum, band);
+    return band;
+  };
+  int maps = 0, round_end = first_maps;
+  while (true) {
+    for (; maps < round_end; ++maps) {
+      request.source.seed = first_seed + uint64_t(maps) * 0x9E3779B97F4A7C15ull;
+      VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult one,
+                            HiddenSampleMapBy(engine, resident, method, request, call, add_band));
+      if (maps == 0) {
+        sum.width = one.width;
+        sum.height = one.height;
+      }
+      sum.samples.uv.insert(sum.samples.uv.end(), one.samples.uv.begin(), one.samples.uv.end());
+      sum.samples.world.insert(sum.samples.world.end(), one.samples.world.begin(), one.samples.world.end());
+      sum.timing.queue_ms += one.timing.queue_ms;
+      sum.timing.run_ms += one.timing.run_ms;
+      sum.table_ms += one.table_ms;
+      sum.passes += one.passes;
+    }
+    sampling::HiddenSampleMapBand band = summed_band(maps);
+    if (maps >= most_maps || enough(sum)) {
+      VISQ_RETURN_IF_ERROR(sampling::DeliverBand(sum, band, sink));
+      return sum;
+    }
+    round_end = std::min(most_maps, 2 * maps);
+  }
+}
+
+// A map of `samples` jittered samples beyond one map's 4096: ceil(samples /
+// 4096) maps of equal counts (SummedMaps).
+StatusOr<sampling::HiddenSampleMapResult> SeveralMaps(Engine& engine, const ResidentScene& resident,
+                                                      VisibilityMethod method, sampling::HiddenSampleMapRequest request,
+                                                      int samples, const CallOptions& call,
+                                                      const sampling::HiddenSampleMapBandSink& sink) {
+  const int maps = (samples + sampling::kMaxHiddenSampleMapSamples - 1) / sampling::kMaxHiddenSampleMapSamples;
+  const int per_map = (samples + maps - 1) / maps;
+  return SummedMaps(engine, resident, method, std::move(request), per_map, maps, maps,
+                    [](const sampling::HiddenSampleMapResult&) { return true; }, call, sink);
 }
 
 StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const ResidentScene& resident,
@@ -920,48 +963,87 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   const auto resolves = [&](VisibilityMethod method, int samples) {
     return engine.ValidateSampledPrecision(resident, with_samples(samples, 0), TracerOf(method), query.call);
   };
-  // On the estimate: two small maps of this request say how it falls with
-  // N here (PredictedEstimate), by the cheaper method on a CPU that
-  // resolves it (both give the same bits).
-  SampledErrorModel error_of = WorstCaseBound(target, PolygonShare(request.source));
-  double estimate_probe_ms = 0.0;
-  if (target.wants_estimate()) {
-    if (!sampling::SamplesAreIndependentStrata(request))
-      return absl::InvalidArgumentError(
-          "target.guarantee: ESTIMATE needs JITTERED samples without a polygon or decorrelation (one independent "
-          "sample in each of N equal cells, whose split pairs estimate the variance); ask for RIGOROUS");
+  // Jittered visible fractions can be topped up with more maps (SummedMaps),
+  // so their plans are weighed by the bound, or estimate, that this
+  // request's own samples predict (PredictedFromProbes), and the answer is
+  // topped up where the prediction missed. Other requests are weighed by
+  // the worst case, which their answer never exceeds.
+  const bool several_maps = ValidateSeveralMaps(request).ok();
+  if (target.wants_estimate() && !sampling::SamplesAreIndependentStrata(request))
+    return absl::InvalidArgumentError(
+        "target.guarantee: ESTIMATE needs JITTERED samples without a polygon or decorrelation (one independent "
+        "sample in each of N equal cells, whose split pairs estimate the variance); ask for RIGOROUS");
+  SampledErrorModel error_of = target.wants_estimate() ? WorstCaseEstimate(target)
+                                                       : WorstCaseBound(target, PolygonShare(request.source));
+  const std::string series_base = SeriesBase(resident, "hidden_sample_map");
+  double probe_ms = 0.0;
+  if (target.max_error > 0 && (several_maps || target.wants_estimate())) {
+    // Two small maps of this request, by the cheaper method on a CPU that
+    // resolves it (both give the same bits); their times teach the cost
+    // model that method too.
     VisibilityMethod probe_method = VisibilityMethod::kRaycast;
-    const Status raycast_resolves = resolves(probe_method, kEstimateProbeSamples[1]);
+    const Status raycast_resolves = resolves(probe_method, kProbeSamples[1]);
     if (raycast_resolves.code() == absl::StatusCode::kFailedPrecondition) probe_method = VisibilityMethod::kRaster;
     else VISQ_RETURN_IF_ERROR(raycast_resolves);
     double at[2] = {0.0, 0.0};
+    double floor[2] = {0.0, 0.0};
+    const double z = TwoSidedNormalQuantile(target.confidence);
     for (int i = 0; i < 2; ++i) {
       VISQ_RETURN_IF_ERROR(RequireNotCancelled(query.call.Job()));
       VISQ_ASSIGN_OR_RETURN(const sampling::HiddenSampleMapResult probe,
-                            run(probe_method, kEstimateProbeSamples[i], kEstimateProbeSide));
-      at[i] = probe.error.has_estimate ? probe.error.estimate_max : 1.0;
-      estimate_probe_ms += ComputeMs(probe.timing, probe.table_ms);
+                            run(probe_method, kProbeSamples[i], kProbeSide));
+      const double ms = ComputeMs(probe.timing, probe.table_ms);
+      const WorkUnits units = SampledWork(probe_method, double(probe.width) * probe.height, kProbeSamples[i]);
+      engine.cost_model().Record(absl::StrCat(series_base, "/", VisibilityMethodName(probe_method,
+                                                                                      request.options.lookup)),
+                                 units.work, ms, units.extra);
+      probe_ms += ms;
+      if (target.wants_estimate()) {
+        at[i] = probe.error.has_estimate ? probe.error.estimate_max : 1.0;
+        floor[i] = z / kProbeSamples[i];  // one split pair: a probe that saw no penumbra says little
+      } else {
+        at[i] = probe.error.total();
+      }
     }
-    error_of = PredictedEstimate(target, at[0], at[1]);
+    error_of = PredictedFromProbes(target, at[0], at[1], floor, error_of);
   }
 
   const double texels = double(request.receiver.width) * request.receiver.height;
-  const bool several_maps = ValidateSeveralMaps(request).ok();
   const int max_samples = several_maps ? kMaxPlannedSamples : sampling::kMaxHiddenSampleMapSamples;
-  VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, SeriesBase(resident, "hidden_sample_map"), target,
-                                                          texels,
+  VISQ_ASSIGN_OR_RETURN(PlanReport report, PlanVisibility(engine, series_base, target, texels,
                                                           [&] { return ExactBatchOf(resident, with_samples(1, 0), query.call); },
                                                           error_of, exact_possible,
                                                           max_samples, query.call.Job(), cost_of, resolves));
-  report.probe_ms += estimate_probe_ms;
+  report.probe_ms += probe_ms;
   LogChosenPlan(report, query.call);
   const Plan& plan = report.chosen_plan();
   HiddenSampleMapAnswer answer;
   answer.method = MethodOfPlan(plan);
   const int samples = plan.parameters.contains("samples") ? int(plan.parameters.at("samples")) : 0;
-  VISQ_ASSIGN_OR_RETURN(answer.result, run(answer.method, samples, 0, sink));
-  engine.cost_model().Record(plan.cost_key, plan.work, ComputeMs(answer.result.timing, answer.result.table_ms),
-                             plan.extra_work);
+  if (answer.method != VisibilityMethod::kPluckerExact && several_maps && target.max_error > 0) {
+    // The plan's maps, then as many again while the answer misses the
+    // target, up to the planner's cap.
+    const int maps = (samples + sampling::kMaxHiddenSampleMapSamples - 1) / sampling::kMaxHiddenSampleMapSamples;
+    const int per_map = (samples + maps - 1) / maps;
+    const auto meets = [&](const sampling::HiddenSampleMapResult& stated) {
+      const double value = target.wants_estimate() ? (stated.error.has_estimate ? stated.error.estimate_max : 1.0)
+                                                   : stated.error.total();
+      return value <= target.max_error;
+    };
+    constexpr int kMostTopUp = 16;  // at most 16x the planned samples: the bound falls 4-8x
+    const int most_maps = std::max(maps, std::min(kMostTopUp * maps, kMaxPlannedSamples / per_map));
+    VISQ_ASSIGN_OR_RETURN(answer.result, SummedMaps(engine, resident, answer.method, with_samples(per_map, 0),
+                                                    per_map, maps, most_maps, meets, query.call, sink));
+  } else {
+    VISQ_ASSIGN_OR_RETURN(answer.result, run(answer.method, samples, 0, sink));
+  }
+  // The model learns what ran: a topped-up plan ran more samples.
+  const WorkUnits ran = answer.method == VisibilityMethod::kPluckerExact
+                            ? WorkUnits{plan.work, plan.extra_work}
+                            : SampledWork(answer.method, texels, answer.result.sample_count);
+  engine.cost_model().Record(plan.cost_key, ran.work, ComputeMs(answer.result.timing, answer.result.table_ms),
+                             ran.extra);
+
   answer.plan = std::move(report);
   return answer;
 }
@@ -1299,7 +1381,20 @@ StatusOr<HiddenSampleMapAnswer> RunHiddenSampleMap(Engine& engine, const HiddenS
   VISQ_ASSIGN_OR_RETURN(HiddenSampleMapAnswer answer, HiddenSampleMapUnstated(engine, query, sink));
   answer.accuracy = SampledVisibilityStatement(answer.result.error, answer.method, query.request.options.lookup,
                                                answer.result.sample_count);
-  if (answer.plan) AddChosenPlan(*answer.plan, answer.accuracy);
+  if (answer.plan) {
+    AddChosenPlan(*answer.plan, answer.accuracy);
+    // A plan topped up with more maps (HiddenSampleMapForTarget) says so:
+    // `samples` is what ran, `planned_samples` what was chosen.
+    const Plan& chosen = answer.plan->chosen_plan();
+    if (chosen.parameters.contains("samples") && answer.result.sample_count > chosen.parameters.at("samples")) {
+      answer.accuracy.parameters["planned_samples"] = chosen.parameters.at("samples");
+      answer.accuracy.parameters["samples"] = answer.result.sample_count;
+      absl::StrAppend(&answer.accuracy.note, "; its answer missed the target at the ",
+                      chosen.parameters.at("samples"), " samples planned (a prediction from two small maps of this "
+                      "request), so more maps with their own jitter were added: ", answer.result.sample_count,
+                      " samples in all");
+    }
+  }
   return answer;
 }
 

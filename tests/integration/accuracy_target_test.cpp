@@ -76,11 +76,16 @@ TEST_F(AccuracyTargetTest, HiddenSampleMapMeetsAnErrorTargetAndSaysWhatItChose) 
   for (const v1::PlanEstimate& plan : accuracy.plans()) {
     if (plan.meets_target()) cheapest_meeting = std::min(cheapest_meeting, plan.predicted_ms());
     // The answer's parameters hold the plan's and more (the estimate's
-    // spread, whether the target was met).
+    // spread, whether the target was met); a plan topped up with more maps
+    // keeps its own count as planned_samples.
     if (plan.method() == accuracy.method()) {
       bool same = true;
-      for (const auto& [name, value] : plan.parameters())
-        same = same && accuracy.parameters().contains(name) && accuracy.parameters().at(name) == value;
+      for (const auto& [name, value] : plan.parameters()) {
+        const std::string key = name == "samples" && accuracy.parameters().contains("planned_samples")
+                                    ? "planned_samples"
+                                    : name;
+        same = same && accuracy.parameters().contains(key) && accuracy.parameters().at(key) == value;
+      }
       if (same) {
         chosen_listed = true;
         EXPECT_TRUE(plan.meets_target());
@@ -90,10 +95,7 @@ TEST_F(AccuracyTargetTest, HiddenSampleMapMeetsAnErrorTargetAndSaysWhatItChose) 
   }
   EXPECT_TRUE(chosen_listed) << accuracy.DebugString();
   EXPECT_DOUBLE_EQ(accuracy.predicted_ms(), cheapest_meeting);
-  if (accuracy.method() != "plucker-exact") {
-    // Hoeffding at 0.05 and 95 %: at least 738 samples.
-    EXPECT_GE(answer->figures.sample_count(), 738u);
-  }
+  EXPECT_EQ(accuracy.parameters().at("target_met"), 1.0) << accuracy.DebugString();
 
   const std::vector<float> exact = ExactFractions(request);
   ASSERT_EQ(exact.size(), answer->visible_fraction.size());
@@ -350,17 +352,19 @@ TEST_F(AccuracyTargetTest, ATargetOnTheEstimateIsPlannedByItsPredictionAndSaysWh
     EXPECT_EQ(accuracy.parameters().at("target_met"), 1.0);
   }
 
-  // The same target on the bound: Hoeffding's plans, and the bound meets it.
+  // The same target on the bound: planned by the bound the same probes
+  // predict, which needs more samples than the estimate, and the answer's
+  // bound meets it (topped up where the prediction missed).
   request.mutable_target()->set_guarantee(v1::AccuracyTarget::RIGOROUS);
   auto rigorous = client_->ComputeHiddenSampleMap(request);
   ASSERT_TRUE(rigorous.ok()) << rigorous.status();
   EXPECT_LE(rigorous->figures.accuracy().error_bound(), 0.01);
   EXPECT_EQ(rigorous->figures.accuracy().parameters().at("target_met"), 1.0);
-  for (const v1::PlanEstimate& plan : rigorous->figures.accuracy().plans()) {
-    if (plan.meets_target() && plan.parameters().contains("samples")) {
-      EXPECT_GE(plan.parameters().at("samples"), 18445.0) << rigorous->figures.accuracy().DebugString();
-    }
-  }
+  double fewest_on_bound = 1e300;
+  for (const v1::PlanEstimate& plan : rigorous->figures.accuracy().plans())
+    if (plan.meets_target() && plan.parameters().contains("samples"))
+      fewest_on_bound = std::min(fewest_on_bound, plan.parameters().at("samples"));
+  EXPECT_LE(fewest_meeting, fewest_on_bound);
 }
 
 TEST_F(AccuracyTargetTest, AnEstimateTargetWhereNoEstimateCanBeMadeIsRefusedNamingTheGuarantee) {
@@ -524,11 +528,22 @@ class ExactPredictionTest : public testing::SharedServerSuite<ExactPredictionTes
 // Predicted against measured, within a generous factor: the machine may be
 // loaded between the probes and the run (two cores shared by builds), and a
 // few ms either way is noise. The 2x goal is the bench's
-// (visq_bench_default_method --exact), not a test's.
-void ExpectWithinFactor(double predicted_ms, double measured_ms, double factor, const std::string& what) {
+// (visq_bench_default_method --exact), not a test's. A prediction from a
+// probe cut at its budget (`lower_bound`) says only that the method costs
+// at least that much.
+void ExpectWithinFactor(double predicted_ms, double measured_ms, double factor, const std::string& what,
+                        bool lower_bound = false) {
   constexpr double kSlackMs = 5.0;
   EXPECT_LE(predicted_ms, factor * measured_ms + kSlackMs) << what;
-  EXPECT_LE(measured_ms, factor * predicted_ms + kSlackMs) << what;
+  if (!lower_bound) EXPECT_LE(measured_ms, factor * predicted_ms + kSlackMs) << what;
+}
+
+// The exact plan among those weighed: its predicted ms, and whether its
+// probe was cut (its prediction then a lower bound); -1 without one.
+std::pair<double, bool> ExactPlanPrediction(const v1::Accuracy& accuracy) {
+  for (const v1::PlanEstimate& plan : accuracy.plans())
+    if (plan.method() == "plucker-exact") return {plan.predicted_ms(), plan.parameters().contains("probe_cut")};
+  return {-1.0, false};
 }
 
 // The glass vase's flowers under a light (the foliage), and the bunny under
@@ -557,9 +572,7 @@ TEST_F(ExactPredictionTest, AFoliageTargetRoutesAroundTheExactMethodWhereItIsSlo
     auto target = client_->ComputeHiddenSampleMap(request);
     ASSERT_TRUE(target.ok()) << target.status();
     const v1::Accuracy& accuracy = target->figures.accuracy();
-    double exact_predicted = -1.0;
-    for (const v1::PlanEstimate& plan : accuracy.plans())
-      if (plan.method() == "plucker-exact") exact_predicted = plan.predicted_ms();
+    const auto [exact_predicted, exact_cut] = ExactPlanPrediction(accuracy);
     ASSERT_GT(exact_predicted, 0.0) << accuracy.DebugString();
 
     // Both methods by name on the other copy, cold: the exact map, and the
@@ -596,7 +609,8 @@ TEST_F(ExactPredictionTest, AFoliageTargetRoutesAroundTheExactMethodWhereItIsSlo
     // the batch's later ones, and a probe cut at its budget averages over a
     // few dozen points (the bunny: 3-8x over; the scene-wide fit this
     // replaced was 460x under there and chose the exact method).
-    ExpectWithinFactor(exact_predicted, exact_ms, 10.0, "the exact plan's predicted ms against its compute ms");
+    ExpectWithinFactor(exact_predicted, exact_ms, 10.0, "the exact plan's predicted ms against its compute ms",
+                       exact_cut);
 
     // A second request on the same scene, under a smaller light further
     // along: its own penumbra, predicted from its own probes (a scene-wide
@@ -609,15 +623,14 @@ TEST_F(ExactPredictionTest, AFoliageTargetRoutesAroundTheExactMethodWhereItIsSlo
     second.mutable_target()->set_max_error(0.02);
     auto again = client_->ComputeHiddenSampleMap(second);
     ASSERT_TRUE(again.ok()) << again.status();
-    double again_predicted = -1.0;
-    for (const v1::PlanEstimate& plan : again->figures.accuracy().plans())
-      if (plan.method() == "plucker-exact") again_predicted = plan.predicted_ms();
+    const auto [again_predicted, again_cut] = ExactPlanPrediction(again->figures.accuracy());
     double again_ms = again->figures.timing().compute_ms();
     if (again->figures.accuracy().method() != "plucker-exact")
       again_ms = ComputeMs(FloorMap(moved, target_scene), v1::PLUCKER_EXACT, 0);
-    std::printf("%s, the smaller light: chose %s; the exact plan predicted %.1f ms, computed %.1f ms\n", c.name,
-                again->figures.accuracy().method().c_str(), again_predicted, again_ms);
-    ExpectWithinFactor(again_predicted, again_ms, 10.0, "a second request: the exact plan's predicted ms");
+    std::printf("%s, the smaller light: chose %s; the exact plan predicted %.1f ms%s, computed %.1f ms\n", c.name,
+                again->figures.accuracy().method().c_str(), again_predicted, again_cut ? " (probe cut)" : "",
+                again_ms);
+    ExpectWithinFactor(again_predicted, again_ms, 10.0, "a second request: the exact plan's predicted ms", again_cut);
   }
 }
 
@@ -665,6 +678,77 @@ TEST_F(ExactPredictionTest, WhereTheExactMethodIsChosenItsPredictionFollowsItsTi
   if (grid->accuracy().method() == "plucker-exact")
     ExpectWithinFactor(grid->accuracy().predicted_ms(), grid->timing().compute_ms(), 4.0,
                        "cornell patches: the chosen exact plan's predicted ms against its compute ms");
+}
+
+// Planned by the request's own probes, on either guarantee, the answer meets
+// the target: where the prediction missed, more maps were added before the
+// answer was sent. Behind the glass vase's flowers the exact method is slow,
+// so the sampled plans are chosen; their answers are checked against the
+// exact map.
+TEST_F(ExactPredictionTest, PredictedPlansMeetTheTargetOnEitherGuarantee) {
+  VISQ_REQUIRE_SHARED_SCENES(scenes);
+  const Case flowers = {"flowers", "foliage_glass_vase_flowers/GlassVaseFlowers.gltf", {-0.1, 0.35, -0.15},
+                        {0.3, 0, 0}, {0, 0, 0.25}, {-0.15, 0.001, -0.2}, {0, 0, 0.35}, {0.45, 0, 0}};
+  // Each request on a copy of its own, cold: the exact method's trees and
+  // stores, which make a repeated request cheap there, are per scene.
+  auto info = client_->UploadScene(scenes / flowers.file, "flowers_reference");
+  ASSERT_TRUE(info.ok()) << info.status();
+  v1::HiddenSampleMapRequest exact_request = FloorMap(flowers, "flowers_reference");
+  exact_request.set_method(v1::PLUCKER_EXACT);
+  auto exact = client_->ComputeHiddenSampleMap(exact_request);
+  ASSERT_TRUE(exact.ok()) << exact.status();
+
+  int sampled = 0, topped_up = 0;
+  for (const double max_error : {0.05, 0.02, 0.01}) {
+    for (const auto guarantee : {v1::AccuracyTarget::RIGOROUS, v1::AccuracyTarget::ESTIMATE}) {
+      const std::string copy = "flowers_" + std::to_string(sampled + topped_up) + "_" + std::to_string(max_error) +
+                               "_" + v1::AccuracyTarget::Guarantee_Name(guarantee);
+      auto uploaded = client_->UploadScene(scenes / flowers.file, copy);
+      ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+      v1::HiddenSampleMapRequest request = FloorMap(flowers, copy);
+      request.mutable_target()->set_max_error(max_error);
+      request.mutable_target()->set_guarantee(guarantee);
+      request.set_want_texel_error(true);
+      auto answer = client_->ComputeHiddenSampleMap(request);
+      ASSERT_TRUE(answer.ok()) << answer.status();
+      const v1::Accuracy& accuracy = answer->figures.accuracy();
+      const bool on_estimate = guarantee == v1::AccuracyTarget::ESTIMATE;
+      const std::string where =
+          "max_error " + std::to_string(max_error) + ", " + v1::AccuracyTarget::Guarantee_Name(guarantee);
+      EXPECT_EQ(accuracy.parameters().at("target_met"), 1.0) << where << ": " << accuracy.DebugString();
+      const auto parameter = [&](const char* name) {
+        return accuracy.parameters().contains(name) ? accuracy.parameters().at(name) : 0.0;
+      };
+      const double stated = on_estimate ? accuracy.estimate() : accuracy.error_bound();
+      size_t outside_bound = 0, outside_estimate = 0;
+      if (accuracy.method() != "plucker-exact") {
+        ++sampled;
+        EXPECT_LE(stated, max_error) << where;
+        ASSERT_EQ(answer->visible_fraction.size(), exact->visible_fraction.size());
+        ASSERT_EQ(static_cast<size_t>(answer->figures.texel_error_size()), exact->visible_fraction.size());
+        for (size_t j = 0; j < exact->visible_fraction.size(); ++j) {
+          const double error = std::abs(double(answer->visible_fraction[j]) - exact->visible_fraction[j]);
+          outside_bound += error > answer->figures.texel_error(int(j)) + 1e-6;
+          outside_estimate += error > answer->figures.texel_estimate(int(j)) + 1e-6;
+        }
+        // Each texel's bound holds at 95 %.
+        EXPECT_LE(double(outside_bound) / exact->visible_fraction.size(), 0.05 + 0.03) << where;
+        if (parameter("planned_samples") > 0) {
+          ++topped_up;
+          EXPECT_GT(parameter("samples"), parameter("planned_samples")) << where;
+          EXPECT_NE(accuracy.note().find("more maps"), std::string::npos) << where << ": " << accuracy.note();
+        }
+      }
+      std::printf("flowers %s: %s, %.0f samples planned, %.0f ran, states %.4f; %zu texels outside their bound, "
+                  "%zu outside their estimate, of %zu\n",
+                  where.c_str(), accuracy.method().c_str(),
+                  parameter("planned_samples") > 0 ? parameter("planned_samples") : parameter("samples"),
+                  parameter("samples"), stated, outside_bound, outside_estimate, exact->visible_fraction.size());
+    }
+  }
+  RecordProperty("sampled_answers", std::to_string(sampled));
+  RecordProperty("topped_up", std::to_string(topped_up));
+  EXPECT_GE(sampled, 3) << "behind the flowers the sampled plans are the cheaper";
 }
 
 }  // namespace

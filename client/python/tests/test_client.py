@@ -230,6 +230,18 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(bounded.texel_error.shape, (16, 24))
         self.assertAlmostEqual(float(bounded.texel_error.max()), bounded.accuracy.error_bound, places=6)
         self.assertIn("Clopper-Pearson", bounded.accuracy.note)
+        # Beside each bound, an estimate (not a bound), never above it.
+        self.assertEqual(bounded.texel_estimate.shape, (16, 24))
+        self.assertTrue((bounded.texel_estimate <= bounded.texel_error).all())
+        self.assertTrue(bounded.accuracy.HasField("estimate"))
+        self.assertAlmostEqual(float(bounded.texel_estimate.max()), bounded.accuracy.estimate, places=6)
+        # A target may be on the estimate; the answer says whether it met it.
+        on_estimate = self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, FLOOR, width=24, height=16,
+                                                    target={"max_error": 0.05, "guarantee": "estimate"})
+        self.assertEqual(on_estimate.accuracy.parameters["target_met"], 1.0)
+        with self.assertRaises(ValueError):
+            self.client.hidden_sample_map(SCENE, LIGHT_SOURCE, FLOOR, width=24, height=16,
+                                          target={"max_error": 0.05, "guarantee": "roughly"})
         cli = os.environ.get("VISQ_CLI_BINARY")
         if not cli:
             self.skipTest("VISQ_CLI_BINARY unset: no C++ answer to compare with")
