@@ -23,6 +23,18 @@ using client::Client;
 
 using testing::SetPatch;
 
+// Patch visibility from a light patch over the tall box onto the whole
+// floor, over a columns x rows receiver grid.
+v1::PatchVisibilityRequest CornellFloorPatches(uint32_t columns, uint32_t rows) {
+  v1::PatchVisibilityRequest request;
+  request.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+  request.set_receiver_columns(columns);
+  request.set_receiver_rows(rows);
+  return request;
+}
+
 class AccuracyTargetTest : public testing::SharedServerSuite<AccuracyTargetTest> {
  protected:
 
@@ -204,12 +216,7 @@ TEST_F(AccuracyTargetTest, BadTargetsAreInvalidArgumentsNamingTheField) {
 }
 
 TEST_F(AccuracyTargetTest, PatchVisibilityTargetAgainstTheExactMeanOfTheReceiverSamples) {
-  v1::PatchVisibilityRequest request;
-  request.mutable_scene()->set_name("cornell_box_visq");
-  SetPatch(request.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
-  SetPatch(request.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
-  request.set_receiver_columns(12);
-  request.set_receiver_rows(12);
+  v1::PatchVisibilityRequest request = CornellFloorPatches(12, 12);
   v1::PatchVisibilityRequest exact_request = request;
   exact_request.set_method(v1::PLUCKER_EXACT);
   auto exact = client_->PatchVisibility(exact_request);
@@ -389,12 +396,7 @@ TEST_F(AccuracyTargetTest, AnEstimateTargetWhereNoEstimateCanBeMadeIsRefusedNami
   unknown.mutable_target()->set_guarantee(static_cast<v1::AccuracyTarget::Guarantee>(7));
   expect_refused(client_->ComputeHiddenSampleMap(unknown).status(), "an unknown guarantee");
 
-  v1::PatchVisibilityRequest patches;
-  patches.mutable_scene()->set_name("cornell_box_visq");
-  SetPatch(patches.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
-  SetPatch(patches.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
-  patches.set_receiver_columns(4);
-  patches.set_receiver_rows(4);
+  v1::PatchVisibilityRequest patches = CornellFloorPatches(4, 4);
   patches.mutable_target()->set_max_error(0.05);
   patches.mutable_target()->set_guarantee(v1::AccuracyTarget::ESTIMATE);
   expect_refused(client_->PatchVisibility(patches).status(), "PatchVisibility's source grid is regular");
@@ -661,12 +663,7 @@ TEST_F(ExactPredictionTest, WhereTheExactMethodIsChosenItsPredictionFollowsItsTi
 
   // Patch visibility weighs the exact method through the same probes (its
   // receiver grid as the batch's points).
-  v1::PatchVisibilityRequest patches;
-  patches.mutable_scene()->set_name("cornell_box_visq");
-  SetPatch(patches.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
-  SetPatch(patches.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
-  patches.set_receiver_columns(20);
-  patches.set_receiver_rows(20);
+  v1::PatchVisibilityRequest patches = CornellFloorPatches(20, 20);
   patches.mutable_target()->set_max_error(0.01);
   auto grid = client_->PatchVisibility(patches);
   ASSERT_TRUE(grid.ok()) << grid.status();
