@@ -528,14 +528,16 @@ class ExactPredictionTest : public testing::SharedServerSuite<ExactPredictionTes
 };
 
 // Predicted against measured, within a generous factor: the machine may be
-// loaded between the probes and the run (two cores shared by builds), and a
-// few ms either way is noise. The 2x goal is the bench's
+// loaded between the probes and the run (two cores shared by builds and
+// other tests), and tens of ms either way are noise there (the Cornell box's
+// exact map, predicted at 1.7 ms, once measured 14.9 ms under a full ctest
+// beside a build). The 2x goal is the bench's
 // (visq_bench_default_method --exact), not a test's. A prediction from a
 // probe cut at its budget (`lower_bound`) says only that the method costs
 // at least that much.
 void ExpectWithinFactor(double predicted_ms, double measured_ms, double factor, const std::string& what,
                         bool lower_bound = false) {
-  constexpr double kSlackMs = 5.0;
+  constexpr double kSlackMs = 25.0;
   EXPECT_LE(predicted_ms, factor * measured_ms + kSlackMs) << what;
   if (!lower_bound) EXPECT_LE(measured_ms, factor * predicted_ms + kSlackMs) << what;
 }
@@ -684,6 +686,11 @@ TEST_F(ExactPredictionTest, WhereTheExactMethodIsChosenItsPredictionFollowsItsTi
 // exact map.
 TEST_F(ExactPredictionTest, PredictedPlansMeetTheTargetOnEitherGuarantee) {
   VISQ_REQUIRE_SHARED_SCENES(scenes);
+  // Calls of their own deadline: under a sanitizer, or on two cores shared
+  // with a build, the exact reference map alone can take tens of seconds
+  // (once 63 s for the whole test, against the default 60 s a call).
+  client_ = std::make_unique<client::Client>(
+      client::ClientOptions{.address = server_->address(), .deadline = std::chrono::minutes(5)});
   const Case flowers = {"flowers", "foliage_glass_vase_flowers/GlassVaseFlowers.gltf", {-0.1, 0.35, -0.15},
                         {0.3, 0, 0}, {0, 0, 0.25}, {-0.15, 0.001, -0.2}, {0, 0, 0.35}, {0.45, 0, 0}};
   // Each request on a copy of its own, cold: the exact method's trees and
