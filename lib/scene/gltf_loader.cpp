@@ -833,9 +833,10 @@ class SceneBuilder {
     // The same glTF mesh flattens to the same triangles every time; a
     // placement that did not stays in the record.
     if (mesh.triangles.size() != triangle_count || mesh.positions.size() != position_count) return;
-    scene_->placements.push_back(MeshPlacement{it->second, before.triangles + placed_triangles_,
-                                               before.positions + placed_positions_, world, node_id, before.triangles,
-                                               before.positions});
+    // The flattened counts fit 32 bits (ValidateFlattenedSize), as SceneTriangles says.
+    scene_->placements.push_back(MeshPlacement{it->second, static_cast<uint32_t>(before.triangles + placed_triangles_),
+                                               static_cast<uint32_t>(before.positions + placed_positions_), world,
+                                               node_id, before.triangles, before.positions});
     placed_triangles_ += triangle_count;
     placed_positions_ += position_count;
     // The record drops what the placement now stands for.
