@@ -148,12 +148,100 @@ class W(unittest.TestCase):
         with self.assertRaisesRegex(ValueError, "texels"):
             core.apply_texels(pixels, [6], [[0, 0, 0]])
 
+    def test_an_update_refreshes_only_the_changed_triangles(self):
+        server = np.array([5, -1, 2, 9, 2])
+        before = np.arange(15, dtype=np.float64).reshape(5, 3)
+        after, hit = core.refresh_triangle_w(server, before, [9, 2, 7], [[0.1] * 3, [0.2] * 3, [0.3] * 3])
+        np.testing.assert_array_equal(hit, [False, False, True, True, True])
+        np.testing.assert_allclose(after[[2, 3, 4]], [[0.2] * 3, [0.1] * 3, [0.2] * 3])
+        np.testing.assert_array_equal(after[:2], before[:2])
+        self.assertEqual(before[2, 0], 6.0)  # a copy: the saved W changes only when the caller stores it
+        np.testing.assert_array_equal(core.loop_polygons([[0, 1, 2], [0, 2, 3]], [0, 0], 5), [0, 0, 0, 0, 0])
+
     def test_face_patch_faces_the_face_front(self):
         # A floor quad facing up (+Z in Blender, +Y in glTF).
         origin, u, v = core.face_patch([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
         self.assertGreater(np.cross(u, v)[1], 0)
         with self.assertRaisesRegex(ValueError, "degenerate"):
             core.face_patch([(0, 0, 0), (1, 0, 0), (2, 0, 0)])
+
+
+def translate(x, y, z):
+    m = np.eye(4)
+    m[:3, 3] = (x, y, z)
+    return m
+
+
+class Moves(unittest.TestCase):
+    def test_the_servers_hierarchy_between_baked_nodes(self):
+        # root (empty) > a > b (empty) > c; d alone.
+        nodes = [("root", -1), ("a", 0), ("b", 1), ("c", 2), ("d", -1)]
+        self.assertEqual(core.node_parents(nodes, {"a", "c", "d"}), {"a": "", "c": "a", "d": ""})
+
+    def test_a_child_that_moves_with_its_parent_is_carried_not_sent(self):
+        parents = {"p": "", "c": "p", "x": ""}
+        placed = {"p": np.eye(4), "c": translate(0, 0, 1), "x": translate(5, 0, 0)}
+        turn = np.array([[0, -1, 0, 2], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], float)  # 90 degrees, then +2 x
+        target = {"p": turn, "c": turn @ placed["c"], "x": placed["x"]}
+        calls, after = core.moves_to_send(target, placed, parents)
+        self.assertEqual([name for name, _ in calls], ["p"])
+        self.assertTrue(all(np.array_equal(after[k], target[k]) for k in target))
+        calls, _ = core.moves_to_send(target, placed, parents, dynamic=["p"])  # p again: still one object
+        self.assertEqual([name for name, _ in calls], ["p"])
+        self.assertEqual(core.moves_to_send(placed, placed, parents)[0], [])
+
+    def test_moves_the_server_would_refuse_are_named_before_any_is_sent(self):
+        parents = {"p": "", "c": "p"}
+        placed = {"p": np.eye(4), "c": translate(0, 0, 1)}
+        # The child moved on its moving parent: two objects, one inside the other.
+        with self.assertRaisesRegex(core.MoveError, "'c' moved on 'p'.*put 'c' back"):
+            core.moves_to_send({"p": translate(3, 0, 0), "c": translate(3, 1, 1)}, placed, parents)
+        # The child alone, after its parent moved once: inside that object.
+        with self.assertRaisesRegex(core.MoveError, "'c' is part of 'p'.*bake again"):
+            core.moves_to_send({"p": np.eye(4), "c": translate(0, 1, 1)}, placed, parents, dynamic=["p"])
+        # The parent, after the child moved on its own once.
+        with self.assertRaisesRegex(core.MoveError, "'p' holds 'c'.*bake again"):
+            core.moves_to_send({"p": translate(3, 0, 0), "c": translate(3, 0, 1)}, placed, parents, dynamic=["c"])
+        calls, _ = core.moves_to_send({"p": np.eye(4), "c": translate(0, 1, 1)}, placed, parents)
+        self.assertEqual([name for name, _ in calls], ["c"])
+
+
+class Session(unittest.TestCase):
+    def test_the_saved_record_reads_back_as_it_was(self):
+        marker = object()  # Blender's object, opaque to core
+        w = np.array([[0.25, 0.5, 0.75], [np.nan] * 3], np.float32)
+        matrix = np.arange(16.0).reshape(4, 4)
+        record = core.session_record("s", 2 ** 40 + 3, "visq_w_s", {"Cube": {
+            "object": marker, "parent": "Crate", "dynamic": True, "matrix": matrix, "loop_count": 8, "polygon_count": 2,
+            "server": [7, -1], "triangle_w": w}})
+        # As Blender stores it: int32, float32 and float64 arrays, the version as text.
+        cube = record["objects"]["Cube"]
+        self.assertEqual((cube["server"].dtype, cube["triangle_w"].dtype, cube["matrix"].dtype),
+                         (np.int32, np.float32, np.float64))
+        self.assertEqual(record["version"], str(2 ** 40 + 3))
+        session = core.read_session(record)
+        self.assertEqual((session["scene"], session["version"], session["image"]), ("s", 2 ** 40 + 3, "visq_w_s"))
+        cube = session["objects"]["Cube"]
+        self.assertIs(cube["object"], marker)
+        self.assertEqual((cube["parent"], cube["dynamic"]), ("Crate", True))
+        np.testing.assert_array_equal(cube["matrix"], matrix)
+        np.testing.assert_array_equal(cube["server"], [7, -1])
+        np.testing.assert_array_equal(cube["triangle_w"], w)  # NaN rows kept
+        cube["server"][0] = 0
+        self.assertEqual(record["objects"]["Cube"]["server"][0], 7)  # copies, not views of the record
+
+    def test_a_record_it_cannot_read_says_bake_again(self):
+        with self.assertRaisesRegex(core.SessionError, "format None.*run Bake obscurances again"):
+            core.read_session({"scene": "s"})
+        record = core.session_record("s", 1, "i", {"C": {
+            "object": None, "parent": "", "dynamic": False, "matrix": np.eye(4), "loop_count": 3, "polygon_count": 1,
+            "server": [0], "triangle_w": [1, 1, 1]}})
+        record["objects"]["C"]["triangle_w"] = np.zeros(2, np.float32)
+        with self.assertRaisesRegex(core.SessionError, "object 'C': 16 matrix entries, 1 triangles with 2 W"):
+            core.read_session(record)
+        del record["objects"]["C"]["server"]
+        with self.assertRaisesRegex(core.SessionError, "KeyError"):
+            core.read_session(record)
 
 
 class JobTest(unittest.TestCase):
@@ -177,6 +265,37 @@ class JobTest(unittest.TestCase):
         job.cancel()
         self.assertTrue(job.wait(5))
         self.assertTrue(job.cancel_requested)
+        self.assertEqual(str(job.error), "stopped")
+
+    def test_modal_steps_show_progress_and_esc_cancels_once(self):
+        stop = threading.Event()
+
+        class Cancellation:
+            cancels = 0
+
+            def cancel(self):
+                Cancellation.cancels += 1
+                stop.set()
+
+        def work(job):
+            job.report_progress(0.25, "baking 4/16")
+            stop.wait(5)
+            raise RuntimeError("stopped")
+
+        job = core.Job(work, Cancellation())
+        job.started = 100.0
+        job.start()  # the modal path: a worker thread
+        while job.fraction < 0.25:
+            threading.Event().wait(0.001)
+        step = core.modal_step(job, "TIMER", now=103.0)
+        self.assertEqual((step.action, step.percent, step.status),
+                         ("WAIT", 25, "visq: baking 4/16 25%, 3 s (Esc cancels)"))
+        self.assertEqual(core.modal_step(job, "MOUSEMOVE").action, "PASS")
+        self.assertEqual(core.modal_step(job, "ESC").action, "CANCEL")
+        self.assertEqual(core.modal_step(job, "ESC").action, "PASS")  # a second Esc is the artist's
+        self.assertEqual(Cancellation.cancels, 1)
+        self.assertTrue(job.wait(5))
+        self.assertEqual(core.modal_step(job, "TIMER").action, "DONE")
         self.assertEqual(str(job.error), "stopped")
 
     def test_describe_error(self):

@@ -6,12 +6,21 @@ and writes mesh data, and runs each call of the visq Python client
 (client/python) on a worker thread that a modal operator polls, so Blender's
 UI never waits on the network; Esc cancels. What needs no Blender is in
 core.py. Installing: README.md, "In Blender".
+
+The bake is saved with the .blend: what Move and update needs of it (the
+server's scene name and version, and per baked object its placement as last
+sent, its triangles' server indices and W) is an ID property of the Blender
+scene (SESSION_KEY), and the W image is packed into the file. After a
+reopen, Move and update goes on against the server's resident scene; a
+server that no longer holds it (restarted without its repository, the scene
+unloaded, replaced or moved by someone else: a new version) answers
+NOT_FOUND or FAILED_PRECONDITION, reported as "the server no longer has this
+bake ...; run Bake obscurances again".
 """
 import os
 import shutil
 import sys
 import tempfile
-import time
 
 import bpy
 import numpy as np
@@ -32,20 +41,33 @@ UV_LAYER = "visq_atlas"
 COLOR_ATTRIBUTE = "visq_w"
 MAP_IMAGE = "visq_visibility"
 
-# Per Blender scene: what the last bake uploaded and how its triangles map
-# onto the objects (numpy arrays; not saved with the .blend: a reopened file
-# bakes again before Move and update).
-_sessions = {}
+SESSION_KEY = "_visq_session"  # on bpy.types.Scene; "_": not listed among the custom properties
+# Per Blender scene name: the folder of the .glb the last bake uploaded, a
+# file of this process (scripts and the test read it), removed when a bake
+# replaces it, when a bake fails and when the add-on is disabled.
+_uploads = {}
 # The last finished call's numbers, for scripts and the headless test.
 last_result = {}
 
 
-def _drop_session(key):
-    """Forgets a bake, and the folder of the .glb it uploaded (kept while
-    the session lives: scripts and the test read it)."""
-    session = _sessions.pop(key, None)
-    if session is not None:
-        shutil.rmtree(os.path.dirname(session["glb"]), ignore_errors=True)
+def _drop_upload(key):
+    shutil.rmtree(_uploads.pop(key, ""), ignore_errors=True)
+
+
+def load_session(scene):
+    """The bake saved in the Blender scene (core.read_session's dict), or None."""
+    record = scene.get(SESSION_KEY)
+    return None if record is None else core.read_session(record)
+
+
+def _store_session(scene, session):
+    scene[SESSION_KEY] = core.session_record(session["scene"], session["version"], session["image"],
+                                             session["objects"])
+
+
+def _drop_session(scene):
+    if scene is not None and SESSION_KEY in scene:
+        del scene[SESSION_KEY]
 
 
 class VisqAddonError(Exception):
@@ -184,8 +206,17 @@ def _new_image(name, width, height, pixels):
         image = bpy.data.images.new(name, width, height, alpha=False, float_buffer=True)
     image.colorspace_settings.name = "Non-Color"
     image.pixels.foreach_set(np.ascontiguousarray(pixels, dtype=np.float32).reshape(-1))
-    image.update()
+    _keep_image(image)
     return image
+
+
+def _keep_image(image):
+    """Saved with the .blend as written: a generated image's pixels are not
+    saved unless packed (OpenEXR, float32: bit for bit), nor an image no
+    material uses unless it has a fake user."""
+    image.update()
+    image.use_fake_user = True
+    image.pack()
 
 
 def _write_colors(obj, colors):
@@ -278,6 +309,7 @@ class BakeTask:
             self.objects[obj.name] = {"loops": loops, "polygon": polygon, "corners": corners,
                                       "areas": core.triangle_areas(corners), "loop_count": len(obj.data.loops),
                                       "polygon_count": len(obj.data.polygons), "matrix": _matrix(obj)}
+        self.replaced = False
         self.cancellation = cancellation or self.visq.Cancellation()
 
     def work(self, job):
@@ -294,8 +326,7 @@ class BakeTask:
             _check_server(client, self.connection)
             job.report_progress(0.01, "uploading")
             client.upload_gltf(self.glb, name=self.scene_name, replace=True)
-            # The server's earlier bake went with the replaced scene.
-            _drop_session(self.blender_scene)
+            self.replaced = True  # the server's earlier bake went with the replaced scene
             info = client.get_scene(self.scene_name, include_nodes=True)
             ranges = core.node_ranges(core.glb_node_triangles(self.glb),
                                       [(n.name, n.triangle_count) for n in info.nodes])
@@ -323,16 +354,20 @@ class BakeTask:
             corner = core.server_corners(corner, np.linalg.det(data["matrix"][:3, :3]) < 0)
             maps[name] = {"server": np.where(local >= 0, local + first, -1), "corner": corner,
                           "unmatched": int((local < 0).sum())}
+        # Which baked node carries which when it moves: the server's hierarchy.
+        parents = core.node_parents([(n.name, n.parent) for n in info.nodes], set(maps))
+        for name in maps:
+            maps[name]["parent"] = parents[name]
         return {"bake": bake, "export": exported, "maps": maps, "info": info}
 
-    def finish(self, context, result):
-        try:
-            return self._finish(context, result)
-        except BaseException:
-            shutil.rmtree(self.folder, ignore_errors=True)
-            raise
+    def failed(self, context):
+        """The bake ended without finish(): a scene it replaced on the server
+        took the saved bake with it."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+        if self.replaced:
+            _drop_session(bpy.data.scenes.get(self.blender_scene))
 
-    def _finish(self, context, result):
+    def finish(self, context, result):
         bake, exported = result["bake"], result["export"]
         height, width = bake.w.shape[:2]
         image = _new_image(f"visq_w_{self.scene_name}", width, height, core.atlas_to_pixels(bake.w))
@@ -358,22 +393,23 @@ class BakeTask:
             triangle_w = np.full((len(m["server"]), 3), np.nan)
             ok = m["server"] >= 0
             triangle_w[ok] = bake.triangle_w[m["server"][ok]]
-            data["triangle_w"] = triangle_w
+            data.update(object=obj, parent=m["parent"], dynamic=False, server=m["server"], triangle_w=triangle_w)
             polygons = core.polygon_w(triangle_w, data["polygon"], data["areas"], data["polygon_count"])
-            loop_polygon = np.empty(data["loop_count"], dtype=np.int64)
-            loop_polygon[data["loops"].reshape(-1)] = np.repeat(data["polygon"], 3)
-            data["loop_polygon"] = loop_polygon
+            loop_polygon = core.loop_polygons(data["loops"], data["polygon"], data["loop_count"])
             _write_colors(obj, core.corner_colors(polygons, loop_polygon))
             obj["visq_image"] = image.name
             _wire_materials(obj, image)
-            data.update(m)
         _show_colors(context)
-        _drop_session(context.scene.name)
-        _sessions[context.scene.name] = {"scene": self.scene_name, "objects": self.objects, "image": image.name,
-                                         "glb": self.glb, "triangle_w": bake.triangle_w.copy()}
+        # What Move and update needs, saved with the scene; the version the
+        # bake matched is the one the next move must find on the server.
+        _store_session(bpy.data.scenes[self.blender_scene],
+                       {"scene": self.scene_name, "version": bake.figures.scene_version, "image": image.name,
+                        "objects": self.objects})
+        _drop_upload(self.blender_scene)
+        _uploads[self.blender_scene] = self.folder
         last_result.clear()
         last_result.update(kind="bake", bake=bake, export=exported, info=result["info"], torn=torn,
-                           unmatched=unmatched, image=image.name)
+                           unmatched=unmatched, image=image.name, glb=self.glb)
         f = bake.figures
         message = (f"visq: baked {len(self.objects)} object(s), {width}x{height} atlas, "
                    f"error bound {f.accuracy.error_bound:.3f}" if f.HasField("accuracy") else
@@ -390,45 +426,80 @@ class BakeTask:
         return message
 
 
+def _placements(context, objects):
+    """({node name: matrix_world} of a saved bake's objects, [the names of
+    those placed otherwise than the session saved]), each object checked to
+    be the mesh it was: a deleted or edited one means bake again."""
+    out = {}
+    for name, data in objects.items():
+        obj = data["object"]
+        if obj is None or obj.name not in context.scene.objects:
+            raise VisqAddonError(f"baked object '{name}' is gone from the scene; bake again")
+        if obj.type != "MESH" or len(obj.data.loops) != data["loop_count"] or \
+                len(obj.data.polygons) != data["polygon_count"]:
+            raise VisqAddonError(f"'{obj.name}' was edited, not only moved; bake again")
+        out[name] = _matrix(obj)
+    moved = [name for name, matrix in out.items()
+             if not np.allclose(matrix, objects[name]["matrix"], rtol=0, atol=core.PLACEMENT_TOLERANCE)]
+    return out, moved
+
+
+def _saved_session(context):
+    session = load_session(context.scene)
+    if session is None:
+        raise VisqAddonError("nothing baked in this scene: run Bake obscurances first")
+    return session
+
+
 class UpdateTask:
     def __init__(self, context, cancellation=None):
         self.visq = import_visq(context)
         self.connection = _connection(context)
-        session = _sessions.get(context.scene.name)
-        if session is None:
-            raise VisqAddonError("nothing baked in this Blender session: run Bake obscurances first")
-        self.session = session
-        moved = []
-        for name, data in session["objects"].items():
-            obj = bpy.data.objects.get(name)
-            if obj is None:
-                raise VisqAddonError(f"baked object '{name}' is gone; bake again")
-            if len(obj.data.loops) != data["loop_count"]:
-                raise VisqAddonError(f"'{name}' was edited, not only moved; bake again")
-            matrix = _matrix(obj)
-            if not np.allclose(matrix, data["matrix"], rtol=0, atol=1e-7):
-                depth, parent = 0, obj.parent
-                while parent is not None:
-                    depth, parent = depth + 1, parent.parent
-                moved.append((depth, name, matrix))
-        # Parents first: SetNodeTransform carries a node's subtree, and each
-        # child's own world matrix then puts it where Blender has it.
-        self.moved = {name: matrix for _, name, matrix in sorted(moved, key=lambda m: m[0])}
+        self.blender_scene = context.scene.name
+        self.session = _saved_session(context)
+        objects = self.session["objects"]
+        target, self.moved = _placements(context, objects)
         if not self.moved:
             raise VisqAddonError("no baked object moved since the bake")
+        # A child that kept its place on its moved parent goes with it.
+        self.calls, self.placed = core.moves_to_send(
+            target, {name: o["matrix"] for name, o in objects.items()},
+            {name: o["parent"] for name, o in objects.items()}, [name for name, o in objects.items() if o["dynamic"]])
+        self.version = self.session["version"]
+        self.sent = []
         self.cancellation = cancellation or self.visq.Cancellation()
 
     def work(self, job):
         scene = self.session["scene"]
         with _client(self.visq, self.connection) as client:
             _check_server(client, self.connection)
-            for i, (name, matrix) in enumerate(self.moved.items()):
-                job.report_progress(0.5 * i / len(self.moved), f"moving {name}")
-                client.set_node_transform(scene, name, core.to_gltf_matrix(matrix))
+            # Each call names the version the last one made: the first finds
+            # the version the saved W matches, or fails (another upload, a
+            # move from elsewhere, a restart) instead of mixing two scenes.
+            for i, (name, matrix) in enumerate(self.calls):
+                job.report_progress(0.5 * i / len(self.calls), f"moving {name}")
+                self.version = client.set_node_transform(scene, name, core.to_gltf_matrix(matrix),
+                                                         version=self.version).version
+                self.sent.append(name)
             job.report_progress(0.5, "updating")
-            update = client.update_obscurances(scene)
+            update = client.update_obscurances(scene, version=self.version)
             info = client.get_scene(scene)
         return {"update": update, "info": info}
+
+    def _mark_sent(self):
+        for name in self.sent:
+            self.session["objects"][name]["dynamic"] = True
+
+    def failed(self, context):
+        """Moves the server took before a call failed: the saved version and
+        the nodes it now moves on their own follow them (the placements do
+        not: Move and update again sends the moves, and the update applies
+        them)."""
+        scene = bpy.data.scenes.get(self.blender_scene)
+        if self.sent and scene is not None:
+            self._mark_sent()
+            self.session["version"] = self.version
+            _store_session(scene, self.session)
 
     def finish(self, context, result):
         update = result["update"]
@@ -442,38 +513,46 @@ class UpdateTask:
             pixels = pixels.reshape(height, width, 4)
             texels = core.apply_texels(pixels, update.texels, update.w)
             image.pixels.foreach_set(pixels.reshape(-1))
-            image.update()
+            _keep_image(image)
         # Only the polygons with a changed triangle get new colours.
         r = update.response
-        changed = np.array(r.triangles, dtype=np.int64)
-        changed_w = np.array(r.triangle_w, dtype=np.float32).reshape(-1, 3)
-        triangle_w = session["triangle_w"]
-        triangle_w[changed] = changed_w
         refreshed = 0
         for name, data in session["objects"].items():
-            server = data["server"]
-            hit = np.isin(server, changed)
-            if name in self.moved:
-                data["matrix"] = self.moved[name]
-            if not hit.any():
-                continue
-            data["triangle_w"][hit] = triangle_w[server[hit]]
-            polygons = core.polygon_w(data["triangle_w"], data["polygon"], data["areas"], data["polygon_count"])
-            obj = bpy.data.objects[name]
-            attribute = obj.data.color_attributes.get(COLOR_ATTRIBUTE)
-            colors = np.empty(data["loop_count"] * 4, dtype=np.float32)
-            attribute.data.foreach_get("color", colors)
-            colors = colors.reshape(-1, 4)
-            touched = np.unique(data["polygon"][hit])
-            loops = np.isin(data["loop_polygon"], touched)
-            colors[loops] = core.corner_colors(polygons, data["loop_polygon"])[loops]
-            _write_colors(obj, colors)
-            refreshed += 1
+            data["matrix"] = self.placed[name]
+            data["triangle_w"], hit = core.refresh_triangle_w(data["server"], data["triangle_w"], r.triangles,
+                                                              r.triangle_w)
+            if hit.any():
+                _refresh_colors(data, hit)
+                refreshed += 1
+        self._mark_sent()
+        session["version"] = r.scene_version
+        _store_session(bpy.data.scenes[self.blender_scene], session)
         last_result.clear()
-        last_result.update(kind="update", update=update, info=result["info"], texels=texels,
-                           moved=sorted(self.moved), refreshed_objects=refreshed)
-        return (f"visq: moved {len(self.moved)} object(s); {texels} texels and {len(changed)} triangles changed "
+        last_result.update(kind="update", update=update, info=result["info"], texels=texels, moved=self.moved,
+                           sent=list(self.sent), refreshed_objects=refreshed)
+        return (f"visq: moved {len(self.moved)} object(s); {texels} texels and {len(r.triangles)} triangles changed "
                 f"on {refreshed} object(s)")
+
+
+def _refresh_colors(data, hit):
+    """The colour attribute of a saved session's object, rewritten on the
+    polygons of the triangles `hit` from its W."""
+    obj = data["object"]
+    loops, polygon, corners = _loop_triangles(obj)
+    if len(polygon) != len(data["server"]):
+        raise VisqAddonError(f"'{obj.name}' was edited, not only moved; bake again")
+    polygons = core.polygon_w(data["triangle_w"], polygon, core.triangle_areas(corners), data["polygon_count"])
+    loop_polygon = core.loop_polygons(loops, polygon, data["loop_count"])
+    colors = core.corner_colors(polygons, loop_polygon)
+    attribute = obj.data.color_attributes.get(COLOR_ATTRIBUTE)
+    if attribute is not None and len(attribute.data) == data["loop_count"]:
+        kept = np.empty(data["loop_count"] * 4, dtype=np.float32)
+        attribute.data.foreach_get("color", kept)
+        kept = kept.reshape(-1, 4)
+        touched = np.isin(loop_polygon, np.unique(polygon[hit]))
+        kept[touched] = colors[touched]
+        colors = kept
+    _write_colors(obj, colors)
 
 
 def _selected_faces(context):
@@ -513,15 +592,12 @@ class VisibilityTask:
         self.faces = [(o.name, i) for o, i in faces]
         self.source = core.face_patch(_face_corners(*faces[0]))
         self.receiver = core.face_patch(_face_corners(*faces[1]))
-        session = _sessions.get(context.scene.name)
-        if session is None:
-            raise VisqAddonError("no scene uploaded in this Blender session: run Bake obscurances first")
+        session = _saved_session(context)
         # The server answers for the placements it has.
-        for name, data in session["objects"].items():
-            obj = bpy.data.objects.get(name)
-            if obj is not None and not np.allclose(_matrix(obj), data["matrix"], rtol=0, atol=1e-7):
-                raise VisqAddonError(f"'{name}' moved since the bake: run Move and update first")
-        self.scene_name = session["scene"]
+        _, moved = _placements(context, session["objects"])
+        if moved:
+            raise VisqAddonError(f"{', '.join(map(repr, moved))} moved since the bake: run Move and update first")
+        self.scene_name, self.version = session["scene"], session["version"]
         self.size = settings.map_size
         self.samples = settings.map_samples
         self.cancellation = cancellation or self.visq.Cancellation()
@@ -532,7 +608,8 @@ class VisibilityTask:
             job.report_progress(0.1, "hidden-sample map")
             return client.hidden_sample_map(self.scene_name, source=self.visq.Patch(*self.source),
                                             receiver=self.visq.Patch(*self.receiver), width=self.size,
-                                            height=self.size, samples=self.samples, cancel=job.cancellation)
+                                            height=self.size, samples=self.samples, version=self.version,
+                                            cancel=job.cancellation)
 
     def finish(self, context, result):
         fraction = result.visible_fraction
@@ -548,85 +625,114 @@ class VisibilityTask:
 # ---------------------------------------------------------------------------
 # Operators: a modal shell around a task.
 
+def _report_error(report, error):
+    if type(error).__name__ == "Cancelled":
+        report({"WARNING"}, core.describe_error(error))
+    else:
+        report({"ERROR"}, f"visq: {error}" if isinstance(error, VisqAddonError) else core.describe_error(error))
+    return {"CANCELLED"}
+
+
+class TaskRunner:
+    """The modal shell around a task, apart from the operator: invoke()
+    starts one, modal() hands it each event (core.modal_step decides), and
+    execute() runs the same work on the calling thread and ends through the
+    same conclude(). Background mode has no window to send a modal events;
+    the headless test drives step() with the timer's and Esc's names.
+    report: the operator's report(type, message)."""
+    running = None  # one call at a time: Blender's data is written when it ends
+
+    def __init__(self, context, task_type, report):
+        if TaskRunner.running is not None:
+            raise VisqAddonError("another visq call is running; wait for it or press Esc")
+        self.task = task_type(context)
+        self.report = report
+        self.job = core.Job(self.task.work, self.task.cancellation)
+        self.percent, self.status = 0, None  # what the progress bar and the status bar show
+
+    def start(self, context):
+        TaskRunner.running = self
+        self.job.start()
+        context.window_manager.progress_begin(0, 100)
+        return self
+
+    def step(self, context, event):
+        """One event ("TIMER", "ESC" or another name): the set modal() returns."""
+        step = core.modal_step(self.job, event)
+        if step.action == "PASS":
+            return {"PASS_THROUGH"}
+        if step.action != "DONE":
+            self.percent, self.status = step.percent, step.status
+            context.window_manager.progress_update(step.percent)
+            if context.workspace is not None:
+                context.workspace.status_text_set(step.status)
+            return {"RUNNING_MODAL"} if step.action == "CANCEL" else {"PASS_THROUGH"}
+        self.end(context)
+        return self.conclude(context)
+
+    def end(self, context):
+        context.window_manager.progress_end()
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+        if TaskRunner.running is self:
+            TaskRunner.running = None
+
+    def run_here(self, context):
+        self.job.run_here()
+        return self.conclude(context)
+
+    def conclude(self, context):
+        """The ended job's result into Blender (finish), or its error as a
+        report after the task's failed() has tidied up."""
+        error = self.job.error
+        if error is None:
+            try:
+                self.report({"INFO"}, self.task.finish(context, self.job.result))
+                return {"FINISHED"}
+            except Exception as finish_error:
+                error = finish_error
+        try:
+            getattr(self.task, "failed", lambda context: None)(context)
+        except Exception as tidy_error:  # the first error is the one to report
+            print(f"visq: tidying up after '{error}' failed too: {tidy_error!r}")
+        return _report_error(self.report, error)
+
+
 class _TaskOperator:
     task = None
-    _running = None  # one call at a time: Blender's data is written when it ends
-
-    def _fail(self, error):
-        if type(error).__name__ == "Cancelled":
-            self.report({"WARNING"}, core.describe_error(error))
-        else:
-            self.report({"ERROR"}, f"visq: {error}" if isinstance(error, VisqAddonError)
-                        else core.describe_error(error))
-        return {"CANCELLED"}
-
-    def _prepare(self, context):
-        if _TaskOperator._running is not None:
-            raise VisqAddonError("another visq call is running; wait for it or press Esc")
-        return type(self).task(context)
 
     def execute(self, context):
         try:
-            task = self._prepare(context)
-            job = core.Job(task.work, task.cancellation).run_here()
-            if job.error is not None:
-                return self._fail(job.error)
-            self.report({"INFO"}, task.finish(context, job.result))
+            runner = TaskRunner(context, type(self).task, self.report)
         except Exception as error:  # every failure is a report, never a traceback in the artist's face
-            return self._fail(error)
-        return {"FINISHED"}
+            return _report_error(self.report, error)
+        return runner.run_here(context)
 
     def invoke(self, context, event):
         if context.window is None or bpy.app.background:
             return self.execute(context)
         try:
-            self._task = self._prepare(context)
+            self._runner = TaskRunner(context, type(self).task, self.report).start(context)
         except Exception as error:
-            return self._fail(error)
-        self._job = core.Job(self._task.work, self._task.cancellation).start()
-        _TaskOperator._running = self._job
+            return _report_error(self.report, error)
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.progress_begin(0, 100)
         wm.modal_handler_add(self)
         return {"RUNNING_MODAL"}
 
-    def _end(self, context):
-        wm = context.window_manager
-        wm.event_timer_remove(self._timer)
-        wm.progress_end()
-        if context.workspace is not None:
-            context.workspace.status_text_set(None)
-        _TaskOperator._running = None
+    def modal(self, context, event):
+        # Esc counts as the key goes down; its release is another event.
+        name = event.type if event.type != "ESC" or event.value == "PRESS" else "ESC_RELEASE"
+        result = self._runner.step(context, name)
+        if result & {"FINISHED", "CANCELLED"}:
+            context.window_manager.event_timer_remove(self._timer)
+        return result
 
     def cancel(self, context):
         """Blender ends the modal (the window closes): stop the call too."""
-        self._job.cancel()
-        self._end(context)
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC" and event.value == "PRESS" and not job.cancel_requested:
-            job.cancel()
-            return {"RUNNING_MODAL"}
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}
-        if not job.done:
-            context.window_manager.progress_update(int(job.fraction * 100))
-            if context.workspace is not None:
-                # A ray-cast bake may send no progress: the elapsed time shows it is alive.
-                elapsed = time.monotonic() - job.started
-                state = "cancelling" if job.cancel_requested else f"{job.message} {job.fraction:.0%}, {elapsed:.0f} s"
-                context.workspace.status_text_set(f"visq: {state} (Esc cancels)")
-            return {"PASS_THROUGH"}
-        self._end(context)
-        if job.error is not None:
-            return self._fail(job.error)
-        try:
-            self.report({"INFO"}, self._task.finish(context, job.result))
-        except Exception as error:
-            return self._fail(error)
-        return {"FINISHED"}
+        self._runner.job.cancel()
+        self._runner.end(context)
+        context.window_manager.event_timer_remove(self._timer)
 
 
 class VISQ_OT_bake(_TaskOperator, bpy.types.Operator):
@@ -731,8 +837,9 @@ def register():
 
 
 def unregister():
-    for key in list(_sessions):
-        _drop_session(key)
+    # The saved bakes stay with their scenes; the uploaded files go.
+    for key in list(_uploads):
+        _drop_upload(key)
     del bpy.types.Scene.visq
     for cls in reversed(_classes):
         bpy.utils.unregister_class(cls)

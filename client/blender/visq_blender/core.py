@@ -1,6 +1,8 @@
 """What the visq add-on does that needs no Blender: frames, the uploaded
-glTF's triangles, matching them to Blender's, W per corner, patches and the
-worker that runs a call off Blender's main thread. numpy only (visq is
+glTF's triangles, matching them to Blender's, the moves to send, W per
+corner, patches, the worker that runs a call off Blender's main thread and
+the modal operator's steps around it, and the bake session as the .blend
+keeps it. numpy only (visq is
 imported where a call is made), so it is tested with plain python3
 (client/blender/tests/test_core.py).
 
@@ -147,6 +149,79 @@ def node_ranges(glb_nodes, server_nodes):
     return ranges
 
 
+def node_parents(server_nodes, names):
+    """{name: the nearest ancestor in `names`, or ""} for each of `names`:
+    server_nodes [(name, parent index or -1)] as SceneInfo.nodes lists them.
+    The hierarchy that counts for a move is the server's (a Blender parent
+    that was not exported is no node there)."""
+    index = {name: i for i, (name, _) in enumerate(server_nodes)}
+    parents = {}
+    for name in names:
+        parent = server_nodes[index[name]][1]
+        while parent >= 0 and server_nodes[parent][0] not in names:
+            parent = server_nodes[parent][1]
+        parents[name] = server_nodes[parent][0] if parent >= 0 else ""
+    return parents
+
+
+PLACEMENT_TOLERANCE = 1e-5  # world-matrix entries (metres): Blender's matrices are float32
+
+
+class MoveError(ValueError):
+    pass
+
+
+def moves_to_send(target, placed, parents, dynamic=(), tolerance=PLACEMENT_TOLERANCE):
+    """The SetNodeTransform calls that put the server's nodes where Blender
+    has them: the topmost nodes that moved, each carrying its subtree
+    rigidly as the server moves it. visq's update moves a node's subtree as
+    one object, for as long as the bake lives, and refuses (and drops the
+    bake) where one object holds another: so a node that moved on its moved
+    ancestor, or a node inside or above one the server already moves on its
+    own (`dynamic`, the nodes sent since the bake), is a MoveError that names
+    both, found before anything is sent.
+    target {name: the world matrix Blender has}, placed {name: the one the
+    server has}, parents {name: parent name or ""}, for the same names; any
+    one frame (Blender's or glTF's), 4x4. Returns ([(name, matrix)] to send,
+    every node's placement after them: the target where within tolerance)."""
+    target = {name: np.asarray(m, dtype=np.float64) for name, m in target.items()}
+    placed = {name: np.asarray(m, dtype=np.float64) for name, m in placed.items()}
+
+    def ancestors(name):
+        parent = parents.get(name, "")
+        while parent:
+            yield parent
+            parent = parents.get(parent, "")
+
+    def close(a, b):
+        return np.allclose(a, b, rtol=0, atol=tolerance)
+
+    misplaced = [name for name in target if not close(target[name], placed[name])]
+    sent = [name for name in misplaced if not any(a in misplaced for a in ancestors(name))]
+    after = dict(placed)
+    for name in sent:
+        carry = target[name] @ np.linalg.inv(placed[name])
+        for other in placed:
+            if name in ancestors(other):
+                after[other] = carry @ placed[other]
+        after[name] = target[name]
+    for name in misplaced:
+        if not close(target[name], after[name]):
+            carrier = next(a for a in ancestors(name) if a in sent)
+            raise MoveError(f"'{name}' moved on '{carrier}', and visq moves '{carrier}' with what it holds as one "
+                            f"object: put '{name}' back where it was on '{carrier}', or bake again")
+    for name in sent:
+        for other in set(dynamic) | set(sent):
+            if other in ancestors(name):
+                raise MoveError(f"'{name}' is part of '{other}', which visq moves as one object with what it holds "
+                                f"since '{other}' moved: bake again to move '{name}' on its own")
+            if name in ancestors(other):
+                raise MoveError(f"'{name}' holds '{other}', which visq moves as an object of its own since it moved: "
+                                f"bake again to move '{name}' with it")
+    after.update({name: target[name] for name in target if close(target[name], after[name])})
+    return [(name, target[name]) for name in sent], after
+
+
 # ---------------------------------------------------------------------------
 # Blender's loop triangles against the file's.
 
@@ -271,6 +346,14 @@ def polygon_w(triangle_w, polygon, areas, polygon_count):
         return sums / total[:, None]
 
 
+def loop_polygons(loops, polygon, loop_count):
+    """Per loop (corner), its polygon: from the loop triangles' loops (m, 3)
+    and polygons (m,)."""
+    loop_polygon = np.zeros(loop_count, dtype=np.int64)
+    loop_polygon[np.asarray(loops, dtype=np.int64).reshape(-1)] = np.repeat(np.asarray(polygon, dtype=np.int64), 3)
+    return loop_polygon
+
+
 def corner_colors(per_polygon_w, loop_polygon):
     """RGBA per loop (corner) from per-polygon W: the colour attribute."""
     w = np.nan_to_num(np.asarray(per_polygon_w, dtype=np.float32), nan=1.0)[loop_polygon]
@@ -379,6 +462,126 @@ class Job:
 
     def wait(self, timeout=None):
         return self._done.wait(timeout)
+
+
+# What the modal operator does with one event, without Blender: the
+# operator's modal() turns Blender's event into one of these names and
+# applies the step (client/blender/visq_blender/__init__.py, TaskRunner).
+
+class ModalStep:
+    """action: "CANCEL" (Esc: the job was told to stop; the modal keeps
+    running until the worker ends), "PASS" (not the modal's event), "WAIT"
+    (a timer tick while the job runs: show percent and status), "DONE" (the
+    worker ended: finish or report its error)."""
+
+    def __init__(self, action, percent=None, status=None):
+        self.action, self.percent, self.status = action, percent, status
+
+    def __repr__(self):
+        return f"ModalStep({self.action!r}, {self.percent!r}, {self.status!r})"
+
+
+def modal_step(job, event, now=None):
+    """One step of the modal shell around `job` (a Job) for `event`: "ESC"
+    (the key pressed), "TIMER" (the operator's timer) or any other name."""
+    if event == "ESC" and not job.cancel_requested:
+        job.cancel()
+        return ModalStep("CANCEL", round(job.fraction * 100), "visq: cancelling (Esc cancels)")
+    if event != "TIMER":
+        return ModalStep("PASS")
+    if job.done:
+        return ModalStep("DONE", 100)
+    # A ray-cast bake may send no progress: the elapsed time shows it is alive.
+    elapsed = (time.monotonic() if now is None else now) - job.started
+    state = "cancelling" if job.cancel_requested else f"{job.message} {job.fraction:.0%}, {elapsed:.0f} s"
+    return ModalStep("WAIT", round(job.fraction * 100), f"visq: {state} (Esc cancels)")
+
+
+# ---------------------------------------------------------------------------
+# The bake session as it is saved in the .blend: plain values and typed
+# arrays that Blender keeps as ID properties (numpy arrays become int32,
+# float32 and float64 arrays there; 64-bit integers do not fit one, so the
+# scene version is text).
+
+SESSION_FORMAT = 1
+
+
+class SessionError(ValueError):
+    pass
+
+
+def session_record(scene, version, image, objects):
+    """The record to store: scene (the server's scene name), version (the
+    server's scene version that the W below matches), image (the W image's
+    name) and objects {node name: {"object": the Blender object (opaque
+    here), "parent": its nearest baked ancestor on the server ("" for none),
+    "dynamic": whether it was sent since the bake (see moves_to_send),
+    "matrix": its world matrix (4x4) as last sent, "loop_count",
+    "polygon_count", "server": (m,) the server triangle of each of its loop
+    triangles (-1: none), "triangle_w": (m, 3) their W}}."""
+    record = {"format": SESSION_FORMAT, "scene": str(scene), "version": str(int(version)), "image": str(image),
+              "objects": {}}
+    for name, o in objects.items():
+        server = np.asarray(o["server"], dtype=np.int64)
+        if server.size and server.max() >= 2 ** 31:
+            raise SessionError(f"object '{name}': triangle {server.max()} beyond what the .blend stores")
+        record["objects"][name] = {
+            "object": o["object"], "parent": str(o["parent"]), "dynamic": int(bool(o["dynamic"])),
+            "matrix": np.asarray(o["matrix"], dtype=np.float64).reshape(16),
+            "loop_count": int(o["loop_count"]), "polygon_count": int(o["polygon_count"]),
+            "server": server.astype(np.int32),
+            "triangle_w": np.asarray(o["triangle_w"], dtype=np.float32).reshape(-1)}
+    return record
+
+
+def read_session(record):
+    """A stored record (a dict, or Blender's ID property group) back as
+    session_record's arguments, with numpy arrays copied out of it. A record
+    this add-on did not write, or wrote in another format, is a SessionError
+    that says to bake again."""
+    def fail(what):
+        return SessionError(f"the bake saved in this file is unreadable ({what}); run Bake obscurances again")
+
+    try:
+        if int(record.get("format", 0)) != SESSION_FORMAT:
+            raise fail(f"format {record.get('format')}, this add-on reads {SESSION_FORMAT}")
+        session = {"scene": str(record["scene"]), "version": int(str(record["version"])),
+                   "image": str(record["image"]), "objects": {}}
+        for name, o in record["objects"].items():
+            server = np.array(np.asarray(o["server"]), dtype=np.int64)
+            triangle_w = np.array(np.asarray(o["triangle_w"]), dtype=np.float64)
+            matrix = np.array(np.asarray(o["matrix"]), dtype=np.float64)
+            if matrix.size != 16 or triangle_w.size != 3 * server.size:
+                raise fail(f"object '{name}': {matrix.size} matrix entries, {server.size} triangles with "
+                           f"{triangle_w.size} W values")
+            session["objects"][name] = {
+                "object": o.get("object"), "parent": str(o["parent"]), "dynamic": bool(o["dynamic"]),
+                "matrix": matrix.reshape(4, 4),
+                "loop_count": int(o["loop_count"]),
+                "polygon_count": int(o["polygon_count"]), "server": server, "triangle_w": triangle_w.reshape(-1, 3)}
+    except SessionError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
+        raise fail(f"{type(error).__name__}: {error}") from None
+    return session
+
+
+def refresh_triangle_w(server, triangle_w, changed, changed_w):
+    """An object's loop triangles after UpdateObscurances: server (m,) their
+    server triangles (-1: none), triangle_w (m, 3) their W before; changed
+    (k,) the update's triangles and changed_w (k, 3) their W. Returns (W
+    after, a copy; the mask of triangles that changed)."""
+    server = np.asarray(server, dtype=np.int64)
+    changed = np.asarray(changed, dtype=np.int64)
+    changed_w = np.asarray(changed_w, dtype=np.float64).reshape(-1, 3)
+    after = np.array(triangle_w, dtype=np.float64).reshape(-1, 3)
+    order = np.argsort(changed, kind="stable")
+    at = np.searchsorted(changed[order], server)
+    found = at < len(changed)
+    found[found] = changed[order][at[found]] == server[found]
+    hit = found & (server >= 0)
+    after[hit] = changed_w[order][at[hit]]
+    return after, hit
 
 
 def describe_error(error):
