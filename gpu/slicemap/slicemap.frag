@@ -22,6 +22,7 @@ uniform int u_pass_first_slice;  // first slice this pass writes
 uniform int u_pass_slices;       // slices this pass writes
 uniform vec2 u_radial;           // perspective: fraction = (|p - L| - x) * y
 uniform sampler2D u_near_far;    // local: (near, -far) per column
+uniform vec2 u_band_origin;      // the image texel of the target's (0, 0): a band's first row
 
 // A column whose geometry spans (almost) no depth still gets slices of this
 // thickness (as a fraction of the view depth); slicemap.cpp applies the
@@ -99,8 +100,9 @@ uint RangeMask(int word, int k0, int k1) {
 void main() {
   // This fragment's depth range, as fractions of the view depth.
 #ifdef CONSERVATIVE
-  vec2 texel_lo = floor(gl_FragCoord.xy) - vec2(kConservativeSlack);
-  vec2 texel_hi = floor(gl_FragCoord.xy) + vec2(1.0 + kConservativeSlack);
+  vec2 texel = floor(gl_FragCoord.xy) + u_band_origin;
+  vec2 texel_lo = texel - vec2(kConservativeSlack);
+  vec2 texel_hi = texel + vec2(1.0 + kConservativeSlack);
   float zmin, zmax;
   // Fast path for the many texels deep inside a triangle: when the whole
   // (grown) square lies inside the projection, the range is the triangle's
@@ -141,7 +143,7 @@ void main() {
 #else
   // Map depth to slices: uniformly over the view, or over the column's range.
 #ifdef LOCAL
-  vec2 near_far = texelFetch(u_near_far, ivec2(gl_FragCoord.xy), 0).xy;
+  vec2 near_far = texelFetch(u_near_far, ivec2(gl_FragCoord.xy + u_band_origin), 0).xy;
   float near = near_far.x;
   float far = max(-near_far.y, near + kMinLocalRange);
   float s0 = (zmin - near) / (far - near) * u_slices;

@@ -73,6 +73,10 @@ constexpr std::chrono::milliseconds kLongestHeldTurn{100};
 // How often a call waiting in the queue looks at its cancellation and deadline.
 constexpr std::chrono::milliseconds kQueuedStopCheck{20};
 
+// A job longer than this is logged (debug): jobs are sized to a few tens of
+// ms, and one over this holds other calls and a stop well past that.
+constexpr double kLongJobMs = 250.0;
+
 }  // namespace
 
 class GpuWorker::Impl {
@@ -242,10 +246,14 @@ class GpuWorker::Impl {
         if (status.ok() && !gl_status.ok()) status = gl_status;
       }
     }
+    const double run_ms = MillisecondsBetween(start, std::chrono::steady_clock::now());
     if (job.timing) {
       job.timing->queue_ms = MillisecondsBetween(job.submitted, start);
-      job.timing->run_ms = MillisecondsBetween(start, std::chrono::steady_clock::now());
+      job.timing->run_ms = run_ms;
     }
+    // Long jobs hold every other call's GL work and a stop: visible at debug
+    // level, where the call's own lines name it.
+    if (run_ms > kLongJobMs) spdlog::debug("a GL job held the GL thread for {:.1f} ms", run_ms);
     if (job.wants_result) job.done.set_value(std::move(status));
     else if (!status.ok()) spdlog::warn("GPU background job failed: {}", status.message());
   }
