@@ -26,6 +26,7 @@
 #include <map>
 #include <set>
 #include <mutex>
+#include <optional>
 #include <vector>
 
 #include <epoxy/gl.h>
@@ -109,12 +110,6 @@ ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool 
   return defines;
 }
 
-// Draws the selected triangles, in pieces with the call asked between them
-// (a conservative pass over a large scene takes seconds on llvmpipe).
-Status DrawTriangles(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces, const JobOptions& job) {
-  return DrawInTimedPieces(scene, part, pieces, job, "voxelization: between draws");
-}
-
 // Copies one RGBA32UI target (128 slices of the pass), read back for the
 // columns from `first_column` on, into the packed grid.
 void ScatterTarget(const std::vector<GLuint>& texels, size_t first_column, size_t columns, SlicemapGrid& grid,
@@ -143,6 +138,7 @@ void ScatterTarget(const std::vector<GLuint>& texels, size_t first_column, size_
 // zeroed by llvmpipe in one uncut job of 1.5 s.
 struct SlicemapTargets {
   GlTexture2D near_far{NoCreate};
+  GlFramebuffer near_far_framebuffer{NoCreate};
   std::vector<GlTexture2D> targets;
   GlFramebuffer framebuffer{NoCreate};
 };
@@ -174,15 +170,11 @@ void RestoreState() {
   glBindVertexArray(0);
 }
 
-// GL thread: the device's limits, the targets, and with local precision
-// each column's depth range (one pass over the whole image).
-StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, const ViewSetup& view,
-                                                         const PassConfig& config, const ScenePartDraw& part,
-                                                         bool draw_nothing, TimedSizer& pieces,
-                                                         uint32_t target_count, uint32_t band_rows,
-                                                         RawSlicemap& raw) {
+// GL thread: the device's limits and the targets (with local precision,
+// the depth-range target too).
+StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const PassConfig& config, uint32_t target_count,
+                                                         uint32_t band_rows, RawSlicemap& raw) {
   const auto setup_start = Clock::now();
-  const bool conservative = config.rasterization == Rasterization::kConservative;
   // The device's limits: the image must fit a texture and a viewport, and a
   // pass needs 8 color attachments.
   GLint max_texture = 0, max_draw_buffers = 0, max_attachments = 0;
@@ -209,50 +201,69 @@ StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const GpuScene& scene, 
   t->framebuffer = GlFramebuffer();
   for (uint32_t i = 0; i < t->targets.size(); ++i)
     glNamedFramebufferTexture(t->framebuffer.id(), GL_COLOR_ATTACHMENT0 + i, t->targets[i].id(), 0);
-  raw.timings.setup_ms += MillisecondsSince(setup_start);
-
-  // Local precision: each column's depth range in one pass.
   if (config.precision == SlicePrecision::kLocal) {
-    const auto start = Clock::now();
-    SetPassState(config, 0, config.height);
-    ShaderDefines defines = BaseDefines(view, config, conservative);
-    defines.emplace_back("DEPTH_RANGE_PASS", "1");
-    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(conservative, defines));
-    SetViewUniforms(*program, conservative, view, config, 0);
     t->near_far = GlTexture2D();
     glTextureStorage2D(t->near_far.id(), 1, GL_RG32F, static_cast<GLsizei>(config.width),
                        static_cast<GLsizei>(config.height));
     glTextureParameteri(t->near_far.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
     glTextureParameteri(t->near_far.id(), GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-    GlFramebuffer framebuffer;
-    glNamedFramebufferTexture(framebuffer.id(), GL_COLOR_ATTACHMENT0, t->near_far.id(), 0);
-    if (glCheckNamedFramebufferStatus(framebuffer.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
-      return absl::InternalError("slicemap: RG32F depth-range framebuffer incomplete");
-    glBindFramebuffer(GL_FRAMEBUFFER, framebuffer.id());
-    const GLfloat empty[4] = {2.0f, 2.0f, 0.0f, 0.0f};  // near 2 > far -2: no geometry
-    glClearNamedFramebufferfv(framebuffer.id(), GL_COLOR, 0, empty);
-    glEnable(GL_BLEND);
-    glBlendEquation(GL_MIN);
-    glUseProgram(program->id());
-    Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part, pieces, config.job);
-    glDisable(GL_BLEND);
-    glBlendEquation(GL_FUNC_ADD);
-    RestoreState();
-    VISQ_RETURN_IF_ERROR(drawn);
-    glFinish();
-    VISQ_GL_CHECK("slicemap depth-range pass");
-    raw.near_far.resize(size_t{config.width} * config.height * 2);
-    glGetTextureImage(t->near_far.id(), 0, GL_RG, GL_FLOAT, static_cast<GLsizei>(raw.near_far.size() * sizeof(float)),
-                      raw.near_far.data());
-    raw.passes += 1;
-    raw.timings.depth_ms += MillisecondsSince(start);
+    t->near_far_framebuffer = GlFramebuffer();
+    glNamedFramebufferTexture(t->near_far_framebuffer.id(), GL_COLOR_ATTACHMENT0, t->near_far.id(), 0);
   }
+  raw.timings.setup_ms += MillisecondsSince(setup_start);
   return t;
 }
 
-// Runs the passes, each band of rows of each pass a GL job, and hands each
-// band on as soon as all its passes are done: `raw`'s grids then hold that
-// band's rows (a solid's surface merged with its front and back maps).
+using JobRunner = std::function<Status(const std::function<Status()>& body)>;
+
+// One draw of a pass, over as many GL jobs as it takes (a conservative pass
+// over a large scene takes seconds on llvmpipe: a small query behind it
+// waits about config.draw_ms_per_job, not the whole pass): `bind` sets the
+// pass's state in each job (`first`: clear the targets too), the draw goes
+// on where the last job stopped, and `finish` runs after its last piece, in
+// that job (the readback).
+Status DrawPassOverJobs(const JobRunner& job, const GpuScene& scene, const ScenePartDraw& part, bool draw_nothing,
+                        TimedSizer& pieces, const PassConfig& config,
+                        const std::function<StatusOr<const GlProgram*>(bool first)>& bind,
+                        const std::function<Status()>& finish, double& draw_ms) {
+  std::optional<DrawAcrossJobs> draw;
+  if (!draw_nothing) draw.emplace(scene, part, pieces);
+  bool first = true, finished = false;
+  while (!finished) {
+    VISQ_RETURN_IF_ERROR(job([&]() -> Status {
+      StatusOr<const GlProgram*> program = bind(first);
+      if (!program.ok()) {
+        RestoreState();
+        return program.status();
+      }
+      first = false;
+      const auto start = Clock::now();
+      glUseProgram((*program)->id());
+      const Status drawn =
+          draw ? draw->DrawSome(config.draw_ms_per_job, config.job, "voxelization: between draws") : absl::OkStatus();
+      glDisable(GL_COLOR_LOGIC_OP);
+      glDisable(GL_BLEND);
+      glBlendEquation(GL_FUNC_ADD);
+      RestoreState();
+      VISQ_RETURN_IF_ERROR(drawn);
+      if (draw && !draw->done()) {
+        draw_ms += MillisecondsSince(start);
+        return absl::OkStatus();  // the next job draws on
+      }
+      glFinish();
+      draw_ms += MillisecondsSince(start);
+      finished = true;
+      return finish();
+    }));
+  }
+  return absl::OkStatus();
+}
+
+// Runs the passes, each band of rows of each pass GL jobs of its own, and
+// hands each band on as soon as all its passes are done: `raw`'s grids then
+// hold that band's rows (a solid's surface merged with its front and back
+// maps). With local precision a depth-range pass over the whole image comes
+// first.
 using RawBand = std::function<Status(uint32_t first_row, RawSlicemap& raw)>;
 Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
                  RawSlicemap& raw, const RawBand& on_band) {
@@ -275,7 +286,6 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   const uint32_t band_rows = static_cast<uint32_t>(
       std::clamp<size_t>(config.max_columns_per_job / std::max<uint32_t>(config.width, 1), 1, config.height));
 
-
   // Draw pieces of about piece_target_ms.
   const int part_triangles = int(std::clamp<uint64_t>(part.triangles, 1, INT32_MAX));
   TimedSizer pieces(config.piece_target_ms, part_triangles,
@@ -284,7 +294,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
                         : part_triangles);
 
   GlStateAcrossJobs<SlicemapTargets> targets(worker);
-  auto job = [&](const std::function<Status()>& body) -> Status {
+  const JobRunner job = [&](const std::function<Status()>& body) -> Status {
     JobTiming timing;
     const Status status = worker.Run(config.job, body, &timing);
     raw.timings.queue_ms += timing.queue_ms;
@@ -293,76 +303,108 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   };
   VISQ_RETURN_IF_ERROR(job([&]() -> Status {
     VISQ_ASSIGN_OR_RETURN(std::shared_ptr<SlicemapTargets> made,
-                          CreateTargets(scene, view, config, part, draw_nothing, pieces, maps * max_targets_per_map,
-                                        band_rows, raw));
+                          CreateTargets(config, maps * max_targets_per_map, band_rows, raw));
     targets.Set(std::move(made));
     return absl::OkStatus();
   }));
+
+  // Local precision: each column's depth range, in one pass over the image.
+  if (local) {
+    auto bind = [&](bool first) -> StatusOr<const GlProgram*> {
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
+      SetPassState(config, 0, config.height);
+      ShaderDefines defines = BaseDefines(view, config, conservative);
+      defines.emplace_back("DEPTH_RANGE_PASS", "1");
+      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(conservative, defines));
+      SetViewUniforms(*program, conservative, view, config, 0);
+      const GLuint framebuffer = made->near_far_framebuffer.id();
+      if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+        return absl::InternalError("slicemap: RG32F depth-range framebuffer incomplete");
+      glBindFramebuffer(GL_FRAMEBUFFER, framebuffer);
+      if (first) {
+        const GLfloat empty[4] = {2.0f, 2.0f, 0.0f, 0.0f};  // near 2 > far -2: no geometry
+        glClearNamedFramebufferfv(framebuffer, GL_COLOR, 0, empty);
+      }
+      glEnable(GL_BLEND);
+      glBlendEquation(GL_MIN);
+      return program;
+    };
+    auto finish = [&]() -> Status {
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
+      VISQ_GL_CHECK("slicemap depth-range pass");
+      raw.near_far.resize(size_t{config.width} * config.height * 2);
+      glGetTextureImage(made->near_far.id(), 0, GL_RG, GL_FLOAT,
+                        static_cast<GLsizei>(raw.near_far.size() * sizeof(float)), raw.near_far.data());
+      raw.passes += 1;
+      return absl::OkStatus();
+    };
+    VISQ_RETURN_IF_ERROR(
+        DrawPassOverJobs(job, scene, part, draw_nothing, pieces, config, bind, finish, raw.timings.depth_ms));
+  }
 
   // One slicemap pass over rows [first_row, first_row + rows): `pass_solid`
   // splits front and back faces, else every fragment goes to the surface map.
   std::vector<GLuint> texels;
   auto run_pass = [&](bool pass_solid, bool pass_conservative, uint32_t first_slice, uint32_t pass_slices,
                       uint32_t first_row, uint32_t rows) -> Status {
-    VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
     const uint32_t targets_per_map = (pass_slices + 127) / 128;
     const uint32_t pass_maps = pass_solid ? 2 : 1;
-    const GLuint framebuffer = made->framebuffer.id();
-    auto start = Clock::now();
-    SetPassState(config, first_row, rows);
-    if (local) glBindTextureUnit(0, made->near_far.id());
-    ShaderDefines defines = BaseDefines(view, config, pass_conservative);
-    defines.emplace_back("TARGETS", std::to_string(targets_per_map));
-    if (pass_solid) defines.emplace_back("SOLID", "1");
-    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(pass_conservative, defines));
-    SetViewUniforms(*program, pass_conservative, view, config, first_row);
-    program->Set("u_pass_first_slice", static_cast<int>(first_slice));
-    program->Set("u_pass_slices", static_cast<int>(pass_slices));
-    // Attachment i of the pass: map i / targets_per_map, target i % targets_per_map.
-    std::vector<GLenum> buffers;
-    for (uint32_t m = 0; m < pass_maps; ++m)
-      for (uint32_t t = 0; t < targets_per_map; ++t) buffers.push_back(GL_COLOR_ATTACHMENT0 + m * max_targets_per_map + t);
-    glNamedFramebufferDrawBuffers(framebuffer, static_cast<GLsizei>(buffers.size()), buffers.data());
-    if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
-      RestoreState();
-      return absl::InternalError("slicemap: RGBA32UI framebuffer incomplete");
-    }
-    glBindFramebuffer(GL_FRAMEBUFFER, framebuffer);
-    // Clears honour the scissor: only the band's rows.
-    const GLuint zero[4] = {0, 0, 0, 0};
-    for (GLint i = 0; i < static_cast<GLint>(buffers.size()); ++i)
-      glClearNamedFramebufferuiv(framebuffer, GL_COLOR, i, zero);
-    raw.timings.setup_ms += MillisecondsSince(start);
-
-    start = Clock::now();
-    glUseProgram(program->id());
-    glEnable(GL_COLOR_LOGIC_OP);
-    glLogicOp(GL_OR);
-    const Status drawn = draw_nothing ? absl::OkStatus() : DrawTriangles(scene, part, pieces, config.job);
-    glDisable(GL_COLOR_LOGIC_OP);
-    RestoreState();
-    VISQ_RETURN_IF_ERROR(drawn);
-    glFinish();
-    VISQ_GL_CHECK("slicemap pass");
-    if (first_row == 0) raw.passes += 1;
-    raw.timings.voxelize_ms += MillisecondsSince(start);
-
-    start = Clock::now();
-    VISQ_CHECK_LE(size_t{first_row} + rows, size_t{config.height});
-    const size_t band_columns = size_t{config.width} * rows;
-    texels.resize(band_columns * 4);
-    for (uint32_t m = 0; m < pass_maps; ++m) {
-      SlicemapGrid& grid = !pass_solid ? raw.surface : (m == 0 ? raw.front : raw.back);
-      for (uint32_t t = 0; t < targets_per_map; ++t) {
-        glGetTextureSubImage(made->targets[m * max_targets_per_map + t].id(), 0, 0, 0,
-                             0, static_cast<GLsizei>(config.width), static_cast<GLsizei>(rows), 1, GL_RGBA_INTEGER,
-                             GL_UNSIGNED_INT, static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
-        ScatterTarget(texels, 0, band_columns, grid, first_slice / 32 + t * 4);
+    auto bind = [&](bool first) -> StatusOr<const GlProgram*> {
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
+      const GLuint framebuffer = made->framebuffer.id();
+      const auto start = Clock::now();
+      SetPassState(config, first_row, rows);
+      if (local) glBindTextureUnit(0, made->near_far.id());
+      ShaderDefines defines = BaseDefines(view, config, pass_conservative);
+      defines.emplace_back("TARGETS", std::to_string(targets_per_map));
+      if (pass_solid) defines.emplace_back("SOLID", "1");
+      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(pass_conservative, defines));
+      SetViewUniforms(*program, pass_conservative, view, config, first_row);
+      program->Set("u_pass_first_slice", static_cast<int>(first_slice));
+      program->Set("u_pass_slices", static_cast<int>(pass_slices));
+      // Attachment i of the pass: map i / targets_per_map, target i % targets_per_map.
+      std::vector<GLenum> buffers;
+      for (uint32_t m = 0; m < pass_maps; ++m)
+        for (uint32_t t = 0; t < targets_per_map; ++t)
+          buffers.push_back(GL_COLOR_ATTACHMENT0 + m * max_targets_per_map + t);
+      glNamedFramebufferDrawBuffers(framebuffer, static_cast<GLsizei>(buffers.size()), buffers.data());
+      if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
+        return absl::InternalError("slicemap: RGBA32UI framebuffer incomplete");
+      glBindFramebuffer(GL_FRAMEBUFFER, framebuffer);
+      if (first) {
+        // Clears honour the scissor: only the band's rows.
+        const GLuint zero[4] = {0, 0, 0, 0};
+        for (GLint i = 0; i < static_cast<GLint>(buffers.size()); ++i)
+          glClearNamedFramebufferuiv(framebuffer, GL_COLOR, i, zero);
       }
-    }
-    VISQ_GL_CHECK("slicemap readback");
-    raw.timings.readback_ms += MillisecondsSince(start);
-    return absl::OkStatus();
+      glEnable(GL_COLOR_LOGIC_OP);
+      glLogicOp(GL_OR);
+      raw.timings.setup_ms += MillisecondsSince(start);
+      return program;
+    };
+    auto finish = [&]() -> Status {
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
+      VISQ_GL_CHECK("slicemap pass");
+      if (first_row == 0) raw.passes += 1;
+      const auto start = Clock::now();
+      VISQ_CHECK_LE(size_t{first_row} + rows, size_t{config.height});
+      const size_t band_columns = size_t{config.width} * rows;
+      texels.resize(band_columns * 4);
+      for (uint32_t m = 0; m < pass_maps; ++m) {
+        SlicemapGrid& grid = !pass_solid ? raw.surface : (m == 0 ? raw.front : raw.back);
+        for (uint32_t t = 0; t < targets_per_map; ++t) {
+          glGetTextureSubImage(made->targets[m * max_targets_per_map + t].id(), 0, 0, 0, 0,
+                               static_cast<GLsizei>(config.width), static_cast<GLsizei>(rows), 1, GL_RGBA_INTEGER,
+                               GL_UNSIGNED_INT, static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
+          ScatterTarget(texels, 0, band_columns, grid, first_slice / 32 + t * 4);
+        }
+      }
+      VISQ_GL_CHECK("slicemap readback");
+      raw.timings.readback_ms += MillisecondsSince(start);
+      return absl::OkStatus();
+    };
+    return DrawPassOverJobs(job, scene, part, draw_nothing, pieces, config, bind, finish,
+                            raw.timings.voxelize_ms);
   };
 
   // Solid: front/back maps sampled at texel centers (the in/out events);
@@ -379,10 +421,10 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
     for (uint32_t first = 0; first < config.slices; first += per_pass) {
       const uint32_t n = std::min(per_pass, config.slices - first);
       if (solid) {
-        VISQ_RETURN_IF_ERROR(job([&] { return run_pass(true, false, first, n, first_row, rows); }));
-        if (conservative) VISQ_RETURN_IF_ERROR(job([&] { return run_pass(false, true, first, n, first_row, rows); }));
+        VISQ_RETURN_IF_ERROR(run_pass(true, false, first, n, first_row, rows));
+        if (conservative) VISQ_RETURN_IF_ERROR(run_pass(false, true, first, n, first_row, rows));
       } else {
-        VISQ_RETURN_IF_ERROR(job([&] { return run_pass(false, conservative, first, n, first_row, rows); }));
+        VISQ_RETURN_IF_ERROR(run_pass(false, conservative, first, n, first_row, rows));
       }
     }
     if (solid) {

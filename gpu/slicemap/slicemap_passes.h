@@ -29,11 +29,7 @@ struct ViewSetup {
   glm::vec2 radial{0.0f};  // perspective: (r0, 1 / (r1 - r0))
 };
 
-struct PassConfig : SlicemapSettings {
-  // A pass's draw is cut into pieces of about this long, the call asked
-  // between them. 0: one draw.
-  double piece_target_ms = 25.0;
-};
+struct PassConfig : SlicemapSettings {};
 
 // Finite and within visq's coordinate range (common/coordinates.h).
 inline std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }

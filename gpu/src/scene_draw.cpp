@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <limits>
 
 #include <epoxy/gl.h>
 
@@ -74,20 +75,33 @@ ScenePartDraw DrawCursor::Next(uint64_t triangles) {
 
 Status DrawInTimedPieces(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces,
                          const JobOptions& job, std::string_view where) {
-  VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, scene.CurrentResources());
-  const bool cut = uint64_t(pieces.size()) < part.triangles;
-  const ScenePartDraw commands = cut && part.everything ? scene.WholeAsCommands() : ScenePartDraw{};
-  // Each piece is cut at the sizer's size of the moment, so a draw that
-  // started small grows its pieces as it learns.
-  DrawCursor cursor(cut ? (part.everything ? commands : part) : part);
-  for (bool first = true; !cursor.done(); first = false) {
-    if (!first) VISQ_RETURN_IF_ERROR(StillWanted(job, where));
-    const ScenePartDraw piece = cut ? cursor.Next(uint64_t(pieces.size())) : cursor.Next(UINT64_MAX);
+  DrawAcrossJobs draw(scene, part, pieces);
+  return draw.DrawSome(std::numeric_limits<double>::infinity(), job, where);
+}
+
+// Each piece is cut at the sizer's size of the moment, so a draw that
+// started small grows its pieces as it learns.
+DrawAcrossJobs::DrawAcrossJobs(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces)
+    : scene_(scene),
+      pieces_(pieces),
+      cut_(uint64_t(pieces.size()) < part.triangles),
+      commands_(cut_ && part.everything ? scene.WholeAsCommands() : ScenePartDraw{}),
+      cursor_(cut_ && part.everything ? commands_ : part) {}
+
+Status DrawAcrossJobs::DrawSome(double job_ms, const JobOptions& job, std::string_view where) {
+  VISQ_ASSIGN_OR_RETURN(const GpuScene::Resources* resources, scene_.CurrentResources());
+  const auto job_start = std::chrono::steady_clock::now();
+  for (bool first = true; !cursor_.done(); first = false) {
+    if (!first) {
+      VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+      if (MillisecondsSince(job_start) >= job_ms) return absl::OkStatus();
+    }
+    const ScenePartDraw piece = cut_ ? cursor_.Next(uint64_t(pieces_.size())) : cursor_.Next(UINT64_MAX);
     const auto start = std::chrono::steady_clock::now();
     VISQ_RETURN_IF_ERROR(DrawScenePart(*resources, piece));
-    if (cut || !pieces.settled()) {
+    if (cut_ || !pieces_.settled()) {
       glFinish();  // the piece's time, and the stop's chance
-      pieces.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(start));
+      pieces_.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(start));
     }
   }
   return absl::OkStatus();

@@ -45,6 +45,30 @@ class DrawCursor {
 // as one draw would (OR logic ops, depth-tested targets).
 [[nodiscard]] Status DrawInTimedPieces(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces,
                                        const JobOptions& job, std::string_view where);
+
+// The same draw spread over GL jobs: each DrawSome, in a job of its own with
+// the caller's program and targets bound again, draws pieces until the draw
+// is done or it has drawn for `job_ms`, and the next goes on where it
+// stopped. Other calls' jobs get the GL thread between, so a draw that takes
+// seconds on a CPU rasterizer holds it for about `job_ms` at a time. Built
+// on the calling thread (no GL calls); `part` and `pieces` must outlive it.
+class DrawAcrossJobs {
+ public:
+  DrawAcrossJobs(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces);
+  DrawAcrossJobs(const DrawAcrossJobs&) = delete;  // the cursor points into it
+  DrawAcrossJobs& operator=(const DrawAcrossJobs&) = delete;
+  bool done() const { return cursor_.done(); }
+  // GL thread. Asks `job` between pieces, not before the first: the worker
+  // asked before the job started.
+  [[nodiscard]] Status DrawSome(double job_ms, const JobOptions& job, std::string_view where);
+
+ private:
+  const GpuScene& scene_;
+  TimedSizer& pieces_;
+  bool cut_;
+  ScenePartDraw commands_;  // the whole scene as commands, when it is cut
+  DrawCursor cursor_;
+};
 // Every triangle once, in the scene's order (GpuScene::Whole()).
 [[nodiscard]] Status DrawWholeScene(const GpuScene::Resources& resources);
 

@@ -244,6 +244,42 @@ TEST(SlicemapSurface, MoreThan1024SlicesUseSeveralPasses) {
   CheckConservativeSurface(s, params, "1100 slices");
 }
 
+// A band's draw spread over GL jobs, a piece a job (as a pass over a large
+// scene is on llvmpipe, so that other queries get the GL thread between its
+// pieces), gives the bits of one draw: the sphere's 20,480 triangles are
+// over the first piece of a 40 x 18 band (2^22 / 720 = 5,825 triangles).
+TEST(SlicemapBands, ADrawSpreadOverGlJobsGivesTheBitsOfOneDraw) {
+  const Uploaded s = Upload(MakeSphere(kSphereCenter, 1.0, 5));
+  ASSERT_EQ(s.scene.TriangleCount(), 20480u);
+  struct Case {
+    VoxelizeMode mode;
+    SlicePrecision precision;
+    Rasterization rasterization;
+  };
+  for (const Case& c : {Case{VoxelizeMode::kSurface, SlicePrecision::kUniform, Rasterization::kConservative},
+                        Case{VoxelizeMode::kSolid, SlicePrecision::kLocal, Rasterization::kStandard}}) {
+    VoxelizeParams params = Params(s.scene, 2, 40, 36, 64);
+    params.mode = c.mode;
+    params.precision = c.precision;
+    params.rasterization = c.rasterization;
+    params.piece_target_ms = 0.0;  // one draw, one job
+    const gpu::VoxelizeResult whole = MustVoxelize(s, params);
+    params.max_columns_per_job = 40 * 18;
+    params.piece_target_ms = 1e-6;
+    params.draw_ms_per_job = 0.0;
+    const gpu::VoxelizeResult over_jobs = MustVoxelize(s, params);
+    SCOPED_TRACE(::testing::Message() << "mode " << int(c.mode) << ", precision " << int(c.precision));
+    EXPECT_GT(whole.occupied_voxels, 0u);
+    EXPECT_EQ(over_jobs.grid.bits, whole.grid.bits);
+    EXPECT_EQ(over_jobs.column_near, whole.column_near);
+    EXPECT_EQ(over_jobs.column_far, whole.column_far);
+    EXPECT_EQ(over_jobs.passes, whole.passes);
+    // 2 bands, each a draw of at least 4 pieces: 8 jobs at least beside
+    // the targets' (and the depth-range pass's).
+    EXPECT_GE(over_jobs.gl_jobs, whole.gl_jobs + 7) << "draws spread over jobs";
+  }
+}
+
 // Bands of image rows, each a GL job of its own (other queries run between
 // them), give the bits of one job, in every mode: surface, solid with a
 // conservative surface pass, local precision, and several slice passes.
@@ -274,8 +310,11 @@ TEST(SlicemapBands, BandsOfRowsGiveTheBitsOfOneJob) {
     const uint32_t per_band = (c.mode == VoxelizeMode::kSolid && c.rasterization == Rasterization::kConservative) ? 2 : 1;
     const uint32_t slice_passes = (c.slices + (c.mode == VoxelizeMode::kSolid ? 511 : 1023)) /
                                   (c.mode == VoxelizeMode::kSolid ? 512 : 1024);
-    EXPECT_EQ(whole.gl_jobs, 1 + slice_passes * per_band);
-    EXPECT_EQ(banded.gl_jobs, 1 + slice_passes * per_band * 8) << "36 rows in bands of 5";
+    // The targets, with local precision the depth-range pass, then the
+    // passes: each draw here fits one job.
+    const uint32_t setup_jobs = c.precision == SlicePrecision::kLocal ? 2 : 1;
+    EXPECT_EQ(whole.gl_jobs, setup_jobs + slice_passes * per_band);
+    EXPECT_EQ(banded.gl_jobs, setup_jobs + slice_passes * per_band * 8) << "36 rows in bands of 5";
 
     // Streamed: each band, whole in depth, goes to the sink as it is made,
     // and the bands are the grid; the result keeps the figures only.

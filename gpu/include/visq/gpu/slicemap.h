@@ -85,9 +85,15 @@ struct SlicemapSettings {
   // Largest packed result (and per-pass GPU targets) accepted.
   uint64_t max_bytes = kDefaultMaxSlicemapBytes;
   // Each pass is drawn and read back a band of image rows of at most this
-  // many columns at a time, each band a GL job: other queries get the GL
-  // thread between bands. The bits are those of one draw.
+  // many columns at a time, on targets of that size. The bits are those of
+  // one draw.
   size_t max_columns_per_job = kDefaultSlicemapColumnsPerJob;
+  // A band's draw is cut into pieces of about piece_target_ms (0: one
+  // draw), the call asked between them, and a GL job draws pieces for
+  // about draw_ms_per_job before the next job of the band goes on: other
+  // queries get the GL thread between jobs.
+  double piece_target_ms = 25.0;
+  double draw_ms_per_job = 50.0;
   JobOptions job;
 };
 
