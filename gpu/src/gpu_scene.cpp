@@ -1,4 +1,5 @@
 #include "visq/gpu/gpu_scene.h"
+#include "scene/placement_checks.h"
 
 #include <algorithm>
 #include <cmath>
@@ -41,11 +42,12 @@ Layout PlanLayout(const Scene& scene, const glm::dvec3& anchor) {
   const glm::dvec3 extent = scene.bounds.Empty() ? glm::dvec3(0.0) : scene.bounds.Extent();
   const double largest_extent = std::max({extent.x, extent.y, extent.z});
   uint64_t cursor = 0, placed = 0, held = 0;
+  const std::vector<uint8_t> in_range = PlacementsInRange(scene);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& p = scene.placements[k];
     if (p.mesh >= scene.meshes.size() || p.first_triangle < cursor) continue;
     const uint64_t count = scene.meshes[p.mesh].triangles.size();
-    if (count < kFewestTrianglesToInstance || !PlacementInRange(scene, p) ||
+    if (count < kFewestTrianglesToInstance || !in_range[k] ||
         !PlacementKeepsFloatPrecision(p.world, magnitude[p.mesh], anchor, largest_extent))
       continue;
     // The GPU keeps a held mesh's materials once, as the scene does

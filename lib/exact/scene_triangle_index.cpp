@@ -3,6 +3,7 @@
 // and one box per placement of a repeated mesh; each repeated mesh has a
 // hierarchy of its own, in its own space, built once.
 #include "exact/light_visibility.h"
+#include "scene/placement_checks.h"
 
 #include <algorithm>
 #include <cmath>
@@ -128,8 +129,10 @@ StatusOr<std::unique_ptr<SceneTriangleIndex>> SceneTriangleIndex::Build(std::sha
   std::vector<uint32_t> mesh_slot(scene.meshes.size(), UINT32_MAX);
   std::vector<Box> top_boxes;
   impl->instances.reserve(scene.placements.size());
-  for (const MeshPlacement& placement : scene.placements) {
-    if (!FiniteTransform(placement.world) || !PlacementInRange(scene, placement)) continue;
+  const std::vector<uint8_t> in_range = PlacementsInRange(scene);
+  for (size_t k = 0; k < scene.placements.size(); ++k) {
+    const MeshPlacement& placement = scene.placements[k];
+    if (!FiniteTransform(placement.world) || !in_range[k]) continue;
     const SceneMesh& mesh = scene.meshes[placement.mesh];
     if (mesh.triangles.empty() || std::any_of(instanced.begin() + placement.first_triangle,
                     instanced.begin() + placement.first_triangle + mesh.triangles.size(), [](uint8_t b) { return b != 0; })) continue;

@@ -1,4 +1,5 @@
 #include "raycast/embree_scene.h"
+#include "scene/placement_checks.h"
 
 #include <algorithm>
 #include <array>
@@ -195,11 +196,12 @@ std::vector<uint8_t> PlacementsToInstance(const Scene& scene, const EmbreeSceneO
   if (!options.instance_meshes) return traced;
   const std::vector<double> magnitude = MeshMagnitudes(scene);
   std::vector<uint8_t> covered(scene.TriangleCount(), 0);
+  const std::vector<uint8_t> in_range = PlacementsInRange(scene);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& placement = scene.placements[k];
     // A placement out of range, or that overlaps an earlier one, is traced
     // flattened.
-    if (!PlacementInRange(scene, placement)) continue;
+    if (!in_range[k]) continue;
     const size_t count = scene.meshes[placement.mesh].triangles.size();
     const auto first = covered.begin() + placement.first_triangle;
     if (count == 0 || std::any_of(first, first + count, [](uint8_t b) { return b != 0; }) ||

@@ -1,4 +1,5 @@
 #include "scene/scene.h"
+#include "scene/placement_checks.h"
 
 #include <algorithm>
 #include <cmath>
@@ -212,9 +213,10 @@ bool PlacementInRange(const Scene& scene, const MeshPlacement& placement) {
 Status ValidatePlacements(const Scene& scene) {
   uint64_t end_of_previous = 0, placed_triangles = 0, placed_positions = 0;
   uint64_t unplaced_triangles = 0, unplaced_positions = 0;
+  const std::vector<uint8_t> in_range = PlacementsInRange(scene);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& placement = scene.placements[k];
-    if (!PlacementInRange(scene, placement))
+    if (!in_range[k])
       return absl::InvalidArgumentError(absl::StrCat("scene.placements[", k, "]: mesh or node out of range"));
     if (placement.first_triangle < end_of_previous)
       return absl::InvalidArgumentError(absl::StrCat("scene.placements[", k, "].first_triangle: ",
@@ -478,11 +480,67 @@ void VisitFlattened(const Scene& scene, const FlattenedRuns& runs) {
 }
 
 Bounds PositionBounds(const Scene& scene) {
-  Bounds bounds;
-  for (const glm::dvec3& p : scene.positions) bounds.Extend(p);
-  for (const MeshPlacement& p : scene.placements)
+  Bounds bounds = BoundsOf(scene.positions);
+  const std::vector<Bounds> mesh_bounds = MeshBounds(scene);
+  for (const MeshPlacement& p : scene.placements) {
+    if (const std::optional<Bounds> placed = PlacedBoundsWithoutRotation(p.world, mesh_bounds[p.mesh])) {
+      if (!placed->Empty()) {
+        bounds.Extend(placed->min);
+        bounds.Extend(placed->max);
+      }
+      continue;
+    }
     for (const glm::dvec3& x : scene.meshes[p.mesh].positions) bounds.Extend(PlacePoint(p.world, x));
+  }
   return bounds;
+}
+
+std::vector<uint8_t> PlacementsInRange(const Scene& scene) {
+  // Per mesh: -1 not yet checked, else whether its corners index its positions.
+  std::vector<int8_t> mesh_ok(scene.meshes.size(), -1);
+  std::vector<uint8_t> in_range(scene.placements.size(), 0);
+  for (size_t k = 0; k < scene.placements.size(); ++k) {
+    const MeshPlacement& placement = scene.placements[k];
+    if (placement.mesh >= scene.meshes.size()) continue;
+    int8_t& ok = mesh_ok[placement.mesh];
+    if (ok < 0) {
+      const SceneMesh& mesh = scene.meshes[placement.mesh];
+      ok = std::none_of(mesh.triangles.begin(), mesh.triangles.end(), [&](const glm::uvec3& t) {
+        return glm::any(glm::greaterThanEqual(t, glm::uvec3(mesh.positions.size())));
+      });
+    }
+    in_range[k] = ok == 1 && (placement.node < scene.nodes.size() || scene.nodes.empty());
+  }
+  return in_range;
+}
+
+Bounds BoundsOf(const std::vector<glm::dvec3>& points) {
+  Bounds bounds;
+  for (const glm::dvec3& p : points) bounds.Extend(p);
+  return bounds;
+}
+
+std::vector<Bounds> MeshBounds(const Scene& scene) {
+  std::vector<Bounds> bounds;
+  bounds.reserve(scene.meshes.size());
+  for (const SceneMesh& mesh : scene.meshes) bounds.push_back(BoundsOf(mesh.positions));
+  return bounds;
+}
+
+std::optional<Bounds> PlacedBoundsWithoutRotation(const glm::dmat4& world, const Bounds& local) {
+  for (int column = 0; column < 3; ++column)
+    for (int row = 0; row < 3; ++row)
+      if (row != column && world[column][row] != 0.0) return std::nullopt;
+  if (local.Empty()) return local;
+  // Row r of the placed point is world[r][r] * x_r plus zeros plus the
+  // translation, rounded as PlacePoint rounds it: monotone in x_r, rising
+  // or falling with the scale's sign, so its extremes are those of the
+  // local extremes placed.
+  const glm::dvec3 a = PlacePoint(world, local.min), b = PlacePoint(world, local.max);
+  Bounds placed;
+  placed.Extend(a);
+  placed.Extend(b);
+  return placed;
 }
 
 }  // namespace visq

@@ -1,4 +1,5 @@
 #include "core/structure_estimate.h"
+#include "scene/placement_checks.h"
 
 #include <algorithm>
 
@@ -50,10 +51,7 @@ StructureEstimate EstimateStructures(const Scene& scene) {
                        bvh.instances * kEmbreeBvhBytesPerInstance;
   // Without instances the BVH reads the scene's own triangle indices.
   if (bvh.instances == 0) e.embree_bvh_bytes -= bvh.triangles * kEmbreeSharedIndexBytesPerTriangle;
-  std::vector<uint8_t> matching(scene.placements.size(), 0);
-  for (size_t k = 0; k < scene.placements.size(); ++k)
-    matching[k] = PlacementInRange(scene, scene.placements[k]) ? 1 : 0;
-  const Held index = HeldBy(scene, matching);
+  const Held index = HeldBy(scene, PlacementsInRange(scene));
   e.triangle_index_bytes = index.triangles * kTriangleIndexBytesPerTriangle + index.instances * kTriangleIndexBytesPerInstance;
   e.unique_triangles = index.triangles;
   e.instances = index.instances;

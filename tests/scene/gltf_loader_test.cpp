@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "scene/gltf_loader.h"
+#include "scene/placement_checks.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
 #include "scene/scene_edit.h"
@@ -692,6 +693,56 @@ TEST(GltfLoaderHostile, LightmapUvsAreValidatedLikePositions) {
   ASSERT_TRUE(scene.ok()) << scene.status();
   ASSERT_EQ(scene->lightmap_uvs.size(), 3u);
   EXPECT_EQ(scene->lightmap_uvs[2].x, 1.25f);
+}
+
+// A placement that only scales and translates is bounded by its mesh's
+// bounds placed (a level's thousands of placements are not placed point by
+// point for their bounds and range): the same numbers as placing every
+// point, whatever the scales' signs; any other transform is placed point by
+// point. PlacementsInRange checks each mesh once and agrees with
+// PlacementInRange.
+TEST(ScenePlacements, BoundsWithoutRotationAreThePlacedPointsBounds) {
+  const Scene grid = testing::MakeRippledGrid(12);
+  const Bounds local = BoundsOf(grid.positions);
+  auto by_points = [&](const glm::dmat4& world) {
+    Bounds bounds;
+    for (const glm::dvec3& p : grid.positions) bounds.Extend(PlacePoint(world, p));
+    return bounds;
+  };
+  for (const glm::dvec3& scale : {glm::dvec3(1.0), glm::dvec3(-3.0, 0.7, 1e-3), glm::dvec3(2.5, -1.0, -1e5),
+                                  glm::dvec3(1.0 / 3.0, 7.0, -0.1)}) {
+    for (const glm::dvec3& move : {glm::dvec3(0.0), glm::dvec3(1e6 + 0.1, -3.3, 12345.678), glm::dvec3(-1e-9)}) {
+      const glm::dmat4 world = glm::scale(glm::translate(glm::dmat4(1.0), move), scale);
+      const std::optional<Bounds> placed = PlacedBoundsWithoutRotation(world, local);
+      ASSERT_TRUE(placed.has_value());
+      const Bounds reference = by_points(world);
+      EXPECT_EQ(placed->min, reference.min) << "scale " << scale.x << " move " << move.x;
+      EXPECT_EQ(placed->max, reference.max) << "scale " << scale.x << " move " << move.x;
+    }
+  }
+  const glm::dmat4 turned = glm::rotate(glm::dmat4(1.0), 0.3, glm::dvec3(0, 1, 0));
+  EXPECT_FALSE(PlacedBoundsWithoutRotation(turned, local).has_value());
+
+  std::vector<glm::dmat4> worlds = testing::CopyWorlds(grid, 4);
+  worlds[2] = turned * worlds[2];
+  worlds[3] = glm::scale(worlds[3], glm::dvec3(-2.0, 1.0, 0.5));
+  const Scene placed = testing::PlaceMesh(grid, worlds);
+  ASSERT_EQ(placed.placements.size(), 4u);
+  Bounds reference;
+  for (const glm::dmat4& world : worlds) {
+    const Bounds one = by_points(world);
+    reference.Extend(one.min);
+    reference.Extend(one.max);
+  }
+  EXPECT_EQ(PositionBounds(placed).min, reference.min);
+  EXPECT_EQ(PositionBounds(placed).max, reference.max);
+  const std::vector<uint8_t> in_range = PlacementsInRange(placed);
+  ASSERT_EQ(in_range.size(), placed.placements.size());
+  for (size_t k = 0; k < placed.placements.size(); ++k)
+    EXPECT_EQ(in_range[k] != 0, PlacementInRange(placed, placed.placements[k])) << k;
+  Scene broken = placed;
+  broken.meshes[0].triangles[5].y = static_cast<uint32_t>(broken.meshes[0].positions.size());
+  for (uint8_t ok : PlacementsInRange(broken)) EXPECT_EQ(ok, 0) << "a corner past the mesh's positions";
 }
 
 // A level of nine placed copies of a grid: the scene of record holds the
