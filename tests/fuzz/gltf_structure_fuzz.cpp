@@ -18,7 +18,34 @@
 //     data:, "../x", "%2e%2e/%2e%2e/x", "..%2Fx", absolute paths, /etc/passwd,
 //     bare names that exist only in the working directory, empty, very long,
 //     a directory, NUL bytes;
-//   - JSON nested 200,000 deep in extras, GLB chunk lengths that lie.
+//   - JSON nested 200,000 deep in extras, GLB chunk lengths that lie;
+//   - extensions, in gltf_structure_extensions.cpp, decided last (inputs
+//     from before they existed keep their meaning): a small mesh of its own
+//     in place of every mesh's primitives or beside them, stored plain,
+//     through EXT_meshopt_compression or KHR_draco_mesh_compression, with
+//     lightmap UVs (TEXCOORD_1) at NaN, ±Inf, ±1e30, FLT_MAX or a denormal;
+//   - EXT_meshopt_compression: real streams from meshoptimizer's encoders
+//     (vertex, index buffer, index sequence; the EXPONENTIAL and QUATERNION
+//     filters), then lies: count × byteStride announcing 1 GiB, 8 GiB,
+//     4 GiB + 12 or 64 MiB (under the cap, over what the stream can encode)
+//     from a few dozen bytes, a few elements more than encoded, a view
+//     length that is not count × byteStride, cut or flipped streams, wrong
+//     modes, filters and strides, offsets and lengths past 2^32, a fallback
+//     buffer without its flag or with a uri;
+//   - KHR_draco_mesh_compression: real sequential and edgebreaker streams
+//     from Draco's encoder (quantized or not), then lies: face and point
+//     counts in the connectivity header up to 2^32 - 1 (and 2^22, under the
+//     cap, so that Draco itself reads them), cut or flipped streams, a point
+//     cloud's or a newer version's header, attribute ids that do not exist
+//     or name the wrong attribute, accessor counts up to 2^62, no indices,
+//     views past the buffer;
+//   - EXT_mesh_gpu_instancing on the first node, the last (the deepest of a
+//     chain, the most shared of a DAG), a decided one or the first 64:
+//     TRANSLATION / ROTATION / SCALE as float, normalized short or byte, or
+//     unsigned short, dense, sparse (with or without a view under it) or
+//     through meshopt; counts up to 2^62 (2^40 instances of a mesh without
+//     triangles, from a sparse accessor of one value), counts that differ
+//     between attributes, values at NaN, ±Inf, 1e30, 0, 1e-40.
 // It writes the document and its .bin files into a per-process folder and
 // loads them with small limits, so that any expansion the limits miss ends at
 // libFuzzer's -rss_limit_mb. Besides the sanitizers, it traps when:
@@ -28,19 +55,23 @@
 //   - a load succeeds although a buffer names an existing file outside the
 //     folder, or the scene holds the sentinels' value (their bytes are all
 //     0x4B: 13323083.0f however they are sliced; the generator never writes
-//     three 0x4B bytes in a row);
+//     three 0x4B bytes in a row, and skips this check where a compressed
+//     stream was cut or flipped, or an encoder wrote three);
 //   - a load succeeds with no triangle, or with more than the limit.
 //
 // The corpus (corpus/structure/) holds one input per interesting case; they
 // are written by this binary:
 //   VISQ_FUZZ_WRITE_SEEDS=tests/fuzz/corpus build-asan/tests/fuzz/gltf_structure_fuzz
 // which also writes the hostile-input cases as plain .gltf files (data: buffers)
-// for the byte-level target (corpus/gltf/issue19-*). Each seed is a script of
-// named decisions (ScriptChoices, below), encoded into the bytes from which
-// FuzzedDataProvider returns exactly those decisions, and checked by
-// replaying it. For triage: VISQ_FUZZ_PRINT_DOCUMENT=<n> prints each
-// document's first n bytes; VISQ_FUZZ_NO_DEEP_JSON=1 leaves out the deep
-// nesting (to fuzz the rest while it is broken).
+// for the byte-level target (corpus/gltf/issue19-*, issue45-structure-*).
+// Each seed is a script of named decisions (ScriptChoices, below), encoded
+// into the bytes from which FuzzedDataProvider returns exactly those
+// decisions, and checked by replaying it. (The seeds written before the
+// extensions existed end before the extensions' decisions: they mean the
+// same as the writer's longer version of them, which adds zeros.) For
+// triage: VISQ_FUZZ_PRINT_DOCUMENT=<n> prints each document's first n bytes;
+// VISQ_FUZZ_PRINT_STATUS=1 what each load answered; VISQ_FUZZ_NO_DEEP_JSON=1
+// leaves out the deep nesting (to fuzz the rest while it is broken).
 #include <fuzzer/FuzzedDataProvider.h>
 #include <signal.h>
 #include <sys/inotify.h>
@@ -65,13 +96,35 @@
 #include <glm/glm.hpp>
 #include <nlohmann/json.hpp>
 
+#include "gltf_structure_extensions.h"
 #include "scene/gltf_loader.h"
+
+namespace visq_fuzz {
+
+std::string DataUri(const Bytes& b) {
+  static const char kAlphabet[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  std::string out = "data:application/octet-stream;base64,";
+  for (size_t i = 0; i < b.size(); i += 3) {
+    uint32_t v = uint32_t{b[i]} << 16;
+    if (i + 1 < b.size()) v |= uint32_t{b[i + 1]} << 8;
+    if (i + 2 < b.size()) v |= b[i + 2];
+    out += kAlphabet[(v >> 18) & 63];
+    out += kAlphabet[(v >> 12) & 63];
+    out += i + 1 < b.size() ? kAlphabet[(v >> 6) & 63] : '=';
+    out += i + 2 < b.size() ? kAlphabet[v & 63] : '=';
+  }
+  return out;
+}
+
+}  // namespace visq_fuzz
 
 namespace {
 
 namespace fs = std::filesystem;
 using json = nlohmann::json;
-using Bytes = std::vector<uint8_t>;
+using visq_fuzz::Bytes;
+using visq_fuzz::Choices;
+using visq_fuzz::DataUri;
 
 constexpr uint64_t kMaxTriangles = uint64_t{1} << 20;
 constexpr uint64_t kMaxSceneBytes = uint64_t{256} << 20;
@@ -83,15 +136,7 @@ constexpr size_t kDecidedNodes = 64;           // nodes past these take defaults
 // ---------------------------------------------------------------------------
 // Decisions.
 
-class Choices {
- public:
-  virtual ~Choices() = default;
-  // A value in [0, span]; `name` identifies the decision for seed scripts.
-  virtual uint64_t Span(const std::string& name, uint64_t span) = 0;
-  // Up to n raw bytes (fewer when a fuzz input runs out).
-  virtual Bytes Raw(const std::string& name, size_t n) = 0;
-  bool Flag(const std::string& name) { return Span(name, 1) != 0; }
-};
+// Choices (gltf_structure_extensions.h): a value in a span, or raw bytes.
 
 class FuzzChoices final : public Choices {
  public:
@@ -331,6 +376,7 @@ struct Document {
   Bytes main;                  // scene.gltf or scene.glb
   std::vector<std::pair<std::string, Bytes>> files;  // relative to the folder
   bool escapes = false;        // a buffer names an existing file outside the folder
+  bool opaque_values = false;  // a compressed stream was garbled (ExtensionCases)
   std::string Name() const { return glb ? "scene.glb" : "scene.gltf"; }
 };
 
@@ -340,23 +386,6 @@ void Scrub(Bytes& b) {
   for (size_t i = 0; i + 2 < b.size(); ++i)
     if (b[i] == kSentinelByte && b[i + 1] == kSentinelByte && b[i + 2] == kSentinelByte) b[i + 2] ^= 1;
 }
-
-std::string Base64(const Bytes& b) {
-  static const char kAlphabet[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-  std::string out;
-  for (size_t i = 0; i < b.size(); i += 3) {
-    uint32_t v = uint32_t{b[i]} << 16;
-    if (i + 1 < b.size()) v |= uint32_t{b[i + 1]} << 8;
-    if (i + 2 < b.size()) v |= b[i + 2];
-    out += kAlphabet[(v >> 18) & 63];
-    out += kAlphabet[(v >> 12) & 63];
-    out += i + 1 < b.size() ? kAlphabet[(v >> 6) & 63] : '=';
-    out += i + 2 < b.size() ? kAlphabet[v & 63] : '=';
-  }
-  return out;
-}
-
-std::string DataUri(const Bytes& b) { return "data:application/octet-stream;base64," + Base64(b); }
 
 std::string PercentEncodeAll(const std::string& s) {
   static const char kHex[] = "0123456789ABCDEF";
@@ -777,6 +806,17 @@ Document Generate(Choices& c, const Env& env) {
   const std::string kDeep = "@@visq-deep@@";
   if (deep == 1 || deep == 2) g["asset"]["extras"] = kDeep;
   if (deep == 3) g["nodes"][0]["extras"] = kDeep;
+  // GLB: one length that may lie (decided here, before the extensions, so
+  // that inputs found before those existed keep their meaning).
+  const uint64_t glb_lie = d.glb ? c.Span("glb.lie", 3) : 0;
+  uint64_t glb_lie_value = 0;
+  if (glb_lie == 1) glb_lie_value = c.Span("glb.lie_value", 255);
+  if (glb_lie == 2) glb_lie_value = c.Span("glb.lie_value", 0xFFFFFFFFu);
+  if (glb_lie == 3) glb_lie_value = c.Span("glb.lie_value", 255);
+
+  // Instancing, meshopt, Draco and lightmap UVs: the last decisions.
+  const visq_fuzz::ExtensionCases extensions = visq_fuzz::AddExtensionCases(c, g, d.files);
+  d.opaque_values = extensions.opaque_values;
 
   std::string text = g.dump(-1, ' ', false, json::error_handler_t::replace);
   if (deep) {
@@ -800,10 +840,10 @@ Document Generate(Choices& c, const Env& env) {
   uint32_t json_length = static_cast<uint32_t>(text.size());
   uint32_t bin_length = static_cast<uint32_t>(chunk.size());
   uint32_t total = 12 + 8 + json_length + (bin_chunk ? 8 + bin_length : 0);
-  switch (c.Span("glb.lie", 3)) {
-    case 1: total += static_cast<uint32_t>(c.Span("glb.lie_value", 255)) - 128; break;
-    case 2: json_length = static_cast<uint32_t>(c.Span("glb.lie_value", 0xFFFFFFFFu)); break;
-    case 3: bin_length = 0xFFFFFFFFu - static_cast<uint32_t>(c.Span("glb.lie_value", 255)); break;
+  switch (glb_lie) {
+    case 1: total += static_cast<uint32_t>(glb_lie_value) - 128; break;
+    case 2: json_length = static_cast<uint32_t>(glb_lie_value); break;
+    case 3: bin_length = 0xFFFFFFFFu - static_cast<uint32_t>(glb_lie_value); break;
     default: break;
   }
   auto put32 = [&](uint32_t v) {
@@ -894,12 +934,19 @@ void LoadAndCheck(const Document& d, const Env& env) {
   limits.max_scene_bytes = kMaxSceneBytes;
   visq::GltfLoadReport report;
   visq::StatusOr<visq::Scene> scene = visq::LoadGltfFile(env.doc / d.Name(), &report, limits);
+  // Triage: VISQ_FUZZ_PRINT_STATUS=1 prints what the load answered.
+  static const bool print_status = std::getenv("VISQ_FUZZ_PRINT_STATUS") != nullptr;
+  if (print_status)
+    std::fprintf(stderr, "load: %s\n",
+                 scene.ok() ? ("OK, " + std::to_string(scene->TriangleCount()) + " triangles").c_str()
+                            : scene.status().ToString().substr(0, 300).c_str());
   if (SentinelRead(env)) Fail("the load read a file outside the document's folder");
   if (!scene.ok()) return;
   if (scene->TriangleCount() == 0) Fail("a scene loaded with no triangle");
   if (scene->TriangleCount() > kMaxTriangles) Fail("a scene loaded with more triangles than max_triangles");
   if (d.escapes) Fail("a scene loaded although a buffer uri names a file outside the document's folder");
-  if (ContainsSentinel(*scene)) Fail("a scene loaded with the bytes of a file outside the document's folder");
+  if (!d.opaque_values && ContainsSentinel(*scene))
+    Fail("a scene loaded with the bytes of a file outside the document's folder");
 }
 
 // ---------------------------------------------------------------------------
@@ -1008,12 +1055,102 @@ std::vector<Seed> Seeds() {
       {"required-extension", nullptr, S{{"ext.required", {2}}}},
       {"materials-huge-emission", nullptr,
        S{{"materials", {1}}, {"mat.emissive", {9}}, {"mat.strength", {1}}, {"mat.strength_value", {9}}}},
+      // Extensions (gltf_structure_extensions.cpp); issue 45's hostile files
+      // are also written for the byte-level target (issue45-structure-*).
+      // Lightmap UVs at the float edges, plain, through meshopt and Draco.
+      {"lightmap-uv-nan", "issue45-structure-lightmap-uv-nan",
+       S{{"x.geo", {1}}, {"x.uv", {1}}, {"x.uv.edge", {1}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"lightmap-uv-inf", "issue45-structure-lightmap-uv-inf",
+       S{{"x.geo", {1}}, {"x.uv", {1}}, {"x.uv.edge", {2}}, {"x.uv.at", {2}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"lightmap-uv-1e30", "issue45-structure-lightmap-uv-1e30",
+       S{{"x.geo", {1}}, {"x.uv", {1}}, {"x.uv.edge", {4}}, {"x.uv.component", {1}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"lightmap-uv-denormal-everywhere", nullptr,
+       S{{"x.geo", {1}}, {"x.uv", {1}}, {"x.uv.edge", {7}}, {"x.uv.at", {3}}}},
+      {"lightmap-uv-nan-meshopt", nullptr, S{{"x.geo", {2}}, {"x.uv", {1}}, {"x.uv.edge", {1}}, {"x.uv.at", {3}}}},
+      {"lightmap-uv-inf-draco", nullptr, S{{"x.geo", {3}}, {"x.uv", {1}}, {"x.uv.edge", {3}}}},
+      // EXT_meshopt_compression: real streams, then lies.
+      {"meshopt", nullptr, S{{"x.geo", {2}}, {"x.verts", {20}}, {"x.tris", {15}}}},
+      {"meshopt-exp-u16-sequence-uv", nullptr,
+       S{{"x.geo", {2}}, {"x.verts", {30}}, {"x.tris", {20}}, {"x.uv", {1}}, {"x.mo.pos.exp", {1}},
+         {"x.mo.pos.bits", {14}}, {"x.mo.idx.u16", {1}}, {"x.mo.idx.sequence", {1}}, {"x.mo.required", {1, 1, 1}}}},
+      {"meshopt-announces-1gib", "issue45-structure-meshopt-announces-1gib",
+       S{{"x.geo", {2}}, {"x.mo.pos.lie", {1}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"meshopt-announces-8gib", "issue45-structure-meshopt-announces-8gib",
+       S{{"x.geo", {2}}, {"x.mo.pos.lie", {2}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"meshopt-indices-announce-1gib", nullptr, S{{"x.geo", {2}}, {"x.mo.idx.lie", {1}}}},
+      {"meshopt-announces-64mib-under-the-cap", nullptr,
+       S{{"x.geo", {2}}, {"x.mo.pos.lie", {2}}, {"x.mo.pos.size", {1}}}},
+      {"meshopt-more-than-encoded", nullptr, S{{"x.geo", {2}}, {"x.mo.pos.lie", {3}}, {"x.mo.pos.more", {7}}}},
+      {"meshopt-count-not-view-length", nullptr, S{{"x.geo", {2}}, {"x.mo.idx.lie", {4}}}},
+      {"meshopt-truncated", nullptr,
+       S{{"x.geo", {2}}, {"x.tris", {10}}, {"x.mo.idx.lie", {5}}, {"x.mo.idx.cut.keep", {9}}}},
+      {"meshopt-flipped", nullptr,
+       S{{"x.geo", {2}}, {"x.mo.pos.lie", {6}}, {"x.mo.pos.flip.at", {3}}, {"x.mo.pos.flip.xor", {0x3F}}}},
+      {"meshopt-mode-triangles-for-attributes", nullptr,
+       S{{"x.geo", {2}}, {"x.mo.pos.lie", {7}}, {"x.mo.pos.mode", {1}}}},
+      {"meshopt-quaternion-filter-stride-12", nullptr,
+       S{{"x.geo", {2}}, {"x.mo.pos.lie", {8}}, {"x.mo.pos.filter", {2}}}},
+      {"meshopt-stride-257", nullptr, S{{"x.geo", {2}}, {"x.mo.pos.lie", {9}}, {"x.mo.pos.stride", {9}}}},
+      {"meshopt-count-2p64m1", nullptr, S{{"x.geo", {2}}, {"x.mo.pos.lie", {12}}, {"x.mo.pos.count", {~uint64_t{0}}}}},
+      {"meshopt-fallback-with-uri", nullptr, S{{"x.geo", {2}}, {"x.mo.fallback", {2}}}},
+      // KHR_draco_mesh_compression: real streams, then lies.
+      {"draco-sequential-uv", nullptr, S{{"x.geo", {3}}, {"x.verts", {20}}, {"x.tris", {15}}, {"x.uv", {1}}}},
+      {"draco-edgebreaker-quantized", nullptr,
+       S{{"x.geo", {3}}, {"x.verts", {40}}, {"x.tris", {50}}, {"x.draco.edgebreaker", {1}}, {"x.draco.bits", {1}}}},
+      {"draco-announces-2p31-faces", "issue45-structure-draco-announces-2p31-faces",
+       S{{"x.geo", {3}}, {"x.draco.lie", {1}}, {"x.draco.faces", {3}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"draco-announces-2p32m1-faces-2p31-points", nullptr,
+       S{{"x.geo", {3}}, {"x.draco.edgebreaker", {1}}, {"x.draco.lie", {3}}, {"x.draco.faces", {4}},
+         {"x.draco.points", {3}}}},
+      {"draco-announces-2p24m1-faces", nullptr, S{{"x.geo", {3}}, {"x.draco.lie", {1}}, {"x.draco.faces", {2}}}},
+      {"draco-announces-faces-under-the-cap", nullptr, S{{"x.geo", {3}}, {"x.draco.lie", {15}}}},
+      {"draco-truncated", nullptr,
+       S{{"x.geo", {3}}, {"x.tris", {10}}, {"x.draco.lie", {4}}, {"x.draco.cut.keep", {20}}}},
+      {"draco-no-such-attribute", nullptr, S{{"x.geo", {3}}, {"x.draco.lie", {6}}, {"x.draco.id", {5}}}},
+      {"draco-position-is-the-uv", nullptr, S{{"x.geo", {3}}, {"x.uv", {1}}, {"x.draco.lie", {8}}}},
+      {"draco-accessor-count-2p40", nullptr,
+       S{{"x.geo", {3}}, {"x.draco.lie", {9}}, {"x.draco.accessor_count", {9}}}},
+      {"draco-point-cloud-header", nullptr, S{{"x.geo", {3}}, {"x.draco.lie", {13}}}},
+      {"draco-view-past-buffer", nullptr, S{{"x.geo", {3}}, {"x.draco.lie", {12}}, {"x.draco.more", {100}}}},
+      // EXT_mesh_gpu_instancing: counts to 2^40, sparse, degenerate scales.
+      {"instancing-2p40-sparse-zero-triangles", "issue45-structure-instancing-2p40-sparse-zero-triangles",
+       S{{"graph.n", {1}}, {"x.inst", {1}}, {"x.inst.node", {1}}, {"x.inst.mesh", {1}}, {"x.inst.count", {9}},
+         {"x.inst.TRANSLATION.storage", {1}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"instancing-2p23-sparse", nullptr,
+       S{{"graph.n", {1}}, {"x.inst", {1}}, {"x.inst.node", {1}}, {"x.inst.count", {4}},
+         {"x.inst.TRANSLATION.storage", {1}}}},
+      {"instancing-2p24p1-sparse-spread", nullptr,
+       S{{"x.inst", {1}}, {"x.inst.count", {6}}, {"x.inst.TRANSLATION.storage", {2}},
+         {"x.inst.TRANSLATION.sparse_at", {2}}}},
+      {"instancing-2p40-dense", nullptr, S{{"x.inst", {1}}, {"x.inst.attrs", {3}}, {"x.inst.count", {9}}}},
+      {"instance-scale-1e-40", "issue45-structure-instance-scale-1e-40",
+       S{{"x.inst", {1}}, {"x.inst.attrs", {4}}, {"x.inst.SCALE.edge", {7}}, {"x.inst.SCALE.at", {1}},
+         {"x.inst.SCALE.component", {3}}, {"buf0.uri", {kAsBin0DataUri}}}},
+      {"instance-scale-0", nullptr,
+       S{{"x.inst", {1}}, {"x.inst.attrs", {4}}, {"x.inst.SCALE.edge", {8}}, {"x.inst.SCALE.component", {3}}}},
+      {"instance-scale-nan", nullptr, S{{"x.inst", {1}}, {"x.inst.attrs", {4}}, {"x.inst.SCALE.edge", {1}}}},
+      {"instance-translation-inf", nullptr,
+       S{{"x.inst", {1}}, {"x.inst.n", {3}}, {"x.inst.TRANSLATION.edge", {2}}, {"x.inst.TRANSLATION.at", {2}}}},
+      {"instance-rotation-quaternion-meshopt", nullptr,
+       S{{"x.inst", {1}}, {"x.inst.attrs", {2}}, {"x.inst.n", {15}}, {"x.inst.ROTATION.ct", {1}},
+         {"x.inst.ROTATION.storage", {3}}, {"x.inst.ROTATION.quaternion", {1}}, {"x.inst.ROTATION.bits", {8}}}},
+      {"instancing-meshopt-announces-1gib", nullptr,
+       S{{"x.inst", {1}}, {"x.inst.TRANSLATION.storage", {3}}, {"x.inst.TRANSLATION.mo.lie", {1}}}},
+      {"instancing-chain-1000-deepest", nullptr,
+       S{{"graph.shape", {1}}, {"graph.depth", {999}}, {"x.inst", {1}}, {"x.inst.node", {1}}, {"x.inst.n", {15}}}},
+      {"instancing-dag-20-every-node", nullptr,
+       S{{"graph.shape", {2}}, {"graph.levels", {19}}, {"graph.mesh_at", {1}}, {"x.inst", {2}}, {"x.inst.n", {3}}}},
+      {"instancing-count-mismatch", nullptr, S{{"x.inst", {1}}, {"x.inst.attrs", {3}}, {"x.inst.mismatch", {2}}}},
+      {"instancing-no-mesh", nullptr, S{{"graph.n", {2}}, {"x.inst", {1}}, {"x.inst.mesh", {2}}}},
+      {"instancing-required-glb-file", nullptr,
+       S{{"container", {1}}, {"x.inst", {1}}, {"x.inst.required", {1}}, {"x.buf.file", {1}}}},
+      {"instancing-draco", nullptr, S{{"x.geo", {3}}, {"x.inst", {1}}, {"x.inst.n", {7}}, {"x.inst.attrs", {7}}}},
   };
 }
 
 bool SameDocument(const Document& a, const Document& b) {
   return a.glb == b.glb && a.explicit_root == b.explicit_root && a.main == b.main && a.files == b.files &&
-         a.escapes == b.escapes;
+         a.escapes == b.escapes && a.opaque_values == b.opaque_values;
 }
 
 void WriteSeeds(const fs::path& corpus) {
