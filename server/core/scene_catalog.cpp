@@ -38,6 +38,17 @@ StatusOr<uint64_t> ParseNumber(const std::optional<std::string>& text, absl::str
   return value;
 }
 
+// A file's path, blob and size from `row`, starting at column `at`.
+StatusOr<CatalogFile> ParseFile(const CatalogRow& row, size_t at) {
+  CatalogFile file{row[at].value_or(""), row[at + 1].value_or(""), 0};
+  VISQ_ASSIGN_OR_RETURN(file.size, ParseNumber(row[at + 2], "a file size"));
+  return file;
+}
+
+void SortByPath(std::vector<CatalogFile>& files) {
+  std::sort(files.begin(), files.end(), [](const CatalogFile& a, const CatalogFile& b) { return a.path < b.path; });
+}
+
 }  // namespace
 
 StatusOr<std::unique_ptr<SceneCatalog>> SceneCatalog::Open(std::unique_ptr<CatalogDb> db) {
@@ -81,12 +92,10 @@ StatusOr<std::optional<CatalogVersion>> SceneCatalog::Current(absl::string_view 
   VISQ_ASSIGN_OR_RETURN(found.version, ParseNumber(rows[0][0], "a version"));
   found.main_file = rows[0][1].value_or("");
   for (const CatalogRow& row : rows) {
-    CatalogFile file{row[2].value_or(""), row[3].value_or(""), 0};
-    VISQ_ASSIGN_OR_RETURN(file.size, ParseNumber(row[4], "a file size"));
+    VISQ_ASSIGN_OR_RETURN(CatalogFile file, ParseFile(row, 2));
     found.files.push_back(std::move(file));
   }
-  std::sort(found.files.begin(), found.files.end(),
-            [](const CatalogFile& a, const CatalogFile& b) { return a.path < b.path; });
+  SortByPath(found.files);
   return std::optional<CatalogVersion>(std::move(found));
 }
 
@@ -107,12 +116,29 @@ Status SceneCatalog::RaiseCounter(uint64_t floor) {
   std::lock_guard lock(mutex_);
   CatalogTransaction transaction(*db_);
   VISQ_RETURN_IF_ERROR(transaction.BeginWrite());
-  const std::string value = absl::StrCat(floor);
-  VISQ_RETURN_IF_ERROR(db_->Query("UPDATE visq_counter SET last_version = CASE WHEN last_version < ? THEN ? "
-                                  "ELSE last_version END WHERE id = 1",
-                                  {value, value})
-                           .status());
+  VISQ_RETURN_IF_ERROR(RaiseCounterLocked(floor));
   return transaction.Commit();
+}
+
+Status SceneCatalog::RaiseCounterLocked(uint64_t floor) {
+  const std::string value = absl::StrCat(floor);
+  return db_
+      ->Query("UPDATE visq_counter SET last_version = CASE WHEN last_version < ? THEN ? ELSE last_version END "
+              "WHERE id = 1",
+              {value, value})
+      .status();
+}
+
+Status SceneCatalog::InsertVersionRows(const std::string& version, const std::string& name,
+                                       const std::string& main_file, const std::vector<CatalogFile>& files) {
+  VISQ_RETURN_IF_ERROR(
+      db_->Query("INSERT INTO visq_versions (version, name, main_file) VALUES (?, ?, ?)", {version, name, main_file})
+          .status());
+  for (const CatalogFile& file : files)
+    VISQ_RETURN_IF_ERROR(db_->Query("INSERT INTO visq_version_files (version, path, blob, size) VALUES (?, ?, ?, ?)",
+                                    {version, file.path, file.blob, absl::StrCat(file.size)})
+                             .status());
+  return absl::OkStatus();
 }
 
 StatusOr<SceneCatalog::Committed> SceneCatalog::Commit(const CommitRequest& request,
@@ -139,15 +165,13 @@ StatusOr<SceneCatalog::Committed> SceneCatalog::Commit(const CommitRequest& requ
                                      {absl::StrCat(*old_version)}));
     std::vector<CatalogFile> before;
     for (const CatalogRow& row : old_files) {
-      CatalogFile file{row[0].value_or(""), row[1].value_or(""), 0};
-      VISQ_ASSIGN_OR_RETURN(file.size, ParseNumber(row[2], "a file size"));
+      VISQ_ASSIGN_OR_RETURN(CatalogFile file, ParseFile(row, 0));
       before.push_back(std::move(file));
       committed.released.push_back(before.back().blob);
     }
     std::vector<CatalogFile> after = request.files;
-    auto by_path = [](const CatalogFile& a, const CatalogFile& b) { return a.path < b.path; };
-    std::sort(before.begin(), before.end(), by_path);
-    std::sort(after.begin(), after.end(), by_path);
+    SortByPath(before);
+    SortByPath(after);
     if (request.unless_unchanged && before == after && current[0][1].value_or("") == request.main_file) {
       committed.version = *old_version;
       committed.stored = false;
@@ -174,13 +198,7 @@ StatusOr<SceneCatalog::Committed> SceneCatalog::Commit(const CommitRequest& requ
     VISQ_ASSIGN_OR_RETURN(version, ParseNumber(rows[0][0], "the version counter"));
   }
   const std::string version_text = absl::StrCat(version);
-  VISQ_RETURN_IF_ERROR(db_->Query("INSERT INTO visq_versions (version, name, main_file) VALUES (?, ?, ?)",
-                                  {version_text, request.name, request.main_file})
-                           .status());
-  for (const CatalogFile& file : request.files)
-    VISQ_RETURN_IF_ERROR(db_->Query("INSERT INTO visq_version_files (version, path, blob, size) VALUES (?, ?, ?, ?)",
-                                    {version_text, file.path, file.blob, absl::StrCat(file.size)})
-                             .status());
+  VISQ_RETURN_IF_ERROR(InsertVersionRows(version_text, request.name, request.main_file, request.files));
   if (old_version) {
     VISQ_RETURN_IF_ERROR(db_->Query("UPDATE visq_scenes SET version = ? WHERE name = ?", {version_text, request.name})
                              .status());
@@ -253,10 +271,104 @@ StatusOr<std::optional<std::string>> SceneCatalog::Meta(absl::string_view key) {
 
 Status SceneCatalog::SetMeta(absl::string_view key, absl::string_view value) {
   std::lock_guard lock(mutex_);
+  return SetMetaLocked(key, value);
+}
+
+Status SceneCatalog::SetMetaLocked(absl::string_view key, absl::string_view value) {
   return db_
       ->Query("INSERT INTO visq_meta (key, value) VALUES (?, ?) ON CONFLICT (key) DO UPDATE SET value = excluded.value",
               {std::string(key), std::string(value)})
       .status();
+}
+
+StatusOr<std::string> SceneCatalog::MetaOrInit(absl::string_view key, absl::string_view value) {
+  std::lock_guard lock(mutex_);
+  VISQ_RETURN_IF_ERROR(db_->Query("INSERT INTO visq_meta (key, value) VALUES (?, ?) ON CONFLICT (key) DO NOTHING",
+                                  {std::string(key), std::string(value)})
+                           .status());
+  VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> rows,
+                        db_->Query("SELECT value FROM visq_meta WHERE key = ?", {std::string(key)}));
+  if (rows.size() != 1 || !rows[0][0]) return absl::InternalError(absl::StrCat("scene catalog: meta '", key, "' lost"));
+  return *rows[0][0];
+}
+
+StatusOr<SceneCatalog::Contents> SceneCatalog::ReadAll() {
+  std::lock_guard lock(mutex_);
+  CatalogTransaction transaction(*db_);
+  VISQ_RETURN_IF_ERROR(transaction.BeginWrite());
+  VISQ_RETURN_IF_ERROR(LockForWrite());
+  Contents contents;
+  // Every scene's current version with its files, a row per file.
+  VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> rows,
+                        db_->Query("SELECT s.name, s.version, v.main_file, f.path, f.blob, f.size FROM visq_scenes s "
+                                   "JOIN visq_versions v ON v.version = s.version "
+                                   "JOIN visq_version_files f ON f.version = s.version"));
+  std::map<std::string, CatalogVersion> by_name;
+  for (const CatalogRow& row : rows) {
+    CatalogVersion& scene = by_name[row[0].value_or("")];
+    if (scene.files.empty()) {
+      scene.name = row[0].value_or("");
+      VISQ_ASSIGN_OR_RETURN(scene.version, ParseNumber(row[1], "a version"));
+      scene.main_file = row[2].value_or("");
+    }
+    VISQ_ASSIGN_OR_RETURN(CatalogFile file, ParseFile(row, 3));
+    scene.files.push_back(std::move(file));
+  }
+  for (auto& [name, scene] : by_name) {
+    SortByPath(scene.files);
+    contents.scenes.push_back(std::move(scene));
+  }
+  // The counter and the meta values.
+  VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> counter,
+                        db_->Query("SELECT last_version FROM visq_counter WHERE id = 1"));
+  if (counter.size() != 1) return absl::InternalError("scene catalog: the version counter row is missing");
+  VISQ_ASSIGN_OR_RETURN(contents.counter, ParseNumber(counter[0][0], "the version counter"));
+  VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> meta,
+                        db_->Query("SELECT key, value FROM visq_meta WHERE key <> 'schema'"));
+  for (const CatalogRow& row : meta) contents.meta[row[0].value_or("")] = row[1].value_or("");
+  // Nothing was written: the transaction only held the lock.
+  VISQ_RETURN_IF_ERROR(transaction.Commit());
+  return contents;
+}
+
+StatusOr<SceneCatalog::TakenOver> SceneCatalog::TakeOver(const Contents& from, absl::string_view mark,
+                                                         absl::string_view mark_value) {
+  std::lock_guard lock(mutex_);
+  CatalogTransaction transaction(*db_);
+  VISQ_RETURN_IF_ERROR(transaction.BeginWrite());
+  VISQ_RETURN_IF_ERROR(LockForWrite());
+  // Seen under the lock: a replica that moved it first has committed.
+  TakenOver taken;
+  VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> marked,
+                        db_->Query("SELECT value FROM visq_meta WHERE key = ?", {std::string(mark)}));
+  if (!marked.empty() && marked[0][0] == std::string(mark_value)) {
+    taken.outcome = TakenOver::Outcome::kAlreadyMoved;
+    return taken;
+  }
+  VISQ_ASSIGN_OR_RETURN(const std::vector<CatalogRow> held, db_->Query("SELECT COUNT(*) FROM visq_scenes"));
+  VISQ_ASSIGN_OR_RETURN(taken.scenes, ParseNumber(held.empty() ? std::nullopt : held[0][0], "a count"));
+  if (taken.scenes > 0) {
+    taken.outcome = TakenOver::Outcome::kOccupied;
+    return taken;
+  }
+
+  // Every scene under its own number, then the counter past them all.
+  uint64_t highest = from.counter;
+  for (const CatalogVersion& scene : from.scenes) {
+    const std::string version = absl::StrCat(scene.version);
+    VISQ_RETURN_IF_ERROR(InsertVersionRows(version, scene.name, scene.main_file, scene.files));
+    VISQ_RETURN_IF_ERROR(
+        db_->Query("INSERT INTO visq_scenes (name, version) VALUES (?, ?)", {scene.name, version}).status());
+    highest = std::max(highest, scene.version);
+    taken.files += scene.files.size();
+  }
+  VISQ_RETURN_IF_ERROR(RaiseCounterLocked(highest));
+  for (const auto& [key, value] : from.meta)
+    if (key != mark) VISQ_RETURN_IF_ERROR(SetMetaLocked(key, value));
+  VISQ_RETURN_IF_ERROR(SetMetaLocked(mark, mark_value));
+  VISQ_RETURN_IF_ERROR(transaction.Commit());
+  taken.scenes = from.scenes.size();
+  return taken;
 }
 
 }  // namespace visq::core

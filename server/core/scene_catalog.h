@@ -7,6 +7,7 @@
 #pragma once
 
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -29,6 +30,7 @@ struct CatalogVersion {
   uint64_t version = 0;
   std::string main_file;
   std::vector<CatalogFile> files;  // sorted by path
+  bool operator==(const CatalogVersion&) const = default;
 };
 
 class SceneCatalog {
@@ -83,11 +85,45 @@ class SceneCatalog {
   // Meta values (the migration's mark).
   [[nodiscard]] StatusOr<std::optional<std::string>> Meta(absl::string_view key);
   [[nodiscard]] Status SetMeta(absl::string_view key, absl::string_view value);
+  // The value of `key`, set to `value` first if absent (whichever replica
+  // sets it first, every one reads the same).
+  [[nodiscard]] StatusOr<std::string> MetaOrInit(absl::string_view key, absl::string_view value);
+
+  // What a catalog holds: every scene's current version, the counter and
+  // the meta values other than the schema's.
+  struct Contents {
+    std::vector<CatalogVersion> scenes;  // sorted by name
+    uint64_t counter = 0;
+    std::map<std::string, std::string> meta;
+  };
+  // Read under the write lock, so that no writer commits between its
+  // statements: one consistent state.
+  [[nodiscard]] StatusOr<Contents> ReadAll();
+  // Takes over another catalog's contents (a move from SQLite to
+  // PostgreSQL) in one write transaction, so that a crash leaves all of it
+  // or none. `mark` = `mark_value` in the meta records it: a catalog already
+  // marked so is left as it is (another replica moved it first, or a start
+  // that crashed before it recorded the move elsewhere); one holding scenes
+  // (another repository's) is left untouched and kOccupied; else every scene
+  // keeps its number and files, the counter rises to at least `from`'s, and
+  // the meta values are copied.
+  struct TakenOver {
+    enum class Outcome { kMoved, kAlreadyMoved, kOccupied } outcome = Outcome::kMoved;
+    size_t scenes = 0;  // moved, or (kOccupied) held already
+    size_t files = 0;   // moved
+  };
+  [[nodiscard]] StatusOr<TakenOver> TakeOver(const Contents& from, absl::string_view mark,
+                                             absl::string_view mark_value);
 
  private:
   explicit SceneCatalog(std::unique_ptr<CatalogDb> db) : db_(std::move(db)) {}
   // Takes the catalog's write lock inside an open write transaction.
   Status LockForWrite();
+  // Statements of an open write transaction, the mutex held.
+  Status InsertVersionRows(const std::string& version, const std::string& name, const std::string& main_file,
+                           const std::vector<CatalogFile>& files);
+  Status RaiseCounterLocked(uint64_t floor);
+  Status SetMetaLocked(absl::string_view key, absl::string_view value);
 
   std::mutex mutex_;
   std::unique_ptr<CatalogDb> db_;

@@ -42,6 +42,12 @@ constexpr std::string_view kLegacyStagingPrefix = ".staging-";
 // The last version number the layout before the catalog handed out: a
 // migrated scene keeps its number only if it is at most this.
 constexpr absl::string_view kLegacyCounterMeta = "legacy_counter";
+// A repository's SQLite catalog names itself with a random id when it moves
+// to PostgreSQL, and PostgreSQL's meta keeps the id of the catalog it took
+// over: a replica that finds it there knows the move made (by another
+// replica, or by a start that crashed before it recorded the kind).
+constexpr absl::string_view kRepositoryIdMeta = "repository_id";
+constexpr absl::string_view kMovedFromSqliteMeta = "moved_from_sqlite";
 
 bool IsSceneFile(const fs::path& path) {
   const std::string ext = path.extension().string();
@@ -375,6 +381,64 @@ std::string CatalogKindOf(const std::string& spec) {
   return absl::StartsWith(spec, "postgres") ? "postgresql" : "sqlite";
 }
 
+// Records which kind holds the catalog: a new file renamed over the old, so
+// that a crash leaves one kind or the other, never an empty file.
+Status RecordCatalogKind(const fs::path& kind_file, const std::string& kind) {
+  const fs::path temporary = fs::path(kind_file).concat(absl::StrCat(".", RandomSuffix()));
+  OwnedFd fd(::open(temporary.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600));
+  if (fd.fd < 0) return ErrnoError("create", temporary);
+  const std::string text = kind + "\n";
+  if (::write(fd.fd, text.data(), text.size()) != static_cast<ssize_t>(text.size()) || ::fsync(fd.fd) != 0 ||
+      ::rename(temporary.c_str(), kind_file.c_str()) != 0) {
+    const Status failed = ErrnoError("write", kind_file);
+    ::unlink(temporary.c_str());
+    return failed;
+  }
+  return FsyncPath(kind_file.parent_path(), /*directory=*/true);
+}
+
+// Moves the catalog of a repository recorded as SQLite's into `target`, a
+// PostgreSQL catalog, before the repository records its new kind: rows
+// only, as the blobs are the repository's already. One transaction on the
+// PostgreSQL side, so that a crash leaves all of it or nothing (moved at the
+// next start); replicas starting together take turns on its write lock, and
+// the later ones find the mark. The SQLite file stays as it is (see
+// docs/deploy.md): the recorded kind refuses it from then on.
+Status MoveCatalogFromSqlite(const fs::path& sqlite_file, SceneCatalog& target) {
+  const auto start = std::chrono::steady_clock::now();
+  std::error_code ec;
+  if (!fs::is_regular_file(sqlite_file, ec))
+    return absl::FailedPreconditionError(absl::StrCat(
+        "--catalog: this repository's catalog is in sqlite, and its move to postgresql reads it from ",
+        sqlite_file.string(), ", which is not there (a catalog kept elsewhere with sqlite:<file>: copy it there "
+        "first, the server stopped)"));
+  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<CatalogDb> db, OpenSqliteCatalog(sqlite_file.string()));
+  VISQ_ASSIGN_OR_RETURN(std::unique_ptr<SceneCatalog> source, SceneCatalog::Open(std::move(db)));
+  VISQ_ASSIGN_OR_RETURN(const std::string id,
+                        source->MetaOrInit(kRepositoryIdMeta, absl::StrCat(RandomSuffix(), RandomSuffix())));
+  VISQ_ASSIGN_OR_RETURN(const SceneCatalog::Contents contents, source->ReadAll());
+  VISQ_ASSIGN_OR_RETURN(const SceneCatalog::TakenOver taken, target.TakeOver(contents, kMovedFromSqliteMeta, id));
+  const auto ms =
+      std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - start).count();
+  switch (taken.outcome) {
+    case SceneCatalog::TakenOver::Outcome::kOccupied:
+      return absl::FailedPreconditionError(absl::StrCat(
+          "--catalog: ", target.Describe(), " already holds ", taken.scenes,
+          " scene(s) of another repository; this repository's catalog (in sqlite) moves only into a PostgreSQL "
+          "catalog that holds no scene: give --catalog a database of its own (see docs/deploy.md, choosing the "
+          "catalog)"));
+    case SceneCatalog::TakenOver::Outcome::kAlreadyMoved:
+      spdlog::info("scene catalog: {} was already moved to {} (by another replica, or before a crash)",
+                   sqlite_file.string(), target.Describe());
+      return absl::OkStatus();
+    case SceneCatalog::TakenOver::Outcome::kMoved:
+      spdlog::info("scene catalog moved from sqlite {} to {}: {} scene(s), {} file(s), counter {}, in {} ms",
+                   sqlite_file.string(), target.Describe(), taken.scenes, taken.files, contents.counter, ms);
+      return absl::OkStatus();
+  }
+  return absl::InternalError("scene catalog: unknown move outcome");
+}
+
 // Takes this replica's staging folder: its lock is held as long as the
 // server runs. A process that died released it.
 StatusOr<int> LockReplicaStaging(const fs::path& folder) {
@@ -414,12 +478,16 @@ StatusOr<std::unique_ptr<SceneRepository>> SceneRepository::Open(const Repositor
 
   // Which database holds this repository's catalog is fixed at its first
   // start: a replica pointed at the other would see an empty catalog and
-  // serve a repository without its scenes.
+  // serve a repository without its scenes. SQLite's moves to PostgreSQL
+  // (below, once the catalog is open); there is no way back.
   const std::string kind = CatalogKindOf(options.catalog);
   const fs::path kind_file = hidden / std::string(kCatalogKind);
-  if (std::optional<std::string> recorded = ReadSmallFile(kind_file); recorded && *recorded != kind)
-    return absl::FailedPreconditionError(absl::StrCat("--catalog: this repository's catalog is in ", *recorded,
-                                                      ", not ", kind, " (see docs/deploy.md, choosing the catalog)"));
+  const std::optional<std::string> recorded_kind = ReadSmallFile(kind_file);
+  const bool move_from_sqlite = recorded_kind && *recorded_kind == "sqlite" && kind == "postgresql";
+  if (recorded_kind && *recorded_kind != kind && !move_from_sqlite)
+    return absl::FailedPreconditionError(absl::StrCat("--catalog: this repository's catalog is in ", *recorded_kind,
+                                                      ", not ", kind, " (there is no move from ", *recorded_kind,
+                                                      " to ", kind, "; see docs/deploy.md, choosing the catalog)"));
 
   // This replica's staging, and whose it is.
   std::string replica_id = options.replica_id;
@@ -484,10 +552,8 @@ StatusOr<std::unique_ptr<SceneRepository>> SceneRepository::Open(const Repositor
   VISQ_ASSIGN_OR_RETURN(BlobStore blobs, BlobStore::Open(hidden / "blobs"));
   VISQ_ASSIGN_OR_RETURN(std::unique_ptr<CatalogDb> db, OpenCatalogDb(options.catalog, hidden));
   VISQ_ASSIGN_OR_RETURN(std::unique_ptr<SceneCatalog> catalog, SceneCatalog::Open(std::move(db)));
-  if (!fs::exists(kind_file, ec)) {
-    std::ofstream(kind_file) << kind << "\n";
-    fs::permissions(kind_file, fs::perms::owner_read | fs::perms::owner_write, ec);
-  }
+  if (move_from_sqlite) VISQ_RETURN_IF_ERROR(MoveCatalogFromSqlite(hidden / "catalog.sqlite3", *catalog));
+  if (!recorded_kind || move_from_sqlite) VISQ_RETURN_IF_ERROR(RecordCatalogKind(kind_file, kind));
   std::unique_ptr<SceneRepository> repository(new SceneRepository(
       root, replica_id, staging, owner_fd.release(), std::move(blobs), std::move(catalog)));
   spdlog::info("scene repository {}: catalog {}, replica {}", root.string(), repository->DescribeCatalog(), replica_id);

@@ -1,15 +1,23 @@
 // The scene repository on a real folder and a real SQLite catalog: names,
 // uploads committed or abandoned, replacement, deletion and the blobs it
 // frees, versions that never repeat across reopenings, replicas' staging,
-// and the move of a repository of the layout before the catalog.
+// the move of a repository of the layout before the catalog, and the move of
+// a SQLite catalog into PostgreSQL (a cluster of the suite's own).
 #include "core/scene_repository.h"
 
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <set>
+#include <thread>
 
 #include <gtest/gtest.h>
 
+#include "postgres_cluster.h"
 #include "test_support.h"
 
 namespace visq::core {
@@ -283,10 +291,12 @@ TEST(SceneRepository, BadFlagsAreNamed) {
   EXPECT_EQ(bad_catalog.status().code(), absl::StatusCode::kInvalidArgument) << bad_catalog.status();
   EXPECT_NE(bad_catalog.status().message().find("--catalog"), std::string::npos) << bad_catalog.status();
   EXPECT_EQ(bad_catalog.status().message().find("hunter2"), std::string::npos) << "a password is never repeated";
-  // A repository whose catalog is in SQLite is not opened as PostgreSQL's
-  // (nor the reverse): the replica would serve an empty catalog.
+  // A repository whose catalog is in PostgreSQL is not opened as SQLite's:
+  // the replica would serve an empty catalog. (SQLite's moves to PostgreSQL:
+  // SqliteToPostgres below.)
   ASSERT_TRUE(SceneRepository::Open(dir.path()).ok());
-  auto other = SceneRepository::Open({dir.path(), "postgresql://nobody@127.0.0.1:1/none", ""});
+  WriteFile(dir.path() / ".visq" / "catalog-kind", "postgresql\n");
+  auto other = SceneRepository::Open(dir.path());
   EXPECT_EQ(other.status().code(), absl::StatusCode::kFailedPrecondition) << other.status();
   EXPECT_NE(other.status().message().find("--catalog"), std::string::npos) << other.status();
 }
@@ -427,6 +437,252 @@ TEST(SceneRepository, AnOldRepositoryIsMovedOverOnFirstStart) {
     ASSERT_TRUE(view.ok());
     EXPECT_GT((*view)->version(), versions["plain"]);
   }
+}
+
+// A repository's catalog moved from SQLite to PostgreSQL at the first start
+// with a PostgreSQL URI: one cluster for the suite, a database per test.
+class SqliteToPostgres : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    if (!testing::PostgresCluster::Installed()) return;
+    std::string why;
+    cluster_ = testing::PostgresCluster::Start(&why).release();
+    if (cluster_ == nullptr) start_failure_ = new std::string(why);
+  }
+  static void TearDownTestSuite() {
+    delete cluster_;
+    cluster_ = nullptr;
+  }
+  void SetUp() override {
+    if (!testing::PostgresCluster::Installed())
+      GTEST_SKIP() << "PostgreSQL is not installed (no /usr/lib/postgresql/<major>/bin/initdb and pg_ctl; "
+                      "deploy/install-deps.sh installs it): the move to PostgreSQL is not tried";
+    ASSERT_NE(cluster_, nullptr) << (start_failure_ ? *start_failure_ : "");
+  }
+  // A database of the test's own.
+  std::string Database(const std::string& name) {
+    EXPECT_TRUE(cluster_->CreateDatabase(name));
+    return cluster_->Uri(name);
+  }
+
+  static testing::PostgresCluster* cluster_;
+  static std::string* start_failure_;
+};
+testing::PostgresCluster* SqliteToPostgres::cluster_ = nullptr;
+std::string* SqliteToPostgres::start_failure_ = nullptr;
+
+// What a repository serves: each scene's version and its files' bytes.
+using ServedScenes = std::map<std::string, std::pair<uint64_t, std::map<std::string, std::string>>>;
+ServedScenes Served(SceneRepository& repo) {
+  ServedScenes served;
+  for (const std::string& name : repo.List()) {
+    auto view = repo.Checkout(name);
+    if (!view.ok()) {
+      ADD_FAILURE() << name << ": " << view.status();
+      continue;
+    }
+    auto& [version, files] = served[name];
+    version = (*view)->version();
+    for (const auto& entry : fs::recursive_directory_iterator((*view)->dir()))
+      if (entry.is_regular_file()) files[fs::relative(entry.path(), (*view)->dir()).string()] = ReadFile(entry.path());
+  }
+  return served;
+}
+
+// Several scenes (one with a buffer in a folder, one replaced, one deleted)
+// stored through SQLite are served by PostgreSQL with the same names,
+// versions and bytes; new versions take numbers past SQLite's; the SQLite
+// file stays, and a server started with sqlite again is refused.
+TEST_F(SqliteToPostgres, AMovedRepositoryServesTheSameScenesAndNumbersGoOn) {
+  testing::ScratchDir dir;
+  const fs::path root = dir.path();
+  uint64_t sqlite_counter = 0;
+  ServedScenes before;
+  {
+    auto repo = SceneRepository::Open(root);
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    ASSERT_TRUE(Store(**repo, "hall", {{"", "{\"hall\":1}"}, {"data/hall.bin", "hall bytes"}}).ok());
+    ASSERT_TRUE(Store(**repo, "replaced", "first").ok());
+    ASSERT_TRUE(Store(**repo, "gone", "deleted").ok());
+    ASSERT_TRUE(Store(**repo, "replaced", "second").ok());
+    ASSERT_TRUE((*repo)->Remove("gone").ok());
+    ASSERT_TRUE(Store(**repo, "last", "{}").ok());
+    auto counter = (*repo)->NextVersion();  // an edit's number: the counter is past every scene's
+    ASSERT_TRUE(counter.ok());
+    sqlite_counter = *counter;
+    before = Served(**repo);
+  }
+  ASSERT_EQ(before.size(), 3u);
+  ASSERT_EQ(before["hall"].second["data/hall.bin"], "hall bytes");
+
+  const std::string uri = Database("moved");
+  {
+    auto repo = SceneRepository::Open({root, uri, ""});
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    EXPECT_EQ((*repo)->DescribeCatalog().rfind("postgresql", 0), 0u) << (*repo)->DescribeCatalog();
+    EXPECT_EQ(Served(**repo), before) << "the same names, versions and bytes";
+    auto stored = Store(**repo, "replaced", "third");
+    ASSERT_TRUE(stored.ok()) << stored.status();
+    EXPECT_GT(stored->version, sqlite_counter) << "a new version's number is past every number SQLite gave";
+    auto created = Store(**repo, "new", "{}");
+    ASSERT_TRUE(created.ok()) << created.status();
+    EXPECT_GT(created->version, sqlite_counter);
+  }
+  EXPECT_TRUE(fs::exists(root / ".visq" / "catalog.sqlite3")) << "the SQLite file stays";
+  {
+    // A second start finds the move made and changes nothing.
+    auto repo = SceneRepository::Open({root, uri, ""});
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    EXPECT_EQ((*repo)->List(), (std::vector<std::string>{"hall", "last", "new", "replaced"}));
+    EXPECT_EQ(StoredBody(**repo, "replaced"), "third");
+    EXPECT_EQ(Served(**repo)["hall"], before["hall"]);
+  }
+  // Back to SQLite is refused: its catalog no longer says what there is.
+  auto back = SceneRepository::Open(root);
+  EXPECT_EQ(back.status().code(), absl::StatusCode::kFailedPrecondition) << back.status();
+  EXPECT_NE(back.status().message().find("--catalog"), std::string::npos) << back.status();
+}
+
+// A start killed (SIGKILL) at any moment of its move leaves PostgreSQL's
+// catalog with every scene or none (and the kind unrecorded until it has
+// them all); the next start finishes the move. The kills come every few
+// milliseconds, from before the move to after it.
+TEST_F(SqliteToPostgres, AStartKilledDuringItsMoveLeavesAllOrNothing) {
+  testing::ScratchDir dir;
+  const fs::path root = dir.path();
+  ASSERT_TRUE(SceneRepository::Open(root).ok());
+  // Rows enough that the move's transaction takes tens of milliseconds,
+  // written straight into the SQLite catalog (the blobs they name are not
+  // needed: this test reads the catalogs, not the scenes).
+  std::vector<CatalogVersion> sqlite_scenes;
+  {
+    auto db = OpenSqliteCatalog((root / ".visq" / "catalog.sqlite3").string());
+    ASSERT_TRUE(db.ok()) << db.status();
+    auto catalog = SceneCatalog::Open(*std::move(db));
+    ASSERT_TRUE(catalog.ok()) << catalog.status();
+    for (int i = 0; i < 6; ++i) {
+      SceneCatalog::CommitRequest request{.name = "s" + std::to_string(i), .main_file = "s.gltf"};
+      for (int f = 0; f < 60; ++f)
+        request.files.push_back(CatalogFile{"f" + std::to_string(f) + ".bin", std::string(63, 'a') + char('a' + i),
+                                            static_cast<uint64_t>(f)});
+      ASSERT_TRUE((*catalog)->Commit(request, [](const CatalogFile&) { return absl::OkStatus(); }).ok());
+    }
+    auto contents = (*catalog)->ReadAll();
+    ASSERT_TRUE(contents.ok()) << contents.status();
+    sqlite_scenes = contents->scenes;
+  }
+  const std::string uri = Database("killed");
+  auto in_postgres = [&]() -> std::vector<CatalogVersion> {
+    auto db = OpenPostgresCatalog(uri);
+    EXPECT_TRUE(db.ok()) << db.status();
+    if (!db.ok()) return {};
+    auto catalog = SceneCatalog::Open(*std::move(db));
+    EXPECT_TRUE(catalog.ok()) << catalog.status();
+    auto contents = catalog.ok() ? (*catalog)->ReadAll() : catalog.status();
+    EXPECT_TRUE(contents.ok()) << contents.status();
+    return contents.ok() ? contents->scenes : std::vector<CatalogVersion>{};
+  };
+  const fs::path kind_file = root / ".visq" / "catalog-kind";
+  int left_nothing = 0;
+  for (int delay_ms = 1; delay_ms < 4000 && ReadFile(kind_file) == "sqlite\n"; delay_ms += 2 + delay_ms / 3) {
+    const pid_t child = ::fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+      auto repo = SceneRepository::Open({root, uri, "killed"});
+      ::_exit(repo.ok() ? 0 : 1);
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms));
+    ::kill(child, SIGKILL);
+    int wait_status = 0;
+    ASSERT_EQ(::waitpid(child, &wait_status, 0), child);
+    const std::vector<CatalogVersion> moved = in_postgres();
+    EXPECT_TRUE(moved.empty() || moved == sqlite_scenes)
+        << "killed after " << delay_ms << " ms: " << moved.size() << " of " << sqlite_scenes.size() << " scenes";
+    EXPECT_TRUE(ReadFile(kind_file) == "sqlite\n" || moved == sqlite_scenes) << "the kind is recorded after the move";
+    left_nothing += moved.empty();
+  }
+  EXPECT_GT(left_nothing, 0) << "no kill came before the move's commit";
+  ASSERT_TRUE(SceneRepository::Open({root, uri, ""}).ok());
+  EXPECT_EQ(in_postgres(), sqlite_scenes);
+}
+
+// Replicas starting together on one SQLite repository and one database move
+// it once: the later ones wait for the first's write lock and find its mark
+// (a second copy would find the scenes there and be refused).
+TEST_F(SqliteToPostgres, ReplicasStartingTogetherMoveItOnce) {
+  testing::ScratchDir dir;
+  const fs::path root = dir.path();
+  ServedScenes before;
+  {
+    auto repo = SceneRepository::Open(root);
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    for (int i = 0; i < 6; ++i)
+      ASSERT_TRUE(Store(**repo, "s" + std::to_string(i), {{"", "{}"}, {"b.bin", std::to_string(i)}}).ok());
+    before = Served(**repo);
+  }
+  const std::string uri = Database("together");
+  constexpr int kReplicas = 3;
+  std::vector<StatusOr<std::unique_ptr<SceneRepository>>> opened;
+  for (int r = 0; r < kReplicas; ++r) opened.emplace_back(absl::UnknownError("not run"));
+  {
+    std::vector<std::jthread> starts;
+    for (int r = 0; r < kReplicas; ++r)
+      starts.emplace_back([&, r] {
+        opened[static_cast<size_t>(r)] = SceneRepository::Open({root, uri, "r" + std::to_string(r)});
+      });
+  }
+  for (auto& repo : opened) {
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    EXPECT_EQ(Served(**repo), before);
+  }
+  auto stored = Store(**opened[0], "s0", "newer");
+  ASSERT_TRUE(stored.ok());
+  EXPECT_EQ(StoredBody(**opened[1], "s0"), "newer") << "one catalog for all";
+}
+
+// A PostgreSQL catalog that holds another repository's scenes is not taken
+// over: the start is refused naming --catalog, and both repositories stay
+// as they were.
+TEST_F(SqliteToPostgres, AnotherRepositorysCatalogIsRefusedAndLeftAlone) {
+  const std::string uri = Database("foreign");
+  testing::ScratchDir other_dir;
+  uint64_t theirs = 0;
+  {
+    auto other = SceneRepository::Open({other_dir.path(), uri, ""});
+    ASSERT_TRUE(other.ok()) << other.status();
+    auto stored = Store(**other, "theirs", "their bytes");
+    ASSERT_TRUE(stored.ok());
+    theirs = stored->version;
+  }
+  testing::ScratchDir dir;
+  {
+    auto repo = SceneRepository::Open(dir.path());
+    ASSERT_TRUE(repo.ok()) << repo.status();
+    ASSERT_TRUE(Store(**repo, "mine", "my bytes").ok());
+  }
+  auto refused = SceneRepository::Open({dir.path(), uri, ""});
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition) << refused.status();
+  EXPECT_NE(refused.status().message().find("--catalog"), std::string::npos) << refused.status();
+  EXPECT_NE(refused.status().message().find("already holds 1 scene"), std::string::npos) << refused.status();
+  EXPECT_EQ(refused.status().message().find("postgresql://"), std::string::npos) << "no URI (nor password) repeated";
+
+  auto other = SceneRepository::Open({other_dir.path(), uri, ""});
+  ASSERT_TRUE(other.ok()) << other.status();
+  EXPECT_EQ((*other)->List(), std::vector<std::string>{"theirs"});
+  auto view = (*other)->Checkout("theirs");
+  ASSERT_TRUE(view.ok());
+  EXPECT_EQ((*view)->version(), theirs);
+  {
+    auto mine = SceneRepository::Open(dir.path());
+    ASSERT_TRUE(mine.ok()) << mine.status() << ": the repository is still SQLite's";
+    EXPECT_EQ((*mine)->List(), std::vector<std::string>{"mine"});
+    EXPECT_EQ(StoredBody(**mine, "mine"), "my bytes");
+  }
+  // A database of its own takes it (the cluster's first, empty: no
+  // other test of the suite uses it, and createdb costs a few 100 ms).
+  auto moved = SceneRepository::Open({dir.path(), cluster_->Uri(), ""});
+  ASSERT_TRUE(moved.ok()) << moved.status();
+  EXPECT_EQ(StoredBody(**moved, "mine"), "my bytes");
 }
 
 }  // namespace
