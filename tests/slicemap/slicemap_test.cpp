@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <limits>
 #include <map>
 
 #include <gtest/gtest.h>
@@ -299,6 +300,9 @@ TEST(SlicemapBands, BandsOfRowsGiveTheBitsOfOneJob) {
     params.mode = c.mode;
     params.precision = c.precision;
     params.rasterization = c.rasterization;
+    // A draw a job, however long it takes on a loaded machine: this test
+    // counts the bands' jobs (ADrawSpreadOverGlJobs... the draws').
+    params.draw_ms_per_job = std::numeric_limits<double>::infinity();
     const gpu::VoxelizeResult whole = MustVoxelize(s, params);
     params.max_columns_per_job = 40 * 5;  // bands of 5 rows, the last of 1
     const gpu::VoxelizeResult banded = MustVoxelize(s, params);
