@@ -195,19 +195,26 @@ std::vector<uint8_t> PlacementsToInstance(const Scene& scene, const EmbreeSceneO
   std::vector<uint8_t> traced(scene.placements.size(), 0);
   if (!options.instance_meshes) return traced;
   const std::vector<double> magnitude = MeshMagnitudes(scene);
-  std::vector<uint8_t> covered(scene.TriangleCount(), 0);
+  // The triangles of the placements taken, [first, end) by first: at the
+  // cost of the placements, not of the triangles they stand for.
+  std::map<uint64_t, uint64_t> taken;
+  auto overlaps_taken = [&](uint64_t first, uint64_t end) {
+    const auto after = taken.lower_bound(first);
+    if (after != taken.end() && after->first < end) return true;
+    return after != taken.begin() && std::prev(after)->second > first;
+  };
   const std::vector<uint8_t> in_range = PlacementsInRange(scene);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     const MeshPlacement& placement = scene.placements[k];
     // A placement out of range, or that overlaps an earlier one, is traced
     // flattened.
     if (!in_range[k]) continue;
-    const size_t count = scene.meshes[placement.mesh].triangles.size();
-    const auto first = covered.begin() + placement.first_triangle;
-    if (count == 0 || std::any_of(first, first + count, [](uint8_t b) { return b != 0; }) ||
+    const uint64_t count = scene.meshes[placement.mesh].triangles.size();
+    const uint64_t first = placement.first_triangle;
+    if (count == 0 || overlaps_taken(first, first + count) ||
         !PlacementKeepsFloatPrecision(placement.world, magnitude[placement.mesh], frame.origin, frame.extent))
       continue;
-    std::fill_n(first, count, uint8_t{1});
+    taken.emplace(first, first + count);
     traced[k] = 1;
   }
   // A mesh with one instanced placement saves nothing held once, and as an

@@ -862,21 +862,11 @@ class SceneBuilder {
     const auto it = mesh_of_key_.find(key);
     if (it == mesh_of_key_.end() || it->second == kFlattenedOnly) return false;
     const SceneMesh& mesh = scene_->meshes[it->second];
-    if (mesh_bounds_.size() <= it->second) mesh_bounds_.resize(scene_->meshes.size());
-    std::optional<Bounds>& local_bounds = mesh_bounds_[it->second];
-    if (!local_bounds) local_bounds = BoundsOf(mesh.positions);
-    Bounds bounds;
-    if (const std::optional<Bounds> placed = PlacedBoundsWithoutRotation(world, *local_bounds)) {
-      // Every placed coordinate lies between the placed extremes.
-      if (!placed->Empty() && (!InCoordinateRange(placed->min) || !InCoordinateRange(placed->max))) return false;
-      bounds = *placed;
-    } else {
-      for (const glm::dvec3& local : mesh.positions) {
-        const glm::dvec3 placed_point = PlacePoint(world, local);
-        if (!InCoordinateRange(placed_point)) return false;
-        bounds.Extend(placed_point);
-      }
-    }
+    while (placed_bounds_.size() < scene_->meshes.size())
+      placed_bounds_.emplace_back(scene_->meshes[placed_bounds_.size()].positions);
+    // Every placed coordinate lies between the placed extremes.
+    const Bounds bounds = placed_bounds_[it->second].Of(world, mesh.positions);
+    if (!bounds.Empty() && (!InCoordinateRange(bounds.min) || !InCoordinateRange(bounds.max))) return false;
     if (!bounds.Empty()) {
       scene_->bounds.Extend(bounds.min);
       scene_->bounds.Extend(bounds.max);
@@ -926,7 +916,7 @@ class SceneBuilder {
   // Into Scene::meshes; kFlattenedOnly for a mesh too small to instance.
   static constexpr uint32_t kFlattenedOnly = UINT32_MAX;
   std::map<MeshKey, uint32_t> mesh_of_key_;
-  std::vector<std::optional<Bounds>> mesh_bounds_;  // per Scene::meshes, mesh space, once asked
+  std::vector<PlacedMeshBounds> placed_bounds_;  // per Scene::meshes, in order, once asked
   std::vector<uint64_t> ignored_primitives_of_mesh_;  // per Scene::meshes: ignored at each placement
   uint64_t placed_triangles_ = 0, placed_positions_ = 0;
 };

@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include <glm/gtc/matrix_inverse.hpp>
 
@@ -435,62 +436,17 @@ FlattenedPart FlattenPart(const Scene& scene, const std::vector<uint8_t>& skip) 
   return out;
 }
 
-void VisitFlattened(const Scene& scene, const FlattenedRuns& runs) {
-  std::vector<glm::dvec3> placed;
-  uint32_t record = 0;
-  for (const MeshPlacement& p : scene.placements) {
-    runs.positions(std::span(scene.positions).subspan(record, p.unplaced_positions_before - record));
-    record = p.unplaced_positions_before;
-    const SceneMesh& mesh = scene.meshes[p.mesh];
-    placed.clear();
-    for (const glm::dvec3& x : mesh.positions) placed.push_back(PlacePoint(p.world, x));
-    runs.positions(placed);
-  }
-  runs.positions(std::span(scene.positions).subspan(record));
-
-  // Corners into the flattened positions: the record's shifted by the
-  // placed positions before them.
-  std::vector<glm::uvec3> corners;
-  auto record_triangles = [&](uint32_t first, uint32_t end, uint32_t shift) {
-    corners.clear();
-    for (uint32_t t = first; t < end; ++t) corners.push_back(scene.triangles[t] + glm::uvec3(shift));
-    runs.triangles(corners);
-  };
-  record = 0;
-  uint32_t placed_positions = 0;
-  for (const MeshPlacement& p : scene.placements) {
-    record_triangles(record, p.unplaced_triangles_before, placed_positions);
-    record = p.unplaced_triangles_before;
-    const SceneMesh& mesh = scene.meshes[p.mesh];
-    corners.clear();
-    for (const glm::uvec3& t : mesh.triangles) corners.push_back(t + glm::uvec3(p.first_position));
-    runs.triangles(corners);
-    placed_positions += static_cast<uint32_t>(mesh.positions.size());
-  }
-  record_triangles(record, static_cast<uint32_t>(scene.triangles.size()), placed_positions);
-
-  if (scene.triangle_material.size() != scene.triangles.size()) return;
-  record = 0;
-  for (const MeshPlacement& p : scene.placements) {
-    runs.materials(std::span(scene.triangle_material).subspan(record, p.unplaced_triangles_before - record));
-    record = p.unplaced_triangles_before;
-    runs.materials(scene.meshes[p.mesh].triangle_material);
-  }
-  runs.materials(std::span(scene.triangle_material).subspan(record));
-}
-
 Bounds PositionBounds(const Scene& scene) {
   Bounds bounds = BoundsOf(scene.positions);
-  const std::vector<Bounds> mesh_bounds = MeshBounds(scene);
+  std::vector<PlacedMeshBounds> placed_bounds;
+  placed_bounds.reserve(scene.meshes.size());
+  for (const SceneMesh& mesh : scene.meshes) placed_bounds.emplace_back(mesh.positions);
   for (const MeshPlacement& p : scene.placements) {
-    if (const std::optional<Bounds> placed = PlacedBoundsWithoutRotation(p.world, mesh_bounds[p.mesh])) {
-      if (!placed->Empty()) {
-        bounds.Extend(placed->min);
-        bounds.Extend(placed->max);
-      }
-      continue;
+    const Bounds placed = placed_bounds[p.mesh].Of(p.world, scene.meshes[p.mesh].positions);
+    if (!placed.Empty()) {
+      bounds.Extend(placed.min);
+      bounds.Extend(placed.max);
     }
-    for (const glm::dvec3& x : scene.meshes[p.mesh].positions) bounds.Extend(PlacePoint(p.world, x));
   }
   return bounds;
 }
@@ -541,6 +497,103 @@ std::optional<Bounds> PlacedBoundsWithoutRotation(const glm::dmat4& world, const
   placed.Extend(a);
   placed.Extend(b);
   return placed;
+}
+
+namespace {
+
+// At most this many linear parts of one mesh keep their extremes, and this
+// many more are remembered as seen once.
+constexpr size_t kMaxLinearPartsWithExtremes = 16;
+constexpr size_t kMaxLinearPartsSeenOnce = 64;
+// Magnitudes above this are placed point by point: the error bounds below
+// assume that no sum overflows.
+constexpr double kLargestBoundedMagnitude = 1e300;
+
+// Twice the bound on the rounding of an affine value of four terms whose
+// magnitudes sum to `magnitude` (gamma_4 = 4u / (1 - 4u) < 8u), plus the
+// absolute error of subnormal results.
+double RoundingBound(double magnitude) {
+  constexpr double kUnitRoundoff = std::numeric_limits<double>::epsilon() / 2;
+  return 8.0 * kUnitRoundoff * magnitude + 8.0 * std::numeric_limits<double>::denorm_min();
+}
+
+// How far below the largest computed L (or above the smallest) a point may
+// lie and still be placed at the extreme, for a row whose linear terms'
+// magnitudes sum to `linear_magnitude`, translated by `translation`.
+double ExtremeMargin(double linear_magnitude, double translation) {
+  return 2.0 * RoundingBound(linear_magnitude + translation) + 2.0 * RoundingBound(linear_magnitude);
+}
+
+Bounds PlacedByEveryPoint(const glm::dmat4& world, const std::vector<glm::dvec3>& positions) {
+  Bounds bounds;
+  for (const glm::dvec3& x : positions) bounds.Extend(PlacePoint(world, x));
+  return bounds;
+}
+
+}  // namespace
+
+PlacedMeshBounds::PlacedMeshBounds(const std::vector<glm::dvec3>& positions) : local_(BoundsOf(positions)) {
+  if (!local_.Empty()) largest_magnitude_ = glm::max(glm::abs(local_.min), glm::abs(local_.max));
+}
+
+const PlacedMeshBounds::Extremes* PlacedMeshBounds::ExtremesFor(const glm::dmat3& linear,
+                                                                const glm::dvec3& linear_magnitude,
+                                                                const std::vector<glm::dvec3>& positions) {
+  for (const Extremes& extremes : extremes_)
+    if (extremes.linear == linear) return &extremes;
+  const auto seen = std::find(seen_once_.begin(), seen_once_.end(), linear);
+  if (seen == seen_once_.end()) {
+    if (seen_once_.size() < kMaxLinearPartsSeenOnce) seen_once_.push_back(linear);
+    return nullptr;
+  }
+  if (extremes_.size() >= kMaxLinearPartsWithExtremes) return nullptr;
+  seen_once_.erase(seen);
+  Extremes extremes{linear, {}, {}, {}, {}};
+  std::vector<double> value(positions.size());
+  for (int row = 0; row < 3; ++row) {
+    for (size_t i = 0; i < positions.size(); ++i) {
+      const glm::dvec3& x = positions[i];
+      value[i] = linear[0][row] * x.x + linear[1][row] * x.y + linear[2][row] * x.z;
+    }
+    const auto [smallest, largest] = std::minmax_element(value.begin(), value.end());
+    extremes.largest[row] = *largest;
+    extremes.smallest[row] = *smallest;
+    const double kept = ExtremeMargin(linear_magnitude[row], PlacedMeshBounds::kMaxOrderedTranslation);
+    for (size_t i = 0; i < value.size(); ++i) {
+      if (value[i] >= *largest - kept) extremes.top[row].push_back({value[i], static_cast<uint32_t>(i)});
+      if (value[i] <= *smallest + kept) extremes.bottom[row].push_back({value[i], static_cast<uint32_t>(i)});
+    }
+  }
+  extremes_.push_back(std::move(extremes));
+  return &extremes_.back();
+}
+
+Bounds PlacedMeshBounds::Of(const glm::dmat4& world, const std::vector<glm::dvec3>& positions) {
+  if (positions.empty()) return Bounds{};
+  if (const std::optional<Bounds> placed = PlacedBoundsWithoutRotation(world, local_)) return *placed;
+  const glm::dmat3 linear(world);
+  glm::dvec3 linear_magnitude{0.0};
+  for (int row = 0; row < 3; ++row)
+    for (int column = 0; column < 3; ++column)
+      linear_magnitude[row] += std::abs(linear[column][row]) * largest_magnitude_[column];
+  const glm::dvec3 translation(world[3]);
+  if (!glm::all(glm::lessThanEqual(linear_magnitude, glm::dvec3(kLargestBoundedMagnitude))) ||
+      !glm::all(glm::lessThanEqual(glm::abs(translation), glm::dvec3(kMaxOrderedTranslation))))
+    return PlacedByEveryPoint(world, positions);
+  const Extremes* extremes = ExtremesFor(linear, linear_magnitude, positions);
+  if (extremes == nullptr) return PlacedByEveryPoint(world, positions);
+  ++answered_by_extremes_;
+  Bounds bounds;
+  for (int row = 0; row < 3; ++row) {
+    const double margin = ExtremeMargin(linear_magnitude[row], std::abs(translation[row]));
+    for (const Candidate& c : extremes->top[row])
+      if (c.value >= extremes->largest[row] - margin)
+        bounds.max[row] = std::max(bounds.max[row], PlacePoint(world, positions[c.point])[row]);
+    for (const Candidate& c : extremes->bottom[row])
+      if (c.value <= extremes->smallest[row] + margin)
+        bounds.min[row] = std::min(bounds.min[row], PlacePoint(world, positions[c.point])[row]);
+  }
+  return bounds;
 }
 
 }  // namespace visq

@@ -232,16 +232,6 @@ struct FlattenedPart {
 };
 FlattenedPart FlattenPart(const Scene& scene, const std::vector<uint8_t>& skip);
 
-// The flattened scene's positions, then its triangles, then their
-// materials, in runs, in order, without building it (a content hash reads
-// the same bytes as from Scene::Flattened).
-struct FlattenedRuns {
-  std::function<void(std::span<const glm::dvec3>)> positions;
-  std::function<void(std::span<const glm::uvec3>)> triangles;
-  std::function<void(std::span<const uint32_t>)> materials;
-};
-void VisitFlattened(const Scene& scene, const FlattenedRuns& runs);
-
 // The bounds of every position, placed ones included.
 Bounds PositionBounds(const Scene& scene);
 

@@ -19,14 +19,32 @@ namespace visq::core {
 std::string SceneContentHash(const Scene& scene) {
   XXH3_state_t* state = XXH3_createState();
   XXH3_128bits_reset(state);
-  // The flattened geometry's bytes, read through the placements: a placed
-  // level hashes as the same level written flattened.
-  VisitFlattened(scene, {[&](std::span<const glm::dvec3> run) { XXH3_128bits_update(state, run.data(), run.size_bytes()); },
-                         [&](std::span<const glm::uvec3> run) { XXH3_128bits_update(state, run.data(), run.size_bytes()); },
-                         [&](std::span<const uint32_t> run) { XXH3_128bits_update(state, run.data(), run.size_bytes()); }});
+  auto add_bytes = [&](const void* data, size_t bytes) { XXH3_128bits_update(state, data, bytes); };
+  auto add = [&](const auto& values) {
+    const uint64_t count = values.size();
+    add_bytes(&count, sizeof(count));
+    add_bytes(values.data(), values.size() * sizeof(values[0]));
+  };
+  // The scene as held: its unplaced triangles, each placed mesh once and
+  // where it is placed, so that a level of many copies hashes at the cost
+  // of one copy and its placements. (A level written flattened holds the
+  // same triangles otherwise, and hashes otherwise.)
+  add(scene.positions);
+  add(scene.triangles);
+  add(scene.triangle_material);
+  for (const SceneMesh& mesh : scene.meshes) {
+    add(mesh.positions);
+    add(mesh.triangles);
+    add(mesh.triangle_material);
+  }
+  for (const MeshPlacement& p : scene.placements) {
+    add_bytes(&p.mesh, sizeof(p.mesh));
+    add_bytes(&p.first_triangle, sizeof(p.first_triangle));
+    add_bytes(&p.world, sizeof(p.world));
+  }
   for (const auto& m : scene.materials) {
-    XXH3_128bits_update(state, &m.reflectivity, sizeof(m.reflectivity));
-    XXH3_128bits_update(state, &m.emission, sizeof(m.emission));
+    add_bytes(&m.reflectivity, sizeof(m.reflectivity));
+    add_bytes(&m.emission, sizeof(m.emission));
   }
   const XXH128_hash_t hash = XXH3_128bits_digest(state);
   XXH3_freeState(state);
@@ -41,9 +59,15 @@ std::shared_ptr<ResidentScene> NewResidentScene(std::string name, Scene scene) {
   auto emissive = [&](uint32_t m) { return glm::dot(scene.materials[m].emission, glm::dvec3(1.0)) > 0.0; };
   for (uint32_t m : scene.triangle_material)
     if (emissive(m)) ++resident->emissive_triangles;
-  for (const MeshPlacement& p : scene.placements)
-    for (uint32_t m : scene.meshes[p.mesh].triangle_material)
-      if (emissive(m)) ++resident->emissive_triangles;
+  std::vector<int64_t> emissive_of_mesh(scene.meshes.size(), -1);
+  for (const MeshPlacement& p : scene.placements) {
+    int64_t& count = emissive_of_mesh[p.mesh];
+    if (count < 0) {
+      const std::vector<uint32_t>& materials = scene.meshes[p.mesh].triangle_material;
+      count = std::count_if(materials.begin(), materials.end(), emissive);
+    }
+    resident->emissive_triangles += count;
+  }
   resident->estimate = EstimateStructures(scene);
   resident->scene = std::make_shared<const Scene>(std::move(scene));
   return resident;

@@ -349,7 +349,8 @@ class Engine {
   StructureBuilds builds_;
 };
 
-// XXH3-128 of the flattened geometry and materials, as 32 hex digits.
+// XXH3-128 of the geometry as held (the unplaced triangles, each placed
+// mesh once and its placements) and the materials, as 32 hex digits.
 std::string SceneContentHash(const Scene& scene);
 
 }  // namespace visq::core

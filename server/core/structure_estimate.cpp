@@ -3,6 +3,7 @@
 
 #include <algorithm>
 
+#include "common/check.h"
 #include "raycast/embree_scene.h"
 #include "visq/gpu/gpu_scene.h"
 
@@ -19,12 +20,17 @@ struct Held {
 
 Held HeldBy(const Scene& scene, const std::vector<uint8_t>& as_instance) {
   Held held;
-  std::vector<uint8_t> instanced(scene.TriangleCount(), 0), mesh_held(scene.meshes.size(), 0);
+  // Placements are disjoint by construction (ValidatePlacements checks it):
+  // the triangles flattened are the scene's less those of the placements
+  // kept as instances.
+  uint64_t flat = scene.TriangleCount();
+  std::vector<uint8_t> mesh_held(scene.meshes.size(), 0);
   for (size_t k = 0; k < scene.placements.size(); ++k) {
     if (!as_instance[k]) continue;
     const MeshPlacement& placement = scene.placements[k];
     const SceneMesh& mesh = scene.meshes[placement.mesh];
-    std::fill_n(instanced.begin() + placement.first_triangle, mesh.triangles.size(), uint8_t{1});
+    VISQ_DCHECK_LE(mesh.triangles.size(), flat);
+    flat -= mesh.triangles.size();
     ++held.instances;
     if (!mesh_held[placement.mesh]) {
       mesh_held[placement.mesh] = 1;
@@ -32,7 +38,6 @@ Held HeldBy(const Scene& scene, const std::vector<uint8_t>& as_instance) {
       held.vertices += mesh.positions.size();
     }
   }
-  const uint64_t flat = static_cast<uint64_t>(std::count(instanced.begin(), instanced.end(), uint8_t{0}));
   held.triangles += flat;
   // The flattened triangles' share of the positions, at the scene's ratio.
   held.vertices += scene.TriangleCount() > 0 ? flat * scene.PositionCount() / scene.TriangleCount() : 0;

@@ -5,6 +5,7 @@
 #include <fstream>
 #include <iterator>
 #include <limits>
+#include <random>
 
 #include <gtest/gtest.h>
 
@@ -743,6 +744,59 @@ TEST(ScenePlacements, BoundsWithoutRotationAreThePlacedPointsBounds) {
   Scene broken = placed;
   broken.meshes[0].triangles[5].y = static_cast<uint32_t>(broken.meshes[0].positions.size());
   for (uint8_t ok : PlacementsInRange(broken)) EXPECT_EQ(ok, 0) << "a corner past the mesh's positions";
+}
+
+// Copies of a turned mesh that differ by their translation (a level's
+// prefabs) are bounded from the few points at the top and bottom of each
+// row's order, the same numbers as placing every point: from the origin to
+// 1e12 away, at tiny and huge scales, for a mesh whose extremes tie (a
+// grid's flat sides, turned by 90 degrees in float, as Sponza's nodes are)
+// and for random points. A linear part is placed point by point the first
+// time it is seen, and so is a placement moved past kMaxOrderedTranslation.
+TEST(ScenePlacements, TurnedCopiesAreBoundedByTheirOrderedExtremes) {
+  std::vector<std::vector<glm::dvec3>> meshes = {testing::MakeRippledGrid(16).positions, {}, {}};
+  std::mt19937_64 random(7);
+  std::uniform_real_distribution<double> unit(-1.0, 1.0);
+  for (int i = 0; i < 2000; ++i) meshes[1].push_back(glm::dvec3(unit(random), unit(random), 1e-3 * unit(random)));
+  const double swap = 1.7881390590446244e-07;  // Sponza's node: y and z swapped in float
+  std::vector<glm::dmat4> turns = {
+      glm::dmat4(1, 0, 0, 0, 0, swap, 0.9999997615814209, 0, 0, -0.9999997615814209, swap, 0, 0, 0, 0, 1),
+      glm::rotate(glm::dmat4(1.0), 0.3, glm::normalize(glm::dvec3(1, 2, 3))),
+      glm::scale(glm::rotate(glm::dmat4(1.0), 2.0, glm::dvec3(0, 0, 1)), glm::dvec3(1e-6, 3.0, -2.0)),
+      glm::scale(glm::rotate(glm::dmat4(1.0), -1.1, glm::dvec3(0, 1, 0)), glm::dvec3(1e4))};
+  // Extremes tied in exact arithmetic: for each row of the second turn, 300
+  // points on a line across that row's direction, at its top and bottom;
+  // their placed values differ only by rounding, which picks the extreme.
+  for (int row = 0; row < 3; ++row) {
+    const glm::dvec3 along = glm::normalize(glm::dvec3(turns[1][0][row], turns[1][1][row], turns[1][2][row]));
+    const glm::dvec3 across = glm::normalize(glm::cross(along, glm::dvec3(0.6, -0.2, 0.77)));
+    for (double side : {2.0, -2.0})
+      for (int i = 0; i < 300; ++i) meshes[2].push_back(side * along + 0.5 * unit(random) * across);
+  }
+  for (size_t m = 0; m < meshes.size(); ++m) {
+    const std::vector<glm::dvec3>& positions = meshes[m];
+    PlacedMeshBounds placed(positions);
+    uint64_t asked = 0;
+    for (const glm::dmat4& turn : turns) {
+      for (const glm::dvec3& move : {glm::dvec3(0.0), glm::dvec3(40.0, 0.0, 80.0), glm::dvec3(1e6 + 0.1, -3.3, 7.25),
+                                     glm::dvec3(-1e12, 1e9 / 3.0, 0.5), glm::dvec3(40.0, 40.0 / 3.0, 28.0),
+                                     glm::dvec3(-7.1, 13.7, 0.3), glm::dvec3(1e-9, -1e-300, 0.0)}) {
+        const glm::dmat4 world = glm::translate(glm::dmat4(1.0), move) * turn;
+        Bounds reference;
+        for (const glm::dvec3& x : positions) reference.Extend(PlacePoint(world, x));
+        const Bounds bounds = placed.Of(world, positions);
+        ++asked;
+        EXPECT_EQ(bounds.min, reference.min) << "mesh " << m << " move " << move.x;
+        EXPECT_EQ(bounds.max, reference.max) << "mesh " << m << " move " << move.x;
+      }
+    }
+    // Each turn is placed point by point the first time, and 1e12 away.
+    EXPECT_EQ(placed.answered_by_extremes(), asked - 2 * turns.size()) << "mesh " << m;
+    const glm::dmat4 fifth = glm::rotate(glm::dmat4(1.0), 0.7, glm::dvec3(1, 0, 0));
+    placed.Of(fifth, positions);
+    placed.Of(fifth, positions);
+    EXPECT_EQ(placed.answered_by_extremes(), asked - 2 * turns.size() + 1) << "a fifth linear part seen twice";
+  }
 }
 
 // A level of nine placed copies of a grid: the scene of record holds the
