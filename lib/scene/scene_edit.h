@@ -17,11 +17,12 @@ namespace visq {
 std::vector<uint32_t> SubtreeNodes(const Scene& scene, uint32_t node);
 
 // Moves node `node` and its subtree rigidly so that the node's world matrix
-// becomes `new_world` (positions of the subtree's triangles and the nodes'
-// world matrices). The subtree's mesh placements are dropped (its triangles
-// stay, flattened). INVALID_ARGUMENT for an unknown node, a position shared
-// with triangles outside the subtree, or one moved beyond the coordinate
-// range; the scene is unchanged then.
+// becomes `new_world`: the subtree's unplaced positions and nodes' world
+// matrices by delta = new_world * inverse(old world), and its placements'
+// worlds to delta * world (they stay placements, at the cost of the
+// subtree, not of the scene). INVALID_ARGUMENT for an unknown node, a
+// position shared with triangles outside the subtree, or one moved beyond
+// the coordinate range; the scene is unchanged then.
 [[nodiscard]] Status MoveNodeSubtree(Scene& scene, uint32_t node, const glm::dmat4& new_world);
 
 }  // namespace visq

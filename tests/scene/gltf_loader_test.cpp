@@ -854,14 +854,30 @@ TEST(ScenePlacements, HeldOnceAndFlattenedOnRequestToTheSameBits) {
   EXPECT_GT(placed.CpuBytes(), held_bytes + reference.positions.size() * sizeof(glm::dvec3));
   EXPECT_FALSE(Scene(placed).FlattenedBuilt()) << "a copy starts without it";
 
-  // Moving the node every copy's triangles belong to: the moved copies are
-  // not PlacePoint's bits of a placement any more, and stay flattened.
+  // Moving the node every copy's triangles belong to: the copies stay
+  // placements, placed by the move after their world, and nothing is
+  // flattened.
   Scene edited = placed;
-  const Status moved = MoveNodeSubtree(edited, 0, glm::translate(edited.nodes[0].world, glm::dvec3(0, 1, 0)));
+  const glm::dmat4 up = glm::translate(glm::dmat4(1.0), glm::dvec3(0, 1, 0));
+  const Status moved = MoveNodeSubtree(edited, 0, up * edited.nodes[0].world);
   ASSERT_TRUE(moved.ok()) << moved;
-  EXPECT_TRUE(edited.placements.empty());
+  ASSERT_EQ(edited.placements.size(), 9u);
+  EXPECT_TRUE(ValidatePlacements(edited).ok()) << ValidatePlacements(edited);
+  EXPECT_FALSE(edited.FlattenedBuilt());
   EXPECT_EQ(edited.TriangleCount(), reference.TriangleCount());
-  EXPECT_NEAR(edited.Vertex(5, 1).y, reference.Vertex(5, 1).y + 1.0, 1e-12);
+  const glm::dmat4 delta = up * placed.nodes[0].world * glm::inverse(placed.nodes[0].world);
+  for (size_t k = 0; k < worlds.size(); ++k) {
+    const glm::dmat4 world = edited.placements[k].world;
+    EXPECT_EQ(world, delta * placed.placements[k].world) << k;
+    const size_t t = edited.placements[k].first_triangle + 5;
+    EXPECT_EQ(edited.Vertex(t, 1), PlacePoint(world, grid.positions[grid.triangles[5][1]])) << k;
+    EXPECT_NEAR(edited.Vertex(t, 1).y, reference.Vertex(t, 1).y + 1.0, 1e-12) << k;
+  }
+  Bounds moved_bounds;
+  for (size_t t = 0; t < edited.TriangleCount(); ++t)
+    for (int c = 0; c < 3; ++c) moved_bounds.Extend(edited.Vertex(t, c));
+  EXPECT_EQ(edited.bounds.min, moved_bounds.min);
+  EXPECT_EQ(edited.bounds.max, moved_bounds.max);
   EXPECT_TRUE(placed.FlattenedBuilt()) << "the original is untouched";
 }
 
