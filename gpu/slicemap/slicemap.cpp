@@ -216,6 +216,10 @@ StatusOr<std::shared_ptr<SlicemapTargets>> CreateTargets(const PassConfig& confi
 
 using JobRunner = std::function<Status(const std::function<Status()>& body)>;
 
+// Bands are not halved below this many rows: each band draws the whole
+// selection again.
+constexpr uint32_t kMinRowsPerBand = 4;
+
 // One draw of a pass, over as many GL jobs as it takes (a conservative pass
 // over a large scene takes seconds on llvmpipe: a small query behind it
 // waits about config.draw_ms_per_job, not the whole pass): `bind` sets the
@@ -294,9 +298,18 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
                         : part_triangles);
 
   GlStateAcrossJobs<SlicemapTargets> targets(worker);
+  // Jobs of this call at whose end another call's job was queued.
+  uint64_t jobs_others_waited_for = 0;
   const JobRunner job = [&](const std::function<Status()>& body) -> Status {
     JobTiming timing;
-    const Status status = worker.Run(config.job, body, &timing);
+    const Status status = worker.Run(
+        config.job,
+        [&]() -> Status {
+          const Status done = body();
+          if (worker.queue_depth() > 0) ++jobs_others_waited_for;
+          return done;
+        },
+        &timing);
     raw.timings.queue_ms += timing.queue_ms;
     ++raw.gl_jobs;
     return status;
@@ -411,8 +424,11 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
   // their union is the surface unless a conservative surface pass follows.
   // Band by band, every slice pass of the band, so each band's columns are
   // whole when it is handed on.
-  for (uint32_t first_row = 0; first_row < config.height; first_row += band_rows) {
-    const uint32_t rows = std::min(band_rows, config.height - first_row);
+  uint32_t rows_per_band = band_rows;
+  for (uint32_t first_row = 0, rows = 0; first_row < config.height; first_row += rows) {
+    rows = std::min(rows_per_band, config.height - first_row);
+    pieces.TakeLongestMs();
+    const uint64_t jobs_others_waited_for_before_band = jobs_others_waited_for;
     raw.surface = EmptyGrid(config.width, rows, config.slices);
     if (solid) {
       raw.front = EmptyGrid(config.width, rows, config.slices);
@@ -433,6 +449,20 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       raw.timings.readback_ms += MillisecondsSince(start);
     }
     VISQ_RETURN_IF_ERROR(on_band(first_row, raw));
+    // A piece's cost follows the texels its triangles cover in the band, not
+    // their count: a few triangles across a wide band (a floor, a wall, the
+    // Cornell box's sides under conservative boxes) cost hundreds of ms on a
+    // CPU rasterizer however the pieces are cut, and another call's job
+    // waits for the piece. While other calls' jobs waited for this call's
+    // and a piece took over four times the target,
+    // the next bands take half the rows; alone, they grow back, as each band
+    // draws the whole selection again.
+    const double longest_ms = pieces.TakeLongestMs();
+    const bool others_waiting = jobs_others_waited_for > jobs_others_waited_for_before_band;
+    if (others_waiting && config.piece_target_ms > 0.0 && longest_ms > 4.0 * config.piece_target_ms)
+      rows_per_band = std::max<uint32_t>(kMinRowsPerBand, rows_per_band / 2);
+    else if (!others_waiting)
+      rows_per_band = std::min(band_rows, rows_per_band * 2);
   }
   return absl::OkStatus();
 }

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <utility>
 
 namespace visq::gpu {
 
@@ -21,7 +22,10 @@ class TimedSizer {
   int size() const { return size_; }
   // At the limit and measured under the target: nothing left to learn.
   bool settled() const { return target_ms_ <= 0.0 || (size_ >= limit_ && last_size_ > 0 && last_ms_ < target_ms_); }
+  // The longest unit measured since the last call.
+  double TakeLongestMs() { return std::exchange(longest_ms_, 0.0); }
   void Measured(int size, double ms) {
+    longest_ms_ = std::max(longest_ms_, ms);
     if (target_ms_ <= 0.0) return;
     int next = size;
     if (last_size_ == 2 * size && ms > 0.75 * last_ms_) {
@@ -44,6 +48,7 @@ class TimedSizer {
   int floor_ = 1;
   int last_size_ = 0;
   double last_ms_ = 0.0;
+  double longest_ms_ = 0.0;
 };
 
 // The first piece of a draw into `pixels` target pixels, before anything

@@ -1,11 +1,14 @@
 // Slicemap voxelization (gpu/slicemap) against the CPU reference
 // (lib/voxel_reference): exact triangle-box overlap for surfaces, Embree
 // ray parity for solids, the analytic chord for transmittance.
+#include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <limits>
 #include <map>
+#include <thread>
 
 #include <gtest/gtest.h>
 
@@ -279,6 +282,44 @@ TEST(SlicemapBands, ADrawSpreadOverGlJobsGivesTheBitsOfOneDraw) {
     // the targets' (and the depth-range pass's).
     EXPECT_GE(over_jobs.gl_jobs, whole.gl_jobs + 7) << "draws spread over jobs";
   }
+}
+
+// While other calls' jobs wait for the GL thread and a band's pieces take
+// over four times their target (here every piece), the next bands take half
+// the rows, down to 4 (a small query then waits for a piece of a narrower
+// band); bands of every size give the bits of one job.
+TEST(SlicemapBands, BandsHalvedWhileOthersWaitGiveTheBitsOfOneJob) {
+  const Uploaded s = Upload(MakeSphere(kSphereCenter, 1.0, 3));
+  VoxelizeParams params = Params(s.scene, 2, 40, 144, 64);
+  params.rasterization = Rasterization::kConservative;
+  params.piece_target_ms = 0.0;  // one draw, one job
+  const gpu::VoxelizeResult whole = MustVoxelize(s, params);
+  ASSERT_GT(whole.occupied_voxels, 0u);
+  params.max_columns_per_job = 40 * 36;
+  params.piece_target_ms = 1e-6;
+  gpu::GpuWorker& worker = testing::SharedGpuWorker();
+  std::atomic<bool> voxelizing{true};
+  std::thread other_call([&] {  // keeps a job of another caller queued
+    while (voxelizing.load()) {
+      if (worker.queue_depth() == 0) worker.Post([] {});
+      std::this_thread::yield();
+    }
+  });
+  std::vector<uint32_t> bits, band_rows;
+  auto sink = [&](const gpu::VoxelizeResult&, const gpu::VoxelizeBand& band) -> Status {
+    band_rows.push_back(static_cast<uint32_t>(band.bits.size() / (40 * whole.grid.words_per_column)));
+    bits.insert(bits.end(), band.bits.begin(), band.bits.end());
+    return absl::OkStatus();
+  };
+  const auto banded = gpu::Voxelize(worker, *s.gpu, params, sink);
+  voxelizing = false;
+  other_call.join();
+  ASSERT_TRUE(banded.ok()) << banded.status();
+  EXPECT_EQ(bits, whole.grid.bits);
+  ASSERT_FALSE(band_rows.empty());
+  EXPECT_EQ(band_rows.front(), 36u);
+  EXPECT_LT(*std::min_element(band_rows.begin(), band_rows.end()), 36u) << "halved while others waited";
+  EXPECT_GE(*std::min_element(band_rows.begin(), band_rows.end() - 1), 4u);
 }
 
 // Bands of image rows, each a GL job of its own (other queries run between
