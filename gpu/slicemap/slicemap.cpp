@@ -631,12 +631,6 @@ ViewSetup OrthographicView(const SlicemapBox& box, const glm::dvec3& anchor) {
 
 }  // namespace slicemap_internal
 
-uint64_t SlicemapGrid::CountOccupied() const {
-  uint64_t n = 0;
-  for (uint32_t word : bits) n += static_cast<uint64_t>(std::popcount(word));
-  return n;
-}
-
 SlicemapBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double margin) {
   SlicemapBox box;
   const int w = std::clamp(depth_axis, 0, 2), u = (w + 1) % 3, v = (w + 2) % 3;

@@ -727,16 +727,6 @@ Status ReadRows(const VolumetricTargets& t, const Setup& setup, uint32_t first_r
 
 }  // namespace
 
-std::string_view VolumetricIntegrandName(VolumetricIntegrand integrand) {
-  switch (integrand) {
-    case VolumetricIntegrand::kAnalytic: return "analytic";
-    case VolumetricIntegrand::kPrefixSum: return "prefix_sum";
-    case VolumetricIntegrand::kPerTexel: return "per_texel";
-    case VolumetricIntegrand::kSvd: return "svd";
-  }
-  return "unknown";
-}
-
 Status ValidateVolumetricParams(const VolumetricParams& params) {
   const VolumetricCamera& camera = params.camera;
   const VolumetricLight& light = params.light;

@@ -1,6 +1,6 @@
-// The voxel grid's box, one type for the GPU slicemap (gpu::SlicemapBox)
-// and the CPU reference voxelizer alike. Header only: the GPU floor names
-// it without linking the reference.
+// The voxel grid's box, one type for the GPU slicemap (SlicemapBox in
+// slicemap_request.h) and the CPU reference voxelizer alike. Header only:
+// the GPU floor names it without linking the reference.
 #pragma once
 
 #include <cstdint>

@@ -5,7 +5,7 @@
 //   - solid: a voxel is inside when the ray along its column, through the
 //     column's center, has crossed the surface an odd number of times before
 //     the voxel's center (Embree, visq_raycast), plus the surface voxels.
-// The grid and packed layout are the slicemap's (visq/gpu/slicemap.h):
+// The grid and packed layout are the slicemap's (slicemap_request.h):
 // word (y * width + x) * words_per_column + k / 32, bit k % 32, k = 0 at the
 // box's front face.
 #pragma once

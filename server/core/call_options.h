@@ -1,6 +1,6 @@
 // What every core query carries from its call: when its caller stops
 // waiting, and whether it gave up. The transport fills it; the core turns
-// it into GPU job options and chooses their priority itself (queries
+// it into job options (common/job_options.h) and chooses their priority itself (queries
 // interactive, bakes batch), so a priority is a statement about the work,
 // not about the protocol.
 #pragma once
@@ -9,7 +9,7 @@
 #include <memory>
 #include <string>
 
-#include "visq/gpu/gpu_worker.h"
+#include "common/job_options.h"
 
 namespace visq::core {
 
@@ -27,7 +27,7 @@ class BuildClock {
 };
 
 struct CallOptions {
-  gpu::SteadyTime deadline = gpu::SteadyTime::max();
+  SteadyTime deadline = SteadyTime::max();
   const std::atomic<bool>* cancelled = nullptr;  // set when the call is cancelled or drained
   // Shared by the copies of one call's options; null: not measured.
   std::shared_ptr<BuildClock> build_clock;
@@ -37,15 +37,15 @@ struct CallOptions {
 
   double BuildMs() const { return build_clock ? build_clock->ms() : 0.0; }
 
-  // OK while the call still wants its answer (see gpu::StillWanted).
-  [[nodiscard]] Status StillWanted(std::string_view where) const { return gpu::StillWanted(Job(), where); }
+  // OK while the call still wants its answer (see visq::StillWanted).
+  [[nodiscard]] Status StillWanted(std::string_view where) const { return ::visq::StillWanted(Job(), where); }
   bool Stopped() const {
-    return (cancelled != nullptr && cancelled->load()) || gpu::SteadyTime::clock::now() > deadline;
+    return (cancelled != nullptr && cancelled->load()) || SteadyTime::clock::now() > deadline;
   }
 
   // GPU jobs for a query someone waits on, and for long batch work.
-  gpu::JobOptions Job() const { return {gpu::kInteractive, deadline, cancelled}; }
-  gpu::JobOptions BatchJob() const { return {gpu::kBatch, deadline, cancelled}; }
+  JobOptions Job() const { return {kInteractive, deadline, cancelled}; }
+  JobOptions BatchJob() const { return {kBatch, deadline, cancelled}; }
 };
 
 }  // namespace visq::core

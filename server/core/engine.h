@@ -289,7 +289,7 @@ class Engine {
   size_t light_shaft_triangles() const { return options_.light_shaft_triangles; }
   uint32_t light_receiver_min_points() const { return options_.light_receiver_min_points; }
 
-  const gpu::DeviceInfo& device() const { return gpu_->device(); }
+  const GpuDeviceInfo& device() const { return gpu_->device(); }
   gpu::GpuWorker& gpu() { return *gpu_; }
   SceneRepository& repository() { return *repository_; }
   // Measured costs of the query methods, for AccuracyTarget requests.

@@ -79,7 +79,7 @@ struct ObscuranceQuery {
   std::optional<AccuracyTarget> target;
   CallOptions call;
   // Called on the computing thread after every direction of a GPU bake.
-  std::function<void(const gpu::ObscuranceProgress&)> progress;
+  std::function<void(const obscurance::ObscuranceProgress&)> progress;
 };
 
 struct ObscuranceAnswer {
@@ -96,7 +96,7 @@ struct ObscuranceAnswer {
   // with `result`.
   obscurance::ObscuranceBounds bounds;
   obscurance::AmbientModel ambient;
-  gpu::ObscuranceBakeStats stats;
+  obscurance::ObscuranceBakeStats stats;
   bool update_ready = false;
   double atlas_ms = 0, bake_ms = 0, finalize_ms = 0, updater_ms = 0;
   double confidence = 0.95;       // of the error figure (a target's, else 0.95)
@@ -182,7 +182,7 @@ struct ObscurancePreviewQuery {
   enum class Quantity { kW, kIntensity };
   std::string scene;
   uint64_t scene_version = 0;
-  gpu::PinholeCamera camera;
+  PinholeCamera camera;
   Quantity quantity = Quantity::kW;
   CallOptions call;
 };
@@ -191,7 +191,7 @@ struct ObscurancePreviewAnswer {
   uint64_t scene_version = 0;
   uint64_t solution_version = 0;  // the solution drawn (equals scene_version)
   ObscurancePreviewQuery::Quantity quantity = ObscurancePreviewQuery::Quantity::kW;
-  gpu::ObscurancePreviewImage image;
+  obscurance::ObscurancePreviewImage image;
   double copy_ms = 0;  // copying the solution out of the updater
   WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };

@@ -19,7 +19,7 @@ class Engine;
 struct VolumetricQuery {
   std::string scene;
   uint64_t scene_version = 0;
-  gpu::VolumetricParams params;
+  volumetric_shadows::VolumetricParams params;
   // Also render with a shadow map of half the size and state the
   // difference as an estimate of the image's error.
   bool estimate_error = false;
@@ -58,7 +58,7 @@ struct VolumetricErrorEstimate {
 double VolumetricTailFactor(double ratio);
 
 struct VolumetricAnswer {
-  gpu::VolumetricResult result;
+  volumetric_shadows::VolumetricResult result;
   std::optional<VolumetricErrorEstimate> estimate;
   std::vector<uint32_t> maps_rendered;  // in order; the answer's is the last
   double other_renders_ms = 0;          // the renders before the answer's
@@ -68,15 +68,15 @@ struct VolumetricAnswer {
 // target, once the map is chosen) and the result holds the figures only
 // (gpu::RenderVolumetricShadows).
 [[nodiscard]] StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
-                                                            const gpu::VolumetricBandSink& sink = {});
+                                                            const volumetric_shadows::VolumetricBandSink& sink = {});
 
 // "min-max-mipmap" or "ray-marching".
-const char* VolumetricMethodName(gpu::VolumetricMethod method);
+const char* VolumetricMethodName(volumetric_shadows::VolumetricMethod method);
 
 // The image's promise from its figures (it goes with the first band): no
 // numeric bound against the continuous integral, what is exact and at what
 // resolution the shadow boundary is resolved.
-AccuracyStatement VolumetricStatement(const gpu::VolumetricResult& figures);
+AccuracyStatement VolumetricStatement(const volumetric_shadows::VolumetricResult& figures);
 
 // With an error estimate, the statement the last message carries; without
 // one, nothing to add.

@@ -65,7 +65,7 @@ WorkMemoryBudget::Reservation::~Reservation() {
 }
 
 StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes, const std::string& what,
-                                                                  const gpu::JobOptions& job) {
+                                                                  const JobOptions& job) {
   if (bytes > capacity_)
     return absl::ResourceExhaustedError(absl::StrCat(what, ": needs about ", bytes,
                                                      " bytes while it runs, above the server's budget for work in "

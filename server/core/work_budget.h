@@ -12,8 +12,8 @@
 #include <mutex>
 #include <string>
 
+#include "common/job_options.h"
 #include "common/status.h"
-#include "visq/gpu/gpu_worker.h"
 
 namespace visq::core {
 
@@ -58,7 +58,7 @@ class WorkMemoryBudget {
 
   // `what` names the request's part that needs the memory ("width x height
   // x samples"), for the error.
-  [[nodiscard]] StatusOr<Reservation> Reserve(uint64_t bytes, const std::string& what, const gpu::JobOptions& job);
+  [[nodiscard]] StatusOr<Reservation> Reserve(uint64_t bytes, const std::string& what, const JobOptions& job);
 
   // Releasing at least this much returns the process's free memory to the
   // system (malloc_trim).

@@ -6,6 +6,11 @@
 
 namespace visq::service {
 
+// The algorithms' enums this file converts most, named by their lib/ floor.
+using volumetric_shadows::VolumetricLightKind;
+using volumetric_shadows::VolumetricMethod;
+using voxel_reference::TransmittanceLightKind;
+
 glm::dvec3 FromProto(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 
 Status SceneRefFromProto(const v1::SceneRef& ref, std::string& name, uint64_t& version) {
@@ -326,8 +331,8 @@ namespace {
 // (camera_position, camera_forward, camera_up, vertical_fov_deg, width,
 // height): unset up is +y, unset (0) field of view 60 degrees.
 template <typename Request>
-gpu::PinholeCamera CameraFromProto(const Request& request) {
-  gpu::PinholeCamera camera;
+PinholeCamera CameraFromProto(const Request& request) {
+  PinholeCamera camera;
   camera.position = FromProto(request.camera_position());
   camera.forward = FromProto(request.camera_forward());
   if (request.has_camera_up()) camera.up = FromProto(request.camera_up());
@@ -342,11 +347,11 @@ gpu::PinholeCamera CameraFromProto(const Request& request) {
 StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request) {
   core::VolumetricQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
-  gpu::VolumetricParams& p = query.params;
+  volumetric_shadows::VolumetricParams& p = query.params;
   p.camera = CameraFromProto(request);
   switch (request.light_kind()) {
-    case v1::VolumetricShadowRequest::DIRECTIONAL: p.light.kind = gpu::VolumetricLightKind::kDirectional; break;
-    case v1::VolumetricShadowRequest::SPOT: p.light.kind = gpu::VolumetricLightKind::kSpot; break;
+    case v1::VolumetricShadowRequest::DIRECTIONAL: p.light.kind = VolumetricLightKind::kDirectional; break;
+    case v1::VolumetricShadowRequest::SPOT: p.light.kind = VolumetricLightKind::kSpot; break;
     default: return absl::InvalidArgumentError("light_kind: unknown value");
   }
   p.light.direction = FromProto(request.light_direction());
@@ -364,8 +369,8 @@ StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& req
   p.medium.optically_thin = request.optically_thin();
   if (request.shadow_map_size() != 0) p.shadow_map_size = request.shadow_map_size();
   switch (request.method()) {
-    case v1::VolumetricShadowRequest::MIN_MAX: p.method = gpu::VolumetricMethod::kMinMaxTraversal; break;
-    case v1::VolumetricShadowRequest::RAY_MARCHING: p.method = gpu::VolumetricMethod::kRayMarching; break;
+    case v1::VolumetricShadowRequest::MIN_MAX: p.method = VolumetricMethod::kMinMaxTraversal; break;
+    case v1::VolumetricShadowRequest::RAY_MARCHING: p.method = VolumetricMethod::kRayMarching; break;
     default: return absl::InvalidArgumentError("method: unknown value");
   }
   p.combined_image = request.combined_image();
@@ -386,12 +391,12 @@ StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& req
   return query;
 }
 
-v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult& result) {
+v1::VolumetricShadowResponse VolumetricFirstMessage(const volumetric_shadows::VolumetricResult& result) {
   v1::VolumetricShadowResponse first;
   first.set_width(result.width);
   first.set_height(result.height);
   first.set_method(core::VolumetricMethodName(result.method));
-  first.set_integrand(std::string(gpu::VolumetricIntegrandName(result.integrand)));
+  first.set_integrand(std::string(volumetric_shadows::VolumetricIntegrandName(result.integrand)));
   first.set_rectified_rows(result.rectified_rows);
   first.set_rectified_columns(result.rectified_columns);
   first.set_epipole_inside_map(result.epipole_inside_map);
@@ -399,7 +404,7 @@ v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult&
   return first;
 }
 
-Status WriteVolumetricBand(const gpu::VolumetricBand& band,
+Status WriteVolumetricBand(const volumetric_shadows::VolumetricBand& band,
                            const std::function<Status(v1::VolumetricShadowResponse)>& write, size_t chunk_elements) {
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
   using Message = v1::VolumetricShadowResponse;
@@ -413,13 +418,14 @@ Status WriteVolumetricBand(const gpu::VolumetricBand& band,
 }
 
 v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer& answer) {
-  const gpu::VolumetricResult& result = answer.result;
+  const volumetric_shadows::VolumetricResult& result = answer.result;
   v1::VolumetricShadowResponse last;
   if (const std::optional<core::AccuracyStatement> estimate = core::VolumetricEstimateStatement(answer))
     ToProto(*estimate, last.mutable_accuracy());
   auto& stage_ms = *last.mutable_stage_ms();
   stage_ms["setup"] = result.timings.setup_ms;
-  if (result.integrand == gpu::VolumetricIntegrand::kSvd) stage_ms["integrand_table"] = result.timings.integrand_table_ms;
+  if (result.integrand == volumetric_shadows::VolumetricIntegrand::kSvd)
+    stage_ms["integrand_table"] = result.timings.integrand_table_ms;
   stage_ms["shadow_map"] = result.timings.shadow_map_ms;
   stage_ms["camera"] = result.timings.camera_ms;
   stage_ms["rectification"] = result.timings.rectification_ms;
@@ -446,7 +452,7 @@ StatusOr<core::ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequ
 ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(core::ObscurancePreviewAnswer answer_in) {
   auto kept = std::make_shared<const core::ObscurancePreviewAnswer>(std::move(answer_in));
   const core::ObscurancePreviewAnswer& answer = *kept;
-  const gpu::ObscurancePreviewImage& image = answer.image;
+  const obscurance::ObscurancePreviewImage& image = answer.image;
   v1::ObscurancePreviewResponse first;
   first.set_width(image.width);
   first.set_height(image.height);
@@ -513,20 +519,22 @@ StatusOr<core::VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   query.params.height = request.height() == 0 ? 128 : request.height();
   query.params.slices = request.slices() == 0 ? 128 : request.slices();
   switch (request.mode()) {
-    case v1::VoxelizeRequest::SURFACE: query.params.mode = gpu::VoxelizeMode::kSurface; break;
-    case v1::VoxelizeRequest::SOLID: query.params.mode = gpu::VoxelizeMode::kSolid; break;
+    case v1::VoxelizeRequest::SURFACE: query.params.mode = voxel_reference::VoxelizeMode::kSurface; break;
+    case v1::VoxelizeRequest::SOLID: query.params.mode = voxel_reference::VoxelizeMode::kSolid; break;
     default: return absl::InvalidArgumentError("mode: unknown value");
   }
-  query.params.precision = request.local_precision() ? gpu::SlicePrecision::kLocal : gpu::SlicePrecision::kUniform;
-  query.params.rasterization = request.conservative() ? gpu::Rasterization::kConservative
-                                                      : gpu::Rasterization::kStandard;
+  query.params.precision = request.local_precision() ? voxel_reference::SlicePrecision::kLocal
+                                                     : voxel_reference::SlicePrecision::kUniform;
+  query.params.rasterization = request.conservative() ? voxel_reference::Rasterization::kConservative
+                                                      : voxel_reference::Rasterization::kStandard;
   query.nodes.assign(request.nodes().begin(), request.nodes().end());
   return query;
 }
 
-v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& result, const gpu::SlicemapBox& box) {
+v1::VoxelizeResponse VoxelizeFirstMessage(const voxel_reference::VoxelizeResult& result,
+                                          const voxel_reference::SlicemapBox& box) {
   v1::VoxelizeResponse first;
-  const gpu::SlicemapGrid& grid = result.grid;
+  const voxel_reference::SlicemapGrid& grid = result.grid;
   first.set_width(grid.width);
   first.set_height(grid.height);
   first.set_slices(grid.slices);
@@ -543,7 +551,7 @@ v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& result, con
   return first;
 }
 
-Status WriteVoxelizeBand(const gpu::VoxelizeBand& band, uint32_t words_per_column,
+Status WriteVoxelizeBand(const voxel_reference::VoxelizeBand& band, uint32_t words_per_column,
                          const std::function<Status(v1::VoxelizeResponse)>& write, size_t chunk_elements) {
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
   using Message = v1::VoxelizeResponse;
@@ -557,7 +565,7 @@ Status WriteVoxelizeBand(const gpu::VoxelizeBand& band, uint32_t words_per_colum
   return chunks(band.column_far, band.first_column, &Message::mutable_column_far);
 }
 
-v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result) {
+v1::VoxelizeResponse VoxelizeLastMessage(const voxel_reference::VoxelizeResult& result) {
   constexpr size_t kMaxAmbiguousListed = 10000;
   v1::VoxelizeResponse last;
   last.set_occupied_voxels(result.occupied_voxels);
@@ -579,10 +587,10 @@ v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result) {
 StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {
   core::TransmittanceQuery query;
   VISQ_RETURN_IF_ERROR(SceneRefFromProto(request.scene(), query.scene, query.scene_version));
-  gpu::TransmittanceParams& p = query.params;
+  voxel_reference::TransmittanceParams& p = query.params;
   switch (request.light_kind()) {
-    case v1::TransmittanceRequest::POINT: p.light.kind = gpu::LightKind::kPoint; break;
-    case v1::TransmittanceRequest::DIRECTIONAL: p.light.kind = gpu::LightKind::kDirectional; break;
+    case v1::TransmittanceRequest::POINT: p.light.kind = TransmittanceLightKind::kPoint; break;
+    case v1::TransmittanceRequest::DIRECTIONAL: p.light.kind = TransmittanceLightKind::kDirectional; break;
     default: return absl::InvalidArgumentError("light_kind: unknown value");
   }
   p.light.position = FromProto(request.light_position());
@@ -604,7 +612,7 @@ StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& req
   return query;
 }
 
-void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* out) {
+void ToProto(const voxel_reference::TransmittanceResult& result, v1::TransmittanceResponse* out) {
   out->mutable_transmittance()->Add(result.transmittance.begin(), result.transmittance.end());
   out->mutable_optical_depth()->Add(result.optical_depth.begin(), result.optical_depth.end());
   out->mutable_optical_depth_error()->Add(result.optical_depth_error.begin(), result.optical_depth_error.end());

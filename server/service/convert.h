@@ -70,8 +70,8 @@ ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(core::ObscuranceEx
 // Streamed as the traversal makes the image: the first message holds the
 // figures known before any band (sizes, method, integrand, accuracy), each
 // band's chunks follow, and the last message holds the timing.
-v1::VolumetricShadowResponse VolumetricFirstMessage(const gpu::VolumetricResult& figures);
-[[nodiscard]] Status WriteVolumetricBand(const gpu::VolumetricBand& band,
+v1::VolumetricShadowResponse VolumetricFirstMessage(const volumetric_shadows::VolumetricResult& figures);
+[[nodiscard]] Status WriteVolumetricBand(const volumetric_shadows::VolumetricBand& band,
                                          const std::function<Status(v1::VolumetricShadowResponse)>& write,
                                          size_t chunk_elements = kChunkElements);
 v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer& answer);
@@ -81,12 +81,13 @@ v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer&
 // message holds what is known before any band (sizes, box, modes,
 // accuracy), each band's chunks of bits and local ranges follow as the band
 // is made, and the last message holds the counts and the timing.
-v1::VoxelizeResponse VoxelizeFirstMessage(const gpu::VoxelizeResult& figures, const gpu::SlicemapBox& box);
-[[nodiscard]] Status WriteVoxelizeBand(const gpu::VoxelizeBand& band, uint32_t words_per_column,
+v1::VoxelizeResponse VoxelizeFirstMessage(const voxel_reference::VoxelizeResult& figures,
+                                          const voxel_reference::SlicemapBox& box);
+[[nodiscard]] Status WriteVoxelizeBand(const voxel_reference::VoxelizeBand& band, uint32_t words_per_column,
                                        const std::function<Status(v1::VoxelizeResponse)>& write,
                                        size_t chunk_elements = kChunkElements);
-v1::VoxelizeResponse VoxelizeLastMessage(const gpu::VoxelizeResult& result);
+v1::VoxelizeResponse VoxelizeLastMessage(const voxel_reference::VoxelizeResult& result);
 [[nodiscard]] StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request);
-void ToProto(const gpu::TransmittanceResult& result, v1::TransmittanceResponse* out);
+void ToProto(const voxel_reference::TransmittanceResult& result, v1::TransmittanceResponse* out);
 
 }  // namespace visq::service

@@ -138,7 +138,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
       Finish(ToGrpcStatus(authorized));
       return;
     }
-    const gpu::SteadyTime deadline = SteadyDeadline(context);
+    const SteadyTime deadline = SteadyDeadline(context);
     ctx.executor.Post([this, &ctx, request, deadline] {
       const double queue_ms = log_.ElapsedMs();
       StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> messages = CatchExceptions(
@@ -166,13 +166,13 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
  private:
   StatusOr<ChunkedResponses<v1::ComputeObscurancesResponse>> Compute(core::Engine& engine,
                                                                      const v1::ComputeObscurancesRequest& request,
-                                                                     gpu::SteadyTime deadline, double queue_ms) {
+                                                                     SteadyTime deadline, double queue_ms) {
     VISQ_ASSIGN_OR_RETURN(core::ObscuranceQuery query, FromProto(request));
     query.call = {deadline, &cancelled_, std::make_shared<core::BuildClock>()};
     const std::shared_ptr<core::BuildClock> build_clock = query.call.build_clock;
     // At most ~10 progress messages a second (and the first and last).
     auto last_sent = std::make_shared<double>(-1e9);
-    query.progress = [this, last_sent](const gpu::ObscuranceProgress& p) {
+    query.progress = [this, last_sent](const obscurance::ObscuranceProgress& p) {
       if (p.directions_done != 1 && p.directions_done != p.directions_total &&
           p.elapsed_seconds - *last_sent < 0.1)
         return;

@@ -16,6 +16,7 @@
 
 #include <grpcpp/server_context.h>
 
+#include "common/job_options.h"
 #include "core/call_options.h"
 #include "core/work_budget.h"
 #include "service/chunked_responses.h"
@@ -23,7 +24,6 @@
 #include "service/request_log.h"
 #include "service/status_conversion.h"
 #include "service/visibility_service.h"
-#include "visq/gpu/gpu_worker.h"
 
 namespace visq::service {
 
@@ -81,9 +81,9 @@ grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::Callback
 
 // The call's deadline on the steady clock, which GPU jobs are queued with:
 // a job whose client gave up never reaches the GPU.
-inline gpu::SteadyTime SteadyDeadline(const grpc::CallbackServerContext* context) {
+inline SteadyTime SteadyDeadline(const grpc::CallbackServerContext* context) {
   const auto deadline = context->deadline();
-  if (deadline == std::chrono::system_clock::time_point::max()) return gpu::SteadyTime::max();
+  if (deadline == std::chrono::system_clock::time_point::max()) return SteadyTime::max();
   const auto left = deadline - std::chrono::system_clock::now();
   return std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(left);
 }

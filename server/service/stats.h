@@ -30,7 +30,7 @@ struct ServerFigures {
   std::string version;
   std::string build_commit;
   double uptime_s = 0;
-  gpu::DeviceInfo device;
+  GpuDeviceInfo device;
   uint64_t gpu_queue_depth = 0;
   uint64_t worker_queue_depth = 0;
   uint64_t metadata_queue_depth = 0;

@@ -510,16 +510,19 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
         VISQ_ASSIGN_OR_RETURN(core::VolumetricQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled, log);
         auto write = [&out](v1::VolumetricShadowResponse message) { return out.Write(std::move(message)); };
-        auto sink = [&](const gpu::VolumetricResult& figures, const gpu::VolumetricBand& band) -> Status {
+        auto sink = [&](const volumetric_shadows::VolumetricResult& figures,
+                        const volumetric_shadows::VolumetricBand& band) -> Status {
           if (band.first_pixel == 0) VISQ_RETURN_IF_ERROR(write(VolumetricFirstMessage(figures)));
           return WriteVolumetricBand(band, write);
         };
         VISQ_ASSIGN_OR_RETURN(core::VolumetricAnswer answer, core::RunVolumetricShadow(ctx_.engine, query, sink));
-        const gpu::VolumetricResult& result = answer.result;
-        const gpu::VolumetricTimings& timings = result.timings;
+        const volumetric_shadows::VolumetricResult& result = answer.result;
+        const volumetric_shadows::VolumetricTimings& timings = result.timings;
         log.Info("{}x{} {} ({}), {} map(s) rendered, traversal {:.1f} ms", result.width, result.height,
-                 result.method == gpu::VolumetricMethod::kMinMaxTraversal ? "min-max-mipmap" : "ray-marching",
-                 gpu::VolumetricIntegrandName(result.integrand), answer.maps_rendered.size(), timings.traversal_ms);
+                 result.method == volumetric_shadows::VolumetricMethod::kMinMaxTraversal ? "min-max-mipmap"
+                                                                                          : "ray-marching",
+                 volumetric_shadows::VolumetricIntegrandName(result.integrand), answer.maps_rendered.size(),
+                 timings.traversal_ms);
         v1::VolumetricShadowResponse last = VolumetricLastMessage(answer);
         SetProducedTiming(queue_ms + timings.queue_ms,
                           answer.other_renders_ms + timings.total_ms - timings.queue_ms - out.write_ms(),
@@ -538,17 +541,19 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(core::VoxelizeQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled, log);
-        gpu::SlicemapBox box;
+        voxel_reference::SlicemapBox box;
         // Each band is written as soon as it is made, after the first
         // message.
         auto write = [&out](v1::VoxelizeResponse message) { return out.Write(std::move(message)); };
-        auto sink = [&](const gpu::VoxelizeResult& figures, const gpu::VoxelizeBand& band) -> Status {
+        auto sink = [&](const voxel_reference::VoxelizeResult& figures,
+                        const voxel_reference::VoxelizeBand& band) -> Status {
           if (band.first_column == 0) VISQ_RETURN_IF_ERROR(write(VoxelizeFirstMessage(figures, box)));
           return WriteVoxelizeBand(band, figures.grid.words_per_column, write);
         };
-        VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeResult result, core::RunVoxelize(ctx_.engine, query, &box, sink));
+        VISQ_ASSIGN_OR_RETURN(voxel_reference::VoxelizeResult result,
+                              core::RunVoxelize(ctx_.engine, query, &box, sink));
         log.Info("{}x{}x{} {}: {} occupied voxels", result.grid.width, result.grid.height, result.grid.slices,
-                 result.rasterization == gpu::Rasterization::kConservative ? "conservative" : "standard",
+                 result.rasterization == voxel_reference::Rasterization::kConservative ? "conservative" : "standard",
                  result.occupied_voxels);
         v1::VoxelizeResponse last = VoxelizeLastMessage(result);
         SetProducedTiming(queue_ms + result.timings.queue_ms,
@@ -567,7 +572,8 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
     VISQ_ASSIGN_OR_RETURN(core::TransmittanceQuery query, FromProto(*request));
     query.call = CallOptionsFor(context, &cancelled, log);
     core::WorkMemoryBudget::Reservation memory;  // until the response is made
-    VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceResult result, core::RunTransmittance(ctx_.engine, query, &memory));
+    VISQ_ASSIGN_OR_RETURN(voxel_reference::TransmittanceResult result,
+                          core::RunTransmittance(ctx_.engine, query, &memory));
     const double before_transfer = log.ElapsedMs();
     ToProto(result, response);
     auto* timing = response->mutable_timing();

@@ -73,6 +73,24 @@ check_tree(client "lib;public" "${gl_headers}" "client/ stands on lib/ and the p
 check_tree(server/core "lib;gpu;server;public" "${gl_headers}|${rpc_headers}"
            "core/ is the query API: no protobuf, no GL (GPU work goes through gpu/)")
 
+# The transport names no GPU type: what it converts (requests, results,
+# bands, timings, deadlines, the device record) is lib/'s vocabulary, and the
+# GPU work itself goes through the core (issue 48 §1). A text check: a
+# `gpu::` anywhere in server/service/, comments included, is a violation.
+function(check_no_name folder name why)
+  file(GLOB_RECURSE files RELATIVE "${SOURCE_DIR}" "${SOURCE_DIR}/${folder}/*.h" "${SOURCE_DIR}/${folder}/*.cpp")
+  foreach(file IN LISTS files)
+    file(STRINGS "${SOURCE_DIR}/${file}" lines REGEX "${name}")
+    foreach(line IN LISTS lines)
+      string(STRIP "${line}" line)
+      violation("${file}: ${line} (${why})")
+    endforeach()
+  endforeach()
+  set(violations ${violations} PARENT_SCOPE)
+endfunction()
+check_no_name(server/service "(^|[^A-Za-z0-9_])gpu::"
+              "server/service/ names no gpu:: type: requests and answers are lib/'s, GPU work goes through the core")
+
 # The installed headers (cmake/Install.cmake installs client/*.h and
 # include/visq/): every quoted include is another installed header or a
 # generated proto header, every <include> a standard header or one of
@@ -129,7 +147,8 @@ function(check_namespace folder expected)
   set(violations ${violations} PARENT_SCOPE)
 endfunction()
 foreach(rule IN ITEMS "lib/exact=visq::exact" "lib/obscurance=visq::obscurance" "lib/raycast=visq::raycast"
-                      "lib/sampling=visq::sampling" "lib/voxel_reference=visq::voxel_reference" "gpu/src=visq::gpu"
+                      "lib/sampling=visq::sampling" "lib/voxel_reference=visq::voxel_reference"
+                      "lib/volumetric_shadows=visq::volumetric_shadows" "gpu/src=visq::gpu"
                       "gpu/include/visq/gpu=visq::gpu" "gpu/hidden_sample_map=visq::gpu" "gpu/slicemap=visq::gpu"
                       "gpu/obscurance=visq::gpu" "gpu/volumetric_shadows=visq::gpu" "server/core=visq::core"
                       "server/service=visq::service" "client=visq::client" "client/cli=visq::cli")
@@ -140,7 +159,7 @@ foreach(rule IN ITEMS "lib/exact=visq::exact" "lib/obscurance=visq::obscurance" 
 endforeach()
 
 if(violations GREATER 0)
-  message(FATAL_ERROR "${violations} include(s) break the floors of the house")
+  message(FATAL_ERROR "${violations} violation(s) break the floors of the house")
 endif()
 message("the floors hold: include/ < lib/ < gpu/ < server/, lib/ < client/, no GL outside gpu/, no gRPC below the service, "
-        "the installed client headers self-contained, each folder in its namespace")
+        "the installed client headers self-contained, each folder in its namespace, no gpu:: in the transport")

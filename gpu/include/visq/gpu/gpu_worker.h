@@ -10,6 +10,8 @@
 #include <string>
 #include <string_view>
 
+#include "common/gpu_device_info.h"
+#include "common/job_options.h"
 #include "common/job_timing.h"
 #include "common/status.h"
 
@@ -29,41 +31,15 @@ struct GpuOptions {
   uint64_t lose_context_at_job = 0;
 };
 
-struct DeviceInfo {
-  std::string egl_platform;  // "device" or "surfaceless"
-  std::string egl_device;    // DRM node or extension summary
-  std::string gl_vendor;
-  std::string gl_renderer;
-  std::string gl_version;
-  bool software = false;     // llvmpipe or another CPU rasterizer
-};
-
-using SteadyTime = std::chrono::steady_clock::time_point;
-
-struct JobOptions {
-  // Lower runs first; equal priorities run in arrival order. Small queries
-  // use kInteractive so that long bakes (kBatch, split into steps) do not
-  // starve them; nor do they starve a bake: after 8 jobs have overtaken
-  // waiting work, the oldest waiting job runs.
-  int priority = 0;
-  SteadyTime deadline = SteadyTime::max();
-  // Checked before the job starts, and by long jobs between steps.
-  const std::atomic<bool>* cancelled = nullptr;
-};
-// OK while the job's call still wants it; CANCELLED or DEADLINE_EXCEEDED
-// once it does not. Long jobs ask between passes, so a cancelled or expired
-// request gives up the GL thread within one pass.
-[[nodiscard]] inline Status StillWanted(const JobOptions& job, std::string_view where) {
-  if (job.cancelled != nullptr && job.cancelled->load())
-    return absl::CancelledError(absl::StrCat(AbslView(where), ": the call was cancelled"));
-  if (std::chrono::steady_clock::now() > job.deadline)
-    return absl::DeadlineExceededError(absl::StrCat(AbslView(where), ": the call's deadline passed"));
-  return absl::OkStatus();
-}
-
-inline constexpr int kInteractive = 0;
-inline constexpr int kBatch = 10;
-
+// The device record, the job options and the deadline type are lib/common's
+// (common/gpu_device_info.h, common/job_options.h): the core and the
+// transport name them without naming gpu/.
+using DeviceInfo = ::visq::GpuDeviceInfo;
+using ::visq::JobOptions;
+using ::visq::kBatch;
+using ::visq::kInteractive;
+using ::visq::SteadyTime;
+using ::visq::StillWanted;
 using ::visq::JobTiming;
 
 class GpuWorker {

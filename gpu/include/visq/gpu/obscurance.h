@@ -23,6 +23,7 @@
 
 #include "common/status.h"
 #include "obscurance/obscurance_atlas.h"
+#include "obscurance/obscurance_bake_report.h"
 #include "obscurance/obscurance_model.h"
 #include "visq/obscurance_partial.h"
 #include "scene/scene.h"
@@ -32,13 +33,12 @@
 
 namespace visq::gpu {
 
-struct ObscuranceProgress {
-  uint32_t directions_done = 0;
-  uint32_t directions_total = 0;
-  double elapsed_seconds = 0;
-  double estimated_seconds_left = 0;
-  uint32_t layers_last_direction = 0;
-};
+// What a bake reports and what a preview returns are lib/obscurance's
+// (obscurance_bake_report.h): the core and the transport name them without
+// naming gpu/.
+using obscurance::ObscuranceBakeStats;
+using obscurance::ObscurancePreviewImage;
+using obscurance::ObscuranceProgress;
 
 struct ObscuranceBakeOptions {
   int priority = kBatch;
@@ -52,14 +52,6 @@ struct ObscuranceBakeOptions {
   std::function<void(const ObscuranceProgress&)> progress;
   // Stops peeling a direction after this many layers (a guard; reported).
   uint32_t max_layers = 4096;
-};
-
-struct ObscuranceBakeStats {
-  uint64_t layers = 0;       // over all directions
-  uint32_t max_layers = 0;   // of one direction
-  uint32_t truncated_directions = 0;  // that hit max_layers
-  uint32_t bundle_resolution = 0;
-  double seconds = 0;
 };
 
 // Bakes directions [params.first_direction, + params.direction_count) of the
@@ -92,17 +84,6 @@ struct ObscurancePreviewRequest {
   std::span<const glm::vec2> corner_uv;
   std::span<const glm::vec3> texel_values;
   JobOptions job{kInteractive};
-};
-
-struct ObscurancePreviewImage {
-  uint32_t width = 0, height = 0;
-  // Linear RGB per pixel, index (y * width + x) * 3, y = 0 the TOP row;
-  // background pixels are 0.
-  std::vector<float> rgb;
-  std::vector<uint8_t> covered;  // per pixel: 1 where a surface was drawn
-  double queue_ms = 0;   // waiting for the GL thread
-  double render_ms = 0;  // on the GL thread (upload, draw, readback)
-  double total_ms = 0;
 };
 
 // One GL job: INVALID_ARGUMENT / RESOURCE_EXHAUSTED for a bad camera

@@ -1,4 +1,4 @@
-#include "visq/gpu/camera.h"
+#include "scene/pinhole_camera.h"
 
 #include <algorithm>
 #include <array>
@@ -11,7 +11,7 @@
 
 #include "common/coordinates.h"
 
-namespace visq::gpu {
+namespace visq {
 namespace {
 
 std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})", v.x, v.y, v.z); }
@@ -61,4 +61,4 @@ glm::dmat4 PinholeClipFromAnchor(const PinholeCamera& camera, const glm::dvec3& 
          glm::lookAt(eye, eye + f, cu);
 }
 
-}  // namespace visq::gpu
+}  // namespace visq
