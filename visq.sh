@@ -13,8 +13,10 @@
 #   2. One clang build with AddressSanitizer, UndefinedBehaviorSanitizer and
 #      libFuzzer coverage: the unit and integration tests again under the
 #      sanitizers (VISQ_TEST_SANITIZERS=0 skips them), then the libFuzzer
-#      targets, each for VISQ_FUZZ_SECONDS (default 60) from the corpus in
-#      tests/fuzz/corpus (VISQ_FUZZ_SECONDS=0 skips them).
+#      targets, each for VISQ_FUZZ_SECONDS (default 30) from the corpus in
+#      tests/fuzz/corpus (VISQ_FUZZ_SECONDS=0 skips them). Longer campaigns
+#      are run by hand (docs/testing.md); CI's replays the corpus and looks
+#      a little further.
 #   3. The container: tests/deploy/container_test.sh packs stage 1's
 #      binaries as the visq-server and visq-client .debs (cpack), builds the
 #      image from deploy/Dockerfile around them with podman, runs it,
@@ -84,7 +86,7 @@ case "${1:-}" in
     ctest --test-dir "$build_dir" --output-on-failure -j"$jobs" --timeout 900 "$@"
 
     sanitized_tests=${VISQ_TEST_SANITIZERS:-1}
-    fuzz_seconds=${VISQ_FUZZ_SECONDS:-60}
+    fuzz_seconds=${VISQ_FUZZ_SECONDS:-30}
     if [[ "$sanitized_tests" != 0 || "$fuzz_seconds" != 0 ]]; then
       stage "2/3 clang build with ASan + UBSan: the tests under the sanitizers, then fuzzing ${fuzz_seconds} s per target"
       asan_dir="${build_dir}-asan"
@@ -99,12 +101,18 @@ case "${1:-}" in
       if [[ "$sanitized_tests" != 0 ]]; then
         # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
         # allocations; ASan's use-after-free and overflow checks still apply.
+        # Left out under the sanitizers: tests that time the planner's
+        # choices or a drain on large scenes (a sanitized build's timings
+        # mean nothing); their code runs sanitized in the exact, core and
+        # other integration tests.
+        unsanitized='ExactPredictionTest.AFoliageTargetRoutesAroundTheExactMethodWhereItIsSlower'
+        unsanitized+=':Drain.SigtermDuringEachLongCallOnSponzaExitsWithinTheDrainAnsweringUnavailable'
         for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_tests exact/visq_exact_tests \
                     core/visq_core_tests service/visq_service_tests integration/visq_integration_tests \
                     integration/visq_operability_tests; do
           echo "--- $test (ASan + UBSan)"
           ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-            "$asan_dir/tests/$test" --gtest_brief=1
+            "$asan_dir/tests/$test" --gtest_brief=1 --gtest_filter="-$unsanitized"
         done
       fi
       if [[ "$fuzz_seconds" != 0 ]]; then

@@ -18,6 +18,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/version.h"
+#include "core/work_budget.h"
 #include "scene/sample_scenes.h"
 #include "service/auth.h"
 #include "service/log_format.h"
@@ -203,6 +204,14 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "Cancel a streamed answer whose client reads nothing for this long (a map, a bake, a preview, an "
                  "export: every stream), freeing its memory and its worker")
       ->envname("VISQ_STREAM_STALL_SECONDS")->check(CLI::Range(1, 86400))->capture_default_str()->group(limits);
+  app.add_option("--stream-queue-bytes", flags.options.uploads.stream_queue_bytes,
+                 "What a streamed answer may hold made but unsent within its own memory reservation; beyond it "
+                 "each further message waits for its reader in the spare part of --max-work-bytes (the work ends "
+                 "and frees its worker), or, with none spare, the work waits for the reader")
+      ->envname("VISQ_STREAM_QUEUE_BYTES")
+      ->check(CLI::Range(uint64_t{1} << 16, visq::core::kStreamedAnswerQueueBytes))
+      ->capture_default_str()
+      ->group(limits);
   app.add_option("--metrics-max-connections", flags.options.metrics_limits.max_connections,
                  "/metrics connections open at once; more are closed as they arrive")
       ->envname("VISQ_METRICS_MAX_CONNECTIONS")->check(CLI::Range(1, 1024))->capture_default_str()->group(limits);

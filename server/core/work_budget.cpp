@@ -95,6 +95,15 @@ StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes
   return Reservation(this, bytes);
 }
 
+std::optional<WorkMemoryBudget::Reservation> WorkMemoryBudget::TryReserveSpare(uint64_t bytes) {
+  std::lock_guard lock(mutex_);
+  const uint64_t spare_limit = capacity_ - capacity_ / 4;
+  if (bytes > spare_limit || in_use_ > spare_limit - bytes) return std::nullopt;
+  in_use_ += bytes;
+  peak_ = std::max(peak_, in_use_);
+  return Reservation(this, bytes);
+}
+
 void WorkMemoryBudget::Release(uint64_t bytes, bool lasting) {
   {
     std::lock_guard lock(mutex_);

@@ -10,6 +10,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <mutex>
+#include <optional>
 #include <string>
 
 #include "common/job_options.h"
@@ -17,10 +18,14 @@
 
 namespace visq::core {
 
-// What a streamed answer may hold written but not yet sent: its writer
-// (service/reactors.h, ProducedStreamReactor) makes the work wait beyond
-// this, so a slow reader holds back the work, not memory. The estimates of
-// streamed answers count it.
+// What a streamed answer may hold written but not yet sent within its own
+// reservation (the estimates of streamed answers count it; the server's
+// --stream-queue-bytes may lower it). Beyond it its writer
+// (service/reactors.h, ProducedStreamReactor) parks each further message in
+// the budget's spare memory (TryReserveSpare), so that the work ends and
+// frees its worker while the reader catches up, and makes the work wait
+// where no spare memory is left: a slow reader holds back memory the
+// budget has room for, else the work, never more.
 inline constexpr uint64_t kStreamedAnswerQueueBytes = uint64_t{64} << 20;
 
 class WorkMemoryBudget {
@@ -59,6 +64,11 @@ class WorkMemoryBudget {
   // `what` names the request's part that needs the memory ("width x height
   // x samples"), for the error.
   [[nodiscard]] StatusOr<Reservation> Reserve(uint64_t bytes, const std::string& what, const JobOptions& job);
+
+  // `bytes` at once if, with them, at least a quarter of the capacity stays
+  // free for the reservations of calls still to start; else nothing, without
+  // waiting. For answers already made that wait for their reader.
+  [[nodiscard]] std::optional<Reservation> TryReserveSpare(uint64_t bytes);
 
   // Releasing at least this much returns the process's free memory to the
   // system (malloc_trim).

@@ -3,6 +3,7 @@
 // call's deadline for GPU jobs.
 #pragma once
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
@@ -184,10 +185,13 @@ class PreparedStreamReactor final : public grpc::ServerWriteReactor<Response> {
 // Server-streaming answers written while they are made: `produce` runs on
 // the executor and hands each message to `out.Write` as soon as it is built;
 // what `produce` returns is written last (the figures that need the whole
-// answer: its bound and timing). Write waits while more than
-// kStreamedAnswerQueueBytes wait to be sent, so a slow reader holds back the
-// work rather than growing a queue; it fails once the call is cancelled or
-// when the client has read nothing for the stall limit
+// answer: its bound and timing). Up to --stream-queue-bytes wait to be sent
+// within the call's own reservation; beyond that a message parks in the work
+// budget's spare memory (core::WorkMemoryBudget::TryReserveSpare), so the
+// work ends and its worker serves other calls while the reader catches up,
+// and where none is spare Write waits: a slow reader holds back the work
+// rather than growing memory past the budget. Write fails once the call is
+// cancelled or when the client has read nothing for the stall limit
 // (--stream-stall-seconds), which also ends a call whose produced answer
 // waits, whole, for a client that reads nothing.
 template <typename Response>
@@ -198,7 +202,8 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
                                                    ProducedStreamReactor& out)>;
   ProducedStreamReactor(grpc::CallbackServerContext* context, const ServiceContext& ctx, const char* method,
                         Produce produce)
-      : context_(context), calls_(ctx.calls), log_(context, method, &ctx.metrics),
+      : context_(context), calls_(ctx.calls), log_(context, method, &ctx.metrics), budget_(ctx.engine.work_budget()),
+        queue_limit_(std::min(ctx.uploads.options().stream_queue_bytes, core::kStreamedAnswerQueueBytes)),
         stall_seconds_(std::chrono::duration<double>(ctx.uploads.options().stream_stall).count()),
         stall_(ctx.uploads.StartStallWatch([this] {
           {
@@ -233,15 +238,17 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
         total += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
       }
     } add_time{write_ms_, start};
+    const uint64_t bytes = message.ByteSizeLong();
     std::unique_lock lock(mutex_);
-    progress_.wait(lock, [&] { return cancelled_ || queued_bytes_ <= core::kStreamedAnswerQueueBytes; });
+    std::optional<core::WorkMemoryBudget::Reservation> parked;
+    if (!cancelled_ && queued_bytes_ > queue_limit_) parked = budget_.TryReserveSpare(bytes);
+    if (!parked) progress_.wait(lock, [&] { return cancelled_ || queued_bytes_ <= queue_limit_; });
     if (stalled_)
       return absl::DeadlineExceededError(
           absl::StrCat("the client read nothing for ", stall_seconds_, " s (--stream-stall-seconds)"));
     if (cancelled_) return absl::CancelledError("the call was cancelled while its answer was written");
-    const uint64_t bytes = message.ByteSizeLong();
     queued_bytes_ += bytes;
-    queue_.push_back({std::move(message), bytes});
+    queue_.push_back({std::move(message), bytes, parked ? std::move(*parked) : core::WorkMemoryBudget::Reservation()});
     if (writing_) return absl::OkStatus();
     StartNext(lock);
     return absl::OkStatus();
@@ -262,6 +269,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
     std::unique_lock lock(mutex_);
     writing_ = false;
     queued_bytes_ -= current_bytes_;
+    current_parked_ = core::WorkMemoryBudget::Reservation();
     ++written_;
     if (!ok) cancelled_ = true;  // the client went away
     progress_.notify_all();
@@ -289,6 +297,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   struct Queued {
     Response message;
     uint64_t bytes;
+    core::WorkMemoryBudget::Reservation parked;  // empty within the queue limit
   };
 
   // With the lock held and the queue not empty: starts the next write, with
@@ -296,6 +305,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   void StartNext(std::unique_lock<std::mutex>& lock) {
     current_ = std::move(queue_.front().message);
     current_bytes_ = queue_.front().bytes;
+    current_parked_ = std::move(queue_.front().parked);
     queue_.pop_front();
     writing_ = true;
     stall_->Resume();
@@ -331,6 +341,8 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   grpc::CallbackServerContext* context_;
   CallRegistry& calls_;
   RequestLog log_;
+  core::WorkMemoryBudget& budget_;
+  const uint64_t queue_limit_;
   std::atomic<bool> cancelled_{false};
   bool stalled_ = false;  // under mutex_: the stall limit ended the call
   std::mutex mutex_;
@@ -344,6 +356,7 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   std::vector<std::shared_ptr<const void>> kept_;
   Response current_;
   uint64_t current_bytes_ = 0;
+  core::WorkMemoryBudget::Reservation current_parked_;
   double write_ms_ = 0.0;  // producer thread only
   double stall_seconds_;
   std::unique_ptr<UploadLimits::Watch> stall_;  // --stream-stall-seconds, while a write waits for the client

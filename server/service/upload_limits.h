@@ -7,6 +7,7 @@
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <cstdint>
 #include <functional>
 #include <map>
 #include <memory>
@@ -27,6 +28,11 @@ class UploadLimits {
     // An answer's stream whose client reads nothing for this long is
     // cancelled, its memory freed: every streamed answer shares it.
     std::chrono::milliseconds stream_stall{std::chrono::seconds(60)};  // --stream-stall-seconds
+    // What a produced answer holds unsent within its call's reservation
+    // before further messages park in the work budget's spare memory or the
+    // work waits (core::kStreamedAnswerQueueBytes, which the call's estimate
+    // counts, at most).
+    uint64_t stream_queue_bytes = uint64_t{64} << 20;  // --stream-queue-bytes
   };
 
   // A place among the uploads in flight, given back with the object.

@@ -249,5 +249,23 @@ TEST(ProcessLimits, TheWorkBudgetIsHalfOfTheMemoryLimit) {
   EXPECT_EQ(given.capacity_source(), "as given");
 }
 
+// What an answer parks while it waits for its reader leaves a quarter of
+// the budget to the calls still to start, and goes back when released.
+TEST(ProcessLimits, ParkedAnswersLeaveAQuarterOfTheWorkBudget) {
+  core::WorkMemoryBudget budget(1000);
+  const JobOptions job;
+  auto running = budget.Reserve(500, "a running call", job);
+  ASSERT_TRUE(running.ok()) << running.status();
+  auto parked = budget.TryReserveSpare(250);
+  ASSERT_TRUE(parked.has_value());
+  EXPECT_EQ(budget.in_use(), 750u);
+  EXPECT_FALSE(budget.TryReserveSpare(1).has_value()) << "parked past three quarters of the budget";
+  EXPECT_FALSE(budget.TryReserveSpare(uint64_t{1} << 63).has_value());
+  parked.reset();
+  EXPECT_EQ(budget.in_use(), 500u);
+  EXPECT_TRUE(budget.TryReserveSpare(250).has_value());
+  EXPECT_EQ(budget.in_use(), 500u);
+}
+
 }  // namespace
 }  // namespace visq::resource_limits

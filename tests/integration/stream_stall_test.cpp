@@ -78,5 +78,49 @@ TEST(StreamStall, AnAnswerWhoseClientReadsNothingEndsAtTheStallLimit) {
   EXPECT_EQ(status.error_code(), grpc::StatusCode::CANCELLED) << status.error_message();
 }
 
+// A produced answer larger than what its call may queue unsent
+// (--stream-queue-bytes) waits for its reader in the work budget's spare
+// memory, not on a worker: with one worker thread, a small map asked while
+// a large one's client reads nothing is answered at once, and the large
+// answer then reaches its reader whole. Before, the large map's work waited
+// on the worker for its reader, and the small map behind it until the stall
+// limit.
+TEST(StreamStall, AnUnreadAnswerParksInTheBudgetAndFreesItsWorker) {
+  ScratchDir repo;
+  auto server = ServerProcess::Start({repo.path(),
+                                      {"--seed-samples", "--worker-threads", "1", "--stream-stall-seconds", "600",
+                                       "--stream-queue-bytes", "1048576", "--map-band-bytes", "1048576"}});
+  ASSERT_NE(server, nullptr);
+  auto stub = v1::VisibilityService::NewStub(grpc::CreateChannel(server->address(), grpc::InsecureChannelCredentials()));
+
+  grpc::ClientContext large_context;
+  large_context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(900));
+  auto large = stub->HiddenSampleMap(&large_context, LargeMap());
+
+  v1::HiddenSampleMapRequest small_request = LargeMap();
+  small_request.set_width(8);
+  small_request.set_height(8);
+  small_request.set_want_bitmasks(false);
+  grpc::ClientContext small_context;
+  small_context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(120));
+  auto small = stub->HiddenSampleMap(&small_context, small_request);
+  size_t small_messages = 0;
+  const grpc::Status small_status = ReadAfter(*small, std::chrono::seconds(0), &small_messages);
+  EXPECT_TRUE(small_status.ok()) << "code " << static_cast<int>(small_status.error_code()) << " "
+                                 << small_status.error_message()
+                                 << ": the small map waited behind the large one's unread answer";
+
+  uint64_t bitmask_words = 0;
+  size_t large_messages = 0;
+  for (v1::HiddenSampleMapResponse m; large->Read(&m);) {
+    ++large_messages;
+    bitmask_words += m.blocked_bits_size();
+  }
+  const grpc::Status large_status = large->Finish();
+  ASSERT_TRUE(large_status.ok()) << large_status.error_message();
+  EXPECT_GT(large_messages, 16u);
+  EXPECT_EQ(bitmask_words, uint64_t{512} * 512 * 32);
+}
+
 }  // namespace
 }  // namespace visq
