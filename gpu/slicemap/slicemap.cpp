@@ -611,7 +611,7 @@ Status ValidateGridSize(std::string_view prefix, uint32_t width, uint32_t height
   return absl::OkStatus();
 }
 
-ViewSetup OrthographicView(const SlicemapBox& box, const glm::dvec3& anchor) {
+ViewSetup OrthographicView(const OrientedBox& box, const glm::dvec3& anchor) {
   // ndc = (p - center) . axis / half, p = p_rel + anchor.
   const glm::dvec3 offset = anchor - box.center;
   glm::dmat4 m(0.0);
@@ -631,8 +631,8 @@ ViewSetup OrthographicView(const SlicemapBox& box, const glm::dvec3& anchor) {
 
 }  // namespace slicemap_internal
 
-SlicemapBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double margin) {
-  SlicemapBox box;
+OrientedBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double margin) {
+  OrientedBox box;
   const int w = std::clamp(depth_axis, 0, 2), u = (w + 1) % 3, v = (w + 2) % 3;
   box.axis_u = glm::dvec3(0.0);
   box.axis_v = glm::dvec3(0.0);
@@ -647,7 +647,7 @@ SlicemapBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double 
 }
 
 Status ValidateVoxelizeParams(const VoxelizeParams& params, uint32_t triangle_count) {
-  const SlicemapBox& box = params.box;
+  const OrientedBox& box = params.box;
   if (!InCoordinateRange(box.center))
     return absl::InvalidArgumentError(fmt::format("params.box.center: non-finite or beyond ±1e15 {}", Vec(box.center)));
   const std::pair<const char*, const glm::dvec3*> axes[3] = {

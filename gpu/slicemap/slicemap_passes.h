@@ -42,7 +42,7 @@ inline std::string Vec(const glm::dvec3& v) { return fmt::format("({}, {}, {})",
 
 // The orthographic view of a box, relative to the scene's anchor, in double
 // and then float.
-ViewSetup OrthographicView(const SlicemapBox& box, const glm::dvec3& anchor);
+ViewSetup OrthographicView(const OrientedBox& box, const glm::dvec3& anchor);
 
 // Runs the passes (GL jobs per pass and band of rows) and resolves a solid,
 // band by band; with `sink`, each band goes to it (see Voxelize); with

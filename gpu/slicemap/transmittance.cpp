@@ -28,7 +28,7 @@ using Clock = std::chrono::steady_clock;
 // light, with slices in distance from the light.
 struct LightFrame {
   bool perspective = false;
-  SlicemapBox box;  // directional
+  OrientedBox box;  // directional
   // point light
   glm::dvec3 light{0.0}, u{0.0}, v{0.0}, w{0.0};
   double focal = 1.0;      // ndc = focal * (x, y) / z in the light's frame

@@ -32,9 +32,6 @@
 
 namespace visq::voxel_reference {
 
-// The voxel grid's oriented box (voxel_box.h), shared with the CPU reference.
-using SlicemapBox = OrientedBox;
-
 enum class VoxelizeMode { kSurface, kSolid };
 // kUniform: slices split the box depth evenly. kLocal: each column's slices
 // split [near, far] of the geometry in that column (one min/max depth pass).
@@ -96,7 +93,7 @@ struct SlicemapSettings {
 };
 
 struct VoxelizeParams : SlicemapSettings {
-  SlicemapBox box;
+  OrientedBox box;
 };
 
 struct SlicemapGrid {

@@ -1,4 +1,4 @@
-// The voxel grid's box, one type for the GPU slicemap (SlicemapBox in
+// The voxel grid's box, one type for the GPU slicemap (VoxelizeParams::box in
 // slicemap_request.h) and the CPU reference voxelizer alike. Header only:
 // the GPU floor names it without linking the reference.
 #pragma once

@@ -238,7 +238,7 @@ std::vector<SceneSummary> Engine::ListScenes() const {
 }
 
 StatusOr<SceneSummary> Engine::GetScene(absl::string_view name, bool with_nodes, bool load_if_stored) {
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident, FindScene(name, 0, load_if_stored));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident, SceneForQuery(name, 0, load_if_stored));
   return Summarize(*resident, with_nodes);
 }
 
@@ -284,7 +284,7 @@ std::shared_ptr<std::mutex> Engine::NameLock(absl::string_view name) {
   return held;
 }
 
-StatusOr<std::shared_ptr<const ResidentScene>> Engine::FindScene(absl::string_view name, uint64_t version,
+StatusOr<std::shared_ptr<const ResidentScene>> Engine::SceneForQuery(absl::string_view name, uint64_t version,
                                                                  bool load_if_stored) {
   VISQ_RETURN_IF_ERROR(SceneRepository::ValidateName(name));
   bool resident = false;
@@ -355,7 +355,7 @@ StatusOr<SceneSummary> Engine::MoveNode(absl::string_view name, uint64_t version
   // Held across the edit, so that the version the move starts from is the
   // one the last logged move made. Queries never take it.
   std::lock_guard edit(one_edit_at_a_time_);
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> current, FindScene(name, version));
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> current, SceneForQuery(name, version));
   VISQ_ASSIGN_OR_RETURN(const uint32_t node, pick_node(*current->scene));
   // The resident Scene is shared and immutable: edit a copy.
   Scene moved = *current->scene;

@@ -211,10 +211,11 @@ class Engine {
   // Returns whether the scene was also deleted from the repository.
   [[nodiscard]] StatusOr<bool> UnloadScene(absl::string_view name, bool delete_from_repository);
 
-  // The resident scene for a query: NOT_FOUND if unknown, FAILED_PRECONDITION
-  // if `version` is non-zero and not the resident one. Queries pass
-  // load_if_stored so that a scene stored but not resident is loaded first.
-  [[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> FindScene(absl::string_view name, uint64_t version,
+  // The resident scene for a query, loaded first from the repository when
+  // it is stored but not resident and `load_if_stored` (queries pass it;
+  // replicas sharing a repository rely on it): NOT_FOUND if unknown,
+  // FAILED_PRECONDITION if `version` is non-zero and not the resident one.
+  [[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> SceneForQuery(absl::string_view name, uint64_t version,
                                                                          bool load_if_stored = true);
   // Moves node `pick_node(scene)` (and its subtree) to `world` in a copy of
   // the resident scene `name` and makes the copy resident as the next

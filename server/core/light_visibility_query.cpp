@@ -132,7 +132,7 @@ exact::CacheKey GroupTreeKey(const ResidentScene& resident, const exact::AreaLig
 
 StatusOr<LightVisibilityWork> EstimateLightVisibilityWork(Engine& engine, const LightVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   const Scene& scene = *resident->scene;
   VISQ_RETURN_IF_ERROR(ValidateLightVisibilityQuery(query, scene));
   VISQ_ASSIGN_OR_RETURN(const exact::TreeOptions base, BaseTreeOptions(engine, query, scene));
@@ -177,7 +177,7 @@ uint64_t LightVisibilityWorkBytes(const LightVisibilityQuery& query) {
 
 StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   const Scene& scene = *resident->scene;
   VISQ_RETURN_IF_ERROR(ValidateLightVisibilityQuery(query, scene));
   LightVisibilityAnswer answer;

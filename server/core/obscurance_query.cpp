@@ -489,7 +489,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   }
   VISQ_RETURN_IF_ERROR(ValidateObscuranceQuery(query));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   if (!query.target && !query.method) {
     const bool whole_bake = query.params.first_direction == 0 && !query.partial_only &&
                             (query.total_directions == 0 || query.total_directions == query.params.direction_count);
@@ -607,7 +607,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
 
 StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const ObscuranceUpdateQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
   std::lock_guard lock(state->mutex);
   if (!state->updater)
@@ -735,7 +735,7 @@ Status RequireCurrentSolution(const ResidentScene& resident, const ObscuranceSta
 StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, const ObscurancePreviewQuery& query) {
   VISQ_RETURN_IF_ERROR(gpu::ValidatePinholeCamera(query.camera, gpu::kMaxObscurancePreviewSize));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   ObscurancePreviewAnswer answer;
   answer.quantity = query.quantity;
 
@@ -770,7 +770,7 @@ StatusOr<ObscurancePreviewAnswer> RunRenderObscurancePreview(Engine& engine, con
     std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
     // Re-read under the lock: a move may have landed in between.
-    VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
+    VISQ_ASSIGN_OR_RETURN(resident, engine.SceneForQuery(query.scene, query.scene_version));
     VISQ_RETURN_IF_ERROR(RequireCurrentSolution(*resident, *state, "preview"));
     const obscurance::ObscuranceResult& result = state->updater->result();
     const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
@@ -803,7 +803,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   if (query.want_vertex_colors && !query.want_gltf)
     return absl::InvalidArgumentError("want_vertex_colors: colours the glb, so needs want_gltf");
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   // What the answer holds until it is sent: per corner a UV (8 bytes) and,
   // in the glTF, twice (the model's buffer, then the serialized file) at
   // most a vertex per corner (a position, a normal and a colour, 36 bytes,
@@ -829,7 +829,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   {
     std::shared_ptr<ObscuranceState> state = engine.SceneStateOf<ObscuranceState>(resident->name);
     std::lock_guard lock(state->mutex);
-    VISQ_ASSIGN_OR_RETURN(resident, engine.FindScene(query.scene, query.scene_version));
+    VISQ_ASSIGN_OR_RETURN(resident, engine.SceneForQuery(query.scene, query.scene_version));
     VISQ_RETURN_IF_ERROR(RequireCurrentSolution(*resident, *state, "export"));
     const obscurance::ObscuranceAtlas& atlas = state->updater->atlas();
     corner_uv = atlas.corner_uv;

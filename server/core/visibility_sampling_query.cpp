@@ -461,7 +461,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   ExactPrediction out;
   // The scene's triangle index (built once per scene, outside compute_ms)
   // is fetched before the probes' clock starts.
-  VISQ_RETURN_IF_ERROR(EstimateLightVisibilityWork(engine, exact.batch).status());
+  VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork before, EstimateLightVisibilityWork(engine, exact.batch));
   const auto start = std::chrono::steady_clock::now();
   CallOptions probe_call = call;
   if (std::isfinite(budget_ms))
@@ -473,10 +473,55 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
     return after;
   };
 
-  // 1: cold, a few points: mostly the trees they need.
+  // Probes whose every answered point was stored: (points, ms).
+  std::vector<std::pair<double, double>> stored_runs;
+  auto note_stored = [&](const ExactProbeRun& run) {
+    if (!run.cut && run.new_points == 0.0 && run.answered > 0.0) stored_runs.emplace_back(run.answered, run.ms);
+  };
+
   const std::vector<uint32_t> first = LatticeTexels(exact.width, exact.height, kFirstSide, 2);
+  // Every point already stored (a request after another over the same
+  // points and light): a look-up each, and the call's fixed cost once
+  // (about 1.8 ms on Sponza, 0.05 ms on the Cornell box), fitted from the
+  // first lattice and a 16 x 16 one. Probes over a few stored points
+  // charged the fixed cost to each (Sponza 0.97 ms a point where the batch
+  // takes 1 us), and the plan lost to sampled ones 17-69x slower.
+  if (before.points == 0.0 && before.groups == before.cached_groups && before.stored_points > 0.0) {
+    // Run directly: a probe's own count of what it would build costs as
+    // much again as a stored call (Sponza).
+    std::vector<std::pair<double, double>> runs;  // (points, ms)
+    for (const int side : {kFirstSide, 2 * kLatticeSide}) {
+      LightVisibilityQuery probe = exact.batch;
+      probe.answer_only = LatticeTexels(exact.width, exact.height, side, 2);
+      probe.call = probe_call;
+      std::atomic<size_t> answered{0};
+      probe.answered = &answered;
+      const auto probe_start = std::chrono::steady_clock::now();
+      StatusOr<LightVisibilityAnswer> answer = RunLightVisibility(engine, probe);
+      out.probe_ms += MillisecondsSince(probe_start);
+      if (!answer.ok()) {
+        if (call.Stopped() || !probe_call.Stopped()) return answer.status();
+        break;  // past the budget
+      }
+      runs.emplace_back(double(answered.load()), answer->compute_ms);
+    }
+    if (runs.size() == 2 && runs[1].first > runs[0].first && runs[0].first > 0.0) {
+      const double per_point = std::max(0.0, (runs[1].second - runs[0].second) / (runs[1].first - runs[0].first));
+      const double fixed = std::max(0.0, runs[0].second - per_point * runs[0].first);
+      VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
+      out.ms = fixed + after.stored_points * per_point;
+      spdlog::debug("{} exact probes (budget {:.1f} ms): every point stored; {:.1f} ms for {} points, {:.1f} ms for {}: "
+                    "{:.4f} ms a point and {:.2f} ms a call: predicted {:.1f} ms",
+                    call.log_tag.empty() ? "[call]" : call.log_tag, budget_ms, runs[0].second, runs[0].first,
+                    runs[1].second, runs[1].first, per_point, fixed, out.ms);
+      return out;
+    }
+  }
+
+  // 1: cold, a few points: mostly the trees they need.
   VISQ_ASSIGN_OR_RETURN(const ExactProbeRun one, RunExactProbe(engine, exact.batch, first, call, probe_call));
   out.probe_ms += one.ms;
+  note_stored(one);
   if (one.cut) {
     // Its trees alone ran past the budget, a share kProbeShareOfBest of the
     // best other plan: the method is not known to be faster than that plan,
@@ -505,6 +550,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   if (!second.empty()) {
     VISQ_ASSIGN_OR_RETURN(const ExactProbeRun two, RunExactProbe(engine, exact.batch, second, call, probe_call));
     out.probe_ms += two.ms;
+    note_stored(two);
     second_ms = two.ms;
     second_trees = two.built_trees;
     second_points = two.cut ? two.answered : two.new_points;
@@ -529,14 +575,16 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   // least half the budget is left. The trees refine lazily, so a point
   // answered later costs less (the bunny: 2-4x less than the second
   // lattice's): the rate the rest of the batch will see is the latest one.
+  std::vector<uint32_t> third;
   if (!out.cut && point_ms > 0.0 && (!std::isfinite(budget_ms) || MillisecondsSince(start) < 0.5 * budget_ms)) {
-    std::vector<uint32_t> third = LatticeTexels(exact.width, exact.height, kLatticeSide, 3);
+    third = LatticeTexels(exact.width, exact.height, kLatticeSide, 3);
     std::erase_if(third, [&](uint32_t t) {
       return std::binary_search(first.begin(), first.end(), t) || std::binary_search(second.begin(), second.end(), t);
     });
     if (!third.empty()) {
       VISQ_ASSIGN_OR_RETURN(const ExactProbeRun later, RunExactProbe(engine, exact.batch, third, call, probe_call));
       out.probe_ms += later.ms;
+      note_stored(later);
       const double points = later.cut ? later.answered : later.new_points;
       // Only a lattice that built no tree and answered enough points to
       // average over the penumbra's heavy tail.
@@ -546,12 +594,49 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
       }
     }
   }
-  // 3: stored answers.
-  double stored_ms = 0.0;
-  if (!std::isfinite(budget_ms) || MillisecondsSince(start) < 0.75 * budget_ms) {
-    VISQ_ASSIGN_OR_RETURN(const ExactProbeRun three, RunExactProbe(engine, exact.batch, first, call, probe_call));
-    out.probe_ms += three.ms;
-    if (!three.cut) stored_ms = three.ms / std::max(1.0, three.answered);
+  // 3: stored answers. A call has a fixed cost that the batch pays once,
+  // whatever its size (about 1.8 ms on Sponza, 0.05 ms on the Cornell box),
+  // so a stored point's time is fitted with that cost from two probes of
+  // stored points only, a few and many: the probes above where every point
+  // they answered was stored (a request after another over the same
+  // points), else the first lattice again and every point answered so far.
+  // From the first lattice alone the rate was 30-40x the batch's, and the
+  // plan lost to sampled ones 17-69x slower.
+  auto sizes_apart = [&] {
+    double fewest = 0.0, most = 0.0;
+    for (const auto& [points, ms] : stored_runs) {
+      fewest = fewest == 0.0 ? points : std::min(fewest, points);
+      most = std::max(most, points);
+    }
+    return most >= 4.0 * fewest && fewest > 0.0;
+  };
+  auto budget_left = [&](double share) {
+    return !std::isfinite(budget_ms) || MillisecondsSince(start) < share * budget_ms;
+  };
+  if (!out.cut && !sizes_apart() && budget_left(0.75)) {
+    VISQ_ASSIGN_OR_RETURN(const ExactProbeRun again, RunExactProbe(engine, exact.batch, first, call, probe_call));
+    out.probe_ms += again.ms;
+    note_stored(again);
+    std::vector<uint32_t> answered_so_far = first;
+    answered_so_far.insert(answered_so_far.end(), second.begin(), second.end());
+    answered_so_far.insert(answered_so_far.end(), third.begin(), third.end());
+    std::sort(answered_so_far.begin(), answered_so_far.end());
+    answered_so_far.erase(std::unique(answered_so_far.begin(), answered_so_far.end()), answered_so_far.end());
+    if (!again.cut && answered_so_far.size() >= 4 * first.size() && budget_left(0.85)) {
+      VISQ_ASSIGN_OR_RETURN(const ExactProbeRun all,
+                            RunExactProbe(engine, exact.batch, answered_so_far, call, probe_call));
+      out.probe_ms += all.ms;
+      note_stored(all);
+    }
+  }
+  double stored_ms = 0.0, stored_fixed_ms = 0.0;
+  if (!stored_runs.empty()) {
+    const auto [fewest, most] = std::minmax_element(stored_runs.begin(), stored_runs.end());
+    stored_ms = most->second / most->first;
+    if (sizes_apart()) {
+      stored_ms = std::max(0.0, (most->second - fewest->second) / (most->first - fewest->first));
+      stored_fixed_ms = std::max(0.0, fewest->second - stored_ms * fewest->first);
+    }
   }
   VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
   // A probe's few points per group are one chunk of work per group, on one
@@ -562,7 +647,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   const double batch_chunks = std::max(double(after.groups), std::ceil(after.points / 64.0));
   point_ms *= std::min(workers, std::max(1.0, rate_groups)) / std::min(workers, std::max(1.0, batch_chunks));
   out.ms = double(after.groups - after.cached_groups) * tree_ms + after.points * point_ms +
-           after.stored_points * std::min(stored_ms, point_ms);
+           after.stored_points * std::min(stored_ms, point_ms) + (after.stored_points > 0 ? stored_fixed_ms : 0.0);
   // A second lattice cut after a few points measured the first points a
   // barely refined tree answers, which cost several times the batch's
   // average (the bunny: 23 ms against 2 ms): an upper side. The lower side
@@ -574,10 +659,10 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
     if (out.ms > lower) out.ms = std::sqrt(out.ms * lower);
   }
   spdlog::debug("{} exact probes (budget {:.1f} ms): {:.1f} ms for {} trees and {} points, {:.1f} ms for {} trees and {} points{}; "
-                "a tree {:.2f} ms, a point {:.3f} ms, a stored one {:.4f} ms; left {} of {} trees, {} points, {} "
+                "a tree {:.2f} ms, a point {:.3f} ms, a stored one {:.4f} ms (and {:.2f} ms a call); left {} of {} trees, {} points, {} "
                 "stored: predicted {:.1f} ms",
                 call.log_tag.empty() ? "[call]" : call.log_tag, budget_ms, one.ms, one.new_trees, one.new_points, second_ms,
-                second_trees, second_points, out.cut ? " (cut)" : "", tree_ms, point_ms, stored_ms,
+                second_trees, second_points, out.cut ? " (cut)" : "", tree_ms, point_ms, stored_ms, stored_fixed_ms,
                 after.groups - after.cached_groups, after.groups, after.points, after.stored_points, out.ms);
   return out;
 }
@@ -1282,7 +1367,7 @@ namespace {
 StatusOr<HiddenSampleMapAnswer> HiddenSampleMapUnstated(Engine& engine, const HiddenSampleMapQuery& query,
                                                         const sampling::HiddenSampleMapBandSink& sink) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   if (query.target) return HiddenSampleMapForTarget(engine, *resident, query, sink);
   const sampling::HiddenSampleMapRequest checked = WithStandInCount(query);
   HiddenSampleMapAnswer answer;
@@ -1306,7 +1391,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapUnstated(Engine& engine, const Hi
 
 StatusOr<PatchVisibilityAnswer> PatchVisibilityUnstated(Engine& engine, const PatchVisibilityQuery& query) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   if (query.target) return PatchVisibilityForTarget(engine, *resident, query);
   PatchVisibilityAnswer answer;
   if (query.method) {

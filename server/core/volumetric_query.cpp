@@ -77,7 +77,7 @@ Status SendInBands(const gpu::VolumetricResult& image, const gpu::VolumetricBand
 StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQuery& query,
                                                const gpu::VolumetricBandSink& sink) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   gpu::VolumetricParams p = query.params;
   if (query.target) {
     VISQ_RETURN_IF_ERROR(ValidateAccuracyTarget(*query.target));

@@ -61,10 +61,10 @@ StatusOr<gpu::TransmittanceParams> ResolveTransmittanceQuery(TransmittanceQuery 
   return std::move(query.params);
 }
 
-StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query, gpu::SlicemapBox* box_used,
+StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query, voxel_reference::OrientedBox* box_used,
                                           const gpu::VoxelizeBandSink& sink) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeParams params, ResolveVoxelizeQuery(query, *resident->scene));
   params.job = query.call.Job();
   // One band's grids (surface, front and back for a solid) and read-back,
@@ -85,7 +85,7 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& q
 StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query,
                                                     WorkMemoryBudget::Reservation* hold) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
-                        engine.FindScene(query.scene, query.scene_version));
+                        engine.SceneForQuery(query.scene, query.scene_version));
   // Resolved and validated before the GPU upload: a bad request costs nothing.
   VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceParams params, ResolveTransmittanceQuery(query, *resident->scene));
   params.job = query.call.Job();
@@ -116,7 +116,7 @@ const char* SlicePrecisionName(gpu::SlicePrecision precision) {
   return precision == gpu::SlicePrecision::kLocal ? "local" : "uniform";
 }
 
-AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures, const gpu::SlicemapBox& box) {
+AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures, const voxel_reference::OrientedBox& box) {
   const gpu::SlicemapGrid& grid = figures.grid;
   const glm::dvec3 voxel(2.0 * box.half_extent.x / grid.width, 2.0 * box.half_extent.y / grid.height,
                          2.0 * box.half_extent.z / grid.slices);

@@ -21,7 +21,7 @@ struct VoxelizeQuery {
   uint64_t scene_version = 0;
   voxel_reference::VoxelizeParams params;        // box filled from the scene when `box` is unset
   CallOptions call;  // the core sets params.job from it
-  std::optional<voxel_reference::SlicemapBox> box;
+  std::optional<voxel_reference::OrientedBox> box;
   int depth_axis = 1;
   std::vector<std::string> nodes;
 };
@@ -44,7 +44,7 @@ struct TransmittanceQuery {
 // With `sink`, each band of image rows goes to it as soon as it is made and
 // the result holds the figures only (gpu::Voxelize).
 [[nodiscard]] StatusOr<voxel_reference::VoxelizeResult> RunVoxelize(
-    Engine& engine, const VoxelizeQuery& query, voxel_reference::SlicemapBox* box_used,
+    Engine& engine, const VoxelizeQuery& query, voxel_reference::OrientedBox* box_used,
     const voxel_reference::VoxelizeBandSink& sink = {});
 // Reserves its working memory (--max-work-bytes) before it starts; with
 // `hold`, the reservation outlives the call, to cover the answer's copy in
@@ -60,7 +60,7 @@ const char* SlicePrecisionName(voxel_reference::SlicePrecision precision);
 // conservative rasterization puts every surface point within one voxel of
 // a set voxel; standard rasterization bounds nothing.
 AccuracyStatement VoxelizeStatement(const voxel_reference::VoxelizeResult& figures,
-                                    const voxel_reference::SlicemapBox& box);
+                                    const voxel_reference::OrientedBox& box);
 
 // Transmittance: the optical depth's worst per-point bound, from the
 // slicemap's own error model.

@@ -532,7 +532,7 @@ StatusOr<core::VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
 }
 
 v1::VoxelizeResponse VoxelizeFirstMessage(const voxel_reference::VoxelizeResult& result,
-                                          const voxel_reference::SlicemapBox& box) {
+                                          const voxel_reference::OrientedBox& box) {
   v1::VoxelizeResponse first;
   const voxel_reference::SlicemapGrid& grid = result.grid;
   first.set_width(grid.width);

@@ -82,7 +82,7 @@ v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer&
 // accuracy), each band's chunks of bits and local ranges follow as the band
 // is made, and the last message holds the counts and the timing.
 v1::VoxelizeResponse VoxelizeFirstMessage(const voxel_reference::VoxelizeResult& figures,
-                                          const voxel_reference::SlicemapBox& box);
+                                          const voxel_reference::OrientedBox& box);
 [[nodiscard]] Status WriteVoxelizeBand(const voxel_reference::VoxelizeBand& band, uint32_t words_per_column,
                                        const std::function<Status(v1::VoxelizeResponse)>& write,
                                        size_t chunk_elements = kChunkElements);

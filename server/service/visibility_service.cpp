@@ -541,7 +541,7 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
         const double queue_ms = log.ElapsedMs();
         VISQ_ASSIGN_OR_RETURN(core::VoxelizeQuery query, FromProto(*request));
         query.call = CallOptionsFor(context, &cancelled, log);
-        voxel_reference::SlicemapBox box;
+        voxel_reference::OrientedBox box;
         // Each band is written as soon as it is made, after the first
         // message.
         auto write = [&out](v1::VoxelizeResponse message) { return out.Write(std::move(message)); };

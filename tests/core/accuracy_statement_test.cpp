@@ -64,7 +64,7 @@ TEST(AccuracyStatement, ConservativeVoxelsAreBoundedByTheVoxelDiagonalStandardOn
   figures.grid.width = 4;
   figures.grid.height = 2;
   figures.grid.slices = 8;
-  gpu::SlicemapBox box;
+  voxel_reference::OrientedBox box;
   box.half_extent = glm::dvec3(2.0, 1.0, 4.0);  // voxels of 1 x 1 x 1
   figures.rasterization = gpu::Rasterization::kConservative;
   const AccuracyStatement conservative = VoxelizeStatement(figures, box);

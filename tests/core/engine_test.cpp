@@ -44,23 +44,23 @@ TEST(Engine, FindsStoredScenesByNameAndVersion) {
   ASSERT_TRUE(engine);
   EXPECT_TRUE(engine->ListScenes().empty()) << "nothing resident before the first use";
 
-  auto resident = engine->FindScene("cornell_box_visq", 0);
+  auto resident = engine->SceneForQuery("cornell_box_visq", 0);
   ASSERT_TRUE(resident.ok()) << resident.status();
   const uint64_t version = (*resident)->version;
   EXPECT_GT(version, 0u);
   EXPECT_EQ(engine->ListScenes().size(), 1u);
-  EXPECT_TRUE(engine->FindScene("cornell_box_visq", version).ok());
-  EXPECT_EQ(engine->FindScene("cornell_box_visq", version + 1).status().code(),
+  EXPECT_TRUE(engine->SceneForQuery("cornell_box_visq", version).ok());
+  EXPECT_EQ(engine->SceneForQuery("cornell_box_visq", version + 1).status().code(),
             absl::StatusCode::kFailedPrecondition);
-  EXPECT_EQ(engine->FindScene("no_such_scene", 0).status().code(), absl::StatusCode::kNotFound);
-  EXPECT_EQ(engine->FindScene("../etc", 0).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(engine->SceneForQuery("no_such_scene", 0).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(engine->SceneForQuery("../etc", 0).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 TEST(Engine, BuildsEachStructureOnceAndCountsItsMemory) {
   testing::ScratchDir dir;
   auto engine = StartEngine(dir.path() / "repo");
   ASSERT_TRUE(engine);
-  auto resident = engine->FindScene("cornell_box_visq", 0);
+  auto resident = engine->SceneForQuery("cornell_box_visq", 0);
   ASSERT_TRUE(resident.ok()) << resident.status();
   auto gpu_scene = engine->GpuSceneOf(**resident);
   ASSERT_TRUE(gpu_scene.ok()) << gpu_scene.status();
@@ -159,7 +159,7 @@ TEST(Engine, LoadsRacingAnotherReplicasReplacesReadOneUploadEach) {
     ASSERT_TRUE(version.ok()) << version.status();
     variant_of_version[*version] = k;
     ASSERT_TRUE(engine->LoadFromRepository("racing", true).ok());
-    hash[k] = (*engine->FindScene("racing", 0))->content_hash;
+    hash[k] = (*engine->SceneForQuery("racing", 0))->content_hash;
   }
   ASSERT_NE(hash[0], hash[1]);
 
@@ -182,7 +182,7 @@ TEST(Engine, LoadsRacingAnotherReplicasReplacesReadOneUploadEach) {
       ++failed;  // UNAVAILABLE after four commits in a row: never a wrong answer
       continue;
     }
-    auto resident = engine->FindScene("racing", 0);
+    auto resident = engine->SceneForQuery("racing", 0);
     ASSERT_TRUE(resident.ok());
     seen.emplace_back((*resident)->version, (*resident)->content_hash);
   }
@@ -209,7 +209,7 @@ TEST(Engine, NodeMovesFormTheScenesEditLog) {
   testing::ScratchDir dir;
   auto engine = StartEngine(dir.path() / "repo");
   ASSERT_TRUE(engine);
-  auto resident = engine->FindScene("cornell_box_visq", 0);
+  auto resident = engine->SceneForQuery("cornell_box_visq", 0);
   ASSERT_TRUE(resident.ok()) << resident.status();
   const uint64_t loaded = (*resident)->version;
   NodeTransformQuery move;
@@ -261,16 +261,16 @@ TEST(Engine, UnloadKeepsTheStoredSceneUnlessAskedToDelete) {
   testing::ScratchDir dir;
   auto engine = StartEngine(dir.path() / "repo");
   ASSERT_TRUE(engine);
-  ASSERT_TRUE(engine->FindScene("cornell_box_visq", 0).ok());
+  ASSERT_TRUE(engine->SceneForQuery("cornell_box_visq", 0).ok());
   auto deleted = engine->UnloadScene("cornell_box_visq", false);
   ASSERT_TRUE(deleted.ok()) << deleted.status();
   EXPECT_FALSE(*deleted);
   EXPECT_TRUE(engine->ListScenes().empty());
-  EXPECT_TRUE(engine->FindScene("cornell_box_visq", 0).ok()) << "still stored: loads again";
+  EXPECT_TRUE(engine->SceneForQuery("cornell_box_visq", 0).ok()) << "still stored: loads again";
   deleted = engine->UnloadScene("cornell_box_visq", true);
   ASSERT_TRUE(deleted.ok()) << deleted.status();
   EXPECT_TRUE(*deleted);
-  EXPECT_EQ(engine->FindScene("cornell_box_visq", 0).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(engine->SceneForQuery("cornell_box_visq", 0).status().code(), absl::StatusCode::kNotFound);
 }
 
 // A first-use load of one scene holds that name only: an unload of
@@ -283,7 +283,7 @@ TEST(Engine, AFirstUseLoadHoldsOnlyItsOwnName) {
   ASSERT_TRUE(WriteGltfFile(testing::MakeRippledGrid(1000), repo / "big_grid.gltf").ok());
   auto engine = StartEngine(repo);
   ASSERT_TRUE(engine);
-  ASSERT_TRUE(engine->FindScene("cornell_box_visq", 0).ok());
+  ASSERT_TRUE(engine->SceneForQuery("cornell_box_visq", 0).ok());
 
   using Clock = std::chrono::steady_clock;
   Clock::time_point load_start, load_end;
@@ -291,7 +291,7 @@ TEST(Engine, AFirstUseLoadHoldsOnlyItsOwnName) {
   std::thread loader([&] {
     load_start = Clock::now();
     started = true;
-    EXPECT_TRUE(engine->FindScene("big_grid", 0).ok());
+    EXPECT_TRUE(engine->SceneForQuery("big_grid", 0).ok());
     load_end = Clock::now();
   });
   while (!started) std::this_thread::yield();
@@ -602,7 +602,7 @@ class EngineStructures : public ::testing::Test {
   void Start(int cells, uint64_t lose_context_at_job = 0) {
     engine_ = StartEngineWithGrid(dir_.path() / "repo", "grid", cells, lose_context_at_job);
     ASSERT_TRUE(engine_);
-    auto resident = engine_->FindScene("grid", 0);
+    auto resident = engine_->SceneForQuery("grid", 0);
     ASSERT_TRUE(resident.ok()) << resident.status();
     resident_ = *resident;
   }

@@ -180,7 +180,7 @@ TEST(LightVisibilityBatch, ACancelledBatchStopsWhileItRuns) {
   auto f = MakeFoliage(20000, 4096);
   ASSERT_NE(f, nullptr);
   // The scene's index first, so that the call's work is the batch's.
-  auto resident = f->engine->FindScene("foliage", 0);
+  auto resident = f->engine->SceneForQuery("foliage", 0);
   ASSERT_TRUE(resident.ok()) << resident.status();
   ASSERT_TRUE(f->engine->TriangleIndexOf(**resident).ok());
   std::atomic<bool> cancelled{false};

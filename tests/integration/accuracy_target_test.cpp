@@ -663,6 +663,31 @@ TEST_F(ExactPredictionTest, WhereTheExactMethodIsChosenItsPredictionFollowsItsTi
   }
   EXPECT_GT(chosen, 0) << "a 0.01 target on the Cornell box wants 18,445 rays a texel; the exact method is cheaper";
 
+  // A request over a light and points whose answers are all stored (here
+  // by a run of the exact method by name): a look-up a point, and the
+  // call's fixed cost once. Priced from 4 stored points, each carried that
+  // cost (45 ms predicted for 4,096 points that took 1.2 ms), and a ray cast
+  // 69x slower was chosen.
+  v1::HiddenSampleMapRequest floor;
+  floor.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(floor.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(floor.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+  floor.set_width(64);
+  floor.set_height(64);
+  floor.set_method(v1::PLUCKER_EXACT);
+  ASSERT_TRUE(client_->ComputeHiddenSampleMap(floor).ok());
+  floor.set_method(v1::METHOD_UNSPECIFIED);
+  floor.mutable_target()->set_max_error(0.03);
+  auto stored = client_->ComputeHiddenSampleMap(floor);
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  const v1::Accuracy& stored_accuracy = stored->figures.accuracy();
+  std::printf("cornell 64 x 64, every point stored: chose %s, predicted %.2f ms, computed %.2f ms\n",
+              stored_accuracy.method().c_str(), stored_accuracy.predicted_ms(), stored->figures.timing().compute_ms());
+  EXPECT_EQ(stored_accuracy.method(), "plucker-exact") << stored_accuracy.DebugString();
+  if (stored_accuracy.method() == "plucker-exact")
+    ExpectWithinFactor(stored_accuracy.predicted_ms(), stored->figures.timing().compute_ms(), 4.0,
+                       "cornell, every point stored: the exact plan's predicted ms against its compute ms");
+
   // Patch visibility weighs the exact method through the same probes (its
   // receiver grid as the batch's points).
   v1::PatchVisibilityRequest patches = CornellFloorPatches(20, 20);

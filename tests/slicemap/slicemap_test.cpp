@@ -68,7 +68,7 @@ Scene MakeSphere(const glm::dvec3& center, double radius, int subdivisions) {
   return scene;
 }
 
-voxel_reference::GridBox ToReference(const gpu::SlicemapBox& box, uint32_t w, uint32_t h, uint32_t s) {
+voxel_reference::GridBox ToReference(const voxel_reference::OrientedBox& box, uint32_t w, uint32_t h, uint32_t s) {
   return {box, w, h, s};
 }
 
@@ -487,7 +487,7 @@ TEST(SlicemapSolid, LocalPrecisionSphereMatchesTheAnalyticBall) {
   // Voxel centers (in each column's own slices) clearly inside the ball are
   // set, clearly outside are clear; "clearly" = half a voxel diagonal plus
   // the tessellation's deviation from the sphere.
-  const gpu::SlicemapBox& box = params.box;
+  const voxel_reference::OrientedBox& box = params.box;
   const double depth = 2.0 * box.half_extent.z;
   const double texel = 2.0 * box.half_extent.x / params.width;
   const double tessellation = radius * (1.0 - std::cos(0.04));

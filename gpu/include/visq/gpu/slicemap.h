@@ -30,7 +30,7 @@ namespace visq::gpu {
 
 // The requests and answers are lib/voxel_reference's (slicemap_request.h),
 // beside the CPU reference; this header is the GPU's entry points.
-using voxel_reference::SlicemapBox;
+using voxel_reference::OrientedBox;
 using voxel_reference::VoxelizeMode;
 using voxel_reference::SlicePrecision;
 using voxel_reference::Rasterization;
@@ -60,7 +60,7 @@ using LightKind = voxel_reference::TransmittanceLightKind;
 // The axis-aligned box `bounds` (grown by `margin` on every side) seen along
 // world axis `depth_axis` (0 = x, 1 = y, 2 = z); u, v follow cyclically
 // (depth z: u = x, v = y; depth x: u = y, v = z; depth y: u = z, v = x).
-SlicemapBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double margin = 0.0);
+OrientedBox AxisAlignedSlicemapBox(const Bounds& bounds, int depth_axis, double margin = 0.0);
 
 // Voxelizes `gpu_scene` (the GPU copy of `scene`) into `params.box`. Without
 // a sink the result holds the whole grid; with one, each band goes to the
