@@ -9,6 +9,9 @@
 #include <limits>
 #include <set>
 #include <span>
+#include <tuple>
+#include <utility>
+#include <vector>
 
 #include <spdlog/spdlog.h>
 
@@ -436,6 +439,13 @@ StatusOr<ExactProbeRun> RunExactProbe(Engine& engine, const LightVisibilityQuery
   return answer.status();
 }
 
+// A stored point's time and a call's fixed cost, from two probes of stored
+// points only, (points, ms) with `few` < `many` points; a negative part is 0.
+std::pair<double, double> StoredPointAndCallMs(std::pair<double, double> few, std::pair<double, double> many) {
+  const double per_point = std::max(0.0, (many.second - few.second) / (many.first - few.first));
+  return {per_point, std::max(0.0, few.second - per_point * few.first)};
+}
+
 // What the exact plan would cost this request, measured on the request's
 // own points and trees rather than fitted from other requests: the
 // method's cost per point follows the light and the penumbra's occluders
@@ -506,8 +516,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
       runs.emplace_back(double(answered.load()), answer->compute_ms);
     }
     if (runs.size() == 2 && runs[1].first > runs[0].first && runs[0].first > 0.0) {
-      const double per_point = std::max(0.0, (runs[1].second - runs[0].second) / (runs[1].first - runs[0].first));
-      const double fixed = std::max(0.0, runs[0].second - per_point * runs[0].first);
+      const auto [per_point, fixed] = StoredPointAndCallMs(runs[0], runs[1]);
       VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
       out.ms = fixed + after.stored_points * per_point;
       spdlog::debug("{} exact probes (budget {:.1f} ms): every point stored; {:.1f} ms for {} points, {:.1f} ms for {}: "
@@ -613,7 +622,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   auto budget_left = [&](double share) {
     return !std::isfinite(budget_ms) || MillisecondsSince(start) < share * budget_ms;
   };
-  if (!out.cut && !sizes_apart() && budget_left(0.75)) {
+  if (!sizes_apart() && budget_left(0.75)) {
     VISQ_ASSIGN_OR_RETURN(const ExactProbeRun again, RunExactProbe(engine, exact.batch, first, call, probe_call));
     out.probe_ms += again.ms;
     note_stored(again);
@@ -633,10 +642,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   if (!stored_runs.empty()) {
     const auto [fewest, most] = std::minmax_element(stored_runs.begin(), stored_runs.end());
     stored_ms = most->second / most->first;
-    if (sizes_apart()) {
-      stored_ms = std::max(0.0, (most->second - fewest->second) / (most->first - fewest->first));
-      stored_fixed_ms = std::max(0.0, fewest->second - stored_ms * fewest->first);
-    }
+    if (sizes_apart()) std::tie(stored_ms, stored_fixed_ms) = StoredPointAndCallMs(*fewest, *most);
   }
   VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
   // A probe's few points per group are one chunk of work per group, on one
