@@ -79,7 +79,9 @@ case "${1:-}" in
     stage "1/3 Release build and every test"
     # Optimized as users run it, with the debug checks kept (VISQ_DCHECKS).
     configure
+    began=$SECONDS
     cmake --build "$build_dir" -j"$jobs"
+    echo "visq: the Release build took $((SECONDS - began)) s"
     # Every header, library and CMake file the build read is from a package
     # deploy/install-deps.sh lists or one they depend on (a clean machine has it).
     bash deploy/check-package-list.sh "$build_dir"
@@ -90,6 +92,7 @@ case "${1:-}" in
     if [[ "$sanitized_tests" != 0 || "$fuzz_seconds" != 0 ]]; then
       stage "2/3 clang build with ASan + UBSan: the tests under the sanitizers, then fuzzing ${fuzz_seconds} s per target"
       asan_dir="${build_dir}-asan"
+      began=$SECONDS
       # -O1 without debug info: the sanitizers need no more, and the build is
       # the longest part of this command on a 2-core machine.
       CC=clang CXX=clang++ cmake -S . -B "$asan_dir" -DCMAKE_BUILD_TYPE=None -DCMAKE_CXX_FLAGS=-O1 \
@@ -98,6 +101,7 @@ case "${1:-}" in
         visq_integration_tests visq_operability_tests visq_service_tests visq_raycast_tests visq_exact_tests \
         visq_core_tests \
         gltf_loader_fuzz gltf_structure_fuzz request_validation_fuzz algorithm_request_fuzz
+      echo "visq: the sanitized build took $((SECONDS - began)) s"
       if [[ "$sanitized_tests" != 0 ]]; then
         # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
         # allocations; ASan's use-after-free and overflow checks still apply.

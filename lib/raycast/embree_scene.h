@@ -81,9 +81,6 @@ struct TraceOptions {
   int threads = 0;  // 0: the caller and every thread of the process's pool (common/parallel.h)
   // Triangles that block no ray of the batch (sorted or not; any size).
   std::span<const uint32_t> ignore_triangles;
-  // Consecutive rays are coherent (a shared origin, nearby directions):
-  // Embree then traces each stream of them as packets.
-  bool coherent = false;
   // Polled between streams of rays: when it returns true the trace stops
   // and the call returns CANCELLED (a call cancelled or past its deadline).
   std::function<bool()> stop;

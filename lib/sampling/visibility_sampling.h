@@ -234,10 +234,13 @@ void BoundTexels(const HiddenSampleMapRequest& request, HiddenSampleMapResult& m
 // from above (by the squared difference of neighbouring cells, small where
 // visibility changes smoothly), and each of the `unpaired` cells adds at
 // most 1/4. A texel that saw both visible and hidden samples with no pair
-// split is given one split pair's variance, not zero. The estimate is
-// z(confidence) times that standard deviation over n, plus the count's
-// lookup uncertainty (`lookup_samples`, the Hough lookup's) and the
-// float rounding of `answer`; never above `bound`, the texel's rigorous one.
+// split is given one split pair's variance, not zero; its estimate is
+// z(confidence) times that standard deviation over n. A texel whose samples
+// all agree is given ln(1 / (1 - confidence)) / n, what agreeing samples
+// can hide at that confidence (docs/texel-bounds.md). Both add the count's
+// lookup uncertainty (`lookup_samples`, the Hough lookup's) and the float
+// rounding of `answer`, and are never above `bound`, the texel's rigorous
+// one.
 float EstimateOfTexel(int n, int visible, int lookup_samples, int split_pairs, int unpaired, float answer, double z,
                       float bound);
 

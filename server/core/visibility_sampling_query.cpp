@@ -88,9 +88,7 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
     for (int y = y0; y < y1; ++y)
       for (int x = 0; x < width; ++x)
         receiver_points[size_t(y - y0) * width + x] = sampling::ReceiverSamplePosition(request.receiver, x, y);
-    // Each texel's N segments share their receiver end: coherent.
     raycast::TraceOptions trace;
-    trace.coherent = true;
     trace.stop = StopRequested(job);
     StatusOr<std::vector<uint8_t>> traced =
         embree->Occluded(
@@ -741,12 +739,19 @@ SampledErrorModel PredictedFromProbes(const AccuracyTarget& target, double at_fe
   return model;
 }
 
-// The estimate a map states at most, whatever the scene: every pair split.
+// The estimate a map states at most, whatever the scene: every pair split
+// (z sqrt(n / 2) / n), or, for very few samples, a texel whose samples all
+// agree (ln(1 / (1 - confidence)) / n; EstimateOfTexel).
 SampledErrorModel WorstCaseEstimate(const AccuracyTarget& target) {
   const double z = TwoSidedNormalQuantile(target.confidence);
+  const double agreeing = -std::log(1.0 - target.confidence);
   SampledErrorModel model;
-  model.at = [z](int samples) { return std::min(1.0, z * std::sqrt(0.5 / std::max(samples, 1))); };
-  model.samples_needed = target.max_error > 0 ? 0.5 * z * z / (target.max_error * target.max_error) : 0.0;
+  model.at = [z, agreeing](int samples) {
+    const double n = std::max(samples, 1);
+    return std::min(1.0, std::max(z * std::sqrt(0.5 / n), agreeing / n));
+  };
+  const double e = target.max_error;
+  model.samples_needed = e > 0 ? std::max(0.5 * z * z / (e * e), agreeing / e) : 0.0;
   return model;
 }
 

@@ -155,8 +155,6 @@ int main(int argc, char** argv) {
       const raycast::BuildQuality qualities[2] = {raycast::BuildQuality::kMedium, raycast::BuildQuality::kHigh};
       std::optional<raycast::EmbreeScene> bvh[2];
       double build_ms[2] = {1e300, 1e300}, occl_ms[2] = {1e300, 1e300}, hit_ms[2] = {1e300, 1e300};
-      raycast::TraceOptions coherent;
-      coherent.coherent = true;
       for (int round = 0; round < repeat; ++round)
         for (int q = 0; q < 2; ++q) {
           raycast::EmbreeSceneOptions options;
@@ -165,7 +163,7 @@ int main(int argc, char** argv) {
           options.shared_scene = shared_scene;  // as the server builds it
           bvh[q].reset();
           build_ms[q] = std::min(build_ms[q], Best(1, [&] { bvh[q].emplace(*raycast::EmbreeScene::Create(*shared_scene, options)); }));
-          occl_ms[q] = std::min(occl_ms[q], Best(1, [&] { (void)bvh[q]->Occluded(trace.segments, coherent); }));
+          occl_ms[q] = std::min(occl_ms[q], Best(1, [&] { (void)bvh[q]->Occluded(trace.segments); }));
           hit_ms[q] = std::min(hit_ms[q], Best(1, [&] { (void)bvh[q]->Intersect(trace.rays); }));
         }
       for (int q = 0; q < 2; ++q)

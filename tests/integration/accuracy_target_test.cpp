@@ -283,7 +283,8 @@ TEST_F(AccuracyTargetTest, ObscuranceTargetsChooseTheDirectionCount) {
 // The exact method lights the receiver whichever way the light's polygon
 // winds: a clockwise triangle, checked against Embree on 4096 samples.
 // Beside each texel's bound, a jittered map states an estimate: the normal
-// approximation at the variance its split pairs estimate. Against the exact
+// approximation at the variance its split pairs estimate (where every
+// sample agrees, what agreeing samples can hide). Against the exact
 // fractions, in the penumbra (where the answer is uncertain) it is tighter
 // than the bound and still covers most texels; it is never above the bound.
 TEST_F(AccuracyTargetTest, AJitteredMapStatesAnEstimateBesideItsBounds) {
@@ -539,7 +540,9 @@ void ExpectWithinFactor(double predicted_ms, double measured_ms, double factor, 
                         bool lower_bound = false) {
   constexpr double kSlackMs = 25.0;
   EXPECT_LE(predicted_ms, factor * measured_ms + kSlackMs) << what;
-  if (!lower_bound) EXPECT_LE(measured_ms, factor * predicted_ms + kSlackMs) << what;
+  if (!lower_bound) {
+    EXPECT_LE(measured_ms, factor * predicted_ms + kSlackMs) << what;
+  }
 }
 
 // The exact plan among those weighed: its predicted ms, and whether its

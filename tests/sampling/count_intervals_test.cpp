@@ -159,6 +159,7 @@ struct OneTexel {
   float answer = 0.0f;
   float bound = 0.0f;
   bool split_pairs_used = false;
+  float estimate = -1.0f;  // where the split pairs were counted
 };
 OneTexel BoundOneTexel(int samples, int visible, std::optional<int> split_pairs, int maps = 1) {
   HiddenSampleMapRequest request;
@@ -173,7 +174,8 @@ OneTexel BoundOneTexel(int samples, int visible, std::optional<int> split_pairs,
     band.split_pair_maps = maps;
   }
   BoundTexels(request, map, band);
-  return {band.visible_fraction[0], band.texel_error[0], map.error.per_texel_split_pairs};
+  return {band.visible_fraction[0], band.texel_error[0], map.error.per_texel_split_pairs,
+          band.texel_estimate.empty() ? -1.0f : band.texel_estimate[0]};
 }
 
 // `trials` texels, each a new jittered pattern of n (the real one) under
@@ -286,6 +288,42 @@ TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
     }
     EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << "case " << c << ", true fraction " << truth;
   }
+}
+
+// A texel at the edge of a lit area: a few cells a little hidden, H hidden
+// cells' worth in all, so that every sample often agrees (all visible with
+// probability about exp(-H)). Where all agree the pairs say nothing, and an
+// estimate of zero covered 66 % at H = 1 (docs/accuracy.md showed 23 % of
+// veach-ajar's penumbra covered at N = 32). With H up to 2 the estimate
+// covers at its nominal 95 %. Beyond, one to five samples disagree and the
+// normal approximation at so few split pairs covers less (79 % at H = 3 and
+// 5 here; docs/texel-bounds.md): printed, not held to 95 %.
+TEST(SplitPairs, EstimateCoversTexelsWhereEverySampleAgrees) {
+  std::mt19937_64 random(2718);
+  const int n = 256;
+  for (const double hidden : {0.25, 1.0, 2.0, 3.0, 5.0}) {
+    std::vector<double> visible_probability(n, 1.0);
+    for (int i = 100; i < 108; ++i) visible_probability[size_t(i)] = 1.0 - hidden / 8.0;
+    const double truth = 1.0 - hidden / n;
+    const int trials = 20000;
+    int covered = 0;
+    for (int t = 0; t < trials; ++t) {
+      std::vector<uint32_t> blocked(n / 32, 0u);
+      int visible = 0;
+      for (int i = 0; i < n; ++i) {
+        if (std::bernoulli_distribution(visible_probability[size_t(i)])(random)) ++visible;
+        else blocked[size_t(i / 32)] |= 1u << (i % 32);
+      }
+      const OneTexel texel = BoundOneTexel(n, visible, SplitPairs(blocked, n));
+      ASSERT_GE(texel.estimate, 0.0f);
+      ASSERT_LE(texel.estimate, texel.bound);
+      covered += std::abs(texel.answer - truth) <= texel.estimate;
+    }
+    std::printf("%.2f cells hidden: the estimate covers %.2f %%\n", hidden, 100.0 * covered / trials);
+    if (hidden <= 2.0) EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << hidden << " cells' worth hidden";
+  }
+  // All visible: ln(20) / n at 95 %, not zero.
+  EXPECT_NEAR(BoundOneTexel(n, n, 0).estimate, std::log(20.0) / n, 0.01 / n);
 }
 
 }  // namespace
