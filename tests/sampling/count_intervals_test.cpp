@@ -178,6 +178,19 @@ OneTexel BoundOneTexel(int samples, int visible, std::optional<int> split_pairs,
           band.texel_estimate.empty() ? -1.0f : band.texel_estimate[0]};
 }
 
+// One texel of n = cells.size() jittered samples, cell i's visible with
+// probability cells[i], bounded with its split pairs.
+OneTexel DrawAndBoundTexel(const std::vector<double>& cells, std::mt19937_64& random) {
+  const int n = static_cast<int>(cells.size());
+  std::vector<uint32_t> blocked(size_t(n + 31) / 32, 0u);
+  int visible = 0;
+  for (int i = 0; i < n; ++i) {
+    if (std::bernoulli_distribution(cells[size_t(i)])(random)) ++visible;
+    else blocked[size_t(i / 32)] |= 1u << (i % 32);
+  }
+  return BoundOneTexel(n, visible, SplitPairs(blocked, n));
+}
+
 // `trials` texels, each a new jittered pattern of n (the real one) under
 // a random edge; each texel bounded by BoundTexels with and without its
 // split pairs.
@@ -276,13 +289,7 @@ TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
     const int trials = 20000;
     int covered = 0;
     for (int t = 0; t < trials; ++t) {
-      std::vector<uint32_t> blocked(n / 32, 0u);
-      int visible = 0;
-      for (int i = 0; i < n; ++i) {
-        if (std::bernoulli_distribution(cases[c][size_t(i)])(random)) ++visible;
-        else blocked[size_t(i / 32)] |= 1u << (i % 32);
-      }
-      const OneTexel texel = BoundOneTexel(n, visible, SplitPairs(blocked, n));
+      const OneTexel texel = DrawAndBoundTexel(cases[c], random);
       EXPECT_TRUE(texel.split_pairs_used);
       covered += std::abs(texel.answer - truth) <= texel.bound;
     }
@@ -308,19 +315,15 @@ TEST(SplitPairs, EstimateCoversTexelsWhereEverySampleAgrees) {
     const int trials = 20000;
     int covered = 0;
     for (int t = 0; t < trials; ++t) {
-      std::vector<uint32_t> blocked(n / 32, 0u);
-      int visible = 0;
-      for (int i = 0; i < n; ++i) {
-        if (std::bernoulli_distribution(visible_probability[size_t(i)])(random)) ++visible;
-        else blocked[size_t(i / 32)] |= 1u << (i % 32);
-      }
-      const OneTexel texel = BoundOneTexel(n, visible, SplitPairs(blocked, n));
+      const OneTexel texel = DrawAndBoundTexel(visible_probability, random);
       ASSERT_GE(texel.estimate, 0.0f);
       ASSERT_LE(texel.estimate, texel.bound);
       covered += std::abs(texel.answer - truth) <= texel.estimate;
     }
     std::printf("%.2f cells hidden: the estimate covers %.2f %%\n", hidden, 100.0 * covered / trials);
-    if (hidden <= 2.0) EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << hidden << " cells' worth hidden";
+    if (hidden <= 2.0) {
+      EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << hidden << " cells' worth hidden";
+    }
   }
   // All visible: ln(20) / n at 95 %, not zero.
   EXPECT_NEAR(BoundOneTexel(n, n, 0).estimate, std::log(20.0) / n, 0.01 / n);
