@@ -108,12 +108,19 @@ void CountIntervals::Prepare(const std::vector<int>& counts) {
   // i.e. I_p(j, n - j + 1) = alpha; high(j) solves P(Bin(n, p) <= j) =
   // alpha, i.e. I_p(j + 1, n - j) = 1 - alpha. Count k takes the limits of
   // k - 1 and k + 1 (one count wider), rounded outwards to float.
+  // Where every trial agrees (k = n, or k = 0) the tail is known without
+  // Hoeffding's theorem: n trials all succeed with probability prod(p_i) <=
+  // exp(-sum(1 - p_i)), at most alpha where the mean lies ln(1 / alpha)
+  // counts below n (3.7 at 95 %, against about 5.6 one count wider).
+  const double agreeing = std::log(1.0 / alpha) / n;
   ParallelFor(missing.size(), 16, [&](size_t begin, size_t end) {
     for (size_t i = begin; i < end; ++i) {
       const int k = missing[i];
       const int below = k - 1, above = k + 1;
-      const double low = below <= 0 ? 0.0 : BetaQuantile(below, n - below + 1, alpha);
-      const double high = above >= n ? 1.0 : BetaQuantile(above + 1, n - above, 1.0 - alpha);
+      double low = below <= 0 ? 0.0 : BetaQuantile(below, n - below + 1, alpha);
+      double high = above >= n ? 1.0 : BetaQuantile(above + 1, n - above, 1.0 - alpha);
+      if (k == n) low = std::max(low, 1.0 - agreeing);
+      if (k == 0) high = std::min(high, agreeing);
       low_[size_t(k)] = std::clamp(std::nextafter(static_cast<float>(low), -1.0f), 0.0f, 1.0f);
       high_[size_t(k)] = std::clamp(std::nextafter(static_cast<float>(high), 2.0f), 0.0f, 1.0f);
       ready_[size_t(k)] = 1;

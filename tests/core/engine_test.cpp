@@ -502,7 +502,9 @@ TEST(Engine, CostModelLearnsFromEachRunAndOutlivesARestart) {
     EXPECT_GT(first->plan->probe_ms, 0.0);
     bool saw_exact = false;
     for (const Plan& plan : first->plan->plans) {
-      if (plan.method != "plucker-exact") EXPECT_GE(engine->cost_model().Observations(plan.cost_key), 1u) << plan.cost_key;
+      if (plan.method != "plucker-exact") {
+        EXPECT_GE(engine->cost_model().Observations(plan.cost_key), 1u) << plan.cost_key;
+      }
       if (plan.method == "plucker-exact") {
         saw_exact = true;
         // The probes answered some of the map's own points on the map's own
@@ -531,7 +533,9 @@ TEST(Engine, CostModelLearnsFromEachRunAndOutlivesARestart) {
     }
     for (const Plan& plan : second->plan->plans) {
       if (plan.method == "plucker-exact") {
-        if (chosen.method == "plucker-exact") EXPECT_EQ(plan.work, 0.0) << "the first call left the map's trees cached";
+        if (chosen.method == "plucker-exact") {
+          EXPECT_EQ(plan.work, 0.0) << "the first call left the map's trees cached";
+        }
         continue;
       }
       const std::optional<double> p = engine->cost_model().Predict(plan.cost_key, plan.work, plan.extra_work);
