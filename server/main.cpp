@@ -12,7 +12,6 @@
 #include <fstream>
 #include <iostream>
 #include <sstream>
-#include <thread>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -26,10 +25,6 @@
 #include "service/server.h"
 
 namespace {
-
-// How long after the drain a call told to stop may take before the process
-// exits without it.
-constexpr std::chrono::seconds kStuckCallGrace{5};
 
 // Written to a temporary name and renamed: a reader never sees half.
 bool WritePortFile(const std::string& path, int port) {
@@ -315,18 +310,6 @@ int main(int argc, char** argv) {
   int signal_number = 0;
   sigwait(&signals, &signal_number);
   spdlog::info("received {}", signal_number == SIGINT ? "SIGINT" : "SIGTERM");
-  // The last resort: a call told to stop polls between GL jobs, ray streams
-  // and points, so it ends within seconds of the drain; one that does not
-  // (a GL draw or an Embree stream that never returns) would hold the
-  // process past any grace period. The repository survives an exit at any
-  // point (as it survives kill -9), so the process exits without it.
-  std::thread([drain_seconds = flags.drain_seconds] {
-    std::this_thread::sleep_for(std::chrono::seconds(drain_seconds) + kStuckCallGrace);
-    spdlog::critical("calls still running {} s after the drain ended, told to stop: exiting without them",
-                     kStuckCallGrace.count());
-    spdlog::shutdown();
-    std::_Exit(EXIT_FAILURE);
-  }).detach();
   (*server)->GracefulStop(std::chrono::seconds(flags.drain_seconds));
   return EXIT_SUCCESS;
 }
