@@ -12,6 +12,7 @@
 #include <fstream>
 #include <iostream>
 #include <sstream>
+#include <thread>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -25,6 +26,10 @@
 #include "service/server.h"
 
 namespace {
+
+// How long past the drain's end the process may take to exit before the
+// watchdog ends it.
+constexpr std::chrono::seconds kExitGrace{5};
 
 // Written to a temporary name and renamed: a reader never sees half.
 bool WritePortFile(const std::string& path, int port) {
@@ -310,6 +315,18 @@ int main(int argc, char** argv) {
   int signal_number = 0;
   sigwait(&signals, &signal_number);
   spdlog::info("received {}", signal_number == SIGINT ? "SIGINT" : "SIGTERM");
-  (*server)->GracefulStop(std::chrono::seconds(flags.drain_seconds));
-  return EXIT_SUCCESS;
+  // The last resort: a call told to stop polls between GL jobs, ray streams
+  // and points, so it ends within a second of the drain; work that never
+  // returns to a poll (a GL draw or an Embree stream that does not end)
+  // would hold the process past any grace period. The repository survives
+  // an exit at any point (as it survives kill -9), so the process exits
+  // without that work, saying so, with a status that says it too.
+  std::thread([drain_seconds = flags.drain_seconds] {
+    std::this_thread::sleep_for(std::chrono::seconds(drain_seconds) + kExitGrace);
+    spdlog::critical("still running {} s after the drain ended: exiting without the work that did not stop",
+                     kExitGrace.count());
+    spdlog::shutdown();
+    std::_Exit(EXIT_FAILURE);
+  }).detach();
+  visq::service::Server::StopAndExit(*std::move(server), std::chrono::seconds(flags.drain_seconds), EXIT_SUCCESS);
 }

@@ -65,6 +65,13 @@ class Server {
   void GracefulStop(std::chrono::milliseconds drain);
   core::Engine& engine() { return *engine_; }
 
+  // The process's end: GracefulStop, then this server's own state released
+  // (the engine, its GL context, the catalog), then the process exits with
+  // `exit_code` without gRPC's library teardown, which can wait seconds for
+  // nothing this server needs (server.cpp says why).
+  [[noreturn]] static void StopAndExit(std::unique_ptr<Server> server, std::chrono::milliseconds drain,
+                                       int exit_code);
+
  private:
   Server() = default;
   void SetServing(bool serving);
