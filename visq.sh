@@ -105,12 +105,9 @@ case "${1:-}" in
       if [[ "$sanitized_tests" != 0 ]]; then
         # LeakSanitizer cannot follow Mesa's and the NVIDIA driver's own
         # allocations; ASan's use-after-free and overflow checks still apply.
-        # Left out under the sanitizers: tests that time the planner's
-        # choices or a drain on large scenes (a sanitized build's timings
-        # mean nothing); their code runs sanitized in the exact, core and
-        # other integration tests.
-        unsanitized='ExactPredictionTest.AFoliageTargetRoutesAroundTheExactMethodWhereItIsSlower'
-        unsanitized+=':Drain.SigtermDuringEachLongCallOnSponzaExitsWithinTheDrainAnsweringUnavailable'
+        # Left out under the sanitizers: the tests that time the server
+        # (tests/integration/timed_tests.txt says why).
+        unsanitized=$(grep -E '^[A-Za-z]' tests/integration/timed_tests.txt | paste -sd: -)
         for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_tests exact/visq_exact_tests \
                     core/visq_core_tests service/visq_service_tests integration/visq_integration_tests \
                     integration/visq_operability_tests; do
