@@ -259,6 +259,11 @@ StatusOr<std::unique_ptr<LightTree>> LightTree::Create(const AreaLight& light, c
   tree->max_answer_bytes = options.keep_answers ? options.max_bytes / 2 : 0;
   tree->classify_points = options.classify_points;
   tree->direct_candidates = options.classify_points ? options.direct_candidates : 0;
+  tree->cull_pyramid = options.cull_pyramid;
+  tree->quadrilaterals = options.quadrilaterals;
+  tree->line_boxes = options.line_boxes;
+  tree->fragment_grid = options.fragment_grid && options.line_boxes;
+  tree->largest_first = options.largest_first;
   tree->light_local = std::move(prepared.local);
   const LightTriangle& largest = PlantLight(*tree, prepared.triangles);
 

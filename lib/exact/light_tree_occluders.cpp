@@ -83,6 +83,7 @@ double LightTree::ApparentSize(const glm::dvec3& p, const glm::dvec3 (&v)[3]) {
 }
 
 void LightTree::SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids) const {
+  if (!largest_first) return;
   // One integer a candidate: the size as a float's bits (an order-keeping
   // map for positive floats), complemented so the largest comes first, over
   // the id.

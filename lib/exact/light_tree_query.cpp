@@ -60,9 +60,11 @@ class PyramidCull {
  public:
   // MissesBox and Misses are asked only about boxes and triangles inside
   // `bounds` (the occluders').
+  // Without `enabled`, it misses nothing.
   PyramidCull(const glm::dvec3& p, const std::vector<glm::dvec3>& light, const std::vector<LightTriangle>& triangles,
-              const std::pair<glm::dvec3, glm::dvec3>& bounds)
-      : p_(p), lo_(p), hi_(p) {
+              const std::pair<glm::dvec3, glm::dvec3>& bounds, bool enabled)
+      : enabled_(enabled), p_(p), lo_(p), hi_(p) {
+    if (!enabled_) return;
     for (const glm::dvec3& v : light) {
       lo_ = glm::min(lo_, v);
       hi_ = glm::max(hi_, v);
@@ -86,6 +88,7 @@ class PyramidCull {
   // inside the box can touch the pyramid). Per plane, the corner furthest
   // inside decides.
   bool MissesBox(const glm::dvec3& lo, const glm::dvec3& hi) const {
+    if (!enabled_) return false;
     for (int axis = 0; axis < 3; ++axis)
       if (hi[axis] < lo_[axis] || lo[axis] > hi_[axis]) return true;
     const glm::dvec3* corners[2] = {&lo, &hi};
@@ -98,6 +101,7 @@ class PyramidCull {
   }
 
   bool Misses(const glm::dvec3 (&v)[3]) const {
+    if (!enabled_) return false;
     for (int axis = 0; axis < 3; ++axis) {
       if (v[0][axis] < lo_[axis] && v[1][axis] < lo_[axis] && v[2][axis] < lo_[axis]) return true;
       if (v[0][axis] > hi_[axis] && v[1][axis] > hi_[axis] && v[2][axis] > hi_[axis]) return true;
@@ -192,6 +196,7 @@ class PyramidCull {
   }
 
   static constexpr size_t kMaxOutlineVertices = 16;
+  bool enabled_;
   glm::dvec3 p_, lo_, hi_;
   std::vector<Sides> triangle_sides_;  // the outline's planes alone, or each light triangle's
 };
@@ -395,6 +400,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     if (i == 0) s.line_box_sign = sign;
     if (sign != s.line_box_sign) s.line_box_sign = 0;
   }
+  if (!line_boxes) s.line_box_sign = 0;
 
   // Classify first (GatherCandidates): most points end there.
   if (classify_points && HiddenByLastCover(p_local, receiver)) {
@@ -408,7 +414,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     hidden_by_remembered_blockers.fetch_add(1, std::memory_order_relaxed);
     return result;
   }
-  const PyramidCull cull(p_local, light_local, light_triangles, index.Bounds());
+  const PyramidCull cull(p_local, light_local, light_triangles, index.Bounds(), cull_pyramid);
   Candidates candidates;
   if (GatherCandidates(s, p_local, receiver, cull, pending, &candidates)) {
     hits.fetch_add(1, std::memory_order_relaxed);
@@ -440,7 +446,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
     // (docs/exact-method-notes.md).
     SortLargestFirst(p_local, &subtract);
     std::vector<uint32_t> cutting;
-    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, /*quads=*/true, &cutting,
+    SubtractOccluders(s, &visible, subtract, &slab_top, SIZE_MAX, quadrilaterals, &cutting,
                       candidates.untested);
     if (!s.stopped.ok()) return s.stopped;
     // Only the light itself was cut on these routes, so the cutting

@@ -358,7 +358,7 @@ bool LightTree::HiddenByFewBlockers(Scratch& s, const std::vector<Fragment>& lig
   std::vector<uint32_t> ids;
   for (const Blocker& blocker : *blockers) ids.push_back(blocker.id);
   std::vector<uint32_t> cutting;
-  SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers, /*quads=*/true, &cutting);
+  SubtractOccluders(s, &left, ids, &slab_top, kFewBlockers, quadrilaterals, &cutting);
   if (!left.empty() || !s.stopped.ok()) return false;
   RememberBlockers(s, &cutting);
   return true;
@@ -422,7 +422,7 @@ bool LightTree::HiddenByRememberedBlockers(Scratch& s, const std::vector<Fragmen
     }
     std::vector<Fragment> left = light;
     const XPlane* slab_top = nullptr;
-    SubtractOccluders(s, &left, ids, &slab_top, SIZE_MAX, /*quads=*/true);
+    SubtractOccluders(s, &left, ids, &slab_top, SIZE_MAX, quadrilaterals);
     if (!s.stopped.ok()) return false;
     if (left.empty()) {
       if (set != 0) {
@@ -716,7 +716,7 @@ size_t LightTree::SubtractOccluders(Scratch& s, std::vector<Fragment>* fragments
   // near their shadows. Every verdict is the one the whole list gives.
   VISQ_CHECK(!s.fragment_grid_in_use);  // subtractions do not nest
   FragmentGrid* grid = nullptr;
-  bool grid_possible = true;
+  bool grid_possible = fragment_grid;
   const auto stop_grid = [&] {
     DropDeadFragments(*grid, fragments);
     grid = nullptr;

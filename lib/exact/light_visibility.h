@@ -151,6 +151,45 @@ struct TreeOptions {
   // Keep answers for points asked again (LightVisibilityTree::Query). The
   // answers are the same either way; off only to time the tree itself.
   bool keep_answers = true;
+  // visq's accelerations of the subtraction, each on by default. Like the
+  // three above, none changes an answer beyond rounding in the area sums;
+  // they are switches so that each can be measured, and so that the
+  // paper's algorithm alone can be run (PapersAlgorithmAlone).
+  // Occluders and tree nodes wholly outside the pyramid from the point to
+  // the light are passed over on float tests with a margin, before any
+  // exact one.
+  bool cull_pyramid = true;
+  // A subtracted triangle takes with it a neighbour across an edge, where
+  // the two make a convex quadrilateral as seen from the point: one shadow
+  // of four edges instead of two of three.
+  bool quadrilaterals = true;
+  // Where every direction from the point to the light has one sign along
+  // an axis, fragments and shadows carry boxes in the chart of lines
+  // through the point, and boxes that are apart settle a test without the
+  // exact predicates.
+  bool line_boxes = true;
+  // A subtraction holding many fragments (with many more candidates left)
+  // lists them in a grid over their boxes, so that a shadow meets only the
+  // fragments near it (needs line_boxes).
+  bool fragment_grid = true;
+  // A point's occluders are subtracted largest first as seen from it (in
+  // index order a penumbra under a dense mesh was cut into thousands of
+  // pieces).
+  bool largest_first = true;
+
+  // Mora et al. 2013 as the paper gives it: every query descends the
+  // shared tree, which its queries grow; its leaves' occluders and the near
+  // ones are subtracted in index order; every acceleration above is off.
+  // The answers are those of the default options (a test holds them to
+  // 1e-12).
+  static TreeOptions PapersAlgorithmAlone() {
+    TreeOptions paper;
+    paper.classify_points = false;
+    paper.direct_candidates = 0;
+    paper.keep_answers = false;
+    paper.cull_pyramid = paper.quadrilaterals = paper.line_boxes = paper.fragment_grid = paper.largest_first = false;
+    return paper;
+  }
   // Read by Create only, every few thousand triangles while it selects the
   // occluders: a call that was cancelled or whose deadline passed stops
   // there (CANCELLED / DEADLINE_EXCEEDED). Not part of the tree's identity.

@@ -275,6 +275,12 @@ struct LightTree {
   size_t max_bytes = 0;
   bool classify_points = true;
   size_t direct_candidates = 0;
+  // TreeOptions' switches of the same names.
+  bool cull_pyramid = true;
+  bool quadrilaterals = true;
+  bool line_boxes = true;
+  bool fragment_grid = true;
+  bool largest_first = true;
 
   size_t MemoryBytesLocked() const;
 

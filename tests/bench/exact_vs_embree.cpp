@@ -98,6 +98,7 @@ struct Params {
   double tree_max_mb = 16;    // each tree's memory budget (TreeOptions::max_bytes), as the server's default
   long direct_candidates = -1;  // >= 0: TreeOptions::direct_candidates (else its default)
   bool keep_answers = true;     // TreeOptions::keep_answers (0: the warm pass descends the grown tree)
+  bool accelerations = true;    // 0: TreeOptions::PapersAlgorithmAlone (--direct-candidates still applies)
   // > 0: group the points as the server does without a grid
   // (exact::GroupReceiversByShaft with this many triangles per shaft),
   // instead of cells or tiles.
@@ -761,10 +762,11 @@ int Run(const BenchCase& bc, const Params& p) {
     for (size_t i : tile_points[t]) tb.Extend(bc.points[i].position);
     if (!bc.tile_boxes.empty()) tb = bc.tile_boxes[t];
     visq::exact::TreeOptions options;
+    if (!p.accelerations) options = visq::exact::TreeOptions::PapersAlgorithmAlone();
     options.receiver_bounds = tb;
     options.max_bytes = static_cast<size_t>(p.tree_max_mb * (1 << 20));
     if (p.direct_candidates >= 0) options.direct_candidates = static_cast<size_t>(p.direct_candidates);
-    options.keep_answers = p.keep_answers;
+    if (p.accelerations) options.keep_answers = p.keep_answers;
     auto tree = visq::exact::LightVisibilityTree::Create(bc.light, bc.scene, options, index->get());
     create_ns += std::chrono::duration_cast<std::chrono::nanoseconds>(
                      std::chrono::steady_clock::now() - c0).count();
@@ -1020,6 +1022,7 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--tree-max-mb")) p.tree_max_mb = std::atof(v);
     else if (const char* v = value("--direct-candidates")) p.direct_candidates = std::atol(v);
     else if (const char* v = value("--keep-answers")) p.keep_answers = std::atoi(v) != 0;
+    else if (const char* v = value("--accelerations")) p.accelerations = std::atoi(v) != 0;
     else if (const char* v = value("--cells-per-side")) p.cells_per_side = std::atoi(v);
     else if (const char* v = value("--shaft-triangles")) p.shaft_triangles = static_cast<size_t>(std::atoll(v));
     else if (const char* v = value("--shaft-cap")) p.shaft_cap = std::atof(v);
@@ -1029,7 +1032,7 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
-                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--direct-candidates=N] [--keep-answers=0] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
+                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--direct-candidates=N] [--keep-answers=0] [--accelerations=0] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
                    "       %s --scene=grille|foliage [--scenes=DIR] [the camera and grouping flags; --light, --eye, --look-at default to the room's]\n",
                    argv[0], argv[0], argv[0]);
       return 2;
