@@ -345,16 +345,20 @@ bool LightTree::GatherCandidates(Scratch& s, const glm::dvec3& p_local, const Re
   return false;
 }
 
+LightTree::Scratch& LightTree::ThreadScratch() {
+  thread_local Scratch scratch;
+  return scratch;
+}
+
 StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_polygons, const StopToken& stop) {
   VISQ_ASSIGN_OR_RETURN(const glm::dvec3 p_local, LocalPosition(q));
   std::optional<glm::dvec3> normal = q.normal;
   queries.fetch_add(1, std::memory_order_relaxed);
   PointVisibility result;
 
-  thread_local Scratch scratch;
-  Scratch& s = scratch;
+  Scratch& s = ThreadScratch();
   s.Reset();
-  s.FitVertices(vertices.size());
+  s.FitTree(vertices.size(), far.size() + near.size());
   s.stop = &stop;
   s.p = s.Add([&] { return XPoint::Input(p_local); });
   // A light seen from behind (or edge-on) gives nothing.

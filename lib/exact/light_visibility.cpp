@@ -131,4 +131,6 @@ size_t LightVisibilityTree::MemoryBytes() const {
 
 double LightVisibilityTree::light_area() const { return impl_->light_area; }
 
+size_t LightVisibilityTree::ThisThreadScratchBytes() { return detail::LightTree::ThreadScratch().Bytes(); }
+
 }  // namespace visq::exact

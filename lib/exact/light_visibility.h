@@ -338,6 +338,10 @@ class LightVisibilityTree {
   // The tree and its store of answers.
   size_t MemoryBytes() const;
   double light_area() const;
+  // What the calling thread keeps between queries for its next one (the
+  // query's working geometry and slots, of any tree): bounded whatever the
+  // largest query the thread answered.
+  static size_t ThisThreadScratchBytes();
 
  private:
   explicit LightVisibilityTree(std::unique_ptr<detail::LightTree> impl);

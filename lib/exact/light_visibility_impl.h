@@ -156,7 +156,8 @@ struct PairHash {
 };
 
 // Objects at stable addresses, constructed one at a time into blocks of
-// 64 that outlive Clear(): a reused arena allocates nothing.
+// 64 that outlive Clear(): a reused arena allocates nothing. Trim hands
+// back the blocks past a count.
 template <typename T>
 class Arena {
  public:
@@ -178,6 +179,12 @@ class Arena {
   void Clear() {
     for (size_t i = 0; i < size_; ++i) std::destroy_at(reinterpret_cast<T*>(&blocks_[i / kBlock][i % kBlock]));
     size_ = 0;
+  }
+  size_t Bytes() const { return blocks_.size() * kBlock * sizeof(Storage); }
+  // Empty arenas only.
+  void Trim(size_t kept_blocks) {
+    VISQ_DCHECK_EQ(size_, size_t{0});
+    if (blocks_.size() > kept_blocks) blocks_.resize(kept_blocks);
   }
 
  private:
@@ -416,9 +423,18 @@ struct LightTree {
         return planes.Add(make);
       }
     }
+    // What a thread keeps between queries is bounded: a query past these
+    // (a foliage penumbra point makes tens of thousands of points) allocates
+    // its excess again, and hands it back at the next query's start, rather
+    // than holding its largest query's memory for the thread's life.
+    static constexpr size_t kKeptArenaBlocks = 64;  // 4,096 objects of each kind (a grille point makes 800)
+    static constexpr size_t kKeptSlotsOverNeed = 4;  // vertex and occluder slots past 4x this tree's
+
     void Reset() {
       points.Clear();
       planes.Clear();
+      points.Trim(kKeptArenaBlocks);
+      planes.Trim(kKeptArenaBlocks);
       // This absl's clear() frees a table past 127 slots, and a penumbra
       // point of a grille fills a few hundred: each query grew them again
       // through seven rehashes. One allocation of the last query's size.
@@ -438,10 +454,31 @@ struct LightTree {
         stamp = 1;
       }
     }
-    // Room for a tree of `count` vertices (the slots outlive the query).
-    void FitVertices(size_t count) {
-      if (vertex_points.size() < count) vertex_points.resize(count);
+    // Room for a tree of `count` vertices and `occluders` occluders, at a
+    // query's start (the slots outlive the query; no slot is this query's
+    // yet, so slots of a larger tree seen before can be handed back).
+    void FitTree(size_t count, size_t occluders) {
+      FitSlots(vertex_points, count);
+      FitSlots(occluder_marks, occluders);
     }
+    template <typename Slot>
+    static void FitSlots(std::vector<Slot>& slots, size_t count) {
+      if (slots.size() > kKeptSlotsOverNeed * count + 4096) {
+        slots.assign(count, Slot{});
+        slots.shrink_to_fit();
+      }
+      if (slots.size() < count) slots.resize(count);
+    }
+    // What the scratch holds: its arenas, tables and slots.
+    size_t Bytes() const {
+      size_t bytes = points.Bytes() + planes.Bytes() +
+                     (edge_planes.capacity() + meets.capacity()) * (sizeof(std::pair<const void*, const void*>) +
+                                                                    sizeof(void*) + 1) +
+                     vertex_points.capacity() * sizeof(VertexSlot) + occluder_marks.capacity() * sizeof(OccluderSlot);
+      for (const BlockerSet& set : blocker_sets) bytes += sizeof(BlockerSet) + set.ids.capacity() * sizeof(uint32_t);
+      return bytes;
+    }
+    // Room for `count` occluders' marks within a query.
     void FitOccluders(size_t count) {
       if (occluder_marks.size() < count) occluder_marks.resize(count);
     }
@@ -971,6 +1008,8 @@ struct LightTree {
   // Whether Query would answer from the store.
   bool StoresAnswer(const QueryPoint& q, bool want_polygons) const;
 
+  // This thread's scratch, shared by every tree's queries on it.
+  static Scratch& ThreadScratch();
   // The answer to one query, from scratch.
   StatusOr<PointVisibility> Compute(const QueryPoint& q, bool want_polygons, const StopToken& stop);
 

@@ -878,6 +878,19 @@ TEST(LightVisibilityTest, FlowersFromTheSharedScenesMatchEmbreeRays) {
   // The points' light was left in many pieces: the grid was used.
   EXPECT_GT(direct->Stats().fragment_grids, 0u);
   EXPECT_GT(all_near->Stats().fragment_grids, 0u);
+
+  // What this thread keeps for its next query after these points, and
+  // after one point of a small tree: the flowers' working geometry and
+  // slots are handed back.
+  const size_t after_flowers = LightVisibilityTree::ThisThreadScratchBytes();
+  auto small = MakeTree(SquareLight(2.0), MakeScene(Cloud(5, 3)), Box({-1.5, -1.5, 0}, {1.5, 1.5, 0}));
+  ASSERT_TRUE(small);
+  (void)Q(*small, {0.1, 0.2, 0.0});
+  const size_t after_small = LightVisibilityTree::ThisThreadScratchBytes();
+  std::printf("this thread's scratch: %zu bytes after the flowers, %zu after a small tree\n", after_flowers,
+              after_small);
+  EXPECT_LT(after_small, after_flowers);
+  EXPECT_LT(after_small, size_t{16} << 20);
 }
 
 TEST(LightVisibilityTest, BatchStopsAtItsDeadline) {
