@@ -1117,6 +1117,27 @@ TEST(LightVisibilityTest, ConcurrentQueriesMatchSingleThreaded) {
   }
 }
 
+// Two batches' answers at the same points, expected the same to 1e-12; how
+// many of the first's are wholly lit, wholly hidden and partial.
+struct AnswerKinds {
+  int lit = 0, hidden = 0, partial = 0;
+};
+AnswerKinds SameAnswers(const std::vector<QueryPoint>& queries, const std::vector<PointVisibility>& a,
+                        const std::vector<PointVisibility>& b) {
+  AnswerKinds kinds;
+  for (size_t i = 0; i < queries.size(); ++i) {
+    const glm::dvec3& p = queries[i].position;
+    EXPECT_NEAR(a[i].visible_area_fraction, b[i].visible_area_fraction, 1e-12) << p.x << " " << p.y;
+    EXPECT_NEAR(a[i].visible_solid_angle_fraction, b[i].visible_solid_angle_fraction, 1e-12);
+    EXPECT_NEAR(a[i].irradiance, b[i].irradiance, 1e-12);
+    const double f = a[i].visible_area_fraction;
+    kinds.lit += f == 1.0;
+    kinds.hidden += f == 0.0;
+    kinds.partial += f > 0.0 && f < 1.0;
+  }
+  return kinds;
+}
+
 TEST(LightVisibilityTest, PointsDecidedBeforeTheTreeAgreeWithTheTree) {
   // A large slab (two triangles sharing a diagonal) over part of the floor,
   // a box, a cloud and the floor itself: points in the open are wholly lit,
@@ -1159,17 +1180,7 @@ TEST(LightVisibilityTest, PointsDecidedBeforeTheTreeAgreeWithTheTree) {
     auto a = (*classified)->QueryBatch(queries, 1);
     auto b = (*tree_only)->QueryBatch(queries, 1);
     ASSERT_TRUE(a.ok() && b.ok());
-    int lit = 0, hidden = 0, partial = 0;
-    for (size_t i = 0; i < queries.size(); ++i) {
-      const glm::dvec3& p = queries[i].position;
-      EXPECT_NEAR((*a)[i].visible_area_fraction, (*b)[i].visible_area_fraction, 1e-12) << p.x << " " << p.y;
-      EXPECT_NEAR((*a)[i].visible_solid_angle_fraction, (*b)[i].visible_solid_angle_fraction, 1e-12);
-      EXPECT_NEAR((*a)[i].irradiance, (*b)[i].irradiance, 1e-12);
-      const double f = (*a)[i].visible_area_fraction;
-      lit += f == 1.0;
-      hidden += f == 0.0;
-      partial += f > 0.0 && f < 1.0;
-    }
+    const auto [lit, hidden, partial] = SameAnswers(queries, *a, *b);
     const TreeStats on_stats = (*classified)->Stats(), off_stats = (*tree_only)->Stats();
     EXPECT_EQ(off_stats.wholly_visible + off_stats.wholly_hidden + off_stats.subtracted_directly, 0u);
     if (direct > 0) {
@@ -1208,17 +1219,7 @@ void ExpectPapersAlgorithmAgrees(const Scene& scene, const AreaLight& light, con
   auto b = (*alone)->QueryBatch(queries, 1);
   ASSERT_TRUE(a.ok()) << a.status();
   ASSERT_TRUE(b.ok()) << b.status();
-  int lit = 0, hidden = 0, partial = 0;
-  for (size_t i = 0; i < queries.size(); ++i) {
-    const glm::dvec3& p = queries[i].position;
-    EXPECT_NEAR((*a)[i].visible_area_fraction, (*b)[i].visible_area_fraction, 1e-12) << p.x << " " << p.y;
-    EXPECT_NEAR((*a)[i].visible_solid_angle_fraction, (*b)[i].visible_solid_angle_fraction, 1e-12);
-    EXPECT_NEAR((*a)[i].irradiance, (*b)[i].irradiance, 1e-12);
-    const double f = (*b)[i].visible_area_fraction;
-    lit += f == 1.0;
-    hidden += f == 0.0;
-    partial += f > 0.0 && f < 1.0;
-  }
+  const auto [lit, hidden, partial] = SameAnswers(queries, *a, *b);
   EXPECT_GT(partial, static_cast<int>(points.size()) / 4) << lit << " lit, " << hidden << " hidden";
   const TreeStats fast_stats = (*fast)->Stats(), alone_stats = (*alone)->Stats();
   // The paper's route: nothing decided before the tree, the tree grown.
