@@ -13,7 +13,8 @@
 //      per-texel weights when the integrand needs them (and, for the SVD
 //      integrand, each texel's angle at the light from the light-to-eye
 //      direction);
-//   4. mipmap: per row, log2(N) min-max levels (and prefix sums: one per row
+//   4. mipmap: per row, log2(N) min-max levels (the traversal's; ray
+//      marching reads none) and prefix sums (one per row
 //      for kPrefixSum, K interleaved in double for kSvd, with each texel's K
 //      terms in float);
 //   5. traversal: one invocation per pixel, min-max traversal or ray
@@ -449,7 +450,7 @@ uint32_t TraversalBandRows(uint32_t width, uint32_t max_pixels) {
 // GL thread: the programs for `setup` (which may fall back from kSvd when
 // its prefix sums exceed a storage block), the targets and the buffers.
 StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const VolumetricLight& light,
-                                                           VolumetricMethod method) {
+                                                           VolumetricMethod method, const JobOptions& job) {
   // kSvd's prefix sums (K doubles per row and column) must fit one storage
   // block; beyond it the per-texel sum serves.
   if (setup.integrand == VolumetricIntegrand::kSvd) {
@@ -492,8 +493,13 @@ StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const V
   VISQ_ASSIGN_OR_RETURN(t->prefix, Program({{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
   VISQ_ASSIGN_OR_RETURN(t->integrate, Program({{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
 
+  // The driver fills every store it allocates (llvmpipe: a memset of up to
+  // 67 MB each, 1.2 s for a 4096 map and a 1920 x 1080 image on this
+  // machine, several times that under ASan): the call is asked between them.
+  const std::string_view where = "volumetric shadows: setup";
   const uint32_t n = setup.map_size;
   const size_t cells = size_t{setup.rows} * setup.cols;
+  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
   t->shadow_map = GlTexture2D();
   glTextureStorage2D(t->shadow_map.id(), 1, GL_DEPTH_COMPONENT32F, GLsizei(n), GLsizei(n));
   glTextureParameteri(t->shadow_map.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
@@ -519,9 +525,15 @@ StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const V
   if (glCheckNamedFramebufferStatus(t->camera_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
     return absl::InternalError("volumetric shadows: camera framebuffer incomplete");
 
+  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
   t->rect_depth = MakeBuffer(cells * sizeof(float));
-  t->tree_min = MakeBuffer(cells * sizeof(float));
-  t->tree_max = MakeBuffer(cells * sizeof(float));
+  // Ray marching tests every texel and reads no tree.
+  const bool tree = method == VolumetricMethod::kMinMaxTraversal;
+  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  t->tree_min = MakeBuffer(tree ? cells * sizeof(float) : 0);
+  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  t->tree_max = MakeBuffer(tree ? cells * sizeof(float) : 0);
+  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
   const bool prefix = setup.integrand == VolumetricIntegrand::kPrefixSum;
   t->rect_weight = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
   t->rect_unit = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
@@ -641,15 +653,17 @@ Status Rectify(const VolumetricTargets& t, const Setup& setup, const VolumetricL
 }
 
 // 4. Min-max levels, then prefix sums.
-Status BuildMinMax(const VolumetricTargets& t, const Setup& setup) {
+Status BuildMinMax(const VolumetricTargets& t, const Setup& setup, VolumetricMethod method) {
   BindComputeStorage(t);
-  glUseProgram(t.minmax->id());
-  glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_cols"), GLint(setup.cols));
-  glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_rows"), GLint(setup.rows));
-  for (uint32_t level = 1; level <= setup.levels; ++level) {
-    glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_level"), GLint(level));
-    glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
-    glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+  if (method == VolumetricMethod::kMinMaxTraversal) {
+    glUseProgram(t.minmax->id());
+    glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_cols"), GLint(setup.cols));
+    glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_rows"), GLint(setup.rows));
+    for (uint32_t level = 1; level <= setup.levels; ++level) {
+      glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_level"), GLint(level));
+      glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
+      glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
+    }
   }
   if (setup.integrand == VolumetricIntegrand::kPrefixSum || setup.integrand == VolumetricIntegrand::kSvd) {
     const GlProgram* p = t.prefix;
@@ -822,7 +836,7 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
     });
   };
   VISQ_RETURN_IF_ERROR(job(ms.setup_ms, [&]() -> Status {
-    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<VolumetricTargets> made, CreateTargets(setup, params.light, params.method));
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<VolumetricTargets> made, CreateTargets(setup, params.light, params.method, params.job));
     targets.Set(std::move(made));
     return absl::OkStatus();
   }));
@@ -846,7 +860,7 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
     return Rectify(t, setup, params.light);
   }));
   VISQ_RETURN_IF_ERROR(stage(ms.mipmap_ms, [&](const GpuScene::Resources&, const VolumetricTargets& t) {
-    return BuildMinMax(t, setup);
+    return BuildMinMax(t, setup, params.method);
   }));
   // The figures are known now (the first job may have fallen back from
   // kSvd), before any band.
