@@ -159,11 +159,6 @@ namespace {
 
 using Table = HiddenSampleMapper::State::Table;
 
-// The call's stop for a table build: asked between rows of theta.
-std::function<bool()> StopFor(const JobOptions& job) {
-  return [&job] { return !StillWanted(job, "").ok(); };
-}
-
 // The table for this sample pattern: cached, else built here (not on the GL
 // thread, which other queries share) until the call stops wanting it.
 // `build_ms` gets the time spent building.
@@ -185,8 +180,8 @@ StatusOr<std::shared_ptr<Table>> CachedTable(HiddenSampleMapper::State& state, G
   auto built = std::make_shared<Table>();
   built->layout.theta_res = options.hough_theta_resolution;
   built->layout.r_res = options.hough_r_resolution;
-  built->cpu = hsm::BuildHoughTable(centred, built->layout, StopFor(job));
-  if (built->cpu.empty()) return StillWanted(job, "hidden-sample map: building the sample table");
+  built->cpu = hsm::BuildHoughTable(centred, built->layout, job.stop);
+  if (built->cpu.empty()) return job.stop.Check("hidden-sample map: building the sample table");
   built->centred = centred;
   build_ms = MillisecondsSince(start);
   std::lock_guard lock(state.mutex);
@@ -212,8 +207,8 @@ Status EnsureTableOnGpu(Table& table, int groups, const JobOptions& job) {
   const hsm::HoughTableLayout layout = table.layout;  // other threads read table.layout
   if (table.cpu.empty()) {
     hsm::HoughTableLayout same_layout = layout;
-    table.cpu = hsm::BuildHoughTable(table.centred, same_layout, StopFor(job));
-    if (table.cpu.empty()) return StillWanted(job, "hidden-sample map: rebuilding the sample table");
+    table.cpu = hsm::BuildHoughTable(table.centred, same_layout, job.stop);
+    if (table.cpu.empty()) return job.stop.Check("hidden-sample map: rebuilding the sample table");
   }
   GlTexture2DArray texture;
   glTextureStorage3D(texture.id(), 1, GL_RGBA32UI, layout.r_res, layout.theta_res, 2 * groups);
@@ -421,7 +416,7 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, table.samples.id());
 
   for (int pass = 0; pass < plan.passes; ++pass) {
-    VISQ_RETURN_IF_ERROR(StillWanted(job, "hidden-sample map: between passes"));
+    VISQ_RETURN_IF_ERROR(job.stop.Check("hidden-sample map: between passes"));
     const int first = pass * plan.groups_per_pass;
     const int count = std::min(plan.groups_per_pass, plan.groups - first);
     VISQ_ASSIGN_OR_RETURN(const GlProgram* program,

@@ -11,7 +11,7 @@
 namespace visq::gpu::hsm {
 
 std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, HoughTableLayout& layout,
-                                      const std::function<bool()>& stop) {
+                                      const StopToken& stop) {
   const int n = static_cast<int>(centred.size());
   layout.sample_count = n;
   double rho_max = 0.0;
@@ -50,7 +50,7 @@ std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, Hou
   auto build_rows = [&](int first, int last) {
     for (int ti = first; ti < last; ++ti) {
       if (stopped.load(std::memory_order_relaxed)) return;
-      if (stop && stop()) {
+      if (stop.Stopped()) {
         stopped = true;
         return;
       }

@@ -18,6 +18,8 @@
 
 #include <glm/glm.hpp>
 
+#include "common/stop_token.h"
+
 namespace visq::gpu::hsm {
 
 inline constexpr double kHoughMargin = 1e-5;
@@ -33,11 +35,11 @@ struct HoughTableLayout {
 // centred: the float sample positions the shader tests, (s - 0.5, t - 0.5).
 // Returns texels laid out as a GL_TEXTURE_2D_ARRAY of RGBA32UI: layer
 // (plane * groups + group), row theta index, column r index, 4 words.
-// `stop` (optional) is asked between rows of theta: the table of 4096
-// samples is a quarter of a billion cell tests, seconds on a slow core, and
-// a call that no longer wants it should not pay them. Returns an empty
-// table once `stop` answered true.
+// `stop` is asked between rows of theta: the table of 4096 samples is a
+// quarter of a billion cell tests, seconds on a slow core, and a call that
+// no longer wants it should not pay them. Returns an empty table once
+// `stop` said stop.
 std::vector<uint32_t> BuildHoughTable(const std::vector<glm::vec2>& centred, HoughTableLayout& layout,
-                                      const std::function<bool()>& stop = {});
+                                      const StopToken& stop = {});
 
 }  // namespace visq::gpu::hsm

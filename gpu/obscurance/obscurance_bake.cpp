@@ -229,7 +229,7 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
       sizer.Measured(int(count), MillisecondsSince(band_start));
       peel.next_band += count;
       if (peel.next_band < total) {
-        VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between bands of a dispatch"));
+        VISQ_RETURN_IF_ERROR(job.stop.Check("obscurance bake: between bands of a dispatch"));
         if (step_spent()) return false;
       }
     }
@@ -287,7 +287,7 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
         if (!piece.everything || !sizers.draw.settled())
           sizers.draw.Measured(int(std::min<uint64_t>(piece.triangles, INT32_MAX)), MillisecondsSince(piece_start));
         if (!peel.layer_draw->done()) {
-          VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between draws of a layer"));
+          VISQ_RETURN_IF_ERROR(job.stop.Check("obscurance bake: between draws of a layer"));
           if (step_spent()) return absl::OkStatus();
         }
       }
@@ -308,7 +308,7 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
       } else {
         peel.layer = k + 1;
         peel.stage = DirectionPeel::Stage::kDraw;
-        VISQ_RETURN_IF_ERROR(StillWanted(job, "obscurance bake: between layers"));
+        VISQ_RETURN_IF_ERROR(job.stop.Check("obscurance bake: between layers"));
         if (step_spent()) break;
         continue;
       }
@@ -371,7 +371,7 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
     ~Release() { worker.Post([s = std::move(state)]() mutable { s.reset(); }); }
   } release{worker, state};
 
-  JobOptions job{options.priority, options.deadline, options.cancelled};
+  const JobOptions& job = options.job;
   VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() { return CreateState(*state, scene, atlas, channels, bundle); }));
 
   // Steps of about step_target_ms, in draw pieces of a quarter of it, sized
@@ -396,9 +396,8 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
   local.bundle_resolution = bundle;
   const double kStart = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   for (uint32_t i = 0; i < params.direction_count; ++i) {
-    if (options.cancelled != nullptr && options.cancelled->load())
-      return absl::CancelledError(absl::StrCat("obscurance bake cancelled after ", i, " of ", params.direction_count,
-                                               " directions"));
+    VISQ_RETURN_IF_ERROR(job.stop.Check(
+        absl::StrCat("obscurance bake, after ", i, " of ", params.direction_count, " directions")));
     const uint32_t index = params.first_direction + i;
     const DirectionFrame frame = FrameOf(obscurance::DirectionOfSequence(params.seed, index), center, radius, bundle);
     DirectionPeel peel;
@@ -431,7 +430,7 @@ StatusOr<ObscurancePartial> BakeObscurancePartial(GpuWorker& worker, const GpuSc
   const size_t triangles = scene.TriangleCount();
   std::vector<uint32_t> words(texels * 2 * (channels + 1)), triangle_words(triangles * 2 * (channels + 1));
   partial.count_squares.resize(texels + triangles);
-  VISQ_RETURN_IF_ERROR(worker.Run({options.priority, SteadyTime::max(), nullptr}, [&]() -> Status {
+  VISQ_RETURN_IF_ERROR(worker.Run({options.job.priority}, [&]() -> Status {
     glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
     glGetNamedBufferSubData(state->sums.id(), 0, static_cast<GLsizeiptr>(words.size() * sizeof(uint32_t)),
                             words.data());

@@ -112,19 +112,18 @@ class GpuWorker::Impl {
     auto result = job->done.get_future();
     const SteadyTime submitted = std::chrono::steady_clock::now();
     const uint64_t sequence = Enqueue(std::move(job));
-    if (options.cancelled == nullptr && options.deadline == SteadyTime::max()) return result.get();
+    if (!options.stop.CanStop()) return result.get();
     // A job still queued behind other calls' jobs is answered as soon as its
     // call stops wanting it, not when the GL thread reaches it.
     while (result.wait_for(kQueuedStopCheck) != std::future_status::ready) {
-      const bool cancelled = options.cancelled != nullptr && options.cancelled->load();
-      if (!cancelled && std::chrono::steady_clock::now() <= options.deadline) continue;
-      if (!Withdraw(options.priority, sequence)) continue;  // running: it asks StillWanted itself
+      Status stopped = options.stop.Check("queued for the GPU");
+      if (stopped.ok()) continue;
+      if (!Withdraw(options.priority, sequence)) continue;  // running: it asks its stop token itself
       if (timing) {
         timing->queue_ms = MillisecondsSince(submitted);
         timing->run_ms = 0.0;
       }
-      return cancelled ? absl::CancelledError("cancelled while queued for the GPU")
-                       : absl::DeadlineExceededError("deadline passed while queued for the GPU");
+      return stopped;
     }
     return result.get();
   }
@@ -226,14 +225,11 @@ class GpuWorker::Impl {
 
   void Execute(Job& job) {
     const SteadyTime start = std::chrono::steady_clock::now();
-    Status status;
-    if (job.options.cancelled && job.options.cancelled->load()) {
-      status = absl::CancelledError("cancelled while queued for the GPU");
-    } else if (start > job.options.deadline) {
-      status = absl::DeadlineExceededError("deadline passed while queued for the GPU");
-    } else if (!context_usable_) {
+    // A call that stopped wanting the job while it waited gets that answer.
+    Status status = job.options.stop.Check("queued for the GPU");
+    if (status.ok() && !context_usable_) {
       status = absl::InternalError(absl::StrCat("no GPU context: ", lost_reason_));
-    } else {
+    } else if (status.ok()) {
       status = job.body();
       ResetPipelineState();
       if (const std::string reset = ContextLossDuringJob(); !reset.empty()) {

@@ -93,7 +93,7 @@ Status DrawAcrossJobs::DrawSome(double job_ms, const JobOptions& job, std::strin
   const auto job_start = std::chrono::steady_clock::now();
   for (bool first = true; !cursor_.done(); first = false) {
     if (!first) {
-      VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+      VISQ_RETURN_IF_ERROR(job.stop.Check(where));
       if (MillisecondsSince(job_start) >= job_ms) return absl::OkStatus();
     }
     const ScenePartDraw piece = cut_ ? cursor_.Next(uint64_t(pieces_.size())) : cursor_.Next(UINT64_MAX);

@@ -40,7 +40,7 @@ class DrawCursor {
 
 // Draws `part` of `scene` in pieces sized by `pieces`, each finished and
 // timed while the sizer still learns, and asks `job` between pieces
-// (StillWanted, naming `where`): a stop reaches a draw that takes seconds on
+// (its stop token, naming `where`): a stop reaches a draw that takes seconds on
 // a CPU rasterizer within about one piece. For draws whose pieces combine
 // as one draw would (OR logic ops, depth-tested targets).
 [[nodiscard]] Status DrawInTimedPieces(const GpuScene& scene, const ScenePartDraw& part, TimedSizer& pieces,

@@ -499,7 +499,7 @@ StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const V
   const std::string_view where = "volumetric shadows: setup";
   const uint32_t n = setup.map_size;
   const size_t cells = size_t{setup.rows} * setup.cols;
-  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  VISQ_RETURN_IF_ERROR(job.stop.Check(where));
   t->shadow_map = GlTexture2D();
   glTextureStorage2D(t->shadow_map.id(), 1, GL_DEPTH_COMPONENT32F, GLsizei(n), GLsizei(n));
   glTextureParameteri(t->shadow_map.id(), GL_TEXTURE_MIN_FILTER, GL_NEAREST);
@@ -525,15 +525,15 @@ StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const V
   if (glCheckNamedFramebufferStatus(t->camera_fb.id(), GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
     return absl::InternalError("volumetric shadows: camera framebuffer incomplete");
 
-  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  VISQ_RETURN_IF_ERROR(job.stop.Check(where));
   t->rect_depth = MakeBuffer(cells * sizeof(float));
   // Ray marching tests every texel and reads no tree.
   const bool tree = method == VolumetricMethod::kMinMaxTraversal;
-  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  VISQ_RETURN_IF_ERROR(job.stop.Check(where));
   t->tree_min = MakeBuffer(tree ? cells * sizeof(float) : 0);
-  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  VISQ_RETURN_IF_ERROR(job.stop.Check(where));
   t->tree_max = MakeBuffer(tree ? cells * sizeof(float) : 0);
-  VISQ_RETURN_IF_ERROR(StillWanted(job, where));
+  VISQ_RETURN_IF_ERROR(job.stop.Check(where));
   const bool prefix = setup.integrand == VolumetricIntegrand::kPrefixSum;
   t->rect_weight = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);
   t->rect_unit = MakeBuffer(setup.weighted ? cells * sizeof(float) : 0);

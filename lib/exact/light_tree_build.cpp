@@ -335,12 +335,8 @@ Status LightTree::SelectOccluders(const Scene& scene, const TreeOptions& options
   by_position.reserve(visit_count / 2);
   for (size_t visit = 0; visit < visit_count; ++visit) {
     if (visit % 4096 == 0) {
-      if (options.cancelled != nullptr && options.cancelled->load())
-        return absl::CancelledError(absl::StrCat("light tree: cancelled after ", visit, " of ", visit_count,
-                                                 " triangles"));
-      if (std::chrono::steady_clock::now() > options.deadline)
-        return absl::DeadlineExceededError(absl::StrCat("light tree: the deadline passed after ", visit, " of ",
-                                                        visit_count, " triangles"));
+      VISQ_RETURN_IF_ERROR(
+          options.stop.Check(absl::StrCat("light tree, after ", visit, " of ", visit_count, " triangles")));
     }
     const size_t ti = indexed ? near_shaft[visit] : visit;
     // The triangle's corners where the scene holds it: the record's, or

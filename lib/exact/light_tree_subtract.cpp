@@ -18,7 +18,7 @@ bool LightTree::StopNow(Scratch& s) {
   if (!s.stopped.ok()) return true;
   if (s.stop == nullptr || s.stop_countdown-- > 0) return false;
   s.stop_countdown = kStopStride;
-  s.stopped = s.stop->Check();
+  s.stopped = s.stop->Check("light visibility query");
   return !s.stopped.ok();
 }
 

@@ -22,13 +22,6 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(const
   return std::unique_ptr<LightVisibilityTree>(new LightVisibilityTree(std::move(tree)));
 }
 
-Status StopToken::Check() const {
-  if (cancelled != nullptr && cancelled->load(std::memory_order_relaxed)) return absl::CancelledError("cancelled");
-  if (deadline != std::chrono::steady_clock::time_point::max() && std::chrono::steady_clock::now() > deadline)
-    return absl::DeadlineExceededError("deadline passed");
-  return absl::OkStatus();
-}
-
 StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bool want_polygons,
                                                      const StopToken& stop) {
   return impl_->Query(point, want_polygons, stop);
@@ -39,8 +32,7 @@ bool LightVisibilityTree::StoresAnswer(const QueryPoint& point, bool want_polygo
 }
 
 StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
-    std::span<const QueryPoint> points, int threads, bool want_polygons,
-    std::chrono::steady_clock::time_point deadline) {
+    std::span<const QueryPoint> points, int threads, bool want_polygons, const StopToken& stop_token) {
   std::vector<PointVisibility> out(points.size());
   std::atomic<bool> stop{false};
   std::mutex error_mutex;
@@ -50,15 +42,15 @@ StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
       points.size(), 1,
       [&](size_t i, size_t) {
         if (stop.load(std::memory_order_relaxed)) return;
-        if (std::chrono::steady_clock::now() > deadline) {
+        if (Status stopped = stop_token.Check(
+                absl::StrCat("light visibility, with ", points.size() - i, " of ", points.size(), " points left"));
+            !stopped.ok()) {
           std::lock_guard lock(error_mutex);
-          if (error.ok())
-            error = absl::DeadlineExceededError(
-                absl::StrCat("deadline passed with ", points.size() - i, " of ", points.size(), " points left"));
+          if (error.ok()) error = stopped;
           stop = true;
           return;
         }
-        auto r = impl_->Query(points[i], want_polygons, StopToken{nullptr, deadline});
+        auto r = impl_->Query(points[i], want_polygons, stop_token);
         if (!r.ok()) {
           std::lock_guard lock(error_mutex);
           if (error.ok()) error = Status(r.status().code(), absl::StrCat("points[", i, "]: ", r.status().message()));

@@ -99,6 +99,7 @@
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "common/stop_token.h"
 #include "scene/scene.h"
 
 namespace visq::exact {
@@ -190,21 +191,10 @@ struct TreeOptions {
     paper.cull_pyramid = paper.quadrilaterals = paper.line_boxes = paper.fragment_grid = paper.largest_first = false;
     return paper;
   }
-  // Read by Create only, every few thousand triangles while it selects the
+  // Asked by Create only, every few thousand triangles while it selects the
   // occluders: a call that was cancelled or whose deadline passed stops
   // there (CANCELLED / DEADLINE_EXCEEDED). Not part of the tree's identity.
-  const std::atomic<bool>* cancelled = nullptr;
-  std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
-};
-
-// What stops a query that is under way: a cancelled call or a passed
-// deadline. Checked between occluders while a query subtracts them and
-// between the steps of its descent, so one long query stops too.
-struct StopToken {
-  const std::atomic<bool>* cancelled = nullptr;
-  std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
-  // CANCELLED or DEADLINE_EXCEEDED when one of them holds; OK otherwise.
-  Status Check() const;
+  StopToken stop;
 };
 
 struct QueryPoint {
@@ -328,11 +318,11 @@ class LightVisibilityTree {
   // Whether Query would answer `point` from the store (no counts change).
   bool StoresAnswer(const QueryPoint& point, bool want_polygons = false) const;
   // Queries in parallel on `threads` workers (0: hardware concurrency).
-  // DEADLINE_EXCEEDED once `deadline` passes (checked between points and
-  // inside them), so a batch whose caller gave up stops.
-  [[nodiscard]] StatusOr<std::vector<PointVisibility>> QueryBatch(
-      std::span<const QueryPoint> points, int threads = 0, bool want_polygons = false,
-      std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max());
+  // Once `stop` says stop (asked between points and inside them), its
+  // status, so a batch whose caller gave up stops.
+  [[nodiscard]] StatusOr<std::vector<PointVisibility>> QueryBatch(std::span<const QueryPoint> points, int threads = 0,
+                                                                  bool want_polygons = false,
+                                                                  const StopToken& stop = {});
 
   TreeStats Stats() const;
   // The tree and its store of answers.

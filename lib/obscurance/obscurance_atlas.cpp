@@ -250,9 +250,7 @@ StatusOr<ObscuranceAtlas> BuildObscuranceAtlas(const Scene& placed_scene, uint32
     return absl::InvalidArgumentError(
         absl::StrCat("resolution: ", resolution, " must be in [1, ", kMaxAtlasResolution, "]"));
   if (scene.TriangleCount() == 0) return absl::InvalidArgumentError("scene: no triangles to bake");
-  auto stopped = [&](const char* where) {
-    return options.stop && options.stop() ? absl::CancelledError(absl::StrCat("atlas: stopped ", where)) : Status();
-  };
+  auto stopped = [&](const char* where) { return options.stop.Check(absl::StrCat("obscurance atlas, ", where)); };
   ObscuranceAtlas atlas;
   atlas.width = atlas.height = resolution;
   const size_t nt = scene.TriangleCount();

@@ -14,6 +14,7 @@
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "common/stop_token.h"
 #include "scene/scene.h"
 
 namespace visq::obscurance {
@@ -36,8 +37,9 @@ struct AtlasOptions {
   // server reserves its work budget here.
   std::function<Status(uint64_t bytes)> reserve;
   // Asked every few thousand texels clipped and between the build's
-  // phases: true stops the build with CANCELLED ("atlas: stopped ...").
-  std::function<bool()> stop;
+  // phases: once it says stop, the build returns its status ("obscurance
+  // atlas, ...").
+  StopToken stop;
 };
 
 // The part of one triangle that lies in one texel.

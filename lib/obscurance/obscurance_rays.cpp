@@ -426,7 +426,7 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
       }
     }
     if (rays.empty()) continue;
-    if (options.stop && options.stop()) return absl::CancelledError("obscurance rays: the call stopped");
+    VISQ_RETURN_IF_ERROR(options.stop.Check("obscurance rays"));
     raycast::TraceOptions trace;
     trace.threads = options.threads;
     trace.stop = options.stop;

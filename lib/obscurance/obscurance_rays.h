@@ -85,9 +85,9 @@ struct RayEstimateOptions {
   uint32_t rays_per_patch = 64;
   uint64_t seed = 1;
   int threads = 0;  // 0: all cores
-  // Polled between batches of rays: when it returns true the estimate stops
-  // with CANCELLED (a call cancelled or past its deadline).
-  std::function<bool()> stop;
+  // Asked between batches of rays: once it says stop, the estimate returns
+  // its CANCELLED or DEADLINE_EXCEEDED.
+  StopToken stop;
 };
 
 // The texels of one batch of EstimateObscurancesByRays: as many as make

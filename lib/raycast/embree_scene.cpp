@@ -73,8 +73,7 @@ Status EmbreeStatus(RTCDevice device, const char* what) {
 
 // Embree's progress callback: false cancels the build.
 bool OnEmbreeProgress(void* user, double /*fraction*/) {
-  const auto* stop = static_cast<const std::function<bool()>*>(user);
-  return !(*stop)();
+  return !static_cast<const StopToken*>(user)->Stopped();
 }
 
 bool OnEmbreeMemory(void* user, ssize_t bytes, bool /*post*/) {
@@ -125,8 +124,7 @@ void ParallelChunks(size_t count, int threads, const std::function<void(size_t, 
 // been told, all stop.
 bool ShouldStop(const TraceOptions& options, size_t done, std::atomic<bool>& stopped) {
   if (stopped.load(std::memory_order_relaxed)) return true;
-  if (!options.stop || done % kChunkRays != 0) return false;
-  if (!options.stop()) return false;
+  if (done % kChunkRays != 0 || !options.stop.Stopped()) return false;
   stopped = true;
   return true;
 }
@@ -288,8 +286,8 @@ Status EmbreeScene::AddInstances(const Scene& scene, const EmbreeSceneOptions& o
       group = rtcNewScene(device_);
       rtcSetSceneFlags(group, RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION);
       rtcSetSceneBuildQuality(group, quality);
-      if (options.stop)
-        rtcSetSceneProgressMonitorFunction(group, OnEmbreeProgress, const_cast<std::function<bool()>*>(&options.stop));
+      if (options.stop.CanStop())
+        rtcSetSceneProgressMonitorFunction(group, OnEmbreeProgress, const_cast<StopToken*>(&options.stop));
       for (size_t i = 0; i < meshes.size(); ++i) {
         const SceneMesh& mesh = scene.meshes[meshes[i]];
         VISQ_RETURN_IF_ERROR(AttachTriangles(
@@ -297,7 +295,7 @@ Status EmbreeScene::AddInstances(const Scene& scene, const EmbreeSceneOptions& o
             mesh.triangles.size(), [&](size_t t) { return mesh.triangles[t]; }));
       }
       rtcCommitScene(group);
-      if (options.stop && options.stop()) break;
+      if (options.stop.Stopped()) break;
     }
     // Embree's 3x4 column-major transform: the linear part, then the
     // translation in the upload's frame.
@@ -359,7 +357,8 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
   rtcSetSceneFlags(out.scene_, RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION);
   rtcSetSceneBuildQuality(out.scene_, options.quality == BuildQuality::kHigh ? RTC_BUILD_QUALITY_HIGH
                                                                              : RTC_BUILD_QUALITY_MEDIUM);
-  if (options.stop) rtcSetSceneProgressMonitorFunction(out.scene_, OnEmbreeProgress, const_cast<std::function<bool()>*>(&options.stop));
+  if (options.stop.CanStop())
+    rtcSetSceneProgressMonitorFunction(out.scene_, OnEmbreeProgress, const_cast<StopToken*>(&options.stop));
   std::vector<uint8_t> instanced(scene.TriangleCount(), 0);
   if (options.instance_meshes && !scene.placements.empty())
     VISQ_RETURN_IF_ERROR(out.AddInstances(scene, options, PlacementsToInstance(scene, options, frame), instanced));
@@ -390,7 +389,7 @@ StatusOr<EmbreeScene> EmbreeScene::Create(const Scene& scene, const EmbreeSceneO
     }
   }
   rtcCommitScene(out.scene_);
-  if (options.stop && options.stop()) {
+  if (options.stop.Stopped()) {
     t_last_embree_error.clear();
     rtcGetDeviceError(out.device_);  // clears RTC_ERROR_CANCELLED
     return absl::CancelledError("the Embree build was stopped");
@@ -516,7 +515,7 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
     }
   });
   VISQ_RETURN_IF_ERROR(EmbreeStatus(device_, "rtcOccluded1M"));
-  if (stopped) return absl::CancelledError("ray tracing stopped: the call was cancelled or its deadline passed");
+  if (stopped) return options.stop.Check("ray tracing");
   return result;
 }
 
@@ -572,7 +571,7 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
     }
   });
   VISQ_RETURN_IF_ERROR(EmbreeStatus(device_, "rtcIntersect1M"));
-  if (stopped) return absl::CancelledError("ray tracing stopped: the call was cancelled or its deadline passed");
+  if (stopped) return options.stop.Check("ray tracing");
   return result;
 }
 

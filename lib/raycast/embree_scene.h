@@ -35,6 +35,7 @@
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "common/stop_token.h"
 #include "scene/scene.h"
 
 // Embree's handle types, declared here so that embree headers stay private.
@@ -81,9 +82,9 @@ struct TraceOptions {
   int threads = 0;  // 0: the caller and every thread of the process's pool (common/parallel.h)
   // Triangles that block no ray of the batch (sorted or not; any size).
   std::span<const uint32_t> ignore_triangles;
-  // Polled between streams of rays: when it returns true the trace stops
-  // and the call returns CANCELLED (a call cancelled or past its deadline).
-  std::function<bool()> stop;
+  // Asked between streams of rays: once it says stop, the trace stops and
+  // returns its CANCELLED or DEADLINE_EXCEEDED.
+  StopToken stop;
 };
 
 // Embree's BVH build quality. On the shared scenes (tests/bench/structure_bench.cpp,
@@ -113,10 +114,10 @@ struct EmbreeSceneOptions {
   // indices in place instead of copying them (12 bytes a triangle), and the
   // EmbreeScene keeps the scene alive. Ignored when it is another object.
   std::shared_ptr<const Scene> shared_scene;
-  // Polled while the BVH is built: when it returns true the build stops and
+  // Asked while the BVH is built: once it says stop, the build stops and
   // Create returns CANCELLED (a server shutting down does not wait for a
   // build of millions of triangles).
-  std::function<bool()> stop;
+  StopToken stop;
 };
 
 class EmbreeScene {

@@ -348,7 +348,7 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
   CallOptions probe_call = call;
   if (std::isfinite(budget_ms)) {
     const auto budget_end = start + std::chrono::microseconds(static_cast<int64_t>(budget_ms * 1000.0));
-    probe_call.deadline = std::min(call.deadline, budget_end);
+    probe_call.stop.deadline = std::min(call.stop.deadline, budget_end);
   }
   const bool fresh = model.Observations(plan.cost_key) == 0;
   for (size_t k = first_probe; k < option.probes.size(); ++k) {
@@ -365,7 +365,7 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
       if (probe_predicted > kNextProbeShareOfRequest * request_predicted) break;
       if (std::isfinite(budget_ms) && 2.0 * MillisecondsSince(start) > budget_ms) break;
     }
-    VISQ_RETURN_IF_ERROR(call.StillWanted("choosing a method"));
+    VISQ_RETURN_IF_ERROR(call.stop.Check("choosing a method"));
     const auto probe_start = std::chrono::steady_clock::now();
     StatusOr<double> ms = probe.run(probe_call);
     const double first_run_ms = MillisecondsSince(probe_start);
@@ -382,7 +382,7 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
     if (!ms.ok()) {
       // The call itself still wants its answer: the probe ran out of its
       // budget, not the call.
-      if (!call.Stopped() && probe_call.Stopped()) {
+      if (!call.stop.Stopped() && probe_call.stop.Stopped()) {
         model.RecordCutProbe(plan.cost_key, budget_ms);
         return k > first_probe || !fresh ? ProbeOutcome::kMeasured : ProbeOutcome::kCut;
       }

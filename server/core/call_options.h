@@ -27,8 +27,8 @@ class BuildClock {
 };
 
 struct CallOptions {
-  SteadyTime deadline = SteadyTime::max();
-  const std::atomic<bool>* cancelled = nullptr;  // set when the call is cancelled or drained
+  // The call's deadline, and its flag, set when it is cancelled or drained.
+  StopToken stop;
   // Shared by the copies of one call's options; null: not measured.
   std::shared_ptr<BuildClock> build_clock;
   // How the server's log names the call ("[r5 HiddenSampleMap]"), for the
@@ -37,15 +37,9 @@ struct CallOptions {
 
   double BuildMs() const { return build_clock ? build_clock->ms() : 0.0; }
 
-  // OK while the call still wants its answer (see visq::StillWanted).
-  [[nodiscard]] Status StillWanted(std::string_view where) const { return ::visq::StillWanted(Job(), where); }
-  bool Stopped() const {
-    return (cancelled != nullptr && cancelled->load()) || SteadyTime::clock::now() > deadline;
-  }
-
   // GPU jobs for a query someone waits on, and for long batch work.
-  JobOptions Job() const { return {kInteractive, deadline, cancelled}; }
-  JobOptions BatchJob() const { return {kBatch, deadline, cancelled}; }
+  JobOptions Job() const { return {kInteractive, stop}; }
+  JobOptions BatchJob() const { return {kBatch, stop}; }
 };
 
 }  // namespace visq::core

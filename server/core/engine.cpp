@@ -176,8 +176,7 @@ StatusOr<std::unique_ptr<SceneUpload>> Engine::BeginUpload(absl::string_view nam
   return upload;
 }
 
-StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
-                                            const std::atomic<bool>* cancelled) {
+StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload, const StopToken& stop) {
   const auto start = std::chrono::steady_clock::now();
   UploadStaging& staging = *upload->staging_;
   if (upload->expected_bytes_ != 0 && staging.bytes() != upload->expected_bytes_)
@@ -208,8 +207,7 @@ StatusOr<SceneSummary> Engine::FinishUpload(std::unique_ptr<SceneUpload> upload,
     if (!upload->replace_ && (scenes_.count(staging.name()) || repository_->Contains(staging.name())))
       return absl::AlreadyExistsError(absl::StrCat("scene '", staging.name(), "' already exists (set replace)"));
   }
-  if (cancelled != nullptr && cancelled->load())
-    return absl::CancelledError("LoadScene was cancelled before it was stored: nothing stored");
+  VISQ_RETURN_IF_ERROR(stop.Check("LoadScene, before the scene was stored (nothing stored)"));
   VISQ_ASSIGN_OR_RETURN(const SceneRepository::Stored stored, repository_->Commit(staging, upload->replace_));
 
   resident->dropped = std::move(report.dropped);
@@ -429,7 +427,7 @@ LazyStructure<raycast::EmbreeScene>::Build Engine::EmbreeBuild(const ResidentSce
         // 2.2-5x faster than HIGH, and traces them about as fast (7 % slower
         // on Sponza, as fast or faster elsewhere; raycast::BuildQuality).
         options.quality = raycast::BuildQuality::kMedium;
-        options.stop = [this] { return builds_.stopping(); };
+        options.stop = builds_.stop();
         VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(scene, options));
         return std::make_shared<raycast::EmbreeScene>(std::move(embree));
       },

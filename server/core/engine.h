@@ -201,10 +201,10 @@ class Engine {
                                                                    absl::string_view main_file, bool replace,
                                                                    uint64_t expected_bytes);
   // Commits a complete upload: every announced byte arrived, and the call
-  // was not cancelled (checked again just before the commit). Anything else
-  // leaves the repository as it was.
-  [[nodiscard]] StatusOr<SceneSummary> FinishUpload(std::unique_ptr<SceneUpload> upload,
-                                                    const std::atomic<bool>* cancelled = nullptr);
+  // still wants it (asked again just before the commit: a client whose
+  // deadline passed was told the upload failed). Anything else leaves the
+  // repository as it was.
+  [[nodiscard]] StatusOr<SceneSummary> FinishUpload(std::unique_ptr<SceneUpload> upload, const StopToken& stop = {});
 
   std::vector<SceneSummary> ListScenes() const;
   [[nodiscard]] StatusOr<SceneSummary> GetScene(absl::string_view name, bool with_nodes, bool load_if_stored = false);

@@ -26,7 +26,7 @@
 namespace visq::core {
 
 // Runs builds, each on a thread of its own, and when destroyed asks those
-// still running to stop (stopping()) and waits for them. A thread per build
+// still running to stop (stop()) and waits for them. A thread per build
 // rather than a pool: builds are rare (once per structure and scene
 // version), and a pool of N would hold a small scene's build behind N large
 // ones. Threads that finished are joined when the next build starts.
@@ -38,8 +38,8 @@ class StructureBuilds {
   StructureBuilds& operator=(const StructureBuilds&) = delete;
 
   void Start(std::function<void()> build);
-  // Set once the owner shuts down: long builds poll it and give up.
-  bool stopping() const { return stopping_.load(std::memory_order_relaxed); }
+  // Says stop once the owner shuts down: long builds ask it and give up.
+  StopToken stop() const { return {&stopping_}; }
 
  private:
   struct Running {
@@ -102,9 +102,8 @@ class LazyStructure {
     // A cancellation is a flag nobody signals: look at it every 20 ms.
     constexpr auto kPoll = std::chrono::milliseconds(20);
     while (state_->finished < awaited) {
-      if (Status wanted = call.StillWanted(absl::StrCat("waiting for the ", what, " build")); !wanted.ok())
-        return wanted;
-      state_->done.wait_until(lock, std::min(call.deadline, std::chrono::steady_clock::now() + kPoll));
+      VISQ_RETURN_IF_ERROR(call.stop.Check(absl::StrCat("waiting for the ", what, " build")));
+      state_->done.wait_until(lock, std::min(call.stop.deadline, std::chrono::steady_clock::now() + kPoll));
     }
     if (UsableLocked(build)) return state_->value;
     return state_->failure;

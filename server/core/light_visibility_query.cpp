@@ -71,8 +71,7 @@ StatusOr<exact::TreeOptions> BaseTreeOptions(Engine& engine, const LightVisibili
   // cannot meet a piece, about as fast; smaller trees were faster still
   // (docs/exact-method-notes.md).
   base.max_bytes = engine.light_cache_stats().capacity_bytes / 16;
-  base.cancelled = query.call.cancelled;
-  base.deadline = query.call.deadline;
+  base.stop = query.call.stop;
   for (const std::string& node_name : query.exclude_nodes) {
     bool found = false;
     for (const SceneNode& node : scene.nodes) {
@@ -203,7 +202,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
 
   std::vector<exact::ReceiverCell> groups = ReceiverGroups(engine, query, scene, *index);
   KeepAnsweredPoints(query, groups);
-  const exact::StopToken stop{query.call.cancelled, query.call.deadline};
+  const StopToken& stop = query.call.stop;
 
   // Work in chunks of one group's points, in order, on every core: a single
   // cell's batch runs in parallel as well as many cells. The first chunk of
@@ -300,10 +299,8 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
       };
       for (uint32_t k = chunk.begin; k < chunk.end; ++k) {
         const size_t left = to_answer - answered.load();
-        if (query.call.cancelled != nullptr && query.call.cancelled->load())
-          return fail(WithPointsLeft(absl::StatusCode::kCancelled, "cancelled", left, to_answer));
-        if (std::chrono::steady_clock::now() > query.call.deadline)
-          return fail(WithPointsLeft(absl::StatusCode::kDeadlineExceeded, "deadline passed", left, to_answer));
+        if (Status stopped = stop.Check("light visibility"); !stopped.ok())
+          return fail(WithPointsLeft(stopped.code(), stopped.message(), left, to_answer));
         const uint32_t i = groups[chunk.group].points[k];
         StatusOr<exact::PointVisibility> r = t.tree->Query(query.points[i], query.want_polygons, stop);
         if (!r.ok() && (absl::IsCancelled(r.status()) || absl::IsDeadlineExceeded(r.status())))

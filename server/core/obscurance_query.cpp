@@ -233,9 +233,7 @@ namespace {
 // between directions.
 gpu::ObscuranceBakeOptions BakeOptions(const ObscuranceQuery& query) {
   gpu::ObscuranceBakeOptions bake;
-  bake.priority = gpu::kBatch;
-  bake.deadline = query.call.deadline;
-  bake.cancelled = query.call.cancelled;
+  bake.job = query.call.BatchJob();
   bake.progress = query.progress;
   return bake;
 }
@@ -252,13 +250,6 @@ std::string DepthPeelingSeries(const ResidentScene& resident, const ObscuranceQu
 }
 std::string RaycastSeries(const ResidentScene& resident, const ObscuranceQuery& query) {
   return absl::StrCat(DepthPeelingSeries(resident, query), "/raycast");
-}
-
-// A stopped estimate's status as the call sees it: CANCELLED or
-// DEADLINE_EXCEEDED, whichever stopped it.
-Status StoppedAs(const CallOptions& call, Status status, std::string_view where = "obscurance rays") {
-  if (status.ok() || !call.Stopped()) return status;
-  return call.StillWanted(where);
 }
 
 // Whether a query's bake is whole, so that it becomes the scene's solution
@@ -320,10 +311,8 @@ StatusOr<obscurance::ObscuranceAtlas> BuildAtlasWithinBudget(Engine& engine, con
                                                                job));
     return absl::OkStatus();
   };
-  options.stop = [&call] { return call.Stopped(); };
-  StatusOr<obscurance::ObscuranceAtlas> atlas = obscurance::BuildObscuranceAtlas(scene, query.resolution, options);
-  VISQ_RETURN_IF_ERROR(StoppedAs(call, atlas.status(), "obscurance atlas"));
-  return atlas;
+  options.stop = call.stop;
+  return obscurance::BuildObscuranceAtlas(scene, query.resolution, options);
 }
 
 // A whole bake's ray-cast estimate with `rays` rays per patch, its atlas
@@ -338,9 +327,9 @@ StatusOr<double> RaycastEstimateMs(Engine& engine, const ResidentScene& resident
   obscurance::RayEstimateOptions options;
   options.rays_per_patch = rays;
   options.seed = query.params.seed;
-  options.stop = [call] { return call.Stopped(); };
-  VISQ_RETURN_IF_ERROR(StoppedAs(call, obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params,
-                                                                             options).status()));
+  options.stop = call.stop;
+  VISQ_RETURN_IF_ERROR(
+      obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params, options).status());
   return MillisecondsSince(start);
 }
 
@@ -430,9 +419,9 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
       obscurance::RayEstimateOptions options;
       options.rays_per_patch = rays;
       options.seed = query.params.seed;
-      options.stop = [call = query.call] { return call.Stopped(); };
-      VISQ_RETURN_IF_ERROR(StoppedAs(query.call, obscurance::EstimateObscurancesByRays(*resident.scene, atlas,
-                                                                                       query.params, options).status()));
+      options.stop = query.call.stop;
+      VISQ_RETURN_IF_ERROR(
+          obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params, options).status());
       const double ms = atlas_ms + MillisecondsSince(start);
       model.Record(ray_series, rays, ms);
       report.probe_ms += ms;
@@ -544,10 +533,10 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     obscurance::RayEstimateOptions options;
     options.rays_per_patch = query.rays_per_patch;
     options.seed = query.params.seed;
-    options.stop = [call = query.call] { return call.Stopped(); };
+    options.stop = query.call.stop;
     StatusOr<obscurance::ObscuranceResult> estimate =
         obscurance::EstimateObscurancesByRays(scene, atlas, query.params, options);
-    VISQ_RETURN_IF_ERROR(StoppedAs(query.call, estimate.status()));
+    VISQ_RETURN_IF_ERROR(estimate.status());
     result = *std::move(estimate);
     answer.bake_ms = MillisecondsSince(start);
     answer.rays_per_patch = query.rays_per_patch;
@@ -662,7 +651,7 @@ StatusOr<ObscuranceUpdateAnswer> RunUpdateObscurances(Engine& engine, const Obsc
   std::map<uint32_t, glm::vec3>& triangle_w = changes.triangle_w;
   std::map<uint32_t, glm::vec3>& vertex_w = changes.vertex_w;
   for (const SceneEdit& m : todo) {
-    if (Status wanted = query.call.StillWanted("obscurance update: between moves"); !wanted.ok()) {
+    if (Status wanted = query.call.stop.Check("obscurance update: between moves"); !wanted.ok()) {
       changes.moves = answer.moves_applied;
       changes.counts = answer.update;
       state->undelivered = std::move(changes);
@@ -843,7 +832,7 @@ StatusOr<ObscuranceExportAnswer> RunExportObscurances(Engine& engine, const Obsc
   answer.copy_ms = MillisecondsSince(start);
   answer.scene_version = resident->version;
   answer.triangles = resident->scene->TriangleCount();
-  VISQ_RETURN_IF_ERROR(query.call.StillWanted("ExportObscurances"));
+  VISQ_RETURN_IF_ERROR(query.call.stop.Check("ExportObscurances"));
 
   const auto export_start = std::chrono::steady_clock::now();
   if (query.want_atlas_uvs) answer.atlas_uv = obscurance::AtlasUvs(corner_uv, answer.width, answer.height);

@@ -40,14 +40,6 @@ Status ValidateSize(const sampling::HiddenSampleMapRequest& request) {
 
 // The reference: Embree casts, for every texel and sample, the segment the
 // GPU path tests (same endpoints, from the module's own functions).
-// Whether a job's call was cancelled or its deadline passed, for CPU work
-// that polls (ray batches, points).
-std::function<bool()> StopRequested(const gpu::JobOptions& job) {
-  return [cancelled = job.cancelled, deadline = job.deadline] {
-    return (cancelled != nullptr && cancelled->load()) || std::chrono::steady_clock::now() > deadline;
-  };
-}
-
 StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, const ResidentScene& resident,
                                                                  const sampling::HiddenSampleMapRequest& request,
                                                                  const CallOptions& call,
@@ -89,7 +81,7 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
       for (int x = 0; x < width; ++x)
         receiver_points[size_t(y - y0) * width + x] = sampling::ReceiverSamplePosition(request.receiver, x, y);
     raycast::TraceOptions trace;
-    trace.stop = StopRequested(job);
+    trace.stop = job.stop;
     StatusOr<std::vector<uint8_t>> traced =
         embree->Occluded(
             band_texels * n,
@@ -100,8 +92,6 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
               return raycast::Segment{receiver_points[t], sampling::SourceSampleSeenFrom(request, source, i, x, y)};
             },
             trace);
-    // A stopped trace says why: the call's cancellation or its deadline.
-    if (!traced.ok() && trace.stop()) return gpu::StillWanted(job, "hidden-sample map: between ray batches");
     VISQ_ASSIGN_OR_RETURN(std::vector<uint8_t> blocked, std::move(traced));
     bits.assign(band_texels * words, 0u);
     for (size_t k = 0; k < blocked.size(); ++k)
@@ -318,19 +308,11 @@ struct RunCost {
 
 double ComputeMs(const gpu::JobTiming& timing, double table_ms = 0.0) { return timing.run_ms + table_ms; }
 
-Status RequireNotCancelled(const gpu::JobOptions& job) {
-  if (job.cancelled && job.cancelled->load()) return absl::CancelledError("cancelled while choosing a method");
-  if (std::chrono::steady_clock::now() > job.deadline)
-    return absl::DeadlineExceededError("deadline passed while choosing a method");
-  return absl::OkStatus();
-}
-
 // A plan predicted to outlast the call's deadline fails now rather than
 // after the work.
 Status RequirePredictionFitsDeadline(const Plan& plan, const gpu::JobOptions& job) {
-  if (job.deadline == gpu::SteadyTime::max()) return absl::OkStatus();
-  const double left_ms =
-      MillisecondsBetween(std::chrono::steady_clock::now(), job.deadline);
+  if (job.stop.deadline == SteadyTime::max()) return absl::OkStatus();
+  const double left_ms = MillisecondsBetween(std::chrono::steady_clock::now(), job.stop.deadline);
   if (plan.predicted_ms <= left_ms) return absl::OkStatus();
   return absl::DeadlineExceededError(absl::StrCat("the cheapest plan for the target, ", DescribePlan(plan),
                                                   ", is predicted to take ", plan.predicted_ms,
@@ -427,7 +409,7 @@ StatusOr<ExactProbeRun> RunExactProbe(Engine& engine, const LightVisibilityQuery
   }
   // Stopped by its budget, not by the call: what it measured so far (the
   // trees it built are the ones now held).
-  if (!call.Stopped() && probe_call.Stopped()) {
+  if (!call.stop.Stopped() && probe_call.stop.Stopped()) {
     run.cut = true;
     probe.call = call;
     VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, EstimateLightVisibilityWork(engine, probe));
@@ -473,8 +455,8 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   const auto start = std::chrono::steady_clock::now();
   CallOptions probe_call = call;
   if (std::isfinite(budget_ms))
-    probe_call.deadline =
-        std::min(call.deadline, start + std::chrono::microseconds(static_cast<int64_t>(budget_ms * 1000.0)));
+    probe_call.stop.deadline =
+        std::min(call.stop.deadline, start + std::chrono::microseconds(static_cast<int64_t>(budget_ms * 1000.0)));
   auto finish_units = [&]() -> StatusOr<LightVisibilityWork> {
     VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, EstimateLightVisibilityWork(engine, exact.batch));
     out.units = {after.new_shaft_triangles, after.points};
@@ -508,7 +490,7 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
       StatusOr<LightVisibilityAnswer> answer = RunLightVisibility(engine, probe);
       out.probe_ms += MillisecondsSince(probe_start);
       if (!answer.ok()) {
-        if (call.Stopped() || !probe_call.Stopped()) return answer.status();
+        if (call.stop.Stopped() || !probe_call.stop.Stopped()) return answer.status();
         break;  // past the budget
       }
       runs.emplace_back(double(answered.load()), answer->compute_ms);
@@ -809,11 +791,10 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       const double budget_ms = std::isfinite(best_sampled_ms)
                                    ? std::max(kSmallestProbeBudgetMs, kProbeShareOfBest * best_sampled_ms)
                                    : best_sampled_ms;
-      VISQ_RETURN_IF_ERROR(RequireNotCancelled(job));
+      VISQ_RETURN_IF_ERROR(job.stop.Check("choosing a method"));
       VISQ_ASSIGN_OR_RETURN(const ExactBatch batch, exact_batch());
       CallOptions call;
-      call.deadline = job.deadline;
-      call.cancelled = job.cancelled;
+      call.stop = job.stop;
       VISQ_ASSIGN_OR_RETURN(const ExactPrediction predicted, PredictExactByProbes(engine, batch, budget_ms, call));
       report.probe_ms += predicted.probe_ms;
       Plan plan;
@@ -837,7 +818,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       constexpr double kSecondProbeBelowMs = 200.0;
       bool usable = true;
       for (const auto& [side, samples] : probes) {
-        VISQ_RETURN_IF_ERROR(RequireNotCancelled(job));
+        VISQ_RETURN_IF_ERROR(job.stop.Check("choosing a method"));
         StatusOr<RunCost> cost = run(method, samples, side);
         // A method that cannot answer this request honestly (a sampled one
         // far from the scene's float32 anchor) is left out of the plans.
@@ -1085,7 +1066,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
     double floor[2] = {0.0, 0.0};
     const double z = TwoSidedNormalQuantile(target.confidence);
     for (int i = 0; i < 2; ++i) {
-      VISQ_RETURN_IF_ERROR(RequireNotCancelled(query.call.Job()));
+      VISQ_RETURN_IF_ERROR(query.call.stop.Check("choosing a method"));
       VISQ_ASSIGN_OR_RETURN(const sampling::HiddenSampleMapResult probe,
                             run(probe_method, kProbeSamples[i], kProbeSide));
       const double ms = ComputeMs(probe.timing, probe.table_ms);

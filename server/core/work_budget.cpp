@@ -14,6 +14,10 @@ namespace {
 // When the machine cannot say how much memory it has, nor a cgroup.
 constexpr uint64_t kUnknownMemoryBudget = uint64_t{4} << 30;
 
+// A cancellation is a flag nobody signals: a wait for memory looks at it
+// this often.
+constexpr auto kPollStop = std::chrono::milliseconds(50);
+
 }  // namespace
 
 WorkMemoryBudget::WorkMemoryBudget(uint64_t capacity_bytes) {
@@ -82,13 +86,9 @@ StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes
           capacity_, " (--max-work-bytes), ", lasting_,
           " are held by results it keeps (obscurance solutions for UpdateObscurances, until their scene's next "
           "whole bake or unload)"));
-    if (job.cancelled != nullptr && job.cancelled->load())
-      return absl::CancelledError(absl::StrCat(what, ": cancelled while waiting for memory (--max-work-bytes)"));
-    const auto now = std::chrono::steady_clock::now();
-    if (now >= job.deadline)
-      return absl::DeadlineExceededError(absl::StrCat(what, ": the deadline passed while waiting for ", bytes,
-                                                      " bytes of the budget for work in flight (--max-work-bytes)"));
-    released_.wait_until(lock, std::min(job.deadline, now + std::chrono::milliseconds(50)));
+    VISQ_RETURN_IF_ERROR(job.stop.Check(absl::StrCat(what, ": while waiting for ", bytes,
+                                                     " bytes of the budget for work in flight (--max-work-bytes)")));
+    released_.wait_until(lock, std::min(job.stop.deadline, std::chrono::steady_clock::now() + kPollStop));
   }
   in_use_ += bytes;
   peak_ = std::max(peak_, in_use_);

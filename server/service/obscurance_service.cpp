@@ -168,7 +168,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
                                                                      const v1::ComputeObscurancesRequest& request,
                                                                      SteadyTime deadline, double queue_ms) {
     VISQ_ASSIGN_OR_RETURN(core::ObscuranceQuery query, FromProto(request));
-    query.call = {deadline, &cancelled_, std::make_shared<core::BuildClock>()};
+    query.call = {StopToken{&cancelled_, deadline}, std::make_shared<core::BuildClock>()};
     const std::shared_ptr<core::BuildClock> build_clock = query.call.build_clock;
     // At most ~10 progress messages a second (and the first and last).
     auto last_sent = std::make_shared<double>(-1e9);
@@ -306,7 +306,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::Callback
   return RunUnaryCall(ctx_, context, "SetNodeTransform", [this, context, request, response](
                                                               RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     // A call whose client gave up while it queued does not move the node.
-    VISQ_RETURN_IF_ERROR(CallOptionsFor(context, &cancelled, log).StillWanted("SetNodeTransform: before the move"));
+    VISQ_RETURN_IF_ERROR(CallOptionsFor(context, &cancelled, log).stop.Check("SetNodeTransform: before the move"));
     core::NodeTransformQuery query;
     query.scene = request->scene().name();
     query.scene_version = request->scene().version();

@@ -94,7 +94,7 @@ inline SteadyTime SteadyDeadline(const grpc::CallbackServerContext* context) {
 // its waits for lazily built structures (Timing.build_ms).
 inline core::CallOptions CallOptionsFor(grpc::CallbackServerContext* context, const std::atomic<bool>* cancelled,
                                         const RequestLog& log) {
-  return {SteadyDeadline(context), cancelled, std::make_shared<core::BuildClock>(), log.Tag()};
+  return {StopToken{cancelled, SteadyDeadline(context)}, std::make_shared<core::BuildClock>(), log.Tag()};
 }
 
 // The figures' timing for a streamed answer; transfer_ms and total_ms are as

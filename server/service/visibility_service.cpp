@@ -161,7 +161,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
     executor_.Post([this] {
       StatusOr<core::SceneSummary> summary = CatchExceptions(log_.id(), "LoadScene", [&] {
         return from_repository_ ? engine_.LoadFromRepository(name_, replace_)
-                                : engine_.FinishUpload(std::move(upload_), &cancelled_);
+                                : engine_.FinishUpload(std::move(upload_), StopToken{&cancelled_, SteadyDeadline(context_)});
       });
       slot_.reset();  // stored or not, the upload is no longer in flight
       // The structures build in the background; the answer does not wait.
@@ -400,7 +400,7 @@ class LightVisibilityStreamReactor final
         query = FromProto(request_, previous_ ? &*previous_ : nullptr);
         response_.Clear();
         VISQ_RETURN_IF_ERROR(query.status());
-        query->call = {deadline_, &cancelled_, std::make_shared<core::BuildClock>()};
+        query->call = {StopToken{&cancelled_, deadline_}, std::make_shared<core::BuildClock>()};
         return AnswerLightVisibility(ctx_.engine, *query, log_, log_.ElapsedMs() - arrived_ms, &response_);
       });
       if (!status.ok()) {

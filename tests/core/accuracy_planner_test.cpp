@@ -272,8 +272,8 @@ EqualAnswerOption EndlessOption(const std::string& method, double work, int* pro
   option.plan.work = work;
   option.probes.push_back({16.0, 0.0, [=](const CallOptions& call) -> StatusOr<double> {
                              ++*probes_run;
-                             while (!call.Stopped()) std::this_thread::sleep_for(std::chrono::milliseconds(1));
-                             return call.StillWanted("the endless probe");
+                             while (!call.stop.Stopped()) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+                             return call.stop.Check("the endless probe");
                            }});
   return option;
 }
@@ -447,7 +447,7 @@ TEST(ChooseFastest, ACancelledCallStopsChoosing) {
   int probes = 0;
   std::atomic<bool> cancelled{true};
   CallOptions call;
-  call.cancelled = &cancelled;
+  call.stop.cancelled = &cancelled;
   auto report = ChooseFastest(model, {Option("raycast", 1e4, 0.01, &probes)}, call);
   EXPECT_EQ(report.status().code(), absl::StatusCode::kCancelled);
   EXPECT_EQ(probes, 0);

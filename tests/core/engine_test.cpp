@@ -106,7 +106,7 @@ TEST(Engine, AStoppedUpdateLeavesItsMovesToTheNextAnswer) {
   ObscuranceUpdateQuery update;
   update.scene = "cornell_box_visq";
   std::atomic<bool> cancelled{true};
-  update.call.cancelled = &cancelled;
+  update.call.stop.cancelled = &cancelled;
   EXPECT_EQ(RunUpdateObscurances(*engine, update).status().code(), absl::StatusCode::kCancelled);
   cancelled = false;
   auto answer = RunUpdateObscurances(*engine, update);
@@ -647,14 +647,14 @@ TEST_F(EngineStructures, WaitersStopAtTheirDeadlineOrCancelWhileTheBuildGoesOn) 
 
   // The first user gives up at once: the build it started goes on.
   std::atomic<bool> cancelled{true};
-  CallOptions gave_up{gpu::SteadyTime::max(), &cancelled, std::make_shared<BuildClock>()};
+  CallOptions gave_up{StopToken{&cancelled}, std::make_shared<BuildClock>()};
   EXPECT_EQ(engine_->EmbreeSceneOf(*resident_, gave_up).status().code(), absl::StatusCode::kCancelled);
   AwaitBuildInProgress(*engine_, "embree_bvh");
   ASSERT_EQ(BuildFigures(*engine_, "embree_bvh").in_progress, 1u) << "the build should still be running";
 
   // Meanwhile: a waiter past its deadline and a cancelled one return, and
   // metadata answers, all before the build ends.
-  CallOptions expired{std::chrono::steady_clock::now() + std::chrono::milliseconds(1), nullptr,
+  CallOptions expired{StopToken{nullptr, std::chrono::steady_clock::now() + std::chrono::milliseconds(1)},
                       std::make_shared<BuildClock>()};
   EXPECT_EQ(engine_->EmbreeSceneOf(*resident_, expired).status().code(), absl::StatusCode::kDeadlineExceeded);
   EXPECT_EQ(engine_->EmbreeSceneOf(*resident_, gave_up).status().code(), absl::StatusCode::kCancelled);
@@ -667,7 +667,7 @@ TEST_F(EngineStructures, WaitersStopAtTheirDeadlineOrCancelWhileTheBuildGoesOn) 
   EXPECT_EQ(BuildFigures(*engine_, "embree_bvh").count, 0u);
 
   // A patient caller gets the one BVH, and its wait is build time.
-  CallOptions patient{gpu::SteadyTime::max(), nullptr, std::make_shared<BuildClock>()};
+  CallOptions patient{StopToken{}, std::make_shared<BuildClock>()};
   auto bvh = engine_->EmbreeSceneOf(*resident_, patient);
   ASSERT_TRUE(bvh.ok()) << bvh.status();
   EXPECT_GT(patient.BuildMs(), 0.0);
@@ -678,7 +678,7 @@ TEST_F(EngineStructures, WaitersStopAtTheirDeadlineOrCancelWhileTheBuildGoesOn) 
   EXPECT_EQ(summary->cpu_bytes, resident_->scene->CpuBytes() + (*bvh)->memory_bytes());
 
   // Built: no wait, no build time, no second build.
-  CallOptions later{gpu::SteadyTime::max(), nullptr, std::make_shared<BuildClock>()};
+  CallOptions later{StopToken{}, std::make_shared<BuildClock>()};
   auto again = engine_->EmbreeSceneOf(*resident_, later);
   ASSERT_TRUE(again.ok());
   EXPECT_EQ(again->get(), bvh->get());

@@ -184,7 +184,7 @@ TEST(LightVisibilityBatch, ACancelledBatchStopsWhileItRuns) {
   ASSERT_TRUE(resident.ok()) << resident.status();
   ASSERT_TRUE(f->engine->TriangleIndexOf(**resident).ok());
   std::atomic<bool> cancelled{false};
-  f->query.call.cancelled = &cancelled;
+  f->query.call.stop.cancelled = &cancelled;
   using Clock = std::chrono::steady_clock;
   Clock::time_point cancelled_at;
   std::thread canceller([&] {
@@ -203,10 +203,10 @@ TEST(LightVisibilityBatch, ACancelledBatchStopsWhileItRuns) {
   RecordProperty("stop_after_cancel_ms", std::to_string(after_ms));
 
   // A deadline passes mid-batch the same way.
-  f->query.call.cancelled = nullptr;
-  f->query.call.deadline = Clock::now() + std::chrono::milliseconds(300);
+  f->query.call.stop.cancelled = nullptr;
+  f->query.call.stop.deadline = Clock::now() + std::chrono::milliseconds(300);
   StatusOr<LightVisibilityAnswer> late = RunLightVisibility(*f->engine, f->query);
-  const double late_ms = std::chrono::duration<double, std::milli>(Clock::now() - f->query.call.deadline).count();
+  const double late_ms = std::chrono::duration<double, std::milli>(Clock::now() - f->query.call.stop.deadline).count();
   EXPECT_EQ(late.status().code(), absl::StatusCode::kDeadlineExceeded) << late.status();
   EXPECT_LT(late_ms, 1000.0);
   std::printf("returned %.1f ms after the deadline: %s\n", late_ms, late.status().ToString().c_str());

@@ -119,14 +119,14 @@ TEST(LightVisibilityTest, CreationStopsForACancelledOrExpiredCall) {
   const Scene scene = MakeScene({{glm::dvec3(-1, -1, 1), glm::dvec3(1, -1, 1), glm::dvec3(0, 1, 1)}});
   std::atomic<bool> cancelled{true};
   TreeOptions options;
-  options.cancelled = &cancelled;
+  options.stop.cancelled = &cancelled;
   auto tree = LightVisibilityTree::Create(SquareLight(2.0), scene, options);
   EXPECT_EQ(tree.status().code(), absl::StatusCode::kCancelled) << tree.status();
-  options.cancelled = nullptr;
-  options.deadline = std::chrono::steady_clock::now() - std::chrono::seconds(1);
+  options.stop.cancelled = nullptr;
+  options.stop.deadline = std::chrono::steady_clock::now() - std::chrono::seconds(1);
   tree = LightVisibilityTree::Create(SquareLight(2.0), scene, options);
   EXPECT_EQ(tree.status().code(), absl::StatusCode::kDeadlineExceeded) << tree.status();
-  options.deadline = std::chrono::steady_clock::time_point::max();
+  options.stop.deadline = std::chrono::steady_clock::time_point::max();
   tree = LightVisibilityTree::Create(SquareLight(2.0), scene, options);
   EXPECT_TRUE(tree.ok()) << tree.status();
 }
@@ -897,11 +897,11 @@ TEST(LightVisibilityTest, BatchStopsAtItsDeadline) {
   auto tree = MakeTree(SquareLight(2.0), MakeScene(Cloud(50, 3)), Box({-1.5, -1.5, 0}, {1.5, 1.5, 0}));
   std::vector<QueryPoint> points;
   for (const glm::dvec3& p : FloorPoints(100, 9)) points.push_back({p, glm::dvec3(0, 0, 1), std::nullopt});
-  auto late = tree->QueryBatch(points, 2, false, std::chrono::steady_clock::now() - std::chrono::seconds(1));
+  auto late = tree->QueryBatch(points, 2, false, StopToken{nullptr, std::chrono::steady_clock::now() - std::chrono::seconds(1)});
   EXPECT_EQ(late.status().code(), absl::StatusCode::kDeadlineExceeded);
   EXPECT_NE(std::string(late.status().message()).find("of 100 points left"), std::string::npos) << late.status();
   EXPECT_EQ(tree->Stats().queries, 0u);
-  auto in_time = tree->QueryBatch(points, 2, false, std::chrono::steady_clock::now() + std::chrono::hours(1));
+  auto in_time = tree->QueryBatch(points, 2, false, StopToken{nullptr, std::chrono::steady_clock::now() + std::chrono::hours(1)});
   ASSERT_TRUE(in_time.ok()) << in_time.status();
   EXPECT_EQ(in_time->size(), 100u);
 }

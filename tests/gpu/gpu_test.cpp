@@ -268,7 +268,7 @@ TEST(GpuWorkerQueue, JobsRunOnOneThreadThatIsNotTheCaller) {
 TEST(GpuWorkerQueue, ExpiredDeadlineIsNotRun) {
   bool ran = false;
   JobOptions options;
-  options.deadline = std::chrono::steady_clock::now() - std::chrono::milliseconds(1);
+  options.stop.deadline = std::chrono::steady_clock::now() - std::chrono::milliseconds(1);
   Status status = SharedGpuWorker().Run(options, [&] { ran = true; return absl::OkStatus(); });
   EXPECT_EQ(status.code(), absl::StatusCode::kDeadlineExceeded) << status;
   EXPECT_FALSE(ran);
@@ -278,7 +278,7 @@ TEST(GpuWorkerQueue, CancelledJobIsNotRun) {
   std::atomic<bool> cancelled{true};
   bool ran = false;
   JobOptions options;
-  options.cancelled = &cancelled;
+  options.stop.cancelled = &cancelled;
   Status status = SharedGpuWorker().Run(options, [&] { ran = true; return absl::OkStatus(); });
   EXPECT_EQ(status.code(), absl::StatusCode::kCancelled) << status;
   EXPECT_FALSE(ran);

@@ -132,7 +132,7 @@ check_installed("${client_headers}" "(absl|grpc|grpcpp|google/protobuf)/.+"
                 "the installed client needs only the installed tree, gRPC, protobuf and abseil")
 
 # Each folder's code lives in its own namespace, so a name says its floor
-# at the call site (core::Engine in the transport, exact::StopToken in the
+# at the call site (core::Engine in the transport, exact::TreeOptions in the
 # core). lib/common and lib/scene are the shared vocabulary, in visq itself.
 function(check_namespace folder expected)
   file(GLOB files RELATIVE "${SOURCE_DIR}" "${SOURCE_DIR}/${folder}/*.h" "${SOURCE_DIR}/${folder}/*.cpp")

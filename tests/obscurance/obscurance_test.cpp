@@ -244,7 +244,8 @@ TEST(ObscuranceAtlas, WorkBoundHoldsAndHooksComeFirst) {
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_EQ(seen, full_estimate.bytes);
   AtlasOptions stopping;
-  stopping.stop = [] { return true; };
+  const std::atomic<bool> cancelled{true};
+  stopping.stop.cancelled = &cancelled;
   EXPECT_EQ(BuildObscuranceAtlas(plane, 512, stopping).status().code(), absl::StatusCode::kCancelled);
 }
 
@@ -1422,7 +1423,9 @@ void ExpectRayBoundsHoldAndFollowTheVariance(const Scene& scene, uint32_t resolu
               texel_normal.within, triangle_own.n, triangle_own.within);
   ASSERT_GT(texel_own.n, 1000u);
   EXPECT_GE(texel_own.within, confidence);
-  if (triangles_too) EXPECT_GE(triangle_own.within, confidence);
+  if (triangles_too) {
+    EXPECT_GE(triangle_own.within, confidence);
+  }
   EXPECT_LT(median(own), 0.8 * hoeffding) << "the variance-aware bound should be tighter where values barely vary";
 }
 

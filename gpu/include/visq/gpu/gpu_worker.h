@@ -39,7 +39,7 @@ using ::visq::JobOptions;
 using ::visq::kBatch;
 using ::visq::kInteractive;
 using ::visq::SteadyTime;
-using ::visq::StillWanted;
+using ::visq::StopToken;
 using ::visq::JobTiming;
 
 class GpuWorker {

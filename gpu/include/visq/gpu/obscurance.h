@@ -41,9 +41,8 @@ using obscurance::ObscurancePreviewImage;
 using obscurance::ObscuranceProgress;
 
 struct ObscuranceBakeOptions {
-  int priority = kBatch;
-  SteadyTime deadline = SteadyTime::max();
-  const std::atomic<bool>* cancelled = nullptr;  // checked between steps
+  // Its priority, and its stop token: asked between steps.
+  JobOptions job{kBatch};
   // A direction is peeled in GL jobs (steps) of about this long, each
   // whole layers or pieces of one, so that a stop and other calls reach the
   // GL thread between them. 0: a direction is one job.
