@@ -242,19 +242,7 @@ thread_local struct {
 }  // namespace
 
 StatusOr<glm::dvec3> LightTree::LocalPosition(const QueryPoint& q) const {
-  for (int i = 0; i < 3; ++i) {
-    if (!InCoordinateRange(q.position[i])) {
-      return absl::InvalidArgumentError(absl::StrCat("point.position[", i, "]: not finite or beyond ±", kMaxCoordinate));
-    }
-  }
-  if (const std::optional<glm::dvec3>& normal = q.normal) {
-    for (int i = 0; i < 3; ++i) {
-      if (!std::isfinite((*normal)[i])) {
-        return absl::InvalidArgumentError(absl::StrCat("point.normal[", i, "]: not finite"));
-      }
-    }
-    if (*normal == glm::dvec3(0.0)) return absl::InvalidArgumentError("point.normal: zero");
-  }
+  VISQ_RETURN_IF_ERROR(ValidateQueryPoint(q, "point"));
   const glm::dvec3 p_local = q.position - origin;
   if (receiver_box) {
     const auto& [lo, hi] = *receiver_box;

@@ -6,6 +6,7 @@
 #include <atomic>
 #include <mutex>
 
+#include "common/coordinates.h"
 #include "common/parallel.h"
 #include "exact/light_visibility_impl.h"
 
@@ -20,6 +21,18 @@ StatusOr<std::unique_ptr<LightVisibilityTree>> LightVisibilityTree::Create(const
   VISQ_ASSIGN_OR_RETURN(std::unique_ptr<detail::LightTree> tree,
                         detail::LightTree::Create(light, scene, options, index));
   return std::unique_ptr<LightVisibilityTree>(new LightVisibilityTree(std::move(tree)));
+}
+
+Status ValidateQueryPoint(const QueryPoint& point, std::string_view field) {
+  if (!InCoordinateRange(point.position))
+    return absl::InvalidArgumentError(
+        fmt::format("{}.position: ({}, {}, {}) is NaN, Inf or beyond ±{:g}", field, point.position.x,
+                    point.position.y, point.position.z, kMaxCoordinate));
+  if (point.normal && !IsDirection(*point.normal))
+    return absl::InvalidArgumentError(
+        fmt::format("{}.normal: ({}, {}, {}) is zero, NaN, Inf or too long to normalize", field, point.normal->x,
+                    point.normal->y, point.normal->z));
+  return absl::OkStatus();
 }
 
 StatusOr<PointVisibility> LightVisibilityTree::Query(const QueryPoint& point, bool want_polygons,

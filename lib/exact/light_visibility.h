@@ -290,6 +290,11 @@ class SceneTriangleIndex {
 // The checks LightVisibilityTree::Create makes of a light, alone: INVALID_ARGUMENT
 // naming the vertex or property at fault.
 [[nodiscard]] Status ValidateAreaLight(const AreaLight& light);
+// INVALID_ARGUMENT naming `field` ("points[3]") for a position that is not
+// finite or beyond the coordinate range, or a normal that is not a
+// direction; the receiver triangle is the caller's to check against its
+// scene. The one check of a point, at the server's door and at the tree's.
+[[nodiscard]] Status ValidateQueryPoint(const QueryPoint& point, std::string_view field);
 
 class LightVisibilityTree {
  public:

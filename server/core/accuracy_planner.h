@@ -23,6 +23,7 @@
 
 #include "common/status.h"
 #include "core/call_options.h"
+#include "core/query_methods.h"
 
 namespace visq::core {
 
@@ -44,7 +45,8 @@ struct AccuracyTarget {
 // One candidate: a method with its parameters, what it could promise and
 // what it would cost.
 struct Plan {
-  std::string method;
+  std::string method;  // its name in answers, logs and cost-model series
+  PlanMethod runs;     // what the query runs for it
   std::map<std::string, double> parameters;
   double error_bound = 0.0;  // at the target's confidence; 0 for exact methods
   double work = 0.0;         // the cost model's unit for this method

@@ -36,9 +36,7 @@ Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Sce
     return absl::InvalidArgumentError(absl::StrCat("radiance: ", query.light.radiance, " is not a finite value >= 0"));
   for (size_t i = 0; i < query.points.size(); ++i) {
     const auto& p = query.points[i];
-    if (!InCoordinateRange(p.position)) return absl::InvalidArgumentError(absl::StrCat("points[", i, "].position: NaN, Inf or beyond ±1e15"));
-    if (p.normal && !IsDirection(*p.normal))
-      return absl::InvalidArgumentError(absl::StrCat("points[", i, "].normal: zero, NaN, Inf or too long to normalize"));
+    VISQ_RETURN_IF_ERROR(exact::ValidateQueryPoint(p, absl::StrCat("points[", i, "]")));
     if (p.receiver_triangle && *p.receiver_triangle >= scene.TriangleCount())
       return absl::InvalidArgumentError(absl::StrCat("points[", i, "].triangle: ", *p.receiver_triangle,
                                                      " out of range (", scene.TriangleCount(), " triangles)"));

@@ -348,6 +348,7 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
   {
     Plan& plan = options[0].plan;
     plan.method = "obscurance-raycast";
+    plan.runs = ObscuranceMethod::kRaycast;
     plan.parameters["rays_per_patch"] = directions;
     plan.cost_key = RaycastSeries(resident, query);
     plan.work = directions;
@@ -360,6 +361,7 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
   {
     Plan& plan = options[1].plan;
     plan.method = "obscurance-depth-peeling";
+    plan.runs = ObscuranceMethod::kDepthPeeling;
     plan.parameters["directions"] = directions;
     plan.cost_key = DepthPeelingSeries(resident, query);
     plan.work = directions;
@@ -443,13 +445,15 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
     needed = 0.25 * z * z / (target.max_error * target.max_error) / obscurance::kCoveredShare;
     while (needed < 1e9 && error_of(static_cast<uint32_t>(std::ceil(needed))) > target.max_error) needed *= 1.01;
   }
-  auto add_plans = [&](const char* method, const char* parameter, const std::string& plan_series, uint32_t most) {
+  auto add_plans = [&](ObscuranceMethod runs, const char* method, const char* parameter,
+                       const std::string& plan_series, uint32_t most) {
     std::set<uint32_t> counts;
     for (uint32_t n = 8; n <= most; n *= 2) counts.insert(n);
     if (needed <= most) counts.insert(std::max(1u, static_cast<uint32_t>(std::ceil(needed))));
     for (uint32_t n : counts) {
       Plan plan;
       plan.method = method;
+      plan.runs = runs;
       plan.parameters[parameter] = n;
       plan.error_bound = error_of(n);
       plan.work = n;
@@ -458,8 +462,10 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
       report.plans.push_back(std::move(plan));
     }
   };
-  if (!on_estimate) add_plans("obscurance-depth-peeling", "directions", series, obscurance::kMaxDirections);
-  add_plans("obscurance-raycast", "rays_per_patch", ray_series, 65536);
+  if (!on_estimate)
+    add_plans(ObscuranceMethod::kDepthPeeling, "obscurance-depth-peeling", "directions", series,
+              obscurance::kMaxDirections);
+  add_plans(ObscuranceMethod::kRaycast, "obscurance-raycast", "rays_per_patch", ray_series, 65536);
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
   report.target = target;
   LogChosenPlan(report, query.call);
@@ -493,13 +499,11 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   }
   if (plan) {
     const Plan& chosen = plan->chosen_plan();
-    if (chosen.parameters.contains("rays_per_patch")) {
-      query.method = ObscuranceMethod::kRaycast;
+    query.method = std::get<ObscuranceMethod>(chosen.runs);
+    if (query.method == ObscuranceMethod::kRaycast)
       query.rays_per_patch = static_cast<uint32_t>(chosen.parameters.at("rays_per_patch"));
-    } else {
-      query.method = ObscuranceMethod::kDepthPeeling;
+    else
       query.params.direction_count = static_cast<uint32_t>(chosen.parameters.at("directions"));
-    }
   }
   // The bake's atlas, model and updater read every triangle flattened.
   const Scene& scene = resident->scene->Flattened();

@@ -52,11 +52,6 @@ struct ObscuranceState {
   std::optional<Undelivered> undelivered;
 };
 
-// The paper's GPU bake by depth peeling along bundles of parallel rays, or
-// the same estimator traced per patch with Embree (lib/obscurance/
-// obscurance_rays.h), which on a machine without a GPU is the cheaper one.
-enum class ObscuranceMethod { kDepthPeeling, kRaycast };
-
 struct ObscuranceQuery {
   std::string scene;
   uint64_t scene_version = 0;

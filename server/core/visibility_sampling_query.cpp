@@ -799,6 +799,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       report.probe_ms += predicted.probe_ms;
       Plan plan;
       plan.method = name;
+      plan.runs = method;
       plan.cost_key = series;
       plan.error_bound = 0.0;
       plan.work = predicted.units.work;
@@ -838,6 +839,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       if (!resolved) return absl::OkStatus();
       Plan plan;
       plan.method = name;
+      plan.runs = method;
       plan.cost_key = series;
       if (method == VisibilityMethod::kPluckerExact) {
         plan.error_bound = 0.0;
@@ -862,12 +864,6 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
   VISQ_RETURN_IF_ERROR(RequirePredictionFitsDeadline(report.chosen_plan(), job));
   report.target = target;
   return report;
-}
-
-VisibilityMethod MethodOfPlan(const Plan& plan) {
-  if (plan.method == "raycast") return VisibilityMethod::kRaycast;
-  if (plan.method == "plucker-exact") return VisibilityMethod::kPluckerExact;
-  return VisibilityMethod::kRaster;
 }
 
 // The cost model's series for a scene's query kind: per scene content, so a
@@ -1095,7 +1091,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
   LogChosenPlan(report, query.call);
   const Plan& plan = report.chosen_plan();
   HiddenSampleMapAnswer answer;
-  answer.method = MethodOfPlan(plan);
+  answer.method = std::get<VisibilityMethod>(plan.runs);
   const int samples = plan.parameters.contains("samples") ? int(plan.parameters.at("samples")) : 0;
   if (answer.method != VisibilityMethod::kPluckerExact && several_maps && target.max_error > 0) {
     // The plan's maps, then as many again while the answer misses the
@@ -1176,7 +1172,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
   LogChosenPlan(report, query.call);
   Plan& plan = report.plans[report.chosen];
   PatchVisibilityAnswer answer;
-  answer.method = MethodOfPlan(plan);
+  answer.method = std::get<VisibilityMethod>(plan.runs);
   sampling::PatchVisibilityRequest chosen = request;
   if (answer.method != VisibilityMethod::kPluckerExact) {
     chosen = sized(int(plan.parameters.at("samples")), 0);
@@ -1221,6 +1217,7 @@ StatusOr<PlanReport> ChooseSampledMethod(Engine& engine, const std::string& seri
     EqualAnswerOption option;
     Plan& plan = option.plan;
     plan.method = VisibilityMethodName(method, lookup);
+    plan.runs = method;
     plan.cost_key = absl::StrCat(series_base, "/", plan.method);
     plan.parameters["samples"] = samples;
     const WorkUnits whole = SampledWork(method, points(0), samples);
@@ -1367,7 +1364,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapUnstated(Engine& engine, const Hi
     answer.method = *query.method;
   } else {
     VISQ_ASSIGN_OR_RETURN(PlanReport report, ChooseHiddenSampleMapMethod(engine, *resident, checked, query.call));
-    answer.method = MethodOfPlan(report.chosen_plan());
+    answer.method = std::get<VisibilityMethod>(report.chosen_plan().runs);
     answer.plan = std::move(report);
   }
   if (checked.source.sample_count > sampling::kMaxHiddenSampleMapSamples) {
@@ -1390,7 +1387,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityUnstated(Engine& engine, const Pa
     answer.method = *query.method;
   } else {
     VISQ_ASSIGN_OR_RETURN(PlanReport report, ChoosePatchVisibilityMethod(engine, *resident, query.request, query.call));
-    answer.method = MethodOfPlan(report.chosen_plan());
+    answer.method = std::get<VisibilityMethod>(report.chosen_plan().runs);
     answer.plan = std::move(report);
   }
   VISQ_ASSIGN_OR_RETURN(answer.result, PatchVisibilityBy(engine, *resident, answer.method, query.request, query.call));

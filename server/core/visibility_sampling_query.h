@@ -20,8 +20,6 @@ namespace visq::core {
 
 class Engine;
 
-enum class VisibilityMethod { kRaster, kRaycast, kPluckerExact };
-
 // "raster-exact-lookup", "raster-hough-lookup", "raycast", "plucker-exact".
 std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode lookup);
 
