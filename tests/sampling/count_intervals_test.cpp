@@ -303,10 +303,10 @@ TEST(SplitPairs, CoverCellsWhosePairsAreAlike) {
 // cells' worth in all, so that every sample often agrees (all visible with
 // probability about exp(-H)). Where all agree the pairs say nothing, and an
 // estimate of zero covered 66 % at H = 1 (docs/accuracy.md showed 23 % of
-// veach-ajar's penumbra covered at N = 32). With H up to 2 the estimate
-// covers at its nominal 95 %. Beyond, one to five samples disagree and the
-// normal approximation at so few split pairs covers less (79 % at H = 3 and
-// 5 here; docs/texel-bounds.md): printed, not held to 95 %.
+// veach-ajar's penumbra covered at N = 32). Where one or two disagree, the
+// normal approximation at one or two split pairs covered 79 % at H = 3 and
+// 5 until the estimate was held to no less than the all-agree one
+// (docs/texel-bounds.md). Held to within 2 points of its nominal 95 %.
 TEST(SplitPairs, EstimateCoversTexelsWhereEverySampleAgrees) {
   std::mt19937_64 random(2718);
   const int n = 256;
@@ -329,9 +329,7 @@ TEST(SplitPairs, EstimateCoversTexelsWhereEverySampleAgrees) {
     std::printf("%.2f cells hidden over %d: the estimate covers %.2f %%, the bound %.2f %%\n", hidden, cells,
                 100.0 * covered / trials, 100.0 * bound_holds / trials);
     EXPECT_GE(double(bound_holds) / trials, 0.95) << hidden << " cells' worth hidden over " << cells;
-    if (hidden <= 2.0) {
-      EXPECT_GE(double(covered) / trials, 0.95 - 0.005) << hidden << " cells' worth hidden";
-    }
+    EXPECT_GE(double(covered) / trials, 0.95 - 0.02) << hidden << " cells' worth hidden over " << cells;
   }
   // All visible: ln(20) / n at 95 %, not zero.
   EXPECT_NEAR(BoundOneTexel(n, n, 0).estimate, std::log(20.0) / n, 0.01 / n);
