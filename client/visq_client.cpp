@@ -7,6 +7,7 @@
 #include <optional>
 #include <sstream>
 #include <thread>
+#include <type_traits>
 
 #include <absl/strings/str_cat.h>
 #include <grpcpp/client_context.h>
@@ -288,67 +289,82 @@ std::string Client::last_server_id() const {
 }  // namespace visq::client
 
 namespace visq::client {
+namespace {
+
+// Appends a streamed chunk of an array, `per_item` elements to an item,
+// checking that it starts where the last one ended (`offset` counts items).
+template <typename Field, typename Into>
+Status AppendChunk(const Field& field, uint64_t offset, Into& into, const char* what, size_t per_item = 1) {
+  if (field.empty()) return absl::OkStatus();
+  const uint64_t have = uint64_t(into.size()) / per_item;
+  if (offset != have) return absl::DataLossError(absl::StrCat(what, " chunk at ", offset, ", have ", have));
+  if constexpr (requires { into.Add(field.begin(), field.end()); })
+    into.Add(field.begin(), field.end());
+  else
+    into.insert(into.end(), field.begin(), field.end());
+  return absl::OkStatus();
+}
+
+// One server-streaming call, with the context of a stream (its deadline):
+// each message handed to `take` in order, then the call's end. A message
+// `take` refuses cancels the call, and its error is the answer.
+template <typename Request, typename Response>
+Status CallStreamed(Client& client,
+                    std::unique_ptr<grpc::ClientReader<Response>> (v1::VisibilityService::Stub::*rpc)(
+                        grpc::ClientContext*, const Request&),
+                    const Request& request, const std::type_identity_t<std::function<Status(Response& message)>>& take) {
+  VISQ_RETURN_IF_ERROR(client.init_status());
+  auto context = client.NewContext(request.scene().name(), /*stream=*/true);
+  auto reader = (client.stub().*rpc)(context.get(), request);
+  Response message;
+  Status taken;
+  while (reader->Read(&message)) {
+    if (!taken.ok()) continue;  // cancelled: what is still in flight is dropped
+    taken = take(message);
+    if (!taken.ok()) context->TryCancel();
+  }
+  const grpc::Status status = reader->Finish();
+  client.NoteServer(*context);
+  VISQ_RETURN_IF_ERROR(taken);
+  return FromGrpcStatus(status);
+}
+
+}  // namespace
 
 StatusOr<HiddenSampleMap> Client::ComputeHiddenSampleMap(const v1::HiddenSampleMapRequest& request,
                                                          const StreamProgressCallback& progress) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name(), /*stream=*/true);
-  auto reader = stub_->HiddenSampleMap(context.get(), request);
   HiddenSampleMap out;
-  v1::HiddenSampleMapResponse message;
   bool first = true;
-  while (reader->Read(&message)) {
-    // Chunks arrive in order; `offset` checks that none went missing.
-    auto check = [&](size_t have, const char* what) -> Status {
-      if (message.offset() != have)
-        return absl::DataLossError(absl::StrCat(what, " chunk at ", message.offset(), ", expected ", have));
-      return absl::OkStatus();
-    };
-    if (message.visible_fraction_size() > 0) {
-      VISQ_RETURN_IF_ERROR(check(out.visible_fraction.size(), "visible_fraction"));
-      out.visible_fraction.insert(out.visible_fraction.end(), message.visible_fraction().begin(),
-                                  message.visible_fraction().end());
-    }
-    if (message.visible_rgb_size() > 0) {
-      VISQ_RETURN_IF_ERROR(check(out.visible_rgb.size() / 3, "visible_rgb"));
-      out.visible_rgb.insert(out.visible_rgb.end(), message.visible_rgb().begin(), message.visible_rgb().end());
-    }
-    if (message.blocked_bits_size() > 0) {
-      VISQ_RETURN_IF_ERROR(check(out.blocked_bits.size(), "blocked_bits"));
-      out.blocked_bits.insert(out.blocked_bits.end(), message.blocked_bits().begin(), message.blocked_bits().end());
-    }
-    // The figures: sizes and samples from the first message, the accuracy
-    // and timing from the last; lookup errors are chunks like the rest.
-    if (first) {
-      message.clear_visible_fraction();
-      message.clear_visible_rgb();
-      message.clear_blocked_bits();
-      out.figures = std::move(message);
-      first = false;
-      if (progress) progress(out.visible_fraction.size(), uint64_t{out.figures.width()} * out.figures.height());
-      continue;
-    }
-    // Every band carries its visible fractions: the texels received so far.
-    if (progress && message.visible_fraction_size() > 0)
-      progress(out.visible_fraction.size(), uint64_t{out.figures.width()} * out.figures.height());
-    if (message.lookup_error_size() > 0) {
-      VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.lookup_error_size()), "lookup_error"));
-      out.figures.mutable_lookup_error()->Add(message.lookup_error().begin(), message.lookup_error().end());
-    }
-    if (message.texel_error_size() > 0) {
-      VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.texel_error_size()), "texel_error"));
-      out.figures.mutable_texel_error()->Add(message.texel_error().begin(), message.texel_error().end());
-    }
-    if (message.texel_estimate_size() > 0) {
-      VISQ_RETURN_IF_ERROR(check(static_cast<size_t>(out.figures.texel_estimate_size()), "texel_estimate"));
-      out.figures.mutable_texel_estimate()->Add(message.texel_estimate().begin(), message.texel_estimate().end());
-    }
-    if (message.has_accuracy()) *out.figures.mutable_accuracy() = message.accuracy();
-    if (message.has_timing()) *out.figures.mutable_timing() = message.timing();
-  }
-  const grpc::Status status = reader->Finish();
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  VISQ_RETURN_IF_ERROR(CallStreamed(
+      *this, &v1::VisibilityService::Stub::HiddenSampleMap, request,
+      [&](v1::HiddenSampleMapResponse& message) -> Status {
+        const uint64_t at = message.offset();  // in texels
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.visible_fraction(), at, out.visible_fraction, "visible_fraction"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.visible_rgb(), at, out.visible_rgb, "visible_rgb", 3));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.blocked_bits(), at, out.blocked_bits, "blocked_bits"));
+        const uint64_t texels = uint64_t{out.figures.width()} * out.figures.height();
+        // The figures: sizes and samples from the first message, the
+        // accuracy and timing from the last; lookup errors are chunks like
+        // the rest.
+        if (first) {
+          message.clear_visible_fraction();
+          message.clear_visible_rgb();
+          message.clear_blocked_bits();
+          out.figures = std::move(message);
+          first = false;
+          if (progress) progress(out.visible_fraction.size(), uint64_t{out.figures.width()} * out.figures.height());
+          return absl::OkStatus();
+        }
+        // Every band carries its visible fractions: the texels received so far.
+        if (progress && message.visible_fraction_size() > 0) progress(out.visible_fraction.size(), texels);
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.lookup_error(), at, *out.figures.mutable_lookup_error(), "lookup_error"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.texel_error(), at, *out.figures.mutable_texel_error(), "texel_error"));
+        VISQ_RETURN_IF_ERROR(
+            AppendChunk(message.texel_estimate(), at, *out.figures.mutable_texel_estimate(), "texel_estimate"));
+        if (message.has_accuracy()) *out.figures.mutable_accuracy() = message.accuracy();
+        if (message.has_timing()) *out.figures.mutable_timing() = message.timing();
+        return absl::OkStatus();
+      }));
   return out;
 }
 
@@ -411,52 +427,35 @@ Status Client::LightVisibilityStream(const std::string& scene, const LightBatchS
 }  // namespace visq::client
 
 namespace visq::client {
-namespace {
-
-// Appends a streamed chunk, checking that chunks arrive in order.
-template <typename Field, typename T>
-Status AppendChunk(const Field& field, uint64_t offset, std::vector<T>& into, const char* what) {
-  if (field.empty()) return absl::OkStatus();
-  if (offset != into.size())
-    return absl::DataLossError(absl::StrCat(what, " chunk at ", offset, ", have ", into.size()));
-  into.insert(into.end(), field.begin(), field.end());
-  return absl::OkStatus();
-}
-
-}  // namespace
 
 StatusOr<VoxelGrid> Client::Voxelize(const v1::VoxelizeRequest& request, const StreamProgressCallback& progress) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name(), /*stream=*/true);
-  auto reader = stub_->Voxelize(context.get(), request);
   VoxelGrid out;
-  v1::VoxelizeResponse message;
   bool first = true;
-  while (reader->Read(&message)) {
-    const bool had_bits = !message.bits().empty();
-    VISQ_RETURN_IF_ERROR(AppendChunk(message.bits(), message.offset(), out.bits, "bits"));
-    VISQ_RETURN_IF_ERROR(AppendChunk(message.column_near(), message.offset(), out.column_near, "column_near"));
-    VISQ_RETURN_IF_ERROR(AppendChunk(message.column_far(), message.offset(), out.column_far, "column_far"));
-    // The figures: sizes, box and accuracy from the first message, counts
-    // and timing from the last.
-    message.clear_bits();
-    message.clear_column_near();
-    message.clear_column_far();
-    message.clear_offset();
-    if (first) {
-      out.figures = std::move(message);
-      first = false;
-    } else {
-      out.figures.MergeFrom(message);
-    }
-    // Bands are whole image rows, each row width x words_per_column words.
-    const uint64_t row_words = uint64_t{out.figures.width()} * out.figures.words_per_column();
-    if (progress && row_words > 0 && (had_bits || out.bits.empty()))
-      progress(out.bits.size() / row_words, out.figures.height());
-  }
-  const grpc::Status status = reader->Finish();
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  VISQ_RETURN_IF_ERROR(CallStreamed(
+      *this, &v1::VisibilityService::Stub::Voxelize, request,
+      [&](v1::VoxelizeResponse& message) -> Status {
+        const bool had_bits = !message.bits().empty();
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.bits(), message.offset(), out.bits, "bits"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.column_near(), message.offset(), out.column_near, "column_near"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.column_far(), message.offset(), out.column_far, "column_far"));
+        // The figures: sizes, box and accuracy from the first message,
+        // counts and timing from the last.
+        message.clear_bits();
+        message.clear_column_near();
+        message.clear_column_far();
+        message.clear_offset();
+        if (first) {
+          out.figures = std::move(message);
+          first = false;
+        } else {
+          out.figures.MergeFrom(message);
+        }
+        // Bands are whole image rows, each row width x words_per_column words.
+        const uint64_t row_words = uint64_t{out.figures.width()} * out.figures.words_per_column();
+        if (progress && row_words > 0 && (had_bits || out.bits.empty()))
+          progress(out.bits.size() / row_words, out.figures.height());
+        return absl::OkStatus();
+      }));
   return out;
 }
 
@@ -466,95 +465,68 @@ StatusOr<v1::TransmittanceResponse> Client::Transmittance(const v1::Transmittanc
 
 StatusOr<VolumetricImage> Client::VolumetricShadow(const v1::VolumetricShadowRequest& request,
                                                    const StreamProgressCallback& progress) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name(), /*stream=*/true);
-  auto reader = stub_->VolumetricShadow(context.get(), request);
   VolumetricImage out;
-  v1::VolumetricShadowResponse message;
   bool first = true;
-  while (reader->Read(&message)) {
-    VISQ_RETURN_IF_ERROR(AppendChunk(message.inscattering(), message.offset(), out.inscattering, "inscattering"));
-    VISQ_RETURN_IF_ERROR(AppendChunk(message.combined(), message.offset(), out.combined, "combined"));
-    // The figures from the first message, the timing from the last.
-    const bool had_pixels = !message.combined().empty() || !message.inscattering().empty();
-    message.clear_inscattering();
-    message.clear_combined();
-    message.clear_offset();
-    if (first) {
-      out.figures = std::move(message);
-      first = false;
-    } else {
-      // A later accuracy (the error estimate) replaces the first one whole:
-      // merged, an estimate of exactly 0 would keep the first's -1.
-      if (message.has_accuracy()) {
-        *out.figures.mutable_accuracy() = message.accuracy();
-        message.clear_accuracy();
-      }
-      out.figures.MergeFrom(message);
-    }
-    // Rows received so far: each band's images are 3 floats a pixel.
-    const uint64_t row_floats = uint64_t{3} * out.figures.width();
-    const uint64_t floats = std::max(out.combined.size(), out.inscattering.size());
-    if (progress && row_floats > 0 && (had_pixels || floats == 0)) progress(floats / row_floats, out.figures.height());
-  }
-  const grpc::Status status = reader->Finish();
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  VISQ_RETURN_IF_ERROR(CallStreamed(
+      *this, &v1::VisibilityService::Stub::VolumetricShadow, request,
+      [&](v1::VolumetricShadowResponse& message) -> Status {
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.inscattering(), message.offset(), out.inscattering, "inscattering"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.combined(), message.offset(), out.combined, "combined"));
+        // The figures from the first message, the timing from the last.
+        const bool had_pixels = !message.combined().empty() || !message.inscattering().empty();
+        message.clear_inscattering();
+        message.clear_combined();
+        message.clear_offset();
+        if (first) {
+          out.figures = std::move(message);
+          first = false;
+        } else {
+          // A later accuracy (the error estimate) replaces the first one
+          // whole: merged, an estimate of exactly 0 would keep the first's -1.
+          if (message.has_accuracy()) {
+            *out.figures.mutable_accuracy() = message.accuracy();
+            message.clear_accuracy();
+          }
+          out.figures.MergeFrom(message);
+        }
+        // Rows received so far: each band's images are 3 floats a pixel.
+        const uint64_t row_floats = uint64_t{3} * out.figures.width();
+        const uint64_t floats = std::max(out.combined.size(), out.inscattering.size());
+        if (progress && row_floats > 0 && (had_pixels || floats == 0))
+          progress(floats / row_floats, out.figures.height());
+        return absl::OkStatus();
+      }));
   return out;
 }
 
 }  // namespace visq::client
 
 namespace visq::client {
-namespace {
-
-// Appends one streamed chunk of an obscurance array, checking the order.
-template <typename Field, typename T>
-Status AppendObscuranceChunk(const Field& field, uint64_t offset, std::vector<T>& into, const char* what) {
-  if (field.empty()) return absl::OkStatus();
-  if (offset != into.size())
-    return absl::DataLossError(absl::StrCat(what, " chunk at ", offset, ", have ", into.size()));
-  into.insert(into.end(), field.begin(), field.end());
-  return absl::OkStatus();
-}
-
-}  // namespace
 
 StatusOr<ObscuranceBake> Client::ComputeObscurances(const v1::ComputeObscurancesRequest& request,
                                                     const ObscuranceProgressCallback& progress) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name(), /*stream=*/true);
-  auto reader = stub_->ComputeObscurances(context.get(), request);
   ObscuranceBake out;
-  v1::ComputeObscurancesResponse message;
-  Status chunks = absl::OkStatus();
-  while (reader->Read(&message)) {
-    if (message.has_progress()) {
-      ++out.progress_messages;
-      if (progress) progress(message.progress());
-      continue;
-    }
-    if (message.has_figures()) out.figures = std::move(*message.mutable_figures());
-    const uint64_t at = message.offset();
-    Status s = AppendObscuranceChunk(message.w(), at, out.w, "w");
-    if (s.ok()) s = AppendObscuranceChunk(message.intensity(), at, out.intensity, "intensity");
-    if (s.ok()) s = AppendObscuranceChunk(message.estimated(), at, out.estimated, "estimated");
-    if (s.ok()) s = AppendObscuranceChunk(message.triangle_w(), at, out.triangle_w, "triangle_w");
-    if (s.ok()) s = AppendObscuranceChunk(message.vertex_w(), at, out.vertex_w, "vertex_w");
-    if (s.ok()) s = AppendObscuranceChunk(message.w_error(), at, out.w_error, "w_error");
-    if (s.ok()) s = AppendObscuranceChunk(message.triangle_w_error(), at, out.triangle_w_error, "triangle_w_error");
-    if (s.ok()) s = AppendObscuranceChunk(message.vertex_w_error(), at, out.vertex_w_error, "vertex_w_error");
-    if (s.ok()) s = AppendObscuranceChunk(message.partial_sums(), at, out.partial.sums, "partial_sums");
-    if (s.ok()) s = AppendObscuranceChunk(message.partial_counts(), at, out.partial.counts, "partial_counts");
-    if (!s.ok() && chunks.ok()) {
-      chunks = s;
-      context->TryCancel();
-    }
-  }
-  const grpc::Status status = reader->Finish();
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(chunks);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  VISQ_RETURN_IF_ERROR(CallStreamed(
+      *this, &v1::VisibilityService::Stub::ComputeObscurances, request,
+      [&](v1::ComputeObscurancesResponse& message) -> Status {
+        if (message.has_progress()) {
+          ++out.progress_messages;
+          if (progress) progress(message.progress());
+          return absl::OkStatus();
+        }
+        if (message.has_figures()) out.figures = std::move(*message.mutable_figures());
+        const uint64_t at = message.offset();
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.w(), at, out.w, "w"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.intensity(), at, out.intensity, "intensity"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.estimated(), at, out.estimated, "estimated"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.triangle_w(), at, out.triangle_w, "triangle_w"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.vertex_w(), at, out.vertex_w, "vertex_w"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.w_error(), at, out.w_error, "w_error"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.triangle_w_error(), at, out.triangle_w_error, "triangle_w_error"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.vertex_w_error(), at, out.vertex_w_error, "vertex_w_error"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.partial_sums(), at, out.partial.sums, "partial_sums"));
+        return AppendChunk(message.partial_counts(), at, out.partial.counts, "partial_counts");
+      }));
   const auto& f = out.figures;
   out.partial.fingerprint = f.fingerprint();
   out.partial.width = f.atlas().width();
@@ -577,25 +549,21 @@ StatusOr<v1::UpdateObscurancesResponse> Client::UpdateObscurances(const v1::Upda
 }
 
 StatusOr<ObscurancePreview> Client::RenderObscurancePreview(const v1::ObscurancePreviewRequest& request) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name(), /*stream=*/true);
-  auto reader = stub_->RenderObscurancePreview(context.get(), request);
   ObscurancePreview out;
-  v1::ObscurancePreviewResponse message;
   bool first = true;
-  while (reader->Read(&message)) {
-    VISQ_RETURN_IF_ERROR(AppendObscuranceChunk(message.rgb(), message.offset(), out.rgb, "rgb"));
-    VISQ_RETURN_IF_ERROR(AppendObscuranceChunk(message.covered(), message.covered_offset(), out.covered, "covered"));
-    if (first) {
-      message.clear_rgb();
-      message.clear_covered();
-      out.figures = std::move(message);
-      first = false;
-    }
-  }
-  const grpc::Status status = reader->Finish();
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  VISQ_RETURN_IF_ERROR(CallStreamed(
+      *this, &v1::VisibilityService::Stub::RenderObscurancePreview, request,
+      [&](v1::ObscurancePreviewResponse& message) -> Status {
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.rgb(), message.offset(), out.rgb, "rgb"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.covered(), message.covered_offset(), out.covered, "covered"));
+        if (first) {
+          message.clear_rgb();
+          message.clear_covered();
+          out.figures = std::move(message);
+          first = false;
+        }
+        return absl::OkStatus();
+      }));
   const size_t pixels = size_t{out.figures.width()} * out.figures.height();
   if (out.rgb.size() != pixels * 3 || out.covered.size() != pixels)
     return absl::DataLossError(absl::StrCat("obscurance preview: ", out.rgb.size(), " rgb floats and ",
@@ -605,31 +573,21 @@ StatusOr<ObscurancePreview> Client::RenderObscurancePreview(const v1::Obscurance
 }
 
 StatusOr<ObscuranceExport> Client::ExportObscurances(const v1::ExportObscurancesRequest& request) {
-  VISQ_RETURN_IF_ERROR(init_status_);
-  auto context = NewContext(request.scene().name(), /*stream=*/true);
-  auto reader = stub_->ExportObscurances(context.get(), request);
   ObscuranceExport out;
-  v1::ExportObscurancesResponse message;
   bool first = true;
-  Status chunks = absl::OkStatus();
-  while (reader->Read(&message)) {
-    Status s = AppendObscuranceChunk(message.atlas_uv(), message.offset(), out.atlas_uv, "atlas_uv");
-    if (s.ok()) s = AppendObscuranceChunk(message.glb(), message.glb_offset(), out.glb, "glb");
-    if (!s.ok() && chunks.ok()) {
-      chunks = s;
-      context->TryCancel();
-    }
-    if (first) {
-      message.clear_atlas_uv();
-      message.clear_glb();
-      out.figures = std::move(message);
-      first = false;
-    }
-  }
-  const grpc::Status status = reader->Finish();
-  NoteServer(*context);
-  VISQ_RETURN_IF_ERROR(chunks);
-  VISQ_RETURN_IF_ERROR(FromGrpcStatus(status));
+  VISQ_RETURN_IF_ERROR(CallStreamed(
+      *this, &v1::VisibilityService::Stub::ExportObscurances, request,
+      [&](v1::ExportObscurancesResponse& message) -> Status {
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.atlas_uv(), message.offset(), out.atlas_uv, "atlas_uv"));
+        VISQ_RETURN_IF_ERROR(AppendChunk(message.glb(), message.glb_offset(), out.glb, "glb"));
+        if (first) {
+          message.clear_atlas_uv();
+          message.clear_glb();
+          out.figures = std::move(message);
+          first = false;
+        }
+        return absl::OkStatus();
+      }));
   if (request.want_atlas_uvs() && out.atlas_uv.size() != out.figures.triangles() * 6)
     return absl::DataLossError(absl::StrCat("obscurance export: ", out.atlas_uv.size(), " UV floats for ",
                                             out.figures.triangles(), " triangles"));
