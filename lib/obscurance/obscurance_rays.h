@@ -14,13 +14,13 @@
 #pragma once
 
 #include <cstdint>
-#include <functional>
 #include <span>
 #include <vector>
 
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "common/stop_token.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
 #include "scene/scene.h"

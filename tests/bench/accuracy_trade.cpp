@@ -711,7 +711,7 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
   // Where the rays' variance is known: the texels' median error and own
   // bound, and how often the normal-approximation estimate holds.
   const bool rays = result.texel_sample_variance.size() == result.w.size();
-  std::vector<double> texel_errors, texel_bounds;
+  std::vector<double> texel_errors, texel_bounds, texel_estimates;
   size_t estimate_within = 0;
   for (uint32_t t = 0; t < atlas.texel_count(); ++t)
     if (atlas.Covered(t) && result.estimated[t] && reference.estimated[t]) {
@@ -719,9 +719,12 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
       texels.Add(error, bounds.texel[t], single);
       texel_errors.push_back(error);
       texel_bounds.push_back(bounds.texel[t]);
-      if (rays)
-        estimate_within += error <= ObscuranceNormalHalfWidth(result.texel_effective_samples[t],
-                                                              result.texel_sample_variance[t], kConfidence);
+      if (rays) {
+        const double estimate = ObscuranceNormalHalfWidth(result.texel_effective_samples[t],
+                                                          result.texel_sample_variance[t], kConfidence);
+        texel_estimates.push_back(estimate);
+        estimate_within += error <= estimate;
+      }
     }
   auto median = [](std::vector<double> v) {
     std::sort(v.begin(), v.end());
@@ -752,7 +755,8 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
          triangles.Share(triangles.own_within, triangles.all) + " (" + std::to_string(triangles.all) + "), vertices " +
          vertices.Share(vertices.own_within, vertices.all) + " (" + std::to_string(vertices.all) + ")" +
          (rays ? "; texels' median error " + Fmt("%.3g", median(texel_errors)) + ", median own bound " +
-                     Fmt("%.3g", median(texel_bounds)) + "; the normal estimate holds for texels " +
+                     Fmt("%.3g", median(texel_bounds)) + ", median estimate " +
+                     Fmt("%.3g", median(texel_estimates)) + "; the normal estimate holds for texels " +
                      texels.Share(estimate_within, texels.all)
                : "");
 }
