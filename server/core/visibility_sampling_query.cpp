@@ -498,7 +498,10 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
     if (runs.size() == 2 && runs[1].first > runs[0].first && runs[0].first > 0.0) {
       const auto [per_point, fixed] = StoredPointAndCallMs(runs[0], runs[1]);
       VISQ_ASSIGN_OR_RETURN(const LightVisibilityWork after, finish_units());
-      out.ms = fixed + after.stored_points * per_point;
+      // Never below the cheaper run: a batch holding its points costs at
+      // least a run over some of them (a fit of two noisy runs can leave
+      // next to nothing).
+      out.ms = std::max(fixed + after.stored_points * per_point, std::min(runs[0].second, runs[1].second));
       spdlog::debug("{} exact probes (budget {:.1f} ms): every point stored; {:.1f} ms for {} points, {:.1f} ms for {}: "
                     "{:.4f} ms a point and {:.2f} ms a call: predicted {:.1f} ms",
                     call.log_tag.empty() ? "[call]" : call.log_tag, budget_ms, runs[0].second, runs[0].first,
@@ -634,6 +637,13 @@ StatusOr<ExactPrediction> PredictExactByProbes(Engine& engine, const ExactBatch&
   point_ms *= std::min(workers, std::max(1.0, rate_groups)) / std::min(workers, std::max(1.0, batch_chunks));
   out.ms = double(after.groups - after.cached_groups) * tree_ms + after.points * point_ms +
            after.stored_points * std::min(stored_ms, point_ms) + (after.stored_points > 0 ? stored_fixed_ms : 0.0);
+  if (after.stored_points > 0 && !stored_runs.empty()) {
+    const double cheapest_stored_run =
+        std::min_element(stored_runs.begin(), stored_runs.end(), [](const auto& a, const auto& b) {
+          return a.second < b.second;
+        })->second;
+    out.ms = std::max(out.ms, cheapest_stored_run);
+  }
   // A second lattice cut after a few points measured the first points a
   // barely refined tree answers, which cost several times the batch's
   // average (the bunny: 23 ms against 2 ms): an upper side. The lower side
