@@ -15,6 +15,7 @@
 #include "common/check.h"
 #include "common/parallel.h"
 #include "raycast/embree_float_mode.h"
+#include "raycast/float_segment.h"
 #include "resource_limits/resource_limits.h"
 
 namespace visq::raycast {
@@ -477,19 +478,20 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
       bool any_ignore = !ignore.empty();
       for (size_t i = 0; i < n; ++i) {
         const Segment s = segment_at(base + i);
-        const glm::dvec3 p = s.p - origin_;
-        const glm::dvec3 d = s.q - s.p;
-        // The lower end (the ray's origin) keeps FillRay's offset, which
-        // depends on p alone; the upper end's covers the rounding of t along
-        // the whole segment as well.
-        const double len = glm::length(d);
-        const glm::dvec3 q = s.q - origin_;
-        const double far_magnitude = std::max({std::abs(q.x), std::abs(q.y), std::abs(q.z),
-                                               std::abs(p.x), std::abs(p.y), std::abs(p.z),
-                                               extent_ * 0x1p-3});
-        const double t_far_off = len > 0.0 ? 0x1p-17 * far_magnitude / len : 1.0;
-        FillRay(rays[i], p, d, 1.0 - t_far_off, extent_, static_cast<unsigned>(i));
-        if (!(rays[i].tfar > rays[i].tnear)) { rays[i].tnear = 1.0f; rays[i].tfar = 0.0f; }
+        const FloatSegment f = ToFloatSegment(s, origin_, extent_);
+        RTCRay& ray = rays[i];
+        ray.org_x = f.origin.x;
+        ray.org_y = f.origin.y;
+        ray.org_z = f.origin.z;
+        ray.dir_x = f.direction.x;
+        ray.dir_y = f.direction.y;
+        ray.dir_z = f.direction.z;
+        ray.tnear = f.t_near;
+        ray.tfar = f.t_far;
+        ray.time = 0.0f;
+        ray.mask = 0xFFFFFFFFu;
+        ray.id = static_cast<unsigned>(i);
+        ray.flags = 0;
         per_ray_ignore[i] = s.ignore_triangle;
         any_ignore |= s.ignore_triangle != kNoTriangle;
       }
