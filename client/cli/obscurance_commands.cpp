@@ -173,8 +173,11 @@ Status RunBake(const BakeOptions& o, Cli& cli) {
   if (o.target.set()) {
     o.target.Fill(request.mutable_target());
   } else if (o.rays > 0) {
-    request.set_method(v1::ComputeObscurancesRequest::RAYCAST);
+    request.set_method(o.method == "gpu-raycast" ? v1::ComputeObscurancesRequest::GPU_RAYCAST
+                                                 : v1::ComputeObscurancesRequest::RAYCAST);
     request.set_rays_per_patch(o.rays);
+  } else if (o.method == "gpu-raycast") {
+    return absl::InvalidArgumentError("--method gpu-raycast: give --rays-per-patch, the rays each patch casts");
   } else {
     request.set_direction_count(o.directions);
     if (o.method == "depth-peeling") request.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);
@@ -453,10 +456,11 @@ void AddObscuranceCommands(Cli& cli) {
                          "confidence; 1 for texels filled from neighbours) and write it as a float32 .npy (atlas "
                          "height, width); prints their spread and how many exceed the single bound");
   AddTargetFlags(obscurance, ob->target);
-  AddChoice(obscurance, "--method", ob->method, {"auto", "depth-peeling"},
-            "auto (the server runs the faster here of the depth peeling with --directions directions and the "
-            "ray-cast estimator with as many rays per patch, at the same bound) or depth-peeling (the paper's GPU "
-            "bake); --rays-per-patch names the ray-cast estimator");
+  AddChoice(obscurance, "--method", ob->method, {"auto", "depth-peeling", "gpu-raycast"},
+            "auto (the server runs the fastest here of the depth peeling with --directions directions and the "
+            "ray-cast estimator with as many rays per patch on Embree or on the GPU, at the same bound), "
+            "depth-peeling (the paper's GPU bake) or gpu-raycast (with --rays-per-patch: the ray-cast estimator's "
+            "rays traced on the GPU); --rays-per-patch alone names the ray-cast estimator on Embree");
   obscurance->add_option("--rays-per-patch", ob->rays,
                          "Instead of the GPU bake: the ray-cast estimator (Embree) with this many rays per patch");
   obscurance->add_option("--partial-out", ob->partial_out,

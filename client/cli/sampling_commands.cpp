@@ -9,12 +9,13 @@ namespace visq::cli {
 namespace {
 
 // "auto": the server runs the fastest here of the methods giving the same bits.
-const std::vector<std::string> kMethods = {"auto", "raster", "raycast", "exact"};
+const std::vector<std::string> kMethods = {"auto", "raster", "raycast", "exact", "gpu-raycast"};
 // "fast" was the Hough lookup's first name, kept for scripts that use it.
 const std::vector<std::string> kLookups = {"exact", "hough", "fast"};
 
 v1::VisibilityMethod Method(const std::string& name) {
   if (name == "auto") return v1::METHOD_UNSPECIFIED;
+  if (name == "gpu-raycast") return v1::GPU_RAYCAST;
   return name == "raycast" ? v1::RAYCAST : name == "exact" ? v1::PLUCKER_EXACT : v1::RASTER;
 }
 
@@ -133,7 +134,7 @@ void AddSamplingCommands(Cli& cli) {
   hidden_map->add_option("--seed", hm->seed, "Jitter seed")->capture_default_str();
   hidden_map->add_option("--width", hm->width, "Receiver texels across")->capture_default_str();
   hidden_map->add_option("--height", hm->height, "Receiver texels down")->capture_default_str();
-  AddChoice(hidden_map, "--method", hm->method, kMethods, "auto (the server picks the faster of raster and raycast), raster, raycast or exact (the Plücker method)");
+  AddChoice(hidden_map, "--method", hm->method, kMethods, "auto (the server picks the fastest of raster, raycast and gpu-raycast), raster, raycast, exact (the Plücker method) or gpu-raycast (raycast's rays on the GPU)");
   AddChoice(hidden_map, "--lookup", hm->lookup, kLookups, "RASTER's lookup: exact (the ray-cast bits) or hough");
   hidden_map->add_flag("--decorrelate", hm->decorrelate, "Per-texel sample offsets (noise instead of aliasing)");
   hidden_map->add_flag("--watertight", hm->watertight, "Front-face culling for closed casters");
@@ -154,7 +155,7 @@ void AddSamplingCommands(Cli& cli) {
   patch_visibility->add_option("--source-grid", pv->source_grid, "Samples per side on the source")->capture_default_str();
   patch_visibility->add_option("--receiver-grid", pv->receiver_grid, "Samples per side on the receiver")
       ->capture_default_str();
-  AddChoice(patch_visibility, "--method", pv->method, kMethods, "auto (the server picks the faster of raster and raycast), raster, raycast or exact (the Plücker method)");
+  AddChoice(patch_visibility, "--method", pv->method, kMethods, "auto (the server picks the fastest of raster, raycast and gpu-raycast), raster, raycast, exact (the Plücker method) or gpu-raycast (raycast's rays on the GPU)");
   AddChoice(patch_visibility, "--lookup", pv->lookup, kLookups, "RASTER's lookup: exact (the ray-cast bits) or hough");
   patch_visibility->add_option("--unblocked-limit", pv->limit, "Return up to this many unblocked rays");
   AddTargetFlags(patch_visibility, pv->target);

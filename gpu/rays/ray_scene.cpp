@@ -1,6 +1,7 @@
 #include "visq/gpu/ray_scene.h"
 
 #include <algorithm>
+#include <bit>
 #include <chrono>
 #include <string>
 
@@ -17,7 +18,7 @@ namespace {
 
 // At most this many segments a GL job: 128 MiB of segments and ignores.
 constexpr int kMaxJobSegments = 1 << 22;
-constexpr GLuint kGroupSize = 64;         // rays_occluded.comp's local_size_x
+constexpr GLuint kGroupSize = 64;         // rays_trace.comp's local_size_x
 constexpr GLuint kMaxGroupsAcross = 32768;  // under GL's guaranteed 65535
 
 GlBuffer MakeBuffer(size_t bytes, const void* data) {
@@ -59,64 +60,113 @@ StatusOr<std::shared_ptr<RayScene>> RayScene::Upload(GpuWorker& worker, const ra
   return out;
 }
 
-StatusOr<std::vector<uint8_t>> RayScene::Occluded(size_t count,
-                                                  const std::function<raycast::Segment(size_t)>& segment_at,
-                                                  const RayTraceOptions& options) const {
-  std::vector<uint8_t> result(count, 0);
-  if (count == 0 || node_count_ == 0) return result;
+// Both traces, in GL jobs sized by their time: the segments of each job
+// are made on the caller's threads (make(i, segment, ignore)), traced by
+// rays_trace.comp, and handed to take(begin, n, bits or hits) as read back.
+Status RayScene::Trace(size_t count, const SegmentMaker& make, bool closest, const RayTraceOptions& options,
+                       const JobResults& take) const {
+  if (count == 0 || node_count_ == 0) return absl::OkStatus();
   TimedSizer sizer(options.target_job_ms, kMaxJobSegments, static_cast<int>(options.first_job_segments));
   std::vector<raycast::FloatSegment> segments;
   std::vector<uint32_t> ignore;
   std::vector<uint32_t> bits;
+  std::vector<glm::vec4> hits;
+  const glm::vec4 miss(0.0f, std::bit_cast<float>(raycast::kNoTriangle), 0.0f, 0.0f);
   for (size_t begin = 0; begin < count;) {
     VISQ_RETURN_IF_ERROR(options.job.stop.Check("tracing rays on the GPU"));
     const size_t n = std::min<size_t>(static_cast<size_t>(sizer.size()), count - begin);
     segments.resize(n);
     ignore.resize(n);
-    // Segments are made on the caller's threads, so the GL thread only
-    // copies them.
     ParallelFor(n, 4096, [&](size_t first, size_t end) {
-      for (size_t i = first; i < end; ++i) {
-        const raycast::Segment s = segment_at(begin + i);
-        segments[i] = raycast::ToFloatSegment(s, origin_, extent_);
-        ignore[i] = s.ignore_triangle;
-      }
+      for (size_t i = first; i < end; ++i) make(begin + i, segments[i], ignore[i]);
     });
-    bits.assign((n + 31) / 32, 0u);
+    if (closest) hits.assign(n, miss);
+    else bits.assign((n + 31) / 32, 0u);
     JobTiming timing;
     VISQ_RETURN_IF_ERROR(worker_->Run(
         options.job,
         [&]() -> Status {
           if (generation_ != CurrentContextGeneration())
             return absl::UnavailableError("the GPU context was lost since the scene's rays were uploaded; retry");
+          ShaderDefines defines = {{"MAX_DEPTH", std::to_string(raycast::kMaxFlatBvhDepth)}};
+          if (closest) defines.emplace_back("CLOSEST_HIT", "1");
           VISQ_ASSIGN_OR_RETURN(const GlProgram* program,
-                                CachedProgram(rays_shaders::Find, {{GL_COMPUTE_SHADER, "rays_occluded.comp"}},
-                                              {{"MAX_DEPTH", std::to_string(raycast::kMaxFlatBvhDepth)}}));
+                                CachedProgram(rays_shaders::Find, {{GL_COMPUTE_SHADER, "rays_trace.comp"}}, defines));
           const GlBuffer segment_buffer = MakeBuffer(n * sizeof(raycast::FloatSegment), segments.data());
           const GlBuffer ignore_buffer = MakeBuffer(n * sizeof(uint32_t), ignore.data());
-          const GlBuffer blocked = MakeBuffer(bits.size() * sizeof(uint32_t), bits.data());
+          const size_t out_bytes = closest ? hits.size() * sizeof(glm::vec4) : bits.size() * sizeof(uint32_t);
+          void* out_data = closest ? static_cast<void*>(hits.data()) : static_cast<void*>(bits.data());
+          const GlBuffer out = MakeBuffer(out_bytes, out_data);
           glUseProgram(program->id());
           program->Set("segment_count", static_cast<unsigned>(n));
           program->Set("node_count", node_count_);
           const GLuint buffers[] = {resources_->nodes.id(), resources_->corners.id(), segment_buffer.id(),
-                                    ignore_buffer.id(), blocked.id()};
+                                    ignore_buffer.id(), out.id()};
           for (GLuint binding = 0; binding < 5; ++binding)
             glBindBufferBase(GL_SHADER_STORAGE_BUFFER, binding, buffers[binding]);
           const GLuint groups = static_cast<GLuint>((n + kGroupSize - 1) / kGroupSize);
           const GLuint across = std::min(groups, kMaxGroupsAcross);
           glDispatchCompute(across, (groups + across - 1) / across, 1);
           glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
-          glGetNamedBufferSubData(blocked.id(), 0, static_cast<GLsizeiptr>(bits.size() * sizeof(uint32_t)),
-                                  bits.data());
+          glGetNamedBufferSubData(out.id(), 0, static_cast<GLsizeiptr>(out_bytes), out_data);
           for (GLuint binding = 0; binding < 5; ++binding) glBindBufferBase(GL_SHADER_STORAGE_BUFFER, binding, 0);
           glUseProgram(0);
           return absl::OkStatus();
         },
         &timing));
     sizer.Measured(static_cast<int>(n), timing.run_ms);
-    for (size_t i = 0; i < n; ++i) result[begin + i] = static_cast<uint8_t>((bits[i >> 5] >> (i & 31)) & 1u);
+    take(begin, n, bits, hits);
     begin += n;
   }
+  return absl::OkStatus();
+}
+
+StatusOr<std::vector<uint8_t>> RayScene::Occluded(size_t count,
+                                                  const std::function<raycast::Segment(size_t)>& segment_at,
+                                                  const RayTraceOptions& options) const {
+  std::vector<uint8_t> result(count, 0);
+  VISQ_RETURN_IF_ERROR(Trace(
+      count,
+      [&](size_t i, raycast::FloatSegment& segment, uint32_t& ignore) {
+        const raycast::Segment s = segment_at(i);
+        segment = raycast::ToFloatSegment(s, origin_, extent_);
+        ignore = s.ignore_triangle;
+      },
+      /*closest=*/false, options,
+      [&](size_t begin, size_t n, const std::vector<uint32_t>& bits, const std::vector<glm::vec4>&) {
+        for (size_t i = 0; i < n; ++i) result[begin + i] = static_cast<uint8_t>((bits[i >> 5] >> (i & 31)) & 1u);
+      }));
+  return result;
+}
+
+StatusOr<std::vector<raycast::Hit>> RayScene::Intersect(std::span<const raycast::Ray> rays,
+                                                        const RayTraceOptions& options) const {
+  std::vector<raycast::Hit> result(rays.size());
+  bool corrupt = false;
+  VISQ_RETURN_IF_ERROR(Trace(
+      rays.size(),
+      [&](size_t i, raycast::FloatSegment& segment, uint32_t& ignore) {
+        segment = raycast::ToFloatRay(rays[i], origin_, extent_);
+        ignore = rays[i].ignore_triangle;
+      },
+      /*closest=*/true, options,
+      [&](size_t begin, size_t n, const std::vector<uint32_t>&, const std::vector<glm::vec4>& hits) {
+        for (size_t i = 0; i < n; ++i) {
+          const uint32_t triangle = std::bit_cast<uint32_t>(hits[i].y);
+          if (triangle == raycast::kNoTriangle) continue;
+          if (triangle >= triangle_count_) {
+            corrupt = true;
+            continue;
+          }
+          raycast::Hit& hit = result[begin + i];
+          hit.hit = true;
+          hit.t = hits[i].x;
+          hit.triangle = triangle;
+          hit.u = hits[i].z;
+          hit.v = hits[i].w;
+        }
+      }));
+  if (corrupt) return absl::InternalError("the GPU's closest hits named a triangle the scene does not have");
   return result;
 }
 

@@ -4,6 +4,7 @@
 #include <array>
 #include <cmath>
 #include <numbers>
+#include <optional>
 #include <span>
 #include <type_traits>
 
@@ -382,7 +383,11 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
   VISQ_RETURN_IF_ERROR(ValidateParams(params));
   if (options.rays_per_patch == 0)
     return absl::InvalidArgumentError("rays_per_patch: 0 must be at least 1");
-  VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(scene));
+  std::optional<raycast::EmbreeScene> embree;
+  if (!options.closest_hits) {
+    VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene own, raycast::EmbreeScene::Create(scene));
+    embree.emplace(std::move(own));
+  }
   const AmbientModel ambient = ComputeAmbient(scene, params.color_bleeding);
   const uint32_t n = atlas.texel_count();
   std::vector<glm::vec3> w(n, glm::vec3(0.0f));
@@ -430,7 +435,8 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
     raycast::TraceOptions trace;
     trace.threads = options.threads;
     trace.stop = options.stop;
-    VISQ_ASSIGN_OR_RETURN(std::vector<raycast::Hit> hits, embree.Intersect(rays, trace));
+    VISQ_ASSIGN_OR_RETURN(std::vector<raycast::Hit> hits,
+                          options.closest_hits ? options.closest_hits(rays) : embree->Intersect(rays, trace));
     std::vector<glm::dvec3> sum(kBatchTexels, glm::dvec3(0.0)), squares(kBatchTexels, glm::dvec3(0.0));
     std::vector<uint32_t> count(kBatchTexels, 0);
     values.resize(rays.size());

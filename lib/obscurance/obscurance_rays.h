@@ -14,6 +14,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <span>
 #include <vector>
 
@@ -23,6 +24,7 @@
 #include "common/stop_token.h"
 #include "obscurance/obscurance_atlas.h"
 #include "obscurance/obscurance_model.h"
+#include "raycast/embree_scene.h"
 #include "scene/scene.h"
 
 namespace visq::obscurance {
@@ -81,7 +83,14 @@ void GenerateTriangleRays(const Scene& scene, uint32_t triangle, uint64_t seed, 
 glm::dvec3 RayValue(const Scene& scene, const AmbientModel& ambient, bool color_bleeding, double d_max, bool hit,
                     double distance, uint32_t hit_triangle);
 
+// Closest hits for a batch of rays with raycast::EmbreeScene::Intersect's
+// semantics over the scene's triangles in its flattened order (another
+// tracer of the same rays: the GPU's, gpu/rays).
+using ClosestHits = std::function<StatusOr<std::vector<raycast::Hit>>(std::span<const raycast::Ray> rays)>;
+
 struct RayEstimateOptions {
+  // Empty: an Embree scene of the scene's own, built by the call.
+  ClosestHits closest_hits;
   uint32_t rays_per_patch = 64;
   uint64_t seed = 1;
   int threads = 0;  // 0: all cores

@@ -430,30 +430,21 @@ void EmbreeScene::Reset() {
 
 namespace {
 
-// Fills an RTCRay for origin o (local frame, double) along d, t in [t0, t1].
-// The offset rule is documented at EmbreeScene::Occluded.
-void FillRay(RTCRay& ray, const glm::dvec3& o, const glm::dvec3& d, double t1_in, double extent,
-             unsigned id) {
-  const double len = glm::length(d);
-  const double magnitude =
-      std::max({std::abs(o.x), std::abs(o.y), std::abs(o.z), extent * 0x1p-3});
-  double t0 = len > 0.0 ? 0x1p-17 * magnitude / len : 0.0;
-  ray.org_x = static_cast<float>(o.x);
-  ray.org_y = static_cast<float>(o.y);
-  ray.org_z = static_cast<float>(o.z);
-  ray.dir_x = static_cast<float>(d.x);
-  ray.dir_y = static_cast<float>(d.y);
-  ray.dir_z = static_cast<float>(d.z);
-  ray.tnear = static_cast<float>(t0);
-  ray.tfar = static_cast<float>(t1_in);
+// An RTCRay of a FloatSegment (raycast/float_segment.h: the offset rule
+// documented at EmbreeScene::Occluded, shared with the GPU's rays).
+void FillRay(RTCRay& ray, const FloatSegment& f, unsigned id) {
+  ray.org_x = f.origin.x;
+  ray.org_y = f.origin.y;
+  ray.org_z = f.origin.z;
+  ray.dir_x = f.direction.x;
+  ray.dir_y = f.direction.y;
+  ray.dir_z = f.direction.z;
+  ray.tnear = f.t_near;
+  ray.tfar = f.t_far;
   ray.time = 0.0f;
   ray.mask = 0xFFFFFFFFu;
   ray.id = id;
   ray.flags = 0;
-  if (!(len > 0.0) || !(t1_in > t0)) {  // empty interval: nothing can be hit
-    ray.tnear = 1.0f;
-    ray.tfar = 0.0f;
-  }
 }
 
 }  // namespace
@@ -478,20 +469,7 @@ StatusOr<std::vector<uint8_t>> EmbreeScene::Occluded(size_t count, const std::fu
       bool any_ignore = !ignore.empty();
       for (size_t i = 0; i < n; ++i) {
         const Segment s = segment_at(base + i);
-        const FloatSegment f = ToFloatSegment(s, origin_, extent_);
-        RTCRay& ray = rays[i];
-        ray.org_x = f.origin.x;
-        ray.org_y = f.origin.y;
-        ray.org_z = f.origin.z;
-        ray.dir_x = f.direction.x;
-        ray.dir_y = f.direction.y;
-        ray.dir_z = f.direction.z;
-        ray.tnear = f.t_near;
-        ray.tfar = f.t_far;
-        ray.time = 0.0f;
-        ray.mask = 0xFFFFFFFFu;
-        ray.id = static_cast<unsigned>(i);
-        ray.flags = 0;
+        FillRay(rays[i], ToFloatSegment(s, origin_, extent_), static_cast<unsigned>(i));
         per_ray_ignore[i] = s.ignore_triangle;
         any_ignore |= s.ignore_triangle != kNoTriangle;
       }
@@ -536,10 +514,7 @@ StatusOr<std::vector<Hit>> EmbreeScene::Intersect(std::span<const Ray> rays_in,
       bool any_ignore = !ignore.empty();
       for (size_t i = 0; i < n; ++i) {
         const Ray& r = rays_in[base + i];
-        const double tmax = std::isfinite(r.tmax) ? r.tmax : std::numeric_limits<double>::max();
-        FillRay(rays[i].ray, r.origin - origin_, r.direction,
-                std::min(tmax, static_cast<double>(std::numeric_limits<float>::max())), extent_,
-                static_cast<unsigned>(i));
+        FillRay(rays[i].ray, ToFloatRay(r, origin_, extent_), static_cast<unsigned>(i));
         rays[i].hit.geomID = RTC_INVALID_GEOMETRY_ID;
         rays[i].hit.primID = RTC_INVALID_GEOMETRY_ID;
         rays[i].hit.instID[0] = RTC_INVALID_GEOMETRY_ID;

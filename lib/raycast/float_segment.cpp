@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 namespace visq::raycast {
 
@@ -27,6 +28,25 @@ FloatSegment ToFloatSegment(const Segment& segment, const glm::dvec3& frame_orig
   out.t_near = static_cast<float>(t_near);
   out.t_far = static_cast<float>(t_far);
   if (!(length > 0.0) || !(t_far > t_near) || !(out.t_far > out.t_near)) {
+    out.t_near = 1.0f;
+    out.t_far = 0.0f;
+  }
+  return out;
+}
+
+FloatSegment ToFloatRay(const Ray& ray, const glm::dvec3& frame_origin, double extent) {
+  const glm::dvec3 o = ray.origin - frame_origin;
+  const double length = glm::length(ray.direction);
+  const double magnitude = std::max(LargestCoordinate(o), extent * 0x1p-3);
+  const double t_near = length > 0.0 ? 0x1p-17 * magnitude / length : 0.0;
+  const double t_far = std::min(std::isfinite(ray.tmax) ? ray.tmax : std::numeric_limits<double>::max(),
+                                static_cast<double>(std::numeric_limits<float>::max()));
+  FloatSegment out;
+  out.origin = glm::vec3(o);
+  out.direction = glm::vec3(ray.direction);
+  out.t_near = static_cast<float>(t_near);
+  out.t_far = static_cast<float>(t_far);
+  if (!(length > 0.0) || !(t_far > t_near)) {
     out.t_near = 1.0f;
     out.t_far = 0.0f;
   }

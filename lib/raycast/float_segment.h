@@ -27,4 +27,8 @@ static_assert(sizeof(FloatSegment) == 32);
 // `extent` (the largest side of its bounds).
 FloatSegment ToFloatSegment(const Segment& segment, const glm::dvec3& frame_origin, double extent);
 
+// A ray for a closest hit (EmbreeScene::Intersect): t from the origin's
+// offset to tmax (at most the largest float), along the ray's own direction.
+FloatSegment ToFloatRay(const Ray& ray, const glm::dvec3& frame_origin, double extent);
+
 }  // namespace visq::raycast

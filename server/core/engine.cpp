@@ -434,6 +434,21 @@ LazyStructure<raycast::EmbreeScene>::Build Engine::EmbreeBuild(const ResidentSce
       [](const raycast::EmbreeScene& e) -> uint64_t { return e.memory_bytes(); });
 }
 
+// The BVH is built on the build's thread and only copied on the GL thread.
+LazyStructure<gpu::RayScene>::Build Engine::RayBuild(const ResidentScene& resident) {
+  auto build = TimedBuild<gpu::RayScene>(
+      build_times_, "gpu_ray_bvh", resident,
+      [this](const Scene& scene) -> StatusOr<std::shared_ptr<gpu::RayScene>> {
+        raycast::FlatBvhOptions options;
+        options.stop = builds_.stop();
+        VISQ_ASSIGN_OR_RETURN(const raycast::FlatBvh bvh, raycast::BuildFlatBvh(scene, options));
+        return gpu::RayScene::Upload(*gpu_, bvh);
+      },
+      [](const gpu::RayScene& r) -> uint64_t { return r.gpu_bytes(); });
+  build.usable = [](const gpu::RayScene& r) { return r.IsCurrent(); };
+  return build;
+}
+
 LazyStructure<const exact::SceneTriangleIndex>::Build Engine::TriangleIndexBuild(const ResidentScene& resident) {
   return TimedBuild<const exact::SceneTriangleIndex>(
       build_times_, "triangle_index", resident,
@@ -451,6 +466,10 @@ StatusOr<std::shared_ptr<gpu::GpuScene>> Engine::GpuSceneOf(const ResidentScene&
 StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const ResidentScene& resident,
                                                                       const CallOptions& call) {
   return resident.embree_scene.Get(builds_, call, EmbreeBuild(resident), "Embree BVH");
+}
+
+StatusOr<std::shared_ptr<gpu::RayScene>> Engine::RaySceneOf(const ResidentScene& resident, const CallOptions& call) {
+  return resident.ray_scene.Get(builds_, call, RayBuild(resident), "GPU ray BVH");
 }
 
 StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> Engine::TriangleIndexOf(const ResidentScene& resident,
@@ -563,6 +582,26 @@ StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneFor(
   return frame->embree_scene;
 }
 
+StatusOr<std::shared_ptr<gpu::RayScene>> Engine::RaySceneFor(const ResidentScene& resident,
+                                                             const sampling::HiddenSampleMapRequest& request,
+                                                             const CallOptions& call) {
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<LocalFrame> frame,
+                        LocalFrameFor(resident, request, sampling::SegmentTracer::kRaycast, call));
+  if (!frame) return RaySceneOf(resident, call);
+  const auto start = std::chrono::steady_clock::now();
+  std::lock_guard lock(frame->mutex);
+  if (!frame->ray_scene || !frame->ray_scene->IsCurrent()) {
+    raycast::FlatBvhOptions options;
+    options.origin = frame->origin();
+    options.stop = call.stop;
+    VISQ_ASSIGN_OR_RETURN(const raycast::FlatBvh bvh, raycast::BuildFlatBvh(*frame->scene, options));
+    VISQ_ASSIGN_OR_RETURN(frame->ray_scene, gpu::RayScene::Upload(*gpu_, bvh, call.Job()));
+    build_times_.Record("gpu_ray_bvh_local", MillisecondsSince(start));
+    if (call.build_clock) call.build_clock->Add(MillisecondsSince(start));
+  }
+  return frame->ray_scene;
+}
+
 Status Engine::ValidateSampledPrecision(const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request,
                                      sampling::SegmentTracer tracer, const CallOptions& call) {
   return LocalFrameFor(resident, request, tracer, call).status();
@@ -616,7 +655,7 @@ SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) c
   // What is built so far, read without waiting for a build in progress:
   // nothing is uploaded until a GPU query needs it.
   s.cpu_bytes = scene.CpuBytes() + resident.embree_scene.bytes() + resident.triangle_index.bytes();
-  s.gpu_bytes = resident.gpu_scene.bytes();
+  s.gpu_bytes = resident.gpu_scene.bytes() + resident.ray_scene.bytes();
   s.estimate = resident.estimate;
   s.materials = static_cast<uint32_t>(scene.materials.size());
   s.emissive_triangles = resident.emissive_triangles;

@@ -121,6 +121,7 @@ struct ResidentScene {
   // metadata calls take (core/lazy_structure.h).
   mutable LazyStructure<gpu::GpuScene> gpu_scene;
   mutable LazyStructure<raycast::EmbreeScene> embree_scene;
+  mutable LazyStructure<gpu::RayScene> ray_scene;  // GPU_RAYCAST's BVH
   mutable LazyStructure<const exact::SceneTriangleIndex> triangle_index;  // for exact light trees and local frames
   mutable LocalFrames local_frames;  // for sampled queries far from the scene's centre
 };
@@ -249,6 +250,8 @@ class Engine {
                                                                     const CallOptions& call = {});
   [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneOf(const ResidentScene& resident,
                                                                               const CallOptions& call = {});
+  [[nodiscard]] StatusOr<std::shared_ptr<gpu::RayScene>> RaySceneOf(const ResidentScene& resident,
+                                                                     const CallOptions& call = {});
   [[nodiscard]] StatusOr<std::shared_ptr<const exact::SceneTriangleIndex>> TriangleIndexOf(
       const ResidentScene& resident, const CallOptions& call = {});
   // Starts building `kinds` of the resident scene `name` at `version` in the
@@ -264,6 +267,10 @@ class Engine {
                                                                      const CallOptions& call = {});
   [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneFor(
       const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request, const CallOptions& call = {});
+  // GPU_RAYCAST's, which traces RAYCAST's segments in the same frame.
+  [[nodiscard]] StatusOr<std::shared_ptr<gpu::RayScene>> RaySceneFor(const ResidentScene& resident,
+                                                                     const sampling::HiddenSampleMapRequest& request,
+                                                                     const CallOptions& call = {});
   // The same decision without building either copy: for the planner.
   [[nodiscard]] Status ValidateSampledPrecision(const ResidentScene& resident,
                                              const sampling::HiddenSampleMapRequest& request,
@@ -310,6 +317,7 @@ class Engine {
   // What each lazy structure's build does (and records in build_times_).
   LazyStructure<gpu::GpuScene>::Build GpuBuild(const ResidentScene& resident);
   LazyStructure<raycast::EmbreeScene>::Build EmbreeBuild(const ResidentScene& resident);
+  LazyStructure<gpu::RayScene>::Build RayBuild(const ResidentScene& resident);
   LazyStructure<const exact::SceneTriangleIndex>::Build TriangleIndexBuild(const ResidentScene& resident);
   void StartWarming(const ResidentScene& resident, std::span<const StructureKind> kinds);
   GltfLoadLimits LoadLimits(const std::filesystem::path& file_root) const;

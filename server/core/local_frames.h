@@ -27,6 +27,8 @@
 #include "sampling/visibility_sampling.h"
 #include "scene/scene.h"
 #include "visq/gpu/gpu_scene.h"
+#include "raycast/flat_bvh.h"
+#include "visq/gpu/ray_scene.h"
 
 namespace visq::core {
 
@@ -41,6 +43,7 @@ struct LocalFrame {
   std::mutex mutex;
   std::shared_ptr<gpu::GpuScene> gpu_scene;
   std::shared_ptr<raycast::EmbreeScene> embree_scene;
+  std::shared_ptr<gpu::RayScene> ray_scene;
 };
 
 // The local frames of one resident scene, the most recently used kept.

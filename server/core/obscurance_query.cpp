@@ -1,6 +1,7 @@
 #include "core/obscurance_query.h"
 
 #include <algorithm>
+#include <tuple>
 #include <chrono>
 #include <cmath>
 #include <map>
@@ -40,7 +41,7 @@ Status ValidateObscuranceQuery(const ObscuranceQuery& query) {
   if (query.update_rays_per_patch == 0 || query.update_rays_per_patch > 65536)
     return absl::InvalidArgumentError(
         absl::StrCat("update_rays_per_patch: ", query.update_rays_per_patch, " must be in [1, 65536]"));
-  if (query.method == ObscuranceMethod::kRaycast) {
+  if (IsRayEstimate(*query.method)) {
     if (query.rays_per_patch == 0 || query.rays_per_patch > 65536)
       return absl::InvalidArgumentError(
           absl::StrCat("rays_per_patch: ", query.rays_per_patch, " must be in [1, 65536]"));
@@ -58,7 +59,7 @@ double ObscuranceErrorEstimate(uint64_t directions, double confidence) {
 
 ObscuranceCoverage CoverageOf(const ObscuranceAnswer& answer) {
   ObscuranceCoverage out;
-  if (answer.method == ObscuranceMethod::kRaycast && answer.result) {
+  if (IsRayEstimate(answer.method) && answer.result) {
     // Every estimated patch got exactly rays_per_patch rays.
     for (uint8_t e : answer.result->estimated) out.estimated_texels += e;
     out.mean_samples_per_patch = answer.result->mean_samples_per_patch;
@@ -179,9 +180,9 @@ void SetCoveredBound(const ObscuranceAnswer& answer, double nominal, const char*
 AccuracyStatement ObscuranceStatement(const ObscuranceAnswer& answer) {
   AccuracyStatement out;
   out.confidence = answer.confidence;
-  if (answer.method == ObscuranceMethod::kRaycast) {
+  if (IsRayEstimate(answer.method)) {
     // N rays per patch, each a value in [0, 1] per channel.
-    out.method = "obscurance-raycast";
+    out.method = answer.method == ObscuranceMethod::kGpuRaycast ? "obscurance-gpu-raycast" : "obscurance-raycast";
     out.parameters["rays_per_patch"] = static_cast<double>(answer.rays_per_patch);
     SetCoveredBound(answer, answer.rays_per_patch, "rays", out);
     out.note += "; the rays are independent, each cosine-distributed within its own of N equal cells of the "
@@ -248,15 +249,30 @@ std::string DepthPeelingSeries(const ResidentScene& resident, const ObscuranceQu
   return absl::StrCat(resident.name, "@", resident.content_hash.substr(0, 8), "/obscurance/", query.resolution, "/",
                       query.params.bundle_resolution, query.params.color_bleeding ? "/rgb" : "/w");
 }
-std::string RaycastSeries(const ResidentScene& resident, const ObscuranceQuery& query) {
-  return absl::StrCat(DepthPeelingSeries(resident, query), "/raycast");
+std::string RaycastSeries(const ResidentScene& resident, const ObscuranceQuery& query,
+                          ObscuranceMethod method = ObscuranceMethod::kRaycast) {
+  return absl::StrCat(DepthPeelingSeries(resident, query),
+                      method == ObscuranceMethod::kGpuRaycast ? "/gpu-raycast" : "/raycast");
+}
+
+// The ray estimator's closest hits on the GPU (gpu/rays), for
+// RayEstimateOptions::closest_hits; Embree's own when `method` is RAYCAST.
+StatusOr<obscurance::ClosestHits> ClosestHitsOf(Engine& engine, const ResidentScene& resident,
+                                                ObscuranceMethod method, const CallOptions& call) {
+  if (method != ObscuranceMethod::kGpuRaycast) return obscurance::ClosestHits();
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::RayScene> gpu_rays, engine.RaySceneOf(resident, call));
+  return obscurance::ClosestHits([gpu_rays, job = call.BatchJob()](std::span<const raycast::Ray> rays) {
+    gpu::RayTraceOptions trace;
+    trace.job = job;
+    return gpu_rays->Intersect(rays, trace);
+  });
 }
 
 // Whether a query's bake is whole, so that it becomes the scene's solution
 // for UpdateObscurances.
 bool IsWholeBake(const ObscuranceQuery& query, uint32_t total_directions) {
   if (query.partial_only) return false;
-  return query.method == ObscuranceMethod::kRaycast ||
+  return IsRayEstimate(*query.method) ||
          (query.params.first_direction == 0 && query.params.direction_count == total_directions);
 }
 
@@ -271,7 +287,7 @@ uint64_t ObscuranceWorkBytes(const Scene& scene, const ObscuranceQuery& query) {
   const uint64_t channels = shape.channels;
   uint64_t bytes = shape.texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1 + 8 + 4 + 4) +
                    shape.triangles * ((channels + 1) * (8 + 8) + 12 + 8 + 4 + 4);
-  if (query.method == ObscuranceMethod::kRaycast)
+  if (IsRayEstimate(*query.method))
     bytes = ObscuranceResultBytes(shape) + RayEstimateWorkBytes(shape, query.rays_per_patch);
   const uint32_t total = query.total_directions != 0 ? query.total_directions
                                                      : query.params.first_direction + query.params.direction_count;
@@ -305,7 +321,7 @@ StatusOr<obscurance::ObscuranceAtlas> BuildAtlasWithinBudget(Engine& engine, con
   options.force_build = query.force_built_atlas;
   options.reserve = [&](uint64_t atlas_bytes) -> Status {
     VISQ_ASSIGN_OR_RETURN(memory, engine.work_budget().Reserve(atlas_bytes + then_bytes,
-                                                               query.method == ObscuranceMethod::kRaycast
+                                                               IsRayEstimate(*query.method)
                                                                    ? "resolution, rays_per_patch"
                                                                    : "resolution",
                                                                job));
@@ -318,7 +334,8 @@ StatusOr<obscurance::ObscuranceAtlas> BuildAtlasWithinBudget(Engine& engine, con
 // A whole bake's ray-cast estimate with `rays` rays per patch, its atlas
 // included (as the chosen run's cost is recorded): its ms.
 StatusOr<double> RaycastEstimateMs(Engine& engine, const ResidentScene& resident, const ObscuranceQuery& query,
-                                   uint32_t rays, const CallOptions& call) {
+                                   ObscuranceMethod method, uint32_t rays, const CallOptions& call) {
+  VISQ_ASSIGN_OR_RETURN(obscurance::ClosestHits closest_hits, ClosestHitsOf(engine, resident, method, call));
   const auto start = std::chrono::steady_clock::now();
   WorkMemoryBudget::Reservation memory;
   VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
@@ -328,6 +345,7 @@ StatusOr<double> RaycastEstimateMs(Engine& engine, const ResidentScene& resident
   options.rays_per_patch = rays;
   options.seed = query.params.seed;
   options.stop = call.stop;
+  options.closest_hits = std::move(closest_hits);
   VISQ_RETURN_IF_ERROR(
       obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params, options).status());
   return MillisecondsSince(start);
@@ -335,7 +353,8 @@ StatusOr<double> RaycastEstimateMs(Engine& engine, const ResidentScene& resident
 
 // A request naming no method, for a whole bake of D directions: depth
 // peeling with D directions, or the ray-cast estimator with D rays per
-// patch, whose covered bound is the same figure; the faster here runs. The
+// patch on Embree or on the GPU, whose covered bound is the same figure;
+// the fastest here runs. The
 // ray-cast estimator is probed first (a few rays a patch); the bake's
 // probes (a direction, then four) get a share of its predicted time, since
 // on a CPU rasterizer one direction can cost more than a whole ray-cast
@@ -344,19 +363,21 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
                                             const ObscuranceQuery& query) {
   const uint32_t directions = query.params.direction_count;
   const double bound = obscurance::CoveredHalfWidth(directions, 0.95);
-  std::vector<EqualAnswerOption> options(2);
-  {
-    Plan& plan = options[0].plan;
-    plan.method = "obscurance-raycast";
-    plan.runs = ObscuranceMethod::kRaycast;
+  std::vector<EqualAnswerOption> options(3);
+  for (const auto& [slot, method, name] : {std::tuple{0, ObscuranceMethod::kRaycast, "obscurance-raycast"},
+                                           std::tuple{2, ObscuranceMethod::kGpuRaycast, "obscurance-gpu-raycast"}}) {
+    Plan& plan = options[slot].plan;
+    plan.method = name;
+    plan.runs = method;
     plan.parameters["rays_per_patch"] = directions;
-    plan.cost_key = RaycastSeries(resident, query);
+    plan.cost_key = RaycastSeries(resident, query, method);
     plan.work = directions;
     plan.error_bound = bound;
     for (uint32_t rays : {4u, 16u})
-      options[0].probes.push_back({double(rays), 0.0, [&engine, &resident, &query, rays](const CallOptions& call) {
-                                     return RaycastEstimateMs(engine, resident, query, rays, call);
-                                   }});
+      options[slot].probes.push_back(
+          {double(rays), 0.0, [&engine, &resident, &query, method, rays](const CallOptions& call) {
+             return RaycastEstimateMs(engine, resident, query, method, rays, call);
+           }});
   }
   {
     Plan& plan = options[1].plan;
@@ -500,7 +521,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   if (plan) {
     const Plan& chosen = plan->chosen_plan();
     query.method = std::get<ObscuranceMethod>(chosen.runs);
-    if (query.method == ObscuranceMethod::kRaycast)
+    if (IsRayEstimate(*query.method))
       query.rays_per_patch = static_cast<uint32_t>(chosen.parameters.at("rays_per_patch"));
     else
       query.params.direction_count = static_cast<uint32_t>(chosen.parameters.at("directions"));
@@ -530,14 +551,18 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   answer.method = *query.method;
   answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);
   obscurance::ObscuranceResult result;
-  if (query.method == ObscuranceMethod::kRaycast) {
-    // The estimator of eq. 6 per patch with Embree: the same quantity as the
-    // bake, with independent per-patch rays instead of shared bundles.
+  if (IsRayEstimate(*query.method)) {
+    // The estimator of eq. 6 per patch with Embree (or its rays on the
+    // GPU): the same quantity as the bake, with independent per-patch rays
+    // instead of shared bundles.
+    VISQ_ASSIGN_OR_RETURN(obscurance::ClosestHits closest_hits,
+                          ClosestHitsOf(engine, *resident, *query.method, query.call));
     start = std::chrono::steady_clock::now();
     obscurance::RayEstimateOptions options;
     options.rays_per_patch = query.rays_per_patch;
     options.seed = query.params.seed;
     options.stop = query.call.stop;
+    options.closest_hits = std::move(closest_hits);
     StatusOr<obscurance::ObscuranceResult> estimate =
         obscurance::EstimateObscurancesByRays(scene, atlas, query.params, options);
     VISQ_RETURN_IF_ERROR(estimate.status());

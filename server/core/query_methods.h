@@ -7,13 +7,20 @@
 namespace visq::core {
 
 // HiddenSampleMap and PatchVisibility: the paper's raster passes, Embree's
-// rays, or the exact method (Mora et al.) on the source as an area light.
-enum class VisibilityMethod { kRaster, kRaycast, kPluckerExact };
+// rays, the exact method (Mora et al.) on the source as an area light, or
+// the same rays as Embree's traced on the GPU (gpu/rays).
+enum class VisibilityMethod { kRaster, kRaycast, kPluckerExact, kGpuRaycast };
 
 // The paper's GPU bake by depth peeling along bundles of parallel rays, or
 // the same estimator traced per patch with Embree (lib/obscurance/
-// obscurance_rays.h), which on a machine without a GPU is the cheaper one.
-enum class ObscuranceMethod { kDepthPeeling, kRaycast };
+// obscurance_rays.h), which on a machine without a GPU is the cheaper one,
+// or that estimator's rays traced on the GPU (gpu/rays).
+enum class ObscuranceMethod { kDepthPeeling, kRaycast, kGpuRaycast };
+
+// Whether the method is the per-patch ray estimator (on either tracer).
+constexpr bool IsRayEstimate(ObscuranceMethod method) {
+  return method == ObscuranceMethod::kRaycast || method == ObscuranceMethod::kGpuRaycast;
+}
 
 // What a plan runs; monostate where its caller keeps that itself.
 using PlanMethod = std::variant<std::monostate, VisibilityMethod, ObscuranceMethod>;

@@ -38,17 +38,43 @@ Status ValidateSize(const sampling::HiddenSampleMapRequest& request) {
   return absl::OkStatus();
 }
 
-// The reference: Embree casts, for every texel and sample, the segment the
-// GPU path tests (same endpoints, from the module's own functions).
+// Whether each of `count` segments is blocked: Embree's on the CPU threads
+// (RAYCAST) or the same FloatSegments on the GPU (GPU_RAYCAST).
+using SegmentOcclusion = std::function<StatusOr<std::vector<uint8_t>>(
+    size_t count, const std::function<raycast::Segment(size_t)>& segment_at)>;
+
+StatusOr<SegmentOcclusion> OcclusionTracer(Engine& engine, const ResidentScene& resident,
+                                           const sampling::HiddenSampleMapRequest& request, const CallOptions& call,
+                                           VisibilityMethod method) {
+  const gpu::JobOptions job = call.Job();
+  // Either holds float32 positions relative to an origin, like the raster
+  // path: the scene's centre, or the query's own region when it lies far
+  // from it.
+  if (method == VisibilityMethod::kGpuRaycast) {
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::RayScene> rays, engine.RaySceneFor(resident, request, call));
+    return SegmentOcclusion([rays, job](size_t count, const std::function<raycast::Segment(size_t)>& segment_at) {
+      gpu::RayTraceOptions options;
+      options.job = job;
+      return rays->Occluded(count, segment_at, options);
+    });
+  }
+  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneFor(resident, request, call));
+  return SegmentOcclusion([embree, job](size_t count, const std::function<raycast::Segment(size_t)>& segment_at) {
+    raycast::TraceOptions trace;
+    trace.stop = job.stop;
+    return embree->Occluded(count, segment_at, trace);
+  });
+}
+
+// The reference: Embree (or the GPU's rays) casts, for every texel and
+// sample, the segment the raster path tests (same endpoints, from the
+// module's own functions).
 StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine, const ResidentScene& resident,
                                                                  const sampling::HiddenSampleMapRequest& request,
-                                                                 const CallOptions& call,
+                                                                 const CallOptions& call, VisibilityMethod method,
                                                                  const sampling::HiddenSampleMapBandSink& sink = {}) {
   VISQ_RETURN_IF_ERROR(sampling::ValidateHiddenSampleMapRequest(request));
-  const gpu::JobOptions job = call.Job();
-  // Embree holds float32 positions relative to an origin, like the GPU: the
-  // scene's centre, or the query's own region when it lies far from it.
-  VISQ_ASSIGN_OR_RETURN(std::shared_ptr<raycast::EmbreeScene> embree, engine.EmbreeSceneFor(resident, request, call));
+  VISQ_ASSIGN_OR_RETURN(const SegmentOcclusion occluded, OcclusionTracer(engine, resident, request, call, method));
   const auto start = std::chrono::steady_clock::now();
   VISQ_ASSIGN_OR_RETURN(sampling::SourceSamples samples, sampling::ComputeSourceSamples(request.source));
   sampling::HiddenSampleMapResult result;
@@ -80,18 +106,12 @@ StatusOr<sampling::HiddenSampleMapResult> RaycastHiddenSampleMap(Engine& engine,
     for (int y = y0; y < y1; ++y)
       for (int x = 0; x < width; ++x)
         receiver_points[size_t(y - y0) * width + x] = sampling::ReceiverSamplePosition(request.receiver, x, y);
-    raycast::TraceOptions trace;
-    trace.stop = job.stop;
-    StatusOr<std::vector<uint8_t>> traced =
-        embree->Occluded(
-            band_texels * n,
-            [&](size_t k) {
-              const size_t t = k / n;
-              const int i = static_cast<int>(k % n);
-              const int x = static_cast<int>(t % width), y = y0 + static_cast<int>(t / width);
-              return raycast::Segment{receiver_points[t], sampling::SourceSampleSeenFrom(request, source, i, x, y)};
-            },
-            trace);
+    StatusOr<std::vector<uint8_t>> traced = occluded(band_texels * n, [&](size_t k) {
+      const size_t t = k / n;
+      const int i = static_cast<int>(k % n);
+      const int x = static_cast<int>(t % width), y = y0 + static_cast<int>(t / width);
+      return raycast::Segment{receiver_points[t], sampling::SourceSampleSeenFrom(request, source, i, x, y)};
+    });
     VISQ_ASSIGN_OR_RETURN(std::vector<uint8_t> blocked, std::move(traced));
     bits.assign(band_texels * words, 0u);
     for (size_t k = 0; k < blocked.size(); ++k)
@@ -240,7 +260,9 @@ StatusOr<sampling::HiddenSampleMapResult> HiddenSampleMapBy(Engine& engine, cons
                                                      "width x height x samples", job));
   if (hold != nullptr) *hold = std::make_shared<WorkMemoryBudget::Reservation>(std::move(memory));
   switch (method) {
-    case VisibilityMethod::kRaycast: return RaycastHiddenSampleMap(engine, resident, request, call, sink);
+    case VisibilityMethod::kRaycast:
+    case VisibilityMethod::kGpuRaycast:
+      return RaycastHiddenSampleMap(engine, resident, request, call, method, sink);
     case VisibilityMethod::kPluckerExact:
       return ExactHiddenSampleMap(engine, resident.name, resident.version, request, call, sink);
     case VisibilityMethod::kRaster: break;
@@ -270,8 +292,9 @@ StatusOr<sampling::PatchVisibilityResult> PatchVisibilityBy(Engine& engine, cons
     VISQ_ASSIGN_OR_RETURN(gpu::HiddenSampleMapper * mapper, engine.hidden_sample_mapper());
     return mapper->PatchVisibility(*gpu_scene, request, job);
   }
-  if (method == VisibilityMethod::kRaycast) {
-    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result, RaycastHiddenSampleMap(engine, resident, map, call));
+  if (method == VisibilityMethod::kRaycast || method == VisibilityMethod::kGpuRaycast) {
+    VISQ_ASSIGN_OR_RETURN(sampling::HiddenSampleMapResult result,
+                          RaycastHiddenSampleMap(engine, resident, map, call, method));
     return sampling::SummarizePatchVisibility(request, result);
   }
   if (request.unblocked_limit > 0)
@@ -671,7 +694,7 @@ using VisibilityRunner = std::function<StatusOr<RunCost>(VisibilityMethod method
 using PrecisionCheck = std::function<Status(VisibilityMethod method, int samples)>;
 
 sampling::SegmentTracer TracerOf(VisibilityMethod method) {
-  return method == VisibilityMethod::kRaycast ? sampling::SegmentTracer::kRaycast : sampling::SegmentTracer::kRaster;
+  return method == VisibilityMethod::kRaster ? sampling::SegmentTracer::kRaster : sampling::SegmentTracer::kRaycast;
 }
 
 // The share of the source rectangle inside the light's polygon: jittered
@@ -756,7 +779,8 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
                                     int max_samples,
                                     const gpu::JobOptions& job, const VisibilityRunner& run,
                                     const PrecisionCheck& resolves) {
-  std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast};
+  std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast,
+                                          VisibilityMethod::kGpuRaycast};
   if (exact_possible) methods.push_back(VisibilityMethod::kPluckerExact);
 
   // Sample counts: powers of two, and the least count meeting the error
@@ -1218,7 +1242,10 @@ StatusOr<PlanReport> ChooseSampledMethod(Engine& engine, const std::string& seri
                                          const std::function<StatusOr<double>(VisibilityMethod, int, const CallOptions&)>& run,
                                          const PrecisionCheck& resolves, const CallOptions& call) {
   std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster};
-  if (lookup == sampling::LookupMode::kExact) methods.insert(methods.begin(), VisibilityMethod::kRaycast);
+  if (lookup == sampling::LookupMode::kExact) {
+    methods.insert(methods.begin(), VisibilityMethod::kRaycast);
+    methods.push_back(VisibilityMethod::kGpuRaycast);
+  }
   std::vector<EqualAnswerOption> options;
   for (VisibilityMethod method : methods) {
     const Status precise = resolves(method, samples);
@@ -1317,6 +1344,7 @@ void RecordChosenRun(Engine& engine, const PlanReport& report, double compute_ms
 std::string VisibilityMethodName(VisibilityMethod method, sampling::LookupMode lookup) {
   switch (method) {
     case VisibilityMethod::kRaycast: return "raycast";
+    case VisibilityMethod::kGpuRaycast: return "gpu-raycast";
     case VisibilityMethod::kPluckerExact: return "plucker-exact";
     case VisibilityMethod::kRaster: break;
   }

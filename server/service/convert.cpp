@@ -119,6 +119,7 @@ StatusOr<std::optional<core::VisibilityMethod>> MethodFromProto(v1::VisibilityMe
     case v1::METHOD_UNSPECIFIED: return std::optional<core::VisibilityMethod>();
     case v1::RASTER: return core::VisibilityMethod::kRaster;
     case v1::RAYCAST: return core::VisibilityMethod::kRaycast;
+    case v1::GPU_RAYCAST: return core::VisibilityMethod::kGpuRaycast;
     case v1::PLUCKER_EXACT: return core::VisibilityMethod::kPluckerExact;
     default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", static_cast<int>(method)));
   }
@@ -648,6 +649,7 @@ StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& r
       break;
     case v1::ComputeObscurancesRequest::DEPTH_PEELING: query.method = core::ObscuranceMethod::kDepthPeeling; break;
     case v1::ComputeObscurancesRequest::RAYCAST: query.method = core::ObscuranceMethod::kRaycast; break;
+    case v1::ComputeObscurancesRequest::GPU_RAYCAST: query.method = core::ObscuranceMethod::kGpuRaycast; break;
     default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));
   }
   if (request.rays_per_patch() != 0) query.rays_per_patch = request.rays_per_patch();

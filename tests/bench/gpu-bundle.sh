@@ -44,7 +44,7 @@ fi
 mapfile -t suites < <(ctest --test-dir "$build" -L gpu -N -V 2> /dev/null |
   sed -n 's/^[0-9]*: Test command: \([^ ]*visq_[a-z_]*_tests\).*/\1/p' | sort -u)
 [ "${#suites[@]}" -gt 0 ] || { echo "gpu-bundle: no gpu suites found in $build (is it built?)" >&2; exit 1; }
-benches=(visq_bench_hidden_sample_map visq_bench_slicemap visq_bench_volumetric visq_bench_obscurance
+benches=(visq_bench_rays visq_bench_hidden_sample_map visq_bench_slicemap visq_bench_volumetric visq_bench_obscurance
          visq_bench_structures)
 
 rm -rf "$out"

@@ -147,6 +147,7 @@ if [ -n "$bundle" ]; then
 else
   step gpu-test-suites 120 ctest --test-dir "$build" -L gpu -LE slow --output-on-failure -j4 --timeout 300
 fi
+step bench-rays 60 "$bench/visq_bench_rays" --quick --scenes "$scenes"
 step bench-hidden-sample-map 60 "$bench/visq_bench_hidden_sample_map" --quick --scenes "$scenes"
 step bench-hsm-copies 60 "$bench/visq_bench_hidden_sample_map" --copies 1,64 --scenes "$scenes"
 step bench-slicemap 60 "$bench/visq_bench_slicemap" "$scenes" 3 2

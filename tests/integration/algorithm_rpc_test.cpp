@@ -3,6 +3,7 @@
 // the same segments, the exact light visibility's cache, and bad input.
 #include <bit>
 #include <cmath>
+#include <cstdio>
 
 #include <glm/glm.hpp>
 #include <gtest/gtest.h>
@@ -66,8 +67,50 @@ TEST_F(AlgorithmRpcTest, HiddenSampleMapRasterMatchesRaycastBitForBit) {
   EXPECT_EQ(raster->figures.source_samples_size(), 64);
 }
 
-// With no method, a map runs the faster here of RASTER and RAYCAST, which
-// give the same bits: the answer says which, lists what was weighed, and
+// GPU_RAYCAST traces RAYCAST's float segments in a compute shader: the same
+// bits but for float ties on triangle edges, far from the origin too (the
+// query's local frame, as RAYCAST's).
+TEST_F(AlgorithmRpcTest, HiddenSampleMapGpuRaysMatchRaycastBitForBit) {
+  v1::HiddenSampleMapRequest request = LightOntoFloor(128, 32);
+  request.set_method(v1::RAYCAST);
+  auto raycast = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(raycast.ok()) << raycast.status();
+  request.set_method(v1::GPU_RAYCAST);
+  auto gpu_rays = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(gpu_rays.ok()) << gpu_rays.status();
+  EXPECT_EQ(gpu_rays->figures.accuracy().method(), "gpu-raycast");
+  ASSERT_EQ(gpu_rays->blocked_bits.size(), raycast->blocked_bits.size());
+  size_t differing = 0, blocked = 0;
+  for (size_t w = 0; w < raycast->blocked_bits.size(); ++w) {
+    differing += std::popcount(gpu_rays->blocked_bits[w] ^ raycast->blocked_bits[w]);
+    blocked += std::popcount(raycast->blocked_bits[w]);
+  }
+  const size_t total = 32 * 32 * 128;
+  std::printf("GPU rays: %zu of %zu bits differ from RAYCAST (%zu blocked)\n", differing, total, blocked);
+  EXPECT_GT(blocked, total / 20);
+  EXPECT_LE(differing, total / 100000) << "the ray-cast bits, float ties aside";
+  EXPECT_DOUBLE_EQ(gpu_rays->figures.accuracy().error_bound(), raycast->figures.accuracy().error_bound());
+
+  v1::PatchVisibilityRequest patches;
+  patches.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(patches.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(patches.mutable_receiver(), {-0.999, 0.001, -0.997}, {1.998, 0, 0}, {0, 0, 1.998});
+  patches.set_source_columns(8);
+  patches.set_source_rows(8);
+  patches.set_receiver_columns(16);
+  patches.set_receiver_rows(16);
+  patches.set_method(v1::RAYCAST);
+  auto raycast_patches = client_->PatchVisibility(patches);
+  ASSERT_TRUE(raycast_patches.ok()) << raycast_patches.status();
+  patches.set_method(v1::GPU_RAYCAST);
+  auto gpu_patches = client_->PatchVisibility(patches);
+  ASSERT_TRUE(gpu_patches.ok()) << gpu_patches.status();
+  EXPECT_EQ(gpu_patches->accuracy().method(), "gpu-raycast");
+  EXPECT_NEAR(gpu_patches->mutual_visible_fraction(), raycast_patches->mutual_visible_fraction(), 1e-4);
+}
+
+// With no method, a map runs the fastest here of RASTER, RAYCAST and
+// GPU_RAYCAST, which give the same bits: the answer says which, lists what was weighed, and
 // has the ray caster's bits; the HOUGH lookup is RASTER's alone.
 TEST_F(AlgorithmRpcTest, AMapNamingNoMethodRunsTheFasterOfTwoWithTheSameBits) {
   v1::HiddenSampleMapRequest request = LightOntoFloor(64, 32);
@@ -77,12 +120,15 @@ TEST_F(AlgorithmRpcTest, AMapNamingNoMethodRunsTheFasterOfTwoWithTheSameBits) {
   auto raycast = client_->ComputeHiddenSampleMap(request);
   ASSERT_TRUE(raycast.ok()) << raycast.status();
   const v1::Accuracy& accuracy = chosen->figures.accuracy();
-  EXPECT_TRUE(accuracy.method() == "raster-exact-lookup" || accuracy.method() == "raycast") << accuracy.method();
+  EXPECT_TRUE(accuracy.method() == "raster-exact-lookup" || accuracy.method() == "raycast" ||
+              accuracy.method() == "gpu-raycast")
+      << accuracy.method();
   EXPECT_NE(accuracy.note().find("no method named"), std::string::npos) << accuracy.note();
   ASSERT_GE(accuracy.plans_size(), 1);
   bool chosen_listed = false;
   for (const v1::PlanEstimate& plan : accuracy.plans()) {
-    EXPECT_TRUE(plan.method() == "raster-exact-lookup" || plan.method() == "raycast") << plan.method();
+    EXPECT_TRUE(plan.method() == "raster-exact-lookup" || plan.method() == "raycast" || plan.method() == "gpu-raycast")
+        << plan.method();
     EXPECT_EQ(plan.parameters().at("samples"), 64.0);
     chosen_listed |= plan.method() == accuracy.method();
   }
@@ -116,7 +162,8 @@ TEST_F(AlgorithmRpcTest, PatchVisibilityNamingNoMethodRunsOneOfTheTwo) {
   request.set_method(v1::RAYCAST);
   auto raycast = client_->PatchVisibility(request);
   ASSERT_TRUE(raycast.ok()) << raycast.status();
-  EXPECT_TRUE(chosen->accuracy().method() == "raster-exact-lookup" || chosen->accuracy().method() == "raycast");
+  EXPECT_TRUE(chosen->accuracy().method() == "raster-exact-lookup" || chosen->accuracy().method() == "raycast" ||
+              chosen->accuracy().method() == "gpu-raycast");
   EXPECT_GE(chosen->accuracy().plans_size(), 1);
   EXPECT_NEAR(chosen->mutual_visible_fraction(), raycast->mutual_visible_fraction(), 1e-3);
 }

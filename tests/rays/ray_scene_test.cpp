@@ -104,6 +104,66 @@ TEST(RayScene, SharedScenesMatchEmbree) {
   }
 }
 
+// Closest hits: the same triangle as Embree's at the same t (float
+// rounding of the same test), u and v as Embree's weights of corners 1
+// and 2, and the same misses (rays of bounded length).
+TEST(RayScene, ClosestHitsMatchEmbree) {
+  VISQ_REQUIRE_SHARED_SCENES(dir);
+  for (const char* file : {"cornell", "interior_veach_ajar/veach_ajar.gltf"}) {
+    Scene scene;
+    if (std::string(file) == "cornell") {
+      scene = MakeCornellBox();
+    } else {
+      auto loaded = LoadGltfFile(dir / file);
+      ASSERT_TRUE(loaded.ok()) << loaded.status();
+      scene = std::move(*loaded);
+    }
+    std::vector<raycast::Ray> rays;
+    const double d_max = 0.3 * glm::length(scene.bounds.Extent());
+    for (const Segment& s : RandomSegments(scene, 100000, 13))
+      rays.push_back({s.p, glm::normalize(s.q - s.p), d_max, raycast::kNoTriangle});
+    auto embree = raycast::EmbreeScene::Create(scene);
+    ASSERT_TRUE(embree.ok()) << embree.status();
+    const std::shared_ptr<gpu::RayScene> gpu_rays = UploadOrFail(scene);
+    ASSERT_NE(gpu_rays, nullptr);
+    auto reference = embree->Intersect(rays);
+    auto traced = gpu_rays->Intersect(rays);
+    ASSERT_TRUE(reference.ok()) << reference.status();
+    ASSERT_TRUE(traced.ok()) << traced.status();
+    // A tie: another triangle at the same t (a ray through the edge two
+    // triangles share, or a box's face standing on the floor).
+    size_t hits = 0, ties = 0, other = 0, far_t = 0, far_uv = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+      const raycast::Hit& a = (*reference)[i];
+      const raycast::Hit& b = (*traced)[i];
+      hits += a.hit;
+      if (a.hit != b.hit) {
+        ++other;
+        continue;
+      }
+      if (!a.hit) continue;
+      const bool same_t = std::abs(a.t - b.t) <= 1e-5 * (1.0 + a.t);
+      if (a.triangle != b.triangle) {
+        (same_t ? ties : other) += 1;
+        continue;
+      }
+      far_t += !same_t;
+      // Barycentrics from another formula (Embree's against the watertight
+      // test's edge functions): a thin triangle's differ in the 4th digit.
+      far_uv += std::abs(a.u - b.u) > 1e-4 || std::abs(a.v - b.v) > 1e-4;
+    }
+    std::printf("%s: %zu of %zu rays hit; %zu tie with another triangle at the same t, %zu differ otherwise, %zu in "
+                "t, %zu in u or v beyond 1e-4\n",
+                file, hits, rays.size(), ties, other, far_t, far_uv);
+    EXPECT_GT(hits, rays.size() / 10) << file;
+    EXPECT_LT(hits, rays.size()) << file;
+    EXPECT_LE(ties, rays.size() / 1000) << file;
+    EXPECT_LE(other, rays.size() / 20000) << file;
+    EXPECT_EQ(far_t, 0u) << file;
+    EXPECT_LE(far_uv, hits / 5000) << file;
+  }
+}
+
 // A segment from a point on a triangle: blocked by that triangle only if
 // it is not ignored; the same per-segment ignore as Embree's.
 TEST(RayScene, ASegmentIgnoresItsOwnTriangleAsEmbreeDoes) {

@@ -314,7 +314,7 @@ def _target(target, out):
 
 
 _GUARANTEES = {"rigorous": pb.AccuracyTarget.RIGOROUS, "estimate": pb.AccuracyTarget.ESTIMATE}
-_METHODS = {"auto": pb.METHOD_UNSPECIFIED, "raster": pb.RASTER, "raycast": pb.RAYCAST, "exact": pb.PLUCKER_EXACT, "plucker-exact": pb.PLUCKER_EXACT}
+_METHODS = {"auto": pb.METHOD_UNSPECIFIED, "raster": pb.RASTER, "raycast": pb.RAYCAST, "exact": pb.PLUCKER_EXACT, "plucker-exact": pb.PLUCKER_EXACT, "gpu-raycast": pb.GPU_RAYCAST}
 # "fast" was the Hough lookup's first name.
 _LOOKUPS = {"exact": pb.EXACT, "hough": pb.HOUGH, "fast": pb.HOUGH}
 
@@ -890,10 +890,11 @@ class Client:
         request.bundle_resolution = _count(bundle_resolution, "bundle_resolution", 0)
         chosen = _choice(method, "method", {"auto": pb.ComputeObscurancesRequest.METHOD_UNSPECIFIED,
                                             "depth-peeling": pb.ComputeObscurancesRequest.DEPTH_PEELING,
-                                            "raycast": pb.ComputeObscurancesRequest.RAYCAST})
+                                            "raycast": pb.ComputeObscurancesRequest.RAYCAST,
+                                            "gpu-raycast": pb.ComputeObscurancesRequest.GPU_RAYCAST})
         if target is not None:
             _target(target, request.target)
-        elif chosen == pb.ComputeObscurancesRequest.RAYCAST:
+        elif chosen in (pb.ComputeObscurancesRequest.RAYCAST, pb.ComputeObscurancesRequest.GPU_RAYCAST):
             request.method = chosen
             request.rays_per_patch = _count(rays_per_patch, "rays_per_patch", 1, 65536)
         else:

@@ -1,6 +1,6 @@
 // Rays on the GPU: a scene's flat BVH (raycast::BuildFlatBvh) resident in
 // shader storage, and occlusion segments traced against it by a compute
-// shader (gpu/rays/rays_occluded.comp): a stack traversal and a watertight
+// shader (gpu/rays/rays_trace.comp): a stack traversal and a watertight
 // triangle test (Woop, Benthin and Wald 2013). The segments are the
 // FloatSegments Embree traces (raycast/float_segment.h), so the two tracers
 // agree bit for bit except where a segment ties with a triangle's edge or
@@ -10,11 +10,13 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <span>
 #include <vector>
 
 #include "common/status.h"
 #include "raycast/embree_scene.h"
 #include "raycast/flat_bvh.h"
+#include "raycast/float_segment.h"
 #include "visq/gpu/gpu_worker.h"
 
 namespace visq::gpu {
@@ -44,6 +46,12 @@ class RayScene {
                                                         const std::function<raycast::Segment(size_t)>& segment_at,
                                                         const RayTraceOptions& options = {}) const;
 
+  // The closest hit of each ray, t in [its origin's offset, tmax], with
+  // raycast::EmbreeScene::Intersect's semantics in this scene's frame (u,
+  // v: the weights of the triangle's corners 1 and 2).
+  [[nodiscard]] StatusOr<std::vector<raycast::Hit>> Intersect(std::span<const raycast::Ray> rays,
+                                                              const RayTraceOptions& options = {}) const;
+
   const glm::dvec3& origin() const { return origin_; }
   double extent() const { return extent_; }
   uint64_t gpu_bytes() const { return gpu_bytes_; }
@@ -55,6 +63,11 @@ class RayScene {
 
  private:
   RayScene() = default;
+  using SegmentMaker = std::function<void(size_t i, raycast::FloatSegment& segment, uint32_t& ignore)>;
+  using JobResults = std::function<void(size_t begin, size_t n, const std::vector<uint32_t>& bits,
+                                        const std::vector<glm::vec4>& hits)>;
+  [[nodiscard]] Status Trace(size_t count, const SegmentMaker& make, bool closest, const RayTraceOptions& options,
+                             const JobResults& take) const;
   GpuWorker* worker_ = nullptr;
   uint64_t generation_ = 0;
   std::shared_ptr<Resources> resources_;

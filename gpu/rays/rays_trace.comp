@@ -1,5 +1,6 @@
 // One thread per segment: does any triangle block p + t d for t in
-// [t_near, t_far]? A stack traversal of the flat BVH (raycast/flat_bvh.h)
+// [t_near, t_far]? With CLOSEST_HIT defined: which triangle is met first,
+// and where. A stack traversal of the flat BVH (raycast/flat_bvh.h)
 // and the watertight ray-triangle test of Woop, Benthin and Wald (JCGT
 // 2013), whose edge functions fall back to double precision when one is
 // exactly zero, so that a segment through a shared edge hits one of its
@@ -14,7 +15,12 @@ layout(std430, binding = 0) readonly buffer Nodes { Node nodes[]; };
 layout(std430, binding = 1) readonly buffer Corners { vec4 corners[]; };
 layout(std430, binding = 2) readonly buffer Segments { vec4 segments[]; };  // two per segment
 layout(std430, binding = 3) readonly buffer Ignore { uint ignore_triangle[]; };
+#ifdef CLOSEST_HIT
+// (t, triangle as uint bits, u, v); a miss has triangle 0xFFFFFFFF.
+layout(std430, binding = 4) writeonly buffer Hits { vec4 hits[]; };
+#else
 layout(std430, binding = 4) buffer Blocked { uint blocked_bits[]; };
+#endif
 
 uniform uint segment_count;
 uniform uint node_count;
@@ -56,11 +62,18 @@ Shear MakeShear(vec3 d) {
   return s;
 }
 
-bool HitsTriangle(Shear s, vec3 origin, vec3 v0, vec3 v1, vec3 v2, float t_near, float t_far) {
+// Whether the segment meets the triangle at some t in [t_near, t_far], and
+// where: t, and the weights of v1 and v2 (Embree's u and v).
+bool HitsTriangle(Shear s, vec3 origin, vec3 v0, vec3 v1, vec3 v2, float t_near, float t_far, out float t,
+                  out float weight1, out float weight2) {
+  t = 0.0;
+  weight1 = 0.0;
+  weight2 = 0.0;
   vec3 a = v0 - origin, b = v1 - origin, c = v2 - origin;
   float ax = a[s.kx] - s.sx * a[s.kz], ay = a[s.ky] - s.sy * a[s.kz];
   float bx = b[s.kx] - s.sx * b[s.kz], by = b[s.ky] - s.sy * b[s.kz];
   float cx = c[s.kx] - s.sx * c[s.kz], cy = c[s.ky] - s.sy * c[s.kz];
+  // The edge functions: u weighs v0, v weighs v1, w weighs v2.
   float u = cx * by - cy * bx;
   float v = ax * cy - ay * cx;
   float w = bx * ay - by * ax;
@@ -75,11 +88,15 @@ bool HitsTriangle(Shear s, vec3 origin, vec3 v0, vec3 v1, vec3 v2, float t_near,
   float az = s.sz * a[s.kz], bz = s.sz * b[s.kz], cz = s.sz * c[s.kz];
   float t_scaled = u * az + v * bz + w * cz;
   // t = t_scaled / det within [t_near, t_far], without the division.
-  if (det < 0.0) {
-    det = -det;
-    t_scaled = -t_scaled;
-  }
-  return t_scaled >= t_near * det && t_scaled <= t_far * det;
+  float magnitude = abs(det);
+  if (det < 0.0) t_scaled = -t_scaled;
+  if (!(t_scaled >= t_near * magnitude && t_scaled <= t_far * magnitude)) return false;
+#ifdef CLOSEST_HIT
+  t = t_scaled / magnitude;
+  weight1 = v / det;
+  weight2 = w / det;
+#endif
+  return true;
 }
 
 void main() {
@@ -88,7 +105,12 @@ void main() {
   vec4 first = segments[2u * k], second = segments[2u * k + 1u];
   vec3 origin = first.xyz, direction = second.xyz;
   float t_near = first.w, t_far = second.w;
-  if (!(t_far >= t_near)) return;
+  if (!(t_far >= t_near)) {
+#ifdef CLOSEST_HIT
+    hits[k] = vec4(0.0, uintBitsToFloat(0xFFFFFFFFu), 0.0, 0.0);
+#endif
+    return;
+  }
   uint ignored = ignore_triangle[k];
   // An axis the segment does not move along gets a huge finite inverse:
   // infinity times a box side through the origin would be NaN.
@@ -97,6 +119,9 @@ void main() {
   vec3 inverse_direction = 1.0 / moving;
   Shear shear = MakeShear(direction);
 
+#ifdef CLOSEST_HIT
+  vec4 best = vec4(0.0, uintBitsToFloat(0xFFFFFFFFu), 0.0, 0.0);
+#endif
   uint stack[STACK_SIZE];
   int top = 0;
   stack[top++] = 0u;
@@ -117,11 +142,23 @@ void main() {
     for (uint i = 0u; i < count; ++i) {
       uint t = link + i;
       vec4 c0 = corners[3u * t];
-      if (floatBitsToUint(c0.w) == ignored) continue;
-      if (HitsTriangle(shear, origin, c0.xyz, corners[3u * t + 1u].xyz, corners[3u * t + 2u].xyz, t_near, t_far)) {
-        atomicOr(blocked_bits[k >> 5u], 1u << (k & 31u));
-        return;
-      }
+      uint triangle = floatBitsToUint(c0.w);
+      if (triangle == ignored) continue;
+      float hit_t, weight1, weight2;
+      if (!HitsTriangle(shear, origin, c0.xyz, corners[3u * t + 1u].xyz, corners[3u * t + 2u].xyz, t_near, t_far,
+                        hit_t, weight1, weight2))
+        continue;
+#ifdef CLOSEST_HIT
+      // Nearer hits only from now on: the segment ends here.
+      t_far = hit_t;
+      best = vec4(hit_t, uintBitsToFloat(triangle), weight1, weight2);
+#else
+      atomicOr(blocked_bits[k >> 5u], 1u << (k & 31u));
+      return;
+#endif
     }
   }
+#ifdef CLOSEST_HIT
+  hits[k] = best;
+#endif
 }
