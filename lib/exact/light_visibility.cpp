@@ -55,9 +55,11 @@ StatusOr<std::vector<PointVisibility>> LightVisibilityTree::QueryBatch(
       points.size(), 1,
       [&](size_t i, size_t) {
         if (stop.load(std::memory_order_relaxed)) return;
-        if (Status stopped = stop_token.Check(
-                absl::StrCat("light visibility, with ", points.size() - i, " of ", points.size(), " points left"));
-            !stopped.ok()) {
+        // The message is made only once the call has stopped: a point takes
+        // microseconds where its tree is refined.
+        if (stop_token.Stopped()) {
+          const Status stopped = stop_token.Check(
+              absl::StrCat("light visibility, with ", points.size() - i, " of ", points.size(), " points left"));
           std::lock_guard lock(error_mutex);
           if (error.ok()) error = stopped;
           stop = true;

@@ -117,6 +117,19 @@ Status Engine::AdmitSceneSize(const ResidentScene& resident) const {
   return absl::OkStatus();
 }
 
+bool Engine::WeighsGpuRays() const { return !gpu_->device().software; }
+
+Status Engine::AdmitRayScene(const ResidentScene& resident) const {
+  const uint64_t bytes = kGpuRayBytesPerTriangle * resident.scene->TriangleCount();
+  if (resident.estimate.total_bytes() + bytes > options_.max_scene_bytes)
+    return absl::FailedPreconditionError(absl::StrCat(
+        "method: GPU_RAYCAST would hold about ", bytes, " bytes for scene '", resident.name, "' (",
+        resident.scene->TriangleCount(), " triangles, every placement flattened); with its other structures (",
+        resident.estimate.total_bytes(), ") that is above the cap of ", options_.max_scene_bytes,
+        " (--max-scene-bytes); use RAYCAST, which keeps placements as instances"));
+  return absl::OkStatus();
+}
+
 GltfLoadLimits Engine::LoadLimits(const std::filesystem::path& file_root) const {
   GltfLoadLimits limits;
   limits.file_root = file_root;
@@ -469,6 +482,7 @@ StatusOr<std::shared_ptr<raycast::EmbreeScene>> Engine::EmbreeSceneOf(const Resi
 }
 
 StatusOr<std::shared_ptr<gpu::RayScene>> Engine::RaySceneOf(const ResidentScene& resident, const CallOptions& call) {
+  if (!resident.ray_scene.bytes()) VISQ_RETURN_IF_ERROR(AdmitRayScene(resident));
   return resident.ray_scene.Get(builds_, call, RayBuild(resident), "GPU ray BVH");
 }
 

@@ -267,6 +267,17 @@ class Engine {
                                                                      const CallOptions& call = {});
   [[nodiscard]] StatusOr<std::shared_ptr<raycast::EmbreeScene>> EmbreeSceneFor(
       const ResidentScene& resident, const sampling::HiddenSampleMapRequest& request, const CallOptions& call = {});
+  // Whether the server's choice weighs GPU_RAYCAST: only on a GPU. On a
+  // CPU rasterizer its shader runs on the cores Embree would use, at 9-26x
+  // Embree's time (visq_bench_rays --quick, llvmpipe on 2 cores), so probing
+  // it would cost a flattened BVH and a probe per scene for nothing; named,
+  // it runs there too.
+  bool WeighsGpuRays() const;
+  // Whether GPU_RAYCAST's BVH (built on first use, every placement
+  // flattened) fits beside the scene's other structures under
+  // --max-scene-bytes: FAILED_PRECONDITION naming the method when not, so
+  // that the server's choice leaves the method out.
+  [[nodiscard]] Status AdmitRayScene(const ResidentScene& resident) const;
   // GPU_RAYCAST's, which traces RAYCAST's segments in the same frame.
   [[nodiscard]] StatusOr<std::shared_ptr<gpu::RayScene>> RaySceneFor(const ResidentScene& resident,
                                                                      const sampling::HiddenSampleMapRequest& request,

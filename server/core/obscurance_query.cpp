@@ -363,9 +363,10 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
                                             const ObscuranceQuery& query) {
   const uint32_t directions = query.params.direction_count;
   const double bound = obscurance::CoveredHalfWidth(directions, 0.95);
-  std::vector<EqualAnswerOption> options(3);
+  std::vector<EqualAnswerOption> options(engine.WeighsGpuRays() ? 3 : 2);
   for (const auto& [slot, method, name] : {std::tuple{0, ObscuranceMethod::kRaycast, "obscurance-raycast"},
                                            std::tuple{2, ObscuranceMethod::kGpuRaycast, "obscurance-gpu-raycast"}}) {
+    if (size_t(slot) >= options.size()) continue;
     Plan& plan = options[slot].plan;
     plan.method = name;
     plan.runs = method;

@@ -48,6 +48,12 @@ inline constexpr uint64_t kEmbreeBvhBytesPerVertex = 12;
 inline constexpr uint64_t kEmbreeBvhBytesPerInstance = 160;
 inline constexpr uint64_t kTriangleIndexBytesPerTriangle = 21;
 inline constexpr uint64_t kTriangleIndexBytesPerInstance = 280;
+// GPU_RAYCAST's flat BVH (raycast::FlatBvh, on the GPU): 48 bytes of
+// corners a flattened triangle and a 32-byte node per 1.1-1.4 triangles;
+// measured with visq_bench_rays at 82.6 (Sponza), 83.6 (the ajar room) and
+// 92.4 (the bunny) bytes a triangle. Built only when asked for, so it is not
+// in the admission estimate; Engine::AdmitRayScene checks it then.
+inline constexpr uint64_t kGpuRayBytesPerTriangle = 96;
 
 struct StructureEstimate {
   uint64_t scene_bytes = 0;           // the geometry as loaded (Scene::CpuBytes)

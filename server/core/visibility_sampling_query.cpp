@@ -779,8 +779,8 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
                                     int max_samples,
                                     const gpu::JobOptions& job, const VisibilityRunner& run,
                                     const PrecisionCheck& resolves) {
-  std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast,
-                                          VisibilityMethod::kGpuRaycast};
+  std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster, VisibilityMethod::kRaycast};
+  if (engine.WeighsGpuRays()) methods.push_back(VisibilityMethod::kGpuRaycast);
   if (exact_possible) methods.push_back(VisibilityMethod::kPluckerExact);
 
   // Sample counts: powers of two, and the least count meeting the error
@@ -1067,7 +1067,8 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapForTarget(Engine& engine, const R
                    SampledWork(method, double(result.width) * result.height, samples)};
   };
 
-  const auto resolves = [&](VisibilityMethod method, int samples) {
+  const auto resolves = [&](VisibilityMethod method, int samples) -> Status {
+    if (method == VisibilityMethod::kGpuRaycast) VISQ_RETURN_IF_ERROR(engine.AdmitRayScene(resident));
     return engine.ValidateSampledPrecision(resident, with_samples(samples, 0), TracerOf(method), query.call);
   };
   // Jittered visible fractions can be topped up with more maps (SummedMaps),
@@ -1244,7 +1245,7 @@ StatusOr<PlanReport> ChooseSampledMethod(Engine& engine, const std::string& seri
   std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster};
   if (lookup == sampling::LookupMode::kExact) {
     methods.insert(methods.begin(), VisibilityMethod::kRaycast);
-    methods.push_back(VisibilityMethod::kGpuRaycast);
+    if (engine.WeighsGpuRays()) methods.push_back(VisibilityMethod::kGpuRaycast);
   }
   std::vector<EqualAnswerOption> options;
   for (VisibilityMethod method : methods) {
@@ -1296,7 +1297,8 @@ StatusOr<PlanReport> ChooseHiddenSampleMapMethod(Engine& engine, const ResidentS
     const sampling::ReceiverSpec receiver = ReducedReceiver(request.receiver, side);
     return double(receiver.width) * receiver.height;
   };
-  auto resolves = [&](VisibilityMethod method, int) {
+  auto resolves = [&](VisibilityMethod method, int) -> Status {
+    if (method == VisibilityMethod::kGpuRaycast) VISQ_RETURN_IF_ERROR(engine.AdmitRayScene(resident));
     sampling::HiddenSampleMapRequest one_map = request;
     one_map.source.sample_count = std::min(samples, sampling::kMaxHiddenSampleMapSamples);
     return engine.ValidateSampledPrecision(resident, one_map, TracerOf(method), call);
@@ -1326,6 +1328,7 @@ StatusOr<PlanReport> ChoosePatchVisibilityMethod(Engine& engine, const ResidentS
     return double(r.receiver_columns) * r.receiver_rows;
   };
   auto resolves = [&](VisibilityMethod method, int) -> Status {
+    if (method == VisibilityMethod::kGpuRaycast) VISQ_RETURN_IF_ERROR(engine.AdmitRayScene(resident));
     VISQ_ASSIGN_OR_RETURN(const sampling::HiddenSampleMapRequest map, sampling::PatchVisibilityAsHiddenSampleMap(request));
     return engine.ValidateSampledPrecision(resident, map, TracerOf(method), call);
   };

@@ -226,6 +226,39 @@ TEST_F(StructureBuildTest, MaxSceneBytesAdmitsByEveryStructure) {
   EXPECT_FALSE(client_->GetScene("grid").ok()) << "nothing resident";
 }
 
+// GPU_RAYCAST's BVH is built only when asked for (every placement
+// flattened, 96 bytes a triangle at most): under a cap that admits the scene
+// and its other structures but not it, the method is refused naming it and
+// the cap, and a request naming no method runs without it.
+TEST_F(StructureBuildTest, MaxSceneBytesLeavesOutTheGpuRaysWhereTheyDoNotFit) {
+  Start();
+  const fs::path grid = WriteGrid(100);
+  auto admitted = client_->UploadScene(grid, "grid");
+  ASSERT_TRUE(admitted.ok()) << admitted.status();
+  const uint64_t estimate = admitted->estimated_memory().cpu_bytes() + admitted->estimated_memory().gpu_bytes();
+  client_.reset();
+  server_.reset();
+  ScratchDir other_repo;
+  server_ = ServerProcess::Start(
+      {other_repo.path(), {"--max-scene-bytes", std::to_string(estimate + 48 * admitted->triangle_count())}});
+  ASSERT_NE(server_, nullptr);
+  client_ = std::make_unique<client::Client>(client::ClientOptions{.address = server_->address()});
+  ASSERT_TRUE(client_->UploadScene(grid, "grid").ok());
+  v1::HiddenSampleMapRequest request = RaycastOverGrid();
+  request.set_method(v1::GPU_RAYCAST);
+  auto refused = client_->ComputeHiddenSampleMap(request);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition) << refused.status();
+  EXPECT_NE(std::string(refused.status().message()).find("method: GPU_RAYCAST"), std::string::npos) << refused.status();
+  EXPECT_NE(std::string(refused.status().message()).find("--max-scene-bytes"), std::string::npos) << refused.status();
+  request.set_method(v1::METHOD_UNSPECIFIED);
+  auto chosen = client_->ComputeHiddenSampleMap(request);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  for (const v1::PlanEstimate& plan : chosen->figures.accuracy().plans()) EXPECT_NE(plan.method(), "gpu-raycast");
+  auto stats = client_->GetStats();
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  for (const auto& build : stats->structure_builds()) EXPECT_NE(build.structure(), "gpu_ray_bvh");
+}
+
 
 // A level of one repeated mesh: the grid placed sixteen times, tilted and
 // stacked so that the copies shadow each other. Written twice over the same
@@ -392,8 +425,10 @@ TEST_F(StructureBuildTest, PlacedMeshesAreHeldOnceAndAnswerAsTheFlattenedScene) 
   EXPECT_LE(pixels_differ, placed_shafts->combined.size() / 200);
 
   // The bake reads each scene triangle's atlas corners through its
-  // placement's triangle offset.
+  // placement's triangle offset (named: the server's choice may probe the
+  // ray estimators, whose structures are not the GPU buffers compared below).
   v1::ComputeObscurancesRequest bake;
+  bake.set_method(v1::ComputeObscurancesRequest::DEPTH_PEELING);
   bake.set_resolution(128);
   bake.set_d_max(0.5);
   bake.set_direction_count(16);
