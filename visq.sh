@@ -98,7 +98,7 @@ case "${1:-}" in
       CC=clang CXX=clang++ cmake -S . -B "$asan_dir" -DCMAKE_BUILD_TYPE=None -DCMAKE_CXX_FLAGS=-O1 \
         -DVISQ_SANITIZE=ON -DVISQ_FUZZ=ON -DVISQ_FUZZ_SECONDS="$fuzz_seconds"
       cmake --build "$asan_dir" -j"$jobs" --target visq-server visq visq_scene_tests visq_gpu_tests \
-        visq_integration_tests visq_operability_tests visq_service_tests visq_raycast_tests visq_exact_tests \
+        visq_integration_tests visq_operability_tests visq_service_tests visq_raycast_tests visq_rays_tests visq_exact_tests \
         visq_core_tests \
         gltf_loader_fuzz gltf_structure_fuzz request_validation_fuzz algorithm_request_fuzz
       echo "visq: the sanitized build took $((SECONDS - began)) s"
@@ -108,7 +108,7 @@ case "${1:-}" in
         # Left out under the sanitizers: the tests that time the server
         # (tests/integration/timed_tests.txt says why).
         unsanitized=$(grep -E '^[A-Za-z]' tests/integration/timed_tests.txt | paste -sd: -)
-        for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_tests exact/visq_exact_tests \
+        for test in scene/visq_scene_tests gpu/visq_gpu_tests raycast/visq_raycast_tests rays/visq_rays_tests exact/visq_exact_tests \
                     core/visq_core_tests service/visq_service_tests integration/visq_integration_tests \
                     integration/visq_operability_tests; do
           echo "--- $test (ASan + UBSan)"
