@@ -8,6 +8,7 @@
 #include "common/status.h"
 #include "core/light_visibility_query.h"
 #include "core/obscurance_query.h"
+#include "core/scene_edit_query.h"
 #include "core/visibility_sampling_query.h"
 #include "core/volumetric_query.h"
 #include "core/voxel_query.h"
@@ -57,6 +58,14 @@ void ToProto(const core::PatchVisibilityAnswer& answer, v1::PatchVisibilityRespo
 // A whole-bake request with a target is returned unvalidated beyond the
 // target's exclusions: the core validates once the planner chose the count.
 [[nodiscard]] StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request);
+// The figures first, then each array in chunks (offsets count floats).
+ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(core::ObscuranceAnswer answer, bool want_averages,
+                                                               bool want_errors);
+// The moved node's request; the core validates the matrix and names.
+core::NodeTransformQuery FromProto(const v1::SetNodeTransformRequest& request);
+// The update's request; the caller adds the call's options.
+core::ObscuranceUpdateQuery FromProto(const v1::UpdateObscurancesRequest& request);
+void ToProto(const core::ObscuranceUpdateAnswer& answer, v1::UpdateObscurancesResponse* out);
 
 [[nodiscard]] StatusOr<core::ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request);
 // Figures first, then chunks of rgb floats, then of coverage bytes.

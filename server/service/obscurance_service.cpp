@@ -3,7 +3,8 @@
 // SetNodeTransform and UpdateObscurances are unary; RenderObscurancePreview
 // streams the picture like VolumetricShadow, and ExportObscurances the
 // atlas UVs and the baked glTF. The work is in
-// core/obscurance_query.h; this file converts messages and runs the calls.
+// core/obscurance_query.h and the messages' conversions in convert.cpp;
+// this file runs the calls.
 #include <algorithm>
 #include <cmath>
 #include <mutex>
@@ -21,97 +22,6 @@
 
 namespace visq::service {
 namespace {
-
-void AddVec3(const glm::vec3& v, google::protobuf::RepeatedField<float>* out) {
-  out->Add(v.x);
-  out->Add(v.y);
-  out->Add(v.z);
-}
-
-// Figures, then the arrays in the order the proto gives.
-ChunkedResponses<v1::ComputeObscurancesResponse> ToProtoStream(core::ObscuranceAnswer answer, bool want_averages,
-                                                               bool want_errors) {
-  auto kept = std::make_shared<const core::ObscuranceAnswer>(std::move(answer));
-  const core::ObscuranceAnswer& a = *kept;
-  v1::ComputeObscurancesResponse figures;
-  v1::ObscuranceFigures* f = figures.mutable_figures();
-  f->set_scene_version(a.scene_version);
-  f->mutable_atlas()->set_width(a.width);
-  f->mutable_atlas()->set_height(a.height);
-  f->mutable_atlas()->set_from_lightmap_uvs(a.from_lightmap_uvs);
-  f->mutable_atlas()->set_chart_count(a.chart_count);
-  f->mutable_atlas()->set_texels_per_unit(a.texels_per_unit);
-  f->set_channels(a.partial.channels);
-  f->set_fingerprint(a.partial.fingerprint);
-  for (const obscurance::DirectionRange& r : a.partial.ranges) {
-    auto* range = f->add_ranges();
-    range->set_first(r.first);
-    range->set_count(r.count);
-  }
-  f->set_total_directions(a.total_directions);
-  f->set_partial_only(!a.result.has_value());
-  ToProto(a.ambient.ambient_intensity, f->mutable_ambient_intensity());
-  ToProto(a.ambient.r_ave, f->mutable_r_ave());
-  f->set_ambient_clamped(a.ambient.clamped);
-  f->set_layers(a.stats.layers);
-  f->set_max_layers(a.stats.max_layers);
-  f->set_truncated_directions(a.stats.truncated_directions);
-  f->set_bundle_resolution(a.stats.bundle_resolution);
-  f->set_update_ready(a.update_ready);
-  const core::ObscuranceCoverage coverage = core::CoverageOf(a);
-  f->set_estimated_texels(coverage.estimated_texels);
-  f->set_mean_samples_per_patch(coverage.mean_samples_per_patch);
-  service::ToProto(core::ObscuranceStatement(a), f->mutable_accuracy());
-  if (a.plan) ToProto(*a.plan, f->mutable_accuracy());
-
-  // The figures alone, then each array's chunks.
-  ChunkedResponses<v1::ComputeObscurancesResponse> stream(std::move(figures), /*first_carries_chunk=*/false);
-  stream.Keep(kept);
-  using Message = v1::ComputeObscurancesResponse;
-  if (!a.result) {
-    stream.Add(a.partial.sums.size(), [&a](Message& m, size_t b, size_t e) {
-      m.set_offset(b);
-      AddRange(a.partial.sums, b, e, m.mutable_partial_sums());
-    });
-    stream.Add(a.partial.counts.size(), [&a](Message& m, size_t b, size_t e) {
-      m.set_offset(b);
-      AddRange(a.partial.counts, b, e, m.mutable_partial_counts());
-    });
-    return stream;
-  }
-  const obscurance::ObscuranceResult& r = *a.result;
-  // Per-texel and per-triangle colors go as x, y, z floats (offsets count floats).
-  auto add_vec3s = [&stream](const std::vector<glm::vec3>& values, auto field) {
-    stream.Add(3 * values.size(), [&values, field](Message& m, size_t b, size_t e) {
-      m.set_offset(b);
-      AddFlattenedRange(values, b, e, (m.*field)());
-    });
-  };
-  add_vec3s(r.w, &Message::mutable_w);
-  add_vec3s(r.intensity, &Message::mutable_intensity);
-  stream.Add(r.estimated.size(), [&r](Message& m, size_t b, size_t e) {
-    m.set_offset(b);
-    m.set_estimated(std::string(reinterpret_cast<const char*>(r.estimated.data() + b), e - b));
-  });
-  if (want_averages) {
-    add_vec3s(r.triangle_w, &Message::mutable_triangle_w);
-    add_vec3s(r.vertex_w, &Message::mutable_vertex_w);
-  }
-  auto add_floats = [&stream](const std::vector<float>& values, auto field) {
-    stream.Add(values.size(), [&values, field](Message& m, size_t b, size_t e) {
-      m.set_offset(b);
-      AddRange(values, b, e, (m.*field)());
-    });
-  };
-  if (want_errors) {
-    add_floats(a.bounds.texel, &Message::mutable_w_error);
-    if (want_averages) {
-      add_floats(a.bounds.triangle, &Message::mutable_triangle_w_error);
-      add_floats(a.bounds.vertex, &Message::mutable_vertex_w_error);
-    }
-  }
-  return stream;
-}
 
 // Writes progress while the bake runs on the executor, then the result.
 // The executor pushes messages into a small queue; one write is in flight
@@ -265,33 +175,6 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
   v1::ComputeObscurancesResponse current_;
 };
 
-void ToProto(const core::ObscuranceUpdateAnswer& a, v1::UpdateObscurancesResponse* out) {
-  const obscurance::ObscuranceUpdate& u = a.update;
-  out->set_from_version(a.from_version);
-  out->set_scene_version(a.scene_version);
-  out->set_moves_applied(a.moves_applied);
-  out->mutable_texels()->Add(u.texels.begin(), u.texels.end());
-  for (const glm::vec3& v : u.w) AddVec3(v, out->mutable_w());
-  for (const glm::vec3& v : u.intensity) AddVec3(v, out->mutable_intensity());
-  out->mutable_triangles()->Add(u.triangles.begin(), u.triangles.end());
-  for (const glm::vec3& v : u.triangle_w) AddVec3(v, out->mutable_triangle_w());
-  out->mutable_vertices()->Add(u.vertices.begin(), u.vertices.end());
-  for (const glm::vec3& v : u.vertex_w) AddVec3(v, out->mutable_vertex_w());
-  out->set_influenced_before(u.influenced_before);
-  out->set_influenced_after(u.influenced_after);
-  out->set_own_patches(u.own_patches);
-  out->set_candidates(u.candidates);
-  out->set_recomputed(u.recomputed);
-  out->set_rays(u.rays);
-  out->set_rays_per_patch(a.rays_per_patch);
-  out->set_width(a.width);
-  out->set_height(a.height);
-  for (const glm::vec3& v : a.full_w) AddVec3(v, out->mutable_full_w());
-  out->mutable_w_error()->Add(a.bounds.texel.begin(), a.bounds.texel.end());
-  out->mutable_triangle_w_error()->Add(a.bounds.triangle.begin(), a.bounds.triangle.end());
-  out->mutable_vertex_w_error()->Add(a.bounds.vertex.begin(), a.bounds.vertex.end());
-  service::ToProto(core::ObscuranceUpdateStatement(a), out->mutable_accuracy());
-}
 
 }  // namespace
 
@@ -307,12 +190,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::Callback
                                                               RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     // A call whose client gave up while it queued does not move the node.
     VISQ_RETURN_IF_ERROR(CallOptionsFor(context, &cancelled, log).stop.Check("SetNodeTransform: before the move"));
-    core::NodeTransformQuery query;
-    query.scene = request->scene().name();
-    query.scene_version = request->scene().version();
-    if (request->node_case() == v1::SetNodeTransformRequest::kNodeName) query.node_name = request->node_name();
-    if (request->node_case() == v1::SetNodeTransformRequest::kNodeIndex) query.node_index = request->node_index();
-    query.world_matrix.assign(request->world_matrix().begin(), request->world_matrix().end());
+    const core::NodeTransformQuery query = FromProto(*request);
     log.Info("'{}' node {}", query.scene,
              query.node_name ? "'" + *query.node_name + "'" : query.node_index ? std::to_string(*query.node_index) : "?");
     VISQ_ASSIGN_OR_RETURN(core::SceneSummary summary, core::RunSetNodeTransform(ctx_.engine, query));
@@ -327,10 +205,7 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::UpdateObscurances(grpc::Callbac
   return RunUnaryCall(ctx_, context, "UpdateObscurances", [this, context, request, response](
                                                                RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
     const double queue_ms = log.ElapsedMs();
-    core::ObscuranceUpdateQuery query;
-    query.scene = request->scene().name();
-    query.scene_version = request->scene().version();
-    query.want_full_w = request->want_full_w();
+    core::ObscuranceUpdateQuery query = FromProto(*request);
     query.call = CallOptionsFor(context, &cancelled, log);
     VISQ_ASSIGN_OR_RETURN(core::ObscuranceUpdateAnswer answer, core::RunUpdateObscurances(ctx_.engine, query));
     const double before_transfer = log.ElapsedMs();
