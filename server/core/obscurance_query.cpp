@@ -429,9 +429,15 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
       report.probe_ms += answer.atlas_ms + answer.bake_ms;
     }
   }
-  // The ray-cast estimator: probed with 4 and 16 rays per patch.
-  const std::string ray_series = RaycastSeries(resident, query);
-  if (!model.Predict(ray_series, 1.0)) {
+  // The ray-cast estimator: probed with 4 and 16 rays per patch, on Embree
+  // and (on a GPU, where its BVH fits) on the GPU.
+  std::vector<ObscuranceMethod> ray_methods = {ObscuranceMethod::kRaycast};
+  if (engine.WeighsGpuRays() && engine.AdmitRayScene(resident).ok())
+    ray_methods.push_back(ObscuranceMethod::kGpuRaycast);
+  for (const ObscuranceMethod method : ray_methods) {
+    const std::string ray_series = RaycastSeries(resident, query, method);
+    if (model.Predict(ray_series, 1.0)) continue;
+    VISQ_ASSIGN_OR_RETURN(obscurance::ClosestHits closest_hits, ClosestHitsOf(engine, resident, method, query.call));
     const auto atlas_start = std::chrono::steady_clock::now();
     WorkMemoryBudget::Reservation memory;
     VISQ_ASSIGN_OR_RETURN(obscurance::ObscuranceAtlas atlas,
@@ -444,6 +450,7 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
       options.rays_per_patch = rays;
       options.seed = query.params.seed;
       options.stop = query.call.stop;
+      options.closest_hits = closest_hits;
       VISQ_RETURN_IF_ERROR(
           obscurance::EstimateObscurancesByRays(*resident.scene, atlas, query.params, options).status());
       const double ms = atlas_ms + MillisecondsSince(start);
@@ -487,7 +494,9 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
   if (!on_estimate)
     add_plans(ObscuranceMethod::kDepthPeeling, "obscurance-depth-peeling", "directions", series,
               obscurance::kMaxDirections);
-  add_plans(ObscuranceMethod::kRaycast, "obscurance-raycast", "rays_per_patch", ray_series, 65536);
+  for (const ObscuranceMethod method : ray_methods)
+    add_plans(method, method == ObscuranceMethod::kGpuRaycast ? "obscurance-gpu-raycast" : "obscurance-raycast",
+              "rays_per_patch", RaycastSeries(resident, query, method), 65536);
   VISQ_ASSIGN_OR_RETURN(report.chosen, ChoosePlan(report.plans, target));
   report.target = target;
   LogChosenPlan(report, query.call);
