@@ -111,6 +111,11 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "Largest resident scene accepted, by an estimate of its geometry and every structure its queries "
                  "build (Embree BVH, triangle index, GPU buffers)")
       ->envname("VISQ_MAX_SCENE_BYTES")->capture_default_str();
+  app.add_option("--gpu-rays-in-choice", flags.options.engine.gpu_rays_in_choice,
+                 "Whether a request naming no method (or naming a target) may run GPU_RAYCAST: auto (on a GPU only: "
+                 "on a CPU rasterizer its shader costs several times Embree's time on the same cores), always, or "
+                 "never; named, it always runs")
+      ->envname("VISQ_GPU_RAYS_IN_CHOICE")->check(CLI::IsMember({"auto", "always", "never"}))->capture_default_str();
   app.add_flag("--warm-scenes", flags.options.engine.warm_at_load,
                "Build every structure of each scene loaded (at start or later) or uploaded right after the load, in "
                "the background, so that its first query does not wait for them")

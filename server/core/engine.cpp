@@ -117,7 +117,11 @@ Status Engine::AdmitSceneSize(const ResidentScene& resident) const {
   return absl::OkStatus();
 }
 
-bool Engine::WeighsGpuRays() const { return !gpu_->device().software; }
+bool Engine::WeighsGpuRays() const {
+  if (options_.gpu_rays_in_choice == "always") return true;
+  if (options_.gpu_rays_in_choice == "never") return false;
+  return !gpu_->device().software;
+}
 
 Status Engine::AdmitRayScene(const ResidentScene& resident) const {
   const uint64_t bytes = kGpuRayBytesPerTriangle * resident.scene->TriangleCount();

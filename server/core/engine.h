@@ -67,6 +67,9 @@ struct EngineOptions {
   // (core/structure_estimate.h) would exceed this is refused
   // (RESOURCE_EXHAUSTED), before it displaces anything.
   uint64_t max_scene_bytes = 8ull << 30;
+  // Whether the server's choice and the accuracy planner weigh GPU_RAYCAST:
+  // "auto" on a GPU only (Engine::WeighsGpuRays), "always", or "never".
+  std::string gpu_rays_in_choice = "auto";
   // Build every structure (GPU buffers, Embree BVH, triangle index) of each
   // scene loaded or uploaded, in the background right after the load, so
   // that its first query does not wait for them.

@@ -14,6 +14,7 @@
 #include "core/work_budget.h"
 #include "common/status.h"
 #include "exact/light_visibility.h"
+#include "core/work_timing.h"
 
 namespace visq::core {
 
@@ -59,6 +60,7 @@ struct LightVisibilityAnswer {
   // until the answer is sent; empty when the query's caller reserved.
   std::shared_ptr<WorkMemoryBudget::Reservation> memory;
 };
+inline WorkTiming WorkTimingOf(const LightVisibilityAnswer& a) { return {0.0, a.compute_ms}; }
 
 inline constexpr size_t kMaxLightVisibilityPoints = 1'000'000;  // per request message
 inline constexpr size_t kMaxLightVertices = 1024;

@@ -25,6 +25,7 @@
 #include "visq/obscurance_partial.h"
 #include "obscurance/obscurance_update.h"
 #include "visq/gpu/obscurance.h"
+#include "core/work_timing.h"
 
 namespace visq::core {
 
@@ -100,6 +101,11 @@ struct ObscuranceAnswer {
   std::optional<PlanReport> plan;  // with a target
   WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };
+// The atlas, the bake or ray estimate, the finishing and the updater's
+// preparation.
+inline WorkTiming WorkTimingOf(const ObscuranceAnswer& a) {
+  return {0.0, a.atlas_ms + a.bake_ms + a.finalize_ms + a.updater_ms};
+}
 
 // Hoeffding's half-width for D independent directions (or rays) with values
 // in [0, 1]: the bound of an update's recomputed patches, whose rays are
@@ -158,6 +164,7 @@ struct ObscuranceUpdateAnswer {
   double compute_ms = 0;
   WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };
+inline WorkTiming WorkTimingOf(const ObscuranceUpdateAnswer& a) { return {0.0, a.compute_ms}; }
 inline constexpr size_t kMaxFullUpdateFloats = size_t{1} << 22;
 inline constexpr double kUpdateConfidence = 0.95;
 
@@ -190,6 +197,9 @@ struct ObscurancePreviewAnswer {
   double copy_ms = 0;  // copying the solution out of the updater
   WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };
+inline WorkTiming WorkTimingOf(const ObscurancePreviewAnswer& a) {
+  return {a.image.queue_ms, a.copy_ms + a.image.total_ms - a.image.queue_ms};
+}
 
 // INVALID_ARGUMENT / RESOURCE_EXHAUSTED for a bad camera before any GPU
 // work; FAILED_PRECONDITION when the scene has no whole-bake solution, or
@@ -218,6 +228,7 @@ struct ObscuranceExportAnswer {
   double copy_ms = 0, export_ms = 0;
   WorkMemoryBudget::Reservation memory;  // held until the answer is sent
 };
+inline WorkTiming WorkTimingOf(const ObscuranceExportAnswer& a) { return {0.0, a.copy_ms + a.export_ms}; }
 
 // INVALID_ARGUMENT when neither part is wanted; otherwise as
 // RunRenderObscurancePreview.

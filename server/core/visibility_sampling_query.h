@@ -15,6 +15,7 @@
 #include "core/call_options.h"
 #include "core/work_budget.h"
 #include "visq/gpu/hidden_sample_map.h"
+#include "core/work_timing.h"
 
 namespace visq::core {
 
@@ -71,6 +72,10 @@ struct HiddenSampleMapAnswer {
   // answer, once the answer has been sent.
   std::shared_ptr<WorkMemoryBudget::Reservation> memory;
 };
+// Its GL jobs' wait, and its run with the pattern's Hough table when built.
+inline WorkTiming WorkTimingOf(const HiddenSampleMapAnswer& a) {
+  return {a.result.timing.queue_ms, a.result.timing.run_ms + a.result.table_ms};
+}
 
 struct PatchVisibilityQuery {
   std::string scene;
@@ -89,6 +94,9 @@ struct PatchVisibilityAnswer {
   std::optional<PlanReport> plan;
   AccuracyStatement accuracy;
 };
+inline WorkTiming WorkTimingOf(const PatchVisibilityAnswer& a) {
+  return {a.result.timing.queue_ms, a.result.timing.run_ms};
+}
 
 // Every check of a query that needs neither the scene nor the GPU: what is
 // refused before any work is queued. The Run functions start with these (the

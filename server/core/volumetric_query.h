@@ -11,6 +11,7 @@
 #include "core/accuracy_statement.h"
 #include "core/call_options.h"
 #include "visq/gpu/volumetric_shadows.h"
+#include "core/work_timing.h"
 
 namespace visq::core {
 
@@ -63,6 +64,12 @@ struct VolumetricAnswer {
   std::vector<uint32_t> maps_rendered;  // in order; the answer's is the last
   double other_renders_ms = 0;          // the renders before the answer's
 };
+// The rendered maps' time too (a target's tries); its bands' writes, which
+// happen inside the render, are the transport's to take out.
+inline WorkTiming WorkTimingOf(const VolumetricAnswer& a) {
+  const volumetric_shadows::VolumetricTimings& t = a.result.timings;
+  return {t.queue_ms, a.other_renders_ms + t.total_ms - t.queue_ms};
+}
 
 // With `sink`, each band of image rows goes to it as it is made (or, with a
 // target, once the map is chosen) and the result holds the figures only

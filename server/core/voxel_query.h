@@ -11,6 +11,7 @@
 #include "core/work_budget.h"
 #include "common/status.h"
 #include "visq/gpu/slicemap.h"
+#include "core/work_timing.h"
 
 namespace visq::core {
 
@@ -49,6 +50,16 @@ struct TransmittanceQuery {
 // Reserves its working memory (--max-work-bytes) before it starts; with
 // `hold`, the reservation outlives the call, to cover the answer's copy in
 // a response until it is sent.
+// A voxelization's or a transmittance's GL jobs: their wait, and the rest
+// of their time (a streamed voxelization's band writes inside it, the
+// transport's to take out).
+inline WorkTiming WorkTimingOf(const voxel_reference::VoxelizeResult& r) {
+  return {r.timings.queue_ms, r.timings.total_ms - r.timings.queue_ms};
+}
+inline WorkTiming WorkTimingOf(const voxel_reference::TransmittanceResult& r) {
+  return {r.timings.queue_ms, r.timings.total_ms - r.timings.queue_ms};
+}
+
 [[nodiscard]] StatusOr<voxel_reference::TransmittanceResult> RunTransmittance(
     Engine& engine, const TransmittanceQuery& query, WorkMemoryBudget::Reservation* hold = nullptr);
 

@@ -102,7 +102,7 @@ class ComputeObscurancesReactor final : public grpc::ServerWriteReactor<v1::Comp
     const bool want_averages = query.want_averages, want_errors = query.want_errors;
     VISQ_ASSIGN_OR_RETURN(core::ObscuranceAnswer answer, core::RunComputeObscurances(engine, std::move(query)));
     const double before_transfer = log_.ElapsedMs();
-    const double compute_ms = answer.atlas_ms + answer.bake_ms + answer.finalize_ms + answer.updater_ms;
+    const double compute_ms = core::WorkTimingOf(answer).compute_ms;
     log_.Info("{}x{} texels, {} layers, bake {:.1f} ms", answer.width, answer.height, answer.stats.layers,
               answer.bake_ms);
     ChunkedResponses<v1::ComputeObscurancesResponse> messages = ToProtoStream(std::move(answer), want_averages, want_errors);
@@ -211,8 +211,8 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::UpdateObscurances(grpc::Callbac
     const double before_transfer = log.ElapsedMs();
     ToProto(answer, response);
     auto* timing = response->mutable_timing();
-    timing->set_queue_ms(queue_ms);
-    timing->set_compute_ms(answer.compute_ms);
+    timing->set_queue_ms(queue_ms + core::WorkTimingOf(answer).queue_ms);
+    timing->set_compute_ms(core::WorkTimingOf(answer).compute_ms);
     timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
     timing->set_total_ms(log.ElapsedMs());
     log.Info("v{} -> v{}: {} move(s), {} texels changed, {} rays, {:.1f} ms", answer.from_version,
@@ -237,10 +237,9 @@ grpc::ServerWriteReactor<v1::ObscurancePreviewResponse>* VisibilityServiceImpl::
         log.Info("v{} {}x{} {}, render {:.1f} ms", answer.solution_version, answer.image.width, answer.image.height,
                  request->quantity() == v1::ObscurancePreviewRequest::INTENSITY ? "intensity" : "W",
                  answer.image.render_ms);
-        const double image_queue_ms = answer.image.queue_ms;
-        const double compute_ms = answer.copy_ms + answer.image.total_ms - answer.image.queue_ms;
+        const core::WorkTiming work = core::WorkTimingOf(answer);
         ChunkedResponses<v1::ObscurancePreviewResponse> messages = ToProtoStream(std::move(answer));
-        SetStreamTiming(queue_ms + image_queue_ms, compute_ms, query.call.BuildMs(), before_transfer, log,
+        SetStreamTiming(queue_ms + work.queue_ms, work.compute_ms, query.call.BuildMs(), before_transfer, log,
                         messages.first().mutable_timing());
         return messages;
       });
@@ -260,9 +259,10 @@ grpc::ServerWriteReactor<v1::ExportObscurancesResponse>* VisibilityServiceImpl::
         log.Info("v{} {}x{}, {} triangles, {} UV floats, {} glTF bytes, export {:.1f} ms", answer.solution_version,
                  answer.width, answer.height, answer.triangles, answer.atlas_uv.size(), answer.glb.size(),
                  answer.export_ms);
-        const double compute_ms = answer.copy_ms + answer.export_ms;
+        const core::WorkTiming work = core::WorkTimingOf(answer);
         ChunkedResponses<v1::ExportObscurancesResponse> messages = ToProtoStream(std::move(answer));
-        SetStreamTiming(queue_ms, compute_ms, query.call.BuildMs(), before_transfer, log, messages.first().mutable_timing());
+        SetStreamTiming(queue_ms + work.queue_ms, work.compute_ms, query.call.BuildMs(), before_transfer, log,
+                        messages.first().mutable_timing());
         return messages;
       });
 }

@@ -361,8 +361,8 @@ Status AnswerLightVisibility(core::Engine& engine, const core::LightVisibilityQu
   cache->set_misses(light.misses);
   cache->set_evictions(light.evictions);
   auto* timing = response->mutable_timing();
-  timing->set_queue_ms(queue_ms);
-  timing->set_compute_ms(answer.compute_ms);
+  timing->set_queue_ms(queue_ms + core::WorkTimingOf(answer).queue_ms);
+  timing->set_compute_ms(core::WorkTimingOf(answer).compute_ms);
   timing->set_build_ms(query.call.BuildMs());
   timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
   timing->set_total_ms(log.ElapsedMs());
@@ -493,8 +493,9 @@ grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::Hi
         // The memory reservation lasts until the last message is sent.
         if (answer.memory) out.Keep(answer.memory);
         v1::HiddenSampleMapResponse last = HiddenSampleMapLastMessage(answer);
-        SetProducedTiming(queue_ms + result.timing.queue_ms, result.timing.run_ms + result.table_ms,
-                          query.call.BuildMs(), out.write_ms(), log, last.mutable_timing());
+        const core::WorkTiming work = core::WorkTimingOf(answer);
+        SetProducedTiming(queue_ms + work.queue_ms, work.compute_ms, query.call.BuildMs(), out.write_ms(), log,
+                          last.mutable_timing());
         return last;
       });
 }
@@ -524,9 +525,9 @@ grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::V
                  volumetric_shadows::VolumetricIntegrandName(result.integrand), answer.maps_rendered.size(),
                  timings.traversal_ms);
         v1::VolumetricShadowResponse last = VolumetricLastMessage(answer);
-        SetProducedTiming(queue_ms + timings.queue_ms,
-                          answer.other_renders_ms + timings.total_ms - timings.queue_ms - out.write_ms(),
-                          query.call.BuildMs(), out.write_ms(), log, last.mutable_timing());
+        const core::WorkTiming work = core::WorkTimingOf(answer);
+        SetProducedTiming(queue_ms + work.queue_ms, work.compute_ms - out.write_ms(), query.call.BuildMs(),
+                          out.write_ms(), log, last.mutable_timing());
         return last;
       });
 }
@@ -556,8 +557,8 @@ grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
                  result.rasterization == voxel_reference::Rasterization::kConservative ? "conservative" : "standard",
                  result.occupied_voxels);
         v1::VoxelizeResponse last = VoxelizeLastMessage(result);
-        SetProducedTiming(queue_ms + result.timings.queue_ms,
-                          result.timings.total_ms - result.timings.queue_ms - out.write_ms(), query.call.BuildMs(),
+        const core::WorkTiming work = core::WorkTimingOf(result);
+        SetProducedTiming(queue_ms + work.queue_ms, work.compute_ms - out.write_ms(), query.call.BuildMs(),
                           out.write_ms(), log, last.mutable_timing());
         return last;
       });
@@ -577,8 +578,9 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
     const double before_transfer = log.ElapsedMs();
     ToProto(result, response);
     auto* timing = response->mutable_timing();
-    timing->set_queue_ms(queue_ms + result.timings.queue_ms);
-    timing->set_compute_ms(result.timings.total_ms - result.timings.queue_ms);
+    const core::WorkTiming work = core::WorkTimingOf(result);
+    timing->set_queue_ms(queue_ms + work.queue_ms);
+    timing->set_compute_ms(work.compute_ms);
     timing->set_build_ms(query.call.BuildMs());
     timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
     timing->set_total_ms(log.ElapsedMs());
@@ -599,8 +601,9 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::PatchVisibility(grpc::CallbackS
     const double before_transfer = log.ElapsedMs();
     ToProto(answer, response);
     auto* timing = response->mutable_timing();
-    timing->set_queue_ms(queue_ms + result.timing.queue_ms);
-    timing->set_compute_ms(result.timing.run_ms);
+    const core::WorkTiming work = core::WorkTimingOf(answer);
+    timing->set_queue_ms(queue_ms + work.queue_ms);
+    timing->set_compute_ms(work.compute_ms);
     timing->set_build_ms(query.call.BuildMs());
     timing->set_transfer_ms(log.ElapsedMs() - before_transfer);
     timing->set_total_ms(log.ElapsedMs());

@@ -8,6 +8,7 @@
 #include <glm/glm.hpp>
 #include <gtest/gtest.h>
 
+#include "server_process.h"
 #include "shared_server_suite.h"
 #include "proto_builders.h"
 #include "test_support.h"
@@ -146,6 +147,63 @@ TEST_F(AlgorithmRpcTest, AMapNamingNoMethodRunsTheFasterOfTwoWithTheSameBits) {
   auto hough = client_->ComputeHiddenSampleMap(request);
   ASSERT_TRUE(hough.ok()) << hough.status();
   EXPECT_EQ(hough->figures.accuracy().method(), "raster-hough-lookup");
+}
+
+// Where the server weighs GPU_RAYCAST (on a GPU; here forced with
+// --gpu-rays-in-choice always on llvmpipe), every choice lists it beside the
+// others and answers with the ray-cast bits whichever runs: a map naming no
+// method, a map with a target, and a bake naming no method.
+TEST(GpuRaysInTheChoice, EveryChoiceWeighsThemAndAnswersWithTheRaycastBits) {
+  testing::ScratchDir repo;
+  auto server = testing::ServerProcess::Start({repo.path(), {"--seed-samples", "--gpu-rays-in-choice", "always"}});
+  ASSERT_NE(server, nullptr);
+  Client client({.address = server->address()});
+  auto weighed = [](const v1::Accuracy& accuracy, const std::string& method) {
+    for (const v1::PlanEstimate& plan : accuracy.plans())
+      if (plan.method() == method) return true;
+    return false;
+  };
+
+  v1::HiddenSampleMapRequest map;
+  map.mutable_scene()->set_name("cornell_box_visq");
+  SetPatch(map.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+  SetPatch(map.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+  map.mutable_samples()->set_count(64);
+  map.mutable_samples()->set_seed(7);
+  map.set_width(32);
+  map.set_height(32);
+  map.set_want_bitmasks(true);
+  auto chosen = client.ComputeHiddenSampleMap(map);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  EXPECT_TRUE(weighed(chosen->figures.accuracy(), "gpu-raycast")) << chosen->figures.accuracy().DebugString();
+  map.set_method(v1::RAYCAST);
+  auto raycast = client.ComputeHiddenSampleMap(map);
+  ASSERT_TRUE(raycast.ok()) << raycast.status();
+  ASSERT_EQ(chosen->blocked_bits.size(), raycast->blocked_bits.size());
+  size_t differing = 0;
+  for (size_t w = 0; w < raycast->blocked_bits.size(); ++w)
+    differing += std::popcount(chosen->blocked_bits[w] ^ raycast->blocked_bits[w]);
+  EXPECT_LE(differing, 32u * 32u * 64u / 10000u);
+
+  v1::HiddenSampleMapRequest targeted = map;
+  targeted.clear_samples();
+  targeted.set_method(v1::METHOD_UNSPECIFIED);
+  targeted.set_want_bitmasks(false);
+  targeted.mutable_target()->set_max_error(0.1);
+  auto planned = client.ComputeHiddenSampleMap(targeted);
+  ASSERT_TRUE(planned.ok()) << planned.status();
+  EXPECT_TRUE(weighed(planned->figures.accuracy(), "gpu-raycast")) << planned->figures.accuracy().DebugString();
+  EXPECT_LE(planned->figures.accuracy().error_bound(), 0.1);
+
+  v1::ComputeObscurancesRequest bake;
+  bake.mutable_scene()->set_name("cornell_box_visq");
+  bake.set_resolution(32);
+  bake.set_d_max(0.5);
+  bake.set_direction_count(16);
+  auto baked = client.ComputeObscurances(bake, nullptr);
+  ASSERT_TRUE(baked.ok()) << baked.status();
+  EXPECT_TRUE(weighed(baked->figures.accuracy(), "obscurance-gpu-raycast")) << baked->figures.accuracy().DebugString();
+  EXPECT_TRUE(weighed(baked->figures.accuracy(), "obscurance-raycast")) << baked->figures.accuracy().DebugString();
 }
 
 TEST_F(AlgorithmRpcTest, PatchVisibilityNamingNoMethodRunsOneOfTheTwo) {
