@@ -86,8 +86,9 @@ StatusOr<WorkMemoryBudget::Reservation> WorkMemoryBudget::Reserve(uint64_t bytes
           capacity_, " (--max-work-bytes), ", lasting_,
           " are held by results it keeps (obscurance solutions for UpdateObscurances, until their scene's next "
           "whole bake or unload)"));
-    VISQ_RETURN_IF_ERROR(job.stop.Check(absl::StrCat(what, ": while waiting for ", bytes,
-                                                     " bytes of the budget for work in flight (--max-work-bytes)")));
+    if (job.stop.Stopped())
+      return job.stop.Check(absl::StrCat(what, ": while waiting for ", bytes,
+                                         " bytes of the budget for work in flight (--max-work-bytes)"));
     released_.wait_until(lock, std::min(job.stop.deadline, std::chrono::steady_clock::now() + kPollStop));
   }
   in_use_ += bytes;
