@@ -1,7 +1,6 @@
 #include "visq/gpu/ray_scene.h"
 
 #include <algorithm>
-#include <bit>
 #include <chrono>
 #include <string>
 
@@ -29,6 +28,13 @@ GlBuffer MakeBuffer(size_t bytes, const void* data) {
 
 }  // namespace
 
+// rays_trace.comp's Hit: a miss names kNoTriangle.
+struct RayScene::GpuHit {
+  float t = 0.0f;
+  uint32_t triangle = raycast::kNoTriangle;
+  float u = 0.0f;
+  float v = 0.0f;
+};
 struct RayScene::Resources {
   GlBuffer nodes{NoCreate};
   GlBuffer corners{NoCreate};
@@ -49,14 +55,16 @@ StatusOr<std::shared_ptr<RayScene>> RayScene::Upload(GpuWorker& worker, const ra
   out->triangle_count_ = bvh.triangle_count();
   out->node_count_ = static_cast<uint32_t>(bvh.nodes.size());
   out->gpu_bytes_ = bvh.bytes();
-  auto resources = std::make_shared<Resources>();
+  // Owned by the scene from the start: a job that fails after making a
+  // buffer releases it on the GL thread like any other.
+  out->resources_ = std::make_shared<Resources>();
   VISQ_RETURN_IF_ERROR(worker.Run(job, [&]() -> Status {
-    resources->nodes = MakeBuffer(bvh.nodes.size() * sizeof(raycast::FlatBvhNode), bvh.nodes.data());
-    resources->corners = MakeBuffer(bvh.corners.size() * sizeof(glm::vec4), bvh.corners.data());
+    out->resources_->nodes = MakeBuffer(bvh.nodes.size() * sizeof(raycast::FlatBvhNode), bvh.nodes.data());
+    out->resources_->corners =
+        MakeBuffer(bvh.corners.size() * sizeof(raycast::FlatBvhCorner), bvh.corners.data());
     out->generation_ = CurrentContextGeneration();
     return absl::OkStatus();
   }));
-  out->resources_ = std::move(resources);
   return out;
 }
 
@@ -65,13 +73,13 @@ StatusOr<std::shared_ptr<RayScene>> RayScene::Upload(GpuWorker& worker, const ra
 // rays_trace.comp, and handed to take(begin, n, bits or hits) as read back.
 Status RayScene::Trace(size_t count, const SegmentMaker& make, bool closest, const RayTraceOptions& options,
                        const JobResults& take) const {
+  static_assert(sizeof(GpuHit) == 16, "rays_trace.comp's Hit in std430");
   if (count == 0 || node_count_ == 0) return absl::OkStatus();
   TimedSizer sizer(options.target_job_ms, kMaxJobSegments, static_cast<int>(options.first_job_segments));
   std::vector<raycast::FloatSegment> segments;
   std::vector<uint32_t> ignore;
   std::vector<uint32_t> bits;
-  std::vector<glm::vec4> hits;
-  const glm::vec4 miss(0.0f, std::bit_cast<float>(raycast::kNoTriangle), 0.0f, 0.0f);
+  std::vector<GpuHit> hits;
   for (size_t begin = 0; begin < count;) {
     VISQ_RETURN_IF_ERROR(options.job.stop.Check("tracing rays on the GPU"));
     const size_t n = std::min<size_t>(static_cast<size_t>(sizer.size()), count - begin);
@@ -80,7 +88,7 @@ Status RayScene::Trace(size_t count, const SegmentMaker& make, bool closest, con
     ParallelFor(n, 4096, [&](size_t first, size_t end) {
       for (size_t i = first; i < end; ++i) make(begin + i, segments[i], ignore[i]);
     });
-    if (closest) hits.assign(n, miss);
+    if (closest) hits.assign(n, GpuHit{});
     else bits.assign((n + 31) / 32, 0u);
     JobTiming timing;
     VISQ_RETURN_IF_ERROR(worker_->Run(
@@ -94,7 +102,7 @@ Status RayScene::Trace(size_t count, const SegmentMaker& make, bool closest, con
                                 CachedProgram(rays_shaders::Find, {{GL_COMPUTE_SHADER, "rays_trace.comp"}}, defines));
           const GlBuffer segment_buffer = MakeBuffer(n * sizeof(raycast::FloatSegment), segments.data());
           const GlBuffer ignore_buffer = MakeBuffer(n * sizeof(uint32_t), ignore.data());
-          const size_t out_bytes = closest ? hits.size() * sizeof(glm::vec4) : bits.size() * sizeof(uint32_t);
+          const size_t out_bytes = closest ? hits.size() * sizeof(GpuHit) : bits.size() * sizeof(uint32_t);
           void* out_data = closest ? static_cast<void*>(hits.data()) : static_cast<void*>(bits.data());
           const GlBuffer out = MakeBuffer(out_bytes, out_data);
           glUseProgram(program->id());
@@ -133,7 +141,7 @@ StatusOr<std::vector<uint8_t>> RayScene::Occluded(size_t count,
         ignore = s.ignore_triangle;
       },
       /*closest=*/false, options,
-      [&](size_t begin, size_t n, const std::vector<uint32_t>& bits, const std::vector<glm::vec4>&) {
+      [&](size_t begin, size_t n, const std::vector<uint32_t>& bits, const std::vector<GpuHit>&) {
         for (size_t i = 0; i < n; ++i) result[begin + i] = static_cast<uint8_t>((bits[i >> 5] >> (i & 31)) & 1u);
       }));
   return result;
@@ -150,9 +158,9 @@ StatusOr<std::vector<raycast::Hit>> RayScene::Intersect(std::span<const raycast:
         ignore = rays[i].ignore_triangle;
       },
       /*closest=*/true, options,
-      [&](size_t begin, size_t n, const std::vector<uint32_t>&, const std::vector<glm::vec4>& hits) {
+      [&](size_t begin, size_t n, const std::vector<uint32_t>&, const std::vector<GpuHit>& hits) {
         for (size_t i = 0; i < n; ++i) {
-          const uint32_t triangle = std::bit_cast<uint32_t>(hits[i].y);
+          const uint32_t triangle = hits[i].triangle;
           if (triangle == raycast::kNoTriangle) continue;
           if (triangle >= triangle_count_) {
             corrupt = true;
@@ -160,10 +168,10 @@ StatusOr<std::vector<raycast::Hit>> RayScene::Intersect(std::span<const raycast:
           }
           raycast::Hit& hit = result[begin + i];
           hit.hit = true;
-          hit.t = hits[i].x;
+          hit.t = hits[i].t;
           hit.triangle = triangle;
-          hit.u = hits[i].z;
-          hit.v = hits[i].w;
+          hit.u = hits[i].u;
+          hit.v = hits[i].v;
         }
       }));
   if (corrupt) return absl::InternalError("the GPU's closest hits named a triangle the scene does not have");

@@ -7,17 +7,32 @@
 // triangles, never neither.
 layout(local_size_x = 64) in;
 
+// The C++ layouts of raycast::FlatBvhNode and FlatBvhCorner (std430: a
+// uint packs after a vec3). Indices are uints, never float bits: a GPU may
+// flush a float that is a small integer's bits (a denormal) to 0.
 struct Node {
-  vec4 lower_right;  // xyz: box lower corner; w: the second child, or a leaf's first triangle (uint bits)
-  vec4 upper_count;  // xyz: box upper corner; w: a leaf's triangle count (uint bits), 0 for an inner node
+  vec3 lower;
+  uint link;  // an inner node: its second child (the first follows it); a leaf: its first triangle
+  vec3 upper;
+  uint count;  // a leaf's triangles; 0 for an inner node
+};
+struct Corner {
+  vec3 position;
+  uint triangle;  // the first corner's: the scene triangle's index
 };
 layout(std430, binding = 0) readonly buffer Nodes { Node nodes[]; };
-layout(std430, binding = 1) readonly buffer Corners { vec4 corners[]; };
+layout(std430, binding = 1) readonly buffer Corners { Corner corners[]; };
 layout(std430, binding = 2) readonly buffer Segments { vec4 segments[]; };  // two per segment
 layout(std430, binding = 3) readonly buffer Ignore { uint ignore_triangle[]; };
 #ifdef CLOSEST_HIT
-// (t, triangle as uint bits, u, v); a miss has triangle 0xFFFFFFFF.
-layout(std430, binding = 4) writeonly buffer Hits { vec4 hits[]; };
+// A miss has triangle 0xFFFFFFFF.
+struct Hit {
+  float t;
+  uint triangle;
+  float u;
+  float v;
+};
+layout(std430, binding = 4) writeonly buffer Hits { Hit hits[]; };
 #else
 layout(std430, binding = 4) buffer Blocked { uint blocked_bits[]; };
 #endif
@@ -107,7 +122,7 @@ void main() {
   float t_near = first.w, t_far = second.w;
   if (!(t_far >= t_near)) {
 #ifdef CLOSEST_HIT
-    hits[k] = vec4(0.0, uintBitsToFloat(0xFFFFFFFFu), 0.0, 0.0);
+    hits[k] = Hit(0.0, 0xFFFFFFFFu, 0.0, 0.0);
 #endif
     return;
   }
@@ -120,7 +135,7 @@ void main() {
   Shear shear = MakeShear(direction);
 
 #ifdef CLOSEST_HIT
-  vec4 best = vec4(0.0, uintBitsToFloat(0xFFFFFFFFu), 0.0, 0.0);
+  Hit best = Hit(0.0, 0xFFFFFFFFu, 0.0, 0.0);
 #endif
   uint stack[STACK_SIZE];
   int top = 0;
@@ -128,9 +143,9 @@ void main() {
   while (top > 0) {
     uint index = stack[--top];
     Node node = nodes[index];
-    if (!HitsBox(node.lower_right.xyz, node.upper_count.xyz, origin, inverse_direction, t_near, t_far)) continue;
-    uint count = floatBitsToUint(node.upper_count.w);
-    uint link = floatBitsToUint(node.lower_right.w);
+    if (!HitsBox(node.lower, node.upper, origin, inverse_direction, t_near, t_far)) continue;
+    uint count = node.count;
+    uint link = node.link;
     if (count == 0u) {
       // The second child, then the first (it follows its parent), which is
       // visited next. A tree no deeper than MAX_DEPTH never holds more than
@@ -141,17 +156,17 @@ void main() {
     }
     for (uint i = 0u; i < count; ++i) {
       uint t = link + i;
-      vec4 c0 = corners[3u * t];
-      uint triangle = floatBitsToUint(c0.w);
+      Corner c0 = corners[3u * t];
+      uint triangle = c0.triangle;
       if (triangle == ignored) continue;
       float hit_t, weight1, weight2;
-      if (!HitsTriangle(shear, origin, c0.xyz, corners[3u * t + 1u].xyz, corners[3u * t + 2u].xyz, t_near, t_far,
-                        hit_t, weight1, weight2))
+      if (!HitsTriangle(shear, origin, c0.position, corners[3u * t + 1u].position, corners[3u * t + 2u].position,
+                        t_near, t_far, hit_t, weight1, weight2))
         continue;
 #ifdef CLOSEST_HIT
       // Nearer hits only from now on: the segment ends here.
       t_far = hit_t;
-      best = vec4(hit_t, uintBitsToFloat(triangle), weight1, weight2);
+      best = Hit(hit_t, triangle, weight1, weight2);
 #else
       atomicOr(blocked_bits[k >> 5u], 1u << (k & 31u));
       return;

@@ -1,7 +1,6 @@
 #include "raycast/flat_bvh.h"
 
 #include <algorithm>
-#include <bit>
 #include <cmath>
 #include <limits>
 #include <memory>
@@ -69,7 +68,7 @@ void Widen(glm::vec3& lower, glm::vec3& upper) {
 }
 
 struct Flattener {
-  const std::vector<glm::vec4>& scene_corners;  // three per scene triangle
+  const std::vector<glm::vec3>& scene_corners;  // three per scene triangle
   FlatBvh& out;
 
   // Appends `node` and its subtree, depth first; returns its index.
@@ -87,11 +86,9 @@ struct Flattener {
       out.nodes[index].count = leaf->count;
       for (uint32_t i = 0; i < leaf->count; ++i) {
         const uint32_t t = leaf->triangles[i];
-        glm::vec4 first = scene_corners[3 * size_t(t)];
-        first.w = std::bit_cast<float>(t);
-        out.corners.push_back(first);
-        out.corners.push_back(scene_corners[3 * size_t(t) + 1]);
-        out.corners.push_back(scene_corners[3 * size_t(t) + 2]);
+        out.corners.push_back({scene_corners[3 * size_t(t)], t});
+        out.corners.push_back({scene_corners[3 * size_t(t) + 1], 0});
+        out.corners.push_back({scene_corners[3 * size_t(t) + 2], 0});
       }
       return index;
     }
@@ -129,7 +126,7 @@ StatusOr<FlatBvh> BuildFlatBvh(const Scene& scene, const FlatBvhOptions& options
 
   // Corners in the frame, rounded once from world doubles (as Embree's
   // flattened upload), and each triangle's box for the builder.
-  std::vector<glm::vec4> corners(3 * triangles);
+  std::vector<glm::vec3> corners(3 * triangles);
   std::vector<RTCBuildPrimitive> primitives;
   primitives.reserve(triangles);
   for (size_t t = 0; t < triangles; ++t) {
@@ -137,7 +134,7 @@ StatusOr<FlatBvh> BuildFlatBvh(const Scene& scene, const FlatBvhOptions& options
     glm::vec3 lower(std::numeric_limits<float>::max()), upper(-std::numeric_limits<float>::max());
     for (int c = 0; c < 3; ++c) {
       const glm::vec3 corner(scene.Vertex(t, c) - out.origin);
-      corners[3 * t + c] = glm::vec4(corner, 0.0f);
+      corners[3 * t + c] = corner;
       lower = glm::min(lower, corner);
       upper = glm::max(upper, corner);
     }

@@ -31,17 +31,23 @@ struct FlatBvhNode {
 };
 static_assert(sizeof(FlatBvhNode) == 32);
 
+// 16 bytes in std430. The first of a triangle's three corners names its
+// scene triangle (an ignored triangle is recognised by it); the others', 0.
+struct FlatBvhCorner {
+  glm::vec3 position{0.0f};
+  uint32_t triangle = 0;
+};
+static_assert(sizeof(FlatBvhCorner) == 16);
+
 struct FlatBvh {
   std::vector<FlatBvhNode> nodes;  // empty for a scene without triangles
-  // Three per triangle in leaf order, frame-relative; the first corner's w
-  // holds the scene triangle's index as float bits (an ignored triangle is
-  // recognised by it), the others' w is 0.
-  std::vector<glm::vec4> corners;
+  // Three per triangle in leaf order, frame-relative.
+  std::vector<FlatBvhCorner> corners;
   glm::dvec3 origin{0.0};
   double extent = 0.0;  // the largest side of the scene's bounds
   uint32_t depth = 0;   // levels below the root, for the traversal's stack
 
-  size_t bytes() const { return nodes.size() * sizeof(FlatBvhNode) + corners.size() * sizeof(glm::vec4); }
+  size_t bytes() const { return nodes.size() * sizeof(FlatBvhNode) + corners.size() * sizeof(FlatBvhCorner); }
   size_t triangle_count() const { return corners.size() / 3; }
 };
 

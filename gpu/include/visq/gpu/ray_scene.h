@@ -64,8 +64,9 @@ class RayScene {
  private:
   RayScene() = default;
   using SegmentMaker = std::function<void(size_t i, raycast::FloatSegment& segment, uint32_t& ignore)>;
+  struct GpuHit;  // rays_trace.comp's closest hit
   using JobResults = std::function<void(size_t begin, size_t n, const std::vector<uint32_t>& bits,
-                                        const std::vector<glm::vec4>& hits)>;
+                                        const std::vector<GpuHit>& hits)>;
   [[nodiscard]] Status Trace(size_t count, const SegmentMaker& make, bool closest, const RayTraceOptions& options,
                              const JobResults& take) const;
   GpuWorker* worker_ = nullptr;
