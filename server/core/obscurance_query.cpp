@@ -364,9 +364,13 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
   const uint32_t directions = query.params.direction_count;
   const double bound = obscurance::CoveredHalfWidth(directions, 0.95);
   std::vector<EqualAnswerOption> options(engine.WeighsGpuRays() ? 3 : 2);
-  for (const auto& [slot, method, name] : {std::tuple{0, ObscuranceMethod::kRaycast, "obscurance-raycast"},
-                                           std::tuple{2, ObscuranceMethod::kGpuRaycast, "obscurance-gpu-raycast"}}) {
-    if (size_t(slot) >= options.size()) continue;
+  for (const auto& option : {std::tuple{0, ObscuranceMethod::kRaycast, "obscurance-raycast"},
+                              std::tuple{2, ObscuranceMethod::kGpuRaycast, "obscurance-gpu-raycast"}}) {
+    // Named, not bound: Debian 12's clang cannot capture a structured binding.
+    const size_t slot = static_cast<size_t>(std::get<0>(option));
+    const ObscuranceMethod method = std::get<1>(option);
+    const char* name = std::get<2>(option);
+    if (slot >= options.size()) continue;
     Plan& plan = options[slot].plan;
     plan.method = name;
     plan.runs = method;
