@@ -1,6 +1,9 @@
 #include "visq/gpu/ray_scene.h"
 
 #include <algorithm>
+#include <array>
+#include <cstddef>
+#include <cstring>
 #include <chrono>
 #include <string>
 
@@ -20,9 +23,17 @@ constexpr int kMaxJobSegments = 1 << 22;
 constexpr GLuint kGroupSize = 64;         // rays_trace.comp's local_size_x
 constexpr GLuint kMaxGroupsAcross = 32768;  // under GL's guaranteed 65535
 
+// A store of at least 16 bytes (GL refuses an empty one): a smaller `data`
+// is copied into zeros first, so GL never reads past the caller's bytes.
 GlBuffer MakeBuffer(size_t bytes, const void* data) {
+  std::array<std::byte, 16> padded{};
+  if (bytes < padded.size()) {
+    if (data != nullptr && bytes > 0) std::memcpy(padded.data(), data, bytes);
+    if (data != nullptr) data = padded.data();
+    bytes = padded.size();
+  }
   GlBuffer buffer;
-  glNamedBufferStorage(buffer.id(), static_cast<GLsizeiptr>(std::max<size_t>(bytes, 16)), data, 0);
+  glNamedBufferStorage(buffer.id(), static_cast<GLsizeiptr>(bytes), data, 0);
   return buffer;
 }
 
