@@ -41,7 +41,7 @@ Status ValidateObscuranceQuery(const ObscuranceQuery& query) {
   if (query.update_rays_per_patch == 0 || query.update_rays_per_patch > 65536)
     return absl::InvalidArgumentError(
         absl::StrCat("update_rays_per_patch: ", query.update_rays_per_patch, " must be in [1, 65536]"));
-  if (IsRayEstimate(*query.method)) {
+  if (IsRayEstimate(query.method)) {
     if (query.rays_per_patch == 0 || query.rays_per_patch > 65536)
       return absl::InvalidArgumentError(
           absl::StrCat("rays_per_patch: ", query.rays_per_patch, " must be in [1, 65536]"));
@@ -272,7 +272,7 @@ StatusOr<obscurance::ClosestHits> ClosestHitsOf(Engine& engine, const ResidentSc
 // for UpdateObscurances.
 bool IsWholeBake(const ObscuranceQuery& query, uint32_t total_directions) {
   if (query.partial_only) return false;
-  return IsRayEstimate(*query.method) ||
+  return IsRayEstimate(query.method) ||
          (query.params.first_direction == 0 && query.params.direction_count == total_directions);
 }
 
@@ -287,7 +287,7 @@ uint64_t ObscuranceWorkBytes(const Scene& scene, const ObscuranceQuery& query) {
   const uint64_t channels = shape.channels;
   uint64_t bytes = shape.texels * ((channels + 1) * (8 + 8) + 2 * 12 + 1 + 8 + 4 + 4) +
                    shape.triangles * ((channels + 1) * (8 + 8) + 12 + 8 + 4 + 4);
-  if (IsRayEstimate(*query.method))
+  if (IsRayEstimate(query.method))
     bytes = ObscuranceResultBytes(shape) + RayEstimateWorkBytes(shape, query.rays_per_patch);
   const uint32_t total = query.total_directions != 0 ? query.total_directions
                                                      : query.params.first_direction + query.params.direction_count;
@@ -321,7 +321,7 @@ StatusOr<obscurance::ObscuranceAtlas> BuildAtlasWithinBudget(Engine& engine, con
   options.force_build = query.force_built_atlas;
   options.reserve = [&](uint64_t atlas_bytes) -> Status {
     VISQ_ASSIGN_OR_RETURN(memory, engine.work_budget().Reserve(atlas_bytes + then_bytes,
-                                                               IsRayEstimate(*query.method)
+                                                               IsRayEstimate(query.method)
                                                                    ? "resolution, rays_per_patch"
                                                                    : "resolution",
                                                                job));
@@ -535,7 +535,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   if (plan) {
     const Plan& chosen = plan->chosen_plan();
     query.method = std::get<ObscuranceMethod>(chosen.runs);
-    if (IsRayEstimate(*query.method))
+    if (IsRayEstimate(query.method))
       query.rays_per_patch = static_cast<uint32_t>(chosen.parameters.at("rays_per_patch"));
     else
       query.params.direction_count = static_cast<uint32_t>(chosen.parameters.at("directions"));
@@ -565,7 +565,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
   answer.method = *query.method;
   answer.ambient = obscurance::ComputeAmbient(scene, query.params.color_bleeding);
   obscurance::ObscuranceResult result;
-  if (IsRayEstimate(*query.method)) {
+  if (IsRayEstimate(query.method)) {
     // The estimator of eq. 6 per patch with Embree (or its rays on the
     // GPU): the same quantity as the bake, with independent per-patch rays
     // instead of shared bundles.

@@ -2,6 +2,7 @@
 // among them (accuracy_planner.h) carries the one it chose in its plan.
 #pragma once
 
+#include <optional>
 #include <variant>
 
 namespace visq::core {
@@ -17,9 +18,13 @@ enum class VisibilityMethod { kRaster, kRaycast, kPluckerExact, kGpuRaycast };
 // or that estimator's rays traced on the GPU (gpu/rays).
 enum class ObscuranceMethod { kDepthPeeling, kRaycast, kGpuRaycast };
 
-// Whether the method is the per-patch ray estimator (on either tracer).
+// Whether the method is the per-patch ray estimator (on either tracer); a
+// method not chosen yet is not.
 constexpr bool IsRayEstimate(ObscuranceMethod method) {
   return method == ObscuranceMethod::kRaycast || method == ObscuranceMethod::kGpuRaycast;
+}
+constexpr bool IsRayEstimate(const std::optional<ObscuranceMethod>& method) {
+  return method.has_value() && IsRayEstimate(*method);
 }
 
 // What a plan runs; monostate where its caller keeps that itself.
