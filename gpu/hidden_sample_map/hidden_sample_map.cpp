@@ -577,7 +577,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     sizer.Measured(rows, band_timing.run_ms);
     result.timing.queue_ms += band_timing.queue_ms;
     result.timing.run_ms += band_timing.run_ms;
-    band.first_texel = size_t(first_row) * width;
+    band.first = size_t(first_row) * width;
     CountBand(readback, plan, size_t(rows) * width, options, all_colors, result, band);
     BoundTexels(request, result, band);
     VISQ_RETURN_IF_ERROR(DeliverBand(result, band, sink));

@@ -626,6 +626,7 @@ ViewSetup OrthographicView(const OrientedBox& box, const glm::dvec3& anchor) {
   view.clip_from_anchor = glm::mat4(m);
   const double depth = 2.0 * box.half_extent.z;
   view.depth_plane = glm::vec4(glm::vec3(box.axis_w / depth), static_cast<float>(glm::dot(offset, box.axis_w) / depth + 0.5));
+  view.box = box;
   return view;
 }
 
@@ -700,6 +701,7 @@ StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, 
   result.precision = config.precision;
   result.rasterization = config.rasterization;
   result.grid = GridShape(config.width, config.height, config.slices);
+  result.box = view.box;
   if (!sink) result.grid.bits.reserve(size_t{config.width} * config.height * result.grid.words_per_column);
   if (surface_out != nullptr) {
     *surface_out = result.grid;
@@ -711,7 +713,7 @@ StatusOr<VoxelizeResult> VoxelizeView(GpuWorker& worker, const GpuScene& scene, 
   auto on_band = [&](uint32_t first_row, RawSlicemap& made) -> Status {
     const size_t first_column = size_t{first_row} * config.width;
     const size_t columns = size_t{config.width} * made.surface.height;
-    band.first_column = first_column;
+    band.first = first_column;
     // Local precision: the range the shader really used.
     band.column_near.clear();
     band.column_far.clear();

@@ -27,6 +27,7 @@ struct ViewSetup {
   bool perspective = false;
   glm::vec3 light{0.0f};   // perspective: anchor-relative light
   glm::vec2 radial{0.0f};  // perspective: (r0, 1 / (r1 - r0))
+  OrientedBox box;         // orthographic: the box the grid fills
 };
 
 struct PassConfig : SlicemapSettings {};

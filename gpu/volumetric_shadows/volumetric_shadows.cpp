@@ -910,7 +910,7 @@ StatusOr<VolumetricResult> RenderVolumetricShadows(GpuWorker& worker, const GpuS
     band_groups.Measured(int((rows + 7) / 8), integrate_ms);
     ms.traversal_ms -= readback_ms;  // the job held both
     ms.readback_ms += readback_ms;
-    band.first_pixel = size_t{first_row} * setup.width;
+    band.first = size_t{first_row} * setup.width;
     band.inscattering.resize(pixels.size() * 3);
     band.combined.resize(params.combined_image ? pixels.size() * 3 : 0);
     for (size_t i = 0; i < pixels.size(); ++i) {

@@ -523,9 +523,9 @@ float EstimateOfTexel(int n, int visible, int lookup_samples, int split_pairs, i
 Status DeliverBand(HiddenSampleMapResult& map, const HiddenSampleMapBand& band, const HiddenSampleMapBandSink& sink) {
   if (sink) return sink(map, band);
   const size_t texels = size_t(map.width) * size_t(map.height);
-  VISQ_CHECK_EQ(band.first_texel, map.visible_fraction.size());
-  VISQ_CHECK_LE(band.first_texel + band.texels(), texels);
-  if (band.first_texel == 0) {
+  VISQ_CHECK_EQ(band.first, map.visible_fraction.size());
+  VISQ_CHECK_LE(band.first + band.texels(), texels);
+  if (band.first == 0) {
     map.visible_fraction.reserve(texels);
     if (!band.visible_rgb.empty()) map.visible_rgb.reserve(texels);
     if (!band.blocked_bits.empty()) map.blocked_bits.reserve(texels * size_t(map.words_per_texel));

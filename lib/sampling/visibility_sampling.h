@@ -26,6 +26,7 @@
 
 #include <glm/glm.hpp>
 
+#include "common/band.h"
 #include "common/job_timing.h"
 #include "common/normal_estimate.h"
 #include "common/status.h"
@@ -190,12 +191,11 @@ struct HiddenSampleMapResult {
   SourceSamples samples;
 };
 
-// A map's texels [first_texel, first_texel + texels()) as they are made, a
-// band of receiver rows at a time, so a large map is sent while it is drawn
-// and never held whole. The arrays are laid out as HiddenSampleMapResult's,
-// from the band's first texel.
-struct HiddenSampleMapBand {
-  size_t first_texel = 0;
+// A map's texels [first, first + texels()) as they are made, a band of
+// receiver rows at a time, so a large map is sent while it is drawn and
+// never held whole. The arrays are laid out as HiddenSampleMapResult's, from
+// the band's first texel.
+struct HiddenSampleMapBand : BandPlace {
   std::vector<float> visible_fraction;
   std::vector<glm::vec3> visible_rgb;     // coloured lights only
   std::vector<uint32_t> blocked_bits;     // want_bitmasks only
@@ -212,10 +212,8 @@ struct HiddenSampleMapBand {
   size_t texels() const { return visible_fraction.size(); }
 };
 
-// Receives each band in order, with the map's figures known before any
-// band (sizes, samples). A status other than OK stops the map there and is
-// what the map returns.
-using HiddenSampleMapBandSink = std::function<Status(const HiddenSampleMapResult& map, const HiddenSampleMapBand& band)>;
+// With the map's figures (sizes, samples) known before any band.
+using HiddenSampleMapBandSink = BandSink<HiddenSampleMapResult, HiddenSampleMapBand>;
 
 // For a rigorous sample set (SamplesAreIndependentStrata): the bound of
 // each of `band`'s texels from its count of visible samples, its split

@@ -16,6 +16,7 @@
 
 #include <glm/glm.hpp>
 
+#include "common/band.h"
 #include "common/job_options.h"
 #include "common/status.h"
 #include "scene/pinhole_camera.h"
@@ -151,17 +152,15 @@ struct VolumetricResult {
 };
 
 // Rows of the image as each band of the traversal ends: pixels
-// [first_pixel, first_pixel + inscattering.size() / 3), laid out as
-// VolumetricResult's arrays.
-struct VolumetricBand {
-  size_t first_pixel = 0;
+// [first, first + inscattering.size() / 3), laid out as VolumetricResult's
+// arrays.
+struct VolumetricBand : BandPlace {
   std::vector<float> inscattering;
   std::vector<float> combined;  // empty unless asked for
 };
-// Receives each band in order, with the figures (everything but the
-// timings is known before the first band). A status other than OK stops
-// the rendering.
-using VolumetricBandSink = std::function<Status(const VolumetricResult& figures, const VolumetricBand& band)>;
+// With the figures (everything but the timings is known before the first
+// band).
+using VolumetricBandSink = BandSink<VolumetricResult, VolumetricBand>;
 
 // The integrand's name in logs and answers ("analytic", "prefix_sum",
 // "per_texel", "svd").

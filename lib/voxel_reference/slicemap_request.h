@@ -26,6 +26,7 @@
 
 #include <glm/glm.hpp>
 
+#include "common/band.h"
 #include "common/job_options.h"
 #include "common/status.h"
 #include "voxel_reference/voxel_box.h"
@@ -148,20 +149,19 @@ struct VoxelizeResult {
   uint64_t ambiguous_columns = 0;
   uint64_t resolved_columns = 0;
   std::vector<uint32_t> ambiguous_column_list;  // column indices, ascending
+  OrientedBox box;  // the grid's, as voxelized (the scene's own where none was asked)
   SlicemapTimings timings;
 };
 
 // One band of image rows of a voxelization, whole in depth, as soon as its
-// passes are done: columns [first_column, first_column + columns) in the
-// packed layout, and their local ranges (local precision only).
-struct VoxelizeBand {
-  size_t first_column = 0;
+// passes are done: columns [first, first + columns) in the packed layout,
+// and their local ranges (local precision only).
+struct VoxelizeBand : BandPlace {
   std::vector<uint32_t> bits;
   std::vector<float> column_near, column_far;
 };
-// Receives each band in order, with the figures so far (sizes, modes; the
-// counts up to this band). A status other than OK stops the voxelization.
-using VoxelizeBandSink = std::function<Status(const VoxelizeResult& figures, const VoxelizeBand& band)>;
+// With the figures so far (sizes, modes, box; the counts up to this band).
+using VoxelizeBandSink = BandSink<VoxelizeResult, VoxelizeBand>;
 
 // ---------------------------------------------------------------------------
 // Transmittance shadow maps: the absorbing nodes are voxelized solid in the

@@ -15,7 +15,7 @@ namespace visq::core {
 namespace {
 
 // The differences between two images of one view, over pixels
-// [first_pixel, ...) of the finer one.
+// from value `first_value` of the finer one on.
 struct DifferenceSums {
   double max_abs = 0, abs_sum = 0, fine_sum = 0;
   void Add(const std::vector<float>& fine, size_t first_value, const std::vector<float>& coarse) {
@@ -60,7 +60,7 @@ Status SendInBands(const gpu::VolumetricResult& image, const gpu::VolumetricBand
   for (size_t row = 0; row < image.height; row += kBandRows) {
     const size_t rows = std::min<size_t>(kBandRows, image.height - row);
     gpu::VolumetricBand band;
-    band.first_pixel = row * width;
+    band.first = row * width;
     const auto begin = image.inscattering.begin() + std::ptrdiff_t(3 * row * width);
     band.inscattering.assign(begin, begin + std::ptrdiff_t(3 * rows * width));
     if (!image.combined.empty()) {
@@ -118,8 +118,11 @@ StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQ
   };
 
   VolumetricAnswer answer;
+  // Only a sink given to a render is timed: the bands sent after a target's
+  // renders are outside every render's time.
+  const gpu::VolumetricBandSink timed_sink = TimedBandSink(sink, &answer.delivery_ms);
   if (!two_images) {
-    VISQ_ASSIGN_OR_RETURN(answer.result, render(p.shadow_map_size, sink));
+    VISQ_ASSIGN_OR_RETURN(answer.result, render(p.shadow_map_size, timed_sink));
     answer.maps_rendered = {p.shadow_map_size};
     return answer;
   }
@@ -146,8 +149,8 @@ StatusOr<VolumetricAnswer> RunVolumetricShadow(Engine& engine, const VolumetricQ
     // The answer streams as it is made, each band compared on its way.
     DifferenceSums sums;
     auto comparing = [&](const gpu::VolumetricResult& figures, const gpu::VolumetricBand& band) -> Status {
-      sums.Add(band.inscattering, 3 * band.first_pixel, coarse.inscattering);
-      return sink ? sink(figures, band) : absl::OkStatus();
+      sums.Add(band.inscattering, 3 * band.first, coarse.inscattering);
+      return timed_sink ? timed_sink(figures, band) : absl::OkStatus();
     };
     VISQ_ASSIGN_OR_RETURN(answer.result, render(p.shadow_map_size, comparing));
     answer.maps_rendered.push_back(p.shadow_map_size);

@@ -63,12 +63,13 @@ struct VolumetricAnswer {
   std::optional<VolumetricErrorEstimate> estimate;
   std::vector<uint32_t> maps_rendered;  // in order; the answer's is the last
   double other_renders_ms = 0;          // the renders before the answer's
+  double delivery_ms = 0;               // in the sink during the answer's render: the stream's writes
 };
-// The rendered maps' time too (a target's tries); its bands' writes, which
-// happen inside the render, are the transport's to take out.
+// The rendered maps' time too (a target's tries), but not its bands'
+// delivery.
 inline WorkTiming WorkTimingOf(const VolumetricAnswer& a) {
   const volumetric_shadows::VolumetricTimings& t = a.result.timings;
-  return {t.queue_ms, a.other_renders_ms + t.total_ms - t.queue_ms};
+  return {t.queue_ms, a.other_renders_ms + t.total_ms - t.queue_ms - a.delivery_ms};
 }
 
 // With `sink`, each band of image rows goes to it as it is made (or, with a

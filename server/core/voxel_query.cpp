@@ -61,8 +61,7 @@ StatusOr<gpu::TransmittanceParams> ResolveTransmittanceQuery(TransmittanceQuery 
   return std::move(query.params);
 }
 
-StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& query, voxel_reference::OrientedBox* box_used,
-                                          const gpu::VoxelizeBandSink& sink) {
+StatusOr<VoxelizeAnswer> RunVoxelize(Engine& engine, const VoxelizeQuery& query, const gpu::VoxelizeBandSink& sink) {
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> resident,
                         engine.SceneForQuery(query.scene, query.scene_version));
   VISQ_ASSIGN_OR_RETURN(gpu::VoxelizeParams params, ResolveVoxelizeQuery(query, *resident->scene));
@@ -78,8 +77,10 @@ StatusOr<gpu::VoxelizeResult> RunVoxelize(Engine& engine, const VoxelizeQuery& q
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(bytes, "width x height x slices", params.job));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(*resident, query.call));
-  if (box_used != nullptr) *box_used = params.box;
-  return gpu::Voxelize(engine.gpu(), *gpu_scene, params, sink);
+  VoxelizeAnswer answer;
+  VISQ_ASSIGN_OR_RETURN(answer.result, gpu::Voxelize(engine.gpu(), *gpu_scene, params,
+                                                     TimedBandSink(sink, &answer.delivery_ms)));
+  return answer;
 }
 
 StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const TransmittanceQuery& query,
@@ -116,8 +117,9 @@ const char* SlicePrecisionName(gpu::SlicePrecision precision) {
   return precision == gpu::SlicePrecision::kLocal ? "local" : "uniform";
 }
 
-AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures, const voxel_reference::OrientedBox& box) {
+AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures) {
   const gpu::SlicemapGrid& grid = figures.grid;
+  const voxel_reference::OrientedBox& box = figures.box;
   const glm::dvec3 voxel(2.0 * box.half_extent.x / grid.width, 2.0 * box.half_extent.y / grid.height,
                          2.0 * box.half_extent.z / grid.slices);
   AccuracyStatement out;

@@ -42,19 +42,23 @@ struct TransmittanceQuery {
 [[nodiscard]] StatusOr<voxel_reference::TransmittanceParams> ResolveTransmittanceQuery(TransmittanceQuery query,
                                                                                        const Scene& scene);
 
+struct VoxelizeAnswer {
+  voxel_reference::VoxelizeResult result;
+  double delivery_ms = 0;  // in the sink: the stream's writes, not the work's
+};
+
 // With `sink`, each band of image rows goes to it as soon as it is made and
 // the result holds the figures only (gpu::Voxelize).
-[[nodiscard]] StatusOr<voxel_reference::VoxelizeResult> RunVoxelize(
-    Engine& engine, const VoxelizeQuery& query, voxel_reference::OrientedBox* box_used,
-    const voxel_reference::VoxelizeBandSink& sink = {});
+[[nodiscard]] StatusOr<VoxelizeAnswer> RunVoxelize(Engine& engine, const VoxelizeQuery& query,
+                                                   const voxel_reference::VoxelizeBandSink& sink = {});
 // Reserves its working memory (--max-work-bytes) before it starts; with
 // `hold`, the reservation outlives the call, to cover the answer's copy in
 // a response until it is sent.
 // A voxelization's or a transmittance's GL jobs: their wait, and the rest
-// of their time (a streamed voxelization's band writes inside it, the
-// transport's to take out).
-inline WorkTiming WorkTimingOf(const voxel_reference::VoxelizeResult& r) {
-  return {r.timings.queue_ms, r.timings.total_ms - r.timings.queue_ms};
+// of their time but its bands' delivery.
+inline WorkTiming WorkTimingOf(const VoxelizeAnswer& a) {
+  const voxel_reference::SlicemapTimings& t = a.result.timings;
+  return {t.queue_ms, t.total_ms - t.queue_ms - a.delivery_ms};
 }
 inline WorkTiming WorkTimingOf(const voxel_reference::TransmittanceResult& r) {
   return {r.timings.queue_ms, r.timings.total_ms - r.timings.queue_ms};
@@ -70,8 +74,7 @@ const char* SlicePrecisionName(voxel_reference::SlicePrecision precision);
 // A grid's promise (from its figures, so it can go with the first band):
 // conservative rasterization puts every surface point within one voxel of
 // a set voxel; standard rasterization bounds nothing.
-AccuracyStatement VoxelizeStatement(const voxel_reference::VoxelizeResult& figures,
-                                    const voxel_reference::OrientedBox& box);
+AccuracyStatement VoxelizeStatement(const voxel_reference::VoxelizeResult& figures);
 
 // Transmittance: the optical depth's worst per-point bound, from the
 // slicemap's own error model.

@@ -235,7 +235,7 @@ StatusOr<core::HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest&
   return query;
 }
 
-v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSampleMapResult& map) {
+v1::HiddenSampleMapResponse FirstMessage(const sampling::HiddenSampleMapResult& map) {
   v1::HiddenSampleMapResponse first;
   first.set_width(map.width);
   first.set_height(map.height);
@@ -245,20 +245,21 @@ v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSa
   return first;
 }
 
-Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int words_per_texel, bool with_texel_error,
-                                const std::function<Status(v1::HiddenSampleMapResponse)>& write,
-                                size_t chunk_elements) {
+Status WriteBand(const core::HiddenSampleMapQuery& query, const sampling::HiddenSampleMapResult& figures,
+                 const sampling::HiddenSampleMapBand& band, const MessageWrite<v1::HiddenSampleMapResponse>& write,
+                 size_t chunk_elements) {
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
+  const size_t words_per_texel = size_t(figures.words_per_texel);
   using Message = v1::HiddenSampleMapResponse;
   // One array chunk per message; offsets count texels, or words for the
   // bitmasks, from the map's first.
   auto chunks = [&](size_t size, size_t first_offset, auto fill) {
     return WriteChunks<Message>(size, first_offset, chunk_elements, write, fill);
   };
-  VISQ_RETURN_IF_ERROR(chunks(band.visible_fraction.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+  VISQ_RETURN_IF_ERROR(chunks(band.visible_fraction.size(), band.first, [&](Message& m, size_t a, size_t b) {
     AddRange(band.visible_fraction, a, b, m.mutable_visible_fraction());
   }));
-  VISQ_RETURN_IF_ERROR(chunks(band.visible_rgb.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+  VISQ_RETURN_IF_ERROR(chunks(band.visible_rgb.size(), band.first, [&](Message& m, size_t a, size_t b) {
     m.mutable_visible_rgb()->Reserve(static_cast<int>(3 * (b - a)));
     for (size_t i = a; i < b; ++i) {
       m.add_visible_rgb(band.visible_rgb[i].r);
@@ -266,27 +267,36 @@ Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int w
       m.add_visible_rgb(band.visible_rgb[i].b);
     }
   }));
-  VISQ_RETURN_IF_ERROR(chunks(band.blocked_bits.size(), band.first_texel * size_t(words_per_texel),
+  VISQ_RETURN_IF_ERROR(chunks(band.blocked_bits.size(), band.first * words_per_texel,
                               [&](Message& m, size_t a, size_t b) {
                                 AddRange(band.blocked_bits, a, b, m.mutable_blocked_bits());
                               }));
-  VISQ_RETURN_IF_ERROR(chunks(band.lookup_error.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+  VISQ_RETURN_IF_ERROR(chunks(band.lookup_error.size(), band.first, [&](Message& m, size_t a, size_t b) {
     AddRange(band.lookup_error, a, b, m.mutable_lookup_error());
   }));
-  if (!with_texel_error) return absl::OkStatus();
-  VISQ_RETURN_IF_ERROR(chunks(band.texel_error.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+  if (!query.want_texel_error) return absl::OkStatus();
+  VISQ_RETURN_IF_ERROR(chunks(band.texel_error.size(), band.first, [&](Message& m, size_t a, size_t b) {
     AddRange(band.texel_error, a, b, m.mutable_texel_error());
   }));
-  return chunks(band.texel_estimate.size(), band.first_texel, [&](Message& m, size_t a, size_t b) {
+  return chunks(band.texel_estimate.size(), band.first, [&](Message& m, size_t a, size_t b) {
     AddRange(band.texel_estimate, a, b, m.mutable_texel_estimate());
   });
 }
 
-v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const core::HiddenSampleMapAnswer& answer) {
+v1::HiddenSampleMapResponse LastMessage(const core::HiddenSampleMapAnswer& answer) {
   v1::HiddenSampleMapResponse last;
   ToProto(answer.accuracy, last.mutable_accuracy());
   if (answer.plan) ToProto(*answer.plan, last.mutable_accuracy());
   return last;
+}
+
+std::string DescribeAnswer(const core::HiddenSampleMapQuery& query, const core::HiddenSampleMapAnswer& answer) {
+  const sampling::HiddenSampleMapResult& result = answer.result;
+  return absl::StrCat(core::VisibilityMethodName(answer.method, query.request.options.lookup), " ", result.width, "x",
+                      result.height, " texels, ", result.sample_count, " samples",
+                      answer.plan ? absl::StrFormat(" (chosen by the cost model, predicted %.1f ms)",
+                                                    answer.plan->chosen_plan().predicted_ms)
+                                  : std::string());
 }
 
 StatusOr<core::PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request) {
@@ -392,7 +402,7 @@ StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& req
   return query;
 }
 
-v1::VolumetricShadowResponse VolumetricFirstMessage(const volumetric_shadows::VolumetricResult& result) {
+v1::VolumetricShadowResponse FirstMessage(const volumetric_shadows::VolumetricResult& result) {
   v1::VolumetricShadowResponse first;
   first.set_width(result.width);
   first.set_height(result.height);
@@ -405,20 +415,21 @@ v1::VolumetricShadowResponse VolumetricFirstMessage(const volumetric_shadows::Vo
   return first;
 }
 
-Status WriteVolumetricBand(const volumetric_shadows::VolumetricBand& band,
-                           const std::function<Status(v1::VolumetricShadowResponse)>& write, size_t chunk_elements) {
+Status WriteBand(const core::VolumetricQuery& /*query*/, const volumetric_shadows::VolumetricResult& /*figures*/,
+                 const volumetric_shadows::VolumetricBand& band, const MessageWrite<v1::VolumetricShadowResponse>& write,
+                 size_t chunk_elements) {
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
   using Message = v1::VolumetricShadowResponse;
   // Offsets count floats, 3 per pixel.
   auto chunks = [&](const std::vector<float>& values, auto field) {
-    return WriteChunks<Message>(values.size(), band.first_pixel * 3, chunk_elements, write,
+    return WriteChunks<Message>(values.size(), band.first * 3, chunk_elements, write,
                                 [&](Message& m, size_t a, size_t b) { AddRange(values, a, b, (m.*field)()); });
   };
   VISQ_RETURN_IF_ERROR(chunks(band.inscattering, &Message::mutable_inscattering));
   return chunks(band.combined, &Message::mutable_combined);
 }
 
-v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer& answer) {
+v1::VolumetricShadowResponse LastMessage(const core::VolumetricAnswer& answer) {
   const volumetric_shadows::VolumetricResult& result = answer.result;
   v1::VolumetricShadowResponse last;
   if (const std::optional<core::AccuracyStatement> estimate = core::VolumetricEstimateStatement(answer))
@@ -434,6 +445,14 @@ v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer&
   stage_ms["traversal"] = result.timings.traversal_ms;
   stage_ms["readback"] = result.timings.readback_ms;
   return last;
+}
+
+std::string DescribeAnswer(const core::VolumetricQuery& /*query*/, const core::VolumetricAnswer& answer) {
+  const volumetric_shadows::VolumetricResult& result = answer.result;
+  return absl::StrFormat("%ux%u %s (%s), %u map(s) rendered, traversal %.1f ms", result.width, result.height,
+                         core::VolumetricMethodName(result.method),
+                         volumetric_shadows::VolumetricIntegrandName(result.integrand), answer.maps_rendered.size(),
+                         result.timings.traversal_ms);
 }
 
 StatusOr<core::ObscurancePreviewQuery> FromProto(const v1::ObscurancePreviewRequest& request) {
@@ -532,9 +551,9 @@ StatusOr<core::VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request) {
   return query;
 }
 
-v1::VoxelizeResponse VoxelizeFirstMessage(const voxel_reference::VoxelizeResult& result,
-                                          const voxel_reference::OrientedBox& box) {
+v1::VoxelizeResponse FirstMessage(const voxel_reference::VoxelizeResult& result) {
   v1::VoxelizeResponse first;
+  const voxel_reference::OrientedBox& box = result.box;
   const voxel_reference::SlicemapGrid& grid = result.grid;
   first.set_width(grid.width);
   first.set_height(grid.height);
@@ -548,12 +567,14 @@ v1::VoxelizeResponse VoxelizeFirstMessage(const voxel_reference::VoxelizeResult&
   ToProto(box.axis_v, b->mutable_axis_v());
   ToProto(box.axis_w, b->mutable_axis_w());
   ToProto(box.half_extent, b->mutable_half_extent());
-  ToProto(core::VoxelizeStatement(result, box), first.mutable_accuracy());
+  ToProto(core::VoxelizeStatement(result), first.mutable_accuracy());
   return first;
 }
 
-Status WriteVoxelizeBand(const voxel_reference::VoxelizeBand& band, uint32_t words_per_column,
-                         const std::function<Status(v1::VoxelizeResponse)>& write, size_t chunk_elements) {
+Status WriteBand(const core::VoxelizeQuery& /*query*/, const voxel_reference::VoxelizeResult& figures,
+                 const voxel_reference::VoxelizeBand& band, const MessageWrite<v1::VoxelizeResponse>& write,
+                 size_t chunk_elements) {
+  const size_t words_per_column = figures.grid.words_per_column;
   VISQ_CHECK_LT(size_t{0}, chunk_elements);
   using Message = v1::VoxelizeResponse;
   // Offsets count words for the bits, columns for the local ranges.
@@ -561,13 +582,14 @@ Status WriteVoxelizeBand(const voxel_reference::VoxelizeBand& band, uint32_t wor
     return WriteChunks<Message>(values.size(), first_offset, chunk_elements, write,
                                 [&](Message& m, size_t a, size_t b) { AddRange(values, a, b, (m.*field)()); });
   };
-  VISQ_RETURN_IF_ERROR(chunks(band.bits, band.first_column * words_per_column, &Message::mutable_bits));
-  VISQ_RETURN_IF_ERROR(chunks(band.column_near, band.first_column, &Message::mutable_column_near));
-  return chunks(band.column_far, band.first_column, &Message::mutable_column_far);
+  VISQ_RETURN_IF_ERROR(chunks(band.bits, band.first * words_per_column, &Message::mutable_bits));
+  VISQ_RETURN_IF_ERROR(chunks(band.column_near, band.first, &Message::mutable_column_near));
+  return chunks(band.column_far, band.first, &Message::mutable_column_far);
 }
 
-v1::VoxelizeResponse VoxelizeLastMessage(const voxel_reference::VoxelizeResult& result) {
+v1::VoxelizeResponse LastMessage(const core::VoxelizeAnswer& answer) {
   constexpr size_t kMaxAmbiguousListed = 10000;
+  const voxel_reference::VoxelizeResult& result = answer.result;
   v1::VoxelizeResponse last;
   last.set_occupied_voxels(result.occupied_voxels);
   last.set_passes(result.passes);
@@ -583,6 +605,12 @@ v1::VoxelizeResponse VoxelizeLastMessage(const voxel_reference::VoxelizeResult& 
   stage_ms["readback"] = stages.readback_ms;
   stage_ms["resolve"] = stages.resolve_ms;
   return last;
+}
+
+std::string DescribeAnswer(const core::VoxelizeQuery& /*query*/, const core::VoxelizeAnswer& answer) {
+  const voxel_reference::VoxelizeResult& result = answer.result;
+  return absl::StrCat(result.grid.width, "x", result.grid.height, "x", result.grid.slices, " ",
+                      core::RasterizationName(result.rasterization), ": ", result.occupied_voxels, " occupied voxels");
 }
 
 StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request) {

@@ -37,20 +37,26 @@ void ToProto(const core::AccuracyStatement& statement, v1::Accuracy* out);
 // The plans the planner weighed, beside the statement of the chosen one.
 void ToProto(const core::PlanReport& plan, v1::Accuracy* out);
 
+// Answers streamed in bands (banded_stream.h), each as three kinds of
+// message: FirstMessage holds the figures known before any band;
+// WriteBand writes a band's messages to `write`, one array chunk of at most
+// `chunk_elements` each, each chunk's `offset` counting from the whole
+// answer's first element, and stops at the first write that fails;
+// LastMessage holds what needs every band (its accuracy; the handler adds
+// the timing). DescribeAnswer is the answer's log line.
+template <typename Response>
+using MessageWrite = std::function<Status(Response)>;
+
 [[nodiscard]] StatusOr<core::HiddenSampleMapQuery> FromProto(const v1::HiddenSampleMapRequest& request);
-// The response is streamed while the map is made (visq.proto): a first
-// message with what is known before any band (sizes, source samples), each
-// band's chunks of fractions, colours, bitmask words and lookup errors as
-// the band is counted, and a last message with what needs every band (the
-// accuracy, the timing).
-v1::HiddenSampleMapResponse HiddenSampleMapFirstMessage(const sampling::HiddenSampleMapResult& map);
-// Writes `band`'s messages, one array chunk each, to `write`; stops at the
-// first write that fails.
-[[nodiscard]] Status WriteHiddenSampleMapBand(const sampling::HiddenSampleMapBand& band, int words_per_texel,
-                                              bool with_texel_error,
-                                              const std::function<Status(v1::HiddenSampleMapResponse)>& write,
-                                              size_t chunk_elements = kChunkElements);
-v1::HiddenSampleMapResponse HiddenSampleMapLastMessage(const core::HiddenSampleMapAnswer& answer);
+// First: sizes and source samples. Bands: fractions, colours, bitmask words
+// (offsets in words), lookup errors, and the texels' own bounds where asked.
+v1::HiddenSampleMapResponse FirstMessage(const sampling::HiddenSampleMapResult& figures);
+[[nodiscard]] Status WriteBand(const core::HiddenSampleMapQuery& query, const sampling::HiddenSampleMapResult& figures,
+                               const sampling::HiddenSampleMapBand& band,
+                               const MessageWrite<v1::HiddenSampleMapResponse>& write,
+                               size_t chunk_elements = kChunkElements);
+v1::HiddenSampleMapResponse LastMessage(const core::HiddenSampleMapAnswer& answer);
+std::string DescribeAnswer(const core::HiddenSampleMapQuery& query, const core::HiddenSampleMapAnswer& answer);
 
 [[nodiscard]] StatusOr<core::PatchVisibilityQuery> FromProto(const v1::PatchVisibilityRequest& request);
 void ToProto(const core::PatchVisibilityAnswer& answer, v1::PatchVisibilityResponse* out);
@@ -76,26 +82,25 @@ ChunkedResponses<v1::ObscurancePreviewResponse> ToProtoStream(core::ObscurancePr
 ChunkedResponses<v1::ExportObscurancesResponse> ToProtoStream(core::ObscuranceExportAnswer answer);
 
 [[nodiscard]] StatusOr<core::VolumetricQuery> FromProto(const v1::VolumetricShadowRequest& request);
-// Streamed as the traversal makes the image: the first message holds the
-// figures known before any band (sizes, method, integrand, accuracy), each
-// band's chunks follow, and the last message holds the timing.
-v1::VolumetricShadowResponse VolumetricFirstMessage(const volumetric_shadows::VolumetricResult& figures);
-[[nodiscard]] Status WriteVolumetricBand(const volumetric_shadows::VolumetricBand& band,
-                                         const std::function<Status(v1::VolumetricShadowResponse)>& write,
-                                         size_t chunk_elements = kChunkElements);
-v1::VolumetricShadowResponse VolumetricLastMessage(const core::VolumetricAnswer& answer);
+// First: sizes, method, integrand, the map's accuracy. Bands: the images'
+// floats (offsets in floats, 3 a pixel). Last: the error estimate, stages.
+v1::VolumetricShadowResponse FirstMessage(const volumetric_shadows::VolumetricResult& figures);
+[[nodiscard]] Status WriteBand(const core::VolumetricQuery& query, const volumetric_shadows::VolumetricResult& figures,
+                               const volumetric_shadows::VolumetricBand& band,
+                               const MessageWrite<v1::VolumetricShadowResponse>& write,
+                               size_t chunk_elements = kChunkElements);
+v1::VolumetricShadowResponse LastMessage(const core::VolumetricAnswer& answer);
+std::string DescribeAnswer(const core::VolumetricQuery& query, const core::VolumetricAnswer& answer);
 
 [[nodiscard]] StatusOr<core::VoxelizeQuery> FromProto(const v1::VoxelizeRequest& request);
-// Streamed while the grid is made, like the hidden-sample map: the first
-// message holds what is known before any band (sizes, box, modes,
-// accuracy), each band's chunks of bits and local ranges follow as the band
-// is made, and the last message holds the counts and the timing.
-v1::VoxelizeResponse VoxelizeFirstMessage(const voxel_reference::VoxelizeResult& figures,
-                                          const voxel_reference::OrientedBox& box);
-[[nodiscard]] Status WriteVoxelizeBand(const voxel_reference::VoxelizeBand& band, uint32_t words_per_column,
-                                       const std::function<Status(v1::VoxelizeResponse)>& write,
-                                       size_t chunk_elements = kChunkElements);
-v1::VoxelizeResponse VoxelizeLastMessage(const voxel_reference::VoxelizeResult& result);
+// First: sizes, box, modes, accuracy. Bands: bits (offsets in words) and
+// local ranges (in columns). Last: the counts and stages.
+v1::VoxelizeResponse FirstMessage(const voxel_reference::VoxelizeResult& figures);
+[[nodiscard]] Status WriteBand(const core::VoxelizeQuery& query, const voxel_reference::VoxelizeResult& figures,
+                               const voxel_reference::VoxelizeBand& band, const MessageWrite<v1::VoxelizeResponse>& write,
+                               size_t chunk_elements = kChunkElements);
+v1::VoxelizeResponse LastMessage(const core::VoxelizeAnswer& answer);
+std::string DescribeAnswer(const core::VoxelizeQuery& query, const core::VoxelizeAnswer& answer);
 [[nodiscard]] StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request);
 void ToProto(const voxel_reference::TransmittanceResult& result, v1::TransmittanceResponse* out);
 

@@ -11,6 +11,7 @@
 #include "core/light_visibility_query.h"
 #include "core/volumetric_query.h"
 #include "core/voxel_query.h"
+#include "service/banded_stream.h"
 #include "service/convert.h"
 #include "service/exception_boundary.h"
 #include "service/parse_failure.h"
@@ -466,101 +467,32 @@ VisibilityServiceImpl::LightVisibilityStream(grpc::CallbackServerContext* contex
 
 namespace visq::service {
 
+// The streamed answers: each its conversion (convert.h) and its core
+// function, over one handler (banded_stream.h).
 grpc::ServerWriteReactor<v1::HiddenSampleMapResponse>* VisibilityServiceImpl::HiddenSampleMap(
     grpc::CallbackServerContext* context, const v1::HiddenSampleMapRequest* request) {
-  using Reactor = ProducedStreamReactor<v1::HiddenSampleMapResponse>;
-  return new Reactor(
-      context, ctx_, "HiddenSampleMap",
-      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
-                               Reactor& out) -> StatusOr<v1::HiddenSampleMapResponse> {
-        const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(core::HiddenSampleMapQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled, log);
-        // Each band is written as soon as it is counted, after the first
-        // message.
-        auto write = [&out](v1::HiddenSampleMapResponse message) { return out.Write(std::move(message)); };
-        auto sink = [&](const sampling::HiddenSampleMapResult& map, const sampling::HiddenSampleMapBand& band) {
-          if (band.first_texel == 0) VISQ_RETURN_IF_ERROR(write(HiddenSampleMapFirstMessage(map)));
-          return WriteHiddenSampleMapBand(band, map.words_per_texel, query.want_texel_error, write);
-        };
-        VISQ_ASSIGN_OR_RETURN(core::HiddenSampleMapAnswer answer, core::RunHiddenSampleMap(ctx_.engine, query, sink));
-        const sampling::HiddenSampleMapResult& result = answer.result;
-        log.Info("{} {}x{} texels, {} samples{}",
-                 core::VisibilityMethodName(answer.method, query.request.options.lookup), result.width, result.height, result.sample_count,
-                 answer.plan ? absl::StrCat(" (chosen by the cost model, predicted ",
-                                            absl::StrFormat("%.1f", answer.plan->chosen_plan().predicted_ms), " ms)")
-                             : std::string());
-        // The memory reservation lasts until the last message is sent.
-        if (answer.memory) out.Keep(answer.memory);
-        v1::HiddenSampleMapResponse last = HiddenSampleMapLastMessage(answer);
-        const core::WorkTiming work = core::WorkTimingOf(answer);
-        SetProducedTiming(queue_ms + work.queue_ms, work.compute_ms, query.call.BuildMs(), out.write_ms(), log,
-                          last.mutable_timing());
-        return last;
+  return ServeBandedStream<v1::HiddenSampleMapResponse>(
+      ctx_, context, "HiddenSampleMap", request,
+      [](core::Engine& engine, const core::HiddenSampleMapQuery& query, const auto& sink) {
+        return core::RunHiddenSampleMap(engine, query, sink);
       });
 }
 
 grpc::ServerWriteReactor<v1::VolumetricShadowResponse>* VisibilityServiceImpl::VolumetricShadow(
     grpc::CallbackServerContext* context, const v1::VolumetricShadowRequest* request) {
-  using Reactor = ProducedStreamReactor<v1::VolumetricShadowResponse>;
-  return new Reactor(
-      context, ctx_, "VolumetricShadow",
-      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
-                               Reactor& out) -> StatusOr<v1::VolumetricShadowResponse> {
-        const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(core::VolumetricQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled, log);
-        auto write = [&out](v1::VolumetricShadowResponse message) { return out.Write(std::move(message)); };
-        auto sink = [&](const volumetric_shadows::VolumetricResult& figures,
-                        const volumetric_shadows::VolumetricBand& band) -> Status {
-          if (band.first_pixel == 0) VISQ_RETURN_IF_ERROR(write(VolumetricFirstMessage(figures)));
-          return WriteVolumetricBand(band, write);
-        };
-        VISQ_ASSIGN_OR_RETURN(core::VolumetricAnswer answer, core::RunVolumetricShadow(ctx_.engine, query, sink));
-        const volumetric_shadows::VolumetricResult& result = answer.result;
-        const volumetric_shadows::VolumetricTimings& timings = result.timings;
-        log.Info("{}x{} {} ({}), {} map(s) rendered, traversal {:.1f} ms", result.width, result.height,
-                 result.method == volumetric_shadows::VolumetricMethod::kMinMaxTraversal ? "min-max-mipmap"
-                                                                                          : "ray-marching",
-                 volumetric_shadows::VolumetricIntegrandName(result.integrand), answer.maps_rendered.size(),
-                 timings.traversal_ms);
-        v1::VolumetricShadowResponse last = VolumetricLastMessage(answer);
-        const core::WorkTiming work = core::WorkTimingOf(answer);
-        SetProducedTiming(queue_ms + work.queue_ms, work.compute_ms - out.write_ms(), query.call.BuildMs(),
-                          out.write_ms(), log, last.mutable_timing());
-        return last;
+  return ServeBandedStream<v1::VolumetricShadowResponse>(
+      ctx_, context, "VolumetricShadow", request,
+      [](core::Engine& engine, const core::VolumetricQuery& query, const auto& sink) {
+        return core::RunVolumetricShadow(engine, query, sink);
       });
 }
 
-grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(
-    grpc::CallbackServerContext* context, const v1::VoxelizeRequest* request) {
-  using Reactor = ProducedStreamReactor<v1::VoxelizeResponse>;
-  return new Reactor(
-      context, ctx_, "Voxelize",
-      [this, context, request](const std::atomic<bool>& cancelled, const RequestLog& log,
-                               Reactor& out) -> StatusOr<v1::VoxelizeResponse> {
-        const double queue_ms = log.ElapsedMs();
-        VISQ_ASSIGN_OR_RETURN(core::VoxelizeQuery query, FromProto(*request));
-        query.call = CallOptionsFor(context, &cancelled, log);
-        voxel_reference::OrientedBox box;
-        // Each band is written as soon as it is made, after the first
-        // message.
-        auto write = [&out](v1::VoxelizeResponse message) { return out.Write(std::move(message)); };
-        auto sink = [&](const voxel_reference::VoxelizeResult& figures,
-                        const voxel_reference::VoxelizeBand& band) -> Status {
-          if (band.first_column == 0) VISQ_RETURN_IF_ERROR(write(VoxelizeFirstMessage(figures, box)));
-          return WriteVoxelizeBand(band, figures.grid.words_per_column, write);
-        };
-        VISQ_ASSIGN_OR_RETURN(voxel_reference::VoxelizeResult result,
-                              core::RunVoxelize(ctx_.engine, query, &box, sink));
-        log.Info("{}x{}x{} {}: {} occupied voxels", result.grid.width, result.grid.height, result.grid.slices,
-                 result.rasterization == voxel_reference::Rasterization::kConservative ? "conservative" : "standard",
-                 result.occupied_voxels);
-        v1::VoxelizeResponse last = VoxelizeLastMessage(result);
-        const core::WorkTiming work = core::WorkTimingOf(result);
-        SetProducedTiming(queue_ms + work.queue_ms, work.compute_ms - out.write_ms(), query.call.BuildMs(),
-                          out.write_ms(), log, last.mutable_timing());
-        return last;
+grpc::ServerWriteReactor<v1::VoxelizeResponse>* VisibilityServiceImpl::Voxelize(grpc::CallbackServerContext* context,
+                                                                                const v1::VoxelizeRequest* request) {
+  return ServeBandedStream<v1::VoxelizeResponse>(
+      ctx_, context, "Voxelize", request,
+      [](core::Engine& engine, const core::VoxelizeQuery& query, const auto& sink) {
+        return core::RunVoxelize(engine, query, sink);
       });
 }
 

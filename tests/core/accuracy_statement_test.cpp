@@ -64,17 +64,16 @@ TEST(AccuracyStatement, ConservativeVoxelsAreBoundedByTheVoxelDiagonalStandardOn
   figures.grid.width = 4;
   figures.grid.height = 2;
   figures.grid.slices = 8;
-  voxel_reference::OrientedBox box;
-  box.half_extent = glm::dvec3(2.0, 1.0, 4.0);  // voxels of 1 x 1 x 1
+  figures.box.half_extent = glm::dvec3(2.0, 1.0, 4.0);  // voxels of 1 x 1 x 1
   figures.rasterization = gpu::Rasterization::kConservative;
-  const AccuracyStatement conservative = VoxelizeStatement(figures, box);
+  const AccuracyStatement conservative = VoxelizeStatement(figures);
   EXPECT_EQ(conservative.method, "slicemap-conservative-uniform");
   EXPECT_NEAR(conservative.error_bound, std::sqrt(3.0), 1e-12);
   EXPECT_EQ(conservative.confidence, 1.0);
 
   figures.rasterization = gpu::Rasterization::kStandard;
   figures.precision = gpu::SlicePrecision::kLocal;
-  const AccuracyStatement standard = VoxelizeStatement(figures, box);
+  const AccuracyStatement standard = VoxelizeStatement(figures);
   EXPECT_EQ(standard.method, "slicemap-standard-local");
   EXPECT_LT(standard.error_bound, 0.0);  // no numeric bound, and the note says why
   EXPECT_TRUE(Mentions(standard.note, "no numeric bound")) << standard.note;

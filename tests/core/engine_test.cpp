@@ -343,7 +343,7 @@ TEST(Engine, HiddenSampleMapStreamsItsBandsAsTheyAreMade) {
     auto streamed = RunHiddenSampleMap(
         *engine, query, [&](const sampling::HiddenSampleMapResult& map, const sampling::HiddenSampleMapBand& band) {
           EXPECT_EQ(map.width, 32);
-          EXPECT_EQ(band.first_texel, fractions.size()) << "bands in order, none missing";
+          EXPECT_EQ(band.first, fractions.size()) << "bands in order, none missing";
           EXPECT_TRUE(map.visible_fraction.empty()) << "a streamed map is never held whole";
           fractions.insert(fractions.end(), band.visible_fraction.begin(), band.visible_fraction.end());
           bits.insert(bits.end(), band.blocked_bits.begin(), band.blocked_bits.end());

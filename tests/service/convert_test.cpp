@@ -87,25 +87,25 @@ TEST(Convert, HiddenSampleMapBandsStreamEveryTexelAtItsOffset) {
   const std::vector<uint32_t> words = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12};
   const std::vector<float> lookup = {0, 0.1f, 0, 0.2f, 0, 0.3f};
 
-  std::vector<v1::HiddenSampleMapResponse> sent = {HiddenSampleMapFirstMessage(map)};
+  core::HiddenSampleMapQuery query;  // want_texel_error unset: no texel bounds sent
+  std::vector<v1::HiddenSampleMapResponse> sent = {FirstMessage(map)};
   auto write = [&](v1::HiddenSampleMapResponse m) {
     sent.push_back(std::move(m));
     return absl::OkStatus();
   };
   for (size_t row = 0; row < 2; ++row) {
     sampling::HiddenSampleMapBand band;
-    band.first_texel = row * 3;
+    band.first = row * 3;
     band.visible_fraction.assign(fractions.begin() + row * 3, fractions.begin() + row * 3 + 3);
     band.blocked_bits.assign(words.begin() + row * 6, words.begin() + row * 6 + 6);
     band.lookup_error.assign(lookup.begin() + row * 3, lookup.begin() + row * 3 + 3);
-    ASSERT_TRUE(WriteHiddenSampleMapBand(band, map.words_per_texel, /*with_texel_error=*/false, write,
-                                         /*chunk_elements=*/2).ok());
+    ASSERT_TRUE(WriteBand(query, map, band, write, /*chunk_elements=*/2).ok());
   }
   map.error.sampling = 0.125;
   answer.accuracy =
       core::SampledVisibilityStatement(map.error, core::VisibilityMethod::kRaster, sampling::LookupMode::kHough,
                                        map.sample_count);
-  sent.push_back(HiddenSampleMapLastMessage(answer));
+  sent.push_back(LastMessage(answer));
 
   EXPECT_EQ(sent.front().width(), 3u);
   EXPECT_EQ(sent.front().words_per_texel(), 2u);
@@ -153,8 +153,10 @@ TEST(Convert, HiddenSampleMapBandStopsAtAFailedWrite) {
   sampling::HiddenSampleMapBand band;
   band.visible_fraction.assign(10, 0.5f);
   int writes = 0;
-  const Status status = WriteHiddenSampleMapBand(
-      band, 1, /*with_texel_error=*/false,
+  sampling::HiddenSampleMapResult map;
+  map.words_per_texel = 1;
+  const Status status = WriteBand(
+      core::HiddenSampleMapQuery{}, map, band,
       [&](v1::HiddenSampleMapResponse) {
         ++writes;
         return absl::CancelledError("gone");

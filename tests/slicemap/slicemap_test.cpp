@@ -368,7 +368,7 @@ TEST(SlicemapBands, BandsOfRowsGiveTheBitsOfOneJob) {
     int bands = 0;
     auto streamed = gpu::Voxelize(testing::SharedGpuWorker(), *s.gpu, params,
                                   [&](const gpu::VoxelizeResult& figures, const gpu::VoxelizeBand& band) {
-                                    EXPECT_EQ(band.first_column * figures.grid.words_per_column, bits.size());
+                                    EXPECT_EQ(band.first * figures.grid.words_per_column, bits.size());
                                     bits.insert(bits.end(), band.bits.begin(), band.bits.end());
                                     near.insert(near.end(), band.column_near.begin(), band.column_near.end());
                                     ++bands;

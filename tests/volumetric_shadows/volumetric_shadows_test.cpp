@@ -710,7 +710,7 @@ TEST(VolumetricShadowsTest, BandsOfRowsGiveTheImageOfOnePass) {
     auto streamed = RenderVolumetricShadows(testing::SharedGpuWorker(), *gpu_scene, scene, params,
                                             [&](const VolumetricResult& figures, const gpu::VolumetricBand& band) {
                                               EXPECT_EQ(figures.width, 80u);
-                                              EXPECT_EQ(band.first_pixel * 3, streamed_image.size());
+                                              EXPECT_EQ(band.first * 3, streamed_image.size());
                                               streamed_image.insert(streamed_image.end(), band.inscattering.begin(),
                                                                     band.inscattering.end());
                                               ++bands;
