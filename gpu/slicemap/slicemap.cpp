@@ -1,6 +1,6 @@
 // Slicemap voxelization (Eisemann & Décoret 2006). See visq/gpu/slicemap.h
 // for the API and the packed layout; the shaders are slicemap.vert,
-// slicemap_conservative.geom and slicemap.frag. Transmittance shadow maps,
+// slicemap_corners.geom (orthographic views) and slicemap.frag. Transmittance shadow maps,
 // which count the voxels of solid slicemaps, are in transmittance.cpp.
 //
 // Pipeline of one voxelization:
@@ -82,21 +82,25 @@ SlicemapGrid EmptyGrid(uint32_t width, uint32_t height, uint32_t slices) {
 
 // ---------------------------------------------------------------------------
 // The voxelization program and its variants (the worker's program cache).
-StatusOr<const GlProgram*> Program(bool conservative, const ShaderDefines& defines) {
+// Orthographic views send each triangle's corners to the fragment stage
+// (conservative columns, or the plane's depth at the texel): the bits do
+// not depend on the bands.
+bool SendsCorners(const ViewSetup& view) { return !view.perspective; }
+
+StatusOr<const GlProgram*> Program(const ViewSetup& view, const ShaderDefines& defines) {
   std::vector<ShaderSource> sources = {{GL_VERTEX_SHADER, "slicemap.vert"}, {GL_FRAGMENT_SHADER, "slicemap.frag"}};
-  if (conservative) sources.push_back({GL_GEOMETRY_SHADER, "slicemap_conservative.geom"});
+  if (SendsCorners(view)) sources.push_back({GL_GEOMETRY_SHADER, "slicemap_corners.geom"});
   return CachedProgram(slicemap_shaders::Find, sources, defines);
 }
 
-void SetViewUniforms(const GlProgram& program, bool conservative, const ViewSetup& view, const PassConfig& config,
-                     uint32_t first_row) {
+void SetViewUniforms(const GlProgram& program, const ViewSetup& view, const PassConfig& config, uint32_t first_row) {
   program.Set("u_clip_from_anchor", view.clip_from_anchor);
   program.Set("u_band_origin", glm::vec2(0.0f, static_cast<float>(first_row)));
   program.Set("u_depth_plane", view.depth_plane);
   program.Set("u_light", view.light);
   program.Set("u_radial", view.radial);
-  // The conservative geometry shader's: it grows triangles by half a texel.
-  if (conservative)
+  // The geometry stage's: corners in image texels.
+  if (SendsCorners(view))
     program.Set("u_image_size", glm::vec2(static_cast<float>(config.width), static_cast<float>(config.height)));
   program.Set("u_slices", static_cast<float>(config.slices));
   program.Set("u_near_far", 0);
@@ -105,6 +109,7 @@ void SetViewUniforms(const GlProgram& program, bool conservative, const ViewSetu
 ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool conservative) {
   ShaderDefines defines;
   if (conservative) defines.emplace_back("CONSERVATIVE", "1");
+  else if (SendsCorners(view)) defines.emplace_back("PLANE_DEPTH", "1");
   if (view.perspective) defines.emplace_back("PERSPECTIVE", "1");
   if (config.precision == SlicePrecision::kLocal) defines.emplace_back("LOCAL", "1");
   return defines;
@@ -328,8 +333,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       SetPassState(config, 0, config.height);
       ShaderDefines defines = BaseDefines(view, config, conservative);
       defines.emplace_back("DEPTH_RANGE_PASS", "1");
-      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(conservative, defines));
-      SetViewUniforms(*program, conservative, view, config, 0);
+      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(view, defines));
+      SetViewUniforms(*program, view, config, 0);
       const GLuint framebuffer = made->near_far_framebuffer.id();
       if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
         return absl::InternalError("slicemap: RG32F depth-range framebuffer incomplete");
@@ -371,8 +376,8 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       ShaderDefines defines = BaseDefines(view, config, pass_conservative);
       defines.emplace_back("TARGETS", std::to_string(targets_per_map));
       if (pass_solid) defines.emplace_back("SOLID", "1");
-      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(pass_conservative, defines));
-      SetViewUniforms(*program, pass_conservative, view, config, first_row);
+      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(view, defines));
+      SetViewUniforms(*program, view, config, first_row);
       program->Set("u_pass_first_slice", static_cast<int>(first_slice));
       program->Set("u_pass_slices", static_cast<int>(pass_slices));
       // Attachment i of the pass: map i / targets_per_map, target i % targets_per_map.

@@ -3,12 +3,15 @@
 //                     depth range; MIN blending keeps each column's range.
 //   CONSERVATIVE      the geometry stage sent the whole triangle; clip it to
 //                     this texel's column and set every slice it touches.
+//   PLANE_DEPTH       (orthographic, not conservative) the geometry stage sent
+//                     the whole triangle; depth is its plane at the texel's
+//                     centre in the image, the same in every band.
 //   PERSPECTIVE       depth is the distance from the light (point lights).
 //   LOCAL             slices split the column's [near, far] (u_near_far).
 //   SOLID             front faces OR into targets [0, TARGETS), back faces
 //                     into [TARGETS, 2 TARGETS) (two slicemaps, one pass).
 //   TARGETS           RGBA32UI targets per slicemap in this pass.
-#ifdef CONSERVATIVE
+#if defined(CONSERVATIVE) || defined(PLANE_DEPTH)
 flat in vec3 g_corner0;
 flat in vec3 g_corner1;
 flat in vec3 g_corner2;
@@ -78,6 +81,24 @@ bool ColumnDepthRange(vec2 lo, vec2 hi, out float zmin, out float zmax) {
     zmax = max(zmax, poly[i].z);
   }
   return true;
+}
+#elif defined(PLANE_DEPTH)
+// The triangle's plane at this texel's centre in the whole image. The
+// rasterizer's interpolated depth is the same plane, but computed from the
+// band's window coordinates, so its last bits (and, at a slice boundary,
+// the slice) depended on how the grid was cut into bands. Held within the
+// corners' depths, which a sliver's division by a tiny area could leave.
+float FragmentDepth() {
+  vec2 q = floor(gl_FragCoord.xy) + u_band_origin + vec2(0.5);
+  vec2 e0 = g_corner1.xy - g_corner0.xy, e1 = g_corner2.xy - g_corner1.xy, e2 = g_corner0.xy - g_corner2.xy;
+  float area = e0.x * (g_corner2.y - g_corner0.y) - e0.y * (g_corner2.x - g_corner0.x);
+  float w0 = e1.x * (q.y - g_corner1.y) - e1.y * (q.x - g_corner1.x);
+  float w1 = e2.x * (q.y - g_corner2.y) - e2.y * (q.x - g_corner2.x);
+  float w2 = e0.x * (q.y - g_corner0.y) - e0.y * (q.x - g_corner0.x);
+  float lo = min(min(g_corner0.z, g_corner1.z), g_corner2.z);
+  float hi = max(max(g_corner0.z, g_corner1.z), g_corner2.z);
+  if (area == 0.0) return lo;
+  return clamp((w0 * g_corner0.z + w1 * g_corner1.z + w2 * g_corner2.z) / area, lo, hi);
 }
 #else
 float FragmentDepth() {

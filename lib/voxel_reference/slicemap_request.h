@@ -77,12 +77,14 @@ struct SlicemapSettings {
   // Largest packed result (and per-pass GPU targets) accepted.
   uint64_t max_bytes = kDefaultMaxSlicemapBytes;
   // Each pass is drawn and read back a band of image rows of at most this
-  // many columns at a time, on targets of that size. The bits are those of
-  // one draw up to the rasterizer's rounding: a standard (not conservative)
-  // fragment whose depth lies within float rounding of a slice boundary
-  // can land in the neighbouring slice at another band's viewport offset
-  // (on llvmpipe, 19 of 262,144 columns of a sphere at 512 x 512 x 1,024,
-  // bands of 64 rows against one of 512).
+  // many columns at a time, on targets of that size (the server halves its
+  // bands while other calls wait). The bits are those of one draw: every
+  // fragment's depth is computed from the triangle's corners at the image
+  // texel's centre, the same arithmetic in every band, where the
+  // rasterizer's interpolated depth moved with the band's viewport offset
+  // (on llvmpipe, 21 of 262,144 columns of a sphere at 512 x 512 x 1,024
+  // fell in the neighbouring slice with bands of 64 rows against one of
+  // 512).
   size_t max_columns_per_job = kDefaultSlicemapColumnsPerJob;
   // A band's draw is cut into pieces of about piece_target_ms (0: one
   // draw), the call asked between them, and a GL job draws pieces for

@@ -1,9 +1,15 @@
-// Conservative rasterization for the slicemap (orthographic views only): the
-// triangle is replaced by its texel-space bounding box grown by half a texel
-// (and a little),
-// so every texel whose square the triangle touches gets a fragment, even for
-// triangles seen edge-on. The triangle itself travels flat to the fragment
-// stage, which clips it to the texel's column (slicemap_conservative.glsl).
+// Orthographic views: the triangle's corners in image texels (x, y) and
+// view depth fraction (z), computed from the band-independent clip
+// positions and sent flat to the fragment stage, which evaluates the
+// triangle itself there instead of trusting the rasterizer's interpolation
+// (which differs in its last bits with each band's viewport offset).
+//
+// CONSERVATIVE: the triangle is replaced by its texel-space bounding box
+// grown by half a texel (and a little), so every texel whose square the
+// triangle touches gets a fragment, even for triangles seen edge-on; the
+// fragment stage clips the triangle to the texel's column.
+// Otherwise the triangle is drawn as it is; the fragment stage takes its
+// plane at the texel's centre (PLANE_DEPTH).
 layout(triangles) in;
 layout(triangle_strip, max_vertices = 4) out;
 
@@ -22,6 +28,7 @@ void main() {
     vec2 ndc = gl_in[i].gl_Position.xy / gl_in[i].gl_Position.w;
     c[i] = vec3((ndc * 0.5 + 0.5) * u_image_size, v_depth[i]);
   }
+#ifdef CONSERVATIVE
   // Half a texel, plus more than the rasterizer's subpixel snapping (GL
   // guarantees at least 4 subpixel bits: 1/16 texel), so a texel center on
   // the box's edge is never lost; the fragment stage's exact clip discards
@@ -37,5 +44,16 @@ void main() {
     gl_Position = vec4(quad[i] / u_image_size * 2.0 - 1.0, 0.0, 1.0);
     EmitVertex();
   }
+#else
+  // The same triangle, in the same order (its facing decides a solid's
+  // front and back maps).
+  for (int i = 0; i < 3; ++i) {
+    g_corner0 = c[0];
+    g_corner1 = c[1];
+    g_corner2 = c[2];
+    gl_Position = gl_in[i].gl_Position;
+    EmitVertex();
+  }
+#endif
   EndPrimitive();
 }
