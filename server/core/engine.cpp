@@ -366,15 +366,18 @@ void Engine::ForgetScene(absl::string_view name) {
 
 StatusOr<SceneSummary> Engine::MoveNode(absl::string_view name, uint64_t version,
                                         const std::function<StatusOr<uint32_t>(const Scene&)>& pick_node,
-                                        const glm::dmat4& world) {
+                                        const glm::dmat4& world, const StopToken& stop) {
   // Held across the edit, so that the version the move starts from is the
   // one the last logged move made. Queries never take it.
   std::lock_guard edit(one_edit_at_a_time_);
+  VISQ_RETURN_IF_ERROR(stop.Check("SetNodeTransform: waiting for the scene's previous edit"));
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const ResidentScene> current, SceneForQuery(name, version));
   VISQ_ASSIGN_OR_RETURN(const uint32_t node, pick_node(*current->scene));
   // The resident Scene is shared and immutable: edit a copy.
   Scene moved = *current->scene;
   VISQ_RETURN_IF_ERROR(MoveNodeSubtree(moved, node, world));
+  // The last point where the call can stop: past it the move is made.
+  VISQ_RETURN_IF_ERROR(stop.Check("SetNodeTransform: before the moved scene is made resident"));
   VISQ_ASSIGN_OR_RETURN(SceneSummary summary, ReplaceWithEdited(*current, std::move(moved)));
   {
     std::lock_guard lock(edits_mutex_);

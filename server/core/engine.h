@@ -225,10 +225,11 @@ class Engine {
   // the resident scene `name` and makes the copy resident as the next
   // version, in memory only, appending the move to the scene's edit log.
   // Edits of the engine's scenes are one at a time, so each logged edit
-  // starts from the version the one before it made.
+  // starts from the version the one before it made. A `stop` that stopped
+  // before the copy is made resident leaves the scene as it was.
   [[nodiscard]] StatusOr<SceneSummary> MoveNode(absl::string_view name, uint64_t version,
                                                 const std::function<StatusOr<uint32_t>(const Scene&)>& pick_node,
-                                                const glm::dmat4& world);
+                                                const glm::dmat4& world, const StopToken& stop = {});
   // The edits of `scene` that made versions after `after_version`, up to
   // and including `up_to_version`, in order. A load, reload or unload of the
   // scene clears its log.

@@ -56,7 +56,8 @@ StatusOr<glm::dmat4> WorldMatrix(const std::vector<double>& m) {
 StatusOr<SceneSummary> RunSetNodeTransform(Engine& engine, const NodeTransformQuery& query) {
   VISQ_ASSIGN_OR_RETURN(const glm::dmat4 world, WorldMatrix(query.world_matrix));
   return engine.MoveNode(
-      query.scene, query.scene_version, [&query](const Scene& scene) { return NamedNode(scene, query); }, world);
+      query.scene, query.scene_version, [&query](const Scene& scene) { return NamedNode(scene, query); }, world,
+      query.call.stop);
 }
 
 }  // namespace visq::core

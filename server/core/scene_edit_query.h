@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "common/status.h"
+#include "core/call_options.h"
 #include "core/engine.h"
 
 namespace visq::core {
@@ -20,6 +21,7 @@ struct NodeTransformQuery {
   std::optional<std::string> node_name;
   std::optional<uint32_t> node_index;
   std::vector<double> world_matrix;  // 16, column-major
+  CallOptions call;  // a call stopped before the move is made resident moves nothing
 };
 
 // INVALID_ARGUMENT for an unknown or ambiguous node, a matrix that is not 16

@@ -188,9 +188,10 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::SetNodeTransform(grpc::Callback
                                                                   v1::SceneInfo* response) {
   return RunUnaryCall(ctx_, context, "SetNodeTransform", [this, context, request, response](
                                                               RequestLog& log, const std::atomic<bool>& cancelled) -> Status {
+    core::NodeTransformQuery query = FromProto(*request);
+    query.call = CallOptionsFor(context, &cancelled, log);
     // A call whose client gave up while it queued does not move the node.
-    VISQ_RETURN_IF_ERROR(CallOptionsFor(context, &cancelled, log).stop.Check("SetNodeTransform: before the move"));
-    const core::NodeTransformQuery query = FromProto(*request);
+    VISQ_RETURN_IF_ERROR(query.call.stop.Check("SetNodeTransform: before the move"));
     log.Info("'{}' node {}", query.scene,
              query.node_name ? "'" + *query.node_name + "'" : query.node_index ? std::to_string(*query.node_index) : "?");
     VISQ_ASSIGN_OR_RETURN(core::SceneSummary summary, core::RunSetNodeTransform(ctx_.engine, query));

@@ -244,6 +244,18 @@ TEST(Engine, NodeMovesFormTheScenesEditLog) {
   EXPECT_EQ(RunSetNodeTransform(*engine, move).status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(engine->EditsBetween("cornell_box_visq", loaded, UINT64_MAX).size(), 3u);
 
+  // A move whose call was cancelled, or whose deadline passed, moves
+  // nothing: the resident version and the log stay as they were.
+  move.node_index = 0;
+  std::atomic<bool> cancelled{true};
+  move.call.stop = StopToken{&cancelled};
+  EXPECT_EQ(RunSetNodeTransform(*engine, move).status().code(), absl::StatusCode::kCancelled);
+  move.call.stop = StopToken{nullptr, std::chrono::steady_clock::now() - std::chrono::milliseconds(1)};
+  EXPECT_EQ(RunSetNodeTransform(*engine, move).status().code(), absl::StatusCode::kDeadlineExceeded);
+  EXPECT_EQ((*engine->SceneForQuery("cornell_box_visq", 0))->version, versions.back());
+  EXPECT_EQ(engine->EditsBetween("cornell_box_visq", loaded, UINT64_MAX).size(), 3u);
+  move.call = {};
+
   struct Counter {
     int value = 0;
   };
