@@ -346,35 +346,83 @@ PassPlan PlanPasses(int groups, bool exact, int max_draw_buffers, int width, int
   return plan;
 }
 
-void SetPassUniforms(const GlProgram& p, const MapFrames& f, const HiddenSampleMapRequest& request,
+// hsm_draw's uniforms: the geometry stage's influence regions, the fragment
+// stage's lookup and counting.
+struct HsmDrawUniforms {
+  explicit HsmDrawUniforms(UniformLocator& at)
+      : world_to_source(at.Find<glm::mat4>("u_world_to_source")),
+        world_to_receiver(at.Find<glm::mat4>("u_world_to_receiver")),
+        receiver_to_source(at.Find<glm::mat4>("u_receiver_to_source")),
+        source_corners(at.Find<glm::vec3>("u_source_corners")),
+        d_gradient(at.Find<glm::vec3>("u_d_gradient")),
+        e_per_height(at.Find<float>("u_e_per_height")),
+        delta(at.Find<float>("u_delta")),
+        clip_e(at.Find<float>("u_clip_e")),
+        far_e(at.Find<float>("u_far_e")),
+        heightfield(at.Find<bool>("u_heightfield")),
+        watertight(at.Find<bool>("u_watertight")),
+        shaft_plane_count(at.Find<int>("u_shaft_plane_count")),
+        shaft_planes(at.Find<glm::vec4>("u_shaft_planes")),
+        table(at.Find<int>("u_table")),
+        heights(at.Find<int>("u_heights")),
+        theta_res(at.Find<int>("u_theta_res")),
+        r_res(at.Find<int>("u_r_res")),
+        r_max(at.Find<float>("u_r_max")),
+        layer_base(at.Find<int>("u_layer_base")),
+        ambiguous_layer_offset(at.Find<int>("u_ambiguous_layer_offset")),
+        sample_count(at.Find<int>("u_sample_count")),
+        receiver_size(at.Find<glm::vec2>("u_receiver_size")),
+        first_row(at.Find<int>("u_first_row")),
+        decorrelate(at.Find<bool>("u_decorrelate")),
+        decorrelation_seed(at.Find<unsigned>("u_decorrelation_seed")),
+        decorrelation_amplitude(at.Find<float>("u_decorrelation_amplitude")) {}
+  Uniform<glm::mat4> world_to_source, world_to_receiver, receiver_to_source;
+  Uniform<glm::vec3> source_corners;  // [4]
+  Uniform<glm::vec3> d_gradient;
+  Uniform<float> e_per_height, delta, clip_e, far_e;
+  Uniform<bool> heightfield, watertight;
+  Uniform<int> shaft_plane_count;
+  Uniform<glm::vec4> shaft_planes;  // [16]
+  Uniform<int> table, heights;      // texture units
+  Uniform<int> theta_res, r_res;
+  Uniform<float> r_max;
+  Uniform<int> layer_base, ambiguous_layer_offset, sample_count;
+  Uniform<glm::vec2> receiver_size;
+  Uniform<int> first_row;
+  Uniform<bool> decorrelate;
+  Uniform<unsigned> decorrelation_seed;
+  Uniform<float> decorrelation_amplitude;
+};
+
+void SetPassUniforms(const HsmDrawUniforms& u, const MapFrames& f, const HiddenSampleMapRequest& request,
                      const hsm::HoughTableLayout& layout, int first_group, int groups, int first_row) {
   const HiddenSampleMapOptions& options = request.options;
-  p.Set("u_world_to_source", f.world_to_source);
-  p.Set("u_world_to_receiver", f.world_to_receiver);
-  p.Set("u_receiver_to_source", f.receiver_to_source);
-  p.SetArray("u_source_corners", f.source_corners, 4);
-  p.Set("u_d_gradient", glm::vec3(f.d_gradient));
-  p.Set("u_e_per_height", float(f.r_sign));
-  p.Set("u_delta", static_cast<float>(f.delta));
-  p.Set("u_clip_e", f.clip_e);
-  p.Set("u_far_e", static_cast<float>(f.e_min));
-  p.Set("u_heightfield", f.bumpy);
-  p.Set("u_watertight", options.watertight);
-  p.Set("u_shaft_plane_count", static_cast<int>(f.shaft_planes.size()));
-  p.SetArray("u_shaft_planes", f.shaft_planes.data(), f.shaft_planes.size());
-  p.Set("u_table", 0);
-  p.Set("u_heights", 1);
-  p.Set("u_theta_res", layout.theta_res);
-  p.Set("u_r_res", layout.r_res);
-  p.Set("u_r_max", layout.r_max);
-  p.Set("u_layer_base", first_group);
-  p.Set("u_ambiguous_layer_offset", groups);
-  p.Set("u_sample_count", static_cast<int>(request.source.sample_count));
-  p.Set("u_receiver_size", glm::vec2(float(request.receiver.width), float(request.receiver.height)));
-  p.Set("u_first_row", first_row);
-  p.Set("u_decorrelate", options.decorrelate);
-  p.Set("u_decorrelation_seed", options.decorrelation_seed);
-  p.Set("u_decorrelation_amplitude", f.decorrelation_amplitude);
+  u.world_to_source.Set(glm::mat4(f.world_to_source));
+  u.world_to_receiver.Set(glm::mat4(f.world_to_receiver));
+  u.receiver_to_source.Set(glm::mat4(f.receiver_to_source));
+  u.source_corners.SetArray(f.source_corners, 4);
+  u.d_gradient.Set(glm::vec3(f.d_gradient));
+  u.e_per_height.Set(float(f.r_sign));
+  u.delta.Set(static_cast<float>(f.delta));
+  u.clip_e.Set(f.clip_e);
+  u.far_e.Set(static_cast<float>(f.e_min));
+  u.heightfield.Set(f.bumpy);
+  u.watertight.Set(options.watertight);
+  u.shaft_plane_count.Set(static_cast<int>(f.shaft_planes.size()));
+  u.shaft_planes.SetArray(f.shaft_planes.data(), f.shaft_planes.size());
+  u.table.Set(0);
+  u.heights.Set(1);
+  u.theta_res.Set(layout.theta_res);
+  u.r_res.Set(layout.r_res);
+  u.r_max.Set(layout.r_max);
+  u.layer_base.Set(first_group);
+  u.ambiguous_layer_offset.Set(groups);
+  u.sample_count.Set(static_cast<int>(request.source.sample_count));
+  u.receiver_size.Set(glm::vec2(float(request.receiver.width), float(request.receiver.height)));
+  u.first_row.Set(first_row);
+  u.decorrelate.Set(options.decorrelate);
+  u.decorrelation_seed.Set(options.decorrelation_seed);
+  u.decorrelation_amplitude.Set(f.decorrelation_amplitude);
 }
 
 // One band of receiver rows [first_row, first_row + rows), every pass, read
@@ -419,13 +467,14 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
     VISQ_RETURN_IF_ERROR(job.stop.Check("hidden-sample map: between passes"));
     const int first = pass * plan.groups_per_pass;
     const int count = std::min(plan.groups_per_pass, plan.groups - first);
-    VISQ_ASSIGN_OR_RETURN(const GlProgram* program,
-                          CachedProgram(hidden_sample_map_shaders::Find,
-                                        {{GL_VERTEX_SHADER, "hsm_draw.vert"},
-                                         {GL_GEOMETRY_SHADER, "hsm_draw.geom"},
-                                         {GL_FRAGMENT_SHADER, "hsm_draw.frag"}},
-                                        {{"GROUPS", std::to_string(count)}, {"EXACT_LOOKUP", plan.exact ? "1" : "0"}}));
-    SetPassUniforms(*program, frames, request, table.layout, first, plan.groups, first_row);
+    VISQ_ASSIGN_OR_RETURN(
+        const TypedProgram<HsmDrawUniforms>* program,
+        CachedProgram<HsmDrawUniforms>(hidden_sample_map_shaders::Find,
+                                       {{GL_VERTEX_SHADER, "hsm_draw.vert"},
+                                        {GL_GEOMETRY_SHADER, "hsm_draw.geom"},
+                                        {GL_FRAGMENT_SHADER, "hsm_draw.frag"}},
+                                       {{"GROUPS", std::to_string(count)}, {"EXACT_LOOKUP", plan.exact ? "1" : "0"}}));
+    SetPassUniforms(program->uniforms, frames, request, table.layout, first, plan.groups, first_row);
 
     // Attach this pass's layers: maybe (or exact) masks, then for HOUGH the
     // surely-blocked masks.

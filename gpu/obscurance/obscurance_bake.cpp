@@ -25,11 +25,46 @@ using obscurance::ObscuranceAtlas;
 using obscurance::ObscuranceParams;
 using obscurance::ObscurancePartial;
 
+struct PeelUniforms {
+  explicit PeelUniforms(UniformLocator& at)
+      : clip_from_scene(at.Find<glm::mat4>("u_clip_from_scene")),
+        atlas_size(at.Find<glm::uvec2>("u_atlas_size")),
+        first(at.Find<int>("u_first")) {}
+  Uniform<glm::mat4> clip_from_scene;
+  Uniform<glm::uvec2> atlas_size;
+  Uniform<int> first;  // the direction's first layer: nothing in front to peel
+};
+
+struct TransferUniforms {
+  explicit TransferUniforms(UniformLocator& at)
+      : size(at.Find<unsigned>("u_size")),
+        texel_count(at.Find<unsigned>("u_texel_count")),
+        depth_to_distance(at.Find<float>("u_depth_to_distance")),
+        d_max(at.Find<float>("u_d_max")),
+        unoccluded(at.Find<glm::vec3>("u_unoccluded")),
+        has_a(at.Find<int>("u_has_a")),
+        has_b(at.Find<int>("u_has_b")),
+        first_row(at.Find<unsigned>("u_first_row")) {}
+  Uniform<unsigned> size;
+  Uniform<unsigned> texel_count;
+  Uniform<float> depth_to_distance;
+  Uniform<float> d_max;
+  Uniform<glm::vec3> unoccluded;
+  Uniform<int> has_a, has_b;
+  Uniform<unsigned> first_row;
+};
+
+struct CountSquaresUniforms {
+  explicit CountSquaresUniforms(UniformLocator& at)
+      : first_element(at.Find<unsigned>("u_first_element")), end_element(at.Find<unsigned>("u_end_element")) {}
+  Uniform<unsigned> first_element, end_element;
+};
+
 // GL state of one bake, created and destroyed on the GL thread.
 struct BakeState {
-  const GlProgram* peel = nullptr;      // the worker's program cache owns both
-  const GlProgram* transfer = nullptr;
-  const GlProgram* count_squares = nullptr;
+  const TypedProgram<PeelUniforms>* peel = nullptr;  // the worker's program cache owns the programs
+  const TypedProgram<TransferUniforms>* transfer = nullptr;
+  const TypedProgram<CountSquaresUniforms>* count_squares = nullptr;
   GlBuffer corner_uv{NoCreate};
   GlBuffer triangle_material{NoCreate};
   GlBuffer reflectivity{NoCreate};
@@ -54,14 +89,17 @@ Status CreateState(BakeState& s, const Scene& placed_scene, const ObscuranceAtla
                    uint32_t bundle) {
   const Scene& scene = placed_scene.Flattened();
   const std::string channel_text = std::to_string(channels);
-  VISQ_ASSIGN_OR_RETURN(s.peel, CachedProgram(obscurance_shaders::Find, {{GL_VERTEX_SHADER, "obscurance_peel.vert"},
-                                                                        {GL_FRAGMENT_SHADER, "obscurance_peel.frag"}}));
+  VISQ_ASSIGN_OR_RETURN(s.peel, CachedProgram<PeelUniforms>(obscurance_shaders::Find,
+                                                            {{GL_VERTEX_SHADER, "obscurance_peel.vert"},
+                                                             {GL_FRAGMENT_SHADER, "obscurance_peel.frag"}}));
   VISQ_ASSIGN_OR_RETURN(
-      s.transfer, CachedProgram(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_transfer.comp"}},
-                               {{"CHANNELS", channel_text + "u"},
-                                {"FIXED_POINT_SCALE", std::to_string(obscurance::kObscuranceFixedPointScale)}}));
-  VISQ_ASSIGN_OR_RETURN(s.count_squares,
-                        CachedProgram(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_count_squares.comp"}}));
+      s.transfer,
+      CachedProgram<TransferUniforms>(obscurance_shaders::Find, {{GL_COMPUTE_SHADER, "obscurance_transfer.comp"}},
+                                      {{"CHANNELS", channel_text + "u"},
+                                       {"FIXED_POINT_SCALE", std::to_string(obscurance::kObscuranceFixedPointScale)}}));
+  VISQ_ASSIGN_OR_RETURN(s.count_squares, CachedProgram<CountSquaresUniforms>(
+                                             obscurance_shaders::Find,
+                                             {{GL_COMPUTE_SHADER, "obscurance_count_squares.comp"}}));
   // Per-corner atlas coordinates, per-triangle material, per-material color.
   s.corner_uv = GlBuffer();
   glNamedBufferStorage(s.corner_uv.id(), atlas.corner_uv.size() * sizeof(glm::vec2), atlas.corner_uv.data(), 0);
@@ -191,30 +229,24 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 6, s.count_squares_sums.id());
 
   const GLuint peel_program = s.peel->id(), transfer = s.transfer->id();
-  glProgramUniformMatrix4fv(peel_program, s.peel->Uniform("u_clip_from_scene"), 1, GL_FALSE,
-                            &frame.clip_from_scene[0][0]);
-  glProgramUniform2ui(peel_program, s.peel->Uniform("u_atlas_size"), atlas.width, atlas.height);
-  const GLint first_loc = s.peel->Uniform("u_first");
-  glProgramUniform1ui(transfer, s.transfer->Uniform("u_size"), bundle);
-  glProgramUniform1ui(transfer, s.transfer->Uniform("u_texel_count"), atlas.texel_count());
-  glProgramUniform1f(transfer, s.transfer->Uniform("u_depth_to_distance"), frame.depth_to_distance);
-  glProgramUniform1f(transfer, s.transfer->Uniform("u_d_max"), static_cast<float>(params.d_max));
-  glProgramUniform3f(transfer, s.transfer->Uniform("u_unoccluded"), unoccluded.x, unoccluded.y,
-                     unoccluded.z);
-  const GLint has_a_loc = s.transfer->Uniform("u_has_a");
-  const GLint has_b_loc = s.transfer->Uniform("u_has_b");
+  const PeelUniforms& peel_uniforms = s.peel->uniforms;
+  const TransferUniforms& transfer_uniforms = s.transfer->uniforms;
+  peel_uniforms.clip_from_scene.Set(frame.clip_from_scene);
+  peel_uniforms.atlas_size.Set(glm::uvec2(atlas.width, atlas.height));
+  transfer_uniforms.size.Set(bundle);
+  transfer_uniforms.texel_count.Set(atlas.texel_count());
+  transfer_uniforms.depth_to_distance.Set(frame.depth_to_distance);
+  transfer_uniforms.d_max.Set(static_cast<float>(params.d_max));
+  transfer_uniforms.unoccluded.Set(unoccluded);
   const GLuint groups = (bundle + 7) / 8;
   auto step_spent = [&] { return MillisecondsSince(job_start) >= step_ms; };
 
   const GLuint clear_layer[4] = {0, 0, 0, 0};
   const GLfloat clear_depth = 1.0f;
-  const GLint first_row_loc = s.transfer->Uniform("u_first_row");
   const GLuint square_program = s.count_squares->id();
   const uint32_t elements = atlas.texel_count() + gpu_scene.triangle_count();
   const uint32_t element_groups = (elements + 63) / 64;
   constexpr uint32_t kRowGroups = 32768;  // groups of 64 per row of the count squares' dispatch
-  const GLint first_element_loc = s.count_squares->Uniform("u_first_element");
-  const GLint end_element_loc = s.count_squares->Uniform("u_end_element");
 
   // Dispatches `program` in bands from peel.next_band until `total` units
   // are done (true) or the step is spent (false, to resume in the next
@@ -241,14 +273,14 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
   auto transfer_bands = [&](int a, int b, bool has_a, bool has_b) -> StatusOr<bool> {
     glBindFramebuffer(GL_FRAMEBUFFER, 0);
     glUseProgram(transfer);
-    glProgramUniform1i(transfer, has_a_loc, has_a ? 1 : 0);
-    glProgramUniform1i(transfer, has_b_loc, has_b ? 1 : 0);
+    transfer_uniforms.has_a.Set(has_a ? 1 : 0);
+    transfer_uniforms.has_b.Set(has_b ? 1 : 0);
     glBindTextureUnit(0, s.layer[a].id());
     glBindTextureUnit(1, s.depth[a].id());
     glBindTextureUnit(2, s.layer[b].id());
     glBindTextureUnit(3, s.depth[b].id());
     return in_bands(sizers.transfer_rows, groups, [&](uint32_t first, uint32_t count) {
-      glProgramUniform1ui(transfer, first_row_loc, first * 8);
+      transfer_uniforms.first_row.Set(first * 8);
       glDispatchCompute(groups, count, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT | GL_TEXTURE_FETCH_BARRIER_BIT | GL_FRAMEBUFFER_BARRIER_BIT);
     });
@@ -272,7 +304,7 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
       }
       glBindFramebuffer(GL_FRAMEBUFFER, s.framebuffer[cur].id());
       glUseProgram(peel_program);
-      glProgramUniform1i(peel_program, first_loc, k == 0 ? 1 : 0);
+      peel_uniforms.first.Set(k == 0 ? 1 : 0);
       glBindTextureUnit(0, s.depth[prev].id());
       while (!peel.layer_draw->done()) {
         const ScenePartDraw piece = peel.layer_draw->Next(uint64_t(sizers.draw.size()));
@@ -325,9 +357,8 @@ Status PeelSome(BakeState& s, const GpuScene& gpu_scene, const ScenePartDraw& wh
       glUseProgram(square_program);
       VISQ_ASSIGN_OR_RETURN(const bool squared,
                             in_bands(sizers.square_groups, element_groups, [&](uint32_t first, uint32_t count) {
-                              glProgramUniform1ui(square_program, first_element_loc, first * 64);
-                              glProgramUniform1ui(square_program, end_element_loc,
-                                                  std::min(elements, (first + count) * 64));
+                              s.count_squares->uniforms.first_element.Set(first * 64);
+                              s.count_squares->uniforms.end_element.Set(std::min(elements, (first + count) * 64));
                               glDispatchCompute(std::min(count, kRowGroups), (count + kRowGroups - 1) / kRowGroups, 1);
                               glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
                             }));

@@ -42,9 +42,17 @@ Status ValidatePreviewRequest(const GpuScene& gpu_scene, const ObscurancePreview
   return absl::OkStatus();
 }
 
+struct PreviewUniforms {
+  explicit PreviewUniforms(UniformLocator& at)
+      : clip_from_anchor(at.Find<glm::mat4>("u_clip_from_anchor")),
+        inv_atlas_size(at.Find<glm::vec2>("u_inv_atlas_size")) {}
+  Uniform<glm::mat4> clip_from_anchor;
+  Uniform<glm::vec2> inv_atlas_size;
+};
+
 // Everything GL of one call, created and destroyed inside the job.
 struct PreviewObjects {
-  const GlProgram* program = nullptr;  // the worker's program cache owns it
+  const TypedProgram<PreviewUniforms>* program = nullptr;  // the worker's program cache owns it
   GlBuffer corner_uv{NoCreate};
   GlTexture2D values{NoCreate};
   GlTexture2D color{NoCreate};
@@ -58,9 +66,9 @@ Status DrawPreview(const GpuScene& gpu_scene, const ObscurancePreviewRequest& re
   const GpuScene::Resources& res = *scene_resources;
   const uint32_t width = request.camera.width, height = request.camera.height;
   PreviewObjects o;
-  VISQ_ASSIGN_OR_RETURN(o.program, CachedProgram(obscurance_shaders::Find,
-                                                {{GL_VERTEX_SHADER, "obscurance_preview.vert"},
-                                                 {GL_FRAGMENT_SHADER, "obscurance_preview.frag"}}));
+  VISQ_ASSIGN_OR_RETURN(o.program, CachedProgram<PreviewUniforms>(obscurance_shaders::Find,
+                                                                 {{GL_VERTEX_SHADER, "obscurance_preview.vert"},
+                                                                  {GL_FRAGMENT_SHADER, "obscurance_preview.frag"}}));
 
   // The atlas: corner coordinates (texels) and the values, filtered
   // bilinearly and clamped at the atlas's edge.
@@ -102,10 +110,9 @@ Status DrawPreview(const GpuScene& gpu_scene, const ObscurancePreviewRequest& re
   glClearNamedFramebufferfv(o.framebuffer.id(), GL_COLOR, 0, background);
   glClearNamedFramebufferfv(o.framebuffer.id(), GL_DEPTH, 0, &far_depth);
   glUseProgram(program);
-  glProgramUniformMatrix4fv(program, o.program->Uniform("u_clip_from_anchor"), 1, GL_FALSE,
-                            glm::value_ptr(clip));
-  glProgramUniform2f(program, o.program->Uniform("u_inv_atlas_size"), 1.0f / float(request.atlas_width),
-                     1.0f / float(request.atlas_height));
+  o.program->uniforms.clip_from_anchor.Set(clip);
+  o.program->uniforms.inv_atlas_size.Set(
+      glm::vec2(1.0f / float(request.atlas_width), 1.0f / float(request.atlas_height)));
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, o.corner_uv.id());
   glBindTextureUnit(0, o.values.id());
   VISQ_RETURN_IF_ERROR(DrawWholeScene(res));

@@ -21,6 +21,13 @@ namespace {
 // At most this many segments a GL job: 128 MiB of segments and ignores.
 constexpr int kMaxJobSegments = 1 << 22;
 constexpr GLuint kGroupSize = 64;         // rays_trace.comp's local_size_x
+
+struct TraceUniforms {
+  explicit TraceUniforms(UniformLocator& at)
+      : segment_count(at.Find<unsigned>("segment_count")), node_count(at.Find<unsigned>("node_count")) {}
+  Uniform<unsigned> segment_count;
+  Uniform<unsigned> node_count;
+};
 constexpr GLuint kMaxGroupsAcross = 32768;  // under GL's guaranteed 65535
 
 // A store of at least 16 bytes (GL refuses an empty one): a smaller `data`
@@ -109,16 +116,17 @@ Status RayScene::Trace(size_t count, const SegmentMaker& make, bool closest, con
             return absl::UnavailableError("the GPU context was lost since the scene's rays were uploaded; retry");
           ShaderDefines defines = {{"MAX_DEPTH", std::to_string(raycast::kMaxFlatBvhDepth)}};
           if (closest) defines.emplace_back("CLOSEST_HIT", "1");
-          VISQ_ASSIGN_OR_RETURN(const GlProgram* program,
-                                CachedProgram(rays_shaders::Find, {{GL_COMPUTE_SHADER, "rays_trace.comp"}}, defines));
+          VISQ_ASSIGN_OR_RETURN(
+              const TypedProgram<TraceUniforms>* program,
+              CachedProgram<TraceUniforms>(rays_shaders::Find, {{GL_COMPUTE_SHADER, "rays_trace.comp"}}, defines));
           const GlBuffer segment_buffer = MakeBuffer(n * sizeof(raycast::FloatSegment), segments.data());
           const GlBuffer ignore_buffer = MakeBuffer(n * sizeof(uint32_t), ignore.data());
           const size_t out_bytes = closest ? hits.size() * sizeof(GpuHit) : bits.size() * sizeof(uint32_t);
           void* out_data = closest ? static_cast<void*>(hits.data()) : static_cast<void*>(bits.data());
           const GlBuffer out = MakeBuffer(out_bytes, out_data);
           glUseProgram(program->id());
-          program->Set("segment_count", static_cast<unsigned>(n));
-          program->Set("node_count", node_count_);
+          program->uniforms.segment_count.Set(static_cast<unsigned>(n));
+          program->uniforms.node_count.Set(node_count_);
           const GLuint buffers[] = {resources_->nodes.id(), resources_->corners.id(), segment_buffer.id(),
                                     ignore_buffer.id(), out.id()};
           for (GLuint binding = 0; binding < 5; ++binding)

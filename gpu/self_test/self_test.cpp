@@ -11,12 +11,21 @@
 #include "visq/gpu/gpu_worker.h"
 
 namespace visq::gpu {
+namespace {
+
+struct SelfTestUniforms {
+  explicit SelfTestUniforms(UniformLocator& at) : pattern(at.Find<unsigned>("u_pattern")) {}
+  Uniform<unsigned> pattern;
+};
+
+}  // namespace
 
 Status RunSelfTest(GpuWorker& worker) {
   return worker.Run({}, []() -> Status {
     constexpr int kSize = 8;
-    VISQ_ASSIGN_OR_RETURN(const GlProgram* program,
-                          CachedProgram(CoreShaderFiles, {{GL_VERTEX_SHADER, "self_test.vert"}, {GL_FRAGMENT_SHADER, "self_test.frag"}}));
+    VISQ_ASSIGN_OR_RETURN(const TypedProgram<SelfTestUniforms>* program,
+                          CachedProgram<SelfTestUniforms>(CoreShaderFiles, {{GL_VERTEX_SHADER, "self_test.vert"},
+                                                                            {GL_FRAGMENT_SHADER, "self_test.frag"}}));
     GlTexture2D target;
     glTextureStorage2D(target.id(), 1, GL_RGBA32UI, kSize, kSize);
     GlFramebuffer framebuffer;
@@ -35,7 +44,7 @@ Status RunSelfTest(GpuWorker& worker) {
     glEnable(GL_COLOR_LOGIC_OP);
     glLogicOp(GL_OR);
     for (unsigned pattern : {0x5u, 0x8u}) {
-      program->Set("u_pattern", pattern);
+      program->uniforms.pattern.Set(pattern);
       glDrawArrays(GL_TRIANGLE_STRIP, 0, 4);
     }
     glDisable(GL_COLOR_LOGIC_OP);

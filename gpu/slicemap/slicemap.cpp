@@ -87,23 +87,47 @@ SlicemapGrid EmptyGrid(uint32_t width, uint32_t height, uint32_t slices) {
 // not depend on the bands.
 bool SendsCorners(const ViewSetup& view) { return !view.perspective; }
 
-StatusOr<const GlProgram*> Program(const ViewSetup& view, const ShaderDefines& defines) {
+struct SlicemapUniforms {
+  explicit SlicemapUniforms(UniformLocator& at)
+      : clip_from_anchor(at.Find<glm::mat4>("u_clip_from_anchor")),
+        depth_plane(at.Find<glm::vec4>("u_depth_plane")),
+        light(at.Find<glm::vec3>("u_light")),
+        radial(at.Find<glm::vec2>("u_radial")),
+        band_origin(at.Find<glm::vec2>("u_band_origin")),
+        image_size(at.FindInVariant<glm::vec2>("u_image_size")),
+        slices(at.Find<float>("u_slices")),
+        near_far(at.Find<int>("u_near_far")),
+        pass_first_slice(at.Find<int>("u_pass_first_slice")),
+        pass_slices(at.Find<int>("u_pass_slices")) {}
+  Uniform<glm::mat4> clip_from_anchor;
+  Uniform<glm::vec4> depth_plane;
+  Uniform<glm::vec3> light;
+  Uniform<glm::vec2> radial;
+  Uniform<glm::vec2> band_origin;
+  Uniform<glm::vec2> image_size;  // the geometry stage's: corners in image texels
+  Uniform<float> slices;
+  Uniform<int> near_far;  // the texture unit of the columns' local ranges
+  Uniform<int> pass_first_slice, pass_slices;
+};
+using SlicemapProgram = TypedProgram<SlicemapUniforms>;
+
+StatusOr<const SlicemapProgram*> Program(const ViewSetup& view, const ShaderDefines& defines) {
   std::vector<ShaderSource> sources = {{GL_VERTEX_SHADER, "slicemap.vert"}, {GL_FRAGMENT_SHADER, "slicemap.frag"}};
   if (SendsCorners(view)) sources.push_back({GL_GEOMETRY_SHADER, "slicemap_corners.geom"});
-  return CachedProgram(slicemap_shaders::Find, sources, defines);
+  return CachedProgram<SlicemapUniforms>(slicemap_shaders::Find, sources, defines);
 }
 
-void SetViewUniforms(const GlProgram& program, const ViewSetup& view, const PassConfig& config, uint32_t first_row) {
-  program.Set("u_clip_from_anchor", view.clip_from_anchor);
-  program.Set("u_band_origin", glm::vec2(0.0f, static_cast<float>(first_row)));
-  program.Set("u_depth_plane", view.depth_plane);
-  program.Set("u_light", view.light);
-  program.Set("u_radial", view.radial);
-  // The geometry stage's: corners in image texels.
-  if (SendsCorners(view))
-    program.Set("u_image_size", glm::vec2(static_cast<float>(config.width), static_cast<float>(config.height)));
-  program.Set("u_slices", static_cast<float>(config.slices));
-  program.Set("u_near_far", 0);
+void SetViewUniforms(const SlicemapProgram& program, const ViewSetup& view, const PassConfig& config,
+                     uint32_t first_row) {
+  const SlicemapUniforms& u = program.uniforms;
+  u.clip_from_anchor.Set(view.clip_from_anchor);
+  u.band_origin.Set(glm::vec2(0.0f, static_cast<float>(first_row)));
+  u.depth_plane.Set(view.depth_plane);
+  u.light.Set(view.light);
+  u.radial.Set(view.radial);
+  u.image_size.Set(glm::vec2(static_cast<float>(config.width), static_cast<float>(config.height)));
+  u.slices.Set(static_cast<float>(config.slices));
+  u.near_far.Set(0);
 }
 
 ShaderDefines BaseDefines(const ViewSetup& view, const PassConfig& config, bool conservative) {
@@ -233,21 +257,21 @@ constexpr uint32_t kMinRowsPerBand = 4;
 // that job (the readback).
 Status DrawPassOverJobs(const JobRunner& job, const GpuScene& scene, const ScenePartDraw& part, bool draw_nothing,
                         TimedSizer& pieces, const PassConfig& config,
-                        const std::function<StatusOr<const GlProgram*>(bool first)>& bind,
+                        const std::function<StatusOr<GLuint>(bool first)>& bind,
                         const std::function<Status()>& finish, double& draw_ms) {
   std::optional<DrawAcrossJobs> draw;
   if (!draw_nothing) draw.emplace(scene, part, pieces);
   bool first = true, finished = false;
   while (!finished) {
     VISQ_RETURN_IF_ERROR(job([&]() -> Status {
-      StatusOr<const GlProgram*> program = bind(first);
+      StatusOr<GLuint> program = bind(first);
       if (!program.ok()) {
         RestoreState();
         return program.status();
       }
       first = false;
       const auto start = Clock::now();
-      glUseProgram((*program)->id());
+      glUseProgram(*program);
       const Status drawn =
           draw ? draw->DrawSome(config.draw_ms_per_job, config.job, "voxelization: between draws") : absl::OkStatus();
       glDisable(GL_COLOR_LOGIC_OP);
@@ -328,12 +352,12 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
 
   // Local precision: each column's depth range, in one pass over the image.
   if (local) {
-    auto bind = [&](bool first) -> StatusOr<const GlProgram*> {
+    auto bind = [&](bool first) -> StatusOr<GLuint> {
       VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
       SetPassState(config, 0, config.height);
       ShaderDefines defines = BaseDefines(view, config, conservative);
       defines.emplace_back("DEPTH_RANGE_PASS", "1");
-      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(view, defines));
+      VISQ_ASSIGN_OR_RETURN(const SlicemapProgram* program, Program(view, defines));
       SetViewUniforms(*program, view, config, 0);
       const GLuint framebuffer = made->near_far_framebuffer.id();
       if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
@@ -345,7 +369,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       }
       glEnable(GL_BLEND);
       glBlendEquation(GL_MIN);
-      return program;
+      return program->id();
     };
     auto finish = [&]() -> Status {
       VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
@@ -367,7 +391,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
                       uint32_t first_row, uint32_t rows) -> Status {
     const uint32_t targets_per_map = (pass_slices + 127) / 128;
     const uint32_t pass_maps = pass_solid ? 2 : 1;
-    auto bind = [&](bool first) -> StatusOr<const GlProgram*> {
+    auto bind = [&](bool first) -> StatusOr<GLuint> {
       VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
       const GLuint framebuffer = made->framebuffer.id();
       const auto start = Clock::now();
@@ -376,10 +400,10 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       ShaderDefines defines = BaseDefines(view, config, pass_conservative);
       defines.emplace_back("TARGETS", std::to_string(targets_per_map));
       if (pass_solid) defines.emplace_back("SOLID", "1");
-      VISQ_ASSIGN_OR_RETURN(const GlProgram* program, Program(view, defines));
+      VISQ_ASSIGN_OR_RETURN(const SlicemapProgram* program, Program(view, defines));
       SetViewUniforms(*program, view, config, first_row);
-      program->Set("u_pass_first_slice", static_cast<int>(first_slice));
-      program->Set("u_pass_slices", static_cast<int>(pass_slices));
+      program->uniforms.pass_first_slice.Set(static_cast<int>(first_slice));
+      program->uniforms.pass_slices.Set(static_cast<int>(pass_slices));
       // Attachment i of the pass: map i / targets_per_map, target i % targets_per_map.
       std::vector<GLenum> buffers;
       for (uint32_t m = 0; m < pass_maps; ++m)
@@ -398,7 +422,7 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       glEnable(GL_COLOR_LOGIC_OP);
       glLogicOp(GL_OR);
       raw.timings.setup_ms += MillisecondsSince(start);
-      return program;
+      return program->id();
     };
     auto finish = [&]() -> Status {
       VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));

@@ -7,6 +7,7 @@
 #include "gl_check.h"
 #include "visq_gpu_core_embedded.h"
 
+#include <absl/strings/str_join.h>
 #include <absl/strings/str_split.h>
 #include <absl/strings/strip.h>
 
@@ -162,40 +163,53 @@ GlProgram::GlProgram(GlProgramObject object, std::string name, std::map<std::str
                      std::set<std::string, std::less<>> declared)
     : object_(std::move(object)), name_(std::move(name)), active_(std::move(active)), declared_(std::move(declared)) {}
 
-GLint GlProgram::Uniform(std::string_view name) const {
+std::optional<GLint> GlProgram::Location(std::string_view name) const {
   if (auto it = active_.find(name); it != active_.end()) return it->second;
-  if (!declared_.contains(name) && GlChecksEnabled())
-    RecordGlMisuse(absl::StrCat("uniform ", AbslView(name), " is declared by no shader of ", name_));
-  return -1;
+  if (declared_.contains(name)) return -1;
+  return std::nullopt;
 }
 
-void GlProgram::Set(std::string_view name, int value) const { glProgramUniform1i(id(), Uniform(name), value); }
-void GlProgram::Set(std::string_view name, unsigned value) const { glProgramUniform1ui(id(), Uniform(name), value); }
-void GlProgram::Set(std::string_view name, float value) const { glProgramUniform1f(id(), Uniform(name), value); }
-void GlProgram::Set(std::string_view name, const glm::vec2& v) const { glProgramUniform2f(id(), Uniform(name), v.x, v.y); }
-void GlProgram::Set(std::string_view name, const glm::vec3& v) const {
-  glProgramUniform3f(id(), Uniform(name), v.x, v.y, v.z);
+GLint UniformLocator::Locate(std::string_view name) {
+  const std::optional<GLint> location = program_.Location(name);
+  if (!location) undeclared_.emplace_back(name);
+  return location.value_or(-1);
 }
-void GlProgram::Set(std::string_view name, const glm::vec4& v) const {
-  glProgramUniform4f(id(), Uniform(name), v.x, v.y, v.z, v.w);
+
+Status UniformLocator::status() const {
+  if (undeclared_.empty()) return absl::OkStatus();
+  return absl::InternalError(
+      absl::StrCat("uniform ", absl::StrJoin(undeclared_, ", "), " declared by no shader of ", program_.name()));
 }
-void GlProgram::Set(std::string_view name, const glm::ivec2& v) const {
-  glProgramUniform2i(id(), Uniform(name), v.x, v.y);
+
+void SetUniform(GLuint program, GLint location, int value) { glProgramUniform1i(program, location, value); }
+void SetUniform(GLuint program, GLint location, unsigned value) { glProgramUniform1ui(program, location, value); }
+void SetUniform(GLuint program, GLint location, float value) { glProgramUniform1f(program, location, value); }
+void SetUniform(GLuint program, GLint location, bool value) { glProgramUniform1i(program, location, value ? 1 : 0); }
+void SetUniform(GLuint program, GLint location, const glm::vec2& v) { glProgramUniform2f(program, location, v.x, v.y); }
+void SetUniform(GLuint program, GLint location, const glm::vec3& v) {
+  glProgramUniform3f(program, location, v.x, v.y, v.z);
 }
-void GlProgram::Set(std::string_view name, const glm::ivec3& v) const {
-  glProgramUniform3i(id(), Uniform(name), v.x, v.y, v.z);
+void SetUniform(GLuint program, GLint location, const glm::vec4& v) {
+  glProgramUniform4f(program, location, v.x, v.y, v.z, v.w);
 }
-void GlProgram::Set(std::string_view name, const glm::mat4& m) const {
-  glProgramUniformMatrix4fv(id(), Uniform(name), 1, GL_FALSE, &m[0][0]);
+void SetUniform(GLuint program, GLint location, const glm::ivec2& v) { glProgramUniform2i(program, location, v.x, v.y); }
+void SetUniform(GLuint program, GLint location, const glm::ivec3& v) {
+  glProgramUniform3i(program, location, v.x, v.y, v.z);
 }
-void GlProgram::SetArray(std::string_view name, const glm::vec3* values, size_t count) const {
-  if (count > 0) glProgramUniform3fv(id(), Uniform(name), static_cast<GLsizei>(count), &values[0].x);
+void SetUniform(GLuint program, GLint location, const glm::uvec2& v) {
+  glProgramUniform2ui(program, location, v.x, v.y);
 }
-void GlProgram::SetArray(std::string_view name, const glm::vec4* values, size_t count) const {
-  if (count > 0) glProgramUniform4fv(id(), Uniform(name), static_cast<GLsizei>(count), &values[0].x);
+void SetUniform(GLuint program, GLint location, const glm::mat4& m) {
+  glProgramUniformMatrix4fv(program, location, 1, GL_FALSE, &m[0][0]);
 }
-void GlProgram::SetArray(std::string_view name, const float* values, size_t count) const {
-  if (count > 0) glProgramUniform1fv(id(), Uniform(name), static_cast<GLsizei>(count), values);
+void SetUniformArray(GLuint program, GLint location, const glm::vec3* values, size_t count) {
+  if (count > 0) glProgramUniform3fv(program, location, static_cast<GLsizei>(count), &values[0].x);
+}
+void SetUniformArray(GLuint program, GLint location, const glm::vec4* values, size_t count) {
+  if (count > 0) glProgramUniform4fv(program, location, static_cast<GLsizei>(count), &values[0].x);
+}
+void SetUniformArray(GLuint program, GLint location, const float* values, size_t count) {
+  if (count > 0) glProgramUniform1fv(program, location, static_cast<GLsizei>(count), values);
 }
 
 ProgramCache::~ProgramCache() = default;

@@ -2,19 +2,23 @@
 // time (see visq_gpu_algorithm in cmake/EmbedFiles.cmake), with `#define`s
 // prepended for variants, kept in one cache per GPU worker and context.
 //
-// Algorithms ask for a program with CachedProgram() on the GL thread: it is
-// built once per (files, defines) and context, and dropped with the context
-// (after a loss, or when the worker stops). A GlProgram looks its uniforms
-// up once, at link time; a name that no shader of the program declares (a
-// misspelling) fails the running job with INTERNAL when GPU debugging is on,
-// instead of silently setting nothing.
+// Algorithms ask for a program with CachedProgram<Uniforms>() on the GL
+// thread: it is built once per (files, defines) and context, and dropped
+// with the context (after a loss, or when the worker stops). Each program
+// has its uniforms as the typed members of a struct of its own (a
+// `Uniforms`, constructed from a UniformLocator), located once when the
+// program is first asked for: setting one is one GL call, with no name
+// looked up, and a name that no shader of the program declares (a
+// misspelling) fails that first request with INTERNAL, naming it.
 #pragma once
 
 #include <map>
+#include <optional>
 #include <memory>
 #include <set>
 #include <string>
 #include <string_view>
+#include <typeindex>
 #include <utility>
 #include <vector>
 
@@ -41,6 +45,71 @@ using ShaderFiles = std::string_view (*)(std::string_view);
 // NOT_FOUND if a file is not embedded.
 [[nodiscard]] StatusOr<std::string> EmbeddedShaderText(ShaderFiles files, const std::string& file_name);
 
+// One uniform's value into a program (glProgramUniform*), by type. Doubles
+// are rounded to float last, after the caller's double arithmetic.
+void SetUniform(GLuint program, GLint location, int value);
+void SetUniform(GLuint program, GLint location, unsigned value);
+void SetUniform(GLuint program, GLint location, float value);
+void SetUniform(GLuint program, GLint location, bool value);
+void SetUniform(GLuint program, GLint location, const glm::vec2& value);
+void SetUniform(GLuint program, GLint location, const glm::vec3& value);
+void SetUniform(GLuint program, GLint location, const glm::vec4& value);
+void SetUniform(GLuint program, GLint location, const glm::ivec2& value);
+void SetUniform(GLuint program, GLint location, const glm::ivec3& value);
+void SetUniform(GLuint program, GLint location, const glm::uvec2& value);
+void SetUniform(GLuint program, GLint location, const glm::mat4& value);
+void SetUniformArray(GLuint program, GLint location, const glm::vec3* values, size_t count);
+void SetUniformArray(GLuint program, GLint location, const glm::vec4* values, size_t count);
+void SetUniformArray(GLuint program, GLint location, const float* values, size_t count);
+
+// A uniform of one program, located once: Set is one GL call. Location -1
+// (declared, but dropped by the linker as unused in this variant) sets
+// nothing, as GL does.
+template <typename T>
+class Uniform {
+ public:
+  Uniform() = default;
+  Uniform(GLuint program, GLint location) : program_(program), location_(location) {}
+  void Set(const T& value) const { SetUniform(program_, location_, value); }
+  // An array uniform's first `count` elements.
+  void SetArray(const T* values, size_t count) const { SetUniformArray(program_, location_, values, count); }
+  GLint location() const { return location_; }
+
+ private:
+  GLuint program_ = 0;
+  GLint location_ = -1;
+};
+
+class GlProgram;
+
+// Finds a program's uniforms by name for its Uniforms struct; the names no
+// shader of the program declares make status() INTERNAL.
+class UniformLocator {
+ public:
+  explicit UniformLocator(const GlProgram& program) : program_(program) {}
+  template <typename T>
+  Uniform<T> Find(std::string_view name);
+  // A uniform of a file that only some variants link (a stage of their
+  // own): where none declares it, a uniform that sets nothing.
+  template <typename T>
+  Uniform<T> FindInVariant(std::string_view name);
+  [[nodiscard]] Status status() const;
+
+ private:
+  GLint Locate(std::string_view name);
+  const GlProgram& program_;
+  std::vector<std::string> undeclared_;
+};
+
+// A program and its uniforms: `uniforms` is a `Uniforms`, made by
+// `Uniforms(UniformLocator&)` when the program was first asked for.
+template <typename Uniforms>
+struct TypedProgram {
+  const GlProgram& program;
+  Uniforms uniforms;
+  GLuint id() const;
+};
+
 // A linked program with its uniform locations.
 class GlProgram {
  public:
@@ -50,33 +119,46 @@ class GlProgram {
   GLuint id() const { return object_.id(); }
   const std::string& name() const { return name_; }  // its files, "a.vert+a.frag"
 
-  // The location of a uniform (of an array's first element); -1 for one the
-  // linker dropped as unused, which the setters then skip. A name no shader
-  // declares is recorded against the running job (see header comment).
-  GLint Uniform(std::string_view name) const;
+  // The location of a uniform (of an array's first element): -1 for one the
+  // linker dropped as unused, none for a name no shader declares.
+  std::optional<GLint> Location(std::string_view name) const;
 
-  void Set(std::string_view name, int value) const;
-  void Set(std::string_view name, unsigned value) const;
-  void Set(std::string_view name, float value) const;
-  void Set(std::string_view name, bool value) const { Set(name, value ? 1 : 0); }
-  void Set(std::string_view name, const glm::vec2& value) const;
-  void Set(std::string_view name, const glm::vec3& value) const;
-  void Set(std::string_view name, const glm::vec4& value) const;
-  void Set(std::string_view name, const glm::ivec2& value) const;
-  void Set(std::string_view name, const glm::ivec3& value) const;
-  void Set(std::string_view name, const glm::mat4& value) const;
-  // Doubles are rounded to float last, after the caller's double arithmetic.
-  void Set(std::string_view name, const glm::dmat4& value) const { Set(name, glm::mat4(value)); }
-  void SetArray(std::string_view name, const glm::vec3* values, size_t count) const;
-  void SetArray(std::string_view name, const glm::vec4* values, size_t count) const;
-  void SetArray(std::string_view name, const float* values, size_t count) const;
+  // This program with its uniforms as `Uniforms`, located on the first
+  // request and kept with the program. GL thread only.
+  template <typename Uniforms>
+  [[nodiscard]] StatusOr<const TypedProgram<Uniforms>*> Typed() const {
+    const std::type_index key(typeid(Uniforms));
+    if (auto it = typed_.find(key); it != typed_.end())
+      return static_cast<const TypedProgram<Uniforms>*>(it->second.get());
+    UniformLocator locator(*this);
+    auto typed = std::make_shared<const TypedProgram<Uniforms>>(TypedProgram<Uniforms>{*this, Uniforms(locator)});
+    VISQ_RETURN_IF_ERROR(locator.status());
+    const TypedProgram<Uniforms>* out = typed.get();
+    typed_.emplace(key, std::move(typed));
+    return out;
+  }
 
  private:
   GlProgramObject object_;
   std::string name_;
   std::map<std::string, GLint, std::less<>> active_;
   std::set<std::string, std::less<>> declared_;
+  mutable std::map<std::type_index, std::shared_ptr<const void>> typed_;
 };
+
+template <typename Uniforms>
+GLuint TypedProgram<Uniforms>::id() const {
+  return program.id();
+}
+
+template <typename T>
+Uniform<T> UniformLocator::Find(std::string_view name) {
+  return Uniform<T>(program_.id(), Locate(name));
+}
+template <typename T>
+Uniform<T> UniformLocator::FindInVariant(std::string_view name) {
+  return Uniform<T>(program_.id(), program_.Location(name).value_or(-1));
+}
 
 // Compiles and links a program that the caller owns (one-off programs and
 // tests); a failure is INTERNAL naming the file and carrying the trimmed
@@ -90,6 +172,14 @@ class GlProgram {
 // context lives, which is at least until the job that asked ends.
 [[nodiscard]] StatusOr<const GlProgram*> CachedProgram(ShaderFiles files, const std::vector<ShaderSource>& sources,
                                                        const ShaderDefines& defines = {});
+// The same, with its uniforms as `Uniforms` (see the header comment).
+template <typename Uniforms>
+[[nodiscard]] StatusOr<const TypedProgram<Uniforms>*> CachedProgram(ShaderFiles files,
+                                                                    const std::vector<ShaderSource>& sources,
+                                                                    const ShaderDefines& defines = {}) {
+  VISQ_ASSIGN_OR_RETURN(const GlProgram* program, CachedProgram(files, sources, defines));
+  return program->Typed<Uniforms>();
+}
 
 // The cache itself, owned by the GPU worker: one per context. Programs are
 // deleted with it, on the GL thread, while their context is current.

@@ -387,9 +387,116 @@ StatusOr<Setup> BuildSetup(const GpuScene& gpu_scene, const Scene& scene, const 
   return setup;
 }
 
-// The algorithm's programs and variants (the worker's program cache).
-StatusOr<const GlProgram*> Program(const std::vector<ShaderSource>& sources, const ShaderDefines& defines) {
-  return CachedProgram(volumetric_shadows_shaders::Find, sources, defines);
+// The algorithm's programs and their uniforms. vol_light.glsl's and the
+// rectification's are shared by two programs each.
+struct LightUniforms {
+  explicit LightUniforms(UniformLocator& at)
+      : texture_size(at.Find<glm::ivec2>("u_texture_size")),
+        tan_half(at.Find<float>("u_tan_half")),
+        cos_outer(at.Find<float>("u_cos_outer")),
+        cos_inner(at.Find<float>("u_cos_inner")) {}
+  Uniform<glm::ivec2> texture_size;  // (0, 0): no texture
+  Uniform<float> tan_half, cos_outer, cos_inner;
+};
+
+struct RectUniforms {
+  explicit RectUniforms(UniformLocator& at)
+      : epipole(at.Find<glm::vec2>("u_epipole")),
+        theta_ref(at.Find<float>("u_theta_ref")),
+        theta_min_rel(at.Find<float>("u_theta_min_rel")),
+        dtheta(at.Find<float>("u_dtheta")),
+        r0(at.Find<float>("u_r0")),
+        dr(at.Find<float>("u_dr")),
+        rows(at.Find<int>("u_rows")),
+        cols(at.Find<int>("u_cols")) {}
+  Uniform<glm::vec2> epipole;
+  Uniform<float> theta_ref, theta_min_rel, dtheta, r0, dr;
+  Uniform<int> rows, cols;
+};
+
+struct SceneDrawUniforms {  // vol_shadow.vert, with vol_shadow.frag or vol_camera.frag
+  explicit SceneDrawUniforms(UniformLocator& at)
+      : clip_from_anchor(at.Find<glm::mat4>("u_clip_from_anchor")), eye(at.FindInVariant<glm::vec3>("u_eye")) {}
+  Uniform<glm::mat4> clip_from_anchor;
+  Uniform<glm::vec3> eye;  // vol_camera.frag's
+};
+
+struct RectifyUniforms {
+  explicit RectifyUniforms(UniformLocator& at)
+      : rect(at),
+        light(at),
+        map_size(at.Find<int>("u_map_size")),
+        eye_in_light(at.Find<glm::vec3>("u_eye_in_light")),
+        texel_world(at.Find<glm::vec2>("u_texel_world")) {}
+  RectUniforms rect;
+  LightUniforms light;
+  Uniform<int> map_size;
+  Uniform<glm::vec3> eye_in_light;
+  Uniform<glm::vec2> texel_world;
+};
+
+struct MinMaxUniforms {
+  explicit MinMaxUniforms(UniformLocator& at)
+      : level(at.Find<int>("u_level")), cols(at.Find<int>("u_cols")), rows(at.Find<int>("u_rows")) {}
+  Uniform<int> level, cols, rows;
+};
+
+struct PrefixUniforms {
+  explicit PrefixUniforms(UniformLocator& at)
+      : cols(at.Find<int>("u_cols")), rows(at.Find<int>("u_rows")), svd_x_step(at.Find<float>("u_svd_x_step")) {}
+  Uniform<int> cols, rows;
+  Uniform<float> svd_x_step;
+};
+
+struct IntegrateUniforms {
+  explicit IntegrateUniforms(UniformLocator& at)
+      : rect(at),
+        light(at),
+        light_clip(at.Find<glm::mat4>("u_light_clip")),
+        c0(at.Find<glm::vec4>("u_c0")),
+        image_size(at.Find<glm::ivec2>("u_image_size")),
+        first_row(at.Find<int>("u_first_row")),
+        eye(at.Find<glm::vec3>("u_eye")),
+        cam_forward(at.Find<glm::vec3>("u_cam_forward")),
+        cam_right(at.Find<glm::vec3>("u_cam_right")),
+        cam_up(at.Find<glm::vec3>("u_cam_up")),
+        light_dir(at.Find<glm::vec3>("u_light_dir")),
+        light_pos(at.Find<glm::vec3>("u_light_pos")),
+        map_size(at.Find<float>("u_map_size")),
+        levels(at.Find<int>("u_levels")),
+        bias(at.Find<float>("u_bias")),
+        sigma_s(at.Find<float>("u_sigma_s")),
+        sigma_t(at.Find<float>("u_sigma_t")),
+        g(at.Find<float>("u_g")),
+        intensity(at.Find<float>("u_intensity")),
+        half_depth(at.Find<float>("u_half_depth")),
+        medium_start(at.Find<float>("u_medium_start")),
+        medium_min(at.Find<glm::vec3>("u_medium_min")),
+        medium_max(at.Find<glm::vec3>("u_medium_max")),
+        direct(at.Find<int>("u_direct")),
+        normal_offset(at.Find<float>("u_normal_offset")),
+        svd_alpha0(at.Find<float>("u_svd_alpha0")),
+        svd_alpha_step(at.Find<float>("u_svd_alpha_step")),
+        eye_light_distance(at.Find<float>("u_eye_light_distance")) {}
+  RectUniforms rect;
+  LightUniforms light;
+  Uniform<glm::mat4> light_clip;
+  Uniform<glm::vec4> c0;
+  Uniform<glm::ivec2> image_size;
+  Uniform<int> first_row;
+  Uniform<glm::vec3> eye, cam_forward, cam_right, cam_up, light_dir, light_pos;
+  Uniform<float> map_size;
+  Uniform<int> levels;
+  Uniform<float> bias, sigma_s, sigma_t, g, intensity, half_depth, medium_start;
+  Uniform<glm::vec3> medium_min, medium_max;
+  Uniform<int> direct;
+  Uniform<float> normal_offset, svd_alpha0, svd_alpha_step, eye_light_distance;
+};
+
+template <typename Uniforms>
+StatusOr<const TypedProgram<Uniforms>*> Program(const std::vector<ShaderSource>& sources,
+                                                const ShaderDefines& defines) {
+  return CachedProgram<Uniforms>(volumetric_shadows_shaders::Find, sources, defines);
 }
 
 GlBuffer MakeBuffer(size_t bytes, const void* data = nullptr) {
@@ -400,25 +507,23 @@ GlBuffer MakeBuffer(size_t bytes, const void* data = nullptr) {
 
 GLuint Groups(uint32_t n, uint32_t size) { return (n + size - 1) / size; }
 
-// The light-weight uniforms of vol_light.glsl.
-void SetLightUniforms(const GlProgram* program, const Setup& setup, const VolumetricLight& light) {
+void SetLightUniforms(const LightUniforms& u, const Setup& setup, const VolumetricLight& light) {
   const bool textured = !light.texture.empty();
-  glProgramUniform2i(program->id(), program->Uniform("u_texture_size"), textured ? GLint(light.texture_width) : 0,
-                     textured ? GLint(light.texture_height) : 0);
-  glProgramUniform1f(program->id(), program->Uniform("u_tan_half"), float(setup.tan_half));
-  glProgramUniform1f(program->id(), program->Uniform("u_cos_outer"), float(setup.cos_outer));
-  glProgramUniform1f(program->id(), program->Uniform("u_cos_inner"), float(setup.cos_inner));
+  u.texture_size.Set(textured ? glm::ivec2(GLint(light.texture_width), GLint(light.texture_height)) : glm::ivec2(0));
+  u.tan_half.Set(float(setup.tan_half));
+  u.cos_outer.Set(float(setup.cos_outer));
+  u.cos_inner.Set(float(setup.cos_inner));
 }
 
-void SetRectUniforms(const GlProgram* program, const Setup& setup) {
-  glProgramUniform2f(program->id(), program->Uniform("u_epipole"), float(setup.epipole.x), float(setup.epipole.y));
-  glProgramUniform1f(program->id(), program->Uniform("u_theta_ref"), float(setup.theta_ref));
-  glProgramUniform1f(program->id(), program->Uniform("u_theta_min_rel"), float(setup.theta_min_rel));
-  glProgramUniform1f(program->id(), program->Uniform("u_dtheta"), float(setup.dtheta));
-  glProgramUniform1f(program->id(), program->Uniform("u_r0"), float(setup.r0));
-  glProgramUniform1f(program->id(), program->Uniform("u_dr"), float(setup.dr));
-  glProgramUniform1i(program->id(), program->Uniform("u_rows"), GLint(setup.rows));
-  glProgramUniform1i(program->id(), program->Uniform("u_cols"), GLint(setup.cols));
+void SetRectUniforms(const RectUniforms& u, const Setup& setup) {
+  u.epipole.Set(glm::vec2(setup.epipole));
+  u.theta_ref.Set(float(setup.theta_ref));
+  u.theta_min_rel.Set(float(setup.theta_min_rel));
+  u.dtheta.Set(float(setup.dtheta));
+  u.r0.Set(float(setup.r0));
+  u.dr.Set(float(setup.dr));
+  u.rows.Set(GLint(setup.rows));
+  u.cols.Set(GLint(setup.cols));
 }
 
 // One rendering's programs and GL objects, made by its first GL job and
@@ -427,12 +532,12 @@ void SetRectUniforms(const GlProgram* program, const Setup& setup) {
 // between them. Each job binds what it uses and sets its programs' uniforms
 // (the jobs in between may use the same cached programs).
 struct VolumetricTargets {
-  const GlProgram* shadow = nullptr;
-  const GlProgram* camera = nullptr;
-  const GlProgram* rectify = nullptr;
-  const GlProgram* minmax = nullptr;
-  const GlProgram* prefix = nullptr;
-  const GlProgram* integrate = nullptr;
+  const TypedProgram<SceneDrawUniforms>* shadow = nullptr;  // the worker's program cache owns the programs
+  const TypedProgram<SceneDrawUniforms>* camera = nullptr;
+  const TypedProgram<RectifyUniforms>* rectify = nullptr;
+  const TypedProgram<MinMaxUniforms>* minmax = nullptr;
+  const TypedProgram<PrefixUniforms>* prefix = nullptr;
+  const TypedProgram<IntegrateUniforms>* integrate = nullptr;
   GlTexture2D shadow_map{NoCreate}, geometry{NoCreate}, albedo{NoCreate};
   GlRenderbuffer camera_depth{NoCreate};
   GlFramebuffer shadow_fb{NoCreate}, camera_fb{NoCreate};
@@ -483,15 +588,16 @@ StatusOr<std::shared_ptr<VolumetricTargets>> CreateTargets(Setup& setup, const V
   if (method == VolumetricMethod::kRayMarching) integrate_defines.emplace_back("RAY_MARCH", "1");
 
   auto t = std::make_shared<VolumetricTargets>();
-  VISQ_ASSIGN_OR_RETURN(t->shadow,
-                        Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(t->camera,
-                        Program({{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}},
-                                {{"CAMERA", "1"}}));
-  VISQ_ASSIGN_OR_RETURN(t->rectify, Program({{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
-  VISQ_ASSIGN_OR_RETURN(t->minmax, Program({{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
-  VISQ_ASSIGN_OR_RETURN(t->prefix, Program({{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
-  VISQ_ASSIGN_OR_RETURN(t->integrate, Program({{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
+  VISQ_ASSIGN_OR_RETURN(t->shadow, Program<SceneDrawUniforms>(
+                                       {{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_shadow.frag"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(t->camera, Program<SceneDrawUniforms>(
+                                       {{GL_VERTEX_SHADER, "vol_shadow.vert"}, {GL_FRAGMENT_SHADER, "vol_camera.frag"}},
+                                       {{"CAMERA", "1"}}));
+  VISQ_ASSIGN_OR_RETURN(t->rectify, Program<RectifyUniforms>({{GL_COMPUTE_SHADER, "vol_rectify.comp"}}, rect_defines));
+  VISQ_ASSIGN_OR_RETURN(t->minmax, Program<MinMaxUniforms>({{GL_COMPUTE_SHADER, "vol_minmax.comp"}}, {}));
+  VISQ_ASSIGN_OR_RETURN(t->prefix, Program<PrefixUniforms>({{GL_COMPUTE_SHADER, "vol_prefix.comp"}}, svd_defines));
+  VISQ_ASSIGN_OR_RETURN(t->integrate,
+                        Program<IntegrateUniforms>({{GL_COMPUTE_SHADER, "vol_integrate.comp"}}, integrate_defines));
 
   // The driver fills every store it allocates (llvmpipe: a memset of up to
   // 67 MB each, 1.2 s for a 4096 map and a 1920 x 1080 image on this
@@ -591,7 +697,7 @@ Status DrawShadowMap(const GpuScene& scene, const VolumetricTargets& t, const Se
   const float one = 1.0f;
   glClearBufferfv(GL_DEPTH, 0, &one);
   glUseProgram(t.shadow->id());
-  glProgramUniformMatrix4fv(t.shadow->id(), t.shadow->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
+  t.shadow->uniforms.clip_from_anchor.Set(clip);
   const Status drawn = DrawInTimedPieces(scene, scene.Whole(), pieces, job, "volumetric shadows: shadow map");
   glDisable(GL_DEPTH_TEST);
   UnbindAll();
@@ -617,10 +723,9 @@ Status DrawCameraPass(const GpuScene& scene, const GpuScene::Resources& res, con
   glClearBufferfv(GL_COLOR, 0, no_surface);
   glClearBufferfv(GL_COLOR, 1, black);
   glClearBufferfv(GL_DEPTH, 0, &one);
-  const GlProgram* p = t.camera;
-  glUseProgram(p->id());
-  glProgramUniformMatrix4fv(p->id(), p->Uniform("u_clip_from_anchor"), 1, GL_FALSE, glm::value_ptr(clip));
-  glProgramUniform3f(p->id(), p->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
+  glUseProgram(t.camera->id());
+  t.camera->uniforms.clip_from_anchor.Set(clip);
+  t.camera->uniforms.eye.Set(glm::vec3(setup.eye));
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 0, res.positions.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 1, res.triangle_materials.id());
   glBindBufferBase(GL_SHADER_STORAGE_BUFFER, 2, t.albedo_buffer.id());
@@ -636,14 +741,13 @@ Status DrawCameraPass(const GpuScene& scene, const GpuScene::Resources& res, con
 // 3. Rectification.
 Status Rectify(const VolumetricTargets& t, const Setup& setup, const VolumetricLight& light) {
   BindComputeStorage(t);
-  const GlProgram* p = t.rectify;
-  glUseProgram(p->id());
-  SetRectUniforms(p, setup);
-  SetLightUniforms(p, setup, light);
-  glProgramUniform1i(p->id(), p->Uniform("u_map_size"), GLint(setup.map_size));
-  glProgramUniform3f(p->id(), p->Uniform("u_eye_in_light"), float(setup.eye_in_light.x), float(setup.eye_in_light.y),
-                     float(setup.eye_in_light.z));
-  glProgramUniform2f(p->id(), p->Uniform("u_texel_world"), float(setup.texel_world.x), float(setup.texel_world.y));
+  const RectifyUniforms& u = t.rectify->uniforms;
+  glUseProgram(t.rectify->id());
+  SetRectUniforms(u.rect, setup);
+  SetLightUniforms(u.light, setup, light);
+  u.map_size.Set(GLint(setup.map_size));
+  u.eye_in_light.Set(glm::vec3(setup.eye_in_light));
+  u.texel_world.Set(glm::vec2(setup.texel_world));
   glDispatchCompute(Groups(setup.cols, 8), Groups(setup.rows, 8), 1);
   glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
   UnbindAll();
@@ -656,21 +760,22 @@ Status Rectify(const VolumetricTargets& t, const Setup& setup, const VolumetricL
 Status BuildMinMax(const VolumetricTargets& t, const Setup& setup, VolumetricMethod method) {
   BindComputeStorage(t);
   if (method == VolumetricMethod::kMinMaxTraversal) {
+    const MinMaxUniforms& u = t.minmax->uniforms;
     glUseProgram(t.minmax->id());
-    glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_cols"), GLint(setup.cols));
-    glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_rows"), GLint(setup.rows));
+    u.cols.Set(GLint(setup.cols));
+    u.rows.Set(GLint(setup.rows));
     for (uint32_t level = 1; level <= setup.levels; ++level) {
-      glProgramUniform1i(t.minmax->id(), t.minmax->Uniform("u_level"), GLint(level));
+      u.level.Set(GLint(level));
       glDispatchCompute(Groups(setup.cols >> level, 64), setup.rows, 1);
       glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
     }
   }
   if (setup.integrand == VolumetricIntegrand::kPrefixSum || setup.integrand == VolumetricIntegrand::kSvd) {
-    const GlProgram* p = t.prefix;
-    glUseProgram(p->id());
-    glProgramUniform1i(p->id(), p->Uniform("u_cols"), GLint(setup.cols));
-    glProgramUniform1i(p->id(), p->Uniform("u_rows"), GLint(setup.rows));
-    glProgramUniform1f(p->id(), p->Uniform("u_svd_x_step"), float(setup.svd.x_step));
+    const PrefixUniforms& u = t.prefix->uniforms;
+    glUseProgram(t.prefix->id());
+    u.cols.Set(GLint(setup.cols));
+    u.rows.Set(GLint(setup.rows));
+    u.svd_x_step.Set(float(setup.svd.x_step));
     glDispatchCompute(Groups(setup.rows, 64), 1, 1);
     glMemoryBarrier(GL_SHADER_STORAGE_BARRIER_BIT);
   }
@@ -684,41 +789,37 @@ Status BuildMinMax(const VolumetricTargets& t, const Setup& setup, VolumetricMet
 Status IntegrateRows(const VolumetricTargets& t, const Setup& setup, const VolumetricParams& params,
                      uint32_t first_row, uint32_t rows) {
   BindComputeStorage(t);
-  const GlProgram* p = t.integrate;
+  const IntegrateUniforms& u = t.integrate->uniforms;
   const VolumetricLight& light = params.light;
-  glUseProgram(p->id());
-  SetRectUniforms(p, setup);
-  SetLightUniforms(p, setup, light);
-  const glm::mat4 light_clip(setup.light_clip);
-  glProgramUniformMatrix4fv(p->id(), p->Uniform("u_light_clip"), 1, GL_FALSE, glm::value_ptr(light_clip));
-  glProgramUniform4f(p->id(), p->Uniform("u_c0"), float(setup.c0.x), float(setup.c0.y), float(setup.c0.z), float(setup.c0.w));
-  glProgramUniform2i(p->id(), p->Uniform("u_image_size"), GLint(setup.width), GLint(setup.height));
-  glProgramUniform1i(p->id(), p->Uniform("u_first_row"), GLint(first_row));
-  glProgramUniform3f(p->id(), p->Uniform("u_eye"), float(setup.eye.x), float(setup.eye.y), float(setup.eye.z));
-  auto set3 = [&](const char* name, const glm::dvec3& x) {
-    glProgramUniform3f(p->id(), p->Uniform(name), float(x.x), float(x.y), float(x.z));
-  };
-  set3("u_cam_forward", setup.cam_forward);
-  set3("u_cam_right", setup.cam_right);
-  set3("u_cam_up", setup.cam_up);
-  set3("u_light_dir", setup.light_dir);
-  set3("u_light_pos", setup.light_pos);
-  glProgramUniform1f(p->id(), p->Uniform("u_map_size"), float(setup.map_size));
-  glProgramUniform1i(p->id(), p->Uniform("u_levels"), GLint(setup.levels));
-  glProgramUniform1f(p->id(), p->Uniform("u_bias"), float(setup.bias));
-  glProgramUniform1f(p->id(), p->Uniform("u_sigma_s"), float(params.medium.scattering));
-  glProgramUniform1f(p->id(), p->Uniform("u_sigma_t"), params.medium.optically_thin ? 0.0f : float(params.medium.extinction));
-  glProgramUniform1f(p->id(), p->Uniform("u_g"), float(params.medium.hg_g));
-  glProgramUniform1f(p->id(), p->Uniform("u_intensity"), float(light.intensity));
-  glProgramUniform1f(p->id(), p->Uniform("u_half_depth"), float(setup.half_depth));
-  glProgramUniform1f(p->id(), p->Uniform("u_medium_start"), float(setup.medium_start));
-  set3("u_medium_min", setup.medium.min);
-  set3("u_medium_max", setup.medium.max);
-  glProgramUniform1i(p->id(), p->Uniform("u_direct"), params.combined_image ? 1 : 0);
-  glProgramUniform1f(p->id(), p->Uniform("u_normal_offset"), float(setup.normal_offset));
-  glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha0"), float(setup.svd.alpha0));
-  glProgramUniform1f(p->id(), p->Uniform("u_svd_alpha_step"), float(setup.svd.alpha_step));
-  glProgramUniform1f(p->id(), p->Uniform("u_eye_light_distance"), float(setup.eye_light_distance));
+  glUseProgram(t.integrate->id());
+  SetRectUniforms(u.rect, setup);
+  SetLightUniforms(u.light, setup, light);
+  u.light_clip.Set(glm::mat4(setup.light_clip));
+  u.c0.Set(glm::vec4(setup.c0));
+  u.image_size.Set(glm::ivec2(GLint(setup.width), GLint(setup.height)));
+  u.first_row.Set(GLint(first_row));
+  u.eye.Set(glm::vec3(setup.eye));
+  u.cam_forward.Set(glm::vec3(setup.cam_forward));
+  u.cam_right.Set(glm::vec3(setup.cam_right));
+  u.cam_up.Set(glm::vec3(setup.cam_up));
+  u.light_dir.Set(glm::vec3(setup.light_dir));
+  u.light_pos.Set(glm::vec3(setup.light_pos));
+  u.map_size.Set(float(setup.map_size));
+  u.levels.Set(GLint(setup.levels));
+  u.bias.Set(float(setup.bias));
+  u.sigma_s.Set(float(params.medium.scattering));
+  u.sigma_t.Set(params.medium.optically_thin ? 0.0f : float(params.medium.extinction));
+  u.g.Set(float(params.medium.hg_g));
+  u.intensity.Set(float(light.intensity));
+  u.half_depth.Set(float(setup.half_depth));
+  u.medium_start.Set(float(setup.medium_start));
+  u.medium_min.Set(glm::vec3(setup.medium.min));
+  u.medium_max.Set(glm::vec3(setup.medium.max));
+  u.direct.Set(params.combined_image ? 1 : 0);
+  u.normal_offset.Set(float(setup.normal_offset));
+  u.svd_alpha0.Set(float(setup.svd.alpha0));
+  u.svd_alpha_step.Set(float(setup.svd.alpha_step));
+  u.eye_light_distance.Set(float(setup.eye_light_distance));
   glDispatchCompute(Groups(setup.width, 8), Groups(rows, 8), 1);
   glMemoryBarrier(GL_BUFFER_UPDATE_BARRIER_BIT);
   UnbindAll();

@@ -208,7 +208,8 @@ TEST(ProgramCache, BuildsEachVariantOncePerContext) {
   EXPECT_EQ(first, again);
   EXPECT_NE(first, variant);
   EXPECT_EQ(first->name(), "self_test.vert+self_test.frag");
-  EXPECT_GE(first->Uniform("u_pattern"), 0);
+  EXPECT_GE(first->Location("u_pattern").value_or(-1), 0);
+  EXPECT_FALSE(first->Location("u_patern").has_value()) << "declared by no shader";
 }
 
 TEST(ProgramCache, IsOnlyReachableOnTheGlThread) {
@@ -216,13 +217,35 @@ TEST(ProgramCache, IsOnlyReachableOnTheGlThread) {
   EXPECT_EQ(off_thread.status().code(), absl::StatusCode::kInternal);
 }
 
-// The shared worker runs with GPU debugging on (as the tests' servers do): a
-// uniform name that no shader declares fails the job that set it, naming it.
-TEST(ProgramCache, MisspeltUniformFailsTheJobWhenDebugging) {
+// A program's uniforms are typed members located once: a name that no
+// shader declares fails the program's first use, naming it, with GPU
+// debugging on or off; a declared one sets its value with one call.
+struct SelfTestUniforms {
+  explicit SelfTestUniforms(UniformLocator& at) : pattern(at.Find<unsigned>("u_pattern")) {}
+  Uniform<unsigned> pattern;
+};
+struct MisspeltUniforms {
+  explicit MisspeltUniforms(UniformLocator& at) : pattern(at.Find<unsigned>("u_patern")) {}
+  Uniform<unsigned> pattern;
+};
+
+TEST(ProgramCache, TypedUniformsAreLocatedOnceAndAMisspeltOneFailsTheFirstUse) {
+  Status typed = SharedGpuWorker().Run({}, [&]() -> Status {
+    VISQ_ASSIGN_OR_RETURN(const TypedProgram<SelfTestUniforms>* program,
+                          CachedProgram<SelfTestUniforms>(CoreShaderFiles, kSelfTestSources));
+    VISQ_ASSIGN_OR_RETURN(const TypedProgram<SelfTestUniforms>* again,
+                          CachedProgram<SelfTestUniforms>(CoreShaderFiles, kSelfTestSources));
+    EXPECT_EQ(program, again) << "located once per program";
+    EXPECT_GE(program->uniforms.pattern.location(), 0);
+    program->uniforms.pattern.Set(5u);
+    GLuint value = 0;
+    glGetUniformuiv(program->id(), program->uniforms.pattern.location(), &value);
+    EXPECT_EQ(value, 5u);
+    return CollectGlErrors("setting a typed uniform");
+  });
+  EXPECT_TRUE(typed.ok()) << typed;
   Status status = SharedGpuWorker().Run({}, [&]() -> Status {
-    VISQ_ASSIGN_OR_RETURN(const GlProgram* program, CachedProgram(CoreShaderFiles, kSelfTestSources));
-    program->Set("u_patern", 5u);
-    return absl::OkStatus();
+    return CachedProgram<MisspeltUniforms>(CoreShaderFiles, kSelfTestSources).status();
   });
   EXPECT_EQ(status.code(), absl::StatusCode::kInternal) << status;
   EXPECT_NE(std::string(status.message()).find("u_patern"), std::string::npos) << status;
