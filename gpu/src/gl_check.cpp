@@ -7,7 +7,6 @@ namespace {
 // Per GL thread: each worker runs with its own debug option.
 thread_local bool checks_enabled = false;
 constexpr int kMaxErrorsDrained = 16;  // glGetError can loop on a lost context
-thread_local std::string recorded_misuse;
 }  // namespace
 
 bool GlChecksEnabled() { return checks_enabled; }
@@ -27,20 +26,12 @@ std::string GlErrorName(GLenum error) {
   }
 }
 
-void RecordGlMisuse(std::string what) {
-  if (recorded_misuse.size() < 2000) absl::StrAppend(&recorded_misuse, recorded_misuse.empty() ? "" : ", ", what);
-}
-
 Status CollectGlErrors(std::string_view where) {
   std::string errors;
   for (int i = 0; i < kMaxErrorsDrained; ++i) {
     const GLenum error = glGetError();
     if (error == GL_NO_ERROR) break;
     absl::StrAppend(&errors, errors.empty() ? "" : ", ", GlErrorName(error));
-  }
-  if (!recorded_misuse.empty()) {
-    absl::StrAppend(&errors, errors.empty() ? "" : ", ", recorded_misuse);
-    recorded_misuse.clear();
   }
   if (errors.empty()) return absl::OkStatus();
   return absl::InternalError(absl::StrCat("GL error in ", AbslView(where), ": ", errors));

@@ -13,13 +13,9 @@ namespace visq::gpu {
 
 std::string GlErrorName(GLenum error);
 
-// Drains glGetError, and the misuse recorded on this thread since the last
-// call; INTERNAL naming every error and `where` if there was any.
+// Drains glGetError; INTERNAL naming every error and `where` if there was
+// any.
 [[nodiscard]] Status CollectGlErrors(std::string_view where);
-
-// Records a mistake that GL itself does not report (a uniform name that no
-// shader declares), so the running job fails with it (GL thread).
-void RecordGlMisuse(std::string what);
 
 // Whether VISQ_GL_CHECK does anything on this GL thread (set by its worker
 // from GpuOptions::debug).

@@ -4,7 +4,6 @@
 #include <cstdint>
 #include <cstring>
 
-#include "gl_check.h"
 #include "visq_gpu_core_embedded.h"
 
 #include <absl/strings/str_join.h>

@@ -45,8 +45,8 @@ using ShaderFiles = std::string_view (*)(std::string_view);
 // NOT_FOUND if a file is not embedded.
 [[nodiscard]] StatusOr<std::string> EmbeddedShaderText(ShaderFiles files, const std::string& file_name);
 
-// One uniform's value into a program (glProgramUniform*), by type. Doubles
-// are rounded to float last, after the caller's double arithmetic.
+// One uniform's value into a program (glProgramUniform*), by type. Callers
+// round their doubles to float last, after their double arithmetic.
 void SetUniform(GLuint program, GLint location, int value);
 void SetUniform(GLuint program, GLint location, unsigned value);
 void SetUniform(GLuint program, GLint location, float value);

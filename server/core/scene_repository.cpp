@@ -74,8 +74,17 @@ Status ValidateUploadFile(absl::string_view file) {
   return absl::OkStatus();
 }
 
+// Seeded again in a forked child: with its parent's generator state it
+// would repeat the parent's names, and a sibling killed between creating a
+// temporary file and renaming it would leave the next one's name taken
+// (O_EXCL: the catalog kind's record failed, and with it the start).
 std::string RandomSuffix() {
   static thread_local std::mt19937_64 rng{std::random_device{}()};
+  static thread_local pid_t seeded_in = ::getpid();
+  if (const pid_t pid = ::getpid(); pid != seeded_in) {
+    rng.seed(std::random_device{}());
+    seeded_in = pid;
+  }
   return absl::StrCat(absl::Hex(rng(), absl::kZeroPad16));
 }
 

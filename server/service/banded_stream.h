@@ -49,10 +49,16 @@ grpc::ServerWriteReactor<Response>* ServeBandedStream(const ServiceContext& ctx,
         // An answer's memory reservation lasts until its last message is sent.
         if constexpr (requires { answer.memory; })
           if (answer.memory) out.Keep(answer.memory);
+        // The timing goes last: the transfer is the time the work waited for
+        // its writes (the reader's pace).
         Response last = LastMessage(answer);
         const core::WorkTiming work = core::WorkTimingOf(answer);
-        SetProducedTiming(queue_ms + work.queue_ms, work.compute_ms, query.call.BuildMs(), out.write_ms(), log,
-                          last.mutable_timing());
+        v1::Timing* timing = last.mutable_timing();
+        timing->set_queue_ms(queue_ms + work.queue_ms);
+        timing->set_compute_ms(work.compute_ms);
+        timing->set_build_ms(query.call.BuildMs());
+        timing->set_transfer_ms(out.write_ms());
+        timing->set_total_ms(log.ElapsedMs());
         return last;
       });
 }

@@ -362,14 +362,4 @@ class ProducedStreamReactor final : public grpc::ServerWriteReactor<Response> {
   std::unique_ptr<UploadLimits::Watch> stall_;  // --stream-stall-seconds, while a write waits for the client
 };
 
-// The last message's timing of a produced stream.
-inline void SetProducedTiming(double queue_ms, double compute_ms, double build_ms, double write_ms,
-                              const RequestLog& log, v1::Timing* timing) {
-  timing->set_queue_ms(queue_ms);
-  timing->set_compute_ms(compute_ms);
-  timing->set_build_ms(build_ms);
-  timing->set_transfer_ms(write_ms);
-  timing->set_total_ms(log.ElapsedMs());
-}
-
 }  // namespace visq::service

@@ -602,7 +602,8 @@ TEST_F(SqliteToPostgres, AStartKilledDuringItsMoveLeavesAllOrNothing) {
     left_nothing += moved.empty();
   }
   EXPECT_GT(left_nothing, 0) << "no kill came before the move's commit";
-  ASSERT_TRUE(SceneRepository::Open({root, uri, ""}).ok());
+  auto finished = SceneRepository::Open({root, uri, ""});
+  ASSERT_TRUE(finished.ok()) << finished.status();
   EXPECT_EQ(in_postgres(), sqlite_scenes);
 }
 
