@@ -387,7 +387,8 @@ TEST(Engine, HiddenSampleMapStreamsItsBandsAsTheyAreMade) {
 
     // The time a band waits in the sink (a slow reader of the stream) is
     // the transport's, not the work's: the answer's compute time leaves it
-    // out, for every method (a RAYCAST map once counted its band writes).
+    // out, RASTER's and RAYCAST's alike (a RAYCAST map once counted its band
+    // writes).
     constexpr double kSinkMs = 300.0;
     const double whole_ms = WorkTimingOf(*whole).compute_ms;
     int slow_bands = 0;
