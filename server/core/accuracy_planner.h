@@ -42,6 +42,13 @@ struct AccuracyTarget {
 // INVALID_ARGUMENT naming "target.<field>" for a bad target.
 [[nodiscard]] Status ValidateAccuracyTarget(const AccuracyTarget& target);
 
+// Work in a method's units for the cost model (CostModel: a second unit
+// where the method's cost has two parts that grow apart).
+struct WorkUnits {
+  double work = 0.0;
+  double extra = 0.0;
+};
+
 // One candidate: a method with its parameters, what it could promise and
 // what it would cost.
 struct Plan {
