@@ -33,6 +33,12 @@
 # after one line "visq: container stage skipped: WHY".
 # VISQ_TEST_CONTAINER=required turns a skip into a failure (for machines
 # that must run it).
+#
+# VISQ_CONTAINER_TARGET=runtime builds the release image instead, as a
+# studio would (`podman build -f deploy/Dockerfile .`): the build stage
+# installs the dependencies and compiles visq inside the image from this
+# source tree (about as long as the Release build; not part of CI), and the
+# same checks run on it.
 set -euo pipefail
 export LC_ALL=C
 
@@ -68,7 +74,11 @@ mirror=${VISQ_DEBIAN_MIRROR:-$(apt_source_for bookworm)}
 security_mirror=${VISQ_DEBIAN_SECURITY_MIRROR:-$(apt_source_for bookworm-security)}
 security_mirror=${security_mirror:-${mirror%/debian}/debian-security}
 base=debian:bookworm
+target=${VISQ_CONTAINER_TARGET:-runtime-prebuilt}
+[[ "$target" == runtime-prebuilt || "$target" == runtime ]] ||
+  { echo "VISQ_CONTAINER_TARGET: runtime-prebuilt (the default) or runtime, not '$target'" >&2; exit 2; }
 image=localhost/visq:ci-test
+[[ "$target" == runtime ]] && image=localhost/visq:release-check
 python_image=localhost/visq-python:ci-test
 dev_image=localhost/visq-dev:ci-test
 scene=cornell_box_visq
@@ -190,16 +200,22 @@ python_deb=$(ls "$tmp/packages"/python3-visq_*.deb 2> /dev/null) || fail "cpack 
 dev_deb=$(ls "$tmp/packages"/libvisq-client-dev_*.deb 2> /dev/null) ||
   fail "cpack made no libvisq-client-dev .deb: $(tail -n 3 "$tmp/cpack.log")"
 pack_s=$(since "$start")
-# A context of its own, three files: the build reads nothing else.
-mkdir -p "$tmp/context/deploy" "$tmp/context/prebuilt"
-cp "$source_dir/deploy/install-deps.sh" "$tmp/context/deploy/"
-cp "$server_deb" "$tmp/context/prebuilt/visq-server.deb"
-cp "$client_deb" "$tmp/context/prebuilt/visq-client.deb"
+# A context of its own, three files: the build reads nothing else. The
+# release target's is the source tree, whose build stage compiles it.
+context=$tmp/context
+if [[ "$target" == runtime ]]; then
+  context=$source_dir
+else
+  mkdir -p "$tmp/context/deploy" "$tmp/context/prebuilt"
+  cp "$source_dir/deploy/install-deps.sh" "$tmp/context/deploy/"
+  cp "$server_deb" "$tmp/context/prebuilt/visq-server.deb"
+  cp "$client_deb" "$tmp/context/prebuilt/visq-client.deb"
+fi
 old_image=$(podman image inspect --format '{{.Id}}' "$image" 2> /dev/null || true)
 start=$(now)
 # --format docker keeps the Dockerfile's HEALTHCHECK (OCI images drop it).
-if ! podman build --pull=never --network host "${limits[@]}" --format docker --target runtime-prebuilt \
-    -f "$source_dir/deploy/Dockerfile" -t "$image" "$tmp/context" > "$tmp/build.log" 2>&1; then
+if ! podman build --pull=never --network host "${limits[@]}" --format docker --target "$target" \
+    -f "$source_dir/deploy/Dockerfile" -t "$image" "$context" > "$tmp/build.log" 2>&1; then
   # The runtime stage installs its libraries with apt-get: without the
   # mirror (and without the layer in the cache) the image cannot build here.
   if grep -qE "Temporary failure resolving|Could not resolve|Failed to fetch|Unable to connect" "$tmp/build.log"; then
@@ -210,7 +226,7 @@ if ! podman build --pull=never --network host "${limits[@]}" --format docker --t
     fail "dpkg refused the .debs on a root with install-deps.sh --runtime-only's packages: add what the" \
       "'depends on' lines above name to runtime_packages in deploy/install-deps.sh"
   fi
-  fail "podman build of deploy/Dockerfile (target runtime-prebuilt) failed; the log's end is above"
+  fail "podman build of deploy/Dockerfile (target $target) failed; the log's end is above"
 fi
 build_s=$(since "$start")
 new_image=$(podman image inspect --format '{{.Id}}' "$image")
@@ -374,8 +390,8 @@ stop_s=$(since "$start")
 code=$(podman inspect --format '{{.State.ExitCode}}' "$container")
 [[ "$code" == 0 ]] || { logs; fail "the server exited $code on SIGTERM, not 0; the log is above"; }
 
-echo "visq: container stage passed: base image ${base_s} s ($base_how), .debs ${pack_s} s ($installed:" \
-  "their Depends and install-deps.sh --runtime-only agree), image build ${build_s} s," \
+echo "visq: container stage passed (target $target): base image ${base_s} s ($base_how), .debs ${pack_s} s" \
+  "($installed: their Depends and install-deps.sh --runtime-only agree), image build ${build_s} s," \
   "SERVING ${serving_s} s after podman run, list + hidden-map ${query_s} s (mean visible fraction $mean)," \
   "python3-visq on a clean root ${python_s} s, libvisq-client-dev on a clean root and two consumers ${dev_s} s," \
   "stop ${stop_s} s; GPU: $gpu"
