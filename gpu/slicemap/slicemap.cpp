@@ -298,67 +298,91 @@ Status DrawPassOverJobs(const JobRunner& job, const GpuScene& scene, const Scene
 // maps). With local precision a depth-range pass over the whole image comes
 // first.
 using RawBand = std::function<Status(uint32_t first_row, RawSlicemap& raw)>;
-Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
-                 RawSlicemap& raw, const RawBand& on_band) {
-  const bool solid = config.mode == VoxelizeMode::kSolid;
-  const bool conservative = config.rasterization == Rasterization::kConservative;
-  const bool local = config.precision == SlicePrecision::kLocal;
 
+// One voxelization's passes: the triangle selection, the render targets
+// (made in the first job, kept across the others), the draw pieces and the
+// GL jobs, shared by the depth-range pass, the slice passes and the bands.
+class SlicemapPasses {
+ public:
+  SlicemapPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
+                 RawSlicemap& raw)
+      : worker_(worker),
+        scene_(scene),
+        view_(view),
+        config_(config),
+        raw_(raw),
+        solid_(config.mode == VoxelizeMode::kSolid),
+        conservative_(config.rasterization == Rasterization::kConservative),
+        local_(config.precision == SlicePrecision::kLocal),
+        part_(SelectedPart(scene, config)),
+        draw_nothing_(!part_.everything && part_.commands.empty()),
+        per_pass_(solid_ ? kSolidSlicesPerPass : kSlicesPerPass),
+        max_targets_per_map_((std::min(config.slices, per_pass_) + 127) / 128),
+        // Each band draws the selection again, under a scissor, and reads
+        // back only its rows.
+        band_rows_(static_cast<uint32_t>(
+            std::clamp<size_t>(config.max_columns_per_job / std::max<uint32_t>(config.width, 1), 1, config.height))),
+        // Draw pieces of about piece_target_ms.
+        pieces_(config.piece_target_ms, PartTriangles(part_),
+                config.piece_target_ms > 0.0
+                    ? FirstPieceTriangles(uint64_t{config.width} * band_rows_, PartTriangles(part_))
+                    : PartTriangles(part_)),
+        targets_(worker) {}
+
+  Status Run(const RawBand& on_band) {
+    VISQ_RETURN_IF_ERROR(Job([&]() -> Status {
+      const uint32_t maps = solid_ ? 2 : 1;
+      VISQ_ASSIGN_OR_RETURN(std::shared_ptr<SlicemapTargets> made,
+                            CreateTargets(config_, maps * max_targets_per_map_, band_rows_, raw_));
+      targets_.Set(std::move(made));
+      return absl::OkStatus();
+    }));
+    if (local_) VISQ_RETURN_IF_ERROR(DepthRangePass());
+    return Bands(on_band);
+  }
+
+ private:
   // The triangle selection (all when the list is empty).
-  std::vector<std::pair<uint32_t, uint32_t>> selected;
-  for (const TriangleRange& range : config.triangles)
-    if (range.count > 0) selected.emplace_back(range.first, range.count);
-  const ScenePartDraw part = config.triangles.empty() ? scene.Whole() : scene.TriangleRanges(selected);
-  const bool draw_nothing = !part.everything && part.commands.empty();
+  static ScenePartDraw SelectedPart(const GpuScene& scene, const PassConfig& config) {
+    if (config.triangles.empty()) return scene.Whole();
+    std::vector<std::pair<uint32_t, uint32_t>> selected;
+    for (const TriangleRange& range : config.triangles)
+      if (range.count > 0) selected.emplace_back(range.first, range.count);
+    return scene.TriangleRanges(selected);
+  }
+  static int PartTriangles(const ScenePartDraw& part) { return int(std::clamp<uint64_t>(part.triangles, 1, INT32_MAX)); }
 
-  const uint32_t per_pass = solid ? kSolidSlicesPerPass : kSlicesPerPass;
-  const uint32_t maps = solid ? 2 : 1;
-  const uint32_t max_targets_per_map = (std::min(config.slices, per_pass) + 127) / 128;
-  // Each band draws the selection again, under a scissor, and reads back
-  // only its rows.
-  const uint32_t band_rows = static_cast<uint32_t>(
-      std::clamp<size_t>(config.max_columns_per_job / std::max<uint32_t>(config.width, 1), 1, config.height));
-
-  // Draw pieces of about piece_target_ms.
-  const int part_triangles = int(std::clamp<uint64_t>(part.triangles, 1, INT32_MAX));
-  TimedSizer pieces(config.piece_target_ms, part_triangles,
-                    config.piece_target_ms > 0.0
-                        ? FirstPieceTriangles(uint64_t{config.width} * band_rows, part_triangles)
-                        : part_triangles);
-
-  GlStateAcrossJobs<SlicemapTargets> targets(worker);
-  // Jobs of this call at whose end another call's job was queued.
-  uint64_t jobs_others_waited_for = 0;
-  const JobRunner job = [&](const std::function<Status()>& body) -> Status {
+  // One GL job of this call, counting the jobs at whose end another call's
+  // job was queued.
+  Status Job(const std::function<Status()>& body) {
     JobTiming timing;
-    const Status status = worker.Run(
-        config.job,
+    const Status status = worker_.Run(
+        config_.job,
         [&]() -> Status {
           const Status done = body();
-          if (worker.queue_depth() > 0) ++jobs_others_waited_for;
+          if (worker_.queue_depth() > 0) ++jobs_others_waited_for_;
           return done;
         },
         &timing);
-    raw.timings.queue_ms += timing.queue_ms;
-    ++raw.gl_jobs;
+    raw_.timings.queue_ms += timing.queue_ms;
+    ++raw_.gl_jobs;
     return status;
-  };
-  VISQ_RETURN_IF_ERROR(job([&]() -> Status {
-    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<SlicemapTargets> made,
-                          CreateTargets(config, maps * max_targets_per_map, band_rows, raw));
-    targets.Set(std::move(made));
-    return absl::OkStatus();
-  }));
+  }
+  Status DrawPass(const std::function<StatusOr<GLuint>(bool first)>& bind, const std::function<Status()>& finish,
+                  double& draw_ms) {
+    const JobRunner job = [this](const std::function<Status()>& body) { return Job(body); };
+    return DrawPassOverJobs(job, scene_, part_, draw_nothing_, pieces_, config_, bind, finish, draw_ms);
+  }
 
   // Local precision: each column's depth range, in one pass over the image.
-  if (local) {
+  Status DepthRangePass() {
     auto bind = [&](bool first) -> StatusOr<GLuint> {
-      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
-      SetPassState(config, 0, config.height);
-      ShaderDefines defines = BaseDefines(view, config, conservative);
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets_.Get("slicemap"));
+      SetPassState(config_, 0, config_.height);
+      ShaderDefines defines = BaseDefines(view_, config_, conservative_);
       defines.emplace_back("DEPTH_RANGE_PASS", "1");
-      VISQ_ASSIGN_OR_RETURN(const SlicemapProgram* program, Program(view, defines));
-      SetViewUniforms(*program, view, config, 0);
+      VISQ_ASSIGN_OR_RETURN(const SlicemapProgram* program, Program(view_, defines));
+      SetViewUniforms(*program, view_, config_, 0);
       const GLuint framebuffer = made->near_far_framebuffer.id();
       if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
         return absl::InternalError("slicemap: RG32F depth-range framebuffer incomplete");
@@ -372,43 +396,41 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       return program->id();
     };
     auto finish = [&]() -> Status {
-      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets_.Get("slicemap"));
       VISQ_GL_CHECK("slicemap depth-range pass");
-      raw.near_far.resize(size_t{config.width} * config.height * 2);
+      raw_.near_far.resize(size_t{config_.width} * config_.height * 2);
       glGetTextureImage(made->near_far.id(), 0, GL_RG, GL_FLOAT,
-                        static_cast<GLsizei>(raw.near_far.size() * sizeof(float)), raw.near_far.data());
-      raw.passes += 1;
+                        static_cast<GLsizei>(raw_.near_far.size() * sizeof(float)), raw_.near_far.data());
+      raw_.passes += 1;
       return absl::OkStatus();
     };
-    VISQ_RETURN_IF_ERROR(
-        DrawPassOverJobs(job, scene, part, draw_nothing, pieces, config, bind, finish, raw.timings.depth_ms));
+    return DrawPass(bind, finish, raw_.timings.depth_ms);
   }
 
   // One slicemap pass over rows [first_row, first_row + rows): `pass_solid`
   // splits front and back faces, else every fragment goes to the surface map.
-  std::vector<GLuint> texels;
-  auto run_pass = [&](bool pass_solid, bool pass_conservative, uint32_t first_slice, uint32_t pass_slices,
-                      uint32_t first_row, uint32_t rows) -> Status {
+  Status SlicePass(bool pass_solid, bool pass_conservative, uint32_t first_slice, uint32_t pass_slices,
+                   uint32_t first_row, uint32_t rows) {
     const uint32_t targets_per_map = (pass_slices + 127) / 128;
     const uint32_t pass_maps = pass_solid ? 2 : 1;
     auto bind = [&](bool first) -> StatusOr<GLuint> {
-      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets_.Get("slicemap"));
       const GLuint framebuffer = made->framebuffer.id();
       const auto start = Clock::now();
-      SetPassState(config, first_row, rows);
-      if (local) glBindTextureUnit(0, made->near_far.id());
-      ShaderDefines defines = BaseDefines(view, config, pass_conservative);
+      SetPassState(config_, first_row, rows);
+      if (local_) glBindTextureUnit(0, made->near_far.id());
+      ShaderDefines defines = BaseDefines(view_, config_, pass_conservative);
       defines.emplace_back("TARGETS", std::to_string(targets_per_map));
       if (pass_solid) defines.emplace_back("SOLID", "1");
-      VISQ_ASSIGN_OR_RETURN(const SlicemapProgram* program, Program(view, defines));
-      SetViewUniforms(*program, view, config, first_row);
+      VISQ_ASSIGN_OR_RETURN(const SlicemapProgram* program, Program(view_, defines));
+      SetViewUniforms(*program, view_, config_, first_row);
       program->uniforms.pass_first_slice.Set(static_cast<int>(first_slice));
       program->uniforms.pass_slices.Set(static_cast<int>(pass_slices));
       // Attachment i of the pass: map i / targets_per_map, target i % targets_per_map.
       std::vector<GLenum> buffers;
       for (uint32_t m = 0; m < pass_maps; ++m)
         for (uint32_t t = 0; t < targets_per_map; ++t)
-          buffers.push_back(GL_COLOR_ATTACHMENT0 + m * max_targets_per_map + t);
+          buffers.push_back(GL_COLOR_ATTACHMENT0 + m * max_targets_per_map_ + t);
       glNamedFramebufferDrawBuffers(framebuffer, static_cast<GLsizei>(buffers.size()), buffers.data());
       if (glCheckNamedFramebufferStatus(framebuffer, GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE)
         return absl::InternalError("slicemap: RGBA32UI framebuffer incomplete");
@@ -421,79 +443,103 @@ Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view
       }
       glEnable(GL_COLOR_LOGIC_OP);
       glLogicOp(GL_OR);
-      raw.timings.setup_ms += MillisecondsSince(start);
+      raw_.timings.setup_ms += MillisecondsSince(start);
       return program->id();
     };
     auto finish = [&]() -> Status {
-      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets.Get("slicemap"));
+      VISQ_ASSIGN_OR_RETURN(const SlicemapTargets* made, targets_.Get("slicemap"));
       VISQ_GL_CHECK("slicemap pass");
-      if (first_row == 0) raw.passes += 1;
+      if (first_row == 0) raw_.passes += 1;
       const auto start = Clock::now();
-      VISQ_CHECK_LE(size_t{first_row} + rows, size_t{config.height});
-      const size_t band_columns = size_t{config.width} * rows;
-      texels.resize(band_columns * 4);
+      VISQ_CHECK_LE(size_t{first_row} + rows, size_t{config_.height});
+      const size_t band_columns = size_t{config_.width} * rows;
+      texels_.resize(band_columns * 4);
       for (uint32_t m = 0; m < pass_maps; ++m) {
-        SlicemapGrid& grid = !pass_solid ? raw.surface : (m == 0 ? raw.front : raw.back);
+        SlicemapGrid& grid = !pass_solid ? raw_.surface : (m == 0 ? raw_.front : raw_.back);
         for (uint32_t t = 0; t < targets_per_map; ++t) {
-          glGetTextureSubImage(made->targets[m * max_targets_per_map + t].id(), 0, 0, 0, 0,
-                               static_cast<GLsizei>(config.width), static_cast<GLsizei>(rows), 1, GL_RGBA_INTEGER,
-                               GL_UNSIGNED_INT, static_cast<GLsizei>(texels.size() * sizeof(GLuint)), texels.data());
-          ScatterTarget(texels, 0, band_columns, grid, first_slice / 32 + t * 4);
+          glGetTextureSubImage(made->targets[m * max_targets_per_map_ + t].id(), 0, 0, 0, 0,
+                               static_cast<GLsizei>(config_.width), static_cast<GLsizei>(rows), 1, GL_RGBA_INTEGER,
+                               GL_UNSIGNED_INT, static_cast<GLsizei>(texels_.size() * sizeof(GLuint)), texels_.data());
+          ScatterTarget(texels_, 0, band_columns, grid, first_slice / 32 + t * 4);
         }
       }
       VISQ_GL_CHECK("slicemap readback");
-      raw.timings.readback_ms += MillisecondsSince(start);
+      raw_.timings.readback_ms += MillisecondsSince(start);
       return absl::OkStatus();
     };
-    return DrawPassOverJobs(job, scene, part, draw_nothing, pieces, config, bind, finish,
-                            raw.timings.voxelize_ms);
-  };
+    return DrawPass(bind, finish, raw_.timings.voxelize_ms);
+  }
 
   // Solid: front/back maps sampled at texel centers (the in/out events);
   // their union is the surface unless a conservative surface pass follows.
   // Band by band, every slice pass of the band, so each band's columns are
   // whole when it is handed on.
-  uint32_t rows_per_band = band_rows;
-  for (uint32_t first_row = 0, rows = 0; first_row < config.height; first_row += rows) {
-    rows = std::min(rows_per_band, config.height - first_row);
-    pieces.TakeLongestMs();
-    const uint64_t jobs_others_waited_for_before_band = jobs_others_waited_for;
-    raw.surface = EmptyGrid(config.width, rows, config.slices);
-    if (solid) {
-      raw.front = EmptyGrid(config.width, rows, config.slices);
-      raw.back = EmptyGrid(config.width, rows, config.slices);
-    }
-    for (uint32_t first = 0; first < config.slices; first += per_pass) {
-      const uint32_t n = std::min(per_pass, config.slices - first);
-      if (solid) {
-        VISQ_RETURN_IF_ERROR(run_pass(true, false, first, n, first_row, rows));
-        if (conservative) VISQ_RETURN_IF_ERROR(run_pass(false, true, first, n, first_row, rows));
-      } else {
-        VISQ_RETURN_IF_ERROR(run_pass(false, conservative, first, n, first_row, rows));
+  Status Bands(const RawBand& on_band) {
+    uint32_t rows_per_band = band_rows_;
+    for (uint32_t first_row = 0, rows = 0; first_row < config_.height; first_row += rows) {
+      rows = std::min(rows_per_band, config_.height - first_row);
+      pieces_.TakeLongestMs();
+      const uint64_t jobs_others_waited_for_before_band = jobs_others_waited_for_;
+      raw_.surface = EmptyGrid(config_.width, rows, config_.slices);
+      if (solid_) {
+        raw_.front = EmptyGrid(config_.width, rows, config_.slices);
+        raw_.back = EmptyGrid(config_.width, rows, config_.slices);
       }
+      for (uint32_t first = 0; first < config_.slices; first += per_pass_) {
+        const uint32_t n = std::min(per_pass_, config_.slices - first);
+        if (solid_) {
+          VISQ_RETURN_IF_ERROR(SlicePass(true, false, first, n, first_row, rows));
+          if (conservative_) VISQ_RETURN_IF_ERROR(SlicePass(false, true, first, n, first_row, rows));
+        } else {
+          VISQ_RETURN_IF_ERROR(SlicePass(false, conservative_, first, n, first_row, rows));
+        }
+      }
+      if (solid_) {
+        const auto start = Clock::now();
+        for (size_t i = 0; i < raw_.surface.bits.size(); ++i)
+          raw_.surface.bits[i] |= raw_.front.bits[i] | raw_.back.bits[i];
+        raw_.timings.readback_ms += MillisecondsSince(start);
+      }
+      VISQ_RETURN_IF_ERROR(on_band(first_row, raw_));
+      // A piece's cost follows the texels its triangles cover in the band,
+      // not their count: a few triangles across a wide band (a floor, a
+      // wall, the Cornell box's sides under conservative boxes) cost
+      // hundreds of ms on a CPU rasterizer however the pieces are cut, and
+      // another call's job waits for the piece. While other calls' jobs
+      // waited for this call's and a piece took over four times the target,
+      // the next bands take half the rows; alone, they grow back, as each
+      // band draws the whole selection again.
+      const double longest_ms = pieces_.TakeLongestMs();
+      const bool others_waiting = jobs_others_waited_for_ > jobs_others_waited_for_before_band;
+      if (others_waiting && config_.piece_target_ms > 0.0 && longest_ms > 4.0 * config_.piece_target_ms)
+        rows_per_band = std::max<uint32_t>(kMinRowsPerBand, rows_per_band / 2);
+      else if (!others_waiting)
+        rows_per_band = std::min(band_rows_, rows_per_band * 2);
     }
-    if (solid) {
-      const auto start = Clock::now();
-      for (size_t i = 0; i < raw.surface.bits.size(); ++i) raw.surface.bits[i] |= raw.front.bits[i] | raw.back.bits[i];
-      raw.timings.readback_ms += MillisecondsSince(start);
-    }
-    VISQ_RETURN_IF_ERROR(on_band(first_row, raw));
-    // A piece's cost follows the texels its triangles cover in the band, not
-    // their count: a few triangles across a wide band (a floor, a wall, the
-    // Cornell box's sides under conservative boxes) cost hundreds of ms on a
-    // CPU rasterizer however the pieces are cut, and another call's job
-    // waits for the piece. While other calls' jobs waited for this call's
-    // and a piece took over four times the target,
-    // the next bands take half the rows; alone, they grow back, as each band
-    // draws the whole selection again.
-    const double longest_ms = pieces.TakeLongestMs();
-    const bool others_waiting = jobs_others_waited_for > jobs_others_waited_for_before_band;
-    if (others_waiting && config.piece_target_ms > 0.0 && longest_ms > 4.0 * config.piece_target_ms)
-      rows_per_band = std::max<uint32_t>(kMinRowsPerBand, rows_per_band / 2);
-    else if (!others_waiting)
-      rows_per_band = std::min(band_rows, rows_per_band * 2);
+    return absl::OkStatus();
   }
-  return absl::OkStatus();
+
+  GpuWorker& worker_;
+  const GpuScene& scene_;
+  const ViewSetup& view_;
+  const PassConfig& config_;
+  RawSlicemap& raw_;
+  const bool solid_, conservative_, local_;
+  const ScenePartDraw part_;
+  const bool draw_nothing_;
+  const uint32_t per_pass_;
+  const uint32_t max_targets_per_map_;
+  const uint32_t band_rows_;
+  TimedSizer pieces_;
+  GlStateAcrossJobs<SlicemapTargets> targets_;
+  uint64_t jobs_others_waited_for_ = 0;
+  std::vector<GLuint> texels_;  // a pass's readback
+};
+
+Status RunPasses(GpuWorker& worker, const GpuScene& scene, const ViewSetup& view, const PassConfig& config,
+                 RawSlicemap& raw, const RawBand& on_band) {
+  SlicemapPasses passes(worker, scene, view, config, raw);
+  return passes.Run(on_band);
 }
 
 // Sets (or flips) bits [a, b) of one column.

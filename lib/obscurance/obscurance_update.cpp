@@ -495,95 +495,86 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodePlain(size_t k, const glm:
   return update;
 }
 
-StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::dmat4& new_world) {
-  const auto start = std::chrono::steady_clock::now();
-  Object& object = objects_[k];
-  ObscuranceUpdate update;
-  const int32_t kk = static_cast<int32_t>(k);
+namespace {
 
-  // Move the scene positions (rays leaving the object start there) and the
-  // probe; the Embree scene keeps the object where it was until the old
-  // values of the affected rays are traced.
-  const std::vector<Ball> old_balls = ClusterBalls(object);
-  VISQ_RETURN_IF_ERROR(MoveObjectPositions(k, new_world, update));
-  const std::vector<Ball> new_balls = ClusterBalls(object);
-  const glm::dmat4 delta = new_world * glm::inverse(object.pose_at_build);
-  rays_->SetProbeTransform(k, delta);
-  const auto moved = std::chrono::steady_clock::now();
-  update.move_ms = MillisecondsBetween(start, moved);
+// The ball around a triangle's corners, from its centroid.
+Ball TriangleBall(const Scene& scene, uint32_t t) {
+  const glm::dvec3 pa = scene.Vertex(t, 0), pb = scene.Vertex(t, 1), pc = scene.Vertex(t, 2);
+  const glm::dvec3 center = (pa + pb + pc) / 3.0;
+  return {center, std::max({glm::length(pa - center), glm::length(pb - center), glm::length(pc - center)})};
+}
 
-  // The pool: static patches whose cells meet the reach of the old or new
-  // balls, and the patches on dynamic objects; kept: those within d_max of
-  // either, minus the object's own.
-  std::vector<uint32_t> near;
-  if (!old_balls.empty() || !new_balls.empty()) {
-    std::vector<Ball> alls;
-    if (!old_balls.empty()) alls.push_back(Enclosing(old_balls));
-    if (!new_balls.empty()) alls.push_back(Enclosing(new_balls));
-    std::vector<uint32_t> pool;
-    for (const Ball& all : alls) {
-      std::vector<uint32_t> found;
-      const glm::dvec3 reach(all.radius + params_.d_max);
-      static_patches_.Query(all.center - reach, all.center + reach, found);
-      pool = SortedUnion(pool, found);
-    }
-    pool = SortedUnion(pool, dynamic_patches_);
-    update.pooled = static_cast<uint32_t>(pool.size());
-    for (uint32_t texel : pool) {
-      if (patch_radius_[texel] < 0) continue;
-      bool within = false;
-      for (const Ball& all : alls)
-        within |= glm::length(patch_center_[texel] - all.center) <= all.radius + params_.d_max + patch_radius_[texel];
-      if (!within || std::binary_search(object.own.begin(), object.own.end(), texel)) continue;
-      near.push_back(texel);
-    }
-    update.within_reach = static_cast<uint32_t>(near.size());
-  }
-  // Triangles with tallies near the object (its own are traced in full):
-  // every point within reach lies in a near patch or one of the object's
-  // own, so their fragments name them all.
-  std::vector<uint32_t> near_triangles;
-  {
-    std::vector<Ball> alls;
-    if (!old_balls.empty()) alls.push_back(Enclosing(old_balls));
-    if (!new_balls.empty()) alls.push_back(Enclosing(new_balls));
-    for (const std::vector<uint32_t>* texels : {&near, &object.own})
-      for (uint32_t texel : *texels)
-        for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f) {
-          const uint32_t t = atlas_.fragments[f].triangle;
-          if (object_of_triangle_[t] != kk && triangle_tally_.Contains(t)) near_triangles.push_back(t);
-        }
-    std::sort(near_triangles.begin(), near_triangles.end());
-    near_triangles.erase(std::unique(near_triangles.begin(), near_triangles.end()), near_triangles.end());
-    std::erase_if(near_triangles, [&](uint32_t t) {
-      const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
-      const glm::dvec3 center = (pa + pb + pc) / 3.0;
-      const double radius = std::max({glm::length(pa - center), glm::length(pb - center), glm::length(pc - center)});
-      for (const Ball& all : alls)
-        if (glm::length(center - all.center) <= all.radius + params_.d_max + radius) return false;
-      return true;
-    });
-  }
+// Whether a ball (an element) lies within d_max of one of `reach`.
+bool WithinReach(const Ball& element, const std::vector<Ball>& reach, double d_max) {
+  for (const Ball& all : reach)
+    if (glm::length(element.center - all.center) <= all.radius + d_max + element.radius) return true;
+  return false;
+}
 
-  // Each near patch's rays towards the old or new balls, tested against the
-  // object alone at both poses; the affected rays' old values leave the
-  // tallies now, while the scene still holds the object where it was.
-  std::vector<Ball> old_bound, new_bound;
+}  // namespace
+
+ObscuranceUpdater::MoveBalls::MoveBalls(std::vector<Ball> before, std::vector<Ball> after)
+    : old_balls(std::move(before)), new_balls(std::move(after)) {
   if (!old_balls.empty()) old_bound.push_back(Enclosing(old_balls));
   if (!new_balls.empty()) new_bound.push_back(Enclosing(new_balls));
-  std::vector<Retrace> patch_retrace(near.size()), triangle_retrace(near_triangles.size());
-  std::vector<uint64_t> probed(near.size() + near_triangles.size(), 0), traced_before(probed.size(), 0);
-  auto search = [&](Retrace& rec, const glm::dvec3& center, double radius, const std::vector<glm::dvec4>& planes,
-                    bool triangle, size_t slot) {
+  reach = old_bound;
+  reach.insert(reach.end(), new_bound.begin(), new_bound.end());
+}
+
+std::vector<uint32_t> ObscuranceUpdater::PatchesNearMove(const Object& object, const MoveBalls& balls,
+                                                         ObscuranceUpdate& update) const {
+  std::vector<uint32_t> near;
+  if (balls.reach.empty()) return near;
+  std::vector<uint32_t> pool;
+  for (const Ball& all : balls.reach) {
+    std::vector<uint32_t> found;
+    const glm::dvec3 reach(all.radius + params_.d_max);
+    static_patches_.Query(all.center - reach, all.center + reach, found);
+    pool = SortedUnion(pool, found);
+  }
+  pool = SortedUnion(pool, dynamic_patches_);
+  update.pooled = static_cast<uint32_t>(pool.size());
+  for (uint32_t texel : pool) {
+    if (patch_radius_[texel] < 0) continue;
+    if (!WithinReach({patch_center_[texel], patch_radius_[texel]}, balls.reach, params_.d_max)) continue;
+    if (std::binary_search(object.own.begin(), object.own.end(), texel)) continue;
+    near.push_back(texel);
+  }
+  update.within_reach = static_cast<uint32_t>(near.size());
+  return near;
+}
+
+std::vector<uint32_t> ObscuranceUpdater::TrianglesNearMove(size_t k, const std::vector<uint32_t>& near,
+                                                           const MoveBalls& balls) const {
+  const int32_t kk = static_cast<int32_t>(k);
+  std::vector<uint32_t> triangles;
+  for (const std::vector<uint32_t>* texels : {&near, &objects_[k].own})
+    for (uint32_t texel : *texels)
+      for (uint32_t f = atlas_.texel_begin[texel]; f < atlas_.texel_begin[texel + 1]; ++f) {
+        const uint32_t t = atlas_.fragments[f].triangle;
+        if (object_of_triangle_[t] != kk && triangle_tally_.Contains(t)) triangles.push_back(t);
+      }
+  std::sort(triangles.begin(), triangles.end());
+  triangles.erase(std::unique(triangles.begin(), triangles.end()), triangles.end());
+  std::erase_if(triangles,
+                [&](uint32_t t) { return !WithinReach(TriangleBall(scene_, t), balls.reach, params_.d_max); });
+  return triangles;
+}
+
+void ObscuranceUpdater::SearchAffectedRays(size_t k, const MoveBalls& balls, std::vector<Retrace>& patches,
+                                           std::vector<Retrace>& triangles, ObscuranceUpdate& update) {
+  std::vector<uint64_t> probed(patches.size() + triangles.size(), 0), traced_before(probed.size(), 0);
+  auto search = [&](Retrace& rec, const Ball& element, const std::vector<glm::dvec4>& planes, bool triangle,
+                    size_t slot) {
     // The ball around all of a pose's balls first: most patches are out of
     // its reach, and then of every one of them.
     thread_local std::vector<Ball> in_old, in_new, in_either;
     in_old.clear();
     in_new.clear();
-    BallsInReach(center, radius, planes, old_bound, in_old);
-    if (!in_old.empty()) BallsInReach(center, radius, planes, old_balls, in_old);
-    BallsInReach(center, radius, planes, new_bound, in_new);
-    if (!in_new.empty()) BallsInReach(center, radius, planes, new_balls, in_new);
+    BallsInReach(element.center, element.radius, planes, balls.old_bound, in_old);
+    if (!in_old.empty()) BallsInReach(element.center, element.radius, planes, balls.old_balls, in_old);
+    BallsInReach(element.center, element.radius, planes, balls.new_bound, in_new);
+    if (!in_new.empty()) BallsInReach(element.center, element.radius, planes, balls.new_balls, in_new);
     if (in_old.empty() && in_new.empty()) return;
     in_either = in_old;
     in_either.insert(in_either.end(), in_new.begin(), in_new.end());
@@ -593,7 +584,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
       if (!in_old.empty()) bounds.push_back(Enclosing(in_old));
       if (!in_new.empty()) bounds.push_back(Enclosing(in_new));
     }
-    const DirectionFilter towards_object{center, radius, in_either, bounds};
+    const DirectionFilter towards_object{element.center, element.radius, in_either, bounds};
     thread_local std::vector<PatchRay> rays;
     if (triangle)
       GenerateTriangleRays(scene_, rec.element, options_.seed, TriangleRayCount(rec.element), rays, &towards_object);
@@ -602,42 +593,32 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
     probed[slot] = rays.size();
     FindAffectedRays(k, rays, in_old, in_new, rec, traced_before[slot]);
   };
-  ForEachIndex(near.size(), options_.threads, [&](size_t i) {
-    Retrace& rec = patch_retrace[i];
-    rec.element = near[i];
+  ForEachIndex(patches.size(), options_.threads, [&](size_t i) {
+    Retrace& rec = patches[i];
     rec.tally = patch_tally_.Find(rec.element);
     thread_local std::vector<glm::dvec4> planes;
     TexelPlanes(triangle_plane_, atlas_, rec.element, planes);
-    search(rec, patch_center_[rec.element], patch_radius_[rec.element], planes, false, i);
+    search(rec, {patch_center_[rec.element], patch_radius_[rec.element]}, planes, false, i);
   });
-  ForEachIndex(near_triangles.size(), options_.threads, [&](size_t i) {
-    Retrace& rec = triangle_retrace[i];
-    rec.element = near_triangles[i];
+  ForEachIndex(triangles.size(), options_.threads, [&](size_t i) {
+    Retrace& rec = triangles[i];
     rec.tally = triangle_tally_.Find(rec.element);
-    const uint32_t t = rec.element;
-    const glm::dvec3 pa = scene_.Vertex(t, 0), pb = scene_.Vertex(t, 1), pc = scene_.Vertex(t, 2);
-    const glm::dvec3 center = (pa + pb + pc) / 3.0;
-    const double radius = std::max({glm::length(pa - center), glm::length(pb - center), glm::length(pc - center)});
-    const std::vector<glm::dvec4> planes = {triangle_plane_[t]};
-    search(rec, center, radius, planes, true, near.size() + i);
+    const std::vector<glm::dvec4> planes = {triangle_plane_[rec.element]};
+    search(rec, TriangleBall(scene_, rec.element), planes, true, patches.size() + i);
   });
   for (size_t i = 0; i < probed.size(); ++i) {
     update.probed_rays += probed[i];
     update.rays += traced_before[i];
-    if (i >= near.size()) update.triangle_rays += traced_before[i];
+    if (i >= patches.size()) update.triangle_rays += traced_before[i];
   }
+}
 
-  // Move the object in the Embree scene; the affected rays' new values join
-  // the tallies. A patch without a tally whose rays meet the object now,
-  // the object's own patches, and (should the search have missed one) a
-  // patch of the old list not re-traced, are traced in full.
-  rays_->SetTransform(k, delta);
-  rays_->Commit();
-  const auto found = std::chrono::steady_clock::now();
-  update.candidates_ms = MillisecondsBetween(moved, found);
+std::vector<uint32_t> ObscuranceUpdater::RetraceAfterMove(size_t k, std::vector<Retrace>& patches,
+                                                          std::vector<Retrace>& triangles, ObscuranceUpdate& update) {
+  const Object& object = objects_[k];
   std::vector<uint32_t> full;
   std::vector<uint32_t> retraced;
-  for (const Retrace& rec : patch_retrace) {
+  for (const Retrace& rec : patches) {
     if (rec.rays.empty()) continue;
     update.candidates += rec.meets_now;
     if (rec.tally != nullptr) retraced.push_back(rec.element);
@@ -647,7 +628,7 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
     if (!std::binary_search(retraced.begin(), retraced.end(), texel)) full.push_back(texel);
   std::sort(full.begin(), full.end());
   full = SortedUnion(full, object.own);
-  std::vector<uint64_t> traced_after(patch_retrace.size() + triangle_retrace.size(), 0);
+  std::vector<uint64_t> traced_after(patches.size() + triangles.size(), 0);
   auto add_new_values = [&](Retrace& rec, size_t slot) {
     if (rec.tally == nullptr) return;
     for (const PatchRay& r : rec.rays) {
@@ -657,25 +638,69 @@ StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::
     }
     traced_after[slot] = rec.rays.size();
   };
-  ForEachIndex(patch_retrace.size(), options_.threads, [&](size_t i) { add_new_values(patch_retrace[i], i); });
-  ForEachIndex(triangle_retrace.size(), options_.threads,
-               [&](size_t i) { add_new_values(triangle_retrace[i], patch_retrace.size() + i); });
+  ForEachIndex(patches.size(), options_.threads, [&](size_t i) { add_new_values(patches[i], i); });
+  ForEachIndex(triangles.size(), options_.threads, [&](size_t i) { add_new_values(triangles[i], patches.size() + i); });
   std::vector<RayTally> tallies = TracePatches(full);
   for (size_t i = 0; i < traced_after.size(); ++i) {
     update.rays += traced_after[i];
-    if (i >= patch_retrace.size()) update.triangle_rays += traced_after[i];
+    if (i >= patches.size()) update.triangle_rays += traced_after[i];
   }
   for (size_t i = 0; i < full.size(); ++i) {
     update.rays += tallies[i].rays;
     patch_tally_.Set(full[i], std::move(tallies[i]));
   }
-  update.trace_ms = MillisecondsSince(found);
   update.recomputed = static_cast<uint32_t>(retraced.size() + full.size());
+  return SortedUnion(retraced, full);
+}
+
+StatusOr<ObscuranceUpdate> ObscuranceUpdater::MoveNodeFast(size_t k, const glm::dmat4& new_world) {
+  const auto start = std::chrono::steady_clock::now();
+  Object& object = objects_[k];
+  ObscuranceUpdate update;
+
+  // Move the scene positions (rays leaving the object start there) and the
+  // probe; the Embree scene keeps the object where it was until the old
+  // values of the affected rays are traced.
+  std::vector<Ball> old_balls = ClusterBalls(object);
+  VISQ_RETURN_IF_ERROR(MoveObjectPositions(k, new_world, update));
+  const MoveBalls balls(std::move(old_balls), ClusterBalls(object));
+  const glm::dmat4 delta = new_world * glm::inverse(object.pose_at_build);
+  rays_->SetProbeTransform(k, delta);
+  const auto moved = std::chrono::steady_clock::now();
+  update.move_ms = MillisecondsBetween(start, moved);
+
+  // The pool: static patches whose cells meet the reach of the old or new
+  // balls, and the patches on dynamic objects; kept: those within d_max of
+  // either, minus the object's own. Triangles with tallies near the object
+  // (its own are traced in full): every point within reach lies in a near
+  // patch or one of the object's own, so their fragments name them all.
+  const std::vector<uint32_t> near = PatchesNearMove(object, balls, update);
+  const std::vector<uint32_t> near_triangles = TrianglesNearMove(k, near, balls);
+
+  // Each near element's rays towards the old or new balls, tested against
+  // the object alone at both poses; the affected rays' old values leave the
+  // tallies now, while the scene still holds the object where it was.
+  std::vector<Retrace> patch_retrace(near.size()), triangle_retrace(near_triangles.size());
+  for (size_t i = 0; i < near.size(); ++i) patch_retrace[i].element = near[i];
+  for (size_t i = 0; i < near_triangles.size(); ++i) triangle_retrace[i].element = near_triangles[i];
+  SearchAffectedRays(k, balls, patch_retrace, triangle_retrace, update);
+
+  // Move the object in the Embree scene; the affected rays' new values join
+  // the tallies. A patch without a tally whose rays meet the object now,
+  // the object's own patches, and (should the search have missed one) a
+  // patch of the old list not re-traced, are traced in full.
+  rays_->SetTransform(k, delta);
+  rays_->Commit();
+  const auto found = std::chrono::steady_clock::now();
+  update.candidates_ms = MillisecondsBetween(moved, found);
+  const std::vector<uint32_t> recomputed = RetraceAfterMove(k, patch_retrace, triangle_retrace, update);
+  update.trace_ms = MillisecondsSince(found);
 
   // Changed: the old list, the own patches, and those whose rays meet the
   // object first now.
+  const int32_t kk = static_cast<int32_t>(k);
   std::vector<uint32_t> meets;
-  for (uint32_t texel : SortedUnion(retraced, full))
+  for (uint32_t texel : recomputed)
     if (patch_tally_.At(texel).FirstHits(kk) > 0) meets.push_back(texel);
   Finish(k, SortedUnion(SortedUnion(object.influenced, object.own), meets), update);
   return update;

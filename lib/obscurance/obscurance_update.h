@@ -186,7 +186,31 @@ class ObscuranceUpdater {
   // triangle planes that follow from their positions; the figures of an
   // update that begins with it.
   [[nodiscard]] Status MoveObjectPositions(size_t k, const glm::dmat4& new_world, ObscuranceUpdate& update);
+  // The fast path (MoveNodeFast): re-traces only the rays that meet the
+  // moved object alone before or after the move.
   StatusOr<ObscuranceUpdate> MoveNodeFast(size_t k, const glm::dmat4& new_world);
+  // Its steps. The object's cluster balls before and after the move, each
+  // pose's enclosing ball, and both of those (`reach`).
+  struct MoveBalls {
+    MoveBalls(std::vector<Ball> before, std::vector<Ball> after);
+    std::vector<Ball> old_balls, new_balls;
+    std::vector<Ball> old_bound, new_bound;
+    std::vector<Ball> reach;
+  };
+  // Patches within d_max of either pose (static ones from the index, the
+  // dynamic objects' all tested), the object's own left out.
+  std::vector<uint32_t> PatchesNearMove(const Object& object, const MoveBalls& balls, ObscuranceUpdate& update) const;
+  // Triangles with tallies of their own among those patches' and the moved
+  // object's fragments (not the object's own), within d_max of either pose.
+  std::vector<uint32_t> TrianglesNearMove(size_t k, const std::vector<uint32_t>& near, const MoveBalls& balls) const;
+  // Each element's affected rays (FindAffectedRays), whose old values leave
+  // its tally (found here): before the Embree scene moves the object.
+  void SearchAffectedRays(size_t k, const MoveBalls& balls, std::vector<Retrace>& patches,
+                          std::vector<Retrace>& triangles, ObscuranceUpdate& update);
+  // After it moved: the affected rays' new values join the tallies, and the
+  // patches that need it are traced in full. The patches recomputed, sorted.
+  std::vector<uint32_t> RetraceAfterMove(size_t k, std::vector<Retrace>& patches, std::vector<Retrace>& triangles,
+                                         ObscuranceUpdate& update);
   StatusOr<ObscuranceUpdate> MoveNodePlain(size_t k, const glm::dmat4& new_world);
   // What both paths share once the changed patches have new tallies: W,
   // lists, gutters, intensities, triangles and vertices.
