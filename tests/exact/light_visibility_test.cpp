@@ -818,8 +818,8 @@ TEST(LightVisibilityTest, ADenseMeshAtTheBudgetMatchesTheGrownTree) {
   }
 }
 
-// The foliage of issue 44 in small (docs/exact-method-notes.md, "The
-// foliage"): four bunches of the shared scenes' flowers (petals and stems,
+// The foliage of issue 44 in small (docs/exact-method-notes.md, "Foliage:
+// where the time goes"): four bunches of the shared scenes' flowers (petals and stems,
 // about 3,500 triangles each) on a board between the floor and a square
 // light, so that a floor point sees the light through hundreds of small
 // triangles and its light is left in many pieces: the subtractions keep
