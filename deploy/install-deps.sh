@@ -73,9 +73,11 @@ container_packages=(podman runc debootstrap)
 # The baked glTF's tests (tests/gltf_export): the Khronos glTF validator runs
 # on node (npm installs it into the build folder from a committed lock), and
 # Blender imports the file in background mode (blender -b; about 300 MB with
-# its libraries). Test tools only: an image's build stage, which builds no
-# tests, leaves them out with the container tools.
-test_tool_packages=(nodejs npm blender)
+# its libraries). The add-on's modal operators run in Blender with a window
+# on a virtual X display (tests/blender: xvfb-run, which needs xauth). Test
+# tools only: an image's build stage, which builds no tests, leaves them out
+# with the container tools.
+test_tool_packages=(nodejs npm blender xvfb xauth)
 
 wanted=("${build_packages[@]}" "${runtime_packages[@]}")
 if (( container_tools )); then wanted+=("${container_packages[@]}" "${test_tool_packages[@]}"); fi

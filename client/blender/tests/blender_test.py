@@ -36,8 +36,8 @@
 # Background mode has no window and no event loop: the operators run through
 # execute() (the same task and TaskRunner.conclude() as the modal), and the
 # modal shell gets its events from this script instead of Blender's window
-# manager: what is not exercised is Blender delivering the timer and the Esc
-# key to modal(), which only turns the event into its name.
+# manager. Blender delivering the timer and the Esc key to modal() is
+# blender_window_test.py's, under Xvfb.
 import math
 import os
 import shutil

@@ -637,8 +637,9 @@ class TaskRunner:
     """The modal shell around a task, apart from the operator: invoke()
     starts one, modal() hands it each event (core.modal_step decides), and
     execute() runs the same work on the calling thread and ends through the
-    same conclude(). Background mode has no window to send a modal events;
-    the headless test drives step() with the timer's and Esc's names.
+    same conclude(). Background mode has no window to send a modal events:
+    the background test drives step() with the timer's and Esc's names, the
+    window test (under Xvfb) lets Blender deliver them.
     report: the operator's report(type, message)."""
     running = None  # one call at a time: Blender's data is written when it ends
 
