@@ -41,7 +41,8 @@ void CostModel::Record(const std::string& series, double work, double ms, double
     return;
   if (series.find_first_of("\t\n") != std::string::npos) return;  // the file's separators
   std::lock_guard lock(mutex_);
-  if (!series_.contains(series) && series_.size() >= kSeriesKept) series_.erase(series_.begin());
+  if (!series_.contains(series) && series_.size() >= kSeriesKept) EvictLeastRecentlyUsedLocked();
+  used_at_[series] = ++uses_;
   auto& observations = series_[series];
   observations.push_back({work, ms, extra});
   if (observations.size() > kObservationsKept) observations.pop_front();
@@ -152,12 +153,22 @@ void CostModel::PersistTo(const std::filesystem::path& path) {
       continue;
     const std::string series = line.substr(0, tab1);
     if (!series_.contains(series) && series_.size() >= kSeriesKept) continue;
+    used_at_[series] = ++uses_;
     auto& observations = series_[series];
     observations.push_back({work, ms, extra});
     if (observations.size() > kObservationsKept) observations.pop_front();
     ++read;
   }
   if (read > 0) spdlog::info("cost model: {} observations of {} series from {}", read, series_.size(), path.string());
+}
+
+void CostModel::EvictLeastRecentlyUsedLocked() {
+  auto oldest = used_at_.begin();
+  for (auto it = used_at_.begin(); it != used_at_.end(); ++it)
+    if (it->second < oldest->second) oldest = it;
+  if (oldest == used_at_.end()) return;
+  series_.erase(oldest->first);
+  used_at_.erase(oldest);
 }
 
 void CostModel::SaveLocked() const {
@@ -261,6 +272,7 @@ std::optional<double> CostModel::Predict(const std::string& series, double work,
   std::lock_guard lock(mutex_);
   auto it = series_.find(series);
   if (it == series_.end() || it->second.empty()) return std::nullopt;
+  used_at_[series] = ++uses_;
   const auto& observations = it->second;
 
   const bool two_units = extra > 0.0 || std::any_of(observations.begin(), observations.end(),

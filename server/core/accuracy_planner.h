@@ -108,6 +108,7 @@ inline constexpr uintmax_t kMaxCostModelFileBytes = uintmax_t{64} << 20;
 // left by another scene of the same name predicts nothing.
 class CostModel {
  public:
+  static constexpr size_t kSeriesKept = 4096;  // bounds the file a hostile series name could grow
   void Record(const std::string& series, double work, double ms, double extra = 0.0);
   // Nothing until the series has an observation.
   std::optional<double> Predict(const std::string& series, double work, double extra = 0.0) const;
@@ -164,10 +165,16 @@ class CostModel {
 
  private:
   static constexpr size_t kObservationsKept = 16;
-  static constexpr size_t kSeriesKept = 4096;  // bounds the file a hostile series name could grow
   void SaveLocked() const;
+  // Past kSeriesKept series, the one least recently recorded or predicted
+  // goes: never one a plan has just probed and is about to predict (the
+  // first by name could be, and a plan with no prediction was weighed as
+  // free).
+  void EvictLeastRecentlyUsedLocked();
   mutable std::mutex mutex_;
   std::map<std::string, std::deque<Observation>> series_;
+  mutable std::map<std::string, uint64_t, std::less<>> used_at_;  // each series' last use, by uses_
+  mutable uint64_t uses_ = 0;
   struct CutProbe {
     double budget_ms = 0.0;
     int count = 0;

@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <fstream>
+#include <string>
 #include <thread>
 
 #include <gtest/gtest.h>
@@ -18,6 +19,19 @@ namespace {
 TEST(CostModel, PredictsNothingBeforeAnObservation) {
   CostModel model;
   EXPECT_FALSE(model.Predict("scene/kind/method", 100.0).has_value());
+}
+
+// Past the cap, the series least recently used goes. Before, the first by
+// name went: one a plan had just probed could go before the plan predicted
+// it, and a plan with no prediction was weighed as taking 0 ms.
+TEST(CostModel, PastItsSeriesCapTheLeastRecentlyUsedSeriesGoes) {
+  CostModel model;
+  for (size_t i = 0; i < CostModel::kSeriesKept; ++i) model.Record("s/k/" + std::to_string(1000000 + i), 10.0, 1.0);
+  ASSERT_TRUE(model.Predict("s/k/1000000", 10.0).has_value());  // the first by name, just used
+  model.Record("s/k/new", 10.0, 1.0);
+  EXPECT_TRUE(model.Predict("s/k/1000000", 10.0).has_value()) << "the series a plan just used was dropped";
+  EXPECT_FALSE(model.Predict("s/k/1000001", 10.0).has_value()) << "the least recently used series was kept";
+  EXPECT_TRUE(model.Predict("s/k/new", 10.0).has_value());
 }
 
 TEST(CostModel, OneObservationIsTakenAsProportional) {
