@@ -42,10 +42,16 @@ struct SplitMix {
 struct EqualAreaCell {
   double x0 = 0, width = 1, y0 = 0, height = 1;
 };
-inline EqualAreaCell EqualAreaCellOf(int64_t n, int64_t j) {
+// The rows of EqualAreaCellOf's n cells: sqrt(n) rounded to the nearest
+// integer; row r holds the cells [floor(r n / rows), floor((r + 1) n / rows)).
+inline int64_t EqualAreaRowCount(int64_t n) {
   int64_t rows = 1;
   while ((rows + 1) * (rows + 1) <= n) ++rows;  // floor(sqrt n), exactly
   if (rows * rows + rows < n) ++rows;            // then rounded: n > rows^2 + rows means sqrt n > rows + 1/2
+  return rows;
+}
+inline EqualAreaCell EqualAreaCellOf(int64_t n, int64_t j) {
+  const int64_t rows = EqualAreaRowCount(n);
   // The row holding j: the last r with floor(r n / rows) <= j.
   int64_t row = j * rows / n;
   while (row + 1 < rows && (row + 1) * n / rows <= j) ++row;

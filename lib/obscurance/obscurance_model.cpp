@@ -262,6 +262,74 @@ double TriangleArea(const Scene& scene, uint32_t t) {
 
 }  // namespace
 
+uint32_t StratumPairCount(uint32_t rays) {
+  uint32_t pairs = 0;
+  ForEachStratumPair(rays, [&](uint32_t) { ++pairs; });
+  return pairs;
+}
+
+std::vector<float> ObscuranceTexelEstimates(const ObscuranceResult& result, double confidence) {
+  const size_t n = result.w.size();
+  if (result.texel_sample_variance.size() != n || result.texel_effective_samples.size() != n ||
+      result.estimated.size() != n || static_cast<size_t>(result.width) * result.height != n)
+    return {};
+  const bool strata = result.texel_stratum_variance.size() == n;
+  // A texel's own variance per ray and its degrees of freedom: its pairs of
+  // strata, or its rays - 1.
+  struct Own {
+    bool known = false;
+    double variance = 0, dof = 0;
+  };
+  uint32_t last_rays = 0, last_pairs = 0;  // StratumPairCount's last answer: texels mostly share one count
+  auto own = [&](size_t i) -> Own {
+    const double rays = result.texel_effective_samples[i], sample = result.texel_sample_variance[i];
+    if (!result.estimated[i] || !(rays >= 2) || !(sample >= 0)) return {};
+    if (strata && result.texel_stratum_variance[i] >= 0 && rays == std::floor(rays) && rays < 4e9) {
+      const auto count = static_cast<uint32_t>(rays);
+      if (count != last_rays) last_pairs = StratumPairCount(last_rays = count);
+      // Stratification makes W's variance at most what independent rays'
+      // would be, which the sample variance estimates: the smaller of the two.
+      if (last_pairs > 0)
+        return {true, std::min<double>(result.texel_stratum_variance[i], sample), static_cast<double>(last_pairs)};
+    }
+    return {true, sample, rays - 1.0};
+  };
+  std::vector<float> out(n, -1.0f);
+  std::unordered_map<int, double> quantiles;  // per degrees of freedom
+  const int width = static_cast<int>(result.width), height = static_cast<int>(result.height);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x) {
+      const size_t i = static_cast<size_t>(y) * result.width + static_cast<size_t>(x);
+      const Own self = own(i);
+      if (!self.known) continue;
+      double pooled_dof = 0.0, pooled_squares = 0.0;
+      for (int dy = -1; dy <= 1; ++dy)
+        for (int dx = -1; dx <= 1; ++dx) {
+          const int nx = x + dx, ny = y + dy;
+          if ((dx == 0 && dy == 0) || nx < 0 || ny < 0 || nx >= width || ny >= height) continue;
+          const Own other = own(static_cast<size_t>(ny) * result.width + static_cast<size_t>(nx));
+          pooled_dof += other.dof;
+          pooled_squares += other.dof * other.variance;
+        }
+      const double prior_dof = std::min(pooled_dof, self.dof);
+      const double prior_variance = pooled_dof > 0 ? pooled_squares / pooled_dof : 0.0;
+      const double total_dof = self.dof + prior_dof;
+      const double variance = (self.dof * self.variance + prior_dof * prior_variance) / total_dof;
+      const int dof = static_cast<int>(std::clamp(total_dof, 1.0, 1e9));
+      auto [it, fresh] = quantiles.try_emplace(dof, 0.0);
+      if (fresh) it->second = TwoSidedStudentQuantile(confidence, dof);
+      out[i] = UpFloat(std::min(1.0, it->second * std::sqrt(variance / result.texel_effective_samples[i])));
+    }
+  return out;
+}
+
+double LargestObscuranceEstimate(double rays, double confidence) {
+  if (!(rays >= 2)) return 1.0;
+  const double fewest_dof = std::max(1.0, std::floor((rays - std::sqrt(rays) - 1.0) / 2.0));
+  return std::min(1.0, TwoSidedStudentQuantile(confidence, static_cast<int>(std::min(1e9, fewest_dof))) *
+                           std::sqrt(1.0 / (4.0 * (rays - 1.0))));
+}
+
 ObscuranceBounds ObscuranceBoundsOf(const Scene& scene, const ObscuranceResult& result, double confidence) {
   ObscuranceBounds out;
   out.texel.resize(result.w.size());
@@ -433,6 +501,8 @@ ObscuranceResult BuildResult(const Scene& scene, const ObscuranceAtlas& atlas, b
     if (!out.estimated[i]) out.texel_effective_samples[i] = 0.0f;
   out.texel_sample_variance = std::move(own.texel_sample_variance);
   if (!out.texel_sample_variance.empty()) out.texel_sample_variance.resize(n, -1.0f);
+  out.texel_stratum_variance = std::move(own.texel_stratum_variance);
+  if (!out.texel_stratum_variance.empty()) out.texel_stratum_variance.resize(n, -1.0f);
   // Per triangle its own samples' mean; where it has none, its texels'.
   const size_t nt = scene.TriangleCount();
   const bool has_own = own.triangle_w.size() == nt && own.triangle_effective_samples.size() == nt;

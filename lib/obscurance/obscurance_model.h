@@ -12,6 +12,7 @@
 
 #include <glm/glm.hpp>
 
+#include "common/random.h"
 #include "common/status.h"
 #include "obscurance/obscurance_atlas.h"
 #include "visq/obscurance_partial.h"
@@ -108,6 +109,17 @@ struct ObscuranceResult {
   // (ObscuranceHalfWidthOfRays).
   std::vector<float> texel_sample_variance;
   std::vector<float> triangle_sample_variance;
+  // Where a texel's rays are one in each of its direction strata (the
+  // ray-cast bake): the variance of one ray's value that W's own variance
+  // follows, from rays in neighbouring strata (half the mean squared
+  // difference of pairs of neighbouring cells of a row: the collapsed-strata
+  // estimator), the largest over the channels; -1 where unknown (a texel an
+  // update recomputed), empty where no texel has it. The sample variance
+  // also counts how much the strata's own means differ, which stratification
+  // takes out of W's error; this does not (it still counts how much two
+  // neighbouring cells' means differ). Only the estimate uses it: no
+  // inequality here holds from it.
+  std::vector<float> texel_stratum_variance;
   AmbientModel ambient;
   uint64_t directions = 0;
   double mean_samples_per_patch = 0;  // over estimated texels
@@ -142,6 +154,32 @@ double ObscuranceHalfWidthOfRays(double rays, const glm::dvec3& mean, double var
 // The estimate beside the bound: the normal approximation's half-width at
 // the sample variance, z(confidence) sqrt(variance / rays). Not a bound.
 double ObscuranceNormalHalfWidth(double rays, double variance, double confidence);
+// The pairs of neighbouring strata among `rays` rays, one in each cell of
+// EqualAreaCellOf(rays, j) in the order j: neighbouring cells of one row,
+// (first, first + 1), (first + 2, first + 3), ...; a row of odd length
+// leaves its last cell unpaired. Calls `pair(j)` for each pair (j, j + 1).
+template <typename Pair>
+void ForEachStratumPair(uint32_t rays, Pair&& pair);
+// How many pairs ForEachStratumPair gives for `rays` rays.
+uint32_t StratumPairCount(uint32_t rays);
+// The estimate each texel states beside its bound, where its rays' variance
+// is known (empty otherwise; -1 for a texel without an estimate of its own):
+// a Student-t half-width t(confidence, dof) sqrt(v / rays) at a moderated
+// variance v. A texel's own v is its stratum variance (dof: its pairs) where
+// known, else its sample variance (dof: rays - 1); v pools it with its 3 x 3
+// atlas neighbours', the neighbours weighing at most as much as the texel's
+// own (dof: its own plus that weight). A texel whose few rays all agreed
+// (variance 0) while its neighbours' did not gets their spread, not 0: near
+// a contact shadow a handful of rays miss the near wall at random.
+// Not a bound: its coverage is measured (docs/obscurance-bounds.md).
+std::vector<float> ObscuranceTexelEstimates(const ObscuranceResult& result, double confidence);
+// The largest half-width ObscuranceTexelEstimates states for a texel of at
+// least `rays` rays whose neighbours have at least as many (every texel of a
+// ray-cast bake has its rays per patch): a plan's estimate before its bake.
+// The variance it uses is at most the sample variance, at most
+// rays / (4 (rays - 1)) for values in [0, 1], and its degrees of freedom are
+// at least the pairs of strata, at least (rays - sqrt(rays) - 1) / 2.
+double LargestObscuranceEstimate(double rays, double confidence);
 // The unbiased sample variance of `n` values (per channel, from their sums
 // and sums of squares), the largest over the channels, never below 0 and
 // rounded up to a float.
@@ -186,6 +224,7 @@ struct OwnSampleEstimates {
   std::vector<float> triangle_effective_samples;
   std::vector<float> texel_sample_variance;     // ObscuranceResult's; empty: unknown
   std::vector<float> triangle_sample_variance;
+  std::vector<float> texel_stratum_variance;    // ObscuranceResult's; empty: unknown
 };
 
 // W per texel from fixed-point sums (count 0: not estimated); with `own`,
@@ -215,5 +254,14 @@ glm::vec3 TriangleAverage(const ObscuranceAtlas& atlas, const ObscuranceResult& 
 
 // A stable 64-bit hash of what a bake depends on, for ObscurancePartial.
 uint64_t BakeFingerprint(const Scene& scene, const ObscuranceAtlas& atlas, const ObscuranceParams& params);
+
+template <typename Pair>
+void ForEachStratumPair(uint32_t rays, Pair&& pair) {
+  const auto rows = static_cast<uint64_t>(EqualAreaRowCount(rays));
+  for (uint64_t r = 0; r < rows && rays > 0; ++r) {
+    const uint64_t first = r * rays / rows, end = (r + 1) * rays / rows;
+    for (uint64_t j = first; j + 1 < end; j += 2) pair(static_cast<uint32_t>(j));
+  }
+}
 
 }  // namespace visq::obscurance

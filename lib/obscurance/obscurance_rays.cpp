@@ -344,6 +344,24 @@ bool MayMeetOne(std::span<const Ball> balls, const glm::dvec3& patch_center, dou
   return false;
 }
 
+// ObscuranceResult::texel_stratum_variance of a texel's `rays` values, one
+// in each stratum in order: half the mean squared difference over the pairs
+// of neighbouring strata, the largest channel's, rounded up to a float; -1
+// without a pair.
+float StratumVariance(const glm::dvec3* values, uint32_t rays) {
+  glm::dvec3 squares(0.0);
+  uint32_t pairs = 0;
+  ForEachStratumPair(rays, [&](uint32_t j) {
+    const glm::dvec3 d = values[j] - values[j + 1];
+    squares += d * d;
+    ++pairs;
+  });
+  if (pairs == 0) return -1.0f;
+  const double largest = std::max({squares.x, squares.y, squares.z}) / (2.0 * pairs);
+  const float f = static_cast<float>(largest);
+  return static_cast<double>(f) < largest ? std::nextafter(f, 2.0f) : f;
+}
+
 }  // namespace
 
 bool DirectionFilter::MayMeet(const glm::dvec3& direction) const {
@@ -400,7 +418,7 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
   std::vector<PatchRay> patch_rays;
   std::vector<raycast::Ray> rays;
   std::vector<uint32_t> ray_texel;
-  std::vector<float> texel_variance(n, 0.0f);
+  std::vector<float> texel_variance(n, 0.0f), texel_stratum_variance(n, -1.0f);
   // A triangle's estimate from the rays that leave it, each weighed by the
   // surface its patch's rays share (the patch's area over its rays): a texel
   // that the triangle shares with the gutter or a neighbour sends all its
@@ -423,7 +441,9 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
   for (uint32_t first = 0; first < n; first += kBatchTexels) {
     rays.clear();
     ray_texel.clear();
+    std::vector<size_t> first_ray(kBatchTexels, 0);  // each texel's rays are contiguous, in stratum order
     for (uint32_t t = first; t < std::min(n, first + kBatchTexels); ++t) {
+      first_ray[t - first] = rays.size();
       GeneratePatchRays(scene, atlas, t, options.seed, options.rays_per_patch, patch_rays);
       for (const PatchRay& r : patch_rays) {
         rays.push_back(raycast::Ray{r.origin, r.direction, params.d_max, r.triangle});
@@ -474,6 +494,8 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
       if (count[s]) {
         w[first + s] = glm::vec3(sum[s] / static_cast<double>(count[s]));
         texel_variance[first + s] = LargestChannelVariance(sum[s], squares[s], count[s]);
+        if (count[s] == options.rays_per_patch)  // one ray in each stratum: pairs of neighbouring strata
+          texel_stratum_variance[first + s] = StratumVariance(&values[first_ray[s]], count[s]);
         estimated[first + s] = 1;
       }
   }
@@ -484,6 +506,7 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
   for (uint32_t t = 0; t < n; ++t)
     if (estimated[t]) own.texel_effective_samples[t] = static_cast<float>(options.rays_per_patch);
   own.texel_sample_variance = std::move(texel_variance);
+  own.texel_stratum_variance = std::move(texel_stratum_variance);
   own.triangle_w.assign(scene.TriangleCount(), glm::vec3(0.0f));
   own.triangle_effective_samples.assign(scene.TriangleCount(), 0.0f);
   own.triangle_sample_variance.assign(scene.TriangleCount(), 0.0f);

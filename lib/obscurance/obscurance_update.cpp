@@ -725,6 +725,8 @@ void ObscuranceUpdater::Finish(size_t k, const std::vector<uint32_t>& changed, O
       if (result_.texel_sample_variance.size() != result_.w.size())
         result_.texel_sample_variance.assign(result_.w.size(), -1.0f);
       result_.texel_sample_variance[texel] = tally.Variance();
+      // Its rays are the update's, not one in each of the bake's strata.
+      if (texel < result_.texel_stratum_variance.size()) result_.texel_stratum_variance[texel] = -1.0f;
     }
     for (size_t j = 0; j < objects_.size(); ++j) {
       if (std::binary_search(objects_[j].own.begin(), objects_[j].own.end(), texel)) continue;

@@ -95,37 +95,28 @@ void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
   add("vertex", answer.bounds.vertex, nullptr);
 }
 
-// Beside the bounds, where the rays' variance is known: the normal
-// approximation's half-width at each texel's sample variance, an estimate
-// (not a bound), its median and 95th percentile over the estimated texels,
-// and as the answer's estimate the largest among the texels that error_bound
-// covers (resting on at least kCoveredShare of the `nominal` rays).
+// Beside the bounds, where the rays' variance is known: each texel's
+// estimate (ObscuranceTexelEstimates: not a bound), its median and 95th
+// percentile over the estimated texels, and as the answer's estimate the
+// largest among the texels that error_bound covers (resting on at least
+// kCoveredShare of the `nominal` rays).
 void AddNormalEstimate(const obscurance::ObscuranceResult& result, double nominal, double confidence,
                        AccuracyStatement& out) {
-  if (result.texel_sample_variance.size() != result.w.size()) return;
+  const std::vector<float> estimates = obscurance::ObscuranceTexelEstimates(result, confidence);
+  if (estimates.size() != result.w.size()) return;
   std::vector<double> kept;
   double covered_largest = 0.0;
-  for (size_t i = 0; i < result.w.size(); ++i)
-    if (result.estimated[i] && result.texel_sample_variance[i] >= 0) {
-      const double estimate = obscurance::ObscuranceNormalHalfWidth(result.texel_effective_samples[i],
-                                                                    result.texel_sample_variance[i], confidence);
-      kept.push_back(estimate);
+  for (size_t i = 0; i < estimates.size(); ++i)
+    if (estimates[i] >= 0) {
+      kept.push_back(estimates[i]);
       if (result.texel_effective_samples[i] >= obscurance::kCoveredShare * nominal)
-        covered_largest = std::max(covered_largest, estimate);
+        covered_largest = std::max<double>(covered_largest, estimates[i]);
     }
   if (kept.empty()) return;
   std::sort(kept.begin(), kept.end());
   out.parameters["texel_estimate_median"] = kept[kept.size() / 2];
   out.parameters["texel_estimate_p95"] = kept[std::min(kept.size() - 1, kept.size() * 95 / 100)];
   out.estimate = covered_largest;
-}
-
-// The estimate a ray-cast bake of `rays` rays per patch states at most: a
-// covered texel rests on at least kCoveredShare of them, and values in
-// [0, 1] have a sample variance of at most m / (4 (m - 1)) over m samples.
-double LargestCoveredEstimate(double rays, double confidence) {
-  const double m = std::max(2.0, std::ceil(obscurance::kCoveredShare * rays));
-  return obscurance::ObscuranceNormalHalfWidth(m, m / (4.0 * (m - 1.0)), confidence);
 }
 
 constexpr const char* kRaysBoundRule =
@@ -417,7 +408,8 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
   CostModel& model = engine.cost_model();
   // On the estimate, only the rays state one (a depth-peeling bake keeps
   // no per-direction values), and a plan's is at most
-  // LargestCoveredEstimate, whatever the scene.
+  // obscurance::LargestObscuranceEstimate at the covered share of its rays,
+  // whatever the scene.
   const bool on_estimate = target.wants_estimate();
   if (!on_estimate && !model.Predict(series, 1.0)) {
     for (uint32_t directions : {4u, 16u}) {
@@ -469,7 +461,8 @@ StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& reside
   // covered elements' cap (CoveredHalfWidth), so the count meeting the error
   // is Hoeffding's divided by the covered share.
   auto error_of = [&](uint32_t n) {
-    return on_estimate ? LargestCoveredEstimate(n, target.confidence)
+    return on_estimate ? obscurance::LargestObscuranceEstimate(std::ceil(obscurance::kCoveredShare * n),
+                                                               target.confidence)
                        : obscurance::CoveredHalfWidth(n, target.confidence);
   };
   double needed = HoeffdingSamplesNeeded(target.max_error, target.confidence) / obscurance::kCoveredShare;

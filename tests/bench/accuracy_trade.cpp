@@ -710,7 +710,8 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
   Count texels, triangles, vertices;
   // Where the rays' variance is known: the texels' median error and own
   // bound, and how often the normal-approximation estimate holds.
-  const bool rays = result.texel_sample_variance.size() == result.w.size();
+  const std::vector<float> estimates = ObscuranceTexelEstimates(result, kConfidence);
+  const bool rays = estimates.size() == result.w.size();
   std::vector<double> texel_errors, texel_bounds, texel_estimates;
   size_t estimate_within = 0;
   for (uint32_t t = 0; t < atlas.texel_count(); ++t)
@@ -720,8 +721,7 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
       texel_errors.push_back(error);
       texel_bounds.push_back(bounds.texel[t]);
       if (rays) {
-        const double estimate = ObscuranceNormalHalfWidth(result.texel_effective_samples[t],
-                                                          result.texel_sample_variance[t], kConfidence);
+        const double estimate = estimates[t];
         texel_estimates.push_back(estimate);
         estimate_within += error <= estimate;
       }
