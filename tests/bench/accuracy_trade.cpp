@@ -709,7 +709,7 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
   };
   Count texels, triangles, vertices;
   // Where the rays' variance is known: the texels' median error and own
-  // bound, and how often the normal-approximation estimate holds.
+  // bound, and how often the estimate (ObscuranceTexelEstimates) holds.
   const std::vector<float> estimates = ObscuranceTexelEstimates(result, kConfidence);
   const bool rays = estimates.size() == result.w.size();
   std::vector<double> texel_errors, texel_bounds, texel_estimates;
@@ -756,7 +756,7 @@ std::string BoundCoverageNote(const Scene& scene, const obscurance::ObscuranceAt
          vertices.Share(vertices.own_within, vertices.all) + " (" + std::to_string(vertices.all) + ")" +
          (rays ? "; texels' median error " + Fmt("%.3g", median(texel_errors)) + ", median own bound " +
                      Fmt("%.3g", median(texel_bounds)) + ", median estimate " +
-                     Fmt("%.3g", median(texel_estimates)) + "; the normal estimate holds for texels " +
+                     Fmt("%.3g", median(texel_estimates)) + "; the estimate holds for texels " +
                      texels.Share(estimate_within, texels.all)
                : "");
 }
