@@ -386,7 +386,7 @@ uint64_t RayEstimateBatchBytes(uint32_t rays_per_patch) {
   const uint64_t texels = RayEstimateBatchTexels(rays_per_patch);
   const uint64_t rays = texels * rays_per_patch;
   return rays * (sizeof(raycast::Ray) + sizeof(uint32_t) + sizeof(raycast::Hit) + sizeof(glm::dvec3)) +
-         texels * (2 * sizeof(glm::dvec3) + sizeof(uint32_t) + sizeof(double));
+         texels * (2 * sizeof(glm::dvec3) + sizeof(uint32_t) + sizeof(double) + sizeof(size_t));
 }
 
 uint64_t PatchRayScratchBytes(uint32_t n, uint64_t fragments) {
@@ -438,10 +438,10 @@ StatusOr<ObscuranceResult> EstimateObscurancesByRays(const Scene& placed_scene, 
   ray_texel.reserve(batch_rays);
   std::vector<glm::dvec3> values;
   values.reserve(batch_rays);
+  std::vector<size_t> first_ray(kBatchTexels, 0);  // each texel's rays are contiguous, in stratum order
   for (uint32_t first = 0; first < n; first += kBatchTexels) {
     rays.clear();
     ray_texel.clear();
-    std::vector<size_t> first_ray(kBatchTexels, 0);  // each texel's rays are contiguous, in stratum order
     for (uint32_t t = first; t < std::min(n, first + kBatchTexels); ++t) {
       first_ray[t - first] = rays.size();
       GeneratePatchRays(scene, atlas, t, options.seed, options.rays_per_patch, patch_rays);

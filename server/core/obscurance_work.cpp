@@ -59,9 +59,9 @@ ObscuranceWorkShape ObscuranceShapeOf(const Scene& scene, uint32_t resolution, c
 }
 
 uint64_t ObscuranceResultBytes(const ObscuranceWorkShape& s) {
-  // Per texel W, I, the flag, the effective count and the variance; per
-  // triangle W, its count and variance; per position W.
-  return s.texels * (2 * sizeof(glm::vec3) + 1 + 2 * sizeof(float)) +
+  // Per texel W, I, the flag, the effective count, the variance and the
+  // strata's; per triangle W, its count and variance; per position W.
+  return s.texels * (2 * sizeof(glm::vec3) + 1 + 3 * sizeof(float)) +
          s.triangles * (sizeof(glm::vec3) + 2 * sizeof(float)) + s.positions * sizeof(glm::vec3);
 }
 
@@ -97,11 +97,12 @@ uint64_t ObscuranceUpdaterBytes(const ObscuranceWorkShape& s, uint32_t update_ra
 }
 
 uint64_t ObscuranceAnswerExtraBytes(const ObscuranceWorkShape& s) {
-  // The bounds (a float per texel, triangle and position); the statement's
-  // sorted copies of the texels' bounds and estimates (a float and a
-  // double each); the answer's messages, as many as a stream's queue holds.
+  // The bounds (a float per texel, triangle and position); the texels'
+  // estimates (a float each) and the statement's sorted copies of the
+  // texels' bounds and estimates (a float and a double each); the answer's
+  // messages, as many as a stream's queue holds.
   const uint64_t bounds = (s.texels + s.triangles + s.positions) * sizeof(float);
-  return bounds + s.texels * (sizeof(float) + sizeof(double)) +
+  return bounds + s.texels * (2 * sizeof(float) + sizeof(double)) +
          std::min(kStreamedAnswerQueueBytes, ObscuranceResultBytes(s) + bounds);
 }
 
