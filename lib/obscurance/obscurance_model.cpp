@@ -211,11 +211,6 @@ double ObscuranceHalfWidthOfRays(double rays, const glm::dvec3& mean, double var
   return std::min(1.0, widest);
 }
 
-double ObscuranceNormalHalfWidth(double rays, double variance, double confidence) {
-  if (!(rays >= 2) || !(variance >= 0) || !(confidence > 0) || confidence >= 1.0) return 1.0;
-  return std::min(1.0, TwoSidedNormalQuantile(confidence) * std::sqrt(variance / rays));
-}
-
 float LargestChannelVariance(const glm::dvec3& sum, const glm::dvec3& sum_of_squares, double n) {
   if (!(n >= 2)) return 0.0f;
   double largest = 0.0;

@@ -151,9 +151,6 @@ double ObscuranceHalfWidth(double effective_samples, double confidence);
 // (docs/obscurance-bounds.md).
 // Never more than Hoeffding's at half the risk.
 double ObscuranceHalfWidthOfRays(double rays, const glm::dvec3& mean, double variance, double confidence);
-// The estimate beside the bound: the normal approximation's half-width at
-// the sample variance, z(confidence) sqrt(variance / rays). Not a bound.
-double ObscuranceNormalHalfWidth(double rays, double variance, double confidence);
 // The pairs of neighbouring strata among `rays` rays, one in each cell of
 // EqualAreaCellOf(rays, j) in the order j: neighbouring cells of one row,
 // (first, first + 1), (first + 2, first + 3), ...; a row of odd length

@@ -100,7 +100,7 @@ void AddElementBounds(const ObscuranceAnswer& answer, AccuracyStatement& out) {
 // percentile over the estimated texels, and as the answer's estimate the
 // largest among the texels that error_bound covers (resting on at least
 // kCoveredShare of the `nominal` rays).
-void AddNormalEstimate(const obscurance::ObscuranceResult& result, double nominal, double confidence,
+void AddTexelEstimates(const obscurance::ObscuranceResult& result, double nominal, double confidence,
                        AccuracyStatement& out) {
   const std::vector<float> estimates = obscurance::ObscuranceTexelEstimates(result, confidence);
   if (estimates.size() != result.w.size()) return;
@@ -153,7 +153,7 @@ void SetCoveredBound(const ObscuranceAnswer& answer, double nominal, const char*
   for (float e : answer.result->triangle_effective_samples) unsampled += e == 0.0f;
   out.parameters["triangles_without_samples"] = static_cast<double>(unsampled);
   AddElementBounds(answer, out);
-  AddNormalEstimate(*answer.result, nominal, answer.confidence, out);
+  AddTexelEstimates(*answer.result, nominal, answer.confidence, out);
   out.note = absl::StrCat(
       "estimate: ", rule, "; outside it, with wider bounds of their own (want_errors): ", bound.texels.outside, " of ",
       bound.texels.elements, " estimated texels, ", bound.triangles.outside, " of ", bound.triangles.elements,
