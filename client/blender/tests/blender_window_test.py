@@ -133,7 +133,10 @@ def advance():
     phase = state["phase"]
     elapsed = time.monotonic() - state["since"]
     if phase == "first bake":
-        settings.method, settings.directions = "depth-peeling", 16
+        # Long enough for several of the operator's 0.1 s timers even when
+        # Blender's first redraws on llvmpipe hold its event loop for seconds
+        # (16 directions baked in 1 s and Blender delivered one TIMER).
+        settings.method, settings.directions = "depth-peeling", 128
         result = invoke_bake()
         check(result == {"RUNNING_MODAL"}, f"Bake invoked from the window returned {result}, not RUNNING_MODAL")
         check(visq_blender.TaskRunner.running is not None, "the invoked bake holds no call")
