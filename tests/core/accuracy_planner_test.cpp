@@ -456,6 +456,46 @@ TEST(ChooseFastest, AMethodMeasuredAtOneSizeProbesTheNextSizeOnALaterRequest) {
   EXPECT_NEAR(report->chosen_plan().predicted_ms, truth, 0.01 * truth);
 }
 
+// A method's first run in the process that compiles its programs past the
+// probe's whole budget (one GL job is not cut inside): its runs stop at
+// their call's stop as the GL worker does, and this one completed late.
+// The runs after it measure the method in a budget of their own; before,
+// the repeat found the deadline passed, the slow run was kept and the
+// rasterizer predicted at 256 times it (a 64 x 64 Cornell map at 5 s,
+// where it takes 7 ms).
+TEST(ChooseFastest, AFirstRunPastTheBudgetLeavesTheRunsAfterItABudgetOfTheirOwn) {
+  CostModel model;
+  int raycast_probes = 0, raster_runs = 0;
+  constexpr double kPoints = 64.0 * 64.0, kSamples = 256.0, kPerPass = 0.01, kPerFragment = 1e-6;
+  constexpr double kOneTimeMs = 150.0;  // over the 100 ms share below
+  EqualAnswerOption raster;
+  raster.plan.method = "raster";
+  raster.plan.cost_key = "scene/map/raster";
+  raster.plan.work = kPoints * kSamples;
+  raster.plan.extra_work = kSamples;
+  for (double probe_points : {16.0, 256.0}) {
+    raster.probes.push_back({probe_points * kSamples, kSamples, [=, &raster_runs](const CallOptions& call) -> StatusOr<double> {
+                               VISQ_RETURN_IF_ERROR(call.stop.Check("the raster probe"));
+                               double ms = kPerPass * kSamples + kPerFragment * probe_points * kSamples;
+                               if (raster_runs++ == 0) {
+                                 std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(kOneTimeMs));
+                                 ms += kOneTimeMs;
+                               }
+                               return ms;
+                             }});
+  }
+  std::vector<EqualAnswerOption> options;
+  options.push_back(Option("raycast", 4e4, 0.01, &raycast_probes));  // 400 ms: the rasterizer's probe gets 100
+  options.push_back(std::move(raster));
+  auto report = ChooseFastest(model, options, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_EQ(raster_runs, 3) << "the first run, its repeat and the larger probe";
+  EXPECT_EQ(model.DistinctSizes("scene/map/raster"), 2u);
+  EXPECT_EQ(report->chosen_plan().method, "raster");
+  const double truth = kPerPass * kSamples + kPerFragment * kPoints * kSamples;
+  EXPECT_NEAR(report->chosen_plan().predicted_ms, truth, 0.05 * truth);
+}
+
 TEST(ChooseFastest, ACancelledCallStopsChoosing) {
   CostModel model;
   int probes = 0;
