@@ -111,6 +111,9 @@ struct Params {
   // Where to write every point's exact answer, as the bits of its three
   // doubles (one line a point): two builds' files compare bit for bit.
   std::string answers_out;
+  // --scene=slivers: how many, and how far the third vertex is off the long edge.
+  int slivers = 3000;
+  double sliver_width = 1e-9;
 };
 
 // CPU seconds of the whole process (every thread).
@@ -251,6 +254,60 @@ void AddOrientedBox(Scene& s, const std::string& name, const glm::dvec3& c, cons
   }
 }
 
+// The grille's, the foliage's and the slivers' room: 5 x 2.8 x 5 (Y up,
+// floor at y = 0, x in [0, 5], z in [-2.5, 2.5]), its surfaces facing its
+// inside, with a 2.1 x 1.4 opening in its x = 0 wall (y in [0.8, 2.2], z in
+// [-1.05, 1.05]). The floor is a 32 x 32 grid, as a mesh would be modelled.
+Scene MakeWindowRoom() {
+  Scene s;
+  s.materials = {{"white", glm::dvec3(0.7), glm::dvec3(0.0)}};
+  AddGrid(s, "floor", {0, 0, -2.5}, {0, 0, 5}, {5, 0, 0}, 32, 32);
+  visq::AddQuad(s, "ceiling", {0, 2.8, -2.5}, {5, 0, 0}, {0, 0, 5}, 0);
+  visq::AddQuad(s, "back_wall", {5, 0, -2.5}, {0, 0, 5}, {0, 2.8, 0}, 0);
+  visq::AddQuad(s, "side_wall_near", {0, 0, -2.5}, {5, 0, 0}, {0, 2.8, 0}, 0);
+  visq::AddQuad(s, "side_wall_far", {0, 0, 2.5}, {0, 2.8, 0}, {5, 0, 0}, 0);
+  visq::AddQuad(s, "wall_below", {0, 0, -2.5}, {0, 0.8, 0}, {0, 0, 5}, 0);
+  visq::AddQuad(s, "wall_above", {0, 2.2, -2.5}, {0, 0.6, 0}, {0, 0, 5}, 0);
+  visq::AddQuad(s, "wall_left", {0, 0.8, -2.5}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
+  visq::AddQuad(s, "wall_right", {0, 0.8, 1.05}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
+  return s;
+}
+
+// Slivers (issue 44, section 3: "3,000 sliver triangles that hide nothing
+// cost 3.4 s a point"): the room with its window open, and `count` needles
+// in the light's way just inside it (x in [0.2, 1], y in [0.9, 2.1], z in
+// [-1, 1]), each 0.2 m long, at random directions, its third vertex
+// `width` off the middle of its long edge: at 1e-9 m, next to nothing of the
+// light hides behind them, as with a mesh's leftover slivers; at 1e-3 they
+// are wires.
+Scene MakeSliverScene(int count, double width, uint32_t seed) {
+  Scene s = MakeWindowRoom();
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  auto unit = [&] {
+    const double z = 2.0 * u(rng) - 1.0, a = 2.0 * M_PI * u(rng), r = std::sqrt(1.0 - z * z);
+    return glm::dvec3(r * std::cos(a), r * std::sin(a), z);
+  };
+  const uint32_t node = static_cast<uint32_t>(s.nodes.size());
+  const uint32_t first = static_cast<uint32_t>(s.triangles.size());
+  for (int i = 0; i < count; ++i) {
+    const glm::dvec3 centre(0.2 + 0.8 * u(rng), 0.9 + 1.2 * u(rng), -1.0 + 2.0 * u(rng));
+    const glm::dvec3 along = unit();
+    const glm::dvec3 off = glm::normalize(glm::cross(along, unit()));
+    const uint32_t base = static_cast<uint32_t>(s.positions.size());
+    s.positions.push_back(centre - 0.1 * along);
+    s.positions.push_back(centre + 0.1 * along);
+    s.positions.push_back(centre + width * off);
+    s.triangles.push_back(glm::uvec3(base, base + 1, base + 2));
+    s.triangle_material.push_back(0);
+    s.triangle_node.push_back(node);
+  }
+  s.nodes.push_back(visq::SceneNode{"slivers", static_cast<int>(node), -1, glm::dmat4(1.0), first,
+                                    static_cast<uint32_t>(s.triangles.size()) - first});
+  visq::UpdateBounds(s);
+  return s;
+}
+
 // The grille (issue 44, section 3): a closed 5 x 2.8 x 5 room (Y up, floor
 // at y = 0, x in [0, 5], z in [-2.5, 2.5]) lit through a 2.1 x 1.4 window in
 // its x = 0 wall by a 1.6 x 1.6 area light 1 m outside. The window has a
@@ -262,19 +319,7 @@ void AddOrientedBox(Scene& s, const std::string& name, const glm::dvec3& c, cons
 // The floor is a 32 x 32 grid (as a mesh would be modelled): 2,496
 // triangles in all, 432 of them the window frame, bars and blind.
 Scene MakeGrilleScene() {
-  Scene s;
-  s.materials = {{"white", glm::dvec3(0.7), glm::dvec3(0.0)}};
-  // The room's surfaces face its inside.
-  AddGrid(s, "floor", {0, 0, -2.5}, {0, 0, 5}, {5, 0, 0}, 32, 32);
-  visq::AddQuad(s, "ceiling", {0, 2.8, -2.5}, {5, 0, 0}, {0, 0, 5}, 0);
-  visq::AddQuad(s, "back_wall", {5, 0, -2.5}, {0, 0, 5}, {0, 2.8, 0}, 0);
-  visq::AddQuad(s, "side_wall_near", {0, 0, -2.5}, {5, 0, 0}, {0, 2.8, 0}, 0);
-  visq::AddQuad(s, "side_wall_far", {0, 0, 2.5}, {0, 2.8, 0}, {5, 0, 0}, 0);
-  // The window wall (x = 0) around its opening y in [0.8, 2.2], z in [-1.05, 1.05].
-  visq::AddQuad(s, "wall_below", {0, 0, -2.5}, {0, 0.8, 0}, {0, 0, 5}, 0);
-  visq::AddQuad(s, "wall_above", {0, 2.2, -2.5}, {0, 0.6, 0}, {0, 0, 5}, 0);
-  visq::AddQuad(s, "wall_left", {0, 0.8, -2.5}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
-  visq::AddQuad(s, "wall_right", {0, 0.8, 1.05}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
+  Scene s = MakeWindowRoom();
   // The frame, 5 cm inside the opening: the panes span y in [0.85, 2.15], z in [-1, 1].
   visq::AddBox(s, "frame_bottom", {-0.05, 0.8, -1.05}, {0.05, 0.85, 1.05}, 0);
   visq::AddBox(s, "frame_top", {-0.05, 2.15, -1.05}, {0.05, 2.2, 1.05}, 0);
@@ -364,19 +409,7 @@ std::optional<Scene> MakeFoliageScene(const std::filesystem::path& scenes) {
     assets.push_back(std::move(*asset));
   }
   const Scene &flowers = assets[0], &tree = assets[1], &palm = assets[2];
-  Scene s;
-  s.materials = {{"white", glm::dvec3(0.7), glm::dvec3(0.0)}};
-  // The room, its window wall around the opening y in [0.8, 2.2], z in
-  // [-1.05, 1.05], as the grille's.
-  AddGrid(s, "floor", {0, 0, -2.5}, {0, 0, 5}, {5, 0, 0}, 32, 32);
-  visq::AddQuad(s, "ceiling", {0, 2.8, -2.5}, {5, 0, 0}, {0, 0, 5}, 0);
-  visq::AddQuad(s, "back_wall", {5, 0, -2.5}, {0, 0, 5}, {0, 2.8, 0}, 0);
-  visq::AddQuad(s, "side_wall_near", {0, 0, -2.5}, {5, 0, 0}, {0, 2.8, 0}, 0);
-  visq::AddQuad(s, "side_wall_far", {0, 0, 2.5}, {0, 2.8, 0}, {5, 0, 0}, 0);
-  visq::AddQuad(s, "wall_below", {0, 0, -2.5}, {0, 0.8, 0}, {0, 0, 5}, 0);
-  visq::AddQuad(s, "wall_above", {0, 2.2, -2.5}, {0, 0.6, 0}, {0, 0, 5}, 0);
-  visq::AddQuad(s, "wall_left", {0, 0.8, -2.5}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
-  visq::AddQuad(s, "wall_right", {0, 0.8, 1.05}, {0, 1.4, 0}, {0, 0, 1.45}, 0);
+  Scene s = MakeWindowRoom();
   // The sill (inside the wall's 0.25 m) and a shelf board across the opening.
   visq::AddBox(s, "sill", {0.0, 0.78, -1.05}, {0.25, 0.8, 1.05}, 0);
   visq::AddBox(s, "shelf", {0.0, 1.43, -1.05}, {0.25, 1.45, 1.05}, 0);
@@ -408,6 +441,9 @@ std::optional<BenchCase> LoadCase(const Params& p) {
   if (p.scene == "grille") {
     bc.name = "grille";
     bc.scene = MakeGrilleScene();
+  } else if (p.scene == "slivers") {
+    bc.name = "slivers";
+    bc.scene = MakeSliverScene(p.slivers, p.sliver_width, p.seed);
   } else if (p.scene == "foliage") {
     bc.name = "foliage";
     std::optional<Scene> scene = MakeFoliageScene(p.scenes);
@@ -1028,18 +1064,20 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--shaft-cap")) p.shaft_cap = std::atof(v);
     else if (const char* v = value("--error-table")) p.error_table = std::atoi(v) != 0;
     else if (const char* v = value("--answers-out")) p.answers_out = v;
+    else if (const char* v = value("--slivers")) p.slivers = std::atoi(v);
+    else if (const char* v = value("--sliver-width")) p.sliver_width = std::atof(v);
     else {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
                    "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--direct-candidates=N] [--keep-answers=0] [--accelerations=0] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
-                   "       %s --scene=grille|foliage [--scenes=DIR] [the camera and grouping flags; --light, --eye, --look-at default to the room's]\n",
+                   "       %s --scene=grille|foliage|slivers [--scenes=DIR] [--slivers=3000 --sliver-width=1e-9] [the camera and grouping flags; --light, --eye, --look-at default to the room's]\n",
                    argv[0], argv[0], argv[0]);
       return 2;
     }
   }
-  if (!p.scene.empty() && p.scene != "grille" && p.scene != "foliage") {
-    std::fprintf(stderr, "--scene: '%s' is not a generated scene (grille, foliage)\n", p.scene.c_str());
+  if (!p.scene.empty() && p.scene != "grille" && p.scene != "foliage" && p.scene != "slivers") {
+    std::fprintf(stderr, "--scene: '%s' is not a generated scene (grille, foliage, slivers)\n", p.scene.c_str());
     return 2;
   }
   if (p.scene == "foliage" && !std::filesystem::exists(p.scenes / "tree_kenney")) {
@@ -1048,7 +1086,7 @@ int main(int argc, char** argv) {
     return 77;
   }
   // The foliage stands in the grille's room, under the same window and light.
-  if (p.scene == "grille" || p.scene == "foliage") {
+  if (p.scene == "grille" || p.scene == "foliage" || p.scene == "slivers") {
     // The light just outside the window, facing into the room; the camera
     // 2.2 m over the floor, looking almost straight down at the part the
     // window lights (x in [0.35, 2.9]), so every point is on the floor and
