@@ -35,9 +35,11 @@ std::vector<uint32_t> TableByDefinition(const std::vector<glm::vec2>& centred, c
   for (int ti = 0; ti < tt; ++ti) {
     const double t0 = -std::numbers::pi + ti * dtheta - kHoughMargin, width = dtheta + 2.0 * kHoughMargin;
     for (int i = 0; i < n; ++i) {
-      const double rho = std::hypot(double(centred[i].x), double(centred[i].y));
-      const double phi = std::atan2(double(centred[i].y), double(centred[i].x));
-      const double c0 = rho * std::cos(t0 - phi), c1 = rho * std::cos(t0 + width - phi);
+      const double x = centred[i].x, y = centred[i].y;
+      const double rho = std::hypot(x, y), phi = std::atan2(y, x);
+      // g = cos(theta) x + sin(theta) y at the cell's two ends.
+      const double c0 = x * std::cos(t0) + y * std::sin(t0);
+      const double c1 = x * std::cos(t0 + width) + y * std::sin(t0 + width);
       const double g_max = in_range(phi, t0, width) ? rho : std::max(c0, c1);
       const double g_min = in_range(phi + std::numbers::pi, t0, width) ? -rho : std::min(c0, c1);
       const int word = i >> 5;
