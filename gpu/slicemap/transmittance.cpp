@@ -286,24 +286,14 @@ StatusOr<TransmittanceResult> Transmittance(GpuWorker& worker, const Scene& scen
   const auto start = Clock::now();
   VISQ_RETURN_IF_ERROR(ValidateTransmittanceParams(params, scene));
   const TransmittanceLight& light = params.light;
-  const ReceiverPatch& patch = params.patch;
 
   // Absorbers grouped by coefficient: one solid slicemap per group.
   Bounds bounds;
   const std::vector<AbsorberGroup> group_ranges = AbsorberGroups(params, scene, bounds);
 
-  // Query points: explicit ones, then the patch.
-  std::vector<glm::dvec3> points = params.points;
-  for (uint32_t j = 0; j < patch.nv; ++j)
-    for (uint32_t i = 0; i < patch.nu; ++i)
-      points.push_back(patch.origin + (i + 0.5) / patch.nu * patch.u + (j + 0.5) / patch.nv * patch.v);
-
+  const std::vector<glm::dvec3> points = params.QueryPoints();
   TransmittanceResult result;
-  result.transmittance.assign(points.size(), 1.0f);
-  result.optical_depth.assign(points.size(), 0.0f);
-  result.optical_depth_error.assign(points.size(), 0.0f);
-  result.lateral_offset.assign(points.size(), 0.0f);
-  result.ambiguous.assign(points.size(), 0);
+  result.AllTransmitting(points.size());
   if (bounds.Empty()) {
     result.error_statement = "the absorbing nodes have no triangles: nothing absorbs";
     result.timings.total_ms = MillisecondsSince(start);

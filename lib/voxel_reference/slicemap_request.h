@@ -204,6 +204,15 @@ struct TransmittanceParams {
   uint32_t resolution = 256;      // light-view image is resolution x resolution
   uint32_t slices = 256;          // solid passes: up to 512 per pass
   JobOptions job;
+
+  // The query points: the explicit ones, then the patch's texel centres.
+  std::vector<glm::dvec3> QueryPoints() const {
+    std::vector<glm::dvec3> out = points;
+    for (uint32_t j = 0; j < patch.nv; ++j)
+      for (uint32_t i = 0; i < patch.nu; ++i)
+        out.push_back(patch.origin + (i + 0.5) / patch.nu * patch.u + (j + 0.5) / patch.nv * patch.v);
+    return out;
+  }
 };
 
 struct TransmittanceResult {
@@ -229,6 +238,16 @@ struct TransmittanceResult {
   uint64_t ambiguous_columns = 0;  // over all groups; their counts are surface-only
   std::string error_statement;
   SlicemapTimings timings;  // summed over groups
+  std::string method = "transmittance-slicemap";  // or "transmittance-ray-stabbing" (TransmittanceByRays)
+
+  // `points` answers of light passing unabsorbed, none ambiguous.
+  void AllTransmitting(size_t points) {
+    transmittance.assign(points, 1.0f);
+    optical_depth.assign(points, 0.0f);
+    optical_depth_error.assign(points, 0.0f);
+    lateral_offset.assign(points, 0.0f);
+    ambiguous.assign(points, 0);
+  }
 };
 
 }  // namespace visq::voxel_reference

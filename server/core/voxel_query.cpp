@@ -5,6 +5,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/engine.h"
 #include "glm/geometric.hpp"
+#include "voxel_reference/transmittance_by_rays.h"
 
 namespace visq::core {
 namespace {
@@ -90,6 +91,21 @@ StatusOr<gpu::TransmittanceResult> RunTransmittance(Engine& engine, const Transm
   // Resolved and validated before the GPU upload: a bad request costs nothing.
   VISQ_ASSIGN_OR_RETURN(gpu::TransmittanceParams params, ResolveTransmittanceQuery(query, *resident->scene));
   params.job = query.call.Job();
+  if (query.method == TransmittanceMethod::kRayStabbing) {
+    // Reserved first: per query point its position, its walk along the line
+    // (a count and an entry per coefficient group), a ray and a hit while it
+    // crosses, its answers and their copy in the response; per absorbing
+    // triangle its copy and Embree's share of a BVH.
+    uint64_t absorbing_triangles = 0;
+    for (const voxel_reference::AbsorbingNode& n : params.nodes)
+      absorbing_triangles += resident->scene->nodes[n.node].triangle_count;
+    const uint64_t points = params.points.size() + uint64_t{params.patch.nu} * params.patch.nv;
+    const uint64_t bytes = points * 512 + absorbing_triangles * 256 + (uint64_t{1} << 20);
+    WorkMemoryBudget::Reservation memory;
+    VISQ_ASSIGN_OR_RETURN(memory, engine.work_budget().Reserve(bytes, "points, receiver_width x receiver_height", params.job));
+    if (hold != nullptr) *hold = std::move(memory);
+    return voxel_reference::TransmittanceByRays(*resident->scene, params);
+  }
   // Reserved before anything is made: per query point its position (the
   // explicit points copied, the receiver's texels added), its five answers
   // (17 bytes) and their copy in the response; one group's solid
@@ -147,7 +163,7 @@ AccuracyStatement VoxelizeStatement(const gpu::VoxelizeResult& figures) {
 
 AccuracyStatement TransmittanceStatement(const gpu::TransmittanceResult& result) {
   AccuracyStatement out;
-  out.method = "transmittance-slicemap";
+  out.method = result.method;
   float worst = 0;
   for (float e : result.optical_depth_error) worst = std::max(worst, e);
   out.error_bound = worst;

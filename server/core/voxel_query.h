@@ -27,12 +27,19 @@ struct VoxelizeQuery {
   std::vector<std::string> nodes;
 };
 
+// kSlicemap: the paper's transmittance shadow map on the GPU, answering
+// for the ray through the centre of each point's light-view texel.
+// kRayStabbing: each point's own ray on the CPU
+// (voxel_reference::TransmittanceByRays).
+enum class TransmittanceMethod { kSlicemap, kRayStabbing };
+
 struct TransmittanceQuery {
   std::string scene;
   uint64_t scene_version = 0;
   voxel_reference::TransmittanceParams params;
   CallOptions call;  // the core sets params.job from it
   std::vector<std::pair<std::string, double>> absorbers;  // node name, absorption
+  TransmittanceMethod method = TransmittanceMethod::kSlicemap;
 };
 
 // The query's parameters with names resolved against the scene and every

@@ -638,6 +638,11 @@ StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& req
   }
   if (request.resolution() != 0) p.resolution = request.resolution();
   if (request.slices() != 0) p.slices = request.slices();
+  switch (request.method()) {
+    case v1::TransmittanceRequest::SLICEMAP: query.method = core::TransmittanceMethod::kSlicemap; break;
+    case v1::TransmittanceRequest::RAY_STABBING: query.method = core::TransmittanceMethod::kRayStabbing; break;
+    default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));
+  }
   return query;
 }
 

@@ -497,6 +497,28 @@ TEST_F(AlgorithmRpcTest, TransmittanceThroughTheShortBox) {
   // exp(-2 * 0.6), within the stated error.
   EXPECT_NEAR(response->optical_depth(0), 1.2, response->optical_depth_error(0) + 0.05);
   EXPECT_FLOAT_EQ(response->transmittance(1), 1.0f);
+  EXPECT_EQ(response->accuracy().method(), "transmittance-slicemap");
+
+  // The points' own rays, to rounding: the box spans y in [0, 0.6] and the
+  // point is inside it at y = 0.001, so its path is 0.599.
+  request.set_method(v1::TransmittanceRequest::RAY_STABBING);
+  auto own = client_->Transmittance(request);
+  ASSERT_TRUE(own.ok()) << own.status();
+  ASSERT_EQ(own->optical_depth_size(), 2);
+  EXPECT_EQ(own->accuracy().method(), "transmittance-ray-stabbing");
+  const double exact = 2.0 * 0.599;
+  EXPECT_LE(exact, own->optical_depth(0) + 1e-6);
+  EXPECT_GE(exact, own->optical_depth(0) - own->optical_depth_error(0) - 1e-6);
+  EXPECT_LT(own->optical_depth_error(0), 1e-3);
+  EXPECT_EQ(own->lateral_offset(0), 0.0f);
+  EXPECT_FALSE(own->ambiguous(0));
+  EXPECT_FLOAT_EQ(own->transmittance(1), 1.0f);
+  request.set_method(static_cast<v1::TransmittanceRequest::Method>(7));
+  auto unknown = client_->Transmittance(request);
+  EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(unknown.status().message()).find("method"), std::string::npos) << unknown.status();
+  request.set_method(v1::TransmittanceRequest::SLICEMAP);
+
   absorber->set_node("nope");
   EXPECT_EQ(client_->Transmittance(request).status().code(), absl::StatusCode::kInvalidArgument);
 }

@@ -300,6 +300,14 @@ class ClientTest(unittest.TestCase):
         under, clear = tr.at_points(tr.transmittance)
         self.assertLess(under, 0.5, "under the absorbing box")
         self.assertAlmostEqual(float(clear), 1.0, places=5)
+        # The points' own rays: inside the box at y = 0.01, 0.59 of it above.
+        own = self.client.transmittance(SCENE, (0, -1, 0), {"short_box": 2.0}, points=[(0.4, 0.01, 0.35)],
+                                        method="ray-stabbing")
+        depth, = own.at_points(own.optical_depth)
+        self.assertAlmostEqual(float(depth), 2.0 * 0.59, places=3)
+        self.assertEqual(own.response.accuracy.method, "transmittance-ray-stabbing")
+        with self.assertRaises(ValueError):
+            self.client.transmittance(SCENE, (0, -1, 0), {"short_box": 2.0}, points=[(0, 0, 0)], method="rays")
 
     def test_voxelize(self):
         grid = self.client.voxelize(SCENE, width=16, height=8, slices=40, axis=1)
