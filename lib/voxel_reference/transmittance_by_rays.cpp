@@ -77,7 +77,27 @@ StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const Tran
     group = static_cast<int>(sigma.size());
     sigma.push_back(value);
   }
-  for (const AbsorbingNode& n : params.nodes) group_of_node[n.node] = group_of_sigma[n.absorption];
+  if (sigma.size() > kMaxTransmittanceGroups)
+    return absl::InvalidArgumentError(fmt::format("params.nodes: {} distinct absorption values (at most {})",
+                                                  sigma.size(), kMaxTransmittanceGroups));
+  for (size_t i = 0; i < params.nodes.size(); ++i) {
+    const AbsorbingNode& n = params.nodes[i];
+    if (n.node >= scene.nodes.size())
+      return absl::InvalidArgumentError(
+          fmt::format("params.nodes[{}].node: {} (the scene has {} nodes)", i, n.node, scene.nodes.size()));
+    const int group = group_of_sigma[n.absorption];
+    // One node in two coefficients' unions would be two coincident
+    // surfaces on every line through it, which count as one crossing.
+    if (group_of_node[n.node] >= 0 && group_of_node[n.node] != group)
+      return absl::InvalidArgumentError(fmt::format(
+          "params.nodes[{}]: node {} is listed with two absorption values; RAY_STABBING takes one a node", i,
+          n.node));
+    group_of_node[n.node] = group;
+  }
+  if (params.light.kind == TransmittanceLightKind::kDirectional
+          ? !(glm::length(params.light.direction) > 0.0) || !std::isfinite(glm::length(params.light.direction))
+          : !std::isfinite(glm::length(params.light.position)))
+    return absl::InvalidArgumentError("params.light: a finite position, or a finite non-zero direction");
   std::vector<std::array<glm::dvec3, 3>> triangles;
   std::vector<int> group_of_triangle;
   for (size_t t = 0; t < scene.TriangleCount(); ++t) {

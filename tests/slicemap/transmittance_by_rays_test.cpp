@@ -5,6 +5,7 @@
 #include <atomic>
 #include <cmath>
 #include <limits>
+#include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -165,6 +166,27 @@ TEST(TransmittanceByRays, NoAbsorbingTrianglesAbsorbNothing) {
   auto result = TransmittanceByRays(scene, params);
   ASSERT_TRUE(result.ok()) << result.status();
   EXPECT_EQ(result->transmittance, std::vector<float>{1.0f});
+}
+
+// A node in two coefficients' unions would put two coincident surfaces on
+// every line through it: refused, naming the node's entry; the same
+// coefficient twice is one union.
+TEST(TransmittanceByRays, ANodeWithTwoCoefficientsIsRefusedNamingIt) {
+  Scene scene;
+  AddBox(scene, "box", {0, 0, 0}, {1, 1, 1}, 0);
+  UpdateBounds(scene);
+  TransmittanceParams params;
+  params.points = {{0.5, -1, 0.5}};
+  params.nodes = {{0, 1.0}, {0, 1.0}};
+  auto same = TransmittanceByRays(scene, params);
+  ASSERT_TRUE(same.ok()) << same.status();
+  EXPECT_NEAR(same->optical_depth[0], 1.0, 1e-4);
+  params.nodes = {{0, 1.0}, {0, 2.0}};
+  auto twice = TransmittanceByRays(scene, params);
+  EXPECT_EQ(twice.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(twice.status().message()).find("params.nodes[1]"), std::string::npos) << twice.status();
+  params.nodes = {{5, 1.0}};
+  EXPECT_EQ(TransmittanceByRays(scene, params).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 TEST(TransmittanceByRays, ACancelledCallStops) {
