@@ -98,13 +98,17 @@ StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const Tran
           ? !(glm::length(params.light.direction) > 0.0) || !std::isfinite(glm::length(params.light.direction))
           : !std::isfinite(glm::length(params.light.position)))
     return absl::InvalidArgumentError("params.light: a finite position, or a finite non-zero direction");
+  // Each absorbing node's own triangles (its range of the scene's), once
+  // however often it is listed: the work follows the absorbers, not the scene.
   std::vector<std::array<glm::dvec3, 3>> triangles;
   std::vector<int> group_of_triangle;
-  for (size_t t = 0; t < scene.TriangleCount(); ++t) {
-    const int group = group_of_node[scene.NodeOf(t)];
-    if (group < 0) continue;
-    triangles.push_back({scene.Vertex(t, 0), scene.Vertex(t, 1), scene.Vertex(t, 2)});
-    group_of_triangle.push_back(group);
+  for (size_t n = 0; n < scene.nodes.size(); ++n) {
+    if (group_of_node[n] < 0) continue;
+    const SceneNode& node = scene.nodes[n];
+    for (size_t t = node.first_triangle; t < size_t{node.first_triangle} + node.triangle_count; ++t) {
+      triangles.push_back({scene.Vertex(t, 0), scene.Vertex(t, 1), scene.Vertex(t, 2)});
+      group_of_triangle.push_back(group_of_node[n]);
+    }
   }
 
   const std::vector<glm::dvec3> points = params.QueryPoints();
