@@ -138,6 +138,11 @@ void AddFlags(CLI::App& app, Flags& flags) {
   app.add_option("--light-receiver-min-points", flags.options.engine.light_receiver_min_points,
                  "A receiver cube with fewer points joins its parent cube's tree (1: every cube its own)")
       ->envname("VISQ_LIGHT_RECEIVER_MIN_POINTS")->check(CLI::Range(1, 1 << 20))->capture_default_str();
+  app.add_option("--light-shadow-tolerance", flags.options.engine.light_shadow_tolerance,
+                 "LightVisibility without a shadow_tolerance: per point, occluders with small shadows are left out "
+                 "while their areas sum to at most this share of the light, and stated as the point's error (0: "
+                 "every answer exact)")
+      ->envname("VISQ_LIGHT_SHADOW_TOLERANCE")->check(CLI::Range(0.0, 1.0))->capture_default_str();
   app.add_option("--worker-threads", flags.options.worker_threads,
                  "Threads for blocking request work (the CPU-parallel loops within it use one thread per CPU the "
                  "process may use: its cgroup's CPU quota, cpu.max or cpu.cfs_quota_us, rounded up, or its affinity "

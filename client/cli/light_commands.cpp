@@ -26,6 +26,7 @@ constexpr uint64_t kMaxPoints = uint64_t{4096} * 4096;
 struct LightOptions {
   std::string scene, light, points_file, receiver, png, npy, exr;
   double radiance = 1.0;
+  std::optional<double> shadow_tolerance;
   uint32_t width = 64, height = 64;
   bool polygons = false;
 };
@@ -81,6 +82,7 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
   first.mutable_scene()->set_name(o.scene);
   first.set_radiance(o.radiance);
   first.set_want_polygons(o.polygons);
+  if (o.shadow_tolerance) first.set_shadow_tolerance(*o.shadow_tolerance);
   for (size_t start = 0; start <= o.light.size();) {
     size_t end = o.light.find(';', start);
     if (end == std::string::npos) end = o.light.size();
@@ -156,6 +158,7 @@ Status RunLightVisibility(const LightOptions& o, Cli& cli) {
     *batch->mutable_light() = first.light();
     batch->set_radiance(first.radiance());
     batch->set_want_polygons(first.want_polygons());
+    if (first.has_shadow_tolerance()) batch->set_shadow_tolerance(first.shadow_tolerance());
     const uint64_t end = std::min<uint64_t>(total, sent + kBatchPoints);
     for (; sent < end; ++sent) {
       const Point p = point_at(sent);
@@ -239,6 +242,11 @@ void AddLightCommands(Cli& cli) {
   command->add_option("--scene", lv->scene, "Scene name")->required();
   command->add_option("--light", lv->light, "Light polygon 'x,y,z;x,y,z;...' (front: counter-clockwise)")->required();
   command->add_option("--radiance", lv->radiance, "Emitted radiance")->capture_default_str();
+  command->add_option("--shadow-tolerance", lv->shadow_tolerance,
+                      "Per point, leave out occluders with small shadows while their areas sum to at most this "
+                      "share of the light, stated as the point's error (0: every answer exact; default: the "
+                      "server's)")
+      ->check(CLI::Range(0.0, 1.0));
   command->add_option("--points", lv->points_file,
                       "File of points, one 'x y z [nx ny nz]' per line ('#' comments); prints 'fraction irradiance' "
                       "per point");

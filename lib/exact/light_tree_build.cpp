@@ -249,6 +249,10 @@ StatusOr<std::unique_ptr<LightTree>> LightTree::Create(const AreaLight& light, c
     return absl::InvalidArgumentError(absl::StrCat("the triangle index has ", index->triangle_count(),
                                                    " triangles, the scene ", scene.TriangleCount()));
   }
+  if (!(options.shadow_tolerance >= 0.0 && options.shadow_tolerance <= 1.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("shadow_tolerance: must be a share of the light in [0, 1], got ", options.shadow_tolerance));
+  }
   auto tree = std::make_unique<LightTree>();
   VISQ_ASSIGN_OR_RETURN(PreparedLight prepared, PrepareLight(light));
   tree->origin = prepared.origin;
@@ -264,7 +268,20 @@ StatusOr<std::unique_ptr<LightTree>> LightTree::Create(const AreaLight& light, c
   tree->line_boxes = options.line_boxes;
   tree->fragment_grid = options.fragment_grid && options.line_boxes;
   tree->largest_first = options.largest_first;
+  tree->shadow_tolerance = options.shadow_tolerance;
   tree->light_local = std::move(prepared.local);
+  {
+    // The emitting side is the one its counter-clockwise winding faces (the
+    // Newell normal); the normal kept points away from it, from a point
+    // that sees the light towards the light.
+    const std::vector<glm::dvec3>& l = tree->light_local;
+    glm::dvec3 newell(0.0);
+    for (size_t i = 0; i < l.size(); ++i) {
+      newell += glm::cross(l[i], l[(i + 1) % l.size()]);
+      for (size_t j = 0; j < i; ++j) tree->light_diameter = std::max(tree->light_diameter, glm::length(l[i] - l[j]));
+    }
+    tree->light_unit_normal = -glm::normalize(newell);
+  }
   const LightTriangle& largest = PlantLight(*tree, prepared.triangles);
 
   // The receiver box in the local frame. No outward rounding is needed:

@@ -34,7 +34,7 @@ AnswerKey KeyOf(const QueryPoint& q, bool want_polygons) {
 size_t AnswerBytes(const PointVisibility& v) {
   // The entry, the map's slot overhead, and the polygons.
   size_t bytes = sizeof(AnswerKey) + sizeof(StoredAnswer) + 16;
-  if (!v.visible_polygons.empty()) bytes += sizeof(v.visible_polygons);
+  if (!v.visible_polygons.empty() || v.visible_area_fraction_error > 0.0) bytes += sizeof(StoredAnswer::Rest);
   for (const auto& polygon : v.visible_polygons) bytes += sizeof(polygon) + polygon.size() * sizeof(glm::dvec3);
   return bytes;
 }
@@ -431,7 +431,9 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
   if (candidates.direct) subtract = std::move(candidates.far);
   const uint32_t far_count = static_cast<uint32_t>(far.size());
   for (const uint32_t candidate : candidates.near) subtract.push_back(far_count + candidate);
+  double left_out_area = 0.0;
   if (!subtract.empty() && !visible.empty()) {
+    if (shadow_tolerance > 0.0) left_out_area = LeaveOutSmallShadows(p_local, &subtract);
     const XPlane* slab_top = nullptr;
     // Largest first: in index order a penumbra under a dense mesh was cut
     // into thousands of pieces, and nearest first was little better
@@ -449,7 +451,7 @@ StatusOr<PointVisibility> LightTree::Compute(const QueryPoint& q, bool want_poly
   }
 
   // Integrate over the visible polygons.
-  PointVisibility answer = Integrate(visible, p_local, normal, want_polygons);
+  PointVisibility answer = Integrate(visible, p_local, normal, want_polygons, left_out_area);
   s.penumbra_tree =
       answer.visible_area_fraction > 0.0 && answer.visible_area_fraction < 1.0 ? this : nullptr;
   return answer;
@@ -543,8 +545,57 @@ Status LightTree::DescendTree(Scratch& s, std::vector<Fragment>& pending, const 
   return absl::OkStatus();
 }
 
+double LightTree::ShadowAreaBound(const glm::dvec3& p, double h_light, const glm::dvec3 (&v)[3]) const {
+  glm::dvec3 u[3];  // the vertices' projections, from p
+  double reach = 0.0;
+  for (int i = 0; i < 3; ++i) {
+    const glm::dvec3 d = v[i] - p;
+    const double h = glm::dot(light_unit_normal, d);
+    // At a thousandth of p's distance to the light the rounding of h cannot
+    // flip its sign, and every point of the triangle lies on the light's
+    // side of p, where the projection maps it to a triangle.
+    if (!(h >= 1e-3 * h_light)) return std::numeric_limits<double>::infinity();
+    u[i] = d * (h_light / h);
+    reach = std::max(reach, std::max({std::fabs(u[i].x), std::fabs(u[i].y), std::fabs(u[i].z)}));
+  }
+  const double area = 0.5 * glm::length(glm::cross(u[1] - u[0], u[2] - u[0]));
+  // The cross product's rounding is a few ulps of reach^2 times the
+  // relative error of the projections (a few ulps, times reach / h_light
+  // where a vertex is seen at a grazing angle): 1e-12 is some hundred times
+  // that. The 1.01 covers a light whose vertices stand up to 1e-6 of its
+  // diameter off its plane (PrepareLight's limit) at h_light of at least a
+  // thousandth of the diameter.
+  return 1.01 * area + 1e-12 * reach * reach * (1.0 + reach / h_light);
+}
+
+double LightTree::LeaveOutSmallShadows(const glm::dvec3& p, std::vector<uint32_t>* ids) const {
+  double h_light = std::numeric_limits<double>::infinity();
+  for (const glm::dvec3& l : light_local) h_light = std::min(h_light, glm::dot(light_unit_normal, l - p));
+  if (!(h_light > 1e-3 * light_diameter)) return 0.0;
+  const double budget = shadow_tolerance * light_area;
+  std::vector<std::pair<double, uint32_t>> small;  // (area bound, occluder id)
+  for (const uint32_t id : *ids) {
+    const uint32_t* t = OccluderVertices(id);
+    const glm::dvec3 v[3] = {vertices[t[0]], vertices[t[1]], vertices[t[2]]};
+    const double area = ShadowAreaBound(p, h_light, v);
+    if (area <= budget) small.emplace_back(area, id);
+  }
+  std::sort(small.begin(), small.end());
+  double sum = 0.0;
+  size_t left_out = 0;
+  while (left_out < small.size() && sum + small[left_out].first <= budget) sum += small[left_out++].first;
+  if (left_out == 0) return 0.0;
+  std::vector<uint32_t> out(left_out);
+  for (size_t i = 0; i < left_out; ++i) out[i] = small[i].second;
+  std::sort(out.begin(), out.end());
+  std::erase_if(*ids, [&](uint32_t id) { return std::binary_search(out.begin(), out.end(), id); });
+  // The sum's own rounding: at most left_out ulps of it.
+  return sum * (1.0 + 1e-15 * static_cast<double>(left_out + 1));
+}
+
 PointVisibility LightTree::Integrate(const std::vector<Fragment>& visible, const glm::dvec3& p_local,
-                                     const std::optional<glm::dvec3>& normal, bool want_polygons) const {
+                                     const std::optional<glm::dvec3>& normal, bool want_polygons,
+                                     double left_out_area) const {
   PointVisibility result;
   double area = 0.0, solid_angle = 0.0, irradiance = 0.0;
   for (const Fragment& f : visible) {
@@ -578,6 +629,20 @@ PointVisibility LightTree::Integrate(const std::vector<Fragment>& visible, const
       total_solid_angle > 0.0 ? std::min(1.0, solid_angle / total_solid_angle) : 0.0;
   // All visible fragments wind the same way as seen from P.
   result.irradiance = radiance * std::fabs(irradiance);
+  if (left_out_area > 0.0) {
+    // Seen from P, a light-plane area A spans a solid angle of at most
+    // A / h^2 (the density cos / r^2 = h / r^3 is largest at r = h), and
+    // its irradiance at most the radiance times that.
+    double h_light = std::numeric_limits<double>::infinity();
+    for (const glm::dvec3& l : light_local) h_light = std::min(h_light, glm::dot(light_unit_normal, l - p_local));
+    const double left_out_solid_angle = 1.01 * left_out_area / (h_light * h_light);
+    result.visible_area_fraction_error = std::min(result.visible_area_fraction, left_out_area / light_area);
+    result.visible_solid_angle_fraction_error =
+        total_solid_angle > 0.0
+            ? std::min(result.visible_solid_angle_fraction, left_out_solid_angle / total_solid_angle)
+            : 0.0;
+    result.irradiance_error = std::min(result.irradiance, radiance * left_out_solid_angle);
+  }
   return result;
 }
 

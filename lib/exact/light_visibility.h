@@ -177,6 +177,17 @@ struct TreeOptions {
   // index order a penumbra under a dense mesh was cut into thousands of
   // pieces).
   bool largest_first = true;
+  // Per point, occluders whose shadows on the light are small may be left
+  // out of the subtraction, the smallest first, while the areas of their
+  // shadows (each bounded by the triangle's central projection from the
+  // point onto the light's plane) sum to at most this share of the light's
+  // area; the answer then states that sum as its error
+  // (PointVisibility::visible_area_fraction_error). 0: none is left out, and
+  // every answer is exact up to rounding in the area sums. The route for
+  // needles and wires that hide almost nothing: n of them across the light
+  // cut it into about n^2 pieces, whatever their width
+  // (docs/exact-method-notes.md, "Slivers"). Part of the tree's identity.
+  double shadow_tolerance = 0.0;
 
   // Mora et al. 2013 as the paper gives it: every query descends the
   // shared tree, which its queries grow; its leaves' occluders and the near
@@ -217,6 +228,13 @@ struct PointVisibility {
   double irradiance = 0.0;  // W/m^2 at P for its normal; 0 without a normal
   // The visible parts of the light, world space, when asked for.
   std::vector<std::vector<glm::dvec3>> visible_polygons;
+  // Occluders left out under TreeOptions::shadow_tolerance: the true figures
+  // lie at most these below the three above (never above them: an occluder
+  // left out can only hide more). 0 where none was left out. The polygons
+  // are those of the light without them.
+  double visible_area_fraction_error = 0.0;
+  double visible_solid_angle_fraction_error = 0.0;
+  double irradiance_error = 0.0;
 };
 
 struct TreeStats {

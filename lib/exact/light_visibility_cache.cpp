@@ -17,6 +17,7 @@ uint64_t HashLight(const AreaLight& light, const TreeOptions& options) {
     mix(&options.receiver_bounds->max, sizeof(glm::dvec3));
   }
   for (uint32_t t : options.exclude_triangles) mix(&t, sizeof(t));
+  mix(&options.shadow_tolerance, sizeof(options.shadow_tolerance));
   return h;
 }
 

@@ -103,21 +103,30 @@ struct LightPiece {
   const XPlane* plane;
 };
 
-// An answer as the store keeps it: the three figures, and the polygons only
-// when they were asked for (a PointVisibility carries an empty vector in
-// every answer: 24 bytes of the 48). 32 bytes, so a 16 MB tree's store
-// (half its budget) holds about 80,000 answers: a 320 x 180 frame on one
-// tree, asked again, is answered from it whole.
+// An answer as the store keeps it: the three figures, and the rest (the
+// polygons, the errors of an answer that left occluders out) only where
+// there is any (a PointVisibility carries an empty vector in every answer:
+// 24 bytes of the 48). 32 bytes, so a 16 MB tree's store (half its budget)
+// holds about 80,000 answers: a 320 x 180 frame on one tree, asked again, is
+// answered from it whole.
 struct StoredAnswer {
+  struct Rest {
+    std::vector<std::vector<glm::dvec3>> polygons;
+    double visible_area_fraction_error = 0.0;
+    double visible_solid_angle_fraction_error = 0.0;
+    double irradiance_error = 0.0;
+  };
   double visible_area_fraction = 0.0;
   double visible_solid_angle_fraction = 0.0;
   double irradiance = 0.0;
-  std::unique_ptr<std::vector<std::vector<glm::dvec3>>> polygons;
+  std::unique_ptr<Rest> rest;
 
   static StoredAnswer From(const PointVisibility& v) {
     StoredAnswer a{v.visible_area_fraction, v.visible_solid_angle_fraction, v.irradiance, nullptr};
-    if (!v.visible_polygons.empty()) {
-      a.polygons = std::make_unique<std::vector<std::vector<glm::dvec3>>>(v.visible_polygons);
+    if (!v.visible_polygons.empty() || v.visible_area_fraction_error > 0.0 ||
+        v.visible_solid_angle_fraction_error > 0.0 || v.irradiance_error > 0.0) {
+      a.rest = std::make_unique<Rest>(Rest{v.visible_polygons, v.visible_area_fraction_error,
+                                           v.visible_solid_angle_fraction_error, v.irradiance_error});
     }
     return a;
   }
@@ -126,7 +135,12 @@ struct StoredAnswer {
     v.visible_area_fraction = visible_area_fraction;
     v.visible_solid_angle_fraction = visible_solid_angle_fraction;
     v.irradiance = irradiance;
-    if (polygons) v.visible_polygons = *polygons;
+    if (rest) {
+      v.visible_polygons = rest->polygons;
+      v.visible_area_fraction_error = rest->visible_area_fraction_error;
+      v.visible_solid_angle_fraction_error = rest->visible_solid_angle_fraction_error;
+      v.irradiance_error = rest->irradiance_error;
+    }
     return v;
   }
 };
@@ -288,6 +302,12 @@ struct LightTree {
   bool line_boxes = true;
   bool fragment_grid = true;
   bool largest_first = true;
+  double shadow_tolerance = 0.0;
+  // The light's plane as doubles, for the bounds on left-out shadows: its
+  // unit normal (front side positive) and the largest distance between two
+  // of its vertices.
+  glm::dvec3 light_unit_normal{0.0};
+  double light_diameter = 0.0;
 
   size_t MemoryBytesLocked() const;
 
@@ -840,6 +860,18 @@ struct LightTree {
   // float sums over the fragments) do not depend on the traversal.
   void SortLargestFirst(const glm::dvec3& p, std::vector<uint32_t>* ids) const;
 
+  // With shadow_tolerance: takes out of `ids` the occluders whose shadows
+  // on the light, seen from p, are smallest, while the bounds on their areas
+  // (ShadowAreaBound) sum to at most shadow_tolerance of the light's area,
+  // and returns that sum (0 when none is taken out).
+  double LeaveOutSmallShadows(const glm::dvec3& p, std::vector<uint32_t>* ids) const;
+  // An upper bound on the area of the part of the light's plane that the
+  // triangle v hides from p: the area of its central projection from p, with
+  // the rounding of its computation added; +infinity where a vertex lies
+  // near or behind the plane through p parallel to the light (no bounded
+  // projection). h_light: p's distance to the light's plane.
+  double ShadowAreaBound(const glm::dvec3& p, double h_light, const glm::dvec3 (&v)[3]) const;
+
   // The point where a fragment edge support meets a plane.
   const XPoint* Meet(Scratch& s, const Fragment& f, const FVert& from, const XPlane& plane) const;
 
@@ -1083,8 +1115,11 @@ struct LightTree {
   // The visible fraction of the light's area and solid angle, and the
   // irradiance for the normal, from the visible fragments (and their
   // polygons, when asked for).
+  // left_out_area: LeaveOutSmallShadows' sum, turned into the answer's
+  // errors.
   PointVisibility Integrate(const std::vector<Fragment>& visible, const glm::dvec3& p_local,
-                            const std::optional<glm::dvec3>& normal, bool want_polygons) const;
+                            const std::optional<glm::dvec3>& normal, bool want_polygons,
+                            double left_out_area = 0.0) const;
 };
 
 }  // namespace visq::exact::detail

@@ -87,6 +87,10 @@ struct EngineOptions {
   // ... and no group has fewer points than this unless the batch has (a cube
   // with fewer gives them to its parent cube): a sparse batch shares a few trees.
   uint32_t light_receiver_min_points = 64;
+  // LightVisibility requests without a shadow_tolerance of their own
+  // (exact::TreeOptions::shadow_tolerance): a millionth of the light, far
+  // below what any lightmap stores, is enough for needles and wires.
+  double light_shadow_tolerance = 1e-6;
   // Load every scene of the repository at start (resident from the first
   // request on). Either way, a request naming a scene that is stored but not
   // resident loads it first (replicas sharing one repository rely on this).
@@ -311,6 +315,7 @@ class Engine {
   int light_receiver_cells() const { return options_.light_receiver_cells; }
   size_t light_shaft_triangles() const { return options_.light_shaft_triangles; }
   uint32_t light_receiver_min_points() const { return options_.light_receiver_min_points; }
+  double light_shadow_tolerance() const { return options_.light_shadow_tolerance; }
 
   const GpuDeviceInfo& device() const { return gpu_->device(); }
   gpu::GpuWorker& gpu() { return *gpu_; }

@@ -32,6 +32,9 @@ Status ValidateLightVisibilityQuery(const LightVisibilityQuery& query, const Sce
     return absl::ResourceExhaustedError(absl::StrCat("light.vertices: ", query.light.vertices.size(),
                                                      " exceeds the cap of ", kMaxLightVertices));
   VISQ_RETURN_IF_ERROR(exact::ValidateAreaLight(query.light));  // after the vertex cap: it is quadratic
+  if (query.shadow_tolerance && !(*query.shadow_tolerance >= 0.0 && *query.shadow_tolerance <= 1.0))
+    return absl::InvalidArgumentError(
+        absl::StrCat("shadow_tolerance: ", *query.shadow_tolerance, " is not a share of the light in [0, 1]"));
   if (!std::isfinite(query.light.radiance) || query.light.radiance < 0)
     return absl::InvalidArgumentError(absl::StrCat("radiance: ", query.light.radiance, " is not a finite value >= 0"));
   for (size_t i = 0; i < query.points.size(); ++i) {
@@ -70,6 +73,7 @@ StatusOr<exact::TreeOptions> BaseTreeOptions(Engine& engine, const LightVisibili
   // (docs/exact-method-notes.md).
   base.max_bytes = engine.light_cache_stats().capacity_bytes / 16;
   base.stop = query.call.stop;
+  base.shadow_tolerance = query.shadow_tolerance.value_or(engine.light_shadow_tolerance());
   for (const std::string& node_name : query.exclude_nodes) {
     bool found = false;
     for (const SceneNode& node : scene.nodes) {
@@ -188,6 +192,7 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   const auto start = std::chrono::steady_clock::now();
 
   VISQ_ASSIGN_OR_RETURN(const exact::TreeOptions base, BaseTreeOptions(engine, query, scene));
+  answer.shadow_tolerance = base.shadow_tolerance;
 
   // The scene's triangle index, which new trees select their occluders
   // from and the grouping counts shafts in: fetched (or built, or waited
@@ -325,10 +330,24 @@ StatusOr<LightVisibilityAnswer> RunLightVisibility(Engine& engine, const LightVi
   return answer;
 }
 
-AccuracyStatement LightVisibilityStatement() {
-  return ExactStatement("plucker-exact",
-                        "exact visibility: every side decision is an exact predicate; only the final areas and "
-                        "integrals are double-precision sums (relative error about 1e-12)");
+AccuracyStatement LightVisibilityStatement(const LightVisibilityAnswer& answer) {
+  AccuracyStatement out = ExactStatement(
+      "plucker-exact",
+      "exact visibility: every side decision is an exact predicate; only the final areas and integrals are "
+      "double-precision sums (relative error about 1e-12)");
+  out.parameters["shadow_tolerance"] = answer.shadow_tolerance;
+  if (answer.shadow_tolerance > 0.0) {
+    size_t left_out = 0;
+    for (const exact::PointVisibility& p : answer.points) {
+      out.error_bound = std::max(out.error_bound, p.visible_area_fraction_error);
+      left_out += p.visible_area_fraction_error > 0.0 ? 1 : 0;
+    }
+    absl::StrAppend(&out.note, "; at ", left_out, " of ", answer.points.size(),
+                    " points occluders with small shadows were left out (shadow_tolerance ", answer.shadow_tolerance,
+                    " of the light's area): error_bound is the largest visible_fraction_error, one-sided (the "
+                    "true fraction is at most that much below the answer, never above)");
+  }
+  return out;
 }
 
 }  // namespace visq::core

@@ -28,6 +28,9 @@ struct LightVisibilityQuery {
   bool want_polygons = false;
   std::optional<Bounds> receiver_region;
   std::vector<std::string> exclude_nodes;
+  // exact::TreeOptions::shadow_tolerance; unset: the engine's
+  // light_shadow_tolerance.
+  std::optional<double> shadow_tolerance;
   // Not on the wire. When not empty, only these points (indices, sorted and
   // distinct) are answered, on the trees the whole batch would use (the
   // groups are made of every point); the others' answers are left empty.
@@ -55,6 +58,7 @@ struct LightVisibilityAnswer {
   // group's points are answered, so at most ParallelWorkers() + 1.
   size_t peak_trees_held = 0;
   Bounds receiver_region;  // the union of their receiver boxes
+  double shadow_tolerance = 0.0;  // what the trees left out at most (TreeOptions)
   double compute_ms = 0;
   // The answers' share of the work budget (LightVisibilityWorkBytes), held
   // until the answer is sent; empty when the query's caller reserved.
@@ -98,6 +102,8 @@ struct LightVisibilityWork {
                                                                        const LightVisibilityQuery& query);
 
 // Every LightVisibility answer's: exact, with no samples to bound.
-AccuracyStatement LightVisibilityStatement();
+// The statement of a batch's answers: exact, or, where occluders were left
+// out under its shadow tolerance, bounded by the largest point's error.
+AccuracyStatement LightVisibilityStatement(const LightVisibilityAnswer& answer);
 
 }  // namespace visq::core

@@ -179,6 +179,9 @@ StatusOr<LightVisibilityQuery> ExactLightQuery(const std::string& scene, uint64_
   // The map's reservation (HiddenSampleMapWorkBytes) is the batch's; a
   // planner's probe answers a lattice of a few hundred points.
   light_query.work_reserved = true;
+  // Every point's fraction exact: the map's bits and the patch statement
+  // say so.
+  light_query.shadow_tolerance = 0.0;
   std::vector<glm::dvec3>& light = light_query.light.vertices;
   double winding = 1.0;
   if (request.source.polygon_uv.empty()) {

@@ -72,6 +72,8 @@ StatusOr<core::LightVisibilityQuery> FromProto(const v1::LightVisibilityRequest&
   if (request.has_receiver_region()) query.receiver_region = FromProto(request.receiver_region());
   else if (previous != nullptr && request.light().vertices().empty()) query.receiver_region = previous->receiver_region;
   query.exclude_nodes.assign(request.exclude_nodes().begin(), request.exclude_nodes().end());
+  if (request.has_shadow_tolerance()) query.shadow_tolerance = request.shadow_tolerance();
+  else if (previous != nullptr && request.light().vertices().empty()) query.shadow_tolerance = previous->shadow_tolerance;
   if (query.exclude_nodes.empty() && previous != nullptr && request.light().vertices().empty())
     query.exclude_nodes = previous->exclude_nodes;
   return query;
@@ -84,6 +86,9 @@ void ToProto(const core::LightVisibilityAnswer& answer, v1::LightVisibilityRespo
     point->set_visible_fraction(p.visible_area_fraction);
     point->set_visible_solid_angle_fraction(p.visible_solid_angle_fraction);
     point->set_irradiance(p.irradiance);
+    point->set_visible_fraction_error(p.visible_area_fraction_error);
+    point->set_visible_solid_angle_fraction_error(p.visible_solid_angle_fraction_error);
+    point->set_irradiance_error(p.irradiance_error);
     for (const auto& polygon : p.visible_polygons) ToProto(polygon, point->add_visible_polygons());
   }
   auto* tree = out->mutable_tree();
@@ -104,7 +109,7 @@ void ToProto(const core::LightVisibilityAnswer& answer, v1::LightVisibilityRespo
   tree->set_trees(static_cast<uint32_t>(answer.trees));
   tree->set_trees_created(static_cast<uint32_t>(answer.trees_created));
   ToProto(answer.receiver_region, tree->mutable_receiver_region());
-  ToProto(core::LightVisibilityStatement(), out->mutable_accuracy());
+  ToProto(core::LightVisibilityStatement(answer), out->mutable_accuracy());
 }
 
 namespace {

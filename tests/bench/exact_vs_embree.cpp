@@ -99,6 +99,7 @@ struct Params {
   long direct_candidates = -1;  // >= 0: TreeOptions::direct_candidates (else its default)
   bool keep_answers = true;     // TreeOptions::keep_answers (0: the warm pass descends the grown tree)
   bool accelerations = true;    // 0: TreeOptions::PapersAlgorithmAlone (--direct-candidates still applies)
+  double shadow_tolerance = 0.0;  // TreeOptions::shadow_tolerance (0: every answer exact)
   // > 0: group the points as the server does without a grid
   // (exact::GroupReceiversByShaft with this many triangles per shaft),
   // instead of cells or tiles.
@@ -803,6 +804,7 @@ int Run(const BenchCase& bc, const Params& p) {
     options.max_bytes = static_cast<size_t>(p.tree_max_mb * (1 << 20));
     if (p.direct_candidates >= 0) options.direct_candidates = static_cast<size_t>(p.direct_candidates);
     if (p.accelerations) options.keep_answers = p.keep_answers;
+    options.shadow_tolerance = p.shadow_tolerance;
     auto tree = visq::exact::LightVisibilityTree::Create(bc.light, bc.scene, options, index->get());
     create_ns += std::chrono::duration_cast<std::chrono::nanoseconds>(
                      std::chrono::steady_clock::now() - c0).count();
@@ -961,6 +963,16 @@ int Run(const BenchCase& bc, const Params& p) {
               static_cast<unsigned long long>(stats_cold.hits),
               static_cast<unsigned long long>(stats_cold.queries), same ? "yes" : "NO");
   std::printf("penumbra points (0 < exact < 1): %zu of %zu\n", penumbra, bc.points.size());
+  {
+    size_t left_out = 0;
+    double largest = 0.0;
+    for (const auto& e : exact) {
+      left_out += e.visible_area_fraction_error > 0.0 ? 1 : 0;
+      largest = std::max(largest, e.visible_area_fraction_error);
+    }
+    std::printf("shadow tolerance %g: %zu points left occluders out, largest stated error %.3g\n",
+                p.shadow_tolerance, left_out, largest);
+  }
   std::printf("queries answered before the tree: %llu wholly visible, %llu wholly hidden (%llu by the blockers of "
               "a point nearby), %llu subtracted directly; "
               "%llu occluders subtracted inside a neighbour's quadrilateral; "
@@ -1059,6 +1071,7 @@ int main(int argc, char** argv) {
     else if (const char* v = value("--direct-candidates")) p.direct_candidates = std::atol(v);
     else if (const char* v = value("--keep-answers")) p.keep_answers = std::atoi(v) != 0;
     else if (const char* v = value("--accelerations")) p.accelerations = std::atoi(v) != 0;
+    else if (const char* v = value("--shadow-tolerance")) p.shadow_tolerance = std::atof(v);
     else if (const char* v = value("--cells-per-side")) p.cells_per_side = std::atoi(v);
     else if (const char* v = value("--shaft-triangles")) p.shaft_triangles = static_cast<size_t>(std::atoll(v));
     else if (const char* v = value("--shaft-cap")) p.shaft_cap = std::atof(v);
@@ -1070,7 +1083,7 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "usage: %s [--occluders=N] [--boxes=N] [--grid=N] [--threads=N] "
                    "[--rays=N] [--tiles=N] [--size=S] [--seed=N]\n"
                    "       %s --gltf=FILE --light='x,y,z;...' --eye=x,y,z --look-at=x,y,z [--width=1280] "
-                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--direct-candidates=N] [--keep-answers=0] [--accelerations=0] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
+                   "[--height=720] [--cells-per-side=32 | --cells-per-side=0 --tile-pixels=32] [--tree-max-mb=16] [--direct-candidates=N] [--keep-answers=0] [--accelerations=0] [--shadow-tolerance=X] [--threads=N] [--rays=N] [--error-table=0] [--answers-out=FILE]\n"
                    "       %s --scene=grille|foliage|slivers [--scenes=DIR] [--slivers=3000 --sliver-width=1e-9] [the camera and grouping flags; --light, --eye, --look-at default to the room's]\n",
                    argv[0], argv[0], argv[0]);
       return 2;

@@ -50,13 +50,31 @@ TEST(AccuracyStatement, RegularSamplesGiveAnEstimateNotABound) {
 TEST(AccuracyStatement, ExactMethodsStateZeroAtFullConfidence) {
   const AccuracyStatement map =
       SampledVisibilityStatement({}, VisibilityMethod::kPluckerExact, sampling::LookupMode::kExact, 0);
-  const AccuracyStatement light = LightVisibilityStatement();
+  LightVisibilityAnswer exact_answer;
+  exact_answer.points.resize(3);
+  const AccuracyStatement light = LightVisibilityStatement(exact_answer);
   for (const AccuracyStatement* s : {&map, &light}) {
     EXPECT_EQ(s->method, "plucker-exact");
     EXPECT_EQ(s->error_bound, 0.0);
     EXPECT_EQ(s->confidence, 1.0);
-    EXPECT_TRUE(s->parameters.empty());
   }
+  EXPECT_TRUE(map.parameters.empty());
+  EXPECT_EQ(light.parameters.at("shadow_tolerance"), 0.0);
+}
+
+TEST(AccuracyStatement, LightVisibilityWithAShadowToleranceStatesItsLargestPointError) {
+  LightVisibilityAnswer answer;
+  answer.shadow_tolerance = 1e-6;
+  answer.points.resize(4);
+  answer.points[1].visible_area_fraction_error = 3e-7;
+  answer.points[3].visible_area_fraction_error = 8e-7;
+  const AccuracyStatement s = LightVisibilityStatement(answer);
+  EXPECT_EQ(s.method, "plucker-exact");
+  EXPECT_EQ(s.error_bound, 8e-7);
+  EXPECT_EQ(s.confidence, 1.0);
+  EXPECT_EQ(s.parameters.at("shadow_tolerance"), 1e-6);
+  EXPECT_TRUE(Mentions(s.note, "2 of 4 points")) << s.note;
+  EXPECT_TRUE(Mentions(s.note, "one-sided")) << s.note;
 }
 
 TEST(AccuracyStatement, ConservativeVoxelsAreBoundedByTheVoxelDiagonalStandardOnesAreNot) {

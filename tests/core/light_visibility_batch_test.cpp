@@ -6,6 +6,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <optional>
 #include <random>
 #include <thread>
 
@@ -60,13 +61,15 @@ TEST(LightVisibilityBatch, ManyCellsHoldFewTreesAtATime) {
 
 // A rippled floor under a layer of foliage (`leaves` small triangles at
 // y ~ 1) and a square light at y = 2 facing down, as "foliage" in a fresh
-// repository; and `points` points on the floor under the light.
+// repository; and `points` points on the floor under the light. With a
+// needle_width, the leaves are needles instead: 0.4 long, their third
+// vertex that far off the middle of their long edge.
 struct Foliage {
   testing::ScratchDir dir;
   std::unique_ptr<Engine> engine;
   LightVisibilityQuery query;
 };
-std::unique_ptr<Foliage> MakeFoliage(int leaves, int points) {
+std::unique_ptr<Foliage> MakeFoliage(int leaves, int points, std::optional<double> needle_width = std::nullopt) {
   auto f = std::make_unique<Foliage>();
   Scene scene = testing::MakeRippledGrid(32);
   std::mt19937 rng(5);
@@ -74,7 +77,16 @@ std::unique_ptr<Foliage> MakeFoliage(int leaves, int points) {
   for (int i = 0; i < leaves; ++i) {
     const glm::dvec3 c(0.8 * u(rng), 1.0 + 0.2 * u(rng), 0.8 * u(rng));
     const auto base = static_cast<uint32_t>(scene.positions.size());
-    for (int k = 0; k < 3; ++k) {
+    if (needle_width) {
+      const double a = 3.14159 * u(rng);
+      const glm::dvec3 half(0.2 * std::cos(a), 0.0, 0.2 * std::sin(a));
+      const glm::dvec3 side(-std::sin(a), 0.0, std::cos(a));
+      for (const glm::dvec3& v : {c - half, c + half, c + *needle_width * side}) {
+        scene.positions.push_back(v);
+        scene.bounds.Extend(v);
+      }
+    }
+    for (int k = 0; k < 3 && !needle_width; ++k) {
       scene.positions.push_back(c + 0.03 * glm::dvec3(u(rng), u(rng), u(rng)));
       scene.bounds.Extend(scene.positions.back());
     }
@@ -130,6 +142,47 @@ TEST(LightVisibilityBatch, AnIdenticalSecondBatchRefinesNothing) {
   EXPECT_GT(penumbra, 50);
   std::printf("first call %.1f ms, identical second call %.1f ms (%zu trees)\n", first->compute_ms,
               second->compute_ms, second->trees);
+}
+
+// Needles across the light: under the engine's shadow tolerance (a
+// millionth of the light unless the query names one) they are left out and
+// stated as each point's error, which holds against the exact answers of a
+// query naming 0; and the batch's statement gives the largest.
+TEST(LightVisibilityBatch, NeedlesAreLeftOutUnderTheShadowToleranceAndStatedAsTheError) {
+  auto f = MakeFoliage(600, 128, 1e-9);
+  ASSERT_NE(f, nullptr);
+  ASSERT_EQ(f->engine->light_shadow_tolerance(), 1e-6);
+  StatusOr<LightVisibilityAnswer> tolerant = RunLightVisibility(*f->engine, f->query);
+  ASSERT_TRUE(tolerant.ok()) << tolerant.status();
+  LightVisibilityQuery strict = f->query;
+  strict.shadow_tolerance = 0.0;
+  StatusOr<LightVisibilityAnswer> exact = RunLightVisibility(*f->engine, strict);
+  ASSERT_TRUE(exact.ok()) << exact.status();
+  EXPECT_EQ(tolerant->shadow_tolerance, 1e-6);
+  EXPECT_EQ(exact->shadow_tolerance, 0.0);
+  int left_out = 0;
+  double largest = 0.0;
+  for (size_t i = 0; i < f->query.points.size(); ++i) {
+    const exact::PointVisibility& t = tolerant->points[i];
+    const exact::PointVisibility& e = exact->points[i];
+    EXPECT_EQ(e.visible_area_fraction_error, 0.0);
+    EXPECT_LE(t.visible_area_fraction_error, 1e-6);
+    EXPECT_GE(t.visible_area_fraction + 1e-10, e.visible_area_fraction) << i;
+    EXPECT_LE(t.visible_area_fraction - t.visible_area_fraction_error, e.visible_area_fraction + 1e-10) << i;
+    EXPECT_LE(t.irradiance - t.irradiance_error, e.irradiance + 1e-9) << i;
+    left_out += t.visible_area_fraction_error > 0.0;
+    largest = std::max(largest, t.visible_area_fraction_error);
+  }
+  EXPECT_GT(left_out, 64) << "most floor points see needles across the light";
+  const AccuracyStatement statement = LightVisibilityStatement(*tolerant);
+  EXPECT_EQ(statement.error_bound, largest);
+  EXPECT_EQ(LightVisibilityStatement(*exact).error_bound, 0.0);
+
+  LightVisibilityQuery bad = f->query;
+  bad.shadow_tolerance = 1.5;
+  const Status refused = RunLightVisibility(*f->engine, bad).status();
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(refused.message()).find("shadow_tolerance"), std::string::npos) << refused;
 }
 
 // The planner's probe (answer_only): some of a batch's points answered on

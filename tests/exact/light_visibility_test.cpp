@@ -702,6 +702,92 @@ TEST(LightVisibilityTest, InvariantUnderScaleAndTranslation) {
   }
 }
 
+// Needles in the light's way: segments 0.3 long with their third vertex
+// `width` off the long edge's middle, at random heights and directions,
+// beside a few ordinary triangles; the whole scene turned by `turn`.
+std::vector<Tri> Needles(int count, double width, uint32_t seed, const glm::dmat3& turn) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  std::vector<Tri> tris;
+  for (int i = 0; i < count; ++i) {
+    const glm::dvec3 c(-1.2 + 2.4 * u(rng), -1.2 + 2.4 * u(rng), 0.4 + 1.2 * u(rng));
+    const double a = 2.0 * std::numbers::pi * u(rng);
+    const glm::dvec3 d(0.15 * std::cos(a), 0.15 * std::sin(a), 0.05 * (u(rng) - 0.5));
+    const glm::dvec3 side = glm::normalize(glm::cross(d, glm::dvec3(0, 0, 1)));
+    tris.push_back({turn * (c - d), turn * (c + d), turn * (c + width * side)});
+  }
+  for (const Tri& t : Cloud(12, seed + 1)) tris.push_back({turn * t[0], turn * t[1], turn * t[2]});
+  return tris;
+}
+
+// TreeOptions::shadow_tolerance: every answer that left occluders out lies
+// at most its stated errors above the exact one (never below it), and the
+// errors sum no more than the tolerance; an answer that left nothing out is
+// the exact one, bit for bit. Tolerances from one that leaves out only the
+// needles to one that leaves out ordinary triangles too; a light turned off
+// the axes and one far from the origin.
+TEST(LightVisibilityTest, AShadowToleranceLeavesOutSmallShadowsAndStatesThemAsTheError) {
+  const glm::dmat3 straight(1.0);
+  const glm::dmat3 turned(glm::rotate(glm::dmat4(1.0), 0.7, glm::normalize(glm::dvec3(1, 2, 0.5))));
+  struct Case { glm::dmat3 turn; glm::dvec3 offset; double width, tolerance; };
+  for (const Case& c : {Case{straight, glm::dvec3(0.0), 1e-7, 1e-5}, Case{turned, glm::dvec3(0.0), 1e-7, 1e-5},
+                        Case{turned, glm::dvec3(3e5, -2e5, 1e5), 1e-7, 1e-5},
+                        Case{straight, glm::dvec3(0.0), 2e-3, 0.05}, Case{turned, glm::dvec3(0.0), 2e-3, 0.05}}) {
+    std::vector<Tri> tris = Needles(300, c.width, 5, c.turn);
+    for (Tri& t : tris)
+      for (glm::dvec3& v : t) v += c.offset;
+    const Scene scene = MakeScene(tris);
+    AreaLight light = SquareLight(2.0, 1.0, 3.0);
+    for (glm::dvec3& v : light.vertices) v = c.turn * v + c.offset;
+    Bounds receivers;
+    for (const glm::dvec3& corner : {glm::dvec3(-1.5, -1.5, 0), glm::dvec3(1.5, 1.5, 0), glm::dvec3(-1.5, 1.5, 0),
+                                     glm::dvec3(1.5, -1.5, 0)})
+      receivers.Extend(c.turn * corner + c.offset);
+    TreeOptions options;
+    options.receiver_bounds = receivers;
+    auto exact = LightVisibilityTree::Create(light, scene, options);
+    options.shadow_tolerance = c.tolerance;
+    auto tolerant = LightVisibilityTree::Create(light, scene, options);
+    ASSERT_TRUE(exact.ok() && tolerant.ok());
+    int left_out = 0;
+    for (const glm::dvec3& floor : FloorPoints(150, 17)) {
+      const QueryPoint q{c.turn * floor + c.offset, c.turn * glm::dvec3(0, 0, 1), std::nullopt};
+      auto e = (*exact)->Query(q);
+      auto t = (*tolerant)->Query(q);
+      ASSERT_TRUE(e.ok() && t.ok());
+      EXPECT_EQ(e->visible_area_fraction_error, 0.0);
+      const double slack = 1e-10;
+      EXPECT_LE(t->visible_area_fraction_error, c.tolerance * 1.0000001);
+      EXPECT_GE(t->visible_area_fraction + slack, e->visible_area_fraction);
+      EXPECT_LE(t->visible_area_fraction - t->visible_area_fraction_error, e->visible_area_fraction + slack);
+      EXPECT_GE(t->visible_solid_angle_fraction + slack, e->visible_solid_angle_fraction);
+      EXPECT_LE(t->visible_solid_angle_fraction - t->visible_solid_angle_fraction_error,
+                e->visible_solid_angle_fraction + slack);
+      EXPECT_GE(t->irradiance + 3.0 * slack, e->irradiance);
+      EXPECT_LE(t->irradiance - t->irradiance_error, e->irradiance + 3.0 * slack);
+      if (t->visible_area_fraction_error > 0.0) {
+        ++left_out;
+      } else {
+        EXPECT_EQ(t->visible_area_fraction, e->visible_area_fraction);
+        EXPECT_EQ(t->irradiance, e->irradiance);
+      }
+    }
+    EXPECT_GT(left_out, 30) << "the tolerance left nothing out: the test tests nothing";
+    // Asked again, the stored answer states the same errors.
+    const QueryPoint q{c.turn * FloorPoints(150, 17)[0] + c.offset, c.turn * glm::dvec3(0, 0, 1), std::nullopt};
+    auto first = (*tolerant)->Query(q);
+    auto again = (*tolerant)->Query(q);
+    ASSERT_TRUE(first.ok() && again.ok());
+    EXPECT_EQ(first->visible_area_fraction_error, again->visible_area_fraction_error);
+    EXPECT_EQ(first->irradiance_error, again->irradiance_error);
+  }
+  TreeOptions bad;
+  bad.shadow_tolerance = -1e-3;
+  EXPECT_FALSE(LightVisibilityTree::Create(SquareLight(2.0), MakeScene({}), bad).ok());
+  bad.shadow_tolerance = std::nan("");
+  EXPECT_FALSE(LightVisibilityTree::Create(SquareLight(2.0), MakeScene({}), bad).ok());
+}
+
 TEST(LightVisibilityTest, ShadowBoundaryAndCollinearEdges) {
   // P exactly on the shadow boundary plane of an occluder edge through a
   // light vertex; and occluder edges along light edge lines.

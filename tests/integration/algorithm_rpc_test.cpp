@@ -439,6 +439,15 @@ TEST_F(AlgorithmRpcTest, LightVisibilityBadInput) {
   AddPoint(bad_node, 0, 0.5, 0);
   bad_node.add_exclude_nodes("no such node");
   EXPECT_EQ(client_->LightVisibility(bad_node).status().code(), absl::StatusCode::kInvalidArgument);
+
+  for (const double tolerance : {-1e-6, 1.5, std::nan("")}) {
+    v1::LightVisibilityRequest bad_tolerance = CeilingLight();
+    AddPoint(bad_tolerance, 0, 0.5, 0);
+    bad_tolerance.set_shadow_tolerance(tolerance);
+    const Status refused = client_->LightVisibility(bad_tolerance).status();
+    EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << tolerance;
+    EXPECT_NE(std::string(refused.message()).find("shadow_tolerance"), std::string::npos) << refused;
+  }
 }
 
 }  // namespace

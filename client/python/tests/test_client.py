@@ -287,6 +287,17 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(seen, [(40, 96), (80, 96), (96, 96)])
         self.assertEqual(len(batched.responses), 3)
         np.testing.assert_allclose(batched.visible_fraction.reshape(8, 12), lv.visible_fraction, atol=1e-12)
+        # A shadow tolerance of 0 asks for every answer exact: no error stated.
+        # On the Cornell box's boxes nothing is small enough to leave out at
+        # the server's default either.
+        strict = self.client.light_visibility(SCENE, LIGHT, points=points, normals=normals, shadow_tolerance=0)
+        self.assertEqual(strict.visible_fraction_error.shape, (96,))
+        self.assertTrue((strict.visible_fraction_error == 0).all())
+        self.assertEqual(strict.accuracy.parameters["shadow_tolerance"], 0.0)
+        np.testing.assert_allclose(strict.visible_fraction.reshape(8, 12), lv.visible_fraction, atol=1e-12)
+        self.assertTrue((lv.visible_fraction_error <= 1e-6).all())
+        with self.assertRaises(ValueError):
+            self.client.light_visibility(SCENE, LIGHT, points=points, shadow_tolerance=2)
 
     def test_patch_visibility_and_transmittance(self):
         pv = self.client.patch_visibility(SCENE, LIGHT_SOURCE, FLOOR, source_grid=8, receiver_grid=(6, 4),

@@ -147,6 +147,10 @@ class LightVisibility:
     irradiance: np.ndarray
     polygons: Optional[List[List[np.ndarray]]]  # per point: visible parts of the light, (k, 3) arrays
     responses: List[Any]                        # one LightVisibilityResponse per batch (tree, cache, timing)
+    # Per point, what occluders left out under shadow_tolerance could have
+    # hidden: the true figure lies at most this far below the one above.
+    visible_fraction_error: Optional[np.ndarray] = None
+    irradiance_error: Optional[np.ndarray] = None
 
     @property
     def accuracy(self):
@@ -657,13 +661,17 @@ class Client:
 
     def light_visibility(self, scene, light, points=None, normals=None, triangles=None, receiver=None, width=64,
                          height=64, radiance=1.0, polygons=False, exclude_nodes=(), receiver_region=None, version=0,
-                         batch_points=LIGHT_BATCH_POINTS, progress=None, timeout=_UNSET, cancel=None) -> LightVisibility:
+                         batch_points=LIGHT_BATCH_POINTS, progress=None, timeout=_UNSET, cancel=None,
+                         shadow_tolerance=None) -> LightVisibility:
         """Exact visibility of an area light (an (n, 3) polygon, front side
         counter-clockwise) from points ((n, 3), with optional normals and
         triangle indices), or from the texel centres of a receiver patch
         (results shaped (height, width), row y along edge_v). Batches go over
         LightVisibilityStream, so any count fits; progress(done, total) is
-        called after each batch."""
+        called after each batch. shadow_tolerance: per point, occluders with
+        small shadows may be left out while their areas sum to at most this
+        share of the light, stated per point in visible_fraction_error (0:
+        every answer exact; None: the server's default)."""
         light = _points(light, "light")
         if receiver is not None:
             if points is not None:
@@ -703,6 +711,11 @@ class Client:
         for vertex in light:
             _vec3(vertex, "light", template.light.vertices.add())
         template.exclude_nodes.extend(exclude_nodes)
+        if shadow_tolerance is not None:
+            tolerance = float(shadow_tolerance)
+            if not 0.0 <= tolerance <= 1.0:
+                raise ValueError(f"shadow_tolerance: {shadow_tolerance} is not in [0, 1]")
+            template.shadow_tolerance = tolerance
         if receiver_region is not None:
             low, high = receiver_region
             _vec3(low, "receiver_region[0]", template.receiver_region.min)
@@ -729,6 +742,8 @@ class Client:
         fraction = np.empty(total, dtype=np.float64)
         solid = np.empty(total, dtype=np.float64)
         irradiance = np.empty(total, dtype=np.float64)
+        fraction_error = np.empty(total, dtype=np.float64)
+        irradiance_error = np.empty(total, dtype=np.float64)
         visible_polygons = [] if polygons else None
         responses = []
 
@@ -742,6 +757,8 @@ class Client:
                 fraction[start + i] = p.visible_fraction
                 solid[start + i] = p.visible_solid_angle_fraction
                 irradiance[start + i] = p.irradiance
+                fraction_error[start + i] = p.visible_fraction_error
+                irradiance_error[start + i] = p.irradiance_error
                 if polygons:
                     visible_polygons.append([np.array([(v.x, v.y, v.z) for v in poly.vertices]).reshape(-1, 3)
                                              for poly in p.visible_polygons])
@@ -756,7 +773,8 @@ class Client:
         if len(responses) != len(starts):
             raise VisqError(grpc.StatusCode.DATA_LOSS, f"{len(responses)} answers for {len(starts)} batches")
         return LightVisibility(fraction.reshape(shape), solid.reshape(shape), irradiance.reshape(shape),
-                               visible_polygons, responses)
+                               visible_polygons, responses, fraction_error.reshape(shape),
+                               irradiance_error.reshape(shape))
 
     # -- voxels, transmittance, volumetric shadows -----------------------------
 
