@@ -179,9 +179,6 @@ StatusOr<LightVisibilityQuery> ExactLightQuery(const std::string& scene, uint64_
   // The map's reservation (HiddenSampleMapWorkBytes) is the batch's; a
   // planner's probe answers a lattice of a few hundred points.
   light_query.work_reserved = true;
-  // Every point's fraction exact: the map's bits and the patch statement
-  // say so.
-  light_query.shadow_tolerance = 0.0;
   std::vector<glm::dvec3>& light = light_query.light.vertices;
   double winding = 1.0;
   if (request.source.polygon_uv.empty()) {
@@ -222,9 +219,13 @@ StatusOr<sampling::HiddenSampleMapResult> ExactHiddenSampleMap(Engine& engine, c
   sampling::HiddenSampleMapBand band;
   band.visible_fraction.reserve(answer.points.size());
   for (const auto& point : answer.points) band.visible_fraction.push_back(float(point.visible_area_fraction));
-  answer.points = {};
   VISQ_RETURN_IF_ERROR(sampling::DeliverBand(result, band, sink));
-  result.error.sampling = 0.0;
+  // Exact but for occluders left out under the engine's shadow tolerance
+  // (needles, wires): what they could hide is the bound, one-sided.
+  double left_out = 0.0;
+  for (const auto& point : answer.points) left_out = std::max(left_out, point.visible_area_fraction_error);
+  answer.points = {};
+  result.error.sampling = left_out;
   result.error.confidence = 1.0;
   result.timing.run_ms = answer.compute_ms;
   return result;
@@ -550,7 +551,7 @@ StatusOr<PlanReport> PlanVisibility(Engine& engine, const std::string& series_ba
       plan.runs = method;
       plan.cost_key = series;
       if (method == VisibilityMethod::kPluckerExact) {
-        plan.error_bound = 0.0;
+        plan.error_bound = engine.light_shadow_tolerance();
       } else {
         plan.parameters["samples"] = samples;
         plan.error_bound = error_of.at(samples);
@@ -1114,10 +1115,20 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityUnstated(Engine& engine, const Pa
 
 AccuracyStatement SampledVisibilityStatement(const sampling::ErrorBound& error, VisibilityMethod method,
                                              sampling::LookupMode lookup, int samples) {
-  if (method == VisibilityMethod::kPluckerExact)
-    return ExactStatement(VisibilityMethodName(method, lookup),
-                          "exact visible fractions (Plücker method): every side decision is an exact predicate; only "
-                          "the areas are double-precision sums");
+  if (method == VisibilityMethod::kPluckerExact) {
+    AccuracyStatement exact =
+        ExactStatement(VisibilityMethodName(method, lookup),
+                       "exact visible fractions (Plücker method): every side decision is an exact predicate; only "
+                       "the areas are double-precision sums");
+    if (error.sampling > 0.0) {
+      exact.error_bound = error.sampling;
+      absl::StrAppend(&exact.note,
+                      "; but occluders whose shadows on the source were tiny were left out under the server's "
+                      "--light-shadow-tolerance, and error_bound is what they could hide at the worst texel, "
+                      "one-sided (the true fraction is at most that much below the answer)");
+    }
+    return exact;
+  }
   AccuracyStatement out;
   out.method = VisibilityMethodName(method, lookup);
   out.parameters["samples"] = samples;
@@ -1205,7 +1216,11 @@ AccuracyStatement PatchVisibilityStatement(const sampling::ErrorBound& error, Vi
       "compare a finer receiver grid)";
   if (method == VisibilityMethod::kPluckerExact) {
     out.note = absl::StrCat(quantity, "each point's fraction is exact (Plücker method: every side decision is an exact "
-                            "predicate; only the areas are double-precision sums), so error_bound is 0",
+                            "predicate; only the areas are double-precision sums)",
+                            out.error_bound > 0.0
+                                ? ", but for occluders with tiny shadows left out under the server's "
+                                  "--light-shadow-tolerance, which could hide at most error_bound (one-sided)"
+                                : ", so error_bound is 0",
                             receiver_words);
     return out;
   }

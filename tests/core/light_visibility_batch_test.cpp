@@ -15,6 +15,7 @@
 #include "common/parallel.h"
 #include "core/engine.h"
 #include "core/light_visibility_query.h"
+#include "core/visibility_sampling_query.h"
 #include "large_scene.h"
 #include "scene/gltf_writer.h"
 #include "scene/sample_scenes.h"
@@ -177,6 +178,21 @@ TEST(LightVisibilityBatch, NeedlesAreLeftOutUnderTheShadowToleranceAndStatedAsTh
   const AccuracyStatement statement = LightVisibilityStatement(*tolerant);
   EXPECT_EQ(statement.error_bound, largest);
   EXPECT_EQ(LightVisibilityStatement(*exact).error_bound, 0.0);
+
+  // The exact patch visibility (and so the exact map) leaves the same
+  // needles out and states what they could hide.
+  PatchVisibilityQuery patches;
+  patches.scene = "foliage";
+  patches.method = VisibilityMethod::kPluckerExact;
+  patches.request.source = sampling::Patch{{-0.3, 2.0, -0.3}, {0.6, 0.0, 0.0}, {0.0, 0.0, 0.6}};
+  patches.request.receiver = sampling::Patch{{-0.6, 0.05, -0.6}, {1.2, 0.0, 0.0}, {0.0, 0.0, 1.2}};
+  patches.request.receiver_columns = patches.request.receiver_rows = 12;
+  StatusOr<PatchVisibilityAnswer> pv = RunPatchVisibility(*f->engine, patches);
+  ASSERT_TRUE(pv.ok()) << pv.status();
+  EXPECT_GT(pv->accuracy.error_bound, 0.0) << pv->accuracy.note;
+  EXPECT_LE(pv->accuracy.error_bound, 1e-6);
+  EXPECT_EQ(pv->accuracy.method, "plucker-exact");
+  EXPECT_TRUE(pv->accuracy.note.find("one-sided") != std::string::npos) << pv->accuracy.note;
 
   LightVisibilityQuery bad = f->query;
   bad.shadow_tolerance = 1.5;
