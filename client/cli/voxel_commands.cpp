@@ -96,7 +96,7 @@ Status RunVoxelize(const VoxelizeOptions& o, Cli& cli) {
 }
 
 struct TransmittanceOptions {
-  std::string scene, light, kind = "directional", receiver, png, npy, exr, method = "slicemap";
+  std::string scene, light, kind = "directional", receiver, png, npy, exr, method = "auto";
   std::vector<std::string> absorbers;
   uint32_t width = 64, height = 64, resolution = 256, slices = 256;
 };
@@ -127,8 +127,9 @@ Status RunTransmittance(const TransmittanceOptions& o, Cli& cli) {
   request.set_receiver_height(o.height);
   request.set_resolution(o.resolution);
   request.set_slices(o.slices);
-  request.set_method(o.method == "ray-stabbing" ? v1::TransmittanceRequest::RAY_STABBING
-                                                : v1::TransmittanceRequest::SLICEMAP);
+  // "auto" leaves it unset: the server runs the faster here.
+  if (o.method == "ray-stabbing") request.set_method(v1::TransmittanceRequest::RAY_STABBING);
+  if (o.method == "slicemap") request.set_method(v1::TransmittanceRequest::SLICEMAP);
   auto client = MakeClient(cli.flags);
   VISQ_ASSIGN_OR_RETURN(const v1::TransmittanceResponse response, WhileWaiting(cli.flags, "transmittance", [&] { return client.Transmittance(request); }));
   const std::vector<float> image(response.transmittance().begin(), response.transmittance().end());
@@ -245,9 +246,9 @@ void AddVoxelCommands(Cli& cli) {
   transmittance->add_option("--height", tr->height, "Receiver texels down")->capture_default_str();
   transmittance->add_option("--resolution", tr->resolution, "Light-view resolution")->capture_default_str();
   transmittance->add_option("--slices", tr->slices, "Slices")->capture_default_str();
-  AddChoice(transmittance, "--method", tr->method, {"slicemap", "ray-stabbing"},
-            "slicemap (the paper's, on the GPU: each texel's centre ray) or ray-stabbing (each texel's own ray, "
-            "Embree on the CPU)");
+  AddChoice(transmittance, "--method", tr->method, {"auto", "slicemap", "ray-stabbing"},
+            "auto (the server runs the faster here), slicemap (the paper's, on the GPU: each texel's centre ray) or "
+            "ray-stabbing (each texel's own ray, Embree on the CPU)");
   transmittance->add_option("--png", tr->png, "Write the transmittance as a PNG");
   transmittance->add_option("--npy", tr->npy, "Write the transmittance as a float32 .npy (height, width)");
   transmittance->add_option("--exr", tr->exr, "Write the transmittance as a float OpenEXR image (as the PNG)");

@@ -27,7 +27,12 @@ constexpr bool IsRayEstimate(const std::optional<ObscuranceMethod>& method) {
   return method.has_value() && IsRayEstimate(*method);
 }
 
+// Transmittance: the paper's transmittance shadow map on the GPU, answering
+// for the ray through the centre of each point's light-view texel, or each
+// point's own ray on the CPU (voxel_reference::TransmittanceByRays).
+enum class TransmittanceMethod { kSlicemap, kRayStabbing };
+
 // What a plan runs; monostate where its caller keeps that itself.
-using PlanMethod = std::variant<std::monostate, VisibilityMethod, ObscuranceMethod>;
+using PlanMethod = std::variant<std::monostate, VisibilityMethod, ObscuranceMethod, TransmittanceMethod>;
 
 }  // namespace visq::core

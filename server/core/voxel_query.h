@@ -6,8 +6,10 @@
 #include <string>
 #include <vector>
 
+#include "core/accuracy_planner.h"
 #include "core/accuracy_statement.h"
 #include "core/call_options.h"
+#include "core/query_methods.h"
 #include "core/work_budget.h"
 #include "common/status.h"
 #include "visq/gpu/slicemap.h"
@@ -27,19 +29,22 @@ struct VoxelizeQuery {
   std::vector<std::string> nodes;
 };
 
-// kSlicemap: the paper's transmittance shadow map on the GPU, answering
-// for the ray through the centre of each point's light-view texel.
-// kRayStabbing: each point's own ray on the CPU
-// (voxel_reference::TransmittanceByRays).
-enum class TransmittanceMethod { kSlicemap, kRayStabbing };
-
 struct TransmittanceQuery {
   std::string scene;
   uint64_t scene_version = 0;
   voxel_reference::TransmittanceParams params;
   CallOptions call;  // the core sets params.job from it
   std::vector<std::pair<std::string, double>> absorbers;  // node name, absorption
-  TransmittanceMethod method = TransmittanceMethod::kSlicemap;
+  // None: the server runs the faster here of the two (ChooseFastest): ray
+  // stabbing answers each point's own ray at least as tightly as the
+  // slicemap answers its texel's centre ray.
+  std::optional<TransmittanceMethod> method = TransmittanceMethod::kSlicemap;
+};
+
+struct TransmittanceAnswer {
+  voxel_reference::TransmittanceResult result;
+  // The server's choice, where the query named no method.
+  std::optional<PlanReport> plan;
 };
 
 // The query's parameters with names resolved against the scene and every
@@ -70,8 +75,9 @@ inline WorkTiming WorkTimingOf(const VoxelizeAnswer& a) {
 inline WorkTiming WorkTimingOf(const voxel_reference::TransmittanceResult& r) {
   return {r.timings.queue_ms, r.timings.total_ms - r.timings.queue_ms};
 }
+inline WorkTiming WorkTimingOf(const TransmittanceAnswer& a) { return WorkTimingOf(a.result); }
 
-[[nodiscard]] StatusOr<voxel_reference::TransmittanceResult> RunTransmittance(
+[[nodiscard]] StatusOr<TransmittanceAnswer> RunTransmittance(
     Engine& engine, const TransmittanceQuery& query, WorkMemoryBudget::Reservation* hold = nullptr);
 
 // "conservative" or "standard"; "local" or "uniform".
@@ -84,7 +90,7 @@ const char* SlicePrecisionName(voxel_reference::SlicePrecision precision);
 AccuracyStatement VoxelizeStatement(const voxel_reference::VoxelizeResult& figures);
 
 // Transmittance: the optical depth's worst per-point bound, from the
-// slicemap's own error model.
-AccuracyStatement TransmittanceStatement(const voxel_reference::TransmittanceResult& result);
+// method's own error model, and the server's choice where it made one.
+AccuracyStatement TransmittanceStatement(const TransmittanceAnswer& answer);
 
 }  // namespace visq::core

@@ -643,15 +643,20 @@ StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& req
   }
   if (request.resolution() != 0) p.resolution = request.resolution();
   if (request.slices() != 0) p.slices = request.slices();
-  switch (request.method()) {
-    case v1::TransmittanceRequest::SLICEMAP: query.method = core::TransmittanceMethod::kSlicemap; break;
-    case v1::TransmittanceRequest::RAY_STABBING: query.method = core::TransmittanceMethod::kRayStabbing; break;
-    default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));
+  if (!request.has_method()) {
+    query.method = std::nullopt;  // the server's choice
+  } else {
+    switch (request.method()) {
+      case v1::TransmittanceRequest::SLICEMAP: query.method = core::TransmittanceMethod::kSlicemap; break;
+      case v1::TransmittanceRequest::RAY_STABBING: query.method = core::TransmittanceMethod::kRayStabbing; break;
+      default: return absl::InvalidArgumentError(absl::StrCat("method: unknown value ", request.method()));
+    }
   }
   return query;
 }
 
-void ToProto(const voxel_reference::TransmittanceResult& result, v1::TransmittanceResponse* out) {
+void ToProto(const core::TransmittanceAnswer& answer, v1::TransmittanceResponse* out) {
+  const voxel_reference::TransmittanceResult& result = answer.result;
   out->mutable_transmittance()->Add(result.transmittance.begin(), result.transmittance.end());
   out->mutable_optical_depth()->Add(result.optical_depth.begin(), result.optical_depth.end());
   out->mutable_optical_depth_error()->Add(result.optical_depth_error.begin(), result.optical_depth_error.end());
@@ -660,7 +665,8 @@ void ToProto(const voxel_reference::TransmittanceResult& result, v1::Transmittan
   out->set_max_texel_size(result.max_texel_size);
   out->set_ambiguous_columns(result.ambiguous_columns);
   for (uint8_t a : result.ambiguous) out->add_ambiguous(a != 0);
-  ToProto(core::TransmittanceStatement(result), out->mutable_accuracy());
+  ToProto(core::TransmittanceStatement(answer), out->mutable_accuracy());
+  if (answer.plan) ToProto(*answer.plan, out->mutable_accuracy());
 }
 
 StatusOr<core::ObscuranceQuery> FromProto(const v1::ComputeObscurancesRequest& request) {

@@ -102,6 +102,6 @@ v1::VoxelizeResponse FirstMessage(const voxel_reference::VoxelizeResult& figures
 v1::VoxelizeResponse LastMessage(const core::VoxelizeAnswer& answer);
 std::string DescribeAnswer(const core::VoxelizeQuery& query, const core::VoxelizeAnswer& answer);
 [[nodiscard]] StatusOr<core::TransmittanceQuery> FromProto(const v1::TransmittanceRequest& request);
-void ToProto(const voxel_reference::TransmittanceResult& result, v1::TransmittanceResponse* out);
+void ToProto(const core::TransmittanceAnswer& answer, v1::TransmittanceResponse* out);
 
 }  // namespace visq::service

@@ -505,12 +505,11 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::Transmittance(grpc::CallbackSer
     VISQ_ASSIGN_OR_RETURN(core::TransmittanceQuery query, FromProto(*request));
     query.call = CallOptionsFor(context, &cancelled, log);
     core::WorkMemoryBudget::Reservation memory;  // until the response is made
-    VISQ_ASSIGN_OR_RETURN(voxel_reference::TransmittanceResult result,
-                          core::RunTransmittance(ctx_.engine, query, &memory));
+    VISQ_ASSIGN_OR_RETURN(core::TransmittanceAnswer answer, core::RunTransmittance(ctx_.engine, query, &memory));
     const double before_transfer = log.ElapsedMs();
-    ToProto(result, response);
+    ToProto(answer, response);
     auto* timing = response->mutable_timing();
-    const core::WorkTiming work = core::WorkTimingOf(result);
+    const core::WorkTiming work = core::WorkTimingOf(answer);
     timing->set_queue_ms(queue_ms + work.queue_ms);
     timing->set_compute_ms(work.compute_ms);
     timing->set_build_ms(query.call.BuildMs());

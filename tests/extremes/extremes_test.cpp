@@ -996,6 +996,7 @@ TEST_F(ExtremesTest, TransmittanceThroughSlabMatchesClosedForm) {
       v1::TransmittanceRequest request;
       request.mutable_scene()->set_name(SceneName(SceneKind::kSlab, frame));
       request.set_light_kind(v1::TransmittanceRequest::DIRECTIONAL);
+      request.set_method(v1::TransmittanceRequest::SLICEMAP);
       Set(request.mutable_light_direction(), {0, -1, 0});
       auto* absorber = request.add_absorbers();
       absorber->set_node("slab");

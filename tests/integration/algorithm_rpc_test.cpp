@@ -500,6 +500,7 @@ TEST_F(AlgorithmRpcTest, TransmittanceThroughTheShortBox) {
   absorber->set_absorption(2.0);
   Set(request.add_points(), 0.4, 0.001, 0.35);   // under the short box: 0.6 units of it above
   Set(request.add_points(), -0.9, 0.001, 0.9);  // in the open
+  request.set_method(v1::TransmittanceRequest::SLICEMAP);
   auto response = client_->Transmittance(request);
   ASSERT_TRUE(response.ok()) << response.status();
   ASSERT_EQ(response->transmittance_size(), 2);
@@ -526,6 +527,24 @@ TEST_F(AlgorithmRpcTest, TransmittanceThroughTheShortBox) {
   auto unknown = client_->Transmittance(request);
   EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(std::string(unknown.status().message()).find("method"), std::string::npos) << unknown.status();
+  request.set_method(v1::TransmittanceRequest::SLICEMAP);
+
+  // Named no method, the server runs one of the two after weighing them
+  // (both are listed, or the one whose probe was cut is named in the
+  // note), and its answer is that method's by name.
+  request.clear_method();
+  auto chosen = client_->Transmittance(request);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  const std::string ran = chosen->accuracy().method();
+  ASSERT_TRUE(ran == "transmittance-slicemap" || ran == "transmittance-ray-stabbing") << ran;
+  EXPECT_GE(chosen->accuracy().plans_size(), 1) << chosen->accuracy().DebugString();
+  EXPECT_NE(chosen->accuracy().note().find("no method named"), std::string::npos) << chosen->accuracy().note();
+  EXPECT_EQ(chosen->accuracy().plans(0).method().rfind("transmittance-", 0), 0u) << chosen->accuracy().DebugString();
+  const auto& by_name = ran == "transmittance-slicemap" ? *response : *own;
+  for (int i = 0; i < 2; ++i) {
+    EXPECT_FLOAT_EQ(chosen->optical_depth(i), by_name.optical_depth(i)) << i;
+    EXPECT_FLOAT_EQ(chosen->optical_depth_error(i), by_name.optical_depth_error(i)) << i;
+  }
   request.set_method(v1::TransmittanceRequest::SLICEMAP);
 
   absorber->set_node("nope");

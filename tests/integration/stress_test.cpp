@@ -94,6 +94,7 @@ struct Queries {
     Set(transmittance.add_points(), 0.4, 0.001, 0.35);
     Set(transmittance.add_points(), -0.9, 0.001, 0.9);
     transmittance.set_resolution(64);
+    transmittance.set_method(v1::TransmittanceRequest::SLICEMAP);  // one method: every answer the same bits
     transmittance.set_slices(64);
 
     volumetric.mutable_scene()->set_name(scene);

@@ -311,6 +311,8 @@ class ClientTest(unittest.TestCase):
         under, clear = tr.at_points(tr.transmittance)
         self.assertLess(under, 0.5, "under the absorbing box")
         self.assertAlmostEqual(float(clear), 1.0, places=5)
+        # Named no method: the server ran the faster of the two and says which.
+        self.assertIn(tr.response.accuracy.method, ("transmittance-slicemap", "transmittance-ray-stabbing"))
         # The points' own rays: inside the box at y = 0.01, 0.59 of it above.
         own = self.client.transmittance(SCENE, (0, -1, 0), {"short_box": 2.0}, points=[(0.4, 0.01, 0.35)],
                                         method="ray-stabbing")

@@ -806,16 +806,18 @@ class Client:
 
     def transmittance(self, scene, light, absorbers, light_kind="directional", points=None, receiver=None,
                       width=64, height=64, resolution=256, slices=256, version=0, timeout=_UNSET,
-                      method="slicemap") -> Transmittance:
+                      method=None) -> Transmittance:
         """Light reaching points (and/or a receiver patch's texels) through
         absorbing nodes. light: the direction light travels (directional) or
         the light's position (point). absorbers: {node: absorption}.
-        method: "slicemap" (the paper's, on the GPU: each point's light-view
-        texel's centre ray) or "ray-stabbing" (each point's own ray, cast on
-        the server's CPU)."""
+        method: None (the server runs the faster here; the answer's
+        accuracy.method says which), "slicemap" (the paper's, on the GPU:
+        each point's light-view texel's centre ray) or "ray-stabbing" (each
+        point's own ray, cast on the server's CPU)."""
         request = pb.TransmittanceRequest()
-        request.method = _choice(method, "method", {"slicemap": pb.TransmittanceRequest.SLICEMAP,
-                                                    "ray-stabbing": pb.TransmittanceRequest.RAY_STABBING})
+        if method is not None:
+            request.method = _choice(method, "method", {"slicemap": pb.TransmittanceRequest.SLICEMAP,
+                                                        "ray-stabbing": pb.TransmittanceRequest.RAY_STABBING})
         request.scene.name, request.scene.version = scene, version
         kind = _choice(light_kind, "light_kind", {"directional": pb.TransmittanceRequest.DIRECTIONAL,
                                                   "point": pb.TransmittanceRequest.POINT})
