@@ -63,7 +63,40 @@ struct Walk {
 
 }  // namespace
 
-StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const TransmittanceParams& params) {
+size_t AbsorberRays::MemoryBytes() const {
+  return nodes.size() * sizeof(uint32_t) + triangles.positions.size() * sizeof(glm::dvec3) +
+         triangles.triangles.size() * (sizeof(glm::uvec3) + 2 * sizeof(uint32_t)) +
+         node_of_triangle.size() * sizeof(uint32_t) + (embree ? embree->memory_bytes() : 0);
+}
+
+StatusOr<std::shared_ptr<const AbsorberRays>> BuildAbsorberRays(const Scene& scene, std::vector<uint32_t> nodes,
+                                                               const StopToken& stop) {
+  std::sort(nodes.begin(), nodes.end());
+  nodes.erase(std::unique(nodes.begin(), nodes.end()), nodes.end());
+  auto out = std::make_shared<AbsorberRays>();
+  std::vector<std::array<glm::dvec3, 3>> triangles;
+  for (const uint32_t n : nodes) {
+    if (n >= scene.nodes.size())
+      return absl::InvalidArgumentError(fmt::format("node {}: the scene has {} nodes", n, scene.nodes.size()));
+    const SceneNode& node = scene.nodes[n];
+    for (size_t t = node.first_triangle; t < size_t{node.first_triangle} + node.triangle_count; ++t) {
+      triangles.push_back({scene.Vertex(t, 0), scene.Vertex(t, 1), scene.Vertex(t, 2)});
+      out->node_of_triangle.push_back(n);
+    }
+  }
+  out->nodes = std::move(nodes);
+  if (triangles.empty()) return std::shared_ptr<const AbsorberRays>(std::move(out));
+  out->triangles = SceneOfTriangles(triangles);
+  raycast::EmbreeSceneOptions embree_options;
+  embree_options.instance_meshes = false;
+  embree_options.stop = stop;
+  VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(out->triangles, embree_options));
+  out->embree = std::make_unique<raycast::EmbreeScene>(std::move(embree));
+  return std::shared_ptr<const AbsorberRays>(std::move(out));
+}
+
+StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const TransmittanceParams& params,
+                                                  const AbsorberRays* given) {
   const auto start = std::chrono::steady_clock::now();
   TransmittanceResult result;
   result.method = "transmittance-ray-stabbing";
@@ -80,6 +113,7 @@ StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const Tran
   if (sigma.size() > kMaxTransmittanceGroups)
     return absl::InvalidArgumentError(fmt::format("params.nodes: {} distinct absorption values (at most {})",
                                                   sigma.size(), kMaxTransmittanceGroups));
+  std::vector<uint32_t> listed;
   for (size_t i = 0; i < params.nodes.size(); ++i) {
     const AbsorbingNode& n = params.nodes[i];
     if (n.node >= scene.nodes.size())
@@ -93,6 +127,7 @@ StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const Tran
           "params.nodes[{}]: node {} is listed with two absorption values; RAY_STABBING takes one a node", i,
           n.node));
     group_of_node[n.node] = group;
+    listed.push_back(n.node);
   }
   if (params.light.kind == TransmittanceLightKind::kDirectional
           ? !(glm::length(params.light.direction) > 0.0) || !std::isfinite(glm::length(params.light.direction))
@@ -100,36 +135,34 @@ StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const Tran
     return absl::InvalidArgumentError("params.light: a finite position, or a finite non-zero direction");
   // Each absorbing node's own triangles (its range of the scene's), once
   // however often it is listed: the work follows the absorbers, not the scene.
-  std::vector<std::array<glm::dvec3, 3>> triangles;
-  std::vector<int> group_of_triangle;
-  for (size_t n = 0; n < scene.nodes.size(); ++n) {
-    if (group_of_node[n] < 0) continue;
-    const SceneNode& node = scene.nodes[n];
-    for (size_t t = node.first_triangle; t < size_t{node.first_triangle} + node.triangle_count; ++t) {
-      triangles.push_back({scene.Vertex(t, 0), scene.Vertex(t, 1), scene.Vertex(t, 2)});
-      group_of_triangle.push_back(group_of_node[n]);
-    }
+  std::shared_ptr<const AbsorberRays> built;
+  if (given == nullptr) {
+    VISQ_ASSIGN_OR_RETURN(built, BuildAbsorberRays(scene, listed, params.job.stop));
+    given = built.get();
+  } else {
+    std::sort(listed.begin(), listed.end());
+    listed.erase(std::unique(listed.begin(), listed.end()), listed.end());
+    if (listed != given->nodes)
+      return absl::InvalidArgumentError("absorbers: built for other nodes than params.nodes lists");
   }
+  const AbsorberRays& rays_of = *given;
 
   const std::vector<glm::dvec3> points = params.QueryPoints();
   result.AllTransmitting(points.size());
-  if (triangles.empty()) {
+  if (rays_of.embree == nullptr) {
     result.error_statement = "the absorbing nodes have no triangles: nothing absorbs";
     result.timings.total_ms = MillisecondsSince(start);
     return result;
   }
 
-  const Scene absorbers = SceneOfTriangles(triangles);
+  const Scene& absorbers = rays_of.triangles;
+  const raycast::EmbreeScene& embree = *rays_of.embree;
   // The box the rays start and end outside of, a little larger than the
   // absorbers so that each line starts outside every one of them.
   Bounds box = absorbers.bounds;
   const double margin = 1e-3 * glm::length(box.Extent()) + 1e-9;
   box.min -= glm::dvec3(margin);
   box.max += glm::dvec3(margin);
-  raycast::EmbreeSceneOptions embree_options;
-  embree_options.instance_meshes = false;
-  embree_options.stop = params.job.stop;
-  VISQ_ASSIGN_OR_RETURN(raycast::EmbreeScene embree, raycast::EmbreeScene::Create(absorbers, embree_options));
   // EmbreeScene's offset at an origin within `box` (its frame is the
   // absorbers' centre): every crossing is placed within it, and hits closer
   // than it to the last one are skipped.
@@ -212,7 +245,7 @@ StatusOr<TransmittanceResult> TransmittanceByRays(const Scene& scene, const Tran
       // least well.
       const double sine = std::abs(facing) / glm::length(normal);
       const double error = offset * std::max(1.0, 0x1p-5 / std::max(sine, 1e-300));
-      cross(w, w.t_in + w.travelled, error, group_of_triangle[t], facing < 0.0);
+      cross(w, w.t_in + w.travelled, error, group_of_node[rays_of.node_of_triangle[t]], facing < 0.0);
       // Past the point and every absorber left: nothing more to learn.
       const bool all_out = std::all_of(w.winding.begin(), w.winding.end(), [](int n) { return n == 0; });
       if (w.t_in + w.travelled > 0.0 && all_out) continue;

@@ -675,7 +675,8 @@ SceneSummary Engine::Summarize(const ResidentScene& resident, bool with_nodes) c
   s.content_hash = resident.content_hash;
   // What is built so far, read without waiting for a build in progress:
   // nothing is uploaded until a GPU query needs it.
-  s.cpu_bytes = scene.CpuBytes() + resident.embree_scene.bytes() + resident.triangle_index.bytes();
+  s.cpu_bytes = scene.CpuBytes() + resident.embree_scene.bytes() + resident.triangle_index.bytes() +
+                resident.absorber_rays.MemoryBytes();
   s.gpu_bytes = resident.gpu_scene.bytes() + resident.ray_scene.bytes();
   s.estimate = resident.estimate;
   s.materials = static_cast<uint32_t>(scene.materials.size());

@@ -18,6 +18,7 @@
 #include <glm/glm.hpp>
 
 #include "common/status.h"
+#include "core/absorber_rays_cache.h"
 #include "core/accuracy_planner.h"
 #include "core/call_options.h"
 #include "core/lazy_structure.h"
@@ -131,6 +132,7 @@ struct ResidentScene {
   mutable LazyStructure<gpu::RayScene> ray_scene;  // GPU_RAYCAST's BVH
   mutable LazyStructure<const exact::SceneTriangleIndex> triangle_index;  // for exact light trees and local frames
   mutable LocalFrames local_frames;  // for sampled queries far from the scene's centre
+  mutable AbsorberRaysCache absorber_rays;  // Transmittance's RAY_STABBING
 };
 
 // A ResidentScene of `scene` under `name`, with what is derived from the

@@ -131,7 +131,13 @@ StatusOr<gpu::TransmittanceResult> TransmittanceBy(Engine& engine, const Residen
   VISQ_ASSIGN_OR_RETURN(WorkMemoryBudget::Reservation memory,
                         engine.work_budget().Reserve(needs.bytes, needs.what, params.job));
   if (hold != nullptr) *hold = std::move(memory);
-  if (method == TransmittanceMethod::kRayStabbing) return voxel_reference::TransmittanceByRays(*resident.scene, params);
+  if (method == TransmittanceMethod::kRayStabbing) {
+    std::vector<uint32_t> nodes;
+    for (const voxel_reference::AbsorbingNode& n : params.nodes) nodes.push_back(n.node);
+    VISQ_ASSIGN_OR_RETURN(std::shared_ptr<const voxel_reference::AbsorberRays> absorbers,
+                          resident.absorber_rays.Get(*resident.scene, std::move(nodes), params.job.stop));
+    return voxel_reference::TransmittanceByRays(*resident.scene, params, absorbers.get());
+  }
   VISQ_ASSIGN_OR_RETURN(std::shared_ptr<gpu::GpuScene> gpu_scene, engine.GpuSceneOf(resident, call));
   return gpu::Transmittance(engine.gpu(), *resident.scene, *gpu_scene, params);
 }

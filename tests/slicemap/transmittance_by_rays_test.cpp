@@ -127,6 +127,41 @@ TEST(TransmittanceByRays, OverlappingAndNestedBoxesOfOneCoefficientCountTheirUni
   ExpectExact(*result, union_path);
 }
 
+// A BVH of the absorbers built once (a server keeps it) answers as one
+// built for the call, bit for bit, under any coefficients and light; one
+// built for other nodes is refused.
+TEST(TransmittanceByRays, AbsorbersBuiltOnceAnswerAsBuiltForTheCall) {
+  Scene scene;
+  AddBox(scene, "a", {0, 0, 0}, {2, 2, 2}, 0);
+  AddBox(scene, "b", {3, 0, 0}, {5, 2, 2}, 0);
+  AddQuad(scene, "floor", {-5, -2, -5}, {0, 0, 10}, {10, 0, 0}, 0);
+  UpdateBounds(scene);
+  auto kept = BuildAbsorberRays(scene, {1, 0, 1}, {});
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_EQ((*kept)->nodes, (std::vector<uint32_t>{0, 1}));
+  EXPECT_GT((*kept)->MemoryBytes(), 0u);
+  for (const double sigma_b : {0.5, 3.0}) {
+    TransmittanceParams params;
+    params.light.kind = TransmittanceLightKind::kPoint;
+    params.light.position = {2.5, 6.0, 1.0};
+    params.nodes = {{0, 0.5}, {1, sigma_b}};
+    params.points = {{1.0, -1.0, 1.0}, {4.0, -1.0, 1.0}, {2.5, -1.0, 1.0}, {1.0, 1.0, 1.0}};
+    auto fresh = TransmittanceByRays(scene, params);
+    auto reused = TransmittanceByRays(scene, params, kept->get());
+    ASSERT_TRUE(fresh.ok() && reused.ok());
+    EXPECT_EQ(fresh->optical_depth, reused->optical_depth);
+    EXPECT_EQ(fresh->optical_depth_error, reused->optical_depth_error);
+    EXPECT_GT(reused->optical_depth[1], 0.0f);
+  }
+  TransmittanceParams other;
+  other.light.direction = {0, -1, 0};
+  other.nodes = {{0, 1.0}};
+  other.points = {{1.0, -1.0, 1.0}};
+  auto refused = TransmittanceByRays(scene, other, kept->get());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+  EXPECT_EQ(BuildAbsorberRays(scene, {7}, {}).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 // An open mesh (one quad) in the light's way: the line enters and never
 // leaves. Two boxes that share a face: leaving one and entering the other
 // happen at one place, within rounding, and count as one crossing. Either
