@@ -403,6 +403,10 @@ StatusOr<ProbeOutcome> ProbeOption(CostModel& model, const EqualAnswerOption& op
       probe_ms += MillisecondsSince(again_start);
       if (again.ok()) ms = std::min(*ms, *again);
     }
+    spdlog::debug("{} probe {} of {} (work {}, {}): {} in {:.1f} ms of a {:.1f} ms budget",
+                  call.log_tag.empty() ? "[call]" : call.log_tag, k, plan.method, probe.work, probe.extra,
+                  ms.ok() ? "measured" : std::string(ms.status().message()), MillisecondsSince(probe_start),
+                  budget_ms);
     if (!ms.ok()) {
       // The call itself still wants its answer: the probe ran out of its
       // budget, not the call.

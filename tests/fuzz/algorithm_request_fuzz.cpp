@@ -74,6 +74,7 @@ void LightVisibility(const uint8_t* data, size_t size) {
   if (!query.ok() || !core::ValidateLightVisibilityQuery(*query, FuzzScene()).ok()) return;
   Require(query->light.vertices.size() >= 3 && query->light.vertices.size() <= core::kMaxLightVertices);
   Require(std::isfinite(query->light.radiance) && query->light.radiance >= 0);
+  if (query->shadow_tolerance) Require(*query->shadow_tolerance >= 0.0 && *query->shadow_tolerance <= 1.0);
   for (const exact::QueryPoint& p : query->points) {
     Require(Finite(p.position));
     if (p.receiver_triangle) Require(*p.receiver_triangle < FuzzScene().TriangleCount());
