@@ -150,6 +150,8 @@ StatusOr<PreparedLight> PrepareLight(const AreaLight& light) {
           "light: not planar (light.vertices[", i, "] is ", off, " off the plane)"));
     }
   }
+  out.unit_normal = unit_normal;
+  out.diameter = diameter;
   VISQ_ASSIGN_OR_RETURN(out.triangles, Triangulate(ll, newell));
   return out;
 }

@@ -270,18 +270,10 @@ StatusOr<std::unique_ptr<LightTree>> LightTree::Create(const AreaLight& light, c
   tree->largest_first = options.largest_first;
   tree->shadow_tolerance = options.shadow_tolerance;
   tree->light_local = std::move(prepared.local);
-  {
-    // The emitting side is the one its counter-clockwise winding faces (the
-    // Newell normal); the normal kept points away from it, from a point
-    // that sees the light towards the light.
-    const std::vector<glm::dvec3>& l = tree->light_local;
-    glm::dvec3 newell(0.0);
-    for (size_t i = 0; i < l.size(); ++i) {
-      newell += glm::cross(l[i], l[(i + 1) % l.size()]);
-      for (size_t j = 0; j < i; ++j) tree->light_diameter = std::max(tree->light_diameter, glm::length(l[i] - l[j]));
-    }
-    tree->light_unit_normal = -glm::normalize(newell);
-  }
+  // The normal kept points away from the emitting side: from a point that
+  // sees the light, towards it.
+  tree->light_unit_normal = -prepared.unit_normal;
+  tree->light_diameter = prepared.diameter;
   const LightTriangle& largest = PlantLight(*tree, prepared.triangles);
 
   // The receiver box in the local frame. No outward rounding is needed:

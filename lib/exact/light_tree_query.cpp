@@ -568,9 +568,14 @@ double LightTree::ShadowAreaBound(const glm::dvec3& p, double h_light, const glm
   return 1.01 * area + 1e-12 * reach * reach * (1.0 + reach / h_light);
 }
 
+double LightTree::LightPlaneDistance(const glm::dvec3& p) const {
+  double h = std::numeric_limits<double>::infinity();
+  for (const glm::dvec3& l : light_local) h = std::min(h, glm::dot(light_unit_normal, l - p));
+  return h;
+}
+
 double LightTree::LeaveOutSmallShadows(const glm::dvec3& p, std::vector<uint32_t>* ids) const {
-  double h_light = std::numeric_limits<double>::infinity();
-  for (const glm::dvec3& l : light_local) h_light = std::min(h_light, glm::dot(light_unit_normal, l - p));
+  const double h_light = LightPlaneDistance(p);
   if (!(h_light > 1e-3 * light_diameter)) return 0.0;
   const double budget = shadow_tolerance * light_area;
   std::vector<std::pair<double, uint32_t>> small;  // (area bound, occluder id)
@@ -633,8 +638,7 @@ PointVisibility LightTree::Integrate(const std::vector<Fragment>& visible, const
     // Seen from P, a light-plane area A spans a solid angle of at most
     // A / h^2 (the density cos / r^2 = h / r^3 is largest at r = h), and
     // its irradiance at most the radiance times that.
-    double h_light = std::numeric_limits<double>::infinity();
-    for (const glm::dvec3& l : light_local) h_light = std::min(h_light, glm::dot(light_unit_normal, l - p_local));
+    const double h_light = LightPlaneDistance(p_local);
     const double left_out_solid_angle = 1.01 * left_out_area / (h_light * h_light);
     result.visible_area_fraction_error = std::min(result.visible_area_fraction, left_out_area / light_area);
     result.visible_solid_angle_fraction_error =

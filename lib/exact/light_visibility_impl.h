@@ -229,6 +229,8 @@ struct PreparedLight {
   glm::dvec3 origin{0.0};
   std::vector<glm::dvec3> local;
   std::vector<std::array<uint32_t, 3>> triangles;
+  glm::dvec3 unit_normal{0.0};  // towards the emitting side (Newell's, of the counter-clockwise winding)
+  double diameter = 0.0;        // the largest distance between two vertices
 };
 [[nodiscard]] StatusOr<PreparedLight> PrepareLight(const AreaLight& light);
 
@@ -304,10 +306,15 @@ struct LightTree {
   bool largest_first = true;
   double shadow_tolerance = 0.0;
   // The light's plane as doubles, for the bounds on left-out shadows: its
-  // unit normal (front side positive) and the largest distance between two
+  // unit normal pointing away from the emitting side (from a point that
+  // sees the light, towards the light) and the largest distance between two
   // of its vertices.
   glm::dvec3 light_unit_normal{0.0};
   double light_diameter = 0.0;
+  // p's distance to the light's plane, at the nearest light vertex (they
+  // stand up to 1e-6 of its diameter off it): positive where p sees the
+  // light's front.
+  double LightPlaneDistance(const glm::dvec3& p) const;
 
   size_t MemoryBytesLocked() const;
 

@@ -93,6 +93,13 @@ namespace {
 
 // What one method's run holds before its answer is sent, and the request's
 // fields that make it grow.
+// The absorbing nodes' triangles: what stabbing's BVH holds.
+uint64_t AbsorbingTriangles(const Scene& scene, const gpu::TransmittanceParams& params) {
+  uint64_t triangles = 0;
+  for (const voxel_reference::AbsorbingNode& n : params.nodes) triangles += scene.nodes[n.node].triangle_count;
+  return triangles;
+}
+
 struct WorkBytes {
   uint64_t bytes = 0;
   const char* what = "";
@@ -104,10 +111,10 @@ WorkBytes TransmittanceWorkBytes(const Scene& scene, const gpu::TransmittancePar
     // Per query point its position, its walk along the line (a count and an
     // entry per coefficient group), a ray and a hit while it crosses, its
     // answers and their copy in the response; per absorbing triangle its
-    // copy and Embree's share of a BVH.
-    uint64_t absorbing_triangles = 0;
-    for (const voxel_reference::AbsorbingNode& n : params.nodes) absorbing_triangles += scene.nodes[n.node].triangle_count;
-    return {points * 512 + absorbing_triangles * 256 + (uint64_t{1} << 20), "points, receiver_width x receiver_height"};
+    // copy and Embree's share of a BVH, while a scene's first call builds it
+    // (then kept, in the scene's memory: AbsorberRaysCache).
+    return {points * 512 + AbsorbingTriangles(scene, params) * 256 + (uint64_t{1} << 20),
+            "points, receiver_width x receiver_height"};
   }
   // Per query point its position (the explicit points copied, the
   // receiver's texels added), its five answers (17 bytes) and their copy in
@@ -192,10 +199,7 @@ StatusOr<PlanReport> ChooseTransmittanceMethod(Engine& engine, const ResidentSce
     // and each point's crossings. Taken as one rate per point, two probes of
     // 16 and 128 points predicted the bunny's 96^2 receiver at 7.7 s where it
     // took 75 ms.
-    double absorbing_triangles = 0.0;
-    for (const voxel_reference::AbsorbingNode& n : params.nodes)
-      absorbing_triangles += resident.scene->nodes[n.node].triangle_count;
-    plan.work = std::max(1.0, absorbing_triangles);
+    plan.work = std::max(1.0, double(AbsorbingTriangles(*resident.scene, params)));
     plan.extra_work = points;
     for (const size_t count : {size_t{16}, size_t{128}}) {
       options[0].probes.push_back(
