@@ -5,6 +5,7 @@
 // turns the read-back bitmasks into visible fractions (section 8's bit
 // counting is std::popcount on the CPU: the bitmasks are read back anyway).
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <chrono>
 #include <cmath>
@@ -46,6 +47,8 @@ struct HiddenSampleMapper::State {
   std::map<std::string, std::shared_ptr<Table>> tables;
   uint64_t clock = 0;
   GLint max_draw_buffers = 0;  // set once at creation
+  bool count_fragments = false;  // asked for, and the driver counts them
+  std::atomic<uint64_t> fragments_shaded{0};
 };
 
 namespace {
@@ -142,17 +145,24 @@ StatusOr<std::unique_ptr<HiddenSampleMapper>> HiddenSampleMapper::Create(GpuWork
                                                                         HiddenSampleMapperOptions options) {
   std::unique_ptr<HiddenSampleMapper> mapper(new HiddenSampleMapper(worker, options));
   State* state = mapper->state_.get();
-  VISQ_RETURN_IF_ERROR(worker.Run({}, [state]() -> Status {
+  VISQ_RETURN_IF_ERROR(worker.Run({}, [state, options]() -> Status {
     glGetIntegerv(GL_MAX_DRAW_BUFFERS, &state->max_draw_buffers);
     GLint attachments = 0;
     glGetIntegerv(GL_MAX_COLOR_ATTACHMENTS, &attachments);
     state->max_draw_buffers = std::min({state->max_draw_buffers, attachments, 8});
+    state->count_fragments = options.count_fragments && (epoxy_gl_version() >= 46 ||
+                                                         epoxy_has_gl_extension("GL_ARB_pipeline_statistics_query"));
     if (state->max_draw_buffers < 2)
       return absl::FailedPreconditionError(
           absl::StrCat("hidden-sample map needs 2 draw buffers, the device has ", state->max_draw_buffers));
     return CollectGlErrors("hidden-sample map start");
   }));
   return mapper;
+}
+
+std::optional<uint64_t> HiddenSampleMapper::fragments_shaded() const {
+  if (!state_->count_fragments) return std::nullopt;
+  return state_->fragments_shaded.load();
 }
 
 namespace {
@@ -432,7 +442,8 @@ void SetPassUniforms(const HsmDrawUniforms& u, const MapFrames& f, const HiddenS
 // where one pass over the scene takes seconds (a CPU rasterizer).
 Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, const HiddenSampleMapRequest& request,
                 const ScenePartDraw& draw, const PassPlan& plan, int max_draw_buffers, int first_row, int rows,
-                const JobOptions& job, TimedSizer& pieces, std::vector<uint32_t>& readback) {
+                const JobOptions& job, TimedSizer& pieces, std::vector<uint32_t>& readback,
+                std::atomic<uint64_t>* fragments_shaded) {
   const int width = request.receiver.width, height = request.receiver.height;
   VISQ_RETURN_IF_ERROR(EnsureTableOnGpu(table, plan.groups, job));
   GlTexture2DArray targets;
@@ -493,7 +504,18 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
     const GLuint zero[4] = {0, 0, 0, 0};
     for (int k = 0; k < attached; ++k) glClearBufferuiv(GL_COLOR, k, zero);
     glUseProgram(program->id());
+    GlQueryFragmentsShaded fragments(NoCreate);
+    if (fragments_shaded != nullptr) {
+      fragments = GlQueryFragmentsShaded();
+      glBeginQuery(GL_FRAGMENT_SHADER_INVOCATIONS, fragments.id());
+    }
     VISQ_RETURN_IF_ERROR(DrawInTimedPieces(scene, draw, pieces, job, "hidden-sample map: between draws"));
+    if (fragments_shaded != nullptr) {
+      glEndQuery(GL_FRAGMENT_SHADER_INVOCATIONS);
+      GLuint64 shaded = 0;
+      glGetQueryObjectui64v(fragments.id(), GL_QUERY_RESULT, &shaded);
+      *fragments_shaded += shaded;
+    }
     VISQ_GL_CHECK("hidden-sample map pass");
   }
   glDisable(GL_COLOR_LOGIC_OP);
@@ -621,7 +643,7 @@ StatusOr<HiddenSampleMapResult> HiddenSampleMapper::Compute(const GpuScene& scen
     JobTiming band_timing;
     VISQ_RETURN_IF_ERROR(worker_->Run(job, [&]() -> Status {
       return DrawBand(scene, *table, frames, request, draw, plan, max_draw_buffers, first_row, rows, job, pieces,
-                      readback);
+                      readback, state_->count_fragments ? &state_->fragments_shaded : nullptr);
     }, &band_timing));
     sizer.Measured(rows, band_timing.run_ms);
     result.timing.queue_ms += band_timing.queue_ms;

@@ -8,8 +8,9 @@
 //    only the part strictly between the two endpoints can block a segment;
 // 3. influence region: the bounding box, on the receiver (or, for a
 //    heightfield, on a plane behind it), of the polygon's projections from the
-//    four source corners (eq. 3), clipped to the receiver rectangle - this is
-//    the shaft culling;
+//    four source corners (eq. 3), reaching the receiver's edge only along
+//    the axes where a segment can leave the polygon nearly level, and
+//    clipped to the receiver rectangle - this is the shaft culling;
 // 4. emit it as a quad carrying the clipped polygon in the source frame
 //    (x, y centred patch coordinates, d distance from the source plane) for
 //    the fragment shader's per-receiver-point back-projection.
@@ -58,6 +59,15 @@ void ClipPolygon(inout vec3 src[5], inout vec3 rcv[5], inout int n, bool use_d, 
   n = m;
 }
 
+// Marks the ways along the receiver's axes (+a, -a, +b, -b) that a
+// direction points, a component within `slack` of 0 counting as both.
+void OpenTowards(inout bvec4 open, vec2 direction, float slack) {
+  open.x = open.x || direction.x >= -slack;
+  open.y = open.y || direction.x <= slack;
+  open.z = open.z || direction.y >= -slack;
+  open.w = open.w || direction.y <= slack;
+}
+
 void main() {
   vec3 w0 = v_position[0], w1 = v_position[1], w2 = v_position[2];
   for (int k = 0; k < u_shaft_plane_count; ++k) {
@@ -86,20 +96,75 @@ void main() {
   ClipPolygon(src, rcv, n, false, u_clip_e);
   if (n < 3) return;
 
-  // Influence region in receiver coordinates (a, b).
+  // Influence region in receiver coordinates (a, b): the receiver points R
+  // for which a segment from some source point S passes through the
+  // polygon, projected on the plane e = u_far_e. A segment descends from S
+  // to R, so it meets a point X only where e_S > e_X; there R lies on the
+  // line from S through X, at (e_S - far) / (e_S - e_X) of the way. That
+  // ratio is linear-fractional in S and in X, so over the source rectangle
+  // and the polygon its extremes are at corner-vertex pairs, except where
+  // e_S - e_X reaches 0: there R leaves towards infinity along (X - S).(a, b).
+  // Those directions are the pairs X - S with e = 0, the section at e = 0 of
+  // the convex hull of the 4 n differences, whose extremes lie on the
+  // segments between a difference below 0 and one above. The region is the
+  // hull of the pairs' projections plus the cone of those directions: along
+  // an axis it reaches the receiver's edge where some direction points that
+  // way (within float slack), and is bounded by the projections elsewhere.
+  // A polygon wholly above the source (every vertex at or over every
+  // corner) meets no segment and has no region. A bumpy receiver can rise
+  // above part of the source, where segments climb, so there any pair
+  // without a descent keeps the whole receiver.
+  vec3 corners[4];
+  for (int c = 0; c < 4; ++c) corners[c] = (u_world_to_receiver * vec4(u_source_corners[c], 1.0)).xyz;
   vec2 lo = vec2(1e30), hi = vec2(-1e30);
   bool unbounded = false;
-  for (int c = 0; c < 4 && !unbounded; ++c) {
-    vec3 corner = (u_world_to_receiver * vec4(u_source_corners[c], 1.0)).xyz;
+  bvec4 open = bvec4(false);  // reaches the receiver's edge towards +a, -a, +b, -b
+  int below_count = 0, above_count = 0;  // differences X - S with e_X < e_S, and with e_X >= e_S
+  for (int c = 0; c < 4; ++c) {
+    float height = corners[c].z - u_far_e;
     for (int i = 0; i < n; ++i) {
-      float denom = corner.z - rcv[i].z;
-      if (denom <= 1e-6 * max(corner.z - u_far_e, 1e-30)) { unbounded = true; break; }
-      float t = (corner.z - u_far_e) / denom;
-      vec2 p = corner.xy + t * (rcv[i].xy - corner.xy);
-      lo = min(lo, p);
-      hi = max(hi, p);
+      vec3 difference = rcv[i] - corners[c];
+      float descent = -difference.z;  // e_S - e_X
+      if (descent > 1e-6 * max(height, 1e-30)) {
+        vec2 p = corners[c].xy + (height / descent) * difference.xy;
+        lo = min(lo, p);
+        hi = max(hi, p);
+      } else {
+        unbounded = unbounded || u_heightfield;
+      }
+      if (abs(descent) <= 1e-6 * max(height, 1e-30)) {
+        // Nearly level: R is far along the difference itself, starting from
+        // beside the corner, whose own foot bounds where it starts.
+        lo = min(lo, corners[c].xy);
+        hi = max(hi, corners[c].xy);
+        OpenTowards(open, difference.xy, 1e-4 * length(difference.xy));
+      }
+      if (descent > 0.0) ++below_count; else ++above_count;
     }
   }
+  if (below_count == 0 && !u_heightfield) return;
+  // Only a polygon that straddles a source corner's level has both kinds
+  // (never where source and receiver are parallel).
+  if (below_count > 0 && above_count > 0) {
+    for (int c = 0; c < 4; ++c) {
+      for (int i = 0; i < n; ++i) {
+        vec3 a = rcv[i] - corners[c];
+        if (a.z >= 0.0) continue;
+        for (int d = 0; d < 4; ++d) {
+          for (int j = 0; j < n; ++j) {
+            vec3 b = rcv[j] - corners[d];
+            if (b.z < 0.0) continue;
+            vec2 direction = mix(a.xy, b.xy, -a.z / (b.z - a.z));
+            OpenTowards(open, direction, 1e-4 * (length(a.xy) + length(b.xy)));
+          }
+        }
+      }
+    }
+  }
+  if (open.x) hi.x = 1.0;
+  if (open.y) lo.x = 0.0;
+  if (open.z) hi.y = 1.0;
+  if (open.w) lo.y = 0.0;
   if (u_heightfield) {
     for (int i = 0; i < n; ++i) { lo = min(lo, rcv[i].xy); hi = max(hi, rcv[i].xy); }
   }

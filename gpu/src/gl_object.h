@@ -90,6 +90,13 @@ struct Query {
   static GLuint Create() { GLuint id = 0; glCreateQueries(kTarget, 1, &id); return id; }
   static void Delete(GLuint id) { glDeleteQueries(1, &id); }
 };
+// Named by glGenQueries and made by its first glBeginQuery: Mesa 22's
+// glCreateQueries refuses the pipeline-statistics targets (GL_INVALID_ENUM)
+// on a 4.5 context that has GL_ARB_pipeline_statistics_query.
+struct GeneratedQuery {
+  static GLuint Create() { GLuint id = 0; glGenQueries(1, &id); return id; }
+  static void Delete(GLuint id) { glDeleteQueries(1, &id); }
+};
 }  // namespace traits
 
 using GlBuffer = GlObject<traits::Buffer>;
@@ -101,5 +108,6 @@ using GlVertexArray = GlObject<traits::VertexArray>;
 using GlProgramObject = GlObject<traits::Program>;
 using GlRenderbuffer = GlObject<traits::Renderbuffer>;
 using GlQueryAnySamplesPassed = GlObject<traits::Query<GL_ANY_SAMPLES_PASSED>>;
+using GlQueryFragmentsShaded = GlObject<traits::GeneratedQuery>;  // for GL_FRAGMENT_SHADER_INVOCATIONS
 
 }  // namespace visq::gpu

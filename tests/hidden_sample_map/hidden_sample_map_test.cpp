@@ -20,6 +20,7 @@
 #include "gpu_test_support.h"
 #include "large_scene.h"
 #include "test_support.h"
+#include "window_room.h"
 #include "visq/gpu/gpu_scene.h"
 #include "visq/gpu/hidden_sample_map.h"
 #include "visq/gpu/triangle_clusters.h"
@@ -704,6 +705,82 @@ TEST(HiddenSampleMapEmbree, SourceInsideAWindowTrimGivesTheRayCastBits) {
   }
 }
 
+
+// A room lit through its window, the window the source (upright) and the
+// floor the receiver: segments from the window pass the furniture above the
+// sill nearly level, so the influence regions of those triangles reach the
+// floor's edge along the ways such segments leave them, and only there
+// (hsm_draw.geom, step 3). The bits stay the ray caster's, with one pattern
+// and decorrelated; and under the grille's blind, lit from above the window.
+TEST(HiddenSampleMapEmbree, AWindowLightingAFurnishedFloorGivesTheRayCastBits) {
+  const Scene furnished = testing::MakeFurnishedWindowRoom(7);
+  HiddenSampleMapRequest r;
+  r.source.patch = {{-0.1, 0.8, -1.05}, {0, 1.4, 0}, {0, 0, 2.1}};
+  r.source.sample_count = 64;
+  r.source.pattern = SamplePattern::kJittered;
+  r.receiver.patch = {{0.2, 0.01, -2.3}, {4.6, 0, 0}, {0, 0, 4.6}};
+  r.receiver.width = r.receiver.height = 40;
+  r.options.want_bitmasks = true;
+  for (const bool decorrelate : {false, true}) {
+    SCOPED_TRACE(decorrelate ? "decorrelated" : "one pattern");
+    r.options.decorrelate = decorrelate;
+    r.options.decorrelation_seed = 11;
+    const Agreement a = ExpectMatchesEmbree(furnished, r);
+    EXPECT_GT(a.blocked_fraction(), 0.1);
+    EXPECT_LT(a.blocked_fraction(), 0.9);
+  }
+  HiddenSampleMapRequest above = r;
+  above.source.patch = {{-1.0, 2.0, -0.8}, {0, 1.6, 0}, {0, 0, 1.6}};
+  above.receiver.patch = {{0.2, 0.01, -1.5}, {3.0, 0, 0}, {0, 0, 3.0}};
+  const Agreement a = ExpectMatchesEmbree(testing::MakeGrilleScene(), above);
+  EXPECT_GT(a.blocked_fraction(), 0.5);
+}
+
+// One leaf 1 m up and 2 m into a room, lit through a window 0.1 m outside
+// its wall (sill 0.8 m, head 2.2 m) onto the floor: a segment from the
+// window through the leaf comes down 3.51 m in at the earliest (from the
+// head through the leaf's lowest corner, 1.95 m in and 0.95 m up:
+// -0.1 + 2.05 x 2.2 / 1.25), so the leaf shades the floor's far part only,
+// 15 of its 50 columns, where its influence region used to be the whole
+// floor (a vertex above a source corner made it unbounded). Its bits are
+// the ray caster's, and it shades well under what a triangle covering the
+// floor does.
+TEST(HiddenSampleMap, ATriangleAboveTheSillShadesOnlyTheFloorBeyondIt) {
+  HiddenSampleMapperOptions counting;
+  counting.count_fragments = true;
+  auto mapper = HiddenSampleMapper::Create(testing::SharedGpuWorker(), counting);
+  ASSERT_TRUE(mapper.ok()) << mapper.status();
+  Scene scene = EmptyFrame();
+  AddTriangle(scene, {1.95, 0.95, -0.05}, {2.05, 1.0, 0.05}, {2.0, 1.05, 0.0});
+  UpdateBounds(scene);
+  auto gpu_scene = Upload(scene);
+  ASSERT_TRUE(gpu_scene);
+  HiddenSampleMapRequest r;
+  r.source.patch = {{-0.1, 0.8, -1.05}, {0, 1.4, 0}, {0, 0, 2.1}};
+  r.source.sample_count = 32;
+  r.receiver.patch = {{0.0, 0.0, -2.5}, {5.0, 0, 0}, {0, 0, 5.0}};
+  r.receiver.width = r.receiver.height = 50;
+  r.options.want_bitmasks = true;
+  auto result = (*mapper)->Compute(*gpu_scene, r);
+  ASSERT_TRUE(result.ok()) << result.status();
+  const Agreement a = Compare(*result, EmbreeBits(scene, r, *result));
+  EXPECT_EQ(a.differ, 0u);
+  EXPECT_GT(a.blocked, 0u);
+  if (!(*mapper)->fragments_shaded()) GTEST_SKIP() << "the driver does not count fragments";
+  const uint64_t leaf = *(*mapper)->fragments_shaded();
+  // What a quad over the whole floor costs on this driver (it counts the
+  // lanes of the blocks a quad's edges cut): a sheet just above the floor,
+  // wider than it.
+  Scene sheet = EmptyFrame();
+  AddTriangle(sheet, {-1.0, 0.05, -4.0}, {8.0, 0.05, 0.0}, {-1.0, 0.05, 4.0});
+  UpdateBounds(sheet);
+  auto sheet_scene = Upload(sheet);
+  ASSERT_TRUE(sheet_scene);
+  ASSERT_TRUE((*mapper)->Compute(*sheet_scene, r).ok());
+  const uint64_t whole_floor = *(*mapper)->fragments_shaded() - leaf;
+  EXPECT_GT(leaf, 0u);
+  EXPECT_LT(double(leaf), 0.5 * double(whole_floor)) << leaf << " fragments, the whole floor " << whole_floor;
+}
 
 // ------------------------------------------------------- cluster culling
 

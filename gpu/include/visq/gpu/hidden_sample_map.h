@@ -6,7 +6,9 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <memory>
+#include <optional>
 
 #include "common/status.h"
 #include "sampling/visibility_sampling.h"
@@ -34,6 +36,10 @@ struct HiddenSampleMapperOptions {
   // scene. The geometry shader drops every triangle of the other clusters
   // anyway, so the bits are those of drawing everything, which `false` does.
   bool cull_clusters = true;
+  // Counts the fragments each pass shades, for fragments_shaded(): what
+  // the influence regions cost, which the benches print. Off by default
+  // (each pass then waits for its query).
+  bool count_fragments = false;
 };
 
 // Owns a small cache of Hough tables (keyed by the sample
@@ -61,6 +67,11 @@ class HiddenSampleMapper {
   [[nodiscard]] StatusOr<sampling::PatchVisibilityResult> PatchVisibility(const GpuScene& scene,
                                                                 const sampling::PatchVisibilityRequest& request,
                                                                 const JobOptions& job = {});
+
+  // The fragments shaded by every pass this mapper has drawn, where
+  // options.count_fragments asked for them and the driver counts them
+  // (GL_ARB_pipeline_statistics_query); nullopt otherwise.
+  [[nodiscard]] std::optional<uint64_t> fragments_shaded() const;
 
   struct State;      // GL-thread state, defined in gpu/hidden_sample_map/
   struct BandSizes;  // per scene, the band size that met band_target_ms
