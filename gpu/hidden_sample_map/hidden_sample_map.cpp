@@ -38,6 +38,7 @@ struct HiddenSampleMapper::State {
     hsm::HoughTableLayout layout;
     std::vector<uint32_t> cpu;       // until uploaded
     std::vector<glm::vec2> centred;  // sample positions the shader tests
+    glm::vec4 sample_box{0.0f};      // their bounding box: (lo.x, lo.y, hi.x, hi.y)
     GlTexture2DArray texture{NoCreate};
     GlBuffer samples{NoCreate};
     uint64_t generation = 0;  // the context generation `texture` lives in
@@ -193,6 +194,10 @@ StatusOr<std::shared_ptr<Table>> CachedTable(HiddenSampleMapper::State& state, G
   built->cpu = hsm::BuildHoughTable(centred, built->layout, job.stop);
   if (built->cpu.empty()) return job.stop.Check("hidden-sample map: building the sample table");
   built->centred = centred;
+  built->sample_box = glm::vec4(centred.front(), centred.front());
+  for (const glm::vec2& c : centred)
+    built->sample_box = glm::vec4(glm::min(glm::vec2(built->sample_box), c),
+                                  glm::max(glm::vec2(built->sample_box.z, built->sample_box.w), c));
   build_ms = MillisecondsSince(start);
   std::lock_guard lock(state.mutex);
   auto [it, inserted] = state.tables.emplace(key, built);
@@ -385,7 +390,8 @@ struct HsmDrawUniforms {
         first_row(at.Find<int>("u_first_row")),
         decorrelate(at.Find<bool>("u_decorrelate")),
         decorrelation_seed(at.Find<unsigned>("u_decorrelation_seed")),
-        decorrelation_amplitude(at.Find<float>("u_decorrelation_amplitude")) {}
+        decorrelation_amplitude(at.Find<float>("u_decorrelation_amplitude")),
+        sample_box(at.Find<glm::vec4>("u_sample_box")) {}
   Uniform<glm::mat4> world_to_source, world_to_receiver, receiver_to_source;
   Uniform<glm::vec3> source_corners;  // [4]
   Uniform<glm::vec3> d_gradient;
@@ -402,10 +408,12 @@ struct HsmDrawUniforms {
   Uniform<bool> decorrelate;
   Uniform<unsigned> decorrelation_seed;
   Uniform<float> decorrelation_amplitude;
+  Uniform<glm::vec4> sample_box;
 };
 
 void SetPassUniforms(const HsmDrawUniforms& u, const MapFrames& f, const HiddenSampleMapRequest& request,
-                     const hsm::HoughTableLayout& layout, int first_group, int groups, int first_row) {
+                     const Table& samples, int first_group, int groups, int first_row) {
+  const hsm::HoughTableLayout& layout = samples.layout;
   const HiddenSampleMapOptions& options = request.options;
   u.world_to_source.Set(glm::mat4(f.world_to_source));
   u.world_to_receiver.Set(glm::mat4(f.world_to_receiver));
@@ -433,6 +441,7 @@ void SetPassUniforms(const HsmDrawUniforms& u, const MapFrames& f, const HiddenS
   u.decorrelate.Set(options.decorrelate);
   u.decorrelation_seed.Set(options.decorrelation_seed);
   u.decorrelation_amplitude.Set(f.decorrelation_amplitude);
+  u.sample_box.Set(samples.sample_box);
 }
 
 // One band of receiver rows [first_row, first_row + rows), every pass, read
@@ -485,7 +494,7 @@ Status DrawBand(const GpuScene& scene, Table& table, const MapFrames& frames, co
                                         {GL_GEOMETRY_SHADER, "hsm_draw.geom"},
                                         {GL_FRAGMENT_SHADER, "hsm_draw.frag"}},
                                        {{"GROUPS", std::to_string(count)}, {"EXACT_LOOKUP", plan.exact ? "1" : "0"}}));
-    SetPassUniforms(program->uniforms, frames, request, table.layout, first, plan.groups, first_row);
+    SetPassUniforms(program->uniforms, frames, request, table, first, plan.groups, first_row);
 
     // Attach this pass's layers: maybe (or exact) masks, then for HOUGH the
     // surely-blocked masks.

@@ -41,6 +41,7 @@ uniform sampler2D u_heights;
 uniform bool u_decorrelate;
 uniform uint u_decorrelation_seed;
 uniform float u_decorrelation_amplitude;
+uniform vec4 u_sample_box;  // the samples' bounding box: (lo.x, lo.y, hi.x, hi.y)
 
 const float kPi = 3.14159265358979;
 
@@ -116,6 +117,21 @@ void main() {
     cells[edges] = ivec2(ri, ti);
     ++edges;
   }
+
+#if EXACT_LOOKUP
+  // Most fragments of a large influence region see the triangle miss the
+  // source: where one edge has every sample's box wholly outside it (its
+  // largest value over the box's corners below 0, with a margin for the
+  // rounding of the per-sample test), no sample is hidden and the lookups
+  // are skipped.
+  for (int e = 0; e < edges; ++e) {
+    vec3 l = lines[e];
+    vec2 far_corner = vec2(l.x > 0.0 ? u_sample_box.z : u_sample_box.x, l.y > 0.0 ? u_sample_box.w : u_sample_box.y);
+    vec2 reach = max(abs(u_sample_box.xy), abs(u_sample_box.zw));
+    float margin = 1e-5 * (abs(l.x) * reach.x + abs(l.y) * reach.y + abs(l.z));
+    if (dot(l, vec3(far_corner, 1.0)) < -margin) discard;
+  }
+#endif
 
   bool any_bit = false;
   for (int g = 0; g < GROUPS; ++g) {
