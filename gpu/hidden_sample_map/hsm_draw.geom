@@ -9,13 +9,15 @@
 // 3. influence region: the bounding box, on the receiver (or, for a
 //    heightfield, on a plane behind it), of the polygon's projections from the
 //    four source corners (eq. 3), reaching the receiver's edge only along
-//    the axes where a segment can leave the polygon nearly level, and
-//    clipped to the receiver rectangle - this is the shaft culling;
-// 4. emit it as a quad carrying the clipped polygon in the source frame
+//    the axes where a segment can leave the polygon nearly level (and then
+//    within the wedge those segments make), and clipped to the receiver
+//    rectangle - this is the shaft culling;
+// 4. emit it as a quad (or the wedge's polygon) carrying the clipped
+//    polygon in the source frame
 //    (x, y centred patch coordinates, d distance from the source plane) for
 //    the fragment shader's per-receiver-point back-projection.
 layout(triangles) in;
-layout(triangle_strip, max_vertices = 4) out;
+layout(triangle_strip, max_vertices = 7) out;
 
 in vec3 v_position[];
 
@@ -68,6 +70,18 @@ void OpenTowards(inout bvec4 open, vec2 direction, float slack) {
   open.w = open.w || direction.y <= slack;
 }
 
+// Widens the cone of directions (angles from `reference`, the first
+// direction given: x the least, y the greatest) to hold `direction`. A zero
+// direction leaves no cone: every way.
+void Widen(inout vec2 cone, inout vec2 reference, inout bool any_direction, vec2 direction) {
+  if (dot(direction, direction) < 1e-30) { any_direction = true; cone = vec2(-4.0, 4.0); return; }
+  if (!any_direction) { any_direction = true; reference = direction; cone = vec2(0.0); return; }
+  float angle = atan(reference.x * direction.y - reference.y * direction.x, dot(reference, direction));
+  cone = vec2(min(cone.x, angle), max(cone.y, angle));
+}
+
+vec2 Turned(vec2 v, float angle) { return vec2(cos(angle) * v.x - sin(angle) * v.y, sin(angle) * v.x + cos(angle) * v.y); }
+
 void main() {
   vec3 w0 = v_position[0], w1 = v_position[1], w2 = v_position[2];
   for (int k = 0; k < u_shaft_plane_count; ++k) {
@@ -119,6 +133,8 @@ void main() {
   vec2 lo = vec2(1e30), hi = vec2(-1e30);
   bool unbounded = false;
   bvec4 open = bvec4(false);  // reaches the receiver's edge towards +a, -a, +b, -b
+  vec2 cone = vec2(0.0), reference = vec2(1.0, 0.0);  // the directions, as Widen keeps them
+  bool any_direction = false;
   int below_count = 0, above_count = 0;  // differences X - S with e_X < e_S, and with e_X >= e_S
   for (int c = 0; c < 4; ++c) {
     float height = corners[c].z - u_far_e;
@@ -138,6 +154,7 @@ void main() {
         lo = min(lo, corners[c].xy);
         hi = max(hi, corners[c].xy);
         OpenTowards(open, difference.xy, 1e-4 * length(difference.xy));
+        Widen(cone, reference, any_direction, difference.xy);
       }
       if (descent > 0.0) ++below_count; else ++above_count;
     }
@@ -156,11 +173,58 @@ void main() {
             if (b.z < 0.0) continue;
             vec2 direction = mix(a.xy, b.xy, -a.z / (b.z - a.z));
             OpenTowards(open, direction, 1e-4 * (length(a.xy) + length(b.xy)));
+            Widen(cone, reference, any_direction, direction);
           }
         }
       }
     }
   }
+  // Where the directions make a cone narrower than 170 degrees, the region
+  // within the receiver lies in the hull of the projections' box B and of
+  // B moved by L along the cone's two edges (turned out by a milliradian
+  // for rounding), when L is the receiver's reach from B over cos(half the
+  // cone's angle): a point of B plus a and b along the edges lies in the
+  // receiver only while a + b <= L. That hull is the Minkowski sum of B
+  // and the triangle (0, L u1, L u2): seven vertices at most, made by
+  // walking their edges in angle order from the lowest corner. Elsewhere
+  // the region is the box, open along the axes the directions point along.
+  vec2 polygon[7];
+  int polygon_size = 0;
+  if (any(open) && any_direction && cone.y - cone.x < radians(170.0) && !u_heightfield && !unbounded) {
+    vec2 box_slack = 1e-4 * (hi - lo) + vec2(1e-5);
+    vec2 b_lo = lo - box_slack, b_hi = hi + box_slack;
+    vec2 u1 = Turned(normalize(reference), cone.x - 1e-3), u2 = Turned(normalize(reference), cone.y + 1e-3);
+    float reach = length(max(b_hi, vec2(1.0)) - min(b_lo, vec2(0.0)));
+    float L = 1.01 * reach / cos(0.5 * (cone.y - cone.x + 2e-3));
+    vec2 edges[7] = vec2[](vec2(b_hi.x - b_lo.x, 0.0), vec2(0.0, b_hi.y - b_lo.y), vec2(b_lo.x - b_hi.x, 0.0),
+                           vec2(0.0, b_lo.y - b_hi.y), L * u1, L * (u2 - u1), -L * u2);
+    float angles[7];
+    for (int k = 0; k < 7; ++k) {
+      float angle = atan(edges[k].y, edges[k].x);
+      angles[k] = angle < 0.0 ? angle + 2.0 * radians(180.0) : angle;
+    }
+    for (int k = 1; k < 7; ++k) {  // insertion sort by angle
+      for (int j = k; j > 0 && angles[j - 1] > angles[j]; --j) {
+        float angle = angles[j]; angles[j] = angles[j - 1]; angles[j - 1] = angle;
+        vec2 edge = edges[j]; edges[j] = edges[j - 1]; edges[j - 1] = edge;
+      }
+    }
+    vec2 triangle[3] = vec2[](vec2(0.0), L * u1, L * u2);
+    vec2 lowest = triangle[0];
+    for (int k = 1; k < 3; ++k)
+      if (triangle[k].y < lowest.y || (triangle[k].y == lowest.y && triangle[k].x < lowest.x)) lowest = triangle[k];
+    vec2 walk = b_lo + lowest;
+    vec2 hull[7];
+    for (int k = 0; k < 7; ++k) {
+      hull[k] = walk;
+      walk += edges[k];
+    }
+    // As a strip: v0, v1, v6, v2, v5, v3, v4.
+    int order[7] = int[](0, 1, 6, 2, 5, 3, 4);
+    for (int k = 0; k < 7; ++k) polygon[k] = hull[order[k]];
+    polygon_size = 7;
+  }
+
   if (open.x) hi.x = 1.0;
   if (open.y) lo.x = 0.0;
   if (open.z) hi.y = 1.0;
@@ -181,12 +245,18 @@ void main() {
   vec3 plane_normal = cross(s1 - s0, s2 - s0);
   vec4 plane = vec4(plane_normal, -dot(plane_normal, s0));
 
-  vec2 quad[4] = vec2[](vec2(lo.x, lo.y), vec2(hi.x, lo.y), vec2(lo.x, hi.y), vec2(hi.x, hi.y));
-  for (int k = 0; k < 4; ++k) {
+  if (polygon_size == 0) {
+    polygon[0] = vec2(lo.x, lo.y);
+    polygon[1] = vec2(hi.x, lo.y);
+    polygon[2] = vec2(lo.x, hi.y);
+    polygon[3] = vec2(hi.x, hi.y);
+    polygon_size = 4;
+  }
+  for (int k = 0; k < polygon_size; ++k) {
     for (int i = 0; i < 5; ++i) { g_poly[i] = src[min(i, n - 1)]; g_poly_receiver[i] = rcv[min(i, n - 1)]; }
     g_count = n;
     g_plane = plane;
-    gl_Position = vec4(quad[k] * 2.0 - 1.0, 0.0, 1.0);
+    gl_Position = vec4(polygon[k] * 2.0 - 1.0, 0.0, 1.0);
     EmitVertex();
   }
   EndPrimitive();
