@@ -5,7 +5,8 @@
 //   visq_bench_hidden_sample_map [--quick] [--scenes DIR] [--only NAME]
 //   visq_bench_hidden_sample_map --copies 1,4,16,64,300 [--scenes DIR]
 //
-// --quick: receivers 128^2 only, N = 32 and 1024, clouds of 1K and 10K.
+// --quick: receivers 128^2 only, N = 32, 256 and 1024 (the counts
+// gpu-check.sh reports the raster method at), clouds of 1K and 10K.
 // --only: one case (sponza, veach-ajar, window, furnished, cloud-1K, ...).
 // "window" is a room lit through a window with sash bars and a blind
 // (tests/support/window_room.h), the light upright outside it and the
@@ -247,7 +248,7 @@ int main(int argc, char** argv) {
   }
 
   const std::vector<int> sizes = quick ? std::vector<int>{128} : std::vector<int>{128, 512};
-  const std::vector<int> counts = quick ? std::vector<int>{32, 1024} : std::vector<int>{32, 128, 1024};
+  const std::vector<int> counts = quick ? std::vector<int>{32, 256, 1024} : std::vector<int>{32, 128, 256, 1024};
   std::printf("%-11s %5s %5s %9s | %9s %9s | %9s %9s | %9s | %7s %7s | %8s %9s\n", "scene", "recv", "N", "tris",
               "exact ms", "Mrays/s", "hough ms", "Mrays/s", "embree ms", "Mrays/s", "", "x exact", "x hough");
   for (Case& c : cases) {
