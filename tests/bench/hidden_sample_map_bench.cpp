@@ -11,8 +11,8 @@
 // "window" is a room lit through a window with sash bars and a blind
 // (tests/support/window_room.h), the light upright outside it and the
 // floor the receiver: source and receiver far from parallel, the raster
-// method's worst case (issue 49 section 2); "furnished" the same light on
-// the floor of a furnished room.
+// method's worst case (issue 49 section 2); "furnished" a furnished room's
+// floor with the window opening itself as the source.
 // --copies: what a query costs as the level around it grows. Sponza copied
 // side by side (tests/support/large_scene.h), the same query at the first
 // copy; RASTER warm time drawing every triangle a pass against drawing only
@@ -22,7 +22,7 @@
 // draw + readback, glFinish'd) plus the CPU bit counting; the one-off Hough
 // table build is reported apart (it is cached per pattern), and so are the
 // fragments the exact map's passes shade a receiver texel (all passes; N
-// over 512 takes more than one on llvmpipe's 8 targets). Embree time is
+// over 1,024 takes more than one on llvmpipe's 8 targets). Embree time is
 // EmbreeScene::Occluded over the same segments, BVH build excluded.
 #include <algorithm>
 #include <chrono>
