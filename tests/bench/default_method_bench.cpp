@@ -82,6 +82,20 @@ void NoteAccuracy(const v1::Accuracy& accuracy, Run& run) {
   if (left_out != std::string::npos) run.weighed += "; " + accuracy.note().substr(left_out);
 }
 
+// What a call answered: its error, or what the accuracy and timing of
+// `figures(answer)` state.
+template <typename Answer, typename Figures>
+void NoteAnswer(const Answer& answer, const Figures& figures, Run& run) {
+  run.ok = answer.ok();
+  if (!answer.ok()) {
+    run.error = std::string(answer.status().message());
+    return;
+  }
+  const auto& stated = figures(*answer);
+  NoteAccuracy(stated.accuracy(), run);
+  run.compute_ms = stated.timing().compute_ms();
+}
+
 // A request of the suite, sent with `mode` ("auto", or a method's name).
 struct Row {
   std::string label;
@@ -127,13 +141,7 @@ Row MapRow(const std::string& scene, const PatchSpec& source, const PatchSpec& r
       request.set_height(side);
       request.set_method(SampledMethod(mode));
       auto map = client.ComputeHiddenSampleMap(request);
-      run.ok = map.ok();
-      if (!map.ok()) {
-        run.error = std::string(map.status().message());
-        return;
-      }
-      NoteAccuracy(map->figures.accuracy(), run);
-      run.compute_ms = map->figures.timing().compute_ms();
+      NoteAnswer(map, [](const auto& a) -> const auto& { return a.figures; }, run);
     });
   };
   return row;
@@ -156,13 +164,7 @@ Row PatchRow(const std::string& scene, const PatchSpec& source, const PatchSpec&
       request.set_receiver_rows(receiver_grid);
       request.set_method(SampledMethod(mode));
       auto answer = client.PatchVisibility(request);
-      run.ok = answer.ok();
-      if (!answer.ok()) {
-        run.error = std::string(answer.status().message());
-        return;
-      }
-      NoteAccuracy(answer->accuracy(), run);
-      run.compute_ms = answer->timing().compute_ms();
+      NoteAnswer(answer, [](const auto& a) -> const auto& { return a; }, run);
     });
   };
   return row;
@@ -186,13 +188,7 @@ Row BakeRow(const std::string& scene, uint32_t resolution, uint32_t directions) 
         request.set_direction_count(directions);
       }
       auto bake = client.ComputeObscurances(request);
-      run.ok = bake.ok();
-      if (!bake.ok()) {
-        run.error = std::string(bake.status().message());
-        return;
-      }
-      NoteAccuracy(bake->figures.accuracy(), run);
-      run.compute_ms = bake->figures.timing().compute_ms();
+      NoteAnswer(bake, [](const auto& a) -> const auto& { return a.figures; }, run);
     });
   };
   return row;
@@ -222,13 +218,7 @@ Row TransmittanceRow(const std::string& scene, const std::string& absorber, doub
       if (mode == "slicemap") request.set_method(v1::TransmittanceRequest::SLICEMAP);
       if (mode == "ray-stabbing") request.set_method(v1::TransmittanceRequest::RAY_STABBING);
       auto answer = client.Transmittance(request);
-      run.ok = answer.ok();
-      if (!answer.ok()) {
-        run.error = std::string(answer.status().message());
-        return;
-      }
-      NoteAccuracy(answer->accuracy(), run);
-      run.compute_ms = answer->timing().compute_ms();
+      NoteAnswer(answer, [](const auto& a) -> const auto& { return a; }, run);
     });
   };
   return row;
