@@ -116,6 +116,14 @@ void AddFlags(CLI::App& app, Flags& flags) {
                  "on a CPU rasterizer its shader costs several times Embree's time on the same cores), always, or "
                  "never; named, it always runs")
       ->envname("VISQ_GPU_RAYS_IN_CHOICE")->check(CLI::IsMember({"auto", "always", "never"}))->capture_default_str();
+  app.add_option("--explore-when-idle", flags.options.engine.explore_when_idle,
+                 "Whether probes of the server's choice of method that no request's share could pay for run while "
+                 "no call is in flight (stopped when one arrives); off, a request probes a new method only with the "
+                 "share it can pay or that earlier requests set aside")
+      ->envname("VISQ_EXPLORE_WHEN_IDLE")->capture_default_str();
+  app.add_option("--idle-quiet-ms", flags.options.engine.idle_exploration.quiet_ms,
+                 "How long no call must have been in flight before an idle-time probe starts")
+      ->envname("VISQ_IDLE_QUIET_MS")->check(CLI::Range(0.0, 3.6e6))->capture_default_str();
   app.add_flag("--warm-scenes", flags.options.engine.warm_at_load,
                "Build every structure of each scene loaded (at start or later) or uploaded right after the load, in "
                "the background, so that its first query does not wait for them")

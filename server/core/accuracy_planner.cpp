@@ -11,6 +11,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/job_timing.h"
+#include "core/idle_exploration.h"
 
 namespace visq::core {
 
@@ -446,10 +447,34 @@ std::optional<size_t> NextProbeToLearn(const CostModel& model, const EqualAnswer
 
 }  // namespace
 
-StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOption> options, const CallOptions& call) {
+Status ProbeOutsideARequest(CostModel& model, const EqualAnswerOption& option, size_t first_probe, double budget_ms,
+                            const CallOptions& call, double& probe_ms) {
+  return ProbeOption(model, option, first_probe, budget_ms, call, probe_ms).status();
+}
+
+StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOption> options, const CallOptions& call,
+                                   IdleExplorer* idle) {
   PlanReport report;
   report.reason = PlanReport::Reason::kFastestOfEqualAnswers;
   double best_ms = std::numeric_limits<double>::infinity();
+  // Where `option`'s probe from `first_probe` on runs at this budget:
+  // here, or in idle time (offered to the explorer) where the budget is too
+  // small to pay for it or the probe is a larger one of a method already
+  // measured, or nowhere where the budget is too small and there is no
+  // explorer, or not far above the budget a probe of it was cut at (a
+  // method slow here). A larger probe inside a request cost the Sponza and
+  // flowers maps 135-200 ms of a 550 ms call for a method 100x slower.
+  enum class Probe { kHere, kSkipped, kInIdleTime };
+  auto where_to_probe = [&](const EqualAnswerOption& option, size_t first_probe, double budget_ms, bool larger) {
+    if (budget_ms < 4.0 * model.CutProbeBudget(option.plan.cost_key)) return Probe::kSkipped;
+    const bool idle_takes_it = idle != nullptr && option.probes_outlive_the_call;
+    if (!(larger && idle_takes_it) &&
+        budget_ms >= (idle_takes_it ? kSmallestInlineProbeBudgetMs : kSmallestProbeBudgetMs))
+      return Probe::kHere;
+    if (!idle_takes_it) return Probe::kSkipped;
+    idle->Offer(option, first_probe);
+    return Probe::kInIdleTime;
+  };
   for (EqualAnswerOption& option : options) {
     Plan& plan = option.plan;
     if (model.Observations(plan.cost_key) == 0) {
@@ -459,9 +484,9 @@ StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOpti
       const double budget_ms = share_ms + model.ExplorationCredit(plan.cost_key);
       // Too cheap to learn a new method on yet, or its probe was cut at a
       // budget not far below this one.
-      if (budget_ms < kSmallestProbeBudgetMs || budget_ms < 4.0 * model.CutProbeBudget(plan.cost_key)) {
+      if (const Probe where = where_to_probe(option, 0, budget_ms, false); where != Probe::kHere) {
         model.AddExplorationCredit(plan.cost_key, share_ms);
-        report.cut_probes.push_back(plan.method);
+        (where == Probe::kInIdleTime ? report.left_to_idle_time : report.cut_probes).push_back(plan.method);
         continue;
       }
       const double credit_ms = model.TakeExplorationCredit(plan.cost_key);
@@ -477,11 +502,12 @@ StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOpti
     } else if (const std::optional<size_t> next = NextProbeToLearn(model, option)) {
       // Measured at one size, or far below this request: its prediction is
       // the safe side's guess (fixed costs taken for rate), which was 1000x
-      // a raster map's real cost and 10x the ray caster's. This request's
-      // share buys the next probe size.
+      // a raster map's real cost and 10x the ray caster's. The idle
+      // explorer runs the next probe size, or else this request's share
+      // buys it.
       const double share_ms = std::isfinite(best_ms) ? kProbeShareOfBest * best_ms : best_ms;
       const double budget_ms = share_ms + model.ExplorationCredit(plan.cost_key);
-      if (budget_ms < kSmallestProbeBudgetMs || budget_ms < 4.0 * model.CutProbeBudget(plan.cost_key)) {
+      if (where_to_probe(option, *next, budget_ms, true) != Probe::kHere) {
         model.AddExplorationCredit(plan.cost_key, share_ms);
       } else {
         model.TakeExplorationCredit(plan.cost_key);

@@ -78,6 +78,9 @@ struct PlanReport {
   // Methods left out because their probe ran past its share of the best
   // plan's time (ChooseFastest), by name.
   std::vector<std::string> cut_probes;
+  // Methods whose probe this request's share could not pay for, left to
+  // the server's idle time (IdleExplorer), by name.
+  std::vector<std::string> left_to_idle_time;
   const Plan& chosen_plan() const { return plans[chosen]; }
 };
 
@@ -217,7 +220,13 @@ struct EqualAnswerOption {
     std::function<StatusOr<double>(const CallOptions& call)> run;
   };
   std::vector<Probe> probes;
+  // Whether the probes own what they run on (the scene, a copy of the
+  // request), so that they may run after the call has answered, in the
+  // server's idle time (IdleExplorer).
+  bool probes_outlive_the_call = false;
 };
+
+class IdleExplorer;
 
 // Of a method without observations, at most this share of the best plan
 // predicted so far is spent on its probes: a method slower here than the
@@ -241,6 +250,13 @@ inline constexpr double kLongestExtrapolation = 64.0;
 // (GL programs compiled, buffers uploaded) that a fit would otherwise take
 // for a rate and extrapolate by the request's size.
 inline constexpr double kRepeatProbeShareOfBudget = 0.25;
+// Where the server explores in its idle time, a probe runs inside a request
+// only when the request's share is at least this: a method's first probe
+// pays one-time costs of tens of ms on llvmpipe (a raster program compiled:
+// 8-30 ms; a Hough table at 4,096 samples: 44 ms), which a smaller share
+// cannot cover, so a small request that probed took 1.5-2.2x its time
+// (docs/default-method.md). Smaller probes wait for idle time.
+inline constexpr double kSmallestInlineProbeBudgetMs = 100.0;
 
 // Predicts every option (probing, in the order given, the ones this series
 // has not measured: put the cheapest to probe first; the first option's
@@ -252,8 +268,20 @@ inline constexpr double kRepeatProbeShareOfBudget = 0.25;
 // whose probe fails with FAILED_PRECONDITION (it cannot answer this
 // request honestly) or runs past its budget is left out; FAILED_PRECONDITION
 // when none is left.
+//
+// With `idle`, a probe whose share is under kSmallestInlineProbeBudgetMs
+// is offered to it instead (where the option's probes outlive the call),
+// and the request goes on with the methods already measured.
 [[nodiscard]] StatusOr<PlanReport> ChooseFastest(CostModel& model, std::vector<EqualAnswerOption> options,
-                                                 const CallOptions& call);
+                                                 const CallOptions& call, IdleExplorer* idle = nullptr);
+
+// Runs `option`'s probes from `first_probe` on outside any request (the
+// IdleExplorer), within `budget_ms` and `call`'s stop, recording what they
+// measure, or a probe cut at the budget (CostModel::RecordCutProbe): OK
+// then, and where the option cannot answer its request; the stop's status
+// when `call` stopped it; any other failure as it came.
+[[nodiscard]] Status ProbeOutsideARequest(CostModel& model, const EqualAnswerOption& option, size_t first_probe,
+                                          double budget_ms, const CallOptions& call, double& probe_ms);
 
 // "raycast {samples: 2048}" for messages and logs.
 std::string DescribePlan(const Plan& plan);

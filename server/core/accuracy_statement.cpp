@@ -50,6 +50,11 @@ void AddChosenPlan(const PlanReport& plan, AccuracyStatement& statement) {
                   left_out.empty() ? std::string()
                                    : absl::StrCat("; not weighed (its probe would cost more than a ",
                                                   kProbeShareOfBest, " share of the best plan): ", left_out));
+  std::string idle;
+  for (const std::string& method : plan.left_to_idle_time) absl::StrAppend(&idle, idle.empty() ? "" : ", ", method);
+  if (!idle.empty())
+    absl::StrAppend(&statement.note, "; not weighed yet (its probe, too costly for this request's share, runs "
+                    "while the server is idle): ", idle);
 }
 
 }  // namespace visq::core

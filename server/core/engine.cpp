@@ -91,6 +91,8 @@ StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
   spdlog::info("GPU: {} / {} / OpenGL {} via EGL {} ({}){}", device.gl_vendor, device.gl_renderer,
                device.gl_version, device.egl_platform, device.egl_device, device.software ? ", software" : "");
   VISQ_RETURN_IF_ERROR(gpu::RunSelfTest(*engine->gpu_));
+  if (options.explore_when_idle)
+    engine->idle_explorer_ = std::make_unique<IdleExplorer>(engine->cost_model_, options.idle_exploration);
   return engine;
 }
 

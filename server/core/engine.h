@@ -21,6 +21,7 @@
 #include "core/absorber_rays_cache.h"
 #include "core/accuracy_planner.h"
 #include "core/call_options.h"
+#include "core/idle_exploration.h"
 #include "core/lazy_structure.h"
 #include "core/local_frames.h"
 #include "core/scene_repository.h"
@@ -107,6 +108,12 @@ struct EngineOptions {
   // restarts (CostModel::PersistTo); empty: <scene_repo>/.visq-cost-model.tsv,
   // which the repository's scene listing skips. "-": nowhere.
   std::filesystem::path cost_model_file;
+  // Probes of the server's choice that no request could pay for run while
+  // no call is in flight (core/idle_exploration.h); off, a request probes a
+  // new method only with the share it can pay or that earlier requests set
+  // aside.
+  bool explore_when_idle = true;
+  IdleExplorationOptions idle_exploration;
 };
 
 // A scene as the server holds it: immutable geometry plus the lazily built
@@ -324,6 +331,9 @@ class Engine {
   SceneRepository& repository() { return *repository_; }
   // Measured costs of the query methods, for AccuracyTarget requests.
   CostModel& cost_model() { return cost_model_; }
+  // Null when the server does not explore in its idle time.
+  IdleExplorer* idle_explorer() { return idle_explorer_.get(); }
+  const IdleExplorer* idle_explorer() const { return idle_explorer_.get(); }
   const BuildTimes& build_times() const { return build_times_; }
 
  private:
@@ -375,9 +385,13 @@ class Engine {
   BuildTimes build_times_;
   std::atomic<uint64_t> light_tree_hits_{0};
   std::atomic<uint64_t> light_tree_misses_{0};
-  // Last: destroyed first, so builds still running stop and are joined
+  // Destroyed after the explorer only, so builds still running stop and are joined
   // while the GPU worker and everything else they use still exist.
   StructureBuilds builds_;
+  // After the builds: destroyed before them. Its probes run queries on the
+  // GPU worker, the scenes and their builds (a probe waiting for a build
+  // stops with it), so it is stopped and joined before anything they use.
+  std::unique_ptr<IdleExplorer> idle_explorer_;
 };
 
 // XXH3-128 of the geometry as held (the unplaced triangles, each placed

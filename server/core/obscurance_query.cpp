@@ -350,8 +350,15 @@ StatusOr<double> RaycastEstimateMs(Engine& engine, const ResidentScene& resident
 // probes (a direction, then four) get a share of its predicted time, since
 // on a CPU rasterizer one direction can cost more than a whole ray-cast
 // estimate.
-StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene& resident,
+StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, std::shared_ptr<const ResidentScene> held,
                                             const ObscuranceQuery& query) {
+  const ResidentScene& resident = *held;
+  // The probes' own copy of the request, which they may run after the call
+  // (in the server's idle time): without the call's stop and progress.
+  auto owned = std::make_shared<ObscuranceQuery>(query);
+  owned->call = {};
+  owned->progress = nullptr;
+  owned->scene_version = held->version;  // a probe of a version since replaced measures nothing
   const uint32_t directions = query.params.direction_count;
   const double bound = obscurance::CoveredHalfWidth(directions, 0.95);
   std::vector<EqualAnswerOption> options(engine.WeighsGpuRays() ? 3 : 2);
@@ -371,9 +378,10 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
     plan.error_bound = bound;
     for (uint32_t rays : {4u, 16u})
       options[slot].probes.push_back(
-          {double(rays), 0.0, [&engine, &resident, &query, method, rays](const CallOptions& call) {
-             return RaycastEstimateMs(engine, resident, query, method, rays, call);
+          {double(rays), 0.0, [&engine, held, owned, method, rays](const CallOptions& call) {
+             return RaycastEstimateMs(engine, *held, *owned, method, rays, call);
            }});
+    options[slot].probes_outlive_the_call = true;
   }
   {
     Plan& plan = options[1].plan;
@@ -384,8 +392,8 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
     plan.work = directions;
     plan.error_bound = bound;
     for (uint32_t count : {1u, 4u})
-      options[1].probes.push_back({double(count), 0.0, [&engine, &query, count](const CallOptions& call) -> StatusOr<double> {
-                                     ObscuranceQuery probe = query;
+      options[1].probes.push_back({double(count), 0.0, [&engine, owned, count](const CallOptions& call) -> StatusOr<double> {
+                                     ObscuranceQuery probe = *owned;
                                      probe.method = ObscuranceMethod::kDepthPeeling;
                                      probe.params.first_direction = 0;
                                      probe.params.direction_count = count;
@@ -397,8 +405,9 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, const ResidentScene&
                                                            RunComputeObscurances(engine, probe));
                                      return answer.atlas_ms + answer.bake_ms;
                                    }});
+    options[1].probes_outlive_the_call = true;
   }
-  return ChooseFastest(engine.cost_model(), std::move(options), query.call);
+  return ChooseFastest(engine.cost_model(), std::move(options), query.call, engine.idle_explorer());
 }
 
 StatusOr<PlanReport> PlanObscurances(Engine& engine, const ResidentScene& resident, const ObscuranceQuery& query) {
@@ -517,7 +526,7 @@ StatusOr<ObscuranceAnswer> RunComputeObscurances(Engine& engine, ObscuranceQuery
     const bool whole_bake = query.params.first_direction == 0 && !query.partial_only &&
                             (query.total_directions == 0 || query.total_directions == query.params.direction_count);
     if (whole_bake) {
-      VISQ_ASSIGN_OR_RETURN(plan, ChooseObscuranceMethod(engine, *resident, query));
+      VISQ_ASSIGN_OR_RETURN(plan, ChooseObscuranceMethod(engine, resident, query));
     } else {
       query.method = ObscuranceMethod::kDepthPeeling;  // partial sums are the bake's alone
     }

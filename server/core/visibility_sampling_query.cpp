@@ -912,11 +912,15 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityForTarget(Engine& engine, const R
 // and RASTER's probe (whole passes over the scene, slow on a CPU
 // rasterizer) then gets a share of RAYCAST's predicted time.
 // `run(method, side, call)` runs the request reduced to at most side x side
-// receiver points and returns its compute ms; `points(side)` counts them.
+// receiver points and returns its compute ms; it owns what it runs on (the
+// scene, a copy of the request), so that a probe too large for this
+// request's share can run later, in the server's idle time.
+// `points(side)` counts the points.
+using SampledProbeRun = std::function<StatusOr<double>(VisibilityMethod, int side, const CallOptions&)>;
 StatusOr<PlanReport> ChooseSampledMethod(Engine& engine, const std::string& series_base, sampling::LookupMode lookup,
                                          int samples, const std::function<double(int side)>& points,
-                                         const std::function<StatusOr<double>(VisibilityMethod, int, const CallOptions&)>& run,
-                                         const PrecisionCheck& resolves, const CallOptions& call) {
+                                         std::shared_ptr<const SampledProbeRun> run, const PrecisionCheck& resolves,
+                                         const CallOptions& call) {
   std::vector<VisibilityMethod> methods = {VisibilityMethod::kRaster};
   if (lookup == sampling::LookupMode::kExact) {
     methods.insert(methods.begin(), VisibilityMethod::kRaycast);
@@ -938,36 +942,35 @@ StatusOr<PlanReport> ChooseSampledMethod(Engine& engine, const std::string& seri
     plan.extra_work = whole.extra;
     for (int side : {4, 16}) {
       const WorkUnits units = SampledWork(method, points(side), samples);
-      option.probes.push_back({units.work, units.extra, [&run, method, side](const CallOptions& probe_call) {
-                                 return run(method, side, probe_call);
+      option.probes.push_back({units.work, units.extra, [run, method, side](const CallOptions& probe_call) {
+                                 return (*run)(method, side, probe_call);
                                }});
     }
+    option.probes_outlive_the_call = true;
     options.push_back(std::move(option));
   }
   if (options.empty())
     return absl::FailedPreconditionError(
         "method: no sampled method resolves this request in float32 (see the scene's anchor); name PLUCKER_EXACT");
-  return ChooseFastest(engine.cost_model(), std::move(options), call);
+  return ChooseFastest(engine.cost_model(), std::move(options), call, engine.idle_explorer());
 }
 
-StatusOr<PlanReport> ChooseHiddenSampleMapMethod(Engine& engine, const ResidentScene& resident,
+StatusOr<PlanReport> ChooseHiddenSampleMapMethod(Engine& engine, std::shared_ptr<const ResidentScene> held,
                                                  const sampling::HiddenSampleMapRequest& request,
                                                  const CallOptions& call) {
+  const ResidentScene& resident = *held;
   const int samples = request.source.sample_count;
-  auto sized = [&](int side) {
-    sampling::HiddenSampleMapRequest out = request;
-    out.receiver = ReducedReceiver(request.receiver, side);
-    return out;
-  };
-  auto run = [&](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
-    const sampling::HiddenSampleMapRequest probe = sized(side);
-    StatusOr<sampling::HiddenSampleMapResult> result =
-        samples > sampling::kMaxHiddenSampleMapSamples
-            ? SeveralMaps(engine, resident, method, probe, samples, probe_call, {})
-            : HiddenSampleMapBy(engine, resident, method, probe, probe_call);
-    if (!result.ok()) return result.status();
-    return ComputeMs(result->timing, result->table_ms);
-  };
+  auto run = std::make_shared<const SampledProbeRun>(
+      [&engine, held, request, samples](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
+        sampling::HiddenSampleMapRequest probe = request;
+        probe.receiver = ReducedReceiver(request.receiver, side);
+        StatusOr<sampling::HiddenSampleMapResult> result =
+            samples > sampling::kMaxHiddenSampleMapSamples
+                ? SeveralMaps(engine, *held, method, probe, samples, probe_call, {})
+                : HiddenSampleMapBy(engine, *held, method, probe, probe_call);
+        if (!result.ok()) return result.status();
+        return ComputeMs(result->timing, result->table_ms);
+      });
   auto points = [&](int side) {
     const sampling::ReceiverSpec receiver = ReducedReceiver(request.receiver, side);
     return double(receiver.width) * receiver.height;
@@ -982,22 +985,26 @@ StatusOr<PlanReport> ChooseHiddenSampleMapMethod(Engine& engine, const ResidentS
                              points, run, resolves, call);
 }
 
-StatusOr<PlanReport> ChoosePatchVisibilityMethod(Engine& engine, const ResidentScene& resident,
+sampling::PatchVisibilityRequest WithReceiverSide(const sampling::PatchVisibilityRequest& request, int side) {
+  sampling::PatchVisibilityRequest out = request;
+  if (side > 0) {
+    out.receiver_columns = std::min(request.receiver_columns, side);
+    out.receiver_rows = std::min(request.receiver_rows, side);
+  }
+  return out;
+}
+
+StatusOr<PlanReport> ChoosePatchVisibilityMethod(Engine& engine, std::shared_ptr<const ResidentScene> held,
                                                  const sampling::PatchVisibilityRequest& request,
                                                  const CallOptions& call) {
-  auto sized = [&](int side) {
-    sampling::PatchVisibilityRequest out = request;
-    if (side > 0) {
-      out.receiver_columns = std::min(request.receiver_columns, side);
-      out.receiver_rows = std::min(request.receiver_rows, side);
-    }
-    return out;
-  };
-  auto run = [&](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
-    VISQ_ASSIGN_OR_RETURN(const sampling::PatchVisibilityResult result,
-                          PatchVisibilityBy(engine, resident, method, sized(side), probe_call));
-    return ComputeMs(result.timing);
-  };
+  const ResidentScene& resident = *held;
+  auto sized = [&](int side) { return WithReceiverSide(request, side); };
+  auto run = std::make_shared<const SampledProbeRun>(
+      [&engine, held, request](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
+        VISQ_ASSIGN_OR_RETURN(const sampling::PatchVisibilityResult result,
+                              PatchVisibilityBy(engine, *held, method, WithReceiverSide(request, side), probe_call));
+        return ComputeMs(result.timing);
+      });
   auto points = [&](int side) {
     const sampling::PatchVisibilityRequest r = sized(side);
     return double(r.receiver_columns) * r.receiver_rows;
@@ -1079,7 +1086,7 @@ StatusOr<HiddenSampleMapAnswer> HiddenSampleMapUnstated(Engine& engine, const Hi
   if (query.method) {
     answer.method = *query.method;
   } else {
-    VISQ_ASSIGN_OR_RETURN(PlanReport report, ChooseHiddenSampleMapMethod(engine, *resident, checked, query.call));
+    VISQ_ASSIGN_OR_RETURN(PlanReport report, ChooseHiddenSampleMapMethod(engine, resident, checked, query.call));
     answer.method = std::get<VisibilityMethod>(report.chosen_plan().runs);
     answer.plan = std::move(report);
   }
@@ -1102,7 +1109,7 @@ StatusOr<PatchVisibilityAnswer> PatchVisibilityUnstated(Engine& engine, const Pa
   if (query.method) {
     answer.method = *query.method;
   } else {
-    VISQ_ASSIGN_OR_RETURN(PlanReport report, ChoosePatchVisibilityMethod(engine, *resident, query.request, query.call));
+    VISQ_ASSIGN_OR_RETURN(PlanReport report, ChoosePatchVisibilityMethod(engine, resident, query.request, query.call));
     answer.method = std::get<VisibilityMethod>(report.chosen_plan().runs);
     answer.plan = std::move(report);
   }

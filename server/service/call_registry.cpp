@@ -4,21 +4,39 @@
 
 namespace visq::service {
 
-void CallRegistry::Add(std::atomic<bool>* cancelled) {
-  std::lock_guard lock(mutex_);
-  calls_.insert(cancelled);
-  if (drain_ended_) *cancelled = true;
+void CallRegistry::Add(std::atomic<bool>* cancelled, bool computes) {
+  {
+    std::lock_guard lock(mutex_);
+    calls_[cancelled] = computes;
+    if (drain_ended_) *cancelled = true;
+  }
+  if (computes) WorkBegan();
 }
 
 void CallRegistry::Remove(std::atomic<bool>* cancelled) {
-  std::lock_guard lock(mutex_);
-  calls_.erase(cancelled);
+  bool computed = false;
+  {
+    std::lock_guard lock(mutex_);
+    const auto it = calls_.find(cancelled);
+    if (it == calls_.end()) return;
+    computed = it->second;
+    calls_.erase(it);
+  }
+  if (computed) WorkEnded();
+}
+
+void CallRegistry::WorkBegan() {
+  if (activity_) activity_(true);
+}
+
+void CallRegistry::WorkEnded() {
+  if (activity_) activity_(false);
 }
 
 size_t CallRegistry::EndDrain() {
   std::lock_guard lock(mutex_);
   drain_ended_ = true;
-  for (std::atomic<bool>* cancelled : calls_) *cancelled = true;
+  for (const auto& [cancelled, computes] : calls_) *cancelled = true;
   return calls_.size();
 }
 

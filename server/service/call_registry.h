@@ -7,8 +7,9 @@
 
 #include <atomic>
 #include <cstddef>
+#include <functional>
 #include <mutex>
-#include <set>
+#include <map>
 
 #include "common/status.h"
 
@@ -17,9 +18,19 @@ namespace visq::service {
 class CallRegistry {
  public:
   // A call's flag, raised at once when the drain has already ended.
-  void Add(std::atomic<bool>* cancelled);
+  // `computes`: the call uses the compute workers or the GL thread (every
+  // query), not only metadata; only such calls keep the server busy for
+  // the activity listener.
+  void Add(std::atomic<bool>* cancelled, bool computes = true);
   // Before the flag goes (the call's reactor is deleted).
   void Remove(std::atomic<bool>* cancelled);
+  // A call that the drain leaves to run out (an upload) but that keeps the
+  // server busy all the same.
+  void WorkBegan();
+  void WorkEnded();
+  // Told of every call beginning (true) and ending (false), before the
+  // server accepts calls: the core's idle exploration waits for quiet.
+  void SetActivityListener(std::function<void(bool began)> listener) { activity_ = std::move(listener); }
   // Raises every registered flag, and every one added later.
   // Returns how many calls were told to stop.
   size_t EndDrain();
@@ -31,8 +42,9 @@ class CallRegistry {
 
  private:
   mutable std::mutex mutex_;
-  std::set<std::atomic<bool>*> calls_;
+  std::map<std::atomic<bool>*, bool> calls_;  // each call's flag, and whether it computes
   std::atomic<bool> drain_ended_{false};
+  std::function<void(bool began)> activity_;
 };
 
 }  // namespace visq::service

@@ -179,6 +179,19 @@ std::string RenderPrometheusText(const ServerFigures& f) {
   for (const auto& [kind, b] : f.structure_builds)
     w.Sample("visq_structure_build_failures_total", {{"structure", kind}}, static_cast<double>(b.failures));
 
+  if (f.idle_exploration) {
+    const core::IdleExplorer::Figures& idle = *f.idle_exploration;
+    w.Single("visq_idle_probes_total", "counter",
+             "Probes of the server's choice of method run while no call was in flight (measured or cut).",
+             static_cast<double>(idle.probes_run));
+    w.Single("visq_idle_probes_preempted_total", "counter",
+             "Idle-time probes stopped by a call arriving; each waits for the next quiet spell.",
+             static_cast<double>(idle.probes_preempted));
+    w.Single("visq_idle_probes_pending", "gauge", "Idle-time probes waiting for a quiet spell.",
+             static_cast<double>(idle.pending));
+    w.Single("visq_idle_probe_seconds_total", "counter", "Time spent on idle-time probes.", idle.total_ms / 1e3);
+  }
+
   w.Single("visq_gpu_contexts_lost_total", "counter",
            "GPU contexts lost (GPU resets) since start; each failed the job that was running.",
            static_cast<double>(f.gpu_contexts_lost));

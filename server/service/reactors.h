@@ -37,7 +37,7 @@ enum class Lane { kCompute, kMetadata };
 // server's at shutdown), so work in progress can stop.
 class CancellableUnaryReactor final : public grpc::ServerUnaryReactor {
  public:
-  explicit CancellableUnaryReactor(CallRegistry& calls) : calls_(calls) { calls_.Add(&cancelled_); }
+  CancellableUnaryReactor(CallRegistry& calls, bool computes) : calls_(calls) { calls_.Add(&cancelled_, computes); }
   void OnCancel() override { cancelled_ = true; }
   void OnDone() override {
     calls_.Remove(&cancelled_);
@@ -58,7 +58,7 @@ template <typename Work>
 grpc::ServerUnaryReactor* RunUnaryCall(const ServiceContext& ctx, grpc::CallbackServerContext* context,
                                        const char* method, Work work, Lane lane = Lane::kCompute) {
   context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
-  auto* reactor = new CancellableUnaryReactor(ctx.calls);
+  auto* reactor = new CancellableUnaryReactor(ctx.calls, lane == Lane::kCompute);
   auto log = std::make_shared<RequestLog>(context, method, &ctx.metrics);
   if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
     log->Done(authorized);

@@ -126,6 +126,8 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   std::unique_ptr<Server> server(new Server());
   server->options_ = options;
   VISQ_ASSIGN_OR_RETURN(server->engine_, core::Engine::Create(options.engine));
+  if (core::IdleExplorer* explorer = server->engine_->idle_explorer())
+    server->calls_->SetActivityListener([explorer](bool began) { began ? explorer->CallBegan() : explorer->CallEnded(); });
   server->executor_ = std::make_unique<Executor>(options.worker_threads);
   server->metadata_executor_ = std::make_unique<Executor>(2);
   server->metrics_ = std::make_unique<Metrics>();

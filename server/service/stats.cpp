@@ -33,6 +33,7 @@ ServerFigures CollectServerFigures(const ServiceContext& ctx) {
       {"light_visibility", light.entries, light.bytes, light.capacity_bytes, light.hits, light.misses, light.evictions});
   f.methods = ctx.metrics.Summaries();
   f.structure_builds = ctx.engine.build_times().Snapshot();
+  if (const core::IdleExplorer* explorer = ctx.engine.idle_explorer()) f.idle_exploration = explorer->figures();
   f.process = ReadProcessFigures();
   return f;
 }

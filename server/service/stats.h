@@ -4,6 +4,7 @@
 
 #include <cstdint>
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -44,6 +45,7 @@ struct ServerFigures {
   std::vector<CacheFigures> caches;
   std::vector<MethodSummary> methods;
   std::map<std::string, core::BuildTimes::Figures> structure_builds;
+  std::optional<core::IdleExplorer::Figures> idle_exploration;  // none: the server does not explore when idle
   ProcessFigures process;
 };
 

@@ -52,7 +52,9 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
         engine_(ctx.engine),
         executor_(ctx.executor),
         uploads_(ctx.uploads),
-        response_(response) {
+        response_(response),
+        calls_(ctx.calls) {
+    calls_.WorkBegan();
     context->AddInitialMetadata("x-visq-server-id", ctx.server_id);
     // Refuse before a single chunk is stored.
     if (Status authorized = ctx.authorizer.Check(*context); !authorized.ok()) {
@@ -87,7 +89,10 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
     StartRead(&received_);
   }
 
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    calls_.WorkEnded();
+    delete this;
+  }
   void OnCancel() override { cancelled_ = true; }
 
  private:
@@ -200,6 +205,7 @@ class LoadSceneReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> 
   Executor& executor_;
   UploadLimits& uploads_;
   grpc::ByteBuffer* response_;
+  CallRegistry& calls_;
   grpc::ByteBuffer received_;
   uint64_t messages_read_ = 0;
   v1::LoadSceneRequest request_;
@@ -325,6 +331,14 @@ grpc::ServerUnaryReactor* VisibilityServiceImpl::GetStats(grpc::CallbackServerCo
       out->set_in_progress(b.in_progress);
       out->set_total_ms(b.total_ms);
       out->set_max_ms(b.max_ms);
+    }
+    if (f.idle_exploration) {
+      auto* idle = response->mutable_idle_exploration();
+      idle->set_probes_run(f.idle_exploration->probes_run);
+      idle->set_probes_preempted(f.idle_exploration->probes_preempted);
+      idle->set_probes_dropped(f.idle_exploration->probes_dropped);
+      idle->set_pending(f.idle_exploration->pending);
+      idle->set_total_ms(f.idle_exploration->total_ms);
     }
     for (const auto& m : f.methods) {
       auto* out = response->add_methods();

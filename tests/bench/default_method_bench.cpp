@@ -29,6 +29,7 @@
 #include <map>
 #include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -452,6 +453,12 @@ int main(int argc, char** argv) {
   bool verbose = false;
   app.add_flag("--verbose", verbose, "print the plans each of auto's calls weighed");
   app.add_option("--only", only, "run the requests of this scene alone (cornell_box_visq, sponza, flowers, bunny)");
+  double pause_ms = 0.0;
+  app.add_option("--pause-ms", pause_ms,
+                 "idle time after every call, in every mode (an editor's user between requests); the server "
+                 "probes in idle time what no request's share could pay for");
+  bool explore_when_idle = true;
+  app.add_option("--explore-when-idle", explore_when_idle, "the servers' --explore-when-idle");
   bool exact = false;
   uint32_t exact_side = 32;
   double exact_error = 0.02;
@@ -476,6 +483,8 @@ int main(int argc, char** argv) {
   std::printf("%-26s %-22s %9s %9s | %9s %9s | %s\n", "request", "auto chose", "first x", "warm x", "pred ms",
               "comp ms", "each method's first / warm ms (auto's first)");
   int rows = 0, failures = 0, predictions = 0, predictions_within_2x = 0;
+  uint64_t idle_probes = 0, idle_preempted = 0;
+  double idle_ms = 0.0;
   double worst_first = 0.0, worst_warm = 0.0;
   for (const Scene& scene : suite) {
     std::vector<std::string> modes = {"auto"};
@@ -486,7 +495,8 @@ int main(int argc, char** argv) {
     std::map<std::string, std::vector<Measured>> by_mode;
     for (const std::string& mode : modes) {
       visq::testing::ScratchDir repo;
-      auto server = ServerProcess::Start({repo.path(), {"--seed-samples"}});
+      auto server = ServerProcess::Start(
+          {repo.path(), {"--seed-samples", explore_when_idle ? "--explore-when-idle=true" : "--explore-when-idle=false"}});
       if (!server) {
         std::fprintf(stderr, "the server did not start\n");
         return 1;
@@ -506,11 +516,23 @@ int main(int argc, char** argv) {
       for (const Row& row : scene.rows) {
         Measured m;
         const bool runs = mode == "auto" || std::find(row.modes.begin(), row.modes.end(), mode) != row.modes.end();
+        const auto pause = [&] {
+          std::this_thread::sleep_for(std::chrono::microseconds(static_cast<int64_t>(pause_ms * 1000.0)));
+        };
         if (runs) {
           m.first = row.call(client, mode);
+          pause();
           m.warm = row.call(client, mode);
+          pause();
         }
         by_mode[mode].push_back(m);
+      }
+      if (mode == "auto") {
+        if (auto stats = client.GetStats(); stats.ok() && stats->has_idle_exploration()) {
+          idle_probes += stats->idle_exploration().probes_run();
+          idle_preempted += stats->idle_exploration().probes_preempted();
+          idle_ms += stats->idle_exploration().total_ms();
+        }
       }
     }
     for (size_t r = 0; r < scene.rows.size(); ++r) {
@@ -559,5 +581,9 @@ int main(int argc, char** argv) {
   std::printf("\n%d requests (%d failed): the chosen method's time over the fastest, worst %.2fx on the first call "
               "(probes included), %.2fx warm; predictions within 2x of the compute time: %d of %d\n",
               rows, failures, worst_first, worst_warm, predictions_within_2x, predictions);
+  std::printf("the auto servers' idle-time probes (%.0f ms paused after each call): %llu run, %llu stopped by a "
+              "call, %.0f ms\n",
+              pause_ms, static_cast<unsigned long long>(idle_probes), static_cast<unsigned long long>(idle_preempted),
+              idle_ms);
   return failures == 0 ? 0 : 1;
 }

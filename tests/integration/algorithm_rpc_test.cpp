@@ -3,7 +3,10 @@
 // the same segments, the exact light visibility's cache, and bad input.
 #include <bit>
 #include <cmath>
+#include <chrono>
 #include <cstdio>
+#include <string>
+#include <thread>
 
 #include <glm/glm.hpp>
 #include <gtest/gtest.h>
@@ -147,6 +150,74 @@ TEST_F(AlgorithmRpcTest, AMapNamingNoMethodRunsTheFasterOfTwoWithTheSameBits) {
   auto hough = client_->ComputeHiddenSampleMap(request);
   ASSERT_TRUE(hough.ok()) << hough.status();
   EXPECT_EQ(hough->figures.accuracy().method(), "raster-hough-lookup");
+}
+
+// A map too small to pay for probing RASTER (a quarter of the ray caster's
+// few ms) leaves that probe to the server's idle time: the first call
+// weighs the ray caster alone and says what waits; once the server has had
+// a quiet spell, the same request weighs both, from what idle time
+// measured, and gives the same bits. A server told not to explore when
+// idle leaves the method unweighed.
+TEST(IdleExplorationRpc, AProbeNoRequestCouldPayForRunsWhileTheServerIsIdle) {
+  for (const bool explore : {true, false}) {
+    SCOPED_TRACE(explore ? "exploring when idle" : "not exploring");
+    testing::ScratchDir repo;
+    auto server = testing::ServerProcess::Start(
+        {repo.path(),
+         {"--seed-samples", "--idle-quiet-ms", "20", explore ? "--explore-when-idle=true" : "--explore-when-idle=false"}});
+    ASSERT_NE(server, nullptr);
+    Client client({.address = server->address()});
+    v1::HiddenSampleMapRequest map;
+    map.mutable_scene()->set_name("cornell_box_visq");
+    SetPatch(map.mutable_source(), {-0.25, 1.99, -0.25}, {0.5, 0, 0}, {0, 0, 0.5});
+    SetPatch(map.mutable_receiver(), {-0.999, 0.001, -0.999}, {1.998, 0, 0}, {0, 0, 1.998});
+    map.mutable_samples()->set_count(32);
+    map.mutable_samples()->set_seed(7);
+    map.set_width(8);
+    map.set_height(8);
+    map.set_want_bitmasks(true);
+    auto weighs = [](const v1::Accuracy& accuracy, const std::string& method) {
+      for (const v1::PlanEstimate& plan : accuracy.plans())
+        if (plan.method() == method) return true;
+      return false;
+    };
+
+    auto first = client.ComputeHiddenSampleMap(map);
+    ASSERT_TRUE(first.ok()) << first.status();
+    const v1::Accuracy& before = first->figures.accuracy();
+    EXPECT_EQ(before.method(), "raycast");
+    EXPECT_FALSE(weighs(before, "raster-exact-lookup")) << before.note();
+    if (explore) {
+      EXPECT_NE(before.note().find("runs while the server is idle): raster-exact-lookup"), std::string::npos)
+          << before.note();
+      // GetStats is metadata: polling it does not stop the probe.
+      bool probed = false;
+      for (int i = 0; i < 300 && !probed; ++i) {
+        auto stats = client.GetStats();
+        ASSERT_TRUE(stats.ok()) << stats.status();
+        ASSERT_TRUE(stats->has_idle_exploration());
+        probed = stats->idle_exploration().probes_run() >= 1 && stats->idle_exploration().pending() == 0;
+        if (!probed) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      }
+      ASSERT_TRUE(probed) << "no idle-time probe finished within 30 s";
+    } else {
+      std::this_thread::sleep_for(std::chrono::milliseconds(500));
+      auto stats = client.GetStats();
+      ASSERT_TRUE(stats.ok()) << stats.status();
+      EXPECT_FALSE(stats->has_idle_exploration());
+    }
+
+    auto second = client.ComputeHiddenSampleMap(map);
+    ASSERT_TRUE(second.ok()) << second.status();
+    const v1::Accuracy& after = second->figures.accuracy();
+    EXPECT_EQ(weighs(after, "raster-exact-lookup"), explore) << after.note();
+    EXPECT_TRUE(weighs(after, "raycast")) << after.note();
+    ASSERT_EQ(second->blocked_bits.size(), first->blocked_bits.size());
+    size_t differing = 0;
+    for (size_t w = 0; w < first->blocked_bits.size(); ++w)
+      differing += std::popcount(first->blocked_bits[w] ^ second->blocked_bits[w]);
+    EXPECT_LE(differing, 8u * 8u * 32u / 1000u) << "the same bits whichever ran, float ties aside";
+  }
 }
 
 // Where the server weighs GPU_RAYCAST (on a GPU; here forced with
