@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <utility>
 
 #include "common/check.h"
@@ -43,6 +44,10 @@ void IdleExplorer::Offer(EqualAnswerOption option, size_t first_probe) {
   {
     std::lock_guard lock(mutex_);
     if (stopping_) return;
+    if (const auto resting = resting_until_.find(option.plan.cost_key); resting != resting_until_.end()) {
+      if (std::chrono::steady_clock::now() < resting->second) return;
+      resting_until_.erase(resting);
+    }
     for (auto it = pending_.begin(); it != pending_.end(); ++it)
       if (it->option.plan.cost_key == option.plan.cost_key) {
         pending_.erase(it);
@@ -114,7 +119,17 @@ void IdleExplorer::Loop() {
       bool replaced = false;
       for (const Pending& waiting : pending_)
         replaced = replaced || waiting.option.plan.cost_key == next.option.plan.cost_key;
-      if (!replaced) pending_.push_front(std::move(next));
+      next.longest_ms = std::max(next.longest_ms, ms);
+      if (++next.preempted >= kMostPreemptions) {
+        // What it learned: the method's probe costs more than it ran.
+        model_.RecordCutProbe(next.option.plan.cost_key, next.longest_ms);
+        resting_until_[next.option.plan.cost_key] = std::chrono::steady_clock::now() + kRestAfterOutlasting;
+        ++figures_.probes_dropped;
+        spdlog::debug("[idle probe] {} stopped by calls {} times: left, cut at {:.0f} ms", next.option.plan.cost_key,
+                      next.preempted, next.longest_ms);
+      } else if (!replaced) {
+        pending_.push_front(std::move(next));
+      }
     } else if (!stopping_) {
       ++figures_.probes_dropped;
       spdlog::info("[idle probe] {} failed: {}", next.option.plan.cost_key, probed.message());

@@ -18,6 +18,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <map>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -47,21 +48,27 @@ class IdleExplorer {
   IdleExplorer(const IdleExplorer&) = delete;
   IdleExplorer& operator=(const IdleExplorer&) = delete;
 
-  // A call began or ended (every call, metadata included: the explorer only
-  // needs to know that the server is busy). A call beginning stops a probe
-  // that is running.
+  // A call that computes began or ended (the service leaves metadata calls
+  // out). A call beginning stops a probe that is running.
   void CallBegan();
   void CallEnded();
 
   // Runs `option`'s probes from `first_probe` on at the next quiet spell.
   // The option's probes must own what they run on (probes_outlive_the_call);
-  // one left for the same cost series replaces an earlier one.
+  // one left for the same cost series replaces an earlier one. A series
+  // left after kMostPreemptions is not taken again for kRestAfterOutlasting.
   void Offer(EqualAnswerOption option, size_t first_probe);
 
+  // A probe stopped this many times outlasts this server's quiet spells:
+  // each try cost the call that stopped it the GL job or ray batch in
+  // flight, so it is dropped, recorded as cut at the longest it ran.
+  static constexpr int kMostPreemptions = 2;
+  static constexpr std::chrono::seconds kRestAfterOutlasting{60};
+
   struct Figures {
-    uint64_t probes_run = 0;        // finished: measured, cut at the budget or failed
+    uint64_t probes_run = 0;        // finished: measured, or cut at the budget
     uint64_t probes_preempted = 0;  // stopped by a call arriving, and waiting again
-    uint64_t probes_dropped = 0;    // over max_pending, or failed
+    uint64_t probes_dropped = 0;    // over max_pending, failed, or stopped kMostPreemptions times
     uint32_t pending = 0;
     double total_ms = 0.0;  // spent probing, preempted probes included
   };
@@ -71,6 +78,8 @@ class IdleExplorer {
   struct Pending {
     EqualAnswerOption option;
     size_t first_probe = 0;
+    int preempted = 0;       // times a call stopped it
+    double longest_ms = 0.0;  // the longest it ran before one did
   };
   void Loop();
   // Whether a probe may start now (the lock held); else how long to wait.
@@ -81,6 +90,8 @@ class IdleExplorer {
   mutable std::mutex mutex_;
   std::condition_variable wake_;
   std::deque<Pending> pending_;
+  // Series whose probe outlasted the quiet spells, and until when they rest.
+  std::map<std::string, std::chrono::steady_clock::time_point> resting_until_;
   int calls_in_flight_ = 0;
   std::chrono::steady_clock::time_point last_call_end_ = std::chrono::steady_clock::now();
   // The running probe's cancellation flag: raised by a call beginning or

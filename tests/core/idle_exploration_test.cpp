@@ -115,6 +115,27 @@ TEST(IdleExploration, ACallArrivingStopsTheProbeWhichRunsAgainAtTheNextQuietSpel
   EXPECT_EQ(explorer.figures().pending, 0u);
 }
 
+TEST(IdleExploration, AProbeStoppedTwiceByCallsIsLeftAsCutAtTheLongestItRan) {
+  CostModel model;
+  IdleExplorer explorer(model, {.quiet_ms = 5.0, .probe_budget_ms = 60000.0});
+  auto started = std::make_shared<std::atomic<int>>(0);
+  explorer.Offer(SlowOption("raster", milliseconds(60000), started), 0);
+  for (int stop = 1; stop <= IdleExplorer::kMostPreemptions; ++stop) {
+    ASSERT_TRUE(Eventually([&] { return *started == stop; }));
+    std::this_thread::sleep_for(milliseconds(30));
+    explorer.CallBegan();
+    ASSERT_TRUE(Eventually([&] { return explorer.figures().probes_preempted == uint64_t(stop); }));
+    explorer.CallEnded();
+  }
+  EXPECT_EQ(explorer.figures().pending, 0u);
+  EXPECT_EQ(explorer.figures().probes_dropped, 1u);
+  EXPECT_EQ(model.CutProbes("scene/map/raster"), 1);
+  std::this_thread::sleep_for(milliseconds(50));
+  EXPECT_EQ(*started, IdleExplorer::kMostPreemptions) << "not started again";
+  explorer.Offer(SlowOption("raster", milliseconds(60000), started), 0);
+  EXPECT_EQ(explorer.figures().pending, 0u) << "nor taken again for a while";
+}
+
 TEST(IdleExploration, AProbePastItsBudgetIsRecordedAsCut) {
   CostModel model;
   IdleExplorer explorer(model, {.quiet_ms = 5.0, .probe_budget_ms = 40.0});
