@@ -98,6 +98,12 @@ StatusOr<std::unique_ptr<Engine>> Engine::Create(const EngineOptions& options) {
 
 Engine::~Engine() = default;
 
+StatusOr<std::shared_ptr<const ResidentScene>> StillHeld(const std::weak_ptr<const ResidentScene>& scene) {
+  std::shared_ptr<const ResidentScene> held = scene.lock();
+  if (!held) return absl::FailedPreconditionError("the scene this probe measures was unloaded or replaced");
+  return held;
+}
+
 void Engine::LoadRepositoryScenes() {
   if (!options_.load_repository_at_start) {
     spdlog::info("{} scene(s) in the repository load on first use", repository_->List().size());

@@ -142,6 +142,11 @@ struct ResidentScene {
   mutable AbsorberRaysCache absorber_rays;  // Transmittance's RAY_STABBING
 };
 
+// The scene a probe left to idle time runs on, which it holds weakly so
+// that a scene unloaded or replaced meanwhile is not kept in memory for it:
+// FAILED_PRECONDITION (the probe cannot answer) once nothing else holds it.
+[[nodiscard]] StatusOr<std::shared_ptr<const ResidentScene>> StillHeld(const std::weak_ptr<const ResidentScene>& scene);
+
 // A ResidentScene of `scene` under `name`, with what is derived from the
 // geometry once (hash, emissive count, estimate); no version yet.
 std::shared_ptr<ResidentScene> NewResidentScene(std::string name, Scene scene);

@@ -378,7 +378,9 @@ StatusOr<PlanReport> ChooseObscuranceMethod(Engine& engine, std::shared_ptr<cons
     plan.error_bound = bound;
     for (uint32_t rays : {4u, 16u})
       options[slot].probes.push_back(
-          {double(rays), 0.0, [&engine, held, owned, method, rays](const CallOptions& call) {
+          {double(rays), 0.0, [&engine, scene = std::weak_ptr(held), owned, method, rays](const CallOptions& call)
+                                  -> StatusOr<double> {
+             VISQ_ASSIGN_OR_RETURN(const std::shared_ptr<const ResidentScene> held, StillHeld(scene));
              return RaycastEstimateMs(engine, *held, *owned, method, rays, call);
            }});
     options[slot].probes_outlive_the_call = true;

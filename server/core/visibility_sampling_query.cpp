@@ -961,7 +961,9 @@ StatusOr<PlanReport> ChooseHiddenSampleMapMethod(Engine& engine, std::shared_ptr
   const ResidentScene& resident = *held;
   const int samples = request.source.sample_count;
   auto run = std::make_shared<const SampledProbeRun>(
-      [&engine, held, request, samples](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
+      [&engine, scene = std::weak_ptr(held), request, samples](VisibilityMethod method, int side,
+                                                               const CallOptions& probe_call) -> StatusOr<double> {
+        VISQ_ASSIGN_OR_RETURN(const std::shared_ptr<const ResidentScene> held, StillHeld(scene));
         sampling::HiddenSampleMapRequest probe = request;
         probe.receiver = ReducedReceiver(request.receiver, side);
         StatusOr<sampling::HiddenSampleMapResult> result =
@@ -1000,7 +1002,9 @@ StatusOr<PlanReport> ChoosePatchVisibilityMethod(Engine& engine, std::shared_ptr
   const ResidentScene& resident = *held;
   auto sized = [&](int side) { return WithReceiverSide(request, side); };
   auto run = std::make_shared<const SampledProbeRun>(
-      [&engine, held, request](VisibilityMethod method, int side, const CallOptions& probe_call) -> StatusOr<double> {
+      [&engine, scene = std::weak_ptr(held), request](VisibilityMethod method, int side,
+                                                      const CallOptions& probe_call) -> StatusOr<double> {
+        VISQ_ASSIGN_OR_RETURN(const std::shared_ptr<const ResidentScene> held, StillHeld(scene));
         VISQ_ASSIGN_OR_RETURN(const sampling::PatchVisibilityResult result,
                               PatchVisibilityBy(engine, *held, method, WithReceiverSide(request, side), probe_call));
         return ComputeMs(result.timing);
